@@ -1,0 +1,143 @@
+"""Renderer benchmark: first hit, AO and the low-res pass, with and without brick skipping.
+
+    python -m isosr_bench.bench_render --device cuda          # full sizes, on a GPU
+    python -m isosr_bench.bench_render --device cpu --smoke  # small sizes, CPU (CI)
+
+Per volume, averaged over a 10-frame orbit: 1920x1080 first hit (mask, normal, depth) with
+and without skipping, 1080p with 128 AO rays, and the 480x270 low-res pass (mask, normal,
+depth, flow). Prints a Markdown table and writes ``benchmarks/results/bench_render_*.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+import warp as wp
+
+from isosr_render import Renderer, RenderRequest, Volume, open_volume, orbit_path
+from isosr_render.catalog import entry
+from isosr_render.flow_fill import fill_flow
+from isosr_render.procedural import default_iso
+
+from .common import print_table, time_frames, write_result
+
+FRAMES = 10
+AO_RADIUS = 0.02  # world units: 20 voxels of a 1024^3 volume, 5 of a 256^3 one
+LOWRES_OUTPUTS = ("mask", "normal", "depth", "flow")
+FIRST_HIT_OUTPUTS = ("mask", "normal", "depth")
+
+
+def upsampled(volume: Volume, factor: int, device: str) -> Volume:
+    """``volume`` trilinearly upsampled by ``factor`` per axis (a stand-in for a big scan)."""
+    x = torch.from_numpy(volume.data).to(device)[None, None]
+    size = tuple((n - 1) * factor + 1 for n in volume.shape)
+    big = F.interpolate(x, size=size, mode="trilinear", align_corners=True)[0, 0]
+    return Volume(big.cpu().numpy(), volume.spacing, volume.value_range, f"{volume.name} x{factor}")
+
+
+def volumes(smoke: bool, device: str) -> list[tuple[Volume, float]]:
+    """``(volume, normalized iso)`` pairs: two real 256^3 scans and a 1024^3 one (smoke: small procedural)."""
+    if smoke:
+        specs = ("proc:cloud:1@64", "proc:metaballs:2@64")
+        return [(v, v.normalized_iso(default_iso(spec))) for spec in specs for v in [open_volume(spec)]]
+    out = []
+    for name in ("bonsai", "embryo"):
+        e = entry(name)
+        out.append((open_volume(str(e["path"])), e["otsu_iso_normalized"]))
+    out.append((upsampled(out[0][0], 4, device), out[0][1]))
+    return out
+
+
+def samples_per_frame(renderer: Renderer, camera, request: RenderRequest) -> tuple[int, float]:
+    """Total volume samples and hit fraction of one frame (a separate, counting render)."""
+    counted = RenderRequest(**{**request.__dict__, "outputs": request.outputs + ("samples",)})
+    frame = renderer.render(camera, counted)
+    return int(frame.samples.sum()), float(frame.mask.float().mean())
+
+
+def bench_volume(volume: Volume, iso: float, device: str, smoke: bool) -> list[dict]:
+    """All cases on one volume."""
+    hi_w, hi_h = (320, 180) if smoke else (1920, 1080)
+    lo_w, lo_h = hi_w // 4, hi_h // 4
+    ao_samples = 16 if smoke else 128
+    renderer = Renderer(volume, device)
+    path = orbit_path(FRAMES + 1, yaw0=20.0, yaw_step=3.0, pitch=20.0, distance=1.8)
+    cases = {
+        "first hit": RenderRequest(hi_w, hi_h, iso, FIRST_HIT_OUTPUTS),
+        "first hit, no skipping": RenderRequest(hi_w, hi_h, iso, FIRST_HIT_OUTPUTS, skip=False),
+        f"AO {ao_samples}": RenderRequest(hi_w, hi_h, iso, FIRST_HIT_OUTPUTS + ("ao",), ao_samples=ao_samples,
+                                         ao_radius=AO_RADIUS),
+        "low-res": RenderRequest(lo_w, lo_h, iso, LOWRES_OUTPUTS, prev_camera=path[0]),
+    }
+    rows = []
+    for case, request in cases.items():
+        def frame(i, request=request):
+            req = request if request.prev_camera is None else RenderRequest(
+                **{**request.__dict__, "prev_camera": path[i % FRAMES]})
+            renderer.render(path[i % FRAMES + 1], req)
+        t = time_frames(frame, FRAMES, device, warmup=1 if smoke else 3)
+        samples, coverage = samples_per_frame(renderer, path[1], request)
+        ms = t.get("gpu_ms", t["wall_ms"])
+        rays = request.width * request.height
+        rows.append({"volume": volume.name, "voxels": "x".join(map(str, volume.shape)), "case": case,
+                     "size": f"{request.width}x{request.height}", "ms": ms, **t,
+                     "Mrays/s": rays / ms / 1e3, "Gsamples/s": samples / ms / 1e6,
+                     "samples/pixel": samples / rays, "coverage": coverage})
+    first = {r["case"]: r["ms"] for r in rows}
+    rows[0]["skip speedup"] = first["first hit, no skipping"] / first["first hit"]
+    return rows
+
+
+def bench_flow_fill(volume: Volume, iso: float, device: str, smoke: bool) -> list[dict]:
+    """Dense-flow fills at the low-res size: OpenCV Navier-Stokes (CPU) against push-pull."""
+    w, h = (80, 45) if smoke else (480, 270)
+    path = orbit_path(2, yaw0=20.0, yaw_step=3.0, pitch=20.0, distance=1.8)
+    frame = Renderer(volume, device).render(path[1], RenderRequest(w, h, iso, ("mask", "flow"), prev_camera=path[0]))
+    rows = []
+    for method in ("ns", "pushpull"):
+        t = time_frames(lambda i: fill_flow(frame.flow, frame.mask, method), FRAMES, device)
+        rows.append({"volume": volume.name, "case": f"flow fill {method}", "size": f"{w}x{h}",
+                     "ms": t.get("gpu_ms", t["wall_ms"]), **t})
+    return rows
+
+
+def bench_cpu_threads(volume: Volume, iso: float) -> list[dict]:
+    """CPU row bands: one thread against all cores, measured in one run (a ratio)."""
+    request = RenderRequest(256, 256, iso, FIRST_HIT_OUTPUTS)
+    camera = orbit_path(1, yaw0=20.0, pitch=20.0, distance=1.8)[0]
+    rows = []
+    for threads in (1, os.cpu_count() or 1):
+        renderer = Renderer(volume, "cpu", threads=threads)
+        t = time_frames(lambda i: renderer.render(camera, request), 5, "cpu")
+        rows.append({"volume": volume.name, "case": f"cpu first hit, {threads} thread(s)", "size": "256x256",
+                     "ms": t["wall_ms"], **t})
+    rows[-1]["thread speedup"] = rows[0]["ms"] / rows[-1]["ms"]
+    return rows
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--smoke", action="store_true", help="small sizes (CI)")
+    args = parser.parse_args(argv)
+    wp.config.log_level = wp.LOG_WARNING
+    wp.init()
+    cases = volumes(args.smoke, args.device)
+    rows = []
+    for volume, iso in cases:
+        with wp.ScopedTimer(f"{volume.name} {volume.shape}", print=True):
+            rows += bench_volume(volume, iso, args.device, args.smoke)
+    rows += bench_flow_fill(*cases[0], args.device, args.smoke)
+    if args.device == "cpu":
+        rows += bench_cpu_threads(*volumes(True, "cpu")[0])
+    print_table(rows, ["volume", "voxels", "case", "size", "ms", "wall_ms", "Mrays/s", "Gsamples/s",
+                       "samples/pixel", "coverage", "skip speedup", "thread speedup"])
+    print(f"wrote {write_result('bench_render', args.device, rows)}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,95 @@
+"""What every benchmark shares: timing, the record of where and how it ran, the result file."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+RESULTS_DIR = Path(__file__).resolve().parent / "results"
+
+
+def device_name(device: str) -> str:
+    """A human name for the device: the GPU's, or the CPU model and core count."""
+    if device.startswith("cuda"):
+        return torch.cuda.get_device_name(torch.device(device))
+    model = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{model} ({os.cpu_count()} cores)"
+
+
+def commit() -> str:
+    """``$ISOSR_COMMIT`` (set where the checkout travels without .git), else git's HEAD."""
+    if os.environ.get("ISOSR_COMMIT"):
+        return os.environ["ISOSR_COMMIT"]
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                              check=True, cwd=Path(__file__).parent).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def time_frames(fn, frames: int, device: str, warmup: int = 2) -> dict:
+    """Mean wall and device time of ``fn(i)`` over ``frames`` calls, in milliseconds.
+
+    On CUDA the device time comes from events around each call (what the GPU spent);
+    wall time includes Python and launch overhead, synchronized after each call.
+    """
+    cuda = device.startswith("cuda")
+    for i in range(warmup):
+        fn(i)
+    if cuda:
+        torch.cuda.synchronize()
+    wall, gpu = [], []
+    for i in range(frames):
+        start = time.perf_counter()
+        if cuda:
+            e0, e1 = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+            e0.record()
+        fn(i)
+        if cuda:
+            e1.record()
+            torch.cuda.synchronize()
+            gpu.append(e0.elapsed_time(e1))
+        wall.append((time.perf_counter() - start) * 1e3)
+    result = {"wall_ms": sum(wall) / frames, "wall_ms_min": min(wall)}
+    if cuda:
+        result.update(gpu_ms=sum(gpu) / frames, gpu_ms_min=min(gpu))
+    return result
+
+
+def write_result(name: str, device: str, rows: list[dict], extra: dict | None = None) -> Path:
+    """Write ``benchmarks/results/NAME_<device kind>.json`` with device, commit and command."""
+    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
+    kind = "cuda" if device.startswith("cuda") else "cpu"
+    path = RESULTS_DIR / f"{name}_{kind}.json"
+    record = {"benchmark": name, "device": device_name(device), "commit": commit(),
+              "command": " ".join(sys.orig_argv),
+              "torch": torch.__version__, "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+              "rows": rows, **(extra or {})}
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(record, indent=1))
+    os.replace(tmp, path)
+    return path
+
+
+def print_table(rows: list[dict], columns: list[str]) -> None:
+    """A Markdown table of ``rows`` restricted to ``columns``."""
+    def fmt(v):
+        return f"{v:.3g}" if isinstance(v, float) else str(v)
+    print("| " + " | ".join(columns) + " |")
+    print("|" + "---|" * len(columns))
+    for r in rows:
+        print("| " + " | ".join(fmt(r.get(c, "")) for c in columns) + " |")

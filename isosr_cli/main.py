@@ -1,0 +1,36 @@
+"""`isosr`: the one command line of the project."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import warp as wp
+
+wp.config.log_level = wp.LOG_WARNING  # before isosr_render imports: no banner on every command
+
+from isosr_render.volume import VolumeError  # noqa: E402
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The parser with every subcommand."""
+    from isosr_cli import render_cmd
+
+    parser = argparse.ArgumentParser(prog="isosr", description="Isosurface rendering with learned super-resolution.")
+    subparsers = parser.add_subparsers(dest="command", required=True)
+    render_cmd.add_parser(subparsers)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run a subcommand; bad input ends with a one-line error and exit code 2."""
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except (VolumeError, ValueError, FileNotFoundError, RuntimeError) as e:
+        print(f"isosr {args.command}: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,171 @@
+"""`isosr render`: one frame of an isosurface to a frame file (.npz) or an image (.png)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from isosr_render import Camera, Renderer, RenderRequest, open_volume, orbit
+from isosr_render.buffers import FrameBuffers
+from isosr_render.conventions import BUFFER_NAMES
+from isosr_render.procedural import default_iso
+
+PNG_DEFAULT = "color"
+
+
+def _triple(text: str) -> tuple[float, float, float]:
+    """Parse ``x,y,z``."""
+    parts = text.split(",")
+    if len(parts) != 3:
+        raise argparse.ArgumentTypeError(f"expected x,y,z, got {text!r}")
+    try:
+        return tuple(float(p) for p in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected three numbers x,y,z, got {text!r}") from None
+
+
+def _size(text: str) -> tuple[int, int]:
+    """Parse ``WxH``."""
+    try:
+        w, h = (int(p) for p in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WxH, e.g. 640x480, got {text!r}") from None
+    return w, h
+
+
+def add_parser(subparsers) -> None:
+    """Register ``render`` and its options."""
+    p = subparsers.add_parser("render", help="render one frame of an isosurface",
+                              description=__doc__, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("volume", help="volume file (.nii[.gz], .nrrd, .nhdr, .dat, NAME_XxYxZ_DTYPE.raw[.gz], "
+                                  ".npy, .npz) or procedural spec (proc:sphere, proc:torus, proc:cloud:SEED, "
+                                  "proc:metaballs:SEED, optional @SIZE)")
+    p.add_argument("--iso", type=float, help="iso-value in data units (default: the procedural volume's own, "
+                                             "else Otsu's threshold)")
+    p.add_argument("--normalized-iso", action="store_true", help="--iso is on the normalized [0, 1] scale")
+    p.add_argument("--size", type=_size, default=(640, 480), help="image size WxH")
+    cam = p.add_argument_group("camera (world frame: box centered at 0, longest side 1)")
+    cam.add_argument("--eye", type=_triple, help="camera position x,y,z")
+    cam.add_argument("--target", type=_triple, default=(0.0, 0.0, 0.0), help="look-at point")
+    cam.add_argument("--up", type=_triple, default=(0.0, 1.0, 0.0), help="up direction")
+    cam.add_argument("--fov", type=float, default=40.0, help="vertical field of view, degrees")
+    cam.add_argument("--orbit", type=_triple, help="YAW,PITCH,DIST around --target instead of --eye")
+    cam.add_argument("--prev-eye", type=_triple, help="previous camera position, for flow")
+    cam.add_argument("--prev-orbit", type=_triple, help="previous camera as YAW,PITCH,DIST, for flow")
+    p.add_argument("--outputs", default="mask,normal,depth,color",
+                   help=f"comma-separated buffers: {','.join(BUFFER_NAMES)},samples")
+    p.add_argument("--ao-samples", type=int, default=64, help="AO rays per hit")
+    p.add_argument("--ao-radius", type=float, default=0.05, help="AO ray length (world units)")
+    p.add_argument("--step", type=float, help="ray step (world units; default half the smallest voxel)")
+    p.add_argument("--voxel-units", action="store_true", help="--step and --ao-radius are in voxels")
+    p.add_argument("--refine", choices=("secant", "bisection"), default="secant", help="hit refinement")
+    p.add_argument("--refine-steps", type=int, default=4, help="refinement steps")
+    p.add_argument("--spp", type=int, default=1, help="rays per pixel (supersampling)")
+    p.add_argument("--flow-fill", choices=("none", "ns", "pushpull"), default="none",
+                   help="fill the flow of pixels without a hit")
+    p.add_argument("--seed", type=int, default=0, help="AO ray seed")
+    p.add_argument("--no-skip", action="store_true", help="march every brick (to measure skipping)")
+    p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
+    p.add_argument("--png-of", choices=BUFFER_NAMES, help="with a .png output: the buffer to show")
+    p.add_argument("-o", "--output", required=True, help="FILE.npz (frame file) or FILE.png")
+    p.set_defaults(func=run)
+
+
+def _camera(orbit_arg, eye, target, up, fov) -> Camera:
+    """A camera from --orbit or --eye (one of them given)."""
+    if orbit_arg is not None:
+        return orbit(*orbit_arg, target=target, fov_y=fov)
+    return Camera(eye, target, up, fov)
+
+
+def visualize(frame: FrameBuffers, name: str) -> np.ndarray:
+    """An 8-bit RGB image of one buffer: color as is, unit vectors and scalars mapped to [0, 1]."""
+    a = getattr(frame, name).float().cpu()
+    hit = frame.mask.cpu() > 0 if frame.mask is not None else torch.ones(a.shape[:2], dtype=torch.bool)
+    if name == "normal":
+        rgb = (a + 1.0) * 0.5 * hit[..., None]
+    elif name == "position":
+        rgb = (a + 0.5).clamp(0, 1) * hit[..., None]
+    elif name == "flow":
+        mag, ang = cv2.cartToPolar(a[..., 0].numpy(), a[..., 1].numpy(), angleInDegrees=True)
+        hsv = np.stack([ang / 2, np.full_like(mag, 255), 255 * mag / max(mag.max(), 1e-6)], -1)
+        return cv2.cvtColor(hsv.astype(np.uint8), cv2.COLOR_HSV2RGB)
+    elif name == "depth":
+        d = a[hit] if hit.any() else a.flatten()
+        lo, hi = float(d.min()), float(d.max())
+        gray = torch.where(hit, 1.0 - (a - lo) / max(hi - lo, 1e-12) * 0.8, torch.zeros_like(a))
+        rgb = gray[..., None].expand(*gray.shape, 3)
+    elif a.ndim == 2:
+        rgb = a[..., None].expand(*a.shape, 3)
+    else:
+        rgb = a
+    return (rgb.clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
+
+
+def write_png(path: Path, rgb: np.ndarray) -> None:
+    """Write an RGB image atomically (temporary file, then rename)."""
+    ok, data = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise RuntimeError(f"could not encode {path}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    with os.fdopen(fd, "wb") as f:
+        f.write(data.tobytes())
+    os.replace(tmp, path)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Render as the arguments say; print what was done and how long it took."""
+    out = Path(args.output)
+    if out.suffix not in (".npz", ".png"):
+        raise ValueError(f"output must end in .npz or .png, got {out.name}")
+    if (args.eye is None) == (args.orbit is None):
+        if args.eye is None and args.orbit is None:
+            args.orbit = (30.0, 20.0, 1.8)
+        else:
+            raise ValueError("give either --eye or --orbit, not both")
+    if args.prev_eye is not None and args.prev_orbit is not None:
+        raise ValueError("give either --prev-eye or --prev-orbit, not both")
+    outputs = tuple(o.strip() for o in args.outputs.split(",") if o.strip())
+    if out.suffix == ".png":
+        shown = args.png_of or PNG_DEFAULT
+        outputs = tuple(dict.fromkeys(outputs + (shown,)))
+
+    volume = open_volume(args.volume)
+    if args.iso is None:
+        iso = volume.normalized_iso(default_iso(args.volume)) if args.volume.startswith("proc:") else volume.otsu_iso()
+    else:
+        iso = args.iso if args.normalized_iso else volume.normalized_iso(args.iso)
+    unit = volume.voxel_size_world() if args.voxel_units else 1.0
+    camera = _camera(args.orbit, args.eye, args.target, args.up, args.fov)
+    prev = None
+    if args.prev_eye is not None or args.prev_orbit is not None:
+        prev = _camera(args.prev_orbit, args.prev_eye, args.target, args.up, args.fov)
+    request = RenderRequest(
+        width=args.size[0], height=args.size[1], iso=iso, outputs=outputs,
+        step=None if args.step is None else args.step * unit, refine=args.refine, refine_steps=args.refine_steps,
+        spp=args.spp, ao_samples=args.ao_samples, ao_radius=args.ao_radius * unit, seed=args.seed,
+        prev_camera=prev, flow_fill=args.flow_fill, skip=not args.no_skip)
+
+    renderer = Renderer(volume, args.device)
+    start = time.perf_counter()
+    frame = renderer.render(camera, request)
+    if renderer.device.is_cuda:
+        torch.cuda.synchronize()
+    elapsed = time.perf_counter() - start
+    if out.suffix == ".npz":
+        frame.save_npz(out)
+    else:
+        write_png(out, visualize(frame, shown))
+    lo, hi = volume.value_range
+    print(f"{volume.name}: {volume.shape} voxels, iso {iso:.4f} normalized ({lo + iso * (hi - lo):g} in data units); "
+          f"rendered {','.join(frame.present())} at {request.width}x{request.height} on {renderer.device} "
+          f"in {elapsed * 1e3:.1f} ms -> {out}")
+    return 0

@@ -1,0 +1,105 @@
+"""A look-at perspective camera, orbit helpers and the matrices the renderer needs.
+
+Frames and units follow :mod:`isosr_render.conventions`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera looking from ``eye`` at ``target``.
+
+    Attributes:
+        eye: camera position, world frame.
+        target: point the camera looks at.
+        up: approximate up direction; must not be parallel to ``target - eye``.
+        fov_y: vertical field of view in degrees, in (0, 180).
+    """
+
+    eye: tuple[float, float, float] = (0.0, 0.0, 2.0)
+    target: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    fov_y: float = 40.0
+
+    def __post_init__(self):
+        for name in ("eye", "target", "up"):
+            v = np.asarray(getattr(self, name), dtype=np.float64)
+            if v.shape != (3,) or not np.isfinite(v).all():
+                raise ValueError(f"camera {name} must be 3 finite numbers, got {getattr(self, name)}")
+            object.__setattr__(self, name, tuple(float(c) for c in v))
+        if not 0.0 < self.fov_y < 180.0:
+            raise ValueError(f"camera fov_y must lie in (0, 180) degrees, got {self.fov_y}")
+        forward = np.subtract(self.target, self.eye)
+        if np.linalg.norm(forward) < 1e-12:
+            raise ValueError("camera eye and target coincide")
+        if np.linalg.norm(np.cross(forward, self.up)) < 1e-9 * np.linalg.norm(forward) * np.linalg.norm(self.up):
+            raise ValueError("camera up is parallel to the viewing direction (or zero)")
+
+    def basis(self) -> np.ndarray:
+        """Rows: the camera's right, up and backward (+z view) axes in world coordinates."""
+        backward = np.subtract(self.eye, self.target)
+        backward /= np.linalg.norm(backward)
+        right = np.cross(self.up, backward)
+        right /= np.linalg.norm(right)
+        up = np.cross(backward, right)
+        return np.stack([right, up, backward])
+
+    def view_matrix(self) -> np.ndarray:
+        """4x4 world-to-view matrix."""
+        rot = self.basis()
+        view = np.eye(4)
+        view[:3, :3] = rot
+        view[:3, 3] = -rot @ np.asarray(self.eye)
+        return view
+
+    def tan_half_fov(self) -> float:
+        return math.tan(math.radians(self.fov_y) * 0.5)
+
+    def project(self, points: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+        """Project world points to pixel coordinates (x right, y down).
+
+        Returns:
+            ``(pixels, depth)``: pixels of shape (..., 2) and view depth ``-z_view`` of shape
+            (...,). Points with depth <= 0 are behind the camera; their pixels are meaningless.
+        """
+        p = np.asarray(points, dtype=np.float64)
+        view = self.view_matrix()
+        pv = p @ view[:3, :3].T + view[:3, 3]
+        depth = -pv[..., 2]
+        safe = np.where(np.abs(depth) > 1e-12, depth, 1e-12)
+        t = self.tan_half_fov()
+        aspect = width / height
+        ndc_x = pv[..., 0] / (safe * t * aspect)
+        ndc_y = pv[..., 1] / (safe * t)
+        px = (ndc_x + 1.0) * 0.5 * width
+        py = (1.0 - ndc_y) * 0.5 * height
+        return np.stack([px, py], axis=-1), depth
+
+
+def orbit(yaw: float, pitch: float, distance: float, target=(0.0, 0.0, 0.0), fov_y: float = 40.0) -> Camera:
+    """A camera on a sphere around ``target``, world +y up.
+
+    Args:
+        yaw: degrees around +y, 0 looks from +z.
+        pitch: degrees above the xz plane, in (-90, 90).
+        distance: distance from ``target``, positive.
+    """
+    if not -90.0 < pitch < 90.0:
+        raise ValueError(f"orbit pitch must lie in (-90, 90) degrees, got {pitch}")
+    if not distance > 0:
+        raise ValueError(f"orbit distance must be positive, got {distance}")
+    y, p = math.radians(yaw), math.radians(pitch)
+    offset = distance * np.array([math.cos(p) * math.sin(y), math.sin(p), math.cos(p) * math.cos(y)])
+    return Camera(tuple(np.add(target, offset)), tuple(target), (0.0, 1.0, 0.0), fov_y)
+
+
+def orbit_path(frames: int, yaw0: float = 0.0, yaw_step: float = 2.0, pitch: float = 20.0,
+               distance: float = 1.8, fov_y: float = 40.0) -> list[Camera]:
+    """A smooth orbit: ``frames`` cameras, ``yaw_step`` degrees apart."""
+    return [orbit(yaw0 + i * yaw_step, pitch, distance, fov_y=fov_y) for i in range(frames)]

@@ -1,0 +1,73 @@
+"""The conventions every stage of isosr shares, written once.
+
+World frame
+    Right-handed. The volume's axes x, y, z are the world's x, y, z. Voxel values are point
+    samples on a grid (as in VTK image data): voxel ``(i, j, k)`` sits at
+    ``(i, j, k) * spacing``, so the data spans ``(n - 1) * spacing`` per axis. That box is
+    centered at the origin and scaled so that its longest side is 1. Lengths given "in
+    world units" (step, AO radius, depth) are in this frame.
+
+View space
+    OpenGL style: the camera sits at the origin and looks down -z, +x points right and +y
+    up. Image rows run top to bottom: pixel ``(row, col)`` has its center at
+    ``(col + 0.5, row + 0.5)`` in pixel coordinates, x right and y down.
+
+Buffers (float32, image layout ``(H, W[, C])``)
+    mask     1 where the pixel's ray hits the isosurface, else 0. With supersampling it is
+             the covered fraction of the pixel, in [0, 1]; the network's mask is an alpha
+             in [0, 1] too.
+    normal   unit surface normal in view space, the direction of the scalar field's
+             gradient turned to face the camera (``dot(normal, to_camera) >= 0``). Where the
+             gradient vanishes it is the direction back along the ray. 0 where mask is 0.
+    depth    view-space depth of the hit, ``-z_view`` (positive in front of the camera), in
+             world units. 0 where mask is 0.
+    position world-space hit point. 0 where mask is 0.
+    flow     backward screen-space flow in pixels: ``flow[row, col] = p_prev - p_cur``,
+             where ``p_cur`` is the pixel's position and ``p_prev`` is where the same
+             surface point projects in the previous frame (x right, y down). Sampling the
+             previous frame at ``p_cur + flow`` aligns it with the current frame. 0 where
+             mask is 0 (unless a dense fill is asked for) or where the point lay behind the
+             previous camera.
+    ao       ambient occlusion in [0, 1], 1 = unoccluded. 0 where mask is 0.
+    color    shaded color in [0, 1], RGB, composited over the background.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# Buffer names in the order the frame file and the API list them.
+BUFFER_NAMES = ("mask", "normal", "depth", "position", "flow", "ao", "color")
+# Channels per buffer; 1 means a plain (H, W) image.
+BUFFER_CHANNELS = {"mask": 1, "normal": 3, "depth": 1, "position": 3, "flow": 2, "ao": 1, "color": 3}
+
+# Value written where a buffer has no surface (mask == 0).
+EMPTY_VALUE = 0.0
+
+# Background color behind the isosurface (RGB in [0, 1]).
+BACKGROUND_RGB = (1.0, 1.0, 1.0)
+
+
+def world_from_voxel(shape: tuple[int, int, int], spacing: tuple[float, float, float]):
+    """Per-axis scale and offset so that ``world = voxel * scale + offset``.
+
+    Args:
+        shape: voxel counts ``(nx, ny, nz)``, each at least 2.
+        spacing: voxel spacing per axis, positive.
+
+    Returns:
+        ``(scale, offset)``, two float64 arrays of shape (3,).
+    """
+    shape_a = np.asarray(shape, dtype=np.float64)
+    spacing_a = np.asarray(spacing, dtype=np.float64)
+    extent = (shape_a - 1.0) * spacing_a
+    scale = spacing_a / extent.max()
+    offset = -0.5 * extent / extent.max()
+    return scale, offset
+
+
+def pixel_centers(width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel-center coordinates ``(x, y)``, each of shape (H, W), x right and y down."""
+    x = np.arange(width, dtype=np.float64) + 0.5
+    y = np.arange(height, dtype=np.float64) + 0.5
+    return np.meshgrid(x, y)

@@ -1,0 +1,402 @@
+"""Warp kernels: the min-max brick grid, and first-hit + ambient-occlusion ray casting.
+
+One code path for ``cuda`` and ``cpu``. Rays march in voxel coordinates (voxel ``(i, j, k)``
+at integer coordinates, the data spanning ``[0, n - 1]`` per axis) while the ray
+parameter ``t`` stays in world units, so step sizes and AO radii mean the same on
+anisotropic grids. A 3D DDA walks the bricks of the min-max grid and marches only those
+whose value range holds the iso-value; the trilinear interpolant inside a brick is bounded
+by the brick's voxels (they include the one-voxel overlap), so skipping never loses a hit.
+Buffer conventions: :mod:`isosr_render.conventions`.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+wp.config.enable_backward = False  # the renderer needs no gradients; halves compile time
+
+# Bits of ``RayParams.outputs``: which buffers a launch writes (the rest are not computed).
+OUT_MASK = wp.constant(1)
+OUT_NORMAL = wp.constant(2)
+OUT_DEPTH = wp.constant(4)
+OUT_POSITION = wp.constant(8)
+OUT_FLOW = wp.constant(16)
+OUT_AO = wp.constant(32)
+OUT_SAMPLES = wp.constant(64)
+
+REFINE_BISECTION = wp.constant(0)
+REFINE_SECANT = wp.constant(1)
+
+# R2 low-discrepancy sequence (subpixel offsets for supersampling).
+R2_A1 = wp.constant(0.7548776662466927)
+R2_A2 = wp.constant(0.5698402909980532)
+BIG = wp.constant(1.0e30)
+
+
+@wp.struct
+class Grid:
+    """The volume and its min-max bricks, with the voxel <-> world transform."""
+
+    data: wp.array3d(dtype=wp.float32)
+    minmax: wp.array3d(dtype=wp.vec2)
+    brick: int
+    scale: wp.vec3  # world = voxel * scale + offset
+    offset: wp.vec3
+
+
+@wp.struct
+class View:
+    """A camera: position, world-space axes (right, up, backward) and projection."""
+
+    eye: wp.vec3
+    right: wp.vec3
+    up: wp.vec3
+    back: wp.vec3
+    tan_half_fov: float
+    width: int
+    height: int
+
+
+@wp.struct
+class RayParams:
+    """What to march for and which buffers to write."""
+
+    iso: float
+    step: float  # world units along the ray
+    refine_mode: int
+    refine_steps: int
+    spp: int
+    ao_samples: int
+    ao_radius: float  # world units
+    seed: int
+    outputs: int  # OUT_* bits
+    skip: int  # 1: use the min-max grid, 0: march every brick (for tests and benchmarks)
+
+
+@wp.kernel
+def minmax_kernel(data: wp.array3d(dtype=wp.float32), brick: int, minmax: wp.array3d(dtype=wp.vec2)):
+    """Per brick: min and max of its voxels, including the shared face voxels."""
+    bi, bj, bk = wp.tid()
+    x1 = wp.min((bi + 1) * brick, data.shape[0] - 1)
+    y1 = wp.min((bj + 1) * brick, data.shape[1] - 1)
+    z1 = wp.min((bk + 1) * brick, data.shape[2] - 1)
+    lo = float(BIG)
+    hi = -float(BIG)
+    for x in range(bi * brick, x1 + 1):
+        for y in range(bj * brick, y1 + 1):
+            for z in range(bk * brick, z1 + 1):
+                v = data[x, y, z]
+                lo = wp.min(lo, v)
+                hi = wp.max(hi, v)
+    minmax[bi, bj, bk] = wp.vec2(lo, hi)
+
+
+@wp.func
+def sample_volume(data: wp.array3d(dtype=wp.float32), p: wp.vec3) -> float:
+    """Trilinear sample at voxel coordinates ``p``, clamped to the grid."""
+    nx = data.shape[0]
+    ny = data.shape[1]
+    nz = data.shape[2]
+    x = wp.clamp(p[0], 0.0, float(nx - 1))
+    y = wp.clamp(p[1], 0.0, float(ny - 1))
+    z = wp.clamp(p[2], 0.0, float(nz - 1))
+    i = wp.min(int(x), nx - 2)
+    j = wp.min(int(y), ny - 2)
+    k = wp.min(int(z), nz - 2)
+    fx = x - float(i)
+    fy = y - float(j)
+    fz = z - float(k)
+    c00 = wp.lerp(data[i, j, k], data[i + 1, j, k], fx)
+    c10 = wp.lerp(data[i, j + 1, k], data[i + 1, j + 1, k], fx)
+    c01 = wp.lerp(data[i, j, k + 1], data[i + 1, j, k + 1], fx)
+    c11 = wp.lerp(data[i, j + 1, k + 1], data[i + 1, j + 1, k + 1], fx)
+    return wp.lerp(wp.lerp(c00, c10, fy), wp.lerp(c01, c11, fy), fz)
+
+
+@wp.func
+def gradient_world(grid: Grid, p: wp.vec3) -> wp.vec3:
+    """Central-difference gradient (one voxel apart) at voxel coordinates ``p``, world units."""
+    dx = sample_volume(grid.data, p + wp.vec3(1.0, 0.0, 0.0)) - sample_volume(grid.data, p - wp.vec3(1.0, 0.0, 0.0))
+    dy = sample_volume(grid.data, p + wp.vec3(0.0, 1.0, 0.0)) - sample_volume(grid.data, p - wp.vec3(0.0, 1.0, 0.0))
+    dz = sample_volume(grid.data, p + wp.vec3(0.0, 0.0, 1.0)) - sample_volume(grid.data, p - wp.vec3(0.0, 0.0, 1.0))
+    return wp.cw_div(wp.vec3(dx, dy, dz), 2.0 * grid.scale)
+
+
+@wp.func
+def clip_to_grid(data: wp.array3d(dtype=wp.float32), o: wp.vec3, d: wp.vec3) -> wp.vec2:
+    """Ray-parameter interval ``(t0, t1)`` inside the voxel box; ``t0 > t1`` if missed."""
+    t0 = -float(BIG)
+    t1 = float(BIG)
+    for a in range(3):
+        hi = float(data.shape[a] - 1)
+        if d[a] == 0.0:
+            if o[a] < 0.0 or o[a] > hi:
+                t0 = float(BIG)
+        else:
+            ta = (0.0 - o[a]) / d[a]
+            tb = (hi - o[a]) / d[a]
+            t0 = wp.max(t0, wp.min(ta, tb))
+            t1 = wp.min(t1, wp.max(ta, tb))
+    return wp.vec2(t0, t1)
+
+
+@wp.func
+def refine_crossing(grid: Grid, o: wp.vec3, d: wp.vec3, iso: float, t0: float, f0: float, t1: float, f1: float,
+                    mode: int, steps: int) -> float:
+    """Narrow the bracket ``[t0, t1]`` around the iso crossing, then interpolate linearly."""
+    ta = float(t0)
+    fa = float(f0)
+    tb = float(t1)
+    fb = float(f1)
+    for _ in range(steps):
+        tm = 0.5 * (ta + tb)
+        if mode == REFINE_SECANT and wp.abs(fb - fa) > 1.0e-12:
+            tm = wp.clamp(ta + (iso - fa) * (tb - ta) / (fb - fa), ta, tb)
+        fm = sample_volume(grid.data, o + d * tm)
+        if (fm >= iso) == (fa >= iso):
+            ta = tm
+            fa = fm
+        else:
+            tb = tm
+            fb = fm
+    w = 0.5
+    if wp.abs(fb - fa) > 1.0e-12:
+        w = wp.clamp((iso - fa) / (fb - fa), 0.0, 1.0)
+    return ta + w * (tb - ta)
+
+
+@wp.func
+def march(grid: Grid, o: wp.vec3, d: wp.vec3, t_start: float, t_end: float, params: RayParams) -> wp.vec2:
+    """First iso crossing of the ray ``o + t d`` (voxel coordinates) within ``[t_start, t_end]``.
+
+    Returns ``(t_hit, samples)``, ``t_hit < 0`` when there is no crossing.
+    """
+    b = float(grid.brick)
+    nbx = grid.minmax.shape[0]
+    nby = grid.minmax.shape[1]
+    nbz = grid.minmax.shape[2]
+    p = o + d * t_start
+    bx = wp.clamp(int(wp.floor(p[0] / b)), 0, nbx - 1)
+    by = wp.clamp(int(wp.floor(p[1] / b)), 0, nby - 1)
+    bz = wp.clamp(int(wp.floor(p[2] / b)), 0, nbz - 1)
+    # DDA state: per axis the step (+-1), the t of the next brick face and the t between faces.
+    sx = 0
+    sy = 0
+    sz = 0
+    nx_t = float(BIG)
+    ny_t = float(BIG)
+    nz_t = float(BIG)
+    dx_t = float(BIG)
+    dy_t = float(BIG)
+    dz_t = float(BIG)
+    if d[0] > 0.0:
+        sx = 1
+        nx_t = (float(bx + 1) * b - o[0]) / d[0]
+        dx_t = b / d[0]
+    elif d[0] < 0.0:
+        sx = -1
+        nx_t = (float(bx) * b - o[0]) / d[0]
+        dx_t = -b / d[0]
+    if d[1] > 0.0:
+        sy = 1
+        ny_t = (float(by + 1) * b - o[1]) / d[1]
+        dy_t = b / d[1]
+    elif d[1] < 0.0:
+        sy = -1
+        ny_t = (float(by) * b - o[1]) / d[1]
+        dy_t = -b / d[1]
+    if d[2] > 0.0:
+        sz = 1
+        nz_t = (float(bz + 1) * b - o[2]) / d[2]
+        dz_t = b / d[2]
+    elif d[2] < 0.0:
+        sz = -1
+        nz_t = (float(bz) * b - o[2]) / d[2]
+        dz_t = -b / d[2]
+
+    iso = params.iso
+    h = params.step
+    samples = float(0.0)
+    t_enter = float(t_start)
+    have_prev = int(0)  # whether (t_prev, f_prev) is a sample just before t_enter
+    t_prev = float(t_start)
+    f_prev = float(0.0)
+    while t_enter < t_end:
+        t_exit = wp.min(wp.min(nx_t, ny_t), wp.min(nz_t, t_end))
+        mm = grid.minmax[bx, by, bz]
+        if params.skip == 0 or (mm[0] <= iso and iso <= mm[1]):
+            if have_prev == 0:
+                t_prev = t_enter
+                f_prev = sample_volume(grid.data, o + d * t_enter)
+                samples += 1.0
+                have_prev = 1
+            # Samples on the global lattice t_start + k h strictly inside the brick, then its exit.
+            k = wp.floor((t_enter - t_start) / h) + 1.0
+            t = t_start + k * h
+            done = int(0)
+            while done == 0:
+                if t >= t_exit:
+                    t = t_exit
+                    done = 1
+                f = sample_volume(grid.data, o + d * t)
+                samples += 1.0
+                if (f >= iso) != (f_prev >= iso):
+                    t_hit = refine_crossing(grid, o, d, iso, t_prev, f_prev, t, f,
+                                            params.refine_mode, params.refine_steps)
+                    return wp.vec2(t_hit, samples + float(params.refine_steps))
+                t_prev = t
+                f_prev = f
+                k += 1.0
+                t = t_start + k * h
+        else:
+            have_prev = 0
+        # Step to the neighbouring brick through the nearest face.
+        t_enter = t_exit
+        if nx_t <= ny_t and nx_t <= nz_t:
+            bx += sx
+            nx_t += dx_t
+        elif ny_t <= nz_t:
+            by += sy
+            ny_t += dy_t
+        else:
+            bz += sz
+            nz_t += dz_t
+        if bx < 0 or bx >= nbx or by < 0 or by >= nby or bz < 0 or bz >= nbz:
+            break
+    return wp.vec2(-1.0, samples)
+
+
+@wp.func
+def voxel_from_world(grid: Grid, p: wp.vec3) -> wp.vec3:
+    """World point to voxel coordinates."""
+    return wp.cw_div(p - grid.offset, grid.scale)
+
+
+@wp.func
+def cast(grid: Grid, origin: wp.vec3, direction: wp.vec3, t_near: float, t_far: float, params: RayParams) -> wp.vec2:
+    """First crossing of a world-space ray (unit ``direction``) in ``[t_near, t_far]``, world units."""
+    o = voxel_from_world(grid, origin)
+    d = wp.cw_div(direction, grid.scale)
+    span = clip_to_grid(grid.data, o, d)
+    t0 = wp.max(span[0], t_near)
+    t1 = wp.min(span[1], t_far)
+    if t0 > t1:
+        return wp.vec2(-1.0, 0.0)
+    return march(grid, o, d, t0, t1, params)
+
+
+@wp.func
+def ambient_occlusion(grid: Grid, p: wp.vec3, n: wp.vec3, params: RayParams, state: wp.uint32) -> wp.vec2:
+    """Fraction of cosine-weighted hemisphere rays around ``n`` that escape within the radius.
+
+    Returns ``(ao, samples)``.
+    """
+    # Orthonormal frame around n (Duff et al. 2017, branchless).
+    sign = wp.where(n[2] >= 0.0, 1.0, -1.0)
+    a = -1.0 / (sign + n[2])
+    bb = n[0] * n[1] * a
+    tx = wp.vec3(1.0 + sign * n[0] * n[0] * a, sign * bb, -sign * n[0])
+    ty = wp.vec3(bb, sign + n[1] * n[1] * a, -n[1])
+    origin = p + n * (0.5 * wp.min(grid.scale[0], wp.min(grid.scale[1], grid.scale[2])))
+    hits = float(0.0)
+    samples = float(0.0)
+    for _ in range(params.ao_samples):
+        u1 = wp.randf(state)
+        u2 = wp.randf(state)
+        r = wp.sqrt(u1)
+        phi = 2.0 * wp.pi * u2
+        dir = tx * (r * wp.cos(phi)) + ty * (r * wp.sin(phi)) + n * wp.sqrt(wp.max(1.0 - u1, 0.0))
+        res = cast(grid, origin, wp.normalize(dir), 0.0, params.ao_radius, params)
+        samples += res[1]
+        if res[0] >= 0.0:
+            hits += 1.0
+    return wp.vec2(1.0 - hits / float(params.ao_samples), samples)
+
+
+@wp.func
+def project_to_pixel(view: View, p: wp.vec3) -> wp.vec3:
+    """World point to ``(x, y, depth)`` in ``view``'s pixels; depth <= 0 behind the camera."""
+    q = p - view.eye
+    depth = -wp.dot(q, view.back)
+    safe = wp.where(wp.abs(depth) > 1.0e-12, depth, 1.0e-12)
+    aspect = float(view.width) / float(view.height)
+    ndc_x = wp.dot(q, view.right) / (safe * view.tan_half_fov * aspect)
+    ndc_y = wp.dot(q, view.up) / (safe * view.tan_half_fov)
+    return wp.vec3((ndc_x + 1.0) * 0.5 * float(view.width), (1.0 - ndc_y) * 0.5 * float(view.height), depth)
+
+
+@wp.kernel
+def render_kernel(grid: Grid, view: View, prev: View, params: RayParams, row0: int,
+                  mask: wp.array2d(dtype=wp.float32), normal: wp.array2d(dtype=wp.vec3),
+                  depth: wp.array2d(dtype=wp.float32), position: wp.array2d(dtype=wp.vec3),
+                  flow: wp.array2d(dtype=wp.vec2), ao: wp.array2d(dtype=wp.float32),
+                  samples: wp.array2d(dtype=wp.int32)):
+    """One pixel (rows offset by ``row0``): first hit per subpixel sample, then the asked buffers."""
+    r, c = wp.tid()
+    row = r + row0
+    aspect = float(view.width) / float(view.height)
+    out = params.outputs
+    hits = float(0.0)
+    n_acc = wp.vec3(0.0)
+    depth_acc = float(0.0)
+    pos_acc = wp.vec3(0.0)
+    flow_acc = wp.vec2(0.0)
+    ao_acc = float(0.0)
+    sample_count = float(0.0)
+    for s in range(params.spp):
+        jx = 0.5
+        jy = 0.5
+        if params.spp > 1:
+            jx = wp.mod(0.5 + float(s) * R2_A1, 1.0)
+            jy = wp.mod(0.5 + float(s) * R2_A2, 1.0)
+        px = float(c) + jx
+        py = float(row) + jy
+        ndc_x = 2.0 * px / float(view.width) - 1.0
+        ndc_y = 1.0 - 2.0 * py / float(view.height)
+        dir = wp.normalize(view.right * (ndc_x * view.tan_half_fov * aspect)
+                           + view.up * (ndc_y * view.tan_half_fov) - view.back)
+        res = cast(grid, view.eye, dir, 0.0, float(BIG), params)
+        sample_count += res[1]
+        if res[0] >= 0.0:
+            hits += 1.0
+            p_world = view.eye + dir * res[0]
+            if (out & (OUT_NORMAL | OUT_AO)) != 0:
+                g = gradient_world(grid, voxel_from_world(grid, p_world))
+                n = -dir  # where the gradient vanishes: face the camera
+                if wp.length(g) > 1.0e-20:
+                    n = wp.normalize(g)
+                    if wp.dot(n, dir) > 0.0:
+                        n = -n
+                n_acc += wp.vec3(wp.dot(n, view.right), wp.dot(n, view.up), wp.dot(n, view.back))
+                if (out & OUT_AO) != 0:
+                    state = wp.rand_init(params.seed, (row * view.width + c) * params.spp + s)
+                    occ = ambient_occlusion(grid, p_world, n, params, state)
+                    ao_acc += occ[0]
+                    sample_count += occ[1]
+            depth_acc += -wp.dot(p_world - view.eye, view.back)
+            pos_acc += p_world
+            if (out & OUT_FLOW) != 0:
+                q = project_to_pixel(prev, p_world)
+                if q[2] > 0.0:
+                    flow_acc += wp.vec2(q[0] - px, q[1] - py)
+
+    inv = 1.0 / wp.max(hits, 1.0)
+    if (out & OUT_MASK) != 0:
+        mask[row, c] = hits / float(params.spp)
+    if (out & OUT_NORMAL) != 0:
+        nv = wp.vec3(0.0)
+        if wp.length(n_acc) > 1.0e-12:
+            nv = wp.normalize(n_acc)
+        elif hits > 0.0:
+            nv = wp.vec3(0.0, 0.0, 1.0)  # subpixel normals cancelled out: face the camera
+        normal[row, c] = nv
+    if (out & OUT_DEPTH) != 0:
+        depth[row, c] = depth_acc * inv
+    if (out & OUT_POSITION) != 0:
+        position[row, c] = pos_acc * inv
+    if (out & OUT_FLOW) != 0:
+        flow[row, c] = flow_acc * inv
+    if (out & OUT_AO) != 0:
+        ao[row, c] = ao_acc * inv
+    if (out & OUT_SAMPLES) != 0:
+        samples[row, c] = int(sample_count)

@@ -1,0 +1,232 @@
+"""The renderer's Python API: a `RenderRequest` in, `FrameBuffers` out.
+
+    volume = load_volume("head.nii.gz")            # or procedural.parse_procedural("proc:sphere")
+    renderer = Renderer(volume, device="cuda")     # uploads the volume, builds the min-max grid
+    request = RenderRequest(480, 270, iso=volume.normalized_iso(300.0), outputs=("mask", "normal"))
+    frame = renderer.render(orbit(30, 20, 1.8), request)
+    frame.normal                                   # torch tensor (270, 480, 3), no copy
+
+A request computes only what it names: AO rays only when ``ao`` is asked, flow only with a
+previous camera, normals only for ``normal``, ``ao`` or ``color``.
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import warp as wp
+
+from isosr_render import kernels
+from isosr_render.buffers import FrameBuffers
+from isosr_render.camera import Camera
+from isosr_render.conventions import BUFFER_NAMES
+from isosr_render.flow_fill import FILL_METHODS, fill_flow
+from isosr_render.shading import ShadingParams, shade
+from isosr_render.volume import Volume
+
+REFINE_METHODS = {"bisection": kernels.REFINE_BISECTION, "secant": kernels.REFINE_SECANT}
+REQUESTABLE = BUFFER_NAMES + ("samples",)
+# Largest image side and supersampling the renderer accepts (a bound against runaway requests).
+MAX_SIDE = 16384
+MAX_SPP = 256
+MAX_AO_SAMPLES = 4096
+
+
+@dataclass(frozen=True)
+class RenderRequest:
+    """One frame to render and the buffers to compute.
+
+    Attributes:
+        width, height: image size in pixels.
+        iso: iso-value on the normalized [0, 1] scale (``Volume.normalized_iso`` converts).
+            Outside the data range the image is empty.
+        outputs: buffer names (see conventions), plus ``samples`` for the per-pixel count of
+            volume samples.
+        step: ray-marching step in world units; ``None`` means half the smallest voxel.
+        refine: ``"secant"`` or ``"bisection"``, for ``refine_steps`` steps, each followed by a
+            final linear interpolation in the bracket (0 steps: interpolation only).
+        spp: rays per pixel (supersampling; the mask becomes coverage).
+        ao_samples: hemisphere rays per hit for ``ao``.
+        ao_radius: AO ray length in world units.
+        seed: seed of the AO rays (deterministic per pixel).
+        prev_camera: the previous frame's camera; needed for ``flow``.
+        flow_fill: ``"none"``, ``"ns"`` (OpenCV Navier-Stokes) or ``"pushpull"``: fill the
+            flow of pixels without a hit.
+        skip: use the min-max grid to skip bricks (off only to measure what it saves).
+        shading: material and light for ``color``.
+    """
+
+    width: int
+    height: int
+    iso: float
+    outputs: tuple[str, ...] = ("mask", "normal", "depth")
+    step: float | None = None
+    refine: str = "secant"
+    refine_steps: int = 4
+    spp: int = 1
+    ao_samples: int = 64
+    ao_radius: float = 0.05
+    seed: int = 0
+    prev_camera: Camera | None = None
+    flow_fill: str = "none"
+    skip: bool = True
+    shading: ShadingParams = field(default_factory=ShadingParams)
+
+    def __post_init__(self):
+        object.__setattr__(self, "outputs", tuple(dict.fromkeys(self.outputs)))
+        unknown = [o for o in self.outputs if o not in REQUESTABLE]
+        if unknown:
+            raise ValueError(f"unknown outputs {unknown}; choose from {', '.join(REQUESTABLE)}")
+        if not self.outputs:
+            raise ValueError("a render request needs at least one output")
+        for name, value, top in (("width", self.width, MAX_SIDE), ("height", self.height, MAX_SIDE),
+                                 ("spp", self.spp, MAX_SPP), ("ao_samples", self.ao_samples, MAX_AO_SAMPLES)):
+            if not isinstance(value, (int, np.integer)) or not 1 <= value <= top:
+                raise ValueError(f"{name} must be an integer in [1, {top}], got {value!r}")
+        if not np.isfinite(self.iso):
+            raise ValueError(f"iso must be finite, got {self.iso}")
+        if self.step is not None and not (np.isfinite(self.step) and self.step > 0):
+            raise ValueError(f"step must be a positive length in world units, got {self.step}")
+        if self.refine not in REFINE_METHODS:
+            raise ValueError(f"refine must be one of {sorted(REFINE_METHODS)}, got {self.refine!r}")
+        if not 0 <= self.refine_steps <= 32:
+            raise ValueError(f"refine_steps must lie in [0, 32], got {self.refine_steps}")
+        if not (np.isfinite(self.ao_radius) and self.ao_radius > 0):
+            raise ValueError(f"ao_radius must be a positive length in world units, got {self.ao_radius}")
+        if "flow" in self.outputs and self.prev_camera is None:
+            raise ValueError("flow needs a previous camera (prev_camera); the first frame of a sequence has none")
+        if self.flow_fill not in FILL_METHODS:
+            raise ValueError(f"flow_fill must be one of {FILL_METHODS}, got {self.flow_fill!r}")
+
+    def kernel_outputs(self) -> int:
+        """The kernel's OUT_* bits: the asked buffers and the ones they are made from."""
+        need = set(self.outputs)
+        if "color" in need:
+            need |= {"mask", "normal"}
+        if "flow" in need and self.flow_fill != "none":
+            need.add("mask")
+        bits = {"mask": kernels.OUT_MASK, "normal": kernels.OUT_NORMAL, "depth": kernels.OUT_DEPTH,
+                "position": kernels.OUT_POSITION, "flow": kernels.OUT_FLOW, "ao": kernels.OUT_AO,
+                "samples": kernels.OUT_SAMPLES}
+        return sum(bits[name] for name in need if name in bits)
+
+
+def _view(camera: Camera, width: int, height: int) -> kernels.View:
+    """The kernel's camera struct."""
+    right, up, back = camera.basis()
+    v = kernels.View()
+    v.eye = wp.vec3(*camera.eye)
+    v.right = wp.vec3(*right)
+    v.up = wp.vec3(*up)
+    v.back = wp.vec3(*back)
+    v.tan_half_fov = camera.tan_half_fov()
+    v.width = width
+    v.height = height
+    return v
+
+
+class Renderer:
+    """Renders isosurfaces of one volume on one device.
+
+    Args:
+        volume: the volume; uploaded once, with its min-max grid (independent of the iso).
+        device: ``"cpu"``, ``"cuda"`` or ``"cuda:N"``.
+        brick_size: voxels per min-max brick edge.
+        threads: CPU only: threads over which the image is split in row bands
+            (Warp's CPU kernels run on one thread each); default: all cores.
+    """
+
+    def __init__(self, volume: Volume, device: str = "cpu", brick_size: int = 8, threads: int | None = None):
+        wp.init()
+        if device.startswith("cuda") and not wp.is_cuda_available():
+            raise RuntimeError(f"device {device!r} asked for, but Warp finds no CUDA device on this machine")
+        if brick_size < 1:
+            raise ValueError(f"brick_size must be positive, got {brick_size}")
+        self.volume = volume
+        self.device = wp.get_device(device)
+        self.threads = 1 if self.device.is_cuda else (threads or os.cpu_count() or 1)
+        wp.load_module(kernels, device=self.device)
+        scale, offset = volume.world_transform()
+        self.grid = kernels.Grid()
+        self.grid.data = wp.array(volume.data, dtype=wp.float32, device=self.device)
+        bricks = tuple(max(1, -(-(n - 1) // brick_size)) for n in volume.shape)
+        self.grid.minmax = wp.empty(bricks, dtype=wp.vec2, device=self.device)
+        self.grid.brick = brick_size
+        self.grid.scale = wp.vec3(*scale)
+        self.grid.offset = wp.vec3(*offset)
+        wp.launch(kernels.minmax_kernel, dim=bricks, inputs=[self.grid.data, brick_size, self.grid.minmax],
+                  device=self.device)
+        self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
+
+    def brick_ranges(self) -> np.ndarray:
+        """The min-max grid, (bx, by, bz, 2), as numpy."""
+        return self.grid.minmax.numpy()
+
+    def default_step(self) -> float:
+        """Half the smallest voxel edge, in world units."""
+        return 0.5 * self.volume.voxel_size_world()
+
+    def render(self, camera: Camera, request: RenderRequest) -> FrameBuffers:
+        """Render one frame; buffers come back as torch tensors on the renderer's device."""
+        w, h = request.width, request.height
+        bits = request.kernel_outputs()
+        params = kernels.RayParams()
+        params.iso = float(request.iso)
+        params.step = float(request.step or self.default_step())
+        params.refine_mode = REFINE_METHODS[request.refine]
+        params.refine_steps = request.refine_steps
+        params.spp = request.spp
+        params.ao_samples = request.ao_samples
+        params.ao_radius = float(request.ao_radius)
+        params.seed = request.seed
+        params.outputs = bits
+        params.skip = int(request.skip)
+
+        def buffer(bit: int, dtype) -> wp.array:
+            # The kernel writes every pixel of an asked buffer; the others get a 1x1 stand-in.
+            return wp.empty((h, w) if bits & bit else (1, 1), dtype=dtype, device=self.device)
+
+        arrays = {
+            "mask": buffer(kernels.OUT_MASK, wp.float32),
+            "normal": buffer(kernels.OUT_NORMAL, wp.vec3),
+            "depth": buffer(kernels.OUT_DEPTH, wp.float32),
+            "position": buffer(kernels.OUT_POSITION, wp.vec3),
+            "flow": buffer(kernels.OUT_FLOW, wp.vec2),
+            "ao": buffer(kernels.OUT_AO, wp.float32),
+            "samples": buffer(kernels.OUT_SAMPLES, wp.int32),
+        }
+        view = _view(camera, w, h)
+        prev = _view(request.prev_camera or camera, w, h)
+
+        def launch(row0: int, rows: int):
+            wp.launch(kernels.render_kernel, dim=(rows, w),
+                      inputs=[self.grid, view, prev, params, row0, *arrays.values()], device=self.device)
+
+        if self.device.is_cuda:
+            with wp.ScopedStream(wp.stream_from_torch(torch.cuda.current_stream(self.device.ordinal))):
+                launch(0, h)
+        else:
+            bands = np.array_split(np.arange(h), min(h, 4 * self.threads))
+            jobs = [(int(b[0]), len(b)) for b in bands if len(b)]
+            if self._pool is None:
+                for job in jobs:
+                    launch(*job)
+            else:
+                list(self._pool.map(lambda job: launch(*job), jobs))
+
+        tensors = {name: wp.to_torch(a) for name, a in arrays.items()}
+        frame = FrameBuffers()
+        for name in request.outputs:
+            if name == "color":
+                continue
+            setattr(frame, name, tensors[name])
+        if "flow" in request.outputs and request.flow_fill != "none":
+            frame.flow = fill_flow(tensors["flow"], tensors["mask"], request.flow_fill)
+        if "color" in request.outputs:
+            ao = tensors["ao"] if bits & kernels.OUT_AO else None
+            frame.color = shade(tensors["mask"], tensors["normal"], ao, request.shading)
+        return frame

@@ -1,0 +1,66 @@
+"""Screen-space Phong shading of buffers, differentiable (torch).
+
+The one shading function of the project: the renderer's ``color`` buffer, the network's
+losses and evaluation, the server and the clients all call :func:`shade`. Light and view
+directions are fixed in view space (a headlight slightly above and left of the camera,
+the viewer along +z), so a frame shades from its buffers alone.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from isosr_render.conventions import BACKGROUND_RGB
+
+
+@dataclass(frozen=True)
+class ShadingParams:
+    """Phong material and light, view space."""
+
+    albedo: tuple[float, float, float] = (0.85, 0.78, 0.62)
+    ambient: float = 0.25
+    diffuse: float = 0.65
+    specular: float = 0.25
+    shininess: float = 24.0
+    light_dir: tuple[float, float, float] = (-0.3, 0.4, 1.0)
+    background: tuple[float, float, float] = BACKGROUND_RGB
+
+
+def shade(mask: torch.Tensor, normal: torch.Tensor, ao: torch.Tensor | None = None,
+          params: ShadingParams = ShadingParams()) -> torch.Tensor:
+    """Phong (ambient + diffuse + specular) times AO, composited by ``mask`` over the background.
+
+    Args:
+        mask: coverage / alpha in [0, 1].
+        normal: view-space normals; normalized here, so network outputs need not be unit.
+        ao: ambient occlusion in [0, 1]; ``None`` shades without occlusion.
+        params: material and light.
+
+    Returns:
+        RGB color in [0, 1].
+
+    Shape:
+        mask, ao: (*, H, W). normal: (*, H, W, 3). Returns (*, H, W, 3).
+    """
+    if normal.shape[-1] != 3 or normal.shape[:-1] != mask.shape:
+        raise ValueError(f"shade: normal must be mask's shape + (3,), got normal {tuple(normal.shape)} "
+                         f"and mask {tuple(mask.shape)}")
+    if ao is not None and ao.shape != mask.shape:
+        raise ValueError(f"shade: ao must have mask's shape {tuple(mask.shape)}, got {tuple(ao.shape)}")
+    dtype, device = normal.dtype, normal.device
+    n = F.normalize(normal, dim=-1, eps=1e-6)
+    light = F.normalize(torch.tensor(params.light_dir, dtype=dtype, device=device), dim=0)
+    half = F.normalize(light + torch.tensor((0.0, 0.0, 1.0), dtype=dtype, device=device), dim=0)
+    n_dot_l = (n @ light).clamp(min=0.0)
+    n_dot_h = (n @ half).clamp(min=0.0)
+    albedo = torch.tensor(params.albedo, dtype=dtype, device=device)
+    lit = albedo * (params.ambient + params.diffuse * n_dot_l)[..., None] \
+        + params.specular * n_dot_h.pow(params.shininess)[..., None]
+    if ao is not None:
+        lit = lit * ao[..., None]
+    background = torch.tensor(params.background, dtype=dtype, device=device)
+    alpha = mask.clamp(0.0, 1.0)[..., None]
+    return (alpha * lit + (1.0 - alpha) * background).clamp(0.0, 1.0)

@@ -1,0 +1,235 @@
+"""Load scalar volumes from the file formats of scientific visualization.
+
+Every reader returns the original values indexed ``[x, y, z]`` (x is the first axis) and the
+voxel spacing; :func:`load_volume` turns them into a :class:`Volume`. Supported files:
+
+- Volume Library ``.dat`` text header beside a ``.raw`` file (``ObjectFileName``,
+  ``Resolution``, ``SliceThickness``, ``Format`` UCHAR/USHORT/FLOAT), little-endian.
+- ``name_XxYxZ_dtype.raw`` and ``.raw.gz`` (little-endian, spacing 1).
+- NIfTI ``.nii`` / ``.nii.gz`` (either byte order, spacing from the zooms).
+- NRRD ``.nrrd`` / ``.nhdr``, including detached headers over a numbered list of data files
+  (``data file: slice.%03d 1 93 1``), which pynrrd does not read.
+- NumPy ``.npy`` / ``.npz`` stored as (x, y, z), never unpickled.
+
+Raw voxels are x-fastest on disk: they are read flat, shaped (z, y, x) and transposed.
+"""
+
+from __future__ import annotations
+
+import gzip
+import os
+import re
+import zlib
+from pathlib import Path
+from typing import Callable
+
+import nibabel as nib
+import nrrd
+import numpy as np
+
+from isosr_render.volume import Volume, VolumeError
+
+_Loaded = tuple[np.ndarray, tuple[float, ...]]
+
+_RAW_NAME = re.compile(r"_(\d+)x(\d+)x(\d+)_([a-z]+\d*)\.raw(\.gz)?$", re.IGNORECASE)
+_RAW_DTYPES = ("uint8", "int8", "uint16", "int16", "uint32", "int32", "float32", "float64")
+_DAT_FORMATS = {"UCHAR": "u1", "USHORT": "<u2", "FLOAT": "<f4"}
+# NRRD multi-file form: "<printf pattern> <min> <max> <step> [<subdim>]".
+_NRRD_FILE_LIST = re.compile(r"(\S*%\S*)\s+(-?\d+)\s+(-?\d+)\s+(-?\d+)(?:\s+\d+)?")
+# What the file and array libraries raise on bad input; re-raised as VolumeError.
+_LIBRARY_ERRORS = (OSError, EOFError, ValueError, zlib.error, nrrd.NRRDError,
+                   nib.filebasedimages.ImageFileError)
+
+
+def load_volume(path: str | os.PathLike) -> Volume:
+    """Load a volume file, choosing the reader from the file name.
+
+    Args:
+        path: a ``.dat``, ``_XxYxZ_dtype.raw[.gz]``, ``.nii[.gz]``, ``.nrrd``, ``.nhdr``,
+            ``.npy`` or ``.npz`` file.
+
+    Returns:
+        The volume named after the file, its data normalized to [0, 1] and indexed
+        ``[x, y, z]``; non-finite voxels are replaced with a warning (see
+        :meth:`Volume.from_array`).
+
+    Raises:
+        VolumeError: the file is missing, has an unknown extension or cannot be read (bad
+            header, unknown data type, size that does not match the header, missing data
+            files, not 3D). The message names the file and the problem.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise VolumeError(f"{path}: no such file")
+    lower = path.name.lower()
+    reader = next((read for suffixes, read in _READERS if lower.endswith(suffixes)), None)
+    if reader is None:
+        known = ", ".join(s for suffixes, _ in _READERS for s in suffixes)
+        raise VolumeError(f"{path}: unknown extension (expected one of {known})")
+    try:
+        values, spacing = reader(path)
+    except VolumeError:
+        raise
+    except _LIBRARY_ERRORS as e:
+        raise VolumeError(f"{path}: cannot read ({type(e).__name__}: {e})") from e
+    return Volume.from_array(values, spacing, name=path.name)
+
+
+def _read_xfastest(path: Path, dtype: np.dtype, shape: tuple[int, int, int], label: str) -> np.ndarray:
+    """Read x-fastest voxels from a plain or gzipped file, checking the size, as [x, y, z]."""
+    expected = int(np.prod(shape)) * dtype.itemsize
+    gzipped = path.name.lower().endswith(".gz")
+    if gzipped:
+        with gzip.open(path, "rb") as f:
+            buffer = f.read()
+        found = len(buffer)
+    else:
+        found = path.stat().st_size
+    if found != expected:
+        raise VolumeError(f"{label}: size mismatch, expected {expected} bytes for shape {shape} "
+                          f"of {dtype.name}, found {found} bytes")
+    flat = np.frombuffer(buffer, dtype) if gzipped else np.fromfile(path, dtype)
+    return flat.reshape(shape[::-1]).transpose(2, 1, 0)
+
+
+def _read_named_raw(path: Path) -> _Loaded:
+    """Read ``name_XxYxZ_dtype.raw[.gz]``: shape and dtype come from the file name."""
+    match = _RAW_NAME.search(path.name)
+    if match is None:
+        raise VolumeError(f"{path}: cannot tell shape and dtype, a raw file name must look like "
+                          "name_XxYxZ_dtype.raw or .raw.gz")
+    dtype_name = match.group(4).lower()
+    if dtype_name not in _RAW_DTYPES:
+        raise VolumeError(f"{path}: unknown dtype '{dtype_name}' in the file name "
+                          f"(expected one of {', '.join(_RAW_DTYPES)})")
+    shape = tuple(int(match.group(i)) for i in (1, 2, 3))
+    return _read_xfastest(path, np.dtype(dtype_name).newbyteorder("<"), shape, str(path)), (1.0, 1.0, 1.0)
+
+
+def _dat_numbers(path: Path, fields: dict[str, str], key: str, kind: type) -> tuple:
+    """Parse the three numbers of a ``.dat`` header field."""
+    text = fields[key.lower()]
+    try:
+        numbers = tuple(kind(v) for v in text.split())
+    except ValueError:
+        numbers = ()
+    if len(numbers) != 3:
+        raise VolumeError(f"{path}: unparseable header line '{key}: {text}' (expected 3 numbers)")
+    return numbers
+
+
+def _read_dat(path: Path) -> _Loaded:
+    """Read a Volume Library ``.dat`` header and the ``.raw`` file it names."""
+    fields = {}
+    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        key, colon, value = line.partition(":")
+        if not colon or not key.strip():
+            raise VolumeError(f"{path}: unparseable header line {number}: '{line.strip()}'")
+        fields[key.strip().lower()] = value.strip()
+    missing = [k for k in ("ObjectFileName", "Resolution", "Format") if k.lower() not in fields]
+    if missing:
+        raise VolumeError(f"{path}: header lacks {', '.join(missing)}")
+    fmt = fields["format"].upper()
+    if fmt not in _DAT_FORMATS:
+        raise VolumeError(f"{path}: unknown Format '{fields['format']}' "
+                          f"(expected {', '.join(_DAT_FORMATS)})")
+    shape = _dat_numbers(path, fields, "Resolution", int)
+    spacing = (1.0, 1.0, 1.0)
+    if "slicethickness" in fields:
+        spacing = _dat_numbers(path, fields, "SliceThickness", float)
+    raw = path.parent / fields["objectfilename"]
+    if not raw.is_file():
+        raise VolumeError(f"{path}: missing data file {raw} (ObjectFileName)")
+    label = f"{path}: data file {raw.name}"
+    return _read_xfastest(raw, np.dtype(_DAT_FORMATS[fmt]), shape, label), spacing
+
+
+def _read_nifti(path: Path) -> _Loaded:
+    """Read a NIfTI image, keeping the stored dtype unless the header scales the values."""
+    image = nib.load(path)
+    proxy = image.dataobj
+    if proxy.slope == 1 and proxy.inter == 0:
+        values = np.asanyarray(proxy)
+    else:
+        values = image.get_fdata(dtype=np.float32)
+    while values.ndim > 3 and values.shape[-1] == 1:
+        values = values[..., 0]
+    return values, tuple(float(z) for z in image.header.get_zooms()[:3])
+
+
+def _read_nrrd_file_list(path: Path, header: dict, match: re.Match) -> np.ndarray:
+    """Read the data files of a multi-file detached header, in order, as one array."""
+    pattern, first, last, step = match.group(1), *(int(match.group(i)) for i in (2, 3, 4))
+    if step == 0:
+        raise VolumeError(f"{path}: unparseable 'data file' list, step is 0")
+    try:
+        files = [path.parent / (pattern % i) for i in range(first, last + (1 if step > 0 else -1), step)]
+    except (TypeError, ValueError) as e:
+        raise VolumeError(f"{path}: unparseable 'data file' pattern '{pattern}' ({e})") from e
+    missing = [f.name for f in files if not f.is_file()]
+    if missing:
+        raise VolumeError(f"{path}: missing {len(missing)} of {len(files)} slice files: "
+                          f"{', '.join(missing[:5])}{', ...' if len(missing) > 5 else ''}")
+    sizes = np.asarray(header["sizes"], dtype=np.int64)
+    total = int(sizes.prod())
+    if total % len(files):
+        raise VolumeError(f"{path}: sizes {sizes.tolist()} do not split evenly over {len(files)} data files")
+    # Files hold consecutive x-fastest chunks, whatever the subdim: read each flat, then join.
+    part = {k: v for k, v in header.items() if k not in ("data file", "datafile")}
+    part.update(dimension=1, sizes=np.array([total // len(files)]))
+    chunks = []
+    for file in files:
+        try:
+            chunks.append(nrrd.read_data({**part, "data file": str(file)}, filename=str(path)))
+        except nrrd.NRRDError as e:
+            raise VolumeError(f"{path}: slice file {file.name} does not match the header: {e}") from e
+    return np.concatenate(chunks).reshape(sizes[::-1]).T
+
+
+def _nrrd_spacing(header: dict) -> tuple[float, ...]:
+    """Voxel size per axis from ``space directions`` (row lengths) or ``spacings``, else 1."""
+    if "space directions" in header:
+        spacing = np.linalg.norm(np.asarray(header["space directions"], dtype=np.float64), axis=1)
+    elif "spacings" in header:
+        spacing = np.asarray(header["spacings"], dtype=np.float64)
+    else:
+        spacing = np.ones(len(header["sizes"]))
+    return tuple(float(s) for s in np.where(np.isnan(spacing), 1.0, spacing)[:3])
+
+
+def _read_nrrd(path: Path) -> _Loaded:
+    """Read an NRRD file or detached header, including the multi-file ``data file`` form."""
+    with open(path, "rb") as fh:
+        header = nrrd.read_header(fh)
+        match = _NRRD_FILE_LIST.fullmatch(header.get("data file", header.get("datafile", "")).strip())
+        if match:
+            values = _read_nrrd_file_list(path, header, match)
+        else:
+            values = nrrd.read_data(header, fh, str(path))
+    return values, _nrrd_spacing(header)
+
+
+def _read_numpy(path: Path) -> _Loaded:
+    """Read a ``.npy`` array or the ``volume``/``data``/only array (and ``spacing``) of a ``.npz``."""
+    loaded = np.load(path, allow_pickle=False)
+    if isinstance(loaded, np.ndarray):
+        return loaded, (1.0, 1.0, 1.0)
+    with loaded:
+        names = [n for n in loaded.files if n != "spacing"]
+        key = next((n for n in ("volume", "data") if n in names), names[0] if len(names) == 1 else None)
+        if key is None:
+            raise VolumeError(f"{path}: cannot tell which array is the volume among {names}; "
+                              "name it 'volume' or 'data'")
+        spacing = loaded["spacing"].ravel() if "spacing" in loaded.files else (1.0, 1.0, 1.0)
+        return loaded[key], tuple(float(s) for s in spacing)
+
+
+_READERS: tuple[tuple[tuple[str, ...], Callable[[Path], _Loaded]], ...] = (
+    ((".dat",), _read_dat),
+    ((".raw", ".raw.gz"), _read_named_raw),
+    ((".nii", ".nii.gz"), _read_nifti),
+    ((".nrrd", ".nhdr"), _read_nrrd),
+    ((".npy", ".npz"), _read_numpy),
+)

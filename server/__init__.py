@@ -1,0 +1,1 @@
+"""isosr_server: the FastAPI frame-streaming service (floor 3)."""
