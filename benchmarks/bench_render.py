@@ -23,7 +23,7 @@ from isosr_render.catalog import entry
 from isosr_render.flow_fill import fill_flow
 from isosr_render.procedural import default_iso
 
-from .common import print_table, time_frames, write_result
+from .common import kernel_ms, print_table, time_frames, write_result
 
 FRAMES = 10
 AO_RADIUS = 0.02  # world units: 20 voxels of a 1024^3 volume, 5 of a 256^3 one
@@ -80,6 +80,8 @@ def bench_volume(volume: Volume, iso: float, device: str, smoke: bool) -> list[d
                 **{**request.__dict__, "prev_camera": path[i % FRAMES]})
             renderer.render(path[i % FRAMES + 1], req)
         t = time_frames(frame, FRAMES, device, warmup=1 if smoke else 3)
+        if device.startswith("cuda"):
+            t["kernel_ms"] = kernel_ms(frame, FRAMES, "render_kernel")
         samples, coverage = samples_per_frame(renderer, path[1], request)
         ms = t.get("gpu_ms", t["wall_ms"])
         rays = request.width * request.height
@@ -134,7 +136,7 @@ def main(argv=None) -> None:
     rows += bench_flow_fill(*cases[0], args.device, args.smoke)
     if args.device == "cpu":
         rows += bench_cpu_threads(*volumes(True, "cpu")[0])
-    print_table(rows, ["volume", "voxels", "case", "size", "ms", "wall_ms", "Mrays/s", "Gsamples/s",
+    print_table(rows, ["volume", "voxels", "case", "size", "ms", "kernel_ms", "wall_ms", "Mrays/s", "Gsamples/s",
                        "samples/pixel", "coverage", "skip speedup", "thread speedup"])
     print(f"wrote {write_result('bench_render', args.device, rows)}")
 

@@ -70,6 +70,20 @@ def time_frames(fn, frames: int, device: str, warmup: int = 2) -> dict:
     return result
 
 
+def kernel_ms(fn, frames: int, kernel: str) -> float:
+    """Mean CUDA time per call of ``fn(i)`` spent in Warp kernels whose name contains ``kernel``.
+
+    This is the GPU's own time, without launch overhead or idle gaps between launches.
+    """
+    import warp as wp
+
+    wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
+    for i in range(frames):
+        fn(i)
+    results = wp.timing_end()
+    return sum(r.elapsed for r in results if kernel in r.name) / frames
+
+
 def write_result(name: str, device: str, rows: list[dict], extra: dict | None = None) -> Path:
     """Write ``benchmarks/results/NAME_<device kind>.json`` with device, commit and command."""
     RESULTS_DIR.mkdir(parents=True, exist_ok=True)

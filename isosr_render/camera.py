@@ -5,6 +5,7 @@ Frames and units follow :mod:`isosr_render.conventions`.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -41,7 +42,8 @@ class Camera:
         if np.linalg.norm(np.cross(forward, self.up)) < 1e-9 * np.linalg.norm(forward) * np.linalg.norm(self.up):
             raise ValueError("camera up is parallel to the viewing direction (or zero)")
 
-    def basis(self) -> np.ndarray:
+    @functools.cached_property
+    def _basis(self) -> np.ndarray:
         """Rows: the camera's right, up and backward (+z view) axes in world coordinates."""
         backward = np.subtract(self.eye, self.target)
         backward /= np.linalg.norm(backward)
@@ -49,6 +51,10 @@ class Camera:
         right /= np.linalg.norm(right)
         up = np.cross(backward, right)
         return np.stack([right, up, backward])
+
+    def basis(self) -> np.ndarray:
+        """Rows: the camera's right, up and backward (+z view) axes in world coordinates."""
+        return self._basis.copy()
 
     def view_matrix(self) -> np.ndarray:
         """4x4 world-to-view matrix."""

@@ -38,7 +38,7 @@ class Grid:
     """The volume and its min-max bricks, with the voxel <-> world transform."""
 
     data: wp.array3d(dtype=wp.float32)
-    minmax: wp.array3d(dtype=wp.vec2)
+    dist: wp.array3d(dtype=wp.uint8)  # per brick, for the current iso: Chebyshev distance to an active brick
     brick: int
     scale: wp.vec3  # world = voxel * scale + offset
     offset: wp.vec3
@@ -70,7 +70,6 @@ class RayParams:
     ao_radius: float  # world units
     seed: int
     outputs: int  # OUT_* bits
-    skip: int  # 1: use the min-max grid, 0: march every brick (for tests and benchmarks)
 
 
 @wp.kernel
@@ -89,6 +88,39 @@ def minmax_kernel(data: wp.array3d(dtype=wp.float32), brick: int, minmax: wp.arr
                 lo = wp.min(lo, v)
                 hi = wp.max(hi, v)
     minmax[bi, bj, bk] = wp.vec2(lo, hi)
+
+
+@wp.kernel
+def occupancy_kernel(minmax: wp.array3d(dtype=wp.vec2), iso: float, skip: int, empty: int,
+                     dist: wp.array3d(dtype=wp.uint8)):
+    """Distance 0 for bricks whose range holds ``iso`` (all bricks without ``skip``), else ``empty``."""
+    i, j, k = wp.tid()
+    mm = minmax[i, j, k]
+    active = skip == 0 or (mm[0] <= iso and iso <= mm[1])
+    dist[i, j, k] = wp.uint8(wp.where(active, 0, empty))
+
+
+@wp.func
+def dist_at(dist: wp.array3d(dtype=wp.uint8), i: int, j: int, k: int, axis: int, offset: int, far: int) -> int:
+    """``dist`` at the cell ``offset`` steps along ``axis``; ``far`` outside the grid."""
+    c = wp.vec3i(i, j, k)
+    c[axis] = c[axis] + offset
+    if c[axis] < 0 or c[axis] >= dist.shape[axis]:
+        return far
+    return int(dist[c[0], c[1], c[2]])
+
+
+@wp.kernel
+def chebyshev_pass_kernel(src: wp.array3d(dtype=wp.uint8), axis: int, far: int, dst: wp.array3d(dtype=wp.uint8)):
+    """One separable pass of the Chebyshev (L-inf) distance transform, capped at ``far``."""
+    i, j, k = wp.tid()
+    best = int(src[i, j, k])
+    for s in range(1, far):
+        if s >= best:
+            break
+        best = wp.min(best, wp.max(s, dist_at(src, i, j, k, axis, -s, far)))
+        best = wp.min(best, wp.max(s, dist_at(src, i, j, k, axis, s, far)))
+    dst[i, j, k] = wp.uint8(best)
 
 
 @wp.func
@@ -149,9 +181,12 @@ def refine_crossing(grid: Grid, o: wp.vec3, d: wp.vec3, iso: float, t0: float, f
     tb = float(t1)
     fb = float(f1)
     for _ in range(steps):
-        tm = 0.5 * (ta + tb)
+        w = float(0.5)
         if mode == REFINE_SECANT and wp.abs(fb - fa) > 1.0e-12:
-            tm = wp.clamp(ta + (iso - fa) * (tb - ta) / (fb - fa), ta, tb)
+            w = (iso - fa) / (fb - fa)
+            if w < 0.01 or w > 0.99:  # safeguard: a secant stuck at an end (e.g. a plateau) bisects
+                w = 0.5
+        tm = ta + w * (tb - ta)
         fm = sample_volume(grid.data, o + d * tm)
         if (fm >= iso) == (fa >= iso):
             ta = tm
@@ -159,110 +194,74 @@ def refine_crossing(grid: Grid, o: wp.vec3, d: wp.vec3, iso: float, t0: float, f
         else:
             tb = tm
             fb = fm
-    w = 0.5
+    w_end = 0.5
     if wp.abs(fb - fa) > 1.0e-12:
-        w = wp.clamp((iso - fa) / (fb - fa), 0.0, 1.0)
-    return ta + w * (tb - ta)
+        w_end = wp.clamp((iso - fa) / (fb - fa), 0.0, 1.0)
+    return ta + w_end * (tb - ta)
 
 
 @wp.func
 def march(grid: Grid, o: wp.vec3, d: wp.vec3, t_start: float, t_end: float, params: RayParams) -> wp.vec2:
     """First iso crossing of the ray ``o + t d`` (voxel coordinates) within ``[t_start, t_end]``.
 
-    Returns ``(t_hit, samples)``, ``t_hit < 0`` when there is no crossing.
+    Empty bricks are leapt over a whole cube at a time: a brick at Chebyshev distance D >= 1
+    from the nearest active brick sits in a cube of (2D - 1)^3 inactive bricks, and the ray
+    jumps to that cube's exit. Active bricks (D = 0) are marched on the global sample lattice
+    ``t_start + k step``, plus one sample at the brick's exit, so crossings between bricks
+    are bracketed too. Returns ``(t_hit, samples)``, ``t_hit < 0`` when there is no crossing.
     """
     b = float(grid.brick)
-    nbx = grid.minmax.shape[0]
-    nby = grid.minmax.shape[1]
-    nbz = grid.minmax.shape[2]
-    p = o + d * t_start
-    bx = wp.clamp(int(wp.floor(p[0] / b)), 0, nbx - 1)
-    by = wp.clamp(int(wp.floor(p[1] / b)), 0, nby - 1)
-    bz = wp.clamp(int(wp.floor(p[2] / b)), 0, nbz - 1)
-    # DDA state: per axis the step (+-1), the t of the next brick face and the t between faces.
-    sx = 0
-    sy = 0
-    sz = 0
-    nx_t = float(BIG)
-    ny_t = float(BIG)
-    nz_t = float(BIG)
-    dx_t = float(BIG)
-    dy_t = float(BIG)
-    dz_t = float(BIG)
-    if d[0] > 0.0:
-        sx = 1
-        nx_t = (float(bx + 1) * b - o[0]) / d[0]
-        dx_t = b / d[0]
-    elif d[0] < 0.0:
-        sx = -1
-        nx_t = (float(bx) * b - o[0]) / d[0]
-        dx_t = -b / d[0]
-    if d[1] > 0.0:
-        sy = 1
-        ny_t = (float(by + 1) * b - o[1]) / d[1]
-        dy_t = b / d[1]
-    elif d[1] < 0.0:
-        sy = -1
-        ny_t = (float(by) * b - o[1]) / d[1]
-        dy_t = -b / d[1]
-    if d[2] > 0.0:
-        sz = 1
-        nz_t = (float(bz + 1) * b - o[2]) / d[2]
-        dz_t = b / d[2]
-    elif d[2] < 0.0:
-        sz = -1
-        nz_t = (float(bz) * b - o[2]) / d[2]
-        dz_t = -b / d[2]
-
+    nb = wp.vec3i(grid.dist.shape[0], grid.dist.shape[1], grid.dist.shape[2])
+    nudge = 1.0e-3 / wp.max(wp.abs(d[0]), wp.max(wp.abs(d[1]), wp.abs(d[2])))  # 1/1000 voxel
     iso = params.iso
     h = params.step
     samples = float(0.0)
-    t_enter = float(t_start)
-    have_prev = int(0)  # whether (t_prev, f_prev) is a sample just before t_enter
+    t = float(t_start)
+    have_prev = int(0)  # whether (t_prev, f_prev) is the sample at t
     t_prev = float(t_start)
     f_prev = float(0.0)
-    while t_enter < t_end:
-        t_exit = wp.min(wp.min(nx_t, ny_t), wp.min(nz_t, t_end))
-        mm = grid.minmax[bx, by, bz]
-        if params.skip == 0 or (mm[0] <= iso and iso <= mm[1]):
+    budget = 4 * (nb[0] + nb[1] + nb[2]) + 16  # a bound on cube steps; real rays need far fewer
+    while t < t_end and budget > 0:
+        budget -= 1
+        p = o + d * (t + nudge)
+        cell = wp.vec3i(wp.clamp(int(wp.floor(p[0] / b)), 0, nb[0] - 1),
+                        wp.clamp(int(wp.floor(p[1] / b)), 0, nb[1] - 1),
+                        wp.clamp(int(wp.floor(p[2] / b)), 0, nb[2] - 1))
+        dist = int(grid.dist[cell[0], cell[1], cell[2]])
+        reach = float(wp.max(dist - 1, 0))
+        t_exit = t_end
+        for a in range(3):
+            if d[a] > 0.0:
+                t_exit = wp.min(t_exit, ((float(cell[a]) + 1.0 + reach) * b - o[a]) / d[a])
+            elif d[a] < 0.0:
+                t_exit = wp.min(t_exit, ((float(cell[a]) - reach) * b - o[a]) / d[a])
+        t_exit = wp.max(t_exit, t + nudge)
+        if dist == 0:
             if have_prev == 0:
-                t_prev = t_enter
-                f_prev = sample_volume(grid.data, o + d * t_enter)
+                t_prev = t
+                f_prev = sample_volume(grid.data, o + d * t)
                 samples += 1.0
                 have_prev = 1
-            # Samples on the global lattice t_start + k h strictly inside the brick, then its exit.
-            k = wp.floor((t_enter - t_start) / h) + 1.0
-            t = t_start + k * h
+            k = wp.floor((t - t_start) / h) + 1.0
+            t_s = t_start + k * h
             done = int(0)
             while done == 0:
-                if t >= t_exit:
-                    t = t_exit
+                if t_s >= t_exit:
+                    t_s = wp.min(t_exit, t_end)
                     done = 1
-                f = sample_volume(grid.data, o + d * t)
+                f = sample_volume(grid.data, o + d * t_s)
                 samples += 1.0
                 if (f >= iso) != (f_prev >= iso):
-                    t_hit = refine_crossing(grid, o, d, iso, t_prev, f_prev, t, f,
+                    t_hit = refine_crossing(grid, o, d, iso, t_prev, f_prev, t_s, f,
                                             params.refine_mode, params.refine_steps)
                     return wp.vec2(t_hit, samples + float(params.refine_steps))
-                t_prev = t
+                t_prev = t_s
                 f_prev = f
                 k += 1.0
-                t = t_start + k * h
+                t_s = t_start + k * h
         else:
             have_prev = 0
-        # Step to the neighbouring brick through the nearest face.
-        t_enter = t_exit
-        if nx_t <= ny_t and nx_t <= nz_t:
-            bx += sx
-            nx_t += dx_t
-        elif ny_t <= nz_t:
-            by += sy
-            ny_t += dy_t
-        else:
-            bz += sz
-            nz_t += dz_t
-        if bx < 0 or bx >= nbx or by < 0 or by >= nby or bz < 0 or bz >= nbz:
-            break
+        t = t_exit
     return wp.vec2(-1.0, samples)
 
 

@@ -13,6 +13,7 @@ previous camera, normals only for ``normal``, ``ao`` or ``color``.
 from __future__ import annotations
 
 import os
+from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -34,6 +35,9 @@ REQUESTABLE = BUFFER_NAMES + ("samples",)
 MAX_SIDE = 16384
 MAX_SPP = 256
 MAX_AO_SAMPLES = 4096
+# Cap of the brick distance grid: a ray leaps at most (2 MAX_LEAP - 1) bricks at once.
+MAX_LEAP = 16
+GRID_CACHE = 4
 
 
 @dataclass(frozen=True)
@@ -93,8 +97,10 @@ class RenderRequest:
             raise ValueError(f"step must be a positive length in world units, got {self.step}")
         if self.refine not in REFINE_METHODS:
             raise ValueError(f"refine must be one of {sorted(REFINE_METHODS)}, got {self.refine!r}")
-        if not 0 <= self.refine_steps <= 32:
-            raise ValueError(f"refine_steps must lie in [0, 32], got {self.refine_steps}")
+        if not isinstance(self.refine_steps, (int, np.integer)) or not 0 <= self.refine_steps <= 32:
+            raise ValueError(f"refine_steps must be an integer in [0, 32], got {self.refine_steps!r}")
+        if not isinstance(self.seed, (int, np.integer)) or not 0 <= self.seed < 2**31:
+            raise ValueError(f"seed must be an integer in [0, 2^31), got {self.seed!r}")
         if not (np.isfinite(self.ao_radius) and self.ao_radius > 0):
             raise ValueError(f"ao_radius must be a positive length in world units, got {self.ao_radius}")
         if "flow" in self.outputs and self.prev_camera is None:
@@ -150,21 +156,49 @@ class Renderer:
         self.device = wp.get_device(device)
         self.threads = 1 if self.device.is_cuda else (threads or os.cpu_count() or 1)
         wp.load_module(kernels, device=self.device)
-        scale, offset = volume.world_transform()
-        self.grid = kernels.Grid()
-        self.grid.data = wp.array(volume.data, dtype=wp.float32, device=self.device)
+        self.brick_size = brick_size
+        self.data = wp.array(volume.data, dtype=wp.float32, device=self.device)
         bricks = tuple(max(1, -(-(n - 1) // brick_size)) for n in volume.shape)
-        self.grid.minmax = wp.empty(bricks, dtype=wp.vec2, device=self.device)
-        self.grid.brick = brick_size
-        self.grid.scale = wp.vec3(*scale)
-        self.grid.offset = wp.vec3(*offset)
-        wp.launch(kernels.minmax_kernel, dim=bricks, inputs=[self.grid.data, brick_size, self.grid.minmax],
-                  device=self.device)
+        self.minmax = wp.empty(bricks, dtype=wp.vec2, device=self.device)
+        wp.launch(kernels.minmax_kernel, dim=bricks, inputs=[self.data, brick_size, self.minmax], device=self.device)
+        self._grids: OrderedDict[tuple[float, bool], kernels.Grid] = OrderedDict()
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
+        # 1x1 stand-ins for buffers a request does not ask for.
+        self._unused = {t: wp.empty((1, 1), dtype=t, device=self.device) for t in (wp.float32, wp.vec2, wp.vec3, wp.int32)}
 
     def brick_ranges(self) -> np.ndarray:
         """The min-max grid, (bx, by, bz, 2), as numpy."""
-        return self.grid.minmax.numpy()
+        return self.minmax.numpy()
+
+    def grid(self, iso: float, skip: bool = True) -> kernels.Grid:
+        """The kernels' view of the volume for one iso: data plus each brick's distance to an active brick.
+
+        Built on the device from the min-max grid (a few small launches) and kept for the
+        last few iso-values.
+        """
+        key = (float(iso), bool(skip))
+        if key in self._grids:
+            self._grids.move_to_end(key)
+            return self._grids[key]
+        shape = self.minmax.shape
+        dist = wp.empty(shape, dtype=wp.uint8, device=self.device)
+        spare = wp.empty(shape, dtype=wp.uint8, device=self.device)
+        wp.launch(kernels.occupancy_kernel, dim=shape, inputs=[self.minmax, float(iso), int(skip), MAX_LEAP, dist],
+                  device=self.device)
+        for axis in range(3):
+            wp.launch(kernels.chebyshev_pass_kernel, dim=shape, inputs=[dist, axis, MAX_LEAP, spare], device=self.device)
+            dist, spare = spare, dist
+        grid = kernels.Grid()
+        grid.data = self.data
+        grid.dist = dist
+        grid.brick = self.brick_size
+        scale, offset = self.volume.world_transform()
+        grid.scale = wp.vec3(*scale)
+        grid.offset = wp.vec3(*offset)
+        self._grids[key] = grid
+        if len(self._grids) > GRID_CACHE:
+            self._grids.popitem(last=False)
+        return grid
 
     def default_step(self) -> float:
         """Half the smallest voxel edge, in world units."""
@@ -184,11 +218,11 @@ class Renderer:
         params.ao_radius = float(request.ao_radius)
         params.seed = request.seed
         params.outputs = bits
-        params.skip = int(request.skip)
+        grid = self.grid(request.iso, request.skip)
 
         def buffer(bit: int, dtype) -> wp.array:
-            # The kernel writes every pixel of an asked buffer; the others get a 1x1 stand-in.
-            return wp.empty((h, w) if bits & bit else (1, 1), dtype=dtype, device=self.device)
+            # The kernel writes every pixel of an asked buffer.
+            return wp.empty((h, w), dtype=dtype, device=self.device) if bits & bit else self._unused[dtype]
 
         arrays = {
             "mask": buffer(kernels.OUT_MASK, wp.float32),
@@ -204,7 +238,7 @@ class Renderer:
 
         def launch(row0: int, rows: int):
             wp.launch(kernels.render_kernel, dim=(rows, w),
-                      inputs=[self.grid, view, prev, params, row0, *arrays.values()], device=self.device)
+                      inputs=[grid, view, prev, params, row0, *arrays.values()], device=self.device)
 
         if self.device.is_cuda:
             with wp.ScopedStream(wp.stream_from_torch(torch.cuda.current_stream(self.device.ordinal))):
@@ -218,7 +252,7 @@ class Renderer:
             else:
                 list(self._pool.map(lambda job: launch(*job), jobs))
 
-        tensors = {name: wp.to_torch(a) for name, a in arrays.items()}
+        tensors = {name: wp.to_torch(a) for name, a in arrays.items() if a.shape == (h, w)}
         frame = FrameBuffers()
         for name in request.outputs:
             if name == "color":

@@ -67,11 +67,11 @@ class Volume:
                           f"{n_posinf} +Inf by the maximum {hi:g} and {n_neginf} -Inf by the minimum",
                           stacklevel=2)
             values = np.nan_to_num(values, nan=lo, posinf=hi, neginf=lo)
-        lo, hi = float(values.min()), float(values.max())
-        span = hi - lo
-        if not np.isfinite(span):  # e.g. -3e38 .. 3e38 in float32 overflows
+        lo, hi = values.min(), values.max()
+        if not np.isfinite(hi - lo):  # e.g. -3e38 .. 3e38 overflows float32: normalize in float64
             values = values.astype(np.float64)
-            span = hi - lo
+        lo, hi = float(lo), float(hi)
+        span = hi - lo
         scale = 1.0 / span if span > 0 else 0.0
         data = ((values - lo) * scale).astype(np.float32)
         np.clip(data, 0.0, 1.0, out=data)
