@@ -31,6 +31,9 @@ REFINE_SECANT = wp.constant(1)
 R2_A1 = wp.constant(0.7548776662466927)
 R2_A2 = wp.constant(0.5698402909980532)
 BIG = wp.constant(1.0e30)
+# Pixel tile that one warp of threads renders.
+TILE_W = wp.constant(8)
+TILE_H = wp.constant(4)
 
 
 @wp.struct
@@ -325,13 +328,24 @@ def project_to_pixel(view: View, p: wp.vec3) -> wp.vec3:
 
 
 @wp.kernel
-def render_kernel(grid: Grid, view: View, prev: View, params: RayParams, row0: int,
+def render_kernel(grid: Grid, view: View, prev: View, params: RayParams, row0: int, rows: int,
                   mask: wp.array2d(dtype=wp.float32), normal: wp.array2d(dtype=wp.vec3),
                   depth: wp.array2d(dtype=wp.float32), position: wp.array2d(dtype=wp.vec3),
                   flow: wp.array2d(dtype=wp.vec2), ao: wp.array2d(dtype=wp.float32),
                   samples: wp.array2d(dtype=wp.int32)):
-    """One pixel (rows offset by ``row0``): first hit per subpixel sample, then the asked buffers."""
-    r, c = wp.tid()
+    """One pixel of the band ``[row0, row0 + rows)``: first hit per subpixel sample, then the asked buffers.
+
+    Threads walk the band in 8x4-pixel tiles, one tile per 32-thread warp, so that a warp's
+    rays stay close together (coherent brick walks and cache lines).
+    """
+    tid = wp.tid()
+    tile = tid // (TILE_W * TILE_H)
+    lane = tid - tile * (TILE_W * TILE_H)
+    tiles_x = (view.width + TILE_W - 1) // TILE_W
+    c = (tile % tiles_x) * TILE_W + lane % TILE_W
+    r = (tile // tiles_x) * TILE_H + lane // TILE_W
+    if c >= view.width or r >= rows:
+        return
     row = r + row0
     aspect = float(view.width) / float(view.height)
     out = params.outputs

@@ -236,9 +236,12 @@ class Renderer:
         view = _view(camera, w, h)
         prev = _view(request.prev_camera or camera, w, h)
 
+        tiles_x = -(-w // kernels.TILE_W)
+
         def launch(row0: int, rows: int):
-            wp.launch(kernels.render_kernel, dim=(rows, w),
-                      inputs=[grid, view, prev, params, row0, *arrays.values()], device=self.device)
+            threads = tiles_x * -(-rows // kernels.TILE_H) * kernels.TILE_W * kernels.TILE_H
+            wp.launch(kernels.render_kernel, dim=threads,
+                      inputs=[grid, view, prev, params, row0, rows, *arrays.values()], device=self.device)
 
         if self.device.is_cuda:
             with wp.ScopedStream(wp.stream_from_torch(torch.cuda.current_stream(self.device.ordinal))):
