@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import os
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -23,7 +24,7 @@ from isosr_render.catalog import entry
 from isosr_render.flow_fill import fill_flow
 from isosr_render.procedural import default_iso
 
-from .common import kernel_ms, print_table, time_frames, write_result
+from .common import RESULTS_DIR, kernel_ms, print_table, time_frames, write_result
 
 FRAMES = 10
 AO_RADIUS = 0.02  # world units: 20 voxels of a 1024^3 volume, 5 of a 256^3 one
@@ -52,11 +53,12 @@ def volumes(smoke: bool, device: str) -> list[tuple[Volume, float]]:
     return out
 
 
-def samples_per_frame(renderer: Renderer, camera, request: RenderRequest) -> tuple[int, float]:
-    """Total volume samples and hit fraction of one frame (a separate, counting render)."""
+def count_samples(renderer: Renderer, camera, request: RenderRequest) -> dict:
+    """Volume samples of one frame (a separate, counting render): total, longest ray, hit fraction."""
     counted = RenderRequest(**{**request.__dict__, "outputs": request.outputs + ("samples",)})
     frame = renderer.render(camera, counted)
-    return int(frame.samples.sum()), float(frame.mask.float().mean())
+    return {"samples": int(frame.samples.sum()), "max samples/pixel": int(frame.samples.max()),
+            "coverage": float(frame.mask.float().mean())}
 
 
 def bench_volume(volume: Volume, iso: float, device: str, smoke: bool) -> list[dict]:
@@ -82,13 +84,13 @@ def bench_volume(volume: Volume, iso: float, device: str, smoke: bool) -> list[d
         t = time_frames(frame, FRAMES, device, warmup=1 if smoke else 3)
         if device.startswith("cuda"):
             t["kernel_ms"] = kernel_ms(frame, FRAMES, "render_kernel")
-        samples, coverage = samples_per_frame(renderer, path[1], request)
+        counts = count_samples(renderer, path[1], request)
         ms = t.get("gpu_ms", t["wall_ms"])
         rays = request.width * request.height
         rows.append({"volume": volume.name, "voxels": "x".join(map(str, volume.shape)), "case": case,
-                     "size": f"{request.width}x{request.height}", "ms": ms, **t,
-                     "Mrays/s": rays / ms / 1e3, "Gsamples/s": samples / ms / 1e6,
-                     "samples/pixel": samples / rays, "coverage": coverage})
+                     "size": f"{request.width}x{request.height}", "ms": ms, **t, **counts,
+                     "Mrays/s": rays / ms / 1e3, "Gsamples/s": counts["samples"] / ms / 1e6,
+                     "samples/pixel": counts["samples"] / rays})
     first = {r["case"]: r["ms"] for r in rows}
     rows[0]["skip speedup"] = first["first hit, no skipping"] / first["first hit"]
     return rows
@@ -125,6 +127,7 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--smoke", action="store_true", help="small sizes (CI)")
+    parser.add_argument("--out", type=Path, default=RESULTS_DIR, help="folder for the JSON result")
     args = parser.parse_args(argv)
     wp.config.log_level = wp.LOG_WARNING
     wp.init()
@@ -137,8 +140,8 @@ def main(argv=None) -> None:
     if args.device == "cpu":
         rows += bench_cpu_threads(*volumes(True, "cpu")[0])
     print_table(rows, ["volume", "voxels", "case", "size", "ms", "kernel_ms", "wall_ms", "Mrays/s", "Gsamples/s",
-                       "samples/pixel", "coverage", "skip speedup", "thread speedup"])
-    print(f"wrote {write_result('bench_render', args.device, rows)}")
+                       "samples/pixel", "max samples/pixel", "coverage", "skip speedup", "thread speedup"])
+    print(f"wrote {write_result('bench_render', args.device, rows, args.out)}")
 
 
 if __name__ == "__main__":

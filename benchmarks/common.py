@@ -84,15 +84,15 @@ def kernel_ms(fn, frames: int, kernel: str) -> float:
     return sum(r.elapsed for r in results if kernel in r.name) / frames
 
 
-def write_result(name: str, device: str, rows: list[dict], extra: dict | None = None) -> Path:
-    """Write ``benchmarks/results/NAME_<device kind>.json`` with device, commit and command."""
-    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
+def write_result(name: str, device: str, rows: list[dict], out_dir: Path = RESULTS_DIR) -> Path:
+    """Write ``OUT_DIR/NAME_<device kind>.json`` with device, commit and command."""
+    out_dir.mkdir(parents=True, exist_ok=True)
     kind = "cuda" if device.startswith("cuda") else "cpu"
-    path = RESULTS_DIR / f"{name}_{kind}.json"
+    path = out_dir / f"{name}_{kind}.json"
     record = {"benchmark": name, "device": device_name(device), "commit": commit(),
               "command": " ".join(sys.orig_argv),
               "torch": torch.__version__, "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-              "rows": rows, **(extra or {})}
+              "rows": rows}
     tmp = path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(record, indent=1))
     os.replace(tmp, path)

@@ -1,0 +1,103 @@
+"""`isosr render` as a user runs it: frame files, images, and clear errors on bad input."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from isosr_cli.main import main
+from isosr_render.buffers import FrameBuffers
+from isosr_render.camera import orbit
+from isosr_render.catalog import shared_volumes_dir
+
+
+def test_render_npz_frame_file_holds_the_asked_buffers_in_the_documented_layout(tmp_path, capsys):
+    out = tmp_path / "frame.npz"
+    rc = main(["render", "proc:sphere", "--size", "40x30", "--orbit", "30,20,1.6", "--prev-orbit", "28,20,1.6",
+               "--outputs", "mask,normal,depth,position,flow,ao,color", "--ao-samples", "8", "-o", str(out)])
+    assert rc == 0
+    assert "40x30" in capsys.readouterr().out
+    with np.load(out) as z:
+        arrays = {k: z[k] for k in z.files}
+    assert sorted(arrays) == sorted(["mask", "normal", "depth", "position", "flow", "ao", "color"])
+    shapes = {"mask": (30, 40), "normal": (30, 40, 3), "depth": (30, 40), "position": (30, 40, 3),
+              "flow": (30, 40, 2), "ao": (30, 40), "color": (30, 40, 3)}
+    for name, shape in shapes.items():
+        assert arrays[name].shape == shape and arrays[name].dtype == np.float32, name
+    hit = arrays["mask"] > 0
+    assert set(np.unique(arrays["mask"])) <= {0.0, 1.0} and hit.sum() > 50
+    np.testing.assert_allclose(np.linalg.norm(arrays["normal"][hit], axis=-1), 1.0, atol=1e-5)
+    # The sphere of radius 0.3 (procedural default) seen from 1.6 away: depth near 1.3 at the center.
+    assert 1.25 < arrays["depth"][hit].min() < 1.35
+    np.testing.assert_allclose(np.linalg.norm(arrays["position"][hit], axis=-1), 0.3, atol=2e-3)
+    # Orbiting by 2 degrees moves the visible surface: flow is nonzero on hits, zero elsewhere.
+    assert np.abs(arrays["flow"][hit]).max() > 0.1 and (arrays["flow"][~hit] == 0).all()
+    assert ((arrays["ao"] >= 0) & (arrays["ao"] <= 1)).all()
+    assert FrameBuffers.load_npz(out).present() == ["mask", "normal", "depth", "position", "flow", "ao", "color"]
+
+
+def test_render_png_is_the_shaded_image_or_one_buffer(tmp_path):
+    color, normal = tmp_path / "c.png", tmp_path / "n.png"
+    assert main(["render", "proc:torus", "--size", "48x32", "-o", str(color)]) == 0
+    assert main(["render", "proc:torus", "--size", "48x32", "--png-of", "normal", "-o", str(normal)]) == 0
+    c, n = cv2.imread(str(color)), cv2.imread(str(normal))
+    assert c.shape == (32, 48, 3) and n.shape == (32, 48, 3)
+    assert (c == 255).all(axis=-1).mean() > 0.3  # white background around the torus
+    assert not np.array_equal(c, n)
+
+
+def test_eye_camera_and_data_unit_iso_match_orbit_and_normalized_iso(tmp_path):
+    eye = orbit(30.0, 20.0, 1.6).eye
+    a, b = tmp_path / "a.npz", tmp_path / "b.npz"
+    assert main(["render", "proc:sphere", "--size", "24x24", "--orbit", "30,20,1.6", "--iso", "0",
+                 "--outputs", "mask", "-o", str(a)]) == 0
+    from isosr_render import open_volume
+    iso = open_volume("proc:sphere").normalized_iso(0.0)
+    assert main(["render", "proc:sphere", "--size", "24x24", "--eye", ",".join(map(str, eye)), "--iso", str(iso),
+                 "--normalized-iso", "--outputs", "mask", "-o", str(b)]) == 0
+    np.testing.assert_array_equal(np.load(a)["mask"], np.load(b)["mask"])
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["render", "/no/such/volume.nii.gz", "-o", "x.npz"], "no such file"),
+    (["render", "proc:nonsense", "-o", "x.npz"], "valid"),
+    (["render", "proc:sphere", "--outputs", "flow", "-o", "x.npz"], "previous camera"),
+    (["render", "proc:sphere", "--outputs", "mask,bogus", "-o", "x.npz"], "unknown outputs"),
+    (["render", "proc:sphere", "-o", "x.jpg"], ".npz or .png"),
+    (["render", "proc:sphere", "--spp", "0", "-o", "x.npz"], "spp"),
+    (["render", "proc:sphere", "--eye", "0,0,2", "--orbit", "0,0,2", "-o", "x.npz"], "either --eye or --orbit"),
+    (["render", "proc:sphere", "--device", "cuda", "-o", "x.npz"], "CUDA"),
+])
+def test_bad_input_gives_one_line_error_and_exit_code_2(tmp_path, monkeypatch, capsys, argv, message):
+    monkeypatch.chdir(tmp_path)
+    if "cuda" in argv:
+        import warp as wp
+        if wp.is_cuda_available():
+            pytest.skip("this machine has CUDA")
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("isosr render: error:") and message in err
+    assert not list(tmp_path.iterdir())  # nothing half-written
+
+
+def test_shared_volume_renders_from_the_command_line(tmp_path):
+    root = shared_volumes_dir()
+    if not (root / "volumes.json").is_file():
+        pytest.skip(f"../shared/volumes not found at {root}")
+    entry = next(e for e in json.loads((root / "volumes.json").read_text()) if e["name"] == "chest_lidc")
+    out = tmp_path / "chest.npz"
+    assert main(["render", str(root / entry["file"]), "--iso", str(entry["otsu_iso_normalized"]), "--normalized-iso",
+                 "--size", "48x48", "--outputs", "mask,depth", "-o", str(out)]) == 0
+    assert np.load(out)["mask"].mean() > 0.1
+
+
+def test_installed_console_script_runs():
+    """The `isosr` entry point that `pip install` makes (what the README's quick start calls)."""
+    exe = __import__("shutil").which("isosr") or str(__import__("pathlib").Path(sys.executable).parent / "isosr")
+    result = subprocess.run([exe, "render", "--help"], capture_output=True, text=True)
+    assert result.returncode == 0 and "--outputs" in result.stdout
