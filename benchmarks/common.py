@@ -12,6 +12,8 @@ from pathlib import Path
 
 import torch
 
+from isosr_render.atomic import atomic_write
+
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
 
 
@@ -93,9 +95,7 @@ def write_result(name: str, device: str, rows: list[dict], out_dir: Path = RESUL
               "command": " ".join(sys.orig_argv),
               "torch": torch.__version__, "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
               "rows": rows}
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(record, indent=1))
-    os.replace(tmp, path)
+    atomic_write(path, lambda f: f.write(json.dumps(record, indent=1).encode()))
     return path
 
 

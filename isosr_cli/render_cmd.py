@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
-import tempfile
 import time
 from pathlib import Path
 
@@ -13,6 +11,7 @@ import numpy as np
 import torch
 
 from isosr_render import Camera, Renderer, RenderRequest, open_volume, orbit
+from isosr_render.atomic import atomic_write
 from isosr_render.buffers import FrameBuffers
 from isosr_render.conventions import BUFFER_NAMES
 from isosr_render.procedural import default_iso
@@ -110,15 +109,11 @@ def visualize(frame: FrameBuffers, name: str) -> np.ndarray:
 
 
 def write_png(path: Path, rgb: np.ndarray) -> None:
-    """Write an RGB image atomically (temporary file, then rename)."""
+    """Write an RGB image atomically."""
     ok, data = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     if not ok:
         raise RuntimeError(f"could not encode {path}")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    with os.fdopen(fd, "wb") as f:
-        f.write(data.tobytes())
-    os.replace(tmp, path)
+    atomic_write(path, lambda f: f.write(data.tobytes()))
 
 
 def run(args: argparse.Namespace) -> int:

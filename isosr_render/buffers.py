@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import os
-import tempfile
 from dataclasses import dataclass, fields
-from pathlib import Path
 
 import numpy as np
 import torch
 
+from isosr_render.atomic import atomic_write
 from isosr_render.conventions import BUFFER_CHANNELS, BUFFER_NAMES
 
 
@@ -42,17 +41,9 @@ class FrameBuffers:
         return {name: getattr(self, name).detach().cpu().numpy() for name in self.present()}
 
     def save_npz(self, path: str | os.PathLike) -> None:
-        """Write the frame file atomically: a temporary file beside ``path``, then a rename."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-        try:
-            with os.fdopen(fd, "wb") as f:
-                np.savez_compressed(f, **self.to_numpy())
-            os.replace(tmp, path)
-        except BaseException:
-            os.unlink(tmp)
-            raise
+        """Write the frame file atomically (all buffers or no file)."""
+        arrays = self.to_numpy()
+        atomic_write(path, lambda f: np.savez_compressed(f, **arrays))
 
     @classmethod
     def load_npz(cls, path: str | os.PathLike) -> "FrameBuffers":

@@ -64,6 +64,17 @@ class Camera:
         view[:3, 3] = -rot @ np.asarray(self.eye)
         return view
 
+    def projection_matrix(self, width: int, height: int, near: float = 0.01, far: float = 10.0) -> np.ndarray:
+        """4x4 OpenGL-style perspective matrix (view space to clip space, depth to [-1, 1])."""
+        t = self.tan_half_fov()
+        proj = np.zeros((4, 4))
+        proj[0, 0] = 1.0 / (t * width / height)
+        proj[1, 1] = 1.0 / t
+        proj[2, 2] = -(far + near) / (far - near)
+        proj[2, 3] = -2.0 * far * near / (far - near)
+        proj[3, 2] = -1.0
+        return proj
+
     def tan_half_fov(self) -> float:
         return math.tan(math.radians(self.fov_y) * 0.5)
 

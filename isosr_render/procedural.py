@@ -17,16 +17,15 @@ from isosr_render.conventions import world_from_voxel
 from isosr_render.volume import Volume, VolumeError
 
 PROCEDURAL_NAMES = ("sphere", "torus", "cloud", "metaballs")
-DEFAULT_DEMO_SPEC = "proc:cloud:1"
 DEFAULT_SIZE = 64
 MAX_SIZE = 512
 DEFAULT_SEED = 0
 
 # Iso-values in original data units. SDFs: the zero level set. Cloud: the density is a
-# normalized fBm sum (mean 0.5) times a falloff that is 1 in the core, so 0.55 keeps the
-# denser ~third of the core as blobs and the falloff closes them before the border.
+# normalized fBm sum (mean 0.5) times a falloff that is 1 in the core, so 0.45 keeps the
+# denser half of the core as lumpy blobs and the falloff closes them before the border.
 # Metaballs: each blob is exp(-(d/r)^2), so 0.5 puts a lone blob's surface at d ~ 0.83 r.
-_DEFAULT_ISO = {"sphere": 0.0, "torus": 0.0, "cloud": 0.55, "metaballs": 0.5}
+_DEFAULT_ISO = {"sphere": 0.0, "torus": 0.0, "cloud": 0.45, "metaballs": 0.5}
 _SEEDED = ("cloud", "metaballs")
 _VALID = ("valid specs: proc:sphere, proc:torus, proc:cloud[:SEED], proc:metaballs[:SEED], "
           f"each with an optional @SIZE (2..{MAX_SIZE}); names: {', '.join(PROCEDURAL_NAMES)}")
@@ -209,7 +208,7 @@ def parse_procedural(spec: str) -> Volume:
 def default_iso(spec_or_volume_name: str) -> float:
     """A good iso-value, in original data units, for a procedural spec or volume name.
 
-    0.0 for the SDFs (the exact surface), 0.55 for cloud and 0.5 for metaballs (see
+    0.0 for the SDFs (the exact surface), 0.45 for cloud and 0.5 for metaballs (see
     ``_DEFAULT_ISO`` for why).
 
     Raises:

@@ -182,7 +182,7 @@ def _read_nrrd_file_list(path: Path, header: dict, match: re.Match) -> np.ndarra
     chunks = []
     for file in files:
         try:
-            chunks.append(nrrd.read_data({**part, "data file": str(file)}, filename=str(path)))
+            chunks.append(nrrd.read_data({**part, "data file": str(file.resolve())}, filename=str(path)))
         except nrrd.NRRDError as e:
             raise VolumeError(f"{path}: slice file {file.name} does not match the header: {e}") from e
     return np.concatenate(chunks).reshape(sizes[::-1]).T

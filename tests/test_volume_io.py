@@ -131,6 +131,20 @@ def test_multifile_nhdr_orientation(tmp_path, encoding, endian, first, step, sub
     _assert_pattern(header, (0.5, 0.75, 2.0))
 
 
+@pytest.mark.parametrize("kind", ["nhdr", "dat"])
+def test_detached_data_found_from_a_relative_header_path(tmp_path, monkeypatch, kind):
+    """Data files sit beside the header, also when the header is named by a relative path."""
+    folder = tmp_path / "vols"
+    folder.mkdir()
+    if kind == "nhdr":
+        header = _write_multifile_nhdr(folder)
+    else:
+        header = _write_dat(folder, (PATTERN + 100).astype("<u2").tobytes(order="F"))
+    expected = load_volume(header).data
+    monkeypatch.chdir(tmp_path)
+    np.testing.assert_array_equal(load_volume(header.relative_to(tmp_path)).data, expected)
+
+
 def test_npy_orientation(tmp_path):
     path = tmp_path / "vol.npy"
     np.save(path, PATTERN)
