@@ -1,12 +1,13 @@
-"""Warp kernels: the min-max brick grid, and first-hit + ambient-occlusion ray casting.
+"""Warp kernels: the min-max brick grid, its per-iso distance grid, and first-hit + AO ray casting.
 
 One code path for ``cuda`` and ``cpu``. Rays march in voxel coordinates (voxel ``(i, j, k)``
 at integer coordinates, the data spanning ``[0, n - 1]`` per axis) while the ray
 parameter ``t`` stays in world units, so step sizes and AO radii mean the same on
-anisotropic grids. A 3D DDA walks the bricks of the min-max grid and marches only those
-whose value range holds the iso-value; the trilinear interpolant inside a brick is bounded
-by the brick's voxels (they include the one-voxel overlap), so skipping never loses a hit.
-Buffer conventions: :mod:`isosr_render.conventions`.
+anisotropic grids. A brick is active when its value range (min-max grid) holds the
+iso-value; the trilinear interpolant inside a brick is bounded by the brick's voxels (they
+include the one-voxel overlap), so skipping inactive bricks never loses a hit. Rays leap
+over inactive bricks by the Chebyshev distance to the nearest active one and march only
+active bricks. Buffer conventions: :mod:`isosr_render.conventions`.
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ TILE_H = wp.constant(4)
 
 @wp.struct
 class Grid:
-    """The volume and its min-max bricks, with the voxel <-> world transform."""
+    """The volume, its brick distance grid for one iso-value, and the voxel <-> world transform."""
 
     data: wp.array3d(dtype=wp.float32)
     dist: wp.array3d(dtype=wp.uint8)  # per brick, for the current iso: Chebyshev distance to an active brick
