@@ -14,7 +14,6 @@ import argparse
 import os
 from pathlib import Path
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 import warp as wp

@@ -14,11 +14,12 @@ from isosr_render.volume import VolumeError  # noqa: E402
 
 def build_parser() -> argparse.ArgumentParser:
     """The parser with every subcommand."""
-    from isosr_cli import render_cmd
+    from isosr_cli import net_cmds, render_cmd
 
     parser = argparse.ArgumentParser(prog="isosr", description="Isosurface rendering with learned super-resolution.")
     subparsers = parser.add_subparsers(dest="command", required=True)
     render_cmd.add_parser(subparsers)
+    net_cmds.add_parsers(subparsers)
     return parser
 
 

@@ -6,15 +6,12 @@ import argparse
 import time
 from pathlib import Path
 
-import cv2
-import numpy as np
 import torch
 
 from isosr_render import Camera, Renderer, RenderRequest, open_volume, orbit
-from isosr_render.atomic import atomic_write
-from isosr_render.buffers import FrameBuffers
 from isosr_render.conventions import BUFFER_NAMES
 from isosr_render.procedural import default_iso
+from isosr_cli.images import visualize, write_png
 
 PNG_DEFAULT = "color"
 
@@ -82,38 +79,6 @@ def _camera(orbit_arg, eye, target, up, fov) -> Camera:
     if orbit_arg is not None:
         return orbit(*orbit_arg, target=target, fov_y=fov)
     return Camera(eye, target, up, fov)
-
-
-def visualize(frame: FrameBuffers, name: str) -> np.ndarray:
-    """An 8-bit RGB image of one buffer: color as is, unit vectors and scalars mapped to [0, 1]."""
-    a = getattr(frame, name).float().cpu()
-    hit = frame.mask.cpu() > 0 if frame.mask is not None else torch.ones(a.shape[:2], dtype=torch.bool)
-    if name == "normal":
-        rgb = (a + 1.0) * 0.5 * hit[..., None]
-    elif name == "position":
-        rgb = (a + 0.5).clamp(0, 1) * hit[..., None]
-    elif name == "flow":
-        mag, ang = cv2.cartToPolar(a[..., 0].numpy(), a[..., 1].numpy(), angleInDegrees=True)
-        hsv = np.stack([ang / 2, np.full_like(mag, 255), 255 * mag / max(mag.max(), 1e-6)], -1)
-        return cv2.cvtColor(hsv.astype(np.uint8), cv2.COLOR_HSV2RGB)
-    elif name == "depth":
-        d = a[hit] if hit.any() else a.flatten()
-        lo, hi = float(d.min()), float(d.max())
-        gray = torch.where(hit, 1.0 - (a - lo) / max(hi - lo, 1e-12) * 0.8, torch.zeros_like(a))
-        rgb = gray[..., None].expand(*gray.shape, 3)
-    elif a.ndim == 2:
-        rgb = a[..., None].expand(*a.shape, 3)
-    else:
-        rgb = a
-    return (rgb.clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
-
-
-def write_png(path: Path, rgb: np.ndarray) -> None:
-    """Write an RGB image atomically."""
-    ok, data = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-    if not ok:
-        raise RuntimeError(f"could not encode {path}")
-    atomic_write(path, lambda f: f.write(data.tobytes()))
 
 
 def run(args: argparse.Namespace) -> int:

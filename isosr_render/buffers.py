@@ -48,15 +48,47 @@ class FrameBuffers:
     @classmethod
     def load_npz(cls, path: str | os.PathLike) -> "FrameBuffers":
         """Read a frame file written by :meth:`save_npz`, checking names and shapes."""
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
-        unknown = set(arrays) - {f.name for f in fields(cls)}
-        if unknown:
-            raise ValueError(f"{path}: unknown buffers {sorted(unknown)}; expected some of {BUFFER_NAMES}")
-        for name, a in arrays.items():
-            channels = BUFFER_CHANNELS.get(name, 1)
-            want = 2 if channels == 1 else 3
-            if a.ndim != want or (channels > 1 and a.shape[-1] != channels):
-                raise ValueError(f"{path}: buffer {name} has shape {a.shape}, expected (H, W"
-                                 + (f", {channels})" if channels > 1 else ")"))
-        return cls(**{k: torch.from_numpy(v) for k, v in arrays.items()})
+        return cls(**{k: torch.from_numpy(v) for k, v in _read_checked(path, time_axis=False).items()})
+
+
+def save_sequence(frames: list[FrameBuffers], path: str | os.PathLike) -> None:
+    """Write frames as one ``.npz`` with a leading time axis per buffer (atomically).
+
+    Every frame must hold the same buffers; shapes become (T, H, W[, C]).
+    """
+    if not frames:
+        raise ValueError("save_sequence needs at least one frame")
+    names = frames[0].present()
+    if any(f.present() != names for f in frames):
+        raise ValueError("every frame of a sequence must hold the same buffers")
+    arrays = {n: np.stack([getattr(f, n).detach().cpu().numpy() for f in frames]) for n in names}
+    atomic_write(path, lambda f: np.savez_compressed(f, **arrays))
+
+
+def load_sequence(path: str | os.PathLike) -> list[FrameBuffers]:
+    """Read a sequence file (buffers with a leading time axis), checking names and shapes."""
+    arrays = _read_checked(path, time_axis=True)
+    length = next(iter(arrays.values())).shape[0]
+    return [FrameBuffers(**{k: torch.from_numpy(np.ascontiguousarray(a[t])) for k, a in arrays.items()})
+            for t in range(length)]
+
+
+def _read_checked(path: str | os.PathLike, time_axis: bool) -> dict[str, np.ndarray]:
+    """The arrays of a frame or sequence file, after checking their names and shapes."""
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    if not arrays:
+        raise ValueError(f"{path}: holds no buffers")
+    unknown = set(arrays) - {f.name for f in fields(FrameBuffers)}
+    if unknown:
+        raise ValueError(f"{path}: unknown buffers {sorted(unknown)}; expected some of {BUFFER_NAMES}")
+    lead = "T, " if time_axis else ""
+    for name, a in arrays.items():
+        channels = BUFFER_CHANNELS.get(name, 1)
+        want = (2 if channels == 1 else 3) + time_axis
+        if a.ndim != want or (channels > 1 and a.shape[-1] != channels):
+            raise ValueError(f"{path}: buffer {name} has shape {a.shape}, expected ({lead}H, W"
+                             + (f", {channels})" if channels > 1 else ")"))
+    if len({a.shape[:2 + time_axis] for a in arrays.values()}) != 1:
+        raise ValueError(f"{path}: buffers disagree in size: { {k: a.shape for k, a in arrays.items()} }")
+    return arrays

@@ -41,6 +41,13 @@ BUFFER_NAMES = ("mask", "normal", "depth", "position", "flow", "ao", "color")
 # Channels per buffer; 1 means a plain (H, W) image.
 BUFFER_CHANNELS = {"mask": 1, "normal": 3, "depth": 1, "position": 3, "flow": 2, "ao": 1, "color": 3}
 
+# The network's tensors are channels-first, (B, C, H, W), in these channel orders.
+# Low-res input: mask, view-space normal, depth; flow travels beside it as (B, 2, H, W).
+LOWRES_CHANNELS = ("mask", "normal_x", "normal_y", "normal_z", "depth")
+# High-res output and ground truth: the input's channels, then ambient occlusion.
+HIGHRES_CHANNELS = LOWRES_CHANNELS + ("ao",)
+MASK, NORMAL, DEPTH, AO = slice(0, 1), slice(1, 4), slice(4, 5), slice(5, 6)
+
 # Value written where a buffer has no surface (mask == 0).
 EMPTY_VALUE = 0.0
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from isosr_render.conventions import BACKGROUND_RGB
+from isosr_render.conventions import AO, BACKGROUND_RGB, HIGHRES_CHANNELS, LOWRES_CHANNELS, MASK, NORMAL
 
 
 @dataclass(frozen=True)
@@ -64,3 +64,24 @@ def shade(mask: torch.Tensor, normal: torch.Tensor, ao: torch.Tensor | None = No
     background = torch.tensor(params.background, dtype=dtype, device=device)
     alpha = mask.clamp(0.0, 1.0)[..., None]
     return (alpha * lit + (1.0 - alpha) * background).clamp(0.0, 1.0)
+
+
+def shade_channels_first(stack: torch.Tensor, params: ShadingParams = ShadingParams()) -> torch.Tensor:
+    """:func:`shade` for the network's channels-first buffer stacks.
+
+    Args:
+        stack: buffers in ``HIGHRES_CHANNELS`` order, or ``LOWRES_CHANNELS`` (no AO: shaded
+            without occlusion).
+        params: material and light.
+
+    Returns:
+        RGB color in [0, 1].
+
+    Shape:
+        stack: (B, 6, H, W) or (B, 5, H, W). Returns (B, 3, H, W).
+    """
+    if stack.ndim != 4 or stack.shape[1] not in (len(HIGHRES_CHANNELS), len(LOWRES_CHANNELS)):
+        raise ValueError(f"shade_channels_first: stack must be (B, 6, H, W) or (B, 5, H, W), got {tuple(stack.shape)}")
+    ao = stack[:, AO.start] if stack.shape[1] == len(HIGHRES_CHANNELS) else None
+    color = shade(stack[:, MASK.start], stack[:, NORMAL].permute(0, 2, 3, 1), ao, params)
+    return color.permute(0, 3, 1, 2)

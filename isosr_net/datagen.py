@@ -1,0 +1,223 @@
+"""Training data: rendered low-res / high-res sequence pairs, written as shards with a manifest.
+
+As in the paper: per volume, sequences of frames along smooth random camera orbits at a
+random iso-value; low-res inputs (mask, normal, depth, flow from the previous frame) without
+AO, and high-res ground truth (mask, normal, depth, AO) with many AO rays and supersampling.
+Each sequence yields crops (same window in every frame) that the surface covers at least
+half. One shard per sequence (``safetensors``), listed in ``manifest.json`` with its volume
+and split; a run that is stopped resumes where it stopped and writes the same data.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors.torch import load_file, save
+from tqdm import tqdm
+
+from isosr_render import Renderer, RenderRequest, Volume, open_volume, orbit
+from isosr_render.atomic import atomic_write
+from isosr_render.catalog import entry
+from isosr_render.procedural import default_iso
+
+LOWRES_OUTPUTS = ("mask", "normal", "depth")
+HIGHRES_OUTPUTS = ("mask", "normal", "depth", "ao")
+MANIFEST = "manifest.json"
+
+
+@dataclass(frozen=True)
+class DatagenConfig:
+    """What to render.
+
+    Attributes:
+        volumes: procedural specs (``proc:cloud:3@96``, split "train") or shared volumes
+            (``shared:bonsai``, split from ``../shared/volumes/volumes.json``).
+        sequences: sequences per volume.
+        frames: frames per sequence.
+        lowres_size: side of the full low-res render; the high-res one is ``upscale`` times.
+        upscale: resolution factor between input and ground truth.
+        crop: low-res crop side (the high-res crop is ``upscale`` times).
+        crops: crops kept per sequence at most.
+        min_coverage: least mean mask coverage of a crop over its frames.
+        ao_samples, ao_radius, spp: ground-truth AO rays per hit, their length (world
+            units), and rays per pixel.
+        iso_jitter: iso-values are drawn uniformly within +-this fraction of the volume's
+            reference iso (Otsu's, or the procedural default).
+        seed: base seed; each (volume, sequence) derives its own.
+        device: where to render.
+    """
+
+    volumes: tuple[str, ...] = ("proc:cloud:1@96", "proc:metaballs:1@96")
+    sequences: int = 4
+    frames: int = 10
+    lowres_size: int = 96
+    upscale: int = 4
+    crop: int = 32
+    crops: int = 4
+    min_coverage: float = 0.5
+    ao_samples: int = 256
+    ao_radius: float = 0.05
+    spp: int = 4
+    iso_jitter: float = 0.25
+    seed: int = 0
+    device: str = "cuda"
+
+    def __post_init__(self):
+        object.__setattr__(self, "volumes", tuple(self.volumes))
+        if self.crop > self.lowres_size:
+            raise ValueError(f"crop {self.crop} exceeds the low-res render side {self.lowres_size}")
+        if self.frames < 2:
+            raise ValueError(f"a sequence needs at least 2 frames, got {self.frames}")
+
+
+def resolve_volume(spec: str) -> tuple[Volume, str, float]:
+    """``(volume, split, reference normalized iso)`` for a procedural or ``shared:NAME`` spec."""
+    if spec.startswith("shared:"):
+        e = entry(spec.split(":", 1)[1])
+        return open_volume(str(e["path"])), e["split"], float(e["otsu_iso_normalized"])
+    if spec.startswith("proc:"):
+        volume = open_volume(spec)
+        return volume, "train", volume.normalized_iso(default_iso(spec))
+    volume = open_volume(spec)
+    return volume, "train", volume.otsu_iso()
+
+
+def camera_path(rng: np.random.Generator, frames: int) -> list:
+    """A smooth random orbit: steady yaw and pitch rates, distance drifting slowly."""
+    yaw, pitch, distance = rng.uniform(0, 360), rng.uniform(-45, 45), rng.uniform(1.2, 2.0)
+    d_yaw, d_pitch, d_dist = rng.choice([-1, 1]) * rng.uniform(1.0, 3.0), rng.uniform(-1.0, 1.0), rng.uniform(-0.01, 0.01)
+    target = rng.uniform(-0.08, 0.08, 3)
+    return [orbit(yaw + t * d_yaw, float(np.clip(pitch + t * d_pitch, -80, 80)), distance + t * d_dist,
+                  target=tuple(target)) for t in range(frames)]
+
+
+def pick_crops(mask: np.ndarray, crop: int, count: int, min_coverage: float, rng: np.random.Generator) -> list:
+    """Up to ``count`` crop corners ``(row, col)`` whose mask coverage, averaged over frames, is enough.
+
+    Shape:
+        mask: (T, h, w).
+    """
+    _, h, w = mask.shape
+    integral = np.pad(mask.mean(axis=0), ((1, 0), (1, 0))).cumsum(0).cumsum(1)
+    coverage = (integral[crop:, crop:] - integral[:-crop, crop:] - integral[crop:, :-crop]
+                + integral[:-crop, :-crop]) / (crop * crop)  # (h - crop + 1, w - crop + 1)
+    rows, cols = np.nonzero(coverage >= min_coverage)
+    if len(rows) == 0:
+        return []
+    chosen = rng.choice(len(rows), size=min(count, len(rows)), replace=False)
+    return [(int(rows[i]), int(cols[i])) for i in chosen]
+
+
+def render_sequence(renderer: Renderer, cameras: list, iso: float, config: DatagenConfig, seed: int) -> dict:
+    """Full-frame low-res inputs and high-res ground truth of one sequence, channels-first.
+
+    Returns:
+        numpy arrays ``lowres`` (T, 5, h, w), ``flow`` (T, 2, h, w) (zeros on frame 0) and
+        ``highres`` (T, 6, H, W).
+    """
+    n, s = config.lowres_size, config.upscale
+    lowres, flows, highres = [], [], []
+    for t, camera in enumerate(cameras):
+        outputs = LOWRES_OUTPUTS + (("flow",) if t else ())
+        lo = renderer.render(camera, RenderRequest(n, n, iso, outputs, prev_camera=cameras[t - 1] if t else None))
+        hi = renderer.render(camera, RenderRequest(n * s, n * s, iso, HIGHRES_OUTPUTS, spp=config.spp,
+                                                   ao_samples=config.ao_samples, ao_radius=config.ao_radius,
+                                                   seed=seed + t))
+        lowres.append(torch.cat([lo.mask[None], lo.normal.permute(2, 0, 1), lo.depth[None]]).cpu().numpy())
+        flows.append(lo.flow.permute(2, 0, 1).cpu().numpy() if t else np.zeros((2, n, n), np.float32))
+        highres.append(torch.cat([hi.mask[None], hi.normal.permute(2, 0, 1), hi.depth[None], hi.ao[None]]).cpu().numpy())
+    return {"lowres": np.stack(lowres), "flow": np.stack(flows), "highres": np.stack(highres)}
+
+
+def _cut(frames: np.ndarray, corners: list, size: int, scale: int = 1) -> np.ndarray:
+    """The crops at low-res ``corners`` of a (T, C, H, W) stack at ``scale`` times low-res: (K, T, C, k, k)."""
+    k = size * scale
+    if not corners:
+        return np.zeros((0, *frames.shape[:2], k, k), frames.dtype)
+    return np.stack([frames[:, :, r * scale:r * scale + k, q * scale:q * scale + k] for r, q in corners])
+
+
+def _slug(spec: str) -> str:
+    """A file-name-safe form of a volume spec."""
+    return re.sub(r"[^A-Za-z0-9]+", "_", spec).strip("_")
+
+
+def _load_manifest(out: Path, config: DatagenConfig) -> dict:
+    """The manifest to extend: the existing one (same config) or a fresh one."""
+    path = out / MANIFEST
+    if path.is_file():
+        manifest = json.loads(path.read_text())
+        if manifest["config"] != json.loads(json.dumps(asdict(config))):
+            raise ValueError(f"{path} was written with another config; use a new folder or the same config")
+        return manifest
+    return {"version": 1, "config": asdict(config), "shards": []}
+
+
+def generate(config: DatagenConfig, out: str | Path, progress: bool = True) -> dict:
+    """Render every (volume, sequence) not yet in ``out``'s manifest; returns the manifest."""
+    out = Path(out)
+    (out / "shards").mkdir(parents=True, exist_ok=True)
+    manifest = _load_manifest(out, config)
+    done = {shard["file"] for shard in manifest["shards"]}
+    todo = [(v, spec, k) for v, spec in enumerate(config.volumes) for k in range(config.sequences)
+            if f"shards/{_slug(spec)}_{k:04d}.safetensors" not in done]
+    renderers: dict[str, tuple[Renderer, str, float]] = {}
+    for v, spec, k in tqdm(todo, desc="sequences", disable=not progress):
+        if spec not in renderers:
+            renderers.clear()  # one volume on the device at a time
+            volume, split, iso_ref = resolve_volume(spec)
+            renderers[spec] = (Renderer(volume, config.device), split, iso_ref)
+        renderer, split, iso_ref = renderers[spec]
+        rng = np.random.default_rng([config.seed, v, k])
+        iso = float(np.clip(iso_ref * rng.uniform(1 - config.iso_jitter, 1 + config.iso_jitter), 1e-3, 1 - 1e-3))
+        frames = render_sequence(renderer, camera_path(rng, config.frames), iso, config,
+                                 seed=int(rng.integers(2**31 - config.frames)))
+        corners = pick_crops(frames["lowres"][:, 0], config.crop, config.crops, config.min_coverage, rng)
+        tensors = {"lowres": torch.from_numpy(_cut(frames["lowres"], corners, config.crop)).half(),
+                   "flow": torch.from_numpy(_cut(frames["flow"], corners, config.crop)).float(),
+                   "highres": torch.from_numpy(_cut(frames["highres"], corners, config.crop, config.upscale)).half()}
+        name = f"shards/{_slug(spec)}_{k:04d}.safetensors"
+        data = save({key: t.contiguous() for key, t in tensors.items()})
+        atomic_write(out / name, lambda f: f.write(data))
+        manifest["shards"].append({"file": name, "volume": spec, "split": split, "sequence": k, "iso": iso,
+                                   "crops": len(corners)})
+        atomic_write(out / MANIFEST, lambda f: f.write(json.dumps(manifest, indent=1).encode()))
+    return manifest
+
+
+class SequenceDataset(torch.utils.data.Dataset):
+    """The crops of one split, held in memory, as float32 sequences.
+
+    Items: dict with ``lowres`` (T, 5, c, c), ``flow`` (T, 2, c, c), ``highres`` (T, 6, C, C).
+    """
+
+    def __init__(self, root: str | Path, split: str):
+        root = Path(root)
+        path = root / MANIFEST
+        if not path.is_file():
+            raise FileNotFoundError(f"no {MANIFEST} in {root}: run `isosr datagen` first")
+        manifest = json.loads(path.read_text())
+        self.config = manifest["config"]
+        shards = [s for s in manifest["shards"] if s["split"] == split and s["crops"]]
+        if not shards:
+            raise ValueError(f"{root}: no crops of split {split!r}; splits there: "
+                             f"{sorted({s['split'] for s in manifest['shards']})}")
+        parts = [load_file(root / s["file"]) for s in shards]
+        self.tensors = {k: torch.cat([p[k] for p in parts]) for k in ("lowres", "flow", "highres")}
+        self.volumes = [s["volume"] for s in shards for _ in range(s["crops"])]
+
+    def to(self, device: str | torch.device) -> "SequenceDataset":
+        """Move the crops (kept in float16) to ``device``; returns self."""
+        self.tensors = {k: t.to(device) for k, t in self.tensors.items()}
+        return self
+
+    def __len__(self) -> int:
+        return len(self.volumes)
+
+    def __getitem__(self, i: int) -> dict:
+        return {k: t[i].float() for k, t in self.tensors.items()}

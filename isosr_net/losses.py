@@ -1,0 +1,495 @@
+"""Training losses of the super-resolution network, built from config dicts.
+
+Every loss is an ``nn.Module`` that carries its own weight (as in BasicSR) and maps a
+:class:`LossContext` to a weighted scalar. The plain functions (:func:`masked_l1`,
+:func:`masked_l2`, :func:`shade_channels_first`) hold the math; the modules are thin.
+Tensors are channels-first ``(B, C, H, W)`` in the orders of
+:mod:`isosr_render.conventions` (``HIGHRES_CHANNELS``: mask, normal xyz, depth, ao).
+
+Losses
+    ``channel``      L1 / L2 on one output: ``mask`` over all pixels (the alpha is learned
+                     everywhere), ``normal``, ``depth`` and ``ao`` over the ground truth's
+                     surface pixels, ``color`` on the shaded images over all pixels.
+    ``perceptual``   L1 / L2 between VGG-19 features of the shaded prediction and ground truth.
+    ``temporal``     masked L2 between the output and the previous output warped to this frame.
+    ``adversarial``  spatio-temporal conditional GAN (TecoGAN style): the discriminator sees the
+                     current frame, the previous frame warped to it and the upsampled low-res
+                     input. :meth:`AdversarialLoss.forward` is the generator term;
+                     :meth:`AdversarialLoss.discriminator_loss` is the discriminator's, to be
+                     minimized over ``AdversarialLoss.discriminator.parameters()`` in a
+                     separate step.
+
+The paper's three networks (Weiss et al., TVCG 2019) as configs, in :data:`PAPER_LOSSES`
+    ``l1-normal``  L1 on the normals plus the mask and AO terms, no GAN, no perceptual term:
+                   the network that reproduces the ground truth most closely per pixel.
+    ``gan-1``      the L1 terms plus perceptual, temporal and adversarial terms, with a small
+                   adversarial weight: sharper detail, little hallucination.
+    ``gan-2``      the same terms with a larger adversarial and perceptual weight: more
+                   detail, further from the ground truth per pixel.
+    The weights are our reading of the paper's setup, not numbers copied from it; tune them.
+    The perceptual entries name ``weights/vgg19_features.safetensors``; replace ``weights_path``
+    where the file lives elsewhere.
+
+Typical use::
+
+    losses = build_losses(PAPER_LOSSES["gan-1"])
+    loss, logs = total_loss(losses, LossContext(pred, target, prev_warped, lowres_up, prev_target_warped))
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from isosr_render.conventions import AO, DEPTH, HIGHRES_CHANNELS, LOWRES_CHANNELS, MASK, NORMAL
+from isosr_render.shading import shade_channels_first
+
+_EPS = 1e-8
+_HIGHRES = len(HIGHRES_CHANNELS)
+_LOWRES = len(LOWRES_CHANNELS)
+
+
+def _shape(x: torch.Tensor) -> tuple[int, ...]:
+    return tuple(x.shape)
+
+
+@dataclass
+class LossContext:
+    """Everything a loss may look at for one frame; see the module docstring.
+
+    Shape:
+        pred, target, prev_warped, prev_target_warped: (B, 6, H, W). lowres_up: (B, 5, H, W).
+    """
+
+    pred: torch.Tensor
+    target: torch.Tensor
+    prev_warped: torch.Tensor | None = None
+    lowres_up: torch.Tensor | None = None
+    prev_target_warped: torch.Tensor | None = None
+
+    def __post_init__(self) -> None:
+        if self.pred.ndim != 4 or self.pred.shape[1] != _HIGHRES:
+            raise ValueError(f"LossContext: pred must be (B, {_HIGHRES}, H, W), got {_shape(self.pred)}")
+        for name in ("target", "prev_warped", "prev_target_warped"):
+            x = getattr(self, name)
+            if x is not None and x.shape != self.pred.shape:
+                raise ValueError(f"LossContext: {name} must have pred's shape {_shape(self.pred)}, "
+                                 f"got {_shape(x)}")
+        if self.lowres_up is not None:
+            b, _, h, w = self.pred.shape
+            if self.lowres_up.shape != (b, _LOWRES, h, w):
+                raise ValueError(f"LossContext: lowres_up must be {(b, _LOWRES, h, w)}, "
+                                 f"got {_shape(self.lowres_up)}")
+
+
+def _masked_error(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, channels: slice,
+                  error: Callable[[torch.Tensor], torch.Tensor], name: str) -> torch.Tensor:
+    if pred.ndim != 4 or pred.shape != target.shape:
+        raise ValueError(f"{name}: pred and target must be (B, C, H, W) of one shape, "
+                         f"got {_shape(pred)} and {_shape(target)}")
+    b, c, h, w = pred.shape
+    if mask.shape != (b, 1, h, w):
+        raise ValueError(f"{name}: mask must be {(b, 1, h, w)}, got {_shape(mask)}")
+    if len(range(c)[channels]) == 0:
+        raise ValueError(f"{name}: channels {channels} select nothing of {c} channels")
+    per_pixel = error(pred[:, channels] - target[:, channels]).mean(dim=1, keepdim=True)
+    inside = (mask > 0).to(per_pixel.dtype)
+    return (per_pixel * inside).sum() / (inside.sum() + _EPS)
+
+
+def masked_l1(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
+              channels: slice = slice(None)) -> torch.Tensor:
+    """Mean absolute error over ``channels``, averaged over the pixels where ``mask > 0``.
+
+    The average runs over all such pixels of the batch; an empty mask gives 0.
+
+    Args:
+        pred: prediction.
+        target: reference.
+        mask: pixels to count where positive (pass the ground-truth mask).
+        channels: the channel slice to compare, e.g. ``conventions.NORMAL``.
+
+    Returns:
+        Scalar loss.
+
+    Shape:
+        pred, target: (B, C, H, W). mask: (B, 1, H, W). Returns ().
+    """
+    return _masked_error(pred, target, mask, channels, torch.abs, "masked_l1")
+
+
+def masked_l2(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
+              channels: slice = slice(None)) -> torch.Tensor:
+    """Mean squared error over ``channels``, averaged over the pixels where ``mask > 0``.
+
+    Same arguments and shapes as :func:`masked_l1`.
+    """
+    return _masked_error(pred, target, mask, channels, torch.square, "masked_l2")
+
+
+def _check_weight(weight: float) -> float:
+    if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not math.isfinite(weight) \
+            or weight < 0:
+        raise ValueError(f"weight must be a finite number >= 0, got {weight!r}")
+    return float(weight)
+
+
+def _check_kind(kind: str) -> str:
+    if kind not in ("l1", "l2"):
+        raise ValueError(f"kind must be 'l1' or 'l2', got {kind!r}")
+    return kind
+
+
+def _mean_error(a: torch.Tensor, b: torch.Tensor, kind: str) -> torch.Tensor:
+    return F.l1_loss(a, b) if kind == "l1" else F.mse_loss(a, b)
+
+
+class ChannelLoss(nn.Module):
+    """Weighted L1 / L2 on one output; see the module docstring for what each channel means.
+
+    Args:
+        channel: ``"mask"``, ``"normal"``, ``"depth"``, ``"ao"`` or ``"color"``.
+        kind: ``"l1"`` or ``"l2"``.
+        weight: factor on the loss.
+    """
+
+    CHANNELS = {"mask": MASK, "normal": NORMAL, "depth": DEPTH, "ao": AO, "color": None}
+
+    def __init__(self, channel: str, kind: str = "l1", weight: float = 1.0) -> None:
+        super().__init__()
+        if channel not in self.CHANNELS:
+            raise ValueError(f"channel must be one of {sorted(self.CHANNELS)}, got {channel!r}")
+        self.channel, self.kind, self.weight = channel, _check_kind(kind), _check_weight(weight)
+        self.name = f"{channel}_{kind}"
+
+    def forward(self, ctx: LossContext) -> torch.Tensor:
+        pred, target = ctx.pred, ctx.target
+        if self.channel == "color":
+            loss = _mean_error(shade_channels_first(pred), shade_channels_first(target), self.kind)
+        elif self.channel == "mask":
+            loss = _mean_error(pred[:, MASK], target[:, MASK], self.kind)
+        else:
+            masked = masked_l1 if self.kind == "l1" else masked_l2
+            loss = masked(pred, target, target[:, MASK], self.CHANNELS[self.channel])
+        return self.weight * loss
+
+
+# VGG-19 "features" as torchvision numbers it: conv (+ ReLU) per int, max-pool per "M".
+_VGG19_CFG: tuple[int | str, ...] = (64, 64, "M", 128, 128, "M", 256, 256, 256, 256, "M",
+                                     512, 512, 512, 512, "M", 512, 512, 512, 512, "M")
+_IMAGENET_MEAN = (0.485, 0.456, 0.406)
+_IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+def _vgg19_layer_index() -> dict[str, int]:
+    """``"relu{block}_{conv}"`` -> index of that ReLU in the features ``nn.Sequential``."""
+    names, index, block, conv = {}, 0, 1, 0
+    for item in _VGG19_CFG:
+        if item == "M":
+            block, conv, index = block + 1, 0, index + 1
+        else:
+            conv += 1
+            names[f"relu{block}_{conv}"] = index + 1
+            index += 2
+    return names
+
+
+VGG19_LAYERS = _vgg19_layer_index()
+
+
+def vgg19_features() -> nn.Sequential:
+    """VGG-19's convolutional part, indexed like torchvision's ``vgg19().features``."""
+    layers: list[nn.Module] = []
+    channels = 3
+    for item in _VGG19_CFG:
+        if item == "M":
+            layers.append(nn.MaxPool2d(kernel_size=2, stride=2))
+        else:
+            layers += [nn.Conv2d(channels, int(item), kernel_size=3, padding=1), nn.ReLU(inplace=True)]
+            channels = int(item)
+    return nn.Sequential(*layers)
+
+
+def load_vgg19_features(path: str | Path) -> nn.Sequential:
+    """VGG-19 features with weights from ``path``, frozen and in eval mode.
+
+    The file holds a state dict (``.safetensors``, or ``.pt`` / ``.pth`` saved with
+    ``torch.save``), either of the features alone or of a whole torchvision ``vgg19`` (its
+    ``features.`` keys are used, the classifier is ignored).
+
+    Raises:
+        FileNotFoundError: no file at ``path``.
+        ValueError: keys missing, unexpected or of the wrong shape.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"VGG-19 weights not found at '{path}'. The perceptual loss needs ImageNet-trained "
+            "VGG-19 weights: save torchvision's vgg19(weights='IMAGENET1K_V1').state_dict() "
+            f"(or its .features part) as .safetensors or .pt at '{path}', or point the loss's "
+            "weights_path at such a file.")
+    if path.suffix == ".safetensors":
+        from safetensors.torch import load_file
+        state = load_file(str(path))
+    else:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
+        raise ValueError(f"VGG-19 weights '{path}': expected a state dict of tensors")
+    if any(k.startswith("features.") for k in state):
+        state = {k.removeprefix("features."): v for k, v in state.items() if k.startswith("features.")}
+    model = vgg19_features()
+    expected = model.state_dict()
+    missing = sorted(set(expected) - set(state))
+    unexpected = sorted(set(state) - set(expected))
+    mismatched = sorted(f"{k} {_shape(state[k])} != {_shape(expected[k])}"
+                        for k in set(expected) & set(state) if state[k].shape != expected[k].shape)
+    if missing or unexpected or mismatched:
+        raise ValueError(f"VGG-19 weights '{path}' do not fit VGG-19 features: missing keys {missing}, "
+                         f"unexpected keys {unexpected}, shape mismatches {mismatched}")
+    model.load_state_dict(state)
+    return model.requires_grad_(False).eval()
+
+
+class PerceptualLoss(nn.Module):
+    """Weighted L1 / L2 between VGG-19 features of the shaded prediction and ground truth.
+
+    Both frames are shaded (:func:`shade_channels_first`), normalized by the ImageNet mean and
+    std and run through the frozen network; the loss is the mean over ``layers`` of the mean
+    error between the two feature maps. The network runs in its own dtype.
+
+    Args:
+        weights_path: VGG-19 weights, see :func:`load_vgg19_features`.
+        layers: ReLU outputs to compare, named ``"relu{block}_{conv}"``.
+        weight: factor on the loss.
+        kind: ``"l1"`` or ``"l2"``.
+    """
+
+    name = "perceptual"
+
+    def __init__(self, weights_path: str | Path,
+                 layers: Sequence[str] = ("relu1_2", "relu2_2", "relu3_4", "relu4_4", "relu5_4"),
+                 weight: float = 1.0, kind: str = "l1") -> None:
+        super().__init__()
+        unknown = [layer for layer in layers if layer not in VGG19_LAYERS]
+        if unknown or not layers:
+            raise ValueError(f"layers must be a non-empty subset of {list(VGG19_LAYERS)}, got {list(layers)}")
+        self.weight, self.kind = _check_weight(weight), _check_kind(kind)
+        self.taps = sorted({VGG19_LAYERS[layer] for layer in layers})
+        # Only the layers up to the deepest tap are kept.
+        self.vgg = load_vgg19_features(weights_path)[: self.taps[-1] + 1]
+        self.register_buffer("mean", torch.tensor(_IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(_IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
+
+    def train(self, mode: bool = True) -> PerceptualLoss:
+        super().train(mode)
+        self.vgg.eval()
+        return self
+
+    def features(self, color: torch.Tensor) -> list[torch.Tensor]:
+        """The tapped feature maps of an RGB image (B, 3, H, W) in [0, 1]."""
+        dtype = self.mean.dtype
+        x = (color.to(dtype) - self.mean) / self.std
+        out = []
+        for i, layer in enumerate(self.vgg):
+            x = layer(x)
+            if i in self.taps:
+                out.append(x)
+        return out
+
+    def forward(self, ctx: LossContext) -> torch.Tensor:
+        n = ctx.pred.shape[0]
+        color = shade_channels_first(torch.cat([ctx.pred, ctx.target]))
+        losses = [_mean_error(f[:n], f[n:], self.kind) for f in self.features(color)]
+        return self.weight * torch.stack(losses).mean()
+
+
+class TemporalLoss(nn.Module):
+    """Weighted masked L2 between the output and the previous output warped to this frame.
+
+    Zero (without a graph) on a sequence's first frame, where ``ctx.prev_warped`` is None.
+
+    Args:
+        weight: factor on the loss.
+    """
+
+    name = "temporal"
+
+    def __init__(self, weight: float = 1.0) -> None:
+        super().__init__()
+        self.weight = _check_weight(weight)
+
+    def forward(self, ctx: LossContext) -> torch.Tensor:
+        if ctx.prev_warped is None:
+            return ctx.pred.new_zeros(())
+        return self.weight * masked_l2(ctx.pred, ctx.prev_warped, ctx.target[:, MASK])
+
+
+class SpatioTemporalDiscriminator(nn.Module):
+    """Small patch discriminator on [frame, previous frame warped, low-res condition].
+
+    Spectrally normalized convolutions with LeakyReLU, three of them with stride 2.
+
+    Args:
+        in_channels: input channels, 6 + 6 + 5 = 17 by default.
+        base: channels of the first layer; deeper layers use 2x and 4x.
+
+    Shape:
+        Input (B, in_channels, H, W). Output (B, 1, H/8, W/8) logits (H, W divisible by 8).
+    """
+
+    def __init__(self, in_channels: int = 2 * _HIGHRES + _LOWRES, base: int = 32) -> None:
+        super().__init__()
+        if in_channels < 1 or base < 1:
+            raise ValueError(f"in_channels and base must be >= 1, got {in_channels} and {base}")
+        sn = nn.utils.parametrizations.spectral_norm
+        widths = (base, 2 * base, 4 * base, 4 * base)
+        layers: list[nn.Module] = [sn(nn.Conv2d(in_channels, base, 3, padding=1)), nn.LeakyReLU(0.2)]
+        for c_in, c_out in zip(widths[:-1], widths[1:]):
+            layers += [sn(nn.Conv2d(c_in, c_out, 4, stride=2, padding=1)), nn.LeakyReLU(0.2)]
+        layers.append(sn(nn.Conv2d(widths[-1], 1, 3, padding=1)))
+        self.net = nn.Sequential(*layers)
+        self.in_channels = in_channels
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.ndim != 4 or x.shape[1] != self.in_channels:
+            raise ValueError(f"SpatioTemporalDiscriminator: input must be (B, {self.in_channels}, H, W), "
+                             f"got {_shape(x)}")
+        return self.net(x)
+
+
+@contextmanager
+def _frozen(module: nn.Module) -> Iterator[None]:
+    """Run ops on ``module`` without recording its parameters in the graph."""
+    flags = [p.requires_grad for p in module.parameters()]
+    module.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for p, flag in zip(module.parameters(), flags):
+            p.requires_grad_(flag)
+
+
+class AdversarialLoss(nn.Module):
+    """Spatio-temporal conditional GAN loss with its own discriminator.
+
+    Real pairs are ``(target, prev_target_warped, lowres_up)``, fake ones
+    ``(pred, prev_warped, lowres_up)``. Where either previous frame is None both are zeros,
+    so real and fake inputs never differ in that alone.
+
+    Args:
+        weight: factor on the generator loss.
+        discriminator_config: keyword arguments of :class:`SpatioTemporalDiscriminator`.
+    """
+
+    name = "adversarial"
+
+    def __init__(self, weight: float = 1.0, discriminator_config: dict[str, Any] | None = None) -> None:
+        super().__init__()
+        self.weight = _check_weight(weight)
+        self.discriminator = SpatioTemporalDiscriminator(**(discriminator_config or {}))
+
+    @staticmethod
+    def _inputs(ctx: LossContext) -> tuple[torch.Tensor, torch.Tensor]:
+        if ctx.lowres_up is None:
+            raise ValueError("AdversarialLoss: ctx.lowres_up (the discriminator's condition) is None")
+        if ctx.prev_warped is None or ctx.prev_target_warped is None:
+            prev_fake = prev_real = torch.zeros_like(ctx.pred)
+        else:
+            prev_fake, prev_real = ctx.prev_warped, ctx.prev_target_warped
+        fake = torch.cat([ctx.pred, prev_fake, ctx.lowres_up], dim=1)
+        real = torch.cat([ctx.target, prev_real, ctx.lowres_up], dim=1)
+        return fake, real
+
+    def forward(self, ctx: LossContext) -> torch.Tensor:
+        """Generator loss; gradients reach the prediction, not the discriminator."""
+        fake, _ = self._inputs(ctx)
+        with _frozen(self.discriminator):
+            logits = self.discriminator(fake)
+        return self.weight * F.binary_cross_entropy_with_logits(logits, torch.ones_like(logits))
+
+    def discriminator_loss(self, ctx: LossContext) -> torch.Tensor:
+        """Discriminator loss (unweighted), mean of the real and fake terms; fakes are detached."""
+        fake, real = self._inputs(ctx)
+        logits_real = self.discriminator(real.detach())
+        logits_fake = self.discriminator(fake.detach())
+        return 0.5 * (F.binary_cross_entropy_with_logits(logits_real, torch.ones_like(logits_real))
+                      + F.binary_cross_entropy_with_logits(logits_fake, torch.zeros_like(logits_fake)))
+
+
+LOSS_TYPES: dict[str, type[nn.Module]] = {
+    "channel": ChannelLoss,
+    "perceptual": PerceptualLoss,
+    "temporal": TemporalLoss,
+    "adversarial": AdversarialLoss,
+}
+
+
+def build_losses(configs: Sequence[dict[str, Any]]) -> nn.ModuleList:
+    """Loss modules from config dicts ``{"type": <LOSS_TYPES key>, **constructor arguments}``.
+
+    Raises:
+        ValueError: an entry is not a dict, has an unknown type or bad arguments, or repeats
+            another entry's loss name; the message names the entry.
+        FileNotFoundError: a perceptual entry's weights file is missing.
+    """
+    losses = nn.ModuleList()
+    names: set[str] = set()
+    for i, config in enumerate(configs):
+        where = f"loss config #{i} {config!r}"
+        if not isinstance(config, dict) or config.get("type") not in LOSS_TYPES:
+            raise ValueError(f"{where}: needs a 'type' key, one of {sorted(LOSS_TYPES)}")
+        args = {k: v for k, v in config.items() if k != "type"}
+        try:
+            loss = LOSS_TYPES[config["type"]](**args)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{where}: {e}") from e
+        if loss.name in names:
+            raise ValueError(f"{where}: a loss named '{loss.name}' is already configured")
+        names.add(loss.name)
+        losses.append(loss)
+    return losses
+
+
+def total_loss(losses: nn.ModuleList, ctx: LossContext) -> tuple[torch.Tensor, dict[str, float]]:
+    """Sum of the (weighted) losses and each one's value by name, for logging.
+
+    The discriminator's own loss is not part of it: call
+    :meth:`AdversarialLoss.discriminator_loss` in the discriminator step.
+    """
+    total = ctx.pred.new_zeros(())
+    logs: dict[str, float] = {}
+    for loss in losses:
+        value = loss(ctx)
+        total = total + value
+        logs[loss.name] = logs.get(loss.name, 0.0) + float(value.detach())
+    return total, logs
+
+
+_VGG_PATH = "weights/vgg19_features.safetensors"
+_L1_TERMS: tuple[dict[str, Any], ...] = (
+    {"type": "channel", "channel": "mask", "kind": "l2", "weight": 1.0},
+    {"type": "channel", "channel": "normal", "kind": "l1", "weight": 1.0},
+    {"type": "channel", "channel": "ao", "kind": "l1", "weight": 1.0},
+)
+# Our reading of the paper's three networks; the weights are plausible choices, not copied.
+PAPER_LOSSES: dict[str, list[dict[str, Any]]] = {
+    "l1-normal": [dict(c) for c in _L1_TERMS],
+    "gan-1": [dict(c) for c in _L1_TERMS] + [
+        {"type": "perceptual", "weights_path": _VGG_PATH, "weight": 0.1},
+        {"type": "temporal", "weight": 0.1},
+        {"type": "adversarial", "weight": 1e-3},
+    ],
+    "gan-2": [dict(c) for c in _L1_TERMS] + [
+        {"type": "perceptual", "weights_path": _VGG_PATH, "weight": 1.0},
+        {"type": "temporal", "weight": 0.1},
+        {"type": "adversarial", "weight": 1e-2},
+    ],
+}

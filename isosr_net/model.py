@@ -1,0 +1,186 @@
+"""SRNet: the frame-recurrent super-resolution network of Weiss et al., and its checkpoints.
+
+Per frame the network sees the low-res buffers (mask, normal, depth) and its own previous
+high-res output, warped to the current frame by the upscaled flow and flattened by
+space-to-depth. Mask, normal and depth come out as residuals over the bilinearly upsampled
+input; ambient occlusion is inferred from scratch. Channel orders:
+:data:`isosr_render.conventions.LOWRES_CHANNELS` / ``HIGHRES_CHANNELS``.
+
+A checkpoint is a folder that describes itself: ``model.safetensors`` beside
+``config.json`` (the model's config under ``"model"``, plus whatever the trainer adds:
+training config, validation metrics).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from safetensors.torch import load_file, save
+from torch import nn
+
+from isosr_render.atomic import atomic_write
+from isosr_render.conventions import AO, DEPTH, HIGHRES_CHANNELS, LOWRES_CHANNELS, MASK, NORMAL
+from isosr_net.flow_warp import upscale_flow, warp_by_flow
+
+LOWRES = len(LOWRES_CHANNELS)
+HIGHRES = len(HIGHRES_CHANNELS)
+FIRST_FRAME_MODES = ("zeros", "upsampled")
+
+
+@dataclass(frozen=True)
+class SRNetConfig:
+    """SRNet's hyper-parameters.
+
+    Attributes:
+        upscale: resolution factor, a power of two (2, 4, 8).
+        channels: feature channels.
+        residual_blocks: residual blocks at low resolution.
+        first_frame: the "previous output" of a sequence's first frame: ``"zeros"``, or the
+            ``"upsampled"`` input with AO 1 (the paper's two options).
+    """
+
+    type: str = "SRNet"
+    upscale: int = 4
+    channels: int = 64
+    residual_blocks: int = 10
+    first_frame: str = "zeros"
+
+    def __post_init__(self):
+        if self.upscale < 2 or self.upscale & (self.upscale - 1):
+            raise ValueError(f"upscale must be a power of two >= 2, got {self.upscale}")
+        if self.first_frame not in FIRST_FRAME_MODES:
+            raise ValueError(f"first_frame must be one of {FIRST_FRAME_MODES}, got {self.first_frame!r}")
+        if self.channels < 1 or self.residual_blocks < 0:
+            raise ValueError(f"channels must be >= 1 and residual_blocks >= 0, got {self.channels}, "
+                             f"{self.residual_blocks}")
+
+
+class ResidualBlock(nn.Module):
+    """conv-ReLU-conv plus the input."""
+
+    def __init__(self, channels: int):
+        super().__init__()
+        self.conv1 = nn.Conv2d(channels, channels, 3, padding=1)
+        self.conv2 = nn.Conv2d(channels, channels, 3, padding=1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.conv2(F.relu(self.conv1(x)))
+
+
+class SRNet(nn.Module):
+    """Frame-recurrent upscaler of isosurface buffers.
+
+    Shape:
+        lowres: (B, 5, h, w). prev_warped: (B, 6, h * s, w * s). Returns (B, 6, h * s, w * s).
+    """
+
+    def __init__(self, config: SRNetConfig):
+        super().__init__()
+        self.config = config
+        c, s = config.channels, config.upscale
+        self.head = nn.Conv2d(LOWRES + HIGHRES * s * s, c, 3, padding=1)
+        self.body = nn.Sequential(*[ResidualBlock(c) for _ in range(config.residual_blocks)])
+        self.upsample = nn.ModuleList(nn.Conv2d(c, c, 3, padding=1) for _ in range(int(math.log2(s))))
+        self.tail = nn.Sequential(nn.Conv2d(c, c, 3, padding=1), nn.ReLU(inplace=True), nn.Conv2d(c, HIGHRES, 3, padding=1))
+
+    def forward(self, lowres: torch.Tensor, prev_warped: torch.Tensor) -> torch.Tensor:
+        s = self.config.upscale
+        if lowres.ndim != 4 or lowres.shape[1] != LOWRES:
+            raise ValueError(f"lowres must be (B, {LOWRES}, h, w), got {tuple(lowres.shape)}")
+        b, _, h, w = lowres.shape
+        if prev_warped.shape != (b, HIGHRES, h * s, w * s):
+            raise ValueError(f"prev_warped must be {(b, HIGHRES, h * s, w * s)}, got {tuple(prev_warped.shape)}")
+        x = torch.cat([lowres, F.pixel_unshuffle(prev_warped, s)], dim=1)
+        x = F.relu(self.head(x))
+        x = self.body(x)
+        for conv in self.upsample:
+            x = F.relu(conv(F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False)))
+        raw = self.tail(x)
+        base = F.interpolate(lowres, scale_factor=s, mode="bilinear", align_corners=False)
+        mask = (base[:, MASK] + raw[:, MASK]).clamp(0.0, 1.0)
+        normal = base[:, NORMAL] + raw[:, NORMAL]
+        depth = base[:, DEPTH] + raw[:, DEPTH]
+        ao = torch.sigmoid(raw[:, AO])
+        return torch.cat([mask, normal, depth, ao], dim=1)
+
+    def first_previous(self, lowres: torch.Tensor) -> torch.Tensor:
+        """The stand-in for the previous output on a sequence's first frame."""
+        b, _, h, w = lowres.shape
+        s = self.config.upscale
+        if self.config.first_frame == "zeros":
+            return lowres.new_zeros(b, HIGHRES, h * s, w * s)
+        base = F.interpolate(lowres, scale_factor=s, mode="bilinear", align_corners=False)
+        return torch.cat([base, torch.ones_like(base[:, :1])], dim=1)
+
+    def step(self, lowres: torch.Tensor, flow: torch.Tensor | None,
+             previous: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """One recurrent step: warp ``previous`` by the upscaled ``flow``, then infer.
+
+        ``previous`` (and ``flow``) are ``None`` on a sequence's first frame.
+
+        Returns:
+            ``(output, previous_warped)``, both (B, 6, H, W).
+
+        Shape:
+            lowres: (B, 5, h, w). flow: (B, 2, h, w), low-res pixels. previous: (B, 6, H, W).
+        """
+        if previous is None:
+            warped = self.first_previous(lowres)
+        else:
+            if flow is None:
+                raise ValueError("a step with a previous output needs the flow to warp it")
+            warped = warp_by_flow(previous, upscale_flow(flow, self.config.upscale))
+        return self(lowres, warped), warped
+
+
+MODELS = {"SRNet": (SRNet, SRNetConfig)}
+
+
+def build_model(config: dict) -> nn.Module:
+    """A network from its config dict; the ``type`` key picks the class."""
+    kind = config.get("type", "SRNet")
+    if kind not in MODELS:
+        raise ValueError(f"unknown model type {kind!r}; known: {sorted(MODELS)}")
+    cls, config_cls = MODELS[kind]
+    try:
+        return cls(config_cls(**config))
+    except TypeError as e:
+        raise ValueError(f"bad model config {config}: {e}") from e
+
+
+def save_pretrained(model: nn.Module, folder: str | os.PathLike, extra: dict | None = None) -> None:
+    """Write ``model.safetensors`` and ``config.json`` (the model config plus ``extra``) into ``folder``."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    state = {k: v.detach().float().cpu().contiguous() for k, v in model.state_dict().items()}
+    atomic_write(folder / "model.safetensors", lambda f: f.write(save(state)))
+    config = {"model": asdict(model.config), **(extra or {})}
+    atomic_write(folder / "config.json", lambda f: f.write(json.dumps(config, indent=1).encode()))
+
+
+def load_pretrained(folder: str | os.PathLike, device: str | torch.device = "cpu") -> tuple[nn.Module, dict]:
+    """Load a checkpoint folder; returns the model (eval mode) and its ``config.json``.
+
+    Raises:
+        FileNotFoundError: the folder lacks ``config.json`` or ``model.safetensors``.
+        ValueError: the weights do not fit the config.
+    """
+    folder = Path(folder)
+    for name in ("config.json", "model.safetensors"):
+        if not (folder / name).is_file():
+            raise FileNotFoundError(f"{folder}: not a model folder, {name} is missing")
+    config = json.loads((folder / "config.json").read_text())
+    model = build_model(config["model"])
+    state = load_file(folder / "model.safetensors", device=str(device))
+    try:
+        model.load_state_dict(state)
+    except RuntimeError as e:
+        raise ValueError(f"{folder}: weights do not fit the config: {e}") from e
+    return model.to(device).eval(), config
+

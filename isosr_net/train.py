@@ -1,0 +1,292 @@
+"""Training: `isosr train CONFIG.json`.
+
+Sequences from `isosr datagen` are unrolled through the recurrent network (gradients flow
+through time), losses come from the config, validation metrics are computed every epoch.
+Checkpoints are model folders (`model.safetensors` + `config.json`) with the optimizer state
+beside them; a killed run resumes from `OUT/last`. Multi-GPU (or multi-process CPU) through
+`torchrun`: each process takes its share of every batch (DistributedDataParallel).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+import torch.distributed as dist
+import torch.nn.functional as F
+from torch import nn
+from torch.nn.parallel import DistributedDataParallel
+from tqdm import tqdm
+
+from isosr_net.datagen import SequenceDataset
+from isosr_net.flow_warp import upscale_flow, warp_by_flow
+from isosr_net.losses import PAPER_LOSSES, AdversarialLoss, LossContext, build_losses, total_loss
+from isosr_net.metrics import frame_scores
+from isosr_net.model import build_model, load_pretrained, save_pretrained
+
+
+@dataclass
+class TrainConfig:
+    """A training run. Lengths are optimizer steps; an epoch is one pass over the training crops.
+
+    Attributes:
+        data: folder written by `isosr datagen`.
+        out: run folder: `last/` and `best/` checkpoints, `tb/` TensorBoard logs.
+        model: network config (`type` picks the class).
+        losses: loss configs (see `isosr_net.losses`); default the paper's L1-normal network.
+        batch_size: sequences per step, over all processes.
+        steps: optimizer steps in total.
+        lr, lr_discriminator: Adam learning rates (the latter for adversarial losses).
+        checkpoint_every: steps between `last/` checkpoints (also at every epoch's end).
+        amp: bf16 autocast on CUDA.
+        device: "cuda", "cpu" or "auto".
+        seed: seed for initialization and data order.
+        time_limit_minutes: stop (validated and checkpointed) after this long; 0: no limit.
+    """
+
+    data: str
+    out: str
+    model: dict = field(default_factory=lambda: {"type": "SRNet", "upscale": 4})
+    losses: list = field(default_factory=lambda: PAPER_LOSSES["l1-normal"])
+    batch_size: int = 8
+    steps: int = 1000
+    lr: float = 1e-4
+    lr_discriminator: float = 1e-4
+    checkpoint_every: int = 200
+    amp: bool = True
+    device: str = "auto"
+    seed: int = 0
+    time_limit_minutes: float = 0.0
+
+
+class Unrolled(nn.Module):
+    """The recurrent network run over whole sequences: one forward per step, as DDP expects.
+
+    Shape:
+        lowres: (B, T, 5, h, w). flow: (B, T, 2, h, w). Returns outputs and warped previous
+        outputs, each (B, T, 6, H, W).
+    """
+
+    def __init__(self, net: nn.Module):
+        super().__init__()
+        self.net = net
+
+    def forward(self, lowres: torch.Tensor, flow: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        outputs, warped, previous = [], [], None
+        for t in range(lowres.shape[1]):
+            out, prev_warped = self.net.step(lowres[:, t], flow[:, t] if t else None, previous)
+            outputs.append(out)
+            warped.append(prev_warped)
+            previous = out
+        return torch.stack(outputs, 1), torch.stack(warped, 1)
+
+
+def contexts(batch: dict, outputs: torch.Tensor, warped: torch.Tensor, upscale: int) -> list[LossContext]:
+    """The loss context of every frame of a batch of sequences."""
+    lowres, flow, target = batch["lowres"], batch["flow"], batch["highres"]
+    result = []
+    for t in range(lowres.shape[1]):
+        prev_target = None
+        if t:
+            prev_target = warp_by_flow(target[:, t - 1], upscale_flow(flow[:, t], upscale))
+        result.append(LossContext(
+            pred=outputs[:, t], target=target[:, t], prev_warped=warped[:, t] if t else None,
+            lowres_up=F.interpolate(lowres[:, t], scale_factor=upscale, mode="bilinear", align_corners=False),
+            prev_target_warped=prev_target))
+    return result
+
+
+class Trainer:
+    """Runs a :class:`TrainConfig`: data, model, optimizers, checkpoints, logs."""
+
+    def __init__(self, config: TrainConfig):
+        self.config = config
+        self.distributed = "WORLD_SIZE" in os.environ and int(os.environ["WORLD_SIZE"]) > 1
+        self.device = self._device()
+        if self.distributed:
+            dist.init_process_group("nccl" if self.device.type == "cuda" else "gloo")
+        self.rank = dist.get_rank() if self.distributed else 0
+        self.world = dist.get_world_size() if self.distributed else 1
+        torch.manual_seed(config.seed)
+        self.out = Path(config.out)
+        self.net = build_model(config.model).to(self.device)
+        self.upscale = self.net.config.upscale
+        self.losses = build_losses(config.losses).to(self.device)
+        self.adversarial = [m for m in self.losses if isinstance(m, AdversarialLoss)]
+        unrolled = Unrolled(self.net)
+        self.unrolled = DistributedDataParallel(unrolled) if self.distributed else unrolled
+        self.optimizer = torch.optim.Adam(self.net.parameters(), lr=config.lr)
+        d_params = [p for m in self.adversarial for p in m.parameters()]
+        self.d_optimizer = torch.optim.Adam(d_params, lr=config.lr_discriminator) if d_params else None
+        self.train_set = SequenceDataset(config.data, "train").to(self.device)
+        self.val_set = SequenceDataset(config.data, "val").to(self.device)
+        data_upscale = self.train_set.config["upscale"]
+        if data_upscale != self.upscale:
+            raise ValueError(f"the data in {config.data} is for upscale {data_upscale}, the model upscales "
+                             f"{self.upscale}")
+        self.step = 0
+        self.best = -math.inf
+        self._resume()
+
+    def _device(self) -> torch.device:
+        """The configured device; under torchrun on CUDA, this process's GPU."""
+        want = self.config.device
+        if want == "auto":
+            want = "cuda" if torch.cuda.is_available() else "cpu"
+        if want.startswith("cuda"):
+            if not torch.cuda.is_available():
+                raise RuntimeError("device cuda asked for, but torch sees no GPU")
+            return torch.device("cuda", int(os.environ.get("LOCAL_RANK", 0)))
+        return torch.device(want)
+
+    def _resume(self) -> None:
+        """Continue from `OUT/last` if a previous run left it (or `last.old`, mid-swap)."""
+        for name in ("last", "last.old"):
+            folder = self.out / name
+            if (folder / "training_state.pt").is_file():
+                net, _ = load_pretrained(folder, self.device)
+                self.net.load_state_dict(net.state_dict())
+                state = torch.load(folder / "training_state.pt", map_location=self.device, weights_only=True)
+                self.optimizer.load_state_dict(state["optimizer"])
+                if self.d_optimizer is not None and "d_optimizer" in state:
+                    self.d_optimizer.load_state_dict(state["d_optimizer"])
+                    for m, sd in zip(self.adversarial, state["discriminators"]):
+                        m.load_state_dict(sd)
+                self.step, self.best = state["step"], state["best"]
+                if self.rank == 0:
+                    print(f"resuming from {folder} at step {self.step}")
+                return
+
+    def _batches(self, dataset: SequenceDataset, shuffle: bool, epoch: int):
+        """This process's share of each batch, indexed straight from the device-resident crops."""
+        order = (torch.randperm(len(dataset), generator=torch.Generator().manual_seed(self.config.seed + epoch))
+                 if shuffle else torch.arange(len(dataset)))
+        size = self.config.batch_size
+        stop = len(order) - len(order) % size if shuffle else len(order)
+        for start in range(0, stop, size):
+            index = order[start:start + size][self.rank::self.world].to(self.device)
+            if len(index):
+                yield {k: t[index].float() for k, t in dataset.tensors.items()}
+
+    def _autocast(self):
+        return torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.config.amp and self.device.type == "cuda")
+
+    def train_step(self, batch: dict) -> dict:
+        """One optimizer step on a batch of sequences; returns the loss terms."""
+        with self._autocast():
+            outputs, warped = self.unrolled(batch["lowres"], batch["flow"])
+            ctxs = contexts(batch, outputs.float(), warped.float(), self.upscale)
+            terms = [total_loss(self.losses, ctx) for ctx in ctxs]
+        loss = sum(t[0] for t in terms) / len(terms)
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        logs = {k: sum(t[1][k] for t in terms) / len(terms) for k in terms[0][1]}
+        if self.d_optimizer is not None:
+            with self._autocast():
+                d_loss = sum(m.discriminator_loss(ctx) for m in self.adversarial for ctx in ctxs) / len(ctxs)
+            self.d_optimizer.zero_grad(set_to_none=True)
+            d_loss.backward()
+            self._average_gradients([p for m in self.adversarial for p in m.parameters()])
+            self.d_optimizer.step()
+            logs["discriminator"] = float(d_loss.detach())
+        logs["total"] = float(loss.detach())
+        return logs
+
+    def _average_gradients(self, params: list) -> None:
+        """All-reduce the discriminators' gradients (they are not wrapped in DDP)."""
+        if not self.distributed:
+            return
+        for p in params:
+            if p.grad is not None:
+                dist.all_reduce(p.grad)
+                p.grad /= self.world
+
+    @torch.no_grad()
+    def validate(self) -> dict:
+        """Mean loss and scores over the validation crops (each process over its share)."""
+        self.net.eval()
+        sums, count = {}, 0
+        for batch in self._batches(self.val_set, shuffle=False, epoch=0):
+            with self._autocast():
+                outputs, warped = Unrolled(self.net)(batch["lowres"], batch["flow"])
+            outputs, warped = outputs.float(), warped.float()
+            ctxs = contexts(batch, outputs, warped, self.upscale)
+            frame_loss = sum(float(total_loss(self.losses, ctx)[0]) for ctx in ctxs) / len(ctxs)
+            b, t = outputs.shape[:2]
+            scores = frame_scores(outputs.flatten(0, 1), batch["highres"].flatten(0, 1))
+            sums["loss"] = sums.get("loss", 0.0) + frame_loss * b
+            for k, v in scores.items():
+                sums[k] = sums.get(k, 0.0) + float(torch.nanmean(v.float())) * b
+            count += b
+        self.net.train()
+        names = sorted(sums)
+        totals = torch.tensor([count] + [sums[k] for k in names], dtype=torch.float64, device=self.device)
+        if self.distributed:
+            dist.all_reduce(totals)
+        return {k: float(v / totals[0]) for k, v in zip(names, totals[1:])}
+
+    def save(self, name: str, metrics: dict | None = None) -> None:
+        """Write a checkpoint folder `OUT/name` atomically (write aside, then swap)."""
+        if self.rank != 0:
+            return
+        tmp, final, old = self.out / f".{name}.tmp", self.out / name, self.out / f"{name}.old"
+        shutil.rmtree(tmp, ignore_errors=True)
+        save_pretrained(self.net, tmp, {"training": asdict(self.config), "step": self.step,
+                                        "validation": metrics or {}})
+        if name == "last":
+            state = {"optimizer": self.optimizer.state_dict(), "step": self.step, "best": self.best}
+            if self.d_optimizer is not None:
+                state["d_optimizer"] = self.d_optimizer.state_dict()
+                state["discriminators"] = [m.state_dict() for m in self.adversarial]
+            torch.save(state, tmp / "training_state.pt")
+        if final.exists():
+            shutil.rmtree(old, ignore_errors=True)
+            final.rename(old)
+        tmp.rename(final)
+        shutil.rmtree(old, ignore_errors=True)
+
+    def run(self, progress: bool = True) -> dict:
+        """Train to `steps`; returns the last validation metrics."""
+        from torch.utils.tensorboard import SummaryWriter
+
+        writer = SummaryWriter(self.out / "tb") if self.rank == 0 else None
+        steps_per_epoch = max(1, len(self.train_set) // max(1, self.config.batch_size))
+        metrics = {}
+        bar = tqdm(total=self.config.steps, initial=self.step, desc="train", disable=not progress or self.rank != 0)
+        deadline = time.monotonic() + 60 * self.config.time_limit_minutes if self.config.time_limit_minutes else math.inf
+        while self.step < self.config.steps and time.monotonic() < deadline:
+            epoch = self.step // steps_per_epoch
+            for batch in self._batches(self.train_set, shuffle=True, epoch=epoch):
+                logs = self.train_step(batch)
+                self.step += 1
+                bar.update(1)
+                bar.set_postfix(loss=f"{logs['total']:.4f}")
+                if writer:
+                    for k, v in logs.items():
+                        writer.add_scalar(f"train/{k}", v, self.step)
+                if self.step % self.config.checkpoint_every == 0:
+                    self.save("last")
+                if self.step >= self.config.steps or self.step % steps_per_epoch == 0 or time.monotonic() > deadline:
+                    break
+            metrics = self.validate()
+            if writer:
+                for k, v in metrics.items():
+                    writer.add_scalar(f"val/{k}", v, self.step)
+            if metrics.get("color_psnr", -math.inf) > self.best:
+                self.best = metrics["color_psnr"]
+                self.save("best", metrics)
+            self.save("last", metrics)
+            if self.rank == 0:
+                tqdm.write(f"step {self.step}: " + ", ".join(f"{k} {v:.4f}" for k, v in metrics.items()))
+        bar.close()
+        if writer:
+            writer.close()
+        if self.distributed:
+            dist.destroy_process_group()
+        return metrics

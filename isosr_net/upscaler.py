@@ -1,0 +1,135 @@
+"""Inference: the `Upscaler`, a trained network with one stream's recurrent state.
+
+    upscaler = Upscaler()                          # the shipped default model, CPU, fp32
+    for frame in low_res_frames:                   # FrameBuffers with mask, normal, depth, flow
+        high = upscaler.upscale(frame)             # FrameBuffers: mask (alpha), normal, depth, ao
+    upscaler.reset()                               # on a camera cut
+
+Every stream (viewer, sequence) needs its own `Upscaler`: the previous output is its state.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+from isosr_render.buffers import FrameBuffers
+from isosr_render.conventions import AO, DEPTH, MASK, NORMAL
+from isosr_net.flow_warp import upscale_flow, warp_by_flow
+from isosr_net.model import load_pretrained
+
+DEFAULT_MODEL = Path(__file__).resolve().parent / "default_model"
+PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16}
+
+
+def lowres_tensors(frame: FrameBuffers) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """A low-res frame as the network's inputs: ``(lowres (1, 5, h, w), flow (1, 2, h, w) or None)``.
+
+    Raises:
+        ValueError: a buffer is missing, has the wrong shape or dtype, or is not finite.
+    """
+    for name in ("mask", "normal", "depth"):
+        if getattr(frame, name) is None:
+            raise ValueError(f"the low-res frame lacks its {name} buffer")
+    if frame.mask.ndim != 2:
+        raise ValueError(f"mask must have shape (H, W), got {tuple(frame.mask.shape)}")
+    h, w = frame.mask.shape
+    expected = {"mask": (h, w), "normal": (h, w, 3), "depth": (h, w), "flow": (h, w, 2)}
+    for name, shape in expected.items():
+        t = getattr(frame, name)
+        if t is None:
+            continue
+        if tuple(t.shape) != shape:
+            raise ValueError(f"{name} must have shape {shape}, as mask (H, W) = {(h, w)} implies; got {tuple(t.shape)}")
+        if not t.is_floating_point():
+            raise ValueError(f"{name} must be floating point, got {t.dtype}")
+        if not torch.isfinite(t).all():
+            raise ValueError(f"{name} holds NaN or Inf values")
+    lowres = torch.cat([frame.mask[None], frame.normal.permute(2, 0, 1), frame.depth[None]])[None]
+    flow = None if frame.flow is None else frame.flow.permute(2, 0, 1)[None]
+    return lowres.float(), None if flow is None else flow.float()
+
+
+def highres_frame(output: torch.Tensor) -> FrameBuffers:
+    """The network's output (1, 6, H, W) as high-res buffers; normals unit where covered, 0 elsewhere."""
+    out = output[0].float()
+    mask = out[MASK][0]
+    normal = F.normalize(out[NORMAL], dim=0, eps=1e-6).permute(1, 2, 0) * (mask > 0)[..., None]
+    return FrameBuffers(mask=mask, normal=normal, depth=out[DEPTH][0] * (mask > 0), ao=out[AO][0].clamp(0, 1))
+
+
+class Upscaler:
+    """A trained network and one stream's recurrent state.
+
+    Args:
+        model: a model folder (``config.json`` + ``model.safetensors``); default the shipped one.
+        device: where to run.
+        precision: ``"fp32"`` or ``"bf16"`` (autocast).
+        tile: low-res tile side for frames too large to run whole (None: whole frames);
+            tiles overlap by ``halo`` pixels, more than the network's receptive field, so the
+            result matches the untiled one.
+    """
+
+    def __init__(self, model: str | Path = DEFAULT_MODEL, device: str = "cpu", precision: str = "fp32",
+                 tile: int | None = None, halo: int = 24):
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {precision!r}")
+        if tile is not None and tile < 1:
+            raise ValueError(f"tile must be positive, got {tile}")
+        self.device = torch.device(device)
+        self.net, self.config = load_pretrained(model, self.device)
+        self.upscale_factor = self.net.config.upscale
+        self.precision = precision
+        self.tile, self.halo = tile, halo
+        self.previous: torch.Tensor | None = None
+
+    def reset(self) -> None:
+        """Forget the previous output (a camera cut, a new sequence)."""
+        self.previous = None
+
+    @torch.no_grad()
+    def step(self, lowres: torch.Tensor, flow: torch.Tensor | None) -> torch.Tensor:
+        """Upscale one frame of network inputs; keeps the output as the next frame's previous.
+
+        Shape:
+            lowres: (1, 5, h, w). flow: (1, 2, h, w) or None (then the state is reset).
+            Returns (1, 6, h * s, w * s), float32.
+        """
+        lowres = lowres.to(self.device)
+        if flow is None:
+            self.previous = None
+        if self.previous is not None and self.previous.shape[-2:] != tuple(s * self.upscale_factor
+                                                                          for s in lowres.shape[-2:]):
+            self.previous = None  # the frame size changed: nothing to carry over
+        with torch.autocast(self.device.type, dtype=PRECISIONS[self.precision], enabled=self.precision != "fp32"):
+            if self.previous is None:
+                warped = self.net.first_previous(lowres)
+            else:
+                warped = warp_by_flow(self.previous, upscale_flow(flow.to(self.device), self.upscale_factor))
+            output = self._run(lowres, warped).float()
+        self.previous = output
+        return output
+
+    def _run(self, lowres: torch.Tensor, warped: torch.Tensor) -> torch.Tensor:
+        """The network on the whole frame, or tile by tile with overlapping halos."""
+        h, w = lowres.shape[-2:]
+        if self.tile is None or (h <= self.tile and w <= self.tile):
+            return self.net(lowres, warped)
+        s, t, halo = self.upscale_factor, self.tile, self.halo
+        output = torch.empty(1, warped.shape[1], h * s, w * s, device=lowres.device)
+        for y0 in range(0, h, t):
+            for x0 in range(0, w, t):
+                ya, yb = max(0, y0 - halo), min(h, y0 + t + halo)
+                xa, xb = max(0, x0 - halo), min(w, x0 + t + halo)
+                part = self.net(lowres[..., ya:yb, xa:xb], warped[..., ya * s:yb * s, xa * s:xb * s]).float()
+                y1, x1 = min(h, y0 + t), min(w, x0 + t)
+                output[..., y0 * s:y1 * s, x0 * s:x1 * s] = part[..., (y0 - ya) * s:(y1 - ya) * s,
+                                                                 (x0 - xa) * s:(x1 - xa) * s]
+        return output
+
+    def upscale(self, frame: FrameBuffers) -> FrameBuffers:
+        """Upscale a low-res frame (mask, normal, depth, and flow except after a cut)."""
+        lowres, flow = lowres_tensors(frame)
+        return highres_frame(self.step(lowres, flow))

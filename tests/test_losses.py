@@ -1,0 +1,341 @@
+"""Tests of isosr_net.losses: float64 references, gradient checks, VGG loading, GAN plumbing."""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import load_file, save_file
+
+from isosr_net.losses import (
+    PAPER_LOSSES,
+    VGG19_LAYERS,
+    AdversarialLoss,
+    ChannelLoss,
+    LossContext,
+    PerceptualLoss,
+    SpatioTemporalDiscriminator,
+    TemporalLoss,
+    build_losses,
+    masked_l1,
+    masked_l2,
+    total_loss,
+)
+from isosr_render.conventions import AO, DEPTH, MASK, NORMAL
+
+# torchvision's vgg19().features: (index, out channels, in channels) of its 16 convolutions.
+_CONVS = [(0, 64, 3), (2, 64, 64), (5, 128, 64), (7, 128, 128), (10, 256, 128), (12, 256, 256),
+          (14, 256, 256), (16, 256, 256), (19, 512, 256), (21, 512, 512), (23, 512, 512),
+          (25, 512, 512), (28, 512, 512), (30, 512, 512), (32, 512, 512), (34, 512, 512)]
+
+
+def save_random_vgg19(path: Path, seed: int, prefix: str = "features.") -> dict[str, torch.Tensor]:
+    """Write a VGG-19 state dict with He-initialized random weights, keyed like torchvision's."""
+    gen = torch.Generator().manual_seed(seed)
+    state = {}
+    for index, c_out, c_in in _CONVS:
+        std = (2.0 / (9 * c_in)) ** 0.5
+        state[f"{prefix}{index}.weight"] = torch.randn(c_out, c_in, 3, 3, generator=gen) * std
+        state[f"{prefix}{index}.bias"] = torch.randn(c_out, generator=gen) * 0.01
+    if prefix:  # a whole torchvision model also carries its classifier
+        state["classifier.6.bias"] = torch.zeros(1000)
+    if path.suffix == ".safetensors":
+        save_file(state, str(path))
+    else:
+        torch.save(state, path)
+    return state
+
+
+def frame(b: int = 2, h: int = 8, w: int = 8, seed: int = 0, dtype=torch.float64,
+          empty_border: bool = True) -> torch.Tensor:
+    """A plausible (B, 6, H, W) buffer stack: binary mask, facing normals, depth and AO inside."""
+    gen = torch.Generator().manual_seed(seed)
+    mask = (torch.rand(b, 1, h, w, generator=gen) > 0.3).to(dtype)
+    if empty_border:
+        mask[..., 0, :] = 0
+    normal = torch.randn(b, 3, h, w, generator=gen, dtype=dtype)
+    normal[:, 2] = normal[:, 2].abs() + 0.2
+    normal = normal / normal.norm(dim=1, keepdim=True)
+    depth = 1.0 + torch.rand(b, 1, h, w, generator=gen, dtype=dtype)
+    ao = 0.2 + 0.7 * torch.rand(b, 1, h, w, generator=gen, dtype=dtype)
+    return torch.cat([mask, normal * mask, depth * mask, ao * mask], dim=1)
+
+
+def soft_pred(target: torch.Tensor, seed: int = 1) -> torch.Tensor:
+    """A network-like output near ``target``: soft mask in (0, 1), non-unit normals."""
+    gen = torch.Generator().manual_seed(seed)
+    noise = 0.1 * torch.randn(target.shape, generator=gen, dtype=target.dtype)
+    pred = target + noise
+    pred[:, MASK] = (0.1 + 0.8 * target[:, MASK] + noise[:, MASK]).clamp(0.05, 0.95)
+    pred[:, NORMAL] = pred[:, NORMAL] * 1.3 + torch.tensor([0.0, 0.0, 0.3], dtype=target.dtype).view(1, 3, 1, 1)
+    return pred
+
+
+def numpy_masked(pred, target, mask, channels, power):
+    """float64 reference: per-pixel channel mean of |d|^power, averaged over mask > 0."""
+    d = np.abs(pred[:, channels] - target[:, channels]) ** power
+    per_pixel = d.mean(axis=1)
+    inside = mask[:, 0] > 0
+    return per_pixel[inside].mean() if inside.any() else 0.0
+
+
+# ----------------------------------------------------------------------------- masked losses
+
+
+@pytest.mark.parametrize("fn, power", [(masked_l1, 1), (masked_l2, 2)])
+@pytest.mark.parametrize("channels", [NORMAL, DEPTH, AO, slice(None)])
+def test_masked_losses_match_numpy(fn, power, channels):
+    target = frame(b=3, h=5, w=7)
+    pred = soft_pred(target)
+    got = fn(pred, target, target[:, MASK], channels)
+    want = numpy_masked(pred.numpy(), target.numpy(), target[:, MASK].numpy(), channels, power)
+    assert got.shape == ()
+    np.testing.assert_allclose(got.item(), want, rtol=1e-7)
+
+
+@pytest.mark.parametrize("fn", [masked_l1, masked_l2])
+def test_masked_losses_empty_mask_is_zero_with_finite_grad(fn):
+    pred = torch.rand(2, 6, 4, 4, dtype=torch.float64, requires_grad=True)
+    loss = fn(pred, torch.rand(2, 6, 4, 4, dtype=torch.float64), torch.zeros(2, 1, 4, 4), NORMAL)
+    loss.backward()
+    assert loss.item() == 0.0
+    assert torch.isfinite(pred.grad).all()
+
+
+@pytest.mark.parametrize("fn", [masked_l1, masked_l2])
+def test_masked_losses_gradcheck(fn):
+    target = frame(b=1, h=3, w=4)
+    pred = soft_pred(target).requires_grad_(True)
+    target.requires_grad_(True)
+    mask = target[:, MASK].detach().clone()  # gradcheck perturbs target in place
+    assert torch.autograd.gradcheck(lambda p, t: fn(p, t, mask, NORMAL), (pred, target))
+
+
+def test_masked_losses_check_shapes():
+    x = torch.zeros(2, 6, 4, 4)
+    with pytest.raises(ValueError, match="mask must be"):
+        masked_l1(x, x, torch.zeros(2, 4, 4), NORMAL)
+    with pytest.raises(ValueError, match="pred and target"):
+        masked_l2(x, x[:1], torch.zeros(2, 1, 4, 4), NORMAL)
+    with pytest.raises(ValueError, match="select nothing"):
+        masked_l1(x, x, torch.zeros(2, 1, 4, 4), slice(6, 8))
+
+
+# ----------------------------------------------------------------------------- channel losses
+
+
+def test_channel_losses_mask_vs_masked_channels():
+    target = frame()
+    outside = (target[:, MASK] == 0).expand(-1, 6, -1, -1)
+    pred = target.clone()
+    pred[outside] = 0.5  # wrong only where the ground truth has no surface
+    ctx = LossContext(pred, target)
+    assert ChannelLoss("normal", "l1")(ctx).item() == 0.0
+    assert ChannelLoss("depth", "l2")(ctx).item() == 0.0
+    mask_fraction = outside[:, 0].double().mean().item()
+    np.testing.assert_allclose(ChannelLoss("mask", "l1", weight=2.0)(ctx).item(), 2.0 * 0.5 * mask_fraction)
+
+
+def test_channel_loss_weight_and_value():
+    target = frame()
+    pred = soft_pred(target)
+    ctx = LossContext(pred, target)
+    want = 3.0 * numpy_masked(pred.numpy(), target.numpy(), target[:, MASK].numpy(), AO, 2)
+    np.testing.assert_allclose(ChannelLoss("ao", "l2", weight=3.0)(ctx).item(), want, rtol=1e-7)
+
+
+@pytest.mark.parametrize("kind", ["l1", "l2"])
+def test_color_loss_zero_for_identical_and_positive_otherwise(kind):
+    target = frame()
+    loss = ChannelLoss("color", kind)
+    assert loss(LossContext(target.clone(), target)).item() == 0.0
+    assert loss(LossContext(soft_pred(target), target)).item() > 0.0
+
+
+@pytest.mark.parametrize("kind", ["l1", "l2"])
+def test_color_loss_gradcheck(kind):
+    target = frame(b=1, h=3, w=3)
+    pred = soft_pred(target).requires_grad_(True)
+    loss = ChannelLoss("color", kind)
+    assert torch.autograd.gradcheck(lambda p: loss(LossContext(p, target)), (pred,))
+
+
+def test_loss_context_checks_shapes():
+    x = torch.zeros(1, 6, 4, 4)
+    with pytest.raises(ValueError, match="pred must be"):
+        LossContext(torch.zeros(1, 5, 4, 4), x)
+    with pytest.raises(ValueError, match="prev_warped"):
+        LossContext(x, x, prev_warped=torch.zeros(1, 6, 4, 5))
+    with pytest.raises(ValueError, match="lowres_up"):
+        LossContext(x, x, lowres_up=torch.zeros(1, 6, 4, 4))
+
+
+# ----------------------------------------------------------------------------- perceptual
+
+
+@pytest.fixture(scope="module")
+def vgg_files(tmp_path_factory) -> dict[str, Path]:
+    root = tmp_path_factory.mktemp("vgg")
+    files = {"safetensors": root / "vgg19.safetensors", "pt": root / "vgg19_features.pt"}
+    save_random_vgg19(files["safetensors"], seed=0)  # torchvision-style "features." keys
+    save_random_vgg19(files["pt"], seed=1, prefix="")  # features-only state dict
+    return files
+
+
+def test_vgg_layer_names_follow_torchvision_indexing():
+    assert VGG19_LAYERS["relu1_2"] == 3 and VGG19_LAYERS["relu2_2"] == 8
+    assert VGG19_LAYERS["relu3_4"] == 17 and VGG19_LAYERS["relu4_4"] == 26 and VGG19_LAYERS["relu5_4"] == 35
+    assert all(VGG19_LAYERS[name] - 1 in {i for i, _, _ in _CONVS} for name in VGG19_LAYERS)
+
+
+@pytest.mark.parametrize("fmt", ["safetensors", "pt"])
+def test_perceptual_loss_loads_and_compares(vgg_files, fmt):
+    loss = PerceptualLoss(vgg_files[fmt], weight=2.0)
+    loss.train()
+    assert not loss.vgg.training
+    assert not any(p.requires_grad for p in loss.parameters())
+    target = frame(h=32, w=32, dtype=torch.float32)
+    assert loss(LossContext(target.clone(), target)).item() == 0.0
+    pred = soft_pred(target).requires_grad_(True)
+    value = loss(LossContext(pred, target))
+    value.backward()
+    assert value.item() > 0.0
+    assert pred.grad.abs().sum() > 0
+
+
+def test_perceptual_loss_uses_the_file_weights(vgg_files):
+    state = load_file(str(vgg_files["safetensors"]))
+    loss = PerceptualLoss(vgg_files["safetensors"], layers=("relu1_1",))
+    torch.testing.assert_close(loss.vgg[0].weight, state["features.0.weight"])
+    assert len(loss.vgg) == VGG19_LAYERS["relu1_1"] + 1
+
+
+def test_perceptual_loss_missing_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match="VGG-19 weights not found at .*nowhere.safetensors"):
+        PerceptualLoss(tmp_path / "nowhere.safetensors")
+
+
+def test_perceptual_loss_bad_keys(tmp_path):
+    path = tmp_path / "bad.pt"
+    state = save_random_vgg19(path, seed=2)
+    del state["features.34.weight"]
+    state["features.0.bias"] = torch.zeros(3)
+    state["features.99.weight"] = torch.zeros(1)
+    torch.save(state, path)
+    with pytest.raises(ValueError, match=r"missing keys \['34.weight'\].*99.weight.*0.bias"):
+        PerceptualLoss(path)
+
+
+def test_perceptual_loss_bad_layer(vgg_files):
+    with pytest.raises(ValueError, match="relu9_9"):
+        PerceptualLoss(vgg_files["pt"], layers=("relu9_9",))
+
+
+# ----------------------------------------------------------------------------- temporal
+
+
+def test_temporal_loss():
+    target = frame()
+    pred = soft_pred(target)
+    loss = TemporalLoss(weight=0.5)
+    zero = loss(LossContext(pred, target))
+    assert zero.item() == 0.0 and zero.dtype == pred.dtype
+    prev = soft_pred(target, seed=5)
+    want = 0.5 * numpy_masked(pred.numpy(), prev.numpy(), target[:, MASK].numpy(), slice(None), 2)
+    np.testing.assert_allclose(loss(LossContext(pred, target, prev_warped=prev)).item(), want, rtol=1e-7)
+
+
+# ----------------------------------------------------------------------------- adversarial
+
+
+def gan_context(requires_grad: bool = True, with_prev: bool = True) -> LossContext:
+    target = frame(h=16, w=24, dtype=torch.float32)
+    pred = soft_pred(target).requires_grad_(requires_grad)
+    prev = soft_pred(target, seed=3) if with_prev else None
+    prev_target = frame(h=16, w=24, seed=4, dtype=torch.float32) if with_prev else None
+    return LossContext(pred, target, prev_warped=prev, lowres_up=target[:, :5].clone(),
+                       prev_target_warped=prev_target)
+
+
+def test_discriminator_output_shape():
+    d = SpatioTemporalDiscriminator()
+    assert d(torch.zeros(2, 17, 32, 48)).shape == (2, 1, 4, 6)
+    with pytest.raises(ValueError, match=r"\(B, 17, H, W\)"):
+        d(torch.zeros(2, 12, 32, 48))
+
+
+@pytest.mark.parametrize("with_prev", [True, False])
+def test_adversarial_generator_loss_reaches_pred_only(with_prev):
+    loss = AdversarialLoss(weight=0.1, discriminator_config={"base": 8})
+    ctx = gan_context(with_prev=with_prev)
+    value = loss(ctx)
+    value.backward()
+    assert value.ndim == 0 and torch.isfinite(value)
+    assert ctx.pred.grad.abs().sum() > 0
+    assert all(p.grad is None for p in loss.discriminator.parameters())
+    assert all(p.requires_grad for p in loss.discriminator.parameters())
+
+
+def test_adversarial_discriminator_loss_reaches_discriminator_only():
+    loss = AdversarialLoss(weight=0.1, discriminator_config={"base": 8})
+    ctx = gan_context()
+    d_loss = loss.discriminator_loss(ctx)
+    d_loss.backward()
+    assert torch.isfinite(d_loss)
+    assert ctx.pred.grad is None
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in loss.discriminator.parameters())
+
+
+def test_adversarial_needs_condition():
+    ctx = gan_context()
+    ctx.lowres_up = None
+    with pytest.raises(ValueError, match="lowres_up"):
+        AdversarialLoss()(ctx)
+
+
+# ----------------------------------------------------------------------------- builder
+
+
+@pytest.mark.parametrize("name", sorted(PAPER_LOSSES))
+def test_build_paper_losses(name, vgg_files):
+    configs = copy.deepcopy(PAPER_LOSSES[name])
+    for config in configs:
+        if config["type"] == "perceptual":
+            config["weights_path"] = vgg_files["pt"]
+    losses = build_losses(configs)
+    assert len(losses) == len(configs)
+    ctx = gan_context()
+    total, logs = total_loss(losses, ctx)
+    total.backward()
+    assert set(logs) == {loss.name for loss in losses}
+    assert {"mask_l2", "normal_l1", "ao_l1"} <= set(logs)
+    if name != "l1-normal":
+        assert {"perceptual", "temporal", "adversarial"} <= set(logs)
+    np.testing.assert_allclose(total.item(), sum(logs.values()), rtol=1e-5)
+    assert ctx.pred.grad.abs().sum() > 0
+    assert all(c["weights_path"] == "weights/vgg19_features.safetensors"
+               for c in PAPER_LOSSES[name] if c["type"] == "perceptual")
+
+
+@pytest.mark.parametrize("config, match", [
+    ({"type": "nope"}, "needs a 'type'"),
+    ({"channel": "normal"}, "needs a 'type'"),
+    ({"type": "channel", "channel": "color", "kind": "l3"}, "kind must be"),
+    ({"type": "channel", "channel": "albedo"}, "channel must be"),
+    ({"type": "channel", "channel": "normal", "colour": 1}, "colour"),
+    ({"type": "temporal", "weight": -1.0}, "weight must be"),
+    ({"type": "adversarial", "discriminator_config": {"width": 3}}, "width"),
+])
+def test_build_losses_rejects_bad_configs(config, match):
+    good = {"type": "channel", "channel": "normal"}
+    with pytest.raises(ValueError, match=rf"loss config #1 .*{match}"):
+        build_losses([good, config])
+
+
+def test_build_losses_rejects_duplicates():
+    config = {"type": "channel", "channel": "normal", "kind": "l1"}
+    with pytest.raises(ValueError, match="#1 .*already configured"):
+        build_losses([config, dict(config, weight=2.0)])
