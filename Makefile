@@ -18,12 +18,9 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: venv
+	$(BIN)/isosr demo --out demo_out
 	$(BIN)/isosr render proc:cloud:1@96 --size 512x512 --orbit 30,20,1.5 --outputs mask,normal,depth,ao,color \
-		--ao-samples 32 -o demo_out/cloud.png
-	$(BIN)/isosr render proc:cloud:1@96 --size 512x512 --orbit 30,20,1.5 --outputs mask,normal,depth,ao,color \
-		--ao-samples 32 -o demo_out/cloud.npz
-	$(BIN)/isosr render proc:cloud:1@96 --size 512x512 --orbit 30,20,1.5 --png-of normal -o demo_out/cloud_normal.png
-	@echo "demo: images and frame file in demo_out/"
+		--ao-samples 32 -o demo_out/cloud_render.png
 
 test: venv
 	$(BIN)/python -m pytest -q

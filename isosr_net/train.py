@@ -42,6 +42,9 @@ class TrainConfig:
         batch_size: sequences per step, over all processes.
         steps: optimizer steps in total.
         lr, lr_discriminator: Adam learning rates (the latter for adversarial losses).
+        lr_schedule: "constant", or "cosine": linear warm-up over `warmup_steps`, then cosine
+            decay to 1% of `lr` at `steps`.
+        warmup_steps: steps of the cosine schedule's warm-up.
         checkpoint_every: steps between `last/` checkpoints (also at every epoch's end).
         amp: bf16 autocast on CUDA.
         device: "cuda", "cpu" or "auto".
@@ -57,11 +60,26 @@ class TrainConfig:
     steps: int = 1000
     lr: float = 1e-4
     lr_discriminator: float = 1e-4
+    lr_schedule: str = "constant"
+    warmup_steps: int = 200
     checkpoint_every: int = 200
     amp: bool = True
     device: str = "auto"
     seed: int = 0
     time_limit_minutes: float = 0.0
+
+    def __post_init__(self):
+        if self.lr_schedule not in ("constant", "cosine"):
+            raise ValueError(f"lr_schedule must be 'constant' or 'cosine', got {self.lr_schedule!r}")
+
+    def lr_factor(self, step: int) -> float:
+        """The learning-rate multiplier at ``step``."""
+        if self.lr_schedule == "constant":
+            return 1.0
+        if step < self.warmup_steps:
+            return (step + 1) / self.warmup_steps
+        progress = min(1.0, (step - self.warmup_steps) / max(1, self.steps - self.warmup_steps))
+        return 0.01 + 0.99 * 0.5 * (1.0 + math.cos(math.pi * progress))
 
 
 class Unrolled(nn.Module):
@@ -115,6 +133,8 @@ class Trainer:
         torch.manual_seed(config.seed)
         self.out = Path(config.out)
         self.net = build_model(config.model).to(self.device)
+        if self.device.type == "cuda":
+            self.net = self.net.to(memory_format=torch.channels_last)  # faster convolutions with bf16
         self.upscale = self.net.config.upscale
         self.losses = build_losses(config.losses).to(self.device)
         self.adversarial = [m for m in self.losses if isinstance(m, AdversarialLoss)]
@@ -183,6 +203,8 @@ class Trainer:
             ctxs = contexts(batch, outputs.float(), warped.float(), self.upscale)
             terms = [total_loss(self.losses, ctx) for ctx in ctxs]
         loss = sum(t[0] for t in terms) / len(terms)
+        for group in self.optimizer.param_groups:
+            group["lr"] = self.config.lr * self.config.lr_factor(self.step)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()

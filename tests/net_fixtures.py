@@ -1,0 +1,103 @@
+"""Shared helpers of the network tests: tiny datagen folders, tiny models, random VGG weights.
+
+Everything is sized to run in seconds on two CPU cores. The data and model built here are
+cached per test session (keyed by the pytest session's temporary root), so every test module
+that asks for them shares one copy.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+from safetensors.torch import save_file
+
+from isosr_net.datagen import MANIFEST, DatagenConfig, generate
+from isosr_net.model import build_model, save_pretrained
+
+# The smallest data that still exercises everything: two procedural volumes, 16x16 low-res,
+# x2 ground truth with a few AO rays, 3 frames per sequence, 8x8 crops.
+TINY_DATAGEN = DatagenConfig(volumes=("proc:cloud:1@32", "proc:sphere@32"), sequences=2, frames=3,
+                             lowres_size=16, upscale=2, crop=8, crops=2, min_coverage=0.3,
+                             ao_samples=4, spp=1, device="cpu")
+TINY_MODEL = {"type": "SRNet", "upscale": 2, "channels": 8, "residual_blocks": 1}
+
+_CACHE: dict[tuple, Path] = {}
+
+
+def tiny_datagen(**overrides) -> DatagenConfig:
+    """:data:`TINY_DATAGEN` with ``overrides``."""
+    return replace(TINY_DATAGEN, **overrides)
+
+
+def relabel_as_val(root: Path, volume: str) -> None:
+    """Mark the shards of ``volume`` as split "val" in ``root``'s manifest.
+
+    Procedural volumes always land in "train"; only shared volumes carry a "val" split. The
+    training and evaluation tests relabel one procedural volume instead, so that they do not
+    depend on the shared volumes being present.
+    """
+    path = root / MANIFEST
+    manifest = json.loads(path.read_text())
+    for shard in manifest["shards"]:
+        if shard["volume"] == volume:
+            shard["split"] = "val"
+    path.write_text(json.dumps(manifest, indent=1))
+
+
+def tiny_train_data(tmp_path_factory) -> Path:
+    """A tiny datagen folder with a "train" (cloud) and a "val" (sphere) split, made once per session."""
+    key = ("data", str(tmp_path_factory.getbasetemp()))
+    if key not in _CACHE:
+        root = tmp_path_factory.mktemp("tiny_data")
+        generate(TINY_DATAGEN, root, progress=False)
+        relabel_as_val(root, "proc:sphere@32")
+        _CACHE[key] = root
+    return _CACHE[key]
+
+
+def tiny_model_dir(tmp_path_factory, seed: int = 0, **model) -> Path:
+    """A saved, randomly initialized tiny SRNet (upscale 2, 8 channels, 1 block), made once per session."""
+    config = {**TINY_MODEL, **model}
+    key = ("model", str(tmp_path_factory.getbasetemp()), seed, json.dumps(config, sort_keys=True))
+    if key not in _CACHE:
+        torch.manual_seed(seed)
+        net = build_model(config)
+        # Random init leaves the tail's output near zero; make the residual visible.
+        with torch.no_grad():
+            net.tail[-1].weight.mul_(10.0)
+        folder = tmp_path_factory.mktemp("tiny_model")
+        save_pretrained(net, folder, {"note": "random weights for tests"})
+        _CACHE[key] = folder
+    return _CACHE[key]
+
+
+def tiny_train_config(data: Path, out: Path, **overrides) -> dict:
+    """A TrainConfig dict for the tiny data and model on the CPU."""
+    config = {"data": str(data), "out": str(out), "model": dict(TINY_MODEL), "batch_size": 2, "steps": 2,
+              "checkpoint_every": 1, "device": "cpu", "amp": False, "seed": 0}
+    config.update(overrides)
+    return config
+
+
+# torchvision's vgg19().features: (index, out channels, in channels) of its 16 convolutions.
+_VGG_CONVS = [(0, 64, 3), (2, 64, 64), (5, 128, 64), (7, 128, 128), (10, 256, 128), (12, 256, 256),
+              (14, 256, 256), (16, 256, 256), (19, 512, 256), (21, 512, 512), (23, 512, 512),
+              (25, 512, 512), (28, 512, 512), (30, 512, 512), (32, 512, 512), (34, 512, 512)]
+
+
+def random_vgg19(tmp_path_factory) -> Path:
+    """A VGG-19 features safetensors file with random He-initialized weights, made once per session."""
+    key = ("vgg", str(tmp_path_factory.getbasetemp()))
+    if key not in _CACHE:
+        gen = torch.Generator().manual_seed(0)
+        state = {}
+        for index, c_out, c_in in _VGG_CONVS:
+            state[f"{index}.weight"] = torch.randn(c_out, c_in, 3, 3, generator=gen) * (2.0 / (9 * c_in)) ** 0.5
+            state[f"{index}.bias"] = torch.zeros(c_out)
+        path = tmp_path_factory.mktemp("vgg") / "vgg19_features.safetensors"
+        save_file(state, str(path))
+        _CACHE[key] = path
+    return _CACHE[key]
