@@ -101,3 +101,28 @@ def random_vgg19(tmp_path_factory) -> Path:
         save_file(state, str(path))
         _CACHE[key] = path
     return _CACHE[key]
+
+
+def render_lowres_frames(width: int, height: int, frames: int = 3, volume: str = "proc:cloud:1@32",
+                         yaw_step: float = 4.0) -> list:
+    """Low-res frames (mask, normal, depth, and flow from the previous frame; none on frame 0) on an orbit.
+
+    Cached by arguments; callers get fresh copies of the buffers.
+    """
+    from isosr_render import Renderer, RenderRequest, open_volume, orbit
+    from isosr_render.buffers import FrameBuffers
+    from isosr_render.procedural import default_iso
+
+    key = ("frames", width, height, frames, volume, yaw_step)
+    if key not in _CACHE:
+        vol = open_volume(volume)
+        renderer = Renderer(vol, "cpu")
+        iso = vol.normalized_iso(default_iso(volume))
+        cameras = [orbit(30.0 + t * yaw_step, 20.0, 1.4) for t in range(frames)]
+        out = []
+        for t, camera in enumerate(cameras):
+            outputs = ("mask", "normal", "depth") + (("flow",) if t else ())
+            out.append(renderer.render(camera, RenderRequest(width, height, iso, outputs,
+                                                             prev_camera=cameras[t - 1] if t else None)))
+        _CACHE[key] = out
+    return [FrameBuffers(**{k: getattr(f, k).clone() for k in f.present()}) for f in _CACHE[key]]

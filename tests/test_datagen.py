@@ -1,0 +1,287 @@
+"""Training data (isosr_net.datagen): shards and manifest, resuming, crops, the dataset."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+from safetensors.torch import load_file
+
+import isosr_net.datagen as datagen
+from isosr_net.datagen import MANIFEST, DatagenConfig, SequenceDataset, generate, pick_crops
+from isosr_render.catalog import shared_volumes_dir
+from net_fixtures import TINY_DATAGEN, tiny_datagen, tiny_train_data
+
+
+def shard_tensors(root: Path) -> dict[str, dict[str, torch.Tensor]]:
+    """Every shard of a datagen folder by file name."""
+    manifest = json.loads((root / MANIFEST).read_text())
+    return {s["file"]: load_file(root / s["file"]) for s in manifest["shards"]}
+
+
+def assert_same_data(a: Path, b: Path) -> None:
+    """Two datagen folders hold the same manifest entries (in any order) and the same shards."""
+    ma, mb = (json.loads((r / MANIFEST).read_text()) for r in (a, b))
+    assert ma["config"] == mb["config"]
+    assert sorted(ma["shards"], key=lambda s: s["file"]) == sorted(mb["shards"], key=lambda s: s["file"])
+    ta, tb = shard_tensors(a), shard_tensors(b)
+    assert sorted(ta) == sorted(tb)
+    for name in ta:
+        for key in ("lowres", "flow", "highres"):
+            assert torch.equal(ta[name][key], tb[name][key]), (name, key)
+
+
+def file_stamps(root: Path) -> dict[str, tuple[int, int]]:
+    """(inode, mtime_ns) of every shard file: a rewrite (atomic or not) changes one of them."""
+    return {p.name: (p.stat().st_ino, p.stat().st_mtime_ns) for p in (root / "shards").iterdir()}
+
+
+@pytest.fixture(scope="module")
+def fresh(tmp_path_factory) -> Path:
+    """A fresh tiny run: 2 volumes x 2 sequences."""
+    root = tmp_path_factory.mktemp("fresh")
+    generate(TINY_DATAGEN, root, progress=False)
+    return root
+
+
+def test_generate_writes_shards_and_manifest(fresh):
+    manifest = json.loads((fresh / MANIFEST).read_text())
+    assert manifest["version"] == 1
+    assert manifest["config"] == json.loads(json.dumps(TINY_DATAGEN.__dict__))
+    files = sorted(s["file"] for s in manifest["shards"])
+    assert files == ["shards/proc_cloud_1_32_0000.safetensors", "shards/proc_cloud_1_32_0001.safetensors",
+                     "shards/proc_sphere_32_0000.safetensors", "shards/proc_sphere_32_0001.safetensors"]
+    assert sorted(p.name for p in (fresh / "shards").iterdir()) == [Path(f).name for f in files]
+    c, s, t = TINY_DATAGEN.crop, TINY_DATAGEN.upscale, TINY_DATAGEN.frames
+    for shard in manifest["shards"]:
+        assert shard["split"] == "train"  # procedural volumes train
+        assert shard["volume"] in TINY_DATAGEN.volumes and shard["sequence"] in (0, 1)
+        assert 0 < shard["iso"] < 1
+        assert 1 <= shard["crops"] <= TINY_DATAGEN.crops
+        tensors = load_file(fresh / shard["file"])
+        k = shard["crops"]
+        assert tensors["lowres"].shape == (k, t, 5, c, c) and tensors["lowres"].dtype == torch.float16
+        assert tensors["flow"].shape == (k, t, 2, c, c) and tensors["flow"].dtype == torch.float32
+        assert tensors["highres"].shape == (k, t, 6, c * s, c * s) and tensors["highres"].dtype == torch.float16
+        assert (tensors["flow"][:, 0] == 0).all()  # no previous frame for frame 0
+        lowres_mask, highres = tensors["lowres"][:, :, 0].float(), tensors["highres"].float()
+        # Every kept crop is covered enough, averaged over its frames.
+        assert (lowres_mask.mean(dim=(1, 2, 3)) >= TINY_DATAGEN.min_coverage).all()
+        assert set(lowres_mask.unique().tolist()) <= {0.0, 1.0}  # one ray per low-res pixel
+        ao = highres[:, :, 5]
+        assert ao.min() >= 0 and ao.max() <= 1
+        hit = highres[:, :, 0] > 0
+        normal_len = highres[:, :, 1:4].norm(dim=2)
+        assert (normal_len[hit] - 1).abs().max() < 5e-3  # float16 unit normals
+        assert (highres[:, :, 1:][(~hit)[:, :, None].expand(-1, -1, 5, -1, -1)] == 0).all()
+
+
+def test_sequences_differ_in_iso_and_camera(fresh):
+    manifest = json.loads((fresh / MANIFEST).read_text())
+    isos = [s["iso"] for s in manifest["shards"]]
+    assert len(set(isos)) == len(isos)
+    tensors = shard_tensors(fresh)
+    a = tensors["shards/proc_cloud_1_32_0000.safetensors"]["lowres"]
+    b = tensors["shards/proc_cloud_1_32_0001.safetensors"]["lowres"]
+    assert not torch.equal(a[:1], b[:1])
+
+
+def test_a_second_run_of_the_same_config_renders_nothing(fresh, monkeypatch):
+    stamps = file_stamps(fresh)
+    calls = []
+    monkeypatch.setattr(datagen, "render_sequence", lambda *a, **k: calls.append(a) or pytest.fail("rendered"))
+    manifest = generate(TINY_DATAGEN, fresh, progress=False)
+    assert calls == [] and len(manifest["shards"]) == 4
+    assert file_stamps(fresh) == stamps
+
+
+def test_an_interrupted_run_resumes_and_writes_the_same_data(fresh, tmp_path, monkeypatch):
+    real = datagen.render_sequence
+    calls = []
+
+    def stop_on_third(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(datagen, "render_sequence", stop_on_third)
+    with pytest.raises(KeyboardInterrupt):
+        generate(TINY_DATAGEN, tmp_path, progress=False)
+    assert len(json.loads((tmp_path / MANIFEST).read_text())["shards"]) == 2
+    stamps = file_stamps(tmp_path)
+    calls.clear()
+    monkeypatch.setattr(datagen, "render_sequence", lambda *a, **k: calls.append(1) or real(*a, **k))
+    generate(TINY_DATAGEN, tmp_path, progress=False)
+    assert len(calls) == 2  # only the missing two
+    after = file_stamps(tmp_path)
+    assert all(after[name] == stamp for name, stamp in stamps.items())  # the first two untouched
+    assert_same_data(tmp_path, fresh)
+
+
+@pytest.mark.xfail(strict=True, raises=ValueError,
+                   reason="generate() refuses a manifest whose config differs only in `sequences`, so "
+                          "`isosr datagen --sequences N` cannot extend an existing folder")
+def test_more_sequences_renders_only_the_new_ones_and_equals_a_fresh_run(fresh, tmp_path, monkeypatch):
+    generate(tiny_datagen(sequences=1), tmp_path, progress=False)
+    stamps = file_stamps(tmp_path)
+    real, calls = datagen.render_sequence, []
+    monkeypatch.setattr(datagen, "render_sequence", lambda *a, **k: calls.append(1) or real(*a, **k))
+    generate(tiny_datagen(sequences=2), tmp_path, progress=False)
+    assert len(calls) == 2  # one new sequence per volume
+    after = file_stamps(tmp_path)
+    assert all(after[name] == stamp for name, stamp in stamps.items())
+    assert_same_data(tmp_path, fresh)
+
+
+@pytest.mark.parametrize("change", [{"seed": 1}, {"crop": 4}, {"volumes": ("proc:cloud:2@32",)}, {"ao_samples": 8}])
+def test_a_manifest_from_another_config_is_refused(fresh, change, monkeypatch):
+    monkeypatch.setattr(datagen, "render_sequence", lambda *a, **k: pytest.fail("rendered"))
+    stamps = file_stamps(fresh)
+    with pytest.raises(ValueError, match=r"manifest.json was written with another config; use a new folder"):
+        generate(tiny_datagen(**change), fresh, progress=False)
+    assert file_stamps(fresh) == stamps
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"crop": 17}, "crop 17 exceeds the low-res render side 16"),
+    ({"frames": 1}, "at least 2 frames"),
+])
+def test_config_rejects_bad_values(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        tiny_datagen(**kwargs)
+
+
+def test_config_volumes_become_a_tuple():
+    assert DatagenConfig(volumes=["proc:sphere"]).volumes == ("proc:sphere",)
+
+
+# ---------------------------------------------------------------- crops
+
+
+def brute_force_coverage(mask: np.ndarray, crop: int) -> np.ndarray:
+    mean = mask.mean(axis=0)
+    h, w = mean.shape
+    return np.array([[mean[r:r + crop, c:c + crop].mean() for c in range(w - crop + 1)] for r in range(h - crop + 1)])
+
+
+def test_pick_crops_respects_min_coverage():
+    rng = np.random.default_rng(0)
+    mask = np.zeros((3, 20, 24), np.float32)
+    mask[:, 4:14, 6:18] = 1.0  # a 10 x 12 block, in every frame
+    mask[1, 14:18, 6:18] = 1.0  # and a strip in one frame only
+    coverage = brute_force_coverage(mask, 6)
+    for min_coverage in (0.25, 0.5, 0.9, 1.0):
+        corners = pick_crops(mask, 6, 1000, min_coverage, rng)
+        eligible = {(int(r), int(c)) for r, c in zip(*np.nonzero(coverage >= min_coverage - 1e-6))}
+        assert len(corners) == len(set(corners)) == len(eligible)  # each eligible corner once
+        assert set(corners) == eligible
+    corners = pick_crops(mask, 6, 5, 0.5, rng)
+    assert len(corners) == 5 and all(coverage[r, c] >= 0.5 - 1e-6 for r, c in corners)
+    assert all(0 <= r <= 20 - 6 and 0 <= c <= 24 - 6 for r, c in corners)
+
+
+def test_pick_crops_with_a_soft_mask_averages_over_frames():
+    rng = np.random.default_rng(1)
+    mask = np.random.default_rng(2).random((4, 12, 12)).astype(np.float32)
+    coverage = brute_force_coverage(mask, 5)
+    threshold = float(np.median(coverage))
+    corners = pick_crops(mask, 5, 10_000, threshold, rng)
+    assert set(corners) == {(int(r), int(c)) for r, c in zip(*np.nonzero(coverage >= threshold))}
+
+
+def test_pick_crops_nothing_covered_enough_and_full_size_crop():
+    rng = np.random.default_rng(3)
+    mask = np.zeros((2, 8, 8), np.float32)
+    assert pick_crops(mask, 4, 3, 0.5, rng) == []
+    mask[:, :, :5] = 1
+    assert pick_crops(mask, 8, 3, 0.5, rng) == [(0, 0)]  # crop == image: one candidate
+    assert pick_crops(mask, 8, 3, 0.7, rng) == []
+
+
+def test_pick_crops_is_deterministic_for_a_seed():
+    mask = np.ones((2, 16, 16), np.float32)
+    a = pick_crops(mask, 4, 5, 0.5, np.random.default_rng(7))
+    b = pick_crops(mask, 4, 5, 0.5, np.random.default_rng(7))
+    assert a == b
+
+
+def test_no_crop_covered_enough_gives_empty_shards(tmp_path):
+    config = tiny_datagen(volumes=("proc:sphere@32",), sequences=1, min_coverage=1.01)
+    manifest = generate(config, tmp_path, progress=False)
+    assert [s["crops"] for s in manifest["shards"]] == [0]
+    tensors = load_file(tmp_path / manifest["shards"][0]["file"])
+    assert tensors["lowres"].shape == (0, 3, 5, 8, 8) and tensors["highres"].shape == (0, 3, 6, 16, 16)
+    with pytest.raises(ValueError, match="no crops of split 'train'"):
+        SequenceDataset(tmp_path, "train")
+
+
+def test_highres_crops_line_up_with_lowres_crops(fresh):
+    """The high-res mask, average-pooled to low-res, is the low-res mask up to the silhouette."""
+    s = TINY_DATAGEN.upscale
+    errors, shifted_errors = [], []
+    for tensors in shard_tensors(fresh).values():
+        lo = tensors["lowres"][:, :, 0].float().flatten(0, 1)  # (K * T, c, c)
+        hi = tensors["highres"][:, :, 0].float().flatten(0, 1)[:, None]
+        pooled = F.avg_pool2d(hi, s)[:, 0]
+        errors.append((pooled - lo).abs().mean())
+        # The same comparison one low-res pixel off: clearly worse, so the test can see misalignment.
+        shifted_errors.append((pooled[:, 1:, 1:] - lo[:, :-1, :-1]).abs().mean())
+    error, shifted = float(torch.stack(errors).mean()), float(torch.stack(shifted_errors).mean())
+    assert error < 0.12, error
+    assert shifted > 1.5 * error, (error, shifted)
+
+
+def test_flow_moves_the_surface_and_is_zero_off_it(fresh):
+    """Frames after the first carry the flow from the previous frame: nonzero on the surface, 0 off it."""
+    moved = 0.0
+    for tensors in shard_tensors(fresh).values():
+        mask, flow = tensors["lowres"][:, 1:, 0].float(), tensors["flow"][:, 1:]
+        assert (flow[(mask == 0)[:, :, None].expand(-1, -1, 2, -1, -1)] == 0).all()
+        moved = max(moved, float(flow.norm(dim=2)[mask > 0].max()))
+    assert 0.01 < moved < 16  # the camera orbits a few degrees per frame
+
+
+# ---------------------------------------------------------------- the dataset
+
+
+def test_sequence_dataset_items(tmp_path_factory):
+    root = tiny_train_data(tmp_path_factory)
+    manifest = json.loads((root / MANIFEST).read_text())
+    train, val = SequenceDataset(root, "train"), SequenceDataset(root, "val")
+    n_train = sum(s["crops"] for s in manifest["shards"] if s["split"] == "train")
+    n_val = sum(s["crops"] for s in manifest["shards"] if s["split"] == "val")
+    assert len(train) == n_train and len(val) == n_val
+    assert train.volumes == ["proc:cloud:1@32"] * n_train and val.volumes == ["proc:sphere@32"] * n_val
+    assert train.config == manifest["config"]
+    item = train[0]
+    assert sorted(item) == ["flow", "highres", "lowres"]
+    assert item["lowres"].shape == (3, 5, 8, 8) and item["flow"].shape == (3, 2, 8, 8)
+    assert item["highres"].shape == (3, 6, 16, 16)
+    assert all(v.dtype == torch.float32 for v in item.values())
+    # Items come in manifest order: the first crop of the first train shard.
+    first = next(s for s in manifest["shards"] if s["split"] == "train")
+    torch.testing.assert_close(item["highres"], load_file(root / first["file"])["highres"][0].float())
+    assert train.to("cpu") is train and train.tensors["lowres"].dtype == torch.float16
+
+
+def test_sequence_dataset_errors(tmp_path_factory, tmp_path):
+    root = tiny_train_data(tmp_path_factory)
+    with pytest.raises(ValueError, match=r"no crops of split 'test'; splits there: \['train', 'val'\]"):
+        SequenceDataset(root, "test")
+    with pytest.raises(FileNotFoundError, match=r"no manifest.json in .*run `isosr datagen` first"):
+        SequenceDataset(tmp_path, "train")
+
+
+def test_shared_volumes_take_their_split_from_the_catalog(tmp_path):
+    if not (shared_volumes_dir() / "volumes.json").is_file():
+        pytest.skip(f"shared volumes not found at {shared_volumes_dir()} (set ISOSR_SHARED_VOLUMES)")
+    config = tiny_datagen(volumes=("shared:headsq",), sequences=1, min_coverage=0.05)
+    manifest = generate(config, tmp_path, progress=False)
+    assert [s["split"] for s in manifest["shards"]] == ["val"]  # headsq is a validation volume
+    assert manifest["shards"][0]["file"] == "shards/shared_headsq_0000.safetensors"
+    assert len(SequenceDataset(tmp_path, "val")) == manifest["shards"][0]["crops"] > 0
