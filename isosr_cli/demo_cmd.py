@@ -23,7 +23,7 @@ from isosr_render.procedural import default_iso
 from isosr_render.shading import shade_channels_first
 from isosr_cli.images import write_png
 
-DEFAULT_VOLUME = "proc:cloud:1@96"
+DEFAULT_VOLUME = "proc:cloud:42@96"  # a seed no training sequence used
 METHODS = ("nearest", "bilinear", "bicubic", "network")
 
 

@@ -2,7 +2,7 @@
 
 Every loss is an ``nn.Module`` that carries its own weight (as in BasicSR) and maps a
 :class:`LossContext` to a weighted scalar. The plain functions (:func:`masked_l1`,
-:func:`masked_l2`, :func:`shade_channels_first`) hold the math; the modules are thin.
+:func:`masked_l2`; shading from :mod:`isosr_render.shading`) hold the math; the modules are thin.
 Tensors are channels-first ``(B, C, H, W)`` in the orders of
 :mod:`isosr_render.conventions` (``HIGHRES_CHANNELS``: mask, normal xyz, depth, ao).
 
