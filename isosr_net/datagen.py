@@ -28,6 +28,8 @@ from isosr_render.procedural import default_iso
 LOWRES_OUTPUTS = ("mask", "normal", "depth")
 HIGHRES_OUTPUTS = ("mask", "normal", "depth", "ao")
 MANIFEST = "manifest.json"
+# Config fields a folder may be extended with: more sequences, another device (same data).
+EXTENDABLE = ("sequences", "device")
 
 
 @dataclass(frozen=True)
@@ -148,14 +150,17 @@ def _slug(spec: str) -> str:
 
 
 def _load_manifest(out: Path, config: DatagenConfig) -> dict:
-    """The manifest to extend: the existing one (same config) or a fresh one."""
+    """The manifest to extend: the existing one (same data config) or a fresh one."""
     path = out / MANIFEST
+    wanted = json.loads(json.dumps(asdict(config)))
     if path.is_file():
         manifest = json.loads(path.read_text())
-        if manifest["config"] != json.loads(json.dumps(asdict(config))):
-            raise ValueError(f"{path} was written with another config; use a new folder or the same config")
+        differs = sorted(k for k in wanted if k not in EXTENDABLE and manifest["config"].get(k) != wanted[k])
+        if differs:
+            raise ValueError(f"{path} was written with other {differs}; use a new folder or the same config")
+        manifest["config"] = wanted
         return manifest
-    return {"version": 1, "config": asdict(config), "shards": []}
+    return {"version": 1, "config": wanted, "shards": []}
 
 
 def generate(config: DatagenConfig, out: str | Path, progress: bool = True) -> dict:

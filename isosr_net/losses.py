@@ -20,7 +20,7 @@ Losses
                      separate step.
 
 The paper's three networks (Weiss et al., TVCG 2019) as configs, in :data:`PAPER_LOSSES`
-    ``l1-normal``  L1 on the normals plus the mask and AO terms, no GAN, no perceptual term:
+    ``l1-normal``  L1 on the normals plus mask, depth and AO terms, no GAN, no perceptual term:
                    the network that reproduces the ground truth most closely per pixel.
     ``gan-1``      the L1 terms plus perceptual, temporal and adversarial terms, with a small
                    adversarial weight: sharper detail, little hallucination.
@@ -477,6 +477,7 @@ _VGG_PATH = "weights/vgg19_features.safetensors"
 _L1_TERMS: tuple[dict[str, Any], ...] = (
     {"type": "channel", "channel": "mask", "kind": "l2", "weight": 1.0},
     {"type": "channel", "channel": "normal", "kind": "l1", "weight": 1.0},
+    {"type": "channel", "channel": "depth", "kind": "l1", "weight": 1.0},
     {"type": "channel", "channel": "ao", "kind": "l1", "weight": 1.0},
 )
 # Our reading of the paper's three networks; the weights are plausible choices, not copied.

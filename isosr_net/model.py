@@ -178,9 +178,13 @@ def load_pretrained(folder: str | os.PathLike, device: str | torch.device = "cpu
     config = json.loads((folder / "config.json").read_text())
     model = build_model(config["model"])
     state = load_file(folder / "model.safetensors", device=str(device))
-    try:
-        model.load_state_dict(state)
-    except RuntimeError as e:
-        raise ValueError(f"{folder}: weights do not fit the config: {e}") from e
+    expected = {k: tuple(v.shape) for k, v in model.state_dict().items()}
+    found = {k: tuple(v.shape) for k, v in state.items()}
+    if expected != found:
+        missing, unexpected = sorted(set(expected) - set(found)), sorted(set(found) - set(expected))
+        resized = sorted(k for k in set(expected) & set(found) if expected[k] != found[k])
+        raise ValueError(f"{folder}: weights do not fit the config: {len(missing)} missing, {len(unexpected)} "
+                         f"unexpected, {len(resized)} of another shape (first: {(missing + unexpected + resized)[0]})")
+    model.load_state_dict(state)
     return model.to(device).eval(), config
 

@@ -145,6 +145,9 @@ class Trainer:
         self.d_optimizer = torch.optim.Adam(d_params, lr=config.lr_discriminator) if d_params else None
         self.train_set = SequenceDataset(config.data, "train").to(self.device)
         self.val_set = SequenceDataset(config.data, "val").to(self.device)
+        if len(self.train_set) < config.batch_size:
+            raise ValueError(f"{config.data} holds {len(self.train_set)} training crops, fewer than one batch "
+                             f"({config.batch_size}); lower batch_size or render more data")
         data_upscale = self.train_set.config["upscale"]
         if data_upscale != self.upscale:
             raise ValueError(f"the data in {config.data} is for upscale {data_upscale}, the model upscales "
@@ -169,7 +172,10 @@ class Trainer:
         for name in ("last", "last.old"):
             folder = self.out / name
             if (folder / "training_state.pt").is_file():
-                net, _ = load_pretrained(folder, self.device)
+                net, saved = load_pretrained(folder, self.device)
+                if saved["model"] != asdict(self.net.config):
+                    raise ValueError(f"{folder} holds a model of another config ({saved['model']}); "
+                                     f"train into a new folder or with the same model config")
                 self.net.load_state_dict(net.state_dict())
                 state = torch.load(folder / "training_state.pt", map_location=self.device, weights_only=True)
                 self.optimizer.load_state_dict(state["optimizer"])
@@ -182,13 +188,16 @@ class Trainer:
                     print(f"resuming from {folder} at step {self.step}")
                 return
 
-    def _batches(self, dataset: SequenceDataset, shuffle: bool, epoch: int):
-        """This process's share of each batch, indexed straight from the device-resident crops."""
+    def _batches(self, dataset: SequenceDataset, shuffle: bool, epoch: int, skip: int = 0):
+        """This process's share of each batch, indexed straight from the device-resident crops.
+
+        ``skip`` batches of the epoch are passed over (a run resumed mid-epoch).
+        """
         order = (torch.randperm(len(dataset), generator=torch.Generator().manual_seed(self.config.seed + epoch))
                  if shuffle else torch.arange(len(dataset)))
         size = self.config.batch_size
         stop = len(order) - len(order) % size if shuffle else len(order)
-        for start in range(0, stop, size):
+        for start in range(skip * size, stop, size):
             index = order[start:start + size][self.rank::self.world].to(self.device)
             if len(index):
                 yield {k: t[index].float() for k, t in dataset.tensors.items()}
@@ -284,7 +293,7 @@ class Trainer:
         deadline = time.monotonic() + 60 * self.config.time_limit_minutes if self.config.time_limit_minutes else math.inf
         while self.step < self.config.steps and time.monotonic() < deadline:
             epoch = self.step // steps_per_epoch
-            for batch in self._batches(self.train_set, shuffle=True, epoch=epoch):
+            for batch in self._batches(self.train_set, shuffle=True, epoch=epoch, skip=self.step % steps_per_epoch):
                 logs = self.train_step(batch)
                 self.step += 1
                 bar.update(1)

@@ -226,9 +226,6 @@ def test_eval_in_bf16(cli_data, tmp_path_factory, tmp_path):
     assert record["precision"] == "bf16" and np.isfinite(record["gains"]["proc:cloud:1@32"]["vs_bilinear"])
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError,
-                   reason="resuming into a run folder whose last/ holds another model config fails with torch's "
-                          "multi-line load_state_dict RuntimeError instead of a one-line error")
 def test_train_into_a_run_of_another_model_is_a_one_line_error(tmp_path, tmp_path_factory, capsys):
     data = tiny_train_data(tmp_path_factory)
     config = tiny_train_config(data, tmp_path / "run", steps=1)
@@ -239,9 +236,6 @@ def test_train_into_a_run_of_another_model_is_a_one_line_error(tmp_path, tmp_pat
     one_line_error(capsys, "train", str(tmp_path / "run"))
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError,
-                   reason="load_pretrained's 'weights do not fit the config' ValueError embeds torch's multi-line "
-                          "load_state_dict message, so `isosr upscale/eval --model` print many lines")
 def test_a_model_folder_whose_weights_do_not_fit_is_a_one_line_error(sequence_file, tmp_path_factory, tmp_path,
                                                                       capsys):
     import shutil
