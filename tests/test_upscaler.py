@@ -66,9 +66,6 @@ def test_the_shipped_model_follows_the_input_mask_and_normals(default_upscaler, 
         assert agreement["normal_cos"].median() > 0.98 and agreement["normal_cos"].min() > 0.5
 
 
-@pytest.mark.xfail(strict=True, reason="the shipped model's depth output is about 1 world unit off the input depth "
-                                       "(no loss in its l1-normal training config constrains depth), so the "
-                                       "depth that Upscaler and `isosr upscale` return is meaningless")
 def test_the_shipped_model_follows_the_input_depth(default_upscaler, frames24):
     default_upscaler.reset()
     for frame in frames24:
