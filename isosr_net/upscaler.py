@@ -22,6 +22,7 @@ from isosr_net.model import load_pretrained
 
 DEFAULT_MODEL = Path(__file__).resolve().parent / "default_model"
 PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16}
+COMPILE_MODES = (None, "default", "reduce-overhead", "max-autotune")
 
 
 def lowres_tensors(frame: FrameBuffers) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -70,16 +71,24 @@ class Upscaler:
         tile: low-res tile side for frames too large to run whole (None: whole frames);
             tiles overlap by ``halo`` pixels, more than the network's receptive field, so the
             result matches the untiled one.
+        channels_last: keep activations in NHWC (faster convolutions on GPUs).
+        compile: a ``torch.compile`` mode for whole frames (``"default"``, ``"max-autotune"``,
+            or ``"reduce-overhead"``, which also replays CUDA graphs); None runs eagerly.
     """
 
     def __init__(self, model: str | Path = DEFAULT_MODEL, device: str = "cpu", precision: str = "fp32",
-                 tile: int | None = None, halo: int = 24):
+                 tile: int | None = None, halo: int = 24, channels_last: bool = False, compile: str | None = None):
         if precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {precision!r}")
         if tile is not None and tile < 1:
             raise ValueError(f"tile must be positive, got {tile}")
+        if compile not in COMPILE_MODES:
+            raise ValueError(f"compile must be one of {COMPILE_MODES}, got {compile!r}")
         self.device = torch.device(device)
         self.net, self.config = load_pretrained(model, self.device)
+        if channels_last:
+            self.net = self.net.to(memory_format=torch.channels_last)
+        self._whole = torch.compile(self.net, mode=compile) if compile else self.net
         self.upscale_factor = self.net.config.upscale
         self.precision = precision
         self.tile, self.halo = tile, halo
@@ -108,7 +117,8 @@ class Upscaler:
                 warped = self.net.first_previous(lowres)
             else:
                 warped = warp_by_flow(self.previous, upscale_flow(flow.to(self.device), self.upscale_factor))
-            output = self._run(lowres, warped).float()
+            # A copy: compiled graphs may reuse their output buffers on the next call.
+            output = self._run(lowres, warped).float().clone()
         self.previous = output
         return output
 
@@ -116,7 +126,7 @@ class Upscaler:
         """The network on the whole frame, or tile by tile with overlapping halos."""
         h, w = lowres.shape[-2:]
         if self.tile is None or (h <= self.tile and w <= self.tile):
-            return self.net(lowres, warped)
+            return self._whole(lowres, warped)
         s, t, halo = self.upscale_factor, self.tile, self.halo
         output = torch.empty(1, warped.shape[1], h * s, w * s, device=lowres.device)
         for y0 in range(0, h, t):

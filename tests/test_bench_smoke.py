@@ -16,3 +16,29 @@ def test_bench_render_smoke_writes_a_complete_record(tmp_path, capsys):
     first = next(r for r in record["rows"] if r["case"] == "first hit")
     assert first["ms"] > 0 and first["skip speedup"] > 0 and 0 < first["coverage"] <= 1
     assert "| first hit |" in capsys.readouterr().out
+
+
+def test_isosr_bench_smoke_writes_every_study_the_report_and_plots(tmp_path, capsys):
+    from isosr_cli.main import main as cli
+
+    assert cli(["bench", "--smoke", "--out", str(tmp_path)]) == 0
+    for study in ("network", "pipeline", "knobs", "render"):
+        record = json.loads((tmp_path / f"bench_{study}_cpu.json").read_text())
+        assert record["rows"] and all(r["ms"] > 0 for r in record["rows"] if "ms" in r)
+    knobs = json.loads((tmp_path / "bench_knobs_cpu.json").read_text())["rows"]
+    assert {"AO samples", "ray step (voxels)", "refinement steps (secant)", "supersampling (rays/pixel)",
+            "upscale x4"} <= {r["knob"] for r in knobs}
+    ao = [r["error"] for r in knobs if r["knob"] == "AO samples"]
+    assert ao[0] > ao[-1]  # more AO rays, less noise
+    pipeline = json.loads((tmp_path / "bench_pipeline_cpu.json").read_text())["rows"]
+    assert {"table", "resolution", "volume size"} == {r["part"] for r in pipeline}
+    report = (tmp_path / "report_cpu.md").read_text()
+    assert "The network's fast path" in report and "What accuracy costs in time" in report
+    assert (tmp_path / "knobs_cpu.png").stat().st_size > 0 and (tmp_path / "scaling_cpu.png").stat().st_size > 0
+
+
+def test_isosr_bench_rejects_unknown_studies(capsys):
+    from isosr_cli.main import main as cli
+
+    assert cli(["bench", "--smoke", "--only", "render,bogus"]) == 2
+    assert "bogus" in capsys.readouterr().err

@@ -1,0 +1,41 @@
+"""`isosr bench`: every timing and accuracy study, then the plots and the Markdown report."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+STUDIES = ("network", "pipeline", "knobs", "render")
+
+
+def add_parser(subparsers) -> None:
+    """Register ``bench``."""
+    p = subparsers.add_parser("bench", help="timing and accuracy benchmarks (JSON, Markdown, plots)",
+                              formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--device", help="cuda or cpu (default: cuda if torch sees a GPU)")
+    p.add_argument("--smoke", action="store_true", help="small sizes on the CPU, under two minutes (CI)")
+    p.add_argument("--only", default=",".join(STUDIES), help=f"comma-separated subset of {','.join(STUDIES)}")
+    p.add_argument("--out", help="results folder (default benchmarks/results)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch
+
+    from isosr_bench import bench_knobs, bench_network, bench_pipeline, bench_render, report
+    from isosr_bench.common import RESULTS_DIR
+
+    studies = [s.strip() for s in args.only.split(",") if s.strip()]
+    unknown = sorted(set(studies) - set(STUDIES))
+    if unknown:
+        raise ValueError(f"unknown studies {unknown}; choose from {', '.join(STUDIES)}")
+    device = args.device or ("cuda" if torch.cuda.is_available() and not args.smoke else "cpu")
+    out = Path(args.out) if args.out else RESULTS_DIR
+    argv = ["--device", device, "--out", str(out)] + (["--smoke"] if args.smoke else [])
+    modules = {"network": bench_network, "pipeline": bench_pipeline, "knobs": bench_knobs, "render": bench_render}
+    for study in studies:
+        print(f"== {study}")
+        modules[study].main(argv)
+    written = report.write(out, "cuda" if device.startswith("cuda") else "cpu")
+    print("wrote " + ", ".join(str(p) for p in written))
+    return 0
