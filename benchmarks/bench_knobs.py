@@ -18,8 +18,6 @@ the GAN variants need models we have not trained, so they are left out here.
 
 from __future__ import annotations
 
-import argparse
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -30,7 +28,7 @@ from isosr_render.procedural import default_iso
 from isosr_net.metrics import frame_scores, upscale_baseline
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler, lowres_tensors
 
-from .common import RESULTS_DIR, print_table, time_frames, write_result
+from .common import bench_parser, print_table, time_frames, write_result
 
 FRAMES = 4
 AO_RADIUS = 0.05
@@ -147,10 +145,7 @@ def _rms(a: torch.Tensor, b: torch.Tensor, where: torch.Tensor | None = None) ->
 
 
 def main(argv=None) -> list[dict]:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--smoke", action="store_true", help="small sizes (CI)")
-    parser.add_argument("--out", type=Path, default=RESULTS_DIR)
+    parser = bench_parser(__doc__)
     args = parser.parse_args(argv)
     if args.smoke:
         volume = open_volume("proc:cloud:42@48")

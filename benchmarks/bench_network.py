@@ -12,9 +12,7 @@ bf16 matrix-multiply rate gives the floor the card could reach.
 
 from __future__ import annotations
 
-import argparse
 import time
-from pathlib import Path
 
 import torch
 from torch.utils.flop_counter import FlopCounterMode
@@ -23,7 +21,7 @@ from isosr_render import Renderer, RenderRequest, open_volume, orbit_path
 from isosr_render.procedural import default_iso
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler, lowres_tensors
 
-from .common import RESULTS_DIR, print_table, time_frames, write_result
+from .common import bench_parser, print_table, time_frames, write_result
 
 VOLUME = "proc:cloud:42@128"
 
@@ -74,11 +72,8 @@ def frame_flops(upscaler: Upscaler, lowres: torch.Tensor) -> int:
 
 
 def main(argv=None) -> list[dict]:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--smoke", action="store_true", help="small sizes (CI)")
+    parser = bench_parser(__doc__)
     parser.add_argument("--model", default=str(DEFAULT_MODEL))
-    parser.add_argument("--out", type=Path, default=RESULTS_DIR)
     args = parser.parse_args(argv)
     width, height = (96, 54) if args.smoke else (480, 270)
     frames = 4 if args.smoke else 12

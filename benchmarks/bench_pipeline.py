@@ -12,8 +12,6 @@ output resolution (720p, 1080p, 4K) and against volume size (64^3 to 1024^3).
 
 from __future__ import annotations
 
-import argparse
-from pathlib import Path
 
 import torch
 import torch.nn.functional as F
@@ -24,7 +22,7 @@ from isosr_render.procedural import default_iso
 from isosr_render.shading import shade_channels_first
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler, lowres_tensors
 
-from .common import RESULTS_DIR, print_table, time_frames, write_result
+from .common import bench_parser, print_table, time_frames, write_result
 
 FRAMES = 10
 AO_SAMPLES = 128
@@ -104,10 +102,7 @@ def fast_upscaler(device: str) -> Upscaler:
 
 
 def main(argv=None) -> list[dict]:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--smoke", action="store_true", help="small sizes (CI)")
-    parser.add_argument("--out", type=Path, default=RESULTS_DIR)
+    parser = bench_parser(__doc__)
     args = parser.parse_args(argv)
     s = 4
     hi = (192, 108) if args.smoke else (1920, 1080)

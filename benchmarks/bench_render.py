@@ -10,9 +10,7 @@ depth, flow). Prints a Markdown table and writes ``benchmarks/results/bench_rend
 
 from __future__ import annotations
 
-import argparse
 import os
-from pathlib import Path
 
 import torch
 import torch.nn.functional as F
@@ -23,7 +21,7 @@ from isosr_render.catalog import entry
 from isosr_render.flow_fill import fill_flow
 from isosr_render.procedural import default_iso
 
-from .common import RESULTS_DIR, kernel_ms, print_table, time_frames, write_result
+from .common import bench_parser, kernel_ms, print_table, time_frames, write_result
 
 FRAMES = 10
 AO_RADIUS = 0.02  # world units: 20 voxels of a 1024^3 volume, 5 of a 256^3 one
@@ -123,10 +121,7 @@ def bench_cpu_threads(volume: Volume, iso: float) -> list[dict]:
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--smoke", action="store_true", help="small sizes (CI)")
-    parser.add_argument("--out", type=Path, default=RESULTS_DIR, help="folder for the JSON result")
+    parser = bench_parser(__doc__)
     args = parser.parse_args(argv)
     wp.config.log_level = wp.LOG_WARNING
     wp.init()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import platform
@@ -15,6 +16,15 @@ import torch
 from isosr_render.atomic import atomic_write
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
+
+
+def bench_parser(doc: str) -> argparse.ArgumentParser:
+    """The options every study takes: --device, --smoke, --out."""
+    parser = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--smoke", action="store_true", help="small sizes on the CPU (CI)")
+    parser.add_argument("--out", type=Path, default=RESULTS_DIR, help="folder for the JSON result")
+    return parser
 
 
 def device_name(device: str) -> str:
