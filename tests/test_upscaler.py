@@ -253,3 +253,31 @@ def test_the_default_model_is_the_shipped_folder(default_upscaler):
     for k, v in net.state_dict().items():
         assert torch.equal(default_upscaler.net.state_dict()[k], v)
     assert not default_upscaler.net.training
+
+
+@pytest.mark.parametrize("case", ["empty frame", "full frame", "huge flow", "far depth"])
+def test_hard_inputs_give_finite_bounded_outputs(default_upscaler, frames24, case):
+    """Frames with nothing or everything covered, flow pointing far outside, a distant surface."""
+    frame = frames24[1]
+    mask, normal, depth, flow = frame.mask.clone(), frame.normal.clone(), frame.depth.clone(), frame.flow.clone()
+    if case == "empty frame":
+        mask, normal, depth, flow = (torch.zeros_like(t) for t in (mask, normal, depth, flow))
+    elif case == "full frame":
+        mask = torch.ones_like(mask)
+        normal = torch.zeros_like(normal)
+        normal[..., 2] = 1.0
+        depth = torch.full_like(depth, 1.5)
+    elif case == "huge flow":
+        flow = torch.full_like(flow, 1e6)
+    else:
+        depth = depth * 1e4
+    default_upscaler.reset()
+    default_upscaler.upscale(frames24[0])
+    out = default_upscaler.upscale(FrameBuffers(mask=mask, normal=normal, depth=depth, flow=flow))
+    for name in ("mask", "normal", "depth", "ao"):
+        assert torch.isfinite(getattr(out, name)).all(), name
+    assert out.mask.min() >= 0 and out.mask.max() <= 1 and out.ao.min() >= 0 and out.ao.max() <= 1
+    if case == "empty frame":
+        assert out.mask.max() < 0.5  # no surface appears from nothing
+    if case == "full frame":
+        assert out.mask.min() > 0.5
