@@ -10,14 +10,17 @@ timed; its error is measured against a reference rendered with far more effort:
   and the fraction of pixels whose mask differs;
 - refinement steps (0 to 8, secant): mean hit-position error against 16 bisection steps;
 - supersampling (1 to 16 rays per pixel): RMS color error against 64 rays;
-- upscaling (nearest, bilinear, bicubic at 2, 4, 8; the network at 4 in fp32 and bf16):
-  color PSNR of the shaded result against the high-res render with AO.
-The network exists trained at factor 4 only (the shipped L1-normal model): factors 2 and 8 and
-the GAN variants need models we have not trained, so they are left out here.
+- upscaling (nearest, bilinear, bicubic at 2, 4, 8; each network at its own factor in fp32,
+  bf16 and fp16 on GPUs): color PSNR of the shaded result against the high-res render with AO.
+The networks are the shipped L1-normal model (x4) and those named by ``--models NAME=DIR,...``
+(`scripts/train_scale_models.sh` trains x2 and x8 ones).
 """
 
 from __future__ import annotations
 
+
+import json
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -42,7 +45,9 @@ def stack(frame) -> torch.Tensor:
 class Knobs:
     """Sweeps on one volume: time per frame and error against a reference."""
 
-    def __init__(self, volume, iso: float, size: tuple[int, int], device: str, smoke: bool):
+    def __init__(self, volume, iso: float, size: tuple[int, int], device: str, smoke: bool,
+                 models: dict[str, Path] | None = None):
+        self.models = models or {"L1-normal": DEFAULT_MODEL}
         self.renderer = Renderer(volume, device)
         self.voxel = volume.voxel_size_world()
         self.iso, self.size, self.device, self.smoke = iso, size, device, smoke
@@ -122,10 +127,12 @@ class Knobs:
                     for i in range(FRAMES)]
             methods = {mode: (lambda low, mode=mode: upscale_baseline(low[0], factor, mode))
                        for mode in ("nearest", "bilinear", "bicubic")}
-            if factor == 4:
-                for precision in ("fp32", "bf16") if self.device.startswith("cuda") else ("fp32",):
-                    up = Upscaler(DEFAULT_MODEL, self.device, precision)
-                    methods[f"network {precision}"] = lambda low, up=up: up.step(low[0], low[1])
+            for model, folder in self.models.items():
+                if model_upscale(folder) != factor:
+                    continue
+                for precision in ("fp32", "bf16", "fp16") if self.device.startswith("cuda") else ("fp32",):
+                    up = Upscaler(folder, self.device, precision)
+                    methods[f"{model} {precision}"] = lambda low, up=up: up.step(low[0], low[1])
             for name, fn in methods.items():
                 outs = [fn(low) for low in lows]  # in sequence: the network carries its state
                 psnr = np.mean([float(frame_scores(o.float().cpu(), t.cpu())["color_psnr"][0])
@@ -134,6 +141,26 @@ class Knobs:
                 rows.append(self.row(f"upscale x{factor}", name, t.get("gpu_ms", t["wall_ms"]), float(psnr),
                                      "color PSNR dB (higher is better)"))
         return rows
+
+
+def model_upscale(folder: Path) -> int:
+    """A model folder's upscale factor, from its config.json."""
+    return json.loads((Path(folder) / "config.json").read_text())["model"]["upscale"]
+
+
+def parse_models(text: str) -> dict[str, Path]:
+    """``NAME=DIR,NAME=DIR`` as a dict; each DIR must be a model folder.
+
+    Raises:
+        ValueError: an item is not ``NAME=DIR`` with a ``config.json`` in DIR.
+    """
+    models = {}
+    for item in filter(None, text.split(",")):
+        name, sep, folder = item.partition("=")
+        if not sep or not name or not (Path(folder) / "config.json").is_file():
+            raise ValueError(f"--models: {item!r} is not NAME=MODEL_FOLDER (a folder with config.json)")
+        models[name] = Path(folder)
+    return models
 
 
 def _rms(a: torch.Tensor, b: torch.Tensor, where: torch.Tensor | None = None) -> float:
@@ -146,7 +173,12 @@ def _rms(a: torch.Tensor, b: torch.Tensor, where: torch.Tensor | None = None) ->
 
 def main(argv=None) -> list[dict]:
     parser = bench_parser(__doc__)
+    parser.add_argument("--models", default="", help="more networks to sweep: NAME=MODEL_FOLDER,...")
     args = parser.parse_args(argv)
+    try:
+        models = {"L1-normal": DEFAULT_MODEL, **parse_models(args.models)}
+    except ValueError as e:
+        parser.error(str(e))
     if args.smoke:
         volume = open_volume("proc:cloud:42@48")
         iso = volume.normalized_iso(default_iso("proc:cloud"))
@@ -154,7 +186,7 @@ def main(argv=None) -> list[dict]:
     else:
         e = entry("ct_pitch")
         volume, iso, size = open_volume(str(e["path"])), e["otsu_iso_normalized"], (960, 544)
-    knobs = Knobs(volume, iso, size, args.device, args.smoke)
+    knobs = Knobs(volume, iso, size, args.device, args.smoke, models)
     rows = knobs.ao_samples() + knobs.step() + knobs.refinement() + knobs.supersampling() + knobs.upscaling()
     for r in rows:
         r["volume"] = volume.name

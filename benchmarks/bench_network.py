@@ -3,9 +3,12 @@
     python -m isosr_bench.bench_network --device cuda
     python -m isosr_bench.bench_network --device cpu --smoke
 
-Variants: fp32; bf16 autocast; + channels-last; + torch.compile; + CUDA graphs (compile's
-"reduce-overhead"). Each runs the recurrent step of `Upscaler` (flow upscaling, warping,
-network) on a rendered low-res sequence; its deviation is the largest difference from the
+Variants, each adding to the one before: fp32; bf16 autocast; + channels-last; + torch.compile
+of the whole step; + CUDA graphs (compile's "reduce-overhead"); + cuDNN autotuning; + fast layers
+(`isosr_net.fastpath`: channels padded to multiples of 8, subpixel upsampling); and fp16 in place
+of bf16. cuDNN autotuning is process-wide,
+so it comes last. Each runs the recurrent step of `Upscaler` (flow upscaling, warping, network)
+on a rendered low-res sequence; its deviation is the largest difference from the
 fp32 output over the sequence. The FLOP count (torch's FlopCounterMode) over a measured
 bf16 matrix-multiply rate gives the floor the card could reach.
 """
@@ -34,8 +37,12 @@ def variants(device: str) -> dict[str, dict]:
     out = {"fp32": {}, "bf16": {"precision": "bf16"},
            "bf16 + channels-last": {"precision": "bf16", "channels_last": True}}
     out["bf16 + channels-last + compile"] = {"precision": "bf16", "channels_last": True, "compile": "default"}
-    out["bf16 + channels-last + compile + CUDA graphs"] = {"precision": "bf16", "channels_last": True,
-                                                           "compile": "reduce-overhead"}
+    graphs = {"precision": "bf16", "channels_last": True, "compile": "reduce-overhead"}
+    out["bf16 + channels-last + compile + CUDA graphs"] = graphs
+    out["... + cuDNN autotune"] = {**graphs, "autotune": True}
+    out["... + cuDNN autotune + fast layers"] = {**graphs, "autotune": True, "fast_layers": True}
+    out["fp16 + channels-last + compile + CUDA graphs + cuDNN autotune + fast layers"] = {
+        **graphs, "precision": "fp16", "autotune": True, "fast_layers": True}
     return out
 
 

@@ -5,8 +5,8 @@
 
 Per volume (CT head, CT chest, a simulation, a 1024^3 volume), averaged over a 10-frame
 orbit at 1920x1080: the high-res render without AO and with 128 AO rays, the 480x270
-low-res render, the network (bf16, channels-last, and on CUDA compiled with CUDA graphs),
-and the interactive path: low-res render + warp + network + shading. Then time against
+low-res render, the network (`Upscaler.fastest`, on CUDA: bf16, channels-last, compiled with
+CUDA graphs, fast layers), and the interactive path: low-res render + warp + network + shading. Then time against
 output resolution (720p, 1080p, 4K) and against volume size (64^3 to 1024^3).
 """
 
@@ -94,19 +94,12 @@ class Pipeline:
         return frame
 
 
-def fast_upscaler(device: str) -> Upscaler:
-    """The network's fastest measured variant on this device (see bench_network)."""
-    if device.startswith("cuda"):
-        return Upscaler(DEFAULT_MODEL, device, "bf16", channels_last=True, compile="reduce-overhead")
-    return Upscaler(DEFAULT_MODEL, device, channels_last=True)
-
-
 def main(argv=None) -> list[dict]:
     parser = bench_parser(__doc__)
     args = parser.parse_args(argv)
     s = 4
     hi = (192, 108) if args.smoke else (1920, 1080)
-    upscaler = fast_upscaler(args.device)
+    upscaler = Upscaler.fastest(DEFAULT_MODEL, args.device)
     rows = []
     for role, volume, iso in volumes(args.smoke, args.device):
         pipe = Pipeline(volume, iso, args.device, upscaler)

@@ -43,11 +43,12 @@ def device_name(device: str) -> str:
 
 
 def commit() -> str:
-    """``$ISOSR_COMMIT`` (set where the checkout travels without .git), else git's HEAD."""
+    """``$ISOSR_COMMIT`` (set where the checkout travels without .git), else git's HEAD, with
+    ``-dirty`` appended when the working tree has uncommitted changes."""
     if os.environ.get("ISOSR_COMMIT"):
         return os.environ["ISOSR_COMMIT"]
     try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+        return subprocess.run(["git", "describe", "--always", "--dirty", "--abbrev=7"], capture_output=True, text=True,
                               check=True, cwd=Path(__file__).parent).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return "unknown"

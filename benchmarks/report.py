@@ -82,17 +82,40 @@ def plots(folder: Path, kind: str) -> list[Path]:
             groups[r["knob"].split(" x")[0] if r["knob"].startswith("upscale") else r["knob"]].append(r)
         fig, axes = plt.subplots(1, len(groups), figsize=(4 * len(groups), 3.6))
         for ax, (knob, rows) in zip(axes, groups.items()):
-            for r in rows:
-                ax.scatter(r["ms"], r["error"], color="C0" if "network" not in r["setting"] else "C3")
-                label = r["setting"] if not knob.startswith("upscale") else f"{r['knob'][-2:]} {r['setting']}"
-                ax.annotate(label, (r["ms"], r["error"]), fontsize=7)
-            ax.set(xscale="log", xlabel="ms per frame", ylabel=rows[0]["error unit"], title=knob)
+            if knob == "upscale":
+                _upscale_panel(ax, rows)
+            else:
+                for r in rows:
+                    ax.scatter(r["ms"], r["error"], color="C0")
+                    ax.annotate(r["setting"], (r["ms"], r["error"]), fontsize=7)
+            times = [r["ms"] for r in rows]
+            spread = max(times) / min(times) > 10  # log axes only where times span a decade
+            ax.set(xscale="log" if spread else "linear", xlabel="ms per frame", ylabel=rows[0]["error unit"],
+                   title=knob)
+            if spread:
+                ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         path = folder / f"knobs_{kind}.png"
         fig.tight_layout()
         fig.savefig(path, dpi=100)
         plt.close(fig)
         written.append(path)
     return written
+
+
+def _upscale_panel(ax, rows: list[dict]) -> None:
+    """Upscalers per factor (one color each): classic ones as dots, networks as stars, one label per model."""
+    labelled = set()
+    for i, factor in enumerate(sorted({r["knob"] for r in rows})):
+        for r in (r for r in rows if r["knob"] == factor):
+            classic = r["setting"] in ("nearest", "bilinear", "bicubic")
+            model = r["setting"].rsplit(" ", 1)[0]
+            ax.scatter(r["ms"], r["error"], color=f"C{i}", marker="o" if classic else "*", s=20 if classic else 60,
+                       label=factor.split()[-1] if (factor, "legend") not in labelled else None)
+            labelled.add((factor, "legend"))
+            if (factor, model) not in labelled:
+                ax.annotate(model.replace(f" {factor.split()[-1]}", ""), (r["ms"], r["error"]), fontsize=7)
+                labelled.add((factor, model))
+    ax.legend(fontsize=7)
 
 
 def write(folder: Path, kind: str) -> list[Path]:

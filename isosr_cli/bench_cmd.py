@@ -16,6 +16,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--smoke", action="store_true", help="small sizes on the CPU, under two minutes (CI)")
     p.add_argument("--only", default=",".join(STUDIES), help=f"comma-separated subset of {','.join(STUDIES)}")
     p.add_argument("--out", help="results folder (default benchmarks/results)")
+    p.add_argument("--models", default="", help="more networks for the knob sweep: NAME=MODEL_FOLDER,...")
     p.set_defaults(func=run)
 
 
@@ -29,13 +30,14 @@ def run(args: argparse.Namespace) -> int:
     unknown = sorted(set(studies) - set(STUDIES))
     if unknown:
         raise ValueError(f"unknown studies {unknown}; choose from {', '.join(STUDIES)}")
+    bench_knobs.parse_models(args.models)  # a bad --models fails before hours of benchmarks
     device = args.device or ("cuda" if torch.cuda.is_available() and not args.smoke else "cpu")
     out = Path(args.out) if args.out else RESULTS_DIR
     argv = ["--device", device, "--out", str(out)] + (["--smoke"] if args.smoke else [])
     modules = {"network": bench_network, "pipeline": bench_pipeline, "knobs": bench_knobs, "render": bench_render}
     for study in studies:
         print(f"== {study}")
-        modules[study].main(argv)
+        modules[study].main(argv + (["--models", args.models] if study == "knobs" and args.models else []))
     written = report.write(out, "cuda" if device.startswith("cuda") else "cpu")
     print("wrote " + ", ".join(str(p) for p in written))
     return 0

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -20,6 +22,8 @@ def add_parsers(subparsers) -> None:
     p.add_argument("-o", "--out", required=True, help="output folder; an existing one is resumed")
     p.add_argument("--device", help="override the config's device")
     p.add_argument("--sequences", type=int, help="override sequences per volume")
+    p.add_argument("--upscale", type=int, help="override the upscale factor")
+    p.add_argument("--lowres-size", type=int, help="override the low-res render side")
     p.set_defaults(func=run_datagen)
 
     p = subparsers.add_parser("train", help="train a network from a JSON config")
@@ -29,6 +33,7 @@ def add_parsers(subparsers) -> None:
     p.add_argument("--steps", type=int, help="override the number of steps")
     p.add_argument("--device", help="override the device")
     p.add_argument("--time-limit-minutes", type=float, help="stop, validated and saved, after this long")
+    p.add_argument("--upscale", type=int, help="override the model's upscale factor")
     p.set_defaults(func=run_train)
 
     p = subparsers.add_parser("eval", help="score the network against nearest/bilinear/bicubic per volume")
@@ -36,8 +41,10 @@ def add_parsers(subparsers) -> None:
     p.add_argument("--data", required=True, help="datagen folder")
     p.add_argument("--split", default="val")
     p.add_argument("--device", default="cpu")
-    p.add_argument("--precision", choices=("fp32", "bf16"), default="fp32")
+    p.add_argument("--precision", choices=("fp32", "bf16", "fp16"), default="fp32")
     p.add_argument("--json", help="also write the rows and gains to this JSON file")
+    p.add_argument("--oracles", action="store_true",
+                   help="also score two oracles: bilinear with the true AO, the true geometry without AO")
     p.set_defaults(func=run_eval)
 
     p = subparsers.add_parser("upscale", help="upscale a low-res sequence file")
@@ -46,7 +53,7 @@ def add_parsers(subparsers) -> None:
     p.add_argument("--model", help="model folder (default: the shipped model)")
     p.add_argument("--png", help="also write the shaded frames into this folder")
     p.add_argument("--device", default="cpu")
-    p.add_argument("--precision", choices=("fp32", "bf16"), default="fp32")
+    p.add_argument("--precision", choices=("fp32", "bf16", "fp16"), default="fp32")
     p.add_argument("--tile", type=int, help="low-res tile side for frames that do not fit whole")
     p.set_defaults(func=run_upscale)
 
@@ -54,7 +61,8 @@ def add_parsers(subparsers) -> None:
 def run_datagen(args: argparse.Namespace) -> int:
     from isosr_net.datagen import DatagenConfig, generate
 
-    config = load_config(DatagenConfig, args.config, device=args.device, sequences=args.sequences)
+    config = load_config(DatagenConfig, args.config, device=args.device, sequences=args.sequences,
+                         upscale=args.upscale, lowres_size=args.lowres_size)
     start = time.perf_counter()
     manifest = generate(config, args.out)
     crops = {}
@@ -70,6 +78,8 @@ def run_train(args: argparse.Namespace) -> int:
 
     config = load_config(TrainConfig, args.config, data=args.data, out=args.out, steps=args.steps,
                          device=args.device, time_limit_minutes=args.time_limit_minutes)
+    if args.upscale is not None:
+        config = dataclasses.replace(config, model={**config.model, "upscale": args.upscale})
     metrics = Trainer(config).run()
     print(json.dumps({"step_metrics": metrics}, indent=1))
     return 0
@@ -81,7 +91,7 @@ def run_eval(args: argparse.Namespace) -> int:
     from isosr_net.upscaler import DEFAULT_MODEL, PRECISIONS
 
     net, _ = load_pretrained(args.model or DEFAULT_MODEL, args.device)
-    rows = evaluate(net, args.data, args.split, args.device, PRECISIONS[args.precision])
+    rows = evaluate(net, args.data, args.split, args.device, PRECISIONS[args.precision], oracles=args.oracles)
     print("| volume | method | " + " | ".join(SCORES) + " |")
     print("|---|---|" + "---|" * len(SCORES))
     for r in rows:
@@ -91,8 +101,8 @@ def run_eval(args: argparse.Namespace) -> int:
         print(f"{volume}: color PSNR gain {g['vs_bilinear']:+.2f} dB over bilinear, "
               f"{g['vs_best_baseline']:+.2f} dB over the best baseline")
     if args.json:
-        record = {"model": str(args.model or DEFAULT_MODEL), "data": args.data, "split": args.split,
-                  "precision": args.precision, "rows": rows, "gains": gain}
+        record = {"command": " ".join(sys.orig_argv), "model": str(args.model or DEFAULT_MODEL), "data": args.data,
+                  "split": args.split, "precision": args.precision, "rows": rows, "gains": gain}
         atomic_write(args.json, lambda f: f.write(json.dumps(record, indent=1).encode()))
     return 0
 

@@ -4,6 +4,10 @@ Per volume of a datagen folder's split: masked PSNR and SSIM of the shaded color
 of normals and of AO, mask IoU (`isosr_net.metrics`), and temporal instability: the mean
 change between consecutive shaded outputs after warping the earlier one by the flow (lower
 is steadier). Sequences run through the network recurrently, as a viewer would.
+
+With ``oracles``, two upper bounds that show where the error lives: ``oracle: bilinear + true
+AO`` (classic upscaling that somehow knew the ground-truth occlusion) and ``oracle: true
+geometry, no AO`` (exact high-res mask, normals and depth, shaded without occlusion).
 """
 
 from __future__ import annotations
@@ -14,19 +18,22 @@ from collections import defaultdict
 import torch
 from torch.utils.data import DataLoader
 
+from isosr_render.conventions import AO, MASK
 from isosr_net.datagen import SequenceDataset
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net.metrics import frame_scores, temporal_instability, upscale_baseline
 from isosr_net.train import Unrolled
 
 BASELINES = ("nearest", "bilinear", "bicubic")
+ORACLES = ("oracle: bilinear + true AO", "oracle: true geometry, no AO")
 SCORES = ("color_psnr", "color_ssim", "normal_psnr", "ao_psnr", "mask_iou", "temporal")
 
 
 @torch.no_grad()
 def evaluate(net: torch.nn.Module, data: str, split: str = "val", device: str = "cpu",
-             precision: torch.dtype = torch.float32, batch_size: int = 4) -> list[dict]:
-    """Rows ``{volume, method, <SCORES>}``, the mean over each volume's sequences and frames."""
+             precision: torch.dtype = torch.float32, batch_size: int = 4, oracles: bool = False) -> list[dict]:
+    """Rows ``{volume, method, <SCORES>}``, the mean over each volume's sequences and frames
+    (methods: the network, :data:`BASELINES`, and with ``oracles`` the :data:`ORACLES`)."""
     dataset = SequenceDataset(data, split)
     factor = net.config.upscale
     unrolled = Unrolled(net).to(device).eval()
@@ -44,6 +51,10 @@ def evaluate(net: torch.nn.Module, data: str, split: str = "val", device: str = 
         for mode in BASELINES:
             up = upscale_baseline(lowres.flatten(0, 1), factor, mode)
             outputs[mode] = up.unflatten(0, (b, t))
+        if oracles:  # the true AO where the ground truth covers, none elsewhere
+            true_ao = torch.where(target[:, :, MASK] > 0, target[:, :, AO], torch.ones_like(target[:, :, AO]))
+            outputs[ORACLES[0]] = torch.cat([outputs["bilinear"][:, :, :AO.start], true_ao], dim=2)
+            outputs[ORACLES[1]] = torch.cat([target[:, :, :AO.start], torch.ones_like(target[:, :, AO])], dim=2)
         flows_hr = upscale_flow(flow.flatten(0, 1), factor).unflatten(0, (b, t)).transpose(0, 1)
         for method, out in outputs.items():
             scores = frame_scores(out.flatten(0, 1), target.flatten(0, 1))

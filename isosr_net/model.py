@@ -98,16 +98,19 @@ class SRNet(nn.Module):
             raise ValueError(f"prev_warped must be {(b, HIGHRES, h * s, w * s)}, got {tuple(prev_warped.shape)}")
         x = torch.cat([lowres, F.pixel_unshuffle(prev_warped, s)], dim=1)
         x = F.relu(self.head(x))
-        x = self.body(x)
-        for conv in self.upsample:
-            x = F.relu(conv(F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False)))
-        raw = self.tail(x)
+        raw = self.tail(self.upsample_features(self.body(x)))
         base = F.interpolate(lowres, scale_factor=s, mode="bilinear", align_corners=False)
         mask = (base[:, MASK] + raw[:, MASK]).clamp(0.0, 1.0)
         normal = base[:, NORMAL] + raw[:, NORMAL]
         depth = base[:, DEPTH] + raw[:, DEPTH]
         ao = torch.sigmoid(raw[:, AO])
         return torch.cat([mask, normal, depth, ao], dim=1)
+
+    def upsample_features(self, x: torch.Tensor) -> torch.Tensor:
+        """log2(s) times: bilinear 2x, conv, ReLU."""
+        for conv in self.upsample:
+            x = F.relu(conv(F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False)))
+        return x
 
     def first_previous(self, lowres: torch.Tensor) -> torch.Tensor:
         """The stand-in for the previous output on a sequence's first frame."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 from isosr_bench.bench_render import main
+from net_fixtures import tiny_model_dir
 
 
 def test_bench_render_smoke_writes_a_complete_record(tmp_path, capsys):
@@ -18,16 +19,18 @@ def test_bench_render_smoke_writes_a_complete_record(tmp_path, capsys):
     assert "| first hit |" in capsys.readouterr().out
 
 
-def test_isosr_bench_smoke_writes_every_study_the_report_and_plots(tmp_path, capsys):
+def test_isosr_bench_smoke_writes_every_study_the_report_and_plots(tmp_path, tmp_path_factory, capsys):
     from isosr_cli.main import main as cli
 
-    assert cli(["bench", "--smoke", "--out", str(tmp_path)]) == 0
+    tiny = tiny_model_dir(tmp_path_factory)  # an x2 network for the upscale sweep
+    assert cli(["bench", "--smoke", "--out", str(tmp_path), "--models", f"tiny={tiny}"]) == 0
     for study in ("network", "pipeline", "knobs", "render"):
         record = json.loads((tmp_path / f"bench_{study}_cpu.json").read_text())
         assert record["rows"] and all(r["ms"] > 0 for r in record["rows"] if "ms" in r)
     knobs = json.loads((tmp_path / "bench_knobs_cpu.json").read_text())["rows"]
     assert {"AO samples", "ray step (voxels)", "refinement steps (secant)", "supersampling (rays/pixel)",
             "upscale x4"} <= {r["knob"] for r in knobs}
+    assert {("upscale x4", "L1-normal fp32"), ("upscale x2", "tiny fp32")} <= {(r["knob"], r["setting"]) for r in knobs}
     ao = [r["error"] for r in knobs if r["knob"] == "AO samples"]
     assert ao[0] > ao[-1]  # more AO rays, less noise
     pipeline = json.loads((tmp_path / "bench_pipeline_cpu.json").read_text())["rows"]
@@ -42,3 +45,5 @@ def test_isosr_bench_rejects_unknown_studies(capsys):
 
     assert cli(["bench", "--smoke", "--only", "render,bogus"]) == 2
     assert "bogus" in capsys.readouterr().err
+    assert cli(["bench", "--smoke", "--only", "knobs", "--models", "x2=/nowhere"]) == 2
+    assert "is not NAME=MODEL_FOLDER" in capsys.readouterr().err

@@ -13,9 +13,9 @@ import torch
 
 from isosr_cli.main import main
 from isosr_net.datagen import MANIFEST
-from isosr_net.evaluate import BASELINES, SCORES
+from isosr_net.evaluate import BASELINES, ORACLES, SCORES
 from isosr_render.buffers import load_sequence, save_sequence
-from net_fixtures import TINY_DATAGEN, render_lowres_frames, tiny_model_dir, tiny_train_config, tiny_train_data
+from net_fixtures import TINY_DATAGEN, relabel_as_val, render_lowres_frames, tiny_model_dir, tiny_train_config, tiny_train_data
 
 
 def write_json(path: Path, obj) -> Path:
@@ -54,6 +54,19 @@ def test_datagen_prints_a_summary(tmp_path, capsys):
     assert main(["datagen", str(path), "-o", str(tmp_path / "data")]) == 0
     out = capsys.readouterr().out
     assert "1 sequences, crops per split {'train': " in out and str(tmp_path / "data") in out
+
+
+def test_datagen_and_train_take_another_upscale_factor(tmp_path, tmp_path_factory):
+    config = {**asdict(TINY_DATAGEN), "sequences": 1}
+    path = write_json(tmp_path / "datagen.json", config)
+    data = tmp_path / "data"
+    assert main(["datagen", str(path), "-o", str(data), "--upscale", "4", "--lowres-size", "12"]) == 0
+    relabel_as_val(data, "proc:sphere@32")
+    manifest = json.loads((data / MANIFEST).read_text())
+    assert manifest["config"]["upscale"] == 4 and manifest["config"]["lowres_size"] == 12
+    train = write_json(tmp_path / "train.json", tiny_train_config(data, tmp_path / "run", steps=1))
+    assert main(["train", str(train), "--upscale", "4"]) == 0
+    assert json.loads((tmp_path / "run" / "last" / "config.json").read_text())["model"]["upscale"] == 4
 
 
 @pytest.fixture(scope="module")
@@ -106,6 +119,20 @@ def test_eval_prints_a_table_and_writes_json(cli_run, tmp_path_factory, tmp_path
     assert gains["vs_best_baseline"] == pytest.approx(network - best)
     for row in record["rows"]:
         assert set(SCORES) <= set(row) and 0 <= row["mask_iou"] <= 1
+
+
+def test_eval_oracles_bound_the_error(cli_run, tmp_path_factory, tmp_path):
+    data = tiny_train_data(tmp_path_factory)
+    record_path = tmp_path / "scores.json"
+    assert main(["eval", "--model", str(cli_run / "best"), "--data", str(data), "--oracles",
+                 "--json", str(record_path)]) == 0
+    by_method = {r["method"]: r for r in json.loads(record_path.read_text())["rows"]}
+    assert set(ORACLES) < set(by_method)
+    geometry, ao = by_method["oracle: true geometry, no AO"], by_method["oracle: bilinear + true AO"]
+    assert geometry["normal_psnr"] == pytest.approx(100) and geometry["mask_iou"] == 1
+    assert ao["ao_psnr"] == pytest.approx(100) and ao["normal_psnr"] == by_method["bilinear"]["normal_psnr"]
+    # A sphere occludes nothing (true AO 1), so knowing the true AO leaves bilinear's color as it is.
+    assert ao["color_psnr"] == pytest.approx(by_method["bilinear"]["color_psnr"])
 
 
 def test_eval_another_split(cli_data, tmp_path_factory, capsys):

@@ -160,15 +160,32 @@ def test_a_tile_covering_the_frame_runs_whole(tmp_path_factory, frames24):
     assert torch.equal(a, b)
 
 
-def test_bf16_runs_and_stays_close(default_upscaler, frames24):
-    bf16 = Upscaler(precision="bf16")
+@pytest.mark.parametrize("precision, max_mask_diff", [("bf16", 0.25), ("fp16", 0.02)])
+def test_reduced_precision_runs_and_stays_close(default_upscaler, frames24, precision, max_mask_diff):
+    low = Upscaler(precision=precision)
     default_upscaler.reset()
     for frame in frames24[:2]:
         ref = default_upscaler.step(*lowres_tensors(frame))
-        out = bf16.step(*lowres_tensors(frame))
+        out = low.step(*lowres_tensors(frame))
         assert out.dtype == torch.float32 and out.shape == ref.shape and torch.isfinite(out).all()
         assert (out - ref).abs().mean() < 0.02
-        assert (out[:, 0] - ref[:, 0]).abs().max() < 0.25
+        assert (out[:, 0] - ref[:, 0]).abs().max() < max_mask_diff
+
+
+def test_fast_layers_give_the_same_frames(default_upscaler):
+    frames = render_lowres_frames(40, 28, frames=3)
+    fast = Upscaler(fast_layers=True, channels_last=True)
+    default_upscaler.reset()
+    for frame in frames:
+        ref = default_upscaler.step(*lowres_tensors(frame))
+        torch.testing.assert_close(fast.step(*lowres_tensors(frame)), ref, atol=1e-4, rtol=0)
+    assert type(fast.net).__name__ == "FastSRNet" and type(default_upscaler.net).__name__ == "SRNet"
+
+
+def test_fastest_on_a_cpu_is_eager_fp32():
+    up = Upscaler.fastest(device="cpu")
+    assert up.precision == "fp32" and up._network is up.net
+    assert type(up.net).__name__ == "SRNet"
 
 
 # ---------------------------------------------------------------- inputs and errors
@@ -239,8 +256,8 @@ def test_bad_input_is_a_clear_value_error(tmp_path_factory, frames24, case):
 
 def test_bad_constructor_arguments(tmp_path_factory, tmp_path):
     model = tiny_model_dir(tmp_path_factory)
-    with pytest.raises(ValueError, match=r"precision must be one of \['bf16', 'fp32'\], got 'fp16'"):
-        Upscaler(model, precision="fp16")
+    with pytest.raises(ValueError, match=r"precision must be one of \['bf16', 'fp16', 'fp32'\], got 'fp64'"):
+        Upscaler(model, precision="fp64")
     with pytest.raises(ValueError, match="tile must be positive, got 0"):
         Upscaler(model, tile=0)
     with pytest.raises(FileNotFoundError, match="not a model folder"):
