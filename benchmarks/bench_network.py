@@ -5,8 +5,8 @@
 
 Variants, each adding to the one before: fp32; bf16 autocast; + channels-last; + torch.compile
 of the whole step; + CUDA graphs (compile's "reduce-overhead"); + cuDNN autotuning; + fast layers
-(`isosr_net.fastpath`: channels padded to multiples of 8, subpixel upsampling); and fp16 in place
-of bf16. cuDNN autotuning is process-wide,
+(`isosr_net.fastpath`: channels padded to multiples of 8, subpixel upsampling); fp16 in place
+of bf16; and compile's "max-autotune", which also times Triton kernel templates. cuDNN autotuning is process-wide,
 so it comes last. Each runs the recurrent step of `Upscaler` (flow upscaling, warping, network)
 on a rendered low-res sequence; its deviation is the largest difference from the
 fp32 output over the sequence. The FLOP count (torch's FlopCounterMode) over a measured
@@ -43,6 +43,8 @@ def variants(device: str) -> dict[str, dict]:
     out["... + cuDNN autotune + fast layers"] = {**graphs, "autotune": True, "fast_layers": True}
     out["fp16 + channels-last + compile + CUDA graphs + cuDNN autotune + fast layers"] = {
         **graphs, "precision": "fp16", "autotune": True, "fast_layers": True}
+    out["bf16 ... fast layers, compile max-autotune (Triton templates, CUDA graphs)"] = {
+        **graphs, "compile": "max-autotune", "autotune": True, "fast_layers": True}
     return out
 
 

@@ -137,10 +137,8 @@ class Upscaler:
         h, w = lowres.shape[-2:]
         whole = self.tile is None or (h <= self.tile and w <= self.tile)
         with torch.autocast(self.device.type, dtype=PRECISIONS[self.precision], enabled=self.precision != "fp32"):
-            if whole:
-                output = self._network(lowres, self._warp(lowres, self.previous, flow))
-            else:
-                output = self._tiled(lowres, self._warp(lowres, self.previous, flow))
+            warped = self._warp(lowres, self.previous, flow)
+            output = self._network(lowres, warped) if whole else self._tiled(lowres, warped)
             # A copy: compiled graphs may reuse their output buffers on the next call.
             output = output.float().clone()
         self.previous = output
