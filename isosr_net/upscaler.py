@@ -24,6 +24,9 @@ from isosr_net.model import load_pretrained
 DEFAULT_MODEL = Path(__file__).resolve().parent / "default_model"
 PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
 COMPILE_MODES = (None, "default", "reduce-overhead", "max-autotune")
+# fp16 ends at 65504 and the network's activations grow with the input depth: the shipped model
+# gave NaN from depth 4e4 on, finite (if inaccurate) outputs up to 2e4. Deeper frames are refused.
+FP16_MAX_DEPTH = 1e4
 
 
 def lowres_tensors(frame: FrameBuffers) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -128,6 +131,10 @@ class Upscaler:
             Returns (1, 6, h * s, w * s), float32.
         """
         lowres = lowres.to(self.device)
+        deepest = float(lowres[:, DEPTH].abs().max()) if self.precision == "fp16" else 0.0
+        if deepest > FP16_MAX_DEPTH:
+            raise ValueError(f"fp16 takes depths up to {FP16_MAX_DEPTH:g}, this frame reaches {deepest:.3g}: "
+                             f"use bf16 or fp32")
         if flow is None:
             self.previous = None
         if self.previous is not None and self.previous.shape[-2:] != tuple(s * self.upscale_factor

@@ -172,6 +172,14 @@ def test_reduced_precision_runs_and_stays_close(default_upscaler, frames24, prec
         assert (out[:, 0] - ref[:, 0]).abs().max() < max_mask_diff
 
 
+def test_fp16_refuses_depths_beyond_its_range_where_bf16_stays_finite(default_upscaler, frames24):
+    lowres, _ = lowres_tensors(frames24[0])
+    lowres[:, 4] = torch.where(lowres[:, 0] > 0, 1e5, 0.0)  # a surface 1e5 world units away
+    with pytest.raises(ValueError, match=r"fp16 takes depths up to 10000, this frame reaches 1e\+05"):
+        Upscaler(precision="fp16").step(lowres, None)
+    assert torch.isfinite(Upscaler(precision="bf16").step(lowres, None)).all()
+
+
 def test_fast_layers_give_the_same_frames(default_upscaler):
     frames = render_lowres_frames(40, 28, frames=3)
     fast = Upscaler(fast_layers=True, channels_last=True)
