@@ -6,15 +6,15 @@ Two rewrites, each exact up to rounding:
   cuDNN pads other counts on every call. The first convolution reads 5 + 6 s^2 channels (101
   at s = 4) and the last writes 6; zero input channels with zero weights, and extra output
   channels that are sliced off, change nothing.
-- Subpixel upsampling. SRNet upsamples twice by ``conv3x3(bilinear_2x(x))``. Bilinear 2x upsampling is linear, so each
-of the four output phases (even/odd row, even/odd column) of that composite is a 3x3
-convolution of the low-res input. One convolution with four times the output channels,
-followed by ``F.pixel_shuffle``, computes all four without materializing the upsampled
-tensor, and with four times the output channels per matrix multiply, which tensor cores run
-faster. Bilinear upsampling clamps at the border (replicate padding of the input reproduces
-that exactly), but the convolution zero-pads the *upsampled* image, so the outermost
-high-res row and column on each side differ; those four lines are recomputed exactly from
-two-pixel strips of the input.
+- Subpixel upsampling. SRNet upsamples by ``conv3x3(bilinear_2x(x))``. Bilinear 2x
+  upsampling is linear, so each of the four output phases (even/odd row, even/odd column) of
+  that composite is a 3x3 convolution of the low-res input. One convolution with four times
+  the output channels, followed by ``F.pixel_shuffle``, computes all four without
+  materializing the upsampled tensor, and with four times the output channels per matrix
+  multiply, which tensor cores run faster. Bilinear upsampling clamps at the border
+  (replicate padding of the input reproduces that exactly), but the convolution zero-pads the
+  *upsampled* image, so the outermost high-res row and column on each side differ; those four
+  lines are recomputed exactly from two-pixel strips of the input.
 """
 
 from __future__ import annotations
