@@ -4,12 +4,13 @@
     python -m isosr_bench.bench_network --device cpu --smoke
 
 Variants, each adding to the one before: fp32; bf16 autocast; + channels-last; + torch.compile
-of the whole step; + CUDA graphs (compile's "reduce-overhead"); + cuDNN autotuning; + fast layers
-(`isosr_net.fastpath`: channels padded to multiples of 8, subpixel upsampling); fp16 in place
-of bf16; and compile's "max-autotune", which also times Triton kernel templates. cuDNN autotuning is process-wide,
-so it comes last. Each runs the recurrent step of `Upscaler` (flow upscaling, warping, network)
-on a rendered low-res sequence; its deviation is the largest difference from the
-fp32 output over the sequence. The FLOP count (torch's FlopCounterMode) over a measured
+of the network (static shapes; the warp stays eager); + CUDA graphs (compile's
+"reduce-overhead"); + cuDNN autotuning; + fast layers (`isosr_net.fastpath`: channels padded to
+multiples of 8, subpixel upsampling); fp16 in place of bf16; and compile's "max-autotune",
+which also times Triton kernel templates. cuDNN autotuning is process-wide, so every variant
+after the first that asks for it runs with it. Each runs the recurrent step of `Upscaler`
+(flow upscaling, warping, network) on a rendered low-res sequence; its deviation is the
+largest difference from the fp32 output over the sequence. The FLOP count (torch's FlopCounterMode) over a measured
 bf16 matrix-multiply rate gives the floor the card could reach.
 """
 

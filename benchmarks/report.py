@@ -104,17 +104,17 @@ def plots(folder: Path, kind: str) -> list[Path]:
 
 def _upscale_panel(ax, rows: list[dict]) -> None:
     """Upscalers per factor (one color each): classic ones as dots, networks as stars, one label per model."""
-    labelled = set()
     for i, factor in enumerate(sorted({r["knob"] for r in rows})):
-        for r in (r for r in rows if r["knob"] == factor):
+        suffix = " " + factor.split()[-1]  # "upscale x2" -> " x2", dropped from model names
+        named = set()
+        for j, r in enumerate(r for r in rows if r["knob"] == factor):
             classic = r["setting"] in ("nearest", "bilinear", "bicubic")
-            model = r["setting"].rsplit(" ", 1)[0]
             ax.scatter(r["ms"], r["error"], color=f"C{i}", marker="o" if classic else "*", s=20 if classic else 60,
-                       label=factor.split()[-1] if (factor, "legend") not in labelled else None)
-            labelled.add((factor, "legend"))
-            if (factor, model) not in labelled:
-                ax.annotate(model.replace(f" {factor.split()[-1]}", ""), (r["ms"], r["error"]), fontsize=7)
-                labelled.add((factor, model))
+                       label=suffix.strip() if j == 0 else None)
+            model = r["setting"].rsplit(" ", 1)[0].replace(suffix, "")  # without precision and factor
+            if model not in named:
+                ax.annotate(model, (r["ms"], r["error"]), fontsize=7)
+                named.add(model)
     ax.legend(fontsize=7)
 
 

@@ -5,7 +5,7 @@ of normals and of AO, mask IoU (`isosr_net.metrics`), and temporal instability: 
 change between consecutive shaded outputs after warping the earlier one by the flow (lower
 is steadier). Sequences run through the network recurrently, as a viewer would.
 
-With ``oracles``, two upper bounds that show where the error lives: ``oracle: bilinear + true
+With ``oracles``, two references that show where the error lives: ``oracle: bilinear + true
 AO`` (classic upscaling that somehow knew the ground-truth occlusion) and ``oracle: true
 geometry, no AO`` (exact high-res mask, normals and depth, shaded without occlusion).
 """
