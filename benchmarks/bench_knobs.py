@@ -27,6 +27,7 @@ import torch
 
 from isosr_render import Renderer, RenderRequest, open_volume, orbit_path
 from isosr_render.catalog import entry
+from isosr_render.conventions import HIGHRES_BUFFERS, LOWRES_BUFFERS
 from isosr_render.procedural import default_iso
 from isosr_net.metrics import frame_scores, upscale_baseline
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler, lowres_tensors
@@ -39,7 +40,7 @@ AO_RADIUS = 0.05
 
 def stack(frame) -> torch.Tensor:
     """A rendered frame's mask, normal, depth, AO as a (1, 6, H, W) stack."""
-    return torch.cat([frame.mask[None], frame.normal.permute(2, 0, 1), frame.depth[None], frame.ao[None]])[None]
+    return frame.channels_first(HIGHRES_BUFFERS)[None]
 
 
 class Knobs:
@@ -116,13 +117,13 @@ class Knobs:
 
     def upscaling(self) -> list[dict]:
         w, h = self.size
-        truth = [stack(self.render(i, size=(w, h), outputs=("mask", "normal", "depth", "ao"), spp=4,
+        truth = [stack(self.render(i, size=(w, h), outputs=HIGHRES_BUFFERS, spp=4,
                                    ao_samples=64 if self.smoke else 256, ao_radius=AO_RADIUS))
                  for i in range(FRAMES)]
         rows = []
         for factor in (2, 4, 8):
             lows = [lowres_tensors(self.render(i, size=(w // factor, h // factor),
-                                               outputs=("mask", "normal", "depth", "flow"),
+                                               outputs=LOWRES_BUFFERS + ("flow",),
                                                prev_camera=self.cameras[max(i - 1, 0)]))
                     for i in range(FRAMES)]
             methods = {mode: (lambda low, mode=mode: upscale_baseline(low[0], factor, mode))

@@ -6,8 +6,9 @@
 Per volume (CT head, CT chest, a simulation, a 1024^3 volume), averaged over a 10-frame
 orbit at 1920x1080: the high-res render without AO and with 128 AO rays, the 480x270
 low-res render, the network (`Upscaler.fastest`, on CUDA: bf16, channels-last, compiled with
-CUDA graphs, fast layers), and the interactive path: low-res render + warp + network + shading. Then time against
-output resolution (720p, 1080p, 4K) and against volume size (64^3 to 1024^3).
+CUDA graphs, fast layers), and the interactive path: low-res render + warp + network +
+shading. Then time against output resolution (720p, 1080p, 4K) and against volume size
+(64^3 to 1024^3).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import torch.nn.functional as F
 
 from isosr_render import Renderer, RenderRequest, Volume, open_volume, orbit_path
 from isosr_render.catalog import entry
+from isosr_render.conventions import HIGHRES_BUFFERS, LOWRES_BUFFERS
 from isosr_render.procedural import default_iso
 from isosr_render.shading import shade_channels_first
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler, lowres_tensors
@@ -27,7 +29,7 @@ from .common import bench_parser, print_table, time_frames, write_result
 FRAMES = 10
 AO_SAMPLES = 128
 AO_RADIUS = 0.05
-LOWRES_OUTPUTS = ("mask", "normal", "depth", "flow")
+LOWRES_OUTPUTS = LOWRES_BUFFERS + ("flow",)
 
 
 def resampled(volume: Volume, size: int, device: str) -> Volume:
@@ -66,7 +68,7 @@ class Pipeline:
         return time_frames(fn, FRAMES, self.device, warmup=1 if smoke else 3)
 
     def highres(self, width: int, height: int, ao: bool):
-        outputs = ("mask", "normal", "depth") + (("ao",) if ao else ())
+        outputs = HIGHRES_BUFFERS if ao else LOWRES_BUFFERS
         request = RenderRequest(width, height, self.iso, outputs, ao_samples=AO_SAMPLES, ao_radius=AO_RADIUS)
         return lambda i: self.renderer.render(self.cameras[i % FRAMES + 1], request)
 

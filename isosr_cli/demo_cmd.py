@@ -19,6 +19,7 @@ import torch
 
 from isosr_render import Renderer, RenderRequest, open_volume, orbit_path
 from isosr_render.atomic import atomic_write
+from isosr_render.conventions import HIGHRES_BUFFERS, LOWRES_BUFFERS
 from isosr_render.procedural import default_iso
 from isosr_render.shading import shade_channels_first
 from isosr_cli.images import write_png
@@ -70,14 +71,14 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     for t, camera in enumerate(cameras):
         start = time.perf_counter()
-        low = renderer.render(camera, RenderRequest(n, n, iso, ("mask", "normal", "depth") + (("flow",) if t else ()),
+        low = renderer.render(camera, RenderRequest(n, n, iso, LOWRES_BUFFERS + (("flow",) if t else ()),
                                                     prev_camera=cameras[t - 1] if t else None))
         times["low-res render"] += time.perf_counter() - start
         start = time.perf_counter()
-        high = renderer.render(camera, RenderRequest(n * s, n * s, iso, ("mask", "normal", "depth", "ao"), spp=2,
+        high = renderer.render(camera, RenderRequest(n * s, n * s, iso, HIGHRES_BUFFERS, spp=2,
                                                      ao_samples=args.ao_samples))
         times["ground truth render"] += time.perf_counter() - start
-        target = torch.cat([high.mask[None], high.normal.permute(2, 0, 1), high.depth[None], high.ao[None]])[None]
+        target = high.channels_first(HIGHRES_BUFFERS)[None]
         lowres, flow = lowres_tensors(low)
         results = {}
         for mode in METHODS[:3]:

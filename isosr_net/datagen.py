@@ -23,10 +23,9 @@ from tqdm import tqdm
 from isosr_render import Renderer, RenderRequest, Volume, open_volume, orbit
 from isosr_render.atomic import atomic_write
 from isosr_render.catalog import entry
+from isosr_render.conventions import HIGHRES_BUFFERS, LOWRES_BUFFERS
 from isosr_render.procedural import default_iso
 
-LOWRES_OUTPUTS = ("mask", "normal", "depth")
-HIGHRES_OUTPUTS = ("mask", "normal", "depth", "ao")
 MANIFEST = "manifest.json"
 # Config fields a folder may be extended with: more sequences, another device (same data).
 EXTENDABLE = ("sequences", "device")
@@ -125,14 +124,14 @@ def render_sequence(renderer: Renderer, cameras: list, iso: float, config: Datag
     n, s = config.lowres_size, config.upscale
     lowres, flows, highres = [], [], []
     for t, camera in enumerate(cameras):
-        outputs = LOWRES_OUTPUTS + (("flow",) if t else ())
+        outputs = LOWRES_BUFFERS + (("flow",) if t else ())
         lo = renderer.render(camera, RenderRequest(n, n, iso, outputs, prev_camera=cameras[t - 1] if t else None))
-        hi = renderer.render(camera, RenderRequest(n * s, n * s, iso, HIGHRES_OUTPUTS, spp=config.spp,
+        hi = renderer.render(camera, RenderRequest(n * s, n * s, iso, HIGHRES_BUFFERS, spp=config.spp,
                                                    ao_samples=config.ao_samples, ao_radius=config.ao_radius,
                                                    seed=seed + t))
-        lowres.append(torch.cat([lo.mask[None], lo.normal.permute(2, 0, 1), lo.depth[None]]).cpu().numpy())
+        lowres.append(lo.channels_first(LOWRES_BUFFERS).cpu().numpy())
         flows.append(lo.flow.permute(2, 0, 1).cpu().numpy() if t else np.zeros((2, n, n), np.float32))
-        highres.append(torch.cat([hi.mask[None], hi.normal.permute(2, 0, 1), hi.depth[None], hi.ao[None]]).cpu().numpy())
+        highres.append(hi.channels_first(HIGHRES_BUFFERS).cpu().numpy())
     return {"lowres": np.stack(lowres), "flow": np.stack(flows), "highres": np.stack(highres)}
 
 

@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 
 from isosr_render.buffers import FrameBuffers
-from isosr_render.conventions import AO, DEPTH, MASK, NORMAL
+from isosr_render.conventions import AO, DEPTH, LOWRES_BUFFERS, MASK, NORMAL
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net.fastpath import fast_srnet
 from isosr_net.model import load_pretrained
@@ -35,7 +35,7 @@ def lowres_tensors(frame: FrameBuffers) -> tuple[torch.Tensor, torch.Tensor | No
     Raises:
         ValueError: a buffer is missing, has the wrong shape or dtype, or is not finite.
     """
-    for name in ("mask", "normal", "depth"):
+    for name in LOWRES_BUFFERS:
         if getattr(frame, name) is None:
             raise ValueError(f"the low-res frame lacks its {name} buffer")
     if frame.mask.ndim != 2:
@@ -52,7 +52,7 @@ def lowres_tensors(frame: FrameBuffers) -> tuple[torch.Tensor, torch.Tensor | No
             raise ValueError(f"{name} must be floating point, got {t.dtype}")
         if not torch.isfinite(t).all():
             raise ValueError(f"{name} holds NaN or Inf values")
-    lowres = torch.cat([frame.mask[None], frame.normal.permute(2, 0, 1), frame.depth[None]])[None]
+    lowres = frame.channels_first(LOWRES_BUFFERS)[None]
     flow = None if frame.flow is None else frame.flow.permute(2, 0, 1)[None]
     return lowres.float(), None if flow is None else flow.float()
 

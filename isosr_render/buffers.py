@@ -36,6 +36,21 @@ class FrameBuffers:
         """Names of the buffers this frame holds, in field order."""
         return [f.name for f in fields(self) if getattr(self, f.name) is not None]
 
+    def channels_first(self, names: tuple[str, ...]) -> torch.Tensor:
+        """The named buffers stacked channels-first in that order: (C, H, W). With
+        ``LOWRES_BUFFERS`` / ``HIGHRES_BUFFERS`` this is the network's channel order.
+
+        Raises:
+            ValueError: a named buffer is missing.
+        """
+        parts = []
+        for name in names:
+            t = getattr(self, name)
+            if t is None:
+                raise ValueError(f"the frame lacks its {name} buffer")
+            parts.append(t[None] if t.ndim == 2 else t.permute(2, 0, 1))
+        return torch.cat(parts)
+
     def to_numpy(self) -> dict[str, np.ndarray]:
         """The present buffers as numpy arrays (a copy only where they live on a GPU)."""
         return {name: getattr(self, name).detach().cpu().numpy() for name in self.present()}

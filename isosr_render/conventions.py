@@ -46,6 +46,9 @@ BUFFER_CHANNELS = {"mask": 1, "normal": 3, "depth": 1, "position": 3, "flow": 2,
 LOWRES_CHANNELS = ("mask", "normal_x", "normal_y", "normal_z", "depth")
 # High-res output and ground truth: the input's channels, then ambient occlusion.
 HIGHRES_CHANNELS = LOWRES_CHANNELS + ("ao",)
+# The buffers that hold those channels, in the same order.
+LOWRES_BUFFERS = ("mask", "normal", "depth")
+HIGHRES_BUFFERS = LOWRES_BUFFERS + ("ao",)
 MASK, NORMAL, DEPTH, AO = slice(0, 1), slice(1, 4), slice(4, 5), slice(5, 6)
 
 # Value written where a buffer has no surface (mask == 0).

@@ -11,6 +11,7 @@ import torch
 
 from isosr_render.atomic import atomic_write
 from isosr_render.buffers import FrameBuffers
+from isosr_render.conventions import AO, DEPTH, HIGHRES_BUFFERS, HIGHRES_CHANNELS, MASK, NORMAL
 
 
 def test_frame_file_round_trip(tmp_path):
@@ -48,3 +49,14 @@ def test_written_file_has_the_usual_permissions(tmp_path):
     umask = os.umask(0)
     os.umask(umask)
     assert stat.S_IMODE((tmp_path / "x.bin").stat().st_mode) == 0o666 & ~umask
+
+
+def test_channels_first_stacks_in_the_network_order():
+    h, w = 3, 4
+    frame = FrameBuffers(mask=torch.rand(h, w), normal=torch.rand(h, w, 3), depth=torch.rand(h, w), ao=torch.rand(h, w))
+    stacked = frame.channels_first(HIGHRES_BUFFERS)
+    assert stacked.shape == (len(HIGHRES_CHANNELS), h, w)
+    assert torch.equal(stacked[MASK][0], frame.mask) and torch.equal(stacked[DEPTH][0], frame.depth)
+    assert torch.equal(stacked[NORMAL], frame.normal.permute(2, 0, 1)) and torch.equal(stacked[AO][0], frame.ao)
+    with pytest.raises(ValueError, match="lacks its ao buffer"):
+        FrameBuffers(mask=frame.mask, normal=frame.normal, depth=frame.depth).channels_first(HIGHRES_BUFFERS)
