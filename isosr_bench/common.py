@@ -15,7 +15,10 @@ import torch
 
 from isosr_render.atomic import atomic_write
 
-RESULTS_DIR = Path(__file__).resolve().parent / "results"
+# Results live outside the package: benchmarks/results of the checkout (where an editable
+# install or `python -m` from the repository runs), else of the working directory.
+_CHECKOUT = Path(__file__).resolve().parents[1]
+RESULTS_DIR = ((_CHECKOUT if (_CHECKOUT / "pyproject.toml").is_file() else Path.cwd()) / "benchmarks" / "results")
 
 
 def bench_parser(doc: str) -> argparse.ArgumentParser:
