@@ -44,6 +44,7 @@ def markdown(folder: Path, kind: str) -> str:
             continue
         lines += [f"## {title}", "", f"{record['device']}, commit {record['commit']}, {record['date']}: "
                   f"`{record['command']}`", ""] + _table(record["rows"], columns) + [""]
+    lines += pareto_markdown(folder, kind)
     return "\n".join(lines)
 
 
@@ -99,7 +100,7 @@ def plots(folder: Path, kind: str) -> list[Path]:
         fig.savefig(path, dpi=100)
         plt.close(fig)
         written.append(path)
-    return written
+    return written + pareto_plots(folder, kind)
 
 
 def _upscale_panel(ax, rows: list[dict]) -> None:
@@ -116,6 +117,106 @@ def _upscale_panel(ax, rows: list[dict]) -> None:
                 ax.annotate(model, (r["ms"], r["error"]), fontsize=7)
                 named.add(model)
     ax.legend(fontsize=7)
+
+
+def _pareto_scenes(record: dict) -> dict[tuple[str, str], list[dict]]:
+    """The Pareto rows by (volume, size), each scene's rows sorted by time."""
+    scenes = defaultdict(list)
+    for r in record["rows"]:
+        if r["part"] == "pareto":
+            scenes[(r["volume"], r["size"])].append(r)
+    return {k: sorted(v, key=lambda r: r["ms"]) for k, v in scenes.items()}
+
+
+def pareto_markdown(folder: Path, kind: str) -> list[str]:
+    """The Pareto study's section: per scene its table, where each method wins (the front, from
+    which time on it is the best) and where the learned, filtered and upscaled ones lose (to what)."""
+    from .bench_pareto import dominator, pareto_front
+
+    record = _load(folder, "pareto", kind)
+    if record is None:
+        return []
+    lines = ["## Every way to make a frame: time against quality", "",
+             f"{record['device']}, commit {record['commit']}, {record['date']}: `{record['command']}`", "",
+             "ms: the whole path per frame. Scores against 4 rays per pixel and 512 AO rays; PSNR and SSIM of the "
+             "color on the covered region (image_psnr: the whole image); empty: nothing covered. front: no "
+             "method is both at least as fast and at least as good.", ""]
+    scenes = _pareto_scenes(record)
+    on_front = defaultdict(int)
+    for (volume, size), rows in scenes.items():
+        front = pareto_front([(r["ms"], r["color_psnr"]) for r in rows])
+        for r, f in zip(rows, front):
+            r["front"] = "yes" if f else ""
+            on_front[r["method"]] += f
+        winners = [r for r in rows if r["front"]]
+        lines += [f"### {volume}, {rows[0].get('pixels', size)}", ""]
+        lines += _table(rows, ["method", "learned", "ms", "color_psnr", "color_ssim", "image_psnr", "ao_rmse",
+                               "flicker", "front"]) + [""]
+        wins = [f"{r['method']} from {r['ms']:.3g} ms ({r['color_psnr']:.1f} dB)" for r in winners]
+        lines += ["Wins (the best there is from that frame time on, up to the next): " + "; ".join(wins) + ".", ""]
+        losses = []
+        for r in rows:
+            if r["kind"] != "full" and not r["front"]:
+                d = dominator(r, rows)
+                if d is not None:
+                    losses.append(f"{r['method']} ({r['ms']:.3g} ms, {r['color_psnr']:.1f} dB) to {d['method']} "
+                                  f"({d['ms']:.3g} ms, {d['color_psnr']:.1f} dB)")
+        if losses:
+            lines += ["Loses: " + "; ".join(losses) + ".", ""]
+    counts = sorted({r["method"] for rows in scenes.values() for r in rows if r["kind"] != "full"})
+    lines += ["On the front, of " + str(len(scenes)) + " scenes: "
+              + "; ".join(f"{m} {on_front[m]}" for m in counts) + ".", ""]
+    budget = [r for r in record["rows"] if r["part"] == "budget"]
+    if budget:
+        lines += ["### The budget policy against the best fixed setting", "",
+                  "method: the policy's choice (probe_ms: its time in the probe); color_psnr and ms: what this "
+                  "run measured for it; best_fixed: the best row within the budget here.", ""]
+        lines += _table(budget, ["volume", "size", "budget_ms", "method", "fits", "probe_ms", "ms", "color_psnr",
+                                 "best_fixed", "best_fixed_ms", "best_fixed_psnr", "psnr_gap", "ao_matters"]) + [""]
+    return lines
+
+
+def pareto_plots(folder: Path, kind: str) -> list[Path]:
+    """Per volume, one panel per size: time (log) against color PSNR, the front colored by kind and
+    joined, dominated points grey, learned methods as stars."""
+    import matplotlib.pyplot as plt
+
+    from .bench_pareto import pareto_front
+
+    record = _load(folder, "pareto", kind)
+    if record is None:
+        return []
+    colors = {"full": "C0", "atrous": "C1", "upscale": "C2", "network": "C3"}
+    by_volume = defaultdict(dict)
+    for (volume, size), rows in _pareto_scenes(record).items():
+        by_volume[volume][size] = rows
+    written = []
+    for volume, sizes in by_volume.items():
+        fig, axes = plt.subplots(1, len(sizes), figsize=(6 * len(sizes), 4.5), squeeze=False)
+        for ax, (size, rows) in zip(axes[0], sizes.items()):
+            rows = [r for r in rows if r["color_psnr"] is not None]
+            front = pareto_front([(r["ms"], r["color_psnr"]) for r in rows])
+            for r, f in zip(rows, front):
+                ax.scatter(r["ms"], r["color_psnr"], color=colors[r["kind"]] if f else "0.75",
+                           marker="*" if r["learned"] else "o", s=90 if r["learned"] else 25, zorder=3 if f else 2)
+                if f or r["learned"]:
+                    ax.annotate(r["method"], (r["ms"], r["color_psnr"]), fontsize=6, xytext=(3, 2),
+                                textcoords="offset points")
+            best = [r for r, f in zip(rows, front) if f]
+            if best:
+                ax.plot([r["ms"] for r in best], [r["color_psnr"] for r in best], color="0.3", lw=0.8, zorder=1)
+            for k, c in colors.items():
+                ax.scatter([], [], color=c, marker="*" if k == "network" else "o", label=k)
+            ax.scatter([], [], color="0.75", label="dominated")
+            ax.set(xscale="log", xlabel="ms per frame (whole path)", ylabel="color PSNR, covered region (dB)",
+                   title=f"{volume}, {rows[0].get('pixels', size) if rows else size}")
+            ax.legend(fontsize=7)
+        path = folder / f"pareto_{volume}_{kind}.png"
+        fig.tight_layout()
+        fig.savefig(path, dpi=100)
+        plt.close(fig)
+        written.append(path)
+    return written
 
 
 def write(folder: Path, kind: str) -> list[Path]:

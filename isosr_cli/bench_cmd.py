@@ -14,19 +14,28 @@ def add_parser(subparsers) -> None:
                               formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--device", help="cuda or cpu (default: cuda if torch sees a GPU)")
     p.add_argument("--smoke", action="store_true", help="small sizes on the CPU, under two minutes (CI)")
-    p.add_argument("--only", default=",".join(STUDIES), help=f"comma-separated subset of {','.join(STUDIES)}")
+    p.add_argument("--only", default=",".join(STUDIES), help=f"comma-separated subset of {','.join(STUDIES)} "
+                                                              "(ignored with --pareto)")
     p.add_argument("--out", help="results folder (default benchmarks/results)")
     p.add_argument("--models", default="", help="more networks for the knob sweep: NAME=MODEL_FOLDER,...")
+    p.add_argument("--pareto", action="store_true",
+                   help="instead: every way to make a frame, timed and scored (pareto_<kind>.json), and the budget "
+                        "policy against the best fixed setting")
+    p.add_argument("--volumes", default="", help="with --pareto: comma-separated volumes (rows merge into the file)")
+    p.add_argument("--sizes", default="", help="with --pareto: comma-separated sizes of 1080p,4k")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     import torch
 
-    from isosr_bench import bench_knobs, bench_network, bench_pipeline, bench_render, report
+    from isosr_bench import bench_knobs, bench_network, bench_pareto, bench_pipeline, bench_render, report
     from isosr_bench.common import RESULTS_DIR
 
-    studies = [s.strip() for s in args.only.split(",") if s.strip()]
+    if (args.volumes or args.sizes) and not args.pareto:
+        raise ValueError("--volumes and --sizes select what --pareto measures; give --pareto too")
+
+    studies = [] if args.pareto else [s.strip() for s in args.only.split(",") if s.strip()]
     unknown = sorted(set(studies) - set(STUDIES))
     if unknown:
         raise ValueError(f"unknown studies {unknown}; choose from {', '.join(STUDIES)}")
@@ -34,6 +43,9 @@ def run(args: argparse.Namespace) -> int:
     device = args.device or ("cuda" if torch.cuda.is_available() and not args.smoke else "cpu")
     out = Path(args.out) if args.out else RESULTS_DIR
     argv = ["--device", device, "--out", str(out)] + (["--smoke"] if args.smoke else [])
+    if args.pareto:
+        print("== pareto")
+        bench_pareto.main(argv + ["--volumes", args.volumes, "--sizes", args.sizes, "--models", args.models])
     modules = {"network": bench_network, "pipeline": bench_pipeline, "knobs": bench_knobs, "render": bench_render}
     for study in studies:
         print(f"== {study}")

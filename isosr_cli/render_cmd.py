@@ -11,6 +11,7 @@ import torch
 from isosr_render import Camera, Renderer, RenderRequest, open_volume, orbit
 from isosr_render.conventions import BUFFER_NAMES
 from isosr_render.procedural import default_iso
+from isosr_net.budget import BudgetConfig, render_within_budget
 from isosr_cli.images import visualize, write_png
 
 PNG_DEFAULT = "color"
@@ -68,6 +69,11 @@ def add_parser(subparsers) -> None:
                    help="fill the flow of pixels without a hit")
     p.add_argument("--seed", type=int, default=0, help="AO ray seed")
     p.add_argument("--no-skip", action="store_true", help="march every brick (to measure skipping)")
+    p.add_argument("--budget-ms", type=float,
+                   help="quality auto: a short probe picks the way to make the frame (AO rays, rays per pixel, "
+                        "upscaling, network) with the best expected quality within this frame time; the file then "
+                        "holds what that method makes (color, mask, normal[, ao]); --outputs, --spp, --ao-samples "
+                        "do not apply")
     p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     p.add_argument("--png-of", choices=BUFFER_NAMES, help="with a .png output: the buffer to show")
     p.add_argument("-o", "--output", required=True, help="FILE.npz (frame file) or FILE.png")
@@ -116,7 +122,14 @@ def run(args: argparse.Namespace) -> int:
 
     renderer = Renderer(volume, args.device)
     start = time.perf_counter()
-    frame = renderer.render(camera, request)
+    if args.budget_ms is None:
+        frame = renderer.render(camera, request)
+    else:
+        frame, choice = render_within_budget(renderer, camera, iso, *args.size, args.budget_ms,
+                                             BudgetConfig(ao_radius=request.ao_radius))
+        print(f"quality auto: {choice.summary()}")
+        if out.suffix == ".png" and getattr(frame, shown) is None:
+            raise ValueError(f"--png-of {shown}: the chosen method makes {', '.join(frame.present())}")
     if renderer.device.is_cuda:
         torch.cuda.synchronize()
     elapsed = time.perf_counter() - start

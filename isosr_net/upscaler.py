@@ -111,12 +111,13 @@ class Upscaler:
         self.previous: torch.Tensor | None = None
 
     @classmethod
-    def fastest(cls, model: str | Path = DEFAULT_MODEL, device: str = "cuda") -> "Upscaler":
-        """The variant that measured fastest on ``device`` within its tolerance (``isosr bench --only network``)."""
+    def fastest(cls, model: str | Path = DEFAULT_MODEL, device: str = "cuda", precision: str | None = None) -> "Upscaler":
+        """The variant that measured fastest on ``device`` within its tolerance (``isosr bench --only network``);
+        ``precision`` overrides its precision (default bf16 on CUDA, fp32 elsewhere)."""
         if torch.device(device).type == "cuda":
-            return cls(model, device, "bf16", channels_last=True, compile="reduce-overhead", autotune=True,
-                       fast_layers=True)
-        return cls(model, device, channels_last=True)
+            return cls(model, device, precision or "bf16", channels_last=True, compile="reduce-overhead",
+                       autotune=True, fast_layers=True)
+        return cls(model, device, precision or "fp32", channels_last=True)
 
     def reset(self) -> None:
         """Forget the previous output (a camera cut, a new sequence)."""

@@ -1,0 +1,293 @@
+"""What accuracy costs in time, on one scale: every way to make a frame, timed and scored.
+
+    python -m isosr_bench.bench_pareto --device cuda                        # every volume, 1080p and 4K
+    python -m isosr_bench.bench_pareto --device cuda --volumes ct_pitch,hydrogen --sizes 1080p
+    python -m isosr_bench.bench_pareto --device cpu --smoke                 # small, in the test suite
+
+Every method of :mod:`isosr_net.frame_methods` (full resolution with 0-128 AO rays and 1, 2, 4
+rays per pixel; the a-trous filter over 1, 2, 4 AO rays; x2, x4, x8 nearest, bilinear,
+bicubic; every network at fp32, bf16, fp16 on CUDA, fp32 on CPUs) is timed as a whole path
+(render, reconstruction, shading) per frame, in sequence over an 8-frame orbit so the
+network's recurrent state is real, after warm-up (CUDA events on GPUs, wall time on CPUs),
+and each of those frames is scored against a reference rendered for it with 4 rays per pixel
+and 512 AO rays:
+
+- ``color_psnr``, ``color_ssim``: shaded color on the covered region (either mask > 0.5);
+  ``image_psnr``, ``image_ssim``: the same on the whole image;
+- ``ao_rmse``: RMS AO error where both cover (a method without AO counts as AO 1);
+- ``flicker``: :func:`isosr_net.metrics.temporal_instability` along the reference's flow
+  (``flicker_reference`` is the reference's own).
+
+An empty covered region (iso outside the data) has no PSNR or SSIM: written as null, and left
+out of the Pareto fronts. Rows (``part: pareto``): one per (volume, size, method). The budget
+part (``part: budget``) runs the policy of :mod:`isosr_net.budget` at 4, 8, 16 and 33 ms and
+sets the PSNR this run measured for its choice against the best fixed setting that fits the
+budget here (the best row with ``ms`` at most the budget).
+
+Volumes: the val volumes of the catalog, a simulation (hydrogen), and bonsai resampled to
+1024^3. ``--volumes`` and ``--sizes`` select; their rows replace those of the same volume and
+size in an existing ``pareto_<kind>.json`` and the others are kept, so a long run can be split.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+import warnings
+from pathlib import Path
+
+import torch
+
+from isosr_render import Renderer, RenderRequest, Volume, open_volume, orbit_path
+from isosr_render.catalog import entry, manifest
+from isosr_render.procedural import default_iso
+from isosr_render.shading import shade
+from isosr_net.budget import BudgetConfig, choose_method, probe_quality
+from isosr_net.flow_warp import warp_by_flow
+from isosr_net.frame_methods import AO_RADIUS, INTERPOLATIONS, FrameMethod, FrameRunner, sequence_cameras
+from isosr_net.metrics import eval_region, masked_psnr, masked_ssim, temporal_instability
+from isosr_net.upscaler import DEFAULT_MODEL
+
+from .bench_knobs import model_upscale, parse_models
+from .bench_pipeline import resampled
+from .common import bench_parser, commit, print_table, time_frames, write_result
+
+NAME = "pareto"
+SIZES = {"1080p": (1920, 1080), "4k": (3840, 2160)}
+SMOKE_SIZES = {"smoke": (96, 64)}
+EXTRA_VOLUMES = ("hydrogen", "bonsai1024")
+SMOKE_VOLUMES = {"sphere": "proc:sphere@32", "cloud": "proc:cloud:7@48"}
+FRAMES, SMOKE_FRAMES = 8, 3
+WARMUP = 3  # a compiled network with CUDA graphs compiles, then records, then replays
+REFERENCE_SPP, REFERENCE_AO_RAYS = 4, 512
+BUDGETS, SMOKE_BUDGETS = (4.0, 8.0, 16.0, 33.0), (3.0, 30.0)
+# Cost of a primary ray in AO rays, for the time estimate only (README: 1080p first hit vs AO 128).
+PRIMARY_IN_AO_RAYS = 6
+
+
+def methods(smoke: bool, device: str, models: dict[str, Path]) -> list[FrameMethod]:
+    """The methods measured: every kind, fewer settings in smoke mode."""
+    cuda = device.startswith("cuda")
+    spps, rays = ((1, 2), (0, 2, 8)) if smoke else ((1, 2, 4), (0, 1, 2, 4, 8, 16, 32, 64, 128))
+    out = [FrameMethod("full", ao_rays=n, spp=s) for s in spps for n in rays]
+    out += [FrameMethod("atrous", ao_rays=n) for n in ((2,) if smoke else (1, 2, 4))]
+    upscales = (((2, "bicubic"), (4, "nearest"), (4, "bilinear")) if smoke else
+                [(f, mode) for f in (2, 4, 8) for mode in INTERPOLATIONS])
+    out += [FrameMethod("upscale", factor=f, interpolation=mode) for f, mode in upscales]
+    for name, folder in models.items():
+        for precision in ("fp32", "bf16", "fp16") if cuda else ("fp32",):
+            out.append(FrameMethod("network", factor=model_upscale(folder), precision=precision,
+                                   model=None if folder == DEFAULT_MODEL else str(folder), model_name=name))
+    return out
+
+
+def volume_names(smoke: bool) -> list[str]:
+    """The volumes measured by default."""
+    if smoke:
+        return list(SMOKE_VOLUMES)
+    return [e["name"] for e in manifest() if e["split"] == "val"] + list(EXTRA_VOLUMES)
+
+
+def load(name: str, device: str) -> tuple[Volume, float]:
+    """``(volume, normalized iso)`` by name: a smoke volume, ``bonsai1024``, or a catalog volume."""
+    if name in SMOKE_VOLUMES:
+        volume = open_volume(SMOKE_VOLUMES[name])
+        return volume, volume.normalized_iso(default_iso(SMOKE_VOLUMES[name]))
+    e = entry("bonsai" if name == "bonsai1024" else name)
+    volume = open_volume(str(e["path"]))
+    if name == "bonsai1024":
+        volume = resampled(volume, 1024, device)
+    return volume, e["otsu_iso_normalized"]
+
+
+def _finite(x: float) -> float | None:
+    """JSON has no NaN: an undefined score is null."""
+    return None if math.isnan(x) else x
+
+
+def _stack(frame) -> torch.Tensor:
+    """A method's frame as a (1, 6, H, W) stack for the flicker score (depth unused: zeros; no AO: 1)."""
+    ao = frame.ao if frame.ao is not None else torch.ones_like(frame.mask)
+    return torch.cat([frame.mask[None], frame.normal.permute(2, 0, 1), torch.zeros_like(frame.mask)[None],
+                      ao[None]])[None]
+
+
+def scores(frames: list, references: list) -> dict:
+    """Mean scores of a method's frames against the references (see the module docstring)."""
+    per = {k: [] for k in ("color_psnr", "color_ssim", "image_psnr", "image_ssim", "ao_rmse", "flicker")}
+    for t, (f, r) in enumerate(zip(frames, references)):
+        pred, ref = f.color.permute(2, 0, 1)[None], r.color.permute(2, 0, 1)[None]
+        region = eval_region(f.mask[None, None], r.mask[None, None])
+        whole = torch.ones_like(region)
+        per["color_psnr"].append(float(masked_psnr(pred, ref, region)[0]))
+        per["color_ssim"].append(float(masked_ssim(pred, ref, region)[0]))
+        per["image_psnr"].append(float(masked_psnr(pred, ref, whole)[0]))
+        per["image_ssim"].append(float(masked_ssim(pred, ref, whole)[0]))
+        both = (f.mask > 0.5) & (r.mask > 0.5)
+        ao = f.ao if f.ao is not None else torch.ones_like(f.mask)
+        per["ao_rmse"].append(float((ao - r.ao)[both].square().mean().sqrt()) if both.any() else math.nan)
+        if t:
+            pair = torch.stack([_stack(frames[t - 1]), _stack(f)])
+            flows = torch.stack([torch.zeros_like(r.flow), r.flow]).permute(0, 3, 1, 2)[:, None]
+            per["flicker"].append(float(temporal_instability(pair, flows, warp_by_flow)[0]))
+    return {k: _finite(torch.tensor(v, dtype=torch.float64).nanmean().item()) if v else None for k, v in per.items()}
+
+
+def references(renderer: Renderer, iso: float, size: tuple[int, int], cameras) -> list:
+    """One reference per frame: 4 rays per pixel, 512 AO rays, flow from the previous camera."""
+    refs = []
+    for camera, prev in sequence_cameras(cameras):
+        outputs = ("mask", "normal", "ao") + (("flow",) if prev is not None else ())
+        ref = renderer.render(camera, RenderRequest(*size, iso, outputs, spp=REFERENCE_SPP,
+                                                    ao_samples=REFERENCE_AO_RAYS, ao_radius=AO_RADIUS,
+                                                    prev_camera=prev))
+        ref.color = shade(ref.mask, ref.normal, ref.ao)
+        ref.flow = ref.flow if ref.flow is not None else torch.zeros(*ref.mask.shape, 2, device=ref.mask.device)
+        refs.append(ref)
+    return refs
+
+
+def work(method: FrameMethod) -> float:
+    """A method's ray work relative to one primary ray per pixel (for the time estimate only)."""
+    if method.kind in ("upscale", "network"):
+        return 1.0 / method.factor ** 2
+    return method.spp * (1.0 + method.ao_rays / PRIMARY_IN_AO_RAYS)
+
+
+def pareto_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, int], size_name: str,
+                measured: list[FrameMethod], frames: int, device: str, upscalers: dict) -> list[dict]:
+    """One row per method on one volume and size."""
+    cameras = orbit_path(frames, yaw0=20.0, yaw_step=3.0, pitch=20.0, distance=1.6)
+    pairs = sequence_cameras(cameras)
+    start = time.perf_counter()
+    refs = references(renderer, iso, size, cameras)
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+    ref_s = time.perf_counter() - start
+    reference_work = work(FrameMethod("full", ao_rays=REFERENCE_AO_RAYS, spp=REFERENCE_SPP))
+    estimate = ref_s * (1 + (WARMUP + frames) / frames * sum(work(m) for m in measured) / reference_work)
+    print(f"{volume} {size_name}: references {ref_s:.1f} s; estimated {estimate:.0f} s for the methods "
+          f"(plus compiling networks on first use)", flush=True)
+    flicker_reference = scores(refs, refs)["flicker"]
+    rows = []
+    for method in measured:
+        runner = FrameRunner(method, renderer, iso, *size, upscalers=upscalers)
+        outs = [None] * frames
+
+        def frame(i):
+            outs[i] = runner.frame(*pairs[i])
+
+        t = time_frames(frame, frames, device, warmup=WARMUP)
+        rows.append({"part": "pareto", "volume": volume, "size": size_name, "pixels": f"{size[0]}x{size[1]}",
+                     "method": method.name, "kind": method.kind, "learned": method.learned,
+                     "ao_rays": method.ao_rays, "spp": method.spp, "factor": method.factor,
+                     "ms": t.get("gpu_ms", t["wall_ms"]), "wall_ms": t["wall_ms"], **scores(outs, refs),
+                     "flicker_reference": flicker_reference,
+                     "coverage": float(sum(float((r.mask > 0.5).float().mean()) for r in refs) / frames),
+                     "commit": commit()})
+    print(f"{volume} {size_name}: {time.perf_counter() - start:.0f} s", flush=True)
+    return rows
+
+
+def budget_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, int], size_name: str,
+                measured: list[FrameMethod], rows: list[dict], budgets, upscalers: dict) -> list[dict]:
+    """The policy's choice per budget, scored by this run's rows, against the best fixed setting that fits."""
+    config = BudgetConfig(candidates=tuple(m for m in measured if m.kind != "network" or m.precision in
+                                           ("bf16" if str(renderer.device).startswith("cuda") else "fp32",)))
+    quality = probe_quality(renderer, iso, *size, config, upscalers=upscalers)
+    by_name = {r["method"]: r for r in rows}
+    out = []
+    for budget in budgets:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # recorded as fits: false
+            choice = choose_method(renderer, iso, *size, budget, config, upscalers=upscalers, quality=quality)
+        fitting = [r for r in rows if r["ms"] <= budget and r["color_psnr"] is not None]
+        best = max(fitting, key=lambda r: r["color_psnr"], default=None)
+        auto = by_name[choice.method.name]
+        out.append({"part": "budget", "volume": volume, "size": size_name, "pixels": f"{size[0]}x{size[1]}",
+                    "budget_ms": budget, "method": choice.method.name, "learned": choice.method.learned,
+                    "fits": choice.fits, "probe_ms": choice.ms, "expected_psnr": _finite(choice.expected_psnr),
+                    "ao_effect_db": _finite(choice.ao_effect_db), "ao_matters": choice.ao_matters,
+                    "probe_seconds": choice.probe_seconds, "ms": auto["ms"], "color_psnr": auto["color_psnr"],
+                    "best_fixed": best and best["method"], "best_fixed_ms": best and best["ms"],
+                    "best_fixed_psnr": best and best["color_psnr"],
+                    "psnr_gap": None if best is None or auto["color_psnr"] is None
+                    else best["color_psnr"] - auto["color_psnr"], "commit": commit()})
+    return out
+
+
+def pareto_front(points: list[tuple[float, float | None]]) -> list[bool]:
+    """Which ``(ms, psnr)`` points are on the Pareto front: no other point is at least as fast
+    and at least as good, and better in one. Points without a PSNR (None or NaN) are never on it."""
+    valid = [p[1] is not None and not math.isnan(p[1]) for p in points]
+    return [ok and not any(v and q[0] <= p[0] and q[1] >= p[1] and (q[0] < p[0] or q[1] > p[1])
+                           for q, v in zip(points, valid))
+            for p, ok in zip(points, valid)]
+
+
+def dominator(row: dict, rows: list[dict]) -> dict | None:
+    """The fastest row at least as fast and at least as good as ``row`` and better in one, or None."""
+    if row["color_psnr"] is None:
+        return None
+    better = [r for r in rows if r["color_psnr"] is not None and r["ms"] <= row["ms"]
+              and r["color_psnr"] >= row["color_psnr"] and (r["ms"] < row["ms"] or r["color_psnr"] > row["color_psnr"])]
+    return min(better, key=lambda r: r["ms"], default=None)
+
+
+def merge(path: Path, rows: list[dict]) -> list[dict]:
+    """``rows`` plus the rows of an existing result file at ``path`` for other (volume, size) pairs."""
+    if not path.is_file():
+        return rows
+    new = {(r["volume"], r["size"]) for r in rows}
+    kept = [r for r in json.loads(path.read_text())["rows"] if (r["volume"], r["size"]) not in new]
+    return kept + rows
+
+
+def main(argv=None) -> list[dict]:
+    parser = bench_parser(__doc__)
+    parser.add_argument("--volumes", default="", help="comma-separated volume names (default: all)")
+    parser.add_argument("--sizes", default="", help=f"comma-separated sizes of {','.join(SIZES)} (default: all)")
+    parser.add_argument("--models", default="", help="more networks: NAME=MODEL_FOLDER,...")
+    args = parser.parse_args(argv)
+    sizes = SMOKE_SIZES if args.smoke else SIZES
+    size_names = [s.strip().lower() for s in args.sizes.split(",") if s.strip()] or list(sizes)
+    names = [s.strip() for s in args.volumes.split(",") if s.strip()] or volume_names(args.smoke)
+    unknown = [s for s in size_names if s not in sizes]
+    if unknown:
+        parser.error(f"unknown sizes {unknown}; choose from {', '.join(sizes)}")
+    known = list(SMOKE_VOLUMES) if args.smoke else [e["name"] for e in manifest()] + ["bonsai1024"]
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        parser.error(f"unknown volumes {unknown}; choose from {', '.join(known)}")
+    try:
+        models = {"network": DEFAULT_MODEL, **parse_models(args.models)}
+    except ValueError as e:
+        parser.error(str(e))
+    measured = methods(args.smoke, args.device, models)
+    frames = SMOKE_FRAMES if args.smoke else FRAMES
+    upscalers: dict = {}
+    rows = []
+    for name in names:
+        volume, iso = load(name, args.device)
+        renderer = Renderer(volume, args.device)
+        for size_name in size_names:
+            size = sizes[size_name]
+            fitting = [m for m in measured if size[0] % m.factor == 0 and size[1] % m.factor == 0]
+            scene = pareto_rows(renderer, iso, name, size, size_name, fitting, frames, args.device, upscalers)
+            rows += scene + budget_rows(renderer, iso, name, size, size_name, fitting, scene,
+                                        SMOKE_BUDGETS if args.smoke else BUDGETS, upscalers)
+        del renderer, volume
+    kind = "cuda" if args.device.startswith("cuda") else "cpu"
+    merged = merge(args.out / f"{NAME}_{kind}.json", rows)
+    print_table([r for r in rows if r["part"] == "pareto"],
+                ["volume", "size", "method", "ms", "color_psnr", "color_ssim", "image_psnr", "ao_rmse", "flicker"])
+    print_table([r for r in rows if r["part"] == "budget"],
+                ["volume", "size", "budget_ms", "method", "fits", "probe_ms", "color_psnr", "best_fixed",
+                 "best_fixed_psnr"])
+    print(f"wrote {write_result(NAME, args.device, merged, args.out)}")
+    return rows
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,337 @@
+"""``quality="auto"``: the best way to make frames of one scene within a frame-time budget.
+
+    choice = choose_method(renderer, iso, 1920, 1080, budget_ms=8.0)
+    choice.method.name, choice.ms, choice.expected_psnr   # e.g. "full, AO 4, spp 1", 6.1, 30.2
+    frame, choice = render_within_budget(renderer, camera, iso, 1920, 1080, budget_ms=8.0)
+
+A short probe on the scene decides (its cost is ``choice.probe_seconds``):
+
+1. Quality, at a reduced probe size (``probe_height`` rows, 96 by default, the frame's aspect):
+   a high-effort reference per probe frame (4 rays per pixel, 512 AO rays) and every
+   candidate's frames in sequence, scored by color PSNR on the covered region
+   (:func:`isosr_net.metrics.masked_psnr` on :func:`eval_region`). An estimate: classic and
+   learned upscalers lose more at a small size than at the target size, where a pixel holds less
+   detail.
+2. Whether AO matters: the reference shaded with and without its AO, color PSNR on the covered
+   region. At or above ``ao_matters_db`` (40 dB: an RMS change of 1% of the color range, about
+   2.5 of 255 display levels, below what a moving view shows) the scene gets no AO candidates
+   at all (a convex shape, the hydrogen volume's smooth blobs): AO rays would cost time and
+   change nothing visible.
+3. Time, at the target size on the renderer's device: candidates in order of expected quality,
+   each after ``warmup_frames`` and over ``timing_frames`` (device time from CUDA events on
+   GPUs, wall time on CPUs), until the first whose mean frame time fits the budget; it is the
+   choice. A candidate stops being timed once one frame takes more than twice the budget.
+   If none fits, the fastest is chosen, ``fits`` is False and a warning says so.
+
+An image without any covered pixel (iso outside the data) has no PSNR (NaN): every candidate
+ties, and the cheapest in the candidate list that fits is chosen.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from dataclasses import dataclass, field
+
+import torch
+
+from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest, orbit_path
+from isosr_render.shading import ShadingParams, shade
+from isosr_net.frame_methods import AO_RADIUS, FrameMethod, FrameRunner, run_sequence, sequence_cameras
+from isosr_net.metrics import eval_region, masked_psnr
+
+# Color PSNR of no-AO against many-ray AO above which a scene gets no AO rays (see above).
+AO_MATTERS_DB = 40.0
+# The quality reference: rays per pixel and AO rays per hit.
+REFERENCE_SPP = 4
+REFERENCE_AO_RAYS = 512
+# A candidate's timing stops once one frame takes this many budgets.
+OVER_BUDGET_STOP = 2.0
+
+
+def default_candidates(device: str) -> tuple[FrameMethod, ...]:
+    """The methods the policy considers, roughly cheapest first (the order breaks ties): full
+    resolution with 0-64 AO rays and 1-4 rays per pixel, the a-trous filter over 1-4 AO rays, bilinear x2 and
+    x4, and the shipped x4 network at its fastest precision (bf16 on CUDA, fp32 elsewhere)."""
+    network = FrameMethod("network", factor=4, precision="bf16" if device.startswith("cuda") else "fp32")
+    full = [FrameMethod("full", ao_rays=n) for n in (1, 2, 4, 8, 16, 32, 64)]
+    atrous = [FrameMethod("atrous", ao_rays=n) for n in (1, 2, 4)]
+    return (FrameMethod("upscale", factor=4), FrameMethod("upscale", factor=2), FrameMethod("full"), network,
+            full[0], atrous[0], full[1], atrous[1], full[2], atrous[2], full[3], FrameMethod("full", spp=2),
+            full[4], FrameMethod("full", ao_rays=8, spp=2), FrameMethod("full", spp=4), full[5], full[6],
+            FrameMethod("full", ao_rays=16, spp=4))
+
+
+@dataclass(frozen=True)
+class BudgetConfig:
+    """The probe's knobs.
+
+    Attributes:
+        candidates: the methods to choose from; None: :func:`default_candidates`.
+        probe_height: rows of the quality probe (its width follows the frame's aspect; both
+            multiples of 8); frames no taller are probed at their own size.
+        probe_frames: frames of the quality probe (an orbit unless cameras are given).
+        warmup_frames, timing_frames: frames per timed candidate, before and while timing.
+        ao_matters_db: the AO test's threshold, dB.
+        ao_radius: AO ray length, world units.
+        shading: material and light.
+    """
+
+    candidates: tuple[FrameMethod, ...] | None = None
+    probe_height: int = 96
+    probe_frames: int = 3
+    warmup_frames: int = 2
+    timing_frames: int = 3
+    ao_matters_db: float = AO_MATTERS_DB
+    ao_radius: float = AO_RADIUS
+    shading: ShadingParams = field(default_factory=ShadingParams)
+
+    def __post_init__(self):
+        for name, low in (("probe_height", 16), ("probe_frames", 1), ("warmup_frames", 0), ("timing_frames", 1)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ValueError(f"BudgetConfig.{name} must be an integer >= {low}, got {value!r}")
+        if self.candidates is not None and not self.candidates:
+            raise ValueError("BudgetConfig.candidates is empty: give at least one method, or None for the defaults")
+
+
+@dataclass(frozen=True)
+class ProbeRow:
+    """One candidate as the probe saw it: expected PSNR (dB, NaN without coverage) and mean
+    frame time (ms; None where not timed, because a better candidate fit first)."""
+
+    method: FrameMethod
+    expected_psnr: float
+    ms: float | None
+
+
+@dataclass(frozen=True)
+class BudgetChoice:
+    """What the policy chose and why.
+
+    Attributes:
+        method: the chosen method.
+        ms: its mean frame time in the probe, ms.
+        expected_psnr: its color PSNR on the covered region at the probe size, dB.
+        fits: whether ``ms`` is within the budget (False: nothing fit, the fastest was taken).
+        budget_ms: the budget.
+        ao_effect_db: color PSNR of the reference without AO against with AO (NaN: nothing covered).
+        ao_matters: whether AO candidates were considered.
+        probe_size: (width, height) of the quality probe.
+        probe_seconds: wall time of the whole probe.
+        table: every candidate considered, best expected quality first.
+    """
+
+    method: FrameMethod
+    ms: float
+    expected_psnr: float
+    fits: bool
+    budget_ms: float
+    ao_effect_db: float
+    ao_matters: bool
+    probe_size: tuple[int, int]
+    probe_seconds: float
+    table: tuple[ProbeRow, ...]
+
+    def summary(self) -> str:
+        """One line for logs."""
+        fit = "within" if self.fits else "NOTHING FITS, the fastest, over"
+        return (f"{self.method.name}: {self.ms:.2f} ms ({fit} the budget of {self.budget_ms:g} ms), expected color "
+                f"PSNR {self.expected_psnr:.1f} dB; AO changes colors by {self.ao_effect_db:.1f} dB PSNR "
+                f"({'AO candidates considered' if self.ao_matters else 'no AO'}); probe {self.probe_size[0]}x"
+                f"{self.probe_size[1]}, {self.probe_seconds:.1f} s")
+
+
+def probe_size(width: int, height: int, probe_height: int) -> tuple[int, int]:
+    """The quality probe's size: the frame's own if it is at most ``probe_height`` rows, else
+    ``probe_height`` rows (rounded to a multiple of 8) and the frame's aspect (width a multiple of 8)."""
+    if height <= probe_height:
+        return width, height
+    h = 8 * max(2, round(probe_height / 8))
+    return 8 * max(2, round(h * width / height / 8)), h
+
+
+def _check_size_and_budget(width: int, height: int, budget_ms: float) -> None:
+    for name, value in (("width", width), ("height", height)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"the frame's {name} must be a positive integer, got {value!r} (a zero-size frame "
+                             f"cannot be probed)")
+    if not (isinstance(budget_ms, (int, float)) and math.isfinite(budget_ms) and budget_ms > 0):
+        raise ValueError(f"budget_ms must be a positive finite number of milliseconds, got {budget_ms!r}")
+
+
+def _reference(renderer: Renderer, iso: float, size: tuple[int, int], cameras: list[Camera],
+               config: BudgetConfig) -> list[FrameBuffers]:
+    """Reference frames: mask, normal, AO at 4 rays per pixel and 512 AO rays, color with AO."""
+    frames = []
+    for camera in cameras:
+        ref = renderer.render(camera, RenderRequest(*size, iso, ("mask", "normal", "ao"), spp=REFERENCE_SPP,
+                                                    ao_samples=REFERENCE_AO_RAYS, ao_radius=config.ao_radius))
+        ref.color = shade(ref.mask, ref.normal, ref.ao, config.shading)
+        frames.append(ref)
+    return frames
+
+
+def color_psnr(frame: FrameBuffers, reference: FrameBuffers) -> float:
+    """Color PSNR (dB) of a frame against a reference on the covered region (either mask > 0.5);
+    NaN where neither covers a pixel."""
+    region = eval_region(frame.mask[None, None], reference.mask[None, None])
+    return float(masked_psnr(frame.color.permute(2, 0, 1)[None], reference.color.permute(2, 0, 1)[None], region)[0])
+
+
+def _nanmean(values: list[float]) -> float:
+    finite = [v for v in values if not math.isnan(v)]
+    return sum(finite) / len(finite) if finite else float("nan")
+
+
+def ao_effect_db(references: list[FrameBuffers], shading: ShadingParams = ShadingParams()) -> float:
+    """Color PSNR (dB) of the references shaded without AO against with it, on their covered
+    region, averaged over frames; NaN if nothing is covered."""
+    scores = []
+    for ref in references:
+        bare = FrameBuffers(mask=ref.mask, color=shade(ref.mask, ref.normal, None, shading))
+        scores.append(color_psnr(bare, ref))
+    return _nanmean(scores)
+
+
+def _frame_ms(runner: FrameRunner, camera: Camera, prev: Camera | None) -> float:
+    """One frame's time in ms: CUDA events on GPUs (the device's time), wall time on CPUs."""
+    if runner.renderer.device.is_cuda:
+        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+        start.record()
+        runner.frame(camera, prev)
+        end.record()
+        torch.cuda.synchronize()
+        return start.elapsed_time(end)
+    t0 = time.perf_counter()
+    runner.frame(camera, prev)
+    return (time.perf_counter() - t0) * 1e3
+
+
+def _time_candidate(runner: FrameRunner, cameras: list[Camera], config: BudgetConfig, budget_ms: float) -> float:
+    """Mean frame time of a runner in sequence over ``cameras`` (cycled), after warm-up; stops
+    early once a frame takes more than ``OVER_BUDGET_STOP`` budgets."""
+    pairs = sequence_cameras(cameras)
+    for i in range(config.warmup_frames):
+        runner.frame(*pairs[i % len(pairs)])
+    times = []
+    for i in range(config.timing_frames):
+        times.append(_frame_ms(runner, *pairs[(config.warmup_frames + i) % len(pairs)]))
+        if times[-1] > OVER_BUDGET_STOP * budget_ms:
+            break
+    return sum(times) / len(times)
+
+
+@dataclass(frozen=True)
+class QualityProbe:
+    """The budget-independent part of the probe: expected PSNR per candidate and the AO test.
+
+    Attributes:
+        size: (width, height) the candidates were scored at.
+        psnr: expected color PSNR per candidate, dB (NaN: nothing covered).
+        ao_effect_db: color PSNR of the reference without AO against with AO.
+        ao_matters: whether AO candidates were kept.
+        seconds: wall time of this part.
+    """
+
+    size: tuple[int, int]
+    psnr: dict
+    ao_effect_db: float
+    ao_matters: bool
+    seconds: float
+
+
+def probe_quality(renderer: Renderer, iso: float, width: int, height: int, config: BudgetConfig = BudgetConfig(),
+                  cameras: list[Camera] | None = None, upscalers: dict | None = None) -> QualityProbe:
+    """Steps 1 and 2 of the module docstring: the AO test, then every remaining candidate scored
+    at the probe size against the reference.
+
+    Raises:
+        ValueError: a zero-size or non-integer frame, or no candidate whose upscaling factor
+            divides the frame and probe sizes.
+    """
+    _check_size_and_budget(width, height, 1.0)
+    start = time.perf_counter()
+    size = probe_size(width, height, config.probe_height)
+    cameras = cameras or _probe_cameras(config)
+    candidates = [m for m in config.candidates or default_candidates(str(renderer.device))
+                  if not (width % m.factor or height % m.factor or size[0] % m.factor or size[1] % m.factor)]
+    if not candidates:
+        raise ValueError(f"no candidate method's upscaling factor divides the frame size {width}x{height} "
+                         f"and the probe size {size[0]}x{size[1]}")
+    references = _reference(renderer, iso, size, cameras, config)
+    effect = ao_effect_db(references, config.shading)
+    ao_matters = effect < config.ao_matters_db  # False for NaN: nothing covered, no AO to see
+    if not ao_matters and any(m.ao_rays == 0 for m in candidates):
+        candidates = [m for m in candidates if m.ao_rays == 0]
+    psnr = {}
+    for m in candidates:
+        runner = FrameRunner(m, renderer, iso, *size, config.shading, config.ao_radius, upscalers)
+        psnr[m] = _nanmean([color_psnr(f, r) for f, r in zip(run_sequence(runner, cameras), references)])
+    return QualityProbe(size, psnr, effect, ao_matters, time.perf_counter() - start)
+
+
+def _probe_cameras(config: BudgetConfig) -> list[Camera]:
+    return orbit_path(config.probe_frames, yaw0=30.0, yaw_step=3.0, pitch=20.0, distance=1.8)
+
+
+def choose_method(renderer: Renderer, iso: float, width: int, height: int, budget_ms: float,
+                  config: BudgetConfig = BudgetConfig(), cameras: list[Camera] | None = None,
+                  upscalers: dict | None = None, quality: QualityProbe | None = None) -> BudgetChoice:
+    """Pick the method with the best expected quality whose probe frame time fits ``budget_ms``.
+
+    Args:
+        renderer: the scene's renderer (its device is where the candidates are timed).
+        iso: normalized iso-value.
+        width, height: the frame size to choose for.
+        budget_ms: frame-time budget in milliseconds.
+        config: the probe's knobs.
+        cameras: the probe's camera path (default a short orbit at distance 1.8).
+        upscalers: a cache of networks shared with later runners (see :class:`FrameRunner`).
+        quality: a :func:`probe_quality` of the same scene and frame size, reused across budgets.
+
+    Returns:
+        The choice with the probe's table (see the module docstring for how it is made).
+
+    Raises:
+        ValueError: a zero-size or non-integer frame, a budget that is not a positive finite number,
+            or no candidate whose upscaling factor divides the frame and probe sizes.
+    """
+    _check_size_and_budget(width, height, budget_ms)
+    cameras = cameras or _probe_cameras(config)
+    upscalers = {} if upscalers is None else upscalers
+    quality = quality or probe_quality(renderer, iso, width, height, config, cameras, upscalers)
+    start = time.perf_counter()
+    psnr = quality.psnr
+    rank = {m: i for i, m in enumerate(psnr)}
+    order = sorted(psnr, key=lambda m: (-psnr[m] if not math.isnan(psnr[m]) else math.inf, rank[m]))
+    ms: dict[FrameMethod, float] = {}
+    chosen = None
+    for m in order:
+        runner = FrameRunner(m, renderer, iso, width, height, config.shading, config.ao_radius, upscalers)
+        ms[m] = _time_candidate(runner, cameras, config, budget_ms)
+        if ms[m] <= budget_ms:
+            chosen = m
+            break
+    fits = chosen is not None
+    if not fits:
+        chosen = min(ms, key=ms.get)
+        warnings.warn(f"no method fits the budget of {budget_ms:g} ms at {width}x{height}: the fastest, "
+                      f"{chosen.name}, takes {ms[chosen]:.2f} ms", RuntimeWarning, stacklevel=2)
+    table = tuple(ProbeRow(m, psnr[m], ms.get(m)) for m in order)
+    return BudgetChoice(chosen, ms[chosen], psnr[chosen], fits, float(budget_ms), quality.ao_effect_db,
+                        quality.ao_matters, quality.size, time.perf_counter() - start + quality.seconds, table)
+
+
+def render_within_budget(renderer: Renderer, camera: Camera, iso: float, width: int, height: int, budget_ms: float,
+                         config: BudgetConfig = BudgetConfig()) -> tuple[FrameBuffers, BudgetChoice]:
+    """One frame made by the method :func:`choose_method` picks for the budget, and the choice.
+
+    Shape:
+        The frame's color: (H, W, 3) in [0, 1] (see :meth:`FrameRunner.frame`).
+    """
+    upscalers: dict = {}
+    choice = choose_method(renderer, iso, width, height, budget_ms, config, upscalers=upscalers)
+    runner = FrameRunner(choice.method, renderer, iso, width, height, config.shading, config.ao_radius, upscalers)
+    return runner.frame(camera), choice

@@ -1,0 +1,186 @@
+"""Every way to make a frame's final color, and the stateful runner that makes it.
+
+A :class:`FrameMethod` names one way: ray cast at full resolution with N AO rays and M rays
+per pixel; full resolution with few AO rays and the a-trous filter (:mod:`isosr_net.atrous`);
+a low-res ray cast upscaled classically (no AO: a classic upscaler knows none); or a low-res
+ray cast upscaled by a trained network (which infers AO). A :class:`FrameRunner` makes one
+stream's frames with it, camera after camera, computing only the buffers the method needs:
+
+    runner = FrameRunner(FrameMethod("network", factor=4, precision="bf16"), renderer, iso, 1920, 1080)
+    frame = runner.frame(camera, prev_camera)  # FrameBuffers: color (H, W, 3) in [0, 1], mask, normal[, ao]
+
+``prev_camera=None`` starts a new sequence (the network forgets its previous output).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest
+from isosr_render.conventions import LOWRES_BUFFERS
+from isosr_render.renderer import MAX_AO_SAMPLES, MAX_SPP
+from isosr_render.shading import ShadingParams, shade, shade_channels_first
+from isosr_net.atrous import ATrousConfig, atrous_filter
+from isosr_net.metrics import upscale_baseline
+from isosr_net.upscaler import DEFAULT_MODEL, PRECISIONS, Upscaler, highres_frame, lowres_tensors
+
+KINDS = ("full", "atrous", "upscale", "network")
+INTERPOLATIONS = ("nearest", "bilinear", "bicubic")
+# AO ray length in world units, as the training data and the benchmarks use it.
+AO_RADIUS = 0.05
+
+
+@dataclass(frozen=True)
+class FrameMethod:
+    """One way to make the final frame.
+
+    Attributes:
+        kind: ``"full"`` (full-resolution ray cast), ``"atrous"`` (full resolution, AO filtered),
+            ``"upscale"`` (low-res ray cast, classic interpolation), ``"network"`` (low-res ray
+            cast, trained network).
+        ao_rays: AO rays per hit (full: 0 for none; atrous: at least 1; others: 0).
+        spp: rays per pixel (full and atrous only).
+        factor: upscaling factor (upscale and network: at least 2; others: 1).
+        interpolation: ``"nearest"``, ``"bilinear"`` or ``"bicubic"`` (upscale).
+        model: the network's model folder (network; None: the shipped default).
+        model_name: the network's name in :attr:`name`.
+        precision: ``"fp32"``, ``"bf16"`` or ``"fp16"`` (network).
+    """
+
+    kind: str = "full"
+    ao_rays: int = 0
+    spp: int = 1
+    factor: int = 1
+    interpolation: str = "bilinear"
+    model: str | None = None
+    model_name: str = "network"
+    precision: str = "fp32"
+
+    def __post_init__(self):
+        if self.kind not in KINDS:
+            raise ValueError(f"frame method kind must be one of {KINDS}, got {self.kind!r}")
+        low_res = self.kind in ("upscale", "network")
+        for name, value, low, high in (("ao_rays", self.ao_rays, 1 if self.kind == "atrous" else 0,
+                                        0 if low_res else MAX_AO_SAMPLES),
+                                       ("spp", self.spp, 1, 1 if low_res else MAX_SPP),
+                                       ("factor", self.factor, 2 if low_res else 1, 16 if low_res else 1)):
+            if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+                raise ValueError(f"{self.kind} frame method: {name} must be an integer in [{low}, {high}], "
+                                 f"got {value!r}")
+        if self.interpolation not in INTERPOLATIONS:
+            raise ValueError(f"interpolation must be one of {INTERPOLATIONS}, got {self.interpolation!r}")
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {self.precision!r}")
+
+    @property
+    def name(self) -> str:
+        """``full, AO 8, spp 1``, ``full, AO 2, a-trous``, ``x4 bilinear``, ``x4 network bf16``."""
+        if self.kind == "full":
+            return f"full, AO {self.ao_rays}, spp {self.spp}"
+        if self.kind == "atrous":
+            return f"full, AO {self.ao_rays}, a-trous" + (f", spp {self.spp}" if self.spp > 1 else "")
+        if self.kind == "upscale":
+            return f"x{self.factor} {self.interpolation}"
+        return f"x{self.factor} {self.model_name} {self.precision}"
+
+    @property
+    def learned(self) -> bool:
+        """Whether a trained network takes part."""
+        return self.kind == "network"
+
+    def upscaler_key(self, device: str) -> tuple[str, str, str]:
+        """What identifies this method's `Upscaler` (shared between runners of one device)."""
+        return str(Path(self.model or DEFAULT_MODEL).resolve()), self.precision, str(device)
+
+
+class FrameRunner:
+    """Makes one stream's frames with one method.
+
+    Args:
+        method: the way to make frames.
+        renderer: the volume's renderer (its device is where everything runs).
+        iso: normalized iso-value.
+        width, height: the final frame's size; an upscaling method's factor must divide both.
+        shading: material and light.
+        ao_radius: AO ray length, world units.
+        upscalers: a cache of `Upscaler` by :meth:`FrameMethod.upscaler_key`, shared by runners
+            that run one after another (a compiled network is built once); None: a private one.
+        atrous: the a-trous filter's knobs (compiled on GPUs, see :func:`atrous_filter`).
+    """
+
+    def __init__(self, method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int,
+                 shading: ShadingParams = ShadingParams(), ao_radius: float = AO_RADIUS,
+                 upscalers: dict | None = None, atrous: ATrousConfig = ATrousConfig()):
+        for name, value in (("width", width), ("height", height)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"frame {name} must be a positive integer, got {value!r}")
+        if width % method.factor or height % method.factor:
+            raise ValueError(f"{method.name}: the factor {method.factor} must divide the frame size "
+                             f"{width}x{height}")
+        self.method, self.renderer, self.iso = method, renderer, float(iso)
+        self.width, self.height = width, height
+        self.shading, self.ao_radius, self.atrous = shading, ao_radius, atrous
+        self.device = str(renderer.device)
+        self.upscaler = None
+        if method.kind == "network":
+            upscalers = {} if upscalers is None else upscalers
+            key = method.upscaler_key(self.device)
+            if key not in upscalers:
+                upscalers[key] = Upscaler.fastest(method.model or DEFAULT_MODEL, self.device, method.precision)
+            self.upscaler = upscalers[key]
+            if self.upscaler.upscale_factor != method.factor:
+                raise ValueError(f"{method.name}: the model upscales x{self.upscaler.upscale_factor}, "
+                                 f"not x{method.factor}")
+            self.upscaler.reset()
+
+    def _request(self, outputs: tuple[str, ...], prev_camera: Camera | None = None, **options) -> RenderRequest:
+        f = self.method.factor
+        return RenderRequest(self.width // f, self.height // f, self.iso, outputs, ao_radius=self.ao_radius,
+                             prev_camera=prev_camera, shading=self.shading, **options)
+
+    @torch.no_grad()
+    def frame(self, camera: Camera, prev_camera: Camera | None = None) -> FrameBuffers:
+        """The next frame of the stream; ``prev_camera=None`` starts a new sequence.
+
+        Returns:
+            FrameBuffers at the frame size with ``color`` (the final frame), ``mask``, ``normal``,
+            and ``ao`` where the method makes AO.
+
+        Shape:
+            color, normal: (H, W, 3). mask, ao: (H, W).
+        """
+        m = self.method
+        if m.kind == "full":
+            outputs = ("mask", "normal", "color") + (("ao",) if m.ao_rays else ())
+            out = self.renderer.render(camera, self._request(outputs, spp=m.spp, ao_samples=max(1, m.ao_rays)))
+            return FrameBuffers(mask=out.mask, normal=out.normal, ao=out.ao, color=out.color)
+        if m.kind == "atrous":
+            out = self.renderer.render(camera, self._request(("mask", "normal", "depth", "ao"), spp=m.spp,
+                                                             ao_samples=m.ao_rays))
+            ao = atrous_filter(out.ao[None, None], out.mask[None, None], out.normal.permute(2, 0, 1)[None],
+                               out.depth[None, None], self.atrous, compiled=self.renderer.device.is_cuda)[0, 0]
+            return FrameBuffers(mask=out.mask, normal=out.normal, ao=ao,
+                                color=shade(out.mask, out.normal, ao, self.shading))
+        if m.kind == "upscale":
+            low = self.renderer.render(camera, self._request(LOWRES_BUFFERS))
+            up = upscale_baseline(low.channels_first(LOWRES_BUFFERS)[None], m.factor, m.interpolation)
+            color = shade_channels_first(up[:, :5], self.shading)  # the AO channel dropped: no occlusion
+            return FrameBuffers(mask=up[0, 0], normal=up[0, 1:4].permute(1, 2, 0), color=color[0].permute(1, 2, 0))
+        outputs = LOWRES_BUFFERS + (("flow",) if prev_camera is not None else ())
+        low = self.renderer.render(camera, self._request(outputs, prev_camera))
+        high = highres_frame(self.upscaler.step(*lowres_tensors(low)))
+        high.color = shade(high.mask, high.normal, high.ao, self.shading)
+        return high
+
+
+def sequence_cameras(cameras: list[Camera]) -> list[tuple[Camera, Camera | None]]:
+    """``(camera, previous camera)`` pairs of a camera path, the first without a previous one."""
+    return list(zip(cameras, [None] + cameras[:-1]))
+
+
+def run_sequence(runner: FrameRunner, cameras: list[Camera]) -> list[FrameBuffers]:
+    """A new sequence along ``cameras``: one frame per camera."""
+    return [runner.frame(camera, prev) for camera, prev in sequence_cameras(cameras)]
