@@ -1,0 +1,111 @@
+"""`isosr bench --pareto --smoke`: the record, the fronts, the budget part, merging, the report."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+
+from isosr_bench.bench_pareto import dominator, pareto_front, scores
+from isosr_render import FrameBuffers
+
+FIELDS = {"volume", "size", "method", "learned", "ms", "color_psnr", "color_ssim", "image_psnr", "image_ssim",
+          "ao_rmse", "flicker"}
+
+
+@pytest.fixture(scope="module")
+def smoke(tmp_path_factory):
+    from isosr_cli.main import main as cli
+
+    out = tmp_path_factory.mktemp("pareto")
+    assert cli(["bench", "--pareto", "--smoke", "--out", str(out)]) == 0
+    return out, json.loads((out / "pareto_cpu.json").read_text())
+
+
+def test_the_record_holds_one_complete_row_per_volume_size_and_method(smoke):
+    _, record = smoke
+    assert record["device"] and record["commit"] and record["command"]
+    rows = [r for r in record["rows"] if r["part"] == "pareto"]
+    keys = [(r["volume"], r["size"], r["method"]) for r in rows]
+    assert len(keys) == len(set(keys)) and {r["volume"] for r in rows} == {"sphere", "cloud"}
+    for r in rows:
+        assert FIELDS <= set(r) and r["ms"] > 0 and r["learned"] == (r["kind"] == "network")
+        assert all(isinstance(r[k], float) and math.isfinite(r[k]) for k in FIELDS - {"volume", "size", "method",
+                                                                                        "learned"})
+        assert 0 < r["color_ssim"] <= 1 and r["color_psnr"] > 10
+    assert {r["kind"] for r in rows} == {"full", "atrous", "upscale", "network"}
+    full = [r["method"] for r in rows if r["kind"] == "full"]
+    assert all(m.startswith("full, AO ") for m in full) and "full, AO 8, spp 1" in full
+
+
+def test_ao_changes_nothing_on_the_sphere_and_something_on_the_cloud(smoke):
+    _, record = smoke
+    psnr = {(r["volume"], r["method"]): r["color_psnr"] for r in record["rows"] if r["part"] == "pareto"}
+    assert psnr[("sphere", "full, AO 8, spp 1")] == psnr[("sphere", "full, AO 0, spp 1")]
+    assert psnr[("cloud", "full, AO 8, spp 2")] != psnr[("cloud", "full, AO 0, spp 2")]
+
+
+def test_the_budget_part_compares_the_policy_with_the_best_fixed_setting(smoke):
+    _, record = smoke
+    budget = [r for r in record["rows"] if r["part"] == "budget"]
+    assert {(r["volume"], r["budget_ms"]) for r in budget} == {(v, b) for v in ("sphere", "cloud") for b in (3.0, 30.0)}
+    for r in budget:
+        assert not r["fits"] or r["probe_ms"] <= r["budget_ms"]
+        assert r["ao_matters"] == (r["volume"] == "cloud")
+        if r["volume"] == "sphere":  # no AO rays where AO changes nothing
+            assert "AO 0" in r["method"] or not r["method"].startswith("full")
+        if r["best_fixed"] is not None:
+            assert r["psnr_gap"] == pytest.approx(r["best_fixed_psnr"] - r["color_psnr"])
+
+
+def test_fronts_dominated_points_and_undefined_scores():
+    points = [(1.0, 20.0), (2.0, 25.0), (2.0, 19.0), (3.0, 24.0), (0.5, None), (4.0, float("nan")), (5.0, 30.0)]
+    assert pareto_front(points) == [True, True, False, False, False, False, True]
+    rows = [{"method": str(i), "ms": ms, "color_psnr": None if p is None or math.isnan(p) else p}
+            for i, (ms, p) in enumerate(points)]
+    assert dominator(rows[3], rows)["method"] == "1"  # 2 ms and 25 dB beat 3 ms and 24 dB
+    assert dominator(rows[2], rows)["method"] == "0"  # the fastest of those that beat it
+    assert dominator(rows[1], rows) is None and dominator(rows[4], rows) is None
+
+
+def test_an_empty_image_scores_null_not_zero_or_inf():
+    h, w = 16, 16
+    empty = FrameBuffers(mask=torch.zeros(h, w), normal=torch.zeros(h, w, 3), ao=torch.zeros(h, w),
+                         color=torch.ones(h, w, 3), flow=torch.zeros(h, w, 2))
+    s = scores([empty, empty], [empty, empty])
+    assert s["color_psnr"] is None and s["color_ssim"] is None and s["ao_rmse"] is None and s["flicker"] is None
+    assert s["image_psnr"] == pytest.approx(100.0)  # identical whole images: the PSNR ceiling
+
+
+def test_a_partial_run_merges_into_the_result_file(smoke, tmp_path):
+    from isosr_cli.main import main as cli
+
+    out, record = smoke
+    (tmp_path / "pareto_cpu.json").write_text(json.dumps(record))
+    assert cli(["bench", "--pareto", "--smoke", "--out", str(tmp_path), "--volumes", "sphere"]) == 0
+    merged = json.loads((tmp_path / "pareto_cpu.json").read_text())["rows"]
+    assert [r for r in merged if r["volume"] == "cloud"] == [r for r in record["rows"] if r["volume"] == "cloud"]
+    assert len(merged) == len(record["rows"])
+
+
+def test_the_report_has_the_section_and_a_plot_per_volume(smoke):
+    out, _ = smoke
+    report = (out / "report_cpu.md").read_text()
+    assert "Every way to make a frame" in report and "Wins" in report and "budget policy" in report
+    assert "x4 network fp32" in report
+    assert (out / "pareto_sphere_cpu.png").stat().st_size > 0 and (out / "pareto_cloud_cpu.png").stat().st_size > 0
+
+
+def test_bad_selections_are_refused(capsys):
+    from isosr_cli.main import main as cli
+
+    assert cli(["bench", "--smoke", "--volumes", "sphere"]) == 2
+    assert "give --pareto too" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cli(["bench", "--pareto", "--smoke", "--volumes", "nowhere"])
+    assert "unknown volumes ['nowhere']" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cli(["bench", "--pareto", "--smoke", "--sizes", "8k"])
+    assert "unknown sizes ['8k']" in capsys.readouterr().err

@@ -1,0 +1,113 @@
+"""quality="auto": the budget policy on small CPU scenes."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from isosr_render import Renderer, open_volume, orbit
+from isosr_render.procedural import default_iso
+from isosr_net.budget import AO_MATTERS_DB, BudgetConfig, choose_method, probe_size, render_within_budget
+from isosr_net.frame_methods import FrameMethod
+
+SIZE = (96, 64)
+FEW = (FrameMethod("upscale", factor=4), FrameMethod("full"), FrameMethod("full", ao_rays=4),
+       FrameMethod("atrous", ao_rays=2), FrameMethod("full", spp=2), FrameMethod("full", ao_rays=8, spp=2))
+
+
+def scene(spec: str):
+    volume = open_volume(spec)
+    return Renderer(volume, "cpu"), volume.normalized_iso(default_iso(spec))
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    return scene("proc:sphere@32")
+
+
+@pytest.fixture(scope="module")
+def cloud():
+    return scene("proc:cloud:7@48")
+
+
+def check_budget_respected(choice):
+    """The choice fits in its own timing, every better candidate was timed over the budget, none after it."""
+    ranked = [row.method for row in choice.table]
+    at = ranked.index(choice.method)
+    if choice.fits:
+        assert choice.ms <= choice.budget_ms
+        assert all(row.ms > choice.budget_ms for row in choice.table[:at])
+        assert all(row.ms is None for row in choice.table[at + 1:])
+    else:
+        assert all(row.ms is not None and row.ms > choice.budget_ms for row in choice.table)
+        assert choice.ms == min(row.ms for row in choice.table)
+
+
+def test_a_convex_sphere_gets_no_ao(sphere):
+    renderer, iso = sphere
+    choice = choose_method(renderer, iso, *SIZE, 1000.0)  # the default candidates, network included
+    assert choice.ao_effect_db >= AO_MATTERS_DB and not choice.ao_matters
+    assert all(row.method.ao_rays == 0 for row in choice.table)
+    assert {row.method.kind for row in choice.table} == {"full", "upscale", "network"}
+    assert choice.method.ao_rays == 0 and choice.fits
+    check_budget_respected(choice)
+
+
+def test_ao_rays_where_ao_matters(cloud):
+    renderer, iso = cloud
+    choice = choose_method(renderer, iso, *SIZE, 1000.0, BudgetConfig(candidates=FEW))
+    assert choice.ao_matters and choice.ao_effect_db < AO_MATTERS_DB
+    assert choice.method.ao_rays > 0 and choice.fits
+    check_budget_respected(choice)
+    # Expected quality ranks the table; AO rays beat none at the same rays per pixel.
+    psnr = {row.method: row.expected_psnr for row in choice.table}
+    assert psnr[FrameMethod("full", ao_rays=8, spp=2)] > psnr[FrameMethod("full", spp=2)]
+    assert [row.expected_psnr for row in choice.table] == sorted(psnr.values(), reverse=True)
+
+
+@pytest.mark.filterwarnings("ignore:no method fits:RuntimeWarning")  # 2 ms may fit nothing on a busy CPU
+@pytest.mark.parametrize("budget", [2.0, 6.0])
+def test_the_choice_respects_the_budget_in_the_probes_own_timing(cloud, budget):
+    renderer, iso = cloud
+    choice = choose_method(renderer, iso, *SIZE, budget, BudgetConfig(candidates=FEW))
+    check_budget_respected(choice)
+
+
+def test_a_budget_below_anything_feasible_takes_the_fastest_and_says_so(cloud):
+    renderer, iso = cloud
+    with pytest.warns(RuntimeWarning, match="no method fits the budget of 0.0001 ms"):
+        choice = choose_method(renderer, iso, *SIZE, 1e-4, BudgetConfig(candidates=FEW))
+    assert not choice.fits and "NOTHING FITS" in choice.summary()
+    check_budget_respected(choice)
+
+
+def test_an_empty_image_ties_every_candidate_and_takes_the_first_that_fits(cloud):
+    renderer, _ = cloud
+    frame, choice = render_within_budget(renderer, orbit(30, 20, 1.8), 2.0, *SIZE, 1000.0,
+                                         BudgetConfig(candidates=FEW))  # iso 2: outside the data
+    assert math.isnan(choice.expected_psnr) and math.isnan(choice.ao_effect_db) and not choice.ao_matters
+    assert choice.method == FEW[0] and choice.fits
+    assert frame.mask.max() == 0 and frame.color.min() == 1  # the background
+
+
+def test_bad_sizes_budgets_and_configs_are_refused(cloud):
+    renderer, iso = cloud
+    for w, h in ((0, 64), (96, 0), (96.0, 64)):
+        with pytest.raises(ValueError, match="positive integer"):
+            choose_method(renderer, iso, w, h, 10.0)
+    for budget in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="budget_ms"):
+            choose_method(renderer, iso, *SIZE, budget)
+    with pytest.raises(ValueError, match="divides"):
+        choose_method(renderer, iso, 97, 64, 10.0, BudgetConfig(candidates=(FrameMethod("upscale", factor=4),)))
+    with pytest.raises(ValueError, match="probe_height"):
+        BudgetConfig(probe_height=0)
+    with pytest.raises(ValueError, match="candidates is empty"):
+        BudgetConfig(candidates=())
+
+
+def test_probe_size_keeps_the_aspect_in_multiples_of_8():
+    assert probe_size(1920, 1080, 96) == (168, 96)
+    assert probe_size(3840, 2160, 96) == (168, 96)
+    assert probe_size(96, 64, 96) == (96, 64)
