@@ -197,11 +197,13 @@ def budget_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
                                            ("bf16" if str(renderer.device).startswith("cuda") else "fp32",)))
     quality = probe_quality(renderer, iso, *size, config, upscalers=upscalers)
     by_name = {r["method"]: r for r in rows}
+    timings: dict = {}
     out = []
-    for budget in budgets:
+    for budget in sorted(budgets, reverse=True):  # largest first, so that the timings carry over
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # recorded as fits: false
-            choice = choose_method(renderer, iso, *size, budget, config, upscalers=upscalers, quality=quality)
+            choice = choose_method(renderer, iso, *size, budget, config, upscalers=upscalers, quality=quality,
+                                   timings=timings)
         fitting = [r for r in rows if r["ms"] <= budget and r["color_psnr"] is not None]
         best = max(fitting, key=lambda r: r["color_psnr"], default=None)
         auto = by_name[choice.method.name]

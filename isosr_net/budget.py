@@ -278,7 +278,8 @@ def _probe_cameras(config: BudgetConfig) -> list[Camera]:
 
 def choose_method(renderer: Renderer, iso: float, width: int, height: int, budget_ms: float,
                   config: BudgetConfig = BudgetConfig(), cameras: list[Camera] | None = None,
-                  upscalers: dict | None = None, quality: QualityProbe | None = None) -> BudgetChoice:
+                  upscalers: dict | None = None, quality: QualityProbe | None = None,
+                  timings: dict | None = None) -> BudgetChoice:
     """Pick the method with the best expected quality whose probe frame time fits ``budget_ms``.
 
     Args:
@@ -290,6 +291,9 @@ def choose_method(renderer: Renderer, iso: float, width: int, height: int, budge
         cameras: the probe's camera path (default a short orbit at distance 1.8).
         upscalers: a cache of networks shared with later runners (see :class:`FrameRunner`).
         quality: a :func:`probe_quality` of the same scene and frame size, reused across budgets.
+        timings: frame times (ms) by method of earlier calls on the same scene and size, reused
+            and filled: pass one dict to calls from the largest budget down (a time cut short
+            above twice a budget is above any smaller budget too).
 
     Returns:
         The choice with the probe's table (see the module docstring for how it is made).
@@ -306,11 +310,14 @@ def choose_method(renderer: Renderer, iso: float, width: int, height: int, budge
     psnr = quality.psnr
     rank = {m: i for i, m in enumerate(psnr)}
     order = sorted(psnr, key=lambda m: (-psnr[m] if not math.isnan(psnr[m]) else math.inf, rank[m]))
+    timings = {} if timings is None else timings
     ms: dict[FrameMethod, float] = {}
     chosen = None
     for m in order:
-        runner = FrameRunner(m, renderer, iso, width, height, config.shading, config.ao_radius, upscalers)
-        ms[m] = _time_candidate(runner, cameras, config, budget_ms)
+        if m not in timings:
+            runner = FrameRunner(m, renderer, iso, width, height, config.shading, config.ao_radius, upscalers)
+            timings[m] = _time_candidate(runner, cameras, config, budget_ms)
+        ms[m] = timings[m]
         if ms[m] <= budget_ms:
             chosen = m
             break

@@ -66,8 +66,9 @@ def scene(h=7, w=9, seed=0, dtype=torch.float64):
     """A slanted plane and a step in depth, two normal directions, noisy AO, a few holes in the mask."""
     g = torch.Generator().manual_seed(seed)
     ys, xs = torch.meshgrid(torch.arange(h, dtype=dtype), torch.arange(w, dtype=dtype), indexing="ij")
-    depth = 2.0 + 0.05 * xs + 0.02 * ys + (xs >= w // 2) * 0.5
-    normal = torch.stack([torch.where(xs >= w // 2, 0.6, 0.0), torch.zeros_like(xs), torch.where(xs >= w // 2, 0.8, 1.0)])
+    right = xs >= w // 2
+    depth = 2.0 + 0.05 * xs + 0.02 * ys + right * 0.5
+    normal = torch.stack([torch.where(right, 0.6, 0.0), torch.zeros_like(xs), torch.where(right, 0.8, 1.0)])
     normal = normal + 0.05 * torch.randn(3, h, w, generator=g, dtype=dtype)
     mask = (torch.rand(h, w, generator=g, dtype=dtype) > 0.15).to(dtype)
     ao = torch.rand(h, w, generator=g, dtype=dtype)
