@@ -105,8 +105,8 @@ def atrous_filter(ao: torch.Tensor, mask: torch.Tensor, normal: torch.Tensor, de
         normal: view-space normals (normalized here).
         depth: view-space depth, any positive scale (only ratios matter).
         config: the filter's knobs.
-        compiled: run the filter compiled by ``torch.compile`` (for GPUs; the first call per
-            image size compiles).
+        compiled: run the filter compiled by ``torch.compile`` (for GPUs; the first call of a
+            process compiles).
 
     Returns:
         Filtered AO in [0, 1], 0 where not covered.
@@ -125,9 +125,10 @@ def atrous_filter(ao: torch.Tensor, mask: torch.Tensor, normal: torch.Tensor, de
 
 @functools.cache
 def compiled_core():
-    """The filter compiled by ``torch.compile`` (static shapes): eager, it launches some 2700 small
-    kernels per frame, which a GPU shader would fuse; compiled, a few fused ones."""
-    return torch.compile(_filter, dynamic=False)
+    """The filter compiled by ``torch.compile``: eager, it launches some 2700 small kernels per
+    frame, which a GPU shader would fuse; compiled, a few fused ones. Shapes are dynamic, so one
+    compilation serves every image size (checked on the CPU: equal to eager within 1.2e-7)."""
+    return torch.compile(_filter, dynamic=True)
 
 
 def _filter(ao, mask, normal, depth, iterations: int, sigma_normal: float, sigma_depth: float,

@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+from conftest import DEVICE
 from isosr_net.atrous import B3, ATrousConfig, ATrousFilter, atrous_filter
 
 
@@ -140,3 +141,11 @@ def test_bad_inputs_are_refused_with_the_buffer_named():
         atrous_filter(ao[0], mask, normal, depth)
     with pytest.raises(ValueError, match="iterations"):
         ATrousConfig(iterations=6)
+
+
+@pytest.mark.skipif(DEVICE == "cpu", reason="compiling takes minutes on a CPU; run with ISOSR_TEST_DEVICE=cuda")
+def test_the_compiled_filter_matches_the_eager_one_at_two_sizes():
+    for h, w in ((7, 9), (64, 96)):
+        ao, mask, normal, depth = (t.float().to(DEVICE) for t in scene(h, w))
+        eager = atrous_filter(ao, mask, normal, depth)
+        assert torch.allclose(atrous_filter(ao, mask, normal, depth, compiled=True), eager, atol=1e-5)

@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from isosr_bench.bench_pareto import dominator, pareto_front, scores
+from isosr_bench.bench_pareto import dominator, merge, pareto_front, scores
 from isosr_render import FrameBuffers
 
 FIELDS = {"volume", "size", "method", "learned", "ms", "color_psnr", "color_ssim", "image_psnr", "image_ssim",
@@ -80,14 +80,14 @@ def test_an_empty_image_scores_null_not_zero_or_inf():
 
 
 def test_a_partial_run_merges_into_the_result_file(smoke, tmp_path):
-    from isosr_cli.main import main as cli
-
-    out, record = smoke
-    (tmp_path / "pareto_cpu.json").write_text(json.dumps(record))
-    assert cli(["bench", "--pareto", "--smoke", "--out", str(tmp_path), "--volumes", "sphere"]) == 0
-    merged = json.loads((tmp_path / "pareto_cpu.json").read_text())["rows"]
+    _, record = smoke
+    path = tmp_path / "pareto_cpu.json"
+    path.write_text(json.dumps(record))
+    rerun = [{**r, "ms": r["ms"] + 1.0} for r in record["rows"] if r["volume"] == "sphere"]
+    merged = merge(path, rerun)
     assert [r for r in merged if r["volume"] == "cloud"] == [r for r in record["rows"] if r["volume"] == "cloud"]
-    assert len(merged) == len(record["rows"])
+    assert [r for r in merged if r["volume"] == "sphere"] == rerun and len(merged) == len(record["rows"])
+    assert merge(tmp_path / "absent.json", rerun) == rerun
 
 
 def test_the_report_has_the_section_and_a_plot_per_volume(smoke):

@@ -1,4 +1,5 @@
-"""quality="auto": the budget policy on small CPU scenes."""
+"""quality="auto": the budget policy on small scenes (on the CPU; on a GPU machine
+``ISOSR_TEST_DEVICE=cuda pytest tests/test_budget.py`` runs the policy there)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import pytest
 
 from isosr_render import Renderer, open_volume, orbit
 from isosr_render.procedural import default_iso
+from conftest import DEVICE
 from isosr_net.budget import AO_MATTERS_DB, BudgetConfig, choose_method, probe_size, render_within_budget
 from isosr_net.frame_methods import FrameMethod
 
@@ -18,7 +20,7 @@ FEW = (FrameMethod("upscale", factor=4), FrameMethod("full"), FrameMethod("full"
 
 def scene(spec: str):
     volume = open_volume(spec)
-    return Renderer(volume, "cpu"), volume.normalized_iso(default_iso(spec))
+    return Renderer(volume, DEVICE), volume.normalized_iso(default_iso(spec))
 
 
 @pytest.fixture(scope="module")
@@ -111,3 +113,20 @@ def test_probe_size_keeps_the_aspect_in_multiples_of_8():
     assert probe_size(1920, 1080, 96) == (168, 96)
     assert probe_size(3840, 2160, 96) == (168, 96)
     assert probe_size(96, 64, 96) == (96, 64)
+
+
+def test_isosr_render_budget_ms_prints_the_choice_and_writes_its_frame(tmp_path, capsys):
+    from isosr_cli.main import main as cli
+
+    out = tmp_path / "frame.npz"
+    assert cli(["render", "proc:sphere@32", "--size", "96x64", "--budget-ms", "1000", "-o", str(out)]) == 0
+    said = capsys.readouterr().out
+    assert "quality auto: full, AO 0" in said and "no AO" in said  # the sphere: no AO rays
+    import numpy as np
+
+    with np.load(out) as frame:
+        assert frame["color"].shape == (64, 96, 3) and "ao" not in frame.files
+    assert cli(["render", "proc:sphere@32", "--size", "96x0", "--budget-ms", "10", "-o", str(out)]) == 2
+    assert cli(["render", "proc:sphere@32", "--budget-ms", "-5", "-o", str(tmp_path / "bad.png")]) == 2
+    assert "budget_ms must be a positive" in capsys.readouterr().err
+    assert not (tmp_path / "bad.png").exists()
