@@ -60,6 +60,7 @@ EXTRA_VOLUMES = ("hydrogen", "bonsai1024")
 SMOKE_VOLUMES = {"sphere": "proc:sphere@32", "cloud": "proc:cloud:7@48"}
 FRAMES, SMOKE_FRAMES = 8, 3
 WARMUP = 3  # a compiled network with CUDA graphs compiles, then records, then replays
+SMOKE_WARMUP = 1  # eager on the CPU: one call loads what it needs
 REFERENCE_SPP, REFERENCE_AO_RAYS = 4, 512
 BUDGETS, SMOKE_BUDGETS = (4.0, 8.0, 16.0, 33.0), (3.0, 30.0)
 # Cost of a primary ray in AO rays, for the time estimate only (README: 1080p first hit vs AO 128).
@@ -156,7 +157,7 @@ def work(method: FrameMethod) -> float:
 
 
 def pareto_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, int], size_name: str,
-                measured: list[FrameMethod], frames: int, device: str, upscalers: dict) -> list[dict]:
+                measured: list[FrameMethod], frames: int, warmup: int, device: str, upscalers: dict) -> list[dict]:
     """One row per method on one volume and size."""
     cameras = orbit_path(frames, yaw0=20.0, yaw_step=3.0, pitch=20.0, distance=1.6)
     pairs = sequence_cameras(cameras)
@@ -166,10 +167,11 @@ def pareto_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
         torch.cuda.synchronize()
     ref_s = time.perf_counter() - start
     reference_work = work(FrameMethod("full", ao_rays=REFERENCE_AO_RAYS, spp=REFERENCE_SPP))
-    estimate = ref_s * (1 + (WARMUP + frames) / frames * sum(work(m) for m in measured) / reference_work)
+    estimate = ref_s * (1 + (warmup + frames) / frames * sum(work(m) for m in measured) / reference_work)
     print(f"{volume} {size_name}: references {ref_s:.1f} s; estimated {estimate:.0f} s for the methods "
           f"(plus compiling networks on first use)", flush=True)
     flicker_reference = scores(refs, refs)["flicker"]
+    revision = commit()
     rows = []
     for method in measured:
         runner = FrameRunner(method, renderer, iso, *size, upscalers=upscalers)
@@ -178,25 +180,27 @@ def pareto_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
         def frame(i):
             outs[i] = runner.frame(*pairs[i])
 
-        t = time_frames(frame, frames, device, warmup=WARMUP)
+        t = time_frames(frame, frames, device, warmup=warmup)
         rows.append({"part": "pareto", "volume": volume, "size": size_name, "pixels": f"{size[0]}x{size[1]}",
                      "method": method.name, "kind": method.kind, "learned": method.learned,
                      "ao_rays": method.ao_rays, "spp": method.spp, "factor": method.factor,
                      "ms": t.get("gpu_ms", t["wall_ms"]), "wall_ms": t["wall_ms"], **scores(outs, refs),
                      "flicker_reference": flicker_reference,
                      "coverage": float(sum(float((r.mask > 0.5).float().mean()) for r in refs) / frames),
-                     "commit": commit()})
+                     "commit": revision})
     print(f"{volume} {size_name}: {time.perf_counter() - start:.0f} s", flush=True)
     return rows
 
 
 def budget_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, int], size_name: str,
-                measured: list[FrameMethod], rows: list[dict], budgets, upscalers: dict) -> list[dict]:
+                measured: list[FrameMethod], rows: list[dict], budgets, upscalers: dict, smoke: bool) -> list[dict]:
     """The policy's choice per budget, scored by this run's rows, against the best fixed setting that fits."""
-    config = BudgetConfig(candidates=tuple(m for m in measured if m.kind != "network" or m.precision in
-                                           ("bf16" if str(renderer.device).startswith("cuda") else "fp32",)))
+    precision = "bf16" if str(renderer.device).startswith("cuda") else "fp32"
+    config = BudgetConfig(candidates=tuple(m for m in measured if m.kind != "network" or m.precision == precision),
+                          **(dict(warmup_frames=SMOKE_WARMUP, timing_frames=2) if smoke else {}))
     quality = probe_quality(renderer, iso, *size, config, upscalers=upscalers)
     by_name = {r["method"]: r for r in rows}
+    revision = commit()
     timings: dict = {}
     out = []
     for budget in sorted(budgets, reverse=True):  # largest first, so that the timings carry over
@@ -215,7 +219,7 @@ def budget_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
                     "best_fixed": best and best["method"], "best_fixed_ms": best and best["ms"],
                     "best_fixed_psnr": best and best["color_psnr"],
                     "psnr_gap": None if best is None or auto["color_psnr"] is None
-                    else best["color_psnr"] - auto["color_psnr"], "commit": commit()})
+                    else best["color_psnr"] - auto["color_psnr"], "commit": revision})
     return out
 
 
@@ -266,6 +270,10 @@ def main(argv=None) -> list[dict]:
         models = {"network": DEFAULT_MODEL, **parse_models(args.models)}
     except ValueError as e:
         parser.error(str(e))
+    if args.device.startswith("cuda"):
+        # Each network precision compiles per frame size (two sizes and the probe's): more variants
+        # of one code object than dynamo's default limit of 8, past which it would run them eagerly.
+        torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
     measured = methods(args.smoke, args.device, models)
     frames = SMOKE_FRAMES if args.smoke else FRAMES
     upscalers: dict = {}
@@ -276,9 +284,10 @@ def main(argv=None) -> list[dict]:
         for size_name in size_names:
             size = sizes[size_name]
             fitting = [m for m in measured if size[0] % m.factor == 0 and size[1] % m.factor == 0]
-            scene = pareto_rows(renderer, iso, name, size, size_name, fitting, frames, args.device, upscalers)
+            scene = pareto_rows(renderer, iso, name, size, size_name, fitting, frames,
+                                SMOKE_WARMUP if args.smoke else WARMUP, args.device, upscalers)
             rows += scene + budget_rows(renderer, iso, name, size, size_name, fitting, scene,
-                                        SMOKE_BUDGETS if args.smoke else BUDGETS, upscalers)
+                                        SMOKE_BUDGETS if args.smoke else BUDGETS, upscalers, args.smoke)
         del renderer, volume
     kind = "cuda" if args.device.startswith("cuda") else "cpu"
     merged = merge(args.out / f"{NAME}_{kind}.json", rows)
