@@ -18,6 +18,10 @@ and 512 AO rays:
 - ``flicker``: :func:`isosr_net.metrics.temporal_instability` along the reference's flow
   (``flicker_reference`` is the reference's own).
 
+The reference's AO rays have their own seed, but its subpixel pattern is the renderer's fixed
+one: the ``spp 4`` rows have the reference's geometry exactly, so their scores measure AO error
+alone and are optimistic against a truly converged image.
+
 An empty covered region (iso outside the data) has no PSNR or SSIM: written as null, and left
 out of the Pareto fronts. Rows (``part: pareto``): one per (volume, size, method). The budget
 part (``part: budget``) runs the policy of :mod:`isosr_net.budget` at 4, 8, 16 and 33 ms and
@@ -39,13 +43,13 @@ from pathlib import Path
 
 import torch
 
-from isosr_render import Renderer, RenderRequest, Volume, open_volume, orbit_path
+from isosr_render import Renderer, Volume, open_volume, orbit_path
 from isosr_render.catalog import entry, manifest
 from isosr_render.procedural import default_iso
-from isosr_render.shading import shade
-from isosr_net.budget import BudgetConfig, choose_method, probe_quality
+from isosr_net.budget import (REFERENCE_AO_RAYS, REFERENCE_SPP, BudgetConfig, choose_method, probe_quality,
+                              reference_frames)
 from isosr_net.flow_warp import warp_by_flow
-from isosr_net.frame_methods import AO_RADIUS, INTERPOLATIONS, FrameMethod, FrameRunner, sequence_cameras
+from isosr_net.frame_methods import INTERPOLATIONS, FrameMethod, FrameRunner, sequence_cameras
 from isosr_net.metrics import eval_region, masked_psnr, masked_ssim, temporal_instability
 from isosr_net.upscaler import DEFAULT_MODEL
 
@@ -61,7 +65,6 @@ SMOKE_VOLUMES = {"sphere": "proc:sphere@32", "cloud": "proc:cloud:7@48"}
 FRAMES, SMOKE_FRAMES = 8, 3
 WARMUP = 3  # a compiled network with CUDA graphs compiles, then records, then replays
 SMOKE_WARMUP = 1  # eager on the CPU: one call loads what it needs
-REFERENCE_SPP, REFERENCE_AO_RAYS = 4, 512
 BUDGETS, SMOKE_BUDGETS = (4.0, 8.0, 16.0, 33.0), (3.0, 30.0)
 # Cost of a primary ray in AO rays, for the time estimate only (README: 1080p first hit vs AO 128).
 PRIMARY_IN_AO_RAYS = 6
@@ -135,20 +138,6 @@ def scores(frames: list, references: list) -> dict:
     return {k: _finite(torch.tensor(v, dtype=torch.float64).nanmean().item()) if v else None for k, v in per.items()}
 
 
-def references(renderer: Renderer, iso: float, size: tuple[int, int], cameras) -> list:
-    """One reference per frame: 4 rays per pixel, 512 AO rays, flow from the previous camera."""
-    refs = []
-    for camera, prev in sequence_cameras(cameras):
-        outputs = ("mask", "normal", "ao") + (("flow",) if prev is not None else ())
-        ref = renderer.render(camera, RenderRequest(*size, iso, outputs, spp=REFERENCE_SPP,
-                                                    ao_samples=REFERENCE_AO_RAYS, ao_radius=AO_RADIUS,
-                                                    prev_camera=prev))
-        ref.color = shade(ref.mask, ref.normal, ref.ao)
-        ref.flow = ref.flow if ref.flow is not None else torch.zeros(*ref.mask.shape, 2, device=ref.mask.device)
-        refs.append(ref)
-    return refs
-
-
 def work(method: FrameMethod) -> float:
     """A method's ray work relative to one primary ray per pixel (for the time estimate only)."""
     if method.kind in ("upscale", "network"):
@@ -162,7 +151,7 @@ def pareto_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
     cameras = orbit_path(frames, yaw0=20.0, yaw_step=3.0, pitch=20.0, distance=1.6)
     pairs = sequence_cameras(cameras)
     start = time.perf_counter()
-    refs = references(renderer, iso, size, cameras)
+    refs = reference_frames(renderer, iso, size, cameras, flow=True)
     if device.startswith("cuda"):
         torch.cuda.synchronize()
     ref_s = time.perf_counter() - start

@@ -43,9 +43,12 @@ from isosr_net.metrics import eval_region, masked_psnr
 
 # Color PSNR of no-AO against many-ray AO above which a scene gets no AO rays (see above).
 AO_MATTERS_DB = 40.0
-# The quality reference: rays per pixel and AO rays per hit.
+# The quality reference: rays per pixel, AO rays per hit, and an AO seed no method uses (the
+# methods' default is 0), so that no method's AO rays are a subset of the reference's. Its
+# subpixel pattern is fixed, though: a 4-ray-per-pixel method has the reference's geometry.
 REFERENCE_SPP = 4
 REFERENCE_AO_RAYS = 512
+REFERENCE_SEED = 1
 # A candidate's timing stops once one frame takes this many budgets.
 OVER_BUDGET_STOP = 2.0
 
@@ -161,14 +164,25 @@ def _check_size_and_budget(width: int, height: int, budget_ms: float) -> None:
         raise ValueError(f"budget_ms must be a positive finite number of milliseconds, got {budget_ms!r}")
 
 
-def _reference(renderer: Renderer, iso: float, size: tuple[int, int], cameras: list[Camera],
-               config: BudgetConfig) -> list[FrameBuffers]:
-    """Reference frames: mask, normal, AO at 4 rays per pixel and 512 AO rays, color with AO."""
+def reference_frames(renderer: Renderer, iso: float, size: tuple[int, int], cameras: list[Camera],
+                     ao_radius: float = AO_RADIUS, shading: ShadingParams = ShadingParams(),
+                     flow: bool = False) -> list[FrameBuffers]:
+    """High-effort reference frames along a camera path: mask, normal, AO (4 rays per pixel, 512
+    AO rays, the reference's own AO seed) and color with AO; with ``flow``, each frame's flow from
+    the previous camera too (zeros for the first).
+
+    Shape:
+        Per frame: mask, ao (H, W); normal, color (H, W, 3); flow (H, W, 2).
+    """
     frames = []
-    for camera in cameras:
-        ref = renderer.render(camera, RenderRequest(*size, iso, ("mask", "normal", "ao"), spp=REFERENCE_SPP,
-                                                    ao_samples=REFERENCE_AO_RAYS, ao_radius=config.ao_radius))
-        ref.color = shade(ref.mask, ref.normal, ref.ao, config.shading)
+    for camera, prev in sequence_cameras(cameras):
+        outputs = ("mask", "normal", "ao") + (("flow",) if flow and prev is not None else ())
+        ref = renderer.render(camera, RenderRequest(*size, iso, outputs, spp=REFERENCE_SPP,
+                                                    ao_samples=REFERENCE_AO_RAYS, ao_radius=ao_radius,
+                                                    seed=REFERENCE_SEED, prev_camera=prev if flow else None))
+        ref.color = shade(ref.mask, ref.normal, ref.ao, shading)
+        if flow and ref.flow is None:
+            ref.flow = torch.zeros(*ref.mask.shape, 2, device=ref.mask.device)
         frames.append(ref)
     return frames
 
@@ -260,7 +274,7 @@ def probe_quality(renderer: Renderer, iso: float, width: int, height: int, confi
     if not candidates:
         raise ValueError(f"no candidate method's upscaling factor divides the frame size {width}x{height} "
                          f"and the probe size {size[0]}x{size[1]}")
-    references = _reference(renderer, iso, size, cameras, config)
+    references = reference_frames(renderer, iso, size, cameras, config.ao_radius, config.shading)
     effect = ao_effect_db(references, config.shading)
     ao_matters = effect < config.ao_matters_db  # False for NaN: nothing covered, no AO to see
     if not ao_matters and any(m.ao_rays == 0 for m in candidates):

@@ -88,3 +88,14 @@ def test_an_empty_image_shades_to_the_background(scene):
     renderer, _ = scene
     frame = FrameRunner(FrameMethod("atrous", ao_rays=2), renderer, 2.0, *SIZE).frame(orbit_path(1)[0])
     assert frame.mask.max() == 0 and torch.equal(frame.color, torch.ones_like(frame.color))
+
+
+def test_runners_share_one_network_per_model_precision_and_device(scene):
+    renderer, iso = scene
+    upscalers: dict = {}
+    bf16 = FrameMethod("network", factor=4, precision="bf16")
+    a = FrameRunner(bf16, renderer, iso, *SIZE, upscalers=upscalers)
+    b = FrameRunner(bf16, renderer, iso, 96, 64, upscalers=upscalers)
+    c = FrameRunner(FrameMethod("network", factor=4), renderer, iso, *SIZE, upscalers=upscalers)
+    assert a.upscaler is b.upscaler and a.upscaler.precision == "bf16"
+    assert c.upscaler is not a.upscaler and c.upscaler.precision == "fp32" and len(upscalers) == 2
