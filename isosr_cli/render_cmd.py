@@ -140,5 +140,5 @@ def run(args: argparse.Namespace) -> int:
     lo, hi = volume.value_range
     print(f"{volume.name}: {volume.shape} voxels, iso {iso:.4f} normalized ({lo + iso * (hi - lo):g} in data units); "
           f"rendered {','.join(frame.present())} at {request.width}x{request.height} on {renderer.device} "
-          f"in {elapsed * 1e3:.1f} ms -> {out}")
+          f"in {elapsed * 1e3:.1f} ms{'' if args.budget_ms is None else ', the probe included'} -> {out}")
     return 0
