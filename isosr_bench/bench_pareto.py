@@ -145,10 +145,15 @@ def work(method: FrameMethod) -> float:
     return method.spp * (1.0 + method.ao_rays / PRIMARY_IN_AO_RAYS)
 
 
+def bench_cameras(frames: int):
+    """The orbit every method is timed and scored on; the budget policy probes the same views."""
+    return orbit_path(frames, yaw0=20.0, yaw_step=3.0, pitch=20.0, distance=1.6)
+
+
 def pareto_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, int], size_name: str,
                 measured: list[FrameMethod], frames: int, warmup: int, device: str, upscalers: dict) -> list[dict]:
     """One row per method on one volume and size."""
-    cameras = orbit_path(frames, yaw0=20.0, yaw_step=3.0, pitch=20.0, distance=1.6)
+    cameras = bench_cameras(frames)
     pairs = sequence_cameras(cameras)
     start = time.perf_counter()
     refs = reference_frames(renderer, iso, size, cameras, flow=True)
@@ -187,7 +192,8 @@ def budget_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
     precision = "bf16" if str(renderer.device).startswith("cuda") else "fp32"
     config = BudgetConfig(candidates=tuple(m for m in measured if m.kind != "network" or m.precision == precision),
                           **(dict(warmup_frames=SMOKE_WARMUP, timing_frames=2) if smoke else {}))
-    quality = probe_quality(renderer, iso, *size, config, upscalers=upscalers)
+    cameras = bench_cameras(SMOKE_FRAMES if smoke else FRAMES)
+    quality = probe_quality(renderer, iso, *size, config, cameras, upscalers=upscalers)
     by_name = {r["method"]: r for r in rows}
     revision = commit()
     timings: dict = {}
@@ -195,8 +201,8 @@ def budget_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
     for budget in sorted(budgets, reverse=True):  # largest first, so that the timings carry over
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # recorded as fits: false
-            choice = choose_method(renderer, iso, *size, budget, config, upscalers=upscalers, quality=quality,
-                                   timings=timings)
+            choice = choose_method(renderer, iso, *size, budget, config, cameras, upscalers=upscalers,
+                                   quality=quality, timings=timings)
         fitting = [r for r in rows if r["ms"] <= budget and r["color_psnr"] is not None]
         best = max(fitting, key=lambda r: r["color_psnr"], default=None)
         auto = by_name[choice.method.name]
