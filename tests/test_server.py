@@ -267,6 +267,7 @@ def test_upscale_bad_input_gets_4xx_with_reasons(srv, lib):
         (b"\xc1\x00", 400, "malformed"),
         (P.pack(good)[:-7], 400, "malformed"),
         (P.pack(wire_frame(lib, depth=nan_depth)), 400, "NaN"),
+        (P.pack(wire_frame(lib, depth=P.encode_array(np.full((h, w), 3e38, np.float32)))), 400, "must lie in"),
         (P.pack(wire_frame(lib, depth=f64)), 400, "dtype"),
         (P.pack(wire_frame(lib, normal=good["depth"])), 400, "shape"),
         (P.pack(wire_frame(lib, version=7)), 400, "version"),
