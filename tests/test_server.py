@@ -1,0 +1,436 @@
+"""`isosr serve` end to end: a real uvicorn server on loopback, real WebSocket and HTTP clients.
+
+Frames are compared with what the library gives for the same camera: PNG is lossless and the
+CPU renderer and network are deterministic, so `full`, `sr`, `bilinear` and `focus` frames must
+match the library's shaded uint8 image to within 1 level; `buffers` frames within the
+protocol's coding tolerances; upscale responses to 1e-5.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from contextlib import ExitStack
+
+import msgpack
+import numpy as np
+import pytest
+import torch
+
+from isosr_cli.main import main
+from isosr_net.metrics import upscale_baseline
+from isosr_net.upscaler import Upscaler
+from isosr_render import Camera, FrameBuffers, orbit, shade
+from isosr_render.conventions import LOWRES_BUFFERS
+from isosr_render.shading import shade_channels_first
+from isosr_server import protocol as P
+from isosr_server.app import ServerConfig
+from isosr_server.engine import EngineConfig
+from isosr_server.encoding import decode_image, to_uint8
+from server_fixtures import (DEVICE, FACTOR, H, LEVELS, VOLUME, W, assert_image, cam, expect_close, frame,  # noqa: F401
+                             lib, lib_full, lib_lowres, lib_sr, recv, running_server, send, session, settle,
+                             upscale_body, wire_frame)
+
+LIMITS = P.Limits(max_message_bytes=2**20, max_sessions=6, idle_timeout_s=30.0, max_fps=1000.0,
+                  max_messages_per_s=5000.0)
+TOKEN = "correct-horse-battery"
+
+
+@pytest.fixture(scope="module")
+def volumes_dir(tmp_path_factory):
+    root = tmp_path_factory.mktemp("volumes")
+    x, y, z = np.meshgrid(np.linspace(-1, 1, 20), np.linspace(-1, 1, 16), np.linspace(-1, 1, 12), indexing="ij")
+    np.save(root / "blob.npy", (x**2 + y**2 + z**2).astype(np.float32))
+    (root / "notes.txt").write_text("not a volume")
+    return root
+
+
+@pytest.fixture(scope="module")
+def srv(volumes_dir):
+    with running_server(ServerConfig(volumes=volumes_dir, engine=EngineConfig(device=DEVICE), limits=LIMITS)) as s:
+        yield s
+
+
+# ---- HTTP endpoints -------------------------------------------------------------------------
+
+
+def test_health_model_and_volumes(srv, volumes_dir):
+    assert srv.get_json("/v2/health/live") == (200, {"live": True})
+    assert srv.get_json("/v2/health/ready") == (200, {"ready": True})
+    status, model = srv.get_json("/v2/models/isosr")
+    assert status == 200 and model["upscale_factor"] == FACTOR and model["precision"] == "fp32"
+    assert model["encoders"]["png"].startswith("opencv")
+    assert [i["name"] for i in model["inputs"]] == ["mask", "normal", "depth", "flow"]
+    assert [o["name"] for o in model["outputs"]] == ["mask", "normal", "depth", "ao"]
+    status, listing = srv.get_json("/v1/volumes")
+    names = [v["name"] for v in listing["volumes"]]
+    assert status == 200 and "blob" in names and "proc:sphere" in names and "notes" not in names
+    status, blob = srv.get_json("/v1/volumes/blob")
+    assert status == 200 and blob["shape"] == [20, 16, 12] and sum(blob["histogram"]) == 20 * 16 * 12
+    assert blob["value_range"][0] == pytest.approx(np.load(volumes_dir / "blob.npy").min())
+    status, torus = srv.get_json("/v1/volumes/proc:torus@32")
+    assert status == 200 and torus["iso"] == 0.0 and len(torus["histogram"]) == torus["histogram_bins"]
+
+
+@pytest.mark.parametrize("path, status", [
+    ("/v1/volumes/..%2F..%2Fetc%2Fpasswd", 404), ("/v1/volumes/..secret", 400), ("/v1/volumes/notes", 404),
+    ("/v1/volumes/%2Fetc%2Fpasswd", 404), ("/v1/volumes/proc:cloud:1@500", 404), ("/v1/volumes/a..b", 404),
+    ("/v1/nothing", 404),
+])
+def test_volume_names_never_reach_paths(srv, path, status):
+    got, body = srv.get_json(path)
+    assert got == status and body["status"] == status and body["error"]
+
+
+# ---- view modes -----------------------------------------------------------------------------
+
+
+def test_full_mode_matches_the_library(srv, lib):
+    with session(srv, mode="full", ao_samples=4) as (ws, ready):
+        assert ready.view_settings().mode == "full" and ready.volume["iso"] == 0.0
+        f = frame(ws)
+        assert (f.seq, f.ack, f.mode, f.encoding, f.refined) == (0, -1, "full", "png", False)
+        assert f.nbytes == len(f.image) and f.times["total"] >= f.times["render"] > 0
+        assert_image(f.image, lib_full(lib, orbit(30, 20, 1.8), ao_samples=4))
+        send(ws, P.SettingsMsg({"ao_samples": 0}, seq=1))
+        send(ws, P.CameraMsg(eye=(0.3, 0.9, 1.5), seq=2))
+        f = frame(ws)
+        while f.ack < 2:
+            f = frame(ws)
+        eye_cam = P.CameraMsg(eye=(0.3, 0.9, 1.5))
+        assert_image(f.image, lib_full(lib, Camera(eye_cam.eye)))
+
+
+def test_sr_mode_matches_the_library_with_recurrent_state(srv, lib):
+    expected = lib_sr(lib, [orbit(30, 20, 1.8), orbit(33, 20, 1.8), orbit(36, 20, 1.8)])
+    with session(srv, mode="sr") as (ws, _):
+        assert_image(frame(ws).image, expected[0])
+        for i, yaw in enumerate((33, 36), start=1):
+            send(ws, cam(yaw, seq=i))
+            f = frame(ws)
+            assert f.ack == i and f.times["network"] > 0
+            assert_image(f.image, expected[i])
+
+
+def test_bilinear_mode_matches_the_library(srv, lib):
+    low = lib_lowres(lib, orbit(30, 20, 1.8))
+    stack = upscale_baseline(low.channels_first(LOWRES_BUFFERS)[None], FACTOR, "bilinear")
+    expected = to_uint8(shade_channels_first(stack)[0].permute(1, 2, 0)).cpu().numpy()
+    with session(srv, mode="bilinear") as (ws, _):
+        assert_image(frame(ws).image, expected)
+
+
+def test_buffers_mode_decodes_to_the_library_buffers(srv, lib):
+    c0, c1 = orbit(30, 20, 1.8), orbit(34, 20, 1.8)
+    with session(srv, mode="buffers") as (ws, _):
+        f0 = frame(ws)
+        assert (f0.encoding, f0.prev_seq, f0.width, f0.height) == ("buffers", -1, W, H)
+        got = P.decode_view_buffers(f0.buffers, P.Limits())
+        want = lib_lowres(lib, c0).to_numpy()
+        assert "flow" not in got and got["mask"].shape == (H // FACTOR, W // FACTOR)
+        np.testing.assert_array_equal(got["mask"], want["mask"])
+        np.testing.assert_allclose(got["normal"], want["normal"], atol=1e-3)
+        np.testing.assert_allclose(got["depth"], want["depth"], atol=np.ptp(want["depth"]) / 131070 + 1e-6)
+        send(ws, cam(34, seq=1))
+        f1 = frame(ws)
+        assert f1.prev_seq == f0.seq
+        got = P.decode_view_buffers(f1.buffers, P.Limits())
+        want = lib_lowres(lib, c1, prev=c0).to_numpy()
+        np.testing.assert_allclose(got["flow"], want["flow"], atol=1e-3, rtol=2.0**-11)
+        assert f1.nbytes < sum(a.nbytes for a in want.values())
+        send(ws, P.IsoMsg(0.01, seq=2))  # a new iso is a cut: no flow, prev_seq -1
+        f2 = frame(ws)
+        assert f2.prev_seq == -1 and "flow" not in f2.buffers
+
+
+def test_focus_mode_full_inside_network_outside(srv, lib):
+    camera = orbit(30, 20, 1.8)
+    # The focus frame is the session's second: the network's recurrent state holds the first.
+    full, sr = lib_full(lib, camera, ao_samples=2), lib_sr(lib, [camera, camera])[1]
+    box = (8.0, 12.0, 40.0, 36.0)
+    with session(srv, mode="focus", ao_samples=2, focus_blend_px=3) as (ws, _):
+        frame(ws)
+        send(ws, P.FocusMsg("box", box=box, seq=1))
+        got = decode_image(frame(ws).image).astype(int)
+    inner = (slice(15, 33), slice(11, 37))  # at least 3 px inside the box
+    assert np.abs(got[inner] - full[inner]).max() <= LEVELS
+    outside = np.ones((H, W), bool)
+    outside[12:36, 8:40] = False
+    assert np.abs(got[outside] - sr[outside]).max() <= LEVELS
+    assert np.abs(full[inner].astype(int) - sr[inner]).max() > 10 * LEVELS  # the two differ where it is tested
+
+
+def test_still_camera_gets_one_refined_frame(srv, lib):
+    with session(srv, mode="sr", refine=True, refine_after_s=0.2, refine_ao_samples=8) as (ws, _):
+        first = frame(ws)
+        refined = frame(ws)
+        assert not first.refined and refined.refined and refined.mode == "full" and refined.seq == 1
+        assert_image(refined.image, lib_full(lib, orbit(30, 20, 1.8), ao_samples=8))
+        with pytest.raises(TimeoutError):
+            ws.recv(timeout=0.6)  # one refined frame per still period
+
+
+def test_latest_camera_wins(srv, lib):
+    with session(srv, mode="full") as (ws, _):
+        frame(ws)
+        for i in range(1, 41):
+            send(ws, cam(30 + i, seq=i))
+        frames = [frame(ws)]
+        while frames[-1].ack < 40:
+            frames.append(frame(ws))
+        assert len(frames) < 20, "stale camera updates must coalesce, not queue"
+        assert [f.seq for f in frames] == list(range(1, len(frames) + 1))
+        assert_image(frames[-1].image, lib_full(lib, orbit(70, 20, 1.8)))
+        with pytest.raises(TimeoutError):
+            ws.recv(timeout=0.4)  # nothing left queued
+
+
+@pytest.mark.parametrize("encoding", ["jpeg", "webp"])
+def test_lossy_encodings(srv, lib, encoding):
+    with session(srv, mode="full", encoding=encoding, quality=90) as (ws, _):
+        f = frame(ws)
+    assert f.encoding == encoding
+    diff = np.abs(decode_image(f.image).astype(int) - lib_full(lib, orbit(30, 20, 1.8)))
+    assert diff.mean() < 3
+
+
+def test_metrics_count_frames_stages_and_errors(srv):
+    with session(srv, mode="full") as (ws, _):
+        frame(ws)
+    with srv.view() as ws:
+        ws.send(b"\xc1")
+        expect_close(ws, P.CLOSE_BAD_MESSAGE)
+    status, _, body = srv.request("GET", "/metrics")
+    text = body.decode()
+    assert status == 200
+    assert 'isosr_frames_total{kind="view",mode="full",refined="false"}' in text
+    assert 'isosr_stage_seconds_bucket{le="0.5",mode="full",stage="render"}' in text
+    assert 'isosr_errors_total{code="1007",kind="view"}' in text
+    gpu_bytes = float(next(line.split()[-1] for line in text.splitlines() if line.startswith("isosr_gpu_memory_bytes ")))
+    assert 'isosr_sessions{kind="view"}' in text and (gpu_bytes > 0) == (DEVICE != "cpu")
+
+
+# ---- upscaling ------------------------------------------------------------------------------
+
+
+def test_upscale_post_buffers_images_and_sessions(srv, lib):
+    c0, c1 = orbit(30, 20, 1.8), orbit(33, 20, 1.8)
+    f0, f1 = lib_lowres(lib, c0).to_numpy(), lib_lowres(lib, c1, prev=c0).to_numpy()
+    upscaler = Upscaler(device=DEVICE)
+    want0 = upscaler.upscale(FrameBuffers(**{k: torch.from_numpy(v) for k, v in f0.items()})).to_numpy()
+    want1 = upscaler.upscale(FrameBuffers(**{k: torch.from_numpy(v) for k, v in f1.items()})).to_numpy()
+    atol = 1e-5 if DEVICE == "cpu" else 1e-2
+
+    status, headers, body = srv.request("POST", "/v1/upscale", upscale_body(f0, session="s1"))
+    assert status == 200 and headers["content-type"] == P.MSGPACK_MEDIA_TYPE
+    resp = P.parse(body, P.Limits(), (P.UpscaleResponse,))
+    assert (resp.width, resp.height) == (W, H)
+    for name in P.HIGHRES_OUTPUTS:
+        np.testing.assert_allclose(resp.buffers[name], want0[name], atol=atol)
+    status, _, body = srv.request("POST", "/v1/upscale", upscale_body(f1, session="s1"))
+    resp = P.parse(body, P.Limits(), (P.UpscaleResponse,))
+    np.testing.assert_allclose(resp.buffers["normal"], want1["normal"], atol=atol)
+    # Without a session the state is fresh, and the result differs.
+    status, _, body = srv.request("POST", "/v1/upscale", upscale_body(f1))
+    fresh = P.parse(body, P.Limits(), (P.UpscaleResponse,))
+    assert not np.allclose(fresh.buffers["normal"], want1["normal"], atol=10 * atol)
+    # The shaded image: by the accept header, or by the field.
+    status, headers, png = srv.request("POST", "/v1/upscale", upscale_body(f0), {"Accept": "image/png"})
+    assert status == 200 and headers["content-type"] == "image/png" and "total" in json.loads(headers["x-isosr-times"])
+    want0 = {k: torch.from_numpy(v) for k, v in want0.items()}
+    assert_image(png, to_uint8(shade(want0["mask"], want0["normal"], want0["ao"])).numpy())
+    status, headers, jpg = srv.request("POST", "/v1/upscale", upscale_body(f0, output="jpeg", quality=50))
+    assert status == 200 and headers["content-type"] == "image/jpeg" and jpg[:2] == b"\xff\xd8"
+
+
+def test_upscale_stream_in_order_with_state(srv, lib):
+    cams = [orbit(30 + 3 * i, 20, 1.8) for i in range(3)]
+    lows = [lib_lowres(lib, c, prev) for c, prev in zip(cams, [None] + cams[:-1])]
+    expected = lib_sr(lib, cams)
+    with srv.ws("/v1/upscale/stream") as ws:
+        for low in lows:
+            ws.send(upscale_body(low.to_numpy(), output="png"))
+        for i in range(3):
+            resp = recv(ws)
+            assert isinstance(resp, P.UpscaleResponse) and resp.seq == i and resp.output == "png"
+            assert_image(resp.image, expected[i])
+        ws.send(upscale_body(lows[0].to_numpy(), session="x"))
+        expect_close(ws, P.CLOSE_BAD_MESSAGE, "session")
+
+
+def test_upscale_bad_input_gets_4xx_with_reasons(srv, lib):
+    good = wire_frame(lib)
+    h, w = good["mask"]["shape"]
+    nan_depth = P.encode_array(np.full((h, w), np.nan, np.float32))
+    f64 = {"dtype": "float64", "shape": [h, w], "data": bytes(8 * h * w)}
+    wide = np.zeros((2, 1100), np.float32)
+    cases = [
+        (b"\xc1\x00", 400, "malformed"),
+        (P.pack(good)[:-7], 400, "malformed"),
+        (P.pack(wire_frame(lib, depth=nan_depth)), 400, "NaN"),
+        (P.pack(wire_frame(lib, depth=P.encode_array(np.full((h, w), 3e38, np.float32)))), 400, "must lie in"),
+        (P.pack(wire_frame(lib, depth=f64)), 400, "dtype"),
+        (P.pack(wire_frame(lib, normal=good["depth"])), 400, "shape"),
+        (P.pack(wire_frame(lib, version=7)), 400, "version"),
+        (P.pack(wire_frame(lib, output="gif")), 400, "output"),
+        (P.pack(wire_frame(lib, session="../x")), 400, "session"),
+        (P.pack({**good, "pad": b"x" * LIMITS.max_message_bytes}), 413, "limit"),
+        (P.pack(P.UpscaleRequest(wide, np.zeros((2, 1100, 3), np.float32), wide).to_wire()), 413, "exceeds"),
+    ]
+    for body, status, words in cases:
+        got, headers, reply = srv.request("POST", "/v1/upscale", body)
+        reason = json.loads(reply)
+        assert (got, reason["status"]) == (status, status) and words in reason["error"], (words, reason)
+    got, _, reply = srv.request("POST", "/v1/upscale", P.pack(good), {"Content-Type": "text/plain"})
+    assert got == 415 and "msgpack" in json.loads(reply)["error"]
+    assert srv.get_json("/v2/health/ready")[0] == 200
+    assert not srv.errors.records, srv.errors.messages()
+
+
+# ---- bad view input -------------------------------------------------------------------------
+
+
+def test_bad_view_input_closes_that_session_only(srv, lib):
+    with session(srv, mode="full") as (honest, _):
+        frame(honest)
+        seq = 0
+
+        def honest_still_served():
+            nonlocal seq
+            seq += 1
+            send(honest, cam(30 + seq, seq=seq))
+            f = frame(honest)
+            while f.ack < seq:
+                f = frame(honest)
+            assert_image(f.image, lib_full(lib, orbit(30 + seq, 20, 1.8)))
+
+        opens = [
+            (b"\x92\x01\x02", P.CLOSE_BAD_MESSAGE, "map"),
+            (P.pack({"type": "open", "version": 1, "volume": "nope"}), P.CLOSE_NOT_FOUND, "no volume named"),
+            (P.pack({"type": "open", "version": 1, "volume": "../blob"}), P.CLOSE_BAD_MESSAGE, "volume"),
+            (P.pack({"type": "open", "version": 1, "volume": "proc:cloud:1@400"}), P.CLOSE_NOT_FOUND, "size"),
+            (P.pack({"type": "open", "version": 1, "volume": VOLUME, "settings": {"mode": "sr", "width": 66}}),
+             P.CLOSE_BAD_MESSAGE, "multiple of the upscale factor"),
+            (P.pack({"type": "open", "version": 1, "volume": VOLUME, "settings": {"width": 4096, "height": 4096}}),
+             P.CLOSE_TOO_BIG, "exceeds"),
+            (P.pack(cam(3).to_wire()), P.CLOSE_BAD_MESSAGE, "message type must be one of open"),
+            (b"\x00" * (LIMITS.max_message_bytes + 10), P.CLOSE_TOO_BIG, ""),
+        ]
+        for data, code, words in opens:
+            with srv.view() as ws:
+                ws.send(data)
+                expect_close(ws, code, words)
+            honest_still_served()
+        updates = [
+            (P.pack({"type": "camera", "eye": [0.0, 0.0, math.nan]}), P.CLOSE_BAD_MESSAGE, "finite"),
+            (P.pack({"type": "camera", "eye": [0, 0, 1], "up": [0, 0, 0]}), P.CLOSE_BAD_MESSAGE, "up is zero"),
+            (P.pack({"type": "settings", "settings": {"mode": "sr", "width": 63}}), P.CLOSE_BAD_MESSAGE, "multiple"),
+            (P.pack({"type": "iso", "value": 1e300}), P.CLOSE_BAD_MESSAGE, "value"),
+            (P.pack({"type": "open", "version": 1, "volume": VOLUME}), P.CLOSE_BAD_MESSAGE, "message type"),
+            (msgpack.packb({"type": "iso", "value": 0.2})[:-3], P.CLOSE_BAD_MESSAGE, "malformed"),
+        ]
+        for data, code, words in updates:
+            with session(srv, mode="full") as (ws, _):
+                frame(ws)
+                ws.send(data)
+                expect_close(ws, code, words)
+            honest_still_served()
+        with session(srv, mode="full") as (ws, _):
+            frame(ws)
+            ws.send("text is not msgpack")
+            expect_close(ws, P.CLOSE_BAD_MESSAGE, "text")
+        # The session limit: the honest one plus LIMITS.max_sessions - 1 more, then a refusal.
+        settle(srv, live=1)
+        with ExitStack() as stack:
+            for _ in range(LIMITS.max_sessions - 1):
+                ws = stack.enter_context(srv.view())
+                send(ws, P.OpenMsg(VOLUME, {"mode": "full", "width": 16, "height": 12, "refine": False}))
+                assert isinstance(recv(ws), P.ReadyMsg)
+            with srv.view() as ws:  # refused on connecting, before its open message
+                expect_close(ws, P.CLOSE_TOO_MANY, "try later")
+        honest_still_served()
+    assert srv.get_json("/v2/health/live")[0] == 200
+    assert not srv.errors.records, srv.errors.messages()
+
+
+# ---- the token ------------------------------------------------------------------------------
+
+
+def test_token_required_beyond_loopback():
+    with pytest.raises(ValueError, match="--token"):
+        ServerConfig(host="0.0.0.0")
+    assert ServerConfig(host="0.0.0.0", token=TOKEN).token == TOKEN
+
+
+def test_token_checked_on_every_request_and_handshake(lib):
+    with running_server(ServerConfig(token=TOKEN)) as s:
+        for path in ("/v2/health/live", "/v2/health/ready", "/v2/models/isosr", "/v1/volumes", "/metrics"):
+            for headers in ({}, {"Authorization": "Bearer wrong-token"}, {P.TOKEN_HEADER: TOKEN[:-1]}):
+                status, body = s.get_json(path, headers)
+                assert status == 401 and "token" in body["error"], (path, headers)
+            assert s.request("GET", path, headers={"Authorization": f"Bearer {TOKEN}"})[0] == 200
+        status, _, _ = s.request("POST", "/v1/upscale", P.pack(wire_frame(lib)))
+        assert status == 401
+        for kwargs in ({}, {"additional_headers": {"Authorization": "Bearer nope"}},
+                       {"subprotocols": [P.SUBPROTOCOL, P.TOKEN_SUBPROTOCOL_PREFIX + "nope"]}):
+            for path in ("/v1/view", "/v1/upscale/stream"):
+                with s.ws(path, **kwargs) as ws:
+                    expect_close(ws, P.CLOSE_UNAUTHORIZED, "token")
+        for kwargs in ({"additional_headers": {P.TOKEN_HEADER: TOKEN}},
+                       {"subprotocols": [P.SUBPROTOCOL, P.TOKEN_SUBPROTOCOL_PREFIX + TOKEN]}):
+            with s.view(**kwargs) as ws:
+                send(ws, P.OpenMsg(VOLUME, {"mode": "full", "width": 16, "height": 12}))
+                assert isinstance(recv(ws), P.ReadyMsg) and isinstance(recv(ws), P.FrameMsg)
+        assert not s.errors.records, s.errors.messages()
+
+
+def test_serve_command_refuses_an_open_host_without_token(capsys, monkeypatch):
+    monkeypatch.delenv("ISOSR_TOKEN", raising=False)
+    assert main(["serve", "--host", "0.0.0.0", "--max-fps", "30"]) == 2
+    assert "--token" in capsys.readouterr().err
+
+
+# ---- limits: idle time, message rate, frame rate, session expiry -------------------------------
+
+STRICT = P.Limits(max_message_bytes=2**20, max_sessions=2, idle_timeout_s=0.8, max_fps=10.0, max_messages_per_s=30.0)
+
+
+@pytest.fixture(scope="module")
+def strict_srv():
+    with running_server(ServerConfig(engine=EngineConfig(device=DEVICE), limits=STRICT)) as s:
+        yield s
+
+
+def test_idle_view_session_is_closed(strict_srv):
+    with session(strict_srv, mode="full") as (ws, _):
+        frame(ws)
+        expect_close(ws, P.CLOSE_IDLE, "no message")
+
+
+def test_frame_rate_and_message_rate_limits(strict_srv):
+    with session(strict_srv, mode="full") as (ws, _):
+        frame(ws)
+        for i in range(1, 13):  # 20 messages a second: within the rate, above the frame rate
+            send(ws, cam(30 + i, seq=i))
+            time.sleep(0.05)
+        frames = [frame(ws)]
+        while frames[-1].ack < 12:
+            frames.append(frame(ws))
+        # 12 updates over 0.6 s at 10 frames a second: about 7 frames (12 without the limit).
+        assert len(frames) <= 9
+        for i in range(13, 60):  # a burst above 30 messages a second
+            send(ws, cam(30 + i, seq=i))
+        expect_close(ws, P.CLOSE_POLICY, "messages a second")
+    assert not strict_srv.errors.records, strict_srv.errors.messages()
+
+
+def test_upscale_sessions_are_bounded_and_expire(strict_srv, lib):
+    f = lib_lowres(lib, orbit(30, 20, 1.8)).to_numpy()
+    for name in ("a", "b"):
+        assert strict_srv.request("POST", "/v1/upscale", upscale_body(f, session=name))[0] == 200
+    status, _, body = strict_srv.request("POST", "/v1/upscale", upscale_body(f, session="c"))
+    assert status == 429 and "try later" in json.loads(body)["error"]
+    assert strict_srv.request("POST", "/v1/upscale", upscale_body(f, session="a"))[0] == 200  # known ids go on
+    time.sleep(STRICT.idle_timeout_s + 0.2)
+    assert strict_srv.request("POST", "/v1/upscale", upscale_body(f, session="c"))[0] == 200
