@@ -22,9 +22,9 @@ from tqdm import tqdm
 
 from isosr_render import Renderer, RenderRequest, Volume, open_volume, orbit
 from isosr_render.atomic import atomic_write
-from isosr_render.catalog import entry
+from isosr_render.catalog import SHARED_PREFIX, entry, resolve_iso
 from isosr_render.conventions import HIGHRES_BUFFERS, LOWRES_BUFFERS
-from isosr_render.procedural import default_iso
+from isosr_render.sequence import sequence_requests
 
 MANIFEST = "manifest.json"
 # Config fields a folder may be extended with: more sequences, another device (same data).
@@ -78,14 +78,9 @@ class DatagenConfig:
 
 def resolve_volume(spec: str) -> tuple[Volume, str, float]:
     """``(volume, split, reference normalized iso)`` for a procedural or ``shared:NAME`` spec."""
-    if spec.startswith("shared:"):
-        e = entry(spec.split(":", 1)[1])
-        return open_volume(str(e["path"])), e["split"], float(e["otsu_iso_normalized"])
-    if spec.startswith("proc:"):
-        volume = open_volume(spec)
-        return volume, "train", volume.normalized_iso(default_iso(spec))
     volume = open_volume(spec)
-    return volume, "train", volume.otsu_iso()
+    split = entry(spec.removeprefix(SHARED_PREFIX))["split"] if spec.startswith(SHARED_PREFIX) else "train"
+    return volume, split, resolve_iso(spec, volume)
 
 
 def camera_path(rng: np.random.Generator, frames: int) -> list:
@@ -123,9 +118,8 @@ def render_sequence(renderer: Renderer, cameras: list, iso: float, config: Datag
     """
     n, s = config.lowres_size, config.upscale
     lowres, flows, highres = [], [], []
-    for t, camera in enumerate(cameras):
-        outputs = LOWRES_BUFFERS + (("flow",) if t else ())
-        lo = renderer.render(camera, RenderRequest(n, n, iso, outputs, prev_camera=cameras[t - 1] if t else None))
+    for t, (camera, request) in enumerate(sequence_requests(cameras, n, n, iso, LOWRES_BUFFERS + ("flow",))):
+        lo = renderer.render(camera, request)
         hi = renderer.render(camera, RenderRequest(n * s, n * s, iso, HIGHRES_BUFFERS, spp=config.spp,
                                                    ao_samples=config.ao_samples, ao_radius=config.ao_radius,
                                                    seed=seed + t))

@@ -51,6 +51,7 @@ from torch import nn
 
 from isosr_render.conventions import AO, DEPTH, HIGHRES_CHANNELS, LOWRES_CHANNELS, MASK, NORMAL
 from isosr_render.shading import shade_channels_first
+from isosr_render.shapes import check_shape
 
 _EPS = 1e-8
 _HIGHRES = len(HIGHRES_CHANNELS)
@@ -76,28 +77,21 @@ class LossContext:
     prev_target_warped: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
-        if self.pred.ndim != 4 or self.pred.shape[1] != _HIGHRES:
-            raise ValueError(f"LossContext: pred must be (B, {_HIGHRES}, H, W), got {_shape(self.pred)}")
+        dims = check_shape(self.pred, f"(B, {_HIGHRES}, H, W)", "pred", "LossContext")
         for name in ("target", "prev_warped", "prev_target_warped"):
             x = getattr(self, name)
-            if x is not None and x.shape != self.pred.shape:
-                raise ValueError(f"LossContext: {name} must have pred's shape {_shape(self.pred)}, "
-                                 f"got {_shape(x)}")
+            if x is not None:
+                check_shape(x, f"(B, {_HIGHRES}, H, W)", name, "LossContext", dims)
         if self.lowres_up is not None:
-            b, _, h, w = self.pred.shape
-            if self.lowres_up.shape != (b, _LOWRES, h, w):
-                raise ValueError(f"LossContext: lowres_up must be {(b, _LOWRES, h, w)}, "
-                                 f"got {_shape(self.lowres_up)}")
+            check_shape(self.lowres_up, f"(B, {_LOWRES}, H, W)", "lowres_up", "LossContext", dims)
 
 
 def _masked_error(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, channels: slice,
                   error: Callable[[torch.Tensor], torch.Tensor], name: str) -> torch.Tensor:
-    if pred.ndim != 4 or pred.shape != target.shape:
-        raise ValueError(f"{name}: pred and target must be (B, C, H, W) of one shape, "
-                         f"got {_shape(pred)} and {_shape(target)}")
-    b, c, h, w = pred.shape
-    if mask.shape != (b, 1, h, w):
-        raise ValueError(f"{name}: mask must be {(b, 1, h, w)}, got {_shape(mask)}")
+    dims = check_shape(pred, "(B, C, H, W)", "pred", name)
+    check_shape(target, "(B, C, H, W)", "target", name, dims)
+    check_shape(mask, "(B, 1, H, W)", "mask", name, dims)
+    c = dims["C"]
     if len(range(c)[channels]) == 0:
         raise ValueError(f"{name}: channels {channels} select nothing of {c} channels")
     per_pixel = error(pred[:, channels] - target[:, channels]).mean(dim=1, keepdim=True)
