@@ -21,7 +21,6 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import torch
-from torch.utils.data import DataLoader
 
 from isosr_render import Camera, Renderer, RenderRequest
 from isosr_render.conventions import AO, HIGHRES_BUFFERS, LOWRES_BUFFERS, MASK
@@ -29,8 +28,8 @@ from isosr_render.sequence import sequence_requests
 from isosr_net.datagen import SequenceDataset
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net.metrics import frame_scores, temporal_instability, upscale_baseline
+from isosr_net.model import Unrolled
 from isosr_net.upscaler import Upscaler, lowres_tensors
-from isosr_net.train import Unrolled
 
 BASELINES = ("nearest", "bilinear", "bicubic")
 ORACLES = ("oracle: bilinear + true AO", "oracle: true geometry, no AO")
@@ -49,11 +48,10 @@ def evaluate(net: torch.nn.Module, data: str, split: str = "val", device: str = 
     unrolled = Unrolled(net).to(device).eval()
     sums: dict[tuple[str, str], dict[str, float]] = defaultdict(lambda: defaultdict(float))
     counts: dict[tuple[str, str], dict[str, int]] = defaultdict(lambda: defaultdict(int))
-    index = 0
-    for batch in DataLoader(dataset, batch_size=batch_size):
-        volumes = dataset.volumes[index:index + len(batch["lowres"])]
-        index += len(volumes)
-        lowres, flow, target = (batch[k].to(device) for k in ("lowres", "flow", "highres"))
+    for start in range(0, len(dataset), batch_size):
+        batch = dataset.batch(slice(start, start + batch_size)).to(device)
+        volumes = dataset.volumes[start:start + len(batch)]
+        lowres, flow, target = batch.lowres, batch.flow, batch.highres
         b, t = lowres.shape[:2]
         with torch.autocast(torch.device(device).type, dtype=precision, enabled=precision != torch.float32):
             network = unrolled(lowres, flow)[0].float()

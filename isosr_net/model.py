@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -35,6 +36,8 @@ HIGHRES = len(HIGHRES_CHANNELS)
 FIRST_FRAME_MODES = ("zeros", "upsampled")
 # The layout of config.json this code writes and reads; files without the key are version 1.
 FORMAT_VERSION = 1
+# A training checkpoint's optimizer state, step and the like, beside the model (torch.save).
+TRAINING_STATE = "training_state.pt"
 
 
 @dataclass(frozen=True)
@@ -143,6 +146,31 @@ class SRNet(nn.Module):
         return self(lowres, warped), warped
 
 
+class Unrolled(nn.Module):
+    """The recurrent network run over whole sequences: one forward per step, as DDP expects.
+
+    The first frame has no previous frame: its flow slot is not read (see
+    :class:`isosr_net.batch.SequenceBatch`).
+
+    Shape:
+        lowres: (B, T, 5, h, w). flow: (B, T, 2, h, w). Returns outputs and warped previous
+        outputs, each (B, T, 6, H, W).
+    """
+
+    def __init__(self, net: nn.Module):
+        super().__init__()
+        self.net = net
+
+    def forward(self, lowres: torch.Tensor, flow: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        outputs, warped, previous = [], [], None
+        for t in range(lowres.shape[1]):
+            out, prev_warped = self.net.step(lowres[:, t], flow[:, t] if t else None, previous)
+            outputs.append(out)
+            warped.append(prev_warped)
+            previous = out
+        return torch.stack(outputs, 1), torch.stack(warped, 1)
+
+
 MODELS = {"SRNet": (SRNet, SRNetConfig)}
 
 
@@ -173,6 +201,61 @@ def save_pretrained(model: nn.Module, folder: str | os.PathLike, extra: dict | N
     atomic_write(folder / "model.safetensors", lambda f: f.write(save(state)))
     config = {"format_version": FORMAT_VERSION, "model": asdict(model.config), **(extra or {})}
     atomic_write(folder / "config.json", lambda f: f.write(json.dumps(config, indent=1).encode()))
+
+
+@dataclass
+class Checkpoint:
+    """A training checkpoint as :func:`load_checkpoint` found it.
+
+    Attributes:
+        folder: where it was read (the asked folder, or its ``.old`` twin).
+        model: the network, in eval mode.
+        config: its ``config.json``.
+        state: the training state saved with it.
+    """
+
+    folder: Path
+    model: nn.Module
+    config: dict
+    state: dict
+
+
+def save_checkpoint(model: nn.Module, folder: str | os.PathLike, extra: dict | None = None,
+                    training_state: dict | None = None) -> None:
+    """Write a model folder whole or not at all, with ``training_state`` beside it when given.
+
+    The folder is written beside the target (``.NAME.tmp``), then swapped in; during the swap
+    the previous one is ``NAME.old``, which :func:`load_checkpoint` falls back to.
+
+    Args:
+        model: the network.
+        folder: the checkpoint folder, e.g. ``run/last``.
+        extra: more ``config.json`` entries (see :func:`save_pretrained`).
+        training_state: what resuming needs (optimizer state, step), saved with ``torch.save``.
+    """
+    folder = Path(folder)
+    tmp, old = folder.with_name(f".{folder.name}.tmp"), folder.with_name(f"{folder.name}.old")
+    shutil.rmtree(tmp, ignore_errors=True)
+    save_pretrained(model, tmp, extra)
+    if training_state is not None:
+        torch.save(training_state, tmp / TRAINING_STATE)
+    if folder.exists():
+        shutil.rmtree(old, ignore_errors=True)
+        folder.rename(old)
+    tmp.rename(folder)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def load_checkpoint(folder: str | os.PathLike, device: str | torch.device = "cpu") -> Checkpoint | None:
+    """The training checkpoint :func:`save_checkpoint` left at ``folder``, or at ``folder.old``
+    (a swap that was cut off); None where neither holds a training state."""
+    folder = Path(folder)
+    for candidate in (folder, folder.with_name(f"{folder.name}.old")):
+        if (candidate / TRAINING_STATE).is_file():
+            model, config = load_pretrained(candidate, device)
+            state = torch.load(candidate / TRAINING_STATE, map_location=device, weights_only=True)
+            return Checkpoint(candidate, model, config, state)
+    return None
 
 
 def read_config(folder: str | os.PathLike) -> dict:

@@ -10,14 +10,13 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
+from isosr_net.architectures import VGG19_LAYERS, SpatioTemporalDiscriminator
 from isosr_net.losses import (
     PAPER_LOSSES,
-    VGG19_LAYERS,
     AdversarialLoss,
     ChannelLoss,
     LossContext,
     PerceptualLoss,
-    SpatioTemporalDiscriminator,
     TemporalLoss,
     build_losses,
     masked_l1,

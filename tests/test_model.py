@@ -9,8 +9,8 @@ import torch
 import torch.nn.functional as F
 
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
-from isosr_net.model import (FORMAT_VERSION, SRNet, SRNetConfig, build_model, load_pretrained, read_config,
-                             save_pretrained)
+from isosr_net.model import (FORMAT_VERSION, TRAINING_STATE, SRNet, SRNetConfig, build_model, load_checkpoint,
+                             load_pretrained, read_config, save_checkpoint, save_pretrained)
 from isosr_net.upscaler import DEFAULT_MODEL
 from isosr_render.conventions import AO, DEPTH, HIGHRES_CHANNELS, LOWRES_CHANNELS, MASK, NORMAL
 
@@ -253,3 +253,19 @@ def test_the_shipped_config_holds_no_machine_paths():
             return [s for v in x for s in strings(v)]
         return [x] if isinstance(x, str) else []
     assert not [s for s in strings(config) if s.startswith(("/", "~")) or ":\\" in s]
+
+
+def test_checkpoints_swap_in_whole_and_resume_from_old_after_a_cut_swap(tmp_path):
+    folder = tmp_path / "last"
+    assert load_checkpoint(folder) is None
+    save_checkpoint(tiny_net(seed=1), folder, {"step": 1})  # a model folder without training state
+    assert load_checkpoint(folder) is None
+    save_checkpoint(tiny_net(seed=2), folder, {"step": 2}, {"step": 2, "best": 0.5})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["last"]  # no .tmp or .old left behind
+    found = load_checkpoint(folder)
+    assert found.folder == folder and found.config["step"] == 2 and found.state == {"step": 2, "best": 0.5}
+    for (k, v), (k2, v2) in zip(tiny_net(seed=2).state_dict().items(), found.model.state_dict().items()):
+        assert k == k2 and torch.equal(v, v2)
+    folder.rename(tmp_path / "last.old")  # cut between moving the old folder away and the new one in
+    assert load_checkpoint(folder).folder == tmp_path / "last.old"
+    assert (tmp_path / "last.old" / TRAINING_STATE).is_file()
