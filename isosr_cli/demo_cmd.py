@@ -29,7 +29,7 @@ def add_parser(subparsers) -> None:
     """Register ``demo``."""
     p = subparsers.add_parser("demo", help="render, upscale and compare on the embedded default volume",
                               description=__doc__, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--volume", default=DEFAULT_VOLUME, help="volume file or procedural spec")
+    p.add_argument("--volume", default=DEFAULT_VOLUME, help="volume file, procedural spec or shared:NAME")
     p.add_argument("--iso", type=float, help="normalized iso (default: the volume's own)")
     p.add_argument("--frames", type=int, default=6)
     p.add_argument("--size", type=int, default=96, help="low-res side; ground truth is 4x")
