@@ -19,17 +19,16 @@ The networks are the shipped L1-normal model (x4) and those named by ``--models 
 from __future__ import annotations
 
 
-import json
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from isosr_render import Renderer, RenderRequest, open_volume, orbit_path
-from isosr_render.catalog import entry
+from isosr_render import Renderer, RenderRequest, open_volume, orbit_path, resolve_iso
 from isosr_render.conventions import HIGHRES_BUFFERS, LOWRES_BUFFERS
-from isosr_render.procedural import default_iso
+from isosr_render.sequence import sequence_requests
 from isosr_net.metrics import frame_scores, upscale_baseline
+from isosr_net.model import read_config
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler, lowres_tensors
 
 from .common import bench_parser, print_table, time_frames, write_result
@@ -122,14 +121,13 @@ class Knobs:
                  for i in range(FRAMES)]
         rows = []
         for factor in (2, 4, 8):
-            lows = [lowres_tensors(self.render(i, size=(w // factor, h // factor),
-                                               outputs=LOWRES_BUFFERS + ("flow",),
-                                               prev_camera=self.cameras[max(i - 1, 0)]))
-                    for i in range(FRAMES)]
+            sequence = sequence_requests(self.cameras, w // factor, h // factor, self.iso,
+                                         LOWRES_BUFFERS + ("flow",))
+            lows = [lowres_tensors(self.renderer.render(*frame)) for frame in sequence]
             methods = {mode: (lambda low, mode=mode: upscale_baseline(low[0], factor, mode))
                        for mode in ("nearest", "bilinear", "bicubic")}
             for model, folder in self.models.items():
-                if model_upscale(folder) != factor:
+                if read_config(folder)["model"]["upscale"] != factor:
                     continue
                 for precision in ("fp32", "bf16", "fp16") if self.device.startswith("cuda") else ("fp32",):
                     up = Upscaler(folder, self.device, precision)
@@ -144,22 +142,18 @@ class Knobs:
         return rows
 
 
-def model_upscale(folder: Path) -> int:
-    """A model folder's upscale factor, from its config.json."""
-    return json.loads((Path(folder) / "config.json").read_text())["model"]["upscale"]
-
-
 def parse_models(text: str) -> dict[str, Path]:
     """``NAME=DIR,NAME=DIR`` as a dict; each DIR must be a model folder.
 
     Raises:
-        ValueError: an item is not ``NAME=DIR`` with a ``config.json`` in DIR.
+        ValueError: an item is not ``NAME=DIR`` with a readable ``config.json`` in DIR.
     """
     models = {}
     for item in filter(None, text.split(",")):
         name, sep, folder = item.partition("=")
         if not sep or not name or not (Path(folder) / "config.json").is_file():
             raise ValueError(f"--models: {item!r} is not NAME=MODEL_FOLDER (a folder with config.json)")
+        read_config(folder)
         models[name] = Path(folder)
     return models
 
@@ -180,13 +174,9 @@ def main(argv=None) -> list[dict]:
         models = {"L1-normal": DEFAULT_MODEL, **parse_models(args.models)}
     except ValueError as e:
         parser.error(str(e))
-    if args.smoke:
-        volume = open_volume("proc:cloud:42@48")
-        iso = volume.normalized_iso(default_iso("proc:cloud"))
-        size = (64, 48)
-    else:
-        e = entry("ct_pitch")
-        volume, iso, size = open_volume(str(e["path"])), e["otsu_iso_normalized"], (960, 544)
+    source, size = ("proc:cloud:42@48", (64, 48)) if args.smoke else ("shared:ct_pitch", (960, 544))
+    volume = open_volume(source)
+    iso = resolve_iso(source, volume)
     knobs = Knobs(volume, iso, size, args.device, args.smoke, models)
     rows = knobs.ao_samples() + knobs.step() + knobs.refinement() + knobs.supersampling() + knobs.upscaling()
     for r in rows:

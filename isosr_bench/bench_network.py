@@ -21,8 +21,8 @@ import time
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-from isosr_render import Renderer, RenderRequest, open_volume, orbit_path
-from isosr_render.procedural import default_iso
+from isosr_render import Renderer, open_volume, orbit_path, resolve_iso
+from isosr_render.sequence import sequence_requests
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler, lowres_tensors
 
 from .common import bench_parser, print_table, time_frames, write_result
@@ -52,15 +52,13 @@ def variants(device: str) -> dict[str, dict]:
 def lowres_sequence(width: int, height: int, frames: int, device: str) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """Network inputs ``(lowres, flow)`` of a rendered orbit (flow None on the first frame)."""
     volume = open_volume(VOLUME)
-    iso = volume.normalized_iso(default_iso(VOLUME))
     renderer = Renderer(volume, device)
     cameras = orbit_path(frames, yaw_step=2.0, distance=1.4)
     out = []
-    for t, camera in enumerate(cameras):
-        frame = renderer.render(camera, RenderRequest(width, height, iso, ("mask", "normal", "depth", "flow"),
-                                                      prev_camera=cameras[t - 1] if t else camera))
-        lowres, flow = lowres_tensors(frame)
-        out.append((lowres.to(device), flow.to(device) if t else None))
+    for camera, request in sequence_requests(cameras, width, height, resolve_iso(VOLUME, volume),
+                                             ("mask", "normal", "depth", "flow")):
+        lowres, flow = lowres_tensors(renderer.render(camera, request))
+        out.append((lowres.to(device), None if flow is None else flow.to(device)))
     return out
 
 

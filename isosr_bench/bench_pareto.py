@@ -43,13 +43,13 @@ from pathlib import Path
 
 import torch
 
-from isosr_render import Renderer, Volume, open_volume, orbit_path
+from isosr_render import Renderer, Volume, open_volume, orbit_path, resolve_iso
 from isosr_render.catalog import entry, manifest
-from isosr_render.procedural import default_iso
+from isosr_render.sequence import sequence_cameras
 from isosr_net.budget import (REFERENCE_AO_RAYS, REFERENCE_SPP, BudgetConfig, choose_method, probe_quality,
                               reference_frames)
 from isosr_net.flow_warp import warp_by_flow
-from isosr_net.frame_methods import INTERPOLATIONS, FrameMethod, FrameRunner, sequence_cameras
+from isosr_net.frame_methods import INTERPOLATIONS, FrameMethod, FrameRunner
 from isosr_net.metrics import eval_region, masked_psnr, masked_ssim, temporal_instability
 from isosr_net.upscaler import DEFAULT_MODEL
 
@@ -97,7 +97,7 @@ def load(name: str, device: str) -> tuple[Volume, float]:
     """``(volume, normalized iso)`` by name: a smoke volume, ``bonsai1024``, or a catalog volume."""
     if name in SMOKE_VOLUMES:
         volume = open_volume(SMOKE_VOLUMES[name])
-        return volume, volume.normalized_iso(default_iso(SMOKE_VOLUMES[name]))
+        return volume, resolve_iso(SMOKE_VOLUMES[name], volume)
     e = entry("bonsai" if name == "bonsai1024" else name)
     volume = open_volume(str(e["path"]))
     if name == "bonsai1024":

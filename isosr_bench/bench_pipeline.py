@@ -17,10 +17,9 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from isosr_render import Renderer, RenderRequest, Volume, open_volume, orbit_path
-from isosr_render.catalog import entry
+from isosr_render import Renderer, RenderRequest, Volume, open_volume, orbit_path, resolve_iso
 from isosr_render.conventions import HIGHRES_BUFFERS, LOWRES_BUFFERS
-from isosr_render.procedural import default_iso
+from isosr_render.sequence import sequence_requests
 from isosr_render.shading import shade_channels_first
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler, lowres_tensors
 
@@ -43,15 +42,12 @@ def resampled(volume: Volume, size: int, device: str) -> Volume:
 
 def volumes(smoke: bool, device: str) -> list[tuple[str, Volume, float]]:
     """``(role, volume, normalized iso)``: the paper's roles, filled with our volumes."""
-    if smoke:
-        cloud = open_volume("proc:cloud:42@48")
-        return [("procedural cloud", cloud, cloud.normalized_iso(default_iso("proc:cloud")))]
-    out = []
-    for role, name in (("CT head", "ct_pitch"), ("CT chest", "chest_lidc"), ("simulation", "hydrogen")):
-        e = entry(name)
-        out.append((role, open_volume(str(e["path"])), e["otsu_iso_normalized"]))
-    e = entry("bonsai")
-    out.append(("1024^3", resampled(open_volume(str(e["path"])), 1024, device), e["otsu_iso_normalized"]))
+    roles = ((("procedural cloud", "proc:cloud:42@48"),) if smoke else
+             (("CT head", "shared:ct_pitch"), ("CT chest", "shared:chest_lidc"), ("simulation", "shared:hydrogen")))
+    out = [(role, v, resolve_iso(source, v)) for role, source in roles for v in [open_volume(source)]]
+    if not smoke:
+        bonsai = open_volume("shared:bonsai")
+        out.append(("1024^3", resampled(bonsai, 1024, device), resolve_iso("shared:bonsai", bonsai)))
     return out
 
 
@@ -73,11 +69,8 @@ class Pipeline:
         return lambda i: self.renderer.render(self.cameras[i % FRAMES + 1], request)
 
     def lowres(self, width: int, height: int):
-        def render(i):
-            t = i % FRAMES + 1
-            request = RenderRequest(width, height, self.iso, LOWRES_OUTPUTS, prev_camera=self.cameras[t - 1])
-            return self.renderer.render(self.cameras[t], request)
-        return render
+        frames = sequence_requests(self.cameras, width, height, self.iso, LOWRES_OUTPUTS)
+        return lambda i: self.renderer.render(*frames[i % FRAMES + 1])
 
     def network(self, width: int, height: int):
         lowres, flow = lowres_tensors(self.lowres(width, height)(0))
@@ -124,7 +117,7 @@ def main(argv=None) -> list[dict]:
             t = pipe.time(fn, args.smoke)
             rows.append({"part": "resolution", "volume": volume.name, "case": case, "size": f"{w}x{h}",
                          "ms": t.get("gpu_ms", t["wall_ms"]), **t})
-    base = volume if args.smoke else open_volume(str(entry("bonsai")["path"]))
+    base = volume if args.smoke else open_volume("shared:bonsai")
     for n in ([24, 48] if args.smoke else [64, 128, 256, 512, 1024]):
         pipe = Pipeline(resampled(base, n, args.device), iso, args.device, upscaler)
         for case, fn in (("high-res", pipe.highres(*hi, ao=False)), ("high-res + AO", pipe.highres(*hi, ao=True)),

@@ -16,10 +16,9 @@ import torch
 import torch.nn.functional as F
 import warp as wp
 
-from isosr_render import Renderer, RenderRequest, Volume, open_volume, orbit_path
-from isosr_render.catalog import entry
+from isosr_render import Renderer, RenderRequest, Volume, open_volume, orbit_path, resolve_iso
 from isosr_render.flow_fill import fill_flow
-from isosr_render.procedural import default_iso
+from isosr_render.sequence import sequence_requests
 
 from .common import bench_parser, kernel_ms, print_table, time_frames, write_result
 
@@ -39,14 +38,10 @@ def upsampled(volume: Volume, factor: int, device: str) -> Volume:
 
 def volumes(smoke: bool, device: str) -> list[tuple[Volume, float]]:
     """``(volume, normalized iso)`` pairs: two real 256^3 scans and a 1024^3 one (smoke: small procedural)."""
-    if smoke:
-        specs = ("proc:cloud:1@64", "proc:metaballs:2@64")
-        return [(v, v.normalized_iso(default_iso(spec))) for spec in specs for v in [open_volume(spec)]]
-    out = []
-    for name in ("bonsai", "embryo"):
-        e = entry(name)
-        out.append((open_volume(str(e["path"])), e["otsu_iso_normalized"]))
-    out.append((upsampled(out[0][0], 4, device), out[0][1]))
+    sources = ("proc:cloud:1@64", "proc:metaballs:2@64") if smoke else ("shared:bonsai", "shared:embryo")
+    out = [(v, resolve_iso(source, v)) for source in sources for v in [open_volume(source)]]
+    if not smoke:
+        out.append((upsampled(out[0][0], 4, device), out[0][1]))
     return out
 
 
@@ -65,23 +60,27 @@ def bench_volume(volume: Volume, iso: float, device: str, smoke: bool) -> list[d
     ao_samples = 16 if smoke else 128
     renderer = Renderer(volume, device)
     path = orbit_path(FRAMES + 1, yaw0=20.0, yaw_step=3.0, pitch=20.0, distance=1.8)
+
+    def still(request: RenderRequest) -> list:
+        return [(camera, request) for camera in path]
+
+    # Per case, (camera, request) of each frame of the path; frame 0 is only the first previous camera.
     cases = {
-        "first hit": RenderRequest(hi_w, hi_h, iso, FIRST_HIT_OUTPUTS),
-        "first hit, no skipping": RenderRequest(hi_w, hi_h, iso, FIRST_HIT_OUTPUTS, skip=False),
-        f"AO {ao_samples}": RenderRequest(hi_w, hi_h, iso, FIRST_HIT_OUTPUTS + ("ao",), ao_samples=ao_samples,
-                                         ao_radius=AO_RADIUS),
-        "low-res": RenderRequest(lo_w, lo_h, iso, LOWRES_OUTPUTS, prev_camera=path[0]),
+        "first hit": still(RenderRequest(hi_w, hi_h, iso, FIRST_HIT_OUTPUTS)),
+        "first hit, no skipping": still(RenderRequest(hi_w, hi_h, iso, FIRST_HIT_OUTPUTS, skip=False)),
+        f"AO {ao_samples}": still(RenderRequest(hi_w, hi_h, iso, FIRST_HIT_OUTPUTS + ("ao",), ao_samples=ao_samples,
+                                               ao_radius=AO_RADIUS)),
+        "low-res": sequence_requests(path, lo_w, lo_h, iso, LOWRES_OUTPUTS),
     }
     rows = []
-    for case, request in cases.items():
-        def frame(i, request=request):
-            req = request if request.prev_camera is None else RenderRequest(
-                **{**request.__dict__, "prev_camera": path[i % FRAMES]})
-            renderer.render(path[i % FRAMES + 1], req)
+    for case, frames in cases.items():
+        def frame(i, frames=frames):
+            renderer.render(*frames[i % FRAMES + 1])
         t = time_frames(frame, FRAMES, device, warmup=1 if smoke else 3)
         if device.startswith("cuda"):
             t["kernel_ms"] = kernel_ms(frame, FRAMES, "render_kernel")
-        counts = count_samples(renderer, path[1], request)
+        request = frames[1][1]
+        counts = count_samples(renderer, frames[1][0], request)
         ms = t.get("gpu_ms", t["wall_ms"])
         rays = request.width * request.height
         rows.append({"volume": volume.name, "voxels": "x".join(map(str, volume.shape)), "case": case,
@@ -97,7 +96,7 @@ def bench_flow_fill(volume: Volume, iso: float, device: str, smoke: bool) -> lis
     """Dense-flow fills at the low-res size: OpenCV Navier-Stokes (CPU) against push-pull."""
     w, h = (80, 45) if smoke else (480, 270)
     path = orbit_path(2, yaw0=20.0, yaw_step=3.0, pitch=20.0, distance=1.8)
-    frame = Renderer(volume, device).render(path[1], RenderRequest(w, h, iso, ("mask", "flow"), prev_camera=path[0]))
+    frame = Renderer(volume, device).render(*sequence_requests(path, w, h, iso, ("mask", "flow"))[1])
     rows = []
     for method in ("ns", "pushpull"):
         t = time_frames(lambda i: fill_flow(frame.flow, frame.mask, method), FRAMES, device)

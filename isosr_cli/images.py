@@ -10,6 +10,7 @@ import torch
 
 from isosr_render.atomic import atomic_write
 from isosr_render.buffers import FrameBuffers
+from isosr_render.images import to_uint8
 
 
 def visualize(frame: FrameBuffers, name: str) -> np.ndarray:
@@ -33,7 +34,7 @@ def visualize(frame: FrameBuffers, name: str) -> np.ndarray:
         rgb = a[..., None].expand(*a.shape, 3)
     else:
         rgb = a
-    return (rgb.clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
+    return to_uint8(rgb)
 
 
 def write_png(path: Path, rgb: np.ndarray) -> None:

@@ -7,9 +7,7 @@ import sys
 
 import warp as wp
 
-wp.config.log_level = wp.LOG_WARNING  # before isosr_render imports: no banner on every command
-
-from isosr_render.volume import VolumeError  # noqa: E402
+from isosr_render.volume import VolumeError
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -29,11 +27,14 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Run a subcommand; bad input ends with a one-line error and exit code 2."""
     args = build_parser().parse_args(argv)
+    log_level, wp.config.log_level = wp.config.log_level, wp.LOG_WARNING  # no Warp banner on every command
     try:
         return args.func(args)
     except (VolumeError, ValueError, FileNotFoundError, RuntimeError) as e:
         print(f"isosr {args.command}: error: {e}", file=sys.stderr)
         return 2
+    finally:
+        wp.config.log_level = log_level
 
 
 if __name__ == "__main__":

@@ -109,6 +109,7 @@ def run_eval(args: argparse.Namespace) -> int:
 
 def run_upscale(args: argparse.Namespace) -> int:
     from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
+    from isosr_render.images import to_uint8
     from isosr_render.shading import shade
 
     frames = load_sequence(args.input)
@@ -123,8 +124,7 @@ def run_upscale(args: argparse.Namespace) -> int:
     save_sequence(outputs, args.output)
     if args.png:
         for t, out in enumerate(outputs):
-            color = shade(out.mask, out.normal, out.ao).cpu().numpy()
-            write_png(Path(args.png) / f"frame_{t:04d}.png", (color * 255 + 0.5).astype("uint8"))
+            write_png(Path(args.png) / f"frame_{t:04d}.png", to_uint8(shade(out.mask, out.normal, out.ao)))
     h, w = outputs[0].mask.shape
     print(f"upscaled {len(frames)} frames to {w}x{h} on {args.device} in {elapsed:.2f} s "
           f"({elapsed / len(frames) * 1e3:.1f} ms per frame) -> {args.output}")

@@ -8,9 +8,8 @@ from pathlib import Path
 
 import torch
 
-from isosr_render import Camera, Renderer, RenderRequest, open_volume, orbit
+from isosr_render import Camera, Renderer, RenderRequest, open_volume, orbit, resolve_iso
 from isosr_render.conventions import BUFFER_NAMES
-from isosr_render.procedural import default_iso
 from isosr_net.budget import BudgetConfig, render_within_budget
 from isosr_cli.images import visualize, write_png
 
@@ -42,8 +41,8 @@ def add_parser(subparsers) -> None:
     p = subparsers.add_parser("render", help="render one frame of an isosurface",
                               description=__doc__, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("volume", help="volume file (.nii[.gz], .nrrd, .nhdr, .dat, NAME_XxYxZ_DTYPE.raw[.gz], "
-                                  ".npy, .npz) or procedural spec (proc:sphere, proc:torus, proc:cloud:SEED, "
-                                  "proc:metaballs:SEED, optional @SIZE)")
+                                  ".npy, .npz), procedural spec (proc:sphere, proc:torus, proc:cloud:SEED, "
+                                  "proc:metaballs:SEED, optional @SIZE) or shared volume (shared:NAME)")
     p.add_argument("--iso", type=float, help="iso-value in data units (default: the procedural volume's own, "
                                              "else Otsu's threshold)")
     p.add_argument("--normalized-iso", action="store_true", help="--iso is on the normalized [0, 1] scale")
@@ -105,10 +104,7 @@ def run(args: argparse.Namespace) -> int:
         outputs = tuple(dict.fromkeys(outputs + (shown,)))
 
     volume = open_volume(args.volume)
-    if args.iso is None:
-        iso = volume.normalized_iso(default_iso(args.volume)) if args.volume.startswith("proc:") else volume.otsu_iso()
-    else:
-        iso = args.iso if args.normalized_iso else volume.normalized_iso(args.iso)
+    iso = resolve_iso(args.volume, volume, args.iso, args.normalized_iso)
     unit = volume.voxel_size_world() if args.voxel_units else 1.0
     camera = _camera(args.orbit, args.eye, args.target, args.up, args.fov)
     prev = None

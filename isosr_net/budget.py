@@ -38,8 +38,9 @@ from dataclasses import dataclass, field
 import torch
 
 from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest, orbit_path
+from isosr_render.sequence import sequence_cameras
 from isosr_render.shading import ShadingParams, shade
-from isosr_net.frame_methods import AO_RADIUS, FrameMethod, FrameRunner, run_sequence, sequence_cameras
+from isosr_net.frame_methods import AO_RADIUS, FrameMethod, FrameRunner, run_sequence
 from isosr_net.metrics import eval_region, masked_psnr
 
 # Color PSNR of no-AO against many-ray AO above which a scene gets no AO rays (see above).

@@ -22,9 +22,10 @@ from tqdm import tqdm
 
 from isosr_render import Renderer, RenderRequest, Volume, open_volume, orbit
 from isosr_render.atomic import atomic_write
-from isosr_render.catalog import entry
+from isosr_render.catalog import SHARED_PREFIX, entry, resolve_iso
 from isosr_render.conventions import HIGHRES_BUFFERS, LOWRES_BUFFERS
-from isosr_render.procedural import default_iso
+from isosr_render.sequence import sequence_requests
+from isosr_net.batch import FIELDS, SequenceBatch
 
 MANIFEST = "manifest.json"
 # Config fields a folder may be extended with: more sequences, another device (same data).
@@ -78,14 +79,9 @@ class DatagenConfig:
 
 def resolve_volume(spec: str) -> tuple[Volume, str, float]:
     """``(volume, split, reference normalized iso)`` for a procedural or ``shared:NAME`` spec."""
-    if spec.startswith("shared:"):
-        e = entry(spec.split(":", 1)[1])
-        return open_volume(str(e["path"])), e["split"], float(e["otsu_iso_normalized"])
-    if spec.startswith("proc:"):
-        volume = open_volume(spec)
-        return volume, "train", volume.normalized_iso(default_iso(spec))
     volume = open_volume(spec)
-    return volume, "train", volume.otsu_iso()
+    split = entry(spec.removeprefix(SHARED_PREFIX))["split"] if spec.startswith(SHARED_PREFIX) else "train"
+    return volume, split, resolve_iso(spec, volume)
 
 
 def camera_path(rng: np.random.Generator, frames: int) -> list:
@@ -114,33 +110,43 @@ def pick_crops(mask: np.ndarray, crop: int, count: int, min_coverage: float, rng
     return [(int(rows[i]), int(cols[i])) for i in chosen]
 
 
-def render_sequence(renderer: Renderer, cameras: list, iso: float, config: DatagenConfig, seed: int) -> dict:
-    """Full-frame low-res inputs and high-res ground truth of one sequence, channels-first.
+def render_sequence(renderer: Renderer, cameras: list, iso: float, config: DatagenConfig,
+                    seed: int) -> SequenceBatch:
+    """Full-frame low-res inputs and high-res ground truth of one sequence, on the CPU.
 
-    Returns:
-        numpy arrays ``lowres`` (T, 5, h, w), ``flow`` (T, 2, h, w) (zeros on frame 0) and
-        ``highres`` (T, 6, H, W).
+    Shape:
+        Returns lowres (T, 5, h, w), flow (T, 2, h, w) (zeros on frame 0), highres (T, 6, H, W).
     """
     n, s = config.lowres_size, config.upscale
     lowres, flows, highres = [], [], []
-    for t, camera in enumerate(cameras):
-        outputs = LOWRES_BUFFERS + (("flow",) if t else ())
-        lo = renderer.render(camera, RenderRequest(n, n, iso, outputs, prev_camera=cameras[t - 1] if t else None))
+    for t, (camera, request) in enumerate(sequence_requests(cameras, n, n, iso, LOWRES_BUFFERS + ("flow",))):
+        lo = renderer.render(camera, request)
         hi = renderer.render(camera, RenderRequest(n * s, n * s, iso, HIGHRES_BUFFERS, spp=config.spp,
                                                    ao_samples=config.ao_samples, ao_radius=config.ao_radius,
                                                    seed=seed + t))
-        lowres.append(lo.channels_first(LOWRES_BUFFERS).cpu().numpy())
-        flows.append(lo.flow.permute(2, 0, 1).cpu().numpy() if t else np.zeros((2, n, n), np.float32))
-        highres.append(hi.channels_first(HIGHRES_BUFFERS).cpu().numpy())
-    return {"lowres": np.stack(lowres), "flow": np.stack(flows), "highres": np.stack(highres)}
+        lowres.append(lo.channels_first(LOWRES_BUFFERS).cpu())
+        flows.append(torch.zeros(2, n, n) if lo.flow is None else lo.flow.permute(2, 0, 1).cpu())
+        highres.append(hi.channels_first(HIGHRES_BUFFERS).cpu())
+    return SequenceBatch(torch.stack(lowres), torch.stack(flows), torch.stack(highres))
 
 
-def _cut(frames: np.ndarray, corners: list, size: int, scale: int = 1) -> np.ndarray:
+def _cut(frames: torch.Tensor, corners: list, size: int, scale: int = 1) -> torch.Tensor:
     """The crops at low-res ``corners`` of a (T, C, H, W) stack at ``scale`` times low-res: (K, T, C, k, k)."""
     k = size * scale
     if not corners:
-        return np.zeros((0, *frames.shape[:2], k, k), frames.dtype)
-    return np.stack([frames[:, :, r * scale:r * scale + k, q * scale:q * scale + k] for r, q in corners])
+        return frames.new_zeros((0, *frames.shape[:2], k, k))
+    return torch.stack([frames[:, :, r * scale:r * scale + k, q * scale:q * scale + k] for r, q in corners])
+
+
+def crops(sequence: SequenceBatch, corners: list, size: int, upscale: int) -> SequenceBatch:
+    """The crops of one sequence at low-res ``corners``, ``size`` low-res pixels wide, as a batch.
+
+    Shape:
+        sequence: lowres (T, 5, h, w), ... Returns lowres (K, T, 5, size, size), flow (K, T, 2,
+        size, size), highres (K, T, 6, size * upscale, size * upscale).
+    """
+    return SequenceBatch(_cut(sequence.lowres, corners, size), _cut(sequence.flow, corners, size),
+                         _cut(sequence.highres, corners, size, upscale))
 
 
 def _slug(spec: str) -> str:
@@ -181,10 +187,10 @@ def generate(config: DatagenConfig, out: str | Path, progress: bool = True) -> d
         iso = float(np.clip(iso_ref * rng.uniform(1 - config.iso_jitter, 1 + config.iso_jitter), 1e-3, 1 - 1e-3))
         frames = render_sequence(renderer, camera_path(rng, config.frames), iso, config,
                                  seed=int(rng.integers(2**31 - config.frames)))
-        corners = pick_crops(frames["lowres"][:, 0], config.crop, config.crops, config.min_coverage, rng)
-        tensors = {"lowres": torch.from_numpy(_cut(frames["lowres"], corners, config.crop)).half(),
-                   "flow": torch.from_numpy(_cut(frames["flow"], corners, config.crop)).float(),
-                   "highres": torch.from_numpy(_cut(frames["highres"], corners, config.crop, config.upscale)).half()}
+        corners = pick_crops(frames.lowres[:, 0].numpy(), config.crop, config.crops, config.min_coverage, rng)
+        cut = crops(frames, corners, config.crop, config.upscale)
+        # Stored in float16, the flow in float32 (sub-pixel motion over tens of pixels).
+        tensors = {"lowres": cut.lowres.half(), "flow": cut.flow.float(), "highres": cut.highres.half()}
         name = f"shards/{_slug(spec)}_{k:04d}.safetensors"
         data = save({key: t.contiguous() for key, t in tensors.items()})
         atomic_write(out / name, lambda f: f.write(data))
@@ -195,9 +201,10 @@ def generate(config: DatagenConfig, out: str | Path, progress: bool = True) -> d
 
 
 class SequenceDataset(torch.utils.data.Dataset):
-    """The crops of one split, held in memory, as float32 sequences.
+    """The crops of one split, held in memory (as stored: float16, flow float32).
 
-    Items: dict with ``lowres`` (T, 5, c, c), ``flow`` (T, 2, c, c), ``highres`` (T, 6, C, C).
+    Items: float32 :class:`SequenceBatch` sequences, lowres (T, 5, c, c), flow (T, 2, c, c),
+    highres (T, 6, C, C); :meth:`batch` gives several at once.
     """
 
     def __init__(self, root: str | Path, split: str):
@@ -211,17 +218,21 @@ class SequenceDataset(torch.utils.data.Dataset):
         if not shards:
             raise ValueError(f"{root}: no crops of split {split!r}; splits there: "
                              f"{sorted({s['split'] for s in manifest['shards']})}")
-        parts = [load_file(root / s["file"]) for s in shards]
-        self.tensors = {k: torch.cat([p[k] for p in parts]) for k in ("lowres", "flow", "highres")}
+        self.crops = SequenceBatch.cat([SequenceBatch(*(load_file(root / s["file"])[k] for k in FIELDS))
+                                        for s in shards])
         self.volumes = [s["volume"] for s in shards for _ in range(s["crops"])]
 
     def to(self, device: str | torch.device) -> "SequenceDataset":
         """Move the crops (kept in float16) to ``device``; returns self."""
-        self.tensors = {k: t.to(device) for k, t in self.tensors.items()}
+        self.crops = self.crops.to(device)
         return self
 
     def __len__(self) -> int:
         return len(self.volumes)
 
-    def __getitem__(self, i: int) -> dict:
-        return {k: t[i].float() for k, t in self.tensors.items()}
+    def __getitem__(self, i: int) -> SequenceBatch:
+        return self.crops.apply(lambda t: t[i]).float()
+
+    def batch(self, index: torch.Tensor | slice) -> SequenceBatch:
+        """The float32 crops at ``index`` (an index tensor or a slice), as a batch."""
+        return self.crops[index].float()

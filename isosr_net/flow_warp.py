@@ -12,12 +12,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-
-def _check(image: torch.Tensor, flow: torch.Tensor) -> None:
-    if image.ndim != 4:
-        raise ValueError(f"image must be (B, C, H, W), got shape {tuple(image.shape)}")
-    if flow.ndim != 4 or flow.shape[1] != 2 or flow.shape[0] != image.shape[0] or flow.shape[2:] != image.shape[2:]:
-        raise ValueError(f"flow must be (B, 2, H, W) matching image {tuple(image.shape)}, got {tuple(flow.shape)}")
+from isosr_render.shapes import check_shape
 
 
 def warp_by_flow(image: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
@@ -26,7 +21,8 @@ def warp_by_flow(image: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
     Shape:
         image: (B, C, H, W). flow: (B, 2, H, W), pixels. Returns (B, C, H, W).
     """
-    _check(image, flow)
+    dims = check_shape(image, "(B, C, H, W)", "image", "warp_by_flow")
+    check_shape(flow, "(B, 2, H, W)", "flow", "warp_by_flow", dims)
     _, _, h, w = image.shape
     ys = torch.arange(h, device=flow.device, dtype=flow.dtype) + 0.5
     xs = torch.arange(w, device=flow.device, dtype=flow.dtype) + 0.5
@@ -44,7 +40,6 @@ def upscale_flow(flow: torch.Tensor, factor: int) -> torch.Tensor:
     Shape:
         flow: (B, 2, H, W). Returns (B, 2, H * factor, W * factor).
     """
-    if flow.ndim != 4 or flow.shape[1] != 2:
-        raise ValueError(f"flow must be (B, 2, H, W), got shape {tuple(flow.shape)}")
+    check_shape(flow, "(B, 2, H, W)", "flow", "upscale_flow")
     return F.interpolate(flow, scale_factor=factor, mode="bilinear", align_corners=False) * factor
 

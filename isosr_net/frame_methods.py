@@ -22,6 +22,7 @@ import torch
 from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest
 from isosr_render.conventions import LOWRES_BUFFERS
 from isosr_render.renderer import MAX_AO_SAMPLES, MAX_SPP
+from isosr_render.sequence import sequence_cameras
 from isosr_render.shading import ShadingParams, shade, shade_channels_first
 from isosr_net.atrous import ATrousConfig, atrous_filter
 from isosr_net.metrics import upscale_baseline
@@ -174,11 +175,6 @@ class FrameRunner:
         high = highres_frame(self.upscaler.step(*lowres_tensors(low)))
         high.color = shade(high.mask, high.normal, high.ao, self.shading)
         return high
-
-
-def sequence_cameras(cameras: list[Camera]) -> list[tuple[Camera, Camera | None]]:
-    """``(camera, previous camera)`` pairs of a camera path, the first without a previous one."""
-    return list(zip(cameras, [None] + cameras[:-1]))
 
 
 def run_sequence(runner: FrameRunner, cameras: list[Camera]) -> list[FrameBuffers]:

@@ -10,7 +10,8 @@ Losses
     ``channel``      L1 / L2 on one output: ``mask`` over all pixels (the alpha is learned
                      everywhere), ``normal``, ``depth`` and ``ao`` over the ground truth's
                      surface pixels, ``color`` on the shaded images over all pixels.
-    ``perceptual``   L1 / L2 between VGG-19 features of the shaded prediction and ground truth.
+    ``perceptual``   L1 / L2 between VGG-19 features of the shaded prediction and ground truth
+                     (the networks are in :mod:`isosr_net.architectures`).
     ``temporal``     masked L2 between the output and the previous output warped to this frame.
     ``adversarial``  spatio-temporal conditional GAN (TecoGAN style): the discriminator sees the
                      current frame, the previous frame warped to it and the upsampled low-res
@@ -51,14 +52,13 @@ from torch import nn
 
 from isosr_render.conventions import AO, DEPTH, HIGHRES_CHANNELS, LOWRES_CHANNELS, MASK, NORMAL
 from isosr_render.shading import shade_channels_first
+from isosr_render.shapes import check_shape
+from isosr_net.architectures import (IMAGENET_MEAN, IMAGENET_STD, VGG19_LAYERS, SpatioTemporalDiscriminator,
+                                     load_vgg19_features)
 
 _EPS = 1e-8
 _HIGHRES = len(HIGHRES_CHANNELS)
 _LOWRES = len(LOWRES_CHANNELS)
-
-
-def _shape(x: torch.Tensor) -> tuple[int, ...]:
-    return tuple(x.shape)
 
 
 @dataclass
@@ -76,28 +76,21 @@ class LossContext:
     prev_target_warped: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
-        if self.pred.ndim != 4 or self.pred.shape[1] != _HIGHRES:
-            raise ValueError(f"LossContext: pred must be (B, {_HIGHRES}, H, W), got {_shape(self.pred)}")
+        dims = check_shape(self.pred, f"(B, {_HIGHRES}, H, W)", "pred", "LossContext")
         for name in ("target", "prev_warped", "prev_target_warped"):
             x = getattr(self, name)
-            if x is not None and x.shape != self.pred.shape:
-                raise ValueError(f"LossContext: {name} must have pred's shape {_shape(self.pred)}, "
-                                 f"got {_shape(x)}")
+            if x is not None:
+                check_shape(x, f"(B, {_HIGHRES}, H, W)", name, "LossContext", dims)
         if self.lowres_up is not None:
-            b, _, h, w = self.pred.shape
-            if self.lowres_up.shape != (b, _LOWRES, h, w):
-                raise ValueError(f"LossContext: lowres_up must be {(b, _LOWRES, h, w)}, "
-                                 f"got {_shape(self.lowres_up)}")
+            check_shape(self.lowres_up, f"(B, {_LOWRES}, H, W)", "lowres_up", "LossContext", dims)
 
 
 def _masked_error(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, channels: slice,
                   error: Callable[[torch.Tensor], torch.Tensor], name: str) -> torch.Tensor:
-    if pred.ndim != 4 or pred.shape != target.shape:
-        raise ValueError(f"{name}: pred and target must be (B, C, H, W) of one shape, "
-                         f"got {_shape(pred)} and {_shape(target)}")
-    b, c, h, w = pred.shape
-    if mask.shape != (b, 1, h, w):
-        raise ValueError(f"{name}: mask must be {(b, 1, h, w)}, got {_shape(mask)}")
+    dims = check_shape(pred, "(B, C, H, W)", "pred", name)
+    check_shape(target, "(B, C, H, W)", "target", name, dims)
+    check_shape(mask, "(B, 1, H, W)", "mask", name, dims)
+    c = dims["C"]
     if len(range(c)[channels]) == 0:
         raise ValueError(f"{name}: channels {channels} select nothing of {c} channels")
     per_pixel = error(pred[:, channels] - target[:, channels]).mean(dim=1, keepdim=True)
@@ -182,82 +175,6 @@ class ChannelLoss(nn.Module):
         return self.weight * loss
 
 
-# VGG-19 "features" as torchvision numbers it: conv (+ ReLU) per int, max-pool per "M".
-_VGG19_CFG: tuple[int | str, ...] = (64, 64, "M", 128, 128, "M", 256, 256, 256, 256, "M",
-                                     512, 512, 512, 512, "M", 512, 512, 512, 512, "M")
-_IMAGENET_MEAN = (0.485, 0.456, 0.406)
-_IMAGENET_STD = (0.229, 0.224, 0.225)
-
-
-def _vgg19_layer_index() -> dict[str, int]:
-    """``"relu{block}_{conv}"`` -> index of that ReLU in the features ``nn.Sequential``."""
-    names, index, block, conv = {}, 0, 1, 0
-    for item in _VGG19_CFG:
-        if item == "M":
-            block, conv, index = block + 1, 0, index + 1
-        else:
-            conv += 1
-            names[f"relu{block}_{conv}"] = index + 1
-            index += 2
-    return names
-
-
-VGG19_LAYERS = _vgg19_layer_index()
-
-
-def vgg19_features() -> nn.Sequential:
-    """VGG-19's convolutional part, indexed like torchvision's ``vgg19().features``."""
-    layers: list[nn.Module] = []
-    channels = 3
-    for item in _VGG19_CFG:
-        if item == "M":
-            layers.append(nn.MaxPool2d(kernel_size=2, stride=2))
-        else:
-            layers += [nn.Conv2d(channels, int(item), kernel_size=3, padding=1), nn.ReLU(inplace=True)]
-            channels = int(item)
-    return nn.Sequential(*layers)
-
-
-def load_vgg19_features(path: str | Path) -> nn.Sequential:
-    """VGG-19 features with weights from ``path``, frozen and in eval mode.
-
-    The file holds a state dict (``.safetensors``, or ``.pt`` / ``.pth`` saved with
-    ``torch.save``), either of the features alone or of a whole torchvision ``vgg19`` (its
-    ``features.`` keys are used, the classifier is ignored).
-
-    Raises:
-        FileNotFoundError: no file at ``path``.
-        ValueError: keys missing, unexpected or of the wrong shape.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(
-            f"VGG-19 weights not found at '{path}'. The perceptual loss needs ImageNet-trained "
-            "VGG-19 weights: save torchvision's vgg19(weights='IMAGENET1K_V1').state_dict() "
-            f"(or its .features part) as .safetensors or .pt at '{path}', or point the loss's "
-            "weights_path at such a file.")
-    if path.suffix == ".safetensors":
-        from safetensors.torch import load_file
-        state = load_file(str(path))
-    else:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
-        raise ValueError(f"VGG-19 weights '{path}': expected a state dict of tensors")
-    if any(k.startswith("features.") for k in state):
-        state = {k.removeprefix("features."): v for k, v in state.items() if k.startswith("features.")}
-    model = vgg19_features()
-    expected = model.state_dict()
-    missing = sorted(set(expected) - set(state))
-    unexpected = sorted(set(state) - set(expected))
-    mismatched = sorted(f"{k} {_shape(state[k])} != {_shape(expected[k])}"
-                        for k in set(expected) & set(state) if state[k].shape != expected[k].shape)
-    if missing or unexpected or mismatched:
-        raise ValueError(f"VGG-19 weights '{path}' do not fit VGG-19 features: missing keys {missing}, "
-                         f"unexpected keys {unexpected}, shape mismatches {mismatched}")
-    model.load_state_dict(state)
-    return model.requires_grad_(False).eval()
-
-
 class PerceptualLoss(nn.Module):
     """Weighted L1 / L2 between VGG-19 features of the shaded prediction and ground truth.
 
@@ -285,8 +202,8 @@ class PerceptualLoss(nn.Module):
         self.taps = sorted({VGG19_LAYERS[layer] for layer in layers})
         # Only the layers up to the deepest tap are kept.
         self.vgg = load_vgg19_features(weights_path)[: self.taps[-1] + 1]
-        self.register_buffer("mean", torch.tensor(_IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("std", torch.tensor(_IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
 
     def train(self, mode: bool = True) -> PerceptualLoss:
         super().train(mode)
@@ -330,39 +247,6 @@ class TemporalLoss(nn.Module):
         if ctx.prev_warped is None:
             return ctx.pred.new_zeros(())
         return self.weight * masked_l2(ctx.pred, ctx.prev_warped, ctx.target[:, MASK])
-
-
-class SpatioTemporalDiscriminator(nn.Module):
-    """Small patch discriminator on [frame, previous frame warped, low-res condition].
-
-    Spectrally normalized convolutions with LeakyReLU, three of them with stride 2.
-
-    Args:
-        in_channels: input channels, 6 + 6 + 5 = 17 by default.
-        base: channels of the first layer; deeper layers use 2x and 4x.
-
-    Shape:
-        Input (B, in_channels, H, W). Output (B, 1, H/8, W/8) logits (H, W divisible by 8).
-    """
-
-    def __init__(self, in_channels: int = 2 * _HIGHRES + _LOWRES, base: int = 32) -> None:
-        super().__init__()
-        if in_channels < 1 or base < 1:
-            raise ValueError(f"in_channels and base must be >= 1, got {in_channels} and {base}")
-        sn = nn.utils.parametrizations.spectral_norm
-        widths = (base, 2 * base, 4 * base, 4 * base)
-        layers: list[nn.Module] = [sn(nn.Conv2d(in_channels, base, 3, padding=1)), nn.LeakyReLU(0.2)]
-        for c_in, c_out in zip(widths[:-1], widths[1:]):
-            layers += [sn(nn.Conv2d(c_in, c_out, 4, stride=2, padding=1)), nn.LeakyReLU(0.2)]
-        layers.append(sn(nn.Conv2d(widths[-1], 1, 3, padding=1)))
-        self.net = nn.Sequential(*layers)
-        self.in_channels = in_channels
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if x.ndim != 4 or x.shape[1] != self.in_channels:
-            raise ValueError(f"SpatioTemporalDiscriminator: input must be (B, {self.in_channels}, H, W), "
-                             f"got {_shape(x)}")
-        return self.net(x)
 
 
 @contextmanager

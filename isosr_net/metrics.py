@@ -17,8 +17,9 @@ import torch.nn.functional as F
 from torch import Tensor
 from torchmetrics.functional.image import structural_similarity_index_measure
 
-from isosr_render.conventions import AO, DEPTH, HIGHRES_CHANNELS, LOWRES_CHANNELS, MASK, NORMAL
+from isosr_render.conventions import AO, DEPTH, MASK, NORMAL
 from isosr_render.shading import shade_channels_first
+from isosr_render.shapes import check_shape
 
 # Floor of the mean squared error in PSNR: identical images score 100 dB at data range 1.
 MSE_FLOOR = 1e-10
@@ -26,18 +27,12 @@ MSE_FLOOR = 1e-10
 SSIM_WINDOW = 11
 
 
-def _check_shape(fn: str, name: str, x: Tensor, shape: str, ndim: int, channels: tuple[int, ...] = ()) -> None:
-    """Raise ValueError naming ``fn``, ``name`` and ``x``'s shape unless it has ``ndim`` dims and
-    (if given) one of ``channels`` channels in dim ``ndim - 3``."""
-    if x.ndim != ndim or (channels and x.shape[ndim - 3] not in channels):
-        raise ValueError(f"{fn}: {name} must be {shape}, got {tuple(x.shape)}")
-
-
-def _check_region(fn: str, image: Tensor, mask: Tensor) -> None:
-    """Raise ValueError unless ``mask`` is (B, 1, H, W) for ``image`` (B, C, H, W)."""
-    b, _, h, w = image.shape
-    if mask.shape != (b, 1, h, w):
-        raise ValueError(f"{fn}: mask must be {(b, 1, h, w)} (B, 1, H, W), got {tuple(mask.shape)}")
+def _check_pair(fn: str, pred: Tensor, target: Tensor, mask: Tensor | None = None) -> None:
+    """Raise ValueError unless ``pred`` is (B, C, H, W), ``target`` its shape and ``mask`` (B, 1, H, W)."""
+    dims = check_shape(pred, "(B, C, H, W)", "pred", fn)
+    check_shape(target, "(B, C, H, W)", "target", fn, dims)
+    if mask is not None:
+        check_shape(mask, "(B, 1, H, W)", "mask", fn, dims)
 
 
 def _masked_mean(values: Tensor, region: Tensor) -> Tensor:
@@ -61,10 +56,8 @@ def eval_region(pred_mask: Tensor, target_mask: Tensor) -> Tensor:
     Shape:
         pred_mask, target_mask: (B, 1, H, W). Returns (B, 1, H, W).
     """
-    _check_shape("eval_region", "pred_mask", pred_mask, "(B, 1, H, W)", 4, (1,))
-    if target_mask.shape != pred_mask.shape:
-        raise ValueError(f"eval_region: target_mask must have pred_mask's shape {tuple(pred_mask.shape)}, "
-                         f"got {tuple(target_mask.shape)}")
+    dims = check_shape(pred_mask, "(B, 1, H, W)", "pred_mask", "eval_region")
+    check_shape(target_mask, "(B, 1, H, W)", "target_mask", "eval_region", dims)
     return (pred_mask > 0.5) | (target_mask > 0.5)
 
 
@@ -86,10 +79,7 @@ def masked_psnr(pred: Tensor, target: Tensor, mask: Tensor, data_range: float = 
     Shape:
         pred, target: (B, C, H, W). mask: (B, 1, H, W). Returns (B,).
     """
-    _check_shape("masked_psnr", "pred", pred, "(B, C, H, W)", 4)
-    if target.shape != pred.shape:
-        raise ValueError(f"masked_psnr: target must have pred's shape {tuple(pred.shape)}, got {tuple(target.shape)}")
-    _check_region("masked_psnr", pred, mask)
+    _check_pair("masked_psnr", pred, target, mask)
     mse = _masked_mean((pred - target).square(), mask > 0.5)
     return 10.0 * torch.log10(data_range ** 2 / mse.clamp_min(MSE_FLOOR))
 
@@ -111,13 +101,10 @@ def masked_ssim(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
     Shape:
         pred, target: (B, C, H, W) with H, W >= 11. mask: (B, 1, H, W). Returns (B,).
     """
-    _check_shape("masked_ssim", "pred", pred, "(B, C, H, W)", 4)
+    _check_pair("masked_ssim", pred, target, mask)
     if pred.shape[-2] < SSIM_WINDOW or pred.shape[-1] < SSIM_WINDOW:
         raise ValueError(f"masked_ssim: pred must be at least {SSIM_WINDOW}x{SSIM_WINDOW} (the SSIM window), "
                          f"got {tuple(pred.shape)}")
-    if target.shape != pred.shape:
-        raise ValueError(f"masked_ssim: target must have pred's shape {tuple(pred.shape)}, got {tuple(target.shape)}")
-    _check_region("masked_ssim", pred, mask)
     _, ssim_map = structural_similarity_index_measure(pred, target, gaussian_kernel=True, sigma=1.5,
                                                       kernel_size=SSIM_WINDOW, data_range=1.0,
                                                       reduction="none", return_full_image=True)
@@ -144,7 +131,7 @@ def upscale_baseline(lowres: Tensor, factor: int,
     Shape:
         lowres: (B, 5, H, W). Returns (B, 6, H * factor, W * factor).
     """
-    _check_shape("upscale_baseline", "lowres", lowres, "(B, 5, H, W)", 4, (len(LOWRES_CHANNELS),))
+    check_shape(lowres, "(B, 5, H, W)", "lowres", "upscale_baseline")
     if isinstance(factor, bool) or not isinstance(factor, int) or factor < 1:
         raise ValueError(f"upscale_baseline: factor must be an integer >= 1, got {factor!r}")
     if mode not in ("nearest", "bilinear", "bicubic"):
@@ -178,9 +165,8 @@ def frame_scores(pred: Tensor, target: Tensor) -> dict[str, Tensor]:
     Shape:
         pred, target: (B, 6, H, W) with H, W >= 11. Each score: (B,).
     """
-    _check_shape("frame_scores", "pred", pred, "(B, 6, H, W)", 4, (len(HIGHRES_CHANNELS),))
-    if target.shape != pred.shape:
-        raise ValueError(f"frame_scores: target must have pred's shape {tuple(pred.shape)}, got {tuple(target.shape)}")
+    dims = check_shape(pred, "(B, 6, H, W)", "pred", "frame_scores")
+    check_shape(target, "(B, 6, H, W)", "target", "frame_scores", dims)
     region = eval_region(pred[:, MASK], target[:, MASK])
     color_pred, color_target = shade_channels_first(pred), shade_channels_first(target)
     target_region = target[:, MASK] > 0.5
@@ -216,13 +202,11 @@ def temporal_instability(outputs: Tensor, flows_hr: Tensor, warp_fn: Callable[[T
     Shape:
         outputs: (T, B, 6, H, W) with T >= 2. flows_hr: (T, B, 2, H, W). Returns (B,).
     """
-    _check_shape("temporal_instability", "outputs", outputs, "(T, B, 6, H, W)", 5, (len(HIGHRES_CHANNELS),))
-    t_len, b, _, h, w = outputs.shape
+    dims = check_shape(outputs, "(T, B, 6, H, W)", "outputs", "temporal_instability")
+    check_shape(flows_hr, "(T, B, 2, H, W)", "flows_hr", "temporal_instability", dims)
+    t_len, b = dims["T"], dims["B"]
     if t_len < 2:
         raise ValueError(f"temporal_instability: outputs needs T >= 2 frames, got {tuple(outputs.shape)}")
-    if flows_hr.shape != (t_len, b, 2, h, w):
-        raise ValueError(f"temporal_instability: flows_hr must be {(t_len, b, 2, h, w)} (T, B, 2, H, W), "
-                         f"got {tuple(flows_hr.shape)}")
     color = shade_channels_first(outputs.flatten(0, 1)).unflatten(0, (t_len, b))
     alpha = outputs[:, :, MASK]
     steps = []

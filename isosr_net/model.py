@@ -7,8 +7,9 @@ input; ambient occlusion is inferred from scratch. Channel orders:
 :data:`isosr_render.conventions.LOWRES_CHANNELS` / ``HIGHRES_CHANNELS``.
 
 A checkpoint is a folder that describes itself: ``model.safetensors`` beside
-``config.json`` (the model's config under ``"model"``, plus whatever the trainer adds:
-training config, validation metrics).
+``config.json`` (its ``"format_version"``, the model's config under ``"model"``, plus
+whatever the trainer adds: training config, validation metrics). Files written before the
+version was recorded read as version 1.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -26,11 +28,16 @@ from torch import nn
 
 from isosr_render.atomic import atomic_write
 from isosr_render.conventions import AO, DEPTH, HIGHRES_CHANNELS, LOWRES_CHANNELS, MASK, NORMAL
+from isosr_render.shapes import check_shape
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
 
 LOWRES = len(LOWRES_CHANNELS)
 HIGHRES = len(HIGHRES_CHANNELS)
 FIRST_FRAME_MODES = ("zeros", "upsampled")
+# The layout of config.json this code writes and reads; files without the key are version 1.
+FORMAT_VERSION = 1
+# A training checkpoint's optimizer state, step and the like, beside the model (torch.save).
+TRAINING_STATE = "training_state.pt"
 
 
 @dataclass(frozen=True)
@@ -91,11 +98,8 @@ class SRNet(nn.Module):
 
     def forward(self, lowres: torch.Tensor, prev_warped: torch.Tensor) -> torch.Tensor:
         s = self.config.upscale
-        if lowres.ndim != 4 or lowres.shape[1] != LOWRES:
-            raise ValueError(f"lowres must be (B, {LOWRES}, h, w), got {tuple(lowres.shape)}")
-        b, _, h, w = lowres.shape
-        if prev_warped.shape != (b, HIGHRES, h * s, w * s):
-            raise ValueError(f"prev_warped must be {(b, HIGHRES, h * s, w * s)}, got {tuple(prev_warped.shape)}")
+        dims = check_shape(lowres, f"(B, {LOWRES}, h, w)", "lowres", "SRNet")
+        check_shape(prev_warped, f"(B, {HIGHRES}, {dims['h'] * s}, {dims['w'] * s})", "prev_warped", "SRNet", dims)
         x = torch.cat([lowres, F.pixel_unshuffle(prev_warped, s)], dim=1)
         x = F.relu(self.head(x))
         raw = self.tail(self.upsample_features(self.body(x)))
@@ -142,6 +146,31 @@ class SRNet(nn.Module):
         return self(lowres, warped), warped
 
 
+class Unrolled(nn.Module):
+    """The recurrent network run over whole sequences: one forward per step, as DDP expects.
+
+    The first frame has no previous frame: its flow slot is not read (see
+    :class:`isosr_net.batch.SequenceBatch`).
+
+    Shape:
+        lowres: (B, T, 5, h, w). flow: (B, T, 2, h, w). Returns outputs and warped previous
+        outputs, each (B, T, 6, H, W).
+    """
+
+    def __init__(self, net: nn.Module):
+        super().__init__()
+        self.net = net
+
+    def forward(self, lowres: torch.Tensor, flow: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        outputs, warped, previous = [], [], None
+        for t in range(lowres.shape[1]):
+            out, prev_warped = self.net.step(lowres[:, t], flow[:, t] if t else None, previous)
+            outputs.append(out)
+            warped.append(prev_warped)
+            previous = out
+        return torch.stack(outputs, 1), torch.stack(warped, 1)
+
+
 MODELS = {"SRNet": (SRNet, SRNetConfig)}
 
 
@@ -158,13 +187,99 @@ def build_model(config: dict) -> nn.Module:
 
 
 def save_pretrained(model: nn.Module, folder: str | os.PathLike, extra: dict | None = None) -> None:
-    """Write ``model.safetensors`` and ``config.json`` (the model config plus ``extra``) into ``folder``."""
+    """Write ``model.safetensors`` and ``config.json`` (format version, model config, ``extra``) into ``folder``.
+
+    Raises:
+        ValueError: ``extra`` names ``format_version`` or ``model``.
+    """
+    reserved = sorted({"format_version", "model"} & set(extra or {}))
+    if reserved:
+        raise ValueError(f"save_pretrained: extra may not set {reserved}")
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().float().cpu().contiguous() for k, v in model.state_dict().items()}
     atomic_write(folder / "model.safetensors", lambda f: f.write(save(state)))
-    config = {"model": asdict(model.config), **(extra or {})}
+    config = {"format_version": FORMAT_VERSION, "model": asdict(model.config), **(extra or {})}
     atomic_write(folder / "config.json", lambda f: f.write(json.dumps(config, indent=1).encode()))
+
+
+@dataclass
+class Checkpoint:
+    """A training checkpoint as :func:`load_checkpoint` found it.
+
+    Attributes:
+        folder: where it was read (the asked folder, or its ``.old`` twin).
+        model: the network, in eval mode.
+        config: its ``config.json``.
+        state: the training state saved with it.
+    """
+
+    folder: Path
+    model: nn.Module
+    config: dict
+    state: dict
+
+
+def save_checkpoint(model: nn.Module, folder: str | os.PathLike, extra: dict | None = None,
+                    training_state: dict | None = None) -> None:
+    """Write a model folder whole or not at all, with ``training_state`` beside it when given.
+
+    The folder is written beside the target (``.NAME.tmp``), then swapped in; during the swap
+    the previous one is ``NAME.old``, which :func:`load_checkpoint` falls back to.
+
+    Args:
+        model: the network.
+        folder: the checkpoint folder, e.g. ``run/last``.
+        extra: more ``config.json`` entries (see :func:`save_pretrained`).
+        training_state: what resuming needs (optimizer state, step), saved with ``torch.save``.
+    """
+    folder = Path(folder)
+    tmp, old = folder.with_name(f".{folder.name}.tmp"), folder.with_name(f"{folder.name}.old")
+    shutil.rmtree(tmp, ignore_errors=True)
+    save_pretrained(model, tmp, extra)
+    if training_state is not None:
+        torch.save(training_state, tmp / TRAINING_STATE)
+    if folder.exists():
+        shutil.rmtree(old, ignore_errors=True)
+        folder.rename(old)
+    tmp.rename(folder)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def load_checkpoint(folder: str | os.PathLike, device: str | torch.device = "cpu") -> Checkpoint | None:
+    """The training checkpoint :func:`save_checkpoint` left at ``folder``, or at ``folder.old``
+    (a swap that was cut off); None where neither holds a training state."""
+    folder = Path(folder)
+    for candidate in (folder, folder.with_name(f"{folder.name}.old")):
+        if (candidate / TRAINING_STATE).is_file():
+            model, config = load_pretrained(candidate, device)
+            state = torch.load(candidate / TRAINING_STATE, map_location=device, weights_only=True)
+            return Checkpoint(candidate, model, config, state)
+    return None
+
+
+def read_config(folder: str | os.PathLike) -> dict:
+    """A model folder's ``config.json``, its format version checked (absent: version 1).
+
+    Raises:
+        FileNotFoundError: the folder has no ``config.json``.
+        ValueError: not a JSON object with a ``"model"`` entry, or a format version this code
+            does not know (written by a newer isosr).
+    """
+    path = Path(folder) / "config.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{folder}: not a model folder, config.json is missing")
+    try:
+        config = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: not valid JSON: {e}") from e
+    if not isinstance(config, dict) or not isinstance(config.get("model"), dict):
+        raise ValueError(f"{path}: expected a JSON object with the model's config under \"model\"")
+    version = config.get("format_version", 1)
+    if version != FORMAT_VERSION:
+        raise ValueError(f"{path}: unknown format version {version!r}; this isosr reads version {FORMAT_VERSION} "
+                         f"(a file from a newer isosr needs that isosr)")
+    return config
 
 
 def load_pretrained(folder: str | os.PathLike, device: str | torch.device = "cpu") -> tuple[nn.Module, dict]:
@@ -172,13 +287,12 @@ def load_pretrained(folder: str | os.PathLike, device: str | torch.device = "cpu
 
     Raises:
         FileNotFoundError: the folder lacks ``config.json`` or ``model.safetensors``.
-        ValueError: the weights do not fit the config.
+        ValueError: the config is unreadable (see :func:`read_config`) or the weights do not fit it.
     """
     folder = Path(folder)
-    for name in ("config.json", "model.safetensors"):
-        if not (folder / name).is_file():
-            raise FileNotFoundError(f"{folder}: not a model folder, {name} is missing")
-    config = json.loads((folder / "config.json").read_text())
+    config = read_config(folder)
+    if not (folder / "model.safetensors").is_file():
+        raise FileNotFoundError(f"{folder}: not a model folder, model.safetensors is missing")
     model = build_model(config["model"])
     state = load_file(folder / "model.safetensors", device=str(device))
     expected = {k: tuple(v.shape) for k, v in model.state_dict().items()}

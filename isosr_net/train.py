@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import math
 import os
-import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -19,15 +18,15 @@ from pathlib import Path
 import torch
 import torch.distributed as dist
 import torch.nn.functional as F
-from torch import nn
 from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
+from isosr_net.batch import SequenceBatch
 from isosr_net.datagen import SequenceDataset
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net.losses import PAPER_LOSSES, AdversarialLoss, LossContext, build_losses, total_loss
 from isosr_net.metrics import frame_scores
-from isosr_net.model import build_model, load_pretrained, save_pretrained
+from isosr_net.model import Unrolled, build_model, load_checkpoint, save_checkpoint
 
 
 @dataclass
@@ -82,36 +81,13 @@ class TrainConfig:
         return 0.01 + 0.99 * 0.5 * (1.0 + math.cos(math.pi * progress))
 
 
-class Unrolled(nn.Module):
-    """The recurrent network run over whole sequences: one forward per step, as DDP expects.
-
-    Shape:
-        lowres: (B, T, 5, h, w). flow: (B, T, 2, h, w). Returns outputs and warped previous
-        outputs, each (B, T, 6, H, W).
-    """
-
-    def __init__(self, net: nn.Module):
-        super().__init__()
-        self.net = net
-
-    def forward(self, lowres: torch.Tensor, flow: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        outputs, warped, previous = [], [], None
-        for t in range(lowres.shape[1]):
-            out, prev_warped = self.net.step(lowres[:, t], flow[:, t] if t else None, previous)
-            outputs.append(out)
-            warped.append(prev_warped)
-            previous = out
-        return torch.stack(outputs, 1), torch.stack(warped, 1)
-
-
-def contexts(batch: dict, outputs: torch.Tensor, warped: torch.Tensor, upscale: int) -> list[LossContext]:
+def contexts(batch: SequenceBatch, outputs: torch.Tensor, warped: torch.Tensor, upscale: int) -> list[LossContext]:
     """The loss context of every frame of a batch of sequences."""
-    lowres, flow, target = batch["lowres"], batch["flow"], batch["highres"]
+    lowres, target = batch.lowres, batch.highres
     result = []
-    for t in range(lowres.shape[1]):
-        prev_target = None
-        if t:
-            prev_target = warp_by_flow(target[:, t - 1], upscale_flow(flow[:, t], upscale))
+    for t in range(batch.frames):
+        flow = batch.flow_at(t)
+        prev_target = None if flow is None else warp_by_flow(target[:, t - 1], upscale_flow(flow, upscale))
         result.append(LossContext(
             pred=outputs[:, t], target=target[:, t], prev_warped=warped[:, t] if t else None,
             lowres_up=F.interpolate(lowres[:, t], scale_factor=upscale, mode="bilinear", align_corners=False),
@@ -169,24 +145,22 @@ class Trainer:
 
     def _resume(self) -> None:
         """Continue from `OUT/last` if a previous run left it (or `last.old`, mid-swap)."""
-        for name in ("last", "last.old"):
-            folder = self.out / name
-            if (folder / "training_state.pt").is_file():
-                net, saved = load_pretrained(folder, self.device)
-                if saved["model"] != asdict(self.net.config):
-                    raise ValueError(f"{folder} holds a model of another config ({saved['model']}); "
-                                     f"train into a new folder or with the same model config")
-                self.net.load_state_dict(net.state_dict())
-                state = torch.load(folder / "training_state.pt", map_location=self.device, weights_only=True)
-                self.optimizer.load_state_dict(state["optimizer"])
-                if self.d_optimizer is not None and "d_optimizer" in state:
-                    self.d_optimizer.load_state_dict(state["d_optimizer"])
-                    for m, sd in zip(self.adversarial, state["discriminators"]):
-                        m.load_state_dict(sd)
-                self.step, self.best = state["step"], state["best"]
-                if self.rank == 0:
-                    print(f"resuming from {folder} at step {self.step}")
-                return
+        checkpoint = load_checkpoint(self.out / "last", self.device)
+        if checkpoint is None:
+            return
+        if checkpoint.config["model"] != asdict(self.net.config):
+            raise ValueError(f"{checkpoint.folder} holds a model of another config ({checkpoint.config['model']}); "
+                             f"train into a new folder or with the same model config")
+        self.net.load_state_dict(checkpoint.model.state_dict())
+        state = checkpoint.state
+        self.optimizer.load_state_dict(state["optimizer"])
+        if self.d_optimizer is not None and "d_optimizer" in state:
+            self.d_optimizer.load_state_dict(state["d_optimizer"])
+            for m, sd in zip(self.adversarial, state["discriminators"]):
+                m.load_state_dict(sd)
+        self.step, self.best = state["step"], state["best"]
+        if self.rank == 0:
+            print(f"resuming from {checkpoint.folder} at step {self.step}")
 
     def _batches(self, dataset: SequenceDataset, shuffle: bool, epoch: int, skip: int = 0):
         """This process's share of each batch, indexed straight from the device-resident crops.
@@ -200,15 +174,15 @@ class Trainer:
         for start in range(skip * size, stop, size):
             index = order[start:start + size][self.rank::self.world].to(self.device)
             if len(index):
-                yield {k: t[index].float() for k, t in dataset.tensors.items()}
+                yield dataset.batch(index)
 
     def _autocast(self):
         return torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.config.amp and self.device.type == "cuda")
 
-    def train_step(self, batch: dict) -> dict:
+    def train_step(self, batch: SequenceBatch) -> dict:
         """One optimizer step on a batch of sequences; returns the loss terms."""
         with self._autocast():
-            outputs, warped = self.unrolled(batch["lowres"], batch["flow"])
+            outputs, warped = self.unrolled(batch.lowres, batch.flow)
             ctxs = contexts(batch, outputs.float(), warped.float(), self.upscale)
             terms = [total_loss(self.losses, ctx) for ctx in ctxs]
         loss = sum(t[0] for t in terms) / len(terms)
@@ -245,12 +219,12 @@ class Trainer:
         sums, count = {}, 0
         for batch in self._batches(self.val_set, shuffle=False, epoch=0):
             with self._autocast():
-                outputs, warped = Unrolled(self.net)(batch["lowres"], batch["flow"])
+                outputs, warped = Unrolled(self.net)(batch.lowres, batch.flow)
             outputs, warped = outputs.float(), warped.float()
             ctxs = contexts(batch, outputs, warped, self.upscale)
             frame_loss = sum(float(total_loss(self.losses, ctx)[0]) for ctx in ctxs) / len(ctxs)
             b, t = outputs.shape[:2]
-            scores = frame_scores(outputs.flatten(0, 1), batch["highres"].flatten(0, 1))
+            scores = frame_scores(outputs.flatten(0, 1), batch.highres.flatten(0, 1))
             sums["loss"] = sums.get("loss", 0.0) + frame_loss * b
             for k, v in scores.items():
                 sums[k] = sums.get(k, 0.0) + float(torch.nanmean(v.float())) * b
@@ -263,24 +237,17 @@ class Trainer:
         return {k: float(v / totals[0]) for k, v in zip(names, totals[1:])}
 
     def save(self, name: str, metrics: dict | None = None) -> None:
-        """Write a checkpoint folder `OUT/name` atomically (write aside, then swap)."""
+        """Write a checkpoint folder `OUT/name` atomically; `last` with the state to resume from."""
         if self.rank != 0:
             return
-        tmp, final, old = self.out / f".{name}.tmp", self.out / name, self.out / f"{name}.old"
-        shutil.rmtree(tmp, ignore_errors=True)
-        save_pretrained(self.net, tmp, {"training": asdict(self.config), "step": self.step,
-                                        "validation": metrics or {}})
+        state = None
         if name == "last":
             state = {"optimizer": self.optimizer.state_dict(), "step": self.step, "best": self.best}
             if self.d_optimizer is not None:
                 state["d_optimizer"] = self.d_optimizer.state_dict()
                 state["discriminators"] = [m.state_dict() for m in self.adversarial]
-            torch.save(state, tmp / "training_state.pt")
-        if final.exists():
-            shutil.rmtree(old, ignore_errors=True)
-            final.rename(old)
-        tmp.rename(final)
-        shutil.rmtree(old, ignore_errors=True)
+        save_checkpoint(self.net, self.out / name, {"training": asdict(self.config), "step": self.step,
+                                                    "validation": metrics or {}}, state)
 
     def run(self, progress: bool = True) -> dict:
         """Train to `steps`; returns the last validation metrics."""

@@ -17,6 +17,7 @@ import torch.nn.functional as F
 
 from isosr_render.buffers import FrameBuffers
 from isosr_render.conventions import AO, DEPTH, LOWRES_BUFFERS, MASK, NORMAL
+from isosr_render.shapes import check_shape
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net.fastpath import fast_srnet
 from isosr_net.model import load_pretrained
@@ -38,16 +39,12 @@ def lowres_tensors(frame: FrameBuffers) -> tuple[torch.Tensor, torch.Tensor | No
     for name in LOWRES_BUFFERS:
         if getattr(frame, name) is None:
             raise ValueError(f"the low-res frame lacks its {name} buffer")
-    if frame.mask.ndim != 2:
-        raise ValueError(f"mask must have shape (H, W), got {tuple(frame.mask.shape)}")
-    h, w = frame.mask.shape
-    expected = {"mask": (h, w), "normal": (h, w, 3), "depth": (h, w), "flow": (h, w, 2)}
-    for name, shape in expected.items():
+    dims = check_shape(frame.mask, "(H, W)", "mask", "lowres_tensors")
+    for name, spec in (("mask", "(H, W)"), ("normal", "(H, W, 3)"), ("depth", "(H, W)"), ("flow", "(H, W, 2)")):
         t = getattr(frame, name)
         if t is None:
             continue
-        if tuple(t.shape) != shape:
-            raise ValueError(f"{name} must have shape {shape}, as mask (H, W) = {(h, w)} implies; got {tuple(t.shape)}")
+        check_shape(t, spec, name, "lowres_tensors", dims)
         if not t.is_floating_point():
             raise ValueError(f"{name} must be floating point, got {t.dtype}")
         if not torch.isfinite(t).all():

@@ -1,12 +1,22 @@
-"""The shared real volumes (``../shared/volumes``): where they are and their manifest."""
+"""The shared real volumes (``../shared/volumes``): where they are and their manifest; and
+the iso-value policy for every volume source.
+
+A volume source is a file path, a procedural spec (``proc:cloud:7``) or a shared volume
+(``shared:bonsai``); :func:`isosr_render.open_volume` opens each.
+"""
 
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 
+from isosr_render.procedural import default_iso
+from isosr_render.volume import Volume, VolumeError
+
 ENV_VAR = "ISOSR_SHARED_VOLUMES"
+SHARED_PREFIX = "shared:"
 
 
 def shared_volumes_dir() -> Path:
@@ -30,9 +40,36 @@ def manifest(root: Path | None = None) -> list[dict]:
 
 
 def entry(name: str, root: Path | None = None) -> dict:
-    """One manifest entry by name, with ``path`` added."""
+    """One manifest entry by name, with ``path`` added.
+
+    Raises:
+        VolumeError: the manifest lists no volume of that name.
+    """
     root = root or shared_volumes_dir()
     for e in manifest(root):
         if e["name"] == name:
             return {**e, "path": root / e["file"]}
-    raise KeyError(f"no volume named {name!r} in {root / 'volumes.json'}")
+    raise VolumeError(f"no volume named {name!r} in {root / 'volumes.json'}")
+
+
+def resolve_iso(source: str, volume: Volume, iso: float | None = None, normalized: bool = False) -> float:
+    """The iso-value, on the normalized [0, 1] scale, at which to render ``volume`` opened from ``source``.
+
+    A given ``iso`` wins: in the data's units, or already normalized with ``normalized``.
+    Without one: a procedural spec's own iso (:func:`isosr_render.procedural.default_iso`), a
+    shared volume's Otsu threshold from the manifest, else Otsu's threshold of the voxels
+    (:meth:`Volume.otsu_iso`).
+
+    Raises:
+        ValueError: ``iso`` is not a finite number.
+        VolumeError / FileNotFoundError: a ``shared:NAME`` the manifest does not list, or no manifest.
+    """
+    if iso is not None:
+        if isinstance(iso, bool) or not isinstance(iso, (int, float)) or not math.isfinite(iso):
+            raise ValueError(f"iso must be a finite number, got {iso!r}")
+        return float(iso) if normalized else volume.normalized_iso(iso)
+    if source.startswith("proc:"):
+        return volume.normalized_iso(default_iso(source))
+    if source.startswith(SHARED_PREFIX):
+        return float(entry(source.removeprefix(SHARED_PREFIX))["otsu_iso_normalized"])
+    return volume.otsu_iso()

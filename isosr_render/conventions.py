@@ -51,9 +51,6 @@ LOWRES_BUFFERS = ("mask", "normal", "depth")
 HIGHRES_BUFFERS = LOWRES_BUFFERS + ("ao",)
 MASK, NORMAL, DEPTH, AO = slice(0, 1), slice(1, 4), slice(4, 5), slice(5, 6)
 
-# Value written where a buffer has no surface (mask == 0).
-EMPTY_VALUE = 0.0
-
 # Background color behind the isosurface (RGB in [0, 1]).
 BACKGROUND_RGB = (1.0, 1.0, 1.0)
 
@@ -75,9 +72,3 @@ def world_from_voxel(shape: tuple[int, int, int], spacing: tuple[float, float, f
     offset = -0.5 * extent / extent.max()
     return scale, offset
 
-
-def pixel_centers(width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel-center coordinates ``(x, y)``, each of shape (H, W), x right and y down."""
-    x = np.arange(width, dtype=np.float64) + 0.5
-    y = np.arange(height, dtype=np.float64) + 0.5
-    return np.meshgrid(x, y)

@@ -166,10 +166,6 @@ class Renderer:
         # 1x1 stand-ins for buffers a request does not ask for.
         self._unused = {t: wp.empty((1, 1), dtype=t, device=self.device) for t in (wp.float32, wp.vec2, wp.vec3, wp.int32)}
 
-    def brick_ranges(self) -> np.ndarray:
-        """The min-max grid, (bx, by, bz, 2), as numpy."""
-        return self.minmax.numpy()
-
     def grid(self, iso: float, skip: bool = True) -> kernels.Grid:
         """The kernels' view of the volume for one iso: data plus each brick's distance to an active brick.
 

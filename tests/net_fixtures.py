@@ -109,20 +109,16 @@ def render_lowres_frames(width: int, height: int, frames: int = 3, volume: str =
 
     Cached by arguments; callers get fresh copies of the buffers.
     """
-    from isosr_render import Renderer, RenderRequest, open_volume, orbit
+    from isosr_render import Renderer, open_volume, orbit, resolve_iso
     from isosr_render.buffers import FrameBuffers
-    from isosr_render.procedural import default_iso
+    from isosr_render.sequence import sequence_requests
 
     key = ("frames", width, height, frames, volume, yaw_step)
     if key not in _CACHE:
         vol = open_volume(volume)
         renderer = Renderer(vol, "cpu")
-        iso = vol.normalized_iso(default_iso(volume))
         cameras = [orbit(30.0 + t * yaw_step, 20.0, 1.4) for t in range(frames)]
-        out = []
-        for t, camera in enumerate(cameras):
-            outputs = ("mask", "normal", "depth") + (("flow",) if t else ())
-            out.append(renderer.render(camera, RenderRequest(width, height, iso, outputs,
-                                                             prev_camera=cameras[t - 1] if t else None)))
-        _CACHE[key] = out
+        requests = sequence_requests(cameras, width, height, resolve_iso(volume, vol),
+                                     ("mask", "normal", "depth", "flow"))
+        _CACHE[key] = [renderer.render(camera, request) for camera, request in requests]
     return [FrameBuffers(**{k: getattr(f, k).clone() for k in f.present()}) for f in _CACHE[key]]

@@ -12,6 +12,7 @@ import torch.nn.functional as F
 from safetensors.torch import load_file
 
 import isosr_net.datagen as datagen
+from isosr_net.batch import SequenceBatch
 from isosr_net.datagen import MANIFEST, DatagenConfig, SequenceDataset, generate, pick_crops
 from isosr_render.catalog import shared_volumes_dir
 from net_fixtures import TINY_DATAGEN, tiny_datagen, tiny_train_data
@@ -256,14 +257,17 @@ def test_sequence_dataset_items(tmp_path_factory):
     assert train.volumes == ["proc:cloud:1@32"] * n_train and val.volumes == ["proc:sphere@32"] * n_val
     assert train.config == manifest["config"]
     item = train[0]
-    assert sorted(item) == ["flow", "highres", "lowres"]
-    assert item["lowres"].shape == (3, 5, 8, 8) and item["flow"].shape == (3, 2, 8, 8)
-    assert item["highres"].shape == (3, 6, 16, 16)
-    assert all(v.dtype == torch.float32 for v in item.values())
+    assert isinstance(item, SequenceBatch) and item.frames == 3
+    assert item.lowres.shape == (3, 5, 8, 8) and item.flow.shape == (3, 2, 8, 8)
+    assert item.highres.shape == (3, 6, 16, 16)
+    assert all(v.dtype == torch.float32 for v in item.tensors().values())
+    assert item.flow_at(0) is None and torch.equal(item.flow_at(2), item.flow[2])
     # Items come in manifest order: the first crop of the first train shard.
     first = next(s for s in manifest["shards"] if s["split"] == "train")
-    torch.testing.assert_close(item["highres"], load_file(root / first["file"])["highres"][0].float())
-    assert train.to("cpu") is train and train.tensors["lowres"].dtype == torch.float16
+    torch.testing.assert_close(item.highres, load_file(root / first["file"])["highres"][0].float())
+    batch = train.batch(torch.tensor([1, 0]))
+    assert len(batch) == 2 and torch.equal(batch[1].lowres, item.lowres) and batch.flow_at(1).shape == (2, 2, 8, 8)
+    assert train.to("cpu") is train and train.crops.lowres.dtype == torch.float16
 
 
 def test_sequence_dataset_errors(tmp_path_factory, tmp_path):

@@ -10,14 +10,13 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
+from isosr_net.architectures import VGG19_LAYERS, SpatioTemporalDiscriminator
 from isosr_net.losses import (
     PAPER_LOSSES,
-    VGG19_LAYERS,
     AdversarialLoss,
     ChannelLoss,
     LossContext,
     PerceptualLoss,
-    SpatioTemporalDiscriminator,
     TemporalLoss,
     build_losses,
     masked_l1,
@@ -118,7 +117,7 @@ def test_masked_losses_check_shapes():
     x = torch.zeros(2, 6, 4, 4)
     with pytest.raises(ValueError, match="mask must be"):
         masked_l1(x, x, torch.zeros(2, 4, 4), NORMAL)
-    with pytest.raises(ValueError, match="pred and target"):
+    with pytest.raises(ValueError, match="target must be"):
         masked_l2(x, x[:1], torch.zeros(2, 1, 4, 4), NORMAL)
     with pytest.raises(ValueError, match="select nothing"):
         masked_l1(x, x, torch.zeros(2, 1, 4, 4), slice(6, 8))

@@ -9,7 +9,9 @@ import torch
 import torch.nn.functional as F
 
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
-from isosr_net.model import SRNet, SRNetConfig, build_model, load_pretrained, save_pretrained
+from isosr_net.model import (FORMAT_VERSION, TRAINING_STATE, SRNet, SRNetConfig, build_model, load_checkpoint,
+                             load_pretrained, read_config, save_checkpoint, save_pretrained)
+from isosr_net.upscaler import DEFAULT_MODEL
 from isosr_render.conventions import AO, DEPTH, HIGHRES_CHANNELS, LOWRES_CHANNELS, MASK, NORMAL
 
 TINY = {"channels": 8, "residual_blocks": 1}
@@ -124,7 +126,7 @@ def test_forward_checks_shapes():
     net = tiny_net()
     with pytest.raises(ValueError, match=r"lowres must be \(B, 5, h, w\), got \(2, 4, 6, 5\)"):
         net(torch.zeros(2, 4, 6, 5), torch.zeros(2, 6, 24, 20))
-    with pytest.raises(ValueError, match=r"prev_warped must be \(2, 6, 24, 20\), got \(2, 6, 12, 10\)"):
+    with pytest.raises(ValueError, match=r"prev_warped must be \(B, 6, 24, 20\) with B=2, got \(2, 6, 12, 10\)"):
         net(torch.zeros(2, 5, 6, 5), torch.zeros(2, 6, 12, 10))
 
 
@@ -218,3 +220,52 @@ def test_load_pretrained_weights_that_do_not_fit_the_config(tmp_path, change):
     path.write_text(json.dumps(config))
     with pytest.raises(ValueError, match="weights do not fit the config"):
         load_pretrained(tmp_path)
+
+
+def test_config_format_version_old_files_read_as_1_future_ones_refused(tmp_path):
+    save_pretrained(tiny_net(), tmp_path, {"note": "x"})
+    path = tmp_path / "config.json"
+    config = json.loads(path.read_text())
+    assert config["format_version"] == FORMAT_VERSION == 1 and config["note"] == "x"
+    del config["format_version"]
+    path.write_text(json.dumps(config))
+    assert read_config(tmp_path)["model"] == config["model"]
+    load_pretrained(tmp_path)
+    for version in (2, "1"):
+        path.write_text(json.dumps({**config, "format_version": version}))
+        with pytest.raises(ValueError, match=f"unknown format version {version!r}; this isosr reads version 1"):
+            load_pretrained(tmp_path)
+    path.write_text("{not json")
+    with pytest.raises(ValueError, match="not valid JSON"):
+        read_config(tmp_path)
+    with pytest.raises(ValueError, match=r"may not set \['model'\]"):
+        save_pretrained(tiny_net(), tmp_path, {"model": {}})
+
+
+def test_the_shipped_config_holds_no_machine_paths():
+    config = read_config(DEFAULT_MODEL)
+    assert config["format_version"] == FORMAT_VERSION
+
+    def strings(x):
+        if isinstance(x, dict):
+            return [s for v in x.values() for s in strings(v)]
+        if isinstance(x, list):
+            return [s for v in x for s in strings(v)]
+        return [x] if isinstance(x, str) else []
+    assert not [s for s in strings(config) if s.startswith(("/", "~")) or ":\\" in s]
+
+
+def test_checkpoints_swap_in_whole_and_resume_from_old_after_a_cut_swap(tmp_path):
+    folder = tmp_path / "last"
+    assert load_checkpoint(folder) is None
+    save_checkpoint(tiny_net(seed=1), folder, {"step": 1})  # a model folder without training state
+    assert load_checkpoint(folder) is None
+    save_checkpoint(tiny_net(seed=2), folder, {"step": 2}, {"step": 2, "best": 0.5})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["last"]  # no .tmp or .old left behind
+    found = load_checkpoint(folder)
+    assert found.folder == folder and found.config["step"] == 2 and found.state == {"step": 2, "best": 0.5}
+    for (k, v), (k2, v2) in zip(tiny_net(seed=2).state_dict().items(), found.model.state_dict().items()):
+        assert k == k2 and torch.equal(v, v2)
+    folder.rename(tmp_path / "last.old")  # cut between moving the old folder away and the new one in
+    assert load_checkpoint(folder).folder == tmp_path / "last.old"
+    assert (tmp_path / "last.old" / TRAINING_STATE).is_file()

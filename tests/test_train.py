@@ -14,8 +14,8 @@ import torch
 
 from isosr_net.configs import load_config
 from isosr_net.losses import PAPER_LOSSES
-from isosr_net.model import load_pretrained
-from isosr_net.train import Trainer, TrainConfig, Unrolled
+from isosr_net.model import Unrolled, load_pretrained
+from isosr_net.train import Trainer, TrainConfig
 from net_fixtures import random_vgg19, tiny_train_config, tiny_train_data
 
 METRIC_KEYS = {"loss", "color_psnr", "color_ssim", "normal_psnr", "ao_psnr", "mask_iou"}
