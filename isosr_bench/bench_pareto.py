@@ -51,9 +51,10 @@ from isosr_net.budget import (REFERENCE_AO_RAYS, REFERENCE_SPP, BudgetConfig, ch
 from isosr_net.flow_warp import warp_by_flow
 from isosr_net.frame_methods import INTERPOLATIONS, FrameMethod, FrameRunner
 from isosr_net.metrics import eval_region, masked_psnr, masked_ssim, temporal_instability
+from isosr_net.model import read_config
 from isosr_net.upscaler import DEFAULT_MODEL
 
-from .bench_knobs import model_upscale, parse_models
+from .bench_knobs import parse_models
 from .bench_pipeline import resampled
 from .common import bench_parser, commit, print_table, time_frames, write_result
 
@@ -81,7 +82,7 @@ def methods(smoke: bool, device: str, models: dict[str, Path]) -> list[FrameMeth
     out += [FrameMethod("upscale", factor=f, interpolation=mode) for f, mode in upscales]
     for name, folder in models.items():
         for precision in ("fp32", "bf16", "fp16") if cuda else ("fp32",):
-            out.append(FrameMethod("network", factor=model_upscale(folder), precision=precision,
+            out.append(FrameMethod("network", factor=read_config(folder)["model"]["upscale"], precision=precision,
                                    model=None if folder == DEFAULT_MODEL else str(folder), model_name=name))
     return out
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from isosr_render import Volume, open_volume
+from isosr_render import Volume, open_volume, resolve_iso
 from isosr_render.catalog import manifest
 from isosr_render.procedural import default_iso
 
@@ -132,7 +132,7 @@ class VolumeCatalog:
                 return self._cache[name]
             volume = open_volume(source)
             lo, hi = volume.value_range
-            iso = default_iso(name) if name.startswith("proc:") else lo + volume.otsu_iso() * (hi - lo)
+            iso = lo + resolve_iso(source, volume) * (hi - lo)
             counts, _ = np.histogram(volume.data, bins=HISTOGRAM_BINS, range=(0.0, 1.0))
             info = VolumeInfo(name, volume.shape, (lo, hi), iso, counts.tolist())
             self._cache[name] = (volume, info)

@@ -22,9 +22,8 @@ from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
 from isosr_net.upscaler import Upscaler
-from isosr_render import FrameBuffers, Renderer, RenderRequest, open_volume, orbit, shade
+from isosr_render import FrameBuffers, Renderer, RenderRequest, open_volume, orbit, resolve_iso, shade
 from isosr_render.conventions import LOWRES_BUFFERS
-from isosr_render.procedural import default_iso
 from isosr_server import protocol as P
 from isosr_server.app import ServerConfig, create_app, uvicorn_options
 from isosr_server.encoding import decode_image, to_uint8
@@ -128,7 +127,7 @@ CAM0 = P.CameraMsg(yaw=30.0, pitch=20.0, distance=1.8)
 @pytest.fixture(scope="module")
 def lib():
     volume = open_volume(VOLUME)
-    return SimpleNamespace(renderer=Renderer(volume, DEVICE), iso=volume.normalized_iso(default_iso(VOLUME)))
+    return SimpleNamespace(renderer=Renderer(volume, DEVICE), iso=resolve_iso(VOLUME, volume))
 
 
 def lib_full(lib, camera, ao_samples=0) -> np.ndarray:

@@ -7,8 +7,7 @@ import math
 
 import pytest
 
-from isosr_render import Renderer, open_volume, orbit
-from isosr_render.procedural import default_iso
+from isosr_render import Renderer, open_volume, orbit, resolve_iso
 from conftest import DEVICE
 from isosr_net.budget import AO_MATTERS_DB, BudgetConfig, choose_method, probe_size, render_within_budget
 from isosr_net.frame_methods import FrameMethod
@@ -20,7 +19,7 @@ FEW = (FrameMethod("upscale", factor=4), FrameMethod("full"), FrameMethod("full"
 
 def scene(spec: str):
     volume = open_volume(spec)
-    return Renderer(volume, DEVICE), volume.normalized_iso(default_iso(spec))
+    return Renderer(volume, DEVICE), resolve_iso(spec, volume)
 
 
 @pytest.fixture(scope="module")

@@ -9,8 +9,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from isosr_render import Renderer, open_volume, orbit_path
-from isosr_render.procedural import default_iso
+from isosr_render import Renderer, open_volume, orbit_path, resolve_iso
 from isosr_net.frame_methods import FrameMethod, FrameRunner, run_sequence
 from conftest import DEVICE
 from net_fixtures import tiny_model_dir
@@ -21,7 +20,7 @@ SIZE = (48, 32)
 @pytest.fixture(scope="module")
 def scene():
     volume = open_volume("proc:cloud:7@32")
-    return Renderer(volume, DEVICE), volume.normalized_iso(default_iso("proc:cloud"))
+    return Renderer(volume, DEVICE), resolve_iso("proc:cloud", volume)
 
 
 def test_names_follow_the_issue():
