@@ -204,9 +204,17 @@ class Renderer:
         """Half the smallest voxel edge, in world units."""
         return 0.5 * self.volume.voxel_size_world()
 
-    def render(self, camera: Camera, request: RenderRequest) -> FrameBuffers:
-        """Render one frame; buffers come back as torch tensors on the renderer's device."""
+    def render(self, camera: Camera, request: RenderRequest, rows: tuple[int, int] | None = None) -> FrameBuffers:
+        """Render one frame; buffers come back as torch tensors on the renderer's device.
+
+        Args:
+            rows: render only the image rows ``[start, stop)`` (a focus region); the buffers keep
+                the full image size and hold undefined values (possibly NaN) in the other rows.
+        """
         w, h = request.width, request.height
+        row0, row1 = (0, h) if rows is None else rows
+        if not 0 <= row0 < row1 <= h:
+            raise ValueError(f"rows must satisfy 0 <= start < stop <= height {h}, got {rows}")
         bits = request.kernel_outputs()
         params = kernels.RayParams()
         params.iso = float(request.iso)
@@ -245,9 +253,9 @@ class Renderer:
 
         if self.device.is_cuda:
             with wp.ScopedStream(wp.stream_from_torch(torch.cuda.current_stream(self.device.ordinal))):
-                launch(0, h)
+                launch(row0, row1 - row0)
         else:
-            bands = np.array_split(np.arange(h), min(h, 4 * self.threads))
+            bands = np.array_split(np.arange(row0, row1), min(row1 - row0, 4 * self.threads))
             jobs = [(int(b[0]), len(b)) for b in bands if len(b)]
             if self._pool is None:
                 for job in jobs:

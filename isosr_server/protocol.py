@@ -71,6 +71,14 @@ FOCUS_SHAPES = ("none", "circle", "box")
 SESSION_ID = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 MAX_SEQ = 2**53
 
+# Authentication, when the server has a token: HTTP requests send ``Authorization: Bearer TOKEN``
+# or the header below; WebSocket clients may instead offer the subprotocols ``SUBPROTOCOL`` and
+# ``TOKEN_SUBPROTOCOL_PREFIX + TOKEN`` (browsers cannot set headers; tokens stay out of URLs and logs).
+TOKEN_HEADER = "x-isosr-token"
+SUBPROTOCOL = "isosr.v1"
+TOKEN_SUBPROTOCOL_PREFIX = "isosr-token."
+MSGPACK_MEDIA_TYPE = "application/msgpack"
+
 # WebSocket close codes (RFC 6455 where one fits, 4xxx mirror HTTP statuses).
 CLOSE_NORMAL = 1000
 CLOSE_GOING_AWAY = 1001  # server shutting down
@@ -78,7 +86,7 @@ CLOSE_BAD_MESSAGE = 1007  # malformed msgpack, wrong field, dtype, shape, NaN/In
 CLOSE_POLICY = 1008  # message rate above the limit
 CLOSE_TOO_BIG = 1009  # message above max_message_bytes, image above the size limits
 CLOSE_INTERNAL = 1011  # a server fault (logged at ERROR on the server)
-CLOSE_UNAUTHORIZED = 4401  # missing or wrong token (handshakes are denied with HTTP 401 first)
+CLOSE_UNAUTHORIZED = 4401  # missing or wrong token
 CLOSE_NOT_FOUND = 4404  # unknown volume
 CLOSE_IDLE = 4408  # no message for idle_timeout_s
 CLOSE_TOO_MANY = 4429  # session limit reached; try later
@@ -484,13 +492,13 @@ class ViewSettings:
 
 @dataclass(frozen=True)
 class CameraMsg(Message):
-    """A camera: look-at (``eye``, ``target``, ``up``) or orbit (``yaw``, ``pitch``, ``distance``
-    around ``target``, degrees, as ``isosr_render.orbit``); ``fov_y`` in degrees."""
+    """A camera: look-at (``eye``, ``target``, ``up``, default +y) or orbit (``yaw``, ``pitch``,
+    ``distance`` around ``target``, degrees, world +y up, as ``isosr_render.orbit``); ``fov_y`` in degrees."""
 
     TYPE: ClassVar[str] = "camera"
     eye: tuple[float, float, float] | None = None
     target: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    up: tuple[float, float, float] | None = None
     yaw: float | None = None
     pitch: float | None = None
     distance: float | None = None
@@ -499,7 +507,7 @@ class CameraMsg(Message):
 
     def to_wire(self) -> dict:
         return _drop_none({"type": self.TYPE, "seq": self.seq, "eye": _list(self.eye), "target": list(self.target),
-                           "up": list(self.up), "yaw": self.yaw, "pitch": self.pitch, "distance": self.distance,
+                           "up": _list(self.up), "yaw": self.yaw, "pitch": self.pitch, "distance": self.distance,
                            "fov_y": self.fov_y})
 
     @classmethod
@@ -507,7 +515,7 @@ class CameraMsg(Message):
         r = _Reader(d, where)
         r.choice("type", (cls.TYPE,))
         msg = cls(eye=r.vec("eye", 3), target=r.vec("target", 3) or (0.0, 0.0, 0.0),
-                  up=r.vec("up", 3) or (0.0, 1.0, 0.0), yaw=r.float("yaw", -1e6, 1e6),
+                  up=r.vec("up", 3), yaw=r.float("yaw", -1e6, 1e6),
                   pitch=r.float("pitch", -89.9, 89.9), distance=r.float("distance", 1e-6, 1e6),
                   fov_y=r.float("fov_y", 1.0, 170.0, default=40.0), seq=_seq(r))
         r.done()
@@ -516,13 +524,20 @@ class CameraMsg(Message):
             raise ProtocolError(f"{where}: give eye (look-at) or yaw, pitch and distance (orbit)")
         if msg.eye is not None and any(v is not None for v in orbit):
             raise ProtocolError(f"{where}: give either eye or yaw/pitch/distance, not both")
+        if msg.eye is None and msg.up is not None:
+            raise ProtocolError(f"{where}: an orbit camera has world +y up; up is for look-at cameras (eye)")
         if msg.eye is not None:
-            forward = np.subtract(msg.target, msg.eye)
+            forward, up = np.subtract(msg.target, msg.eye), msg.look_up()
             if np.linalg.norm(forward) < 1e-9:
                 raise ProtocolError(f"{where}: eye and target coincide")
-            if np.linalg.norm(np.cross(forward, msg.up)) < 1e-6 * np.linalg.norm(forward) * np.linalg.norm(msg.up):
+            # <=: a zero up gives 0 <= 0 (isosr_render.Camera's strict < lets it through to a NaN basis).
+            if np.linalg.norm(np.cross(forward, up)) <= 1e-6 * np.linalg.norm(forward) * np.linalg.norm(up):
                 raise ProtocolError(f"{where}: up is zero or parallel to the viewing direction")
         return msg
+
+    def look_up(self) -> tuple[float, float, float]:
+        """The look-at camera's up direction."""
+        return (0.0, 1.0, 0.0) if self.up is None else self.up
 
 
 def _list(v):
@@ -880,7 +895,7 @@ def parse(data: bytes, limits: Limits, expected: dict[str, type[Message]] | tupl
         expected = {m.TYPE: m for m in expected}
     d = unpack(data, limits.max_message_bytes)
     kind = d.get("type")
-    if kind not in expected or not isinstance(kind, str):
+    if not isinstance(kind, str) or kind not in expected:
         raise ProtocolError(f"message type must be one of {', '.join(expected)}, got {kind!r}"[:200])
     return expected[kind].from_wire(d, limits)
 

@@ -53,6 +53,9 @@ def test_upscale_messages_round_trip_arrays_exactly():
     ({"type": "camera", "eye": [0, 0, 1], "yaw": 3}, "not both"),
     ({"type": "camera", "eye": [0, 0, 0]}, "coincide"),
     ({"type": "camera", "eye": [0, 1, 0], "up": [0, 2, 0]}, "parallel"),
+    ({"type": "camera", "eye": [0, 1, 0]}, "parallel"),
+    ({"type": "camera", "eye": [0, 0, 1], "up": [0, 0, 0]}, "zero"),
+    ({"type": "camera", "yaw": 0, "pitch": 0, "distance": 1, "up": [1, 0, 0]}, "orbit"),
     ({"type": "camera", "eye": [0, 0, float("nan")]}, "finite"),
     ({"type": "camera", "yaw": 0, "pitch": 90, "distance": 1}, "pitch"),
     ({"type": "camera", "yaw": 0, "pitch": 0, "distance": 1, "zoom": 2}, "unknown fields"),
@@ -215,7 +218,7 @@ _value = st.recursive(_leaf, lambda inner: st.one_of(st.lists(inner, max_size=4)
                       max_leaves=12)
 _ALL = dict(P.CLIENT_VIEW_MESSAGES, **P.SERVER_VIEW_MESSAGES, open=P.OpenMsg, upscale=P.UpscaleRequest,
             upscaled=P.UpscaleResponse)
-_KEYS = ["eye", "target", "up", "yaw", "pitch", "distance", "fov_y", "seq", "value", "normalized", "settings",
+_KEYS = ["type", "eye", "target", "up", "yaw", "pitch", "distance", "fov_y", "seq", "value", "normalized", "settings",
          "shape", "center", "radius", "box", "version", "volume", "camera", "iso", "mask", "normal", "depth",
          "flow", "output", "session", "dtype", "data", "width", "height", "times", "buffers", "image", "code"]
 

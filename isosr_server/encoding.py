@@ -1,0 +1,73 @@
+"""Image encoding of shaded frames: PNG, JPEG, WebP.
+
+JPEG runs on the GPU where the frame is (nvJPEG through ``torchvision.io.encode_jpeg`` on a
+CUDA tensor) when torchvision imports; everything else goes through OpenCV's ``cv2.imencode``
+on the CPU (libjpeg-turbo, libpng, libwebp; OpenCV is already a dependency of the renderer).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import torch
+
+try:
+    from torchvision.io import encode_jpeg as _gpu_encode_jpeg
+except ImportError:  # the CPU install has no torchvision: OpenCV encodes
+    _gpu_encode_jpeg = None
+
+# PNG: zlib level 1, the fastest; a shaded frame compresses only a few % more at 9, at several times the cost.
+PNG_LEVEL = 1
+
+
+def to_uint8(color: torch.Tensor) -> torch.Tensor:
+    """Float RGB in [0, 1] -> uint8, rounded, on the same device.
+
+    Shape:
+        color: (H, W, 3). Returns (H, W, 3).
+    """
+    return (color.clamp(0.0, 1.0) * 255.0 + 0.5).to(torch.uint8)
+
+
+def encoder_name(device: str, encoding: str) -> str:
+    """Which encoder :func:`encode_image` uses for ``encoding`` on ``device`` (for reports)."""
+    if encoding == "jpeg" and _gpu_encode_jpeg is not None and torch.device(device).type == "cuda":
+        return "nvjpeg (torchvision)"
+    return f"opencv {cv2.__version__} (cpu)"
+
+
+def encode_image(rgb: torch.Tensor, encoding: str, quality: int) -> bytes:
+    """Encode an image as ``png``, ``jpeg`` or ``webp`` (quality 1-100; PNG is lossless).
+
+    Shape:
+        rgb: (H, W, 3) uint8, on any device.
+    """
+    if rgb.dtype != torch.uint8 or rgb.ndim != 3 or rgb.shape[-1] != 3:
+        raise ValueError(f"encode_image takes (H, W, 3) uint8, got {tuple(rgb.shape)} {rgb.dtype}")
+    if not 1 <= quality <= 100:
+        raise ValueError(f"quality must lie in [1, 100], got {quality}")
+    if encoding == "jpeg" and rgb.is_cuda and _gpu_encode_jpeg is not None:
+        return _gpu_encode_jpeg(rgb.permute(2, 0, 1).contiguous(), quality=quality).cpu().numpy().tobytes()
+    params = {"png": (".png", [cv2.IMWRITE_PNG_COMPRESSION, PNG_LEVEL]),
+              "jpeg": (".jpg", [cv2.IMWRITE_JPEG_QUALITY, quality]),
+              "webp": (".webp", [cv2.IMWRITE_WEBP_QUALITY, quality])}
+    if encoding not in params:
+        raise ValueError(f"encoding must be one of {', '.join(params)}, got {encoding!r}")
+    ext, flags = params[encoding]
+    bgr = np.ascontiguousarray(rgb.cpu().numpy()[..., ::-1])
+    ok, data = cv2.imencode(ext, bgr, flags)
+    if not ok:
+        raise RuntimeError(f"OpenCV failed to encode a {tuple(rgb.shape)} image as {encoding}")
+    return data.tobytes()
+
+
+def decode_image(data: bytes) -> np.ndarray:
+    """Encoded bytes -> (H, W, 3) uint8 RGB (OpenCV); for tests and clients.
+
+    Raises:
+        ValueError: the bytes are not an image OpenCV reads.
+    """
+    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise ValueError("not a PNG, JPEG or WebP image")
+    return bgr[..., ::-1].copy()

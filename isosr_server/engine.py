@@ -1,0 +1,170 @@
+"""The engine: the one owner of the device.
+
+All renderer, network and encoder work runs on one worker thread (a 1-thread executor), so
+concurrent requests never race on the GPU or on a session's recurrent state, and GPU work
+of different sessions is serialized in submission order. The event loop awaits
+:meth:`Engine.call`; everything named ``*_sync`` runs only on that thread.
+
+Renderers are cached per volume (a few, least recently used dropped); every stream gets its
+own `Upscaler` made by :meth:`Engine.new_upscaler`: a shallow copy of one loaded model that
+shares its weights and owns its recurrent state.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import copy
+import threading
+from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
+from isosr_render import FrameBuffers, Renderer, Volume, orbit, parse_procedural, shade
+from isosr_server import pipeline
+from isosr_server.encoding import encode_image, to_uint8
+from isosr_server.protocol import UpscaleRequest
+
+RENDERER_CACHE = 4
+
+
+@dataclass(frozen=True)
+class EngineConfig:
+    """Where and how the engine runs.
+
+    Attributes:
+        model: model folder (``config.json`` + ``model.safetensors``).
+        device: ``cpu``, ``cuda`` or ``cuda:N``.
+        precision: the network's ``fp32``, ``bf16`` or ``fp16``.
+    """
+
+    model: Path = DEFAULT_MODEL
+    device: str = "cpu"
+    precision: str = "fp32"
+
+
+class Engine:
+    """Owns the device: model, renderers, encoders, and the thread all their work runs on."""
+
+    def __init__(self, config: EngineConfig):
+        self.config = config
+        self.device = torch.device(config.device)
+        if self.device.type == "cuda" and not torch.cuda.is_available():
+            raise RuntimeError(f"device {config.device!r} asked for, but torch finds no CUDA device")
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="isosr-device")
+        self._renderers: OrderedDict[str, Renderer] = OrderedDict()
+        self._template: Upscaler | None = None
+        self._thread: threading.Thread | None = None
+
+    async def call(self, fn, *args):
+        """Run ``fn(*args)`` on the device thread and await its result."""
+        return await asyncio.get_running_loop().run_in_executor(self._executor, fn, *args)
+
+    def _on_thread(self) -> None:
+        if self._thread is None:
+            self._thread = threading.current_thread()
+        assert threading.current_thread() is self._thread, "engine work must run on the device thread"
+
+    # ---- start-up ---------------------------------------------------------------------------
+
+    def start_sync(self) -> None:
+        """Load the model and warm the device: one small render, upscale, shading and encode."""
+        self._on_thread()
+        self._template = Upscaler(self.config.model, str(self.device), self.config.precision,
+                                  channels_last=self.device.type == "cuda")
+        factor = self.upscale_factor
+        renderer = Renderer(parse_procedural("proc:sphere@16"), str(self.device))
+        spec = pipeline.FrameSpec("sr", orbit(30, 20, 1.8), None, 0.5, 8 * factor, 8 * factor, 1, 0.05, None, 0)
+        color = pipeline.render_sr(renderer, self.new_upscaler(), spec, pipeline.StageTimer(self.device))
+        encode_image(to_uint8(color), "jpeg", 80)
+
+    @property
+    def upscale_factor(self) -> int:
+        return self._template.upscale_factor
+
+    def model_info(self) -> dict:
+        """Model metadata for ``GET /v2/models/isosr``."""
+        cfg = self._template.net.config
+        return {"upscale_factor": self.upscale_factor, "precision": self.config.precision,
+                "device": str(self.device), "model": str(self.config.model),
+                "config": {k: v for k, v in vars(cfg).items() if isinstance(v, (int, float, str, bool, list, tuple))}}
+
+    def new_upscaler(self) -> Upscaler:
+        """A stream's own upscaler: shares the loaded weights, starts without recurrent state."""
+        upscaler = copy.copy(self._template)
+        upscaler.reset()
+        return upscaler
+
+    def gpu_memory(self) -> int | None:
+        """Bytes of GPU memory torch holds now (None on the CPU)."""
+        return torch.cuda.memory_allocated(self.device) if self.device.type == "cuda" else None
+
+    def shutdown(self) -> None:
+        self._executor.shutdown(wait=True, cancel_futures=True)
+
+    # ---- work (device thread only) ----------------------------------------------------------
+
+    def renderer_sync(self, name: str, volume: Volume) -> Renderer:
+        """The cached renderer of a volume (uploads it on first use)."""
+        self._on_thread()
+        if name in self._renderers:
+            self._renderers.move_to_end(name)
+        else:
+            self._renderers[name] = Renderer(volume, str(self.device))
+            while len(self._renderers) > RENDERER_CACHE:
+                self._renderers.popitem(last=False)
+        return self._renderers[name]
+
+    def view_frame_sync(self, renderer: Renderer, upscaler: Upscaler, spec: pipeline.FrameSpec,
+                        encoding: str, quality: int) -> tuple[bytes | None, dict | None, dict[str, float]]:
+        """One view frame: ``(image bytes or None, coded buffers or None, times in ms)``."""
+        self._on_thread()
+        timer = pipeline.StageTimer(self.device)
+        with timer("total"):
+            buffers, color = None, None
+            if spec.mode == "full":
+                color = pipeline.render_full(renderer, spec, timer)
+            elif spec.mode == "sr":
+                color = pipeline.render_sr(renderer, upscaler, spec, timer)
+            elif spec.mode == "bilinear":
+                color = pipeline.render_bilinear(renderer, self.upscale_factor, spec, timer)
+            elif spec.mode == "focus":
+                color = pipeline.render_focus(renderer, upscaler, spec, timer)
+            elif spec.mode == "buffers":
+                buffers = pipeline.render_buffers(renderer, self.upscale_factor, spec, timer)
+            else:
+                raise ValueError(f"unknown mode {spec.mode!r}")
+            image = None
+            if color is not None:
+                with timer("encode"):
+                    image = encode_image(to_uint8(color), encoding, quality)
+        return image, buffers, timer.ms
+
+    def upscale_sync(self, upscaler: Upscaler, request: UpscaleRequest) -> tuple[bytes | None, dict | None, dict]:
+        """One upscale request: ``(image bytes or None, float32 numpy buffers or None, times in ms)``.
+
+        Raises:
+            ValueError: the library refuses the frame (e.g. fp16 with depths beyond its range).
+        """
+        self._on_thread()
+        timer = pipeline.StageTimer(self.device)
+        if request.reset:
+            upscaler.reset()
+        frame = FrameBuffers(**{n: torch.from_numpy(getattr(request, n).astype("float32"))
+                                for n in ("mask", "normal", "depth", "flow") if getattr(request, n) is not None})
+        with timer("total"):
+            with timer("network"):
+                high = upscaler.upscale(frame)
+            if request.output == "buffers":
+                with timer("encode"):
+                    buffers = {n: getattr(high, n).cpu().numpy() for n in ("mask", "normal", "depth", "ao")}
+                return None, buffers, timer.ms
+            with timer("shading"):
+                color = shade(high.mask, high.normal, high.ao)
+            with timer("encode"):
+                image = encode_image(to_uint8(color), request.output, request.quality)
+        return image, None, timer.ms
+

@@ -1,0 +1,44 @@
+"""Prometheus metrics of one server, in the app's own registry (``GET /metrics``)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+
+# Stage latencies from 0.5 ms to 10 s.
+BUCKETS_S = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0)
+
+
+class ServerMetrics:
+    """Frames, per-stage latency, bytes sent, sessions, errors and GPU memory.
+
+    Args:
+        gpu_memory: returns the bytes of GPU memory in use (None on the CPU); read per scrape.
+    """
+
+    def __init__(self, gpu_memory: Callable[[], int | None]):
+        self.registry = CollectorRegistry()
+        r = self.registry
+        self.frames = Counter("isosr_frames", "Frames sent", ["kind", "mode", "refined"], registry=r)
+        self.stage_seconds = Histogram("isosr_stage_seconds", "Server time per frame and stage", ["mode", "stage"],
+                                       buckets=BUCKETS_S, registry=r)
+        self.bytes_sent = Counter("isosr_bytes_sent", "Payload bytes sent (images, buffers)", ["mode"], registry=r)
+        self.sessions = Gauge("isosr_sessions", "Live sessions", ["kind"], registry=r)
+        self.errors = Counter("isosr_errors", "Requests and sessions ended by an error", ["kind", "code"],
+                              registry=r)
+        gpu = Gauge("isosr_gpu_memory_bytes", "GPU memory allocated by torch (0 on the CPU)", registry=r)
+        gpu.set_function(lambda: float(gpu_memory() or 0))
+
+    def frame(self, kind: str, mode: str, refined: bool, times_ms: dict[str, float], nbytes: int) -> None:
+        """Count one frame (kind: view, upscale) with its stage times and payload bytes."""
+        self.frames.labels(kind, mode, str(refined).lower()).inc()
+        for stage, ms in times_ms.items():
+            self.stage_seconds.labels(mode, stage).observe(ms / 1e3)
+        self.bytes_sent.labels(mode).inc(nbytes)
+
+    def error(self, kind: str, code: int) -> None:
+        self.errors.labels(kind, str(code)).inc()
+
+    def text(self) -> bytes:
+        return generate_latest(self.registry)

@@ -1,0 +1,269 @@
+"""Sessions: view sessions (latest-frame-wins state, the frame loop, the still-camera refine)
+and upscale sessions (recurrent state per id, idle expiry, a bounded count).
+
+Latest frame wins. A view session holds only the newest state the client asked for: every
+``camera``/``iso``/``settings``/``focus`` message overwrites it and bumps a version, so stale
+updates are coalesced, never queued. The frame loop renders the newest state, sends the frame
+and only then looks at the state again: at most one frame per session is in flight, a frame
+is never rendered for a state already superseded before its render began, and a slow or
+stalled client (whose sends block on the socket's buffer) holds one frame of memory and
+delays only itself; the device thread serves the other sessions meanwhile.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections import OrderedDict
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, replace
+
+from isosr_net.upscaler import Upscaler
+from isosr_render import Camera, Volume, orbit
+from isosr_server.pipeline import FrameSpec, lowres_size
+from isosr_server.protocol import (CLOSE_BAD_MESSAGE, CLOSE_TOO_MANY, CameraMsg, FocusMsg, FrameMsg, IsoMsg,
+                                   Limits, Message, ProtocolError, SettingsMsg, ViewSettings, pack)
+
+DEFAULT_CAMERA = CameraMsg(yaw=30.0, pitch=20.0, distance=1.8)
+LOWRES_MODES = ("sr", "bilinear", "buffers", "focus")
+
+
+def to_camera(msg: CameraMsg) -> Camera:
+    """The renderer's camera for a camera message (look-at or orbit)."""
+    if msg.eye is None:
+        return orbit(msg.yaw, msg.pitch, msg.distance, msg.target, msg.fov_y)
+    return Camera(msg.eye, msg.target, msg.look_up(), msg.fov_y)
+
+
+class RateLimiter:
+    """A token bucket: ``rate`` messages a second on average, bursts of up to ``rate``."""
+
+    def __init__(self, rate: float):
+        self.rate, self.tokens, self.stamp = rate, rate, time.monotonic()
+
+    def allow(self) -> bool:
+        now = time.monotonic()
+        self.tokens = min(self.rate, self.tokens + (now - self.stamp) * self.rate)
+        self.stamp = now
+        if self.tokens < 1.0:
+            return False
+        self.tokens -= 1.0
+        return True
+
+
+class SessionCounter:
+    """A bounded count of live sessions of one kind."""
+
+    def __init__(self, limit: int):
+        self.limit, self.count = limit, 0
+
+    def acquire(self, what: str) -> None:
+        """Count one more; `ProtocolError` (CLOSE_TOO_MANY / 429) at the limit."""
+        if self.count >= self.limit:
+            raise ProtocolError(f"the server already serves {self.limit} {what}; try later", CLOSE_TOO_MANY, 429)
+        self.count += 1
+
+    def release(self) -> None:
+        self.count -= 1
+
+
+@dataclass(frozen=True)
+class ViewState:
+    """What the client asked for last."""
+
+    settings: ViewSettings
+    camera: Camera
+    iso: float  # normalized
+    focus: FocusMsg
+    ack: int = -1
+
+
+@dataclass(frozen=True)
+class FrameJob:
+    """A frame the loop should make now."""
+
+    spec: FrameSpec
+    seq: int
+    ack: int
+    refined: bool
+    encoding: str
+    quality: int
+    prev_seq: int
+
+
+class ViewSession:
+    """One viewer's newest state and the bookkeeping of its frames (flow continuity, refine).
+
+    Args:
+        session_id: the id announced in ``ready``.
+        volume_name, volume: what it views.
+        state: the initial state (from ``open``).
+        factor: the network's upscale factor.
+        limits: the server's limits.
+    """
+
+    def __init__(self, session_id: str, volume_name: str, volume: Volume, state: ViewState, factor: int,
+                 limits: Limits):
+        self.id, self.volume_name, self.volume = session_id, volume_name, volume
+        self.factor, self.limits = factor, limits
+        self.check_settings(state.settings)
+        self.state = state
+        self.version, self.changed_at = 0, time.monotonic()
+        self.changed = asyncio.Event()
+        self.changed.set()
+        self.rendered_version = self.refined_version = -1
+        self.next_seq = 0
+        # The last low-res frame: its flow key (mode, size, iso), camera and seq.
+        self._flow_key: tuple | None = None
+        self._prev_camera: Camera | None = None
+        self._prev_seq = -1
+
+    def check_settings(self, settings: ViewSettings) -> None:
+        """Low-res modes need a size divisible by the upscale factor."""
+        if settings.mode in LOWRES_MODES:
+            try:
+                lowres_size(settings.width, settings.height, self.factor)
+            except ValueError as e:
+                raise ProtocolError(str(e), CLOSE_BAD_MESSAGE) from None
+
+    def apply(self, msg: Message) -> None:
+        """Take a client update (latest wins); `ProtocolError` if it does not fit this session."""
+        s = self.state
+        if isinstance(msg, CameraMsg):
+            try:
+                s = replace(s, camera=to_camera(msg))
+            except ValueError as e:
+                raise ProtocolError(f"camera: {e}") from None
+        elif isinstance(msg, IsoMsg):
+            s = replace(s, iso=msg.value if msg.normalized else self.volume.normalized_iso(msg.value))
+        elif isinstance(msg, SettingsMsg):
+            settings = s.settings.updated(msg.settings, self.limits)
+            self.check_settings(settings)
+            s = replace(s, settings=settings)
+        elif isinstance(msg, FocusMsg):
+            s = replace(s, focus=msg)
+        else:
+            raise ProtocolError(f"a view session takes camera, iso, settings and focus messages, not {msg.TYPE}")
+        if msg.seq is not None:
+            s = replace(s, ack=max(s.ack, msg.seq))
+        self.state = s
+        self.version += 1
+        self.changed_at = time.monotonic()
+        self.changed.set()
+
+    def _refine_differs(self) -> bool:
+        s = self.state.settings
+        return s.refine and (s.mode != "full" or s.ao_samples < s.refine_ao_samples)
+
+    def refine_in(self, now: float) -> float | None:
+        """Seconds until the refined frame of the current state is due (None: none is)."""
+        if self.refined_version == self.version or not self._refine_differs():
+            return None
+        return max(0.0, self.changed_at + self.state.settings.refine_after_s - now)
+
+    def next_job(self, now: float) -> FrameJob | None:
+        """The frame to make now: the newest state if not yet rendered, else a due refined frame."""
+        s, st = self.state, self.state.settings
+        seq = self.next_seq
+        if self.rendered_version != self.version:
+            self.rendered_version = self.version
+            prev_camera, prev_seq = None, -1
+            if st.mode in LOWRES_MODES:
+                key = (st.mode, st.width, st.height, s.iso)
+                if key == self._flow_key:
+                    prev_camera, prev_seq = self._prev_camera, self._prev_seq
+                self._flow_key, self._prev_camera, self._prev_seq = key, s.camera, seq
+            spec = FrameSpec(st.mode, s.camera, prev_camera, s.iso, st.width, st.height, st.ao_samples, st.ao_radius,
+                             s.focus, st.focus_blend_px)
+            job = FrameJob(spec, seq, s.ack, False, "buffers" if st.mode == "buffers" else st.encoding, st.quality,
+                           prev_seq if st.mode == "buffers" else -1)
+        elif self.refine_in(now) == 0.0:
+            self.refined_version = self.version
+            spec = FrameSpec("full", s.camera, None, s.iso, st.width, st.height, st.refine_ao_samples, st.ao_radius,
+                             s.focus, st.focus_blend_px)
+            job = FrameJob(spec, seq, s.ack, True, st.encoding, st.quality, -1)
+        else:
+            return None
+        self.next_seq += 1
+        return job
+
+
+FrameMaker = Callable[[FrameJob], Awaitable[tuple[bytes | None, dict | None, dict]]]
+
+
+async def run_frames(session: ViewSession, make: FrameMaker, send: Callable[[bytes, FrameMsg], Awaitable[None]],
+                     max_fps: float) -> None:
+    """The session's frame loop (runs until cancelled): wait for a new state or a due refine,
+    keep at most ``max_fps``, make the frame (``make``, on the device thread) and send it."""
+    interval, last_start = 1.0 / max_fps, -float("inf")
+    while True:
+        session.changed.clear()
+        now = time.monotonic()
+        if session.rendered_version == session.version:
+            wait = session.refine_in(now)
+            if wait is None or wait > 0:
+                try:
+                    await asyncio.wait_for(session.changed.wait(), wait)
+                except TimeoutError:
+                    pass
+                continue
+        pause = last_start + interval - now
+        if pause > 0:
+            await asyncio.sleep(pause)  # updates arriving meanwhile coalesce into the state
+        job = session.next_job(time.monotonic())
+        if job is None:
+            continue
+        last_start = time.monotonic()
+        image, buffers, times = await make(job)
+        st = job.spec
+        msg = FrameMsg(job.seq, job.ack, st.mode, st.width, st.height, job.encoding, times,
+                       len(image) if image is not None else sum(len(a["data"]) for a in buffers.values()
+                                                               if isinstance(a, dict)),
+                       job.refined, image, buffers, job.prev_seq)
+        await send(pack(msg.to_wire()), msg)
+
+
+class UpscaleSessions:
+    """Upscalers by session id (``POST /v1/upscale``) plus open streams, bounded together,
+    each id expiring after ``idle_timeout_s`` without a request."""
+
+    def __init__(self, limits: Limits, make_upscaler: Callable[[], Upscaler]):
+        self.limits, self.make = limits, make_upscaler
+        self._by_id: OrderedDict[str, tuple[Upscaler, float]] = OrderedDict()
+        self.streams = SessionCounter(limits.max_sessions)
+
+    def __len__(self) -> int:
+        return len(self._by_id) + self.streams.count
+
+    def expire(self, now: float) -> int:
+        """Drop sessions idle longer than the timeout; returns how many."""
+        stale = [k for k, (_, used) in self._by_id.items() if now - used > self.limits.idle_timeout_s]
+        for k in stale:
+            del self._by_id[k]
+        return len(stale)
+
+    def get(self, session_id: str) -> Upscaler:
+        """The id's upscaler (a new one for a new id); `ProtocolError` (429) when full."""
+        now = time.monotonic()
+        self.expire(now)
+        if session_id not in self._by_id:
+            if len(self) >= self.limits.max_sessions:
+                raise ProtocolError(f"the server already holds {self.limits.max_sessions} upscale sessions; "
+                                    f"try later", CLOSE_TOO_MANY, 429)
+            self._by_id[session_id] = (self.make(), now)
+        upscaler = self._by_id[session_id][0]
+        self._by_id[session_id] = (upscaler, now)
+        self._by_id.move_to_end(session_id)
+        return upscaler
+
+    def open_stream(self) -> Upscaler:
+        """Count a stream (`ProtocolError` 429 when full) and give it its own upscaler."""
+        self.expire(time.monotonic())
+        if len(self) >= self.limits.max_sessions:
+            raise ProtocolError(f"the server already holds {self.limits.max_sessions} upscale sessions; try later",
+                                CLOSE_TOO_MANY, 429)
+        self.streams.acquire("upscale streams")
+        return self.make()
+
+    def close_stream(self) -> None:
+        self.streams.release()
