@@ -220,10 +220,12 @@ function draw() {
     view.height = a.image.height;
   }
   ctx.drawImage(a.image, 0, 0);
-  if (b && b.image && b.image.width === a.image.width && b.image.height === a.image.height) {
+  const split = b && b.image && b.image.width === a.image.width && b.image.height === a.image.height;
+  if (split) {
     const x = Math.round(state.split * view.width);
     ctx.drawImage(b.image, x, 0, view.width - x, view.height, x, 0, view.width - x, view.height);
   }
+  view.dataset.split = split ? b.mode : "";
 }
 
 function showFrameInfo(slot) {
