@@ -235,7 +235,8 @@ function showFrameInfo(slot) {
   const bits = st.arrivals.reduce((sum, f) => sum + f.bytes, 0) * 8;
   $("stat-fps").textContent = fps.toFixed(1);
   $("stat-latency").textContent = st.latency === null ? "-" : `${st.latency.toFixed(0)} ms`;
-  $("stat-times").textContent = Object.entries(st.times).map(([k, v]) => `${k} ${v.toFixed(1)}`).join(", ");
+  $("stat-times").textContent = Object.entries(st.times)
+    .map(([k, v]) => `${k} ${v < 10 ? v.toFixed(1) : v.toFixed(0)}`).join(", ");
   $("stat-bytes").textContent = `${(st.bytes / 1024).toFixed(1)} KiB`;
   $("stat-rate").textContent = (bits / 1e6).toFixed(2);
   const refined = $("refined");
