@@ -44,9 +44,9 @@ def free_port() -> int:
 
 
 @contextmanager
-def serve(tmp_path: Path):
-    """`isosr serve` as its own process on a free loopback port (procedural volumes, a token)."""
-    port = free_port()
+def serve(tmp_path: Path, port: int | None = None):
+    """`isosr serve` as its own process on loopback (procedural volumes, a token), a free port unless given."""
+    port = port or free_port()
     volumes = tmp_path / "volumes"
     volumes.mkdir(exist_ok=True)
     log = open(tmp_path / f"serve-{port}.log", "wb")
@@ -255,8 +255,9 @@ def test_viewer_wrong_token_shows_error(server, browser):
     v.page.close()
 
 
-def test_viewer_shows_lost_connection(browser, tmp_path):
-    with serve(tmp_path) as (process, url):
+def test_viewer_shows_lost_connection_and_reconnects(browser, tmp_path):
+    port = free_port()
+    with serve(tmp_path, port) as (process, url):
         v = Viewer(browser, url, TOKEN)
         v.wait_frame_after(0)
         process.kill()
@@ -264,4 +265,9 @@ def test_viewer_shows_lost_connection(browser, tmp_path):
         v.wait("document.getElementById('conn-state').dataset.state === 'lost'")
         assert "reconnecting" in v.page.inner_text("#banner")
         assert v.page.evaluate("document.getElementById('view').classList.contains('stale')")
+    n = v.frames()
+    with serve(tmp_path, port):
+        v.wait_frame_after(n, "document.getElementById('conn-state').dataset.state === 'open'")
+        assert not v.page.is_visible("#banner")
+        assert not v.page.evaluate("document.getElementById('view').classList.contains('stale')")
         v.page.close()
