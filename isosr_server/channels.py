@@ -10,6 +10,7 @@ that channel needs are rendered (standing order 3):
               input flow, nearest-upsampled and scaled to output pixels
     bilinear  the bilinear baseline (its AO is 1 everywhere: the baseline knows no occlusion)
     focus     as ``sr`` (the lens applies to shaded frames only)
+    buffers   no channel view: the client gets the buffers themselves
 
 Colormaps (the page's legend.js draws the same ones from the frame's ``legend``):
     mask    gray, 0 black to 1 white

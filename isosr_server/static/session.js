@@ -53,6 +53,7 @@ export class ViewSession {
     let serverError = null;
     ws.onopen = () => ws.send(encode(this.openMessage()));
     ws.onmessage = (event) => {
+      if (this.ws !== ws) return; // a message that crossed close()
       let msg;
       try {
         msg = decode(event.data);

@@ -25,6 +25,7 @@ const state = {
   pointer: null,
   sessions: [], // [{session, mode, image, frameId, stats}]
   pending: {},
+  generation: 0, // of openSessions calls
 };
 
 // ---- server calls ------------------------------------------------------------------------------
@@ -108,13 +109,15 @@ function newStats() {
 async function openSessions() {
   for (const s of state.sessions) s.session.close();
   state.sessions = [];
+  const generation = ++state.generation; // a later call supersedes this one
   if (!state.volume) return;
   try {
     const model = await getJson("/v2/models/isosr");
     state.factor = model.upscale_factor;
   } catch (e) {
-    return serverUnreachable(e);
+    return generation === state.generation && serverUnreachable(e);
   }
+  if (generation !== state.generation) return;
   resize(false);
   for (const [index, mode] of modes().entries()) {
     const slot = { mode, image: null, frameId: 0, shownId: 0, stats: newStats(), refined: false };
@@ -160,11 +163,12 @@ async function onSessionState(slot, name, detail) {
     try {
       await getJson("/v2/health/live");
     } catch (e) {
-      if (e.status === 401) {
+      if (e.status === 401 && !slot.session.closed) {
         for (const s of state.sessions) s.session.close();
         return tokenRefused(e);
       }
     }
+    if (slot.session.closed) return;
     const seconds = (detail.delayMs / 1000).toFixed(1);
     setConnState("lost", "lost");
     setBanner(`connection lost${detail.reason ? ` (${detail.reason})` : ""}; reconnecting in ${seconds} s ` +
