@@ -120,9 +120,9 @@ class Viewer:
         width, height, raw = data[0], data[1], base64.b64decode(data[2])
         return [[tuple(raw[3 * (y * width + x): 3 * (y * width + x) + 3]) for x in range(width)] for y in range(height)]
 
-    def settle(self) -> list[list[int]]:
-        """The image once no frame arrived for a while (a still view's refined frame included)."""
-        self.wait("document.getElementById('view').dataset.refined === 'true'")
+    def settle(self, after: int) -> list[list[int]]:
+        """The image of the first refined frame (a still view's last) after frame number ``after``."""
+        self.wait_frame_after(after, "document.getElementById('view').dataset.refined === 'true'")
         return self.pixels()
 
 
@@ -150,7 +150,7 @@ def test_viewer_explores_a_volume(server, browser):
     page = v.page
     v.wait_frame_after(0)
     assert page.get_attribute("#conn-state", "data-state") == "open"
-    shaded = v.settle()
+    shaded = v.settle(0)
     assert 0.05 < surface_fraction(shaded) < 0.9, "no isosurface on the canvas"
     assert len(shaded) == 240 and len(shaded[0]) == 320, "the image does not fit the window"
     assert page.get_attribute("#refined", "data-refined") == "true"
@@ -166,18 +166,36 @@ def test_viewer_explores_a_volume(server, browser):
     v.wait_frame_after(n)
     assert page.evaluate("JSON.parse(document.getElementById('camera-json').value).yaw") != 30
     assert page.inner_text("#stat-latency").endswith("ms")
-    dragged = v.settle()
+    dragged = v.settle(n)
     assert difference(shaded, dragged) > 1.0, "the drag did not change the image"
+
+    # Wheel zooms, keys orbit, double-click resets; a pasted camera is checked, then applied.
+    camera = "JSON.parse(document.getElementById('camera-json').value)"
+    distance = page.evaluate(f"{camera}.distance")
+    page.mouse.move(box["x"] + 160, box["y"] + 120)
+    page.mouse.wheel(0, 300)
+    page.wait_for_function(f"{camera}.distance > {distance}")
+    yaw = page.evaluate(f"{camera}.yaw")
+    page.keyboard.press("ArrowLeft")
+    assert page.evaluate(f"{camera}.yaw") == pytest.approx(yaw + 5)
+    page.mouse.dblclick(box["x"] + 160, box["y"] + 120)
+    assert page.evaluate(camera) == {"yaw": 30, "pitch": 20, "distance": 1.8, "target": [0, 0, 0], "fov_y": 40}
+    page.fill("#camera-json", '{"yaw": 10, "pitch": 95, "distance": 1.8}')
+    page.click("#camera-apply")
+    assert "camera.pitch must be a number in [-89, 89]" in page.inner_text("#banner")
+    n = v.frames()
+    page.fill("#camera-json", '{"yaw": 80, "pitch": 30, "distance": 1.8}')
+    page.click("#camera-apply")
+    assert not page.is_visible("#banner") and page.evaluate(f"{camera}.yaw") == 80
+    pasted = v.settle(n)
 
     # Iso: another iso-value, another surface.
     n = v.frames()
     lo, hi = (float(page.get_attribute("#iso", k)) for k in ("min", "max"))
     iso = float(page.input_value("#iso"))
     set_control(page, "#iso", str(iso + 0.1 * (hi - lo)))
-    v.wait_frame_after(n)
-    moved = v.settle()
-    change = abs(surface_fraction(moved) - surface_fraction(dragged))
-    assert change > 0.1 * surface_fraction(dragged), "the iso slider did not change the surface"
+    moved = v.settle(n)
+    assert difference(pasted, moved) > 1.0, "the iso slider did not change the surface"
 
     # Modes: each reaches the server and comes back.
     for mode in ("full", "bilinear", "focus", "sr"):
