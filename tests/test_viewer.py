@@ -1,6 +1,7 @@
 """The browser viewer in headless Chromium (Debian's ``chromium``, driven by Playwright) against a
 real `isosr serve` process on loopback: page load, surface, drag, iso, modes, channels, split,
-wrong token, a killed server; and the page's msgpack coder against Python's msgpack."""
+wrong token, a killed server; and the page's msgpack coder against Python's msgpack.
+``ISOSR_TEST_DEVICE=cuda`` serves from the GPU."""
 
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ import msgpack
 import pytest
 import torch
 
+from conftest import DEVICE
 from isosr_render import FrameBuffers
 from isosr_server.channels import false_color
 
@@ -51,7 +53,7 @@ def serve(tmp_path: Path, port: int | None = None):
     volumes.mkdir(exist_ok=True)
     log = open(tmp_path / f"serve-{port}.log", "wb")
     process = subprocess.Popen([sys.executable, "-m", "isosr_cli.main", "serve", "--port", str(port), "--volumes",
-                                str(volumes), "--token", TOKEN, "--log-level", "warning"],
+                                str(volumes), "--token", TOKEN, "--device", DEVICE, "--log-level", "warning"],
                                stdout=log, stderr=subprocess.STDOUT, env=os.environ.copy())
     url = f"http://127.0.0.1:{port}"
     try:
