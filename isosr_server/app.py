@@ -40,6 +40,7 @@ from isosr_server.protocol import (CLOSE_IDLE, CLOSE_INTERNAL, CLOSE_NOT_FOUND, 
                                    CLIENT_VIEW_MESSAGES, limits_to_wire, pack, parse)
 from isosr_server.sessions import (DEFAULT_CAMERA, RateLimiter, SessionCounter, UpscaleSessions, ViewSession,
                                    ViewState, run_frames, to_camera)
+from isosr_server.viewer import add_viewer
 from isosr_server.volumes import UnknownVolume, VolumeCatalog
 
 log = logging.getLogger("isosr.server")
@@ -267,6 +268,7 @@ def create_app(config: ServerConfig) -> FastAPI:
         return Response(pack(reply.to_wire()), media_type=MSGPACK_MEDIA_TYPE)
 
     app.include_router(http)
+    add_viewer(app)
 
     # ---- WebSockets -------------------------------------------------------------------------
 

@@ -24,7 +24,7 @@ import torch
 
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
 from isosr_render import FrameBuffers, Renderer, Volume, orbit, parse_procedural, shade
-from isosr_server import pipeline
+from isosr_server import channels, pipeline
 from isosr_server.encoding import encode_image, encoder_name, to_uint8
 from isosr_server.protocol import ENCODINGS, UpscaleRequest
 
@@ -119,14 +119,16 @@ class Engine:
                 self._renderers.popitem(last=False)
         return self._renderers[name]
 
-    def view_frame_sync(self, renderer: Renderer, upscaler: Upscaler, spec: pipeline.FrameSpec,
-                        encoding: str, quality: int) -> tuple[bytes | None, dict | None, dict[str, float]]:
-        """One view frame: ``(image bytes or None, coded buffers or None, times in ms)``."""
+    def view_frame_sync(self, renderer: Renderer, upscaler: Upscaler, spec: pipeline.FrameSpec, encoding: str,
+                        quality: int) -> tuple[bytes | None, dict | None, dict[str, float], dict | None]:
+        """One view frame: ``(image bytes or None, coded buffers or None, times in ms, channel legend or None)``."""
         self._on_thread()
         timer = pipeline.StageTimer(self.device)
         with timer("total"):
-            buffers, color = None, None
-            if spec.mode == "full":
+            buffers, color, legend = None, None, None
+            if spec.channel != "shaded" and spec.mode != "buffers":
+                color, legend = channels.render_channel(renderer, upscaler, self.upscale_factor, spec, timer)
+            elif spec.mode == "full":
                 color = pipeline.render_full(renderer, spec, timer)
             elif spec.mode == "sr":
                 color = pipeline.render_sr(renderer, upscaler, spec, timer)
@@ -142,7 +144,7 @@ class Engine:
             if color is not None:
                 with timer("encode"):
                     image = encode_image(to_uint8(color), encoding, quality)
-        return image, buffers, timer.ms
+        return image, buffers, timer.ms, legend
 
     def upscale_sync(self, upscaler: Upscaler, request: UpscaleRequest) -> tuple[bytes | None, dict | None, dict]:
         """One upscale request: ``(image bytes or None, float32 numpy buffers or None, times in ms)``.

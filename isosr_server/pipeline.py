@@ -56,6 +56,7 @@ class FrameSpec:
         ao_samples, ao_radius: AO of full-res renders (0 samples: no AO).
         focus: the focus region (``focus`` mode).
         blend: focus border blend width in pixels.
+        channel: ``shaded`` or the buffer a channel view shows (:mod:`isosr_server.channels`).
     """
 
     mode: str
@@ -68,6 +69,7 @@ class FrameSpec:
     ao_radius: float
     focus: FocusMsg
     blend: int
+    channel: str = "shaded"
 
 
 def lowres_size(width: int, height: int, factor: int) -> tuple[int, int]:

@@ -65,6 +65,8 @@ FLOW_CLIP = 60000.0
 ZLIB_LEVEL = 1
 
 MODES = ("full", "sr", "bilinear", "buffers", "focus")
+# What a shaded-mode frame shows: the shaded image or one buffer in false color (isosr_server.channels).
+CHANNELS = ("shaded", "mask", "normal", "depth", "ao", "flow")
 ENCODINGS = ("jpeg", "png", "webp")
 UPSCALE_OUTPUTS = ("buffers",) + ENCODINGS
 FOCUS_SHAPES = ("none", "circle", "box")
@@ -454,6 +456,7 @@ class ViewSettings:
         refine: send one refined frame (full resolution, ``refine_ao_samples``) once the
             camera and settings were still for ``refine_after_s``.
         focus_blend_px: width of the blend at the focus region's border, full-res pixels.
+        channel: ``shaded``, or a buffer shown in false color (:mod:`isosr_server.channels`).
     """
 
     mode: str = "sr"
@@ -467,6 +470,7 @@ class ViewSettings:
     refine_after_s: float = 0.5
     refine_ao_samples: int = 64
     focus_blend_px: int = 4
+    channel: str = "shaded"
 
     @staticmethod
     def read_update(d: Any, limits: Limits, where: str = "settings") -> dict:
@@ -484,6 +488,7 @@ class ViewSettings:
             "refine_after_s": r.float("refine_after_s", 0.0, 3600.0),
             "refine_ao_samples": r.int("refine_ao_samples", 0, limits.max_ao_samples),
             "focus_blend_px": r.int("focus_blend_px", 0, 256),
+            "channel": r.choice("channel", CHANNELS),
         }
         r.done()
         return _drop_none(update)
@@ -718,6 +723,7 @@ class FrameMsg(Message):
         times: server milliseconds per stage (render, network, shading, encode, total).
         nbytes: payload bytes (image, or the buffers' data).
         refined: the still-camera refined frame.
+        legend: channel view only: ``channel, lo, hi, unit, colormap[, stops]`` of the false colors.
     """
 
     TYPE: ClassVar[str] = "frame"
@@ -733,12 +739,13 @@ class FrameMsg(Message):
     image: bytes | None = None
     buffers: dict | None = None
     prev_seq: int = -1
+    legend: dict | None = None
 
     def to_wire(self) -> dict:
         return _drop_none({"type": self.TYPE, "seq": self.seq, "ack": self.ack, "mode": self.mode, "width": self.width,
                            "height": self.height, "encoding": self.encoding, "times": self.times,
                            "bytes": self.nbytes, "refined": self.refined, "image": self.image,
-                           "buffers": self.buffers, "prev_seq": self.prev_seq})
+                           "buffers": self.buffers, "prev_seq": self.prev_seq, "legend": self.legend})
 
     @classmethod
     def from_wire(cls, d: dict, limits: Limits) -> "FrameMsg":
@@ -749,7 +756,8 @@ class FrameMsg(Message):
                   height=r.int("height", 1, limits.max_side, required=True),
                   encoding=r.choice("encoding", ENCODINGS + ("buffers",), required=True), times=_read_times(r),
                   nbytes=r.int("bytes", 0, 2**40, required=True), refined=r.bool("refined", False),
-                  image=r._raw("image", False), buffers=r.map("buffers"), prev_seq=r.int("prev_seq", -1, MAX_SEQ, -1))
+                  image=r._raw("image", False), buffers=r.map("buffers"), prev_seq=r.int("prev_seq", -1, MAX_SEQ, -1),
+                  legend=r.map("legend"))
         r.done()
         if (msg.encoding == "buffers") != (msg.buffers is not None) or (msg.image is None) == (msg.buffers is None):
             raise ProtocolError("frame: an encoded frame carries image bytes, a buffers frame carries buffers")

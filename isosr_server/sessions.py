@@ -20,6 +20,7 @@ from dataclasses import dataclass, replace
 
 from isosr_net.upscaler import Upscaler
 from isosr_render import Camera, Volume, orbit
+from isosr_server import channels
 from isosr_server.pipeline import FrameSpec, lowres_size
 from isosr_server.protocol import (CLOSE_BAD_MESSAGE, CLOSE_TOO_MANY, CameraMsg, FocusMsg, FrameMsg, IsoMsg,
                                    Limits, Message, ProtocolError, SettingsMsg, ViewSettings, pack)
@@ -119,7 +120,8 @@ class ViewSession:
         self._prev_seq = -1
 
     def check_settings(self, settings: ViewSettings) -> None:
-        """Low-res modes need a size divisible by the upscale factor."""
+        """Low-res modes need a size divisible by the upscale factor; a channel view one its mode makes."""
+        channels.check(settings)
         if settings.mode in LOWRES_MODES:
             try:
                 lowres_size(settings.width, settings.height, self.factor)
@@ -168,19 +170,19 @@ class ViewSession:
         if self.rendered_version != self.version:
             self.rendered_version = self.version
             prev_camera, prev_seq = None, -1
-            if st.mode in LOWRES_MODES:
+            if st.mode in LOWRES_MODES or st.channel == "flow":
                 key = (st.mode, st.width, st.height, s.iso)
                 if key == self._flow_key:
                     prev_camera, prev_seq = self._prev_camera, self._prev_seq
                 self._flow_key, self._prev_camera, self._prev_seq = key, s.camera, seq
             spec = FrameSpec(st.mode, s.camera, prev_camera, s.iso, st.width, st.height, st.ao_samples, st.ao_radius,
-                             s.focus, st.focus_blend_px)
+                             s.focus, st.focus_blend_px, st.channel)
             job = FrameJob(spec, seq, s.ack, False, "buffers" if st.mode == "buffers" else st.encoding, st.quality,
                            prev_seq if st.mode == "buffers" else -1)
         elif self.refine_in(now) == 0.0:
             self.refined_version = self.version
             spec = FrameSpec("full", s.camera, None, s.iso, st.width, st.height, st.refine_ao_samples, st.ao_radius,
-                             s.focus, st.focus_blend_px)
+                             s.focus, st.focus_blend_px, st.channel)
             job = FrameJob(spec, seq, s.ack, True, st.encoding, st.quality, -1)
         else:
             return None
@@ -188,7 +190,7 @@ class ViewSession:
         return job
 
 
-FrameMaker = Callable[[FrameJob], Awaitable[tuple[bytes | None, dict | None, dict]]]
+FrameMaker = Callable[[FrameJob], Awaitable[tuple[bytes | None, dict | None, dict, dict | None]]]
 
 
 async def run_frames(session: ViewSession, make: FrameMaker, send: Callable[[bytes, FrameMsg], Awaitable[None]],
@@ -214,12 +216,12 @@ async def run_frames(session: ViewSession, make: FrameMaker, send: Callable[[byt
         if job is None:
             continue
         last_start = time.monotonic()
-        image, buffers, times = await make(job)
+        image, buffers, times, legend = await make(job)
         st = job.spec
         msg = FrameMsg(job.seq, job.ack, st.mode, st.width, st.height, job.encoding, times,
                        len(image) if image is not None else sum(len(a["data"]) for a in buffers.values()
                                                                if isinstance(a, dict)),
-                       job.refined, image, buffers, job.prev_seq)
+                       job.refined, image, buffers, job.prev_seq, legend)
         await send(pack(msg.to_wire()), msg)
 
 

@@ -1,0 +1,586 @@
+// The isosr viewer page: controls, camera, frames of one or two view sessions, live numbers.
+import { PROTOCOL_VERSION, ViewSession } from "./session.js";
+import { drawLegend } from "./legend.js";
+
+const $ = (id) => document.getElementById(id);
+const DEFAULT_CAMERA = { yaw: 30, pitch: 20, distance: 1.8, target: [0, 0, 0], fov_y: 40 };
+const CHANNELS = ["shaded", "mask", "normal", "depth", "ao", "flow"];
+const MODE_KEYS = { 1: "full", 2: "sr", 3: "bilinear", 4: "focus" };
+const TOKEN_KEY = "isosr.token";
+const SPARK_FRAMES = 120;
+
+const view = $("view");
+const ctx = view.getContext("2d");
+const state = {
+  token: sessionStorage.getItem(TOKEN_KEY) || "",
+  factor: 4,
+  limits: null,
+  volume: null,
+  info: null, // ready.volume: name, shape, value_range, iso, histogram
+  iso: null, // data units; null: the volume's suggested iso
+  camera: structuredClone(DEFAULT_CAMERA),
+  width: 320,
+  height: 240,
+  split: 0.5,
+  pointer: null,
+  sessions: [], // [{session, mode, image, frameId, stats}]
+  pending: {},
+  generation: 0, // of openSessions calls
+};
+
+// ---- server calls ------------------------------------------------------------------------------
+
+function authHeaders() {
+  return state.token ? { Authorization: `Bearer ${state.token}` } : {};
+}
+
+/** GET a JSON endpoint; throws an Error whose .status is the HTTP status (0: no answer). */
+async function getJson(path) {
+  let response;
+  try {
+    response = await fetch(path, { headers: authHeaders(), cache: "no-store" });
+  } catch (e) {
+    throw Object.assign(new Error(`no answer from the server (${e.message})`), { status: 0 });
+  }
+  const body = await response.json().catch(() => ({}));
+  if (!response.ok) {
+    const reason = body.error || response.statusText;
+    throw Object.assign(new Error(`${response.status}: ${reason}`), { status: response.status });
+  }
+  return body;
+}
+
+function wsUrl() {
+  const scheme = location.protocol === "https:" ? "wss:" : "ws:";
+  return `${scheme}//${location.host}/v1/view`;
+}
+
+// ---- status ------------------------------------------------------------------------------------
+
+function setBanner(text, kind = "error") {
+  const banner = $("banner");
+  banner.hidden = !text;
+  banner.textContent = text || "";
+  banner.dataset.kind = kind;
+}
+
+function setConnState(name, text) {
+  const el = $("conn-state");
+  el.dataset.state = name;
+  el.textContent = text || name;
+  view.classList.toggle("stale", name === "lost" || name === "error");
+}
+
+// ---- sessions ----------------------------------------------------------------------------------
+
+function modes() {
+  const a = $("mode").value;
+  return $("split").checked ? [a, $("mode-b").value] : [a];
+}
+
+function settings(mode) {
+  return {
+    mode,
+    width: state.width,
+    height: state.height,
+    ao_samples: $("ao").checked ? Number($("ao-samples").value) : 0,
+    channel: $("channel").value,
+    refine: !$("split").checked, // a refined frame is full-res: both halves would be the same
+    encoding: "jpeg",
+    quality: 90,
+  };
+}
+
+function cameraMessage() {
+  const c = state.camera;
+  return { type: "camera", yaw: c.yaw, pitch: c.pitch, distance: c.distance, target: c.target, fov_y: c.fov_y };
+}
+
+function focusMessage() {
+  const p = state.pointer || { x: state.width / 2, y: state.height / 2 };
+  return { type: "focus", shape: "circle", center: [p.x, p.y], radius: Number($("lens-radius").value) };
+}
+
+function newStats() {
+  return { arrivals: [], intervals: [], latency: null, times: null, bytes: 0 };
+}
+
+/** Close all sessions and open one per shown mode, for the current volume and state. */
+async function openSessions() {
+  for (const s of state.sessions) s.session.close();
+  state.sessions = [];
+  const generation = ++state.generation; // a later call supersedes this one
+  if (!state.volume) return;
+  try {
+    const model = await getJson("/v2/models/isosr");
+    state.factor = model.upscale_factor;
+  } catch (e) {
+    return generation === state.generation && serverUnreachable(e);
+  }
+  if (generation !== state.generation) return;
+  resize(false);
+  for (const [index, mode] of modes().entries()) {
+    const slot = { mode, image: null, frameId: 0, shownId: 0, stats: newStats(), refined: false };
+    slot.session = new ViewSession(wsUrl(), state.token, () => openMessage(slot), {
+      onReady: (ready) => onReady(slot, index, ready),
+      onFrame: (frame, latency) => onFrame(slot, frame, latency),
+      onState: (name, detail) => onSessionState(slot, name, detail),
+    });
+    state.sessions.push(slot);
+    slot.session.connect();
+  }
+  updateSplitHandle();
+}
+
+function openMessage(slot) {
+  const msg = { type: "open", version: PROTOCOL_VERSION, volume: state.volume, settings: settings(slot.mode),
+    camera: cameraMessage() };
+  if (state.iso !== null) Object.assign(msg, { iso: state.iso, iso_normalized: false });
+  return msg;
+}
+
+function onReady(slot, index, ready) {
+  state.factor = ready.upscale_factor;
+  state.limits = ready.limits;
+  if (index === 0) {
+    state.info = ready.volume;
+    if (state.iso === null) state.iso = ready.volume.iso;
+    setupIso();
+  }
+  if (slot.mode === "focus") slot.session.send(focusMessage());
+  setBanner("");
+}
+
+async function onSessionState(slot, name, detail) {
+  if (slot !== state.sessions[0] && name !== "error") return;
+  if (name === "open") setConnState("open", "connected");
+  else if (name === "connecting") setConnState("connecting", "connecting");
+  else if (name === "error") {
+    setConnState("error", "error");
+    setBanner(`server error ${detail.code}: ${detail.reason}\nchange a setting to try again`);
+  } else if (name === "lost") {
+    // A denied handshake looks like a lost connection to a browser: ask over HTTP why.
+    try {
+      await getJson("/v2/health/live");
+    } catch (e) {
+      if (e.status === 401 && !slot.session.closed) {
+        for (const s of state.sessions) s.session.close();
+        return tokenRefused(e);
+      }
+    }
+    if (slot.session.closed) return;
+    const seconds = (detail.delayMs / 1000).toFixed(1);
+    setConnState("lost", "lost");
+    setBanner(`connection lost${detail.reason ? ` (${detail.reason})` : ""}; reconnecting in ${seconds} s ` +
+      `(attempt ${detail.attempt})`, "lost");
+  }
+}
+
+function serverUnreachable(e) {
+  if (e.status === 401) return tokenRefused(e);
+  setConnState("lost", "lost");
+  setBanner(`cannot reach the server: ${e.message}; retrying in 2 s`, "lost");
+  setTimeout(start, 2000);
+}
+
+function tokenRefused(e) {
+  setConnState("error", "token?");
+  setBanner(`the server refused the token (${e.message}); enter the right one above`);
+  $("token").focus();
+}
+
+// ---- frames ------------------------------------------------------------------------------------
+
+async function onFrame(slot, frame, latency) {
+  const now = performance.now();
+  const st = slot.stats;
+  if (st.arrivals.length) st.intervals.push(now - st.arrivals[st.arrivals.length - 1].t);
+  if (st.intervals.length > SPARK_FRAMES) st.intervals.shift();
+  st.arrivals.push({ t: now, bytes: frame.bytes });
+  while (st.arrivals.length && now - st.arrivals[0].t > 1000) st.arrivals.shift();
+  if (latency !== null) st.latency = latency;
+  st.times = frame.times;
+  st.bytes = frame.bytes;
+  slot.refined = frame.refined;
+  slot.legend = frame.legend || null;
+  const id = ++slot.frameId;
+  const blob = new Blob([frame.image], { type: `image/${frame.encoding}` });
+  const image = await createImageBitmap(blob);
+  if (id < slot.shownId) return image.close(); // a newer frame was decoded first
+  slot.shownId = id;
+  if (slot.image) slot.image.close();
+  slot.image = image;
+  view.dataset.frames = String(Number(view.dataset.frames) + 1);
+  view.dataset.mode = frame.mode;
+  draw();
+  if (slot === state.sessions[0]) showFrameInfo(slot);
+}
+
+function draw() {
+  const [a, b] = state.sessions;
+  if (!a || !a.image) return;
+  if (view.width !== a.image.width || view.height !== a.image.height) {
+    view.width = a.image.width;
+    view.height = a.image.height;
+  }
+  ctx.drawImage(a.image, 0, 0);
+  const split = b && b.image && b.image.width === a.image.width && b.image.height === a.image.height;
+  if (split) {
+    const x = Math.round(state.split * view.width);
+    ctx.drawImage(b.image, x, 0, view.width - x, view.height, x, 0, view.width - x, view.height);
+  }
+  view.dataset.split = split ? b.mode : "";
+}
+
+function showFrameInfo(slot) {
+  const st = slot.stats;
+  const seconds = st.arrivals.length > 1 ? (st.arrivals.at(-1).t - st.arrivals[0].t) / 1000 : 0;
+  const fps = seconds > 0 ? (st.arrivals.length - 1) / seconds : 0;
+  const bits = st.arrivals.reduce((sum, f) => sum + f.bytes, 0) * 8;
+  $("stat-fps").textContent = fps.toFixed(1);
+  $("stat-latency").textContent = st.latency === null ? "-" : `${st.latency.toFixed(0)} ms`;
+  $("stat-times").textContent = Object.entries(st.times)
+    .map(([k, v]) => `${k} ${v < 10 ? v.toFixed(1) : v.toFixed(0)}`).join(", ");
+  $("stat-bytes").textContent = `${(st.bytes / 1024).toFixed(1)} KiB`;
+  $("stat-rate").textContent = (bits / 1e6).toFixed(2);
+  const refined = $("refined");
+  refined.dataset.refined = String(slot.refined);
+  refined.textContent = slot.refined ? "refined" : "interactive";
+  view.dataset.refined = String(slot.refined);
+  drawSparkline(st.intervals);
+  const box = $("legend-box");
+  box.hidden = !slot.legend;
+  if (slot.legend) {
+    drawLegend($("legend"), slot.legend);
+    $("legend-lo").textContent = formatNumber(slot.legend.lo);
+    $("legend-hi").textContent = formatNumber(slot.legend.hi);
+    $("legend-unit").textContent = slot.legend.unit;
+  }
+  view.dataset.channel = slot.legend ? slot.legend.channel : "shaded";
+}
+
+function drawSparkline(values) {
+  const c = $("sparkline");
+  const g = c.getContext("2d");
+  g.clearRect(0, 0, c.width, c.height);
+  if (values.length < 2) return;
+  const top = Math.max(...values) * 1.1;
+  g.strokeStyle = "#6cf";
+  g.beginPath();
+  values.forEach((v, i) => {
+    const x = (i / (SPARK_FRAMES - 1)) * c.width;
+    const y = c.height - (v / top) * c.height;
+    if (i === 0) g.moveTo(x, y); else g.lineTo(x, y);
+  });
+  g.stroke();
+  g.fillStyle = "#999";
+  g.fillText(`${top.toFixed(0)} ms`, 2, 10);
+}
+
+function formatNumber(v) {
+  return Math.abs(v) >= 1e4 || (Math.abs(v) < 1e-2 && v !== 0) ? v.toExponential(2) : String(+v.toFixed(3));
+}
+
+// ---- iso ---------------------------------------------------------------------------------------
+
+function setupIso() {
+  const [lo, hi] = state.info.value_range;
+  const iso = $("iso");
+  iso.min = lo;
+  iso.max = hi;
+  iso.step = hi > lo ? (hi - lo) / 1000 : 1;
+  iso.value = state.iso;
+  $("iso-min").textContent = formatNumber(lo);
+  $("iso-max").textContent = formatNumber(hi);
+  showIso();
+}
+
+function showIso() {
+  $("iso-value").textContent = state.iso === null ? "" : formatNumber(state.iso);
+  const c = $("histogram");
+  const g = c.getContext("2d");
+  g.clearRect(0, 0, c.width, c.height);
+  const info = state.info;
+  if (!info || !info.histogram) return;
+  const logs = info.histogram.map((n) => Math.log1p(n));
+  const top = Math.max(...logs, 1e-9);
+  const w = c.width / logs.length;
+  g.fillStyle = "#58708f";
+  logs.forEach((v, i) => g.fillRect(i * w, c.height * (1 - v / top), Math.ceil(w), c.height * (v / top)));
+  const [lo, hi] = info.value_range;
+  const x = hi > lo ? ((state.iso - lo) / (hi - lo)) * c.width : c.width / 2;
+  g.fillStyle = "#ffcc33";
+  g.fillRect(x - 1, 0, 2, c.height);
+}
+
+function setIso(value) {
+  if (!state.info) return;
+  const [lo, hi] = state.info.value_range;
+  state.iso = Math.min(hi, Math.max(lo, value));
+  $("iso").value = state.iso;
+  showIso();
+  queue("iso", { type: "iso", value: state.iso, normalized: false });
+}
+
+// ---- updates: coalesced to one message of each kind per animation frame --------------------------
+
+function queue(kind, message) {
+  state.pending[kind] = message;
+  requestAnimationFrame(flush);
+}
+
+function flush() {
+  const pending = state.pending;
+  state.pending = {};
+  for (const message of Object.values(pending)) for (const s of state.sessions) s.session.send(message);
+}
+
+function sendSettings() {
+  if (state.sessions.some((s) => s.session.ready === null)) return openSessions(); // error or not open yet
+  for (const s of state.sessions) {
+    s.session.send({ type: "settings", settings: settings(s.mode) });
+    if (s.mode === "focus") s.session.send(focusMessage());
+  }
+}
+
+function cameraChanged() {
+  $("camera-json").value = JSON.stringify(state.camera);
+  queue("camera", cameraMessage());
+}
+
+// ---- size --------------------------------------------------------------------------------------
+
+/** Fit the image to the stage: a multiple of the upscale factor within the server's limits. */
+function resize(send = true) {
+  const stage = $("stage");
+  const f = state.factor;
+  let w = Math.max(f, Math.floor(stage.clientWidth / f) * f);
+  let h = Math.max(f, Math.floor(stage.clientHeight / f) * f);
+  if (state.limits) {
+    const scale = Math.min(1, state.limits.max_side / Math.max(w, h), Math.sqrt(state.limits.max_pixels / (w * h)));
+    w = Math.max(f, Math.floor((w * scale) / f) * f);
+    h = Math.max(f, Math.floor((h * scale) / f) * f);
+  }
+  const changed = w !== state.width || h !== state.height;
+  state.width = w;
+  state.height = h;
+  if (changed && send) sendSettings();
+  updateSplitHandle();
+}
+
+function updateSplitHandle() {
+  const handle = $("split-handle");
+  handle.hidden = state.sessions.length < 2;
+  handle.style.left = `${state.split * state.width}px`;
+  handle.style.height = `${state.height}px`;
+  $("lens-row").hidden = !modes().includes("focus");
+  showLens();
+}
+
+function showLens() {
+  const lens = $("lens");
+  const p = state.pointer;
+  lens.hidden = !p || !modes().includes("focus");
+  if (lens.hidden) return;
+  const r = Number($("lens-radius").value);
+  Object.assign(lens.style, { left: `${p.x - r}px`, top: `${p.y - r}px`, width: `${2 * r}px`, height: `${2 * r}px` });
+}
+
+// ---- camera interaction ------------------------------------------------------------------------
+
+function orbitBy(dYaw, dPitch) {
+  const c = state.camera;
+  c.yaw = ((c.yaw + dYaw + 540) % 360) - 180;
+  c.pitch = Math.min(89, Math.max(-89, c.pitch + dPitch));
+  cameraChanged();
+}
+
+function zoomBy(factor) {
+  state.camera.distance = Math.min(100, Math.max(0.05, state.camera.distance * factor));
+  cameraChanged();
+}
+
+function resetCamera() {
+  state.camera = structuredClone(DEFAULT_CAMERA);
+  cameraChanged();
+}
+
+/** A camera from JSON text, checked field by field; throws an Error naming what is wrong. */
+function parseCamera(text) {
+  const c = JSON.parse(text);
+  const number = (k, lo, hi) => {
+    if (typeof c[k] !== "number" || !Number.isFinite(c[k]) || c[k] < lo || c[k] > hi) {
+      throw new Error(`camera.${k} must be a number in [${lo}, ${hi}]`);
+    }
+    return c[k];
+  };
+  const target = c.target === undefined ? [0, 0, 0] : c.target;
+  if (!Array.isArray(target) || target.length !== 3 || !target.every((v) => Number.isFinite(v) && Math.abs(v) < 1e6)) {
+    throw new Error("camera.target must be a list of 3 finite numbers");
+  }
+  return { yaw: number("yaw", -1e6, 1e6), pitch: number("pitch", -89, 89), distance: number("distance", 1e-6, 1e6),
+    target, fov_y: c.fov_y === undefined ? 40 : number("fov_y", 1, 170) };
+}
+
+function download(name, blob) {
+  const a = document.createElement("a");
+  a.href = URL.createObjectURL(blob);
+  a.download = name;
+  a.click();
+  setTimeout(() => URL.revokeObjectURL(a.href), 1000);
+}
+
+function screenshot() {
+  view.toBlob((blob) => download(`isosr-${state.volume}-${Date.now()}.png`, blob), "image/png");
+}
+
+function canvasPoint(event) {
+  const rect = view.getBoundingClientRect();
+  return { x: event.clientX - rect.left, y: event.clientY - rect.top };
+}
+
+function bindPointer() {
+  let drag = null;
+  view.addEventListener("pointerdown", (e) => {
+    const p = canvasPoint(e);
+    drag = { x: e.clientX, y: e.clientY };
+    view.setPointerCapture(e.pointerId);
+    state.pointer = p;
+  });
+  view.addEventListener("pointermove", (e) => {
+    state.pointer = canvasPoint(e);
+    if (drag) {
+      orbitBy(-(e.clientX - drag.x) * 0.4, (e.clientY - drag.y) * 0.4);
+      drag = { x: e.clientX, y: e.clientY };
+    } else if (modes().includes("focus")) {
+      queue("focus", focusMessage());
+    }
+    showLens();
+  });
+  view.addEventListener("pointerup", () => { drag = null; });
+  view.addEventListener("wheel", (e) => {
+    e.preventDefault();
+    zoomBy(Math.exp(e.deltaY * 0.001));
+  }, { passive: false });
+  view.addEventListener("dblclick", resetCamera);
+
+  const handle = $("split-handle");
+  handle.addEventListener("pointerdown", (e) => handle.setPointerCapture(e.pointerId));
+  handle.addEventListener("pointermove", (e) => {
+    if (!handle.hasPointerCapture(e.pointerId)) return;
+    state.split = Math.min(1, Math.max(0, canvasPoint(e).x / state.width));
+    updateSplitHandle();
+    draw();
+  });
+}
+
+function bindKeys() {
+  document.addEventListener("keydown", (e) => {
+    if (e.target.matches("input, textarea, select") || e.ctrlKey || e.metaKey || e.altKey) return;
+    const step = state.info ? (state.info.value_range[1] - state.info.value_range[0]) / 100 : 0;
+    const actions = {
+      ArrowLeft: () => orbitBy(5, 0), ArrowRight: () => orbitBy(-5, 0),
+      ArrowUp: () => orbitBy(0, 5), ArrowDown: () => orbitBy(0, -5),
+      "+": () => zoomBy(0.9), "=": () => zoomBy(0.9), "-": () => zoomBy(1 / 0.9),
+      "[": () => setIso(state.iso - step), "]": () => setIso(state.iso + step),
+      c: () => cycleChannel(1), C: () => cycleChannel(-1),
+      a: () => { $("ao").checked = !$("ao").checked; sendSettings(); },
+      s: () => { $("split").checked = !$("split").checked; openSessions(); },
+      r: resetCamera, p: screenshot,
+    };
+    const action = MODE_KEYS[e.key] ? () => { $("mode").value = MODE_KEYS[e.key]; modeChanged(); } : actions[e.key];
+    if (!action) return;
+    e.preventDefault();
+    action();
+  });
+}
+
+function cycleChannel(delta) {
+  const i = CHANNELS.indexOf($("channel").value);
+  $("channel").value = CHANNELS[(i + delta + CHANNELS.length) % CHANNELS.length];
+  channelChanged();
+}
+
+function channelChanged() {
+  // The AO channel of a full-res render needs AO rays.
+  if ($("channel").value === "ao" && !$("ao").checked) $("ao").checked = true;
+  sendSettings();
+}
+
+function modeChanged() {
+  const shown = modes();
+  if (state.sessions.length !== shown.length) return openSessions();
+  state.sessions.forEach((s, i) => { s.mode = shown[i]; });
+  updateSplitHandle();
+  sendSettings();
+}
+
+function bindControls() {
+  $("token").value = state.token;
+  $("token-apply").addEventListener("click", () => {
+    state.token = $("token").value.trim();
+    if (state.token) sessionStorage.setItem(TOKEN_KEY, state.token);
+    else sessionStorage.removeItem(TOKEN_KEY);
+    start();
+  });
+  $("volume").addEventListener("change", () => {
+    state.volume = $("volume").value;
+    state.iso = null;
+    state.info = null;
+    openSessions();
+  });
+  $("iso").addEventListener("input", () => setIso(Number($("iso").value)));
+  $("mode").addEventListener("change", modeChanged);
+  $("mode-b").addEventListener("change", modeChanged);
+  $("split").addEventListener("change", () => openSessions());
+  $("channel").addEventListener("change", channelChanged);
+  $("ao").addEventListener("change", sendSettings);
+  $("ao-samples").addEventListener("change", sendSettings);
+  $("lens-radius").addEventListener("input", () => { showLens(); queue("focus", focusMessage()); });
+  $("camera-reset").addEventListener("click", resetCamera);
+  $("camera-save").addEventListener("click", () => {
+    const text = JSON.stringify(state.camera, null, 1);
+    $("camera-json").value = text;
+    download("camera.json", new Blob([text], { type: "application/json" }));
+  });
+  $("camera-apply").addEventListener("click", () => {
+    try {
+      state.camera = parseCamera($("camera-json").value);
+      setBanner("");
+      cameraChanged();
+    } catch (e) {
+      setBanner(`cannot use that camera: ${e.message}`);
+    }
+  });
+  $("screenshot").addEventListener("click", screenshot);
+  let timer = null;
+  window.addEventListener("resize", () => { clearTimeout(timer); timer = setTimeout(resize, 150); });
+}
+
+// ---- start -------------------------------------------------------------------------------------
+
+async function start() {
+  setConnState("connecting", "connecting");
+  let listing;
+  try {
+    listing = await getJson("/v1/volumes");
+  } catch (e) {
+    return serverUnreachable(e);
+  }
+  const names = listing.volumes.map((v) => v.name);
+  const asked = new URLSearchParams(location.search).get("volume");
+  if (asked && !names.includes(asked)) names.push(asked);
+  const select = $("volume");
+  select.replaceChildren(...names.map((n) => new Option(n, n)));
+  state.volume = names.includes(state.volume) ? state.volume : asked || names[0] || null;
+  select.value = state.volume;
+  if (!state.volume) return setBanner("the server offers no volumes");
+  setBanner("");
+  openSessions();
+}
+
+bindControls();
+bindPointer();
+bindKeys();
+$("camera-json").value = JSON.stringify(state.camera);
+start();

@@ -1,0 +1,28 @@
+"""The browser viewer: the page at ``GET /`` and its files under ``/static``.
+
+Plain ES modules shipped in ``isosr_server/static`` (package data): no build step, nothing
+fetched from elsewhere at run time (the Content-Security-Policy allows this origin only).
+The page itself needs no token; every request it makes carries the one the user enters.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from fastapi import FastAPI
+from fastapi.responses import FileResponse
+from fastapi.staticfiles import StaticFiles
+
+STATIC_DIR = Path(__file__).parent / "static"
+CSP = ("default-src 'self'; img-src 'self' blob: data:; connect-src 'self'; style-src 'self'; "
+       "script-src 'self'; object-src 'none'; base-uri 'none'; frame-ancestors 'none'")
+
+
+def add_viewer(app: FastAPI) -> None:
+    """Serve the viewer page at ``/`` and its static files at ``/static`` on ``app``."""
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="viewer-static")
+
+    @app.get("/", include_in_schema=False)
+    async def viewer_page():
+        return FileResponse(STATIC_DIR / "index.html", headers={"Content-Security-Policy": CSP,
+                                                                "Cache-Control": "no-cache"})

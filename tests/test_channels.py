@@ -1,0 +1,181 @@
+"""The channel view (isosr_server.channels): false colors and legends, hard inputs, that each
+mode computes only the buffers the asked channel needs, and the view sessions that ask for it.
+``ISOSR_TEST_DEVICE=cuda`` runs the renderer, network and server parts on the GPU."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from isosr_net.upscaler import Upscaler
+from isosr_render import FrameBuffers, Renderer, orbit, parse_procedural
+from isosr_server import channels
+from isosr_server.pipeline import FrameSpec, StageTimer
+from isosr_server.protocol import CHANNELS, FocusMsg, ProtocolError, ViewSettings
+
+from conftest import DEVICE
+from net_fixtures import tiny_model_dir
+
+H, W = 6, 8
+
+
+def frame(mask=1.0, depth=1.0, flow=(0.0, 0.0), ao=0.5) -> FrameBuffers:
+    """A flat frame: every pixel the same values."""
+    normal = torch.zeros(H, W, 3)
+    normal[..., 2] = 1.0
+    return FrameBuffers(mask=torch.full((H, W), float(mask)), normal=normal, depth=torch.full((H, W), float(depth)),
+                        ao=torch.full((H, W), float(ao)), flow=torch.tensor(flow).expand(H, W, 2).clone())
+
+
+@pytest.mark.parametrize("channel", CHANNELS[1:])
+def test_false_colors_are_bounded_with_a_legend(channel):
+    rgb, legend = channels.false_color(frame(), channel)
+    assert rgb.shape == (H, W, 3) and torch.isfinite(rgb).all() and rgb.min() >= 0 and rgb.max() <= 1
+    assert legend["channel"] == channel and math.isfinite(legend["lo"]) and legend["lo"] <= legend["hi"]
+
+
+def test_false_colors_follow_the_colormaps():
+    f = frame(depth=2.0, ao=0.25)
+    f.mask[0, 0] = 0.0
+    f.depth[1, 1] = 3.0
+    f.flow[2, 2] = torch.tensor([3.0, 0.0])  # right: hue 0, red
+    f.flow[3, 3] = torch.tensor([0.0, 1.5])  # down, half length: hue 1/4, value 1/2
+    normal, _ = channels.false_color(f, "normal")
+    assert torch.allclose(normal[1, 1], torch.tensor([0.5, 0.5, 1.0]))
+    assert torch.allclose(normal[0, 0], torch.full((3,), channels.NO_SURFACE)), "uncovered pixels are gray"
+    depth, legend = channels.false_color(f, "depth")
+    assert (legend["lo"], legend["hi"]) == (2.0, 3.0) and legend["stops"][0] == list(channels.DEPTH_STOPS[0])
+    assert torch.allclose(depth[1, 1], torch.tensor(channels.DEPTH_STOPS[-1]))
+    assert torch.allclose(depth[2, 2], torch.tensor(channels.DEPTH_STOPS[0]))
+    ao, _ = channels.false_color(f, "ao")
+    assert torch.allclose(ao[1, 1], torch.full((3,), 0.25))
+    flow, legend = channels.false_color(f, "flow")
+    assert legend["hi"] == 3.0
+    assert torch.allclose(flow[2, 2], torch.tensor([1.0, 0.0, 0.0]))
+    assert torch.allclose(flow[3, 3], torch.tensor([0.25, 0.5, 0.0]))
+    assert torch.equal(flow[4, 4], torch.zeros(3)), "still pixels are black"
+
+
+@pytest.mark.parametrize("case", ["flat", "empty", "huge", "nonfinite", "no_flow"])
+def test_hard_buffers_stay_finite(case):
+    f = {"flat": frame(depth=0.7), "empty": frame(mask=0.0, depth=0.0), "huge": frame(depth=1e30, flow=(1e30, -1e30)),
+         "nonfinite": frame(depth=math.inf, flow=(math.nan, math.inf)), "no_flow": frame()}[case]
+    if case == "no_flow":
+        f.flow = None
+    for channel in CHANNELS[1:]:
+        rgb, legend = channels.false_color(f, channel)
+        assert torch.isfinite(rgb).all() and rgb.min() >= 0 and rgb.max() <= 1, (case, channel)
+        assert math.isfinite(legend["lo"]) and math.isfinite(legend["hi"]), (case, channel, legend)
+
+
+def test_settings_a_channel_cannot_show_are_refused():
+    with pytest.raises(ProtocolError, match="ao_samples > 0"):
+        channels.check(ViewSettings(mode="full", ao_samples=0, channel="ao"))
+    with pytest.raises(ProtocolError, match="channel must be one of"):
+        channels.check(ViewSettings(channel="color"))
+    channels.check(ViewSettings(mode="sr", ao_samples=0, channel="ao"))  # the network's AO
+
+
+@pytest.fixture(scope="module")
+def renderer():
+    return Renderer(parse_procedural("proc:torus@24"), DEVICE)
+
+
+def spec(mode: str, channel: str, prev: bool = False, ao_samples: int = 0) -> FrameSpec:
+    return FrameSpec(mode, orbit(30, 20, 1.6), orbit(28, 20, 1.6) if prev else None, 0.5, 32, 24, ao_samples, 0.05,
+                     FocusMsg("none"), 0, channel)
+
+
+@pytest.mark.parametrize("channel, ao_samples, present", [
+    ("mask", 0, ["mask"]), ("normal", 0, ["mask", "normal"]), ("depth", 0, ["mask", "depth"]),
+    ("ao", 2, ["mask", "ao"]), ("flow", 0, ["mask", "flow"])])
+def test_full_mode_renders_only_the_channel(renderer, channel, ao_samples, present):
+    buffers = channels.channel_buffers(renderer, None, 2, spec("full", channel, prev=True, ao_samples=ao_samples),
+                                       StageTimer(torch.device(DEVICE)))
+    assert buffers.present() == present
+    assert buffers.mask.shape == (24, 32) and buffers.mask.max() == 1.0
+
+
+def test_lowres_modes_show_output_resolution_buffers(renderer, tmp_path_factory):
+    upscaler = Upscaler(tiny_model_dir(tmp_path_factory), DEVICE)
+    factor = upscaler.upscale_factor
+    timer = StageTimer(torch.device(DEVICE))
+    sr = channels.channel_buffers(renderer, upscaler, factor, spec("sr", "flow", prev=True), timer)
+    assert sr.flow.shape == (24, 32, 2) and sr.ao.shape == (24, 32)
+    assert sr.flow.abs().max() > 0, "a moved camera gives flow"
+    bilinear = channels.channel_buffers(renderer, upscaler, factor, spec("bilinear", "depth"), timer)
+    assert bilinear.flow is None and torch.equal(bilinear.ao, (bilinear.ao > -1).float()), "the baseline has no AO"
+    rgb, legend = channels.render_channel(renderer, upscaler, factor, spec("focus", "depth"), timer)
+    assert rgb.shape == (24, 32, 3) and 0 < legend["lo"] < legend["hi"]
+    assert set(timer.ms) == {"render", "network", "shading"}
+
+
+# ---- through the server ----------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def srv(tmp_path_factory):
+    from server_fixtures import running_server
+
+    from isosr_server.app import ServerConfig
+    from isosr_server.engine import EngineConfig
+
+    config = ServerConfig(volumes=tmp_path_factory.mktemp("no_volumes"), engine=EngineConfig(device=DEVICE))
+    with running_server(config) as s:
+        yield s
+
+
+def test_server_serves_the_page_offline(srv):
+    status, headers, body = srv.request("GET", "/")
+    assert status == 200 and b'<script type="module" src="static/viewer.js">' in body
+    assert "default-src 'self'" in headers["content-security-policy"]
+    for name in ("viewer.js", "session.js", "msgpack.js", "legend.js"):
+        status, headers, body = srv.request("GET", f"/static/{name}")
+        assert status == 200 and "javascript" in headers["content-type"]
+        assert b"http://" not in body and b"https://" not in body, f"{name} fetches from elsewhere"
+    assert srv.request("GET", "/static/../app.py")[0] == 404
+
+
+def test_view_session_channels_match_the_library(srv):
+    from server_fixtures import recv
+
+    from isosr_server import protocol as P
+    from isosr_server.encoding import decode_image, to_uint8
+    from isosr_server.sessions import to_camera
+
+    volume, w, h = "proc:torus@24", 64, 48
+    cam0 = P.CameraMsg(yaw=30.0, pitch=20.0, distance=1.6)
+    with srv.view() as ws:
+        ws.send(P.pack(P.OpenMsg(volume, {"width": w, "height": h, "mode": "sr", "channel": "depth", "encoding": "png",
+                                          "refine": False}, cam0).to_wire()))
+        ready = recv(ws)
+        assert isinstance(ready, P.ReadyMsg) and ready.settings["channel"] == "depth"
+        first = recv(ws)
+        assert first.legend["channel"] == "depth" and 0 < first.legend["lo"] < first.legend["hi"]
+        renderer = Renderer(parse_procedural(volume), DEVICE)
+        upscaler = Upscaler(device=DEVICE)
+        local = FrameSpec("sr", to_camera(cam0), None, ready.volume["iso_normalized"], w, h, 0, 0.05,
+                          FocusMsg("none"), 0, "depth")
+        expected, legend = channels.render_channel(renderer, upscaler, upscaler.upscale_factor, local,
+                                                   StageTimer(torch.device(DEVICE)))
+        got = decode_image(first.image).astype(int)
+        # On a GPU the server's network runs channels-last: other kernels, other rounding.
+        tolerance, levels = (1e-6, 1) if DEVICE == "cpu" else (1e-3, 3)
+        assert abs(legend["lo"] - first.legend["lo"]) < tolerance
+        assert abs(got - to_uint8(expected).cpu().numpy().astype(int)).max() <= levels
+
+        ws.send(P.pack(P.SettingsMsg({"channel": "flow", "mode": "full"}, seq=1).to_wire()))
+        still = recv(ws)
+        assert (still.ack, still.mode, still.legend["channel"], still.legend["hi"]) == (1, "full", "flow", 0.0)
+        ws.send(P.pack(P.CameraMsg(yaw=34.0, pitch=20.0, distance=1.6, seq=2).to_wire()))
+        moved = recv(ws)
+        assert moved.ack == 2 and moved.legend["hi"] > 0, "a moved camera has flow"
+
+        ws.send(P.pack(P.SettingsMsg({"channel": "ao", "ao_samples": 0}).to_wire()))
+        while True:
+            msg = recv(ws)
+            if isinstance(msg, P.ErrorMsg):
+                break
+        assert msg.code == P.CLOSE_BAD_MESSAGE and "ao_samples > 0" in msg.reason

@@ -1,0 +1,293 @@
+"""The browser viewer in headless Chromium (Debian's ``chromium``, driven by Playwright) against a
+real `isosr serve` process on loopback: page load, surface, drag, iso, modes, channels, split,
+wrong token, a killed server; and the page's msgpack coder against Python's msgpack.
+``ISOSR_TEST_DEVICE=cuda`` serves from the GPU."""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from contextlib import contextmanager
+from pathlib import Path
+
+import msgpack
+import pytest
+import torch
+
+from conftest import DEVICE
+from isosr_render import FrameBuffers
+from isosr_server.channels import false_color
+
+CHROMIUM = Path("/usr/bin/chromium")
+if not CHROMIUM.exists():
+    pytest.skip("no browser: /usr/bin/chromium is absent (Debian: apt-get install chromium)", allow_module_level=True)
+sync_api = pytest.importorskip("playwright.sync_api", reason="Playwright for Python is not installed")
+
+TOKEN = "viewer-test-token"
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+                 "--no-first-run"]
+# The side panel is 290 px wide: this window leaves a 320x240 view.
+WINDOW = {"width": 610, "height": 240}
+VOLUME = "proc:torus@32"
+FRAME_TIMEOUT_MS = 30_000
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@contextmanager
+def serve(tmp_path: Path, port: int | None = None):
+    """`isosr serve` as its own process on loopback (procedural volumes, a token), a free port unless given."""
+    port = port or free_port()
+    volumes = tmp_path / "volumes"
+    volumes.mkdir(exist_ok=True)
+    log = open(tmp_path / f"serve-{port}.log", "wb")
+    process = subprocess.Popen([sys.executable, "-m", "isosr_cli.main", "serve", "--port", str(port), "--volumes",
+                                str(volumes), "--token", TOKEN, "--device", DEVICE, "--log-level", "warning"],
+                               stdout=log, stderr=subprocess.STDOUT, env=os.environ.copy())
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 120
+        while True:
+            try:
+                request = urllib.request.Request(url + "/v2/health/ready", headers={"Authorization": f"Bearer {TOKEN}"})
+                with urllib.request.urlopen(request, timeout=5):
+                    break
+            except (urllib.error.URLError, ConnectionError):
+                if process.poll() is not None or time.monotonic() > deadline:
+                    raise RuntimeError(f"isosr serve did not start: {(tmp_path / f'serve-{port}.log').read_text()}")
+                time.sleep(0.2)
+        yield process, url
+    finally:
+        process.terminate()
+        process.wait(30)
+        log.close()
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    with serve(tmp_path_factory.mktemp("viewer")) as (_, url):
+        yield url
+
+
+@pytest.fixture(scope="module")
+def browser():
+    with sync_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        yield b
+        b.close()
+
+
+class Viewer:
+    """One page of the viewer with its console errors collected."""
+
+    def __init__(self, browser, url: str, token: str | None):
+        # bypass_csp: the page's policy forbids eval, which Playwright's wait_for_function uses.
+        self.page = browser.new_page(viewport=WINDOW, bypass_csp=True)
+        self.errors: list[str] = []
+        self.page.on("console", lambda m: self.errors.append(m.text) if m.type == "error" else None)
+        self.page.on("pageerror", lambda e: self.errors.append(str(e)))
+        if token:
+            self.page.add_init_script(f"sessionStorage.setItem('isosr.token', {json.dumps(token)})")
+        self.page.goto(f"{url}/?volume={VOLUME}")
+
+    def frames(self) -> int:
+        return int(self.page.get_attribute("#view", "data-frames"))
+
+    def wait(self, condition: str) -> None:
+        self.page.wait_for_function(condition, timeout=FRAME_TIMEOUT_MS)
+
+    def wait_frame_after(self, count: int, extra: str = "true") -> None:
+        self.wait(f"Number(document.getElementById('view').dataset.frames) > {count} && ({extra})")
+
+    def pixels(self) -> list[list[int]]:
+        """The canvas as rows of RGB triples."""
+        data = self.page.evaluate("""() => {
+            const c = document.getElementById('view');
+            const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+            let s = '';
+            for (let i = 0; i < d.length; i += 4) s += String.fromCharCode(d[i], d[i + 1], d[i + 2]);
+            return [c.width, c.height, btoa(s)];
+        }""")
+        width, height, raw = data[0], data[1], base64.b64decode(data[2])
+        return [[tuple(raw[3 * (y * width + x): 3 * (y * width + x) + 3]) for x in range(width)] for y in range(height)]
+
+    def settle(self, after: int) -> list[list[int]]:
+        """The image of the first refined frame (a still view's last) after frame number ``after``."""
+        self.wait_frame_after(after, "document.getElementById('view').dataset.refined === 'true'")
+        return self.pixels()
+
+
+def surface_fraction(pixels) -> float:
+    """Share of pixels that differ from the white background."""
+    flat = [p for row in pixels for p in row]
+    return sum(1 for p in flat if min(p) < 230) / len(flat)
+
+
+def difference(a, b) -> float:
+    """Mean absolute difference of two images of the same size, 0-255."""
+    flat_a = [c for row in a for p in row for c in p]
+    flat_b = [c for row in b for p in row for c in p]
+    assert len(flat_a) == len(flat_b)
+    return sum(abs(x - y) for x, y in zip(flat_a, flat_b)) / len(flat_a)
+
+
+def set_control(page, selector: str, value) -> None:
+    page.evaluate("([s, v]) => { const e = document.querySelector(s); e.value = v; "
+                  "e.dispatchEvent(new Event(e.type === 'range' ? 'input' : 'change')); }", [selector, value])
+
+
+def test_viewer_explores_a_volume(server, browser):
+    v = Viewer(browser, server, TOKEN)
+    page = v.page
+    v.wait_frame_after(0)
+    assert page.get_attribute("#conn-state", "data-state") == "open"
+    shaded = v.settle(0)
+    assert 0.05 < surface_fraction(shaded) < 0.9, "no isosurface on the canvas"
+    assert len(shaded) == 240 and len(shaded[0]) == 320, "the image does not fit the window"
+    assert page.get_attribute("#refined", "data-refined") == "true"
+    assert float(page.inner_text("#stat-fps")) >= 0 and "total" in page.inner_text("#stat-times")
+
+    # Drag: the camera orbits.
+    n = v.frames()
+    box = page.locator("#view").bounding_box()
+    page.mouse.move(box["x"] + 100, box["y"] + 120)
+    page.mouse.down()
+    page.mouse.move(box["x"] + 220, box["y"] + 60, steps=5)
+    page.mouse.up()
+    v.wait_frame_after(n)
+    assert page.evaluate("JSON.parse(document.getElementById('camera-json').value).yaw") != 30
+    assert page.inner_text("#stat-latency").endswith("ms")
+    dragged = v.settle(n)
+    assert difference(shaded, dragged) > 1.0, "the drag did not change the image"
+
+    # Wheel zooms, keys orbit, double-click resets; a pasted camera is checked, then applied.
+    camera = "JSON.parse(document.getElementById('camera-json').value)"
+    distance = page.evaluate(f"{camera}.distance")
+    page.mouse.move(box["x"] + 160, box["y"] + 120)
+    page.mouse.wheel(0, 300)
+    page.wait_for_function(f"{camera}.distance > {distance}")
+    yaw = page.evaluate(f"{camera}.yaw")
+    page.keyboard.press("ArrowLeft")
+    assert page.evaluate(f"{camera}.yaw") == pytest.approx(yaw + 5)
+    page.mouse.dblclick(box["x"] + 160, box["y"] + 120)
+    assert page.evaluate(camera) == {"yaw": 30, "pitch": 20, "distance": 1.8, "target": [0, 0, 0], "fov_y": 40}
+    page.fill("#camera-json", '{"yaw": 10, "pitch": 95, "distance": 1.8}')
+    page.click("#camera-apply")
+    assert "camera.pitch must be a number in [-89, 89]" in page.inner_text("#banner")
+    n = v.frames()
+    page.fill("#camera-json", '{"yaw": 80, "pitch": 30, "distance": 1.8}')
+    page.click("#camera-apply")
+    assert not page.is_visible("#banner") and page.evaluate(f"{camera}.yaw") == 80
+    pasted = v.settle(n)
+
+    # Iso: another iso-value, another surface.
+    n = v.frames()
+    lo, hi = (float(page.get_attribute("#iso", k)) for k in ("min", "max"))
+    iso = float(page.input_value("#iso"))
+    set_control(page, "#iso", str(iso + 0.1 * (hi - lo)))
+    moved = v.settle(n)
+    assert difference(pasted, moved) > 1.0, "the iso slider did not change the surface"
+
+    # Modes: each reaches the server and comes back.
+    for mode in ("full", "bilinear", "focus", "sr"):
+        n = v.frames()
+        set_control(page, "#mode", mode)
+        v.wait_frame_after(n, f"document.getElementById('view').dataset.mode === '{mode}'")
+
+    # Channels: normals in false color (facing the camera: blue over red), depth with its legend.
+    n = v.frames()
+    set_control(page, "#channel", "normal")
+    v.wait_frame_after(n, "document.getElementById('view').dataset.channel === 'normal'")
+    normals = v.pixels()
+    covered = [p for row in normals for p in row if p[2] > p[0] + 40]
+    assert len(covered) > 0.5 * surface_fraction(moved) * 320 * 240, "normals are not in false color"
+    assert page.is_visible("#legend-box")
+    n = v.frames()
+    set_control(page, "#channel", "depth")
+    v.wait_frame_after(n, "document.getElementById('view').dataset.channel === 'depth'")
+    near, far = (float(page.inner_text(s)) for s in ("#legend-lo", "#legend-hi"))
+    assert 0 < near < far < 3, f"depth legend {near}..{far}"
+    n = v.frames()
+    set_control(page, "#channel", "shaded")
+    v.wait_frame_after(n, "document.getElementById('view').dataset.channel === 'shaded'")
+    assert not page.is_visible("#legend-box")
+
+    # Split: the right half comes from a second session in full mode.
+    page.check("#split")
+    v.wait("document.getElementById('view').dataset.split === 'full'")
+    assert page.is_visible("#split-handle")
+    assert v.errors == [], v.errors
+    page.close()
+
+
+def test_viewer_coders_match_python(server, browser):
+    """The page's msgpack against Python's; its flow legend against the server's flow colors."""
+    sample = {"type": "frame", "nil": None, "t": True, "f": False, "ints": [0, 127, 128, 255, 256, 65535, 65536,
+              2**32 - 1, 2**32, 2**53, -1, -32, -33, -128, -129, -32768, -32769, -2**31, -2**31 - 1, -2**53],
+              "float": 0.1, "neg": -1.5e300, "str": "héllo ✓", "long": "x" * 300, "longer": "y" * 70000,
+              "bin0": b"", "bin": bytes(range(256)) * 2, "bigbin": b"\x01" * 70000, "list": list(range(20)),
+              "map": {f"k{i}": i for i in range(20)}}
+    packed = msgpack.packb(sample, use_bin_type=True)
+    single = msgpack.packb({"f32": 0.5}, use_bin_type=True, use_single_float=True)
+    v = Viewer(browser, server, TOKEN)
+    out = v.page.evaluate("""async ([packed, single]) => {
+        const m = await import('/static/msgpack.js');
+        const bytes = (b64) => Uint8Array.from(atob(b64), (c) => c.charCodeAt(0));
+        const value = m.decode(bytes(packed));
+        const again = m.encode(value);
+        let bad = null;
+        try { m.decode(bytes(packed).slice(0, -1)); } catch (e) { bad = e.message; }
+        const b64 = (u) => btoa(Array.from(u, (c) => String.fromCharCode(c)).join(''));
+        return [b64(again), m.decode(bytes(single)).f32, bad, value.bin instanceof Uint8Array];
+    }""", [base64.b64encode(packed).decode(), base64.b64encode(single).decode()])
+    again, f32, truncated, is_bytes = out
+    assert msgpack.unpackb(base64.b64decode(again), raw=False) == sample
+    assert f32 == 0.5 and is_bytes
+    assert truncated and "truncated" in truncated
+
+    vectors = [(3.0, 0.0), (0.0, 1.5), (-1.0, -2.0), (2.0, -1.0), (-2.9, 0.4), (0.0, 0.0)]
+    flow = torch.tensor(vectors)[None]
+    rgb, legend = false_color(FrameBuffers(mask=torch.ones(1, len(vectors)), flow=flow), "flow")
+    page_rgb = v.page.evaluate("""async ([vectors, hi]) => {
+        const m = await import('/static/legend.js');
+        return vectors.map(([x, y]) => m.flowColor(x, y, hi));
+    }""", [vectors, legend["hi"]])
+    assert torch.allclose(torch.tensor(page_rgb), rgb[0], atol=1e-5), (page_rgb, rgb[0])
+    v.page.close()
+
+
+def test_viewer_wrong_token_shows_error(server, browser):
+    v = Viewer(browser, server, "wrong-token-0000")
+    v.wait("document.getElementById('conn-state').dataset.state === 'error'")
+    assert "token" in v.page.inner_text("#banner")
+    assert v.frames() == 0
+    v.page.close()
+
+
+def test_viewer_shows_lost_connection_and_reconnects(browser, tmp_path):
+    port = free_port()
+    with serve(tmp_path, port) as (process, url):
+        v = Viewer(browser, url, TOKEN)
+        v.wait_frame_after(0)
+        process.kill()
+        process.wait(30)
+        v.wait("document.getElementById('conn-state').dataset.state === 'lost'")
+        assert "reconnecting" in v.page.inner_text("#banner")
+        assert v.page.evaluate("document.getElementById('view').classList.contains('stale')")
+    n = v.frames()
+    with serve(tmp_path, port):
+        v.wait_frame_after(n, "document.getElementById('conn-state').dataset.state === 'open'")
+        assert not v.page.is_visible("#banner")
+        assert not v.page.evaluate("document.getElementById('view').classList.contains('stale')")
+        v.page.close()
