@@ -27,11 +27,11 @@ side runs on ``--device`` of this machine, and its time per frame is reported to
 from __future__ import annotations
 
 import json
-import os
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 import urllib.request
@@ -82,12 +82,15 @@ class ServerProcess:
         self.process: subprocess.Popen | None = None
 
     def __enter__(self) -> "ServerProcess":
-        self.process = subprocess.Popen(self.command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        # stderr to a file, not a pipe: a full pipe nobody reads would stall the server.
+        self.log = tempfile.TemporaryFile()
+        self.process = subprocess.Popen(self.command, stdout=subprocess.DEVNULL, stderr=self.log)
         deadline = time.monotonic() + self.startup_s
         while not self._ready():
             if self.process.poll() is not None:
+                self.log.seek(0)
                 raise RuntimeError(f"the server exited ({self.process.returncode}): "
-                                   f"{self.process.stderr.read().decode(errors='replace')[-2000:]}")
+                                   f"{self.log.read().decode(errors='replace')[-2000:]}")
             if time.monotonic() > deadline:
                 self.__exit__()
                 raise RuntimeError(f"the server was not ready within {self.startup_s:g} s")
@@ -109,15 +112,16 @@ class ServerProcess:
         return rss_bytes(self.pid)
 
     def __exit__(self, *exc) -> None:
-        if self.process is None or self.process.poll() is not None:
+        if self.process is None:
             return
-        self.process.send_signal(signal.SIGINT)
-        try:
-            self.process.wait(20)
-        except subprocess.TimeoutExpired:
-            self.process.kill()
-            self.process.wait()
-        self.process.stderr.close()
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGINT)
+            try:
+                self.process.wait(20)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        self.log.close()
 
 
 def run_sessions(url: str, volume: str, sessions: int, seconds: float, mode: str, size: tuple[int, int],
@@ -272,7 +276,9 @@ def main(argv: list[str] | None = None) -> None:
     if args.url:
         rows = run(args.url)
     else:
-        with ServerProcess(args.device, ("--max-sessions", str(max(counts) + 4), "--max-fps", "1000")) as server:
+        # Room for a case's sessions while the previous case's close; no frame-rate cap.
+        options = ("--max-sessions", str(2 * max(counts) + 4), "--max-fps", "1000")
+        with ServerProcess(args.device, options) as server:
             rows = run(server.url)
     table = [r for r in rows if "mode" in r]
     print_table(table, ["mode", "ao", "sessions", "fps", "fps_per_session", "latency_p50_ms", "latency_p99_ms",

@@ -94,7 +94,8 @@ class FrameStats:
         seq, ack: the server's frame number and the newest client update it includes (-1: none).
         mode: the mode that made it (``full`` for refined frames).
         refined: the still-camera refined frame.
-        latency_ms: from sending the newest update it includes (or ``open``) to its arrival.
+        latency_ms: from sending the newest update it includes (or ``open``) to its arrival; for
+            a refined frame this includes the still time before the server refines.
         nbytes: payload bytes (image, or the coded buffers).
         wire_bytes: the whole message.
         server_ms: the server's milliseconds per stage (render, network, shading, encode, total).
@@ -173,9 +174,10 @@ class ViewSession:
     def _send(self, msg) -> int:
         """Validate an update as the server would, send it, and return its seq."""
         self._check_open()
-        parse(pack(msg.to_wire()), self.limits, CLIENT_VIEW_MESSAGES)  # a bad update fails here, clearly
+        data = pack(msg.to_wire())
+        parse(data, self.limits, CLIENT_VIEW_MESSAGES)  # a bad update fails here, clearly
         self._sent_at[msg.seq] = time.perf_counter()
-        self._ws.send(pack(msg.to_wire()))
+        self._ws.send(data)
         return msg.seq
 
     def _next_seq(self) -> int:
@@ -262,8 +264,8 @@ class ViewSession:
         if not isinstance(msg, FrameMsg):
             raise ProtocolError(f"expected a frame, got a {msg.TYPE} message")
         sent = max((t for s, t in self._sent_at.items() if s <= msg.ack), default=self._sent_at[-1])
-        for s in [s for s in self._sent_at if -1 < s <= msg.ack]:
-            del self._sent_at[s]  # bounded: only updates not yet acknowledged stay
+        for s in [s for s in self._sent_at if -1 < s < msg.ack]:
+            del self._sent_at[s]  # bounded: the newest acknowledged update and those after it stay
         stats = FrameStats(msg.seq, msg.ack, msg.mode, msg.refined, 1e3 * (arrived - sent), msg.nbytes, len(data),
                            dict(msg.times))
         frame = ViewFrame(msg, stats)
