@@ -158,6 +158,9 @@ class Engine:
         with timer("total"):
             with timer("network"):
                 high = upscaler.upscale(frame)
+                if not all(bool(torch.isfinite(getattr(high, n)).all()) for n in high.present()):
+                    upscaler.reset()  # a non-finite output must not feed the next frame
+                    raise ValueError("the network gave non-finite values for this frame")
             if request.output == "buffers":
                 with timer("encode"):
                     buffers = {n: getattr(high, n).cpu().numpy() for n in ("mask", "normal", "depth", "ao")}

@@ -286,7 +286,7 @@ def encode_array(a: np.ndarray, compress: bool = False) -> dict:
 
 
 def decode_array(wire: Any, where: str, limits: Limits, dtypes: tuple[str, ...] = tuple(WIRE_DTYPES),
-                 shape: tuple[int | None, ...] | None = None) -> np.ndarray:
+                 shape: tuple[int | None, ...] | None = None, bounds: tuple[float, float] | None = None) -> np.ndarray:
     """Validate and decode a wire array (a read-only view of the message bytes when uncompressed).
 
     Args:
@@ -295,9 +295,11 @@ def decode_array(wire: Any, where: str, limits: Limits, dtypes: tuple[str, ...] 
         limits: bounds the element count (``max_pixels * 4``) and side (``max_side``).
         dtypes: dtype names accepted here.
         shape: the expected shape, ``None`` entries free.
+        bounds: the range every value must lie in.
 
     Raises:
-        ProtocolError: unknown dtype, bad shape, byte count mismatch, corrupt zlib data, NaN/Inf.
+        ProtocolError: unknown dtype, bad shape, byte count mismatch, corrupt zlib data, NaN/Inf,
+            values out of ``bounds``.
     """
     r = _Reader(wire, where)
     dtype_name = r.choice("dtype", dtypes, required=True)
@@ -332,6 +334,9 @@ def decode_array(wire: Any, where: str, limits: Limits, dtypes: tuple[str, ...] 
     a = np.frombuffer(data, dtype=dtype).reshape(dims)
     if a.dtype.kind == "f" and not np.isfinite(a).all():
         raise ProtocolError(f"{where}: holds NaN or Inf values")
+    if bounds is not None and a.size and (a.min() < bounds[0] or a.max() > bounds[1]):
+        raise ProtocolError(f"{where}: values must lie in [{bounds[0]:g}, {bounds[1]:g}], got "
+                            f"[{float(a.min()):g}, {float(a.max()):g}]")
     return a
 
 
@@ -776,6 +781,12 @@ class ErrorMsg(Message):
 
 
 LOWRES_INPUTS = ("mask", "normal", "depth", "flow")
+# Ranges of the low-res inputs (conventions: coverage, unit normals, depth in world units where the
+# volume's box has side 1, flow in pixels). Far beyond them the network's activations overflow to
+# NaN (depth 3e38 did, in fp32), so they are refused with a reason instead.
+MAX_DEPTH = 1e6
+LOWRES_BOUNDS = {"mask": (0.0, 1.0), "normal": (-1.001, 1.001), "depth": (0.0, MAX_DEPTH),
+                 "flow": (-FLOW_CLIP, FLOW_CLIP)}
 HIGHRES_OUTPUTS = ("mask", "normal", "depth", "ao")
 
 
@@ -785,7 +796,8 @@ class UpscaleRequest(Message):
 
     Attributes:
         mask, normal, depth, flow: low-res buffers (float16/float32 numpy) in the conventions of
-            :mod:`isosr_render.conventions`; flow optional (without it the recurrent state resets).
+            :mod:`isosr_render.conventions`, within ``LOWRES_BOUNDS``; flow optional (without it
+            the recurrent state resets).
         output: ``buffers`` (float32 high-res mask, normal, depth, ao) or ``png``/``jpeg``/``webp``
             (the shaded image).
         quality: jpeg/webp quality 1-100.
@@ -820,13 +832,13 @@ class UpscaleRequest(Message):
         if version != PROTOCOL_VERSION:
             raise ProtocolError(f"upscale: protocol version {version} is not supported; this server speaks "
                                 f"{PROTOCOL_VERSION}")
-        floats = ("float16", "float32")
-        mask = decode_array(r._raw("mask", True), "mask", limits, floats, (None, None))
+        floats, b = ("float16", "float32"), LOWRES_BOUNDS
+        mask = decode_array(r._raw("mask", True), "mask", limits, floats, (None, None), b["mask"])
         h, w = mask.shape
-        normal = decode_array(r._raw("normal", True), "normal", limits, floats, (h, w, 3))
-        depth = decode_array(r._raw("depth", True), "depth", limits, floats, (h, w))
+        normal = decode_array(r._raw("normal", True), "normal", limits, floats, (h, w, 3), b["normal"])
+        depth = decode_array(r._raw("depth", True), "depth", limits, floats, (h, w), b["depth"])
         flow = r._raw("flow", False)
-        flow = None if flow is None else decode_array(flow, "flow", limits, floats, (h, w, 2))
+        flow = None if flow is None else decode_array(flow, "flow", limits, floats, (h, w, 2), b["flow"])
         msg = cls(mask=mask, normal=normal, depth=depth, flow=flow,
                   output=r.choice("output", UPSCALE_OUTPUTS, "buffers"), quality=r.int("quality", 1, 100, 85),
                   session=r.str("session", SESSION_ID), reset=r.bool("reset", False), version=version)

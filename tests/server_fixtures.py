@@ -1,22 +1,33 @@
 """A real `isosr serve` app on uvicorn on a free loopback port, in a background thread, for tests;
-plus small HTTP and WebSocket helpers and a root-logger handler that collects ERROR records."""
+HTTP and WebSocket helpers; a root-logger handler that collects ERROR records; and the library's
+own frames (references) for the test volume and size."""
 
 from __future__ import annotations
 
 import json
 import logging
+import os
 import socket
 import threading
 import time
 import urllib.error
 import urllib.request
 from contextlib import contextmanager
+from types import SimpleNamespace
 
+import numpy as np
+import pytest
 import uvicorn
+from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
+from isosr_net.upscaler import Upscaler
+from isosr_render import FrameBuffers, Renderer, RenderRequest, open_volume, orbit, shade
+from isosr_render.conventions import LOWRES_BUFFERS
+from isosr_render.procedural import default_iso
 from isosr_server import protocol as P
 from isosr_server.app import ServerConfig, create_app, uvicorn_options
+from isosr_server.encoding import decode_image, to_uint8
 
 # Clients accept big frames (the server's limit bounds what clients send).
 CLIENT_LIMITS = P.Limits(max_message_bytes=2**28)
@@ -102,3 +113,115 @@ def running_server(config: ServerConfig):
         server.should_exit = True
         thread.join(30)
         logging.getLogger().removeHandler(errors)
+
+
+# ISOSR_TEST_DEVICE=cuda runs server and references on the GPU (nvJPEG included where torchvision is).
+DEVICE = os.environ.get("ISOSR_TEST_DEVICE", "cpu")
+# Shaded uint8 levels a frame may differ from the library's: CPU runs are deterministic; on CUDA the
+# server's network runs channels-last, the reference's not, which moves a few pixels by a level or two.
+LEVELS = 1 if DEVICE == "cpu" else 3
+VOLUME = "proc:torus@32"
+W, H, FACTOR = 64, 48, 4
+CAM0 = P.CameraMsg(yaw=30.0, pitch=20.0, distance=1.8)
+
+
+@pytest.fixture(scope="module")
+def lib():
+    volume = open_volume(VOLUME)
+    return SimpleNamespace(renderer=Renderer(volume, DEVICE), iso=volume.normalized_iso(default_iso(VOLUME)))
+
+
+def lib_full(lib, camera, ao_samples=0) -> np.ndarray:
+    outputs = ("mask", "normal") + (("ao",) if ao_samples else ())
+    f = lib.renderer.render(camera, RenderRequest(W, H, lib.iso, outputs, ao_samples=max(ao_samples, 1)))
+    return to_uint8(shade(f.mask, f.normal, f.ao)).cpu().numpy()
+
+
+def lib_lowres(lib, camera, prev=None) -> FrameBuffers:
+    outputs = LOWRES_BUFFERS + (("flow",) if prev is not None else ())
+    return lib.renderer.render(camera, RenderRequest(W // FACTOR, H // FACTOR, lib.iso, outputs, prev_camera=prev))
+
+
+def lib_sr(lib, cameras) -> list[np.ndarray]:
+    """The shaded network frames of a camera path, with one recurrent state."""
+    upscaler, out, prev = Upscaler(device=DEVICE), [], None
+    for cam in cameras:
+        high = upscaler.upscale(lib_lowres(lib, cam, prev))
+        out.append(to_uint8(shade(high.mask, high.normal, high.ao)).cpu().numpy())
+        prev = cam
+    return out
+
+
+def assert_image(data: bytes, expected: np.ndarray, levels: int = LEVELS):
+    got = decode_image(data)
+    assert got.shape == expected.shape
+    diff = np.abs(got.astype(int) - expected.astype(int))
+    assert diff.max() <= levels, f"max diff {diff.max()} levels"
+
+
+@contextmanager
+def session(srv, volume=VOLUME, camera=CAM0, **settings):
+    """An opened view session: ``(ws, ready)``; the first frame is not read yet."""
+    with srv.view() as ws:
+        ws.send(P.pack(P.OpenMsg(volume, {"width": W, "height": H, "encoding": "png", "refine": False, **settings},
+                                 camera).to_wire()))
+        ready = recv(ws)
+        assert isinstance(ready, P.ReadyMsg), ready
+        yield ws, ready
+
+
+def frame(ws) -> P.FrameMsg:
+    msg = recv(ws)
+    assert isinstance(msg, P.FrameMsg), msg
+    return msg
+
+
+def send(ws, msg: P.Message):
+    ws.send(P.pack(msg.to_wire()))
+
+
+def expect_close(ws, code: int, words: str = ""):
+    """Frames may precede it; then an error message (unless uvicorn closed first) and the close."""
+    for _ in range(20):
+        try:
+            msg = recv(ws, timeout=30)
+        except ConnectionClosed as e:
+            assert e.rcvd is not None and e.rcvd.code == code, e
+            return
+        if isinstance(msg, P.ErrorMsg):
+            assert msg.code == code and words in msg.reason, msg
+            with pytest.raises(ConnectionClosed) as e:
+                ws.recv(timeout=30)
+            assert e.value.rcvd.code == code and words[:40] in e.value.rcvd.reason
+            return
+    raise AssertionError("no close")
+
+
+def live_view_sessions(srv) -> int:
+    text = srv.request("GET", "/metrics")[2].decode()
+    return int(float(next(line.split()[-1] for line in text.splitlines() if line.startswith('isosr_sessions{kind="view"}'))))
+
+
+def settle(srv, live: int = 0):
+    """Wait until the server has ended the sessions whose clients closed (it sees each close a little later)."""
+    deadline = time.monotonic() + 10
+    while live_view_sessions(srv) > live:
+        assert time.monotonic() < deadline, "view sessions did not end"
+        time.sleep(0.01)
+
+
+def cam(yaw, seq=None):
+    return P.CameraMsg(yaw=float(yaw), pitch=20.0, distance=1.8, seq=seq)
+
+
+
+def upscale_body(frame_np: dict, **fields) -> bytes:
+    req = P.UpscaleRequest(frame_np["mask"], frame_np["normal"], frame_np["depth"], frame_np.get("flow"), **fields)
+    return P.pack(req.to_wire())
+
+
+def wire_frame(lib, **overrides) -> dict:
+    f = lib_lowres(lib, orbit(30, 20, 1.8)).to_numpy()
+    wire = P.UpscaleRequest(f["mask"], f["normal"], f["depth"]).to_wire()
+    wire.update(overrides)
+    return wire

@@ -35,7 +35,9 @@ def test_messages_round_trip():
 def test_upscale_messages_round_trip_arrays_exactly():
     rng = np.random.default_rng(0)
     mask = (rng.random((6, 8)) > 0.5).astype(np.float32)
-    req = P.UpscaleRequest(mask, rng.standard_normal((6, 8, 3)).astype(np.float16), rng.random((6, 8)).astype(np.float32),
+    normal = rng.standard_normal((6, 8, 3))
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    req = P.UpscaleRequest(mask, normal.astype(np.float16), rng.random((6, 8)).astype(np.float32),
                            rng.standard_normal((6, 8, 2)).astype(np.float32), output="png", session="s-1")
     back = roundtrip(req)
     for name in P.LOWRES_INPUTS:
@@ -121,6 +123,17 @@ def _array(dtype="float32", shape=(4, 5), data=None, **extra):
 def test_invalid_arrays(wire, words):
     with pytest.raises(P.ProtocolError, match=words):
         P.decode_array(wire, "depth", LIMITS, ("float16", "float32"), (4, 5))
+
+
+@pytest.mark.parametrize("name, value", [("mask", 1.5), ("mask", -0.1), ("normal", 2.0), ("depth", -1.0),
+                                         ("depth", 3e38), ("flow", 1e5)])
+def test_upscale_inputs_out_of_range_are_refused(name, value):
+    arrays = {"mask": np.ones((4, 5), np.float32), "normal": np.zeros((4, 5, 3), np.float32),
+              "depth": np.ones((4, 5), np.float32), "flow": np.zeros((4, 5, 2), np.float32)}
+    arrays[name].flat[3] = value
+    wire = P.UpscaleRequest(**arrays).to_wire()
+    with pytest.raises(P.ProtocolError, match=f"{name}: values must lie in"):
+        P.parse(P.pack(wire), LIMITS, (P.UpscaleRequest,))
 
 
 def test_array_element_limit_refuses_before_allocating():

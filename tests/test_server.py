@@ -11,31 +11,27 @@ from __future__ import annotations
 import json
 import math
 import time
-from contextlib import ExitStack, contextmanager
-from types import SimpleNamespace
+from contextlib import ExitStack
 
 import msgpack
 import numpy as np
 import pytest
 import torch
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
-from websockets.exceptions import ConnectionClosed
 
+from isosr_cli.main import main
 from isosr_net.metrics import upscale_baseline
 from isosr_net.upscaler import Upscaler
-from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest, open_volume, orbit, shade
+from isosr_render import Camera, FrameBuffers, orbit, shade
 from isosr_render.conventions import LOWRES_BUFFERS
-from isosr_render.procedural import default_iso
 from isosr_render.shading import shade_channels_first
 from isosr_server import protocol as P
 from isosr_server.app import ServerConfig
+from isosr_server.engine import EngineConfig
 from isosr_server.encoding import decode_image, to_uint8
-from server_fixtures import recv, running_server
+from server_fixtures import (DEVICE, FACTOR, H, LEVELS, VOLUME, W, assert_image, cam, expect_close, frame,  # noqa: F401
+                             lib, lib_full, lib_lowres, lib_sr, recv, running_server, send, session, settle,
+                             upscale_body, wire_frame)
 
-VOLUME = "proc:torus@32"
-W, H, FACTOR = 64, 48, 4
-CAM0 = P.CameraMsg(yaw=30.0, pitch=20.0, distance=1.8)
 LIMITS = P.Limits(max_message_bytes=2**20, max_sessions=6, idle_timeout_s=30.0, max_fps=1000.0,
                   max_messages_per_s=5000.0)
 TOKEN = "correct-horse-battery"
@@ -52,89 +48,8 @@ def volumes_dir(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def srv(volumes_dir):
-    with running_server(ServerConfig(volumes=volumes_dir, limits=LIMITS)) as s:
+    with running_server(ServerConfig(volumes=volumes_dir, engine=EngineConfig(device=DEVICE), limits=LIMITS)) as s:
         yield s
-
-
-@pytest.fixture(scope="module")
-def lib():
-    volume = open_volume(VOLUME)
-    return SimpleNamespace(renderer=Renderer(volume, "cpu"), iso=volume.normalized_iso(default_iso(VOLUME)))
-
-
-def lib_full(lib, camera, ao_samples=0) -> np.ndarray:
-    outputs = ("mask", "normal") + (("ao",) if ao_samples else ())
-    f = lib.renderer.render(camera, RenderRequest(W, H, lib.iso, outputs, ao_samples=max(ao_samples, 1)))
-    return to_uint8(shade(f.mask, f.normal, f.ao)).numpy()
-
-
-def lib_lowres(lib, camera, prev=None) -> FrameBuffers:
-    outputs = LOWRES_BUFFERS + (("flow",) if prev is not None else ())
-    return lib.renderer.render(camera, RenderRequest(W // FACTOR, H // FACTOR, lib.iso, outputs, prev_camera=prev))
-
-
-def lib_sr(lib, cameras) -> list[np.ndarray]:
-    """The shaded network frames of a camera path, with one recurrent state."""
-    upscaler, out, prev = Upscaler(), [], None
-    for cam in cameras:
-        high = upscaler.upscale(lib_lowres(lib, cam, prev))
-        out.append(to_uint8(shade(high.mask, high.normal, high.ao)).numpy())
-        prev = cam
-    return out
-
-
-def assert_image(data: bytes, expected: np.ndarray, levels: int = 1):
-    got = decode_image(data)
-    assert got.shape == expected.shape
-    diff = np.abs(got.astype(int) - expected.astype(int))
-    assert diff.max() <= levels, f"max diff {diff.max()} levels"
-
-
-@contextmanager
-def session(srv, volume=VOLUME, camera=CAM0, **settings):
-    """An opened view session: ``(ws, ready)``; the first frame is not read yet."""
-    with srv.view() as ws:
-        ws.send(P.pack(P.OpenMsg(volume, {"width": W, "height": H, "encoding": "png", "refine": False, **settings},
-                                 camera).to_wire()))
-        ready = recv(ws)
-        assert isinstance(ready, P.ReadyMsg), ready
-        yield ws, ready
-
-
-def frame(ws) -> P.FrameMsg:
-    msg = recv(ws)
-    assert isinstance(msg, P.FrameMsg), msg
-    return msg
-
-
-def send(ws, msg: P.Message):
-    ws.send(P.pack(msg.to_wire()))
-
-
-def expect_close(ws, code: int, words: str = ""):
-    """Frames may precede it; then an error message (unless uvicorn closed first) and the close."""
-    for _ in range(20):
-        try:
-            msg = recv(ws, timeout=30)
-        except ConnectionClosed as e:
-            assert e.rcvd is not None and e.rcvd.code == code, e
-            return
-        if isinstance(msg, P.ErrorMsg):
-            assert msg.code == code and words in msg.reason, msg
-            with pytest.raises(ConnectionClosed) as e:
-                ws.recv(timeout=30)
-            assert e.value.rcvd.code == code and words[:40] in e.value.rcvd.reason
-            return
-    raise AssertionError("no close")
-
-
-def live_view_sessions(srv) -> int:
-    text = srv.request("GET", "/metrics")[2].decode()
-    return int(float(next(line.split()[-1] for line in text.splitlines() if line.startswith('isosr_sessions{kind="view"}'))))
-
-
-def cam(yaw, seq=None):
-    return P.CameraMsg(yaw=float(yaw), pitch=20.0, distance=1.8, seq=seq)
 
 
 # ---- HTTP endpoints -------------------------------------------------------------------------
@@ -200,7 +115,7 @@ def test_sr_mode_matches_the_library_with_recurrent_state(srv, lib):
 def test_bilinear_mode_matches_the_library(srv, lib):
     low = lib_lowres(lib, orbit(30, 20, 1.8))
     stack = upscale_baseline(low.channels_first(LOWRES_BUFFERS)[None], FACTOR, "bilinear")
-    expected = to_uint8(shade_channels_first(stack)[0].permute(1, 2, 0)).numpy()
+    expected = to_uint8(shade_channels_first(stack)[0].permute(1, 2, 0)).cpu().numpy()
     with session(srv, mode="bilinear") as (ws, _):
         assert_image(frame(ws).image, expected)
 
@@ -238,11 +153,11 @@ def test_focus_mode_full_inside_network_outside(srv, lib):
         send(ws, P.FocusMsg("box", box=box, seq=1))
         got = decode_image(frame(ws).image).astype(int)
     inner = (slice(15, 33), slice(11, 37))  # at least 3 px inside the box
-    assert np.abs(got[inner] - full[inner]).max() <= 1
+    assert np.abs(got[inner] - full[inner]).max() <= LEVELS
     outside = np.ones((H, W), bool)
     outside[12:36, 8:40] = False
-    assert np.abs(got[outside] - sr[outside]).max() <= 1
-    assert np.abs(full[inner].astype(int) - sr[inner]).max() > 1  # the two differ where it is tested
+    assert np.abs(got[outside] - sr[outside]).max() <= LEVELS
+    assert np.abs(full[inner].astype(int) - sr[inner]).max() > 10 * LEVELS  # the two differ where it is tested
 
 
 def test_still_camera_gets_one_refined_frame(srv, lib):
@@ -297,35 +212,32 @@ def test_metrics_count_frames_stages_and_errors(srv):
 # ---- upscaling ------------------------------------------------------------------------------
 
 
-def upscale_body(frame_np: dict, **fields) -> bytes:
-    req = P.UpscaleRequest(frame_np["mask"], frame_np["normal"], frame_np["depth"], frame_np.get("flow"), **fields)
-    return P.pack(req.to_wire())
-
-
 def test_upscale_post_buffers_images_and_sessions(srv, lib):
     c0, c1 = orbit(30, 20, 1.8), orbit(33, 20, 1.8)
     f0, f1 = lib_lowres(lib, c0).to_numpy(), lib_lowres(lib, c1, prev=c0).to_numpy()
-    upscaler = Upscaler()
-    want0 = upscaler.upscale(FrameBuffers(**{k: torch.from_numpy(v) for k, v in f0.items()}))
-    want1 = upscaler.upscale(FrameBuffers(**{k: torch.from_numpy(v) for k, v in f1.items()}))
+    upscaler = Upscaler(device=DEVICE)
+    want0 = upscaler.upscale(FrameBuffers(**{k: torch.from_numpy(v) for k, v in f0.items()})).to_numpy()
+    want1 = upscaler.upscale(FrameBuffers(**{k: torch.from_numpy(v) for k, v in f1.items()})).to_numpy()
+    atol = 1e-5 if DEVICE == "cpu" else 1e-2
 
     status, headers, body = srv.request("POST", "/v1/upscale", upscale_body(f0, session="s1"))
     assert status == 200 and headers["content-type"] == P.MSGPACK_MEDIA_TYPE
     resp = P.parse(body, P.Limits(), (P.UpscaleResponse,))
     assert (resp.width, resp.height) == (W, H)
     for name in P.HIGHRES_OUTPUTS:
-        np.testing.assert_allclose(resp.buffers[name], getattr(want0, name).numpy(), atol=1e-5)
+        np.testing.assert_allclose(resp.buffers[name], want0[name], atol=atol)
     status, _, body = srv.request("POST", "/v1/upscale", upscale_body(f1, session="s1"))
     resp = P.parse(body, P.Limits(), (P.UpscaleResponse,))
-    np.testing.assert_allclose(resp.buffers["normal"], want1.normal.numpy(), atol=1e-5)
+    np.testing.assert_allclose(resp.buffers["normal"], want1["normal"], atol=atol)
     # Without a session the state is fresh, and the result differs.
     status, _, body = srv.request("POST", "/v1/upscale", upscale_body(f1))
     fresh = P.parse(body, P.Limits(), (P.UpscaleResponse,))
-    assert not np.allclose(fresh.buffers["normal"], want1.normal.numpy(), atol=1e-3)
+    assert not np.allclose(fresh.buffers["normal"], want1["normal"], atol=10 * atol)
     # The shaded image: by the accept header, or by the field.
     status, headers, png = srv.request("POST", "/v1/upscale", upscale_body(f0), {"Accept": "image/png"})
     assert status == 200 and headers["content-type"] == "image/png" and "total" in json.loads(headers["x-isosr-times"])
-    assert_image(png, to_uint8(shade(want0.mask, want0.normal, want0.ao)).numpy())
+    want0 = {k: torch.from_numpy(v) for k, v in want0.items()}
+    assert_image(png, to_uint8(shade(want0["mask"], want0["normal"], want0["ao"])).numpy())
     status, headers, jpg = srv.request("POST", "/v1/upscale", upscale_body(f0, output="jpeg", quality=50))
     assert status == 200 and headers["content-type"] == "image/jpeg" and jpg[:2] == b"\xff\xd8"
 
@@ -345,15 +257,8 @@ def test_upscale_stream_in_order_with_state(srv, lib):
         expect_close(ws, P.CLOSE_BAD_MESSAGE, "session")
 
 
-def _wire_frame(lib, **overrides) -> dict:
-    f = lib_lowres(lib, orbit(30, 20, 1.8)).to_numpy()
-    wire = P.UpscaleRequest(f["mask"], f["normal"], f["depth"]).to_wire()
-    wire.update(overrides)
-    return wire
-
-
 def test_upscale_bad_input_gets_4xx_with_reasons(srv, lib):
-    good = _wire_frame(lib)
+    good = wire_frame(lib)
     h, w = good["mask"]["shape"]
     nan_depth = P.encode_array(np.full((h, w), np.nan, np.float32))
     f64 = {"dtype": "float64", "shape": [h, w], "data": bytes(8 * h * w)}
@@ -361,12 +266,13 @@ def test_upscale_bad_input_gets_4xx_with_reasons(srv, lib):
     cases = [
         (b"\xc1\x00", 400, "malformed"),
         (P.pack(good)[:-7], 400, "malformed"),
-        (P.pack(_wire_frame(lib, depth=nan_depth)), 400, "NaN"),
-        (P.pack(_wire_frame(lib, depth=f64)), 400, "dtype"),
-        (P.pack(_wire_frame(lib, normal=good["depth"])), 400, "shape"),
-        (P.pack(_wire_frame(lib, version=7)), 400, "version"),
-        (P.pack(_wire_frame(lib, output="gif")), 400, "output"),
-        (P.pack(_wire_frame(lib, session="../x")), 400, "session"),
+        (P.pack(wire_frame(lib, depth=nan_depth)), 400, "NaN"),
+        (P.pack(wire_frame(lib, depth=P.encode_array(np.full((h, w), 3e38, np.float32)))), 400, "must lie in"),
+        (P.pack(wire_frame(lib, depth=f64)), 400, "dtype"),
+        (P.pack(wire_frame(lib, normal=good["depth"])), 400, "shape"),
+        (P.pack(wire_frame(lib, version=7)), 400, "version"),
+        (P.pack(wire_frame(lib, output="gif")), 400, "output"),
+        (P.pack(wire_frame(lib, session="../x")), 400, "session"),
         (P.pack({**good, "pad": b"x" * (LIMITS.max_message_bytes + 1)}), 413, "limit"),
         (P.pack(P.UpscaleRequest(wide, np.zeros((2, 1100, 3), np.float32), wide).to_wire()), 413, "exceeds"),
     ]
@@ -433,10 +339,7 @@ def test_bad_view_input_closes_that_session_only(srv, lib):
             ws.send("text is not msgpack")
             expect_close(ws, P.CLOSE_BAD_MESSAGE, "text")
         # The session limit: the honest one plus LIMITS.max_sessions - 1 more, then a refusal.
-        deadline = time.monotonic() + 10
-        while live_view_sessions(srv) > 1:  # sessions of the clients above end as the server sees their close
-            assert time.monotonic() < deadline
-            time.sleep(0.05)
+        settle(srv, live=1)
         with ExitStack() as stack:
             for _ in range(LIMITS.max_sessions - 1):
                 ws = stack.enter_context(srv.view())
@@ -446,85 +349,6 @@ def test_bad_view_input_closes_that_session_only(srv, lib):
                 expect_close(ws, P.CLOSE_TOO_MANY, "try later")
         honest_still_served()
     assert srv.get_json("/v2/health/live")[0] == 200
-    assert not srv.errors.records, srv.errors.messages()
-
-
-# ---- fuzzing against the live server ---------------------------------------------------------
-
-_leaf = st.one_of(st.none(), st.booleans(), st.integers(-2**63, 2**64 - 1), st.floats(allow_nan=True),
-                  st.text(max_size=12), st.binary(max_size=32))
-_value = st.recursive(_leaf, lambda inner: st.one_of(st.lists(inner, max_size=4),
-                                                     st.dictionaries(st.text(max_size=6), inner, max_size=3)),
-                      max_leaves=8)
-VALID_UPDATES = {
-    "camera": cam(40, seq=1).to_wire(),
-    "look-at": P.CameraMsg(eye=(0.5, 0.5, 1.5), seq=1).to_wire(),
-    "iso": P.IsoMsg(0.01, seq=1).to_wire(),
-    "settings": P.SettingsMsg({"mode": "bilinear", "width": 16, "height": 12, "quality": 50}, seq=1).to_wire(),
-    "focus": P.FocusMsg("circle", center=(8.0, 6.0), radius=4.0, seq=1).to_wire(),
-}
-VALID_OPEN = P.OpenMsg(VOLUME, {"mode": "full", "width": 16, "height": 12, "refine": False}, CAM0).to_wire()
-
-
-@st.composite
-def mutated(draw, valid: dict) -> dict:
-    """A valid message with a few fields deleted, replaced by arbitrary values, or added."""
-    d = dict(valid)
-    for key in draw(st.lists(st.sampled_from(sorted(valid) + ["extra"]), min_size=1, max_size=3)):
-        if draw(st.booleans()):
-            d.pop(key, None)
-        else:
-            d[key] = draw(_value)
-    if "settings" in d and isinstance(d["settings"], dict) and draw(st.booleans()):
-        d["settings"] = {**d["settings"], draw(st.sampled_from(list(P.ViewSettings.__dataclass_fields__))): draw(_value)}
-    return d
-
-
-def _answer_is_frame_or_close(ws):
-    msg = recv(ws)
-    if isinstance(msg, P.ErrorMsg):
-        assert msg.code in (P.CLOSE_BAD_MESSAGE, P.CLOSE_TOO_BIG, P.CLOSE_NOT_FOUND), msg
-        with pytest.raises(ConnectionClosed):
-            ws.recv(timeout=30)
-    else:
-        assert isinstance(msg, (P.FrameMsg, P.ReadyMsg)), msg
-
-
-@settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck))
-@given(data=st.data())
-def test_fuzz_view_messages(srv, data):
-    kind = data.draw(st.sampled_from(sorted(VALID_UPDATES)))
-    wire = data.draw(mutated(VALID_UPDATES[kind]))
-    with srv.view() as ws:
-        send(ws, P.OpenMsg(VOLUME, {"mode": "full", "width": 16, "height": 12, "refine": False}))
-        recv(ws), recv(ws)
-        ws.send(P.pack(wire))
-        _answer_is_frame_or_close(ws)
-
-
-@settings(max_examples=30, deadline=None, suppress_health_check=list(HealthCheck))
-@given(wire=mutated(VALID_OPEN))
-def test_fuzz_open(srv, wire):
-    with srv.view() as ws:
-        ws.send(P.pack(wire))
-        _answer_is_frame_or_close(ws)
-
-
-@settings(max_examples=30, deadline=None, suppress_health_check=list(HealthCheck))
-@given(data=st.data())
-def test_fuzz_upscale(srv, lib, data):
-    good = _wire_frame(lib)
-    wire = data.draw(mutated({**good, "mask": dict(good["mask"]) if data.draw(st.booleans()) else good["mask"]}))
-    if isinstance(wire.get("mask"), dict) and data.draw(st.booleans()):
-        wire["mask"] = data.draw(mutated(good["mask"]))  # inside an array
-    status, _, body = srv.request("POST", "/v1/upscale", P.pack(wire))
-    assert status == 200 or (status in (400, 413, 422) and json.loads(body)["error"])
-
-
-def test_after_fuzzing_the_server_is_healthy_and_correct(srv, lib):
-    assert srv.get_json("/v2/health/ready") == (200, {"ready": True})
-    with session(srv, mode="full") as (ws, _):
-        assert_image(frame(ws).image, lib_full(lib, orbit(30, 20, 1.8)))
     assert not srv.errors.records, srv.errors.messages()
 
 
@@ -544,7 +368,7 @@ def test_token_checked_on_every_request_and_handshake(lib):
                 status, body = s.get_json(path, headers)
                 assert status == 401 and "token" in body["error"], (path, headers)
             assert s.request("GET", path, headers={"Authorization": f"Bearer {TOKEN}"})[0] == 200
-        status, _, _ = s.request("POST", "/v1/upscale", P.pack(_wire_frame(lib)))
+        status, _, _ = s.request("POST", "/v1/upscale", P.pack(wire_frame(lib)))
         assert status == 401
         for kwargs in ({}, {"additional_headers": {"Authorization": "Bearer nope"}},
                        {"subprotocols": [P.SUBPROTOCOL, P.TOKEN_SUBPROTOCOL_PREFIX + "nope"]}):
@@ -557,3 +381,54 @@ def test_token_checked_on_every_request_and_handshake(lib):
                 send(ws, P.OpenMsg(VOLUME, {"mode": "full", "width": 16, "height": 12}))
                 assert isinstance(recv(ws), P.ReadyMsg) and isinstance(recv(ws), P.FrameMsg)
         assert not s.errors.records, s.errors.messages()
+
+
+def test_serve_command_refuses_an_open_host_without_token(capsys, monkeypatch):
+    monkeypatch.delenv("ISOSR_TOKEN", raising=False)
+    assert main(["serve", "--host", "0.0.0.0", "--max-fps", "30"]) == 2
+    assert "--token" in capsys.readouterr().err
+
+
+# ---- limits: idle time, message rate, frame rate, session expiry -------------------------------
+
+STRICT = P.Limits(max_message_bytes=2**20, max_sessions=2, idle_timeout_s=0.8, max_fps=10.0, max_messages_per_s=30.0)
+
+
+@pytest.fixture(scope="module")
+def strict_srv():
+    with running_server(ServerConfig(engine=EngineConfig(device=DEVICE), limits=STRICT)) as s:
+        yield s
+
+
+def test_idle_view_session_is_closed(strict_srv):
+    with session(strict_srv, mode="full") as (ws, _):
+        frame(ws)
+        expect_close(ws, P.CLOSE_IDLE, "no message")
+
+
+def test_frame_rate_and_message_rate_limits(strict_srv):
+    with session(strict_srv, mode="full") as (ws, _):
+        frame(ws)
+        for i in range(1, 13):  # 20 messages a second: within the rate, above the frame rate
+            send(ws, cam(30 + i, seq=i))
+            time.sleep(0.05)
+        frames = [frame(ws)]
+        while frames[-1].ack < 12:
+            frames.append(frame(ws))
+        # 12 updates over 0.6 s at 10 frames a second: about 7 frames (12 without the limit).
+        assert len(frames) <= 9
+        for i in range(13, 60):  # a burst above 30 messages a second
+            send(ws, cam(30 + i, seq=i))
+        expect_close(ws, P.CLOSE_POLICY, "messages a second")
+    assert not strict_srv.errors.records, strict_srv.errors.messages()
+
+
+def test_upscale_sessions_are_bounded_and_expire(strict_srv, lib):
+    f = lib_lowres(lib, orbit(30, 20, 1.8)).to_numpy()
+    for name in ("a", "b"):
+        assert strict_srv.request("POST", "/v1/upscale", upscale_body(f, session=name))[0] == 200
+    status, _, body = strict_srv.request("POST", "/v1/upscale", upscale_body(f, session="c"))
+    assert status == 429 and "try later" in json.loads(body)["error"]
+    assert strict_srv.request("POST", "/v1/upscale", upscale_body(f, session="a"))[0] == 200  # known ids go on
+    time.sleep(STRICT.idle_timeout_s + 0.2)
+    assert strict_srv.request("POST", "/v1/upscale", upscale_body(f, session="c"))[0] == 200

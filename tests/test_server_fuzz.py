@@ -1,0 +1,107 @@
+"""Fuzzing `isosr serve` over the wire (hypothesis, bounded examples): every view message type,
+``open``, and the upscale request, each a valid message with fields deleted, replaced or added.
+Every answer must be a frame or a clean error close (or a 4xx with a reason); afterwards the
+server still answers health and an honest session still gets correct frames."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from websockets.exceptions import ConnectionClosed
+
+from isosr_render import orbit
+from isosr_server import protocol as P
+from isosr_server.app import ServerConfig
+from isosr_server.engine import EngineConfig
+from server_fixtures import (CAM0, DEVICE, VOLUME, assert_image, cam, frame, lib, lib_full, recv,  # noqa: F401
+                             running_server, send, session, settle, wire_frame)
+
+LIMITS = P.Limits(max_message_bytes=2**20, max_sessions=6, max_fps=1000.0, max_messages_per_s=5000.0)
+
+
+@pytest.fixture(scope="module")
+def srv():
+    with running_server(ServerConfig(engine=EngineConfig(device=DEVICE), limits=LIMITS)) as s:
+        yield s
+
+
+_leaf = st.one_of(st.none(), st.booleans(), st.integers(-2**63, 2**64 - 1), st.floats(allow_nan=True),
+                  st.text(max_size=12), st.binary(max_size=32))
+_value = st.recursive(_leaf, lambda inner: st.one_of(st.lists(inner, max_size=4),
+                                                     st.dictionaries(st.text(max_size=6), inner, max_size=3)),
+                      max_leaves=8)
+VALID_UPDATES = {
+    "camera": cam(40, seq=1).to_wire(),
+    "look-at": P.CameraMsg(eye=(0.5, 0.5, 1.5), seq=1).to_wire(),
+    "iso": P.IsoMsg(0.01, seq=1).to_wire(),
+    "settings": P.SettingsMsg({"mode": "bilinear", "width": 16, "height": 12, "quality": 50}, seq=1).to_wire(),
+    "focus": P.FocusMsg("circle", center=(8.0, 6.0), radius=4.0, seq=1).to_wire(),
+}
+VALID_OPEN = P.OpenMsg(VOLUME, {"mode": "full", "width": 16, "height": 12, "refine": False}, CAM0).to_wire()
+
+
+@st.composite
+def mutated(draw, valid: dict) -> dict:
+    """A valid message with a few fields deleted, replaced by arbitrary values, or added."""
+    d = dict(valid)
+    for key in draw(st.lists(st.sampled_from(sorted(valid) + ["extra"]), min_size=1, max_size=3)):
+        if draw(st.booleans()):
+            d.pop(key, None)
+        else:
+            d[key] = draw(_value)
+    if "settings" in d and isinstance(d["settings"], dict) and draw(st.booleans()):
+        d["settings"] = {**d["settings"], draw(st.sampled_from(list(P.ViewSettings.__dataclass_fields__))): draw(_value)}
+    return d
+
+
+def _answer_is_frame_or_close(ws):
+    msg = recv(ws)
+    if isinstance(msg, P.ErrorMsg):
+        assert msg.code in (P.CLOSE_BAD_MESSAGE, P.CLOSE_TOO_BIG, P.CLOSE_NOT_FOUND), msg
+        with pytest.raises(ConnectionClosed):
+            ws.recv(timeout=30)
+    else:
+        assert isinstance(msg, (P.FrameMsg, P.ReadyMsg)), msg
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=list(HealthCheck))
+@given(data=st.data())
+def test_fuzz_view_messages(srv, data):
+    kind = data.draw(st.sampled_from(sorted(VALID_UPDATES)))
+    wire = data.draw(mutated(VALID_UPDATES[kind]))
+    settle(srv)
+    with srv.view() as ws:
+        send(ws, P.OpenMsg(VOLUME, {"mode": "full", "width": 16, "height": 12, "refine": False}))
+        recv(ws), recv(ws)
+        ws.send(P.pack(wire))
+        _answer_is_frame_or_close(ws)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck))
+@given(wire=mutated(VALID_OPEN))
+def test_fuzz_open(srv, wire):
+    settle(srv)
+    with srv.view() as ws:
+        ws.send(P.pack(wire))
+        _answer_is_frame_or_close(ws)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck))
+@given(data=st.data())
+def test_fuzz_upscale(srv, lib, data):
+    good = wire_frame(lib)
+    wire = data.draw(mutated({**good, "mask": dict(good["mask"]) if data.draw(st.booleans()) else good["mask"]}))
+    if isinstance(wire.get("mask"), dict) and data.draw(st.booleans()):
+        wire["mask"] = data.draw(mutated(good["mask"]))  # inside an array
+    status, _, body = srv.request("POST", "/v1/upscale", P.pack(wire))
+    assert status == 200 or (status in (400, 413, 422) and json.loads(body)["error"])
+
+
+def test_after_fuzzing_the_server_is_healthy_and_correct(srv, lib):
+    assert srv.get_json("/v2/health/ready") == (200, {"ready": True})
+    with session(srv, mode="full") as (ws, _):
+        assert_image(frame(ws).image, lib_full(lib, orbit(30, 20, 1.8)))
+    assert not srv.errors.records, srv.errors.messages()
