@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import torch
 from client_fixtures import server  # noqa: F401  (the module's server fixture)
+from server_fixtures import running_server
 from websockets.sync.client import connect as ws_connect
 
 from isosr_bench import bench_server
@@ -29,6 +30,7 @@ from isosr_net.upscaler import Upscaler
 from isosr_render import FrameBuffers, Renderer, RenderRequest, open_volume, orbit
 from isosr_render.conventions import LOWRES_BUFFERS
 from isosr_render.shading import shade, shade_channels_first
+from isosr_server.app import ServerConfig
 from isosr_server.protocol import CameraMsg, OpenMsg, ProtocolError, pack
 
 VOLUME = "proc:cloud:0@32"
@@ -189,6 +191,25 @@ def test_client_errors_are_clear(server):  # noqa: F811
             view.set_settings(quality=500)
         view.set_camera(**PATH.camera(0))
         assert view.frame().shape == (SIZE[1], SIZE[0], 3)
+
+
+def test_token_travels_and_its_absence_is_a_clear_refusal(library):
+    """Against a server with a token: the client's header gets frames and upscaling; without it,
+    or with a wrong one, the session and the POST are refused (401 / 4401) with the server's reason."""
+    token = "client-test-token"
+    renderer, iso = library
+    low = lowres_frames(renderer, iso, frames=1)[0]
+    with running_server(ServerConfig(token=token)) as s:
+        for wrong in (None, "not-the-token"):
+            with pytest.raises(ServerError) as e:
+                connect(s.http_url, VOLUME, "sr", SIZE, token=wrong)
+            assert e.value.code in (401, 4401) and "token" in e.value.reason  # a denied handshake, or a close
+            with pytest.raises(ServerError) as e:
+                upscale_remote(s.http_url, low, token=wrong)
+            assert e.value.code == 401 and "token" in e.value.reason
+        with connect(s.http_url, VOLUME, "sr", SIZE, token=token, settings=LOSSLESS) as view:
+            assert view.frame().shape == (SIZE[1], SIZE[0], 3)
+        assert upscale_remote(s.http_url, low, token=token).buffers.ao.shape == (SIZE[1], SIZE[0])
 
 
 def test_cli_writes_frames_and_prints_costs(server, tmp_path, capsys):  # noqa: F811
