@@ -12,7 +12,8 @@ time per case. Per mode (``full`` with AO 0 and 8, ``sr``, ``bilinear``, ``buffe
   round trip as a client sees it;
 - the server's milliseconds per stage (render, network, shading, encode) from the frames'
   stage times, and the rest of the round trip (queueing behind other sessions on the one
-  device thread, transfer, client-side receipt) as ``other_ms``;
+  device thread, transfer, client-side receipt) as ``other_ms`` (mean latency minus mean
+  server total);
 - bytes per frame, and the frames/s a 50 Mbit/s and a 1 Gbit/s link carry at that size.
 
 Clients here only receive frames (``buffers`` frames are not upscaled here), so the numbers
@@ -187,7 +188,7 @@ def case_row(mode: str, ao: int, result: dict) -> dict:
                latency_p50_ms=result["latency_p50_ms"], latency_p99_ms=result["latency_p99_ms"],
                **{f"{s}_ms": server.get(s, 0.0) for s in STAGES}, server_total_ms=server.get("total", 0.0),
                bytes_per_frame=result["bytes_per_frame"])
-    row["other_ms"] = row["latency_p50_ms"] - row["server_total_ms"]
+    row["other_ms"] = result["latency_mean_ms"] - row["server_total_ms"]
     for link, bits in LINKS_BIT_S.items():
         row[f"link_fps_{link}"] = bits / (8.0 * row["bytes_per_frame"])
     return row
