@@ -1,1 +1,8 @@
-"""isosr_server: the FastAPI frame-streaming service (floor 3)."""
+"""isosr_server: `isosr serve`, the remote visualization and frame upscaling service (floor 3).
+
+One stage per module: ``protocol`` (the wire protocol, shared with clients: numpy, msgpack and
+the standard library only), ``volumes`` (names -> volumes), ``engine`` (the one thread that owns
+the device), ``pipeline`` (the view modes), ``encoding`` (PNG/JPEG/WebP), ``sessions``
+(latest-frame-wins view sessions, upscale sessions), ``metrics`` (Prometheus), ``app``
+(``create_app(config)``, the FastAPI app). Clients import ``isosr_server.protocol`` only.
+"""

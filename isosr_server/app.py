@@ -233,15 +233,22 @@ def create_app(config: ServerConfig) -> FastAPI:
         kind = request.headers.get("content-type", MSGPACK_MEDIA_TYPE).split(";")[0].strip()
         if kind not in BODY_TYPES:
             raise HTTPException(415, f"send a msgpack body ({MSGPACK_MEDIA_TYPE}), not {kind}")
+        # A body up to twice the limit is read to its end (kept only up to the limit), so that the
+        # client, still sending, gets the 413 and its reason rather than a reset connection.
+        drain = 2 * limits.max_message_bytes
         declared = request.headers.get("content-length", "")
-        if declared.isdigit() and int(declared) > limits.max_message_bytes:
-            raise ProtocolError(f"body of {declared} bytes exceeds the limit of {limits.max_message_bytes}",
-                                http_status=413)
-        body = bytearray()
+        too_big = ProtocolError(f"body exceeds the limit of {limits.max_message_bytes} bytes", http_status=413)
+        if declared.isdigit() and int(declared) > drain:
+            raise too_big
+        body, total = bytearray(), 0
         async for chunk in request.stream():
-            body += chunk
-            if len(body) > limits.max_message_bytes:
-                raise ProtocolError(f"body exceeds the limit of {limits.max_message_bytes} bytes", http_status=413)
+            total += len(chunk)
+            if total > drain:
+                raise too_big
+            if total <= limits.max_message_bytes:
+                body += chunk
+        if total > limits.max_message_bytes:
+            raise too_big
         msg = parse(bytes(body), limits, (UpscaleRequest,))
         accept = request.headers.get("accept", "").split(",")[0].split(";")[0].strip()
         if msg.output == "buffers" and accept in IMAGE_TYPES:

@@ -25,8 +25,8 @@ import torch
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
 from isosr_render import FrameBuffers, Renderer, Volume, orbit, parse_procedural, shade
 from isosr_server import pipeline
-from isosr_server.encoding import encode_image, to_uint8
-from isosr_server.protocol import UpscaleRequest
+from isosr_server.encoding import encode_image, encoder_name, to_uint8
+from isosr_server.protocol import ENCODINGS, UpscaleRequest
 
 RENDERER_CACHE = 4
 
@@ -90,6 +90,7 @@ class Engine:
         cfg = self._template.net.config
         return {"upscale_factor": self.upscale_factor, "precision": self.config.precision,
                 "device": str(self.device), "model": str(self.config.model),
+                "encoders": {e: encoder_name(str(self.device), e) for e in ENCODINGS},
                 "config": {k: v for k, v in vars(cfg).items() if isinstance(v, (int, float, str, bool, list, tuple))}}
 
     def new_upscaler(self) -> Upscaler:

@@ -59,7 +59,8 @@ def test_health_model_and_volumes(srv, volumes_dir):
     assert srv.get_json("/v2/health/live") == (200, {"live": True})
     assert srv.get_json("/v2/health/ready") == (200, {"ready": True})
     status, model = srv.get_json("/v2/models/isosr")
-    assert status == 200 and model["upscale_factor"] == FACTOR
+    assert status == 200 and model["upscale_factor"] == FACTOR and model["precision"] == "fp32"
+    assert model["encoders"]["png"].startswith("opencv")
     assert [i["name"] for i in model["inputs"]] == ["mask", "normal", "depth", "flow"]
     assert [o["name"] for o in model["outputs"]] == ["mask", "normal", "depth", "ao"]
     status, listing = srv.get_json("/v1/volumes")
@@ -87,7 +88,7 @@ def test_volume_names_never_reach_paths(srv, path, status):
 
 def test_full_mode_matches_the_library(srv, lib):
     with session(srv, mode="full", ao_samples=4) as (ws, ready):
-        assert ready.settings["mode"] == "full" and ready.volume["iso"] == 0.0
+        assert ready.view_settings().mode == "full" and ready.volume["iso"] == 0.0
         f = frame(ws)
         assert (f.seq, f.ack, f.mode, f.encoding, f.refined) == (0, -1, "full", "png", False)
         assert f.nbytes == len(f.image) and f.times["total"] >= f.times["render"] > 0
@@ -206,7 +207,8 @@ def test_metrics_count_frames_stages_and_errors(srv):
     assert 'isosr_frames_total{kind="view",mode="full",refined="false"}' in text
     assert 'isosr_stage_seconds_bucket{le="0.5",mode="full",stage="render"}' in text
     assert 'isosr_errors_total{code="1007",kind="view"}' in text
-    assert "isosr_sessions{kind=\"view\"}" in text and "isosr_gpu_memory_bytes 0.0" in text
+    gpu_bytes = float(next(line.split()[-1] for line in text.splitlines() if line.startswith("isosr_gpu_memory_bytes ")))
+    assert 'isosr_sessions{kind="view"}' in text and (gpu_bytes > 0) == (DEVICE != "cpu")
 
 
 # ---- upscaling ------------------------------------------------------------------------------
@@ -273,7 +275,7 @@ def test_upscale_bad_input_gets_4xx_with_reasons(srv, lib):
         (P.pack(wire_frame(lib, version=7)), 400, "version"),
         (P.pack(wire_frame(lib, output="gif")), 400, "output"),
         (P.pack(wire_frame(lib, session="../x")), 400, "session"),
-        (P.pack({**good, "pad": b"x" * (LIMITS.max_message_bytes + 1)}), 413, "limit"),
+        (P.pack({**good, "pad": b"x" * LIMITS.max_message_bytes}), 413, "limit"),
         (P.pack(P.UpscaleRequest(wide, np.zeros((2, 1100, 3), np.float32), wide).to_wire()), 413, "exceeds"),
     ]
     for body, status, words in cases:
