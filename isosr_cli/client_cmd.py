@@ -28,6 +28,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--frames", type=int, default=30)
     p.add_argument("--orbit", default="30,20,1.8,2", help="YAW,PITCH,DIST[,YAWSTEP], degrees and world units")
     p.add_argument("--size", default="640x480", help="output WxH")
+    p.add_argument("--focus", help="focus mode's circle CX,CY,R in output pixels (default: centered, radius H/4)")
     p.add_argument("--iso", type=float, help="iso-value in data units (default: the volume's suggested one)")
     p.add_argument("--ao-samples", type=int, default=0, help="AO rays per pixel of full-resolution renders")
     p.add_argument("--encoding", default="jpeg", choices=ENCODINGS)
@@ -50,6 +51,16 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def _focus(text: str | None, size: tuple[int, int]) -> tuple[float, float, float]:
+    if text is None:
+        return size[0] / 2, size[1] / 2, size[1] / 4
+    try:
+        cx, cy, r = (float(v) for v in text.split(","))
+    except ValueError:
+        raise ValueError(f"--focus must be CX,CY,R, got {text!r}") from None
+    return cx, cy, r
+
+
 def run(args: argparse.Namespace) -> int:
     from isosr_client.drive import Orbit, drive, summarize
     from isosr_client.view import connect
@@ -62,9 +73,14 @@ def run(args: argparse.Namespace) -> int:
     token = args.token or os.environ.get(TOKEN_ENV) or None
     settings = {"ao_samples": args.ao_samples, "encoding": args.encoding, "quality": args.quality, "refine": False}
 
+    focus = _focus(args.focus, size)
+
     def session(mode: str):
-        return connect(args.url, args.volume, mode, size, token=token, settings=settings, iso=args.iso,
+        view = connect(args.url, args.volume, mode, size, token=token, settings=settings, iso=args.iso,
                        device=args.device, timeout=args.timeout)
+        if mode == "focus":
+            view.set_focus("circle", focus[:2], focus[2])
+        return view
 
     def write(i: int, frame) -> None:
         write_png(args.out / f"frame_{i:04d}.png", frame.rgb())

@@ -229,6 +229,12 @@ def test_cli_writes_frames_and_prints_costs(server, tmp_path, capsys):  # noqa: 
         assert line in printed
     assert f"{buffers['bytes_per_frame']:.0f}" in printed
 
+    focus = tmp_path / "focus"
+    assert main(["client", server.url, "--volume", VOLUME, "--mode", "focus", "--frames", "1", "--size", "64x48",
+                 "--focus", "32,24,12", "--no-compare", "--out", str(focus)]) == 0
+    assert json.loads((focus / "summary.json").read_text())["runs"][0]["mode"] == "focus"
+    capsys.readouterr()
+
     bad = tmp_path / "bad"
     assert main(["client", server.url, "--volume", VOLUME, "--orbit", "30,20", "--out", str(bad)]) == 2
     assert "--orbit must be" in capsys.readouterr().err and not bad.exists()
