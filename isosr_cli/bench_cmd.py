@@ -6,6 +6,8 @@ import argparse
 from pathlib import Path
 
 STUDIES = ("network", "pipeline", "knobs", "render")
+# Studies run only when named in --only (server: starts `isosr serve` and drives view sessions).
+ON_REQUEST = ("server",)
 
 
 def add_parser(subparsers) -> None:
@@ -14,8 +16,8 @@ def add_parser(subparsers) -> None:
                               formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--device", help="cuda or cpu (default: cuda if torch sees a GPU)")
     p.add_argument("--smoke", action="store_true", help="small sizes on the CPU, under two minutes (CI)")
-    p.add_argument("--only", default=",".join(STUDIES), help=f"comma-separated subset of {','.join(STUDIES)} "
-                                                              "(ignored with --pareto)")
+    p.add_argument("--only", default=",".join(STUDIES),
+                   help=f"comma-separated subset of {','.join(STUDIES + ON_REQUEST)} (ignored with --pareto)")
     p.add_argument("--out", help="results folder (default benchmarks/results)")
     p.add_argument("--models", default="", help="more networks for the knob sweep: NAME=MODEL_FOLDER,...")
     p.add_argument("--pareto", action="store_true",
@@ -29,16 +31,17 @@ def add_parser(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     import torch
 
-    from isosr_bench import bench_knobs, bench_network, bench_pareto, bench_pipeline, bench_render, report
+    from isosr_bench import (bench_knobs, bench_network, bench_pareto, bench_pipeline, bench_render, bench_server,
+                             report)
     from isosr_bench.common import RESULTS_DIR
 
     if (args.volumes or args.sizes) and not args.pareto:
         raise ValueError("--volumes and --sizes select what --pareto measures; give --pareto too")
 
     studies = [] if args.pareto else [s.strip() for s in args.only.split(",") if s.strip()]
-    unknown = sorted(set(studies) - set(STUDIES))
+    unknown = sorted(set(studies) - set(STUDIES + ON_REQUEST))
     if unknown:
-        raise ValueError(f"unknown studies {unknown}; choose from {', '.join(STUDIES)}")
+        raise ValueError(f"unknown studies {unknown}; choose from {', '.join(STUDIES + ON_REQUEST)}")
     bench_knobs.parse_models(args.models)  # a bad --models fails before hours of benchmarks
     device = args.device or ("cuda" if torch.cuda.is_available() and not args.smoke else "cpu")
     out = Path(args.out) if args.out else RESULTS_DIR
@@ -46,7 +49,8 @@ def run(args: argparse.Namespace) -> int:
     if args.pareto:
         print("== pareto")
         bench_pareto.main(argv + ["--volumes", args.volumes, "--sizes", args.sizes, "--models", args.models])
-    modules = {"network": bench_network, "pipeline": bench_pipeline, "knobs": bench_knobs, "render": bench_render}
+    modules = {"network": bench_network, "pipeline": bench_pipeline, "knobs": bench_knobs, "render": bench_render,
+               "server": bench_server}
     for study in studies:
         print(f"== {study}")
         modules[study].main(argv + (["--models", args.models] if study == "knobs" and args.models else []))

@@ -12,7 +12,7 @@ from isosr_render.volume import VolumeError
 
 def build_parser() -> argparse.ArgumentParser:
     """The parser with every subcommand."""
-    from isosr_cli import bench_cmd, demo_cmd, net_cmds, render_cmd, serve_cmd
+    from isosr_cli import bench_cmd, client_cmd, demo_cmd, net_cmds, render_cmd, serve_cmd
 
     parser = argparse.ArgumentParser(prog="isosr", description="Isosurface rendering with learned super-resolution.")
     subparsers = parser.add_subparsers(dest="command", required=True)
@@ -21,6 +21,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo_cmd.add_parser(subparsers)
     bench_cmd.add_parser(subparsers)
     serve_cmd.add_parser(subparsers)
+    client_cmd.add_parser(subparsers)
     return parser
 
 

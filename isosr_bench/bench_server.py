@@ -1,0 +1,296 @@
+"""The server benchmark: `isosr serve` under 1, 4 and 16 concurrent view sessions per mode.
+
+    python -m isosr_bench.bench_server --device cuda     # 1920x1080, results/bench_server_cuda.json
+    python -m isosr_bench.bench_server --smoke           # small, CPU, in the test suite
+
+Starts the server in a subprocess (or uses ``--url``) and drives closed-loop view sessions
+(:func:`isosr_client.drive.drive`: send a camera, wait for its frame, repeat) for a bounded
+time per case. Per mode (``full`` with AO 0 and 8, ``sr``, ``bilinear``, ``buffers``,
+``focus``) and session count:
+
+- frames/s (all sessions together, and per session) and latency p50/p99: a camera change's
+  round trip as a client sees it;
+- the server's milliseconds per stage (render, network, shading, encode) from the frames'
+  stage times, and the rest of the round trip (queueing behind other sessions on the one
+  device thread, transfer, client-side receipt) as ``other_ms`` (mean latency minus mean
+  server total);
+- bytes per frame, and the frames/s a 50 Mbit/s and a 1 Gbit/s link carry at that size.
+
+Clients here only receive frames (``buffers`` frames are not upscaled here), so the numbers
+are the server's. Then one matched-quality study: the ``buffers`` path (coded low-res
+buffers, upscaled and shaded on the client with the same network) against ``full`` JPEG.
+Matched quality: the lowest JPEG quality (of 5, 10, ..., 95) whose PSNR against the lossless
+reference reaches the buffers path's PSNR; the reference is the full-resolution frame the
+server sends for a still camera (``full``, ``refine_ao_samples`` AO rays, PNG). The client
+side runs on ``--device`` of this machine, and its time per frame is reported too.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from isosr_bench.common import bench_parser, print_table, write_result
+from isosr_client.drive import Orbit, drive, summarize
+from isosr_client.view import FrameStats, connect
+from isosr_net.metrics import masked_psnr
+
+LINKS_BIT_S = {"50mbit": 50e6, "1gbit": 1e9}
+STAGES = ("render", "network", "shading", "encode")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def rss_bytes(pid: int) -> int:
+    """A process's resident set size (Linux ``/proc``)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) * 1024
+    raise RuntimeError(f"no VmRSS for process {pid}")
+
+
+class ServerProcess:
+    """`isosr serve` in a subprocess on a free loopback port; a context manager that waits for
+    ``/v2/health/ready`` and stops the server (SIGINT, then SIGKILL) on exit.
+
+    Args:
+        device: the server's device.
+        extra_args: more `isosr serve` options.
+        startup_s: how long to wait for ready.
+    """
+
+    def __init__(self, device: str, extra_args: tuple[str, ...] = (), startup_s: float = 180.0):
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.command = [sys.executable, "-m", "isosr_cli.main", "serve", "--port", str(self.port), "--device", device,
+                        "--log-level", "warning", *extra_args]
+        self.startup_s = startup_s
+        self.process: subprocess.Popen | None = None
+
+    def __enter__(self) -> "ServerProcess":
+        # stderr to a file, not a pipe: a full pipe nobody reads would stall the server.
+        self.log = tempfile.TemporaryFile()
+        self.process = subprocess.Popen(self.command, stdout=subprocess.DEVNULL, stderr=self.log)
+        deadline = time.monotonic() + self.startup_s
+        while not self._ready():
+            if self.process.poll() is not None:
+                self.log.seek(0)
+                raise RuntimeError(f"the server exited ({self.process.returncode}): "
+                                   f"{self.log.read().decode(errors='replace')[-2000:]}")
+            if time.monotonic() > deadline:
+                self.__exit__()
+                raise RuntimeError(f"the server was not ready within {self.startup_s:g} s")
+            time.sleep(0.2)
+        return self
+
+    def _ready(self) -> bool:
+        try:
+            with urllib.request.urlopen(self.url + "/v2/health/ready", timeout=2) as r:
+                return json.loads(r.read()).get("ready") is True
+        except OSError:
+            return False
+
+    @property
+    def pid(self) -> int:
+        return self.process.pid
+
+    def rss(self) -> int:
+        return rss_bytes(self.pid)
+
+    def __exit__(self, *exc) -> None:
+        if self.process is None:
+            return
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGINT)
+            try:
+                self.process.wait(20)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        self.log.close()
+
+
+def run_sessions(url: str, volume: str, sessions: int, seconds: float, mode: str, size: tuple[int, int],
+                 settings: dict, focus: tuple[float, float, float] | None = None, warmup_frames: int = 2,
+                 max_frames: int = 100_000) -> dict:
+    """``sessions`` concurrent closed-loop view sessions (one thread each) for ``seconds`` after
+    ``warmup_frames`` untimed frames each; every session orbits from its own start yaw.
+    ``focus``: the focus circle (x, y, radius in pixels) of ``focus`` mode.
+
+    Returns:
+        `isosr_client.drive.summarize` of all frames with ``fps`` summed over the sessions,
+        plus ``fps_per_session``, ``errors`` (exception texts) and ``sessions``.
+    """
+    stats: list[list[FrameStats]] = [[] for _ in range(sessions)]
+    busy = [0.0] * sessions
+    errors: list[str] = []
+    opened = threading.Barrier(sessions + 1)
+
+    def viewer(k: int) -> None:
+        path = Orbit(yaw=30.0 + 360.0 * k / sessions)
+        try:
+            with connect(url, volume, mode, size, settings=dict(settings, refine=False), local_upscale=False,
+                         timeout=120) as view:
+                if focus is not None:
+                    view.set_focus("circle", focus[:2], focus[2])
+                drive(view, path, warmup_frames, rgb=False)
+                opened.wait()
+                stats[k], busy[k] = drive(view, Orbit(path.yaw + 10, path.pitch, path.distance), max_frames, rgb=False,
+                                          stop_at=time.monotonic() + seconds)
+        except threading.BrokenBarrierError:
+            pass
+        except Exception as e:  # reported in the result: a load test counts them
+            errors.append(f"session {k}: {type(e).__name__}: {e}")
+            opened.abort()
+
+    threads = [threading.Thread(target=viewer, args=(k,), daemon=True) for k in range(sessions)]
+    for t in threads:
+        t.start()
+    try:
+        opened.wait(timeout=300)
+    except threading.BrokenBarrierError:
+        pass
+    for t in threads:
+        t.join(seconds + 120)
+    errors += [f"session {k}: did not finish" for k, t in enumerate(threads) if t.is_alive()]
+    frames = [s for per in stats for s in per]
+    if not frames:
+        return {"sessions": sessions, "errors": errors or ["no frames"]}
+    result = summarize(frames, 1.0)
+    per_session_fps = [len(s) / b for s, b in zip(stats, busy) if b > 0]
+    result.update(sessions=sessions, errors=errors, fps=float(sum(per_session_fps)),
+                  fps_per_session=float(np.mean(per_session_fps)))
+    return result
+
+
+def case_row(mode: str, ao: int, result: dict) -> dict:
+    """One table row: throughput, latency, server stages, bytes and what links carry."""
+    row = {"mode": mode, "ao": ao, "sessions": result["sessions"], "errors": len(result["errors"])}
+    if "frames" not in result:
+        return row
+    server = result["server_ms"]
+    row.update(frames=result["frames"], fps=result["fps"], fps_per_session=result["fps_per_session"],
+               latency_p50_ms=result["latency_p50_ms"], latency_p99_ms=result["latency_p99_ms"],
+               **{f"{s}_ms": server.get(s, 0.0) for s in STAGES}, server_total_ms=server.get("total", 0.0),
+               bytes_per_frame=result["bytes_per_frame"])
+    row["other_ms"] = result["latency_mean_ms"] - row["server_total_ms"]
+    for link, bits in LINKS_BIT_S.items():
+        row[f"link_fps_{link}"] = bits / (8.0 * row["bytes_per_frame"])
+    return row
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    """PSNR in dB of two uint8 RGB images over all pixels."""
+    x, y = (torch.from_numpy(v).permute(2, 0, 1)[None].float() / 255.0 for v in (a, b))
+    return float(masked_psnr(x, y, torch.ones_like(x[:, :1])))
+
+
+def matched_quality(url: str, volume: str, size: tuple[int, int], device: str, frames: int, measured: int,
+                    qualities: tuple[int, ...]) -> dict:
+    """The buffers path against full JPEG at matched quality (module docstring), over the last
+    ``measured`` of ``frames`` orbit frames (the first ones build up the recurrent state)."""
+    path = Orbit()
+    with connect(url, volume, "full", size, settings={"encoding": "png", "refine": False}, timeout=300) as ref_view:
+        ao = ref_view.settings.refine_ao_samples
+        ref_view.set_settings(ao_samples=ao)
+        with connect(url, volume, "buffers", size, settings={"refine": False}, device=device, timeout=300) as buf:
+            buf_stats, buf_rgb, refs = [], [], []
+            for i in range(frames):
+                buf.set_camera(**path.camera(i))
+                buf_rgb.append(buf.frame())
+                buf_stats.append(buf.stats)
+                ref_view.set_camera(**path.camera(i))
+                refs.append(ref_view.frame())
+        with connect(url, volume, "full", size, settings={"ao_samples": ao, "refine": False}, timeout=300) as jpg:
+            by_quality = {}
+            for q in qualities:
+                jpg.set_settings(quality=q)
+                sizes, scores = [], []
+                for i in range(frames - measured, frames):
+                    jpg.set_camera(**path.camera(i))
+                    scores.append(psnr(jpg.frame(), refs[i]))
+                    sizes.append(jpg.stats.nbytes)
+                by_quality[q] = (float(np.mean(sizes)), float(np.mean(scores)))
+    last = range(frames - measured, frames)
+    buffers_psnr = float(np.mean([psnr(buf_rgb[i], refs[i]) for i in last]))
+    buffers_bytes = float(np.mean([buf_stats[i].nbytes for i in last]))
+    client = summarize([buf_stats[i] for i in last], 1.0)["client_ms"]
+    matched = next((q for q in qualities if by_quality[q][1] >= buffers_psnr), None)
+    row = {"study": "matched_quality", "reference": f"full PNG, AO {ao}", "buffers_psnr_db": buffers_psnr,
+           "buffers_bytes": buffers_bytes, "client_device": device,
+           **{f"client_{k}_ms": v for k, v in client.items()},
+           "jpeg": [{"quality": q, "bytes": b, "psnr_db": p} for q, (b, p) in by_quality.items()],
+           "matched_jpeg_quality": matched}
+    if matched is not None:
+        row["matched_jpeg_bytes"] = by_quality[matched][0]
+        row["buffers_over_jpeg_bytes"] = buffers_bytes / by_quality[matched][0]
+    return row
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = bench_parser(__doc__)
+    parser.add_argument("--url", help="a running server (default: start one on --device)")
+    parser.add_argument("--volume", default="proc:cloud:0@128", help="a volume the server offers")
+    parser.add_argument("--seconds", type=float, help="timed seconds per case (default 5; smoke 0.5)")
+    parser.add_argument("--sessions", help="concurrent sessions per case, comma-separated (default 1,4,16; smoke 1,2)")
+    args = parser.parse_args(argv)
+    smoke = args.smoke
+    size = (64, 48) if smoke else (1920, 1080)
+    seconds = args.seconds or (0.5 if smoke else 5.0)
+    warmup = 1 if smoke else 2
+    counts = [int(n) for n in (args.sessions or ("1,2" if smoke else "1,4,16")).split(",")]
+    volume = "proc:cloud:0@32" if smoke and args.volume == parser.get_default("volume") else args.volume
+    focus_radius = size[1] / 4
+    cases = [("full", 0), ("full", 8), ("sr", 0), ("bilinear", 0), ("buffers", 0), ("focus", 8)]
+
+    def run(url: str) -> list[dict]:
+        rows = []
+        for mode, ao in cases:
+            for n in counts:
+                settings = {"ao_samples": ao}
+                result = run_sessions(url, volume, n, seconds, mode, size, settings,
+                                      focus=(size[0] / 2, size[1] / 2, focus_radius) if mode == "focus" else None,
+                                      warmup_frames=warmup)
+                rows.append(case_row(mode, ao, result))
+                r = rows[-1]
+                print(f"{mode:<9} AO {ao:<2} x{n:<3} {r.get('fps', 0):7.1f} fps  p50 {r.get('latency_p50_ms', 0):7.1f} "
+                      f"ms  {r.get('bytes_per_frame', 0):10.0f} B  errors {r['errors']}", flush=True)
+        rows.append(matched_quality(url, volume, size, args.device, 4 if smoke else 8, 2 if smoke else 4,
+                                    (10, 50, 90) if smoke else tuple(range(5, 100, 5))))
+        return rows
+
+    if args.url:
+        rows = run(args.url)
+    else:
+        # Room for a case's sessions while the previous case's close; no frame-rate cap.
+        options = ("--max-sessions", str(2 * max(counts) + 4), "--max-fps", "1000")
+        with ServerProcess(args.device, options) as server:
+            rows = run(server.url)
+    table = [r for r in rows if "mode" in r]
+    print_table(table, ["mode", "ao", "sessions", "fps", "fps_per_session", "latency_p50_ms", "latency_p99_ms",
+                        "render_ms", "network_ms", "shading_ms", "encode_ms", "other_ms", "bytes_per_frame",
+                        "link_fps_50mbit", "link_fps_1gbit", "errors"])
+    study = rows[-1]
+    print(f"buffers path: {study['buffers_psnr_db']:.2f} dB at {study['buffers_bytes']:.0f} B/frame; full JPEG "
+          f"reaches it at quality {study['matched_jpeg_quality']} "
+          f"({study.get('matched_jpeg_bytes', float('nan')):.0f} B/frame)")
+    print(f"wrote {write_result('bench_server', args.device, rows, args.out)}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,382 @@
+"""A view session on `isosr serve` (``WS /v1/view``) for notebooks and scripts.
+
+    from isosr_client import connect
+
+    with connect("http://127.0.0.1:8000", volume="proc:cloud:0", mode="buffers", size=(640, 480)) as view:
+        view.set_camera(yaw=40, pitch=20, distance=1.8)
+        rgb = view.frame()                 # numpy (480, 640, 3) uint8, includes the camera above
+        print(view.stats)                  # latency, bytes, server stage times, refined flag
+
+Synchronous (``websockets.sync.client``). In ``buffers`` mode the server sends the low-res
+buffers and this side upscales them with `isosr_net.upscaler.Upscaler` on ``device`` and shades
+them with `isosr_render.shading.shade`, keeping the network's recurrent state across frames;
+every other mode arrives as an encoded image. Only the protocol module of the server is imported.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from urllib.parse import urlsplit, urlunsplit
+
+import cv2
+import numpy as np
+import torch
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect as ws_connect
+
+from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
+from isosr_render.buffers import FrameBuffers
+from isosr_render.shading import shade
+from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, SERVER_VIEW_MESSAGES, TOKEN_HEADER, CameraMsg, ErrorMsg,
+                                   FocusMsg, FrameMsg, IsoMsg, Limits, OpenMsg, ProtocolError, ReadyMsg,
+                                   SettingsMsg, ViewSettings, decode_view_buffers, pack, parse)
+
+# What this client accepts from a server: frames up to 256 MiB (a 4096^2 PNG fits).
+CLIENT_LIMITS = Limits(max_message_bytes=2**28)
+
+
+class ServerError(RuntimeError):
+    """The server refused a request or ended the session: its close code / HTTP status and reason."""
+
+    def __init__(self, code: int, reason: str):
+        super().__init__(f"server error {code}: {reason}")
+        self.code, self.reason = code, reason
+
+
+def endpoint(url: str, path: str, websocket: bool) -> str:
+    """``url`` (``http(s)://`` or ``ws(s)://`` host and port, any path dropped) with ``path``, in
+    the scheme asked for.
+
+    Raises:
+        ValueError: not an http, https, ws or wss URL with a host.
+    """
+    parts = urlsplit(url)
+    secure = {"http": False, "ws": False, "https": True, "wss": True}.get(parts.scheme)
+    if secure is None or not parts.netloc:
+        raise ValueError(f"server URL must look like http://HOST:PORT or ws://HOST:PORT, got {url!r}")
+    scheme = ("wss" if secure else "ws") if websocket else ("https" if secure else "http")
+    return urlunsplit((scheme, parts.netloc, path, "", ""))
+
+
+def auth_headers(token: str | None) -> dict[str, str]:
+    """The headers that carry the server's token (none without one)."""
+    return {} if token is None else {"Authorization": f"Bearer {token}", TOKEN_HEADER: token}
+
+
+def decode_image(data: bytes) -> np.ndarray:
+    """PNG, JPEG or WebP bytes -> (H, W, 3) uint8 RGB.
+
+    Raises:
+        ValueError: the bytes are no image.
+    """
+    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise ValueError("the server sent bytes that are no PNG, JPEG or WebP image")
+    return np.ascontiguousarray(bgr[..., ::-1])
+
+
+def to_uint8(color: torch.Tensor) -> np.ndarray:
+    """Float RGB in [0, 1] -> rounded uint8 numpy, as the server encodes its frames.
+
+    Shape:
+        color: (H, W, 3). Returns (H, W, 3).
+    """
+    return (color.clamp(0.0, 1.0) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
+
+
+@dataclass
+class FrameStats:
+    """What one frame cost.
+
+    Attributes:
+        seq, ack: the server's frame number and the newest client update it includes (-1: none).
+        mode: the mode that made it (``full`` for refined frames).
+        refined: the still-camera refined frame.
+        latency_ms: from sending the newest update it includes (or ``open``) to its arrival; for
+            a refined frame this includes the still time before the server refines.
+        nbytes: payload bytes (image, or the coded buffers).
+        wire_bytes: the whole message.
+        server_ms: the server's milliseconds per stage (render, network, shading, encode, total).
+        client_ms: this side's milliseconds: ``decode`` (image or buffers), ``network`` (local
+            upscaling), ``shading``; filled as they happen.
+    """
+
+    seq: int
+    ack: int
+    mode: str
+    refined: bool
+    latency_ms: float
+    nbytes: int
+    wire_bytes: int
+    server_ms: dict[str, float]
+    client_ms: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class ViewFrame:
+    """One received frame; the RGB image is decoded (or shaded) only when asked for.
+
+    Attributes:
+        message: the validated frame message.
+        stats: its costs.
+        highres: ``buffers`` frames upscaled here: the network's high-res buffers, else None.
+    """
+
+    message: FrameMsg
+    stats: FrameStats
+    highres: FrameBuffers | None = None
+    _rgb: np.ndarray | None = None
+
+    def rgb(self) -> np.ndarray:
+        """The frame as (H, W, 3) uint8 RGB (decoded or shaded on first call)."""
+        if self._rgb is None:
+            start = time.perf_counter()
+            if self.message.image is not None:
+                self._rgb = decode_image(self.message.image)
+                stage = "decode"
+            elif self.highres is not None:
+                self._rgb = to_uint8(shade(self.highres.mask, self.highres.normal, self.highres.ao))
+                stage = "shading"
+            else:
+                raise ValueError("this buffers frame was not upscaled here (connect(..., local_upscale=True))")
+            self.stats.client_ms[stage] = self.stats.client_ms.get(stage, 0.0) + 1e3 * (time.perf_counter() - start)
+        return self._rgb
+
+
+class ViewSession:
+    """A connected view session. Made by :func:`connect`; close it (or use ``with``).
+
+    Updates (:meth:`set_camera`, :meth:`set_iso`, :meth:`set_settings`, :meth:`set_focus`)
+    are sent at once, each with a new ``seq``; the server renders the newest state (latest
+    wins). :meth:`latest` / :meth:`frame` return the newest frame that includes every update
+    sent so far, waiting for it when needed.
+    """
+
+    def __init__(self, ws, ready: ReadyMsg, opened_at: float, first_seq: int, device: str, model: str | Path,
+                 local_upscale: bool, timeout: float):
+        self._ws, self.ready, self.timeout = ws, ready, timeout
+        self.settings: ViewSettings = ready.view_settings()
+        self.limits = Limits(**ready.limits)
+        self.upscale_factor = ready.upscale_factor
+        self.device, self.model, self.local_upscale = device, model, local_upscale
+        self._upscaler: Upscaler | None = None
+        self._last_buffers_seq = -1
+        self._seq = first_seq  # the newest update sent: the open's camera (0), else none (-1)
+        self._sent_at: dict[int, float] = {-1: opened_at, first_seq: opened_at}
+        self._latest: ViewFrame | None = None
+        self.stats: FrameStats | None = None
+        self.closed = False
+
+    # ---- updates -------------------------------------------------------------------------------
+
+    def _send(self, msg) -> int:
+        """Validate an update as the server would, send it, and return its seq."""
+        self._check_open()
+        data = pack(msg.to_wire())
+        parse(data, self.limits, CLIENT_VIEW_MESSAGES)  # a bad update fails here, clearly
+        self._sent_at[msg.seq] = time.perf_counter()
+        self._ws.send(data)
+        return msg.seq
+
+    def _next_seq(self) -> int:
+        self._seq += 1
+        return self._seq
+
+    def set_camera(self, yaw: float | None = None, pitch: float | None = None, distance: float | None = None, *,
+                   eye: tuple[float, float, float] | None = None, target: tuple[float, float, float] = (0, 0, 0),
+                   up: tuple[float, float, float] | None = None, fov_y: float = 40.0) -> int:
+        """Orbit (``yaw``, ``pitch``, ``distance`` around ``target``, degrees, world +y up) or
+        look-at (``eye``, ``target``, ``up``, default +y); returns the update's seq.
+
+        Raises:
+            ProtocolError: an incomplete or degenerate camera (eye on the target, up along the view).
+        """
+        return self._send(CameraMsg(eye=_floats(eye), target=_floats(target), up=_floats(up), yaw=yaw, pitch=pitch,
+                                    distance=distance, fov_y=fov_y, seq=self._next_seq()))
+
+    def set_iso(self, value: float, normalized: bool = False) -> int:
+        """A new iso-value (data units unless ``normalized``); returns the update's seq."""
+        return self._send(IsoMsg(value, normalized, self._next_seq()))
+
+    def set_settings(self, **settings) -> int:
+        """Change settings (`ViewSettings` fields: mode, width, height, ao_samples, encoding, ...);
+        returns the update's seq.
+
+        Raises:
+            ProtocolError: an unknown field or a value out of range.
+        """
+        update = ViewSettings.read_update(settings, self.limits)
+        seq = self._send(SettingsMsg(update, self._next_seq()))
+        self.settings = self.settings.updated(update, self.limits)
+        return seq
+
+    def set_focus(self, shape: str = "none", center: tuple[float, float] | None = None, radius: float | None = None,
+                  box: tuple[float, float, float, float] | None = None) -> int:
+        """The ``focus`` mode's region in output pixels (x right, y down): ``circle`` (center,
+        radius), ``box`` (x0, y0, x1, y1) or ``none``; returns the update's seq."""
+        return self._send(FocusMsg(shape, _floats(center), radius, _floats(box), self._next_seq()))
+
+    # ---- frames --------------------------------------------------------------------------------
+
+    def latest(self, refined: bool = False, timeout: float | None = None) -> ViewFrame:
+        """The newest frame that includes every update sent so far (and is the refined one, if
+        ``refined``), waiting for it up to ``timeout`` seconds (default: the session's).
+
+        Raises:
+            TimeoutError: no such frame in time (a refined frame never comes with ``refine`` off).
+            ServerError: the server ended the session.
+        """
+        deadline = time.monotonic() + (self.timeout if timeout is None else timeout)
+        while self._receive(0.0):  # take what has arrived already
+            pass
+        while not self._current(refined):
+            left = deadline - time.monotonic()
+            if left <= 0 or not self._receive(left):
+                raise TimeoutError(f"no {'refined ' if refined else ''}frame with update {self._seq} within "
+                                   f"{self.timeout if timeout is None else timeout:g} s")
+        return self._latest
+
+    def frame(self, refined: bool = False, timeout: float | None = None) -> np.ndarray:
+        """:meth:`latest` as (H, W, 3) uint8 RGB; its costs in :attr:`stats`."""
+        return self.latest(refined, timeout).rgb()
+
+    def _current(self, refined: bool) -> bool:
+        f = self._latest
+        return f is not None and f.message.ack >= self._seq and (f.message.refined or not refined)
+
+    def _receive(self, timeout: float) -> bool:
+        """Receive and process one server message; False if none came within ``timeout``."""
+        self._check_open()
+        try:
+            data = self._ws.recv(timeout=timeout)
+        except TimeoutError:
+            return False
+        except ConnectionClosed as e:
+            self.closed = True
+            raise ServerError(e.rcvd.code if e.rcvd else 1006, e.rcvd.reason if e.rcvd else "connection lost") from None
+        arrived = time.perf_counter()
+        msg = parse(data, CLIENT_LIMITS, SERVER_VIEW_MESSAGES)
+        if isinstance(msg, ErrorMsg):
+            self.close()
+            raise ServerError(msg.code, msg.reason)
+        if not isinstance(msg, FrameMsg):
+            raise ProtocolError(f"expected a frame, got a {msg.TYPE} message")
+        sent = max((t for s, t in self._sent_at.items() if s <= msg.ack), default=self._sent_at[-1])
+        for s in [s for s in self._sent_at if -1 < s < msg.ack]:
+            del self._sent_at[s]  # bounded: the newest acknowledged update and those after it stay
+        stats = FrameStats(msg.seq, msg.ack, msg.mode, msg.refined, 1e3 * (arrived - sent), msg.nbytes, len(data),
+                           dict(msg.times))
+        frame = ViewFrame(msg, stats)
+        if msg.buffers is not None and self.local_upscale:
+            frame.highres = self._upscale(msg, stats)
+        self._latest, self.stats = frame, stats
+        return True
+
+    def _upscale(self, msg: FrameMsg, stats: FrameStats) -> FrameBuffers:
+        """Decode a buffers frame and upscale it, continuing the recurrent state when the server's
+        flow refers to the last frame upscaled here (``prev_seq``), else starting afresh."""
+        start = time.perf_counter()
+        arrays = decode_view_buffers(msg.buffers, CLIENT_LIMITS)
+        stats.client_ms["decode"] = 1e3 * (time.perf_counter() - start)
+        if self._upscaler is None:
+            self._upscaler = Upscaler(self.model, self.device)
+            if self._upscaler.upscale_factor != self.upscale_factor:
+                raise ValueError(f"the local model upscales {self._upscaler.upscale_factor}x, the server's "
+                                 f"{self.upscale_factor}x: give the server's model (model=...)")
+        continues = msg.prev_seq >= 0 and msg.prev_seq == self._last_buffers_seq and "flow" in arrays
+        if not continues:
+            arrays.pop("flow", None)  # the Upscaler resets without flow
+        start = time.perf_counter()
+        low = FrameBuffers(**{n: torch.from_numpy(a).to(self.device) for n, a in arrays.items()})
+        high = self._upscaler.upscale(low)
+        if high.mask.is_cuda:
+            torch.cuda.synchronize(high.mask.device)
+        stats.client_ms["network"] = 1e3 * (time.perf_counter() - start)
+        self._last_buffers_seq = msg.seq
+        return high
+
+    # ---- lifetime ------------------------------------------------------------------------------
+
+    def _check_open(self) -> None:
+        if self.closed:
+            raise ServerError(1000, "the session is closed")
+
+    def close(self) -> None:
+        """End the session (idempotent)."""
+        if not self.closed:
+            self.closed = True
+            self._ws.close()
+
+    def __enter__(self) -> "ViewSession":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _floats(v):
+    return None if v is None else tuple(float(x) for x in v)
+
+
+def connect(url: str, volume: str, mode: str = "sr", size: tuple[int, int] = (640, 480), *, token: str | None = None,
+            settings: dict | None = None, camera: dict | None = None, iso: float | None = None,
+            iso_normalized: bool = False, device: str = "cpu", model: str | Path = DEFAULT_MODEL,
+            local_upscale: bool = True, timeout: float = 60.0) -> ViewSession:
+    """Open a view session on ``volume`` (a name from ``GET /v1/volumes``, or ``proc:...``).
+
+    Args:
+        url: the server, ``http://HOST:PORT`` or ``ws://HOST:PORT``.
+        volume: the volume's name.
+        mode: ``full``, ``sr``, ``bilinear``, ``buffers`` or ``focus``.
+        size: output (width, height); a multiple of the upscale factor except in ``full``.
+        token: the server's token, if it has one.
+        settings: more `ViewSettings` fields (ao_samples, encoding, quality, refine, ...).
+        camera: the first camera as `set_camera` keywords (default: the server's).
+        iso, iso_normalized: the first iso-value (default: the volume's suggested one).
+        device, model: where and with which model ``buffers`` frames are upscaled here.
+        local_upscale: upscale ``buffers`` frames here (off: keep them coded, e.g. to time the server).
+        timeout: seconds to wait for the connection and for each frame.
+
+    Raises:
+        ServerError: the server refused (unknown volume, bad settings, session limit, token).
+        ProtocolError: bad settings or camera, found before anything is sent.
+    """
+    width, height = size
+    wanted = ViewSettings.read_update(dict(settings or {}, mode=mode, width=width, height=height), CLIENT_LIMITS)
+    first_camera = None if camera is None else CameraMsg(**{k: _floats(v) if isinstance(v, (list, tuple)) else v
+                                                             for k, v in camera.items()}, seq=0)
+    open_msg = OpenMsg(volume, wanted, first_camera, iso, iso_normalized)
+    data = pack(open_msg.to_wire())
+    parse(data, CLIENT_LIMITS, (OpenMsg,))  # bad input fails here, before any connection
+    where = endpoint(url, "/v1/view", websocket=True)
+    try:
+        # Entered: websockets 17.1 deprecates using connect()'s result without `with`; the
+        # session's close() ends it.
+        ws = ws_connect(where, additional_headers=auth_headers(token),
+                        max_size=CLIENT_LIMITS.max_message_bytes, compression=None, open_timeout=timeout,
+                        proxy=None).__enter__()
+    except Exception as e:  # handshake refused (401), nothing listening, ...
+        status = getattr(getattr(e, "response", None), "status_code", None)
+        if status is not None:
+            body = getattr(e.response, "body", b"") or b""
+            raise ServerError(status, body.decode(errors="replace") or str(e)) from None
+        raise ConnectionError(f"cannot reach {url}: {e}") from None
+    opened_at = time.perf_counter()
+    try:
+        ws.send(data)
+        reply = parse(ws.recv(timeout=timeout), CLIENT_LIMITS, SERVER_VIEW_MESSAGES)
+    except ConnectionClosed as e:
+        ws.close()
+        raise ServerError(e.rcvd.code if e.rcvd else 1006, e.rcvd.reason if e.rcvd else "connection lost") from None
+    except BaseException:
+        ws.close()
+        raise
+    if isinstance(reply, ErrorMsg):
+        ws.close()
+        raise ServerError(reply.code, reply.reason)
+    if not isinstance(reply, ReadyMsg):
+        ws.close()
+        raise ProtocolError(f"expected ready, got a {reply.TYPE} message")
+    return ViewSession(ws, reply, opened_at, -1 if first_camera is None else 0, device, model, local_upscale, timeout)
