@@ -23,6 +23,10 @@ then one launch per pass ping-pongs two AO buffers.
 
 from __future__ import annotations
 
+import functools
+import os
+import sys
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import nullcontext
 from dataclasses import dataclass
 
@@ -37,6 +41,7 @@ B3 = (1 / 16, 1 / 4, 3 / 8, 1 / 4, 1 / 16)
 # Floor of the depth tolerance, so equal depths weigh 1 and nothing divides by zero.
 TINY = 1e-12
 MAX_ITERATIONS = 5
+CPU_THREADS = os.cpu_count() or 1
 # The float32 range the kernels compute in: knobs are clamped into it.
 FLOAT32_MAX = 3.4028234663852886e38
 FLOAT32_SMALLEST_NORMAL = 1.1754943508222875e-38
@@ -119,10 +124,11 @@ def depth_step(mask: wp.array4d(dtype=float), z: wp.array4d(dtype=float), b: int
 def atrous_prepare_kernel(ao: wp.array4d(dtype=float), mask: wp.array4d(dtype=float),
                           normal: wp.array4d(dtype=float), z: wp.array4d(dtype=float),
                           value: wp.array3d(dtype=float), surface: wp.array3d(dtype=wp.vec4),
-                          slope: wp.array3d(dtype=wp.vec2), covered: wp.array3d(dtype=float)):
-    """Per pixel: clamped AO, unit normal and relative depth (``surface``), depth gradient
-    (``slope``, x right and y down) and coverage; all 0 where not covered."""
-    b, y, x = wp.tid()
+                          slope: wp.array3d(dtype=wp.vec2), covered: wp.array3d(dtype=float), row0: int):
+    """Per pixel of rows ``row0`` on: clamped AO, unit normal and relative depth (``surface``),
+    depth gradient (``slope``, x right and y down) and coverage; all 0 where not covered."""
+    b, row, x = wp.tid()
+    y = row0 + row
     if mask[b, 0, y, x] <= 0.5:
         value[b, y, x] = 0.0
         surface[b, y, x] = wp.vec4(0.0)
@@ -141,9 +147,11 @@ def atrous_prepare_kernel(ao: wp.array4d(dtype=float), mask: wp.array4d(dtype=fl
 def atrous_pass_kernel(value: wp.array3d(dtype=float), surface: wp.array3d(dtype=wp.vec4),
                        slope: wp.array3d(dtype=wp.vec2), covered: wp.array3d(dtype=float), hole: int,
                        sigma_normal: float, sigma_depth: float, depth_tolerance: float, use_value: int,
-                       sigma_value: float, out: wp.array3d(dtype=float)):
-    """One a-trous pass with ``hole`` pixels between taps; out-of-image taps count as uncovered."""
-    b, y, x = wp.tid()
+                       sigma_value: float, out: wp.array3d(dtype=float), row0: int):
+    """One a-trous pass over rows ``row0`` on, ``hole`` pixels between taps; out-of-image taps count
+    as uncovered."""
+    b, row, x = wp.tid()
+    y = row0 + row
     if covered[b, y, x] == 0.0:
         out[b, y, x] = 0.0
         return
@@ -186,6 +194,8 @@ def _check(ao: torch.Tensor, mask: torch.Tensor, normal: torch.Tensor, depth: to
     if ao.ndim != 4 or ao.shape[1] != 1:
         raise ValueError(f"atrous_filter: ao must be (B, 1, H, W), got {tuple(ao.shape)}")
     b, _, h, w = ao.shape
+    if not b * h * w:
+        raise ValueError(f"atrous_filter: the images are empty, ao is {tuple(ao.shape)}")
     for name, t, c in (("mask", mask, 1), ("normal", normal, 3), ("depth", depth, 1)):
         if tuple(t.shape) != (b, c, h, w):
             raise ValueError(f"atrous_filter: {name} must be {(b, c, h, w)}, got {tuple(t.shape)}")
@@ -194,7 +204,10 @@ def _check(ao: torch.Tensor, mask: torch.Tensor, normal: torch.Tensor, depth: to
             raise ValueError(f"atrous_filter: {name} must be floating point, got {t.dtype}")
         if t.device != ao.device:
             raise ValueError(f"atrous_filter: {name} is on {t.device}, ao on {ao.device}")
-        if not torch.isfinite(t).all():
+    # One host sync for all four buffers.
+    finite = torch.stack([torch.isfinite(t).all() for t in (ao, mask, normal, depth)]).tolist()
+    for name, ok in zip(("ao", "mask", "normal", "depth"), finite):
+        if not ok:
             raise ValueError(f"atrous_filter: {name} holds NaN or Inf values")
 
 
@@ -232,24 +245,52 @@ def atrous_filter(ao: torch.Tensor, mask: torch.Tensor, normal: torch.Tensor, de
     z = (depth / torch.where(deepest > 0, deepest, 1)).float()
     wp.init()  # a no-op after the first call
     device = wp.device_from_torch(ao.device)
-    inputs = [t.float() for t in (ao, mask, normal, z)]  # no copies where float32 already
-    buffers = [torch.empty((b, h, w), dtype=torch.float32, device=ao.device) for _ in range(3)]
-    value, spare, covered = (wp.from_torch(t) for t in buffers)
+    sources = [wp.from_torch(t.float()) for t in (ao, mask, normal, z)]  # no copies where float32 already
+    # The AO ping-pong pair stays in torch, so the result needs no conversion back.
+    values = [torch.empty((b, h, w), dtype=torch.float32, device=ao.device) for _ in range(2)]
+    value, spare = (wp.from_torch(t) for t in values)
+    covered = wp.from_torch(torch.empty((b, h, w), dtype=torch.float32, device=ao.device))
     surface = wp.from_torch(torch.empty((b, h, w, 4), dtype=torch.float32, device=ao.device), dtype=wp.vec4)
     slope = wp.from_torch(torch.empty((b, h, w, 2), dtype=torch.float32, device=ao.device), dtype=wp.vec2)
     knobs = [_float32(config.sigma_normal), _float32(config.sigma_depth), _float32(config.depth_tolerance),
              int(config.sigma_value is not None), _float32(config.sigma_value or 1.0, FLOAT32_SMALLEST_NORMAL)]
-    stream = wp.ScopedStream(wp.stream_from_torch(torch.cuda.current_stream(ao.device))) if device.is_cuda \
-        else nullcontext()
+    if device.is_cuda:
+        launch, stream = _launch_whole, wp.ScopedStream(wp.stream_from_torch(torch.cuda.current_stream(ao.device)))
+    else:
+        launch, stream = _launch_in_row_bands, nullcontext()
     with stream:
-        wp.launch(atrous_prepare_kernel, dim=(b, h, w),
-                  inputs=[*(wp.from_torch(t) for t in inputs), value, surface, slope, covered],
-                  device=device)
+        launch(atrous_prepare_kernel, (b, h, w), [*sources, value, surface, slope, covered], device)
         for i in range(config.iterations):
-            wp.launch(atrous_pass_kernel, dim=(b, h, w),
-                      inputs=[value, surface, slope, covered, 2 ** i, *knobs, spare], device=device)
+            launch(atrous_pass_kernel, (b, h, w), [value, surface, slope, covered, 2 ** i, *knobs, spare], device)
             value, spare = spare, value
-    return wp.to_torch(value)[:, None].to(ao.dtype)
+    return values[config.iterations % 2][:, None].to(ao.dtype)
+
+
+def _launch_whole(kernel, shape: tuple[int, int, int], inputs: list, device) -> None:
+    """One launch over every pixel (GPUs)."""
+    wp.launch(kernel, dim=shape, inputs=[*inputs, 0], device=device)
+
+
+def _launch_in_row_bands(kernel, shape: tuple[int, int, int], inputs: list, device) -> None:
+    """Launches over row bands on a thread pool, returning when all are done (Warp's CPU kernels run
+    on one thread each; ctypes releases the GIL)."""
+    b, h, w = shape
+    bands = min(h, 2 * CPU_THREADS)
+    starts = [h * i // bands for i in range(bands + 1)]
+    jobs = [(starts[i], starts[i + 1] - starts[i]) for i in range(bands)]
+    def launch(job: tuple[int, int]) -> None:
+        row0, rows = job
+        wp.launch(kernel, dim=(b, rows, w), inputs=[*inputs, row0], device=device)
+
+    list(_cpu_pool().map(launch, jobs))
+
+
+@functools.cache
+def _cpu_pool() -> ThreadPoolExecutor:
+    """The CPU launches' threads, one per core; the module is loaded first (Warp's module load is
+    not for concurrent first calls)."""
+    wp.load_module(sys.modules[__name__], device="cpu")
+    return ThreadPoolExecutor(CPU_THREADS)
 
 
 class ATrousFilter(nn.Module):

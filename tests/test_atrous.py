@@ -280,6 +280,8 @@ def test_bad_inputs_are_refused_with_the_buffer_named():
         atrous_filter(ao[0], mask, normal, depth)
     with pytest.raises(ValueError, match="mask must be floating point"):
         atrous_filter(ao, mask > 0.5, normal, depth)
+    with pytest.raises(ValueError, match="empty"):
+        atrous_filter(*(t[..., :0] for t in (ao, mask, normal, depth)))
     with pytest.raises(ValueError, match="iterations"):
         ATrousConfig(iterations=6)
     if DEVICE != "cpu":
