@@ -44,7 +44,6 @@ MAX_ITERATIONS = 5
 CPU_THREADS = os.cpu_count() or 1
 # The float32 range the kernels compute in: knobs are clamped into it.
 FLOAT32_MAX = 3.4028234663852886e38
-FLOAT32_SMALLEST_NORMAL = 1.1754943508222875e-38
 # Smallest normal length that normalizing divides by (as ``F.normalize``'s eps).
 NORMAL_EPS = wp.constant(1e-6)
 TINY_WP = wp.constant(TINY)
@@ -143,11 +142,22 @@ def atrous_prepare_kernel(ao: wp.array4d(dtype=float), mask: wp.array4d(dtype=fl
     covered[b, y, x] = 1.0
 
 
+@wp.func
+def normal_log_weight(cosine: float, sigma_normal: float) -> float:
+    """``log(max(0, cosine) ** sigma_normal)`` with ``0 ** 0 = 1``; the cosine clamped to 1 too (a unit
+    normal's rounded self-dot may exceed 1)."""
+    if sigma_normal == 0.0:
+        return 0.0
+    if cosine <= 0.0:
+        return -wp.inf
+    return sigma_normal * wp.log(wp.min(cosine, 1.0))
+
+
 @wp.kernel
 def atrous_pass_kernel(value: wp.array3d(dtype=float), surface: wp.array3d(dtype=wp.vec4),
                        slope: wp.array3d(dtype=wp.vec2), covered: wp.array3d(dtype=float), hole: int,
-                       sigma_normal: float, sigma_depth: float, depth_tolerance: float, use_value: int,
-                       sigma_value: float, out: wp.array3d(dtype=float), row0: int):
+                       sigma_normal: float, sigma_depth: float, depth_tolerance: float,
+                       inverse_sigma_value: float, out: wp.array3d(dtype=float), row0: int):
     """One a-trous pass over rows ``row0`` on, ``hole`` pixels between taps; out-of-image taps count
     as uncovered."""
     b, row, x = wp.tid()
@@ -174,14 +184,12 @@ def atrous_pass_kernel(value: wp.array3d(dtype=float), surface: wp.array3d(dtype
                 if covered[b, qy, qx] != 0.0:
                     sq = surface[b, qy, qx]
                     vq = value[b, qy, qx]
-                    # Clamped to 1 too: a unit normal's rounded dot with itself may exceed 1, which a
-                    # huge sigma_normal would raise to inf.
-                    cosine = wp.clamp(sp[0] * sq[0] + sp[1] * sq[1] + sp[2] * sq[2], 0.0, 1.0)
-                    wq = b3_tap(a) * b3_tap(c) * wp.pow(cosine, sigma_normal)
+                    # The three weights as one exponential (one exp and one log per tap, not four).
+                    cosine = sp[0] * sq[0] + sp[1] * sq[1] + sp[2] * sq[2]
                     tolerance = sigma_depth * wp.abs(g[0] * float(dx) + g[1] * float(dy)) + base_tolerance
-                    wq = wq * wp.exp(-wp.abs(sp[3] - sq[3]) / tolerance)
-                    if use_value != 0:
-                        wq = wq * wp.exp(-wp.abs(vp - vq) / sigma_value)
+                    exponent = normal_log_weight(cosine, sigma_normal) - wp.abs(sp[3] - sq[3]) / tolerance \
+                        - wp.abs(vp - vq) * inverse_sigma_value
+                    wq = b3_tap(a) * b3_tap(c) * wp.exp(exponent)
                     total = total + wq * vq
                     weight = weight + wq
     result = float(0.0)
@@ -211,9 +219,9 @@ def _check(ao: torch.Tensor, mask: torch.Tensor, normal: torch.Tensor, depth: to
             raise ValueError(f"atrous_filter: {name} holds NaN or Inf values")
 
 
-def _float32(value: float, smallest: float = 0.0) -> float:
-    """A knob clamped into float32's range (so the kernels never see inf or a flushed 0)."""
-    return min(max(float(value), smallest), FLOAT32_MAX)
+def _float32(value: float) -> float:
+    """A knob clamped into float32's range (so the kernels never see inf)."""
+    return min(float(value), FLOAT32_MAX)
 
 
 def atrous_filter(ao: torch.Tensor, mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor,
@@ -252,8 +260,10 @@ def atrous_filter(ao: torch.Tensor, mask: torch.Tensor, normal: torch.Tensor, de
     covered = wp.from_torch(torch.empty((b, h, w), dtype=torch.float32, device=ao.device))
     surface = wp.from_torch(torch.empty((b, h, w, 4), dtype=torch.float32, device=ao.device), dtype=wp.vec4)
     slope = wp.from_torch(torch.empty((b, h, w, 2), dtype=torch.float32, device=ao.device), dtype=wp.vec2)
+    # No value weight: its exponent is 0.
+    inverse_sigma_value = 0.0 if config.sigma_value is None else _float32(1 / config.sigma_value)
     knobs = [_float32(config.sigma_normal), _float32(config.sigma_depth), _float32(config.depth_tolerance),
-             int(config.sigma_value is not None), _float32(config.sigma_value or 1.0, FLOAT32_SMALLEST_NORMAL)]
+             inverse_sigma_value]
     if device.is_cuda:
         launch, stream = _launch_whole, wp.ScopedStream(wp.stream_from_torch(torch.cuda.current_stream(ao.device)))
     else:
