@@ -10,6 +10,7 @@ import torch
 import torch.nn.functional as F
 
 from conftest import DEVICE
+import isosr_net.atrous as atrous_module
 from isosr_net.atrous import B3, TINY, ATrousConfig, ATrousFilter, atrous_filter
 
 # The kernels compute in float32; the reference in float64.
@@ -287,3 +288,11 @@ def test_bad_inputs_are_refused_with_the_buffer_named():
     if DEVICE != "cpu":
         with pytest.raises(ValueError, match="depth is on"):
             atrous_filter(*(t.to(DEVICE) for t in (ao, mask, normal)), depth)
+
+
+def test_row_bands_and_one_whole_launch_agree_bit_for_bit(monkeypatch):
+    """The CPU's row bands on a thread pool against the GPU's single launch, run on the CPU."""
+    inputs = [t.float() for t in scene(37, 23, seed=4)]
+    banded = atrous_filter(*inputs, ATrousConfig(sigma_value=0.3))
+    monkeypatch.setattr(atrous_module, "_launch_in_row_bands", atrous_module._launch_whole)
+    assert torch.equal(banded, atrous_filter(*inputs, ATrousConfig(sigma_value=0.3)))
