@@ -118,7 +118,8 @@ def test_isosr_render_budget_ms_prints_the_choice_and_writes_its_frame(tmp_path,
     from isosr_cli.main import main as cli
 
     out = tmp_path / "frame.npz"
-    assert cli(["render", "proc:sphere@32", "--size", "96x64", "--budget-ms", "1000", "-o", str(out)]) == 0
+    assert cli(["render", "proc:sphere@32", "--size", "96x64", "--budget-ms", "1000", "--device", DEVICE,
+                "-o", str(out)]) == 0
     said = capsys.readouterr().out
     assert "quality auto: full, AO 0" in said and "no AO" in said  # the sphere: no AO rays
     import numpy as np

@@ -374,7 +374,7 @@ def test_token_required_beyond_loopback():
 
 
 def test_token_checked_on_every_request_and_handshake(lib):
-    with running_server(ServerConfig(token=TOKEN)) as s:
+    with running_server(ServerConfig(token=TOKEN, engine=EngineConfig(device=DEVICE))) as s:
         for path in ("/v2/health/live", "/v2/health/ready", "/v2/models/isosr", "/v1/volumes", "/metrics"):
             for headers in ({}, {"Authorization": "Bearer wrong-token"}, {P.TOKEN_HEADER: TOKEN[:-1]}):
                 status, body = s.get_json(path, headers)
