@@ -109,7 +109,7 @@ class FrameRunner:
         ao_radius: AO ray length, world units.
         upscalers: a cache of `Upscaler` by :meth:`FrameMethod.upscaler_key`, shared by runners
             that run one after another (a compiled network is built once); None: a private one.
-        atrous: the a-trous filter's knobs (compiled on GPUs, see :func:`atrous_filter`).
+        atrous: the a-trous filter's knobs (see :func:`atrous_filter`).
     """
 
     def __init__(self, method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int,
@@ -162,7 +162,7 @@ class FrameRunner:
             out = self.renderer.render(camera, self._request(("mask", "normal", "depth", "ao"), spp=m.spp,
                                                              ao_samples=m.ao_rays))
             ao = atrous_filter(out.ao[None, None], out.mask[None, None], out.normal.permute(2, 0, 1)[None],
-                               out.depth[None, None], self.atrous, compiled=self.renderer.device.is_cuda)[0, 0]
+                               out.depth[None, None], self.atrous)[0, 0]
             return FrameBuffers(mask=out.mask, normal=out.normal, ao=ao,
                                 color=shade(out.mask, out.normal, ao, self.shading))
         if m.kind == "upscale":

@@ -277,6 +277,17 @@ def test_metrics_count_frames_stages_and_errors(srv):
 # ---- upscaling ------------------------------------------------------------------------------
 
 
+def assert_same_buffers(got: dict, want: dict, atol: float) -> None:
+    """High-res buffers equal within ``atol`` where both masks agree on coverage. Normals and
+    depth are zeroed where the mask is 0, so on GPUs a mask within rounding of 0 may flip a
+    silhouette pixel (seen once on an H100): at most 0.5% of pixels may disagree there."""
+    np.testing.assert_allclose(got["mask"], want["mask"], atol=atol)
+    agree = (got["mask"] > 0) == (want["mask"] > 0)
+    assert agree.mean() >= (1.0 if DEVICE == "cpu" else 0.995)
+    for name in P.HIGHRES_OUTPUTS:
+        np.testing.assert_allclose(got[name][agree], want[name][agree], atol=atol)
+
+
 def test_upscale_post_buffers_images_and_sessions(srv, lib):
     c0, c1 = orbit(30, 20, 1.8), orbit(33, 20, 1.8)
     f0, f1 = lib_lowres(lib, c0).to_numpy(), lib_lowres(lib, c1, prev=c0).to_numpy()
@@ -289,11 +300,10 @@ def test_upscale_post_buffers_images_and_sessions(srv, lib):
     assert status == 200 and headers["content-type"] == P.MSGPACK_MEDIA_TYPE
     resp = P.parse(body, P.Limits(), (P.UpscaleResponse,))
     assert (resp.width, resp.height) == (W, H)
-    for name in P.HIGHRES_OUTPUTS:
-        np.testing.assert_allclose(resp.buffers[name], want0[name], atol=atol)
+    assert_same_buffers(resp.buffers, want0, atol)
     status, _, body = srv.request("POST", "/v1/upscale", upscale_body(f1, session="s1"))
     resp = P.parse(body, P.Limits(), (P.UpscaleResponse,))
-    np.testing.assert_allclose(resp.buffers["normal"], want1["normal"], atol=atol)
+    assert_same_buffers(resp.buffers, want1, atol)
     # Without a session the state is fresh, and the result differs.
     status, _, body = srv.request("POST", "/v1/upscale", upscale_body(f1))
     fresh = P.parse(body, P.Limits(), (P.UpscaleResponse,))
