@@ -380,6 +380,8 @@ def test_bad_view_input_closes_that_session_only(srv, lib):
 
         opens = [
             (b"\x92\x01\x02", P.CLOSE_BAD_MESSAGE, "map"),
+            (P.pack({"type": "open", "version": 1, "volume": VOLUME}), P.CLOSE_BAD_MESSAGE,
+             f"protocol version 1 is not supported; this server speaks {P.PROTOCOL_VERSION}: update the client"),
             (P.pack({"type": "open", "version": P.PROTOCOL_VERSION, "volume": "nope"}), P.CLOSE_NOT_FOUND, "no volume named"),
             (P.pack({"type": "open", "version": P.PROTOCOL_VERSION, "volume": "../blob"}), P.CLOSE_BAD_MESSAGE, "volume"),
             (P.pack({"type": "open", "version": P.PROTOCOL_VERSION, "volume": "proc:cloud:1@400"}), P.CLOSE_NOT_FOUND, "size"),
