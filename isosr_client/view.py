@@ -31,7 +31,7 @@ from isosr_render.buffers import FrameBuffers
 from isosr_render.shading import shade
 from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, SERVER_VIEW_MESSAGES, TOKEN_HEADER, CameraMsg, ErrorMsg,
                                    FocusMsg, FrameMsg, IsoMsg, Limits, OpenMsg, ProtocolError, ReadyMsg,
-                                   SettingsMsg, ViewSettings, decode_view_buffers, pack, parse)
+                                   ReceivedMsg, SettingsMsg, ViewSettings, decode_view_buffers, pack, parse)
 
 # What this client accepts from a server: frames up to 256 MiB (a 4096^2 PNG fits).
 CLIENT_LIMITS = Limits(max_message_bytes=2**28)
@@ -152,6 +152,10 @@ class ViewSession:
     are sent at once, each with a new ``seq``; the server renders the newest state (latest
     wins). :meth:`latest` / :meth:`frame` return the newest frame that includes every update
     sent so far, waiting for it when needed.
+
+    Flow control: each frame is acknowledged (``received``) as it is taken off the wire here,
+    and the server sends at most ``limits.max_unacked_frames`` frames ahead; so frames are made
+    only as fast as this side asks for them, and the next one shows the newest state.
     """
 
     def __init__(self, ws, ready: ReadyMsg, opened_at: float, first_seq: int, device: str, model: str | Path,
@@ -263,6 +267,7 @@ class ViewSession:
             raise ServerError(msg.code, msg.reason)
         if not isinstance(msg, FrameMsg):
             raise ProtocolError(f"expected a frame, got a {msg.TYPE} message")
+        self._acknowledge(msg.seq)
         sent = max((t for s, t in self._sent_at.items() if s <= msg.ack), default=self._sent_at[-1])
         for s in [s for s in self._sent_at if -1 < s < msg.ack]:
             del self._sent_at[s]  # bounded: the newest acknowledged update and those after it stay
@@ -273,6 +278,13 @@ class ViewSession:
             frame.highres = self._upscale(msg, stats)
         self._latest, self.stats = frame, stats
         return True
+
+    def _acknowledge(self, frame_seq: int) -> None:
+        """Tell the server this frame was taken: credit for the next (flow control)."""
+        try:
+            self._ws.send(pack(ReceivedMsg(frame_seq).to_wire()))
+        except ConnectionClosed:
+            pass  # the next receive reports the close with the server's code and reason
 
     def _upscale(self, msg: FrameMsg, stats: FrameStats) -> FrameBuffers:
         """Decode a buffers frame and upscale it, continuing the recurrent state when the server's

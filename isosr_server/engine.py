@@ -2,7 +2,9 @@
 
 All renderer, network and encoder work runs on one worker thread (a 1-thread executor), so
 concurrent requests never race on the GPU or on a session's recurrent state, and GPU work
-of different sessions is serialized in submission order. The event loop awaits
+of different sessions is serialized in submission order (the executor's FIFO queue). A view
+session queues its next frame only after the last one is sent, so the ready sessions are
+served in turn (round robin), never the busiest first. The event loop awaits
 :meth:`Engine.call`; everything named ``*_sync`` runs only on that thread.
 
 Renderers are cached per volume (a few, least recently used dropped); every stream gets its

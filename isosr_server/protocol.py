@@ -19,6 +19,15 @@ View session (``WS /v1/view``)
     highest ``seq`` they include. A still camera gets one extra frame with ``refined: true``.
     Bad input ends the session with an ``error`` message and a close code (``CLOSE_*``).
 
+Flow control (version 2)
+    The client answers each frame it has taken off the wire with ``received`` (``frame``: the
+    frame's ``seq``; cumulative: it covers every frame before it too). The server renders a
+    frame only while fewer than ``max_unacked_frames`` frames are unacknowledged, so a slow
+    client gets frames at the rate it takes them, each of the newest state, and a stalled one
+    costs nothing after ``max_unacked_frames`` frames. A ``received`` for a frame not yet sent
+    ends the session (CLOSE_BAD_MESSAGE); one for an older frame than the newest acknowledged
+    changes nothing. A session waiting on credit for ``idle_timeout_s`` is closed (CLOSE_IDLE).
+
 Upscaling (``POST /v1/upscale``, ``WS /v1/upscale/stream``)
     ``upscale`` request (low-res mask, normal, depth, optional flow in the conventions of
     :mod:`isosr_render.conventions`, float16/float32) -> ``upscaled`` (high-res mask, normal,
@@ -51,7 +60,8 @@ from typing import Any, ClassVar
 import msgpack
 import numpy as np
 
-PROTOCOL_VERSION = 1
+# 2: view clients acknowledge frames (``received``, flow control); 1 is refused with a reason.
+PROTOCOL_VERSION = 2
 
 # dtype names allowed on the wire, always little-endian.
 WIRE_DTYPES = {"float16": np.dtype("<f2"), "float32": np.dtype("<f4"), "uint8": np.dtype("u1"),
@@ -107,6 +117,8 @@ class Limits:
         max_sessions: most concurrent view sessions; the same again for upscale sessions.
         idle_timeout_s: a session without messages for this long is closed / expired.
         max_ao_samples: most AO rays per pixel a client may ask for (refined frames included).
+        max_unacked_frames: most frames a view session has sent (or is making) that its client
+            has not acknowledged with ``received``; the server renders the next one only below it.
     """
 
     max_message_bytes: int = 32 * 2**20
@@ -117,6 +129,7 @@ class Limits:
     max_sessions: int = 32
     idle_timeout_s: float = 300.0
     max_ao_samples: int = 256
+    max_unacked_frames: int = 2
 
     def __post_init__(self):
         for f in fields(self):
@@ -124,6 +137,8 @@ class Limits:
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0 \
                     or not math.isfinite(value):
                 raise ValueError(f"limit {f.name} must be a positive number, got {value!r}")
+            if isinstance(f.default, int) and not isinstance(value, int):
+                raise ValueError(f"limit {f.name} must be an integer, got {value!r}")
 
     def check_size(self, width: int, height: int, what: str = "image") -> None:
         """Raise `ProtocolError` (CLOSE_TOO_BIG, HTTP 413) for an image over the size limits."""
@@ -268,6 +283,15 @@ class _Reader:
 
 def _seq(r: _Reader) -> int | None:
     return r.int("seq", 0, MAX_SEQ)
+
+
+def _version(r: _Reader, where: str) -> int:
+    """The message's protocol version; `ProtocolError` for any but `PROTOCOL_VERSION`."""
+    version = r.int("version", 0, 2**31, required=True)
+    if version != PROTOCOL_VERSION:
+        raise ProtocolError(f"{where}: protocol version {version} is not supported; this server speaks "
+                            f"{PROTOCOL_VERSION}: update the client")
+    return version
 
 
 # ---------------------------------------------------------------------------------------------
@@ -575,10 +599,7 @@ class OpenMsg(Message):
     def from_wire(cls, d: dict, limits: Limits) -> "OpenMsg":
         r = _Reader(d, "open")
         r.choice("type", (cls.TYPE,))
-        version = r.int("version", 0, 2**31, required=True)
-        if version != PROTOCOL_VERSION:
-            raise ProtocolError(f"open: protocol version {version} is not supported; this server speaks "
-                                f"{PROTOCOL_VERSION}")
+        version = _version(r, "open")
         camera = r.map("camera")
         msg = cls(volume=r.str("volume", VOLUME_NAME, required=True),
                   settings=ViewSettings.read_update(r.map("settings") or {}, limits, "open.settings"),
@@ -662,6 +683,26 @@ class FocusMsg(Message):
             raise ProtocolError(f"focus: a {msg.shape} region takes exactly {sorted(needed) or 'no fields'}")
         if msg.box is not None and not (msg.box[0] < msg.box[2] and msg.box[1] < msg.box[3]):
             raise ProtocolError("focus: box must be [x0, y0, x1, y1] with x0 < x1 and y0 < y1")
+        return msg
+
+
+@dataclass(frozen=True)
+class ReceivedMsg(Message):
+    """Client -> server: the client has taken frame ``frame`` (the frame's ``seq``) and every
+    earlier one off the wire: credit for more (flow control, module docstring)."""
+
+    TYPE: ClassVar[str] = "received"
+    frame: int
+
+    def to_wire(self) -> dict:
+        return {"type": self.TYPE, "frame": self.frame}
+
+    @classmethod
+    def from_wire(cls, d: dict, limits: Limits) -> "ReceivedMsg":
+        r = _Reader(d, "received")
+        r.choice("type", (cls.TYPE,))
+        msg = cls(frame=r.int("frame", 0, MAX_SEQ, required=True))
+        r.done()
         return msg
 
 
@@ -836,10 +877,7 @@ class UpscaleRequest(Message):
     def from_wire(cls, d: dict, limits: Limits) -> "UpscaleRequest":
         r = _Reader(d, "upscale")
         r.choice("type", (cls.TYPE,))
-        version = r.int("version", 0, 2**31, required=True)
-        if version != PROTOCOL_VERSION:
-            raise ProtocolError(f"upscale: protocol version {version} is not supported; this server speaks "
-                                f"{PROTOCOL_VERSION}")
+        version = _version(r, "upscale")
         floats, b = ("float16", "float32"), LOWRES_BOUNDS
         mask = decode_array(r._raw("mask", True), "mask", limits, floats, (None, None), b["mask"])
         h, w = mask.shape
@@ -896,7 +934,8 @@ class UpscaleResponse(Message):
         return msg
 
 
-CLIENT_VIEW_MESSAGES: dict[str, type[Message]] = {m.TYPE: m for m in (CameraMsg, IsoMsg, SettingsMsg, FocusMsg)}
+CLIENT_VIEW_MESSAGES: dict[str, type[Message]] = {m.TYPE: m for m in (CameraMsg, IsoMsg, SettingsMsg, FocusMsg,
+                                                                        ReceivedMsg)}
 SERVER_VIEW_MESSAGES: dict[str, type[Message]] = {m.TYPE: m for m in (ReadyMsg, FrameMsg, ErrorMsg)}
 
 

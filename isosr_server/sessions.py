@@ -1,13 +1,21 @@
-"""Sessions: view sessions (latest-frame-wins state, the frame loop, the still-camera refine)
-and upscale sessions (recurrent state per id, idle expiry, a bounded count).
+"""Sessions: view sessions (latest-frame-wins state, credit-based flow control, the frame loop,
+the still-camera refine) and upscale sessions (recurrent state per id, idle expiry, a bounded count).
 
 Latest frame wins. A view session holds only the newest state the client asked for: every
 ``camera``/``iso``/``settings``/``focus`` message overwrites it and bumps a version, so stale
 updates are coalesced, never queued. The frame loop renders the newest state, sends the frame
-and only then looks at the state again: at most one frame per session is in flight, a frame
-is never rendered for a state already superseded before its render began, and a slow or
-stalled client (whose sends block on the socket's buffer) holds one frame of memory and
-delays only itself; the device thread serves the other sessions meanwhile.
+and only then looks at the state again: at most one frame per session is being made, and a
+frame is never rendered for a state already superseded before its render began.
+
+Flow control. A frame counts as sent when the client acknowledges it (``received``), not when
+the kernel takes it (loopback send buffers hold megabytes: hundreds of frames). The loop makes
+a frame only while fewer than ``Limits.max_unacked_frames`` are unacknowledged; otherwise it
+waits on the session's event (set by every update and acknowledgment; no polling), updates
+coalescing meanwhile. So a slow client gets frames at the rate it takes them, each of the
+newest state, and a stalled one costs no device time or memory after that many frames; a
+session that waits on credit for ``idle_timeout_s`` is closed with CLOSE_IDLE, as one that
+sends nothing for that long is. Sessions waiting on credit queue no device work, so the
+device thread (FIFO, one job per session at most) serves the ready sessions in turn.
 """
 
 from __future__ import annotations
@@ -22,8 +30,9 @@ from isosr_net.upscaler import Upscaler
 from isosr_render import Camera, Volume, orbit
 from isosr_server import channels
 from isosr_server.pipeline import FrameSpec, lowres_size
-from isosr_server.protocol import (CLOSE_BAD_MESSAGE, CLOSE_TOO_MANY, CameraMsg, FocusMsg, FrameMsg, IsoMsg,
-                                   Limits, Message, ProtocolError, SettingsMsg, ViewSettings, pack)
+from isosr_server.protocol import (CLOSE_BAD_MESSAGE, CLOSE_IDLE, CLOSE_TOO_MANY, CameraMsg, FocusMsg, FrameMsg,
+                                   IsoMsg, Limits, Message, ProtocolError, ReceivedMsg, SettingsMsg, ViewSettings,
+                                   pack)
 
 DEFAULT_CAMERA = CameraMsg(yaw=30.0, pitch=20.0, distance=1.8)
 LOWRES_MODES = ("sr", "bilinear", "buffers", "focus")
@@ -114,6 +123,8 @@ class ViewSession:
         self.changed.set()
         self.rendered_version = self.refined_version = -1
         self.next_seq = 0
+        # Flow control: the newest frame whose sending began, and the newest the client acknowledged.
+        self.sent_seq = self.received_seq = -1
         # The last low-res frame: its flow key (mode, size, iso), camera and seq.
         self._flow_key: tuple | None = None
         self._prev_camera: Camera | None = None
@@ -129,7 +140,11 @@ class ViewSession:
                 raise ProtocolError(str(e), CLOSE_BAD_MESSAGE) from None
 
     def apply(self, msg: Message) -> None:
-        """Take a client update (latest wins); `ProtocolError` if it does not fit this session."""
+        """Take a client update (latest wins) or acknowledgment; `ProtocolError` if it does not fit
+        this session."""
+        if isinstance(msg, ReceivedMsg):
+            self.acknowledge(msg.frame)
+            return
         s = self.state
         if isinstance(msg, CameraMsg):
             try:
@@ -145,13 +160,35 @@ class ViewSession:
         elif isinstance(msg, FocusMsg):
             s = replace(s, focus=msg)
         else:
-            raise ProtocolError(f"a view session takes camera, iso, settings and focus messages, not {msg.TYPE}")
+            raise ProtocolError(f"a view session takes camera, iso, settings, focus and received messages, "
+                                f"not {msg.TYPE}")
         if msg.seq is not None:
             s = replace(s, ack=max(s.ack, msg.seq))
         self.state = s
         self.version += 1
         self.changed_at = time.monotonic()
         self.changed.set()
+
+    def acknowledge(self, frame: int) -> None:
+        """The client took frame ``frame`` and those before it: credit for more.
+
+        Raises:
+            ProtocolError: (CLOSE_BAD_MESSAGE) ``frame`` was never sent.
+        """
+        if frame > self.sent_seq:
+            sent = "no frame was sent yet" if self.sent_seq < 0 else f"the newest sent is {self.sent_seq}"
+            raise ProtocolError(f"received: frame {frame} was never sent ({sent})")
+        if frame > self.received_seq:
+            self.received_seq = frame
+            self.changed.set()
+
+    def unacknowledged(self) -> int:
+        """Frames made (sent, or being made) that the client has not acknowledged."""
+        return self.next_seq - 1 - self.received_seq
+
+    def has_credit(self) -> bool:
+        """Whether the next frame may be made: fewer than ``max_unacked_frames`` unacknowledged."""
+        return self.unacknowledged() < self.limits.max_unacked_frames
 
     def _refine_differs(self) -> bool:
         s = self.state.settings
@@ -196,19 +233,32 @@ FrameMaker = Callable[[FrameJob], Awaitable[tuple[bytes | None, dict | None, dic
 async def run_frames(session: ViewSession, make: FrameMaker, send: Callable[[bytes, FrameMsg], Awaitable[None]],
                      max_fps: float) -> None:
     """The session's frame loop (runs until cancelled): wait for a new state or a due refine,
-    keep at most ``max_fps``, make the frame (``make``, on the device thread) and send it."""
+    then for credit (`ViewSession.has_credit`), keep at most ``max_fps``, make the frame
+    (``make``, on the device thread) and send it.
+
+    Raises:
+        ProtocolError: (CLOSE_IDLE) the client acknowledged no frame for ``idle_timeout_s``
+            while the session had a frame to make.
+    """
     interval, last_start = 1.0 / max_fps, -float("inf")
+    stalled_since: float | None = None
     while True:
         session.changed.clear()
         now = time.monotonic()
         if session.rendered_version == session.version:
             wait = session.refine_in(now)
             if wait is None or wait > 0:
-                try:
-                    await asyncio.wait_for(session.changed.wait(), wait)
-                except TimeoutError:
-                    pass
+                await _wait(session.changed, wait)
                 continue
+        if not session.has_credit():
+            stalled_since = now if stalled_since is None else stalled_since
+            left = stalled_since + session.limits.idle_timeout_s - now
+            if left <= 0:
+                raise ProtocolError(f"the client acknowledged no frame for {session.limits.idle_timeout_s:g} s "
+                                    f"({session.unacknowledged()} unacknowledged)", CLOSE_IDLE, 408)
+            await _wait(session.changed, left)  # updates coalesce meanwhile; an acknowledgment wakes it
+            continue
+        stalled_since = None
         pause = last_start + interval - now
         if pause > 0:
             await asyncio.sleep(pause)  # updates arriving meanwhile coalesce into the state
@@ -222,7 +272,16 @@ async def run_frames(session: ViewSession, make: FrameMaker, send: Callable[[byt
                        len(image) if image is not None else sum(len(a["data"]) for a in buffers.values()
                                                                if isinstance(a, dict)),
                        job.refined, image, buffers, job.prev_seq, legend)
+        session.sent_seq = job.seq  # before sending: the client may acknowledge it before send returns
         await send(pack(msg.to_wire()), msg)
+
+
+async def _wait(event: asyncio.Event, timeout: float | None) -> None:
+    """Wait until ``event`` is set or ``timeout`` seconds (None: no limit) have passed."""
+    try:
+        await asyncio.wait_for(event.wait(), timeout)
+    except TimeoutError:
+        pass
 
 
 class UpscaleSessions:

@@ -170,8 +170,10 @@ def session(srv, volume=VOLUME, camera=CAM0, **settings):
 
 
 def frame(ws) -> P.FrameMsg:
+    """The next message, a frame; acknowledged (``received``) as a client does."""
     msg = recv(ws)
     assert isinstance(msg, P.FrameMsg), msg
+    send(ws, P.ReceivedMsg(msg.seq))
     return msg
 
 

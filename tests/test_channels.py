@@ -139,7 +139,7 @@ def test_server_serves_the_page_offline(srv):
 
 
 def test_view_session_channels_match_the_library(srv):
-    from server_fixtures import recv
+    from server_fixtures import frame, recv
 
     from isosr_server import protocol as P
     from isosr_server.encoding import decode_image, to_uint8
@@ -152,7 +152,7 @@ def test_view_session_channels_match_the_library(srv):
                                           "refine": False}, cam0).to_wire()))
         ready = recv(ws)
         assert isinstance(ready, P.ReadyMsg) and ready.settings["channel"] == "depth"
-        first = recv(ws)
+        first = frame(ws)
         assert first.legend["channel"] == "depth" and 0 < first.legend["lo"] < first.legend["hi"]
         renderer = Renderer(parse_procedural(volume), DEVICE)
         upscaler = Upscaler(device=DEVICE)
@@ -167,10 +167,10 @@ def test_view_session_channels_match_the_library(srv):
         assert abs(got - to_uint8(expected).cpu().numpy().astype(int)).max() <= levels
 
         ws.send(P.pack(P.SettingsMsg({"channel": "flow", "mode": "full"}, seq=1).to_wire()))
-        still = recv(ws)
+        still = frame(ws)
         assert (still.ack, still.mode, still.legend["channel"], still.legend["hi"]) == (1, "full", "flow", 0.0)
         ws.send(P.pack(P.CameraMsg(yaw=34.0, pitch=20.0, distance=1.6, seq=2).to_wire()))
-        moved = recv(ws)
+        moved = frame(ws)
         assert moved.ack == 2 and moved.legend["hi"] > 0, "a moved camera has flow"
 
         ws.send(P.pack(P.SettingsMsg({"channel": "ao", "ao_samples": 0}).to_wire()))

@@ -26,7 +26,7 @@ def test_messages_round_trip():
                 P.OpenMsg("proc:sphere", {"mode": "full", "width": 64, "height": 48}, cam, 0.2, True),
                 P.IsoMsg(77.0, seq=9), P.SettingsMsg({"ao_samples": 8, "encoding": "png"}, seq=1),
                 P.FocusMsg("circle", center=(32.0, 24.0), radius=10.0), P.FocusMsg("box", box=(1.0, 2.0, 30.0, 40.0)),
-                P.FocusMsg("none"), P.ErrorMsg(1007, "bad"),
+                P.FocusMsg("none"), P.ErrorMsg(1007, "bad"), P.ReceivedMsg(0), P.ReceivedMsg(P.MAX_SEQ),
                 P.ReadyMsg("abc", {"name": "x"}, {"mode": "sr"}, 4, P.limits_to_wire(LIMITS)),
                 P.FrameMsg(0, -1, "full", 64, 48, "png", {"render": 1.0, "total": 2.0}, 10, image=b"\x89PNG")):
         assert roundtrip(msg) == msg
@@ -73,9 +73,16 @@ def test_upscale_messages_round_trip_arrays_exactly():
     ({"type": "focus", "shape": "box", "box": [5, 5, 1, 9]}, "x0 < x1"),
     ({"type": "focus", "shape": "star"}, "shape"),
     ({"type": "open", "version": 99, "volume": "proc:sphere"}, "version"),
-    ({"type": "open", "version": 1, "volume": "../../etc/passwd"}, "volume"),
-    ({"type": "open", "version": 1, "volume": "/abs/path.nii"}, "volume"),
-    ({"type": "open", "version": 1}, "volume"),
+    ({"type": "open", "version": P.PROTOCOL_VERSION, "volume": "../../etc/passwd"}, "volume"),
+    ({"type": "open", "version": P.PROTOCOL_VERSION, "volume": "/abs/path.nii"}, "volume"),
+    ({"type": "open", "version": P.PROTOCOL_VERSION}, "volume"),
+    ({"type": "open", "version": 1, "volume": "proc:sphere"}, "version 1 is not supported.*update the client"),
+    ({"type": "received"}, "frame"),
+    ({"type": "received", "frame": -1}, "frame"),
+    ({"type": "received", "frame": 2**64 - 1}, "frame"),
+    ({"type": "received", "frame": "3"}, "frame"),
+    ({"type": "received", "frame": 1.0}, "frame"),
+    ({"type": "received", "frame": 1, "seq": 4}, "unknown fields"),
     ({"type": "hello"}, "type"),
     ({"no": "type"}, "type"),
 ])
@@ -221,6 +228,10 @@ def test_limits_validate():
         P.Limits(max_fps=0)
     with pytest.raises(ValueError, match="max_sessions"):
         P.Limits(max_sessions=float("nan"))
+    with pytest.raises(ValueError, match="max_unacked_frames must be an integer"):
+        P.Limits(max_unacked_frames=1.5)
+    with pytest.raises(ValueError, match="max_unacked_frames"):
+        P.Limits(max_unacked_frames=0)
 
 
 # Values of every wire kind, nested a little: what a hostile client can put in a msgpack map.
@@ -233,7 +244,7 @@ _ALL = dict(P.CLIENT_VIEW_MESSAGES, **P.SERVER_VIEW_MESSAGES, open=P.OpenMsg, up
             upscaled=P.UpscaleResponse)
 _KEYS = ["type", "eye", "target", "up", "yaw", "pitch", "distance", "fov_y", "seq", "value", "normalized", "settings",
          "shape", "center", "radius", "box", "version", "volume", "camera", "iso", "mask", "normal", "depth",
-         "flow", "output", "session", "dtype", "data", "width", "height", "times", "buffers", "image", "code"]
+         "flow", "output", "session", "dtype", "data", "width", "height", "times", "buffers", "image", "code", "frame"]
 
 
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])

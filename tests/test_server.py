@@ -17,16 +17,18 @@ import msgpack
 import numpy as np
 import pytest
 import torch
+from websockets.exceptions import ConnectionClosed
 
 from isosr_cli.main import main
 from isosr_net.metrics import upscale_baseline
 from isosr_net.upscaler import Upscaler
-from isosr_render import Camera, FrameBuffers, orbit, shade
+from isosr_render import Camera, FrameBuffers, open_volume, orbit, shade
 from isosr_render.conventions import LOWRES_BUFFERS
 from isosr_render.shading import shade_channels_first
 from isosr_server import protocol as P
 from isosr_server.app import ServerConfig
 from isosr_server.engine import EngineConfig
+from isosr_server.sessions import ViewSession, ViewState
 from isosr_server.encoding import decode_image, to_uint8
 from server_fixtures import (DEVICE, FACTOR, H, LEVELS, VOLUME, W, assert_image, cam, expect_close, frame,  # noqa: F401
                              lib, lib_full, lib_lowres, lib_sr, recv, running_server, send, session, settle,
@@ -186,6 +188,67 @@ def test_latest_camera_wins(srv, lib):
             ws.recv(timeout=0.4)  # nothing left queued
 
 
+# ---- flow control ---------------------------------------------------------------------------
+
+
+def test_frames_wait_for_credit_and_the_next_shows_the_newest_state(srv, lib):
+    """Without acknowledgments the server sends max_unacked_frames frames (0 and 1) and then
+    nothing, however many cameras arrive; one acknowledgment brings the newest camera's frame."""
+    credit = LIMITS.max_unacked_frames
+    with session(srv, mode="full") as (ws, _):
+        for i in range(1, 21):
+            send(ws, cam(30 + i, seq=i))
+            time.sleep(0.01)
+        frames = [recv(ws) for _ in range(credit)]
+        assert [f.seq for f in frames] == list(range(credit))
+        with pytest.raises(TimeoutError):
+            ws.recv(timeout=0.5)  # no credit: nothing rendered
+        send(ws, P.ReceivedMsg(0))
+        newest = recv(ws)
+        assert (newest.seq, newest.ack) == (credit, 20)
+        assert_image(newest.image, lib_full(lib, orbit(50, 20, 1.8)))
+        send(ws, P.ReceivedMsg(0))  # older than the newest acknowledged: changes nothing
+        with pytest.raises(TimeoutError):
+            ws.recv(timeout=0.3)
+        send(ws, P.ReceivedMsg(newest.seq))
+        send(ws, cam(10, seq=21))
+        assert frame(ws).ack == 21
+    assert not srv.errors.records, srv.errors.messages()
+
+
+def test_bad_acknowledgments_close_that_session_only(srv, lib):
+    """An acknowledgment of a frame never sent (before any frame, ahead of the last, huge, not an
+    integer) ends the session with 1007 and the reason; another session is served meanwhile."""
+    with session(srv, mode="full") as (honest, _):
+        frame(honest)
+        bad = [(P.ReceivedMsg(5).to_wire(), "frame 5 was never sent"),
+               ({"type": "received", "frame": 2**60}, "frame must be an integer in"),
+               ({"type": "received", "frame": -1}, "frame must be an integer in"),
+               ({"type": "received", "frame": 0.5}, "frame must be an integer in"),
+               ({"type": "received"}, "missing field 'frame'")]
+        for wire, words in bad:  # sent at once after open: before the client read any frame
+            with session(srv, mode="full") as (ws, _):
+                ws.send(P.pack(wire))
+                expect_close(ws, P.CLOSE_BAD_MESSAGE, words)
+        with session(srv, mode="full") as (ws, _):
+            assert frame(ws).seq == 0  # acknowledged: fine
+            send(ws, P.ReceivedMsg(1))  # no update since: frame 1 was never made
+            expect_close(ws, P.CLOSE_BAD_MESSAGE, "frame 1 was never sent (the newest sent is 0)")
+        send(honest, cam(77, seq=1))
+        assert_image(frame(honest).image, lib_full(lib, orbit(77, 20, 1.8)))
+    assert not srv.errors.records, srv.errors.messages()
+
+
+def test_acknowledgment_before_any_frame_names_it(lib):
+    """The session's own check, before its frame loop sent anything."""
+    state = ViewState(P.ViewSettings(), orbit(30, 20, 1.8), lib.iso, P.FocusMsg("none"))
+    view = ViewSession("s", VOLUME, open_volume(VOLUME), state, FACTOR, LIMITS)
+    with pytest.raises(P.ProtocolError, match="frame 0 was never sent \\(no frame was sent yet\\)") as e:
+        view.apply(P.ReceivedMsg(0))
+    assert e.value.close_code == P.CLOSE_BAD_MESSAGE
+    assert view.has_credit() and view.unacknowledged() == 0
+
+
 @pytest.mark.parametrize("encoding", ["jpeg", "webp"])
 def test_lossy_encodings(srv, lib, encoding):
     with session(srv, mode="full", encoding=encoding, quality=90) as (ws, _):
@@ -317,12 +380,14 @@ def test_bad_view_input_closes_that_session_only(srv, lib):
 
         opens = [
             (b"\x92\x01\x02", P.CLOSE_BAD_MESSAGE, "map"),
-            (P.pack({"type": "open", "version": 1, "volume": "nope"}), P.CLOSE_NOT_FOUND, "no volume named"),
-            (P.pack({"type": "open", "version": 1, "volume": "../blob"}), P.CLOSE_BAD_MESSAGE, "volume"),
-            (P.pack({"type": "open", "version": 1, "volume": "proc:cloud:1@400"}), P.CLOSE_NOT_FOUND, "size"),
-            (P.pack({"type": "open", "version": 1, "volume": VOLUME, "settings": {"mode": "sr", "width": 66}}),
+            (P.pack({"type": "open", "version": 1, "volume": VOLUME}), P.CLOSE_BAD_MESSAGE,
+             f"protocol version 1 is not supported; this server speaks {P.PROTOCOL_VERSION}: update the client"),
+            (P.pack({"type": "open", "version": P.PROTOCOL_VERSION, "volume": "nope"}), P.CLOSE_NOT_FOUND, "no volume named"),
+            (P.pack({"type": "open", "version": P.PROTOCOL_VERSION, "volume": "../blob"}), P.CLOSE_BAD_MESSAGE, "volume"),
+            (P.pack({"type": "open", "version": P.PROTOCOL_VERSION, "volume": "proc:cloud:1@400"}), P.CLOSE_NOT_FOUND, "size"),
+            (P.pack({"type": "open", "version": P.PROTOCOL_VERSION, "volume": VOLUME, "settings": {"mode": "sr", "width": 66}}),
              P.CLOSE_BAD_MESSAGE, "multiple of the upscale factor"),
-            (P.pack({"type": "open", "version": 1, "volume": VOLUME, "settings": {"width": 4096, "height": 4096}}),
+            (P.pack({"type": "open", "version": P.PROTOCOL_VERSION, "volume": VOLUME, "settings": {"width": 4096, "height": 4096}}),
              P.CLOSE_TOO_BIG, "exceeds"),
             (P.pack(cam(3).to_wire()), P.CLOSE_BAD_MESSAGE, "message type must be one of open"),
             (b"\x00" * (LIMITS.max_message_bytes + 10), P.CLOSE_TOO_BIG, ""),
@@ -337,7 +402,7 @@ def test_bad_view_input_closes_that_session_only(srv, lib):
             (P.pack({"type": "camera", "eye": [0, 0, 1], "up": [0, 0, 0]}), P.CLOSE_BAD_MESSAGE, "up is zero"),
             (P.pack({"type": "settings", "settings": {"mode": "sr", "width": 63}}), P.CLOSE_BAD_MESSAGE, "multiple"),
             (P.pack({"type": "iso", "value": 1e300}), P.CLOSE_BAD_MESSAGE, "value"),
-            (P.pack({"type": "open", "version": 1, "volume": VOLUME}), P.CLOSE_BAD_MESSAGE, "message type"),
+            (P.pack({"type": "open", "version": P.PROTOCOL_VERSION, "volume": VOLUME}), P.CLOSE_BAD_MESSAGE, "message type"),
             (msgpack.packb({"type": "iso", "value": 0.2})[:-3], P.CLOSE_BAD_MESSAGE, "malformed"),
         ]
         for data, code, words in updates:
@@ -416,6 +481,17 @@ def test_idle_view_session_is_closed(strict_srv):
     with session(strict_srv, mode="full") as (ws, _):
         frame(ws)
         expect_close(ws, P.CLOSE_IDLE, "no message")
+
+
+def test_session_that_never_acknowledges_is_closed(strict_srv):
+    """Cameras keep coming (so the session is not idle) but no frame is acknowledged: after
+    idle_timeout_s waiting on credit the server closes it with CLOSE_IDLE and the reason."""
+    with session(strict_srv, mode="full") as (ws, _):
+        with pytest.raises(ConnectionClosed):  # within 4 s, 5 x the timeout
+            for i in range(1, 40):
+                send(ws, cam(30 + i, seq=i))
+                time.sleep(0.1)  # 10 messages a second: within the rate limit
+        expect_close(ws, P.CLOSE_IDLE, "acknowledged no frame")
 
 
 def test_frame_rate_and_message_rate_limits(strict_srv):

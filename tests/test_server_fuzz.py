@@ -81,6 +81,22 @@ def test_fuzz_view_messages(srv, data):
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck))
+@given(data=st.data())
+def test_fuzz_acknowledgments(srv, data):
+    """``received`` with any frame value (wrong, huge, negative, not an integer) or fields, after
+    frame 0: a clean 1007 close, or (frame 0) accepted; then a camera still gets its frame."""
+    wire = data.draw(st.one_of(mutated(P.ReceivedMsg(0).to_wire()),
+                               st.builds(lambda n: P.ReceivedMsg(n).to_wire(), st.integers(0, P.MAX_SEQ))))
+    settle(srv)
+    with srv.view() as ws:
+        send(ws, P.OpenMsg(VOLUME, {"mode": "full", "width": 16, "height": 12, "refine": False}))
+        recv(ws), recv(ws)
+        ws.send(P.pack(wire))
+        send(ws, cam(50, seq=1))  # frame 1 needs no acknowledgment: max_unacked_frames is 2
+        _answer_is_frame_or_close(ws)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck))
 @given(wire=mutated(VALID_OPEN))
 def test_fuzz_open(srv, wire):
     settle(srv)

@@ -1,7 +1,8 @@
-// One view session (WS /v1/view): open, latest-wins updates, frames, errors, reconnect with backoff.
+// One view session (WS /v1/view): open, latest-wins updates, frames acknowledged once shown (flow
+// control: the server makes the next frame only on credit), errors, reconnect with backoff.
 import { decode, encode } from "./msgpack.js";
 
-export const PROTOCOL_VERSION = 1;
+export const PROTOCOL_VERSION = 2;
 const SUBPROTOCOL = "isosr.v1";
 const TOKEN_SUBPROTOCOL_PREFIX = "isosr-token.";
 // Close codes after which reconnecting would only repeat the client's mistake.
@@ -15,7 +16,8 @@ export function subprotocols(token) {
 
 /**
  * A view session that reopens itself after a lost connection.
- * hooks: onReady(ready), onFrame(frame, latencyMs), onState(state, detail) with state one of
+ * hooks: onReady(ready), onFrame(frame, latencyMs) (may return a promise: the frame is acknowledged
+ * once it settles), onState(state, detail) with state one of
  * "connecting", "open", "lost" (detail: {attempt, delayMs}), "error" (detail: {code, reason}).
  * openMessage(): the current `open` message (volume, settings, camera, iso), built by the page.
  */
@@ -67,7 +69,10 @@ export class ViewSession {
         this.hooks.onState("open", {});
         this.hooks.onReady(msg);
       } else if (msg.type === "frame") {
-        this.hooks.onFrame(msg, this.latency(msg.ack));
+        // Acknowledged once decoded and drawn (or failed to), so frames come as fast as they are shown.
+        Promise.resolve()
+          .then(() => this.hooks.onFrame(msg, this.latency(msg.ack)))
+          .finally(() => this.acknowledge(ws, msg.seq));
       } else if (msg.type === "error") {
         serverError = msg;
       }
@@ -89,6 +94,11 @@ export class ViewSession {
     const sent = this.sentAt.get(ack);
     for (const k of this.sentAt.keys()) if (k <= ack) this.sentAt.delete(k);
     return sent === undefined ? null : performance.now() - sent;
+  }
+
+  /** Tell the server frame `seq` was shown: credit for the next (not on a newer connection). */
+  acknowledge(ws, seq) {
+    if (this.ws === ws && ws.readyState === WebSocket.OPEN) ws.send(encode({ type: "received", frame: seq }));
   }
 
   lost(code, reason) {
