@@ -20,7 +20,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import urlsplit, urlunsplit
 
-import cv2
 import numpy as np
 import torch
 from websockets.exceptions import ConnectionClosed
@@ -28,6 +27,7 @@ from websockets.sync.client import connect as ws_connect
 
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
 from isosr_render.buffers import FrameBuffers
+from isosr_render.images import decode_image, to_uint8
 from isosr_render.shading import shade
 from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, SERVER_VIEW_MESSAGES, TOKEN_HEADER, CameraMsg, ErrorMsg,
                                    FocusMsg, FrameMsg, IsoMsg, Limits, OpenMsg, ProtocolError, ReadyMsg,
@@ -63,27 +63,6 @@ def endpoint(url: str, path: str, websocket: bool) -> str:
 def auth_headers(token: str | None) -> dict[str, str]:
     """The headers that carry the server's token (none without one)."""
     return {} if token is None else {"Authorization": f"Bearer {token}", TOKEN_HEADER: token}
-
-
-def decode_image(data: bytes) -> np.ndarray:
-    """PNG, JPEG or WebP bytes -> (H, W, 3) uint8 RGB.
-
-    Raises:
-        ValueError: the bytes are no image.
-    """
-    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-    if bgr is None:
-        raise ValueError("the server sent bytes that are no PNG, JPEG or WebP image")
-    return np.ascontiguousarray(bgr[..., ::-1])
-
-
-def to_uint8(color: torch.Tensor) -> np.ndarray:
-    """Float RGB in [0, 1] -> rounded uint8 numpy, as the server encodes its frames.
-
-    Shape:
-        color: (H, W, 3). Returns (H, W, 3).
-    """
-    return (color.clamp(0.0, 1.0) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
 
 
 @dataclass

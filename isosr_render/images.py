@@ -1,13 +1,24 @@
-"""Float images to 8-bit: the one conversion every image writer uses."""
+"""Images as bytes and 8-bit pixels: the one float -> uint8 rule and the one decoder."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import torch
 
 
+def quantize(image: torch.Tensor) -> torch.Tensor:
+    """An image in [0, 1] as uint8 on its own device (clamped, rounded to nearest), e.g. for a
+    GPU encoder.
+
+    Shape:
+        Any; returned unchanged.
+    """
+    return (image.clamp(0.0, 1.0) * 255.0 + 0.5).to(torch.uint8)
+
+
 def to_uint8(image: torch.Tensor | np.ndarray) -> np.ndarray:
-    """An image in [0, 1] as uint8 (values clamped, rounded to nearest), on the CPU.
+    """An image in [0, 1] as uint8 numpy on the CPU, by :func:`quantize`.
 
     Raises:
         ValueError: the image holds NaN or Inf.
@@ -15,7 +26,19 @@ def to_uint8(image: torch.Tensor | np.ndarray) -> np.ndarray:
     Shape:
         Any; returned unchanged.
     """
-    a = image.detach().float().cpu().numpy() if isinstance(image, torch.Tensor) else np.asarray(image, np.float32)
-    if not np.isfinite(a).all():
+    t = image.detach().float() if isinstance(image, torch.Tensor) else torch.from_numpy(np.asarray(image, np.float32))
+    if not torch.isfinite(t).all():
         raise ValueError("to_uint8: the image holds NaN or Inf values")
-    return (np.clip(a, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    return quantize(t).cpu().numpy()
+
+
+def decode_image(data: bytes) -> np.ndarray:
+    """PNG, JPEG or WebP bytes -> (H, W, 3) uint8 RGB (OpenCV).
+
+    Raises:
+        ValueError: the bytes are not an image OpenCV reads.
+    """
+    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise ValueError("not a PNG, JPEG or WebP image")
+    return np.ascontiguousarray(bgr[..., ::-1])

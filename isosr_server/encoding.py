@@ -20,15 +20,6 @@ except ImportError:  # the CPU install has no torchvision: OpenCV encodes
 PNG_LEVEL = 1
 
 
-def to_uint8(color: torch.Tensor) -> torch.Tensor:
-    """Float RGB in [0, 1] -> uint8, rounded, on the same device.
-
-    Shape:
-        color: (H, W, 3). Returns (H, W, 3).
-    """
-    return (color.clamp(0.0, 1.0) * 255.0 + 0.5).to(torch.uint8)
-
-
 def encoder_name(device: str, encoding: str) -> str:
     """Which encoder :func:`encode_image` uses for ``encoding`` on ``device`` (for reports)."""
     if encoding == "jpeg" and _gpu_encode_jpeg is not None and torch.device(device).type == "cuda":
@@ -59,15 +50,3 @@ def encode_image(rgb: torch.Tensor, encoding: str, quality: int) -> bytes:
     if not ok:
         raise RuntimeError(f"OpenCV failed to encode a {tuple(rgb.shape)} image as {encoding}")
     return data.tobytes()
-
-
-def decode_image(data: bytes) -> np.ndarray:
-    """Encoded bytes -> (H, W, 3) uint8 RGB (OpenCV); for tests and clients.
-
-    Raises:
-        ValueError: the bytes are not an image OpenCV reads.
-    """
-    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-    if bgr is None:
-        raise ValueError("not a PNG, JPEG or WebP image")
-    return bgr[..., ::-1].copy()

@@ -26,8 +26,9 @@ import torch
 
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
 from isosr_render import FrameBuffers, Renderer, Volume, orbit, parse_procedural, shade
+from isosr_render.images import quantize
 from isosr_server import channels, pipeline
-from isosr_server.encoding import encode_image, encoder_name, to_uint8
+from isosr_server.encoding import encode_image, encoder_name
 from isosr_server.protocol import ENCODINGS, UpscaleRequest
 
 RENDERER_CACHE = 4
@@ -84,7 +85,7 @@ class Engine:
         renderer = Renderer(parse_procedural("proc:sphere@16"), str(self.device))
         spec = pipeline.FrameSpec("sr", orbit(30, 20, 1.8), None, 0.5, 8 * factor, 8 * factor, 1, 0.05, None, 0)
         color = pipeline.render_sr(renderer, self.new_upscaler(), spec, pipeline.StageTimer(self.device))
-        encode_image(to_uint8(color), "jpeg", 80)
+        encode_image(quantize(color), "jpeg", 80)
 
     @property
     def upscale_factor(self) -> int:
@@ -148,7 +149,7 @@ class Engine:
             image = None
             if color is not None:
                 with timer("encode"):
-                    image = encode_image(to_uint8(color), encoding, quality)
+                    image = encode_image(quantize(color), encoding, quality)
         return image, buffers, timer.ms, legend
 
     def upscale_sync(self, upscaler: Upscaler, request: UpscaleRequest) -> tuple[bytes | None, dict | None, dict]:
@@ -176,6 +177,6 @@ class Engine:
             with timer("shading"):
                 color = shade(high.mask, high.normal, high.ao)
             with timer("encode"):
-                image = encode_image(to_uint8(color), request.output, request.quality)
+                image = encode_image(quantize(color), request.output, request.quality)
         return image, None, timer.ms
 

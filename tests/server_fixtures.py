@@ -26,7 +26,7 @@ from isosr_render import FrameBuffers, Renderer, RenderRequest, open_volume, orb
 from isosr_render.conventions import LOWRES_BUFFERS
 from isosr_server import protocol as P
 from isosr_server.app import ServerConfig, create_app, uvicorn_options
-from isosr_server.encoding import decode_image, to_uint8
+from isosr_render.images import decode_image, to_uint8
 
 # Clients accept big frames (the server's limit bounds what clients send).
 CLIENT_LIMITS = P.Limits(max_message_bytes=2**28)
@@ -133,7 +133,7 @@ def lib():
 def lib_full(lib, camera, ao_samples=0) -> np.ndarray:
     outputs = ("mask", "normal") + (("ao",) if ao_samples else ())
     f = lib.renderer.render(camera, RenderRequest(W, H, lib.iso, outputs, ao_samples=max(ao_samples, 1)))
-    return to_uint8(shade(f.mask, f.normal, f.ao)).cpu().numpy()
+    return to_uint8(shade(f.mask, f.normal, f.ao))
 
 
 def lib_lowres(lib, camera, prev=None) -> FrameBuffers:
@@ -146,7 +146,7 @@ def lib_sr(lib, cameras) -> list[np.ndarray]:
     upscaler, out, prev = Upscaler(device=DEVICE), [], None
     for cam in cameras:
         high = upscaler.upscale(lib_lowres(lib, cam, prev))
-        out.append(to_uint8(shade(high.mask, high.normal, high.ao)).cpu().numpy())
+        out.append(to_uint8(shade(high.mask, high.normal, high.ao)))
         prev = cam
     return out
 

@@ -142,7 +142,7 @@ def test_view_session_channels_match_the_library(srv):
     from server_fixtures import frame, recv
 
     from isosr_server import protocol as P
-    from isosr_server.encoding import decode_image, to_uint8
+    from isosr_render.images import decode_image, to_uint8
     from isosr_server.sessions import to_camera
 
     volume, w, h = "proc:torus@24", 64, 48
@@ -164,7 +164,7 @@ def test_view_session_channels_match_the_library(srv):
         # On a GPU the server's network runs channels-last: other kernels, other rounding.
         tolerance, levels = (1e-6, 1) if DEVICE == "cpu" else (1e-3, 3)
         assert abs(legend["lo"] - first.legend["lo"]) < tolerance
-        assert abs(got - to_uint8(expected).cpu().numpy().astype(int)).max() <= levels
+        assert abs(got - to_uint8(expected).astype(int)).max() <= levels
 
         ws.send(P.pack(P.SettingsMsg({"channel": "flow", "mode": "full"}, seq=1).to_wire()))
         still = frame(ws)

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import threading
 import time
 import urllib.request
@@ -25,7 +24,8 @@ from isosr_bench.common import write_result
 from isosr_cli.main import main
 from isosr_client import ServerError, connect, decode_image, upscale_remote
 from isosr_client.drive import Orbit, drive, summarize
-from isosr_client.view import CLIENT_LIMITS, to_uint8
+from isosr_client.view import CLIENT_LIMITS
+from isosr_render.images import to_uint8
 from isosr_net.metrics import upscale_baseline
 from isosr_net.upscaler import Upscaler
 from isosr_render import FrameBuffers, Renderer, RenderRequest, open_volume, orbit

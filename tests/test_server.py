@@ -29,7 +29,7 @@ from isosr_server import protocol as P
 from isosr_server.app import ServerConfig
 from isosr_server.engine import EngineConfig
 from isosr_server.sessions import ViewSession, ViewState
-from isosr_server.encoding import decode_image, to_uint8
+from isosr_render.images import decode_image, to_uint8
 from server_fixtures import (DEVICE, FACTOR, H, LEVELS, VOLUME, W, assert_image, cam, expect_close, frame,  # noqa: F401
                              lib, lib_full, lib_lowres, lib_sr, recv, running_server, send, session, settle,
                              upscale_body, wire_frame)
@@ -118,7 +118,7 @@ def test_sr_mode_matches_the_library_with_recurrent_state(srv, lib):
 def test_bilinear_mode_matches_the_library(srv, lib):
     low = lib_lowres(lib, orbit(30, 20, 1.8))
     stack = upscale_baseline(low.channels_first(LOWRES_BUFFERS)[None], FACTOR, "bilinear")
-    expected = to_uint8(shade_channels_first(stack)[0].permute(1, 2, 0)).cpu().numpy()
+    expected = to_uint8(shade_channels_first(stack)[0].permute(1, 2, 0))
     with session(srv, mode="bilinear") as (ws, _):
         assert_image(frame(ws).image, expected)
 
@@ -312,7 +312,7 @@ def test_upscale_post_buffers_images_and_sessions(srv, lib):
     status, headers, png = srv.request("POST", "/v1/upscale", upscale_body(f0), {"Accept": "image/png"})
     assert status == 200 and headers["content-type"] == "image/png" and "total" in json.loads(headers["x-isosr-times"])
     want0 = {k: torch.from_numpy(v) for k, v in want0.items()}
-    assert_image(png, to_uint8(shade(want0["mask"], want0["normal"], want0["ao"])).numpy())
+    assert_image(png, to_uint8(shade(want0["mask"], want0["normal"], want0["ao"])))
     status, headers, jpg = srv.request("POST", "/v1/upscale", upscale_body(f0, output="jpeg", quality=50))
     assert status == 200 and headers["content-type"] == "image/jpeg" and jpg[:2] == b"\xff\xd8"
 
