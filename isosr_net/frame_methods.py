@@ -23,10 +23,10 @@ from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest
 from isosr_render.conventions import LOWRES_BUFFERS
 from isosr_render.renderer import MAX_AO_SAMPLES, MAX_SPP
 from isosr_render.sequence import sequence_cameras
-from isosr_render.shading import ShadingParams, shade, shade_channels_first
+from isosr_render.shading import ShadingParams, shade
 from isosr_net.atrous import ATrousConfig, atrous_filter
 from isosr_net.metrics import upscale_baseline
-from isosr_net.upscaler import DEFAULT_MODEL, PRECISIONS, Upscaler, highres_frame, lowres_tensors
+from isosr_net.upscaler import DEFAULT_MODEL, PRECISIONS, Upscaler, highres_frame
 
 KINDS = ("full", "atrous", "upscale", "network")
 INTERPOLATIONS = ("nearest", "bilinear", "bicubic")
@@ -166,15 +166,26 @@ class FrameRunner:
             return FrameBuffers(mask=out.mask, normal=out.normal, ao=ao,
                                 color=shade(out.mask, out.normal, ao, self.shading))
         if m.kind == "upscale":
-            low = self.renderer.render(camera, self._request(LOWRES_BUFFERS))
-            up = upscale_baseline(low.channels_first(LOWRES_BUFFERS)[None], m.factor, m.interpolation)
-            color = shade_channels_first(up[:, :5], self.shading)  # the AO channel dropped: no occlusion
-            return FrameBuffers(mask=up[0, 0], normal=up[0, 1:4].permute(1, 2, 0), color=color[0].permute(1, 2, 0))
+            up = upscale_classic(self.renderer.render(camera, self._request(LOWRES_BUFFERS)), m.factor,
+                                 m.interpolation)
+            return FrameBuffers(mask=up.mask, normal=up.normal,  # no AO: shaded unoccluded (AO 1)
+                                color=shade(up.mask, up.normal, up.ao, self.shading))
         outputs = LOWRES_BUFFERS + (("flow",) if prev_camera is not None else ())
-        low = self.renderer.render(camera, self._request(outputs, prev_camera))
-        high = highres_frame(self.upscaler.step(*lowres_tensors(low)))
+        high = self.upscaler.upscale(self.renderer.render(camera, self._request(outputs, prev_camera)))
         high.color = shade(high.mask, high.normal, high.ao, self.shading)
         return high
+
+
+def upscale_classic(low: FrameBuffers, factor: int, interpolation: str = "bilinear") -> FrameBuffers:
+    """A low-res frame's mask, normal and depth upscaled by interpolation
+    (:func:`isosr_net.metrics.upscale_baseline`), as the network's outputs are laid out; AO is 1
+    everywhere: an interpolator knows no occlusion.
+
+    Shape:
+        low: mask, depth (h, w), normal (h, w, 3). Returns mask, depth, ao (H, W), normal (H, W, 3),
+        ``H = h * factor``, ``W = w * factor``.
+    """
+    return highres_frame(upscale_baseline(low.channels_first(LOWRES_BUFFERS)[None], factor, interpolation))
 
 
 def run_sequence(runner: FrameRunner, cameras: list[Camera]) -> list[FrameBuffers]:

@@ -28,10 +28,9 @@ import math
 
 import torch
 
-from isosr_net.metrics import upscale_baseline
-from isosr_net.upscaler import Upscaler, highres_frame
+from isosr_net.frame_methods import upscale_classic
+from isosr_net.upscaler import Upscaler
 from isosr_render import FrameBuffers, Renderer, RenderRequest
-from isosr_render.conventions import LOWRES_BUFFERS
 from isosr_server.pipeline import FrameSpec, StageTimer, render_lowres
 from isosr_server.protocol import CHANNELS, FLOW_CLIP, ProtocolError, ViewSettings
 
@@ -70,7 +69,7 @@ def channel_buffers(renderer: Renderer, upscaler: Upscaler, factor: int, spec: F
     elif spec.mode == "bilinear":
         low = render_lowres(renderer, spec, factor, timer, flow=channel == "flow")
         with timer("network"):
-            high = highres_frame(upscale_baseline(low.channels_first(LOWRES_BUFFERS)[None], factor, "bilinear"))
+            high = upscale_classic(low, factor, "bilinear")
     else:
         raise ProtocolError(f"mode {spec.mode} has no channel view")
     if channel == "flow" and low.flow is not None:

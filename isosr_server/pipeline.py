@@ -19,11 +19,11 @@ from dataclasses import dataclass
 
 import torch
 
-from isosr_net.metrics import upscale_baseline
+from isosr_net.frame_methods import upscale_classic
 from isosr_net.upscaler import Upscaler
 from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest
 from isosr_render.conventions import LOWRES_BUFFERS
-from isosr_render.shading import shade, shade_channels_first
+from isosr_render.shading import shade
 from isosr_server.protocol import FocusMsg, encode_view_buffers
 
 
@@ -125,9 +125,9 @@ def render_bilinear(renderer: Renderer, factor: int, spec: FrameSpec, timer: Sta
     """Low-res render, bilinear upscaling of its buffers, shading without AO (the non-learned baseline)."""
     low = render_lowres(renderer, spec, factor, timer, flow=False)
     with timer("network"):
-        stack = upscale_baseline(low.channels_first(LOWRES_BUFFERS)[None], factor, "bilinear")
+        high = upscale_classic(low, factor, "bilinear")
     with timer("shading"):
-        return shade_channels_first(stack)[0].permute(1, 2, 0)
+        return shade(high.mask, high.normal, high.ao)
 
 
 def render_buffers(renderer: Renderer, factor: int, spec: FrameSpec, timer: StageTimer) -> dict:
