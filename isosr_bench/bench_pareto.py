@@ -5,8 +5,9 @@
     python -m isosr_bench.bench_pareto --device cpu --smoke                 # small, in the test suite
 
 Every method of :mod:`isosr_net.frame_methods` (full resolution with 0-128 AO rays and 1, 2, 4
-rays per pixel; the a-trous filter over 1, 2, 4 AO rays; x2, x4, x8 nearest, bilinear,
-bicubic; every network at fp32, bf16, fp16 on CUDA, fp32 on CPUs) is timed as a whole path
+rays per pixel; the a-trous filter over 1, 2, 4 AO rays; the reconstruction network over
+0-8 AO rays at 1, 2, 4 rays per pixel, fp16 on CUDA; x2, x4, x8 nearest, bilinear, bicubic;
+every upscaling network at fp32, bf16, fp16 on CUDA; fp32 on CPUs) is timed as a whole path
 (render, reconstruction, shading) per frame, in sequence over an 8-frame orbit so the
 network's recurrent state is real, after warm-up (CUDA events on GPUs, wall time on CPUs),
 and each of those frames is scored against a reference rendered for it with 4 rays per pixel
@@ -52,6 +53,7 @@ from isosr_net.flow_warp import warp_by_flow
 from isosr_net.frame_methods import INTERPOLATIONS, FrameMethod, FrameRunner
 from isosr_net.metrics import eval_region, masked_psnr, masked_ssim, temporal_instability
 from isosr_net.model import read_config
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL
 from isosr_net.upscaler import DEFAULT_MODEL
 
 from .bench_knobs import parse_models
@@ -81,9 +83,16 @@ def methods(smoke: bool, device: str, models: dict[str, Path]) -> list[FrameMeth
                 [(f, mode) for f in (2, 4, 8) for mode in INTERPOLATIONS])
     out += [FrameMethod("upscale", factor=f, interpolation=mode) for f, mode in upscales]
     for name, folder in models.items():
+        config = read_config(folder)["model"]
+        model = None if folder in (DEFAULT_MODEL, DEFAULT_RECON_MODEL) else str(folder)
+        if config.get("type") == "ReconNet":
+            sampling = ((1, 0), (1, 2)) if smoke else [(s, n) for s in (1, 2, 4) for n in (0, 1, 2, 4, 8)]
+            out += [FrameMethod("reconstruct", ao_rays=n, spp=s, precision="fp16" if cuda else "fp32", model=model,
+                                model_name=name) for s, n in sampling]
+            continue
         for precision in ("fp32", "bf16", "fp16") if cuda else ("fp32",):
-            out.append(FrameMethod("network", factor=read_config(folder)["model"]["upscale"], precision=precision,
-                                   model=None if folder == DEFAULT_MODEL else str(folder), model_name=name))
+            out.append(FrameMethod("network", factor=config["upscale"], precision=precision, model=model,
+                                   model_name=name))
     return out
 
 
@@ -263,7 +272,7 @@ def main(argv=None) -> list[dict]:
     if unknown:
         parser.error(f"unknown volumes {unknown}; choose from {', '.join(known)}")
     try:
-        models = {"network": DEFAULT_MODEL, **parse_models(args.models)}
+        models = {"network": DEFAULT_MODEL, "recon": DEFAULT_RECON_MODEL, **parse_models(args.models)}
     except ValueError as e:
         parser.error(str(e))
     if args.device.startswith("cuda"):

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
-from isosr_render.conventions import HIGHRES_CHANNELS, LOWRES_CHANNELS
+from isosr_render.conventions import HIGHRES_CHANNELS, LOWRES_CHANNELS, RECON_CHANNELS
 from isosr_render.shapes import check_shape
 
 FIELDS = ("lowres", "flow", "highres")
@@ -24,12 +24,14 @@ class SequenceBatch:
     """One sequence, or a batch of them (a leading batch axis).
 
     Attributes:
-        lowres: low-res mask, normal, depth per frame.
+        lowres: the network's input per frame: low-res mask, normal, depth (an upscaler's), or
+            full-resolution buffers with sampled AO and its sampling (a reconstruction
+            network's, :data:`isosr_render.conventions.RECON_CHANNELS`).
         flow: backward flow to the previous frame, low-res pixels; frame 0's slot is unused.
         highres: ground-truth mask, normal, depth, AO per frame.
 
     Shape:
-        lowres: (*, T, 5, h, w). flow: (*, T, 2, h, w). highres: (*, T, 6, H, W); ``*`` is
+        lowres: (*, T, 5 or 8, h, w). flow: (*, T, 2, h, w). highres: (*, T, 6, H, W); ``*`` is
         empty for one sequence and (B,) for a batch, the same for all three.
     """
 
@@ -38,7 +40,8 @@ class SequenceBatch:
     highres: torch.Tensor
 
     def __post_init__(self) -> None:
-        dims = check_shape(self.lowres, f"(*, T, {len(LOWRES_CHANNELS)}, h, w)", "lowres", "SequenceBatch")
+        dims = check_shape(self.lowres, f"(*, T, {len(LOWRES_CHANNELS)}|{len(RECON_CHANNELS)}, h, w)", "lowres",
+                           "SequenceBatch")
         check_shape(self.flow, "(*, T, 2, h, w)", "flow", "SequenceBatch", dims)
         check_shape(self.highres, f"(*, T, {len(HIGHRES_CHANNELS)}, H, W)", "highres", "SequenceBatch", dims)
         lead = {name: tuple(getattr(self, name).shape[:-4]) for name in FIELDS}

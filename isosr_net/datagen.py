@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import json
 import re
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -21,11 +21,13 @@ from safetensors.torch import load_file, save
 from tqdm import tqdm
 
 from isosr_render import Renderer, RenderRequest, Volume, open_volume, orbit
+from isosr_render.renderer import MAX_AO_SAMPLES, MAX_SPP
 from isosr_render.atomic import atomic_write
 from isosr_render.catalog import SHARED_PREFIX, entry, resolve_iso
 from isosr_render.conventions import HIGHRES_BUFFERS, LOWRES_BUFFERS
 from isosr_render.sequence import sequence_requests
 from isosr_net.batch import FIELDS, SequenceBatch
+from isosr_net.reconstructor import recon_inputs
 
 MANIFEST = "manifest.json"
 # Config fields a folder may be extended with: more sequences, another device (same data).
@@ -42,12 +44,16 @@ class DatagenConfig:
         sequences: sequences per volume.
         frames: frames per sequence.
         lowres_size: side of the full low-res render; the high-res one is ``upscale`` times.
-        upscale: resolution factor between input and ground truth.
+        upscale: resolution factor between input and ground truth; 1 renders data for a
+            reconstruction network (:mod:`isosr_net.reconnet`): inputs at the ground truth's
+            resolution with sampled AO, ``isosr_render.conventions.RECON_CHANNELS``.
         crop: low-res crop side (the high-res crop is ``upscale`` times).
         crops: crops kept per sequence at most.
         min_coverage: least mean mask coverage of a crop over its frames.
         ao_samples, ao_radius, spp: ground-truth AO rays per hit, their length (world
             units), and rays per pixel.
+        input_spp, input_ao_rays: (upscale 1) each sequence's inputs are rendered with rays
+            per pixel and AO rays per hit drawn from these.
         iso_jitter: iso-values are drawn uniformly within +-this fraction of the volume's
             reference iso (Otsu's, or the procedural default).
         seed: base seed; each (volume, sequence) derives its own.
@@ -65,12 +71,25 @@ class DatagenConfig:
     ao_samples: int = 256
     ao_radius: float = 0.05
     spp: int = 4
+    input_spp: tuple[int, ...] = (1,)
+    input_ao_rays: tuple[int, ...] = (0,)
     iso_jitter: float = 0.25
     seed: int = 0
     device: str = "cuda"
 
     def __post_init__(self):
-        object.__setattr__(self, "volumes", tuple(self.volumes))
+        for name in ("volumes", "input_spp", "input_ao_rays"):
+            object.__setattr__(self, name, tuple(getattr(self, name)))
+        if self.upscale < 1:
+            raise ValueError(f"upscale must be at least 1, got {self.upscale}")
+        if self.upscale > 1 and (self.input_spp != (1,) or self.input_ao_rays != (0,)):
+            raise ValueError("input_spp and input_ao_rays are for reconstruction data (upscale 1); an upscaler's "
+                             "inputs have 1 ray per pixel and no AO")
+        for name, low, high in (("input_spp", 1, MAX_SPP), ("input_ao_rays", 0, MAX_AO_SAMPLES)):
+            values = getattr(self, name)
+            if not values or any(isinstance(v, bool) or not isinstance(v, int) or not low <= v <= high
+                                 for v in values):
+                raise ValueError(f"{name} must be a non-empty list of integers in [{low}, {high}], got {values}")
         if self.crop > self.lowres_size:
             raise ValueError(f"crop {self.crop} exceeds the low-res render side {self.lowres_size}")
         if self.frames < 2:
@@ -111,20 +130,29 @@ def pick_crops(mask: np.ndarray, crop: int, count: int, min_coverage: float, rng
 
 
 def render_sequence(renderer: Renderer, cameras: list, iso: float, config: DatagenConfig,
-                    seed: int) -> SequenceBatch:
-    """Full-frame low-res inputs and high-res ground truth of one sequence, on the CPU.
+                    seed: int, input_spp: int = 1, input_ao_rays: int = 0) -> SequenceBatch:
+    """Full-frame inputs and high-res ground truth of one sequence, on the CPU.
+
+    Inputs are low-res (upscale > 1), or rendered at full resolution with ``input_spp`` rays
+    per pixel and ``input_ao_rays`` AO rays per hit (upscale 1; their AO rays have other seeds
+    than the ground truth's).
 
     Shape:
-        Returns lowres (T, 5, h, w), flow (T, 2, h, w) (zeros on frame 0), highres (T, 6, H, W).
+        Returns lowres (T, 5, h, w), or (T, 8, h, w) with upscale 1; flow (T, 2, h, w) (zeros
+        on frame 0); highres (T, 6, H, W).
     """
     n, s = config.lowres_size, config.upscale
     lowres, flows, highres = [], [], []
-    for t, (camera, request) in enumerate(sequence_requests(cameras, n, n, iso, LOWRES_BUFFERS + ("flow",))):
-        lo = renderer.render(camera, request)
+    outputs = LOWRES_BUFFERS + ("flow",) + (("ao",) if s == 1 and input_ao_rays else ())
+    requests = sequence_requests(cameras, n, n, iso, outputs, spp=input_spp, ao_samples=max(1, input_ao_rays),
+                                 ao_radius=config.ao_radius)
+    for t, (camera, request) in enumerate(requests):
+        lo = renderer.render(camera, replace(request, seed=(seed + t + 2**30) % 2**31))
         hi = renderer.render(camera, RenderRequest(n * s, n * s, iso, HIGHRES_BUFFERS, spp=config.spp,
                                                    ao_samples=config.ao_samples, ao_radius=config.ao_radius,
                                                    seed=seed + t))
-        lowres.append(lo.channels_first(LOWRES_BUFFERS).cpu())
+        lowres.append(recon_inputs(lo, input_ao_rays, input_spp)[0][0].cpu() if s == 1
+                      else lo.channels_first(LOWRES_BUFFERS).cpu())
         flows.append(torch.zeros(2, n, n) if lo.flow is None else lo.flow.permute(2, 0, 1).cpu())
         highres.append(hi.channels_first(HIGHRES_BUFFERS).cpu())
     return SequenceBatch(torch.stack(lowres), torch.stack(flows), torch.stack(highres))
@@ -185,8 +213,12 @@ def generate(config: DatagenConfig, out: str | Path, progress: bool = True) -> d
         renderer, split, iso_ref = renderers[spec]
         rng = np.random.default_rng([config.seed, v, k])
         iso = float(np.clip(iso_ref * rng.uniform(1 - config.iso_jitter, 1 + config.iso_jitter), 1e-3, 1 - 1e-3))
+        sampling = {}
+        if config.upscale == 1:
+            sampling = {"input_spp": int(rng.choice(config.input_spp)),
+                        "input_ao_rays": int(rng.choice(config.input_ao_rays))}
         frames = render_sequence(renderer, camera_path(rng, config.frames), iso, config,
-                                 seed=int(rng.integers(2**31 - config.frames)))
+                                 seed=int(rng.integers(2**31 - config.frames)), **sampling)
         corners = pick_crops(frames.lowres[:, 0].numpy(), config.crop, config.crops, config.min_coverage, rng)
         cut = crops(frames, corners, config.crop, config.upscale)
         # Stored in float16, the flow in float32 (sub-pixel motion over tens of pixels).
@@ -195,7 +227,7 @@ def generate(config: DatagenConfig, out: str | Path, progress: bool = True) -> d
         data = save({key: t.contiguous() for key, t in tensors.items()})
         atomic_write(out / name, lambda f: f.write(data))
         manifest["shards"].append({"file": name, "volume": spec, "split": split, "sequence": k, "iso": iso,
-                                   "crops": len(corners)})
+                                   "crops": len(corners), **sampling})
         atomic_write(out / MANIFEST, lambda f: f.write(json.dumps(manifest, indent=1).encode()))
     return manifest
 

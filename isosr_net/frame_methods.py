@@ -2,8 +2,10 @@
 
 A :class:`FrameMethod` names one way: ray cast at full resolution with N AO rays and M rays
 per pixel; full resolution with few AO rays and the a-trous filter (:mod:`isosr_net.atrous`);
-a low-res ray cast upscaled classically (no AO: a classic upscaler knows none); or a low-res
-ray cast upscaled by a trained network (which infers AO). A :class:`FrameRunner` makes one
+full resolution with few (or no) AO rays reconstructed by a trained network
+(:mod:`isosr_net.reconnet`: converged AO, antialiased edges); a low-res ray cast upscaled
+classically (no AO: a classic upscaler knows none); or a low-res ray cast upscaled by a trained
+network (which infers AO). A :class:`FrameRunner` makes one
 stream's frames with it, camera after camera, computing only the buffers the method needs:
 
     runner = FrameRunner(FrameMethod("network", factor=4, precision="bf16"), renderer, iso, 1920, 1080)
@@ -26,9 +28,11 @@ from isosr_render.sequence import sequence_cameras
 from isosr_render.shading import ShadingParams, shade
 from isosr_net.atrous import ATrousConfig, atrous_filter
 from isosr_net.metrics import upscale_baseline
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, MAX_RECON_AO_RAYS, Reconstructor
 from isosr_net.upscaler import DEFAULT_MODEL, PRECISIONS, Upscaler, highres_frame
 
-KINDS = ("full", "atrous", "upscale", "network")
+KINDS = ("full", "atrous", "reconstruct", "upscale", "network")
+LEARNED = ("reconstruct", "network")
 INTERPOLATIONS = ("nearest", "bilinear", "bicubic")
 # AO ray length in world units, as the training data and the benchmarks use it.
 AO_RADIUS = 0.05
@@ -40,15 +44,16 @@ class FrameMethod:
 
     Attributes:
         kind: ``"full"`` (full-resolution ray cast), ``"atrous"`` (full resolution, AO filtered),
-            ``"upscale"`` (low-res ray cast, classic interpolation), ``"network"`` (low-res ray
-            cast, trained network).
-        ao_rays: AO rays per hit (full: 0 for none; atrous: at least 1; others: 0).
-        spp: rays per pixel (full and atrous only).
+            ``"reconstruct"`` (full resolution, trained reconstruction), ``"upscale"`` (low-res
+            ray cast, classic interpolation), ``"network"`` (low-res ray cast, trained network).
+        ao_rays: AO rays per hit (full: 0 for none; atrous: at least 1; reconstruct: 0 to
+            :data:`MAX_RECON_AO_RAYS`, 0 infers AO; upscalers: 0).
+        spp: rays per pixel (full resolution only).
         factor: upscaling factor (upscale and network: at least 2; others: 1).
         interpolation: ``"nearest"``, ``"bilinear"`` or ``"bicubic"`` (upscale).
-        model: the network's model folder (network; None: the shipped default).
+        model: the network's model folder (learned kinds; None: the shipped default).
         model_name: the network's name in :attr:`name`.
-        precision: ``"fp32"``, ``"bf16"`` or ``"fp16"`` (network).
+        precision: ``"fp32"``, ``"bf16"`` or ``"fp16"`` (learned kinds).
     """
 
     kind: str = "full"
@@ -64,8 +69,8 @@ class FrameMethod:
         if self.kind not in KINDS:
             raise ValueError(f"frame method kind must be one of {KINDS}, got {self.kind!r}")
         low_res = self.kind in ("upscale", "network")
-        for name, value, low, high in (("ao_rays", self.ao_rays, 1 if self.kind == "atrous" else 0,
-                                        0 if low_res else MAX_AO_SAMPLES),
+        most_rays = 0 if low_res else MAX_RECON_AO_RAYS if self.kind == "reconstruct" else MAX_AO_SAMPLES
+        for name, value, low, high in (("ao_rays", self.ao_rays, 1 if self.kind == "atrous" else 0, most_rays),
                                        ("spp", self.spp, 1, 1 if low_res else MAX_SPP),
                                        ("factor", self.factor, 2 if low_res else 1, 16 if low_res else 1)):
             if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
@@ -78,11 +83,14 @@ class FrameMethod:
 
     @property
     def name(self) -> str:
-        """``full, AO 8, spp 1``, ``full, AO 2, a-trous``, ``x4 bilinear``, ``x4 network bf16``."""
+        """``full, AO 8, spp 1``, ``full, AO 2, a-trous``, ``full, AO 2, spp 1, recon fp16``,
+        ``x4 bilinear``, ``x4 network bf16``."""
         if self.kind == "full":
             return f"full, AO {self.ao_rays}, spp {self.spp}"
         if self.kind == "atrous":
             return f"full, AO {self.ao_rays}, a-trous" + (f", spp {self.spp}" if self.spp > 1 else "")
+        if self.kind == "reconstruct":
+            return f"full, AO {self.ao_rays}, spp {self.spp}, {self.model_name} {self.precision}"
         if self.kind == "upscale":
             return f"x{self.factor} {self.interpolation}"
         return f"x{self.factor} {self.model_name} {self.precision}"
@@ -90,11 +98,12 @@ class FrameMethod:
     @property
     def learned(self) -> bool:
         """Whether a trained network takes part."""
-        return self.kind == "network"
+        return self.kind in LEARNED
 
     def upscaler_key(self, device: str) -> tuple[str, str, str]:
         """What identifies this method's `Upscaler` (shared between runners of one device)."""
-        return str(Path(self.model or DEFAULT_MODEL).resolve()), self.precision, str(device)
+        default = DEFAULT_RECON_MODEL if self.kind == "reconstruct" else DEFAULT_MODEL
+        return str(Path(self.model or default).resolve()), self.precision, str(device)
 
 
 class FrameRunner:
@@ -126,11 +135,12 @@ class FrameRunner:
         self.shading, self.ao_radius, self.atrous = shading, ao_radius, atrous
         self.device = str(renderer.device)
         self.upscaler = None
-        if method.kind == "network":
+        if method.learned:
             upscalers = {} if upscalers is None else upscalers
             key = method.upscaler_key(self.device)
             if key not in upscalers:
-                upscalers[key] = Upscaler.fastest(method.model or DEFAULT_MODEL, self.device, method.precision)
+                kind = Reconstructor if method.kind == "reconstruct" else Upscaler
+                upscalers[key] = kind.fastest(key[0], self.device, method.precision)
             self.upscaler = upscalers[key]
             if self.upscaler.upscale_factor != method.factor:
                 raise ValueError(f"{method.name}: the model upscales x{self.upscaler.upscale_factor}, "
@@ -165,6 +175,13 @@ class FrameRunner:
                                out.depth[None, None], self.atrous)[0, 0]
             return FrameBuffers(mask=out.mask, normal=out.normal, ao=ao,
                                 color=shade(out.mask, out.normal, ao, self.shading))
+        if m.kind == "reconstruct":
+            outputs = ("mask", "normal", "depth") + (("ao",) if m.ao_rays else ()) + (("flow",) if prev_camera else ())
+            out = self.renderer.render(camera, self._request(outputs, prev_camera, spp=m.spp,
+                                                             ao_samples=max(1, m.ao_rays)))
+            high = self.upscaler.reconstruct(out, m.ao_rays, m.spp)
+            high.color = shade(high.mask, high.normal, high.ao, self.shading)
+            return high
         if m.kind == "upscale":
             up = upscale_classic(self.renderer.render(camera, self._request(LOWRES_BUFFERS)), m.factor,
                                  m.interpolation)

@@ -30,10 +30,12 @@ from isosr_render.atomic import atomic_write
 from isosr_render.conventions import AO, DEPTH, HIGHRES_CHANNELS, LOWRES_CHANNELS, MASK, NORMAL
 from isosr_render.shapes import check_shape
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
+from isosr_net.reconnet import ReconNet, ReconNetConfig
 
 LOWRES = len(LOWRES_CHANNELS)
 HIGHRES = len(HIGHRES_CHANNELS)
 FIRST_FRAME_MODES = ("zeros", "upsampled")
+TAILS = ("full", "subpixel")
 # The layout of config.json this code writes and reads; files without the key are version 1.
 FORMAT_VERSION = 1
 # A training checkpoint's optimizer state, step and the like, beside the model (torch.save).
@@ -50,6 +52,10 @@ class SRNetConfig:
         residual_blocks: residual blocks at low resolution.
         first_frame: the "previous output" of a sequence's first frame: ``"zeros"``, or the
             ``"upsampled"`` input with AO 1 (the paper's two options).
+        tail: ``"full"``: log2(s) times bilinear 2x and a conv, then two convs at the output
+            resolution (the paper's); ``"subpixel"``: two convs at low resolution, the last
+            with ``6 s^2`` outputs rearranged into the high-res frame (``F.pixel_shuffle``),
+            no convolution at the output resolution.
     """
 
     type: str = "SRNet"
@@ -57,12 +63,15 @@ class SRNetConfig:
     channels: int = 64
     residual_blocks: int = 10
     first_frame: str = "zeros"
+    tail: str = "full"
 
     def __post_init__(self):
         if self.upscale < 2 or self.upscale & (self.upscale - 1):
             raise ValueError(f"upscale must be a power of two >= 2, got {self.upscale}")
         if self.first_frame not in FIRST_FRAME_MODES:
             raise ValueError(f"first_frame must be one of {FIRST_FRAME_MODES}, got {self.first_frame!r}")
+        if self.tail not in TAILS:
+            raise ValueError(f"tail must be one of {TAILS}, got {self.tail!r}")
         if self.channels < 1 or self.residual_blocks < 0:
             raise ValueError(f"channels must be >= 1 and residual_blocks >= 0, got {self.channels}, "
                              f"{self.residual_blocks}")
@@ -93,8 +102,10 @@ class SRNet(nn.Module):
         c, s = config.channels, config.upscale
         self.head = nn.Conv2d(LOWRES + HIGHRES * s * s, c, 3, padding=1)
         self.body = nn.Sequential(*[ResidualBlock(c) for _ in range(config.residual_blocks)])
-        self.upsample = nn.ModuleList(nn.Conv2d(c, c, 3, padding=1) for _ in range(int(math.log2(s))))
-        self.tail = nn.Sequential(nn.Conv2d(c, c, 3, padding=1), nn.ReLU(inplace=True), nn.Conv2d(c, HIGHRES, 3, padding=1))
+        subpixel = config.tail == "subpixel"
+        self.upsample = nn.ModuleList(nn.Conv2d(c, c, 3, padding=1) for _ in range(0 if subpixel else int(math.log2(s))))
+        self.tail = nn.Sequential(nn.Conv2d(c, c, 3, padding=1), nn.ReLU(inplace=True),
+                                  nn.Conv2d(c, HIGHRES * (s * s if subpixel else 1), 3, padding=1))
 
     def forward(self, lowres: torch.Tensor, prev_warped: torch.Tensor) -> torch.Tensor:
         s = self.config.upscale
@@ -103,6 +114,8 @@ class SRNet(nn.Module):
         x = torch.cat([lowres, F.pixel_unshuffle(prev_warped, s)], dim=1)
         x = F.relu(self.head(x))
         raw = self.tail(self.upsample_features(self.body(x)))
+        if self.config.tail == "subpixel":
+            raw = F.pixel_shuffle(raw, s)
         base = F.interpolate(lowres, scale_factor=s, mode="bilinear", align_corners=False)
         mask = (base[:, MASK] + raw[:, MASK]).clamp(0.0, 1.0)
         normal = base[:, NORMAL] + raw[:, NORMAL]
@@ -111,7 +124,7 @@ class SRNet(nn.Module):
         return torch.cat([mask, normal, depth, ao], dim=1)
 
     def upsample_features(self, x: torch.Tensor) -> torch.Tensor:
-        """log2(s) times: bilinear 2x, conv, ReLU."""
+        """log2(s) times (none with the subpixel tail): bilinear 2x, conv, ReLU."""
         for conv in self.upsample:
             x = F.relu(conv(F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False)))
         return x
@@ -171,7 +184,7 @@ class Unrolled(nn.Module):
         return torch.stack(outputs, 1), torch.stack(warped, 1)
 
 
-MODELS = {"SRNet": (SRNet, SRNetConfig)}
+MODELS = {"SRNet": (SRNet, SRNetConfig), "ReconNet": (ReconNet, ReconNetConfig)}
 
 
 def build_model(config: dict) -> nn.Module:

@@ -9,6 +9,7 @@ beside them; a killed run resumes from `OUT/last`. Multi-GPU (or multi-process C
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import time
@@ -21,6 +22,7 @@ import torch.nn.functional as F
 from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
+from isosr_render.conventions import LOWRES_CHANNELS
 from isosr_net.batch import SequenceBatch
 from isosr_net.datagen import SequenceDataset
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
@@ -90,7 +92,8 @@ def contexts(batch: SequenceBatch, outputs: torch.Tensor, warped: torch.Tensor, 
         prev_target = None if flow is None else warp_by_flow(target[:, t - 1], upscale_flow(flow, upscale))
         result.append(LossContext(
             pred=outputs[:, t], target=target[:, t], prev_warped=warped[:, t] if t else None,
-            lowres_up=F.interpolate(lowres[:, t], scale_factor=upscale, mode="bilinear", align_corners=False),
+            lowres_up=F.interpolate(lowres[:, t, :len(LOWRES_CHANNELS)], scale_factor=upscale, mode="bilinear",
+                                    align_corners=False),
             prev_target_warped=prev_target))
     return result
 
@@ -148,7 +151,7 @@ class Trainer:
         checkpoint = load_checkpoint(self.out / "last", self.device)
         if checkpoint is None:
             return
-        if checkpoint.config["model"] != asdict(self.net.config):
+        if checkpoint.config["model"] != json.loads(json.dumps(asdict(self.net.config))):
             raise ValueError(f"{checkpoint.folder} holds a model of another config ({checkpoint.config['model']}); "
                              f"train into a new folder or with the same model config")
         self.net.load_state_dict(checkpoint.model.state_dict())

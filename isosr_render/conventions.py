@@ -50,6 +50,12 @@ HIGHRES_CHANNELS = LOWRES_CHANNELS + ("ao",)
 LOWRES_BUFFERS = ("mask", "normal", "depth")
 HIGHRES_BUFFERS = LOWRES_BUFFERS + ("ao",)
 MASK, NORMAL, DEPTH, AO = slice(0, 1), slice(1, 4), slice(4, 5), slice(5, 6)
+# Full-resolution reconstruction input: the low-res channels rendered at full resolution, the AO
+# of a few rays (0 where none were cast), and how it was sampled: AO rays per sample
+# (``ao_rays``) and rays per pixel (``spp``), each a constant image scaled as the network's
+# module says. Output and ground truth are laid out as HIGHRES_CHANNELS.
+RECON_CHANNELS = LOWRES_CHANNELS + ("ao", "ao_rays", "spp")
+SAMPLED_AO, SAMPLING = slice(5, 6), slice(6, 8)
 
 # Background color behind the isosurface (RGB in [0, 1]).
 BACKGROUND_RGB = (1.0, 1.0, 1.0)

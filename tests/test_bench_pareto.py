@@ -31,11 +31,11 @@ def test_the_record_holds_one_complete_row_per_volume_size_and_method(smoke):
     keys = [(r["volume"], r["size"], r["method"]) for r in rows]
     assert len(keys) == len(set(keys)) and {r["volume"] for r in rows} == {"sphere", "cloud"}
     for r in rows:
-        assert FIELDS <= set(r) and r["ms"] > 0 and r["learned"] == (r["kind"] == "network")
+        assert FIELDS <= set(r) and r["ms"] > 0 and r["learned"] == (r["kind"] in ("reconstruct", "network"))
         assert all(isinstance(r[k], float) and math.isfinite(r[k]) for k in FIELDS - {"volume", "size", "method",
                                                                                         "learned"})
         assert 0 < r["color_ssim"] <= 1 and r["color_psnr"] > 10
-    assert {r["kind"] for r in rows} == {"full", "atrous", "upscale", "network"}
+    assert {r["kind"] for r in rows} == {"full", "atrous", "reconstruct", "upscale", "network"}
     full = [r["method"] for r in rows if r["kind"] == "full"]
     assert all(m.startswith("full, AO ") for m in full) and "full, AO 8, spp 1" in full
 

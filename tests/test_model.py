@@ -163,7 +163,7 @@ def test_build_model():
 
 
 @pytest.mark.parametrize("config, match", [
-    ({"type": "UNet"}, r"unknown model type 'UNet'; known: \['SRNet'\]"),
+    ({"type": "UNet"}, r"unknown model type 'UNet'; known: \['ReconNet', 'SRNet'\]"),
     ({"type": "SRNet", "width": 8}, "bad model config .*width"),
     ({"type": "SRNet", "upscale": 3}, "power of two"),
 ])
@@ -178,7 +178,7 @@ def test_save_and_load_round_trip(tmp_path):
     assert sorted(p.name for p in (tmp_path / "ckpt").iterdir()) == ["config.json", "model.safetensors"]
     loaded, config = load_pretrained(tmp_path / "ckpt")
     assert config["model"] == {"type": "SRNet", "upscale": 2, "channels": 8, "residual_blocks": 1,
-                               "first_frame": "upsampled"}
+                               "first_frame": "upsampled", "tail": "full"}
     assert config["step"] == 7 and config["validation"] == {"color_psnr": 30.0}
     assert json.loads((tmp_path / "ckpt" / "config.json").read_text()) == config
     assert not loaded.training and loaded.config == net.config

@@ -64,7 +64,7 @@ def test_a_tiny_run_writes_checkpoints_logs_and_metrics(run3, data):
     assert last["step"] == 3 and last["validation"] == metrics
     assert last["training"]["data"] == str(data) and last["training"]["steps"] == 3
     assert last["model"] == {"type": "SRNet", "upscale": 2, "channels": 8, "residual_blocks": 1,
-                             "first_frame": "zeros"}
+                             "first_frame": "zeros", "tail": "full"}
     best = json.loads((out / "best" / "config.json").read_text())
     assert set(best["validation"]) == METRIC_KEYS and best["step"] in (2, 3)
     state = torch.load(out / "last" / "training_state.pt", weights_only=True)
