@@ -69,6 +69,8 @@ FRAMES, SMOKE_FRAMES = 8, 3
 WARMUP = 3  # a compiled network with CUDA graphs compiles, then records, then replays
 SMOKE_WARMUP = 1  # eager on the CPU: one call loads what it needs
 BUDGETS, SMOKE_BUDGETS = (4.0, 8.0, 16.0, 33.0), (3.0, 30.0)
+# The top of the budget ladder of :func:`learned_scorecard`.
+GOAL_TOP_MS = 50.0
 # Cost of a primary ray in AO rays, for the time estimate only (README: 1080p first hit vs AO 128).
 PRIMARY_IN_AO_RAYS = 6
 
@@ -244,6 +246,55 @@ def dominator(row: dict, rows: list[dict]) -> dict | None:
     better = [r for r in rows if r["color_psnr"] is not None and r["ms"] <= row["ms"]
               and r["color_psnr"] >= row["color_psnr"] and (r["ms"] < row["ms"] or r["color_psnr"] > row["color_psnr"])]
     return min(better, key=lambda r: r["ms"], default=None)
+
+
+def budget_ladder(cheapest_ms: float, top_ms: float = GOAL_TOP_MS) -> list[float]:
+    """Frame-time budgets from 1.5 times the cheapest full-resolution frame up to ``top_ms``,
+    each sqrt(2) times the one before, and ``top_ms`` itself."""
+    budgets, b = [], 1.5 * cheapest_ms
+    while b < top_ms:
+        budgets.append(b)
+        b *= math.sqrt(2.0)
+    return budgets + [top_ms]
+
+
+def learned_scorecard(rows: list[dict]) -> dict:
+    """Where the learned methods of one scene win, checked against every other method's rows.
+
+    Returns:
+        ``budgets``: per budget of :func:`budget_ladder`, the best method that fits and the best
+        learned one (None where none fits). ``atrous``: per a-trous row, the reconstruction at the
+        same AO rays and spp, with both times and PSNRs. ``ao64``: the 64-ray AO frame (spp 1)
+        and the fastest learned method at least as good, with the time ratio.
+    """
+    scored = [r for r in rows if r["color_psnr"] is not None]
+    full = [r for r in scored if r["kind"] == "full"]
+    if not full:
+        return {"budgets": [], "atrous": [], "ao64": None}
+    best = lambda cands: max(cands, key=lambda r: r["color_psnr"], default=None)  # noqa: E731
+    budgets = []
+    for budget in budget_ladder(min(r["ms"] for r in full)):
+        fits = [r for r in scored if r["ms"] <= budget]
+        top, learned = best(fits), best([r for r in fits if r["learned"]])
+        budgets.append({"budget_ms": budget, "best": top and top["method"], "best_psnr": top and top["color_psnr"],
+                        "learned": learned and learned["method"], "learned_psnr": learned and learned["color_psnr"],
+                        "learned_best": learned is not None and learned["color_psnr"] >= top["color_psnr"]})
+    atrous = []
+    for a in (r for r in scored if r["kind"] == "atrous"):
+        same = best([r for r in scored if r["kind"] == "reconstruct" and r["ao_rays"] == a["ao_rays"]
+                     and r["spp"] == a["spp"]])
+        if same is not None:
+            atrous.append({"ao_rays": a["ao_rays"], "atrous_ms": a["ms"], "atrous_psnr": a["color_psnr"],
+                           "recon": same["method"], "recon_ms": same["ms"], "recon_psnr": same["color_psnr"]})
+    ao64 = next((r for r in full if r["ao_rays"] == 64 and r["spp"] == 1), None)
+    match = None
+    if ao64 is not None:
+        match = min((r for r in scored if r["learned"] and r["color_psnr"] >= ao64["color_psnr"]),
+                    key=lambda r: r["ms"], default=None)
+    return {"budgets": budgets, "atrous": atrous,
+            "ao64": ao64 and {"ms": ao64["ms"], "psnr": ao64["color_psnr"], "learned": match and match["method"],
+                              "learned_ms": match and match["ms"], "learned_psnr": match and match["color_psnr"],
+                              "speedup": match and ao64["ms"] / match["ms"]}}
 
 
 def merge(path: Path, rows: list[dict]) -> list[dict]:

@@ -11,6 +11,7 @@ from collections import defaultdict
 from pathlib import Path
 
 from isosr_render.atomic import atomic_write
+from isosr_net.frame_methods import LEARNED
 
 from .common import RESULTS_DIR
 
@@ -163,6 +164,7 @@ def pareto_markdown(folder: Path, kind: str) -> list[str]:
                                   f"({d['ms']:.3g} ms, {d['color_psnr']:.1f} dB)")
         if losses:
             lines += ["Loses: " + "; ".join(losses) + ".", ""]
+    lines += scorecard_markdown(scenes)
     counts = sorted({r["method"] for rows in scenes.values() for r in rows if r["kind"] != "full"})
     lines += ["On the front, of " + str(len(scenes)) + " scenes: "
               + "; ".join(f"{m} {on_front[m]}" for m in counts) + ".", ""]
@@ -176,6 +178,35 @@ def pareto_markdown(folder: Path, kind: str) -> list[str]:
     return lines
 
 
+def scorecard_markdown(scenes: dict[tuple[str, str], list[dict]]) -> list[str]:
+    """Where the learned methods win, per scene (:func:`isosr_bench.bench_pareto.learned_scorecard`)."""
+    from .bench_pareto import GOAL_TOP_MS, learned_scorecard
+
+    lines = ["### Where a learned method is the best there is", "",
+             f"Budgets from 1.5 times the scene's cheapest full-resolution frame up to {GOAL_TOP_MS:g} ms, each "
+             "sqrt(2) times the last: the best method that fits against the best learned one. Then the "
+             "reconstruction against the a-trous filter at the same AO rays, and the fastest learned method "
+             "at least as good as 64 AO rays (spp 1).", "",
+             "| scene | learned best at | a-trous -> recon at the same rays (dB, ms) | 64-ray AO match (speed-up) |",
+             "|---|---|---|---|"]
+    for (volume, size), rows in scenes.items():
+        card = learned_scorecard(rows)
+        if not card["budgets"]:
+            continue
+        won = [b for b in card["budgets"] if b["learned_best"]]
+        lost = [f"{b['budget_ms']:.3g} ms ({b['best']}, {b['best_psnr']:.1f} dB)" for b in card["budgets"]
+                if not b["learned_best"]]
+        atrous = ", ".join(f"{a['ao_rays']} ray{'s' * (a['ao_rays'] > 1)}: {a['recon_psnr'] - a['atrous_psnr']:+.1f} dB "
+                           f"{a['recon_ms'] - a['atrous_ms']:+.2f} ms" for a in card["atrous"]) or "-"
+        ao64 = card["ao64"]
+        match = ("-" if ao64 is None else f"none reaches {ao64['psnr']:.1f} dB" if ao64["learned"] is None
+                 else f"{ao64['learned']}: {ao64['learned_ms']:.3g} vs {ao64['ms']:.3g} ms ({ao64['speedup']:.1f}x)")
+        measured = "" if any(r["kind"] == "reconstruct" for r in rows) else " (no reconstruction rows measured)"
+        lines.append(f"| {volume}, {size}{measured} | {len(won)} of {len(card['budgets'])} budgets"
+                     + (f"; not at {'; '.join(lost)}" if lost else "") + f" | {atrous} | {match} |")
+    return lines + [""]
+
+
 def pareto_plots(folder: Path, kind: str) -> list[Path]:
     """Per volume, one panel per size: time (log) against color PSNR, the front colored by kind and
     joined, dominated points grey, learned methods as stars."""
@@ -186,7 +217,7 @@ def pareto_plots(folder: Path, kind: str) -> list[Path]:
     record = _load(folder, "pareto", kind)
     if record is None:
         return []
-    colors = {"full": "C0", "atrous": "C1", "upscale": "C2", "network": "C3"}
+    colors = {"full": "C0", "atrous": "C1", "reconstruct": "C4", "upscale": "C2", "network": "C3"}
     by_volume = defaultdict(dict)
     for (volume, size), rows in _pareto_scenes(record).items():
         by_volume[volume][size] = rows
@@ -206,7 +237,7 @@ def pareto_plots(folder: Path, kind: str) -> list[Path]:
             if best:
                 ax.plot([r["ms"] for r in best], [r["color_psnr"] for r in best], color="0.3", lw=0.8, zorder=1)
             for k, c in colors.items():
-                ax.scatter([], [], color=c, marker="*" if k == "network" else "o", label=k)
+                ax.scatter([], [], color=c, marker="*" if k in LEARNED else "o", label=k)
             ax.scatter([], [], color="0.75", label="dominated")
             ax.set(xscale="log", xlabel="ms per frame (whole path)", ylabel="color PSNR, covered region (dB)",
                    title=f"{volume}, {rows[0].get('pixels', size) if rows else size}")

@@ -40,6 +40,7 @@ def lowres_tensors(frame: FrameBuffers) -> tuple[torch.Tensor, torch.Tensor | No
         if getattr(frame, name) is None:
             raise ValueError(f"the low-res frame lacks its {name} buffer")
     dims = check_shape(frame.mask, "(H, W)", "mask", "lowres_tensors")
+    present = []
     for name, spec in (("mask", "(H, W)"), ("normal", "(H, W, 3)"), ("depth", "(H, W)"), ("flow", "(H, W, 2)")):
         t = getattr(frame, name)
         if t is None:
@@ -47,7 +48,10 @@ def lowres_tensors(frame: FrameBuffers) -> tuple[torch.Tensor, torch.Tensor | No
         check_shape(t, spec, name, "lowres_tensors", dims)
         if not t.is_floating_point():
             raise ValueError(f"{name} must be floating point, got {t.dtype}")
-        if not torch.isfinite(t).all():
+        present.append((name, t))
+    finite = torch.stack([torch.isfinite(t).all() for _, t in present]).tolist()  # one host sync, not four
+    for (name, _), ok in zip(present, finite):
+        if not ok:
             raise ValueError(f"{name} holds NaN or Inf values")
     lowres = frame.channels_first(LOWRES_BUFFERS)[None]
     flow = None if frame.flow is None else frame.flow.permute(2, 0, 1)[None]

@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from isosr_bench.bench_pareto import dominator, merge, pareto_front, scores
+from isosr_bench.bench_pareto import budget_ladder, dominator, learned_scorecard, merge, pareto_front, scores
 from isosr_render import FrameBuffers
 
 FIELDS = {"volume", "size", "method", "learned", "ms", "color_psnr", "color_ssim", "image_psnr", "image_ssim",
@@ -94,7 +94,8 @@ def test_the_report_has_the_section_and_a_plot_per_volume(smoke):
     out, _ = smoke
     report = (out / "report_cpu.md").read_text()
     assert "Every way to make a frame" in report and "Wins" in report and "budget policy" in report
-    assert "x4 network fp32" in report
+    assert "x4 network fp32" in report and "full, AO 2, spp 1, recon fp32" in report
+    assert "Where a learned method is the best there is" in report
     assert (out / "pareto_sphere_cpu.png").stat().st_size > 0 and (out / "pareto_cloud_cpu.png").stat().st_size > 0
 
 
@@ -109,3 +110,34 @@ def test_bad_selections_are_refused(capsys):
     with pytest.raises(SystemExit):
         cli(["bench", "--pareto", "--smoke", "--sizes", "8k"])
     assert "unknown sizes ['8k']" in capsys.readouterr().err
+
+
+def _row(method, kind, ms, psnr, ao_rays=0, spp=1):
+    return {"method": method, "kind": kind, "ms": ms, "color_psnr": psnr, "ao_rays": ao_rays, "spp": spp,
+            "learned": kind in ("reconstruct", "network")}
+
+
+def test_the_budget_ladder_runs_from_one_and_a_half_times_the_cheapest_frame_to_the_top():
+    ladder = budget_ladder(2.0, 10.0)
+    assert ladder[0] == pytest.approx(3.0) and ladder[-1] == 10.0
+    assert all(b / a == pytest.approx(math.sqrt(2)) for a, b in zip(ladder[:-2], ladder[1:-1]))
+    assert budget_ladder(40.0, 50.0) == [50.0]  # 1.5 times the cheapest is past the top: only the top
+
+
+def test_the_scorecard_finds_where_a_learned_method_is_best_and_compares_like_with_like():
+    rows = [_row("full, AO 0", "full", 2.0, 25.0), _row("full, AO 64", "full", 30.0, 34.0, ao_rays=64),
+            _row("a-trous 1", "atrous", 4.0, 33.0, ao_rays=1), _row("recon 1", "reconstruct", 5.0, 35.0, ao_rays=1),
+            _row("recon 1 spp 4", "reconstruct", 9.0, 36.0, ao_rays=1, spp=4),
+            _row("full, AO 128, spp 4", "full", 45.0, 48.0, ao_rays=128, spp=4)]
+    card = learned_scorecard(rows)
+    by_budget = {round(b["budget_ms"], 2): b for b in card["budgets"]}
+    assert not by_budget[3.0]["learned_best"] and by_budget[3.0]["learned"] is None
+    assert by_budget[4.24]["best"] == "a-trous 1" and not by_budget[4.24]["learned_best"]
+    assert by_budget[6.0]["best"] == "recon 1" and by_budget[6.0]["learned_best"]
+    assert by_budget[50.0]["best"] == "full, AO 128, spp 4" and by_budget[50.0]["learned"] == "recon 1 spp 4"
+    assert card["atrous"] == [{"ao_rays": 1, "atrous_ms": 4.0, "atrous_psnr": 33.0, "recon": "recon 1",
+                               "recon_ms": 5.0, "recon_psnr": 35.0}]  # spp 4 is not the same sampling
+    assert card["ao64"]["learned"] == "recon 1" and card["ao64"]["speedup"] == pytest.approx(6.0)
+    rows[3]["color_psnr"] = rows[4]["color_psnr"] = 30.0  # now no learned method reaches 64 rays
+    assert learned_scorecard(rows)["ao64"]["learned"] is None
+    assert learned_scorecard([_row("x4", "upscale", 1.0, 20.0)]) == {"budgets": [], "atrous": [], "ao64": None}
