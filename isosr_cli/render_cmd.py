@@ -1,4 +1,9 @@
-"""`isosr render`: one frame of an isosurface to a frame file (.npz) or an image (.png)."""
+"""`isosr render`: one frame of an isosurface to a frame file (.npz) or an image (.png).
+
+With --reconstruct, the frame is rendered with few rays (--ao-samples AO rays per hit, --spp
+rays per pixel) and reconstructed by a trained network (:mod:`isosr_net.reconnet`): the file
+holds its mask, normal, depth, AO and the color shaded from them.
+"""
 
 from __future__ import annotations
 
@@ -8,12 +13,22 @@ from pathlib import Path
 
 import torch
 
-from isosr_render import Camera, Renderer, RenderRequest, open_volume, orbit, resolve_iso
-from isosr_render.conventions import BUFFER_NAMES
+from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest, open_volume, orbit, resolve_iso
+from isosr_render.conventions import BUFFER_NAMES, HIGHRES_BUFFERS
 from isosr_net.budget import BudgetConfig, render_within_budget
+from isosr_net.frame_methods import FrameMethod, FrameRunner, run_sequence
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, MAX_RECON_AO_RAYS, Reconstructor
+from isosr_net.upscaler import PRECISIONS
 from isosr_cli.images import visualize, write_png
 
 PNG_DEFAULT = "color"
+# AO rays per hit: of a plain render, and of a reconstructed one (its network's few).
+AO_SAMPLES, RECON_AO_SAMPLES = 64, 2
+RECON_OUTPUTS = HIGHRES_BUFFERS + ("color",)
+# Render options a reconstruction takes as its network was trained: RenderRequest's defaults
+# (the frame runner sets no others). Option -> request field.
+RECON_FIXED = {"--step": "step", "--refine": "refine", "--refine-steps": "refine_steps", "--seed": "seed",
+               "--flow-fill": "flow_fill"}
 
 
 def _triple(text: str) -> tuple[float, float, float]:
@@ -57,7 +72,9 @@ def add_parser(subparsers) -> None:
     cam.add_argument("--prev-orbit", type=_triple, help="previous camera as YAW,PITCH,DIST, for flow")
     p.add_argument("--outputs", default="mask,normal,depth,color",
                    help=f"comma-separated buffers: {','.join(BUFFER_NAMES)},samples")
-    p.add_argument("--ao-samples", type=int, default=64, help="AO rays per hit")
+    p.add_argument("--ao-samples", type=int,
+                   help=f"AO rays per hit (default {AO_SAMPLES}; with --reconstruct 0 to {MAX_RECON_AO_RAYS}, "
+                        f"default {RECON_AO_SAMPLES}, 0: AO inferred from the geometry)")
     p.add_argument("--ao-radius", type=float, default=0.05, help="AO ray length (world units)")
     p.add_argument("--step", type=float, help="ray step (world units; default half the smallest voxel)")
     p.add_argument("--voxel-units", action="store_true", help="--step and --ao-radius are in voxels")
@@ -73,6 +90,14 @@ def add_parser(subparsers) -> None:
                         "upscaling, network) with the best expected quality within this frame time; the file then "
                         "holds what that method makes (color, mask, normal[, ao]); --outputs, --spp, --ao-samples "
                         "do not apply")
+    recon = p.add_argument_group("reconstruction")
+    recon.add_argument("--reconstruct", action="store_true",
+                       help="render with --ao-samples AO rays per hit and --spp rays per pixel, then reconstruct "
+                            "converged AO and antialiased edges with a trained network; with a previous camera "
+                            "its frame is reconstructed first and carried over by the flow; --outputs from "
+                            f"{','.join(RECON_OUTPUTS)}")
+    recon.add_argument("--model", help="reconstruction model folder (default: the shipped one)")
+    recon.add_argument("--precision", choices=sorted(PRECISIONS), help="the network's precision (default fp32)")
     p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     p.add_argument("--png-of", choices=BUFFER_NAMES, help="with a .png output: the buffer to show")
     p.add_argument("-o", "--output", required=True, help="FILE.npz (frame file) or FILE.png")
@@ -84,6 +109,28 @@ def _camera(orbit_arg, eye, target, up, fov) -> Camera:
     if orbit_arg is not None:
         return orbit(*orbit_arg, target=target, fov_y=fov)
     return Camera(eye, target, up, fov)
+
+
+def _check_reconstruct(args: argparse.Namespace, outputs: tuple[str, ...]) -> None:
+    """Refuse options that do not go with --reconstruct (or need it)."""
+    if not args.reconstruct:
+        given = [name for name, value in (("--model", args.model), ("--precision", args.precision)) if value]
+        if given:
+            raise ValueError(f"{', '.join(given)}: only with --reconstruct")
+        return
+    if args.budget_ms is not None:
+        raise ValueError("--reconstruct and --budget-ms exclude each other: the budget picks its own method")
+    if not 0 <= args.ao_samples <= MAX_RECON_AO_RAYS:
+        raise ValueError(f"--reconstruct takes --ao-samples 0 to {MAX_RECON_AO_RAYS} (AO rays per hit its network "
+                         f"was trained with), got {args.ao_samples}")
+    defaults = RenderRequest(1, 1, 0.5)
+    fixed = [option for option, name in RECON_FIXED.items() if getattr(args, name) != getattr(defaults, name)]
+    fixed += ["--no-skip"] if args.no_skip else []
+    if fixed:
+        raise ValueError(f"--reconstruct renders as its network was trained, without {', '.join(fixed)}")
+    other = [o for o in outputs if o not in RECON_OUTPUTS]
+    if other:
+        raise ValueError(f"--reconstruct makes {','.join(RECON_OUTPUTS)}, not {','.join(other)}")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -102,6 +149,9 @@ def run(args: argparse.Namespace) -> int:
     if out.suffix == ".png":
         shown = args.png_of or PNG_DEFAULT
         outputs = tuple(dict.fromkeys(outputs + (shown,)))
+    if args.ao_samples is None:
+        args.ao_samples = RECON_AO_SAMPLES if args.reconstruct else AO_SAMPLES
+    _check_reconstruct(args, outputs)
 
     volume = open_volume(args.volume)
     iso = resolve_iso(args.volume, volume, args.iso, args.normalized_iso)
@@ -110,19 +160,25 @@ def run(args: argparse.Namespace) -> int:
     prev = None
     if args.prev_eye is not None or args.prev_orbit is not None:
         prev = _camera(args.prev_orbit, args.prev_eye, args.target, args.up, args.fov)
-    request = RenderRequest(
-        width=args.size[0], height=args.size[1], iso=iso, outputs=outputs,
-        step=None if args.step is None else args.step * unit, refine=args.refine, refine_steps=args.refine_steps,
-        spp=args.spp, ao_samples=args.ao_samples, ao_radius=args.ao_radius * unit, seed=args.seed,
-        prev_camera=prev, flow_fill=args.flow_fill, skip=not args.no_skip)
-
     renderer = Renderer(volume, args.device)
+    if args.reconstruct:
+        runner = _recon_runner(args, renderer, iso, args.ao_radius * unit)
+    else:
+        request = RenderRequest(
+            width=args.size[0], height=args.size[1], iso=iso, outputs=outputs,
+            step=None if args.step is None else args.step * unit, refine=args.refine,
+            refine_steps=args.refine_steps, spp=args.spp, ao_samples=args.ao_samples,
+            ao_radius=args.ao_radius * unit, seed=args.seed, prev_camera=prev, flow_fill=args.flow_fill,
+            skip=not args.no_skip)
     start = time.perf_counter()
-    if args.budget_ms is None:
+    if args.reconstruct:
+        made = run_sequence(runner, [camera] if prev is None else [prev, camera])[-1]
+        frame = FrameBuffers(**{name: getattr(made, name) for name in outputs})
+    elif args.budget_ms is None:
         frame = renderer.render(camera, request)
     else:
         frame, choice = render_within_budget(renderer, camera, iso, *args.size, args.budget_ms,
-                                             BudgetConfig(ao_radius=request.ao_radius))
+                                             BudgetConfig(ao_radius=args.ao_radius * unit))
         print(f"quality auto: {choice.summary()}")
         if out.suffix == ".png" and getattr(frame, shown) is None:
             raise ValueError(f"--png-of {shown}: the chosen method makes {', '.join(frame.present())}")
@@ -134,7 +190,21 @@ def run(args: argparse.Namespace) -> int:
     else:
         write_png(out, visualize(frame, shown))
     lo, hi = volume.value_range
+    how = "rendered"
+    if args.reconstruct:
+        how = f"reconstructed ({runner.method.name}{', from the previous camera on' if prev else ''})"
     print(f"{volume.name}: {volume.shape} voxels, iso {iso:.4f} normalized ({lo + iso * (hi - lo):g} in data units); "
-          f"rendered {','.join(frame.present())} at {request.width}x{request.height} on {renderer.device} "
+          f"{how} {','.join(frame.present())} at {args.size[0]}x{args.size[1]} on {renderer.device} "
           f"in {elapsed * 1e3:.1f} ms{'' if args.budget_ms is None else ', the probe included'} -> {out}")
     return 0
+
+
+def _recon_runner(args: argparse.Namespace, renderer: Renderer, iso: float, ao_radius: float) -> FrameRunner:
+    """The frame runner of --reconstruct, with an eager network: for one frame or two, compiling
+    it (what a runner's own network does on GPUs) would take longer than it saves."""
+    method = FrameMethod("reconstruct", ao_rays=args.ao_samples, spp=args.spp, model=args.model, model_name="recon",
+                         precision=args.precision or "fp32")
+    device = str(renderer.device)
+    network = Reconstructor(args.model or DEFAULT_RECON_MODEL, device, method.precision)
+    return FrameRunner(method, renderer, iso, *args.size, ao_radius=ao_radius,
+                       upscalers={method.upscaler_key(device): network})

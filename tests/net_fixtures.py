@@ -23,6 +23,11 @@ TINY_DATAGEN = DatagenConfig(volumes=("proc:cloud:1@32", "proc:sphere@32"), sequ
                              lowres_size=16, upscale=2, crop=8, crops=2, min_coverage=0.3,
                              ao_samples=4, spp=1, device="cpu")
 TINY_MODEL = {"type": "SRNet", "upscale": 2, "channels": 8, "residual_blocks": 1}
+# Reconstruction data (upscale 1): 32x32 frames, 16x16 crops (ReconNet's 1/8 level: 2x2),
+# inputs of 1 or 2 rays per pixel and 0, 2 or 8 AO rays; 2 frames per sequence.
+TINY_RECON_DATAGEN = replace(TINY_DATAGEN, frames=2, lowres_size=32, upscale=1, crop=16, input_spp=(1, 2),
+                             input_ao_rays=(0, 2, 8))
+TINY_RECON_MODEL = {"type": "ReconNet", "widths": (4, 4, 8, 8), "blocks": 1}
 
 _CACHE: dict[tuple, Path] = {}
 
@@ -53,6 +58,17 @@ def tiny_train_data(tmp_path_factory) -> Path:
     if key not in _CACHE:
         root = tmp_path_factory.mktemp("tiny_data")
         generate(TINY_DATAGEN, root, progress=False)
+        relabel_as_val(root, "proc:sphere@32")
+        _CACHE[key] = root
+    return _CACHE[key]
+
+
+def tiny_recon_data(tmp_path_factory) -> Path:
+    """:data:`TINY_RECON_DATAGEN` rendered, with a "train" (cloud) and a "val" (sphere) split, made once per session."""
+    key = ("recon data", str(tmp_path_factory.getbasetemp()))
+    if key not in _CACHE:
+        root = tmp_path_factory.mktemp("tiny_recon_data")
+        generate(TINY_RECON_DATAGEN, root, progress=False)
         relabel_as_val(root, "proc:sphere@32")
         _CACHE[key] = root
     return _CACHE[key]

@@ -9,8 +9,12 @@ import sys
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from isosr_cli.main import main
+from isosr_net.frame_methods import FrameMethod, FrameRunner, run_sequence
+from isosr_net.upscaler import DEFAULT_MODEL
+from isosr_render import Renderer, open_volume, resolve_iso
 from isosr_render.buffers import FrameBuffers
 from isosr_render.camera import orbit
 from isosr_render.catalog import shared_volumes_dir
@@ -63,6 +67,44 @@ def test_eye_camera_and_data_unit_iso_match_orbit_and_normalized_iso(tmp_path):
     np.testing.assert_array_equal(np.load(a)["mask"], np.load(b)["mask"])
 
 
+def test_render_reconstruct_writes_what_the_reconstruct_method_makes(tmp_path, capsys):
+    volume = open_volume("proc:cloud:3@48")
+    renderer, iso = Renderer(volume, "cpu"), resolve_iso("proc:cloud:3@48", volume)
+    cameras = [orbit(28.0, 20.0, 1.6), orbit(30.0, 20.0, 1.6)]
+    one, two = tmp_path / "one.npz", tmp_path / "two.npz"
+    common = ["render", "proc:cloud:3@48", "--size", "48x32", "--orbit", "30,20,1.6", "--reconstruct"]
+    assert main(common + ["--outputs", "mask,normal,depth,ao,color", "-o", str(one)]) == 0
+    assert "reconstructed (full, AO 2, spp 1, recon fp32) mask,normal,depth,ao,color at 48x32" in capsys.readouterr().out
+    frame = FrameBuffers.load_npz(one)
+    assert frame.present() == ["mask", "normal", "depth", "ao", "color"]
+    expected = run_sequence(FrameRunner(FrameMethod("reconstruct", ao_rays=2), renderer, iso, 48, 32), cameras[1:])[0]
+    for name in frame.present():
+        torch.testing.assert_close(getattr(frame, name), getattr(expected, name), rtol=0, atol=1e-5)
+    assert 0 < frame.mask.mean() < 1 and ((frame.mask > 0) & (frame.mask < 1)).any()  # antialiased edges
+    # A previous camera: its frame is reconstructed first and carried over by the flow.
+    assert main(common + ["--outputs", "ao,color", "--ao-samples", "0", "--spp", "2", "--prev-orbit", "28,20,1.6",
+                          "-o", str(two)]) == 0
+    assert "(full, AO 0, spp 2, recon fp32, from the previous camera on)" in capsys.readouterr().out
+    frame = FrameBuffers.load_npz(two)
+    assert frame.present() == ["ao", "color"]
+    method = FrameMethod("reconstruct", spp=2)
+    carried = run_sequence(FrameRunner(method, renderer, iso, 48, 32), cameras)[-1]
+    alone = run_sequence(FrameRunner(method, renderer, iso, 48, 32), cameras[1:])[0]
+    torch.testing.assert_close(frame.color, carried.color, rtol=0, atol=1e-5)
+    assert (frame.color - alone.color).abs().max() > 1e-3
+
+
+def test_render_reconstruct_to_png_and_in_bf16(tmp_path):
+    png, fp32, bf16 = tmp_path / "ao.png", tmp_path / "fp32.npz", tmp_path / "bf16.npz"
+    common = ["render", "proc:torus", "--size", "48x32", "--reconstruct"]
+    assert main(common + ["--png-of", "ao", "-o", str(png)]) == 0
+    assert cv2.imread(str(png)).shape == (32, 48, 3)
+    assert main(common + ["--outputs", "color", "-o", str(fp32)]) == 0
+    assert main(common + ["--outputs", "color", "--precision", "bf16", "-o", str(bf16)]) == 0
+    a, b = np.load(fp32)["color"], np.load(bf16)["color"]
+    assert np.isfinite(b).all() and 0 < np.abs(a - b).max() < 0.1
+
+
 @pytest.mark.parametrize("argv, message", [
     (["render", "/no/such/volume.nii.gz", "-o", "x.npz"], "no such file"),
     (["render", "proc:nonsense", "-o", "x.npz"], "valid"),
@@ -72,6 +114,18 @@ def test_eye_camera_and_data_unit_iso_match_orbit_and_normalized_iso(tmp_path):
     (["render", "proc:sphere", "--spp", "0", "-o", "x.npz"], "spp"),
     (["render", "proc:sphere", "--eye", "0,0,2", "--orbit", "0,0,2", "-o", "x.npz"], "either --eye or --orbit"),
     (["render", "proc:sphere", "--device", "cuda", "-o", "x.npz"], "CUDA"),
+    (["render", "proc:sphere", "--reconstruct", "--budget-ms", "5", "-o", "x.npz"], "exclude each other"),
+    (["render", "proc:sphere", "--reconstruct", "--ao-samples", "9", "-o", "x.npz"], "--ao-samples 0 to 8"),
+    (["render", "proc:sphere", "--reconstruct", "--ao-samples", "-1", "-o", "x.npz"], "--ao-samples 0 to 8"),
+    (["render", "proc:sphere", "--reconstruct", "--spp", "0", "-o", "x.npz"], "spp"),
+    (["render", "proc:sphere", "--reconstruct", "--outputs", "mask,flow", "-o", "x.npz"], "not flow"),
+    (["render", "proc:sphere", "--reconstruct", "--png-of", "position", "-o", "x.png"], "not position"),
+    (["render", "proc:sphere", "--reconstruct", "--seed", "3", "--refine", "bisection", "-o", "x.npz"],
+     "without --refine, --seed"),
+    (["render", "proc:sphere", "--model", str(DEFAULT_MODEL), "-o", "x.npz"], "--model: only with --reconstruct"),
+    (["render", "proc:sphere", "--precision", "bf16", "-o", "x.npz"], "--precision: only with --reconstruct"),
+    (["render", "proc:sphere", "--reconstruct", "--model", str(DEFAULT_MODEL), "-o", "x.npz"],
+     "not a reconstruction network"),
 ])
 def test_bad_input_gives_one_line_error_and_exit_code_2(tmp_path, monkeypatch, capsys, argv, message):
     monkeypatch.chdir(tmp_path)

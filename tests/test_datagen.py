@@ -15,7 +15,9 @@ import isosr_net.datagen as datagen
 from isosr_net.batch import SequenceBatch
 from isosr_net.datagen import MANIFEST, DatagenConfig, SequenceDataset, generate, pick_crops
 from isosr_render.catalog import shared_volumes_dir
-from net_fixtures import TINY_DATAGEN, tiny_datagen, tiny_train_data
+from isosr_net.reconnet import AO_RAYS_SCALE, SPP_SCALE
+from isosr_render.conventions import MASK, SAMPLED_AO, SAMPLING
+from net_fixtures import TINY_DATAGEN, TINY_RECON_DATAGEN, tiny_datagen, tiny_recon_data, tiny_train_data
 
 
 def shard_tensors(root: Path) -> dict[str, dict[str, torch.Tensor]]:
@@ -154,6 +156,22 @@ def test_config_rejects_bad_values(kwargs, match):
         tiny_datagen(**kwargs)
 
 
+@pytest.mark.parametrize("kwargs, match", [
+    ({"input_spp": (1, 2)}, "input_spp and input_ao_rays are for reconstruction data"),
+    ({"input_ao_rays": (2,)}, "input_spp and input_ao_rays are for reconstruction data"),
+    ({"upscale": 1, "input_spp": (0, 1)}, r"input_spp must be a non-empty list of integers in \[1, 256\]"),
+    ({"upscale": 1, "input_spp": ()}, "input_spp must be a non-empty list"),
+    ({"upscale": 1, "input_spp": (1.5,)}, "input_spp must be"),
+    ({"upscale": 1, "input_ao_rays": (2, 9)}, r"input_ao_rays must be a non-empty list of integers in \[0, 8\]"),
+    ({"upscale": 1, "input_ao_rays": (-1,)}, "input_ao_rays must be"),
+    ({"upscale": 1, "input_ao_rays": (True,)}, "input_ao_rays must be"),
+    ({"upscale": 0}, "upscale must be at least 1"),
+])
+def test_config_rejects_bad_sampling_of_reconstruction_inputs(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        tiny_datagen(**kwargs)
+
+
 def test_config_volumes_become_a_tuple():
     assert DatagenConfig(volumes=["proc:sphere"]).volumes == ("proc:sphere",)
 
@@ -242,6 +260,37 @@ def test_flow_moves_the_surface_and_is_zero_off_it(fresh):
         assert (flow[(mask == 0)[:, :, None].expand(-1, -1, 2, -1, -1)] == 0).all()
         moved = max(moved, float(flow.norm(dim=2)[mask > 0].max()))
     assert 0.01 < moved < 16  # the camera orbits a few degrees per frame
+
+
+# ---------------------------------------------------------------- reconstruction data (upscale 1)
+
+
+def test_reconstruction_shards_hold_full_resolution_inputs_with_their_sampling(tmp_path_factory):
+    root = tiny_recon_data(tmp_path_factory)
+    manifest = json.loads((root / MANIFEST).read_text())
+    config = TINY_RECON_DATAGEN
+    assert manifest["config"]["upscale"] == 1 and manifest["config"]["input_ao_rays"] == [0, 2, 8]
+    assert len(manifest["shards"]) == len(config.volumes) * config.sequences
+    c, t = config.crop, config.frames
+    for shard in manifest["shards"]:
+        spp, rays = shard["input_spp"], shard["input_ao_rays"]
+        assert spp in config.input_spp and rays in config.input_ao_rays
+        tensors = load_file(root / shard["file"])
+        k = shard["crops"]
+        assert k >= 1
+        assert tensors["lowres"].shape == (k, t, 8, c, c) and tensors["highres"].shape == (k, t, 6, c, c)
+        lowres = tensors["lowres"].float()
+        sampling = lowres[:, :, SAMPLING]
+        assert (sampling[:, :, 0] == rays / AO_RAYS_SCALE).all() and (sampling[:, :, 1] == spp / SPP_SCALE).all()
+        ao = lowres[:, :, SAMPLED_AO]
+        if rays:
+            assert ao.min() >= 0 and ao.max() <= 1 and (ao > 0).any()
+        else:
+            assert (ao == 0).all()
+        if spp == 1:  # one ray per pixel: a hit or not
+            assert set(lowres[:, :, MASK].unique().tolist()) <= {0.0, 1.0}
+    draws = {(s["input_spp"], s["input_ao_rays"]) for s in manifest["shards"]}
+    assert len(draws) > 1  # the sequences were not all rendered alike
 
 
 # ---------------------------------------------------------------- the dataset

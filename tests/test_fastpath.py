@@ -63,6 +63,18 @@ def test_fast_srnet_equals_srnet(upscale):
     assert fast.upsample[0].weight.data_ptr() != net.upsample[0].weight.data_ptr()  # a copy
 
 
+@pytest.mark.parametrize("upscale", [2, 4])
+def test_fast_srnet_equals_srnet_with_the_subpixel_tail(upscale):
+    torch.manual_seed(3)
+    net = SRNet(SRNetConfig(upscale=upscale, channels=8, residual_blocks=1, tail="subpixel")).eval()
+    fast = fast_srnet(net)
+    lowres = torch.randn(2, 5, 6, 5)
+    prev = torch.randn(2, 6, 6 * upscale, 5 * upscale)
+    with torch.no_grad():
+        torch.testing.assert_close(fast(lowres, prev), net(lowres, prev), rtol=0, atol=1e-5)
+    assert isinstance(fast.tail[-1], ChannelPaddedConv) and len(fast.upsample) == 0
+
+
 def test_bad_inputs_are_clear_errors():
     with pytest.raises(ValueError, match=r"\(Co, Ci, 3, 3\)"):
         phase_weights(torch.zeros(2, 2, 5, 5))

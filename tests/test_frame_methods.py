@@ -28,6 +28,8 @@ def test_names_follow_the_issue():
     assert FrameMethod("full", spp=4).name == "full, AO 0, spp 4"
     assert FrameMethod("atrous", ao_rays=2).name == "full, AO 2, a-trous"
     assert FrameMethod("upscale", factor=4).name == "x4 bilinear"
+    recon = FrameMethod("reconstruct", ao_rays=2, precision="fp16", model_name="recon")
+    assert recon.name == "full, AO 2, spp 1, recon fp16" and recon.learned
     network = FrameMethod("network", factor=4, precision="bf16")
     assert network.name == "x4 network bf16" and network.learned
     assert not FrameMethod("atrous", ao_rays=1).learned
@@ -37,7 +39,9 @@ def test_names_follow_the_issue():
     (dict(kind="magic"), "kind"), (dict(kind="full", ao_rays=-1), "ao_rays"), (dict(kind="atrous"), "ao_rays"),
     (dict(kind="upscale", factor=1), "factor"), (dict(kind="upscale", factor=4, ao_rays=4), "ao_rays"),
     (dict(kind="full", factor=2), "factor"), (dict(kind="upscale", factor=2, interpolation="lanczos"), "interpolation"),
-    (dict(kind="network", factor=4, precision="fp8"), "precision"), (dict(kind="full", spp=True), "spp")])
+    (dict(kind="network", factor=4, precision="fp8"), "precision"), (dict(kind="full", spp=True), "spp"),
+    (dict(kind="reconstruct", ao_rays=9), r"ao_rays must be an integer in \[0, 8\]"),
+    (dict(kind="reconstruct", factor=2), "factor")])
 def test_bad_methods_are_refused(kwargs, message):
     with pytest.raises(ValueError, match=message):
         FrameMethod(**kwargs)
@@ -48,6 +52,8 @@ def test_bad_methods_are_refused(kwargs, message):
     (FrameMethod("full", ao_rays=4, spp=2), ["mask", "normal", "ao", "color"]),
     (FrameMethod("atrous", ao_rays=2), ["mask", "normal", "ao", "color"]),
     (FrameMethod("upscale", factor=4, interpolation="bicubic"), ["mask", "normal", "color"]),
+    (FrameMethod("reconstruct", ao_rays=2), ["mask", "normal", "depth", "ao", "color"]),
+    (FrameMethod("reconstruct"), ["mask", "normal", "depth", "ao", "color"]),
     (FrameMethod("network", factor=4), ["mask", "normal", "depth", "ao", "color"])])
 def test_every_kind_makes_a_bounded_color_frame_and_only_its_buffers(scene, method, buffers):
     renderer, iso = scene

@@ -36,9 +36,10 @@ def test_channel_orders_are_the_documented_ones():
     assert HIGHRES_CHANNELS == LOWRES_CHANNELS + ("ao",)
 
 
+@pytest.mark.parametrize("tail", ["full", "subpixel"])
 @pytest.mark.parametrize("upscale", [2, 4, 8])
-def test_output_shapes(upscale):
-    net = tiny_net(upscale=upscale)
+def test_output_shapes(upscale, tail):
+    net = tiny_net(upscale=upscale, tail=tail)
     lowres = lowres_batch(2, 5, 3)
     prev = torch.rand(2, 6, 5 * upscale, 3 * upscale)
     with torch.no_grad():
@@ -61,9 +62,10 @@ def test_mask_and_ao_lie_in_unit_interval():
     assert torch.isfinite(out).all()
 
 
+@pytest.mark.parametrize("tail", ["full", "subpixel"])
 @pytest.mark.parametrize("upscale", [2, 4])
-def test_with_a_zero_tail_the_output_is_the_bilinear_upsampling(upscale):
-    net = tiny_net(seed=3, upscale=upscale)
+def test_with_a_zero_tail_the_output_is_the_bilinear_upsampling(upscale, tail):
+    net = tiny_net(seed=3, upscale=upscale, tail=tail)
     with torch.no_grad():
         net.tail[-1].weight.zero_()
         net.tail[-1].bias.zero_()
@@ -75,6 +77,24 @@ def test_with_a_zero_tail_the_output_is_the_bilinear_upsampling(upscale):
     torch.testing.assert_close(out[:, NORMAL], base[:, 1:4])
     torch.testing.assert_close(out[:, DEPTH], base[:, 4:5])
     torch.testing.assert_close(out[:, AO], torch.full_like(out[:, AO], 0.5))
+
+
+def test_the_subpixel_tail_works_at_low_resolution_only():
+    full, subpixel = tiny_net(upscale=4), tiny_net(upscale=4, tail="subpixel")
+    assert len(full.upsample) == 2 and len(subpixel.upsample) == 0
+    assert full.tail[-1].out_channels == 6 and subpixel.tail[-1].out_channels == 6 * 4 * 4
+    # Its last conv's channel c s^2 + a s + b is output channel c at row phase a, column phase b
+    # (F.pixel_shuffle's layout): a bias there moves that phase of that channel alone.
+    with torch.no_grad():
+        subpixel.tail[-1].weight.zero_()
+        subpixel.tail[-1].bias.zero_()
+        subpixel.tail[-1].bias[DEPTH.start * 16 + 1 * 4 + 2] = 1.0
+        lowres = lowres_batch(seed=6)
+        out = subpixel(lowres, torch.rand(2, 6, 24, 20))
+    base = F.interpolate(lowres, scale_factor=4, mode="bilinear", align_corners=False)
+    expected = torch.zeros_like(base[:, DEPTH])
+    expected[..., 1::4, 2::4] = 1.0
+    torch.testing.assert_close(out[:, DEPTH] - base[:, DEPTH], expected)
 
 
 def test_the_previous_frame_changes_the_output():
@@ -148,6 +168,7 @@ def test_config_rejects_upscale_that_is_not_a_power_of_two(upscale):
 
 @pytest.mark.parametrize("kwargs, match", [
     ({"first_frame": "noise"}, "first_frame must be one of"),
+    ({"tail": "bilinear"}, "tail must be one of"),
     ({"channels": 0}, "channels must be >= 1"),
     ({"residual_blocks": -1}, "residual_blocks >= 0"),
 ])

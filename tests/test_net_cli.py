@@ -15,7 +15,8 @@ from isosr_cli.main import main
 from isosr_net.datagen import MANIFEST
 from isosr_net.evaluate import BASELINES, ORACLES, SCORES
 from isosr_render.buffers import load_sequence, save_sequence
-from net_fixtures import TINY_DATAGEN, relabel_as_val, render_lowres_frames, tiny_model_dir, tiny_train_config, tiny_train_data
+from net_fixtures import (TINY_DATAGEN, TINY_RECON_MODEL, relabel_as_val, render_lowres_frames, tiny_model_dir,
+                          tiny_recon_data, tiny_train_config, tiny_train_data)
 
 
 def write_json(path: Path, obj) -> Path:
@@ -85,6 +86,19 @@ def test_train(cli_run):
         assert {"config.json", "model.safetensors"} <= {p.name for p in (cli_run / name).iterdir()}
     config = json.loads((cli_run / "last" / "config.json").read_text())
     assert config["step"] == 2 and config["training"]["steps"] == 2
+
+
+def test_a_reconstruction_run_resumes(tmp_path, tmp_path_factory, capsys):
+    """ReconNet's config holds a tuple (widths), a list once through config.json: resuming compares them alike."""
+    data = tiny_recon_data(tmp_path_factory)
+    config = tiny_train_config(data, tmp_path / "run", steps=2, model=dict(TINY_RECON_MODEL))
+    path = write_json(tmp_path / "train.json", config)
+    assert main(["train", str(path)]) == 0
+    capsys.readouterr()
+    assert main(["train", str(path), "--steps", "3"]) == 0
+    assert f"resuming from {tmp_path / 'run' / 'last'} at step 2" in capsys.readouterr().out
+    last = json.loads((tmp_path / "run" / "last" / "config.json").read_text())
+    assert last["step"] == 3 and last["model"]["widths"] == list(TINY_RECON_MODEL["widths"])
 
 
 def test_train_prints_the_metrics(tmp_path, tmp_path_factory, capsys):

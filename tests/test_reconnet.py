@@ -1,0 +1,291 @@
+"""ReconNet (full-resolution reconstruction), its inputs, the `Reconstructor`, and the shipped model."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch.utils.flop_counter import FlopCounterMode
+
+from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest, open_volume, orbit, orbit_path, resolve_iso
+from isosr_render.conventions import AO, DEPTH, MASK, NORMAL, RECON_CHANNELS, SAMPLED_AO, SAMPLING
+from isosr_render.sequence import sequence_requests
+from isosr_net.budget import color_psnr, reference_frames
+from isosr_net.frame_methods import FrameMethod, FrameRunner, run_sequence
+from isosr_net.reconnet import AO_RAYS_SCALE, SPP_SCALE, ReconNet, ReconNetConfig, macs_per_pixel, sampling_channels
+from isosr_net.reconstructor import Reconstructor, recon_inputs
+from isosr_net.upscaler import DEFAULT_MODEL
+
+SIZE = (96, 64)  # width, height
+
+
+def recon_batch(b: int = 2, h: int = 16, w: int = 24, ao_rays: int = 2, spp: int = 1,
+                dtype: torch.dtype = torch.float32, seed: int = 0) -> torch.Tensor:
+    """Random ReconNet inputs laid out as RECON_CHANNELS: a binary mask, unit normals, depth, AO, sampling."""
+    gen = torch.Generator().manual_seed(seed)
+    mask = (torch.rand(b, 1, h, w, generator=gen) > 0.4).to(dtype)
+    normal = torch.nn.functional.normalize(torch.randn(b, 3, h, w, generator=gen), dim=1).to(dtype) * mask
+    depth = (1.0 + torch.rand(b, 1, h, w, generator=gen)).to(dtype) * mask
+    ao = torch.rand(b, 1, h, w, generator=gen).to(dtype) * mask
+    base = torch.cat([mask, normal, depth, ao], dim=1)
+    return torch.cat([base, sampling_channels(ao_rays, spp, base)], dim=1)
+
+
+def net(seed: int = 0, **config) -> ReconNet:
+    torch.manual_seed(seed)
+    return ReconNet(ReconNetConfig(**config)).eval()
+
+
+# ---------------------------------------------------------------- the network
+
+
+@pytest.mark.parametrize("h, w", [(16, 24), (13, 21), (5, 7), (1, 9)])
+def test_any_frame_size_comes_back_at_its_size(h, w):
+    inputs = recon_batch(h=h, w=w)
+    with torch.no_grad():
+        out = net()(inputs, torch.rand(2, 6, h, w))
+    assert out.shape == (2, 6, h, w) and torch.isfinite(out).all()
+
+
+def test_mask_lies_in_the_unit_interval_and_ao_strictly_inside_it():
+    inputs = recon_batch(h=19, w=11)
+    with torch.no_grad():
+        out = net(seed=3)(inputs * 5.0, torch.randn(2, 6, 19, 11) * 5.0)  # far outside the trained range
+    assert out[:, MASK].min() >= 0 and out[:, MASK].max() <= 1
+    assert out[:, AO].min() > 0 and out[:, AO].max() < 1
+
+
+@pytest.mark.parametrize("config", [{}, {"widths": (8, 12, 20, 24), "blocks": 3}])
+def test_macs_per_pixel_counts_every_convolution(config):
+    model = net(**config)
+    h, w = 32, 48  # multiples of 8: no padding
+    with FlopCounterMode(display=False) as counter, torch.no_grad():
+        model(recon_batch(b=1, h=h, w=w), torch.zeros(1, 6, h, w))
+    assert counter.get_total_flops() / 2 / (h * w) == pytest.approx(macs_per_pixel(model.config), rel=1e-12)
+
+
+def test_first_previous_from_the_inputs_takes_sampled_ao_where_rays_were_cast_else_the_mask():
+    inputs = torch.cat([recon_batch(b=1, ao_rays=0, seed=1), recon_batch(b=1, ao_rays=2, seed=2)])
+    inputs[0, SAMPLED_AO] = 0.0  # what recon_inputs stores without AO rays
+    first = net(first_frame="inputs").first_previous(inputs)
+    assert first.shape == (2, 6, 16, 24)
+    torch.testing.assert_close(first[:, :AO.start], inputs[:, :AO.start], rtol=0, atol=0)
+    torch.testing.assert_close(first[0, AO], inputs[0, MASK], rtol=0, atol=0)
+    torch.testing.assert_close(first[1, AO], inputs[1, SAMPLED_AO], rtol=0, atol=0)
+    assert not torch.equal(inputs[1, SAMPLED_AO], inputs[1, MASK])  # the two cases differ here
+    zeros = net(first_frame="zeros").first_previous(inputs)
+    assert zeros.shape == (2, 6, 16, 24) and (zeros == 0).all()
+
+
+def test_step_warps_the_previous_output_and_needs_a_flow_for_it():
+    model = net()
+    inputs, previous = recon_batch(), torch.rand(2, 6, 16, 24)
+    with torch.no_grad():
+        out, warped = model.step(inputs, None, None)
+        torch.testing.assert_close(warped, model.first_previous(inputs))
+        torch.testing.assert_close(out, model(inputs, warped))
+        _, warped = model.step(inputs, torch.zeros(2, 2, 16, 24), previous)
+        torch.testing.assert_close(warped, previous, rtol=0, atol=1e-6)  # zero flow: nothing moves
+    with pytest.raises(ValueError, match="needs the flow"):
+        model.step(inputs, None, previous)
+
+
+def test_forward_checks_shapes():
+    with pytest.raises(ValueError, match="inputs"):
+        net()(torch.zeros(1, 5, 8, 8), torch.zeros(1, 6, 8, 8))
+    with pytest.raises(ValueError, match="prev_warped"):
+        net()(torch.zeros(1, 8, 8, 8), torch.zeros(1, 6, 8, 16))
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"widths": (16, 32, 64)}, "widths must be 4 positive integers"),
+    ({"widths": (16, 32, 64, 64, 64)}, "widths must be 4 positive integers"),
+    ({"widths": (16, 0, 64, 64)}, "widths must be 4 positive integers"),
+    ({"widths": (16, 32.0, 64, 64)}, "widths must be 4 positive integers"),
+    ({"widths": (True, 32, 64, 64)}, "widths must be 4 positive integers"),
+    ({"blocks": -1}, "blocks must be >= 0"),
+    ({"first_frame": "upsampled"}, "first_frame must be one of"),
+])
+def test_config_rejects_bad_values(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        ReconNetConfig(**kwargs)
+
+
+def test_config_widths_from_json_become_a_tuple():
+    assert ReconNetConfig(widths=[8, 8, 16, 16]).widths == (8, 8, 16, 16)
+
+
+def test_float32_matches_float64():
+    model = net(seed=5)
+    inputs, prev = recon_batch(h=13, w=21, seed=5), torch.rand(2, 6, 13, 21, generator=torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        single = model(inputs, prev)
+        double = model.double()(inputs.double(), prev.double())
+    torch.testing.assert_close(single.double(), double, rtol=0, atol=1e-5)
+
+
+# ---------------------------------------------------------------- inputs
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    volume = open_volume("proc:sphere@32")
+    return Renderer(volume, "cpu"), resolve_iso("proc:sphere@32", volume)
+
+
+@pytest.fixture(scope="module")
+def sphere_frames(sphere) -> list[FrameBuffers]:
+    """Two frames of the sphere at 96x64 along an orbit: mask, normal, depth, AO of 2 rays, and the
+    second's flow from the first."""
+    renderer, iso = sphere
+    cameras = [orbit(30.0, 20.0, 1.6), orbit(34.0, 20.0, 1.6)]
+    requests = sequence_requests(cameras, *SIZE, iso, ("mask", "normal", "depth", "ao", "flow"), ao_samples=2)
+    return [renderer.render(camera, request) for camera, request in requests]
+
+
+def fresh(frame: FrameBuffers, **changes) -> FrameBuffers:
+    """A copy of ``frame`` with ``changes`` (None drops a buffer)."""
+    buffers = {name: getattr(frame, name).clone() for name in frame.present()}
+    buffers.update(changes)
+    return FrameBuffers(**buffers)
+
+
+def test_recon_inputs_lay_out_the_channels(sphere_frames):
+    frame = sphere_frames[1]
+    inputs, flow = recon_inputs(frame, 2, 3)
+    assert inputs.shape == (1, len(RECON_CHANNELS), SIZE[1], SIZE[0]) and inputs.dtype == torch.float32
+    torch.testing.assert_close(inputs[0, MASK][0], frame.mask, rtol=0, atol=0)
+    torch.testing.assert_close(inputs[0, NORMAL], frame.normal.permute(2, 0, 1), rtol=0, atol=0)
+    torch.testing.assert_close(inputs[0, DEPTH][0], frame.depth, rtol=0, atol=0)
+    torch.testing.assert_close(inputs[0, SAMPLED_AO][0], frame.ao, rtol=0, atol=0)
+    assert (inputs[0, SAMPLING][0] == 2 / AO_RAYS_SCALE).all() and (inputs[0, SAMPLING][1] == 3 / SPP_SCALE).all()
+    assert flow.shape == (1, 2, SIZE[1], SIZE[0])
+    no_ao, _ = recon_inputs(fresh(frame, ao=None), 0, 1)
+    assert (no_ao[0, SAMPLED_AO] == 0).all() and (no_ao[0, SAMPLING][0] == 0).all()
+
+
+@pytest.mark.parametrize("change, ao_rays, spp, match", [
+    ({"normal": "nan"}, 2, 1, "normal holds NaN or Inf"),
+    ({"depth": "inf"}, 2, 1, "depth holds NaN or Inf"),
+    ({"ao": 1.5}, 2, 1, r"outside \[0, 1\]"),
+    ({"ao": -0.25}, 2, 1, r"outside \[0, 1\]"),
+    ({"ao": "nan"}, 2, 1, r"outside \[0, 1\]"),
+    ({"ao": None}, 2, 1, "needs the frame's ao buffer"),
+    ({}, 9, 1, r"ao_rays must be an integer in \[0, 8\], got 9"),
+    ({}, -1, 1, "ao_rays must be"),
+    ({}, True, 1, "ao_rays must be .*got True"),
+    ({}, 2, 0, "spp must be"),
+    ({}, 2, 1.0, "spp must be"),
+])
+def test_recon_inputs_refuse_hostile_frames(sphere_frames, change, ao_rays, spp, match):
+    frame = fresh(sphere_frames[0])
+    for name, value in change.items():
+        if value is None:
+            setattr(frame, name, None)
+        else:
+            getattr(frame, name)[3, 5:9] = float(value)
+    with pytest.raises(ValueError, match=match):
+        recon_inputs(frame, ao_rays, spp)
+
+
+def test_recon_inputs_refuse_a_misshapen_ao(sphere_frames):
+    with pytest.raises(ValueError, match="ao"):
+        recon_inputs(fresh(sphere_frames[0], ao=torch.zeros(SIZE[1], SIZE[0] - 1)), 2, 1)
+
+
+# ---------------------------------------------------------------- the Reconstructor
+
+
+def assert_sane(out: FrameBuffers, height: int, width: int) -> None:
+    """Reconstructed buffers: finite, at the frame size, mask and AO in [0, 1], unit normals where covered."""
+    assert out.present() == ["mask", "normal", "depth", "ao"]
+    for name in out.present():
+        assert torch.isfinite(getattr(out, name)).all(), name
+    assert out.mask.shape == (height, width) and out.normal.shape == (height, width, 3)
+    assert out.mask.min() >= 0 and out.mask.max() <= 1 and out.ao.min() >= 0 and out.ao.max() <= 1
+    covered = out.mask > 0
+    torch.testing.assert_close(out.normal[covered].norm(dim=-1), torch.ones(int(covered.sum())), rtol=0, atol=1e-4)
+
+
+def test_the_shipped_model_loads_without_arguments():
+    reconstructor = Reconstructor()
+    assert isinstance(reconstructor.net, ReconNet) and reconstructor.upscale_factor == 1
+    assert reconstructor.precision == "fp32" and reconstructor.device == torch.device("cpu")
+
+
+def test_reconstruct_a_rendered_frame(sphere_frames):
+    frame = sphere_frames[0]
+    out = Reconstructor().reconstruct(frame, 2, 1)
+    assert_sane(out, SIZE[1], SIZE[0])
+    assert ((out.mask > 0.5) == (frame.mask > 0.5)).float().mean() > 0.98  # the silhouette stays put
+    hit = (out.mask > 0.5) & (frame.mask > 0.5)
+    # Depth is not trained (no depth loss in configs/train_recon.json): only its sign is checked.
+    assert (out.depth[hit] > 0).all() and (out.depth[out.mask == 0] == 0).all()
+    assert out.ao[hit].mean() > 0.8  # a sphere occludes little of itself
+
+
+def test_the_second_frame_carries_the_first_and_a_reset_forgets_it(sphere_frames):
+    reconstructor = Reconstructor()
+    reconstructor.reconstruct(sphere_frames[0], 2, 1)
+    carried = reconstructor.reconstruct(sphere_frames[1], 2, 1)
+    reconstructor.reset()
+    alone = reconstructor.reconstruct(sphere_frames[1], 2, 1)
+    assert_sane(carried, SIZE[1], SIZE[0])
+    assert (carried.ao - alone.ao).abs().max() > 1e-3
+    torch.testing.assert_close(alone.ao, Reconstructor().reconstruct(sphere_frames[1], 2, 1).ao)
+
+
+def test_a_new_frame_size_starts_over(sphere, sphere_frames):
+    renderer, iso = sphere
+    request = RenderRequest(48, 32, iso, ("mask", "normal", "depth", "ao", "flow"), ao_samples=2,
+                            prev_camera=orbit(30.0, 20.0, 1.6))
+    small = renderer.render(orbit(34.0, 20.0, 1.6), request)
+    reconstructor = Reconstructor()
+    reconstructor.reconstruct(sphere_frames[0], 2, 1)
+    out = reconstructor.reconstruct(small, 2, 1)  # a flow, but nothing of this size to warp
+    assert_sane(out, 32, 48)
+    torch.testing.assert_close(out.ao, Reconstructor().reconstruct(small, 2, 1).ao)
+
+
+def test_upscale_is_refused_and_an_upscaler_folder_is_not_a_reconstructor(sphere_frames):
+    with pytest.raises(TypeError, match="reconstruct"):
+        Reconstructor().upscale(sphere_frames[0])
+    with pytest.raises(ValueError, match="SRNet, not a reconstruction network"):
+        Reconstructor(DEFAULT_MODEL)
+
+
+def test_extreme_depth_stays_finite(sphere_frames):
+    frame = fresh(sphere_frames[0])
+    frame.depth = torch.where(frame.mask > 0, torch.full_like(frame.depth, 1e6), frame.depth)
+    out = Reconstructor().reconstruct(frame, 2, 1)
+    assert_sane(out, SIZE[1], SIZE[0])
+
+
+def test_an_empty_frame_stays_empty_and_a_camera_inside_the_volume_gives_finite_output(sphere):
+    renderer, iso = sphere
+    outputs = ("mask", "normal", "depth", "ao")
+    empty = renderer.render(orbit(30.0, 20.0, 1.6), RenderRequest(*SIZE, 2.0, outputs, ao_samples=2))
+    assert empty.mask.max() == 0
+    out = Reconstructor().reconstruct(empty, 2, 1)
+    assert_sane(out, SIZE[1], SIZE[0])
+    assert out.mask.max() < 0.05
+    inside = Camera((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, 1.0, 0.0), 40.0)
+    out = Reconstructor().reconstruct(renderer.render(inside, RenderRequest(*SIZE, iso, outputs, ao_samples=2)), 2, 1)
+    assert_sane(out, SIZE[1], SIZE[0])
+
+
+# ---------------------------------------------------------------- the shipped model's quality
+
+
+def test_the_shipped_model_beats_the_frame_it_reconstructs():
+    """Color PSNR against the many-ray reference: the reconstruction of 2 AO rays and 1 ray per
+    pixel, and the same render shaded as it is."""
+    volume = open_volume("proc:cloud:3@48")
+    renderer, iso = Renderer(volume, "cpu"), resolve_iso("proc:cloud:3@48", volume)
+    cameras = orbit_path(2, yaw0=20.0, yaw_step=3.0)
+    references = reference_frames(renderer, iso, SIZE, cameras)
+    psnr = {}
+    for method in (FrameMethod("reconstruct", ao_rays=2), FrameMethod("full", ao_rays=2)):
+        frames = run_sequence(FrameRunner(method, renderer, iso, *SIZE), cameras)
+        psnr[method.kind] = [color_psnr(f, r) for f, r in zip(frames, references)]
+    for reconstructed, plain in zip(psnr["reconstruct"], psnr["full"]):
+        assert reconstructed > plain + 0.5, psnr
