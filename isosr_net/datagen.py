@@ -21,12 +21,12 @@ from safetensors.torch import load_file, save
 from tqdm import tqdm
 
 from isosr_render import Renderer, RenderRequest, Volume, open_volume, orbit
-from isosr_render.renderer import MAX_SPP
 from isosr_render.atomic import atomic_write
 from isosr_render.catalog import SHARED_PREFIX, entry, resolve_iso
 from isosr_render.conventions import HIGHRES_BUFFERS, LOWRES_BUFFERS
 from isosr_render.sequence import sequence_requests
 from isosr_net.batch import FIELDS, SequenceBatch
+from isosr_net.reconnet import MAX_RECON_SPP
 from isosr_net.reconstructor import MAX_RECON_AO_RAYS, recon_inputs
 
 MANIFEST = "manifest.json"
@@ -53,8 +53,9 @@ class DatagenConfig:
         ao_samples, ao_radius, spp: ground-truth AO rays per hit, their length (world
             units), and rays per pixel.
         input_spp, input_ao_rays: (upscale 1) each sequence's inputs are rendered with rays
-            per pixel and AO rays per hit drawn from these (AO rays: 0 to
-            :data:`isosr_net.reconstructor.MAX_RECON_AO_RAYS`, what the network takes).
+            per pixel and AO rays per hit drawn from these (what the network takes: spp up to
+            :data:`isosr_net.reconnet.MAX_RECON_SPP`, AO rays 0 to
+            :data:`isosr_net.reconstructor.MAX_RECON_AO_RAYS`).
         iso_jitter: iso-values are drawn uniformly within +-this fraction of the volume's
             reference iso (Otsu's, or the procedural default).
         seed: base seed; each (volume, sequence) derives its own.
@@ -86,7 +87,7 @@ class DatagenConfig:
         if self.upscale > 1 and (self.input_spp != (1,) or self.input_ao_rays != (0,)):
             raise ValueError("input_spp and input_ao_rays are for reconstruction data (upscale 1); an upscaler's "
                              "inputs have 1 ray per pixel and no AO")
-        for name, low, high in (("input_spp", 1, MAX_SPP), ("input_ao_rays", 0, MAX_RECON_AO_RAYS)):
+        for name, low, high in (("input_spp", 1, MAX_RECON_SPP), ("input_ao_rays", 0, MAX_RECON_AO_RAYS)):
             values = getattr(self, name)
             if not values or any(isinstance(v, bool) or not isinstance(v, int) or not low <= v <= high
                                  for v in values):

@@ -28,6 +28,7 @@ from isosr_render.sequence import sequence_cameras
 from isosr_render.shading import ShadingParams, shade
 from isosr_net.atrous import ATrousConfig, atrous_filter
 from isosr_net.metrics import upscale_baseline
+from isosr_net.reconnet import MAX_RECON_SPP
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, MAX_RECON_AO_RAYS, Reconstructor
 from isosr_net.upscaler import DEFAULT_MODEL, PRECISIONS, Upscaler, highres_frame
 
@@ -48,7 +49,8 @@ class FrameMethod:
             ray cast, classic interpolation), ``"network"`` (low-res ray cast, trained network).
         ao_rays: AO rays per hit (full: 0 for none; atrous: at least 1; reconstruct: 0 to
             :data:`MAX_RECON_AO_RAYS`, 0 infers AO; upscalers: 0).
-        spp: rays per pixel (full resolution only).
+        spp: rays per pixel (full resolution only; reconstruct: at most
+            :data:`isosr_net.reconnet.MAX_RECON_SPP`).
         factor: upscaling factor (upscale and network: at least 2; others: 1).
         interpolation: ``"nearest"``, ``"bilinear"`` or ``"bicubic"`` (upscale).
         model: the network's model folder (learned kinds; None: the shipped default).
@@ -69,9 +71,11 @@ class FrameMethod:
         if self.kind not in KINDS:
             raise ValueError(f"frame method kind must be one of {KINDS}, got {self.kind!r}")
         low_res = self.kind in ("upscale", "network")
-        most_rays = 0 if low_res else MAX_RECON_AO_RAYS if self.kind == "reconstruct" else MAX_AO_SAMPLES
+        recon = self.kind == "reconstruct"
+        most_rays = 0 if low_res else MAX_RECON_AO_RAYS if recon else MAX_AO_SAMPLES
+        most_spp = 1 if low_res else MAX_RECON_SPP if recon else MAX_SPP
         for name, value, low, high in (("ao_rays", self.ao_rays, 1 if self.kind == "atrous" else 0, most_rays),
-                                       ("spp", self.spp, 1, 1 if low_res else MAX_SPP),
+                                       ("spp", self.spp, 1, most_spp),
                                        ("factor", self.factor, 2 if low_res else 1, 16 if low_res else 1)):
             if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
                 raise ValueError(f"{self.kind} frame method: {name} must be an integer in [{low}, {high}], "

@@ -4,8 +4,8 @@ Beyond the paper: instead of fewer pixels, fewer rays. Per frame the network see
 full-resolution first-hit buffers (mask, normal, depth) rendered with ``spp`` rays per pixel,
 the AO of ``ao_rays`` hemisphere rays per hit (0: none cast, AO inferred from the geometry as
 in the paper), and its own previous output warped by the flow (the paper's recurrence). It
-outputs the converged frame's buffers: AO as from hundreds of rays and mask, normal, depth as
-from 4 rays per pixel (an antialiased silhouette). Channel orders:
+outputs the converged frame's buffers: AO as from hundreds of rays and mask and normal as
+from 4 rays per pixel (an antialiased silhouette); depth passes through from the input. Channel orders:
 :data:`isosr_render.conventions.RECON_CHANNELS` in, ``HIGHRES_CHANNELS`` out.
 
 The network is a small U-Net: AO varies slowly along a surface and needs a wide view (its
@@ -33,6 +33,8 @@ OUTPUTS = len(HIGHRES_CHANNELS)
 RECURRENT = 2
 # The sampling channels hold ao_rays / AO_RAYS_SCALE and spp / SPP_SCALE (1 at the most trained).
 AO_RAYS_SCALE, SPP_SCALE = 8.0, 4.0
+# The most rays per pixel the sampling channel describes; more would leave the trained range.
+MAX_RECON_SPP = 4
 LEVELS = 3  # 1/2, 1/4, 1/8
 FIRST_FRAME_MODES = ("zeros", "inputs")
 
@@ -143,9 +145,9 @@ class ReconNet(nn.Module):
         raw = self.tail(y)[..., :h, :w]
         mask = (inputs[:, MASK] + raw[:, MASK]).clamp(0.0, 1.0)
         normal = inputs[:, NORMAL] + raw[:, NORMAL]
-        depth = inputs[:, DEPTH] + raw[:, DEPTH]
         ao = torch.sigmoid(raw[:, AO])
-        return torch.cat([mask, normal, depth, ao], dim=1)
+        # Depth passes through: at full resolution the render found it (shading does not read it).
+        return torch.cat([mask, normal, inputs[:, DEPTH], ao], dim=1)
 
     def first_previous(self, inputs: torch.Tensor) -> torch.Tensor:
         """The stand-in for the previous output on a sequence's first frame."""

@@ -16,9 +16,8 @@ from pathlib import Path
 import torch
 
 from isosr_render.buffers import FrameBuffers
-from isosr_render.renderer import MAX_SPP
 from isosr_render.shapes import check_shape
-from isosr_net.reconnet import ReconNet, sampling_channels
+from isosr_net.reconnet import MAX_RECON_SPP, ReconNet, sampling_channels
 from isosr_net.upscaler import Upscaler, highres_frame, lowres_tensors
 
 DEFAULT_RECON_MODEL = Path(__file__).resolve().parent / "recon_model"
@@ -35,7 +34,7 @@ def recon_inputs(frame: FrameBuffers, ao_rays: int, spp: int) -> tuple[torch.Ten
         frame: mask, normal, depth, and ``ao`` when ``ao_rays > 0``, rendered with ``spp`` rays
             per pixel and ``ao_rays`` AO rays per hit.
         ao_rays: AO rays per hit, 0 to :data:`MAX_RECON_AO_RAYS` (0: no AO input).
-        spp: rays per pixel.
+        spp: rays per pixel, 1 to :data:`isosr_net.reconnet.MAX_RECON_SPP`.
 
     Raises:
         ValueError: counts out of range, a buffer missing, misshapen or not finite, AO outside [0, 1].
@@ -43,7 +42,7 @@ def recon_inputs(frame: FrameBuffers, ao_rays: int, spp: int) -> tuple[torch.Ten
     Shape:
         Returns inputs (1, 8, H, W) and flow (1, 2, H, W), float32.
     """
-    for name, value, low, high in (("ao_rays", ao_rays, 0, MAX_RECON_AO_RAYS), ("spp", spp, 1, MAX_SPP)):
+    for name, value, low, high in (("ao_rays", ao_rays, 0, MAX_RECON_AO_RAYS), ("spp", spp, 1, MAX_RECON_SPP)):
         if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
             raise ValueError(f"reconstruction: {name} must be an integer in [{low}, {high}], got {value!r}")
     lowres, flow = lowres_tensors(frame)

@@ -159,7 +159,8 @@ def test_config_rejects_bad_values(kwargs, match):
 @pytest.mark.parametrize("kwargs, match", [
     ({"input_spp": (1, 2)}, "input_spp and input_ao_rays are for reconstruction data"),
     ({"input_ao_rays": (2,)}, "input_spp and input_ao_rays are for reconstruction data"),
-    ({"upscale": 1, "input_spp": (0, 1)}, r"input_spp must be a non-empty list of integers in \[1, 256\]"),
+    ({"upscale": 1, "input_spp": (0, 1)}, r"input_spp must be a non-empty list of integers in \[1, 4\]"),
+    ({"upscale": 1, "input_spp": (8,)}, r"input_spp must be a non-empty list of integers in \[1, 4\]"),
     ({"upscale": 1, "input_spp": ()}, "input_spp must be a non-empty list"),
     ({"upscale": 1, "input_spp": (1.5,)}, "input_spp must be"),
     ({"upscale": 1, "input_ao_rays": (2, 9)}, r"input_ao_rays must be a non-empty list of integers in \[0, 8\]"),

@@ -41,6 +41,7 @@ def test_names_follow_the_issue():
     (dict(kind="full", factor=2), "factor"), (dict(kind="upscale", factor=2, interpolation="lanczos"), "interpolation"),
     (dict(kind="network", factor=4, precision="fp8"), "precision"), (dict(kind="full", spp=True), "spp"),
     (dict(kind="reconstruct", ao_rays=9), r"ao_rays must be an integer in \[0, 8\]"),
+    (dict(kind="reconstruct", spp=8), r"spp must be an integer in \[1, 4\]"),
     (dict(kind="reconstruct", factor=2), "factor")])
 def test_bad_methods_are_refused(kwargs, message):
     with pytest.raises(ValueError, match=message):
