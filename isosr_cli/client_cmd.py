@@ -30,7 +30,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--size", default="640x480", help="output WxH")
     p.add_argument("--focus", help="focus mode's circle CX,CY,R in output pixels (default: centered, radius H/4)")
     p.add_argument("--iso", type=float, help="iso-value in data units (default: the volume's suggested one)")
-    p.add_argument("--ao-samples", type=int, default=0, help="AO rays per pixel of full-resolution renders")
+    p.add_argument("--ao-samples", type=int, default=0, help="AO rays per pixel of full-resolution renders "
+                                                             "(reconstruct mode: per hit, 0-8 with the shipped model)")
     p.add_argument("--encoding", default="jpeg", choices=ENCODINGS)
     p.add_argument("--quality", type=int, default=85)
     p.add_argument("--out", type=Path, help="folder for frame_NNNN.png and summary.json (default: none written)")

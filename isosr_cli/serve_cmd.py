@@ -8,6 +8,7 @@ import os
 from dataclasses import fields
 from pathlib import Path
 
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL
 from isosr_net.upscaler import DEFAULT_MODEL, PRECISIONS
 from isosr_server.protocol import Limits
 
@@ -23,6 +24,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--volumes", type=Path, help="folder of volumes offered by name (default: ../shared/volumes "
                                                "if present; procedural proc: volumes always)")
     p.add_argument("--model", type=Path, default=DEFAULT_MODEL, help="model folder")
+    p.add_argument("--recon-model", type=Path, default=DEFAULT_RECON_MODEL,
+                   help="reconstruction model folder (reconstruct mode)")
     p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     p.add_argument("--precision", default="fp32", choices=sorted(PRECISIONS), help="the network's precision")
     p.add_argument("--token", help=f"shared secret clients must send (default: ${TOKEN_ENV})")
@@ -42,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
 
     limits = Limits(**{f.name: getattr(args, f.name) for f in fields(Limits)})
     config = ServerConfig(host=args.host, volumes=args.volumes or default_volumes_dir(),
-                          engine=EngineConfig(args.model, args.device, args.precision),
+                          engine=EngineConfig(args.model, args.device, args.precision, args.recon_model),
                           token=args.token or os.environ.get(TOKEN_ENV) or None, limits=limits)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     uvicorn.run(create_app(config), host=args.host, port=args.port, log_level=args.log_level,

@@ -320,8 +320,10 @@ def connect(url: str, volume: str, mode: str = "sr", size: tuple[int, int] = (64
     Args:
         url: the server, ``http://HOST:PORT`` or ``ws://HOST:PORT``.
         volume: the volume's name.
-        mode: ``full``, ``sr``, ``bilinear``, ``buffers`` or ``focus``.
-        size: output (width, height); a multiple of the upscale factor except in ``full``.
+        mode: ``full``, ``sr``, ``bilinear``, ``buffers``, ``focus`` or ``reconstruct`` (AO rays per
+            hit: ``settings["ao_samples"]``, 0 to the server's bound).
+        size: output (width, height); a multiple of the upscale factor except in ``full`` and
+            ``reconstruct``.
         token: the server's token, if it has one.
         settings: more `ViewSettings` fields (ao_samples, encoding, quality, refine, ...).
         camera: the first camera as `set_camera` keywords (default: the server's).

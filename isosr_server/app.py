@@ -316,10 +316,10 @@ def create_app(config: ServerConfig) -> FastAPI:
             metrics.sessions.labels("view").set(view_sessions.count)
             session = await open_view(ws, limiter)
             renderer = await engine.call(engine.renderer_sync, session.volume_name, session.volume)
-            upscaler = engine.new_upscaler()
+            upscaler, recon = engine.new_upscaler(), engine.new_recon_stream()
 
             async def make(job):
-                return await engine.call(engine.view_frame_sync, renderer, upscaler, job.spec, job.encoding,
+                return await engine.call(engine.view_frame_sync, renderer, upscaler, recon, job.spec, job.encoding,
                                          job.quality)
 
             async def send(data: bytes, msg) -> None:

@@ -10,6 +10,8 @@ that channel needs are rendered (standing order 3):
               input flow, nearest-upsampled and scaled to output pixels
     bilinear  the bilinear baseline (its AO is 1 everywhere: the baseline knows no occlusion)
     focus     as ``sr`` (the lens applies to shaded frames only)
+    reconstruct  the network's output (mask, normal, depth, AO); flow is its full-res input
+              flow, rendered once more for this view
     buffers   no channel view: the client gets the buffers themselves
 
 Colormaps (the page's legend.js draws the same ones from the frame's ``legend``):
@@ -25,13 +27,14 @@ Uncovered pixels (mask 0) are `NO_SURFACE` gray, covered ones blend by the mask.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import torch
 
 from isosr_net.frame_methods import upscale_classic
 from isosr_net.upscaler import Upscaler
 from isosr_render import FrameBuffers, Renderer, RenderRequest
-from isosr_server.pipeline import FrameSpec, StageTimer, render_lowres
+from isosr_server.pipeline import FrameSpec, ReconStream, StageTimer, render_lowres
 from isosr_server.protocol import CHANNELS, FLOW_CLIP, ProtocolError, ViewSettings
 
 NO_SURFACE = 0.12
@@ -51,10 +54,18 @@ def check(settings: ViewSettings) -> None:
         raise ProtocolError("the ao channel of full-resolution frames needs ao_samples > 0")
 
 
-def channel_buffers(renderer: Renderer, upscaler: Upscaler, factor: int, spec: FrameSpec,
-                    timer: StageTimer) -> FrameBuffers:
-    """The mode's output-resolution buffers that ``spec.channel`` shows (plus the mask)."""
+def channel_buffers(renderer: Renderer, upscaler: Upscaler, factor: int, spec: FrameSpec, timer: StageTimer,
+                    recon: ReconStream | None = None) -> FrameBuffers:
+    """The mode's output-resolution buffers that ``spec.channel`` shows (plus the mask);
+    ``recon``: the session's reconstruction (``reconstruct`` mode only)."""
     channel = spec.channel
+    if spec.mode == "reconstruct":
+        if recon is None:
+            raise ValueError("the reconstruct mode's channel view needs the session's ReconStream")
+        high = recon.frame(renderer, spec)  # always: keeps the recurrent state in step with the stream
+        if channel == "flow":
+            high.flow = channel_buffers(renderer, upscaler, factor, replace(spec, mode="full"), timer).flow
+        return high
     if spec.mode == "full":
         flow = channel == "flow" and spec.prev_camera is not None
         outputs = ("mask",) + ((channel,) if channel not in ("mask", "flow") or flow else ())
@@ -137,9 +148,9 @@ def _flow_color(flow: torch.Tensor, length: torch.Tensor, hi: float) -> torch.Te
     return value[..., None] * (1.0 - torch.minimum(k, 4.0 - k).clamp(0.0, 1.0))
 
 
-def render_channel(renderer: Renderer, upscaler: Upscaler, factor: int, spec: FrameSpec,
-                   timer: StageTimer) -> tuple[torch.Tensor, dict]:
-    """A channel-view frame: ``(rgb (H, W, 3) in [0, 1], legend)``."""
-    buffers = channel_buffers(renderer, upscaler, factor, spec, timer)
+def render_channel(renderer: Renderer, upscaler: Upscaler, factor: int, spec: FrameSpec, timer: StageTimer,
+                   recon: ReconStream | None = None) -> tuple[torch.Tensor, dict]:
+    """A channel-view frame: ``(rgb (H, W, 3) in [0, 1], legend)`` (arguments: :func:`channel_buffers`)."""
+    buffers = channel_buffers(renderer, upscaler, factor, spec, timer, recon)
     with timer("shading"):
         return false_color(buffers, spec.channel)

@@ -8,8 +8,9 @@ served in turn (round robin), never the busiest first. The event loop awaits
 :meth:`Engine.call`; everything named ``*_sync`` runs only on that thread.
 
 Renderers are cached per volume (a few, least recently used dropped); every stream gets its
-own `Upscaler` made by :meth:`Engine.new_upscaler`: a shallow copy of one loaded model that
-shares its weights and owns its recurrent state.
+own `Upscaler` made by :meth:`Engine.new_upscaler`, and every view session its own
+`Reconstructor` (:meth:`Engine.new_recon_stream`): shallow copies of one loaded model each that
+share its weights and own their recurrent state.
 """
 
 from __future__ import annotations
@@ -19,11 +20,13 @@ import copy
 import threading
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TypeVar
 
 import torch
 
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, MAX_RECON_AO_RAYS, Reconstructor
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
 from isosr_render import FrameBuffers, Renderer, Volume, orbit, parse_procedural, shade
 from isosr_render.images import quantize
@@ -32,6 +35,7 @@ from isosr_server.encoding import encode_image, encoder_name
 from isosr_server.protocol import ENCODINGS, UpscaleRequest
 
 RENDERER_CACHE = 4
+Net = TypeVar("Net", bound=Upscaler)
 
 
 @dataclass(frozen=True)
@@ -39,14 +43,16 @@ class EngineConfig:
     """Where and how the engine runs.
 
     Attributes:
-        model: model folder (``config.json`` + ``model.safetensors``).
+        model: the upscaling model folder (``config.json`` + ``model.safetensors``).
         device: ``cpu``, ``cuda`` or ``cuda:N``.
-        precision: the network's ``fp32``, ``bf16`` or ``fp16``.
+        precision: the networks' ``fp32``, ``bf16`` or ``fp16`` (upscaling and reconstruction).
+        recon_model: the reconstruction model folder (``reconstruct`` mode).
     """
 
     model: Path = DEFAULT_MODEL
     device: str = "cpu"
     precision: str = "fp32"
+    recon_model: Path = DEFAULT_RECON_MODEL
 
 
 class Engine:
@@ -60,6 +66,7 @@ class Engine:
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="isosr-device")
         self._renderers: OrderedDict[str, Renderer] = OrderedDict()
         self._template: Upscaler | None = None
+        self._recon_template: Reconstructor | None = None
         self._thread: threading.Thread | None = None
 
     async def call(self, fn, *args):
@@ -74,18 +81,22 @@ class Engine:
     # ---- start-up ---------------------------------------------------------------------------
 
     def start_sync(self) -> None:
-        """Load the model and warm the device: one small render, upscale, shading and encode."""
+        """Load the models and warm the device: one small render, upscale, reconstruction, shading and encode."""
         self._on_thread()
-        # GPUs: NHWC and the rewritten layers (the same function, isosr_net/fastpath.py); no
-        # torch.compile, which would stall every session for seconds at each new frame size.
+        # GPUs: NHWC and, for the upscaler, the rewritten layers (the same function,
+        # isosr_net/fastpath.py); no torch.compile (the `fastest` variants), which would stall
+        # every session for seconds at each new frame size.
         cuda = self.device.type == "cuda"
         self._template = Upscaler(self.config.model, str(self.device), self.config.precision,
                                   channels_last=cuda, fast_layers=cuda)
+        self._recon_template = Reconstructor(self.config.recon_model, str(self.device), self.config.precision,
+                                             channels_last=cuda)
         factor = self.upscale_factor
         renderer = Renderer(parse_procedural("proc:sphere@16"), str(self.device))
         spec = pipeline.FrameSpec("sr", orbit(30, 20, 1.8), None, 0.5, 8 * factor, 8 * factor, 1, 0.05, None, 0)
         color = pipeline.render_sr(renderer, self.new_upscaler(), spec, pipeline.StageTimer(self.device))
         encode_image(quantize(color), "jpeg", 80)
+        self.new_recon_stream().frame(renderer, replace(spec, mode="reconstruct"))
 
     @property
     def upscale_factor(self) -> int:
@@ -97,13 +108,17 @@ class Engine:
         return {"upscale_factor": self.upscale_factor, "precision": self.config.precision,
                 "device": str(self.device), "model": str(self.config.model),
                 "encoders": {e: encoder_name(str(self.device), e) for e in ENCODINGS},
-                "config": {k: v for k, v in vars(cfg).items() if isinstance(v, (int, float, str, bool, list, tuple))}}
+                "config": {k: v for k, v in vars(cfg).items() if isinstance(v, (int, float, str, bool, list, tuple))},
+                "reconstruction": {"model": str(self.config.recon_model), "max_ao_rays": MAX_RECON_AO_RAYS,
+                                   "spp": pipeline.RECON_SPP}}
 
     def new_upscaler(self) -> Upscaler:
         """A stream's own upscaler: shares the loaded weights, starts without recurrent state."""
-        upscaler = copy.copy(self._template)
-        upscaler.reset()
-        return upscaler
+        return _own(self._template)
+
+    def new_recon_stream(self) -> pipeline.ReconStream:
+        """A view session's own reconstruction: shares the loaded weights, starts without recurrent state."""
+        return pipeline.ReconStream(_own(self._recon_template), self.config.recon_model)
 
     def gpu_memory(self) -> int | None:
         """Bytes of GPU memory torch holds now (None on the CPU)."""
@@ -125,19 +140,29 @@ class Engine:
                 self._renderers.popitem(last=False)
         return self._renderers[name]
 
-    def view_frame_sync(self, renderer: Renderer, upscaler: Upscaler, spec: pipeline.FrameSpec, encoding: str,
+    def view_frame_sync(self, renderer: Renderer, upscaler: Upscaler, recon: pipeline.ReconStream,
+                        spec: pipeline.FrameSpec, encoding: str,
                         quality: int) -> tuple[bytes | None, dict | None, dict[str, float], dict | None]:
-        """One view frame: ``(image bytes or None, coded buffers or None, times in ms, channel legend or None)``."""
+        """One view frame: ``(image bytes or None, coded buffers or None, times in ms, channel legend or None)``.
+
+        Args:
+            renderer: the session's volume's renderer.
+            upscaler, recon: the session's own networks (sr and focus; reconstruct).
+            spec: the frame.
+            encoding, quality: the image coding of shaded frames.
+        """
         self._on_thread()
         timer = pipeline.StageTimer(self.device)
         with timer("total"):
             buffers, color, legend = None, None, None
             if spec.channel != "shaded" and spec.mode != "buffers":
-                color, legend = channels.render_channel(renderer, upscaler, self.upscale_factor, spec, timer)
+                color, legend = channels.render_channel(renderer, upscaler, self.upscale_factor, spec, timer, recon)
             elif spec.mode == "full":
                 color = pipeline.render_full(renderer, spec, timer)
             elif spec.mode == "sr":
                 color = pipeline.render_sr(renderer, upscaler, spec, timer)
+            elif spec.mode == "reconstruct":
+                color = recon.frame(renderer, spec).color
             elif spec.mode == "bilinear":
                 color = pipeline.render_bilinear(renderer, self.upscale_factor, spec, timer)
             elif spec.mode == "focus":
@@ -180,3 +205,9 @@ class Engine:
                 image = encode_image(quantize(color), request.output, request.quality)
         return image, None, timer.ms
 
+
+def _own(template: Net) -> Net:
+    """A stream's own copy of a loaded network: shares its weights, starts without recurrent state."""
+    net = copy.copy(template)
+    net.reset()
+    return net

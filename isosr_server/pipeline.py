@@ -9,6 +9,10 @@ computes only what its mode needs:
     buffers   low-res render (mask, normal, depth, flow) -> buffers coding (protocol)
     focus     ``sr``, plus a full-res render of the rows the focus region covers, blended in
               by a weight that ramps from 0 at the region's border to 1 ``blend`` pixels inside
+    reconstruct  full-res render (mask, normal, depth, flow, AO of ``ao_samples`` rays per hit)
+              -> reconstruction network (Reconstructor) -> shading, all one
+              :class:`isosr_net.frame_methods.FrameRunner` step (:class:`ReconStream`), which
+              times no stages of its own: its frames report ``total`` and ``encode`` only
 """
 
 from __future__ import annotations
@@ -16,15 +20,20 @@ from __future__ import annotations
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 
-from isosr_net.frame_methods import upscale_classic
+from isosr_net.frame_methods import FrameMethod, FrameRunner, upscale_classic
+from isosr_net.reconstructor import Reconstructor
 from isosr_net.upscaler import Upscaler
 from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest
 from isosr_render.conventions import LOWRES_BUFFERS
 from isosr_render.shading import shade
 from isosr_server.protocol import FocusMsg, encode_view_buffers
+
+# Rays per pixel of reconstruct-mode renders: one, as full mode renders.
+RECON_SPP = 1
 
 
 class StageTimer:
@@ -50,10 +59,12 @@ class FrameSpec:
 
     Attributes:
         mode: a view mode (protocol.MODES).
-        camera: this frame's camera; ``prev_camera`` the previous low-res frame's (flow), or None.
+        camera: this frame's camera; ``prev_camera`` the previous frame's of the stream (flow:
+            low-res modes and ``reconstruct``), or None.
         iso: normalized iso-value.
         width, height: output size; low-res frames are ``factor`` times smaller.
-        ao_samples, ao_radius: AO of full-res renders (0 samples: no AO).
+        ao_samples, ao_radius: AO of full-res renders (0 samples: no AO); in ``reconstruct``
+            mode the AO rays per hit the network gets (0: it infers AO).
         focus: the focus region (``focus`` mode).
         blend: focus border blend width in pixels.
         channel: ``shaded`` or the buffer a channel view shows (:mod:`isosr_server.channels`).
@@ -171,3 +182,37 @@ def render_focus(renderer: Renderer, upscaler: Upscaler, spec: FrameSpec, timer:
         w = weight[start:stop, :, None]
         color[start:stop] = color[start:stop] * (1.0 - w) + sharp * w
     return color
+
+
+class ReconStream:
+    """A view session's ``reconstruct`` frames: the session's own `Reconstructor` (its recurrent
+    state) run by the `FrameRunner` of the current AO rays, iso, size and AO radius. A change of
+    any of them makes a new runner, which starts without state, as a cut (``prev_camera`` None) does.
+
+    Args:
+        reconstructor: the session's own (:meth:`isosr_server.engine.Engine.new_recon_stream`).
+        model: the folder it was loaded from.
+    """
+
+    def __init__(self, reconstructor: Reconstructor, model: Path):
+        self.reconstructor, self.model = reconstructor, str(model)
+        self.runner: FrameRunner | None = None
+
+    def frame(self, renderer: Renderer, spec: FrameSpec) -> FrameBuffers:
+        """The frame of ``spec``: full-res render with ``spec.ao_samples`` AO rays per hit,
+        reconstruction (recurrent: ``spec.prev_camera`` None resets), shading.
+
+        Raises:
+            ValueError: ``spec.ao_samples`` beyond what the reconstruction takes.
+
+        Shape:
+            Returns color, normal (H, W, 3); mask, depth, ao (H, W).
+        """
+        method = FrameMethod("reconstruct", ao_rays=spec.ao_samples, spp=RECON_SPP, model=self.model,
+                             precision=self.reconstructor.precision)
+        r = self.runner
+        if r is None or r.renderer is not renderer or (r.method, r.iso, r.width, r.height, r.ao_radius) != \
+                (method, spec.iso, spec.width, spec.height, spec.ao_radius):
+            self.runner = FrameRunner(method, renderer, spec.iso, spec.width, spec.height, ao_radius=spec.ao_radius,
+                                      upscalers={method.upscaler_key(str(renderer.device)): self.reconstructor})
+        return self.runner.frame(spec.camera, spec.prev_camera)

@@ -19,6 +19,22 @@ View session (``WS /v1/view``)
     highest ``seq`` they include. A still camera gets one extra frame with ``refined: true``.
     Bad input ends the session with an ``error`` message and a close code (``CLOSE_*``).
 
+View modes (``settings.mode``; :mod:`isosr_server.pipeline` makes each)
+    full         ray cast at the output size, AO of ``ao_samples`` rays per pixel (0: none).
+    sr           ray cast at 1/factor of the output size, upscaled by the network (which
+                 infers AO), shaded.
+    bilinear     as ``sr`` with bilinear upscaling instead of the network (no AO).
+    buffers      the low-res buffers themselves (coding below): the client upscales.
+    focus        ``sr``, with a ``full`` render inside the focus region.
+    reconstruct  ray cast at the output size with few AO rays per hit (``ao_samples``: 0 to the
+                 reconstruction model's bound, ``reconstruction.max_ao_rays`` of
+                 ``GET /v2/models/isosr``, 8 for the shipped model; more are refused with
+                 CLOSE_BAD_MESSAGE), reconstructed by a network to converged-looking AO and
+                 antialiased edges, shaded. Added within version 2: servers without it refuse
+                 the mode by name.
+    ``sr``, ``focus`` and ``reconstruct`` carry a recurrent state per session; a new iso, size or
+    mode (``reconstruct``: or ``ao_samples``) starts it afresh.
+
 Flow control (version 2)
     The client answers each frame it has taken off the wire with ``received`` (``frame``: the
     frame's ``seq``; cumulative: it covers every frame before it too). The server renders a
@@ -74,7 +90,7 @@ MAX_ABS_FLOAT = 1e9
 FLOW_CLIP = 60000.0
 ZLIB_LEVEL = 1
 
-MODES = ("full", "sr", "bilinear", "buffers", "focus")
+MODES = ("full", "sr", "bilinear", "buffers", "focus", "reconstruct")
 # What a shaded-mode frame shows: the shaded image or one buffer in false color (isosr_server.channels).
 CHANNELS = ("shaded", "mask", "normal", "depth", "ao", "flow")
 ENCODINGS = ("jpeg", "png", "webp")
@@ -470,11 +486,13 @@ class ViewSettings:
     (absent: unchanged, or the default here).
 
     Attributes:
-        mode: ``full``, ``sr``, ``bilinear``, ``buffers`` or ``focus`` (see the server).
-        width, height: output image size; for every mode but ``full`` a multiple of the
-            network's upscale factor (``ready`` announces it).
-        ao_samples: AO rays per pixel of full-resolution renders (``full``, inside ``focus``);
-            0 = no AO.
+        mode: ``full``, ``sr``, ``bilinear``, ``buffers``, ``focus`` or ``reconstruct``
+            (module docstring).
+        width, height: output image size; for every mode but ``full`` and ``reconstruct`` a
+            multiple of the network's upscale factor (``ready`` announces it).
+        ao_samples: AO rays per pixel of full-resolution renders (``full``, inside ``focus``;
+            0 = no AO); in ``reconstruct`` the AO rays per hit the network gets, 0 to its bound
+            (0: it infers AO).
         ao_radius: AO ray length in world units.
         encoding, quality: image coding of shaded frames; quality 1-100 for jpeg/webp.
         refine: send one refined frame (full resolution, ``refine_ao_samples``) once the

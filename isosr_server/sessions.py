@@ -26,6 +26,7 @@ from collections import OrderedDict
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, replace
 
+from isosr_net.reconstructor import MAX_RECON_AO_RAYS
 from isosr_net.upscaler import Upscaler
 from isosr_render import Camera, Volume, orbit
 from isosr_server import channels
@@ -36,6 +37,8 @@ from isosr_server.protocol import (CLOSE_BAD_MESSAGE, CLOSE_IDLE, CLOSE_TOO_MANY
 
 DEFAULT_CAMERA = CameraMsg(yaw=30.0, pitch=20.0, distance=1.8)
 LOWRES_MODES = ("sr", "bilinear", "buffers", "focus")
+# Modes whose frames carry flow to the previous frame of the stream (recurrent networks, buffers).
+FLOW_MODES = LOWRES_MODES + ("reconstruct",)
 
 
 def to_camera(msg: CameraMsg) -> Camera:
@@ -125,13 +128,17 @@ class ViewSession:
         self.next_seq = 0
         # Flow control: the newest frame whose sending began, and the newest the client acknowledged.
         self.sent_seq = self.received_seq = -1
-        # The last low-res frame: its flow key (mode, size, iso), camera and seq.
+        # The last frame of a flow mode: its flow key (mode, size, iso), camera and seq.
         self._flow_key: tuple | None = None
         self._prev_camera: Camera | None = None
         self._prev_seq = -1
 
     def check_settings(self, settings: ViewSettings) -> None:
-        """Low-res modes need a size divisible by the upscale factor; a channel view one its mode makes."""
+        """Low-res modes need a size divisible by the upscale factor; reconstruct mode at most
+        ``MAX_RECON_AO_RAYS`` AO rays; a channel view one its mode makes."""
+        if settings.mode == "reconstruct" and settings.ao_samples > MAX_RECON_AO_RAYS:
+            raise ProtocolError(f"reconstruct mode takes 0 to {MAX_RECON_AO_RAYS} AO rays per hit (ao_samples), "
+                                f"got {settings.ao_samples}")
         channels.check(settings)
         if settings.mode in LOWRES_MODES:
             try:
@@ -207,7 +214,7 @@ class ViewSession:
         if self.rendered_version != self.version:
             self.rendered_version = self.version
             prev_camera, prev_seq = None, -1
-            if st.mode in LOWRES_MODES or st.channel == "flow":
+            if st.mode in FLOW_MODES or st.channel == "flow":
                 key = (st.mode, st.width, st.height, s.iso)
                 if key == self._flow_key:
                     prev_camera, prev_seq = self._prev_camera, self._prev_seq

@@ -5,14 +5,17 @@ mode computes only the buffers the asked channel needs, and the view sessions th
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
 
+from isosr_net.frame_methods import FrameMethod, FrameRunner
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
 from isosr_net.upscaler import Upscaler
 from isosr_render import FrameBuffers, Renderer, orbit, parse_procedural
 from isosr_server import channels
-from isosr_server.pipeline import FrameSpec, StageTimer
+from isosr_server.pipeline import FrameSpec, ReconStream, StageTimer
 from isosr_server.protocol import CHANNELS, FocusMsg, ProtocolError, ViewSettings
 
 from conftest import DEVICE
@@ -110,6 +113,28 @@ def test_lowres_modes_show_output_resolution_buffers(renderer, tmp_path_factory)
     rgb, legend = channels.render_channel(renderer, upscaler, factor, spec("focus", "depth"), timer)
     assert rgb.shape == (24, 32, 3) and 0 < legend["lo"] < legend["hi"]
     assert set(timer.ms) == {"render", "network", "shading"}
+
+
+def test_reconstruct_mode_shows_the_reconstruction(renderer):
+    """AO is the network's output (as the runner makes it), flow its full-res input flow; the
+    recurrent state advances on channel frames too."""
+    timer = StageTimer(torch.device(DEVICE))
+    method = FrameMethod("reconstruct", ao_rays=1)
+    runner = FrameRunner(method, renderer, 0.5, 32, 24,
+                         upscalers={method.upscaler_key(DEVICE): Reconstructor(device=DEVICE)})
+    expected = [runner.frame(orbit(28, 20, 1.6)), runner.frame(orbit(30, 20, 1.6), orbit(28, 20, 1.6))]
+    recon = ReconStream(Reconstructor(device=DEVICE), DEFAULT_RECON_MODEL)
+    first = channels.channel_buffers(renderer, None, 4, replace(spec("reconstruct", "ao", ao_samples=1),
+                                                                camera=orbit(28, 20, 1.6)), timer, recon)
+    second = channels.channel_buffers(renderer, None, 4, spec("reconstruct", "flow", prev=True, ao_samples=1), timer,
+                                      recon)
+    for got, want in zip((first, second), expected):
+        assert torch.equal(got.ao, want.ao) and got.ao.shape == (24, 32)
+    full = channels.channel_buffers(renderer, None, 4, spec("full", "flow", prev=True), timer)
+    assert torch.equal(second.flow, full.flow) and second.flow.abs().max() > 0
+    assert first.flow is None
+    with pytest.raises(ValueError, match="ReconStream"):
+        channels.channel_buffers(renderer, None, 4, spec("reconstruct", "ao"), timer)
 
 
 # ---- through the server ----------------------------------------------------------------------

@@ -26,7 +26,9 @@ from isosr_client import ServerError, connect, decode_image, upscale_remote
 from isosr_client.drive import Orbit, drive, summarize
 from isosr_client.view import CLIENT_LIMITS
 from isosr_render.images import to_uint8
+from isosr_net.frame_methods import FrameMethod, FrameRunner, run_sequence
 from isosr_net.metrics import upscale_baseline
+from isosr_net.reconstructor import MAX_RECON_AO_RAYS, Reconstructor
 from isosr_net.upscaler import Upscaler
 from isosr_render import FrameBuffers, Renderer, RenderRequest, open_volume, orbit
 from isosr_render.conventions import LOWRES_BUFFERS
@@ -137,6 +139,26 @@ def test_bilinear_and_focus_frames(server, library):  # noqa: F811
         assert (f[inside] != 255).any()
 
 
+def test_reconstruct_frames_equal_the_library(server, library):  # noqa: F811
+    """reconstruct: a full-res render with 2 AO rays per hit, the Reconstructor with its recurrent
+    state, shading (the library's FrameRunner), at a size no upscale factor divides."""
+    renderer, iso = library
+    size = (50, 30)
+    with connect(server.url, VOLUME, "reconstruct", size, settings=dict(LOSSLESS, ao_samples=2),
+                 camera=PATH.camera(0)) as view:
+        images = [view.latest().rgb()]
+        for i in range(1, FRAMES):
+            view.set_camera(**PATH.camera(i))
+            images.append(view.frame())
+        assert view.stats.mode == "reconstruct" and "total" in view.stats.server_ms
+    method = FrameMethod("reconstruct", ao_rays=2)
+    runner = FrameRunner(method, renderer, iso, *size, upscalers={method.upscaler_key("cpu"): Reconstructor()})
+    expected = run_sequence(runner, [orbit(**PATH.camera(i)) for i in range(FRAMES)])
+    for image, want in zip(images, expected):
+        assert image.shape == (size[1], size[0], 3) and (image != 255).any()
+        assert level_diff(image, to_uint8(want.color)).max() <= 1
+
+
 def test_refined_frame_for_a_still_camera(server, library):  # noqa: F811
     """A still camera gets one refined frame: full resolution with refine_ao_samples AO rays."""
     renderer, iso = library
@@ -186,6 +208,9 @@ def test_client_errors_are_clear(server):  # noqa: F811
         connect("ftp://127.0.0.1:1", VOLUME)
     with pytest.raises(ServerError, match="multiple of the upscale factor"):
         connect(server.url, VOLUME, "sr", (63, 48))
+    with pytest.raises(ServerError, match=f"reconstruct mode takes 0 to {MAX_RECON_AO_RAYS} AO rays") as e:
+        connect(server.url, VOLUME, "reconstruct", SIZE, settings={"ao_samples": MAX_RECON_AO_RAYS + 1})
+    assert e.value.code == 1007
     with connect(server.url, VOLUME, "sr", SIZE, settings=LOSSLESS) as view:
         with pytest.raises(ProtocolError, match="eye"):
             view.set_camera(yaw=10.0)
@@ -235,6 +260,11 @@ def test_cli_writes_frames_and_prints_costs(server, tmp_path, capsys):  # noqa: 
     assert main(["client", server.url, "--volume", VOLUME, "--mode", "focus", "--frames", "1", "--size", "64x48",
                  "--focus", "32,24,12", "--no-compare", "--out", str(focus)]) == 0
     assert json.loads((focus / "summary.json").read_text())["runs"][0]["mode"] == "focus"
+    recon = tmp_path / "reconstruct"
+    assert main(["client", server.url, "--volume", VOLUME, "--mode", "reconstruct", "--ao-samples", "1", "--frames",
+                 "1", "--size", "50x30", "--no-compare", "--out", str(recon)]) == 0
+    assert decode_image((recon / "frame_0000.png").read_bytes()).shape == (30, 50, 3)
+    assert json.loads((recon / "summary.json").read_text())["runs"][0]["mode"] == "reconstruct"
     capsys.readouterr()
 
     bad = tmp_path / "bad"

@@ -214,6 +214,18 @@ def test_buffers_coding_is_smaller_than_float32():
     assert coded < 0.5 * sum(a.nbytes for a in (mask, normal, depth, flow))
 
 
+def test_reconstruct_mode_travels_and_every_mode_is_documented():
+    assert "reconstruct" in P.MODES
+    for mode in P.MODES:
+        assert f"\n    {mode} " in P.__doc__, f"the module docstring does not describe mode {mode}"
+    settings = {"mode": "reconstruct", "ao_samples": 2, "width": 50, "height": 30}  # full res: any size
+    assert roundtrip(P.OpenMsg("proc:sphere", settings)).settings == settings
+    assert roundtrip(P.SettingsMsg({"mode": "reconstruct", "ao_samples": 0}, seq=4)).settings["mode"] == "reconstruct"
+    # Its frames time the whole reconstruction as one step: total and encode only.
+    frame = P.FrameMsg(3, 2, "reconstruct", 50, 30, "webp", {"encode": 1.0, "total": 5.0}, 4, image=b"RIFF")
+    assert roundtrip(frame) == frame
+
+
 def test_settings_update_and_size_limit():
     s = P.ViewSettings()
     s2 = s.updated(P.ViewSettings.read_update({"width": 128, "mode": "full"}, LIMITS), LIMITS)

@@ -20,7 +20,9 @@ import torch
 from websockets.exceptions import ConnectionClosed
 
 from isosr_cli.main import main
+from isosr_net.frame_methods import FrameMethod, FrameRunner, run_sequence
 from isosr_net.metrics import upscale_baseline
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, MAX_RECON_AO_RAYS, Reconstructor
 from isosr_net.upscaler import Upscaler
 from isosr_render import Camera, FrameBuffers, open_volume, orbit, shade
 from isosr_render.conventions import LOWRES_BUFFERS
@@ -65,6 +67,7 @@ def test_health_model_and_volumes(srv, volumes_dir):
     assert model["encoders"]["png"].startswith("opencv")
     assert [i["name"] for i in model["inputs"]] == ["mask", "normal", "depth", "flow"]
     assert [o["name"] for o in model["outputs"]] == ["mask", "normal", "depth", "ao"]
+    assert model["reconstruction"] == {"model": str(DEFAULT_RECON_MODEL), "max_ao_rays": MAX_RECON_AO_RAYS, "spp": 1}
     status, listing = srv.get_json("/v1/volumes")
     names = [v["name"] for v in listing["volumes"]]
     assert status == 200 and "blob" in names and "proc:sphere" in names and "notes" not in names
@@ -161,6 +164,57 @@ def test_focus_mode_full_inside_network_outside(srv, lib):
     outside[12:36, 8:40] = False
     assert np.abs(got[outside] - sr[outside]).max() <= LEVELS
     assert np.abs(full[inner].astype(int) - sr[inner]).max() > 10 * LEVELS  # the two differ where it is tested
+
+
+def lib_recon(lib, cameras, ao_rays=2) -> list[FrameBuffers]:
+    """The reconstruct frames of a camera path, with one recurrent state (the server's model and precision)."""
+    method = FrameMethod("reconstruct", ao_rays=ao_rays)
+    runner = FrameRunner(method, lib.renderer, lib.iso, W, H,
+                         upscalers={method.upscaler_key(DEVICE): Reconstructor(device=DEVICE)})
+    return run_sequence(runner, cameras)
+
+
+def test_reconstruct_mode_matches_the_library_with_recurrent_state(srv, lib):
+    cameras = [orbit(30, 20, 1.8), orbit(33, 20, 1.8), orbit(36, 20, 1.8)]
+    expected = lib_recon(lib, cameras)
+    for f in expected:
+        assert bool(torch.isfinite(f.color).all()) and 0.0 <= float(f.color.min()) <= float(f.color.max()) <= 1.0
+    with session(srv, mode="reconstruct", ao_samples=2) as (ws, ready):
+        assert ready.view_settings().mode == "reconstruct" and ready.view_settings().ao_samples == 2
+        for i, yaw in enumerate((30, 33, 36)):
+            if i:
+                send(ws, cam(yaw, seq=i))
+            f = frame(ws)
+            assert (f.mode, f.width, f.height, f.ack) == ("reconstruct", W, H, i if i else -1)
+            assert decode_image(f.image).shape == (H, W, 3)
+            assert_image(f.image, to_uint8(expected[i].color))
+        send(ws, P.SettingsMsg({"width": 50, "height": 30}, seq=3))  # full resolution: any size
+        f = frame(ws)
+        assert (f.mode, f.width, f.height, f.ack) == ("reconstruct", 50, 30, 3)
+        image = decode_image(f.image)
+        assert image.shape == (30, 50, 3) and (image < 200).any() and (image == 255).any()
+    # Not a plain render: the network's AO and edges differ from 2 rays' (and from the state-less frame).
+    assert np.abs(to_uint8(expected[0].color).astype(int) - lib_full(lib, cameras[0], ao_samples=2)).max() > 10
+    stateless = lib_recon(lib, cameras[2:])[0]
+    assert not torch.equal(stateless.color, expected[2].color)
+
+
+def test_mode_switches_sr_reconstruct_full_mid_session(srv, lib):
+    c0, c1 = orbit(30, 20, 1.8), orbit(34, 20, 1.8)
+    recon = lib_recon(lib, [c0, c1], ao_rays=1)  # a new mode is a cut: the first frame has no state
+    with session(srv, mode="sr") as (ws, _):
+        assert_image(frame(ws).image, lib_sr(lib, [c0])[0])
+        steps = [(P.SettingsMsg({"mode": "reconstruct", "ao_samples": 1}, seq=1), "reconstruct", recon[0]),
+                 (cam(34, seq=2), "reconstruct", recon[1]),
+                 (P.SettingsMsg({"mode": "full"}, seq=3), "full", lib_full(lib, c1, ao_samples=1))]
+        for msg, mode, expected in steps:
+            send(ws, msg)
+            f = frame(ws)
+            while f.ack < msg.seq:
+                f = frame(ws)
+            assert (f.mode, f.width, f.height) == (mode, W, H)
+            assert_image(f.image, expected if isinstance(expected, np.ndarray) else to_uint8(expected.color))
+    assert not srv.errors.records, srv.errors.messages()
 
 
 def test_still_camera_gets_one_refined_frame(srv, lib):
@@ -389,6 +443,12 @@ def test_bad_view_input_closes_that_session_only(srv, lib):
              P.CLOSE_BAD_MESSAGE, "multiple of the upscale factor"),
             (P.pack({"type": "open", "version": P.PROTOCOL_VERSION, "volume": VOLUME, "settings": {"width": 4096, "height": 4096}}),
              P.CLOSE_TOO_BIG, "exceeds"),
+            (P.pack(P.OpenMsg(VOLUME, {"mode": "reconstruct", "ao_samples": MAX_RECON_AO_RAYS + 1}).to_wire()),
+             P.CLOSE_BAD_MESSAGE, f"reconstruct mode takes 0 to {MAX_RECON_AO_RAYS} AO rays per hit (ao_samples), "
+                                  f"got {MAX_RECON_AO_RAYS + 1}"),
+            (P.pack({"type": "open", "version": P.PROTOCOL_VERSION, "volume": VOLUME,
+                     "settings": {"mode": "reconstruct", "ao_samples": -1}}),
+             P.CLOSE_BAD_MESSAGE, "ao_samples must be an integer in [0, 256], got -1"),
             (P.pack(cam(3).to_wire()), P.CLOSE_BAD_MESSAGE, "message type must be one of open"),
             (b"\x00" * (LIMITS.max_message_bytes + 10), P.CLOSE_TOO_BIG, ""),
         ]
@@ -401,6 +461,10 @@ def test_bad_view_input_closes_that_session_only(srv, lib):
             (P.pack({"type": "camera", "eye": [0.0, 0.0, math.nan]}), P.CLOSE_BAD_MESSAGE, "finite"),
             (P.pack({"type": "camera", "eye": [0, 0, 1], "up": [0, 0, 0]}), P.CLOSE_BAD_MESSAGE, "up is zero"),
             (P.pack({"type": "settings", "settings": {"mode": "sr", "width": 63}}), P.CLOSE_BAD_MESSAGE, "multiple"),
+            (P.pack({"type": "settings", "settings": {"mode": "reconstruct", "ao_samples": 9}}), P.CLOSE_BAD_MESSAGE,
+             f"reconstruct mode takes 0 to {MAX_RECON_AO_RAYS} AO rays per hit (ao_samples), got 9"),
+            (P.pack({"type": "settings", "settings": {"mode": "reconstruct", "ao_samples": -1}}), P.CLOSE_BAD_MESSAGE,
+             "ao_samples must be an integer in [0, 256], got -1"),
             (P.pack({"type": "iso", "value": 1e300}), P.CLOSE_BAD_MESSAGE, "value"),
             (P.pack({"type": "open", "version": P.PROTOCOL_VERSION, "volume": VOLUME}), P.CLOSE_BAD_MESSAGE, "message type"),
             (msgpack.packb({"type": "iso", "value": 0.2})[:-3], P.CLOSE_BAD_MESSAGE, "malformed"),

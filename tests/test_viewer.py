@@ -22,6 +22,7 @@ import pytest
 import torch
 
 from conftest import DEVICE
+from isosr_net.reconstructor import MAX_RECON_AO_RAYS
 from isosr_render import FrameBuffers
 from isosr_server.channels import false_color
 
@@ -199,11 +200,20 @@ def test_viewer_explores_a_volume(server, browser):
     moved = v.settle(n)
     assert difference(pasted, moved) > 1.0, "the iso slider did not change the surface"
 
-    # Modes: each reaches the server and comes back.
-    for mode in ("full", "bilinear", "focus", "sr"):
+    # Modes: each reaches the server and comes back; reconstruction shows its AO rays control,
+    # which keeps to the server's bound (more would end the session).
+    for mode in ("full", "bilinear", "focus", "reconstruct", "sr"):
         n = v.frames()
         set_control(page, "#mode", mode)
         v.wait_frame_after(n, f"document.getElementById('view').dataset.mode === '{mode}'")
+        assert page.is_visible("#recon-row") == (mode == "reconstruct")
+        if mode == "reconstruct":
+            assert page.get_attribute("#recon-rays", "max") == str(MAX_RECON_AO_RAYS)
+            n = v.frames()
+            set_control(page, "#recon-rays", "20")
+            v.wait_frame_after(n, "document.getElementById('view').dataset.mode === 'reconstruct'")
+            assert page.input_value("#recon-rays") == str(MAX_RECON_AO_RAYS) and not page.is_visible("#banner")
+            assert page.get_attribute("#conn-state", "data-state") == "open"
 
     # Channels: normals in false color (facing the camera: blue over red), depth with its legend.
     n = v.frames()

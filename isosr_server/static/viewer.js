@@ -5,7 +5,7 @@ import { drawLegend } from "./legend.js";
 const $ = (id) => document.getElementById(id);
 const DEFAULT_CAMERA = { yaw: 30, pitch: 20, distance: 1.8, target: [0, 0, 0], fov_y: 40 };
 const CHANNELS = ["shaded", "mask", "normal", "depth", "ao", "flow"];
-const MODE_KEYS = { 1: "full", 2: "sr", 3: "bilinear", 4: "focus" };
+const MODE_KEYS = { 1: "full", 2: "sr", 3: "bilinear", 4: "focus", 5: "reconstruct" };
 const TOKEN_KEY = "isosr.token";
 const SPARK_FRAMES = 120;
 
@@ -14,6 +14,7 @@ const ctx = view.getContext("2d");
 const state = {
   token: sessionStorage.getItem(TOKEN_KEY) || "",
   factor: 4,
+  maxReconRays: 0, // reconstruct mode's AO rays per hit: set from GET /v2/models/isosr before sessions open
   limits: null,
   volume: null,
   info: null, // ready.volume: name, shape, value_range, iso, histogram
@@ -78,12 +79,20 @@ function modes() {
   return $("split").checked ? [a, $("mode-b").value] : [a];
 }
 
+/** AO rays per hit of reconstruct mode: the control's value within the server's bound (shown corrected). */
+function reconRays() {
+  const input = $("recon-rays");
+  const rays = Math.min(state.maxReconRays, Math.max(0, Math.round(Number(input.value)) || 0));
+  input.value = rays;
+  return rays;
+}
+
 function settings(mode) {
   return {
     mode,
     width: state.width,
     height: state.height,
-    ao_samples: $("ao").checked ? Number($("ao-samples").value) : 0,
+    ao_samples: mode === "reconstruct" ? reconRays() : $("ao").checked ? Number($("ao-samples").value) : 0,
     channel: $("channel").value,
     refine: !$("split").checked, // a refined frame is full-res: both halves would be the same
     encoding: "jpeg",
@@ -114,6 +123,8 @@ async function openSessions() {
   try {
     const model = await getJson("/v2/models/isosr");
     state.factor = model.upscale_factor;
+    state.maxReconRays = model.reconstruction.max_ao_rays;
+    $("recon-rays").max = state.maxReconRays;
   } catch (e) {
     return generation === state.generation && serverUnreachable(e);
   }
@@ -374,6 +385,7 @@ function updateSplitHandle() {
   handle.style.left = `${state.split * state.width}px`;
   handle.style.height = `${state.height}px`;
   $("lens-row").hidden = !modes().includes("focus");
+  $("recon-row").hidden = !modes().includes("reconstruct");
   showLens();
 }
 
@@ -536,6 +548,7 @@ function bindControls() {
   $("channel").addEventListener("change", channelChanged);
   $("ao").addEventListener("change", sendSettings);
   $("ao-samples").addEventListener("change", sendSettings);
+  $("recon-rays").addEventListener("change", sendSettings);
   $("lens-radius").addEventListener("input", () => { showLens(); queue("focus", focusMessage()); });
   $("camera-reset").addEventListener("click", resetCamera);
   $("camera-save").addEventListener("click", () => {
