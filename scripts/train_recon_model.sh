@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
-# Render the training data and train the shipped networks on one GPU, side by side: the
-# reconstruction network (isosr_net/recon_model) and the small subpixel upscaler.
-#   bash scripts/train_models.sh OUT_DIR        (from the project root, on the GPU machine)
+# Render the training data and train, side by side on one GPU, the reconstruction network
+# (shipped as isosr_net/recon_model) and the small subpixel upscaler (measured, not shipped).
+#   bash scripts/train_recon_model.sh OUT_DIR        (from the project root, on the GPU machine)
 # Data goes to data/, runs to runs/ (both git-ignored), logs to OUT_DIR, and the trained
 # model folders (runs/*/best) into OUT_DIR/models.tar.
 set -euo pipefail
-out=${1:?usage: train_models.sh OUT_DIR}
+out=${1:?usage: train_recon_model.sh OUT_DIR}
 isosr() { python3 -m isosr_cli.main "$@"; }
 mkdir -p "$out" data runs
 isosr datagen configs/datagen_recon.json -o data/recon > "$out/datagen_recon.log" 2>&1 &
