@@ -1,6 +1,7 @@
-"""Network architectures the losses use: VGG-19 features (the perceptual loss) and the
-spatio-temporal patch discriminator (the adversarial loss). SRNet itself is in
-:mod:`isosr_net.model`.
+"""Network parts: the residual block SRNet and ReconNet share, and the architectures the
+losses use: VGG-19 features (the perceptual loss) and the spatio-temporal patch discriminator
+(the adversarial loss). SRNet itself is in :mod:`isosr_net.model`, ReconNet in
+:mod:`isosr_net.reconnet`.
 """
 
 from __future__ import annotations
@@ -8,11 +9,24 @@ from __future__ import annotations
 from pathlib import Path
 
 import torch
+import torch.nn.functional as F
 from safetensors.torch import load_file
 from torch import nn
 
 from isosr_render.conventions import HIGHRES_CHANNELS, LOWRES_CHANNELS
 from isosr_render.shapes import check_shape
+
+class ResidualBlock(nn.Module):
+    """conv-ReLU-conv plus the input (3x3 convolutions, the channel count kept)."""
+
+    def __init__(self, channels: int):
+        super().__init__()
+        self.conv1 = nn.Conv2d(channels, channels, 3, padding=1)
+        self.conv2 = nn.Conv2d(channels, channels, 3, padding=1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.conv2(F.relu(self.conv1(x)))
+
 
 # VGG-19 "features" as torchvision numbers it: conv (+ ReLU) per int, max-pool per "M".
 _VGG19_CFG: tuple[int | str, ...] = (64, 64, "M", 128, 128, "M", 256, 256, 256, 256, "M",

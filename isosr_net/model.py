@@ -29,6 +29,7 @@ from torch import nn
 from isosr_render.atomic import atomic_write
 from isosr_render.conventions import AO, DEPTH, HIGHRES_CHANNELS, LOWRES_CHANNELS, MASK, NORMAL
 from isosr_render.shapes import check_shape
+from isosr_net.architectures import ResidualBlock
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net.reconnet import ReconNet, ReconNetConfig
 
@@ -75,18 +76,6 @@ class SRNetConfig:
         if self.channels < 1 or self.residual_blocks < 0:
             raise ValueError(f"channels must be >= 1 and residual_blocks >= 0, got {self.channels}, "
                              f"{self.residual_blocks}")
-
-
-class ResidualBlock(nn.Module):
-    """conv-ReLU-conv plus the input."""
-
-    def __init__(self, channels: int):
-        super().__init__()
-        self.conv1 = nn.Conv2d(channels, channels, 3, padding=1)
-        self.conv2 = nn.Conv2d(channels, channels, 3, padding=1)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return x + self.conv2(F.relu(self.conv1(x)))
 
 
 class SRNet(nn.Module):

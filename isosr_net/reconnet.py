@@ -25,6 +25,7 @@ from torch import nn
 
 from isosr_render.conventions import AO, DEPTH, HIGHRES_CHANNELS, MASK, NORMAL, RECON_CHANNELS, SAMPLED_AO, SAMPLING
 from isosr_render.shapes import check_shape
+from isosr_net.architectures import ResidualBlock
 from isosr_net.flow_warp import warp_by_flow
 
 INPUTS = len(RECON_CHANNELS)
@@ -91,18 +92,6 @@ def macs_per_pixel(config: ReconNetConfig) -> float:
     return enc + body + dec + w0 * OUTPUTS * 9
 
 
-class _Block(nn.Module):
-    """conv-ReLU-conv plus the input."""
-
-    def __init__(self, channels: int):
-        super().__init__()
-        self.conv1 = nn.Conv2d(channels, channels, 3, padding=1)
-        self.conv2 = nn.Conv2d(channels, channels, 3, padding=1)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return x + self.conv2(F.relu(self.conv1(x)))
-
-
 class ReconNet(nn.Module):
     """Frame-recurrent full-resolution reconstruction of isosurface buffers.
 
@@ -119,7 +108,7 @@ class ReconNet(nn.Module):
         w = config.widths
         self.head = nn.Conv2d(INPUTS + RECURRENT, w[0], 3, padding=1)
         self.down = nn.ModuleList(nn.Conv2d(w[i], w[i + 1], 3, stride=2, padding=1) for i in range(LEVELS))
-        self.body = nn.Sequential(*[_Block(w[LEVELS]) for _ in range(config.blocks)])
+        self.body = nn.Sequential(*[ResidualBlock(w[LEVELS]) for _ in range(config.blocks)])
         # Decoding level i (from 1/2^(i+1) to 1/2^i): a 1x1 channel map at the coarse level,
         # bilinear 2x, plus the encoder's features, then a 3x3 conv.
         self.reduce = nn.ModuleList(nn.Conv2d(w[i + 1], w[i], 1) for i in range(LEVELS))

@@ -52,26 +52,25 @@ def relabel_as_val(root: Path, volume: str) -> None:
     path.write_text(json.dumps(manifest, indent=1))
 
 
-def tiny_train_data(tmp_path_factory) -> Path:
-    """A tiny datagen folder with a "train" (cloud) and a "val" (sphere) split, made once per session."""
-    key = ("data", str(tmp_path_factory.getbasetemp()))
+def _tiny_data(tmp_path_factory, config, name: str) -> Path:
+    """``config`` rendered into a folder with a "train" (cloud) and a "val" (sphere) split, made once per session."""
+    key = (name, str(tmp_path_factory.getbasetemp()))
     if key not in _CACHE:
-        root = tmp_path_factory.mktemp("tiny_data")
-        generate(TINY_DATAGEN, root, progress=False)
+        root = tmp_path_factory.mktemp(name)
+        generate(config, root, progress=False)
         relabel_as_val(root, "proc:sphere@32")
         _CACHE[key] = root
     return _CACHE[key]
+
+
+def tiny_train_data(tmp_path_factory) -> Path:
+    """:data:`TINY_DATAGEN` rendered (see :func:`_tiny_data`)."""
+    return _tiny_data(tmp_path_factory, TINY_DATAGEN, "tiny_data")
 
 
 def tiny_recon_data(tmp_path_factory) -> Path:
-    """:data:`TINY_RECON_DATAGEN` rendered, with a "train" (cloud) and a "val" (sphere) split, made once per session."""
-    key = ("recon data", str(tmp_path_factory.getbasetemp()))
-    if key not in _CACHE:
-        root = tmp_path_factory.mktemp("tiny_recon_data")
-        generate(TINY_RECON_DATAGEN, root, progress=False)
-        relabel_as_val(root, "proc:sphere@32")
-        _CACHE[key] = root
-    return _CACHE[key]
+    """:data:`TINY_RECON_DATAGEN` rendered (see :func:`_tiny_data`)."""
+    return _tiny_data(tmp_path_factory, TINY_RECON_DATAGEN, "tiny_recon_data")
 
 
 def tiny_model_dir(tmp_path_factory, seed: int = 0, **model) -> Path:
