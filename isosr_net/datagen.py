@@ -26,8 +26,8 @@ from isosr_render.catalog import SHARED_PREFIX, entry, resolve_iso
 from isosr_render.conventions import HIGHRES_BUFFERS, LOWRES_BUFFERS
 from isosr_render.sequence import sequence_requests
 from isosr_net.batch import FIELDS, SequenceBatch
-from isosr_net.reconnet import MAX_RECON_SPP
-from isosr_net.reconstructor import MAX_RECON_AO_RAYS, recon_inputs
+from isosr_net.reconnet import MAX_RECON_AO_RAYS, MAX_RECON_SPP
+from isosr_net.reconstructor import recon_inputs
 
 MANIFEST = "manifest.json"
 # Config fields a folder may be extended with: more sequences, another device (same data).
@@ -55,7 +55,7 @@ class DatagenConfig:
         input_spp, input_ao_rays: (upscale 1) each sequence's inputs are rendered with rays
             per pixel and AO rays per hit drawn from these (what the network takes: spp up to
             :data:`isosr_net.reconnet.MAX_RECON_SPP`, AO rays 0 to
-            :data:`isosr_net.reconstructor.MAX_RECON_AO_RAYS`).
+            :data:`isosr_net.reconnet.MAX_RECON_AO_RAYS`).
         iso_jitter: iso-values are drawn uniformly within +-this fraction of the volume's
             reference iso (Otsu's, or the procedural default).
         seed: base seed; each (volume, sequence) derives its own.

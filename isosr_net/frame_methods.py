@@ -28,8 +28,8 @@ from isosr_render.sequence import sequence_cameras
 from isosr_render.shading import ShadingParams, shade
 from isosr_net.atrous import ATrousConfig, atrous_filter
 from isosr_net.metrics import upscale_baseline
-from isosr_net.reconnet import MAX_RECON_SPP
-from isosr_net.reconstructor import DEFAULT_RECON_MODEL, MAX_RECON_AO_RAYS, Reconstructor
+from isosr_net.reconnet import MAX_RECON_AO_RAYS, MAX_RECON_SPP
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
 from isosr_net.upscaler import DEFAULT_MODEL, PRECISIONS, Upscaler, highres_frame
 
 KINDS = ("full", "atrous", "reconstruct", "upscale", "network")
@@ -48,7 +48,7 @@ class FrameMethod:
             ``"reconstruct"`` (full resolution, trained reconstruction), ``"upscale"`` (low-res
             ray cast, classic interpolation), ``"network"`` (low-res ray cast, trained network).
         ao_rays: AO rays per hit (full: 0 for none; atrous: at least 1; reconstruct: 0 to
-            :data:`MAX_RECON_AO_RAYS`, 0 infers AO; upscalers: 0).
+            :data:`isosr_net.reconnet.MAX_RECON_AO_RAYS`, 0 infers AO; upscalers: 0).
         spp: rays per pixel (full resolution only; reconstruct: at most
             :data:`isosr_net.reconnet.MAX_RECON_SPP`).
         factor: upscaling factor (upscale and network: at least 2; others: 1).

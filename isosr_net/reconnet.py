@@ -32,10 +32,9 @@ INPUTS = len(RECON_CHANNELS)
 OUTPUTS = len(HIGHRES_CHANNELS)
 # The previous output's channels the network reads back: mask and AO.
 RECURRENT = 2
-# The sampling channels hold ao_rays / AO_RAYS_SCALE and spp / SPP_SCALE (1 at the most trained).
-AO_RAYS_SCALE, SPP_SCALE = 8.0, 4.0
-# The most rays per pixel the sampling channel describes; more would leave the trained range.
-MAX_RECON_SPP = 4
+# The most AO rays per hit and rays per pixel the network takes: its training range. The
+# sampling channels hold ao_rays / MAX_RECON_AO_RAYS and spp / MAX_RECON_SPP, at most 1.
+MAX_RECON_AO_RAYS, MAX_RECON_SPP = 8, 4
 LEVELS = 3  # 1/2, 1/4, 1/8
 FIRST_FRAME_MODES = ("zeros", "inputs")
 
@@ -79,7 +78,7 @@ def sampling_channels(ao_rays: int, spp: int, like: torch.Tensor) -> torch.Tenso
         Returns (B, 2, H, W).
     """
     b, _, h, w = like.shape
-    values = like.new_tensor([ao_rays / AO_RAYS_SCALE, spp / SPP_SCALE])
+    values = like.new_tensor([ao_rays / MAX_RECON_AO_RAYS, spp / MAX_RECON_SPP])
     return values.view(1, 2, 1, 1).expand(b, 2, h, w)
 
 

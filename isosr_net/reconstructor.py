@@ -17,13 +17,10 @@ import torch
 
 from isosr_render.buffers import FrameBuffers
 from isosr_render.shapes import check_shape
-from isosr_net.reconnet import MAX_RECON_SPP, ReconNet, sampling_channels
+from isosr_net.reconnet import MAX_RECON_AO_RAYS, MAX_RECON_SPP, ReconNet, sampling_channels
 from isosr_net.upscaler import Upscaler, highres_frame, lowres_tensors
 
 DEFAULT_RECON_MODEL = Path(__file__).resolve().parent / "recon_model"
-# The most AO rays per hit the shipped model was trained with; more are refused (its inputs
-# would leave the range it has seen).
-MAX_RECON_AO_RAYS = 8
 
 
 def recon_inputs(frame: FrameBuffers, ao_rays: int, spp: int) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -33,7 +30,7 @@ def recon_inputs(frame: FrameBuffers, ao_rays: int, spp: int) -> tuple[torch.Ten
     Args:
         frame: mask, normal, depth, and ``ao`` when ``ao_rays > 0``, rendered with ``spp`` rays
             per pixel and ``ao_rays`` AO rays per hit.
-        ao_rays: AO rays per hit, 0 to :data:`MAX_RECON_AO_RAYS` (0: no AO input).
+        ao_rays: AO rays per hit, 0 to :data:`isosr_net.reconnet.MAX_RECON_AO_RAYS` (0: no AO input).
         spp: rays per pixel, 1 to :data:`isosr_net.reconnet.MAX_RECON_SPP`.
 
     Raises:

@@ -15,7 +15,7 @@ import isosr_net.datagen as datagen
 from isosr_net.batch import SequenceBatch
 from isosr_net.datagen import MANIFEST, DatagenConfig, SequenceDataset, generate, pick_crops
 from isosr_render.catalog import shared_volumes_dir
-from isosr_net.reconnet import AO_RAYS_SCALE, SPP_SCALE
+from isosr_net.reconnet import MAX_RECON_AO_RAYS, MAX_RECON_SPP
 from isosr_render.conventions import MASK, SAMPLED_AO, SAMPLING
 from net_fixtures import TINY_DATAGEN, TINY_RECON_DATAGEN, tiny_datagen, tiny_recon_data, tiny_train_data
 
@@ -282,7 +282,8 @@ def test_reconstruction_shards_hold_full_resolution_inputs_with_their_sampling(t
         assert tensors["lowres"].shape == (k, t, 8, c, c) and tensors["highres"].shape == (k, t, 6, c, c)
         lowres = tensors["lowres"].float()
         sampling = lowres[:, :, SAMPLING]
-        assert (sampling[:, :, 0] == rays / AO_RAYS_SCALE).all() and (sampling[:, :, 1] == spp / SPP_SCALE).all()
+        assert (sampling[:, :, 0] == rays / MAX_RECON_AO_RAYS).all()
+        assert (sampling[:, :, 1] == spp / MAX_RECON_SPP).all()
         ao = lowres[:, :, SAMPLED_AO]
         if rays:
             assert ao.min() >= 0 and ao.max() <= 1 and (ao > 0).any()

@@ -11,7 +11,8 @@ from isosr_render.conventions import AO, DEPTH, MASK, NORMAL, RECON_CHANNELS, SA
 from isosr_render.sequence import sequence_requests
 from isosr_net.budget import color_psnr, reference_frames
 from isosr_net.frame_methods import FrameMethod, FrameRunner, run_sequence
-from isosr_net.reconnet import AO_RAYS_SCALE, SPP_SCALE, ReconNet, ReconNetConfig, macs_per_pixel, sampling_channels
+from isosr_net.reconnet import (MAX_RECON_AO_RAYS, MAX_RECON_SPP, ReconNet, ReconNetConfig, macs_per_pixel,
+                                sampling_channels)
 from isosr_net.reconstructor import Reconstructor, recon_inputs
 from isosr_net.upscaler import DEFAULT_MODEL
 
@@ -157,7 +158,8 @@ def test_recon_inputs_lay_out_the_channels(sphere_frames):
     torch.testing.assert_close(inputs[0, NORMAL], frame.normal.permute(2, 0, 1), rtol=0, atol=0)
     torch.testing.assert_close(inputs[0, DEPTH][0], frame.depth, rtol=0, atol=0)
     torch.testing.assert_close(inputs[0, SAMPLED_AO][0], frame.ao, rtol=0, atol=0)
-    assert (inputs[0, SAMPLING][0] == 2 / AO_RAYS_SCALE).all() and (inputs[0, SAMPLING][1] == 3 / SPP_SCALE).all()
+    assert (inputs[0, SAMPLING][0] == 2 / MAX_RECON_AO_RAYS).all()
+    assert (inputs[0, SAMPLING][1] == 3 / MAX_RECON_SPP).all()
     assert flow.shape == (1, 2, SIZE[1], SIZE[0])
     no_ao, _ = recon_inputs(fresh(frame, ao=None), 0, 1)
     assert (no_ao[0, SAMPLED_AO] == 0).all() and (no_ao[0, SAMPLING][0] == 0).all()
