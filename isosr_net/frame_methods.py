@@ -151,10 +151,19 @@ class FrameRunner:
                                  f"not x{method.factor}")
             self.upscaler.reset()
 
-    def _request(self, outputs: tuple[str, ...], prev_camera: Camera | None = None, **options) -> RenderRequest:
-        f = self.method.factor
-        return RenderRequest(self.width // f, self.height // f, self.iso, outputs, ao_radius=self.ao_radius,
-                             prev_camera=prev_camera, shading=self.shading, **options)
+    def render_request(self, prev_camera: Camera | None = None) -> RenderRequest:
+        """The ray cast a frame of this method starts with: only the buffers the method reads, at
+        the size it renders (flow only after a previous camera, for the learned kinds)."""
+        m = self.method
+        flow = ("flow",) if prev_camera is not None and m.learned else ()
+        outputs = {"full": ("mask", "normal", "color") + (("ao",) if m.ao_rays else ()),
+                   "atrous": ("mask", "normal", "depth", "ao"),
+                   "reconstruct": ("mask", "normal", "depth") + (("ao",) if m.ao_rays else ()) + flow,
+                   "upscale": LOWRES_BUFFERS,
+                   "network": LOWRES_BUFFERS + flow}[m.kind]
+        return RenderRequest(self.width // m.factor, self.height // m.factor, self.iso, outputs,
+                             ao_radius=self.ao_radius, prev_camera=prev_camera if flow else None,
+                             shading=self.shading, spp=m.spp, ao_samples=max(1, m.ao_rays))
 
     @torch.no_grad()
     def frame(self, camera: Camera, prev_camera: Camera | None = None) -> FrameBuffers:
@@ -168,31 +177,22 @@ class FrameRunner:
             color, normal: (H, W, 3). mask, ao: (H, W).
         """
         m = self.method
+        out = self.renderer.render(camera, self.render_request(prev_camera))
         if m.kind == "full":
-            outputs = ("mask", "normal", "color") + (("ao",) if m.ao_rays else ())
-            out = self.renderer.render(camera, self._request(outputs, spp=m.spp, ao_samples=max(1, m.ao_rays)))
             return FrameBuffers(mask=out.mask, normal=out.normal, ao=out.ao, color=out.color)
         if m.kind == "atrous":
-            out = self.renderer.render(camera, self._request(("mask", "normal", "depth", "ao"), spp=m.spp,
-                                                             ao_samples=m.ao_rays))
             ao = atrous_filter(out.ao[None, None], out.mask[None, None], out.normal.permute(2, 0, 1)[None],
                                out.depth[None, None], self.atrous)[0, 0]
             return FrameBuffers(mask=out.mask, normal=out.normal, ao=ao,
                                 color=shade(out.mask, out.normal, ao, self.shading))
-        if m.kind == "reconstruct":
-            outputs = ("mask", "normal", "depth") + (("ao",) if m.ao_rays else ()) + (("flow",) if prev_camera else ())
-            out = self.renderer.render(camera, self._request(outputs, prev_camera, spp=m.spp,
-                                                             ao_samples=max(1, m.ao_rays)))
-            high = self.upscaler.reconstruct(out, m.ao_rays, m.spp)
-            high.color = shade(high.mask, high.normal, high.ao, self.shading)
-            return high
         if m.kind == "upscale":
-            up = upscale_classic(self.renderer.render(camera, self._request(LOWRES_BUFFERS)), m.factor,
-                                 m.interpolation)
+            up = upscale_classic(out, m.factor, m.interpolation)
             return FrameBuffers(mask=up.mask, normal=up.normal,  # no AO: shaded unoccluded (AO 1)
                                 color=shade(up.mask, up.normal, up.ao, self.shading))
-        outputs = LOWRES_BUFFERS + (("flow",) if prev_camera is not None else ())
-        high = self.upscaler.upscale(self.renderer.render(camera, self._request(outputs, prev_camera)))
+        if m.kind == "reconstruct":
+            high = self.upscaler.reconstruct(out, m.ao_rays, m.spp)
+        else:
+            high = self.upscaler.upscale(out)
         high.color = shade(high.mask, high.normal, high.ao, self.shading)
         return high
 

@@ -78,8 +78,9 @@ def sampling_channels(ao_rays: int, spp: int, like: torch.Tensor) -> torch.Tenso
         Returns (B, 2, H, W).
     """
     b, _, h, w = like.shape
-    values = like.new_tensor([ao_rays / MAX_RECON_AO_RAYS, spp / MAX_RECON_SPP])
-    return values.view(1, 2, 1, 1).expand(b, 2, h, w)
+    # Filled from Python numbers: a tensor built from host values would be a blocking copy on GPUs.
+    return torch.cat([like.new_full((b, 1, h, w), ao_rays / MAX_RECON_AO_RAYS),
+                      like.new_full((b, 1, h, w), spp / MAX_RECON_SPP)], dim=1)
 
 
 def macs_per_pixel(config: ReconNetConfig) -> float:

@@ -18,12 +18,13 @@ import torch
 from isosr_render.buffers import FrameBuffers
 from isosr_render.shapes import check_shape
 from isosr_net.reconnet import MAX_RECON_AO_RAYS, MAX_RECON_SPP, ReconNet, sampling_channels
-from isosr_net.upscaler import Upscaler, highres_frame, lowres_tensors
+from isosr_net.upscaler import InputChecks, Upscaler, highres_frame, lowres_tensors
 
 DEFAULT_RECON_MODEL = Path(__file__).resolve().parent / "recon_model"
 
 
-def recon_inputs(frame: FrameBuffers, ao_rays: int, spp: int) -> tuple[torch.Tensor, torch.Tensor | None]:
+def recon_inputs(frame: FrameBuffers, ao_rays: int, spp: int,
+                 checks: InputChecks | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
     """A full-resolution frame as ReconNet's inputs: ``(inputs, flow or None)``, the inputs in
     the channel order :data:`isosr_render.conventions.RECON_CHANNELS`.
 
@@ -32,9 +33,11 @@ def recon_inputs(frame: FrameBuffers, ao_rays: int, spp: int) -> tuple[torch.Ten
             per pixel and ``ao_rays`` AO rays per hit.
         ao_rays: AO rays per hit, 0 to :data:`isosr_net.reconnet.MAX_RECON_AO_RAYS` (0: no AO input).
         spp: rays per pixel, 1 to :data:`isosr_net.reconnet.MAX_RECON_SPP`.
+        checks: where to queue the checks of the buffers' values; None checks at once (a host sync).
 
     Raises:
-        ValueError: counts out of range, a buffer missing, misshapen or not finite, AO outside [0, 1].
+        ValueError: counts out of range, a buffer missing or misshapen, and (without ``checks``)
+            a buffer not finite or AO outside [0, 1].
 
     Shape:
         Returns inputs (1, 8, H, W) and flow (1, 2, H, W), float32.
@@ -42,17 +45,20 @@ def recon_inputs(frame: FrameBuffers, ao_rays: int, spp: int) -> tuple[torch.Ten
     for name, value, low, high in (("ao_rays", ao_rays, 0, MAX_RECON_AO_RAYS), ("spp", spp, 1, MAX_RECON_SPP)):
         if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
             raise ValueError(f"reconstruction: {name} must be an integer in [{low}, {high}], got {value!r}")
-    lowres, flow = lowres_tensors(frame)
+    now = checks is None
+    checks = InputChecks() if now else checks
+    lowres, flow = lowres_tensors(frame, checks)
     if ao_rays:
         if frame.ao is None:
             raise ValueError(f"reconstruction from {ao_rays} AO rays needs the frame's ao buffer")
         check_shape(frame.ao, "(H, W)", "ao", "recon_inputs", {"H": lowres.shape[2], "W": lowres.shape[3]})
         ao = frame.ao.float()
-        if not bool(((ao >= 0) & (ao <= 1)).all()):
-            raise ValueError("ao holds values outside [0, 1] (or NaN)")
+        checks.add(((ao >= 0) & (ao <= 1)).all(), bool, lambda _: "ao holds values outside [0, 1] (or NaN)")
         ao = ao[None, None]
     else:
         ao = torch.zeros_like(lowres[:, :1])
+    if now:
+        checks.raise_first()
     return torch.cat([lowres, ao, sampling_channels(ao_rays, spp, lowres)], dim=1), flow
 
 
@@ -82,7 +88,9 @@ class Reconstructor(Upscaler):
 
     def reconstruct(self, frame: FrameBuffers, ao_rays: int, spp: int = 1) -> FrameBuffers:
         """Reconstruct one frame (see :func:`recon_inputs`; ``flow`` except after a cut)."""
-        return highres_frame(self.step(*recon_inputs(frame, ao_rays, spp)))
+        checks = InputChecks()
+        inputs, flow = recon_inputs(frame, ao_rays, spp, checks)
+        return highres_frame(self.step(inputs, flow, checks))
 
     def upscale(self, frame: FrameBuffers) -> FrameBuffers:
         raise TypeError("a Reconstructor reconstructs at full resolution: call reconstruct(frame, ao_rays, spp)")

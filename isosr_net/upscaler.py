@@ -10,6 +10,7 @@ Every stream (viewer, sequence) needs its own `Upscaler`: the previous output is
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -30,17 +31,58 @@ COMPILE_MODES = (None, "default", "reduce-overhead", "max-autotune")
 FP16_MAX_DEPTH = 1e4
 
 
-def lowres_tensors(frame: FrameBuffers) -> tuple[torch.Tensor, torch.Tensor | None]:
+class InputChecks:
+    """Checks of a frame's inputs computed on the device and read with one host sync.
+
+    On a GPU every value read back to the host stalls the CPU until the queue drains, so a frame
+    whose checks each read a value stalls once per check. The checks are queued instead, the
+    frame's work after them, and :meth:`raise_first` reads them all at once before its result is
+    used or its state kept.
+    """
+
+    def __init__(self):
+        self._checks: list[tuple[torch.Tensor, Callable[[float], bool], Callable[[float], str]]] = []
+
+    def add(self, value: torch.Tensor, ok: Callable[[float], bool], message: Callable[[float], str]) -> None:
+        """Queue a check: ``ok(value)`` on the host, else ``ValueError(message(value))``."""
+        self._checks.append((value.detach().reshape(()).float(), ok, message))
+
+    def add_finite(self, name: str, t: torch.Tensor) -> None:
+        """Queue: ``t`` holds no NaN or Inf."""
+        self.add(torch.isfinite(t).all(), bool, lambda _: f"{name} holds NaN or Inf values")
+
+    def raise_first(self) -> None:
+        """Read every queued check (one host sync) and raise the first that fails."""
+        if not self._checks:
+            return
+        by_device: dict[torch.device, list[int]] = {}
+        for i, (value, _, _) in enumerate(self._checks):
+            by_device.setdefault(value.device, []).append(i)
+        values = [0.0] * len(self._checks)
+        for indices in by_device.values():  # one read per device (the inputs may sit elsewhere)
+            for i, v in zip(indices, torch.stack([self._checks[i][0] for i in indices]).tolist()):
+                values[i] = v
+        for v, (_, ok, message) in zip(values, self._checks):
+            if not ok(v):
+                raise ValueError(message(v))
+
+
+def lowres_tensors(frame: FrameBuffers, checks: InputChecks | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
     """A low-res frame as the network's inputs: ``(lowres (1, 5, h, w), flow (1, 2, h, w) or None)``.
 
+    Args:
+        frame: mask, normal, depth, and flow except on a sequence's first frame.
+        checks: where to queue the finiteness checks; None checks at once (a host sync).
+
     Raises:
-        ValueError: a buffer is missing, has the wrong shape or dtype, or is not finite.
+        ValueError: a buffer is missing, has the wrong shape or dtype, or (without ``checks``) is not finite.
     """
     for name in LOWRES_BUFFERS:
         if getattr(frame, name) is None:
             raise ValueError(f"the low-res frame lacks its {name} buffer")
     dims = check_shape(frame.mask, "(H, W)", "mask", "lowres_tensors")
-    present = []
+    now = checks is None
+    checks = InputChecks() if now else checks
     for name, spec in (("mask", "(H, W)"), ("normal", "(H, W, 3)"), ("depth", "(H, W)"), ("flow", "(H, W, 2)")):
         t = getattr(frame, name)
         if t is None:
@@ -48,11 +90,9 @@ def lowres_tensors(frame: FrameBuffers) -> tuple[torch.Tensor, torch.Tensor | No
         check_shape(t, spec, name, "lowres_tensors", dims)
         if not t.is_floating_point():
             raise ValueError(f"{name} must be floating point, got {t.dtype}")
-        present.append((name, t))
-    finite = torch.stack([torch.isfinite(t).all() for _, t in present]).tolist()  # one host sync, not four
-    for (name, _), ok in zip(present, finite):
-        if not ok:
-            raise ValueError(f"{name} holds NaN or Inf values")
+        checks.add_finite(name, t)
+    if now:
+        checks.raise_first()
     lowres = frame.channels_first(LOWRES_BUFFERS)[None]
     flow = None if frame.flow is None else frame.flow.permute(2, 0, 1)[None]
     return lowres.float(), None if flow is None else flow.float()
@@ -125,31 +165,39 @@ class Upscaler:
         self.previous = None
 
     @torch.no_grad()
-    def step(self, lowres: torch.Tensor, flow: torch.Tensor | None) -> torch.Tensor:
+    def step(self, lowres: torch.Tensor, flow: torch.Tensor | None, checks: InputChecks | None = None) -> torch.Tensor:
         """Upscale one frame of network inputs; keeps the output as the next frame's previous.
 
+        Args:
+            lowres, flow: the inputs (flow None: the state is reset).
+            checks: the inputs' queued checks (see :func:`lowres_tensors`), read once the frame's
+                work is queued; a frame that fails them raises and leaves the state as it was.
+
+        Raises:
+            ValueError: a failed check, or fp16 and depths beyond :data:`FP16_MAX_DEPTH`.
+
         Shape:
-            lowres: (1, 5, h, w). flow: (1, 2, h, w) or None (then the state is reset).
+            lowres: (1, C, h, w). flow: (1, 2, h, w) or None.
             Returns (1, 6, h * s, w * s), float32.
         """
         lowres = lowres.to(self.device)
-        deepest = float(lowres[:, DEPTH].abs().max()) if self.precision == "fp16" else 0.0
-        if deepest > FP16_MAX_DEPTH:
-            raise ValueError(f"fp16 takes depths up to {FP16_MAX_DEPTH:g}, this frame reaches {deepest:.3g}: "
-                             f"use bf16 or fp32")
-        if flow is None:
-            self.previous = None
-        if self.previous is not None and self.previous.shape[-2:] != tuple(s * self.upscale_factor
-                                                                          for s in lowres.shape[-2:]):
-            self.previous = None  # the frame size changed: nothing to carry over
-        flow = None if self.previous is None else flow.to(self.device)
+        checks = InputChecks() if checks is None else checks
+        if self.precision == "fp16":
+            checks.add(lowres[:, DEPTH].abs().amax(), lambda deepest: deepest <= FP16_MAX_DEPTH,
+                       lambda deepest: f"fp16 takes depths up to {FP16_MAX_DEPTH:g}, this frame reaches "
+                                       f"{deepest:.3g}: use bf16 or fp32")
+        previous = None if flow is None else self.previous
+        if previous is not None and previous.shape[-2:] != tuple(s * self.upscale_factor for s in lowres.shape[-2:]):
+            previous = None  # the frame size changed: nothing to carry over
+        flow = None if previous is None else flow.to(self.device)
         h, w = lowres.shape[-2:]
         whole = self.tile is None or (h <= self.tile and w <= self.tile)
         with torch.autocast(self.device.type, dtype=PRECISIONS[self.precision], enabled=self.precision != "fp32"):
-            warped = self._warp(lowres, self.previous, flow)
+            warped = self._warp(lowres, previous, flow)
             output = self._network(lowres, warped) if whole else self._tiled(lowres, warped)
             # A copy: compiled graphs may reuse their output buffers on the next call.
             output = output.float().clone()
+        checks.raise_first()
         self.previous = output
         return output
 
@@ -176,5 +224,6 @@ class Upscaler:
 
     def upscale(self, frame: FrameBuffers) -> FrameBuffers:
         """Upscale a low-res frame (mask, normal, depth, and flow except after a cut)."""
-        lowres, flow = lowres_tensors(frame)
-        return highres_frame(self.step(lowres, flow))
+        checks = InputChecks()
+        lowres, flow = lowres_tensors(frame, checks)
+        return highres_frame(self.step(lowres, flow, checks))

@@ -8,6 +8,7 @@ the viewer along +z), so a frame shades from its buffers alone.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -50,20 +51,26 @@ def shade(mask: torch.Tensor, normal: torch.Tensor, ao: torch.Tensor | None = No
                          f"and mask {tuple(mask.shape)}")
     if ao is not None and ao.shape != mask.shape:
         raise ValueError(f"shade: ao must have mask's shape {tuple(mask.shape)}, got {tuple(ao.shape)}")
-    dtype, device = normal.dtype, normal.device
+    # Light, half vector, albedo and background enter as Python numbers, not as device tensors:
+    # building a tensor on a GPU from host values is a blocking copy, a stall per frame.
+    light = _unit(params.light_dir)
+    half = _unit(tuple(a + b for a, b in zip(light, (0.0, 0.0, 1.0))))
     n = F.normalize(normal, dim=-1, eps=1e-6)
-    light = F.normalize(torch.tensor(params.light_dir, dtype=dtype, device=device), dim=0)
-    half = F.normalize(light + torch.tensor((0.0, 0.0, 1.0), dtype=dtype, device=device), dim=0)
-    n_dot_l = (n @ light).clamp(min=0.0)
-    n_dot_h = (n @ half).clamp(min=0.0)
-    albedo = torch.tensor(params.albedo, dtype=dtype, device=device)
-    lit = albedo * (params.ambient + params.diffuse * n_dot_l)[..., None] \
-        + params.specular * n_dot_h.pow(params.shininess)[..., None]
-    if ao is not None:
-        lit = lit * ao[..., None]
-    background = torch.tensor(params.background, dtype=dtype, device=device)
-    alpha = mask.clamp(0.0, 1.0)[..., None]
-    return (alpha * lit + (1.0 - alpha) * background).clamp(0.0, 1.0)
+    nx, ny, nz = n.unbind(-1)
+    n_dot_l = (nx * light[0] + ny * light[1] + nz * light[2]).clamp(min=0.0)
+    n_dot_h = (nx * half[0] + ny * half[1] + nz * half[2]).clamp(min=0.0)
+    diffuse = params.ambient + params.diffuse * n_dot_l
+    specular = params.specular * n_dot_h.pow(params.shininess)
+    occlusion = 1.0 if ao is None else ao
+    alpha = mask.clamp(0.0, 1.0)
+    return torch.stack([(alpha * ((a * diffuse + specular) * occlusion) + (1.0 - alpha) * b).clamp(0.0, 1.0)
+                        for a, b in zip(params.albedo, params.background)], dim=-1)
+
+
+def _unit(v: tuple[float, float, float]) -> tuple[float, float, float]:
+    """``v`` scaled to unit length (the zero vector stays zero, as F.normalize leaves it)."""
+    length = max(math.sqrt(sum(c * c for c in v)), 1e-12)
+    return tuple(c / length for c in v)
 
 
 def shade_channels_first(stack: torch.Tensor, params: ShadingParams = ShadingParams()) -> torch.Tensor:
