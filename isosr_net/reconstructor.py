@@ -11,16 +11,23 @@ needs its own `Reconstructor`: the previous output is its state.
 
 from __future__ import annotations
 
+import functools
+from collections import OrderedDict
 from pathlib import Path
 
 import torch
 
 from isosr_render.buffers import FrameBuffers
+from isosr_render.conventions import DEPTH
+from isosr_render.shading import ShadingParams, shade
 from isosr_render.shapes import check_shape
+from isosr_net.flow_warp import warp_by_flow
 from isosr_net.reconnet import MAX_RECON_AO_RAYS, MAX_RECON_SPP, ReconNet, sampling_channels
-from isosr_net.upscaler import InputChecks, Upscaler, highres_frame, lowres_tensors
+from isosr_net.upscaler import FP16_MAX_DEPTH, PRECISIONS, InputChecks, Upscaler, highres_frame, lowres_tensors
 
 DEFAULT_RECON_MODEL = Path(__file__).resolve().parent / "recon_model"
+# Captured CUDA graphs kept per Reconstructor (frame sizes x samplings x first frame or not).
+MAX_GRAPHS = 32
 
 
 def recon_inputs(frame: FrameBuffers, ao_rays: int, spp: int,
@@ -42,24 +49,61 @@ def recon_inputs(frame: FrameBuffers, ao_rays: int, spp: int,
     Shape:
         Returns inputs (1, 8, H, W) and flow (1, 2, H, W), float32.
     """
+    now = checks is None
+    checks = InputChecks() if now else checks
+    lowres, flow = _checked_tensors(frame, ao_rays, spp, checks)
+    ao = torch.zeros_like(lowres[:, :1]) if frame.ao is None or not ao_rays else frame.ao.float()[None, None]
+    checks.add(_ao_in_range(ao), bool, _AO_MESSAGE)
+    if now:
+        checks.raise_first()
+    return torch.cat([lowres, ao, sampling_channels(ao_rays, spp, lowres)], dim=1), flow
+
+
+_AO_MESSAGE = lambda _: "ao holds values outside [0, 1] (or NaN)"  # noqa: E731
+
+
+def _ao_in_range(ao: torch.Tensor) -> torch.Tensor:
+    return ((ao >= 0) & (ao <= 1)).all()
+
+
+def _checked_tensors(frame: FrameBuffers, ao_rays: int, spp: int, checks: InputChecks):
+    """The host's checks of a frame (counts, buffers present, shapes, dtypes), the values' checks
+    queued on ``checks``; the frame's mask, normal, depth as ``lowres`` (1, 5, H, W) and its flow."""
     for name, value, low, high in (("ao_rays", ao_rays, 0, MAX_RECON_AO_RAYS), ("spp", spp, 1, MAX_RECON_SPP)):
         if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
             raise ValueError(f"reconstruction: {name} must be an integer in [{low}, {high}], got {value!r}")
-    now = checks is None
-    checks = InputChecks() if now else checks
     lowres, flow = lowres_tensors(frame, checks)
     if ao_rays:
         if frame.ao is None:
             raise ValueError(f"reconstruction from {ao_rays} AO rays needs the frame's ao buffer")
         check_shape(frame.ao, "(H, W)", "ao", "recon_inputs", {"H": lowres.shape[2], "W": lowres.shape[3]})
-        ao = frame.ao.float()
-        checks.add(((ao >= 0) & (ao <= 1)).all(), bool, lambda _: "ao holds values outside [0, 1] (or NaN)")
-        ao = ao[None, None]
-    else:
-        ao = torch.zeros_like(lowres[:, :1])
-    if now:
-        checks.raise_first()
-    return torch.cat([lowres, ao, sampling_channels(ao_rays, spp, lowres)], dim=1), flow
+    return lowres, flow
+
+
+def recon_frame(net: ReconNet, lowres: torch.Tensor, ao: torch.Tensor | None, sampling: torch.Tensor,
+                flow: torch.Tensor | None, previous: torch.Tensor | None, precision: torch.dtype,
+                shading: ShadingParams | None) -> tuple[torch.Tensor, ...]:
+    """One frame's work after the render, with no host sync: inputs laid out, the previous output
+    warped (or the first frame's stand-in), the network, the output as buffers, shading.
+
+    Returns:
+        ``(output, mask, normal, depth, ao, color or None, ao_ok)``: the network's stack (the next
+        frame's previous), the buffers of :func:`highres_frame`, the shaded color, and whether the
+        input AO was within [0, 1] (a 0-d tensor, for :class:`InputChecks`).
+
+    Shape:
+        lowres: (1, 5, H, W). ao: (1, 1, H, W) or None (no AO rays). sampling: (1, 2, 1, 1).
+        flow: (1, 2, H, W). previous: (1, 6, H, W).
+    """
+    b, _, h, w = lowres.shape
+    ao = lowres.new_zeros(b, 1, h, w) if ao is None else ao.float()
+    inputs = torch.cat([lowres, ao, sampling.expand(b, 2, h, w)], dim=1)
+    with torch.autocast(lowres.device.type, dtype=precision, enabled=precision != torch.float32):
+        warped = net.first_previous(inputs) if previous is None else warp_by_flow(previous, flow)
+        output = net(inputs, warped).float()
+    high = highres_frame(output)
+    color = None if shading is None else shade(high.mask, high.normal, high.ao, shading)
+    return output, high.mask, high.normal, high.depth, high.ao, color, _ao_in_range(ao)
 
 
 class Reconstructor(Upscaler):
@@ -67,30 +111,114 @@ class Reconstructor(Upscaler):
 
     Args:
         model: a ReconNet model folder; default the shipped one.
-        device, precision, channels_last, compile, autotune: as for :class:`Upscaler`.
+        device, precision, channels_last, autotune: as for :class:`Upscaler`.
+        compile: a ``torch.compile`` mode for the whole frame's work after the render
+            (:func:`recon_frame`: inputs, warp, network, output, shading fused where inductor can);
+            None runs it eagerly.
+        graphs: on CUDA, replay that work as one CUDA graph per frame size and sampling, captured
+            on first use (no launch or Python overhead per frame; with ``compile``, its
+            mode must not be ``"reduce-overhead"``, which brings graphs of its own).
     """
 
     def __init__(self, model: str | Path = DEFAULT_RECON_MODEL, device: str = "cpu", precision: str = "fp32",
-                 channels_last: bool = False, compile: str | None = None, autotune: bool = False):
-        super().__init__(model, device, precision, channels_last=channels_last, compile=compile, autotune=autotune)
+                 channels_last: bool = False, compile: str | None = None, autotune: bool = False,
+                 graphs: bool = False):
+        super().__init__(model, device, precision, channels_last=channels_last, autotune=autotune)
         if not isinstance(self.net, ReconNet):
             raise ValueError(f"{model}: a {type(self.net).__name__}, not a reconstruction network (ReconNet)")
+        if graphs and (self.device.type != "cuda" or compile == "reduce-overhead"):
+            raise ValueError("graphs: CUDA graphs need a CUDA device and a compile mode other than reduce-overhead")
+        frame_fn = functools.partial(recon_frame, self.net)
+        self._frame = torch.compile(frame_fn, mode=compile, dynamic=False) if compile else frame_fn
+        self.graphs = graphs
+        self._captured: OrderedDict[tuple, tuple] = OrderedDict()
+        self._pool = torch.cuda.graph_pool_handle() if graphs else None
+        self._sampling: dict[tuple[int, int], torch.Tensor] = {}
 
     @classmethod
     def fastest(cls, model: str | Path = DEFAULT_RECON_MODEL, device: str = "cuda",
                 precision: str | None = None) -> "Reconstructor":
-        """The variant for interactive use on ``device``: NHWC, compiled with CUDA graphs, fp16
-        on CUDA (``precision`` overrides); eager fp32 NHWC elsewhere."""
+        """The variant for interactive use on ``device``: on CUDA, fp16 (``precision`` overrides),
+        NHWC, the frame's work compiled and replayed as a CUDA graph; eager fp32 NHWC elsewhere."""
         if torch.device(device).type == "cuda":
-            return cls(model, device, precision or "fp16", channels_last=True, compile="reduce-overhead",
-                       autotune=True)
+            return cls(model, device, precision or "fp16", channels_last=True, compile="default", autotune=True,
+                       graphs=True)
         return cls(model, device, precision or "fp32", channels_last=True)
 
-    def reconstruct(self, frame: FrameBuffers, ao_rays: int, spp: int = 1) -> FrameBuffers:
-        """Reconstruct one frame (see :func:`recon_inputs`; ``flow`` except after a cut)."""
+    def reconstruct(self, frame: FrameBuffers, ao_rays: int, spp: int = 1,
+                    shading: ShadingParams | None = None) -> FrameBuffers:
+        """Reconstruct one frame; with ``shading``, shade it too (``color``).
+
+        Args:
+            frame: as for :func:`recon_inputs`; ``flow`` except after a cut.
+            ao_rays, spp: how the frame was sampled.
+            shading: material and light for ``color``; None makes no color.
+
+        Raises:
+            ValueError: as :func:`recon_inputs`, or fp16 and depths beyond
+                :data:`isosr_net.upscaler.FP16_MAX_DEPTH`; the state is then left as it was.
+
+        Shape:
+            Returns mask, depth, ao (H, W); normal, color (H, W, 3).
+        """
         checks = InputChecks()
-        inputs, flow = recon_inputs(frame, ao_rays, spp, checks)
-        return highres_frame(self.step(inputs, flow, checks))
+        lowres, flow = _checked_tensors(frame, ao_rays, spp, checks)
+        lowres = lowres.to(self.device)
+        ao = frame.ao[None, None].to(self.device) if ao_rays else None
+        if self.precision == "fp16":
+            checks.add(lowres[:, DEPTH].abs().amax(), lambda deepest: deepest <= FP16_MAX_DEPTH,
+                       lambda deepest: f"fp16 takes depths up to {FP16_MAX_DEPTH:g}, this frame reaches "
+                                       f"{deepest:.3g}: use bf16 or fp32")
+        previous = None if flow is None else self.previous
+        if previous is not None and previous.shape[-2:] != lowres.shape[-2:]:
+            previous = None  # the frame size changed: nothing to carry over
+        flow = None if previous is None else flow.to(self.device)
+        args = (lowres, ao, self._sampling_tensor(ao_rays, spp), flow, previous, PRECISIONS[self.precision], shading)
+        with torch.no_grad():
+            outs = self._replay(args) if self.graphs else self._frame(*args)
+        checks.add(outs[-1], bool, _AO_MESSAGE)
+        checks.raise_first()
+        output, mask, normal, depth, ao_out, color = (None if t is None else t.clone() if self.graphs else t
+                                                      for t in outs[:-1])
+        self.previous = output
+        return FrameBuffers(mask=mask, normal=normal, depth=depth, ao=ao_out, color=color)
+
+    def _sampling_tensor(self, ao_rays: int, spp: int) -> torch.Tensor:
+        """The sampling channels' two values (1, 2, 1, 1) on the device, made once per sampling."""
+        key = (ao_rays, spp)
+        if key not in self._sampling:
+            self._sampling[key] = sampling_channels(ao_rays, spp, torch.zeros(1, 1, 1, 1, device=self.device))
+        return self._sampling[key]
+
+    def _replay(self, args: tuple) -> tuple[torch.Tensor, ...]:
+        """:func:`recon_frame` replayed from a CUDA graph: captured on first use per frame size,
+        buffers present and shading (after two warm-up calls that compile and autotune), its
+        inputs copied into the graph's own, its outputs the graph's (valid until the next replay)."""
+        key = tuple(None if a is None else tuple(a.shape) if torch.is_tensor(a) else a for a in args)
+        if key not in self._captured:
+            static = tuple(a.clone() if torch.is_tensor(a) else a for a in args)
+            side = torch.cuda.Stream(self.device)
+            side.wait_stream(torch.cuda.current_stream(self.device))
+            with torch.cuda.stream(side):
+                for _ in range(2):
+                    self._frame(*static)
+            torch.cuda.current_stream(self.device).wait_stream(side)
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(graph, pool=self._pool):
+                outs = self._frame(*static)
+            self._captured[key] = (graph, static, outs)
+            if len(self._captured) > MAX_GRAPHS:
+                self._captured.popitem(last=False)
+        self._captured.move_to_end(key)
+        graph, static, outs = self._captured[key]
+        for target, source in zip(static, args):
+            if torch.is_tensor(source) and target is not source:
+                target.copy_(source)
+        graph.replay()
+        return outs
+
+    def step(self, *args, **kwargs):
+        raise TypeError("a Reconstructor runs whole frames: call reconstruct(frame, ao_rays, spp)")
 
     def upscale(self, frame: FrameBuffers) -> FrameBuffers:
         raise TypeError("a Reconstructor reconstructs at full resolution: call reconstruct(frame, ao_rays, spp)")

@@ -9,6 +9,7 @@ from torch.utils.flop_counter import FlopCounterMode
 from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest, open_volume, orbit, orbit_path, resolve_iso
 from isosr_render.conventions import AO, DEPTH, MASK, NORMAL, RECON_CHANNELS, SAMPLED_AO, SAMPLING
 from isosr_render.sequence import sequence_requests
+from isosr_render.shading import ShadingParams, shade
 from isosr_net.budget import color_psnr, reference_frames
 from isosr_net.frame_methods import FrameMethod, FrameRunner, run_sequence
 from isosr_net.reconnet import (MAX_RECON_AO_RAYS, MAX_RECON_SPP, ReconNet, ReconNetConfig, macs_per_pixel,
@@ -275,6 +276,49 @@ def test_an_empty_frame_stays_empty_and_a_camera_inside_the_volume_gives_finite_
     inside = Camera((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, 1.0, 0.0), 40.0)
     out = Reconstructor().reconstruct(renderer.render(inside, RenderRequest(*SIZE, iso, outputs, ao_samples=2)), 2, 1)
     assert_sane(out, SIZE[1], SIZE[0])
+
+
+def test_reconstruct_shades_when_asked_and_a_refused_frame_leaves_the_state_alone(sphere_frames):
+    shading = ShadingParams()
+    reconstructor = Reconstructor()
+    first = reconstructor.reconstruct(sphere_frames[0], 2, 1, shading)
+    torch.testing.assert_close(first.color, shade(first.mask, first.normal, first.ao, shading))
+    hostile = fresh(sphere_frames[1])
+    hostile.normal[3, 5] = float("nan")
+    with pytest.raises(ValueError, match="normal holds NaN"):
+        reconstructor.reconstruct(hostile, 2, 1)
+    after = reconstructor.reconstruct(sphere_frames[1], 2, 1)
+    reference = Reconstructor()
+    reference.reconstruct(sphere_frames[0], 2, 1)
+    torch.testing.assert_close(after.ao, reference.reconstruct(sphere_frames[1], 2, 1).ao, rtol=0, atol=0)
+
+
+def test_cuda_graphs_are_refused_without_cuda():
+    with pytest.raises(ValueError, match="CUDA graphs need a CUDA device"):
+        Reconstructor(graphs=True)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA GPU (run on the GPU machine)")
+def test_the_captured_path_matches_the_eager_one_frame_by_frame():
+    """Reconstructor.fastest (compiled, replayed from CUDA graphs) against eager fp16 over an orbit,
+    through a size change and a refused frame."""
+    volume = open_volume("proc:cloud:3@48")
+    renderer, iso = Renderer(volume, "cuda"), resolve_iso("proc:cloud:3@48", volume)
+    outputs = ("mask", "normal", "depth", "ao", "flow")
+    fast, eager = Reconstructor.fastest(device="cuda"), Reconstructor(device="cuda", precision="fp16")
+    shading = ShadingParams()
+    for size in (SIZE, (64, 48), SIZE):
+        for camera, request in sequence_requests(orbit_path(4, yaw_step=3.0), *size, iso, outputs, ao_samples=2):
+            frame = renderer.render(camera, request)
+            a, b = fast.reconstruct(frame, 2, 1, shading), eager.reconstruct(frame, 2, 1, shading)
+            for name in ("mask", "normal", "ao", "color"):
+                torch.testing.assert_close(getattr(a, name), getattr(b, name), rtol=0, atol=2e-2)
+    hostile = fresh(frame)
+    hostile.ao[0, 0] = 2.0
+    kept = fast.previous.clone()
+    with pytest.raises(ValueError, match=r"outside \[0, 1\]"):
+        fast.reconstruct(hostile, 2, 1, shading)
+    torch.testing.assert_close(fast.previous, kept, rtol=0, atol=0)
 
 
 # ---------------------------------------------------------------- the shipped model's quality
