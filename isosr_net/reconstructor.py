@@ -139,10 +139,11 @@ class Reconstructor(Upscaler):
     def fastest(cls, model: str | Path = DEFAULT_RECON_MODEL, device: str = "cuda",
                 precision: str | None = None) -> "Reconstructor":
         """The variant for interactive use on ``device``: on CUDA, fp16 (``precision`` overrides),
-        NHWC, the frame's work compiled and replayed as a CUDA graph; eager fp32 NHWC elsewhere."""
+        NHWC, the frame's work compiled; eager fp32 NHWC elsewhere. On an H100 at 1080p and 4K
+        (``isosr bench``'s ``bench_recon_path``) the whole frame took as long eager, compiled or
+        replayed from a CUDA graph (the render hides the launches); compiled took the least alone."""
         if torch.device(device).type == "cuda":
-            return cls(model, device, precision or "fp16", channels_last=True, compile="default", autotune=True,
-                       graphs=True)
+            return cls(model, device, precision or "fp16", channels_last=True, compile="default", autotune=True)
         return cls(model, device, precision or "fp32", channels_last=True)
 
     def reconstruct(self, frame: FrameBuffers, ao_rays: int, spp: int = 1,
