@@ -18,7 +18,7 @@ Variants on CUDA, all fp16 and NHWC: ``eager``; ``compiled`` (the frame's work a
 :func:`isosr_net.reconstructor.recon_frame`, through inductor); ``compiled + CUDA graph``
 (:meth:`Reconstructor.fastest`, replayed as one graph). On CPUs: eager fp32. The network's
 convolutions in GFLOP per frame (:func:`isosr_net.reconnet.macs_per_pixel`) and the floor they
-imply at a matrix-multiply rate measured in the same run go beside them.
+imply at a bf16 matrix-multiply rate measured in the same run (fp16's on Hopper) go beside them.
 """
 
 from __future__ import annotations
@@ -31,21 +31,13 @@ from isosr_net.frame_methods import FrameMethod, FrameRunner
 from isosr_net.reconnet import macs_per_pixel
 from isosr_net.reconstructor import Reconstructor
 
+from .bench_network import matmul_tflops
 from .bench_pareto import FRAMES, SIZES, SMOKE_FRAMES, SMOKE_SIZES, WARMUP, bench_cameras, load
 from .common import bench_parser, commit, print_table, time_frames, write_result
 
 NAME = "bench_recon_path"
 SAMPLINGS = ((1, 1), (2, 1), (1, 4))  # (AO rays, rays per pixel)
 SMOKE_VOLUMES = ("sphere",)
-
-
-def matmul_tflops(device: str, smoke: bool) -> float:
-    """Measured matrix-multiply rate in TFLOP/s (fp16 on GPUs, as the path runs; fp32 on CPUs)."""
-    cuda = device.startswith("cuda")
-    n = 8192 if cuda and not smoke else 512
-    a = torch.randn(n, n, device=device, dtype=torch.float16 if cuda else torch.float32)
-    t = time_frames(lambda i: a @ a, 3 if smoke else 20, device)
-    return 2 * n ** 3 / (t.get("gpu_ms", t["wall_ms"]) * 1e-3) / 1e12
 
 
 def variants(device: str) -> dict[str, dict]:

@@ -47,3 +47,13 @@ def test_isosr_bench_rejects_unknown_studies(capsys):
     assert "bogus" in capsys.readouterr().err
     assert cli(["bench", "--smoke", "--only", "knobs", "--models", "x2=/nowhere"]) == 2
     assert "is not NAME=MODEL_FOLDER" in capsys.readouterr().err
+
+
+def test_recon_path_smoke_times_every_stage(tmp_path):
+    from isosr_bench import bench_recon_path
+
+    rows = bench_recon_path.main(["--device", "cpu", "--smoke", "--out", str(tmp_path)])
+    assert len(rows) == len(bench_recon_path.SAMPLINGS) and (tmp_path / "bench_recon_path_cpu.json").is_file()
+    for row in rows:
+        assert all(row[k] > 0 for k in ("full", "path", "render", "reconstruct", "network_gflop", "floor_ms"))
+        assert row["added"] == row["path"] - row["full"]
