@@ -15,8 +15,9 @@ Pareto benchmark's orbit (:func:`isosr_bench.bench_pareto.bench_cameras`), mean 
   network, output buffers, shading), on the rendered frames.
 
 Variants on CUDA, all fp16 and NHWC: ``eager``; ``compiled`` (the frame's work after the render,
-:func:`isosr_net.reconstructor.recon_frame`, through inductor); ``compiled + CUDA graph``
-(:meth:`Reconstructor.fastest`, replayed as one graph). On CPUs: eager fp32. The network's
+:func:`isosr_net.reconstructor.recon_frame`, through inductor); ``+ fast layers`` (channel counts
+padded, :func:`isosr_net.fastpath.fast_reconnet`; :meth:`Reconstructor.fastest`); ``+ CUDA graph``
+(the work replayed as one graph). On CPUs: eager fp32. The network's
 convolutions in GFLOP per frame (:func:`isosr_net.reconnet.macs_per_pixel`) and the floor they
 imply at a bf16 matrix-multiply rate measured in the same run (fp16's on Hopper) go beside them.
 """
@@ -36,7 +37,7 @@ from .bench_pareto import FRAMES, SIZES, SMOKE_FRAMES, SMOKE_SIZES, WARMUP, benc
 from .common import bench_parser, commit, print_table, time_frames, write_result
 
 NAME = "bench_recon_path"
-SAMPLINGS = ((1, 1), (2, 1), (1, 4))  # (AO rays, rays per pixel)
+SAMPLINGS = ((1, 1), (1, 4))  # (AO rays, rays per pixel)
 SMOKE_VOLUMES = ("sphere",)
 
 
@@ -45,8 +46,9 @@ def variants(device: str) -> dict[str, dict]:
     if not device.startswith("cuda"):
         return {"eager": {"precision": "fp32", "channels_last": True}}
     base = {"precision": "fp16", "channels_last": True, "autotune": True}
-    return {"eager": base, "compiled": {**base, "compile": "default"},
-            "compiled + CUDA graph": {**base, "compile": "default", "graphs": True}}
+    fast = {**base, "compile": "default", "fast_layers": True}
+    return {"eager": base, "compiled": {**base, "compile": "default"}, "compiled + fast layers": fast,
+            "compiled + fast layers + CUDA graph": {**fast, "graphs": True}}
 
 
 def stage_row(renderer: Renderer, iso: float, volume: str, size: tuple[int, int], size_name: str, ao_rays: int,

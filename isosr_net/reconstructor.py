@@ -111,7 +111,7 @@ class Reconstructor(Upscaler):
 
     Args:
         model: a ReconNet model folder; default the shipped one.
-        device, precision, channels_last, autotune: as for :class:`Upscaler`.
+        device, precision, channels_last, autotune, fast_layers: as for :class:`Upscaler`.
         compile: a ``torch.compile`` mode for the whole frame's work after the render
             (:func:`recon_frame`: inputs, warp, network, output, shading fused where inductor can);
             None runs it eagerly.
@@ -122,8 +122,9 @@ class Reconstructor(Upscaler):
 
     def __init__(self, model: str | Path = DEFAULT_RECON_MODEL, device: str = "cpu", precision: str = "fp32",
                  channels_last: bool = False, compile: str | None = None, autotune: bool = False,
-                 graphs: bool = False):
-        super().__init__(model, device, precision, channels_last=channels_last, autotune=autotune)
+                 graphs: bool = False, fast_layers: bool = False):
+        super().__init__(model, device, precision, channels_last=channels_last, autotune=autotune,
+                         fast_layers=fast_layers)
         if not isinstance(self.net, ReconNet):
             raise ValueError(f"{model}: a {type(self.net).__name__}, not a reconstruction network (ReconNet)")
         if graphs and (self.device.type != "cuda" or compile == "reduce-overhead"):
@@ -139,11 +140,13 @@ class Reconstructor(Upscaler):
     def fastest(cls, model: str | Path = DEFAULT_RECON_MODEL, device: str = "cuda",
                 precision: str | None = None) -> "Reconstructor":
         """The variant for interactive use on ``device``: on CUDA, fp16 (``precision`` overrides),
-        NHWC, the frame's work compiled; eager fp32 NHWC elsewhere. On an H100 at 1080p and 4K
+        NHWC, channel-padded layers (:func:`isosr_net.fastpath.fast_reconnet`), the frame's work
+        compiled; eager fp32 NHWC elsewhere. On an H100 at 1080p and 4K
         (``isosr bench``'s ``bench_recon_path``) the whole frame took as long eager, compiled or
         replayed from a CUDA graph (the render hides the launches); compiled took the least alone."""
         if torch.device(device).type == "cuda":
-            return cls(model, device, precision or "fp16", channels_last=True, compile="default", autotune=True)
+            return cls(model, device, precision or "fp16", channels_last=True, compile="default", autotune=True,
+                       fast_layers=True)
         return cls(model, device, precision or "fp32", channels_last=True)
 
     def reconstruct(self, frame: FrameBuffers, ao_rays: int, spp: int = 1,

@@ -20,7 +20,7 @@ from isosr_render.buffers import FrameBuffers
 from isosr_render.conventions import AO, DEPTH, LOWRES_BUFFERS, MASK, NORMAL
 from isosr_render.shapes import check_shape
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
-from isosr_net.fastpath import fast_srnet
+from isosr_net.fastpath import fast_network
 from isosr_net.model import load_pretrained
 
 DEFAULT_MODEL = Path(__file__).resolve().parent / "default_model"
@@ -120,8 +120,8 @@ class Upscaler:
         compile: a ``torch.compile`` mode for the network on whole frames (``"default"``,
             ``"max-autotune"``, or ``"reduce-overhead"``, which also replays CUDA graphs);
             None runs eagerly.
-        fast_layers: run SRNet's layers rewritten for speed (:mod:`isosr_net.fastpath`: channel
-            counts padded to multiples of 8, subpixel upsampling); the same function.
+        fast_layers: run the network's layers rewritten for speed (:mod:`isosr_net.fastpath`:
+            channel counts padded to multiples of 8, SRNet's subpixel upsampling); the same function.
         autotune: let cuDNN time its algorithms per input shape (``torch.backends.cudnn.benchmark``,
             a process-wide switch that this turns on).
     """
@@ -138,7 +138,7 @@ class Upscaler:
         self.device = torch.device(device)
         self.net, self.config = load_pretrained(model, self.device)
         if fast_layers:
-            self.net = fast_srnet(self.net)
+            self.net = fast_network(self.net)
         if channels_last:
             self.net = self.net.to(memory_format=torch.channels_last)
         if autotune:

@@ -83,14 +83,14 @@ class Engine:
     def start_sync(self) -> None:
         """Load the models and warm the device: one small render, upscale, reconstruction, shading and encode."""
         self._on_thread()
-        # GPUs: NHWC and, for the upscaler, the rewritten layers (the same function,
+        # GPUs: NHWC and the rewritten layers (the same function,
         # isosr_net/fastpath.py); no torch.compile (the `fastest` variants), which would stall
         # every session for seconds at each new frame size.
         cuda = self.device.type == "cuda"
         self._template = Upscaler(self.config.model, str(self.device), self.config.precision,
                                   channels_last=cuda, fast_layers=cuda)
         self._recon_template = Reconstructor(self.config.recon_model, str(self.device), self.config.precision,
-                                             channels_last=cuda)
+                                             channels_last=cuda, fast_layers=cuda)
         factor = self.upscale_factor
         renderer = Renderer(parse_procedural("proc:sphere@16"), str(self.device))
         spec = pipeline.FrameSpec("sr", orbit(30, 20, 1.8), None, 0.5, 8 * factor, 8 * factor, 1, 0.05, None, 0)

@@ -4,8 +4,10 @@ import pytest
 import torch
 from torch import nn
 
-from isosr_net.fastpath import ChannelPaddedConv, SubpixelUpsampleConv, fast_srnet, phase_weights, upsample_conv
+from isosr_net.fastpath import (ChannelPaddedConv, SubpixelUpsampleConv, fast_network, fast_reconnet, fast_srnet,
+                                phase_weights, upsample_conv)
 from isosr_net.model import SRNet, SRNetConfig
+from isosr_net.reconnet import ReconNet, ReconNetConfig
 
 
 @pytest.mark.parametrize("size", [(2, 2), (2, 7), (5, 3), (9, 16)])
@@ -86,3 +88,16 @@ def test_bad_inputs_are_clear_errors():
         fast_srnet(nn.Conv2d(2, 2, 3))
     with pytest.raises(ValueError, match="ungrouped"):
         ChannelPaddedConv(nn.Conv2d(4, 4, 3, groups=2), 8)
+
+
+def test_the_channel_padded_reconnet_computes_the_same_frames():
+    torch.manual_seed(0)
+    net = ReconNet(ReconNetConfig()).eval().double()
+    fast = fast_network(net)
+    assert fast.head.conv.in_channels == 16 and fast.tail.conv.out_channels == 8
+    assert net.head.in_channels == 10 and net.tail.out_channels == 6  # the original is untouched
+    inputs, previous = torch.rand(2, 8, 21, 30, dtype=torch.float64), torch.rand(2, 6, 21, 30, dtype=torch.float64)
+    with torch.no_grad():
+        torch.testing.assert_close(fast(inputs, previous), net(inputs, previous), rtol=0, atol=1e-12)
+    with pytest.raises(TypeError, match="needs a ReconNet"):
+        fast_reconnet(torch.nn.Conv2d(1, 1, 1))
