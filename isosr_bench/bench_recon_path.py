@@ -11,8 +11,7 @@ Pareto benchmark's orbit (:func:`isosr_bench.bench_pareto.bench_cameras`), mean 
 - ``path``: the whole reconstructed frame as :class:`FrameRunner` makes it (render,
   reconstruction, shading), one synchronization at its end, as the Pareto benchmark times it;
   ``added``: ``path - full``;
-- ``render``: its ray cast alone; ``reconstruct``: the rest alone (checks, inputs, warp,
-  network, output buffers, shading), on the rendered frames.
+- ``render``: its ray cast alone.
 
 Variants on CUDA, all fp16 and NHWC: ``eager``; ``compiled`` (the frame's work after the render,
 :func:`isosr_net.reconstructor.recon_frame`, through inductor); ``+ fast layers`` (channel counts
@@ -64,13 +63,8 @@ def stage_row(renderer: Renderer, iso: float, volume: str, size: tuple[int, int]
            "variant": variant, "method": method.name}
     row["full"] = ms(time_frames(lambda i: full.frame(*pairs[i]), frames, device, warmup=warmup))
     row["path"] = ms(time_frames(lambda i: runner.frame(*pairs[i]), frames, device, warmup=warmup))
-    rendered = [None] * frames
-    row["render"] = ms(time_frames(
-        lambda i: rendered.__setitem__(i, renderer.render(pairs[i][0], runner.render_request(pairs[i][1]))),
-        frames, device, warmup=0))
-    recon.reset()
-    row["reconstruct"] = ms(time_frames(lambda i: recon.reconstruct(rendered[i], ao_rays, spp, runner.shading),
-                                        frames, device, warmup=0))
+    row["render"] = ms(time_frames(lambda i: renderer.render(pairs[i][0], runner.render_request(pairs[i][1])),
+                                   frames, device, warmup=0))
     row["added"] = row["path"] - row["full"]
     row["network_gflop"] = 2 * macs_per_pixel(recon.net.config) * size[0] * size[1] / 1e9
     row["floor_ms"] = row["network_gflop"] / tflops
@@ -104,7 +98,7 @@ def main(argv=None) -> list[dict]:
                 for variant, options in variants(args.device).items():
                     rows.append(stage_row(renderer, iso, name, sizes[size_name], size_name, ao_rays, spp, variant,
                                           options, frames, warmup, args.device, tflops))
-    print_table(rows, ["volume", "size", "ao_rays", "spp", "variant", "full", "path", "added", "render", "reconstruct",
+    print_table(rows, ["volume", "size", "ao_rays", "spp", "variant", "full", "path", "added", "render",
                        "network_gflop", "floor_ms"])
     print(f"wrote {write_result(NAME, args.device, rows, args.out)}")
     return rows
