@@ -38,7 +38,10 @@ def markdown(folder: Path, kind: str) -> str:
                 ("bench_knobs", "What accuracy costs in time",
                  ["knob", "setting", "size", "ms", "error", "error unit", "mask mismatch"]),
                 ("bench_render", "The renderer",
-                 ["volume", "case", "size", "ms", "kernel_ms", "samples/pixel", "max samples/pixel", "skip speedup"]))
+                 ["volume", "case", "size", "ms", "kernel_ms", "samples/pixel", "max samples/pixel", "skip speedup"]),
+                ("bench_recon_path", "What the reconstruction adds to a full-resolution frame",
+                 ["volume", "size", "ao_rays", "spp", "variant", "full", "path", "added", "render", "network_gflop",
+                  "floor_ms"]))
     for name, title, columns in sections:
         record = _load(folder, name, kind)
         if record is None:
