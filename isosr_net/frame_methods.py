@@ -189,7 +189,7 @@ class FrameRunner:
             up = upscale_classic(out, m.factor, m.interpolation)
             return FrameBuffers(mask=up.mask, normal=up.normal,  # no AO: shaded unoccluded (AO 1)
                                 color=shade(up.mask, up.normal, up.ao, self.shading))
-        if m.kind == "reconstruct":  # shaded in the reconstruction's own (captured) work
+        if m.kind == "reconstruct":  # shaded within the reconstruction's one (compiled) call
             return self.upscaler.reconstruct(out, m.ao_rays, m.spp, self.shading)
         high = self.upscaler.upscale(out)
         high.color = shade(high.mask, high.normal, high.ao, self.shading)

@@ -52,8 +52,11 @@ def recon_inputs(frame: FrameBuffers, ao_rays: int, spp: int,
     now = checks is None
     checks = InputChecks() if now else checks
     lowres, flow = _checked_tensors(frame, ao_rays, spp, checks)
-    ao = torch.zeros_like(lowres[:, :1]) if frame.ao is None or not ao_rays else frame.ao.float()[None, None]
-    checks.add(_ao_in_range(ao), bool, _AO_MESSAGE)
+    if ao_rays:
+        ao = frame.ao.float()[None, None]
+        checks.add(_ao_in_range(ao), bool, _AO_MESSAGE)
+    else:
+        ao = torch.zeros_like(lowres[:, :1])
     if now:
         checks.raise_first()
     return torch.cat([lowres, ao, sampling_channels(ao_rays, spp, lowres)], dim=1), flow
@@ -142,8 +145,9 @@ class Reconstructor(Upscaler):
         """The variant for interactive use on ``device``: on CUDA, fp16 (``precision`` overrides),
         NHWC, channel-padded layers (:func:`isosr_net.fastpath.fast_reconnet`), the frame's work
         compiled; eager fp32 NHWC elsewhere. On an H100 at 1080p and 4K
-        (``isosr bench``'s ``bench_recon_path``) the whole frame took as long eager, compiled or
-        replayed from a CUDA graph (the render hides the launches); compiled took the least alone."""
+        (``python -m isosr_bench.bench_recon_path``) the whole frame took as long eager, compiled,
+        padded or replayed from a CUDA graph, within run-to-run spread: the network's GPU time,
+        not launches, is what a frame waits for."""
         if torch.device(device).type == "cuda":
             return cls(model, device, precision or "fp16", channels_last=True, compile="default", autotune=True,
                        fast_layers=True)
