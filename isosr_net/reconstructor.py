@@ -18,12 +18,11 @@ from pathlib import Path
 import torch
 
 from isosr_render.buffers import FrameBuffers
-from isosr_render.conventions import DEPTH
 from isosr_render.shading import ShadingParams, shade
 from isosr_render.shapes import check_shape
 from isosr_net.flow_warp import warp_by_flow
 from isosr_net.reconnet import MAX_RECON_AO_RAYS, MAX_RECON_SPP, ReconNet, sampling_channels
-from isosr_net.upscaler import FP16_MAX_DEPTH, PRECISIONS, InputChecks, Upscaler, highres_frame, lowres_tensors
+from isosr_net.upscaler import PRECISIONS, InputChecks, Upscaler, highres_frame, lowres_tensors
 
 DEFAULT_RECON_MODEL = Path(__file__).resolve().parent / "recon_model"
 # Captured CUDA graphs kept per Reconstructor (frame sizes x samplings x first frame or not).
@@ -173,14 +172,8 @@ class Reconstructor(Upscaler):
         lowres, flow = _checked_tensors(frame, ao_rays, spp, checks)
         lowres = lowres.to(self.device)
         ao = frame.ao[None, None].to(self.device) if ao_rays else None
-        if self.precision == "fp16":
-            checks.add(lowres[:, DEPTH].abs().amax(), lambda deepest: deepest <= FP16_MAX_DEPTH,
-                       lambda deepest: f"fp16 takes depths up to {FP16_MAX_DEPTH:g}, this frame reaches "
-                                       f"{deepest:.3g}: use bf16 or fp32")
-        previous = None if flow is None else self.previous
-        if previous is not None and previous.shape[-2:] != lowres.shape[-2:]:
-            previous = None  # the frame size changed: nothing to carry over
-        flow = None if previous is None else flow.to(self.device)
+        self._check_precision(lowres, checks)
+        previous, flow = self._carried(lowres, flow)
         args = (lowres, ao, self._sampling_tensor(ao_rays, spp), flow, previous, PRECISIONS[self.precision], shading)
         with torch.no_grad():
             outs = self._replay(args) if self.graphs else self._frame(*args)

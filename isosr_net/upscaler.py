@@ -186,15 +186,9 @@ class Upscaler:
         """
         lowres = lowres.to(self.device)
         checks = InputChecks() if checks is None else checks
-        if self.precision == "fp16":
-            checks.add(lowres[:, DEPTH].abs().amax(), lambda deepest: deepest <= FP16_MAX_DEPTH,
-                       lambda deepest: f"fp16 takes depths up to {FP16_MAX_DEPTH:g}, this frame reaches "
-                                       f"{deepest:.3g}: use bf16 or fp32")
+        self._check_precision(lowres, checks)
         checks.raise_first()
-        previous = None if flow is None else self.previous
-        if previous is not None and previous.shape[-2:] != tuple(s * self.upscale_factor for s in lowres.shape[-2:]):
-            previous = None  # the frame size changed: nothing to carry over
-        flow = None if previous is None else flow.to(self.device)
+        previous, flow = self._carried(lowres, flow)
         h, w = lowres.shape[-2:]
         whole = self.tile is None or (h <= self.tile and w <= self.tile)
         with torch.autocast(self.device.type, dtype=PRECISIONS[self.precision], enabled=self.precision != "fp32"):
@@ -204,6 +198,21 @@ class Upscaler:
             output = output.float().clone()
         self.previous = output
         return output
+
+    def _check_precision(self, lowres: torch.Tensor, checks: InputChecks) -> None:
+        """Queue what the precision needs of the inputs: fp16 takes depths up to :data:`FP16_MAX_DEPTH`."""
+        if self.precision == "fp16":
+            checks.add(lowres[:, DEPTH].abs().amax(), lambda deepest: deepest <= FP16_MAX_DEPTH,
+                       lambda deepest: f"fp16 takes depths up to {FP16_MAX_DEPTH:g}, this frame reaches "
+                                       f"{deepest:.3g}: use bf16 or fp32")
+
+    def _carried(self, lowres: torch.Tensor, flow: torch.Tensor | None) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        """``(previous, flow)`` to carry into this frame: both None after a cut (no flow) or a
+        change of frame size (nothing of this size to warp)."""
+        previous = None if flow is None else self.previous
+        if previous is not None and previous.shape[-2:] != tuple(s * self.upscale_factor for s in lowres.shape[-2:]):
+            previous = None
+        return previous, None if previous is None else flow.to(self.device)
 
     def _warp(self, lowres: torch.Tensor, previous: torch.Tensor | None, flow: torch.Tensor | None) -> torch.Tensor:
         """The previous output warped to this frame, or the first frame's stand-in."""
