@@ -25,16 +25,16 @@ import numpy as np
 import torch
 
 from isosr_render import Renderer, RenderRequest, open_volume, orbit_path, resolve_iso
-from isosr_render.conventions import HIGHRES_BUFFERS, LOWRES_BUFFERS
+from isosr_render.conventions import AO_RADIUS, HIGHRES_BUFFERS, LOWRES_BUFFERS
 from isosr_render.sequence import sequence_requests
 from isosr_net.metrics import frame_scores, upscale_baseline
 from isosr_net.model import read_config
-from isosr_net.upscaler import DEFAULT_MODEL, Upscaler, lowres_tensors
+from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
+from isosr_net.inference import surface_tensors
 
 from .common import bench_parser, print_table, time_frames, write_result
 
 FRAMES = 4
-AO_RADIUS = 0.05
 
 
 def stack(frame) -> torch.Tensor:
@@ -123,7 +123,7 @@ class Knobs:
         for factor in (2, 4, 8):
             sequence = sequence_requests(self.cameras, w // factor, h // factor, self.iso,
                                          LOWRES_BUFFERS + ("flow",))
-            lows = [lowres_tensors(self.renderer.render(*frame)) for frame in sequence]
+            lows = [surface_tensors(self.renderer.render(*frame)) for frame in sequence]
             methods = {mode: (lambda low, mode=mode: upscale_baseline(low[0], factor, mode))
                        for mode in ("nearest", "bilinear", "bicubic")}
             for model, folder in self.models.items():

@@ -23,7 +23,8 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from isosr_render import Renderer, open_volume, orbit_path, resolve_iso
 from isosr_render.sequence import sequence_requests
-from isosr_net.upscaler import DEFAULT_MODEL, Upscaler, lowres_tensors
+from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
+from isosr_net.inference import surface_tensors
 
 from .common import bench_parser, print_table, time_frames, write_result
 
@@ -57,7 +58,7 @@ def lowres_sequence(width: int, height: int, frames: int, device: str) -> list[t
     out = []
     for camera, request in sequence_requests(cameras, width, height, resolve_iso(VOLUME, volume),
                                              ("mask", "normal", "depth", "flow")):
-        lowres, flow = lowres_tensors(renderer.render(camera, request))
+        lowres, flow = surface_tensors(renderer.render(camera, request))
         out.append((lowres.to(device), None if flow is None else flow.to(device)))
     return out
 

@@ -50,7 +50,7 @@ from isosr_render.sequence import sequence_cameras
 from isosr_net.budget import (REFERENCE_AO_RAYS, REFERENCE_SPP, BudgetConfig, choose_method, probe_quality,
                               reference_frames)
 from isosr_net.flow_warp import warp_by_flow
-from isosr_net.frame_methods import INTERPOLATIONS, FrameMethod, FrameRunner
+from isosr_net.frame_methods import INTERPOLATIONS, FrameMethod, Networks, make_runner
 from isosr_net.metrics import eval_region, masked_psnr, masked_ssim, temporal_instability
 from isosr_net.model import read_config
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL
@@ -152,7 +152,7 @@ def scores(frames: list, references: list) -> dict:
 
 def work(method: FrameMethod) -> float:
     """A method's ray work relative to one primary ray per pixel (for the time estimate only)."""
-    if method.kind in ("upscale", "network"):
+    if method.runner.low_res:
         return 1.0 / method.factor ** 2
     return method.spp * (1.0 + method.ao_rays / PRIMARY_IN_AO_RAYS)
 
@@ -163,7 +163,7 @@ def bench_cameras(frames: int):
 
 
 def pareto_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, int], size_name: str,
-                measured: list[FrameMethod], frames: int, warmup: int, device: str, upscalers: dict) -> list[dict]:
+                measured: list[FrameMethod], frames: int, warmup: int, device: str, networks: Networks) -> list[dict]:
     """One row per method on one volume and size."""
     cameras = bench_cameras(frames)
     pairs = sequence_cameras(cameras)
@@ -180,11 +180,11 @@ def pareto_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
     revision = commit()
     rows = []
     for method in measured:
-        runner = FrameRunner(method, renderer, iso, *size, upscalers=upscalers)
+        runner = make_runner(method, renderer, iso, *size, networks=networks)
         outs = [None] * frames
 
         def frame(i):
-            outs[i] = runner.frame(*pairs[i])
+            outs[i] = runner.frame(*pairs[i]).buffers
 
         t = time_frames(frame, frames, device, warmup=warmup)
         rows.append({"part": "pareto", "volume": volume, "size": size_name, "pixels": f"{size[0]}x{size[1]}",
@@ -199,13 +199,14 @@ def pareto_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
 
 
 def budget_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, int], size_name: str,
-                measured: list[FrameMethod], rows: list[dict], budgets, upscalers: dict, smoke: bool) -> list[dict]:
+                measured: list[FrameMethod], rows: list[dict], budgets, networks: Networks, smoke: bool) -> list[dict]:
     """The policy's choice per budget, scored by this run's rows, against the best fixed setting that fits."""
     precision = "bf16" if str(renderer.device).startswith("cuda") else "fp32"
-    config = BudgetConfig(candidates=tuple(m for m in measured if m.kind != "network" or m.precision == precision),
+    config = BudgetConfig(candidates=tuple(m for m in measured if not m.runner.low_res or not m.learned
+                                          or m.precision == precision),
                           **(dict(warmup_frames=SMOKE_WARMUP, timing_frames=2) if smoke else {}))
     cameras = bench_cameras(SMOKE_FRAMES if smoke else FRAMES)
-    quality = probe_quality(renderer, iso, *size, config, cameras, upscalers=upscalers)
+    quality = probe_quality(renderer, iso, *size, config, cameras, networks=networks)
     by_name = {r["method"]: r for r in rows}
     revision = commit()
     timings: dict = {}
@@ -213,7 +214,7 @@ def budget_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
     for budget in sorted(budgets, reverse=True):  # largest first, so that the timings carry over
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # recorded as fits: false
-            choice = choose_method(renderer, iso, *size, budget, config, cameras, upscalers=upscalers,
+            choice = choose_method(renderer, iso, *size, budget, config, cameras, networks=networks,
                                    quality=quality, timings=timings)
         fitting = [r for r in rows if r["ms"] <= budget and r["color_psnr"] is not None]
         best = max(fitting, key=lambda r: r["color_psnr"], default=None)
@@ -332,7 +333,7 @@ def main(argv=None) -> list[dict]:
         torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
     measured = methods(args.smoke, args.device, models)
     frames = SMOKE_FRAMES if args.smoke else FRAMES
-    upscalers: dict = {}
+    networks = Networks()
     rows = []
     for name in names:
         volume, iso = load(name, args.device)
@@ -341,9 +342,9 @@ def main(argv=None) -> list[dict]:
             size = sizes[size_name]
             fitting = [m for m in measured if size[0] % m.factor == 0 and size[1] % m.factor == 0]
             scene = pareto_rows(renderer, iso, name, size, size_name, fitting, frames,
-                                SMOKE_WARMUP if args.smoke else WARMUP, args.device, upscalers)
+                                SMOKE_WARMUP if args.smoke else WARMUP, args.device, networks)
             rows += scene + budget_rows(renderer, iso, name, size, size_name, fitting, scene,
-                                        SMOKE_BUDGETS if args.smoke else BUDGETS, upscalers, args.smoke)
+                                        SMOKE_BUDGETS if args.smoke else BUDGETS, networks, args.smoke)
         del renderer, volume
     kind = "cuda" if args.device.startswith("cuda") else "cpu"
     merged = merge(args.out / f"{NAME}_{kind}.json", rows)

@@ -18,16 +18,16 @@ import torch
 import torch.nn.functional as F
 
 from isosr_render import Renderer, RenderRequest, Volume, open_volume, orbit_path, resolve_iso
-from isosr_render.conventions import HIGHRES_BUFFERS, LOWRES_BUFFERS
+from isosr_render.conventions import AO_RADIUS, HIGHRES_BUFFERS, LOWRES_BUFFERS
 from isosr_render.sequence import sequence_requests
 from isosr_render.shading import shade_channels_first
-from isosr_net.upscaler import DEFAULT_MODEL, Upscaler, lowres_tensors
+from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
+from isosr_net.inference import surface_tensors
 
 from .common import bench_parser, print_table, time_frames, write_result
 
 FRAMES = 10
 AO_SAMPLES = 128
-AO_RADIUS = 0.05
 LOWRES_OUTPUTS = LOWRES_BUFFERS + ("flow",)
 
 
@@ -73,7 +73,7 @@ class Pipeline:
         return lambda i: self.renderer.render(*frames[i % FRAMES + 1])
 
     def network(self, width: int, height: int):
-        lowres, flow = lowres_tensors(self.lowres(width, height)(0))
+        lowres, flow = surface_tensors(self.lowres(width, height)(0))
         self.upscaler.reset()
         self.upscaler.step(lowres, None)
         return lambda i: self.upscaler.step(lowres, flow)
@@ -84,7 +84,7 @@ class Pipeline:
         self.upscaler.reset()
 
         def frame(i):
-            lowres, flow = lowres_tensors(render(i))
+            lowres, flow = surface_tensors(render(i))
             return shade_channels_first(self.upscaler.step(lowres, flow))
         return frame
 

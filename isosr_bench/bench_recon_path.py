@@ -8,7 +8,7 @@ Pareto benchmark's orbit (:func:`isosr_bench.bench_pareto.bench_cameras`), mean 
 
 - ``full``: the full-resolution frame with the same rays and no network (what the
   reconstruction adds to);
-- ``path``: the whole reconstructed frame as :class:`FrameRunner` makes it (render,
+- ``path``: the whole reconstructed frame as its :class:`~isosr_net.frame_methods.FrameRunner` makes it (render,
   reconstruction, shading), one synchronization at its end, as the Pareto benchmark times it;
   ``added``: ``path - full``;
 - ``render``: its ray cast alone.
@@ -27,7 +27,7 @@ import torch
 
 from isosr_render import Renderer
 from isosr_render.sequence import sequence_cameras
-from isosr_net.frame_methods import FrameMethod, FrameRunner
+from isosr_net.frame_methods import FrameMethod, Networks, make_runner
 from isosr_net.reconnet import macs_per_pixel
 from isosr_net.reconstructor import Reconstructor
 
@@ -57,8 +57,9 @@ def stage_row(renderer: Renderer, iso: float, volume: str, size: tuple[int, int]
     pairs = sequence_cameras(bench_cameras(frames))
     method = FrameMethod("reconstruct", ao_rays=ao_rays, spp=spp, precision=options["precision"])
     recon = Reconstructor(device=device, **options)
-    runner = FrameRunner(method, renderer, iso, *size, upscalers={method.upscaler_key(device): recon})
-    full = FrameRunner(FrameMethod("full", ao_rays=ao_rays, spp=spp), renderer, iso, *size)
+    networks = Networks(lambda *_: recon)  # this variant's network
+    runner = make_runner(method, renderer, iso, *size, networks=networks)
+    full = make_runner(FrameMethod("full", ao_rays=ao_rays, spp=spp), renderer, iso, *size)
     row = {"volume": volume, "size": size_name, "pixels": f"{size[0]}x{size[1]}", "ao_rays": ao_rays, "spp": spp,
            "variant": variant, "method": method.name}
     row["full"] = ms(time_frames(lambda i: full.frame(*pairs[i]), frames, device, warmup=warmup))

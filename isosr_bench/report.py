@@ -11,7 +11,7 @@ from collections import defaultdict
 from pathlib import Path
 
 from isosr_render.atomic import atomic_write
-from isosr_net.frame_methods import LEARNED
+from isosr_net.frame_methods import RUNNERS
 
 from .common import RESULTS_DIR
 
@@ -240,7 +240,7 @@ def pareto_plots(folder: Path, kind: str) -> list[Path]:
             if best:
                 ax.plot([r["ms"] for r in best], [r["color_psnr"] for r in best], color="0.3", lw=0.8, zorder=1)
             for k, c in colors.items():
-                ax.scatter([], [], color=c, marker="*" if k in LEARNED else "o", label=k)
+                ax.scatter([], [], color=c, marker="*" if RUNNERS[k].network_class else "o", label=k)
             ax.scatter([], [], color="0.75", label="dominated")
             ax.set(xscale="log", xlabel="ms per frame (whole path)", ylabel="color PSNR, covered region (dB)",
                    title=f"{volume}, {rows[0].get('pixels', size) if rows else size}")

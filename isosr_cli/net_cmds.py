@@ -88,7 +88,8 @@ def run_train(args: argparse.Namespace) -> int:
 def run_eval(args: argparse.Namespace) -> int:
     from isosr_net.evaluate import SCORES, evaluate, gains
     from isosr_net.model import load_pretrained
-    from isosr_net.upscaler import DEFAULT_MODEL, PRECISIONS
+    from isosr_net.inference import PRECISIONS
+    from isosr_net.upscaler import DEFAULT_MODEL
 
     net, _ = load_pretrained(args.model or DEFAULT_MODEL, args.device)
     rows = evaluate(net, args.data, args.split, args.device, PRECISIONS[args.precision], oracles=args.oracles)

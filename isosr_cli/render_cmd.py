@@ -14,11 +14,11 @@ from pathlib import Path
 import torch
 
 from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest, open_volume, orbit, resolve_iso
-from isosr_render.conventions import BUFFER_NAMES, HIGHRES_BUFFERS
+from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES, HIGHRES_BUFFERS
 from isosr_net.budget import BudgetConfig, render_within_budget
-from isosr_net.frame_methods import FrameMethod, FrameRunner, run_sequence
+from isosr_net.frame_methods import FrameMethod, FrameRunner, Networks, make_runner, run_sequence
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, MAX_RECON_AO_RAYS, Reconstructor
-from isosr_net.upscaler import PRECISIONS
+from isosr_net.inference import PRECISIONS
 from isosr_cli.images import visualize, write_png
 
 PNG_DEFAULT = "color"
@@ -75,7 +75,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--ao-samples", type=int,
                    help=f"AO rays per hit (default {AO_SAMPLES}; with --reconstruct 0 to {MAX_RECON_AO_RAYS}, "
                         f"default {RECON_AO_SAMPLES}, 0: AO inferred from the geometry)")
-    p.add_argument("--ao-radius", type=float, default=0.05, help="AO ray length (world units)")
+    p.add_argument("--ao-radius", type=float, default=AO_RADIUS, help="AO ray length (world units)")
     p.add_argument("--step", type=float, help="ray step (world units; default half the smallest voxel)")
     p.add_argument("--voxel-units", action="store_true", help="--step and --ao-radius are in voxels")
     p.add_argument("--refine", choices=("secant", "bisection"), default="secant", help="hit refinement")
@@ -204,7 +204,4 @@ def _recon_runner(args: argparse.Namespace, renderer: Renderer, iso: float, ao_r
     it (what a runner's own network does on GPUs) would take longer than it saves."""
     method = FrameMethod("reconstruct", ao_rays=args.ao_samples, spp=args.spp, model=args.model, model_name="recon",
                          precision=args.precision or "fp32")
-    device = str(renderer.device)
-    network = Reconstructor(args.model or DEFAULT_RECON_MODEL, device, method.precision)
-    return FrameRunner(method, renderer, iso, *args.size, ao_radius=ao_radius,
-                       upscalers={method.upscaler_key(device): network})
+    return make_runner(method, renderer, iso, *args.size, ao_radius=ao_radius, networks=Networks.eager())

@@ -9,7 +9,8 @@ from dataclasses import fields
 from pathlib import Path
 
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL
-from isosr_net.upscaler import DEFAULT_MODEL, PRECISIONS
+from isosr_net.upscaler import DEFAULT_MODEL
+from isosr_net.inference import PRECISIONS
 from isosr_server.protocol import Limits
 
 TOKEN_ENV = "ISOSR_TOKEN"

@@ -44,7 +44,9 @@ import torch
 from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest, orbit_path
 from isosr_render.sequence import sequence_cameras
 from isosr_render.shading import ShadingParams, shade
-from isosr_net.frame_methods import AO_RADIUS, FrameMethod, FrameRunner, run_sequence
+from isosr_render.conventions import AO_RADIUS
+from isosr_render.shapes import check_int
+from isosr_net.frame_methods import FrameMethod, FrameRunner, Networks, make_runner, run_sequence
 from isosr_net.metrics import eval_region, masked_psnr
 
 # Color PSNR of no-AO against many-ray AO above which a scene gets no AO rays (see above).
@@ -59,16 +61,17 @@ REFERENCE_SEED = 1
 OVER_BUDGET_STOP = 2.0
 
 
-def default_candidates(device: str) -> tuple[FrameMethod, ...]:
+def default_candidates(device: str, precision: str | None = None) -> tuple[FrameMethod, ...]:
     """The methods the policy considers, roughly cheapest first (the order breaks ties): full
     resolution with 0-64 AO rays and 1-4 rays per pixel, the a-trous filter over 1-4 AO rays, bilinear x2 and
-    x4, the shipped x4 network at its fastest precision (bf16 on CUDA, fp32 elsewhere), and the
-    shipped reconstruction over 1-4 AO rays at 1-4 rays per pixel (fp16 on CUDA, fp32 elsewhere)."""
+    x4, the shipped x4 network, and the shipped reconstruction over 1-4 AO rays at 1-4 rays per pixel.
+    The networks run in ``precision``; None: each at its fastest (on CUDA the x4 network in bf16, the
+    reconstruction in fp16; fp32 elsewhere)."""
     cuda = device.startswith("cuda")
-    network = FrameMethod("network", factor=4, precision="bf16" if cuda else "fp32")
+    network = FrameMethod("network", factor=4, precision=precision or ("bf16" if cuda else "fp32"))
     full = [FrameMethod("full", ao_rays=n) for n in (1, 2, 4, 8, 16, 32, 64)]
     atrous = [FrameMethod("atrous", ao_rays=n) for n in (1, 2, 4)]
-    recon = {(n, s): FrameMethod("reconstruct", ao_rays=n, spp=s, precision="fp16" if cuda else "fp32")
+    recon = {(n, s): FrameMethod("reconstruct", ao_rays=n, spp=s, precision=precision or ("fp16" if cuda else "fp32"))
              for s in (1, 2, 4) for n in (1, 2, 4)}
     return (FrameMethod("upscale", factor=4), FrameMethod("upscale", factor=2), FrameMethod("full"), network,
             full[0], atrous[0], recon[1, 1], full[1], atrous[1], recon[2, 1], full[2], atrous[2], recon[4, 1],
@@ -108,9 +111,7 @@ class BudgetConfig:
 
     def __post_init__(self):
         for name, low in (("probe_height", 16), ("probe_frames", 1), ("warmup_frames", 0), ("timing_frames", 1)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise ValueError(f"BudgetConfig.{name} must be an integer >= {low}, got {value!r}")
+            check_int(getattr(self, name), name, low, where="BudgetConfig")
         if not (isinstance(self.probe_scale, (int, float)) and 0 < self.probe_scale <= 1):
             raise ValueError(f"BudgetConfig.probe_scale must be in (0, 1], got {self.probe_scale!r}")
         if not 0 < self.headroom <= 1:
@@ -178,10 +179,8 @@ def probe_size(width: int, height: int, probe_height: int, probe_scale: float = 
 
 
 def _check_size_and_budget(width: int, height: int, budget_ms: float) -> None:
-    for name, value in (("width", width), ("height", height)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ValueError(f"the frame's {name} must be a positive integer, got {value!r} (a zero-size frame "
-                             f"cannot be probed)")
+    check_int(width, "width", 1, where="the frame to probe")
+    check_int(height, "height", 1, where="the frame to probe")
     if not (isinstance(budget_ms, (int, float)) and math.isfinite(budget_ms) and budget_ms > 0):
         raise ValueError(f"budget_ms must be a positive finite number of milliseconds, got {budget_ms!r}")
 
@@ -279,7 +278,7 @@ class QualityProbe:
 
 
 def probe_quality(renderer: Renderer, iso: float, width: int, height: int, config: BudgetConfig = BudgetConfig(),
-                  cameras: list[Camera] | None = None, upscalers: dict | None = None) -> QualityProbe:
+                  cameras: list[Camera] | None = None, networks: Networks | None = None) -> QualityProbe:
     """Steps 1 and 2 of the module docstring: the AO test, then every remaining candidate scored
     at the probe size against the reference.
 
@@ -291,6 +290,7 @@ def probe_quality(renderer: Renderer, iso: float, width: int, height: int, confi
     start = time.perf_counter()
     size = probe_size(width, height, config.probe_height, config.probe_scale)
     cameras = cameras or _probe_cameras(config)
+    networks = Networks() if networks is None else networks
     candidates = [m for m in config.candidates or default_candidates(str(renderer.device))
                   if not (width % m.factor or height % m.factor or size[0] % m.factor or size[1] % m.factor)]
     if not candidates:
@@ -303,7 +303,8 @@ def probe_quality(renderer: Renderer, iso: float, width: int, height: int, confi
         candidates = [m for m in candidates if m.ao_rays == 0]
     psnr = {}
     for m in candidates:
-        runner = FrameRunner(m, renderer, iso, *size, config.shading, config.ao_radius, upscalers)
+        runner = make_runner(m, renderer, iso, *size, shading=config.shading, ao_radius=config.ao_radius,
+                             networks=networks)
         psnr[m] = _nanmean([color_psnr(f, r) for f, r in zip(run_sequence(runner, cameras), references)])
     return QualityProbe(size, psnr, effect, ao_matters, time.perf_counter() - start)
 
@@ -314,7 +315,7 @@ def _probe_cameras(config: BudgetConfig) -> list[Camera]:
 
 def choose_method(renderer: Renderer, iso: float, width: int, height: int, budget_ms: float,
                   config: BudgetConfig = BudgetConfig(), cameras: list[Camera] | None = None,
-                  upscalers: dict | None = None, quality: QualityProbe | None = None,
+                  networks: Networks | None = None, quality: QualityProbe | None = None,
                   timings: dict | None = None) -> BudgetChoice:
     """Pick the method with the best expected quality whose probe frame time fits ``budget_ms``.
 
@@ -325,7 +326,7 @@ def choose_method(renderer: Renderer, iso: float, width: int, height: int, budge
         budget_ms: frame-time budget in milliseconds.
         config: the probe's knobs.
         cameras: the probe's camera path (default a short orbit at distance 1.8).
-        upscalers: a cache of networks shared with later runners (see :class:`FrameRunner`).
+        networks: the loaded networks, shared with later runners (see :class:`Networks`).
         quality: a :func:`probe_quality` of the same scene and frame size, reused across budgets.
         timings: frame times (ms) by method of earlier calls on the same scene and size, reused
             and filled: pass one dict to calls from the largest budget down (a time cut short
@@ -340,8 +341,8 @@ def choose_method(renderer: Renderer, iso: float, width: int, height: int, budge
     """
     _check_size_and_budget(width, height, budget_ms)
     cameras = cameras or _probe_cameras(config)
-    upscalers = {} if upscalers is None else upscalers
-    quality = quality or probe_quality(renderer, iso, width, height, config, cameras, upscalers)
+    networks = Networks() if networks is None else networks
+    quality = quality or probe_quality(renderer, iso, width, height, config, cameras, networks)
     start = time.perf_counter()
     psnr = quality.psnr
     rank = {m: i for i, m in enumerate(psnr)}
@@ -351,7 +352,8 @@ def choose_method(renderer: Renderer, iso: float, width: int, height: int, budge
     chosen = None
     for m in order:
         if m not in timings:
-            runner = FrameRunner(m, renderer, iso, width, height, config.shading, config.ao_radius, upscalers)
+            runner = make_runner(m, renderer, iso, width, height, shading=config.shading, ao_radius=config.ao_radius,
+                                 networks=networks)
             timings[m] = _time_candidate(runner, cameras, config, budget_ms)
         ms[m] = timings[m]
         if ms[m] <= config.headroom * budget_ms:
@@ -374,8 +376,9 @@ def render_within_budget(renderer: Renderer, camera: Camera, iso: float, width: 
     Shape:
         The frame's color: (H, W, 3) in [0, 1] (see :meth:`FrameRunner.frame`).
     """
-    upscalers: dict = {}
+    networks = Networks()
     still = [camera] * config.probe_frames  # the view to be shown is the one to probe
-    choice = choose_method(renderer, iso, width, height, budget_ms, config, cameras=still, upscalers=upscalers)
-    runner = FrameRunner(choice.method, renderer, iso, width, height, config.shading, config.ao_radius, upscalers)
-    return runner.frame(camera), choice
+    choice = choose_method(renderer, iso, width, height, budget_ms, config, cameras=still, networks=networks)
+    runner = make_runner(choice.method, renderer, iso, width, height, shading=config.shading,
+                         ao_radius=config.ao_radius, networks=networks)
+    return runner.frame(camera).buffers, choice

@@ -23,7 +23,7 @@ from tqdm import tqdm
 from isosr_render import Renderer, RenderRequest, Volume, open_volume, orbit
 from isosr_render.atomic import atomic_write
 from isosr_render.catalog import SHARED_PREFIX, entry, resolve_iso
-from isosr_render.conventions import HIGHRES_BUFFERS, LOWRES_BUFFERS
+from isosr_render.conventions import AO_RADIUS, HIGHRES_BUFFERS, LOWRES_BUFFERS
 from isosr_render.sequence import sequence_requests
 from isosr_net.batch import FIELDS, SequenceBatch
 from isosr_net.reconnet import MAX_RECON_AO_RAYS, MAX_RECON_SPP
@@ -71,7 +71,7 @@ class DatagenConfig:
     crops: int = 4
     min_coverage: float = 0.5
     ao_samples: int = 256
-    ao_radius: float = 0.05
+    ao_radius: float = AO_RADIUS
     spp: int = 4
     input_spp: tuple[int, ...] = (1,)
     input_ao_rays: tuple[int, ...] = (0,)

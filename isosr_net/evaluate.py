@@ -29,7 +29,8 @@ from isosr_net.datagen import SequenceDataset
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net.metrics import frame_scores, temporal_instability, upscale_baseline
 from isosr_net.model import Unrolled
-from isosr_net.upscaler import Upscaler, lowres_tensors
+from isosr_net.upscaler import Upscaler
+from isosr_net.inference import surface_tensors
 
 BASELINES = ("nearest", "bilinear", "bicubic")
 ORACLES = ("oracle: bilinear + true AO", "oracle: true geometry, no AO")
@@ -148,7 +149,7 @@ def compare_upscalers(renderer: Renderer, cameras: Sequence[Camera], iso: float,
         low, ms["low-res render"] = _timed(lambda: renderer.render(camera, request), device)
         high, ms["ground truth render"] = _timed(lambda: renderer.render(camera, truth), device)
         target = high.channels_first(HIGHRES_BUFFERS)[None].cpu()
-        lowres, flow = lowres_tensors(low)
+        lowres, flow = surface_tensors(low)
         outputs = {}
         for mode in BASELINES:
             outputs[mode], ms[mode] = _timed(lambda: upscale_baseline(lowres, s, mode), device)

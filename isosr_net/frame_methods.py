@@ -1,58 +1,71 @@
-"""Every way to make a frame's final color, and the stateful runner that makes it.
+"""Every way to make a frame: one contract, one class per way, a registry by name.
 
-A :class:`FrameMethod` names one way: ray cast at full resolution with N AO rays and M rays
-per pixel; full resolution with few AO rays and the a-trous filter (:mod:`isosr_net.atrous`);
-full resolution with few (or no) AO rays reconstructed by a trained network
-(:mod:`isosr_net.reconnet`: converged AO, antialiased edges); a low-res ray cast upscaled
-classically (no AO: a classic upscaler knows none); or a low-res ray cast upscaled by a trained
-network (which infers AO). A :class:`FrameRunner` makes one
-stream's frames with it, camera after camera, computing only the buffers the method needs:
+A :class:`FrameMethod` names a way and its knobs (a frozen, hashable spec); a
+:class:`FrameRunner` makes one stream's frames with it. Each way is one `FrameRunner` subclass
+registered under its kind (:func:`register_runner`), as diffusers' schedulers share one
+``step()`` contract. The registry, :data:`RUNNERS`:
 
-    runner = FrameRunner(FrameMethod("network", factor=4, precision="bf16"), renderer, iso, 1920, 1080)
-    frame = runner.frame(camera, prev_camera)  # FrameBuffers: color (H, W, 3) in [0, 1], mask, normal[, ao]
+    full         ray cast at full resolution with N AO rays (0: none) and M rays per pixel
+    atrous       full resolution, few AO rays smoothed by the a-trous filter (:mod:`isosr_net.atrous`)
+    reconstruct  full resolution, few (or no) AO rays reconstructed by a trained network
+                 (:mod:`isosr_net.reconnet`: converged AO, antialiased edges)
+    upscale      a low-res ray cast upscaled by interpolation (no AO: an interpolator knows none)
+    network      a low-res ray cast upscaled by a trained network (which infers AO)
+    buffers      the low-res ray cast itself, unshaded (for a client that upscales)
 
-``prev_camera=None`` starts a new sequence (the network forgets its previous output).
+Every runner computes only the buffers its method needs (plus those a caller asks to ``keep``)
+and reports per-stage times:
+
+    runner = make_runner(FrameMethod("reconstruct", ao_rays=1, precision="fp16"), renderer, iso, 1920, 1080)
+    result = runner.frame(camera, prev_camera)  # FrameResult: buffers (color, mask, normal, ...), times
+    result.buffers.color                         # (H, W, 3) in [0, 1]
+
+``prev_camera=None`` starts a new sequence (a recurrent network forgets its previous output).
+A new method is one class and its registration; the Pareto benchmark, the budget policy,
+``isosr render`` and the service run them all through this contract.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from abc import ABC, abstractmethod
+import time
+from collections.abc import Callable, Generator
+from dataclasses import dataclass, field, fields
 from pathlib import Path
+from typing import ClassVar
 
 import torch
 
 from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest
-from isosr_render.conventions import LOWRES_BUFFERS
+from isosr_render.conventions import AO_RADIUS, LOWRES_BUFFERS
 from isosr_render.renderer import MAX_AO_SAMPLES, MAX_SPP
 from isosr_render.sequence import sequence_cameras
 from isosr_render.shading import ShadingParams, shade
+from isosr_render.shapes import check_int
 from isosr_net.atrous import ATrousConfig, atrous_filter
+from isosr_net.inference import PRECISIONS, RecurrentNetwork, output_buffers
 from isosr_net.metrics import upscale_baseline
 from isosr_net.reconnet import MAX_RECON_AO_RAYS, MAX_RECON_SPP
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
-from isosr_net.upscaler import DEFAULT_MODEL, PRECISIONS, Upscaler, highres_frame
+from isosr_net.timing import StageTimer
+from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
 
-KINDS = ("full", "atrous", "reconstruct", "upscale", "network")
-LEARNED = ("reconstruct", "network")
 INTERPOLATIONS = ("nearest", "bilinear", "bicubic")
-# AO ray length in world units, as the training data and the benchmarks use it.
-AO_RADIUS = 0.05
+# Upscaling factors a low-res method takes.
+MAX_FACTOR = 16
 
 
 @dataclass(frozen=True)
 class FrameMethod:
-    """One way to make the final frame.
+    """One way to make frames: a registered kind and its knobs (each kind reads the ones it needs
+    and refuses the others' non-default values).
 
     Attributes:
-        kind: ``"full"`` (full-resolution ray cast), ``"atrous"`` (full resolution, AO filtered),
-            ``"reconstruct"`` (full resolution, trained reconstruction), ``"upscale"`` (low-res
-            ray cast, classic interpolation), ``"network"`` (low-res ray cast, trained network).
-        ao_rays: AO rays per hit (full: 0 for none; atrous: at least 1; reconstruct: 0 to
-            :data:`isosr_net.reconnet.MAX_RECON_AO_RAYS`, 0 infers AO; upscalers: 0).
-        spp: rays per pixel (full resolution only; reconstruct: at most
-            :data:`isosr_net.reconnet.MAX_RECON_SPP`).
-        factor: upscaling factor (upscale and network: at least 2; others: 1).
-        interpolation: ``"nearest"``, ``"bilinear"`` or ``"bicubic"`` (upscale).
+        kind: a name of :data:`RUNNERS` (module docstring).
+        ao_rays: AO rays per hit (0: no AO).
+        spp: rays per pixel.
+        factor: upscaling factor (low-res kinds; 1 for the others).
+        interpolation: ``"nearest"``, ``"bilinear"`` or ``"bicubic"`` (``upscale``).
         model: the network's model folder (learned kinds; None: the shipped default).
         model_name: the network's name in :attr:`name`.
         precision: ``"fp32"``, ``"bf16"`` or ``"fp16"`` (learned kinds).
@@ -68,132 +81,451 @@ class FrameMethod:
     precision: str = "fp32"
 
     def __post_init__(self):
-        if self.kind not in KINDS:
-            raise ValueError(f"frame method kind must be one of {KINDS}, got {self.kind!r}")
-        low_res = self.kind in ("upscale", "network")
-        recon = self.kind == "reconstruct"
-        most_rays = 0 if low_res else MAX_RECON_AO_RAYS if recon else MAX_AO_SAMPLES
-        most_spp = 1 if low_res else MAX_RECON_SPP if recon else MAX_SPP
-        for name, value, low, high in (("ao_rays", self.ao_rays, 1 if self.kind == "atrous" else 0, most_rays),
-                                       ("spp", self.spp, 1, most_spp),
-                                       ("factor", self.factor, 2 if low_res else 1, 16 if low_res else 1)):
-            if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
-                raise ValueError(f"{self.kind} frame method: {name} must be an integer in [{low}, {high}], "
-                                 f"got {value!r}")
-        if self.interpolation not in INTERPOLATIONS:
-            raise ValueError(f"interpolation must be one of {INTERPOLATIONS}, got {self.interpolation!r}")
-        if self.precision not in PRECISIONS:
-            raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {self.precision!r}")
+        if self.kind not in RUNNERS:
+            raise ValueError(f"frame method kind must be one of {tuple(RUNNERS)}, got {self.kind!r}")
+        self.runner.check(self)
+
+    @property
+    def runner(self) -> type[FrameRunner]:
+        """The registered class that runs this method."""
+        return RUNNERS[self.kind]
 
     @property
     def name(self) -> str:
         """``full, AO 8, spp 1``, ``full, AO 2, a-trous``, ``full, AO 2, spp 1, recon fp16``,
-        ``x4 bilinear``, ``x4 network bf16``."""
-        if self.kind == "full":
-            return f"full, AO {self.ao_rays}, spp {self.spp}"
-        if self.kind == "atrous":
-            return f"full, AO {self.ao_rays}, a-trous" + (f", spp {self.spp}" if self.spp > 1 else "")
-        if self.kind == "reconstruct":
-            return f"full, AO {self.ao_rays}, spp {self.spp}, {self.model_name} {self.precision}"
-        if self.kind == "upscale":
-            return f"x{self.factor} {self.interpolation}"
-        return f"x{self.factor} {self.model_name} {self.precision}"
+        ``x4 bilinear``, ``x4 network bf16``, ``x4 buffers``."""
+        return self.runner.describe(self)
 
     @property
     def learned(self) -> bool:
         """Whether a trained network takes part."""
-        return self.kind in LEARNED
-
-    def upscaler_key(self, device: str) -> tuple[str, str, str]:
-        """What identifies this method's `Upscaler` (shared between runners of one device)."""
-        default = DEFAULT_RECON_MODEL if self.kind == "reconstruct" else DEFAULT_MODEL
-        return str(Path(self.model or default).resolve()), self.precision, str(device)
+        return self.runner.network_class is not None
 
 
-class FrameRunner:
-    """Makes one stream's frames with one method.
+@dataclass
+class FrameResult:
+    """One frame of a runner.
+
+    Attributes:
+        buffers: the frame's buffers: ``color`` (the final frame; None for unshaded kinds) and
+            what the method makes of mask, normal, depth, ao, plus the buffers asked to keep.
+            At the frame size, except an unshaded low-res kind's (``buffers``), at the render's.
+        times: milliseconds per stage (render, filter, network, shading).
+        continued: whether the frame continued the stream from the previous camera (its flow
+            refers to it); False on a sequence's first frame.
+    """
+
+    buffers: FrameBuffers
+    times: dict[str, float]
+    continued: bool
+
+
+class Networks:
+    """Loaded frame networks by (class, model folder, precision, device): each loaded once.
+
+    A root cache hands out its loaded networks themselves (runners that run one after another,
+    such as the benchmarks', share them; a new runner resets the state). :meth:`fork` gives a
+    stream of its own: the same weights, its own recurrent state per network.
+
+    Args:
+        load: ``load(cls, model, device, precision)`` makes a network (default: ``cls.fastest``).
+    """
+
+    def __init__(self, load: Callable[[type[RecurrentNetwork], Path, str, str], RecurrentNetwork] | None = None):
+        self._load = load or (lambda cls, model, device, precision: cls.fastest(model, device, precision))
+        self._loaded: dict[tuple, RecurrentNetwork] = {}
+        self._own: dict[tuple, RecurrentNetwork] | None = None
+
+    @classmethod
+    def eager(cls) -> Networks:
+        """A cache that loads networks plainly (no compilation, no layout change): for a frame or
+        two, where compiling costs more than it saves, and for references."""
+        return cls(lambda net, model, device, precision: net(model, device, precision))
+
+    def get(self, cls: type[RecurrentNetwork], model: Path, device: str, precision: str) -> RecurrentNetwork:
+        """The network of this class, folder, device and precision (loaded on first use)."""
+        key = (cls, str(Path(model).resolve()), str(device), precision)
+        if key not in self._loaded:
+            self._loaded[key] = self._load(cls, Path(model), str(device), precision)
+        if self._own is None:
+            return self._loaded[key]
+        if key not in self._own:
+            self._own[key] = self._loaded[key].own()
+        return self._own[key]
+
+    def fork(self) -> Networks:
+        """A cache for one stream: shares what is loaded (and what it loads later), owns its state."""
+        twin = Networks.__new__(Networks)
+        twin._load, twin._loaded, twin._own = self._load, self._loaded, {}
+        return twin
+
+
+RUNNERS: dict[str, type[FrameRunner]] = {}
+
+
+def register_runner(kind: str):
+    """Class decorator: register a `FrameRunner` subclass under ``kind``."""
+    def register(cls: type[FrameRunner]) -> type[FrameRunner]:
+        if kind in RUNNERS:
+            raise ValueError(f"frame method kind {kind!r} is registered already")
+        cls.kind = kind
+        RUNNERS[kind] = cls
+        return cls
+    return register
+
+
+class FrameRunner(ABC):
+    """Makes one stream's frames with one method: the contract every way of making frames shares.
+
+    Class attributes (a kind's traits):
+        kind: its name in :data:`RUNNERS`.
+        low_res: renders at 1/factor of the frame size.
+        recurrent: reads the previous frame (through the renderer's flow).
+        shaded: makes a final color.
+        network_class: the trained network it runs (None: none), with its default model.
+        knobs: the spec's fields it reads; the others must keep their defaults.
+        ao_rays, spp, factor: the ``(low, high)`` bounds of the spec's counts.
 
     Args:
         method: the way to make frames.
         renderer: the volume's renderer (its device is where everything runs).
         iso: normalized iso-value.
-        width, height: the final frame's size; an upscaling method's factor must divide both.
+        width, height: the frame's size; a low-res method's factor must divide both.
         shading: material and light.
         ao_radius: AO ray length, world units.
-        upscalers: a cache of `Upscaler` by :meth:`FrameMethod.upscaler_key`, shared by runners
-            that run one after another (a compiled network is built once); None: a private one.
+        networks: where learned kinds get their network (see :class:`Networks`); None: a private cache.
         atrous: the a-trous filter's knobs (see :func:`atrous_filter`).
+        keep: buffers to make and return besides what the method needs (e.g. a channel view's
+            ``depth`` or ``flow``), at the frame size.
     """
+
+    kind: ClassVar[str]
+    low_res: ClassVar[bool] = False
+    recurrent: ClassVar[bool] = False
+    shaded: ClassVar[bool] = True
+    network_class: ClassVar[type[RecurrentNetwork] | None] = None
+    default_model: ClassVar[Path | None] = None
+    knobs: ClassVar[tuple[str, ...]] = ()
+    ao_rays: ClassVar[tuple[int, int]] = (0, 0)
+    spp: ClassVar[tuple[int, int]] = (1, 1)
+    factor: ClassVar[tuple[int, int]] = (1, 1)
 
     def __init__(self, method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int,
                  shading: ShadingParams = ShadingParams(), ao_radius: float = AO_RADIUS,
-                 upscalers: dict | None = None, atrous: ATrousConfig = ATrousConfig()):
-        for name, value in (("width", width), ("height", height)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"frame {name} must be a positive integer, got {value!r}")
+                 networks: Networks | None = None, atrous: ATrousConfig = ATrousConfig(), keep: tuple[str, ...] = ()):
+        check_int(width, "width", 1, where="frame")
+        check_int(height, "height", 1, where="frame")
         if width % method.factor or height % method.factor:
-            raise ValueError(f"{method.name}: the factor {method.factor} must divide the frame size "
-                             f"{width}x{height}")
+            raise ValueError(f"{method.name}: the factor {method.factor} must divide the frame size {width}x{height}")
         self.method, self.renderer, self.iso = method, renderer, float(iso)
         self.width, self.height = width, height
-        self.shading, self.ao_radius, self.atrous = shading, ao_radius, atrous
+        self.shading, self.ao_radius, self.atrous, self.keep = shading, ao_radius, atrous, tuple(keep)
         self.device = str(renderer.device)
-        self.upscaler = None
-        if method.learned:
-            upscalers = {} if upscalers is None else upscalers
-            key = method.upscaler_key(self.device)
-            if key not in upscalers:
-                kind = Reconstructor if method.kind == "reconstruct" else Upscaler
-                upscalers[key] = kind.fastest(key[0], self.device, method.precision)
-            self.upscaler = upscalers[key]
-            if self.upscaler.upscale_factor != method.factor:
-                raise ValueError(f"{method.name}: the model upscales x{self.upscaler.upscale_factor}, "
-                                 f"not x{method.factor}")
-            self.upscaler.reset()
+        self._last_render_ms: float | None = None
+        self.net: RecurrentNetwork | None = None
+        if self.network_class is not None:
+            networks = Networks() if networks is None else networks
+            self.net = networks.get(self.network_class, Path(method.model or self.default_model), self.device,
+                                    method.precision)
+            if self.net.upscale_factor != method.factor:
+                raise ValueError(f"{method.name}: the model upscales x{self.net.upscale_factor}, not x{method.factor}")
+            self.net.reset()
+
+    @classmethod
+    def check(cls, method: FrameMethod) -> None:
+        """ValueError for knobs out of bounds or not this kind's (the spec's ``__post_init__`` calls it)."""
+        for f in fields(method):
+            if f.name not in cls.knobs and f.name not in ("kind", "model_name") and getattr(method, f.name) != f.default:
+                raise ValueError(f"{method.kind} frame method: takes no {f.name} (only {', '.join(cls.knobs)})")
+        for name in ("ao_rays", "spp", "factor"):
+            low, high = getattr(cls, name)
+            check_int(getattr(method, name), name, low, high, where=f"{method.kind} frame method")
+        if method.interpolation not in INTERPOLATIONS:
+            raise ValueError(f"interpolation must be one of {INTERPOLATIONS}, got {method.interpolation!r}")
+        if method.precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {method.precision!r}")
+
+    @classmethod
+    @abstractmethod
+    def describe(cls, method: FrameMethod) -> str:
+        """The method's display name (:attr:`FrameMethod.name`)."""
+
+    @abstractmethod
+    def outputs(self) -> tuple[str, ...]:
+        """The buffers the method ray casts (flow aside: recurrent kinds get it after a previous camera)."""
+
+    @classmethod
+    @abstractmethod
+    def makes(cls, method: FrameMethod) -> tuple[str, ...]:
+        """The buffers a frame's result holds besides color (those kept come on top)."""
+
+    @abstractmethod
+    def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
+        """The work after the render: the frame's buffers with ``color`` (unshaded kinds: without)."""
 
     def render_request(self, prev_camera: Camera | None = None) -> RenderRequest:
-        """The ray cast a frame of this method starts with: only the buffers the method reads, at
-        the size it renders (flow only after a previous camera, for the learned kinds)."""
+        """The ray cast a frame starts with: only the buffers the method reads and those kept, at the
+        size it renders (flow only against a previous camera)."""
+        flow = prev_camera is not None and (self.recurrent or "flow" in self.keep)
+        outputs = self.outputs() + tuple(k for k in self.keep if k not in self.makes(self.method) and k != "flow")
+        outputs += ("flow",) if flow else ()
         m = self.method
-        flow = ("flow",) if prev_camera is not None and m.learned else ()
-        outputs = {"full": ("mask", "normal", "color") + (("ao",) if m.ao_rays else ()),
-                   "atrous": ("mask", "normal", "depth", "ao"),
-                   "reconstruct": ("mask", "normal", "depth") + (("ao",) if m.ao_rays else ()) + flow,
-                   "upscale": LOWRES_BUFFERS,
-                   "network": LOWRES_BUFFERS + flow}[m.kind]
         return RenderRequest(self.width // m.factor, self.height // m.factor, self.iso, outputs,
                              ao_radius=self.ao_radius, prev_camera=prev_camera if flow else None,
                              shading=self.shading, spp=m.spp, ao_samples=max(1, m.ao_rays))
 
-    @torch.no_grad()
-    def frame(self, camera: Camera, prev_camera: Camera | None = None) -> FrameBuffers:
+    def frame(self, camera: Camera, prev_camera: Camera | None = None) -> FrameResult:
         """The next frame of the stream; ``prev_camera=None`` starts a new sequence.
 
-        Returns:
-            FrameBuffers at the frame size with ``color`` (the final frame), ``mask``, ``normal``,
-            and ``ao`` where the method makes AO.
+        Shape:
+            buffers.color, normal: (H, W, 3). mask, depth, ao: (H, W). flow: (H, W, 2).
+        """
+        return finish_steps(self.steps(camera, prev_camera))
+
+    @torch.no_grad()
+    def steps(self, camera: Camera, prev_camera: Camera | None = None,
+              slice_ms: float | None = None) -> Generator[None, None, FrameResult]:
+        """:meth:`frame` in slices, for a scheduler that interleaves other work between them (a
+        generator: it yields between slices and returns the `FrameResult`).
+
+        With ``slice_ms``, a ray cast that may take longer (the runner's first, or one after a
+        frame whose ray cast took longer) runs in row bands of about ``slice_ms`` each: the first
+        band has 1/32 of the rows and is timed (a device sync), the next ones are sized from it.
+        Without, or when the last ray cast took less, the frame is one slice.
+        """
+        timer = StageTimer(self.device)
+        request = self.render_request(prev_camera)
+        if slice_ms is None or (self._last_render_ms is not None and self._last_render_ms < slice_ms):
+            with timer("render"):
+                rendered = self.renderer.render(camera, request)
+        else:
+            rendered = yield from self._render_bands(camera, request, slice_ms, timer)
+        buffers = self.finish(rendered, timer)
+        for name in self.keep:
+            if getattr(buffers, name) is None and getattr(rendered, name) is not None:
+                setattr(buffers, name, self._to_frame_size(name, getattr(rendered, name)))
+        times = timer.ms()
+        self._last_render_ms = times["render"]
+        return FrameResult(buffers, times, prev_camera is not None and self.recurrent)
+
+    def _render_bands(self, camera: Camera, request: RenderRequest, slice_ms: float,
+                      timer: StageTimer) -> Generator[None, None, FrameBuffers]:
+        """The ray cast in row bands of about ``slice_ms`` each, yielding between them."""
+        height, start, rows, out = request.height, 0, max(1, request.height // 32), None
+        while start < height:
+            stop = min(height, start + rows)
+            began = time.perf_counter()
+            with timer("render"):
+                band = self.renderer.render(camera, request, rows=(start, stop))
+            if band.mask.is_cuda:
+                torch.cuda.synchronize(band.mask.device)
+            took_ms = 1e3 * (time.perf_counter() - began)
+            if out is None:
+                out = band  # full-size buffers, the later bands' rows filled in below
+            else:
+                for name in band.present():
+                    getattr(out, name)[start:stop] = getattr(band, name)[start:stop]
+            rows = max(1, int((stop - start) * slice_ms / max(took_ms, 1e-3)))
+            start = stop
+            if start < height:
+                yield
+        return out
+
+    def _to_frame_size(self, name: str, t: torch.Tensor) -> torch.Tensor:
+        """A rendered buffer at the frame size: nearest upsampling of low-res ones (flow in frame pixels)."""
+        f = self.method.factor
+        if f == 1 or not self.shaded:
+            return t
+        up = torch.repeat_interleave(torch.repeat_interleave(t, f, 0), f, 1)
+        return up * f if name == "flow" else up
+
+
+def _shaded(buffers: FrameBuffers, shading: ShadingParams, timer: StageTimer) -> FrameBuffers:
+    with timer("shading"):
+        buffers.color = shade(buffers.mask, buffers.normal, buffers.ao, shading)
+    return buffers
+
+
+@register_runner("full")
+class FullRunner(FrameRunner):
+    """Full resolution, AO from ``ao_rays`` rays per hit (0: none)."""
+
+    knobs = ("ao_rays", "spp")
+    ao_rays = (0, MAX_AO_SAMPLES)
+    spp = (1, MAX_SPP)
+
+    @classmethod
+    def describe(cls, m: FrameMethod) -> str:
+        return f"full, AO {m.ao_rays}, spp {m.spp}"
+
+    def outputs(self) -> tuple[str, ...]:
+        return ("mask", "normal") + (("ao",) if self.method.ao_rays else ())
+
+    @classmethod
+    def makes(cls, m: FrameMethod) -> tuple[str, ...]:
+        return ("mask", "normal") + (("ao",) if m.ao_rays else ())
+
+    def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
+        return _shaded(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=rendered.ao), self.shading, timer)
+
+    def rows(self, camera: Camera, start: int, stop: int) -> torch.Tensor:
+        """Rows ``[start, stop)`` of the frame's color only (a focus lens's region).
 
         Shape:
-            color, normal: (H, W, 3). mask, ao: (H, W).
+            Returns (stop - start, W, 3).
         """
-        m = self.method
-        out = self.renderer.render(camera, self.render_request(prev_camera))
-        if m.kind == "full":
-            return FrameBuffers(mask=out.mask, normal=out.normal, ao=out.ao, color=out.color)
-        if m.kind == "atrous":
-            ao = atrous_filter(out.ao[None, None], out.mask[None, None], out.normal.permute(2, 0, 1)[None],
-                               out.depth[None, None], self.atrous)[0, 0]
-            return FrameBuffers(mask=out.mask, normal=out.normal, ao=ao,
-                                color=shade(out.mask, out.normal, ao, self.shading))
-        if m.kind == "upscale":
-            up = upscale_classic(out, m.factor, m.interpolation)
-            return FrameBuffers(mask=up.mask, normal=up.normal,  # no AO: shaded unoccluded (AO 1)
-                                color=shade(up.mask, up.normal, up.ao, self.shading))
-        if m.kind == "reconstruct":  # shaded within the reconstruction's one (compiled) call
-            return self.upscaler.reconstruct(out, m.ao_rays, m.spp, self.shading)
-        high = self.upscaler.upscale(out)
-        high.color = shade(high.mask, high.normal, high.ao, self.shading)
-        return high
+        rendered = self.renderer.render(camera, self.render_request(), rows=(start, stop))
+        ao = None if rendered.ao is None else rendered.ao[start:stop]
+        return shade(rendered.mask[start:stop], rendered.normal[start:stop], ao, self.shading)
+
+
+@register_runner("atrous")
+class ATrousRunner(FrameRunner):
+    """Full resolution, AO from 1-4 (or more) rays per hit smoothed by the edge-avoiding a-trous filter."""
+
+    knobs = ("ao_rays", "spp")
+    ao_rays = (1, MAX_AO_SAMPLES)
+    spp = (1, MAX_SPP)
+
+    @classmethod
+    def describe(cls, m: FrameMethod) -> str:
+        return f"full, AO {m.ao_rays}, a-trous" + (f", spp {m.spp}" if m.spp > 1 else "")
+
+    def outputs(self) -> tuple[str, ...]:
+        return ("mask", "normal", "depth", "ao")
+
+    @classmethod
+    def makes(cls, m: FrameMethod) -> tuple[str, ...]:
+        return ("mask", "normal", "ao")
+
+    def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
+        with timer("filter"):
+            ao = atrous_filter(rendered.ao[None, None], rendered.mask[None, None],
+                               rendered.normal.permute(2, 0, 1)[None], rendered.depth[None, None], self.atrous)[0, 0]
+        return _shaded(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=ao), self.shading, timer)
+
+
+@register_runner("reconstruct")
+class ReconstructRunner(FrameRunner):
+    """Full resolution, 0-8 AO rays per hit and 1-4 rays per pixel, reconstructed (and shaded, in
+    one compiled call on GPUs) by the trained reconstruction network."""
+
+    recurrent = True
+    network_class = Reconstructor
+    default_model = DEFAULT_RECON_MODEL
+    knobs = ("ao_rays", "spp", "model", "precision")
+    ao_rays = (0, MAX_RECON_AO_RAYS)
+    spp = (1, MAX_RECON_SPP)
+
+    @classmethod
+    def describe(cls, m: FrameMethod) -> str:
+        return f"full, AO {m.ao_rays}, spp {m.spp}, {m.model_name} {m.precision}"
+
+    def outputs(self) -> tuple[str, ...]:
+        return ("mask", "normal", "depth") + (("ao",) if self.method.ao_rays else ())
+
+    @classmethod
+    def makes(cls, m: FrameMethod) -> tuple[str, ...]:
+        return ("mask", "normal", "depth", "ao")
+
+    def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
+        with timer("network"):  # shading included: one call
+            return self.net.reconstruct(rendered, self.method.ao_rays, self.method.spp, self.shading)
+
+
+@register_runner("upscale")
+class ClassicUpscaleRunner(FrameRunner):
+    """A low-res ray cast upscaled by interpolation, shaded without AO."""
+
+    low_res = True
+    knobs = ("factor", "interpolation")
+    factor = (2, MAX_FACTOR)
+
+    @classmethod
+    def describe(cls, m: FrameMethod) -> str:
+        return f"x{m.factor} {m.interpolation}"
+
+    def outputs(self) -> tuple[str, ...]:
+        return LOWRES_BUFFERS
+
+    @classmethod
+    def makes(cls, m: FrameMethod) -> tuple[str, ...]:
+        return LOWRES_BUFFERS
+
+    def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
+        with timer("filter"):
+            up = upscale_classic(rendered, self.method.factor, self.method.interpolation)
+        up.ao = None  # no AO: shaded unoccluded
+        return _shaded(up, self.shading, timer)
+
+
+@register_runner("network")
+class NetworkRunner(FrameRunner):
+    """A low-res ray cast upscaled by the trained network (which infers AO), shaded."""
+
+    low_res = True
+    recurrent = True
+    network_class = Upscaler
+    default_model = DEFAULT_MODEL
+    knobs = ("factor", "model", "precision")
+    factor = (2, MAX_FACTOR)
+
+    @classmethod
+    def describe(cls, m: FrameMethod) -> str:
+        return f"x{m.factor} {m.model_name} {m.precision}"
+
+    def outputs(self) -> tuple[str, ...]:
+        return LOWRES_BUFFERS
+
+    @classmethod
+    def makes(cls, m: FrameMethod) -> tuple[str, ...]:
+        return LOWRES_BUFFERS + ("ao",)
+
+    def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
+        with timer("network"):
+            high = self.net.upscale(rendered)
+        return _shaded(high, self.shading, timer)
+
+
+@register_runner("buffers")
+class BuffersRunner(FrameRunner):
+    """The low-res ray cast itself (mask, normal, depth; flow after a previous camera), unshaded:
+    for a client that upscales and shades them."""
+
+    low_res = True
+    recurrent = True
+    shaded = False
+    knobs = ("factor",)
+    factor = (2, MAX_FACTOR)
+
+    @classmethod
+    def describe(cls, m: FrameMethod) -> str:
+        return f"x{m.factor} buffers"
+
+    def outputs(self) -> tuple[str, ...]:
+        return LOWRES_BUFFERS
+
+    @classmethod
+    def makes(cls, m: FrameMethod) -> tuple[str, ...]:
+        return LOWRES_BUFFERS + ("flow",)
+
+    def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
+        return rendered
+
+
+def finish_steps(steps: Generator[None, None, FrameResult]) -> FrameResult:
+    """Run a runner's :meth:`~FrameRunner.steps` to the end; its frame."""
+    while True:
+        try:
+            next(steps)
+        except StopIteration as done:
+            return done.value
+
+
+def make_runner(method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int,
+                **options) -> FrameRunner:
+    """The registered runner of ``method`` (arguments and options: :class:`FrameRunner`)."""
+    return method.runner(method, renderer, iso, width, height, **options)
 
 
 def upscale_classic(low: FrameBuffers, factor: int, interpolation: str = "bilinear") -> FrameBuffers:
@@ -205,9 +537,43 @@ def upscale_classic(low: FrameBuffers, factor: int, interpolation: str = "biline
         low: mask, depth (h, w), normal (h, w, 3). Returns mask, depth, ao (H, W), normal (H, W, 3),
         ``H = h * factor``, ``W = w * factor``.
     """
-    return highres_frame(upscale_baseline(low.channels_first(LOWRES_BUFFERS)[None], factor, interpolation))
+    return output_buffers(upscale_baseline(low.channels_first(LOWRES_BUFFERS)[None], factor, interpolation))
 
 
 def run_sequence(runner: FrameRunner, cameras: list[Camera]) -> list[FrameBuffers]:
-    """A new sequence along ``cameras``: one frame per camera."""
-    return [runner.frame(camera, prev) for camera, prev in sequence_cameras(cameras)]
+    """A new sequence along ``cameras``: each frame's buffers."""
+    return [runner.frame(camera, prev).buffers for camera, prev in sequence_cameras(cameras)]
+
+
+@dataclass
+class FrameStream:
+    """One viewer's frames whatever it asks for next: the runner of the current method, iso, size
+    and AO radius, made anew when any of them changes. The one place the recurrent reset is
+    decided for a stream: a new runner starts without state (so a change of settings or size is a
+    cut), and so does a frame without a previous camera.
+
+    Args:
+        networks: the stream's own networks (:meth:`Networks.fork`).
+        shading: material and light.
+    """
+
+    networks: Networks
+    shading: ShadingParams = field(default_factory=ShadingParams)
+    runner: FrameRunner | None = None
+    _key: tuple | None = None
+
+    def frame(self, method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int, camera: Camera,
+              prev_camera: Camera | None, ao_radius: float = AO_RADIUS, keep: tuple[str, ...] = ()) -> FrameResult:
+        """The next frame; ``prev_camera`` counts only while the runner stays the same."""
+        return finish_steps(self.steps(method, renderer, iso, width, height, camera, prev_camera, ao_radius, keep))
+
+    def steps(self, method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int, camera: Camera,
+              prev_camera: Camera | None, ao_radius: float = AO_RADIUS, keep: tuple[str, ...] = (),
+              slice_ms: float | None = None) -> Generator[None, None, FrameResult]:
+        """:meth:`frame` in slices (:meth:`FrameRunner.steps`)."""
+        key = (method, renderer, float(iso), width, height, float(ao_radius), tuple(keep))
+        if key != self._key:
+            self.runner = make_runner(method, renderer, iso, width, height, shading=self.shading,
+                                      ao_radius=ao_radius, networks=self.networks, keep=keep)
+            self._key, prev_camera = key, None
+        return (yield from self.runner.steps(camera, prev_camera, slice_ms))

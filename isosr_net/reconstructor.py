@@ -6,7 +6,8 @@
     reconstructor.reset()                              # on a camera cut
 
 ``out`` holds mask (an antialiased alpha), normal, depth and converged-looking AO. Every stream
-needs its own `Reconstructor`: the previous output is its state.
+needs its own `Reconstructor` (:meth:`~isosr_net.inference.RecurrentNetwork.own`): the previous
+output is its state.
 """
 
 from __future__ import annotations
@@ -19,10 +20,10 @@ import torch
 
 from isosr_render.buffers import FrameBuffers
 from isosr_render.shading import ShadingParams, shade
-from isosr_render.shapes import check_shape
+from isosr_render.shapes import check_int, check_shape
 from isosr_net.flow_warp import warp_by_flow
 from isosr_net.reconnet import MAX_RECON_AO_RAYS, MAX_RECON_SPP, ReconNet, sampling_channels
-from isosr_net.upscaler import PRECISIONS, InputChecks, Upscaler, highres_frame, lowres_tensors
+from isosr_net.inference import PRECISIONS, InputChecks, RecurrentNetwork, output_buffers, surface_tensors
 
 DEFAULT_RECON_MODEL = Path(__file__).resolve().parent / "recon_model"
 # Captured CUDA graphs kept per Reconstructor (frame sizes x samplings x first frame or not).
@@ -50,15 +51,15 @@ def recon_inputs(frame: FrameBuffers, ao_rays: int, spp: int,
     """
     now = checks is None
     checks = InputChecks() if now else checks
-    lowres, flow = _checked_tensors(frame, ao_rays, spp, checks)
+    surface, flow = _checked_tensors(frame, ao_rays, spp, checks)
     if ao_rays:
         ao = frame.ao.float()[None, None]
         checks.add(_ao_in_range(ao), bool, _AO_MESSAGE)
     else:
-        ao = torch.zeros_like(lowres[:, :1])
+        ao = torch.zeros_like(surface[:, :1])
     if now:
         checks.raise_first()
-    return torch.cat([lowres, ao, sampling_channels(ao_rays, spp, lowres)], dim=1), flow
+    return torch.cat([surface, ao, sampling_channels(ao_rays, spp, surface)], dim=1), flow
 
 
 _AO_MESSAGE = lambda _: "ao holds values outside [0, 1] (or NaN)"  # noqa: E731
@@ -70,19 +71,18 @@ def _ao_in_range(ao: torch.Tensor) -> torch.Tensor:
 
 def _checked_tensors(frame: FrameBuffers, ao_rays: int, spp: int, checks: InputChecks):
     """The host's checks of a frame (counts, buffers present, shapes, dtypes), the values' checks
-    queued on ``checks``; the frame's mask, normal, depth as ``lowres`` (1, 5, H, W) and its flow."""
-    for name, value, low, high in (("ao_rays", ao_rays, 0, MAX_RECON_AO_RAYS), ("spp", spp, 1, MAX_RECON_SPP)):
-        if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
-            raise ValueError(f"reconstruction: {name} must be an integer in [{low}, {high}], got {value!r}")
-    lowres, flow = lowres_tensors(frame, checks)
+    queued on ``checks``; the frame's mask, normal, depth as ``surface`` (1, 5, H, W) and its flow."""
+    check_int(ao_rays, "ao_rays", 0, MAX_RECON_AO_RAYS, where="reconstruction")
+    check_int(spp, "spp", 1, MAX_RECON_SPP, where="reconstruction")
+    surface, flow = surface_tensors(frame, checks)
     if ao_rays:
         if frame.ao is None:
             raise ValueError(f"reconstruction from {ao_rays} AO rays needs the frame's ao buffer")
-        check_shape(frame.ao, "(H, W)", "ao", "recon_inputs", {"H": lowres.shape[2], "W": lowres.shape[3]})
-    return lowres, flow
+        check_shape(frame.ao, "(H, W)", "ao", "recon_inputs", {"H": surface.shape[2], "W": surface.shape[3]})
+    return surface, flow
 
 
-def recon_frame(net: ReconNet, lowres: torch.Tensor, ao: torch.Tensor | None, sampling: torch.Tensor,
+def recon_frame(net: ReconNet, surface: torch.Tensor, ao: torch.Tensor | None, sampling: torch.Tensor,
                 flow: torch.Tensor | None, previous: torch.Tensor | None, precision: torch.dtype,
                 shading: ShadingParams | None) -> tuple[torch.Tensor, ...]:
     """One frame's work after the render, with no host sync: inputs laid out, the previous output
@@ -90,30 +90,31 @@ def recon_frame(net: ReconNet, lowres: torch.Tensor, ao: torch.Tensor | None, sa
 
     Returns:
         ``(output, mask, normal, depth, ao, color or None, ao_ok)``: the network's stack (the next
-        frame's previous), the buffers of :func:`highres_frame`, the shaded color, and whether the
+        frame's previous), the buffers of :func:`output_buffers`, the shaded color, and whether the
         input AO was within [0, 1] (a 0-d tensor, for :class:`InputChecks`).
 
     Shape:
-        lowres: (1, 5, H, W). ao: (1, 1, H, W) or None (no AO rays). sampling: (1, 2, 1, 1).
+        surface: (1, 5, H, W). ao: (1, 1, H, W) or None (no AO rays). sampling: (1, 2, 1, 1).
         flow: (1, 2, H, W). previous: (1, 6, H, W).
     """
-    b, _, h, w = lowres.shape
-    ao = lowres.new_zeros(b, 1, h, w) if ao is None else ao.float()
-    inputs = torch.cat([lowres, ao, sampling.expand(b, 2, h, w)], dim=1)
-    with torch.autocast(lowres.device.type, dtype=precision, enabled=precision != torch.float32):
+    b, _, h, w = surface.shape
+    ao = surface.new_zeros(b, 1, h, w) if ao is None else ao.float()
+    inputs = torch.cat([surface, ao, sampling.expand(b, 2, h, w)], dim=1)
+    with torch.autocast(surface.device.type, dtype=precision, enabled=precision != torch.float32):
         warped = net.first_previous(inputs) if previous is None else warp_by_flow(previous, flow)
         output = net(inputs, warped).float()
-    high = highres_frame(output)
+    high = output_buffers(output)
     color = None if shading is None else shade(high.mask, high.normal, high.ao, shading)
     return output, high.mask, high.normal, high.depth, high.ao, color, _ao_in_range(ao)
 
 
-class Reconstructor(Upscaler):
+class Reconstructor(RecurrentNetwork):
     """A trained reconstruction network and one stream's recurrent state.
 
     Args:
         model: a ReconNet model folder; default the shipped one.
-        device, precision, channels_last, autotune, fast_layers: as for :class:`Upscaler`.
+        device, precision, channels_last, autotune, fast_layers: as for
+            :class:`~isosr_net.inference.RecurrentNetwork`.
         compile: a ``torch.compile`` mode for the whole frame's work after the render
             (:func:`recon_frame`: inputs, warp, network, output, shading fused where inductor can);
             None runs it eagerly.
@@ -125,8 +126,8 @@ class Reconstructor(Upscaler):
     def __init__(self, model: str | Path = DEFAULT_RECON_MODEL, device: str = "cpu", precision: str = "fp32",
                  channels_last: bool = False, compile: str | None = None, autotune: bool = False,
                  graphs: bool = False, fast_layers: bool = False):
-        super().__init__(model, device, precision, channels_last=channels_last, autotune=autotune,
-                         fast_layers=fast_layers)
+        super().__init__(model, device, precision, channels_last=channels_last, fast_layers=fast_layers,
+                         autotune=autotune)
         if not isinstance(self.net, ReconNet):
             raise ValueError(f"{model}: a {type(self.net).__name__}, not a reconstruction network (ReconNet)")
         if graphs and (self.device.type != "cuda" or compile == "reduce-overhead"):
@@ -163,18 +164,18 @@ class Reconstructor(Upscaler):
 
         Raises:
             ValueError: as :func:`recon_inputs`, or fp16 and depths beyond
-                :data:`isosr_net.upscaler.FP16_MAX_DEPTH`; the state is then left as it was.
+                :data:`isosr_net.inference.FP16_MAX_DEPTH`; the state is then left as it was.
 
         Shape:
             Returns mask, depth, ao (H, W); normal, color (H, W, 3).
         """
         checks = InputChecks()
-        lowres, flow = _checked_tensors(frame, ao_rays, spp, checks)
-        lowres = lowres.to(self.device)
+        surface, flow = _checked_tensors(frame, ao_rays, spp, checks)
+        surface = surface.to(self.device)
         ao = frame.ao[None, None].to(self.device) if ao_rays else None
-        self._check_precision(lowres, checks)
-        previous, flow = self._carried(lowres, flow)
-        args = (lowres, ao, self._sampling_tensor(ao_rays, spp), flow, previous, PRECISIONS[self.precision], shading)
+        self.check_precision(surface, checks)
+        previous, flow = self.carried(surface, flow)
+        args = (surface, ao, self._sampling_tensor(ao_rays, spp), flow, previous, PRECISIONS[self.precision], shading)
         with torch.no_grad():
             outs = self._replay(args) if self.graphs else self._frame(*args)
         checks.add(outs[-1], bool, _AO_MESSAGE)
@@ -217,9 +218,3 @@ class Reconstructor(Upscaler):
                 target.copy_(source)
         graph.replay()
         return outs
-
-    def step(self, *args, **kwargs):
-        raise TypeError("a Reconstructor runs whole frames: call reconstruct(frame, ao_rays, spp)")
-
-    def upscale(self, frame: FrameBuffers) -> FrameBuffers:
-        raise TypeError("a Reconstructor reconstructs at full resolution: call reconstruct(frame, ao_rays, spp)")

@@ -6,27 +6,27 @@ The public API::
     volume = open_volume("proc:sphere")          # a file path or a procedural spec
     frame = Renderer(volume, "cpu").render(orbit(30, 20, 1.8), RenderRequest(256, 256, iso=0.5))
 
-Conventions (frames, units, buffer meanings): :mod:`isosr_render.conventions`.
+Conventions (frames, units, buffer meanings): :mod:`isosr_render.conventions`. The names below
+load on first use (PEP 562), so that ``import isosr_render.conventions`` (numpy only) stays light
+for the protocol and the clients, which need neither torch nor Warp.
 """
 
-from isosr_render.buffers import FrameBuffers
-from isosr_render.camera import Camera, orbit, orbit_path
-from isosr_render.catalog import SHARED_PREFIX, entry, resolve_iso
-from isosr_render.procedural import parse_procedural
-from isosr_render.renderer import Renderer, RenderRequest
-from isosr_render.shading import ShadingParams, shade
-from isosr_render.volume import Volume, VolumeError
-from isosr_render.volume_io import load_volume
+import importlib
+
+# Public name -> the module that defines it.
+_EXPORTS = {"FrameBuffers": "buffers", "Camera": "camera", "orbit": "camera", "orbit_path": "camera",
+            "SHARED_PREFIX": "catalog", "entry": "catalog", "resolve_iso": "catalog",
+            "parse_procedural": "procedural", "Renderer": "renderer", "RenderRequest": "renderer",
+            "ShadingParams": "shading", "shade": "shading", "Volume": "volume", "VolumeError": "volume",
+            "load_volume": "volume_io", "open_volume": "sources"}
 
 
-def open_volume(source: str) -> Volume:
-    """A volume from a file path, a procedural spec such as ``proc:cloud:7``, or a shared volume
-    such as ``shared:bonsai`` (:mod:`isosr_render.catalog`)."""
-    if source.startswith("proc:"):
-        return parse_procedural(source)
-    if source.startswith(SHARED_PREFIX):
-        return load_volume(str(entry(source.removeprefix(SHARED_PREFIX))["path"]))
-    return load_volume(source)
+def __getattr__(name: str):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'isosr_render' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"isosr_render.{_EXPORTS[name]}"), name)
+    globals()[name] = value
+    return value
 
 
 __all__ = ["Camera", "FrameBuffers", "Renderer", "RenderRequest", "ShadingParams", "Volume", "VolumeError",

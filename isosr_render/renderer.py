@@ -24,7 +24,7 @@ import warp as wp
 from isosr_render import kernels
 from isosr_render.buffers import FrameBuffers
 from isosr_render.camera import Camera
-from isosr_render.conventions import BUFFER_NAMES
+from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES
 from isosr_render.flow_fill import FILL_METHODS, fill_flow
 from isosr_render.shading import ShadingParams, shade
 from isosr_render.volume import Volume
@@ -73,7 +73,7 @@ class RenderRequest:
     refine_steps: int = 4
     spp: int = 1
     ao_samples: int = 64
-    ao_radius: float = 0.05
+    ao_radius: float = AO_RADIUS
     seed: int = 0
     prev_camera: Camera | None = None
     flow_fill: str = "none"

@@ -1,4 +1,5 @@
-"""Shape checks: the one helper every stage uses to refuse tensors of the wrong shape.
+"""Shape and integer checks: the helpers every stage uses to refuse tensors of the wrong shape
+and counts out of range.
 
     dims = check_shape(pred, "(B, C, H, W)", "pred", "masked_psnr")
     check_shape(mask, "(B, 1, H, W)", "mask", "masked_psnr", dims)   # B, H, W as pred's
@@ -60,3 +61,13 @@ def check_shape(x, spec: str, name: str, where: str, dims: Mapping[str, int] | N
         raise ValueError(f"{where}: {name} must be {spec_text}{' with ' + ', '.join(given) if given else ''}, "
                          f"got {shape}")
     return bound
+
+
+def check_int(value, name: str, low: int, high: int | None = None, where: str = "") -> int:
+    """Raise ValueError unless ``value`` is an integer (not a bool) in ``[low, high]`` (``high``
+    None: no upper bound); returns it. The one integer check of every stage's settings."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < low or (high is not None and value > high):
+        span = f"[{low}, {high}]" if high is not None else f">= {low}"
+        raise ValueError(f"{where + ': ' if where else ''}{name} must be an integer {'in ' if high is not None else ''}"
+                         f"{span}, got {value!r}")
+    return value

@@ -1,18 +1,11 @@
-"""The channel view: one buffer of a view mode as a false-color image, with its legend.
+"""The channel view: one buffer of a view mode's frame as a false-color image, with its legend.
 
-A frame whose settings name a ``channel`` other than ``shaded`` computes the mode's buffers at
-output resolution and colors the named one on the device, instead of shading; only the buffers
-that channel needs are rendered (standing order 3):
-
-    full      a full-res render of mask + the channel (AO with ``ao_samples`` rays; flow
-              relative to the previous frame's camera, zero on a first or refined frame)
-    sr        the network's output (mask, normal, depth, AO); flow is the network's low-res
-              input flow, nearest-upsampled and scaled to output pixels
-    bilinear  the bilinear baseline (its AO is 1 everywhere: the baseline knows no occlusion)
-    focus     as ``sr`` (the lens applies to shaded frames only)
-    reconstruct  the network's output (mask, normal, depth, AO); flow is its full-res input
-              flow, rendered once more for this view
-    buffers   no channel view: the client gets the buffers themselves
+A frame whose settings name a ``channel`` other than ``shaded`` is made by the mode's method with
+that buffer kept (:mod:`isosr_server.views`): a buffer the method makes is its own (a network's
+AO, depth and mask are its outputs), any other is ray cast besides and nothing more (flow against
+the previous frame's camera, zero on a first or refined frame; a low-res method's flow
+nearest-upsampled and scaled to output pixels). The buffer is colored on the device instead of
+shading. ``buffers`` frames have no channel view: the client gets the buffers themselves.
 
 Colormaps (the page's legend.js draws the same ones from the frame's ``legend``):
     mask    gray, 0 black to 1 white
@@ -27,15 +20,11 @@ Uncovered pixels (mask 0) are `NO_SURFACE` gray, covered ones blend by the mask.
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 import torch
 
-from isosr_net.frame_methods import upscale_classic
-from isosr_net.upscaler import Upscaler
-from isosr_render import FrameBuffers, Renderer, RenderRequest
-from isosr_server.pipeline import FrameSpec, ReconStream, StageTimer, render_lowres
-from isosr_server.protocol import CHANNELS, FLOW_CLIP, ProtocolError, ViewSettings
+from isosr_render import FrameBuffers
+from isosr_server.protocol import CHANNELS, FLOW_CLIP, ProtocolError
 
 NO_SURFACE = 0.12
 # viridis at t = 0, 1/8, ..., 1
@@ -44,48 +33,6 @@ DEPTH_STOPS = ((0.267, 0.005, 0.329), (0.279, 0.175, 0.483), (0.230, 0.322, 0.54
                (0.993, 0.906, 0.144))
 # Coverage above which a pixel's depth and flow count for the legend's range.
 COVERED = 0.5
-
-
-def check(settings: ViewSettings) -> None:
-    """`ProtocolError` for a channel the settings cannot produce."""
-    if settings.channel not in CHANNELS:
-        raise ProtocolError(f"channel must be one of {', '.join(CHANNELS)}, got {settings.channel!r}")
-    if settings.channel == "ao" and settings.mode == "full" and settings.ao_samples == 0:
-        raise ProtocolError("the ao channel of full-resolution frames needs ao_samples > 0")
-
-
-def channel_buffers(renderer: Renderer, upscaler: Upscaler, factor: int, spec: FrameSpec, timer: StageTimer,
-                    recon: ReconStream | None = None) -> FrameBuffers:
-    """The mode's output-resolution buffers that ``spec.channel`` shows (plus the mask);
-    ``recon``: the session's reconstruction (``reconstruct`` mode only)."""
-    channel = spec.channel
-    if spec.mode == "reconstruct":
-        if recon is None:
-            raise ValueError("the reconstruct mode's channel view needs the session's ReconStream")
-        high = recon.frame(renderer, spec)  # always: keeps the recurrent state in step with the stream
-        if channel == "flow":
-            high.flow = channel_buffers(renderer, upscaler, factor, replace(spec, mode="full"), timer).flow
-        return high
-    if spec.mode == "full":
-        flow = channel == "flow" and spec.prev_camera is not None
-        outputs = ("mask",) + ((channel,) if channel not in ("mask", "flow") or flow else ())
-        request = RenderRequest(spec.width, spec.height, spec.iso, outputs, ao_samples=max(spec.ao_samples, 1),
-                                ao_radius=spec.ao_radius, prev_camera=spec.prev_camera if flow else None)
-        with timer("render"):
-            return renderer.render(spec.camera, request)
-    if spec.mode in ("sr", "focus"):
-        low = render_lowres(renderer, spec, factor, timer)
-        with timer("network"):
-            high = upscaler.upscale(low)  # always: keeps the recurrent state in step with the stream
-    elif spec.mode == "bilinear":
-        low = render_lowres(renderer, spec, factor, timer, flow=channel == "flow")
-        with timer("network"):
-            high = upscale_classic(low, factor, "bilinear")
-    else:
-        raise ProtocolError(f"mode {spec.mode} has no channel view")
-    if channel == "flow" and low.flow is not None:
-        high.flow = torch.repeat_interleave(torch.repeat_interleave(low.flow, factor, 0), factor, 1) * factor
-    return high
 
 
 def false_color(buffers: FrameBuffers, channel: str) -> tuple[torch.Tensor, dict]:
@@ -146,11 +93,3 @@ def _flow_color(flow: torch.Tensor, length: torch.Tensor, hi: float) -> torch.Te
     value = (length / hi).clamp(max=1.0) if hi > 0 else torch.zeros_like(length)
     k = torch.stack([torch.remainder(n + hue * 6, 6) for n in (5.0, 3.0, 1.0)], dim=-1)
     return value[..., None] * (1.0 - torch.minimum(k, 4.0 - k).clamp(0.0, 1.0))
-
-
-def render_channel(renderer: Renderer, upscaler: Upscaler, factor: int, spec: FrameSpec, timer: StageTimer,
-                   recon: ReconStream | None = None) -> tuple[torch.Tensor, dict]:
-    """A channel-view frame: ``(rgb (H, W, 3) in [0, 1], legend)`` (arguments: :func:`channel_buffers`)."""
-    buffers = channel_buffers(renderer, upscaler, factor, spec, timer, recon)
-    with timer("shading"):
-        return false_color(buffers, spec.channel)

@@ -7,35 +7,45 @@ session queues its next frame only after the last one is sent, so the ready sess
 served in turn (round robin), never the busiest first. The event loop awaits
 :meth:`Engine.call`; everything named ``*_sync`` runs only on that thread.
 
-Renderers are cached per volume (a few, least recently used dropped); every stream gets its
-own `Upscaler` made by :meth:`Engine.new_upscaler`, and every view session its own
-`Reconstructor` (:meth:`Engine.new_recon_stream`): shallow copies of one loaded model each that
-share its weights and own their recurrent state.
+Frames are made by isosr_net's frame methods through the view modes (:mod:`isosr_server.views`).
+Networks are loaded once (:class:`isosr_net.frame_methods.Networks`, in the server's precision:
+fp16 on CUDA by default, fp32 on CPUs; NHWC and the fast layers on GPUs, no ``torch.compile``,
+which would stall every session for seconds at each new frame size); every view session and
+upscale stream gets its own copy that shares the weights and owns its recurrent state.
+Renderers are cached per volume (a few, least recently used dropped).
 """
 
 from __future__ import annotations
 
 import asyncio
-import copy
 import threading
+import time
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, replace
+from collections.abc import Generator
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TypeVar
 
 import torch
 
-from isosr_net.reconstructor import DEFAULT_RECON_MODEL, MAX_RECON_AO_RAYS, Reconstructor
+from isosr_net.frame_methods import Networks, finish_steps
+from isosr_net.inference import RecurrentNetwork, default_precision
+from isosr_net.reconnet import MAX_RECON_AO_RAYS
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
+from isosr_net.timing import StageTimer
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
 from isosr_render import FrameBuffers, Renderer, Volume, orbit, parse_procedural, shade
 from isosr_render.images import quantize
-from isosr_server import channels, pipeline
+from isosr_server.auto import AutoPolicy
+from isosr_server.codecs.buffers_device import encode_view_buffers
 from isosr_server.encoding import encode_image, encoder_name
-from isosr_server.protocol import ENCODINGS, UpscaleRequest
+from isosr_server.protocol import ENCODINGS, FocusMsg, UpscaleRequest, ViewSettings
+from isosr_server.views import FrameJob, SessionFrames, ViewContext, ViewFrame
 
 RENDERER_CACHE = 4
-Net = TypeVar("Net", bound=Upscaler)
+# Low-res tile side of CPU upscaling: the largest upscale (960x540 to 3840x2160) in 12 tiles, its
+# peak memory a sixth of the whole frame's (7.9 GB measured whole), the same result (see Upscaler).
+CPU_UPSCALE_TILE = 240
 
 
 @dataclass(frozen=True)
@@ -44,29 +54,51 @@ class EngineConfig:
 
     Attributes:
         model: the upscaling model folder (``config.json`` + ``model.safetensors``).
+        recon_model: the reconstruction model folder.
         device: ``cpu``, ``cuda`` or ``cuda:N``.
-        precision: the networks' ``fp32``, ``bf16`` or ``fp16`` (upscaling and reconstruction).
-        recon_model: the reconstruction model folder (``reconstruct`` mode).
+        precision: the networks' ``fp32``, ``bf16`` or ``fp16``; None: fp16 on CUDA, fp32 elsewhere.
+        target_fps: frames a second the auto mode plans for each view session.
+        slice_ms: the device time a view frame's slice aims at (a heavy frame runs in slices that
+            other sessions' frames interleave with); None: on CUDA 8 ms, elsewhere 100 ms.
     """
 
     model: Path = DEFAULT_MODEL
-    device: str = "cpu"
-    precision: str = "fp32"
     recon_model: Path = DEFAULT_RECON_MODEL
+    device: str = "cpu"
+    precision: str | None = None
+    target_fps: float = 30.0
+    slice_ms: float | None = None
+
+
+@dataclass(frozen=True)
+class EncodedFrame:
+    """A view frame ready for the wire: the image (or the coded buffers), server milliseconds per
+    stage, the channel legend, the method's name, and the frame whose camera the flow refers to."""
+
+    image: bytes | None
+    buffers: dict | None
+    times: dict[str, float]
+    legend: dict | None
+    method: str
+    prev_seq: int
 
 
 class Engine:
-    """Owns the device: model, renderers, encoders, and the thread all their work runs on."""
+    """Owns the device: networks, renderers, encoders, and the thread all their work runs on."""
 
     def __init__(self, config: EngineConfig):
         self.config = config
         self.device = torch.device(config.device)
         if self.device.type == "cuda" and not torch.cuda.is_available():
             raise RuntimeError(f"device {config.device!r} asked for, but torch finds no CUDA device")
+        self.precision = config.precision or default_precision(self.device)
+        self.slice_ms = config.slice_ms or (8.0 if self.device.type == "cuda" else 100.0)
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="isosr-device")
         self._renderers: OrderedDict[str, Renderer] = OrderedDict()
-        self._template: Upscaler | None = None
-        self._recon_template: Reconstructor | None = None
+        self.networks = Networks(self._load)
+        self._models = {Upscaler: (config.model, "network"), Reconstructor: (config.recon_model, "recon")}
+        self.context: ViewContext | None = None
+        self.auto: AutoPolicy | None = None
         self._thread: threading.Thread | None = None
 
     async def call(self, fn, *args):
@@ -78,47 +110,53 @@ class Engine:
             self._thread = threading.current_thread()
         assert threading.current_thread() is self._thread, "engine work must run on the device thread"
 
+    def _load(self, cls: type[RecurrentNetwork], model: Path, device: str, precision: str) -> RecurrentNetwork:
+        cuda = torch.device(device).type == "cuda"
+        net = cls(model, device, precision, channels_last=cuda, fast_layers=cuda)
+        if isinstance(net, Upscaler) and not cuda:
+            net.tile = CPU_UPSCALE_TILE
+        return net
+
+    def network(self, cls: type[RecurrentNetwork]) -> RecurrentNetwork:
+        """The server's loaded network of a class (its template: shared weights, no stream's state)."""
+        return self.networks.get(cls, self._models[cls][0], str(self.device), self.precision)
+
     # ---- start-up ---------------------------------------------------------------------------
 
     def start_sync(self) -> None:
-        """Load the models and warm the device: one small render, upscale, reconstruction, shading and encode."""
+        """Load the networks and warm the device: one small frame of the network and the
+        reconstruction, shaded and encoded."""
         self._on_thread()
-        # GPUs: NHWC and the rewritten layers (the same function,
-        # isosr_net/fastpath.py); no torch.compile (the `fastest` variants), which would stall
-        # every session for seconds at each new frame size.
-        cuda = self.device.type == "cuda"
-        self._template = Upscaler(self.config.model, str(self.device), self.config.precision,
-                                  channels_last=cuda, fast_layers=cuda)
-        self._recon_template = Reconstructor(self.config.recon_model, str(self.device), self.config.precision,
-                                             channels_last=cuda, fast_layers=cuda)
-        factor = self.upscale_factor
+        factor = self.network(Upscaler).upscale_factor
+        self.network(Reconstructor)
+        self.context = ViewContext(factor, self.precision, self._models)
+        self.auto = AutoPolicy.for_server(str(self.device), self.precision, factor, self._models,
+                                          self.config.target_fps, self.networks)
         renderer = Renderer(parse_procedural("proc:sphere@16"), str(self.device))
-        spec = pipeline.FrameSpec("sr", orbit(30, 20, 1.8), None, 0.5, 8 * factor, 8 * factor, 1, 0.05, None, 0)
-        color = pipeline.render_sr(renderer, self.new_upscaler(), spec, pipeline.StageTimer(self.device))
-        encode_image(quantize(color), "jpeg", 80)
-        self.new_recon_stream().frame(renderer, replace(spec, mode="reconstruct"))
+        frames = self.new_session_frames("proc:sphere@16")
+        for mode in ("network", "reconstruct"):
+            job = FrameJob(ViewSettings(mode=mode, width=8 * factor, height=8 * factor), orbit(30, 20, 1.8), 0.5,
+                           FocusMsg(), 0, False, 1)
+            self.encode_sync(finish_steps(frames.steps(renderer, job)), "jpeg", 80, time.perf_counter())
 
     @property
     def upscale_factor(self) -> int:
-        return self._template.upscale_factor
+        return self.context.factor
 
     def model_info(self) -> dict:
-        """Model metadata for ``GET /v2/models/isosr``."""
-        cfg = self._template.net.config
-        return {"upscale_factor": self.upscale_factor, "precision": self.config.precision,
-                "device": str(self.device), "model": str(self.config.model),
+        """What the models are, without machine paths: folder names, precision, device, encoders."""
+        return {"upscale_factor": self.upscale_factor, "precision": self.precision, "device": str(self.device),
+                "model": Path(self.config.model).name,
                 "encoders": {e: encoder_name(str(self.device), e) for e in ENCODINGS},
-                "config": {k: v for k, v in vars(cfg).items() if isinstance(v, (int, float, str, bool, list, tuple))},
-                "reconstruction": {"model": str(self.config.recon_model), "max_ao_rays": MAX_RECON_AO_RAYS,
-                                   "spp": pipeline.RECON_SPP}}
+                "reconstruction": {"model": Path(self.config.recon_model).name, "max_ao_rays": MAX_RECON_AO_RAYS}}
 
     def new_upscaler(self) -> Upscaler:
         """A stream's own upscaler: shares the loaded weights, starts without recurrent state."""
-        return _own(self._template)
+        return self.network(Upscaler).own()
 
-    def new_recon_stream(self) -> pipeline.ReconStream:
-        """A view session's own reconstruction: shares the loaded weights, starts without recurrent state."""
-        return pipeline.ReconStream(_own(self._recon_template), self.config.recon_model)
+    def new_session_frames(self, scene: str) -> SessionFrames:
+        """A view session's own frame state (its own networks' recurrent state)."""
+        return SessionFrames(scene, self.networks.fork(), self.context, self.auto)
 
     def gpu_memory(self) -> int | None:
         """Bytes of GPU memory torch holds now (None on the CPU)."""
@@ -140,42 +178,32 @@ class Engine:
                 self._renderers.popitem(last=False)
         return self._renderers[name]
 
-    def view_frame_sync(self, renderer: Renderer, upscaler: Upscaler, recon: pipeline.ReconStream,
-                        spec: pipeline.FrameSpec, encoding: str,
-                        quality: int) -> tuple[bytes | None, dict | None, dict[str, float], dict | None]:
-        """One view frame: ``(image bytes or None, coded buffers or None, times in ms, channel legend or None)``.
+    async def view_frame(self, frames: SessionFrames, renderer: Renderer, job: FrameJob, encoding: str,
+                         quality: int) -> EncodedFrame:
+        """One view frame, made in slices of about ``slice_ms`` (:meth:`SessionFrames.steps`), each
+        its own job on the device thread, so that other sessions' frames interleave with a heavy one;
+        then encoded (:meth:`encode_sync`)."""
+        start = time.perf_counter()
+        steps = frames.steps(renderer, job, self.slice_ms)
+        while True:
+            done, made = await self.call(_advance, steps)
+            if done:
+                return await self.call(self.encode_sync, made, encoding, quality, start)
 
-        Args:
-            renderer: the session's volume's renderer.
-            upscaler, recon: the session's own networks (sr and focus; reconstruct).
-            spec: the frame.
-            encoding, quality: the image coding of shaded frames.
-        """
+    def encode_sync(self, made: ViewFrame, encoding: str, quality: int, start: float) -> EncodedFrame:
+        """A made view frame for the wire: an image of its color, or the low-res buffers coded on the
+        device (``buffers`` mode); ``start`` (``time.perf_counter()``) begins its total time."""
         self._on_thread()
-        timer = pipeline.StageTimer(self.device)
-        with timer("total"):
-            buffers, color, legend = None, None, None
-            if spec.channel != "shaded" and spec.mode != "buffers":
-                color, legend = channels.render_channel(renderer, upscaler, self.upscale_factor, spec, timer, recon)
-            elif spec.mode == "full":
-                color = pipeline.render_full(renderer, spec, timer)
-            elif spec.mode == "sr":
-                color = pipeline.render_sr(renderer, upscaler, spec, timer)
-            elif spec.mode == "reconstruct":
-                color = recon.frame(renderer, spec).color
-            elif spec.mode == "bilinear":
-                color = pipeline.render_bilinear(renderer, self.upscale_factor, spec, timer)
-            elif spec.mode == "focus":
-                color = pipeline.render_focus(renderer, upscaler, spec, timer)
-            elif spec.mode == "buffers":
-                buffers = pipeline.render_buffers(renderer, self.upscale_factor, spec, timer)
+        timer = StageTimer(self.device)
+        image = buffers = None
+        with timer("encode"):
+            if made.color is not None:
+                image = encode_image(quantize(made.color), encoding, quality)
             else:
-                raise ValueError(f"unknown mode {spec.mode!r}")
-            image = None
-            if color is not None:
-                with timer("encode"):
-                    image = encode_image(quantize(color), encoding, quality)
-        return image, buffers, timer.ms, legend
+                b = made.result.buffers
+                buffers = encode_view_buffers(b.mask, b.normal, b.depth, b.flow if made.prev_seq >= 0 else None)
+        times = made.result.times | timer.ms() | {"total": 1e3 * (time.perf_counter() - start)}
+        return EncodedFrame(image, buffers, times, made.legend, made.method.name, made.prev_seq)
 
     def upscale_sync(self, upscaler: Upscaler, request: UpscaleRequest) -> tuple[bytes | None, dict | None, dict]:
         """One upscale request: ``(image bytes or None, float32 numpy buffers or None, times in ms)``.
@@ -184,30 +212,33 @@ class Engine:
             ValueError: the library refuses the frame (e.g. fp16 with depths beyond its range).
         """
         self._on_thread()
-        timer = pipeline.StageTimer(self.device)
+        start = time.perf_counter()
+        timer = StageTimer(self.device)
         if request.reset:
             upscaler.reset()
         frame = FrameBuffers(**{n: torch.from_numpy(getattr(request, n).astype("float32"))
                                 for n in ("mask", "normal", "depth", "flow") if getattr(request, n) is not None})
-        with timer("total"):
-            with timer("network"):
-                high = upscaler.upscale(frame)
-                if not all(bool(torch.isfinite(getattr(high, n)).all()) for n in high.present()):
-                    upscaler.reset()  # a non-finite output must not feed the next frame
-                    raise ValueError("the network gave non-finite values for this frame")
-            if request.output == "buffers":
-                with timer("encode"):
-                    buffers = {n: getattr(high, n).cpu().numpy() for n in ("mask", "normal", "depth", "ao")}
-                return None, buffers, timer.ms
+        with timer("network"):
+            high = upscaler.upscale(frame)
+            if not all(bool(torch.isfinite(getattr(high, n)).all()) for n in high.present()):
+                upscaler.reset()  # a non-finite output must not feed the next frame
+                raise ValueError("the network gave non-finite values for this frame")
+        image = buffers = None
+        if request.output == "buffers":
+            with timer("encode"):
+                buffers = {n: getattr(high, n).cpu().numpy() for n in ("mask", "normal", "depth", "ao")}
+        else:
             with timer("shading"):
                 color = shade(high.mask, high.normal, high.ao)
             with timer("encode"):
                 image = encode_image(quantize(color), request.output, request.quality)
-        return image, None, timer.ms
+        return image, buffers, timer.ms() | {"total": 1e3 * (time.perf_counter() - start)}
 
 
-def _own(template: Net) -> Net:
-    """A stream's own copy of a loaded network: shares its weights, starts without recurrent state."""
-    net = copy.copy(template)
-    net.reset()
-    return net
+def _advance(steps: Generator) -> tuple[bool, object]:
+    """One slice of a generator of slices: ``(False, None)``, or ``(True, its result)`` at its end."""
+    try:
+        next(steps)
+        return False, None
+    except StopIteration as done:
+        return True, done.value

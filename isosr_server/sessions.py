@@ -26,19 +26,15 @@ from collections import OrderedDict
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, replace
 
-from isosr_net.reconstructor import MAX_RECON_AO_RAYS
 from isosr_net.upscaler import Upscaler
 from isosr_render import Camera, Volume, orbit
-from isosr_server import channels
-from isosr_server.pipeline import FrameSpec, lowres_size
-from isosr_server.protocol import (CLOSE_BAD_MESSAGE, CLOSE_IDLE, CLOSE_TOO_MANY, CameraMsg, FocusMsg, FrameMsg,
-                                   IsoMsg, Limits, Message, ProtocolError, ReceivedMsg, SettingsMsg, ViewSettings,
-                                   pack)
+from isosr_server import views
+from isosr_server.engine import EncodedFrame
+from isosr_server.protocol import (CLOSE_IDLE, CLOSE_TOO_MANY, CameraMsg, FocusMsg, FrameMsg, IsoMsg, Limits,
+                                   Message, ProtocolError, ReceivedMsg, SettingsMsg, ViewSettings, encode)
+from isosr_server.views import FrameJob, ViewContext
 
 DEFAULT_CAMERA = CameraMsg(yaw=30.0, pitch=20.0, distance=1.8)
-LOWRES_MODES = ("sr", "bilinear", "buffers", "focus")
-# Modes whose frames carry flow to the previous frame of the stream (recurrent networks, buffers).
-FLOW_MODES = LOWRES_MODES + ("reconstruct",)
 
 
 def to_camera(msg: CameraMsg) -> Camera:
@@ -92,16 +88,13 @@ class ViewState:
 
 
 @dataclass(frozen=True)
-class FrameJob:
-    """A frame the loop should make now."""
+class ViewJob:
+    """A frame the loop should make now, and how it travels."""
 
-    spec: FrameSpec
-    seq: int
+    frame: FrameJob
     ack: int
-    refined: bool
     encoding: str
     quality: int
-    prev_seq: int
 
 
 class ViewSession:
@@ -111,14 +104,15 @@ class ViewSession:
         session_id: the id announced in ``ready``.
         volume_name, volume: what it views.
         state: the initial state (from ``open``).
-        factor: the network's upscale factor.
+        context: the server's view context (upscale factor, precision, models).
         limits: the server's limits.
+        sessions: how many view sessions the server serves now (the auto mode's share).
     """
 
-    def __init__(self, session_id: str, volume_name: str, volume: Volume, state: ViewState, factor: int,
-                 limits: Limits):
+    def __init__(self, session_id: str, volume_name: str, volume: Volume, state: ViewState, context: ViewContext,
+                 limits: Limits, sessions: Callable[[], int] = lambda: 1):
         self.id, self.volume_name, self.volume = session_id, volume_name, volume
-        self.factor, self.limits = factor, limits
+        self.context, self.limits, self.sessions = context, limits, sessions
         self.check_settings(state.settings)
         self.state = state
         self.version, self.changed_at = 0, time.monotonic()
@@ -128,23 +122,10 @@ class ViewSession:
         self.next_seq = 0
         # Flow control: the newest frame whose sending began, and the newest the client acknowledged.
         self.sent_seq = self.received_seq = -1
-        # The last frame of a flow mode: its flow key (mode, size, iso), camera and seq.
-        self._flow_key: tuple | None = None
-        self._prev_camera: Camera | None = None
-        self._prev_seq = -1
 
     def check_settings(self, settings: ViewSettings) -> None:
-        """Low-res modes need a size divisible by the upscale factor; reconstruct mode at most
-        ``MAX_RECON_AO_RAYS`` AO rays; a channel view one its mode makes."""
-        if settings.mode == "reconstruct" and settings.ao_samples > MAX_RECON_AO_RAYS:
-            raise ProtocolError(f"reconstruct mode takes 0 to {MAX_RECON_AO_RAYS} AO rays per hit (ao_samples), "
-                                f"got {settings.ao_samples}")
-        channels.check(settings)
-        if settings.mode in LOWRES_MODES:
-            try:
-                lowres_size(settings.width, settings.height, self.factor)
-            except ValueError as e:
-                raise ProtocolError(str(e), CLOSE_BAD_MESSAGE) from None
+        """`ProtocolError` for settings no frame can be made of (:func:`isosr_server.views.check`)."""
+        views.check(settings, self.context)
 
     def apply(self, msg: Message) -> None:
         """Take a client update (latest wins) or acknowledgment; `ProtocolError` if it does not fit
@@ -197,44 +178,28 @@ class ViewSession:
         """Whether the next frame may be made: fewer than ``max_unacked_frames`` unacknowledged."""
         return self.unacknowledged() < self.limits.max_unacked_frames
 
-    def _refine_differs(self) -> bool:
-        s = self.state.settings
-        return s.refine and (s.mode != "full" or s.ao_samples < s.refine_ao_samples)
-
     def refine_in(self, now: float) -> float | None:
         """Seconds until the refined frame of the current state is due (None: none is)."""
-        if self.refined_version == self.version or not self._refine_differs():
+        if self.refined_version == self.version or not views.refines(self.state.settings, self.context):
             return None
         return max(0.0, self.changed_at + self.state.settings.refine_after_s - now)
 
-    def next_job(self, now: float) -> FrameJob | None:
+    def next_job(self, now: float) -> ViewJob | None:
         """The frame to make now: the newest state if not yet rendered, else a due refined frame."""
         s, st = self.state, self.state.settings
-        seq = self.next_seq
         if self.rendered_version != self.version:
-            self.rendered_version = self.version
-            prev_camera, prev_seq = None, -1
-            if st.mode in FLOW_MODES or st.channel == "flow":
-                key = (st.mode, st.width, st.height, s.iso)
-                if key == self._flow_key:
-                    prev_camera, prev_seq = self._prev_camera, self._prev_seq
-                self._flow_key, self._prev_camera, self._prev_seq = key, s.camera, seq
-            spec = FrameSpec(st.mode, s.camera, prev_camera, s.iso, st.width, st.height, st.ao_samples, st.ao_radius,
-                             s.focus, st.focus_blend_px, st.channel)
-            job = FrameJob(spec, seq, s.ack, False, "buffers" if st.mode == "buffers" else st.encoding, st.quality,
-                           prev_seq if st.mode == "buffers" else -1)
+            self.rendered_version, refined = self.version, False
         elif self.refine_in(now) == 0.0:
-            self.refined_version = self.version
-            spec = FrameSpec("full", s.camera, None, s.iso, st.width, st.height, st.refine_ao_samples, st.ao_radius,
-                             s.focus, st.focus_blend_px, st.channel)
-            job = FrameJob(spec, seq, s.ack, True, st.encoding, st.quality, -1)
+            self.refined_version, refined = self.version, True
         else:
             return None
+        job = ViewJob(FrameJob(st, s.camera, s.iso, s.focus, self.next_seq, refined, self.sessions()), s.ack,
+                      st.encoding, st.quality)
         self.next_seq += 1
         return job
 
 
-FrameMaker = Callable[[FrameJob], Awaitable[tuple[bytes | None, dict | None, dict, dict | None]]]
+FrameMaker = Callable[[ViewJob], Awaitable[EncodedFrame]]
 
 
 async def run_frames(session: ViewSession, make: FrameMaker, send: Callable[[bytes, FrameMsg], Awaitable[None]],
@@ -273,14 +238,21 @@ async def run_frames(session: ViewSession, make: FrameMaker, send: Callable[[byt
         if job is None:
             continue
         last_start = time.monotonic()
-        image, buffers, times, legend = await make(job)
-        st = job.spec
-        msg = FrameMsg(job.seq, job.ack, st.mode, st.width, st.height, job.encoding, times,
-                       len(image) if image is not None else sum(len(a["data"]) for a in buffers.values()
-                                                               if isinstance(a, dict)),
-                       job.refined, image, buffers, job.prev_seq, legend)
-        session.sent_seq = job.seq  # before sending: the client may acknowledge it before send returns
-        await send(pack(msg.to_wire()), msg)
+        made = await make(job)
+        f, st = job.frame, job.frame.settings
+        msg = FrameMsg(seq=f.seq, ack=job.ack, mode="full" if f.refined else st.mode, width=st.width,
+                       height=st.height, encoding=job.encoding if made.image is not None else "buffers",
+                       times=made.times, nbytes=frame_bytes(made), refined=f.refined, image=made.image,
+                       buffers=made.buffers, prev_seq=made.prev_seq, legend=made.legend, method=made.method)
+        session.sent_seq = f.seq  # before sending: the client may acknowledge it before send returns
+        await send(encode(msg), msg)
+
+
+def frame_bytes(made: EncodedFrame) -> int:
+    """Payload bytes of a frame: the image, or the coded buffers' data."""
+    if made.image is not None:
+        return len(made.image)
+    return sum(len(a["data"]) for a in made.buffers.values() if isinstance(a, dict))
 
 
 async def _wait(event: asyncio.Event, timeout: float | None) -> None:
@@ -292,16 +264,35 @@ async def _wait(event: asyncio.Event, timeout: float | None) -> None:
 
 
 class UpscaleSessions:
-    """Upscalers by session id (``POST /v1/upscale``) plus open streams, bounded together,
-    each id expiring after ``idle_timeout_s`` without a request."""
+    """Upscalers by session id (``POST /v1/upscale``) plus open streams, bounded together in
+    number (``max_sessions``) and in the memory their recurrent states hold (``max_upscale_bytes``:
+    past it, the least recently used ids are dropped and restart their recurrence); each id
+    expires after ``idle_timeout_s`` without a request."""
 
     def __init__(self, limits: Limits, make_upscaler: Callable[[], Upscaler]):
         self.limits, self.make = limits, make_upscaler
         self._by_id: OrderedDict[str, tuple[Upscaler, float]] = OrderedDict()
+        self._streams: list[Upscaler] = []
         self.streams = SessionCounter(limits.max_sessions)
 
     def __len__(self) -> int:
         return len(self._by_id) + self.streams.count
+
+    def held_bytes(self) -> int:
+        """Bytes the sessions' recurrent states hold."""
+        nets = [u for u, _ in self._by_id.values()] + self._streams
+        return sum(u.previous.nbytes for u in nets if u.previous is not None)
+
+    def trim(self, keep: str | None = None) -> int:
+        """Drop the least recently used ids (never ``keep``) while the states hold more than
+        ``max_upscale_bytes``; returns how many."""
+        dropped = 0
+        for k in [k for k in self._by_id if k != keep]:
+            if self.held_bytes() <= self.limits.max_upscale_bytes:
+                break
+            del self._by_id[k]
+            dropped += 1
+        return dropped
 
     def expire(self, now: float) -> int:
         """Drop sessions idle longer than the timeout; returns how many."""
@@ -331,7 +322,9 @@ class UpscaleSessions:
             raise ProtocolError(f"the server already holds {self.limits.max_sessions} upscale sessions; try later",
                                 CLOSE_TOO_MANY, 429)
         self.streams.acquire("upscale streams")
-        return self.make()
+        self._streams.append(self.make())
+        return self._streams[-1]
 
-    def close_stream(self) -> None:
+    def close_stream(self, upscaler: Upscaler) -> None:
+        self._streams.remove(upscaler)
         self.streams.release()

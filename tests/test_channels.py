@@ -10,7 +10,7 @@ from dataclasses import replace
 import pytest
 import torch
 
-from isosr_net.frame_methods import FrameMethod, FrameRunner
+from isosr_net.frame_methods import FrameMethod, Networks, make_runner
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
 from isosr_net.upscaler import Upscaler
 from isosr_render import FrameBuffers, Renderer, orbit, parse_procedural
@@ -120,8 +120,8 @@ def test_reconstruct_mode_shows_the_reconstruction(renderer):
     recurrent state advances on channel frames too."""
     timer = StageTimer(torch.device(DEVICE))
     method = FrameMethod("reconstruct", ao_rays=1)
-    runner = FrameRunner(method, renderer, 0.5, 32, 24,
-                         upscalers={method.upscaler_key(DEVICE): Reconstructor(device=DEVICE)})
+    runner = make_runner(method, renderer, 0.5, 32, 24,
+                         networks=Networks.eager())
     expected = [runner.frame(orbit(28, 20, 1.6)), runner.frame(orbit(30, 20, 1.6), orbit(28, 20, 1.6))]
     recon = ReconStream(Reconstructor(device=DEVICE), DEFAULT_RECON_MODEL)
     first = channels.channel_buffers(renderer, None, 4, replace(spec("reconstruct", "ao", ao_samples=1),

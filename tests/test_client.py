@@ -26,7 +26,7 @@ from isosr_client import ServerError, connect, decode_image, upscale_remote
 from isosr_client.drive import Orbit, drive, summarize
 from isosr_client.view import CLIENT_LIMITS
 from isosr_render.images import to_uint8
-from isosr_net.frame_methods import FrameMethod, FrameRunner, run_sequence
+from isosr_net.frame_methods import FrameMethod, Networks, make_runner, run_sequence
 from isosr_net.metrics import upscale_baseline
 from isosr_net.reconstructor import MAX_RECON_AO_RAYS, Reconstructor
 from isosr_net.upscaler import Upscaler
@@ -152,7 +152,7 @@ def test_reconstruct_frames_equal_the_library(server, library):  # noqa: F811
             images.append(view.frame())
         assert view.stats.mode == "reconstruct" and "total" in view.stats.server_ms
     method = FrameMethod("reconstruct", ao_rays=2)
-    runner = FrameRunner(method, renderer, iso, *size, upscalers={method.upscaler_key("cpu"): Reconstructor()})
+    runner = make_runner(method, renderer, iso, *size, networks=Networks.eager())
     expected = run_sequence(runner, [orbit(**PATH.camera(i)) for i in range(FRAMES)])
     for image, want in zip(images, expected):
         assert image.shape == (size[1], size[0], 3) and (image != 255).any()

@@ -1,4 +1,6 @@
-"""Frame methods: names, checks, and the runner computing only what each method needs.
+"""Frame methods: names, checks, the registry, and the one contract every registered runner keeps
+(each kind below is run through the same contract tests): bounded color, only its buffers,
+per-stage times, recurrent state carried and reset on a cut.
 
 On a GPU machine ``ISOSR_TEST_DEVICE=cuda pytest tests/test_frame_methods.py`` runs the runner
 tests there (compiled network and a-trous filter included).
@@ -9,8 +11,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from isosr_render import Renderer, open_volume, orbit_path, resolve_iso
-from isosr_net.frame_methods import FrameMethod, FrameRunner, run_sequence
+from isosr_render import Renderer, RenderRequest, open_volume, orbit_path, resolve_iso
+from isosr_net.frame_methods import FrameMethod, FrameStream, Networks, make_runner
 from conftest import DEVICE
 from net_fixtures import tiny_model_dir
 
@@ -41,6 +43,7 @@ def test_names_follow_the_issue():
     (dict(kind="full", factor=2), "factor"), (dict(kind="upscale", factor=2, interpolation="lanczos"), "interpolation"),
     (dict(kind="network", factor=4, precision="fp8"), "precision"), (dict(kind="full", spp=True), "spp"),
     (dict(kind="reconstruct", ao_rays=9), r"ao_rays must be an integer in \[0, 8\]"),
+    (dict(kind="buffers", factor=1), "factor"),
     (dict(kind="reconstruct", spp=8), r"spp must be an integer in \[1, 4\]"),
     (dict(kind="reconstruct", factor=2), "factor")])
 def test_bad_methods_are_refused(kwargs, message):
@@ -52,56 +55,135 @@ def test_bad_methods_are_refused(kwargs, message):
     (FrameMethod("full"), ["mask", "normal", "color"]),
     (FrameMethod("full", ao_rays=4, spp=2), ["mask", "normal", "ao", "color"]),
     (FrameMethod("atrous", ao_rays=2), ["mask", "normal", "ao", "color"]),
-    (FrameMethod("upscale", factor=4, interpolation="bicubic"), ["mask", "normal", "color"]),
+    (FrameMethod("upscale", factor=4, interpolation="bicubic"), ["mask", "normal", "depth", "color"]),
     (FrameMethod("reconstruct", ao_rays=2), ["mask", "normal", "depth", "ao", "color"]),
     (FrameMethod("reconstruct"), ["mask", "normal", "depth", "ao", "color"]),
-    (FrameMethod("network", factor=4), ["mask", "normal", "depth", "ao", "color"])])
+    (FrameMethod("network", factor=4), ["mask", "normal", "depth", "ao", "color"]),
+    (FrameMethod("buffers", factor=4), ["mask", "normal", "depth"])])
 def test_every_kind_makes_a_bounded_color_frame_and_only_its_buffers(scene, method, buffers):
     renderer, iso = scene
-    frames = run_sequence(FrameRunner(method, renderer, iso, *SIZE), orbit_path(2, yaw0=20.0, yaw_step=3.0))
-    for f in frames:
-        assert f.present() == buffers
-        assert f.color.shape == (SIZE[1], SIZE[0], 3)
-        assert torch.isfinite(f.color).all() and f.color.min() >= 0 and f.color.max() <= 1
-        assert (f.mask > 0.5).any()
+    runner = make_runner(method, renderer, iso, *SIZE)
+    cams = orbit_path(2, yaw0=20.0, yaw_step=3.0)
+    results = [runner.frame(cams[0]), runner.frame(cams[1], cams[0])]
+    assert [r.continued for r in results] == [False, runner.recurrent]
+    for r in results:
+        f = r.buffers
+        assert f.present() == buffers + (["flow"] if r.continued and not runner.shaded else [])
+        assert {"render"} <= set(r.times) and all(t >= 0 for t in r.times.values())
+        assert (f.mask > 0.5).any() and torch.isfinite(f.mask).all()
+        if runner.shaded:
+            assert f.color.shape == (SIZE[1], SIZE[0], 3)
+            assert torch.isfinite(f.color).all() and f.color.min() >= 0 and f.color.max() <= 1
+
+
+def test_the_registry_names_every_kind_and_refuses_a_second_registration():
+    from isosr_net.frame_methods import RUNNERS, FullRunner, register_runner
+    assert set(RUNNERS) == {"full", "atrous", "reconstruct", "upscale", "network", "buffers"}
+    assert all(cls.kind == kind for kind, cls in RUNNERS.items())
+    with pytest.raises(ValueError, match="registered already"):
+        register_runner("full")(FullRunner)
+
+
+@pytest.mark.parametrize("method, keep", [(FrameMethod("full"), ("depth", "flow")),
+                                          (FrameMethod("network", factor=4), ("flow",)),
+                                          (FrameMethod("atrous", ao_rays=1), ("depth",))])
+def test_kept_buffers_come_at_the_frame_size_and_flow_in_its_pixels(scene, method, keep):
+    renderer, iso = scene
+    runner = make_runner(method, renderer, iso, *SIZE, keep=keep)
+    cams = orbit_path(2, yaw0=20.0, yaw_step=6.0)
+    runner.frame(cams[0])
+    f = runner.frame(cams[1], cams[0]).buffers
+    for name in keep:
+        assert getattr(f, name).shape[:2] == (SIZE[1], SIZE[0])
+    if "flow" in keep:
+        full = renderer.render(cams[1], RenderRequest(*SIZE, iso, ("mask", "flow"), prev_camera=cams[0]))
+        covered = (full.mask > 0.5) & (f.mask > 0.5)
+        # flow of a low-res render, upsampled and scaled, agrees with the full-res flow to about a low-res pixel
+        assert (f.flow - full.flow)[covered].abs().median() < method.factor
+
+
+def test_a_stream_starts_a_new_runner_and_a_new_sequence_when_its_settings_change(scene):
+    renderer, iso = scene
+    stream = FrameStream(Networks())
+    cams = orbit_path(3, yaw0=20.0, yaw_step=3.0)
+    recon = FrameMethod("reconstruct", ao_rays=1)
+    assert not stream.frame(recon, renderer, iso, *SIZE, cams[0], None).continued
+    first = stream.runner
+    assert stream.frame(recon, renderer, iso, *SIZE, cams[1], cams[0]).continued and stream.runner is first
+    # a new AO ray count, size or iso is a cut: a new runner, its previous camera ignored
+    assert not stream.frame(FrameMethod("reconstruct", ao_rays=2), renderer, iso, *SIZE, cams[2], cams[1]).continued
+    assert stream.runner is not first
+    assert not stream.frame(FrameMethod("reconstruct", ao_rays=2), renderer, iso, 32, 16, cams[2], cams[1]).continued
+
+
+def test_forked_networks_share_weights_and_own_their_state(scene):
+    renderer, iso = scene
+    root = Networks()
+    a, b = root.fork(), root.fork()
+    recon = FrameMethod("reconstruct", ao_rays=1)
+    ra, rb = (make_runner(recon, renderer, iso, *SIZE, networks=n) for n in (a, b))
+    assert ra.net is not rb.net and ra.net.net is rb.net.net
+    cams = orbit_path(2, yaw0=20.0, yaw_step=3.0)
+    ra.frame(cams[0])
+    assert ra.net.previous is not None and rb.net.previous is None
 
 
 def test_the_network_carries_its_state_and_resets_on_a_cut(scene, tmp_path_factory):
     renderer, iso = scene
     method = FrameMethod("network", factor=2, model=str(tiny_model_dir(tmp_path_factory)), model_name="tiny")
-    runner = FrameRunner(method, renderer, iso, *SIZE)
+    runner = make_runner(method, renderer, iso, *SIZE)
     cams = orbit_path(2, yaw0=20.0, yaw_step=3.0)
     first = runner.frame(cams[1])  # a cut: no previous frame
     runner.frame(cams[0])
     carried = runner.frame(cams[1], cams[0])  # the same view, with the previous output warped in
     again = runner.frame(cams[1])
-    assert torch.allclose(first.color, again.color, atol=1e-6)
-    assert (first.color - carried.color).abs().max() > 1e-3
+    assert torch.allclose(first.buffers.color, again.buffers.color, atol=1e-6)
+    assert (first.buffers.color - carried.buffers.color).abs().max() > 1e-3
 
 
 def test_sizes_the_factor_does_not_divide_and_wrong_models_are_refused(scene, tmp_path_factory):
     renderer, iso = scene
     with pytest.raises(ValueError, match="must divide"):
-        FrameRunner(FrameMethod("upscale", factor=4), renderer, iso, 50, 32)
-    with pytest.raises(ValueError, match="positive integer"):
-        FrameRunner(FrameMethod("full"), renderer, iso, 0, 32)
+        make_runner(FrameMethod("upscale", factor=4), renderer, iso, 50, 32)
+    with pytest.raises(ValueError, match="must be an integer >= 1"):
+        make_runner(FrameMethod("full"), renderer, iso, 0, 32)
     tiny = str(tiny_model_dir(tmp_path_factory))  # an x2 model
     with pytest.raises(ValueError, match="upscales x2, not x4"):
-        FrameRunner(FrameMethod("network", factor=4, model=tiny), renderer, iso, *SIZE)
+        make_runner(FrameMethod("network", factor=4, model=tiny), renderer, iso, *SIZE)
 
 
 def test_an_empty_image_shades_to_the_background(scene):
     renderer, _ = scene
-    frame = FrameRunner(FrameMethod("atrous", ao_rays=2), renderer, 2.0, *SIZE).frame(orbit_path(1)[0])
+    frame = make_runner(FrameMethod("atrous", ao_rays=2), renderer, 2.0, *SIZE).frame(orbit_path(1)[0]).buffers
     assert frame.mask.max() == 0 and torch.equal(frame.color, torch.ones_like(frame.color))
 
 
 def test_runners_share_one_network_per_model_precision_and_device(scene):
     renderer, iso = scene
-    upscalers: dict = {}
+    networks = Networks()
     bf16 = FrameMethod("network", factor=4, precision="bf16")
-    a = FrameRunner(bf16, renderer, iso, *SIZE, upscalers=upscalers)
-    b = FrameRunner(bf16, renderer, iso, 96, 64, upscalers=upscalers)
-    c = FrameRunner(FrameMethod("network", factor=4), renderer, iso, *SIZE, upscalers=upscalers)
-    assert a.upscaler is b.upscaler and a.upscaler.precision == "bf16"
-    assert c.upscaler is not a.upscaler and c.upscaler.precision == "fp32" and len(upscalers) == 2
+    a = make_runner(bf16, renderer, iso, *SIZE, networks=networks)
+    b = make_runner(bf16, renderer, iso, 96, 64, networks=networks)
+    c = make_runner(FrameMethod("network", factor=4), renderer, iso, *SIZE, networks=networks)
+    assert a.net is b.net and a.net.precision == "bf16"
+    assert c.net is not a.net and c.net.precision == "fp32" and len(networks._loaded) == 2
+
+
+@pytest.mark.parametrize("method", [FrameMethod("full", ao_rays=4), FrameMethod("atrous", ao_rays=2),
+                                    FrameMethod("reconstruct", ao_rays=1)])
+def test_a_frame_in_slices_equals_the_frame_whole(scene, method):
+    renderer, iso = scene
+    cam = orbit_path(1, yaw0=20.0)[0]
+    whole = make_runner(method, renderer, iso, *SIZE).frame(cam).buffers
+    steps = make_runner(method, renderer, iso, *SIZE).steps(cam, slice_ms=1e-6)  # one band a slice
+    slices = 0
+    while True:
+        try:
+            next(steps)
+            slices += 1
+        except StopIteration as done:
+            sliced = done.value.buffers
+            break
+    assert slices >= SIZE[1] // 32  # the first band, then bands of a row (each slice far over its budget)
+    for name in whole.present():
+        torch.testing.assert_close(getattr(sliced, name), getattr(whole, name), atol=1e-6, rtol=0)

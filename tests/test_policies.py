@@ -13,7 +13,8 @@ import torch
 
 from isosr_net.evaluate import COMPARED, compare_upscalers
 from isosr_net.metrics import frame_scores, upscale_baseline
-from isosr_net.upscaler import Upscaler, lowres_tensors
+from isosr_net.upscaler import Upscaler
+from isosr_net.inference import surface_tensors
 from isosr_render import Renderer, RenderRequest, Volume, open_volume, orbit, resolve_iso
 from isosr_render.catalog import ENV_VAR
 from isosr_render.conventions import HIGHRES_BUFFERS, LOWRES_BUFFERS
@@ -97,7 +98,7 @@ def test_compare_upscalers_scores_each_method_and_runs_the_network_recurrently(t
         torch.testing.assert_close(frame.target, truth.channels_first(HIGHRES_BUFFERS)[None])
         outputs = LOWRES_BUFFERS + (("flow",) if t else ())
         low = renderer.render(camera, RenderRequest(16, 12, iso, outputs, prev_camera=cameras[t - 1] if t else None))
-        lowres, flow = lowres_tensors(low)
+        lowres, flow = surface_tensors(low)
         assert (flow is None) == (t == 0)
         torch.testing.assert_close(frame.outputs["network"], reference.step(lowres, flow))
         torch.testing.assert_close(frame.outputs["bicubic"], upscale_baseline(lowres, 2, "bicubic"))

@@ -11,7 +11,7 @@ from isosr_render.conventions import AO, DEPTH, MASK, NORMAL, RECON_CHANNELS, SA
 from isosr_render.sequence import sequence_requests
 from isosr_render.shading import ShadingParams, shade
 from isosr_net.budget import color_psnr, reference_frames
-from isosr_net.frame_methods import FrameMethod, FrameRunner, run_sequence
+from isosr_net.frame_methods import FrameMethod, Networks, make_runner, run_sequence
 from isosr_net.reconnet import (MAX_RECON_AO_RAYS, MAX_RECON_SPP, ReconNet, ReconNetConfig, macs_per_pixel,
                                 sampling_channels)
 from isosr_net.reconstructor import Reconstructor, recon_inputs
@@ -251,9 +251,8 @@ def test_a_new_frame_size_starts_over(sphere, sphere_frames):
     torch.testing.assert_close(out.ao, Reconstructor().reconstruct(small, 2, 1).ao)
 
 
-def test_upscale_is_refused_and_an_upscaler_folder_is_not_a_reconstructor(sphere_frames):
-    with pytest.raises(TypeError, match="reconstruct"):
-        Reconstructor().upscale(sphere_frames[0])
+def test_a_reconstructor_has_no_upscaling_api_and_an_upscaler_folder_is_not_a_reconstructor(sphere_frames):
+    assert not hasattr(Reconstructor(), "upscale") and not hasattr(Reconstructor(), "step")
     with pytest.raises(ValueError, match="SRNet, not a reconstruction network"):
         Reconstructor(DEFAULT_MODEL)
 
@@ -334,7 +333,7 @@ def test_the_shipped_model_beats_the_frame_it_reconstructs():
     references = reference_frames(renderer, iso, SIZE, cameras)
     psnr = {}
     for method in (FrameMethod("reconstruct", ao_rays=2), FrameMethod("full", ao_rays=2)):
-        frames = run_sequence(FrameRunner(method, renderer, iso, *SIZE), cameras)
+        frames = run_sequence(make_runner(method, renderer, iso, *SIZE), cameras)
         psnr[method.kind] = [color_psnr(f, r) for f, r in zip(frames, references)]
     for reconstructed, plain in zip(psnr["reconstruct"], psnr["full"]):
         assert reconstructed > plain + 0.5, psnr

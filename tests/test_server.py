@@ -20,7 +20,7 @@ import torch
 from websockets.exceptions import ConnectionClosed
 
 from isosr_cli.main import main
-from isosr_net.frame_methods import FrameMethod, FrameRunner, run_sequence
+from isosr_net.frame_methods import FrameMethod, Networks, make_runner, run_sequence
 from isosr_net.metrics import upscale_baseline
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, MAX_RECON_AO_RAYS, Reconstructor
 from isosr_net.upscaler import Upscaler
@@ -169,8 +169,8 @@ def test_focus_mode_full_inside_network_outside(srv, lib):
 def lib_recon(lib, cameras, ao_rays=2) -> list[FrameBuffers]:
     """The reconstruct frames of a camera path, with one recurrent state (the server's model and precision)."""
     method = FrameMethod("reconstruct", ao_rays=ao_rays)
-    runner = FrameRunner(method, lib.renderer, lib.iso, W, H,
-                         upscalers={method.upscaler_key(DEVICE): Reconstructor(device=DEVICE)})
+    runner = make_runner(method, lib.renderer, lib.iso, W, H,
+                         networks=Networks.eager())
     return run_sequence(runner, cameras)
 
 

@@ -8,7 +8,8 @@ import torch
 import torch.nn.functional as F
 
 from isosr_net.model import load_pretrained
-from isosr_net.upscaler import DEFAULT_MODEL, Upscaler, highres_frame, lowres_tensors
+from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
+from isosr_net.inference import output_buffers, surface_tensors
 from isosr_render.buffers import FrameBuffers
 from net_fixtures import render_lowres_frames, tiny_model_dir
 
@@ -106,8 +107,8 @@ def test_the_previous_output_is_used(tmp_path_factory, frames24):
 
 def test_the_state_is_the_warped_previous_output(tmp_path_factory, frames24):
     up = Upscaler(tiny_model_dir(tmp_path_factory))
-    lowres0, _ = lowres_tensors(frames24[0])
-    lowres1, flow1 = lowres_tensors(frames24[1])
+    lowres0, _ = surface_tensors(frames24[0])
+    lowres1, flow1 = surface_tensors(frames24[1])
     out0 = up.step(lowres0, None)
     assert torch.equal(up.previous, out0)
     out1 = up.step(lowres1, flow1)
@@ -147,16 +148,16 @@ def test_tiled_equals_untiled_on_the_shipped_model(default_upscaler):
     tiled = Upscaler(tile=8)  # default halo
     default_upscaler.reset()
     for frame in frames:
-        whole = default_upscaler.step(*lowres_tensors(frame))
-        parts = tiled.step(*lowres_tensors(frame))
+        whole = default_upscaler.step(*surface_tensors(frame))
+        parts = tiled.step(*surface_tensors(frame))
         assert parts.shape == whole.shape == (1, 6, 112, 160)
         torch.testing.assert_close(parts, whole, atol=1e-4, rtol=0)
 
 
 def test_a_tile_covering_the_frame_runs_whole(tmp_path_factory, frames24):
     model = tiny_model_dir(tmp_path_factory)
-    a = Upscaler(model).step(*lowres_tensors(frames24[0]))
-    b = Upscaler(model, tile=32).step(*lowres_tensors(frames24[0]))
+    a = Upscaler(model).step(*surface_tensors(frames24[0]))
+    b = Upscaler(model, tile=32).step(*surface_tensors(frames24[0]))
     assert torch.equal(a, b)
 
 
@@ -165,15 +166,15 @@ def test_reduced_precision_runs_and_stays_close(default_upscaler, frames24, prec
     low = Upscaler(precision=precision)
     default_upscaler.reset()
     for frame in frames24[:2]:
-        ref = default_upscaler.step(*lowres_tensors(frame))
-        out = low.step(*lowres_tensors(frame))
+        ref = default_upscaler.step(*surface_tensors(frame))
+        out = low.step(*surface_tensors(frame))
         assert out.dtype == torch.float32 and out.shape == ref.shape and torch.isfinite(out).all()
         assert (out - ref).abs().mean() < 0.02
         assert (out[:, 0] - ref[:, 0]).abs().max() < max_mask_diff
 
 
 def test_fp16_refuses_depths_beyond_its_range_where_bf16_stays_finite(default_upscaler, frames24):
-    lowres, _ = lowres_tensors(frames24[0])
+    lowres, _ = surface_tensors(frames24[0])
     lowres[:, 4] = torch.where(lowres[:, 0] > 0, 1e5, 0.0)  # a surface 1e5 world units away
     with pytest.raises(ValueError, match=r"fp16 takes depths up to 10000, this frame reaches 1e\+05"):
         Upscaler(precision="fp16").step(lowres, None)
@@ -185,8 +186,8 @@ def test_fast_layers_give_the_same_frames(default_upscaler):
     fast = Upscaler(fast_layers=True, channels_last=True)
     default_upscaler.reset()
     for frame in frames:
-        ref = default_upscaler.step(*lowres_tensors(frame))
-        torch.testing.assert_close(fast.step(*lowres_tensors(frame)), ref, atol=1e-4, rtol=0)
+        ref = default_upscaler.step(*surface_tensors(frame))
+        torch.testing.assert_close(fast.step(*surface_tensors(frame)), ref, atol=1e-4, rtol=0)
     assert type(fast.net).__name__ == "FastSRNet" and type(default_upscaler.net).__name__ == "SRNet"
 
 
@@ -199,25 +200,25 @@ def test_fastest_on_a_cpu_is_eager_fp32():
 # ---------------------------------------------------------------- inputs and errors
 
 
-def test_lowres_tensors_layout(frames24):
+def test_surface_tensors_layout(frames24):
     frame = frames24[1]
-    lowres, flow = lowres_tensors(frame)
+    lowres, flow = surface_tensors(frame)
     assert lowres.shape == (1, 5, 24, 24) and flow.shape == (1, 2, 24, 24)
     assert torch.equal(lowres[0, 0], frame.mask) and torch.equal(lowres[0, 4], frame.depth)
     assert torch.equal(lowres[0, 1:4], frame.normal.permute(2, 0, 1))
     assert torch.equal(flow[0], frame.flow.permute(2, 0, 1))
-    assert lowres_tensors(frames24[0])[1] is None
+    assert surface_tensors(frames24[0])[1] is None
     double = FrameBuffers(mask=frame.mask.double(), normal=frame.normal.double(), depth=frame.depth.double())
-    assert lowres_tensors(double)[0].dtype == torch.float32
+    assert surface_tensors(double)[0].dtype == torch.float32
 
 
-def test_highres_frame_conventions():
+def test_output_buffers_conventions():
     out = torch.zeros(1, 6, 4, 4)
     out[0, 0, :2] = 0.7  # covered top half
     out[0, 1:4] = torch.tensor([0.0, 3.0, 4.0]).view(3, 1, 1)  # not unit length
     out[0, 4] = 2.0
     out[0, 5] = 1.5  # AO past 1
-    frame = highres_frame(out)
+    frame = output_buffers(out)
     torch.testing.assert_close(frame.normal[:2], torch.tensor([0.0, 0.6, 0.8]).expand(2, 4, 3))
     assert (frame.normal[2:] == 0).all() and (frame.depth[2:] == 0).all() and (frame.depth[:2] == 2).all()
     assert (frame.ao == 1).all() and torch.equal(frame.mask, out[0, 0])

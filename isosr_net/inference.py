@@ -1,0 +1,175 @@
+"""What every trained frame network shares at inference: loading, precision, input checks, and
+one stream's recurrent state (:class:`RecurrentNetwork`, the base of `Upscaler` and `Reconstructor`).
+
+    net.reset()                           # a cut: forget the previous output
+    previous, flow = net.carried(inputs, flow)   # what this frame may warp (None after a cut or resize)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+from isosr_render.buffers import FrameBuffers
+from isosr_render.conventions import AO, DEPTH, LOWRES_BUFFERS, MASK, NORMAL
+from isosr_render.shapes import check_shape
+from isosr_net.fastpath import fast_network
+from isosr_net.model import load_pretrained
+
+PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
+# fp16 ends at 65504 and the networks' activations grow with the input depth: the shipped upscaler
+# gave NaN from depth 4e4 on, finite (if inaccurate) outputs up to 2e4. Deeper frames are refused.
+FP16_MAX_DEPTH = 1e4
+
+
+def default_precision(device: str | torch.device) -> str:
+    """The networks' precision where none is asked for: fp16 on CUDA devices (tensor cores), fp32
+    elsewhere (CPUs run half precision slower, not faster)."""
+    return "fp16" if torch.device(device).type == "cuda" else "fp32"
+
+
+class InputChecks:
+    """Checks of a frame's inputs computed on the device and read with one host sync.
+
+    On a GPU every value read back to the host stalls the CPU until the queue drains, so a frame
+    whose checks each read a value stalls once per check. The checks are queued instead and
+    :meth:`raise_first` reads them all at once: where the rest of the frame is one compiled call
+    (the `Reconstructor`), after it; where eager work follows the network (the `Upscaler`),
+    before the network, so that work overlaps it.
+    """
+
+    def __init__(self):
+        self._checks: list[tuple[torch.Tensor, Callable[[float], bool], Callable[[float], str]]] = []
+
+    def add(self, value: torch.Tensor, ok: Callable[[float], bool], message: Callable[[float], str]) -> None:
+        """Queue a check: ``ok(value)`` on the host, else ``ValueError(message(value))``."""
+        self._checks.append((value.detach().reshape(()).float(), ok, message))
+
+    def add_finite(self, name: str, t: torch.Tensor) -> None:
+        """Queue: ``t`` holds no NaN or Inf."""
+        self.add(torch.isfinite(t).all(), bool, lambda _: f"{name} holds NaN or Inf values")
+
+    def raise_first(self) -> None:
+        """Read every queued check (one host sync) and raise the first that fails."""
+        if not self._checks:
+            return
+        by_device: dict[torch.device, list[int]] = {}
+        for i, (value, _, _) in enumerate(self._checks):
+            by_device.setdefault(value.device, []).append(i)
+        values = [0.0] * len(self._checks)
+        for indices in by_device.values():  # one read per device (the inputs may sit elsewhere)
+            for i, v in zip(indices, torch.stack([self._checks[i][0] for i in indices]).tolist()):
+                values[i] = v
+        for v, (_, ok, message) in zip(values, self._checks):
+            if not ok(v):
+                raise ValueError(message(v))
+
+
+def surface_tensors(frame: FrameBuffers, checks: InputChecks | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """A frame's first-hit surface as a network reads it: ``(surface, flow or None)``, the surface's
+    channels in the order :data:`isosr_render.conventions.LOWRES_CHANNELS` (low-res for the
+    `Upscaler`, full-res for the `Reconstructor`).
+
+    Args:
+        frame: mask, normal, depth, and flow except on a sequence's first frame.
+        checks: where to queue the finiteness checks; None checks at once (a host sync).
+
+    Raises:
+        ValueError: a buffer is missing, has the wrong shape or dtype, or (without ``checks``) is not finite.
+
+    Shape:
+        Returns surface (1, 5, H, W) and flow (1, 2, H, W), float32.
+    """
+    for name in LOWRES_BUFFERS:
+        if getattr(frame, name) is None:
+            raise ValueError(f"the frame lacks its {name} buffer")
+    dims = check_shape(frame.mask, "(H, W)", "mask", "surface_tensors")
+    now = checks is None
+    checks = InputChecks() if now else checks
+    for name, spec in (("mask", "(H, W)"), ("normal", "(H, W, 3)"), ("depth", "(H, W)"), ("flow", "(H, W, 2)")):
+        t = getattr(frame, name)
+        if t is None:
+            continue
+        check_shape(t, spec, name, "surface_tensors", dims)
+        if not t.is_floating_point():
+            raise ValueError(f"{name} must be floating point, got {t.dtype}")
+        checks.add_finite(name, t)
+    if now:
+        checks.raise_first()
+    surface = frame.channels_first(LOWRES_BUFFERS)[None]
+    flow = None if frame.flow is None else frame.flow.permute(2, 0, 1)[None]
+    return surface.float(), None if flow is None else flow.float()
+
+
+def output_buffers(output: torch.Tensor) -> FrameBuffers:
+    """A network's output stack (1, 6, H, W) as buffers; normals unit where covered, 0 elsewhere."""
+    out = output[0].float()
+    mask = out[MASK][0]
+    normal = F.normalize(out[NORMAL], dim=0, eps=1e-6).permute(1, 2, 0) * (mask > 0)[..., None]
+    return FrameBuffers(mask=mask, normal=normal, depth=out[DEPTH][0] * (mask > 0), ao=out[AO][0].clamp(0, 1))
+
+
+class RecurrentNetwork:
+    """A loaded frame network and one stream's recurrent state (its previous output).
+
+    Every stream (viewer, sequence) needs its own instance: :meth:`own` makes one that shares
+    the loaded weights. Subclasses say how a frame runs (`Upscaler.upscale`,
+    `Reconstructor.reconstruct`).
+
+    Args:
+        model: a model folder (``config.json`` + ``model.safetensors``).
+        device: where to run.
+        precision: ``"fp32"``, ``"bf16"`` or ``"fp16"`` (autocast).
+        channels_last: keep activations in NHWC (faster convolutions on GPUs).
+        fast_layers: the layers rewritten for speed (:mod:`isosr_net.fastpath`); the same function.
+        autotune: let cuDNN time its algorithms per input shape (``torch.backends.cudnn.benchmark``,
+            a process-wide switch that this turns on).
+    """
+
+    # How much larger the output is than the input (1: full resolution in and out).
+    upscale_factor: int = 1
+
+    def __init__(self, model: str | Path, device: str = "cpu", precision: str = "fp32", channels_last: bool = False,
+                 fast_layers: bool = False, autotune: bool = False):
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {precision!r}")
+        self.device = torch.device(device)
+        self.model = Path(model)
+        self.net, self.config = load_pretrained(model, self.device)
+        if fast_layers:
+            self.net = fast_network(self.net)
+        if channels_last:
+            self.net = self.net.to(memory_format=torch.channels_last)
+        if autotune:
+            torch.backends.cudnn.benchmark = True
+        self.precision = precision
+        self.previous: torch.Tensor | None = None
+
+    def reset(self) -> None:
+        """Forget the previous output (a camera cut, a new sequence)."""
+        self.previous = None
+
+    def own(self) -> "RecurrentNetwork":
+        """A stream's own copy: shares the loaded weights (and compiled code), starts without state."""
+        twin = object.__new__(type(self))
+        twin.__dict__.update(self.__dict__)
+        twin.reset()
+        return twin
+
+    def check_precision(self, surface: torch.Tensor, checks: InputChecks) -> None:
+        """Queue what the precision needs of the inputs: fp16 takes depths up to :data:`FP16_MAX_DEPTH`."""
+        if self.precision == "fp16":
+            checks.add(surface[:, DEPTH].abs().amax(), lambda deepest: deepest <= FP16_MAX_DEPTH,
+                       lambda deepest: f"fp16 takes depths up to {FP16_MAX_DEPTH:g}, this frame reaches "
+                                       f"{deepest:.3g}: use bf16 or fp32")
+
+    def carried(self, surface: torch.Tensor, flow: torch.Tensor | None) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        """``(previous, flow)`` to carry into this frame: both None after a cut (no flow) or a change
+        of frame size (nothing of this size to warp). The one place the recurrent reset is decided."""
+        previous = None if flow is None else self.previous
+        if previous is not None and previous.shape[-2:] != tuple(s * self.upscale_factor for s in surface.shape[-2:]):
+            previous = None
+        return previous, None if previous is None else flow.to(self.device)
