@@ -103,14 +103,17 @@ class Engine:
         return self._template.upscale_factor
 
     def model_info(self) -> dict:
-        """Model metadata for ``GET /v2/models/isosr``."""
+        """The upscaling model's parameters for ``GET /v2/models/isosr`` (its folder's name only)."""
         cfg = self._template.net.config
         return {"upscale_factor": self.upscale_factor, "precision": self.config.precision,
-                "device": str(self.device), "model": str(self.config.model),
+                "device": str(self.device), "model": self.config.model.name,
                 "encoders": {e: encoder_name(str(self.device), e) for e in ENCODINGS},
-                "config": {k: v for k, v in vars(cfg).items() if isinstance(v, (int, float, str, bool, list, tuple))},
-                "reconstruction": {"model": str(self.config.recon_model), "max_ao_rays": MAX_RECON_AO_RAYS,
-                                   "spp": pipeline.RECON_SPP}}
+                "config": {k: v for k, v in vars(cfg).items() if isinstance(v, (int, float, str, bool, list, tuple))}}
+
+    def recon_info(self) -> dict:
+        """The reconstruction model's parameters for ``GET /v2/models/isosr-recon`` (its folder's name only)."""
+        return {"model": self.config.recon_model.name, "precision": self.config.precision, "device": str(self.device),
+                "max_ao_rays": MAX_RECON_AO_RAYS, "spp": pipeline.RECON_SPP}
 
     def new_upscaler(self) -> Upscaler:
         """A stream's own upscaler: shares the loaded weights, starts without recurrent state."""
