@@ -13,9 +13,8 @@ import json
 import os
 from pathlib import Path
 
+from isosr_server.core.config import TOKEN_ENV
 from isosr_server.protocol import ENCODINGS, MODES
-
-TOKEN_ENV = "ISOSR_TOKEN"
 
 
 def add_parser(subparsers) -> None:

@@ -30,7 +30,7 @@ import torch
 
 from isosr_net.frame_methods import Networks, finish_steps
 from isosr_net.inference import RecurrentNetwork, default_precision
-from isosr_net.reconnet import MAX_RECON_AO_RAYS
+from isosr_net.reconnet import MAX_RECON_AO_RAYS, MAX_RECON_SPP
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
 from isosr_net.timing import StageTimer
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
@@ -144,11 +144,17 @@ class Engine:
         return self.context.factor
 
     def model_info(self) -> dict:
-        """What the models are, without machine paths: folder names, precision, device, encoders."""
+        """The upscaling model's parameters for ``GET /v2/models/isosr`` (its folder's name only)."""
+        cfg = self.network(Upscaler).net.config
         return {"upscale_factor": self.upscale_factor, "precision": self.precision, "device": str(self.device),
                 "model": Path(self.config.model).name,
                 "encoders": {e: encoder_name(str(self.device), e) for e in ENCODINGS},
-                "reconstruction": {"model": Path(self.config.recon_model).name, "max_ao_rays": MAX_RECON_AO_RAYS}}
+                "config": {k: v for k, v in vars(cfg).items() if isinstance(v, (int, float, str, bool, list, tuple))}}
+
+    def recon_info(self) -> dict:
+        """The reconstruction model's parameters for ``GET /v2/models/isosr-recon`` (its folder's name only)."""
+        return {"model": Path(self.config.recon_model).name, "precision": self.precision, "device": str(self.device),
+                "max_ao_rays": MAX_RECON_AO_RAYS, "max_spp": MAX_RECON_SPP}
 
     def new_upscaler(self) -> Upscaler:
         """A stream's own upscaler: shares the loaded weights, starts without recurrent state."""

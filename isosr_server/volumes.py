@@ -3,19 +3,22 @@
 Clients name volumes; they never send paths. A name is looked up in the folder's
 ``volumes.json`` manifest (or, without one, among the folder's volume files by their name
 without extension); ``proc:`` specs are built here, at most ``MAX_PROCEDURAL_SIZE`` voxels a side.
+Routes load volumes with :func:`load_volume`, which answers bad names with 400 and unknown ones with 404.
 """
 
 from __future__ import annotations
 
+import asyncio
 import threading
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from isosr_render import Volume, open_volume, resolve_iso
+from isosr_render import Volume, open_volume
 from isosr_render.catalog import manifest
 from isosr_render.procedural import default_iso
+from isosr_server.protocol import CLOSE_NOT_FOUND, VOLUME_NAME, ProtocolError
 
 MAX_PROCEDURAL_SIZE = 128
 PROCEDURAL_OFFER = ("proc:sphere", "proc:torus", "proc:cloud:0", "proc:metaballs:0")
@@ -31,6 +34,10 @@ class UnknownVolume(KeyError):
         return self.args[0]
 
 
+class VolumeTooBig(ValueError):
+    """The client asked for a procedural volume larger than this server builds."""
+
+
 @dataclass(frozen=True)
 class VolumeInfo:
     """What a viewer needs to pick a volume and an iso-value.
@@ -39,7 +46,7 @@ class VolumeInfo:
         name: the name clients use.
         shape: voxels (x, y, z).
         value_range: original data range.
-        iso: suggested iso-value, data units (the procedural one, else Otsu's threshold).
+        iso: suggested iso-value, data units (`VolumeCatalog.suggested_iso`).
         histogram: voxel counts in ``HISTOGRAM_BINS`` equal bins over ``value_range``
             (None until the volume was loaded).
     """
@@ -93,11 +100,13 @@ class VolumeCatalog:
         return list(self._files) + list(PROCEDURAL_OFFER)
 
     def _source(self, name: str) -> str:
-        """The file path or procedural spec behind a name; `UnknownVolume` otherwise."""
+        """The file path or procedural spec behind a name; `UnknownVolume` or `VolumeTooBig` otherwise."""
         if name.startswith("proc:"):
             size = name.partition("@")[2]
-            if size and (not size.isdigit() or int(size) > MAX_PROCEDURAL_SIZE):
-                raise UnknownVolume(f"procedural volumes here take a size of at most {MAX_PROCEDURAL_SIZE}: {name!r}")
+            if size and not size.isdigit():
+                raise UnknownVolume(f"no procedural volume {name!r}: its size must be a number")
+            if size and int(size) > MAX_PROCEDURAL_SIZE:
+                raise VolumeTooBig(f"procedural volumes here take a size of at most {MAX_PROCEDURAL_SIZE}: {name!r}")
             try:
                 default_iso(name)  # validates the spec
             except ValueError as e:
@@ -118,10 +127,23 @@ class VolumeCatalog:
         self._source(name)
         e = self._manifest.get(name)
         if e is None:
-            return VolumeInfo(name, None, None, default_iso(name) if name.startswith("proc:") else None)
-        lo, hi = e["value_range"]
-        iso = lo + e["otsu_iso_normalized"] * (hi - lo) if "otsu_iso_normalized" in e else None
-        return VolumeInfo(name, tuple(e["shape_xyz"]), (lo, hi), iso)
+            return VolumeInfo(name, None, None, self.suggested_iso(name, None))
+        value_range = tuple(e["value_range"])
+        return VolumeInfo(name, tuple(e["shape_xyz"]), value_range, self.suggested_iso(name, value_range))
+
+    def suggested_iso(self, name: str, value_range: tuple[float, float] | None,
+                      volume: Volume | None = None) -> float | None:
+        """The suggested iso-value in data units, the same before and after loading: a procedural
+        spec's own; the manifest's Otsu threshold; else, once loaded, Otsu's threshold of the voxels."""
+        if name.startswith("proc:"):
+            return default_iso(name)
+        normalized = self._manifest.get(name, {}).get("otsu_iso_normalized")
+        if normalized is None and volume is not None:
+            normalized = volume.otsu_iso()
+        if normalized is None:
+            return None
+        lo, hi = value_range
+        return lo + normalized * (hi - lo)
 
     def load(self, name: str) -> tuple[Volume, VolumeInfo]:
         """The volume and its full info (histogram included); loads and caches it (blocking)."""
@@ -131,11 +153,23 @@ class VolumeCatalog:
                 self._cache[name] = self._cache.pop(name)  # most recent last
                 return self._cache[name]
             volume = open_volume(source)
-            lo, hi = volume.value_range
-            iso = lo + resolve_iso(source, volume) * (hi - lo)
             counts, _ = np.histogram(volume.data, bins=HISTOGRAM_BINS, range=(0.0, 1.0))
-            info = VolumeInfo(name, volume.shape, (lo, hi), iso, counts.tolist())
+            iso = self.suggested_iso(name, volume.value_range, volume)
+            info = VolumeInfo(name, volume.shape, volume.value_range, iso, counts.tolist())
             self._cache[name] = (volume, info)
             while len(self._cache) > CACHE:
                 self._cache.pop(next(iter(self._cache)))
             return volume, info
+
+
+async def load_volume(catalog: VolumeCatalog, name: str) -> tuple[Volume, VolumeInfo]:
+    """The named volume and its info, loaded off the event loop; `ProtocolError` 400 for a name
+    that is no name (a path) or a procedural volume over the bound, 404 (CLOSE_NOT_FOUND) for an unknown one."""
+    if not VOLUME_NAME.match(name):
+        raise ProtocolError(f"bad volume name {name!r}: a name from GET /v1/volumes, never a path"[:200])
+    try:
+        return await asyncio.to_thread(catalog.load, name)
+    except VolumeTooBig as e:
+        raise ProtocolError(str(e)) from None
+    except UnknownVolume as e:
+        raise ProtocolError(str(e), CLOSE_NOT_FOUND, 404) from None

@@ -25,7 +25,8 @@ from isosr_net.upscaler import Upscaler
 from isosr_render import FrameBuffers, Renderer, RenderRequest, open_volume, orbit, resolve_iso, shade
 from isosr_render.conventions import LOWRES_BUFFERS
 from isosr_server import protocol as P
-from isosr_server.app import ServerConfig, create_app, uvicorn_options
+from isosr_server.app import create_app, uvicorn_options
+from isosr_server.core.config import Settings
 from isosr_render.images import decode_image, to_uint8
 
 # Clients accept big frames (the server's limit bounds what clients send).
@@ -55,8 +56,8 @@ def free_port() -> int:
 class RunningServer:
     """Where a test server listens, with helpers to call it."""
 
-    def __init__(self, port: int, config: ServerConfig, errors: ErrorRecords):
-        self.port, self.config, self.errors = port, config, errors
+    def __init__(self, port: int, settings: Settings, errors: ErrorRecords):
+        self.port, self.settings, self.errors = port, settings, errors
         self.http_url, self.ws_url = f"http://127.0.0.1:{port}", f"ws://127.0.0.1:{port}"
 
     def request(self, method: str, path: str, body: bytes | None = None,
@@ -90,15 +91,15 @@ def recv(ws, timeout: float = 60) -> P.Message:
 
 
 @contextmanager
-def running_server(config: ServerConfig):
+def running_server(settings: Settings):
     """Start the app on uvicorn in a thread; yields a `RunningServer`; stops it after."""
     errors = ErrorRecords()
     logging.getLogger().addHandler(errors)
     logging.getLogger("isosr").setLevel(logging.INFO)
     port = free_port()
     # log_config=None: uvicorn leaves logging alone, so its records reach the root logger too.
-    server = uvicorn.Server(uvicorn.Config(create_app(config), host="127.0.0.1", port=port, log_config=None,
-                                           **uvicorn_options(config.limits)))
+    server = uvicorn.Server(uvicorn.Config(create_app(settings), host="127.0.0.1", port=port, log_config=None,
+                                           **uvicorn_options(settings.limits)))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     deadline = time.monotonic() + 120
@@ -107,7 +108,7 @@ def running_server(config: ServerConfig):
             raise RuntimeError("the test server did not start")
         time.sleep(0.02)
     try:
-        yield RunningServer(port, config, errors)
+        yield RunningServer(port, settings, errors)
     finally:
         server.should_exit = True
         thread.join(30)
@@ -122,6 +123,11 @@ LEVELS = 1 if DEVICE == "cpu" else 3
 VOLUME = "proc:torus@32"
 W, H, FACTOR = 64, 48, 4
 CAM0 = P.CameraMsg(yaw=30.0, pitch=20.0, distance=1.8)
+
+
+def server_settings(**fields) -> Settings:
+    """A test server's settings: on DEVICE, in fp32 (the library references' precision)."""
+    return Settings(device=DEVICE, precision="fp32", **fields)
 
 
 @pytest.fixture(scope="module")

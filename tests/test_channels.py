@@ -142,13 +142,9 @@ def test_reconstruct_mode_shows_the_reconstruction(renderer):
 
 @pytest.fixture(scope="module")
 def srv(tmp_path_factory):
-    from server_fixtures import running_server
+    from server_fixtures import running_server, server_settings
 
-    from isosr_server.app import ServerConfig
-    from isosr_server.engine import EngineConfig
-
-    config = ServerConfig(volumes=tmp_path_factory.mktemp("no_volumes"), engine=EngineConfig(device=DEVICE))
-    with running_server(config) as s:
+    with running_server(server_settings(volumes=tmp_path_factory.mktemp("no_volumes"))) as s:
         yield s
 
 

@@ -33,7 +33,7 @@ from isosr_net.upscaler import Upscaler
 from isosr_render import FrameBuffers, Renderer, RenderRequest, open_volume, orbit
 from isosr_render.conventions import LOWRES_BUFFERS
 from isosr_render.shading import shade, shade_channels_first
-from isosr_server.app import ServerConfig
+from isosr_server.core.config import Settings
 from isosr_server.protocol import (SERVER_VIEW_MESSAGES, CameraMsg, FrameMsg, Limits, OpenMsg, ProtocolError, ReadyMsg,
                                    ReceivedMsg, pack, parse)
 
@@ -226,7 +226,7 @@ def test_token_travels_and_its_absence_is_a_clear_refusal(library):
     token = "client-test-token"
     renderer, iso = library
     low = lowres_frames(renderer, iso, frames=1)[0]
-    with running_server(ServerConfig(token=token)) as s:
+    with running_server(Settings(token=token)) as s:
         for wrong in (None, "not-the-token"):
             with pytest.raises(ServerError) as e:
                 connect(s.http_url, VOLUME, "sr", SIZE, token=wrong)

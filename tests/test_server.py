@@ -19,22 +19,19 @@ import pytest
 import torch
 from websockets.exceptions import ConnectionClosed
 
-from isosr_cli.main import main
 from isosr_net.frame_methods import FrameMethod, Networks, make_runner, run_sequence
 from isosr_net.metrics import upscale_baseline
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, MAX_RECON_AO_RAYS, Reconstructor
-from isosr_net.upscaler import Upscaler
+from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
 from isosr_render import Camera, FrameBuffers, open_volume, orbit, shade
 from isosr_render.conventions import LOWRES_BUFFERS
 from isosr_render.shading import shade_channels_first
 from isosr_server import protocol as P
-from isosr_server.app import ServerConfig
-from isosr_server.engine import EngineConfig
 from isosr_server.sessions import ViewSession, ViewState
 from isosr_render.images import decode_image, to_uint8
 from server_fixtures import (DEVICE, FACTOR, H, LEVELS, VOLUME, W, assert_image, cam, expect_close, frame,  # noqa: F401
-                             lib, lib_full, lib_lowres, lib_sr, recv, running_server, send, session, settle,
-                             upscale_body, wire_frame)
+                             lib, lib_full, lib_lowres, lib_sr, recv, running_server, send, server_settings, session,
+                             settle, upscale_body, wire_frame)
 
 LIMITS = P.Limits(max_message_bytes=2**20, max_sessions=6, idle_timeout_s=30.0, max_fps=1000.0,
                   max_messages_per_s=5000.0)
@@ -52,7 +49,7 @@ def volumes_dir(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def srv(volumes_dir):
-    with running_server(ServerConfig(volumes=volumes_dir, engine=EngineConfig(device=DEVICE), limits=LIMITS)) as s:
+    with running_server(server_settings(volumes=volumes_dir, limits=LIMITS)) as s:
         yield s
 
 
@@ -63,11 +60,16 @@ def test_health_model_and_volumes(srv, volumes_dir):
     assert srv.get_json("/v2/health/live") == (200, {"live": True})
     assert srv.get_json("/v2/health/ready") == (200, {"ready": True})
     status, model = srv.get_json("/v2/models/isosr")
-    assert status == 200 and model["upscale_factor"] == FACTOR and model["precision"] == "fp32"
-    assert model["encoders"]["png"].startswith("opencv")
+    params = model["parameters"]
+    assert status == 200 and params["upscale_factor"] == FACTOR and params["precision"] == "fp32"
+    assert params["encoders"]["png"].startswith("opencv") and params["model"] == DEFAULT_MODEL.name
     assert [i["name"] for i in model["inputs"]] == ["mask", "normal", "depth", "flow"]
     assert [o["name"] for o in model["outputs"]] == ["mask", "normal", "depth", "ao"]
-    assert model["reconstruction"] == {"model": str(DEFAULT_RECON_MODEL), "max_ao_rays": MAX_RECON_AO_RAYS, "spp": 1}
+    status, recon = srv.get_json("/v2/models/isosr-recon")
+    assert status == 200 and recon["parameters"] == {"model": DEFAULT_RECON_MODEL.name, "precision": "fp32",
+                                                     "device": DEVICE, "max_ao_rays": MAX_RECON_AO_RAYS, "spp": 1}
+    for name in ("isosr", "isosr-recon"):
+        assert srv.get_json(f"/v2/models/{name}/ready") == (200, {"name": name, "ready": True})
     status, listing = srv.get_json("/v1/volumes")
     names = [v["name"] for v in listing["volumes"]]
     assert status == 200 and "blob" in names and "proc:sphere" in names and "notes" not in names
@@ -76,11 +78,13 @@ def test_health_model_and_volumes(srv, volumes_dir):
     assert blob["value_range"][0] == pytest.approx(np.load(volumes_dir / "blob.npy").min())
     status, torus = srv.get_json("/v1/volumes/proc:torus@32")
     assert status == 200 and torus["iso"] == 0.0 and len(torus["histogram"]) == torus["histogram_bins"]
+    listed = {v["name"]: v for v in srv.get_json("/v1/volumes")[1]["volumes"]}
+    assert listed["blob"]["iso"] == blob["iso"]  # one suggested iso, listed or loaded
 
 
 @pytest.mark.parametrize("path, status", [
     ("/v1/volumes/..%2F..%2Fetc%2Fpasswd", 404), ("/v1/volumes/..secret", 400), ("/v1/volumes/notes", 404),
-    ("/v1/volumes/%2Fetc%2Fpasswd", 404), ("/v1/volumes/proc:cloud:1@500", 404), ("/v1/volumes/a..b", 404),
+    ("/v1/volumes/%2Fetc%2Fpasswd", 404), ("/v1/volumes/proc:cloud:1@500", 400), ("/v1/volumes/a..b", 404),
     ("/v1/nothing", 404),
 ])
 def test_volume_names_never_reach_paths(srv, path, status):
@@ -438,7 +442,8 @@ def test_bad_view_input_closes_that_session_only(srv, lib):
              f"protocol version 1 is not supported; this server speaks {P.PROTOCOL_VERSION}: update the client"),
             (P.pack({"type": "open", "version": P.PROTOCOL_VERSION, "volume": "nope"}), P.CLOSE_NOT_FOUND, "no volume named"),
             (P.pack({"type": "open", "version": P.PROTOCOL_VERSION, "volume": "../blob"}), P.CLOSE_BAD_MESSAGE, "volume"),
-            (P.pack({"type": "open", "version": P.PROTOCOL_VERSION, "volume": "proc:cloud:1@400"}), P.CLOSE_NOT_FOUND, "size"),
+            (P.pack({"type": "open", "version": P.PROTOCOL_VERSION, "volume": "proc:cloud:1@400"}), P.CLOSE_BAD_MESSAGE,
+             "size"),
             (P.pack({"type": "open", "version": P.PROTOCOL_VERSION, "volume": VOLUME, "settings": {"mode": "sr", "width": 66}}),
              P.CLOSE_BAD_MESSAGE, "multiple of the upscale factor"),
             (P.pack({"type": "open", "version": P.PROTOCOL_VERSION, "volume": VOLUME, "settings": {"width": 4096, "height": 4096}}),
@@ -496,15 +501,11 @@ def test_bad_view_input_closes_that_session_only(srv, lib):
 # ---- the token ------------------------------------------------------------------------------
 
 
-def test_token_required_beyond_loopback():
-    with pytest.raises(ValueError, match="--token"):
-        ServerConfig(host="0.0.0.0")
-    assert ServerConfig(host="0.0.0.0", token=TOKEN).token == TOKEN
-
-
 def test_token_checked_on_every_request_and_handshake(lib):
-    with running_server(ServerConfig(token=TOKEN, engine=EngineConfig(device=DEVICE))) as s:
-        for path in ("/v2/health/live", "/v2/health/ready", "/v2/models/isosr", "/v1/volumes", "/metrics"):
+    with running_server(server_settings(token=TOKEN)) as s:
+        for path in ("/v2/health/live", "/v2/health/ready"):  # probes carry no token
+            assert s.request("GET", path)[0] == 200
+        for path in ("/v2", "/v2/models/isosr", "/v2/models/isosr-recon/ready", "/v1/volumes", "/metrics"):
             for headers in ({}, {"Authorization": "Bearer wrong-token"}, {P.TOKEN_HEADER: TOKEN[:-1]}):
                 status, body = s.get_json(path, headers)
                 assert status == 401 and "token" in body["error"], (path, headers)
@@ -524,12 +525,6 @@ def test_token_checked_on_every_request_and_handshake(lib):
         assert not s.errors.records, s.errors.messages()
 
 
-def test_serve_command_refuses_an_open_host_without_token(capsys, monkeypatch):
-    monkeypatch.delenv("ISOSR_TOKEN", raising=False)
-    assert main(["serve", "--host", "0.0.0.0", "--max-fps", "30"]) == 2
-    assert "--token" in capsys.readouterr().err
-
-
 # ---- limits: idle time, message rate, frame rate, session expiry -------------------------------
 
 STRICT = P.Limits(max_message_bytes=2**20, max_sessions=2, idle_timeout_s=0.8, max_fps=10.0, max_messages_per_s=30.0)
@@ -537,7 +532,7 @@ STRICT = P.Limits(max_message_bytes=2**20, max_sessions=2, idle_timeout_s=0.8, m
 
 @pytest.fixture(scope="module")
 def strict_srv():
-    with running_server(ServerConfig(engine=EngineConfig(device=DEVICE), limits=STRICT)) as s:
+    with running_server(server_settings(limits=STRICT)) as s:
         yield s
 
 

@@ -14,17 +14,15 @@ from websockets.exceptions import ConnectionClosed
 
 from isosr_render import orbit
 from isosr_server import protocol as P
-from isosr_server.app import ServerConfig
-from isosr_server.engine import EngineConfig
-from server_fixtures import (CAM0, DEVICE, VOLUME, assert_image, cam, frame, lib, lib_full, recv,  # noqa: F401
-                             running_server, send, session, settle, wire_frame)
+from server_fixtures import (CAM0, VOLUME, assert_image, cam, frame, lib, lib_full, recv,  # noqa: F401
+                             running_server, send, server_settings, session, settle, wire_frame)
 
 LIMITS = P.Limits(max_message_bytes=2**20, max_sessions=6, max_fps=1000.0, max_messages_per_s=5000.0)
 
 
 @pytest.fixture(scope="module")
 def srv():
-    with running_server(ServerConfig(engine=EngineConfig(device=DEVICE), limits=LIMITS)) as s:
+    with running_server(server_settings(limits=LIMITS)) as s:
         yield s
 
 

@@ -14,7 +14,7 @@ const ctx = view.getContext("2d");
 const state = {
   token: sessionStorage.getItem(TOKEN_KEY) || "",
   factor: 4,
-  maxReconRays: 0, // reconstruct mode's AO rays per hit: set from GET /v2/models/isosr before sessions open
+  maxReconRays: 0, // reconstruct mode's AO rays per hit: set from GET /v2/models/isosr-recon before sessions open
   limits: null,
   volume: null,
   info: null, // ready.volume: name, shape, value_range, iso, histogram
@@ -121,9 +121,8 @@ async function openSessions() {
   const generation = ++state.generation; // a later call supersedes this one
   if (!state.volume) return;
   try {
-    const model = await getJson("/v2/models/isosr");
-    state.factor = model.upscale_factor;
-    state.maxReconRays = model.reconstruction.max_ao_rays;
+    state.factor = (await getJson("/v2/models/isosr")).parameters.upscale_factor;
+    state.maxReconRays = (await getJson("/v2/models/isosr-recon")).parameters.max_ao_rays;
     $("recon-rays").max = state.maxReconRays;
   } catch (e) {
     return generation === state.generation && serverUnreachable(e);
@@ -170,9 +169,10 @@ async function onSessionState(slot, name, detail) {
     setConnState("error", "error");
     setBanner(`server error ${detail.code}: ${detail.reason}\nchange a setting to try again`);
   } else if (name === "lost") {
-    // A denied handshake looks like a lost connection to a browser: ask over HTTP why.
+    // A denied handshake looks like a lost connection to a browser: ask over HTTP why (the server
+    // metadata needs the token; the health probes do not).
     try {
-      await getJson("/v2/health/live");
+      await getJson("/v2");
     } catch (e) {
       if (e.status === 401 && !slot.session.closed) {
         for (const s of state.sessions) s.session.close();

@@ -9,20 +9,19 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from fastapi import FastAPI
+from fastapi import APIRouter
 from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
-STATIC_DIR = Path(__file__).parent / "static"
+STATIC_DIR = Path(__file__).resolve().parents[2] / "static"
 CSP = ("default-src 'self'; img-src 'self' blob: data:; connect-src 'self'; style-src 'self'; "
        "script-src 'self'; object-src 'none'; base-uri 'none'; frame-ancestors 'none'")
 
+router = APIRouter(tags=["viewer"])
+router.mount("/static", StaticFiles(directory=STATIC_DIR), name="viewer-static")
 
-def add_viewer(app: FastAPI) -> None:
-    """Serve the viewer page at ``/`` and its static files at ``/static`` on ``app``."""
-    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="viewer-static")
 
-    @app.get("/", include_in_schema=False)
-    async def viewer_page():
-        return FileResponse(STATIC_DIR / "index.html", headers={"Content-Security-Policy": CSP,
-                                                                "Cache-Control": "no-cache"})
+@router.get("/", include_in_schema=False)
+async def viewer_page():
+    return FileResponse(STATIC_DIR / "index.html", headers={"Content-Security-Policy": CSP,
+                                                            "Cache-Control": "no-cache"})

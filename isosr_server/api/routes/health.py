@@ -1,0 +1,37 @@
+"""The server's health and metadata, KServe v2 (Open Inference Protocol) style.
+
+    GET /v2/health/live    200 while the process serves requests          (no token)
+    GET /v2/health/ready   200 once the models are loaded, 503 before     (no token)
+    GET /v2                server metadata: name, version, extensions      (token)
+
+The probes need no token: orchestrators' probes carry none, and they reveal nothing but the
+status. Server metadata lists as ``extensions`` the isosr APIs beyond the protocol's own.
+"""
+
+from __future__ import annotations
+
+from importlib.metadata import version
+
+from fastapi import APIRouter, Depends
+from fastapi.responses import JSONResponse
+
+from isosr_server.api.deps import ReadyDep, require_token
+
+EXTENSIONS = ("isosr-view", "isosr-upscale", "isosr-volumes", "prometheus-metrics")
+
+router = APIRouter(tags=["health"])
+
+
+@router.get("/v2/health/live")
+async def live():
+    return {"live": True}
+
+
+@router.get("/v2/health/ready")
+async def ready(is_ready: ReadyDep):
+    return JSONResponse({"ready": is_ready}, 200 if is_ready else 503)
+
+
+@router.get("/v2", dependencies=[Depends(require_token)])
+async def server_metadata():
+    return {"name": "isosr", "version": version("isosr"), "extensions": list(EXTENSIONS)}

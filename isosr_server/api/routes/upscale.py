@@ -1,0 +1,122 @@
+"""Frame upscaling: low-res buffers in, high-res buffers or a shaded image out.
+
+    POST /v1/upscale          one low-res frame -> high-res buffers (msgpack) or an image; a
+                              ``session`` id keeps the recurrent state between requests
+    WS   /v1/upscale/stream   low-res frames in, high-res frames out, in order, one state per connection
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from dataclasses import replace
+
+from fastapi import APIRouter, Depends, HTTPException, Request, WebSocket
+from fastapi.responses import Response
+
+from isosr_net.upscaler import Upscaler
+from isosr_server.api.deps import (AuthorizedDep, EngineDep, LimitsDep, MetricsDep, UpscaleSessionsDep,
+                                   require_token)
+from isosr_server.api.ws import accept, end_ws, receive
+from isosr_server.engine import Engine
+from isosr_server.protocol import (MSGPACK_MEDIA_TYPE, Limits, ProtocolError, UpscaleRequest, UpscaleResponse, pack,
+                                   parse)
+from isosr_server.sessions import RateLimiter
+
+BODY_TYPES = (MSGPACK_MEDIA_TYPE, "application/x-msgpack", "application/octet-stream")
+IMAGE_TYPES = {"image/png": "png", "image/jpeg": "jpeg", "image/webp": "webp"}
+
+router = APIRouter(prefix="/v1/upscale", tags=["upscale"])
+
+
+def check_upscale(msg: UpscaleRequest, engine: Engine, limits: Limits) -> None:
+    """`ProtocolError` 413 when the upscaled frame would exceed the size limits."""
+    h, w = msg.mask.shape
+    limits.check_size(w * engine.upscale_factor, h * engine.upscale_factor, "the upscaled frame")
+
+
+async def run_upscale(engine: Engine, upscaler: Upscaler, msg: UpscaleRequest):
+    """``(image or None, buffers or None, times)`` on the device thread; 422 when the network refuses the frame."""
+    try:
+        return await engine.call(engine.upscale_sync, upscaler, msg)
+    except ValueError as e:  # the network refuses this frame (e.g. fp16 beyond its depth range)
+        raise ProtocolError(f"cannot upscale this frame: {e}", http_status=422) from None
+
+
+async def read_body(request: Request, limits: Limits) -> bytes:
+    """The msgpack body, at most ``max_message_bytes`` (413 beyond; 415 for another content type).
+
+    A body up to twice the limit is read to its end (kept only up to the limit), so that the
+    client, still sending, gets the 413 and its reason rather than a reset connection."""
+    kind = request.headers.get("content-type", MSGPACK_MEDIA_TYPE).split(";")[0].strip()
+    if kind not in BODY_TYPES:
+        raise HTTPException(415, f"send a msgpack body ({MSGPACK_MEDIA_TYPE}), not {kind}")
+    drain = 2 * limits.max_message_bytes
+    declared = request.headers.get("content-length", "")
+    too_big = ProtocolError(f"body exceeds the limit of {limits.max_message_bytes} bytes", http_status=413)
+    if declared.isdigit() and int(declared) > drain:
+        raise too_big
+    body, total = bytearray(), 0
+    async for chunk in request.stream():
+        total += len(chunk)
+        if total > drain:
+            raise too_big
+        if total <= limits.max_message_bytes:
+            body += chunk
+    if total > limits.max_message_bytes:
+        raise too_big
+    return bytes(body)
+
+
+@router.post("", dependencies=[Depends(require_token)])
+async def upscale(request: Request, engine: EngineDep, limits: LimitsDep, metrics: MetricsDep,
+                  sessions: UpscaleSessionsDep):
+    # Off the event loop: decoding inflates and checks megabytes of arrays.
+    msg = await asyncio.to_thread(parse, await read_body(request, limits), limits, (UpscaleRequest,))
+    accept_type = request.headers.get("accept", "").split(",")[0].split(";")[0].strip()
+    if msg.output == "buffers" and accept_type in IMAGE_TYPES:
+        msg = replace(msg, output=IMAGE_TYPES[accept_type])
+    check_upscale(msg, engine, limits)
+    upscaler = sessions.get(msg.session) if msg.session else engine.new_upscaler()
+    image, buffers, times = await run_upscale(engine, upscaler, msg)
+    sessions.trim(keep=msg.session)
+    h, w = msg.mask.shape
+    f = engine.upscale_factor
+    if image is not None:
+        metrics.frame("upscale", msg.output, False, times, len(image))
+        return Response(image, media_type=f"image/{msg.output}", headers={"x-isosr-times": json.dumps(times)})
+    nbytes = sum(a.nbytes for a in buffers.values())
+    metrics.frame("upscale", "buffers", False, times, nbytes)
+    reply = UpscaleResponse(0, w * f, h * f, "buffers", times, nbytes, buffers=buffers)
+    return Response(pack(reply.to_wire()), media_type=MSGPACK_MEDIA_TYPE)
+
+
+@router.websocket("/stream")
+async def upscale_stream(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, limits: LimitsDep,
+                         metrics: MetricsDep, sessions: UpscaleSessionsDep):
+    if not await accept(ws, authorized, metrics):
+        return
+    limiter = RateLimiter(limits.max_messages_per_s)
+    upscaler = None
+    try:
+        upscaler = sessions.open_stream()
+        seq = 0
+        while True:
+            msg = await asyncio.to_thread(parse, await receive(ws, limiter, limits), limits, (UpscaleRequest,))
+            if msg.session is not None:
+                raise ProtocolError("a stream is one session: leave out the session field")
+            check_upscale(msg, engine, limits)
+            image, buffers, times = await run_upscale(engine, upscaler, msg)
+            sessions.trim()
+            h, w = msg.mask.shape
+            f = engine.upscale_factor
+            nbytes = len(image) if image is not None else sum(a.nbytes for a in buffers.values())
+            reply = UpscaleResponse(seq, w * f, h * f, msg.output, times, nbytes, buffers=buffers, image=image)
+            await ws.send_bytes(pack(reply.to_wire()))
+            metrics.frame("upscale", msg.output, False, times, nbytes)
+            seq += 1
+    except Exception as e:
+        await end_ws(ws, "upscale", e, metrics)
+    finally:
+        if upscaler is not None:
+            sessions.close_stream(upscaler)

@@ -1,0 +1,93 @@
+"""``WS /v1/view``: a view session (the protocol module's docstring): ``open`` -> ``ready`` and
+frames; then camera, iso, settings and focus updates, each answered by a frame the client acknowledges."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import secrets
+
+from fastapi import APIRouter, WebSocket
+
+from isosr_server.api.deps import AuthorizedDep, CatalogDep, EngineDep, LimitsDep, MetricsDep, ViewSessionsDep
+from isosr_server.api.ws import accept, end_ws, receive
+from isosr_server.engine import Engine
+from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, CLOSE_IDLE, FocusMsg, Limits, OpenMsg, ProtocolError,
+                                   ReadyMsg, ViewSettings, limits_to_wire, pack, parse)
+from isosr_server.sessions import (DEFAULT_CAMERA, RateLimiter, SessionCounter, ViewSession, ViewState, run_frames,
+                                   to_camera)
+from isosr_server.volumes import VolumeCatalog, load_volume
+
+log = logging.getLogger("isosr.server")
+
+router = APIRouter(tags=["view"])
+
+
+@router.websocket("/v1/view")
+async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, catalog: CatalogDep, limits: LimitsDep,
+               metrics: MetricsDep, view_sessions: ViewSessionsDep):
+    if not await accept(ws, authorized, metrics):
+        return
+    limiter = RateLimiter(limits.max_messages_per_s)
+    counted, tasks = False, []
+    try:
+        view_sessions.acquire("view sessions")
+        counted = True
+        metrics.sessions.labels("view").set(view_sessions.count)
+        session = await open_view(ws, limiter, limits, catalog, engine, view_sessions)
+        renderer = await engine.call(engine.renderer_sync, session.volume_name, session.volume)
+        frames = engine.new_session_frames(session.volume_name)
+
+        async def make(job):
+            return await engine.view_frame(frames, renderer, job.frame, job.encoding, job.quality)
+
+        async def send(data: bytes, msg) -> None:
+            try:
+                await asyncio.wait_for(ws.send_bytes(data), limits.idle_timeout_s)
+            except TimeoutError:
+                raise ProtocolError(f"the client read no frame for {limits.idle_timeout_s:g} s", CLOSE_IDLE,
+                                    408) from None
+            metrics.frame("view", msg.mode, msg.refined, msg.times, msg.nbytes)
+
+        async def updates():
+            while True:
+                session.apply(parse(await receive(ws, limiter, limits), limits, CLIENT_VIEW_MESSAGES))
+
+        tasks = [asyncio.create_task(run_frames(session, make, send, limits.max_fps)),
+                 asyncio.create_task(updates())]
+        done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+        for task in done:
+            task.result()  # raises what ended the session
+    except Exception as e:
+        await end_ws(ws, "view", e, metrics)
+    finally:
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        if counted:
+            view_sessions.release()
+            metrics.sessions.labels("view").set(view_sessions.count)
+
+
+async def open_view(ws: WebSocket, limiter: RateLimiter, limits: Limits, catalog: VolumeCatalog,
+                    engine: Engine, view_sessions: SessionCounter) -> ViewSession:
+    """Read ``open``, load the volume, answer ``ready``: the new session."""
+    msg = parse(await receive(ws, limiter, limits), limits, (OpenMsg,))
+    volume, info = await load_volume(catalog, msg.volume)
+    settings = ViewSettings().updated(msg.settings, limits)
+    iso = info.iso if msg.iso is None else msg.iso
+    normalized = msg.iso if msg.iso is not None and msg.iso_normalized else volume.normalized_iso(iso)
+    try:
+        camera = to_camera(msg.camera or DEFAULT_CAMERA)
+    except ValueError as e:
+        raise ProtocolError(f"open.camera: {e}") from None
+    state = ViewState(settings, camera, normalized, FocusMsg("none"),
+                      msg.camera.seq if msg.camera and msg.camera.seq is not None else -1)
+    session = ViewSession(secrets.token_hex(8), msg.volume, volume, state, engine.context, limits,
+                          lambda: view_sessions.count)
+    ready = ReadyMsg(session.id, info.to_json() | {"iso_normalized": normalized}, vars(settings),
+                     engine.upscale_factor, limits_to_wire(limits))
+    await ws.send_bytes(pack(ready.to_wire()))
+    log.info("view session %s opened on %s (%s %dx%d)", session.id, msg.volume, settings.mode, settings.width,
+             settings.height)
+    return session

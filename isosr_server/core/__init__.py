@@ -1,0 +1,1 @@
+"""The service's core: its settings (``config``)."""
