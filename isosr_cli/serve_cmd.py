@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-from dataclasses import fields
+from msgspec.structs import fields
 from pathlib import Path
 
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL

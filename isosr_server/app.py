@@ -20,9 +20,10 @@ import logging
 import secrets
 import time
 from contextlib import asynccontextmanager
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
+import msgspec
 from fastapi import APIRouter, Depends, FastAPI, HTTPException, Request, WebSocket
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
@@ -30,14 +31,15 @@ from prometheus_client import CONTENT_TYPE_LATEST
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
+from isosr_net.reconstructor import MAX_RECON_AO_RAYS
 from isosr_render.catalog import shared_volumes_dir
 from isosr_server.engine import Engine, EngineConfig
 from isosr_server.metrics import ServerMetrics
-from isosr_server.protocol import (CLOSE_IDLE, CLOSE_INTERNAL, CLOSE_NOT_FOUND, CLOSE_POLICY, CLOSE_UNAUTHORIZED,
-                                   MSGPACK_MEDIA_TYPE, PROTOCOL_VERSION, SUBPROTOCOL, TOKEN_HEADER,
-                                   TOKEN_SUBPROTOCOL_PREFIX, VOLUME_NAME, ErrorMsg, FocusMsg, Limits, OpenMsg,
-                                   ProtocolError, ReadyMsg, UpscaleRequest, UpscaleResponse, ViewSettings,
-                                   CLIENT_VIEW_MESSAGES, limits_to_wire, pack, parse)
+from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, CLOSE_IDLE, CLOSE_INTERNAL, CLOSE_NOT_FOUND, CLOSE_POLICY,
+                                   CLOSE_UNAUTHORIZED, MSGPACK_MEDIA_TYPE, PROTOCOL_VERSION, SUBPROTOCOL, TOKEN_HEADER,
+                                   TOKEN_SUBPROTOCOL_PREFIX, VOLUME_NAME, ErrorMsg, FocusMsg, HighresBuffers, Limits,
+                                   OpenMsg, ProtocolError, ReadyMsg, UpscaleRequest, UpscaleResponse, ViewSettings,
+                                   VolumeSummary, encode, parse)
 from isosr_server.sessions import (DEFAULT_CAMERA, RateLimiter, SessionCounter, UpscaleSessions, ViewSession,
                                    ViewState, run_frames, to_camera)
 from isosr_server.viewer import add_viewer
@@ -253,7 +255,7 @@ def create_app(config: ServerConfig) -> FastAPI:
         msg = parse(bytes(body), limits, (UpscaleRequest,))
         accept = request.headers.get("accept", "").split(",")[0].split(";")[0].strip()
         if msg.output == "buffers" and accept in IMAGE_TYPES:
-            msg = replace(msg, output=IMAGE_TYPES[accept])
+            msg = msgspec.structs.replace(msg, output=IMAGE_TYPES[accept])
         check_upscale(msg)
         upscaler = upscale_sessions.get(msg.session) if msg.session else engine.new_upscaler()
         image, buffers, times = await run_upscale(upscaler, msg)
@@ -264,8 +266,9 @@ def create_app(config: ServerConfig) -> FastAPI:
             return Response(image, media_type=f"image/{msg.output}", headers={"x-isosr-times": json.dumps(times)})
         nbytes = sum(a.nbytes for a in buffers.values())
         metrics.frame("upscale", "buffers", False, times, nbytes)
-        reply = UpscaleResponse(0, w * f, h * f, "buffers", times, nbytes, buffers=buffers)
-        return Response(pack(reply.to_wire()), media_type=MSGPACK_MEDIA_TYPE)
+        reply = UpscaleResponse(seq=0, width=w * f, height=h * f, output="buffers", times=times, nbytes=nbytes,
+                                buffers=HighresBuffers(**buffers))
+        return Response(encode(reply), media_type=MSGPACK_MEDIA_TYPE)
 
     app.include_router(http)
     add_viewer(app)
@@ -299,7 +302,7 @@ def create_app(config: ServerConfig) -> FastAPI:
         metrics.error(kind, code)
         if ws.application_state == WebSocketState.CONNECTED and ws.client_state == WebSocketState.CONNECTED:
             try:
-                await ws.send_bytes(pack(ErrorMsg(code, reason).to_wire()))
+                await ws.send_bytes(encode(ErrorMsg(code, reason)))
                 await ws.close(code, _close_reason(reason))
             except Exception:  # the client went away meanwhile
                 pass
@@ -363,9 +366,9 @@ def create_app(config: ServerConfig) -> FastAPI:
         state = ViewState(settings, camera, normalized, FocusMsg("none"),
                           msg.camera.seq if msg.camera and msg.camera.seq is not None else -1)
         session = ViewSession(secrets.token_hex(8), msg.volume, volume, state, engine.upscale_factor, limits)
-        ready = ReadyMsg(session.id, info.to_json() | {"iso_normalized": normalized}, vars(settings),
-                         engine.upscale_factor, limits_to_wire(limits))
-        await ws.send_bytes(pack(ready.to_wire()))
+        ready = ReadyMsg(session.id, VolumeSummary(**info.to_json(), iso_normalized=normalized), settings,
+                         engine.upscale_factor, MAX_RECON_AO_RAYS, limits)
+        await ws.send_bytes(encode(ready))
         log.info("view session %s opened on %s (%s %dx%d)", session.id, msg.volume, settings.mode, settings.width,
                  settings.height)
         return session
@@ -389,8 +392,10 @@ def create_app(config: ServerConfig) -> FastAPI:
                 h, w = msg.mask.shape
                 f = engine.upscale_factor
                 nbytes = len(image) if image is not None else sum(a.nbytes for a in buffers.values())
-                reply = UpscaleResponse(seq, w * f, h * f, msg.output, times, nbytes, buffers=buffers, image=image)
-                await ws.send_bytes(pack(reply.to_wire()))
+                reply = UpscaleResponse(seq=seq, width=w * f, height=h * f, output=msg.output, times=times,
+                                        nbytes=nbytes, buffers=None if buffers is None else HighresBuffers(**buffers),
+                                        image=image)
+                await ws.send_bytes(encode(reply))
                 metrics.frame("upscale", msg.output, False, times, nbytes)
                 seq += 1
         except Exception as e:

@@ -4,12 +4,12 @@ A frame whose settings name a ``channel`` other than ``shaded`` computes the mod
 output resolution and colors the named one on the device, instead of shading; only the buffers
 that channel needs are rendered (standing order 3):
 
-    full      a full-res render of mask + the channel (AO with ``ao_samples`` rays; flow
+    full      a full-res render of mask + the channel (AO with ``ao_rays`` rays; flow
               relative to the previous frame's camera, zero on a first or refined frame)
-    sr        the network's output (mask, normal, depth, AO); flow is the network's low-res
+    network   the network's output (mask, normal, depth, AO); flow is the network's low-res
               input flow, nearest-upsampled and scaled to output pixels
-    bilinear  the bilinear baseline (its AO is 1 everywhere: the baseline knows no occlusion)
-    focus     as ``sr`` (the lens applies to shaded frames only)
+    upscale   the classic baseline (its AO is 1 everywhere: the baseline knows no occlusion)
+    focus     as ``network`` (the lens applies to shaded frames only)
     reconstruct  the network's output (mask, normal, depth, AO); flow is its full-res input
               flow, rendered once more for this view
     buffers   no channel view: the client gets the buffers themselves
@@ -50,8 +50,8 @@ def check(settings: ViewSettings) -> None:
     """`ProtocolError` for a channel the settings cannot produce."""
     if settings.channel not in CHANNELS:
         raise ProtocolError(f"channel must be one of {', '.join(CHANNELS)}, got {settings.channel!r}")
-    if settings.channel == "ao" and settings.mode == "full" and settings.ao_samples == 0:
-        raise ProtocolError("the ao channel of full-resolution frames needs ao_samples > 0")
+    if settings.channel == "ao" and settings.mode == "full" and settings.ao_rays == 0:
+        raise ProtocolError("the ao channel of full-resolution frames needs ao_rays > 0")
 
 
 def channel_buffers(renderer: Renderer, upscaler: Upscaler, factor: int, spec: FrameSpec, timer: StageTimer,
@@ -73,14 +73,14 @@ def channel_buffers(renderer: Renderer, upscaler: Upscaler, factor: int, spec: F
                                 ao_radius=spec.ao_radius, prev_camera=spec.prev_camera if flow else None)
         with timer("render"):
             return renderer.render(spec.camera, request)
-    if spec.mode in ("sr", "focus"):
+    if spec.mode in ("network", "focus"):
         low = render_lowres(renderer, spec, factor, timer)
         with timer("network"):
             high = upscaler.upscale(low)  # always: keeps the recurrent state in step with the stream
-    elif spec.mode == "bilinear":
+    elif spec.mode == "upscale":
         low = render_lowres(renderer, spec, factor, timer, flow=channel == "flow")
         with timer("network"):
-            high = upscale_classic(low, factor, "bilinear")
+            high = upscale_classic(low, factor, spec.interpolation)
     else:
         raise ProtocolError(f"mode {spec.mode} has no channel view")
     if channel == "flow" and low.flow is not None:

@@ -32,7 +32,7 @@ from isosr_render import FrameBuffers, Renderer, Volume, orbit, parse_procedural
 from isosr_render.images import quantize
 from isosr_server import channels, pipeline
 from isosr_server.encoding import encode_image, encoder_name
-from isosr_server.protocol import ENCODINGS, UpscaleRequest
+from isosr_server.protocol import ENCODINGS, UpscaleRequest, ViewBuffers
 
 RENDERER_CACHE = 4
 Net = TypeVar("Net", bound=Upscaler)
@@ -93,7 +93,7 @@ class Engine:
                                              channels_last=cuda, fast_layers=cuda)
         factor = self.upscale_factor
         renderer = Renderer(parse_procedural("proc:sphere@16"), str(self.device))
-        spec = pipeline.FrameSpec("sr", orbit(30, 20, 1.8), None, 0.5, 8 * factor, 8 * factor, 1, 0.05, None, 0)
+        spec = pipeline.FrameSpec("network", orbit(30, 20, 1.8), None, 0.5, 8 * factor, 8 * factor, 1, 0.05, None, 0)
         color = pipeline.render_sr(renderer, self.new_upscaler(), spec, pipeline.StageTimer(self.device))
         encode_image(quantize(color), "jpeg", 80)
         self.new_recon_stream().frame(renderer, replace(spec, mode="reconstruct"))
@@ -142,12 +142,12 @@ class Engine:
 
     def view_frame_sync(self, renderer: Renderer, upscaler: Upscaler, recon: pipeline.ReconStream,
                         spec: pipeline.FrameSpec, encoding: str,
-                        quality: int) -> tuple[bytes | None, dict | None, dict[str, float], dict | None]:
+                        quality: int) -> tuple[bytes | None, ViewBuffers | None, dict[str, float], dict | None]:
         """One view frame: ``(image bytes or None, coded buffers or None, times in ms, channel legend or None)``.
 
         Args:
             renderer: the session's volume's renderer.
-            upscaler, recon: the session's own networks (sr and focus; reconstruct).
+            upscaler, recon: the session's own networks (network and focus; reconstruct).
             spec: the frame.
             encoding, quality: the image coding of shaded frames.
         """
@@ -159,11 +159,11 @@ class Engine:
                 color, legend = channels.render_channel(renderer, upscaler, self.upscale_factor, spec, timer, recon)
             elif spec.mode == "full":
                 color = pipeline.render_full(renderer, spec, timer)
-            elif spec.mode == "sr":
+            elif spec.mode == "network":
                 color = pipeline.render_sr(renderer, upscaler, spec, timer)
             elif spec.mode == "reconstruct":
                 color = recon.frame(renderer, spec).color
-            elif spec.mode == "bilinear":
+            elif spec.mode == "upscale":
                 color = pipeline.render_bilinear(renderer, self.upscale_factor, spec, timer)
             elif spec.mode == "focus":
                 color = pipeline.render_focus(renderer, upscaler, spec, timer)

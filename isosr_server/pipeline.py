@@ -3,13 +3,13 @@
 Every function here runs on the engine's device thread (:mod:`isosr_server.engine`) and
 computes only what its mode needs:
 
-    full      full-res render (mask, normal, AO only with ao_samples > 0) -> shading
-    sr        low-res render (mask, normal, depth, flow) -> network (Upscaler) -> shading
-    bilinear  low-res render (mask, normal, depth) -> bilinear upscaling -> shading (no AO)
-    buffers   low-res render (mask, normal, depth, flow) -> buffers coding (protocol)
-    focus     ``sr``, plus a full-res render of the rows the focus region covers, blended in
+    full      full-res render (mask, normal, AO only with ao_rays > 0) -> shading
+    network   low-res render (mask, normal, depth, flow) -> network (Upscaler) -> shading
+    upscale   low-res render (mask, normal, depth) -> classic upscaling (``interpolation``) -> shading (no AO)
+    buffers   low-res render (mask, normal, depth, flow) -> buffers coding (isosr_server.codecs, on the device)
+    focus     ``network``, plus a full-res render of the rows the focus region covers, blended in
               by a weight that ramps from 0 at the region's border to 1 ``blend`` pixels inside
-    reconstruct  full-res render (mask, normal, depth, flow, AO of ``ao_samples`` rays per hit)
+    reconstruct  full-res render (mask, normal, depth, flow, AO of ``ao_rays`` rays per hit)
               -> reconstruction network (Reconstructor) -> shading, all one
               :class:`isosr_net.frame_methods.FrameRunner` step (:class:`ReconStream`), which
               times no stages of its own: its frames report ``total`` and ``encode`` only
@@ -30,7 +30,8 @@ from isosr_net.upscaler import Upscaler
 from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest
 from isosr_render.conventions import LOWRES_BUFFERS
 from isosr_render.shading import shade
-from isosr_server.protocol import FocusMsg, encode_view_buffers
+from isosr_server.codecs.buffers_device import encode_view_buffers
+from isosr_server.protocol import FocusMsg, ViewBuffers
 
 # Rays per pixel of reconstruct-mode renders: one, as full mode renders.
 RECON_SPP = 1
@@ -63,11 +64,12 @@ class FrameSpec:
             low-res modes and ``reconstruct``), or None.
         iso: normalized iso-value.
         width, height: output size; low-res frames are ``factor`` times smaller.
-        ao_samples, ao_radius: AO of full-res renders (0 samples: no AO); in ``reconstruct``
+        ao_samples, ao_radius: AO rays per hit of full-res renders (0: no AO); in ``reconstruct``
             mode the AO rays per hit the network gets (0: it infers AO).
         focus: the focus region (``focus`` mode).
         blend: focus border blend width in pixels.
         channel: ``shaded`` or the buffer a channel view shows (:mod:`isosr_server.channels`).
+        interpolation: ``upscale`` mode's classic upscaling (nearest, bilinear, bicubic).
     """
 
     mode: str
@@ -81,6 +83,7 @@ class FrameSpec:
     focus: FocusMsg
     blend: int
     channel: str = "shaded"
+    interpolation: str = "bilinear"
 
 
 def lowres_size(width: int, height: int, factor: int) -> tuple[int, int]:
@@ -133,20 +136,20 @@ def render_sr(renderer: Renderer, upscaler: Upscaler, spec: FrameSpec, timer: St
 
 
 def render_bilinear(renderer: Renderer, factor: int, spec: FrameSpec, timer: StageTimer) -> torch.Tensor:
-    """Low-res render, bilinear upscaling of its buffers, shading without AO (the non-learned baseline)."""
+    """Low-res render, classic upscaling of its buffers (``spec.interpolation``), shading without AO
+    (the non-learned baseline)."""
     low = render_lowres(renderer, spec, factor, timer, flow=False)
     with timer("network"):
-        high = upscale_classic(low, factor, "bilinear")
+        high = upscale_classic(low, factor, spec.interpolation)
     with timer("shading"):
         return shade(high.mask, high.normal, high.ao)
 
 
-def render_buffers(renderer: Renderer, factor: int, spec: FrameSpec, timer: StageTimer) -> dict:
-    """Low-res buffers in the protocol's buffers coding (flow relative to ``spec.prev_camera``)."""
+def render_buffers(renderer: Renderer, factor: int, spec: FrameSpec, timer: StageTimer) -> ViewBuffers:
+    """Low-res buffers in the buffers coding (flow relative to ``spec.prev_camera``), quantized on the device."""
     low = render_lowres(renderer, spec, factor, timer)
     with timer("encode"):
-        arrays = low.to_numpy()
-        return encode_view_buffers(arrays["mask"], arrays["normal"], arrays["depth"], arrays.get("flow"))
+        return encode_view_buffers(low)
 
 
 def focus_weight(focus: FocusMsg, width: int, height: int, blend: int, device: torch.device) -> torch.Tensor:
@@ -169,7 +172,7 @@ def focus_weight(focus: FocusMsg, width: int, height: int, blend: int, device: t
 
 
 def render_focus(renderer: Renderer, upscaler: Upscaler, spec: FrameSpec, timer: StageTimer) -> torch.Tensor:
-    """``sr`` around the focus region, full resolution (with the asked AO) inside it, blended at the border."""
+    """``network`` around the focus region, full resolution (with the asked AO) inside it, blended at the border."""
     color = render_sr(renderer, upscaler, spec, timer)
     with timer("shading"):
         weight = focus_weight(spec.focus, spec.width, spec.height, spec.blend, color.device)

@@ -26,19 +26,26 @@ from collections import OrderedDict
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, replace
 
+import msgspec
+
 from isosr_net.reconstructor import MAX_RECON_AO_RAYS
 from isosr_net.upscaler import Upscaler
 from isosr_render import Camera, Volume, orbit
 from isosr_server import channels
 from isosr_server.pipeline import FrameSpec, lowres_size
 from isosr_server.protocol import (CLOSE_BAD_MESSAGE, CLOSE_IDLE, CLOSE_TOO_MANY, CameraMsg, FocusMsg, FrameMsg,
-                                   IsoMsg, Limits, Message, ProtocolError, ReceivedMsg, SettingsMsg, ViewSettings,
-                                   pack)
+                                   IsoMsg, Legend, Limits, Message, ProtocolError, ReceivedMsg, SettingsMsg,
+                                   ViewBuffers, ViewSettings, encode)
 
 DEFAULT_CAMERA = CameraMsg(yaw=30.0, pitch=20.0, distance=1.8)
-LOWRES_MODES = ("sr", "bilinear", "buffers", "focus")
+LOWRES_MODES = ("network", "upscale", "buffers", "focus")
 # Modes whose frames carry flow to the previous frame of the stream (recurrent networks, buffers).
 FLOW_MODES = LOWRES_MODES + ("reconstruct",)
+
+
+def served_mode(mode: str) -> str:
+    """The view mode whose frame path serves ``mode``."""
+    return "full" if mode == "auto" else mode  # TODO(lead): auto: the budget policy picks the frame method
 
 
 def to_camera(msg: CameraMsg) -> Camera:
@@ -136,10 +143,14 @@ class ViewSession:
     def check_settings(self, settings: ViewSettings) -> None:
         """Low-res modes need a size divisible by the upscale factor; reconstruct mode at most
         ``MAX_RECON_AO_RAYS`` AO rays; a channel view one its mode makes."""
-        if settings.mode == "reconstruct" and settings.ao_samples > MAX_RECON_AO_RAYS:
-            raise ProtocolError(f"reconstruct mode takes 0 to {MAX_RECON_AO_RAYS} AO rays per hit (ao_samples), "
-                                f"got {settings.ao_samples}")
-        channels.check(settings)
+        if settings.mode == "atrous":  # TODO(lead): atrous frames (FrameRunner)
+            raise ProtocolError("mode atrous is not served by this server yet")
+        if settings.spp != 1:  # TODO(lead): spp > 1 (RenderRequest.spp)
+            raise ProtocolError(f"spp {settings.spp} is not served by this server yet: spp must be 1")
+        if settings.mode == "reconstruct" and settings.ao_rays > MAX_RECON_AO_RAYS:
+            raise ProtocolError(f"reconstruct mode takes 0 to {MAX_RECON_AO_RAYS} AO rays per hit (ao_rays), "
+                                f"got {settings.ao_rays}")
+        channels.check(msgspec.structs.replace(settings, mode=served_mode(settings.mode)))
         if settings.mode in LOWRES_MODES:
             try:
                 lowres_size(settings.width, settings.height, self.factor)
@@ -199,7 +210,7 @@ class ViewSession:
 
     def _refine_differs(self) -> bool:
         s = self.state.settings
-        return s.refine and (s.mode != "full" or s.ao_samples < s.refine_ao_samples)
+        return s.refine and (served_mode(s.mode) != "full" or s.ao_rays < s.refine_ao_rays)
 
     def refine_in(self, now: float) -> float | None:
         """Seconds until the refined frame of the current state is due (None: none is)."""
@@ -219,13 +230,13 @@ class ViewSession:
                 if key == self._flow_key:
                     prev_camera, prev_seq = self._prev_camera, self._prev_seq
                 self._flow_key, self._prev_camera, self._prev_seq = key, s.camera, seq
-            spec = FrameSpec(st.mode, s.camera, prev_camera, s.iso, st.width, st.height, st.ao_samples, st.ao_radius,
-                             s.focus, st.focus_blend_px, st.channel)
+            spec = FrameSpec(served_mode(st.mode), s.camera, prev_camera, s.iso, st.width, st.height, st.ao_rays,
+                             st.ao_radius, s.focus, st.focus_blend_px, st.channel, st.interpolation)
             job = FrameJob(spec, seq, s.ack, False, "buffers" if st.mode == "buffers" else st.encoding, st.quality,
                            prev_seq if st.mode == "buffers" else -1)
         elif self.refine_in(now) == 0.0:
             self.refined_version = self.version
-            spec = FrameSpec("full", s.camera, None, s.iso, st.width, st.height, st.refine_ao_samples, st.ao_radius,
+            spec = FrameSpec("full", s.camera, None, s.iso, st.width, st.height, st.refine_ao_rays, st.ao_radius,
                              s.focus, st.focus_blend_px, st.channel)
             job = FrameJob(spec, seq, s.ack, True, st.encoding, st.quality, -1)
         else:
@@ -234,7 +245,7 @@ class ViewSession:
         return job
 
 
-FrameMaker = Callable[[FrameJob], Awaitable[tuple[bytes | None, dict | None, dict, dict | None]]]
+FrameMaker = Callable[[FrameJob], Awaitable[tuple[bytes | None, ViewBuffers | None, dict, dict | None]]]
 
 
 async def run_frames(session: ViewSession, make: FrameMaker, send: Callable[[bytes, FrameMsg], Awaitable[None]],
@@ -275,12 +286,12 @@ async def run_frames(session: ViewSession, make: FrameMaker, send: Callable[[byt
         last_start = time.monotonic()
         image, buffers, times, legend = await make(job)
         st = job.spec
-        msg = FrameMsg(job.seq, job.ack, st.mode, st.width, st.height, job.encoding, times,
-                       len(image) if image is not None else sum(len(a["data"]) for a in buffers.values()
-                                                               if isinstance(a, dict)),
-                       job.refined, image, buffers, job.prev_seq, legend)
+        msg = FrameMsg(seq=job.seq, ack=job.ack, mode=st.mode, method=st.mode,  # TODO(lead): the method's display name
+                       width=st.width, height=st.height, encoding=job.encoding, times=times,
+                       nbytes=len(image) if image is not None else buffers.nbytes, refined=job.refined, image=image,
+                       buffers=buffers, prev_seq=job.prev_seq, legend=None if legend is None else Legend(**legend))
         session.sent_seq = job.seq  # before sending: the client may acknowledge it before send returns
-        await send(pack(msg.to_wire()), msg)
+        await send(encode(msg), msg)
 
 
 async def _wait(event: asyncio.Event, timeout: float | None) -> None:
