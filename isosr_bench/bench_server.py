@@ -5,7 +5,7 @@
 
 Starts the server in a subprocess (or uses ``--url``) and drives closed-loop view sessions
 (:func:`isosr_client.drive.drive`: send a camera, wait for its frame, repeat) for a bounded
-time per case. Per mode (``full`` with AO 0 and 8, ``sr``, ``bilinear``, ``buffers``,
+time per case. Per mode (``full`` with AO 0 and 8, ``network``, ``upscale``, ``buffers``,
 ``focus``) and session count:
 
 - frames/s (all sessions together, and per session) and latency p50/p99: a camera change's
@@ -21,7 +21,7 @@ are the server's. Then one matched-quality study: the ``buffers`` path (coded lo
 buffers, upscaled and shaded on the client with the same network) against ``full`` JPEG.
 Matched quality: the lowest JPEG quality (of 5, 10, ..., 95) whose PSNR against the lossless
 reference reaches the buffers path's PSNR; the reference is the full-resolution frame the
-server sends for a still camera (``full``, ``refine_ao_samples`` AO rays, PNG). The client
+server sends for a still camera (``full``, ``refine_ao_rays`` AO rays, PNG). The client
 side runs on ``--device`` of this machine, and its time per frame is reported too.
 """
 
@@ -206,8 +206,8 @@ def matched_quality(url: str, volume: str, size: tuple[int, int], device: str, f
     ``measured`` of ``frames`` orbit frames (the first ones build up the recurrent state)."""
     path = Orbit()
     with connect(url, volume, "full", size, settings={"encoding": "png", "refine": False}, timeout=300) as ref_view:
-        ao = ref_view.settings.refine_ao_samples
-        ref_view.set_settings(ao_samples=ao)
+        ao = ref_view.settings.refine_ao_rays
+        ref_view.set_settings(ao_rays=ao)
         with connect(url, volume, "buffers", size, settings={"refine": False}, device=device, timeout=300) as buf:
             buf_stats, buf_rgb, refs = [], [], []
             for i in range(frames):
@@ -216,7 +216,7 @@ def matched_quality(url: str, volume: str, size: tuple[int, int], device: str, f
                 buf_stats.append(buf.stats)
                 ref_view.set_camera(**path.camera(i))
                 refs.append(ref_view.frame())
-        with connect(url, volume, "full", size, settings={"ao_samples": ao, "refine": False}, timeout=300) as jpg:
+        with connect(url, volume, "full", size, settings={"ao_rays": ao, "refine": False}, timeout=300) as jpg:
             by_quality = {}
             for q in qualities:
                 jpg.set_settings(quality=q)
@@ -256,13 +256,13 @@ def main(argv: list[str] | None = None) -> None:
     counts = [int(n) for n in (args.sessions or ("1,2" if smoke else "1,4,16")).split(",")]
     volume = "proc:cloud:0@32" if smoke and args.volume == parser.get_default("volume") else args.volume
     focus_radius = size[1] / 4
-    cases = [("full", 0), ("full", 8), ("sr", 0), ("bilinear", 0), ("buffers", 0), ("focus", 8)]
+    cases = [("full", 0), ("full", 8), ("network", 0), ("upscale", 0), ("buffers", 0), ("focus", 8)]
 
     def run(url: str) -> list[dict]:
         rows = []
         for mode, ao in cases:
             for n in counts:
-                settings = {"ao_samples": ao}
+                settings = {"ao_rays": ao}
                 result = run_sessions(url, volume, n, seconds, mode, size, settings,
                                       focus=(size[0] / 2, size[1] / 2, focus_radius) if mode == "focus" else None,
                                       warmup_frames=warmup)

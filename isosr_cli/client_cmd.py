@@ -14,7 +14,7 @@ import os
 from pathlib import Path
 
 from isosr_server.core.config import TOKEN_ENV
-from isosr_server.protocol import ENCODINGS, MODES
+from isosr_server.protocol import ENCODINGS, INTERPOLATIONS, MODES
 
 
 def add_parser(subparsers) -> None:
@@ -29,8 +29,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--size", default="640x480", help="output WxH")
     p.add_argument("--focus", help="focus mode's circle CX,CY,R in output pixels (default: centered, radius H/4)")
     p.add_argument("--iso", type=float, help="iso-value in data units (default: the volume's suggested one)")
-    p.add_argument("--ao-samples", type=int, default=0, help="AO rays per pixel of full-resolution renders "
-                                                             "(reconstruct mode: per hit, 0-8 with the shipped model)")
+    p.add_argument("--ao-rays", type=int, default=0, help="AO rays per hit of full-resolution renders "
+                                                          "(reconstruct mode: 0-8 with the shipped model)")
+    p.add_argument("--interpolation", default="bilinear", choices=INTERPOLATIONS, help="upscale mode's interpolation")
     p.add_argument("--encoding", default="jpeg", choices=ENCODINGS)
     p.add_argument("--quality", type=int, default=85)
     p.add_argument("--out", type=Path, help="folder for frame_NNNN.png and summary.json (default: none written)")
@@ -71,7 +72,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--frames must be at least 1, got {args.frames}")
     path, size = Orbit.parse(args.orbit), _size(args.size)
     token = args.token or os.environ.get(TOKEN_ENV) or None
-    settings = {"ao_samples": args.ao_samples, "encoding": args.encoding, "quality": args.quality, "refine": False}
+    settings = {"ao_rays": args.ao_rays, "interpolation": args.interpolation, "encoding": args.encoding,
+                "quality": args.quality, "refine": False}
 
     focus = _focus(args.focus, size)
 
@@ -98,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
     except (ConnectionError, TimeoutError) as e:  # the command line reports RuntimeErrors in one line
         raise RuntimeError(str(e)) from None
     print(f"{args.volume} {size[0]}x{size[1]}, {len(stats)} frames, {args.encoding} q{args.quality}, "
-          f"AO {args.ao_samples}")
+          f"AO {args.ao_rays}")
     print(f"{'mode':<9}{'fps':>8}{'p50 ms':>10}{'p99 ms':>10}{'bytes/frame':>14}")
     for r in rows:
         print(f"{r['mode']:<9}{r['fps']:>8.1f}{r['latency_p50_ms']:>10.1f}{r['latency_p99_ms']:>10.1f}"

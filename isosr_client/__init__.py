@@ -1,9 +1,14 @@
-"""isosr_client: thin clients of `isosr serve` (floor 3): view sessions that upscale and shade
-low-res buffers locally (:mod:`isosr_client.view`) and the frame upscaling API (:mod:`isosr_client.upscale`)."""
+"""isosr_client: thin clients of `isosr serve` (floor 4): view sessions (:mod:`isosr_client.view`)
+and the frame upscaling API (:mod:`isosr_client.upscale`).
+
+Importing it loads numpy, msgspec, websockets and the protocol only; torch and the network load
+only where ``buffers`` frames are upscaled here (:mod:`isosr_client.local`), OpenCV at the first
+image decoded.
+"""
 
 from isosr_client.upscale import UpscaleResult, upscale_remote
 from isosr_client.view import FrameStats, ServerError, ViewFrame, ViewSession, connect
-from isosr_render.images import decode_image
+from isosr_render.image_codec import decode_image
 
 __all__ = ["connect", "ViewSession", "ViewFrame", "FrameStats", "ServerError", "decode_image", "upscale_remote",
            "UpscaleResult"]

@@ -1,11 +1,13 @@
 """``POST /v1/upscale`` from Python: send one low-res frame, get the high-res buffers or an image.
 
     from isosr_client import upscale_remote
-    result = upscale_remote("http://127.0.0.1:8000", low)            # low: FrameBuffers (mask, normal, depth[, flow])
-    result.buffers.normal                                            # (H, W, 3) float32 tensor
+    result = upscale_remote("http://127.0.0.1:8000", low)            # low: FrameBuffers, or a map of arrays
+    result.buffers.normal                                            # (H, W, 3) float32 numpy
     png = upscale_remote(url, low, output="png").image               # encoded shaded image bytes
 
 Consecutive frames with the same ``session`` id keep the network's recurrent state on the server.
+The frame's buffers may be numpy arrays or torch tensors (read through ``.detach().cpu().numpy()``;
+torch itself is never imported here).
 """
 
 from __future__ import annotations
@@ -13,34 +15,41 @@ from __future__ import annotations
 import json
 import urllib.error
 import urllib.request
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
-import torch
 
 from isosr_client.view import CLIENT_LIMITS, ServerError, auth_headers, endpoint
-from isosr_render.buffers import FrameBuffers
-from isosr_server.protocol import MSGPACK_MEDIA_TYPE, UpscaleRequest, UpscaleResponse, pack, parse
+from isosr_server.protocol import (HIGHRES_OUTPUTS, LOWRES_INPUTS, MSGPACK_MEDIA_TYPE, HighresBuffers, UpscaleRequest,
+                                   UpscaleResponse, encode, parse)
 
 
 @dataclass(frozen=True)
 class UpscaleResult:
-    """The server's answer: high-res buffers (mask, normal, depth, ao as float32 CPU tensors) or
+    """The server's answer: high-res buffers (mask, normal, depth, ao as float32 numpy arrays) or
     the encoded image; ``times`` the server's milliseconds per stage (when it sent them)."""
 
-    buffers: FrameBuffers | None
+    buffers: HighresBuffers | None
     image: bytes | None
     times: dict[str, float]
 
 
-def upscale_remote(url: str, frame: FrameBuffers, output: str = "buffers", quality: int = 85,
-                   session: str | None = None, reset: bool = False, token: str | None = None,
-                   timeout: float = 60.0) -> UpscaleResult:
+def _numpy(a: Any) -> np.ndarray:
+    """A buffer as float16 or float32 numpy (a torch tensor on any device, or array-like)."""
+    a = a.detach().cpu().numpy() if hasattr(a, "detach") else np.asarray(a)
+    return a if a.dtype in (np.float16, np.float32) else a.astype(np.float32)
+
+
+def upscale_remote(url: str, frame: Any, output: str = "buffers", quality: int = 85, session: str | None = None,
+                   reset: bool = False, token: str | None = None, timeout: float = 60.0) -> UpscaleResult:
     """Upscale one low-res frame on the server.
 
     Args:
         url: the server, ``http://HOST:PORT``.
-        frame: mask, normal, depth and optionally flow (float16/float32, any device).
+        frame: mask, normal, depth and optionally flow, as attributes (a `FrameBuffers`) or a map;
+            numpy arrays or torch tensors (any device, any float dtype).
         output: ``buffers``, ``png``, ``jpeg`` or ``webp``.
         quality: jpeg/webp quality 1-100.
         session: an id whose consecutive frames keep the recurrent state (None: a fresh state).
@@ -49,20 +58,21 @@ def upscale_remote(url: str, frame: FrameBuffers, output: str = "buffers", quali
         timeout: seconds.
 
     Raises:
-        ProtocolError: the frame cannot travel (missing buffer, wrong shape or dtype, NaN/Inf);
-            found here, before sending.
+        ValueError: the frame lacks mask, normal or depth.
+        ProtocolError: the frame cannot travel (wrong shape, values out of range, NaN/Inf); found
+            here, before sending.
         ServerError: the server's 4xx/5xx status and reason.
+
+    Shape:
+        frame: mask, depth (h, w), normal (h, w, 3), flow (h, w, 2). Returns buffers of
+        (h * factor, w * factor[, 3]).
     """
-    arrays = {}
-    for name in ("mask", "normal", "depth", "flow"):
-        t = getattr(frame, name)
-        if t is not None:
-            a = t.detach().cpu().numpy()
-            arrays[name] = a if a.dtype in (np.float16, np.float32) else a.astype(np.float32)
+    get = frame.get if isinstance(frame, Mapping) else lambda name: getattr(frame, name, None)
+    arrays = {name: _numpy(a) for name in LOWRES_INPUTS if (a := get(name)) is not None}
     for name in ("mask", "normal", "depth"):
         if name not in arrays:
             raise ValueError(f"the low-res frame lacks its {name} buffer")
-    body = pack(UpscaleRequest(**arrays, output=output, quality=quality, session=session, reset=reset).to_wire())
+    body = encode(UpscaleRequest(**arrays, output=output, quality=quality, session=session, reset=reset))
     parse(body, CLIENT_LIMITS, (UpscaleRequest,))  # bad input fails here, with the server's reason
     request = urllib.request.Request(endpoint(url, "/v1/upscale", websocket=False), data=body, method="POST",
                                      headers={"Content-Type": MSGPACK_MEDIA_TYPE, **auth_headers(token)})
@@ -80,5 +90,6 @@ def upscale_remote(url: str, frame: FrameBuffers, output: str = "buffers", quali
     if kind.startswith("image/"):
         return UpscaleResult(None, data, json.loads(times_header) if times_header else {})
     msg = parse(data, CLIENT_LIMITS, (UpscaleResponse,))
-    buffers = FrameBuffers(**{n: torch.from_numpy(np.array(a)) for n, a in msg.buffers.items()})
+    # Writable copies: the decoded arrays are read-only views of the reply's bytes.
+    buffers = HighresBuffers(**{n: np.array(getattr(msg.buffers, n)) for n in HIGHRES_OUTPUTS})
     return UpscaleResult(buffers, None, dict(msg.times))

@@ -5,12 +5,13 @@
     with connect("http://127.0.0.1:8000", volume="proc:cloud:0", mode="buffers", size=(640, 480)) as view:
         view.set_camera(yaw=40, pitch=20, distance=1.8)
         rgb = view.frame()                 # numpy (480, 640, 3) uint8, includes the camera above
-        print(view.stats)                  # latency, bytes, server stage times, refined flag
+        print(view.stats)                  # latency, bytes, frame method, server stage times, refined flag
 
 Synchronous (``websockets.sync.client``). In ``buffers`` mode the server sends the low-res
-buffers and this side upscales them with `isosr_net.upscaler.Upscaler` on ``device`` and shades
-them with `isosr_render.shading.shade`, keeping the network's recurrent state across frames;
-every other mode arrives as an encoded image. Only the protocol module of the server is imported.
+buffers and this side decodes them (:mod:`isosr_server.codecs.buffers`, numpy), upscales them
+with the network on ``device`` and shades them (:mod:`isosr_client.local`, loaded with torch at
+the first such frame), keeping the network's recurrent state across frames; every other mode
+arrives as an encoded image. Of the server, only the protocol and its codecs are imported.
 """
 
 from __future__ import annotations
@@ -18,20 +19,22 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 from urllib.parse import urlsplit, urlunsplit
 
 import numpy as np
-import torch
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect as ws_connect
 
-from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
-from isosr_render.buffers import FrameBuffers
-from isosr_render.images import decode_image, to_uint8
-from isosr_render.shading import shade
+from isosr_render.image_codec import decode_image
+from isosr_server.codecs.buffers import decode_view_buffers
 from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, SERVER_VIEW_MESSAGES, TOKEN_HEADER, CameraMsg, ErrorMsg,
                                    FocusMsg, FrameMsg, IsoMsg, Limits, OpenMsg, ProtocolError, ReadyMsg,
-                                   ReceivedMsg, SettingsMsg, ViewSettings, decode_view_buffers, pack, parse)
+                                   ReceivedMsg, SettingsMsg, SettingsUpdate, ViewSettings, convert, encode, parse)
+
+if TYPE_CHECKING:
+    from isosr_client.local import LocalUpscaler
+    from isosr_render.buffers import FrameBuffers
 
 # What this client accepts from a server: frames up to 256 MiB (a 4096^2 PNG fits).
 CLIENT_LIMITS = Limits(max_message_bytes=2**28)
@@ -72,6 +75,7 @@ class FrameStats:
     Attributes:
         seq, ack: the server's frame number and the newest client update it includes (-1: none).
         mode: the mode that made it (``full`` for refined frames).
+        method: the display name of the frame method that made it.
         refined: the still-camera refined frame.
         latency_ms: from sending the newest update it includes (or ``open``) to its arrival; for
             a refined frame this includes the still time before the server refines.
@@ -85,6 +89,7 @@ class FrameStats:
     seq: int
     ack: int
     mode: str
+    method: str
     refined: bool
     latency_ms: float
     nbytes: int
@@ -116,7 +121,9 @@ class ViewFrame:
                 self._rgb = decode_image(self.message.image)
                 stage = "decode"
             elif self.highres is not None:
-                self._rgb = to_uint8(shade(self.highres.mask, self.highres.normal, self.highres.ao))
+                from isosr_client.local import shade_rgb  # loaded already: it made highres
+
+                self._rgb = shade_rgb(self.highres)
                 stage = "shading"
             else:
                 raise ValueError("this buffers frame was not upscaled here (connect(..., local_upscale=True))")
@@ -137,14 +144,14 @@ class ViewSession:
     only as fast as this side asks for them, and the next one shows the newest state.
     """
 
-    def __init__(self, ws, ready: ReadyMsg, opened_at: float, first_seq: int, device: str, model: str | Path,
+    def __init__(self, ws, ready: ReadyMsg, opened_at: float, first_seq: int, device: str, model: str | Path | None,
                  local_upscale: bool, timeout: float):
         self._ws, self.ready, self.timeout = ws, ready, timeout
-        self.settings: ViewSettings = ready.view_settings()
-        self.limits = Limits(**ready.limits)
+        self.settings: ViewSettings = ready.settings
+        self.limits: Limits = ready.limits
         self.upscale_factor = ready.upscale_factor
         self.device, self.model, self.local_upscale = device, model, local_upscale
-        self._upscaler: Upscaler | None = None
+        self._local: LocalUpscaler | None = None
         self._last_buffers_seq = -1
         self._seq = first_seq  # the newest update sent: the open's camera (0), else none (-1)
         self._sent_at: dict[int, float] = {-1: opened_at, first_seq: opened_at}
@@ -157,7 +164,7 @@ class ViewSession:
     def _send(self, msg) -> int:
         """Validate an update as the server would, send it, and return its seq."""
         self._check_open()
-        data = pack(msg.to_wire())
+        data = encode(msg)
         parse(data, self.limits, CLIENT_VIEW_MESSAGES)  # a bad update fails here, clearly
         self._sent_at[msg.seq] = time.perf_counter()
         self._ws.send(data)
@@ -184,15 +191,16 @@ class ViewSession:
         return self._send(IsoMsg(value, normalized, self._next_seq()))
 
     def set_settings(self, **settings) -> int:
-        """Change settings (`ViewSettings` fields: mode, width, height, ao_samples, encoding, ...);
+        """Change settings (`ViewSettings` fields: mode, width, height, ao_rays, encoding, ...);
         returns the update's seq.
 
         Raises:
-            ProtocolError: an unknown field or a value out of range.
+            ProtocolError: an unknown field or a value out of range (nothing is sent then).
         """
-        update = ViewSettings.read_update(settings, self.limits)
+        update = convert(settings, SettingsUpdate, "settings")
+        new = self.settings.updated(update, self.limits)
         seq = self._send(SettingsMsg(update, self._next_seq()))
-        self.settings = self.settings.updated(update, self.limits)
+        self.settings = new
         return seq
 
     def set_focus(self, shape: str = "none", center: tuple[float, float] | None = None, radius: float | None = None,
@@ -250,8 +258,8 @@ class ViewSession:
         sent = max((t for s, t in self._sent_at.items() if s <= msg.ack), default=self._sent_at[-1])
         for s in [s for s in self._sent_at if -1 < s < msg.ack]:
             del self._sent_at[s]  # bounded: the newest acknowledged update and those after it stay
-        stats = FrameStats(msg.seq, msg.ack, msg.mode, msg.refined, 1e3 * (arrived - sent), msg.nbytes, len(data),
-                           dict(msg.times))
+        stats = FrameStats(msg.seq, msg.ack, msg.mode, msg.method, msg.refined, 1e3 * (arrived - sent), msg.nbytes,
+                           len(data), dict(msg.times))
         frame = ViewFrame(msg, stats)
         if msg.buffers is not None and self.local_upscale:
             frame.highres = self._upscale(msg, stats)
@@ -261,7 +269,7 @@ class ViewSession:
     def _acknowledge(self, frame_seq: int) -> None:
         """Tell the server this frame was taken: credit for the next (flow control)."""
         try:
-            self._ws.send(pack(ReceivedMsg(frame_seq).to_wire()))
+            self._ws.send(encode(ReceivedMsg(frame_seq)))
         except ConnectionClosed:
             pass  # the next receive reports the close with the server's code and reason
 
@@ -271,19 +279,15 @@ class ViewSession:
         start = time.perf_counter()
         arrays = decode_view_buffers(msg.buffers, CLIENT_LIMITS)
         stats.client_ms["decode"] = 1e3 * (time.perf_counter() - start)
-        if self._upscaler is None:
-            self._upscaler = Upscaler(self.model, self.device)
-            if self._upscaler.upscale_factor != self.upscale_factor:
-                raise ValueError(f"the local model upscales {self._upscaler.upscale_factor}x, the server's "
-                                 f"{self.upscale_factor}x: give the server's model (model=...)")
+        if self._local is None:
+            from isosr_client.local import LocalUpscaler  # torch and the network: only where frames are upscaled here
+
+            self._local = LocalUpscaler(self.model, self.device, self.upscale_factor)
         continues = msg.prev_seq >= 0 and msg.prev_seq == self._last_buffers_seq and "flow" in arrays
         if not continues:
-            arrays.pop("flow", None)  # the Upscaler resets without flow
+            arrays.pop("flow", None)  # the network's state resets without flow
         start = time.perf_counter()
-        low = FrameBuffers(**{n: torch.from_numpy(a).to(self.device) for n, a in arrays.items()})
-        high = self._upscaler.upscale(low)
-        if high.mask.is_cuda:
-            torch.cuda.synchronize(high.mask.device)
+        high = self._local.upscale(arrays)
         stats.client_ms["network"] = 1e3 * (time.perf_counter() - start)
         self._last_buffers_seq = msg.seq
         return high
@@ -311,24 +315,26 @@ def _floats(v):
     return None if v is None else tuple(float(x) for x in v)
 
 
-def connect(url: str, volume: str, mode: str = "sr", size: tuple[int, int] = (640, 480), *, token: str | None = None,
-            settings: dict | None = None, camera: dict | None = None, iso: float | None = None,
-            iso_normalized: bool = False, device: str = "cpu", model: str | Path = DEFAULT_MODEL,
-            local_upscale: bool = True, timeout: float = 60.0) -> ViewSession:
+def connect(url: str, volume: str, mode: str = "auto", size: tuple[int, int] = (640, 480), *,
+            token: str | None = None, settings: dict | None = None, camera: dict | None = None,
+            iso: float | None = None, iso_normalized: bool = False, device: str = "cpu",
+            model: str | Path | None = None, local_upscale: bool = True, timeout: float = 60.0) -> ViewSession:
     """Open a view session on ``volume`` (a name from ``GET /v1/volumes``, or ``proc:...``).
 
     Args:
         url: the server, ``http://HOST:PORT`` or ``ws://HOST:PORT``.
         volume: the volume's name.
-        mode: ``full``, ``sr``, ``bilinear``, ``buffers``, ``focus`` or ``reconstruct`` (AO rays per
-            hit: ``settings["ao_samples"]``, 0 to the server's bound).
-        size: output (width, height); a multiple of the upscale factor except in ``full`` and
-            ``reconstruct``.
+        mode: a view mode (`isosr_server.protocol.MODES`: ``auto``, ``full``, ``network``,
+            ``upscale``, ``buffers``, ``focus``, ``reconstruct`` with ``settings["ao_rays"]`` AO rays
+            per hit, 0 to ``ready.max_recon_ao_rays``, ...).
+        size: output (width, height); a multiple of the upscale factor in the low-res modes
+            (``network``, ``upscale``, ``buffers``, ``focus``).
         token: the server's token, if it has one.
-        settings: more `ViewSettings` fields (ao_samples, encoding, quality, refine, ...).
+        settings: more `ViewSettings` fields (ao_rays, interpolation, encoding, quality, refine, ...).
         camera: the first camera as `set_camera` keywords (default: the server's).
         iso, iso_normalized: the first iso-value (default: the volume's suggested one).
-        device, model: where and with which model ``buffers`` frames are upscaled here.
+        device, model: where and with which model (None: the shipped one) ``buffers`` frames are
+            upscaled here.
         local_upscale: upscale ``buffers`` frames here (off: keep them coded, e.g. to time the server).
         timeout: seconds to wait for the connection and for each frame.
 
@@ -337,11 +343,11 @@ def connect(url: str, volume: str, mode: str = "sr", size: tuple[int, int] = (64
         ProtocolError: bad settings or camera, found before anything is sent.
     """
     width, height = size
-    wanted = ViewSettings.read_update(dict(settings or {}, mode=mode, width=width, height=height), CLIENT_LIMITS)
+    wanted = convert(dict(settings or {}, mode=mode, width=width, height=height), SettingsUpdate, "settings")
     first_camera = None if camera is None else CameraMsg(**{k: _floats(v) if isinstance(v, (list, tuple)) else v
                                                              for k, v in camera.items()}, seq=0)
     open_msg = OpenMsg(volume, wanted, first_camera, iso, iso_normalized)
-    data = pack(open_msg.to_wire())
+    data = encode(open_msg)
     parse(data, CLIENT_LIMITS, (OpenMsg,))  # bad input fails here, before any connection
     where = endpoint(url, "/v1/view", websocket=True)
     try:

@@ -1,8 +1,7 @@
-"""Images as bytes and 8-bit pixels: the one float -> uint8 rule and the one decoder."""
+"""8-bit pixels: the one float -> uint8 rule (decoding encoded images: :mod:`isosr_render.image_codec`)."""
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import torch
 
@@ -31,14 +30,3 @@ def to_uint8(image: torch.Tensor | np.ndarray) -> np.ndarray:
         raise ValueError("to_uint8: the image holds NaN or Inf values")
     return quantize(t).cpu().numpy()
 
-
-def decode_image(data: bytes) -> np.ndarray:
-    """PNG, JPEG or WebP bytes -> (H, W, 3) uint8 RGB (OpenCV).
-
-    Raises:
-        ValueError: the bytes are not an image OpenCV reads.
-    """
-    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-    if bgr is None:
-        raise ValueError("not a PNG, JPEG or WebP image")
-    return np.ascontiguousarray(bgr[..., ::-1])

@@ -39,7 +39,7 @@ from isosr_render.images import quantize
 from isosr_server.auto import AutoPolicy
 from isosr_server.codecs.buffers_device import encode_view_buffers
 from isosr_server.encoding import encode_image, encoder_name
-from isosr_server.protocol import ENCODINGS, FocusMsg, UpscaleRequest, ViewSettings
+from isosr_server.protocol import ENCODINGS, FocusMsg, UpscaleRequest, ViewBuffers, ViewSettings
 from isosr_server.views import FrameJob, SessionFrames, ViewContext, ViewFrame
 
 RENDERER_CACHE = 4
@@ -76,7 +76,7 @@ class EncodedFrame:
     stage, the channel legend, the method's name, and the frame whose camera the flow refers to."""
 
     image: bytes | None
-    buffers: dict | None
+    buffers: ViewBuffers | None
     times: dict[str, float]
     legend: dict | None
     method: str
@@ -207,7 +207,8 @@ class Engine:
                 image = encode_image(quantize(made.color), encoding, quality)
             else:
                 b = made.result.buffers
-                buffers = encode_view_buffers(b.mask, b.normal, b.depth, b.flow if made.prev_seq >= 0 else None)
+                buffers = encode_view_buffers(FrameBuffers(mask=b.mask, normal=b.normal, depth=b.depth,
+                                                           flow=b.flow if made.prev_seq >= 0 else None))
         times = made.result.times | timer.ms() | {"total": 1e3 * (time.perf_counter() - start)}
         return EncodedFrame(image, buffers, times, made.legend, made.method.name, made.prev_seq)
 

@@ -30,7 +30,7 @@ from isosr_net.upscaler import Upscaler
 from isosr_render import Camera, Volume, orbit
 from isosr_server import views
 from isosr_server.engine import EncodedFrame
-from isosr_server.protocol import (CLOSE_IDLE, CLOSE_TOO_MANY, CameraMsg, FocusMsg, FrameMsg, IsoMsg, Limits,
+from isosr_server.protocol import (CLOSE_IDLE, CLOSE_TOO_MANY, CameraMsg, FocusMsg, FrameMsg, IsoMsg, Legend, Limits,
                                    Message, ProtocolError, ReceivedMsg, SettingsMsg, ViewSettings, encode)
 from isosr_server.views import FrameJob, ViewContext
 
@@ -243,16 +243,15 @@ async def run_frames(session: ViewSession, make: FrameMaker, send: Callable[[byt
         msg = FrameMsg(seq=f.seq, ack=job.ack, mode="full" if f.refined else st.mode, width=st.width,
                        height=st.height, encoding=job.encoding if made.image is not None else "buffers",
                        times=made.times, nbytes=frame_bytes(made), refined=f.refined, image=made.image,
-                       buffers=made.buffers, prev_seq=made.prev_seq, legend=made.legend, method=made.method)
+                       buffers=made.buffers, prev_seq=made.prev_seq,
+                       legend=None if made.legend is None else Legend(**made.legend), method=made.method)
         session.sent_seq = f.seq  # before sending: the client may acknowledge it before send returns
         await send(encode(msg), msg)
 
 
 def frame_bytes(made: EncodedFrame) -> int:
     """Payload bytes of a frame: the image, or the coded buffers' data."""
-    if made.image is not None:
-        return len(made.image)
-    return sum(len(a["data"]) for a in made.buffers.values() if isinstance(a, dict))
+    return len(made.image) if made.image is not None else made.buffers.nbytes
 
 
 async def _wait(event: asyncio.Event, timeout: float | None) -> None:

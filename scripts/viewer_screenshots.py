@@ -75,7 +75,7 @@ def main() -> None:
         frames_after(page, n, "document.getElementById('view').dataset.refined === 'true'")
         save(page, args.out / "viewer_full.png")
 
-        page.select_option("#mode", "sr")
+        page.select_option("#mode", "network")
         page.select_option("#mode-b", "full")
         page.check("#split")
         page.wait_for_function("document.getElementById('view').dataset.split === 'full'", timeout=TIMEOUT_MS)

@@ -74,11 +74,11 @@ def test_hard_buffers_stay_finite(case):
 
 
 def test_settings_a_channel_cannot_show_are_refused():
-    with pytest.raises(ProtocolError, match="ao_samples > 0"):
-        channels.check(ViewSettings(mode="full", ao_samples=0, channel="ao"))
+    with pytest.raises(ProtocolError, match="ao_rays > 0"):
+        channels.check(ViewSettings(mode="full", ao_rays=0, channel="ao"))
     with pytest.raises(ProtocolError, match="channel must be one of"):
         channels.check(ViewSettings(channel="color"))
-    channels.check(ViewSettings(mode="sr", ao_samples=0, channel="ao"))  # the network's AO
+    channels.check(ViewSettings(mode="network", ao_rays=0, channel="ao"))  # the network's AO
 
 
 @pytest.fixture(scope="module")
@@ -105,11 +105,11 @@ def test_lowres_modes_show_output_resolution_buffers(renderer, tmp_path_factory)
     upscaler = Upscaler(tiny_model_dir(tmp_path_factory), DEVICE)
     factor = upscaler.upscale_factor
     timer = StageTimer(torch.device(DEVICE))
-    sr = channels.channel_buffers(renderer, upscaler, factor, spec("sr", "flow", prev=True), timer)
-    assert sr.flow.shape == (24, 32, 2) and sr.ao.shape == (24, 32)
-    assert sr.flow.abs().max() > 0, "a moved camera gives flow"
-    bilinear = channels.channel_buffers(renderer, upscaler, factor, spec("bilinear", "depth"), timer)
-    assert bilinear.flow is None and torch.equal(bilinear.ao, (bilinear.ao > -1).float()), "the baseline has no AO"
+    network = channels.channel_buffers(renderer, upscaler, factor, spec("network", "flow", prev=True), timer)
+    assert network.flow.shape == (24, 32, 2) and network.ao.shape == (24, 32)
+    assert network.flow.abs().max() > 0, "a moved camera gives flow"
+    classic = channels.channel_buffers(renderer, upscaler, factor, spec("upscale", "depth"), timer)
+    assert classic.flow is None and torch.equal(classic.ao, (classic.ao > -1).float()), "the baseline has no AO"
     rgb, legend = channels.render_channel(renderer, upscaler, factor, spec("focus", "depth"), timer)
     assert rgb.shape == (24, 32, 3) and 0 < legend["lo"] < legend["hi"]
     assert set(timer.ms) == {"render", "network", "shading"}
@@ -162,41 +162,42 @@ def test_server_serves_the_page_offline(srv):
 def test_view_session_channels_match_the_library(srv):
     from server_fixtures import frame, recv
 
+    from isosr_render.image_codec import decode_image
+    from isosr_render.images import to_uint8
     from isosr_server import protocol as P
-    from isosr_render.images import decode_image, to_uint8
     from isosr_server.sessions import to_camera
 
     volume, w, h = "proc:torus@24", 64, 48
     cam0 = P.CameraMsg(yaw=30.0, pitch=20.0, distance=1.6)
     with srv.view() as ws:
-        ws.send(P.pack(P.OpenMsg(volume, {"width": w, "height": h, "mode": "sr", "channel": "depth", "encoding": "png",
-                                          "refine": False}, cam0).to_wire()))
+        ws.send(P.encode(P.OpenMsg(volume, P.SettingsUpdate(width=w, height=h, mode="network", channel="depth",
+                                                            encoding="png", refine=False), cam0)))
         ready = recv(ws)
-        assert isinstance(ready, P.ReadyMsg) and ready.settings["channel"] == "depth"
+        assert isinstance(ready, P.ReadyMsg) and ready.settings.channel == "depth"
         first = frame(ws)
-        assert first.legend["channel"] == "depth" and 0 < first.legend["lo"] < first.legend["hi"]
+        assert first.legend.channel == "depth" and 0 < first.legend.lo < first.legend.hi
         renderer = Renderer(parse_procedural(volume), DEVICE)
         upscaler = Upscaler(device=DEVICE)
-        local = FrameSpec("sr", to_camera(cam0), None, ready.volume["iso_normalized"], w, h, 0, 0.05,
+        local = FrameSpec("network", to_camera(cam0), None, ready.volume.iso_normalized, w, h, 0, 0.05,
                           FocusMsg("none"), 0, "depth")
         expected, legend = channels.render_channel(renderer, upscaler, upscaler.upscale_factor, local,
                                                    StageTimer(torch.device(DEVICE)))
         got = decode_image(first.image).astype(int)
         # On a GPU the server's network runs channels-last: other kernels, other rounding.
         tolerance, levels = (1e-6, 1) if DEVICE == "cpu" else (1e-3, 3)
-        assert abs(legend["lo"] - first.legend["lo"]) < tolerance
+        assert abs(legend["lo"] - first.legend.lo) < tolerance
         assert abs(got - to_uint8(expected).astype(int)).max() <= levels
 
-        ws.send(P.pack(P.SettingsMsg({"channel": "flow", "mode": "full"}, seq=1).to_wire()))
+        ws.send(P.encode(P.SettingsMsg(P.SettingsUpdate(channel="flow", mode="full"), seq=1)))
         still = frame(ws)
-        assert (still.ack, still.mode, still.legend["channel"], still.legend["hi"]) == (1, "full", "flow", 0.0)
-        ws.send(P.pack(P.CameraMsg(yaw=34.0, pitch=20.0, distance=1.6, seq=2).to_wire()))
+        assert (still.ack, still.mode, still.legend.channel, still.legend.hi) == (1, "full", "flow", 0.0)
+        ws.send(P.encode(P.CameraMsg(yaw=34.0, pitch=20.0, distance=1.6, seq=2)))
         moved = frame(ws)
-        assert moved.ack == 2 and moved.legend["hi"] > 0, "a moved camera has flow"
+        assert moved.ack == 2 and moved.legend.hi > 0, "a moved camera has flow"
 
-        ws.send(P.pack(P.SettingsMsg({"channel": "ao", "ao_samples": 0}).to_wire()))
+        ws.send(P.encode(P.SettingsMsg(P.SettingsUpdate(channel="ao", ao_rays=0))))
         while True:
             msg = recv(ws)
             if isinstance(msg, P.ErrorMsg):
                 break
-        assert msg.code == P.CLOSE_BAD_MESSAGE and "ao_samples > 0" in msg.reason
+        assert msg.code == P.CLOSE_BAD_MESSAGE and "ao_rays > 0" in msg.reason

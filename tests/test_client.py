@@ -8,13 +8,15 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
+import sys
 import threading
 import time
 import urllib.request
+from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 from client_fixtures import server  # noqa: F401  (the module's server fixture)
 from server_fixtures import running_server
 from websockets.sync.client import connect as ws_connect
@@ -35,7 +37,7 @@ from isosr_render.conventions import LOWRES_BUFFERS
 from isosr_render.shading import shade, shade_channels_first
 from isosr_server.core.config import Settings
 from isosr_server.protocol import (SERVER_VIEW_MESSAGES, CameraMsg, FrameMsg, Limits, OpenMsg, ProtocolError, ReadyMsg,
-                                   ReceivedMsg, pack, parse)
+                                   ReceivedMsg, SettingsUpdate, encode, parse)
 
 VOLUME = "proc:cloud:0@32"
 SIZE = (64, 48)
@@ -48,7 +50,7 @@ LOSSLESS = {"encoding": "png", "refine": False}
 def library(server):  # noqa: F811
     """The renderer of the volume the server shows, and its normalized iso (as ``ready`` says)."""
     with connect(server.url, VOLUME, "full", SIZE, settings=LOSSLESS) as view:
-        iso = view.ready.volume["iso_normalized"]
+        iso = view.ready.volume.iso_normalized
     return Renderer(open_volume(VOLUME), "cpu"), iso
 
 
@@ -80,12 +82,31 @@ def lowres_frames(renderer, iso, frames: int = FRAMES, factor: int = 4):
     return out
 
 
+def test_client_imports_without_torch_quickly():
+    """``import isosr_client`` loads neither torch nor Warp (nor the renderer or the network) and
+    takes well under 2 s in a fresh interpreter on this slow machine (measured: 0.2-0.3 s)."""
+    check = ("import sys, time; t = time.perf_counter(); import isosr_client; t = time.perf_counter() - t; "
+             "heavy = sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'warp') "
+             "or m in ('isosr_render.renderer', 'isosr_net.upscaler')); print(heavy, t)")
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])}
+    start = time.perf_counter()
+    result = subprocess.run([sys.executable, "-c", check], capture_output=True, text=True, env=env, timeout=60,
+                            cwd=root)
+    wall = time.perf_counter() - start
+    assert result.returncode == 0, result.stderr[-2000:]
+    heavy, seconds = result.stdout.rsplit(" ", 1)
+    assert heavy == "[]", f"import isosr_client loaded {heavy}"
+    print(f"import isosr_client: {float(seconds):.2f} s inside, {wall:.2f} s for the whole interpreter")
+    assert wall < 2.0
+
+
 def level_diff(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.abs(a.astype(np.int16) - b.astype(np.int16))
 
 
-def test_full_and_sr_frames_equal_the_library(server, library):  # noqa: F811
-    """full: the renderer + shading; sr: + the Upscaler with its recurrent state. PNG is lossless,
+def test_full_and_network_frames_equal_the_library(server, library):  # noqa: F811
+    """full: the renderer + shading; network: + the Upscaler with its recurrent state. PNG is lossless,
     so the frames equal the library's within 1 level (float rounding across processes)."""
     renderer, iso = library
     full, stats = session_frames(server.url, "full")
@@ -96,18 +117,18 @@ def test_full_and_sr_frames_equal_the_library(server, library):  # noqa: F811
         assert (image != 255).any()  # the surface is in view
     assert all(s.nbytes > 0 and s.latency_ms > 0 and "render" in s.server_ms and not s.refined for s in stats)
 
-    sr, _ = session_frames(server.url, "sr")
+    sr, _ = session_frames(server.url, "network")
     upscaler = Upscaler()
     for image, low in zip(sr, lowres_frames(renderer, iso)):
         high = upscaler.upscale(low)
         assert level_diff(image, to_uint8(shade(high.mask, high.normal, high.ao))).max() <= 1
 
 
-def test_buffers_mode_upscaled_here_equals_sr(server):  # noqa: F811
-    """buffers + local Upscaler and shading == the server's sr frames, up to the buffers coding
+def test_buffers_mode_upscaled_here_equals_network(server):  # noqa: F811
+    """buffers + local Upscaler and shading == the server's network frames, up to the buffers coding
     (mask 1/255, normals < 1e-3 rad, depth 16 bit, flow float16): stated bound 40 dB PSNR and a
     mean difference under 0.5 levels; the recurrent state continues (prev_seq) across frames."""
-    sr, _ = session_frames(server.url, "sr")
+    sr, _ = session_frames(server.url, "network")
     buffers, stats = session_frames(server.url, "buffers", {"refine": False})
     for a, b in zip(buffers, sr):
         assert bench_server.psnr(a, b) > 40.0
@@ -116,11 +137,11 @@ def test_buffers_mode_upscaled_here_equals_sr(server):  # noqa: F811
     assert all(s.nbytes > 0 for s in stats)
 
 
-def test_bilinear_and_focus_frames(server, library):  # noqa: F811
-    """bilinear: the library's bilinear baseline, shaded. focus: full resolution deep inside the
-    circle, the sr frame well outside it."""
+def test_upscale_and_focus_frames(server, library):  # noqa: F811
+    """upscale: the library's bilinear baseline, shaded. focus: full resolution deep inside the
+    circle, the network frame well outside it."""
     renderer, iso = library
-    bilinear, _ = session_frames(server.url, "bilinear", frames=1)
+    bilinear, _ = session_frames(server.url, "upscale", frames=1)
     low = lowres_frames(renderer, iso, frames=1)[0]
     stack = upscale_baseline(low.channels_first(LOWRES_BUFFERS)[None], 4, "bilinear")
     assert level_diff(bilinear[0], to_uint8(shade_channels_first(stack)[0].permute(1, 2, 0))).max() <= 1
@@ -129,7 +150,7 @@ def test_bilinear_and_focus_frames(server, library):  # noqa: F811
     focus, _ = session_frames(server.url, "focus", dict(LOSSLESS, focus_blend_px=blend), frames=2,
                               focus={"shape": "circle", "center": center, "radius": radius})
     full, _ = session_frames(server.url, "full", frames=2)
-    sr, _ = session_frames(server.url, "sr", frames=2, focus={"shape": "none"})  # the same recurrent chain
+    sr, _ = session_frames(server.url, "network", frames=2, focus={"shape": "none"})  # the same recurrent chain
     y, x = np.mgrid[:SIZE[1], :SIZE[0]] + 0.5
     dist = np.hypot(x - center[0], y - center[1])
     inside, outside = dist < radius - blend - 1, dist > radius + 1
@@ -144,7 +165,7 @@ def test_reconstruct_frames_equal_the_library(server, library):  # noqa: F811
     state, shading (the library's FrameRunner), at a size no upscale factor divides."""
     renderer, iso = library
     size = (50, 30)
-    with connect(server.url, VOLUME, "reconstruct", size, settings=dict(LOSSLESS, ao_samples=2),
+    with connect(server.url, VOLUME, "reconstruct", size, settings=dict(LOSSLESS, ao_rays=2),
                  camera=PATH.camera(0)) as view:
         images = [view.latest().rgb()]
         for i in range(1, FRAMES):
@@ -160,10 +181,10 @@ def test_reconstruct_frames_equal_the_library(server, library):  # noqa: F811
 
 
 def test_refined_frame_for_a_still_camera(server, library):  # noqa: F811
-    """A still camera gets one refined frame: full resolution with refine_ao_samples AO rays."""
+    """A still camera gets one refined frame: full resolution with refine_ao_rays AO rays."""
     renderer, iso = library
-    settings = {"encoding": "png", "refine": True, "refine_after_s": 0.2, "refine_ao_samples": 4, "ao_radius": 0.1}
-    with connect(server.url, VOLUME, "sr", SIZE, settings=settings) as view:
+    settings = {"encoding": "png", "refine": True, "refine_after_s": 0.2, "refine_ao_rays": 4, "ao_radius": 0.1}
+    with connect(server.url, VOLUME, "network", SIZE, settings=settings) as view:
         view.set_camera(**PATH.camera(0))
         first = view.latest()
         assert not first.stats.refined
@@ -175,16 +196,20 @@ def test_refined_frame_for_a_still_camera(server, library):  # noqa: F811
 
 
 def test_upscale_api_buffers_image_and_session_state(server, library):  # noqa: F811
-    """POST /v1/upscale: buffers equal the local Upscaler's (float32, 1e-5), the PNG its shading;
-    a session id carries the recurrent state to the next frame."""
+    """POST /v1/upscale: buffers (float32 numpy) equal the local Upscaler's (1e-5), the PNG its
+    shading; a session id carries the recurrent state to the next frame; torch tensors and numpy
+    arrays both travel."""
     renderer, iso = library
     frames = lowres_frames(renderer, iso, frames=2)
     local = Upscaler()
     for i, low in enumerate(frames):
-        result = upscale_remote(server.url, low, session="client-test")
+        sent = low if i == 0 else low.to_numpy()  # a FrameBuffers of tensors, then a map of numpy arrays
+        result = upscale_remote(server.url, sent, session="client-test")
         ref = local.upscale(low)
         for name in ("mask", "normal", "depth", "ao"):
-            torch.testing.assert_close(getattr(result.buffers, name), getattr(ref, name), atol=1e-5, rtol=1e-5)
+            got = getattr(result.buffers, name)
+            assert isinstance(got, np.ndarray) and got.dtype == np.float32 and got.flags.writeable
+            np.testing.assert_allclose(got, getattr(ref, name).numpy(), atol=1e-5, rtol=1e-5)
         assert "network" in result.times
     png = upscale_remote(server.url, frames[0], output="png")
     ref = Upscaler().upscale(frames[0])
@@ -200,22 +225,28 @@ def test_client_errors_are_clear(server):  # noqa: F811
     """Bad input fails with the reason (before sending where the client can tell), the server's
     refusals come back as ServerError with its code, and the server serves on."""
     with pytest.raises(ServerError) as e:
-        connect(server.url, "no_such_volume", "sr", SIZE)
+        connect(server.url, "no_such_volume", "network", SIZE)
     assert e.value.code == 4404
     with pytest.raises(ProtocolError, match="mode"):
         connect(server.url, VOLUME, "sharpest", SIZE)
     with pytest.raises(ValueError, match="URL"):
         connect("ftp://127.0.0.1:1", VOLUME)
+    with pytest.raises(ProtocolError, match="unknown field `ao_samples`"):
+        connect(server.url, VOLUME, "full", SIZE, settings={"ao_samples": 2})
     with pytest.raises(ServerError, match="multiple of the upscale factor"):
-        connect(server.url, VOLUME, "sr", (63, 48))
+        connect(server.url, VOLUME, "network", (63, 48))
     with pytest.raises(ServerError, match=f"reconstruct mode takes 0 to {MAX_RECON_AO_RAYS} AO rays") as e:
-        connect(server.url, VOLUME, "reconstruct", SIZE, settings={"ao_samples": MAX_RECON_AO_RAYS + 1})
+        connect(server.url, VOLUME, "reconstruct", SIZE, settings={"ao_rays": MAX_RECON_AO_RAYS + 1})
     assert e.value.code == 1007
-    with connect(server.url, VOLUME, "sr", SIZE, settings=LOSSLESS) as view:
+    with connect(server.url, VOLUME, "network", SIZE, settings=LOSSLESS) as view:
+        assert view.ready.max_recon_ao_rays == MAX_RECON_AO_RAYS and view.settings.mode == "network"
         with pytest.raises(ProtocolError, match="eye"):
             view.set_camera(yaw=10.0)
-        with pytest.raises(ProtocolError, match="quality"):
+        with pytest.raises(ProtocolError, match=r"quality"):
             view.set_settings(quality=500)
+        with pytest.raises(ProtocolError, match="exceeds the limits"):
+            view.set_settings(width=4096, height=4096)
+        assert view.settings.quality == 85 and view.settings.width == SIZE[0]  # nothing changed
         view.set_camera(**PATH.camera(0))
         assert view.frame().shape == (SIZE[1], SIZE[0], 3)
 
@@ -229,12 +260,12 @@ def test_token_travels_and_its_absence_is_a_clear_refusal(library):
     with running_server(Settings(token=token)) as s:
         for wrong in (None, "not-the-token"):
             with pytest.raises(ServerError) as e:
-                connect(s.http_url, VOLUME, "sr", SIZE, token=wrong)
+                connect(s.http_url, VOLUME, "network", SIZE, token=wrong)
             assert e.value.code in (401, 4401) and "token" in e.value.reason  # a denied handshake, or a close
             with pytest.raises(ServerError) as e:
                 upscale_remote(s.http_url, low, token=wrong)
             assert e.value.code == 401 and "token" in e.value.reason
-        with connect(s.http_url, VOLUME, "sr", SIZE, token=token, settings=LOSSLESS) as view:
+        with connect(s.http_url, VOLUME, "network", SIZE, token=token, settings=LOSSLESS) as view:
             assert view.frame().shape == (SIZE[1], SIZE[0], 3)
         assert upscale_remote(s.http_url, low, token=token).buffers.ao.shape == (SIZE[1], SIZE[0])
 
@@ -261,7 +292,7 @@ def test_cli_writes_frames_and_prints_costs(server, tmp_path, capsys):  # noqa: 
                  "--focus", "32,24,12", "--no-compare", "--out", str(focus)]) == 0
     assert json.loads((focus / "summary.json").read_text())["runs"][0]["mode"] == "focus"
     recon = tmp_path / "reconstruct"
-    assert main(["client", server.url, "--volume", VOLUME, "--mode", "reconstruct", "--ao-samples", "1", "--frames",
+    assert main(["client", server.url, "--volume", VOLUME, "--mode", "reconstruct", "--ao-rays", "1", "--frames",
                  "1", "--size", "50x30", "--no-compare", "--out", str(recon)]) == 0
     assert decode_image((recon / "frame_0000.png").read_bytes()).shape == (30, 50, 3)
     assert json.loads((recon / "summary.json").read_text())["runs"][0]["mode"] == "reconstruct"
@@ -279,7 +310,7 @@ def test_load_16_sessions_30s(server):  # noqa: F811
     """16 concurrent view sessions (all modes) for 30 s: no errors, every session served, and the
     server's RSS grows by less than 64 MiB from after a warm-up round to the end (what a leak of
     one 64x48 frame per frame served would exceed several times over)."""
-    modes = ("full", "sr", "bilinear", "buffers", "focus")
+    modes = ("full", "network", "upscale", "buffers", "focus")
     # Warm-up: every mode's first frames (allocations, caches) before the baseline.
     for mode in modes:
         bench_server.run_sessions(server.url, VOLUME, 1, 0.0, mode, SIZE, {}, warmup_frames=1)
@@ -287,7 +318,7 @@ def test_load_16_sessions_30s(server):  # noqa: F811
     results = {}
     threads = []
     for mode in modes:
-        n = {"full": 4, "sr": 3, "bilinear": 3, "buffers": 4, "focus": 2}[mode]  # 16 sessions
+        n = {"full": 4, "network": 3, "upscale": 3, "buffers": 4, "focus": 2}[mode]  # 16 sessions
         t = threading.Thread(target=lambda m=mode, n=n: results.__setitem__(
             m, bench_server.run_sessions(server.url, VOLUME, n, 30.0, m, SIZE, {},
                                          focus=(32.0, 24.0, 12.0) if m == "focus" else None, warmup_frames=1)))
@@ -319,7 +350,7 @@ def view_frames_sent(url: str) -> int:
 
 
 # The slow client's frames: about 8 times the fast client's render and encode time on the CPU.
-SLOW_SETTINGS = {"mode": "full", "width": 512, "height": 384, "ao_samples": 4, "encoding": "png", "refine": False}
+SLOW_SETTINGS = SettingsUpdate(mode="full", width=512, height=384, ao_rays=4, encoding="png", refine=False)
 
 
 def stalled_view(port: int, seconds: float, read_every_s: float | None, stop: threading.Event | None = None):
@@ -332,15 +363,15 @@ def stalled_view(port: int, seconds: float, read_every_s: float | None, stop: th
     # frames may delay the server's close frame, and the test need not wait for it.
     ws = ws_connect(f"ws://127.0.0.1:{port}/v1/view", max_size=2**28, compression=None, max_queue=1,
                     open_timeout=30, close_timeout=1, proxy=None).__enter__()
-    ws.send(pack(OpenMsg(VOLUME, SLOW_SETTINGS).to_wire()))
+    ws.send(encode(OpenMsg(VOLUME, SLOW_SETTINGS)))
     seq, last_read, end, frames = 0, time.monotonic(), time.monotonic() + seconds, []
     while time.monotonic() < end and not (stop and stop.is_set()):
         seq += 1
-        ws.send(pack(CameraMsg(**PATH.camera(seq), seq=seq).to_wire()))
+        ws.send(encode(CameraMsg(**PATH.camera(seq), seq=seq)))
         if read_every_s is not None and time.monotonic() - last_read >= read_every_s:
             msg = parse(ws.recv(timeout=30), CLIENT_LIMITS, SERVER_VIEW_MESSAGES)
             if isinstance(msg, FrameMsg):
-                ws.send(pack(ReceivedMsg(msg.seq).to_wire()))
+                ws.send(encode(ReceivedMsg(msg.seq)))
                 frames.append(msg)
             last_read = time.monotonic()
         time.sleep(0.05)
@@ -355,7 +386,7 @@ def test_slow_client_does_not_slow_a_fast_one(server):  # noqa: F811
     renders for the slow one until megabytes of socket buffers fill), and the server's memory
     stays put. About 10 s."""
     def fast_fps(seconds: float) -> float:
-        with connect(server.url, VOLUME, "bilinear", SIZE, settings={"refine": False}, local_upscale=False) as view:
+        with connect(server.url, VOLUME, "upscale", SIZE, settings={"refine": False}, local_upscale=False) as view:
             drive(view, PATH, 2, rgb=False)
             stats, busy = drive(view, PATH, 10_000, rgb=False, stop_at=time.monotonic() + seconds)
         return summarize(stats, busy)["fps"]
@@ -399,7 +430,7 @@ def test_stalled_client_gets_max_unacked_frames_then_the_newest(server):  # noqa
         assert server.rss() - rss_before < 64 * 2**20
         frames = [parse(ws.recv(timeout=30), CLIENT_LIMITS, SERVER_VIEW_MESSAGES) for _ in range(credit + 1)]
         assert isinstance(frames[0], ReadyMsg) and [f.seq for f in frames[1:]] == list(range(credit))
-        ws.send(pack(ReceivedMsg(credit - 1).to_wire()))
+        ws.send(encode(ReceivedMsg(credit - 1)))
         nxt = parse(ws.recv(timeout=30), CLIENT_LIMITS, SERVER_VIEW_MESSAGES)
         assert (nxt.seq, nxt.ack) == (credit, newest)
 
@@ -408,11 +439,11 @@ def test_bench_server_smoke(server, tmp_path):  # noqa: F811
     bench_server.main(["--smoke", "--url", server.url, "--out", str(tmp_path)])
     record = json.loads((tmp_path / "bench_server_cpu.json").read_text())
     cases = [r for r in record["rows"] if "mode" in r]
-    assert {(r["mode"], r["ao"]) for r in cases} == {("full", 0), ("full", 8), ("sr", 0), ("bilinear", 0),
+    assert {(r["mode"], r["ao"]) for r in cases} == {("full", 0), ("full", 8), ("network", 0), ("upscale", 0),
                                                     ("buffers", 0), ("focus", 8)}
     assert all(r["errors"] == 0 and r["fps"] > 0 and r["bytes_per_frame"] > 0 for r in cases)
     assert all(r["latency_p99_ms"] >= r["latency_p50_ms"] > 0 for r in cases)
-    sr = next(r for r in cases if r["mode"] == "sr" and r["sessions"] == 1)
+    sr = next(r for r in cases if r["mode"] == "network" and r["sessions"] == 1)
     assert sr["network_ms"] > 0 and sr["render_ms"] > 0
     study = record["rows"][-1]
     assert study["study"] == "matched_quality" and 10 < study["buffers_psnr_db"] < 100

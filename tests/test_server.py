@@ -1,7 +1,7 @@
 """`isosr serve` end to end: a real uvicorn server on loopback, real WebSocket and HTTP clients.
 
 Frames are compared with what the library gives for the same camera: PNG is lossless and the
-CPU renderer and network are deterministic, so `full`, `sr`, `bilinear` and `focus` frames must
+CPU renderer and network are deterministic, so `full`, `network`, `upscale` and `focus` frames must
 match the library's shaded uint8 image to within 1 level; `buffers` frames within the
 protocol's coding tolerances; upscale responses to 1e-5.
 """
@@ -13,7 +13,7 @@ import math
 import time
 from contextlib import ExitStack
 
-import msgpack
+import msgspec
 import numpy as np
 import pytest
 import torch
@@ -27,11 +27,14 @@ from isosr_render import Camera, FrameBuffers, open_volume, orbit, shade
 from isosr_render.conventions import LOWRES_BUFFERS
 from isosr_render.shading import shade_channels_first
 from isosr_server import protocol as P
+from isosr_render.image_codec import decode_image
+from isosr_render.images import to_uint8
+from isosr_server.codecs.arrays import encode_array
+from isosr_server.codecs.buffers import decode_view_buffers
 from isosr_server.sessions import ViewSession, ViewState
-from isosr_render.images import decode_image, to_uint8
 from server_fixtures import (DEVICE, FACTOR, H, LEVELS, VOLUME, W, assert_image, cam, expect_close, frame,  # noqa: F401
-                             lib, lib_full, lib_lowres, lib_sr, recv, running_server, send, server_settings, session,
-                             settle, upscale_body, wire_frame)
+                             lib, lib_full, lib_lowres, lib_sr, raw, recv, running_server, send, server_settings,
+                             session, settle, upscale_body, wire, wire_frame)
 
 LIMITS = P.Limits(max_message_bytes=2**20, max_sessions=6, idle_timeout_s=30.0, max_fps=1000.0,
                   max_messages_per_s=5000.0)
@@ -96,13 +99,15 @@ def test_volume_names_never_reach_paths(srv, path, status):
 
 
 def test_full_mode_matches_the_library(srv, lib):
-    with session(srv, mode="full", ao_samples=4) as (ws, ready):
-        assert ready.view_settings().mode == "full" and ready.volume["iso"] == 0.0
+    with session(srv, mode="full", ao_rays=4) as (ws, ready):
+        assert ready.settings.mode == "full" and ready.volume.iso == 0.0
+        assert ready.max_recon_ao_rays == MAX_RECON_AO_RAYS
+        assert ready.limits == LIMITS and ready.version == P.PROTOCOL_VERSION == 3
         f = frame(ws)
-        assert (f.seq, f.ack, f.mode, f.encoding, f.refined) == (0, -1, "full", "png", False)
+        assert (f.seq, f.ack, f.mode, f.encoding, f.refined) == (0, -1, "full", "png", False) and f.method
         assert f.nbytes == len(f.image) and f.times["total"] >= f.times["render"] > 0
         assert_image(f.image, lib_full(lib, orbit(30, 20, 1.8), ao_samples=4))
-        send(ws, P.SettingsMsg({"ao_samples": 0}, seq=1))
+        send(ws, P.SettingsMsg(P.SettingsUpdate(ao_rays=0), seq=1))
         send(ws, P.CameraMsg(eye=(0.3, 0.9, 1.5), seq=2))
         f = frame(ws)
         while f.ack < 2:
@@ -111,9 +116,9 @@ def test_full_mode_matches_the_library(srv, lib):
         assert_image(f.image, lib_full(lib, Camera(eye_cam.eye)))
 
 
-def test_sr_mode_matches_the_library_with_recurrent_state(srv, lib):
+def test_network_mode_matches_the_library_with_recurrent_state(srv, lib):
     expected = lib_sr(lib, [orbit(30, 20, 1.8), orbit(33, 20, 1.8), orbit(36, 20, 1.8)])
-    with session(srv, mode="sr") as (ws, _):
+    with session(srv, mode="network") as (ws, _):
         assert_image(frame(ws).image, expected[0])
         for i, yaw in enumerate((33, 36), start=1):
             send(ws, cam(yaw, seq=i))
@@ -122,12 +127,15 @@ def test_sr_mode_matches_the_library_with_recurrent_state(srv, lib):
             assert_image(f.image, expected[i])
 
 
-def test_bilinear_mode_matches_the_library(srv, lib):
+@pytest.mark.parametrize("interpolation", ["bilinear", "bicubic"])
+def test_upscale_mode_matches_the_library(srv, lib, interpolation):
     low = lib_lowres(lib, orbit(30, 20, 1.8))
-    stack = upscale_baseline(low.channels_first(LOWRES_BUFFERS)[None], FACTOR, "bilinear")
+    stack = upscale_baseline(low.channels_first(LOWRES_BUFFERS)[None], FACTOR, interpolation)
     expected = to_uint8(shade_channels_first(stack)[0].permute(1, 2, 0))
-    with session(srv, mode="bilinear") as (ws, _):
-        assert_image(frame(ws).image, expected)
+    with session(srv, mode="upscale", interpolation=interpolation) as (ws, _):
+        f = frame(ws)
+        assert f.mode == "upscale"
+        assert_image(f.image, expected)
 
 
 def test_buffers_mode_decodes_to_the_library_buffers(srv, lib):
@@ -135,7 +143,7 @@ def test_buffers_mode_decodes_to_the_library_buffers(srv, lib):
     with session(srv, mode="buffers") as (ws, _):
         f0 = frame(ws)
         assert (f0.encoding, f0.prev_seq, f0.width, f0.height) == ("buffers", -1, W, H)
-        got = P.decode_view_buffers(f0.buffers, P.Limits())
+        got = decode_view_buffers(f0.buffers, P.Limits())
         want = lib_lowres(lib, c0).to_numpy()
         assert "flow" not in got and got["mask"].shape == (H // FACTOR, W // FACTOR)
         np.testing.assert_array_equal(got["mask"], want["mask"])
@@ -144,13 +152,13 @@ def test_buffers_mode_decodes_to_the_library_buffers(srv, lib):
         send(ws, cam(34, seq=1))
         f1 = frame(ws)
         assert f1.prev_seq == f0.seq
-        got = P.decode_view_buffers(f1.buffers, P.Limits())
+        got = decode_view_buffers(f1.buffers, P.Limits())
         want = lib_lowres(lib, c1, prev=c0).to_numpy()
         np.testing.assert_allclose(got["flow"], want["flow"], atol=1e-3, rtol=2.0**-11)
         assert f1.nbytes < sum(a.nbytes for a in want.values())
         send(ws, P.IsoMsg(0.01, seq=2))  # a new iso is a cut: no flow, prev_seq -1
         f2 = frame(ws)
-        assert f2.prev_seq == -1 and "flow" not in f2.buffers
+        assert f2.prev_seq == -1 and f2.buffers.flow is None
 
 
 def test_focus_mode_full_inside_network_outside(srv, lib):
@@ -158,7 +166,7 @@ def test_focus_mode_full_inside_network_outside(srv, lib):
     # The focus frame is the session's second: the network's recurrent state holds the first.
     full, sr = lib_full(lib, camera, ao_samples=2), lib_sr(lib, [camera, camera])[1]
     box = (8.0, 12.0, 40.0, 36.0)
-    with session(srv, mode="focus", ao_samples=2, focus_blend_px=3) as (ws, _):
+    with session(srv, mode="focus", ao_rays=2, focus_blend_px=3) as (ws, _):
         frame(ws)
         send(ws, P.FocusMsg("box", box=box, seq=1))
         got = decode_image(frame(ws).image).astype(int)
@@ -183,8 +191,8 @@ def test_reconstruct_mode_matches_the_library_with_recurrent_state(srv, lib):
     expected = lib_recon(lib, cameras)
     for f in expected:
         assert bool(torch.isfinite(f.color).all()) and 0.0 <= float(f.color.min()) <= float(f.color.max()) <= 1.0
-    with session(srv, mode="reconstruct", ao_samples=2) as (ws, ready):
-        assert ready.view_settings().mode == "reconstruct" and ready.view_settings().ao_samples == 2
+    with session(srv, mode="reconstruct", ao_rays=2) as (ws, ready):
+        assert ready.settings.mode == "reconstruct" and ready.settings.ao_rays == 2
         for i, yaw in enumerate((30, 33, 36)):
             if i:
                 send(ws, cam(yaw, seq=i))
@@ -192,7 +200,7 @@ def test_reconstruct_mode_matches_the_library_with_recurrent_state(srv, lib):
             assert (f.mode, f.width, f.height, f.ack) == ("reconstruct", W, H, i if i else -1)
             assert decode_image(f.image).shape == (H, W, 3)
             assert_image(f.image, to_uint8(expected[i].color))
-        send(ws, P.SettingsMsg({"width": 50, "height": 30}, seq=3))  # full resolution: any size
+        send(ws, P.SettingsMsg(P.SettingsUpdate(width=50, height=30), seq=3))  # full resolution: any size
         f = frame(ws)
         assert (f.mode, f.width, f.height, f.ack) == ("reconstruct", 50, 30, 3)
         image = decode_image(f.image)
@@ -203,14 +211,14 @@ def test_reconstruct_mode_matches_the_library_with_recurrent_state(srv, lib):
     assert not torch.equal(stateless.color, expected[2].color)
 
 
-def test_mode_switches_sr_reconstruct_full_mid_session(srv, lib):
+def test_mode_switches_network_reconstruct_full_mid_session(srv, lib):
     c0, c1 = orbit(30, 20, 1.8), orbit(34, 20, 1.8)
     recon = lib_recon(lib, [c0, c1], ao_rays=1)  # a new mode is a cut: the first frame has no state
-    with session(srv, mode="sr") as (ws, _):
+    with session(srv, mode="network") as (ws, _):
         assert_image(frame(ws).image, lib_sr(lib, [c0])[0])
-        steps = [(P.SettingsMsg({"mode": "reconstruct", "ao_samples": 1}, seq=1), "reconstruct", recon[0]),
+        steps = [(P.SettingsMsg(P.SettingsUpdate(mode="reconstruct", ao_rays=1), seq=1), "reconstruct", recon[0]),
                  (cam(34, seq=2), "reconstruct", recon[1]),
-                 (P.SettingsMsg({"mode": "full"}, seq=3), "full", lib_full(lib, c1, ao_samples=1))]
+                 (P.SettingsMsg(P.SettingsUpdate(mode="full"), seq=3), "full", lib_full(lib, c1, ao_samples=1))]
         for msg, mode, expected in steps:
             send(ws, msg)
             f = frame(ws)
@@ -222,7 +230,7 @@ def test_mode_switches_sr_reconstruct_full_mid_session(srv, lib):
 
 
 def test_still_camera_gets_one_refined_frame(srv, lib):
-    with session(srv, mode="sr", refine=True, refine_after_s=0.2, refine_ao_samples=8) as (ws, _):
+    with session(srv, mode="network", refine=True, refine_after_s=0.2, refine_ao_rays=8) as (ws, _):
         first = frame(ws)
         refined = frame(ws)
         assert not first.refined and refined.refined and refined.mode == "full" and refined.seq == 1
@@ -279,14 +287,14 @@ def test_bad_acknowledgments_close_that_session_only(srv, lib):
     integer) ends the session with 1007 and the reason; another session is served meanwhile."""
     with session(srv, mode="full") as (honest, _):
         frame(honest)
-        bad = [(P.ReceivedMsg(5).to_wire(), "frame 5 was never sent"),
-               ({"type": "received", "frame": 2**60}, "frame must be an integer in"),
-               ({"type": "received", "frame": -1}, "frame must be an integer in"),
-               ({"type": "received", "frame": 0.5}, "frame must be an integer in"),
-               ({"type": "received"}, "missing field 'frame'")]
-        for wire, words in bad:  # sent at once after open: before the client read any frame
+        bad = [(wire(P.ReceivedMsg(5)), "frame 5 was never sent"),
+               ({"type": "received", "frame": 2**60}, "Expected `int` <= 9007199254740992 - at `$.frame`"),
+               ({"type": "received", "frame": -1}, "Expected `int` >= 0 - at `$.frame`"),
+               ({"type": "received", "frame": 0.5}, "Expected `int`, got `float` - at `$.frame`"),
+               ({"type": "received"}, "Object missing required field `frame`")]
+        for message, words in bad:  # sent at once after open: before the client read any frame
             with session(srv, mode="full") as (ws, _):
-                ws.send(P.pack(wire))
+                ws.send(raw(message))
                 expect_close(ws, P.CLOSE_BAD_MESSAGE, words)
         with session(srv, mode="full") as (ws, _):
             assert frame(ws).seq == 0  # acknowledged: fine
@@ -335,15 +343,15 @@ def test_metrics_count_frames_stages_and_errors(srv):
 # ---- upscaling ------------------------------------------------------------------------------
 
 
-def assert_same_buffers(got: dict, want: dict, atol: float) -> None:
+def assert_same_buffers(got: P.HighresBuffers, want: dict, atol: float) -> None:
     """High-res buffers equal within ``atol`` where both masks agree on coverage. Normals and
     depth are zeroed where the mask is 0, so on GPUs a mask within rounding of 0 may flip a
     silhouette pixel (seen once on an H100): at most 0.5% of pixels may disagree there."""
-    np.testing.assert_allclose(got["mask"], want["mask"], atol=atol)
-    agree = (got["mask"] > 0) == (want["mask"] > 0)
+    np.testing.assert_allclose(got.mask, want["mask"], atol=atol)
+    agree = (got.mask > 0) == (want["mask"] > 0)
     assert agree.mean() >= (1.0 if DEVICE == "cpu" else 0.995)
     for name in P.HIGHRES_OUTPUTS:
-        np.testing.assert_allclose(got[name][agree], want[name][agree], atol=atol)
+        np.testing.assert_allclose(getattr(got, name)[agree], want[name][agree], atol=atol)
 
 
 def test_upscale_post_buffers_images_and_sessions(srv, lib):
@@ -365,7 +373,7 @@ def test_upscale_post_buffers_images_and_sessions(srv, lib):
     # Without a session the state is fresh, and the result differs.
     status, _, body = srv.request("POST", "/v1/upscale", upscale_body(f1))
     fresh = P.parse(body, P.Limits(), (P.UpscaleResponse,))
-    assert not np.allclose(fresh.buffers["normal"], want1["normal"], atol=10 * atol)
+    assert not np.allclose(fresh.buffers.normal, want1["normal"], atol=10 * atol)
     # The shaded image: by the accept header, or by the field.
     status, headers, png = srv.request("POST", "/v1/upscale", upscale_body(f0), {"Accept": "image/png"})
     assert status == 200 and headers["content-type"] == "image/png" and "total" in json.loads(headers["x-isosr-times"])
@@ -390,30 +398,34 @@ def test_upscale_stream_in_order_with_state(srv, lib):
         expect_close(ws, P.CLOSE_BAD_MESSAGE, "session")
 
 
+def wire_array(a: np.ndarray) -> dict:
+    return msgspec.to_builtins(encode_array(a), builtin_types=(bytes,))
+
+
 def test_upscale_bad_input_gets_4xx_with_reasons(srv, lib):
     good = wire_frame(lib)
     h, w = good["mask"]["shape"]
-    nan_depth = P.encode_array(np.full((h, w), np.nan, np.float32))
     f64 = {"dtype": "float64", "shape": [h, w], "data": bytes(8 * h * w)}
     wide = np.zeros((2, 1100), np.float32)
     cases = [
         (b"\xc1\x00", 400, "malformed"),
-        (P.pack(good)[:-7], 400, "malformed"),
-        (P.pack(wire_frame(lib, depth=nan_depth)), 400, "NaN"),
-        (P.pack(wire_frame(lib, depth=P.encode_array(np.full((h, w), 3e38, np.float32)))), 400, "must lie in"),
-        (P.pack(wire_frame(lib, depth=f64)), 400, "dtype"),
-        (P.pack(wire_frame(lib, normal=good["depth"])), 400, "shape"),
-        (P.pack(wire_frame(lib, version=7)), 400, "version"),
-        (P.pack(wire_frame(lib, output="gif")), 400, "output"),
-        (P.pack(wire_frame(lib, session="../x")), 400, "session"),
-        (P.pack({**good, "pad": b"x" * LIMITS.max_message_bytes}), 413, "limit"),
-        (P.pack(P.UpscaleRequest(wide, np.zeros((2, 1100, 3), np.float32), wide).to_wire()), 413, "exceeds"),
+        (raw(good)[:-7], 400, "malformed"),
+        (raw(wire_frame(lib, depth=wire_array(np.full((h, w), np.nan, np.float32)))), 400,
+         "NaN or Inf values - at `$.depth`"),
+        (raw(wire_frame(lib, depth=wire_array(np.full((h, w), 3e38, np.float32)))), 400, "depth: values must lie in"),
+        (raw(wire_frame(lib, depth=f64)), 400, "Invalid enum value 'float64' in `dtype` - at `$.depth`"),
+        (raw(wire_frame(lib, normal=good["depth"])), 400, "normal: shape must be"),
+        (raw(wire_frame(lib, version=2)), 400, "protocol version 2 is not supported; this server speaks 3"),
+        (raw(wire_frame(lib, output="gif")), 400, "at `$.output`"),
+        (raw(wire_frame(lib, session="../x")), 400, "at `$.session`"),
+        (raw({**good, "pad": b"x" * LIMITS.max_message_bytes}), 413, "limit"),
+        (P.encode(P.UpscaleRequest(wide, np.zeros((2, 1100, 3), np.float32), wide)), 413, "exceeds"),
     ]
     for body, status, words in cases:
         got, headers, reply = srv.request("POST", "/v1/upscale", body)
         reason = json.loads(reply)
         assert (got, reason["status"]) == (status, status) and words in reason["error"], (words, reason)
-    got, _, reply = srv.request("POST", "/v1/upscale", P.pack(good), {"Content-Type": "text/plain"})
+    got, _, reply = srv.request("POST", "/v1/upscale", raw(good), {"Content-Type": "text/plain"})
     assert got == 415 and "msgpack" in json.loads(reply)["error"]
     assert srv.get_json("/v2/health/ready")[0] == 200
     assert not srv.errors.records, srv.errors.messages()
@@ -436,25 +448,29 @@ def test_bad_view_input_closes_that_session_only(srv, lib):
                 f = frame(honest)
             assert_image(f.image, lib_full(lib, orbit(30 + seq, 20, 1.8)))
 
+        v = P.PROTOCOL_VERSION
         opens = [
-            (b"\x92\x01\x02", P.CLOSE_BAD_MESSAGE, "map"),
-            (P.pack({"type": "open", "version": 1, "volume": VOLUME}), P.CLOSE_BAD_MESSAGE,
-             f"protocol version 1 is not supported; this server speaks {P.PROTOCOL_VERSION}: update the client"),
-            (P.pack({"type": "open", "version": P.PROTOCOL_VERSION, "volume": "nope"}), P.CLOSE_NOT_FOUND, "no volume named"),
-            (P.pack({"type": "open", "version": P.PROTOCOL_VERSION, "volume": "../blob"}), P.CLOSE_BAD_MESSAGE, "volume"),
-            (P.pack({"type": "open", "version": P.PROTOCOL_VERSION, "volume": "proc:cloud:1@400"}), P.CLOSE_BAD_MESSAGE,
-             "size"),
-            (P.pack({"type": "open", "version": P.PROTOCOL_VERSION, "volume": VOLUME, "settings": {"mode": "sr", "width": 66}}),
+            (b"\x92\x01\x02", P.CLOSE_BAD_MESSAGE, "Expected `object`, got `array`"),
+            (raw({"type": "open", "version": 2, "volume": VOLUME}), P.CLOSE_BAD_MESSAGE,
+             "protocol version 2 is not supported; this server speaks 3: update the client"),
+            (raw({"type": "open", "version": v, "volume": "nope"}), P.CLOSE_NOT_FOUND, "no volume named"),
+            (raw({"type": "open", "version": v, "volume": "../blob"}), P.CLOSE_BAD_MESSAGE,
+             "Expected `str` matching regex"),
+            (raw({"type": "open", "version": v, "volume": "proc:cloud:1@400"}), P.CLOSE_BAD_MESSAGE, "size"),
+            (raw({"type": "open", "version": v, "volume": VOLUME, "settings": {"mode": "network", "width": 66}}),
              P.CLOSE_BAD_MESSAGE, "multiple of the upscale factor"),
-            (P.pack({"type": "open", "version": P.PROTOCOL_VERSION, "volume": VOLUME, "settings": {"width": 4096, "height": 4096}}),
+            (raw({"type": "open", "version": v, "volume": VOLUME, "settings": {"mode": "sr"}}),
+             P.CLOSE_BAD_MESSAGE, "Invalid enum value 'sr' - at `$.settings.mode`"),
+            (raw({"type": "open", "version": v, "volume": VOLUME, "settings": {"width": 4096, "height": 4096}}),
              P.CLOSE_TOO_BIG, "exceeds"),
-            (P.pack(P.OpenMsg(VOLUME, {"mode": "reconstruct", "ao_samples": MAX_RECON_AO_RAYS + 1}).to_wire()),
-             P.CLOSE_BAD_MESSAGE, f"reconstruct mode takes 0 to {MAX_RECON_AO_RAYS} AO rays per hit (ao_samples), "
+            (P.encode(P.OpenMsg(VOLUME, P.SettingsUpdate(mode="reconstruct", ao_rays=MAX_RECON_AO_RAYS + 1))),
+             P.CLOSE_BAD_MESSAGE, f"reconstruct mode takes 0 to {MAX_RECON_AO_RAYS} AO rays per hit (ao_rays), "
                                   f"got {MAX_RECON_AO_RAYS + 1}"),
-            (P.pack({"type": "open", "version": P.PROTOCOL_VERSION, "volume": VOLUME,
-                     "settings": {"mode": "reconstruct", "ao_samples": -1}}),
-             P.CLOSE_BAD_MESSAGE, "ao_samples must be an integer in [0, 256], got -1"),
-            (P.pack(cam(3).to_wire()), P.CLOSE_BAD_MESSAGE, "message type must be one of open"),
+            (raw({"type": "open", "version": v, "volume": VOLUME, "settings": {"mode": "reconstruct", "ao_rays": -1}}),
+             P.CLOSE_BAD_MESSAGE, "Expected `int` >= 0 - at `$.settings.ao_rays`"),
+            (raw({"type": "open", "version": v, "volume": VOLUME, "settings": {"ao_rays": 257}}),
+             P.CLOSE_BAD_MESSAGE, "Expected `int` <= 256 (max_ao_rays) - at `$.settings.ao_rays`"),
+            (P.encode(cam(3)), P.CLOSE_BAD_MESSAGE, "message type must be one of open"),
             (b"\x00" * (LIMITS.max_message_bytes + 10), P.CLOSE_TOO_BIG, ""),
         ]
         for data, code, words in opens:
@@ -463,16 +479,18 @@ def test_bad_view_input_closes_that_session_only(srv, lib):
                 expect_close(ws, code, words)
             honest_still_served()
         updates = [
-            (P.pack({"type": "camera", "eye": [0.0, 0.0, math.nan]}), P.CLOSE_BAD_MESSAGE, "finite"),
-            (P.pack({"type": "camera", "eye": [0, 0, 1], "up": [0, 0, 0]}), P.CLOSE_BAD_MESSAGE, "up is zero"),
-            (P.pack({"type": "settings", "settings": {"mode": "sr", "width": 63}}), P.CLOSE_BAD_MESSAGE, "multiple"),
-            (P.pack({"type": "settings", "settings": {"mode": "reconstruct", "ao_samples": 9}}), P.CLOSE_BAD_MESSAGE,
-             f"reconstruct mode takes 0 to {MAX_RECON_AO_RAYS} AO rays per hit (ao_samples), got 9"),
-            (P.pack({"type": "settings", "settings": {"mode": "reconstruct", "ao_samples": -1}}), P.CLOSE_BAD_MESSAGE,
-             "ao_samples must be an integer in [0, 256], got -1"),
-            (P.pack({"type": "iso", "value": 1e300}), P.CLOSE_BAD_MESSAGE, "value"),
-            (P.pack({"type": "open", "version": P.PROTOCOL_VERSION, "volume": VOLUME}), P.CLOSE_BAD_MESSAGE, "message type"),
-            (msgpack.packb({"type": "iso", "value": 0.2})[:-3], P.CLOSE_BAD_MESSAGE, "malformed"),
+            (raw({"type": "camera", "eye": [0.0, 0.0, math.nan]}), P.CLOSE_BAD_MESSAGE, "at `$.eye[2]`"),
+            (raw({"type": "camera", "eye": [0, 0, 1], "up": [0, 0, 0]}), P.CLOSE_BAD_MESSAGE, "up is zero"),
+            (raw({"type": "settings", "settings": {"mode": "network", "width": 63}}), P.CLOSE_BAD_MESSAGE, "multiple"),
+            (raw({"type": "settings", "settings": {"mode": "reconstruct", "ao_rays": 9}}), P.CLOSE_BAD_MESSAGE,
+             f"reconstruct mode takes 0 to {MAX_RECON_AO_RAYS} AO rays per hit (ao_rays), got 9"),
+            (raw({"type": "settings", "settings": {"mode": "reconstruct", "ao_rays": -1}}), P.CLOSE_BAD_MESSAGE,
+             "Expected `int` >= 0 - at `$.settings.ao_rays`"),
+            (raw({"type": "settings", "settings": {"ao_samples": 1}}), P.CLOSE_BAD_MESSAGE,
+             "Object contains unknown field `ao_samples` - at `$.settings`"),
+            (raw({"type": "iso", "value": 1e300}), P.CLOSE_BAD_MESSAGE, "at `$.value`"),
+            (raw({"type": "open", "version": P.PROTOCOL_VERSION, "volume": VOLUME}), P.CLOSE_BAD_MESSAGE, "message type"),
+            (raw({"type": "iso", "value": 0.2})[:-3], P.CLOSE_BAD_MESSAGE, "malformed"),
         ]
         for data, code, words in updates:
             with session(srv, mode="full") as (ws, _):
@@ -489,7 +507,7 @@ def test_bad_view_input_closes_that_session_only(srv, lib):
         with ExitStack() as stack:
             for _ in range(LIMITS.max_sessions - 1):
                 ws = stack.enter_context(srv.view())
-                send(ws, P.OpenMsg(VOLUME, {"mode": "full", "width": 16, "height": 12, "refine": False}))
+                send(ws, P.OpenMsg(VOLUME, P.SettingsUpdate(mode="full", width=16, height=12, refine=False)))
                 assert isinstance(recv(ws), P.ReadyMsg)
             with srv.view() as ws:  # refused on connecting, before its open message
                 expect_close(ws, P.CLOSE_TOO_MANY, "try later")
@@ -510,7 +528,7 @@ def test_token_checked_on_every_request_and_handshake(lib):
                 status, body = s.get_json(path, headers)
                 assert status == 401 and "token" in body["error"], (path, headers)
             assert s.request("GET", path, headers={"Authorization": f"Bearer {TOKEN}"})[0] == 200
-        status, _, _ = s.request("POST", "/v1/upscale", P.pack(wire_frame(lib)))
+        status, _, _ = s.request("POST", "/v1/upscale", raw(wire_frame(lib)))
         assert status == 401
         for kwargs in ({}, {"additional_headers": {"Authorization": "Bearer nope"}},
                        {"subprotocols": [P.SUBPROTOCOL, P.TOKEN_SUBPROTOCOL_PREFIX + "nope"]}):
@@ -520,7 +538,7 @@ def test_token_checked_on_every_request_and_handshake(lib):
         for kwargs in ({"additional_headers": {P.TOKEN_HEADER: TOKEN}},
                        {"subprotocols": [P.SUBPROTOCOL, P.TOKEN_SUBPROTOCOL_PREFIX + TOKEN]}):
             with s.view(**kwargs) as ws:
-                send(ws, P.OpenMsg(VOLUME, {"mode": "full", "width": 16, "height": 12}))
+                send(ws, P.OpenMsg(VOLUME, P.SettingsUpdate(mode="full", width=16, height=12)))
                 assert isinstance(recv(ws), P.ReadyMsg) and isinstance(recv(ws), P.FrameMsg)
         assert not s.errors.records, s.errors.messages()
 

@@ -14,8 +14,8 @@ from websockets.exceptions import ConnectionClosed
 
 from isosr_render import orbit
 from isosr_server import protocol as P
-from server_fixtures import (CAM0, VOLUME, assert_image, cam, frame, lib, lib_full, recv,  # noqa: F401
-                             running_server, send, server_settings, session, settle, wire_frame)
+from server_fixtures import (CAM0, DEVICE, VOLUME, assert_image, cam, frame, lib, lib_full, raw, recv,  # noqa: F401
+                             running_server, send, server_settings, session, settle, wire, wire_frame)
 
 LIMITS = P.Limits(max_message_bytes=2**20, max_sessions=6, max_fps=1000.0, max_messages_per_s=5000.0)
 
@@ -31,14 +31,16 @@ _leaf = st.one_of(st.none(), st.booleans(), st.integers(-2**63, 2**64 - 1), st.f
 _value = st.recursive(_leaf, lambda inner: st.one_of(st.lists(inner, max_size=4),
                                                      st.dictionaries(st.text(max_size=6), inner, max_size=3)),
                       max_leaves=8)
+SMALL_FULL = P.SettingsUpdate(mode="full", width=16, height=12, refine=False)
 VALID_UPDATES = {
-    "camera": cam(40, seq=1).to_wire(),
-    "look-at": P.CameraMsg(eye=(0.5, 0.5, 1.5), seq=1).to_wire(),
-    "iso": P.IsoMsg(0.01, seq=1).to_wire(),
-    "settings": P.SettingsMsg({"mode": "bilinear", "width": 16, "height": 12, "quality": 50}, seq=1).to_wire(),
-    "focus": P.FocusMsg("circle", center=(8.0, 6.0), radius=4.0, seq=1).to_wire(),
+    "camera": wire(cam(40, seq=1)),
+    "look-at": wire(P.CameraMsg(eye=(0.5, 0.5, 1.5), seq=1)),
+    "iso": wire(P.IsoMsg(0.01, seq=1)),
+    "settings": wire(P.SettingsMsg(P.SettingsUpdate(mode="upscale", width=16, height=12, quality=50,
+                                                    interpolation="nearest"), seq=1)),
+    "focus": wire(P.FocusMsg("circle", center=(8.0, 6.0), radius=4.0, seq=1)),
 }
-VALID_OPEN = P.OpenMsg(VOLUME, {"mode": "full", "width": 16, "height": 12, "refine": False}, CAM0).to_wire()
+VALID_OPEN = wire(P.OpenMsg(VOLUME, SMALL_FULL, CAM0))
 
 
 @st.composite
@@ -51,7 +53,7 @@ def mutated(draw, valid: dict) -> dict:
         else:
             d[key] = draw(_value)
     if "settings" in d and isinstance(d["settings"], dict) and draw(st.booleans()):
-        d["settings"] = {**d["settings"], draw(st.sampled_from(list(P.ViewSettings.__dataclass_fields__))): draw(_value)}
+        d["settings"] = {**d["settings"], draw(st.sampled_from(P.ViewSettings.__struct_fields__)): draw(_value)}
     return d
 
 
@@ -69,12 +71,12 @@ def _answer_is_frame_or_close(ws):
 @given(data=st.data())
 def test_fuzz_view_messages(srv, data):
     kind = data.draw(st.sampled_from(sorted(VALID_UPDATES)))
-    wire = data.draw(mutated(VALID_UPDATES[kind]))
+    message = data.draw(mutated(VALID_UPDATES[kind]))
     settle(srv)
     with srv.view() as ws:
-        send(ws, P.OpenMsg(VOLUME, {"mode": "full", "width": 16, "height": 12, "refine": False}))
+        send(ws, P.OpenMsg(VOLUME, SMALL_FULL))
         recv(ws), recv(ws)
-        ws.send(P.pack(wire))
+        ws.send(raw(message))
         _answer_is_frame_or_close(ws)
 
 
@@ -83,13 +85,13 @@ def test_fuzz_view_messages(srv, data):
 def test_fuzz_acknowledgments(srv, data):
     """``received`` with any frame value (wrong, huge, negative, not an integer) or fields, after
     frame 0: a clean 1007 close, or (frame 0) accepted; then a camera still gets its frame."""
-    wire = data.draw(st.one_of(mutated(P.ReceivedMsg(0).to_wire()),
-                               st.builds(lambda n: P.ReceivedMsg(n).to_wire(), st.integers(0, P.MAX_SEQ))))
+    message = data.draw(st.one_of(mutated(wire(P.ReceivedMsg(0))),
+                                  st.builds(lambda n: wire(P.ReceivedMsg(n)), st.integers(0, P.MAX_SEQ))))
     settle(srv)
     with srv.view() as ws:
-        send(ws, P.OpenMsg(VOLUME, {"mode": "full", "width": 16, "height": 12, "refine": False}))
+        send(ws, P.OpenMsg(VOLUME, SMALL_FULL))
         recv(ws), recv(ws)
-        ws.send(P.pack(wire))
+        ws.send(raw(message))
         try:
             send(ws, cam(50, seq=1))  # frame 1 needs no acknowledgment: max_unacked_frames is 2
         except ConnectionClosed as closed:  # the server refused the acknowledgment first
@@ -99,11 +101,11 @@ def test_fuzz_acknowledgments(srv, data):
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck))
-@given(wire=mutated(VALID_OPEN))
-def test_fuzz_open(srv, wire):
+@given(message=mutated(VALID_OPEN))
+def test_fuzz_open(srv, message):
     settle(srv)
     with srv.view() as ws:
-        ws.send(P.pack(wire))
+        ws.send(raw(message))
         _answer_is_frame_or_close(ws)
 
 
@@ -111,10 +113,10 @@ def test_fuzz_open(srv, wire):
 @given(data=st.data())
 def test_fuzz_upscale(srv, lib, data):
     good = wire_frame(lib)
-    wire = data.draw(mutated({**good, "mask": dict(good["mask"]) if data.draw(st.booleans()) else good["mask"]}))
-    if isinstance(wire.get("mask"), dict) and data.draw(st.booleans()):
-        wire["mask"] = data.draw(mutated(good["mask"]))  # inside an array
-    status, _, body = srv.request("POST", "/v1/upscale", P.pack(wire))
+    message = data.draw(mutated({**good, "mask": dict(good["mask"]) if data.draw(st.booleans()) else good["mask"]}))
+    if isinstance(message.get("mask"), dict) and data.draw(st.booleans()):
+        message["mask"] = data.draw(mutated(good["mask"]))  # inside an array
+    status, _, body = srv.request("POST", "/v1/upscale", raw(message))
     assert status == 200 or (status in (400, 413, 422) and json.loads(body)["error"])
 
 

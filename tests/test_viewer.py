@@ -153,11 +153,13 @@ def test_viewer_explores_a_volume(server, browser):
     page = v.page
     v.wait_frame_after(0)
     assert page.get_attribute("#conn-state", "data-state") == "open"
+    assert page.input_value("#mode") == "auto" and not page.is_visible("#interpolation-row")
     shaded = v.settle(0)
     assert 0.05 < surface_fraction(shaded) < 0.9, "no isosurface on the canvas"
     assert len(shaded) == 240 and len(shaded[0]) == 320, "the image does not fit the window"
     assert page.get_attribute("#refined", "data-refined") == "true"
     assert float(page.inner_text("#stat-fps")) >= 0 and "total" in page.inner_text("#stat-times")
+    assert page.inner_text("#stat-method") not in ("", "-"), "the frame's method is shown"
 
     # Drag: the camera orbits.
     n = v.frames()
@@ -201,12 +203,19 @@ def test_viewer_explores_a_volume(server, browser):
     assert difference(pasted, moved) > 1.0, "the iso slider did not change the surface"
 
     # Modes: each reaches the server and comes back; reconstruction shows its AO rays control,
-    # which keeps to the server's bound (more would end the session).
-    for mode in ("full", "bilinear", "focus", "reconstruct", "sr"):
+    # which keeps to the server's bound (more would end the session); classic upscaling its
+    # interpolation.
+    for mode in ("full", "upscale", "focus", "reconstruct", "network"):
         n = v.frames()
         set_control(page, "#mode", mode)
         v.wait_frame_after(n, f"document.getElementById('view').dataset.mode === '{mode}'")
         assert page.is_visible("#recon-row") == (mode == "reconstruct")
+        assert page.is_visible("#interpolation-row") == (mode == "upscale")
+        if mode == "upscale":
+            n = v.frames()
+            set_control(page, "#interpolation", "bicubic")
+            v.wait_frame_after(n, "document.getElementById('view').dataset.mode === 'upscale'")
+            assert not page.is_visible("#banner")
         if mode == "reconstruct":
             assert page.get_attribute("#recon-rays", "max") == str(MAX_RECON_AO_RAYS)
             n = v.frames()
@@ -232,6 +241,14 @@ def test_viewer_explores_a_volume(server, browser):
     set_control(page, "#channel", "shaded")
     v.wait_frame_after(n, "document.getElementById('view').dataset.channel === 'shaded'")
     assert not page.is_visible("#legend-box")
+
+    # Keys 1..7 pick the modes in the menu's order.
+    page.keyboard.press("3")
+    assert page.input_value("#mode") == "upscale"
+    n = v.frames()
+    page.keyboard.press("2")
+    assert page.input_value("#mode") == "network"
+    v.wait_frame_after(n, "document.getElementById('view').dataset.mode === 'network'")
 
     # Split: the right half comes from a second session in full mode.
     page.check("#split")

@@ -55,7 +55,7 @@ async def end_ws(ws: WebSocket, kind: str, e: BaseException, metrics: ServerMetr
     metrics.error(kind, code)
     if ws.application_state == WebSocketState.CONNECTED and ws.client_state == WebSocketState.CONNECTED:
         try:
-            await ws.send_bytes(pack(ErrorMsg(code, reason).to_wire()))
+            await ws.send_bytes(encode(ErrorMsg(code, reason)))
             await ws.close(code, close_reason(reason))
         except Exception:  # the client went away meanwhile
             pass

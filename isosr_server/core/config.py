@@ -18,6 +18,8 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
+import msgspec
+
 from isosr_net.inference import PRECISIONS, default_precision
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL
 from isosr_net.upscaler import DEFAULT_MODEL
@@ -158,7 +160,8 @@ def options() -> list[Option]:
     """Every setting's option: the fields of `Settings`, then those of `Limits`."""
     own = [Option(f.name, f.default, f.metadata["help"], f.metadata["parse"], f.metadata["choices"], False)
            for f in fields(Settings) if f.metadata]
-    limits = [Option(f.name, f.default, f.name.replace("_", " "), type(f.default), None, True) for f in fields(Limits)]
+    limits = [Option(f.name, f.default, f.name.replace("_", " "), type(f.default), None, True)
+              for f in msgspec.structs.fields(Limits)]
     return own + limits
 
 

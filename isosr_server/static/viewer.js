@@ -5,7 +5,8 @@ import { drawLegend } from "./legend.js";
 const $ = (id) => document.getElementById(id);
 const DEFAULT_CAMERA = { yaw: 30, pitch: 20, distance: 1.8, target: [0, 0, 0], fov_y: 40 };
 const CHANNELS = ["shaded", "mask", "normal", "depth", "ao", "flow"];
-const MODE_KEYS = { 1: "full", 2: "sr", 3: "bilinear", 4: "focus", 5: "reconstruct" };
+// Keys 1..7 pick the modes in the menu's order.
+const MODE_KEYS = { 1: "auto", 2: "network", 3: "upscale", 4: "reconstruct", 5: "atrous", 6: "full", 7: "focus" };
 const TOKEN_KEY = "isosr.token";
 const SPARK_FRAMES = 120;
 
@@ -24,7 +25,7 @@ const state = {
   height: 240,
   split: 0.5,
   pointer: null,
-  sessions: [], // [{session, mode, image, frameId, stats}]
+  sessions: [], // [{session, mode, image, frameId, stats, method}]
   pending: {},
   generation: 0, // of openSessions calls
 };
@@ -87,12 +88,21 @@ function reconRays() {
   return rays;
 }
 
+/** AO rays per hit: reconstruct mode's control; the AO control for a-trous (its filter needs rays) and, when
+ * checked, for full-resolution renders. */
+function aoRays(mode) {
+  if (mode === "reconstruct") return reconRays();
+  if (mode === "atrous" || $("ao").checked) return Number($("ao-rays").value);
+  return 0;
+}
+
 function settings(mode) {
   return {
     mode,
     width: state.width,
     height: state.height,
-    ao_samples: mode === "reconstruct" ? reconRays() : $("ao").checked ? Number($("ao-samples").value) : 0,
+    ao_rays: aoRays(mode),
+    interpolation: $("interpolation").value,
     channel: $("channel").value,
     refine: !$("split").checked, // a refined frame is full-res: both halves would be the same
     encoding: "jpeg",
@@ -152,6 +162,8 @@ function openMessage(slot) {
 function onReady(slot, index, ready) {
   state.factor = ready.upscale_factor;
   state.limits = ready.limits;
+  state.maxReconRays = ready.max_recon_ao_rays;
+  $("recon-rays").max = state.maxReconRays;
   if (index === 0) {
     state.info = ready.volume;
     if (state.iso === null) state.iso = ready.volume.iso;
@@ -213,6 +225,7 @@ async function onFrame(slot, frame, latency) {
   st.times = frame.times;
   st.bytes = frame.bytes;
   slot.refined = frame.refined;
+  slot.method = frame.method;
   slot.legend = frame.legend || null;
   const id = ++slot.frameId;
   const blob = new Blob([frame.image], { type: `image/${frame.encoding}` });
@@ -248,6 +261,7 @@ function showFrameInfo(slot) {
   const seconds = st.arrivals.length > 1 ? (st.arrivals.at(-1).t - st.arrivals[0].t) / 1000 : 0;
   const fps = seconds > 0 ? (st.arrivals.length - 1) / seconds : 0;
   const bits = st.arrivals.reduce((sum, f) => sum + f.bytes, 0) * 8;
+  $("stat-method").textContent = slot.method;
   $("stat-fps").textContent = fps.toFixed(1);
   $("stat-latency").textContent = st.latency === null ? "-" : `${st.latency.toFixed(0)} ms`;
   $("stat-times").textContent = Object.entries(st.times)
@@ -385,6 +399,7 @@ function updateSplitHandle() {
   handle.style.left = `${state.split * state.width}px`;
   handle.style.height = `${state.height}px`;
   $("lens-row").hidden = !modes().includes("focus");
+  $("interpolation-row").hidden = !modes().includes("upscale");
   $("recon-row").hidden = !modes().includes("reconstruct");
   showLens();
 }
@@ -547,7 +562,8 @@ function bindControls() {
   $("split").addEventListener("change", () => openSessions());
   $("channel").addEventListener("change", channelChanged);
   $("ao").addEventListener("change", sendSettings);
-  $("ao-samples").addEventListener("change", sendSettings);
+  $("ao-rays").addEventListener("change", sendSettings);
+  $("interpolation").addEventListener("change", sendSettings);
   $("recon-rays").addEventListener("change", sendSettings);
   $("lens-radius").addEventListener("input", () => { showLens(); queue("focus", focusMessage()); });
   $("camera-reset").addEventListener("click", resetCamera);

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import asyncio
 import json
-from dataclasses import replace
+
+import msgspec
 
 from fastapi import APIRouter, Depends, HTTPException, Request, WebSocket
 from fastapi.responses import Response
@@ -19,8 +20,8 @@ from isosr_server.api.deps import (AuthorizedDep, EngineDep, LimitsDep, MetricsD
                                    require_token)
 from isosr_server.api.ws import accept, end_ws, receive
 from isosr_server.engine import Engine
-from isosr_server.protocol import (MSGPACK_MEDIA_TYPE, Limits, ProtocolError, UpscaleRequest, UpscaleResponse, pack,
-                                   parse)
+from isosr_server.protocol import (MSGPACK_MEDIA_TYPE, HighresBuffers, Limits, ProtocolError, UpscaleRequest,
+                                   UpscaleResponse, encode, parse)
 from isosr_server.sessions import RateLimiter
 
 BODY_TYPES = (MSGPACK_MEDIA_TYPE, "application/x-msgpack", "application/octet-stream")
@@ -75,7 +76,7 @@ async def upscale(request: Request, engine: EngineDep, limits: LimitsDep, metric
     msg = await asyncio.to_thread(parse, await read_body(request, limits), limits, (UpscaleRequest,))
     accept_type = request.headers.get("accept", "").split(",")[0].split(";")[0].strip()
     if msg.output == "buffers" and accept_type in IMAGE_TYPES:
-        msg = replace(msg, output=IMAGE_TYPES[accept_type])
+        msg = msgspec.structs.replace(msg, output=IMAGE_TYPES[accept_type])
     check_upscale(msg, engine, limits)
     upscaler = sessions.get(msg.session) if msg.session else engine.new_upscaler()
     image, buffers, times = await run_upscale(engine, upscaler, msg)
@@ -87,8 +88,9 @@ async def upscale(request: Request, engine: EngineDep, limits: LimitsDep, metric
         return Response(image, media_type=f"image/{msg.output}", headers={"x-isosr-times": json.dumps(times)})
     nbytes = sum(a.nbytes for a in buffers.values())
     metrics.frame("upscale", "buffers", False, times, nbytes)
-    reply = UpscaleResponse(0, w * f, h * f, "buffers", times, nbytes, buffers=buffers)
-    return Response(pack(reply.to_wire()), media_type=MSGPACK_MEDIA_TYPE)
+    reply = UpscaleResponse(seq=0, width=w * f, height=h * f, output="buffers", times=times, nbytes=nbytes,
+                            buffers=HighresBuffers(**buffers))
+    return Response(encode(reply), media_type=MSGPACK_MEDIA_TYPE)
 
 
 @router.websocket("/stream")
@@ -111,8 +113,10 @@ async def upscale_stream(ws: WebSocket, authorized: AuthorizedDep, engine: Engin
             h, w = msg.mask.shape
             f = engine.upscale_factor
             nbytes = len(image) if image is not None else sum(a.nbytes for a in buffers.values())
-            reply = UpscaleResponse(seq, w * f, h * f, msg.output, times, nbytes, buffers=buffers, image=image)
-            await ws.send_bytes(pack(reply.to_wire()))
+            reply = UpscaleResponse(seq=seq, width=w * f, height=h * f, output=msg.output, times=times,
+                                    nbytes=nbytes, buffers=None if buffers is None else HighresBuffers(**buffers),
+                                    image=image)
+            await ws.send_bytes(encode(reply))
             metrics.frame("upscale", msg.output, False, times, nbytes)
             seq += 1
     except Exception as e:

@@ -9,11 +9,12 @@ import secrets
 
 from fastapi import APIRouter, WebSocket
 
+from isosr_net.reconnet import MAX_RECON_AO_RAYS
 from isosr_server.api.deps import AuthorizedDep, CatalogDep, EngineDep, LimitsDep, MetricsDep, ViewSessionsDep
 from isosr_server.api.ws import accept, end_ws, receive
 from isosr_server.engine import Engine
 from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, CLOSE_IDLE, FocusMsg, Limits, OpenMsg, ProtocolError,
-                                   ReadyMsg, ViewSettings, limits_to_wire, pack, parse)
+                                   ReadyMsg, ViewSettings, VolumeSummary, encode, parse)
 from isosr_server.sessions import (DEFAULT_CAMERA, RateLimiter, SessionCounter, ViewSession, ViewState, run_frames,
                                    to_camera)
 from isosr_server.volumes import VolumeCatalog, load_volume
@@ -85,9 +86,9 @@ async def open_view(ws: WebSocket, limiter: RateLimiter, limits: Limits, catalog
                       msg.camera.seq if msg.camera and msg.camera.seq is not None else -1)
     session = ViewSession(secrets.token_hex(8), msg.volume, volume, state, engine.context, limits,
                           lambda: view_sessions.count)
-    ready = ReadyMsg(session.id, info.to_json() | {"iso_normalized": normalized}, vars(settings),
-                     engine.upscale_factor, limits_to_wire(limits))
-    await ws.send_bytes(pack(ready.to_wire()))
+    ready = ReadyMsg(session.id, VolumeSummary(**info.to_json(), iso_normalized=normalized), settings,
+                     engine.upscale_factor, MAX_RECON_AO_RAYS, limits)
+    await ws.send_bytes(encode(ready))
     log.info("view session %s opened on %s (%s %dx%d)", session.id, msg.volume, settings.mode, settings.width,
              settings.height)
     return session
