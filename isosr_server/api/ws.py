@@ -11,7 +11,7 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from isosr_server.metrics import ServerMetrics
 from isosr_server.protocol import (CLOSE_IDLE, CLOSE_INTERNAL, CLOSE_POLICY, CLOSE_UNAUTHORIZED, SUBPROTOCOL,
-                                   ErrorMsg, Limits, ProtocolError, pack)
+                                   ErrorMsg, Limits, ProtocolError, encode)
 from isosr_server.sessions import RateLimiter
 
 log = logging.getLogger("isosr.server")
