@@ -32,6 +32,7 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from isosr_render.catalog import shared_volumes_dir
 from isosr_server.engine import Engine, EngineConfig
+from isosr_server.guard import Guard
 from isosr_server.metrics import ServerMetrics
 from isosr_server.protocol import (CLOSE_IDLE, CLOSE_INTERNAL, CLOSE_NOT_FOUND, CLOSE_POLICY, CLOSE_UNAUTHORIZED,
                                    MSGPACK_MEDIA_TYPE, PROTOCOL_VERSION, SUBPROTOCOL, TOKEN_HEADER,
@@ -150,6 +151,7 @@ def create_app(config: ServerConfig) -> FastAPI:
         return False
 
     app = FastAPI(title="isosr", version=str(PROTOCOL_VERSION), lifespan=lifespan)
+    app.add_middleware(Guard, limits=limits)
     http = APIRouter(dependencies=[Depends(require_token)])
 
     @app.exception_handler(StarletteHTTPException)  # FastAPI's HTTPException and the router's 404 / 405
@@ -311,10 +313,10 @@ def create_app(config: ServerConfig) -> FastAPI:
         limiter = RateLimiter(limits.max_messages_per_s)
         counted, tasks = False, []
         try:
+            session = await open_view(ws, limiter)
             view_sessions.acquire("view sessions")
             counted = True
             metrics.sessions.labels("view").set(view_sessions.count)
-            session = await open_view(ws, limiter)
             renderer = await engine.call(engine.renderer_sync, session.volume_name, session.volume)
             upscaler, recon = engine.new_upscaler(), engine.new_recon_stream()
 

@@ -135,6 +135,14 @@ class Limits:
         max_ao_samples: most AO rays per pixel a client may ask for (refined frames included).
         max_unacked_frames: most frames a view session has sent (or is making) that its client
             has not acknowledged with ``received``; the server renders the next one only below it.
+        open_timeout_s: a WebSocket that sends no first message (``open``) within it is closed
+            with CLOSE_IDLE and holds no session slot.
+        max_sessions_per_client: most WebSocket sessions (past their first message) one client
+            address holds.
+        body_timeout_s: an HTTP request body must arrive within it (HTTP 408 after).
+        max_connections: most HTTP requests and WebSockets in progress.
+        max_connections_per_client: most HTTP requests and WebSockets in progress from one client
+            address.
     """
 
     max_message_bytes: int = 32 * 2**20
@@ -146,6 +154,11 @@ class Limits:
     idle_timeout_s: float = 300.0
     max_ao_samples: int = 256
     max_unacked_frames: int = 2
+    open_timeout_s: float = 10.0
+    max_sessions_per_client: int = 8
+    body_timeout_s: float = 30.0
+    max_connections: int = 256
+    max_connections_per_client: int = 32
 
     def __post_init__(self):
         for f in fields(self):
