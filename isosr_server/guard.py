@@ -15,11 +15,12 @@ Request bodies
     or once the bytes read pass it). A body over the limit by at most DRAIN_FACTOR times is read
     to its end and dropped, within the same deadline, before the 413, so that a client that
     sends its whole body before reading (most do) gets the answer rather than a reset; a bigger
-    one, or one whose client waits for ``100 Continue``, is answered at once. The bodies one client address has in flight (each counted from its
-    request to its end: the declared length, or the bytes read so far where none is declared)
-    stay within CLIENT_BODY_FACTOR times ``max_message_bytes``; a body past that gets 503 and
-    Retry-After. Whichever bound a body breaks, the app reads ``http.disconnect`` and the guard
-    answers in its place (unless the app's answer has begun).
+    one, or one whose client waits for ``100 Continue``, is answered at once. The bodies one
+    client address has in flight (each counted from its request to its end: the declared
+    length, or the bytes read so far where none is declared) stay within CLIENT_BODY_FACTOR
+    times ``max_message_bytes``; a body past that gets 503 and Retry-After. Whichever bound a
+    body breaks, the app reads ``http.disconnect`` and the guard answers in its place (unless
+    the app's answer has begun).
 
 WebSockets
     The first message (a view session's ``open``) must arrive within ``open_timeout_s`` of the
