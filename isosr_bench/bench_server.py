@@ -277,8 +277,9 @@ def main(argv: list[str] | None = None) -> None:
     if args.url:
         rows = run(args.url)
     else:
-        # Room for a case's sessions while the previous case's close; no frame-rate cap.
-        options = ("--max-sessions", str(2 * max(counts) + 4), "--max-fps", "1000")
+        # Room for a case's sessions (all from this address) while the previous case's close; no frame-rate cap.
+        room = str(2 * max(counts) + 4)
+        options = ("--max-sessions", room, "--max-sessions-per-client", room, "--max-fps", "1000")
         with ServerProcess(args.device, options) as server:
             rows = run(server.url)
     table = [r for r in rows if "mode" in r]

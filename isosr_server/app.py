@@ -29,6 +29,7 @@ from isosr_server.api.errors import add_exception_handlers
 from isosr_server.api.main import api_router
 from isosr_server.core.config import Settings
 from isosr_server.engine import Engine, EngineConfig
+from isosr_server.guard import Guard
 from isosr_server.metrics import ServerMetrics
 from isosr_server.protocol import PROTOCOL_VERSION, Limits
 from isosr_server.sessions import SessionCounter, UpscaleSessions
@@ -57,6 +58,7 @@ def create_app(settings: Settings) -> FastAPI:
     s.view_sessions = SessionCounter(settings.limits.max_sessions)
     s.upscale_sessions = UpscaleSessions(settings.limits, s.engine.new_upscaler)
     s.ready = False
+    app.add_middleware(Guard, limits=settings.limits)
     add_exception_handlers(app)
     app.include_router(api_router)
     return app

@@ -20,5 +20,5 @@ def serve(*args: str):
 
 @pytest.fixture(scope="module")
 def server():
-    with serve() as s:
+    with serve("--max-sessions-per-client", "16") as s:  # the load test's 16 sessions come from one address
         yield s

@@ -509,7 +509,8 @@ def test_bad_view_input_closes_that_session_only(srv, lib):
                 ws = stack.enter_context(srv.view())
                 send(ws, P.OpenMsg(VOLUME, P.SettingsUpdate(mode="full", width=16, height=12, refine=False)))
                 assert isinstance(recv(ws), P.ReadyMsg)
-            with srv.view() as ws:  # refused on connecting, before its open message
+            with srv.view() as ws:  # refused after its open message: a silent WebSocket holds no slot
+                send(ws, P.OpenMsg(VOLUME, {"mode": "full", "width": 16, "height": 12, "refine": False}))
                 expect_close(ws, P.CLOSE_TOO_MANY, "try later")
         honest_still_served()
     assert srv.get_json("/v2/health/live")[0] == 200

@@ -44,36 +44,20 @@ async def run_upscale(engine: Engine, upscaler: Upscaler, msg: UpscaleRequest):
         raise ProtocolError(f"cannot upscale this frame: {e}", http_status=422) from None
 
 
-async def read_body(request: Request, limits: Limits) -> bytes:
-    """The msgpack body, at most ``max_message_bytes`` (413 beyond; 415 for another content type).
-
-    A body up to twice the limit is read to its end (kept only up to the limit), so that the
-    client, still sending, gets the 413 and its reason rather than a reset connection."""
+async def read_body(request: Request) -> bytes:
+    """The msgpack body (415 for another content type); the guard (:mod:`isosr_server.guard`) has
+    bounded its size (413) and the time it may take (408) already."""
     kind = request.headers.get("content-type", MSGPACK_MEDIA_TYPE).split(";")[0].strip()
     if kind not in BODY_TYPES:
         raise HTTPException(415, f"send a msgpack body ({MSGPACK_MEDIA_TYPE}), not {kind}")
-    drain = 2 * limits.max_message_bytes
-    declared = request.headers.get("content-length", "")
-    too_big = ProtocolError(f"body exceeds the limit of {limits.max_message_bytes} bytes", http_status=413)
-    if declared.isdigit() and int(declared) > drain:
-        raise too_big
-    body, total = bytearray(), 0
-    async for chunk in request.stream():
-        total += len(chunk)
-        if total > drain:
-            raise too_big
-        if total <= limits.max_message_bytes:
-            body += chunk
-    if total > limits.max_message_bytes:
-        raise too_big
-    return bytes(body)
+    return await request.body()
 
 
 @router.post("", dependencies=[Depends(require_token)])
 async def upscale(request: Request, engine: EngineDep, limits: LimitsDep, metrics: MetricsDep,
                   sessions: UpscaleSessionsDep):
     # Off the event loop: decoding inflates and checks megabytes of arrays.
-    msg = await asyncio.to_thread(parse, await read_body(request, limits), limits, (UpscaleRequest,))
+    msg = await asyncio.to_thread(parse, await read_body(request), limits, (UpscaleRequest,))
     accept_type = request.headers.get("accept", "").split(",")[0].split(";")[0].strip()
     if msg.output == "buffers" and accept_type in IMAGE_TYPES:
         msg = msgspec.structs.replace(msg, output=IMAGE_TYPES[accept_type])

@@ -32,10 +32,12 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
     limiter = RateLimiter(limits.max_messages_per_s)
     counted, tasks = False, []
     try:
+        # A slot is taken only once a valid open arrived: a silent connection holds none.
+        opened = parse(await receive(ws, limiter, limits), limits, (OpenMsg,))
         view_sessions.acquire("view sessions")
         counted = True
         metrics.sessions.labels("view").set(view_sessions.count)
-        session = await open_view(ws, limiter, limits, catalog, engine, view_sessions)
+        session = await open_view(ws, opened, limits, catalog, engine, view_sessions)
         renderer = await engine.call(engine.renderer_sync, session.volume_name, session.volume)
         frames = engine.new_session_frames(session.volume_name)
 
@@ -70,10 +72,9 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
             metrics.sessions.labels("view").set(view_sessions.count)
 
 
-async def open_view(ws: WebSocket, limiter: RateLimiter, limits: Limits, catalog: VolumeCatalog,
+async def open_view(ws: WebSocket, msg: OpenMsg, limits: Limits, catalog: VolumeCatalog,
                     engine: Engine, view_sessions: SessionCounter) -> ViewSession:
-    """Read ``open``, load the volume, answer ``ready``: the new session."""
-    msg = parse(await receive(ws, limiter, limits), limits, (OpenMsg,))
+    """Load the volume ``open`` names, answer ``ready``: the new session."""
     volume, info = await load_volume(catalog, msg.volume)
     settings = ViewSettings().updated(msg.settings, limits)
     iso = info.iso if msg.iso is None else msg.iso
