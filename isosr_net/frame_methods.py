@@ -197,6 +197,8 @@ class FrameRunner(ABC):
         atrous: the a-trous filter's knobs (see :func:`atrous_filter`).
         keep: buffers to make and return besides what the method needs (e.g. a channel view's
             ``depth`` or ``flow``), at the frame size.
+        shade: make the final color; off (a channel view shows one kept buffer instead), a method
+            computes only what its kept buffers need (a full-resolution render: only them).
     """
 
     kind: ClassVar[str]
@@ -212,7 +214,8 @@ class FrameRunner(ABC):
 
     def __init__(self, method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int,
                  shading: ShadingParams = ShadingParams(), ao_radius: float = AO_RADIUS,
-                 networks: Networks | None = None, atrous: ATrousConfig = ATrousConfig(), keep: tuple[str, ...] = ()):
+                 networks: Networks | None = None, atrous: ATrousConfig = ATrousConfig(), keep: tuple[str, ...] = (),
+                 shade: bool = True):
         check_int(width, "width", 1, where="frame")
         check_int(height, "height", 1, where="frame")
         if width % method.factor or height % method.factor:
@@ -220,6 +223,7 @@ class FrameRunner(ABC):
         self.method, self.renderer, self.iso = method, renderer, float(iso)
         self.width, self.height = width, height
         self.shading, self.ao_radius, self.atrous, self.keep = shading, ao_radius, atrous, tuple(keep)
+        self.shade = shade
         self.device = str(renderer.device)
         self._last_render_ms: float | None = None
         self.net: RecurrentNetwork | None = None
@@ -331,6 +335,13 @@ class FrameRunner(ABC):
                 yield
         return out
 
+    def shaded(self, buffers: FrameBuffers, timer: StageTimer) -> FrameBuffers:
+        """``buffers`` with the final color (unless the runner does not shade)."""
+        if self.shade:
+            with timer("shading"):
+                buffers.color = shade(buffers.mask, buffers.normal, buffers.ao, self.shading)
+        return buffers
+
     def _to_frame_size(self, name: str, t: torch.Tensor) -> torch.Tensor:
         """A rendered buffer at the frame size: nearest upsampling of low-res ones (flow in frame pixels)."""
         f = self.method.factor
@@ -338,12 +349,6 @@ class FrameRunner(ABC):
             return t
         up = torch.repeat_interleave(torch.repeat_interleave(t, f, 0), f, 1)
         return up * f if name == "flow" else up
-
-
-def _shaded(buffers: FrameBuffers, shading: ShadingParams, timer: StageTimer) -> FrameBuffers:
-    with timer("shading"):
-        buffers.color = shade(buffers.mask, buffers.normal, buffers.ao, shading)
-    return buffers
 
 
 @register_runner("full")
@@ -359,6 +364,8 @@ class FullRunner(FrameRunner):
         return f"full, AO {m.ao_rays}, spp {m.spp}"
 
     def outputs(self) -> tuple[str, ...]:
+        if not self.shade:  # a buffer view: the mask and what is kept
+            return ("mask",) + tuple(k for k in self.keep if k != "flow")
         return ("mask", "normal") + (("ao",) if self.method.ao_rays else ())
 
     @classmethod
@@ -366,7 +373,7 @@ class FullRunner(FrameRunner):
         return ("mask", "normal") + (("ao",) if m.ao_rays else ())
 
     def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
-        return _shaded(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=rendered.ao), self.shading, timer)
+        return self.shaded(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=rendered.ao), timer)
 
     def rows(self, camera: Camera, start: int, stop: int) -> torch.Tensor:
         """Rows ``[start, stop)`` of the frame's color only (a focus lens's region).
@@ -402,7 +409,7 @@ class ATrousRunner(FrameRunner):
         with timer("filter"):
             ao = atrous_filter(rendered.ao[None, None], rendered.mask[None, None],
                                rendered.normal.permute(2, 0, 1)[None], rendered.depth[None, None], self.atrous)[0, 0]
-        return _shaded(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=ao), self.shading, timer)
+        return self.shaded(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=ao), timer)
 
 
 @register_runner("reconstruct")
@@ -430,7 +437,8 @@ class ReconstructRunner(FrameRunner):
 
     def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
         with timer("network"):  # shading included: one call
-            return self.net.reconstruct(rendered, self.method.ao_rays, self.method.spp, self.shading)
+            return self.net.reconstruct(rendered, self.method.ao_rays, self.method.spp,
+                                        self.shading if self.shade else None)
 
 
 @register_runner("upscale")
@@ -456,7 +464,7 @@ class ClassicUpscaleRunner(FrameRunner):
         with timer("filter"):
             up = upscale_classic(rendered, self.method.factor, self.method.interpolation)
         up.ao = None  # no AO: shaded unoccluded
-        return _shaded(up, self.shading, timer)
+        return self.shaded(up, timer)
 
 
 @register_runner("network")
@@ -484,7 +492,7 @@ class NetworkRunner(FrameRunner):
     def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
         with timer("network"):
             high = self.net.upscale(rendered)
-        return _shaded(high, self.shading, timer)
+        return self.shaded(high, timer)
 
 
 @register_runner("buffers")
@@ -563,17 +571,19 @@ class FrameStream:
     _key: tuple | None = None
 
     def frame(self, method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int, camera: Camera,
-              prev_camera: Camera | None, ao_radius: float = AO_RADIUS, keep: tuple[str, ...] = ()) -> FrameResult:
+              prev_camera: Camera | None, ao_radius: float = AO_RADIUS, keep: tuple[str, ...] = (),
+              shade: bool = True) -> FrameResult:
         """The next frame; ``prev_camera`` counts only while the runner stays the same."""
-        return finish_steps(self.steps(method, renderer, iso, width, height, camera, prev_camera, ao_radius, keep))
+        return finish_steps(self.steps(method, renderer, iso, width, height, camera, prev_camera, ao_radius, keep,
+                                       shade))
 
     def steps(self, method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int, camera: Camera,
               prev_camera: Camera | None, ao_radius: float = AO_RADIUS, keep: tuple[str, ...] = (),
-              slice_ms: float | None = None) -> Generator[None, None, FrameResult]:
+              shade: bool = True, slice_ms: float | None = None) -> Generator[None, None, FrameResult]:
         """:meth:`frame` in slices (:meth:`FrameRunner.steps`)."""
-        key = (method, renderer, float(iso), width, height, float(ao_radius), tuple(keep))
+        key = (method, renderer, float(iso), width, height, float(ao_radius), tuple(keep), shade)
         if key != self._key:
             self.runner = make_runner(method, renderer, iso, width, height, shading=self.shading,
-                                      ao_radius=ao_radius, networks=self.networks, keep=keep)
+                                      ao_radius=ao_radius, networks=self.networks, keep=keep, shade=shade)
             self._key, prev_camera = key, None
         return (yield from self.runner.steps(camera, prev_camera, slice_ms))

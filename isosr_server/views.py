@@ -207,11 +207,13 @@ class SessionFrames:
         """Make one frame of ``job`` (device thread) in slices of about ``slice_ms``
         (:meth:`isosr_net.frame_methods.FrameRunner.steps`): a generator that returns the frame."""
         st = job.settings
-        keep = () if st.channel == "shaded" else (st.channel,)
-        timer = StageTimer(renderer.device)
+        shaded = st.channel == "shaded"
+        keep = () if shaded else (st.channel,)
+        timer = StageTimer(str(renderer.device))
         if job.refined:
             method = refined_method(st)
-            runner = make_runner(method, renderer, job.iso, st.width, st.height, ao_radius=st.ao_radius, keep=keep)
+            runner = make_runner(method, renderer, job.iso, st.width, st.height, ao_radius=st.ao_radius, keep=keep,
+                                 shade=shaded)
             result = yield from runner.steps(job.camera, None, slice_ms)
             prev_seq = -1
         else:
@@ -219,10 +221,10 @@ class SessionFrames:
             method = view.method(st, self.ctx, self, renderer, job)
             prev_camera, prev_seq = self._prev or (None, -1)
             result = yield from self.stream.steps(method, renderer, job.iso, st.width, st.height, job.camera,
-                                                  prev_camera, st.ao_radius, keep, slice_ms)
+                                                  prev_camera, st.ao_radius, keep, shaded, slice_ms)
             self._prev = (job.camera, job.seq)
             prev_seq = prev_seq if result.continued else -1
-        if st.channel != "shaded":
+        if not shaded:
             with timer("shading"):
                 color, legend = false_color(result.buffers, st.channel)
         elif not method.runner.shaded:

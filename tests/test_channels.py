@@ -5,18 +5,16 @@ mode computes only the buffers the asked channel needs, and the view sessions th
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 import pytest
 import torch
 
 from isosr_net.frame_methods import FrameMethod, Networks, make_runner
-from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
-from isosr_net.upscaler import Upscaler
 from isosr_render import FrameBuffers, Renderer, orbit, parse_procedural
 from isosr_server import channels
-from isosr_server.pipeline import FrameSpec, ReconStream, StageTimer
-from isosr_server.protocol import CHANNELS, FocusMsg, ProtocolError, ViewSettings
+from isosr_server import views
+from isosr_server.protocol import CHANNELS, ProtocolError, ViewSettings
+from isosr_server.views import ViewContext
 
 from conftest import DEVICE
 from net_fixtures import tiny_model_dir
@@ -73,12 +71,18 @@ def test_hard_buffers_stay_finite(case):
         assert math.isfinite(legend["lo"]) and math.isfinite(legend["hi"]), (case, channel, legend)
 
 
+CTX = ViewContext(factor=4, precision="fp32")
+
+
 def test_settings_a_channel_cannot_show_are_refused():
-    with pytest.raises(ProtocolError, match="ao_rays > 0"):
-        channels.check(ViewSettings(mode="full", ao_rays=0, channel="ao"))
-    with pytest.raises(ProtocolError, match="channel must be one of"):
-        channels.check(ViewSettings(channel="color"))
-    channels.check(ViewSettings(mode="network", ao_rays=0, channel="ao"))  # the network's AO
+    with pytest.raises(ProtocolError, match=r"full mode makes no AO to show \(give ao_rays > 0\)"):
+        views.check(ViewSettings(mode="full", ao_rays=0, channel="ao"), CTX)
+    with pytest.raises(ProtocolError, match="upscale mode makes no AO"):
+        views.check(ViewSettings(mode="upscale", channel="ao"), CTX)
+    with pytest.raises(ProtocolError, match="no channel view"):
+        views.check(ViewSettings(mode="buffers", channel="depth"), CTX)
+    views.check(ViewSettings(mode="network", ao_rays=0, channel="ao"), CTX)  # the network's AO
+    views.check(ViewSettings(mode="auto", channel="ao"), CTX)  # chosen per frame
 
 
 @pytest.fixture(scope="module")
@@ -86,55 +90,46 @@ def renderer():
     return Renderer(parse_procedural("proc:torus@24"), DEVICE)
 
 
-def spec(mode: str, channel: str, prev: bool = False, ao_samples: int = 0) -> FrameSpec:
-    return FrameSpec(mode, orbit(30, 20, 1.6), orbit(28, 20, 1.6) if prev else None, 0.5, 32, 24, ao_samples, 0.05,
-                     FocusMsg("none"), 0, channel)
+CAM, PREV = orbit(30, 20, 1.6), orbit(28, 20, 1.6)
 
 
-@pytest.mark.parametrize("channel, ao_samples, present", [
-    ("mask", 0, ["mask"]), ("normal", 0, ["mask", "normal"]), ("depth", 0, ["mask", "depth"]),
+@pytest.mark.parametrize("channel, ao_rays, present", [
+    ("mask", 0, ["mask"]), ("normal", 0, ["mask", "normal"]), ("depth", 64, ["mask", "depth"]),
     ("ao", 2, ["mask", "ao"]), ("flow", 0, ["mask", "flow"])])
-def test_full_mode_renders_only_the_channel(renderer, channel, ao_samples, present):
-    buffers = channels.channel_buffers(renderer, None, 2, spec("full", channel, prev=True, ao_samples=ao_samples),
-                                       StageTimer(torch.device(DEVICE)))
-    assert buffers.present() == present
+def test_full_mode_renders_only_the_channel(renderer, channel, ao_rays, present):
+    runner = make_runner(FrameMethod("full", ao_rays=ao_rays), renderer, 0.5, 32, 24, keep=(channel,), shade=False)
+    buffers = runner.frame(CAM, PREV).buffers
+    assert buffers.present() == present, "no color, no AO rays for a depth view"
     assert buffers.mask.shape == (24, 32) and buffers.mask.max() == 1.0
 
 
 def test_lowres_modes_show_output_resolution_buffers(renderer, tmp_path_factory):
-    upscaler = Upscaler(tiny_model_dir(tmp_path_factory), DEVICE)
-    factor = upscaler.upscale_factor
-    timer = StageTimer(torch.device(DEVICE))
-    network = channels.channel_buffers(renderer, upscaler, factor, spec("network", "flow", prev=True), timer)
-    assert network.flow.shape == (24, 32, 2) and network.ao.shape == (24, 32)
-    assert network.flow.abs().max() > 0, "a moved camera gives flow"
-    classic = channels.channel_buffers(renderer, upscaler, factor, spec("upscale", "depth"), timer)
-    assert classic.flow is None and torch.equal(classic.ao, (classic.ao > -1).float()), "the baseline has no AO"
-    rgb, legend = channels.render_channel(renderer, upscaler, factor, spec("focus", "depth"), timer)
-    assert rgb.shape == (24, 32, 3) and 0 < legend["lo"] < legend["hi"]
-    assert set(timer.ms) == {"render", "network", "shading"}
+    tiny = str(tiny_model_dir(tmp_path_factory))  # an x2 model
+    network = make_runner(FrameMethod("network", factor=2, model=tiny), renderer, 0.5, 32, 24, keep=("flow",),
+                          shade=False)
+    network.frame(PREV)
+    high = network.frame(CAM, PREV)
+    assert high.buffers.flow.shape == (24, 32, 2) and high.buffers.ao.shape == (24, 32)
+    assert high.buffers.flow.abs().max() > 0, "a moved camera gives flow"
+    assert high.buffers.color is None and set(high.times) == {"render", "network"}
+    classic = make_runner(FrameMethod("upscale", factor=4), renderer, 0.5, 32, 24, keep=("depth",), shade=False)
+    low = classic.frame(CAM).buffers
+    assert low.depth.shape == (24, 32) and low.ao is None and low.flow is None, "the baseline has no AO"
 
 
 def test_reconstruct_mode_shows_the_reconstruction(renderer):
-    """AO is the network's output (as the runner makes it), flow its full-res input flow; the
-    recurrent state advances on channel frames too."""
-    timer = StageTimer(torch.device(DEVICE))
+    """AO is the network's output, flow its full-res input flow; a channel view advances the
+    recurrent state as shaded frames do."""
     method = FrameMethod("reconstruct", ao_rays=1)
-    runner = make_runner(method, renderer, 0.5, 32, 24,
-                         networks=Networks.eager())
-    expected = [runner.frame(orbit(28, 20, 1.6)), runner.frame(orbit(30, 20, 1.6), orbit(28, 20, 1.6))]
-    recon = ReconStream(Reconstructor(device=DEVICE), DEFAULT_RECON_MODEL)
-    first = channels.channel_buffers(renderer, None, 4, replace(spec("reconstruct", "ao", ao_samples=1),
-                                                                camera=orbit(28, 20, 1.6)), timer, recon)
-    second = channels.channel_buffers(renderer, None, 4, spec("reconstruct", "flow", prev=True, ao_samples=1), timer,
-                                      recon)
-    for got, want in zip((first, second), expected):
-        assert torch.equal(got.ao, want.ao) and got.ao.shape == (24, 32)
-    full = channels.channel_buffers(renderer, None, 4, spec("full", "flow", prev=True), timer)
-    assert torch.equal(second.flow, full.flow) and second.flow.abs().max() > 0
-    assert first.flow is None
-    with pytest.raises(ValueError, match="ReconStream"):
-        channels.channel_buffers(renderer, None, 4, spec("reconstruct", "ao"), timer)
+    shaded = make_runner(method, renderer, 0.5, 32, 24, networks=Networks.eager())
+    expected = [shaded.frame(PREV), shaded.frame(CAM, PREV)]
+    viewed = make_runner(method, renderer, 0.5, 32, 24, networks=Networks.eager(), keep=("flow",), shade=False)
+    got = [viewed.frame(PREV), viewed.frame(CAM, PREV)]
+    for g, want in zip(got, expected):
+        assert torch.equal(g.buffers.ao, want.buffers.ao) and g.buffers.color is None
+    full = make_runner(FrameMethod("full"), renderer, 0.5, 32, 24, keep=("flow",), shade=False).frame(CAM, PREV)
+    assert torch.equal(got[1].buffers.flow, full.buffers.flow) and got[1].buffers.flow.abs().max() > 0
+    assert got[0].buffers.flow is None
 
 
 # ---- through the server ----------------------------------------------------------------------
@@ -177,11 +172,9 @@ def test_view_session_channels_match_the_library(srv):
         first = frame(ws)
         assert first.legend.channel == "depth" and 0 < first.legend.lo < first.legend.hi
         renderer = Renderer(parse_procedural(volume), DEVICE)
-        upscaler = Upscaler(device=DEVICE)
-        local = FrameSpec("network", to_camera(cam0), None, ready.volume.iso_normalized, w, h, 0, 0.05,
-                          FocusMsg("none"), 0, "depth")
-        expected, legend = channels.render_channel(renderer, upscaler, upscaler.upscale_factor, local,
-                                                   StageTimer(torch.device(DEVICE)))
+        local = make_runner(FrameMethod("network", factor=4), renderer, ready.volume.iso_normalized, w, h,
+                            networks=Networks.eager(), keep=("depth",), shade=False)
+        expected, legend = channels.false_color(local.frame(to_camera(cam0)).buffers, "depth")
         got = decode_image(first.image).astype(int)
         # On a GPU the server's network runs channels-last: other kernels, other rounding.
         tolerance, levels = (1e-6, 1) if DEVICE == "cpu" else (1e-3, 3)

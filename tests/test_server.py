@@ -21,6 +21,7 @@ from websockets.exceptions import ConnectionClosed
 
 from isosr_net.frame_methods import FrameMethod, Networks, make_runner, run_sequence
 from isosr_net.metrics import upscale_baseline
+from isosr_net.reconnet import MAX_RECON_SPP
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, MAX_RECON_AO_RAYS, Reconstructor
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
 from isosr_render import Camera, FrameBuffers, open_volume, orbit, shade
@@ -70,7 +71,8 @@ def test_health_model_and_volumes(srv, volumes_dir):
     assert [o["name"] for o in model["outputs"]] == ["mask", "normal", "depth", "ao"]
     status, recon = srv.get_json("/v2/models/isosr-recon")
     assert status == 200 and recon["parameters"] == {"model": DEFAULT_RECON_MODEL.name, "precision": "fp32",
-                                                     "device": DEVICE, "max_ao_rays": MAX_RECON_AO_RAYS, "spp": 1}
+                                                     "device": DEVICE, "max_ao_rays": MAX_RECON_AO_RAYS,
+                                                     "max_spp": MAX_RECON_SPP}
     for name in ("isosr", "isosr-recon"):
         assert srv.get_json(f"/v2/models/{name}/ready") == (200, {"name": name, "ready": True})
     status, listing = srv.get_json("/v1/volumes")
@@ -464,8 +466,8 @@ def test_bad_view_input_closes_that_session_only(srv, lib):
             (raw({"type": "open", "version": v, "volume": VOLUME, "settings": {"width": 4096, "height": 4096}}),
              P.CLOSE_TOO_BIG, "exceeds"),
             (P.encode(P.OpenMsg(VOLUME, P.SettingsUpdate(mode="reconstruct", ao_rays=MAX_RECON_AO_RAYS + 1))),
-             P.CLOSE_BAD_MESSAGE, f"reconstruct mode takes 0 to {MAX_RECON_AO_RAYS} AO rays per hit (ao_rays), "
-                                  f"got {MAX_RECON_AO_RAYS + 1}"),
+             P.CLOSE_BAD_MESSAGE, f"reconstruct mode: reconstruct frame method: ao_rays must be an integer in "
+                                  f"[0, {MAX_RECON_AO_RAYS}], got {MAX_RECON_AO_RAYS + 1}"),
             (raw({"type": "open", "version": v, "volume": VOLUME, "settings": {"mode": "reconstruct", "ao_rays": -1}}),
              P.CLOSE_BAD_MESSAGE, "Expected `int` >= 0 - at `$.settings.ao_rays`"),
             (raw({"type": "open", "version": v, "volume": VOLUME, "settings": {"ao_rays": 257}}),
@@ -483,7 +485,7 @@ def test_bad_view_input_closes_that_session_only(srv, lib):
             (raw({"type": "camera", "eye": [0, 0, 1], "up": [0, 0, 0]}), P.CLOSE_BAD_MESSAGE, "up is zero"),
             (raw({"type": "settings", "settings": {"mode": "network", "width": 63}}), P.CLOSE_BAD_MESSAGE, "multiple"),
             (raw({"type": "settings", "settings": {"mode": "reconstruct", "ao_rays": 9}}), P.CLOSE_BAD_MESSAGE,
-             f"reconstruct mode takes 0 to {MAX_RECON_AO_RAYS} AO rays per hit (ao_rays), got 9"),
+             f"reconstruct mode: reconstruct frame method: ao_rays must be an integer in [0, {MAX_RECON_AO_RAYS}], got 9"),
             (raw({"type": "settings", "settings": {"mode": "reconstruct", "ao_rays": -1}}), P.CLOSE_BAD_MESSAGE,
              "Expected `int` >= 0 - at `$.settings.ao_rays`"),
             (raw({"type": "settings", "settings": {"ao_samples": 1}}), P.CLOSE_BAD_MESSAGE,
