@@ -60,8 +60,8 @@ def free_port() -> int:
 class RunningServer:
     """Where a test server listens, with helpers to call it."""
 
-    def __init__(self, port: int, settings: Settings, errors: ErrorRecords):
-        self.port, self.settings, self.errors = port, settings, errors
+    def __init__(self, port: int, settings: Settings, errors: ErrorRecords, app):
+        self.port, self.settings, self.errors, self.app = port, settings, errors, app
         self.http_url, self.ws_url = f"http://127.0.0.1:{port}", f"ws://127.0.0.1:{port}"
 
     def request(self, method: str, path: str, body: bytes | None = None,
@@ -102,7 +102,8 @@ def running_server(settings: Settings):
     logging.getLogger("isosr").setLevel(logging.INFO)
     port = free_port()
     # log_config=None: uvicorn leaves logging alone, so its records reach the root logger too.
-    server = uvicorn.Server(uvicorn.Config(create_app(settings), host="127.0.0.1", port=port, log_config=None,
+    app = create_app(settings)
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_config=None,
                                            **uvicorn_options(settings.limits)))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
@@ -112,7 +113,7 @@ def running_server(settings: Settings):
             raise RuntimeError("the test server did not start")
         time.sleep(0.02)
     try:
-        yield RunningServer(port, settings, errors)
+        yield RunningServer(port, settings, errors, app)
     finally:
         server.should_exit = True
         thread.join(30)

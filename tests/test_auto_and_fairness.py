@@ -1,0 +1,80 @@
+"""The service's ``auto`` mode (the budget policy per session share) and fair device time (a
+maximal frame runs in slices that other sessions' frames interleave with), through a real server
+on loopback, plus the auto policy's caching on its own."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from isosr_net.budget import BudgetChoice
+from isosr_net.frame_methods import Networks
+from isosr_render import Renderer, open_volume, orbit, resolve_iso
+from isosr_server import protocol as P
+from isosr_server.auto import AutoPolicy
+from server_fixtures import DEVICE, VOLUME, frame, running_server, server_settings, session  # noqa: F401
+
+
+@pytest.fixture(scope="module")
+def srv():
+    with running_server(server_settings(limits=P.Limits(max_fps=1000.0, max_messages_per_s=5000.0))) as s:
+        yield s
+
+
+def candidates_names(srv) -> set[str]:
+    policy = srv.app.state.engine.auto
+    return {m.name for m in policy.candidates}
+
+
+def test_auto_is_the_default_and_names_the_method_it_chose(srv):
+    with session(srv) as (ws, ready):
+        assert ready.settings.mode == "auto"
+        f = frame(ws)
+        assert f.mode == "auto" and f.method in candidates_names(srv), f.method
+        assert f.times["total"] > 0 and "render" in f.times
+
+
+def test_other_modes_name_their_method(srv):
+    expected = {"network": "x4 network fp32", "upscale": "x4 bilinear", "full": "full, AO 2, spp 1",
+                "atrous": "full, AO 2, a-trous", "reconstruct": "full, AO 2, spp 1, recon fp32"}
+    for mode, name in expected.items():
+        with session(srv, mode=mode, ao_rays=2) as (ws, _):
+            assert frame(ws).method == name
+
+
+def test_auto_policy_caches_its_probe_and_rechooses_by_the_session_count():
+    volume = open_volume(VOLUME)
+    renderer, iso = Renderer(volume, DEVICE), resolve_iso(VOLUME, volume)
+    policy = AutoPolicy.for_server(DEVICE, "fp32", 4, {}, 30.0, Networks())
+    assert policy.budget_ms(1) == pytest.approx(1000 / 30) and policy.budget_ms(4) == pytest.approx(1000 / 120)
+    cam = orbit(30, 20, 1.8)
+    one = policy.choose(renderer, VOLUME, iso, 64, 48, cam, 1, 0.05)
+    assert isinstance(one, BudgetChoice) and one.budget_ms == pytest.approx(1000 / 30)
+    assert policy.choose(renderer, VOLUME, iso, 64, 48, cam, 1, 0.05) is one, "a choice is cached"
+    timed = dict(policy._timings[(VOLUME, round(iso, 6), 64, 48, 0.05)])
+    started = time.perf_counter()
+    many = policy.choose(renderer, VOLUME, iso, 64, 48, cam, 16, 0.05)
+    assert many.budget_ms == pytest.approx(1000 / 480) and many is not one
+    assert len(policy._quality) == 1, "a new session count probes no quality again"
+    assert time.perf_counter() - started < one.probe_seconds
+    assert all(policy._timings[(VOLUME, round(iso, 6), 64, 48, 0.05)][m] == t for m, t in timed.items())
+
+
+@pytest.mark.slow
+def test_an_honest_session_beside_the_heaviest_frame_gets_its_first_frame_soon(srv):
+    """The heaviest frame the default limits allow (3840x2160, 256 AO rays; about 45 s on this
+    CPU) runs in slices: a small session opened beside it gets its frame within 8 s."""
+    limits = P.Limits()
+    limits.check_size(3840, 2160)
+    with srv.view() as heavy:
+        heavy.send(P.encode(P.OpenMsg(VOLUME, P.SettingsUpdate(mode="full", width=3840, height=2160,
+                                                               ao_rays=limits.max_ao_rays, refine=False))))
+        assert isinstance(P.parse(heavy.recv(timeout=60), P.Limits(max_message_bytes=2**28),
+                                  P.SERVER_VIEW_MESSAGES), P.ReadyMsg)
+        time.sleep(1.0)  # the heavy frame is under way
+        started = time.monotonic()
+        with session(srv, mode="full") as (ws, _):
+            f = frame(ws)
+        waited = time.monotonic() - started
+        assert f.method == "full, AO 0, spp 1" and waited < 8.0, f"the small session waited {waited:.1f} s"
