@@ -1,28 +1,36 @@
 """The server benchmark: `isosr serve` under 1, 4 and 16 concurrent view sessions per mode.
 
-    python -m isosr_bench.bench_server --device cuda     # 1920x1080, results/bench_server_cuda.json
+    python -m isosr_bench.bench_server --device cuda --volume bonsai            # 1920x1080
+    python -m isosr_bench.bench_server --device cuda --volume bonsai --size 4k  # 3840x2160
     python -m isosr_bench.bench_server --smoke           # small, CPU, in the test suite
 
-Starts the server in a subprocess (or uses ``--url``) and drives closed-loop view sessions
+Results: ``benchmarks/results/bench_server_<size>_<device>.json``. Starts the server in a
+subprocess (or uses ``--url``) and drives closed-loop view sessions
 (:func:`isosr_client.drive.drive`: send a camera, wait for its frame, repeat) for a bounded
-time per case. Per mode (``full`` with AO 0 and 8, ``network``, ``upscale``, ``buffers``,
-``focus``) and session count:
+time per case. Per mode (every one the server offers: ``auto``, ``full`` with AO 0 and 8,
+``network``, ``upscale``, ``buffers``, ``focus``, ``reconstruct`` with 1 AO ray, ``atrous`` with
+2) and session count:
 
 - frames/s (all sessions together, and per session) and latency p50/p99: a camera change's
-  round trip as a client sees it;
-- the server's milliseconds per stage (render, network, shading, encode) from the frames'
-  stage times, and the rest of the round trip (queueing behind other sessions on the one
-  device thread, transfer, client-side receipt) as ``other_ms`` (mean latency minus mean
-  server total);
+  round trip as a client sees it; the methods the frames name (``auto``: what it chose);
+- the server's milliseconds per stage (render, filter, network, shading, encode) from the
+  frames' stage times, and the rest of the round trip (queueing behind other sessions on the
+  one device thread, transfer, client-side receipt) as ``other_ms`` (mean latency minus mean
+  server total; the total counts from a frame's first slice to its encoding);
 - bytes per frame, and the frames/s a 50 Mbit/s and a 1 Gbit/s link carry at that size.
 
 Clients here only receive frames (``buffers`` frames are not upscaled here), so the numbers
-are the server's. Then one matched-quality study: the ``buffers`` path (coded low-res
-buffers, upscaled and shaded on the client with the same network) against ``full`` JPEG.
-Matched quality: the lowest JPEG quality (of 5, 10, ..., 95) whose PSNR against the lossless
-reference reaches the buffers path's PSNR; the reference is the full-resolution frame the
-server sends for a still camera (``full``, ``refine_ao_rays`` AO rays, PNG). The client
-side runs on ``--device`` of this machine, and its time per frame is reported too.
+are the server's. Then two studies. Matched quality: the ``buffers`` path (coded low-res
+buffers, upscaled and shaded on the client with the same network) against ``full`` JPEG, at
+the lowest JPEG quality (of 5, 10, ..., 95) whose PSNR against the lossless reference reaches
+the buffers path's PSNR; the reference is the full-resolution frame the server sends for a
+still camera (``full``, ``refine_ao_rays`` AO rays, PNG); the client side runs on ``--device``
+of this machine. And the ``auto`` mode's quality, scored as in the Pareto study
+(:mod:`isosr_bench.bench_pareto`): one auto session's frames (PNG) along the Pareto orbit
+against the reference (4 rays per pixel, 512 AO rays; color PSNR on the reference's covered
+region), beside the Pareto rows of the server's own candidates, run in this process with the
+server's networks (:func:`isosr_server.engine.serving_network`): the best fixed method whose
+frame time fits one session's budget (``1000 / target_fps`` ms).
 """
 
 from __future__ import annotations
@@ -41,13 +49,26 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from isosr_bench.bench_pareto import bench_cameras, pareto_rows
 from isosr_bench.common import bench_parser, print_table, write_result
+from isosr_net.budget import color_psnr, reference_frames
+from isosr_net.frame_methods import Networks
+from isosr_net.inference import default_precision
+from isosr_render import FrameBuffers, Renderer, open_volume
+from isosr_render.catalog import SHARED_PREFIX
+from isosr_server.auto import AutoPolicy
+from isosr_server.engine import serving_network
 from isosr_client.drive import Orbit, drive, summarize
 from isosr_client.view import FrameStats, connect
 from isosr_net.metrics import masked_psnr
 
 LINKS_BIT_S = {"50mbit": 50e6, "1gbit": 1e9}
-STAGES = ("render", "network", "shading", "encode")
+STAGES = ("render", "filter", "network", "shading", "encode")
+SIZES = {"1080p": (1920, 1080), "4k": (3840, 2160), "smoke": (64, 48)}
+# (mode, AO rays) per case: every mode the server offers.
+CASES = (("auto", 0), ("full", 0), ("full", 8), ("network", 0), ("upscale", 0), ("buffers", 0), ("focus", 8),
+         ("reconstruct", 1), ("atrous", 2))
+TARGET_FPS = 30.0
 
 
 def free_port() -> int:
@@ -174,7 +195,7 @@ def run_sessions(url: str, volume: str, sessions: int, seconds: float, mode: str
     result = summarize(frames, 1.0)
     per_session_fps = [len(s) / b for s, b in zip(stats, busy) if b > 0]
     result.update(sessions=sessions, errors=errors, fps=float(sum(per_session_fps)),
-                  fps_per_session=float(np.mean(per_session_fps)))
+                  fps_per_session=float(np.mean(per_session_fps)), methods=sorted({s.method for s in frames}))
     return result
 
 
@@ -183,6 +204,7 @@ def case_row(mode: str, ao: int, result: dict) -> dict:
     row = {"mode": mode, "ao": ao, "sessions": result["sessions"], "errors": len(result["errors"])}
     if "frames" not in result:
         return row
+    row["methods"] = result["methods"]
     server = result["server_ms"]
     row.update(frames=result["frames"], fps=result["fps"], fps_per_session=result["fps_per_session"],
                latency_p50_ms=result["latency_p50_ms"], latency_p99_ms=result["latency_p99_ms"],
@@ -242,21 +264,55 @@ def matched_quality(url: str, volume: str, size: tuple[int, int], device: str, f
     return row
 
 
+def auto_quality(url: str, volume: str, size: tuple[int, int], size_name: str, device: str, frames: int,
+                 warmup: int) -> dict:
+    """The auto mode's color PSNR along the Pareto orbit against the best fixed method that fits
+    one session's budget (module docstring)."""
+    cameras = bench_cameras(frames)
+    with connect(url, volume, "auto", size, settings={"encoding": "png", "refine": False}, timeout=600) as view:
+        iso = view.ready.volume.iso_normalized
+        shown = []
+        for i in range(frames):
+            view.set_camera(yaw=20.0 + 3.0 * i, pitch=20.0, distance=1.6)  # bench_cameras' orbit
+            shown.append((view.frame(), view.stats.method))
+    renderer = Renderer(open_volume(volume if volume.startswith("proc:") else SHARED_PREFIX + volume), device)
+    refs = reference_frames(renderer, iso, size, cameras)
+    torch_device = torch.device(device)
+    scores = [color_psnr(FrameBuffers(mask=ref.mask, color=torch.from_numpy(rgb).to(torch_device).float() / 255),
+                         ref) for (rgb, _), ref in zip(shown, refs)]
+    networks = Networks(serving_network)
+    candidates = AutoPolicy.for_server(device, default_precision(device), 4, {}, TARGET_FPS, networks).candidates
+    rows = pareto_rows(renderer, iso, volume, size, size_name, list(candidates), frames, warmup, device, networks)
+    budget = 1000.0 / TARGET_FPS
+    fits = [r for r in rows if r["ms"] <= budget and r["color_psnr"] is not None]
+    best = max(fits, key=lambda r: r["color_psnr"]) if fits else None
+    auto_psnr = float(np.nanmean(scores))
+    return {"study": "auto_quality", "budget_ms": budget, "auto_psnr_db": auto_psnr,
+            "auto_methods": sorted({m for _, m in shown}), "best_fixed": best and best["method"],
+            "best_fixed_psnr_db": best and best["color_psnr"], "best_fixed_ms": best and best["ms"],
+            "shortfall_db": best and best["color_psnr"] - auto_psnr,
+            "fixed": [{k: r[k] for k in ("method", "ms", "color_psnr")} for r in rows]}
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = bench_parser(__doc__)
     parser.add_argument("--url", help="a running server (default: start one on --device)")
     parser.add_argument("--volume", default="proc:cloud:0@128", help="a volume the server offers")
+    parser.add_argument("--size", choices=("1080p", "4k"), default="1080p", help="the view sessions' frame size")
     parser.add_argument("--seconds", type=float, help="timed seconds per case (default 5; smoke 0.5)")
     parser.add_argument("--sessions", help="concurrent sessions per case, comma-separated (default 1,4,16; smoke 1,2)")
+    parser.add_argument("--modes", help="the cases' modes, comma-separated (default: every mode)")
     args = parser.parse_args(argv)
     smoke = args.smoke
-    size = (64, 48) if smoke else (1920, 1080)
+    size_name = "smoke" if smoke else args.size
+    size = SIZES[size_name]
     seconds = args.seconds or (0.5 if smoke else 5.0)
     warmup = 1 if smoke else 2
     counts = [int(n) for n in (args.sessions or ("1,2" if smoke else "1,4,16")).split(",")]
     volume = "proc:cloud:0@32" if smoke and args.volume == parser.get_default("volume") else args.volume
     focus_radius = size[1] / 4
-    cases = [("full", 0), ("full", 8), ("network", 0), ("upscale", 0), ("buffers", 0), ("focus", 8)]
+    modes = args.modes.split(",") if args.modes else [m for m, _ in CASES]
+    cases = [(m, ao) for m, ao in CASES if m in modes]
 
     def run(url: str) -> list[dict]:
         rows = []
@@ -268,10 +324,12 @@ def main(argv: list[str] | None = None) -> None:
                                       warmup_frames=warmup)
                 rows.append(case_row(mode, ao, result))
                 r = rows[-1]
-                print(f"{mode:<9} AO {ao:<2} x{n:<3} {r.get('fps', 0):7.1f} fps  p50 {r.get('latency_p50_ms', 0):7.1f} "
-                      f"ms  {r.get('bytes_per_frame', 0):10.0f} B  errors {r['errors']}", flush=True)
+                print(f"{mode:<11} AO {ao:<2} x{n:<3} {r.get('fps', 0):7.1f} fps  p50 {r.get('latency_p50_ms', 0):7.1f} "
+                      f"p99 {r.get('latency_p99_ms', 0):7.1f} ms {r.get('bytes_per_frame', 0):10.0f} B  errors "
+                      f"{r['errors']}  {', '.join(r.get('methods', []))}", flush=True)
         rows.append(matched_quality(url, volume, size, args.device, 4 if smoke else 8, 2 if smoke else 4,
                                     (10, 50, 90) if smoke else tuple(range(5, 100, 5))))
+        rows.append(auto_quality(url, volume, size, size_name, args.device, 2 if smoke else 8, 0 if smoke else 2))
         return rows
 
     if args.url:
@@ -279,18 +337,21 @@ def main(argv: list[str] | None = None) -> None:
     else:
         # Room for a case's sessions (all from this address) while the previous case's close; no frame-rate cap.
         room = str(2 * max(counts) + 4)
-        options = ("--max-sessions", room, "--max-sessions-per-client", room, "--max-fps", "1000")
+        options = ("--max-sessions", room, "--max-sessions-per-client", room, "--max-fps", "1000",
+                   "--target-fps", str(TARGET_FPS))
         with ServerProcess(args.device, options) as server:
             rows = run(server.url)
     table = [r for r in rows if "mode" in r]
     print_table(table, ["mode", "ao", "sessions", "fps", "fps_per_session", "latency_p50_ms", "latency_p99_ms",
-                        "render_ms", "network_ms", "shading_ms", "encode_ms", "other_ms", "bytes_per_frame",
-                        "link_fps_50mbit", "link_fps_1gbit", "errors"])
-    study = rows[-1]
+                        "render_ms", "filter_ms", "network_ms", "shading_ms", "encode_ms", "other_ms",
+                        "bytes_per_frame", "link_fps_50mbit", "link_fps_1gbit", "errors"])
+    study, auto = rows[-2], rows[-1]
     print(f"buffers path: {study['buffers_psnr_db']:.2f} dB at {study['buffers_bytes']:.0f} B/frame; full JPEG "
           f"reaches it at quality {study['matched_jpeg_quality']} "
           f"({study.get('matched_jpeg_bytes', float('nan')):.0f} B/frame)")
-    print(f"wrote {write_result('bench_server', args.device, rows, args.out)}")
+    print(f"auto: {auto['auto_psnr_db']:.2f} dB ({', '.join(auto['auto_methods'])}); best fixed within "
+          f"{auto['budget_ms']:.1f} ms: {auto['best_fixed']} {auto['best_fixed_psnr_db']} dB at {auto['best_fixed_ms']} ms")
+    print(f"wrote {write_result(f'bench_server_{size_name}', args.device, rows, args.out)}")
 
 
 if __name__ == "__main__":

@@ -44,13 +44,12 @@ from isosr_render.shading import ShadingParams, shade
 from isosr_render.shapes import check_int
 from isosr_net.atrous import ATrousConfig, atrous_filter
 from isosr_net.inference import PRECISIONS, RecurrentNetwork, output_buffers
-from isosr_net.metrics import upscale_baseline
+from isosr_net.metrics import INTERPOLATIONS, upscale_baseline
 from isosr_net.reconnet import MAX_RECON_AO_RAYS, MAX_RECON_SPP
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
 from isosr_net.timing import StageTimer
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
 
-INTERPOLATIONS = ("nearest", "bilinear", "bicubic")
 # Upscaling factors a low-res method takes.
 MAX_FACTOR = 16
 

@@ -19,7 +19,7 @@ from torchmetrics.functional.image import structural_similarity_index_measure
 
 from isosr_render.conventions import AO, DEPTH, MASK, NORMAL
 from isosr_render.shading import shade_channels_first
-from isosr_render.shapes import check_shape
+from isosr_render.shapes import check_int, check_shape
 
 # Floor of the mean squared error in PSNR: identical images score 100 dB at data range 1.
 MSE_FLOOR = 1e-10
@@ -111,6 +111,10 @@ def masked_ssim(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
     return _masked_mean(ssim_map, mask > 0.5)
 
 
+# The classic interpolations (``F.interpolate`` modes) a baseline upscales with.
+INTERPOLATIONS = ("nearest", "bilinear", "bicubic")
+
+
 def upscale_baseline(lowres: Tensor, factor: int,
                      mode: Literal["nearest", "bilinear", "bicubic"] = "bilinear") -> Tensor:
     """Classic upscaling of the low-res buffers, the network's baseline.
@@ -132,10 +136,9 @@ def upscale_baseline(lowres: Tensor, factor: int,
         lowres: (B, 5, H, W). Returns (B, 6, H * factor, W * factor).
     """
     check_shape(lowres, "(B, 5, H, W)", "lowres", "upscale_baseline")
-    if isinstance(factor, bool) or not isinstance(factor, int) or factor < 1:
-        raise ValueError(f"upscale_baseline: factor must be an integer >= 1, got {factor!r}")
-    if mode not in ("nearest", "bilinear", "bicubic"):
-        raise ValueError(f"upscale_baseline: mode must be 'nearest', 'bilinear' or 'bicubic', got {mode!r}")
+    check_int(factor, "factor", 1, where="upscale_baseline")
+    if mode not in INTERPOLATIONS:
+        raise ValueError(f"upscale_baseline: mode must be one of {INTERPOLATIONS}, got {mode!r}")
     size = (lowres.shape[-2] * factor, lowres.shape[-1] * factor)
     up = F.interpolate(lowres, size=size, mode=mode, align_corners=None if mode == "nearest" else False)
     normal = up[:, NORMAL]

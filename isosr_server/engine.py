@@ -48,6 +48,16 @@ RENDERER_CACHE = 4
 CPU_UPSCALE_TILE = 240
 
 
+def serving_network(cls: type[RecurrentNetwork], model: Path, device: str, precision: str) -> RecurrentNetwork:
+    """A network as the service runs it: on GPUs NHWC with the fast layers, not compiled; CPU
+    upscaling in tiles (bounded memory)."""
+    cuda = torch.device(device).type == "cuda"
+    net = cls(model, device, precision, channels_last=cuda, fast_layers=cuda)
+    if isinstance(net, Upscaler) and not cuda:
+        net.tile = CPU_UPSCALE_TILE
+    return net
+
+
 @dataclass(frozen=True)
 class EngineConfig:
     """Where and how the engine runs.
@@ -95,7 +105,7 @@ class Engine:
         self.slice_ms = config.slice_ms or (8.0 if self.device.type == "cuda" else 100.0)
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="isosr-device")
         self._renderers: OrderedDict[str, Renderer] = OrderedDict()
-        self.networks = Networks(self._load)
+        self.networks = Networks(serving_network)
         self._models = {Upscaler: (config.model, "network"), Reconstructor: (config.recon_model, "recon")}
         self.context: ViewContext | None = None
         self.auto: AutoPolicy | None = None
@@ -109,13 +119,6 @@ class Engine:
         if self._thread is None:
             self._thread = threading.current_thread()
         assert threading.current_thread() is self._thread, "engine work must run on the device thread"
-
-    def _load(self, cls: type[RecurrentNetwork], model: Path, device: str, precision: str) -> RecurrentNetwork:
-        cuda = torch.device(device).type == "cuda"
-        net = cls(model, device, precision, channels_last=cuda, fast_layers=cuda)
-        if isinstance(net, Upscaler) and not cuda:
-            net.tile = CPU_UPSCALE_TILE
-        return net
 
     def network(self, cls: type[RecurrentNetwork]) -> RecurrentNetwork:
         """The server's loaded network of a class (its template: shared weights, no stream's state)."""

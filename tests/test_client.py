@@ -437,14 +437,15 @@ def test_stalled_client_gets_max_unacked_frames_then_the_newest(server):  # noqa
 
 def test_bench_server_smoke(server, tmp_path):  # noqa: F811
     bench_server.main(["--smoke", "--url", server.url, "--out", str(tmp_path)])
-    record = json.loads((tmp_path / "bench_server_cpu.json").read_text())
+    record = json.loads((tmp_path / "bench_server_smoke_cpu.json").read_text())
     cases = [r for r in record["rows"] if "mode" in r]
-    assert {(r["mode"], r["ao"]) for r in cases} == {("full", 0), ("full", 8), ("network", 0), ("upscale", 0),
-                                                    ("buffers", 0), ("focus", 8)}
+    assert {(r["mode"], r["ao"]) for r in cases} == set(bench_server.CASES)
+    assert all(r["methods"] for r in cases)
     assert all(r["errors"] == 0 and r["fps"] > 0 and r["bytes_per_frame"] > 0 for r in cases)
     assert all(r["latency_p99_ms"] >= r["latency_p50_ms"] > 0 for r in cases)
     sr = next(r for r in cases if r["mode"] == "network" and r["sessions"] == 1)
     assert sr["network_ms"] > 0 and sr["render_ms"] > 0
-    study = record["rows"][-1]
+    study, auto = record["rows"][-2:]
+    assert auto["study"] == "auto_quality" and 10 < auto["auto_psnr_db"] < 100 and auto["fixed"]
     assert study["study"] == "matched_quality" and 10 < study["buffers_psnr_db"] < 100
     assert [j["quality"] for j in study["jpeg"]] == [10, 50, 90]
