@@ -37,7 +37,8 @@ from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
 from isosr_render import FrameBuffers, Renderer, Volume, orbit, parse_procedural, shade
 from isosr_render.images import quantize
 from isosr_server.auto import AutoPolicy
-from isosr_server.codecs.buffers_device import encode_view_buffers
+from isosr_server.codecs.buffers import pack_view_buffers
+from isosr_server.codecs.buffers_device import view_buffer_codes
 from isosr_server.encoding import encode_image, encoder_name
 from isosr_server.protocol import ENCODINGS, FocusMsg, UpscaleRequest, ViewBuffers, ViewSettings
 from isosr_server.views import FrameJob, SessionFrames, ViewContext, ViewFrame
@@ -104,6 +105,8 @@ class Engine:
         self.precision = config.precision or default_precision(self.device)
         self.slice_ms = config.slice_ms or (8.0 if self.device.type == "cuda" else 100.0)
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="isosr-device")
+        # Image and buffers encoding: off the device thread, which goes on with the next frame meanwhile.
+        self._encoder = ThreadPoolExecutor(max_workers=1, thread_name_prefix="isosr-encoder")
         self._renderers: OrderedDict[str, Renderer] = OrderedDict()
         self.networks = Networks(serving_network)
         self._models = {Upscaler: (config.model, "network"), Reconstructor: (config.recon_model, "recon")}
@@ -140,7 +143,7 @@ class Engine:
         for mode in ("network", "reconstruct"):
             job = FrameJob(ViewSettings(mode=mode, width=8 * factor, height=8 * factor), orbit(30, 20, 1.8), 0.5,
                            FocusMsg(), 0, False, 1)
-            self.encode_sync(finish_steps(frames.steps(renderer, job)), "jpeg", 80, time.perf_counter())
+            pack_codes(self.codes_sync(finish_steps(frames.steps(renderer, job))), "jpeg", 80)
 
     @property
     def upscale_factor(self) -> int:
@@ -173,6 +176,7 @@ class Engine:
 
     def shutdown(self) -> None:
         self._executor.shutdown(wait=True, cancel_futures=True)
+        self._encoder.shutdown(wait=True, cancel_futures=True)
 
     # ---- work (device thread only) ----------------------------------------------------------
 
@@ -191,29 +195,31 @@ class Engine:
                          quality: int) -> EncodedFrame:
         """One view frame, made in slices of about ``slice_ms`` (:meth:`SessionFrames.steps`), each
         its own job on the device thread, so that other sessions' frames interleave with a heavy one;
-        then encoded (:meth:`encode_sync`)."""
+        its codes made there too (:meth:`codes_sync`), then encoded on the encoder thread
+        (:func:`pack_codes`), while the device thread goes on with the next frame."""
         start = time.perf_counter()
         steps = frames.steps(renderer, job, self.slice_ms)
         while True:
             done, made = await self.call(_advance, steps)
             if done:
-                return await self.call(self.encode_sync, made, encoding, quality, start)
-
-    def encode_sync(self, made: ViewFrame, encoding: str, quality: int, start: float) -> EncodedFrame:
-        """A made view frame for the wire: an image of its color, or the low-res buffers coded on the
-        device (``buffers`` mode); ``start`` (``time.perf_counter()``) begins its total time."""
-        self._on_thread()
-        timer = StageTimer(self.device)
-        image = buffers = None
-        with timer("encode"):
-            if made.color is not None:
-                image = encode_image(quantize(made.color), encoding, quality)
-            else:
-                b = made.result.buffers
-                buffers = encode_view_buffers(FrameBuffers(mask=b.mask, normal=b.normal, depth=b.depth,
-                                                           flow=b.flow if made.prev_seq >= 0 else None))
-        times = made.result.times | timer.ms() | {"total": 1e3 * (time.perf_counter() - start)}
+                break
+        codes = await self.call(self.codes_sync, made)
+        began = time.perf_counter()
+        image, buffers = await asyncio.get_running_loop().run_in_executor(self._encoder, pack_codes, codes,
+                                                                          encoding, quality)
+        done = time.perf_counter()
+        times = made.result.times | {"encode": 1e3 * (done - began), "total": 1e3 * (done - start)}
         return EncodedFrame(image, buffers, times, made.legend, made.method.name, made.prev_seq)
+
+    def codes_sync(self, made: ViewFrame) -> torch.Tensor | tuple:
+        """A made frame's codes: its color quantized to uint8 on the device (the image to encode), or
+        the ``buffers`` mode's low-res codes on the host (:func:`view_buffer_codes`)."""
+        self._on_thread()
+        if made.color is not None:
+            return quantize(made.color)
+        b = made.result.buffers
+        return view_buffer_codes(FrameBuffers(mask=b.mask, normal=b.normal, depth=b.depth,
+                                              flow=b.flow if made.prev_seq >= 0 else None))
 
     def upscale_sync(self, upscaler: Upscaler, request: UpscaleRequest) -> tuple[bytes | None, dict | None, dict]:
         """One upscale request: ``(image bytes or None, float32 numpy buffers or None, times in ms)``.
@@ -243,6 +249,13 @@ class Engine:
             with timer("encode"):
                 image = encode_image(quantize(color), request.output, request.quality)
         return image, buffers, timer.ms() | {"total": 1e3 * (time.perf_counter() - start)}
+
+
+def pack_codes(codes: torch.Tensor | tuple, encoding: str, quality: int) -> tuple[bytes | None, ViewBuffers | None]:
+    """``(image, None)`` of quantized colors, or ``(None, buffers)`` of the buffers codes (encoder thread)."""
+    if isinstance(codes, tuple):
+        return None, pack_view_buffers(*codes)
+    return encode_image(codes, encoding, quality), None
 
 
 def _advance(steps: Generator) -> tuple[bool, object]:

@@ -19,6 +19,9 @@ Per low-res buffer (conventions of :mod:`isosr_render.conventions`), in a `ViewB
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+from functools import lru_cache
+
 import numpy as np
 
 from isosr_server.codecs.arrays import ArrayTooBig, WireArray, decode_array, encode_array
@@ -31,7 +34,7 @@ CODE_MAX = 65535
 
 def pack_view_buffers(mask: np.ndarray, normal: np.ndarray | None, depth: np.ndarray | None,
                       depth_range: tuple[float, float] | None, flow: np.ndarray | None) -> ViewBuffers:
-    """Quantized buffers, each zlib-compressed, as they travel.
+    """Quantized buffers, each zlib-compressed (in parallel: zlib releases the GIL), as they travel.
 
     Args:
         mask: uint8 coverage codes.
@@ -42,11 +45,15 @@ def pack_view_buffers(mask: np.ndarray, normal: np.ndarray | None, depth: np.nda
     Shape:
         mask, depth: (h, w). normal, flow: (h, w, 2).
     """
-    return ViewBuffers(mask=encode_array(mask, True),
-                       normal=None if normal is None else encode_array(normal, True),
-                       depth=None if depth is None else encode_array(depth, True),
-                       depth_range=None if depth is None else (float(depth_range[0]), float(depth_range[1])),
-                       flow=None if flow is None else encode_array(flow, True))
+    arrays = {"mask": mask, "normal": normal, "depth": depth, "flow": flow}
+    coded = dict(zip(arrays, _packer().map(lambda a: None if a is None else encode_array(a, True), arrays.values())))
+    return ViewBuffers(**coded, depth_range=None if depth is None else (float(depth_range[0]), float(depth_range[1])))
+
+
+@lru_cache(maxsize=1)
+def _packer() -> ThreadPoolExecutor:
+    """The threads that compress a frame's arrays side by side (made on first use)."""
+    return ThreadPoolExecutor(max_workers=4, thread_name_prefix="isosr-zlib")
 
 
 def octahedral_decode(code: np.ndarray) -> np.ndarray:

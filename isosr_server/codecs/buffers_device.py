@@ -58,8 +58,9 @@ def depth_codes(depth: torch.Tensor, covered: torch.Tensor) -> tuple[torch.Tenso
     return torch.where(covered, code, 0.0).to(torch.uint16), (near, far)
 
 
-def encode_view_buffers(frame: FrameBuffers) -> ViewBuffers:
-    """A low-res frame's mask and what it holds of normal, depth and flow in the buffers coding.
+def view_buffer_codes(frame: FrameBuffers) -> tuple:
+    """A low-res frame's codes on the host, for :func:`~isosr_server.codecs.buffers.pack_view_buffers`:
+    ``(mask, normal or None, depth or None, depth_range or None, flow or None)``.
 
     Shape:
         frame.mask, frame.depth: (h, w). frame.normal: (h, w, 3). frame.flow: (h, w, 2). Any device.
@@ -73,4 +74,10 @@ def encode_view_buffers(frame: FrameBuffers) -> ViewBuffers:
     flow = None
     if frame.flow is not None:
         flow = frame.flow.float().clamp(-FLOW_CLIP, FLOW_CLIP).to(torch.float16).cpu().numpy()
-    return pack_view_buffers(mask_codes(frame.mask).cpu().numpy(), normal, depth, depth_range, flow)
+    return mask_codes(frame.mask).cpu().numpy(), normal, depth, depth_range, flow
+
+
+def encode_view_buffers(frame: FrameBuffers) -> ViewBuffers:
+    """A low-res frame's mask and what it holds of normal, depth and flow in the buffers coding
+    (:func:`view_buffer_codes`, then packed)."""
+    return pack_view_buffers(*view_buffer_codes(frame))
