@@ -43,7 +43,7 @@ from isosr_render.sequence import sequence_cameras
 from isosr_render.shading import ShadingParams, shade
 from isosr_render.shapes import check_int
 from isosr_net.atrous import ATrousConfig, atrous_filter
-from isosr_net.inference import PRECISIONS, RecurrentNetwork, output_buffers
+from isosr_net.inference import PRECISIONS, RecurrentNetwork, finish_steps, output_buffers
 from isosr_net.metrics import INTERPOLATIONS, upscale_baseline
 from isosr_net.reconnet import MAX_RECON_AO_RAYS, MAX_RECON_SPP
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
@@ -518,15 +518,6 @@ class BuffersRunner(FrameRunner):
 
     def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
         return rendered
-
-
-def finish_steps(steps: Generator[None, None, FrameResult]) -> FrameResult:
-    """Run a runner's :meth:`~FrameRunner.steps` to the end; its frame."""
-    while True:
-        try:
-            next(steps)
-        except StopIteration as done:
-            return done.value
 
 
 def make_runner(method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int,

@@ -11,13 +11,15 @@ previous output is its state.
 
 from __future__ import annotations
 
+from collections.abc import Generator
 from pathlib import Path
 
 import torch
 
 from isosr_render.buffers import FrameBuffers
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
-from isosr_net.inference import PRECISIONS, InputChecks, RecurrentNetwork, output_buffers, surface_tensors
+from isosr_net.inference import (PRECISIONS, InputChecks, RecurrentNetwork, finish_steps, output_buffers,
+                                 surface_tensors)
 
 DEFAULT_MODEL = Path(__file__).resolve().parent / "default_model"
 COMPILE_MODES = (None, "default", "reduce-overhead", "max-autotune")
@@ -62,9 +64,16 @@ class Upscaler(RecurrentNetwork):
                        autotune=True, fast_layers=True)
         return cls(model, device, precision or "fp32", channels_last=True)
 
-    @torch.no_grad()
     def step(self, lowres: torch.Tensor, flow: torch.Tensor | None, checks: InputChecks | None = None) -> torch.Tensor:
-        """Upscale one frame of network inputs; keeps the output as the next frame's previous.
+        """Upscale one frame of network inputs (:meth:`steps` run whole)."""
+        return finish_steps(self.steps(lowres, flow, checks))
+
+    @torch.no_grad()
+    def steps(self, lowres: torch.Tensor, flow: torch.Tensor | None,
+              checks: InputChecks | None = None) -> Generator[None, None, torch.Tensor]:
+        """Upscale one frame of network inputs; keeps the output as the next frame's previous. A
+        generator: a tiled frame yields between tiles (a scheduler may interleave other work; no
+        autocast stays entered across a yield), and returns the output.
 
         Args:
             lowres, flow: the inputs (flow None: the state is reset).
@@ -88,13 +97,19 @@ class Upscaler(RecurrentNetwork):
         previous, flow = self.carried(lowres, flow)
         h, w = lowres.shape[-2:]
         whole = self.tile is None or (h <= self.tile and w <= self.tile)
-        with torch.autocast(self.device.type, dtype=PRECISIONS[self.precision], enabled=self.precision != "fp32"):
+        with self._autocast():
             warped = self._warp(lowres, previous, flow)
-            output = self._network(lowres, warped) if whole else self._tiled(lowres, warped)
-            # A copy: compiled graphs may reuse their output buffers on the next call.
-            output = output.float().clone()
-        self.previous = output
+        if whole:
+            with self._autocast():
+                output = self._network(lowres, warped)
+        else:
+            output = yield from self._tiled(lowres, warped)
+        # A copy: compiled graphs may reuse their output buffers on the next call.
+        self.previous = output = output.float().clone()
         return output
+
+    def _autocast(self):
+        return torch.autocast(self.device.type, dtype=PRECISIONS[self.precision], enabled=self.precision != "fp32")
 
     def _warp(self, lowres: torch.Tensor, previous: torch.Tensor | None, flow: torch.Tensor | None) -> torch.Tensor:
         """The previous output warped to this frame, or the first frame's stand-in."""
@@ -102,23 +117,29 @@ class Upscaler(RecurrentNetwork):
             return self.net.first_previous(lowres)
         return warp_by_flow(previous, upscale_flow(flow, self.upscale_factor))
 
-    def _tiled(self, lowres: torch.Tensor, warped: torch.Tensor) -> torch.Tensor:
-        """The network tile by tile with overlapping halos."""
+    def _tiled(self, lowres: torch.Tensor, warped: torch.Tensor) -> Generator[None, None, torch.Tensor]:
+        """The network tile by tile with overlapping halos, yielding after each tile but the last."""
         h, w = lowres.shape[-2:]
         s, t, halo = self.upscale_factor, self.tile, self.halo
         output = torch.empty(1, warped.shape[1], h * s, w * s, device=lowres.device)
-        for y0 in range(0, h, t):
-            for x0 in range(0, w, t):
-                ya, yb = max(0, y0 - halo), min(h, y0 + t + halo)
-                xa, xb = max(0, x0 - halo), min(w, x0 + t + halo)
+        corners = [(y0, x0) for y0 in range(0, h, t) for x0 in range(0, w, t)]
+        for i, (y0, x0) in enumerate(corners):
+            if i:
+                yield
+            ya, yb = max(0, y0 - halo), min(h, y0 + t + halo)
+            xa, xb = max(0, x0 - halo), min(w, x0 + t + halo)
+            with self._autocast():
                 part = self.net(lowres[..., ya:yb, xa:xb], warped[..., ya * s:yb * s, xa * s:xb * s]).float()
-                y1, x1 = min(h, y0 + t), min(w, x0 + t)
-                output[..., y0 * s:y1 * s, x0 * s:x1 * s] = part[..., (y0 - ya) * s:(y1 - ya) * s,
-                                                                 (x0 - xa) * s:(x1 - xa) * s]
+            y1, x1 = min(h, y0 + t), min(w, x0 + t)
+            output[..., y0 * s:y1 * s, x0 * s:x1 * s] = part[..., (y0 - ya) * s:(y1 - ya) * s, (x0 - xa) * s:(x1 - xa) * s]
         return output
 
     def upscale(self, frame: FrameBuffers) -> FrameBuffers:
         """Upscale a low-res frame (mask, normal, depth, and flow except after a cut)."""
+        return finish_steps(self.upscale_steps(frame))
+
+    def upscale_steps(self, frame: FrameBuffers) -> Generator[None, None, FrameBuffers]:
+        """:meth:`upscale` in slices (:meth:`steps`)."""
         checks = InputChecks()
         lowres, flow = surface_tensors(frame, checks)
-        return output_buffers(self.step(lowres, flow, checks))
+        return output_buffers((yield from self.steps(lowres, flow, checks)))

@@ -221,21 +221,27 @@ class Engine:
         return view_buffer_codes(FrameBuffers(mask=b.mask, normal=b.normal, depth=b.depth,
                                               flow=b.flow if made.prev_seq >= 0 else None))
 
-    def upscale_sync(self, upscaler: Upscaler, request: UpscaleRequest) -> tuple[bytes | None, dict | None, dict]:
-        """One upscale request: ``(image bytes or None, float32 numpy buffers or None, times in ms)``.
+    async def upscale(self, upscaler: Upscaler, request: UpscaleRequest) -> tuple[bytes | None, dict | None, dict]:
+        """One upscale request: ``(image bytes or None, float32 numpy buffers or None, times in ms)``;
+        a tiled upscale in slices, one device-thread job per tile (:meth:`Upscaler.upscale_steps`).
 
         Raises:
             ValueError: the library refuses the frame (e.g. fp16 with depths beyond its range).
         """
-        self._on_thread()
-        start = time.perf_counter()
+        steps = self._upscale_steps(upscaler, request, time.perf_counter())
+        while True:
+            done, result = await self.call(_advance, steps)
+            if done:
+                return result
+
+    def _upscale_steps(self, upscaler: Upscaler, request: UpscaleRequest, start: float) -> Generator:
         timer = StageTimer(self.device)
         if request.reset:
             upscaler.reset()
         frame = FrameBuffers(**{n: torch.from_numpy(getattr(request, n).astype("float32"))
                                 for n in ("mask", "normal", "depth", "flow") if getattr(request, n) is not None})
         with timer("network"):
-            high = upscaler.upscale(frame)
+            high = yield from upscaler.upscale_steps(frame)
             if not all(bool(torch.isfinite(getattr(high, n)).all()) for n in high.present()):
                 upscaler.reset()  # a non-finite output must not feed the next frame
                 raise ValueError("the network gave non-finite values for this frame")

@@ -262,15 +262,27 @@ async def _wait(event: asyncio.Event, timeout: float | None) -> None:
         pass
 
 
+@dataclass
+class _IdSession:
+    upscaler: Upscaler
+    client: str
+    used: float
+
+
 class UpscaleSessions:
-    """Upscalers by session id (``POST /v1/upscale``) plus open streams, bounded together in
-    number (``max_sessions``) and in the memory their recurrent states hold (``max_upscale_bytes``:
-    past it, the least recently used ids are dropped and restart their recurrence); each id
-    expires after ``idle_timeout_s`` without a request."""
+    """Upscalers by session id (``POST /v1/upscale``) plus open streams.
+
+    Bounded in number (``max_sessions`` together; at most ``max_sessions_per_client`` ids per
+    client address, 429 past it), and in the memory their recurrent states hold
+    (``max_upscale_bytes``). Past either server-wide bound the least recently used ids are
+    dropped, so no client holds slots the others need: a dropped id restarts its recurrence on
+    its next request (as after ``idle_timeout_s`` without one, when ids expire). Streams are
+    connections: they are refused (429) when every slot is a stream's.
+    """
 
     def __init__(self, limits: Limits, make_upscaler: Callable[[], Upscaler]):
         self.limits, self.make = limits, make_upscaler
-        self._by_id: OrderedDict[str, tuple[Upscaler, float]] = OrderedDict()
+        self._by_id: OrderedDict[str, _IdSession] = OrderedDict()
         self._streams: list[Upscaler] = []
         self.streams = SessionCounter(limits.max_sessions)
 
@@ -279,7 +291,7 @@ class UpscaleSessions:
 
     def held_bytes(self) -> int:
         """Bytes the sessions' recurrent states hold."""
-        nets = [u for u, _ in self._by_id.values()] + self._streams
+        nets = [s.upscaler for s in self._by_id.values()] + self._streams
         return sum(u.previous.nbytes for u in nets if u.previous is not None)
 
     def trim(self, keep: str | None = None) -> int:
@@ -295,31 +307,41 @@ class UpscaleSessions:
 
     def expire(self, now: float) -> int:
         """Drop sessions idle longer than the timeout; returns how many."""
-        stale = [k for k, (_, used) in self._by_id.items() if now - used > self.limits.idle_timeout_s]
+        stale = [k for k, s in self._by_id.items() if now - s.used > self.limits.idle_timeout_s]
         for k in stale:
             del self._by_id[k]
         return len(stale)
 
-    def get(self, session_id: str) -> Upscaler:
-        """The id's upscaler (a new one for a new id); `ProtocolError` (429) when full."""
+    def get(self, session_id: str, client: str) -> Upscaler:
+        """The id's upscaler (a new one for a new id: `ProtocolError` 429 when ``client`` holds its
+        bound already; the least recently used id dropped when the server is full)."""
         now = time.monotonic()
         self.expire(now)
         if session_id not in self._by_id:
-            if len(self) >= self.limits.max_sessions:
-                raise ProtocolError(f"the server already holds {self.limits.max_sessions} upscale sessions; "
-                                    f"try later", CLOSE_TOO_MANY, 429)
-            self._by_id[session_id] = (self.make(), now)
-        upscaler = self._by_id[session_id][0]
-        self._by_id[session_id] = (upscaler, now)
+            held = sum(s.client == client for s in self._by_id.values())
+            if held >= self.limits.max_sessions_per_client:
+                raise ProtocolError(f"this client holds {held} upscale sessions already, the most one address may; "
+                                    f"reuse one or let one expire", CLOSE_TOO_MANY, 429)
+            self._make_room()
+            self._by_id[session_id] = _IdSession(self.make(), client, now)
+        session = self._by_id[session_id]
+        session.used = now
         self._by_id.move_to_end(session_id)
-        return upscaler
+        return session.upscaler
 
-    def open_stream(self) -> Upscaler:
-        """Count a stream (`ProtocolError` 429 when full) and give it its own upscaler."""
-        self.expire(time.monotonic())
-        if len(self) >= self.limits.max_sessions:
+    def _make_room(self) -> None:
+        """One free slot: drop the least recently used id if every slot is taken; 429 if all are streams'."""
+        if len(self) < self.limits.max_sessions:
+            return
+        if not self._by_id:
             raise ProtocolError(f"the server already holds {self.limits.max_sessions} upscale sessions; try later",
                                 CLOSE_TOO_MANY, 429)
+        self._by_id.popitem(last=False)
+
+    def open_stream(self) -> Upscaler:
+        """Count a stream (`ProtocolError` 429 when every slot is a stream's) and give it its own upscaler."""
+        self.expire(time.monotonic())
+        self._make_room()
         self.streams.acquire("upscale streams")
         self._streams.append(self.make())
         return self._streams[-1]

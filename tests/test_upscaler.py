@@ -154,6 +154,24 @@ def test_tiled_equals_untiled_on_the_shipped_model(default_upscaler):
         torch.testing.assert_close(parts, whole, atol=1e-4, rtol=0)
 
 
+def test_a_tiled_frame_runs_in_slices_one_a_tile(default_upscaler):
+    """Tiles of 8 over a 40x28 frame: 5 x 4 tiles, a yield between each two (a scheduler may
+    interleave other work there); the same output as run whole."""
+    frame = render_lowres_frames(40, 28, frames=1)[0]
+    steps = Upscaler(tile=8).steps(*surface_tensors(frame))
+    slices = 0
+    while True:
+        try:
+            next(steps)
+            slices += 1
+        except StopIteration as done:
+            out = done.value
+            break
+    assert slices == 5 * 4 - 1
+    default_upscaler.reset()
+    torch.testing.assert_close(out, default_upscaler.step(*surface_tensors(frame)), atol=1e-4, rtol=0)
+
+
 def test_a_tile_covering_the_frame_runs_whole(tmp_path_factory, frames24):
     model = tiny_model_dir(tmp_path_factory)
     a = Upscaler(model).step(*surface_tensors(frames24[0]))

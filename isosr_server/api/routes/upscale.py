@@ -39,7 +39,7 @@ def check_upscale(msg: UpscaleRequest, engine: Engine, limits: Limits) -> None:
 async def run_upscale(engine: Engine, upscaler: Upscaler, msg: UpscaleRequest):
     """``(image or None, buffers or None, times)`` on the device thread; 422 when the network refuses the frame."""
     try:
-        return await engine.call(engine.upscale_sync, upscaler, msg)
+        return await engine.upscale(upscaler, msg)
     except ValueError as e:  # the network refuses this frame (e.g. fp16 beyond its depth range)
         raise ProtocolError(f"cannot upscale this frame: {e}", http_status=422) from None
 
@@ -62,7 +62,8 @@ async def upscale(request: Request, engine: EngineDep, limits: LimitsDep, metric
     if msg.output == "buffers" and accept_type in IMAGE_TYPES:
         msg = msgspec.structs.replace(msg, output=IMAGE_TYPES[accept_type])
     check_upscale(msg, engine, limits)
-    upscaler = sessions.get(msg.session) if msg.session else engine.new_upscaler()
+    client = request.client.host if request.client else ""
+    upscaler = sessions.get(msg.session, client) if msg.session else engine.new_upscaler()
     image, buffers, times = await run_upscale(engine, upscaler, msg)
     sessions.trim(keep=msg.session)
     h, w = msg.mask.shape
