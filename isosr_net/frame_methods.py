@@ -40,7 +40,7 @@ from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest
 from isosr_render.conventions import AO_RADIUS, LOWRES_BUFFERS
 from isosr_render.renderer import MAX_AO_SAMPLES, MAX_SPP
 from isosr_render.sequence import sequence_cameras
-from isosr_render.shading import ShadingParams, shade
+from isosr_render.shading import ShadingParams, shade, shade_on
 from isosr_render.shapes import check_int
 from isosr_net.atrous import ATrousConfig, atrous_filter
 from isosr_net.inference import PRECISIONS, RecurrentNetwork, finish_steps, output_buffers
@@ -338,7 +338,8 @@ class FrameRunner(ABC):
         """``buffers`` with the final color (unless the runner does not shade)."""
         if self.shade:
             with timer("shading"):
-                buffers.color = shade(buffers.mask, buffers.normal, buffers.ao, self.shading)
+                buffers.color = shade_on(buffers.mask.device.type)(buffers.mask, buffers.normal, buffers.ao,
+                                                                  self.shading)
         return buffers
 
     def _to_frame_size(self, name: str, t: torch.Tensor) -> torch.Tensor:

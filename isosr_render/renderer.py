@@ -238,7 +238,7 @@ class Renderer:
             "samples": buffer(kernels.OUT_SAMPLES, wp.int32),
         }
         view = _view(camera, w, h)
-        prev = _view(request.prev_camera or camera, w, h)
+        prev = view if request.prev_camera is None else _view(request.prev_camera, w, h)
 
         tiles_x = -(-w // kernels.TILE_W)
 

@@ -8,7 +8,9 @@ the viewer along +z), so a frame shades from its buffers alone.
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -65,6 +67,15 @@ def shade(mask: torch.Tensor, normal: torch.Tensor, ao: torch.Tensor | None = No
     alpha = mask.clamp(0.0, 1.0)
     return torch.stack([(alpha * ((a * diffuse + specular) * occlusion) + (1.0 - alpha) * b).clamp(0.0, 1.0)
                         for a, b in zip(params.albedo, params.background)], dim=-1)
+
+
+@functools.lru_cache(maxsize=None)
+def shade_on(device_type: str) -> Callable[..., torch.Tensor]:
+    """:func:`shade` as it runs fastest on a device type: on CUDA compiled (its twenty-odd
+    elementwise operations fused, with shapes dynamic: no recompiling for a new frame size; a few
+    seconds to compile on first use), elsewhere as it is (compiling costs CPUs more than it saves).
+    The same function: equal to :func:`shade` within float32 rounding."""
+    return torch.compile(shade, dynamic=True) if device_type == "cuda" else shade
 
 
 def _unit(v: tuple[float, float, float]) -> tuple[float, float, float]:

@@ -140,7 +140,7 @@ class Engine:
                                           self.config.target_fps, self.networks)
         renderer = Renderer(parse_procedural("proc:sphere@16"), str(self.device))
         frames = self.new_session_frames("proc:sphere@16")
-        for mode in ("network", "reconstruct"):
+        for mode in ("full", "network", "reconstruct"):  # compiles shading with and without AO on GPUs
             job = FrameJob(ViewSettings(mode=mode, width=8 * factor, height=8 * factor), orbit(30, 20, 1.8), 0.5,
                            FocusMsg(), 0, False, 1)
             pack_codes(self.codes_sync(finish_steps(frames.steps(renderer, job))), "jpeg", 80)

@@ -187,3 +187,17 @@ def test_a_frame_in_slices_equals_the_frame_whole(scene, method):
     assert slices >= SIZE[1] // 32  # the first band, then bands of a row (each slice far over its budget)
     for name in whole.present():
         torch.testing.assert_close(getattr(sliced, name), getattr(whole, name), atol=1e-6, rtol=0)
+
+
+def test_shading_runs_compiled_on_cuda_only_and_equals_shade():
+    from isosr_render.shading import shade, shade_on
+
+    assert shade_on("cpu") is shade
+    if not torch.cuda.is_available():
+        pytest.skip("compiled shading is CUDA's (run with ISOSR_TEST_DEVICE=cuda on the GPU machine)")
+    g = torch.Generator().manual_seed(0)
+    for h, w in ((24, 32), (37, 53)):  # a second size: dynamic shapes, no recompiling
+        mask, normal, ao = torch.rand(h, w, generator=g), torch.randn(h, w, 3, generator=g), torch.rand(h, w, generator=g)
+        for occlusion in (None, ao):
+            args = [t.cuda() if t is not None else None for t in (mask, normal, occlusion)]
+            torch.testing.assert_close(shade_on("cuda")(*args), shade(*args), atol=1e-5, rtol=0)
