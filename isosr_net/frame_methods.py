@@ -109,14 +109,25 @@ class FrameResult:
         buffers: the frame's buffers: ``color`` (the final frame; None for unshaded kinds) and
             what the method makes of mask, normal, depth, ao, plus the buffers asked to keep.
             At the frame size, except an unshaded low-res kind's (``buffers``), at the render's.
-        times: milliseconds per stage (render, filter, network, shading).
+        timers: the frame's stage timers (:attr:`times` reads them).
         continued: whether the frame continued the stream from the previous camera (its flow
             refers to it); False on a sequence's first frame.
     """
 
     buffers: FrameBuffers
-    times: dict[str, float]
+    timers: list[StageTimer]
     continued: bool
+
+    @property
+    def times(self) -> dict[str, float]:
+        """Milliseconds per stage (render, filter, network, shading, and what later timers add). Read
+        when needed: on CUDA reading waits for the frame's last event, so the device thread may
+        queue the next frame's work before the GPU has finished this one."""
+        out: dict[str, float] = {}
+        for timer in self.timers:
+            for stage, ms in timer.ms().items():
+                out[stage] = out.get(stage, 0.0) + ms
+        return out
 
 
 class Networks:
@@ -224,7 +235,7 @@ class FrameRunner(ABC):
         self.shading, self.ao_radius, self.atrous, self.keep = shading, ao_radius, atrous, tuple(keep)
         self.shade = shade
         self.device = str(renderer.device)
-        self._last_render_ms: float | None = None
+        self._last_timer: StageTimer | None = None  # the previous frame's (read lazily: no sync per frame)
         self.net: RecurrentNetwork | None = None
         if self.network_class is not None:
             networks = Networks() if networks is None else networks
@@ -298,7 +309,7 @@ class FrameRunner(ABC):
         """
         timer = StageTimer(self.device)
         request = self.render_request(prev_camera)
-        if slice_ms is None or (self._last_render_ms is not None and self._last_render_ms < slice_ms):
+        if slice_ms is None or (self._last_timer is not None and self._last_timer.ms()["render"] < slice_ms):
             with timer("render"):
                 rendered = self.renderer.render(camera, request)
         else:
@@ -307,9 +318,8 @@ class FrameRunner(ABC):
         for name in self.keep:
             if getattr(buffers, name) is None and getattr(rendered, name) is not None:
                 setattr(buffers, name, self._to_frame_size(name, getattr(rendered, name)))
-        times = timer.ms()
-        self._last_render_ms = times["render"]
-        return FrameResult(buffers, times, prev_camera is not None and self.recurrent)
+        self._last_timer = timer
+        return FrameResult(buffers, [timer], prev_camera is not None and self.recurrent)
 
     def _render_bands(self, camera: Camera, request: RenderRequest, slice_ms: float,
                       timer: StageTimer) -> Generator[None, None, FrameBuffers]:

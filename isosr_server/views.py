@@ -232,8 +232,7 @@ class SessionFrames:
         else:
             color = result.buffers.color if job.refined else view.compose(result, renderer, job, timer)
             legend = None
-        for stage, ms in timer.ms().items():
-            result.times[stage] = result.times.get(stage, 0.0) + ms
+        result.timers.append(timer)
         return ViewFrame(color, result, method, legend, prev_seq)
 
 
