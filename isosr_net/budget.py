@@ -94,6 +94,9 @@ class BudgetConfig:
         warmup_frames, timing_frames: frames per timed candidate, before and while timing.
         ao_matters_db: the AO test's threshold, dB.
         headroom: the fraction of the budget a candidate's probe time may take.
+        clock: what a frame's time is on GPUs: ``"device"``, the GPU's (CUDA events: the Pareto
+            study's scale), or ``"wall"``, the host's to the frame's end (a serving thread's cost,
+            where the host's work per frame can exceed the GPU's).
         ao_radius: AO ray length, world units.
         shading: material and light.
     """
@@ -106,6 +109,7 @@ class BudgetConfig:
     timing_frames: int = 3
     ao_matters_db: float = AO_MATTERS_DB
     headroom: float = 0.9
+    clock: str = "device"
     ao_radius: float = AO_RADIUS
     shading: ShadingParams = field(default_factory=ShadingParams)
 
@@ -114,6 +118,8 @@ class BudgetConfig:
             check_int(getattr(self, name), name, low, where="BudgetConfig")
         if not (isinstance(self.probe_scale, (int, float)) and 0 < self.probe_scale <= 1):
             raise ValueError(f"BudgetConfig.probe_scale must be in (0, 1], got {self.probe_scale!r}")
+        if self.clock not in ("device", "wall"):
+            raise ValueError(f"BudgetConfig.clock must be 'device' or 'wall', got {self.clock!r}")
         if not 0 < self.headroom <= 1:
             raise ValueError(f"BudgetConfig.headroom must be in (0, 1], got {self.headroom!r}")
         if self.candidates is not None and not self.candidates:
@@ -230,9 +236,10 @@ def ao_effect_db(references: list[FrameBuffers], shading: ShadingParams = Shadin
     return _nanmean(scores)
 
 
-def _frame_ms(runner: FrameRunner, camera: Camera, prev: Camera | None) -> float:
-    """One frame's time in ms: CUDA events on GPUs (the device's time), wall time on CPUs."""
-    if runner.renderer.device.is_cuda:
+def _frame_ms(runner: FrameRunner, camera: Camera, prev: Camera | None, clock: str) -> float:
+    """One frame's time in ms: on GPUs with the ``device`` clock CUDA events (the GPU's time),
+    else wall time to the frame's end (on GPUs synchronized: the host's and the GPU's together)."""
+    if runner.renderer.device.is_cuda and clock == "device":
         start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
         start.record()
         runner.frame(camera, prev)
@@ -241,6 +248,8 @@ def _frame_ms(runner: FrameRunner, camera: Camera, prev: Camera | None) -> float
         return start.elapsed_time(end)
     t0 = time.perf_counter()
     runner.frame(camera, prev)
+    if runner.renderer.device.is_cuda:
+        torch.cuda.synchronize()
     return (time.perf_counter() - t0) * 1e3
 
 
@@ -252,7 +261,7 @@ def _time_candidate(runner: FrameRunner, cameras: list[Camera], config: BudgetCo
         runner.frame(*pairs[i % len(pairs)])
     times = []
     for i in range(config.timing_frames):
-        times.append(_frame_ms(runner, *pairs[(config.warmup_frames + i) % len(pairs)]))
+        times.append(_frame_ms(runner, *pairs[(config.warmup_frames + i) % len(pairs)], config.clock))
         if times[-1] > OVER_BUDGET_STOP * budget_ms:
             break
     return sum(times) / len(times)
