@@ -541,10 +541,12 @@ def _check_arrays(arrays: dict[str, np.ndarray], dtypes: tuple[str, ...], height
         if a.shape != want:
             raise ProtocolError(f"{name}: shape must be {want}, got {a.shape}")
         if bounds is not None and a.size:
+            # Compared as Python floats: a bound beyond float16's range (MAX_DEPTH) cast to a
+            # float16 array's dtype would overflow to inf.
             lo, hi = bounds[name]
-            if a.min() < lo or a.max() > hi:
-                raise ProtocolError(f"{name}: values must lie in [{lo:g}, {hi:g}], got "
-                                    f"[{float(a.min()):g}, {float(a.max()):g}]")
+            low, high = float(a.min()), float(a.max())
+            if low < lo or high > hi:
+                raise ProtocolError(f"{name}: values must lie in [{lo:g}, {hi:g}], got [{low:g}, {high:g}]")
 
 
 class UpscaleRequest(Message, tag="upscale"):
