@@ -1,7 +1,7 @@
 """Attacks on a real `isosr serve` subprocess on loopback (CPU, procedural volumes), from raw
 sockets: stalled uploads (server memory), clients leaving mid-body (no ERROR lines), silent
 WebSockets (view slots), connections over the per-address and total bounds, zlib bombs (server
-memory, liveness).
+memory, liveness) and upscale session ids (upscale slots).
 
 Every client binds its own loopback address (127.0.0.0/8 all reaches the server on Linux), so
 per-address bounds are tested with several addresses. Every wait is bounded.
@@ -10,6 +10,7 @@ per-address bounds are tested with several addresses. Every wait is bounded.
 from __future__ import annotations
 
 import json
+import math
 import os
 import socket
 import threading
@@ -434,3 +435,20 @@ def test_zlib_bombs_get_4xx_while_liveness_and_memory_hold(default):
     assert peak < BOMB_RSS_GOAL
     assert_no_errors(default)
 
+
+# ---- upscale sessions ---------------------------------------------------------------------------
+
+
+@pytest.mark.xfail(reason="upscale sessions per address: the lead's change", strict=True)
+def test_session_ids_from_one_address_leave_another_an_upscale_session(default):
+    """40 tiny requests with distinct ``session`` ids from one address (today each holds one of the
+    max_sessions upscale slots for idle_timeout_s); then a new id from another address is served."""
+    shapes = {"mask": (4, 4), "normal": (4, 4, 3), "depth": (4, 4)}
+    tiny = {n: {"dtype": "float32", "shape": list(shape), "data": bytes(4 * math.prod(shape))}
+            for n, shape in shapes.items()}
+    for k in range(40):
+        status, reply = post(default, "127.0.0.11", upscale_wire(**tiny, session=f"attacker-{k}"))
+        assert status in (200, 429), reply
+    status, reply = post(default, "127.0.0.2", upscale_wire(**tiny, session="honest-1"))
+    assert status == 200, reply
+    assert_no_errors(default)
