@@ -71,6 +71,10 @@ def run(args: argparse.Namespace) -> int:
     if args.frames < 1:
         raise ValueError(f"--frames must be at least 1, got {args.frames}")
     path, size = Orbit.parse(args.orbit), _size(args.size)
+    if args.mode == "buffers":  # before a session is opened, not at its first frame
+        from isosr_client.local import check_device
+
+        check_device(args.device)
     token = args.token or os.environ.get(TOKEN_ENV) or None
     settings = {"ao_rays": args.ao_rays, "interpolation": args.interpolation, "encoding": args.encoding,
                 "quality": args.quality, "refine": False}

@@ -25,10 +25,12 @@ class LocalUpscaler:
         factor: the server's upscale factor (``ready.upscale_factor``).
 
     Raises:
+        RuntimeError: ``device`` names a CUDA device this machine lacks (`check_device`).
         ValueError: the model upscales by another factor than the server's.
     """
 
     def __init__(self, model: str | Path | None, device: str, factor: int):
+        check_device(device)
         self.device = device
         self.upscaler = Upscaler(DEFAULT_MODEL if model is None else model, device)
         if self.upscaler.upscale_factor != factor:
@@ -48,6 +50,19 @@ class LocalUpscaler:
         if high.mask.is_cuda:
             torch.cuda.synchronize(high.mask.device)
         return high
+
+
+def check_device(device: str) -> None:
+    """Raise RuntimeError ``no CUDA device: ...`` (one line, for the command line) where ``device``
+    names a CUDA device that torch does not find here, rather than torch's error at first use."""
+    kind = torch.device(device)
+    if kind.type != "cuda":
+        return
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    if (kind.index or 0) >= count:
+        found = "none" if count == 0 else f"only {count}"
+        raise RuntimeError(f"no CUDA device: {device!r} asked for, but torch finds {found} on this machine; "
+                           f"upscale on 'cpu'")
 
 
 def shade_rgb(high: FrameBuffers) -> np.ndarray:

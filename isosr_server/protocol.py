@@ -188,6 +188,13 @@ class Limits(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
             raise ProtocolError(f"{what} {width}x{height} exceeds the limits (side <= {self.max_side}, "
                                 f"pixels <= {self.max_pixels})", CLOSE_TOO_BIG, 413)
 
+    def downscaled(self, factor: int) -> Limits:
+        """These limits for a frame that is upscaled ``factor`` times: the largest side and area
+        divided by ``factor`` and its square, the rest the same. Parsing an upscale request with
+        them refuses the arrays of a frame too big to upscale before they inflate."""
+        return msgspec.structs.replace(self, max_side=max(self.max_side // factor, 1),
+                                       max_pixels=max(self.max_pixels // factor**2, 1))
+
     def array_bounds(self) -> tuple[int, int]:
         """The most elements and the longest side a wire array may declare: 4 channels of the largest image."""
         return 4 * self.max_pixels, self.max_side
@@ -541,10 +548,12 @@ def _check_arrays(arrays: dict[str, np.ndarray], dtypes: tuple[str, ...], height
         if a.shape != want:
             raise ProtocolError(f"{name}: shape must be {want}, got {a.shape}")
         if bounds is not None and a.size:
+            # Compared as Python floats: a bound beyond float16's range (MAX_DEPTH) cast to a
+            # float16 array's dtype would overflow to inf.
             lo, hi = bounds[name]
-            if a.min() < lo or a.max() > hi:
-                raise ProtocolError(f"{name}: values must lie in [{lo:g}, {hi:g}], got "
-                                    f"[{float(a.min()):g}, {float(a.max()):g}]")
+            low, high = float(a.min()), float(a.max())
+            if low < lo or high > hi:
+                raise ProtocolError(f"{name}: values must lie in [{lo:g}, {hi:g}], got [{low:g}, {high:g}]")
 
 
 class UpscaleRequest(Message, tag="upscale"):

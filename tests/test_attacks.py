@@ -1,6 +1,7 @@
 """Attacks on a real `isosr serve` subprocess on loopback (CPU, procedural volumes), from raw
 sockets: stalled uploads (server memory), clients leaving mid-body (no ERROR lines), silent
-WebSockets (view slots), and connections over the per-address and total bounds.
+WebSockets (view slots), connections over the per-address and total bounds, zlib bombs (server
+memory, liveness) and upscale session ids (upscale slots).
 
 Every client binds its own loopback address (127.0.0.0/8 all reaches the server on Linux), so
 per-address bounds are tested with several addresses. Every wait is bounded.
@@ -9,12 +10,16 @@ per-address bounds are tested with several addresses. Every wait is bounded.
 from __future__ import annotations
 
 import json
+import math
 import os
 import socket
+import threading
 import time
+import zlib
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
 
+import msgspec
 import pytest
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import ClientConnection, connect as ws_connect
@@ -23,6 +28,8 @@ from isosr_bench.bench_server import ServerProcess
 from isosr_server import protocol as P
 
 MiB = 2**20
+# Server RSS that four clients looping zlib bombs for a few seconds may add.
+BOMB_RSS_GOAL = 160 * MiB
 # Server RSS that eight stalled 32 MiB uploads may add, 15 s after they stall (the goal; the tests
 # stall eight more within the limit alongside).
 RSS_GOAL = 96 * MiB
@@ -335,4 +342,112 @@ def test_silent_websockets_at_the_default_limits(default):
               f"silent ones' address")
         codes = [ws.close_code()[0] for ws in silent]
         assert sorted(set(codes)) == [P.CLOSE_IDLE, P.CLOSE_TOO_MANY] and codes.count(P.CLOSE_IDLE) == 32
+    assert_no_errors(default)
+
+
+# ---- zlib bombs ---------------------------------------------------------------------------------
+
+
+def zlib_array(shape: tuple[int, ...], data: bytes) -> dict:
+    """A float32 wire array declaring ``shape`` whose data is ``data``, marked as zlib."""
+    return {"dtype": "float32", "shape": list(shape), "data": data, "zlib": True}
+
+
+def zeros_z(n: int) -> bytes:
+    """One zlib stream of ``n`` zero bytes (level 9: about 1000 to 1)."""
+    return zlib.compress(bytes(n), 9)
+
+
+def upscale_wire(mask: dict, normal: dict, depth: dict, **fields) -> bytes:
+    """A hand-made ``upscale`` body (protocol version 3)."""
+    return msgspec.msgpack.encode({"type": "upscale", "version": P.PROTOCOL_VERSION, "mask": mask, "normal": normal,
+                                   "depth": depth, **fields})
+
+
+def bombs() -> dict[str, tuple[bytes, int, str]]:
+    """Bodies by name: the body, and the status and words of the answer it must get."""
+    n = 256  # a frame well within the limits: 1024x1024 upscaled
+    past = zeros_z(100 * MiB)  # ~100 KB: the body ~0.3 MB
+    big = 2048  # 8192^2 upscaled: too big, though each array is within the bounds of a 4096^2 frame's
+    return {
+        "inflates past its shape": (upscale_wire(zlib_array((n, n), past), zlib_array((n, n, 3), past),
+                                                 zlib_array((n, n), past)),
+                                    400, f"zlib data inflates past the {4 * n * n} bytes its shape declares"),
+        "a huge shape": (upscale_wire(zlib_array((big, big), zeros_z(4 * big * big)),
+                                      zlib_array((big, big, 3), zeros_z(12 * big * big)),
+                                      zlib_array((big, big), zeros_z(4 * big * big))), 413, "exceeds the limits"),
+        "trailing garbage": (upscale_wire(zlib_array((n, n), zeros_z(4 * n * n) + b"garbage"),
+                                          zlib_array((n, n, 3), zeros_z(12 * n * n)),
+                                          zlib_array((n, n), zeros_z(4 * n * n))), 400, "7 bytes after the zlib stream"),
+    }
+
+
+def post(server: ServerProcess, source: str, body: bytes, timeout: float = 30.0) -> tuple[int | str, dict]:
+    """POST /v1/upscale from ``source``: the status and the JSON answer (``{}`` where it is none), or
+    what went wrong reading it."""
+    try:
+        with dial(server, source, timeout) as sock:
+            sock.sendall(post_head(len(body)) + body)
+            status, headers, reply = Reader(sock).response()
+    except (OSError, ConnectionError) as e:
+        return type(e).__name__, {}
+    return status, json.loads(reply) if headers.get("content-type") == "application/json" else {}
+
+
+@pytest.mark.slow
+def test_zlib_bombs_get_4xx_while_liveness_and_memory_hold(default):
+    """Four clients loop the bombs for 4 s; meanwhile liveness is probed and the RSS sampled."""
+    cases = bombs()
+    assert all(len(body) < 400_000 for body, _, _ in cases.values())
+    assert get(default, "127.0.0.1")[0] == 200
+    base = default.rss()
+    answers: list[tuple[str, int | str, str]] = []
+    live: list[float] = []
+    peak = 0
+    start = time.monotonic()
+
+    def attack(source: str) -> None:
+        for i in range(10_000):  # bounded in count and time
+            if time.monotonic() - start > 4.0:
+                return
+            name = list(cases)[i % len(cases)]
+            status, reply = post(default, source, cases[name][0])
+            answers.append((name, status, reply.get("error", "")))
+
+    clients = [threading.Thread(target=attack, args=(f"127.0.3.{k + 1}",)) for k in range(4)]
+    for c in clients:
+        c.start()
+    while any(c.is_alive() for c in clients) and time.monotonic() - start < 30:
+        peak = max(peak, default.rss() - base)
+        t = time.monotonic()
+        assert get(default, "127.0.0.1")[0] == 200
+        live.append(time.monotonic() - t)
+        time.sleep(0.1)
+    for c in clients:
+        c.join(10)
+    peak = max(peak, default.rss() - base)
+    print(f"\nzlib bombs: {len(answers)} answered in 4 s; liveness at most {max(live) * 1000:.0f} ms over "
+          f"{len(live)} probes; RSS growth peak {peak / MiB:.0f} MiB")
+    assert len(answers) >= 3 * len(cases)
+    for name, status, reason in answers:
+        assert (status, cases[name][2] in reason) == (cases[name][1], True), (name, status, reason)
+    assert max(live) < 1.0
+    assert peak < BOMB_RSS_GOAL
+    assert_no_errors(default)
+
+
+# ---- upscale sessions ---------------------------------------------------------------------------
+
+
+def test_session_ids_from_one_address_leave_another_an_upscale_session(default):
+    """40 tiny requests with distinct ``session`` ids from one address (today each holds one of the
+    max_sessions upscale slots for idle_timeout_s); then a new id from another address is served."""
+    shapes = {"mask": (4, 4), "normal": (4, 4, 3), "depth": (4, 4)}
+    tiny = {n: {"dtype": "float32", "shape": list(shape), "data": bytes(4 * math.prod(shape))}
+            for n, shape in shapes.items()}
+    for k in range(40):
+        status, reply = post(default, "127.0.0.11", upscale_wire(**tiny, session=f"attacker-{k}"))
+        assert status in (200, 429), reply
+    status, reply = post(default, "127.0.0.2", upscale_wire(**tiny, session="honest-1"))
+    assert status == 200, reply
     assert_no_errors(default)

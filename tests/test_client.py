@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from client_fixtures import server  # noqa: F401  (the module's server fixture)
 from server_fixtures import running_server
 from websockets.sync.client import connect as ws_connect
@@ -303,6 +304,18 @@ def test_cli_writes_frames_and_prints_costs(server, tmp_path, capsys):  # noqa: 
     assert "--orbit must be" in capsys.readouterr().err and not bad.exists()
     assert main(["client", server.url, "--volume", "nope", "--out", str(bad)]) == 2
     assert "4404" in capsys.readouterr().err and not bad.exists()
+
+
+def test_cli_without_the_cuda_device_asked_for_ends_in_one_line(server):  # noqa: F811
+    """``--device cuda`` where torch finds no CUDA device (or cuda:N past the last one on a GPU
+    machine): exit 2 and one line naming the cause, no traceback."""
+    device = f"cuda:{torch.cuda.device_count()}" if torch.cuda.is_available() else "cuda"
+    done = subprocess.run([sys.executable, "-m", "isosr_cli.main", "client", server.url, "--volume", VOLUME,
+                           "--mode", "buffers", "--frames", "1", "--size", "64x48", "--no-compare", "--device",
+                           device], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"isosr client: error: no CUDA device: {device!r}"), done.stderr
 
 
 @pytest.mark.slow

@@ -3,6 +3,7 @@ limits, versions, fuzzing. (The array and buffers codecs: test_codecs.py.)"""
 
 from __future__ import annotations
 
+import warnings
 import zlib
 
 import msgspec
@@ -247,6 +248,26 @@ def test_array_size_limit_refuses_before_inflating():
     with pytest.raises(P.ProtocolError, match=r"array declared shape \(1000, 1000\) of 1000000 elements exceeds") as e:
         P.parse(raw(message), small, (P.UpscaleRequest,))
     assert (e.value.close_code, e.value.http_status) == (P.CLOSE_TOO_BIG, 413)
+
+
+def test_downscaled_limits_bound_an_upscale_requests_arrays():
+    low = LIMITS.downscaled(4)
+    assert (low.max_side, low.max_pixels, low.max_message_bytes) == (1024, 518400, LIMITS.max_message_bytes)
+    assert low.array_bounds() == (4 * 518400, 1024)
+    message = _upscale_wire(depth=_array(shape=(2048, 2048), data=b"garbage", zlib=True))  # within LIMITS' bounds
+    with pytest.raises(P.ProtocolError, match=r"declared shape \(2048, 2048\) .* sides <= 1024") as e:
+        P.parse(raw(message), low, (P.UpscaleRequest,))
+    assert e.value.http_status == 413
+
+
+def test_float16_inputs_raise_no_overflow_warning():
+    """Bounds beyond float16's range (MAX_DEPTH) are compared as Python floats, not cast to float16."""
+    arrays = {"mask": np.ones((4, 5)), "normal": np.full((4, 5, 3), 0.5), "depth": np.full((4, 5), 60000.0),
+              "flow": np.full((4, 5, 2), -P.FLOW_CLIP)}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        back = roundtrip(P.UpscaleRequest(**{n: a.astype(np.float16) for n, a in arrays.items()}))
+    assert back.depth.dtype == np.float16 and back.depth.max() == 60000.0
 
 
 def test_client_side_limits_bound_frames():

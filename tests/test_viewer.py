@@ -143,6 +143,16 @@ def difference(a, b) -> float:
     return sum(abs(x - y) for x, y in zip(flat_a, flat_b)) / len(flat_a)
 
 
+def rect(page, element_id: str) -> tuple[float, float, float, float]:
+    """An element's box in the window: left, top, right, bottom (getBoundingClientRect)."""
+    return tuple(page.evaluate(f"(() => {{ const r = document.getElementById('{element_id}').getBoundingClientRect(); "
+                               f"return [r.left, r.top, r.right, r.bottom]; }})()"))
+
+
+def overlap(a: tuple[float, ...], b: tuple[float, ...]) -> bool:
+    return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
+
+
 def set_control(page, selector: str, value) -> None:
     page.evaluate("([s, v]) => { const e = document.querySelector(s); e.value = v; "
                   "e.dispatchEvent(new Event(e.type === 'range' ? 'input' : 'change')); }", [selector, value])
@@ -160,6 +170,9 @@ def test_viewer_explores_a_volume(server, browser):
     assert page.get_attribute("#refined", "data-refined") == "true"
     assert float(page.inner_text("#stat-fps")) >= 0 and "total" in page.inner_text("#stat-times")
     assert page.inner_text("#stat-method") not in ("", "-"), "the frame's method is shown"
+    stats, view = rect(page, "stats"), rect(page, "view")
+    assert not overlap(stats, view), f"the live numbers {stats} cover the image {view}"
+    assert stats[2] <= WINDOW["width"] and stats[3] <= WINDOW["height"], f"the live numbers {stats} leave the window"
 
     # Drag: the camera orbits.
     n = v.frames()

@@ -6,6 +6,12 @@
 
 The probes need no token: orchestrators' probes carry none, and they reveal nothing but the
 status. Server metadata lists as ``extensions`` the isosr APIs beyond the protocol's own.
+
+Server metadata stays behind the token, as every route but the probes and the viewer page does:
+it holds no secret, but its exact version and extensions tell a stranger which release and APIs
+to aim at, and nothing that calls without the token (probes, load balancers) needs it. KServe
+clients send the token as a header (tritonclient: ``get_server_metadata(headers={"Authorization":
+"Bearer TOKEN"})``).
 """
 
 from __future__ import annotations
@@ -34,4 +40,5 @@ async def ready(is_ready: ReadyDep):
 
 @router.get("/v2", dependencies=[Depends(require_token)])
 async def server_metadata():
+    """Name, version and extensions; behind the token (the module docstring says why)."""
     return {"name": "isosr", "version": version("isosr"), "extensions": list(EXTENSIONS)}

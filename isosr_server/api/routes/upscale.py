@@ -30,10 +30,16 @@ IMAGE_TYPES = {"image/png": "png", "image/jpeg": "jpeg", "image/webp": "webp"}
 router = APIRouter(prefix="/v1/upscale", tags=["upscale"])
 
 
-def check_upscale(msg: UpscaleRequest, engine: Engine, limits: Limits) -> None:
-    """`ProtocolError` 413 when the upscaled frame would exceed the size limits."""
+async def parse_upscale(data: bytes, engine: Engine, limits: Limits) -> UpscaleRequest:
+    """The request in ``data``, decoded off the event loop (it inflates and checks megabytes of
+    arrays), its arrays bounded before they inflate by the limits of a frame that upscales to
+    within ``limits`` (`Limits.downscaled`); `ProtocolError` 413 when the upscaled frame would
+    exceed the size limits."""
+    f = engine.upscale_factor
+    msg = await asyncio.to_thread(parse, data, limits.downscaled(f), (UpscaleRequest,))
     h, w = msg.mask.shape
-    limits.check_size(w * engine.upscale_factor, h * engine.upscale_factor, "the upscaled frame")
+    limits.check_size(w * f, h * f, "the upscaled frame")
+    return msg
 
 
 async def run_upscale(engine: Engine, upscaler: Upscaler, msg: UpscaleRequest):
@@ -56,12 +62,10 @@ async def read_body(request: Request) -> bytes:
 @router.post("", dependencies=[Depends(require_token)])
 async def upscale(request: Request, engine: EngineDep, limits: LimitsDep, metrics: MetricsDep,
                   sessions: UpscaleSessionsDep):
-    # Off the event loop: decoding inflates and checks megabytes of arrays.
-    msg = await asyncio.to_thread(parse, await read_body(request), limits, (UpscaleRequest,))
+    msg = await parse_upscale(await read_body(request), engine, limits)
     accept_type = request.headers.get("accept", "").split(",")[0].split(";")[0].strip()
     if msg.output == "buffers" and accept_type in IMAGE_TYPES:
         msg = msgspec.structs.replace(msg, output=IMAGE_TYPES[accept_type])
-    check_upscale(msg, engine, limits)
     client = request.client.host if request.client else ""
     upscaler = sessions.get(msg.session, client) if msg.session else engine.new_upscaler()
     image, buffers, times = await run_upscale(engine, upscaler, msg)
@@ -89,10 +93,9 @@ async def upscale_stream(ws: WebSocket, authorized: AuthorizedDep, engine: Engin
         upscaler = sessions.open_stream()
         seq = 0
         while True:
-            msg = await asyncio.to_thread(parse, await receive(ws, limiter, limits), limits, (UpscaleRequest,))
+            msg = await parse_upscale(await receive(ws, limiter, limits), engine, limits)
             if msg.session is not None:
                 raise ProtocolError("a stream is one session: leave out the session field")
-            check_upscale(msg, engine, limits)
             image, buffers, times = await run_upscale(engine, upscaler, msg)
             sessions.trim()
             h, w = msg.mask.shape
