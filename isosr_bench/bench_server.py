@@ -54,6 +54,8 @@ from isosr_bench.common import bench_parser, print_table, write_result
 from isosr_net.budget import color_psnr, reference_frames
 from isosr_net.frame_methods import Networks
 from isosr_net.inference import default_precision
+from isosr_net.reconstructor import Reconstructor
+from isosr_net.upscaler import Upscaler
 from isosr_render import FrameBuffers, Renderer, open_volume
 from isosr_render.catalog import SHARED_PREFIX
 from isosr_server.auto import AutoPolicy
@@ -281,7 +283,8 @@ def auto_quality(url: str, volume: str, size: tuple[int, int], size_name: str, d
     scores = [color_psnr(FrameBuffers(mask=ref.mask, color=torch.from_numpy(rgb).to(torch_device).float() / 255),
                          ref) for (rgb, _), ref in zip(shown, refs)]
     networks = Networks(serving_network)
-    candidates = AutoPolicy.for_server(device, default_precision(device), 4, {}, TARGET_FPS, networks).candidates
+    models = {Upscaler: (None, "network"), Reconstructor: (None, "recon")}  # the server's names
+    candidates = AutoPolicy.for_server(device, default_precision(device), 4, models, TARGET_FPS, networks).candidates
     rows = pareto_rows(renderer, iso, volume, size, size_name, list(candidates), frames, warmup, device, networks)
     budget = 1000.0 / TARGET_FPS
     fits = [r for r in rows if r["ms"] <= budget and r["color_psnr"] is not None]
