@@ -2,6 +2,9 @@
 
 Every option can also be set by the environment: ISOSR_ and the option's name in capitals
 (ISOSR_TOKEN, ISOSR_DEVICE, ISOSR_MAX_FPS, ...); a flag wins over the environment.
+
+With --replicas N the same service runs as N replicas under Ray Serve (pip install isosr[cluster]):
+a local Ray instance, or the cluster at --ray-address; without it, one process on uvicorn.
 """
 
 from __future__ import annotations
@@ -17,6 +20,13 @@ def add_parser(subparsers) -> None:
     p = subparsers.add_parser("serve", help="serve view sessions and frame upscaling over HTTP and WebSockets",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_arguments(p)
+    ray = p.add_argument_group("replicas under Ray Serve (pip install isosr[cluster])")
+    ray.add_argument("--replicas", type=int, help="serve with this many replicas behind Ray Serve's proxy "
+                                                  "(default: one process, no Ray)")
+    ray.add_argument("--gpus-per-replica", type=float, default=0.0, help="each replica's GPU share, e.g. 1 or 0.5 "
+                                                                       "(needs --device cuda; default: 0)")
+    ray.add_argument("--ray-address", help="join this Ray cluster (e.g. auto, or HEAD_IP:6379; default: start a "
+                                           "local one)")
     p.set_defaults(func=run)
 
 
@@ -27,6 +37,15 @@ def run(args: argparse.Namespace) -> int:
 
     settings = Settings.from_args(args)
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if args.replicas is not None:
+        try:
+            from isosr_server.cluster import serve_replicas
+        except ImportError as e:
+            raise SystemExit(f"--replicas needs Ray Serve: pip install 'isosr[cluster]' ({e})") from None
+        serve_replicas(settings, args.replicas, args.gpus_per_replica, args.ray_address)
+        return 0
+    if args.gpus_per_replica or args.ray_address:
+        raise SystemExit("--gpus-per-replica and --ray-address go with --replicas N")
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level=settings.log_level,
                 access_log=settings.log_level == "debug", **uvicorn_options(settings.limits))
     return 0

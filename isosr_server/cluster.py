@@ -1,0 +1,135 @@
+"""`isosr serve --replicas N`: the same app (`create_app(settings)`) as N replicas of one Ray
+Serve deployment behind Serve's HTTP proxy; the plain server never imports this module (nor Ray).
+
+    serve_replicas(settings, replicas=2, gpus_per_replica=0.5)   # local Ray, or ray_address=...
+    serve deploy deploy/serve.yaml                               # import_path: isosr_server.cluster:build
+
+Each replica builds its own app, engine and device share in its own process (`IsosrReplica`,
+a FastAPI ingress: Serve's proxy carries HTTP and WebSockets to it). A WebSocket is one request
+for its whole life, so a view session stays on the replica it reached.
+
+Routing: Ray Serve's own consistent-hash request router (``ConsistentHashRouter``,
+``ray.serve.experimental``, Ray >= 2.60) keyed on the ``x-session-id`` header, which Serve's proxy
+puts in each request's routing metadata. An upscale session (``POST /v1/upscale``'s ``session``,
+the infer endpoint's ``sequence_id``) sends its id there too and reaches the replica that holds
+its recurrent state; requests without it (view WebSockets, session-less upscaling, probes) hash
+on their own request id and so spread uniformly over the replicas. It is chosen over
+- Serve's default power-of-two router: no affinity at all;
+- model multiplexing (``serve_multiplexed_model_id``): per-replica LRU "models", not sessions,
+  and it prefers but does not keep a replica;
+- a router deployment calling the replicas through a ``DeploymentHandle`` keyed on the session:
+  one more hop and serialization for every frame, and handles carry no WebSockets, so views
+  would need the ingress anyway.
+``num_fallback_replicas=0``: a session never moves while its replica lives (it waits for
+capacity instead). When a replica dies Serve drops it from the ring, the session's next request
+lands on the ring's next replica and restarts its recurrence there, and
+:class:`~isosr_server.replica.ReplicaMiddleware` says so (``x-isosr-session-restarted: 1``).
+Every response and WebSocket handshake names its replica (``x-isosr-replica``); frame messages
+do not (the frame stats are the session module's, unchanged here).
+
+``max_ongoing_requests`` is the app's ``max_connections``: the app's guard, not Serve's
+backpressure, answers a full replica, with its reasons. Serve's health check asks each replica's
+readiness (`IsosrReplica.check_health`) and replaces one that fails or dies;
+``/v2/health/ready`` through the proxy is true while one replica serves.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from typing import Any
+
+import ray
+from fastapi import FastAPI
+from ray import serve
+from ray.serve.config import RequestRouterConfig
+from ray.serve.deployment import Application
+
+from isosr_server.app import create_app
+from isosr_server.core.config import Settings, options
+from isosr_server.replica import ReplicaMiddleware
+
+log = logging.getLogger("isosr.cluster")
+
+APP_NAME = "isosr"
+ROUTER = "ray.serve.experimental.consistent_hash_router.ConsistentHashRouter"
+HEALTH_CHECK_PERIOD_S = 2.0
+
+
+@serve.ingress()
+class IsosrReplica:
+    """One replica: the app of ``settings`` with its own engine, named by its Serve replica id."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self.replica_id = serve.get_replica_context().replica_id.unique_id
+        self.fastapi: FastAPI | None = None
+
+    def __serve_build_asgi_app__(self) -> FastAPI:
+        self.fastapi = create_app(self.settings)
+        self.fastapi.add_middleware(ReplicaMiddleware, replica=self.replica_id,
+                                    idle_timeout_s=self.settings.limits.idle_timeout_s,
+                                    max_sessions=self.settings.limits.max_sessions)
+        log.info("isosr replica %s in process %d", self.replica_id, os.getpid())
+        return self.fastapi
+
+    def check_health(self) -> None:
+        """Serve's health check: the app's models are loaded and its device warmed."""
+        if self.fastapi is None or not self.fastapi.state.ready:
+            raise RuntimeError(f"replica {self.replica_id} is not ready")
+
+
+def application(settings: Settings, replicas: int, gpus_per_replica: float = 0.0,
+                cpus_per_replica: float = 1.0) -> Application:
+    """The Serve application: ``replicas`` replicas of `IsosrReplica`, each with its CPU and GPU share."""
+    if replicas < 1:
+        raise ValueError(f"replicas must be at least 1, got {replicas}")
+    if gpus_per_replica < 0 or cpus_per_replica <= 0:
+        raise ValueError("a replica's GPU share must be >= 0 and its CPU share > 0")
+    if gpus_per_replica > 0 and not settings.device.startswith("cuda"):
+        raise ValueError(f"--gpus-per-replica {gpus_per_replica:g} needs --device cuda, not {settings.device}")
+    deployment = serve.deployment(
+        IsosrReplica, num_replicas=replicas,
+        ray_actor_options={"num_cpus": cpus_per_replica, "num_gpus": gpus_per_replica},
+        max_ongoing_requests=settings.limits.max_connections,
+        health_check_period_s=HEALTH_CHECK_PERIOD_S,
+        request_router_config=RequestRouterConfig(request_router_class=ROUTER,
+                                                  request_router_kwargs={"num_fallback_replicas": 0}))
+    return deployment.bind(settings)
+
+
+def build(args: dict[str, Any]) -> Application:
+    """The application builder of a Serve config file (``import_path: isosr_server.cluster:build``):
+    ``args`` are settings by name (``device: cuda``, ``max_sessions: 16``), parsed as their flags
+    are, over the ``ISOSR_*`` environment; the replicas and their resources are the config's
+    ``deployments`` entry (``name: IsosrReplica``)."""
+    parsers = {o.name: o.parse for o in options()}
+    unknown = set(args) - set(parsers)
+    if unknown:
+        raise ValueError(f"unknown settings: {', '.join(sorted(unknown))}")
+    settings = Settings.from_env(**{k: parsers[k](str(v)) for k, v in args.items()})
+    return application(settings, replicas=1, gpus_per_replica=1.0 if settings.device.startswith("cuda") else 0.0)
+
+
+def serve_replicas(settings: Settings, replicas: int, gpus_per_replica: float = 0.0,
+                   ray_address: str | None = None) -> None:
+    """Join the Ray cluster at ``ray_address`` (None: start a local one), deploy the replicas
+    behind Serve's proxy on ``settings.host:settings.port`` and serve until interrupted; then
+    stop the local Ray, or remove the application from the joined cluster."""
+    app = application(settings, replicas, gpus_per_replica)
+    ray.init(address=ray_address)
+    serve.start(http_options={"host": settings.host, "port": settings.port})
+    try:
+        serve.run(app, name=APP_NAME, route_prefix="/")
+        log.info("isosr: %d replicas behind http://%s:%d", replicas, settings.host, settings.port)
+        while True:  # the proxy serves; Ctrl-C ends it
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        if ray_address is None:
+            ray.shutdown()  # the local Ray, and with it Serve and the replicas
+        else:
+            serve.delete(APP_NAME)
+
