@@ -7,8 +7,10 @@ free loopback port, since Ray's state API is served there) with
 - An upscale session (``x-session-id``) stays on one replica, and its frames equal the single-process
   server's; so do the infer endpoint's through tritonclient.
 - Killing one replica's process (its PID from Ray's state API) leaves the sessions on the other
-  without an error; new view sessions open on the survivor; the upscale session moves, says it
-  restarted, and its frame equals a fresh state's; ``/v2/health/ready`` stays 200.
+  without an error; a client session on the dead one (``isosr_client.connect(reconnect=True)``)
+  reopens on the survivor within two seconds in the same state; new view sessions open on the
+  survivor; the upscale session moves, says it restarted, and its frame equals a fresh state's;
+  ``/v2/health/ready`` stays 200.
 """
 
 from __future__ import annotations
@@ -29,9 +31,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from isosr_client import connect
 from isosr_render import orbit
 from isosr_server import protocol as P
-from server_fixtures import (RunningServer, W, cam, frame, lib, lib_lowres, running_server,  # noqa: F401
+from server_fixtures import (VOLUME, H, RunningServer, W, cam, frame, lib, lib_lowres, running_server,  # noqa: F401
                              send, server_settings, session, upscale_body)
 
 ray = pytest.importorskip("ray", reason="ray[serve] is not installed (the cluster extra)")
@@ -169,8 +172,24 @@ def test_killing_a_replica_moves_only_its_sessions(cluster, plain, path):
         ws, _ = stack.enter_context(session(cluster, mode="full"))
         frame(ws)
         views.setdefault(ws.response.headers[REPLICA_HEADER], ws)
+    # A client session on the replica that will die.
+    client = None
+    for _ in range(24):
+        view = stack.enter_context(connect(cluster.http_url, VOLUME, "full", (W, H), reconnect=True,
+                                           settings={"encoding": "png", "refine": False}))
+        if view.replica == doomed:
+            client = view
+            break
+    assert client is not None and client.frame().shape == (H, W, 3)
     os.kill(pids[doomed], signal.SIGKILL)
     killed = time.monotonic()
+    client.set_camera(yaw=45, pitch=20, distance=1.8)
+    moved = client.frame()
+    print(f"the client's session reopened and framed in {time.monotonic() - killed:.2f} s")
+    assert time.monotonic() - killed < 2.0 and client.reconnects == 1 and client.stats.replica == survivor
+    with connect(cluster.http_url, VOLUME, "full", (W, H), settings={"encoding": "png", "refine": False},
+                 camera={"yaw": 45, "pitch": 20, "distance": 1.8}) as fresh:
+        np.testing.assert_array_equal(moved, fresh.frame())
     # The survivor's session goes on without an error while the other replica is gone.
     ws = views[survivor]
     for i in range(5):
