@@ -23,6 +23,10 @@ def add_parser(subparsers) -> None:
     ray = p.add_argument_group("replicas under Ray Serve (pip install isosr[cluster])")
     ray.add_argument("--replicas", type=int, help="serve with this many replicas behind Ray Serve's proxy "
                                                   "(default: one process, no Ray)")
+    ray.add_argument("--max-replicas", type=int, help="autoscale between --replicas and this many replicas")
+    ray.add_argument("--sessions-per-replica", type=int, default=8, help="the ongoing requests (a view session is "
+                                                                        "one) per replica autoscaling aims at "
+                                                                        "(default: 8)")
     ray.add_argument("--gpus-per-replica", type=float, default=0.0, help="each replica's GPU share, e.g. 1 or 0.5 "
                                                                        "(needs --device cuda; default: 0)")
     ray.add_argument("--ray-address", help="join this Ray cluster (e.g. auto, or HEAD_IP:6379; default: start a "
@@ -42,10 +46,11 @@ def run(args: argparse.Namespace) -> int:
             from isosr_server.cluster import serve_replicas
         except ImportError as e:
             raise SystemExit(f"--replicas needs Ray Serve: pip install 'isosr[cluster]' ({e})") from None
-        serve_replicas(settings, args.replicas, args.gpus_per_replica, args.ray_address)
+        serve_replicas(settings, args.replicas, args.gpus_per_replica, args.ray_address, args.max_replicas,
+                       args.sessions_per_replica)
         return 0
-    if args.gpus_per_replica or args.ray_address:
-        raise SystemExit("--gpus-per-replica and --ray-address go with --replicas N")
+    if args.gpus_per_replica or args.ray_address or args.max_replicas:
+        raise SystemExit("--gpus-per-replica, --ray-address and --max-replicas go with --replicas N")
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level=settings.log_level,
                 access_log=settings.log_level == "debug", **uvicorn_options(settings.limits))
     return 0

@@ -30,7 +30,11 @@ Every response and WebSocket handshake names its replica (``x-isosr-replica``); 
 do not (the frame stats are the session module's, unchanged here).
 
 ``max_ongoing_requests`` is the app's ``max_connections``: the app's guard, not Serve's
-backpressure, answers a full replica, with its reasons. Serve's health check asks each replica's
+backpressure, answers a full replica, with its reasons. With ``max_replicas`` Serve's autoscaler
+keeps the ongoing requests per replica (a view WebSocket is one for its life) near
+``sessions_per_replica``. A replica being removed (scaling down, fewer replicas deployed) takes
+no new requests and drains: Serve waits for its ongoing requests, so its sessions go on until
+they close (`DRAIN_TIMEOUT_S` at most; then they are cut and their clients reconnect elsewhere). Serve's health check asks each replica's
 readiness (`IsosrReplica.check_health`) and replaces one that fails or dies;
 ``/v2/health/ready`` through the proxy is true while one replica serves.
 """
@@ -57,6 +61,9 @@ log = logging.getLogger("isosr.cluster")
 APP_NAME = "isosr"
 ROUTER = "ray.serve.experimental.consistent_hash_router.ConsistentHashRouter"
 HEALTH_CHECK_PERIOD_S = 2.0
+DRAIN_TIMEOUT_S = 3600.0
+# The autoscaler's pace: replicas start within seconds of a rise; a fall must last minutes.
+UPSCALE_DELAY_S, DOWNSCALE_DELAY_S = 10.0, 300.0
 
 
 @serve.ingress()
@@ -82,20 +89,28 @@ class IsosrReplica:
             raise RuntimeError(f"replica {self.replica_id} is not ready")
 
 
-def application(settings: Settings, replicas: int, gpus_per_replica: float = 0.0,
-                cpus_per_replica: float = 1.0) -> Application:
-    """The Serve application: ``replicas`` replicas of `IsosrReplica`, each with its CPU and GPU share."""
+def application(settings: Settings, replicas: int, gpus_per_replica: float = 0.0, cpus_per_replica: float = 1.0,
+                max_replicas: int | None = None, sessions_per_replica: int = 8) -> Application:
+    """The Serve application: ``replicas`` replicas of `IsosrReplica`, each with its CPU and GPU
+    share; with ``max_replicas``, between ``replicas`` and ``max_replicas`` replicas, autoscaled to
+    about ``sessions_per_replica`` ongoing requests each."""
     if replicas < 1:
         raise ValueError(f"replicas must be at least 1, got {replicas}")
+    if max_replicas is not None and not (max_replicas >= replicas and sessions_per_replica >= 1):
+        raise ValueError(f"max_replicas ({max_replicas}) must be at least replicas ({replicas}), and "
+                         f"sessions_per_replica at least 1")
     if gpus_per_replica < 0 or cpus_per_replica <= 0:
         raise ValueError("a replica's GPU share must be >= 0 and its CPU share > 0")
     if gpus_per_replica > 0 and not settings.device.startswith("cuda"):
         raise ValueError(f"--gpus-per-replica {gpus_per_replica:g} needs --device cuda, not {settings.device}")
+    scaling = {"num_replicas": replicas} if max_replicas is None else {"autoscaling_config": {
+        "min_replicas": replicas, "max_replicas": max_replicas, "target_ongoing_requests": sessions_per_replica,
+        "upscale_delay_s": UPSCALE_DELAY_S, "downscale_delay_s": DOWNSCALE_DELAY_S}}
     deployment = serve.deployment(
-        IsosrReplica, num_replicas=replicas,
+        IsosrReplica, **scaling,
         ray_actor_options={"num_cpus": cpus_per_replica, "num_gpus": gpus_per_replica},
         max_ongoing_requests=settings.limits.max_connections,
-        health_check_period_s=HEALTH_CHECK_PERIOD_S,
+        health_check_period_s=HEALTH_CHECK_PERIOD_S, graceful_shutdown_timeout_s=DRAIN_TIMEOUT_S,
         request_router_config=RequestRouterConfig(request_router_class=ROUTER,
                                                   request_router_kwargs={"num_fallback_replicas": 1}))
     return deployment.bind(settings)
@@ -114,12 +129,14 @@ def build(args: dict[str, Any]) -> Application:
     return application(settings, replicas=1, gpus_per_replica=1.0 if settings.device.startswith("cuda") else 0.0)
 
 
-def serve_replicas(settings: Settings, replicas: int, gpus_per_replica: float = 0.0,
-                   ray_address: str | None = None) -> None:
+def serve_replicas(settings: Settings, replicas: int, gpus_per_replica: float = 0.0, ray_address: str | None = None,
+                   max_replicas: int | None = None, sessions_per_replica: int = 8) -> None:
     """Join the Ray cluster at ``ray_address`` (None: start a local one), deploy the replicas
-    behind Serve's proxy on ``settings.host:settings.port`` and serve until interrupted; then
-    stop the local Ray, or remove the application from the joined cluster."""
-    app = application(settings, replicas, gpus_per_replica)
+    (`application`) behind Serve's proxy on ``settings.host:settings.port`` and serve until
+    interrupted; then stop the local Ray, or remove the application from the joined cluster
+    (its replicas drain; a second interrupt leaves that to the cluster)."""
+    app = application(settings, replicas, gpus_per_replica, max_replicas=max_replicas,
+                      sessions_per_replica=sessions_per_replica)
     ray.init(address=ray_address)
     serve.start(http_options={"host": settings.host, "port": settings.port})
     try:
@@ -133,5 +150,6 @@ def serve_replicas(settings: Settings, replicas: int, gpus_per_replica: float = 
         if ray_address is None:
             ray.shutdown()  # the local Ray, and with it Serve and the replicas
         else:
+            log.info("isosr: removing the application; its replicas drain their sessions")
             serve.delete(APP_NAME)
 

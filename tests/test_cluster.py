@@ -11,6 +11,8 @@ free loopback port, since Ray's state API is served there) with
   reopens on the survivor within two seconds in the same state; new view sessions open on the
   survivor; the upscale session moves, says it restarted, and its frame equals a fresh state's;
   ``/v2/health/ready`` stays 200.
+- Deploying one replica instead of two drains the one removed: its session goes on until it
+  closes, while new sessions open on the other.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from contextlib import ExitStack, suppress
 from pathlib import Path
@@ -80,8 +83,7 @@ def cluster():
         print(f"Ray and 2 replicas ready in {time.monotonic() - started:.1f} s")
         yield RunningServer(port, settings, SimpleNamespace(records=[]), None)
     finally:
-        serve.shutdown()
-        ray.shutdown()
+        ray.shutdown()  # Serve, its proxy and the replicas with it
         shutil.rmtree(temp, ignore_errors=True)
 
 
@@ -218,6 +220,61 @@ def test_killing_a_replica_moves_only_its_sessions(cluster, plain, path):
         stack.close()
 
 
+def wait_for(predicate, what: str, seconds: float = 30.0) -> None:
+    deadline = time.monotonic() + seconds
+    while not predicate():
+        assert time.monotonic() < deadline, what
+        time.sleep(0.2)
+
+
+def test_a_removed_replica_drains_its_sessions(cluster):
+    """Deploying again (as a code or settings change does) replaces the replicas one by one; each
+    one removed takes no new sessions, serves its open ones until they close, then ends. (With 2
+    CPUs and a CPU per replica the new replica starts only once an old one has ended.)"""
+    wait_for(lambda: len(replica_pids()) == 2 and serve.status().applications[APP_NAME].status == "RUNNING",
+             "Serve did not replace the killed replica")
+    stack = ExitStack()
+    views = {}
+    while len(views) < 2:
+        ws, _ = stack.enter_context(session(cluster, mode="full"))
+        frame(ws)
+        views.setdefault(ws.response.headers[REPLICA_HEADER], ws)
+    # serve.run returns once the new version runs, which waits for the old replicas' sessions.
+    redeploy = threading.Thread(target=serve.run, args=(application(cluster.settings, replicas=1),),
+                                kwargs={"name": APP_NAME, "route_prefix": "/"}, daemon=True)
+    redeploy.start()
+    wait_for(lambda: replica_states().get("STOPPING") == 1, "no replica is draining")
+    kept = settled_replica(cluster)
+    drained = next(r for r in views if r != kept)
+    for i in range(4):  # the draining replica's session goes on, and so does the other's
+        for ws in views.values():
+            send(ws, cam(60 + i))
+            assert frame(ws).mode == "full"
+    assert drained in replica_pids()
+    views[drained].close()
+    wait_for(lambda: drained not in replica_pids(), "the drained replica did not end after its session closed")
+    send(views[kept], cam(70))
+    assert frame(views[kept]).mode == "full"
+    stack.close()
+    redeploy.join(60)
+    assert not redeploy.is_alive() and replica_states() == {"RUNNING": 1} and not set(replica_pids()) & set(views)
+
+
+def replica_states() -> dict[str, int]:
+    return serve.status().applications[APP_NAME].deployments["IsosrReplica"].replica_states
+
+
+def settled_replica(srv, runs: int = 5, seconds: float = 10.0) -> str:
+    """The replica new view sessions land on once ``runs`` in a row land on the same one."""
+    deadline, last, streak = time.monotonic() + seconds, None, 0
+    while streak < runs:
+        assert time.monotonic() < deadline, "new sessions do not settle on one replica"
+        with session(srv, mode="full") as (ws, _):
+            replica = ws.response.headers[REPLICA_HEADER]
+        streak, last = (streak + 1 if replica == last else 1), replica
+    return last
+
+
 def test_serve_config_and_replica_options(monkeypatch):
     """deploy/serve.yaml is a valid Serve config whose builder makes the app; bad replica options say why."""
     import yaml
@@ -239,6 +296,9 @@ def test_serve_config_and_replica_options(monkeypatch):
         application(Settings(), replicas=0)
     with pytest.raises(ValueError, match="needs --device cuda"):
         application(Settings(), replicas=2, gpus_per_replica=0.5)
+    with pytest.raises(ValueError, match="must be at least replicas"):
+        application(Settings(), replicas=2, max_replicas=1)
+    assert application(Settings(), replicas=1, max_replicas=3) is not None
 
 
 def test_the_plain_server_does_not_import_ray():
