@@ -26,17 +26,19 @@ the controller to drop the dead one (measured on the 2-CPU test machine: a view 
 after a kill in 0.05-0.07 s with it, up to 2.1 s without). A session moved so restarts its
 recurrence there, and :class:`~isosr_server.replica.ReplicaMiddleware` says so
 (``x-isosr-session-restarted: 1``); so does one whose replica died.
-Every response and WebSocket handshake names its replica (``x-isosr-replica``); frame messages
-do not (the frame stats are the session module's, unchanged here).
+Every response and WebSocket handshake names its replica (``x-isosr-replica``; the Python
+client puts it in each frame's stats); frame messages do not (they are the session module's).
 
 ``max_ongoing_requests`` is the app's ``max_connections``: the app's guard, not Serve's
 backpressure, answers a full replica, with its reasons. With ``max_replicas`` Serve's autoscaler
 keeps the ongoing requests per replica (a view WebSocket is one for its life) near
 ``sessions_per_replica``. A replica being removed (scaling down, fewer replicas deployed) takes
 no new requests and drains: Serve waits for its ongoing requests, so its sessions go on until
-they close (`DRAIN_TIMEOUT_S` at most; then they are cut and their clients reconnect elsewhere). Serve's health check asks each replica's
-readiness (`IsosrReplica.check_health`) and replaces one that fails or dies;
-``/v2/health/ready`` through the proxy is true while one replica serves.
+they close (`DRAIN_TIMEOUT_S` at most; then they are cut and their clients reconnect elsewhere).
+Serve's health check asks each replica's readiness (`IsosrReplica.check_health`) and replaces
+one that fails or dies; ``/v2/health/ready`` through the proxy is true while one replica serves.
+``/metrics`` through the proxy answers from one replica (named in ``x-isosr-replica``); per
+replica series are Ray Serve's own (``ray_serve_*``, from each node's Ray metrics export).
 """
 
 from __future__ import annotations

@@ -16,7 +16,8 @@ import pytest
 
 from isosr_render import orbit
 from isosr_server import protocol as P
-from server_fixtures import DEVICE, FACTOR, H, W, lib, lib_lowres, running_server, server_settings, upscale_body  # noqa: F401
+from server_fixtures import (DEVICE, FACTOR, H, W, lib, lib_lowres, running_server, server_settings,  # noqa: F401
+                             upscale_body)
 
 httpclient = pytest.importorskip("tritonclient.http", reason="tritonclient[http] is not installed (the test extra)")
 from tritonclient.utils import InferenceServerException  # noqa: E402
