@@ -15,22 +15,28 @@ import logging
 from isosr_server.core.config import Settings, add_arguments
 
 
+# `isosr serve`'s flags beyond `Settings`: the shape of a multi-replica deployment (isosr_server.cluster).
+REPLICA_FLAGS: dict[str, dict] = {
+    "--replicas": dict(type=int, help="serve with this many replicas behind Ray Serve's proxy (default: one "
+                                      "process, no Ray)"),
+    "--max-replicas": dict(type=int, help="autoscale between --replicas and this many replicas (default: none, a "
+                                          "fixed number)"),
+    "--sessions-per-replica": dict(type=int, default=8, help="the ongoing requests (a view session is one) per "
+                                                             "replica autoscaling aims at (default: 8)"),
+    "--gpus-per-replica": dict(type=float, default=0.0, help="each replica's GPU share, e.g. 1 or 0.5 (needs "
+                                                             "--device cuda; default: 0)"),
+    "--ray-address": dict(help="join this Ray cluster (e.g. auto, or HEAD_IP:6379; default: start a local one)"),
+}
+
+
 def add_parser(subparsers) -> None:
     """Register ``serve`` and its options (from `Settings`: one ``--limit-name`` flag per `Limits` field)."""
     p = subparsers.add_parser("serve", help="serve view sessions and frame upscaling over HTTP and WebSockets",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_arguments(p)
     ray = p.add_argument_group("replicas under Ray Serve (pip install isosr[cluster])")
-    ray.add_argument("--replicas", type=int, help="serve with this many replicas behind Ray Serve's proxy "
-                                                  "(default: one process, no Ray)")
-    ray.add_argument("--max-replicas", type=int, help="autoscale between --replicas and this many replicas")
-    ray.add_argument("--sessions-per-replica", type=int, default=8, help="the ongoing requests (a view session is "
-                                                                        "one) per replica autoscaling aims at "
-                                                                        "(default: 8)")
-    ray.add_argument("--gpus-per-replica", type=float, default=0.0, help="each replica's GPU share, e.g. 1 or 0.5 "
-                                                                       "(needs --device cuda; default: 0)")
-    ray.add_argument("--ray-address", help="join this Ray cluster (e.g. auto, or HEAD_IP:6379; default: start a "
-                                           "local one)")
+    for flag, spec in REPLICA_FLAGS.items():
+        ray.add_argument(flag, **spec)
     p.set_defaults(func=run)
 
 
