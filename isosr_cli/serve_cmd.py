@@ -2,6 +2,9 @@
 
 Every option can also be set by the environment: ISOSR_ and the option's name in capitals
 (ISOSR_TOKEN, ISOSR_DEVICE, ISOSR_MAX_FPS, ...); a flag wins over the environment.
+
+With --replicas N the same service runs as N replicas under Ray Serve (pip install isosr[cluster]):
+a local Ray instance, or the cluster at --ray-address; without it, one process on uvicorn.
 """
 
 from __future__ import annotations
@@ -12,11 +15,28 @@ import logging
 from isosr_server.core.config import Settings, add_arguments
 
 
+# `isosr serve`'s flags beyond `Settings`: the shape of a multi-replica deployment (isosr_server.cluster).
+REPLICA_FLAGS: dict[str, dict] = {
+    "--replicas": dict(type=int, help="serve with this many replicas behind Ray Serve's proxy (default: one "
+                                      "process, no Ray)"),
+    "--max-replicas": dict(type=int, help="autoscale between --replicas and this many replicas (default: none, a "
+                                          "fixed number)"),
+    "--sessions-per-replica": dict(type=int, default=8, help="the ongoing requests (a view session is one) per "
+                                                             "replica autoscaling aims at (default: 8)"),
+    "--gpus-per-replica": dict(type=float, default=0.0, help="each replica's GPU share, e.g. 1 or 0.5 (needs "
+                                                             "--device cuda; default: 0)"),
+    "--ray-address": dict(help="join this Ray cluster (e.g. auto, or HEAD_IP:6379; default: start a local one)"),
+}
+
+
 def add_parser(subparsers) -> None:
     """Register ``serve`` and its options (from `Settings`: one ``--limit-name`` flag per `Limits` field)."""
     p = subparsers.add_parser("serve", help="serve view sessions and frame upscaling over HTTP and WebSockets",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_arguments(p)
+    ray = p.add_argument_group("replicas under Ray Serve (pip install isosr[cluster])")
+    for flag, spec in REPLICA_FLAGS.items():
+        ray.add_argument(flag, **spec)
     p.set_defaults(func=run)
 
 
@@ -27,6 +47,16 @@ def run(args: argparse.Namespace) -> int:
 
     settings = Settings.from_args(args)
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if args.replicas is not None:
+        try:
+            from isosr_server.cluster import serve_replicas
+        except ImportError as e:
+            raise SystemExit(f"--replicas needs Ray Serve: pip install 'isosr[cluster]' ({e})") from None
+        serve_replicas(settings, args.replicas, args.gpus_per_replica, args.ray_address, args.max_replicas,
+                       args.sessions_per_replica)
+        return 0
+    if args.gpus_per_replica or args.ray_address or args.max_replicas:
+        raise SystemExit("--gpus-per-replica, --ray-address and --max-replicas go with --replicas N")
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level=settings.log_level,
                 access_log=settings.log_level == "debug", **uvicorn_options(settings.limits))
     return 0

@@ -12,25 +12,33 @@ buffers and this side decodes them (:mod:`isosr_server.codecs.buffers`, numpy), 
 with the network on ``device`` and shades them (:mod:`isosr_client.local`, loaded with torch at
 the first such frame), keeping the network's recurrent state across frames; every other mode
 arrives as an encoded image. Of the server, only the protocol and its codecs are imported.
+
+With ``reconnect=True`` a session whose connection is lost (the server's process died, or it
+went away or failed: `RECONNECT_CODES`) opens itself again, on any replica behind
+``isosr serve --replicas``, with its current camera, iso, settings and focus, and goes on;
+``reconnects`` counts how often, and each frame's stats name the replica that made it.
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 from urllib.parse import urlsplit, urlunsplit
 
+import msgspec
 import numpy as np
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect as ws_connect
 
 from isosr_render.image_codec import decode_image
 from isosr_server.codecs.buffers import decode_view_buffers
-from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, SERVER_VIEW_MESSAGES, TOKEN_HEADER, CameraMsg, ErrorMsg,
-                                   FocusMsg, FrameMsg, IsoMsg, Limits, OpenMsg, ProtocolError, ReadyMsg,
-                                   ReceivedMsg, SettingsMsg, SettingsUpdate, ViewSettings, convert, encode, parse)
+from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, CLOSE_GOING_AWAY, CLOSE_INTERNAL, REPLICA_HEADER,
+                                   SERVER_VIEW_MESSAGES, TOKEN_HEADER, CameraMsg, ErrorMsg, FocusMsg, FrameMsg, IsoMsg,
+                                   Limits, OpenMsg, ProtocolError, ReadyMsg, ReceivedMsg, SettingsMsg, SettingsUpdate,
+                                   ViewSettings, convert, encode, parse)
 
 if TYPE_CHECKING:
     from isosr_client.local import LocalUpscaler
@@ -38,6 +46,12 @@ if TYPE_CHECKING:
 
 # What this client accepts from a server: frames up to 256 MiB (a 4096^2 PNG fits).
 CLIENT_LIMITS = Limits(max_message_bytes=2**28)
+# Close codes after which a session with ``reconnect`` opens itself again: the connection was lost
+# without a close (1006: as when the server's process dies), the server went away, failed, restarts
+# or is overloaded (1012, 1013).
+RECONNECT_CODES = (1006, CLOSE_GOING_AWAY, CLOSE_INTERNAL, 1012, 1013)
+# How long a lost session keeps trying to open again; the pauses between tries (doubling from the first).
+RECONNECT_WINDOW_S, RECONNECT_PAUSE_S, RECONNECT_PAUSE_MAX_S = 10.0, 0.05, 0.25
 
 
 class ServerError(RuntimeError):
@@ -84,6 +98,7 @@ class FrameStats:
         server_ms: the server's milliseconds per stage (render, network, shading, encode, total).
         client_ms: this side's milliseconds: ``decode`` (image or buffers), ``network`` (local
             upscaling), ``shading``; filled as they happen.
+        replica: the server replica that made it (``isosr serve --replicas``; None: a single server).
     """
 
     seq: int
@@ -96,6 +111,7 @@ class FrameStats:
     wire_bytes: int
     server_ms: dict[str, float]
     client_ms: dict[str, float] = field(default_factory=dict)
+    replica: str | None = None
 
 
 @dataclass
@@ -144,9 +160,13 @@ class ViewSession:
     only as fast as this side asks for them, and the next one shows the newest state.
     """
 
-    def __init__(self, ws, ready: ReadyMsg, opened_at: float, first_seq: int, device: str, model: str | Path | None,
-                 local_upscale: bool, timeout: float):
+    def __init__(self, ws, ready: ReadyMsg, opened_at: float, opened: OpenMsg, device: str, model: str | Path | None,
+                 local_upscale: bool, timeout: float, reopen: Callable[[OpenMsg], tuple] | None = None):
         self._ws, self.ready, self.timeout = ws, ready, timeout
+        self.replica: str | None = ws.response.headers.get(REPLICA_HEADER)
+        self._opened, self._reopen, self.reconnects = opened, reopen, 0
+        self._camera, self._iso, self._focus = opened.camera, None, None  # the state a reopened session restores
+        first_seq = -1 if opened.camera is None else 0
         self.settings: ViewSettings = ready.settings
         self.limits: Limits = ready.limits
         self.upscale_factor = ready.upscale_factor
@@ -166,8 +186,20 @@ class ViewSession:
         self._check_open()
         data = encode(msg)
         parse(data, self.limits, CLIENT_VIEW_MESSAGES)  # a bad update fails here, clearly
+        if isinstance(msg, CameraMsg):  # the state a reopened session restores
+            self._camera = msg
+        elif isinstance(msg, IsoMsg):
+            self._iso = msg
+        elif isinstance(msg, FocusMsg):
+            self._focus = msg
+        elif isinstance(msg, SettingsMsg):
+            self.settings = self.settings.updated(msg.settings, self.limits)
         self._sent_at[msg.seq] = time.perf_counter()
-        self._ws.send(data)
+        try:
+            self._ws.send(data)
+        except ConnectionClosed as e:
+            self._connection_closed(e)
+            return self._seq  # the reopened session's open carries this update
         return msg.seq
 
     def _next_seq(self) -> int:
@@ -198,10 +230,8 @@ class ViewSession:
             ProtocolError: an unknown field or a value out of range (nothing is sent then).
         """
         update = convert(settings, SettingsUpdate, "settings")
-        new = self.settings.updated(update, self.limits)
-        seq = self._send(SettingsMsg(update, self._next_seq()))
-        self.settings = new
-        return seq
+        self.settings.updated(update, self.limits)  # refused here, before a seq is taken
+        return self._send(SettingsMsg(update, self._next_seq()))
 
     def set_focus(self, shape: str = "none", center: tuple[float, float] | None = None, radius: float | None = None,
                   box: tuple[float, float, float, float] | None = None) -> int:
@@ -245,8 +275,8 @@ class ViewSession:
         except TimeoutError:
             return False
         except ConnectionClosed as e:
-            self.closed = True
-            raise ServerError(e.rcvd.code if e.rcvd else 1006, e.rcvd.reason if e.rcvd else "connection lost") from None
+            self._connection_closed(e)
+            return True
         arrived = time.perf_counter()
         msg = parse(data, CLIENT_LIMITS, SERVER_VIEW_MESSAGES)
         if isinstance(msg, ErrorMsg):
@@ -259,7 +289,7 @@ class ViewSession:
         for s in [s for s in self._sent_at if -1 < s < msg.ack]:
             del self._sent_at[s]  # bounded: the newest acknowledged update and those after it stay
         stats = FrameStats(msg.seq, msg.ack, msg.mode, msg.method, msg.refined, 1e3 * (arrived - sent), msg.nbytes,
-                           len(data), dict(msg.times))
+                           len(data), dict(msg.times), replica=self.replica)
         frame = ViewFrame(msg, stats)
         if msg.buffers is not None and self.local_upscale:
             frame.highres = self._upscale(msg, stats)
@@ -292,6 +322,46 @@ class ViewSession:
         self._last_buffers_seq = msg.seq
         return high
 
+    def _connection_closed(self, e: ConnectionClosed) -> None:
+        """Reopen the session after a lost connection (``reconnect``), else raise the close as a `ServerError`."""
+        code = e.rcvd.code if e.rcvd else 1006
+        if self._reopen is not None and code in RECONNECT_CODES:
+            self._reconnect()
+            return
+        self.closed = True
+        raise ServerError(code, e.rcvd.reason if e.rcvd else "connection lost") from None
+
+    def _reconnect(self) -> None:
+        """Open the session again with its current camera, iso, settings and focus; tries for
+        RECONNECT_WINDOW_S while the server cannot be reached or fails.
+
+        Raises:
+            ServerError, ConnectionError: the server refused (not a failure of its own), or no try succeeded.
+        """
+        camera = None if self._camera is None else msgspec.structs.replace(self._camera, seq=0)
+        iso = (self._opened.iso, self._opened.iso_normalized) if self._iso is None else (self._iso.value,
+                                                                                         self._iso.normalized)
+        opened = OpenMsg(self._opened.volume, SettingsUpdate(**msgspec.structs.asdict(self.settings)), camera, *iso)
+        deadline, pause = time.monotonic() + RECONNECT_WINDOW_S, RECONNECT_PAUSE_S
+        while True:
+            try:
+                ws, ready, opened_at = self._reopen(opened)
+                break
+            except (ServerError, ConnectionError) as e:
+                if (isinstance(e, ServerError) and e.code not in RECONNECT_CODES and e.code < 500) or \
+                        time.monotonic() + pause > deadline:
+                    self.closed = True
+                    raise
+            time.sleep(pause)
+            pause = min(2 * pause, RECONNECT_PAUSE_MAX_S)
+        self._ws, self.ready, self.replica = ws, ready, ws.response.headers.get(REPLICA_HEADER)
+        self._seq = -1 if camera is None else 0
+        self._sent_at = {-1: opened_at, self._seq: opened_at}
+        self._latest, self._last_buffers_seq = None, -1  # the local network starts afresh too
+        self.reconnects += 1
+        if self._focus is not None:
+            self._send(msgspec.structs.replace(self._focus, seq=self._next_seq()))
+
     # ---- lifetime ------------------------------------------------------------------------------
 
     def _check_open(self) -> None:
@@ -318,7 +388,8 @@ def _floats(v):
 def connect(url: str, volume: str, mode: str = "auto", size: tuple[int, int] = (640, 480), *,
             token: str | None = None, settings: dict | None = None, camera: dict | None = None,
             iso: float | None = None, iso_normalized: bool = False, device: str = "cpu",
-            model: str | Path | None = None, local_upscale: bool = True, timeout: float = 60.0) -> ViewSession:
+            model: str | Path | None = None, local_upscale: bool = True, timeout: float = 60.0,
+            reconnect: bool = False) -> ViewSession:
     """Open a view session on ``volume`` (a name from ``GET /v1/volumes``, or ``proc:...``).
 
     Args:
@@ -337,6 +408,7 @@ def connect(url: str, volume: str, mode: str = "auto", size: tuple[int, int] = (
             upscaled here.
         local_upscale: upscale ``buffers`` frames here (off: keep them coded, e.g. to time the server).
         timeout: seconds to wait for the connection and for each frame.
+        reconnect: open the session again when its connection is lost (module docstring).
 
     Raises:
         ServerError: the server refused (unknown volume, bad settings, session limit, token).
@@ -349,11 +421,24 @@ def connect(url: str, volume: str, mode: str = "auto", size: tuple[int, int] = (
     open_msg = OpenMsg(volume, wanted, first_camera, iso, iso_normalized)
     data = encode(open_msg)
     parse(data, CLIENT_LIMITS, (OpenMsg,))  # bad input fails here, before any connection
-    where = endpoint(url, "/v1/view", websocket=True)
+    where, headers = endpoint(url, "/v1/view", websocket=True), auth_headers(token)
+    ws, ready, opened_at = _open(where, headers, open_msg, timeout)
+    reopen = (lambda msg: _open(where, headers, msg, timeout)) if reconnect else None
+    return ViewSession(ws, ready, opened_at, open_msg, device, model, local_upscale, timeout, reopen)
+
+
+def _open(where: str, headers: dict[str, str], open_msg: OpenMsg, timeout: float) -> tuple:
+    """Connect to ``where`` and open a session: ``(websocket, ready, when the open was sent)``.
+
+    Raises:
+        ServerError: the server refused (its close code or HTTP status and reason).
+        ConnectionError: nothing answered.
+    """
+    data = encode(open_msg)
     try:
         # Entered: websockets 17.1 deprecates using connect()'s result without `with`; the
         # session's close() ends it.
-        ws = ws_connect(where, additional_headers=auth_headers(token),
+        ws = ws_connect(where, additional_headers=headers,
                         max_size=CLIENT_LIMITS.max_message_bytes, compression=None, open_timeout=timeout,
                         proxy=None).__enter__()
     except Exception as e:  # handshake refused (401), nothing listening, ...
@@ -361,7 +446,7 @@ def connect(url: str, volume: str, mode: str = "auto", size: tuple[int, int] = (
         if status is not None:
             body = getattr(e.response, "body", b"") or b""
             raise ServerError(status, body.decode(errors="replace") or str(e)) from None
-        raise ConnectionError(f"cannot reach {url}: {e}") from None
+        raise ConnectionError(f"cannot reach {where}: {e}") from None
     opened_at = time.perf_counter()
     try:
         ws.send(data)
@@ -378,4 +463,4 @@ def connect(url: str, volume: str, mode: str = "auto", size: tuple[int, int] = (
     if not isinstance(reply, ReadyMsg):
         ws.close()
         raise ProtocolError(f"expected ready, got a {reply.TYPE} message")
-    return ViewSession(ws, reply, opened_at, -1 if first_camera is None else 0, device, model, local_upscale, timeout)
+    return ws, reply, opened_at

@@ -99,6 +99,8 @@ TOKEN_HEADER = "x-isosr-token"
 SUBPROTOCOL = "isosr.v1"
 TOKEN_SUBPROTOCOL_PREFIX = "isosr-token."
 MSGPACK_MEDIA_TYPE = "application/msgpack"
+# Behind replicas (`isosr serve --replicas N`) every HTTP answer and WebSocket handshake names its replica.
+REPLICA_HEADER = "x-isosr-replica"
 
 # WebSocket close codes (RFC 6455 where one fits, 4xxx mirror HTTP statuses).
 CLOSE_NORMAL = 1000

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 from isosr_cli.main import build_parser, main
+from isosr_cli.serve_cmd import REPLICA_FLAGS
 from isosr_net.inference import default_precision
 from isosr_server.core.config import TOKEN_ENV, Settings, options
 
@@ -55,7 +56,7 @@ def test_serve_help_says_each_default_once(capsys):
     text = capsys.readouterr().out
     assert "(default: None)" not in text and "ISOSR_TOKEN" in text
     flags = {a.option_strings[0]: a.help for a in serve_parser()._actions if a.option_strings[0] != "-h"}
-    assert sorted(flags) == sorted(o.flag for o in options())
+    assert sorted(flags) == sorted([o.flag for o in options()] + list(REPLICA_FLAGS))
     assert all(h.count("default:") == 1 for h in flags.values()), flags
 
 

@@ -23,7 +23,7 @@ from fastapi.responses import JSONResponse
 
 from isosr_server.api.deps import ReadyDep, require_token
 
-EXTENSIONS = ("isosr-view", "isosr-upscale", "isosr-volumes", "prometheus-metrics")
+EXTENSIONS = ("isosr-view", "isosr-upscale", "isosr-volumes", "prometheus-metrics", "binary_tensor_data")
 
 router = APIRouter(tags=["health"])
 

@@ -1,0 +1,157 @@
+"""`isosr serve --replicas N`: the same app (`create_app(settings)`) as N replicas of one Ray
+Serve deployment behind Serve's HTTP proxy; the plain server never imports this module (nor Ray).
+
+    serve_replicas(settings, replicas=2, gpus_per_replica=0.5)   # local Ray, or ray_address=...
+    serve deploy deploy/serve.yaml                               # import_path: isosr_server.cluster:build
+
+Each replica builds its own app, engine and device share in its own process (`IsosrReplica`,
+a FastAPI ingress: Serve's proxy carries HTTP and WebSockets to it). A WebSocket is one request
+for its whole life, so a view session stays on the replica it reached.
+
+Routing: Ray Serve's own consistent-hash request router (``ConsistentHashRouter``,
+``ray.serve.experimental``, Ray >= 2.60) keyed on the ``x-session-id`` header, which Serve's proxy
+puts in each request's routing metadata. An upscale session (``POST /v1/upscale``'s ``session``,
+the infer endpoint's ``sequence_id``) sends its id there too and reaches the replica that holds
+its recurrent state; requests without it (view WebSockets, session-less upscaling, probes) hash
+on their own request id and so spread uniformly over the replicas. It is chosen over
+- Serve's default power-of-two router: no affinity at all;
+- model multiplexing (``serve_multiplexed_model_id``): per-replica LRU "models", not sessions,
+  and it prefers but does not keep a replica;
+- a router deployment calling the replicas through a ``DeploymentHandle`` keyed on the session:
+  one more hop and serialization for every frame, and handles carry no WebSockets, so views
+  would need the ingress anyway.
+``num_fallback_replicas=1``: a request whose replica does not answer Serve's probe (dead, or
+past ``max_ongoing_requests``) goes to the ring's next replica at once rather than waiting for
+the controller to drop the dead one (measured on the 2-CPU test machine: a view session reopened
+after a kill in 0.05-0.07 s with it, up to 2.1 s without). A session moved so restarts its
+recurrence there, and :class:`~isosr_server.replica.ReplicaMiddleware` says so
+(``x-isosr-session-restarted: 1``); so does one whose replica died.
+Every response and WebSocket handshake names its replica (``x-isosr-replica``; the Python
+client puts it in each frame's stats); frame messages do not (they are the session module's).
+
+``max_ongoing_requests`` is the app's ``max_connections``: the app's guard, not Serve's
+backpressure, answers a full replica, with its reasons. With ``max_replicas`` Serve's autoscaler
+keeps the ongoing requests per replica (a view WebSocket is one for its life) near
+``sessions_per_replica``. A replica being removed (scaling down, fewer replicas deployed) takes
+no new requests and drains: Serve waits for its ongoing requests, so its sessions go on until
+they close (`DRAIN_TIMEOUT_S` at most; then they are cut and their clients reconnect elsewhere).
+Serve's health check asks each replica's readiness (`IsosrReplica.check_health`) and replaces
+one that fails or dies; ``/v2/health/ready`` through the proxy is true while one replica serves.
+``/metrics`` through the proxy answers from one replica (named in ``x-isosr-replica``); per
+replica series are Ray Serve's own (``ray_serve_*``, from each node's Ray metrics export).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from typing import Any
+
+import ray
+from fastapi import FastAPI
+from ray import serve
+from ray.serve.config import RequestRouterConfig
+from ray.serve.deployment import Application
+
+from isosr_server.app import create_app
+from isosr_server.core.config import Settings, options
+from isosr_server.replica import ReplicaMiddleware
+
+log = logging.getLogger("isosr.cluster")
+
+APP_NAME = "isosr"
+ROUTER = "ray.serve.experimental.consistent_hash_router.ConsistentHashRouter"
+HEALTH_CHECK_PERIOD_S = 2.0
+DRAIN_TIMEOUT_S = 3600.0
+# The autoscaler's pace: replicas start within seconds of a rise; a fall must last minutes.
+UPSCALE_DELAY_S, DOWNSCALE_DELAY_S = 10.0, 300.0
+
+
+@serve.ingress()
+class IsosrReplica:
+    """One replica: the app of ``settings`` with its own engine, named by its Serve replica id."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self.replica_id = serve.get_replica_context().replica_id.unique_id
+        self.fastapi: FastAPI | None = None
+
+    def __serve_build_asgi_app__(self) -> FastAPI:
+        self.fastapi = create_app(self.settings)
+        self.fastapi.add_middleware(ReplicaMiddleware, replica=self.replica_id,
+                                    idle_timeout_s=self.settings.limits.idle_timeout_s,
+                                    max_sessions=self.settings.limits.max_sessions)
+        log.info("isosr replica %s in process %d", self.replica_id, os.getpid())
+        return self.fastapi
+
+    def check_health(self) -> None:
+        """Serve's health check: the app's models are loaded and its device warmed."""
+        if self.fastapi is None or not self.fastapi.state.ready:
+            raise RuntimeError(f"replica {self.replica_id} is not ready")
+
+
+def application(settings: Settings, replicas: int, gpus_per_replica: float = 0.0, cpus_per_replica: float = 1.0,
+                max_replicas: int | None = None, sessions_per_replica: int = 8) -> Application:
+    """The Serve application: ``replicas`` replicas of `IsosrReplica`, each with its CPU and GPU
+    share; with ``max_replicas``, between ``replicas`` and ``max_replicas`` replicas, autoscaled to
+    about ``sessions_per_replica`` ongoing requests each."""
+    if replicas < 1:
+        raise ValueError(f"replicas must be at least 1, got {replicas}")
+    if max_replicas is not None and not (max_replicas >= replicas and sessions_per_replica >= 1):
+        raise ValueError(f"max_replicas ({max_replicas}) must be at least replicas ({replicas}), and "
+                         f"sessions_per_replica at least 1")
+    if gpus_per_replica < 0 or cpus_per_replica <= 0:
+        raise ValueError("a replica's GPU share must be >= 0 and its CPU share > 0")
+    if gpus_per_replica > 0 and not settings.device.startswith("cuda"):
+        raise ValueError(f"--gpus-per-replica {gpus_per_replica:g} needs --device cuda, not {settings.device}")
+    scaling = {"num_replicas": replicas} if max_replicas is None else {"autoscaling_config": {
+        "min_replicas": replicas, "max_replicas": max_replicas, "target_ongoing_requests": sessions_per_replica,
+        "upscale_delay_s": UPSCALE_DELAY_S, "downscale_delay_s": DOWNSCALE_DELAY_S}}
+    deployment = serve.deployment(
+        IsosrReplica, **scaling,
+        ray_actor_options={"num_cpus": cpus_per_replica, "num_gpus": gpus_per_replica},
+        max_ongoing_requests=settings.limits.max_connections,
+        health_check_period_s=HEALTH_CHECK_PERIOD_S, graceful_shutdown_timeout_s=DRAIN_TIMEOUT_S,
+        request_router_config=RequestRouterConfig(request_router_class=ROUTER,
+                                                  request_router_kwargs={"num_fallback_replicas": 1}))
+    return deployment.bind(settings)
+
+
+def build(args: dict[str, Any]) -> Application:
+    """The application builder of a Serve config file (``import_path: isosr_server.cluster:build``):
+    ``args`` are settings by name (``device: cuda``, ``max_sessions: 16``), parsed as their flags
+    are, over the ``ISOSR_*`` environment; the replicas and their resources are the config's
+    ``deployments`` entry (``name: IsosrReplica``)."""
+    parsers = {o.name: o.parse for o in options()}
+    unknown = set(args) - set(parsers)
+    if unknown:
+        raise ValueError(f"unknown settings: {', '.join(sorted(unknown))}")
+    settings = Settings.from_env(**{k: parsers[k](str(v)) for k, v in args.items()})
+    return application(settings, replicas=1, gpus_per_replica=1.0 if settings.device.startswith("cuda") else 0.0)
+
+
+def serve_replicas(settings: Settings, replicas: int, gpus_per_replica: float = 0.0, ray_address: str | None = None,
+                   max_replicas: int | None = None, sessions_per_replica: int = 8) -> None:
+    """Join the Ray cluster at ``ray_address`` (None: start a local one), deploy the replicas
+    (`application`) behind Serve's proxy on ``settings.host:settings.port`` and serve until
+    interrupted; then stop the local Ray, or remove the application from the joined cluster
+    (its replicas drain; a second interrupt leaves that to the cluster)."""
+    app = application(settings, replicas, gpus_per_replica, max_replicas=max_replicas,
+                      sessions_per_replica=sessions_per_replica)
+    ray.init(address=ray_address)
+    serve.start(http_options={"host": settings.host, "port": settings.port})
+    try:
+        serve.run(app, name=APP_NAME, route_prefix="/")
+        log.info("isosr: %d replicas behind http://%s:%d", replicas, settings.host, settings.port)
+        while True:  # the proxy serves; Ctrl-C ends it
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        if ray_address is None:
+            ray.shutdown()  # the local Ray, and with it Serve and the replicas
+        else:
+            log.info("isosr: removing the application; its replicas drain their sessions")
+            serve.delete(APP_NAME)
+

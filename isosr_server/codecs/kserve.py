@@ -1,0 +1,172 @@
+"""The KServe v2 (Open Inference Protocol) infer body: JSON tensors, and Triton's binary tensor
+data extension. numpy and msgspec only.
+
+A request is a JSON object ``{id?, parameters?, inputs: [{name, shape, datatype, parameters?,
+data?}], outputs?: [{name, parameters?}]}``. With the ``Inference-Header-Content-Length: N``
+header the body's first N bytes are that JSON and the rest holds, in the inputs' order, the raw
+little-endian bytes of every input whose parameters give ``binary_data_size``; the others carry
+their values as ``data`` (a flat row-major list, or nested lists). A response is built the same
+way: an output is binary when its request entry asks ``binary_data`` (else when the request's
+``binary_data_output`` parameter does).
+
+Every malformed body is a `ProtocolError` (400) that names the tensor and what is wrong with it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Annotated, Any
+
+import msgspec
+import numpy as np
+from msgspec import Meta
+
+from isosr_server.protocol import ProtocolError
+
+HEADER_LENGTH = "inference-header-content-length"
+JSON_MEDIA_TYPE = "application/json"
+BINARY_MEDIA_TYPE = "application/octet-stream"
+# KServe datatypes the decoder takes, as little-endian numpy types.
+DATATYPES: dict[str, np.dtype] = {"FP32": np.dtype("<f4"), "FP16": np.dtype("<f2")}
+MAX_RANK = 8
+Parameters = dict[str, bool | int | float | str]
+
+
+class TensorIn(msgspec.Struct, frozen=True):
+    name: str
+    shape: Annotated[list[Annotated[int, Meta(ge=0)]], Meta(max_length=MAX_RANK)]
+    datatype: str
+    parameters: Parameters = {}
+    data: list[Any] | None = None
+
+
+class TensorOut(msgspec.Struct, frozen=True):
+    name: str
+    parameters: Parameters = {}
+
+
+class RequestHeader(msgspec.Struct, frozen=True):
+    inputs: list[TensorIn]
+    id: str | None = None
+    parameters: Parameters = {}
+    outputs: list[TensorOut] | None = None
+
+
+@dataclass(frozen=True)
+class InferRequest:
+    """A decoded request.
+
+    Attributes:
+        id: the client's request id (echoed in the response), if any.
+        inputs: the input tensors by name, in the datatype they came in.
+        parameters: the request's parameters (sequence ids, custom ones).
+        outputs: the requested output names, each with whether it goes binary; None: all outputs,
+            binary as ``binary_output`` says.
+        binary_output: the request's ``binary_data_output`` parameter.
+    """
+
+    id: str | None
+    inputs: dict[str, np.ndarray]
+    parameters: Parameters
+    outputs: dict[str, bool] | None
+    binary_output: bool
+
+
+def decode_request(body: bytes, header_length: str | None) -> InferRequest:
+    """The request in ``body``; ``header_length`` is the ``Inference-Header-Content-Length`` value.
+
+    Raises:
+        ProtocolError: (400) the body, a tensor's shape, datatype, byte count or values do not fit.
+    """
+    if header_length is None:
+        n = len(body)
+    else:
+        try:
+            n = int(header_length)
+        except ValueError:
+            raise ProtocolError(f"Inference-Header-Content-Length must be an integer, got {header_length!r}"[:200])
+        if not 0 <= n <= len(body):
+            raise ProtocolError(f"Inference-Header-Content-Length {n} lies outside the body's {len(body)} bytes")
+    try:
+        header = msgspec.json.decode(body[:n], type=RequestHeader)
+    except msgspec.DecodeError as e:
+        raise ProtocolError(f"malformed inference request: {e}"[:300]) from None
+    inputs: dict[str, np.ndarray] = {}
+    offset = n
+    for t in header.inputs:
+        if t.name in inputs:
+            raise ProtocolError(f"input {t.name!r} is given twice")
+        inputs[t.name], offset = _decode_tensor(t, body, offset)
+    if offset != len(body):
+        raise ProtocolError(f"the body has {len(body) - offset} bytes beyond its binary tensors")
+    outputs = None
+    if header.outputs is not None:
+        outputs = {o.name: bool(o.parameters.get("binary_data", False)) for o in header.outputs}
+    return InferRequest(header.id, inputs, header.parameters, outputs,
+                        bool(header.parameters.get("binary_data_output", False)))
+
+
+def _decode_tensor(t: TensorIn, body: bytes, offset: int) -> tuple[np.ndarray, int]:
+    """One input tensor: from the body's bytes at ``offset`` (binary) or from its ``data``; the next offset."""
+    dtype = DATATYPES.get(t.datatype)
+    if dtype is None:
+        raise ProtocolError(f"input {t.name!r}: datatype must be {' or '.join(DATATYPES)}, got {t.datatype!r}"[:200])
+    count = math.prod(t.shape)
+    size = t.parameters.get("binary_data_size")
+    if size is not None:
+        if t.data is not None:
+            raise ProtocolError(f"input {t.name!r}: give binary_data_size or data, not both")
+        if size != count * dtype.itemsize:
+            raise ProtocolError(f"input {t.name!r}: binary_data_size is {size} bytes; shape {t.shape} of "
+                                f"{t.datatype} needs {count * dtype.itemsize}"[:200])
+        if offset + size > len(body):
+            raise ProtocolError(f"input {t.name!r}: the body ends {offset + size - len(body)} bytes before its data")
+        return _finite(t.name, np.frombuffer(body, dtype, count, offset).reshape(t.shape)), offset + size
+    if t.data is None:
+        raise ProtocolError(f"input {t.name!r}: no data and no binary_data_size")
+    try:
+        values = np.asarray(t.data, dtype)
+    except (ValueError, TypeError):
+        raise ProtocolError(f"input {t.name!r}: data must be numbers (a flat list or nested lists of one shape)")
+    if values.size != count:
+        raise ProtocolError(f"input {t.name!r}: {values.size} values for shape {t.shape} ({count} values)"[:200])
+    return _finite(t.name, values.reshape(t.shape)), offset
+
+
+def _finite(name: str, a: np.ndarray) -> np.ndarray:
+    if not np.isfinite(a).all():
+        raise ProtocolError(f"input {name!r}: NaN or Inf values")
+    return a
+
+
+def encode_response(model: str, version: str, request: InferRequest, outputs: dict[str, np.ndarray]) -> \
+        tuple[bytes, int | None]:
+    """The response body for ``outputs`` (float32 arrays, all the model has, in its order) as
+    ``request`` asks, and the JSON header's length when some output is binary (else None).
+
+    Raises:
+        ProtocolError: (400) the request asks for an output the model does not have.
+    """
+    wanted = request.outputs
+    if wanted is None:
+        wanted = dict.fromkeys(outputs, request.binary_output)
+    unknown = [name for name in wanted if name not in outputs]
+    if unknown:
+        raise ProtocolError(f"unknown output {unknown[0]!r}; this model gives {', '.join(outputs)}"[:200])
+    entries: list[dict[str, Any]] = []
+    blobs: list[bytes] = []
+    for name, binary in wanted.items():
+        a = np.ascontiguousarray(outputs[name], "<f4")
+        entry: dict[str, Any] = {"name": name, "datatype": "FP32", "shape": list(a.shape)}
+        if binary:
+            blobs.append(a.tobytes())
+            entry["parameters"] = {"binary_data_size": a.nbytes}
+        else:
+            entry["data"] = a.ravel().tolist()
+        entries.append(entry)
+    reply: dict[str, Any] = {"model_name": model, "model_version": version, "outputs": entries}
+    if request.id is not None:
+        reply["id"] = request.id
+    header = msgspec.json.encode(reply)
+    return (header + b"".join(blobs), len(header)) if blobs else (header, None)

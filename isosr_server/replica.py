@@ -1,0 +1,148 @@
+"""`ReplicaMiddleware`: what one replica of a multi-replica service adds to the app (no Ray import;
+:mod:`isosr_server.cluster` installs it).
+
+- Every HTTP response and every WebSocket handshake names the replica: ``x-isosr-replica``.
+- Upscale sessions (``POST /v1/upscale`` with ``session``, ``POST /v2/models/isosr/infer`` with
+  ``sequence_id``) are routed by the request router on the ``x-session-id`` header
+  (`SESSION_HEADER`), so their requests must carry the id there too: a successful request whose
+  body names a session the header does not gets 400 instead of its answer (else it would land on
+  any replica and silently lose its recurrent state).
+- A session that continues its recurrence (a frame with flow and no reset) on a replica that
+  has not served it before (its replica is gone, or the replicas changed) had its state started
+  afresh: the answer says so with ``x-isosr-session-restarted: 1``.
+
+The middleware reads the body the app reads (after the guard has bounded it) and decides when
+the app's answer starts; a replica remembers the sessions it served for ``idle_timeout_s``, as
+long as the app keeps their state. (The app may also drop a state early to stay within
+``max_upscale_bytes``; that restart is not reported, as on a single server.)
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections import OrderedDict
+
+import msgspec
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from isosr_server.codecs.kserve import HEADER_LENGTH
+from isosr_server.protocol import REPLICA_HEADER
+
+SESSION_HEADER = "x-session-id"  # Ray Serve's session header (RAY_SERVE_SESSION_ID_HEADER_KEY's default)
+RESTARTED_HEADER = "x-isosr-session-restarted"
+UPSCALE_PATH = "/v1/upscale"
+INFER_SUFFIX = "/infer"
+NIL = b"\xc0"  # msgpack nil
+
+
+class _UpscalePeek(msgspec.Struct):
+    session: str | None = None
+    flow: msgspec.Raw = msgspec.Raw(NIL)
+    reset: bool = False
+
+
+class _Named(msgspec.Struct):
+    name: str = ""
+
+
+class _InferPeek(msgspec.Struct):
+    inputs: list[_Named] = []
+    parameters: dict[str, object] = {}
+
+
+def session_of(path: str, headers: dict[str, str], body: bytes) -> tuple[str | None, bool]:
+    """``(session id or None, whether the frame continues a recurrence)`` of an upscale request's body."""
+    try:
+        if path == UPSCALE_PATH:
+            peek = msgspec.msgpack.decode(body, type=_UpscalePeek)
+            return peek.session, bytes(peek.flow) != NIL and not peek.reset
+        n = int(headers.get(HEADER_LENGTH, len(body)))
+        infer = msgspec.json.decode(body[:n], type=_InferPeek)
+    except (msgspec.DecodeError, ValueError):
+        return None, False
+    sequence = infer.parameters.get("sequence_id", 0)
+    session = None if sequence in (0, "") else str(sequence)
+    return session, any(t.name == "flow" for t in infer.inputs) and not infer.parameters.get("sequence_start", False)
+
+
+class ReplicaMiddleware:
+    """``app.add_middleware(ReplicaMiddleware, replica=id, idle_timeout_s=...)``.
+
+    Attributes:
+        served: the sessions this replica served, with when they were last used (monotonic s).
+    """
+
+    def __init__(self, app: ASGIApp, replica: str, idle_timeout_s: float, max_sessions: int) -> None:
+        self.app, self.replica = app, replica
+        self.idle_timeout_s, self.max_sessions = idle_timeout_s, max_sessions
+        self.served: OrderedDict[str, float] = OrderedDict()
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        named = (REPLICA_HEADER.encode(), self.replica.encode())
+        if scope["type"] == "websocket":
+            async def send_ws(message: Message) -> None:
+                if message["type"] == "websocket.accept":
+                    message = {**message, "headers": [*message.get("headers", []), named]}
+                await send(message)
+            return await self.app(scope, receive, send_ws)
+        path = scope.get("path", "")
+        if scope["type"] != "http" or scope.get("method") != "POST" or not (
+                path == UPSCALE_PATH or path.endswith(INFER_SUFFIX)):
+            async def send_http(message: Message) -> None:
+                if message["type"] == "http.response.start":
+                    message = {**message, "headers": [*message.get("headers", []), named]}
+                await send(message)
+            return await self.app(scope, receive, send_http)
+        await self.upscale(scope, receive, send, named)
+
+    async def upscale(self, scope: Scope, receive: Receive, send: Send, named: tuple[bytes, bytes]) -> None:
+        """An upscale request: keep the body the app reads; check and mark the answer when it starts."""
+        chunks: list[bytes] = []
+        replaced = False
+
+        async def keep() -> Message:
+            message = await receive()
+            if message["type"] == "http.request":
+                chunks.append(message.get("body", b""))
+            return message
+
+        async def mark(message: Message) -> None:
+            nonlocal replaced
+            if replaced:
+                return
+            if message["type"] == "http.response.start":
+                extra = [named]
+                if message["status"] == 200:
+                    headers = {k.decode().lower(): v.decode() for k, v in scope["headers"]}
+                    session, continues = session_of(scope["path"], headers, b"".join(chunks))
+                    if session is not None and headers.get(SESSION_HEADER) != session:
+                        replaced = True
+                        return await refuse(send, named, f"behind replicas a session's requests carry its id in "
+                                                         f"the {SESSION_HEADER} header too (the routing key)")
+                    if session is not None:
+                        if continues and not self.knows(session):
+                            extra.append((RESTARTED_HEADER.encode(), b"1"))
+                        self.remember(session)
+                message = {**message, "headers": [*message.get("headers", []), *extra]}
+            await send(message)
+
+        await self.app(scope, keep, mark)
+
+    def knows(self, session: str) -> bool:
+        used = self.served.get(session)
+        return used is not None and time.monotonic() - used <= self.idle_timeout_s
+
+    def remember(self, session: str) -> None:
+        self.served[session] = time.monotonic()
+        self.served.move_to_end(session)
+        while len(self.served) > self.max_sessions:
+            self.served.popitem(last=False)
+
+
+async def refuse(send: Send, named: tuple[bytes, bytes], reason: str) -> None:
+    body = json.dumps({"error": reason, "status": 400}).encode()
+    await send({"type": "http.response.start", "status": 400,
+                "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
+                            named]})
+    await send({"type": "http.response.body", "body": body})

@@ -1,0 +1,309 @@
+"""`isosr serve --replicas`: a real local Ray cluster (2 CPUs, its own temp dir; its dashboard on a
+free loopback port, since Ray's state API is served there) with
+2 CPU replicas of the app behind Serve's proxy, started and stopped by this module.
+
+- View sessions spread over both replicas (Serve's router hashes each WebSocket's request id: 12
+  sessions all on one of two replicas would happen once in 2048 runs).
+- An upscale session (``x-session-id``) stays on one replica, and its frames equal the single-process
+  server's; so do the infer endpoint's through tritonclient.
+- Killing one replica's process (its PID from Ray's state API) leaves the sessions on the other
+  without an error; a client session on the dead one (``isosr_client.connect(reconnect=True)``)
+  reopens on the survivor within two seconds in the same state; new view sessions open on the
+  survivor; the upscale session moves, says it restarted, and its frame equals a fresh state's;
+  ``/v2/health/ready`` stays 200.
+- Deploying one replica instead of two drains the one removed: its session goes on until it
+  closes, while new sessions open on the other.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from contextlib import ExitStack, suppress
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from isosr_client import connect
+from isosr_render import orbit
+from isosr_server import protocol as P
+from server_fixtures import (VOLUME, H, RunningServer, W, cam, frame, lib, lib_lowres, running_server,  # noqa: F401
+                             send, server_settings, session, upscale_body)
+
+ray = pytest.importorskip("ray", reason="ray[serve] is not installed (the cluster extra)")
+serve = pytest.importorskip("ray.serve", reason="ray[serve] is not installed (the cluster extra)")
+from ray.util.state import list_actors  # noqa: E402
+
+from isosr_server.cluster import APP_NAME, application  # noqa: E402
+from isosr_server.replica import REPLICA_HEADER, RESTARTED_HEADER, SESSION_HEADER  # noqa: E402
+
+pytestmark = pytest.mark.slow
+LIMITS = P.Limits(max_sessions_per_client=32, max_message_bytes=2**22)
+ATOL = 1e-6
+REPO = Path(__file__).resolve().parents[1]
+
+
+def quiet_port() -> int:
+    """A free loopback port between Ray's worker ports (10002-19999) and the ephemeral ones (32768-)
+    that Ray's own servers take while Serve starts."""
+    for port in random.sample(range(20000, 32000), 200):
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise RuntimeError("no free port in 20000-32000")
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """Ray with 2 CPUs and Serve with 2 replicas on a free port: a `RunningServer` for the proxy."""
+    temp = tempfile.mkdtemp(prefix="isosr-ray-")
+    started = time.monotonic()
+    # The replicas import this checkout's packages, as this process does.
+    ray.init(num_cpus=2, include_dashboard=True, dashboard_host="127.0.0.1", dashboard_port=quiet_port(),
+             _temp_dir=temp, log_to_driver=False,
+             runtime_env={"env_vars": {"PYTHONPATH": str(REPO)}})
+    try:
+        settings = server_settings(limits=LIMITS)
+        port = quiet_port()
+        serve.start(http_options={"host": "127.0.0.1", "port": port})
+        serve.run(application(settings, replicas=2), name=APP_NAME, route_prefix="/")
+        print(f"Ray and 2 replicas ready in {time.monotonic() - started:.1f} s")
+        yield RunningServer(port, settings, SimpleNamespace(records=[]), None)
+    finally:
+        ray.shutdown()  # Serve, its proxy and the replicas with it
+        shutil.rmtree(temp, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def plain():
+    with running_server(server_settings(limits=LIMITS)) as s:
+        yield s
+
+
+def replica_pids() -> dict[str, int]:
+    """The live replicas' ids and process ids, from Ray's state API."""
+    actors = list_actors(filters=[("state", "=", "ALIVE")], detail=True)
+    return {a.name.rsplit("#", 1)[-1]: a.pid for a in actors if a.class_name.endswith(":IsosrReplica")}
+
+
+def upscale(srv, frame_np: dict, sid: str | None, header: bool = True) -> tuple[dict, P.HighresBuffers | None, int]:
+    headers = {SESSION_HEADER: sid} if header and sid else {}
+    status, h, body = srv.request("POST", "/v1/upscale", upscale_body(frame_np, session=sid), headers)
+    h = {k.lower(): v for k, v in h.items()}
+    return h, P.parse(body, P.Limits(), (P.UpscaleResponse,)).buffers if status == 200 else None, status
+
+
+def assert_same(got: P.HighresBuffers, want: P.HighresBuffers) -> None:
+    for name in P.HIGHRES_OUTPUTS:
+        np.testing.assert_allclose(getattr(got, name), getattr(want, name), atol=ATOL, err_msg=name)
+
+
+@pytest.fixture(scope="module")
+def path(lib):
+    cams = [orbit(30 + 3 * i, 20, 1.8) for i in range(6)]
+    return [lib_lowres(lib, c, prev).to_numpy() for c, prev in zip(cams, [None] + cams[:-1])]
+
+
+def test_views_spread_over_both_replicas(cluster):
+    replicas = replica_pids()
+    assert len(replicas) == 2
+    seen = []
+    for i in range(12):
+        with session(cluster, mode="full") as (ws, ready):
+            seen.append(ws.response.headers[REPLICA_HEADER])
+            assert frame(ws).width == W
+    assert set(seen) == set(replicas), seen
+
+
+def test_upscale_session_stays_on_one_replica_and_equals_the_plain_server(cluster, plain, path):
+    on = set()
+    for f in path[:3]:
+        h, got, status = upscale(cluster, f, "cam-a")
+        assert status == 200 and RESTARTED_HEADER not in h
+        on.add(h[REPLICA_HEADER])
+        assert_same(got, upscale(plain, f, "cam-a")[1])
+    assert len(on) == 1
+    # The session in the body only: refused (it would land on any replica).
+    h, _, status = upscale(cluster, path[0], "cam-b", header=False)
+    assert status == 400
+
+
+def test_infer_through_the_proxy_with_tritonclient(cluster, plain, path):
+    httpclient = pytest.importorskip("tritonclient.http", reason="tritonclient[http] is not installed")
+
+    def run(srv, f, seq, start):
+        c = httpclient.InferenceServerClient(url=f"127.0.0.1:{srv.port}", network_timeout=120)
+        inputs = []
+        for name in ("mask", "normal", "depth", "flow"):
+            if name in f:
+                t = httpclient.InferInput(name, list(f[name].shape), "FP32")
+                t.set_data_from_numpy(f[name])
+                inputs.append(t)
+        r = c.infer("isosr", inputs, sequence_id=seq, sequence_start=start, headers={SESSION_HEADER: seq})
+        c.close()
+        return {n: r.as_numpy(n) for n in P.HIGHRES_OUTPUTS}
+
+    for i, f in enumerate(path[:2]):
+        got, want = run(cluster, f, "seq-1", i == 0), run(plain, f, "seq-1", i == 0)
+        for n in P.HIGHRES_OUTPUTS:
+            np.testing.assert_allclose(got[n], want[n], atol=ATOL, err_msg=n)
+
+
+def test_killing_a_replica_moves_only_its_sessions(cluster, plain, path):
+    pids = replica_pids()
+    h, _, _ = upscale(cluster, path[3], "cam-a")
+    doomed = h[REPLICA_HEADER]
+    survivor = next(r for r in pids if r != doomed)
+    # One open view session on each replica.
+    stack = ExitStack()
+    views = {}
+    while len(views) < 2:
+        ws, _ = stack.enter_context(session(cluster, mode="full"))
+        frame(ws)
+        views.setdefault(ws.response.headers[REPLICA_HEADER], ws)
+    # A client session on the replica that will die.
+    client = None
+    for _ in range(24):
+        view = stack.enter_context(connect(cluster.http_url, VOLUME, "full", (W, H), reconnect=True,
+                                           settings={"encoding": "png", "refine": False}))
+        if view.replica == doomed:
+            client = view
+            break
+    assert client is not None and client.frame().shape == (H, W, 3)
+    os.kill(pids[doomed], signal.SIGKILL)
+    killed = time.monotonic()
+    client.set_camera(yaw=45, pitch=20, distance=1.8)
+    moved = client.frame()
+    print(f"the client's session reopened and framed in {time.monotonic() - killed:.2f} s")
+    assert time.monotonic() - killed < 2.0 and client.reconnects == 1 and client.stats.replica == survivor
+    with connect(cluster.http_url, VOLUME, "full", (W, H), settings={"encoding": "png", "refine": False},
+                 camera={"yaw": 45, "pitch": 20, "distance": 1.8}) as fresh:
+        np.testing.assert_array_equal(moved, fresh.frame())
+    # The survivor's session goes on without an error while the other replica is gone.
+    ws = views[survivor]
+    for i in range(5):
+        send(ws, cam(40 + i))
+        assert frame(ws).mode == "full"
+    # New view sessions open, none on the dead replica; health stays ready.
+    health, placed = [], []
+    deadline = killed + 30
+    while len(placed) < 4 and time.monotonic() < deadline:
+        health.append(cluster.request("GET", "/v2/health/ready")[0])
+        try:
+            with session(cluster, mode="full") as (new, _):
+                placed.append(new.response.headers[REPLICA_HEADER])
+                frame(new)
+        except Exception as e:  # noqa: BLE001 (the window before Serve notices the death is what is measured)
+            print(f"{time.monotonic() - killed:.2f} s after the kill: {e!r}")
+    assert len(placed) == 4 and doomed not in placed, placed
+    assert set(health) == {200}, health
+    # The upscale session continues elsewhere and says it restarted; its frame is a fresh state's.
+    h, got, status = upscale(cluster, path[4], "cam-a")
+    assert status == 200 and h[REPLICA_HEADER] != doomed and h.get(RESTARTED_HEADER) == "1"
+    assert_same(got, upscale(plain, path[4], "fresh")[1])
+    h, _, _ = upscale(cluster, path[5], "cam-a")
+    assert RESTARTED_HEADER not in h
+    with suppress(Exception):  # the dead replica's sockets are gone
+        stack.close()
+
+
+def wait_for(predicate, what: str, seconds: float = 30.0) -> None:
+    deadline = time.monotonic() + seconds
+    while not predicate():
+        assert time.monotonic() < deadline, what
+        time.sleep(0.2)
+
+
+def test_a_removed_replica_drains_its_sessions(cluster):
+    """Deploying again (as a code or settings change does) replaces the replicas one by one; each
+    one removed takes no new sessions, serves its open ones until they close, then ends. (With 2
+    CPUs and a CPU per replica the new replica starts only once an old one has ended.)"""
+    wait_for(lambda: len(replica_pids()) == 2 and serve.status().applications[APP_NAME].status == "RUNNING",
+             "Serve did not replace the killed replica")
+    stack = ExitStack()
+    views = {}
+    while len(views) < 2:
+        ws, _ = stack.enter_context(session(cluster, mode="full"))
+        frame(ws)
+        views.setdefault(ws.response.headers[REPLICA_HEADER], ws)
+    # serve.run returns once the new version runs, which waits for the old replicas' sessions.
+    redeploy = threading.Thread(target=serve.run, args=(application(cluster.settings, replicas=1),),
+                                kwargs={"name": APP_NAME, "route_prefix": "/"}, daemon=True)
+    redeploy.start()
+    wait_for(lambda: replica_states().get("STOPPING") == 1, "no replica is draining")
+    kept = settled_replica(cluster)
+    drained = next(r for r in views if r != kept)
+    for i in range(4):  # the draining replica's session goes on, and so does the other's
+        for ws in views.values():
+            send(ws, cam(60 + i))
+            assert frame(ws).mode == "full"
+    assert drained in replica_pids()
+    views[drained].close()
+    wait_for(lambda: drained not in replica_pids(), "the drained replica did not end after its session closed")
+    send(views[kept], cam(70))
+    assert frame(views[kept]).mode == "full"
+    stack.close()
+    redeploy.join(60)
+    assert not redeploy.is_alive() and replica_states() == {"RUNNING": 1} and not set(replica_pids()) & set(views)
+
+
+def replica_states() -> dict[str, int]:
+    return serve.status().applications[APP_NAME].deployments["IsosrReplica"].replica_states
+
+
+def settled_replica(srv, runs: int = 5, seconds: float = 10.0) -> str:
+    """The replica new view sessions land on once ``runs`` in a row land on the same one."""
+    deadline, last, streak = time.monotonic() + seconds, None, 0
+    while streak < runs:
+        assert time.monotonic() < deadline, "new sessions do not settle on one replica"
+        with session(srv, mode="full") as (ws, _):
+            replica = ws.response.headers[REPLICA_HEADER]
+        streak, last = (streak + 1 if replica == last else 1), replica
+    return last
+
+
+def test_serve_config_and_replica_options(monkeypatch):
+    """deploy/serve.yaml is a valid Serve config whose builder makes the app; bad replica options say why."""
+    import yaml
+    from ray.serve.schema import ServeDeploySchema
+
+    from isosr_server.cluster import build
+    from isosr_server.core.config import Settings
+
+    config = ServeDeploySchema.model_validate(yaml.safe_load((REPO / "deploy" / "serve.yaml").read_text()))
+    app = config.applications[0]
+    assert app.import_path == "isosr_server.cluster:build" and app.deployments[0].name == "IsosrReplica"
+    with pytest.raises(ValueError, match="requires a token|give --token"):
+        build(app.args)  # host 0.0.0.0 without ISOSR_TOKEN
+    monkeypatch.setenv("ISOSR_TOKEN", "correct-horse-battery")
+    assert build(app.args) is not None
+    with pytest.raises(ValueError, match="unknown settings: colour"):
+        build({"colour": "red"})
+    with pytest.raises(ValueError, match="at least 1"):
+        application(Settings(), replicas=0)
+    with pytest.raises(ValueError, match="needs --device cuda"):
+        application(Settings(), replicas=2, gpus_per_replica=0.5)
+    with pytest.raises(ValueError, match="must be at least replicas"):
+        application(Settings(), replicas=2, max_replicas=1)
+    assert application(Settings(), replicas=1, max_replicas=3) is not None
+
+
+def test_the_plain_server_does_not_import_ray():
+    code = ("import sys; from isosr_server.app import create_app; from isosr_server.core.config import Settings; "
+            "import isosr_cli.main, isosr_server.replica; create_app(Settings()); "
+            "assert not [m for m in sys.modules if m == 'ray' or m.startswith('ray.')]")
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    subprocess.run([sys.executable, "-c", code], env=env, check=True, timeout=120)
