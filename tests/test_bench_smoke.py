@@ -57,3 +57,12 @@ def test_recon_path_smoke_times_every_stage(tmp_path):
     for row in rows:
         assert all(row[k] > 0 for k in ("full", "path", "render", "network_gflop", "floor_ms"))
         assert row["added"] == row["path"] - row["full"]
+
+
+def test_limits_smoke_runs_the_heaviest_requests_in_slices(tmp_path):
+    from isosr_bench import bench_limits
+
+    rows = bench_limits.main(["--device", "cpu", "--smoke", "--out", str(tmp_path)])
+    assert [r["request"].split()[0] for r in rows] == ["view", "upscale"]
+    assert all(r["seconds"] > 0 and r["slices"] >= 1 and r["peak_growth_mib"] >= 0 for r in rows)
+    assert json.loads((tmp_path / "bench_limits_cpu.json").read_text())["rows"] == rows

@@ -72,9 +72,10 @@ def cluster():
     temp = tempfile.mkdtemp(prefix="isosr-ray-")
     started = time.monotonic()
     # The replicas import this checkout's packages, as this process does.
-    ray.init(num_cpus=2, include_dashboard=True, dashboard_host="127.0.0.1", dashboard_port=quiet_port(),
-             _temp_dir=temp, log_to_driver=False,
-             runtime_env={"env_vars": {"PYTHONPATH": str(REPO)}})
+    context = ray.init(num_cpus=2, include_dashboard=True, dashboard_host="127.0.0.1",
+                       dashboard_port=quiet_port(), _temp_dir=temp, log_to_driver=False,
+                       runtime_env={"env_vars": {"PYTHONPATH": str(REPO)}})
+    STATE_API.append(f"http://{context.dashboard_url}")  # this cluster's, though others may run here
     try:
         settings = server_settings(limits=LIMITS)
         port = quiet_port()
@@ -93,9 +94,13 @@ def plain():
         yield s
 
 
+# The state API's address of the module's cluster (set by the fixture).
+STATE_API: list[str] = []
+
+
 def replica_pids() -> dict[str, int]:
-    """The live replicas' ids and process ids, from Ray's state API."""
-    actors = list_actors(filters=[("state", "=", "ALIVE")], detail=True)
+    """The live replicas' ids and process ids, from this cluster's Ray state API."""
+    actors = list_actors(address=STATE_API[-1], filters=[("state", "=", "ALIVE")], detail=True)
     return {a.name.rsplit("#", 1)[-1]: a.pid for a in actors if a.class_name.endswith(":IsosrReplica")}
 
 
