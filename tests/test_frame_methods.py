@@ -14,7 +14,7 @@ import torch
 from isosr_render import Renderer, RenderRequest, open_volume, orbit_path, resolve_iso
 from isosr_net.frame_methods import FrameMethod, FrameStream, Networks, make_runner
 from conftest import DEVICE
-from net_fixtures import tiny_model_dir
+from net_fixtures import in_slices, tiny_model_dir
 
 SIZE = (48, 32)
 
@@ -175,15 +175,8 @@ def test_a_frame_in_slices_equals_the_frame_whole(scene, method):
     renderer, iso = scene
     cam = orbit_path(1, yaw0=20.0)[0]
     whole = make_runner(method, renderer, iso, *SIZE).frame(cam).buffers
-    steps = make_runner(method, renderer, iso, *SIZE).steps(cam, slice_ms=1e-6)  # one band a slice
-    slices = 0
-    while True:
-        try:
-            next(steps)
-            slices += 1
-        except StopIteration as done:
-            sliced = done.value.buffers
-            break
+    slices, result = in_slices(make_runner(method, renderer, iso, *SIZE).steps(cam, slice_ms=1e-6))
+    sliced = result.buffers  # one band a slice
     assert slices >= SIZE[1] // 32  # the first band, then bands of a row (each slice far over its budget)
     for name in whole.present():
         torch.testing.assert_close(getattr(sliced, name), getattr(whole, name), atol=1e-6, rtol=0)
