@@ -23,7 +23,7 @@ def add_parser(subparsers) -> None:
                               description=__doc__, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("url", help="the server, http://HOST:PORT")
     p.add_argument("--volume", required=True, help="a name from GET /v1/volumes, or proc:cloud:0 and the like")
-    p.add_argument("--mode", default="buffers", choices=MODES)
+    p.add_argument("--mode", default="auto", choices=MODES, help="the view mode (auto: the server chooses the method)")
     p.add_argument("--frames", type=int, default=30)
     p.add_argument("--orbit", default="30,20,1.8,2", help="YAW,PITCH,DIST[,YAWSTEP], degrees and world units")
     p.add_argument("--size", default="640x480", help="output WxH")
