@@ -110,7 +110,8 @@ async def upscale_infer(request: Request, engine: EngineDep, limits: LimitsDep, 
     req = await asyncio.to_thread(decode_request, await request.body(), request.headers.get(HEADER_LENGTH))
     msg = upscale_request(req)
     check_upscale(msg, engine, limits)
-    upscaler = sessions.get(msg.session) if msg.session else engine.new_upscaler()
+    client = request.client.host if request.client else ""
+    upscaler = sessions.get(msg.session, client) if msg.session else engine.new_upscaler()
     _, buffers, times = await run_upscale(engine, upscaler, msg)
     sessions.trim(keep=msg.session)
     body, header_length = await asyncio.to_thread(encode_response, UPSCALE_MODEL, MODEL_VERSION, req, buffers)

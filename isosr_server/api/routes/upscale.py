@@ -35,11 +35,15 @@ async def parse_upscale(data: bytes, engine: Engine, limits: Limits) -> UpscaleR
     arrays), its arrays bounded before they inflate by the limits of a frame that upscales to
     within ``limits`` (`Limits.downscaled`); `ProtocolError` 413 when the upscaled frame would
     exceed the size limits."""
-    f = engine.upscale_factor
-    msg = await asyncio.to_thread(parse, data, limits.downscaled(f), (UpscaleRequest,))
-    h, w = msg.mask.shape
-    limits.check_size(w * f, h * f, "the upscaled frame")
+    msg = await asyncio.to_thread(parse, data, limits.downscaled(engine.upscale_factor), (UpscaleRequest,))
+    check_upscale(msg, engine, limits)
     return msg
+
+
+def check_upscale(msg: UpscaleRequest, engine: Engine, limits: Limits) -> None:
+    """`ProtocolError` 413 when the upscaled frame would exceed the size limits."""
+    h, w = msg.mask.shape
+    limits.check_size(w * engine.upscale_factor, h * engine.upscale_factor, "the upscaled frame")
 
 
 async def run_upscale(engine: Engine, upscaler: Upscaler, msg: UpscaleRequest):
