@@ -117,6 +117,23 @@ def path(lib):
     return [lib_lowres(lib, c, prev).to_numpy() for c, prev in zip(cams, [None] + cams[:-1])]
 
 
+def one_view_each(srv, stack: ExitStack, replicas: int, tries: int = 40) -> dict:
+    """One open view session (its first frame read) on each of ``replicas`` replicas, by replica;
+    sessions that land on a replica that has one already are closed at once."""
+    views = {}
+    for _ in range(tries):
+        with ExitStack() as attempt:
+            ws, _ = attempt.enter_context(session(srv, mode="full"))
+            frame(ws)
+            replica = ws.response.headers[REPLICA_HEADER]
+            if replica not in views:
+                views[replica] = ws
+                stack.push(attempt.pop_all())
+        if len(views) == replicas:
+            return views
+    raise AssertionError(f"{tries} sessions reached {len(views)} of {replicas} replicas")
+
+
 def test_views_spread_over_both_replicas(cluster):
     replicas = replica_pids()
     assert len(replicas) == 2
@@ -169,11 +186,7 @@ def test_killing_a_replica_moves_only_its_sessions(cluster, plain, path):
     survivor = next(r for r in pids if r != doomed)
     # One open view session on each replica.
     stack = ExitStack()
-    views = {}
-    while len(views) < 2:
-        ws, _ = stack.enter_context(session(cluster, mode="full"))
-        frame(ws)
-        views.setdefault(ws.response.headers[REPLICA_HEADER], ws)
+    views = one_view_each(cluster, stack, 2)
     # A client session on the replica that will die.
     client = None
     for _ in range(24):
@@ -234,11 +247,7 @@ def test_a_removed_replica_drains_its_sessions(cluster):
     wait_for(lambda: len(replica_pids()) == 2 and serve.status().applications[APP_NAME].status == "RUNNING",
              "Serve did not replace the killed replica")
     stack = ExitStack()
-    views = {}
-    while len(views) < 2:
-        ws, _ = stack.enter_context(session(cluster, mode="full"))
-        frame(ws)
-        views.setdefault(ws.response.headers[REPLICA_HEADER], ws)
+    views = one_view_each(cluster, stack, 2)
     # serve.run returns once the new version runs, which waits for the old replicas' sessions.
     redeploy = threading.Thread(target=serve.run, args=(application(cluster.settings, replicas=1),),
                                 kwargs={"name": APP_NAME, "route_prefix": "/"}, daemon=True)
