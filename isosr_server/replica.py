@@ -27,10 +27,9 @@ import msgspec
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from isosr_server.codecs.kserve import HEADER_LENGTH
-from isosr_server.protocol import REPLICA_HEADER
+from isosr_server.protocol import REPLICA_HEADER, RESTARTED_HEADER, SESSION_HEADER
 
-SESSION_HEADER = "x-session-id"  # Ray Serve's session header (RAY_SERVE_SESSION_ID_HEADER_KEY's default)
-RESTARTED_HEADER = "x-isosr-session-restarted"
+__all__ = ["REPLICA_HEADER", "RESTARTED_HEADER", "SESSION_HEADER", "ReplicaMiddleware", "session_of"]
 UPSCALE_PATH = "/v1/upscale"
 INFER_SUFFIX = "/infer"
 NIL = b"\xc0"  # msgpack nil

@@ -34,7 +34,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from isosr_client import connect
+from isosr_client import connect, upscale_remote
 from isosr_render import orbit
 from isosr_server import protocol as P
 from server_fixtures import (VOLUME, H, RunningServer, W, cam, frame, lib, lib_lowres, running_server,  # noqa: F401
@@ -158,6 +158,17 @@ def test_upscale_session_stays_on_one_replica_and_equals_the_plain_server(cluste
     assert status == 400
 
 
+def test_upscale_remote_keeps_its_session_on_one_replica(cluster, plain, path):
+    """`isosr_client.upscale_remote` sends its session id in the routing header: its frames reach
+    one replica, which continues the recurrence, and equal the plain server's."""
+    got = [upscale_remote(cluster.http_url, f, session="remote-a") for f in path[:3]]
+    want = [upscale_remote(plain.http_url, f, session="remote-a") for f in path[:3]]
+    assert len({r.replica for r in got}) == 1 and None not in {r.replica for r in got}
+    assert not any(r.restarted for r in got) and want[0].replica is None
+    for g, w in zip(got, want):
+        assert_same(g.buffers, w.buffers)
+
+
 def test_infer_through_the_proxy_with_tritonclient(cluster, plain, path):
     httpclient = pytest.importorskip("tritonclient.http", reason="tritonclient[http] is not installed")
 
@@ -224,9 +235,9 @@ def test_killing_a_replica_moves_only_its_sessions(cluster, plain, path):
     assert len(placed) == 4 and doomed not in placed, placed
     assert set(health) == {200}, health
     # The upscale session continues elsewhere and says it restarted; its frame is a fresh state's.
-    h, got, status = upscale(cluster, path[4], "cam-a")
-    assert status == 200 and h[REPLICA_HEADER] != doomed and h.get(RESTARTED_HEADER) == "1"
-    assert_same(got, upscale(plain, path[4], "fresh")[1])
+    moved = upscale_remote(cluster.http_url, path[4], session="cam-a")
+    assert moved.replica == survivor and moved.restarted
+    assert_same(moved.buffers, upscale(plain, path[4], "fresh")[1])
     h, _, _ = upscale(cluster, path[5], "cam-a")
     assert RESTARTED_HEADER not in h
     with suppress(Exception):  # the dead replica's sockets are gone
