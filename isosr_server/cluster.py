@@ -8,22 +8,25 @@ Each replica builds its own app, engine and device share in its own process (`Is
 a FastAPI ingress: Serve's proxy carries HTTP and WebSockets to it). A WebSocket is one request
 for its whole life, so a view session stays on the replica it reached.
 
-Routing: Ray Serve's own consistent-hash request router (``ConsistentHashRouter``,
-``ray.serve.experimental``, Ray >= 2.60) keyed on the ``x-session-id`` header, which Serve's proxy
-puts in each request's routing metadata. An upscale session (``POST /v1/upscale``'s ``session``,
-the infer endpoint's ``sequence_id``) sends its id there too and reaches the replica that holds
-its recurrent state; requests without it (view WebSockets, session-less upscaling, probes) hash
-on their own request id and so spread uniformly over the replicas. It is chosen over
+Routing: one request router (`isosr_server.placement.SessionRouter`, Serve's custom request
+router API; Serve allows one per deployment). Requests with an ``x-session-id`` header, which
+Serve's proxy puts in each request's routing metadata, go by Serve's consistent hashing
+(``ConsistentHashRouter``, ``ray.serve.experimental``, Ray >= 2.60) on it: an upscale session
+(``POST /v1/upscale``'s ``session``, the infer endpoint's ``sequence_id``) sends its id there too
+and reaches the replica that holds its recurrent state. Requests without it (view WebSockets,
+session-less upscaling, probes) go to the replica with the fewest ongoing requests as Serve
+counts them (a view WebSocket is one for its life): the fewest view sessions. Consistent hashing
+is chosen over
 - Serve's default power-of-two router: no affinity at all;
 - model multiplexing (``serve_multiplexed_model_id``): per-replica LRU "models", not sessions,
   and it prefers but does not keep a replica;
 - a router deployment calling the replicas through a ``DeploymentHandle`` keyed on the session:
   one more hop and serialization for every frame, and handles carry no WebSockets, so views
   would need the ingress anyway.
-``num_fallback_replicas=1``: a request whose replica does not answer Serve's probe (dead, or
-past ``max_ongoing_requests``) goes to the ring's next replica at once rather than waiting for
-the controller to drop the dead one (measured on the 2-CPU test machine: a view session reopened
-after a kill in 0.05-0.07 s with it, up to 2.1 s without). A session moved so restarts its
+``num_fallback_replicas=1``: a session request whose replica does not answer Serve's probe (dead,
+or past ``max_ongoing_requests``) goes to the ring's next replica at once rather than waiting for
+the controller to drop the dead one; a view session's reopening goes to the least loaded replica
+that answers (measured on the 2-CPU test machine: reopened after a kill in 0.05-0.08 s). A session moved so restarts its
 recurrence there, and :class:`~isosr_server.replica.ReplicaMiddleware` says so
 (``x-isosr-session-restarted: 1``); so does one whose replica died.
 Every response and WebSocket handshake names its replica (``x-isosr-replica``; the Python
@@ -56,12 +59,12 @@ from ray.serve.deployment import Application
 
 from isosr_server.app import create_app
 from isosr_server.core.config import Settings, options
+from isosr_server.placement import ROUTER
 from isosr_server.replica import ReplicaMiddleware
 
 log = logging.getLogger("isosr.cluster")
 
 APP_NAME = "isosr"
-ROUTER = "ray.serve.experimental.consistent_hash_router.ConsistentHashRouter"
 HEALTH_CHECK_PERIOD_S = 2.0
 DRAIN_TIMEOUT_S = 3600.0
 # The autoscaler's pace: replicas start within seconds of a rise; a fall must last minutes.
