@@ -40,14 +40,23 @@ no new requests and drains: Serve waits for its ongoing requests, so its session
 they close (`DRAIN_TIMEOUT_S` at most; then they are cut and their clients reconnect elsewhere).
 Serve's health check asks each replica's readiness (`IsosrReplica.check_health`) and replaces
 one that fails or dies; ``/v2/health/ready`` through the proxy is true while one replica serves.
-``/metrics`` through the proxy answers from one replica (named in ``x-isosr-replica``); per
-replica series are Ray Serve's own (``ray_serve_*``, from each node's Ray metrics export).
+Metrics: ``/metrics`` through the proxy answers from one replica, each isosr_* series labelled
+with it (``replica="..."``, `as_replica`): a spot check, not a scrape target, since each scrape
+may reach another replica. Per-replica series come from Ray's metrics export (each node's
+``--metrics-export-port``): `RayMetricsExport` copies a replica's isosr_* series there as
+``ray_isosr_*`` with Serve's ``deployment``, ``replica`` and ``application`` tags, beside Serve's
+own (``ray_serve_replica_processing_queries``: ongoing requests, so open view sessions plus HTTP
+requests in flight; ``ray_serve_deployment_request_counter_total``, ``..._error_counter_total``,
+``ray_serve_deployment_processing_latency_ms`` per route; the proxies'
+``ray_serve_num_http_requests_total`` and ``ray_serve_http_request_latency_ms``); ``sum`` over
+``replica`` gives the totals.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import threading
 import time
 from typing import Any
 
@@ -56,19 +65,57 @@ from fastapi import FastAPI
 from ray import serve
 from ray.serve.config import RequestRouterConfig
 from ray.serve.deployment import Application
+from ray.serve.metrics import Gauge
 
 from isosr_server.app import create_app
 from isosr_server.core.config import Settings, options
+from isosr_server.metrics import ServerMetrics
 from isosr_server.placement import ROUTER
-from isosr_server.replica import ReplicaMiddleware
+from isosr_server.replica import as_replica
 
 log = logging.getLogger("isosr.cluster")
 
 APP_NAME = "isosr"
 HEALTH_CHECK_PERIOD_S = 2.0
+METRICS_EXPORT_PERIOD_S = 2.0
 DRAIN_TIMEOUT_S = 3600.0
 # The autoscaler's pace: replicas start within seconds of a rise; a fall must last minutes.
 UPSCALE_DELAY_S, DOWNSCALE_DELAY_S = 10.0, 300.0
+
+
+class RayMetricsExport:
+    """The app's metrics in Ray's metrics export, as `ray.serve.metrics` gauges that Serve tags with
+    the deployment, replica and application: a daemon thread copies every sample of
+    ``metrics.registry`` each ``period_s`` into the gauge of its name (Ray's export prefixes it:
+    ``ray_isosr_frames_total``), its labels as tags. Counters and histogram buckets travel as
+    gauges of their running totals, which ``rate`` and ``histogram_quantile`` read as usual."""
+
+    def __init__(self, metrics: ServerMetrics, period_s: float = METRICS_EXPORT_PERIOD_S) -> None:
+        self.metrics, self.period_s = metrics, period_s
+        self.gauges: dict[str, Gauge] = {}
+
+    def start(self) -> None:
+        threading.Thread(target=self.run, name="isosr-ray-metrics", daemon=True).start()
+
+    def run(self) -> None:
+        while True:
+            try:
+                self.copy()
+            except Exception:  # noqa: BLE001 (the export must not end the replica; say why once per period)
+                log.exception("copying the metrics to Ray's export failed")
+            time.sleep(self.period_s)
+
+    def copy(self) -> None:
+        """Set each sample's gauge (``*_created`` timestamps left out)."""
+        for family in self.metrics.registry.collect():
+            for sample in family.samples:
+                if sample.name.endswith("_created"):
+                    continue
+                gauge = self.gauges.get(sample.name)
+                if gauge is None:
+                    gauge = self.gauges[sample.name] = Gauge(sample.name, family.documentation,
+                                                             tag_keys=tuple(sorted(sample.labels)))
+                gauge.set(sample.value, tags=sample.labels)
 
 
 @serve.ingress()
@@ -82,9 +129,8 @@ class IsosrReplica:
 
     def __serve_build_asgi_app__(self) -> FastAPI:
         self.fastapi = create_app(self.settings)
-        self.fastapi.add_middleware(ReplicaMiddleware, replica=self.replica_id,
-                                    idle_timeout_s=self.settings.limits.idle_timeout_s,
-                                    max_sessions=self.settings.limits.max_sessions)
+        as_replica(self.fastapi, self.replica_id)
+        RayMetricsExport(self.fastapi.state.metrics).start()
         log.info("isosr replica %s in process %d", self.replica_id, os.getpid())
         return self.fastapi
 

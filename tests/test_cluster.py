@@ -26,6 +26,7 @@ import sys
 import tempfile
 import threading
 import time
+import urllib.request
 from collections import Counter
 from contextlib import ExitStack, suppress
 from pathlib import Path
@@ -33,6 +34,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from prometheus_client.parser import text_string_to_metric_families
 
 from isosr_client import connect, upscale_remote
 from isosr_render import orbit
@@ -73,7 +75,7 @@ def cluster():
     started = time.monotonic()
     # The replicas import this checkout's packages, as this process does.
     ray.init(num_cpus=2, include_dashboard=True, dashboard_host="127.0.0.1", dashboard_port=quiet_port(),
-             _temp_dir=temp, log_to_driver=False,
+             _temp_dir=temp, log_to_driver=False, _system_config={"metrics_report_interval_ms": 1000},
              runtime_env={"env_vars": {"PYTHONPATH": str(REPO)}})
     try:
         settings = server_settings(limits=LIMITS)
@@ -203,6 +205,40 @@ def test_infer_through_the_proxy_with_tritonclient(cluster, plain, path):
             np.testing.assert_allclose(got[n], want[n], atol=ATOL, err_msg=n)
 
 
+def isosr_samples(text: str, prefix: str = "isosr_") -> list:
+    return [s for f in text_string_to_metric_families(text) if f.name.startswith(prefix) for s in f.samples]
+
+
+def test_metrics_name_their_replica(cluster, plain):
+    """``/metrics`` through the proxy: every isosr_* sample names the replica that answered; the
+    plain server's name none. Ray's metrics export (the node's ``MetricsExportPort``) carries each
+    replica's series (``ray_isosr_*``, Serve's ``replica`` tag) beside Serve's own, and their sum
+    is the total."""
+    with ExitStack() as stack:
+        one_view_each(cluster, stack, 2)
+        status, h, body = cluster.request("GET", "/metrics")
+        replica = {k.lower(): v for k, v in h.items()}[REPLICA_HEADER]
+        samples = isosr_samples(body.decode())
+        assert status == 200 and samples and {s.labels.get("replica") for s in samples} == {replica}
+        assert {s.labels["kind"]: s.value for s in samples if s.name == "isosr_sessions"}["view"] == 1
+        status, _, body = plain.request("GET", "/metrics")
+        assert status == 200 and not [s for s in isosr_samples(body.decode()) if "replica" in s.labels]
+        export = f"http://127.0.0.1:{ray.nodes()[0]['MetricsExportPort']}/metrics"
+        live = set(replica_pids())
+        views: dict[str, float] = {}
+
+        def exported() -> bool:
+            text = urllib.request.urlopen(export, timeout=10).read().decode()
+            views.clear()
+            views.update({s.labels["replica"]: s.value for s in isosr_samples(text, "ray_isosr_sessions")
+                          if s.labels["kind"] == "view" and s.labels["replica"] in live})
+            ongoing = {s.labels["replica"]: s.value for s in isosr_samples(text, "ray_serve_replica_processing_queries")}
+            return views == {r: 1.0 for r in live} and set(ongoing) >= live
+
+        wait_for(exported, f"Ray's export does not show one view session on each of {live}: {views}", 20)
+        assert sum(views.values()) == 2
+
+
 def test_killing_a_replica_moves_only_its_sessions(cluster, plain, path):
     pids = replica_pids()
     h, _, _ = upscale(cluster, path[3], "cam-a")
@@ -276,20 +312,22 @@ def test_a_removed_replica_drains_its_sessions(cluster):
     redeploy = threading.Thread(target=serve.run, args=(application(cluster.settings, replicas=1),),
                                 kwargs={"name": APP_NAME, "route_prefix": "/"}, daemon=True)
     redeploy.start()
-    wait_for(lambda: replica_states().get("STOPPING") == 1, "no replica is draining")
-    kept = settled_replica(cluster)
-    drained = next(r for r in views if r != kept)
-    for i in range(4):  # the draining replica's session goes on, and so does the other's
-        for ws in views.values():
-            send(ws, cam(60 + i))
-            assert frame(ws).mode == "full"
-    assert drained in replica_pids()
-    views[drained].close()
-    wait_for(lambda: drained not in replica_pids(), "the drained replica did not end after its session closed")
-    send(views[kept], cam(70))
-    assert frame(views[kept]).mode == "full"
-    stack.close()
-    redeploy.join(60)
+    try:
+        wait_for(lambda: replica_states().get("STOPPING") == 1, "no replica is draining")
+        kept = settled_replica(cluster)
+        drained = next(r for r in views if r != kept)
+        for i in range(4):  # the draining replica's session goes on, and so does the other's
+            for ws in views.values():
+                send(ws, cam(60 + i))
+                assert frame(ws).mode == "full"
+        assert drained in replica_pids()
+        views[drained].close()
+        wait_for(lambda: drained not in replica_pids(), "the drained replica did not end after its session closed")
+        send(views[kept], cam(70))
+        assert frame(views[kept]).mode == "full"
+    finally:  # the redeploy ends once the sessions close (else it would outlive this Ray and start another)
+        stack.close()
+        redeploy.join(60)
     assert not redeploy.is_alive() and replica_states() == {"RUNNING": 1} and not set(replica_pids()) & set(views)
 
 
