@@ -5,7 +5,9 @@
     result.buffers.normal                                            # (H, W, 3) float32 numpy
     png = upscale_remote(url, low, output="png").image               # encoded shaded image bytes
 
-Consecutive frames with the same ``session`` id keep the network's recurrent state on the server.
+Consecutive frames with the same ``session`` id keep the network's recurrent state on the server;
+the id also travels in the ``x-session-id`` header, on which a server of replicas
+(``isosr serve --replicas N``) routes them to the replica that holds that state.
 The frame's buffers may be numpy arrays or torch tensors (read through ``.detach().cpu().numpy()``;
 torch itself is never imported here).
 """
@@ -22,18 +24,22 @@ from typing import Any
 import numpy as np
 
 from isosr_client.view import CLIENT_LIMITS, ServerError, auth_headers, endpoint
-from isosr_server.protocol import (HIGHRES_OUTPUTS, LOWRES_INPUTS, MSGPACK_MEDIA_TYPE, HighresBuffers, UpscaleRequest,
-                                   UpscaleResponse, encode, parse)
+from isosr_server.protocol import (HIGHRES_OUTPUTS, LOWRES_INPUTS, MSGPACK_MEDIA_TYPE, REPLICA_HEADER, RESTARTED_HEADER,
+                                   SESSION_HEADER, HighresBuffers, UpscaleRequest, UpscaleResponse, encode, parse)
 
 
 @dataclass(frozen=True)
 class UpscaleResult:
     """The server's answer: high-res buffers (mask, normal, depth, ao as float32 numpy arrays) or
-    the encoded image; ``times`` the server's milliseconds per stage (when it sent them)."""
+    the encoded image; ``times`` the server's milliseconds per stage (when it sent them); behind
+    replicas, the ``replica`` that answered and whether the session's recurrent state was
+    ``restarted`` there (its replica was gone), else None and False."""
 
     buffers: HighresBuffers | None
     image: bytes | None
     times: dict[str, float]
+    replica: str | None = None
+    restarted: bool = False
 
 
 def _numpy(a: Any) -> np.ndarray:
@@ -74,12 +80,16 @@ def upscale_remote(url: str, frame: Any, output: str = "buffers", quality: int =
             raise ValueError(f"the low-res frame lacks its {name} buffer")
     body = encode(UpscaleRequest(**arrays, output=output, quality=quality, session=session, reset=reset))
     parse(body, CLIENT_LIMITS, (UpscaleRequest,))  # bad input fails here, with the server's reason
+    headers = {"Content-Type": MSGPACK_MEDIA_TYPE, **auth_headers(token)}
+    if session is not None:
+        headers[SESSION_HEADER] = session  # the replicas' routing key
     request = urllib.request.Request(endpoint(url, "/v1/upscale", websocket=False), data=body, method="POST",
-                                     headers={"Content-Type": MSGPACK_MEDIA_TYPE, **auth_headers(token)})
+                                     headers=headers)
     try:
         with urllib.request.urlopen(request, timeout=timeout) as reply:
             kind, data = reply.headers.get("content-type", ""), reply.read()
             times_header = reply.headers.get("x-isosr-times")
+            replica, restarted = reply.headers.get(REPLICA_HEADER), reply.headers.get(RESTARTED_HEADER) == "1"
     except urllib.error.HTTPError as e:
         detail = e.read()
         try:
@@ -88,8 +98,8 @@ def upscale_remote(url: str, frame: Any, output: str = "buffers", quality: int =
             reason = detail.decode(errors="replace")[:200]
         raise ServerError(e.code, reason) from None
     if kind.startswith("image/"):
-        return UpscaleResult(None, data, json.loads(times_header) if times_header else {})
+        return UpscaleResult(None, data, json.loads(times_header) if times_header else {}, replica, restarted)
     msg = parse(data, CLIENT_LIMITS, (UpscaleResponse,))
     # Writable copies: the decoded arrays are read-only views of the reply's bytes.
     buffers = HighresBuffers(**{n: np.array(getattr(msg.buffers, n)) for n in HIGHRES_OUTPUTS})
-    return UpscaleResult(buffers, None, dict(msg.times))
+    return UpscaleResult(buffers, None, dict(msg.times), replica, restarted)

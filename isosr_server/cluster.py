@@ -8,22 +8,25 @@ Each replica builds its own app, engine and device share in its own process (`Is
 a FastAPI ingress: Serve's proxy carries HTTP and WebSockets to it). A WebSocket is one request
 for its whole life, so a view session stays on the replica it reached.
 
-Routing: Ray Serve's own consistent-hash request router (``ConsistentHashRouter``,
-``ray.serve.experimental``, Ray >= 2.60) keyed on the ``x-session-id`` header, which Serve's proxy
-puts in each request's routing metadata. An upscale session (``POST /v1/upscale``'s ``session``,
-the infer endpoint's ``sequence_id``) sends its id there too and reaches the replica that holds
-its recurrent state; requests without it (view WebSockets, session-less upscaling, probes) hash
-on their own request id and so spread uniformly over the replicas. It is chosen over
+Routing: one request router (`isosr_server.placement.SessionRouter`, Serve's custom request
+router API; Serve allows one per deployment). Requests with an ``x-session-id`` header, which
+Serve's proxy puts in each request's routing metadata, go by Serve's consistent hashing
+(``ConsistentHashRouter``, ``ray.serve.experimental``, Ray >= 2.60) on it: an upscale session
+(``POST /v1/upscale``'s ``session``, the infer endpoint's ``sequence_id``) sends its id there too
+and reaches the replica that holds its recurrent state. Requests without it (view WebSockets,
+session-less upscaling, probes) go to the replica with the fewest ongoing requests as Serve
+counts them (a view WebSocket is one for its life): the fewest view sessions. Consistent hashing
+is chosen over
 - Serve's default power-of-two router: no affinity at all;
 - model multiplexing (``serve_multiplexed_model_id``): per-replica LRU "models", not sessions,
   and it prefers but does not keep a replica;
 - a router deployment calling the replicas through a ``DeploymentHandle`` keyed on the session:
   one more hop and serialization for every frame, and handles carry no WebSockets, so views
   would need the ingress anyway.
-``num_fallback_replicas=1``: a request whose replica does not answer Serve's probe (dead, or
-past ``max_ongoing_requests``) goes to the ring's next replica at once rather than waiting for
-the controller to drop the dead one (measured on the 2-CPU test machine: a view session reopened
-after a kill in 0.05-0.07 s with it, up to 2.1 s without). A session moved so restarts its
+``num_fallback_replicas=1``: a session request whose replica does not answer Serve's probe (dead,
+or past ``max_ongoing_requests``) goes to the ring's next replica at once rather than waiting for
+the controller to drop the dead one; a view session's reopening goes to the least loaded replica
+that answers (measured on the 2-CPU test machine: reopened after a kill in 0.05-0.08 s). A session moved so restarts its
 recurrence there, and :class:`~isosr_server.replica.ReplicaMiddleware` says so
 (``x-isosr-session-restarted: 1``); so does one whose replica died.
 Every response and WebSocket handshake names its replica (``x-isosr-replica``; the Python
@@ -37,14 +40,23 @@ no new requests and drains: Serve waits for its ongoing requests, so its session
 they close (`DRAIN_TIMEOUT_S` at most; then they are cut and their clients reconnect elsewhere).
 Serve's health check asks each replica's readiness (`IsosrReplica.check_health`) and replaces
 one that fails or dies; ``/v2/health/ready`` through the proxy is true while one replica serves.
-``/metrics`` through the proxy answers from one replica (named in ``x-isosr-replica``); per
-replica series are Ray Serve's own (``ray_serve_*``, from each node's Ray metrics export).
+Metrics: ``/metrics`` through the proxy answers from one replica, each isosr_* series labelled
+with it (``replica="..."``, `as_replica`): a spot check, not a scrape target, since each scrape
+may reach another replica. Per-replica series come from Ray's metrics export (each node's
+``--metrics-export-port``): `RayMetricsExport` copies a replica's isosr_* series there as
+``ray_isosr_*`` with Serve's ``deployment``, ``replica`` and ``application`` tags, beside Serve's
+own (``ray_serve_replica_processing_queries``: ongoing requests, so open view sessions plus HTTP
+requests in flight; ``ray_serve_deployment_request_counter_total``, ``..._error_counter_total``,
+``ray_serve_deployment_processing_latency_ms`` per route; the proxies'
+``ray_serve_num_http_requests_total`` and ``ray_serve_http_request_latency_ms``); ``sum`` over
+``replica`` gives the totals.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import threading
 import time
 from typing import Any
 
@@ -53,19 +65,57 @@ from fastapi import FastAPI
 from ray import serve
 from ray.serve.config import RequestRouterConfig
 from ray.serve.deployment import Application
+from ray.serve.metrics import Gauge
 
 from isosr_server.app import create_app
 from isosr_server.core.config import Settings, options
-from isosr_server.replica import ReplicaMiddleware
+from isosr_server.metrics import ServerMetrics
+from isosr_server.placement import ROUTER
+from isosr_server.replica import as_replica
 
 log = logging.getLogger("isosr.cluster")
 
 APP_NAME = "isosr"
-ROUTER = "ray.serve.experimental.consistent_hash_router.ConsistentHashRouter"
 HEALTH_CHECK_PERIOD_S = 2.0
+METRICS_EXPORT_PERIOD_S = 2.0
 DRAIN_TIMEOUT_S = 3600.0
 # The autoscaler's pace: replicas start within seconds of a rise; a fall must last minutes.
 UPSCALE_DELAY_S, DOWNSCALE_DELAY_S = 10.0, 300.0
+
+
+class RayMetricsExport:
+    """The app's metrics in Ray's metrics export, as `ray.serve.metrics` gauges that Serve tags with
+    the deployment, replica and application: a daemon thread copies every sample of
+    ``metrics.registry`` each ``period_s`` into the gauge of its name (Ray's export prefixes it:
+    ``ray_isosr_frames_total``), its labels as tags. Counters and histogram buckets travel as
+    gauges of their running totals, which ``rate`` and ``histogram_quantile`` read as usual."""
+
+    def __init__(self, metrics: ServerMetrics, period_s: float = METRICS_EXPORT_PERIOD_S) -> None:
+        self.metrics, self.period_s = metrics, period_s
+        self.gauges: dict[str, Gauge] = {}
+
+    def start(self) -> None:
+        threading.Thread(target=self.run, name="isosr-ray-metrics", daemon=True).start()
+
+    def run(self) -> None:
+        while True:
+            try:
+                self.copy()
+            except Exception:  # noqa: BLE001 (the export must not end the replica; say why once per period)
+                log.exception("copying the metrics to Ray's export failed")
+            time.sleep(self.period_s)
+
+    def copy(self) -> None:
+        """Set each sample's gauge (``*_created`` timestamps left out)."""
+        for family in self.metrics.registry.collect():
+            for sample in family.samples:
+                if sample.name.endswith("_created"):
+                    continue
+                gauge = self.gauges.get(sample.name)
+                if gauge is None:
+                    gauge = self.gauges[sample.name] = Gauge(sample.name, family.documentation,
+                                                             tag_keys=tuple(sorted(sample.labels)))
+                gauge.set(sample.value, tags=sample.labels)
 
 
 @serve.ingress()
@@ -79,9 +129,8 @@ class IsosrReplica:
 
     def __serve_build_asgi_app__(self) -> FastAPI:
         self.fastapi = create_app(self.settings)
-        self.fastapi.add_middleware(ReplicaMiddleware, replica=self.replica_id,
-                                    idle_timeout_s=self.settings.limits.idle_timeout_s,
-                                    max_sessions=self.settings.limits.max_sessions)
+        as_replica(self.fastapi, self.replica_id)
+        RayMetricsExport(self.fastapi.state.metrics).start()
         log.info("isosr replica %s in process %d", self.replica_id, os.getpid())
         return self.fastapi
 

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+from prometheus_client.metrics_core import Metric
 
 # Stage latencies from 0.5 ms to 10 s.
 BUCKETS_S = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0)
@@ -15,9 +16,15 @@ class ServerMetrics:
 
     Args:
         gpu_memory: returns the bytes of GPU memory in use (None on the CPU); read per scrape.
+
+    Attributes:
+        const_labels: labels every series carries in `text` and `collect` (behind replicas
+            ``{"replica": name}``, so that scrapes of several replicas keep their series apart
+            and ``sum`` gives the totals); none on a single server.
     """
 
     def __init__(self, gpu_memory: Callable[[], int | None]):
+        self.const_labels: dict[str, str] = {}
         self.registry = CollectorRegistry()
         r = self.registry
         self.frames = Counter("isosr_frames", "Frames sent", ["kind", "mode", "refined"], registry=r)
@@ -40,5 +47,13 @@ class ServerMetrics:
     def error(self, kind: str, code: int) -> None:
         self.errors.labels(kind, str(code)).inc()
 
+    def collect(self) -> Iterator[Metric]:
+        """The registry's metric families, each sample with `const_labels` added."""
+        for family in self.registry.collect():
+            if self.const_labels:
+                family.samples = [s._replace(labels={**s.labels, **self.const_labels}) for s in family.samples]
+            yield family
+
     def text(self) -> bytes:
-        return generate_latest(self.registry)
+        """The Prometheus text exposition of `collect`."""
+        return generate_latest(self)

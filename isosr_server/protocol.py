@@ -99,8 +99,13 @@ TOKEN_HEADER = "x-isosr-token"
 SUBPROTOCOL = "isosr.v1"
 TOKEN_SUBPROTOCOL_PREFIX = "isosr-token."
 MSGPACK_MEDIA_TYPE = "application/msgpack"
-# Behind replicas (`isosr serve --replicas N`) every HTTP answer and WebSocket handshake names its replica.
+# Behind replicas (`isosr serve --replicas N`) every HTTP answer and WebSocket handshake names its replica;
+# an upscale session's requests carry its id in SESSION_HEADER (Ray Serve routes on it: its
+# RAY_SERVE_SESSION_ID_HEADER_KEY default), and the first answer on a replica that did not hold the
+# session's recurrent state says RESTARTED_HEADER: 1.
 REPLICA_HEADER = "x-isosr-replica"
+SESSION_HEADER = "x-session-id"
+RESTARTED_HEADER = "x-isosr-session-restarted"
 
 # WebSocket close codes (RFC 6455 where one fits, 4xxx mirror HTTP statuses).
 CLOSE_NORMAL = 1000

@@ -1,6 +1,7 @@
-"""`ReplicaMiddleware`: what one replica of a multi-replica service adds to the app (no Ray import;
-:mod:`isosr_server.cluster` installs it).
+"""What one replica of a multi-replica service adds to the app (no Ray import; :mod:`isosr_server.cluster`
+calls `as_replica`).
 
+- The app's metrics carry ``replica="<name>"`` on every series (`ServerMetrics.const_labels`).
 - Every HTTP response and every WebSocket handshake names the replica: ``x-isosr-replica``.
 - Upscale sessions (``POST /v1/upscale`` with ``session``, ``POST /v2/models/isosr/infer`` with
   ``sequence_id``) are routed by the request router on the ``x-session-id`` header
@@ -24,13 +25,13 @@ import time
 from collections import OrderedDict
 
 import msgspec
+from fastapi import FastAPI
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from isosr_server.codecs.kserve import HEADER_LENGTH
-from isosr_server.protocol import REPLICA_HEADER
+from isosr_server.protocol import REPLICA_HEADER, RESTARTED_HEADER, SESSION_HEADER
 
-SESSION_HEADER = "x-session-id"  # Ray Serve's session header (RAY_SERVE_SESSION_ID_HEADER_KEY's default)
-RESTARTED_HEADER = "x-isosr-session-restarted"
+__all__ = ["REPLICA_HEADER", "RESTARTED_HEADER", "SESSION_HEADER", "ReplicaMiddleware", "as_replica", "session_of"]
 UPSCALE_PATH = "/v1/upscale"
 INFER_SUFFIX = "/infer"
 NIL = b"\xc0"  # msgpack nil
@@ -64,6 +65,15 @@ def session_of(path: str, headers: dict[str, str], body: bytes) -> tuple[str | N
     sequence = infer.parameters.get("sequence_id", 0)
     session = None if sequence in (0, "") else str(sequence)
     return session, any(t.name == "flow" for t in infer.inputs) and not infer.parameters.get("sequence_start", False)
+
+
+def as_replica(app: FastAPI, replica: str) -> None:
+    """Make ``app`` (`create_app`'s, not started yet) the replica named ``replica``: label its
+    metrics and install `ReplicaMiddleware` with its limits."""
+    limits = app.state.settings.limits
+    app.state.metrics.const_labels = {"replica": replica}
+    app.add_middleware(ReplicaMiddleware, replica=replica, idle_timeout_s=limits.idle_timeout_s,
+                       max_sessions=limits.max_sessions)
 
 
 class ReplicaMiddleware:

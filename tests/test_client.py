@@ -211,7 +211,7 @@ def test_upscale_api_buffers_image_and_session_state(server, library):  # noqa: 
             got = getattr(result.buffers, name)
             assert isinstance(got, np.ndarray) and got.dtype == np.float32 and got.flags.writeable
             np.testing.assert_allclose(got, getattr(ref, name).numpy(), atol=1e-5, rtol=1e-5)
-        assert "network" in result.times
+        assert "network" in result.times and result.replica is None and not result.restarted
     png = upscale_remote(server.url, frames[0], output="png")
     ref = Upscaler().upscale(frames[0])
     assert level_diff(decode_image(png.image), to_uint8(shade(ref.mask, ref.normal, ref.ao))).max() <= 1

@@ -2,8 +2,7 @@
 free loopback port, since Ray's state API is served there) with
 2 CPU replicas of the app behind Serve's proxy, started and stopped by this module.
 
-- View sessions spread over both replicas (Serve's router hashes each WebSocket's request id: 12
-  sessions all on one of two replicas would happen once in 2048 runs).
+- New view sessions go to the replica with the fewest open ones (`isosr_server.placement`).
 - An upscale session (``x-session-id``) stays on one replica, and its frames equal the single-process
   server's; so do the infer endpoint's through tritonclient.
 - Killing one replica's process (its PID from Ray's state API) leaves the sessions on the other
@@ -27,14 +26,17 @@ import sys
 import tempfile
 import threading
 import time
+import urllib.request
+from collections import Counter
 from contextlib import ExitStack, suppress
 from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from prometheus_client.parser import text_string_to_metric_families
 
-from isosr_client import connect
+from isosr_client import connect, upscale_remote
 from isosr_render import orbit
 from isosr_server import protocol as P
 from server_fixtures import (VOLUME, H, RunningServer, W, cam, frame, lib, lib_lowres, running_server,  # noqa: F401
@@ -74,6 +76,7 @@ def cluster():
     # The replicas import this checkout's packages, as this process does.
     context = ray.init(num_cpus=2, include_dashboard=True, dashboard_host="127.0.0.1",
                        dashboard_port=quiet_port(), _temp_dir=temp, log_to_driver=False,
+                       _system_config={"metrics_report_interval_ms": 1000},
                        runtime_env={"env_vars": {"PYTHONPATH": str(REPO)}})
     STATE_API.append(f"http://{context.dashboard_url}")  # this cluster's, though others may run here
     try:
@@ -122,15 +125,45 @@ def path(lib):
     return [lib_lowres(lib, c, prev).to_numpy() for c, prev in zip(cams, [None] + cams[:-1])]
 
 
-def test_views_spread_over_both_replicas(cluster):
+def one_view_each(srv, stack: ExitStack, replicas: int, tries: int = 40) -> dict:
+    """One open view session (its first frame read) on each of ``replicas`` replicas, by replica;
+    sessions that land on a replica that has one already are closed at once."""
+    views = {}
+    for _ in range(tries):
+        with ExitStack() as attempt:
+            ws, _ = attempt.enter_context(session(srv, mode="full"))
+            frame(ws)
+            replica = ws.response.headers[REPLICA_HEADER]
+            if replica not in views:
+                views[replica] = ws
+                stack.push(attempt.pop_all())
+        if len(views) == replicas:
+            return views
+    raise AssertionError(f"{tries} sessions reached {len(views)} of {replicas} replicas")
+
+
+def test_new_views_go_to_the_replica_with_the_fewest_sessions(cluster):
+    """12 view sessions held open split 6/6 (Serve's consistent hash on each request's id: 23 % of
+    runs); once 4 on one replica close, the next 4 all open there (1 run in 16 by chance)."""
     replicas = replica_pids()
     assert len(replicas) == 2
-    seen = []
-    for i in range(12):
-        with session(cluster, mode="full") as (ws, ready):
-            seen.append(ws.response.headers[REPLICA_HEADER])
+    with ExitStack() as stack:
+        opened = []
+        for _ in range(12):
+            ws, _ = stack.enter_context(session(cluster, mode="full"))
             assert frame(ws).width == W
-    assert set(seen) == set(replicas), seen
+            opened.append((ws.response.headers[REPLICA_HEADER], ws))
+        assert Counter(r for r, _ in opened) == {r: 6 for r in replicas}, opened
+        emptied = opened[0][0]
+        for ws in [ws for r, ws in opened if r == emptied][:4]:
+            ws.close()
+        time.sleep(1.0)  # the proxy counts a session out when its request ends, after the close handshake
+        placed = []
+        for _ in range(4):
+            ws, _ = stack.enter_context(session(cluster, mode="full"))
+            frame(ws)
+            placed.append(ws.response.headers[REPLICA_HEADER])
+        assert placed == [emptied] * 4, placed
 
 
 def test_upscale_session_stays_on_one_replica_and_equals_the_plain_server(cluster, plain, path):
@@ -144,6 +177,17 @@ def test_upscale_session_stays_on_one_replica_and_equals_the_plain_server(cluste
     # The session in the body only: refused (it would land on any replica).
     h, _, status = upscale(cluster, path[0], "cam-b", header=False)
     assert status == 400
+
+
+def test_upscale_remote_keeps_its_session_on_one_replica(cluster, plain, path):
+    """`isosr_client.upscale_remote` sends its session id in the routing header: its frames reach
+    one replica, which continues the recurrence, and equal the plain server's."""
+    got = [upscale_remote(cluster.http_url, f, session="remote-a") for f in path[:3]]
+    want = [upscale_remote(plain.http_url, f, session="remote-a") for f in path[:3]]
+    assert len({r.replica for r in got}) == 1 and None not in {r.replica for r in got}
+    assert not any(r.restarted for r in got) and want[0].replica is None
+    for g, w in zip(got, want):
+        assert_same(g.buffers, w.buffers)
 
 
 def test_infer_through_the_proxy_with_tritonclient(cluster, plain, path):
@@ -167,6 +211,40 @@ def test_infer_through_the_proxy_with_tritonclient(cluster, plain, path):
             np.testing.assert_allclose(got[n], want[n], atol=ATOL, err_msg=n)
 
 
+def isosr_samples(text: str, prefix: str = "isosr_") -> list:
+    return [s for f in text_string_to_metric_families(text) if f.name.startswith(prefix) for s in f.samples]
+
+
+def test_metrics_name_their_replica(cluster, plain):
+    """``/metrics`` through the proxy: every isosr_* sample names the replica that answered; the
+    plain server's name none. Ray's metrics export (the node's ``MetricsExportPort``) carries each
+    replica's series (``ray_isosr_*``, Serve's ``replica`` tag) beside Serve's own, and their sum
+    is the total."""
+    with ExitStack() as stack:
+        one_view_each(cluster, stack, 2)
+        status, h, body = cluster.request("GET", "/metrics")
+        replica = {k.lower(): v for k, v in h.items()}[REPLICA_HEADER]
+        samples = isosr_samples(body.decode())
+        assert status == 200 and samples and {s.labels.get("replica") for s in samples} == {replica}
+        assert {s.labels["kind"]: s.value for s in samples if s.name == "isosr_sessions"}["view"] == 1
+        status, _, body = plain.request("GET", "/metrics")
+        assert status == 200 and not [s for s in isosr_samples(body.decode()) if "replica" in s.labels]
+        export = f"http://127.0.0.1:{ray.nodes()[0]['MetricsExportPort']}/metrics"
+        live = set(replica_pids())
+        views: dict[str, float] = {}
+
+        def exported() -> bool:
+            text = urllib.request.urlopen(export, timeout=10).read().decode()
+            views.clear()
+            views.update({s.labels["replica"]: s.value for s in isosr_samples(text, "ray_isosr_sessions")
+                          if s.labels["kind"] == "view" and s.labels["replica"] in live})
+            ongoing = {s.labels["replica"]: s.value for s in isosr_samples(text, "ray_serve_replica_processing_queries")}
+            return views == {r: 1.0 for r in live} and set(ongoing) >= live
+
+        wait_for(exported, f"Ray's export does not show one view session on each of {live}: {views}", 20)
+        assert sum(views.values()) == 2
+
+
 def test_killing_a_replica_moves_only_its_sessions(cluster, plain, path):
     pids = replica_pids()
     h, _, _ = upscale(cluster, path[3], "cam-a")
@@ -174,11 +252,7 @@ def test_killing_a_replica_moves_only_its_sessions(cluster, plain, path):
     survivor = next(r for r in pids if r != doomed)
     # One open view session on each replica.
     stack = ExitStack()
-    views = {}
-    while len(views) < 2:
-        ws, _ = stack.enter_context(session(cluster, mode="full"))
-        frame(ws)
-        views.setdefault(ws.response.headers[REPLICA_HEADER], ws)
+    views = one_view_each(cluster, stack, 2)
     # A client session on the replica that will die.
     client = None
     for _ in range(24):
@@ -216,9 +290,9 @@ def test_killing_a_replica_moves_only_its_sessions(cluster, plain, path):
     assert len(placed) == 4 and doomed not in placed, placed
     assert set(health) == {200}, health
     # The upscale session continues elsewhere and says it restarted; its frame is a fresh state's.
-    h, got, status = upscale(cluster, path[4], "cam-a")
-    assert status == 200 and h[REPLICA_HEADER] != doomed and h.get(RESTARTED_HEADER) == "1"
-    assert_same(got, upscale(plain, path[4], "fresh")[1])
+    moved = upscale_remote(cluster.http_url, path[4], session="cam-a")
+    assert moved.replica == survivor and moved.restarted
+    assert_same(moved.buffers, upscale(plain, path[4], "fresh")[1])
     h, _, _ = upscale(cluster, path[5], "cam-a")
     assert RESTARTED_HEADER not in h
     with suppress(Exception):  # the dead replica's sockets are gone
@@ -239,29 +313,27 @@ def test_a_removed_replica_drains_its_sessions(cluster):
     wait_for(lambda: len(replica_pids()) == 2 and serve.status().applications[APP_NAME].status == "RUNNING",
              "Serve did not replace the killed replica")
     stack = ExitStack()
-    views = {}
-    while len(views) < 2:
-        ws, _ = stack.enter_context(session(cluster, mode="full"))
-        frame(ws)
-        views.setdefault(ws.response.headers[REPLICA_HEADER], ws)
+    views = one_view_each(cluster, stack, 2)
     # serve.run returns once the new version runs, which waits for the old replicas' sessions.
     redeploy = threading.Thread(target=serve.run, args=(application(cluster.settings, replicas=1),),
                                 kwargs={"name": APP_NAME, "route_prefix": "/"}, daemon=True)
     redeploy.start()
-    wait_for(lambda: replica_states().get("STOPPING") == 1, "no replica is draining")
-    kept = settled_replica(cluster)
-    drained = next(r for r in views if r != kept)
-    for i in range(4):  # the draining replica's session goes on, and so does the other's
-        for ws in views.values():
-            send(ws, cam(60 + i))
-            assert frame(ws).mode == "full"
-    assert drained in replica_pids()
-    views[drained].close()
-    wait_for(lambda: drained not in replica_pids(), "the drained replica did not end after its session closed")
-    send(views[kept], cam(70))
-    assert frame(views[kept]).mode == "full"
-    stack.close()
-    redeploy.join(60)
+    try:
+        wait_for(lambda: replica_states().get("STOPPING") == 1, "no replica is draining")
+        kept = settled_replica(cluster)
+        drained = next(r for r in views if r != kept)
+        for i in range(4):  # the draining replica's session goes on, and so does the other's
+            for ws in views.values():
+                send(ws, cam(60 + i))
+                assert frame(ws).mode == "full"
+        assert drained in replica_pids()
+        views[drained].close()
+        wait_for(lambda: drained not in replica_pids(), "the drained replica did not end after its session closed")
+        send(views[kept], cam(70))
+        assert frame(views[kept]).mode == "full"
+    finally:  # the redeploy ends once the sessions close (else it would outlive this Ray and start another)
+        stack.close()
+        redeploy.join(60)
     assert not redeploy.is_alive() and replica_states() == {"RUNNING": 1} and not set(replica_pids()) & set(views)
 
 

@@ -111,3 +111,30 @@ def test_sessions_restart_only_when_a_continued_state_is_missing(mw, path, body)
 
 def test_integer_sequence_ids_match_their_header(mw):
     assert call(mw, "/v2/models/isosr/infer", infer(7, flow=True), {SESSION_HEADER: "7"})[1][RESTARTED_HEADER] == "1"
+
+
+def test_as_replica_labels_every_metric_series_with_the_replica():
+    """`as_replica` on the real app (not started: no model): ``/metrics`` names the replica on every
+    isosr_* sample and in the header; the same app without it names none."""
+    from fastapi.testclient import TestClient
+    from prometheus_client.parser import text_string_to_metric_families
+
+    from isosr_server.app import create_app
+    from isosr_server.core.config import Settings
+    from isosr_server.replica import as_replica
+
+    def samples(app) -> tuple[dict, list]:
+        reply = TestClient(app).get("/metrics")
+        assert reply.status_code == 200
+        families = text_string_to_metric_families(reply.text)
+        return reply.headers, [s for f in families if f.name.startswith("isosr_") for s in f.samples]
+
+    apps = [create_app(Settings()) for _ in range(2)]
+    for app in apps:
+        app.state.metrics.frame("view", "full", False, {"render": 2.0, "total": 3.0}, 100)
+    as_replica(apps[1], "r7")
+    headers, plain = samples(apps[0])
+    assert plain and REPLICA_HEADER not in headers and not [s for s in plain if "replica" in s.labels]
+    headers, labelled = samples(apps[1])
+    assert headers[REPLICA_HEADER] == "r7" and len(labelled) == len(plain)
+    assert {s.labels.get("replica") for s in labelled} == {"r7"}
