@@ -34,10 +34,11 @@ client puts it in each frame's stats); frame messages do not (they are the sessi
 
 ``max_ongoing_requests`` is the app's ``max_connections``: the app's guard, not Serve's
 backpressure, answers a full replica, with its reasons. With ``max_replicas`` Serve's autoscaler
-keeps the ongoing requests per replica (a view WebSocket is one for its life) near
-``sessions_per_replica``, averaged over ``LOOK_BACK_PERIOD_S``. A replica being removed (scaling down, fewer replicas deployed) takes
-no new requests and drains: Serve waits for its ongoing requests, so its sessions go on until
-they close (`DRAIN_TIMEOUT_S` at most; then they are cut and their clients reconnect elsewhere).
+keeps the ongoing requests per replica (a view WebSocket is one for its life), averaged over
+``LOOK_BACK_PERIOD_S``, near ``sessions_per_replica``. A replica being removed (scaling down,
+fewer replicas deployed) takes no new requests and drains: Serve waits for its ongoing
+requests, so its sessions go on until they close (`DRAIN_TIMEOUT_S` at most; then they are cut
+and their clients reconnect elsewhere).
 Serve's health check asks each replica's readiness (`IsosrReplica.check_health`) and replaces
 one that fails or dies; ``/v2/health/ready`` through the proxy is true while one replica serves.
 Metrics: ``/metrics`` through the proxy answers from one replica, each isosr_* series labelled

@@ -248,8 +248,8 @@ def test_metrics_name_their_replica(cluster, plain):
             views.clear()
             views.update({s.labels["replica"]: s.value for s in isosr_samples(text, "ray_isosr_sessions")
                           if s.labels["kind"] == "view" and s.labels["replica"] in live})
-            ongoing = {s.labels["replica"]: s.value for s in isosr_samples(text, "ray_serve_replica_processing_queries")}
-            return views == {r: 1.0 for r in live} and set(ongoing) >= live
+            ongoing = {s.labels["replica"] for s in isosr_samples(text, "ray_serve_replica_processing_queries")}
+            return views == {r: 1.0 for r in live} and ongoing >= live
 
         wait_for(exported, f"Ray's export does not show one view session on each of {live}: {views}", 20)
         assert sum(views.values()) == 2
@@ -389,7 +389,8 @@ def test_autoscaling_adds_a_replica_under_sessions_and_drains_the_one_it_removes
         send(views[kept], cam(90))
         assert frame(views[kept]).mode == "full"
     wait_for(lambda: replica_states() == {"RUNNING": 1}, "not one replica left")
-    print(f"scaled up {scaled - started:.1f} s after deploying, down and drained {time.monotonic() - scaled:.1f} s after")
+    drained_s = time.monotonic() - scaled
+    print(f"scaled up {scaled - started:.1f} s after deploying; down and drained {drained_s:.1f} s later")
 
 
 def replica_states() -> dict[str, int]:
