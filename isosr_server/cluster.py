@@ -34,10 +34,11 @@ client puts it in each frame's stats); frame messages do not (they are the sessi
 
 ``max_ongoing_requests`` is the app's ``max_connections``: the app's guard, not Serve's
 backpressure, answers a full replica, with its reasons. With ``max_replicas`` Serve's autoscaler
-keeps the ongoing requests per replica (a view WebSocket is one for its life) near
-``sessions_per_replica``. A replica being removed (scaling down, fewer replicas deployed) takes
-no new requests and drains: Serve waits for its ongoing requests, so its sessions go on until
-they close (`DRAIN_TIMEOUT_S` at most; then they are cut and their clients reconnect elsewhere).
+keeps the ongoing requests per replica (a view WebSocket is one for its life), averaged over
+``LOOK_BACK_PERIOD_S``, near ``sessions_per_replica``. A replica being removed (scaling down,
+fewer replicas deployed) takes no new requests and drains: Serve waits for its ongoing
+requests, so its sessions go on until they close (`DRAIN_TIMEOUT_S` at most; then they are cut
+and their clients reconnect elsewhere).
 Serve's health check asks each replica's readiness (`IsosrReplica.check_health`) and replaces
 one that fails or dies; ``/v2/health/ready`` through the proxy is true while one replica serves.
 Metrics: ``/metrics`` through the proxy answers from one replica, each isosr_* series labelled
@@ -79,8 +80,9 @@ APP_NAME = "isosr"
 HEALTH_CHECK_PERIOD_S = 2.0
 METRICS_EXPORT_PERIOD_S = 2.0
 DRAIN_TIMEOUT_S = 3600.0
-# The autoscaler's pace: replicas start within seconds of a rise; a fall must last minutes.
-UPSCALE_DELAY_S, DOWNSCALE_DELAY_S = 10.0, 300.0
+# The autoscaler's pace: replicas start within seconds of a rise; a fall must last minutes; the
+# ongoing requests per replica are averaged over the look-back window.
+UPSCALE_DELAY_S, DOWNSCALE_DELAY_S, LOOK_BACK_PERIOD_S = 10.0, 300.0, 30.0
 
 
 class RayMetricsExport:
@@ -156,7 +158,8 @@ def application(settings: Settings, replicas: int, gpus_per_replica: float = 0.0
         raise ValueError(f"--gpus-per-replica {gpus_per_replica:g} needs --device cuda, not {settings.device}")
     scaling = {"num_replicas": replicas} if max_replicas is None else {"autoscaling_config": {
         "min_replicas": replicas, "max_replicas": max_replicas, "target_ongoing_requests": sessions_per_replica,
-        "upscale_delay_s": UPSCALE_DELAY_S, "downscale_delay_s": DOWNSCALE_DELAY_S}}
+        "upscale_delay_s": UPSCALE_DELAY_S, "downscale_delay_s": DOWNSCALE_DELAY_S,
+        "look_back_period_s": LOOK_BACK_PERIOD_S}}
     deployment = serve.deployment(
         IsosrReplica, **scaling,
         ray_actor_options={"num_cpus": cpus_per_replica, "num_gpus": gpus_per_replica},

@@ -12,6 +12,10 @@ free loopback port, since Ray's state API is served there) with
   ``/v2/health/ready`` stays 200.
 - Deploying one replica instead of two drains the one removed: its session goes on until it
   closes, while new sessions open on the other.
+- ``/metrics`` names the replica on every isosr_* series (none on the plain server); Ray's
+  metrics export carries each replica's.
+- Autoscaling between 1 and 2 replicas on sessions per replica adds a replica under sessions and
+  drains the one it removes.
 """
 
 from __future__ import annotations
@@ -46,6 +50,7 @@ ray = pytest.importorskip("ray", reason="ray[serve] is not installed (the cluste
 serve = pytest.importorskip("ray.serve", reason="ray[serve] is not installed (the cluster extra)")
 from ray.util.state import list_actors  # noqa: E402
 
+from isosr_server import cluster as cluster_module  # noqa: E402
 from isosr_server.cluster import APP_NAME, application  # noqa: E402
 from isosr_server.replica import REPLICA_HEADER, RESTARTED_HEADER, SESSION_HEADER  # noqa: E402
 
@@ -68,11 +73,19 @@ def quiet_port() -> int:
     raise RuntimeError("no free port in 20000-32000")
 
 
+# Serve's routers and replicas report ongoing requests to the autoscaler every 10 s by default.
+AUTOSCALING_PUSH_S = {"RAY_SERVE_HANDLE_AUTOSCALING_METRIC_PUSH_INTERVAL_S": "0.5",
+                      "RAY_SERVE_REPLICA_AUTOSCALING_METRIC_PUSH_INTERVAL_S": "0.5"}
+
+
 @pytest.fixture(scope="module")
 def cluster():
     """Ray with 2 CPUs and Serve with 2 replicas on a free port: a `RunningServer` for the proxy."""
     temp = tempfile.mkdtemp(prefix="isosr-ray-")
     started = time.monotonic()
+    env = pytest.MonkeyPatch()
+    for name, value in AUTOSCALING_PUSH_S.items():  # Ray's processes inherit this process's environment
+        env.setenv(name, value)
     # The replicas import this checkout's packages, as this process does.
     context = ray.init(num_cpus=2, include_dashboard=True, dashboard_host="127.0.0.1",
                        dashboard_port=quiet_port(), _temp_dir=temp, log_to_driver=False,
@@ -88,6 +101,7 @@ def cluster():
         yield RunningServer(port, settings, SimpleNamespace(records=[]), None)
     finally:
         ray.shutdown()  # Serve, its proxy and the replicas with it
+        env.undo()
         shutil.rmtree(temp, ignore_errors=True)
 
 
@@ -125,10 +139,11 @@ def path(lib):
     return [lib_lowres(lib, c, prev).to_numpy() for c, prev in zip(cams, [None] + cams[:-1])]
 
 
-def one_view_each(srv, stack: ExitStack, replicas: int, tries: int = 40) -> dict:
-    """One open view session (its first frame read) on each of ``replicas`` replicas, by replica;
-    sessions that land on a replica that has one already are closed at once."""
-    views = {}
+def one_view_each(srv, stack: ExitStack, replicas: int, tries: int = 40, views: dict | None = None) -> dict:
+    """One open view session (its first frame read) on each of ``replicas`` replicas, by replica,
+    besides the open ``views`` given; sessions that land on a replica that has one already are
+    closed at once."""
+    views = dict(views or {})
     for _ in range(tries):
         with ExitStack() as attempt:
             ws, _ = attempt.enter_context(session(srv, mode="full"))
@@ -139,6 +154,7 @@ def one_view_each(srv, stack: ExitStack, replicas: int, tries: int = 40) -> dict
                 stack.push(attempt.pop_all())
         if len(views) == replicas:
             return views
+        time.sleep(0.1)
     raise AssertionError(f"{tries} sessions reached {len(views)} of {replicas} replicas")
 
 
@@ -238,8 +254,8 @@ def test_metrics_name_their_replica(cluster, plain):
             views.clear()
             views.update({s.labels["replica"]: s.value for s in isosr_samples(text, "ray_isosr_sessions")
                           if s.labels["kind"] == "view" and s.labels["replica"] in live})
-            ongoing = {s.labels["replica"]: s.value for s in isosr_samples(text, "ray_serve_replica_processing_queries")}
-            return views == {r: 1.0 for r in live} and set(ongoing) >= live
+            ongoing = {s.labels["replica"] for s in isosr_samples(text, "ray_serve_replica_processing_queries")}
+            return views == {r: 1.0 for r in live} and ongoing >= live
 
         wait_for(exported, f"Ray's export does not show one view session on each of {live}: {views}", 20)
         assert sum(views.values()) == 2
@@ -335,6 +351,52 @@ def test_a_removed_replica_drains_its_sessions(cluster):
         stack.close()
         redeploy.join(60)
     assert not redeploy.is_alive() and replica_states() == {"RUNNING": 1} and not set(replica_pids()) & set(views)
+
+
+# Serve 2.60 checks the look-back against the deprecated metrics_interval_s (10 s by default), which
+# the push intervals above (AUTOSCALING_PUSH_S) have replaced.
+@pytest.mark.filterwarnings("ignore:`look_back_period_s`.*metrics_interval_s:FutureWarning")
+def test_autoscaling_adds_a_replica_under_sessions_and_drains_the_one_it_removes(cluster, monkeypatch):
+    """``--replicas 1 --max-replicas 2 --sessions-per-replica 2`` (the autoscaler's delays and
+    look-back cut to seconds): four sessions on the one replica start a second, where the next
+    session opens; with one session left on each, the autoscaler removes a replica, which serves
+    its session until that closes, and then ends."""
+    for name, value in (("UPSCALE_DELAY_S", 0.0), ("DOWNSCALE_DELAY_S", 1.0), ("LOOK_BACK_PERIOD_S", 1.0)):
+        monkeypatch.setattr(cluster_module, name, value)
+    started = time.monotonic()
+    serve.run(application(cluster.settings, replicas=1, max_replicas=2, sessions_per_replica=2),
+              name=APP_NAME, route_prefix="/")
+    wait_for(lambda: replica_states() == {"RUNNING": 1}, "the autoscaled deployment did not start")
+    with ExitStack() as stack:
+        first = []
+        for _ in range(4):
+            ws, _ = stack.enter_context(session(cluster, mode="full"))
+            frame(ws)
+            first.append(ws)
+        (old,) = {ws.response.headers[REPLICA_HEADER] for ws in first}
+        wait_for(lambda: replica_states() == {"RUNNING": 2}, "4 sessions over a target of 2 added no replica", 60)
+        scaled = time.monotonic()
+        # New sessions open on the new replica once the proxy has heard of it (the first may not).
+        views = one_view_each(cluster, stack, 2, tries=30, views={old: first[0]})
+        new = next(r for r in views if r != old)
+        assert {old, new} <= set(replica_pids())
+        for ws in first[1:]:
+            ws.close()
+        wait_for(lambda: replica_states().get("STOPPING") == 1, "2 sessions on 2 replicas removed none", 60)
+        kept = settled_replica(cluster)
+        drained = next(r for r in views if r != kept)
+        for i in range(4):  # the replica being removed serves its session on, the other too
+            for ws in views.values():
+                send(ws, cam(80 + i))
+                assert frame(ws).mode == "full"
+        assert drained in replica_pids() and replica_states().get("STOPPING") == 1
+        views[drained].close()
+        wait_for(lambda: drained not in replica_pids(), "the removed replica did not end after its session closed")
+        send(views[kept], cam(90))
+        assert frame(views[kept]).mode == "full"
+    wait_for(lambda: replica_states() == {"RUNNING": 1}, "not one replica left")
+    drained_s = time.monotonic() - scaled
+    print(f"scaled up {scaled - started:.1f} s after deploying; down and drained {drained_s:.1f} s later")
 
 
 def replica_states() -> dict[str, int]:
