@@ -39,8 +39,6 @@ import numpy as np
 # Ambient occlusion rays' length in world units: what the networks were trained with, and every
 # stage's default (renderer, frame methods, budget policy, service, command line).
 AO_RADIUS = 0.05
-# AO rays per hit: 0 means no AO at all (no rays are cast and no ao buffer is made).
-NO_AO = 0
 
 # Buffer names in the order the frame file and the API list them.
 BUFFER_NAMES = ("mask", "normal", "depth", "position", "flow", "ao", "color")
