@@ -17,7 +17,7 @@ from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest, open_vol
 from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES, HIGHRES_BUFFERS
 from isosr_net.budget import BudgetConfig, render_within_budget
 from isosr_net.frame_methods import FrameMethod, FrameRunner, Networks, make_runner, run_sequence
-from isosr_net.reconstructor import DEFAULT_RECON_MODEL, MAX_RECON_AO_RAYS, Reconstructor
+from isosr_net.reconstructor import MAX_RECON_AO_RAYS
 from isosr_net.inference import PRECISIONS
 from isosr_cli.images import visualize, write_png
 

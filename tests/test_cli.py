@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from isosr_cli.main import main
-from isosr_net.frame_methods import FrameMethod, Networks, make_runner, run_sequence
+from isosr_net.frame_methods import FrameMethod, make_runner, run_sequence
 from isosr_net.upscaler import DEFAULT_MODEL
 from isosr_render import Renderer, open_volume, resolve_iso
 from isosr_render.buffers import FrameBuffers

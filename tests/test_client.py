@@ -31,7 +31,7 @@ from isosr_client.view import CLIENT_LIMITS
 from isosr_render.images import to_uint8
 from isosr_net.frame_methods import FrameMethod, Networks, make_runner, run_sequence
 from isosr_net.metrics import upscale_baseline
-from isosr_net.reconstructor import MAX_RECON_AO_RAYS, Reconstructor
+from isosr_net.reconstructor import MAX_RECON_AO_RAYS
 from isosr_net.upscaler import Upscaler
 from isosr_render import FrameBuffers, Renderer, RenderRequest, open_volume, orbit
 from isosr_render.conventions import LOWRES_BUFFERS

@@ -11,7 +11,7 @@ from isosr_render.conventions import AO, DEPTH, MASK, NORMAL, RECON_CHANNELS, SA
 from isosr_render.sequence import sequence_requests
 from isosr_render.shading import ShadingParams, shade
 from isosr_net.budget import color_psnr, reference_frames
-from isosr_net.frame_methods import FrameMethod, Networks, make_runner, run_sequence
+from isosr_net.frame_methods import FrameMethod, make_runner, run_sequence
 from isosr_net.reconnet import (MAX_RECON_AO_RAYS, MAX_RECON_SPP, ReconNet, ReconNetConfig, macs_per_pixel,
                                 sampling_channels)
 from isosr_net.reconstructor import Reconstructor, recon_inputs

@@ -22,7 +22,7 @@ from websockets.exceptions import ConnectionClosed
 from isosr_net.frame_methods import FrameMethod, Networks, make_runner, run_sequence
 from isosr_net.metrics import upscale_baseline
 from isosr_net.reconnet import MAX_RECON_SPP
-from isosr_net.reconstructor import DEFAULT_RECON_MODEL, MAX_RECON_AO_RAYS, Reconstructor
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, MAX_RECON_AO_RAYS
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
 from isosr_render import Camera, FrameBuffers, open_volume, orbit, shade
 from isosr_render.conventions import LOWRES_BUFFERS
