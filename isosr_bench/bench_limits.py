@@ -20,7 +20,7 @@ import torch
 
 from isosr_bench.common import bench_parser, print_table, write_result
 from isosr_net.frame_methods import FrameMethod, Networks, make_runner
-from isosr_net.inference import default_precision
+from isosr_net.inference import count_steps, default_precision
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
 from isosr_render import FrameBuffers, Renderer, RenderRequest, open_volume, orbit, resolve_iso
 from isosr_server.engine import serving_network
@@ -38,16 +38,11 @@ def peak_bytes(device: str) -> int:
 
 def run(steps, device: str) -> dict:
     """Run a generator of slices to its end: wall seconds, slices, peak memory growth."""
-    before, start, slices = peak_bytes(device), time.perf_counter(), 0
-    while True:
-        try:
-            next(steps)
-            slices += 1
-        except StopIteration:
-            break
+    before, start = peak_bytes(device), time.perf_counter()
+    yields, _ = count_steps(steps)
     if device.startswith("cuda"):
         torch.cuda.synchronize()
-    return {"seconds": time.perf_counter() - start, "slices": slices + 1,
+    return {"seconds": time.perf_counter() - start, "slices": yields + 1,
             "peak_growth_mib": (peak_bytes(device) - before) / 2**20}
 
 

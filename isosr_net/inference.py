@@ -29,11 +29,18 @@ FP16_MAX_DEPTH = 1e4
 
 def finish_steps(steps: Generator[None, None, T]) -> T:
     """Run a generator of slices (a runner's or a network's ``steps``) to the end; its result."""
+    return count_steps(steps)[1]
+
+
+def count_steps(steps: Generator[None, None, T]) -> tuple[int, T]:
+    """Run a generator of slices to the end: ``(how many times it yielded, its result)``."""
+    yields = 0
     while True:
         try:
             next(steps)
+            yields += 1
         except StopIteration as done:
-            return done.value
+            return yields, done.value
 
 
 def default_precision(device: str | torch.device) -> str:

@@ -16,9 +16,13 @@ wall time. A stage entered twice adds up.
 from __future__ import annotations
 
 import time
+from collections.abc import Generator
 from contextlib import contextmanager
+from typing import TypeVar
 
 import torch
+
+T = TypeVar("T")
 
 
 class StageTimer:
@@ -50,3 +54,15 @@ class StageTimer:
             took = start.elapsed_time(end) if self.cuda else 1e3 * (end - start)
             out[stage] = out.get(stage, 0.0) + took
         return out
+
+
+def timed_steps(steps: Generator[None, None, T], timer: StageTimer, stage: str) -> Generator[None, None, T]:
+    """``steps`` (a generator of slices) with each of its own slices timed as ``stage``: the work
+    a scheduler interleaves between the slices is not counted. Returns what ``steps`` returns."""
+    while True:
+        with timer(stage):
+            try:
+                next(steps)
+            except StopIteration as done:
+                return done.value
+        yield

@@ -32,7 +32,7 @@ from isosr_net.frame_methods import Networks, finish_steps
 from isosr_net.inference import RecurrentNetwork, default_precision
 from isosr_net.reconnet import MAX_RECON_AO_RAYS, MAX_RECON_SPP
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
-from isosr_net.timing import StageTimer
+from isosr_net.timing import StageTimer, timed_steps
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
 from isosr_render import FrameBuffers, Renderer, Volume, orbit, parse_procedural, shade
 from isosr_render.images import quantize
@@ -240,11 +240,10 @@ class Engine:
             upscaler.reset()
         frame = FrameBuffers(**{n: torch.from_numpy(getattr(request, n).astype("float32"))
                                 for n in ("mask", "normal", "depth", "flow") if getattr(request, n) is not None})
-        with timer("network"):
-            high = yield from upscaler.upscale_steps(frame)
-            if not all(bool(torch.isfinite(getattr(high, n)).all()) for n in high.present()):
-                upscaler.reset()  # a non-finite output must not feed the next frame
-                raise ValueError("the network gave non-finite values for this frame")
+        high = yield from timed_steps(upscaler.upscale_steps(frame), timer, "network")
+        if not all(bool(torch.isfinite(getattr(high, n)).all()) for n in high.present()):
+            upscaler.reset()  # a non-finite output must not feed the next frame
+            raise ValueError("the network gave non-finite values for this frame")
         image = buffers = None
         if request.output == "buffers":
             with timer("encode"):

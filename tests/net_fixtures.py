@@ -137,15 +137,3 @@ def render_lowres_frames(width: int, height: int, frames: int = 3, volume: str =
                                      ("mask", "normal", "depth", "flow"))
         _CACHE[key] = [renderer.render(camera, request) for camera, request in requests]
     return [FrameBuffers(**{k: getattr(f, k).clone() for k in f.present()}) for f in _CACHE[key]]
-
-
-def in_slices(steps) -> tuple[int, object]:
-    """Run a generator of slices (a runner's or a network's ``steps``) to its end: ``(how many
-    times it yielded, its result)``."""
-    slices = 0
-    while True:
-        try:
-            next(steps)
-            slices += 1
-        except StopIteration as done:
-            return slices, done.value

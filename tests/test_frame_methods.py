@@ -12,9 +12,10 @@ import pytest
 import torch
 
 from isosr_render import Renderer, RenderRequest, open_volume, orbit_path, resolve_iso
+from isosr_net.inference import count_steps
 from isosr_net.frame_methods import FrameMethod, FrameStream, Networks, make_runner
 from conftest import DEVICE
-from net_fixtures import in_slices, tiny_model_dir
+from net_fixtures import tiny_model_dir
 
 SIZE = (48, 32)
 
@@ -175,7 +176,7 @@ def test_a_frame_in_slices_equals_the_frame_whole(scene, method):
     renderer, iso = scene
     cam = orbit_path(1, yaw0=20.0)[0]
     whole = make_runner(method, renderer, iso, *SIZE).frame(cam).buffers
-    slices, result = in_slices(make_runner(method, renderer, iso, *SIZE).steps(cam, slice_ms=1e-6))
+    slices, result = count_steps(make_runner(method, renderer, iso, *SIZE).steps(cam, slice_ms=1e-6))
     sliced = result.buffers  # one band a slice
     assert slices >= SIZE[1] // 32  # the first band, then bands of a row (each slice far over its budget)
     for name in whole.present():
@@ -194,3 +195,26 @@ def test_shading_runs_compiled_on_cuda_only_and_equals_shade():
         for occlusion in (None, ao):
             args = [t.cuda() if t is not None else None for t in (mask, normal, occlusion)]
             torch.testing.assert_close(shade_on("cuda")(*args), shade(*args), atol=1e-5, rtol=0)
+
+
+def test_timed_steps_count_only_their_own_slices():
+    """Work a scheduler does between the slices (here 30 ms of sleep) is not the stage's time."""
+    import time
+
+    from isosr_net.timing import StageTimer, timed_steps
+
+    def slices():
+        for _ in range(3):
+            time.sleep(0.01)
+            yield
+        return "done"
+
+    timer = StageTimer("cpu")
+    steps = timed_steps(slices(), timer, "network")
+    for _ in range(3):
+        next(steps)
+        time.sleep(0.03)  # another session's frame
+    with pytest.raises(StopIteration) as done:
+        next(steps)
+    assert done.value.value == "done"
+    assert 30 <= timer.ms()["network"] < 90

@@ -9,9 +9,9 @@ import torch.nn.functional as F
 
 from isosr_net.model import load_pretrained
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
-from isosr_net.inference import output_buffers, surface_tensors
+from isosr_net.inference import count_steps, output_buffers, surface_tensors
 from isosr_render.buffers import FrameBuffers
-from net_fixtures import in_slices, render_lowres_frames, tiny_model_dir
+from net_fixtures import render_lowres_frames, tiny_model_dir
 
 
 @pytest.fixture
@@ -158,7 +158,7 @@ def test_a_tiled_frame_runs_in_slices_one_a_tile(default_upscaler):
     """Tiles of 8 over a 40x28 frame: 5 x 4 tiles, a yield between each two (a scheduler may
     interleave other work there); the same output as run whole."""
     frame = render_lowres_frames(40, 28, frames=1)[0]
-    slices, out = in_slices(Upscaler(tile=8).steps(*surface_tensors(frame)))
+    slices, out = count_steps(Upscaler(tile=8).steps(*surface_tensors(frame)))
     assert slices == 5 * 4 - 1
     default_upscaler.reset()
     torch.testing.assert_close(out, default_upscaler.step(*surface_tensors(frame)), atol=1e-4, rtol=0)
