@@ -54,12 +54,10 @@ from isosr_bench.common import bench_parser, print_table, write_result
 from isosr_net.budget import color_psnr, reference_frames
 from isosr_net.frame_methods import Networks
 from isosr_net.inference import default_precision
-from isosr_net.reconstructor import Reconstructor
-from isosr_net.upscaler import Upscaler
 from isosr_render import FrameBuffers, Renderer, open_volume
 from isosr_render.catalog import SHARED_PREFIX
 from isosr_server.auto import AutoPolicy
-from isosr_server.engine import serving_network
+from isosr_server.engine import MODEL_NAMES, serving_network
 from isosr_client.drive import Orbit, drive, summarize
 from isosr_client.view import FrameStats, connect
 from isosr_net.metrics import masked_psnr
@@ -283,7 +281,7 @@ def auto_quality(url: str, volume: str, size: tuple[int, int], size_name: str, d
     scores = [color_psnr(FrameBuffers(mask=ref.mask, color=torch.from_numpy(rgb).to(torch_device).float() / 255),
                          ref) for (rgb, _), ref in zip(shown, refs)]
     networks = Networks(serving_network)
-    models = {Upscaler: (None, "network"), Reconstructor: (None, "recon")}  # the server's names
+    models = {cls: (None, name) for cls, name in MODEL_NAMES.items()}  # the shipped models, the server's names
     candidates = AutoPolicy.for_server(device, default_precision(device), 4, models, TARGET_FPS, networks).candidates
     rows = pareto_rows(renderer, iso, volume, size, size_name, list(candidates), frames, warmup, device, networks)
     budget = 1000.0 / TARGET_FPS

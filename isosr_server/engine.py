@@ -44,6 +44,8 @@ from isosr_server.protocol import ENCODINGS, FocusMsg, UpscaleRequest, ViewBuffe
 from isosr_server.views import FrameJob, SessionFrames, ViewContext, ViewFrame
 
 RENDERER_CACHE = 4
+# How frames name the server's networks (in their method's name: "x4 network fp16", "..., recon fp16").
+MODEL_NAMES = {Upscaler: "network", Reconstructor: "recon"}
 # Low-res tile side of CPU upscaling: the largest upscale (960x540 to 3840x2160) in 12 tiles, its
 # peak memory a sixth of the whole frame's (7.9 GB measured whole), the same result (see Upscaler).
 CPU_UPSCALE_TILE = 240
@@ -109,7 +111,8 @@ class Engine:
         self._encoder = ThreadPoolExecutor(max_workers=1, thread_name_prefix="isosr-encoder")
         self._renderers: OrderedDict[str, Renderer] = OrderedDict()
         self.networks = Networks(serving_network)
-        self._models = {Upscaler: (config.model, "network"), Reconstructor: (config.recon_model, "recon")}
+        self._models = {Upscaler: (config.model, MODEL_NAMES[Upscaler]),
+                        Reconstructor: (config.recon_model, MODEL_NAMES[Reconstructor])}
         self.context: ViewContext | None = None
         self.auto: AutoPolicy | None = None
         self._thread: threading.Thread | None = None
