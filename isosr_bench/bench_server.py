@@ -155,7 +155,8 @@ def run_sessions(url: str, volume: str, sessions: int, seconds: float, mode: str
 
     Returns:
         `isosr_client.drive.summarize` of all frames with ``fps`` summed over the sessions,
-        plus ``fps_per_session``, ``errors`` (exception texts) and ``sessions``.
+        plus ``fps_per_session``, ``errors`` (exception texts), ``sessions``, the ``methods`` and
+        the ``replicas`` (``isosr serve --replicas``) that made the frames.
     """
     stats: list[list[FrameStats]] = [[] for _ in range(sessions)]
     busy = [0.0] * sessions
@@ -195,7 +196,8 @@ def run_sessions(url: str, volume: str, sessions: int, seconds: float, mode: str
     result = summarize(frames, 1.0)
     per_session_fps = [len(s) / b for s, b in zip(stats, busy) if b > 0]
     result.update(sessions=sessions, errors=errors, fps=float(sum(per_session_fps)),
-                  fps_per_session=float(np.mean(per_session_fps)), methods=sorted({s.method for s in frames}))
+                  fps_per_session=float(np.mean(per_session_fps)), methods=sorted({s.method for s in frames}),
+                  replicas=sorted({s.replica for s in frames if s.replica is not None}))
     return result
 
 

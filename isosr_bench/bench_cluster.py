@@ -1,0 +1,169 @@
+"""What Ray Serve costs and what it buys: `isosr serve` against `isosr serve --replicas N`.
+
+    python -m isosr_bench.bench_cluster --device cuda --volume bonsai      # 1920x1080, one GPU
+    python -m isosr_bench.bench_cluster --smoke                            # small, CPU
+
+Results: ``benchmarks/results/bench_cluster_<size>_<device>.json``. Per server (the plain
+single process; 1 and 2 replicas of ``--gpus-per-replica`` (default half a GPU) behind Serve's
+proxy, on a local Ray started by the server), mode (``full`` without AO, ``auto``) and session
+count: frames/s in total and per session and latency p50/p99, as
+:func:`isosr_bench.bench_server.run_sessions` measures them, and which replicas made the frames.
+Then failover on the 2-replica server: ``--failover-sessions`` closed-loop sessions with
+``reconnect=True``; one replica's process is killed (SIGKILL); for each session that was on it
+(the sessions that reconnect), the time from the kill to its first frame from the other
+replica; for the others, errors and their longest gap between frames; and whether
+``/v2/health/ready`` stayed 200 throughout.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+import urllib.error
+import urllib.request
+
+import numpy as np
+
+from isosr_bench.bench_server import SIZES, ServerProcess, case_row, run_sessions
+from isosr_bench.common import bench_parser, print_table, write_result
+from isosr_client.drive import Orbit
+from isosr_client.view import connect
+
+CASES = (("full", 0), ("auto", 0))
+
+
+def replica_pids() -> list[int]:
+    """The process ids of this machine's isosr replicas (Ray titles them ``ray::ServeReplica:...``)."""
+    pids = []
+    for entry in os.scandir("/proc"):
+        try:
+            title = open(f"/proc/{entry.name}/cmdline", "rb").read()
+        except OSError:  # not a process, or gone
+            continue
+        if title.startswith(b"ray::ServeReplica") and b"IsosrReplica" in title:
+            pids.append(int(entry.name))
+    return sorted(pids)
+
+
+def stop_ray() -> None:
+    """Stop what the server's local Ray may leave behind when its process is killed."""
+    subprocess.run([sys.executable, "-m", "ray.scripts.scripts", "stop", "--force"], capture_output=True, timeout=120)
+
+
+def failover(url: str, volume: str, size: tuple[int, int], sessions: int, before_s: float, after_s: float) -> dict:
+    """Kill one of the replicas under ``sessions`` reconnecting sessions (module docstring)."""
+    frames: list[list[tuple[float, str | None]]] = [[] for _ in range(sessions)]
+    reconnects = [0] * sessions
+    errors: list[str] = []
+    stop_at = time.monotonic() + before_s + after_s
+    opened = threading.Barrier(sessions + 1)
+
+    def viewer(k: int) -> None:
+        path = Orbit(yaw=30.0 + 360.0 * k / sessions)
+        with connect(url, volume, "full", size, settings={"refine": False}, local_upscale=False, timeout=60,
+                     reconnect=True) as view:
+            opened.wait()
+            i = 0
+            while time.monotonic() < stop_at:
+                try:
+                    view.set_camera(**path.camera(i))
+                    frame = view.latest()
+                    frames[k].append((time.monotonic(), frame.stats.replica))
+                except Exception as e:  # counted: no session may see one but the killed replica's
+                    errors.append(f"session {k} at {time.monotonic():.3f}: {type(e).__name__}: {e}")
+                i += 1
+            reconnects[k] = view.reconnects
+
+    threads = [threading.Thread(target=viewer, args=(k,), daemon=True) for k in range(sessions)]
+    for t in threads:
+        t.start()
+    opened.wait(timeout=120)
+    time.sleep(before_s)
+    pids = replica_pids()
+    seen = sorted({r for got in frames for _, r in got})
+    os.kill(pids[0], signal.SIGKILL)
+    killed = time.monotonic()
+    health = []
+    while time.monotonic() < killed + min(after_s, 5.0):
+        try:
+            with urllib.request.urlopen(url + "/v2/health/ready", timeout=2) as r:
+                health.append(r.status)
+        except urllib.error.HTTPError as e:
+            health.append(e.code)
+        except OSError as e:
+            health.append(type(e).__name__)
+        time.sleep(0.1)
+    for t in threads:
+        t.join(timeout=after_s + 60)
+    moved, others, doomed = [], [], set()
+    for got, reconnected in zip(frames, reconnects):
+        if reconnected:
+            doomed |= {r for t, r in got if t < killed}
+            after = [t for t, r in got if t > killed and r not in doomed]
+            moved.append(after[0] - killed if after else None)
+        else:
+            times = [t for t, _ in got]
+            others.append(float(max(np.diff(times))) if len(times) > 1 else None)
+    return {"study": "failover", "sessions": sessions, "replicas": seen, "killed": sorted(doomed),
+            "moved_sessions": len(moved), "failover_s": moved,
+            "failover_max_s": max((m for m in moved if m is not None), default=None),
+            "unmoved": sum(m is None for m in moved),
+            "other_sessions": len(others), "other_max_gap_s": max((g for g in others if g), default=None),
+            "errors": errors, "health_ready": sorted({str(h) for h in health})}
+
+
+def servers(replicas: list[int], gpus: float, device: str) -> list[tuple[str, tuple[str, ...]]]:
+    """(name, extra `isosr serve` options) per server measured."""
+    ray_options = ("--gpus-per-replica", str(gpus)) if device.startswith("cuda") else ()
+    return [("plain", ())] + [(f"ray{n}", ("--replicas", str(n), *ray_options)) for n in replicas]
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = bench_parser(__doc__)
+    parser.add_argument("--volume", default="proc:cloud:0@128", help="a volume the server offers")
+    parser.add_argument("--size", choices=("1080p", "4k"), default="1080p", help="the view sessions' frame size")
+    parser.add_argument("--seconds", type=float, help="timed seconds per case (default 5; smoke 1)")
+    parser.add_argument("--sessions", help="concurrent sessions per case, comma-separated (default 1,16,32)")
+    parser.add_argument("--replicas", default="1,2", help="replica counts to measure beside the plain server")
+    parser.add_argument("--gpus-per-replica", type=float, default=0.5, help="each replica's GPU share (CUDA)")
+    parser.add_argument("--failover-sessions", type=int, default=8, help="sessions of the failover study (0: none)")
+    args = parser.parse_args(argv)
+    size_name = "smoke" if args.smoke else args.size
+    size, seconds = SIZES[size_name], args.seconds or (1.0 if args.smoke else 5.0)
+    counts = [int(n) for n in (args.sessions or ("1,4" if args.smoke else "1,16,32")).split(",")]
+    volume = "proc:cloud:0@32" if args.smoke and args.volume == parser.get_default("volume") else args.volume
+    replicas = [int(n) for n in args.replicas.split(",") if n]
+    room = str(2 * max(counts + [args.failover_sessions]) + 4)
+    options = ("--max-sessions", room, "--max-sessions-per-client", room, "--max-fps", "1000")
+    rows = []
+    for name, extra in servers(replicas, args.gpus_per_replica, args.device):
+        started = time.monotonic()
+        try:
+            with ServerProcess(args.device, options + extra, startup_s=300) as server:
+                ready_s = time.monotonic() - started
+                for mode, ao in CASES:
+                    for n in counts:
+                        result = run_sessions(server.url, volume, n, seconds, mode, size, {"ao_rays": ao})
+                        row = dict(case_row(mode, ao, result), server=name, ready_s=ready_s,
+                                   replicas_seen=len(result.get("replicas", [])))
+                        rows.append(row)
+                        print(f"{name:<6} {mode:<5} x{n:<3} {row.get('fps', 0):7.1f} fps "
+                              f"({row.get('fps_per_session', 0):6.1f}/session) p50 {row.get('latency_p50_ms', 0):6.1f} "
+                              f"p99 {row.get('latency_p99_ms', 0):6.1f} ms errors {row['errors']}", flush=True)
+                if name == "ray2" and args.failover_sessions:
+                    rows.append(failover(server.url, volume, size, args.failover_sessions, 3.0, 6.0))
+                    print(rows[-1], flush=True)
+        finally:
+            if name != "plain":
+                stop_ray()
+    print_table([r for r in rows if "mode" in r], ["server", "mode", "sessions", "fps", "fps_per_session",
+                                                   "latency_p50_ms", "latency_p99_ms", "errors"])
+    print(f"wrote {write_result(f'bench_cluster_{size_name}', args.device, rows, args.out)}")
+
+
+if __name__ == "__main__":
+    main()
