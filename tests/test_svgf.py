@@ -153,7 +153,8 @@ def plane_scene(h=6, w=7, seed=0, depth_at=2.0):
     rng = np.random.default_rng(seed)
     ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
     depth = depth_at + 0.01 * xs + 0.005 * ys
-    normal = np.stack([np.full((h, w), 0.05), np.zeros((h, w)), np.ones((h, w))], -1) + 0.02 * rng.normal(size=(h, w, 3))
+    normal = np.stack([np.full((h, w), 0.05), np.zeros((h, w)), np.ones((h, w))], -1)
+    normal = normal + 0.02 * rng.normal(size=(h, w, 3))
     position = np.stack([0.01 * xs, -0.01 * ys, 2.0 - depth], -1)
     mask = (rng.random((h, w)) > 0.1).astype(np.float64)
     return dict(ao=rng.random((h, w)), mask=mask, normal=normal, depth=depth, position=position)
@@ -163,9 +164,9 @@ def run(frame, flow=None, camera=None, history=None, config=SVGFConfig(), atrous
     """svgf_filter on DEVICE from float32 versions of the numpy frame."""
     t = {k: torch.from_numpy(v).float().to(DEVICE) for k, v in frame.items()}
     chw = lambda x: x.permute(2, 0, 1)[None]  # noqa: E731
+    flow = None if flow is None else chw(torch.from_numpy(flow).float().to(DEVICE))
     out, hist = svgf_filter(t["ao"][None, None], t["mask"][None, None], chw(t["normal"]), t["depth"][None, None],
-                            chw(t["position"]), None if flow is None else chw(torch.from_numpy(flow).float().to(DEVICE)),
-                            camera, history, config, atrous)
+                            chw(t["position"]), flow, camera, history, config, atrous)
     assert out.dtype == torch.float32 and torch.isfinite(out).all() and out.min() >= 0 and out.max() <= 1
     return out[0, 0].cpu().double().numpy(), hist
 
