@@ -147,12 +147,15 @@ def ref_guided_passes(value, variance, n, z, slope, cov, a: ATrousConfig, sigma_
 
 # ---- inputs ----
 
-def plane_scene(h=6, w=7, seed=0, depth_at=2.0):
-    """A slanted plane facing the camera, noisy AO, a few uncovered pixels; positions consistent with
-    the depths (world z = 2 - depth) so that the reprojected depth test passes where nothing moves."""
+def plane_scene(h=6, w=7, seed=0, slope=(0.01, 0.005), shift=(0.0, 0.0)):
+    """A slanted plane facing the camera (depth 2 plus ``slope`` per pixel in x and y, moved by ``shift``
+    pixels: pixel ``p`` shows what ``p + shift`` showed unmoved), noisy AO, a few uncovered pixels;
+    positions consistent with the depths (world z = 2 - depth), so that the depth test passes where
+    the flow follows the motion."""
     rng = np.random.default_rng(seed)
     ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
-    depth = depth_at + 0.01 * xs + 0.005 * ys
+    xs, ys = xs + shift[0], ys + shift[1]
+    depth = 2.0 + slope[0] * xs + slope[1] * ys
     normal = np.stack([np.full((h, w), 0.05), np.zeros((h, w)), np.ones((h, w))], -1)
     normal = normal + 0.02 * rng.normal(size=(h, w, 3))
     position = np.stack([0.01 * xs, -0.01 * ys, 2.0 - depth], -1)
@@ -196,11 +199,15 @@ def assert_close(got, want, what):
 
 @pytest.mark.parametrize("atrous", [ATrousConfig(iterations=2), ATrousConfig(iterations=3, sigma_normal=16.0)])
 def test_a_sequence_matches_the_float64_reference_step_by_step(atrous):
-    """Three frames of a moving plane (subpixel flow, a disoccluded column, an uncovered pixel)."""
+    """Three frames of a steep plane moving by a subpixel flow (the texels' depths differ from the
+    expected one by more than the tolerance: the gradient's allowance decides), a column whose flow
+    leaves the image, uncovered pixels."""
     config = SVGFConfig(radius=2, min_history=3)
-    frames = [float32(plane_scene(seed=s)) for s in range(3)]
+    motion = (0.3, -0.2)  # the previous position lies 0.3 px right, 0.2 px up
+    frames = [float32(plane_scene(seed=i, slope=(0.1, 0.02), shift=(i * motion[0], i * motion[1])))
+              for i in range(3)]
     flow = np.zeros((6, 7, 2))
-    flow[..., 0], flow[..., 1] = 0.3, -0.2  # the previous position lies 0.3 px right, 0.2 px up
+    flow[..., 0], flow[..., 1] = motion
     flow[:, 0, 0] = 9.0  # the first column came from outside the image
     got_hist, want_hist = None, None
     for i, frame in enumerate(frames):
@@ -216,18 +223,20 @@ def test_a_sequence_matches_the_float64_reference_step_by_step(atrous):
 
 def test_the_guided_passes_match_the_reference_and_filter_the_variance():
     frame = float32(plane_scene(7, 9, seed=4))
-    guides = prepare_guides(*(torch.from_numpy(frame[k]).float()[None, None] for k in ("ao", "mask")),
-                            torch.from_numpy(frame["normal"]).float().permute(2, 0, 1)[None],
-                            torch.from_numpy(frame["depth"]).float()[None, None])
+    t = {k: torch.from_numpy(v).float().to(DEVICE) for k, v in frame.items()}
+    guides = prepare_guides(t["ao"][None, None], t["mask"][None, None], t["normal"].permute(2, 0, 1)[None],
+                            t["depth"][None, None])
     rng = np.random.default_rng(1)
     variance = (rng.random((7, 9)) * 0.1).astype(np.float32).astype(np.float64)
     variance[0, 0] = 0.0  # zero variance: the value weight keeps only equal values
     config = ATrousConfig(iterations=3)
-    last, first = atrous_passes(guides.value, guides, config, torch.from_numpy(variance).float()[None], 4.0)
+    last, first = atrous_passes(guides.value, guides, config, torch.from_numpy(variance).float()[None].to(DEVICE), 4.0)
     _, n, z, slope, cov = ref_prepare(frame["ao"], frame["mask"], frame["normal"], frame["depth"])
-    want_last, want_first = ref_guided_passes(guides.value[0].double().numpy(), variance, n, z, slope, cov, config, 4.0)
-    assert_close(last[0].double().numpy(), want_last, "last pass")
-    assert_close(first[0].double().numpy(), want_first, "first pass")
+    value = guides.value[0].cpu().double().numpy()
+    want_last, want_first = ref_guided_passes(value, variance, n, z, slope, cov, config, 4.0)
+    assert_close(last[0].cpu().double().numpy(), want_last, "last pass")
+    assert_close(first[0].cpu().double().numpy(), want_first, "first pass")
+    assert np.abs(want_last - value)[cov].max() > 0.01  # it did filter
 
 
 # ---- behavior ----
