@@ -461,7 +461,7 @@ class SVGFRunner(FrameRunner):
     knobs = ("ao_rays", "spp")
     ao_rays = (1, MAX_AO_SAMPLES)
     spp = (1, MAX_SPP)
-    config = SVGFConfig()
+    config: ClassVar[SVGFConfig] = SVGFConfig()  # the temporal knobs (the a-trous ones: the runner's atrous)
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)

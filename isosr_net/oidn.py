@@ -20,10 +20,15 @@ QUALITIES = ("fast", "balanced", "high")
 
 @functools.cache
 def unavailable() -> str | None:
-    """Why OIDN cannot run in this installation (``pyoidn`` not installed), or None."""
+    """Why OIDN cannot run in this installation (``pyoidn`` not installed, or its library not
+    loading), or None."""
     if importlib.util.find_spec("pyoidn") is None:
         return ("the pyoidn package is not installed (`pip install pyoidn`, or the isosr[oidn] extra; "
                 "shared/gpu/oidn/README.md for the GPU machine)")
+    try:
+        import pyoidn  # noqa: F401
+    except (ImportError, OSError) as e:
+        return f"the pyoidn package does not load: {e}"
     return None
 
 
