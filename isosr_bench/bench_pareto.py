@@ -5,19 +5,23 @@
     python -m isosr_bench.bench_pareto --device cpu --smoke                 # small, in the test suite
 
 Every method of :mod:`isosr_net.frame_methods` (full resolution with 0-128 AO rays and 1, 2, 4
-rays per pixel; the a-trous filter over 1, 2, 4 AO rays; the reconstruction network over
-0-8 AO rays at 1, 2, 4 rays per pixel, fp16 on CUDA; x2, x4, x8 nearest, bilinear, bicubic;
-every upscaling network at fp32, bf16, fp16 on CUDA; fp32 on CPUs) is timed as a whole path
-(render, reconstruction, shading) per frame, in sequence over an 8-frame orbit so the
-network's recurrent state is real, after warm-up (CUDA events on GPUs, wall time on CPUs),
-and each of those frames is scored against a reference rendered for it with 4 rays per pixel
-and 512 AO rays:
+rays per pixel; the a-trous filter, the SVGF temporal filter and OIDN (fast and high, where
+``pyoidn`` is installed; else a line says why not) over 1, 2, 4 AO rays; the reconstruction
+network over 0-8 AO rays at 1, 2, 4 rays per pixel, fp16 on CUDA; x2, x4, x8 nearest,
+bilinear, bicubic; every upscaling network at fp32, bf16, fp16 on CUDA; fp32 on CPUs) is
+timed as a whole path (render, reconstruction, shading) per frame, in sequence over an
+8-frame orbit so that recurrent state (the networks', SVGF's history) is real, after warm-up
+(CUDA events on GPUs, wall time on CPUs), and each of those frames is scored against a
+reference rendered for it with 4 rays per pixel and 512 AO rays:
 
 - ``color_psnr``, ``color_ssim``: shaded color on the covered region (either mask > 0.5);
   ``image_psnr``, ``image_ssim``: the same on the whole image;
-- ``ao_rmse``: RMS AO error where both cover (a method without AO counts as AO 1);
-- ``flicker``: :func:`isosr_net.metrics.temporal_instability` along the reference's flow
-  (``flicker_reference`` is the reference's own).
+- ``ao_rmse``: RMS AO error where both cover (a method without AO counts as AO 1; one that casts
+  AO rays but gives only a color, OIDN, has none: null);
+- ``flicker``: :func:`isosr_net.metrics.color_instability` of the frames' colors along the
+  reference's flow: the mean absolute color change from the previous frame warped to this one;
+  ``flicker_reference`` is the reference's own, and ``flicker_ratio`` the method's over it (1:
+  as steady as the reference).
 
 The reference's AO rays have their own seed, but its subpixel pattern is the renderer's fixed
 one: the ``spp 4`` rows have the reference's geometry exactly, so their scores measure AO error
@@ -50,8 +54,8 @@ from isosr_render.sequence import sequence_cameras
 from isosr_net.budget import (REFERENCE_AO_RAYS, REFERENCE_SPP, BudgetConfig, choose_method, probe_quality,
                               reference_frames)
 from isosr_net.flow_warp import warp_by_flow
-from isosr_net.frame_methods import INTERPOLATIONS, FrameMethod, Networks, make_runner
-from isosr_net.metrics import eval_region, masked_psnr, masked_ssim, temporal_instability
+from isosr_net.frame_methods import INTERPOLATIONS, FrameMethod, Networks, make_runner, unavailable_kinds
+from isosr_net.metrics import color_instability, eval_region, masked_psnr, masked_ssim
 from isosr_net.model import read_config
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL
 from isosr_net.upscaler import DEFAULT_MODEL
@@ -73,6 +77,9 @@ BUDGETS, SMOKE_BUDGETS = (4.0, 8.0, 16.0, 33.0), (3.0, 30.0)
 GOAL_TOP_MS = 50.0
 # Cost of a primary ray in AO rays, for the time estimate only (README: 1080p first hit vs AO 128).
 PRIMARY_IN_AO_RAYS = 6
+# The non-learned filters over few AO rays the reconstruction is compared with at the same rays.
+BASELINE_KINDS = ("atrous", "svgf", "oidn")
+OIDN_QUALITIES = ("fast", "high")
 
 
 def methods(smoke: bool, device: str, models: dict[str, Path]) -> list[FrameMethod]:
@@ -80,7 +87,14 @@ def methods(smoke: bool, device: str, models: dict[str, Path]) -> list[FrameMeth
     cuda = device.startswith("cuda")
     spps, rays = ((1, 2), (0, 2, 8)) if smoke else ((1, 2, 4), (0, 1, 2, 4, 8, 16, 32, 64, 128))
     out = [FrameMethod("full", ao_rays=n, spp=s) for s in spps for n in rays]
-    out += [FrameMethod("atrous", ao_rays=n) for n in ((2,) if smoke else (1, 2, 4))]
+    few = (2,) if smoke else (1, 2, 4)
+    out += [FrameMethod("atrous", ao_rays=n) for n in few] + [FrameMethod("svgf", ao_rays=n) for n in few]
+    missing = unavailable_kinds()
+    if "oidn" in missing:
+        print(f"oidn left out: {missing['oidn']}", flush=True)
+    else:
+        qualities = ("fast",) if smoke else OIDN_QUALITIES
+        out += [FrameMethod("oidn", ao_rays=n, quality=q) for n in few for q in qualities]
     upscales = (((2, "bicubic"), (4, "nearest"), (4, "bilinear")) if smoke else
                 [(f, mode) for f in (2, 4, 8) for mode in INTERPOLATIONS])
     out += [FrameMethod("upscale", factor=f, interpolation=mode) for f, mode in upscales]
@@ -122,17 +136,11 @@ def _finite(x: float) -> float | None:
     return None if math.isnan(x) else x
 
 
-def _stack(frame) -> torch.Tensor:
-    """A method's frame as a (1, 6, H, W) stack for the flicker score (depth unused: zeros; no AO: 1)."""
-    ao = frame.ao if frame.ao is not None else torch.ones_like(frame.mask)
-    return torch.cat([frame.mask[None], frame.normal.permute(2, 0, 1), torch.zeros_like(frame.mask)[None],
-                      ao[None]])[None]
-
-
-def scores(frames: list, references: list) -> dict:
-    """Mean scores of a method's frames against the references (see the module docstring)."""
-    per = {k: [] for k in ("color_psnr", "color_ssim", "image_psnr", "image_ssim", "ao_rmse", "flicker")}
-    for t, (f, r) in enumerate(zip(frames, references)):
+def scores(frames: list, references: list, ao_rays: int = 0) -> dict:
+    """Mean scores of a method's frames against the references (see the module docstring); ``ao_rays``:
+    the method's (a frame without AO counts as AO 1 only where it cast none)."""
+    per = {k: [] for k in ("color_psnr", "color_ssim", "image_psnr", "image_ssim", "ao_rmse")}
+    for f, r in zip(frames, references):
         pred, ref = f.color.permute(2, 0, 1)[None], r.color.permute(2, 0, 1)[None]
         region = eval_region(f.mask[None, None], r.mask[None, None])
         whole = torch.ones_like(region)
@@ -141,13 +149,20 @@ def scores(frames: list, references: list) -> dict:
         per["image_psnr"].append(float(masked_psnr(pred, ref, whole)[0]))
         per["image_ssim"].append(float(masked_ssim(pred, ref, whole)[0]))
         both = (f.mask > 0.5) & (r.mask > 0.5)
-        ao = f.ao if f.ao is not None else torch.ones_like(f.mask)
-        per["ao_rmse"].append(float((ao - r.ao)[both].square().mean().sqrt()) if both.any() else math.nan)
-        if t:
-            pair = torch.stack([_stack(frames[t - 1]), _stack(f)])
-            flows = torch.stack([torch.zeros_like(r.flow), r.flow]).permute(0, 3, 1, 2)[:, None]
-            per["flicker"].append(float(temporal_instability(pair, flows, warp_by_flow)[0]))
-    return {k: _finite(torch.tensor(v, dtype=torch.float64).nanmean().item()) if v else None for k, v in per.items()}
+        ao = f.ao if f.ao is not None else None if ao_rays else torch.ones_like(f.mask)
+        per["ao_rmse"].append(float((ao - r.ao)[both].square().mean().sqrt()) if ao is not None and both.any()
+                              else math.nan)
+    out = {k: _finite(torch.tensor(v, dtype=torch.float64).nanmean().item()) for k, v in per.items()}
+    out["flicker"] = _finite(flicker(frames, references)) if len(frames) > 1 else None
+    return out
+
+
+def flicker(frames: list, references: list) -> float:
+    """:func:`isosr_net.metrics.color_instability` of the frames' colors along the references' flow."""
+    colors = torch.stack([f.color.permute(2, 0, 1) for f in frames])[:, None]
+    masks = torch.stack([f.mask for f in frames])[:, None, None]
+    flows = torch.stack([r.flow.permute(2, 0, 1) for r in references])[:, None]
+    return float(color_instability(colors, masks, flows, warp_by_flow)[0])
 
 
 def work(method: FrameMethod) -> float:
@@ -187,11 +202,13 @@ def pareto_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
             outs[i] = runner.frame(*pairs[i]).buffers
 
         t = time_frames(frame, frames, device, warmup=warmup)
+        scored = scores(outs, refs, method.ao_rays)
+        ratio = None if scored["flicker"] is None or not flicker_reference else scored["flicker"] / flicker_reference
         rows.append({"part": "pareto", "volume": volume, "size": size_name, "pixels": f"{size[0]}x{size[1]}",
                      "method": method.name, "kind": method.kind, "learned": method.learned,
                      "ao_rays": method.ao_rays, "spp": method.spp, "factor": method.factor,
-                     "ms": t.get("gpu_ms", t["wall_ms"]), "wall_ms": t["wall_ms"], **scores(outs, refs),
-                     "flicker_reference": flicker_reference,
+                     "ms": t.get("gpu_ms", t["wall_ms"]), "wall_ms": t["wall_ms"],
+                     **scored, "flicker_reference": flicker_reference, "flicker_ratio": ratio,
                      "coverage": float(sum(float((r.mask > 0.5).float().mean()) for r in refs) / frames),
                      "commit": revision})
     print(f"{volume} {size_name}: {time.perf_counter() - start:.0f} s", flush=True)
@@ -264,14 +281,15 @@ def learned_scorecard(rows: list[dict]) -> dict:
 
     Returns:
         ``budgets``: per budget of :func:`budget_ladder`, the best method that fits and the best
-        learned one (None where none fits). ``atrous``: per a-trous row, the reconstruction at the
-        same AO rays and spp, with both times and PSNRs. ``ao64``: the 64-ray AO frame (spp 1)
+        learned one (None where none fits). ``baselines``: per row of a non-learned filter
+        (:data:`BASELINE_KINDS`: a-trous, SVGF, OIDN), the best reconstruction at the same AO rays
+        and spp, with both times, PSNRs and flicker ratios. ``ao64``: the 64-ray AO frame (spp 1)
         and the fastest learned method at least as good, with the time ratio.
     """
     scored = [r for r in rows if r["color_psnr"] is not None]
     full = [r for r in scored if r["kind"] == "full"]
     if not full:
-        return {"budgets": [], "atrous": [], "ao64": None}
+        return {"budgets": [], "baselines": [], "ao64": None}
     best = lambda cands: max(cands, key=lambda r: r["color_psnr"], default=None)  # noqa: E731
     budgets = []
     for budget in budget_ladder(min(r["ms"] for r in full)):
@@ -280,19 +298,21 @@ def learned_scorecard(rows: list[dict]) -> dict:
         budgets.append({"budget_ms": budget, "best": top and top["method"], "best_psnr": top and top["color_psnr"],
                         "learned": learned and learned["method"], "learned_psnr": learned and learned["color_psnr"],
                         "learned_best": learned is not None and learned["color_psnr"] >= top["color_psnr"]})
-    atrous = []
-    for a in (r for r in scored if r["kind"] == "atrous"):
+    baselines = []
+    for a in (r for r in scored if r["kind"] in BASELINE_KINDS):
         same = best([r for r in scored if r["kind"] == "reconstruct" and r["ao_rays"] == a["ao_rays"]
                      and r["spp"] == a["spp"]])
         if same is not None:
-            atrous.append({"ao_rays": a["ao_rays"], "atrous_ms": a["ms"], "atrous_psnr": a["color_psnr"],
-                           "recon": same["method"], "recon_ms": same["ms"], "recon_psnr": same["color_psnr"]})
+            baselines.append({"kind": a["kind"], "method": a["method"], "ao_rays": a["ao_rays"], "ms": a["ms"],
+                              "psnr": a["color_psnr"], "flicker_ratio": a.get("flicker_ratio"),
+                              "recon": same["method"], "recon_ms": same["ms"], "recon_psnr": same["color_psnr"],
+                              "recon_flicker_ratio": same.get("flicker_ratio")})
     ao64 = next((r for r in full if r["ao_rays"] == 64 and r["spp"] == 1), None)
     match = None
     if ao64 is not None:
         match = min((r for r in scored if r["learned"] and r["color_psnr"] >= ao64["color_psnr"]),
                     key=lambda r: r["ms"], default=None)
-    return {"budgets": budgets, "atrous": atrous,
+    return {"budgets": budgets, "baselines": baselines,
             "ao64": ao64 and {"ms": ao64["ms"], "psnr": ao64["color_psnr"], "learned": match and match["method"],
                               "learned_ms": match and match["ms"], "learned_psnr": match and match["color_psnr"],
                               "speedup": match and ao64["ms"] / match["ms"]}}
@@ -349,7 +369,8 @@ def main(argv=None) -> list[dict]:
     kind = "cuda" if args.device.startswith("cuda") else "cpu"
     merged = merge(args.out / f"{NAME}_{kind}.json", rows)
     print_table([r for r in rows if r["part"] == "pareto"],
-                ["volume", "size", "method", "ms", "color_psnr", "color_ssim", "image_psnr", "ao_rmse", "flicker"])
+                ["volume", "size", "method", "ms", "color_psnr", "color_ssim", "image_psnr", "ao_rmse", "flicker",
+                 "flicker_ratio"])
     print_table([r for r in rows if r["part"] == "budget"],
                 ["volume", "size", "budget_ms", "method", "fits", "probe_ms", "color_psnr", "best_fixed",
                  "best_fixed_psnr"])

@@ -143,8 +143,9 @@ def pareto_markdown(folder: Path, kind: str) -> list[str]:
     lines = ["## Every way to make a frame: time against quality", "",
              f"{record['device']}, commit {record['commit']}, {record['date']}: `{record['command']}`", "",
              "ms: the whole path per frame. Scores against 4 rays per pixel and 512 AO rays; PSNR and SSIM of the "
-             "color on the covered region (image_psnr: the whole image); empty: nothing covered. front: no "
-             "method is both at least as fast and at least as good.", ""]
+             "color on the covered region (image_psnr: the whole image); empty: nothing covered. flicker: the mean "
+             "absolute color change between frames along the flow; flicker_ratio: over the reference's own. "
+             "front: no method is both at least as fast and at least as good.", ""]
     scenes = _pareto_scenes(record)
     on_front = defaultdict(int)
     for (volume, size), rows in scenes.items():
@@ -155,7 +156,7 @@ def pareto_markdown(folder: Path, kind: str) -> list[str]:
         winners = [r for r in rows if r["front"]]
         lines += [f"### {volume}, {rows[0].get('pixels', size)}", ""]
         lines += _table(rows, ["method", "learned", "ms", "color_psnr", "color_ssim", "image_psnr", "ao_rmse",
-                               "flicker", "front"]) + [""]
+                               "flicker", "flicker_ratio", "front"]) + [""]
         wins = [f"{r['method']} from {r['ms']:.3g} ms ({r['color_psnr']:.1f} dB)" for r in winners]
         lines += ["Wins (the best there is from that frame time on, up to the next): " + "; ".join(wins) + ".", ""]
         losses = []
@@ -188,9 +189,11 @@ def scorecard_markdown(scenes: dict[tuple[str, str], list[dict]]) -> list[str]:
     lines = ["### Where a learned method is the best there is", "",
              f"Budgets from 1.5 times the scene's cheapest full-resolution frame up to {GOAL_TOP_MS:g} ms, each "
              "sqrt(2) times the last: the best method that fits against the best learned one. Then the "
-             "reconstruction against the a-trous filter at the same AO rays, and the fastest learned method "
-             "at least as good as 64 AO rays (spp 1).", "",
-             "| scene | learned best at | a-trous -> recon at the same rays (dB, ms) | 64-ray AO match (speed-up) |",
+             "reconstruction against the non-learned filters (a-trous, SVGF, OIDN) at the same AO rays: its "
+             "PSNR and time minus theirs, and both flicker ratios; and the fastest learned method at least as "
+             "good as 64 AO rays (spp 1).", "",
+             "| scene | learned best at | filter -> recon at the same rays (dB, ms; flicker ratios) "
+             "| 64-ray AO match (speed-up) |",
              "|---|---|---|---|"]
     for (volume, size), rows in scenes.items():
         card = learned_scorecard(rows)
@@ -199,15 +202,20 @@ def scorecard_markdown(scenes: dict[tuple[str, str], list[dict]]) -> list[str]:
         won = [b for b in card["budgets"] if b["learned_best"]]
         lost = [f"{b['budget_ms']:.3g} ms ({b['best']}, {b['best_psnr']:.1f} dB)" for b in card["budgets"]
                 if not b["learned_best"]]
-        atrous = ", ".join(f"{a['ao_rays']} ray{'s' * (a['ao_rays'] > 1)}: {a['recon_psnr'] - a['atrous_psnr']:+.1f} dB "
-                           f"{a['recon_ms'] - a['atrous_ms']:+.2f} ms" for a in card["atrous"]) or "-"
+        baselines = ", ".join(f"{a['method']}: {a['recon_psnr'] - a['psnr']:+.1f} dB {a['recon_ms'] - a['ms']:+.2f} ms"
+                              f" ({_ratio(a['flicker_ratio'])} -> {_ratio(a['recon_flicker_ratio'])})"
+                              for a in card["baselines"]) or "-"
         ao64 = card["ao64"]
         match = ("-" if ao64 is None else f"none reaches {ao64['psnr']:.1f} dB" if ao64["learned"] is None
                  else f"{ao64['learned']}: {ao64['learned_ms']:.3g} vs {ao64['ms']:.3g} ms ({ao64['speedup']:.1f}x)")
         measured = "" if any(r["kind"] == "reconstruct" for r in rows) else " (no reconstruction rows measured)"
         lines.append(f"| {volume}, {size}{measured} | {len(won)} of {len(card['budgets'])} budgets"
-                     + (f"; not at {'; '.join(lost)}" if lost else "") + f" | {atrous} | {match} |")
+                     + (f"; not at {'; '.join(lost)}" if lost else "") + f" | {baselines} | {match} |")
     return lines + [""]
+
+
+def _ratio(value: float | None) -> str:
+    return "-" if value is None else f"{value:.2f}"
 
 
 def pareto_plots(folder: Path, kind: str) -> list[Path]:
@@ -220,7 +228,8 @@ def pareto_plots(folder: Path, kind: str) -> list[Path]:
     record = _load(folder, "pareto", kind)
     if record is None:
         return []
-    colors = {"full": "C0", "atrous": "C1", "reconstruct": "C4", "upscale": "C2", "network": "C3"}
+    colors = {"full": "C0", "atrous": "C1", "svgf": "C5", "oidn": "C6", "reconstruct": "C4", "upscale": "C2",
+              "network": "C3"}
     by_volume = defaultdict(dict)
     for (volume, size), rows in _pareto_scenes(record).items():
         by_volume[volume][size] = rows

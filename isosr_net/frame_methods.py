@@ -7,6 +7,10 @@ registered under its kind (:func:`register_runner`), as diffusers' schedulers sh
 
     full         ray cast at full resolution with N AO rays (0: none) and M rays per pixel
     atrous       full resolution, few AO rays smoothed by the a-trous filter (:mod:`isosr_net.atrous`)
+    svgf         full resolution, few AO rays accumulated over frames along the flow and filtered
+                 (SVGF, :mod:`isosr_net.svgf`)
+    oidn         full resolution, few AO rays shaded and denoised by Intel Open Image Denoise
+                 (optional: where ``pyoidn`` is installed, :mod:`isosr_net.oidn`)
     reconstruct  full resolution, few (or no) AO rays reconstructed by a trained network
                  (:mod:`isosr_net.reconnet`: converged AO, antialiased edges)
     upscale      a low-res ray cast upscaled by interpolation (no AO: an interpolator knows none)
@@ -22,7 +26,9 @@ and reports per-stage times:
 
 ``prev_camera=None`` starts a new sequence (a recurrent network forgets its previous output).
 A new method is one class and its registration; the Pareto benchmark, the budget policy,
-``isosr render`` and the service run them all through this contract.
+``isosr render`` and the service run them all through this contract. A kind that needs an optional
+package says why it cannot run where it is missing (:func:`unavailable_kinds`); making its runner
+raises that reason.
 """
 
 from __future__ import annotations
@@ -30,7 +36,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 import time
 from collections.abc import Callable, Generator
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import ClassVar
 
@@ -45,13 +51,19 @@ from isosr_render.shapes import check_int
 from isosr_net.atrous import ATrousConfig, atrous_filter
 from isosr_net.inference import PRECISIONS, RecurrentNetwork, finish_steps, output_buffers
 from isosr_net.metrics import INTERPOLATIONS, upscale_baseline
+from isosr_net import oidn
 from isosr_net.reconnet import MAX_RECON_AO_RAYS, MAX_RECON_SPP
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
+from isosr_net.svgf import SVGFConfig, SVGFHistory, svgf_filter
 from isosr_net.timing import StageTimer
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
 
 # Upscaling factors a low-res method takes.
 MAX_FACTOR = 16
+# The AO seed of a temporal method's first frame, one more per frame: other methods cast with
+# seed 0 and the quality reference with 1 (isosr_net.budget.REFERENCE_SEED), so no frame's rays
+# are the reference's.
+FIRST_TEMPORAL_SEED = 2
 
 
 @dataclass(frozen=True)
@@ -68,6 +80,7 @@ class FrameMethod:
         model: the network's model folder (learned kinds; None: the shipped default).
         model_name: the network's name in :attr:`name`.
         precision: ``"fp32"``, ``"bf16"`` or ``"fp16"`` (learned kinds).
+        quality: ``"fast"``, ``"balanced"`` or ``"high"`` (``oidn``).
     """
 
     kind: str = "full"
@@ -78,6 +91,7 @@ class FrameMethod:
     model: str | None = None
     model_name: str = "network"
     precision: str = "fp32"
+    quality: str = "high"
 
     def __post_init__(self):
         if self.kind not in RUNNERS:
@@ -91,8 +105,8 @@ class FrameMethod:
 
     @property
     def name(self) -> str:
-        """``full, AO 8, spp 1``, ``full, AO 2, a-trous``, ``full, AO 2, spp 1, recon fp16``,
-        ``x4 bilinear``, ``x4 network bf16``, ``x4 buffers``."""
+        """``full, AO 8, spp 1``, ``full, AO 2, a-trous``, ``full, AO 2, svgf``, ``full, AO 2, oidn high``,
+        ``full, AO 2, spp 1, recon fp16``, ``x4 bilinear``, ``x4 network bf16``, ``x4 buffers``."""
         return self.runner.describe(self)
 
     @property
@@ -173,6 +187,12 @@ class Networks:
 RUNNERS: dict[str, type[FrameRunner]] = {}
 
 
+def unavailable_kinds() -> dict[str, str]:
+    """The registered kinds that cannot run in this installation, each with why (an optional package
+    missing); the others are available."""
+    return {kind: reason for kind, cls in RUNNERS.items() if (reason := cls.unavailable()) is not None}
+
+
 def register_runner(kind: str):
     """Class decorator: register a `FrameRunner` subclass under ``kind``."""
     def register(cls: type[FrameRunner]) -> type[FrameRunner]:
@@ -228,6 +248,8 @@ class FrameRunner(ABC):
                  shade: bool = True):
         check_int(width, "width", 1, where="frame")
         check_int(height, "height", 1, where="frame")
+        if (reason := self.unavailable()) is not None:
+            raise RuntimeError(f"{method.name} cannot run here: {reason}")
         if width % method.factor or height % method.factor:
             raise ValueError(f"{method.name}: the factor {method.factor} must divide the frame size {width}x{height}")
         self.method, self.renderer, self.iso = method, renderer, float(iso)
@@ -258,6 +280,13 @@ class FrameRunner(ABC):
             raise ValueError(f"interpolation must be one of {INTERPOLATIONS}, got {method.interpolation!r}")
         if method.precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {method.precision!r}")
+        if method.quality not in oidn.QUALITIES:
+            raise ValueError(f"quality must be one of {oidn.QUALITIES}, got {method.quality!r}")
+
+    @classmethod
+    def unavailable(cls) -> str | None:
+        """Why this kind cannot run in this installation (an optional package missing), or None."""
+        return None
 
     @classmethod
     @abstractmethod
@@ -420,6 +449,90 @@ class ATrousRunner(FrameRunner):
             ao = atrous_filter(rendered.ao[None, None], rendered.mask[None, None],
                                rendered.normal.permute(2, 0, 1)[None], rendered.depth[None, None], self.atrous)[0, 0]
         return self.shaded(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=ao), timer)
+
+
+@register_runner("svgf")
+class SVGFRunner(FrameRunner):
+    """Full resolution, AO from 1-4 (or more) rays per hit, a new set of rays each frame, accumulated
+    along the flow and filtered by SVGF (:func:`isosr_net.svgf.svgf_filter`); a frame without a
+    previous camera starts the history anew."""
+
+    recurrent = True
+    knobs = ("ao_rays", "spp")
+    ao_rays = (1, MAX_AO_SAMPLES)
+    spp = (1, MAX_SPP)
+    config: ClassVar[SVGFConfig] = SVGFConfig()  # the temporal knobs (the a-trous ones: the runner's atrous)
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.history: SVGFHistory | None = None
+        self.frames = 0  # frames made: the next frame's AO seed
+        self._prev_camera: Camera | None = None
+
+    @classmethod
+    def describe(cls, m: FrameMethod) -> str:
+        return f"full, AO {m.ao_rays}, svgf" + (f", spp {m.spp}" if m.spp > 1 else "")
+
+    def outputs(self) -> tuple[str, ...]:
+        return ("mask", "normal", "depth", "position", "ao")
+
+    @classmethod
+    def makes(cls, m: FrameMethod) -> tuple[str, ...]:
+        return ("mask", "normal", "ao")
+
+    def render_request(self, prev_camera: Camera | None = None) -> RenderRequest:
+        return replace(super().render_request(prev_camera), seed=(FIRST_TEMPORAL_SEED + self.frames) % 2 ** 31)
+
+    def steps(self, camera: Camera, prev_camera: Camera | None = None,
+              slice_ms: float | None = None) -> Generator[None, None, FrameResult]:
+        self._prev_camera = prev_camera  # the view the history is reprojected from
+        return (yield from super().steps(camera, prev_camera, slice_ms))
+
+    def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
+        flow = None if rendered.flow is None else rendered.flow.permute(2, 0, 1)[None]
+        with timer("filter"):
+            ao, self.history = svgf_filter(rendered.ao[None, None], rendered.mask[None, None],
+                                           rendered.normal.permute(2, 0, 1)[None], rendered.depth[None, None],
+                                           rendered.position.permute(2, 0, 1)[None], flow, self._prev_camera,
+                                           self.history, self.config, self.atrous)
+        self.frames += 1
+        return self.shaded(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=ao[0, 0]), timer)
+
+
+@register_runner("oidn")
+class OIDNRunner(FrameRunner):
+    """Full resolution, 1-4 (or more) AO rays per hit shaded, the noisy color denoised by Intel Open
+    Image Denoise with the AO-free shading as albedo and the normals as clean auxiliary images
+    (:func:`isosr_net.oidn.denoise`). Its frames hold a color but no AO."""
+
+    knobs = ("ao_rays", "spp", "quality")
+    ao_rays = (1, MAX_AO_SAMPLES)
+    spp = (1, MAX_SPP)
+
+    @classmethod
+    def unavailable(cls) -> str | None:
+        return oidn.unavailable()
+
+    @classmethod
+    def describe(cls, m: FrameMethod) -> str:
+        return f"full, AO {m.ao_rays}, oidn {m.quality}" + (f", spp {m.spp}" if m.spp > 1 else "")
+
+    def outputs(self) -> tuple[str, ...]:
+        return ("mask", "normal", "ao")
+
+    @classmethod
+    def makes(cls, m: FrameMethod) -> tuple[str, ...]:
+        return ("mask", "normal")
+
+    def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
+        buffers = FrameBuffers(mask=rendered.mask, normal=rendered.normal)
+        if self.shade:
+            with timer("shading"):
+                noisy = shade_on(rendered.mask.device.type)(rendered.mask, rendered.normal, rendered.ao, self.shading)
+                albedo = shade_on(rendered.mask.device.type)(rendered.mask, rendered.normal, None, self.shading)
+            with timer("filter"):
+                buffers.color = oidn.denoise(noisy, albedo, rendered.normal, self.method.quality)
+        return buffers
 
 
 @register_runner("reconstruct")

@@ -184,20 +184,13 @@ def frame_scores(pred: Tensor, target: Tensor) -> dict[str, Tensor]:
 
 
 def temporal_instability(outputs: Tensor, flows_hr: Tensor, warp_fn: Callable[[Tensor, Tensor], Tensor]) -> Tensor:
-    """Flicker of a predicted sequence: how much each shaded frame differs from the previous one warped to it.
-
-    For every ``t >= 1`` the shaded frame ``t - 1`` and its mask are warped to frame ``t`` by
-    ``warp_fn(image, flows_hr[t])``; the step's score is the mean absolute color difference over the
-    channels and the pixels where frame ``t``'s or the warped mask covers (> 0.5). The result is the
-    mean over the steps (NaN steps, with an empty region, skipped). Lower is steadier; 0 is perfectly
-    steady.
+    """Flicker of a predicted sequence of buffers: :func:`color_instability` of their shaded colors.
 
     Args:
         outputs: predicted buffers per frame, in the order of ``HIGHRES_CHANNELS``.
         flows_hr: backward flow per frame in high-res pixels (see ``conventions``); ``flows_hr[0]``
             is not used.
-        warp_fn: ``warp_fn(image (B, C, H, W), flow (B, 2, H, W)) -> (B, C, H, W)``, sampling
-            ``image`` at each pixel's position plus ``flow``.
+        warp_fn: as :func:`color_instability`'s.
 
     Returns:
         Mean absolute difference per sequence; NaN where every step's region is empty.
@@ -207,14 +200,44 @@ def temporal_instability(outputs: Tensor, flows_hr: Tensor, warp_fn: Callable[[T
     """
     dims = check_shape(outputs, "(T, B, 6, H, W)", "outputs", "temporal_instability")
     check_shape(flows_hr, "(T, B, 2, H, W)", "flows_hr", "temporal_instability", dims)
-    t_len, b = dims["T"], dims["B"]
-    if t_len < 2:
+    if dims["T"] < 2:
         raise ValueError(f"temporal_instability: outputs needs T >= 2 frames, got {tuple(outputs.shape)}")
-    color = shade_channels_first(outputs.flatten(0, 1)).unflatten(0, (t_len, b))
-    alpha = outputs[:, :, MASK]
+    color = shade_channels_first(outputs.flatten(0, 1)).unflatten(0, (dims["T"], dims["B"]))
+    return color_instability(color, outputs[:, :, MASK], flows_hr, warp_fn)
+
+
+def color_instability(colors: Tensor, masks: Tensor, flows: Tensor,
+                      warp_fn: Callable[[Tensor, Tensor], Tensor]) -> Tensor:
+    """Flicker of a sequence of frames: how much each frame's color differs from the previous one warped to it.
+
+    For every ``t >= 1`` color ``t - 1`` and its mask are warped to frame ``t`` by
+    ``warp_fn(image, flows[t])``; the step's score is the mean absolute color difference over the
+    channels and the pixels where frame ``t``'s or the warped mask covers (> 0.5). The result is the
+    mean over the steps (NaN steps, with an empty region, skipped). Lower is steadier; 0 is perfectly
+    steady. A converged reference scores above 0 too (resampling, view-dependent shading): compare
+    a method's flicker with the reference's own.
+
+    Args:
+        colors: colors per frame in [0, 1].
+        masks: coverage per frame.
+        flows: backward flow per frame in pixels (see ``conventions``); ``flows[0]`` is not used.
+        warp_fn: ``warp_fn(image (B, C, H, W), flow (B, 2, H, W)) -> (B, C, H, W)``, sampling
+            ``image`` at each pixel's position plus ``flow``.
+
+    Returns:
+        Mean absolute difference per sequence; NaN where every step's region is empty.
+
+    Shape:
+        colors: (T, B, 3, H, W) with T >= 2. masks: (T, B, 1, H, W). flows: (T, B, 2, H, W). Returns (B,).
+    """
+    dims = check_shape(colors, "(T, B, 3, H, W)", "colors", "color_instability")
+    check_shape(masks, "(T, B, 1, H, W)", "masks", "color_instability", dims)
+    check_shape(flows, "(T, B, 2, H, W)", "flows", "color_instability", dims)
+    if dims["T"] < 2:
+        raise ValueError(f"color_instability: colors needs T >= 2 frames, got {tuple(colors.shape)}")
     steps = []
-    for t in range(1, t_len):
-        warped = warp_fn(torch.cat([color[t - 1], alpha[t - 1]], dim=1), flows_hr[t])
-        region = (alpha[t] > 0.5) | (warped[:, 3:] > 0.5)
-        steps.append(_masked_mean((color[t] - warped[:, :3]).abs(), region))
+    for t in range(1, dims["T"]):
+        warped = warp_fn(torch.cat([colors[t - 1], masks[t - 1]], dim=1), flows[t])
+        region = (masks[t] > 0.5) | (warped[:, 3:] > 0.5)
+        steps.append(_masked_mean((colors[t] - warped[:, :3]).abs(), region))
     return torch.stack(steps).nanmean(0)

@@ -148,7 +148,9 @@ class AutoView(View):
                                   job.sessions, settings.ao_radius).method
 
 
-VIEWS: dict[str, View] = {v.name: v for v in [MethodView(k) for k in RUNNERS] + [FocusView(), AutoView()]}
+# The registered methods the protocol names as modes (``svgf`` and ``oidn`` are not view modes yet).
+VIEWS: dict[str, View] = {v.name: v for v in [MethodView(k) for k in RUNNERS if k in MODES]
+                          + [FocusView(), AutoView()]}
 assert set(VIEWS) == set(MODES), f"the protocol's modes {MODES} and the server's views {tuple(VIEWS)} differ"
 
 

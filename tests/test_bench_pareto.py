@@ -10,9 +10,11 @@ import torch
 
 from isosr_bench.bench_pareto import budget_ladder, dominator, learned_scorecard, merge, pareto_front, scores
 from isosr_render import FrameBuffers
+from isosr_net.frame_methods import unavailable_kinds
 
 FIELDS = {"volume", "size", "method", "learned", "ms", "color_psnr", "color_ssim", "image_psnr", "image_ssim",
-          "ao_rmse", "flicker"}
+          "ao_rmse", "flicker", "flicker_ratio"}
+OIDN = unavailable_kinds().get("oidn") is None
 
 
 @pytest.fixture(scope="module")
@@ -32,10 +34,13 @@ def test_the_record_holds_one_complete_row_per_volume_size_and_method(smoke):
     assert len(keys) == len(set(keys)) and {r["volume"] for r in rows} == {"sphere", "cloud"}
     for r in rows:
         assert FIELDS <= set(r) and r["ms"] > 0 and r["learned"] == (r["kind"] in ("reconstruct", "network"))
-        assert all(isinstance(r[k], float) and math.isfinite(r[k]) for k in FIELDS - {"volume", "size", "method",
-                                                                                        "learned"})
+        numbers = FIELDS - {"volume", "size", "method", "learned"} - ({"ao_rmse"} if r["kind"] == "oidn" else set())
+        assert all(isinstance(r[k], float) and math.isfinite(r[k]) for k in numbers)
         assert 0 < r["color_ssim"] <= 1 and r["color_psnr"] > 10
-    assert {r["kind"] for r in rows} == {"full", "atrous", "reconstruct", "upscale", "network"}
+        assert r["flicker_ratio"] == pytest.approx(r["flicker"] / r["flicker_reference"])
+        assert (r["ao_rmse"] is None) == (r["kind"] == "oidn")  # a color without AO: nothing to score
+    assert {r["kind"] for r in rows} == {"full", "atrous", "svgf", "reconstruct", "upscale", "network"} | (
+        {"oidn"} if OIDN else set())
     full = [r["method"] for r in rows if r["kind"] == "full"]
     assert all(m.startswith("full, AO ") for m in full) and "full, AO 8, spp 1" in full
 
@@ -79,6 +84,28 @@ def test_an_empty_image_scores_null_not_zero_or_inf():
     assert s["image_psnr"] == pytest.approx(100.0)  # identical whole images: the PSNR ceiling
 
 
+def test_flicker_is_the_color_change_along_the_flow_and_ignores_buffers():
+    """A color that alternates frame to frame flickers by the change, whatever its AO buffer says; a
+    color that moves with the flow does not flicker."""
+    h, w = 16, 16
+    base = (0.5 - 0.5 * torch.cos(torch.arange(w) * (2 * math.pi / w))).expand(h, w)  # 0 at the border
+
+    def frame(color, ao=None, shift=0):
+        ao = torch.ones(h, w) if ao is None else ao
+        return FrameBuffers(mask=torch.ones(h, w), normal=torch.zeros(h, w, 3), ao=ao,
+                            color=torch.roll(color, shift, dims=1)[..., None].expand(h, w, 3).contiguous(),
+                            flow=torch.full((h, w, 2), 0.0))
+    steady = [frame(base, ao=torch.rand(h, w)) for _ in range(3)]  # AO noise that never reaches the color
+    assert scores(steady, steady)["flicker"] == 0
+    alternating = [frame(base + 0.1 * (t % 2)) for t in range(3)]
+    assert scores(alternating, steady)["flicker"] == pytest.approx(0.1, rel=1e-5)
+    moving = [frame(base, shift=t) for t in range(3)]  # one pixel right per frame: the flow points left
+    along = [frame(base, shift=t) for t in range(3)]
+    for f in along:
+        f.flow = torch.tensor([-1.0, 0.0]).expand(h, w, 2)
+    assert scores(moving, along)["flicker"] < 0.2 * scores(moving, steady)["flicker"]
+
+
 def test_a_partial_run_merges_into_the_result_file(smoke, tmp_path):
     _, record = smoke
     path = tmp_path / "pareto_cpu.json"
@@ -95,6 +122,7 @@ def test_the_report_has_the_section_and_a_plot_per_volume(smoke):
     report = (out / "report_cpu.md").read_text()
     assert "Every way to make a frame" in report and "Wins" in report and "budget policy" in report
     assert "x4 network fp32" in report and "full, AO 2, spp 1, recon fp32" in report
+    assert "full, AO 2, svgf" in report and "flicker_ratio" in report
     assert "Where a learned method is the best there is" in report
     assert (out / "pareto_sphere_cpu.png").stat().st_size > 0 and (out / "pareto_cloud_cpu.png").stat().st_size > 0
 
@@ -135,9 +163,10 @@ def test_the_scorecard_finds_where_a_learned_method_is_best_and_compares_like_wi
     assert by_budget[4.24]["best"] == "a-trous 1" and not by_budget[4.24]["learned_best"]
     assert by_budget[6.0]["best"] == "recon 1" and by_budget[6.0]["learned_best"]
     assert by_budget[50.0]["best"] == "full, AO 128, spp 4" and by_budget[50.0]["learned"] == "recon 1 spp 4"
-    assert card["atrous"] == [{"ao_rays": 1, "atrous_ms": 4.0, "atrous_psnr": 33.0, "recon": "recon 1",
-                               "recon_ms": 5.0, "recon_psnr": 35.0}]  # spp 4 is not the same sampling
+    assert card["baselines"] == [{"kind": "atrous", "method": "a-trous 1", "ao_rays": 1, "ms": 4.0, "psnr": 33.0,
+                                  "flicker_ratio": None, "recon": "recon 1", "recon_ms": 5.0, "recon_psnr": 35.0,
+                                  "recon_flicker_ratio": None}]  # spp 4 is not the same sampling
     assert card["ao64"]["learned"] == "recon 1" and card["ao64"]["speedup"] == pytest.approx(6.0)
     rows[3]["color_psnr"] = rows[4]["color_psnr"] = 30.0  # now no learned method reaches 64 rays
     assert learned_scorecard(rows)["ao64"]["learned"] is None
-    assert learned_scorecard([_row("x4", "upscale", 1.0, 20.0)]) == {"budgets": [], "atrous": [], "ao64": None}
+    assert learned_scorecard([_row("x4", "upscale", 1.0, 20.0)]) == {"budgets": [], "baselines": [], "ao64": None}

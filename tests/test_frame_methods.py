@@ -13,7 +13,8 @@ import torch
 
 from isosr_render import Renderer, RenderRequest, open_volume, orbit_path, resolve_iso
 from isosr_net.inference import count_steps
-from isosr_net.frame_methods import FrameMethod, FrameStream, Networks, make_runner
+from isosr_net import oidn
+from isosr_net.frame_methods import FrameMethod, FrameStream, Networks, make_runner, unavailable_kinds
 from conftest import DEVICE
 from net_fixtures import tiny_model_dir
 
@@ -36,6 +37,8 @@ def test_names_follow_the_issue():
     network = FrameMethod("network", factor=4, precision="bf16")
     assert network.name == "x4 network bf16" and network.learned
     assert not FrameMethod("atrous", ao_rays=1).learned
+    assert FrameMethod("svgf", ao_rays=2).name == "full, AO 2, svgf"
+    assert FrameMethod("oidn", ao_rays=1, quality="fast", spp=2).name == "full, AO 1, oidn fast, spp 2"
 
 
 @pytest.mark.parametrize("kwargs, message", [
@@ -46,7 +49,9 @@ def test_names_follow_the_issue():
     (dict(kind="reconstruct", ao_rays=9), r"ao_rays must be an integer in \[0, 8\]"),
     (dict(kind="buffers", factor=1), "factor"),
     (dict(kind="reconstruct", spp=8), r"spp must be an integer in \[1, 4\]"),
-    (dict(kind="reconstruct", factor=2), "factor")])
+    (dict(kind="reconstruct", factor=2), "factor"), (dict(kind="svgf"), "ao_rays"),
+    (dict(kind="atrous", ao_rays=1, quality="fast"), "takes no quality"),
+    (dict(kind="oidn", ao_rays=1, quality="best"), "quality must be one of")])
 def test_bad_methods_are_refused(kwargs, message):
     with pytest.raises(ValueError, match=message):
         FrameMethod(**kwargs)
@@ -56,6 +61,9 @@ def test_bad_methods_are_refused(kwargs, message):
     (FrameMethod("full"), ["mask", "normal", "color"]),
     (FrameMethod("full", ao_rays=4, spp=2), ["mask", "normal", "ao", "color"]),
     (FrameMethod("atrous", ao_rays=2), ["mask", "normal", "ao", "color"]),
+    (FrameMethod("svgf", ao_rays=1), ["mask", "normal", "ao", "color"]),
+    pytest.param(FrameMethod("oidn", ao_rays=1, quality="fast"), ["mask", "normal", "color"],
+                 marks=pytest.mark.skipif(oidn.unavailable() is not None, reason=str(oidn.unavailable()))),
     (FrameMethod("upscale", factor=4, interpolation="bicubic"), ["mask", "normal", "depth", "color"]),
     (FrameMethod("reconstruct", ao_rays=2), ["mask", "normal", "depth", "ao", "color"]),
     (FrameMethod("reconstruct"), ["mask", "normal", "depth", "ao", "color"]),
@@ -79,10 +87,33 @@ def test_every_kind_makes_a_bounded_color_frame_and_only_its_buffers(scene, meth
 
 def test_the_registry_names_every_kind_and_refuses_a_second_registration():
     from isosr_net.frame_methods import RUNNERS, FullRunner, register_runner
-    assert set(RUNNERS) == {"full", "atrous", "reconstruct", "upscale", "network", "buffers"}
+    assert set(RUNNERS) == {"full", "atrous", "svgf", "oidn", "reconstruct", "upscale", "network", "buffers"}
     assert all(cls.kind == kind for kind, cls in RUNNERS.items())
+    assert set(unavailable_kinds()) <= {"oidn"}
     with pytest.raises(ValueError, match="registered already"):
         register_runner("full")(FullRunner)
+
+
+def test_a_kind_without_its_package_is_unavailable_with_the_reason(scene, monkeypatch):
+    renderer, iso = scene
+    monkeypatch.setattr(oidn, "unavailable", lambda: "the pyoidn package is not installed")
+    assert unavailable_kinds() == {"oidn": "the pyoidn package is not installed"}
+    with pytest.raises(RuntimeError, match="full, AO 1, oidn high cannot run here: the pyoidn package is not"):
+        make_runner(FrameMethod("oidn", ao_rays=1), renderer, iso, *SIZE)
+
+
+def test_svgf_casts_new_ao_rays_each_frame_and_restarts_its_history_on_a_cut(scene):
+    renderer, iso = scene
+    runner = make_runner(FrameMethod("svgf", ao_rays=1), renderer, iso, *SIZE)
+    cams = orbit_path(3, yaw0=20.0, yaw_step=3.0)
+    seeds = [runner.render_request(None).seed]
+    runner.frame(cams[0])
+    seeds.append(runner.render_request(cams[0]).seed)
+    assert seeds[0] != seeds[1] and 1 not in seeds  # never the quality reference's seed
+    runner.frame(cams[1], cams[0])
+    assert runner.history.length.max() == 2
+    runner.frame(cams[2])  # no previous camera: a cut
+    assert runner.history.length.max() == 1
 
 
 @pytest.mark.parametrize("method, keep", [(FrameMethod("full"), ("depth", "flow")),
