@@ -51,9 +51,11 @@ MODEL_NAMES = {Upscaler: "network", Reconstructor: "recon"}
 # Low-res tile side of CPU upscaling: the largest upscale (960x540 to 3840x2160) in 12 tiles, its
 # peak memory a sixth of the whole frame's (7.9 GB measured whole), the same result (see Upscaler).
 CPU_UPSCALE_TILE = 240
-# Threads that encode frames (images, buffers, video), off the device thread: one per core, so the
-# sessions' video encoders run side by side (a session encodes one frame at a time).
-ENCODER_THREADS = os.cpu_count() or 1
+# Threads that encode video frames, off the device thread: the sessions' encoders side by side (a session
+# encodes one frame at a time; each encoder has threads of its own, isosr_server.video.video_threads).
+# Images and buffers keep one thread: on 2 cores a second one cost a fast session beside a slow one
+# 35% of its frames/s instead of 14% (tests/test_client.py), competing with the device thread.
+VIDEO_ENCODER_THREADS = max(1, (os.cpu_count() or 1) // 2)
 
 
 def serving_network(cls: type[RecurrentNetwork], model: Path, device: str, precision: str) -> RecurrentNetwork:
@@ -113,7 +115,8 @@ class Engine:
         self.slice_ms = config.slice_ms or (8.0 if self.device.type == "cuda" else 100.0)
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="isosr-device")
         # Image, video and buffers encoding: off the device thread, which goes on with the next frame meanwhile.
-        self._encoder = ThreadPoolExecutor(max_workers=ENCODER_THREADS, thread_name_prefix="isosr-encoder")
+        self._encoder = ThreadPoolExecutor(max_workers=1, thread_name_prefix="isosr-encoder")
+        self._video = ThreadPoolExecutor(max_workers=VIDEO_ENCODER_THREADS, thread_name_prefix="isosr-video")
         self._renderers: OrderedDict[str, Renderer] = OrderedDict()
         self.networks = Networks(serving_network)
         self._models = {Upscaler: (config.model, MODEL_NAMES[Upscaler]),
@@ -190,6 +193,7 @@ class Engine:
     def shutdown(self) -> None:
         self._executor.shutdown(wait=True, cancel_futures=True)
         self._encoder.shutdown(wait=True, cancel_futures=True)
+        self._video.shutdown(wait=True, cancel_futures=True)
 
     # ---- work (device thread only) ----------------------------------------------------------
 
@@ -205,12 +209,12 @@ class Engine:
         return self._renderers[name]
 
     async def view_frame(self, frames: SessionFrames, renderer: Renderer, job: FrameJob,
-                         code: Callable[[torch.Tensor], CodedImage]) -> EncodedFrame:
+                         code: Callable[[torch.Tensor], CodedImage], video_frame: bool = False) -> EncodedFrame:
         """One view frame, made in slices of about ``slice_ms`` (:meth:`SessionFrames.steps`), each
         its own job on the device thread, so that other sessions' frames interleave with a heavy one;
         its codes made there too (:meth:`codes_sync`), then encoded on an encoder thread
-        (:func:`pack_codes`; ``code`` codes a shaded frame's colors), while the device thread goes on
-        with the next frame."""
+        (:func:`pack_codes`; ``code`` codes a shaded frame's colors; ``video_frame``: on a video
+        encoder thread), while the device thread goes on with the next frame."""
         start = time.perf_counter()
         steps = frames.steps(renderer, job, self.slice_ms)
         while True:
@@ -219,7 +223,8 @@ class Engine:
                 break
         codes = await self.call(self.codes_sync, made)
         began = time.perf_counter()
-        image, buffers = await asyncio.get_running_loop().run_in_executor(self._encoder, pack_codes, codes, code)
+        pool = self._video if video_frame else self._encoder
+        image, buffers = await asyncio.get_running_loop().run_in_executor(pool, pack_codes, codes, code)
         done = time.perf_counter()
         times = made.result.times | {"encode": 1e3 * (done - began), "total": 1e3 * (done - start)}
         return EncodedFrame(image, buffers, times, made.legend, made.method.name, made.prev_seq)

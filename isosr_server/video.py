@@ -11,10 +11,10 @@ frame loop has a frame to make but no credit (the link or the client lags), the 
 to `HEADROOM` of that estimate; after `PROBE_S` without waiting it rises by `PROBE_STEP`, up
 to the ceiling. The frame rate steps down (`FPS_STEPS`) before the bits per pixel of a frame
 fall below `MIN_BITS_PER_PIXEL`; the encoder's share of the bitrate per frame follows the frame
-rate the session really has (frames sent in the last WINDOW_S, when slower). Credit-based flow control stays: a slow link drops frames
-(latest wins), never queues them.
+rate the session really has (frames sent in the last WINDOW_S, when slower). Credit-based flow
+control stays: a slow link drops frames (latest wins), never queues them.
 
-Coding (`SessionCoder`, on the engine's encoder threads; one frame of a session at a time). Image
+Coding (`SessionCoder`, on the engine's video encoder threads; one frame of a session at a time). Image
 encodings encode each frame alone. A video session keeps one encoder, opened anew (its first
 frame a keyframe) on a new encoding, size or quality, when its rate is off the target by more
 than `REOPEN_DOWN` / `REOPEN_UP` (up only while the cap binds), and forces a keyframe at the

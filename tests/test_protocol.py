@@ -147,7 +147,8 @@ V = P.PROTOCOL_VERSION
     ({"type": "received", "frame": "3"}, r"at `\$.frame`"),
     ({"type": "received", "frame": 1.0}, r"got `float` - at `\$.frame`"),
     ({"type": "received", "frame": 1, "seq": 4}, "unknown field `seq`"),
-    ({"type": "hello"}, "message type must be one of camera, iso, settings, focus, received, keyframe, open: .*'hello'"),
+    ({"type": "hello"},
+     "message type must be one of camera, iso, settings, focus, received, keyframe, open: .*'hello'"),
     ({"no": "type"}, "message type must be one of .*missing required field `type`"),
 ])
 def test_invalid_messages_name_the_problem(message, words):

@@ -190,7 +190,8 @@ class VideoEncoder:
             rgb: (height, width, 3) uint8.
         """
         if rgb.dtype != np.uint8 or rgb.shape != (self.height, self.width, 3):
-            raise ValueError(f"video encoder: takes ({self.height}, {self.width}, 3) uint8, got {rgb.shape} {rgb.dtype}")
+            raise ValueError(f"video encoder: takes ({self.height}, {self.width}, 3) uint8, got {rgb.shape} "
+                             f"{rgb.dtype}")
         if timestamp_us <= self._last_pts:
             raise ValueError(f"video encoder: timestamps must increase, got {timestamp_us} after {self._last_pts}")
         av = _av()

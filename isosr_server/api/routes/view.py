@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import secrets
 
 from fastapi import APIRouter, WebSocket
@@ -12,9 +13,10 @@ from fastapi import APIRouter, WebSocket
 from isosr_net.reconnet import MAX_RECON_AO_RAYS
 from isosr_server.api.deps import AuthorizedDep, CatalogDep, EngineDep, LimitsDep, MetricsDep, ViewSessionsDep
 from isosr_server.api.ws import accept, end_ws, receive
-from isosr_server.engine import ENCODER_THREADS, Engine
-from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, CLOSE_IDLE, FocusMsg, FrameMsg, Limits, Message, NoticeMsg,
-                                   OpenMsg, ProtocolError, ReadyMsg, ViewSettings, VolumeSummary, encode, parse)
+from isosr_server.engine import Engine
+from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, CLOSE_IDLE, VIDEO_ENCODINGS, FocusMsg, FrameMsg, Limits,
+                                   Message, NoticeMsg, OpenMsg, ProtocolError, ReadyMsg, ViewSettings, VolumeSummary,
+                                   encode, parse)
 from isosr_server.sessions import (DEFAULT_CAMERA, RateLimiter, SessionCounter, ViewSession, ViewState, run_frames,
                                    to_camera)
 from isosr_server.video import SessionCoder
@@ -32,7 +34,7 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
         return
     limiter = RateLimiter(limits.max_messages_per_s)
     counted, tasks = False, []
-    coder = SessionCoder(ENCODER_THREADS)
+    coder = SessionCoder(os.cpu_count() or 1)
     try:
         # A slot is taken only once a valid open arrived: a silent connection holds none.
         opened = parse(await receive(ws, limiter, limits), limits, (OpenMsg,))
@@ -44,7 +46,9 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
         frames = engine.new_session_frames(session.volume_name)
 
         async def make(job):
-            return await engine.view_frame(frames, renderer, job.frame, lambda rgb: coder.code(rgb, job.plan))
+            plan = job.plan
+            return await engine.view_frame(frames, renderer, job.frame, lambda rgb: coder.code(rgb, plan),
+                                           plan.encoding in VIDEO_ENCODINGS and not plan.refined)
 
         async def send(msg: Message) -> None:
             try:
