@@ -40,7 +40,7 @@ from isosr_server.auto import AutoPolicy
 from isosr_server.codecs.buffers import pack_view_buffers
 from isosr_server.codecs.buffers_device import view_buffer_codes
 from isosr_server.encoding import encode_image, encoder_name
-from isosr_server.protocol import ENCODINGS, FocusMsg, UpscaleRequest, ViewBuffers, ViewSettings
+from isosr_server.protocol import IMAGE_ENCODINGS, FocusMsg, UpscaleRequest, ViewBuffers, ViewSettings
 from isosr_server.views import FrameJob, SessionFrames, ViewContext, ViewFrame
 
 RENDERER_CACHE = 4
@@ -157,7 +157,7 @@ class Engine:
         cfg = self.network(Upscaler).net.config
         return {"upscale_factor": self.upscale_factor, "precision": self.precision, "device": str(self.device),
                 "model": Path(self.config.model).name,
-                "encoders": {e: encoder_name(str(self.device), e) for e in ENCODINGS},
+                "encoders": {e: encoder_name(str(self.device), e) for e in IMAGE_ENCODINGS},
                 "config": {k: v for k, v in vars(cfg).items() if isinstance(v, (int, float, str, bool, list, tuple))}}
 
     def recon_info(self) -> dict:

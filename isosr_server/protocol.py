@@ -16,12 +16,28 @@ Coding
 View session (``WS /v1/view``)
     client -> ``open`` (version, volume name, settings incl. mode and size, optional camera
     and iso); server -> ``ready`` (session id, volume summary, effective settings, upscale
-    factor, the reconstruction's AO ray bound, limits) and a first frame. Then the client sends
-    ``camera``, ``iso``, ``settings`` and ``focus`` at any rate; each carries an optional
-    ``seq``. The server keeps only the newest state (latest wins) and answers ``frame``
+    factor, the reconstruction's AO ray bound, limits, the encodings it can make) and a first
+    frame. Then the client sends ``camera``, ``iso``, ``settings`` and ``focus`` at any rate;
+    each carries an optional ``seq``. The server keeps only the newest state (latest wins) and answers ``frame``
     messages whose ``ack`` is the highest ``seq`` they include and whose ``method`` names the
     frame method that made them. A still camera gets one extra frame with ``refined: true``.
-    Bad input ends the session with an ``error`` message and a close code (``CLOSE_*``).
+    Bad input ends the session with an ``error`` message and a close code (``CLOSE_*``);
+    non-fatal news (an encoding the server cannot make, so it sends jpeg) comes as ``notice``.
+
+Encodings (``settings.encoding``)
+    Images (`IMAGE_ENCODINGS`: jpeg, png, webp): each frame stands alone. Video
+    (`VIDEO_ENCODINGS`: h264, vp9, av1; ``ready.encoders`` says which this server can make):
+    a frame's ``image`` is one access unit of the session's stream (h264 Annex B with SPS/PPS
+    in every keyframe; vp9 a raw frame; av1 a temporal unit of low-overhead OBUs), ``codec``
+    its WebCodecs codec string, ``keyframe`` whether it decodes alone. The stream is coded at
+    even width and height (an odd side one pixel larger, its last column / row repeated): the
+    client shows the top-left ``width`` x ``height``. Keyframes come on start (a new session,
+    e.g. after a reconnect), on a new size or encoding, and when the client asks (``keyframe``,
+    e.g. after a decoder error). A still camera's refined frame goes out as a lossless ``png``
+    frame; the next moving frame is a video keyframe. The bitrate follows ``bitrate_kbps`` (the
+    client's cap), or with 0 the link's throughput the server estimates from ``received``; the
+    frame rate steps down before the quality gets too low. An encoding the server cannot make
+    falls back to jpeg (``ready`` and the frames say so) with a ``notice`` saying why.
 
 View modes (``settings.mode``)
     auto         the server's budget policy chooses the frame method per session.
@@ -82,9 +98,12 @@ FLOW_CLIP = 60000.0
 MODES = ("auto", "full", "atrous", "reconstruct", "network", "upscale", "buffers", "focus")
 # What a shaded-mode frame shows: the shaded image or one buffer in false color (isosr_server.channels).
 CHANNELS = ("shaded", "mask", "normal", "depth", "ao", "flow")
-ENCODINGS = ("jpeg", "png", "webp")
+IMAGE_ENCODINGS = ("jpeg", "png", "webp")
+VIDEO_ENCODINGS = ("h264", "vp9", "av1")
+# A view session's encodings; upscale outputs are images.
+ENCODINGS = IMAGE_ENCODINGS + VIDEO_ENCODINGS
 INTERPOLATIONS = ("nearest", "bilinear", "bicubic")
-UPSCALE_OUTPUTS = ("buffers",) + ENCODINGS
+UPSCALE_OUTPUTS = ("buffers",) + IMAGE_ENCODINGS
 FOCUS_SHAPES = ("none", "circle", "box")
 # Stages a frame's ``times`` may name (server milliseconds; each optional).
 STAGES = ("render", "filter", "network", "shading", "encode", "total")
@@ -163,6 +182,8 @@ class Limits(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         max_connections: most open connections.
         max_connections_per_client: most open connections of one client address.
         max_upscale_bytes: most memory the upscale sessions may hold together.
+        max_bitrate_kbps: the highest video bitrate a view session may ask for (``bitrate_kbps``),
+            and the ceiling of the server's own choice.
     """
 
     max_message_bytes: int = 32 * 2**20
@@ -180,6 +201,7 @@ class Limits(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     max_connections: int = 256
     max_connections_per_client: int = 32
     max_upscale_bytes: int = 2 * 2**30
+    max_bitrate_kbps: int = 100_000
 
     def __post_init__(self):
         for f in msgspec.structs.fields(self):
@@ -230,7 +252,10 @@ class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         spp: rays per pixel of full-resolution renders.
         interpolation: ``upscale`` mode's classic upscaling.
         ao_radius: AO ray length in world units.
-        encoding, quality: image coding of shaded frames; quality 1-100 for jpeg/webp.
+        encoding, quality: coding of shaded frames (`ENCODINGS`, module docstring); quality 1-100
+            for jpeg/webp, and the video codecs' constant quality (capped by the bitrate).
+        bitrate_kbps: video only: the client's cap on the bitrate in kbit/s (at most
+            ``max_bitrate_kbps``); 0: the server estimates the link from ``received``.
         refine: send one refined frame (full resolution, ``refine_ao_rays``) once the camera and
             settings were still for ``refine_after_s``.
         focus_blend_px: width of the blend at the focus region's border, full-res pixels.
@@ -246,6 +271,7 @@ class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     ao_radius: Annotated[float, Meta(gt=0.0, le=1.0)] = AO_RADIUS
     encoding: Literal[ENCODINGS] = "jpeg"
     quality: Annotated[int, Meta(ge=1, le=100)] = 85
+    bitrate_kbps: Annotated[int, Meta(ge=0)] = 0
     refine: bool = True
     refine_after_s: Annotated[float, Meta(ge=0.0, le=3600.0)] = 0.5
     refine_ao_rays: Annotated[int, Meta(ge=0)] = 64
@@ -274,11 +300,15 @@ class _SettingsUpdateBase(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
         return {name: v for name in self.__struct_fields__ if (v := getattr(self, name)) is not UNSET}
 
     def check(self, limits: Limits) -> None:
-        """AO ray counts within ``limits.max_ao_rays`` (sizes: `ViewSettings.updated`)."""
+        """AO ray counts within ``limits.max_ao_rays``, the bitrate within ``max_bitrate_kbps``
+        (sizes: `ViewSettings.updated`)."""
         for name in ("ao_rays", "refine_ao_rays"):
             rays = getattr(self, name)
             if rays is not UNSET:
                 limits.check_rays(rays, f"$.settings.{name}")
+        if self.bitrate_kbps is not UNSET and self.bitrate_kbps > limits.max_bitrate_kbps:
+            raise ProtocolError(f"Expected `int` <= {limits.max_bitrate_kbps} (max_bitrate_kbps) - at "
+                                f"`$.settings.bitrate_kbps`")
 
 
 SettingsUpdate = msgspec.defstruct(
@@ -418,6 +448,10 @@ class ReceivedMsg(Message, tag="received"):
     frame: Seq
 
 
+class KeyframeMsg(Message, tag="keyframe"):
+    """Client -> server: make the next video frame a keyframe (e.g. after a decoder error)."""
+
+
 class VolumeSummary(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """``ready.volume``: the volume a session views (:class:`isosr_server.volumes.VolumeInfo`).
 
@@ -438,7 +472,9 @@ class VolumeSummary(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
 
 class ReadyMsg(Message, tag="ready"):
     """Server -> client, the answer to ``open``: the session, its volume, its effective
-    settings, the network's upscale factor, the reconstruction's AO ray bound and the limits."""
+    settings (``encoding``: the one it sends, jpeg where the asked one cannot be made), the
+    network's upscale factor, the reconstruction's AO ray bound, the limits, and the encodings
+    this server can make now (video codecs only where PyAV and the codec are present)."""
 
     session: SessionId
     volume: VolumeSummary
@@ -446,7 +482,15 @@ class ReadyMsg(Message, tag="ready"):
     upscale_factor: Factor
     max_recon_ao_rays: Annotated[int, Meta(ge=0)]
     limits: Limits
+    encoders: list[Literal[ENCODINGS]] = msgspec.field(default_factory=lambda: list(IMAGE_ENCODINGS))
     version: Version = PROTOCOL_VERSION
+
+
+class NoticeMsg(Message, tag="notice"):
+    """Server -> client: non-fatal news, e.g. ``h264 is not available on this server (PyAV
+    missing); sending jpeg``."""
+
+    text: Annotated[str, Meta(max_length=1000)]
 
 
 class Legend(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -491,8 +535,10 @@ class FrameMsg(Message, tag="frame"):
         ack: the highest client ``seq`` this frame includes (-1: none yet).
         mode: the mode that made it (``full`` for refined frames).
         method: the display name of the frame method that made it (e.g. ``full, AO 2, spp 1``).
-        width, height: the output size (buffers travel at low resolution: width / factor).
-        encoding: ``jpeg``, ``png``, ``webp`` (``image`` holds the bytes) or ``buffers``.
+        width, height: the output size (buffers travel at low resolution: width / factor; video
+            is coded at even sides: show its top-left width x height).
+        encoding: an image or video encoding (`ENCODINGS`: ``image`` holds the bytes, module
+            docstring) or ``buffers``.
         times: server milliseconds per stage (`STAGES`).
         nbytes: payload bytes (image, or the buffers' data); ``bytes`` on the wire.
         refined: the still-camera refined frame.
@@ -501,6 +547,12 @@ class FrameMsg(Message, tag="frame"):
         prev_seq: ``buffers`` only: the frame whose camera the flow refers to (-1: no flow,
             a cut: reset the recurrent state).
         legend: channel view only: the false colors.
+        keyframe: the frame decodes alone (every image frame; video: a keyframe).
+        timestamp_us: video: when the frame was made, microseconds since the session began
+            (increasing; the decoder's timestamp).
+        codec: video only: the WebCodecs codec string (``avc1.64001f``, ``vp09.00.40.08``,
+            ``av01.0.08M.08``).
+        bitrate_kbps: video only: the encoder's target bitrate when it made the frame.
     """
 
     seq: Seq
@@ -517,10 +569,18 @@ class FrameMsg(Message, tag="frame"):
     buffers: ViewBuffers | None = None
     prev_seq: Annotated[int, Meta(ge=-1, le=MAX_SEQ)] = -1
     legend: Legend | None = None
+    keyframe: bool = True
+    timestamp_us: Annotated[int, Meta(ge=0, le=MAX_SEQ)] = 0
+    codec: Annotated[str, Meta(max_length=64)] | None = None
+    bitrate_kbps: Annotated[int, Meta(ge=0)] = 0
 
     def __post_init__(self):
         if (self.encoding == "buffers") != (self.buffers is not None) or (self.image is None) == (self.buffers is None):
             raise ProtocolError("frame: an encoded frame carries image bytes, a buffers frame carries buffers")
+        if (self.encoding in VIDEO_ENCODINGS) != (self.codec is not None):
+            raise ProtocolError("frame: a video frame carries its codec string, other frames none")
+        if not self.keyframe and self.encoding not in VIDEO_ENCODINGS:
+            raise ProtocolError("frame: only a video frame can be a delta frame (keyframe false)")
 
     def check(self, limits: Limits) -> None:
         limits.check_size(self.width, self.height, "frame")
@@ -636,8 +696,8 @@ class UpscaleResponse(Message, tag="upscaled"):
 
 
 CLIENT_VIEW_MESSAGES: dict[str, type[Message]] = {m.TYPE: m for m in (CameraMsg, IsoMsg, SettingsMsg, FocusMsg,
-                                                                        ReceivedMsg)}
-SERVER_VIEW_MESSAGES: dict[str, type[Message]] = {m.TYPE: m for m in (ReadyMsg, FrameMsg, ErrorMsg)}
+                                                                        ReceivedMsg, KeyframeMsg)}
+SERVER_VIEW_MESSAGES: dict[str, type[Message]] = {m.TYPE: m for m in (ReadyMsg, FrameMsg, NoticeMsg, ErrorMsg)}
 
 
 # ---------------------------------------------------------------------------------------------

@@ -147,7 +147,7 @@ V = P.PROTOCOL_VERSION
     ({"type": "received", "frame": "3"}, r"at `\$.frame`"),
     ({"type": "received", "frame": 1.0}, r"got `float` - at `\$.frame`"),
     ({"type": "received", "frame": 1, "seq": 4}, "unknown field `seq`"),
-    ({"type": "hello"}, "message type must be one of camera, iso, settings, focus, received, open: .*'hello'"),
+    ({"type": "hello"}, "message type must be one of camera, iso, settings, focus, received, keyframe, open: .*'hello'"),
     ({"no": "type"}, "message type must be one of .*missing required field `type`"),
 ])
 def test_invalid_messages_name_the_problem(message, words):
@@ -292,6 +292,39 @@ def test_client_side_limits_bound_frames():
 def test_semantic_checks_run_where_messages_are_made(make, words):
     with pytest.raises(P.ProtocolError, match=words):
         make()
+
+
+def video_frame(**fields) -> P.FrameMsg:
+    return P.FrameMsg(**{"seq": 2, "ack": 1, "mode": "full", "method": "full", "width": 63, "height": 48,
+                         "encoding": "h264", "times": {"encode": 1.0}, "nbytes": 3, "image": b"\0\0\1",
+                         "keyframe": False, "timestamp_us": 40000, "codec": "avc1.64001f", "bitrate_kbps": 2500}
+                      | fields)
+
+
+def test_video_messages_round_trip_and_their_rules():
+    """Issue 21's wire: video frames (codec string, keyframe flag, timestamp, bitrate), notices,
+    keyframe requests, the encoders ``ready`` names and the bitrate cap's bound."""
+    for msg in (video_frame(), video_frame(encoding="av1", codec="av01.0.08M.08", keyframe=True),
+                P.NoticeMsg("h264 is not available on this server; sending jpeg"), P.KeyframeMsg(),
+                P.ReadyMsg("abc", VOLUME, P.ViewSettings(encoding="vp9", bitrate_kbps=8000), 4, 8, LIMITS,
+                           ["jpeg", "png", "webp", "vp9"])):
+        assert roundtrip(msg) == msg
+    assert P.ReadyMsg("abc", VOLUME, P.ViewSettings(), 4, 8, LIMITS).encoders == list(P.IMAGE_ENCODINGS)
+    assert P.ENCODINGS == P.IMAGE_ENCODINGS + P.VIDEO_ENCODINGS and "h264" not in P.UPSCALE_OUTPUTS
+    assert wire(P.KeyframeMsg()) == {"type": "keyframe"}
+    assert P.parse(raw({"type": "keyframe"}), LIMITS, P.CLIENT_VIEW_MESSAGES) == P.KeyframeMsg()
+    for make, words in ((lambda: video_frame(codec=None), "a video frame carries its codec string"),
+                        (lambda: video_frame(encoding="jpeg"), "a video frame carries its codec string"),
+                        (lambda: video_frame(encoding="png", codec=None), "only a video frame can be a delta")):
+        with pytest.raises(P.ProtocolError, match=words):
+            make()
+    with pytest.raises(P.ProtocolError, match="Invalid enum value 'h265'"):
+        P.parse(raw(wire(video_frame()) | {"encoding": "h265"}), LIMITS, P.SERVER_VIEW_MESSAGES)
+    with pytest.raises(P.ProtocolError, match=r"<= 100000 \(max_bitrate_kbps\) - at `\$.settings.bitrate_kbps`"):
+        P.ViewSettings().updated({"bitrate_kbps": 100_001}, LIMITS)
+    with pytest.raises(P.ProtocolError, match=r"max_bitrate_kbps"):
+        P.parse(raw({"type": "open", "volume": "bonsai", "settings": {"bitrate_kbps": 10**6}}), LIMITS, (P.OpenMsg,))
+    assert P.ViewSettings().updated({"bitrate_kbps": 10**6}, P.Limits(max_bitrate_kbps=10**6)).bitrate_kbps == 10**6
 
 
 def test_frame_times_name_known_stages_only():

@@ -34,7 +34,7 @@ from isosr_server.api.deps import (EngineDep, LimitsDep, MetricsDep, ReadyDep, U
 from isosr_server.api.routes.upscale import check_upscale, run_upscale
 from isosr_server.codecs.kserve import (BINARY_MEDIA_TYPE, HEADER_LENGTH, JSON_MEDIA_TYPE, InferRequest,
                                         decode_request, encode_response)
-from isosr_server.protocol import ENCODINGS, SESSION_ID, ProtocolError, UpscaleRequest
+from isosr_server.protocol import IMAGE_ENCODINGS, SESSION_ID, ProtocolError, UpscaleRequest
 
 UPSCALE_MODEL, RECON_MODEL = "isosr", "isosr-recon"
 MODEL_VERSION = "1"
@@ -76,7 +76,7 @@ def route(model: str, tail: str, endpoint, method: str = "GET", ready: bool = Fa
 
 
 async def upscale_model(engine: EngineDep):
-    return metadata(UPSCALE_MODEL, UPSCALE_INPUTS, engine.model_info() | {"image_outputs": list(ENCODINGS)})
+    return metadata(UPSCALE_MODEL, UPSCALE_INPUTS, engine.model_info() | {"image_outputs": list(IMAGE_ENCODINGS)})
 
 
 async def upscale_model_ready(ready: ReadyDep):
