@@ -1,4 +1,5 @@
-"""Image encoding of shaded frames: PNG, JPEG, WebP.
+"""Image encoding of shaded frames: PNG, JPEG, WebP; and `CodedImage`, a coded frame of any
+encoding (video: :mod:`isosr_server.video`).
 
 JPEG runs on the GPU where the frame is (nvJPEG through ``torchvision.io.encode_jpeg`` on a
 CUDA tensor) when torchvision imports; everything else goes through OpenCV's ``cv2.imencode``
@@ -7,9 +8,13 @@ on the CPU (libjpeg-turbo, libpng, libwebp; OpenCV is already a dependency of th
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 import torch
+
+from isosr_server.codecs import video
 
 try:
     from torchvision.io import encode_jpeg as _gpu_encode_jpeg
@@ -20,8 +25,24 @@ except ImportError:  # the CPU install has no torchvision: OpenCV encodes
 PNG_LEVEL = 1
 
 
+@dataclass(frozen=True)
+class CodedImage:
+    """A shaded frame's bytes in ``encoding``: an image, or one video access unit (``keyframe``,
+    the stream's WebCodecs ``codec`` string, the encoder's target ``bitrate_kbps``); ``notice``:
+    why it is not in the encoding the session asked for."""
+
+    data: bytes
+    encoding: str
+    keyframe: bool = True
+    codec: str | None = None
+    bitrate_kbps: int = 0
+    notice: str | None = None
+
+
 def encoder_name(device: str, encoding: str) -> str:
-    """Which encoder :func:`encode_image` uses for ``encoding`` on ``device`` (for reports)."""
+    """Which encoder :func:`encode_image` (or a video encoder) uses for ``encoding`` on ``device`` (for reports)."""
+    if encoding in video.CODECS:
+        return video.describe(encoding)
     if encoding == "jpeg" and _gpu_encode_jpeg is not None and torch.device(device).type == "cuda":
         return "nvjpeg (torchvision)"
     return f"opencv {cv2.__version__} (cpu)"

@@ -18,11 +18,12 @@ Renderers are cached per volume (a few, least recently used dropped).
 from __future__ import annotations
 
 import asyncio
+import os
 import threading
 import time
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
-from collections.abc import Generator
+from collections.abc import Callable, Generator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,7 +40,8 @@ from isosr_render.images import quantize
 from isosr_server.auto import AutoPolicy
 from isosr_server.codecs.buffers import pack_view_buffers
 from isosr_server.codecs.buffers_device import view_buffer_codes
-from isosr_server.encoding import encode_image, encoder_name
+from isosr_server.codecs import video
+from isosr_server.encoding import CodedImage, encode_image, encoder_name
 from isosr_server.protocol import IMAGE_ENCODINGS, FocusMsg, UpscaleRequest, ViewBuffers, ViewSettings
 from isosr_server.views import FrameJob, SessionFrames, ViewContext, ViewFrame
 
@@ -49,6 +51,9 @@ MODEL_NAMES = {Upscaler: "network", Reconstructor: "recon"}
 # Low-res tile side of CPU upscaling: the largest upscale (960x540 to 3840x2160) in 12 tiles, its
 # peak memory a sixth of the whole frame's (7.9 GB measured whole), the same result (see Upscaler).
 CPU_UPSCALE_TILE = 240
+# Threads that encode frames (images, buffers, video), off the device thread: one per core, so the
+# sessions' video encoders run side by side (a session encodes one frame at a time).
+ENCODER_THREADS = os.cpu_count() or 1
 
 
 def serving_network(cls: type[RecurrentNetwork], model: Path, device: str, precision: str) -> RecurrentNetwork:
@@ -85,10 +90,10 @@ class EngineConfig:
 
 @dataclass(frozen=True)
 class EncodedFrame:
-    """A view frame ready for the wire: the image (or the coded buffers), server milliseconds per
-    stage, the channel legend, the method's name, and the frame whose camera the flow refers to."""
+    """A view frame ready for the wire: the coded image (or the coded buffers), server milliseconds
+    per stage, the channel legend, the method's name, and the frame whose camera the flow refers to."""
 
-    image: bytes | None
+    image: CodedImage | None
     buffers: ViewBuffers | None
     times: dict[str, float]
     legend: dict | None
@@ -107,8 +112,8 @@ class Engine:
         self.precision = config.precision or default_precision(self.device)
         self.slice_ms = config.slice_ms or (8.0 if self.device.type == "cuda" else 100.0)
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="isosr-device")
-        # Image and buffers encoding: off the device thread, which goes on with the next frame meanwhile.
-        self._encoder = ThreadPoolExecutor(max_workers=1, thread_name_prefix="isosr-encoder")
+        # Image, video and buffers encoding: off the device thread, which goes on with the next frame meanwhile.
+        self._encoder = ThreadPoolExecutor(max_workers=ENCODER_THREADS, thread_name_prefix="isosr-encoder")
         self._renderers: OrderedDict[str, Renderer] = OrderedDict()
         self.networks = Networks(serving_network)
         self._models = {Upscaler: (config.model, MODEL_NAMES[Upscaler]),
@@ -146,7 +151,8 @@ class Engine:
         for mode in ("full", "network", "reconstruct"):  # compiles shading with and without AO on GPUs
             job = FrameJob(ViewSettings(mode=mode, width=8 * factor, height=8 * factor), orbit(30, 20, 1.8), 0.5,
                            FocusMsg(), 0, False, 1)
-            pack_codes(self.codes_sync(finish_steps(frames.steps(renderer, job))), "jpeg", 80)
+            pack_codes(self.codes_sync(finish_steps(frames.steps(renderer, job))),
+                       lambda rgb: CodedImage(encode_image(rgb, "jpeg", 80), "jpeg"))
 
     @property
     def upscale_factor(self) -> int:
@@ -157,8 +163,12 @@ class Engine:
         cfg = self.network(Upscaler).net.config
         return {"upscale_factor": self.upscale_factor, "precision": self.precision, "device": str(self.device),
                 "model": Path(self.config.model).name,
-                "encoders": {e: encoder_name(str(self.device), e) for e in IMAGE_ENCODINGS},
+                "encoders": {e: encoder_name(str(self.device), e) for e in self.encodings()},
                 "config": {k: v for k, v in vars(cfg).items() if isinstance(v, (int, float, str, bool, list, tuple))}}
+
+    def encodings(self) -> list[str]:
+        """The encodings view sessions can have now: the images, and the video codecs PyAV has."""
+        return list(IMAGE_ENCODINGS + video.available())
 
     def recon_info(self) -> dict:
         """The reconstruction model's parameters for ``GET /v2/models/isosr-recon`` (its folder's name only)."""
@@ -194,12 +204,13 @@ class Engine:
                 self._renderers.popitem(last=False)
         return self._renderers[name]
 
-    async def view_frame(self, frames: SessionFrames, renderer: Renderer, job: FrameJob, encoding: str,
-                         quality: int) -> EncodedFrame:
+    async def view_frame(self, frames: SessionFrames, renderer: Renderer, job: FrameJob,
+                         code: Callable[[torch.Tensor], CodedImage]) -> EncodedFrame:
         """One view frame, made in slices of about ``slice_ms`` (:meth:`SessionFrames.steps`), each
         its own job on the device thread, so that other sessions' frames interleave with a heavy one;
-        its codes made there too (:meth:`codes_sync`), then encoded on the encoder thread
-        (:func:`pack_codes`), while the device thread goes on with the next frame."""
+        its codes made there too (:meth:`codes_sync`), then encoded on an encoder thread
+        (:func:`pack_codes`; ``code`` codes a shaded frame's colors), while the device thread goes on
+        with the next frame."""
         start = time.perf_counter()
         steps = frames.steps(renderer, job, self.slice_ms)
         while True:
@@ -208,8 +219,7 @@ class Engine:
                 break
         codes = await self.call(self.codes_sync, made)
         began = time.perf_counter()
-        image, buffers = await asyncio.get_running_loop().run_in_executor(self._encoder, pack_codes, codes,
-                                                                          encoding, quality)
+        image, buffers = await asyncio.get_running_loop().run_in_executor(self._encoder, pack_codes, codes, code)
         done = time.perf_counter()
         times = made.result.times | {"encode": 1e3 * (done - began), "total": 1e3 * (done - start)}
         return EncodedFrame(image, buffers, times, made.legend, made.method.name, made.prev_seq)
@@ -259,11 +269,12 @@ class Engine:
         return image, buffers, timer.ms() | {"total": 1e3 * (time.perf_counter() - start)}
 
 
-def pack_codes(codes: torch.Tensor | tuple, encoding: str, quality: int) -> tuple[bytes | None, ViewBuffers | None]:
-    """``(image, None)`` of quantized colors, or ``(None, buffers)`` of the buffers codes (encoder thread)."""
+def pack_codes(codes: torch.Tensor | tuple, code: Callable[[torch.Tensor], CodedImage]
+               ) -> tuple[CodedImage | None, ViewBuffers | None]:
+    """``(code(colors), None)`` of quantized colors, or ``(None, buffers)`` of the buffers codes (encoder thread)."""
     if isinstance(codes, tuple):
         return None, pack_view_buffers(*codes)
-    return encode_image(codes, encoding, quality), None
+    return code(codes), None
 
 
 def _advance(steps: Generator) -> tuple[bool, object]:

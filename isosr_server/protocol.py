@@ -30,8 +30,8 @@ Encodings (``settings.encoding``)
     a frame's ``image`` is one access unit of the session's stream (h264 Annex B with SPS/PPS
     in every keyframe; vp9 a raw frame; av1 a temporal unit of low-overhead OBUs), ``codec``
     its WebCodecs codec string, ``keyframe`` whether it decodes alone. The stream is coded at
-    even width and height (an odd side one pixel larger, its last column / row repeated): the
-    client shows the top-left ``width`` x ``height``. Keyframes come on start (a new session,
+    even width and height, av1 at sides of at least 64 (padded by repeating the last column /
+    row): the client shows the top-left ``width`` x ``height``. Keyframes come on start (a new session,
     e.g. after a reconnect), on a new size or encoding, and when the client asks (``keyframe``,
     e.g. after a decoder error). A still camera's refined frame goes out as a lossless ``png``
     frame; the next moving frame is a video keyframe. The bitrate follows ``bitrate_kbps`` (the
@@ -536,7 +536,7 @@ class FrameMsg(Message, tag="frame"):
         mode: the mode that made it (``full`` for refined frames).
         method: the display name of the frame method that made it (e.g. ``full, AO 2, spp 1``).
         width, height: the output size (buffers travel at low resolution: width / factor; video
-            is coded at even sides: show its top-left width x height).
+            is coded larger, at even sides: show its top-left width x height).
         encoding: an image or video encoding (`ENCODINGS`: ``image`` holds the bytes, module
             docstring) or ``buffers``.
         times: server milliseconds per stage (`STAGES`).

@@ -16,22 +16,32 @@ newest state, and a stalled one costs no device time or memory after that many f
 session that waits on credit for ``idle_timeout_s`` is closed with CLOSE_IDLE, as one that
 sends nothing for that long is. Sessions waiting on credit queue no device work, so the
 device thread (FIFO, one job per session at most) serves the ready sessions in turn.
+
+Video. A session in a video encoding codes its frames as one stream (:mod:`isosr_server.video`):
+its bitrate follows the client's cap or the link's throughput estimated from the
+acknowledgments, its frame rate steps down (the loop's pause between frames grows) before its
+quality drops too far, and a ``keyframe`` request renders the current state again as a keyframe.
+An encoding that cannot be made falls back to jpeg with a ``notice``.
 """
 
 from __future__ import annotations
 
 import asyncio
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, replace
+
+import msgspec
 
 from isosr_net.upscaler import Upscaler
 from isosr_render import Camera, Volume, orbit
 from isosr_server import views
 from isosr_server.engine import EncodedFrame
-from isosr_server.protocol import (CLOSE_IDLE, CLOSE_TOO_MANY, CameraMsg, FocusMsg, FrameMsg, IsoMsg, Legend, Limits,
-                                   Message, ProtocolError, ReceivedMsg, SettingsMsg, ViewSettings, encode)
+from isosr_server.protocol import (CLOSE_IDLE, CLOSE_TOO_MANY, VIDEO_ENCODINGS, CameraMsg, FocusMsg, FrameMsg, IsoMsg,
+                                   KeyframeMsg, Legend, Limits, Message, NoticeMsg, ProtocolError, ReceivedMsg,
+                                   SettingsMsg, ViewSettings)
+from isosr_server.video import CodePlan, RateControl, fallback_notice
 from isosr_server.views import FrameJob, ViewContext
 
 DEFAULT_CAMERA = CameraMsg(yaw=30.0, pitch=20.0, distance=1.8)
@@ -89,12 +99,11 @@ class ViewState:
 
 @dataclass(frozen=True)
 class ViewJob:
-    """A frame the loop should make now, and how it travels."""
+    """A frame the loop should make now, and how it is coded."""
 
     frame: FrameJob
     ack: int
-    encoding: str
-    quality: int
+    plan: CodePlan
 
 
 class ViewSession:
@@ -114,7 +123,13 @@ class ViewSession:
         self.id, self.volume_name, self.volume = session_id, volume_name, volume
         self.context, self.limits, self.sessions = context, limits, sessions
         self.check_settings(state.settings)
-        self.state = state
+        self.notices: deque[str] = deque(maxlen=8)  # to send before the next frame
+        self.state = replace(state, settings=self._makeable(state.settings))
+        self.rate = RateControl(state.settings.bitrate_kbps, limits.max_bitrate_kbps, limits.max_fps)
+        self.interval = 1.0 / limits.max_fps  # the pause between frame starts (video: its frame rate's)
+        self.keyframe_asked = False
+        self.started = time.monotonic()
+        self._timestamp_us = -1
         self.version, self.changed_at = 0, time.monotonic()
         self.changed = asyncio.Event()
         self.changed.set()
@@ -127,13 +142,30 @@ class ViewSession:
         """`ProtocolError` for settings no frame can be made of (:func:`isosr_server.views.check`)."""
         views.check(settings, self.context)
 
+    def _makeable(self, settings: ViewSettings) -> ViewSettings:
+        """``settings``, in jpeg (with a notice) where their encoding cannot be made here."""
+        notice = fallback_notice(settings.encoding)
+        if notice is None:
+            return settings
+        self.notices.append(notice)
+        return msgspec.structs.replace(settings, encoding="jpeg")
+
+    def fall_back(self, notice: str) -> None:
+        """The encoder failed: jpeg from now on (the client's next encoding tries again), and a notice."""
+        self.notices.append(notice)
+        self.state = replace(self.state, settings=msgspec.structs.replace(self.state.settings, encoding="jpeg"))
+
     def apply(self, msg: Message) -> None:
-        """Take a client update (latest wins) or acknowledgment; `ProtocolError` if it does not fit
-        this session."""
+        """Take a client update (latest wins), acknowledgment or keyframe request; `ProtocolError`
+        if it does not fit this session."""
         if isinstance(msg, ReceivedMsg):
             self.acknowledge(msg.frame)
             return
         s = self.state
+        if isinstance(msg, KeyframeMsg):  # the current state again, as a keyframe
+            self.keyframe_asked = True
+            self._changed()
+            return
         if isinstance(msg, CameraMsg):
             try:
                 s = replace(s, camera=to_camera(msg))
@@ -144,7 +176,8 @@ class ViewSession:
         elif isinstance(msg, SettingsMsg):
             settings = s.settings.updated(msg.settings, self.limits)
             self.check_settings(settings)
-            s = replace(s, settings=settings)
+            s = replace(s, settings=self._makeable(settings))
+            self.rate.set_cap(settings.bitrate_kbps)
         elif isinstance(msg, FocusMsg):
             s = replace(s, focus=msg)
         else:
@@ -153,6 +186,9 @@ class ViewSession:
         if msg.seq is not None:
             s = replace(s, ack=max(s.ack, msg.seq))
         self.state = s
+        self._changed()
+
+    def _changed(self) -> None:
         self.version += 1
         self.changed_at = time.monotonic()
         self.changed.set()
@@ -168,6 +204,7 @@ class ViewSession:
             raise ProtocolError(f"received: frame {frame} was never sent ({sent})")
         if frame > self.received_seq:
             self.received_seq = frame
+            self.rate.acknowledged(frame, time.monotonic())
             self.changed.set()
 
     def unacknowledged(self) -> int:
@@ -194,25 +231,36 @@ class ViewSession:
         else:
             return None
         job = ViewJob(FrameJob(st, s.camera, s.iso, s.focus, self.next_seq, refined, self.sessions()), s.ack,
-                      st.encoding, st.quality)
+                      self._plan(st, refined, now))
         self.next_seq += 1
         return job
+
+    def _plan(self, st: ViewSettings, refined: bool, now: float) -> CodePlan:
+        """How the next frame is coded: for video at the rate control's bitrate and frame rate."""
+        self._timestamp_us = max(self._timestamp_us + 1, round(1e6 * (now - self.started)))
+        if st.encoding not in VIDEO_ENCODINGS:
+            return CodePlan(st.encoding, st.quality, timestamp_us=self._timestamp_us, refined=refined)
+        bitrate = self.rate.bitrate_kbps(now)
+        fps = self.rate.fps(st.width, st.height, bitrate)
+        self.interval = 1.0 / fps
+        plan = CodePlan(st.encoding, st.quality, bitrate, fps, self._timestamp_us, self.keyframe_asked, refined)
+        self.keyframe_asked = False
+        return plan
 
 
 FrameMaker = Callable[[ViewJob], Awaitable[EncodedFrame]]
 
 
-async def run_frames(session: ViewSession, make: FrameMaker, send: Callable[[bytes, FrameMsg], Awaitable[None]],
-                     max_fps: float) -> None:
+async def run_frames(session: ViewSession, make: FrameMaker, send: Callable[[Message], Awaitable[None]]) -> None:
     """The session's frame loop (runs until cancelled): wait for a new state or a due refine,
-    then for credit (`ViewSession.has_credit`), keep at most ``max_fps``, make the frame
-    (``make``, on the device thread) and send it.
+    then for credit (`ViewSession.has_credit`), keep at most ``max_fps`` (video: its frame rate),
+    make the frame (``make``, on the device thread) and send it, after the notices due.
 
     Raises:
         ProtocolError: (CLOSE_IDLE) the client acknowledged no frame for ``idle_timeout_s``
             while the session had a frame to make.
     """
-    interval, last_start = 1.0 / max_fps, -float("inf")
+    last_start = -float("inf")
     stalled_since: float | None = None
     while True:
         session.changed.clear()
@@ -223,6 +271,7 @@ async def run_frames(session: ViewSession, make: FrameMaker, send: Callable[[byt
                 await _wait(session.changed, wait)
                 continue
         if not session.has_credit():
+            session.rate.lagging(now)
             stalled_since = now if stalled_since is None else stalled_since
             left = stalled_since + session.limits.idle_timeout_s - now
             if left <= 0:
@@ -231,7 +280,7 @@ async def run_frames(session: ViewSession, make: FrameMaker, send: Callable[[byt
             await _wait(session.changed, left)  # updates coalesce meanwhile; an acknowledgment wakes it
             continue
         stalled_since = None
-        pause = last_start + interval - now
+        pause = last_start + session.interval - now
         if pause > 0:
             await asyncio.sleep(pause)  # updates arriving meanwhile coalesce into the state
         job = session.next_job(time.monotonic())
@@ -239,19 +288,28 @@ async def run_frames(session: ViewSession, make: FrameMaker, send: Callable[[byt
             continue
         last_start = time.monotonic()
         made = await make(job)
+        coded = made.image
+        if coded is not None and coded.notice is not None:
+            session.fall_back(coded.notice)
+        while session.notices:
+            await send(NoticeMsg(session.notices.popleft()))
         f, st = job.frame, job.frame.settings
+        image = {"encoding": "buffers"} if coded is None else {
+            "image": coded.data, "encoding": coded.encoding, "keyframe": coded.keyframe, "codec": coded.codec,
+            "bitrate_kbps": coded.bitrate_kbps}
         msg = FrameMsg(seq=f.seq, ack=job.ack, mode="full" if f.refined else st.mode, width=st.width,
-                       height=st.height, encoding=job.encoding if made.image is not None else "buffers",
-                       times=made.times, nbytes=frame_bytes(made), refined=f.refined, image=made.image,
-                       buffers=made.buffers, prev_seq=made.prev_seq,
-                       legend=None if made.legend is None else Legend(**made.legend), method=made.method)
+                       height=st.height, times=made.times, nbytes=frame_bytes(made),
+                       refined=f.refined, buffers=made.buffers, prev_seq=made.prev_seq,
+                       legend=None if made.legend is None else Legend(**made.legend), method=made.method,
+                       timestamp_us=job.plan.timestamp_us, **image)
         session.sent_seq = f.seq  # before sending: the client may acknowledge it before send returns
-        await send(encode(msg), msg)
+        session.rate.sent(f.seq, msg.nbytes, time.monotonic())
+        await send(msg)
 
 
 def frame_bytes(made: EncodedFrame) -> int:
     """Payload bytes of a frame: the image, or the coded buffers' data."""
-    return len(made.image) if made.image is not None else made.buffers.nbytes
+    return len(made.image.data) if made.image is not None else made.buffers.nbytes
 
 
 async def _wait(event: asyncio.Event, timeout: float | None) -> None:

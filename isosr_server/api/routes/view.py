@@ -12,11 +12,12 @@ from fastapi import APIRouter, WebSocket
 from isosr_net.reconnet import MAX_RECON_AO_RAYS
 from isosr_server.api.deps import AuthorizedDep, CatalogDep, EngineDep, LimitsDep, MetricsDep, ViewSessionsDep
 from isosr_server.api.ws import accept, end_ws, receive
-from isosr_server.engine import Engine
-from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, CLOSE_IDLE, FocusMsg, Limits, OpenMsg, ProtocolError,
-                                   ReadyMsg, ViewSettings, VolumeSummary, encode, parse)
+from isosr_server.engine import ENCODER_THREADS, Engine
+from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, CLOSE_IDLE, FocusMsg, FrameMsg, Limits, Message, NoticeMsg,
+                                   OpenMsg, ProtocolError, ReadyMsg, ViewSettings, VolumeSummary, encode, parse)
 from isosr_server.sessions import (DEFAULT_CAMERA, RateLimiter, SessionCounter, ViewSession, ViewState, run_frames,
                                    to_camera)
+from isosr_server.video import SessionCoder
 from isosr_server.volumes import VolumeCatalog, load_volume
 
 log = logging.getLogger("isosr.server")
@@ -31,6 +32,7 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
         return
     limiter = RateLimiter(limits.max_messages_per_s)
     counted, tasks = False, []
+    coder = SessionCoder(ENCODER_THREADS)
     try:
         # A slot is taken only once a valid open arrived: a silent connection holds none.
         opened = parse(await receive(ws, limiter, limits), limits, (OpenMsg,))
@@ -42,21 +44,22 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
         frames = engine.new_session_frames(session.volume_name)
 
         async def make(job):
-            return await engine.view_frame(frames, renderer, job.frame, job.encoding, job.quality)
+            return await engine.view_frame(frames, renderer, job.frame, lambda rgb: coder.code(rgb, job.plan))
 
-        async def send(data: bytes, msg) -> None:
+        async def send(msg: Message) -> None:
             try:
-                await asyncio.wait_for(ws.send_bytes(data), limits.idle_timeout_s)
+                await asyncio.wait_for(ws.send_bytes(encode(msg)), limits.idle_timeout_s)
             except TimeoutError:
                 raise ProtocolError(f"the client read no frame for {limits.idle_timeout_s:g} s", CLOSE_IDLE,
                                     408) from None
-            metrics.frame("view", msg.mode, msg.refined, msg.times, msg.nbytes)
+            if isinstance(msg, FrameMsg):
+                metrics.frame("view", msg.mode, msg.refined, msg.times, msg.nbytes)
 
         async def updates():
             while True:
                 session.apply(parse(await receive(ws, limiter, limits), limits, CLIENT_VIEW_MESSAGES))
 
-        tasks = [asyncio.create_task(run_frames(session, make, send, limits.max_fps)),
+        tasks = [asyncio.create_task(run_frames(session, make, send)),
                  asyncio.create_task(updates())]
         done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         for task in done:
@@ -67,6 +70,7 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
         for task in tasks:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
+        await asyncio.get_running_loop().run_in_executor(None, coder.close)  # after a frame still encoding
         if counted:
             view_sessions.release()
             metrics.sessions.labels("view").set(view_sessions.count)
@@ -87,9 +91,11 @@ async def open_view(ws: WebSocket, msg: OpenMsg, limits: Limits, catalog: Volume
                       msg.camera.seq if msg.camera and msg.camera.seq is not None else -1)
     session = ViewSession(secrets.token_hex(8), msg.volume, volume, state, engine.context, limits,
                           lambda: view_sessions.count)
-    ready = ReadyMsg(session.id, VolumeSummary(**info.to_json(), iso_normalized=normalized), settings,
-                     engine.upscale_factor, MAX_RECON_AO_RAYS, limits)
+    ready = ReadyMsg(session.id, VolumeSummary(**info.to_json(), iso_normalized=normalized), session.state.settings,
+                     engine.upscale_factor, MAX_RECON_AO_RAYS, limits, engine.encodings())
     await ws.send_bytes(encode(ready))
-    log.info("view session %s opened on %s (%s %dx%d)", session.id, msg.volume, settings.mode, settings.width,
-             settings.height)
+    while session.notices:  # why the encoding is not the one asked for
+        await ws.send_bytes(encode(NoticeMsg(session.notices.popleft())))
+    log.info("view session %s opened on %s (%s %dx%d, %s)", session.id, msg.volume, settings.mode, settings.width,
+             settings.height, session.state.settings.encoding)
     return session

@@ -1,0 +1,211 @@
+"""A view session's frame coding: images, or a video stream whose bitrate and frame rate follow
+the link (issue 21; the codecs: :mod:`isosr_server.codecs.video`).
+
+Rate control (`RateControl`, on the event loop). The target bitrate is the client's cap
+(``bitrate_kbps`` > 0), or, with 0, the server's own choice: it starts at ``max_bitrate_kbps``
+(the encoders' constant quality decides the bytes while the link keeps up) and follows the
+link. The link's throughput is estimated from acknowledged frames (``received``): a frame's
+bytes over the time the link was busy with it (from its send, or the previous acknowledgment
+if later, to its acknowledgment), the largest such sample of the last `WINDOW_S`. When the
+frame loop has a frame to make but no credit (the link or the client lags), the target drops
+to `HEADROOM` of that estimate; after `PROBE_S` without waiting it rises by `PROBE_STEP`, up
+to the ceiling. The frame rate steps down (`FPS_STEPS`) before the bits per pixel of a frame
+fall below `MIN_BITS_PER_PIXEL`. Credit-based flow control stays: a slow link drops frames
+(latest wins), never queues them.
+
+Coding (`SessionCoder`, on the engine's encoder threads; one frame of a session at a time). Image
+encodings encode each frame alone. A video session keeps one encoder, opened anew (its first
+frame a keyframe) on a new encoding, size or quality, when its rate is off the target by more
+than `REOPEN_DOWN` / `REOPEN_UP` (up only while the cap binds), and forces a keyframe at the
+client's request and after a refined frame (which goes out as a lossless ``png``). An encoder
+that cannot be made (PyAV or the codec missing, settings refused) gives a ``jpeg`` frame and a
+notice; the session then stays on jpeg until the client asks for another encoding.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from isosr_server.codecs.video import VideoEncoder, VideoUnavailable, check_available
+from isosr_server.encoding import CodedImage, encode_image
+from isosr_server.protocol import VIDEO_ENCODINGS
+
+# The link estimate: the largest throughput sample of the last WINDOW_S seconds.
+WINDOW_S = 2.0
+# A lagging link gets this share of its estimate; PROBE_S seconds without lag raise the target PROBE_STEP times.
+HEADROOM, PROBE_S, PROBE_STEP = 0.8, 1.0, 1.25
+# The lowest target the estimate sets (a stalled client must not drive it to nothing).
+MIN_KBPS = 100
+# Frame rates a session steps through; below MIN_BITS_PER_PIXEL a frame's quality drops too far.
+FPS_STEPS = (60.0, 30.0, 20.0, 15.0, 10.0, 5.0)
+MIN_BITS_PER_PIXEL = 0.03
+# A running encoder is reopened when the target falls below 1/REOPEN_DOWN of its rate, or rises
+# above REOPEN_UP times it while its frames fill at least CAP_BINDS of their share.
+REOPEN_DOWN, REOPEN_UP, CAP_BINDS = 1.2, 1.5, 0.6
+# Frames whose size the encoder remembers (does the cap bind?); frames in flight the estimate tracks.
+RECENT_FRAMES = 8
+
+
+class RateControl:
+    """A video session's target bitrate and frame rate (module docstring).
+
+    Args:
+        cap_kbps: the client's cap (0: estimate the link).
+        ceiling_kbps: ``max_bitrate_kbps``.
+        max_fps: ``max_fps``.
+    """
+
+    def __init__(self, cap_kbps: int, ceiling_kbps: int, max_fps: float):
+        self.ceiling, self.max_fps = ceiling_kbps, max_fps
+        self.cap = cap_kbps
+        self.target = float(cap_kbps or ceiling_kbps)
+        self._inflight: deque[tuple[int, int, float]] = deque(maxlen=64)  # (seq, bytes, sent at)
+        self._samples: deque[tuple[float, float]] = deque(maxlen=64)  # (when, kbit/s)
+        self._last_ack = -float("inf")
+        self._changed = time.monotonic()
+
+    def set_cap(self, cap_kbps: int) -> None:
+        """A new ``bitrate_kbps`` (0: estimate)."""
+        if cap_kbps != self.cap:
+            self.cap, self.target, self._changed = cap_kbps, float(cap_kbps or self.target), time.monotonic()
+
+    def sent(self, seq: int, nbytes: int, now: float) -> None:
+        self._inflight.append((seq, nbytes, now))
+
+    def acknowledged(self, seq: int, now: float) -> None:
+        """Frames up to ``seq`` arrived: one throughput sample."""
+        nbytes, began = 0, None
+        while self._inflight and self._inflight[0][0] <= seq:
+            _, n, sent = self._inflight.popleft()
+            nbytes, began = nbytes + n, sent if began is None else began
+        if began is not None:
+            busy = now - max(began, self._last_ack)
+            if busy > 0:
+                self._samples.append((now, 8e-3 * nbytes / busy))
+        self._last_ack = now
+
+    def estimate(self, now: float) -> float | None:
+        """The link's throughput in kbit/s (None: no sample of the last WINDOW_S)."""
+        recent = [kbps for when, kbps in self._samples if now - when <= WINDOW_S]
+        return max(recent) if recent else None
+
+    def lagging(self, now: float) -> None:
+        """The frame loop waits on credit: with no cap of the client's, aim below the link's estimate."""
+        estimate = self.estimate(now)
+        if self.cap == 0 and estimate is not None and self.target > HEADROOM * estimate:
+            self.target, self._changed = max(float(MIN_KBPS), HEADROOM * estimate), now
+
+    def bitrate_kbps(self, now: float) -> int:
+        """The target now (probing upwards after PROBE_S without lag)."""
+        if self.cap == 0 and self.target < self.ceiling and now - self._changed >= PROBE_S:
+            self.target, self._changed = min(float(self.ceiling), self.target * PROBE_STEP), now
+        return max(1, round(self.target))
+
+    def fps(self, width: int, height: int, bitrate_kbps: int) -> float:
+        """The highest of `FPS_STEPS` (at most ``max_fps``) whose frames get MIN_BITS_PER_PIXEL."""
+        steps = [f for f in FPS_STEPS if f <= self.max_fps] or [self.max_fps]
+        return next((f for f in steps if 1e3 * bitrate_kbps / (f * width * height) >= MIN_BITS_PER_PIXEL),
+                    steps[-1])
+
+
+@dataclass(frozen=True)
+class CodePlan:
+    """How one frame is coded: the session's encoding (``png`` for a refined frame), quality,
+    and for video the target bitrate, frame rate, timestamp and whether a keyframe is asked for."""
+
+    encoding: str
+    quality: int
+    bitrate_kbps: int = 0
+    fps: float = 30.0
+    timestamp_us: int = 0
+    keyframe: bool = False
+    refined: bool = False
+
+
+class SessionCoder:
+    """One view session's coding of its frames (module docstring); thread-safe (a lock).
+
+    Args:
+        cores: the CPU cores encoders may use (`video_threads`).
+    """
+
+    def __init__(self, cores: int):
+        self.cores = cores
+        self._lock = threading.Lock()
+        self.encoder: VideoEncoder | None = None
+        self._sizes: deque[int] = deque(maxlen=RECENT_FRAMES)
+        self._after_still = False
+
+    def code(self, rgb: torch.Tensor, plan: CodePlan) -> CodedImage:
+        """One frame's bytes as ``plan`` says (a jpeg frame with a notice where video fails).
+
+        Shape:
+            rgb: (H, W, 3) uint8, on any device.
+        """
+        with self._lock:
+            return self._code(rgb, plan)
+
+    def _code(self, rgb: torch.Tensor, plan: CodePlan) -> CodedImage:
+        if plan.refined and plan.encoding in VIDEO_ENCODINGS:
+            self._after_still = True
+            return CodedImage(encode_image(rgb, "png", plan.quality), "png")
+        if plan.encoding not in VIDEO_ENCODINGS:
+            return CodedImage(encode_image(rgb, plan.encoding, plan.quality), plan.encoding)
+        try:
+            encoder = self._encoder(int(rgb.shape[1]), int(rgb.shape[0]), plan)
+        except VideoUnavailable as e:
+            self._close()
+            return CodedImage(encode_image(rgb, "jpeg", plan.quality), "jpeg", notice=f"{e}; sending jpeg")
+        data, key = encoder.encode(rgb.cpu().numpy(), plan.timestamp_us, plan.keyframe or self._after_still)
+        self._after_still = False
+        self._sizes.append(len(data))
+        return CodedImage(data, plan.encoding, key, encoder.codec, encoder.bitrate_kbps)
+
+    def _encoder(self, width: int, height: int, plan: CodePlan) -> VideoEncoder:
+        """The running encoder, or a new one where the plan differs from it (module docstring)."""
+        e = self.encoder
+        if e is not None and (e.encoding, e.width, e.height, e.quality) == (plan.encoding, width, height,
+                                                                            plan.quality):
+            share = 125.0 * e.bitrate_kbps / e.fps  # bytes of a frame's share of the rate
+            binds = len(self._sizes) > 1 and np.mean(list(self._sizes)[1:]) >= CAP_BINDS * share
+            if plan.fps == e.fps and not (plan.bitrate_kbps * REOPEN_DOWN < e.bitrate_kbps or
+                                          (binds and plan.bitrate_kbps > REOPEN_UP * e.bitrate_kbps)):
+                return e
+        self._close()
+        self.encoder = VideoEncoder(plan.encoding, width, height, plan.quality, plan.bitrate_kbps, plan.fps,
+                                    video_threads(width, height, self.cores))
+        return self.encoder
+
+    def close(self) -> None:
+        """Free the video encoder (the next video frame opens one, a keyframe)."""
+        with self._lock:
+            self._close()
+
+    def _close(self) -> None:
+        if self.encoder is not None:
+            self.encoder.close()
+        self.encoder = None
+        self._sizes.clear()
+
+
+def video_threads(width: int, height: int, cores: int) -> int:
+    """Threads of a video encoder of this size: one per half megapixel, 1 to ``cores`` // 2."""
+    return max(1, min(max(1, cores // 2), width * height // 500_000))
+
+
+def fallback_notice(encoding: str) -> str | None:
+    """Why ``encoding`` cannot be made here (None: it can, or it is an image encoding)."""
+    if encoding not in VIDEO_ENCODINGS:
+        return None
+    try:
+        check_available(encoding)
+    except VideoUnavailable as e:
+        return f"{e}; sending jpeg"
+    return None
+
