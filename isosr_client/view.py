@@ -11,7 +11,12 @@ Synchronous (``websockets.sync.client``). In ``buffers`` mode the server sends t
 buffers and this side decodes them (:mod:`isosr_server.codecs.buffers`, numpy), upscales them
 with the network on ``device`` and shades them (:mod:`isosr_client.local`, loaded with torch at
 the first such frame), keeping the network's recurrent state across frames; every other mode
-arrives as an encoded image. Of the server, only the protocol and its codecs are imported.
+arrives as an encoded image, or as video (h264, vp9, av1: decoded here with PyAV, the ``video``
+extra, as each frame arrives, since each needs the ones before it; a decoder error asks the
+server for a keyframe). ``prefer`` picks the encoding: the first this side can decode and the
+server offers (``ready.encoders``); an encoding this side cannot decode falls back to jpeg, and
+why, like the server's own notices, lands in ``notices``. Of the server, only the protocol and
+its codecs are imported.
 
 With ``reconnect=True`` a session whose connection is lost (the server's process died, or it
 went away or failed: `RECONNECT_CODES`) opens itself again, on any replica behind
@@ -23,7 +28,9 @@ from __future__ import annotations
 
 import ssl
 import time
-from collections.abc import Callable
+import warnings
+from collections import deque
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -35,11 +42,12 @@ from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect as ws_connect
 
 from isosr_render.image_codec import decode_image
+from isosr_server.codecs import video
 from isosr_server.codecs.buffers import decode_view_buffers
-from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, CLOSE_GOING_AWAY, CLOSE_INTERNAL, REPLICA_HEADER,
-                                   SERVER_VIEW_MESSAGES, TOKEN_HEADER, CameraMsg, ErrorMsg, FocusMsg, FrameMsg, IsoMsg,
-                                   Limits, OpenMsg, ProtocolError, ReadyMsg, ReceivedMsg, SettingsMsg, SettingsUpdate,
-                                   ViewSettings, convert, encode, parse)
+from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, CLOSE_GOING_AWAY, CLOSE_INTERNAL, ENCODINGS, REPLICA_HEADER,
+                                   SERVER_VIEW_MESSAGES, TOKEN_HEADER, VIDEO_ENCODINGS, CameraMsg, ErrorMsg, FocusMsg,
+                                   FrameMsg, IsoMsg, KeyframeMsg, Limits, NoticeMsg, OpenMsg, ProtocolError, ReadyMsg,
+                                   ReceivedMsg, SettingsMsg, SettingsUpdate, ViewSettings, convert, encode, parse)
 
 if TYPE_CHECKING:
     from isosr_client.local import LocalUpscaler
@@ -53,6 +61,38 @@ CLIENT_LIMITS = Limits(max_message_bytes=2**28)
 RECONNECT_CODES = (1006, CLOSE_GOING_AWAY, CLOSE_INTERNAL, 1012, 1013)
 # How long a lost session keeps trying to open again; the pauses between tries (doubling from the first).
 RECONNECT_WINDOW_S, RECONNECT_PAUSE_S, RECONNECT_PAUSE_MAX_S = 10.0, 0.05, 0.25
+# Notices a session keeps (the newest).
+MAX_NOTICES = 32
+
+
+def decodable(encoding: str) -> str | None:
+    """Why this side cannot decode ``encoding`` (None: it can)."""
+    if encoding not in VIDEO_ENCODINGS:
+        return None
+    try:
+        video.check_available(encoding, decode=True)
+    except video.VideoUnavailable as e:
+        return str(e)
+    return None
+
+
+def choose_encoding(prefer: Sequence[str], offered: Sequence[str] = ENCODINGS) -> tuple[str, list[str]]:
+    """The first of ``prefer`` that this side can decode and ``offered`` holds (jpeg if none), and
+    why the ones before it were passed over.
+
+    Raises:
+        ValueError: ``prefer`` names something that is no encoding.
+    """
+    unknown = [e for e in prefer if e not in ENCODINGS]
+    if unknown:
+        raise ValueError(f"prefer: {unknown[0]!r} is not an encoding ({', '.join(ENCODINGS)})")
+    passed = []
+    for encoding in prefer:
+        why = decodable(encoding) or (None if encoding in offered else f"the server offers no {encoding}")
+        if why is None:
+            return encoding, passed
+        passed.append(why)
+    return "jpeg", passed
 
 
 class ServerError(RuntimeError):
@@ -117,9 +157,10 @@ class FrameStats:
         nbytes: payload bytes (image, or the coded buffers).
         wire_bytes: the whole message.
         server_ms: the server's milliseconds per stage (render, network, shading, encode, total).
-        client_ms: this side's milliseconds: ``decode`` (image or buffers), ``network`` (local
+        client_ms: this side's milliseconds: ``decode`` (image, video or buffers), ``network`` (local
             upscaling), ``shading``; filled as they happen.
         replica: the server replica that made it (``isosr serve --replicas``; None: a single server).
+        encoding: the frame's encoding; ``keyframe``, ``bitrate_kbps``: a video frame's.
     """
 
     seq: int
@@ -133,6 +174,9 @@ class FrameStats:
     server_ms: dict[str, float]
     client_ms: dict[str, float] = field(default_factory=dict)
     replica: str | None = None
+    encoding: str = "jpeg"
+    keyframe: bool = True
+    bitrate_kbps: int = 0
 
 
 @dataclass
@@ -143,15 +187,19 @@ class ViewFrame:
         message: the validated frame message.
         stats: its costs.
         highres: ``buffers`` frames upscaled here: the network's high-res buffers, else None.
+        error: a video frame that could not be decoded: why (a keyframe was asked for).
     """
 
     message: FrameMsg
     stats: FrameStats
     highres: FrameBuffers | None = None
+    error: str | None = None
     _rgb: np.ndarray | None = None
 
     def rgb(self) -> np.ndarray:
         """The frame as (H, W, 3) uint8 RGB (decoded or shaded on first call)."""
+        if self.error is not None:
+            raise ValueError(f"frame {self.message.seq}: {self.error}")
         if self._rgb is None:
             start = time.perf_counter()
             if self.message.image is not None:
@@ -199,6 +247,13 @@ class ViewSession:
         self._latest: ViewFrame | None = None
         self.stats: FrameStats | None = None
         self.closed = False
+        self.notices: deque[str] = deque(maxlen=MAX_NOTICES)
+        self._decoder: video.VideoDecoder | None = None  # the video stream's, from its last keyframe
+
+    def _notice(self, text: str) -> None:
+        """News about the session (an encoding that cannot be had): kept and warned of."""
+        self.notices.append(text)
+        warnings.warn(text, stacklevel=3)
 
     # ---- updates -------------------------------------------------------------------------------
 
@@ -252,6 +307,10 @@ class ViewSession:
         """
         update = convert(settings, SettingsUpdate, "settings")
         self.settings.updated(update, self.limits)  # refused here, before a seq is taken
+        why = decodable(settings.get("encoding", "jpeg"))
+        if why is not None:
+            self._notice(f"{why}; asking for jpeg")
+            update = msgspec.structs.replace(update, encoding="jpeg")
         return self._send(SettingsMsg(update, self._next_seq()))
 
     def set_focus(self, shape: str = "none", center: tuple[float, float] | None = None, radius: float | None = None,
@@ -303,6 +362,9 @@ class ViewSession:
         if isinstance(msg, ErrorMsg):
             self.close()
             raise ServerError(msg.code, msg.reason)
+        if isinstance(msg, NoticeMsg):
+            self._notice(f"server: {msg.text}")
+            return True
         if not isinstance(msg, FrameMsg):
             raise ProtocolError(f"expected a frame, got a {msg.TYPE} message")
         self._acknowledge(msg.seq)
@@ -310,12 +372,35 @@ class ViewSession:
         for s in [s for s in self._sent_at if -1 < s < msg.ack]:
             del self._sent_at[s]  # bounded: the newest acknowledged update and those after it stay
         stats = FrameStats(msg.seq, msg.ack, msg.mode, msg.method, msg.refined, 1e3 * (arrived - sent), msg.nbytes,
-                           len(data), dict(msg.times), replica=self.replica)
+                           len(data), dict(msg.times), replica=self.replica, encoding=msg.encoding,
+                           keyframe=msg.keyframe, bitrate_kbps=msg.bitrate_kbps)
         frame = ViewFrame(msg, stats)
-        if msg.buffers is not None and self.local_upscale:
+        if msg.encoding in VIDEO_ENCODINGS:
+            self._decode_video(frame)
+        elif msg.buffers is not None and self.local_upscale:
             frame.highres = self._upscale(msg, stats)
         self._latest, self.stats = frame, stats
         return True
+
+    def _decode_video(self, frame: ViewFrame) -> None:
+        """Decode a video frame now (the next needs it): its RGB, or its error after which a
+        keyframe is asked for and delta frames are passed over until one comes."""
+        msg, start = frame.message, time.perf_counter()
+        if msg.keyframe and (self._decoder is None or self._decoder.encoding != msg.encoding):
+            self._decoder = video.VideoDecoder(msg.encoding)  # the encoding was decodable when asked for
+        if self._decoder is None or self._decoder.encoding != msg.encoding:
+            frame.error = "a delta frame without its keyframe"
+            return
+        try:
+            frame._rgb = self._decoder.decode(msg.image, msg.width, msg.height)
+        except ValueError as e:
+            frame.error = f"{e}; a keyframe was asked for"
+            self._decoder = None
+            try:
+                self._ws.send(encode(KeyframeMsg()))
+            except ConnectionClosed:
+                pass  # the next receive reports the close
+        frame.stats.client_ms["decode"] = 1e3 * (time.perf_counter() - start)
 
     def _acknowledge(self, frame_seq: int) -> None:
         """Tell the server this frame was taken: credit for the next (flow control)."""
@@ -379,6 +464,7 @@ class ViewSession:
         self._seq = -1 if camera is None else 0
         self._sent_at = {-1: opened_at, self._seq: opened_at}
         self._latest, self._last_buffers_seq = None, -1  # the local network starts afresh too
+        self._decoder = None  # the new session's stream starts with a keyframe
         self.reconnects += 1
         if self._focus is not None:
             self._send(msgspec.structs.replace(self._focus, seq=self._next_seq()))
@@ -410,7 +496,8 @@ def connect(url: str, volume: str, mode: str = "auto", size: tuple[int, int] = (
             token: str | None = None, settings: dict | None = None, camera: dict | None = None,
             iso: float | None = None, iso_normalized: bool = False, device: str = "cpu",
             model: str | Path | None = None, local_upscale: bool = True, timeout: float = 60.0,
-            reconnect: bool = False, cafile: str | Path | None = None) -> ViewSession:
+            reconnect: bool = False, prefer: Sequence[str] | None = None,
+            cafile: str | Path | None = None) -> ViewSession:
     """Open a view session on ``volume`` (a name from ``GET /v1/volumes``, or ``proc:...``).
 
     Args:
@@ -430,6 +517,9 @@ def connect(url: str, volume: str, mode: str = "auto", size: tuple[int, int] = (
         local_upscale: upscale ``buffers`` frames here (off: keep them coded, e.g. to time the server).
         timeout: seconds to wait for the connection and for each frame.
         reconnect: open the session again when its connection is lost (module docstring).
+        prefer: encodings best first (e.g. ``("av1", "h264", "jpeg")``): the session opens with the
+            first this side decodes and switches to the first of those ``ready.encoders`` offers
+            (over ``settings["encoding"]``).
         cafile: PEM certificates to trust for an https/wss server instead of the system's (e.g. the
             server's self-signed certificate).
 
@@ -438,7 +528,14 @@ def connect(url: str, volume: str, mode: str = "auto", size: tuple[int, int] = (
         ProtocolError: bad settings or camera, found before anything is sent.
     """
     width, height = size
-    wanted = convert(dict(settings or {}, mode=mode, width=width, height=height), SettingsUpdate, "settings")
+    settings, passed = dict(settings or {}), []
+    if prefer is not None:
+        settings["encoding"], passed = choose_encoding(prefer)
+    why = decodable(settings.get("encoding", "jpeg"))
+    if why is not None:
+        settings["encoding"] = "jpeg"
+        passed.append(why)
+    wanted = convert(dict(settings, mode=mode, width=width, height=height), SettingsUpdate, "settings")
     first_camera = None if camera is None else CameraMsg(**{k: _floats(v) if isinstance(v, (list, tuple)) else v
                                                              for k, v in camera.items()}, seq=0)
     open_msg = OpenMsg(volume, wanted, first_camera, iso, iso_normalized)
@@ -448,7 +545,14 @@ def connect(url: str, volume: str, mode: str = "auto", size: tuple[int, int] = (
     context = tls_context(where, cafile)
     ws, ready, opened_at = _open(where, headers, open_msg, timeout, context)
     reopen = (lambda msg: _open(where, headers, msg, timeout, context)) if reconnect else None
-    return ViewSession(ws, ready, opened_at, open_msg, device, model, local_upscale, timeout, reopen)
+    view = ViewSession(ws, ready, opened_at, open_msg, device, model, local_upscale, timeout, reopen)
+    for why in passed:
+        view._notice(f"{why}; asking for {wanted.encoding}")
+    if prefer is not None:
+        best, _ = choose_encoding(prefer, ready.encoders)
+        if best != ready.settings.encoding:
+            view.set_settings(encoding=best)
+    return view
 
 
 def _open(where: str, headers: dict[str, str], open_msg: OpenMsg, timeout: float,

@@ -243,7 +243,8 @@ class ViewSession:
         bitrate = self.rate.bitrate_kbps(now)
         fps = self.rate.fps(st.width, st.height, bitrate)
         self.interval = 1.0 / fps
-        plan = CodePlan(st.encoding, st.quality, bitrate, fps, self._timestamp_us, self.keyframe_asked, refined)
+        plan = CodePlan(st.encoding, st.quality, bitrate, self.rate.encoder_fps(fps, now), self._timestamp_us,
+                        self.keyframe_asked, refined)
         self.keyframe_asked = False
         return plan
 

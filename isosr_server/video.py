@@ -10,7 +10,8 @@ if later, to its acknowledgment), the largest such sample of the last `WINDOW_S`
 frame loop has a frame to make but no credit (the link or the client lags), the target drops
 to `HEADROOM` of that estimate; after `PROBE_S` without waiting it rises by `PROBE_STEP`, up
 to the ceiling. The frame rate steps down (`FPS_STEPS`) before the bits per pixel of a frame
-fall below `MIN_BITS_PER_PIXEL`. Credit-based flow control stays: a slow link drops frames
+fall below `MIN_BITS_PER_PIXEL`; the encoder's share of the bitrate per frame follows the frame
+rate the session really has (frames sent in the last WINDOW_S, when slower). Credit-based flow control stays: a slow link drops frames
 (latest wins), never queues them.
 
 Coding (`SessionCoder`, on the engine's encoder threads; one frame of a session at a time). Image
@@ -41,7 +42,7 @@ WINDOW_S = 2.0
 # A lagging link gets this share of its estimate; PROBE_S seconds without lag raise the target PROBE_STEP times.
 HEADROOM, PROBE_S, PROBE_STEP = 0.8, 1.0, 1.25
 # The lowest target the estimate sets (a stalled client must not drive it to nothing).
-MIN_KBPS = 100
+MIN_KBPS = 50
 # Frame rates a session steps through; below MIN_BITS_PER_PIXEL a frame's quality drops too far.
 FPS_STEPS = (60.0, 30.0, 20.0, 15.0, 10.0, 5.0)
 MIN_BITS_PER_PIXEL = 0.03
@@ -66,6 +67,7 @@ class RateControl:
         self.cap = cap_kbps
         self.target = float(cap_kbps or ceiling_kbps)
         self._inflight: deque[tuple[int, int, float]] = deque(maxlen=64)  # (seq, bytes, sent at)
+        self._sent: deque[float] = deque(maxlen=64)  # when the last frames were sent
         self._samples: deque[tuple[float, float]] = deque(maxlen=64)  # (when, kbit/s)
         self._last_ack = -float("inf")
         self._changed = time.monotonic()
@@ -77,6 +79,7 @@ class RateControl:
 
     def sent(self, seq: int, nbytes: int, now: float) -> None:
         self._inflight.append((seq, nbytes, now))
+        self._sent.append(now)
 
     def acknowledged(self, seq: int, now: float) -> None:
         """Frames up to ``seq`` arrived: one throughput sample."""
@@ -108,10 +111,22 @@ class RateControl:
         return max(1, round(self.target))
 
     def fps(self, width: int, height: int, bitrate_kbps: int) -> float:
-        """The highest of `FPS_STEPS` (at most ``max_fps``) whose frames get MIN_BITS_PER_PIXEL."""
-        steps = [f for f in FPS_STEPS if f <= self.max_fps] or [self.max_fps]
-        return next((f for f in steps if 1e3 * bitrate_kbps / (f * width * height) >= MIN_BITS_PER_PIXEL),
-                    steps[-1])
+        """The frame rate to keep: the highest of ``max_fps`` and the lower `FPS_STEPS` whose frames
+        get MIN_BITS_PER_PIXEL."""
+        return next((f for f in self._steps() if 1e3 * bitrate_kbps / (f * width * height) >= MIN_BITS_PER_PIXEL),
+                    self._steps()[-1])
+
+    def encoder_fps(self, fps: float, now: float) -> float:
+        """The frame rate the encoder shares the bitrate by: ``fps``, or the step at or above the rate
+        of the frames sent in the last WINDOW_S where that is lower (a render-bound session)."""
+        recent = [t for t in self._sent if now - t <= WINDOW_S]
+        if len(recent) < 3 or recent[-1] <= recent[0]:
+            return fps
+        made = (len(recent) - 1) / (recent[-1] - recent[0])
+        return min(fps, min((f for f in self._steps() if f >= made), default=self._steps()[0]))
+
+    def _steps(self) -> list[float]:
+        return [self.max_fps] + [f for f in FPS_STEPS if f < self.max_fps]
 
 
 @dataclass(frozen=True)

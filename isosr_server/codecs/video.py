@@ -81,7 +81,6 @@ def _av():
         import av
     except ImportError:
         return None
-    av.logging.set_level(av.logging.ERROR)  # FFmpeg's own warnings stay out of the service's log
     return av
 
 
