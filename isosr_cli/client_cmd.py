@@ -21,7 +21,7 @@ def add_parser(subparsers) -> None:
     """Register ``client``."""
     p = subparsers.add_parser("client", help="view a volume on an isosr server, write the frames, report costs",
                               description=__doc__, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("url", help="the server, http://HOST:PORT")
+    p.add_argument("url", help="the server, http(s)://HOST:PORT")
     p.add_argument("--volume", required=True, help="a name from GET /v1/volumes, or proc:cloud:0 and the like")
     p.add_argument("--mode", default="auto", choices=MODES, help="the view mode (auto: the server chooses the method)")
     p.add_argument("--frames", type=int, default=30)
@@ -37,6 +37,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--out", type=Path, help="folder for frame_NNNN.png and summary.json (default: none written)")
     p.add_argument("--device", default="cpu", help="where buffers mode upscales: cpu, cuda, cuda:N")
     p.add_argument("--token", help=f"the server's token (default: ${TOKEN_ENV})")
+    p.add_argument("--cafile", type=Path, help="PEM certificates to trust for an https server (e.g. its "
+                                               "self-signed one; default: the system's)")
     p.add_argument("--no-compare", action="store_true", help="skip the full-mode replay")
     p.add_argument("--timeout", type=float, default=60.0, help="seconds to wait for a frame")
     p.set_defaults(func=run)
@@ -83,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
 
     def session(mode: str):
         view = connect(args.url, args.volume, mode, size, token=token, settings=settings, iso=args.iso,
-                       device=args.device, timeout=args.timeout)
+                       device=args.device, timeout=args.timeout, cafile=args.cafile)
         if mode == "focus":
             view.set_focus("circle", focus[:2], focus[2])
         return view

@@ -3,6 +3,10 @@
 Every option can also be set by the environment: ISOSR_ and the option's name in capitals
 (ISOSR_TOKEN, ISOSR_DEVICE, ISOSR_MAX_FPS, ...); a flag wins over the environment.
 
+Beyond loopback (--host 0.0.0.0) the server needs --token, and --tls-cert/--tls-key (HTTPS and
+WSS) unless --insecure: over plain HTTP the token and the frames are readable on the path, and
+browsers decode video (WebCodecs) only on HTTPS pages and loopback.
+
 With --replicas N the same service runs as N replicas under Ray Serve (pip install isosr[cluster]):
 a local Ray instance, or the cluster at --ray-address; without it, one process on uvicorn.
 """
@@ -58,5 +62,5 @@ def run(args: argparse.Namespace) -> int:
     if args.gpus_per_replica or args.ray_address or args.max_replicas:
         raise SystemExit("--gpus-per-replica, --ray-address and --max-replicas go with --replicas N")
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level=settings.log_level,
-                access_log=settings.log_level == "debug", **uvicorn_options(settings.limits))
+                access_log=settings.log_level == "debug", **uvicorn_options(settings.limits), **settings.tls_options())
     return 0

@@ -19,11 +19,12 @@ import urllib.error
 import urllib.request
 from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from isosr_client.view import CLIENT_LIMITS, ServerError, auth_headers, endpoint
+from isosr_client.view import CLIENT_LIMITS, ServerError, auth_headers, endpoint, tls_context
 from isosr_server.protocol import (HIGHRES_OUTPUTS, LOWRES_INPUTS, MSGPACK_MEDIA_TYPE, REPLICA_HEADER, RESTARTED_HEADER,
                                    SESSION_HEADER, HighresBuffers, UpscaleRequest, UpscaleResponse, encode, parse)
 
@@ -49,11 +50,12 @@ def _numpy(a: Any) -> np.ndarray:
 
 
 def upscale_remote(url: str, frame: Any, output: str = "buffers", quality: int = 85, session: str | None = None,
-                   reset: bool = False, token: str | None = None, timeout: float = 60.0) -> UpscaleResult:
+                   reset: bool = False, token: str | None = None, timeout: float = 60.0,
+                   cafile: str | Path | None = None) -> UpscaleResult:
     """Upscale one low-res frame on the server.
 
     Args:
-        url: the server, ``http://HOST:PORT``.
+        url: the server, ``http(s)://HOST:PORT``.
         frame: mask, normal, depth and optionally flow, as attributes (a `FrameBuffers`) or a map;
             numpy arrays or torch tensors (any device, any float dtype).
         output: ``buffers``, ``png``, ``jpeg`` or ``webp``.
@@ -62,9 +64,10 @@ def upscale_remote(url: str, frame: Any, output: str = "buffers", quality: int =
         reset: forget the session's state before this frame.
         token: the server's token, if it has one.
         timeout: seconds.
+        cafile: PEM certificates to trust for an https server instead of the system's.
 
     Raises:
-        ValueError: the frame lacks mask, normal or depth.
+        ValueError: the frame lacks mask, normal or depth; a bad ``cafile`` (`tls_context`).
         ProtocolError: the frame cannot travel (wrong shape, values out of range, NaN/Inf); found
             here, before sending.
         ServerError: the server's 4xx/5xx status and reason.
@@ -83,10 +86,11 @@ def upscale_remote(url: str, frame: Any, output: str = "buffers", quality: int =
     headers = {"Content-Type": MSGPACK_MEDIA_TYPE, **auth_headers(token)}
     if session is not None:
         headers[SESSION_HEADER] = session  # the replicas' routing key
-    request = urllib.request.Request(endpoint(url, "/v1/upscale", websocket=False), data=body, method="POST",
-                                     headers=headers)
+    where = endpoint(url, "/v1/upscale", websocket=False)
+    context = tls_context(where, cafile)
+    request = urllib.request.Request(where, data=body, method="POST", headers=headers)
     try:
-        with urllib.request.urlopen(request, timeout=timeout) as reply:
+        with urllib.request.urlopen(request, timeout=timeout, context=context) as reply:
             kind, data = reply.headers.get("content-type", ""), reply.read()
             times_header = reply.headers.get("x-isosr-times")
             replica, restarted = reply.headers.get(REPLICA_HEADER), reply.headers.get(RESTARTED_HEADER) == "1"

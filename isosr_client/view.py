@@ -26,6 +26,7 @@ went away or failed: `RECONNECT_CODES`) opens itself again, on any replica behin
 
 from __future__ import annotations
 
+import ssl
 import time
 import warnings
 from collections import deque
@@ -115,6 +116,26 @@ def endpoint(url: str, path: str, websocket: bool) -> str:
         raise ValueError(f"server URL must look like http://HOST:PORT or ws://HOST:PORT, got {url!r}")
     scheme = ("wss" if secure else "ws") if websocket else ("https" if secure else "http")
     return urlunsplit((scheme, parts.netloc, path, "", ""))
+
+
+def tls_context(where: str, cafile: str | Path | None) -> ssl.SSLContext | None:
+    """How a connection to ``where`` (from `endpoint`) checks the server's certificate: None (the
+    system's certificate authorities; nothing for plain http and ws) without ``cafile``, else a
+    context that trusts the PEM certificates in ``cafile`` (e.g. a self-signed server's own).
+
+    Raises:
+        ValueError: ``cafile`` with a plain http or ws URL, or it is missing or holds no certificate.
+    """
+    if cafile is None:
+        return None
+    if not where.startswith(("https:", "wss:")):
+        raise ValueError(f"cafile {cafile} goes with an https or wss URL, not {where}")
+    try:
+        return ssl.create_default_context(cafile=cafile)
+    except ssl.SSLError:
+        raise ValueError(f"cafile {cafile}: no PEM certificate in it") from None
+    except OSError as e:
+        raise ValueError(f"cafile {cafile}: {e.strerror}") from None
 
 
 def auth_headers(token: str | None) -> dict[str, str]:
@@ -475,11 +496,12 @@ def connect(url: str, volume: str, mode: str = "auto", size: tuple[int, int] = (
             token: str | None = None, settings: dict | None = None, camera: dict | None = None,
             iso: float | None = None, iso_normalized: bool = False, device: str = "cpu",
             model: str | Path | None = None, local_upscale: bool = True, timeout: float = 60.0,
-            reconnect: bool = False, prefer: Sequence[str] | None = None) -> ViewSession:
+            reconnect: bool = False, prefer: Sequence[str] | None = None,
+            cafile: str | Path | None = None) -> ViewSession:
     """Open a view session on ``volume`` (a name from ``GET /v1/volumes``, or ``proc:...``).
 
     Args:
-        url: the server, ``http://HOST:PORT`` or ``ws://HOST:PORT``.
+        url: the server, ``http(s)://HOST:PORT`` or ``ws(s)://HOST:PORT``.
         volume: the volume's name.
         mode: a view mode (`isosr_server.protocol.MODES`: ``auto``, ``full``, ``network``,
             ``upscale``, ``buffers``, ``focus``, ``reconstruct`` with ``settings["ao_rays"]`` AO rays
@@ -498,6 +520,8 @@ def connect(url: str, volume: str, mode: str = "auto", size: tuple[int, int] = (
         prefer: encodings best first (e.g. ``("av1", "h264", "jpeg")``): the session opens with the
             first this side decodes and switches to the first of those ``ready.encoders`` offers
             (over ``settings["encoding"]``).
+        cafile: PEM certificates to trust for an https/wss server instead of the system's (e.g. the
+            server's self-signed certificate).
 
     Raises:
         ServerError: the server refused (unknown volume, bad settings, session limit, token).
@@ -518,8 +542,9 @@ def connect(url: str, volume: str, mode: str = "auto", size: tuple[int, int] = (
     data = encode(open_msg)
     parse(data, CLIENT_LIMITS, (OpenMsg,))  # bad input fails here, before any connection
     where, headers = endpoint(url, "/v1/view", websocket=True), auth_headers(token)
-    ws, ready, opened_at = _open(where, headers, open_msg, timeout)
-    reopen = (lambda msg: _open(where, headers, msg, timeout)) if reconnect else None
+    context = tls_context(where, cafile)
+    ws, ready, opened_at = _open(where, headers, open_msg, timeout, context)
+    reopen = (lambda msg: _open(where, headers, msg, timeout, context)) if reconnect else None
     view = ViewSession(ws, ready, opened_at, open_msg, device, model, local_upscale, timeout, reopen)
     for why in passed:
         view._notice(f"{why}; asking for {wanted.encoding}")
@@ -530,7 +555,8 @@ def connect(url: str, volume: str, mode: str = "auto", size: tuple[int, int] = (
     return view
 
 
-def _open(where: str, headers: dict[str, str], open_msg: OpenMsg, timeout: float) -> tuple:
+def _open(where: str, headers: dict[str, str], open_msg: OpenMsg, timeout: float,
+          context: ssl.SSLContext | None) -> tuple:
     """Connect to ``where`` and open a session: ``(websocket, ready, when the open was sent)``.
 
     Raises:
@@ -543,7 +569,7 @@ def _open(where: str, headers: dict[str, str], open_msg: OpenMsg, timeout: float
         # session's close() ends it.
         ws = ws_connect(where, additional_headers=headers,
                         max_size=CLIENT_LIMITS.max_message_bytes, compression=None, open_timeout=timeout,
-                        proxy=None).__enter__()
+                        proxy=None, ssl=context).__enter__()
     except Exception as e:  # handshake refused (401), nothing listening, ...
         status = getattr(getattr(e, "response", None), "status_code", None)
         if status is not None:

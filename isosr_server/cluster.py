@@ -186,16 +186,16 @@ def build(args: dict[str, Any]) -> Application:
 def serve_replicas(settings: Settings, replicas: int, gpus_per_replica: float = 0.0, ray_address: str | None = None,
                    max_replicas: int | None = None, sessions_per_replica: int = 8) -> None:
     """Join the Ray cluster at ``ray_address`` (None: start a local one), deploy the replicas
-    (`application`) behind Serve's proxy on ``settings.host:settings.port`` and serve until
+    (`application`) behind Serve's proxy on ``settings.host:settings.port`` (HTTPS with its certificate) and serve until
     interrupted; then stop the local Ray, or remove the application from the joined cluster
     (its replicas drain; a second interrupt leaves that to the cluster)."""
     app = application(settings, replicas, gpus_per_replica, max_replicas=max_replicas,
                       sessions_per_replica=sessions_per_replica)
     ray.init(address=ray_address)
-    serve.start(http_options={"host": settings.host, "port": settings.port})
+    serve.start(http_options={"host": settings.host, "port": settings.port, **settings.tls_options()})
     try:
         serve.run(app, name=APP_NAME, route_prefix="/")
-        log.info("isosr: %d replicas behind http://%s:%d", replicas, settings.host, settings.port)
+        log.info("isosr: %d replicas behind %s://%s:%d", replicas, settings.scheme, settings.host, settings.port)
         while True:  # the proxy serves; Ctrl-C ends it
             time.sleep(3600)
     except KeyboardInterrupt:

@@ -62,7 +62,8 @@ class RunningServer:
 
     def __init__(self, port: int, settings: Settings, errors: ErrorRecords, app):
         self.port, self.settings, self.errors, self.app = port, settings, errors, app
-        self.http_url, self.ws_url = f"http://127.0.0.1:{port}", f"ws://127.0.0.1:{port}"
+        ws = "wss" if settings.scheme == "https" else "ws"
+        self.http_url, self.ws_url = f"{settings.scheme}://127.0.0.1:{port}", f"{ws}://127.0.0.1:{port}"
 
     def request(self, method: str, path: str, body: bytes | None = None,
                 headers: dict | None = None) -> tuple[int, dict, bytes]:
@@ -96,7 +97,8 @@ def recv(ws, timeout: float = 60) -> P.Message:
 
 @contextmanager
 def running_server(settings: Settings):
-    """Start the app on uvicorn in a thread; yields a `RunningServer`; stops it after."""
+    """Start the app on uvicorn in a thread (HTTPS with the settings' certificate); yields a
+    `RunningServer`; stops it after."""
     errors = ErrorRecords()
     logging.getLogger().addHandler(errors)
     logging.getLogger("isosr").setLevel(logging.INFO)
@@ -104,7 +106,7 @@ def running_server(settings: Settings):
     # log_config=None: uvicorn leaves logging alone, so its records reach the root logger too.
     app = create_app(settings)
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_config=None,
-                                           **uvicorn_options(settings.limits)))
+                                           **uvicorn_options(settings.limits), **settings.tls_options()))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     deadline = time.monotonic() + 120

@@ -26,7 +26,7 @@ def test_precision_defaults_by_device():
 def test_token_required_beyond_loopback():
     with pytest.raises(ValueError, match="--token"):
         Settings(host="0.0.0.0")
-    assert Settings(host="0.0.0.0", token=TOKEN).token == TOKEN
+    assert Settings(host="0.0.0.0", token=TOKEN, insecure=True).token == TOKEN  # TLS: tests/test_tls.py
     with pytest.raises(ValueError, match="at least 8"):
         Settings(token="short")
 
@@ -39,8 +39,8 @@ def test_bad_settings_are_refused(bad, words):
 
 
 def test_environment_then_flags():
-    env = {TOKEN_ENV: TOKEN, "ISOSR_HOST": "0.0.0.0", "ISOSR_PORT": "9000", "ISOSR_MAX_FPS": "12.5",
-           "ISOSR_DEVICE": ""}
+    env = {TOKEN_ENV: TOKEN, "ISOSR_HOST": "0.0.0.0", "ISOSR_INSECURE": "1", "ISOSR_PORT": "9000",
+           "ISOSR_MAX_FPS": "12.5", "ISOSR_DEVICE": ""}
     s = Settings.from_env(env)
     assert (s.token, s.host, s.port, s.limits.max_fps, s.device) == (TOKEN, "0.0.0.0", 9000, 12.5, "cpu")
     args = serve_parser().parse_args(["--port", "9001", "--max-sessions", "3"])

@@ -1,6 +1,8 @@
 """The browser viewer in headless Chromium (Debian's ``chromium``, driven by Playwright) against a
 real `isosr serve` process on loopback: page load, surface, drag, iso, modes, channels, split,
-wrong token, a killed server; and the page's msgpack coder against Python's msgpack.
+wrong token, a killed server; video decoded with WebCodecs (av1, vp9, h264) equal to the
+library's frame, and jpeg with a notice where the server or the browser has no video; the page's
+frame decoder's keyframe requests; and the page's msgpack coder against Python's msgpack.
 ``ISOSR_TEST_DEVICE=cuda`` serves from the GPU."""
 
 from __future__ import annotations
@@ -18,13 +20,16 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import msgpack
+import numpy as np
 import pytest
 import torch
 
 from conftest import DEVICE
 from isosr_net.reconstructor import MAX_RECON_AO_RAYS
-from isosr_render import FrameBuffers
+from isosr_render import FrameBuffers, Renderer, RenderRequest, open_volume, orbit, resolve_iso, shade
+from isosr_render.images import to_uint8
 from isosr_server.channels import false_color
+from isosr_server.codecs import video
 
 CHROMIUM = Path("/usr/bin/chromium")
 if not CHROMIUM.exists():
@@ -47,15 +52,16 @@ def free_port() -> int:
 
 
 @contextmanager
-def serve(tmp_path: Path, port: int | None = None):
-    """`isosr serve` as its own process on loopback (procedural volumes, a token), a free port unless given."""
+def serve(tmp_path: Path, port: int | None = None, env: dict[str, str] | None = None):
+    """`isosr serve` as its own process on loopback (procedural volumes, a token), a free port unless
+    given, with ``env`` over this process's environment."""
     port = port or free_port()
     volumes = tmp_path / "volumes"
     volumes.mkdir(exist_ok=True)
     log = open(tmp_path / f"serve-{port}.log", "wb")
     process = subprocess.Popen([sys.executable, "-m", "isosr_cli.main", "serve", "--port", str(port), "--volumes",
                                 str(volumes), "--token", TOKEN, "--device", DEVICE, "--log-level", "warning"],
-                               stdout=log, stderr=subprocess.STDOUT, env=os.environ.copy())
+                               stdout=log, stderr=subprocess.STDOUT, env=os.environ | (env or {}))
     url = f"http://127.0.0.1:{port}"
     try:
         deadline = time.monotonic() + 120
@@ -90,9 +96,9 @@ def browser():
 
 
 class Viewer:
-    """One page of the viewer with its console errors collected."""
+    """One page of the viewer with its console errors collected; ``script`` runs before the page's own."""
 
-    def __init__(self, browser, url: str, token: str | None):
+    def __init__(self, browser, url: str, token: str | None, script: str | None = None):
         # bypass_csp: the page's policy forbids eval, which Playwright's wait_for_function uses.
         self.page = browser.new_page(viewport=WINDOW, bypass_csp=True)
         self.errors: list[str] = []
@@ -100,6 +106,8 @@ class Viewer:
         self.page.on("pageerror", lambda e: self.errors.append(str(e)))
         if token:
             self.page.add_init_script(f"sessionStorage.setItem('isosr.token', {json.dumps(token)})")
+        if script:
+            self.page.add_init_script(script)
         self.page.goto(f"{url}/?volume={VOLUME}")
 
     def frames(self) -> int:
@@ -113,15 +121,18 @@ class Viewer:
 
     def pixels(self) -> list[list[int]]:
         """The canvas as rows of RGB triples."""
-        data = self.page.evaluate("""() => {
+        return self.shown()[0].tolist()
+
+    def shown(self) -> tuple[np.ndarray, str, bool]:
+        """The canvas, (H, W, 3) uint8, with the encoding and keyframe flag of the frame it shows (read at once)."""
+        width, height, raw, encoding, keyframe = self.page.evaluate("""() => {
             const c = document.getElementById('view');
             const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
             let s = '';
             for (let i = 0; i < d.length; i += 4) s += String.fromCharCode(d[i], d[i + 1], d[i + 2]);
-            return [c.width, c.height, btoa(s)];
+            return [c.width, c.height, btoa(s), c.dataset.encoding, c.dataset.keyframe === 'true'];
         }""")
-        width, height, raw = data[0], data[1], base64.b64decode(data[2])
-        return [[tuple(raw[3 * (y * width + x): 3 * (y * width + x) + 3]) for x in range(width)] for y in range(height)]
+        return np.frombuffer(base64.b64decode(raw), np.uint8).reshape(height, width, 3), encoding, keyframe
 
     def settle(self, after: int) -> list[list[int]]:
         """The image of the first refined frame (a still view's last) after frame number ``after``."""
@@ -331,3 +342,138 @@ def test_viewer_shows_lost_connection_and_reconnects(browser, tmp_path):
         assert not v.page.is_visible("#banner")
         assert not v.page.evaluate("document.getElementById('view').classList.contains('stale')")
         v.page.close()
+
+
+# Color PSNR, dB, a video frame on the canvas keeps of the library's frame at the viewer's quality 90
+# (measured on this 320x240 torus in Chromium 156: av1 47.3, vp9 46.8, h264 48.9; jpeg 46.1).
+VIDEO_PSNR_DB = 40.0
+VIDEO_CODEC_PREFIX = {"av1": "av01.", "vp9": "vp09.", "h264": "avc1."}
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    assert a.shape == b.shape, (a.shape, b.shape)
+    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
+    return float(10 * np.log10(255.0**2 / max(mse, 1e-12)))
+
+
+def library_frame(yaw: float, size: tuple[int, int] = (320, 240)) -> np.ndarray:
+    """The library's full-resolution frame without AO (the server's ``full`` mode) at the page's
+    default camera turned to ``yaw``."""
+    volume = open_volume(VOLUME)
+    f = Renderer(volume, DEVICE).render(orbit(yaw, 20.0, 1.8), RenderRequest(*size, resolve_iso(VOLUME, volume),
+                                                                             ("mask", "normal")))
+    return to_uint8(shade(f.mask, f.normal, f.ao))
+
+
+def test_viewer_decodes_video_into_the_canvas(server, browser):
+    """auto asks for av1, the best both sides have; each codec's keyframe, and the delta frames
+    after a camera move, reach the canvas through WebCodecs equal to the library's frame within
+    the codec's error; the live numbers name the codec and its target bitrate."""
+    v = Viewer(browser, server, TOKEN)
+    page = v.page
+    v.wait_frame_after(0)
+    page.uncheck("#refine")  # no lossless refined frame replaces the video frame of a still view
+    page.evaluate("document.activeElement.blur()")  # keys go to the view, not the checkbox
+    set_control(page, "#mode", "full")
+    reference = library_frame(30.0)
+    for encoding in ("auto", "vp9", "h264"):
+        expected = "av1" if encoding == "auto" else encoding
+        if encoding != "auto":
+            set_control(page, "#encoding", encoding)
+        v.wait(f"document.getElementById('view').dataset.mode === 'full' && "
+               f"document.getElementById('view').dataset.encoding === '{expected}'")
+        image, shown, keyframe = v.shown()
+        assert shown == expected and keyframe, (shown, keyframe)
+        assert psnr(image, reference) > VIDEO_PSNR_DB, f"{expected}: {psnr(image, reference):.1f} dB"
+        assert page.inner_text("#stat-codec").startswith(f"{expected} ({VIDEO_CODEC_PREFIX[expected]}")
+        assert "(target" in page.inner_text("#stat-rate") and page.inner_text("#stat-bytes").endswith("KiB")
+    deltas, yaw = 0, 30.0
+    for _ in range(4):  # each key press: one camera update, answered by one frame
+        n = v.frames()
+        page.keyboard.press("ArrowLeft")
+        yaw += 5.0
+        v.wait_frame_after(n)
+        image, shown, keyframe = v.shown()
+        assert shown == "h264" and psnr(image, library_frame(yaw)) > VIDEO_PSNR_DB
+        deltas += not keyframe
+    assert deltas > 0, "no delta frame was shown"
+    assert v.errors == [], v.errors
+    page.close()
+
+
+def test_viewer_without_video_sends_jpeg_and_says_why(server, browser, tmp_path):
+    """A browser without WebCodecs (as on a plain-http page off loopback) asks for jpeg and says
+    why; a server without PyAV, asked for av1, sends jpeg with its notice; either side's missing
+    codecs are greyed out in the menu."""
+    v = Viewer(browser, server, TOKEN, script="delete window.VideoDecoder;")
+    v.wait_frame_after(0)
+    assert "this browser decodes no video here" in v.page.inner_text("#notice")
+    assert v.page.inner_text("#stat-codec") in ("jpeg", "png")  # png: the refined frame
+    assert v.page.get_attribute("#encoding option[value=av1]", "title") == "this browser cannot decode it"
+    v.page.close()
+
+    hidden = tmp_path / "no-pyav"
+    (hidden / "av").mkdir(parents=True)
+    (hidden / "av" / "__init__.py").write_text('raise ImportError("PyAV hidden by the test")\n')
+    path = os.pathsep.join(p for p in (str(hidden), os.environ.get("PYTHONPATH")) if p)
+    with serve(tmp_path, env={"PYTHONPATH": path}) as (_, url):
+        v = Viewer(browser, url, TOKEN)
+        v.wait_frame_after(0, "document.getElementById('notice').textContent.includes('PyAV')")
+        notice = v.page.inner_text("#notice")
+        assert "av1" in notice and "jpeg" in notice, notice
+        assert v.page.get_attribute("#view", "data-encoding") in ("jpeg", "png")
+        for encoding in ("av1", "vp9", "h264"):
+            option = f"#encoding option[value={encoding}]"
+            assert v.page.get_attribute(option, "title") == "the server cannot make it"
+        assert v.errors == [], v.errors
+        v.page.close()
+
+
+def test_frame_decoder_asks_for_keyframes(server, browser):
+    """The page's FrameDecoder on an h264 stream made here: a delta before any keyframe shows
+    nothing and asks for a keyframe once; the keyframe and the deltas after it decode to the
+    frames' size (63x47 of a 64x48 coded picture) and content; a decoder error asks for a
+    keyframe, the third in a row gives the encoding up."""
+    y, x = np.mgrid[0:47, 0:63]
+    images = [np.stack([(4 * x + 9 * i) % 256, (5 * y) % 256, np.full_like(x, 128 + 20 * i)], -1).astype(np.uint8)
+              for i in range(3)]
+    encoder = video.VideoEncoder("h264", 63, 47, 90, 4000, 30.0)
+    units = [encoder.encode(image, 1000 * (i + 1), keyframe=i == 0) for i, image in enumerate(images)]
+    assert [key for _, key in units] == [True, False, False]
+    frames = [{"encoding": "h264", "codec": encoder.codec, "keyframe": key, "timestamp_us": 1000 * (i + 1),
+               "width": 63, "height": 47, "image": base64.b64encode(data).decode()}
+              for i, (data, key) in enumerate(units)]
+    v = Viewer(browser, server, TOKEN)
+    pictures, calls = v.page.evaluate("""async (frames) => {
+        const m = await import('/static/video.js');
+        const calls = [];
+        const decoder = new m.FrameDecoder({ keyframe: () => calls.push('keyframe'), failed: () => calls.push('failed') });
+        const frame = (i, over = {}) => ({ ...frames[i], image: Uint8Array.from(atob(frames[i].image), (c) => c.charCodeAt(0)),
+                                           ...over });
+        const show = async (f) => {
+            const image = await decoder.picture(f);
+            if (!image) return null;
+            const g = new OffscreenCanvas(image.width, image.height).getContext('2d');
+            g.drawImage(image, 0, 0);
+            const d = g.getImageData(0, 0, image.width, image.height).data;
+            let s = '';
+            for (let i = 0; i < d.length; i += 4) s += String.fromCharCode(d[i], d[i + 1], d[i + 2]);
+            const out = [image.width, image.height, btoa(s)];
+            image.close();
+            return out;
+        };
+        const pictures = [await show(frame(1)), await show(frame(2))];
+        calls.push('|');
+        for (const i of [0, 1, 2]) pictures.push(await show(frame(i)));
+        calls.push('|');
+        for (const i of [0, 1, 2]) pictures.push(await show(frame(0, { codec: 'vp09.99.99.99', timestamp_us: 9000 + i })));
+        return [pictures, calls];
+    }""", frames)
+    assert calls == ["keyframe", "|", "|", "keyframe", "keyframe", "failed"], calls
+    assert pictures[:2] == [None, None] and pictures[5:] == [None, None, None]
+    for (width, height, raw), image in zip(pictures[2:5], images):
+        assert (width, height) == (63, 47)
+        got = np.frombuffer(base64.b64decode(raw), np.uint8).reshape(47, 63, 3)
+        # 4:2:0 chroma of these saturated stripes costs ~40 dB; the neighbouring frame scores ~20.
+        assert psnr(got, image) > 30.0, psnr(got, image)
+    v.page.close()

@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import ssl
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -31,6 +32,15 @@ TOKEN_ENV = ENV_PREFIX + "TOKEN"
 LOOPBACK_HOSTS = ("127.0.0.1", "::1", "localhost")
 LOG_LEVELS = ("debug", "info", "warning", "error")
 MIN_TOKEN_CHARS = 8
+SWITCH_TEXTS = {"1": True, "true": True, "yes": True, "on": True, "0": False, "false": False, "no": False, "off": False}
+
+
+def parse_switch(text: str) -> bool:
+    """An on/off setting's text (``1``/``true``/``yes``/``on`` or ``0``/``false``/``no``/``off``)."""
+    try:
+        return SWITCH_TEXTS[text.strip().lower()]
+    except KeyError:
+        raise ValueError(f"expected one of {', '.join(SWITCH_TEXTS)}, got {text!r}") from None
 
 
 def default_volumes_dir() -> Path | None:
@@ -49,7 +59,8 @@ class Settings:
     """Everything `isosr serve` configures; validated on construction.
 
     Attributes:
-        host, port: where to listen; any host but loopback requires a token.
+        host, port: where to listen; any host but loopback requires a token, and TLS unless
+            ``insecure`` (`check_exposure`).
         volumes: the volumes folder (None: procedural volumes only; `from_env` and `from_args`
             fill in the shared folder where it exists).
         device: ``cpu``, ``cuda`` or ``cuda:N``.
@@ -57,6 +68,9 @@ class Settings:
             (`resolved_precision` says which).
         model, recon_model: the upscaling and the reconstruction model folders.
         token: the shared secret clients must send (None: no check, loopback only).
+        tls_cert, tls_key: a PEM certificate (chain) and its unencrypted private key: serve HTTPS
+            and WSS (None: plain HTTP and WS); both or neither, checked to load.
+        insecure: allow plain HTTP beyond loopback.
         limits: the protocol limits.
         target_fps: the frame rate the ``auto`` mode's budget aims at.
         slice_ms: device time a slice of a heavy view frame aims at (others' frames interleave
@@ -75,6 +89,11 @@ class Settings:
     recon_model: Path = _option(DEFAULT_RECON_MODEL, "reconstruction model folder (reconstruct mode)", Path)
     token: str | None = _option(None, f"shared secret clients must send, at least {MIN_TOKEN_CHARS} characters "
                                       "(default: none, loopback only)")
+    tls_cert: Path | None = _option(None, "PEM certificate (chain) to serve HTTPS and WSS with; needs --tls-key "
+                                          "(default: plain HTTP)", Path)
+    tls_key: Path | None = _option(None, "the unencrypted PEM private key of --tls-cert (default: none)", Path)
+    insecure: bool = _option(False, "serve plain HTTP beyond loopback: the token and frames travel readable, and "
+                                    "browsers decode no video (WebCodecs needs HTTPS)", parse_switch)
     limits: Limits = field(default_factory=Limits)
     target_fps: float = _option(30.0, "frame rate the auto mode's budget aims at", float)
     slice_ms: float | None = _option(None, "device time a slice of a heavy view frame aims at, other sessions' "
@@ -83,9 +102,11 @@ class Settings:
     log_level: str = _option("info", "log level", choices=LOG_LEVELS)
 
     def __post_init__(self):
-        if self.host not in LOOPBACK_HOSTS and not self.token:
-            raise ValueError(f"binding {self.host} exposes the server beyond this machine: give --token "
-                             f"(or set {TOKEN_ENV})")
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise ValueError("--tls-cert and --tls-key go together: give both or neither")
+        if self.tls_cert is not None:
+            check_tls_files(self.tls_cert, self.tls_key)
+        check_exposure(self.host, self.token, self.tls_cert is not None, self.insecure)
         if self.token is not None and len(self.token) < MIN_TOKEN_CHARS:
             raise ValueError(f"the token must have at least {MIN_TOKEN_CHARS} characters")
         if self.precision is not None and self.precision not in PRECISIONS:
@@ -103,6 +124,16 @@ class Settings:
     def resolved_precision(self) -> str:
         """The networks' precision: the given one, else `default_precision` of the device."""
         return self.precision or default_precision(self.device)
+
+    @property
+    def scheme(self) -> str:
+        """``https`` with a certificate, else ``http``."""
+        return "http" if self.tls_cert is None else "https"
+
+    def tls_options(self) -> dict[str, str]:
+        """The certificate and key as uvicorn's and Ray Serve's ``ssl_certfile`` and ``ssl_keyfile``
+        (none without TLS)."""
+        return {} if self.tls_cert is None else {"ssl_certfile": str(self.tls_cert), "ssl_keyfile": str(self.tls_key)}
 
     @classmethod
     def from_env(cls, environ: Mapping[str, str] | None = None, **given: Any) -> Settings:
@@ -134,6 +165,45 @@ class Settings:
     def from_args(cls, args: argparse.Namespace, environ: Mapping[str, str] | None = None) -> Settings:
         """Settings from the flags of :func:`add_arguments` (None: not given) over ``environ``."""
         return cls.from_env(environ, **{o.name: getattr(args, o.name) for o in options()})
+
+
+def check_exposure(host: str, token: str | None, tls: bool, insecure: bool) -> None:
+    """The rule for serving beyond this machine (any host but loopback): a token, and TLS unless
+    ``insecure``: over plain HTTP the token and the frames are readable by anyone on the path, and
+    browsers give the viewer's video decoder (WebCodecs) only to HTTPS pages and loopback.
+
+    Raises:
+        ValueError: the host is not loopback and the token, or TLS, is missing.
+    """
+    if host in LOOPBACK_HOSTS:
+        return
+    if not token:
+        raise ValueError(f"binding {host} exposes the server beyond this machine: give --token (or set {TOKEN_ENV})")
+    if not (tls or insecure):
+        raise ValueError(f"binding {host} without TLS sends the token and frames readable by anyone on the path, "
+                         "and browsers decode no video there (WebCodecs needs HTTPS): give --tls-cert and "
+                         "--tls-key, or --insecure")
+
+
+def check_tls_files(cert: Path, key: Path) -> None:
+    """That ``cert`` holds a PEM certificate and ``key`` its unencrypted PEM private key.
+
+    Raises:
+        ValueError: naming the flag and file that is missing, unreadable or wrong.
+    """
+    context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    try:
+        context.load_verify_locations(cafile=cert)
+    except ssl.SSLError:
+        raise ValueError(f"--tls-cert {cert}: no PEM certificate in it") from None
+    except OSError as e:
+        raise ValueError(f"--tls-cert {cert}: {e.strerror}") from None
+    try:
+        context.load_cert_chain(cert, key, password=b"")  # an encrypted key fails here, not at a prompt
+    except ssl.SSLError:
+        raise ValueError(f"--tls-key {key}: not the unencrypted PEM private key of {cert}") from None
+    except OSError as e:
+        raise ValueError(f"--tls-key {key}: {e.strerror}") from None
 
 
 @dataclass(frozen=True)
@@ -169,5 +239,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """One flag per option (the limits in their own group); each help says its default once."""
     limits = parser.add_argument_group("limits")
     for o in options():
+        group = limits if o.limit else parser
+        if o.parse is parse_switch:  # a switch: given turns it on, absent leaves the environment's
+            group.add_argument(o.flag, action="store_const", const=True, help=f"{o.help} (default: off)")
+            continue
         help = o.help if "(default:" in o.help else f"{o.help} (default: {o.default})"
-        (limits if o.limit else parser).add_argument(o.flag, type=o.parse, choices=o.choices, help=help)
+        group.add_argument(o.flag, type=o.parse, choices=o.choices, help=help)

@@ -17,7 +17,7 @@ export function subprotocols(token) {
 /**
  * A view session that reopens itself after a lost connection.
  * hooks: onReady(ready), onFrame(frame, latencyMs) (may return a promise: the frame is acknowledged
- * once it settles), onState(state, detail) with state one of
+ * once it settles), onNotice(text) (the server's non-fatal news), onState(state, detail) with state one of
  * "connecting", "open", "lost" (detail: {attempt, delayMs}), "error" (detail: {code, reason}).
  * openMessage(): the current `open` message (volume, settings, camera, iso), built by the page.
  */
@@ -73,6 +73,8 @@ export class ViewSession {
         Promise.resolve()
           .then(() => this.hooks.onFrame(msg, this.latency(msg.ack)))
           .finally(() => this.acknowledge(ws, msg.seq));
+      } else if (msg.type === "notice") {
+        this.hooks.onNotice(msg.text);
       } else if (msg.type === "error") {
         serverError = msg;
       }
@@ -118,6 +120,11 @@ export class ViewSession {
     const seq = this.seq++;
     this.sentAt.set(seq, performance.now());
     this.ws.send(encode({ ...message, seq }));
+  }
+
+  /** Ask for a keyframe (the next video frame decodes alone). */
+  keyframe() {
+    if (this.ws && this.ws.readyState === WebSocket.OPEN && this.ready) this.ws.send(encode({ type: "keyframe" }));
   }
 
   close() {

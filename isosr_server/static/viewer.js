@@ -1,6 +1,7 @@
 // The isosr viewer page: controls, camera, frames of one or two view sessions, live numbers.
 import { PROTOCOL_VERSION, ViewSession } from "./session.js";
 import { drawLegend } from "./legend.js";
+import { FrameDecoder, IMAGE_ENCODINGS, VIDEO_PROBES, decodableEncodings } from "./video.js";
 
 const $ = (id) => document.getElementById(id);
 const DEFAULT_CAMERA = { yaw: 30, pitch: 20, distance: 1.8, target: [0, 0, 0], fov_y: 40 };
@@ -9,6 +10,9 @@ const CHANNELS = ["shaded", "mask", "normal", "depth", "ao", "flow"];
 const MODE_KEYS = { 1: "auto", 2: "network", 3: "upscale", 4: "reconstruct", 5: "atrous", 6: "full", 7: "focus" };
 const TOKEN_KEY = "isosr.token";
 const SPARK_FRAMES = 120;
+const VIDEO_ENCODINGS = Object.keys(VIDEO_PROBES);
+// What "auto" asks for: the best video both sides have, else jpeg.
+const AUTO_ENCODINGS = [...VIDEO_ENCODINGS, "jpeg"];
 
 const view = $("view");
 const ctx = view.getContext("2d");
@@ -17,6 +21,8 @@ const state = {
   factor: 4,
   maxReconRays: 0, // reconstruct mode's AO rays per hit: set from GET /v2/models/isosr-recon before sessions open
   limits: null,
+  decodable: new Set(IMAGE_ENCODINGS), // what this browser shows (decodableEncodings)
+  encoders: null, // ready.encoders: what the server makes (null: no ready yet)
   volume: null,
   info: null, // ready.volume: name, shape, value_range, iso, histogram
   iso: null, // data units; null: the volume's suggested iso
@@ -66,6 +72,11 @@ function setBanner(text, kind = "error") {
   banner.dataset.kind = kind;
 }
 
+function setNotice(text) {
+  $("notice").hidden = !text;
+  $("notice").textContent = text || "";
+}
+
 function setConnState(name, text) {
   const el = $("conn-state");
   el.dataset.state = name;
@@ -96,6 +107,44 @@ function aoRays(mode) {
   return 0;
 }
 
+/** The encoding to ask for: the one picked, or (auto) the best this browser shows among those the
+ * server makes (any, until a ready says). */
+function encoding() {
+  const picked = $("encoding").value;
+  if (picked !== "auto") return picked;
+  return AUTO_ENCODINGS.find((e) => state.decodable.has(e) && (!state.encoders || state.encoders.includes(e)));
+}
+
+/** Why auto sends jpeg ("" when it sends video, or an encoding was picked). */
+function autoNotice() {
+  if ($("encoding").value !== "auto" || encoding() !== "jpeg") return "";
+  const shown = VIDEO_ENCODINGS.filter((e) => state.decodable.has(e));
+  if (!shown.length) {
+    const why = window.isSecureContext ? "no WebCodecs decoder for h264, vp9 or av1" : "WebCodecs needs https or loopback";
+    return `this browser decodes no video here (${why}); sending jpeg`;
+  }
+  return `the server makes none of the video codecs this browser decodes (${shown.join(", ")}); sending jpeg`;
+}
+
+/** Encodings either side lacks are greyed out in the menu, saying which side. */
+function markEncodings() {
+  for (const option of $("encoding").options) {
+    const browser = VIDEO_ENCODINGS.includes(option.value) && !state.decodable.has(option.value);
+    const server = state.encoders && option.value !== "auto" && !state.encoders.includes(option.value);
+    option.disabled = browser || server;
+    option.title = browser ? "this browser cannot decode it" : server ? "the server cannot make it" : "";
+  }
+}
+
+/** The video bitrate cap in kbit/s: the control's value within the server's bound (shown corrected). */
+function bitrate() {
+  const input = $("bitrate");
+  const most = state.limits ? state.limits.max_bitrate_kbps : Infinity;
+  const kbps = Math.min(most, Math.max(0, Math.round(Number(input.value)) || 0));
+  input.value = kbps;
+  return kbps;
+}
+
 function settings(mode) {
   return {
     mode,
@@ -104,9 +153,11 @@ function settings(mode) {
     ao_rays: aoRays(mode),
     interpolation: $("interpolation").value,
     channel: $("channel").value,
-    refine: !$("split").checked, // a refined frame is full-res: both halves would be the same
-    encoding: "jpeg",
+    // A refined frame is full-res: when split, both halves would be the same.
+    refine: $("refine").checked && !$("split").checked,
+    encoding: encoding(),
     quality: 90,
+    bitrate_kbps: bitrate(),
   };
 }
 
@@ -126,7 +177,10 @@ function newStats() {
 
 /** Close all sessions and open one per shown mode, for the current volume and state. */
 async function openSessions() {
-  for (const s of state.sessions) s.session.close();
+  for (const s of state.sessions) {
+    s.session.close();
+    s.decoder.reset();
+  }
   state.sessions = [];
   const generation = ++state.generation; // a later call supersedes this one
   if (!state.volume) return;
@@ -144,8 +198,10 @@ async function openSessions() {
     slot.session = new ViewSession(wsUrl(), state.token, () => openMessage(slot), {
       onReady: (ready) => onReady(slot, index, ready),
       onFrame: (frame, latency) => onFrame(slot, frame, latency),
+      onNotice: setNotice,
       onState: (name, detail) => onSessionState(slot, name, detail),
     });
+    slot.decoder = new FrameDecoder({ keyframe: () => slot.session.keyframe(), failed: (e) => decoderFailed(slot, e) });
     state.sessions.push(slot);
     slot.session.connect();
   }
@@ -164,10 +220,20 @@ function onReady(slot, index, ready) {
   state.limits = ready.limits;
   state.maxReconRays = ready.max_recon_ao_rays;
   $("recon-rays").max = state.maxReconRays;
+  $("bitrate").max = ready.limits.max_bitrate_kbps;
+  state.encoders = ready.encoders;
+  markEncodings();
+  slot.decoder.reset(); // a new session's stream starts with a keyframe
   if (index === 0) {
     state.info = ready.volume;
     if (state.iso === null) state.iso = ready.volume.iso;
     setupIso();
+    setNotice(autoNotice()); // the server's notice, if any, follows
+  }
+  // Opened before the server's encoders were known: switch to the best of them.
+  const wanted = encoding();
+  if (wanted !== ready.settings.encoding && ready.encoders.includes(wanted)) {
+    slot.session.send({ type: "settings", settings: { encoding: wanted } });
   }
   if (slot.mode === "focus") slot.session.send(focusMessage());
   setBanner("");
@@ -227,15 +293,20 @@ async function onFrame(slot, frame, latency) {
   slot.refined = frame.refined;
   slot.method = frame.method;
   slot.legend = frame.legend || null;
+  slot.codec = frame.codec ? `${frame.encoding} (${frame.codec})` : frame.encoding;
+  slot.targetKbps = frame.bitrate_kbps;
+  if (frame.codec) slot.video = frame.encoding;
   const id = ++slot.frameId;
-  const blob = new Blob([frame.image], { type: `image/${frame.encoding}` });
-  const image = await createImageBitmap(blob);
+  const image = await slot.decoder.picture(frame);
+  if (!image) return; // a video frame without its keyframe (one is asked for), or a decoder error
   if (id < slot.shownId) return image.close(); // a newer frame was decoded first
   slot.shownId = id;
   if (slot.image) slot.image.close();
   slot.image = image;
   view.dataset.frames = String(Number(view.dataset.frames) + 1);
   view.dataset.mode = frame.mode;
+  view.dataset.encoding = frame.encoding;
+  view.dataset.keyframe = String(frame.keyframe);
   draw();
   if (slot === state.sessions[0]) showFrameInfo(slot);
 }
@@ -267,7 +338,9 @@ function showFrameInfo(slot) {
   $("stat-times").textContent = Object.entries(st.times)
     .map(([k, v]) => `${k} ${v < 10 ? v.toFixed(1) : v.toFixed(0)}`).join(", ");
   $("stat-bytes").textContent = `${(st.bytes / 1024).toFixed(1)} KiB`;
-  $("stat-rate").textContent = (bits / 1e6).toFixed(2);
+  $("stat-codec").textContent = slot.codec;
+  const target = slot.targetKbps ? ` (target ${(slot.targetKbps / 1000).toFixed(2)})` : "";
+  $("stat-rate").textContent = (bits / 1e6).toFixed(2) + target;
   const refined = $("refined");
   refined.dataset.refined = String(slot.refined);
   refined.textContent = slot.refined ? "refined" : "interactive";
@@ -300,6 +373,15 @@ function drawSparkline(values) {
   g.stroke();
   g.fillStyle = "#999";
   g.fillText(`${top.toFixed(0)} ms`, 2, 10);
+}
+
+/** The browser could not decode the slot's video: stop asking for it, say so, send the next best. */
+function decoderFailed(slot, message) {
+  state.decodable.delete(slot.video);
+  markEncodings();
+  if ($("encoding").value === slot.video) $("encoding").value = "auto";
+  setNotice(`this browser failed to decode ${slot.video} (${message}); sending ${encoding()}`);
+  sendSettings();
 }
 
 function formatNumber(v) {
@@ -564,6 +646,9 @@ function bindControls() {
   $("ao").addEventListener("change", sendSettings);
   $("ao-rays").addEventListener("change", sendSettings);
   $("interpolation").addEventListener("change", sendSettings);
+  $("encoding").addEventListener("change", () => { setNotice(autoNotice()); sendSettings(); });
+  $("bitrate").addEventListener("change", sendSettings);
+  $("refine").addEventListener("change", sendSettings);
   $("recon-rays").addEventListener("change", sendSettings);
   $("lens-radius").addEventListener("input", () => { showLens(); queue("focus", focusMessage()); });
   $("camera-reset").addEventListener("click", resetCamera);
@@ -590,6 +675,8 @@ function bindControls() {
 
 async function start() {
   setConnState("connecting", "connecting");
+  state.decodable = await decodableEncodings();
+  markEncodings();
   let listing;
   try {
     listing = await getJson("/v1/volumes");
