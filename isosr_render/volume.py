@@ -9,10 +9,7 @@ import cv2
 import numpy as np
 
 from isosr_render.conventions import world_from_voxel
-
-
-class VolumeError(ValueError):
-    """A volume (file or array) that cannot be rendered, with the reason."""
+from isosr_render.voxels import VolumeError, VoxelSource, check_source
 
 
 @dataclass(frozen=True)
@@ -76,6 +73,16 @@ class Volume:
         data = ((values - lo) * scale).astype(np.float32)
         np.clip(data, 0.0, 1.0, out=data)
         return cls(np.ascontiguousarray(data), spacing, (lo, hi), name)
+
+    @classmethod
+    def from_source(cls, source: VoxelSource) -> "Volume":
+        """The volume of a voxel source, in original units (its rescale applied)."""
+        check_source(source)
+        values = source.read(*(slice(0, n) for n in source.shape))
+        slope, intercept = source.rescale
+        if (slope, intercept) != (1.0, 0.0):
+            values = values.astype(np.float64) * slope + intercept
+        return cls.from_array(values, source.spacing, name=source.name)
 
     @property
     def shape(self) -> tuple[int, int, int]:
