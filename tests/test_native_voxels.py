@@ -12,11 +12,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from isosr_render import Renderer, RenderRequest, Volume, orbit
+from isosr_render import Renderer, RenderRequest, Volume, orbit, voxels
 from isosr_render.brick_pool import DeviceMemoryError, coarsen
 from isosr_render.procedural import SpheresSource
 from isosr_render.scan import BRICK
-from isosr_render import voxels
 from isosr_render.voxels import ArraySource
 
 OUTPUTS = ("mask", "normal", "depth", "ao")
