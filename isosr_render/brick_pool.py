@@ -8,7 +8,7 @@ sample reads a single slot; a per-brick table gives the slot (-1: not resident, 
 then read the brick's minimum, which lies on the same side of the iso as all its voxels).
 
 An iso change pages in only the bricks it needs that are not resident, reading the voxel
-source box by box (chunk-aligned, on threads) and uploading them in one scatter. Bricks no
+source chunk by chunk (on threads) and scattering each chunk's bricks to their slots. Bricks no
 longer needed stay until the pool is full, then the least recently needed go. The pool grows
 geometrically up to ``max_bytes``; an iso needing more is refused with a clear error.
 
@@ -22,7 +22,6 @@ lookup per sample) for dense and sparse, tested on CPU.
 
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import asdict, dataclass
 
@@ -30,6 +29,7 @@ import numpy as np
 import torch
 import warp as wp
 
+from isosr_render import voxels
 from isosr_render.scan import BRICK
 from isosr_render.volume import Volume
 from isosr_render.voxels import box_extent, map_bounded
@@ -98,14 +98,14 @@ class BrickPool:
         device: the Warp device.
         brick: voxels per brick edge, a multiple of ``BRICK``.
         max_bytes: the most bytes of voxels the pool may hold.
-        threads: threads reading the source while paging.
+        threads: threads reading the source while paging (default ``voxels.READ_THREADS``).
     """
 
     def __init__(self, volume: Volume, device, brick: int, max_bytes: int, threads: int | None = None):
         if brick % BRICK:
             raise ValueError(f"a sparse volume's brick size must be a multiple of {BRICK}, got {brick}")
         self.volume, self.device, self.brick, self.max_bytes = volume, device, brick, int(max_bytes)
-        self.threads = threads or min(os.cpu_count() or 1, 8)
+        self.threads = threads or voxels.READ_THREADS
         self.dtype = {"uint8": wp.uint8, "uint16": wp.uint16, "float32": wp.float32}[volume.storage.name]
         self.brick_bytes = (brick + 1) ** 3 * volume.storage.itemsize
         self.capacity = self.max_bytes // self.brick_bytes
@@ -185,7 +185,9 @@ class BrickPool:
             bricks: (n, 3); slots: (n,)
         """
         source, b = self.volume.source, self.brick
-        extent = np.maximum(1, -(-np.array(box_extent(source, b)) // b))  # bricks per box and axis
+        # Group by the smallest chunk-aligned box (whole chunks, whole bricks): each group's read
+        # is the bounding box of its bricks there, plus the overlap plane.
+        extent = np.maximum(1, -(-np.array(box_extent(source, b, 1)) // b))  # bricks per box and axis
         keys = bricks // extent
         order = np.lexsort(keys.T[::-1])
         bricks, slots, keys = bricks[order], slots[order], keys[order]

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 import warp as wp
 
-from isosr_render import kernels
+from isosr_render import kernels, voxels
 from isosr_render.brick_pool import BrickPool, MemoryStats
 from isosr_render.buffers import FrameBuffers
 from isosr_render.camera import Camera
@@ -210,22 +210,22 @@ class Renderer:
         grid.offset = wp.vec3(*offset)
         return grid
 
-    def _set_voxels(self, grid: kernels.Grid, voxels: wp.array) -> None:
-        """Point ``grid``'s field of the volume's device type at ``voxels``."""
+    def _set_voxels(self, grid: kernels.Grid, array: wp.array) -> None:
+        """Point ``grid``'s field of the volume's device type at ``array`` (the voxels or the pool)."""
         field = {kernels.STORE_F32: "data", kernels.STORE_U16: "data16", kernels.STORE_U8: "data8"}[grid.kind]
-        setattr(grid, field, voxels)
+        setattr(grid, field, array)
 
     def _upload_dense(self) -> None:
         """Stream the volume's source to a dense device array, box by box (host memory: a few boxes)."""
         volume = self.volume
-        voxels = wp.empty(volume.shape, dtype=STORE_KINDS[volume.storage.name][1], device=self.device)
+        dense = wp.empty(volume.shape, dtype=STORE_KINDS[volume.storage.name][1], device=self.device)
 
         def read(box):
             return box, volume.device_box(np.asarray(volume.source.read(*box)))
 
-        for box, values in map_bounded(read, boxes(volume.source), min(os.cpu_count() or 1, 8)):
-            wp.copy(voxels[box], wp.array(np.ascontiguousarray(values), device=self.device))
-        self._set_voxels(self._base, voxels)
+        for box, values in map_bounded(read, boxes(volume.source), voxels.READ_THREADS):
+            wp.copy(dense[box], wp.array(np.ascontiguousarray(values), device=self.device))
+        self._set_voxels(self._base, dense)
 
     def memory(self) -> MemoryStats:
         """Where the voxels are (dense or sparse) and what paging cost so far."""

@@ -18,12 +18,18 @@ only at the end): :meth:`Volume.histogram` does it on demand.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 
 import numpy as np
 
-from isosr_render.voxels import VolumeError, VoxelSource, boxes, check_source, map_bounded
+from isosr_render import voxels
+from isosr_render.voxels import (
+    VolumeError,
+    VoxelSource,
+    boxes,
+    check_source,
+    map_bounded,
+)
 
 BRICK = 8  # voxels per min-max brick edge; the renderer's bricks are multiples of it
 SUBSAMPLE = 2_000_000  # voxels in the Otsu subsample, about
@@ -165,7 +171,7 @@ def _scan_box(source: VoxelSource, box, stride: int, counted: bool) -> _BoxResul
 
 
 def scan(source: VoxelSource, threads: int | None = None, box_bytes: int | None = None) -> Scan:
-    """Read ``source`` once, box by box on ``threads`` threads (default: up to 8), and summarize it.
+    """Read ``source`` once, box by box on ``threads`` threads (default ``voxels.READ_THREADS``), and summarize it.
 
     Peak host memory: about ``2 threads`` boxes of ``box_bytes`` (default ``voxels.BOX_BYTES``;
     times a few for their summaries' temporaries), plus the block summaries (16 values per
@@ -198,7 +204,7 @@ def scan(source: VoxelSource, threads: int | None = None, box_bytes: int | None 
         at = tuple(slice(-(-s.start // stride), -(-s.start // stride) + n) for s, n in zip(r.box, r.sub.shape))
         subsample[at] = r.sub
 
-    threads = threads or min(os.cpu_count() or 1, 8)
+    threads = threads or voxels.READ_THREADS
     for result in map_bounded(lambda box: _scan_box(source, box, stride, counted), boxes(source, BRICK, box_bytes),
                               threads):
         merge(result)

@@ -31,7 +31,13 @@ import numpy as np
 
 from isosr_render.conventions import world_from_voxel
 from isosr_render.scan import BRICK, Scan, scan, unsigned_view
-from isosr_render.voxels import ArraySource, VolumeError, VoxelSource, boxes, check_source
+from isosr_render.voxels import (
+    ArraySource,
+    VolumeError,
+    VoxelSource,
+    boxes,
+    check_source,
+)
 
 __all__ = ["BRICK", "Volume", "VolumeError"]
 

@@ -10,6 +10,7 @@ aligned to the store's chunks, so that peak host memory is bounded by a box, not
 from __future__ import annotations
 
 import math
+import os
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from typing import Callable, Iterable, Iterator, Protocol, TypeVar, runtime_checkable
 
@@ -19,6 +20,7 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 BOX_BYTES = 32 << 20  # bytes of the boxes loaders read at once (default of box_extent and boxes)
+READ_THREADS = min(os.cpu_count() or 1, 16)  # threads that read and convert boxes
 
 # The stored types a source may hold.
 STORED_DTYPES = tuple(np.dtype(t) for t in ("uint8", "int8", "uint16", "int16", "uint32", "int32",
