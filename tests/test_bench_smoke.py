@@ -73,8 +73,9 @@ def test_volume_memory_smoke_loads_native_and_pages_a_sparse_volume(tmp_path):
 
     rows = bench_volume_memory.main(["--device", "cpu", "--smoke", "--out", str(tmp_path)])
     by = {(r["case"], r["path"], r.get("step")): r for r in rows}
-    assert by[("ct", "native", None)]["storage"] == "uint16" and by[("ct", "today (float32)", None)]["storage"] == "float32"
-    assert by[("ct", "native", None)]["resident_gb"] * 2 == by[("ct", "today (float32)", None)]["resident_gb"]
+    native, today = by[("ct", "native", None)], by[("ct", "today (float32)", None)]
+    assert native["storage"] == "uint16" and today["storage"] == "float32"
+    assert native["resident_gb"] * 2 == today["resident_gb"]
     huge = [r for r in rows if r["case"] == "huge"]
     assert [r["mode"] for r in huge] == ["sparse", "sparse"] and all(r["camera_move_bricks_paged"] == 0 for r in huge)
     assert 0 < huge[1]["bricks_paged"] < huge[0]["bricks_paged"]  # an iso change pages the difference
