@@ -13,7 +13,7 @@ held; a stand-in for a chunked store on disk, whose reads it replaces by computa
 - ``big``: 2048^3 uint16 (16 GiB on the device): the native path only. Today's path needs
   about 14 bytes a voxel on the host (the array, its float32 copy, a float32 temporary and
   the normalized result: ~120 GB) and 32 GiB on the device: it is not run (``legacy`` says why).
-- ``huge``: ``--huge`` voxels a side of uint16 (default 3072: 58 GiB in uint16, 116 GB in dense
+- ``huge``: ``--huge`` voxels a side of uint16 (default 2816: 45 GB in uint16, 89 GB in dense
   float32, more than an 80 GB GPU) under ``--limit-gb`` of device memory for voxels: the
   sparse brick pool: resident bytes and bricks, 1080p first hit with and without AO, the
   page-in time of the first iso, of an iso change, and of a fast camera move (residency
@@ -221,7 +221,8 @@ def case_huge(side: int, device: str, limit_gb: float | None, frames: int, ao_sa
 def main(argv: list[str] | None = None) -> list[dict]:
     parser = bench_parser(__doc__)
     parser.add_argument("--cases", default="ct,big,huge", help="comma-separated: ct, big, huge")
-    parser.add_argument("--huge", type=int, default=3072, help="voxels a side of the sparse case")
+    parser.add_argument("--huge", type=int, default=2816,
+                        help="voxels a side of the sparse case (2816: 89 GB in dense float32)")
     parser.add_argument("--limit-gb", type=float, default=20.0, help="device memory for voxels in the sparse cases")
     parser.add_argument("--ao-samples", type=int, default=16)
     parser.add_argument("--iso-step", type=float, default=0.003, help="the iso change, world units")

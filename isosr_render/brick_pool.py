@@ -22,6 +22,7 @@ lookup per sample) for dense and sparse, tested on CPU.
 
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import asdict, dataclass
 
@@ -118,6 +119,7 @@ class BrickPool:
         self.pool = wp.empty((0, brick + 1, brick + 1), dtype=self.dtype, device=device)
         self.free: list[int] = []
         self.satisfied: set[float] = set()
+        self.lock = threading.Lock()
         self.stats = MemoryStats("sparse", volume.storage.name, volume.device_bytes, 0, 0, self.max_bytes,
                                  int(np.prod(self.shape)), 0)
 
@@ -132,6 +134,11 @@ class BrickPool:
         iso = float(np.float32(iso))
         if iso in self.satisfied:
             return
+        with self.lock:
+            if iso not in self.satisfied:
+                self._page(iso)
+
+    def _page(self, iso: float) -> None:
         start = time.perf_counter()
         needed = self._needed(iso).cpu().numpy()
         count = int(needed.sum())
@@ -150,6 +157,7 @@ class BrickPool:
             self._page_in(missing, slots)
             self.slots_host[tuple(missing.T)] = slots
             wp.copy(self.slots, wp.array(self.slots_host, dtype=wp.int32, device="cpu"))
+            wp.synchronize_device(self.device)  # renders run on torch's stream, not Warp's
         self.satisfied.add(iso)
         self.stats.bricks_needed = count
         self.stats.bricks_resident = int((self.slots_host >= 0).sum())

@@ -256,13 +256,17 @@ class SpheresSource:
         p = [(np.arange(s.start, s.stop, dtype=np.float32) * np.float32(scale[a]) + np.float32(offset[a]))
              for a, s in enumerate((x, y, z))]
         px, py, pz = p[0][:, None, None], p[1][None, :, None], p[2][None, None, :]
-        dist = None
-        for (cx, cy, cz), r in zip(self.centers, self.radii):
-            d = np.sqrt((px - cx) ** 2 + (py - cy) ** 2 + (pz - cz) ** 2) - r
-            dist = d if dist is None else np.minimum(dist, d, out=dist)
+        dist, d = None, None
+        for (cx, cy, cz), r in zip(self.centers, self.radii):  # in place: 4 passes over the box a sphere
+            d = np.add((px - cx) ** 2 + (py - cy) ** 2, (pz - cz) ** 2, out=d)
+            np.sqrt(d, out=d)
+            d -= r
+            dist = d.copy() if dist is None else np.minimum(dist, d, out=dist)
         dist += np.float32(0.004) * np.sin(np.float32(60.0) * px)
         if self.dtype.kind == "f":
-            return dist.astype(self.dtype)
+            return dist.astype(self.dtype, copy=False)
         info = np.iinfo(self.dtype)
-        stored = np.rint((dist - self.rescale[1]) / np.float32(self.step))
-        return np.clip(stored, info.min, info.max).astype(self.dtype)
+        dist -= np.float32(self.rescale[1])
+        dist *= np.float32(1.0 / self.step)
+        np.rint(dist, out=dist)
+        return np.clip(dist, info.min, info.max, out=dist).astype(self.dtype)

@@ -190,6 +190,7 @@ class Renderer:
             self._base.sparse = 1
             self._base.slots = self.pool.slots
         self._base.minmax = self.minmax
+        wp.synchronize_device(self.device)  # uploads ran on Warp's stream; renders run on torch's
         self._grids: OrderedDict[tuple[float, bool], kernels.Grid] = OrderedDict()
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
         # 1x1 stand-ins for buffers a request does not ask for.
