@@ -32,8 +32,8 @@ from isosr_render.camera import Camera
 from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES
 from isosr_render.flow_fill import FILL_METHODS, fill_flow
 from isosr_render.shading import ShadingParams, shade
-from isosr_render.volume import Volume
-from isosr_render.voxels import boxes, map_bounded
+from isosr_render.volume import Volume, native_integer
+from isosr_render.voxels import VoxelSource, boxes, map_bounded
 
 REFINE_METHODS = {"bisection": kernels.REFINE_BISECTION, "secant": kernels.REFINE_SECANT}
 REQUESTABLE = BUFFER_NAMES + ("samples",)
@@ -131,6 +131,22 @@ class RenderRequest:
         return sum(bits[name] for name in need if name in bits)
 
 
+def warp_device(device: str):
+    """The Warp device ``device`` names (``cpu``, ``cuda``, ``cuda:N``); a clear error without CUDA."""
+    wp.init()
+    if device.startswith("cuda") and not wp.is_cuda_available():
+        raise RuntimeError(f"device {device!r} asked for, but Warp finds no CUDA device on this machine")
+    return wp.get_device(device)
+
+
+def device_limit(device, max_device_bytes: int | None) -> int | None:
+    """The bytes a volume's voxels may take on ``device`` before it renders sparse: the given
+    limit, else ``DENSE_SHARE`` of the free memory on CUDA, none on the CPU."""
+    if max_device_bytes is None and device.is_cuda:
+        return int(DENSE_SHARE * device.free_memory)
+    return max_device_bytes
+
+
 def _view(camera: Camera, width: int, height: int) -> kernels.View:
     """The kernel's camera struct."""
     right, up, back = camera.basis()
@@ -157,27 +173,29 @@ class Renderer:
         max_device_bytes: the most bytes the volume's voxels may take on the device; a volume
             whose dense size is larger is rendered sparse. Default: none on CPU, half of the
             free memory on CUDA.
+        dense: the volume's voxels already on the device, dense (:meth:`load` makes them); None:
+            streamed from the volume's source here.
     """
 
     def __init__(self, volume: Volume, device: str = "cpu", brick_size: int = 8, threads: int | None = None,
-                 max_device_bytes: int | None = None):
-        wp.init()
-        if device.startswith("cuda") and not wp.is_cuda_available():
-            raise RuntimeError(f"device {device!r} asked for, but Warp finds no CUDA device on this machine")
+                 max_device_bytes: int | None = None, dense: wp.array | None = None):
         if brick_size < 1:
             raise ValueError(f"brick_size must be positive, got {brick_size}")
         self.volume = volume
-        self.device = wp.get_device(device)
+        self.device = warp_device(device)
         self.threads = 1 if self.device.is_cuda else (threads or os.cpu_count() or 1)
         wp.load_module(kernels, device=self.device)
         self.brick_size = brick_size
-        if max_device_bytes is None and self.device.is_cuda:
-            max_device_bytes = int(DENSE_SHARE * self.device.free_memory)
-        self.max_device_bytes = max_device_bytes
+        self.max_device_bytes = max_device_bytes = device_limit(self.device, max_device_bytes)
         self._base = self._base_grid()
         self.pool: BrickPool | None = None
         if max_device_bytes is None or volume.device_bytes <= max_device_bytes:
-            self._upload_dense()
+            if dense is None:
+                dense = self._upload_dense()
+            elif dense.shape != volume.shape or dense.dtype != STORE_KINDS[volume.storage.name][1]:
+                raise ValueError(f"dense voxels of shape {dense.shape} do not fit the volume {volume.shape} "
+                                 f"of {volume.storage.name}")
+            self._set_voxels(self._base, dense)
             bricks = tuple(max(1, -(-(n - 1) // brick_size)) for n in volume.shape)
             self.minmax = wp.empty(bricks, dtype=wp.vec2, device=self.device)
             wp.launch(kernels.minmax_kernel, dim=bricks, inputs=[self._base, self.minmax], device=self.device)
@@ -216,7 +234,29 @@ class Renderer:
         field = {kernels.STORE_F32: "data", kernels.STORE_U16: "data16", kernels.STORE_U8: "data8"}[grid.kind]
         setattr(grid, field, array)
 
-    def _upload_dense(self) -> None:
+    @classmethod
+    def load(cls, source: VoxelSource, device: str = "cpu", **kwargs) -> "Renderer":
+        """Scan a voxel source and make its renderer, in one read of the source for 8/16-bit
+        integers headed for a dense volume (each box goes to the device as the scan reads it);
+        float and 32-bit data, and sparse volumes, read it again (see :mod:`isosr_render.scan`).
+
+        Args:
+            kwargs: as :class:`Renderer` (``brick_size``, ``threads``, ``max_device_bytes``).
+        """
+        target = warp_device(device)
+        limit = device_limit(target, kwargs.get("max_device_bytes"))
+        dtype = np.dtype(source.dtype)
+        dense, sink = None, None
+        if native_integer(dtype) and (limit is None or int(np.prod(source.shape)) * dtype.itemsize <= limit):
+            kind = STORE_KINDS[f"uint{8 * dtype.itemsize}"][1]
+            dense = wp.empty(tuple(source.shape), dtype=kind, device=target)
+
+            def sink(box, values):
+                wp.copy(dense[box], wp.array(np.ascontiguousarray(values), device=target))
+
+        return cls(Volume.from_source(source, sink=sink), device, dense=dense, **kwargs)
+
+    def _upload_dense(self) -> wp.array:
         """Stream the volume's source to a dense device array, box by box (host memory: a few boxes)."""
         volume = self.volume
         dense = wp.empty(volume.shape, dtype=STORE_KINDS[volume.storage.name][1], device=self.device)
@@ -226,7 +266,7 @@ class Renderer:
 
         for box, values in map_bounded(read, boxes(volume.source), voxels.READ_THREADS):
             wp.copy(dense[box], wp.array(np.ascontiguousarray(values), device=self.device))
-        self._set_voxels(self._base, dense)
+        return dense
 
     def memory(self) -> MemoryStats:
         """Where the voxels are (dense or sparse) and what paging cost so far."""

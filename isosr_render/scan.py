@@ -12,13 +12,16 @@ holding at most a few boxes at once, and gathers:
 - a strided subsample (at most about two million voxels, for Otsu's threshold);
 - for 8- and 16-bit integers, the count of every stored value (an exact histogram).
 
-Everything is one pass. A float histogram needs a second one (its bins span the range, known
-only at the end): :meth:`Volume.histogram` does it on demand.
+Everything is one pass. 8- and 16-bit integers go to the device as they are read (``sink``):
+their device values do not depend on the range. Float and 32-bit data take a second pass to
+upload (normalized by the range known only at the end), and a float histogram one more (its
+bins span that range): :meth:`Volume.histogram` does it on demand.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -36,6 +39,12 @@ SUBSAMPLE = 2_000_000  # voxels in the Otsu subsample, about
 # Summaries kept per block: the block, its low x/y/z faces, low xy/xz/yz edges, low corner.
 _PARTS = ((None, None, None), (0, None, None), (None, 0, None), (None, None, 0),
           (0, 0, None), (0, None, 0), (None, 0, 0), (0, 0, 0))
+
+
+def native_integer(dtype: np.dtype) -> bool:
+    """Whether voxels of ``dtype`` go to the device as (unsigned) integers, known before any scan."""
+    dtype = np.dtype(dtype)
+    return dtype.kind in "iu" and dtype.itemsize <= 2
 
 
 def unsigned_view(values: np.ndarray) -> np.ndarray:
@@ -85,6 +94,7 @@ class _BoxResult:
     parts: list  # per _PARTS entry: (min, max) block arrays
     counts: np.ndarray | None
     sub: np.ndarray
+    device: np.ndarray | None  # the box's device values, for the sink
 
 
 @dataclass
@@ -135,7 +145,7 @@ class Scan:
         return out[0], out[1]
 
 
-def _scan_box(source: VoxelSource, box, stride: int, counted: bool) -> _BoxResult:
+def _scan_box(source: VoxelSource, box, stride: int, counted: bool, keep: bool) -> _BoxResult:
     """The summaries of one box (run on a worker thread)."""
     shape = tuple(s.stop - s.start for s in box)
     values = np.asarray(source.read(*box))
@@ -155,6 +165,7 @@ def _scan_box(source: VoxelSource, box, stride: int, counted: bool) -> _BoxResul
             finite = (values.min(), values.max())
     else:
         finite = (values.min(), values.max())
+    device = unsigned_view(values) if keep else None
     counts = None
     if counted:
         counts = np.bincount(unsigned_view(values).ravel(), minlength=1 << (8 * values.dtype.itemsize))
@@ -167,19 +178,25 @@ def _scan_box(source: VoxelSource, box, stride: int, counted: bool) -> _BoxResul
         view = values[tuple(slice(None) if c is None else slice(0, None, BRICK) for c in low)]
         axes = tuple(a for a, c in enumerate(low) if c is None)
         parts.append((_blocks(view, np.minimum, axes), _blocks(view, np.maximum, axes)))
-    return _BoxResult(box, finite, nonfinite, parts, counts, sub)
+    return _BoxResult(box, finite, nonfinite, parts, counts, sub, device)
 
 
-def scan(source: VoxelSource, threads: int | None = None, box_bytes: int | None = None) -> Scan:
+def scan(source: VoxelSource, threads: int | None = None, box_bytes: int | None = None,
+         sink: Callable[[tuple[slice, slice, slice], np.ndarray], None] | None = None) -> Scan:
     """Read ``source`` once, box by box on ``threads`` threads (default ``voxels.READ_THREADS``), and summarize it.
 
     Peak host memory: about ``2 threads`` boxes of ``box_bytes`` (default ``voxels.BOX_BYTES``;
     times a few for their summaries' temporaries), plus the block summaries (16 values per
     ``BRICK^3`` voxels).
+
+    Args:
+        sink: for 8/16-bit integer sources (:func:`native_integer`), called on this thread with
+            each box and its device values (unsigned, as ``Volume`` stores them) as it is read.
     """
     check_source(source)
     dtype = np.dtype(source.dtype)
-    counted = dtype.kind in "iu" and dtype.itemsize <= 2
+    counted = native_integer(dtype)
+    keep = sink is not None and counted
     stride = max(1, round((np.prod(source.shape, dtype=np.float64) / SUBSAMPLE) ** (1 / 3)))
     nblk = tuple(-(-n // BRICK) for n in source.shape)
     big, small = _extremes(dtype)
@@ -203,10 +220,14 @@ def scan(source: VoxelSource, threads: int | None = None, box_bytes: int | None 
             counts[:] += r.counts
         at = tuple(slice(-(-s.start // stride), -(-s.start // stride) + n) for s, n in zip(r.box, r.sub.shape))
         subsample[at] = r.sub
+        if keep:
+            sink(r.box, r.device)
 
     threads = threads or voxels.READ_THREADS
-    for result in map_bounded(lambda box: _scan_box(source, box, stride, counted), boxes(source, BRICK, box_bytes),
-                              threads):
+    def read(box):
+        return _scan_box(source, box, stride, counted, keep)
+
+    for result in map_bounded(read, boxes(source, BRICK, box_bytes), threads):
         merge(result)
     return Scan(tuple(source.shape), dtype, None if lo is None else lo.item(), None if hi is None else hi.item(),
                 *(int(c) for c in nonfinite), parts_min, parts_max, counts, subsample, stride)

@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from isosr_render.conventions import world_from_voxel
-from isosr_render.scan import BRICK, Scan, scan, unsigned_view
+from isosr_render.scan import BRICK, Scan, native_integer, scan, unsigned_view
 from isosr_render.voxels import (
     ArraySource,
     VolumeError,
@@ -39,7 +39,7 @@ from isosr_render.voxels import (
     check_source,
 )
 
-__all__ = ["BRICK", "Volume", "VolumeError"]
+__all__ = ["BRICK", "Volume", "VolumeError", "native_integer"]
 
 
 @dataclass(frozen=True)
@@ -78,16 +78,20 @@ class Volume:
         return cls.from_source(ArraySource(values, spacing, name))
 
     @classmethod
-    def from_source(cls, source: VoxelSource) -> "Volume":
+    def from_source(cls, source: VoxelSource, sink=None) -> "Volume":
         """Scan a voxel source once and describe it for rendering.
 
         Non-finite voxels are replaced, with a warning that counts them: NaN by the smallest
         finite value (treated as empty space), +Inf/-Inf by the largest/smallest finite
         value. A volume with no finite voxel is an error.
+
+        Args:
+            sink: ``sink(box, device_values)`` receives every box during the scan where the
+                device values are known before it (8/16-bit integers, :func:`native_integer`).
         """
         check_source(source)
         label = source.name or "array"
-        found = scan(source)
+        found = scan(source, sink=sink)
         if found.lo is None:
             raise VolumeError(f"{label}: no finite voxel (all NaN or Inf)")
         if found.nan or found.posinf or found.neginf:
@@ -98,7 +102,7 @@ class Volume:
         ends = sorted((found.lo * slope + intercept, found.hi * slope + intercept))
         lo, hi = float(ends[0]), float(ends[1])
         dtype = np.dtype(source.dtype)
-        if dtype.kind in "iu" and dtype.itemsize <= 2:
+        if native_integer(dtype):
             storage = np.dtype(f"uint{8 * dtype.itemsize}")
             shift = 0 if dtype.kind == "u" else 1 << (8 * dtype.itemsize - 1)
             span = hi - lo

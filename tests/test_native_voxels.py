@@ -34,13 +34,14 @@ def _original(source) -> np.ndarray:
 
 
 class _CountingSource(SpheresSource):
-    """Records the largest box read."""
+    """Records the largest box read and the bytes read."""
 
-    largest = 0
+    largest = total = 0
 
     def read(self, x, y, z):
         values = super().read(x, y, z)
         self.largest = max(self.largest, values.nbytes)
+        self.total += values.nbytes
         return values
 
 
@@ -95,6 +96,18 @@ def test_loading_reads_box_by_box(monkeypatch):
     source.largest = 0
     renderer = Renderer(volume, "cpu", threads=1)
     assert source.largest == 32 * 32 * 32 * 2 and renderer.memory().mode == "dense"
+    assert source.total == 2 * volume.device_bytes  # the scan, then the upload
+
+
+def test_load_scans_and_uploads_integers_in_one_read():
+    source = _CountingSource((70, 64, 50), "int16", seed=4)
+    renderer = Renderer.load(source, "cpu", threads=2)
+    assert source.total == renderer.volume.device_bytes and renderer.memory().mode == "dense"
+    request = RenderRequest(48, 40, iso=renderer.volume.normalized_iso(0.0), outputs=("mask", "depth"))
+    got = renderer.render(CAMERA, request).to_numpy()
+    want = Renderer(Volume.from_source(source), "cpu", threads=2).render(CAMERA, request).to_numpy()
+    for name in ("mask", "depth"):
+        np.testing.assert_array_equal(got[name], want[name], err_msg=name)
 
 
 def test_sparse_volume_renders_like_dense_and_pages_only_the_difference():
