@@ -10,7 +10,9 @@ then read the brick's minimum, which lies on the same side of the iso as all its
 An iso change pages in only the bricks it needs that are not resident, reading the voxel
 source chunk by chunk (on threads) and scattering each chunk's bricks to their slots. Bricks no
 longer needed stay until the pool is full, then the least recently needed go. The pool grows
-geometrically up to ``max_bytes``; an iso needing more is refused with a clear error.
+geometrically up to ``max_bytes``; an iso needing more is refused with a clear error. A
+request with ``skip=False`` (a measurement knob) also marches non-resident bricks and reads
+their minimum there.
 
 Why a pool of our own rather than ``wp.Volume`` (NanoVDB): NanoVDB in Warp holds float32,
 int32 or vec3 voxels, not uint8/uint16, so it would double or quadruple the resident bytes of
