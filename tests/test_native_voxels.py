@@ -4,13 +4,15 @@ isosr_render.scan, isosr_render.brick_pool).
 Tolerances of native-type rendering against float32 (same original values): the kernels
 interpolate ``voxel - d0`` and scale once, float32 normalizes each voxel first; both round
 in float32, so depth may differ by 1e-5 world units and normals by 1e-4, and hit masks may
-differ at a few silhouette pixels (none measured here; the test allows 3).
+differ at a few silhouette pixels (none measured here; the test allows 3). Sparse and dense
+images are identical. ``ISOSR_TEST_DEVICE=cuda`` runs the renders on the GPU.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import DEVICE
 
 from isosr_render import Renderer, RenderRequest, Volume, orbit, voxels
 from isosr_render.brick_pool import DeviceMemoryError, coarsen
@@ -24,7 +26,7 @@ CAMERA = orbit(30, 20, 1.8)
 
 def _render(volume: Volume, iso: float, **kwargs) -> dict[str, np.ndarray]:
     request = RenderRequest(64, 48, iso=iso, outputs=OUTPUTS, ao_samples=8, ao_radius=0.05)
-    return Renderer(volume, "cpu", threads=2, **kwargs).render(CAMERA, request).to_numpy()
+    return Renderer(volume, DEVICE, threads=2, **kwargs).render(CAMERA, request).to_numpy()
 
 
 def _original(source) -> np.ndarray:
@@ -94,18 +96,18 @@ def test_loading_reads_box_by_box(monkeypatch):
     volume = Volume.from_source(source)
     assert source.largest == 32 * 32 * 32 * 2  # one chunk: the smallest box of whole chunks
     source.largest = 0
-    renderer = Renderer(volume, "cpu", threads=1)
+    renderer = Renderer(volume, DEVICE, threads=1)
     assert source.largest == 32 * 32 * 32 * 2 and renderer.memory().mode == "dense"
     assert source.total == 2 * volume.device_bytes  # the scan, then the upload
 
 
 def test_load_scans_and_uploads_integers_in_one_read():
     source = _CountingSource((70, 64, 50), "int16", seed=4)
-    renderer = Renderer.load(source, "cpu", threads=2)
+    renderer = Renderer.load(source, DEVICE, threads=2)
     assert source.total == renderer.volume.device_bytes and renderer.memory().mode == "dense"
     request = RenderRequest(48, 40, iso=renderer.volume.normalized_iso(0.0), outputs=("mask", "depth"))
     got = renderer.render(CAMERA, request).to_numpy()
-    want = Renderer(Volume.from_source(source), "cpu", threads=2).render(CAMERA, request).to_numpy()
+    want = Renderer(Volume.from_source(source), DEVICE, threads=2).render(CAMERA, request).to_numpy()
     for name in ("mask", "depth"):
         np.testing.assert_array_equal(got[name], want[name], err_msg=name)
 
@@ -113,7 +115,7 @@ def test_load_scans_and_uploads_integers_in_one_read():
 def test_sparse_volume_renders_like_dense_and_pages_only_the_difference():
     volume = Volume.from_source(SpheresSource((96, 88, 80), "uint16", seed=2))
     limit = volume.device_bytes * 3 // 4
-    renderer = Renderer(volume, "cpu", threads=2, max_device_bytes=limit)
+    renderer = Renderer(volume, DEVICE, threads=2, max_device_bytes=limit)
     isos = [volume.normalized_iso(v) for v in (0.0, 0.02)]
     for iso in isos:
         request = RenderRequest(64, 48, iso=iso, outputs=OUTPUTS, ao_samples=8, ao_radius=0.05)
@@ -133,17 +135,17 @@ def test_sparse_volume_renders_like_dense_and_pages_only_the_difference():
 def test_sparse_pool_evicts_old_bricks_and_refuses_an_iso_that_cannot_fit():
     volume = Volume.from_source(SpheresSource((96, 88, 80), "uint8", seed=3))
     isos = [volume.normalized_iso(v) for v in (-0.02, 0.05)]
-    probe = Renderer(volume, "cpu", threads=1, max_device_bytes=volume.device_bytes - 1)
+    probe = Renderer(volume, DEVICE, threads=1, max_device_bytes=volume.device_bytes - 1)
     needed = [(probe.grid(iso), probe.memory().bricks_needed)[1] for iso in isos]
     limit = max(needed) * probe.pool.brick_bytes  # room for one iso's bricks, not both
-    renderer = Renderer(volume, "cpu", threads=2, max_device_bytes=limit)
+    renderer = Renderer(volume, DEVICE, threads=2, max_device_bytes=limit)
     for iso in isos + isos[:1]:
         request = RenderRequest(48, 40, iso=iso, outputs=("mask", "depth"))
         got = renderer.render(CAMERA, request).to_numpy()
-        want = Renderer(volume, "cpu", threads=2).render(CAMERA, request).to_numpy()
+        want = Renderer(volume, DEVICE, threads=2).render(CAMERA, request).to_numpy()
         for name in ("mask", "depth"):
             np.testing.assert_array_equal(got[name], want[name], err_msg=name)
     assert renderer.memory().resident_bytes <= limit
-    tiny = Renderer(volume, "cpu", threads=1, max_device_bytes=10 * probe.pool.brick_bytes)
+    tiny = Renderer(volume, DEVICE, threads=1, max_device_bytes=10 * probe.pool.brick_bytes)
     with pytest.raises(DeviceMemoryError, match=r"needs \d+ bricks .* raise max_device_bytes"):
         tiny.grid(isos[0])
