@@ -6,8 +6,9 @@ import argparse
 from pathlib import Path
 
 STUDIES = ("network", "pipeline", "knobs", "render")
-# Studies run only when named in --only (server: starts `isosr serve` and drives view sessions).
-ON_REQUEST = ("server",)
+# Studies run only when named in --only (server: starts `isosr serve` and drives view sessions;
+# memory: loads volumes of up to tens of GB, see isosr_bench.bench_volume_memory).
+ON_REQUEST = ("server", "memory")
 
 
 def add_parser(subparsers) -> None:
@@ -32,7 +33,7 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from isosr_bench import (bench_knobs, bench_network, bench_pareto, bench_pipeline, bench_render, bench_server,
-                             report)
+                             bench_volume_memory, report)
     from isosr_bench.common import RESULTS_DIR
 
     if (args.volumes or args.sizes) and not args.pareto:
@@ -50,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
         print("== pareto")
         bench_pareto.main(argv + ["--volumes", args.volumes, "--sizes", args.sizes, "--models", args.models])
     modules = {"network": bench_network, "pipeline": bench_pipeline, "knobs": bench_knobs, "render": bench_render,
-               "server": bench_server}
+               "server": bench_server, "memory": bench_volume_memory}
     for study in studies:
         print(f"== {study}")
         modules[study].main(argv + (["--models", args.models] if study == "knobs" and args.models else []))

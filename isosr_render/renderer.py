@@ -1,13 +1,17 @@
 """The renderer's Python API: a `RenderRequest` in, `FrameBuffers` out.
 
     volume = load_volume("head.nii.gz")            # or procedural.parse_procedural("proc:sphere")
-    renderer = Renderer(volume, device="cuda")     # uploads the volume, builds the min-max grid
+    renderer = Renderer(volume, device="cuda")     # streams the volume to the device, builds the min-max grid
     request = RenderRequest(480, 270, iso=volume.normalized_iso(300.0), outputs=("mask", "normal"))
     frame = renderer.render(orbit(30, 20, 1.8), request)
     frame.normal                                   # torch tensor (270, 480, 3), no copy
 
 A request computes only what it names: AO rays only when ``ao`` is asked, flow only with a
 previous camera, normals only for ``normal``, ``ao`` or ``color``.
+
+Voxels go to the device in their narrow type (see :mod:`isosr_render.volume`), streamed box
+by box from the volume's source. A volume whose dense size exceeds ``max_device_bytes`` is
+rendered sparse: only the bricks each iso needs are resident (:mod:`isosr_render.brick_pool`).
 """
 
 from __future__ import annotations
@@ -21,13 +25,15 @@ import numpy as np
 import torch
 import warp as wp
 
-from isosr_render import kernels
+from isosr_render import kernels, voxels
+from isosr_render.brick_pool import BrickPool, MemoryStats
 from isosr_render.buffers import FrameBuffers
 from isosr_render.camera import Camera
 from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES
 from isosr_render.flow_fill import FILL_METHODS, fill_flow
 from isosr_render.shading import ShadingParams, shade
-from isosr_render.volume import Volume
+from isosr_render.volume import Volume, native_integer
+from isosr_render.voxels import VoxelSource, boxes, map_bounded
 
 REFINE_METHODS = {"bisection": kernels.REFINE_BISECTION, "secant": kernels.REFINE_SECANT}
 REQUESTABLE = BUFFER_NAMES + ("samples",)
@@ -38,6 +44,10 @@ MAX_AO_SAMPLES = 4096
 # Cap of the brick distance grid: a ray leaps at most (2 MAX_LEAP - 1) bricks at once.
 MAX_LEAP = 16
 GRID_CACHE = 4
+# Without a limit, a CUDA renderer keeps a volume dense while it takes at most this share of free memory.
+DENSE_SHARE = 0.5
+STORE_KINDS = {"float32": (kernels.STORE_F32, wp.float32), "uint16": (kernels.STORE_U16, wp.uint16),
+               "uint8": (kernels.STORE_U8, wp.uint8)}
 
 
 @dataclass(frozen=True)
@@ -121,6 +131,22 @@ class RenderRequest:
         return sum(bits[name] for name in need if name in bits)
 
 
+def warp_device(device: str):
+    """The Warp device ``device`` names (``cpu``, ``cuda``, ``cuda:N``); a clear error without CUDA."""
+    wp.init()
+    if device.startswith("cuda") and not wp.is_cuda_available():
+        raise RuntimeError(f"device {device!r} asked for, but Warp finds no CUDA device on this machine")
+    return wp.get_device(device)
+
+
+def device_limit(device, max_device_bytes: int | None) -> int | None:
+    """The bytes a volume's voxels may take on ``device`` before it renders sparse: the given
+    limit, else ``DENSE_SHARE`` of the free memory on CUDA, none on the CPU."""
+    if max_device_bytes is None and device.is_cuda:
+        return int(DENSE_SHARE * device.free_memory)
+    return max_device_bytes
+
+
 def _view(camera: Camera, width: int, height: int) -> kernels.View:
     """The kernel's camera struct."""
     right, up, back = camera.basis()
@@ -141,41 +167,127 @@ class Renderer:
     Args:
         volume: the volume; uploaded once, with its min-max grid (independent of the iso).
         device: ``"cpu"``, ``"cuda"`` or ``"cuda:N"``.
-        brick_size: voxels per min-max brick edge.
+        brick_size: voxels per min-max brick edge (a multiple of 8 for sparse volumes).
         threads: CPU only: threads over which the image is split in row bands
             (Warp's CPU kernels run on one thread each); default: all cores.
+        max_device_bytes: the most bytes the volume's voxels may take on the device; a volume
+            whose dense size is larger is rendered sparse. Default: none on CPU, half of the
+            free memory on CUDA.
+        dense: the volume's voxels already on the device, dense (:meth:`load` makes them); None:
+            streamed from the volume's source here.
     """
 
-    def __init__(self, volume: Volume, device: str = "cpu", brick_size: int = 8, threads: int | None = None):
-        wp.init()
-        if device.startswith("cuda") and not wp.is_cuda_available():
-            raise RuntimeError(f"device {device!r} asked for, but Warp finds no CUDA device on this machine")
+    def __init__(self, volume: Volume, device: str = "cpu", brick_size: int = 8, threads: int | None = None,
+                 max_device_bytes: int | None = None, dense: wp.array | None = None):
         if brick_size < 1:
             raise ValueError(f"brick_size must be positive, got {brick_size}")
         self.volume = volume
-        self.device = wp.get_device(device)
+        self.device = warp_device(device)
         self.threads = 1 if self.device.is_cuda else (threads or os.cpu_count() or 1)
         wp.load_module(kernels, device=self.device)
         self.brick_size = brick_size
-        self.data = wp.array(volume.data, dtype=wp.float32, device=self.device)
-        bricks = tuple(max(1, -(-(n - 1) // brick_size)) for n in volume.shape)
-        self.minmax = wp.empty(bricks, dtype=wp.vec2, device=self.device)
-        wp.launch(kernels.minmax_kernel, dim=bricks, inputs=[self.data, brick_size, self.minmax], device=self.device)
+        self.max_device_bytes = max_device_bytes = device_limit(self.device, max_device_bytes)
+        self._base = self._base_grid()
+        self.pool: BrickPool | None = None
+        if max_device_bytes is None or volume.device_bytes <= max_device_bytes:
+            if dense is None:
+                dense = self._upload_dense()
+            elif dense.shape != volume.shape or dense.dtype != STORE_KINDS[volume.storage.name][1]:
+                raise ValueError(f"dense voxels of shape {dense.shape} do not fit the volume {volume.shape} "
+                                 f"of {volume.storage.name}")
+            self._set_voxels(self._base, dense)
+            bricks = tuple(max(1, -(-(n - 1) // brick_size)) for n in volume.shape)
+            self.minmax = wp.empty(bricks, dtype=wp.vec2, device=self.device)
+            wp.launch(kernels.minmax_kernel, dim=bricks, inputs=[self._base, self.minmax], device=self.device)
+            total = int(np.prod(bricks))
+            self._stats = MemoryStats("dense", volume.storage.name, volume.device_bytes, volume.device_bytes,
+                                      volume.device_bytes, max_device_bytes or 0, total, total)
+        else:
+            self.pool = BrickPool(volume, self.device, brick_size, max_device_bytes)
+            self.minmax = self.pool.minmax
+            self._base.sparse = 1
+            self._base.slots = self.pool.slots
+        self._base.minmax = self.minmax
+        wp.synchronize_device(self.device)  # uploads ran on Warp's stream; renders run on torch's
         self._grids: OrderedDict[tuple[float, bool], kernels.Grid] = OrderedDict()
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
         # 1x1 stand-ins for buffers a request does not ask for.
         self._unused = {t: wp.empty((1, 1), dtype=t, device=self.device) for t in (wp.float32, wp.vec2, wp.vec3, wp.int32)}
 
+    def _base_grid(self) -> kernels.Grid:
+        """The iso-independent part of the kernels' grid, with 1x1x1 stand-ins for the arrays."""
+        grid = kernels.Grid()
+        for name, dtype in (("data", wp.float32), ("data16", wp.uint16), ("data8", wp.uint8), ("slots", wp.int32)):
+            setattr(grid, name, wp.zeros((1, 1, 1), dtype=dtype, device=self.device))
+        grid.kind = STORE_KINDS[self.volume.storage.name][0]
+        grid.unit = wp.vec2(*self.volume.unit)
+        grid.size = wp.vec3i(*self.volume.shape)
+        grid.sparse = 0
+        grid.brick = self.brick_size
+        scale, offset = self.volume.world_transform()
+        grid.scale = wp.vec3(*scale)
+        grid.offset = wp.vec3(*offset)
+        return grid
+
+    def _set_voxels(self, grid: kernels.Grid, array: wp.array) -> None:
+        """Point ``grid``'s field of the volume's device type at ``array`` (the voxels or the pool)."""
+        field = {kernels.STORE_F32: "data", kernels.STORE_U16: "data16", kernels.STORE_U8: "data8"}[grid.kind]
+        setattr(grid, field, array)
+
+    @classmethod
+    def load(cls, source: VoxelSource, device: str = "cpu", **kwargs) -> "Renderer":
+        """Scan a voxel source and make its renderer, in one read of the source for 8/16-bit
+        integers headed for a dense volume (each box goes to the device as the scan reads it);
+        float and 32-bit data, and sparse volumes, read it again (see :mod:`isosr_render.scan`).
+
+        Args:
+            kwargs: as :class:`Renderer` (``brick_size``, ``threads``, ``max_device_bytes``).
+        """
+        target = warp_device(device)
+        limit = device_limit(target, kwargs.get("max_device_bytes"))
+        dtype = np.dtype(source.dtype)
+        dense, sink = None, None
+        if native_integer(dtype) and (limit is None or int(np.prod(source.shape)) * dtype.itemsize <= limit):
+            kind = STORE_KINDS[f"uint{8 * dtype.itemsize}"][1]
+            dense = wp.empty(tuple(source.shape), dtype=kind, device=target)
+
+            def sink(box, values):
+                wp.copy(dense[box], wp.array(np.ascontiguousarray(values), device=target))
+
+        return cls(Volume.from_source(source, sink=sink), device, dense=dense, **kwargs)
+
+    def _upload_dense(self) -> wp.array:
+        """Stream the volume's source to a dense device array, box by box (host memory: a few boxes)."""
+        volume = self.volume
+        dense = wp.empty(volume.shape, dtype=STORE_KINDS[volume.storage.name][1], device=self.device)
+
+        def read(box):
+            return box, volume.device_box(np.asarray(volume.source.read(*box)))
+
+        for box, values in map_bounded(read, boxes(volume.source), voxels.READ_THREADS):
+            wp.copy(dense[box], wp.array(np.ascontiguousarray(values), device=self.device))
+        return dense
+
+    def memory(self) -> MemoryStats:
+        """Where the voxels are (dense or sparse) and what paging cost so far."""
+        return self._stats if self.pool is None else self.pool.stats
+
     def grid(self, iso: float, skip: bool = True) -> kernels.Grid:
         """The kernels' view of the volume for one iso: data plus each brick's distance to an active brick.
 
         Built on the device from the min-max grid (a few small launches) and kept for the
-        last few iso-values.
+        last few iso-values. A sparse volume first pages in the bricks the iso needs.
         """
         key = (float(iso), bool(skip))
+        if self.pool is not None:
+            self.pool.ensure(iso)
+            self._set_voxels(self._base, self.pool.pool)  # the pool may have grown
         if key in self._grids:
             self._grids.move_to_end(key)
-            return self._grids[key]
+            grid = self._grids[key]
+            if self.pool is not None:
+                self._set_voxels(grid, self.pool.pool)
+            return grid
         shape = self.minmax.shape
         dist = wp.empty(shape, dtype=wp.uint8, device=self.device)
         spare = wp.empty(shape, dtype=wp.uint8, device=self.device)
@@ -185,12 +297,10 @@ class Renderer:
             wp.launch(kernels.chebyshev_pass_kernel, dim=shape, inputs=[dist, axis, MAX_LEAP, spare], device=self.device)
             dist, spare = spare, dist
         grid = kernels.Grid()
-        grid.data = self.data
+        for name in kernels.Grid.vars:
+            if name != "dist":
+                setattr(grid, name, getattr(self._base, name))
         grid.dist = dist
-        grid.brick = self.brick_size
-        scale, offset = self.volume.world_transform()
-        grid.scale = wp.vec3(*scale)
-        grid.offset = wp.vec3(*offset)
         self._grids[key] = grid
         if len(self._grids) > GRID_CACHE:
             self._grids.popitem(last=False)

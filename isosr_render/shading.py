@@ -16,7 +16,14 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from isosr_render.conventions import AO, BACKGROUND_RGB, HIGHRES_CHANNELS, LOWRES_CHANNELS, MASK, NORMAL
+from isosr_render.conventions import (
+    AO,
+    BACKGROUND_RGB,
+    HIGHRES_CHANNELS,
+    LOWRES_CHANNELS,
+    MASK,
+    NORMAL,
+)
 
 
 @dataclass(frozen=True)

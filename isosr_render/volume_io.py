@@ -1,12 +1,15 @@
 """Load scalar volumes from the file formats of scientific visualization.
 
-Every reader returns the original values indexed ``[x, y, z]`` (x is the first axis) and the
-voxel spacing; :func:`load_volume` turns them into a :class:`Volume`. Supported files:
+Every reader returns the stored values indexed ``[x, y, z]`` (x is the first axis), the voxel
+spacing and the rescale to original units; :func:`open_source` wraps them in an
+:class:`~isosr_render.voxels.ArraySource` and :func:`load_volume` turns that into a
+:class:`Volume`. Supported files:
 
 - Volume Library ``.dat`` text header beside a ``.raw`` file (``ObjectFileName``,
   ``Resolution``, ``SliceThickness``, ``Format`` UCHAR/USHORT/FLOAT), little-endian.
 - ``name_XxYxZ_dtype.raw`` and ``.raw.gz`` (little-endian, spacing 1).
-- NIfTI ``.nii`` / ``.nii.gz`` (either byte order, spacing from the zooms).
+- NIfTI ``.nii`` / ``.nii.gz`` (either byte order, spacing from the zooms, stored type kept and
+  ``scl_slope``/``scl_inter`` as the rescale).
 - NRRD ``.nrrd`` / ``.nhdr``, including detached headers over a numbered list of data files
   (``data file: slice.%03d 1 93 1``), which pynrrd does not read.
 - NumPy ``.npy`` / ``.npz`` stored as (x, y, z), never unpickled.
@@ -28,8 +31,10 @@ import nrrd
 import numpy as np
 
 from isosr_render.volume import Volume, VolumeError
+from isosr_render.voxels import ArraySource
 
-_Loaded = tuple[np.ndarray, tuple[float, ...]]
+# A reader's result: stored values [x, y, z], spacing, and optionally (slope, intercept).
+_Loaded = tuple[np.ndarray, tuple[float, ...]] | tuple[np.ndarray, tuple[float, ...], tuple[float, float]]
 
 _RAW_NAME = re.compile(r"_(\d+)x(\d+)x(\d+)_([a-z]+\d*)\.raw(\.gz)?$", re.IGNORECASE)
 _RAW_DTYPES = ("uint8", "int8", "uint16", "int16", "uint32", "int32", "float32", "float64")
@@ -42,16 +47,28 @@ _LIBRARY_ERRORS = (OSError, EOFError, ValueError, zlib.error, nrrd.NRRDError,
 
 
 def load_volume(path: str | os.PathLike) -> Volume:
-    """Load a volume file, choosing the reader from the file name.
+    """Load a volume file (see :func:`open_source`) as a :class:`Volume`.
+
+    Returns:
+        The volume named after the file, its data normalized to [0, 1] and indexed
+        ``[x, y, z]``; non-finite voxels are replaced with a warning (see
+        :meth:`Volume.from_array`).
+
+    Raises:
+        VolumeError: as :func:`open_source`.
+    """
+    return Volume.from_source(open_source(path))
+
+
+def open_source(path: str | os.PathLike) -> ArraySource:
+    """Read a volume file into a voxel source, choosing the reader from the file name.
 
     Args:
         path: a ``.dat``, ``_XxYxZ_dtype.raw[.gz]``, ``.nii[.gz]``, ``.nrrd``, ``.nhdr``,
             ``.npy`` or ``.npz`` file.
 
     Returns:
-        The volume named after the file, its data normalized to [0, 1] and indexed
-        ``[x, y, z]``; non-finite voxels are replaced with a warning (see
-        :meth:`Volume.from_array`).
+        The stored values named after the file, with spacing and rescale.
 
     Raises:
         VolumeError: the file is missing, has an unknown extension or cannot be read (bad
@@ -67,12 +84,17 @@ def load_volume(path: str | os.PathLike) -> Volume:
         known = ", ".join(s for suffixes, _ in _READERS for s in suffixes)
         raise VolumeError(f"{path}: unknown extension (expected one of {known})")
     try:
-        values, spacing = reader(path)
+        values, spacing, *rescale = reader(path)
     except VolumeError:
         raise
     except _LIBRARY_ERRORS as e:
         raise VolumeError(f"{path}: cannot read ({type(e).__name__}: {e})") from e
-    return Volume.from_array(values, spacing, name=path.name)
+    values = np.asarray(values)
+    if not (np.issubdtype(values.dtype, np.number) or values.dtype == np.bool_):
+        raise VolumeError(f"{path.name}: unsupported voxel dtype {values.dtype}")
+    if values.dtype.kind in "iu" and values.dtype.itemsize == 8:  # 64-bit integers: as float64
+        values = values.astype(np.float64)
+    return ArraySource(values, spacing, name=path.name, rescale=rescale[0] if rescale else (1.0, 0.0))
 
 
 def _read_xfastest(path: Path, dtype: np.dtype, shape: tuple[int, int, int], label: str) -> np.ndarray:
@@ -147,16 +169,14 @@ def _read_dat(path: Path) -> _Loaded:
 
 
 def _read_nifti(path: Path) -> _Loaded:
-    """Read a NIfTI image, keeping the stored dtype unless the header scales the values."""
+    """Read a NIfTI image in its stored dtype, with the header's scaling as the rescale."""
     image = nib.load(path)
     proxy = image.dataobj
-    if proxy.slope == 1 and proxy.inter == 0:
-        values = np.asanyarray(proxy)
-    else:
-        values = image.get_fdata(dtype=np.float32)
+    values = np.asanyarray(proxy.get_unscaled())
     while values.ndim > 3 and values.shape[-1] == 1:
         values = values[..., 0]
-    return values, tuple(float(z) for z in image.header.get_zooms()[:3])
+    rescale = (float(proxy.slope), float(proxy.inter))
+    return values, tuple(float(z) for z in image.header.get_zooms()[:3]), rescale
 
 
 def _read_nrrd_file_list(path: Path, header: dict, match: re.Match) -> np.ndarray:

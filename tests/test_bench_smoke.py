@@ -66,3 +66,17 @@ def test_limits_smoke_runs_the_heaviest_requests_in_slices(tmp_path):
     assert [r["request"].split()[0] for r in rows] == ["view", "upscale"]
     assert all(r["seconds"] > 0 and r["slices"] >= 1 and r["peak_growth_mib"] >= 0 for r in rows)
     assert json.loads((tmp_path / "bench_limits_cpu.json").read_text())["rows"] == rows
+
+
+def test_volume_memory_smoke_loads_native_and_pages_a_sparse_volume(tmp_path):
+    from isosr_bench import bench_volume_memory
+
+    rows = bench_volume_memory.main(["--device", "cpu", "--smoke", "--out", str(tmp_path)])
+    by = {(r["case"], r["path"], r.get("step")): r for r in rows}
+    native, today = by[("ct", "native", None)], by[("ct", "today (float32)", None)]
+    assert native["storage"] == "uint16" and today["storage"] == "float32"
+    assert native["resident_gb"] * 2 == today["resident_gb"]
+    huge = [r for r in rows if r["case"] == "huge"]
+    assert [r["mode"] for r in huge] == ["sparse", "sparse"] and all(r["camera_move_bricks_paged"] == 0 for r in huge)
+    assert 0 < huge[1]["bricks_paged"] < huge[0]["bricks_paged"]  # an iso change pages the difference
+    assert json.loads((tmp_path / "bench_volume_memory_cpu.json").read_text())["rows"] == rows
