@@ -3,6 +3,7 @@ rendered equal to the same voxels from numpy; bad input gets a one-line error na
 
 from __future__ import annotations
 
+import importlib.util
 import random
 import sys
 from pathlib import Path
@@ -357,6 +358,15 @@ def test_truncated_tiff(tmp_path):
     data = path.read_bytes()
     path.write_bytes(data[: len(data) * 2 // 3])
     _raises(lambda: open_source(path), path, "truncated")
+
+
+@pytest.mark.skipif(importlib.util.find_spec("imagecodecs") is not None, reason="imagecodecs is installed")
+def test_tiff_without_a_codec_names_what_to_install(tmp_path):
+    path = tmp_path / "vol.tif"
+    tifffile.imwrite(path, VALUES.transpose(2, 1, 0), photometric="minisblack")
+    with tifffile.TiffFile(path, mode="r+b") as tif:
+        tif.pages.first.tags["Compression"].overwrite(5)  # says LZW, which only imagecodecs decodes
+    _raises(lambda: open_source(path), path, "compressed as LZW", "no decoder", "isosr[codecs]")
 
 
 def test_tiff_stack_files_that_differ(tmp_path):

@@ -21,8 +21,9 @@ A folder holds one series: several are refused, naming each (pass ``series=`` to
 Files without the DICOM marker (``.dcm`` files aside) and a DICOMDIR are passed over. A
 multi-frame file (enhanced CT/MR: positions from the per-frame functional groups) is a volume
 by itself. Compressed transfer syntaxes decode through pydicom's plugins (RLE built in, JPEG
-baseline with Pillow; JPEG lossless, JPEG-LS and JPEG 2000 through pylibjpeg: ``pip install
-'isosr[codecs]'``); without a decoder the series is refused naming what to install.
+baseline and JPEG 2000 also through Pillow where installed; JPEG lossless, JPEG-LS and the rest
+through pylibjpeg: ``pip install 'isosr[codecs]'``); without a decoder the series is refused
+naming what to install.
 """
 
 from __future__ import annotations

@@ -8,7 +8,9 @@
   (``slice2`` before ``slice10``: TIFF records no slice position), each of the same size and
   type. Spacing 1 unless given.
 
-A page whose data run past the end of the file (a truncated TIFF) is refused when opened.
+A page whose data run past the end of the file (a truncated TIFF), or whose compression no
+installed codec decodes (LZW, JPEG and others need imagecodecs: ``pip install 'isosr[codecs]'``),
+is refused when opened.
 """
 
 from __future__ import annotations
@@ -43,7 +45,7 @@ def open_tiff(path: str | os.PathLike, *, spacing: tuple[float, float, float] | 
         return _open_stack(tifffile, path, spacing or (1.0, 1.0, 1.0))
     tif = _open(tifffile, path)
     series = tif.series[0]
-    _check_pages(series, path)
+    _check_pages(tifffile, series, path)
     axes = series.axes.upper()
     if series.ndim < 3 or axes[-2:] != "YX":
         raise VolumeError(f"{path}: a volume needs pages of 2D images (axes ...YX), got axes {axes} "
@@ -66,12 +68,17 @@ def _open(tifffile, path: Path):
         raise VolumeError(f"{path}: not a readable TIFF ({one_line(e)})") from e
 
 
-def _check_pages(series, path: Path) -> None:
-    """Refuse color samples and data that run past the end of the file."""
+def _check_pages(tifffile, series, path: Path) -> None:
+    """Refuse color samples, a compression no installed codec decodes and data past the end of the file."""
     page = series.keyframe
     if page.photometric.name in _COLOR or page.samplesperpixel > 1:
         raise VolumeError(f"{path}: {page.photometric.name} images with {page.samplesperpixel} samples per "
                           "pixel; a volume needs one scalar per voxel")
+    try:
+        tifffile.TIFF.DECOMPRESSORS[page.compression]
+    except KeyError:
+        raise VolumeError(f"{path}: pages compressed as {page.compression.name} and no decoder is installed "
+                          "(pip install 'isosr[codecs]' for imagecodecs)") from None
     size = os.path.getsize(path)
     end = (series.dataoffset + series.nbytes if series.dataoffset is not None
            else max((o + n for p in series.pages if p is not None for o, n in zip(p.dataoffsets, p.databytecounts)),
@@ -119,7 +126,7 @@ def _open_stack(tifffile, folder: Path, spacing) -> ZarrSource:
     for file in map(Path, files):
         with _open(tifffile, file) as tif:
             series = tif.series[0]
-            _check_pages(series, file)
+            _check_pages(tifffile, series, file)
             found = (tuple(s for s in series.shape if s != 1), series.dtype)
         if len(found[0]) != 2:
             raise VolumeError(f"{file}: a TIFF stack takes one 2D image a file, this one has shape {series.shape}")
