@@ -278,6 +278,15 @@ def test_ome_zarr_three_levels(tmp_path, zarr_format):
     np.testing.assert_array_equal(coarse.read(slice(0, 10), slice(0, 8), slice(0, 6)), VALUES[::2, ::2, ::2])
 
 
+def test_ome_zarr_in_a_bioformats2raw_layout(tmp_path):
+    path = tmp_path / "converted.zarr"
+    _write_ome_zarr(path / "0")
+    zarr.open_group(str(path), mode="a").attrs["ome"] = {"version": "0.5", "bioformats2raw.layout": 3}
+    source = open_source(path)
+    assert source.name == "converted.zarr/0/s0" and len(source.levels) == 3
+    _assert_same_volume(source, VALUES, SPACING)
+
+
 def test_ome_zarr_level_by_memory(tmp_path):
     _write_ome_zarr(tmp_path / "a.zarr")
     assert open_zarr(tmp_path / "a.zarr", max_bytes=VALUES.nbytes).level == "s0"

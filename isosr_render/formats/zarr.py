@@ -1,6 +1,7 @@
 """Zarr v2/v3 arrays and OME-Zarr (NGFF) multiscale images as voxel sources, through zarr.
 
-- An OME-Zarr group (NGFF 0.4 ``multiscales`` in the attributes, 0.5 under ``ome``): the axes
+- An OME-Zarr group (NGFF 0.4 ``multiscales`` in the attributes, 0.5 under ``ome``; in a
+  bioformats2raw layout, the image ``0``): the axes
   named in the metadata (``z``, ``y``, ``x`` map to the volume's z, y, x; without names, the
   last three space axes are z, y, x); other axes (time, channel) must have one entry.
   Spacing: the level's ``scale`` transformations times the multiscale's own, per axis.
@@ -126,10 +127,12 @@ def open_zarr(path: str | os.PathLike, *, level: str | None = None, max_bytes: i
     if isinstance(node, zarr.Array):
         source = _plain_source(node, path.name, str(path))
     else:
-        attrs = node.attrs.asdict()
-        multiscales = attrs.get("multiscales") or attrs.get("ome", {}).get("multiscales")
+        prefix = ""
+        if _ngff(node, "bioformats2raw.layout") and "0" in node:  # the image is the group "0"
+            node, prefix = node["0"], "0/"
+        multiscales = _ngff(node, "multiscales")
         if multiscales:
-            levels = _levels(node, multiscales[0], path)
+            levels = _levels(node, multiscales[0], path, prefix)
             return dataclasses.replace(_pick_level(levels, level, max_bytes, path), levels=levels)
         arrays = sorted(node.arrays(), key=lambda item: item[0])
         if len(arrays) != 1:
@@ -141,6 +144,12 @@ def open_zarr(path: str | os.PathLike, *, level: str | None = None, max_bytes: i
     if level is not None or max_bytes is not None:
         raise VolumeError(f"{path}: a plain Zarr array has no levels to choose from")
     return source
+
+
+def _ngff(group, key: str):
+    """An NGFF attribute of the group: at the top (0.4) or under ``ome`` (0.5); None if absent."""
+    attrs = group.attrs.asdict()
+    return attrs.get(key, attrs.get("ome", {}).get(key))
 
 
 def _plain_source(array, name: str, where: str) -> ZarrSource:
@@ -174,14 +183,15 @@ def _scale(transforms: list[dict] | None, ndim: int, label: str) -> np.ndarray:
     return scale
 
 
-def _levels(group, multiscale: dict, path: Path) -> tuple[ZarrSource, ...]:
-    """Every dataset of an NGFF multiscale image as a source, in the metadata's order (finest first)."""
+def _levels(group, multiscale: dict, path: Path, prefix: str) -> tuple[ZarrSource, ...]:
+    """Every dataset of an NGFF multiscale image (the group at ``prefix`` in the store at ``path``) as
+    a source, in the metadata's order (finest first)."""
     datasets = multiscale.get("datasets") or []
     if not datasets:
         raise VolumeError(f"{path}: OME-Zarr multiscales metadata lists no datasets")
     levels = []
     for dataset in datasets:
-        where = path / dataset["path"]
+        where = path / (prefix + dataset["path"])
         try:
             array = group[dataset["path"]]
         except KeyError:
@@ -200,7 +210,7 @@ def _levels(group, multiscale: dict, path: Path) -> tuple[ZarrSource, ...]:
         spacing = tuple(float(scale[a]) for a in axes)
         if min(array.shape[a] for a in axes) < 2:
             continue  # a level too coarse to hold a volume
-        levels.append(checked_source(ZarrSource(f"{path.name}/{dataset['path']}", array, axes, spacing, str(where),
+        levels.append(checked_source(ZarrSource(f"{path.name}/{prefix}{dataset['path']}", array, axes, spacing, str(where),
                                           level=dataset["path"])))
     return tuple(levels)
 
