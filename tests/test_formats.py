@@ -386,7 +386,9 @@ def test_tiff_stack_files_that_differ(tmp_path):
 
 def test_single_2d_tiff_and_rgb_refused(tmp_path):
     tifffile.imwrite(tmp_path / "flat.tif", VALUES[:, :, 0].T)
-    _raises(lambda: open_source(tmp_path / "flat.tif"), tmp_path / "flat.tif", "2D")
+    _raises(lambda: open_source(tmp_path / "flat.tif"), tmp_path / "flat.tif", "a single 2D image")
+    tifffile.imwrite(tmp_path / "zc.tif", np.zeros((4, 2, 8, 8), np.uint8), imagej=True, metadata={"axes": "ZCYX"})
+    _raises(lambda: open_source(tmp_path / "zc.tif"), tmp_path / "zc.tif", "ZCYX", "one axis of slices")
     tifffile.imwrite(tmp_path / "rgb.tif", np.zeros((4, 8, 8, 3), np.uint8), photometric="rgb")
     _raises(lambda: open_source(tmp_path / "rgb.tif"), tmp_path / "rgb.tif", "RGB", "one scalar per voxel")
 

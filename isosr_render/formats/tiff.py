@@ -47,13 +47,14 @@ def open_tiff(path: str | os.PathLike, *, spacing: tuple[float, float, float] | 
     series = tif.series[0]
     _check_pages(tifffile, series, path)
     axes = series.axes.upper()
-    if series.ndim < 3 or axes[-2:] != "YX":
-        raise VolumeError(f"{path}: a volume needs pages of 2D images (axes ...YX), got axes {axes} "
-                          f"with shape {series.shape}")
+    if axes[-2:] != "YX":
+        raise VolumeError(f"{path}: expected pages of 2D images (axes ending in YX), got axes {axes}")
     stacked = [a for a in range(series.ndim - 2) if series.shape[a] > 1]
-    if len(stacked) != 1:
-        raise VolumeError(f"{path}: expected one axis of slices besides YX, got axes {axes} with shape "
-                          f"{series.shape}" + (" (a single 2D image)" if not stacked else ""))
+    if not stacked:
+        raise VolumeError(f"{path}: a single 2D image of shape {series.shape}, not a volume")
+    if len(stacked) > 1:
+        raise VolumeError(f"{path}: axes {axes} with shape {series.shape}: a volume has one axis of slices "
+                          "besides YX (one channel, one time point)")
     array = _as_zarr(series.aszarr(), path)
     spacing = spacing or _spacing(tifffile, tif, path)
     axes = (series.ndim - 1, series.ndim - 2, stacked[0])
