@@ -13,16 +13,16 @@ shading. Then time against output resolution (720p, 1080p, 4K) and against volum
 
 from __future__ import annotations
 
-
 import torch
 import torch.nn.functional as F
 
+from isosr_net.inference import surface_tensors
+from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
 from isosr_render import Renderer, RenderRequest, Volume, open_volume, orbit_path, resolve_iso
 from isosr_render.conventions import AO_RADIUS, HIGHRES_BUFFERS, LOWRES_BUFFERS
 from isosr_render.sequence import sequence_requests
 from isosr_render.shading import shade_channels_first
-from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
-from isosr_net.inference import surface_tensors
+from isosr_render.voxels import ArraySource
 
 from .common import bench_parser, print_table, time_frames, write_result
 
@@ -37,7 +37,8 @@ def resampled(volume: Volume, size: int, device: str) -> Volume:
     shape = tuple(max(2, round((n - 1) * scale) + 1) for n in volume.shape)
     x = torch.from_numpy(volume.data).to(device)[None, None]
     data = F.interpolate(x, size=shape, mode="trilinear", align_corners=True)[0, 0].cpu().numpy()
-    return Volume(data, volume.spacing, volume.value_range, f"{volume.name} @{size}")
+    lo, hi = volume.value_range
+    return Volume.from_source(ArraySource(data, volume.spacing, f"{volume.name} @{size}", (hi - lo, lo)))
 
 
 def volumes(smoke: bool, device: str) -> list[tuple[str, Volume, float]]:

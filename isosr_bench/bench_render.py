@@ -19,6 +19,7 @@ import warp as wp
 from isosr_render import Renderer, RenderRequest, Volume, open_volume, orbit_path, resolve_iso
 from isosr_render.flow_fill import fill_flow
 from isosr_render.sequence import sequence_requests
+from isosr_render.voxels import ArraySource
 
 from .common import bench_parser, kernel_ms, print_table, time_frames, write_result
 
@@ -33,7 +34,8 @@ def upsampled(volume: Volume, factor: int, device: str) -> Volume:
     x = torch.from_numpy(volume.data).to(device)[None, None]
     size = tuple((n - 1) * factor + 1 for n in volume.shape)
     big = F.interpolate(x, size=size, mode="trilinear", align_corners=True)[0, 0]
-    return Volume(big.cpu().numpy(), volume.spacing, volume.value_range, f"{volume.name} x{factor}")
+    lo, hi = volume.value_range
+    return Volume.from_source(ArraySource(big.cpu().numpy(), volume.spacing, f"{volume.name} x{factor}", (hi - lo, lo)))
 
 
 def volumes(smoke: bool, device: str) -> list[tuple[Volume, float]]:

@@ -1,9 +1,14 @@
 """Warp kernels: the min-max brick grid, its per-iso distance grid, and first-hit + AO ray casting.
 
-One code path for ``cuda`` and ``cpu``. Rays march in voxel coordinates (voxel ``(i, j, k)``
-at integer coordinates, the data spanning ``[0, n - 1]`` per axis) while the ray
-parameter ``t`` stays in world units, so step sizes and AO radii mean the same on
-anisotropic grids. A brick is active when its value range (min-max grid) holds the
+One code path for ``cuda`` and ``cpu``, and for every way the voxels lie on the device: dense
+float32 (normalized), uint16 or uint8 (normalized per sample, ``(v - d0) * a``), or sparse: a
+pool of resident bricks, each stored with its one-voxel overlap as ``(B + 1)^3`` voxels, found
+through a per-brick slot table (a brick without a slot can hold no surface for the current
+iso: its samples read the brick's minimum, on the same side of the iso as all its voxels).
+
+Rays march in voxel coordinates (voxel ``(i, j, k)`` at integer coordinates, the data spanning
+``[0, n - 1]`` per axis) while the ray parameter ``t`` stays in world units, so step sizes and
+AO radii mean the same on anisotropic grids. A brick is active when its value range (min-max grid) holds the
 iso-value; the trilinear interpolant inside a brick is bounded by the brick's voxels (they
 include the one-voxel overlap), so skipping inactive bricks never loses a hit. Rays leap
 over inactive bricks by the Chebyshev distance to the nearest active one and march only
@@ -11,6 +16,8 @@ active bricks. Buffer conventions: :mod:`isosr_render.conventions`.
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 import warp as wp
 
@@ -33,6 +40,10 @@ REFINE_SECANT = wp.constant(1)
 R2_A1 = wp.constant(0.7548776662466927)
 R2_A2 = wp.constant(0.5698402909980532)
 BIG = wp.constant(1.0e30)
+# ``Grid.kind``: the voxels' type on the device.
+STORE_F32 = wp.constant(0)
+STORE_U16 = wp.constant(1)
+STORE_U8 = wp.constant(2)
 # Pixel tile that one warp of threads renders.
 TILE_W = wp.constant(8)
 TILE_H = wp.constant(4)
@@ -40,9 +51,22 @@ TILE_H = wp.constant(4)
 
 @wp.struct
 class Grid:
-    """The volume, its brick distance grid for one iso-value, and the voxel <-> world transform."""
+    """The volume, its brick distance grid for one iso-value, and the voxel <-> world transform.
+
+    Of ``data``, ``data16`` and ``data8`` the one of type ``kind`` holds the voxels (dense:
+    ``size``; sparse: the brick pool, ``(slots * (brick + 1), brick + 1, brick + 1)``); the
+    others, and ``slots`` when dense, are 1x1x1 stand-ins.
+    """
 
     data: wp.array3d(dtype=wp.float32)
+    data16: wp.array3d(dtype=wp.uint16)
+    data8: wp.array3d(dtype=wp.uint8)
+    kind: int  # STORE_*
+    unit: wp.vec2  # (d0, a): normalized = (voxel - d0) * a
+    size: wp.vec3i  # voxels per axis
+    sparse: int
+    slots: wp.array3d(dtype=wp.int32)  # sparse: per brick, its pool slot, -1 if not resident
+    minmax: wp.array3d(dtype=wp.vec2)  # per brick: normalized (min, max) of its voxels and overlap
     dist: wp.array3d(dtype=wp.uint8)  # per brick, for the current iso: Chebyshev distance to an active brick
     brick: int
     scale: wp.vec3  # world = voxel * scale + offset
@@ -77,19 +101,33 @@ class RayParams:
     outputs: int  # OUT_* bits
 
 
+@wp.func
+def voxel(grid: Grid, x: int, y: int, z: int) -> float:
+    """The normalized voxel ``(x, y, z)`` of a dense grid."""
+    v = float(0.0)
+    if grid.kind == STORE_U16:
+        v = float(grid.data16[x, y, z])
+    elif grid.kind == STORE_U8:
+        v = float(grid.data8[x, y, z])
+    else:
+        v = grid.data[x, y, z]
+    return (v - grid.unit[0]) * grid.unit[1]
+
+
 @wp.kernel
-def minmax_kernel(data: wp.array3d(dtype=wp.float32), brick: int, minmax: wp.array3d(dtype=wp.vec2)):
-    """Per brick: min and max of its voxels, including the shared face voxels."""
+def minmax_kernel(grid: Grid, minmax: wp.array3d(dtype=wp.vec2)):
+    """Per brick of a dense grid: min and max of its normalized voxels, including the shared face voxels."""
     bi, bj, bk = wp.tid()
-    x1 = wp.min((bi + 1) * brick, data.shape[0] - 1)
-    y1 = wp.min((bj + 1) * brick, data.shape[1] - 1)
-    z1 = wp.min((bk + 1) * brick, data.shape[2] - 1)
+    brick = grid.brick
+    x1 = wp.min((bi + 1) * brick, grid.size[0] - 1)
+    y1 = wp.min((bj + 1) * brick, grid.size[1] - 1)
+    z1 = wp.min((bk + 1) * brick, grid.size[2] - 1)
     lo = float(BIG)
     hi = -float(BIG)
     for x in range(bi * brick, x1 + 1):
         for y in range(bj * brick, y1 + 1):
             for z in range(bk * brick, z1 + 1):
-                v = data[x, y, z]
+                v = voxel(grid, x, y, z)
                 lo = wp.min(lo, v)
                 hi = wp.max(hi, v)
     minmax[bi, bj, bk] = wp.vec2(lo, hi)
@@ -129,43 +167,62 @@ def chebyshev_pass_kernel(src: wp.array3d(dtype=wp.uint8), axis: int, far: int, 
 
 
 @wp.func
-def sample_volume(data: wp.array3d(dtype=wp.float32), p: wp.vec3) -> float:
-    """Trilinear sample at voxel coordinates ``p``, clamped to the grid."""
-    nx = data.shape[0]
-    ny = data.shape[1]
-    nz = data.shape[2]
-    x = wp.clamp(p[0], 0.0, float(nx - 1))
-    y = wp.clamp(p[1], 0.0, float(ny - 1))
-    z = wp.clamp(p[2], 0.0, float(nz - 1))
-    i = wp.min(int(x), nx - 2)
-    j = wp.min(int(y), ny - 2)
-    k = wp.min(int(z), nz - 2)
-    fx = x - float(i)
-    fy = y - float(j)
-    fz = z - float(k)
-    c00 = wp.lerp(data[i, j, k], data[i + 1, j, k], fx)
-    c10 = wp.lerp(data[i, j + 1, k], data[i + 1, j + 1, k], fx)
-    c01 = wp.lerp(data[i, j, k + 1], data[i + 1, j, k + 1], fx)
-    c11 = wp.lerp(data[i, j + 1, k + 1], data[i + 1, j + 1, k + 1], fx)
-    return wp.lerp(wp.lerp(c00, c10, fy), wp.lerp(c01, c11, fy), fz)
+def trilinear(a: wp.array3d(dtype=Any), i: int, j: int, k: int, d0: float, f: wp.vec3) -> float:
+    """Trilinear interpolation of ``a[i:i+2, j:j+2, k:k+2] - d0`` at fractions ``f`` (d0 subtracted exactly first)."""
+    c00 = wp.lerp(float(a[i, j, k]) - d0, float(a[i + 1, j, k]) - d0, f[0])
+    c10 = wp.lerp(float(a[i, j + 1, k]) - d0, float(a[i + 1, j + 1, k]) - d0, f[0])
+    c01 = wp.lerp(float(a[i, j, k + 1]) - d0, float(a[i + 1, j, k + 1]) - d0, f[0])
+    c11 = wp.lerp(float(a[i, j + 1, k + 1]) - d0, float(a[i + 1, j + 1, k + 1]) - d0, f[0])
+    return wp.lerp(wp.lerp(c00, c10, f[1]), wp.lerp(c01, c11, f[1]), f[2])
+
+
+@wp.func
+def sample_volume(grid: Grid, p: wp.vec3) -> float:
+    """Normalized trilinear sample at voxel coordinates ``p``, clamped to the grid."""
+    x = wp.clamp(p[0], 0.0, float(grid.size[0] - 1))
+    y = wp.clamp(p[1], 0.0, float(grid.size[1] - 1))
+    z = wp.clamp(p[2], 0.0, float(grid.size[2] - 1))
+    i = wp.min(int(x), grid.size[0] - 2)
+    j = wp.min(int(y), grid.size[1] - 2)
+    k = wp.min(int(z), grid.size[2] - 2)
+    f = wp.vec3(x - float(i), y - float(j), z - float(k))
+    if grid.sparse != 0:
+        b = grid.brick
+        bi = i // b
+        bj = j // b
+        bk = k // b
+        slot = grid.slots[bi, bj, bk]
+        if slot < 0:
+            return grid.minmax[bi, bj, bk][0]
+        i = slot * (b + 1) + i - bi * b
+        j = j - bj * b
+        k = k - bk * b
+    v = float(0.0)
+    if grid.kind == STORE_U16:
+        v = trilinear(grid.data16, i, j, k, grid.unit[0], f)
+    elif grid.kind == STORE_U8:
+        v = trilinear(grid.data8, i, j, k, grid.unit[0], f)
+    else:
+        v = trilinear(grid.data, i, j, k, grid.unit[0], f)
+    return v * grid.unit[1]
 
 
 @wp.func
 def gradient_world(grid: Grid, p: wp.vec3) -> wp.vec3:
     """Central-difference gradient (one voxel apart) at voxel coordinates ``p``, world units."""
-    dx = sample_volume(grid.data, p + wp.vec3(1.0, 0.0, 0.0)) - sample_volume(grid.data, p - wp.vec3(1.0, 0.0, 0.0))
-    dy = sample_volume(grid.data, p + wp.vec3(0.0, 1.0, 0.0)) - sample_volume(grid.data, p - wp.vec3(0.0, 1.0, 0.0))
-    dz = sample_volume(grid.data, p + wp.vec3(0.0, 0.0, 1.0)) - sample_volume(grid.data, p - wp.vec3(0.0, 0.0, 1.0))
+    dx = sample_volume(grid, p + wp.vec3(1.0, 0.0, 0.0)) - sample_volume(grid, p - wp.vec3(1.0, 0.0, 0.0))
+    dy = sample_volume(grid, p + wp.vec3(0.0, 1.0, 0.0)) - sample_volume(grid, p - wp.vec3(0.0, 1.0, 0.0))
+    dz = sample_volume(grid, p + wp.vec3(0.0, 0.0, 1.0)) - sample_volume(grid, p - wp.vec3(0.0, 0.0, 1.0))
     return wp.cw_div(wp.vec3(dx, dy, dz), 2.0 * grid.scale)
 
 
 @wp.func
-def clip_to_grid(data: wp.array3d(dtype=wp.float32), o: wp.vec3, d: wp.vec3) -> wp.vec2:
+def clip_to_grid(size: wp.vec3i, o: wp.vec3, d: wp.vec3) -> wp.vec2:
     """Ray-parameter interval ``(t0, t1)`` inside the voxel box; ``t0 > t1`` if missed."""
     t0 = -float(BIG)
     t1 = float(BIG)
     for a in range(3):
-        hi = float(data.shape[a] - 1)
+        hi = float(size[a] - 1)
         if d[a] == 0.0:
             if o[a] < 0.0 or o[a] > hi:
                 t0 = float(BIG)
@@ -192,7 +249,7 @@ def refine_crossing(grid: Grid, o: wp.vec3, d: wp.vec3, iso: float, t0: float, f
             if w < 0.01 or w > 0.99:  # safeguard: a secant stuck at an end (e.g. a plateau) bisects
                 w = 0.5
         tm = ta + w * (tb - ta)
-        fm = sample_volume(grid.data, o + d * tm)
+        fm = sample_volume(grid, o + d * tm)
         if (fm >= iso) == (fa >= iso):
             ta = tm
             fa = fm
@@ -244,7 +301,7 @@ def march(grid: Grid, o: wp.vec3, d: wp.vec3, t_start: float, t_end: float, para
         if dist == 0:
             if have_prev == 0:
                 t_prev = t
-                f_prev = sample_volume(grid.data, o + d * t)
+                f_prev = sample_volume(grid, o + d * t)
                 samples += 1.0
                 have_prev = 1
             k = wp.floor((t - t_start) / h) + 1.0
@@ -254,7 +311,7 @@ def march(grid: Grid, o: wp.vec3, d: wp.vec3, t_start: float, t_end: float, para
                 if t_s >= t_exit:
                     t_s = wp.min(t_exit, t_end)
                     done = 1
-                f = sample_volume(grid.data, o + d * t_s)
+                f = sample_volume(grid, o + d * t_s)
                 samples += 1.0
                 if (f >= iso) != (f_prev >= iso):
                     t_hit = refine_crossing(grid, o, d, iso, t_prev, f_prev, t_s, f,
@@ -281,7 +338,7 @@ def cast(grid: Grid, origin: wp.vec3, direction: wp.vec3, t_near: float, t_far: 
     """First crossing of a world-space ray (unit ``direction``) in ``[t_near, t_far]``, world units."""
     o = voxel_from_world(grid, origin)
     d = wp.cw_div(direction, grid.scale)
-    span = clip_to_grid(grid.data, o, d)
+    span = clip_to_grid(grid.size, o, d)
     t0 = wp.max(span[0], t_near)
     t1 = wp.min(span[1], t_far)
     if t0 > t1:

@@ -7,6 +7,9 @@ units. Cloud and metaball fields are defined on that box, independent of the gri
 
 Specs: ``proc:sphere``, ``proc:torus``, ``proc:cloud[:SEED]``, ``proc:metaballs[:SEED]``,
 each with an optional ``@SIZE`` suffix (voxels per axis), e.g. ``proc:cloud:7@128``.
+
+:class:`SpheresSource` is a voxel source of any size computed box by box (nothing held): a
+stand-in for scans larger than memory in tests and benchmarks.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ import numpy as np
 
 from isosr_render.conventions import world_from_voxel
 from isosr_render.volume import Volume, VolumeError
+from isosr_render.voxels import check_source
 
 PROCEDURAL_NAMES = ("sphere", "torus", "cloud", "metaballs")
 DEFAULT_SIZE = 64
@@ -215,3 +219,50 @@ def default_iso(spec_or_volume_name: str) -> float:
         VolumeError: the name is not a procedural spec.
     """
     return _DEFAULT_ISO[_parse(spec_or_volume_name)[0]]
+
+
+class SpheresSource:
+    """A voxel source computed box by box: the signed distance (world units) to the nearest of a
+    few seeded spheres, with a ripple, stored as ``dtype`` (integers quantize the distance range
+    [-0.25, 1] over the type's range; ``rescale`` maps back to world units, so iso 0 is the surface).
+
+    Args:
+        shape: voxels (x, y, z), spacing 1.
+        dtype: ``uint8``, ``uint16``, ``int16`` or ``float32``.
+        seed: the spheres' seed.
+        chunks: the chunk shape it reports.
+        spheres: how many spheres.
+    """
+
+    def __init__(self, shape: tuple[int, int, int], dtype="uint16", seed: int = 0,
+                 chunks: tuple[int, int, int] = (128, 128, 128), spheres: int = 4):
+        self.shape, self.dtype, self.chunks = tuple(int(n) for n in shape), np.dtype(dtype), tuple(chunks)
+        self.name = f"spheres:{seed}@{'x'.join(map(str, self.shape))}:{self.dtype.name}"
+        self.spacing = (1.0, 1.0, 1.0)
+        rng = np.random.default_rng(seed)
+        self.centers = rng.uniform(-0.25, 0.25, (spheres, 3)).astype(np.float32)
+        self.radii = rng.uniform(0.08, 0.18, spheres).astype(np.float32)
+        self.axes = world_from_voxel(self.shape, self.spacing)
+        self.rescale = (1.0, 0.0)
+        if self.dtype.kind in "iu":
+            info = np.iinfo(self.dtype)
+            self.step = 1.25 / (int(info.max) - int(info.min))
+            self.rescale = (self.step, -0.25 - int(info.min) * self.step)
+        check_source(self)
+
+    def read(self, x: slice, y: slice, z: slice) -> np.ndarray:
+        """The box ``[x, y, z]`` computed now."""
+        scale, offset = self.axes
+        p = [(np.arange(s.start, s.stop, dtype=np.float32) * np.float32(scale[a]) + np.float32(offset[a]))
+             for a, s in enumerate((x, y, z))]
+        px, py, pz = p[0][:, None, None], p[1][None, :, None], p[2][None, None, :]
+        dist = None
+        for (cx, cy, cz), r in zip(self.centers, self.radii):
+            d = np.sqrt((px - cx) ** 2 + (py - cy) ** 2 + (pz - cz) ** 2) - r
+            dist = d if dist is None else np.minimum(dist, d, out=dist)
+        dist += np.float32(0.004) * np.sin(np.float32(60.0) * px)
+        if self.dtype.kind == "f":
+            return dist.astype(self.dtype)
+        info = np.iinfo(self.dtype)
+        stored = np.rint((dist - self.rescale[1]) / np.float32(self.step))
+        return np.clip(stored, info.min, info.max).astype(self.dtype)

@@ -1,13 +1,17 @@
 """The renderer's Python API: a `RenderRequest` in, `FrameBuffers` out.
 
     volume = load_volume("head.nii.gz")            # or procedural.parse_procedural("proc:sphere")
-    renderer = Renderer(volume, device="cuda")     # uploads the volume, builds the min-max grid
+    renderer = Renderer(volume, device="cuda")     # streams the volume to the device, builds the min-max grid
     request = RenderRequest(480, 270, iso=volume.normalized_iso(300.0), outputs=("mask", "normal"))
     frame = renderer.render(orbit(30, 20, 1.8), request)
     frame.normal                                   # torch tensor (270, 480, 3), no copy
 
 A request computes only what it names: AO rays only when ``ao`` is asked, flow only with a
 previous camera, normals only for ``normal``, ``ao`` or ``color``.
+
+Voxels go to the device in their narrow type (see :mod:`isosr_render.volume`), streamed box
+by box from the volume's source. A volume whose dense size exceeds ``max_device_bytes`` is
+rendered sparse: only the bricks each iso needs are resident (:mod:`isosr_render.brick_pool`).
 """
 
 from __future__ import annotations
@@ -22,12 +26,14 @@ import torch
 import warp as wp
 
 from isosr_render import kernels
+from isosr_render.brick_pool import BrickPool, MemoryStats
 from isosr_render.buffers import FrameBuffers
 from isosr_render.camera import Camera
 from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES
 from isosr_render.flow_fill import FILL_METHODS, fill_flow
 from isosr_render.shading import ShadingParams, shade
 from isosr_render.volume import Volume
+from isosr_render.voxels import boxes, map_bounded
 
 REFINE_METHODS = {"bisection": kernels.REFINE_BISECTION, "secant": kernels.REFINE_SECANT}
 REQUESTABLE = BUFFER_NAMES + ("samples",)
@@ -38,6 +44,10 @@ MAX_AO_SAMPLES = 4096
 # Cap of the brick distance grid: a ray leaps at most (2 MAX_LEAP - 1) bricks at once.
 MAX_LEAP = 16
 GRID_CACHE = 4
+# Without a limit, a CUDA renderer keeps a volume dense while it takes at most this share of free memory.
+DENSE_SHARE = 0.5
+STORE_KINDS = {"float32": (kernels.STORE_F32, wp.float32), "uint16": (kernels.STORE_U16, wp.uint16),
+               "uint8": (kernels.STORE_U8, wp.uint8)}
 
 
 @dataclass(frozen=True)
@@ -141,12 +151,16 @@ class Renderer:
     Args:
         volume: the volume; uploaded once, with its min-max grid (independent of the iso).
         device: ``"cpu"``, ``"cuda"`` or ``"cuda:N"``.
-        brick_size: voxels per min-max brick edge.
+        brick_size: voxels per min-max brick edge (a multiple of 8 for sparse volumes).
         threads: CPU only: threads over which the image is split in row bands
             (Warp's CPU kernels run on one thread each); default: all cores.
+        max_device_bytes: the most bytes the volume's voxels may take on the device; a volume
+            whose dense size is larger is rendered sparse. Default: none on CPU, half of the
+            free memory on CUDA.
     """
 
-    def __init__(self, volume: Volume, device: str = "cpu", brick_size: int = 8, threads: int | None = None):
+    def __init__(self, volume: Volume, device: str = "cpu", brick_size: int = 8, threads: int | None = None,
+                 max_device_bytes: int | None = None):
         wp.init()
         if device.startswith("cuda") and not wp.is_cuda_available():
             raise RuntimeError(f"device {device!r} asked for, but Warp finds no CUDA device on this machine")
@@ -157,25 +171,82 @@ class Renderer:
         self.threads = 1 if self.device.is_cuda else (threads or os.cpu_count() or 1)
         wp.load_module(kernels, device=self.device)
         self.brick_size = brick_size
-        self.data = wp.array(volume.data, dtype=wp.float32, device=self.device)
-        bricks = tuple(max(1, -(-(n - 1) // brick_size)) for n in volume.shape)
-        self.minmax = wp.empty(bricks, dtype=wp.vec2, device=self.device)
-        wp.launch(kernels.minmax_kernel, dim=bricks, inputs=[self.data, brick_size, self.minmax], device=self.device)
+        if max_device_bytes is None and self.device.is_cuda:
+            max_device_bytes = int(DENSE_SHARE * self.device.free_memory)
+        self.max_device_bytes = max_device_bytes
+        self._base = self._base_grid()
+        self.pool: BrickPool | None = None
+        if max_device_bytes is None or volume.device_bytes <= max_device_bytes:
+            self._upload_dense()
+            bricks = tuple(max(1, -(-(n - 1) // brick_size)) for n in volume.shape)
+            self.minmax = wp.empty(bricks, dtype=wp.vec2, device=self.device)
+            wp.launch(kernels.minmax_kernel, dim=bricks, inputs=[self._base, self.minmax], device=self.device)
+            total = int(np.prod(bricks))
+            self._stats = MemoryStats("dense", volume.storage.name, volume.device_bytes, volume.device_bytes,
+                                      volume.device_bytes, max_device_bytes or 0, total, total)
+        else:
+            self.pool = BrickPool(volume, self.device, brick_size, max_device_bytes)
+            self.minmax = self.pool.minmax
+            self._base.sparse = 1
+            self._base.slots = self.pool.slots
+        self._base.minmax = self.minmax
         self._grids: OrderedDict[tuple[float, bool], kernels.Grid] = OrderedDict()
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
         # 1x1 stand-ins for buffers a request does not ask for.
         self._unused = {t: wp.empty((1, 1), dtype=t, device=self.device) for t in (wp.float32, wp.vec2, wp.vec3, wp.int32)}
 
+    def _base_grid(self) -> kernels.Grid:
+        """The iso-independent part of the kernels' grid, with 1x1x1 stand-ins for the arrays."""
+        grid = kernels.Grid()
+        for name, dtype in (("data", wp.float32), ("data16", wp.uint16), ("data8", wp.uint8), ("slots", wp.int32)):
+            setattr(grid, name, wp.zeros((1, 1, 1), dtype=dtype, device=self.device))
+        grid.kind = STORE_KINDS[self.volume.storage.name][0]
+        grid.unit = wp.vec2(*self.volume.unit)
+        grid.size = wp.vec3i(*self.volume.shape)
+        grid.sparse = 0
+        grid.brick = self.brick_size
+        scale, offset = self.volume.world_transform()
+        grid.scale = wp.vec3(*scale)
+        grid.offset = wp.vec3(*offset)
+        return grid
+
+    def _set_voxels(self, grid: kernels.Grid, voxels: wp.array) -> None:
+        """Point ``grid``'s field of the volume's device type at ``voxels``."""
+        field = {kernels.STORE_F32: "data", kernels.STORE_U16: "data16", kernels.STORE_U8: "data8"}[grid.kind]
+        setattr(grid, field, voxels)
+
+    def _upload_dense(self) -> None:
+        """Stream the volume's source to a dense device array, box by box (host memory: a few boxes)."""
+        volume = self.volume
+        voxels = wp.empty(volume.shape, dtype=STORE_KINDS[volume.storage.name][1], device=self.device)
+
+        def read(box):
+            return box, volume.device_box(np.asarray(volume.source.read(*box)))
+
+        for box, values in map_bounded(read, boxes(volume.source), min(os.cpu_count() or 1, 8)):
+            wp.copy(voxels[box], wp.array(np.ascontiguousarray(values), device=self.device))
+        self._set_voxels(self._base, voxels)
+
+    def memory(self) -> MemoryStats:
+        """Where the voxels are (dense or sparse) and what paging cost so far."""
+        return self._stats if self.pool is None else self.pool.stats
+
     def grid(self, iso: float, skip: bool = True) -> kernels.Grid:
         """The kernels' view of the volume for one iso: data plus each brick's distance to an active brick.
 
         Built on the device from the min-max grid (a few small launches) and kept for the
-        last few iso-values.
+        last few iso-values. A sparse volume first pages in the bricks the iso needs.
         """
         key = (float(iso), bool(skip))
+        if self.pool is not None:
+            self.pool.ensure(iso)
+            self._set_voxels(self._base, self.pool.pool)  # the pool may have grown
         if key in self._grids:
             self._grids.move_to_end(key)
-            return self._grids[key]
+            grid = self._grids[key]
+            if self.pool is not None:
+                self._set_voxels(grid, self.pool.pool)
+            return grid
         shape = self.minmax.shape
         dist = wp.empty(shape, dtype=wp.uint8, device=self.device)
         spare = wp.empty(shape, dtype=wp.uint8, device=self.device)
@@ -185,12 +256,10 @@ class Renderer:
             wp.launch(kernels.chebyshev_pass_kernel, dim=shape, inputs=[dist, axis, MAX_LEAP, spare], device=self.device)
             dist, spare = spare, dist
         grid = kernels.Grid()
-        grid.data = self.data
+        for name in kernels.Grid.vars:
+            if name != "dist":
+                setattr(grid, name, getattr(self._base, name))
         grid.dist = dist
-        grid.brick = self.brick_size
-        scale, offset = self.volume.world_transform()
-        grid.scale = wp.vec3(*scale)
-        grid.offset = wp.vec3(*offset)
         self._grids[key] = grid
         if len(self._grids) > GRID_CACHE:
             self._grids.popitem(last=False)

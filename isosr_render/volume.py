@@ -1,4 +1,25 @@
-"""The in-memory volume: normalized float32 voxels, their spacing and original value range."""
+"""A volume ready for rendering: its voxel source, the device type and the map of its values to [0, 1].
+
+The renderer samples normalized values in [0, 1]. On the device, voxels keep a narrow type:
+
+| stored | on the device | normalized value |
+|---|---|---|
+| uint8, int8, bool | uint8: ``stored`` (+128 for int8) | ``(device - d0) * a`` in the kernels |
+| uint16, int16 | uint16: ``stored`` (+32768 for int16) | ``(device - d0) * a`` in the kernels |
+| float32, float64, int32, uint32 | float32 normalized on the host, non-finite replaced | ``device`` (d0 = 0, a = 1) |
+
+``d0`` is the device value of the smallest original value, an integer: the kernels subtract
+it from each voxel exactly before interpolating, so a narrow range far from zero keeps its
+precision.
+
+int16 becomes uint16 with an offset (rather than a third integer type in the kernels): one
+kernel type for both, exact, and DICOM's rescale folds into ``(d0, a)``. Floats are normalized
+before upload (in float64 where needed) so that huge ranges (1e38) keep their precision.
+
+:meth:`Volume.from_source` reads the source once (:func:`~isosr_render.scan.scan`) for the value
+range, the min-max bricks and Otsu's subsample; the renderer then streams the source again box
+by box to the device (:meth:`Volume.device_box`), or pages bricks in (`bricks_pool`).
+"""
 
 from __future__ import annotations
 
@@ -9,7 +30,10 @@ import cv2
 import numpy as np
 
 from isosr_render.conventions import world_from_voxel
-from isosr_render.voxels import VolumeError, VoxelSource, check_source
+from isosr_render.scan import BRICK, Scan, scan, unsigned_view
+from isosr_render.voxels import ArraySource, VolumeError, VoxelSource, boxes, check_source
+
+__all__ = ["BRICK", "Volume", "VolumeError"]
 
 
 @dataclass(frozen=True)
@@ -17,76 +41,115 @@ class Volume:
     """A scalar volume ready for rendering.
 
     Attributes:
-        data: float32 voxels normalized to [0, 1], indexed ``data[x, y, z]``.
+        source: the voxels as stored, read box by box.
         spacing: voxel size per axis (x, y, z), in the file's units.
-        value_range: ``(min, max)`` of the original values, to convert iso-values.
+        value_range: ``(min, max)`` of the finite original values (rescale applied), to convert iso-values.
         name: where the volume came from (file name or procedural spec).
+        storage: the voxels' type on the device: ``uint8``, ``uint16`` or ``float32``.
+        unit: ``(d0, a)``: normalized value = (device value - d0) * a.
+        bricks: per ``BRICK``-voxel brick, the normalized (min, max) of its voxels and the
+            one-voxel overlap with the next brick.
+        otsu: Otsu's threshold of the normalized voxels (a subsample of at most ~2M).
+        counts: 8/16-bit integers: the count of each device value (an exact histogram), else None.
 
     Shape:
-        data: (nx, ny, nz), each at least 2.
+        bricks: (ceil((nx - 1) / BRICK), ceil((ny - 1) / BRICK), ceil((nz - 1) / BRICK), 2).
     """
 
-    data: np.ndarray
+    source: VoxelSource
     spacing: tuple[float, float, float]
     value_range: tuple[float, float]
-    name: str = ""
+    name: str
+    storage: np.dtype
+    unit: tuple[float, float]
+    bricks: np.ndarray
+    otsu: float
+    counts: np.ndarray | None
 
     @classmethod
     def from_array(cls, values: np.ndarray, spacing=(1.0, 1.0, 1.0), name: str = "") -> "Volume":
-        """Validate and normalize an array of original values indexed ``[x, y, z]``.
+        """The volume of an array of original values indexed ``[x, y, z]`` (see :meth:`from_source`)."""
+        return cls.from_source(ArraySource(values, spacing, name))
+
+    @classmethod
+    def from_source(cls, source: VoxelSource) -> "Volume":
+        """Scan a voxel source once and describe it for rendering.
 
         Non-finite voxels are replaced, with a warning that counts them: NaN by the smallest
         finite value (treated as empty space), +Inf/-Inf by the largest/smallest finite
         value. A volume with no finite voxel is an error.
         """
-        label = name or "array"
-        values = np.asarray(values)
-        if values.ndim != 3:
-            raise VolumeError(f"{label}: expected a 3D array, got {values.ndim}D with shape {values.shape}")
-        if min(values.shape) < 2:
-            raise VolumeError(f"{label}: every axis needs at least 2 voxels, got shape {values.shape}")
-        if not (np.issubdtype(values.dtype, np.integer) or np.issubdtype(values.dtype, np.floating)
-                or values.dtype == np.bool_):
-            raise VolumeError(f"{label}: unsupported voxel dtype {values.dtype}")
-        spacing = tuple(float(s) for s in spacing)
-        if len(spacing) != 3 or not all(np.isfinite(s) and s > 0 for s in spacing):
-            raise VolumeError(f"{label}: spacing must be 3 positive finite numbers, got {spacing}")
-
-        values = values.astype(np.float64 if values.dtype == np.float64 else np.float32, copy=False)
-        finite = np.isfinite(values)
-        if not finite.all():
-            if not finite.any():
-                raise VolumeError(f"{label}: no finite voxel (all NaN or Inf)")
-            lo, hi = values[finite].min(), values[finite].max()
-            n_nan, n_posinf = int(np.isnan(values).sum()), int(np.isposinf(values).sum())
-            n_neginf = int(np.isneginf(values).sum())
-            warnings.warn(f"{label}: replaced {n_nan} NaN voxels by the minimum {lo:g}, "
-                          f"{n_posinf} +Inf by the maximum {hi:g} and {n_neginf} -Inf by the minimum",
-                          stacklevel=2)
-            values = np.nan_to_num(values, nan=lo, posinf=hi, neginf=lo)
-        lo, hi = values.min(), values.max()
-        if not np.isfinite(hi - lo):  # e.g. -3e38 .. 3e38 overflows float32: normalize in float64
-            values = values.astype(np.float64)
-        lo, hi = float(lo), float(hi)
-        span = hi - lo
-        scale = 1.0 / span if span > 0 else 0.0
-        data = ((values - lo) * scale).astype(np.float32)
-        np.clip(data, 0.0, 1.0, out=data)
-        return cls(np.ascontiguousarray(data), spacing, (lo, hi), name)
-
-    @classmethod
-    def from_source(cls, source: VoxelSource) -> "Volume":
-        """The volume of a voxel source, in original units (its rescale applied)."""
         check_source(source)
-        values = source.read(*(slice(0, n) for n in source.shape))
+        label = source.name or "array"
+        found = scan(source)
+        if found.lo is None:
+            raise VolumeError(f"{label}: no finite voxel (all NaN or Inf)")
+        if found.nan or found.posinf or found.neginf:
+            warnings.warn(f"{label}: replaced {found.nan} NaN voxels by the minimum {found.lo:g}, "
+                          f"{found.posinf} +Inf by the maximum {found.hi:g} and {found.neginf} -Inf by the minimum",
+                          stacklevel=2)
         slope, intercept = source.rescale
-        if (slope, intercept) != (1.0, 0.0):
-            values = values.astype(np.float64) * slope + intercept
-        return cls.from_array(values, source.spacing, name=source.name)
+        ends = sorted((found.lo * slope + intercept, found.hi * slope + intercept))
+        lo, hi = float(ends[0]), float(ends[1])
+        dtype = np.dtype(source.dtype)
+        if dtype.kind in "iu" and dtype.itemsize <= 2:
+            storage = np.dtype(f"uint{8 * dtype.itemsize}")
+            shift = 0 if dtype.kind == "u" else 1 << (8 * dtype.itemsize - 1)
+            span = hi - lo
+            a = slope / span if span > 0 else 0.0
+            d0 = float((found.lo if slope > 0 else found.hi) + shift)
+        else:
+            storage, d0, a = np.dtype(np.float32), 0.0, 1.0
+        volume = cls(source, tuple(float(s) for s in source.spacing), (lo, hi), source.name, storage,
+                     (d0, float(a)), np.empty((0, 0, 0, 2), np.float32), 0.0, found.counts)
+        # Both through the device values, as the kernels see them (bricks must bound the samples).
+        bricks = np.stack([volume.normalize(volume.device_box(m)) for m in found.bricks()], axis=-1)
+        object.__setattr__(volume, "bricks", np.sort(bricks, axis=-1))  # a negative slope swaps min and max
+        object.__setattr__(volume, "otsu", volume._otsu(found))
+        return volume
 
     @property
     def shape(self) -> tuple[int, int, int]:
-        return tuple(self.data.shape)
+        return tuple(int(n) for n in self.source.shape)
+
+    @property
+    def device_bytes(self) -> int:
+        """Bytes of the whole volume on the device (dense)."""
+        return int(np.prod(self.shape, dtype=np.int64)) * self.storage.itemsize
+
+    def device_box(self, stored: np.ndarray) -> np.ndarray:
+        """Stored values of a box as the device holds them (``storage``; see the module table)."""
+        if self.storage.kind == "u":
+            return unsigned_view(stored)
+        slope, intercept = self.source.rescale
+        lo, hi = self.value_range
+        values = stored.astype(np.float32 if stored.dtype == np.float32 else np.float64, copy=False)
+        if (slope, intercept) != (1.0, 0.0):
+            values = values.astype(np.float64) * slope + intercept
+        if not np.isfinite(values).all():
+            values = np.nan_to_num(values, nan=lo, posinf=hi, neginf=lo)
+        with np.errstate(over="ignore"):
+            if not np.isfinite(np.float32(hi) - np.float32(lo)):  # e.g. -3e38 .. 3e38 overflows float32
+                values = values.astype(np.float64)
+        span = hi - lo
+        data = ((values - lo) * (1.0 / span if span > 0 else 0.0)).astype(np.float32)
+        return np.clip(data, 0.0, 1.0, out=data)
+
+    def normalize(self, device: np.ndarray) -> np.ndarray:
+        """Device values as normalized float32 (``(device - d0) * a`` in float32, as the kernels compute it)."""
+        if self.storage.kind == "f":
+            return device
+        d0, a = (np.float32(u) for u in self.unit)
+        return (device.astype(np.float32) - d0) * a
+
+    @property
+    def data(self) -> np.ndarray:
+        """The whole volume normalized to float32 [0, 1], indexed ``[x, y, z]``, in host memory.
+
+        Read from the source on every access: for small volumes, tests and references only.
+        """
+        data = self.normalize(self.device_box(np.asarray(self.source.read(*(slice(0, n) for n in self.shape)))))
+        return np.clip(data, 0.0, 1.0, out=data)
 
     def normalized_iso(self, iso: float) -> float:
         """Convert an iso-value in the file's units to the normalized [0, 1] scale."""
@@ -101,10 +164,26 @@ class Volume:
 
     def otsu_iso(self) -> float:
         """A starting iso-value: Otsu's threshold of the normalized voxels (on at most ~2M of them)."""
-        stride = max(1, round((self.data.size / 2e6) ** (1 / 3)))
-        u8 = (self.data[::stride, ::stride, ::stride] * 255.0 + 0.5).astype(np.uint8)
+        return self.otsu
+
+    def _otsu(self, found: Scan) -> float:
+        u8 = (self.normalize(self.device_box(found.subsample)) * 255.0 + 0.5).astype(np.uint8)
         threshold, _ = cv2.threshold(u8.reshape(-1, 1), 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
         return float(threshold) / 255.0
+
+    def histogram(self, bins: int) -> np.ndarray:
+        """Voxel counts in ``bins`` equal bins of the normalized range [0, 1].
+
+        Exact from ``counts`` for 8/16-bit integers; float data take a second pass over the source.
+        """
+        if self.counts is not None:
+            device = np.arange(len(self.counts), dtype=np.float64)
+            index = np.clip(np.floor(np.clip((device - self.unit[0]) * self.unit[1], 0, 1) * bins), 0, bins - 1)
+            return np.bincount(index.astype(np.int64), weights=self.counts, minlength=bins).astype(np.int64)
+        total = np.zeros(bins, np.int64)
+        for box in boxes(self.source, BRICK):
+            total += np.histogram(self.device_box(np.asarray(self.source.read(*box))), bins=bins, range=(0.0, 1.0))[0]
+        return total
 
     def voxel_size_world(self) -> float:
         """The smallest voxel edge in world units."""

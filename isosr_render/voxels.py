@@ -10,9 +10,15 @@ aligned to the store's chunks, so that peak host memory is bounded by a box, not
 from __future__ import annotations
 
 import math
-from typing import Iterator, Protocol, runtime_checkable
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
+from typing import Callable, Iterable, Iterator, Protocol, TypeVar, runtime_checkable
 
 import numpy as np
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+BOX_BYTES = 32 << 20  # bytes of the boxes loaders read at once (default of box_extent and boxes)
 
 # The stored types a source may hold.
 STORED_DTYPES = tuple(np.dtype(t) for t in ("uint8", "int8", "uint16", "int16", "uint32", "int32",
@@ -118,10 +124,12 @@ def check_source(source: VoxelSource, label: str | None = None) -> None:
         raise VolumeError(f"{label}: chunks must be 3 positive integers, got {chunks}")
 
 
-def box_extent(source: VoxelSource, multiple: int, max_bytes: int) -> tuple[int, int, int]:
+def box_extent(source: VoxelSource, multiple: int = 8, max_bytes: int | None = None) -> tuple[int, int, int]:
     """The extent of the boxes :func:`boxes` reads: whole chunks, a multiple of ``multiple`` voxels
     per axis (the brick size, so that bricks never straddle boxes), grown along z, then y, then x
-    while a box stays within ``max_bytes`` (a box is never smaller than one such unit)."""
+    while a box stays within ``max_bytes`` (default ``BOX_BYTES``; a box is never smaller than one
+    such unit)."""
+    max_bytes = max_bytes or BOX_BYTES
     unit = []
     for n, c in zip(source.shape, source.chunks):
         c = min(int(c), n)
@@ -139,10 +147,25 @@ def box_extent(source: VoxelSource, multiple: int, max_bytes: int) -> tuple[int,
     return tuple(min(e, n) for e, n in zip(extent, source.shape))
 
 
-def boxes(source: VoxelSource, multiple: int = 8, max_bytes: int = 64 << 20) -> Iterator[tuple[slice, slice, slice]]:
+def boxes(source: VoxelSource, multiple: int = 8, max_bytes: int | None = None) -> Iterator[tuple[slice, slice, slice]]:
     """The boxes that tile the source, x-major (see :func:`box_extent`); the last per axis may be shorter."""
     extent = box_extent(source, multiple, max_bytes)
     for x0 in range(0, source.shape[0], extent[0]):
         for y0 in range(0, source.shape[1], extent[1]):
             for z0 in range(0, source.shape[2], extent[2]):
                 yield tuple(slice(o, min(o + e, n)) for o, e, n in zip((x0, y0, z0), extent, source.shape))
+
+
+def map_bounded(fn: Callable[[T], R], items: Iterable[T], threads: int) -> Iterator[R]:
+    """``fn`` over ``items`` on ``threads`` threads with at most ``2 threads`` in flight (so that at
+    most that many boxes are in host memory), yielding results as they complete."""
+    with ThreadPoolExecutor(max(1, threads)) as pool:
+        pending = set()
+        for item in items:
+            if len(pending) >= 2 * max(1, threads):
+                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                yield from (future.result() for future in done)
+            pending.add(pool.submit(fn, item))
+        while pending:
+            done, pending = wait(pending, return_when=FIRST_COMPLETED)
+            yield from (future.result() for future in done)

@@ -35,6 +35,7 @@ from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
 from isosr_net.timing import StageTimer, timed_steps
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
 from isosr_render import FrameBuffers, Renderer, Volume, orbit, parse_procedural, shade
+from isosr_render.brick_pool import MemoryStats
 from isosr_render.images import quantize
 from isosr_server.auto import AutoPolicy
 from isosr_server.codecs.buffers import pack_view_buffers
@@ -73,6 +74,7 @@ class EngineConfig:
         target_fps: frames a second the auto mode plans for each view session.
         slice_ms: the device time a view frame's slice aims at (a heavy frame runs in slices that
             other sessions' frames interleave with); None: on CUDA 8 ms, elsewhere 100 ms.
+        max_volume_bytes: the renderers' ``max_device_bytes`` (dense below, sparse above).
     """
 
     model: Path = DEFAULT_MODEL
@@ -81,6 +83,7 @@ class EngineConfig:
     precision: str | None = None
     target_fps: float = 30.0
     slice_ms: float | None = None
+    max_volume_bytes: int | None = None
 
 
 @dataclass(frozen=True)
@@ -177,6 +180,10 @@ class Engine:
         """Bytes of GPU memory torch holds now (None on the CPU)."""
         return torch.cuda.memory_allocated(self.device) if self.device.type == "cuda" else None
 
+    def volume_memory(self) -> dict[str, MemoryStats]:
+        """Per cached renderer's volume: where its voxels are and what paging cost (read per scrape)."""
+        return {name: renderer.memory() for name, renderer in list(self._renderers.items())}
+
     def shutdown(self) -> None:
         self._executor.shutdown(wait=True, cancel_futures=True)
         self._encoder.shutdown(wait=True, cancel_futures=True)
@@ -189,7 +196,7 @@ class Engine:
         if name in self._renderers:
             self._renderers.move_to_end(name)
         else:
-            self._renderers[name] = Renderer(volume, str(self.device))
+            self._renderers[name] = Renderer(volume, str(self.device), max_device_bytes=self.config.max_volume_bytes)
             while len(self._renderers) > RENDERER_CACHE:
                 self._renderers.popitem(last=False)
         return self._renderers[name]

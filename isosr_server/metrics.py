@@ -3,19 +3,24 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
+from typing import TYPE_CHECKING
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
-from prometheus_client.metrics_core import Metric
+from prometheus_client.metrics_core import GaugeMetricFamily, Metric
+
+if TYPE_CHECKING:
+    from isosr_render.brick_pool import MemoryStats
 
 # Stage latencies from 0.5 ms to 10 s.
 BUCKETS_S = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0)
 
 
 class ServerMetrics:
-    """Frames, per-stage latency, bytes sent, sessions, errors and GPU memory.
+    """Frames, per-stage latency, bytes sent, sessions, errors, GPU memory and volume residency.
 
     Args:
         gpu_memory: returns the bytes of GPU memory in use (None on the CPU); read per scrape.
+        volume_memory: returns each loaded volume's `MemoryStats` by name; read per scrape.
 
     Attributes:
         const_labels: labels every series carries in `text` and `collect` (behind replicas
@@ -23,7 +28,8 @@ class ServerMetrics:
             and ``sum`` gives the totals); none on a single server.
     """
 
-    def __init__(self, gpu_memory: Callable[[], int | None]):
+    def __init__(self, gpu_memory: Callable[[], int | None],
+                 volume_memory: Callable[[], dict[str, MemoryStats]] = dict):
         self.const_labels: dict[str, str] = {}
         self.registry = CollectorRegistry()
         r = self.registry
@@ -36,6 +42,7 @@ class ServerMetrics:
                               registry=r)
         gpu = Gauge("isosr_gpu_memory_bytes", "GPU memory allocated by torch (0 on the CPU)", registry=r)
         gpu.set_function(lambda: float(gpu_memory() or 0))
+        r.register(_VolumeMemory(volume_memory))
 
     def frame(self, kind: str, mode: str, refined: bool, times_ms: dict[str, float], nbytes: int) -> None:
         """Count one frame (kind: view, upscale) with its stage times and payload bytes."""
@@ -57,3 +64,25 @@ class ServerMetrics:
     def text(self) -> bytes:
         """The Prometheus text exposition of `collect`."""
         return generate_latest(self)
+
+
+class _VolumeMemory:
+    """Per loaded volume (label ``volume``, and ``mode`` dense/sparse): resident and dense bytes,
+    bricks resident/needed/total, page-ins and the last page-in's time."""
+
+    GAUGES = (("resident_bytes", "Bytes of the volume's voxels on the device"),
+              ("dense_bytes", "Bytes the whole volume takes on the device in its type"),
+              ("bricks_resident", "Bricks on the device"), ("bricks_needed", "Bricks the last iso needs"),
+              ("bricks_total", "Bricks of the volume"), ("page_ins", "Iso changes that paged bricks in"),
+              ("last_page_in_s", "Seconds the last page-in took"))
+
+    def __init__(self, volume_memory: Callable[[], dict[str, MemoryStats]]):
+        self.volume_memory = volume_memory
+
+    def collect(self) -> Iterator[Metric]:
+        stats = self.volume_memory()
+        for field, doc in self.GAUGES:
+            family = GaugeMetricFamily(f"isosr_volume_{field}", doc, labels=["volume", "mode"])
+            for name, s in stats.items():
+                family.add_metric([name, s.mode], float(getattr(s, field)))
+            yield family

@@ -15,8 +15,6 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 from isosr_render import Volume, open_volume
 from isosr_render.catalog import manifest
 from isosr_render.procedural import default_iso
@@ -148,7 +146,7 @@ class VolumeCatalog:
                 self._cache[name] = self._cache.pop(name)  # most recent last
                 return self._cache[name]
             volume = open_volume(source)
-            counts, _ = np.histogram(volume.data, bins=HISTOGRAM_BINS, range=(0.0, 1.0))
+            counts = volume.histogram(HISTOGRAM_BINS)
             iso = self.suggested_iso(name, volume.value_range, volume)
             info = VolumeInfo(name, volume.shape, volume.value_range, iso, counts.tolist())
             self._cache[name] = (volume, info)

@@ -340,6 +340,8 @@ def test_metrics_count_frames_stages_and_errors(srv):
     assert 'isosr_errors_total{code="1007",kind="view"}' in text
     gpu_bytes = float(next(line.split()[-1] for line in text.splitlines() if line.startswith("isosr_gpu_memory_bytes ")))
     assert 'isosr_sessions{kind="view"}' in text and (gpu_bytes > 0) == (DEVICE != "cpu")
+    resident = [line for line in text.splitlines() if line.startswith("isosr_volume_resident_bytes{")]
+    assert resident and all('mode="dense"' in line and float(line.split()[-1]) > 0 for line in resident)
 
 
 # ---- upscaling ------------------------------------------------------------------------------

@@ -61,6 +61,9 @@ class Settings:
         target_fps: the frame rate the ``auto`` mode's budget aims at.
         slice_ms: device time a slice of a heavy view frame aims at (others' frames interleave
             between slices); None: 8 ms on CUDA, 100 ms on CPUs.
+        max_volume_bytes: the most bytes a volume's voxels take on the device; a larger volume
+            renders sparse (the bricks each iso needs, paged in); None: half the free GPU memory
+            at load, no limit on CPUs.
         log_level: ``debug``, ``info``, ``warning`` or ``error``.
     """
 
@@ -80,6 +83,9 @@ class Settings:
     slice_ms: float | None = _option(None, "device time a slice of a heavy view frame aims at, other sessions' "
                                            "frames interleaving between slices (default: 8 on CUDA, 100 on CPUs)",
                                      float)
+    max_volume_bytes: int | None = _option(None, "bytes a volume's voxels may take on the device; larger volumes "
+                                                 "render sparse, paging in the bricks each iso needs (default: half "
+                                                 "the free GPU memory, no limit on CPUs)", int)
     log_level: str = _option("info", "log level", choices=LOG_LEVELS)
 
     def __post_init__(self):
@@ -94,6 +100,8 @@ class Settings:
             raise ValueError(f"log_level must be one of {', '.join(LOG_LEVELS)}, got {self.log_level!r}")
         if not 0 <= self.port <= 65535:
             raise ValueError(f"port must lie in [0, 65535], got {self.port}")
+        if self.max_volume_bytes is not None and self.max_volume_bytes <= 0:
+            raise ValueError(f"max_volume_bytes must be a positive number of bytes, got {self.max_volume_bytes}")
         for name in ("target_fps", "slice_ms"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):

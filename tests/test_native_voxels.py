@@ -1,0 +1,136 @@
+"""Native voxel types on the device, streaming loads, and the sparse brick pool (isosr_render.volume,
+isosr_render.scan, isosr_render.brick_pool).
+
+Tolerances of native-type rendering against float32 (same original values): the kernels
+interpolate ``voxel - d0`` and scale once, float32 normalizes each voxel first; both round
+in float32, so depth may differ by 1e-5 world units and normals by 1e-4, and hit masks may
+differ at a few silhouette pixels (none measured here; the test allows 3).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from isosr_render import Renderer, RenderRequest, Volume, orbit, voxels
+from isosr_render.brick_pool import DeviceMemoryError, coarsen
+from isosr_render.procedural import SpheresSource
+from isosr_render.scan import BRICK
+from isosr_render.voxels import ArraySource
+
+OUTPUTS = ("mask", "normal", "depth", "ao")
+CAMERA = orbit(30, 20, 1.8)
+
+
+def _render(volume: Volume, iso: float, **kwargs) -> dict[str, np.ndarray]:
+    request = RenderRequest(64, 48, iso=iso, outputs=OUTPUTS, ao_samples=8, ao_radius=0.05)
+    return Renderer(volume, "cpu", threads=2, **kwargs).render(CAMERA, request).to_numpy()
+
+
+def _original(source) -> np.ndarray:
+    """A source's original values (rescale applied), float64."""
+    slope, intercept = source.rescale
+    return source.read(*(slice(0, n) for n in source.shape)).astype(np.float64) * slope + intercept
+
+
+class _CountingSource(SpheresSource):
+    """Records the largest box read."""
+
+    largest = 0
+
+    def read(self, x, y, z):
+        values = super().read(x, y, z)
+        self.largest = max(self.largest, values.nbytes)
+        return values
+
+
+@pytest.mark.parametrize("dtype, storage", [("uint8", "uint8"), ("uint16", "uint16"), ("int16", "uint16")])
+def test_native_types_stay_narrow_and_render_like_float32(dtype, storage):
+    source = SpheresSource((40, 36, 33), dtype, seed=1)
+    native = Volume.from_source(source)
+    reference = Volume.from_array(_original(source))
+    assert native.storage == np.dtype(storage) and native.device_bytes == 40 * 36 * 33 * native.storage.itemsize
+    assert native.value_range == pytest.approx(reference.value_range, abs=1e-12)
+    np.testing.assert_allclose(native.data, reference.data, atol=1e-6)
+    iso = native.normalized_iso(0.0)
+    got, want = _render(native, iso), _render(reference, iso)
+    assert (got["mask"] != want["mask"]).sum() <= 3 and want["mask"].sum() > 100
+    hit = (got["mask"] > 0) & (want["mask"] > 0)
+    np.testing.assert_allclose(got["depth"][hit], want["depth"][hit], atol=1e-5)
+    np.testing.assert_allclose(got["normal"][hit], want["normal"][hit], atol=1e-4)
+    assert (np.abs(got["ao"] - want["ao"]) > 1e-6).sum() <= 3
+
+
+def test_int16_rescale_and_histogram_are_exact():
+    values = np.random.default_rng(0).integers(-1024, 3000, (12, 10, 9)).astype(np.int16)
+    volume = Volume.from_source(ArraySource(values, rescale=(0.5, -100.0)))
+    original = values * 0.5 - 100.0
+    assert volume.value_range == (original.min(), original.max())
+    np.testing.assert_allclose(volume.data, (original - original.min()) / np.ptp(original), atol=1e-6)
+    expect, _ = np.histogram(Volume.from_array(original).data, bins=64, range=(0.0, 1.0))
+    counts = volume.histogram(64)
+    assert counts.sum() == values.size and np.abs(counts - expect).sum() <= 4  # bin edges round differently
+
+
+def test_bricks_bound_their_voxels_with_overlap_and_coarsen():
+    values = np.random.default_rng(1).random((27, 18, 9)).astype(np.float32)
+    values[3, 4, 5] = np.nan  # counts as the minimum
+    with pytest.warns(UserWarning, match="1 NaN"):
+        volume = Volume.from_array(values)
+    data = volume.data
+    for factor in (1, 2):
+        b = BRICK * factor
+        bricks = coarsen(volume.bricks, factor)
+        assert bricks.shape[:3] == tuple(-(-(n - 1) // b) for n in values.shape)
+        for i, j, k in np.ndindex(bricks.shape[:3]):
+            block = data[i * b: i * b + b + 1, j * b: j * b + b + 1, k * b: k * b + b + 1]
+            assert tuple(bricks[i, j, k]) == (block.min(), block.max())
+
+
+def test_loading_reads_box_by_box(monkeypatch):
+    monkeypatch.setattr(voxels, "BOX_BYTES", 100_000)
+    source = _CountingSource((96, 80, 72), "uint16", chunks=(32, 32, 32))
+    volume = Volume.from_source(source)
+    assert source.largest == 32 * 32 * 32 * 2  # one chunk: the smallest box of whole chunks
+    source.largest = 0
+    renderer = Renderer(volume, "cpu", threads=1)
+    assert source.largest == 32 * 32 * 32 * 2 and renderer.memory().mode == "dense"
+
+
+def test_sparse_volume_renders_like_dense_and_pages_only_the_difference():
+    volume = Volume.from_source(SpheresSource((96, 88, 80), "uint16", seed=2))
+    limit = volume.device_bytes * 3 // 4
+    renderer = Renderer(volume, "cpu", threads=2, max_device_bytes=limit)
+    isos = [volume.normalized_iso(v) for v in (0.0, 0.02)]
+    for iso in isos:
+        request = RenderRequest(64, 48, iso=iso, outputs=OUTPUTS, ao_samples=8, ao_radius=0.05)
+        got = renderer.render(CAMERA, request).to_numpy()
+        want = _render(volume, iso)
+        assert want["mask"].sum() > 100
+        for name in OUTPUTS:
+            np.testing.assert_array_equal(got[name], want[name], err_msg=name)
+    stats = renderer.memory()
+    assert stats.mode == "sparse" and stats.resident_bytes <= limit < stats.dense_bytes
+    assert stats.page_ins == 2 and 0 < stats.bricks_needed < stats.bricks_total
+    first = stats.bricks_paged
+    renderer.render(CAMERA, RenderRequest(16, 16, iso=isos[0]))  # back to the first iso: all resident
+    assert renderer.memory().bricks_paged == first
+
+
+def test_sparse_pool_evicts_old_bricks_and_refuses_an_iso_that_cannot_fit():
+    volume = Volume.from_source(SpheresSource((96, 88, 80), "uint8", seed=3))
+    isos = [volume.normalized_iso(v) for v in (-0.02, 0.05)]
+    probe = Renderer(volume, "cpu", threads=1, max_device_bytes=volume.device_bytes - 1)
+    needed = [(probe.grid(iso), probe.memory().bricks_needed)[1] for iso in isos]
+    limit = max(needed) * probe.pool.brick_bytes  # room for one iso's bricks, not both
+    renderer = Renderer(volume, "cpu", threads=2, max_device_bytes=limit)
+    for iso in isos + isos[:1]:
+        request = RenderRequest(48, 40, iso=iso, outputs=("mask", "depth"))
+        got = renderer.render(CAMERA, request).to_numpy()
+        want = Renderer(volume, "cpu", threads=2).render(CAMERA, request).to_numpy()
+        for name in ("mask", "depth"):
+            np.testing.assert_array_equal(got[name], want[name], err_msg=name)
+    assert renderer.memory().resident_bytes <= limit
+    tiny = Renderer(volume, "cpu", threads=1, max_device_bytes=10 * probe.pool.brick_bytes)
+    with pytest.raises(DeviceMemoryError, match=r"needs \d+ bricks .* raise max_device_bytes"):
+        tiny.grid(isos[0])
