@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib.util
 import random
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +28,7 @@ from isosr_render.formats.dicom import open_dicom
 from isosr_render.formats.tiff import open_tiff
 from isosr_render.formats.zarr import open_zarr
 from isosr_render.volume_io import open_source, volume_name
-from isosr_render.voxels import VolumeError, VoxelSource
+from isosr_render.voxels import ArraySource, VolumeError, VoxelSource
 from isosr_server.volumes import VolumeCatalog
 
 # Stored values [x, y, z] of an off-center ellipsoid in a non-cubic box: any swap or flip of an
@@ -53,18 +54,18 @@ def _render(volume: Volume, iso: float) -> dict[str, torch.Tensor]:
 
 
 def _assert_same_volume(source: VoxelSource, values: np.ndarray, spacing, rescale=(1.0, 0.0)) -> None:
-    """``source`` reads ``values`` (stored) and renders as ``Volume.from_array`` of the original values."""
+    """``source`` reads ``values`` (stored) and renders as the same stored values and rescale from numpy."""
     assert isinstance(source, VoxelSource)
     assert source.shape == values.shape and source.dtype == values.dtype
     assert source.spacing == pytest.approx(spacing) and source.rescale == pytest.approx(rescale)
     np.testing.assert_array_equal(source.read(*(slice(0, n) for n in values.shape)), values)
     np.testing.assert_array_equal(source.read(slice(3, 9), slice(1, 2), slice(1, 3)), values[3:9, 1:2, 1:3])
     volume = Volume.from_source(source)
-    original = values if tuple(rescale) == (1.0, 0.0) else values.astype(np.float64) * rescale[0] + rescale[1]
-    expected = Volume.from_array(original, spacing)
+    expected = Volume.from_source(ArraySource(values, spacing, rescale=rescale))
     np.testing.assert_array_equal(volume.data, expected.data)
-    assert volume.value_range == pytest.approx(expected.value_range)
-    iso = expected.normalized_iso(float(np.percentile(values, 60)) * rescale[0] + rescale[1])
+    original = values.astype(np.float64) * rescale[0] + rescale[1]
+    assert volume.value_range == pytest.approx((original.min(), original.max()))
+    iso = expected.normalized_iso(float(np.percentile(original, 60)))
     got, want = _render(volume, iso), _render(expected, iso)
     assert want["mask"].sum() > 50  # the surface is in view
     for name in want:
@@ -391,6 +392,24 @@ def test_single_2d_tiff_and_rgb_refused(tmp_path):
     _raises(lambda: open_source(tmp_path / "zc.tif"), tmp_path / "zc.tif", "ZCYX", "one axis of slices")
     tifffile.imwrite(tmp_path / "rgb.tif", np.zeros((4, 8, 8, 3), np.uint8), photometric="rgb")
     _raises(lambda: open_source(tmp_path / "rgb.tif"), tmp_path / "rgb.tif", "RGB", "one scalar per voxel")
+
+
+@pytest.mark.parametrize("kind", ["dicom", "ome-zarr", "tiff"])
+def test_boxes_read_from_several_threads_at_once(tmp_path, kind):
+    """Volumes are scanned and uploaded box by box on several threads: a source's reads must not race."""
+    if kind == "dicom":
+        _write_series(tmp_path / "v", syntax=RLELossless)
+    elif kind == "ome-zarr":
+        _write_ome_zarr(tmp_path / "v")
+    else:
+        tifffile.imwrite(tmp_path / "v", VALUES.transpose(2, 1, 0), photometric="minisblack", compression="zlib")
+    source = open_tiff(tmp_path / "v") if kind == "tiff" else open_source(tmp_path / "v")
+    rng = np.random.default_rng(0)
+    starts = [tuple(int(rng.integers(0, n - 1)) for n in SHAPE) for _ in range(96)]
+    boxes = [tuple(slice(s, int(rng.integers(s + 1, n + 1))) for s, n in zip(start, SHAPE)) for start in starts]
+    with ThreadPoolExecutor(8) as pool:
+        for box, got in zip(boxes, pool.map(lambda b: source.read(*b), boxes)):
+            np.testing.assert_array_equal(got, VALUES[box])
 
 
 # --- where the formats plug in --------------------------------------------------------------------

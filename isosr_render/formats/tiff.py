@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import os
 import struct
+import threading
 from pathlib import Path
 
 from isosr_render.formats import TIFF_SUFFIXES, one_line, require
@@ -55,7 +56,7 @@ def open_tiff(path: str | os.PathLike, *, spacing: tuple[float, float, float] | 
     if len(stacked) > 1:
         raise VolumeError(f"{path}: axes {axes} with shape {series.shape}: a volume has one axis of slices "
                           "besides YX (one channel, one time point)")
-    array = _as_zarr(series.aszarr(), path)
+    array = _as_zarr(series.aszarr(lock=threading.RLock()), path)  # sources are read from several threads
     spacing = spacing or _spacing(tifffile, tif, path)
     axes = (series.ndim - 1, series.ndim - 2, stacked[0])
     return checked_source(ZarrSource(path.name, array, axes, tuple(float(s) for s in spacing), str(path)))
