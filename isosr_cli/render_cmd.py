@@ -56,7 +56,8 @@ def add_parser(subparsers) -> None:
     p = subparsers.add_parser("render", help="render one frame of an isosurface",
                               description=__doc__, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("volume", help="volume file (.nii[.gz], .nrrd, .nhdr, .dat, NAME_XxYxZ_DTYPE.raw[.gz], "
-                                  ".npy, .npz), procedural spec (proc:sphere, proc:torus, proc:cloud:SEED, "
+                                  ".npy, .npz, multi-page .tif, multi-frame .dcm), folder (a DICOM series, "
+                                  "a .zarr / OME-Zarr store, 2D TIFFs), procedural spec (proc:sphere, proc:torus, proc:cloud:SEED, "
                                   "proc:metaballs:SEED, optional @SIZE) or shared volume (shared:NAME)")
     p.add_argument("--iso", type=float, help="iso-value in data units (default: the procedural volume's own, "
                                              "else Otsu's threshold)")

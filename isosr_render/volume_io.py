@@ -15,6 +15,9 @@ spacing and the rescale to original units; :func:`open_source` wraps them in an
 - NumPy ``.npy`` / ``.npz`` stored as (x, y, z), never unpickled.
 
 Raw voxels are x-fastest on disk: they are read flat, shaped (z, y, x) and transposed.
+
+DICOM series (a folder) and multi-frame files, Zarr / OME-Zarr stores (a folder) and TIFF files
+or folders of TIFFs are read lazily, box by box, by :mod:`isosr_render.formats`.
 """
 
 from __future__ import annotations
@@ -30,8 +33,9 @@ import nibabel as nib
 import nrrd
 import numpy as np
 
+from isosr_render.formats import TIFF_SUFFIXES, format_of, open_format
 from isosr_render.volume import Volume, VolumeError
-from isosr_render.voxels import ArraySource
+from isosr_render.voxels import ArraySource, VoxelSource
 
 # A reader's result: stored values [x, y, z], spacing, and optionally (slope, intercept).
 _Loaded = tuple[np.ndarray, tuple[float, ...]] | tuple[np.ndarray, tuple[float, ...], tuple[float, float]]
@@ -60,29 +64,36 @@ def load_volume(path: str | os.PathLike) -> Volume:
     return Volume.from_source(open_source(path))
 
 
-def open_source(path: str | os.PathLike) -> ArraySource:
-    """Read a volume file into a voxel source, choosing the reader from the file name.
+def open_source(path: str | os.PathLike) -> VoxelSource:
+    """Open a volume file or folder as a voxel source, choosing the reader from the path.
 
     Args:
         path: a ``.dat``, ``_XxYxZ_dtype.raw[.gz]``, ``.nii[.gz]``, ``.nrrd``, ``.nhdr``,
-            ``.npy`` or ``.npz`` file.
+            ``.npy`` or ``.npz`` file (read whole); or a DICOM series folder or multi-frame
+            file, a Zarr / OME-Zarr store, a TIFF file or a folder of 2D TIFFs (read lazily by
+            :func:`isosr_render.formats.open_format`; an OME-Zarr's finest level).
 
     Returns:
-        The stored values named after the file, with spacing and rescale.
+        The stored values named after the file or folder, with spacing and rescale.
 
     Raises:
-        VolumeError: the file is missing, has an unknown extension or cannot be read (bad
+        VolumeError: the path is missing, has an unknown extension or cannot be read (bad
             header, unknown data type, size that does not match the header, missing data
-            files, not 3D). The message names the file and the problem.
+            files, not 3D; the formats' own errors). The message names the file and the problem.
     """
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise VolumeError(f"{path}: no such file")
     lower = path.name.lower()
     reader = next((read for suffixes, read in _READERS if lower.endswith(suffixes)), None)
-    if reader is None:
+    if reader is None or path.is_dir():
+        if format_of(path) is not None:
+            return open_format(path)
+        if path.is_dir():
+            raise VolumeError(f"{path}: a folder that holds no DICOM series, Zarr store or TIFF stack")
         known = ", ".join(s for suffixes, _ in _READERS for s in suffixes)
-        raise VolumeError(f"{path}: unknown extension (expected one of {known})")
+        raise VolumeError(f"{path}: unknown extension (expected one of {known}, {', '.join(TIFF_SUFFIXES)}; "
+                          "or a DICOM series, Zarr store or TIFF stack folder)")
     try:
         values, spacing, *rescale = reader(path)
     except VolumeError:
@@ -253,3 +264,19 @@ _READERS: tuple[tuple[tuple[str, ...], Callable[[Path], _Loaded]], ...] = (
     ((".nrrd", ".nhdr"), _read_nrrd),
     ((".npy", ".npz"), _read_numpy),
 )
+
+
+def volume_name(path: Path) -> str | None:
+    """The name a folder of volumes lists ``path`` under, or None for what :func:`open_source` does not
+    take: a volume file's name without its extension; a DICOM series' or TIFF stack's folder name; a
+    Zarr store's name without ``.zarr``. Loose DICOM files are not listed (a series is one folder)."""
+    lower = path.name.lower()
+    if lower.startswith("."):
+        return None
+    if path.is_file():
+        suffixes = [s for known, _ in _READERS for s in known] + [o + t for o in (".ome", "") for t in TIFF_SUFFIXES]
+        suffix = next((s for s in sorted(suffixes, key=len, reverse=True) if lower.endswith(s)), None)
+        return path.name[: -len(suffix)] if suffix else None
+    if not path.is_dir() or format_of(path) is None:
+        return None
+    return next((path.name[: -len(s)] for s in (".ome.zarr", ".zarr") if lower.endswith(s)), path.name)

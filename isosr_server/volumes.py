@@ -1,8 +1,10 @@
 """The volumes a server offers: files of its ``--volumes`` folder by name, and small procedural ones.
 
 Clients name volumes; they never send paths. A name is looked up in the folder's
-``volumes.json`` manifest (or, without one, among the folder's volume files by their name
-without extension); ``proc:`` specs are built here, at most ``MAX_PROCEDURAL_SIZE`` voxels a side.
+``volumes.json`` manifest (or, without one, among the folder's volumes: files by their name
+without extension, a DICOM series or TIFF stack folder or a ``.zarr`` store each as one volume,
+see :func:`isosr_render.volume_io.volume_name`); ``proc:`` specs are built here, at most
+``MAX_PROCEDURAL_SIZE`` voxels a side.
 Routes load volumes with :func:`load_volume`, which answers bad names with 400 and unknown ones with 404.
 """
 
@@ -16,11 +18,11 @@ from pathlib import Path
 from isosr_render import Volume, open_volume
 from isosr_render.catalog import manifest
 from isosr_render.procedural import default_iso
+from isosr_render.volume_io import volume_name
 from isosr_server.protocol import CLOSE_NOT_FOUND, VOLUME_NAME, ProtocolError
 
 MAX_PROCEDURAL_SIZE = 128
 PROCEDURAL_OFFER = ("proc:sphere", "proc:torus", "proc:cloud:0", "proc:metaballs:0")
-VOLUME_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".dat", ".raw", ".raw.gz", ".npy", ".npz")
 HISTOGRAM_BINS = 64
 CACHE = 4
 
@@ -60,16 +62,9 @@ class VolumeInfo:
                 "histogram": self.histogram, "histogram_bins": HISTOGRAM_BINS}
 
 
-def _file_name(path: Path) -> str | None:
-    """A volume file's name without its (possibly double) extension, or None for other files."""
-    for suffix in sorted(VOLUME_SUFFIXES, key=len, reverse=True):
-        if path.name.endswith(suffix):
-            return path.name[: -len(suffix)]
-    return None
-
-
 class VolumeCatalog:
-    """Names -> volume files of one folder, plus procedural specs; loaded volumes cached (LRU).
+    """Names -> volumes (files, DICOM/TIFF folders, Zarr stores) of one folder, plus procedural specs;
+    loaded volumes cached (LRU).
 
     Args:
         root: the ``--volumes`` folder, or None for procedural volumes only.
@@ -88,8 +83,8 @@ class VolumeCatalog:
                     self._files[e["name"]] = self.root / e["file"]
             else:
                 for path in sorted(self.root.iterdir()):
-                    name = _file_name(path)
-                    if name and path.is_file() and not name.startswith("."):
+                    name = volume_name(path)
+                    if name:
                         self._files.setdefault(name, path)
         self._cache: dict[str, tuple[Volume, VolumeInfo]] = {}
         self._lock = threading.Lock()

@@ -287,9 +287,9 @@ def test_missing_file(tmp_path):
 
 
 def test_unknown_extension(tmp_path):
-    path = tmp_path / "vol.tiff"
+    path = tmp_path / "vol.vtk"
     path.write_bytes(bytes(16))
-    _raises(path, "unknown extension", ".nrrd")
+    _raises(path, "unknown extension", ".nrrd", ".tiff", "DICOM series")
 
 
 def test_corrupt_nifti_and_nrrd(tmp_path):
