@@ -57,6 +57,10 @@ from isosr_server.replica import REPLICA_HEADER, RESTARTED_HEADER, SESSION_HEADE
 pytestmark = pytest.mark.slow
 LIMITS = P.Limits(max_sessions_per_client=32, max_message_bytes=2**22)
 ATOL = 1e-6
+# The reconstruction on a replica against the plain server's: float32 rounding of another summation
+# order (a replica's torch runs on other threads; up to 5e-6 measured), far below what a lost
+# recurrent state changes (0.03 in AO, 0.9 in normals on this path's second frame).
+RECON_ATOL = 1e-4
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -239,7 +243,7 @@ def test_recon_infer_through_the_proxy_with_tritonclient(cluster, plain, lib):
         got, want = (triton_infer(srv, "isosr-recon", f, "recon-1", i == 0, {"ao_rays": 2}) for srv in (cluster, plain))
         assert list(got) == ["mask", "normal", "depth", "ao", "color"]
         for n in got:
-            np.testing.assert_allclose(got[n], want[n], atol=ATOL, err_msg=n)
+            np.testing.assert_allclose(got[n], want[n], atol=RECON_ATOL, err_msg=n)
 
 
 def isosr_samples(text: str, prefix: str = "isosr_") -> list:

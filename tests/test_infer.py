@@ -257,7 +257,7 @@ def test_recon_infer_equals_the_reconstructor_with_recurrent_state(client, frame
     assert_equal_recon(got, want[1])
     # Without the sequence the second frame starts fresh, and differs.
     fresh = recon_infer(client, full_frames[1], binary)
-    assert not np.allclose(fresh["ao"], got["ao"], atol=10 * ATOL)
+    assert np.abs(fresh["ao"] - got["ao"]).max() > 1e-2
     assert_equal_recon(fresh, reconstructed(full_frames[1:])[0])
 
 
