@@ -373,7 +373,7 @@ class FrameRunner(ABC):
                 yield
         return out
 
-    def shaded(self, buffers: FrameBuffers, timer: StageTimer) -> FrameBuffers:
+    def colored(self, buffers: FrameBuffers, timer: StageTimer) -> FrameBuffers:
         """``buffers`` with the final color (unless the runner does not shade)."""
         if self.shade:
             with timer("shading"):
@@ -412,7 +412,7 @@ class FullRunner(FrameRunner):
         return ("mask", "normal") + (("ao",) if m.ao_rays else ())
 
     def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
-        return self.shaded(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=rendered.ao), timer)
+        return self.colored(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=rendered.ao), timer)
 
     def rows(self, camera: Camera, start: int, stop: int) -> torch.Tensor:
         """Rows ``[start, stop)`` of the frame's color only (a focus lens's region).
@@ -448,7 +448,7 @@ class ATrousRunner(FrameRunner):
         with timer("filter"):
             ao = atrous_filter(rendered.ao[None, None], rendered.mask[None, None],
                                rendered.normal.permute(2, 0, 1)[None], rendered.depth[None, None], self.atrous)[0, 0]
-        return self.shaded(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=ao), timer)
+        return self.colored(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=ao), timer)
 
 
 @register_runner("svgf")
@@ -496,7 +496,7 @@ class SVGFRunner(FrameRunner):
                                            rendered.position.permute(2, 0, 1)[None], flow, self._prev_camera,
                                            self.history, self.config, self.atrous)
         self.frames += 1
-        return self.shaded(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=ao[0, 0]), timer)
+        return self.colored(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=ao[0, 0]), timer)
 
 
 @register_runner("oidn")
@@ -587,7 +587,7 @@ class ClassicUpscaleRunner(FrameRunner):
         with timer("filter"):
             up = upscale_classic(rendered, self.method.factor, self.method.interpolation)
         up.ao = None  # no AO: shaded unoccluded
-        return self.shaded(up, timer)
+        return self.colored(up, timer)
 
 
 @register_runner("network")
@@ -615,7 +615,7 @@ class NetworkRunner(FrameRunner):
     def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
         with timer("network"):
             high = self.net.upscale(rendered)
-        return self.shaded(high, timer)
+        return self.colored(high, timer)
 
 
 @register_runner("buffers")

@@ -56,7 +56,7 @@ def create_app(settings: Settings) -> FastAPI:
     s.catalog = VolumeCatalog(settings.volumes)
     s.metrics = ServerMetrics(s.engine.gpu_memory, s.engine.volume_memory)
     s.view_sessions = SessionCounter(settings.limits.max_sessions)
-    s.upscale_sessions = UpscaleSessions(settings.limits, s.engine.new_upscaler)
+    s.upscale_sessions = UpscaleSessions(settings.limits, s.engine.new_network)
     s.ready = False
     app.add_middleware(Guard, limits=settings.limits)
     add_exception_handlers(app)

@@ -12,7 +12,7 @@ Routing: one request router (`isosr_server.placement.SessionRouter`, Serve's cus
 router API; Serve allows one per deployment). Requests with an ``x-session-id`` header, which
 Serve's proxy puts in each request's routing metadata, go by Serve's consistent hashing
 (``ConsistentHashRouter``, ``ray.serve.experimental``, Ray >= 2.60) on it: an upscale session
-(``POST /v1/upscale``'s ``session``, the infer endpoint's ``sequence_id``) sends its id there too
+(``POST /v1/upscale``'s ``session``, the infer endpoints' ``sequence_id``) sends its id there too
 and reaches the replica that holds its recurrent state. Requests without it (view WebSockets,
 session-less upscaling, probes) go to the replica with the fewest ongoing requests as Serve
 counts them (a view WebSocket is one for its life): the fewest view sessions. Consistent hashing

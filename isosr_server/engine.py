@@ -27,6 +27,7 @@ from collections.abc import Callable, Generator
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from isosr_net.frame_methods import Networks, finish_steps
@@ -35,7 +36,7 @@ from isosr_net.reconnet import MAX_RECON_AO_RAYS, MAX_RECON_SPP
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
 from isosr_net.timing import StageTimer, timed_steps
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
-from isosr_render import FrameBuffers, Renderer, Volume, orbit, parse_procedural, shade
+from isosr_render import FrameBuffers, Renderer, ShadingParams, Volume, orbit, parse_procedural, shade
 from isosr_render.brick_pool import MemoryStats
 from isosr_render.images import quantize
 from isosr_server.auto import AutoPolicy
@@ -181,9 +182,9 @@ class Engine:
         return {"model": Path(self.config.recon_model).name, "precision": self.precision, "device": str(self.device),
                 "max_ao_rays": MAX_RECON_AO_RAYS, "max_spp": MAX_RECON_SPP}
 
-    def new_upscaler(self) -> Upscaler:
-        """A stream's own upscaler: shares the loaded weights, starts without recurrent state."""
-        return self.network(Upscaler).own()
+    def new_network(self, cls: type[RecurrentNetwork]) -> RecurrentNetwork:
+        """A stream's own network of a class: shares the loaded weights, starts without recurrent state."""
+        return self.network(cls).own()
 
     def new_session_frames(self, scene: str) -> SessionFrames:
         """A view session's own frame state (its own networks' recurrent state)."""
@@ -266,9 +267,7 @@ class Engine:
         frame = FrameBuffers(**{n: torch.from_numpy(getattr(request, n).astype("float32"))
                                 for n in ("mask", "normal", "depth", "flow") if getattr(request, n) is not None})
         high = yield from timed_steps(upscaler.upscale_steps(frame), timer, "network")
-        if not all(bool(torch.isfinite(getattr(high, n)).all()) for n in high.present()):
-            upscaler.reset()  # a non-finite output must not feed the next frame
-            raise ValueError("the network gave non-finite values for this frame")
+        _check_finite(upscaler, high)
         image = buffers = None
         if request.output == "buffers":
             with timer("encode"):
@@ -279,6 +278,44 @@ class Engine:
             with timer("encode"):
                 image = encode_image(quantize(color), request.output, request.quality)
         return image, buffers, timer.ms() | {"total": 1e3 * (time.perf_counter() - start)}
+
+    async def reconstruct(self, reconstructor: Reconstructor, inputs: dict[str, np.ndarray], ao_rays: int, spp: int,
+                          outputs: tuple[str, ...], reset: bool) -> tuple[dict[str, np.ndarray], dict]:
+        """One reconstruction request (:meth:`Reconstructor.reconstruct`, one device-thread job):
+        ``(float32 numpy buffers named in outputs, times in ms)``; ``color`` is shaded with the
+        default material, and only when ``outputs`` names it.
+
+        Args:
+            inputs: full-res mask, normal, depth, and ao and flow where given (float16/float32).
+            reset: forget the recurrent state first.
+
+        Raises:
+            ValueError: the library refuses the frame (e.g. fp16 with depths beyond its range).
+        """
+        return await self.call(self._reconstruct_sync, reconstructor, inputs, ao_rays, spp, outputs, reset,
+                               time.perf_counter())
+
+    def _reconstruct_sync(self, reconstructor: Reconstructor, inputs: dict[str, np.ndarray], ao_rays: int, spp: int,
+                          outputs: tuple[str, ...], reset: bool, start: float) -> tuple[dict[str, np.ndarray], dict]:
+        self._on_thread()
+        timer = StageTimer(self.device)
+        if reset:
+            reconstructor.reset()
+        frame = FrameBuffers(**{n: torch.from_numpy(a.astype("float32")) for n, a in inputs.items()})
+        with timer("network"):
+            out = reconstructor.reconstruct(frame, ao_rays, spp, ShadingParams() if "color" in outputs else None)
+        _check_finite(reconstructor, out)
+        with timer("encode"):
+            buffers = {n: getattr(out, n).cpu().numpy() for n in outputs}
+        return buffers, timer.ms() | {"total": 1e3 * (time.perf_counter() - start)}
+
+
+def _check_finite(network: RecurrentNetwork, out: FrameBuffers) -> None:
+    """`ValueError` if a network's output holds NaN or Inf, its recurrent state reset first (a
+    non-finite output must not feed the next frame)."""
+    if not all(bool(torch.isfinite(getattr(out, n)).all()) for n in out.present()):
+        network.reset()
+        raise ValueError("the network gave non-finite values for this frame")
 
 
 def pack_codes(codes: torch.Tensor | tuple, code: Callable[[torch.Tensor], CodedImage]

@@ -45,7 +45,7 @@ class ServerMetrics:
         r.register(_VolumeMemory(volume_memory))
 
     def frame(self, kind: str, mode: str, refined: bool, times_ms: dict[str, float], nbytes: int) -> None:
-        """Count one frame (kind: view, upscale) with its stage times and payload bytes."""
+        """Count one frame (kind: view, upscale, reconstruct) with its stage times and payload bytes."""
         self.frames.labels(kind, mode, str(refined).lower()).inc()
         for stage, ms in times_ms.items():
             self.stage_seconds.labels(mode, stage).observe(ms / 1e3)

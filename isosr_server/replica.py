@@ -3,7 +3,7 @@ calls `as_replica`).
 
 - The app's metrics carry ``replica="<name>"`` on every series (`ServerMetrics.const_labels`).
 - Every HTTP response and every WebSocket handshake names the replica: ``x-isosr-replica``.
-- Upscale sessions (``POST /v1/upscale`` with ``session``, ``POST /v2/models/isosr/infer`` with
+- Upscale sessions (``POST /v1/upscale`` with ``session``, ``POST /v2/models/{isosr,isosr-recon}/infer`` with
   ``sequence_id``) are routed by the request router on the ``x-session-id`` header
   (`SESSION_HEADER`), so their requests must carry the id there too: a successful request whose
   body names a session the header does not gets 400 instead of its answer (else it would land on

@@ -1,5 +1,6 @@
 """Sessions: view sessions (latest-frame-wins state, credit-based flow control, the frame loop,
-the still-camera refine) and upscale sessions (recurrent state per id, idle expiry, a bounded count).
+the still-camera refine) and upscale sessions (a network's recurrent state per id: the upscaler's,
+the reconstructor's; idle expiry, a bounded count).
 
 Latest frame wins. A view session holds only the newest state the client asked for: every
 ``camera``/``iso``/``settings``/``focus`` message overwrites it and bumps a version, so stale
@@ -34,6 +35,7 @@ from dataclasses import dataclass, replace
 
 import msgspec
 
+from isosr_net.inference import RecurrentNetwork
 from isosr_net.upscaler import Upscaler
 from isosr_render import Camera, Volume, orbit
 from isosr_server import views
@@ -323,13 +325,14 @@ async def _wait(event: asyncio.Event, timeout: float | None) -> None:
 
 @dataclass
 class _IdSession:
-    upscaler: Upscaler
+    network: RecurrentNetwork
     client: str
     used: float
 
 
 class UpscaleSessions:
-    """Upscalers by session id (``POST /v1/upscale``) plus open streams.
+    """Recurrent networks by network class and session id (``POST /v1/upscale``'s ``session``, the
+    infer endpoints' ``sequence_id``: each model its own state per id) plus open upscale streams.
 
     Bounded in number (``max_sessions`` together; at most ``max_sessions_per_client`` ids per
     client address, 429 past it), and in the memory their recurrent states hold
@@ -339,9 +342,9 @@ class UpscaleSessions:
     connections: they are refused (429) when every slot is a stream's.
     """
 
-    def __init__(self, limits: Limits, make_upscaler: Callable[[], Upscaler]):
-        self.limits, self.make = limits, make_upscaler
-        self._by_id: OrderedDict[str, _IdSession] = OrderedDict()
+    def __init__(self, limits: Limits, make: Callable[[type[RecurrentNetwork]], RecurrentNetwork]):
+        self.limits, self.make = limits, make
+        self._by_id: OrderedDict[tuple[type[RecurrentNetwork], str], _IdSession] = OrderedDict()
         self._streams: list[Upscaler] = []
         self.streams = SessionCounter(limits.max_sessions)
 
@@ -350,14 +353,14 @@ class UpscaleSessions:
 
     def held_bytes(self) -> int:
         """Bytes the sessions' recurrent states hold."""
-        nets = [s.upscaler for s in self._by_id.values()] + self._streams
+        nets = [s.network for s in self._by_id.values()] + self._streams
         return sum(u.previous.nbytes for u in nets if u.previous is not None)
 
-    def trim(self, keep: str | None = None) -> int:
-        """Drop the least recently used ids (never ``keep``) while the states hold more than
-        ``max_upscale_bytes``; returns how many."""
+    def trim(self, keep: RecurrentNetwork | None = None) -> int:
+        """Drop the least recently used ids (never the one of ``keep``) while the states hold more
+        than ``max_upscale_bytes``; returns how many."""
         dropped = 0
-        for k in [k for k in self._by_id if k != keep]:
+        for k in [k for k, s in self._by_id.items() if s.network is not keep]:
             if self.held_bytes() <= self.limits.max_upscale_bytes:
                 break
             del self._by_id[k]
@@ -371,22 +374,23 @@ class UpscaleSessions:
             del self._by_id[k]
         return len(stale)
 
-    def get(self, session_id: str, client: str) -> Upscaler:
-        """The id's upscaler (a new one for a new id: `ProtocolError` 429 when ``client`` holds its
-        bound already; the least recently used id dropped when the server is full)."""
+    def get(self, session_id: str, client: str, cls: type[RecurrentNetwork] = Upscaler) -> RecurrentNetwork:
+        """The id's network of ``cls`` (a new one for a new id: `ProtocolError` 429 when ``client``
+        holds its bound already; the least recently used id dropped when the server is full)."""
         now = time.monotonic()
         self.expire(now)
-        if session_id not in self._by_id:
+        key = (cls, session_id)
+        if key not in self._by_id:
             held = sum(s.client == client for s in self._by_id.values())
             if held >= self.limits.max_sessions_per_client:
                 raise ProtocolError(f"this client holds {held} upscale sessions already, the most one address may; "
                                     f"reuse one or let one expire", CLOSE_TOO_MANY, 429)
             self._make_room()
-            self._by_id[session_id] = _IdSession(self.make(), client, now)
-        session = self._by_id[session_id]
+            self._by_id[key] = _IdSession(self.make(cls), client, now)
+        session = self._by_id[key]
         session.used = now
-        self._by_id.move_to_end(session_id)
-        return session.upscaler
+        self._by_id.move_to_end(key)
+        return session.network
 
     def _make_room(self) -> None:
         """One free slot: drop the least recently used id if every slot is taken; 429 if all are streams'."""
@@ -402,7 +406,7 @@ class UpscaleSessions:
         self.expire(time.monotonic())
         self._make_room()
         self.streams.acquire("upscale streams")
-        self._streams.append(self.make())
+        self._streams.append(self.make(Upscaler))
         return self._streams[-1]
 
     def close_stream(self, upscaler: Upscaler) -> None:

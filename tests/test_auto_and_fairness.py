@@ -85,7 +85,7 @@ def test_upscale_sessions_bound_each_client_and_never_lock_others_out():
 
     made = []
     sessions = UpscaleSessions(P.Limits(max_sessions=4, max_sessions_per_client=2),
-                               lambda: made.append(object()) or made[-1])
+                               lambda cls: made.append(object()) or made[-1])
     assert sessions.get("a", "10.0.0.1") is sessions.get("a", "10.0.0.1")
     sessions.get("b", "10.0.0.1")
     with pytest.raises(P.ProtocolError, match="this client holds 2 upscale sessions") as e:
@@ -93,6 +93,6 @@ def test_upscale_sessions_bound_each_client_and_never_lock_others_out():
     assert e.value.http_status == 429
     for i in range(3):  # another client fills the server, then a third still gets a slot
         sessions.get(f"x{i}", f"10.0.0.{2 + i}")
-    assert len(sessions) == 4 and "a" not in sessions._by_id, "the least recently used id made room"
+    assert len(sessions) == 4 and "a" not in {k for _, k in sessions._by_id}, "the least recently used id made room"
     stream = sessions.open_stream()
     assert len(sessions) == 4 and stream is made[-1]

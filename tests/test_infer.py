@@ -1,9 +1,14 @@
-"""The KServe v2 infer endpoint (``POST /v2/models/isosr[/versions/1]/infer``) on a real server,
-called with Triton's own client (``tritonclient[http]``) in JSON and binary tensors.
+"""The KServe v2 infer endpoints of both models (``POST /v2/models/isosr[/versions/1]/infer``,
+``POST /v2/models/isosr-recon[/versions/1]/infer``) on a real server, called with Triton's own
+client (``tritonclient[http]``) in JSON and binary tensors.
 
-The outputs must equal ``POST /v1/upscale``'s for the same frames, recurrent state included: the
-same engine call computes both, so on the CPU they agree to ATOL = 1e-6 (float32 rounding is all
-a float16 or JSON transport could add, and it adds none); on CUDA to 1e-2 like the upscale tests.
+The upscaling model's outputs must equal ``POST /v1/upscale``'s for the same frames, the
+reconstruction model's those of `Reconstructor.reconstruct` run here in-process on the same
+inputs (fp32, the default material for ``color``), recurrent state included. The same library
+call computes both sides, so on the CPU they agree to ATOL = 1e-6 (float32 rounding is all a
+float16 or JSON transport could add, and it adds none: float16 inputs are compared with the same
+float16 values given to the reference); on CUDA to 1e-2 like the upscale tests (the server runs
+its networks channels-last with the fast layers, the reference not).
 """
 
 from __future__ import annotations
@@ -13,8 +18,10 @@ import json
 import msgspec
 import numpy as np
 import pytest
+import torch
 
-from isosr_render import orbit
+from isosr_net.reconstructor import Reconstructor
+from isosr_render import FrameBuffers, RenderRequest, ShadingParams, orbit
 from isosr_server import protocol as P
 from server_fixtures import (DEVICE, FACTOR, H, W, lib, lib_lowres, running_server, server_settings,  # noqa: F401
                              upscale_body)
@@ -25,6 +32,8 @@ from tritonclient.utils import InferenceServerException  # noqa: E402
 ATOL = 1e-6 if DEVICE == "cpu" else 1e-2
 LIMITS = P.Limits(max_message_bytes=2**20)
 INPUTS, OUTPUTS = ("mask", "normal", "depth", "flow"), ("mask", "normal", "depth", "ao")
+RECON_INPUTS, RECON_OUTPUTS = ("mask", "normal", "depth", "ao", "flow"), ("mask", "normal", "depth", "ao", "color")
+AO_RAYS = 2
 
 
 @pytest.fixture(scope="module")
@@ -156,7 +165,7 @@ def test_bad_tensors_get_4xx_with_reasons(srv, client, frames):
         ({"inputs": [tensor("mask", f["mask"]) | {"shape": [h, -w]}]}, f["mask"].tobytes(), 400,
          "Expected `int` >= 0"),
         ({"inputs": [tensor(n, 2 * f[n]) for n in INPUTS]}, b"".join((2 * f[n]).tobytes() for n in INPUTS), 400,
-         "mask: values must lie in [0, 1]"),
+         "'mask': values must lie in [0, 1]"),
         ({"inputs": [tensor(n, np.zeros((2, 1100) + f[n].shape[2:], np.float32)) for n in INPUTS]},
          b"".join(np.zeros((2, 1100) + f[n].shape[2:], np.float32).tobytes() for n in INPUTS), 413, "exceeds"),
         ({"inputs": good, "pad": "x" * LIMITS.max_message_bytes}, blobs, 413, "limit"),
@@ -172,6 +181,146 @@ def test_bad_tensors_get_4xx_with_reasons(srv, client, frames):
     # tritonclient reports the server's reason with the status.
     with pytest.raises(InferenceServerException) as e:
         infer(client, {"mask": f["mask"], "normal": f["normal"]})
+    assert e.value.status() == "400" and "missing input 'depth'" in e.value.message()
+    assert srv.get_json("/v2/health/ready")[0] == 200
+    assert not srv.errors.records, srv.errors.messages()
+
+
+# ---- the reconstruction model (isosr-recon) ------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def full_frames(lib):
+    """Two consecutive full-res frames of AO_RAYS AO rays per hit (the second with flow) as numpy buffers."""
+    c0, c1 = orbit(30, 20, 1.8), orbit(34, 20, 1.8)
+    outputs = ("mask", "normal", "depth", "ao")
+    return [lib.renderer.render(cam, RenderRequest(W, H, lib.iso, outputs + (("flow",) if prev else ()),
+                                                   ao_samples=AO_RAYS, prev_camera=prev)).to_numpy()
+            for cam, prev in ((c0, None), (c1, c0))]
+
+
+def reconstructed(frames: list[dict], ao_rays: int = AO_RAYS, spp: int = 1) -> list[dict[str, np.ndarray]]:
+    """The library's reconstruction of ``frames`` with one recurrent state, in fp32 on DEVICE."""
+    reconstructor = Reconstructor(device=DEVICE)
+    out = []
+    for f in frames:
+        frame = FrameBuffers(**{n: torch.from_numpy(a.astype(np.float32)) for n, a in f.items()})
+        got = reconstructor.reconstruct(frame, ao_rays, spp, ShadingParams())
+        out.append({n: getattr(got, n).cpu().numpy() for n in RECON_OUTPUTS})
+    return out
+
+
+def recon_infer(client, frame: dict, binary: bool = True, datatype: str = "FP32", outputs=RECON_OUTPUTS,
+                parameters: dict | None = None, **kwargs) -> dict[str, np.ndarray]:
+    inputs = []
+    for name in RECON_INPUTS:
+        if name in frame:
+            t = httpclient.InferInput(name, list(frame[name].shape), datatype)
+            t.set_data_from_numpy(frame[name].astype(np.float16 if datatype == "FP16" else np.float32),
+                                  binary_data=binary)
+            inputs.append(t)
+    wanted = [httpclient.InferRequestedOutput(n, binary_data=binary) for n in outputs]
+    result = client.infer("isosr-recon", inputs, outputs=wanted,
+                          parameters={"ao_rays": AO_RAYS} if parameters is None else parameters, **kwargs)
+    assert [o["name"] for o in result.get_response()["outputs"]] == list(outputs)
+    return {n: result.as_numpy(n) for n in outputs}
+
+
+def assert_equal_recon(got: dict[str, np.ndarray], want: dict[str, np.ndarray]) -> None:
+    for name, a in got.items():
+        assert a.dtype == np.float32 and a.shape == want[name].shape, name
+        np.testing.assert_allclose(a, want[name], atol=ATOL, err_msg=name)
+
+
+def test_recon_metadata_and_readiness_through_tritonclient(client):
+    assert client.is_model_ready("isosr-recon") and client.is_model_ready("isosr-recon", "1")
+    meta = client.get_model_metadata("isosr-recon", "1")
+    assert meta["name"] == "isosr-recon" and meta["versions"] == ["1"]
+    assert [t["name"] for t in meta["inputs"]] == list(RECON_INPUTS)
+    assert [t["name"] for t in meta["outputs"]] == list(RECON_OUTPUTS)
+    inputs = {t["name"]: t for t in meta["inputs"]}
+    assert inputs["normal"]["shape"] == [-1, -1, 3] and inputs["flow"]["shape"] == [-1, -1, 2]
+    assert [n for n, t in inputs.items() if t["parameters"]["optional"]] == ["ao", "flow"]
+    assert inputs["ao"]["parameters"]["range"] == [0.0, 1.0]
+    assert all(t["parameters"]["accepted_datatypes"] == ["FP32", "FP16"] for t in meta["inputs"])
+    assert meta["parameters"]["max_ao_rays"] >= AO_RAYS
+
+
+@pytest.mark.parametrize("binary", [True, False], ids=["binary", "json"])
+def test_recon_infer_equals_the_reconstructor_with_recurrent_state(client, frames, full_frames, binary):
+    want = reconstructed(full_frames)
+    seq = f"recon-{binary}"
+    assert_equal_recon(recon_infer(client, full_frames[0], binary, sequence_id=seq, sequence_start=True), want[0])
+    # The upscaling model's session of the same id is another state: it leaves this one alone.
+    infer(client, frames[0], binary, sequence_id=seq, sequence_start=True)
+    got = recon_infer(client, full_frames[1], binary, sequence_id=seq, model_version="1")
+    assert_equal_recon(got, want[1])
+    # Without the sequence the second frame starts fresh, and differs.
+    fresh = recon_infer(client, full_frames[1], binary)
+    assert np.abs(fresh["ao"] - got["ao"]).max() > 1e-2
+    assert_equal_recon(fresh, reconstructed(full_frames[1:])[0])
+
+
+def test_recon_fp16_inputs_no_ao_rays_spp_and_chosen_outputs(client, full_frames):
+    f0 = full_frames[0]
+    half = {n: a.astype(np.float16) for n, a in f0.items()}
+    assert_equal_recon(recon_infer(client, f0, datatype="FP16"), reconstructed([half])[0])
+    # No AO input (ao_rays 0: AO inferred from the geometry), 2 rays per pixel, two outputs only.
+    no_ao = {n: a for n, a in f0.items() if n != "ao"}
+    got = recon_infer(client, no_ao, outputs=("color", "ao"), parameters={"spp": 2})
+    assert_equal_recon(got, reconstructed([no_ao], ao_rays=0, spp=2)[0])
+    assert got["color"].shape == (H, W, 3)
+
+
+def test_recon_bad_tensors_get_4xx_with_reasons(srv, client, full_frames):
+    f = full_frames[1]
+    h, w = f["mask"].shape
+    good = [tensor(n, f[n]) for n in RECON_INPUTS]
+    blobs = b"".join(f[n].astype("<f4").tobytes() for n in RECON_INPUTS)
+    rays = {"ao_rays": AO_RAYS}
+
+    def replaced(name: str, a: np.ndarray, datatype: str = "FP32") -> tuple[list, bytes]:
+        """The good request with input ``name`` replaced by ``a``."""
+        arrays = {n: a if n == name else f[n] for n in RECON_INPUTS}
+        return ([tensor(n, arrays[n], datatype if n == name else "FP32") for n in RECON_INPUTS],
+                b"".join(arrays[n].tobytes() for n in RECON_INPUTS))
+
+    nan_ao = f["ao"].copy()
+    nan_ao[3, 5] = np.nan
+    big = {n: np.zeros((2, 4100) + f[n].shape[2:], np.float32) for n in RECON_INPUTS}
+    cases = [
+        (*replaced("normal", f["normal"][..., :2].copy()), rays, 400,
+         f"'normal': shape [{h}, {w}, 2] does not fit [H, W, 3]"),
+        (*replaced("depth", f["depth"][:, :-1].copy()), rays, 400,
+         f"'depth': shape [{h}, {w - 1}] does not fit [H, W] with H={h}, W={w}"),
+        (*replaced("ao", nan_ao), rays, 400, "'ao': NaN or Inf"),
+        (*replaced("ao", 1.5 * f["ao"] + 0.1), rays, 400, "'ao': values must lie in [0, 1]"),
+        (*replaced("mask", f["mask"].astype(np.int32), "INT32"), rays, 400,
+         "datatype must be FP32 or FP16, got 'INT32'"),
+        (good + [tensor("color", f["mask"])], blobs + f["mask"].tobytes(), rays, 400, "unknown input 'color'"),
+        (good[1:], blobs[f["mask"].nbytes:], rays, 400, "missing input 'mask'"),
+        (good, blobs, {}, 400, "input 'ao' needs the parameter ao_rays"),
+        ([t for t in good if t["name"] != "ao"], b"".join(f[n].tobytes() for n in RECON_INPUTS if n != "ao"), rays,
+         400, "parameter ao_rays 2 needs the input 'ao'"),
+        (good, blobs, {"ao_rays": 9}, 400, "parameter 'ao_rays' must be an integer in [0, 8], got 9"),
+        (good, blobs, rays | {"spp": 0}, 400, "parameter 'spp' must be an integer in [1, 4], got 0"),
+        (good, blobs, rays | {"sequence_id": "../x"}, 400, "sequence_id must match"),
+        ([tensor(n, big[n]) for n in RECON_INPUTS], b"".join(big[n].tobytes() for n in RECON_INPUTS), rays, 413,
+         "exceeds"),
+    ]
+    for inputs, body, parameters, status, words in cases:
+        got, reply = raw_infer(srv, {"inputs": inputs, "parameters": parameters}, body,
+                               path="/v2/models/isosr-recon/infer")
+        assert got == status and words in reply["error"], (words, got, reply)
+    got, reply = raw_infer(srv, {"inputs": good, "parameters": rays, "outputs": [{"name": "flow"}]}, blobs,
+                           path="/v2/models/isosr-recon/infer")
+    assert got == 400 and "unknown output 'flow'; isosr-recon gives mask, normal, depth, ao, color" in reply["error"]
+    assert raw_infer(srv, {"inputs": good, "parameters": rays}, blobs,
+                     path="/v2/models/isosr-recon/versions/2/infer")[0] == 404
+    assert raw_infer(srv, {"inputs": good, "parameters": rays}, blobs,
+                     path="/v2/models/isosr-recon/versions/1/infer")[0] == 200
+    with pytest.raises(InferenceServerException) as e:
+        recon_infer(client, {n: f[n] for n in ("mask", "normal")}, parameters={})
     assert e.value.status() == "400" and "missing input 'depth'" in e.value.message()
     assert srv.get_json("/v2/health/ready")[0] == 200
     assert not srv.errors.records, srv.errors.messages()

@@ -86,7 +86,8 @@ def test_every_answer_and_handshake_names_the_replica(mw):
     assert (REPLICA_HEADER.encode(), b"r1") in sent[0]["headers"]
 
 
-@pytest.mark.parametrize("path,body", [("/v1/upscale", upscale), ("/v2/models/isosr/infer", infer)])
+@pytest.mark.parametrize("path,body", [("/v1/upscale", upscale), ("/v2/models/isosr/infer", infer),
+                                       ("/v2/models/isosr-recon/infer", infer)])
 def test_sessions_restart_only_when_a_continued_state_is_missing(mw, path, body):
     # A session named in the body but not in the routing header: refused.
     status, headers, reply = call(mw, path, body("a", flow=False))

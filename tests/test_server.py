@@ -602,7 +602,7 @@ def test_upscale_sessions_are_bounded_and_expire(strict_srv, lib):
     for name in ("a", "b", "c"):  # two slots: "c" takes the place of "a", used least recently
         assert strict_srv.request("POST", "/v1/upscale", upscale_body(f, session=name))[0] == 200
     sessions = strict_srv.app.state.upscale_sessions
-    assert list(sessions._by_id) == ["b", "c"]
+    assert [k for _, k in sessions._by_id] == ["b", "c"]
     time.sleep(STRICT.idle_timeout_s + 0.2)
     assert strict_srv.request("POST", "/v1/upscale", upscale_body(f, session="d"))[0] == 200
-    assert list(sessions._by_id) == ["d"]
+    assert [k for _, k in sessions._by_id] == ["d"]

@@ -25,7 +25,6 @@ CAMERA = Camera(eye=(0.0, 0.0, 2.0))  # looks down -z: a point at world z has de
 
 def ref_depth_step(z, cov, y, x, dy, dx):
     h, w = z.shape
-    options = []
     fy, fx, by, bx = y + dy, x + dx, y - dy, x - dx
     fwd = z[fy, fx] - z[y, x] if fy < h and fx < w and cov[fy, fx] else None
     bwd = z[y, x] - z[by, bx] if by >= 0 and bx >= 0 and cov[by, bx] else None

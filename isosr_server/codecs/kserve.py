@@ -9,6 +9,11 @@ their values as ``data`` (a flat row-major list, or nested lists). A response is
 way: an output is binary when its request entry asks ``binary_data`` (else when the request's
 ``binary_data_output`` parameter does).
 
+A model declares its tensors once (`ModelSpec` of `TensorSpec`): its metadata and the checks of
+its requests (`ModelSpec.check`: names, shapes, value ranges, outputs) both come from that.
+Triton's sequence parameters (`sequence`) name a recurrent state; custom integer parameters are
+read with `int_parameter`.
+
 Every malformed body is a `ProtocolError` (400) that names the tensor and what is wrong with it.
 """
 
@@ -22,7 +27,7 @@ import msgspec
 import numpy as np
 from msgspec import Meta
 
-from isosr_server.protocol import ProtocolError
+from isosr_server.protocol import SESSION_ID, ProtocolError
 
 HEADER_LENGTH = "inference-header-content-length"
 JSON_MEDIA_TYPE = "application/json"
@@ -140,20 +145,124 @@ def _finite(name: str, a: np.ndarray) -> np.ndarray:
     return a
 
 
-def encode_response(model: str, version: str, request: InferRequest, outputs: dict[str, np.ndarray]) -> \
-        tuple[bytes, int | None]:
-    """The response body for ``outputs`` (float32 arrays, all the model has, in its order) as
-    ``request`` asks, and the JSON header's length when some output is binary (else None).
+@dataclass(frozen=True)
+class TensorSpec:
+    """One tensor of a model, as its metadata declares it and its requests are checked.
+
+    Attributes:
+        name: the tensor's name.
+        shape: per dimension a size, or a letter: an input size that every input with that letter
+            shares (any size: -1 in the metadata).
+        bounds: an input's value range ``(lo, hi)``; None: any finite value.
+        optional: an input that a request may leave out.
+    """
+
+    name: str
+    shape: tuple[int | str, ...]
+    bounds: tuple[float, float] | None = None
+    optional: bool = False
+
+    def metadata(self, datatypes: list[str]) -> dict[str, Any]:
+        """The tensor's metadata: datatype FP32, shape, and in ``parameters`` whether it may be left
+        out, the ``datatypes`` the server takes and its value range."""
+        parameters: dict[str, Any] = {"optional": self.optional, "accepted_datatypes": datatypes}
+        if self.bounds is not None:
+            parameters["range"] = list(self.bounds)
+        return {"name": self.name, "datatype": "FP32", "shape": [d if isinstance(d, int) else -1 for d in self.shape],
+                "parameters": parameters}
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """A model's tensors: the one declaration its metadata and its requests' checks come from."""
+
+    name: str
+    inputs: tuple[TensorSpec, ...]
+    outputs: tuple[TensorSpec, ...]
+
+    def metadata(self) -> dict[str, Any]:
+        """``inputs`` and ``outputs`` of the model's metadata (inputs taken in every datatype of `DATATYPES`)."""
+        return {"inputs": [t.metadata(list(DATATYPES)) for t in self.inputs],
+                "outputs": [t.metadata(["FP32"]) for t in self.outputs]}
+
+    def check(self, req: InferRequest) -> dict[str, int]:
+        """The size each shape letter takes in ``req`` (e.g. ``{"H": 48, "W": 64}``), after checking
+        that its inputs are the model's, none missing, each of its shape and within its bounds, and
+        that the outputs it asks for are the model's.
+
+        Raises:
+            ProtocolError: (400) naming the first input or output that does not fit.
+        """
+        names = [t.name for t in self.inputs]
+        unknown = [n for n in req.inputs if n not in names]
+        if unknown:
+            raise ProtocolError(f"unknown input {unknown[0]!r}; {self.name} takes {', '.join(names)}"[:200])
+        missing = [t.name for t in self.inputs if not t.optional and t.name not in req.inputs]
+        if missing:
+            raise ProtocolError(f"missing input {missing[0]!r}")
+        sizes: dict[str, int] = {}
+        for spec in (t for t in self.inputs if t.name in req.inputs):
+            a = req.inputs[spec.name]
+            _check_shape(spec, a.shape, sizes)
+            if spec.bounds is not None and a.size:
+                # Compared as Python floats: a bound beyond float16's range cast to float16 would be inf.
+                (lo, hi), low, high = spec.bounds, float(a.min()), float(a.max())
+                if low < lo or high > hi:
+                    raise ProtocolError(f"input {spec.name!r}: values must lie in [{lo:g}, {hi:g}], "
+                                        f"got [{low:g}, {high:g}]")
+        outputs = [t.name for t in self.outputs]
+        unknown = [n for n in req.outputs or () if n not in outputs]
+        if unknown:
+            raise ProtocolError(f"unknown output {unknown[0]!r}; {self.name} gives {', '.join(outputs)}"[:200])
+        return sizes
+
+    def wanted(self, req: InferRequest) -> tuple[str, ...]:
+        """The outputs ``req`` asks for (all the model's when it names none), in the model's order."""
+        return tuple(t.name for t in self.outputs if req.outputs is None or t.name in req.outputs)
+
+
+def _check_shape(spec: TensorSpec, shape: tuple[int, ...], sizes: dict[str, int]) -> None:
+    """`ProtocolError` unless ``shape`` fits ``spec.shape`` with the letters' sizes seen so far
+    (``sizes``, where new letters' sizes are recorded)."""
+    fits = len(shape) == len(spec.shape) and all(
+        n == d if isinstance(d, int) else sizes.setdefault(d, n) == n for n, d in zip(shape, spec.shape))
+    if not fits:
+        known = ", ".join(f"{k}={v}" for k, v in sizes.items())
+        raise ProtocolError(f"input {spec.name!r}: shape {list(shape)} does not fit [{', '.join(map(str, spec.shape))}]"
+                            f"{f' with {known}' if known else ''}"[:200])
+
+
+def sequence(req: InferRequest) -> tuple[str | None, bool]:
+    """Triton's sequence parameters: ``(sequence_id as a session id, or None for none; sequence_start)``.
 
     Raises:
-        ProtocolError: (400) the request asks for an output the model does not have.
+        ProtocolError: (400) the id is neither an integer nor a string of `SESSION_ID`'s form.
     """
+    sequence_id = req.parameters.get("sequence_id", 0)
+    if isinstance(sequence_id, bool) or not isinstance(sequence_id, int | str):
+        raise ProtocolError("sequence_id must be an integer or a string")
+    session = str(sequence_id) if sequence_id not in (0, "") else None
+    if session is not None and not SESSION_ID.fullmatch(session):
+        raise ProtocolError(f"sequence_id must match {SESSION_ID.pattern}")
+    return session, bool(req.parameters.get("sequence_start", False))
+
+
+def int_parameter(req: InferRequest, name: str, default: int, lo: int, hi: int) -> int:
+    """The request's integer parameter ``name`` (``default`` when absent); `ProtocolError` (400) outside [lo, hi]."""
+    value = req.parameters.get(name, default)
+    if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+        raise ProtocolError(f"parameter {name!r} must be an integer in [{lo}, {hi}], got {value!r}"[:200])
+    return value
+
+
+def encode_response(model: str, version: str, request: InferRequest, outputs: dict[str, np.ndarray]) -> \
+        tuple[bytes, int | None]:
+    """The response body for ``outputs`` (float32 arrays: at least those ``request`` asks for,
+    checked by `ModelSpec.check`) as it asks (in its order; when it names none, all of ``outputs``
+    in theirs), and the JSON header's length when some output is binary (else None)."""
     wanted = request.outputs
     if wanted is None:
         wanted = dict.fromkeys(outputs, request.binary_output)
-    unknown = [name for name in wanted if name not in outputs]
-    if unknown:
-        raise ProtocolError(f"unknown output {unknown[0]!r}; this model gives {', '.join(outputs)}"[:200])
     entries: list[dict[str, Any]] = []
     blobs: list[bytes] = []
     for name, binary in wanted.items():

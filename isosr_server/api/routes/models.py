@@ -1,24 +1,32 @@
-"""The two models' KServe v2 (Open Inference Protocol) metadata and readiness, and the upscaling
-model's inference.
+"""The two models' KServe v2 (Open Inference Protocol) metadata, readiness and inference.
 
-    GET  /v2/models/isosr[/versions/1][/ready]                  the upscaling network (POST /v1/upscale,
-                                                                the view modes that upscale)
-    POST /v2/models/isosr[/versions/1]/infer                    low-res buffers in, high-res buffers out
-    GET  /v2/models/isosr-recon[/versions/1][/ready]            the reconstruction network (reconstruct mode)
+    GET  /v2/models/isosr[/versions/1][/ready]          the upscaling network (POST /v1/upscale, the
+                                                        view modes that upscale)
+    POST /v2/models/isosr[/versions/1]/infer            low-res buffers in, high-res buffers out
+    GET  /v2/models/isosr-recon[/versions/1][/ready]    the reconstruction network (reconstruct mode)
+    POST /v2/models/isosr-recon[/versions/1]/infer      full-res buffers (few-ray AO) in, the
+                                                        reconstructed buffers and shaded color out
 
-Each tensor has one ``datatype``, as the protocol asks: FP32, what the networks compute on and
-return. The upscaling inputs are also taken in float16; each says so in its ``parameters``
-(``accepted_datatypes: ["FP32", "FP16"]``) rather than as a second model: the same weights serve
-both, and ``parameters`` is where the protocol puts a tensor's further properties, so generic
-clients still read one datatype. Model facts (upscale factor, precision, device, the model
-folder's name: never a machine path) are in the model's ``parameters``. A model's version is
-its own (``MODEL_VERSION``), not the wire protocol's.
+Each model's tensors are declared once (`UPSCALE`, `RECON`: :class:`~isosr_server.codecs.kserve.ModelSpec`);
+its metadata and the checks of its requests (names, shapes, value ranges) come from that. Each
+tensor has one ``datatype``, as the protocol asks: FP32, what the networks compute on and return.
+Inputs are also taken in float16; each says so in its ``parameters`` (``accepted_datatypes:
+["FP32", "FP16"]``, with its value ``range``) rather than as a second model: the same weights
+serve both, and ``parameters`` is where the protocol puts a tensor's further properties, so
+generic clients still read one datatype. Model facts (upscale factor, precision, device, the
+model folder's name: never a machine path; the reconstruction's AO ray and spp bounds) are in the
+model's ``parameters``. A model's version is its own (``MODEL_VERSION``), not the wire protocol's.
 
-Inference (:mod:`isosr_server.codecs.kserve`: JSON and binary tensors) computes what
-``POST /v1/upscale`` computes. Triton's sequence parameters carry the recurrent state:
-``sequence_id`` is the upscale session's id (the same ids as ``/v1/upscale``'s ``session``),
-``sequence_start`` resets its state; ``sequence_end`` is accepted, and the state expires after
-``idle_timeout_s`` as every upscale session's does. The stage times come in ``x-isosr-times``.
+Inference (:mod:`isosr_server.codecs.kserve`: JSON and binary tensors): ``isosr`` computes what
+``POST /v1/upscale`` computes; ``isosr-recon`` what `isosr_net.reconstructor.Reconstructor`
+computes of a frame rendered with the request's parameters ``ao_rays`` (AO rays per hit, 0 to
+its bound: 0 without an ``ao`` input, at least 1 with one) and ``spp`` (rays per pixel, default
+1); its ``color`` output (shaded with the default material) is computed only when asked for, or
+when the request names no outputs. Triton's sequence parameters carry the recurrent state:
+``sequence_id`` is the session's id (the same ids as ``/v1/upscale``'s ``session``: a state per
+model and id), ``sequence_start`` resets its state; ``sequence_end`` is accepted, and the state
+expires after ``idle_timeout_s`` as every upscale session's does. The stage times come in
+``x-isosr-times``.
 """
 
 from __future__ import annotations
@@ -29,36 +37,40 @@ import json
 from fastapi import APIRouter, Depends, HTTPException, Request
 from fastapi.responses import JSONResponse, Response
 
+from isosr_net.inference import RecurrentNetwork
+from isosr_net.reconnet import MAX_RECON_AO_RAYS, MAX_RECON_SPP
+from isosr_net.reconstructor import Reconstructor
+from isosr_net.upscaler import Upscaler
 from isosr_server.api.deps import (EngineDep, LimitsDep, MetricsDep, ReadyDep, UpscaleSessionsDep, require_ready,
                                    require_token)
 from isosr_server.api.routes.upscale import check_upscale, run_upscale
-from isosr_server.codecs.kserve import (BINARY_MEDIA_TYPE, HEADER_LENGTH, JSON_MEDIA_TYPE, InferRequest,
-                                        decode_request, encode_response)
-from isosr_server.protocol import IMAGE_ENCODINGS, SESSION_ID, ProtocolError, UpscaleRequest
+from isosr_server.codecs.kserve import (BINARY_MEDIA_TYPE, HEADER_LENGTH, JSON_MEDIA_TYPE, InferRequest, ModelSpec,
+                                        TensorSpec, decode_request, encode_response, int_parameter, sequence)
+from isosr_server.metrics import ServerMetrics
+from isosr_server.protocol import IMAGE_ENCODINGS, LOWRES_BOUNDS, ProtocolError, UpscaleRequest
+from isosr_server.sessions import UpscaleSessions
 
-UPSCALE_MODEL, RECON_MODEL = "isosr", "isosr-recon"
 MODEL_VERSION = "1"
 PLATFORM = "pytorch"
-SHAPES = {"mask": [-1, -1], "normal": [-1, -1, 3], "depth": [-1, -1], "ao": [-1, -1], "flow": [-1, -1, 2]}
+SHAPES = {"mask": ("H", "W"), "normal": ("H", "W", 3), "depth": ("H", "W"), "ao": ("H", "W"), "flow": ("H", "W", 2),
+          "color": ("H", "W", 3)}
+UNIT = (0.0, 1.0)
 
 
-def tensor(name: str, optional: bool = False, fp16: bool = False) -> dict:
-    """One tensor's metadata: name, datatype FP32, shape (-1: any size), and in ``parameters``
-    whether it may be left out and the datatypes the server takes."""
-    return {"name": name, "datatype": "FP32", "shape": SHAPES[name],
-            "parameters": {"optional": optional, "accepted_datatypes": ["FP32", "FP16"] if fp16 else ["FP32"]}}
+def tensor(name: str, bounds: tuple[float, float] | None = None, optional: bool = False) -> TensorSpec:
+    return TensorSpec(name, SHAPES[name], bounds, optional)
 
 
-OUTPUTS = [tensor(n) for n in ("mask", "normal", "depth", "ao")]
-UPSCALE_INPUTS = [tensor("mask", fp16=True), tensor("normal", fp16=True), tensor("depth", fp16=True),
-                  tensor("flow", optional=True, fp16=True)]
-RECON_INPUTS = [tensor("mask"), tensor("normal"), tensor("depth"), tensor("ao", optional=True),
-                tensor("flow", optional=True)]
+SURFACE = tuple(tensor(n, LOWRES_BOUNDS[n]) for n in ("mask", "normal", "depth"))
+FLOW = tensor("flow", LOWRES_BOUNDS["flow"], optional=True)
+BUFFERS = tuple(tensor(n) for n in ("mask", "normal", "depth", "ao"))
+UPSCALE = ModelSpec("isosr", SURFACE + (FLOW,), BUFFERS)
+RECON = ModelSpec("isosr-recon", SURFACE + (tensor("ao", UNIT, optional=True), FLOW), BUFFERS + (tensor("color"),))
 
 
-def metadata(name: str, inputs: list[dict], parameters: dict) -> dict:
-    return {"name": name, "versions": [MODEL_VERSION], "platform": PLATFORM, "inputs": inputs,
-            "outputs": OUTPUTS, "parameters": parameters}
+def metadata(model: ModelSpec, parameters: dict) -> dict:
+    return {"name": model.name, "versions": [MODEL_VERSION], "platform": PLATFORM, **model.metadata(),
+            "parameters": parameters}
 
 
 def readiness(name: str, ready: bool) -> JSONResponse:
@@ -76,46 +88,34 @@ def route(model: str, tail: str, endpoint, method: str = "GET", ready: bool = Fa
 
 
 async def upscale_model(engine: EngineDep):
-    return metadata(UPSCALE_MODEL, UPSCALE_INPUTS, engine.model_info() | {"image_outputs": list(IMAGE_ENCODINGS)})
+    return metadata(UPSCALE, engine.model_info() | {"image_outputs": list(IMAGE_ENCODINGS)})
 
 
 async def upscale_model_ready(ready: ReadyDep):
-    return readiness(UPSCALE_MODEL, ready)
+    return readiness(UPSCALE.name, ready)
 
 
-def upscale_request(req: InferRequest) -> UpscaleRequest:
-    """The `UpscaleRequest` an infer request asks for; `ProtocolError` (400) for unknown or missing
-    inputs, a bad sequence id, or buffers that `UpscaleRequest` refuses."""
-    names = [t["name"] for t in UPSCALE_INPUTS]
-    unknown = [n for n in req.inputs if n not in names]
-    if unknown:
-        raise ProtocolError(f"unknown input {unknown[0]!r}; {UPSCALE_MODEL} takes {', '.join(names)}"[:200])
-    missing = [t["name"] for t in UPSCALE_INPUTS if not t["parameters"]["optional"] and t["name"] not in req.inputs]
-    if missing:
-        raise ProtocolError(f"missing input {missing[0]!r}")
-    sequence = req.parameters.get("sequence_id", 0)
-    if isinstance(sequence, bool) or not isinstance(sequence, int | str):
-        raise ProtocolError("sequence_id must be an integer or a string")
-    session = str(sequence) if sequence not in (0, "") else None
-    if session is not None and not SESSION_ID.fullmatch(session):
-        raise ProtocolError(f"sequence_id must match {SESSION_ID.pattern}")
-    return UpscaleRequest(req.inputs["mask"], req.inputs["normal"], req.inputs["depth"], req.inputs.get("flow"),
-                          session=session, reset=bool(req.parameters.get("sequence_start", False)))
-
-
-async def upscale_infer(request: Request, engine: EngineDep, limits: LimitsDep, metrics: MetricsDep,
-                        sessions: UpscaleSessionsDep):
+async def read_infer(request: Request, model: ModelSpec) -> tuple[InferRequest, dict[str, int]]:
+    """The request's body decoded off the event loop and checked against ``model``'s tensors; the
+    sizes of its shape letters. 415 for a compressed body, `ProtocolError` 400 for one that does not fit."""
     if request.headers.get("content-encoding", "identity") != "identity":
         raise HTTPException(415, "send the inference request uncompressed")
     req = await asyncio.to_thread(decode_request, await request.body(), request.headers.get(HEADER_LENGTH))
-    msg = upscale_request(req)
-    check_upscale(msg, engine, limits)
+    return req, model.check(req)
+
+
+def stream_network(request: Request, sessions: UpscaleSessions, session: str | None,
+                   cls: type[RecurrentNetwork]) -> RecurrentNetwork:
+    """The session's network of ``cls`` (its recurrent state), or a fresh one for a request without a session."""
     client = request.client.host if request.client else ""
-    upscaler = sessions.get(msg.session, client) if msg.session else engine.new_upscaler()
-    _, buffers, times = await run_upscale(engine, upscaler, msg)
-    sessions.trim(keep=msg.session)
-    body, header_length = await asyncio.to_thread(encode_response, UPSCALE_MODEL, MODEL_VERSION, req, buffers)
-    metrics.frame("upscale", "buffers", False, times, len(body))
+    return sessions.get(session, client, cls) if session else sessions.make(cls)
+
+
+async def reply(model: ModelSpec, req: InferRequest, buffers: dict, times: dict, metrics: ServerMetrics,
+                kind: str) -> Response:
+    """The infer response of ``buffers``, with the stage times in ``x-isosr-times``; counted as a ``kind`` frame."""
+    body, header_length = await asyncio.to_thread(encode_response, model.name, MODEL_VERSION, req, buffers)
+    metrics.frame(kind, "buffers", False, times, len(body))
     headers = {"x-isosr-times": json.dumps(times)}
     if header_length is not None:
         headers["Inference-Header-Content-Length"] = str(header_length)
@@ -123,16 +123,56 @@ async def upscale_infer(request: Request, engine: EngineDep, limits: LimitsDep, 
                     headers=headers)
 
 
+async def upscale_infer(request: Request, engine: EngineDep, limits: LimitsDep, metrics: MetricsDep,
+                        sessions: UpscaleSessionsDep):
+    req, _ = await read_infer(request, UPSCALE)
+    session, reset = sequence(req)
+    msg = UpscaleRequest(req.inputs["mask"], req.inputs["normal"], req.inputs["depth"], req.inputs.get("flow"),
+                         session=session, reset=reset)
+    check_upscale(msg, engine, limits)
+    upscaler = stream_network(request, sessions, session, Upscaler)
+    _, buffers, times = await run_upscale(engine, upscaler, msg)
+    sessions.trim(keep=upscaler)
+    return await reply(UPSCALE, req, buffers, times, metrics, "upscale")
+
+
 async def recon_model(engine: EngineDep):
-    return metadata(RECON_MODEL, RECON_INPUTS, engine.recon_info())
+    return metadata(RECON, engine.recon_info())
 
 
 async def recon_model_ready(ready: ReadyDep):
-    return readiness(RECON_MODEL, ready)
+    return readiness(RECON.name, ready)
 
 
-route(UPSCALE_MODEL, "", upscale_model, ready=True)
-route(UPSCALE_MODEL, "/ready", upscale_model_ready)
-route(UPSCALE_MODEL, "/infer", upscale_infer, "POST", ready=True)
-route(RECON_MODEL, "", recon_model, ready=True)
-route(RECON_MODEL, "/ready", recon_model_ready)
+def recon_sampling(req: InferRequest) -> tuple[int, int]:
+    """``(ao_rays, spp)`` of a reconstruction request; `ProtocolError` 400 out of range, or when
+    the ``ao`` input and ``ao_rays`` do not come together."""
+    ao_rays = int_parameter(req, "ao_rays", 0, 0, MAX_RECON_AO_RAYS)
+    if "ao" in req.inputs and not ao_rays:
+        raise ProtocolError(f"input 'ao' needs the parameter ao_rays (1 to {MAX_RECON_AO_RAYS}: its AO rays per hit)")
+    if ao_rays and "ao" not in req.inputs:
+        raise ProtocolError(f"parameter ao_rays {ao_rays} needs the input 'ao'")
+    return ao_rays, int_parameter(req, "spp", 1, 1, MAX_RECON_SPP)
+
+
+async def recon_infer(request: Request, engine: EngineDep, limits: LimitsDep, metrics: MetricsDep,
+                      sessions: UpscaleSessionsDep):
+    req, sizes = await read_infer(request, RECON)
+    ao_rays, spp = recon_sampling(req)
+    session, reset = sequence(req)
+    limits.check_size(sizes["W"], sizes["H"], "the frame")
+    reconstructor = stream_network(request, sessions, session, Reconstructor)
+    try:
+        buffers, times = await engine.reconstruct(reconstructor, req.inputs, ao_rays, spp, RECON.wanted(req), reset)
+    except ValueError as e:  # the network refuses this frame (e.g. fp16 beyond its depth range)
+        raise ProtocolError(f"cannot reconstruct this frame: {e}", http_status=422) from None
+    sessions.trim(keep=reconstructor)
+    return await reply(RECON, req, buffers, times, metrics, "reconstruct")
+
+
+route(UPSCALE.name, "", upscale_model, ready=True)
+route(UPSCALE.name, "/ready", upscale_model_ready)
+route(UPSCALE.name, "/infer", upscale_infer, "POST", ready=True)
+route(RECON.name, "", recon_model, ready=True)
+route(RECON.name, "/ready", recon_model_ready)
+route(RECON.name, "/infer", recon_infer, "POST", ready=True)

@@ -71,9 +71,9 @@ async def upscale(request: Request, engine: EngineDep, limits: LimitsDep, metric
     if msg.output == "buffers" and accept_type in IMAGE_TYPES:
         msg = msgspec.structs.replace(msg, output=IMAGE_TYPES[accept_type])
     client = request.client.host if request.client else ""
-    upscaler = sessions.get(msg.session, client) if msg.session else engine.new_upscaler()
+    upscaler = sessions.get(msg.session, client) if msg.session else engine.new_network(Upscaler)
     image, buffers, times = await run_upscale(engine, upscaler, msg)
-    sessions.trim(keep=msg.session)
+    sessions.trim(keep=upscaler)
     h, w = msg.mask.shape
     f = engine.upscale_factor
     if image is not None:
