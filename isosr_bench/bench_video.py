@@ -3,10 +3,12 @@ server's rate control, and over a throttled link (issue 21).
 
     python -m isosr_bench.bench_video --device cuda --volume shared:bonsai --sizes 1080p
     python -m isosr_bench.bench_video --device cuda --volume shared:bonsai --sizes 4k --frames 30 \\
-        --methods reconstruct:1 --link-encodings h264,jpeg --link-caps 0 --link-seconds 8
+        --methods reconstruct:1,full:8 --rates 20000,50000 --link-encodings h264,jpeg --link-caps 0 \\
+        --link-mbit 50 --link-seconds 8
     python -m isosr_bench.bench_video --device cpu --smoke
 
-Results: ``benchmarks/results/bench_video_<device>.json``, one row per study and case (``study``).
+Results: ``benchmarks/results/bench_video_<sizes>_<device>.json`` (``bench_video_1080p_cuda.json``),
+one row per study and case (``study``).
 The frames are what a view session encodes: per ``--methods`` entry (``KIND:AO_RAYS``, a
 registered frame method; default ``reconstruct:1``, what ``auto`` picks at 1080p on an H100,
 denoised; ``full:0``; ``full:8``, noisy AO) an orbit of ``--frames`` frames ``--yaw-step``
@@ -379,7 +381,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     for row in rows:
         row.update(volume=args.volume, yaw_step=args.yaw_step, cpu_cores=cores, pyav=None if av is None else av.__version__)
     report(rows)
-    print(f"{time.perf_counter() - start:.0f} s; wrote {write_result('bench_video', args.device, rows, args.out)}")
+    path = write_result(f"bench_video_{'_'.join(sizes)}", args.device, rows, args.out)
+    print(f"{time.perf_counter() - start:.0f} s; wrote {path}")
     return rows
 
 

@@ -20,7 +20,7 @@ pytestmark = pytest.mark.skipif(video._av() is None or "h264" not in video.avail
 
 def test_bench_video_smoke_writes_every_study(tmp_path, capsys):
     rows = bench_video.main(["--device", "cpu", "--smoke", "--codecs", "h264,vp9", "--out", str(tmp_path)])
-    record = json.loads((tmp_path / "bench_video_cpu.json").read_text())
+    record = json.loads((tmp_path / "bench_video_smoke_cpu.json").read_text())
     assert record["device"] and record["commit"] and record["command"] and record["rows"] == rows
     methods = {r["method"] for r in rows if r["study"] == "matched"}
     assert methods == {"full, AO 1, spp 1, recon fp32", "full, AO 0, spp 1"}  # reconstruct:1 and full:0
