@@ -343,6 +343,22 @@ class ViewSession:
         """:meth:`latest` as (H, W, 3) uint8 RGB; its costs in :attr:`stats`."""
         return self.latest(refined, timeout).rgb()
 
+    def receive(self, timeout: float) -> ViewFrame | None:
+        """The next frame to arrive within ``timeout`` seconds, whatever update it includes (None:
+        none came): for a viewer that sends updates at its own pace and shows frames as they come
+        (open loop), where :meth:`latest` waits for the newest update.
+
+        Raises:
+            ServerError: the server ended the session.
+        """
+        deadline = time.monotonic() + timeout
+        before = self._latest
+        while self._latest is before:
+            left = deadline - time.monotonic()
+            if left <= 0 or not self._receive(left):
+                return None
+        return self._latest
+
     def _current(self, refined: bool) -> bool:
         f = self._latest
         return f is not None and f.message.ack >= self._seq and (f.message.refined or not refined)

@@ -1,0 +1,73 @@
+"""The video benchmark in its smoke mode (its three studies, so that its code cannot rot) and
+its throttled link (the pace it promises)."""
+
+from __future__ import annotations
+
+import json
+import socket
+import threading
+import time
+
+import pytest
+
+from isosr_bench import bench_video
+from isosr_bench.video_link import Throttle
+from isosr_server.codecs import video
+
+pytestmark = pytest.mark.skipif(video._av() is None or "h264" not in video.available(),
+                                reason="PyAV with libx264 (the video extra) is not installed")
+
+
+def test_bench_video_smoke_writes_every_study(tmp_path, capsys):
+    rows = bench_video.main(["--device", "cpu", "--smoke", "--codecs", "h264,vp9", "--out", str(tmp_path)])
+    record = json.loads((tmp_path / "bench_video_smoke_cpu.json").read_text())
+    assert record["device"] and record["commit"] and record["command"] and record["rows"] == rows
+    methods = {r["method"] for r in rows if r["study"] == "matched"}
+    assert methods == {"full, AO 1, spp 1, recon fp32", "full, AO 0, spp 1"}  # reconstruct:1 and full:0
+    for method in methods:
+        matched = {r["encoding"]: r for r in rows if r["study"] == "matched" and r["method"] == method}
+        assert list(matched) == ["jpeg", "h264", "vp9"] and matched["jpeg"]["bytes_vs_jpeg"] == 1.0
+        for r in (matched["h264"], matched["vp9"]):  # the lowest quality reaching JPEG's PSNR, or the best there is
+            assert r["psnr_db"] >= matched["jpeg"]["psnr_db"] or r["quality"] == 100
+            assert r["keyframe_bytes"] > r["delta_bytes_per_frame"] > 0
+        rates = [r for r in rows if r["study"] == "rate" and r["method"] == method]
+        assert [(r["encoding"], r["bitrate_kbps"]) for r in rates] == [("h264", 100), ("vp9", 100), ("h264", 300),
+                                                                       ("vp9", 300)]
+        for r in rates:
+            assert r["budget_bytes"] == pytest.approx(1e3 * r["bitrate_kbps"] / 8 / 30)
+            assert r["fits_30fps"] == (r["p99_bytes"] <= r["budget_bytes"]) and r["keyframes"] == 1
+            assert r["jpeg_fps"] == pytest.approx(1e3 * r["bitrate_kbps"] / 8 / matched["jpeg"]["bytes_per_frame"])
+    link = [r for r in rows if r["study"] == "link"]
+    assert [(r["encoding"], r["bitrate_cap_kbps"]) for r in link] == [("h264", 0), ("jpeg", 0)]
+    for r in link:
+        assert r["frames"] > 0 and r["undecodable"] == 0 and r["encodings"] == [r["encoding"]]
+        assert 0 < r["latency_p50_ms"] <= r["latency_p99_ms"] <= r["display_latency_p99_ms"]
+        assert 0 < r["payload_kbps"] <= r["link_kbps"] <= 1.05e3 * r["link_mbit"]  # the link carries the frames
+    assert "| smoke | full, AO 0, spp 1 | h264 |" in capsys.readouterr().out
+
+
+def test_bench_video_refuses_a_bad_method(capsys):
+    with pytest.raises(SystemExit):
+        bench_video.main(["--device", "cpu", "--smoke", "--methods", "bogus:1"])
+    assert "'bogus:1' is not KIND:AO_RAYS" in capsys.readouterr().err
+
+
+def test_the_throttle_carries_bytes_at_its_rate_and_no_faster():
+    """250 kB through a 2 Mbit/s throttle take at least the second their bits need at that rate."""
+    payload, rate = bytes(250_000), 2e6
+    with socket.create_server(("127.0.0.1", 0)) as server, Throttle(server.getsockname()[1], rate) as link:
+        port = int(link.url.rsplit(":", 1)[1])
+
+        def serve():
+            conn, _ = server.accept()
+            with conn:
+                conn.sendall(payload)
+
+        threading.Thread(target=serve, daemon=True).start()
+        got, start = bytearray(), time.perf_counter()
+        with socket.create_connection(("127.0.0.1", port)) as client:
+            while chunk := client.recv(65536):
+                got += chunk
+        elapsed = time.perf_counter() - start
+    assert bytes(got) == payload and link.carried == len(payload)
+    assert elapsed >= 8 * len(payload) / rate - 0.01, elapsed  # SLACK_S of burst at most
