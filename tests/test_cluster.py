@@ -43,7 +43,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from isosr_client import connect, upscale_remote
 from isosr_render import RenderRequest, orbit
 from isosr_server import protocol as P
-from server_fixtures import (VOLUME, H, RunningServer, W, cam, frame, lib, lib_lowres, running_server,  # noqa: F401
+from server_fixtures import (VOLUME, H, RunningServer, W, cam, frame, lib, lib_lowres, running_server, self_signed_cert,  # noqa: F401
                              send, server_settings, session, upscale_body)
 
 ray = pytest.importorskip("ray", reason="ray[serve] is not installed (the cluster extra)")
@@ -433,8 +433,9 @@ def settled_replica(srv, runs: int = 5, seconds: float = 10.0) -> str:
     return last
 
 
-def test_serve_config_and_replica_options(monkeypatch):
-    """deploy/serve.yaml is a valid Serve config whose builder makes the app; bad replica options say why."""
+def test_serve_config_and_replica_options(monkeypatch, tmp_path):
+    """deploy/serve.yaml is a valid Serve config whose builder makes the app (its proxies' TLS files
+    are the app's); bad replica options say why."""
     import yaml
     from ray.serve.schema import ServeDeploySchema
 
@@ -444,10 +445,16 @@ def test_serve_config_and_replica_options(monkeypatch):
     config = ServeDeploySchema.model_validate(yaml.safe_load((REPO / "deploy" / "serve.yaml").read_text()))
     app = config.applications[0]
     assert app.import_path == "isosr_server.cluster:build" and app.deployments[0].name == "IsosrReplica"
+    http = config.http_options
+    assert (http.ssl_certfile, http.ssl_keyfile) == (app.args["tls_cert"], app.args["tls_key"])
+    with pytest.raises(ValueError, match="--tls-cert /etc/isosr/tls/cert.pem: No such file"):
+        build(app.args)  # the cluster's files, absent here
+    cert, key = self_signed_cert(tmp_path)
+    args = dict(app.args, tls_cert=str(cert), tls_key=str(key))
     with pytest.raises(ValueError, match="requires a token|give --token"):
-        build(app.args)  # host 0.0.0.0 without ISOSR_TOKEN
+        build(args)  # host 0.0.0.0 without ISOSR_TOKEN
     monkeypatch.setenv("ISOSR_TOKEN", "correct-horse-battery")
-    assert build(app.args) is not None
+    assert build(args) is not None
     with pytest.raises(ValueError, match="unknown settings: colour"):
         build({"colour": "red"})
     with pytest.raises(ValueError, match="at least 1"):

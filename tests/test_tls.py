@@ -5,55 +5,28 @@ naming the file."""
 
 from __future__ import annotations
 
-import datetime
-import ipaddress
 import ssl
 import urllib.error
 import urllib.request
 from pathlib import Path
 
 import pytest
-from cryptography import x509
-from cryptography.hazmat.primitives import hashes, serialization
-from cryptography.hazmat.primitives.asymmetric import ec
-from cryptography.x509.oid import NameOID
 
 from isosr_cli.main import main
 from isosr_client import connect, upscale_remote
 from isosr_client.view import ServerError
 from isosr_render import orbit
 from isosr_server.core.config import Settings
-from server_fixtures import VOLUME, H, W, lib, lib_full, lib_lowres, running_server, server_settings  # noqa: F401
+from server_fixtures import (VOLUME, H, W, lib, lib_full, lib_lowres, running_server, self_signed_cert,  # noqa: F401
+                             server_settings, write_key)
 
 TOKEN = "tls-test-token"
 PNG = {"encoding": "png", "refine": False}
 
 
-def write_key(path: Path) -> ec.EllipticCurvePrivateKey:
-    key = ec.generate_private_key(ec.SECP256R1())
-    path.write_bytes(key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
-                                       serialization.NoEncryption()))
-    return key
-
-
 @pytest.fixture(scope="module")
 def cert(tmp_path_factory) -> tuple[Path, Path]:
-    """A self-signed certificate for 127.0.0.1 and localhost, and its key: ``(cert.pem, key.pem)``."""
-    folder = tmp_path_factory.mktemp("tls")
-    key = write_key(folder / "key.pem")
-    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "isosr test")])
-    now = datetime.datetime.now(datetime.UTC)
-    certificate = (
-        x509.CertificateBuilder().subject_name(name).issuer_name(name).public_key(key.public_key())
-        .serial_number(x509.random_serial_number())
-        .not_valid_before(now - datetime.timedelta(minutes=5)).not_valid_after(now + datetime.timedelta(days=1))
-        .add_extension(x509.SubjectAlternativeName([x509.DNSName("localhost"),
-                                                    x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]), critical=False)
-        .add_extension(x509.BasicConstraints(ca=True, path_length=None), critical=True)
-        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
-        .sign(key, hashes.SHA256()))
-    (folder / "cert.pem").write_bytes(certificate.public_bytes(serialization.Encoding.PEM))
-    return folder / "cert.pem", folder / "key.pem"
+    return self_signed_cert(tmp_path_factory.mktemp("tls"))
 
 
 def test_bad_certificate_and_key_files_name_the_file(cert, tmp_path):
