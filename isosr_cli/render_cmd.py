@@ -58,7 +58,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("volume", help="volume file (.nii[.gz], .nrrd, .nhdr, .dat, NAME_XxYxZ_DTYPE.raw[.gz], "
                                   ".npy, .npz, multi-page .tif, multi-frame .dcm), folder (a DICOM series, "
                                   "a .zarr / OME-Zarr store, 2D TIFFs), procedural spec (proc:sphere, proc:torus, proc:cloud:SEED, "
-                                  "proc:metaballs:SEED, optional @SIZE) or shared volume (shared:NAME)")
+                                  "proc:metaballs:SEED, optional @SIZE) or shared volume (shared:NAME); an OME-Zarr level by "
+                                  "name, scan.zarr#level=2, or by memory, scan.zarr#max-gb=8 (default: the finest)")
     p.add_argument("--iso", type=float, help="iso-value in data units (default: the procedural volume's own, "
                                              "else Otsu's threshold)")
     p.add_argument("--normalized-iso", action="store_true", help="--iso is on the normalized [0, 1] scale")

@@ -47,7 +47,8 @@ from isosr_server.codecs.buffers import decode_view_buffers
 from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, CLOSE_GOING_AWAY, CLOSE_INTERNAL, ENCODINGS, REPLICA_HEADER,
                                    SERVER_VIEW_MESSAGES, TOKEN_HEADER, VIDEO_ENCODINGS, CameraMsg, ErrorMsg, FocusMsg,
                                    FrameMsg, IsoMsg, KeyframeMsg, Limits, NoticeMsg, OpenMsg, ProtocolError, ReadyMsg,
-                                   ReceivedMsg, SettingsMsg, SettingsUpdate, ViewSettings, convert, encode, parse)
+                                   ReceivedMsg, SettingsMsg, SettingsUpdate, ViewSettings, VolumeMemory, convert, encode,
+                                   parse)
 
 if TYPE_CHECKING:
     from isosr_client.local import LocalUpscaler
@@ -161,6 +162,8 @@ class FrameStats:
             upscaling), ``shading``; filled as they happen.
         replica: the server replica that made it (``isosr serve --replicas``; None: a single server).
         encoding: the frame's encoding; ``keyframe``, ``bitrate_kbps``: a video frame's.
+        device: the volume's device memory and paging on the server, as of this frame (frames
+            carry it when it changed; :class:`isosr_server.protocol.VolumeMemory`).
     """
 
     seq: int
@@ -177,6 +180,7 @@ class FrameStats:
     encoding: str = "jpeg"
     keyframe: bool = True
     bitrate_kbps: int = 0
+    device: VolumeMemory | None = None
 
 
 @dataclass
@@ -246,6 +250,7 @@ class ViewSession:
         self._sent_at: dict[int, float] = {-1: opened_at, first_seq: opened_at}
         self._latest: ViewFrame | None = None
         self.stats: FrameStats | None = None
+        self.volume_memory: VolumeMemory | None = None  # the newest the frames carried
         self.closed = False
         self.notices: deque[str] = deque(maxlen=MAX_NOTICES)
         self._decoder: video.VideoDecoder | None = None  # the video stream's, from its last keyframe
@@ -387,9 +392,10 @@ class ViewSession:
         sent = max((t for s, t in self._sent_at.items() if s <= msg.ack), default=self._sent_at[-1])
         for s in [s for s in self._sent_at if -1 < s < msg.ack]:
             del self._sent_at[s]  # bounded: the newest acknowledged update and those after it stay
+        self.volume_memory = msg.device or self.volume_memory
         stats = FrameStats(msg.seq, msg.ack, msg.mode, msg.method, msg.refined, 1e3 * (arrived - sent), msg.nbytes,
                            len(data), dict(msg.times), replica=self.replica, encoding=msg.encoding,
-                           keyframe=msg.keyframe, bitrate_kbps=msg.bitrate_kbps)
+                           keyframe=msg.keyframe, bitrate_kbps=msg.bitrate_kbps, device=self.volume_memory)
         frame = ViewFrame(msg, stats)
         if msg.encoding in VIDEO_ENCODINGS:
             self._decode_video(frame)

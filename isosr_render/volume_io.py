@@ -50,8 +50,8 @@ _LIBRARY_ERRORS = (OSError, EOFError, ValueError, zlib.error, nrrd.NRRDError,
                    nib.filebasedimages.ImageFileError)
 
 
-def load_volume(path: str | os.PathLike) -> Volume:
-    """Load a volume file (see :func:`open_source`) as a :class:`Volume`.
+def load_volume(path: str | os.PathLike, *, level: str | None = None, max_bytes: int | None = None) -> Volume:
+    """Load a volume file (see :func:`open_source`, also for ``level`` and ``max_bytes``) as a :class:`Volume`.
 
     Returns:
         The volume named after the file, its data normalized to [0, 1] and indexed
@@ -61,10 +61,10 @@ def load_volume(path: str | os.PathLike) -> Volume:
     Raises:
         VolumeError: as :func:`open_source`.
     """
-    return Volume.from_source(open_source(path))
+    return Volume.from_source(open_source(path, level=level, max_bytes=max_bytes))
 
 
-def open_source(path: str | os.PathLike) -> VoxelSource:
+def open_source(path: str | os.PathLike, *, level: str | None = None, max_bytes: int | None = None) -> VoxelSource:
     """Open a volume file or folder as a voxel source, choosing the reader from the path.
 
     Args:
@@ -72,6 +72,8 @@ def open_source(path: str | os.PathLike) -> VoxelSource:
             ``.npy`` or ``.npz`` file (read whole); or a DICOM series folder or multi-frame
             file, a Zarr / OME-Zarr store, a TIFF file or a folder of 2D TIFFs (read lazily by
             :func:`isosr_render.formats.open_format`; an OME-Zarr's finest level).
+        level, max_bytes: an OME-Zarr level by name, or the finest whose voxels fit ``max_bytes``
+            (:func:`isosr_render.formats.zarr.open_zarr`); other formats have no levels.
 
     Returns:
         The stored values named after the file or folder, with spacing and rescale.
@@ -84,6 +86,11 @@ def open_source(path: str | os.PathLike) -> VoxelSource:
     path = Path(path)
     if not path.exists():
         raise VolumeError(f"{path}: no such file")
+    if level is not None or max_bytes is not None:
+        if format_of(path) != "zarr":
+            raise VolumeError(f"{path}: only an OME-Zarr store has levels to choose from")
+        from isosr_render.formats.zarr import open_zarr
+        return open_zarr(path, level=level, max_bytes=max_bytes)
     lower = path.name.lower()
     reader = next((read for suffixes, read in _READERS if lower.endswith(suffixes)), None)
     if reader is None or path.is_dir():

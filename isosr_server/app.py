@@ -53,7 +53,7 @@ def create_app(settings: Settings) -> FastAPI:
     s.engine = Engine(EngineConfig(model=settings.model, recon_model=settings.recon_model, device=settings.device,
                                    precision=settings.resolved_precision, target_fps=settings.target_fps,
                                    slice_ms=settings.slice_ms, max_volume_bytes=settings.max_volume_bytes))
-    s.catalog = VolumeCatalog(settings.volumes)
+    s.catalog = VolumeCatalog(settings.volumes, settings.max_volume_bytes)
     s.metrics = ServerMetrics(s.engine.gpu_memory, s.engine.volume_memory)
     s.view_sessions = SessionCounter(settings.limits.max_sessions)
     s.upscale_sessions = UpscaleSessions(settings.limits, s.engine.new_network)

@@ -44,7 +44,7 @@ from isosr_server.codecs.buffers import pack_view_buffers
 from isosr_server.codecs.buffers_device import view_buffer_codes
 from isosr_server.codecs import video
 from isosr_server.encoding import CodedImage, encode_image, encoder_name
-from isosr_server.protocol import IMAGE_ENCODINGS, FocusMsg, UpscaleRequest, ViewBuffers, ViewSettings
+from isosr_server.protocol import IMAGE_ENCODINGS, FocusMsg, UpscaleRequest, ViewBuffers, ViewSettings, VolumeMemory
 from isosr_server.views import FrameJob, SessionFrames, ViewContext, ViewFrame
 
 RENDERER_CACHE = 4
@@ -97,7 +97,8 @@ class EngineConfig:
 @dataclass(frozen=True)
 class EncodedFrame:
     """A view frame ready for the wire: the coded image (or the coded buffers), server milliseconds
-    per stage, the channel legend, the method's name, and the frame whose camera the flow refers to."""
+    per stage, the channel legend, the method's name, the frame whose camera the flow refers to,
+    and the volume's device memory after it."""
 
     image: CodedImage | None
     buffers: ViewBuffers | None
@@ -105,6 +106,7 @@ class EncodedFrame:
     legend: dict | None
     method: str
     prev_seq: int
+    memory: VolumeMemory
 
 
 class Engine:
@@ -235,7 +237,8 @@ class Engine:
         image, buffers = await asyncio.get_running_loop().run_in_executor(pool, pack_codes, codes, code)
         done = time.perf_counter()
         times = made.result.times | {"encode": 1e3 * (done - began), "total": 1e3 * (done - start)}
-        return EncodedFrame(image, buffers, times, made.legend, made.method.name, made.prev_seq)
+        memory = VolumeMemory(**renderer.memory().to_json())
+        return EncodedFrame(image, buffers, times, made.legend, made.method.name, made.prev_seq, memory)
 
     def codes_sync(self, made: ViewFrame) -> torch.Tensor | tuple:
         """A made frame's codes: its color quantized to uint8 on the device (the image to encode), or

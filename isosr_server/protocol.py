@@ -21,6 +21,7 @@ View session (``WS /v1/view``)
     each carries an optional ``seq``. The server keeps only the newest state (latest wins) and answers ``frame``
     messages whose ``ack`` is the highest ``seq`` they include and whose ``method`` names the
     frame method that made them. A still camera gets one extra frame with ``refined: true``.
+    Frames carry the volume's device memory and paging (``device``) when it changed.
     Bad input ends the session with an ``error`` message and a close code (``CLOSE_*``);
     non-fatal news (an encoding the server cannot make, so it sends jpeg) comes as ``notice``.
 
@@ -452,6 +453,14 @@ class KeyframeMsg(Message, tag="keyframe"):
     """Client -> server: make the next video frame a keyframe (e.g. after a decoder error)."""
 
 
+class LevelSummary(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """One level of a multiscale volume: its dataset path, voxels (x, y, z) and stored bytes."""
+
+    level: Annotated[str, Meta(max_length=200)]
+    shape: tuple[Side, Side, Side]
+    nbytes: Annotated[int, Meta(ge=0)] = msgspec.field(name="bytes")
+
+
 class VolumeSummary(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """``ready.volume``: the volume a session views (:class:`isosr_server.volumes.VolumeInfo`).
 
@@ -459,6 +468,8 @@ class VolumeSummary(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         name, shape, value_range: its name, voxels (x, y, z) and data range.
         iso: the suggested iso-value in data units; ``iso_normalized`` the session's, in [0, 1].
         histogram: voxel counts in ``histogram_bins`` equal bins over ``value_range``.
+        level, levels: a multiscale volume's level served and all its levels, finest first
+            (:mod:`isosr_server.volumes` says which is served); None for others.
     """
 
     name: str
@@ -468,6 +479,8 @@ class VolumeSummary(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     histogram: list[Annotated[int, Meta(ge=0)]] | None
     histogram_bins: Side
     iso_normalized: Finite
+    level: Annotated[str, Meta(max_length=200)] | None = None
+    levels: list[LevelSummary] | None = None
 
 
 class ReadyMsg(Message, tag="ready"):
@@ -527,6 +540,35 @@ class ViewBuffers(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         return sum(len(a.data) for a in (self.mask, self.normal, self.depth, self.flow) if a is not None)
 
 
+class VolumeMemory(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """Where a volume's voxels are on the server's device and what paging cost
+    (:class:`isosr_render.brick_pool.MemoryStats`, field for field).
+
+    Attributes:
+        mode: ``dense`` (the whole volume on the device) or ``sparse`` (the bricks an iso needs).
+        storage: the voxels' type on the device.
+        dense_bytes, resident_bytes, pool_bytes, limit_bytes: the whole volume's bytes, those on
+            the device now, those allocated for the brick pool, the limit (0: none).
+        bricks_total, bricks_resident, bricks_needed: bricks of the volume, resident, needed by
+            the last iso.
+        page_ins, bricks_paged, bytes_read: paging so far; ``last_page_in_s`` the last one's seconds.
+    """
+
+    mode: Literal["dense", "sparse"]
+    storage: Annotated[str, Meta(max_length=16)]
+    dense_bytes: Annotated[int, Meta(ge=0)]
+    resident_bytes: Annotated[int, Meta(ge=0)]
+    pool_bytes: Annotated[int, Meta(ge=0)]
+    limit_bytes: Annotated[int, Meta(ge=0)]
+    bricks_total: Annotated[int, Meta(ge=0)]
+    bricks_resident: Annotated[int, Meta(ge=0)]
+    bricks_needed: Annotated[int, Meta(ge=0)] = 0
+    page_ins: Annotated[int, Meta(ge=0)] = 0
+    bricks_paged: Annotated[int, Meta(ge=0)] = 0
+    bytes_read: Annotated[int, Meta(ge=0)] = 0
+    last_page_in_s: Annotated[float, Meta(ge=0, le=MAX_ABS_FLOAT)] = 0.0
+
+
 class FrameMsg(Message, tag="frame"):
     """Server -> client: one view frame.
 
@@ -553,6 +595,9 @@ class FrameMsg(Message, tag="frame"):
         codec: video only: the WebCodecs codec string (``avc1.64001f``, ``vp09.00.40.08``,
             ``av01.0.08M.08``).
         bitrate_kbps: video only: the encoder's target bitrate when it made the frame.
+        device: the volume's device memory and paging (:class:`VolumeMemory`), on a session's
+            first frame and on each frame after which it changed (e.g. an iso change paged
+            bricks in); None: as last sent.
     """
 
     seq: Seq
@@ -573,6 +618,7 @@ class FrameMsg(Message, tag="frame"):
     timestamp_us: Annotated[int, Meta(ge=0, le=MAX_SEQ)] = 0
     codec: Annotated[str, Meta(max_length=64)] | None = None
     bitrate_kbps: Annotated[int, Meta(ge=0)] = 0
+    device: VolumeMemory | None = None
 
     def __post_init__(self):
         if (self.encoding == "buffers") != (self.buffers is not None) or (self.image is None) == (self.buffers is None):

@@ -42,7 +42,7 @@ from isosr_server import views
 from isosr_server.engine import EncodedFrame
 from isosr_server.protocol import (CLOSE_IDLE, CLOSE_TOO_MANY, VIDEO_ENCODINGS, CameraMsg, FocusMsg, FrameMsg, IsoMsg,
                                    KeyframeMsg, Legend, Limits, Message, NoticeMsg, ProtocolError, ReceivedMsg,
-                                   SettingsMsg, ViewSettings)
+                                   SettingsMsg, ViewSettings, VolumeMemory)
 from isosr_server.video import CodePlan, RateControl, fallback_notice
 from isosr_server.views import FrameJob, ViewContext
 
@@ -131,6 +131,7 @@ class ViewSession:
         self.interval = 1.0 / limits.max_fps  # the pause between frame starts (video: its frame rate's)
         self.keyframe_asked = False
         self.started = time.monotonic()
+        self.sent_memory: VolumeMemory | None = None  # the device memory the last frame carried
         self._timestamp_us = -1
         self.version, self.changed_at = 0, time.monotonic()
         self.changed = asyncio.Event()
@@ -304,7 +305,9 @@ async def run_frames(session: ViewSession, make: FrameMaker, send: Callable[[Mes
                        height=st.height, times=made.times, nbytes=frame_bytes(made),
                        refined=f.refined, buffers=made.buffers, prev_seq=made.prev_seq,
                        legend=None if made.legend is None else Legend(**made.legend), method=made.method,
-                       timestamp_us=job.plan.timestamp_us, **image)
+                       timestamp_us=job.plan.timestamp_us,
+                       device=None if made.memory == session.sent_memory else made.memory, **image)
+        session.sent_memory = made.memory
         session.sent_seq = f.seq  # before sending: the client may acknowledge it before send returns
         session.rate.sent(f.seq, msg.nbytes, time.monotonic())
         await send(msg)

@@ -5,6 +5,15 @@ Clients name volumes; they never send paths. A name is looked up in the folder's
 without extension, a DICOM series or TIFF stack folder or a ``.zarr`` store each as one volume,
 see :func:`isosr_render.volume_io.volume_name`); ``proc:`` specs are built here, at most
 ``MAX_PROCEDURAL_SIZE`` voxels a side.
+
+A multiscale OME-Zarr is served at one level, chosen by the server's memory setting
+(``--max-volume-bytes``, the renderers' ``max_device_bytes``): the finest level whose voxels fit
+it, which then renders dense (no paging on iso changes); if none fits, the coarsest, which
+renders sparse (only the bricks an iso needs resident: the fewest of any level). Without a
+setting, the finest (on CUDA the renderer then goes sparse above half the free memory). A level
+too big for dense could render sparse too, but each iso change would page its bricks in and an
+iso touching many bricks would not fit; the finest level that fits keeps every iso working.
+Listings show every level and the one served.
 Routes load volumes with :func:`load_volume`, which answers bad names with 400 and unknown ones with 404.
 """
 
@@ -15,8 +24,10 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
-from isosr_render import Volume, open_volume
+from isosr_render import Volume, VolumeError, open_volume
 from isosr_render.catalog import manifest
+from isosr_render.formats import format_of
+from isosr_render.formats.zarr import ZarrSource, finest_within, open_zarr
 from isosr_render.procedural import default_iso
 from isosr_render.volume_io import volume_name
 from isosr_server.protocol import CLOSE_NOT_FOUND, VOLUME_NAME, ProtocolError
@@ -49,6 +60,9 @@ class VolumeInfo:
         iso: suggested iso-value, data units (`VolumeCatalog.suggested_iso`).
         histogram: voxel counts in ``HISTOGRAM_BINS`` equal bins over ``value_range``
             (None until the volume was loaded).
+        level: a multiscale volume's level served (module docstring); None for others.
+        levels: a multiscale volume's levels, finest first: ``level`` (dataset path), ``shape``
+            and ``bytes`` (voxels in their stored type).
     """
 
     name: str
@@ -56,10 +70,13 @@ class VolumeInfo:
     value_range: tuple[float, float] | None
     iso: float | None
     histogram: list[int] | None = None
+    level: str | None = None
+    levels: list[dict] | None = None
 
     def to_json(self) -> dict:
         return {"name": self.name, "shape": self.shape, "value_range": self.value_range, "iso": self.iso,
-                "histogram": self.histogram, "histogram_bins": HISTOGRAM_BINS}
+                "histogram": self.histogram, "histogram_bins": HISTOGRAM_BINS, "level": self.level,
+                "levels": self.levels}
 
 
 class VolumeCatalog:
@@ -68,10 +85,14 @@ class VolumeCatalog:
 
     Args:
         root: the ``--volumes`` folder, or None for procedural volumes only.
+        max_bytes: the server's device memory setting, which picks a multiscale volume's level
+            (module docstring); None: the finest.
     """
 
-    def __init__(self, root: Path | None):
+    def __init__(self, root: Path | None, max_bytes: int | None = None):
         self.root = None if root is None else Path(root).resolve()
+        self.max_bytes = max_bytes
+        self._levels: dict[str, tuple[ZarrSource, ...]] = {}
         self._files: dict[str, Path] = {}
         self._manifest: dict[str, dict] = {}
         if self.root is not None:
@@ -114,15 +135,35 @@ class VolumeCatalog:
         return str(path)
 
     def info(self, name: str) -> VolumeInfo:
-        """Metadata without loading: from the manifest, the cache, or the procedural spec."""
+        """Metadata without loading: from the manifest, the cache, the procedural spec, or a
+        multiscale store's metadata (its levels; a store that cannot be opened lists none here,
+        loading it reports why)."""
         if name in self._cache:
             return self._cache[name][1]
-        self._source(name)
+        source = self._source(name)
+        try:
+            level, levels = self._level(name, source)
+        except VolumeError:
+            level, levels = None, None
         e = self._manifest.get(name)
         if e is None:
-            return VolumeInfo(name, None, None, self.suggested_iso(name, None))
+            shape = None if level is None else level.shape
+            return VolumeInfo(name, shape, None, self.suggested_iso(name, None), None, *_level_json(level, levels))
         value_range = tuple(e["value_range"])
-        return VolumeInfo(name, tuple(e["shape_xyz"]), value_range, self.suggested_iso(name, value_range))
+        return VolumeInfo(name, tuple(e["shape_xyz"]), value_range, self.suggested_iso(name, value_range), None,
+                          *_level_json(level, levels))
+
+    def _level(self, name: str, source: str) -> tuple[ZarrSource | None, tuple[ZarrSource, ...]]:
+        """The level served of a multiscale store (module docstring) and all its levels; (None, ())
+        for other volumes. The store's metadata is read once."""
+        if name not in self._levels:
+            multiscale = not source.startswith("proc:") and format_of(source) == "zarr"
+            self._levels[name] = open_zarr(source).levels if multiscale else ()
+        levels = self._levels[name]
+        if not levels:
+            return None, ()
+        fits = levels[0] if self.max_bytes is None else finest_within(levels, self.max_bytes)
+        return fits or levels[-1], levels
 
     def suggested_iso(self, name: str, value_range: tuple[float, float] | None,
                       volume: Volume | None = None) -> float | None:
@@ -145,14 +186,22 @@ class VolumeCatalog:
             if name in self._cache:
                 self._cache[name] = self._cache.pop(name)  # most recent last
                 return self._cache[name]
-            volume = open_volume(source)
+            level, levels = self._level(name, source)
+            volume = open_volume(source) if level is None else Volume.from_source(level)
             counts = volume.histogram(HISTOGRAM_BINS)
             iso = self.suggested_iso(name, volume.value_range, volume)
-            info = VolumeInfo(name, volume.shape, volume.value_range, iso, counts.tolist())
+            info = VolumeInfo(name, volume.shape, volume.value_range, iso, counts.tolist(), *_level_json(level, levels))
             self._cache[name] = (volume, info)
             while len(self._cache) > CACHE:
                 self._cache.pop(next(iter(self._cache)))
             return volume, info
+
+
+def _level_json(level: ZarrSource | None, levels: tuple[ZarrSource, ...]) -> tuple[str | None, list[dict] | None]:
+    """`VolumeInfo`'s ``level`` and ``levels`` of a multiscale volume (None, None for others)."""
+    if level is None:
+        return None, None
+    return level.level, [{"level": s.level, "shape": s.shape, "bytes": s.nbytes} for s in levels]
 
 
 async def load_volume(catalog: VolumeCatalog, name: str) -> tuple[Volume, VolumeInfo]:

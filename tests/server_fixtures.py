@@ -139,6 +139,18 @@ W, H, FACTOR = 64, 48, 4
 CAM0 = P.CameraMsg(yaw=30.0, pitch=20.0, distance=1.8)
 
 
+# A 64^3 uint8 volume (bytes on the device) whose iso-surfaces are spheres about a corner voxel: a small
+# iso-value (large radius) needs more bricks than a large one.
+CORNER_BYTES = 64**3
+
+
+def write_corner_volume(folder: Path) -> None:
+    """``corner.npy`` in ``folder``: uint8 255 - 4 r, r the distance to voxel (8, 8, 8), clipped at 0."""
+    x, y, z = np.meshgrid(*(np.arange(64),) * 3, indexing="ij")
+    r = np.sqrt((x - 8.0) ** 2 + (y - 8.0) ** 2 + (z - 8.0) ** 2)
+    np.save(folder / "corner.npy", np.clip(255 - 4 * r, 0, 255).astype(np.uint8))
+
+
 def server_settings(**fields) -> Settings:
     """A test server's settings: on DEVICE, in fp32 (the library references' precision)."""
     return Settings(device=DEVICE, precision="fp32", **fields)

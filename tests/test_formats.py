@@ -298,6 +298,35 @@ def test_ome_zarr_level_by_memory(tmp_path):
     _raises(lambda: open_zarr(tmp_path / "a.zarr", level="s7"), tmp_path / "a.zarr", "no level 's7'", "s0, s1, s2")
 
 
+def test_ome_zarr_level_from_the_source_spec(tmp_path):
+    path = tmp_path / "a.zarr"
+    _write_ome_zarr(path)
+    assert open_volume(f"{path}#level=s1").shape == (10, 8, 6)
+    assert open_volume(f"{path}#max-gb={(VALUES.nbytes - 1) / 1e9}").shape == (10, 8, 6)
+    coarse = Volume.from_source(ArraySource(VALUES[::4, ::4, ::4], SPACING))
+    np.testing.assert_array_equal(open_volume(f"{path}#level=s2").data, coarse.data)
+    _raises(lambda: open_volume(f"{path}#level=s9"), path, "no level 's9'")
+    _raises(lambda: open_volume(f"{path}#max-gb=-1"), f"{path}#max-gb=-1", "max-gb must be a positive number")
+    np.save(tmp_path / "v.npy", VALUES)
+    _raises(lambda: open_volume(f"{tmp_path / 'v.npy'}#level=0"), tmp_path / "v.npy", "only an OME-Zarr store has levels")
+    _raises(lambda: open_volume(f"{path}#lod=1"), f"{path}#lod=1", "no such file")  # not a level suffix: a path
+
+
+def test_a_server_serves_the_finest_level_that_fits_its_memory_setting(tmp_path):
+    _write_ome_zarr(tmp_path / "cells.ome.zarr")
+    levels = [{"level": f"s{i}", "shape": s, "bytes": 2 * s[0] * s[1] * s[2]}
+              for i, s in enumerate([(20, 16, 12), (10, 8, 6), (5, 4, 3)])]
+    for max_bytes, level in ((None, "s0"), (VALUES.nbytes, "s0"), (VALUES.nbytes - 1, "s1"), (100, "s2")):
+        catalog = VolumeCatalog(tmp_path, max_bytes)
+        listed = catalog.info("cells")
+        assert (listed.level, listed.levels) == (level, levels)
+        volume, info = catalog.load("cells")
+        assert info.level == level and info.levels == levels and volume.shape == next(
+            tuple(s["shape"]) for s in levels if s["level"] == level)
+        np.testing.assert_array_equal(volume.data, open_volume(f"{tmp_path / 'cells.ome.zarr'}#level={level}").data)
+    assert VolumeCatalog(tmp_path).info("proc:sphere").levels is None
+
+
 @pytest.mark.parametrize("zarr_format", [2, 3])
 def test_plain_zarr_indexed_like_npy(tmp_path, zarr_format):
     path = tmp_path / "plain.zarr"

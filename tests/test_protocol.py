@@ -72,6 +72,21 @@ def test_wire_names_are_the_v3_vocabulary():
     assert P.MODES[0] == "auto" and {"network", "upscale", "atrous"} <= set(P.MODES) and "sr" not in P.MODES
 
 
+def test_volume_levels_and_device_memory_round_trip():
+    """Issue 22's wire: a multiscale volume's levels in ``ready``, and frames carrying the volume's
+    device memory and paging (sent when it changed)."""
+    levels = [P.LevelSummary("s0", (64, 64, 64), 524288), P.LevelSummary("s1", (32, 32, 32), 65536)]
+    ready = P.ReadyMsg("abc", msgspec.structs.replace(VOLUME, level="s1", levels=levels), P.ViewSettings(), 4, 8, LIMITS)
+    assert roundtrip(ready) == ready and wire(ready)["volume"]["levels"][1] == {"level": "s1", "shape": [32, 32, 32],
+                                                                               "bytes": 65536}
+    memory = P.VolumeMemory("sparse", "uint16", 2**33, 2**30, 2**31, 2**31, 4096, 300, 280, 2, 320, 2**28, 4.25)
+    frame = msgspec.structs.replace(buffers_frame(), device=memory)
+    assert roundtrip(frame) == frame and wire(frame)["device"]["last_page_in_s"] == 4.25
+    assert "device" in wire(frame) and wire(buffers_frame())["device"] is None
+    with pytest.raises(P.ProtocolError, match=r"Invalid enum value 'paged' - at `\$.device.mode`"):
+        P.parse(raw(wire(frame) | {"device": wire(frame)["device"] | {"mode": "paged"}}), LIMITS, P.SERVER_VIEW_MESSAGES)
+
+
 def test_upscale_messages_round_trip_arrays_exactly():
     rng = np.random.default_rng(0)
     mask = (rng.random((6, 8)) > 0.5).astype(np.float32)

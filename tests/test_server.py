@@ -33,9 +33,10 @@ from isosr_render.images import to_uint8
 from isosr_server.codecs.arrays import encode_array
 from isosr_server.codecs.buffers import decode_view_buffers
 from isosr_server.sessions import ViewSession, ViewState
-from server_fixtures import (DEVICE, FACTOR, H, LEVELS, VOLUME, W, assert_image, cam, expect_close, frame,  # noqa: F401
-                             lib, lib_full, lib_lowres, lib_sr, raw, recv, running_server, send, server_settings,
-                             session, settle, upscale_body, wire, wire_frame)
+from server_fixtures import (CAM0, CORNER_BYTES, DEVICE, FACTOR, H, LEVELS, VOLUME, W, assert_image,  # noqa: F401
+                             cam, expect_close, frame, lib, lib_full, lib_lowres, lib_sr, raw, recv, running_server,
+                             send, server_settings, session, settle, upscale_body, wire, wire_frame,
+                             write_corner_volume)
 
 LIMITS = P.Limits(max_message_bytes=2**20, max_sessions=6, idle_timeout_s=30.0, max_fps=1000.0,
                   max_messages_per_s=5000.0)
@@ -344,6 +345,30 @@ def test_metrics_count_frames_stages_and_errors(srv):
     assert resident and all('mode="dense"' in line and float(line.split()[-1]) > 0 for line in resident)
     status, info = srv.get_json(f"/v1/volumes/{VOLUME}")
     assert status == 200 and info["device"]["mode"] == "dense" and info["device"]["resident_bytes"] > 0
+
+
+def test_an_iso_change_on_a_sparse_volume_reports_the_new_resident_set(tmp_path):
+    """Below the volume's dense size (``max_volume_bytes``) the server renders it sparse; frames
+    carry the device memory when it changed: after the first frame, after an iso change that
+    pages bricks in, and not after a camera move."""
+    write_corner_volume(tmp_path)
+    settings = server_settings(volumes=tmp_path, limits=LIMITS, max_volume_bytes=CORNER_BYTES - 1)
+    with running_server(settings) as s, s.view() as ws:
+        ws.send(P.encode(P.OpenMsg("corner", P.SettingsUpdate(mode="full", width=W, height=H, encoding="png",
+                                                                refine=False), CAM0, iso=235.0)))  # radius 5
+        assert isinstance(recv(ws), P.ReadyMsg)
+        small = frame(ws).device
+        assert small.mode == "sparse" and small.storage == "uint8" and small.limit_bytes == CORNER_BYTES - 1
+        assert small.page_ins == 1 and 0 < small.bricks_resident < small.bricks_total == 512
+        send(ws, P.IsoMsg(155.0, seq=1))  # radius 25: more bricks
+        big = frame(ws)
+        assert big.ack == 1 and big.device.page_ins == 2 and big.device.bricks_needed > small.bricks_needed
+        assert small.resident_bytes < big.device.resident_bytes < CORNER_BYTES == big.device.dense_bytes
+        send(ws, cam(40, seq=2))
+        moved = frame(ws)
+        assert moved.ack == 2 and moved.device is None  # unchanged
+        status, info = s.get_json("/v1/volumes/corner")
+        assert status == 200 and info["device"] == msgspec.to_builtins(big.device)
 
 
 # ---- upscaling ------------------------------------------------------------------------------

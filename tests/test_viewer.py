@@ -10,6 +10,7 @@ from __future__ import annotations
 import base64
 import json
 import os
+import re
 import socket
 import subprocess
 import sys
@@ -30,6 +31,7 @@ from isosr_render import FrameBuffers, Renderer, RenderRequest, open_volume, orb
 from isosr_render.images import to_uint8
 from isosr_server.channels import false_color
 from isosr_server.codecs import video
+from server_fixtures import CORNER_BYTES, write_corner_volume
 
 CHROMIUM = Path("/usr/bin/chromium")
 if not CHROMIUM.exists():
@@ -98,7 +100,7 @@ def browser():
 class Viewer:
     """One page of the viewer with its console errors collected; ``script`` runs before the page's own."""
 
-    def __init__(self, browser, url: str, token: str | None, script: str | None = None):
+    def __init__(self, browser, url: str, token: str | None, script: str | None = None, volume: str = VOLUME):
         # bypass_csp: the page's policy forbids eval, which Playwright's wait_for_function uses.
         self.page = browser.new_page(viewport=WINDOW, bypass_csp=True)
         self.errors: list[str] = []
@@ -108,7 +110,7 @@ class Viewer:
             self.page.add_init_script(f"sessionStorage.setItem('isosr.token', {json.dumps(token)})")
         if script:
             self.page.add_init_script(script)
-        self.page.goto(f"{url}/?volume={VOLUME}")
+        self.page.goto(f"{url}/?volume={volume}")
 
     def frames(self) -> int:
         return int(self.page.get_attribute("#view", "data-frames"))
@@ -181,6 +183,7 @@ def test_viewer_explores_a_volume(server, browser):
     assert page.get_attribute("#refined", "data-refined") == "true"
     assert float(page.inner_text("#stat-fps")) >= 0 and "total" in page.inner_text("#stat-times")
     assert page.inner_text("#stat-method") not in ("", "-"), "the frame's method is shown"
+    assert page.inner_text("#stat-volume") == "131.1 kB resident (dense float32)"  # 32^3 float32
     stats, view = rect(page, "stats"), rect(page, "view")
     assert not overlap(stats, view), f"the live numbers {stats} cover the image {view}"
     assert stats[2] <= WINDOW["width"] and stats[3] <= WINDOW["height"], f"the live numbers {stats} leave the window"
@@ -316,6 +319,17 @@ def test_viewer_coders_match_python(server, browser):
     }""", [vectors, legend["hi"]])
     assert torch.allclose(torch.tensor(page_rgb), rgb[0], atol=1e-5), (page_rgb, rgb[0])
     v.page.close()
+
+
+def test_viewer_shows_a_sparse_volumes_resident_set_and_page_in(browser, tmp_path):
+    (tmp_path / "volumes").mkdir()
+    write_corner_volume(tmp_path / "volumes")
+    with serve(tmp_path, env={"ISOSR_MAX_VOLUME_BYTES": str(CORNER_BYTES - 1)}) as (_, url):
+        v = Viewer(browser, url, TOKEN, volume="corner")
+        v.wait_frame_after(0)
+        text = v.page.inner_text("#stat-volume")
+        assert re.fullmatch(r"\d+\.\d kB resident \(sparse, \d+\.?\d*% of bricks\), last page-in \d+\.\d s", text), text
+        assert not v.errors, v.errors
 
 
 def test_viewer_wrong_token_shows_error(server, browser):

@@ -224,10 +224,15 @@ def _pick_level(levels: tuple[ZarrSource, ...], level: str | None, max_bytes: in
             raise VolumeError(f"{path}: no level '{level}' (levels: {', '.join(s.level for s in levels)})")
         return chosen
     if max_bytes is not None:
-        chosen = next((s for s in levels if s.nbytes <= max_bytes), None)
+        chosen = finest_within(levels, max_bytes)
         if chosen is None:
             smallest = min(levels, key=lambda s: s.nbytes)
             raise VolumeError(f"{path}: no level fits in {max_bytes} bytes; the smallest, "
                               f"'{smallest.level}' {smallest.shape}, needs {smallest.nbytes}")
         return chosen
     return levels[0]
+
+
+def finest_within(levels: tuple[ZarrSource, ...], max_bytes: int) -> ZarrSource | None:
+    """The finest level whose voxels, in their stored type, take at most ``max_bytes`` (None: none)."""
+    return next((s for s in levels if s.nbytes <= max_bytes), None)

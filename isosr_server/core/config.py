@@ -77,7 +77,8 @@ class Settings:
             between slices); None: 8 ms on CUDA, 100 ms on CPUs.
         max_volume_bytes: the most bytes a volume's voxels take on the device; a larger volume
             renders sparse (the bricks each iso needs, paged in); None: half the free GPU memory
-            at load, no limit on CPUs.
+            at load, no limit on CPUs. It also picks a multiscale OME-Zarr's level
+            (:mod:`isosr_server.volumes`).
         log_level: ``debug``, ``info``, ``warning`` or ``error``.
     """
 
@@ -104,7 +105,8 @@ class Settings:
                                      float)
     max_volume_bytes: int | None = _option(None, "bytes a volume's voxels may take on the device; larger volumes "
                                                  "render sparse, paging in the bricks each iso needs (default: half "
-                                                 "the free GPU memory, no limit on CPUs)", int)
+                                                 "the free GPU memory, no limit on CPUs); an OME-Zarr is served at "
+                                                 "its finest level that fits, else its coarsest", int)
     log_level: str = _option("info", "log level", choices=LOG_LEVELS)
 
     def __post_init__(self):

@@ -194,7 +194,7 @@ async function openSessions() {
   if (generation !== state.generation) return;
   resize(false);
   for (const [index, mode] of modes().entries()) {
-    const slot = { mode, image: null, frameId: 0, shownId: 0, stats: newStats(), refined: false };
+    const slot = { mode, image: null, frameId: 0, shownId: 0, stats: newStats(), refined: false, device: null };
     slot.session = new ViewSession(wsUrl(), state.token, () => openMessage(slot), {
       onReady: (ready) => onReady(slot, index, ready),
       onFrame: (frame, latency) => onFrame(slot, frame, latency),
@@ -295,6 +295,7 @@ async function onFrame(slot, frame, latency) {
   slot.legend = frame.legend || null;
   slot.codec = frame.codec ? `${frame.encoding} (${frame.codec})` : frame.encoding;
   slot.targetKbps = frame.bitrate_kbps;
+  if (frame.device) slot.device = frame.device; // sent when it changed
   if (frame.codec) slot.video = frame.encoding;
   const id = ++slot.frameId;
   const image = await slot.decoder.picture(frame);
@@ -341,6 +342,7 @@ function showFrameInfo(slot) {
   $("stat-codec").textContent = slot.codec;
   const target = slot.targetKbps ? ` (target ${(slot.targetKbps / 1000).toFixed(2)})` : "";
   $("stat-rate").textContent = (bits / 1e6).toFixed(2) + target;
+  $("stat-volume").textContent = volumeMemory(slot.device);
   const refined = $("refined");
   refined.dataset.refined = String(slot.refined);
   refined.textContent = slot.refined ? "refined" : "interactive";
@@ -382,6 +384,21 @@ function decoderFailed(slot, message) {
   if ($("encoding").value === slot.video) $("encoding").value = "auto";
   setNotice(`this browser failed to decode ${slot.video} (${message}); sending ${encoding()}`);
   sendSettings();
+}
+
+/** The volume's device memory and paging, e.g. "1.3 GB resident (sparse, 0.7% of bricks), last page-in 4.3 s". */
+function volumeMemory(device) {
+  if (!device) return "-";
+  const resident = formatBytes(device.resident_bytes);
+  if (device.mode === "dense") return `${resident} resident (dense ${device.storage})`;
+  const share = (100 * device.bricks_resident / device.bricks_total).toPrecision(2);
+  const paged = device.page_ins ? `, last page-in ${device.last_page_in_s.toFixed(1)} s` : "";
+  return `${resident} resident (sparse, ${share}% of bricks)${paged}`;
+}
+
+function formatBytes(n) {
+  const [unit, scale] = n >= 1e9 ? ["GB", 1e9] : n >= 1e6 ? ["MB", 1e6] : ["kB", 1e3];
+  return `${(n / scale).toFixed(1)} ${unit}`;
 }
 
 function formatNumber(v) {

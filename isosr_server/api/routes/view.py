@@ -8,6 +8,7 @@ import logging
 import os
 import secrets
 
+import msgspec
 from fastapi import APIRouter, WebSocket
 
 from isosr_net.reconnet import MAX_RECON_AO_RAYS
@@ -95,7 +96,8 @@ async def open_view(ws: WebSocket, msg: OpenMsg, limits: Limits, catalog: Volume
                       msg.camera.seq if msg.camera and msg.camera.seq is not None else -1)
     session = ViewSession(secrets.token_hex(8), msg.volume, volume, state, engine.context, limits,
                           lambda: view_sessions.count)
-    ready = ReadyMsg(session.id, VolumeSummary(**info.to_json(), iso_normalized=normalized), session.state.settings,
+    summary = msgspec.convert(info.to_json() | {"iso_normalized": normalized}, VolumeSummary)
+    ready = ReadyMsg(session.id, summary, session.state.settings,
                      engine.upscale_factor, MAX_RECON_AO_RAYS, limits, engine.encodings())
     await ws.send_bytes(encode(ready))
     while session.notices:  # why the encoding is not the one asked for
