@@ -88,7 +88,7 @@ from isosr_server.codecs.arrays import ArrayTooBig, WireArray, decode_array, enc
 
 # 3: the v3 vocabulary (modes auto/network/upscale/..., ao_rays, spp, interpolation, frame methods);
 # 2 (acknowledged frames, flow control) and earlier are refused with a reason.
-PROTOCOL_VERSION = 3
+PROTOCOL_VERSION = 4
 
 # Largest magnitude of any float field (camera coordinates, iso, ...): beyond it is hostile input.
 MAX_ABS_FLOAT = 1e9

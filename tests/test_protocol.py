@@ -60,7 +60,7 @@ def test_messages_round_trip():
 
 def test_wire_names_are_the_v3_vocabulary():
     ready = wire(P.ReadyMsg("abc", VOLUME, P.ViewSettings(), 4, 8, LIMITS))
-    assert ready["type"] == "ready" and ready["version"] == 3 and ready["max_recon_ao_rays"] == 8
+    assert ready["type"] == "ready" and ready["version"] == 4 and ready["max_recon_ao_rays"] == 8
     assert ready["settings"]["mode"] == "auto" and ready["settings"]["interpolation"] == "bilinear"
     assert {"ao_rays", "refine_ao_rays", "spp", "ao_radius"} <= set(ready["settings"])
     assert ready["settings"]["ao_radius"] == P.AO_RADIUS == 0.05
@@ -174,15 +174,15 @@ def test_invalid_messages_name_the_problem(message, words):
 
 
 @pytest.mark.parametrize("message", [
-    {"type": "open", "version": 2, "volume": "proc:sphere"},
-    {"type": "upscale", "version": 2, "mask": {"dtype": "float32", "shape": [2, 2], "data": bytes(16)},
+    {"type": "open", "version": 3, "volume": "proc:sphere"},
+    {"type": "upscale", "version": 3, "mask": {"dtype": "float32", "shape": [2, 2], "data": bytes(16)},
      "normal": {"dtype": "float32", "shape": [2, 2, 3], "data": bytes(48)},
      "depth": {"dtype": "float32", "shape": [2, 2], "data": bytes(16)}},
 ])
-def test_version_2_is_refused_with_the_reason(message):
+def test_version_3_is_refused_with_the_reason(message):
     with pytest.raises(P.ProtocolError) as e:
         P.parse(raw(message), LIMITS, (P.OpenMsg, P.UpscaleRequest))
-    assert e.value.reason == "protocol version 2 is not supported; this server speaks 3: update the client"
+    assert e.value.reason == "protocol version 3 is not supported; this server speaks 4: update the client"
     assert (e.value.close_code, e.value.http_status) == (P.CLOSE_BAD_MESSAGE, 400)
 
 
