@@ -38,7 +38,9 @@ the covered pixels (mask > 0.5). Per size and method:
   ``--link-seconds``, a new camera ``--link-input-hz`` times a second, per ``--link-encodings``
   and, for video, each of ``--link-caps`` (``bitrate_kbps``; 0: the server estimates the link):
   frames/s, latency p50/p99 (camera update to arrival; display: plus decode), bytes per frame,
-  kbit/s, the server's targets, keyframes.
+  kbit/s, the server's targets, keyframes, the server's ms per stage; ``--link-max-unacked``
+  sets the server's credit window (frames in flight: render, encode and link time together
+  over the frame interval).
 
 At the end the issue's goals, as measured: video at most a third of JPEG's bytes per frame at
 matched PSNR, and 30 frames/s over 10 Mbit/s with latency p99 under 100 ms.
@@ -273,12 +275,14 @@ def link_rows(args, size: tuple[int, int], encodings: list[str], caps: list[int]
     volume = args.volume.removeprefix(SHARED_PREFIX)
     cases = [(e, cap) for e in encodings for cap in (caps if e in video.CODECS else [0])]
     rows = []
-    with ServerProcess(args.device) as server:
+    extra = () if args.link_max_unacked is None else ("--max-unacked-frames", str(args.link_max_unacked))
+    with ServerProcess(args.device, extra) as server:
         for encoding, cap in cases:
             result = link_run(server.url, 1e6 * args.link_mbit, volume, args.link_mode, size,
                               {"encoding": encoding, "bitrate_kbps": cap, "ao_rays": args.link_ao_rays},
                               args.link_seconds, args.link_input_hz, Orbit(yaw_step=args.yaw_step))
             rows.append({"study": "link", "encoding": encoding, "bitrate_cap_kbps": cap, "link_mbit": args.link_mbit,
+                         "max_unacked_frames": args.link_max_unacked or Limits().max_unacked_frames,
                          "mode": args.link_mode, "ao_rays": args.link_ao_rays, "input_hz": args.link_input_hz,
                          "seconds": args.link_seconds, **result})
             r = rows[-1]
@@ -338,6 +342,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--link-input-hz", type=float, default=30.0, help="camera updates a second")
     parser.add_argument("--link-mode", help="the link session's view mode (default auto; smoke full)")
     parser.add_argument("--link-ao-rays", type=int, default=0, help="the link session's ao_rays")
+    parser.add_argument("--link-max-unacked", type=int, help="the link server's --max-unacked-frames (default: its own)")
     args = parser.parse_args(argv)
     preset = SMOKE if args.smoke else {}
     for name, default in (("frames", 60), ("link_mbit", 10.0), ("link_seconds", 10.0), ("link_mode", "auto"),

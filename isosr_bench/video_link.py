@@ -109,7 +109,8 @@ def link_run(url: str, rate_bps: float, volume: str, mode: str, size: tuple[int,
 
     Returns:
         frames, frames/s, latency and display latency p50/p99 (ms), payload bytes per frame and
-        kbit/s, the link's kbit/s (the proxy's count), keyframes, the server's targets (kbit/s; 0 for
+        kbit/s, the link's kbit/s (the proxy's count), keyframes, the server's mean ms per stage (render
+        to encode: made one after the other, they bound a session's frame rate), the server's targets (kbit/s; 0 for
         images), frames that could not be decoded (left out of the rest), the encodings and methods
         of the frames, decode ms and the session's notices.
     """
@@ -148,6 +149,7 @@ def link_run(url: str, rate_bps: float, volume: str, mode: str, size: tuple[int,
             "bytes_per_frame": payload / len(stats), "payload_kbps": 8e-3 * payload / elapsed,
             "link_kbps": 8e-3 * carried / elapsed, "keyframes": sum(s.keyframe for s in stats),
             "target_kbps_min": min(targets), "target_kbps_median": float(np.median(targets)),
-            "target_kbps_max": max(targets), "undecodable": undecodable, "encodings": sorted({s.encoding for s in stats}),
+            "target_kbps_max": max(targets),
+            "server_ms": {k: float(np.mean([s.server_ms.get(k, 0.0) for s in stats])) for k in stats[-1].server_ms}, "undecodable": undecodable, "encodings": sorted({s.encoding for s in stats}),
             "methods": sorted({s.method for s in stats}),
             "decode_ms": float(np.mean([s.client_ms.get("decode", 0.0) for s in stats])), "notices": notices}

@@ -23,7 +23,7 @@ import threading
 import time
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
-from collections.abc import Callable, Generator
+from collections.abc import Awaitable, Callable, Generator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -219,12 +219,14 @@ class Engine:
         return self._renderers[name]
 
     async def view_frame(self, frames: SessionFrames, renderer: Renderer, job: FrameJob,
-                         code: Callable[[torch.Tensor], CodedImage], video_frame: bool = False) -> EncodedFrame:
+                         code: Callable[[torch.Tensor], CodedImage],
+                         video_frame: bool = False) -> Callable[[], Awaitable[EncodedFrame]]:
         """One view frame, made in slices of about ``slice_ms`` (:meth:`SessionFrames.steps`), each
         its own job on the device thread, so that other sessions' frames interleave with a heavy one;
-        its codes made there too (:meth:`codes_sync`), then encoded on an encoder thread
-        (:func:`pack_codes`; ``code`` codes a shaded frame's colors; ``video_frame``: on a video
-        encoder thread), while the device thread goes on with the next frame."""
+        its codes made there too (:meth:`codes_sync`). Returns once the device is done with it: what
+        it returns encodes it on an encoder thread (:func:`pack_codes`; ``code`` codes a shaded
+        frame's colors; ``video_frame``: on a video encoder thread), while the device thread goes
+        on with the next frame, this session's included (:func:`isosr_server.sessions.run_frames`)."""
         start = time.perf_counter()
         steps = frames.steps(renderer, job, self.slice_ms)
         while True:
@@ -232,13 +234,16 @@ class Engine:
             if done:
                 break
         codes = await self.call(self.codes_sync, made)
-        began = time.perf_counter()
         pool = self._video if video_frame else self._encoder
-        image, buffers = await asyncio.get_running_loop().run_in_executor(pool, pack_codes, codes, code)
-        done = time.perf_counter()
-        times = made.result.times | {"encode": 1e3 * (done - began), "total": 1e3 * (done - start)}
         memory = VolumeMemory(**renderer.memory().to_json())
-        return EncodedFrame(image, buffers, times, made.legend, made.method.name, made.prev_seq, memory)
+
+        async def encode() -> EncodedFrame:
+            began = time.perf_counter()
+            image, buffers = await asyncio.get_running_loop().run_in_executor(pool, pack_codes, codes, code)
+            done = time.perf_counter()
+            times = made.result.times | {"encode": 1e3 * (done - began), "total": 1e3 * (done - start)}
+            return EncodedFrame(image, buffers, times, made.legend, made.method.name, made.prev_seq, memory)
+        return encode
 
     def codes_sync(self, made: ViewFrame) -> torch.Tensor | tuple:
         """A made frame's codes: its color quantized to uint8 on the device (the image to encode), or

@@ -246,3 +246,18 @@ def test_rate_control_follows_the_link():
     assert (capped.fps(640, 480, 10_000), capped.fps(3840, 2160, 10_000), capped.fps(3840, 2160, 1000)) == \
         (60.0, 30.0, 5.0)
     assert RateControl(0, 1000, 24.0).fps(64, 48, 1000) == 24.0  # max_fps itself is the top step
+
+
+def test_the_encoder_frame_rate_holds_within_its_hysteresis():
+    """Frames sent at about a step's rate keep the encoder's frame rate (no reopen, no keyframe);
+    it moves once the rate leaves the band by more than FPS_HYSTERESIS."""
+    def sent_at(rate: RateControl, fps: float, start: float) -> float:
+        for i in range(40):
+            rate.sent(i, 1000, start + i / fps)
+        return start + 39 / fps
+
+    rate = RateControl(0, 10_000, 60.0)
+    got = [rate.encoder_fps(60.0, sent_at(rate, fps, 10.0 * k)) for k, fps in
+           enumerate((29.5, 30.6, 29.8, 32.5, 34.0, 21.0, 19.5, 17.0, 21.5, 23.0))]
+    assert got == [30.0, 30.0, 30.0, 30.0, 60.0, 30.0, 30.0, 20.0, 20.0, 30.0]
+    assert rate.encoder_fps(20.0, 200.0) == 20.0  # the nominal rate bounds it
