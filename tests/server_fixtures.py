@@ -286,3 +286,16 @@ def self_signed_cert(folder: Path) -> tuple[Path, Path]:
         .sign(key, hashes.SHA256()))
     (folder / "cert.pem").write_bytes(certificate.public_bytes(serialization.Encoding.PEM))
     return folder / "cert.pem", folder / "key.pem"
+
+
+def infer_inputs(frame: dict, names, datatype: str, binary: bool) -> list:
+    """tritonclient inputs of the arrays of ``frame`` named in ``names``, as ``datatype``."""
+    from tritonclient import http as httpclient  # the test extra; its tests skip without it
+    inputs = []
+    for name in names:
+        if name in frame:
+            t = httpclient.InferInput(name, list(frame[name].shape), datatype)
+            t.set_data_from_numpy(frame[name].astype(np.float16 if datatype == "FP16" else np.float32),
+                                  binary_data=binary)
+            inputs.append(t)
+    return inputs

@@ -43,8 +43,8 @@ from prometheus_client.parser import text_string_to_metric_families
 from isosr_client import connect, upscale_remote
 from isosr_render import RenderRequest, orbit
 from isosr_server import protocol as P
-from server_fixtures import (VOLUME, H, RunningServer, W, cam, frame, lib, lib_lowres, running_server, self_signed_cert,  # noqa: F401
-                             send, server_settings, session, upscale_body)
+from server_fixtures import (VOLUME, H, RunningServer, W, cam, frame, infer_inputs, lib, lib_lowres,  # noqa: F401
+                             running_server, self_signed_cert, send, server_settings, session, upscale_body)
 
 ray = pytest.importorskip("ray", reason="ray[serve] is not installed (the cluster extra)")
 serve = pytest.importorskip("ray.serve", reason="ray[serve] is not installed (the cluster extra)")
@@ -214,12 +214,7 @@ def triton_infer(srv, model: str, f: dict, seq: str, start: bool, parameters: di
     """One tritonclient infer of ``model`` with every input ``f`` has, in session ``seq`` (routed by its header)."""
     httpclient = pytest.importorskip("tritonclient.http", reason="tritonclient[http] is not installed")
     c = httpclient.InferenceServerClient(url=f"127.0.0.1:{srv.port}", network_timeout=120)
-    inputs = []
-    for name, a in f.items():
-        t = httpclient.InferInput(name, list(a.shape), "FP32")
-        t.set_data_from_numpy(a.astype(np.float32))
-        inputs.append(t)
-    r = c.infer(model, inputs, sequence_id=seq, sequence_start=start, headers={SESSION_HEADER: seq},
+    r = c.infer(model, infer_inputs(f, f, "FP32", binary=True), sequence_id=seq, sequence_start=start, headers={SESSION_HEADER: seq},
                 parameters=parameters)
     c.close()
     return {o["name"]: r.as_numpy(o["name"]) for o in r.get_response()["outputs"]}

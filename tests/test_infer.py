@@ -23,8 +23,8 @@ import torch
 from isosr_net.reconstructor import Reconstructor
 from isosr_render import FrameBuffers, RenderRequest, ShadingParams, orbit
 from isosr_server import protocol as P
-from server_fixtures import (DEVICE, FACTOR, H, W, lib, lib_lowres, running_server, server_settings,  # noqa: F401
-                             upscale_body)
+from server_fixtures import (DEVICE, FACTOR, H, W, infer_inputs, lib, lib_lowres, running_server,  # noqa: F401
+                             server_settings, upscale_body)
 
 httpclient = pytest.importorskip("tritonclient.http", reason="tritonclient[http] is not installed (the test extra)")
 from tritonclient.utils import InferenceServerException  # noqa: E402
@@ -63,13 +63,7 @@ def upscale_post(srv, frame: dict, **fields) -> P.HighresBuffers:
 
 
 def infer(client, frame: dict, binary: bool = True, datatype: str = "FP32", **kwargs) -> dict[str, np.ndarray]:
-    inputs = []
-    for name in INPUTS:
-        if name in frame:
-            t = httpclient.InferInput(name, list(frame[name].shape), datatype)
-            t.set_data_from_numpy(frame[name].astype(np.float16 if datatype == "FP16" else np.float32),
-                                  binary_data=binary)
-            inputs.append(t)
+    inputs = infer_inputs(frame, INPUTS, datatype, binary)
     outputs = [httpclient.InferRequestedOutput(n, binary_data=binary) for n in OUTPUTS]
     result = client.infer("isosr", inputs, outputs=outputs, **kwargs)
     return {n: result.as_numpy(n) for n in OUTPUTS}
@@ -212,13 +206,7 @@ def reconstructed(frames: list[dict], ao_rays: int = AO_RAYS, spp: int = 1) -> l
 
 def recon_infer(client, frame: dict, binary: bool = True, datatype: str = "FP32", outputs=RECON_OUTPUTS,
                 parameters: dict | None = None, **kwargs) -> dict[str, np.ndarray]:
-    inputs = []
-    for name in RECON_INPUTS:
-        if name in frame:
-            t = httpclient.InferInput(name, list(frame[name].shape), datatype)
-            t.set_data_from_numpy(frame[name].astype(np.float16 if datatype == "FP16" else np.float32),
-                                  binary_data=binary)
-            inputs.append(t)
+    inputs = infer_inputs(frame, RECON_INPUTS, datatype, binary)
     wanted = [httpclient.InferRequestedOutput(n, binary_data=binary) for n in outputs]
     result = client.infer("isosr-recon", inputs, outputs=wanted,
                           parameters={"ao_rays": AO_RAYS} if parameters is None else parameters, **kwargs)
