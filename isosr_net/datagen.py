@@ -3,8 +3,9 @@
 As in the paper: per volume, sequences of frames along smooth random camera orbits at a
 random iso-value; low-res inputs (mask, normal, depth, flow from the previous frame) without
 AO, and high-res ground truth (mask, normal, depth, AO) with many AO rays and supersampling.
-Each sequence yields crops (same window in every frame) that the surface covers at least
-half. One shard per sequence (``safetensors``), listed in ``manifest.json`` with its volume
+Each sequence is rendered at one of the configured frame sides (so that the same crop side
+covers whole objects in small frames and a few pixels' worth of AO reach at 4K scale) and
+yields crops (same window in every frame) that the surface covers at least half. One shard per sequence (``safetensors``), listed in ``manifest.json`` with its volume
 and split; a run that is stopped resumes where it stopped and writes the same data.
 """
 
@@ -26,7 +27,7 @@ from isosr_render.catalog import SHARED_PREFIX, entry, resolve_iso
 from isosr_render.conventions import AO_RADIUS, HIGHRES_BUFFERS, LOWRES_BUFFERS
 from isosr_render.sequence import sequence_requests
 from isosr_net.batch import FIELDS, SequenceBatch
-from isosr_net.reconnet import MAX_RECON_AO_RAYS, MAX_RECON_SPP
+from isosr_net.reconnet import RayLimits
 from isosr_net.reconstructor import recon_inputs
 
 MANIFEST = "manifest.json"
@@ -43,7 +44,8 @@ class DatagenConfig:
             (``shared:bonsai``, split from ``../shared/volumes/volumes.json``).
         sequences: sequences per volume.
         frames: frames per sequence.
-        lowres_size: side of the full low-res render; the high-res one is ``upscale`` times.
+        lowres_size: side of the full low-res render, or several sides, of which each sequence
+            draws one; the high-res one is ``upscale`` times.
         upscale: resolution factor between input and ground truth; 1 renders data for a
             reconstruction network (:mod:`isosr_net.reconnet`): inputs at the ground truth's
             resolution with sampled AO, ``isosr_render.conventions.RECON_CHANNELS``.
@@ -53,9 +55,9 @@ class DatagenConfig:
         ao_samples, ao_radius, spp: ground-truth AO rays per hit, their length (world
             units), and rays per pixel.
         input_spp, input_ao_rays: (upscale 1) each sequence's inputs are rendered with rays
-            per pixel and AO rays per hit drawn from these (what the network takes: spp up to
-            :data:`isosr_net.reconnet.MAX_RECON_SPP`, AO rays 0 to
-            :data:`isosr_net.reconnet.MAX_RECON_AO_RAYS`).
+            per pixel and AO rays per hit drawn from these, within ``max_spp`` and ``max_ao_rays``.
+        max_ao_rays, max_spp: (upscale 1) the :class:`~isosr_net.reconnet.RayLimits` that scale the
+            inputs' sampling channels: those of the model to train on the data.
         iso_jitter: iso-values are drawn uniformly within +-this fraction of the volume's
             reference iso (Otsu's, or the procedural default).
         seed: base seed; each (volume, sequence) derives its own.
@@ -65,7 +67,7 @@ class DatagenConfig:
     volumes: tuple[str, ...] = ("proc:cloud:1@96", "proc:metaballs:1@96")
     sequences: int = 4
     frames: int = 10
-    lowres_size: int = 96
+    lowres_size: int | tuple[int, ...] = 96
     upscale: int = 4
     crop: int = 32
     crops: int = 4
@@ -75,6 +77,8 @@ class DatagenConfig:
     spp: int = 4
     input_spp: tuple[int, ...] = (1,)
     input_ao_rays: tuple[int, ...] = (0,)
+    max_ao_rays: int = 8
+    max_spp: int = 4
     iso_jitter: float = 0.25
     seed: int = 0
     device: str = "cuda"
@@ -82,20 +86,36 @@ class DatagenConfig:
     def __post_init__(self):
         for name in ("volumes", "input_spp", "input_ao_rays"):
             object.__setattr__(self, name, tuple(getattr(self, name)))
+        if isinstance(self.lowres_size, (list, tuple)):
+            object.__setattr__(self, "lowres_size", tuple(self.lowres_size))
+        if not self.sides or any(isinstance(n, bool) or not isinstance(n, int) or n < 1 for n in self.sides):
+            raise ValueError(f"lowres_size must be a positive integer or a non-empty list of them, got "
+                             f"{self.lowres_size}")
         if self.upscale < 1:
             raise ValueError(f"upscale must be at least 1, got {self.upscale}")
         if self.upscale > 1 and (self.input_spp != (1,) or self.input_ao_rays != (0,)):
             raise ValueError("input_spp and input_ao_rays are for reconstruction data (upscale 1); an upscaler's "
                              "inputs have 1 ray per pixel and no AO")
-        for name, low, high in (("input_spp", 1, MAX_RECON_SPP), ("input_ao_rays", 0, MAX_RECON_AO_RAYS)):
+        limits = self.limits
+        for name, low, high in (("input_spp", 1, limits.max_spp), ("input_ao_rays", 0, limits.max_ao_rays)):
             values = getattr(self, name)
             if not values or any(isinstance(v, bool) or not isinstance(v, int) or not low <= v <= high
                                  for v in values):
                 raise ValueError(f"{name} must be a non-empty list of integers in [{low}, {high}], got {values}")
-        if self.crop > self.lowres_size:
-            raise ValueError(f"crop {self.crop} exceeds the low-res render side {self.lowres_size}")
+        if self.crop > min(self.sides):
+            raise ValueError(f"crop {self.crop} exceeds the low-res render side {min(self.sides)}")
         if self.frames < 2:
             raise ValueError(f"a sequence needs at least 2 frames, got {self.frames}")
+
+    @property
+    def sides(self) -> tuple[int, ...]:
+        """The low-res render sides a sequence draws from."""
+        return self.lowres_size if isinstance(self.lowres_size, tuple) else (self.lowres_size,)
+
+    @property
+    def limits(self) -> RayLimits:
+        """The ray limits the inputs' sampling channels are scaled by."""
+        return RayLimits(self.max_ao_rays, self.max_spp)
 
 
 def resolve_volume(spec: str) -> tuple[Volume, str, float]:
@@ -131,9 +151,9 @@ def pick_crops(mask: np.ndarray, crop: int, count: int, min_coverage: float, rng
     return [(int(rows[i]), int(cols[i])) for i in chosen]
 
 
-def render_sequence(renderer: Renderer, cameras: list, iso: float, config: DatagenConfig,
-                    seed: int, input_spp: int = 1, input_ao_rays: int = 0) -> SequenceBatch:
-    """Full-frame inputs and high-res ground truth of one sequence, on the CPU.
+def render_sequence(renderer: Renderer, cameras: list, iso: float, config: DatagenConfig, seed: int,
+                    side: int, input_spp: int = 1, input_ao_rays: int = 0) -> SequenceBatch:
+    """Full-frame inputs (``side`` pixels square) and high-res ground truth of one sequence, on the CPU.
 
     Inputs are low-res (upscale > 1), or rendered at full resolution with ``input_spp`` rays
     per pixel and ``input_ao_rays`` AO rays per hit (upscale 1; their AO rays have other seeds
@@ -143,7 +163,7 @@ def render_sequence(renderer: Renderer, cameras: list, iso: float, config: Datag
         Returns lowres (T, 5, h, w), or (T, 8, h, w) with upscale 1; flow (T, 2, h, w) (zeros
         on frame 0); highres (T, 6, H, W).
     """
-    n, s = config.lowres_size, config.upscale
+    n, s = side, config.upscale
     lowres, flows, highres = [], [], []
     outputs = LOWRES_BUFFERS + ("flow",) + (("ao",) if s == 1 and input_ao_rays else ())
     requests = sequence_requests(cameras, n, n, iso, outputs, spp=input_spp, ao_samples=max(1, input_ao_rays),
@@ -153,7 +173,7 @@ def render_sequence(renderer: Renderer, cameras: list, iso: float, config: Datag
         hi = renderer.render(camera, RenderRequest(n * s, n * s, iso, HIGHRES_BUFFERS, spp=config.spp,
                                                    ao_samples=config.ao_samples, ao_radius=config.ao_radius,
                                                    seed=seed + t))
-        lowres.append(recon_inputs(lo, input_ao_rays, input_spp)[0][0].cpu() if s == 1
+        lowres.append(recon_inputs(lo, input_ao_rays, input_spp, config.limits)[0][0].cpu() if s == 1
                       else lo.channels_first(LOWRES_BUFFERS).cpu())
         flows.append(torch.zeros(2, n, n) if lo.flow is None else lo.flow.permute(2, 0, 1).cpu())
         highres.append(hi.channels_first(HIGHRES_BUFFERS).cpu())
@@ -219,8 +239,10 @@ def generate(config: DatagenConfig, out: str | Path, progress: bool = True) -> d
         if config.upscale == 1:
             sampling = {"input_spp": int(rng.choice(config.input_spp)),
                         "input_ao_rays": int(rng.choice(config.input_ao_rays))}
+        # Drawn only from several sides: a config of one side renders what it rendered before sides were listed.
+        side = config.sides[0] if len(config.sides) == 1 else int(rng.choice(config.sides))
         frames = render_sequence(renderer, camera_path(rng, config.frames), iso, config,
-                                 seed=int(rng.integers(2**31 - config.frames)), **sampling)
+                                 seed=int(rng.integers(2**31 - config.frames)), side=side, **sampling)
         corners = pick_crops(frames.lowres[:, 0].numpy(), config.crop, config.crops, config.min_coverage, rng)
         cut = crops(frames, corners, config.crop, config.upscale)
         # Stored in float16, the flow in float32 (sub-pixel motion over tens of pixels).
@@ -229,7 +251,7 @@ def generate(config: DatagenConfig, out: str | Path, progress: bool = True) -> d
         data = save({key: t.contiguous() for key, t in tensors.items()})
         atomic_write(out / name, lambda f: f.write(data))
         manifest["shards"].append({"file": name, "volume": spec, "split": split, "sequence": k, "iso": iso,
-                                   "crops": len(corners), **sampling})
+                                   "crops": len(corners), "side": side, **sampling})
         atomic_write(out / MANIFEST, lambda f: f.write(json.dumps(manifest, indent=1).encode()))
     return manifest
 
@@ -255,6 +277,11 @@ class SequenceDataset(torch.utils.data.Dataset):
         self.crops = SequenceBatch.cat([SequenceBatch(*(load_file(root / s["file"])[k] for k in FIELDS))
                                         for s in shards])
         self.volumes = [s["volume"] for s in shards for _ in range(s["crops"])]
+
+    @property
+    def limits(self) -> RayLimits:
+        """The ray limits its reconstruction inputs' sampling channels are scaled by."""
+        return DatagenConfig(**self.config).limits
 
     def to(self, device: str | torch.device) -> "SequenceDataset":
         """Move the crops (kept in float16) to ``device``; returns self."""

@@ -52,8 +52,7 @@ from isosr_net.atrous import ATrousConfig, atrous_filter
 from isosr_net.inference import PRECISIONS, RecurrentNetwork, finish_steps, output_buffers
 from isosr_net.metrics import INTERPOLATIONS, upscale_baseline
 from isosr_net import oidn
-from isosr_net.reconnet import MAX_RECON_AO_RAYS, MAX_RECON_SPP
-from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor, recon_limits
 from isosr_net.svgf import SVGFConfig, SVGFHistory, svgf_filter
 from isosr_net.timing import StageTimer
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
@@ -214,7 +213,7 @@ class FrameRunner(ABC):
         shaded: makes a final color.
         network_class: the trained network it runs (None: none), with its default model.
         knobs: the spec's fields it reads; the others must keep their defaults.
-        ao_rays, spp, factor: the ``(low, high)`` bounds of the spec's counts.
+        ao_rays, spp, factor: the ``(low, high)`` bounds of the spec's counts (:meth:`bounds`).
 
     Args:
         method: the way to make frames.
@@ -273,8 +272,7 @@ class FrameRunner(ABC):
         for f in fields(method):
             if f.name not in cls.knobs and f.name not in ("kind", "model_name") and getattr(method, f.name) != f.default:
                 raise ValueError(f"{method.kind} frame method: takes no {f.name} (only {', '.join(cls.knobs)})")
-        for name in ("ao_rays", "spp", "factor"):
-            low, high = getattr(cls, name)
+        for name, (low, high) in cls.bounds(method).items():
             check_int(getattr(method, name), name, low, high, where=f"{method.kind} frame method")
         if method.interpolation not in INTERPOLATIONS:
             raise ValueError(f"interpolation must be one of {INTERPOLATIONS}, got {method.interpolation!r}")
@@ -282,6 +280,11 @@ class FrameRunner(ABC):
             raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {method.precision!r}")
         if method.quality not in oidn.QUALITIES:
             raise ValueError(f"quality must be one of {oidn.QUALITIES}, got {method.quality!r}")
+
+    @classmethod
+    def bounds(cls, method: FrameMethod) -> dict[str, tuple[int, int]]:
+        """The ``(low, high)`` bounds of ``method``'s counts ``ao_rays``, ``spp``, ``factor``."""
+        return {"ao_rays": cls.ao_rays, "spp": cls.spp, "factor": cls.factor}
 
     @classmethod
     def unavailable(cls) -> str | None:
@@ -510,6 +513,11 @@ class OIDNRunner(FrameRunner):
     spp = (1, MAX_SPP)
 
     @classmethod
+    def bounds(cls, method: FrameMethod) -> dict[str, tuple[int, int]]:
+        """The ``(low, high)`` bounds of ``method``'s counts ``ao_rays``, ``spp``, ``factor``."""
+        return {"ao_rays": cls.ao_rays, "spp": cls.spp, "factor": cls.factor}
+
+    @classmethod
     def unavailable(cls) -> str | None:
         return oidn.unavailable()
 
@@ -537,15 +545,19 @@ class OIDNRunner(FrameRunner):
 
 @register_runner("reconstruct")
 class ReconstructRunner(FrameRunner):
-    """Full resolution, 0-8 AO rays per hit and 1-4 rays per pixel, reconstructed (and shaded, in
-    one compiled call on GPUs) by the trained reconstruction network."""
+    """Full resolution, 0 AO rays per hit to the model's ``max_ao_rays`` and 1 ray per pixel to its
+    ``max_spp`` (:class:`~isosr_net.reconnet.RayLimits`), reconstructed (and shaded, in one compiled
+    call on GPUs) by the trained reconstruction network."""
 
     recurrent = True
     network_class = Reconstructor
     default_model = DEFAULT_RECON_MODEL
     knobs = ("ao_rays", "spp", "model", "precision")
-    ao_rays = (0, MAX_RECON_AO_RAYS)
-    spp = (1, MAX_RECON_SPP)
+
+    @classmethod
+    def bounds(cls, m: FrameMethod) -> dict[str, tuple[int, int]]:
+        limits = recon_limits(m.model or cls.default_model)
+        return super().bounds(m) | {"ao_rays": (0, limits.max_ao_rays), "spp": (1, limits.max_spp)}
 
     @classmethod
     def describe(cls, m: FrameMethod) -> str:

@@ -6,7 +6,9 @@ the AO of ``ao_rays`` hemisphere rays per hit (0: none cast, AO inferred from th
 in the paper), and its own previous output warped by the flow (the paper's recurrence). It
 outputs the converged frame's buffers: AO as from hundreds of rays and mask and normal as
 from 4 rays per pixel (an antialiased silhouette); depth passes through from the input. Channel orders:
-:data:`isosr_render.conventions.RECON_CHANNELS` in, ``HIGHRES_CHANNELS`` out.
+:data:`isosr_render.conventions.RECON_CHANNELS` in, ``HIGHRES_CHANNELS`` out. AO comes out of a
+sigmoid, from scratch or (``ao_prior="rays"``) as a correction of the input rays' mean
+(:func:`ao_output`), so that more input rays lift it.
 
 The network is a small U-Net: AO varies slowly along a surface and needs a wide view (its
 rays reach ``ao_radius``, tens of pixels on screen), edges need full resolution. So it
@@ -24,7 +26,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from isosr_render.conventions import AO, DEPTH, HIGHRES_CHANNELS, MASK, NORMAL, RECON_CHANNELS, SAMPLED_AO, SAMPLING
-from isosr_render.shapes import check_shape
+from isosr_render.shapes import check_int, check_shape
 from isosr_net.architectures import ResidualBlock
 from isosr_net.flow_warp import warp_by_flow
 
@@ -32,11 +34,38 @@ INPUTS = len(RECON_CHANNELS)
 OUTPUTS = len(HIGHRES_CHANNELS)
 # The previous output's channels the network reads back: mask and AO.
 RECURRENT = 2
-# The most AO rays per hit and rays per pixel the network takes: its training range. The
-# sampling channels hold ao_rays / MAX_RECON_AO_RAYS and spp / MAX_RECON_SPP, at most 1.
-MAX_RECON_AO_RAYS, MAX_RECON_SPP = 8, 4
 LEVELS = 3  # 1/2, 1/4, 1/8
 FIRST_FRAME_MODES = ("zeros", "inputs")
+AO_PRIORS = ("none", "rays")
+
+
+@dataclass(frozen=True)
+class RayLimits:
+    """The most AO rays per hit and rays per pixel a reconstruction model takes (its training
+    range); its sampling channels hold ``ao_rays / max_ao_rays`` and ``spp / max_spp``, at most 1."""
+
+    max_ao_rays: int = 8
+    max_spp: int = 4
+
+    def __post_init__(self):
+        check_int(self.max_ao_rays, "max_ao_rays", 1)
+        check_int(self.max_spp, "max_spp", 1)
+
+    def check(self, ao_rays: int, spp: int, where: str) -> None:
+        """ValueError unless ``ao_rays`` is in [0, max_ao_rays] and ``spp`` in [1, max_spp]."""
+        check_int(ao_rays, "ao_rays", 0, self.max_ao_rays, where=where)
+        check_int(spp, "spp", 1, self.max_spp, where=where)
+
+    def channels(self, ao_rays: int, spp: int, like: torch.Tensor) -> torch.Tensor:
+        """The two constant sampling images of :data:`RECON_CHANNELS` for a frame like ``like`` (B, C, H, W).
+
+        Shape:
+            Returns (B, 2, H, W).
+        """
+        b, _, h, w = like.shape
+        # Filled from Python numbers: a tensor built from host values would be a blocking copy on GPUs.
+        return torch.cat([like.new_full((b, 1, h, w), ao_rays / self.max_ao_rays),
+                          like.new_full((b, 1, h, w), spp / self.max_spp)], dim=1)
 
 
 @dataclass(frozen=True)
@@ -48,12 +77,18 @@ class ReconNetConfig:
         blocks: residual blocks at 1/8 resolution.
         first_frame: the "previous output" of a sequence's first frame: ``"zeros"``, or the
             ``"inputs"`` (their mask and sampled AO, AO 1 where none was cast).
+        ao_prior: ``"none"``: AO from scratch; ``"rays"``: a correction of the input rays' mean
+            (:func:`ao_output`).
+        max_ao_rays, max_spp: the model's :class:`RayLimits`.
     """
 
     type: str = "ReconNet"
     widths: tuple[int, int, int, int] = (16, 32, 64, 64)
     blocks: int = 2
     first_frame: str = "inputs"
+    ao_prior: str = "none"
+    max_ao_rays: int = 8
+    max_spp: int = 4
 
     def __post_init__(self):
         object.__setattr__(self, "widths", tuple(self.widths))
@@ -64,6 +99,14 @@ class ReconNetConfig:
             raise ValueError(f"blocks must be >= 0, got {self.blocks}")
         if self.first_frame not in FIRST_FRAME_MODES:
             raise ValueError(f"first_frame must be one of {FIRST_FRAME_MODES}, got {self.first_frame!r}")
+        if self.ao_prior not in AO_PRIORS:
+            raise ValueError(f"ao_prior must be one of {AO_PRIORS}, got {self.ao_prior!r}")
+        RayLimits(self.max_ao_rays, self.max_spp)  # raises for bad limits
+
+    @property
+    def limits(self) -> RayLimits:
+        """The most AO rays per hit and rays per pixel the model takes."""
+        return RayLimits(self.max_ao_rays, self.max_spp)
 
     @property
     def upscale(self) -> int:
@@ -71,16 +114,23 @@ class ReconNetConfig:
         return 1
 
 
-def sampling_channels(ao_rays: int, spp: int, like: torch.Tensor) -> torch.Tensor:
-    """The two constant sampling images of :data:`RECON_CHANNELS` for a frame like ``like`` (B, C, H, W).
+def ao_output(raw_ao: torch.Tensor, inputs: torch.Tensor, config: ReconNetConfig) -> torch.Tensor:
+    """The output AO from the tail's AO channel ``raw_ao``.
+
+    ``ao_prior="none"``: ``sigmoid(raw_ao)``. ``"rays"``: ``sigmoid(logit(p) + raw_ao)`` with
+    ``p = (n a + 0.5) / (n + 1)`` the input rays' mean ``a`` (:data:`SAMPLED_AO`) smoothed by the
+    ``n = ao_rays * spp`` rays behind it (from the sampling channels and ``config.limits``): never
+    0 or 1, 0.5 without rays (today's sigmoid), so with many rays the network only corrects.
 
     Shape:
-        Returns (B, 2, H, W).
+        raw_ao: (B, 1, H, W). inputs: (B, 8, H, W). Returns (B, 1, H, W).
     """
-    b, _, h, w = like.shape
-    # Filled from Python numbers: a tensor built from host values would be a blocking copy on GPUs.
-    return torch.cat([like.new_full((b, 1, h, w), ao_rays / MAX_RECON_AO_RAYS),
-                      like.new_full((b, 1, h, w), spp / MAX_RECON_SPP)], dim=1)
+    if config.ao_prior == "none":
+        return torch.sigmoid(raw_ao)
+    sampling = inputs[:, SAMPLING].float()
+    n = sampling[:, :1] * config.max_ao_rays * sampling[:, 1:] * config.max_spp
+    prior = (n * inputs[:, SAMPLED_AO].float() + 0.5) / (n + 1)
+    return torch.sigmoid(torch.logit(prior) + raw_ao)
 
 
 def macs_per_pixel(config: ReconNetConfig) -> float:
@@ -134,7 +184,7 @@ class ReconNet(nn.Module):
         raw = self.tail(y)[..., :h, :w]
         mask = (inputs[:, MASK] + raw[:, MASK]).clamp(0.0, 1.0)
         normal = inputs[:, NORMAL] + raw[:, NORMAL]
-        ao = torch.sigmoid(raw[:, AO])
+        ao = ao_output(raw[:, AO], inputs, self.config)
         # Depth passes through: at full resolution the render found it (shading does not read it).
         return torch.cat([mask, normal, inputs[:, DEPTH], ao], dim=1)
 

@@ -13,6 +13,7 @@ output is its state.
 from __future__ import annotations
 
 import functools
+import os
 from collections import OrderedDict
 from pathlib import Path
 
@@ -20,17 +21,34 @@ import torch
 
 from isosr_render.buffers import FrameBuffers
 from isosr_render.shading import ShadingParams, shade
-from isosr_render.shapes import check_int, check_shape
+from isosr_render.shapes import check_shape
 from isosr_net.flow_warp import warp_by_flow
-from isosr_net.reconnet import MAX_RECON_AO_RAYS, MAX_RECON_SPP, ReconNet, sampling_channels
+from isosr_net.reconnet import RayLimits, ReconNet, ReconNetConfig
 from isosr_net.inference import PRECISIONS, InputChecks, RecurrentNetwork, output_buffers, surface_tensors
+from isosr_net.model import read_config
 
 DEFAULT_RECON_MODEL = Path(__file__).resolve().parent / "recon_model"
 # Captured CUDA graphs kept per Reconstructor (frame sizes x samplings x first frame or not).
 MAX_GRAPHS = 32
 
 
-def recon_inputs(frame: FrameBuffers, ao_rays: int, spp: int,
+def recon_limits(model: str | os.PathLike = DEFAULT_RECON_MODEL) -> RayLimits:
+    """The ray limits of a reconstruction model folder, read from its ``config.json`` (not its weights).
+
+    Raises:
+        FileNotFoundError, ValueError: not a readable model folder (:func:`~isosr_net.model.read_config`),
+            or not a ReconNet's.
+    """
+    config = read_config(model)["model"]
+    if config.get("type") != "ReconNet":
+        raise ValueError(f"{model}: a {config.get('type')} model, not a reconstruction network (ReconNet)")
+    try:
+        return ReconNetConfig(**config).limits
+    except TypeError as e:
+        raise ValueError(f"{model}: bad model config: {e}") from None
+
+
+def recon_inputs(frame: FrameBuffers, ao_rays: int, spp: int, limits: RayLimits,
                  checks: InputChecks | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
     """A full-resolution frame as ReconNet's inputs: ``(inputs, flow or None)``, the inputs in
     the channel order :data:`isosr_render.conventions.RECON_CHANNELS`.
@@ -38,8 +56,9 @@ def recon_inputs(frame: FrameBuffers, ao_rays: int, spp: int,
     Args:
         frame: mask, normal, depth, and ``ao`` when ``ao_rays > 0``, rendered with ``spp`` rays
             per pixel and ``ao_rays`` AO rays per hit.
-        ao_rays: AO rays per hit, 0 to :data:`isosr_net.reconnet.MAX_RECON_AO_RAYS` (0: no AO input).
-        spp: rays per pixel, 1 to :data:`isosr_net.reconnet.MAX_RECON_SPP`.
+        ao_rays: AO rays per hit, 0 to ``limits.max_ao_rays`` (0: no AO input).
+        spp: rays per pixel, 1 to ``limits.max_spp``.
+        limits: the model's :class:`~isosr_net.reconnet.RayLimits` (the sampling channels' scale).
         checks: where to queue the checks of the buffers' values; None checks at once (a host sync).
 
     Raises:
@@ -51,7 +70,7 @@ def recon_inputs(frame: FrameBuffers, ao_rays: int, spp: int,
     """
     now = checks is None
     checks = InputChecks() if now else checks
-    surface, flow = _checked_tensors(frame, ao_rays, spp, checks)
+    surface, flow = _checked_tensors(frame, ao_rays, spp, limits, checks)
     if ao_rays:
         ao = frame.ao.float()[None, None]
         checks.add(_ao_in_range(ao), bool, _AO_MESSAGE)
@@ -59,7 +78,7 @@ def recon_inputs(frame: FrameBuffers, ao_rays: int, spp: int,
         ao = torch.zeros_like(surface[:, :1])
     if now:
         checks.raise_first()
-    return torch.cat([surface, ao, sampling_channels(ao_rays, spp, surface)], dim=1), flow
+    return torch.cat([surface, ao, limits.channels(ao_rays, spp, surface)], dim=1), flow
 
 
 _AO_MESSAGE = lambda _: "ao holds values outside [0, 1] (or NaN)"  # noqa: E731
@@ -69,11 +88,11 @@ def _ao_in_range(ao: torch.Tensor) -> torch.Tensor:
     return ((ao >= 0) & (ao <= 1)).all()
 
 
-def _checked_tensors(frame: FrameBuffers, ao_rays: int, spp: int, checks: InputChecks):
-    """The host's checks of a frame (counts, buffers present, shapes, dtypes), the values' checks
-    queued on ``checks``; the frame's mask, normal, depth as ``surface`` (1, 5, H, W) and its flow."""
-    check_int(ao_rays, "ao_rays", 0, MAX_RECON_AO_RAYS, where="reconstruction")
-    check_int(spp, "spp", 1, MAX_RECON_SPP, where="reconstruction")
+def _checked_tensors(frame: FrameBuffers, ao_rays: int, spp: int, limits: RayLimits, checks: InputChecks):
+    """The host's checks of a frame (counts within ``limits``, buffers present, shapes, dtypes), the
+    values' checks queued on ``checks``; the frame's mask, normal, depth as ``surface`` (1, 5, H, W)
+    and its flow."""
+    limits.check(ao_rays, spp, "reconstruction")
     surface, flow = surface_tensors(frame, checks)
     if ao_rays:
         if frame.ao is None:
@@ -153,6 +172,11 @@ class Reconstructor(RecurrentNetwork):
                        fast_layers=True)
         return cls(model, device, precision or "fp32", channels_last=True)
 
+    @property
+    def limits(self) -> RayLimits:
+        """The most AO rays per hit and rays per pixel the model takes."""
+        return self.net.config.limits
+
     def reconstruct(self, frame: FrameBuffers, ao_rays: int, spp: int = 1,
                     shading: ShadingParams | None = None) -> FrameBuffers:
         """Reconstruct one frame; with ``shading``, shade it too (``color``).
@@ -170,7 +194,7 @@ class Reconstructor(RecurrentNetwork):
             Returns mask, depth, ao (H, W); normal, color (H, W, 3).
         """
         checks = InputChecks()
-        surface, flow = _checked_tensors(frame, ao_rays, spp, checks)
+        surface, flow = _checked_tensors(frame, ao_rays, spp, self.limits, checks)
         surface = surface.to(self.device)
         ao = frame.ao[None, None].to(self.device) if ao_rays else None
         self.check_precision(surface, checks)
@@ -189,7 +213,7 @@ class Reconstructor(RecurrentNetwork):
         """The sampling channels' two values (1, 2, 1, 1) on the device, made once per sampling."""
         key = (ao_rays, spp)
         if key not in self._sampling:
-            self._sampling[key] = sampling_channels(ao_rays, spp, torch.zeros(1, 1, 1, 1, device=self.device))
+            self._sampling[key] = self.limits.channels(ao_rays, spp, torch.zeros(1, 1, 1, 1, device=self.device))
         return self._sampling[key]
 
     def _replay(self, args: tuple) -> tuple[torch.Tensor, ...]:

@@ -9,7 +9,6 @@ beside them; a killed run resumes from `OUT/last`. Multi-GPU (or multi-process C
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import time
@@ -29,6 +28,7 @@ from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net.losses import PAPER_LOSSES, AdversarialLoss, LossContext, build_losses, total_loss
 from isosr_net.metrics import frame_scores
 from isosr_net.model import Unrolled, build_model, load_checkpoint, save_checkpoint
+from isosr_net.reconnet import ReconNet
 
 
 @dataclass
@@ -131,6 +131,9 @@ class Trainer:
         if data_upscale != self.upscale:
             raise ValueError(f"the data in {config.data} is for upscale {data_upscale}, the model upscales "
                              f"{self.upscale}")
+        if isinstance(self.net, ReconNet) and self.train_set.limits != self.net.config.limits:
+            raise ValueError(f"the data in {config.data} scales its sampling channels by {self.train_set.limits}, "
+                             f"the model by {self.net.config.limits}: give both the same max_ao_rays and max_spp")
         self.step = 0
         self.best = -math.inf
         self._resume()
@@ -151,7 +154,7 @@ class Trainer:
         checkpoint = load_checkpoint(self.out / "last", self.device)
         if checkpoint is None:
             return
-        if checkpoint.config["model"] != json.loads(json.dumps(asdict(self.net.config))):
+        if checkpoint.model.config != self.net.config:
             raise ValueError(f"{checkpoint.folder} holds a model of another config ({checkpoint.config['model']}); "
                              f"train into a new folder or with the same model config")
         self.net.load_state_dict(checkpoint.model.state_dict())

@@ -32,8 +32,8 @@ import torch
 
 from isosr_net.frame_methods import Networks, finish_steps
 from isosr_net.inference import RecurrentNetwork, default_precision
-from isosr_net.reconnet import MAX_RECON_AO_RAYS, MAX_RECON_SPP
-from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
+from isosr_net.reconnet import RayLimits
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor, recon_limits
 from isosr_net.timing import StageTimer, timed_steps
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
 from isosr_render import FrameBuffers, Renderer, ShadingParams, Volume, orbit, parse_procedural, shade
@@ -179,10 +179,16 @@ class Engine:
         """The encodings view sessions can have now: the images, and the video codecs PyAV has."""
         return list(IMAGE_ENCODINGS + video.available())
 
+    @property
+    def recon_limits(self) -> RayLimits:
+        """The reconstruction model's ray limits: what view sessions and requests may ask of it."""
+        return recon_limits(self.config.recon_model)
+
     def recon_info(self) -> dict:
         """The reconstruction model's parameters for ``GET /v2/models/isosr-recon`` (its folder's name only)."""
+        limits = self.recon_limits
         return {"model": Path(self.config.recon_model).name, "precision": self.precision, "device": str(self.device),
-                "max_ao_rays": MAX_RECON_AO_RAYS, "max_spp": MAX_RECON_SPP}
+                "max_ao_rays": limits.max_ao_rays, "max_spp": limits.max_spp}
 
     def new_network(self, cls: type[RecurrentNetwork]) -> RecurrentNetwork:
         """A stream's own network of a class: shares the loaded weights, starts without recurrent state."""

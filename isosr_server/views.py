@@ -171,7 +171,7 @@ def check(settings: ViewSettings, ctx: ViewContext) -> None:
         raise ProtocolError(f"{settings.mode} mode has no channel view: its buffers travel themselves")
     if settings.channel == "ao" and "ao" not in runner.makes(method):
         raise ProtocolError(f"{settings.mode} mode makes no AO to show"
-                            + (" (give ao_rays > 0)" if runner.ao_rays[1] else ""))
+                            + (" (give ao_rays > 0)" if runner.bounds(method)["ao_rays"][1] else ""))
 
 
 def refined_method(settings: ViewSettings) -> FrameMethod:

@@ -31,7 +31,7 @@ from isosr_client.view import CLIENT_LIMITS
 from isosr_render.images import to_uint8
 from isosr_net.frame_methods import FrameMethod, Networks, make_runner, run_sequence
 from isosr_net.metrics import upscale_baseline
-from isosr_net.reconstructor import MAX_RECON_AO_RAYS
+from isosr_net.reconstructor import recon_limits
 from isosr_net.upscaler import Upscaler
 from isosr_render import FrameBuffers, Renderer, RenderRequest, open_volume, orbit
 from isosr_render.conventions import LOWRES_BUFFERS
@@ -236,11 +236,12 @@ def test_client_errors_are_clear(server):  # noqa: F811
         connect(server.url, VOLUME, "full", SIZE, settings={"ao_samples": 2})
     with pytest.raises(ServerError, match="multiple of the upscale factor"):
         connect(server.url, VOLUME, "network", (63, 48))
-    with pytest.raises(ServerError, match=rf"ao_rays must be an integer in \[0, {MAX_RECON_AO_RAYS}\]") as e:
-        connect(server.url, VOLUME, "reconstruct", SIZE, settings={"ao_rays": MAX_RECON_AO_RAYS + 1})
+    most = recon_limits().max_ao_rays  # the shipped model's
+    with pytest.raises(ServerError, match=rf"ao_rays must be an integer in \[0, {most}\]") as e:
+        connect(server.url, VOLUME, "reconstruct", SIZE, settings={"ao_rays": most + 1})
     assert e.value.code == 1007
     with connect(server.url, VOLUME, "network", SIZE, settings=LOSSLESS) as view:
-        assert view.ready.max_recon_ao_rays == MAX_RECON_AO_RAYS and view.settings.mode == "network"
+        assert view.ready.max_recon_ao_rays == most and view.settings.mode == "network"
         with pytest.raises(ProtocolError, match="eye"):
             view.set_camera(yaw=10.0)
         with pytest.raises(ProtocolError, match=r"quality"):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -14,8 +15,8 @@ from safetensors.torch import load_file
 import isosr_net.datagen as datagen
 from isosr_net.batch import SequenceBatch
 from isosr_net.datagen import MANIFEST, DatagenConfig, SequenceDataset, generate, pick_crops
+from isosr_net.reconnet import RayLimits
 from isosr_render.catalog import shared_volumes_dir
-from isosr_net.reconnet import MAX_RECON_AO_RAYS, MAX_RECON_SPP
 from isosr_render.conventions import MASK, SAMPLED_AO, SAMPLING
 from net_fixtures import TINY_DATAGEN, TINY_RECON_DATAGEN, tiny_datagen, tiny_recon_data, tiny_train_data
 
@@ -149,6 +150,10 @@ def test_a_manifest_from_another_config_is_refused(fresh, change, monkeypatch):
 
 @pytest.mark.parametrize("kwargs, match", [
     ({"crop": 17}, "crop 17 exceeds the low-res render side 16"),
+    ({"lowres_size": (32, 6)}, "crop 8 exceeds the low-res render side 6"),
+    ({"lowres_size": ()}, "lowres_size must be a positive integer or a non-empty list"),
+    ({"lowres_size": (16, 0)}, "lowres_size must be"),
+    ({"lowres_size": 16.0}, "lowres_size must be"),
     ({"frames": 1}, "at least 2 frames"),
 ])
 def test_config_rejects_bad_values(kwargs, match):
@@ -164,6 +169,9 @@ def test_config_rejects_bad_values(kwargs, match):
     ({"upscale": 1, "input_spp": ()}, "input_spp must be a non-empty list"),
     ({"upscale": 1, "input_spp": (1.5,)}, "input_spp must be"),
     ({"upscale": 1, "input_ao_rays": (2, 9)}, r"input_ao_rays must be a non-empty list of integers in \[0, 8\]"),
+    ({"upscale": 1, "max_ao_rays": 16, "input_ao_rays": (17,)}, r"input_ao_rays .* in \[0, 16\]"),
+    ({"upscale": 1, "max_spp": 2, "input_spp": (4,)}, r"input_spp .* in \[1, 2\]"),
+    ({"upscale": 1, "max_ao_rays": 0}, "max_ao_rays must be an integer >= 1, got 0"),
     ({"upscale": 1, "input_ao_rays": (-1,)}, "input_ao_rays must be"),
     ({"upscale": 1, "input_ao_rays": (True,)}, "input_ao_rays must be"),
     ({"upscale": 0}, "upscale must be at least 1"),
@@ -173,8 +181,10 @@ def test_config_rejects_bad_sampling_of_reconstruction_inputs(kwargs, match):
         tiny_datagen(**kwargs)
 
 
-def test_config_volumes_become_a_tuple():
-    assert DatagenConfig(volumes=["proc:sphere"]).volumes == ("proc:sphere",)
+def test_config_volumes_and_sides_become_tuples():
+    config = DatagenConfig(volumes=["proc:sphere"], lowres_size=[32, 64], crop=16)
+    assert config.volumes == ("proc:sphere",) and config.lowres_size == config.sides == (32, 64)
+    assert DatagenConfig(lowres_size=48, crop=16).sides == (48,)
 
 
 # ---------------------------------------------------------------- crops
@@ -282,8 +292,8 @@ def test_reconstruction_shards_hold_full_resolution_inputs_with_their_sampling(t
         assert tensors["lowres"].shape == (k, t, 8, c, c) and tensors["highres"].shape == (k, t, 6, c, c)
         lowres = tensors["lowres"].float()
         sampling = lowres[:, :, SAMPLING]
-        assert (sampling[:, :, 0] == rays / MAX_RECON_AO_RAYS).all()
-        assert (sampling[:, :, 1] == spp / MAX_RECON_SPP).all()
+        assert (sampling[:, :, 0] == rays / config.max_ao_rays).all()
+        assert (sampling[:, :, 1] == spp / config.max_spp).all()
         ao = lowres[:, :, SAMPLED_AO]
         if rays:
             assert ao.min() >= 0 and ao.max() <= 1 and (ao > 0).any()
@@ -293,6 +303,27 @@ def test_reconstruction_shards_hold_full_resolution_inputs_with_their_sampling(t
             assert set(lowres[:, :, MASK].unique().tolist()) <= {0.0, 1.0}
     draws = {(s["input_spp"], s["input_ao_rays"]) for s in manifest["shards"]}
     assert len(draws) > 1  # the sequences were not all rendered alike
+
+
+def test_several_sides_render_sequences_of_each_with_crops_of_one_side_scaled_by_the_limits(tmp_path):
+    config = replace(TINY_RECON_DATAGEN, volumes=("proc:sphere@32",), sequences=6, lowres_size=(16, 40),
+                     input_ao_rays=(12, 16), max_ao_rays=16)
+    manifest = generate(config, tmp_path, progress=False)
+    assert {s["side"] for s in manifest["shards"]} == {16, 40}  # each side drawn (seeded: fixed)
+    for shard in manifest["shards"]:
+        lowres = load_file(tmp_path / shard["file"])["lowres"].float()
+        assert lowres.shape[-2:] == (16, 16) and shard["crops"] == len(lowres)
+        assert (lowres[:, :, SAMPLING][:, :, 0] == shard["input_ao_rays"] / 16).all()
+    dataset = SequenceDataset(tmp_path, "train")
+    assert dataset.limits == RayLimits(16, 4) and len(dataset) == sum(s["crops"] for s in manifest["shards"])
+
+
+def test_a_single_side_renders_as_before_sides_could_be_listed(fresh, tmp_path):
+    generate(tiny_datagen(lowres_size=(16,)), tmp_path, progress=False)
+    listed = shard_tensors(tmp_path)
+    for name, tensors in shard_tensors(fresh).items():
+        for key in ("lowres", "flow", "highres"):
+            assert torch.equal(tensors[key], listed[name][key]), (name, key)
 
 
 # ---------------------------------------------------------------- the dataset

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from torch.utils.flop_counter import FlopCounterMode
@@ -12,16 +14,16 @@ from isosr_render.sequence import sequence_requests
 from isosr_render.shading import ShadingParams, shade
 from isosr_net.budget import color_psnr, reference_frames
 from isosr_net.frame_methods import FrameMethod, make_runner, run_sequence
-from isosr_net.reconnet import (MAX_RECON_AO_RAYS, MAX_RECON_SPP, ReconNet, ReconNetConfig, macs_per_pixel,
-                                sampling_channels)
-from isosr_net.reconstructor import Reconstructor, recon_inputs
+from isosr_net.model import save_pretrained
+from isosr_net.reconnet import RayLimits, ReconNet, ReconNetConfig, ao_output, macs_per_pixel
+from isosr_net.reconstructor import Reconstructor, recon_inputs, recon_limits
 from isosr_net.upscaler import DEFAULT_MODEL
 
 SIZE = (96, 64)  # width, height
 
 
 def recon_batch(b: int = 2, h: int = 16, w: int = 24, ao_rays: int = 2, spp: int = 1,
-                dtype: torch.dtype = torch.float32, seed: int = 0) -> torch.Tensor:
+                dtype: torch.dtype = torch.float32, seed: int = 0, limits: RayLimits = RayLimits()) -> torch.Tensor:
     """Random ReconNet inputs laid out as RECON_CHANNELS: a binary mask, unit normals, depth, AO, sampling."""
     gen = torch.Generator().manual_seed(seed)
     mask = (torch.rand(b, 1, h, w, generator=gen) > 0.4).to(dtype)
@@ -29,7 +31,7 @@ def recon_batch(b: int = 2, h: int = 16, w: int = 24, ao_rays: int = 2, spp: int
     depth = (1.0 + torch.rand(b, 1, h, w, generator=gen)).to(dtype) * mask
     ao = torch.rand(b, 1, h, w, generator=gen).to(dtype) * mask
     base = torch.cat([mask, normal, depth, ao], dim=1)
-    return torch.cat([base, sampling_channels(ao_rays, spp, base)], dim=1)
+    return torch.cat([base, limits.channels(ao_rays, spp, base)], dim=1)
 
 
 def net(seed: int = 0, **config) -> ReconNet:
@@ -106,6 +108,9 @@ def test_forward_checks_shapes():
     ({"widths": (True, 32, 64, 64)}, "widths must be 4 positive integers"),
     ({"blocks": -1}, "blocks must be >= 0"),
     ({"first_frame": "upsampled"}, "first_frame must be one of"),
+    ({"ao_prior": "mean"}, "ao_prior must be one of"),
+    ({"max_ao_rays": 0}, "max_ao_rays must be an integer >= 1, got 0"),
+    ({"max_spp": True}, "max_spp must be an integer >= 1, got True"),
 ])
 def test_config_rejects_bad_values(kwargs, match):
     with pytest.raises(ValueError, match=match):
@@ -123,6 +128,71 @@ def test_float32_matches_float64():
         single = model(inputs, prev)
         double = model.double()(inputs.double(), prev.double())
     torch.testing.assert_close(single.double(), double, rtol=0, atol=1e-5)
+
+
+# ---------------------------------------------------------------- AO over the input rays
+
+
+def prior_reference(ao: float, rays: int, spp: int, raw: float) -> float:
+    """sigmoid(logit((n a + 1/2) / (n + 1)) + raw) in float64, n = rays * spp."""
+    n = rays * spp
+    p = (n * ao + 0.5) / (n + 1)
+    z = math.log(p / (1 - p)) + raw
+    return 1 / (1 + math.exp(-z))
+
+
+@pytest.mark.parametrize("rays, spp", [(0, 1), (0, 4), (1, 1), (2, 2), (8, 1), (16, 4)])
+def test_ao_over_the_rays_matches_float64_and_stays_finite_in_the_unit_interval(rays, spp):
+    config = ReconNetConfig(ao_prior="rays", max_ao_rays=16)
+    gen = torch.Generator().manual_seed(rays * 10 + spp)
+    ao = torch.cat([torch.zeros(1, 1, 4, 4), torch.ones(1, 1, 4, 4), torch.rand(1, 1, 4, 4, generator=gen)])
+    inputs = recon_batch(b=3, h=4, w=4, ao_rays=rays, spp=spp, limits=config.limits)
+    inputs[:, SAMPLED_AO] = ao
+    raw = torch.randn(3, 1, 4, 4, generator=gen) * 3
+    out = ao_output(raw, inputs, config)
+    expected = torch.tensor([prior_reference(a, rays, spp, r) for a, r in zip(ao.flatten().tolist(),
+                                                                                raw.flatten().tolist())],
+                            dtype=torch.float64).view_as(out)
+    torch.testing.assert_close(out.double(), expected, rtol=0, atol=1e-6)
+    for extreme in (-1e4, 1e4):  # a saturated correction: 0 or 1, never NaN
+        pinned = ao_output(torch.full_like(raw, extreme), inputs, config)
+        assert torch.isfinite(pinned).all() and pinned.min() >= 0 and pinned.max() <= 1
+    if rays == 0:  # no rays: prior 1/2, today's sigmoid exactly
+        assert torch.equal(out, torch.sigmoid(raw))
+
+
+def test_ao_from_scratch_is_the_plain_sigmoid_whatever_the_rays():
+    inputs, raw = recon_batch(ao_rays=8, spp=4), torch.randn(2, 1, 16, 24)
+    assert torch.equal(ao_output(raw, inputs, ReconNetConfig()), torch.sigmoid(raw))
+
+
+def test_a_silent_tail_returns_the_smoothed_mean_of_the_rays():
+    """With the tail's output zero the network adds nothing: AO is the prior, close to the rays'
+    mean with many rays, 1/2 with none."""
+    model = net(ao_prior="rays", max_ao_rays=16)
+    torch.nn.init.zeros_(model.tail.weight)
+    torch.nn.init.zeros_(model.tail.bias)
+    for rays, spp in ((16, 4), (1, 1), (0, 1)):
+        inputs = recon_batch(b=1, ao_rays=rays, spp=spp, limits=model.config.limits)
+        with torch.no_grad():
+            out = model(inputs, model.first_previous(inputs))
+        n = rays * spp
+        torch.testing.assert_close(out[:, AO], (n * inputs[:, SAMPLED_AO] + 0.5) / (n + 1))
+        torch.testing.assert_close(out[:, MASK], inputs[:, MASK].clamp(0, 1))
+
+
+def test_ao_over_the_rays_in_bfloat16_autocast_stays_finite_and_close_to_float32():
+    model = net(ao_prior="rays", max_ao_rays=16)
+    inputs = recon_batch(ao_rays=16, spp=4, limits=model.config.limits)
+    inputs[0, SAMPLED_AO] = 1.0
+    inputs[1, SAMPLED_AO] = 0.0
+    prev = model.first_previous(inputs)
+    with torch.no_grad():
+        full = model(inputs, prev)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            half = model(inputs, prev).float()
+    assert torch.isfinite(half).all() and half[:, AO].min() >= 0 and half[:, AO].max() <= 1
+    torch.testing.assert_close(half[:, AO], full[:, AO], rtol=0, atol=2e-2)
 
 
 # ---------------------------------------------------------------- inputs
@@ -153,16 +223,17 @@ def fresh(frame: FrameBuffers, **changes) -> FrameBuffers:
 
 def test_recon_inputs_lay_out_the_channels(sphere_frames):
     frame = sphere_frames[1]
-    inputs, flow = recon_inputs(frame, 2, 3)
+    inputs, flow = recon_inputs(frame, 2, 3, RayLimits())
     assert inputs.shape == (1, len(RECON_CHANNELS), SIZE[1], SIZE[0]) and inputs.dtype == torch.float32
     torch.testing.assert_close(inputs[0, MASK][0], frame.mask, rtol=0, atol=0)
     torch.testing.assert_close(inputs[0, NORMAL], frame.normal.permute(2, 0, 1), rtol=0, atol=0)
     torch.testing.assert_close(inputs[0, DEPTH][0], frame.depth, rtol=0, atol=0)
     torch.testing.assert_close(inputs[0, SAMPLED_AO][0], frame.ao, rtol=0, atol=0)
-    assert (inputs[0, SAMPLING][0] == 2 / MAX_RECON_AO_RAYS).all()
-    assert (inputs[0, SAMPLING][1] == 3 / MAX_RECON_SPP).all()
+    assert (inputs[0, SAMPLING][0] == 2 / 8).all() and (inputs[0, SAMPLING][1] == 3 / 4).all()
     assert flow.shape == (1, 2, SIZE[1], SIZE[0])
-    no_ao, _ = recon_inputs(fresh(frame, ao=None), 0, 1)
+    wide, _ = recon_inputs(frame, 12, 2, RayLimits(16, 2))  # each model's own scale
+    assert (wide[0, SAMPLING][0] == 12 / 16).all() and (wide[0, SAMPLING][1] == 1).all()
+    no_ao, _ = recon_inputs(fresh(frame, ao=None), 0, 1, RayLimits())
     assert (no_ao[0, SAMPLED_AO] == 0).all() and (no_ao[0, SAMPLING][0] == 0).all()
 
 
@@ -188,12 +259,12 @@ def test_recon_inputs_refuse_hostile_frames(sphere_frames, change, ao_rays, spp,
         else:
             getattr(frame, name)[3, 5:9] = float(value)
     with pytest.raises(ValueError, match=match):
-        recon_inputs(frame, ao_rays, spp)
+        recon_inputs(frame, ao_rays, spp, RayLimits())
 
 
 def test_recon_inputs_refuse_a_misshapen_ao(sphere_frames):
     with pytest.raises(ValueError, match="ao"):
-        recon_inputs(fresh(sphere_frames[0], ao=torch.zeros(SIZE[1], SIZE[0] - 1)), 2, 1)
+        recon_inputs(fresh(sphere_frames[0], ao=torch.zeros(SIZE[1], SIZE[0] - 1)), 2, 1, RayLimits())
 
 
 # ---------------------------------------------------------------- the Reconstructor
@@ -214,6 +285,54 @@ def test_the_shipped_model_loads_without_arguments():
     reconstructor = Reconstructor()
     assert isinstance(reconstructor.net, ReconNet) and reconstructor.upscale_factor == 1
     assert reconstructor.precision == "fp32" and reconstructor.device == torch.device("cpu")
+
+
+def test_the_shipped_model_keeps_its_config_and_its_ao_is_the_sigmoid_of_its_tail(sphere_frames):
+    reconstructor = Reconstructor()
+    config = reconstructor.net.config
+    assert (config.ao_prior, config.limits) == ("none", RayLimits(8, 4)) == ("none", recon_limits())
+    raws = []
+    reconstructor.net.tail.register_forward_hook(lambda module, args, out: raws.append(out))
+    out = reconstructor.reconstruct(sphere_frames[0], 2, 1)
+    torch.testing.assert_close(out.ao, torch.sigmoid(raws[0][0, AO][0]), rtol=0, atol=0)
+
+
+@pytest.fixture(scope="module")
+def wide_model(tmp_path_factory):
+    """A random ReconNet over the input rays taking 0-16 AO rays and 1-2 rays per pixel, saved."""
+    folder = tmp_path_factory.mktemp("wide_model")
+    save_pretrained(net(seed=2, widths=(4, 4, 8, 8), blocks=1, ao_prior="rays", max_ao_rays=16, max_spp=2), folder)
+    return folder
+
+
+def test_a_model_takes_the_rays_of_its_own_limits(wide_model, sphere, sphere_frames):
+    assert recon_limits(wide_model) == RayLimits(16, 2)
+    renderer, iso = sphere
+    frame = renderer.render(orbit(30.0, 20.0, 1.6), RenderRequest(*SIZE, iso, ("mask", "normal", "depth", "ao"),
+                                                                   ao_samples=12, spp=2))
+    reconstructor = Reconstructor(wide_model)
+    out = reconstructor.reconstruct(frame, 12, 2)
+    assert_sane(out, SIZE[1], SIZE[0])
+    inputs, _ = recon_inputs(frame, 12, 2, RayLimits(16, 2))
+    with torch.no_grad():
+        expected = reconstructor.net(inputs, reconstructor.net.first_previous(inputs))
+    torch.testing.assert_close(out.ao, expected[0, AO][0], rtol=0, atol=0)
+    with pytest.raises(ValueError, match=r"ao_rays must be an integer in \[0, 16\], got 17"):
+        reconstructor.reconstruct(sphere_frames[0], 17, 1)
+    with pytest.raises(ValueError, match=r"spp must be an integer in \[1, 2\], got 3"):
+        reconstructor.reconstruct(sphere_frames[0], 2, 3)
+
+
+def test_the_frame_method_bounds_are_its_models(wide_model):
+    assert FrameMethod("reconstruct", ao_rays=16, spp=2, model=str(wide_model)).ao_rays == 16
+    with pytest.raises(ValueError, match=r"reconstruct frame method: spp must be an integer in \[1, 2\], got 4"):
+        FrameMethod("reconstruct", spp=4, model=str(wide_model))
+    with pytest.raises(ValueError, match=r"ao_rays must be an integer in \[0, 8\], got 16"):
+        FrameMethod("reconstruct", ao_rays=16)  # the shipped model
+    with pytest.raises(ValueError, match="SRNet model, not a reconstruction network"):
+        FrameMethod("reconstruct", model=str(DEFAULT_MODEL))
+    with pytest.raises(FileNotFoundError, match="config.json is missing"):
+        FrameMethod("reconstruct", model=str(wide_model / "nothing"))
 
 
 def test_reconstruct_a_rendered_frame(sphere_frames):

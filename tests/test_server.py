@@ -21,8 +21,7 @@ from websockets.exceptions import ConnectionClosed
 
 from isosr_net.frame_methods import FrameMethod, Networks, make_runner, run_sequence
 from isosr_net.metrics import upscale_baseline
-from isosr_net.reconnet import MAX_RECON_SPP
-from isosr_net.reconstructor import DEFAULT_RECON_MODEL, MAX_RECON_AO_RAYS
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, recon_limits
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
 from isosr_render import Camera, FrameBuffers, open_volume, orbit, shade
 from isosr_render.conventions import LOWRES_BUFFERS
@@ -41,6 +40,7 @@ from server_fixtures import (CAM0, CORNER_BYTES, DEVICE, FACTOR, H, LEVELS, VOLU
 LIMITS = P.Limits(max_message_bytes=2**20, max_sessions=6, idle_timeout_s=30.0, max_fps=1000.0,
                   max_messages_per_s=5000.0)
 TOKEN = "correct-horse-battery"
+RECON_LIMITS = recon_limits(DEFAULT_RECON_MODEL)  # the served reconstruction model's
 
 
 @pytest.fixture(scope="module")
@@ -72,8 +72,8 @@ def test_health_model_and_volumes(srv, volumes_dir):
     assert [o["name"] for o in model["outputs"]] == ["mask", "normal", "depth", "ao"]
     status, recon = srv.get_json("/v2/models/isosr-recon")
     assert status == 200 and recon["parameters"] == {"model": DEFAULT_RECON_MODEL.name, "precision": "fp32",
-                                                     "device": DEVICE, "max_ao_rays": MAX_RECON_AO_RAYS,
-                                                     "max_spp": MAX_RECON_SPP}
+                                                     "device": DEVICE, "max_ao_rays": RECON_LIMITS.max_ao_rays,
+                                                     "max_spp": RECON_LIMITS.max_spp}
     for name in ("isosr", "isosr-recon"):
         assert srv.get_json(f"/v2/models/{name}/ready") == (200, {"name": name, "ready": True})
     status, listing = srv.get_json("/v1/volumes")
@@ -104,7 +104,7 @@ def test_volume_names_never_reach_paths(srv, path, status):
 def test_full_mode_matches_the_library(srv, lib):
     with session(srv, mode="full", ao_rays=4) as (ws, ready):
         assert ready.settings.mode == "full" and ready.volume.iso == 0.0
-        assert ready.max_recon_ao_rays == MAX_RECON_AO_RAYS
+        assert ready.max_recon_ao_rays == RECON_LIMITS.max_ao_rays
         assert ready.limits == LIMITS and ready.version == P.PROTOCOL_VERSION == 4
         f = frame(ws)
         assert (f.seq, f.ack, f.mode, f.encoding, f.refined) == (0, -1, "full", "png", False) and f.method
@@ -494,9 +494,9 @@ def test_bad_view_input_closes_that_session_only(srv, lib):
              P.CLOSE_BAD_MESSAGE, "Invalid enum value 'sr' - at `$.settings.mode`"),
             (raw({"type": "open", "version": v, "volume": VOLUME, "settings": {"width": 4096, "height": 4096}}),
              P.CLOSE_TOO_BIG, "exceeds"),
-            (P.encode(P.OpenMsg(VOLUME, P.SettingsUpdate(mode="reconstruct", ao_rays=MAX_RECON_AO_RAYS + 1))),
+            (P.encode(P.OpenMsg(VOLUME, P.SettingsUpdate(mode="reconstruct", ao_rays=RECON_LIMITS.max_ao_rays + 1))),
              P.CLOSE_BAD_MESSAGE, f"reconstruct mode: reconstruct frame method: ao_rays must be an integer in "
-                                  f"[0, {MAX_RECON_AO_RAYS}], got {MAX_RECON_AO_RAYS + 1}"),
+                                  f"[0, {RECON_LIMITS.max_ao_rays}], got {RECON_LIMITS.max_ao_rays + 1}"),
             (raw({"type": "open", "version": v, "volume": VOLUME, "settings": {"mode": "reconstruct", "ao_rays": -1}}),
              P.CLOSE_BAD_MESSAGE, "Expected `int` >= 0 - at `$.settings.ao_rays`"),
             (raw({"type": "open", "version": v, "volume": VOLUME, "settings": {"ao_rays": 257}}),
@@ -513,8 +513,9 @@ def test_bad_view_input_closes_that_session_only(srv, lib):
             (raw({"type": "camera", "eye": [0.0, 0.0, math.nan]}), P.CLOSE_BAD_MESSAGE, "at `$.eye[2]`"),
             (raw({"type": "camera", "eye": [0, 0, 1], "up": [0, 0, 0]}), P.CLOSE_BAD_MESSAGE, "up is zero"),
             (raw({"type": "settings", "settings": {"mode": "network", "width": 63}}), P.CLOSE_BAD_MESSAGE, "multiple"),
-            (raw({"type": "settings", "settings": {"mode": "reconstruct", "ao_rays": 9}}), P.CLOSE_BAD_MESSAGE,
-             f"reconstruct mode: reconstruct frame method: ao_rays must be an integer in [0, {MAX_RECON_AO_RAYS}], got 9"),
+            (raw({"type": "settings", "settings": {"mode": "reconstruct", "ao_rays": RECON_LIMITS.max_ao_rays + 1}}),
+             P.CLOSE_BAD_MESSAGE, f"reconstruct mode: reconstruct frame method: ao_rays must be an integer in "
+                                  f"[0, {RECON_LIMITS.max_ao_rays}], got {RECON_LIMITS.max_ao_rays + 1}"),
             (raw({"type": "settings", "settings": {"mode": "reconstruct", "ao_rays": -1}}), P.CLOSE_BAD_MESSAGE,
              "Expected `int` >= 0 - at `$.settings.ao_rays`"),
             (raw({"type": "settings", "settings": {"ao_samples": 1}}), P.CLOSE_BAD_MESSAGE,

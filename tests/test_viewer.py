@@ -26,7 +26,7 @@ import pytest
 import torch
 
 from conftest import DEVICE
-from isosr_net.reconstructor import MAX_RECON_AO_RAYS
+from isosr_net.reconstructor import recon_limits
 from isosr_render import FrameBuffers, Renderer, RenderRequest, open_volume, orbit, resolve_iso, shade
 from isosr_render.images import to_uint8
 from isosr_server.channels import false_color
@@ -244,11 +244,11 @@ def test_viewer_explores_a_volume(server, browser):
             v.wait_frame_after(n, "document.getElementById('view').dataset.mode === 'upscale'")
             assert not page.is_visible("#banner")
         if mode == "reconstruct":
-            assert page.get_attribute("#recon-rays", "max") == str(MAX_RECON_AO_RAYS)
+            assert page.get_attribute("#recon-rays", "max") == str(recon_limits().max_ao_rays)
             n = v.frames()
             set_control(page, "#recon-rays", "20")
             v.wait_frame_after(n, "document.getElementById('view').dataset.mode === 'reconstruct'")
-            assert page.input_value("#recon-rays") == str(MAX_RECON_AO_RAYS) and not page.is_visible("#banner")
+            assert page.input_value("#recon-rays") == str(recon_limits().max_ao_rays) and not page.is_visible("#banner")
             assert page.get_attribute("#conn-state", "data-state") == "open"
 
     # Channels: normals in false color (facing the camera: blue over red), depth with its legend.

@@ -38,7 +38,7 @@ from fastapi import APIRouter, Depends, HTTPException, Request
 from fastapi.responses import JSONResponse, Response
 
 from isosr_net.inference import RecurrentNetwork
-from isosr_net.reconnet import MAX_RECON_AO_RAYS, MAX_RECON_SPP
+from isosr_net.reconnet import RayLimits
 from isosr_net.reconstructor import Reconstructor
 from isosr_net.upscaler import Upscaler
 from isosr_server.api.deps import (EngineDep, LimitsDep, MetricsDep, ReadyDep, UpscaleSessionsDep, require_ready,
@@ -144,21 +144,21 @@ async def recon_model_ready(ready: ReadyDep):
     return readiness(RECON.name, ready)
 
 
-def recon_sampling(req: InferRequest) -> tuple[int, int]:
-    """``(ao_rays, spp)`` of a reconstruction request; `ProtocolError` 400 out of range, or when
-    the ``ao`` input and ``ao_rays`` do not come together."""
-    ao_rays = int_parameter(req, "ao_rays", 0, 0, MAX_RECON_AO_RAYS)
+def recon_sampling(req: InferRequest, limits: RayLimits) -> tuple[int, int]:
+    """``(ao_rays, spp)`` of a reconstruction request; `ProtocolError` 400 out of the model's
+    ``limits``, or when the ``ao`` input and ``ao_rays`` do not come together."""
+    ao_rays = int_parameter(req, "ao_rays", 0, 0, limits.max_ao_rays)
     if "ao" in req.inputs and not ao_rays:
-        raise ProtocolError(f"input 'ao' needs the parameter ao_rays (1 to {MAX_RECON_AO_RAYS}: its AO rays per hit)")
+        raise ProtocolError(f"input 'ao' needs the parameter ao_rays (1 to {limits.max_ao_rays}: its AO rays per hit)")
     if ao_rays and "ao" not in req.inputs:
         raise ProtocolError(f"parameter ao_rays {ao_rays} needs the input 'ao'")
-    return ao_rays, int_parameter(req, "spp", 1, 1, MAX_RECON_SPP)
+    return ao_rays, int_parameter(req, "spp", 1, 1, limits.max_spp)
 
 
 async def recon_infer(request: Request, engine: EngineDep, limits: LimitsDep, metrics: MetricsDep,
                       sessions: UpscaleSessionsDep):
     req, sizes = await read_infer(request, RECON)
-    ao_rays, spp = recon_sampling(req)
+    ao_rays, spp = recon_sampling(req, engine.recon_limits)
     session, reset = sequence(req)
     limits.check_size(sizes["W"], sizes["H"], "the frame")
     reconstructor = stream_network(request, sessions, session, Reconstructor)

@@ -11,7 +11,6 @@ import secrets
 import msgspec
 from fastapi import APIRouter, WebSocket
 
-from isosr_net.reconnet import MAX_RECON_AO_RAYS
 from isosr_server.api.deps import AuthorizedDep, CatalogDep, EngineDep, LimitsDep, MetricsDep, ViewSessionsDep
 from isosr_server.api.ws import accept, end_ws, receive
 from isosr_server.engine import Engine
@@ -98,7 +97,7 @@ async def open_view(ws: WebSocket, msg: OpenMsg, limits: Limits, catalog: Volume
                           lambda: view_sessions.count)
     summary = msgspec.convert(info.to_json() | {"iso_normalized": normalized}, VolumeSummary)
     ready = ReadyMsg(session.id, summary, session.state.settings,
-                     engine.upscale_factor, MAX_RECON_AO_RAYS, limits, engine.encodings())
+                     engine.upscale_factor, engine.recon_limits.max_ao_rays, limits, engine.encodings())
     await ws.send_bytes(encode(ready))
     while session.notices:  # why the encoding is not the one asked for
         await ws.send_bytes(encode(NoticeMsg(session.notices.popleft())))
