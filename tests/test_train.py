@@ -13,10 +13,12 @@ import pytest
 import torch
 
 from isosr_net.configs import load_config
+from isosr_net.datagen import DatagenConfig
 from isosr_net.losses import PAPER_LOSSES
-from isosr_net.model import Unrolled, load_pretrained
+from isosr_net.model import Unrolled, build_model, load_pretrained
 from isosr_net.train import Trainer, TrainConfig
-from net_fixtures import random_vgg19, tiny_train_config, tiny_train_data
+from net_fixtures import (TINY_RECON_MODEL, random_vgg19, tiny_train_config, tiny_train_data,
+                          tiny_wide_recon_data)
 
 METRIC_KEYS = {"loss", "color_psnr", "color_ssim", "normal_psnr", "ao_psnr", "mask_iou"}
 
@@ -231,6 +233,28 @@ def test_the_shipped_configs_load():
     for name in ("train_l1_normal.json", "train_gan1.json", "train_gan2.json"):
         config = load_config(TrainConfig, root / name)
         assert config.model["type"] == "SRNet"
+
+
+@pytest.mark.parametrize("train, datagen", [("train_recon.json", "datagen_recon.json"),
+                                            ("train_recon2.json", "datagen_recon2.json")])
+def test_each_reconstruction_config_fits_its_data_config(train, datagen):
+    root = Path(__file__).resolve().parents[1] / "configs"
+    config, data = load_config(TrainConfig, root / train), load_config(DatagenConfig, root / datagen)
+    assert build_model(config.model).config.limits == data.limits and data.upscale == 1
+    assert max(data.input_ao_rays) == data.max_ao_rays and max(data.input_spp) == data.max_spp
+
+
+def test_a_reconstruction_model_over_the_rays_trains_with_the_temporal_loss_and_refuses_other_limits(
+        tmp_path, tmp_path_factory):
+    wide = tiny_wide_recon_data(tmp_path_factory)
+    model = {**TINY_RECON_MODEL, "ao_prior": "rays", "max_ao_rays": 16}
+    losses = [{"type": "channel", "channel": "ao", "kind": "l1"}, {"type": "temporal", "weight": 1.0}]
+    t = trainer(wide, tmp_path / "run", steps=2, model=model, losses=losses)
+    logs = t.train_step(next(t._batches(t.train_set, shuffle=True, epoch=0)))
+    assert logs["temporal"] > 0 and all(torch.isfinite(torch.tensor(v)) for v in logs.values())
+    with pytest.raises(ValueError, match=r"scales its sampling channels by RayLimits\(max_ao_rays=16, max_spp=4\), "
+                                         r"the model by RayLimits\(max_ao_rays=8"):
+        trainer(wide, tmp_path / "other", model=dict(TINY_RECON_MODEL))
 
 
 # ---------------------------------------------------------------- the adversarial setup
