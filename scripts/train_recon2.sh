@@ -7,7 +7,8 @@
 # runs/recon2/last) and keeps its best/ unless it does better. Data goes to data/recon2 and the
 # run to runs/recon2 (both git-ignored; the same config renders the same data again); the logs,
 # last/ (the resume checkpoint: weights, config, optimizer state) and best/ go to OUT_DIR.
-# To train past the config's steps when resuming, set STEPS (the cosine schedule restarts over it).
+# To train past the config's steps when resuming, set STEPS (the cosine schedule restarts over it);
+# MINUTES overrides the training's time limit (the whole script must fit one 10-minute device run).
 set -euo pipefail
 out=${1:?usage: train_recon2.sh OUT_DIR [FROM_DIR]}
 from=${2:-}
@@ -20,8 +21,9 @@ if [ -n "$from" ]; then
     chmod -R u+w runs/recon2  # files fetched from a device run come back read-only
 fi
 isosr datagen configs/datagen_recon2.json -o data/recon2 > "$out/datagen_recon2.log" 2>&1
-isosr train configs/train_recon2.json ${STEPS:+--steps "$STEPS"} > "$out/train_recon2.log" 2>&1
+isosr train configs/train_recon2.json ${STEPS:+--steps "$STEPS"} ${MINUTES:+--time-limit-minutes "$MINUTES"} \
+    > "$out/train_recon2.log" 2>&1
 rm -rf "$out/last" "$out/best"
 cp -r runs/recon2/last "$out/last"
 if [ -d runs/recon2/best ]; then cp -r runs/recon2/best "$out/best"; fi
-du -sh "$out"/last "$out"/best
+du -sh "$out"/*
