@@ -513,11 +513,6 @@ class OIDNRunner(FrameRunner):
     spp = (1, MAX_SPP)
 
     @classmethod
-    def bounds(cls, method: FrameMethod) -> dict[str, tuple[int, int]]:
-        """The ``(low, high)`` bounds of ``method``'s counts ``ao_rays``, ``spp``, ``factor``."""
-        return {"ao_rays": cls.ao_rays, "spp": cls.spp, "factor": cls.factor}
-
-    @classmethod
     def unavailable(cls) -> str | None:
         return oidn.unavailable()
 
