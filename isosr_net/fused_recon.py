@@ -22,6 +22,7 @@ from __future__ import annotations
 import copy
 import functools
 import os
+from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
@@ -143,17 +144,42 @@ class FusedReconNet(nn.Module):
     def _fused(self, inputs: torch.Tensor, prev: torch.Tensor, flow: torch.Tensor | None,
                keep_packed: bool = False):
         """The fused forward: ``prev`` warped already (``flow`` None) or warped here by ``flow``."""
-        k = _kernels()
         dims = check_shape(inputs, f"(B, {INPUTS}, H, W)", "inputs", "FusedReconNet")
         check_shape(prev, f"(B, {OUTPUTS}, H, W)", "prev_warped" if flow is None else "previous", "FusedReconNet",
                     dims)
-        packed = k.pack_inputs(inputs, prev, flow, multiple=2 ** LEVELS)
-        skip = k.conv3x3(packed, self.head_w, self.head_b)
-        with torch.autocast(inputs.device.type, enabled=False):  # fp16 throughout, as the kernels
-            coarse = self._coarse(skip.permute(0, 3, 1, 2))
-        features = k.conv3x3(skip, self.fuse_w, self.fuse_b, coarse=coarse)
-        output = k.recon_tail(features, self.tail_w, self.tail_b, inputs)
-        return (output, packed) if keep_packed else output
+        results, passes = self.passes(inputs, prev, flow)
+        for _, run in passes:
+            run()
+        return (results["output"], results["packed"]) if keep_packed else results["output"]
+
+    def passes(self, inputs: torch.Tensor, prev: torch.Tensor, flow: torch.Tensor | None = None
+               ) -> tuple[dict[str, torch.Tensor], list[tuple[str, Callable[[], None]]]]:
+        """The fused forward as its passes, to run (or time) one by one: ``(results, [(name, run)])``.
+
+        In order, ``pack``, ``head``, ``coarse`` (PyTorch), ``fuse`` and ``tail`` each compute one
+        entry of ``results`` (``packed``, ``skip``, ``coarse``, ``features``, ``output``) from those
+        before; running one again recomputes its entry. Arguments as for :func:`isosr_net.fused_kernels.pack_inputs`.
+        """
+        k = _kernels()
+        results: dict[str, torch.Tensor] = {}
+
+        def pack():
+            results["packed"] = k.pack_inputs(inputs, prev, flow, multiple=2 ** LEVELS)
+
+        def head():
+            results["skip"] = k.conv3x3(results["packed"], self.head_w, self.head_b)
+
+        def coarse():
+            with torch.autocast(inputs.device.type, enabled=False):  # fp16 throughout, as the kernels
+                results["coarse"] = self._coarse(results["skip"].permute(0, 3, 1, 2))
+
+        def fuse():
+            results["features"] = k.conv3x3(results["skip"], self.fuse_w, self.fuse_b, coarse=results["coarse"])
+
+        def tail():
+            results["output"] = k.recon_tail(results["features"], self.tail_w, self.tail_b, inputs)
+
+        return results, [("pack", pack), ("head", head), ("coarse", coarse), ("fuse", fuse), ("tail", tail)]
 
     def _coarse(self, skip: torch.Tensor) -> torch.Tensor:
         """ReconNet's levels below full resolution, from the head's features to the last decoder
