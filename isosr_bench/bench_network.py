@@ -72,6 +72,15 @@ def matmul_tflops(device: str, smoke: bool) -> float:
     return 2 * n ** 3 / (t.get("gpu_ms", t["wall_ms"]) * 1e-3) / 1e12
 
 
+def copy_bandwidth(device: str, smoke: bool) -> float:
+    """Measured memory bandwidth (bytes/s: read plus written by a large device copy), the memory floor's yardstick."""
+    n = 2 ** 28 if device.startswith("cuda") and not smoke else 2 ** 22  # bytes
+    a = torch.empty(n, dtype=torch.uint8, device=device)
+    b = torch.empty_like(a)
+    t = time_frames(lambda i: b.copy_(a), 5 if smoke else 20, device)
+    return 2 * n / (t.get("gpu_ms", t["wall_ms"]) * 1e-3)
+
+
 def frame_flops(upscaler: Upscaler, lowres: torch.Tensor) -> int:
     """FLOPs of one network forward on this frame size (convolutions and matmuls, as torch counts)."""
     warped = upscaler.net.first_previous(lowres)

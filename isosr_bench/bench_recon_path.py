@@ -15,10 +15,17 @@ Pareto benchmark's orbit (:func:`isosr_bench.bench_pareto.bench_cameras`), mean 
 
 Variants on CUDA, all fp16 and NHWC: ``eager``; ``compiled`` (the frame's work after the render,
 :func:`isosr_net.reconstructor.recon_frame`, through inductor); ``+ fast layers`` (channel counts
-padded, :func:`isosr_net.fastpath.fast_reconnet`; :meth:`Reconstructor.fastest`); ``+ CUDA graph``
-(the work replayed as one graph). On CPUs: eager fp32. The network's
-convolutions in GFLOP per frame (:func:`isosr_net.reconnet.macs_per_pixel`) and the floor they
-imply at a bf16 matrix-multiply rate measured in the same run (fp16's on Hopper) go beside them.
+padded, :func:`isosr_net.fastpath.fast_reconnet`); ``+ CUDA graph`` (the work replayed as one
+graph); where Triton imports, ``fused`` (the full-resolution layers as fused Triton kernels,
+:mod:`isosr_net.fused_recon`) and ``fused + CUDA graph`` (:meth:`Reconstructor.fastest`). On CPUs:
+eager fp32. The network's convolutions in GFLOP per frame (:func:`isosr_net.reconnet.macs_per_pixel`)
+and the floor they imply at a bf16 matrix-multiply rate measured in the same run (fp16's on Hopper)
+go beside them.
+
+Fused rows also time each pass of the fused network alone on a rendered frame (CUDA events,
+``kernels``: ``pack``, ``head``, ``coarse`` (the PyTorch levels), ``fuse``, ``tail``) with its
+bytes (:func:`isosr_net.fused_recon.fused_traffic`), the floor they take at the copy bandwidth
+measured in the same run, and ``of_floor``: floor over time (1 at the floor).
 """
 
 from __future__ import annotations
@@ -28,10 +35,11 @@ import torch
 from isosr_render import Renderer
 from isosr_render.sequence import sequence_cameras
 from isosr_net.frame_methods import FrameMethod, Networks, make_runner
+from isosr_net.fused_recon import FusedReconNet, fused_runs_on, fused_traffic
 from isosr_net.reconnet import macs_per_pixel
-from isosr_net.reconstructor import Reconstructor
+from isosr_net.reconstructor import Reconstructor, recon_inputs
 
-from .bench_network import matmul_tflops
+from .bench_network import copy_bandwidth, matmul_tflops
 from .bench_pareto import FRAMES, SIZES, SMOKE_FRAMES, SMOKE_SIZES, WARMUP, bench_cameras, load
 from .common import bench_parser, commit, print_table, time_frames, write_result
 
@@ -42,16 +50,49 @@ SMOKE_VOLUMES = ("sphere",)
 
 def variants(device: str) -> dict[str, dict]:
     """Reconstructor options per variant (see the module docstring)."""
-    if not device.startswith("cuda"):
-        return {"eager": {"precision": "fp32", "channels_last": True}}
+    cuda = device.startswith("cuda")
     base = {"precision": "fp16", "channels_last": True, "autotune": True}
     fast = {**base, "compile": "default", "fast_layers": True}
-    return {"eager": base, "compiled": {**base, "compile": "default"}, "compiled + fast layers": fast,
-            "compiled + fast layers + CUDA graph": {**fast, "graphs": True}}
+    out = {"eager": base, "compiled": {**base, "compile": "default"}, "compiled + fast layers": fast,
+           "compiled + fast layers + CUDA graph": {**fast, "graphs": True}} if cuda else {
+        "eager": {"precision": "fp32", "channels_last": True}}
+    if fused_runs_on(device):  # on CPUs under Triton's interpreter only
+        fused = {"precision": "fp16", "channels_last": True, "fused": True}
+        out.update({"fused": fused, "fused + CUDA graph": {**fused, "graphs": True}} if cuda else {"fused": fused})
+    return out
+
+
+def pass_times(net: FusedReconNet, renderer: Renderer, pairs: list, request, ao_rays: int, spp: int, frames: int,
+               device: str, bandwidth: float) -> dict[str, dict]:
+    """Each pass of the fused network timed alone on the second frame of ``pairs`` (the first's
+    output warped in), with its bytes and floor at ``bandwidth`` (bytes/s); the coarse levels
+    (PyTorch) have no floor here."""
+    inputs, previous = None, None
+    for camera, prev_camera in pairs[:2]:
+        frame = renderer.render(camera, request(prev_camera))
+        inputs, flow = recon_inputs(frame, ao_rays, spp)
+        with torch.no_grad():
+            previous = net.step(inputs, flow, previous)[0]
+    h, w = inputs.shape[-2:]
+    traffic = fused_traffic(h, w, net.config.widths[0])
+    with torch.no_grad():
+        _, passes = net.passes(inputs, previous, flow)
+        for _, run in passes:
+            run()
+        out = {}
+        for name, run in passes:
+            ms = time_frames(lambda i: run(), frames, device)
+            ms = ms.get("gpu_ms", ms["wall_ms"])
+            out[name] = {"ms": ms}
+            if name in traffic:
+                floor = traffic[name] / bandwidth * 1e3
+                out[name].update(bytes=traffic[name], floor_ms=floor, of_floor=floor / ms)
+    return out
 
 
 def stage_row(renderer: Renderer, iso: float, volume: str, size: tuple[int, int], size_name: str, ao_rays: int,
-              spp: int, variant: str, options: dict, frames: int, warmup: int, device: str, tflops: float) -> dict:
+              spp: int, variant: str, options: dict, frames: int, warmup: int, device: str, tflops: float,
+              bandwidth: float) -> dict:
     """One row: the stages' mean times on one volume, size, sampling and variant."""
     ms = lambda t: t.get("gpu_ms", t["wall_ms"])  # noqa: E731
     pairs = sequence_cameras(bench_cameras(frames))
@@ -70,6 +111,11 @@ def stage_row(renderer: Renderer, iso: float, volume: str, size: tuple[int, int]
     row["network_gflop"] = 2 * macs_per_pixel(recon.net.config) * size[0] * size[1] / 1e9
     row["floor_ms"] = row["network_gflop"] / tflops
     row["matmul_tflops"] = tflops
+    if isinstance(recon.net, FusedReconNet):
+        row["kernels"] = pass_times(recon.net, renderer, pairs, runner.render_request, ao_rays, spp, frames, device,
+                                    bandwidth)
+        row.update({f"{name}_ms": k["ms"] for name, k in row["kernels"].items()})
+        row["bandwidth_gbs"] = bandwidth / 1e9
     row["commit"] = commit()
     return row
 
@@ -89,6 +135,7 @@ def main(argv=None) -> list[dict]:
     if args.device.startswith("cuda"):
         torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
     tflops = matmul_tflops(args.device, args.smoke)
+    bandwidth = copy_bandwidth(args.device, args.smoke)
     frames, warmup = (SMOKE_FRAMES, 1) if args.smoke else (FRAMES, WARMUP)
     rows = []
     for name in names:
@@ -98,9 +145,15 @@ def main(argv=None) -> list[dict]:
             for ao_rays, spp in SAMPLINGS:
                 for variant, options in variants(args.device).items():
                     rows.append(stage_row(renderer, iso, name, sizes[size_name], size_name, ao_rays, spp, variant,
-                                          options, frames, warmup, args.device, tflops))
+                                          options, frames, warmup, args.device, tflops, bandwidth))
     print_table(rows, ["volume", "size", "ao_rays", "spp", "variant", "full", "path", "added", "render",
                        "network_gflop", "floor_ms"])
+    fused = [r for r in rows if "kernels" in r]
+    if fused:
+        print(f"fused passes alone, ms (floor ms at {bandwidth / 1e9:.0f} GB/s copy bandwidth):")
+        print_table([{**r, **{name: f"{k['ms']:.3g}" + (f" ({k['floor_ms']:.3g})" if "floor_ms" in k else "")
+                              for name, k in r["kernels"].items()}} for r in fused],
+                    ["volume", "size", "ao_rays", "spp", "variant", *fused[0]["kernels"]])
     print(f"wrote {write_result(NAME, args.device, rows, args.out)}")
     return rows
 

@@ -22,7 +22,7 @@ import torch
 from isosr_render.buffers import FrameBuffers
 from isosr_render.shading import ShadingParams, shade
 from isosr_render.shapes import check_shape
-from isosr_net.flow_warp import warp_by_flow
+from isosr_net.fused_recon import fused_reconnet, fused_runs_on, triton_imports
 from isosr_net.reconnet import RayLimits, ReconNet, ReconNetConfig
 from isosr_net.inference import PRECISIONS, InputChecks, RecurrentNetwork, output_buffers, surface_tensors
 from isosr_net.model import read_config
@@ -120,8 +120,7 @@ def recon_frame(net: ReconNet, surface: torch.Tensor, ao: torch.Tensor | None, s
     ao = surface.new_zeros(b, 1, h, w) if ao is None else ao.float()
     inputs = torch.cat([surface, ao, sampling.expand(b, 2, h, w)], dim=1)
     with torch.autocast(surface.device.type, dtype=precision, enabled=precision != torch.float32):
-        warped = net.first_previous(inputs) if previous is None else warp_by_flow(previous, flow)
-        output = net(inputs, warped).float()
+        output = net.step(inputs, flow, previous)[0].float()
     high = output_buffers(output)
     color = None if shading is None else shade(high.mask, high.normal, high.ao, shading)
     return output, high.mask, high.normal, high.depth, high.ao, color, _ao_in_range(ao)
@@ -140,15 +139,24 @@ class Reconstructor(RecurrentNetwork):
         graphs: on CUDA, replay that work as one CUDA graph per frame size and sampling, captured
             on first use (no launch or Python overhead per frame; with ``compile``, its
             mode must not be ``"reduce-overhead"``, which brings graphs of its own).
+        fused: the network's full-resolution layers as fused Triton kernels
+            (:func:`isosr_net.fused_recon.fused_reconnet`, the previous output's warp among them):
+            fp16, on CUDA with Triton, without ``fast_layers`` (whose layers it replaces) or ``compile``.
     """
 
     def __init__(self, model: str | Path = DEFAULT_RECON_MODEL, device: str = "cpu", precision: str = "fp32",
                  channels_last: bool = False, compile: str | None = None, autotune: bool = False,
-                 graphs: bool = False, fast_layers: bool = False):
+                 graphs: bool = False, fast_layers: bool = False, fused: bool = False):
+        if fused and (precision != "fp16" or fast_layers or compile or not fused_runs_on(device)):
+            raise ValueError(f"fused: the fused kernels need precision fp16 on a CUDA device with Triton, without "
+                             f"fast_layers or compile; got {precision} on {device}, fast_layers={fast_layers}, "
+                             f"compile={compile}, Triton {'imports' if triton_imports() else 'missing'}")
         super().__init__(model, device, precision, channels_last=channels_last, fast_layers=fast_layers,
                          autotune=autotune)
         if not isinstance(self.net, ReconNet):
             raise ValueError(f"{model}: a {type(self.net).__name__}, not a reconstruction network (ReconNet)")
+        if fused:
+            self.net = fused_reconnet(self.net)
         if graphs and (self.device.type != "cuda" or compile == "reduce-overhead"):
             raise ValueError("graphs: CUDA graphs need a CUDA device and a compile mode other than reduce-overhead")
         frame_fn = functools.partial(recon_frame, self.net)
@@ -162,11 +170,14 @@ class Reconstructor(RecurrentNetwork):
     def fastest(cls, model: str | Path = DEFAULT_RECON_MODEL, device: str = "cuda",
                 precision: str | None = None) -> "Reconstructor":
         """The variant for interactive use on ``device``: on CUDA, fp16 (``precision`` overrides),
-        NHWC, channel-padded layers (:func:`isosr_net.fastpath.fast_reconnet`), the frame's work
-        compiled; eager fp32 NHWC elsewhere. On an H100 at 1080p and 4K
+        NHWC, and where Triton imports the fused full-resolution layers (``fused``) replayed from a
+        CUDA graph, else channel-padded layers (:func:`isosr_net.fastpath.fast_reconnet`) and the
+        frame's work compiled; eager fp32 NHWC elsewhere. On an H100 at 1080p and 4K
         (``python -m isosr_bench.bench_recon_path``) the whole frame took as long eager, compiled,
         padded or replayed from a CUDA graph, within run-to-run spread: the network's GPU time,
-        not launches, is what a frame waits for."""
+        not launches, is what a frame waits for; the fused variants are in the same benchmark."""
+        if torch.device(device).type == "cuda" and fused_runs_on(device) and (precision or "fp16") == "fp16":
+            return cls(model, device, "fp16", channels_last=True, graphs=True, fused=True)
         if torch.device(device).type == "cuda":
             return cls(model, device, precision or "fp16", channels_last=True, compile="default", autotune=True,
                        fast_layers=True)

@@ -1,0 +1,272 @@
+"""The fused ReconNet kernels against float64 PyTorch references, on the device the kernels run on.
+
+Not collected by itself (the name): ``tests/test_fused_recon.py`` runs it in a subprocess, on the
+CPU under Triton's interpreter (``TRITON_INTERPRET=1``, which must be set before the kernels are
+imported) and on CUDA where there is a GPU. Directly, on a GPU machine:
+
+    python -m pytest -q tests/fused_checks.py                      # the CUDA kernels
+    TRITON_INTERPRET=1 python -m pytest -q tests/fused_checks.py   # the interpreter
+
+Tolerances: the kernels take fp16 operands, accumulate in fp32 and store fp16 features, so a
+convolution's output is off by at most about 2^-11 (fp16's half ulp) of its magnitude plus its
+operands' rounding, 2^-11 of ``conv(|x|, |w|)``: asserted as 1e-3 of ``|ref| + conv(|x|, |w|)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from isosr_render.buffers import FrameBuffers
+from isosr_render.conventions import AO, DEPTH, MASK, NORMAL
+from isosr_render.shading import ShadingParams
+from isosr_net.flow_warp import warp_by_flow
+from isosr_net.fused_kernels import conv3x3, pack_inputs, recon_tail
+from isosr_net.fused_recon import FusedReconNet, fused_reconnet, fused_runs_on, tap_weights
+from isosr_net.inference import FP16_MAX_DEPTH
+from isosr_net.model import load_pretrained
+from isosr_net.reconnet import AO_PRIORS, ReconNetConfig, ao_output
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
+
+from test_reconnet import recon_batch
+
+DEVICE = "cpu" if os.environ.get("TRITON_INTERPRET") == "1" else "cuda"
+if not fused_runs_on(DEVICE):
+    pytest.skip(f"the fused kernels do not run on {DEVICE} here", allow_module_level=True)
+SIZES = [(13, 21), (24, 40), (3, 5)]  # sides not multiples of any tile; one frame smaller than a tile
+
+
+def rand(*shape, scale=1.0, seed=0, dtype=torch.float32):
+    gen = torch.Generator().manual_seed(seed)
+    return (torch.randn(*shape, generator=gen) * scale).to(DEVICE, dtype)
+
+
+def assert_conv_close(got: torch.Tensor, ref: torch.Tensor, magnitude: torch.Tensor) -> None:
+    """``got`` within 1e-3 of ``|ref| + magnitude`` (see the module docstring), elementwise."""
+    assert got.shape == ref.shape
+    err = (got.double() - ref).abs()
+    bound = 1e-3 * (ref.abs() + magnitude) + 1e-6
+    assert (err <= bound).all(), f"worst excess {(err - bound).max().item():.3g}, max error {err.max().item():.3g}"
+
+
+def conv_ref(x: torch.Tensor, taps: torch.Tensor, bias: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """fp64 ``conv3x3(x) + bias`` of NCHW ``x`` with tap-major weights, and ``conv(|x|, |w|)``."""
+    weight = taps.double().reshape(3, 3, *taps.shape[1:]).permute(3, 2, 0, 1)
+    return (F.conv2d(x.double(), weight, bias.double(), padding=1),
+            F.conv2d(x.double().abs(), weight.abs(), padding=1))
+
+
+def nchw(x: torch.Tensor) -> torch.Tensor:
+    return x.permute(0, 3, 1, 2)
+
+
+# ---------------------------------------------------------------- pack
+
+
+@pytest.mark.parametrize("h, w", SIZES)
+@pytest.mark.parametrize("layout", ["contiguous", "channels_last"])
+def test_pack_lays_out_the_inputs_and_the_warped_previous_replicate_padded(h, w, layout):
+    memory = torch.channels_last if layout == "channels_last" else torch.contiguous_format
+    inputs = rand(2, 8, h, w, seed=1).contiguous(memory_format=memory)
+    warped = rand(2, 6, h, w, seed=2).contiguous(memory_format=memory)
+    packed = pack_inputs(inputs, warped)
+    expected = F.pad(torch.cat([inputs, warped[:, MASK], warped[:, AO]], dim=1), (0, -w % 8, 0, -h % 8),
+                     mode="replicate")
+    assert packed.shape == (2, h + -h % 8, w + -w % 8, 16) and packed.dtype == torch.float16
+    torch.testing.assert_close(nchw(packed)[:, :10], expected.half(), rtol=0, atol=0)
+    assert (packed[..., 10:] == 0).all()
+
+
+@pytest.mark.parametrize("h, w", SIZES)
+def test_pack_warps_the_previous_mask_and_ao_like_warp_by_flow(h, w):
+    inputs, previous = rand(2, 8, h, w, seed=3), rand(2, 6, h, w, seed=4).abs()
+    flow = rand(2, 2, h, w, scale=3.0, seed=5)
+    flow[0, :, 0, 0] = torch.tensor([1e6, -1e6])  # far outside: reads zeros
+    flow[1, :, -1, -1] = torch.tensor([0.5, -0.25])  # between pixels at the border
+    packed = pack_inputs(inputs, previous, flow)
+    expected = warp_by_flow(previous.double(), flow.double())[:, [MASK.start, AO.start]]
+    got = nchw(packed)[:, 8:10, :h, :w].double()
+    # fp16 storage, and the reference's normalized grid coordinates rounded in fp32
+    assert ((got - expected).abs() <= 1e-3 * expected.abs() + 1e-4).all()
+    assert (got[0, :, 0, 0] == 0).all()
+    torch.testing.assert_close(nchw(packed)[:, :8, :h, :w], inputs.half(), rtol=0, atol=0)
+
+
+def test_pack_checks_its_inputs():
+    inputs, prev = rand(1, 8, 4, 6), rand(1, 6, 4, 6)
+    with pytest.raises(ValueError, match=r"pack_inputs: prev must be \(B, 6, H, W\) with B=1, H=4, W=6"):
+        pack_inputs(inputs, prev[..., :5])
+    with pytest.raises(ValueError, match=r"pack_inputs: inputs must be \(B, 8, H, W\)"):
+        pack_inputs(inputs[:, :7], prev)
+    with pytest.raises(ValueError, match="pack_inputs: flow must be float32"):
+        pack_inputs(inputs, prev, rand(1, 2, 4, 6, dtype=torch.float16))
+
+
+# ---------------------------------------------------------------- convolutions
+
+
+@pytest.mark.parametrize("h, w", SIZES)
+@pytest.mark.parametrize("ci, co", [(16, 16), (32, 16), (16, 32)])
+def test_conv3x3_is_conv2d_bias_relu(h, w, ci, co):
+    x = rand(2, h, w, ci, seed=6, dtype=torch.float16)
+    taps, bias = rand(9, ci, co, scale=0.3, seed=7, dtype=torch.float16), rand(co, seed=8)
+    ref, magnitude = conv_ref(nchw(x), taps, bias)
+    assert (ref < 0).any() and (ref > 0).any()  # the ReLU has work
+    assert_conv_close(nchw(conv3x3(x, taps, bias)), F.relu(ref), magnitude)
+
+
+@pytest.mark.parametrize("h, w", [(7, 11), (2, 3), (1, 1)])
+@pytest.mark.parametrize("layout", ["contiguous", "channels_last"])
+def test_conv3x3_adds_the_upsampled_coarse_features_in_its_prologue(h, w, layout):
+    memory = torch.channels_last if layout == "channels_last" else torch.contiguous_format
+    coarse = rand(2, 16, h, w, seed=9, dtype=torch.float16).contiguous(memory_format=memory)
+    skip = rand(2, 2 * h, 2 * w, 16, seed=10, dtype=torch.float16)
+    taps, bias = rand(9, 16, 16, scale=0.3, seed=11, dtype=torch.float16), rand(16, seed=12)
+    up = F.interpolate(coarse.double(), scale_factor=2, mode="bilinear", align_corners=False)
+    ref, magnitude = conv_ref(F.relu(nchw(skip).double() + up), taps, bias)
+    assert_conv_close(nchw(conv3x3(skip, taps, bias, coarse=coarse)), F.relu(ref), magnitude)
+
+
+def test_conv3x3_checks_its_inputs():
+    x, taps, bias = rand(1, 6, 8, 16, dtype=torch.float16), rand(9, 16, 16, dtype=torch.float16), rand(16)
+    with pytest.raises(ValueError, match="conv3x3: x must be a contiguous fp16 NHWC tensor, got torch.float32"):
+        conv3x3(x.float(), taps, bias)
+    with pytest.raises(ValueError, match=r"conv3x3: weight must be \(9, 16, CO\), got \(9, 8, 16\)"):
+        conv3x3(x, taps[:, :8], bias)
+    with pytest.raises(ValueError, match="conv3x3: weight must be contiguous fp16 and bias fp32"):
+        conv3x3(x, taps, bias.half())
+    with pytest.raises(ValueError, match=r"conv3x3: coarse must be \(1, 16, 3, 4\), got \(1, 16, 3, 3\)"):
+        conv3x3(x, taps, bias, coarse=rand(1, 16, 3, 3))
+    with pytest.raises(ValueError, match="conv3x3: x must have even sides"):
+        conv3x3(x[:, :5].contiguous(), taps, bias, coarse=rand(1, 16, 2, 4))
+
+
+@pytest.mark.parametrize("ao_prior", AO_PRIORS)
+@pytest.mark.parametrize("h, w, hp, wp", [(13, 21, 16, 24), (24, 40, 24, 40), (3, 5, 8, 8)])
+def test_tail_is_the_output_convolution_and_reconnets_output_stack(h, w, hp, wp, ao_prior):
+    features = rand(2, hp, wp, 16, seed=13, dtype=torch.float16)
+    taps, bias = tap_weights(rand(6, 16, 3, 3, scale=0.3, seed=14), 16, 16), torch.zeros(16, device=DEVICE)
+    bias[:6] = rand(6, seed=15)
+    inputs = recon_batch(2, h, w, seed=16).to(DEVICE)
+    raw, magnitude = (t[:, :6, :h, :w] for t in conv_ref(nchw(features), taps, bias))
+    given = inputs.double()
+    config = ReconNetConfig(ao_prior=ao_prior, max_ao_rays=16)
+    out = recon_tail(features, taps, bias, inputs, config)
+    assert out.shape == (2, 6, h, w) and out.dtype == torch.float32
+    torch.testing.assert_close(out[:, DEPTH], inputs[:, DEPTH], rtol=0, atol=0)
+    # fp32 outputs: only the accumulation's rounding
+    tail = torch.cat([(given[:, MASK] + raw[:, MASK]).clamp(0, 1), given[:, NORMAL] + raw[:, NORMAL],
+                      given[:, DEPTH], ao_output(raw[:, AO], given, config)], dim=1)
+    err = (out.double() - tail).abs()
+    assert (err <= 1e-5 * (magnitude + 1)).all(), err.max()
+    assert (out[:, MASK] >= 0).all() and (out[:, MASK] <= 1).all()
+
+
+def test_tail_checks_its_inputs():
+    features, taps, bias = rand(1, 8, 8, 16, dtype=torch.float16), rand(9, 16, 16, dtype=torch.float16), rand(16)
+    with pytest.raises(ValueError, match=r"recon_tail: inputs are 9x8, larger than the features' 8x8"):
+        recon_tail(features, taps, bias, rand(1, 8, 9, 8), ReconNetConfig())
+    with pytest.raises(ValueError, match=r"recon_tail: inputs must be \(1, 8, H, W\)"):
+        recon_tail(features, taps, bias, rand(2, 8, 8, 8), ReconNetConfig())
+
+
+# ---------------------------------------------------------------- the whole network
+
+
+@pytest.fixture(scope="module", params=AO_PRIORS)
+def shipped(request):
+    """The shipped model, and its weights under each AO prior (the output's AO differs, the rest not)."""
+    net, _ = load_pretrained(DEFAULT_RECON_MODEL, torch.device(DEVICE))
+    net.config = dataclasses.replace(net.config, ao_prior=request.param)
+    return net.eval(), fused_reconnet(net)
+
+
+def reference(net, inputs, warped):
+    with torch.no_grad():
+        return net.double()(inputs.double(), warped.double()).float(), net.float()
+
+
+@pytest.mark.parametrize("b, h, w", [(2, 13, 21), (1, 24, 40)])
+def test_the_fused_shipped_model_equals_reconnet(shipped, b, h, w):
+    net, fused = shipped
+    assert isinstance(fused, FusedReconNet)
+    inputs = recon_batch(b, h, w, seed=17).to(DEVICE)
+    previous, flow = rand(b, 6, h, w, seed=18).sigmoid(), rand(b, 2, h, w, scale=2.0, seed=19)
+    with torch.no_grad():
+        stepped, read = fused.step(inputs, flow, previous)
+        first, first_read = fused.step(inputs, None, None)
+        given = fused(inputs, warp_by_flow(previous, flow))
+    warped = warp_by_flow(previous.double(), flow.double()).float()
+    expected, _ = reference(net, inputs, warped)
+    for out in (stepped, given):
+        assert out.shape == (b, 6, h, w) and out.dtype == torch.float32 and torch.isfinite(out).all()
+        # fp16 features through 9 convolutions: errors of a few 1e-4 on the shipped model
+        torch.testing.assert_close(out, expected, rtol=0, atol=2e-3)
+        torch.testing.assert_close(out[:, DEPTH], inputs[:, DEPTH], rtol=0, atol=0)
+    assert (stepped - given).abs().max() < 2e-3
+    torch.testing.assert_close(read.double(), warped[:, [MASK.start, AO.start]].double(), rtol=1e-3, atol=1e-4)
+    stand_in = net.first_previous(inputs)
+    torch.testing.assert_close(first, reference(net, inputs, stand_in)[0], rtol=0, atol=2e-3)
+    torch.testing.assert_close(first_read, stand_in[:, [MASK.start, AO.start]], rtol=0, atol=0)
+
+
+def test_hard_frames_stay_finite_and_within_fp16s_own_error(shipped):
+    """An all-empty frame, and depths at fp16's limit for the networks under a previous output all
+    ones: finite, in range, and per channel at most 1.5 times as far from the float64 reference as
+    ReconNet under fp16 autocast (at depth 1e4 both are off by tenths on the normals, whose raw
+    values reach hundreds)."""
+    net, fused = shipped
+    h, w = 13, 21
+    empty = recon_batch(1, h, w, seed=20).to(DEVICE)
+    empty[:, :6] = 0
+    deep = recon_batch(1, h, w, seed=21).to(DEVICE)
+    deep[:, DEPTH] = torch.where(deep[:, MASK] > 0, FP16_MAX_DEPTH, 0.0)
+    cases = ((empty, torch.zeros(1, 6, h, w, device=DEVICE)), (deep, torch.ones(1, 6, h, w, device=DEVICE)))
+    for inputs, warped in cases:
+        with torch.no_grad(), torch.autocast(DEVICE, dtype=torch.float16):
+            half = net(inputs, warped).float()
+        with torch.no_grad():
+            out = fused(inputs, warped)
+        expected, _ = reference(net, inputs, warped)
+        assert torch.isfinite(out).all()
+        assert (out[:, MASK] >= 0).all() and (out[:, MASK] <= 1).all()
+        assert (out[:, AO] >= 0).all() and (out[:, AO] <= 1).all()
+        error = (out - expected).abs().amax(dim=(0, 2, 3))
+        assert (error <= 1.5 * (half - expected).abs().amax(dim=(0, 2, 3)) + 2e-3).all(), error
+
+
+def synthetic_frames(count: int, h: int, w: int) -> list[FrameBuffers]:
+    """Random frames as a render gives them (mask, unit normals, depth, AO of 2 rays) and flows."""
+    frames = []
+    for i in range(count):
+        x = recon_batch(1, h, w, seed=30 + i)[0].to(DEVICE)
+        flow = None if i == 0 else rand(h, w, 2, scale=1.5, seed=40 + i)
+        frames.append(FrameBuffers(mask=x[MASK.start], normal=x[NORMAL].permute(1, 2, 0), depth=x[DEPTH.start],
+                                   ao=x[AO.start], flow=flow))
+    return frames
+
+
+def test_a_fused_reconstructor_follows_the_reference_frame_by_frame():
+    """The Reconstructor's fused path (its recurrence, warp and shading) against the fp32 eager
+    one over a short sequence; on CUDA also replayed from CUDA graphs, and `fastest`."""
+    variants = [Reconstructor(device=DEVICE, precision="fp16", fused=True)]
+    if DEVICE == "cuda":
+        variants += [Reconstructor(device=DEVICE, precision="fp16", fused=True, graphs=True),
+                     Reconstructor.fastest(device=DEVICE)]
+        assert isinstance(variants[-1].net, FusedReconNet)
+    reference = Reconstructor(device=DEVICE)
+    shading = ShadingParams()
+    for frame in synthetic_frames(3, 13, 21):
+        expected = reference.reconstruct(frame, 2, 1, shading)
+        for variant in variants:
+            got = variant.reconstruct(frame, 2, 1, shading)
+            torch.testing.assert_close(variant.previous, reference.previous, rtol=0, atol=2e-3)  # the output stacks
+            for name in ("mask", "depth", "ao", "color"):
+                torch.testing.assert_close(getattr(got, name), getattr(expected, name), rtol=0, atol=2e-3)
+            # Unit normals of short output normals (where the input had none) turn fp16's rounding
+            # into 1e-2 (eager fp16 too).
+            torch.testing.assert_close(got.normal, expected.normal, rtol=0, atol=3e-2)
