@@ -285,6 +285,11 @@ class Renderer:
             wp.copy(dense[box], wp.array(np.ascontiguousarray(values), device=self.device))
         return dense
 
+    @property
+    def torch_device(self) -> torch.device:
+        """The renderer's device as torch names it (``cpu``, ``cuda:N``): where its buffers live."""
+        return torch.device(wp.device_to_torch(self.device))
+
     def memory(self) -> MemoryStats:
         """Where the voxels are (dense or sparse) and what paging cost so far."""
         return self._stats if self.pool is None else self.pool.stats
@@ -368,7 +373,7 @@ class RenderPlan:
                        for name, (bit, dtype) in KERNEL_BUFFERS.items()}
         self.tensors = {name: wp.to_torch(self.arrays[name]) for name, (bit, _) in KERNEL_BUFFERS.items() if bits & bit}
         # The staged FrameArgs: torch memory (stream-ordered copies), seen by Warp as one struct.
-        self._args_bytes = torch.zeros(FRAME_DTYPE.itemsize, dtype=torch.uint8, device=wp.device_to_torch(device))
+        self._args_bytes = torch.zeros(FRAME_DTYPE.itemsize, dtype=torch.uint8, device=renderer.torch_device)
         self._args = wp.array(ptr=self._args_bytes.data_ptr(), dtype=kernels.FrameArgs, shape=(1,), device=device)
         self._grid: kernels.Grid | None = None
         self._launches: tuple[tuple, list[wp.Launch]] | None = None  # (grid, voxels and rows) -> launches
@@ -386,7 +391,8 @@ class RenderPlan:
         select the grid of its iso (sparse volumes page its bricks in here)."""
         self.check(request)
         self._grid = self.renderer.grid(request.iso, request.skip)
-        host = torch.from_numpy(frame_args(camera, request, request.step or self.renderer.default_step()).view(np.uint8))
+        args = frame_args(camera, request, request.step or self.renderer.default_step())
+        host = torch.from_numpy(args.view(np.uint8))
         if self.renderer.device.is_cuda:
             # A pinned block of torch's host cache: not reused before this copy has run.
             self._args_bytes.copy_(host.pin_memory(), non_blocking=True)
@@ -425,9 +431,9 @@ class RenderPlan:
         grid = self._grid
         key = (id(grid), getattr(grid, VOXEL_FIELDS[grid.kind]).ptr, bands)
         if self._launches is None or self._launches[0] != key:
-            tiles = -(-self.key[0] // kernels.TILE_W)
+            tiles_x, tile = -(-self.key[0] // kernels.TILE_W), kernels.TILE_W * kernels.TILE_H
             self._launches = key, [
-                wp.launch(kernels.render_kernel, dim=tiles * -(-rows // kernels.TILE_H) * kernels.TILE_W * kernels.TILE_H,
+                wp.launch(kernels.render_kernel, dim=tiles_x * -(-rows // kernels.TILE_H) * tile,
                           inputs=[grid, self._args, row0, rows, *self.arrays.values()], device=self.renderer.device,
                           record_cmd=True)
                 for row0, rows in bands]
