@@ -15,12 +15,14 @@ Pareto benchmark's orbit (:func:`isosr_bench.bench_pareto.bench_cameras`), mean 
 
 Variants on CUDA, all fp16 and NHWC: ``eager``; ``compiled`` (the frame's work after the render,
 :func:`isosr_net.reconstructor.recon_frame`, through inductor); ``+ fast layers`` (channel counts
-padded, :func:`isosr_net.fastpath.fast_reconnet`); ``+ CUDA graph`` (the work replayed as one
-graph); where Triton imports, ``fused`` (the full-resolution layers as fused Triton kernels,
+padded, :func:`isosr_net.fastpath.fast_reconnet`); ``+ CUDA graph`` (through the runner, the
+render, the network and the shading replayed as one graph: :meth:`Reconstructor.render_reconstruct`);
+where Triton imports, ``fused`` (the full-resolution layers as fused Triton kernels,
 :mod:`isosr_net.fused_recon`) and ``fused + CUDA graph`` (:meth:`Reconstructor.fastest`). On CPUs:
-eager fp32. The network's convolutions in GFLOP per frame (:func:`isosr_net.reconnet.macs_per_pixel`)
-and the floor they imply at a bf16 matrix-multiply rate measured in the same run (fp16's on Hopper)
-go beside them.
+eager fp32. Then the fastest variant without the runner: the render and then the network's graph,
+against render, network and shading as one graph. The network's convolutions in GFLOP per frame
+(:func:`isosr_net.reconnet.macs_per_pixel`) and the floor they imply at a bf16 matrix-multiply
+rate measured in the same run (fp16's on Hopper) go beside them.
 
 Fused rows also time each pass of the fused network alone on a rendered frame (CUDA events,
 ``kernels``: ``pack``, ``head``, ``coarse`` (the PyTorch levels), ``fuse``, ``tail``) with its
@@ -70,7 +72,7 @@ def pass_times(net: FusedReconNet, renderer: Renderer, pairs: list, request, ao_
     inputs, previous = None, None
     for camera, prev_camera in pairs[:2]:
         frame = renderer.render(camera, request(prev_camera))
-        inputs, flow = recon_inputs(frame, ao_rays, spp)
+        inputs, flow = recon_inputs(frame, ao_rays, spp, net.config.limits)
         with torch.no_grad():
             previous = net.step(inputs, flow, previous)[0]
     h, w = inputs.shape[-2:]
@@ -120,6 +122,35 @@ def stage_row(renderer: Renderer, iso: float, volume: str, size: tuple[int, int]
     return row
 
 
+def graph_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, int], size_name: str, ao_rays: int,
+               spp: int, frames: int, warmup: int, device: str) -> list[dict]:
+    """CUDA: the frame without the runner, mean ms per frame (CUDA events): the render then the
+    network's graph (``Reconstructor.reconstruct``), against render, network and shading as one
+    graph (``Reconstructor.render_reconstruct``)."""
+    pairs = sequence_cameras(bench_cameras(frames))
+    method = FrameMethod("reconstruct", ao_rays=ao_rays, spp=spp, precision="fp16")
+    recon = Reconstructor.fastest(device=device)
+    runner = make_runner(method, renderer, iso, *size, networks=Networks(lambda *_: recon))
+    shading = runner.shading
+
+    def network_graph(i: int) -> None:
+        camera, prev = pairs[i]
+        recon.reconstruct(renderer.render(camera, runner.render_request(prev)), ao_rays, spp, shading)
+
+    def one_graph(i: int) -> None:
+        camera, prev = pairs[i]
+        recon.render_reconstruct(renderer, camera, runner.render_request(prev), ao_rays, spp, shading)
+
+    rows = []
+    for variant, call in (("render + network graph", network_graph), ("one graph", one_graph)):
+        recon.reset()
+        t = time_frames(call, frames, device, warmup=warmup)
+        rows.append({"volume": volume, "size": size_name, "pixels": f"{size[0]}x{size[1]}", "ao_rays": ao_rays,
+                     "spp": spp, "variant": variant, "method": method.name, "path": t["gpu_ms"],
+                     "wall_ms": t["wall_ms"], "commit": commit()})
+    return rows
+
+
 def main(argv=None) -> list[dict]:
     parser = bench_parser(__doc__)
     parser.add_argument("--volumes", default="", help="comma-separated volume names (default: ct_pitch)")
@@ -146,6 +177,9 @@ def main(argv=None) -> list[dict]:
                 for variant, options in variants(args.device).items():
                     rows.append(stage_row(renderer, iso, name, sizes[size_name], size_name, ao_rays, spp, variant,
                                           options, frames, warmup, args.device, tflops, bandwidth))
+                if args.device.startswith("cuda"):
+                    rows += graph_rows(renderer, iso, name, sizes[size_name], size_name, ao_rays, spp, frames, warmup,
+                                       args.device)
     print_table(rows, ["volume", "size", "ao_rays", "spp", "variant", "full", "path", "added", "render",
                        "network_gflop", "floor_ms"])
     fused = [r for r in rows if "kernels" in r]

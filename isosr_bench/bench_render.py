@@ -5,7 +5,10 @@
 
 Per volume, averaged over a 10-frame orbit: 1920x1080 first hit (mask, normal, depth) with
 and without skipping, 1080p with 128 AO rays, and the 480x270 low-res pass (mask, normal,
-depth, flow). Prints a Markdown table and writes ``benchmarks/results/bench_render_*.json``.
+depth, flow). Then the reconstruction's render (first hit, 1 AO ray, flow at 1080p) per call
+three ways: a fresh ``Renderer.render`` (new buffers), a reused ``RenderPlan``, and on CUDA the
+plan's launch replayed from a CUDA graph (``ms``: CUDA events around each call; ``kernel_ms``:
+the render kernel alone). Prints a Markdown table and writes ``benchmarks/results/bench_render_*.json``.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from .common import bench_parser, kernel_ms, print_table, time_frames, write_res
 FRAMES = 10
 AO_RADIUS = 0.02  # world units: 20 voxels of a 1024^3 volume, 5 of a 256^3 one
 LOWRES_OUTPUTS = ("mask", "normal", "depth", "flow")
+RECON_OUTPUTS = ("mask", "normal", "depth", "ao", "flow")
 FIRST_HIT_OUTPUTS = ("mask", "normal", "depth")
 
 
@@ -94,6 +98,37 @@ def bench_volume(volume: Volume, iso: float, device: str, smoke: bool) -> list[d
     return rows
 
 
+def bench_render_calls(volume: Volume, iso: float, device: str, smoke: bool) -> list[dict]:
+    """The reconstruction's render per call: `Renderer.render`, a `RenderPlan`, the plan in a CUDA graph."""
+    w, h = (320, 180) if smoke else (1920, 1080)
+    renderer = Renderer(volume, device)
+    path = orbit_path(FRAMES + 1, yaw0=20.0, yaw_step=3.0, pitch=20.0, distance=1.8)
+    frames = sequence_requests(path, w, h, iso, RECON_OUTPUTS, ao_samples=1, ao_radius=AO_RADIUS)[1:]
+    plan = renderer.plan(frames[0][1])
+    calls = {"render()": lambda i: renderer.render(*frames[i % FRAMES]),
+             "plan": lambda i: plan.render(*frames[i % FRAMES])}
+    if device.startswith("cuda"):
+        plan.render(*frames[0])
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph):
+            plan.launch()
+
+        def replay(i: int) -> None:
+            plan.stage(*frames[i % FRAMES])
+            graph.replay()
+
+        calls["plan, CUDA graph"] = replay
+    rows = []
+    for variant, call in calls.items():
+        t = time_frames(call, FRAMES, device, warmup=1 if smoke else 3)
+        if device.startswith("cuda") and variant != "plan, CUDA graph":  # Warp times its own launches only
+            t["kernel_ms"] = kernel_ms(call, FRAMES, "render_kernel")
+        rows.append({"volume": volume.name, "voxels": "x".join(map(str, volume.shape)),
+                     "case": f"recon render, AO 1 + flow: {variant}", "size": f"{w}x{h}",
+                     "ms": t.get("gpu_ms", t["wall_ms"]), **t})
+    return rows
+
+
 def bench_flow_fill(volume: Volume, iso: float, device: str, smoke: bool) -> list[dict]:
     """Dense-flow fills at the low-res size: OpenCV Navier-Stokes (CPU) against push-pull."""
     w, h = (80, 45) if smoke else (480, 270)
@@ -131,6 +166,7 @@ def main(argv=None) -> None:
     for volume, iso in cases:
         with wp.ScopedTimer(f"{volume.name} {volume.shape}", print=True):
             rows += bench_volume(volume, iso, args.device, args.smoke)
+            rows += bench_render_calls(volume, iso, args.device, args.smoke)
     rows += bench_flow_fill(*cases[0], args.device, args.smoke)
     if args.device == "cpu":
         rows += bench_cpu_threads(*volumes(True, "cpu")[0])

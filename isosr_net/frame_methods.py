@@ -342,16 +342,22 @@ class FrameRunner(ABC):
         timer = StageTimer(self.device)
         request = self.render_request(prev_camera)
         if slice_ms is None or (self._last_timer is not None and self._last_timer.ms()["render"] < slice_ms):
-            with timer("render"):
-                rendered = self.renderer.render(camera, request)
+            rendered, buffers = self.render_finish(camera, request, timer)
         else:
             rendered = yield from self._render_bands(camera, request, slice_ms, timer)
-        buffers = self.finish(rendered, timer)
+            buffers = self.finish(rendered, timer)
         for name in self.keep:
             if getattr(buffers, name) is None and getattr(rendered, name) is not None:
                 setattr(buffers, name, self._to_frame_size(name, getattr(rendered, name)))
         self._last_timer = timer
         return FrameResult(buffers, [timer], prev_camera is not None and self.recurrent)
+
+    def render_finish(self, camera: Camera, request: RenderRequest,
+                      timer: StageTimer) -> tuple[FrameBuffers, FrameBuffers]:
+        """A frame in one slice: ``(rendered, finished)``, the ray cast then :meth:`finish`."""
+        with timer("render"):
+            rendered = self.renderer.render(camera, request)
+        return rendered, self.finish(rendered, timer)
 
     def _render_bands(self, camera: Camera, request: RenderRequest, slice_ms: float,
                       timer: StageTimer) -> Generator[None, None, FrameBuffers]:
@@ -542,7 +548,9 @@ class OIDNRunner(FrameRunner):
 class ReconstructRunner(FrameRunner):
     """Full resolution, 0 AO rays per hit to the model's ``max_ao_rays`` and 1 ray per pixel to its
     ``max_spp`` (:class:`~isosr_net.reconnet.RayLimits`), reconstructed (and shaded, in one compiled
-    call on GPUs) by the trained reconstruction network."""
+    call on GPUs) by the trained reconstruction network. With a `Reconstructor` made with
+    ``graphs`` on CUDA, a frame in one slice (render, network, shading) is one CUDA graph
+    (:meth:`Reconstructor.render_reconstruct`), timed as the ``render`` stage."""
 
     recurrent = True
     network_class = Reconstructor
@@ -569,6 +577,17 @@ class ReconstructRunner(FrameRunner):
         with timer("network"):  # shading included: one call
             return self.net.reconstruct(rendered, self.method.ao_rays, self.method.spp,
                                         self.shading if self.shade else None)
+
+    def render_finish(self, camera: Camera, request: RenderRequest,
+                      timer: StageTimer) -> tuple[FrameBuffers, FrameBuffers]:
+        if not self.net.graphable(self.renderer, request):
+            return super().render_finish(camera, request, timer)
+        with timer("render"):  # the network and the shading included: one graph
+            rendered, out = self.net.render_reconstruct(self.renderer, camera, request, self.method.ao_rays,
+                                                        self.method.spp, self.shading if self.shade else None)
+        # The plan's buffers are reused next frame: keep copies of those kept.
+        kept = {n: getattr(rendered, n).clone() for n in self.keep if getattr(rendered, n) is not None}
+        return FrameBuffers(**kept), out
 
 
 @register_runner("upscale")

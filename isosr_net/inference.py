@@ -184,10 +184,15 @@ class RecurrentNetwork:
                        lambda deepest: f"fp16 takes depths up to {FP16_MAX_DEPTH:g}, this frame reaches "
                                        f"{deepest:.3g}: use bf16 or fp32")
 
+    def carries(self, height: int, width: int, flow: bool) -> bool:
+        """Whether a frame of input size ``height x width`` warps the previous output: not after a cut
+        (no flow) or a change of frame size (nothing of this size to warp). The one place the
+        recurrent reset is decided."""
+        f = self.upscale_factor
+        return flow and self.previous is not None and tuple(self.previous.shape[-2:]) == (height * f, width * f)
+
     def carried(self, surface: torch.Tensor, flow: torch.Tensor | None) -> tuple[torch.Tensor | None, torch.Tensor | None]:
-        """``(previous, flow)`` to carry into this frame: both None after a cut (no flow) or a change
-        of frame size (nothing of this size to warp). The one place the recurrent reset is decided."""
-        previous = None if flow is None else self.previous
-        if previous is not None and previous.shape[-2:] != tuple(s * self.upscale_factor for s in surface.shape[-2:]):
-            previous = None
-        return previous, None if previous is None else flow.to(self.device)
+        """``(previous, flow)`` to carry into this frame: both None unless it :meth:`carries`."""
+        if not self.carries(*surface.shape[-2:], flow is not None):
+            return None, None
+        return self.previous, flow.to(self.device)

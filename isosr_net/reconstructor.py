@@ -15,11 +15,16 @@ from __future__ import annotations
 import functools
 import os
 from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 import torch
 
 from isosr_render.buffers import FrameBuffers
+from isosr_render.camera import Camera
+from isosr_render.renderer import Renderer, RenderPlan, RenderRequest
 from isosr_render.shading import ShadingParams, shade
 from isosr_render.shapes import check_shape
 from isosr_net.fused_recon import fused_reconnet, fused_runs_on, triton_imports
@@ -30,6 +35,7 @@ from isosr_net.model import read_config
 DEFAULT_RECON_MODEL = Path(__file__).resolve().parent / "recon_model"
 # Captured CUDA graphs kept per Reconstructor (frame sizes x samplings x first frame or not).
 MAX_GRAPHS = 32
+T = TypeVar("T")
 
 
 def recon_limits(model: str | os.PathLike = DEFAULT_RECON_MODEL) -> RayLimits:
@@ -126,6 +132,17 @@ def recon_frame(net: ReconNet, surface: torch.Tensor, ao: torch.Tensor | None, s
     return output, high.mask, high.normal, high.depth, high.ao, color, _ao_in_range(ao)
 
 
+@dataclass
+class FrameGraph:
+    """One captured frame (render, reconstruction, shading): its graph, the render plan whose
+    staged values it reads, and its outputs and input checks (the graph's own tensors)."""
+
+    graph: torch.cuda.CUDAGraph
+    plan: RenderPlan
+    outs: tuple[torch.Tensor | None, ...]
+    checks: InputChecks
+
+
 class Reconstructor(RecurrentNetwork):
     """A trained reconstruction network and one stream's recurrent state.
 
@@ -138,7 +155,8 @@ class Reconstructor(RecurrentNetwork):
             None runs it eagerly.
         graphs: on CUDA, replay that work as one CUDA graph per frame size and sampling, captured
             on first use (no launch or Python overhead per frame; with ``compile``, its
-            mode must not be ``"reduce-overhead"``, which brings graphs of its own).
+            mode must not be ``"reduce-overhead"``, which brings graphs of its own);
+            :meth:`render_reconstruct` replays the render with it, in one graph.
         fused: the network's full-resolution layers as fused Triton kernels
             (:func:`isosr_net.fused_recon.fused_reconnet`, the previous output's warp among them):
             fp16, on CUDA with Triton, without ``fast_layers`` (whose layers it replaces) or ``compile``.
@@ -165,6 +183,19 @@ class Reconstructor(RecurrentNetwork):
         self._captured: OrderedDict[tuple, tuple] = OrderedDict()
         self._pool = torch.cuda.graph_pool_handle() if graphs else None
         self._sampling: dict[tuple[int, int], torch.Tensor] = {}
+        self._own_graphs()
+
+    def _own_graphs(self) -> None:
+        """Empty caches of whole-frame graphs and of the previous outputs they read (a stream's own)."""
+        self._frame_graphs: OrderedDict[tuple, FrameGraph] = OrderedDict()
+        self._states: dict[tuple[int, int], torch.Tensor] = {}
+
+    def own(self) -> "Reconstructor":
+        """As :meth:`RecurrentNetwork.own`; whole-frame graphs hold a stream's state, so the twin
+        captures its own."""
+        twin = super().own()
+        twin._own_graphs()
+        return twin
 
     @classmethod
     def fastest(cls, model: str | Path = DEFAULT_RECON_MODEL, device: str = "cuda",
@@ -229,27 +260,104 @@ class Reconstructor(RecurrentNetwork):
 
     def _replay(self, args: tuple) -> tuple[torch.Tensor, ...]:
         """:func:`recon_frame` replayed from a CUDA graph: captured on first use per frame size,
-        buffers present and shading (after two warm-up calls that compile and autotune), its
-        inputs copied into the graph's own, its outputs the graph's (valid until the next replay)."""
+        buffers present and shading, its inputs copied into the graph's own, its outputs the
+        graph's (valid until the next replay)."""
         key = tuple(None if a is None else tuple(a.shape) if torch.is_tensor(a) else a for a in args)
         if key not in self._captured:
             static = tuple(a.clone() if torch.is_tensor(a) else a for a in args)
-            side = torch.cuda.Stream(self.device)
-            side.wait_stream(torch.cuda.current_stream(self.device))
-            with torch.cuda.stream(side):
-                for _ in range(2):
-                    self._frame(*static)
-            torch.cuda.current_stream(self.device).wait_stream(side)
-            graph = torch.cuda.CUDAGraph()
-            with torch.cuda.graph(graph, pool=self._pool):
-                outs = self._frame(*static)
-            self._captured[key] = (graph, static, outs)
+            self._captured[key] = (*self._capture(lambda: self._frame(*static)), static)
             if len(self._captured) > MAX_GRAPHS:
                 self._captured.popitem(last=False)
         self._captured.move_to_end(key)
-        graph, static, outs = self._captured[key]
+        graph, outs, static = self._captured[key]
         for target, source in zip(static, args):
             if torch.is_tensor(source) and target is not source:
                 target.copy_(source)
         graph.replay()
         return outs
+
+    def _capture(self, work: Callable[[], T]) -> tuple[torch.cuda.CUDAGraph, T]:
+        """``work`` captured as a CUDA graph, after two warm-up calls on a side stream (they compile
+        and autotune), and what the capture returned (the graph's tensors)."""
+        side = torch.cuda.Stream(self.device)
+        side.wait_stream(torch.cuda.current_stream(self.device))
+        with torch.cuda.stream(side):
+            for _ in range(2):
+                work()
+        torch.cuda.current_stream(self.device).wait_stream(side)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph, pool=self._pool):
+            out = work()
+        return graph, out
+
+    def graphable(self, renderer: Renderer, request: RenderRequest) -> bool:
+        """Whether :meth:`render_reconstruct` makes ``request``'s frames in one CUDA graph: with
+        ``graphs``, a dense volume on this device, and no pass after the render kernel (color,
+        flow fill). Sparse volumes page bricks per frame on the host: they render ungraphed."""
+        here = self.device if self.device.index is not None or self.device.type != "cuda" else \
+            torch.device("cuda", torch.cuda.current_device())
+        return (self.graphs and renderer.pool is None and renderer.torch_device == here
+                and "color" not in request.outputs and request.flow_fill == "none")
+
+    def render_reconstruct(self, renderer: Renderer, camera: Camera, request: RenderRequest, ao_rays: int,
+                           spp: int = 1, shading: ShadingParams | None = None) -> tuple[FrameBuffers, FrameBuffers]:
+        """Render ``request`` and reconstruct it: ``(rendered, reconstructed)``.
+
+        Where :meth:`graphable`, the render, the network and the shading replay as one CUDA graph
+        per renderer, request size and buffers, iso, sampling, shading and first frame or not
+        (captured on first use; a new iso or size captures anew): the frame's values go in by the
+        render plan's copy, the previous output is the graph's state tensor. ``rendered`` then
+        holds the plan's buffers (valid until the next frame); ``reconstructed`` is the caller's.
+        Elsewhere: :meth:`Renderer.render` then :meth:`reconstruct`.
+
+        Raises:
+            ValueError: as :meth:`reconstruct` (the state is then left as it was).
+        """
+        if not self.graphable(renderer, request):
+            rendered = renderer.render(camera, request)
+            return rendered, self.reconstruct(rendered, ao_rays, spp, shading)
+        size = (request.height, request.width)
+        carry = self.carries(*size, request.prev_camera is not None)
+        state = self._state(size, self.previous) if carry else None
+        key = (id(renderer), request.plan_key(), float(request.iso), request.skip, ao_rays, spp, shading, carry)
+        entry = self._frame_graphs.get(key)
+        plan = renderer.plan(request) if entry is None else entry.plan
+        plan.stage(camera, request)
+        if entry is None:
+            graph, (outs, checks) = self._capture(lambda: self._graph_work(plan, request, ao_rays, spp, shading, state))
+            entry = self._frame_graphs[key] = FrameGraph(graph, plan, outs, checks)
+            if len(self._frame_graphs) > MAX_GRAPHS:
+                self._frame_graphs.popitem(last=False)
+        self._frame_graphs.move_to_end(key)
+        entry.graph.replay()
+        entry.checks.raise_first()
+        output, mask, normal, depth, ao, color = entry.outs
+        self.previous = self._state(size, output)
+        clone = lambda t: None if t is None else t.clone()  # noqa: E731
+        return plan.buffers(request), FrameBuffers(mask=clone(mask), normal=clone(normal), depth=clone(depth),
+                                                   ao=clone(ao), color=clone(color))
+
+    def _state(self, size: tuple[int, int], previous: torch.Tensor) -> torch.Tensor:
+        """The previous output of frames of ``size`` that the graphs read, made once per size, now
+        holding ``previous`` (copied unless it is that tensor already)."""
+        state = self._states.get(size)
+        if state is None:
+            state = self._states[size] = torch.empty_like(previous)
+        if state is not previous:
+            state.copy_(previous)
+        return state
+
+    def _graph_work(self, plan: RenderPlan, request: RenderRequest, ao_rays: int, spp: int,
+                    shading: ShadingParams | None, previous: torch.Tensor | None) -> tuple[tuple, InputChecks]:
+        """A staged frame's render and :func:`recon_frame`, with no host sync: the outputs but the
+        last (the AO check, queued on the returned checks) and the queued input checks."""
+        plan.launch()
+        rendered = plan.buffers(request)
+        checks = InputChecks()
+        surface, flow = _checked_tensors(rendered, ao_rays, spp, self.limits, checks)
+        self.check_precision(surface, checks)
+        ao = rendered.ao[None, None] if ao_rays else None
+        outs = self._frame(surface, ao, self._sampling_tensor(ao_rays, spp), None if previous is None else flow,
+                           previous, PRECISIONS[self.precision], shading)
+        checks.add(outs[-1], bool, _AO_MESSAGE)
+        return outs[:-1], checks

@@ -101,6 +101,16 @@ class RayParams:
     outputs: int  # OUT_* bits
 
 
+@wp.struct
+class FrameArgs:
+    """One frame's values, read by the kernel from device memory: a launch recorded (or captured
+    in a CUDA graph) once renders each new frame after a copy of this struct."""
+
+    view: View
+    prev: View  # the previous frame's camera (flow); ``view`` when there is none
+    params: RayParams
+
+
 @wp.func
 def voxel(grid: Grid, x: int, y: int, z: int) -> float:
     """The normalized voxel ``(x, y, z)`` of a dense grid."""
@@ -387,16 +397,21 @@ def project_to_pixel(view: View, p: wp.vec3) -> wp.vec3:
 
 
 @wp.kernel
-def render_kernel(grid: Grid, view: View, prev: View, params: RayParams, row0: int, rows: int,
+def render_kernel(grid: Grid, frame: wp.array(dtype=FrameArgs), row0: int, rows: int,
                   mask: wp.array2d(dtype=wp.float32), normal: wp.array2d(dtype=wp.vec3),
                   depth: wp.array2d(dtype=wp.float32), position: wp.array2d(dtype=wp.vec3),
                   flow: wp.array2d(dtype=wp.vec2), ao: wp.array2d(dtype=wp.float32),
                   samples: wp.array2d(dtype=wp.int32)):
     """One pixel of the band ``[row0, row0 + rows)``: first hit per subpixel sample, then the asked buffers.
+    ``frame`` holds one `FrameArgs`.
 
     Threads walk the band in 8x4-pixel tiles, one tile per 32-thread warp, so that a warp's
     rays stay close together (coherent brick walks and cache lines).
     """
+    args = frame[0]
+    view = args.view
+    prev = args.prev
+    params = args.params
     tid = wp.tid()
     tile = tid // (TILE_W * TILE_H)
     lane = tid - tile * (TILE_W * TILE_H)

@@ -48,6 +48,15 @@ GRID_CACHE = 4
 DENSE_SHARE = 0.5
 STORE_KINDS = {"float32": (kernels.STORE_F32, wp.float32), "uint16": (kernels.STORE_U16, wp.uint16),
                "uint8": (kernels.STORE_U8, wp.uint8)}
+# Grid's field that holds the voxels, per Grid.kind.
+VOXEL_FIELDS = {kernels.STORE_F32: "data", kernels.STORE_U16: "data16", kernels.STORE_U8: "data8"}
+# render_kernel's buffers in its argument order: OUT_* bit and Warp type.
+KERNEL_BUFFERS = {"mask": (kernels.OUT_MASK, wp.float32), "normal": (kernels.OUT_NORMAL, wp.vec3),
+                  "depth": (kernels.OUT_DEPTH, wp.float32), "position": (kernels.OUT_POSITION, wp.vec3),
+                  "flow": (kernels.OUT_FLOW, wp.vec2), "ao": (kernels.OUT_AO, wp.float32),
+                  "samples": (kernels.OUT_SAMPLES, wp.int32)}
+# Host layout of kernels.FrameArgs (a numpy record with the ctypes struct's offsets).
+FRAME_DTYPE = np.dtype(kernels.FrameArgs.numpy_dtype())
 
 
 @dataclass(frozen=True)
@@ -125,10 +134,11 @@ class RenderRequest:
             need |= {"mask", "normal"}
         if "flow" in need and self.flow_fill != "none":
             need.add("mask")
-        bits = {"mask": kernels.OUT_MASK, "normal": kernels.OUT_NORMAL, "depth": kernels.OUT_DEPTH,
-                "position": kernels.OUT_POSITION, "flow": kernels.OUT_FLOW, "ao": kernels.OUT_AO,
-                "samples": kernels.OUT_SAMPLES}
-        return sum(bits[name] for name in need if name in bits)
+        return sum(KERNEL_BUFFERS[name][0] for name in need if name in KERNEL_BUFFERS)
+
+    def plan_key(self) -> tuple:
+        """What a :class:`RenderPlan` fixes: size and buffers; the rest may change per frame."""
+        return self.width, self.height, self.outputs, self.flow_fill
 
 
 def warp_device(device: str):
@@ -147,18 +157,26 @@ def device_limit(device, max_device_bytes: int | None) -> int | None:
     return max_device_bytes
 
 
-def _view(camera: Camera, width: int, height: int) -> kernels.View:
-    """The kernel's camera struct."""
+def _fill_view(record: np.ndarray, camera: Camera, width: int, height: int) -> None:
+    """Write a camera into a `kernels.View` record."""
     right, up, back = camera.basis()
-    v = kernels.View()
-    v.eye = wp.vec3(*camera.eye)
-    v.right = wp.vec3(*right)
-    v.up = wp.vec3(*up)
-    v.back = wp.vec3(*back)
-    v.tan_half_fov = camera.tan_half_fov()
-    v.width = width
-    v.height = height
-    return v
+    for name, value in (("eye", camera.eye), ("right", right), ("up", up), ("back", back),
+                        ("tan_half_fov", camera.tan_half_fov()), ("width", width), ("height", height)):
+        record[name] = value
+
+
+def frame_args(camera: Camera, request: RenderRequest, step: float) -> np.ndarray:
+    """One frame's `kernels.FrameArgs` as a host record (:data:`FRAME_DTYPE`, shape (1,))."""
+    args = np.zeros(1, FRAME_DTYPE)
+    _fill_view(args["view"], camera, request.width, request.height)
+    _fill_view(args["prev"], request.prev_camera or camera, request.width, request.height)
+    params = args["params"]
+    for name, value in (("iso", request.iso), ("step", step), ("refine_mode", REFINE_METHODS[request.refine]),
+                        ("refine_steps", request.refine_steps), ("spp", request.spp),
+                        ("ao_samples", request.ao_samples), ("ao_radius", request.ao_radius),
+                        ("seed", request.seed), ("outputs", request.kernel_outputs())):
+        params[name] = value
+    return args
 
 
 class Renderer:
@@ -231,8 +249,7 @@ class Renderer:
 
     def _set_voxels(self, grid: kernels.Grid, array: wp.array) -> None:
         """Point ``grid``'s field of the volume's device type at ``array`` (the voxels or the pool)."""
-        field = {kernels.STORE_F32: "data", kernels.STORE_U16: "data16", kernels.STORE_U8: "data8"}[grid.kind]
-        setattr(grid, field, array)
+        setattr(grid, VOXEL_FIELDS[grid.kind], array)
 
     @classmethod
     def load(cls, source: VoxelSource, device: str = "cpu", **kwargs) -> "Renderer":
@@ -267,6 +284,11 @@ class Renderer:
         for box, values in map_bounded(read, boxes(volume.source), voxels.READ_THREADS):
             wp.copy(dense[box], wp.array(np.ascontiguousarray(values), device=self.device))
         return dense
+
+    @property
+    def torch_device(self) -> torch.device:
+        """The renderer's device as torch names it (``cpu``, ``cuda:N``): where its buffers live."""
+        return torch.device(wp.device_to_torch(self.device))
 
     def memory(self) -> MemoryStats:
         """Where the voxels are (dense or sparse) and what paging cost so far."""
@@ -310,74 +332,126 @@ class Renderer:
         """Half the smallest voxel edge, in world units."""
         return 0.5 * self.volume.voxel_size_world()
 
+    def plan(self, request: RenderRequest) -> "RenderPlan":
+        """Buffers and a launch reused by frames of ``request``'s size and outputs (see :class:`RenderPlan`)."""
+        return RenderPlan(self, request)
+
     def render(self, camera: Camera, request: RenderRequest, rows: tuple[int, int] | None = None) -> FrameBuffers:
-        """Render one frame; buffers come back as torch tensors on the renderer's device.
+        """Render one frame into new buffers; they come back as torch tensors on the renderer's device.
 
         Args:
             rows: render only the image rows ``[start, stop)`` (a focus region); the buffers keep
                 the full image size and hold undefined values (possibly NaN) in the other rows.
         """
-        w, h = request.width, request.height
+        return self.plan(request).render(camera, request, rows)
+
+
+class RenderPlan:
+    """Frames of one size and one set of outputs (:meth:`RenderRequest.plan_key`) on one renderer,
+    rendered into buffers the plan owns.
+
+        plan = renderer.plan(request)
+        for camera, prev in sequence_cameras(path):
+            frame = plan.render(camera, replace(request, prev_camera=prev))  # the plan's buffers
+
+    The buffers are made once. Per frame, :meth:`stage` copies the camera, the previous camera and
+    the ray parameters (iso, step, seed, spp, AO rays...) to the device in one small copy (pinned
+    and asynchronous on the current torch stream on CUDA) and :meth:`launch` runs the kernel,
+    which reads them there: the launch allocates nothing and never waits for the device, so it can
+    be captured in a CUDA graph (``torch.cuda.graph``) and replayed for each frame staged after.
+    A captured launch keeps the iso's grid it was captured with: capture again for another iso.
+
+    The tensors a frame returns are views of the plan's buffers, valid until its next frame:
+    clone what must outlive it.
+    """
+
+    def __init__(self, renderer: Renderer, request: RenderRequest):
+        self.renderer, self.key = renderer, request.plan_key()
+        device, bits, shape = renderer.device, request.kernel_outputs(), (request.height, request.width)
+        # Buffers a request does not ask for are the renderer's 1x1 stand-ins.
+        self.arrays = {name: wp.empty(shape, dtype=dtype, device=device) if bits & bit else renderer._unused[dtype]
+                       for name, (bit, dtype) in KERNEL_BUFFERS.items()}
+        self.tensors = {name: wp.to_torch(self.arrays[name]) for name, (bit, _) in KERNEL_BUFFERS.items() if bits & bit}
+        # The staged FrameArgs: torch memory (stream-ordered copies), seen by Warp as one struct.
+        self._args_bytes = torch.zeros(FRAME_DTYPE.itemsize, dtype=torch.uint8, device=renderer.torch_device)
+        self._args = wp.array(ptr=self._args_bytes.data_ptr(), dtype=kernels.FrameArgs, shape=(1,), device=device)
+        self._grid: kernels.Grid | None = None
+        self._launches: tuple[tuple, list[wp.Launch]] | None = None  # (grid, voxels and rows) -> launches
+
+    def check(self, request: RenderRequest) -> None:
+        """ValueError unless ``request`` has the plan's size, outputs and flow fill."""
+        if request.plan_key() != self.key:
+            w, h, outputs, fill = self.key
+            raise ValueError(f"this render plan renders {w}x{h} {outputs} (flow fill {fill!r}), not "
+                             f"{request.width}x{request.height} {request.outputs} (flow fill {request.flow_fill!r}): "
+                             "make a plan for that request (Renderer.plan)")
+
+    def stage(self, camera: Camera, request: RenderRequest) -> None:
+        """Copy the frame's values to the device (ordered before later work on the torch stream) and
+        select the grid of its iso (sparse volumes page its bricks in here)."""
+        self.check(request)
+        self._grid = self.renderer.grid(request.iso, request.skip)
+        args = frame_args(camera, request, request.step or self.renderer.default_step())
+        host = torch.from_numpy(args.view(np.uint8))
+        if self.renderer.device.is_cuda:
+            # A pinned block of torch's host cache: not reused before this copy has run.
+            self._args_bytes.copy_(host.pin_memory(), non_blocking=True)
+        else:
+            self._args_bytes.copy_(host)
+
+    def launch(self, rows: tuple[int, int] | None = None) -> None:
+        """Render the staged frame into the plan's buffers: on CUDA one kernel on the current torch
+        stream (capturable); on CPUs row bands over the renderer's threads.
+
+        Args:
+            rows: only the image rows ``[start, stop)``; the other rows keep what they held.
+        """
+        if self._grid is None:
+            raise ValueError("render plan: stage a frame before launching it")
+        h = self.key[1]
         row0, row1 = (0, h) if rows is None else rows
         if not 0 <= row0 < row1 <= h:
             raise ValueError(f"rows must satisfy 0 <= start < stop <= height {h}, got {rows}")
-        bits = request.kernel_outputs()
-        params = kernels.RayParams()
-        params.iso = float(request.iso)
-        params.step = float(request.step or self.default_step())
-        params.refine_mode = REFINE_METHODS[request.refine]
-        params.refine_steps = request.refine_steps
-        params.spp = request.spp
-        params.ao_samples = request.ao_samples
-        params.ao_radius = float(request.ao_radius)
-        params.seed = request.seed
-        params.outputs = bits
-        grid = self.grid(request.iso, request.skip)
-
-        def buffer(bit: int, dtype) -> wp.array:
-            # The kernel writes every pixel of an asked buffer.
-            return wp.empty((h, w), dtype=dtype, device=self.device) if bits & bit else self._unused[dtype]
-
-        arrays = {
-            "mask": buffer(kernels.OUT_MASK, wp.float32),
-            "normal": buffer(kernels.OUT_NORMAL, wp.vec3),
-            "depth": buffer(kernels.OUT_DEPTH, wp.float32),
-            "position": buffer(kernels.OUT_POSITION, wp.vec3),
-            "flow": buffer(kernels.OUT_FLOW, wp.vec2),
-            "ao": buffer(kernels.OUT_AO, wp.float32),
-            "samples": buffer(kernels.OUT_SAMPLES, wp.int32),
-        }
-        view = _view(camera, w, h)
-        prev = view if request.prev_camera is None else _view(request.prev_camera, w, h)
-
-        tiles_x = -(-w // kernels.TILE_W)
-
-        def launch(row0: int, rows: int):
-            threads = tiles_x * -(-rows // kernels.TILE_H) * kernels.TILE_W * kernels.TILE_H
-            wp.launch(kernels.render_kernel, dim=threads,
-                      inputs=[grid, view, prev, params, row0, rows, *arrays.values()], device=self.device)
-
-        if self.device.is_cuda:
-            with wp.ScopedStream(wp.stream_from_torch(torch.cuda.current_stream(self.device.ordinal))):
-                launch(row0, row1 - row0)
+        renderer = self.renderer
+        if renderer.device.is_cuda:
+            stream = wp.stream_from_torch(torch.cuda.current_stream(renderer.device.ordinal))
+            for launch in self._recorded(((row0, row1 - row0),)):
+                launch.launch(stream)
+            return
+        bands = np.array_split(np.arange(row0, row1), min(row1 - row0, 4 * renderer.threads))
+        launches = self._recorded(tuple((int(b[0]), len(b)) for b in bands if len(b)))
+        if renderer._pool is None:
+            for launch in launches:
+                launch.launch()
         else:
-            bands = np.array_split(np.arange(row0, row1), min(row1 - row0, 4 * self.threads))
-            jobs = [(int(b[0]), len(b)) for b in bands if len(b)]
-            if self._pool is None:
-                for job in jobs:
-                    launch(*job)
-            else:
-                list(self._pool.map(lambda job: launch(*job), jobs))
+            list(renderer._pool.map(lambda launch: launch.launch(), launches))
 
-        tensors = {name: wp.to_torch(a) for name, a in arrays.items() if a.shape == (h, w)}
-        frame = FrameBuffers()
-        for name in request.outputs:
-            if name == "color":
-                continue
-            setattr(frame, name, tensors[name])
+    def _recorded(self, bands: tuple[tuple[int, int], ...]) -> list[wp.Launch]:
+        """The kernel's launches over row bands ``(row0, rows)``, recorded once per grid, voxel array and bands."""
+        grid = self._grid
+        key = (id(grid), getattr(grid, VOXEL_FIELDS[grid.kind]).ptr, bands)
+        if self._launches is None or self._launches[0] != key:
+            tiles_x, tile = -(-self.key[0] // kernels.TILE_W), kernels.TILE_W * kernels.TILE_H
+            self._launches = key, [
+                wp.launch(kernels.render_kernel, dim=tiles_x * -(-rows // kernels.TILE_H) * tile,
+                          inputs=[grid, self._args, row0, rows, *self.arrays.values()], device=self.renderer.device,
+                          record_cmd=True)
+                for row0, rows in bands]
+        return self._launches[1]
+
+    def buffers(self, request: RenderRequest) -> FrameBuffers:
+        """The rendered frame as ``request`` asks for it: the plan's buffers (views), plus the passes
+        after the kernel that it names (flow fill, color), which make new tensors."""
+        self.check(request)
+        frame = FrameBuffers(**{name: self.tensors[name] for name in request.outputs if name != "color"})
         if "flow" in request.outputs and request.flow_fill != "none":
-            frame.flow = fill_flow(tensors["flow"], tensors["mask"], request.flow_fill)
+            frame.flow = fill_flow(self.tensors["flow"], self.tensors["mask"], request.flow_fill)
         if "color" in request.outputs:
-            ao = tensors["ao"] if bits & kernels.OUT_AO else None
-            frame.color = shade(tensors["mask"], tensors["normal"], ao, request.shading)
+            frame.color = shade(self.tensors["mask"], self.tensors["normal"], self.tensors.get("ao"), request.shading)
         return frame
+
+    def render(self, camera: Camera, request: RenderRequest, rows: tuple[int, int] | None = None) -> FrameBuffers:
+        """One frame: :meth:`stage`, :meth:`launch`, :meth:`buffers`."""
+        self.stage(camera, request)
+        self.launch(rows)
+        return self.buffers(request)

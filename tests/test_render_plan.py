@@ -1,0 +1,156 @@
+"""Tests for isosr_render.renderer.RenderPlan: frames rendered into reused buffers.
+
+A plan's frames must equal fresh renders (`Renderer.render`, which makes new buffers each call)
+bit for bit on the CPU, frame after frame with changing cameras, seeds and isos, in the same
+buffers; the CUDA tests (skipped without CUDA) replay the plan's launch from a CUDA graph.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import DEVICE, field_volume, sphere_sdf, world_grid
+from isosr_render.camera import Camera, orbit
+from isosr_render.renderer import Renderer, RenderRequest
+from isosr_render.volume import Volume
+
+W, H = 48, 36
+CAMERAS = [orbit(30.0, 20.0, 1.2), orbit(37.0, 24.0, 1.15), orbit(45.0, 15.0, 1.3)]
+
+
+@pytest.fixture(scope="module")
+def sphere_renderer(sphere_volume):
+    return Renderer(sphere_volume, DEVICE, threads=2)
+
+
+def request_of(iso: float, outputs: tuple[str, ...], width: int = W, height: int = H, **kw) -> RenderRequest:
+    """A request; one with flow gets a stand-in previous camera (:func:`frames_of` sets each frame's)."""
+    prev = CAMERAS[0] if "flow" in outputs else None
+    return RenderRequest(width, height, iso, outputs, prev_camera=prev, **kw)
+
+
+def frames_of(request: RenderRequest, cameras: list[Camera]) -> list[tuple[Camera, RenderRequest]]:
+    """Per frame, its camera and request: flow against the camera before, a seed per frame."""
+    flow = "flow" in request.outputs
+    return [(cam, dataclasses.replace(request, seed=request.seed + i,
+                                      prev_camera=(cameras[i - 1] if i else cam) if flow else None))
+            for i, cam in enumerate(cameras)]
+
+
+def assert_same(a, b) -> None:
+    assert a.present() == b.present()
+    for name in a.present():
+        torch.testing.assert_close(getattr(a, name), getattr(b, name), rtol=0, atol=0, msg=name)
+
+
+def assert_plan_matches(renderer: Renderer, frames: list[tuple[Camera, RenderRequest]]) -> None:
+    """Every frame of one plan equals a fresh render, in the same buffers, each frame its own."""
+    plan = renderer.plan(frames[0][1])
+    ptrs, previous = None, None
+    for camera, request in frames:
+        got = plan.render(camera, request)
+        assert_same(got, renderer.render(camera, request))
+        kernel_made = [n for n in got.present() if n != "color" and not (n == "flow" and request.flow_fill != "none")]
+        now = {n: getattr(got, n).data_ptr() for n in kernel_made}
+        assert ptrs is None or now == ptrs  # no allocation per frame
+        ptrs = now
+        if previous is not None:  # the frames differ, so stale buffers would be caught
+            assert any(not torch.equal(previous[n], getattr(got, n)) for n in got.present())
+        previous = {n: getattr(got, n).clone() for n in got.present()}
+
+
+REQUESTS = {
+    "geometry": dict(outputs=("mask", "normal", "depth", "position")),
+    "spp 4": dict(outputs=("mask", "normal", "depth"), spp=4),
+    "ao 3 rays": dict(outputs=("mask", "normal", "ao"), ao_samples=3, ao_radius=0.1),
+    "ao spp 4": dict(outputs=("mask", "ao"), ao_samples=2, ao_radius=0.1, spp=4),
+    "flow": dict(outputs=("mask", "normal", "depth", "ao", "flow"), ao_samples=1, ao_radius=0.1),
+    "flow filled": dict(outputs=("flow",), flow_fill="pushpull"),
+    "color and samples": dict(outputs=("color", "samples"), ao_samples=2, ao_radius=0.1),
+    "bisection": dict(outputs=("depth",), refine="bisection", refine_steps=2, step=0.02),
+}
+
+
+@pytest.mark.parametrize("name", REQUESTS)
+def test_plan_frames_equal_fresh_renders(sphere_volume, sphere_renderer, name):
+    request = request_of(sphere_volume.normalized_iso(0.0), **REQUESTS[name])
+    assert_plan_matches(sphere_renderer, frames_of(request, CAMERAS))
+
+
+def test_plan_follows_iso_and_ray_parameters(sphere_volume, sphere_renderer):
+    """Iso (another grid), AO rays and radius change between frames of one plan."""
+    base = RenderRequest(W, H, sphere_volume.normalized_iso(0.0), ("mask", "depth", "ao"), ao_samples=2)
+    changes = [dict(), dict(iso=sphere_volume.normalized_iso(0.05)), dict(ao_samples=5, ao_radius=0.05),
+               dict(iso=sphere_volume.normalized_iso(-0.05), skip=False)]
+    frames = [(CAMERAS[0], dataclasses.replace(base, **c)) for c in changes]
+    assert_plan_matches(sphere_renderer, frames)
+
+
+def test_plan_focus_rows_equal_full_frame_rows(sphere_volume, sphere_renderer):
+    request = RenderRequest(W, H, sphere_volume.normalized_iso(0.0), ("mask", "normal", "depth"))
+    plan = sphere_renderer.plan(request)
+    for camera, rows in zip(CAMERAS, [(0, H), (5, 17), (30, 36)]):
+        got = plan.render(camera, request, rows=rows)
+        full = sphere_renderer.render(camera, request)
+        for name in ("mask", "normal", "depth"):
+            torch.testing.assert_close(getattr(got, name)[slice(*rows)], getattr(full, name)[slice(*rows)],
+                                       rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("case", ["anisotropic tiny", "camera inside", "grazing"])
+def test_plan_hard_views(case):
+    if case == "anisotropic tiny":
+        values = np.zeros((3, 4, 2), dtype=np.float32)
+        values[1:, 1:3] = 1.0
+        volume, iso = Volume.from_array(values, spacing=(1.0, 1.0, 3.0)), 0.5
+        cameras = [orbit(60.0, 20.0, 2.0), orbit(70.0, 30.0, 2.2)]
+    elif case == "camera inside":
+        volume = field_volume(lambda p: np.abs(np.linalg.norm(p, axis=-1) - 0.35) - 0.05, (32, 32, 32))
+        iso = volume.normalized_iso(0.0)
+        cameras = [Camera((0.0, 0.0, 0.0), (0.0, 0.0, -1.0)), Camera((0.05, 0.0, 0.0), (1.0, 0.2, 0.0))]
+    else:
+        volume = field_volume(lambda p: sphere_sdf(p, 0.3), (33, 33, 33))
+        iso = volume.normalized_iso(0.0)
+        cameras = [Camera((0.0, 0.5, 2.0), (0.0, 0.5, 0.0)), Camera((0.5, 0.0, 2.0), (0.5, 0.0, 0.0))]
+    request = request_of(iso, ("mask", "normal", "depth", "ao", "flow"), height=H + 1, ao_samples=2, ao_radius=0.2)
+    assert_plan_matches(Renderer(volume, DEVICE, threads=2), frames_of(request, cameras))
+
+
+def test_plan_refuses_other_requests(sphere_volume, sphere_renderer):
+    request = RenderRequest(W, H, sphere_volume.normalized_iso(0.0), ("mask", "depth"))
+    plan = sphere_renderer.plan(request)
+    with pytest.raises(ValueError, match="stage a frame"):
+        plan.launch()
+    for other in (dataclasses.replace(request, width=W + 8), dataclasses.replace(request, outputs=("mask",)),
+                  dataclasses.replace(request, outputs=("mask", "flow"), prev_camera=CAMERAS[0], flow_fill="ns")):
+        with pytest.raises(ValueError, match="render plan renders 48x36"):
+            plan.render(CAMERAS[0], other)
+    plan.stage(CAMERAS[0], request)
+    with pytest.raises(ValueError, match="rows must satisfy"):
+        plan.launch(rows=(10, H + 1))
+
+
+cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+
+
+@cuda
+def test_plan_launch_replays_from_a_cuda_graph(sphere_volume):
+    """The launch captured once renders every frame staged after it, as fresh renders do."""
+    renderer = Renderer(sphere_volume, "cuda")
+    request = request_of(sphere_volume.normalized_iso(0.0), ("mask", "normal", "depth", "ao", "flow"),
+                         ao_samples=2, ao_radius=0.1)
+    frames = frames_of(request, CAMERAS + [orbit(50.0, 10.0, 1.25)])
+    plan = renderer.plan(frames[1][1])
+    plan.render(*frames[1])  # records the launch and loads the module outside the capture
+    torch.cuda.synchronize()
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        plan.launch()
+    for camera, request in frames[1:]:
+        plan.stage(camera, request)
+        graph.replay()
+        assert_same(plan.buffers(request), renderer.render(camera, request))
