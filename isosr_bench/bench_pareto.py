@@ -7,7 +7,7 @@
 Every method of :mod:`isosr_net.frame_methods` (full resolution with 0-128 AO rays and 1, 2, 4
 rays per pixel; the a-trous filter, the SVGF temporal filter and OIDN (fast and high, where
 ``pyoidn`` is installed; else a line says why not) over 1, 2, 4 AO rays; the reconstruction
-network over 0-8 AO rays at 1, 2, 4 rays per pixel, fp16 on CUDA; x2, x4, x8 nearest,
+network over 0-16 AO rays (to its model's limits) at 1, 2, 4 rays per pixel, fp16 on CUDA; x2, x4, x8 nearest,
 bilinear, bicubic; every upscaling network at fp32, bf16, fp16 on CUDA; fp32 on CPUs) is
 timed as a whole path (render, reconstruction, shading) per frame, in sequence over an
 8-frame orbit so that recurrent state (the networks', SVGF's history) is real, after warm-up
@@ -57,7 +57,7 @@ from isosr_net.flow_warp import warp_by_flow
 from isosr_net.frame_methods import INTERPOLATIONS, FrameMethod, Networks, make_runner, unavailable_kinds
 from isosr_net.metrics import color_instability, eval_region, masked_psnr, masked_ssim
 from isosr_net.model import read_config
-from isosr_net.reconstructor import DEFAULT_RECON_MODEL
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, recon_limits
 from isosr_net.upscaler import DEFAULT_MODEL
 
 from .bench_knobs import parse_models
@@ -102,7 +102,9 @@ def methods(smoke: bool, device: str, models: dict[str, Path]) -> list[FrameMeth
         config = read_config(folder)["model"]
         model = None if folder in (DEFAULT_MODEL, DEFAULT_RECON_MODEL) else str(folder)
         if config.get("type") == "ReconNet":
-            sampling = ((1, 0), (1, 2)) if smoke else [(s, n) for s in (1, 2, 4) for n in (0, 1, 2, 4, 8)]
+            limits = recon_limits(folder)
+            sampling = ((1, 0), (1, 2)) if smoke else [(s, n) for s in (1, 2, 4) for n in (0, 1, 2, 4, 8, 16)
+                                                       if s <= limits.max_spp and n <= limits.max_ao_rays]
             out += [FrameMethod("reconstruct", ao_rays=n, spp=s, precision="fp16" if cuda else "fp32", model=model,
                                 model_name=name) for s, n in sampling]
             continue

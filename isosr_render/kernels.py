@@ -273,8 +273,10 @@ def refine_crossing(grid: Grid, o: wp.vec3, d: wp.vec3, iso: float, t0: float, f
 
 
 @wp.func
-def march(grid: Grid, o: wp.vec3, d: wp.vec3, t_start: float, t_end: float, params: RayParams) -> wp.vec2:
-    """First iso crossing of the ray ``o + t d`` (voxel coordinates) within ``[t_start, t_end]``.
+def march(grid: Grid, o: wp.vec3, d: wp.vec3, t_start: float, t_end: float, params: RayParams,
+          refine_steps: int) -> wp.vec2:
+    """First iso crossing of the ray ``o + t d`` (voxel coordinates) within ``[t_start, t_end]``,
+    its bracket narrowed by ``refine_steps`` (0 where only whether it crosses counts).
 
     Empty bricks are leapt over a whole cube at a time: a brick at Chebyshev distance D >= 1
     from the nearest active brick sits in a cube of (2D - 1)^3 inactive bricks, and the ray
@@ -324,9 +326,8 @@ def march(grid: Grid, o: wp.vec3, d: wp.vec3, t_start: float, t_end: float, para
                 f = sample_volume(grid, o + d * t_s)
                 samples += 1.0
                 if (f >= iso) != (f_prev >= iso):
-                    t_hit = refine_crossing(grid, o, d, iso, t_prev, f_prev, t_s, f,
-                                            params.refine_mode, params.refine_steps)
-                    return wp.vec2(t_hit, samples + float(params.refine_steps))
+                    t_hit = refine_crossing(grid, o, d, iso, t_prev, f_prev, t_s, f, params.refine_mode, refine_steps)
+                    return wp.vec2(t_hit, samples + float(refine_steps))
                 t_prev = t_s
                 f_prev = f
                 k += 1.0
@@ -344,8 +345,10 @@ def voxel_from_world(grid: Grid, p: wp.vec3) -> wp.vec3:
 
 
 @wp.func
-def cast(grid: Grid, origin: wp.vec3, direction: wp.vec3, t_near: float, t_far: float, params: RayParams) -> wp.vec2:
-    """First crossing of a world-space ray (unit ``direction``) in ``[t_near, t_far]``, world units."""
+def cast(grid: Grid, origin: wp.vec3, direction: wp.vec3, t_near: float, t_far: float, params: RayParams,
+         refine_steps: int) -> wp.vec2:
+    """First crossing of a world-space ray (unit ``direction``) in ``[t_near, t_far]``, world units
+    (``refine_steps`` as for :func:`march`)."""
     o = voxel_from_world(grid, origin)
     d = wp.cw_div(direction, grid.scale)
     span = clip_to_grid(grid.size, o, d)
@@ -353,7 +356,7 @@ def cast(grid: Grid, origin: wp.vec3, direction: wp.vec3, t_near: float, t_far: 
     t1 = wp.min(span[1], t_far)
     if t0 > t1:
         return wp.vec2(-1.0, 0.0)
-    return march(grid, o, d, t0, t1, params)
+    return march(grid, o, d, t0, t1, params, refine_steps)
 
 
 @wp.func
@@ -377,7 +380,8 @@ def ambient_occlusion(grid: Grid, p: wp.vec3, n: wp.vec3, params: RayParams, sta
         r = wp.sqrt(u1)
         phi = 2.0 * wp.pi * u2
         dir = tx * (r * wp.cos(phi)) + ty * (r * wp.sin(phi)) + n * wp.sqrt(wp.max(1.0 - u1, 0.0))
-        res = cast(grid, origin, wp.normalize(dir), 0.0, params.ao_radius, params)
+        # Whether the ray is blocked is settled when its crossing is bracketed: no refinement.
+        res = cast(grid, origin, wp.normalize(dir), 0.0, params.ao_radius, params, 0)
         samples += res[1]
         if res[0] >= 0.0:
             hits += 1.0
@@ -442,7 +446,7 @@ def render_kernel(grid: Grid, frame: wp.array(dtype=FrameArgs), row0: int, rows:
         ndc_y = 1.0 - 2.0 * py / float(view.height)
         dir = wp.normalize(view.right * (ndc_x * view.tan_half_fov * aspect)
                            + view.up * (ndc_y * view.tan_half_fov) - view.back)
-        res = cast(grid, view.eye, dir, 0.0, float(BIG), params)
+        res = cast(grid, view.eye, dir, 0.0, float(BIG), params, params.refine_steps)
         sample_count += res[1]
         if res[0] >= 0.0:
             hits += 1.0
