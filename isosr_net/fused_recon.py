@@ -33,8 +33,12 @@ from isosr_render.shapes import check_int, check_shape
 from isosr_net.reconnet import INPUTS, LEVELS, OUTPUTS, RECURRENT, ReconNet
 
 PACKED = 16  # the packed input's channels (isosr_net.fused_kernels.PACKED): 10 used
-# The previous output's channels the network reads (ReconNet.forward), as step returns them.
-RECURRENT_CHANNELS = (MASK.start, AO.start)
+
+
+def recurrent_channels(previous: torch.Tensor) -> torch.Tensor:
+    """The previous output's channels the network reads (ReconNet.forward): mask and AO, (B, 2, H, W).
+    Slices, not an index list, so that a CUDA graph can capture it (no host-to-device copy)."""
+    return torch.cat([previous[:, MASK], previous[:, AO]], dim=1)
 
 
 @functools.cache
@@ -133,10 +137,10 @@ class FusedReconNet(nn.Module):
             raise ValueError("a step with a previous output needs the flow to warp it")
         if not fused_runs_on(inputs.device):
             output, warped = self.reference.step(inputs, flow, previous)
-            return output, warped[:, RECURRENT_CHANNELS]
+            return output, recurrent_channels(warped)
         if previous is None:
             warped = self.first_previous(inputs)
-            return self._fused(inputs, warped, None), warped[:, RECURRENT_CHANNELS]
+            return self._fused(inputs, warped, None), recurrent_channels(warped)
         output, packed = self._fused(inputs, previous, flow, keep_packed=True)
         h, w = inputs.shape[-2:]
         return output, packed[:, :h, :w, INPUTS:INPUTS + RECURRENT].permute(0, 3, 1, 2)
