@@ -172,7 +172,7 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, inp_ptr, out_ptr, h, w, hp, wp, si_b, s
         n = (tl.load(inp_ptr + pixel + SAMPLING_C * si_c, mask=valid, other=0.0).to(tl.float32)
              * tl.load(inp_ptr + pixel + (SAMPLING_C + 1) * si_c, mask=valid, other=0.0).to(tl.float32) * ray_scale)
         p = ((n * rays + 0.5) / (n + 1.0))[:, None]
-        ao = p / (p + (1.0 - p) * tl.exp(-raw))
+        ao = tl.minimum(p / (p + (1.0 - p) * tl.exp(-raw)), 1.0)  # fast division: p / p can pass 1
     out = tl.where(c == MASK_C, tl.minimum(tl.maximum(given + raw, 0.0), 1.0),
                    tl.where(c == DEPTH_C, given, tl.where(c == AO_C, ao, given + raw)))
     tl.store(out_ptr + b * OUT * h * w + c * h * w + offs[:, None], out, mask=valid[:, None] & (c < OUT))
