@@ -180,15 +180,17 @@ class Reconstructor(RecurrentNetwork):
         frame_fn = functools.partial(recon_frame, self.net)
         self._frame = torch.compile(frame_fn, mode=compile, dynamic=False) if compile else frame_fn
         self.graphs = graphs
-        self._captured: OrderedDict[tuple, tuple] = OrderedDict()
-        self._pool = torch.cuda.graph_pool_handle() if graphs else None
         self._sampling: dict[tuple[int, int], torch.Tensor] = {}
         self._own_graphs()
 
     def _own_graphs(self) -> None:
-        """Empty caches of whole-frame graphs and of the previous outputs they read (a stream's own)."""
+        """Empty caches of graphs (network and whole-frame), of the previous outputs they read, and
+        a memory pool for them: a stream's own, so that streams neither share a graph's tensors
+        nor replay into each other's pool."""
+        self._captured: OrderedDict[tuple, tuple] = OrderedDict()
         self._frame_graphs: OrderedDict[tuple, FrameGraph] = OrderedDict()
         self._states: dict[tuple[int, int], torch.Tensor] = {}
+        self._pool = torch.cuda.graph_pool_handle() if self.graphs else None
 
     def own(self) -> "Reconstructor":
         """As :meth:`RecurrentNetwork.own`; whole-frame graphs hold a stream's state, so the twin
@@ -201,17 +203,15 @@ class Reconstructor(RecurrentNetwork):
     def fastest(cls, model: str | Path = DEFAULT_RECON_MODEL, device: str = "cuda",
                 precision: str | None = None) -> "Reconstructor":
         """The variant for interactive use on ``device``: on CUDA, fp16 (``precision`` overrides),
-        NHWC, and where Triton imports the fused full-resolution layers (``fused``) replayed from a
-        CUDA graph, else channel-padded layers (:func:`isosr_net.fastpath.fast_reconnet`) and the
-        frame's work compiled; eager fp32 NHWC elsewhere. On an H100 at 1080p and 4K
-        (``python -m isosr_bench.bench_recon_path``) the whole frame took as long eager, compiled,
-        padded or replayed from a CUDA graph, within run-to-run spread: the network's GPU time,
-        not launches, is what a frame waits for; the fused variants are in the same benchmark."""
-        if torch.device(device).type == "cuda" and fused_runs_on(device) and (precision or "fp16") == "fp16":
-            return cls(model, device, "fp16", channels_last=True, graphs=True, fused=True)
+        NHWC, channel-padded layers (:func:`isosr_net.fastpath.fast_reconnet`), the frame's work
+        compiled and, through :meth:`render_reconstruct`, render, network and shading replayed as
+        one CUDA graph; eager fp32 NHWC elsewhere. The fastest whole frame on an H100
+        (``python -m isosr_bench.bench_recon_path``, ct_pitch, 1 AO ray): 4.56 ms at 1080p and
+        14.2 ms at 4K, against 5.27 and 15.2 ms ungraphed and 4.63 and 15.6 ms with the fused
+        Triton layers (``fused``: their PyTorch coarse levels take 1.0 and 3.4 ms)."""
         if torch.device(device).type == "cuda":
             return cls(model, device, precision or "fp16", channels_last=True, compile="default", autotune=True,
-                       fast_layers=True)
+                       fast_layers=True, graphs=True)
         return cls(model, device, precision or "fp32", channels_last=True)
 
     @property
