@@ -48,6 +48,8 @@ from isosr_render.conventions import AO_RADIUS
 from isosr_render.shapes import check_int
 from isosr_net.frame_methods import FrameMethod, FrameRunner, Networks, make_runner, run_sequence
 from isosr_net.metrics import eval_region, masked_psnr
+from isosr_net.reconnet import RayLimits
+from isosr_net.reconstructor import recon_limits
 
 # Color PSNR of no-AO against many-ray AO above which a scene gets no AO rays (see above).
 AO_MATTERS_DB = 40.0
@@ -61,23 +63,33 @@ REFERENCE_SEED = 1
 OVER_BUDGET_STOP = 2.0
 
 
-def default_candidates(device: str, precision: str | None = None) -> tuple[FrameMethod, ...]:
+def default_candidates(device: str, precision: str | None = None,
+                       limits: RayLimits | None = None) -> tuple[FrameMethod, ...]:
     """The methods the policy considers, roughly cheapest first (the order breaks ties): full
     resolution with 0-64 AO rays and 1-4 rays per pixel, the a-trous filter over 1-4 AO rays, bilinear x2 and
-    x4, the shipped x4 network, and the shipped reconstruction over 1-4 AO rays at 1-4 rays per pixel.
+    x4, the shipped x4 network, and the reconstruction over 1-4 AO rays at 1-4 rays per pixel, and
+    over 8 (spp 2, 4) and 16 (spp 4) where its model takes them (``limits``; None: the shipped
+    model's): a model over the input rays passes the plain render there.
     The networks run in ``precision``; None: each at its fastest (on CUDA the x4 network in bf16, the
     reconstruction in fp16; fp32 elsewhere)."""
     cuda = device.startswith("cuda")
+    limits = limits or recon_limits()
     network = FrameMethod("network", factor=4, precision=precision or ("bf16" if cuda else "fp32"))
     full = [FrameMethod("full", ao_rays=n) for n in (1, 2, 4, 8, 16, 32, 64)]
     atrous = [FrameMethod("atrous", ao_rays=n) for n in (1, 2, 4)]
-    recon = {(n, s): FrameMethod("reconstruct", ao_rays=n, spp=s, precision=precision or ("fp16" if cuda else "fp32"))
-             for s in (1, 2, 4) for n in (1, 2, 4)}
-    return (FrameMethod("upscale", factor=4), FrameMethod("upscale", factor=2), FrameMethod("full"), network,
-            full[0], atrous[0], recon[1, 1], full[1], atrous[1], recon[2, 1], full[2], atrous[2], recon[4, 1],
-            recon[1, 2], full[3], FrameMethod("full", spp=2), recon[2, 2], recon[4, 2], full[4],
-            FrameMethod("full", ao_rays=8, spp=2), FrameMethod("full", spp=4), recon[1, 4], recon[2, 4], recon[4, 4],
-            full[5], full[6], FrameMethod("full", ao_rays=16, spp=4))
+    recon_precision = precision or ("fp16" if cuda else "fp32")
+
+    def recon(ao_rays: int, spp: int) -> FrameMethod | None:  # None where the model does not take them
+        fits = ao_rays <= limits.max_ao_rays and spp <= limits.max_spp
+        return FrameMethod("reconstruct", ao_rays=ao_rays, spp=spp, precision=recon_precision) if fits else None
+
+    order = (FrameMethod("upscale", factor=4), FrameMethod("upscale", factor=2), FrameMethod("full"), network,
+             full[0], atrous[0], recon(1, 1), full[1], atrous[1], recon(2, 1), full[2], atrous[2], recon(4, 1),
+             recon(1, 2), full[3], FrameMethod("full", spp=2), recon(2, 2), recon(4, 2), full[4],
+             FrameMethod("full", ao_rays=8, spp=2), FrameMethod("full", spp=4), recon(1, 4), recon(2, 4),
+             recon(4, 4), recon(8, 2), recon(8, 4), full[5], full[6], FrameMethod("full", ao_rays=16, spp=4),
+             recon(16, 4))
+    return tuple(m for m in order if m is not None)
 
 
 @dataclass(frozen=True)

@@ -21,6 +21,7 @@ import warnings
 from isosr_net.budget import BudgetChoice, BudgetConfig, QualityProbe, choose_method, default_candidates, \
     probe_quality
 from isosr_net.frame_methods import FrameMethod, Networks
+from isosr_net.reconstructor import Reconstructor, recon_limits
 from isosr_render import Camera, Renderer
 
 log = logging.getLogger("isosr.server")
@@ -54,8 +55,9 @@ class AutoPolicy:
                    networks: Networks) -> "AutoPolicy":
         """The default candidates with the server's precision, upscale factor and model folders
         (``models``: network class -> (folder or None, name), as in the views' context)."""
+        recon_folder = models.get(Reconstructor, (None, None))[0]
         candidates = []
-        for m in default_candidates(device, precision):
+        for m in default_candidates(device, precision, None if recon_folder is None else recon_limits(recon_folder)):
             if m.learned:
                 folder, name = models.get(m.runner.network_class, (None, m.model_name))
                 m = dataclasses.replace(m, model=None if folder is None else str(folder), model_name=name,

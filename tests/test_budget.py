@@ -9,8 +9,12 @@ import pytest
 
 from isosr_render import Renderer, open_volume, orbit, resolve_iso
 from conftest import DEVICE
-from isosr_net.budget import AO_MATTERS_DB, BudgetConfig, choose_method, probe_size, render_within_budget
-from isosr_net.frame_methods import FrameMethod
+from isosr_net.budget import (AO_MATTERS_DB, BudgetConfig, choose_method, default_candidates, probe_size,
+                              render_within_budget)
+from isosr_net.frame_methods import FrameMethod, Networks
+from isosr_net.reconnet import RayLimits
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
+from isosr_server.auto import AutoPolicy
 
 SIZE = (96, 64)
 FEW = (FrameMethod("upscale", factor=4), FrameMethod("full"), FrameMethod("full", ao_rays=4),
@@ -138,3 +142,19 @@ def test_isosr_render_budget_ms_prints_the_choice_and_writes_its_frame(tmp_path,
 def test_headroom_outside_0_1_is_refused(headroom):
     with pytest.raises(ValueError, match="headroom"):
         BudgetConfig(headroom=headroom)
+
+
+def test_the_candidates_reach_as_many_rays_as_the_reconstruction_model_takes():
+    def recon_samplings(candidates):
+        return {(m.ao_rays, m.spp) for m in candidates if m.kind == "reconstruct"}
+
+    shipped = recon_samplings(default_candidates("cpu"))
+    assert {(8, 2), (8, 4), (16, 4)} <= shipped and max(n for n, _ in shipped) == 16
+    assert recon_samplings(default_candidates("cpu", limits=RayLimits(8, 2))) == {
+        (n, s) for n in (1, 2, 4) for s in (1, 2)} | {(8, 2)}
+    # A server on the first model (8 AO rays at most) offers no sampling that model refuses.
+    v1 = DEFAULT_RECON_MODEL.parent / "recon_model_v1"
+    policy = AutoPolicy.for_server("cpu", "fp32", 4, {Reconstructor: (v1, "recon")}, 30.0, Networks())
+    served = recon_samplings(policy.candidates)
+    assert max(n for n, _ in served) == 8 and (16, 4) not in served
+    assert all(m.model == str(v1) for m in policy.candidates if m.kind == "reconstruct")
