@@ -46,7 +46,7 @@ def test_names_follow_the_issue():
     (dict(kind="upscale", factor=1), "factor"), (dict(kind="upscale", factor=4, ao_rays=4), "ao_rays"),
     (dict(kind="full", factor=2), "factor"), (dict(kind="upscale", factor=2, interpolation="lanczos"), "interpolation"),
     (dict(kind="network", factor=4, precision="fp8"), "precision"), (dict(kind="full", spp=True), "spp"),
-    (dict(kind="reconstruct", ao_rays=9), r"ao_rays must be an integer in \[0, 8\]"),
+    (dict(kind="reconstruct", ao_rays=17), r"ao_rays must be an integer in \[0, 16\]"),
     (dict(kind="buffers", factor=1), "factor"),
     (dict(kind="reconstruct", spp=8), r"spp must be an integer in \[1, 4\]"),
     (dict(kind="reconstruct", factor=2), "factor"), (dict(kind="svgf"), "ao_rays"),

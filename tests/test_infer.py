@@ -290,7 +290,7 @@ def test_recon_bad_tensors_get_4xx_with_reasons(srv, client, full_frames):
         (good, blobs, {}, 400, "input 'ao' needs the parameter ao_rays"),
         ([t for t in good if t["name"] != "ao"], b"".join(f[n].tobytes() for n in RECON_INPUTS if n != "ao"), rays,
          400, "parameter ao_rays 2 needs the input 'ao'"),
-        (good, blobs, {"ao_rays": 9}, 400, "parameter 'ao_rays' must be an integer in [0, 8], got 9"),
+        (good, blobs, {"ao_rays": 17}, 400, "parameter 'ao_rays' must be an integer in [0, 16], got 17"),
         (good, blobs, rays | {"spp": 0}, 400, "parameter 'spp' must be an integer in [1, 4], got 0"),
         (good, blobs, rays | {"sequence_id": "../x"}, 400, "sequence_id must match"),
         ([tensor(n, big[n]) for n in RECON_INPUTS], b"".join(big[n].tobytes() for n in RECON_INPUTS), rays, 413,

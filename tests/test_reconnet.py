@@ -16,7 +16,7 @@ from isosr_net.budget import color_psnr, reference_frames
 from isosr_net.frame_methods import FrameMethod, make_runner, run_sequence
 from isosr_net.model import save_pretrained
 from isosr_net.reconnet import RayLimits, ReconNet, ReconNetConfig, ao_output, macs_per_pixel
-from isosr_net.reconstructor import Reconstructor, recon_inputs, recon_limits
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor, recon_inputs, recon_limits
 from isosr_net.upscaler import DEFAULT_MODEL
 
 SIZE = (96, 64)  # width, height
@@ -287,14 +287,21 @@ def test_the_shipped_model_loads_without_arguments():
     assert reconstructor.precision == "fp32" and reconstructor.device == torch.device("cpu")
 
 
-def test_the_shipped_model_keeps_its_config_and_its_ao_is_the_sigmoid_of_its_tail(sphere_frames):
-    reconstructor = Reconstructor()
+@pytest.mark.parametrize("model, prior, limits", [(DEFAULT_RECON_MODEL, "rays", RayLimits(16, 4)),
+                                                   (DEFAULT_RECON_MODEL.parent / "recon_model_v1", "none", RayLimits(8, 4))])
+def test_the_shipped_models_keep_their_configs_and_their_ao_is_that_of_their_tail(sphere_frames, model, prior, limits):
+    """The default (over the input rays) and the first model (AO from scratch, a plain sigmoid)."""
+    reconstructor = Reconstructor(model)
     config = reconstructor.net.config
-    assert (config.ao_prior, config.limits) == ("none", RayLimits(8, 4)) == ("none", recon_limits())
-    raws = []
+    assert (config.ao_prior, config.limits, recon_limits(model)) == (prior, limits, limits)
+    raws, inputs = [], []
     reconstructor.net.tail.register_forward_hook(lambda module, args, out: raws.append(out))
+    reconstructor.net.register_forward_pre_hook(lambda module, args: inputs.append(args[0]))
     out = reconstructor.reconstruct(sphere_frames[0], 2, 1)
-    torch.testing.assert_close(out.ao, torch.sigmoid(raws[0][0, AO][0]), rtol=0, atol=0)
+    expected = ao_output(raws[0][:, AO], inputs[0], config)[0, 0]
+    torch.testing.assert_close(out.ao, expected, rtol=0, atol=0)
+    if prior == "none":
+        torch.testing.assert_close(out.ao, torch.sigmoid(raws[0][0, AO][0]), rtol=0, atol=0)
 
 
 @pytest.fixture(scope="module")
@@ -327,8 +334,8 @@ def test_the_frame_method_bounds_are_its_models(wide_model):
     assert FrameMethod("reconstruct", ao_rays=16, spp=2, model=str(wide_model)).ao_rays == 16
     with pytest.raises(ValueError, match=r"reconstruct frame method: spp must be an integer in \[1, 2\], got 4"):
         FrameMethod("reconstruct", spp=4, model=str(wide_model))
-    with pytest.raises(ValueError, match=r"ao_rays must be an integer in \[0, 8\], got 16"):
-        FrameMethod("reconstruct", ao_rays=16)  # the shipped model
+    with pytest.raises(ValueError, match=r"ao_rays must be an integer in \[0, 16\], got 17"):
+        FrameMethod("reconstruct", ao_rays=17)  # the shipped model
     with pytest.raises(ValueError, match="SRNet model, not a reconstruction network"):
         FrameMethod("reconstruct", model=str(DEFAULT_MODEL))
     with pytest.raises(FileNotFoundError, match="config.json is missing"):
