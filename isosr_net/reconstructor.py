@@ -39,12 +39,22 @@ T = TypeVar("T")
 
 
 def recon_limits(model: str | os.PathLike = DEFAULT_RECON_MODEL) -> RayLimits:
-    """The ray limits of a reconstruction model folder, read from its ``config.json`` (not its weights).
+    """The ray limits of a reconstruction model folder, read from its ``config.json`` (not its weights)
+    once per version of that file: the views check each frame's method against them.
 
     Raises:
         FileNotFoundError, ValueError: not a readable model folder (:func:`~isosr_net.model.read_config`),
             or not a ReconNet's.
     """
+    try:
+        version = os.stat(Path(model) / "config.json").st_mtime_ns
+    except OSError:
+        version = None  # read_config says what is wrong
+    return _read_limits(str(model), version)
+
+
+@functools.lru_cache(maxsize=16)
+def _read_limits(model: str, version: int | None) -> RayLimits:
     config = read_config(model)["model"]
     if config.get("type") != "ReconNet":
         raise ValueError(f"{model}: a {config.get('type')} model, not a reconstruction network (ReconNet)")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 
 import pytest
 import torch
@@ -328,6 +329,17 @@ def test_a_model_takes_the_rays_of_its_own_limits(wide_model, sphere, sphere_fra
         reconstructor.reconstruct(sphere_frames[0], 17, 1)
     with pytest.raises(ValueError, match=r"spp must be an integer in \[1, 2\], got 3"):
         reconstructor.reconstruct(sphere_frames[0], 2, 3)
+
+
+def test_ray_limits_follow_a_rewritten_model_folder(tmp_path):
+    """Read once per version of config.json (the views ask per frame), never stale."""
+    save_pretrained(net(seed=3, widths=(4, 4, 8, 8), blocks=1, max_ao_rays=16, max_spp=2), tmp_path)
+    assert recon_limits(tmp_path) == RayLimits(16, 2)
+    save_pretrained(net(seed=3, widths=(4, 4, 8, 8), blocks=1, max_ao_rays=4, max_spp=1), tmp_path)
+    config = tmp_path / "config.json"
+    stamp = config.stat().st_mtime_ns + 10**9  # a second later, whatever the clock's resolution
+    os.utime(config, ns=(stamp, stamp))
+    assert recon_limits(tmp_path) == RayLimits(4, 1)
 
 
 def test_the_frame_method_bounds_are_its_models(wide_model):
