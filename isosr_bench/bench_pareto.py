@@ -7,9 +7,9 @@
 Every method of :mod:`isosr_net.frame_methods` (full resolution with 0-128 AO rays and 1, 2, 4
 rays per pixel; the a-trous filter, the SVGF temporal filter and OIDN (fast and high, where
 ``pyoidn`` is installed; else a line says why not) over 1, 2, 4 AO rays; the reconstruction
-network over 0-16 AO rays (to its model's limits) at 1, 2, 4 rays per pixel, fp16 on CUDA; x2, x4, x8 nearest,
-bilinear, bicubic; every upscaling network at fp32, bf16, fp16 on CUDA; fp32 on CPUs) is
-timed as a whole path (render, reconstruction, shading) per frame, in sequence over an
+network over 0-16 AO rays (to its model's limits) at 1, 2, 4 rays per pixel, fp16 on CUDA; x2,
+x4, x8 nearest, bilinear, bicubic; every upscaling network at fp32, bf16, fp16 on CUDA; fp32 on
+CPUs) is timed as a whole path (render, reconstruction, shading) per frame, in sequence over an
 8-frame orbit so that recurrent state (the networks', SVGF's history) is real, after warm-up
 (CUDA events on GPUs, wall time on CPUs), and each of those frames is scored against a
 reference rendered for it with 4 rays per pixel and 512 AO rays:

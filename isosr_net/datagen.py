@@ -5,8 +5,9 @@ random iso-value; low-res inputs (mask, normal, depth, flow from the previous fr
 AO, and high-res ground truth (mask, normal, depth, AO) with many AO rays and supersampling.
 Each sequence is rendered at one of the configured frame sides (so that the same crop side
 covers whole objects in small frames and a few pixels' worth of AO reach at 4K scale) and
-yields crops (same window in every frame) that the surface covers at least half. One shard per sequence (``safetensors``), listed in ``manifest.json`` with its volume
-and split; a run that is stopped resumes where it stopped and writes the same data.
+yields crops (same window in every frame) that the surface covers at least half. One shard
+per sequence (``safetensors``), listed in ``manifest.json`` with its volume and split; a run
+that is stopped resumes where it stopped and writes the same data.
 """
 
 from __future__ import annotations

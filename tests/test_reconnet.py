@@ -288,8 +288,9 @@ def test_the_shipped_model_loads_without_arguments():
     assert reconstructor.precision == "fp32" and reconstructor.device == torch.device("cpu")
 
 
-@pytest.mark.parametrize("model, prior, limits", [(DEFAULT_RECON_MODEL, "rays", RayLimits(16, 4)),
-                                                   (DEFAULT_RECON_MODEL.parent / "recon_model_v1", "none", RayLimits(8, 4))])
+@pytest.mark.parametrize("model, prior, limits", [
+    (DEFAULT_RECON_MODEL, "rays", RayLimits(16, 4)),
+    (DEFAULT_RECON_MODEL.parent / "recon_model_v1", "none", RayLimits(8, 4))])
 def test_the_shipped_models_keep_their_configs_and_their_ao_is_that_of_their_tail(sphere_frames, model, prior, limits):
     """The default (over the input rays) and the first model (AO from scratch, a plain sigmoid)."""
     reconstructor = Reconstructor(model)
