@@ -84,7 +84,7 @@ def bench_volume(volume: Volume, iso: float, device: str, smoke: bool) -> list[d
             renderer.render(*frames[i % FRAMES + 1])
         t = time_frames(frame, FRAMES, device, warmup=1 if smoke else 3)
         if device.startswith("cuda"):
-            t["kernel_ms"] = kernel_ms(frame, FRAMES, "render_kernel")
+            t["kernel_ms"] = kernel_ms(frame, FRAMES, "render_")
         request = frames[1][1]
         counts = count_samples(renderer, frames[1][0], request)
         ms = t.get("gpu_ms", t["wall_ms"])
@@ -122,7 +122,7 @@ def bench_render_calls(volume: Volume, iso: float, device: str, smoke: bool) -> 
     for variant, call in calls.items():
         t = time_frames(call, FRAMES, device, warmup=1 if smoke else 3)
         if device.startswith("cuda") and variant != "plan, CUDA graph":  # Warp times its own launches only
-            t["kernel_ms"] = kernel_ms(call, FRAMES, "render_kernel")
+            t["kernel_ms"] = kernel_ms(call, FRAMES, "render_")
         rows.append({"volume": volume.name, "voxels": "x".join(map(str, volume.shape)),
                      "case": f"recon render, AO 1 + flow: {variant}", "size": f"{w}x{h}",
                      "ms": t.get("gpu_ms", t["wall_ms"]), **t})

@@ -13,6 +13,11 @@ iso-value; the trilinear interpolant inside a brick is bounded by the brick's vo
 include the one-voxel overlap), so skipping inactive bricks never loses a hit. Rays leap
 over inactive bricks by the Chebyshev distance to the nearest active one and march only
 active bricks. Buffer conventions: :mod:`isosr_render.conventions`.
+
+The voxels are the kernels' own argument, typed per storage (one compiled overload each), and the
+hot functions take the few values they read, never a whole struct: on CUDA each struct passed to
+a sampling function, or copied from device memory and live across the march, cost the render
+kernel 70-80 registers (178 -> 255 per thread on sm_90) and a third of its speed.
 """
 
 from __future__ import annotations
@@ -40,10 +45,6 @@ REFINE_SECANT = wp.constant(1)
 R2_A1 = wp.constant(0.7548776662466927)
 R2_A2 = wp.constant(0.5698402909980532)
 BIG = wp.constant(1.0e30)
-# ``Grid.kind``: the voxels' type on the device.
-STORE_F32 = wp.constant(0)
-STORE_U16 = wp.constant(1)
-STORE_U8 = wp.constant(2)
 # Pixel tile that one warp of threads renders.
 TILE_W = wp.constant(8)
 TILE_H = wp.constant(4)
@@ -51,26 +52,33 @@ TILE_H = wp.constant(4)
 
 @wp.struct
 class Grid:
-    """The volume, its brick distance grid for one iso-value, and the voxel <-> world transform.
+    """The volume's shape and value scale, its brick distance grid for one iso-value, and the voxel <->
+    world transform (the voxels, in their device type, and how they lie, :class:`Dense` or
+    :class:`Sparse`, are the kernels' arguments beside it)."""
 
-    Of ``data``, ``data16`` and ``data8`` the one of type ``kind`` holds the voxels (dense:
-    ``size``; sparse: the brick pool, ``(slots * (brick + 1), brick + 1, brick + 1)``); the
-    others, and ``slots`` when dense, are 1x1x1 stand-ins.
-    """
-
-    data: wp.array3d(dtype=wp.float32)
-    data16: wp.array3d(dtype=wp.uint16)
-    data8: wp.array3d(dtype=wp.uint8)
-    kind: int  # STORE_*
     unit: wp.vec2  # (d0, a): normalized = (voxel - d0) * a
     size: wp.vec3i  # voxels per axis
-    sparse: int
-    slots: wp.array3d(dtype=wp.int32)  # sparse: per brick, its pool slot, -1 if not resident
-    minmax: wp.array3d(dtype=wp.vec2)  # per brick: normalized (min, max) of its voxels and overlap
     dist: wp.array3d(dtype=wp.uint8)  # per brick, for the current iso: Chebyshev distance to an active brick
     brick: int
     scale: wp.vec3  # world = voxel * scale + offset
     offset: wp.vec3
+
+
+@wp.struct
+class Dense:
+    """Voxels of shape ``Grid.size``."""
+
+    brick: int  # unused (a struct needs a field)
+
+
+@wp.struct
+class Sparse:
+    """A pool of resident bricks, ``(slots * (brick + 1), brick + 1, brick + 1)`` voxels, each brick stored with
+    its one-voxel overlap."""
+
+    brick: int
+    slots: wp.array3d(dtype=wp.int32)  # per brick, its pool slot, -1 if not resident
+    minmax: wp.array3d(dtype=wp.vec2)  # per brick: normalized (min, max) of its voxels and overlap
 
 
 @wp.struct
@@ -111,22 +119,9 @@ class FrameArgs:
     params: RayParams
 
 
-@wp.func
-def voxel(grid: Grid, x: int, y: int, z: int) -> float:
-    """The normalized voxel ``(x, y, z)`` of a dense grid."""
-    v = float(0.0)
-    if grid.kind == STORE_U16:
-        v = float(grid.data16[x, y, z])
-    elif grid.kind == STORE_U8:
-        v = float(grid.data8[x, y, z])
-    else:
-        v = grid.data[x, y, z]
-    return (v - grid.unit[0]) * grid.unit[1]
-
-
 @wp.kernel
-def minmax_kernel(grid: Grid, minmax: wp.array3d(dtype=wp.vec2)):
-    """Per brick of a dense grid: min and max of its normalized voxels, including the shared face voxels."""
+def minmax_kernel(voxels: wp.array3d(dtype=Any), grid: Grid, minmax: wp.array3d(dtype=wp.vec2)):
+    """Per brick of dense voxels: min and max of its normalized voxels, including the shared face voxels."""
     bi, bj, bk = wp.tid()
     brick = grid.brick
     x1 = wp.min((bi + 1) * brick, grid.size[0] - 1)
@@ -137,7 +132,7 @@ def minmax_kernel(grid: Grid, minmax: wp.array3d(dtype=wp.vec2)):
     for x in range(bi * brick, x1 + 1):
         for y in range(bj * brick, y1 + 1):
             for z in range(bk * brick, z1 + 1):
-                v = voxel(grid, x, y, z)
+                v = (float(voxels[x, y, z]) - grid.unit[0]) * grid.unit[1]
                 lo = wp.min(lo, v)
                 hi = wp.max(hi, v)
     minmax[bi, bj, bk] = wp.vec2(lo, hi)
@@ -187,7 +182,27 @@ def trilinear(a: wp.array3d(dtype=Any), i: int, j: int, k: int, d0: float, f: wp
 
 
 @wp.func
-def sample_volume(grid: Grid, p: wp.vec3) -> float:
+def lookup(voxels: wp.array3d(dtype=Any), layout: Dense, grid: Grid, i: int, j: int, k: int, f: wp.vec3) -> float:
+    """The normalized trilinear sample at fractions ``f`` of the cell ``(i, j, k)`` of dense voxels."""
+    return trilinear(voxels, i, j, k, grid.unit[0], f) * grid.unit[1]
+
+
+@wp.func
+def lookup(voxels: wp.array3d(dtype=Any), layout: Sparse, grid: Grid, i: int, j: int, k: int, f: wp.vec3) -> float:
+    """The normalized trilinear sample at fractions ``f`` of the cell ``(i, j, k)``, from the brick pool; a
+    brick without a slot holds no surface for the current iso: its minimum (on the iso's side of all its voxels)."""
+    b = layout.brick
+    bi = i // b
+    bj = j // b
+    bk = k // b
+    slot = layout.slots[bi, bj, bk]
+    if slot < 0:
+        return layout.minmax[bi, bj, bk][0]
+    return trilinear(voxels, slot * (b + 1) + i - bi * b, j - bj * b, k - bk * b, grid.unit[0], f) * grid.unit[1]
+
+
+@wp.func
+def sample_volume(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, p: wp.vec3) -> float:
     """Normalized trilinear sample at voxel coordinates ``p``, clamped to the grid."""
     x = wp.clamp(p[0], 0.0, float(grid.size[0] - 1))
     y = wp.clamp(p[1], 0.0, float(grid.size[1] - 1))
@@ -195,34 +210,15 @@ def sample_volume(grid: Grid, p: wp.vec3) -> float:
     i = wp.min(int(x), grid.size[0] - 2)
     j = wp.min(int(y), grid.size[1] - 2)
     k = wp.min(int(z), grid.size[2] - 2)
-    f = wp.vec3(x - float(i), y - float(j), z - float(k))
-    if grid.sparse != 0:
-        b = grid.brick
-        bi = i // b
-        bj = j // b
-        bk = k // b
-        slot = grid.slots[bi, bj, bk]
-        if slot < 0:
-            return grid.minmax[bi, bj, bk][0]
-        i = slot * (b + 1) + i - bi * b
-        j = j - bj * b
-        k = k - bk * b
-    v = float(0.0)
-    if grid.kind == STORE_U16:
-        v = trilinear(grid.data16, i, j, k, grid.unit[0], f)
-    elif grid.kind == STORE_U8:
-        v = trilinear(grid.data8, i, j, k, grid.unit[0], f)
-    else:
-        v = trilinear(grid.data, i, j, k, grid.unit[0], f)
-    return v * grid.unit[1]
+    return lookup(voxels, layout, grid, i, j, k, wp.vec3(x - float(i), y - float(j), z - float(k)))
 
 
 @wp.func
-def gradient_world(grid: Grid, p: wp.vec3) -> wp.vec3:
+def gradient_world(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, p: wp.vec3) -> wp.vec3:
     """Central-difference gradient (one voxel apart) at voxel coordinates ``p``, world units."""
-    dx = sample_volume(grid, p + wp.vec3(1.0, 0.0, 0.0)) - sample_volume(grid, p - wp.vec3(1.0, 0.0, 0.0))
-    dy = sample_volume(grid, p + wp.vec3(0.0, 1.0, 0.0)) - sample_volume(grid, p - wp.vec3(0.0, 1.0, 0.0))
-    dz = sample_volume(grid, p + wp.vec3(0.0, 0.0, 1.0)) - sample_volume(grid, p - wp.vec3(0.0, 0.0, 1.0))
+    dx = sample_volume(voxels, layout, grid, p + wp.vec3(1.0, 0.0, 0.0)) - sample_volume(voxels, layout, grid, p - wp.vec3(1.0, 0.0, 0.0))
+    dy = sample_volume(voxels, layout, grid, p + wp.vec3(0.0, 1.0, 0.0)) - sample_volume(voxels, layout, grid, p - wp.vec3(0.0, 1.0, 0.0))
+    dz = sample_volume(voxels, layout, grid, p + wp.vec3(0.0, 0.0, 1.0)) - sample_volume(voxels, layout, grid, p - wp.vec3(0.0, 0.0, 1.0))
     return wp.cw_div(wp.vec3(dx, dy, dz), 2.0 * grid.scale)
 
 
@@ -245,8 +241,8 @@ def clip_to_grid(size: wp.vec3i, o: wp.vec3, d: wp.vec3) -> wp.vec2:
 
 
 @wp.func
-def refine_crossing(grid: Grid, o: wp.vec3, d: wp.vec3, iso: float, t0: float, f0: float, t1: float, f1: float,
-                    mode: int, steps: int) -> float:
+def refine_crossing(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, o: wp.vec3, d: wp.vec3, iso: float, t0: float,
+                    f0: float, t1: float, f1: float, mode: int, steps: int) -> float:
     """Narrow the bracket ``[t0, t1]`` around the iso crossing, then interpolate linearly."""
     ta = float(t0)
     fa = float(f0)
@@ -259,7 +255,7 @@ def refine_crossing(grid: Grid, o: wp.vec3, d: wp.vec3, iso: float, t0: float, f
             if w < 0.01 or w > 0.99:  # safeguard: a secant stuck at an end (e.g. a plateau) bisects
                 w = 0.5
         tm = ta + w * (tb - ta)
-        fm = sample_volume(grid, o + d * tm)
+        fm = sample_volume(voxels, layout, grid, o + d * tm)
         if (fm >= iso) == (fa >= iso):
             ta = tm
             fa = fm
@@ -273,22 +269,20 @@ def refine_crossing(grid: Grid, o: wp.vec3, d: wp.vec3, iso: float, t0: float, f
 
 
 @wp.func
-def march(grid: Grid, o: wp.vec3, d: wp.vec3, t_start: float, t_end: float, params: RayParams,
-          refine_steps: int) -> wp.vec2:
+def march(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, o: wp.vec3, d: wp.vec3, t_start: float, t_end: float,
+          iso: float, h: float, refine_mode: int, refine_steps: int) -> wp.vec2:
     """First iso crossing of the ray ``o + t d`` (voxel coordinates) within ``[t_start, t_end]``,
     its bracket narrowed by ``refine_steps`` (0 where only whether it crosses counts).
 
     Empty bricks are leapt over a whole cube at a time: a brick at Chebyshev distance D >= 1
     from the nearest active brick sits in a cube of (2D - 1)^3 inactive bricks, and the ray
     jumps to that cube's exit. Active bricks (D = 0) are marched on the global sample lattice
-    ``t_start + k step``, plus one sample at the brick's exit, so crossings between bricks
+    ``t_start + k h``, plus one sample at the brick's exit, so crossings between bricks
     are bracketed too. Returns ``(t_hit, samples)``, ``t_hit < 0`` when there is no crossing.
     """
     b = float(grid.brick)
     nb = wp.vec3i(grid.dist.shape[0], grid.dist.shape[1], grid.dist.shape[2])
     nudge = 1.0e-3 / wp.max(wp.abs(d[0]), wp.max(wp.abs(d[1]), wp.abs(d[2])))  # 1/1000 voxel
-    iso = params.iso
-    h = params.step
     samples = float(0.0)
     t = float(t_start)
     have_prev = int(0)  # whether (t_prev, f_prev) is the sample at t
@@ -313,7 +307,7 @@ def march(grid: Grid, o: wp.vec3, d: wp.vec3, t_start: float, t_end: float, para
         if dist == 0:
             if have_prev == 0:
                 t_prev = t
-                f_prev = sample_volume(grid, o + d * t)
+                f_prev = sample_volume(voxels, layout, grid, o + d * t)
                 samples += 1.0
                 have_prev = 1
             k = wp.floor((t - t_start) / h) + 1.0
@@ -323,10 +317,10 @@ def march(grid: Grid, o: wp.vec3, d: wp.vec3, t_start: float, t_end: float, para
                 if t_s >= t_exit:
                     t_s = wp.min(t_exit, t_end)
                     done = 1
-                f = sample_volume(grid, o + d * t_s)
+                f = sample_volume(voxels, layout, grid, o + d * t_s)
                 samples += 1.0
                 if (f >= iso) != (f_prev >= iso):
-                    t_hit = refine_crossing(grid, o, d, iso, t_prev, f_prev, t_s, f, params.refine_mode, refine_steps)
+                    t_hit = refine_crossing(voxels, layout, grid, o, d, iso, t_prev, f_prev, t_s, f, refine_mode, refine_steps)
                     return wp.vec2(t_hit, samples + float(refine_steps))
                 t_prev = t_s
                 f_prev = f
@@ -345,10 +339,10 @@ def voxel_from_world(grid: Grid, p: wp.vec3) -> wp.vec3:
 
 
 @wp.func
-def cast(grid: Grid, origin: wp.vec3, direction: wp.vec3, t_near: float, t_far: float, params: RayParams,
-         refine_steps: int) -> wp.vec2:
+def cast(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, origin: wp.vec3, direction: wp.vec3, t_near: float,
+         t_far: float, iso: float, step: float, refine_mode: int, refine_steps: int) -> wp.vec2:
     """First crossing of a world-space ray (unit ``direction``) in ``[t_near, t_far]``, world units
-    (``refine_steps`` as for :func:`march`)."""
+    (the ray parameters as for :func:`march`)."""
     o = voxel_from_world(grid, origin)
     d = wp.cw_div(direction, grid.scale)
     span = clip_to_grid(grid.size, o, d)
@@ -356,12 +350,13 @@ def cast(grid: Grid, origin: wp.vec3, direction: wp.vec3, t_near: float, t_far: 
     t1 = wp.min(span[1], t_far)
     if t0 > t1:
         return wp.vec2(-1.0, 0.0)
-    return march(grid, o, d, t0, t1, params, refine_steps)
+    return march(voxels, layout, grid, o, d, t0, t1, iso, step, refine_mode, refine_steps)
 
 
 @wp.func
-def ambient_occlusion(grid: Grid, p: wp.vec3, n: wp.vec3, params: RayParams, state: wp.uint32) -> wp.vec2:
-    """Fraction of cosine-weighted hemisphere rays around ``n`` that escape within the radius.
+def ambient_occlusion(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, p: wp.vec3, n: wp.vec3, iso: float, step: float,
+                      rays: int, radius: float, state: wp.uint32) -> wp.vec2:
+    """Fraction of ``rays`` cosine-weighted hemisphere rays around ``n`` that escape within ``radius``.
 
     Returns ``(ao, samples)``.
     """
@@ -374,18 +369,18 @@ def ambient_occlusion(grid: Grid, p: wp.vec3, n: wp.vec3, params: RayParams, sta
     origin = p + n * (0.5 * wp.min(grid.scale[0], wp.min(grid.scale[1], grid.scale[2])))
     hits = float(0.0)
     samples = float(0.0)
-    for _ in range(params.ao_samples):
+    for _ in range(rays):
         u1 = wp.randf(state)
         u2 = wp.randf(state)
         r = wp.sqrt(u1)
         phi = 2.0 * wp.pi * u2
         dir = tx * (r * wp.cos(phi)) + ty * (r * wp.sin(phi)) + n * wp.sqrt(wp.max(1.0 - u1, 0.0))
         # Whether the ray is blocked is settled when its crossing is bracketed: no refinement.
-        res = cast(grid, origin, wp.normalize(dir), 0.0, params.ao_radius, params, 0)
+        res = cast(voxels, layout, grid, origin, wp.normalize(dir), 0.0, radius, iso, step, REFINE_BISECTION, 0)
         samples += res[1]
         if res[0] >= 0.0:
             hits += 1.0
-    return wp.vec2(1.0 - hits / float(params.ao_samples), samples)
+    return wp.vec2(1.0 - hits / float(rays), samples)
 
 
 @wp.func
@@ -400,23 +395,20 @@ def project_to_pixel(view: View, p: wp.vec3) -> wp.vec3:
     return wp.vec3((ndc_x + 1.0) * 0.5 * float(view.width), (1.0 - ndc_y) * 0.5 * float(view.height), depth)
 
 
-@wp.kernel
-def render_kernel(grid: Grid, frame: wp.array(dtype=FrameArgs), row0: int, rows: int,
-                  mask: wp.array2d(dtype=wp.float32), normal: wp.array2d(dtype=wp.vec3),
-                  depth: wp.array2d(dtype=wp.float32), position: wp.array2d(dtype=wp.vec3),
-                  flow: wp.array2d(dtype=wp.vec2), ao: wp.array2d(dtype=wp.float32),
-                  samples: wp.array2d(dtype=wp.int32)):
-    """One pixel of the band ``[row0, row0 + rows)``: first hit per subpixel sample, then the asked buffers.
-    ``frame`` holds one `FrameArgs`.
+@wp.func
+def trace_pixel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, args: FrameArgs, row0: int, rows: int, tid: int,
+                mask: wp.array2d(dtype=wp.float32), normal: wp.array2d(dtype=wp.vec3),
+                depth: wp.array2d(dtype=wp.float32), position: wp.array2d(dtype=wp.vec3),
+                flow: wp.array2d(dtype=wp.vec2), ao: wp.array2d(dtype=wp.float32),
+                samples: wp.array2d(dtype=wp.int32)):
+    """Thread ``tid``'s pixel of the band ``[row0, row0 + rows)``: first hit per subpixel sample, then the
+    asked buffers.
 
     Threads walk the band in 8x4-pixel tiles, one tile per 32-thread warp, so that a warp's
     rays stay close together (coherent brick walks and cache lines).
     """
-    args = frame[0]
     view = args.view
-    prev = args.prev
     params = args.params
-    tid = wp.tid()
     tile = tid // (TILE_W * TILE_H)
     lane = tid - tile * (TILE_W * TILE_H)
     tiles_x = (view.width + TILE_W - 1) // TILE_W
@@ -446,13 +438,14 @@ def render_kernel(grid: Grid, frame: wp.array(dtype=FrameArgs), row0: int, rows:
         ndc_y = 1.0 - 2.0 * py / float(view.height)
         dir = wp.normalize(view.right * (ndc_x * view.tan_half_fov * aspect)
                            + view.up * (ndc_y * view.tan_half_fov) - view.back)
-        res = cast(grid, view.eye, dir, 0.0, float(BIG), params, params.refine_steps)
+        res = cast(voxels, layout, grid, view.eye, dir, 0.0, float(BIG), params.iso, params.step, params.refine_mode,
+                   params.refine_steps)
         sample_count += res[1]
         if res[0] >= 0.0:
             hits += 1.0
             p_world = view.eye + dir * res[0]
             if (out & (OUT_NORMAL | OUT_AO)) != 0:
-                g = gradient_world(grid, voxel_from_world(grid, p_world))
+                g = gradient_world(voxels, layout, grid, voxel_from_world(grid, p_world))
                 n = -dir  # where the gradient vanishes: face the camera
                 if wp.length(g) > 1.0e-20:
                     n = wp.normalize(g)
@@ -461,13 +454,14 @@ def render_kernel(grid: Grid, frame: wp.array(dtype=FrameArgs), row0: int, rows:
                 n_acc += wp.vec3(wp.dot(n, view.right), wp.dot(n, view.up), wp.dot(n, view.back))
                 if (out & OUT_AO) != 0:
                     state = wp.rand_init(params.seed, (row * view.width + c) * params.spp + s)
-                    occ = ambient_occlusion(grid, p_world, n, params, state)
+                    occ = ambient_occlusion(voxels, layout, grid, p_world, n, params.iso, params.step,
+                                            params.ao_samples, params.ao_radius, state)
                     ao_acc += occ[0]
                     sample_count += occ[1]
             depth_acc += -wp.dot(p_world - view.eye, view.back)
             pos_acc += p_world
             if (out & OUT_FLOW) != 0:
-                q = project_to_pixel(prev, p_world)
+                q = project_to_pixel(args.prev, p_world)
                 if q[2] > 0.0:
                     flow_acc += wp.vec2(q[0] - px, q[1] - py)
 
@@ -491,3 +485,36 @@ def render_kernel(grid: Grid, frame: wp.array(dtype=FrameArgs), row0: int, rows:
         ao[row, c] = ao_acc * inv
     if (out & OUT_SAMPLES) != 0:
         samples[row, c] = int(sample_count)
+
+
+@wp.kernel
+def render_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, args: FrameArgs, row0: int, rows: int,
+                  mask: wp.array2d(dtype=wp.float32), normal: wp.array2d(dtype=wp.vec3),
+                  depth: wp.array2d(dtype=wp.float32), position: wp.array2d(dtype=wp.vec3),
+                  flow: wp.array2d(dtype=wp.vec2), ao: wp.array2d(dtype=wp.float32),
+                  samples: wp.array2d(dtype=wp.int32)):
+    """The frame's pixels (:func:`trace_pixel`), its values ``args`` a launch parameter."""
+    trace_pixel(voxels, layout, grid, args, row0, rows, wp.tid(), mask, normal, depth, position, flow, ao, samples)
+
+
+@wp.kernel(enable_backward=False, module=f"{__name__}.staged")
+def render_staged_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs),
+                         row0: int, rows: int, mask: wp.array2d(dtype=wp.float32), normal: wp.array2d(dtype=wp.vec3),
+                         depth: wp.array2d(dtype=wp.float32), position: wp.array2d(dtype=wp.vec3),
+                         flow: wp.array2d(dtype=wp.vec2), ao: wp.array2d(dtype=wp.float32),
+                         samples: wp.array2d(dtype=wp.int32)):
+    """:func:`render_kernel` with the frame's values read from device memory (``frame`` holds one `FrameArgs`):
+    a launch captured in a CUDA graph renders each frame staged after. Its own module, compiled on first use:
+    the copy costs about 30 registers a thread (it stays live through the march, as the kernel's writes
+    might alias it), so launches that are not captured take the values as a parameter."""
+    trace_pixel(voxels, layout, grid, frame[0], row0, rows, wp.tid(), mask, normal, depth, position, flow, ao, samples)
+
+
+# The voxels' device types and layouts: one compiled overload of each voxel-reading kernel per pair.
+VOXEL_TYPES = (wp.float32, wp.uint16, wp.uint8)
+LAYOUTS = (Dense, Sparse)
+for _dtype in VOXEL_TYPES:
+    wp.overload(minmax_kernel, {"voxels": wp.array3d(dtype=_dtype)})
+    for _layout in LAYOUTS:
+        for _kernel in (render_kernel, render_staged_kernel):
+            wp.overload(_kernel, {"voxels": wp.array3d(dtype=_dtype), "layout": _layout})

@@ -17,6 +17,7 @@ rendered sparse: only the bricks each iso needs are resident (:mod:`isosr_render
 from __future__ import annotations
 
 import os
+import threading
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -44,12 +45,13 @@ MAX_AO_SAMPLES = 4096
 # Cap of the brick distance grid: a ray leaps at most (2 MAX_LEAP - 1) bricks at once.
 MAX_LEAP = 16
 GRID_CACHE = 4
+# Render plans that Renderer.render keeps (one per size and outputs, thread and CUDA stream; each holds
+# one frame's buffers): a plan made per call cost 0.6-0.9 ms of host time on the GPU machine.
+PLAN_CACHE = 4
 # Without a limit, a CUDA renderer keeps a volume dense while it takes at most this share of free memory.
 DENSE_SHARE = 0.5
-STORE_KINDS = {"float32": (kernels.STORE_F32, wp.float32), "uint16": (kernels.STORE_U16, wp.uint16),
-               "uint8": (kernels.STORE_U8, wp.uint8)}
-# Grid's field that holds the voxels, per Grid.kind.
-VOXEL_FIELDS = {kernels.STORE_F32: "data", kernels.STORE_U16: "data16", kernels.STORE_U8: "data8"}
+# The voxels' Warp type on the device, per storage name (see isosr_render.volume).
+STORE_TYPES = {"float32": wp.float32, "uint16": wp.uint16, "uint8": wp.uint8}
 # render_kernel's buffers in its argument order: OUT_* bit and Warp type.
 KERNEL_BUFFERS = {"mask": (kernels.OUT_MASK, wp.float32), "normal": (kernels.OUT_NORMAL, wp.vec3),
                   "depth": (kernels.OUT_DEPTH, wp.float32), "position": (kernels.OUT_POSITION, wp.vec3),
@@ -203,6 +205,8 @@ class Renderer:
         self.device = warp_device(device)
         self.threads = 1 if self.device.is_cuda else (threads or os.cpu_count() or 1)
         wp.load_module(kernels, device=self.device)
+        if self.device.is_cuda:  # the kernel that CUDA graphs capture, loaded before any capture
+            wp.load_module(kernels.render_staged_kernel.module, device=self.device)
         self.brick_size = brick_size
         self.max_device_bytes = max_device_bytes = device_limit(self.device, max_device_bytes)
         self._base = self._base_grid()
@@ -210,46 +214,47 @@ class Renderer:
         if max_device_bytes is None or volume.device_bytes <= max_device_bytes:
             if dense is None:
                 dense = self._upload_dense()
-            elif dense.shape != volume.shape or dense.dtype != STORE_KINDS[volume.storage.name][1]:
+            elif dense.shape != volume.shape or dense.dtype != STORE_TYPES[volume.storage.name]:
                 raise ValueError(f"dense voxels of shape {dense.shape} do not fit the volume {volume.shape} "
                                  f"of {volume.storage.name}")
-            self._set_voxels(self._base, dense)
+            self._dense, self.layout = dense, kernels.Dense()
+            self.layout.brick = brick_size
             bricks = tuple(max(1, -(-(n - 1) // brick_size)) for n in volume.shape)
             self.minmax = wp.empty(bricks, dtype=wp.vec2, device=self.device)
-            wp.launch(kernels.minmax_kernel, dim=bricks, inputs=[self._base, self.minmax], device=self.device)
+            wp.launch(kernels.minmax_kernel, dim=bricks, inputs=[dense, self._base, self.minmax], device=self.device)
             total = int(np.prod(bricks))
             self._stats = MemoryStats("dense", volume.storage.name, volume.device_bytes, volume.device_bytes,
                                       volume.device_bytes, max_device_bytes or 0, total, total)
         else:
             self.pool = BrickPool(volume, self.device, brick_size, max_device_bytes)
             self.minmax = self.pool.minmax
-            self._base.sparse = 1
-            self._base.slots = self.pool.slots
-        self._base.minmax = self.minmax
+            self.layout = kernels.Sparse()
+            self.layout.brick, self.layout.slots, self.layout.minmax = brick_size, self.pool.slots, self.minmax
         wp.synchronize_device(self.device)  # uploads ran on Warp's stream; renders run on torch's
         self._grids: OrderedDict[tuple[float, bool], kernels.Grid] = OrderedDict()
+        self._plans: OrderedDict[tuple, RenderPlan] = OrderedDict()
+        self._plans_lock = threading.Lock()
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
         # 1x1 stand-ins for buffers a request does not ask for.
         self._unused = {t: wp.empty((1, 1), dtype=t, device=self.device) for t in (wp.float32, wp.vec2, wp.vec3, wp.int32)}
 
     def _base_grid(self) -> kernels.Grid:
-        """The iso-independent part of the kernels' grid, with 1x1x1 stand-ins for the arrays."""
+        """The iso-independent part of the kernels' grid (a 1x1x1 stand-in for the distance grid)."""
         grid = kernels.Grid()
-        for name, dtype in (("data", wp.float32), ("data16", wp.uint16), ("data8", wp.uint8), ("slots", wp.int32)):
-            setattr(grid, name, wp.zeros((1, 1, 1), dtype=dtype, device=self.device))
-        grid.kind = STORE_KINDS[self.volume.storage.name][0]
+        grid.dist = wp.zeros((1, 1, 1), dtype=wp.uint8, device=self.device)
         grid.unit = wp.vec2(*self.volume.unit)
         grid.size = wp.vec3i(*self.volume.shape)
-        grid.sparse = 0
         grid.brick = self.brick_size
         scale, offset = self.volume.world_transform()
         grid.scale = wp.vec3(*scale)
         grid.offset = wp.vec3(*offset)
         return grid
 
-    def _set_voxels(self, grid: kernels.Grid, array: wp.array) -> None:
-        """Point ``grid``'s field of the volume's device type at ``array`` (the voxels or the pool)."""
-        setattr(grid, VOXEL_FIELDS[grid.kind], array)
+    @property
+    def voxels(self) -> wp.array:
+        """The voxels on the device in their storage type: dense (the volume's shape) or the brick pool
+        (which may grow as bricks page in), laid out as :attr:`layout` says."""
+        return self._dense if self.pool is None else self.pool.pool
 
     @classmethod
     def load(cls, source: VoxelSource, device: str = "cpu", **kwargs) -> "Renderer":
@@ -265,7 +270,7 @@ class Renderer:
         dtype = np.dtype(source.dtype)
         dense, sink = None, None
         if native_integer(dtype) and (limit is None or int(np.prod(source.shape)) * dtype.itemsize <= limit):
-            kind = STORE_KINDS[f"uint{8 * dtype.itemsize}"][1]
+            kind = STORE_TYPES[f"uint{8 * dtype.itemsize}"]
             dense = wp.empty(tuple(source.shape), dtype=kind, device=target)
 
             def sink(box, values):
@@ -276,7 +281,7 @@ class Renderer:
     def _upload_dense(self) -> wp.array:
         """Stream the volume's source to a dense device array, box by box (host memory: a few boxes)."""
         volume = self.volume
-        dense = wp.empty(volume.shape, dtype=STORE_KINDS[volume.storage.name][1], device=self.device)
+        dense = wp.empty(volume.shape, dtype=STORE_TYPES[volume.storage.name], device=self.device)
 
         def read(box):
             return box, volume.device_box(np.asarray(volume.source.read(*box)))
@@ -295,7 +300,8 @@ class Renderer:
         return self._stats if self.pool is None else self.pool.stats
 
     def grid(self, iso: float, skip: bool = True) -> kernels.Grid:
-        """The kernels' view of the volume for one iso: data plus each brick's distance to an active brick.
+        """The kernels' view of the volume for one iso: its shape and scale, and each brick's distance to an
+        active brick.
 
         Built on the device from the min-max grid (a few small launches) and kept for the
         last few iso-values. A sparse volume first pages in the bricks the iso needs.
@@ -303,13 +309,9 @@ class Renderer:
         key = (float(iso), bool(skip))
         if self.pool is not None:
             self.pool.ensure(iso)
-            self._set_voxels(self._base, self.pool.pool)  # the pool may have grown
         if key in self._grids:
             self._grids.move_to_end(key)
-            grid = self._grids[key]
-            if self.pool is not None:
-                self._set_voxels(grid, self.pool.pool)
-            return grid
+            return self._grids[key]
         shape = self.minmax.shape
         dist = wp.empty(shape, dtype=wp.uint8, device=self.device)
         spare = wp.empty(shape, dtype=wp.uint8, device=self.device)
@@ -339,11 +341,31 @@ class Renderer:
     def render(self, camera: Camera, request: RenderRequest, rows: tuple[int, int] | None = None) -> FrameBuffers:
         """Render one frame into new buffers; they come back as torch tensors on the renderer's device.
 
+        A kept plan of the request's size and outputs renders it (one per thread and CUDA stream, the
+        last :data:`PLAN_CACHE`), and its buffers are copied out: frames never share memory.
+
         Args:
             rows: render only the image rows ``[start, stop)`` (a focus region); the buffers keep
                 the full image size and hold undefined values (possibly NaN) in the other rows.
         """
-        return self.plan(request).render(camera, request, rows)
+        plan = self._kept_plan(request)
+        frame = plan.render(camera, request, rows)
+        owned = {id(t) for t in plan.tensors.values()}
+        return FrameBuffers(**{name: getattr(frame, name).clone() if id(getattr(frame, name)) in owned
+                               else getattr(frame, name) for name in frame.present()})
+
+    def _kept_plan(self, request: RenderRequest) -> RenderPlan:
+        """The kept plan for ``request`` on this thread and CUDA stream (made on first use)."""
+        stream = torch.cuda.current_stream(self.device.ordinal).cuda_stream if self.device.is_cuda else None
+        key = (request.plan_key(), threading.get_ident(), stream)
+        with self._plans_lock:
+            plan = self._plans.get(key)
+            if plan is None:
+                plan = self._plans[key] = self.plan(request)
+                if len(self._plans) > PLAN_CACHE:
+                    self._plans.popitem(last=False)
+            self._plans.move_to_end(key)
+        return plan
 
 
 class RenderPlan:
@@ -354,12 +376,13 @@ class RenderPlan:
         for camera, prev in sequence_cameras(path):
             frame = plan.render(camera, replace(request, prev_camera=prev))  # the plan's buffers
 
-    The buffers are made once. Per frame, :meth:`stage` copies the camera, the previous camera and
-    the ray parameters (iso, step, seed, spp, AO rays...) to the device in one small copy (pinned
-    and asynchronous on the current torch stream on CUDA) and :meth:`launch` runs the kernel,
-    which reads them there: the launch allocates nothing and never waits for the device, so it can
-    be captured in a CUDA graph (``torch.cuda.graph``) and replayed for each frame staged after.
-    A captured launch keeps the iso's grid it was captured with: capture again for another iso.
+    The buffers are made once. Per frame, :meth:`stage` packs the camera, the previous camera and
+    the ray parameters (iso, step, seed, spp, AO rays...) and, on CUDA, copies them to the device
+    (pinned and asynchronous on the current torch stream); :meth:`launch` runs the kernel with them
+    as a launch parameter, or, while a CUDA graph is captured (``torch.cuda.graph``), the kernel that
+    reads them from the device, so that the graph replays each frame staged after. Neither
+    allocates nor waits for the device. A captured launch keeps the iso's grid it was captured
+    with: capture again for another iso.
 
     The tensors a frame returns are views of the plan's buffers, valid until its next frame:
     clone what must outlive it.
@@ -372,11 +395,13 @@ class RenderPlan:
         self.arrays = {name: wp.empty(shape, dtype=dtype, device=device) if bits & bit else renderer._unused[dtype]
                        for name, (bit, dtype) in KERNEL_BUFFERS.items()}
         self.tensors = {name: wp.to_torch(self.arrays[name]) for name, (bit, _) in KERNEL_BUFFERS.items() if bits & bit}
-        # The staged FrameArgs: torch memory (stream-ordered copies), seen by Warp as one struct.
+        # The staged FrameArgs: a launch parameter, and on CUDA a copy in torch memory (stream-ordered
+        # copies) that captured launches read, seen by Warp as one struct.
+        self._values = None
         self._args_bytes = torch.zeros(FRAME_DTYPE.itemsize, dtype=torch.uint8, device=renderer.torch_device)
         self._args = wp.array(ptr=self._args_bytes.data_ptr(), dtype=kernels.FrameArgs, shape=(1,), device=device)
         self._grid: kernels.Grid | None = None
-        self._launches: tuple[tuple, list[wp.Launch]] | None = None  # (grid, voxels and rows) -> launches
+        self._launches: dict[bool, tuple[tuple, list[wp.Launch]]] = {}  # captured? -> (grid, voxels, rows), launches
 
     def check(self, request: RenderRequest) -> None:
         """ValueError unless ``request`` has the plan's size, outputs and flow fill."""
@@ -392,16 +417,14 @@ class RenderPlan:
         self.check(request)
         self._grid = self.renderer.grid(request.iso, request.skip)
         args = frame_args(camera, request, request.step or self.renderer.default_step())
-        host = torch.from_numpy(args.view(np.uint8))
+        self._values = kernels.FrameArgs.ctype.from_buffer_copy(args.tobytes())
         if self.renderer.device.is_cuda:
             # A pinned block of torch's host cache: not reused before this copy has run.
-            self._args_bytes.copy_(host.pin_memory(), non_blocking=True)
-        else:
-            self._args_bytes.copy_(host)
+            self._args_bytes.copy_(torch.from_numpy(args.view(np.uint8)).pin_memory(), non_blocking=True)
 
     def launch(self, rows: tuple[int, int] | None = None) -> None:
         """Render the staged frame into the plan's buffers: on CUDA one kernel on the current torch
-        stream (capturable); on CPUs row bands over the renderer's threads.
+        stream (capturable in a CUDA graph); on CPUs row bands over the renderer's threads.
 
         Args:
             rows: only the image rows ``[start, stop)``; the other rows keep what they held.
@@ -414,30 +437,38 @@ class RenderPlan:
             raise ValueError(f"rows must satisfy 0 <= start < stop <= height {h}, got {rows}")
         renderer = self.renderer
         if renderer.device.is_cuda:
-            stream = wp.stream_from_torch(torch.cuda.current_stream(renderer.device.ordinal))
-            for launch in self._recorded(((row0, row1 - row0),)):
-                launch.launch(stream)
+            stream = torch.cuda.current_stream(renderer.device.ordinal)
+            for launch in self._recorded(((row0, row1 - row0),), torch.cuda.is_current_stream_capturing()):
+                launch.launch(wp.stream_from_torch(stream))
             return
         bands = np.array_split(np.arange(row0, row1), min(row1 - row0, 4 * renderer.threads))
-        launches = self._recorded(tuple((int(b[0]), len(b)) for b in bands if len(b)))
+        launches = self._recorded(tuple((int(b[0]), len(b)) for b in bands if len(b)), False)
         if renderer._pool is None:
             for launch in launches:
                 launch.launch()
         else:
             list(renderer._pool.map(lambda launch: launch.launch(), launches))
 
-    def _recorded(self, bands: tuple[tuple[int, int], ...]) -> list[wp.Launch]:
-        """The kernel's launches over row bands ``(row0, rows)``, recorded once per grid, voxel array and bands."""
-        grid = self._grid
-        key = (id(grid), getattr(grid, VOXEL_FIELDS[grid.kind]).ptr, bands)
-        if self._launches is None or self._launches[0] != key:
+    def _recorded(self, bands: tuple[tuple[int, int], ...], captured: bool) -> list[wp.Launch]:
+        """The kernel's launches over row bands ``(row0, rows)``, recorded once per grid, voxel array and
+        bands: for a CUDA graph (``captured``) the kernel that reads the staged values from the device,
+        else the one that takes them as a parameter (set here for the staged frame)."""
+        grid, voxels, renderer = self._grid, self.renderer.voxels, self.renderer
+        key = (id(grid), voxels.ptr, bands)
+        if self._launches.get(captured, (None,))[0] != key:
+            kernel, args = ((kernels.render_staged_kernel, self._args) if captured
+                            else (kernels.render_kernel, kernels.FrameArgs()))
             tiles_x, tile = -(-self.key[0] // kernels.TILE_W), kernels.TILE_W * kernels.TILE_H
-            self._launches = key, [
-                wp.launch(kernels.render_kernel, dim=tiles_x * -(-rows // kernels.TILE_H) * tile,
-                          inputs=[grid, self._args, row0, rows, *self.arrays.values()], device=self.renderer.device,
+            self._launches[captured] = key, [
+                wp.launch(kernel, dim=tiles_x * -(-rows // kernels.TILE_H) * tile, device=renderer.device,
+                          inputs=[voxels, renderer.layout, grid, args, row0, rows, *self.arrays.values()],
                           record_cmd=True)
                 for row0, rows in bands]
-        return self._launches[1]
+        launches = self._launches[captured][1]
+        if not captured:
+            for launch in launches:
+                launch.set_param_by_name_from_ctype("args", self._values)
+        return launches
 
     def buffers(self, request: RenderRequest) -> FrameBuffers:
         """The rendered frame as ``request`` asks for it: the plan's buffers (views), plus the passes
