@@ -5,7 +5,9 @@ Tolerances of native-type rendering against float32 (same original values): the 
 interpolate ``voxel - d0`` and scale once, float32 normalizes each voxel first; both round
 in float32, so depth may differ by 1e-5 world units and normals by 1e-4, and hit masks may
 differ at a few silhouette pixels (none measured here; the test allows 3). Sparse and dense
-images are identical. ``ISOSR_TEST_DEVICE=cuda`` runs the renders on the GPU.
+images are identical on CPUs; on CUDA they are separate kernel overloads, which the compiler
+may contract into fused multiply-adds differently (:func:`assert_same_render`).
+``ISOSR_TEST_DEVICE=cuda`` runs the renders on the GPU.
 """
 
 from __future__ import annotations
@@ -27,6 +29,25 @@ CAMERA = orbit(30, 20, 1.8)
 def _render(volume: Volume, iso: float, **kwargs) -> dict[str, np.ndarray]:
     request = RenderRequest(64, 48, iso=iso, outputs=OUTPUTS, ao_samples=8, ao_radius=0.05)
     return Renderer(volume, DEVICE, threads=2, **kwargs).render(CAMERA, request).to_numpy()
+
+
+def assert_same_render(got: dict[str, np.ndarray], want: dict[str, np.ndarray], names: tuple[str, ...]) -> None:
+    """Identical on CPUs. On CUDA the dense and sparse kernels round in the last bits apart (FMA
+    contraction differs between two compiled overloads): a hit may flip at a grazing silhouette
+    pixel (at most 3), and values agree to 1e-4 where both images hit (AO: an AO ray may flip,
+    1 / rays, on at most 1% of the pixels)."""
+    if DEVICE == "cpu":
+        for name in names:
+            np.testing.assert_array_equal(got[name], want[name], err_msg=name)
+        return
+    both = (got["mask"] == 1) & (want["mask"] == 1)
+    assert (got["mask"] != want["mask"]).sum() <= 3
+    for name in names:
+        diff = np.abs(got[name] - want[name])[both]
+        if name == "ao":
+            assert (diff > 1e-4).mean() <= 0.01, name
+        else:
+            assert diff.max() <= 1e-4, name
 
 
 def _original(source) -> np.ndarray:
@@ -122,8 +143,7 @@ def test_sparse_volume_renders_like_dense_and_pages_only_the_difference():
         got = renderer.render(CAMERA, request).to_numpy()
         want = _render(volume, iso)
         assert want["mask"].sum() > 100
-        for name in OUTPUTS:
-            np.testing.assert_array_equal(got[name], want[name], err_msg=name)
+        assert_same_render(got, want, OUTPUTS)
     stats = renderer.memory()
     assert stats.mode == "sparse" and stats.resident_bytes <= limit < stats.dense_bytes
     assert stats.page_ins == 2 and 0 < stats.bricks_needed < stats.bricks_total
@@ -143,8 +163,7 @@ def test_sparse_pool_evicts_old_bricks_and_refuses_an_iso_that_cannot_fit():
         request = RenderRequest(48, 40, iso=iso, outputs=("mask", "depth"))
         got = renderer.render(CAMERA, request).to_numpy()
         want = Renderer(volume, DEVICE, threads=2).render(CAMERA, request).to_numpy()
-        for name in ("mask", "depth"):
-            np.testing.assert_array_equal(got[name], want[name], err_msg=name)
+        assert_same_render(got, want, ("mask", "depth"))
     assert renderer.memory().resident_bytes <= limit
     tiny = Renderer(volume, DEVICE, threads=1, max_device_bytes=10 * probe.pool.brick_bytes)
     with pytest.raises(DeviceMemoryError, match=r"needs \d+ bricks .* raise max_device_bytes"):
