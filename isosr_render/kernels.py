@@ -497,16 +497,21 @@ def render_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, args: 
     trace_pixel(voxels, layout, grid, args, row0, rows, wp.tid(), mask, normal, depth, position, flow, ao, samples)
 
 
-@wp.kernel(enable_backward=False, module=f"{__name__}.staged")
+# As many registers as render_kernel takes: what the copy of the frame's values adds (about 30) the
+# compiler then keeps in the stack (136 bytes, read once per ray) instead of costing occupancy (254 registers).
+STAGED_MAX_REGISTERS = 168
+
+
+@wp.kernel(enable_backward=False, cuda_max_registers=STAGED_MAX_REGISTERS, module=f"{__name__}.staged")
 def render_staged_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs),
                          row0: int, rows: int, mask: wp.array2d(dtype=wp.float32), normal: wp.array2d(dtype=wp.vec3),
                          depth: wp.array2d(dtype=wp.float32), position: wp.array2d(dtype=wp.vec3),
                          flow: wp.array2d(dtype=wp.vec2), ao: wp.array2d(dtype=wp.float32),
                          samples: wp.array2d(dtype=wp.int32)):
     """:func:`render_kernel` with the frame's values read from device memory (``frame`` holds one `FrameArgs`):
-    a launch captured in a CUDA graph renders each frame staged after. Its own module, compiled on first use:
-    the copy costs about 30 registers a thread (it stays live through the march, as the kernel's writes
-    might alias it), so launches that are not captured take the values as a parameter."""
+    a launch captured in a CUDA graph renders each frame staged after. Its own module, loaded only where
+    graphs may be captured (CUDA): the copy stays live through the march (the kernel's writes might alias
+    it), so launches that are not captured take the values as a parameter."""
     trace_pixel(voxels, layout, grid, frame[0], row0, rows, wp.tid(), mask, normal, depth, position, flow, ao, samples)
 
 

@@ -1,0 +1,114 @@
+"""Registers and stack per CUDA kernel of a Warp module, compiled by NVRTC for a GPU architecture on
+any machine (no GPU or driver needed: Warp's wheel carries NVRTC).
+
+    python -m isosr_bench.kernel_resources                      # the renderer's kernels for sm_90 (H100/H200)
+    python -m isosr_bench.kernel_resources --arch 80 --modules isosr_render.kernels
+
+Registers bound how many threads an SM keeps in flight (65536 per SM: 168 registers a thread
+leave 12 warps, 255 leave 8), and the ray caster is latency-bound: on an H100 the render
+kernel at 255 registers and a 120-byte stack took 1.3-1.4 times as long as at 166-168
+(``docs/measurements.md``, the bisection of the full-resolution regression). Read from the
+cubin's ``.nv.info`` attributes (ELF64): ``registers`` (EIATTR_REGCOUNT) and ``stack`` bytes
+(EIATTR_MIN_STACK_SIZE, the stack of a kernel without recursion: spills and local arrays).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import struct
+import tempfile
+from pathlib import Path
+
+# The renderer's modules: its kernels, and the staged render kernel (CUDA graphs) in a module of its own.
+RENDER_MODULES = ("isosr_render.kernels", "isosr_render.kernels.staged")
+EIATTR = {0x2F: "registers", 0x12: "stack"}
+EIFMT_SVAL = 0x04  # a record with a 16-bit size and that many bytes; the other formats take 4 bytes in all
+
+
+def cubin_resources(cubin: bytes) -> dict[str, dict[str, int]]:
+    """Per kernel (its symbol) of an ELF64 cubin: ``registers`` and ``stack`` bytes."""
+    shoff = struct.unpack_from("<Q", cubin, 0x28)[0]
+    entsize, count, names_index = struct.unpack_from("<HHH", cubin, 0x3A)
+    # (name, type, flags, addr, offset, size, link, info, align, entsize) per section
+    sections = [struct.unpack_from("<IIQQQQIIQQ", cubin, shoff + i * entsize) for i in range(count)]
+
+    def body(section) -> bytes:
+        return cubin[section[4]:section[4] + section[5]]
+
+    def name(offset: int, table: bytes) -> str:
+        return table[offset:table.index(b"\0", offset)].decode()
+
+    section_names = body(sections[names_index])
+    symtab = next(s for s in sections if s[1] == 2)  # SHT_SYMTAB
+    symbols, symbol_names = body(symtab), body(sections[symtab[6]])
+    out: dict[str, dict[str, int]] = {}
+    for section in sections:
+        if name(section[0], section_names) != ".nv.info":
+            continue
+        data, i = body(section), 0
+        while i < len(data):
+            fmt, attr = data[i], data[i + 1]
+            size = struct.unpack_from("<H", data, i + 2)[0] if fmt == EIFMT_SVAL else 0
+            if fmt == EIFMT_SVAL and attr in EIATTR:
+                symbol, value = struct.unpack_from("<II", data, i + 4)
+                kernel = name(struct.unpack_from("<I", symbols, symbol * 24)[0], symbol_names)
+                out.setdefault(kernel, {})[EIATTR[attr]] = value
+            i += 4 + size
+    return out
+
+
+def overload_names(module: str) -> dict[str, str]:
+    """Each compiled kernel's name (``render_kernel_<hash>``) to a readable one: the key and the types
+    its generic arguments take (``render_kernel(uint8, Dense)``). Read after the module is compiled."""
+    import warp as wp
+
+    names = {}
+    for kernel in [k for k in wp.get_module(module).kernels.values()]:
+        generic = [i for i, arg in enumerate(kernel.adj.args) if "Any" in repr(arg.type)]
+        for overload in kernel.overloads.values() if kernel.overloads else [kernel]:
+            args = overload.adj.args
+            types = [getattr(args[i].type, "dtype", args[i].type) for i in generic]
+            label = ", ".join(getattr(t, "key", getattr(t, "__name__", str(t))) for t in types)
+            names[overload.get_mangled_name()] = f"{kernel.key}({label})" if label else kernel.key
+    return names
+
+
+def module_resources(module: str, arch: int = 90) -> dict[str, dict[str, int]]:
+    """Per kernel (:func:`overload_names`) of Warp module ``module`` (a Python module's name, or a Warp
+    module named with ``@wp.kernel(module=...)`` below one), compiled for ``sm_<arch>``:
+    ``registers`` and ``stack``."""
+    import warp as wp
+
+    wp.init()
+    parent = module
+    while True:  # import the Python module that defines it
+        try:
+            importlib.import_module(parent)
+            break
+        except ModuleNotFoundError:
+            if "." not in parent:
+                raise
+            parent = parent.rsplit(".", 1)[0]
+    with tempfile.TemporaryDirectory() as out:
+        wp.compile_aot_module(module, arch=arch, module_dir=out, use_ptx=False)
+        found = {}
+        for cubin in Path(out).glob("*.cubin"):
+            found.update(cubin_resources(cubin.read_bytes()))
+    names = overload_names(module)
+    return {names.get(k.removesuffix("_cuda_kernel_forward"), k): v for k, v in found.items()}
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--arch", type=int, default=90, help="compute capability x10 (90: H100/H200)")
+    parser.add_argument("--modules", default=",".join(RENDER_MODULES), help="comma-separated Warp modules")
+    args = parser.parse_args(argv)
+    print(f"| module | kernel | registers | stack (bytes) |  sm_{args.arch}\n|---|---|---|---|")
+    for module in args.modules.split(","):
+        for kernel, r in sorted(module_resources(module, args.arch).items()):
+            print(f"| {module} | {kernel} | {r.get('registers')} | {r.get('stack')} |")
+
+
+if __name__ == "__main__":
+    main()
