@@ -1,13 +1,16 @@
 """Tests for isosr_render.renderer.RenderPlan: frames rendered into reused buffers.
 
-A plan's frames must equal fresh renders (`Renderer.render`, which makes new buffers each call)
-bit for bit on the CPU, frame after frame with changing cameras, seeds and isos, in the same
-buffers; the CUDA tests (skipped without CUDA) replay the plan's launch from a CUDA graph.
+A plan's frames must equal `Renderer.render`'s (a kept plan of its own, buffers copied out) bit for
+bit on the CPU, frame after frame with changing cameras, seeds and isos, in the same buffers;
+`Renderer.render`'s frames own their memory, per thread; the CUDA tests (skipped without CUDA)
+replay the plan's launch from a CUDA graph, whose staged kernel reads the frame's values from
+device memory.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -15,7 +18,7 @@ import torch
 
 from conftest import DEVICE, field_volume, sphere_sdf, world_grid
 from isosr_render.camera import Camera, orbit
-from isosr_render.renderer import Renderer, RenderRequest
+from isosr_render.renderer import PLAN_CACHE, Renderer, RenderRequest
 from isosr_render.volume import Volume
 
 W, H = 48, 36
@@ -132,6 +135,35 @@ def test_plan_refuses_other_requests(sphere_volume, sphere_renderer):
     plan.stage(CAMERAS[0], request)
     with pytest.raises(ValueError, match="rows must satisfy"):
         plan.launch(rows=(10, H + 1))
+
+
+def test_render_frames_own_their_memory(sphere_volume, sphere_renderer):
+    """Renderer.render reuses a kept plan, yet a frame is not overwritten by the next one."""
+    request = request_of(sphere_volume.normalized_iso(0.0), ("mask", "normal", "depth", "ao", "flow"),
+                         ao_samples=2, ao_radius=0.1)
+    frames = frames_of(request, CAMERAS)
+    first = sphere_renderer.render(*frames[0])
+    kept = {n: getattr(first, n).clone() for n in first.present()}
+    second = sphere_renderer.render(*frames[1])
+    for name in first.present():
+        assert getattr(first, name).data_ptr() != getattr(second, name).data_ptr(), name
+        torch.testing.assert_close(getattr(first, name), kept[name], rtol=0, atol=0, msg=name)
+    assert any(not torch.equal(getattr(first, n), getattr(second, n)) for n in first.present())
+
+
+def test_render_from_threads_equals_serial_renders(sphere_volume):
+    """Threads rendering at once through one renderer each get their own kept plan; plans beyond
+    PLAN_CACHE are dropped."""
+    renderer = Renderer(sphere_volume, DEVICE, threads=1)
+    requests = [request_of(sphere_volume.normalized_iso(0.0), ("mask", "depth", "ao"), width=W + 8 * i,
+                           ao_samples=1, ao_radius=0.1, seed=i) for i in range(PLAN_CACHE + 2)]
+    jobs = [(CAMERAS[i % len(CAMERAS)], requests[i % len(requests)]) for i in range(24)]
+    want = [renderer.render(camera, request) for camera, request in jobs]
+    with ThreadPoolExecutor(4) as pool:
+        got = list(pool.map(lambda job: renderer.render(*job), jobs))
+    for a, b in zip(got, want):
+        assert_same(a, b)
+    assert len(renderer._plans) <= PLAN_CACHE
 
 
 cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
