@@ -361,21 +361,18 @@ class FrameRunner(ABC):
 
     def _render_bands(self, camera: Camera, request: RenderRequest, slice_ms: float,
                       timer: StageTimer) -> Generator[None, None, FrameBuffers]:
-        """The ray cast in row bands of about ``slice_ms`` each, yielding between them."""
+        """The ray cast in row bands of about ``slice_ms`` each, yielding between them: each band
+        renders its rows into one plan of this frame's own, whose buffers the frame keeps."""
+        plan = self.renderer.plan(request)
         height, start, rows, out = request.height, 0, max(1, request.height // 32), None
         while start < height:
             stop = min(height, start + rows)
             began = time.perf_counter()
             with timer("render"):
-                band = self.renderer.render(camera, request, rows=(start, stop))
-            if band.mask.is_cuda:
-                torch.cuda.synchronize(band.mask.device)
+                out = plan.render(camera, request, rows=(start, stop))
+            if self.renderer.device.is_cuda:
+                torch.cuda.synchronize(self.renderer.torch_device)
             took_ms = 1e3 * (time.perf_counter() - began)
-            if out is None:
-                out = band  # full-size buffers, the later bands' rows filled in below
-            else:
-                for name in band.present():
-                    getattr(out, name)[start:stop] = getattr(band, name)[start:stop]
             rows = max(1, int((stop - start) * slice_ms / max(took_ms, 1e-3)))
             start = stop
             if start < height:

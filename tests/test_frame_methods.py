@@ -207,10 +207,14 @@ def test_a_frame_in_slices_equals_the_frame_whole(scene, method):
     renderer, iso = scene
     cam = orbit_path(1, yaw0=20.0)[0]
     whole = make_runner(method, renderer, iso, *SIZE).frame(cam).buffers
-    slices, result = count_steps(make_runner(method, renderer, iso, *SIZE).steps(cam, slice_ms=1e-6))
+    runner = make_runner(method, renderer, iso, *SIZE)
+    slices, result = count_steps(runner.steps(cam, slice_ms=1e-6))
     sliced = result.buffers  # one band a slice
     assert slices >= SIZE[1] // 32  # the first band, then bands of a row (each slice far over its budget)
     for name in whole.present():
+        torch.testing.assert_close(getattr(sliced, name), getattr(whole, name), atol=1e-6, rtol=0)
+    count_steps(runner.steps(orbit_path(2, yaw0=40.0)[1], cam, slice_ms=1e-6))  # the next frame, sliced too
+    for name in whole.present():  # leaves this frame's buffers as they were
         torch.testing.assert_close(getattr(sliced, name), getattr(whole, name), atol=1e-6, rtol=0)
 
 
