@@ -216,9 +216,12 @@ def sample_volume(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, p: wp.
 @wp.func
 def gradient_world(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, p: wp.vec3) -> wp.vec3:
     """Central-difference gradient (one voxel apart) at voxel coordinates ``p``, world units."""
-    dx = sample_volume(voxels, layout, grid, p + wp.vec3(1.0, 0.0, 0.0)) - sample_volume(voxels, layout, grid, p - wp.vec3(1.0, 0.0, 0.0))
-    dy = sample_volume(voxels, layout, grid, p + wp.vec3(0.0, 1.0, 0.0)) - sample_volume(voxels, layout, grid, p - wp.vec3(0.0, 1.0, 0.0))
-    dz = sample_volume(voxels, layout, grid, p + wp.vec3(0.0, 0.0, 1.0)) - sample_volume(voxels, layout, grid, p - wp.vec3(0.0, 0.0, 1.0))
+    ex = wp.vec3(1.0, 0.0, 0.0)
+    ey = wp.vec3(0.0, 1.0, 0.0)
+    ez = wp.vec3(0.0, 0.0, 1.0)
+    dx = sample_volume(voxels, layout, grid, p + ex) - sample_volume(voxels, layout, grid, p - ex)
+    dy = sample_volume(voxels, layout, grid, p + ey) - sample_volume(voxels, layout, grid, p - ey)
+    dz = sample_volume(voxels, layout, grid, p + ez) - sample_volume(voxels, layout, grid, p - ez)
     return wp.cw_div(wp.vec3(dx, dy, dz), 2.0 * grid.scale)
 
 
@@ -241,8 +244,8 @@ def clip_to_grid(size: wp.vec3i, o: wp.vec3, d: wp.vec3) -> wp.vec2:
 
 
 @wp.func
-def refine_crossing(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, o: wp.vec3, d: wp.vec3, iso: float, t0: float,
-                    f0: float, t1: float, f1: float, mode: int, steps: int) -> float:
+def refine_crossing(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, o: wp.vec3, d: wp.vec3, iso: float,
+                    t0: float, f0: float, t1: float, f1: float, mode: int, steps: int) -> float:
     """Narrow the bracket ``[t0, t1]`` around the iso crossing, then interpolate linearly."""
     ta = float(t0)
     fa = float(f0)
@@ -320,7 +323,8 @@ def march(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, o: wp.vec3, d:
                 f = sample_volume(voxels, layout, grid, o + d * t_s)
                 samples += 1.0
                 if (f >= iso) != (f_prev >= iso):
-                    t_hit = refine_crossing(voxels, layout, grid, o, d, iso, t_prev, f_prev, t_s, f, refine_mode, refine_steps)
+                    t_hit = refine_crossing(voxels, layout, grid, o, d, iso, t_prev, f_prev, t_s, f, refine_mode,
+                                            refine_steps)
                     return wp.vec2(t_hit, samples + float(refine_steps))
                 t_prev = t_s
                 f_prev = f
@@ -354,8 +358,8 @@ def cast(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, origin: wp.vec3
 
 
 @wp.func
-def ambient_occlusion(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, p: wp.vec3, n: wp.vec3, iso: float, step: float,
-                      rays: int, radius: float, state: wp.uint32) -> wp.vec2:
+def ambient_occlusion(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, p: wp.vec3, n: wp.vec3, iso: float,
+                      step: float, rays: int, radius: float, state: wp.uint32) -> wp.vec2:
     """Fraction of ``rays`` cosine-weighted hemisphere rays around ``n`` that escape within ``radius``.
 
     Returns ``(ao, samples)``.
