@@ -1,6 +1,6 @@
 """Time the renderer of several commits on one machine: a regression's bisection.
 
-    python scripts/bisect_render.py stage COMMIT...            # here: .bisect/<commit>/isosr_render (git-ignored)
+    python scripts/bisect_render.py stage REV...               # here: .bisect/<short hash>/isosr_render (git-ignored)
     python scripts/bisect_render.py run --out R.json [--frames 8]   # device: every staged tree, one at a time
 
 Each tree's `isosr_render` runs in a fresh interpreter (the same module names, other code). Its
@@ -32,14 +32,21 @@ CASES = [("ct_pitch", "first hit", FIRST_HIT, 1, False),
 
 
 def stage(commits: list[str]) -> None:
-    """Export each commit's isosr_render into .bisect/<commit>/."""
-    for commit in commits:
+    """Export each commit's isosr_render into .bisect/<commit>/ (git-ignored through .git/info/exclude)."""
+    exclude = ROOT / ".git" / "info" / "exclude"
+    if "/.bisect/" not in (exclude.read_text().split() if exclude.is_file() else []):
+        exclude.parent.mkdir(parents=True, exist_ok=True)
+        with exclude.open("a") as f:
+            f.write("/.bisect/\n")
+    for rev in commits:
+        commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short=7", rev], check=True,
+                                capture_output=True, text=True).stdout.strip()
         target = STAGE / commit
         target.mkdir(parents=True, exist_ok=True)
         archive = subprocess.run(["git", "-C", str(ROOT), "archive", commit, "isosr_render"], check=True,
                                  capture_output=True).stdout
         subprocess.run(["tar", "-x", "-C", str(target)], input=archive, check=True)
-        print(f"staged {commit}")
+        print(f"staged {rev} as {target.relative_to(ROOT)}")
 
 
 def child(tree: str, frames: int, compile_only: bool) -> None:
