@@ -64,7 +64,7 @@ def overload_names(module: str) -> dict[str, str]:
     import warp as wp
 
     names = {}
-    for kernel in [k for k in wp.get_module(module).kernels.values()]:
+    for kernel in wp.get_module(module).kernels.values():
         generic = [i for i, arg in enumerate(kernel.adj.args) if "Any" in repr(arg.type)]
         for overload in kernel.overloads.values() if kernel.overloads else [kernel]:
             args = overload.adj.args

@@ -437,9 +437,9 @@ class RenderPlan:
             raise ValueError(f"rows must satisfy 0 <= start < stop <= height {h}, got {rows}")
         renderer = self.renderer
         if renderer.device.is_cuda:
-            stream = torch.cuda.current_stream(renderer.device.ordinal)
+            stream = wp.stream_from_torch(torch.cuda.current_stream(renderer.device.ordinal))
             for launch in self._recorded(((row0, row1 - row0),), torch.cuda.is_current_stream_capturing()):
-                launch.launch(wp.stream_from_torch(stream))
+                launch.launch(stream)
             return
         bands = np.array_split(np.arange(row0, row1), min(row1 - row0, 4 * renderer.threads))
         launches = self._recorded(tuple((int(b[0]), len(b)) for b in bands if len(b)), False)
