@@ -37,6 +37,7 @@ import torch
 from isosr_render import Renderer
 from isosr_render.sequence import sequence_cameras
 from isosr_net.frame_methods import FrameMethod, Networks, make_runner
+from isosr_net import fused_recon
 from isosr_net.fused_recon import FusedReconNet, fused_runs_on, fused_traffic
 from isosr_net.reconnet import macs_per_pixel
 from isosr_net.reconstructor import Reconstructor, recon_inputs
@@ -60,7 +61,9 @@ def variants(device: str) -> dict[str, dict]:
         "eager": {"precision": "fp32", "channels_last": True}}
     if fused_runs_on(device):  # on CPUs under Triton's interpreter only
         fused = {"precision": "fp16", "channels_last": True, "fused": True}
-        out.update({"fused": fused, "fused + CUDA graph": {**fused, "graphs": True}} if cuda else {"fused": fused})
+        passes = {**fused, "upsample": "pass"}
+        out.update({"fused": fused, "fused + CUDA graph": {**fused, "graphs": True}, "fused, upsample pass": passes,
+                    "fused, upsample pass + CUDA graph": {**passes, "graphs": True}} if cuda else {"fused": fused})
     return out
 
 
@@ -76,7 +79,7 @@ def pass_times(net: FusedReconNet, renderer: Renderer, pairs: list, request, ao_
         with torch.no_grad():
             previous = net.step(inputs, flow, previous)[0]
     h, w = inputs.shape[-2:]
-    traffic = fused_traffic(h, w, net.config.widths[0])
+    traffic = fused_traffic(h, w, net.config, upsample=net.upsample)
     with torch.no_grad():
         _, passes = net.passes(inputs, previous, flow)
         for _, run in passes:
@@ -99,6 +102,8 @@ def stage_row(renderer: Renderer, iso: float, volume: str, size: tuple[int, int]
     ms = lambda t: t.get("gpu_ms", t["wall_ms"])  # noqa: E731
     pairs = sequence_cameras(bench_cameras(frames))
     method = FrameMethod("reconstruct", ao_rays=ao_rays, spp=spp, precision=options["precision"])
+    options = dict(options)
+    fused_recon.UPSAMPLE = options.pop("upsample", "loads")
     recon = Reconstructor(device=device, **options)
     networks = Networks(lambda *_: recon)  # this variant's network
     runner = make_runner(method, renderer, iso, *size, networks=networks)
@@ -155,7 +160,12 @@ def main(argv=None) -> list[dict]:
     parser = bench_parser(__doc__)
     parser.add_argument("--volumes", default="", help="comma-separated volume names (default: ct_pitch)")
     parser.add_argument("--sizes", default="", help=f"comma-separated sizes of {','.join(SIZES)} (default: all)")
+    parser.add_argument("--variants", default="", help="semicolon-separated variants (default: all of the device's)")
     args = parser.parse_args(argv)
+    offered = variants(args.device)
+    chosen = [v.strip() for v in args.variants.split(";") if v.strip()] or list(offered)
+    if any(v not in offered for v in chosen):
+        parser.error(f"unknown variants {[v for v in chosen if v not in offered]}; choose from {'; '.join(offered)}")
     sizes = SMOKE_SIZES if args.smoke else SIZES
     size_names = [s.strip().lower() for s in args.sizes.split(",") if s.strip()] or list(sizes)
     unknown = [s for s in size_names if s not in sizes]
@@ -174,7 +184,8 @@ def main(argv=None) -> list[dict]:
         renderer = Renderer(volume, args.device)
         for size_name in size_names:
             for ao_rays, spp in SAMPLINGS:
-                for variant, options in variants(args.device).items():
+                for variant in chosen:
+                    options = offered[variant]
                     rows.append(stage_row(renderer, iso, name, sizes[size_name], size_name, ao_rays, spp, variant,
                                           options, frames, warmup, args.device, tflops, bandwidth))
                 if args.device.startswith("cuda"):

@@ -1,16 +1,19 @@
-"""Triton kernels of ReconNet's full-resolution layers: NHWC fp16 tensors, fp32 accumulation.
+"""Triton kernels of ReconNet's layers: NHWC fp16 tensors, fp32 accumulation.
 
-Four passes do all of ReconNet's full-resolution work (:mod:`isosr_net.fused_recon` runs them,
-and the coarse levels between them in PyTorch):
+Four kinds of pass do all of ReconNet's work (:mod:`isosr_net.fused_recon` runs them in order):
 
 - :func:`pack_inputs`: the network's 10 input channels (the 8 inputs and the warped previous
   output's mask and AO) as one (B, H', W', 16) fp16 tensor, the frame replicate-padded to
   H' x W' as :class:`~isosr_net.reconnet.ReconNet` pads it, channels 10-15 zero; the previous
   output warped by the flow in the same pass where it is given unwarped.
-- :func:`conv3x3`: a 3x3 convolution (stride 1, zero padding) + bias + ReLU as an implicit
-  GEMM: per tile of ``BLOCK_M`` pixels, one ``tl.dot`` per tap (K = input channels, N = output
-  channels). With ``coarse`` its input is ``relu(x + bilinear_2x(coarse))``, computed as it is
-  loaded: ReconNet's last decoder level without the upsampled tensor or the sum in memory.
+- :func:`conv3x3`: a 3x3 convolution (stride 1 or 2, zero padding) + bias as an implicit GEMM:
+  per tile of ``BLOCK_M`` output pixels, one ``tl.dot`` per tap (K = input channels, N = output
+  channels); in its epilogue a residual sum, the ReLU and a 1x1 channel reduction (a second
+  ``tl.dot``: ReconNet's decoder reduces a level's channels before upsampling it, and the two
+  commute). With ``coarse`` its input is ``relu(x + bilinear_2x(coarse))``, computed as it is
+  loaded: a decoder level without the upsampled tensor or the sum in memory.
+- :func:`upsample_add`: ``relu(x + bilinear_2x(coarse))`` as a tensor of its own, once per
+  pixel, for a plain :func:`conv3x3` after it (the other way to run a decoder level).
 - :func:`recon_tail`: the 3x3 output convolution (6 channels, computed as 16) + bias and
   ReconNet's output: mask ``clamp(in + raw, 0, 1)``, normal ``in + raw``, depth passed through,
   AO ``sigmoid(raw)`` or, for a model over the input rays, ``sigmoid(logit(p) + raw)``
@@ -19,7 +22,7 @@ and the coarse levels between them in PyTorch):
 Importing this module compiles nothing; set ``TRITON_INTERPRET=1`` before importing it to run
 the kernels on CPU tensors (Triton's interpreter, for tests). No kernel syncs with the host or
 allocates beyond its output, so a CUDA graph can capture them (after autotuning, which the first
-call per frame size does).
+call per shape does).
 """
 
 from __future__ import annotations
@@ -36,14 +39,14 @@ from isosr_net.reconnet import INPUTS, OUTPUTS, ReconNetConfig
 
 INTERPRET = os.environ.get("TRITON_INTERPRET") == "1"
 PACKED = 16  # channels of the packed input: 10 used, padded to tl.dot's smallest K
-# Pixels per program and warps, autotuned per frame size; the interpreter takes the first (FIXED).
-CONFIGS = [triton.Config({"BLOCK_M": m}, num_warps=w) for m, w in ((64, 4), (128, 4), (256, 8))]
+# Pixels per program and warps, autotuned per shape; the interpreter takes the first (FIXED).
+CONFIGS = [triton.Config({"BLOCK_M": m}, num_warps=w) for m, w in ((64, 4), (32, 2), (128, 4), (128, 8), (256, 8))]
 FIXED = dict(CONFIGS[0].kwargs) if INTERPRET else {}
 PACK_BLOCK = 128
 
 
-def _tuned(kernel):
-    return kernel if INTERPRET else triton.autotune(CONFIGS, key=["hp", "wp"])(kernel)
+def _tuned(kernel, key: list[str]):
+    return kernel if INTERPRET else triton.autotune(CONFIGS, key=key)(kernel)
 
 
 @triton.jit
@@ -91,14 +94,15 @@ def _upsampled_sum(a, c_ptr, b, yy, xx, hc, wc, sc_b, sc_c, sc_h, sc_w, ci):
 
     Bilinear 2x with align_corners=False: full-res row Y reads coarse rows lo = (Y + 1) // 2 - 1
     and lo + 1, the second weighted 3/4 for even Y and 1/4 for odd Y, both clamped to the image
-    (so row 0 reads row 0 alone), as F.interpolate does; the same along columns.
+    (so row 0 reads row 0 alone), as F.interpolate does; the same along columns. Rows and columns
+    outside the image (the zero padding's, a tile's pixels past the end) read clamped rows too.
     """
     ylo = (yy + 1) // 2 - 1
     xlo = (xx + 1) // 2 - 1
-    y1 = tl.minimum(ylo + 1, hc - 1)
-    x1 = tl.minimum(xlo + 1, wc - 1)
-    y0 = tl.maximum(ylo, 0)
-    x0 = tl.maximum(xlo, 0)
+    y0 = tl.minimum(tl.maximum(ylo, 0), hc - 1)
+    x0 = tl.minimum(tl.maximum(xlo, 0), wc - 1)
+    y1 = tl.minimum(tl.maximum(ylo + 1, 0), hc - 1)
+    x1 = tl.minimum(tl.maximum(xlo + 1, 0), wc - 1)
     wy = (0.75 - 0.5 * (yy % 2).to(tl.float32))[:, None]
     wx = (0.75 - 0.5 * (xx % 2).to(tl.float32))[:, None]
     base = c_ptr + b * sc_b + ci[None, :] * sc_c
@@ -112,17 +116,18 @@ def _upsampled_sum(a, c_ptr, b, yy, xx, hc, wc, sc_b, sc_c, sc_h, sc_w, ci):
 
 
 @triton.jit
-def _conv_acc(x_ptr, w_ptr, bias_ptr, c_ptr, b, y, x, valid, hp, wp, hc, wc, sc_b, sc_c, sc_h, sc_w,
-              UPSAMPLE: tl.constexpr, CI: tl.constexpr, CO: tl.constexpr, BLOCK_M: tl.constexpr):
-    """The 3x3 convolution plus bias at pixels (y, x) of the NHWC (B, hp, wp, CI) input, fp32 (BLOCK_M, CO)."""
+def _conv_acc(x_ptr, w_ptr, bias_ptr, c_ptr, b, y, x, valid, hi, wi, hc, wc, sc_b, sc_c, sc_h, sc_w,
+              STRIDE: tl.constexpr, UPSAMPLE: tl.constexpr, CI: tl.constexpr, CO: tl.constexpr,
+              BLOCK_M: tl.constexpr):
+    """The 3x3 convolution plus bias at output pixels (y, x) of the NHWC (B, hi, wi, CI) input, fp32 (BLOCK_M, CO)."""
     ci = tl.arange(0, CI)
     co = tl.arange(0, CO)
     acc = tl.zeros((BLOCK_M, CO), dtype=tl.float32)
     for tap in tl.static_range(9):
-        yy = y + (tap // 3 - 1)
-        xx = x + (tap % 3 - 1)
-        inside = valid & (yy >= 0) & (yy < hp) & (xx >= 0) & (xx < wp)
-        a = tl.load(x_ptr + b * hp * wp * CI + ((yy * wp + xx) * CI)[:, None] + ci[None, :],
+        yy = y * STRIDE + (tap // 3 - 1)
+        xx = x * STRIDE + (tap % 3 - 1)
+        inside = valid & (yy >= 0) & (yy < hi) & (xx >= 0) & (xx < wi)
+        a = tl.load(x_ptr + b * hi * wi * CI + ((yy * wi + xx) * CI)[:, None] + ci[None, :],
                     mask=inside[:, None], other=0.0)
         if UPSAMPLE:
             # The convolution zero-pads its input relu(x + up), so outside pixels stay 0.
@@ -134,18 +139,44 @@ def _conv_acc(x_ptr, w_ptr, bias_ptr, c_ptr, b, y, x, valid, hp, wp, hc, wc, sc_
 
 
 @triton.jit
-def _conv_kernel(x_ptr, w_ptr, bias_ptr, out_ptr, c_ptr, hp, wp, hc, wc, sc_b, sc_c, sc_h, sc_w,
-                 UPSAMPLE: tl.constexpr, CI: tl.constexpr, CO: tl.constexpr, BLOCK_M: tl.constexpr):
+def _conv_kernel(x_ptr, w_ptr, bias_ptr, out_ptr, c_ptr, res_ptr, rw_ptr, rb_ptr, hi, wi, ho, wo, hc, wc,
+                 sc_b, sc_c, sc_h, sc_w, STRIDE: tl.constexpr, UPSAMPLE: tl.constexpr, RESIDUAL: tl.constexpr,
+                 RELU: tl.constexpr, CI: tl.constexpr, CO: tl.constexpr, CR: tl.constexpr, BLOCK_M: tl.constexpr):
     b = tl.program_id(1).to(tl.int64)
     offs = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
-    valid = offs < hp * wp
-    y = offs // wp
-    x = offs % wp
-    acc = _conv_acc(x_ptr, w_ptr, bias_ptr, c_ptr, b, y, x, valid, hp, wp, hc, wc, sc_b, sc_c, sc_h, sc_w,
-                    UPSAMPLE, CI, CO, BLOCK_M)
+    valid = offs < ho * wo
+    y = offs // wo
+    x = offs % wo
+    acc = _conv_acc(x_ptr, w_ptr, bias_ptr, c_ptr, b, y, x, valid, hi, wi, hc, wc, sc_b, sc_c, sc_h, sc_w,
+                    STRIDE, UPSAMPLE, CI, CO, BLOCK_M)
     co = tl.arange(0, CO)
-    tl.store(out_ptr + b * hp * wp * CO + offs[:, None] * CO + co[None, :], tl.maximum(acc, 0.0).to(tl.float16),
-             mask=valid[:, None])
+    if RESIDUAL:
+        acc += tl.load(res_ptr + b * ho * wo * CO + offs[:, None] * CO + co[None, :], mask=valid[:, None],
+                       other=0.0).to(tl.float32)
+    if RELU:
+        acc = tl.maximum(acc, 0.0)
+    if CR > 0:  # the 1x1 reduction, of the features rounded to fp16 as a layer of their own would store them
+        cr = tl.arange(0, CR)
+        reduced = tl.dot(acc.to(tl.float16), tl.load(rw_ptr + co[:, None] * CR + cr[None, :]))
+        reduced += tl.load(rb_ptr + cr)[None, :]
+        tl.store(out_ptr + b * ho * wo * CR + offs[:, None] * CR + cr[None, :], reduced.to(tl.float16),
+                 mask=valid[:, None])
+    else:
+        tl.store(out_ptr + b * ho * wo * CO + offs[:, None] * CO + co[None, :], acc.to(tl.float16),
+                 mask=valid[:, None])
+
+
+@triton.jit
+def _upsample_add_kernel(x_ptr, c_ptr, out_ptr, hp, wp, hc, wc, sc_b, sc_c, sc_h, sc_w,
+                         C: tl.constexpr, BLOCK: tl.constexpr):
+    b = tl.program_id(1).to(tl.int64)
+    offs = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    valid = offs < hp * wp
+    ci = tl.arange(0, C)
+    pixel = b * hp * wp * C + offs[:, None] * C + ci[None, :]
+    a = tl.load(x_ptr + pixel, mask=valid[:, None], other=0.0)
+    out = _upsampled_sum(a, c_ptr, b, offs // wp, offs % wp, hc, wc, sc_b, sc_c, sc_h, sc_w, ci)
+    tl.store(out_ptr + pixel, out.to(tl.float16), mask=valid[:, None])
 
 
 @triton.jit
@@ -159,7 +190,7 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, inp_ptr, out_ptr, h, w, hp, wp, si_b, s
     y = offs // w
     x = offs % w
     raw = _conv_acc(x_ptr, w_ptr, bias_ptr, x_ptr, b, y, x, valid, hp, wp, 1, 1, 0, 0, 0, 0,
-                    False, CI, CO, BLOCK_M)
+                    1, False, CI, CO, BLOCK_M)
     c = tl.arange(0, CO)[None, :]
     # The inputs' first channels are the output's (mask, normal, depth), in the same order; the
     # channels other than mask, depth and AO are the normal's.
@@ -178,8 +209,8 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, inp_ptr, out_ptr, h, w, hp, wp, si_b, s
     tl.store(out_ptr + b * OUT * h * w + c * h * w + offs[:, None], out, mask=valid[:, None] & (c < OUT))
 
 
-_conv_tuned = _tuned(_conv_kernel)
-_tail_tuned = _tuned(_tail_kernel)
+_conv_tuned = _tuned(_conv_kernel, ["ho", "wo", "STRIDE", "UPSAMPLE", "CI", "CO", "CR"])
+_tail_tuned = _tuned(_tail_kernel, ["hp", "wp"])
 
 
 def _grid(pixels: int, batch: int):
@@ -232,33 +263,75 @@ def pack_inputs(inputs: torch.Tensor, prev: torch.Tensor, flow: torch.Tensor | N
     return out
 
 
-def conv3x3(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor,
+def conv3x3(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, *, stride: int = 1, relu: bool = True,
+            residual: torch.Tensor | None = None, reduce: tuple[torch.Tensor, torch.Tensor] | None = None,
             coarse: torch.Tensor | None = None) -> torch.Tensor:
-    """``relu(conv3x3(x) + bias)``, zero padding; with ``coarse``, of ``relu(x + bilinear_2x(coarse))``.
+    """``relu(conv3x3(x) + bias + residual) @ reduce``: zero padding; the ReLU, residual and
+    reduction where asked; with ``coarse``, of ``relu(x + bilinear_2x(coarse))``.
 
     Args:
         x: NHWC fp16 (contiguous).
         weight: tap-major weights, ``weight[3 * ky + kx, ci, co]``, fp16 (:func:`isosr_net.fused_recon.tap_weights`).
         bias: fp32.
+        stride: 1, or 2 (the output has half the sides, even sides asked).
+        relu: the ReLU, after the residual sum.
+        residual: NHWC fp16 (contiguous), added before the ReLU.
+        reduce: a 1x1 convolution of the result, its weights ``(CO, CR)`` fp16 and bias fp32.
         coarse: half-resolution features, any layout (NHWC reads fastest), any float dtype.
 
     Shape:
-        x: (B, H, W, CI). weight: (9, CI, CO). bias: (CO,). coarse: (B, CI, H/2, W/2).
-        Returns (B, H, W, CO), fp16. CI and CO powers of 2, at least 16.
+        x: (B, H, W, CI). weight: (9, CI, CO). bias: (CO,). residual: (B, H/s, W/s, CO).
+        reduce: (CO, CR), (CR,). coarse: (B, CI, H/2, W/2). Returns (B, H/s, W/s, CR or CO),
+        fp16. CI, CO and CR powers of 2, at least 16.
     """
     dims = _check_nhwc(x, "x", "conv3x3")
-    b, hp, wp, ci = dims["B"], dims["H"], dims["W"], dims["C"]
+    b, hi, wi, ci = dims["B"], dims["H"], dims["W"], dims["C"]
     co = _check_taps(weight, bias, ci, "conv3x3")
-    hc, wc = (hp // 2, wp // 2) if coarse is not None else (1, 1)
+    if stride not in (1, 2):
+        raise ValueError(f"conv3x3: stride must be 1 or 2, got {stride}")
+    if (coarse is not None or stride == 2) and (hi % 2 or wi % 2):
+        raise ValueError(f"conv3x3: x must have even sides for stride 2 or an upsampled coarse, got {hi}x{wi}")
+    ho, wo = hi // stride, wi // stride
+    if residual is not None:
+        _check_nhwc(residual, "residual", "conv3x3")
+        check_shape(residual, f"({b}, {ho}, {wo}, {co})", "residual", "conv3x3")
+    cr = 0
+    if reduce is not None:
+        cr = check_shape(reduce[0], f"({co}, CR)", "reduce weight", "conv3x3")["CR"]
+        check_shape(reduce[1], f"({cr})", "reduce bias", "conv3x3")
+        if reduce[0].dtype != torch.float16 or reduce[1].dtype != torch.float32 or not reduce[0].is_contiguous():
+            raise ValueError("conv3x3: the reduce weight must be contiguous fp16 and its bias fp32")
+    hc, wc = (hi // 2, wi // 2) if coarse is not None else (1, 1)
     if coarse is not None:
-        if hp % 2 or wp % 2:
-            raise ValueError(f"conv3x3: x must have even sides to add an upsampled coarse, got {hp}x{wp}")
         check_shape(coarse, f"({b}, {ci}, {hc}, {wc})", "coarse", "conv3x3")
-    out = x.new_empty((b, hp, wp, co))
+    out = x.new_empty((b, ho, wo, cr or co))
     c = coarse if coarse is not None else x
-    strides_c = (c.stride(0), c.stride(1), c.stride(2), c.stride(3)) if coarse is not None else (0, 0, 0, 0)
-    _conv_tuned[_grid(hp * wp, b)](x, weight, bias, out, c, hp, wp, hc, wc, *strides_c,
-                                   UPSAMPLE=coarse is not None, CI=ci, CO=co, **FIXED)
+    strides_c = c.stride() if coarse is not None else (0, 0, 0, 0)
+    rw, rb = reduce if reduce is not None else (weight, bias)
+    _conv_tuned[_grid(ho * wo, b)](x, weight, bias, out, c, x if residual is None else residual, rw, rb,
+                                   hi, wi, ho, wo, hc, wc, *strides_c, STRIDE=stride, UPSAMPLE=coarse is not None,
+                                   RESIDUAL=residual is not None, RELU=relu, CI=ci, CO=co, CR=cr, **FIXED)
+    return out
+
+
+def upsample_add(x: torch.Tensor, coarse: torch.Tensor) -> torch.Tensor:
+    """``relu(x + bilinear_2x(coarse))`` (``F.interpolate``, align_corners=False), fp16 NHWC.
+
+    Args:
+        x: NHWC fp16 (contiguous), even sides.
+        coarse: half-resolution features, any layout (NHWC reads fastest), any float dtype.
+
+    Shape:
+        x: (B, H, W, C). coarse: (B, C, H/2, W/2). Returns (B, H, W, C). C a power of 2.
+    """
+    dims = _check_nhwc(x, "x", "upsample_add")
+    b, hp, wp, c = dims["B"], dims["H"], dims["W"], dims["C"]
+    if hp % 2 or wp % 2:
+        raise ValueError(f"upsample_add: x must have even sides, got {hp}x{wp}")
+    check_shape(coarse, f"({b}, {c}, {hp // 2}, {wp // 2})", "coarse", "upsample_add")
+    out = torch.empty_like(x)
+    _upsample_add_kernel[(triton.cdiv(hp * wp, PACK_BLOCK), b)](x, coarse, out, hp, wp, hp // 2, wp // 2,
+                                                               *coarse.stride(), C=c, BLOCK=PACK_BLOCK)
     return out
 
 

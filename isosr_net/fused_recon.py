@@ -1,20 +1,20 @@
-"""ReconNet with its full-resolution layers as fused Triton kernels: the same function, fewer passes.
+"""ReconNet as fused Triton kernels: the same function, fewer passes, no PyTorch layer.
 
     fused = fused_reconnet(net)                     # a FusedReconNet; net is untouched
     output, read = fused.step(inputs, flow, previous)
 
-At full resolution eager ReconNet writes and reads back the concatenated and padded inputs, the
-head's features, the upsampled coarse features, their sum with the skip and its ReLU, the last
-decoder level's features, the raw output and the output's pieces, and cuDNN runs 16-channel
-3x3 convolutions poorly. Here that work is four kernels (:mod:`isosr_net.fused_kernels`; NHWC
-fp16, fp32 accumulation): pack (with the previous output's warp), head, last decoder level
-(upsample, skip sum and ReLUs in its loads), tail (with the output stack). The coarse levels
-(the stride-2 convolutions, the 1/8 body, the upper decoder levels and the last level's 1x1
-reduction, under a tenth of the pixels) stay in PyTorch, fp16 NHWC through cuDNN.
+Eager ReconNet writes and reads back the concatenated and padded inputs, every layer's features,
+the upsampled coarse features, their sum with the skip and its ReLU, the raw output and the
+output's pieces, and cuDNN runs 16- to 64-channel 3x3 convolutions poorly. Here every layer is
+one kernel (:mod:`isosr_net.fused_kernels`; NHWC fp16, fp32 accumulation): pack (with the
+previous output's warp), head, the three stride-2 convolutions, the residual blocks' convolutions
+(the sum in the second's epilogue), each decoder level's 3x3 convolution (the upsampled coarse
+features and the skip summed in its loads, or by a pass before it: ``upsample``) with the next
+level's 1x1 reduction in its epilogue, and the tail (with the output stack).
 
 The fused path runs on CUDA tensors where Triton imports (and on CPU tensors under Triton's
 interpreter, ``TRITON_INTERPRET=1``, for tests); elsewhere :class:`FusedReconNet` runs the
-ReconNet it was made from. :func:`fused_traffic` gives each kernel's memory-traffic floor.
+ReconNet it was made from. :func:`fused_traffic` gives each pass's memory-traffic floor.
 """
 
 from __future__ import annotations
@@ -25,14 +25,15 @@ import os
 from collections.abc import Callable
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
-from isosr_render.conventions import AO, MASK
+from isosr_render.conventions import AO, MASK, SAMPLED_AO, SAMPLING
 from isosr_render.shapes import check_int, check_shape
-from isosr_net.reconnet import INPUTS, LEVELS, OUTPUTS, RECURRENT, ReconNet
+from isosr_net.reconnet import INPUTS, LEVELS, OUTPUTS, RECURRENT, ReconNet, ReconNetConfig
 
 PACKED = 16  # the packed input's channels (isosr_net.fused_kernels.PACKED): 10 used
+UPSAMPLES = ("loads", "pass")  # a decoder level's upsampled sum: in its convolution's loads, or a pass of its own
+UPSAMPLE = "loads"  # FusedReconNet's default (measured against "pass" by bench_recon_path)
 
 
 def recurrent_channels(previous: torch.Tensor) -> torch.Tensor:
@@ -83,34 +84,76 @@ def _padded_bias(conv: nn.Conv2d, co: int) -> torch.Tensor:
     return bias
 
 
+class FusedConv(nn.Module):
+    """One 3x3 convolution of ReconNet as :func:`~isosr_net.fused_kernels.conv3x3` runs it, with
+    the ReLU where the network applies one and, given ``reduce``, that 1x1 convolution in its epilogue.
+
+    Shape:
+        x: (B, H, W, ci) fp16 NHWC. Returns (B, H/stride, W/stride, co or reduce's channels).
+    """
+
+    def __init__(self, conv: nn.Conv2d, ci: int, co: int, relu: bool = True, reduce: nn.Conv2d | None = None):
+        super().__init__()
+        self.stride, self.relu = conv.stride[0], relu
+        self.register_buffer("weight", tap_weights(conv.weight, ci, co))
+        self.register_buffer("bias", _padded_bias(conv, co))
+        self.reduces = reduce is not None
+        if reduce is not None:
+            self.register_buffer("reduce_w", reduce.weight.detach()[:, :, 0, 0].t().half().contiguous())
+            self.register_buffer("reduce_b", reduce.bias.detach().float())
+
+    def forward(self, x: torch.Tensor, residual: torch.Tensor | None = None,
+                coarse: torch.Tensor | None = None) -> torch.Tensor:
+        reduce = (self.reduce_w, self.reduce_b) if self.reduces else None
+        return _kernels().conv3x3(x, self.weight, self.bias, stride=self.stride, relu=self.relu, residual=residual,
+                                  reduce=reduce, coarse=coarse)
+
+
+def _nchw(x: torch.Tensor) -> torch.Tensor:
+    """An NHWC tensor as (B, C, H, W) strides over the same memory (what the kernels' ``coarse`` takes)."""
+    return x.permute(0, 3, 1, 2)
+
+
 class FusedReconNet(nn.Module):
-    """A ReconNet whose full-resolution layers run as fused kernels (see the module docstring).
+    """A ReconNet as fused kernels (see the module docstring).
 
     Same interface as :class:`~isosr_net.reconnet.ReconNet`; outputs equal up to fp16 rounding.
     Inference only (no gradients through the kernels).
+
+    Args:
+        net: the ReconNet (widths powers of 2, at least 16).
+        upsample: a decoder level's ``relu(skip + bilinear_2x(coarse))``: in its convolution's
+            loads (``"loads"``, recomputed per tap) or by a pass of its own (``"pass"``).
 
     Shape:
         inputs: (B, 8, H, W). prev_warped: (B, 6, H, W). Returns (B, 6, H, W), float32 on the
         fused path.
     """
 
-    def __init__(self, net: ReconNet):
+    def __init__(self, net: ReconNet, upsample: str | None = None):
+        upsample = upsample or UPSAMPLE
         super().__init__()
-        w0 = net.config.widths[0]
-        if w0 < 16 or w0 & (w0 - 1):
-            raise ValueError(f"fused_reconnet: the full-resolution width must be a power of 2 >= 16, got {w0}")
-        self.config = net.config
+        widths = net.config.widths
+        if any(w < 16 or w & (w - 1) for w in widths):
+            raise ValueError(f"fused_reconnet: the widths must be powers of 2 >= 16, got {widths}")
+        if upsample not in UPSAMPLES:
+            raise ValueError(f"fused_reconnet: upsample must be one of {UPSAMPLES}, got {upsample!r}")
+        self.config, self.upsample = net.config, upsample
         self.reference = net
-        self.register_buffer("head_w", tap_weights(net.head.weight, PACKED, w0))
-        self.register_buffer("head_b", _padded_bias(net.head, w0))
-        self.register_buffer("fuse_w", tap_weights(net.fuse[0].weight, w0, w0))
-        self.register_buffer("fuse_b", _padded_bias(net.fuse[0], w0))
-        self.register_buffer("tail_w", tap_weights(net.tail.weight, w0, PACKED))
+        blocks = net.config.blocks
+        # The layer before the decoder reduces its output for the coarsest decoder level.
+        self.head = FusedConv(net.head, PACKED, widths[0])
+        self.down = nn.ModuleList(FusedConv(conv, widths[i], widths[i + 1],
+                                            reduce=net.reduce[LEVELS - 1] if i == LEVELS - 1 and not blocks else None)
+                                  for i, conv in enumerate(net.down))
+        self.body = nn.ModuleList(nn.ModuleList([
+            FusedConv(block.conv1, widths[LEVELS], widths[LEVELS]),
+            FusedConv(block.conv2, widths[LEVELS], widths[LEVELS], relu=False,
+                      reduce=net.reduce[LEVELS - 1] if j == blocks - 1 else None)]) for j, block in enumerate(net.body))
+        self.fuse = nn.ModuleList(FusedConv(conv, widths[i], widths[i], reduce=net.reduce[i - 1] if i else None)
+                                  for i, conv in enumerate(net.fuse))
+        self.register_buffer("tail_w", tap_weights(net.tail.weight, widths[0], PACKED))
         self.register_buffer("tail_b", _padded_bias(net.tail, PACKED))
-        # The coarse levels, fp16 NHWC; fuse[0] and the head and tail are the kernels'.
-        coarse = copy.deepcopy(nn.ModuleDict({"down": net.down, "body": net.body, "reduce": net.reduce,
-                                              "fuse": net.fuse}))
-        self.coarse = coarse.half().to(memory_format=torch.channels_last)
 
     def forward(self, inputs: torch.Tensor, prev_warped: torch.Tensor) -> torch.Tensor:
         if not fused_runs_on(inputs.device):
@@ -160,78 +203,97 @@ class FusedReconNet(nn.Module):
                ) -> tuple[dict[str, torch.Tensor], list[tuple[str, Callable[[], None]]]]:
         """The fused forward as its passes, to run (or time) one by one: ``(results, [(name, run)])``.
 
-        In order, ``pack``, ``head``, ``coarse`` (PyTorch), ``fuse`` and ``tail`` each compute one
-        entry of ``results`` (``packed``, ``skip``, ``coarse``, ``features``, ``output``) from those
-        before; running one again recomputes its entry. Arguments as for :func:`isosr_net.fused_kernels.pack_inputs`.
+        In order, each pass computes the entry of ``results`` named as it from those before
+        (running one again recomputes it): ``pack`` (``packed``), ``head``, ``down1``..``down3``
+        (the encoder levels), ``body1.1``, ``body1.2``, ... (the residual blocks' convolutions),
+        per decoder level from the coarsest (``up2`` where ``upsample`` is "pass") ``fuse2``, ...,
+        ``fuse0``, and ``tail`` (``output``). Arguments as for :func:`isosr_net.fused_kernels.pack_inputs`.
         """
         k = _kernels()
         results: dict[str, torch.Tensor] = {}
+        passes: list[tuple[str, Callable[[], None]]] = []
 
-        def pack():
-            results["packed"] = k.pack_inputs(inputs, prev, flow, multiple=2 ** LEVELS)
+        def add(name: str, compute: Callable[[], torch.Tensor], key: str | None = None) -> None:
+            passes.append((name, lambda: results.__setitem__(key or name, compute())))
 
-        def head():
-            results["skip"] = k.conv3x3(results["packed"], self.head_w, self.head_b)
+        def layer(conv: FusedConv, src: str, residual: str | None = None, coarse: str | None = None):
+            return lambda: conv(results[src], residual=results[residual] if residual else None,
+                                coarse=_nchw(results[coarse]) if coarse else None)
 
-        def coarse():
-            with torch.autocast(inputs.device.type, enabled=False):  # fp16 throughout, as the kernels
-                results["coarse"] = self._coarse(results["skip"].permute(0, 3, 1, 2))
-
-        def fuse():
-            results["features"] = k.conv3x3(results["skip"], self.fuse_w, self.fuse_b, coarse=results["coarse"])
-
-        def tail():
-            results["output"] = k.recon_tail(results["features"], self.tail_w, self.tail_b, inputs, self.config)
-
-        return results, [("pack", pack), ("head", head), ("coarse", coarse), ("fuse", fuse), ("tail", tail)]
-
-    def _coarse(self, skip: torch.Tensor) -> torch.Tensor:
-        """ReconNet's levels below full resolution, from the head's features to the last decoder
-        level's reduced coarse features, as :meth:`ReconNet.forward` computes them.
-
-        Shape:
-            skip: (B, w0, H', W'), NHWC strides. Returns (B, w0, H'/2, W'/2), NHWC strides.
-        """
-        down, reduce, fuse = self.coarse["down"], self.coarse["reduce"], self.coarse["fuse"]
-        skips = [skip]
-        for conv in down:
-            skips.append(F.relu(conv(skips[-1])))
-        y = self.coarse["body"](skips[-1])
-        for i in reversed(range(1, LEVELS)):
-            y = F.interpolate(reduce[i](y), scale_factor=2, mode="bilinear", align_corners=False)
-            y = F.relu(fuse[i](F.relu(y + skips[i])))
-        return reduce[0](y)
+        add("pack", lambda: k.pack_inputs(inputs, prev, flow, multiple=2 ** LEVELS), key="packed")
+        add("head", layer(self.head, "packed"))
+        skips = ["head"]
+        for i, conv in enumerate(self.down):
+            add(f"down{i + 1}", layer(conv, skips[-1]))
+            skips.append(f"down{i + 1}")
+        coarse = skips[-1]
+        for j, (conv1, conv2) in enumerate(self.body):
+            add(f"body{j + 1}.1", layer(conv1, coarse))
+            add(f"body{j + 1}.2", layer(conv2, f"body{j + 1}.1", residual=coarse))
+            coarse = f"body{j + 1}.2"
+        for i in reversed(range(LEVELS)):
+            if self.upsample == "pass":
+                skip, c = skips[i], coarse
+                add(f"up{i}", lambda skip=skip, c=c: k.upsample_add(results[skip], _nchw(results[c])))
+                add(f"fuse{i}", layer(self.fuse[i], f"up{i}"))
+            else:
+                add(f"fuse{i}", layer(self.fuse[i], skips[i], coarse=coarse))
+            coarse = f"fuse{i}"
+        add("tail", lambda: k.recon_tail(results["fuse0"], self.tail_w, self.tail_b, inputs, self.config),
+            key="output")
+        return results, passes
 
 
-def fused_reconnet(net: ReconNet) -> FusedReconNet:
+def fused_reconnet(net: ReconNet, upsample: str | None = None) -> FusedReconNet:
     """A :class:`FusedReconNet` of ``net`` (eval mode, same device); ``net`` is untouched."""
     if not isinstance(net, ReconNet):
         raise TypeError(f"fused_reconnet needs a ReconNet, got {type(net).__name__}")
-    return FusedReconNet(copy.deepcopy(net).eval()).to(next(net.parameters()).device).eval()
+    return FusedReconNet(copy.deepcopy(net).eval(), upsample).to(next(net.parameters()).device).eval()
 
 
-def fused_traffic(h: int, w: int, width: int = 16, warp: bool = True) -> dict[str, int]:
-    """Bytes each fused kernel must read and write per frame (each tensor once; weights ignored):
-    its floor at a memory bandwidth of ``B`` bytes/s is ``bytes / B``.
+def fused_traffic(h: int, w: int, config: ReconNetConfig = ReconNetConfig(), warp: bool = True,
+                  upsample: str = "loads") -> dict[str, int]:
+    """Bytes each pass of :meth:`FusedReconNet.passes` must read and write per frame (each tensor
+    once; weights ignored): its floor at a memory bandwidth of ``B`` bytes/s is ``bytes / B``.
 
     Args:
         h, w: the frame's size.
-        width: the full-resolution features' channels (ReconNet's ``widths[0]``).
+        config: the network's (its widths, blocks and AO prior).
         warp: the pack warps the previous output (reads the flow) rather than reading it warped.
+        upsample: as for :class:`FusedReconNet`.
 
     Returns:
-        ``{"pack", "head", "fuse", "tail"}`` -> bytes; the inputs are fp32, features fp16.
+        pass name -> bytes; the inputs and the output are fp32, features fp16.
     """
     check_int(h, "h", 1, where="fused_traffic")
     check_int(w, "w", 1, where="fused_traffic")
-    step = 2 ** LEVELS
+    step, widths = 2 ** LEVELS, config.widths
     padded = (h + -h % step) * (w + -w % step)
     pixels, f32, f16 = h * w, 4, 2
+
+    def features(level: int, channels: int) -> int:
+        return channels * f16 * padded // 4 ** level
+
     # The previous output: its mask and AO once (warped: plus the flow's two channels).
     prev = (RECURRENT + (2 if warp else 0)) * f32 * pixels
-    features = width * f16 * padded
-    return {"pack": INPUTS * f32 * pixels + prev + PACKED * f16 * padded,
-            "head": PACKED * f16 * padded + features,
-            "fuse": features + features // 4 + features,  # skip, coarse (a quarter of the pixels), out
-            # features, the inputs' mask, normal and depth, the output stack
-            "tail": features + AO.start * f32 * pixels + OUTPUTS * f32 * pixels}
+    out = {"pack": INPUTS * f32 * pixels + prev + features(0, PACKED), "head": features(0, PACKED + widths[0])}
+    # The layer before the decoder writes its output reduced to the coarsest decoder level's channels.
+    last = f"body{config.blocks}.2" if config.blocks else f"down{LEVELS}"
+    for i in range(LEVELS):
+        out[f"down{i + 1}"] = features(i, widths[i]) + features(i + 1, widths[i + 1])
+    for j in range(config.blocks):
+        out[f"body{j + 1}.1"] = features(LEVELS, 2 * widths[LEVELS])
+        out[f"body{j + 1}.2"] = features(LEVELS, 3 * widths[LEVELS])
+    out[last] += features(LEVELS, widths[LEVELS - 1] - widths[LEVELS])
+    for i in reversed(range(LEVELS)):
+        skip_and_coarse = features(i, widths[i]) + features(i + 1, widths[i])
+        written = features(i, widths[max(i - 1, 0)])  # reduced for the next level
+        if upsample == "pass":
+            out[f"up{i}"] = skip_and_coarse + features(i, widths[i])
+            out[f"fuse{i}"] = features(i, widths[i]) + written
+        else:
+            out[f"fuse{i}"] = skip_and_coarse + written
+    # the features, the inputs' mask, normal and depth (and the rays' AO and sampling for their prior), the output
+    given = AO.start + (len(range(INPUTS)[SAMPLED_AO]) + len(range(INPUTS)[SAMPLING]) if config.ao_prior == "rays" else 0)
+    out["tail"] = features(0, widths[0]) + (given + OUTPUTS) * f32 * pixels
+    return out

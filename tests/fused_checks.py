@@ -15,6 +15,7 @@ operands' rounding, 2^-11 of ``conv(|x|, |w|)``: asserted as 1e-3 of ``|ref| + c
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 
 import pytest
@@ -25,11 +26,11 @@ from isosr_render.buffers import FrameBuffers
 from isosr_render.conventions import AO, DEPTH, MASK, NORMAL
 from isosr_render.shading import ShadingParams
 from isosr_net.flow_warp import warp_by_flow
-from isosr_net.fused_kernels import conv3x3, pack_inputs, recon_tail
+from isosr_net.fused_kernels import conv3x3, pack_inputs, recon_tail, upsample_add
 from isosr_net.fused_recon import FusedReconNet, fused_reconnet, fused_runs_on, tap_weights
 from isosr_net.inference import FP16_MAX_DEPTH
 from isosr_net.model import load_pretrained
-from isosr_net.reconnet import AO_PRIORS, ReconNetConfig, ao_output
+from isosr_net.reconnet import AO_PRIORS, ReconNet, ReconNetConfig, ao_output
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
 
 from test_reconnet import recon_batch
@@ -53,11 +54,12 @@ def assert_conv_close(got: torch.Tensor, ref: torch.Tensor, magnitude: torch.Ten
     assert (err <= bound).all(), f"worst excess {(err - bound).max().item():.3g}, max error {err.max().item():.3g}"
 
 
-def conv_ref(x: torch.Tensor, taps: torch.Tensor, bias: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def conv_ref(x: torch.Tensor, taps: torch.Tensor, bias: torch.Tensor, stride: int = 1
+             ) -> tuple[torch.Tensor, torch.Tensor]:
     """fp64 ``conv3x3(x) + bias`` of NCHW ``x`` with tap-major weights, and ``conv(|x|, |w|)``."""
     weight = taps.double().reshape(3, 3, *taps.shape[1:]).permute(3, 2, 0, 1)
-    return (F.conv2d(x.double(), weight, bias.double(), padding=1),
-            F.conv2d(x.double().abs(), weight.abs(), padding=1))
+    return (F.conv2d(x.double(), weight, bias.double(), stride=stride, padding=1),
+            F.conv2d(x.double().abs(), weight.abs(), stride=stride, padding=1))
 
 
 def nchw(x: torch.Tensor) -> torch.Tensor:
@@ -131,6 +133,48 @@ def test_conv3x3_adds_the_upsampled_coarse_features_in_its_prologue(h, w, layout
     assert_conv_close(nchw(conv3x3(skip, taps, bias, coarse=coarse)), F.relu(ref), magnitude)
 
 
+@pytest.mark.parametrize("h, w", [(14, 22), (2, 4)])
+@pytest.mark.parametrize("ci, co", [(16, 32), (64, 64)])
+def test_conv3x3_of_stride_2_is_conv2d_of_stride_2(h, w, ci, co):
+    x = rand(2, h, w, ci, seed=6, dtype=torch.float16)
+    taps, bias = rand(9, ci, co, scale=0.3, seed=7, dtype=torch.float16), rand(co, seed=8)
+    ref, magnitude = conv_ref(nchw(x), taps, bias, stride=2)
+    assert_conv_close(nchw(conv3x3(x, taps, bias, stride=2)), F.relu(ref), magnitude)
+
+
+@pytest.mark.parametrize("relu", [False, True])
+def test_conv3x3_adds_the_residual_then_relu_then_reduces_in_its_epilogue(relu):
+    """ReconNet's residual block's second convolution (no ReLU) with the decoder's 1x1 reduction
+    after it: the reduction reads the sum rounded to fp16, as a layer of its own would."""
+    x, residual = rand(2, 5, 9, 64, seed=21, dtype=torch.float16), rand(2, 5, 9, 64, seed=22, dtype=torch.float16)
+    taps, bias = rand(9, 64, 64, scale=0.1, seed=23, dtype=torch.float16), rand(64, seed=24)
+    reduce_w, reduce_b = rand(64, 32, scale=0.2, seed=25, dtype=torch.float16), rand(32, seed=26)
+    conv, magnitude = conv_ref(nchw(x), taps, bias)
+    summed = conv + nchw(residual).double()
+    summed = F.relu(summed) if relu else summed
+    got = conv3x3(x, taps, bias, relu=relu, residual=residual, reduce=(reduce_w, reduce_b))
+    assert got.shape == (2, 5, 9, 32)
+    assert_conv_close(nchw(conv3x3(x, taps, bias, relu=relu, residual=residual)), summed,
+                      magnitude + nchw(residual).double().abs())
+    # The reduction of the kernel's own fp16 sum, to fp32 accumulation and an fp16 store.
+    unreduced = nchw(conv3x3(x, taps, bias, relu=relu, residual=residual)).double()
+    expected = torch.einsum("bchw,cr->brhw", unreduced, reduce_w.double()) + reduce_b.double()[:, None, None]
+    scale = torch.einsum("bchw,cr->brhw", unreduced.abs(), reduce_w.double().abs())
+    assert_conv_close(nchw(got), expected, scale)
+
+
+@pytest.mark.parametrize("h, w", [(7, 11), (1, 1)])
+def test_upsample_add_is_the_relu_of_the_skip_plus_the_bilinear_upsampled_coarse(h, w):
+    coarse = rand(2, 32, h, w, seed=27, dtype=torch.float16)
+    skip = rand(2, 2 * h, 2 * w, 32, seed=28, dtype=torch.float16)
+    up = F.interpolate(coarse.double(), scale_factor=2, mode="bilinear", align_corners=False)
+    expected = F.relu(nchw(skip).double() + up)
+    got = nchw(upsample_add(skip, coarse.permute(0, 2, 3, 1).contiguous().permute(0, 3, 1, 2))).double()
+    assert ((got - expected).abs() <= 1e-3 * expected.abs() + 1e-6).all()
+    with pytest.raises(ValueError, match="upsample_add: x must have even sides, got 3x4"):
+        upsample_add(rand(2, 3, 4, 32, dtype=torch.float16), coarse)
+
+
 def test_conv3x3_checks_its_inputs():
     x, taps, bias = rand(1, 6, 8, 16, dtype=torch.float16), rand(9, 16, 16, dtype=torch.float16), rand(16)
     with pytest.raises(ValueError, match="conv3x3: x must be a contiguous fp16 NHWC tensor, got torch.float32"):
@@ -143,6 +187,14 @@ def test_conv3x3_checks_its_inputs():
         conv3x3(x, taps, bias, coarse=rand(1, 16, 3, 3))
     with pytest.raises(ValueError, match="conv3x3: x must have even sides"):
         conv3x3(x[:, :5].contiguous(), taps, bias, coarse=rand(1, 16, 2, 4))
+    with pytest.raises(ValueError, match="conv3x3: x must have even sides for stride 2"):
+        conv3x3(x[:, :5].contiguous(), taps, bias, stride=2)
+    with pytest.raises(ValueError, match="conv3x3: stride must be 1 or 2, got 3"):
+        conv3x3(x, taps, bias, stride=3)
+    with pytest.raises(ValueError, match=r"conv3x3: residual must be \(1, 3, 4, 16\), got \(1, 6, 8, 16\)"):
+        conv3x3(x, taps, bias, stride=2, residual=x)
+    with pytest.raises(ValueError, match=r"conv3x3: reduce weight must be \(16, CR\), got \(8, 16\)"):
+        conv3x3(x, taps, bias, reduce=(taps[0, :8].contiguous(), bias))
 
 
 @pytest.mark.parametrize("ao_prior", AO_PRIORS)
@@ -177,12 +229,17 @@ def test_tail_checks_its_inputs():
 # ---------------------------------------------------------------- the whole network
 
 
+@functools.cache
+def shipped_under(ao_prior: str, upsample: str = "loads") -> tuple[ReconNet, FusedReconNet]:
+    """The shipped model under an AO prior (the output's AO differs, the rest not), and it fused."""
+    net, _ = load_pretrained(DEFAULT_RECON_MODEL, torch.device(DEVICE))
+    net.config = dataclasses.replace(net.config, ao_prior=ao_prior)
+    return net.eval(), fused_reconnet(net, upsample)
+
+
 @pytest.fixture(scope="module", params=AO_PRIORS)
 def shipped(request):
-    """The shipped model, and its weights under each AO prior (the output's AO differs, the rest not)."""
-    net, _ = load_pretrained(DEFAULT_RECON_MODEL, torch.device(DEVICE))
-    net.config = dataclasses.replace(net.config, ao_prior=request.param)
-    return net.eval(), fused_reconnet(net)
+    return shipped_under(request.param)
 
 
 def reference(net, inputs, warped):
@@ -190,10 +247,12 @@ def reference(net, inputs, warped):
         return net.double()(inputs.double(), warped.double()).float(), net.float()
 
 
-@pytest.mark.parametrize("b, h, w", [(2, 13, 21), (1, 24, 40)])
-def test_the_fused_shipped_model_equals_reconnet(shipped, b, h, w):
-    net, fused = shipped
-    assert isinstance(fused, FusedReconNet)
+# The AO prior changes the tail alone (tested under both above); the interpreter is slow.
+@pytest.mark.parametrize("ao_prior, upsample, b, h, w", [("none", "loads", 2, 13, 21), ("rays", "loads", 1, 24, 40),
+                                                        ("rays", "pass", 1, 13, 21)])
+def test_the_fused_shipped_model_equals_reconnet(ao_prior, upsample, b, h, w):
+    net, fused = shipped_under(ao_prior, upsample)
+    assert isinstance(fused, FusedReconNet) and fused.upsample == upsample
     inputs = recon_batch(b, h, w, seed=17).to(DEVICE)
     previous, flow = rand(b, 6, h, w, seed=18).sigmoid(), rand(b, 2, h, w, scale=2.0, seed=19)
     with torch.no_grad():
@@ -212,6 +271,19 @@ def test_the_fused_shipped_model_equals_reconnet(shipped, b, h, w):
     stand_in = net.first_previous(inputs)
     torch.testing.assert_close(first, reference(net, inputs, stand_in)[0], rtol=0, atol=2e-3)
     torch.testing.assert_close(first_read, stand_in[:, [MASK.start, AO.start]], rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("blocks, upsample", [(0, "pass"), (1, "loads")])
+def test_other_architectures_fuse_too(blocks, upsample):
+    """Without residual blocks the last stride-2 convolution reduces for the decoder; widths other
+    than the shipped."""
+    torch.manual_seed(3)
+    net = ReconNet(ReconNetConfig(widths=(16, 16, 32, 64), blocks=blocks)).to(DEVICE).eval()
+    fused = fused_reconnet(net, upsample)
+    inputs, warped = recon_batch(1, 11, 19, seed=31).to(DEVICE), rand(1, 6, 11, 19, seed=32).sigmoid()
+    with torch.no_grad():
+        got = fused(inputs, warped)
+    torch.testing.assert_close(got, reference(net, inputs, warped)[0], rtol=0, atol=2e-3)
 
 
 def test_hard_frames_stay_finite_and_within_fp16s_own_error(shipped):

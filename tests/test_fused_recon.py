@@ -60,12 +60,26 @@ def test_tap_weights_are_tap_major_and_zero_padded():
 
 
 def test_fused_traffic_counts_each_tensor_once():
-    traffic = fused_traffic(1080, 1920)
+    traffic = fused_traffic(1080, 1920)  # the default architecture
     pixels = 1080 * 1920  # 1080 is a multiple of 8: no padding
-    assert traffic == {"pack": (8 * 4 + 4 * 4 + 16 * 2) * pixels, "head": (16 * 2 + 16 * 2) * pixels,
-                       "fuse": (32 + 8 + 32) * pixels, "tail": (32 + 5 * 4 + 6 * 4) * pixels}
+    assert list(traffic) == ["pack", "head", "down1", "down2", "down3", "body1.1", "body1.2", "body2.1", "body2.2",
+                             "fuse2", "fuse1", "fuse0", "tail"]
+    assert traffic["pack"] == (8 * 4 + 4 * 4 + 16 * 2) * pixels
+    assert traffic["head"] == (16 * 2 + 16 * 2) * pixels
+    assert traffic["down1"] == 16 * 2 * pixels + 32 * 2 * pixels // 4
+    assert traffic["fuse0"] == (32 + 8 + 32) * pixels  # skip, coarse (a quarter of the pixels), out
+    assert traffic["tail"] == (32 + 5 * 4 + 6 * 4) * pixels
+    wide = fused_traffic(1080, 1920, ReconNetConfig(widths=(16, 32, 64, 128), ao_prior="rays"), upsample="pass")
+    # the last residual block's sum reduced to the coarsest decoder level's 64 channels
+    assert wide["body2.2"] == (128 + 128 + 64) * 2 * pixels // 64
+    assert wide["fuse2"] == (64 * 2 + 32 * 2) * pixels // 16
+    assert wide["up0"] == (32 + 8 + 32) * pixels and wide["fuse0"] == (32 + 32) * pixels
+    assert wide["tail"] == (32 + 8 * 4 + 6 * 4) * pixels  # the rays' AO and sampling read too
     assert fused_traffic(1080, 1920, warp=False)["pack"] == traffic["pack"] - 2 * 4 * pixels
     assert fused_traffic(13, 21)["head"] == 64 * 16 * 24  # the padded frame
+    # without residual blocks the last stride-2 convolution writes its 128 channels reduced to 64
+    no_blocks = fused_traffic(13, 21, ReconNetConfig(widths=(16, 32, 64, 128), blocks=0))
+    assert no_blocks["down3"] == 64 * 2 * 16 * 24 // 16 + 64 * 2 * 16 * 24 // 64
     with pytest.raises(ValueError, match=r"fused_traffic: h must be an integer >= 1, got 0"):
         fused_traffic(0, 21)
 
@@ -73,8 +87,10 @@ def test_fused_traffic_counts_each_tensor_once():
 def test_fused_reconnet_refuses_what_it_cannot_fuse():
     with pytest.raises(TypeError, match="fused_reconnet needs a ReconNet, got Conv2d"):
         fused_reconnet(nn.Conv2d(1, 1, 3))
-    with pytest.raises(ValueError, match="full-resolution width must be a power of 2 >= 16, got 12"):
-        fused_reconnet(ReconNet(ReconNetConfig(widths=(12, 16, 16, 16))))
+    with pytest.raises(ValueError, match=r"the widths must be powers of 2 >= 16, got \(16, 16, 48, 64\)"):
+        fused_reconnet(ReconNet(ReconNetConfig(widths=(16, 16, 48, 64))))
+    with pytest.raises(ValueError, match=r"upsample must be one of \('loads', 'pass'\), got 'twice'"):
+        fused_reconnet(ReconNet(ReconNetConfig()), upsample="twice")
 
 
 @pytest.mark.skipif(fused_runs_on("cpu"), reason="under the interpreter the fused path runs on the CPU")
