@@ -27,7 +27,7 @@ from isosr_render.conventions import AO, DEPTH, MASK, NORMAL
 from isosr_render.shading import ShadingParams
 from isosr_net.flow_warp import warp_by_flow
 from isosr_net.fused_kernels import conv3x3, pack_inputs, recon_tail, upsample_add
-from isosr_net.fused_recon import FusedReconNet, fused_reconnet, fused_runs_on, tap_weights
+from isosr_net.fused_recon import FusedReconNet, fused_reconnet, fused_runs_on, fused_traffic, tap_weights
 from isosr_net.inference import FP16_MAX_DEPTH
 from isosr_net.model import load_pretrained
 from isosr_net.reconnet import AO_PRIORS, ReconNet, ReconNetConfig, ao_output
@@ -284,6 +284,13 @@ def test_other_architectures_fuse_too(blocks, upsample):
     with torch.no_grad():
         got = fused(inputs, warped)
     torch.testing.assert_close(got, reference(net, inputs, warped)[0], rtol=0, atol=2e-3)
+    # the passes, run one by one, are the ones whose traffic fused_traffic counts
+    results, passes = fused.passes(inputs, warped)
+    with torch.no_grad():
+        for _, run in passes:
+            run()
+    assert [name for name, _ in passes] == list(fused_traffic(11, 19, net.config, warp=False, upsample=upsample))
+    torch.testing.assert_close(results["output"], got, rtol=0, atol=0)
 
 
 def test_hard_frames_stay_finite_and_within_fp16s_own_error(shipped):
