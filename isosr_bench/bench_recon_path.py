@@ -17,15 +17,16 @@ Variants on CUDA, all fp16 and NHWC: ``eager``; ``compiled`` (the frame's work a
 :func:`isosr_net.reconstructor.recon_frame`, through inductor); ``+ fast layers`` (channel counts
 padded, :func:`isosr_net.fastpath.fast_reconnet`); ``+ CUDA graph`` (through the runner, the
 render, the network and the shading replayed as one graph: :meth:`Reconstructor.render_reconstruct`);
-where Triton imports, ``fused`` (the full-resolution layers as fused Triton kernels,
-:mod:`isosr_net.fused_recon`) and ``fused + CUDA graph`` (:meth:`Reconstructor.fastest`). On CPUs:
-eager fp32. Then the fastest variant without the runner: the render and then the network's graph,
+where Triton imports, ``fused`` (the network as fused Triton kernels, :mod:`isosr_net.fused_recon`)
+and ``fused + CUDA graph`` (:meth:`Reconstructor.fastest`). On CPUs: eager fp32. ``--variants``
+picks some. Then the fastest variant without the runner: the render and then the network's graph,
 against render, network and shading as one graph. The network's convolutions in GFLOP per frame
 (:func:`isosr_net.reconnet.macs_per_pixel`) and the floor they imply at a bf16 matrix-multiply
 rate measured in the same run (fp16's on Hopper) go beside them.
 
 Fused rows also time each pass of the fused network alone on a rendered frame (CUDA events,
-``kernels``: ``pack``, ``head``, ``coarse`` (the PyTorch levels), ``fuse``, ``tail``) with its
+``kernels``: ``pack``, ``head``, ``down1``, ..., ``tail``, :meth:`FusedReconNet.passes`; small
+passes alone time their launch too) and all of them as one CUDA graph (``network``), with their
 bytes (:func:`isosr_net.fused_recon.fused_traffic`), the floor they take at the copy bandwidth
 measured in the same run, and ``of_floor``: floor over time (1 at the floor).
 """
@@ -37,7 +38,6 @@ import torch
 from isosr_render import Renderer
 from isosr_render.sequence import sequence_cameras
 from isosr_net.frame_methods import FrameMethod, Networks, make_runner
-from isosr_net import fused_recon
 from isosr_net.fused_recon import FusedReconNet, fused_runs_on, fused_traffic
 from isosr_net.reconnet import macs_per_pixel
 from isosr_net.reconstructor import Reconstructor, recon_inputs
@@ -61,17 +61,15 @@ def variants(device: str) -> dict[str, dict]:
         "eager": {"precision": "fp32", "channels_last": True}}
     if fused_runs_on(device):  # on CPUs under Triton's interpreter only
         fused = {"precision": "fp16", "channels_last": True, "fused": True}
-        passes = {**fused, "upsample": "pass"}
-        out.update({"fused": fused, "fused + CUDA graph": {**fused, "graphs": True}, "fused, upsample pass": passes,
-                    "fused, upsample pass + CUDA graph": {**passes, "graphs": True}} if cuda else {"fused": fused})
+        out.update({"fused": fused, "fused + CUDA graph": {**fused, "graphs": True}} if cuda else {"fused": fused})
     return out
 
 
 def pass_times(net: FusedReconNet, renderer: Renderer, pairs: list, request, ao_rays: int, spp: int, frames: int,
                device: str, bandwidth: float) -> dict[str, dict]:
     """Each pass of the fused network timed alone on the second frame of ``pairs`` (the first's
-    output warped in), with its bytes and floor at ``bandwidth`` (bytes/s); the coarse levels
-    (PyTorch) have no floor here."""
+    output warped in), and on CUDA all of them replayed as one CUDA graph (``network``), with their
+    bytes and floor at ``bandwidth`` (bytes/s)."""
     inputs, previous = None, None
     for camera, prev_camera in pairs[:2]:
         frame = renderer.render(camera, request(prev_camera))
@@ -79,40 +77,47 @@ def pass_times(net: FusedReconNet, renderer: Renderer, pairs: list, request, ao_
         with torch.no_grad():
             previous = net.step(inputs, flow, previous)[0]
     h, w = inputs.shape[-2:]
-    traffic = fused_traffic(h, w, net.config, upsample=net.upsample)
+    traffic = fused_traffic(h, w, net.config)
     with torch.no_grad():
         _, passes = net.passes(inputs, previous, flow)
         for _, run in passes:
             run()
         out = {}
         for name, run in passes:
-            ms = time_frames(lambda i: run(), frames, device)
-            ms = ms.get("gpu_ms", ms["wall_ms"])
-            out[name] = {"ms": ms}
-            if name in traffic:
-                floor = traffic[name] / bandwidth * 1e3
-                out[name].update(bytes=traffic[name], floor_ms=floor, of_floor=floor / ms)
+            out[name] = {"ms": gpu_ms(time_frames(lambda i: run(), frames, device))}
+        if device.startswith("cuda"):  # without the launches' overhead, which the passes alone include
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(graph):
+                for _, run in passes:
+                    run()
+            out["network"] = {"ms": gpu_ms(time_frames(lambda i: graph.replay(), frames, device))}
+            traffic["network"] = sum(traffic.values())
+    for name, bytes_ in traffic.items():
+        floor = bytes_ / bandwidth * 1e3
+        out[name].update(bytes=bytes_, floor_ms=floor, of_floor=floor / out[name]["ms"])
     return out
+
+
+def gpu_ms(times: dict) -> float:
+    """The GPU's mean ms per frame where events timed it, else the wall clock's."""
+    return times.get("gpu_ms", times["wall_ms"])
 
 
 def stage_row(renderer: Renderer, iso: float, volume: str, size: tuple[int, int], size_name: str, ao_rays: int,
               spp: int, variant: str, options: dict, frames: int, warmup: int, device: str, tflops: float,
               bandwidth: float) -> dict:
     """One row: the stages' mean times on one volume, size, sampling and variant."""
-    ms = lambda t: t.get("gpu_ms", t["wall_ms"])  # noqa: E731
     pairs = sequence_cameras(bench_cameras(frames))
     method = FrameMethod("reconstruct", ao_rays=ao_rays, spp=spp, precision=options["precision"])
-    options = dict(options)
-    fused_recon.UPSAMPLE = options.pop("upsample", "loads")
     recon = Reconstructor(device=device, **options)
     networks = Networks(lambda *_: recon)  # this variant's network
     runner = make_runner(method, renderer, iso, *size, networks=networks)
     full = make_runner(FrameMethod("full", ao_rays=ao_rays, spp=spp), renderer, iso, *size)
     row = {"volume": volume, "size": size_name, "pixels": f"{size[0]}x{size[1]}", "ao_rays": ao_rays, "spp": spp,
            "variant": variant, "method": method.name}
-    row["full"] = ms(time_frames(lambda i: full.frame(*pairs[i]), frames, device, warmup=warmup))
-    row["path"] = ms(time_frames(lambda i: runner.frame(*pairs[i]), frames, device, warmup=warmup))
-    row["render"] = ms(time_frames(lambda i: renderer.render(pairs[i][0], runner.render_request(pairs[i][1])),
+    row["full"] = gpu_ms(time_frames(lambda i: full.frame(*pairs[i]), frames, device, warmup=warmup))
+    row["path"] = gpu_ms(time_frames(lambda i: runner.frame(*pairs[i]), frames, device, warmup=warmup))
+    row["render"] = gpu_ms(time_frames(lambda i: renderer.render(pairs[i][0], runner.render_request(pairs[i][1])),
                                    frames, device, warmup=0))
     row["added"] = row["path"] - row["full"]
     row["network_gflop"] = 2 * macs_per_pixel(recon.net.config) * size[0] * size[1] / 1e9

@@ -10,10 +10,10 @@ Four kinds of pass do all of ReconNet's work (:mod:`isosr_net.fused_recon` runs 
   per tile of ``BLOCK_M`` output pixels, one ``tl.dot`` per tap (K = input channels, N = output
   channels); in its epilogue a residual sum, the ReLU and a 1x1 channel reduction (a second
   ``tl.dot``: ReconNet's decoder reduces a level's channels before upsampling it, and the two
-  commute). With ``coarse`` its input is ``relu(x + bilinear_2x(coarse))``, computed as it is
-  loaded: a decoder level without the upsampled tensor or the sum in memory.
-- :func:`upsample_add`: ``relu(x + bilinear_2x(coarse))`` as a tensor of its own, once per
-  pixel, for a plain :func:`conv3x3` after it (the other way to run a decoder level).
+  commute).
+- :func:`upsample_add`: a decoder level's input ``relu(skip + bilinear_2x(coarse))``, once per
+  pixel. (Computed in the convolution's loads instead, per tap, it made the last level 2.8 times
+  slower on an H100 at 4K: 1.40 against 0.50 ms with this pass.)
 - :func:`recon_tail`: the 3x3 output convolution (6 channels, computed as 16) + bias and
   ReconNet's output: mask ``clamp(in + raw, 0, 1)``, normal ``in + raw``, depth passed through,
   AO ``sigmoid(raw)`` or, for a model over the input rays, ``sigmoid(logit(p) + raw)``
@@ -90,12 +90,12 @@ def _pack_kernel(inp_ptr, prev_ptr, flow_ptr, out_ptr, h, w, hp, wp,
 
 @triton.jit
 def _upsampled_sum(a, c_ptr, b, yy, xx, hc, wc, sc_b, sc_c, sc_h, sc_w, ci):
-    """``relu(a + bilinear_2x(coarse))`` at full-resolution pixels (yy, xx), fp32.
+    """``relu(a + bilinear_2x(coarse))`` at pixels (yy, xx) of the upsampled image, fp32.
 
     Bilinear 2x with align_corners=False: full-res row Y reads coarse rows lo = (Y + 1) // 2 - 1
     and lo + 1, the second weighted 3/4 for even Y and 1/4 for odd Y, both clamped to the image
-    (so row 0 reads row 0 alone), as F.interpolate does; the same along columns. Rows and columns
-    outside the image (the zero padding's, a tile's pixels past the end) read clamped rows too.
+    (so row 0 reads row 0 alone), as F.interpolate does; the same along columns. A tile's pixels
+    past the end read clamped rows too.
     """
     ylo = (yy + 1) // 2 - 1
     xlo = (xx + 1) // 2 - 1
@@ -116,9 +116,8 @@ def _upsampled_sum(a, c_ptr, b, yy, xx, hc, wc, sc_b, sc_c, sc_h, sc_w, ci):
 
 
 @triton.jit
-def _conv_acc(x_ptr, w_ptr, bias_ptr, c_ptr, b, y, x, valid, hi, wi, hc, wc, sc_b, sc_c, sc_h, sc_w,
-              STRIDE: tl.constexpr, UPSAMPLE: tl.constexpr, CI: tl.constexpr, CO: tl.constexpr,
-              BLOCK_M: tl.constexpr):
+def _conv_acc(x_ptr, w_ptr, bias_ptr, b, y, x, valid, hi, wi, STRIDE: tl.constexpr, CI: tl.constexpr,
+              CO: tl.constexpr, BLOCK_M: tl.constexpr):
     """The 3x3 convolution plus bias at output pixels (y, x) of the NHWC (B, hi, wi, CI) input, fp32 (BLOCK_M, CO)."""
     ci = tl.arange(0, CI)
     co = tl.arange(0, CO)
@@ -129,26 +128,21 @@ def _conv_acc(x_ptr, w_ptr, bias_ptr, c_ptr, b, y, x, valid, hi, wi, hc, wc, sc_
         inside = valid & (yy >= 0) & (yy < hi) & (xx >= 0) & (xx < wi)
         a = tl.load(x_ptr + b * hi * wi * CI + ((yy * wi + xx) * CI)[:, None] + ci[None, :],
                     mask=inside[:, None], other=0.0)
-        if UPSAMPLE:
-            # The convolution zero-pads its input relu(x + up), so outside pixels stay 0.
-            a = tl.where(inside[:, None], _upsampled_sum(a, c_ptr, b, yy, xx, hc, wc, sc_b, sc_c, sc_h, sc_w, ci),
-                         0.0).to(tl.float16)
         weights = tl.load(w_ptr + tap * CI * CO + ci[:, None] * CO + co[None, :])
         acc = tl.dot(a, weights, acc)
     return acc + tl.load(bias_ptr + co)[None, :]
 
 
 @triton.jit
-def _conv_kernel(x_ptr, w_ptr, bias_ptr, out_ptr, c_ptr, res_ptr, rw_ptr, rb_ptr, hi, wi, ho, wo, hc, wc,
-                 sc_b, sc_c, sc_h, sc_w, STRIDE: tl.constexpr, UPSAMPLE: tl.constexpr, RESIDUAL: tl.constexpr,
-                 RELU: tl.constexpr, CI: tl.constexpr, CO: tl.constexpr, CR: tl.constexpr, BLOCK_M: tl.constexpr):
+def _conv_kernel(x_ptr, w_ptr, bias_ptr, out_ptr, res_ptr, rw_ptr, rb_ptr, hi, wi, ho, wo,
+                 STRIDE: tl.constexpr, RESIDUAL: tl.constexpr, RELU: tl.constexpr, CI: tl.constexpr,
+                 CO: tl.constexpr, CR: tl.constexpr, BLOCK_M: tl.constexpr):
     b = tl.program_id(1).to(tl.int64)
     offs = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     valid = offs < ho * wo
     y = offs // wo
     x = offs % wo
-    acc = _conv_acc(x_ptr, w_ptr, bias_ptr, c_ptr, b, y, x, valid, hi, wi, hc, wc, sc_b, sc_c, sc_h, sc_w,
-                    STRIDE, UPSAMPLE, CI, CO, BLOCK_M)
+    acc = _conv_acc(x_ptr, w_ptr, bias_ptr, b, y, x, valid, hi, wi, STRIDE, CI, CO, BLOCK_M)
     co = tl.arange(0, CO)
     if RESIDUAL:
         acc += tl.load(res_ptr + b * ho * wo * CO + offs[:, None] * CO + co[None, :], mask=valid[:, None],
@@ -189,8 +183,7 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, inp_ptr, out_ptr, h, w, hp, wp, si_b, s
     valid = offs < h * w
     y = offs // w
     x = offs % w
-    raw = _conv_acc(x_ptr, w_ptr, bias_ptr, x_ptr, b, y, x, valid, hp, wp, 1, 1, 0, 0, 0, 0,
-                    1, False, CI, CO, BLOCK_M)
+    raw = _conv_acc(x_ptr, w_ptr, bias_ptr, b, y, x, valid, hp, wp, 1, CI, CO, BLOCK_M)
     c = tl.arange(0, CO)[None, :]
     # The inputs' first channels are the output's (mask, normal, depth), in the same order; the
     # channels other than mask, depth and AO are the normal's.
@@ -209,7 +202,7 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, inp_ptr, out_ptr, h, w, hp, wp, si_b, s
     tl.store(out_ptr + b * OUT * h * w + c * h * w + offs[:, None], out, mask=valid[:, None] & (c < OUT))
 
 
-_conv_tuned = _tuned(_conv_kernel, ["ho", "wo", "STRIDE", "UPSAMPLE", "CI", "CO", "CR"])
+_conv_tuned = _tuned(_conv_kernel, ["ho", "wo", "STRIDE", "CI", "CO", "CR"])
 _tail_tuned = _tuned(_tail_kernel, ["hp", "wp"])
 
 
@@ -264,10 +257,10 @@ def pack_inputs(inputs: torch.Tensor, prev: torch.Tensor, flow: torch.Tensor | N
 
 
 def conv3x3(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, *, stride: int = 1, relu: bool = True,
-            residual: torch.Tensor | None = None, reduce: tuple[torch.Tensor, torch.Tensor] | None = None,
-            coarse: torch.Tensor | None = None) -> torch.Tensor:
+            residual: torch.Tensor | None = None, reduce: tuple[torch.Tensor, torch.Tensor] | None = None
+            ) -> torch.Tensor:
     """``relu(conv3x3(x) + bias + residual) @ reduce``: zero padding; the ReLU, residual and
-    reduction where asked; with ``coarse``, of ``relu(x + bilinear_2x(coarse))``.
+    reduction where asked.
 
     Args:
         x: NHWC fp16 (contiguous).
@@ -277,20 +270,19 @@ def conv3x3(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, *, stride
         relu: the ReLU, after the residual sum.
         residual: NHWC fp16 (contiguous), added before the ReLU.
         reduce: a 1x1 convolution of the result, its weights ``(CO, CR)`` fp16 and bias fp32.
-        coarse: half-resolution features, any layout (NHWC reads fastest), any float dtype.
 
     Shape:
         x: (B, H, W, CI). weight: (9, CI, CO). bias: (CO,). residual: (B, H/s, W/s, CO).
-        reduce: (CO, CR), (CR,). coarse: (B, CI, H/2, W/2). Returns (B, H/s, W/s, CR or CO),
-        fp16. CI, CO and CR powers of 2, at least 16.
+        reduce: (CO, CR), (CR,). Returns (B, H/s, W/s, CR or CO), fp16. CI, CO and CR powers of
+        2, at least 16.
     """
     dims = _check_nhwc(x, "x", "conv3x3")
     b, hi, wi, ci = dims["B"], dims["H"], dims["W"], dims["C"]
     co = _check_taps(weight, bias, ci, "conv3x3")
     if stride not in (1, 2):
         raise ValueError(f"conv3x3: stride must be 1 or 2, got {stride}")
-    if (coarse is not None or stride == 2) and (hi % 2 or wi % 2):
-        raise ValueError(f"conv3x3: x must have even sides for stride 2 or an upsampled coarse, got {hi}x{wi}")
+    if stride == 2 and (hi % 2 or wi % 2):
+        raise ValueError(f"conv3x3: x must have even sides for stride 2, got {hi}x{wi}")
     ho, wo = hi // stride, wi // stride
     if residual is not None:
         _check_nhwc(residual, "residual", "conv3x3")
@@ -301,16 +293,11 @@ def conv3x3(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, *, stride
         check_shape(reduce[1], f"({cr})", "reduce bias", "conv3x3")
         if reduce[0].dtype != torch.float16 or reduce[1].dtype != torch.float32 or not reduce[0].is_contiguous():
             raise ValueError("conv3x3: the reduce weight must be contiguous fp16 and its bias fp32")
-    hc, wc = (hi // 2, wi // 2) if coarse is not None else (1, 1)
-    if coarse is not None:
-        check_shape(coarse, f"({b}, {ci}, {hc}, {wc})", "coarse", "conv3x3")
     out = x.new_empty((b, ho, wo, cr or co))
-    c = coarse if coarse is not None else x
-    strides_c = c.stride() if coarse is not None else (0, 0, 0, 0)
     rw, rb = reduce if reduce is not None else (weight, bias)
-    _conv_tuned[_grid(ho * wo, b)](x, weight, bias, out, c, x if residual is None else residual, rw, rb,
-                                   hi, wi, ho, wo, hc, wc, *strides_c, STRIDE=stride, UPSAMPLE=coarse is not None,
-                                   RESIDUAL=residual is not None, RELU=relu, CI=ci, CO=co, CR=cr, **FIXED)
+    _conv_tuned[_grid(ho * wo, b)](x, weight, bias, out, x if residual is None else residual, rw, rb, hi, wi, ho, wo,
+                                   STRIDE=stride, RESIDUAL=residual is not None, RELU=relu, CI=ci, CO=co, CR=cr,
+                                   **FIXED)
     return out
 
 

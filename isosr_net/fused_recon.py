@@ -8,9 +8,9 @@ the upsampled coarse features, their sum with the skip and its ReLU, the raw out
 output's pieces, and cuDNN runs 16- to 64-channel 3x3 convolutions poorly. Here every layer is
 one kernel (:mod:`isosr_net.fused_kernels`; NHWC fp16, fp32 accumulation): pack (with the
 previous output's warp), head, the three stride-2 convolutions, the residual blocks' convolutions
-(the sum in the second's epilogue), each decoder level's 3x3 convolution (the upsampled coarse
-features and the skip summed in its loads, or by a pass before it: ``upsample``) with the next
-level's 1x1 reduction in its epilogue, and the tail (with the output stack).
+(the sum in the second's epilogue), per decoder level the upsampled coarse features summed with
+the skip and its 3x3 convolution (with the next level's 1x1 reduction in its epilogue), and the
+tail (with the output stack).
 
 The fused path runs on CUDA tensors where Triton imports (and on CPU tensors under Triton's
 interpreter, ``TRITON_INTERPRET=1``, for tests); elsewhere :class:`FusedReconNet` runs the
@@ -32,8 +32,6 @@ from isosr_render.shapes import check_int, check_shape
 from isosr_net.reconnet import INPUTS, LEVELS, OUTPUTS, RECURRENT, ReconNet, ReconNetConfig
 
 PACKED = 16  # the packed input's channels (isosr_net.fused_kernels.PACKED): 10 used
-UPSAMPLES = ("loads", "pass")  # a decoder level's upsampled sum: in its convolution's loads, or a pass of its own
-UPSAMPLE = "loads"  # FusedReconNet's default (measured against "pass" by bench_recon_path)
 
 
 def recurrent_channels(previous: torch.Tensor) -> torch.Tensor:
@@ -102,16 +100,10 @@ class FusedConv(nn.Module):
             self.register_buffer("reduce_w", reduce.weight.detach()[:, :, 0, 0].t().half().contiguous())
             self.register_buffer("reduce_b", reduce.bias.detach().float())
 
-    def forward(self, x: torch.Tensor, residual: torch.Tensor | None = None,
-                coarse: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, residual: torch.Tensor | None = None) -> torch.Tensor:
         reduce = (self.reduce_w, self.reduce_b) if self.reduces else None
         return _kernels().conv3x3(x, self.weight, self.bias, stride=self.stride, relu=self.relu, residual=residual,
-                                  reduce=reduce, coarse=coarse)
-
-
-def _nchw(x: torch.Tensor) -> torch.Tensor:
-    """An NHWC tensor as (B, C, H, W) strides over the same memory (what the kernels' ``coarse`` takes)."""
-    return x.permute(0, 3, 1, 2)
+                                  reduce=reduce)
 
 
 class FusedReconNet(nn.Module):
@@ -122,23 +114,18 @@ class FusedReconNet(nn.Module):
 
     Args:
         net: the ReconNet (widths powers of 2, at least 16).
-        upsample: a decoder level's ``relu(skip + bilinear_2x(coarse))``: in its convolution's
-            loads (``"loads"``, recomputed per tap) or by a pass of its own (``"pass"``).
 
     Shape:
         inputs: (B, 8, H, W). prev_warped: (B, 6, H, W). Returns (B, 6, H, W), float32 on the
         fused path.
     """
 
-    def __init__(self, net: ReconNet, upsample: str | None = None):
-        upsample = upsample or UPSAMPLE
+    def __init__(self, net: ReconNet):
         super().__init__()
         widths = net.config.widths
         if any(w < 16 or w & (w - 1) for w in widths):
             raise ValueError(f"fused_reconnet: the widths must be powers of 2 >= 16, got {widths}")
-        if upsample not in UPSAMPLES:
-            raise ValueError(f"fused_reconnet: upsample must be one of {UPSAMPLES}, got {upsample!r}")
-        self.config, self.upsample = net.config, upsample
+        self.config = net.config
         self.reference = net
         blocks = net.config.blocks
         # The layer before the decoder reduces its output for the coarsest decoder level.
@@ -206,7 +193,7 @@ class FusedReconNet(nn.Module):
         In order, each pass computes the entry of ``results`` named as it from those before
         (running one again recomputes it): ``pack`` (``packed``), ``head``, ``down1``..``down3``
         (the encoder levels), ``body1.1``, ``body1.2``, ... (the residual blocks' convolutions),
-        per decoder level from the coarsest (``up2`` where ``upsample`` is "pass") ``fuse2``, ...,
+        per decoder level from the coarsest ``up2`` (the upsampled sum) and ``fuse2``, ...,
         ``fuse0``, and ``tail`` (``output``). Arguments as for :func:`isosr_net.fused_kernels.pack_inputs`.
         """
         k = _kernels()
@@ -216,9 +203,8 @@ class FusedReconNet(nn.Module):
         def add(name: str, compute: Callable[[], torch.Tensor], key: str | None = None) -> None:
             passes.append((name, lambda: results.__setitem__(key or name, compute())))
 
-        def layer(conv: FusedConv, src: str, residual: str | None = None, coarse: str | None = None):
-            return lambda: conv(results[src], residual=results[residual] if residual else None,
-                                coarse=_nchw(results[coarse]) if coarse else None)
+        def layer(conv: FusedConv, src: str, residual: str | None = None):
+            return lambda: conv(results[src], residual=results[residual] if residual else None)
 
         add("pack", lambda: k.pack_inputs(inputs, prev, flow, multiple=2 ** LEVELS), key="packed")
         add("head", layer(self.head, "packed"))
@@ -232,27 +218,23 @@ class FusedReconNet(nn.Module):
             add(f"body{j + 1}.2", layer(conv2, f"body{j + 1}.1", residual=coarse))
             coarse = f"body{j + 1}.2"
         for i in reversed(range(LEVELS)):
-            if self.upsample == "pass":
-                skip, c = skips[i], coarse
-                add(f"up{i}", lambda skip=skip, c=c: k.upsample_add(results[skip], _nchw(results[c])))
-                add(f"fuse{i}", layer(self.fuse[i], f"up{i}"))
-            else:
-                add(f"fuse{i}", layer(self.fuse[i], skips[i], coarse=coarse))
+            skip, c = skips[i], coarse
+            add(f"up{i}", lambda skip=skip, c=c: k.upsample_add(results[skip], results[c].permute(0, 3, 1, 2)))
+            add(f"fuse{i}", layer(self.fuse[i], f"up{i}"))
             coarse = f"fuse{i}"
         add("tail", lambda: k.recon_tail(results["fuse0"], self.tail_w, self.tail_b, inputs, self.config),
             key="output")
         return results, passes
 
 
-def fused_reconnet(net: ReconNet, upsample: str | None = None) -> FusedReconNet:
+def fused_reconnet(net: ReconNet) -> FusedReconNet:
     """A :class:`FusedReconNet` of ``net`` (eval mode, same device); ``net`` is untouched."""
     if not isinstance(net, ReconNet):
         raise TypeError(f"fused_reconnet needs a ReconNet, got {type(net).__name__}")
-    return FusedReconNet(copy.deepcopy(net).eval(), upsample).to(next(net.parameters()).device).eval()
+    return FusedReconNet(copy.deepcopy(net).eval()).to(next(net.parameters()).device).eval()
 
 
-def fused_traffic(h: int, w: int, config: ReconNetConfig = ReconNetConfig(), warp: bool = True,
-                  upsample: str = "loads") -> dict[str, int]:
+def fused_traffic(h: int, w: int, config: ReconNetConfig = ReconNetConfig(), warp: bool = True) -> dict[str, int]:
     """Bytes each pass of :meth:`FusedReconNet.passes` must read and write per frame (each tensor
     once; weights ignored): its floor at a memory bandwidth of ``B`` bytes/s is ``bytes / B``.
 
@@ -260,7 +242,6 @@ def fused_traffic(h: int, w: int, config: ReconNetConfig = ReconNetConfig(), war
         h, w: the frame's size.
         config: the network's (its widths, blocks and AO prior).
         warp: the pack warps the previous output (reads the flow) rather than reading it warped.
-        upsample: as for :class:`FusedReconNet`.
 
     Returns:
         pass name -> bytes; the inputs and the output are fp32, features fp16.
@@ -286,13 +267,9 @@ def fused_traffic(h: int, w: int, config: ReconNetConfig = ReconNetConfig(), war
         out[f"body{j + 1}.2"] = features(LEVELS, 3 * widths[LEVELS])
     out[last] += features(LEVELS, widths[LEVELS - 1] - widths[LEVELS])
     for i in reversed(range(LEVELS)):
-        skip_and_coarse = features(i, widths[i]) + features(i + 1, widths[i])
-        written = features(i, widths[max(i - 1, 0)])  # reduced for the next level
-        if upsample == "pass":
-            out[f"up{i}"] = skip_and_coarse + features(i, widths[i])
-            out[f"fuse{i}"] = features(i, widths[i]) + written
-        else:
-            out[f"fuse{i}"] = skip_and_coarse + written
+        # skip, coarse (a quarter of the pixels), the sum; the sum, the output reduced for the next level
+        out[f"up{i}"] = features(i, 2 * widths[i]) + features(i + 1, widths[i])
+        out[f"fuse{i}"] = features(i, widths[i] + widths[max(i - 1, 0)])
     # the features, the inputs' mask, normal and depth (and the rays' AO and sampling for their prior), the output
     given = AO.start + (len(range(INPUTS)[SAMPLED_AO]) + len(range(INPUTS)[SAMPLING]) if config.ao_prior == "rays" else 0)
     out["tail"] = features(0, widths[0]) + (given + OUTPUTS) * f32 * pixels

@@ -121,18 +121,6 @@ def test_conv3x3_is_conv2d_bias_relu(h, w, ci, co):
     assert_conv_close(nchw(conv3x3(x, taps, bias)), F.relu(ref), magnitude)
 
 
-@pytest.mark.parametrize("h, w", [(7, 11), (2, 3), (1, 1)])
-@pytest.mark.parametrize("layout", ["contiguous", "channels_last"])
-def test_conv3x3_adds_the_upsampled_coarse_features_in_its_prologue(h, w, layout):
-    memory = torch.channels_last if layout == "channels_last" else torch.contiguous_format
-    coarse = rand(2, 16, h, w, seed=9, dtype=torch.float16).contiguous(memory_format=memory)
-    skip = rand(2, 2 * h, 2 * w, 16, seed=10, dtype=torch.float16)
-    taps, bias = rand(9, 16, 16, scale=0.3, seed=11, dtype=torch.float16), rand(16, seed=12)
-    up = F.interpolate(coarse.double(), scale_factor=2, mode="bilinear", align_corners=False)
-    ref, magnitude = conv_ref(F.relu(nchw(skip).double() + up), taps, bias)
-    assert_conv_close(nchw(conv3x3(skip, taps, bias, coarse=coarse)), F.relu(ref), magnitude)
-
-
 @pytest.mark.parametrize("h, w", [(14, 22), (2, 4)])
 @pytest.mark.parametrize("ci, co", [(16, 32), (64, 64)])
 def test_conv3x3_of_stride_2_is_conv2d_of_stride_2(h, w, ci, co):
@@ -164,12 +152,14 @@ def test_conv3x3_adds_the_residual_then_relu_then_reduces_in_its_epilogue(relu):
 
 
 @pytest.mark.parametrize("h, w", [(7, 11), (1, 1)])
-def test_upsample_add_is_the_relu_of_the_skip_plus_the_bilinear_upsampled_coarse(h, w):
-    coarse = rand(2, 32, h, w, seed=27, dtype=torch.float16)
+@pytest.mark.parametrize("layout", ["contiguous", "channels_last"])
+def test_upsample_add_is_the_relu_of_the_skip_plus_the_bilinear_upsampled_coarse(h, w, layout):
+    memory = torch.channels_last if layout == "channels_last" else torch.contiguous_format
+    coarse = rand(2, 32, h, w, seed=27, dtype=torch.float16).contiguous(memory_format=memory)
     skip = rand(2, 2 * h, 2 * w, 32, seed=28, dtype=torch.float16)
     up = F.interpolate(coarse.double(), scale_factor=2, mode="bilinear", align_corners=False)
     expected = F.relu(nchw(skip).double() + up)
-    got = nchw(upsample_add(skip, coarse.permute(0, 2, 3, 1).contiguous().permute(0, 3, 1, 2))).double()
+    got = nchw(upsample_add(skip, coarse)).double()
     assert ((got - expected).abs() <= 1e-3 * expected.abs() + 1e-6).all()
     with pytest.raises(ValueError, match="upsample_add: x must have even sides, got 3x4"):
         upsample_add(rand(2, 3, 4, 32, dtype=torch.float16), coarse)
@@ -183,10 +173,6 @@ def test_conv3x3_checks_its_inputs():
         conv3x3(x, taps[:, :8], bias)
     with pytest.raises(ValueError, match="conv3x3: weight must be contiguous fp16 and bias fp32"):
         conv3x3(x, taps, bias.half())
-    with pytest.raises(ValueError, match=r"conv3x3: coarse must be \(1, 16, 3, 4\), got \(1, 16, 3, 3\)"):
-        conv3x3(x, taps, bias, coarse=rand(1, 16, 3, 3))
-    with pytest.raises(ValueError, match="conv3x3: x must have even sides"):
-        conv3x3(x[:, :5].contiguous(), taps, bias, coarse=rand(1, 16, 2, 4))
     with pytest.raises(ValueError, match="conv3x3: x must have even sides for stride 2"):
         conv3x3(x[:, :5].contiguous(), taps, bias, stride=2)
     with pytest.raises(ValueError, match="conv3x3: stride must be 1 or 2, got 3"):
@@ -230,11 +216,11 @@ def test_tail_checks_its_inputs():
 
 
 @functools.cache
-def shipped_under(ao_prior: str, upsample: str = "loads") -> tuple[ReconNet, FusedReconNet]:
+def shipped_under(ao_prior: str) -> tuple[ReconNet, FusedReconNet]:
     """The shipped model under an AO prior (the output's AO differs, the rest not), and it fused."""
     net, _ = load_pretrained(DEFAULT_RECON_MODEL, torch.device(DEVICE))
     net.config = dataclasses.replace(net.config, ao_prior=ao_prior)
-    return net.eval(), fused_reconnet(net, upsample)
+    return net.eval(), fused_reconnet(net)
 
 
 @pytest.fixture(scope="module", params=AO_PRIORS)
@@ -248,11 +234,10 @@ def reference(net, inputs, warped):
 
 
 # The AO prior changes the tail alone (tested under both above); the interpreter is slow.
-@pytest.mark.parametrize("ao_prior, upsample, b, h, w", [("none", "loads", 2, 13, 21), ("rays", "loads", 1, 24, 40),
-                                                        ("rays", "pass", 1, 13, 21)])
-def test_the_fused_shipped_model_equals_reconnet(ao_prior, upsample, b, h, w):
-    net, fused = shipped_under(ao_prior, upsample)
-    assert isinstance(fused, FusedReconNet) and fused.upsample == upsample
+@pytest.mark.parametrize("ao_prior, b, h, w", [("none", 2, 13, 21), ("rays", 1, 24, 40)])
+def test_the_fused_shipped_model_equals_reconnet(ao_prior, b, h, w):
+    net, fused = shipped_under(ao_prior)
+    assert isinstance(fused, FusedReconNet)
     inputs = recon_batch(b, h, w, seed=17).to(DEVICE)
     previous, flow = rand(b, 6, h, w, seed=18).sigmoid(), rand(b, 2, h, w, scale=2.0, seed=19)
     with torch.no_grad():
@@ -273,13 +258,13 @@ def test_the_fused_shipped_model_equals_reconnet(ao_prior, upsample, b, h, w):
     torch.testing.assert_close(first_read, stand_in[:, [MASK.start, AO.start]], rtol=0, atol=0)
 
 
-@pytest.mark.parametrize("blocks, upsample", [(0, "pass"), (1, "loads")])
-def test_other_architectures_fuse_too(blocks, upsample):
+@pytest.mark.parametrize("blocks", [0, 1])
+def test_other_architectures_fuse_too(blocks):
     """Without residual blocks the last stride-2 convolution reduces for the decoder; widths other
     than the shipped."""
     torch.manual_seed(3)
     net = ReconNet(ReconNetConfig(widths=(16, 16, 32, 64), blocks=blocks)).to(DEVICE).eval()
-    fused = fused_reconnet(net, upsample)
+    fused = fused_reconnet(net)
     inputs, warped = recon_batch(1, 11, 19, seed=31).to(DEVICE), rand(1, 6, 11, 19, seed=32).sigmoid()
     with torch.no_grad():
         got = fused(inputs, warped)
@@ -289,7 +274,7 @@ def test_other_architectures_fuse_too(blocks, upsample):
     with torch.no_grad():
         for _, run in passes:
             run()
-    assert [name for name, _ in passes] == list(fused_traffic(11, 19, net.config, warp=False, upsample=upsample))
+    assert [name for name, _ in passes] == list(fused_traffic(11, 19, net.config, warp=False))
     torch.testing.assert_close(results["output"], got, rtol=0, atol=0)
 
 

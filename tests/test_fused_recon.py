@@ -63,17 +63,17 @@ def test_fused_traffic_counts_each_tensor_once():
     traffic = fused_traffic(1080, 1920)  # the default architecture
     pixels = 1080 * 1920  # 1080 is a multiple of 8: no padding
     assert list(traffic) == ["pack", "head", "down1", "down2", "down3", "body1.1", "body1.2", "body2.1", "body2.2",
-                             "fuse2", "fuse1", "fuse0", "tail"]
+                             "up2", "fuse2", "up1", "fuse1", "up0", "fuse0", "tail"]
     assert traffic["pack"] == (8 * 4 + 4 * 4 + 16 * 2) * pixels
     assert traffic["head"] == (16 * 2 + 16 * 2) * pixels
     assert traffic["down1"] == 16 * 2 * pixels + 32 * 2 * pixels // 4
-    assert traffic["fuse0"] == (32 + 8 + 32) * pixels  # skip, coarse (a quarter of the pixels), out
+    assert traffic["up0"] == (32 + 8 + 32) * pixels  # skip, coarse (a quarter of the pixels), sum
+    assert traffic["fuse0"] == (32 + 32) * pixels
     assert traffic["tail"] == (32 + 5 * 4 + 6 * 4) * pixels
-    wide = fused_traffic(1080, 1920, ReconNetConfig(widths=(16, 32, 64, 128), ao_prior="rays"), upsample="pass")
+    wide = fused_traffic(1080, 1920, ReconNetConfig(widths=(16, 32, 64, 128), ao_prior="rays"))
     # the last residual block's sum reduced to the coarsest decoder level's 64 channels
     assert wide["body2.2"] == (128 + 128 + 64) * 2 * pixels // 64
-    assert wide["fuse2"] == (64 * 2 + 32 * 2) * pixels // 16
-    assert wide["up0"] == (32 + 8 + 32) * pixels and wide["fuse0"] == (32 + 32) * pixels
+    assert wide["fuse2"] == (64 * 2 + 32 * 2) * pixels // 16  # the sum, the output reduced for the next level
     assert wide["tail"] == (32 + 8 * 4 + 6 * 4) * pixels  # the rays' AO and sampling read too
     assert fused_traffic(1080, 1920, warp=False)["pack"] == traffic["pack"] - 2 * 4 * pixels
     assert fused_traffic(13, 21)["head"] == 64 * 16 * 24  # the padded frame
@@ -89,8 +89,6 @@ def test_fused_reconnet_refuses_what_it_cannot_fuse():
         fused_reconnet(nn.Conv2d(1, 1, 3))
     with pytest.raises(ValueError, match=r"the widths must be powers of 2 >= 16, got \(16, 16, 48, 64\)"):
         fused_reconnet(ReconNet(ReconNetConfig(widths=(16, 16, 48, 64))))
-    with pytest.raises(ValueError, match=r"upsample must be one of \('loads', 'pass'\), got 'twice'"):
-        fused_reconnet(ReconNet(ReconNetConfig()), upsample="twice")
 
 
 @pytest.mark.skipif(fused_runs_on("cpu"), reason="under the interpreter the fused path runs on the CPU")
