@@ -8,12 +8,13 @@ Four kinds of pass do all of ReconNet's work (:mod:`isosr_net.fused_recon` runs 
   output warped by the flow in the same pass where it is given unwarped.
 - :func:`conv3x3`: a 3x3 convolution (stride 1 or 2, zero padding) + bias as an implicit GEMM:
   per tile of ``BLOCK_M`` output pixels, one ``tl.dot`` per tap (K = input channels, N = output
-  channels); in its epilogue a residual sum, the ReLU and a 1x1 channel reduction (a second
-  ``tl.dot``: ReconNet's decoder reduces a level's channels before upsampling it, and the two
-  commute).
-- :func:`upsample_add`: a decoder level's input ``relu(skip + bilinear_2x(coarse))``, once per
-  pixel. (Computed in the convolution's loads instead, per tap, it made the last level 2.8 times
-  slower on an H100 at 4K: 1.40 against 0.50 ms with this pass.)
+  channels); in its epilogue a residual sum and the ReLU.
+- :func:`upsample_add`: a decoder level's input ``relu(skip + reduce(bilinear_2x(coarse)))``,
+  once per pixel, ``reduce`` the level's 1x1 convolution (ReconNet applies it before upsampling;
+  the two commute). Computed in the convolution's loads instead, per tap, the last level took 2.8
+  times as long on an H100 at 4K (1.40 against 0.50 ms with this pass); the reduction as a second
+  ``tl.dot`` in the coarser convolution's epilogue came out wrong from Triton 3.6 on an H100
+  with 4 warps (64 channels), so it is here.
 - :func:`recon_tail`: the 3x3 output convolution (6 channels, computed as 16) + bias and
   ReconNet's output: mask ``clamp(in + raw, 0, 1)``, normal ``in + raw``, depth passed through,
   AO ``sigmoid(raw)`` or, for a model over the input rays, ``sigmoid(logit(p) + raw)``
@@ -89,8 +90,8 @@ def _pack_kernel(inp_ptr, prev_ptr, flow_ptr, out_ptr, h, w, hp, wp,
 
 
 @triton.jit
-def _upsampled_sum(a, c_ptr, b, yy, xx, hc, wc, sc_b, sc_c, sc_h, sc_w, ci):
-    """``relu(a + bilinear_2x(coarse))`` at pixels (yy, xx) of the upsampled image, fp32.
+def _upsampled(c_ptr, b, yy, xx, hc, wc, sc_b, sc_c, sc_h, sc_w, ci):
+    """``bilinear_2x(coarse)`` at pixels (yy, xx) of the upsampled image, channels ``ci``, fp32.
 
     Bilinear 2x with align_corners=False: full-res row Y reads coarse rows lo = (Y + 1) // 2 - 1
     and lo + 1, the second weighted 3/4 for even Y and 1/4 for odd Y, both clamped to the image
@@ -111,8 +112,7 @@ def _upsampled_sum(a, c_ptr, b, yy, xx, hc, wc, sc_b, sc_c, sc_h, sc_w, ci):
     v01 = tl.load(base + (y0 * sc_h + x1 * sc_w)[:, None]).to(tl.float32)
     v10 = tl.load(base + (y1 * sc_h + x0 * sc_w)[:, None]).to(tl.float32)
     v11 = tl.load(base + (y1 * sc_h + x1 * sc_w)[:, None]).to(tl.float32)
-    up = (1.0 - wy) * ((1.0 - wx) * v00 + wx * v01) + wy * ((1.0 - wx) * v10 + wx * v11)
-    return tl.maximum(a.to(tl.float32) + up, 0.0)
+    return (1.0 - wy) * ((1.0 - wx) * v00 + wx * v01) + wy * ((1.0 - wx) * v10 + wx * v11)
 
 
 @triton.jit
@@ -134,9 +134,9 @@ def _conv_acc(x_ptr, w_ptr, bias_ptr, b, y, x, valid, hi, wi, STRIDE: tl.constex
 
 
 @triton.jit
-def _conv_kernel(x_ptr, w_ptr, bias_ptr, out_ptr, res_ptr, rw_ptr, rb_ptr, hi, wi, ho, wo,
-                 STRIDE: tl.constexpr, RESIDUAL: tl.constexpr, RELU: tl.constexpr, CI: tl.constexpr,
-                 CO: tl.constexpr, CR: tl.constexpr, BLOCK_M: tl.constexpr):
+def _conv_kernel(x_ptr, w_ptr, bias_ptr, out_ptr, res_ptr, hi, wi, ho, wo, STRIDE: tl.constexpr,
+                 RESIDUAL: tl.constexpr, RELU: tl.constexpr, CI: tl.constexpr, CO: tl.constexpr,
+                 BLOCK_M: tl.constexpr):
     b = tl.program_id(1).to(tl.int64)
     offs = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     valid = offs < ho * wo
@@ -149,27 +149,21 @@ def _conv_kernel(x_ptr, w_ptr, bias_ptr, out_ptr, res_ptr, rw_ptr, rb_ptr, hi, w
                        other=0.0).to(tl.float32)
     if RELU:
         acc = tl.maximum(acc, 0.0)
-    if CR > 0:  # the 1x1 reduction, of the features rounded to fp16 as a layer of their own would store them
-        cr = tl.arange(0, CR)
-        reduced = tl.dot(acc.to(tl.float16), tl.load(rw_ptr + co[:, None] * CR + cr[None, :]))
-        reduced += tl.load(rb_ptr + cr)[None, :]
-        tl.store(out_ptr + b * ho * wo * CR + offs[:, None] * CR + cr[None, :], reduced.to(tl.float16),
-                 mask=valid[:, None])
-    else:
-        tl.store(out_ptr + b * ho * wo * CO + offs[:, None] * CO + co[None, :], acc.to(tl.float16),
-                 mask=valid[:, None])
+    tl.store(out_ptr + b * ho * wo * CO + offs[:, None] * CO + co[None, :], acc.to(tl.float16), mask=valid[:, None])
 
 
 @triton.jit
-def _upsample_add_kernel(x_ptr, c_ptr, out_ptr, hp, wp, hc, wc, sc_b, sc_c, sc_h, sc_w,
-                         C: tl.constexpr, BLOCK: tl.constexpr):
+def _upsample_add_kernel(x_ptr, c_ptr, rw_ptr, rb_ptr, out_ptr, hp, wp, hc, wc, sc_b, sc_c, sc_h, sc_w,
+                         C: tl.constexpr, CC: tl.constexpr, BLOCK: tl.constexpr):
     b = tl.program_id(1).to(tl.int64)
     offs = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     valid = offs < hp * wp
     ci = tl.arange(0, C)
+    up = _upsampled(c_ptr, b, offs // wp, offs % wp, hc, wc, sc_b, sc_c, sc_h, sc_w, tl.arange(0, CC))
+    reduced = tl.dot(up.to(tl.float16), tl.load(rw_ptr + tl.arange(0, CC)[:, None] * C + ci[None, :]))
     pixel = b * hp * wp * C + offs[:, None] * C + ci[None, :]
-    a = tl.load(x_ptr + pixel, mask=valid[:, None], other=0.0)
-    out = _upsampled_sum(a, c_ptr, b, offs // wp, offs % wp, hc, wc, sc_b, sc_c, sc_h, sc_w, ci)
+    skip = tl.load(x_ptr + pixel, mask=valid[:, None], other=0.0).to(tl.float32)
+    out = tl.maximum(skip + reduced + tl.load(rb_ptr + ci)[None, :], 0.0)
     tl.store(out_ptr + pixel, out.to(tl.float16), mask=valid[:, None])
 
 
@@ -202,7 +196,7 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, inp_ptr, out_ptr, h, w, hp, wp, si_b, s
     tl.store(out_ptr + b * OUT * h * w + c * h * w + offs[:, None], out, mask=valid[:, None] & (c < OUT))
 
 
-_conv_tuned = _tuned(_conv_kernel, ["ho", "wo", "STRIDE", "CI", "CO", "CR"])
+_conv_tuned = _tuned(_conv_kernel, ["ho", "wo", "STRIDE", "CI", "CO"])
 _tail_tuned = _tuned(_tail_kernel, ["hp", "wp"])
 
 
@@ -257,10 +251,8 @@ def pack_inputs(inputs: torch.Tensor, prev: torch.Tensor, flow: torch.Tensor | N
 
 
 def conv3x3(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, *, stride: int = 1, relu: bool = True,
-            residual: torch.Tensor | None = None, reduce: tuple[torch.Tensor, torch.Tensor] | None = None
-            ) -> torch.Tensor:
-    """``relu(conv3x3(x) + bias + residual) @ reduce``: zero padding; the ReLU, residual and
-    reduction where asked.
+            residual: torch.Tensor | None = None) -> torch.Tensor:
+    """``relu(conv3x3(x) + bias + residual)``: zero padding; the ReLU and residual where asked.
 
     Args:
         x: NHWC fp16 (contiguous).
@@ -269,12 +261,10 @@ def conv3x3(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, *, stride
         stride: 1, or 2 (the output has half the sides, even sides asked).
         relu: the ReLU, after the residual sum.
         residual: NHWC fp16 (contiguous), added before the ReLU.
-        reduce: a 1x1 convolution of the result, its weights ``(CO, CR)`` fp16 and bias fp32.
 
     Shape:
         x: (B, H, W, CI). weight: (9, CI, CO). bias: (CO,). residual: (B, H/s, W/s, CO).
-        reduce: (CO, CR), (CR,). Returns (B, H/s, W/s, CR or CO), fp16. CI, CO and CR powers of
-        2, at least 16.
+        Returns (B, H/s, W/s, CO), fp16. CI and CO powers of 2, at least 16.
     """
     dims = _check_nhwc(x, "x", "conv3x3")
     b, hi, wi, ci = dims["B"], dims["H"], dims["W"], dims["C"]
@@ -287,38 +277,36 @@ def conv3x3(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, *, stride
     if residual is not None:
         _check_nhwc(residual, "residual", "conv3x3")
         check_shape(residual, f"({b}, {ho}, {wo}, {co})", "residual", "conv3x3")
-    cr = 0
-    if reduce is not None:
-        cr = check_shape(reduce[0], f"({co}, CR)", "reduce weight", "conv3x3")["CR"]
-        check_shape(reduce[1], f"({cr})", "reduce bias", "conv3x3")
-        if reduce[0].dtype != torch.float16 or reduce[1].dtype != torch.float32 or not reduce[0].is_contiguous():
-            raise ValueError("conv3x3: the reduce weight must be contiguous fp16 and its bias fp32")
-    out = x.new_empty((b, ho, wo, cr or co))
-    rw, rb = reduce if reduce is not None else (weight, bias)
-    _conv_tuned[_grid(ho * wo, b)](x, weight, bias, out, x if residual is None else residual, rw, rb, hi, wi, ho, wo,
-                                   STRIDE=stride, RESIDUAL=residual is not None, RELU=relu, CI=ci, CO=co, CR=cr,
-                                   **FIXED)
+    out = x.new_empty((b, ho, wo, co))
+    _conv_tuned[_grid(ho * wo, b)](x, weight, bias, out, x if residual is None else residual, hi, wi, ho, wo,
+                                   STRIDE=stride, RESIDUAL=residual is not None, RELU=relu, CI=ci, CO=co, **FIXED)
     return out
 
 
-def upsample_add(x: torch.Tensor, coarse: torch.Tensor) -> torch.Tensor:
-    """``relu(x + bilinear_2x(coarse))`` (``F.interpolate``, align_corners=False), fp16 NHWC.
+def upsample_add(x: torch.Tensor, coarse: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    """``relu(x + conv1x1(bilinear_2x(coarse)))`` (``F.interpolate``, align_corners=False), fp16 NHWC.
 
     Args:
         x: NHWC fp16 (contiguous), even sides.
         coarse: half-resolution features, any layout (NHWC reads fastest), any float dtype.
+        weight, bias: the 1x1 convolution, ``weight[cc, c]`` fp16 (contiguous), bias fp32.
 
     Shape:
-        x: (B, H, W, C). coarse: (B, C, H/2, W/2). Returns (B, H, W, C). C a power of 2.
+        x: (B, H, W, C). coarse: (B, CC, H/2, W/2). weight: (CC, C). bias: (C,). Returns
+        (B, H, W, C). C and CC powers of 2, at least 16.
     """
     dims = _check_nhwc(x, "x", "upsample_add")
     b, hp, wp, c = dims["B"], dims["H"], dims["W"], dims["C"]
     if hp % 2 or wp % 2:
         raise ValueError(f"upsample_add: x must have even sides, got {hp}x{wp}")
-    check_shape(coarse, f"({b}, {c}, {hp // 2}, {wp // 2})", "coarse", "upsample_add")
+    cc = check_shape(coarse, f"({b}, CC, {hp // 2}, {wp // 2})", "coarse", "upsample_add")["CC"]
+    check_shape(weight, f"({cc}, {c})", "weight", "upsample_add")
+    check_shape(bias, f"({c})", "bias", "upsample_add")
+    if weight.dtype != torch.float16 or bias.dtype != torch.float32 or not weight.is_contiguous():
+        raise ValueError(f"upsample_add: weight must be contiguous fp16 and bias fp32, got {weight.dtype}, {bias.dtype}")
     out = torch.empty_like(x)
-    _upsample_add_kernel[(triton.cdiv(hp * wp, PACK_BLOCK), b)](x, coarse, out, hp, wp, hp // 2, wp // 2,
-                                                               *coarse.stride(), C=c, BLOCK=PACK_BLOCK)
+    _upsample_add_kernel[(triton.cdiv(hp * wp, PACK_BLOCK), b)](x, coarse, weight, bias, out, hp, wp, hp // 2, wp // 2,
+                                                               *coarse.stride(), C=c, CC=cc, BLOCK=PACK_BLOCK)
     return out
 
 

@@ -8,9 +8,9 @@ the upsampled coarse features, their sum with the skip and its ReLU, the raw out
 output's pieces, and cuDNN runs 16- to 64-channel 3x3 convolutions poorly. Here every layer is
 one kernel (:mod:`isosr_net.fused_kernels`; NHWC fp16, fp32 accumulation): pack (with the
 previous output's warp), head, the three stride-2 convolutions, the residual blocks' convolutions
-(the sum in the second's epilogue), per decoder level the upsampled coarse features summed with
-the skip and its 3x3 convolution (with the next level's 1x1 reduction in its epilogue), and the
-tail (with the output stack).
+(the sum in the second's epilogue), per decoder level the coarse features upsampled, reduced by
+its 1x1 convolution and summed with the skip in one pass and its 3x3 convolution in another, and
+the tail (with the output stack).
 
 The fused path runs on CUDA tensors where Triton imports (and on CPU tensors under Triton's
 interpreter, ``TRITON_INTERPRET=1``, for tests); elsewhere :class:`FusedReconNet` runs the
@@ -84,26 +84,37 @@ def _padded_bias(conv: nn.Conv2d, co: int) -> torch.Tensor:
 
 class FusedConv(nn.Module):
     """One 3x3 convolution of ReconNet as :func:`~isosr_net.fused_kernels.conv3x3` runs it, with
-    the ReLU where the network applies one and, given ``reduce``, that 1x1 convolution in its epilogue.
+    the ReLU where the network applies one.
 
     Shape:
-        x: (B, H, W, ci) fp16 NHWC. Returns (B, H/stride, W/stride, co or reduce's channels).
+        x: (B, H, W, ci) fp16 NHWC. Returns (B, H/stride, W/stride, co).
     """
 
-    def __init__(self, conv: nn.Conv2d, ci: int, co: int, relu: bool = True, reduce: nn.Conv2d | None = None):
+    def __init__(self, conv: nn.Conv2d, ci: int, co: int, relu: bool = True):
         super().__init__()
         self.stride, self.relu = conv.stride[0], relu
         self.register_buffer("weight", tap_weights(conv.weight, ci, co))
         self.register_buffer("bias", _padded_bias(conv, co))
-        self.reduces = reduce is not None
-        if reduce is not None:
-            self.register_buffer("reduce_w", reduce.weight.detach()[:, :, 0, 0].t().half().contiguous())
-            self.register_buffer("reduce_b", reduce.bias.detach().float())
 
     def forward(self, x: torch.Tensor, residual: torch.Tensor | None = None) -> torch.Tensor:
-        reduce = (self.reduce_w, self.reduce_b) if self.reduces else None
-        return _kernels().conv3x3(x, self.weight, self.bias, stride=self.stride, relu=self.relu, residual=residual,
-                                  reduce=reduce)
+        return _kernels().conv3x3(x, self.weight, self.bias, stride=self.stride, relu=self.relu, residual=residual)
+
+
+class FusedUpsample(nn.Module):
+    """A decoder level's input as :func:`~isosr_net.fused_kernels.upsample_add` makes it: the skip
+    plus the coarse features upsampled and reduced by the level's 1x1 convolution, ReLU.
+
+    Shape:
+        skip: (B, H, W, C) fp16 NHWC. coarse: (B, H/2, W/2, CC) fp16 NHWC. Returns (B, H, W, C).
+    """
+
+    def __init__(self, reduce: nn.Conv2d):
+        super().__init__()
+        self.register_buffer("weight", reduce.weight.detach()[:, :, 0, 0].t().half().contiguous())
+        self.register_buffer("bias", reduce.bias.detach().float())
+
+    def forward(self, skip: torch.Tensor, coarse: torch.Tensor) -> torch.Tensor:
+        return _kernels().upsample_add(skip, coarse.permute(0, 3, 1, 2), self.weight, self.bias)
 
 
 class FusedReconNet(nn.Module):
@@ -127,18 +138,13 @@ class FusedReconNet(nn.Module):
             raise ValueError(f"fused_reconnet: the widths must be powers of 2 >= 16, got {widths}")
         self.config = net.config
         self.reference = net
-        blocks = net.config.blocks
-        # The layer before the decoder reduces its output for the coarsest decoder level.
         self.head = FusedConv(net.head, PACKED, widths[0])
-        self.down = nn.ModuleList(FusedConv(conv, widths[i], widths[i + 1],
-                                            reduce=net.reduce[LEVELS - 1] if i == LEVELS - 1 and not blocks else None)
-                                  for i, conv in enumerate(net.down))
-        self.body = nn.ModuleList(nn.ModuleList([
-            FusedConv(block.conv1, widths[LEVELS], widths[LEVELS]),
-            FusedConv(block.conv2, widths[LEVELS], widths[LEVELS], relu=False,
-                      reduce=net.reduce[LEVELS - 1] if j == blocks - 1 else None)]) for j, block in enumerate(net.body))
-        self.fuse = nn.ModuleList(FusedConv(conv, widths[i], widths[i], reduce=net.reduce[i - 1] if i else None)
-                                  for i, conv in enumerate(net.fuse))
+        self.down = nn.ModuleList(FusedConv(conv, widths[i], widths[i + 1]) for i, conv in enumerate(net.down))
+        self.body = nn.ModuleList(nn.ModuleList([FusedConv(block.conv1, widths[LEVELS], widths[LEVELS]),
+                                                 FusedConv(block.conv2, widths[LEVELS], widths[LEVELS], relu=False)])
+                                  for block in net.body)
+        self.up = nn.ModuleList(FusedUpsample(reduce) for reduce in net.reduce)
+        self.fuse = nn.ModuleList(FusedConv(conv, widths[i], widths[i]) for i, conv in enumerate(net.fuse))
         self.register_buffer("tail_w", tap_weights(net.tail.weight, widths[0], PACKED))
         self.register_buffer("tail_b", _padded_bias(net.tail, PACKED))
 
@@ -193,7 +199,7 @@ class FusedReconNet(nn.Module):
         In order, each pass computes the entry of ``results`` named as it from those before
         (running one again recomputes it): ``pack`` (``packed``), ``head``, ``down1``..``down3``
         (the encoder levels), ``body1.1``, ``body1.2``, ... (the residual blocks' convolutions),
-        per decoder level from the coarsest ``up2`` (the upsampled sum) and ``fuse2``, ...,
+        per decoder level from the coarsest ``up2`` (the upsampled, reduced sum) and ``fuse2``, ...,
         ``fuse0``, and ``tail`` (``output``). Arguments as for :func:`isosr_net.fused_kernels.pack_inputs`.
         """
         k = _kernels()
@@ -219,7 +225,7 @@ class FusedReconNet(nn.Module):
             coarse = f"body{j + 1}.2"
         for i in reversed(range(LEVELS)):
             skip, c = skips[i], coarse
-            add(f"up{i}", lambda skip=skip, c=c: k.upsample_add(results[skip], results[c].permute(0, 3, 1, 2)))
+            add(f"up{i}", lambda i=i, skip=skip, c=c: self.up[i](results[skip], results[c]))
             add(f"fuse{i}", layer(self.fuse[i], f"up{i}"))
             coarse = f"fuse{i}"
         add("tail", lambda: k.recon_tail(results["fuse0"], self.tail_w, self.tail_b, inputs, self.config),
@@ -258,18 +264,15 @@ def fused_traffic(h: int, w: int, config: ReconNetConfig = ReconNetConfig(), war
     # The previous output: its mask and AO once (warped: plus the flow's two channels).
     prev = (RECURRENT + (2 if warp else 0)) * f32 * pixels
     out = {"pack": INPUTS * f32 * pixels + prev + features(0, PACKED), "head": features(0, PACKED + widths[0])}
-    # The layer before the decoder writes its output reduced to the coarsest decoder level's channels.
-    last = f"body{config.blocks}.2" if config.blocks else f"down{LEVELS}"
     for i in range(LEVELS):
         out[f"down{i + 1}"] = features(i, widths[i]) + features(i + 1, widths[i + 1])
     for j in range(config.blocks):
         out[f"body{j + 1}.1"] = features(LEVELS, 2 * widths[LEVELS])
         out[f"body{j + 1}.2"] = features(LEVELS, 3 * widths[LEVELS])
-    out[last] += features(LEVELS, widths[LEVELS - 1] - widths[LEVELS])
     for i in reversed(range(LEVELS)):
-        # skip, coarse (a quarter of the pixels), the sum; the sum, the output reduced for the next level
-        out[f"up{i}"] = features(i, 2 * widths[i]) + features(i + 1, widths[i])
-        out[f"fuse{i}"] = features(i, widths[i] + widths[max(i - 1, 0)])
+        # skip, the coarser level's output (a quarter of the pixels), the sum; the sum, the output
+        out[f"up{i}"] = features(i, 2 * widths[i]) + features(i + 1, widths[i + 1])
+        out[f"fuse{i}"] = features(i, 2 * widths[i])
     # the features, the inputs' mask, normal and depth (and the rays' AO and sampling for their prior), the output
     given = AO.start + (len(range(INPUTS)[SAMPLED_AO]) + len(range(INPUTS)[SAMPLING]) if config.ao_prior == "rays" else 0)
     out["tail"] = features(0, widths[0]) + (given + OUTPUTS) * f32 * pixels

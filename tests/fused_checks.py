@@ -131,38 +131,38 @@ def test_conv3x3_of_stride_2_is_conv2d_of_stride_2(h, w, ci, co):
 
 
 @pytest.mark.parametrize("relu", [False, True])
-def test_conv3x3_adds_the_residual_then_relu_then_reduces_in_its_epilogue(relu):
-    """ReconNet's residual block's second convolution (no ReLU) with the decoder's 1x1 reduction
-    after it: the reduction reads the sum rounded to fp16, as a layer of its own would."""
+def test_conv3x3_adds_the_residual_then_relu_in_its_epilogue(relu):
+    """ReconNet's residual block's second convolution (no ReLU there)."""
     x, residual = rand(2, 5, 9, 64, seed=21, dtype=torch.float16), rand(2, 5, 9, 64, seed=22, dtype=torch.float16)
     taps, bias = rand(9, 64, 64, scale=0.1, seed=23, dtype=torch.float16), rand(64, seed=24)
-    reduce_w, reduce_b = rand(64, 32, scale=0.2, seed=25, dtype=torch.float16), rand(32, seed=26)
     conv, magnitude = conv_ref(nchw(x), taps, bias)
     summed = conv + nchw(residual).double()
-    summed = F.relu(summed) if relu else summed
-    got = conv3x3(x, taps, bias, relu=relu, residual=residual, reduce=(reduce_w, reduce_b))
-    assert got.shape == (2, 5, 9, 32)
-    assert_conv_close(nchw(conv3x3(x, taps, bias, relu=relu, residual=residual)), summed,
-                      magnitude + nchw(residual).double().abs())
-    # The reduction of the kernel's own fp16 sum, to fp32 accumulation and an fp16 store.
-    unreduced = nchw(conv3x3(x, taps, bias, relu=relu, residual=residual)).double()
-    expected = torch.einsum("bchw,cr->brhw", unreduced, reduce_w.double()) + reduce_b.double()[:, None, None]
-    scale = torch.einsum("bchw,cr->brhw", unreduced.abs(), reduce_w.double().abs())
-    assert_conv_close(nchw(got), expected, scale)
+    assert (summed < 0).any()
+    assert_conv_close(nchw(conv3x3(x, taps, bias, relu=relu, residual=residual)),
+                      F.relu(summed) if relu else summed, magnitude + nchw(residual).double().abs())
 
 
 @pytest.mark.parametrize("h, w", [(7, 11), (1, 1)])
 @pytest.mark.parametrize("layout", ["contiguous", "channels_last"])
-def test_upsample_add_is_the_relu_of_the_skip_plus_the_bilinear_upsampled_coarse(h, w, layout):
+def test_upsample_add_is_the_relu_of_the_skip_plus_the_upsampled_reduced_coarse(h, w, layout):
+    """ReconNet's decoder input: the 1x1 reduction of the coarse features (64 -> 32 channels), upsampled, plus the skip."""
     memory = torch.channels_last if layout == "channels_last" else torch.contiguous_format
-    coarse = rand(2, 32, h, w, seed=27, dtype=torch.float16).contiguous(memory_format=memory)
+    coarse = rand(2, 64, h, w, seed=27, dtype=torch.float16).contiguous(memory_format=memory)
     skip = rand(2, 2 * h, 2 * w, 32, seed=28, dtype=torch.float16)
-    up = F.interpolate(coarse.double(), scale_factor=2, mode="bilinear", align_corners=False)
+    weight, bias = rand(64, 32, scale=0.2, seed=29, dtype=torch.float16), rand(32, seed=30)
+    reduced = torch.einsum("bkhw,kc->bchw", coarse.double(), weight.double()) + bias.double()[:, None, None]
+    up = F.interpolate(reduced, scale_factor=2, mode="bilinear", align_corners=False)
     expected = F.relu(nchw(skip).double() + up)
-    got = nchw(upsample_add(skip, coarse)).double()
-    assert ((got - expected).abs() <= 1e-3 * expected.abs() + 1e-6).all()
+    magnitude = F.interpolate(torch.einsum("bkhw,kc->bchw", coarse.double().abs(), weight.double().abs()),
+                              scale_factor=2, mode="bilinear", align_corners=False)
+    got = upsample_add(skip, coarse, weight, bias)
+    assert got.shape == skip.shape
+    # the upsampled coarse rounded to fp16 for the reduction, the sum stored in fp16
+    assert_conv_close(nchw(got), expected, magnitude + nchw(skip).double().abs())
     with pytest.raises(ValueError, match="upsample_add: x must have even sides, got 3x4"):
-        upsample_add(rand(2, 3, 4, 32, dtype=torch.float16), coarse)
+        upsample_add(rand(2, 3, 4, 32, dtype=torch.float16), coarse, weight, bias)
+    with pytest.raises(ValueError, match=r"upsample_add: weight must be \(64, 32\), got \(32, 32\)"):
+        upsample_add(skip, coarse, weight[:32].contiguous(), bias)
 
 
 def test_conv3x3_checks_its_inputs():
@@ -179,8 +179,6 @@ def test_conv3x3_checks_its_inputs():
         conv3x3(x, taps, bias, stride=3)
     with pytest.raises(ValueError, match=r"conv3x3: residual must be \(1, 3, 4, 16\), got \(1, 6, 8, 16\)"):
         conv3x3(x, taps, bias, stride=2, residual=x)
-    with pytest.raises(ValueError, match=r"conv3x3: reduce weight must be \(16, CR\), got \(8, 16\)"):
-        conv3x3(x, taps, bias, reduce=(taps[0, :8].contiguous(), bias))
 
 
 @pytest.mark.parametrize("ao_prior", AO_PRIORS)
@@ -260,8 +258,7 @@ def test_the_fused_shipped_model_equals_reconnet(ao_prior, b, h, w):
 
 @pytest.mark.parametrize("blocks", [0, 1])
 def test_other_architectures_fuse_too(blocks):
-    """Without residual blocks the last stride-2 convolution reduces for the decoder; widths other
-    than the shipped."""
+    """Without residual blocks, or with one; widths other than the shipped."""
     torch.manual_seed(3)
     net = ReconNet(ReconNetConfig(widths=(16, 16, 32, 64), blocks=blocks)).to(DEVICE).eval()
     fused = fused_reconnet(net)

@@ -67,19 +67,16 @@ def test_fused_traffic_counts_each_tensor_once():
     assert traffic["pack"] == (8 * 4 + 4 * 4 + 16 * 2) * pixels
     assert traffic["head"] == (16 * 2 + 16 * 2) * pixels
     assert traffic["down1"] == 16 * 2 * pixels + 32 * 2 * pixels // 4
-    assert traffic["up0"] == (32 + 8 + 32) * pixels  # skip, coarse (a quarter of the pixels), sum
+    assert traffic["up0"] == (32 + 16 + 32) * pixels  # skip, the 32-channel coarse (a quarter of the pixels), sum
     assert traffic["fuse0"] == (32 + 32) * pixels
     assert traffic["tail"] == (32 + 5 * 4 + 6 * 4) * pixels
     wide = fused_traffic(1080, 1920, ReconNetConfig(widths=(16, 32, 64, 128), ao_prior="rays"))
-    # the last residual block's sum reduced to the coarsest decoder level's 64 channels
-    assert wide["body2.2"] == (128 + 128 + 64) * 2 * pixels // 64
-    assert wide["fuse2"] == (64 * 2 + 32 * 2) * pixels // 16  # the sum, the output reduced for the next level
+    assert wide["body2.2"] == 3 * 128 * 2 * pixels // 64
+    assert wide["up2"] == 2 * 64 * 2 * pixels // 16 + 128 * 2 * pixels // 64
     assert wide["tail"] == (32 + 8 * 4 + 6 * 4) * pixels  # the rays' AO and sampling read too
     assert fused_traffic(1080, 1920, warp=False)["pack"] == traffic["pack"] - 2 * 4 * pixels
     assert fused_traffic(13, 21)["head"] == 64 * 16 * 24  # the padded frame
-    # without residual blocks the last stride-2 convolution writes its 128 channels reduced to 64
-    no_blocks = fused_traffic(13, 21, ReconNetConfig(widths=(16, 32, 64, 128), blocks=0))
-    assert no_blocks["down3"] == 64 * 2 * 16 * 24 // 16 + 64 * 2 * 16 * 24 // 64
+    assert "body1.1" not in fused_traffic(13, 21, ReconNetConfig(blocks=0))
     with pytest.raises(ValueError, match=r"fused_traffic: h must be an integer >= 1, got 0"):
         fused_traffic(0, 21)
 
