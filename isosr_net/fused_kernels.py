@@ -11,8 +11,8 @@ Four kinds of pass do all of ReconNet's work (:mod:`isosr_net.fused_recon` runs 
   channels); in its epilogue a residual sum and the ReLU.
 - :func:`upsample_add`: a decoder level's input ``relu(skip + reduce(bilinear_2x(coarse)))``,
   once per pixel, ``reduce`` the level's 1x1 convolution (ReconNet applies it before upsampling;
-  the two commute). Computed in the convolution's loads instead, per tap, the last level took 2.8
-  times as long on an H100 at 4K (1.40 against 0.50 ms with this pass); the reduction as a second
+  the two commute). Computed in the convolution's loads instead, per tap, the last level took 1.7
+  times as long on an H100 at 4K (1.40 ms against 0.30 + 0.50 with this pass); the reduction as a second
   ``tl.dot`` in the coarser convolution's epilogue came out wrong from Triton 3.6 on an H100
   with 4 warps (64 channels), so it is here.
 - :func:`recon_tail`: the 3x3 output convolution (6 channels, computed as 16) + bias and
