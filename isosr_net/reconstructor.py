@@ -18,19 +18,21 @@ from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 import torch
 
 from isosr_render.buffers import FrameBuffers
-from isosr_render.camera import Camera
-from isosr_render.renderer import Renderer, RenderPlan, RenderRequest
 from isosr_render.shading import ShadingParams, shade
 from isosr_render.shapes import check_shape
 from isosr_net.fused_recon import fused_reconnet, fused_runs_on, triton_imports
 from isosr_net.reconnet import RayLimits, ReconNet, ReconNetConfig
 from isosr_net.inference import PRECISIONS, InputChecks, RecurrentNetwork, output_buffers, surface_tensors
 from isosr_net.model import read_config
+
+if TYPE_CHECKING:  # the network runs without Warp; render_reconstruct takes what a renderer made
+    from isosr_render.camera import Camera
+    from isosr_render.renderer import Renderer, RenderPlan, RenderRequest
 
 DEFAULT_RECON_MODEL = Path(__file__).resolve().parent / "recon_model"
 # Captured CUDA graphs kept per Reconstructor (frame sizes x samplings x first frame or not).

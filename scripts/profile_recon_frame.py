@@ -1,0 +1,79 @@
+"""Where a reconstructed frame's time goes after the render: the GPU's kernels, grouped.
+
+    python scripts/profile_recon_frame.py --device cuda --sizes 1080p,4k
+
+`Reconstructor.fastest` (the network as fused Triton kernels, the frame's work after the render
+in one CUDA graph: inputs laid out and checked, the network, the output buffers, shading) on a
+synthetic frame (random surface, 1 AO ray, a flow), so no Warp is needed. Per size: the mean ms
+of ``reconstruct`` (graph replay, checks read, outputs copied), and one replay under the torch
+profiler with its kernels' GPU time summed by name (Triton kernels by their function name).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import torch
+import torch.nn.functional as F
+from torch.profiler import ProfilerActivity, profile
+
+from isosr_render.buffers import FrameBuffers
+from isosr_render.shading import ShadingParams
+from isosr_net.reconstructor import Reconstructor
+
+SIZES = {"1080p": (1080, 1920), "4k": (2160, 3840)}
+
+
+def synthetic_frame(h: int, w: int, device: str, seed: int) -> FrameBuffers:
+    """A frame as a render gives it: a mask with holes, unit normals and depths where covered, AO, flow."""
+    gen = torch.Generator(device=device).manual_seed(seed)
+    mask = (torch.rand(h, w, device=device, generator=gen) > 0.3).float()
+    normal = F.normalize(torch.randn(h, w, 3, device=device, generator=gen), dim=-1) * mask[..., None]
+    return FrameBuffers(mask=mask, normal=normal, depth=torch.rand(h, w, device=device, generator=gen) * mask,
+                        ao=torch.rand(h, w, device=device, generator=gen).round(),
+                        flow=torch.randn(h, w, 2, device=device, generator=gen))
+
+
+def profile_size(recon: Reconstructor, h: int, w: int, device: str, frames: int) -> dict:
+    frames_ = [synthetic_frame(h, w, device, seed) for seed in range(2)]
+    shading = ShadingParams()
+    for i in range(4):  # the first frame, then the captured graph of a carried frame
+        recon.reconstruct(frames_[i % 2], 1, 1, shading)
+    torch.cuda.synchronize()
+    start = time.perf_counter()
+    for i in range(frames):
+        recon.reconstruct(frames_[i % 2], 1, 1, shading)
+    torch.cuda.synchronize()
+    wall_ms = (time.perf_counter() - start) / frames * 1e3
+    with profile(activities=[ProfilerActivity.CUDA, ProfilerActivity.CPU]) as prof:
+        recon.reconstruct(frames_[0], 1, 1, shading)
+        torch.cuda.synchronize()
+    kernels: dict[str, float] = {}
+    for event in prof.events():
+        if event.device_type == torch.autograd.DeviceType.CUDA:
+            kernels[event.name] = kernels.get(event.name, 0.0) + event.time_range.elapsed_us() / 1e3
+    top = dict(sorted(kernels.items(), key=lambda kv: -kv[1]))
+    return {"pixels": f"{w}x{h}", "reconstruct_wall_ms": wall_ms, "gpu_ms": sum(top.values()), "kernels_ms": top}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default="cuda")
+    parser.add_argument("--sizes", default="1080p,4k")
+    parser.add_argument("--frames", type=int, default=50)
+    args = parser.parse_args()
+    recon = Reconstructor.fastest(device=args.device)
+    out = {}
+    for name in args.sizes.split(","):
+        out[name] = profile_size(recon, *SIZES[name], args.device, args.frames)
+        row = out[name]
+        print(f"{name}: reconstruct {row['reconstruct_wall_ms']:.3f} ms (wall), kernels {row['gpu_ms']:.3f} ms")
+        for kernel, ms in list(row["kernels_ms"].items())[:30]:
+            print(f"  {ms:7.3f}  {kernel[:110]}")
+    print(json.dumps({"device": torch.cuda.get_device_name(), "rows": out})[:200])
+
+
+if __name__ == "__main__":
+    main()
