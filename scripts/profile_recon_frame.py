@@ -23,7 +23,7 @@ from isosr_render.buffers import FrameBuffers
 from isosr_render.shading import ShadingParams
 from isosr_net.reconstructor import Reconstructor
 
-SIZES = {"1080p": (1080, 1920), "4k": (2160, 3840)}
+SIZES = {"1080p": (1080, 1920), "4k": (2160, 3840), "smoke": (64, 96)}
 
 
 def synthetic_frame(h: int, w: int, device: str, seed: int) -> FrameBuffers:
@@ -36,20 +36,26 @@ def synthetic_frame(h: int, w: int, device: str, seed: int) -> FrameBuffers:
                         flow=torch.randn(h, w, 2, device=device, generator=gen))
 
 
+def sync(device: str) -> None:
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
+
+
 def profile_size(recon: Reconstructor, h: int, w: int, device: str, frames: int) -> dict:
+    """Mean wall ms of ``reconstruct`` over ``frames`` frames, and one frame's kernels (GPU ms by name)."""
     frames_ = [synthetic_frame(h, w, device, seed) for seed in range(2)]
     shading = ShadingParams()
     for i in range(4):  # the first frame, then the captured graph of a carried frame
         recon.reconstruct(frames_[i % 2], 1, 1, shading)
-    torch.cuda.synchronize()
+    sync(device)
     start = time.perf_counter()
     for i in range(frames):
         recon.reconstruct(frames_[i % 2], 1, 1, shading)
-    torch.cuda.synchronize()
+    sync(device)
     wall_ms = (time.perf_counter() - start) / frames * 1e3
     with profile(activities=[ProfilerActivity.CUDA, ProfilerActivity.CPU]) as prof:
         recon.reconstruct(frames_[0], 1, 1, shading)
-        torch.cuda.synchronize()
+        sync(device)
     kernels: dict[str, float] = {}
     for event in prof.events():
         if event.device_type == torch.autograd.DeviceType.CUDA:
@@ -72,7 +78,8 @@ def main() -> None:
         print(f"{name}: reconstruct {row['reconstruct_wall_ms']:.3f} ms (wall), kernels {row['gpu_ms']:.3f} ms")
         for kernel, ms in list(row["kernels_ms"].items())[:30]:
             print(f"  {ms:7.3f}  {kernel[:110]}")
-    print(json.dumps({"device": torch.cuda.get_device_name(), "rows": out})[:200])
+    device = torch.cuda.get_device_name(args.device) if torch.device(args.device).type == "cuda" else "cpu"
+    print(json.dumps({"device": device, "rows": out}))
 
 
 if __name__ == "__main__":
