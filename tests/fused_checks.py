@@ -231,8 +231,10 @@ def reference(net, inputs, warped):
         return net.double()(inputs.double(), warped.double()).float(), net.float()
 
 
-# The AO prior changes the tail alone (tested under both above); the interpreter is slow.
-@pytest.mark.parametrize("ao_prior, b, h, w", [("none", 2, 13, 21), ("rays", 1, 24, 40)])
+# The AO prior changes the tail alone (tested under both above); the interpreter is slow. A
+# one-pixel frame and a one-row one are padded to 8 x 8 and 8 x 40 and cropped back.
+@pytest.mark.parametrize("ao_prior, b, h, w", [("none", 2, 13, 21), ("rays", 1, 24, 40), ("rays", 1, 1, 1),
+                                                ("none", 1, 1, 37)])
 def test_the_fused_shipped_model_equals_reconnet(ao_prior, b, h, w):
     net, fused = shipped_under(ao_prior)
     assert isinstance(fused, FusedReconNet)
@@ -309,6 +311,11 @@ def synthetic_frames(count: int, h: int, w: int) -> list[FrameBuffers]:
         frames.append(FrameBuffers(mask=x[MASK.start], normal=x[NORMAL].permute(1, 2, 0), depth=x[DEPTH.start],
                                    ao=x[AO.start], flow=flow))
     return frames
+
+
+def test_the_fastest_reconstructor_fuses_on_cuda_in_fp16_only():
+    assert isinstance(Reconstructor.fastest(device=DEVICE).net, FusedReconNet) == (DEVICE == "cuda")
+    assert not isinstance(Reconstructor.fastest(device=DEVICE, precision="bf16").net, FusedReconNet)
 
 
 def test_a_fused_reconstructor_follows_the_reference_frame_by_frame():
