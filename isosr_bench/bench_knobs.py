@@ -32,7 +32,7 @@ from isosr_net.model import read_config
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
 from isosr_net.inference import surface_tensors
 
-from .common import bench_parser, print_table, time_frames, write_result
+from .common import bench_parser, mean_ms, print_table, time_frames, write_result
 
 FRAMES = 4
 
@@ -59,7 +59,7 @@ class Knobs:
 
     def timed(self, **options) -> float:
         t = time_frames(lambda i: self.render(i, **options), FRAMES, self.device, warmup=1)
-        return t.get("gpu_ms", t["wall_ms"])
+        return mean_ms(t)
 
     def row(self, knob: str, setting, ms: float, error: float, unit: str) -> dict:
         return {"knob": knob, "setting": str(setting), "ms": ms, "error": error, "error unit": unit,
@@ -137,7 +137,7 @@ class Knobs:
                 psnr = np.mean([float(frame_scores(o.float().cpu(), t.cpu())["color_psnr"][0])
                                 for o, t in zip(outs, truth)])
                 t = time_frames(lambda i: fn(lows[1 + i % (FRAMES - 1)]), FRAMES - 1, self.device, warmup=1)
-                rows.append(self.row(f"upscale x{factor}", name, t.get("gpu_ms", t["wall_ms"]), float(psnr),
+                rows.append(self.row(f"upscale x{factor}", name, mean_ms(t), float(psnr),
                                      "color PSNR dB (higher is better)"))
         return rows
 

@@ -26,7 +26,7 @@ from isosr_render.sequence import sequence_requests
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
 from isosr_net.inference import surface_tensors
 
-from .common import bench_parser, print_table, time_frames, write_result
+from .common import bench_parser, mean_ms, print_table, time_frames, write_result
 
 VOLUME = "proc:cloud:42@128"
 
@@ -69,7 +69,7 @@ def matmul_tflops(device: str, smoke: bool) -> float:
     n = 8192 if cuda and not smoke else 1024
     a = torch.randn(n, n, device=device, dtype=torch.bfloat16 if cuda else torch.float32)
     t = time_frames(lambda i: a @ a, 5 if smoke else 20, device)
-    return 2 * n ** 3 / (t.get("gpu_ms", t["wall_ms"]) * 1e-3) / 1e12
+    return 2 * n ** 3 / (mean_ms(t) * 1e-3) / 1e12
 
 
 def copy_bandwidth(device: str, smoke: bool) -> float:
@@ -78,7 +78,7 @@ def copy_bandwidth(device: str, smoke: bool) -> float:
     a = torch.empty(n, dtype=torch.uint8, device=device)
     b = torch.empty_like(a)
     t = time_frames(lambda i: b.copy_(a), 5 if smoke else 20, device)
-    return 2 * n / (t.get("gpu_ms", t["wall_ms"]) * 1e-3)
+    return 2 * n / (mean_ms(t) * 1e-3)
 
 
 def frame_flops(upscaler: Upscaler, lowres: torch.Tensor) -> int:
@@ -111,7 +111,7 @@ def main(argv=None) -> list[dict]:
         upscaler.reset()
         upscaler.step(*sequence[0])
         t = time_frames(lambda i: upscaler.step(*sequence[1 + i % (frames - 1)]), frames - 1, args.device, warmup=0)
-        ms = t.get("gpu_ms", t["wall_ms"])
+        ms = mean_ms(t)
         rows.append({"variant": name, "size": f"{width}x{height} -> {width * 4}x{height * 4}", "ms": ms, **t,
                      "max |diff| vs fp32": deviation, "first pass s": warmup_s,
                      "GFLOP/frame": flops / 1e9, "floor ms": flops / (rate * 1e12) * 1e3,

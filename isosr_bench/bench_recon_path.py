@@ -44,7 +44,7 @@ from isosr_net.reconstructor import Reconstructor, recon_inputs
 
 from .bench_network import copy_bandwidth, matmul_tflops
 from .bench_pareto import FRAMES, SIZES, SMOKE_FRAMES, SMOKE_SIZES, WARMUP, bench_cameras, load
-from .common import bench_parser, commit, print_table, time_frames, write_result
+from .common import bench_parser, commit, mean_ms, print_table, time_frames, write_result
 
 NAME = "bench_recon_path"
 SAMPLINGS = ((1, 1), (1, 4))  # (AO rays, rays per pixel)
@@ -84,23 +84,18 @@ def pass_times(net: FusedReconNet, renderer: Renderer, pairs: list, request, ao_
             run()
         out = {}
         for name, run in passes:
-            out[name] = {"ms": gpu_ms(time_frames(lambda i: run(), frames, device))}
+            out[name] = {"ms": mean_ms(time_frames(lambda i: run(), frames, device))}
         if device.startswith("cuda"):  # without the launches' overhead, which the passes alone include
             graph = torch.cuda.CUDAGraph()
             with torch.cuda.graph(graph):
                 for _, run in passes:
                     run()
-            out["network"] = {"ms": gpu_ms(time_frames(lambda i: graph.replay(), frames, device))}
+            out["network"] = {"ms": mean_ms(time_frames(lambda i: graph.replay(), frames, device))}
             traffic["network"] = sum(traffic.values())
     for name, bytes_ in traffic.items():
         floor = bytes_ / bandwidth * 1e3
         out[name].update(bytes=bytes_, floor_ms=floor, of_floor=floor / out[name]["ms"])
     return out
-
-
-def gpu_ms(times: dict) -> float:
-    """The GPU's mean ms per frame where events timed it, else the wall clock's."""
-    return times.get("gpu_ms", times["wall_ms"])
 
 
 def stage_row(renderer: Renderer, iso: float, volume: str, size: tuple[int, int], size_name: str, ao_rays: int,
@@ -115,9 +110,9 @@ def stage_row(renderer: Renderer, iso: float, volume: str, size: tuple[int, int]
     full = make_runner(FrameMethod("full", ao_rays=ao_rays, spp=spp), renderer, iso, *size)
     row = {"volume": volume, "size": size_name, "pixels": f"{size[0]}x{size[1]}", "ao_rays": ao_rays, "spp": spp,
            "variant": variant, "method": method.name}
-    row["full"] = gpu_ms(time_frames(lambda i: full.frame(*pairs[i]), frames, device, warmup=warmup))
-    row["path"] = gpu_ms(time_frames(lambda i: runner.frame(*pairs[i]), frames, device, warmup=warmup))
-    row["render"] = gpu_ms(time_frames(lambda i: renderer.render(pairs[i][0], runner.render_request(pairs[i][1])),
+    row["full"] = mean_ms(time_frames(lambda i: full.frame(*pairs[i]), frames, device, warmup=warmup))
+    row["path"] = mean_ms(time_frames(lambda i: runner.frame(*pairs[i]), frames, device, warmup=warmup))
+    row["render"] = mean_ms(time_frames(lambda i: renderer.render(pairs[i][0], runner.render_request(pairs[i][1])),
                                    frames, device, warmup=0))
     row["added"] = row["path"] - row["full"]
     row["network_gflop"] = 2 * macs_per_pixel(recon.net.config) * size[0] * size[1] / 1e9

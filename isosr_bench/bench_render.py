@@ -24,7 +24,7 @@ from isosr_render.flow_fill import fill_flow
 from isosr_render.sequence import sequence_requests
 from isosr_render.voxels import ArraySource
 
-from .common import bench_parser, kernel_ms, print_table, time_frames, write_result
+from .common import bench_parser, kernel_ms, mean_ms, print_table, time_frames, write_result
 
 FRAMES = 10
 AO_RADIUS = 0.02  # world units: 20 voxels of a 1024^3 volume, 5 of a 256^3 one
@@ -87,7 +87,7 @@ def bench_volume(volume: Volume, iso: float, device: str, smoke: bool) -> list[d
             t["kernel_ms"] = kernel_ms(frame, FRAMES, "render_")
         request = frames[1][1]
         counts = count_samples(renderer, frames[1][0], request)
-        ms = t.get("gpu_ms", t["wall_ms"])
+        ms = mean_ms(t)
         rays = request.width * request.height
         rows.append({"volume": volume.name, "voxels": "x".join(map(str, volume.shape)), "case": case,
                      "size": f"{request.width}x{request.height}", "ms": ms, **t, **counts,
@@ -125,7 +125,7 @@ def bench_render_calls(volume: Volume, iso: float, device: str, smoke: bool) -> 
             t["kernel_ms"] = kernel_ms(call, FRAMES, "render_")
         rows.append({"volume": volume.name, "voxels": "x".join(map(str, volume.shape)),
                      "case": f"recon render, AO 1 + flow: {variant}", "size": f"{w}x{h}",
-                     "ms": t.get("gpu_ms", t["wall_ms"]), **t})
+                     "ms": mean_ms(t), **t})
     return rows
 
 
@@ -138,7 +138,7 @@ def bench_flow_fill(volume: Volume, iso: float, device: str, smoke: bool) -> lis
     for method in ("ns", "pushpull"):
         t = time_frames(lambda i: fill_flow(frame.flow, frame.mask, method), FRAMES, device)
         rows.append({"volume": volume.name, "case": f"flow fill {method}", "size": f"{w}x{h}",
-                     "ms": t.get("gpu_ms", t["wall_ms"]), **t})
+                     "ms": mean_ms(t), **t})
     return rows
 
 

@@ -40,7 +40,7 @@ from isosr_render import Renderer, RenderRequest, Volume, orbit
 from isosr_render.procedural import SpheresSource
 from isosr_render.voxels import ArraySource
 
-from .common import bench_parser, print_table, time_frames, write_result
+from .common import bench_parser, mean_ms, print_table, time_frames, write_result
 
 GB = 1e9
 SIZES = {"ct": (512, 512, 1000), "big": (2048, 2048, 2048)}
@@ -120,7 +120,7 @@ def _first_hit(renderer: Renderer, iso: float, device: str, frames: int, ao_samp
     size = (240, 135) if frames == 1 else (1920, 1080)
     request = RenderRequest(*size, iso=iso, outputs=outputs, ao_samples=max(1, ao_samples))
     t = time_frames(lambda i: renderer.render(orbit(30 + 7 * i, 20, 1.8), request), frames, device, warmup=1)
-    return t.get("gpu_ms", t["wall_ms"])
+    return mean_ms(t)
 
 
 def _limit(limit_gb: float | None, source) -> int:

@@ -86,6 +86,12 @@ def time_frames(fn, frames: int, device: str, warmup: int = 2) -> dict:
     return result
 
 
+def mean_ms(times: dict) -> float:
+    """The mean ms per call of a :func:`time_frames` result: the device's where CUDA events timed
+    it, else the wall clock's."""
+    return times.get("gpu_ms", times["wall_ms"])
+
+
 def kernel_ms(fn, frames: int, kernel: str) -> float:
     """Mean CUDA time per call of ``fn(i)`` spent in Warp kernels whose name contains ``kernel``.
 
