@@ -218,8 +218,9 @@ class Reconstructor(RecurrentNetwork):
         NHWC, the network as fused Triton kernels (``fused``, where Triton imports and in fp16;
         else its channel-padded layers compiled) and, through :meth:`render_reconstruct`, render,
         network and shading replayed as one CUDA graph; eager fp32 NHWC elsewhere. On an H100
-        (``python -m isosr_bench.bench_recon_path``, ct_pitch, 1 AO ray) the fused graph makes a
-        1080p frame in 3.26 ms and a 4K frame in 11.0 ms, the compiled one in 3.73 and 12.3 ms."""
+        (``python -m isosr_bench.bench_recon_path``, ct_pitch, 1 AO ray, commit 5fb514d) the fused
+        graph makes a 1080p frame in 3.72 ms and a 4K frame in 11.4 ms, the compiled one in 4.14
+        and 12.7 ms."""
         if torch.device(device).type == "cuda":
             precision = precision or "fp16"
             if precision == "fp16" and fused_runs_on(device):
