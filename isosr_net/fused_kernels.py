@@ -208,9 +208,14 @@ def _check_taps(weight: torch.Tensor, bias: torch.Tensor, ci: int, where: str) -
     """Check tap-major weights (9, CI, CO) fp16 and a (CO,) fp32 bias; returns CO."""
     dims = check_shape(weight, f"(9, {ci}, CO)", "weight", where)
     check_shape(bias, "(CO)", "bias", where, dims)
+    _check_dtypes(weight, bias, where)
+    return dims["CO"]
+
+
+def _check_dtypes(weight: torch.Tensor, bias: torch.Tensor, where: str) -> None:
+    """Weights as the kernels read them: contiguous fp16, the bias fp32."""
     if weight.dtype != torch.float16 or bias.dtype != torch.float32 or not weight.is_contiguous():
         raise ValueError(f"{where}: weight must be contiguous fp16 and bias fp32, got {weight.dtype}, {bias.dtype}")
-    return dims["CO"]
 
 
 def _check_nhwc(x: torch.Tensor, name: str, where: str) -> dict[str, int]:
@@ -302,8 +307,7 @@ def upsample_add(x: torch.Tensor, coarse: torch.Tensor, weight: torch.Tensor, bi
     cc = check_shape(coarse, f"({b}, CC, {hp // 2}, {wp // 2})", "coarse", "upsample_add")["CC"]
     check_shape(weight, f"({cc}, {c})", "weight", "upsample_add")
     check_shape(bias, f"({c})", "bias", "upsample_add")
-    if weight.dtype != torch.float16 or bias.dtype != torch.float32 or not weight.is_contiguous():
-        raise ValueError(f"upsample_add: weight must be contiguous fp16 and bias fp32, got {weight.dtype}, {bias.dtype}")
+    _check_dtypes(weight, bias, "upsample_add")
     out = torch.empty_like(x)
     _upsample_add_kernel[(triton.cdiv(hp * wp, PACK_BLOCK), b)](x, coarse, weight, bias, out, hp, wp, hp // 2, wp // 2,
                                                                *coarse.stride(), C=c, CC=cc, BLOCK=PACK_BLOCK)
