@@ -36,11 +36,12 @@ from __future__ import annotations
 import torch
 
 from isosr_render import Renderer
+from isosr_render.shading import ShadingParams
 from isosr_render.sequence import sequence_cameras
 from isosr_net.frame_methods import FrameMethod, Networks, make_runner
 from isosr_net.fused_recon import FusedReconNet, fused_runs_on, fused_traffic
 from isosr_net.reconnet import macs_per_pixel
-from isosr_net.reconstructor import Reconstructor, recon_inputs
+from isosr_net.reconstructor import Reconstructor
 
 from .bench_network import copy_bandwidth, matmul_tflops
 from .bench_pareto import FRAMES, SIZES, SMOKE_FRAMES, SMOKE_SIZES, WARMUP, bench_cameras, load
@@ -68,18 +69,22 @@ def variants(device: str) -> dict[str, dict]:
 def pass_times(net: FusedReconNet, renderer: Renderer, pairs: list, request, ao_rays: int, spp: int, frames: int,
                device: str, bandwidth: float) -> dict[str, dict]:
     """Each pass of the fused network timed alone on the second frame of ``pairs`` (the first's
-    output warped in), and on CUDA all of them replayed as one CUDA graph (``network``), with their
-    bytes and floor at ``bandwidth`` (bytes/s)."""
-    inputs, previous = None, None
-    for camera, prev_camera in pairs[:2]:
-        frame = renderer.render(camera, request(prev_camera))
-        inputs, flow = recon_inputs(frame, ao_rays, spp, net.config.limits)
-        with torch.no_grad():
-            previous = net.step(inputs, flow, previous)[0]
-    h, w = inputs.shape[-2:]
-    traffic = fused_traffic(h, w, net.config)
+    output warped in), as :meth:`FusedReconNet.frame` runs them (the pack reading the render's
+    buffers, the tail writing output buffers and shading them), and on CUDA all of them replayed
+    as one CUDA graph (``network``), with their bytes and floor at ``bandwidth`` (bytes/s)."""
+    from isosr_net.fused_kernels import ReconSources  # imports Triton
+
+    sampling = net.config.limits.channels(ao_rays, spp, torch.zeros(1, 1, 1, 1, device=device))
+    first, frame = (renderer.render(camera, request(prev_camera)) for camera, prev_camera in pairs[:2])
+    buffers = [(f.mask, f.normal, f.depth, f.ao if ao_rays else None) for f in (first, frame)]
     with torch.no_grad():
-        _, passes = net.passes(inputs, previous, flow)
+        previous = net.frame(*buffers[0], sampling, first.flow, None, None)[0]
+    sources = ReconSources.of_buffers(*buffers[1], sampling)
+    h, w = frame.mask.shape
+    traffic = fused_traffic(h, w, net.config, frame=True)
+    with torch.no_grad():
+        _, passes = net.passes(sources, previous, frame.flow.permute(2, 0, 1)[None], as_buffers=True,
+                               shading=ShadingParams())
         for _, run in passes:
             run()
         out = {}

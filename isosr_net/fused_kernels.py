@@ -2,10 +2,13 @@
 
 Four kinds of pass do all of ReconNet's work (:mod:`isosr_net.fused_recon` runs them in order):
 
-- :func:`pack_inputs`: the network's 10 input channels (the 8 inputs and the warped previous
-  output's mask and AO) as one (B, H', W', 16) fp16 tensor, the frame replicate-padded to
-  H' x W' as :class:`~isosr_net.reconnet.ReconNet` pads it, channels 10-15 zero; the previous
-  output warped by the flow in the same pass where it is given unwarped.
+- :func:`pack_inputs`: the network's 10 input channels (the 8 inputs, read in place where they
+  lie, :class:`ReconSources`, and the warped previous output's mask and AO) as one
+  (B, H', W', 16) fp16 tensor, the frame replicate-padded to H' x W' as
+  :class:`~isosr_net.reconnet.ReconNet` pads it, channels 10-15 zero; the previous output warped
+  by the flow in the same pass where it is given unwarped (or a first frame's stand-in made
+  there); and, on the way, the input checks (:data:`~isosr_net.inference.FRAME_FLAGS`): one value
+  per program, reduced by one small kernel, read by the host once per frame.
 - :func:`conv3x3`: a 3x3 convolution (stride 1 or 2, zero padding) + bias as an implicit GEMM:
   per tile of ``BLOCK_M`` output pixels, one ``tl.dot`` per tap (K = input channels, N = output
   channels); in its epilogue a residual sum and the ReLU.
@@ -18,7 +21,9 @@ Four kinds of pass do all of ReconNet's work (:mod:`isosr_net.fused_recon` runs 
 - :func:`recon_tail`: the 3x3 output convolution (6 channels, computed as 16) + bias and
   ReconNet's output: mask ``clamp(in + raw, 0, 1)``, normal ``in + raw``, depth passed through,
   AO ``sigmoid(raw)`` or, for a model over the input rays, ``sigmoid(logit(p) + raw)``
-  (:func:`isosr_net.reconnet.ao_output`), written as the (B, 6, H, W) fp32 stack, cropped to the frame.
+  (:func:`isosr_net.reconnet.ao_output`), written as the (B, 6, H, W) fp32 stack, cropped to the
+  frame; or as the output buffers' stack (:func:`isosr_net.inference.buffer_stack`) and shaded
+  (:func:`isosr_render.shading.shade`), the frame's last work, in the same pass.
 
 Importing this module compiles nothing; set ``TRITON_INTERPRET=1`` before importing it to run
 the kernels on CPU tensors (Triton's interpreter, for tests). No kernel syncs with the host or
@@ -29,21 +34,30 @@ call per shape does).
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 
 import torch
 import triton
 import triton.language as tl
 
-from isosr_render.conventions import AO, DEPTH, MASK, SAMPLED_AO, SAMPLING
+from isosr_render.conventions import AO, DEPTH, MASK, NORMAL, SAMPLED_AO, SAMPLING
+from isosr_render.shading import ShadingParams, light_and_half
 from isosr_render.shapes import check_shape
-from isosr_net.reconnet import INPUTS, OUTPUTS, ReconNetConfig
+from isosr_net.inference import FRAME_FLAGS
+from isosr_net.reconnet import FIRST_FRAME_MODES, INPUTS, OUTPUTS, ReconNetConfig
 
 INTERPRET = os.environ.get("TRITON_INTERPRET") == "1"
 PACKED = 16  # channels of the packed input: 10 used, padded to tl.dot's smallest K
-# Pixels per program and warps, autotuned per shape; the interpreter takes the first (FIXED).
+# Pixels per program and warps, autotuned per layer and size class (pixels' bit length: a new
+# window size of a class tunes nothing, so a viewer resizing cannot stall the GPU with tuning);
+# the interpreter takes the first (FIXED).
 CONFIGS = [triton.Config({"BLOCK_M": m}, num_warps=w) for m, w in ((64, 4), (32, 2), (128, 4), (128, 8), (256, 8))]
 FIXED = dict(CONFIGS[0].kwargs) if INTERPRET else {}
 PACK_BLOCK = 128
+# How the pack gets the previous output's mask and AO: as given (warped already), warped by the
+# flow, or a first frame's stand-in (ReconNet.first_previous: from the inputs, or zeros).
+PREV_GIVEN, PREV_WARP, PREV_INPUTS, PREV_ZEROS = (tl.constexpr(i) for i in range(4))
+FLAG_SLOTS = tl.constexpr(8)  # per pack program: the FRAME_FLAGS, padded
 
 
 def _tuned(kernel, key: list[str]):
@@ -51,9 +65,32 @@ def _tuned(kernel, key: list[str]):
 
 
 @triton.jit
-def _pack_kernel(inp_ptr, prev_ptr, flow_ptr, out_ptr, h, w, hp, wp,
-                 si_b, si_c, si_h, si_w, sp_b, sp_c, sp_h, sp_w, sf_b, sf_c, sf_h, sf_w,
-                 WARP: tl.constexpr, N_IN: tl.constexpr, PREV_MASK: tl.constexpr, PREV_AO: tl.constexpr,
+def _source(ptr, sb, sc, sh, sw, b, y, x, valid, c, FIRST: tl.constexpr, N: tl.constexpr):
+    """Channels FIRST..FIRST+N-1 of a (BLOCK, C) tile read from one source plane group at pixels
+    (y, x), fp32; zero in the tile's other channels and past ``valid``."""
+    inside = valid[:, None] & (c >= FIRST) & (c < FIRST + N)
+    return tl.load(ptr + b * sb + (c - FIRST) * sc + (y * sh + x * sw)[:, None], mask=inside, other=0.0).to(tl.float32)
+
+
+@triton.jit
+def _column(tile, c, K: tl.constexpr):
+    """Column K of a (BLOCK, C) tile, (BLOCK,)."""
+    return tl.sum(tl.where(c == K, tile, 0.0), axis=1)
+
+
+@triton.jit
+def _not_finite(x):
+    """1.0 where ``x`` is NaN or infinite (NaN fails every comparison)."""
+    return tl.where(tl.abs(x) <= 3.4028234663852886e38, 0.0, 1.0)
+
+
+@triton.jit
+def _pack_kernel(m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, sn_b, sn_c, sn_h, sn_w, d_ptr, sd_b, sd_c, sd_h, sd_w,
+                 a_ptr, sa_b, sa_c, sa_h, sa_w, s_ptr, ss_b, ss_c, ss_h, ss_w,
+                 prev_ptr, sp_b, sp_c, sp_h, sp_w, flow_ptr, sf_b, sf_c, sf_h, sf_w, out_ptr, flags_ptr,
+                 h, w, hp, wp, PREV: tl.constexpr, HAS_AO: tl.constexpr, HAS_FLOW: tl.constexpr,
+                 MASK_C: tl.constexpr, NORMAL_C: tl.constexpr, DEPTH_C: tl.constexpr, AO_C: tl.constexpr,
+                 SAMPLING_C: tl.constexpr, PREV_MASK: tl.constexpr, PREV_AO: tl.constexpr, N_IN: tl.constexpr,
                  C: tl.constexpr, BLOCK: tl.constexpr):
     b = tl.program_id(1).to(tl.int64)
     offs = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
@@ -61,15 +98,32 @@ def _pack_kernel(inp_ptr, prev_ptr, flow_ptr, out_ptr, h, w, hp, wp,
     y = tl.minimum(offs // wp, h - 1)  # replicate padding: bottom rows and right columns repeat
     x = tl.minimum(offs % wp, w - 1)
     c = tl.arange(0, C)[None, :]
-    vals = tl.load(inp_ptr + b * si_b + c * si_c + (y * si_h + x * si_w)[:, None],
-                   mask=valid[:, None] & (c < N_IN), other=0.0).to(tl.float32)
+    vals = (_source(m_ptr, sm_b, sm_c, sm_h, sm_w, b, y, x, valid, c, MASK_C, 1)
+            + _source(n_ptr, sn_b, sn_c, sn_h, sn_w, b, y, x, valid, c, NORMAL_C, 3)
+            + _source(d_ptr, sd_b, sd_c, sd_h, sd_w, b, y, x, valid, c, DEPTH_C, 1)
+            + _source(s_ptr, ss_b, ss_c, ss_h, ss_w, b, y, x, valid, c, SAMPLING_C, 2))
+    if HAS_AO:
+        vals += _source(a_ptr, sa_b, sa_c, sa_h, sa_w, b, y, x, valid, c, AO_C, 1)
+    # The input checks (FRAME_FLAGS), over this program's pixels: a flag per buffer that holds
+    # NaN or Inf, one for AO outside [0, 1], and the largest finite |depth|.
+    bad = _not_finite(vals)
+    flags = flags_ptr + (b * tl.num_programs(0) + tl.program_id(0)) * FLAG_SLOTS
+    tl.store(flags + 0, tl.max(tl.where(c == MASK_C, bad, 0.0)))
+    tl.store(flags + 1, tl.max(tl.where((c >= NORMAL_C) & (c < NORMAL_C + 3), bad, 0.0)))
+    tl.store(flags + 2, tl.max(tl.where(c == DEPTH_C, bad, 0.0)))
+    tl.store(flags + 4, tl.max(tl.where((c == AO_C) & ((vals < 0.0) | (vals > 1.0) | (bad > 0)), 1.0, 0.0)))
+    tl.store(flags + 5, tl.max(tl.where((c == DEPTH_C) & (bad == 0), tl.abs(vals), 0.0)))
+    if HAS_FLOW:
+        fx = tl.load(flow_ptr + b * sf_b + y * sf_h + x * sf_w, mask=valid, other=0.0).to(tl.float32)
+        fy = tl.load(flow_ptr + b * sf_b + sf_c + y * sf_h + x * sf_w, mask=valid, other=0.0).to(tl.float32)
+        tl.store(flags + 3, tl.max(tl.maximum(_not_finite(fx), _not_finite(fy))))
+    else:
+        tl.store(flags + 3, 0.0)
     recurrent = (c >= N_IN) & (c < N_IN + 2)
     channel = tl.where(c == N_IN, PREV_MASK, PREV_AO) * sp_c
-    if WARP:
+    if PREV == PREV_WARP:
         # Backward warp as isosr_net.flow_warp.warp_by_flow: previous(p + flow[p]), bilinear, zeros
         # outside. Positions far outside are clamped (all four taps stay outside) before the cast.
-        fx = tl.load(flow_ptr + b * sf_b + y * sf_h + x * sf_w, mask=valid, other=0.0)
-        fy = tl.load(flow_ptr + b * sf_b + sf_c + y * sf_h + x * sf_w, mask=valid, other=0.0)
         px = tl.minimum(tl.maximum(x.to(tl.float32) + fx, -2.0), w + 1.0)
         py = tl.minimum(tl.maximum(y.to(tl.float32) + fy, -2.0), h + 1.0)
         x0f, y0f = tl.floor(px), tl.floor(py)
@@ -83,9 +137,13 @@ def _pack_kernel(inp_ptr, prev_ptr, flow_ptr, out_ptr, h, w, hp, wp,
             tap = tl.load(prev_ptr + b * sp_b + channel + (yy * sp_h + xx * sp_w)[:, None],
                           mask=inside[:, None] & recurrent, other=0.0)
             vals += weight[:, None] * tap.to(tl.float32)
-    else:
+    elif PREV == PREV_GIVEN:
         vals += tl.load(prev_ptr + b * sp_b + channel + (y * sp_h + x * sp_w)[:, None],
                         mask=valid[:, None] & recurrent, other=0.0).to(tl.float32)
+    elif PREV == PREV_INPUTS:  # ReconNet.first_previous: the mask, and the rays' AO where some were cast
+        mask = _column(vals, c, MASK_C)
+        ao = tl.where(_column(vals, c, SAMPLING_C) > 0, _column(vals, c, AO_C), mask)
+        vals += tl.where(c == N_IN, mask[:, None], tl.where(c == N_IN + 1, ao[:, None], 0.0))
     tl.store(out_ptr + b * hp * wp * C + offs[:, None] * C + c, vals.to(tl.float16), mask=valid[:, None])
 
 
@@ -134,7 +192,7 @@ def _conv_acc(x_ptr, w_ptr, bias_ptr, b, y, x, valid, hi, wi, STRIDE: tl.constex
 
 
 @triton.jit
-def _conv_kernel(x_ptr, w_ptr, bias_ptr, out_ptr, res_ptr, hi, wi, ho, wo, STRIDE: tl.constexpr,
+def _conv_kernel(x_ptr, w_ptr, bias_ptr, out_ptr, res_ptr, hi, wi, ho, wo, size_class, STRIDE: tl.constexpr,
                  RESIDUAL: tl.constexpr, RELU: tl.constexpr, CI: tl.constexpr, CO: tl.constexpr,
                  BLOCK_M: tl.constexpr):
     b = tl.program_id(1).to(tl.int64)
@@ -168,10 +226,13 @@ def _upsample_add_kernel(x_ptr, c_ptr, rw_ptr, rb_ptr, out_ptr, hp, wp, hc, wc, 
 
 
 @triton.jit
-def _tail_kernel(x_ptr, w_ptr, bias_ptr, inp_ptr, out_ptr, h, w, hp, wp, si_b, si_c, si_h, si_w, ray_scale,
-                 MASK_C: tl.constexpr, DEPTH_C: tl.constexpr, AO_C: tl.constexpr, RAYS_C: tl.constexpr,
-                 SAMPLING_C: tl.constexpr, AO_PRIOR: tl.constexpr, OUT: tl.constexpr,
-                 CI: tl.constexpr, CO: tl.constexpr, BLOCK_M: tl.constexpr):
+def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, sn_b, sn_c, sn_h, sn_w,
+                 d_ptr, sd_b, sd_c, sd_h, sd_w, a_ptr, sa_b, sa_c, sa_h, sa_w, s_ptr, ss_b, ss_c, ss_h, ss_w,
+                 out_ptr, color_ptr, h, w, hp, wp, size_class, ray_scale, albedo_r, albedo_g, albedo_b, ambient, diffuse, specular,
+                 shininess, light_x, light_y, light_z, half_x, half_y, half_z, back_r, back_g, back_b,
+                 MASK_C: tl.constexpr, NORMAL_C: tl.constexpr, DEPTH_C: tl.constexpr, AO_C: tl.constexpr,
+                 AO_PRIOR: tl.constexpr, HAS_AO: tl.constexpr, BUFFERS: tl.constexpr,
+                 SHADE: tl.constexpr, OUT: tl.constexpr, CI: tl.constexpr, CO: tl.constexpr, BLOCK_M: tl.constexpr):
     b = tl.program_id(1).to(tl.int64)
     offs = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     valid = offs < h * w
@@ -179,25 +240,65 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, inp_ptr, out_ptr, h, w, hp, wp, si_b, s
     x = offs % w
     raw = _conv_acc(x_ptr, w_ptr, bias_ptr, b, y, x, valid, hp, wp, 1, CI, CO, BLOCK_M)
     c = tl.arange(0, CO)[None, :]
-    # The inputs' first channels are the output's (mask, normal, depth), in the same order; the
-    # channels other than mask, depth and AO are the normal's.
-    given = tl.load(inp_ptr + b * si_b + c * si_c + (y * si_h + x * si_w)[:, None],
-                    mask=valid[:, None] & (c < AO_C), other=0.0).to(tl.float32)
+    # The inputs' first channels are the output's (mask, normal, depth), in the same order.
+    given = (_source(m_ptr, sm_b, sm_c, sm_h, sm_w, b, y, x, valid, c, MASK_C, 1)
+             + _source(n_ptr, sn_b, sn_c, sn_h, sn_w, b, y, x, valid, c, NORMAL_C, 3)
+             + _source(d_ptr, sd_b, sd_c, sd_h, sd_w, b, y, x, valid, c, DEPTH_C, 1))
     ao = tl.sigmoid(raw)
     if AO_PRIOR:  # sigmoid(logit(p) + raw) = p / (p + (1 - p) exp(-raw)), p in (0, 1)
-        pixel = b * si_b + y * si_h + x * si_w
-        rays = tl.load(inp_ptr + pixel + RAYS_C * si_c, mask=valid, other=0.0).to(tl.float32)
-        n = (tl.load(inp_ptr + pixel + SAMPLING_C * si_c, mask=valid, other=0.0).to(tl.float32)
-             * tl.load(inp_ptr + pixel + (SAMPLING_C + 1) * si_c, mask=valid, other=0.0).to(tl.float32) * ray_scale)
+        rays = tl.zeros((BLOCK_M,), dtype=tl.float32)
+        if HAS_AO:
+            rays = tl.load(a_ptr + b * sa_b + y * sa_h + x * sa_w, mask=valid, other=0.0).to(tl.float32)
+        sampling = s_ptr + b * ss_b + y * ss_h + x * ss_w
+        n = (tl.load(sampling, mask=valid, other=0.0).to(tl.float32)
+             * tl.load(sampling + ss_c, mask=valid, other=0.0).to(tl.float32) * ray_scale)
         p = ((n * rays + 0.5) / (n + 1.0))[:, None]
         ao = tl.minimum(p / (p + (1.0 - p) * tl.exp(-raw)), 1.0)  # fast division: p / p can pass 1
     out = tl.where(c == MASK_C, tl.minimum(tl.maximum(given + raw, 0.0), 1.0),
                    tl.where(c == DEPTH_C, given, tl.where(c == AO_C, ao, given + raw)))
+    if BUFFERS:  # isosr_net.inference.buffer_stack: unit normals and depth where covered, else 0
+        covered = (_column(out, c, MASK_C) > 0)[:, None]
+        is_normal = (c >= NORMAL_C) & (c < NORMAL_C + 3)
+        length = tl.sqrt(tl.sum(tl.where(is_normal, out * out, 0.0), axis=1))[:, None]
+        out = tl.where(is_normal | (c == DEPTH_C), tl.where(covered, out, 0.0), out)
+        out = tl.where(is_normal, out / tl.maximum(length, 1e-6), tl.where(c == AO_C, tl.minimum(tl.maximum(out, 0.0), 1.0), out))
+        if SHADE:
+            _shade_store(out, c, color_ptr + (b * h * w + offs) * 3, valid, MASK_C, NORMAL_C, AO_C, albedo_r,
+                         albedo_g, albedo_b, ambient, diffuse, specular, shininess, light_x, light_y, light_z,
+                         half_x, half_y, half_z, back_r, back_g, back_b)
     tl.store(out_ptr + b * OUT * h * w + c * h * w + offs[:, None], out, mask=valid[:, None] & (c < OUT))
 
 
-_conv_tuned = _tuned(_conv_kernel, ["ho", "wo", "STRIDE", "CI", "CO"])
-_tail_tuned = _tuned(_tail_kernel, ["hp", "wp"])
+@triton.jit
+def _shade_store(buffers, c, color_ptr, valid, MASK_C: tl.constexpr, NORMAL_C: tl.constexpr, AO_C: tl.constexpr,
+                 albedo_r, albedo_g, albedo_b, ambient, diffuse, specular, shininess, light_x, light_y, light_z,
+                 half_x, half_y, half_z, back_r, back_g, back_b):
+    """isosr_render.shading.shade of output buffers (unit normals, AO in [0, 1]), stored as (H, W, 3) fp32."""
+    nx = _column(buffers, c, NORMAL_C)
+    ny = _column(buffers, c, NORMAL_C + 1)
+    nz = _column(buffers, c, NORMAL_C + 2)
+    n_dot_l = tl.maximum(nx * light_x + ny * light_y + nz * light_z, 0.0)
+    n_dot_h = tl.maximum(nx * half_x + ny * half_y + nz * half_z, 0.0)
+    # n_dot_h ** shininess, 0 ** 0 = 1 as torch.pow
+    spec = tl.where(n_dot_h > 0, tl.exp2(shininess * tl.log2(tl.maximum(n_dot_h, 1e-30))),
+                    tl.where(shininess == 0, 1.0, 0.0))
+    alpha = tl.minimum(tl.maximum(_column(buffers, c, MASK_C), 0.0), 1.0)[:, None]
+    k = tl.arange(0, 4)[None, :]
+    albedo = tl.where(k == 0, albedo_r, tl.where(k == 1, albedo_g, albedo_b))
+    back = tl.where(k == 0, back_r, tl.where(k == 1, back_g, back_b))
+    occlusion = _column(buffers, c, AO_C)[:, None]
+    lit = (albedo * (ambient + diffuse * n_dot_l)[:, None] + (specular * spec)[:, None]) * occlusion
+    color = tl.minimum(tl.maximum(alpha * lit + (1.0 - alpha) * back, 0.0), 1.0)
+    tl.store(color_ptr[:, None] + k, color, mask=valid[:, None] & (k < 3))
+
+
+_conv_tuned = _tuned(_conv_kernel, ["size_class", "STRIDE", "CI", "CO"])
+_tail_tuned = _tuned(_tail_kernel, ["size_class"])
+
+
+def _size_class(pixels: int) -> int:
+    """The autotuning key of a pass over ``pixels`` output pixels."""
+    return pixels.bit_length()
 
 
 def _grid(pixels: int, batch: int):
@@ -225,34 +326,106 @@ def _check_nhwc(x: torch.Tensor, name: str, where: str) -> dict[str, int]:
     return dims
 
 
-def pack_inputs(inputs: torch.Tensor, prev: torch.Tensor, flow: torch.Tensor | None = None,
-                multiple: int = 8) -> torch.Tensor:
-    """ReconNet's 10 input channels packed, replicate-padded to multiples of ``multiple``, fp16 NHWC.
-
-    Args:
-        inputs: the 8 input channels (:data:`isosr_render.conventions.RECON_CHANNELS`), any layout.
-        prev: the previous output; warped already if ``flow`` is None, else warped here by ``flow``.
-        flow: backward flow in pixels (:func:`isosr_net.flow_warp.warp_by_flow`), or None.
+@dataclass(frozen=True)
+class ReconSources:
+    """Where ReconNet's 8 input channels (:data:`~isosr_render.conventions.RECON_CHANNELS`) lie:
+    :func:`pack_inputs` and :func:`recon_tail` read them in place, each a (B, C, H, W) view of any
+    strides and float dtype, so that a render's buffers need no stacking.
 
     Shape:
-        inputs: (B, 8, H, W). prev: (B, 6, H, W). flow: (B, 2, H, W). Returns (B, H', W', 16):
-        channels 0-7 the inputs, 8 and 9 the previous mask and AO, 10-15 zero.
+        mask, depth, ao: (B, 1, H, W). normal: (B, 3, H, W). sampling: (B, 2, H, W), constant
+        planes may be expanded (stride 0). ``ao`` None: no AO rays were cast (read as 0).
     """
-    dims = check_shape(inputs, f"(B, {INPUTS}, H, W)", "inputs", "pack_inputs")
-    check_shape(prev, "(B, 6, H, W)", "prev", "pack_inputs", dims)
+
+    mask: torch.Tensor
+    normal: torch.Tensor
+    depth: torch.Tensor
+    ao: torch.Tensor | None
+    sampling: torch.Tensor
+
+    @classmethod
+    def of_inputs(cls, inputs: torch.Tensor) -> "ReconSources":
+        """Views of an input stack (B, 8, H, W)."""
+        check_shape(inputs, f"(B, {INPUTS}, H, W)", "inputs", "ReconSources")
+        return cls(inputs[:, MASK], inputs[:, NORMAL], inputs[:, DEPTH], inputs[:, SAMPLED_AO], inputs[:, SAMPLING])
+
+    @classmethod
+    def of_buffers(cls, mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, ao: torch.Tensor | None,
+                   sampling: torch.Tensor) -> "ReconSources":
+        """Views of one frame's buffers: mask, depth, ao (H, W), normal (H, W, 3), and the two
+        sampling values (1, 2, 1, 1)."""
+        h, w = mask.shape
+        return cls(mask[None, None], normal.permute(2, 0, 1)[None], depth[None, None],
+                   None if ao is None else ao[None, None], sampling.expand(1, 2, h, w))
+
+    def check(self, where: str) -> dict[str, int]:
+        """Check the shapes and dtypes; returns B, H, W."""
+        dims = check_shape(self.mask, "(B, 1, H, W)", "mask", where)
+        for name, channels in (("normal", 3), ("depth", 1), ("ao", 1), ("sampling", 2)):
+            t = getattr(self, name)
+            if t is not None:
+                check_shape(t, f"(B, {channels}, H, W)", name, where, dims)
+        if not all(t.is_floating_point() for t in self._planes()):
+            raise ValueError(f"{where}: the inputs must be floating point")
+        return dims
+
+    def args(self) -> list:
+        """Each source's tensor and four strides, as the kernels take them (for no AO, the mask's)."""
+        return [a for t in self._planes() for a in (t, *t.stride())]
+
+    def _planes(self) -> tuple[torch.Tensor, ...]:
+        return self.mask, self.normal, self.depth, self.mask if self.ao is None else self.ao, self.sampling
+
+
+_CHANNELS = dict(MASK_C=MASK.start, NORMAL_C=NORMAL.start, DEPTH_C=DEPTH.start, AO_C=SAMPLED_AO.start,
+                 SAMPLING_C=SAMPLING.start)
+
+
+def pack_inputs(sources: ReconSources, prev: torch.Tensor | None, flow: torch.Tensor | None = None,
+                multiple: int = 8, first_frame: str = "inputs") -> tuple[torch.Tensor, torch.Tensor]:
+    """ReconNet's 10 input channels packed, replicate-padded to multiples of ``multiple``, fp16
+    NHWC; and the input checks' flags, computed on the way.
+
+    Args:
+        sources: the 8 input channels.
+        prev: the previous output; warped already if ``flow`` is None, else warped here by
+            ``flow``. None on a sequence's first frame: its stand-in is made here
+            (:meth:`~isosr_net.reconnet.ReconNet.first_previous` under ``first_frame``).
+        flow: backward flow in pixels (:func:`isosr_net.flow_warp.warp_by_flow`), or None;
+            checked even where nothing is warped.
+        first_frame: "inputs" or "zeros" (:class:`~isosr_net.reconnet.ReconNetConfig`).
+
+    Returns:
+        ``(packed, flags)``: flags (6,) fp32 in the order of
+        :data:`isosr_net.inference.FRAME_FLAGS` (1 where a buffer holds NaN or Inf or AO leaves
+        [0, 1], and the largest finite |depth|).
+
+    Shape:
+        prev: (B, 6, H, W). flow: (B, 2, H, W). Returns packed (B, H', W', 16): channels 0-7
+        the inputs, 8 and 9 the previous mask and AO, 10-15 zero.
+    """
+    dims = sources.check("pack_inputs")
+    if prev is not None:
+        check_shape(prev, "(B, 6, H, W)", "prev", "pack_inputs", dims)
     if flow is not None:
         check_shape(flow, "(B, 2, H, W)", "flow", "pack_inputs", dims)
-        if flow.dtype != torch.float32:
-            raise ValueError(f"pack_inputs: flow must be float32, got {flow.dtype}")
+        if not flow.is_floating_point():
+            raise ValueError(f"pack_inputs: flow must be floating point, got {flow.dtype}")
+    if first_frame not in FIRST_FRAME_MODES:
+        raise ValueError(f"pack_inputs: first_frame must be one of {FIRST_FRAME_MODES}, got {first_frame!r}")
+    mode = (PREV_INPUTS if first_frame == "inputs" else PREV_ZEROS) if prev is None else \
+        PREV_GIVEN if flow is None else PREV_WARP
     b, h, w = dims["B"], dims["H"], dims["W"]
     hp, wp = h + -h % multiple, w + -w % multiple
-    out = inputs.new_empty((b, hp, wp, PACKED), dtype=torch.float16)
-    strides_f = flow.stride() if flow is not None else (0, 0, 0, 0)
-    _pack_kernel[(triton.cdiv(hp * wp, PACK_BLOCK), b)](
-        inputs, prev, inputs if flow is None else flow, out, h, w, hp, wp, *inputs.stride(), *prev.stride(),
-        *strides_f, WARP=flow is not None, N_IN=INPUTS, PREV_MASK=MASK.start, PREV_AO=AO.start, C=PACKED,
-        BLOCK=PACK_BLOCK)
-    return out
+    out = sources.mask.new_empty((b, hp, wp, PACKED), dtype=torch.float16)
+    programs = triton.cdiv(hp * wp, PACK_BLOCK)
+    flags = sources.mask.new_empty((b * programs, FLAG_SLOTS.value), dtype=torch.float32)
+    prev_args = (sources.mask, 0, 0, 0, 0) if prev is None else (prev, *prev.stride())
+    flow_args = (sources.mask, 0, 0, 0, 0) if flow is None else (flow, *flow.stride())
+    _pack_kernel[(programs, b)](*sources.args(), *prev_args, *flow_args, out, flags, h, w, hp, wp, PREV=mode.value,
+                                HAS_AO=sources.ao is not None, HAS_FLOW=flow is not None, **_CHANNELS,
+                                PREV_MASK=MASK.start, PREV_AO=AO.start, N_IN=INPUTS, C=PACKED, BLOCK=PACK_BLOCK)
+    return out, flags.amax(dim=0)[:len(FRAME_FLAGS)]
 
 
 def conv3x3(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, *, stride: int = 1, relu: bool = True,
@@ -284,6 +457,7 @@ def conv3x3(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, *, stride
         check_shape(residual, f"({b}, {ho}, {wo}, {co})", "residual", "conv3x3")
     out = x.new_empty((b, ho, wo, co))
     _conv_tuned[_grid(ho * wo, b)](x, weight, bias, out, x if residual is None else residual, hi, wi, ho, wo,
+                                   _size_class(b * ho * wo),
                                    STRIDE=stride, RESIDUAL=residual is not None, RELU=relu, CI=ci, CO=co, **FIXED)
     return out
 
@@ -314,30 +488,49 @@ def upsample_add(x: torch.Tensor, coarse: torch.Tensor, weight: torch.Tensor, bi
     return out
 
 
-def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, inputs: torch.Tensor,
-               config: ReconNetConfig) -> torch.Tensor:
-    """ReconNet's output convolution and output stack, cropped to the frame.
+def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, sources: ReconSources,
+               config: ReconNetConfig, as_buffers: bool = False, shading: ShadingParams | None = None
+               ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """ReconNet's output convolution and output stack, cropped to the frame; as buffers and shaded
+    where asked.
 
     Args:
         y: the last decoder level's features, NHWC fp16, padded past the frame.
         weight, bias: the output convolution as for :func:`conv3x3`, CO padded to 16 (6 used).
-        inputs: the network's inputs (mask, normal and depth read; with ``config.ao_prior``
-            "rays" the sampled AO and the sampling channels too), any layout.
+        sources: the network's inputs (mask, normal and depth read; with ``config.ao_prior``
+            "rays" the sampled AO and the sampling too).
         config: the network's config (its AO prior and ray limits, as :func:`~isosr_net.reconnet.ao_output`).
+        as_buffers: the stack as :func:`isosr_net.inference.buffer_stack` makes it of the output
+            (unit normals, depth where covered), not the network's raw output.
+        shading: with ``as_buffers``, also shade it (:func:`isosr_render.shading.shade`).
+
+    Returns:
+        ``(stack, color or None)``.
 
     Shape:
-        y: (B, H', W', CI). weight: (9, CI, 16). bias: (16,). inputs: (B, 8, H, W), H <= H', W <= W'.
-        Returns (B, 6, H, W), fp32: mask, normal, depth, AO.
+        y: (B, H', W', CI). weight: (9, CI, 16). bias: (16,). sources: H <= H', W <= W'.
+        Returns stack (B, 6, H, W) fp32 (mask, normal, depth, AO) and color (B, H, W, 3) fp32.
     """
     dims = _check_nhwc(y, "y", "recon_tail")
     b, hp, wp, ci = dims["B"], dims["H"], dims["W"], dims["C"]
     co = _check_taps(weight, bias, ci, "recon_tail")
-    h, w = (check_shape(inputs, f"({b}, {INPUTS}, H, W)", "inputs", "recon_tail")[k] for k in "HW")
+    frame = sources.check("recon_tail")
+    h, w = frame["H"], frame["W"]
+    if frame["B"] != b:
+        raise ValueError(f"recon_tail: {frame['B']} frames of inputs for {b} of features")
     if h > hp or w > wp:
         raise ValueError(f"recon_tail: inputs are {h}x{w}, larger than the features' {hp}x{wp}")
+    if shading is not None and not as_buffers:
+        raise ValueError("recon_tail: shading shades the output buffers: pass as_buffers=True")
     out = torch.empty((b, OUTPUTS, h, w), device=y.device, dtype=torch.float32)
-    _tail_tuned[_grid(h * w, b)](y, weight, bias, inputs, out, h, w, hp, wp, *inputs.stride(),
-                                 float(config.max_ao_rays * config.max_spp), MASK_C=MASK.start, DEPTH_C=DEPTH.start,
-                                 AO_C=AO.start, RAYS_C=SAMPLED_AO.start, SAMPLING_C=SAMPLING.start,
-                                 AO_PRIOR=config.ao_prior == "rays", OUT=OUTPUTS, CI=ci, CO=co, **FIXED)
-    return out
+    color = None if shading is None else torch.empty((b, h, w, 3), device=y.device, dtype=torch.float32)
+    params = shading or ShadingParams()
+    light, half = light_and_half(params)
+    _tail_tuned[_grid(h * w, b)](y, weight, bias, *sources.args(), out, out if color is None else color, h, w, hp, wp,
+                                 _size_class(b * h * w),
+                                 float(config.max_ao_rays * config.max_spp), *params.albedo, params.ambient,
+                                 params.diffuse, params.specular, params.shininess, *light, *half, *params.background,
+                                 MASK_C=MASK.start, NORMAL_C=NORMAL.start, DEPTH_C=DEPTH.start, AO_C=AO.start,
+                                 AO_PRIOR=config.ao_prior == "rays", HAS_AO=sources.ao is not None,
+                                 BUFFERS=as_buffers, SHADE=shading is not None, OUT=OUTPUTS, CI=ci, CO=co, **FIXED)
+    return out, color

@@ -2,6 +2,7 @@
 
     fused = fused_reconnet(net)                     # a FusedReconNet; net is untouched
     output, read = fused.step(inputs, flow, previous)
+    stack, color, flags = fused.frame(mask, normal, depth, ao, sampling, flow, previous, shading)
 
 Eager ReconNet writes and reads back the concatenated and padded inputs, every layer's features,
 the upsampled coarse features, their sum with the skip and its ReLU, the raw output and the
@@ -10,7 +11,9 @@ one kernel (:mod:`isosr_net.fused_kernels`; NHWC fp16, fp32 accumulation): pack 
 previous output's warp), head, the three stride-2 convolutions, the residual blocks' convolutions
 (the sum in the second's epilogue), per decoder level the coarse features upsampled, reduced by
 its 1x1 convolution and summed with the skip in one pass and its 3x3 convolution in another, and
-the tail (with the output stack).
+the tail (with the output stack). :meth:`FusedReconNet.frame` is a `Reconstructor`'s whole frame
+after the render in these passes alone: the pack reads the render's buffers in place and checks
+them, the tail writes the output buffers and the shaded color.
 
 The fused path runs on CUDA tensors where Triton imports (and on CPU tensors under Triton's
 interpreter, ``TRITON_INTERPRET=1``, for tests); elsewhere :class:`FusedReconNet` runs the
@@ -28,6 +31,7 @@ import torch
 from torch import nn
 
 from isosr_render.conventions import AO, MASK, SAMPLED_AO, SAMPLING
+from isosr_render.shading import ShadingParams
 from isosr_render.shapes import check_int, check_shape
 from isosr_net.reconnet import INPUTS, LEVELS, OUTPUTS, RECURRENT, ReconNet, ReconNetConfig
 
@@ -151,7 +155,7 @@ class FusedReconNet(nn.Module):
     def forward(self, inputs: torch.Tensor, prev_warped: torch.Tensor) -> torch.Tensor:
         if not fused_runs_on(inputs.device):
             return self.reference(inputs, prev_warped)
-        return self._fused(inputs, prev_warped, None)
+        return self._run(_kernels().ReconSources.of_inputs(inputs), prev_warped, None)["output"]
 
     def first_previous(self, inputs: torch.Tensor) -> torch.Tensor:
         """The stand-in for the previous output on a sequence's first frame (as ReconNet's)."""
@@ -159,7 +163,8 @@ class FusedReconNet(nn.Module):
 
     def step(self, inputs: torch.Tensor, flow: torch.Tensor | None,
              previous: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
-        """One recurrent step as :meth:`ReconNet.step`, the warp fused into the input packing.
+        """One recurrent step as :meth:`ReconNet.step`, the warp (or the first frame's stand-in)
+        made in the input packing.
 
         Returns:
             ``(output, read)``: the output (B, 6, H, W), and what the network read of the warped
@@ -174,45 +179,68 @@ class FusedReconNet(nn.Module):
         if not fused_runs_on(inputs.device):
             output, warped = self.reference.step(inputs, flow, previous)
             return output, recurrent_channels(warped)
-        if previous is None:
-            warped = self.first_previous(inputs)
-            return self._fused(inputs, warped, None), recurrent_channels(warped)
-        output, packed = self._fused(inputs, previous, flow, keep_packed=True)
+        results = self._run(_kernels().ReconSources.of_inputs(inputs), previous, flow if previous is not None else None)
         h, w = inputs.shape[-2:]
-        return output, packed[:, :h, :w, INPUTS:INPUTS + RECURRENT].permute(0, 3, 1, 2)
+        return results["output"], results["packed"][:, :h, :w, INPUTS:INPUTS + RECURRENT].permute(0, 3, 1, 2)
 
-    def _fused(self, inputs: torch.Tensor, prev: torch.Tensor, flow: torch.Tensor | None,
-               keep_packed: bool = False):
-        """The fused forward: ``prev`` warped already (``flow`` None) or warped here by ``flow``."""
-        dims = check_shape(inputs, f"(B, {INPUTS}, H, W)", "inputs", "FusedReconNet")
-        check_shape(prev, f"(B, {OUTPUTS}, H, W)", "prev_warped" if flow is None else "previous", "FusedReconNet",
-                    dims)
-        results, passes = self.passes(inputs, prev, flow)
+    def frame(self, mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, ao: torch.Tensor | None,
+              sampling: torch.Tensor, flow: torch.Tensor | None, previous: torch.Tensor | None,
+              shading: ShadingParams | None) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+        """A frame's work after the render (the `Reconstructor`'s, as :func:`isosr_net.reconstructor.recon_frame`)
+        in the network's passes alone: the pack reads the buffers in place and checks them, the
+        tail writes the output buffers and shades them. No host sync.
+
+        Args:
+            mask, normal, depth, ao: the frame's buffers (``ao`` None: no AO rays).
+            sampling: the sampling channels' two values.
+            flow: the frame's flow or None; warps ``previous`` where that is given, else checked only.
+            previous: the previous frame's buffers' stack, or None on a sequence's first frame.
+            shading: material and light for ``color``; None makes none.
+
+        Returns:
+            ``(stack, color or None, flags)``: the output buffers' stack
+            (:func:`isosr_net.inference.buffer_stack`; the next frame's previous), the shaded
+            color, the input checks' :data:`~isosr_net.inference.FRAME_FLAGS`.
+
+        Shape:
+            mask, depth, ao: (H, W). normal: (H, W, 3). sampling: (1, 2, 1, 1). flow: (H, W, 2).
+            previous: (1, 6, H, W). Returns stack (1, 6, H, W), color (H, W, 3), flags (6,).
+        """
+        sources = _kernels().ReconSources.of_buffers(mask, normal, depth, ao, sampling)
+        results = self._run(sources, previous, None if flow is None else flow.permute(2, 0, 1)[None],
+                            as_buffers=True, shading=shading)
+        return results["output"], None if shading is None else results["color"][0], results["flags"]
+
+    def _run(self, sources, prev: torch.Tensor | None, flow: torch.Tensor | None, **tail) -> dict[str, torch.Tensor]:
+        results, passes = self.passes(sources, prev, flow, **tail)
         for _, run in passes:
             run()
-        return (results["output"], results["packed"]) if keep_packed else results["output"]
+        return results
 
-    def passes(self, inputs: torch.Tensor, prev: torch.Tensor, flow: torch.Tensor | None = None
-               ) -> tuple[dict[str, torch.Tensor], list[tuple[str, Callable[[], None]]]]:
+    def passes(self, sources, prev: torch.Tensor | None, flow: torch.Tensor | None = None, as_buffers: bool = False,
+               shading: ShadingParams | None = None) -> tuple[dict[str, torch.Tensor], list[tuple[str, Callable[[], None]]]]:
         """The fused forward as its passes, to run (or time) one by one: ``(results, [(name, run)])``.
 
         In order, each pass computes the entry of ``results`` named as it from those before
-        (running one again recomputes it): ``pack`` (``packed``), ``head``, ``down1``..``down3``
-        (the encoder levels), ``body1.1``, ``body1.2``, ... (the residual blocks' convolutions),
-        per decoder level from the coarsest ``up2`` (the upsampled, reduced sum) and ``fuse2``, ...,
-        ``fuse0``, and ``tail`` (``output``). Arguments as for :func:`isosr_net.fused_kernels.pack_inputs`.
+        (running one again recomputes it): ``pack`` (``packed`` and the input checks' ``flags``),
+        ``head``, ``down1``..``down3`` (the encoder levels), ``body1.1``, ``body1.2``, ... (the
+        residual blocks' convolutions), per decoder level from the coarsest ``up2`` (the
+        upsampled, reduced sum) and ``fuse2``, ..., ``fuse0``, and ``tail`` (``output`` and
+        ``color``). Arguments as for :func:`isosr_net.fused_kernels.pack_inputs` (``sources`` a
+        :class:`~isosr_net.fused_kernels.ReconSources`) and :func:`~isosr_net.fused_kernels.recon_tail`.
         """
         k = _kernels()
         results: dict[str, torch.Tensor] = {}
         passes: list[tuple[str, Callable[[], None]]] = []
 
-        def add(name: str, compute: Callable[[], torch.Tensor], key: str | None = None) -> None:
-            passes.append((name, lambda: results.__setitem__(key or name, compute())))
+        def add(name: str, compute: Callable[[], torch.Tensor | tuple], *keys: str) -> None:
+            passes.append((name, lambda: results.update(zip(keys or (name,), _as_tuple(compute())))))
 
         def layer(conv: FusedConv, src: str, residual: str | None = None):
             return lambda: conv(results[src], residual=results[residual] if residual else None)
 
-        add("pack", lambda: k.pack_inputs(inputs, prev, flow, multiple=2 ** LEVELS), key="packed")
+        add("pack", lambda: k.pack_inputs(sources, prev, flow, multiple=2 ** LEVELS,
+                                          first_frame=self.config.first_frame), "packed", "flags")
         add("head", layer(self.head, "packed"))
         skips = ["head"]
         for i, conv in enumerate(self.down):
@@ -228,9 +256,13 @@ class FusedReconNet(nn.Module):
             add(f"up{i}", lambda i=i, skip=skip, c=c: self.up[i](results[skip], results[c]))
             add(f"fuse{i}", layer(self.fuse[i], f"up{i}"))
             coarse = f"fuse{i}"
-        add("tail", lambda: k.recon_tail(results["fuse0"], self.tail_w, self.tail_b, inputs, self.config),
-            key="output")
+        add("tail", lambda: k.recon_tail(results["fuse0"], self.tail_w, self.tail_b, sources, self.config,
+                                         as_buffers, shading), "output", "color")
         return results, passes
+
+
+def _as_tuple(x) -> tuple:
+    return x if isinstance(x, tuple) else (x,)
 
 
 def fused_reconnet(net: ReconNet) -> FusedReconNet:
@@ -240,7 +272,8 @@ def fused_reconnet(net: ReconNet) -> FusedReconNet:
     return FusedReconNet(copy.deepcopy(net).eval()).to(next(net.parameters()).device).eval()
 
 
-def fused_traffic(h: int, w: int, config: ReconNetConfig = ReconNetConfig(), warp: bool = True) -> dict[str, int]:
+def fused_traffic(h: int, w: int, config: ReconNetConfig = ReconNetConfig(), warp: bool = True,
+                  frame: bool = False) -> dict[str, int]:
     """Bytes each pass of :meth:`FusedReconNet.passes` must read and write per frame (each tensor
     once; weights ignored): its floor at a memory bandwidth of ``B`` bytes/s is ``bytes / B``.
 
@@ -248,6 +281,8 @@ def fused_traffic(h: int, w: int, config: ReconNetConfig = ReconNetConfig(), war
         h, w: the frame's size.
         config: the network's (its widths, blocks and AO prior).
         warp: the pack warps the previous output (reads the flow) rather than reading it warped.
+        frame: as :meth:`FusedReconNet.frame` runs it: the sampling two values rather than two
+            planes of an input stack, and the tail writing the shaded color too.
 
     Returns:
         pass name -> bytes; the inputs and the output are fp32, features fp16.
@@ -257,13 +292,15 @@ def fused_traffic(h: int, w: int, config: ReconNetConfig = ReconNetConfig(), war
     step, widths = 2 ** LEVELS, config.widths
     padded = (h + -h % step) * (w + -w % step)
     pixels, f32, f16 = h * w, 4, 2
+    sampling = 0 if frame else len(range(INPUTS)[SAMPLING])  # per-pixel planes read
 
     def features(level: int, channels: int) -> int:
         return channels * f16 * padded // 4 ** level
 
     # The previous output: its mask and AO once (warped: plus the flow's two channels).
     prev = (RECURRENT + (2 if warp else 0)) * f32 * pixels
-    out = {"pack": INPUTS * f32 * pixels + prev + features(0, PACKED), "head": features(0, PACKED + widths[0])}
+    out = {"pack": (AO.start + 1 + sampling) * f32 * pixels + prev + features(0, PACKED),
+           "head": features(0, PACKED + widths[0])}
     for i in range(LEVELS):
         out[f"down{i + 1}"] = features(i, widths[i]) + features(i + 1, widths[i + 1])
     for j in range(config.blocks):
@@ -273,7 +310,8 @@ def fused_traffic(h: int, w: int, config: ReconNetConfig = ReconNetConfig(), war
         # skip, the coarser level's output (a quarter of the pixels), the sum; the sum, the output
         out[f"up{i}"] = features(i, 2 * widths[i]) + features(i + 1, widths[i + 1])
         out[f"fuse{i}"] = features(i, 2 * widths[i])
-    # the features, the inputs' mask, normal and depth (and the rays' AO and sampling for their prior), the output
-    given = AO.start + (len(range(INPUTS)[SAMPLED_AO]) + len(range(INPUTS)[SAMPLING]) if config.ao_prior == "rays" else 0)
-    out["tail"] = features(0, widths[0]) + (given + OUTPUTS) * f32 * pixels
+    # the features, the inputs' mask, normal and depth (and the rays' AO and sampling for their
+    # prior), the output (and the color)
+    given = AO.start + (len(range(INPUTS)[SAMPLED_AO]) + sampling if config.ao_prior == "rays" else 0)
+    out["tail"] = features(0, widths[0]) + (given + OUTPUTS + (3 if frame else 0)) * f32 * pixels
     return out

@@ -49,6 +49,18 @@ def default_precision(device: str | torch.device) -> str:
     return "fp16" if torch.device(device).type == "cuda" else "fp32"
 
 
+# The input checks a frame's work computes on the device (one value each, in this order): a flag
+# (1) per buffer holding NaN or Inf, a flag for AO outside [0, 1], and the largest finite |depth|.
+FRAME_FLAGS = ("mask", "normal", "depth", "flow", "ao", "deepest")
+
+
+AO_MESSAGE = lambda _: "ao holds values outside [0, 1] (or NaN)"  # noqa: E731
+
+
+def _not_finite(name: str) -> Callable[[float], str]:
+    return lambda _: f"{name} holds NaN or Inf values"
+
+
 class InputChecks:
     """Checks of a frame's inputs computed on the device and read with one host sync.
 
@@ -68,7 +80,21 @@ class InputChecks:
 
     def add_finite(self, name: str, t: torch.Tensor) -> None:
         """Queue: ``t`` holds no NaN or Inf."""
-        self.add(torch.isfinite(t).all(), bool, lambda _: f"{name} holds NaN or Inf values")
+        self.add(torch.isfinite(t).all(), bool, _not_finite(name))
+
+    def add_flags(self, flags: torch.Tensor, fp16: bool) -> None:
+        """Queue the checks of a frame's :data:`FRAME_FLAGS`: finite buffers, then (``fp16``) depths
+        within :data:`FP16_MAX_DEPTH`, then AO in [0, 1]."""
+        for i, name in enumerate(FRAME_FLAGS[:4]):
+            self.add(flags[i], lambda flag: flag == 0, _not_finite(name))
+        if fp16:
+            self.add_deepest(flags[FRAME_FLAGS.index("deepest")])
+        self.add(flags[FRAME_FLAGS.index("ao")], lambda flag: flag == 0, AO_MESSAGE)
+
+    def add_deepest(self, deepest: torch.Tensor) -> None:
+        """Queue: the largest |depth| is within what fp16 takes (:data:`FP16_MAX_DEPTH`)."""
+        self.add(deepest, lambda d: d <= FP16_MAX_DEPTH,
+                 lambda d: f"fp16 takes depths up to {FP16_MAX_DEPTH:g}, this frame reaches {d:.3g}: use bf16 or fp32")
 
     def raise_first(self) -> None:
         """Read every queued check (one host sync) and raise the first that fails."""
@@ -86,6 +112,29 @@ class InputChecks:
                 raise ValueError(message(v))
 
 
+SURFACE_SHAPES = {"mask": "(H, W)", "normal": "(H, W, 3)", "depth": "(H, W)", "flow": "(H, W, 2)"}
+
+
+def check_surface(frame: FrameBuffers) -> dict[str, int]:
+    """The host's checks of a frame's first-hit buffers and flow (present where needed, shapes,
+    floating point; not their values); returns H and W.
+
+    Raises:
+        ValueError: mask, normal or depth missing; a buffer misshapen or not floating point.
+    """
+    for name in LOWRES_BUFFERS:
+        if getattr(frame, name) is None:
+            raise ValueError(f"the frame lacks its {name} buffer")
+    dims = check_shape(frame.mask, "(H, W)", "mask", "surface_tensors")
+    for name, spec in SURFACE_SHAPES.items():
+        t = getattr(frame, name)
+        if t is not None:
+            check_shape(t, spec, name, "surface_tensors", dims)
+            if not t.is_floating_point():
+                raise ValueError(f"{name} must be floating point, got {t.dtype}")
+    return dims
+
+
 def surface_tensors(frame: FrameBuffers, checks: InputChecks | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
     """A frame's first-hit surface as a network reads it: ``(surface, flow or None)``, the surface's
     channels in the order :data:`isosr_render.conventions.LOWRES_CHANNELS` (low-res for the
@@ -101,20 +150,12 @@ def surface_tensors(frame: FrameBuffers, checks: InputChecks | None = None) -> t
     Shape:
         Returns surface (1, 5, H, W) and flow (1, 2, H, W), float32.
     """
-    for name in LOWRES_BUFFERS:
-        if getattr(frame, name) is None:
-            raise ValueError(f"the frame lacks its {name} buffer")
-    dims = check_shape(frame.mask, "(H, W)", "mask", "surface_tensors")
+    check_surface(frame)
     now = checks is None
     checks = InputChecks() if now else checks
-    for name, spec in (("mask", "(H, W)"), ("normal", "(H, W, 3)"), ("depth", "(H, W)"), ("flow", "(H, W, 2)")):
-        t = getattr(frame, name)
-        if t is None:
-            continue
-        check_shape(t, spec, name, "surface_tensors", dims)
-        if not t.is_floating_point():
-            raise ValueError(f"{name} must be floating point, got {t.dtype}")
-        checks.add_finite(name, t)
+    for name in SURFACE_SHAPES:
+        if getattr(frame, name) is not None:
+            checks.add_finite(name, getattr(frame, name))
     if now:
         checks.raise_first()
     surface = frame.channels_first(LOWRES_BUFFERS)[None]
@@ -122,12 +163,40 @@ def surface_tensors(frame: FrameBuffers, checks: InputChecks | None = None) -> t
     return surface.float(), None if flow is None else flow.float()
 
 
+def buffer_stack(output: torch.Tensor) -> torch.Tensor:
+    """A network's output stack as the buffers' stack: mask, normals unit where covered and 0
+    elsewhere, depth where covered and 0 elsewhere, AO clamped to [0, 1].
+
+    Shape:
+        output: (B, 6, H, W). Returns (B, 6, H, W), float32, channels as ``HIGHRES_CHANNELS``.
+    """
+    out = output.float()
+    mask = out[:, MASK]
+    covered = mask > 0
+    normal = F.normalize(out[:, NORMAL], dim=1, eps=1e-6) * covered
+    return torch.cat([mask, normal, out[:, DEPTH] * covered, out[:, AO].clamp(0, 1)], dim=1)
+
+
+def stack_buffers(stack: torch.Tensor, color: torch.Tensor | None = None) -> FrameBuffers:
+    """The first frame of a buffers' stack (:func:`buffer_stack`) as buffers (views), with ``color``."""
+    s = stack[0]
+    return FrameBuffers(mask=s[MASK.start], normal=s[NORMAL].permute(1, 2, 0), depth=s[DEPTH.start],
+                        ao=s[AO.start], color=color)
+
+
 def output_buffers(output: torch.Tensor) -> FrameBuffers:
     """A network's output stack (1, 6, H, W) as buffers; normals unit where covered, 0 elsewhere."""
-    out = output[0].float()
-    mask = out[MASK][0]
-    normal = F.normalize(out[NORMAL], dim=0, eps=1e-6).permute(1, 2, 0) * (mask > 0)[..., None]
-    return FrameBuffers(mask=mask, normal=normal, depth=out[DEPTH][0] * (mask > 0), ao=out[AO][0].clamp(0, 1))
+    return stack_buffers(buffer_stack(output))
+
+
+def frame_flags(mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, ao: torch.Tensor | None,
+                flow: torch.Tensor | None) -> torch.Tensor:
+    """The :data:`FRAME_FLAGS` of a frame's buffers, (6,) float32 (no host sync)."""
+    zero = depth.new_zeros((), dtype=torch.bool)
+    bad = [zero if t is None else ~torch.isfinite(t).all() for t in (mask, normal, depth, flow)]
+    ao_bad = zero if ao is None else ~((ao >= 0) & (ao <= 1)).all()
+    deepest = torch.where(torch.isfinite(depth), depth.abs(), 0.0).amax()
+    return torch.stack([*(b.float() for b in bad), ao_bad.float(), deepest.float()])
 
 
 class RecurrentNetwork:
@@ -180,9 +249,7 @@ class RecurrentNetwork:
     def check_precision(self, surface: torch.Tensor, checks: InputChecks) -> None:
         """Queue what the precision needs of the inputs: fp16 takes depths up to :data:`FP16_MAX_DEPTH`."""
         if self.precision == "fp16":
-            checks.add(surface[:, DEPTH].abs().amax(), lambda deepest: deepest <= FP16_MAX_DEPTH,
-                       lambda deepest: f"fp16 takes depths up to {FP16_MAX_DEPTH:g}, this frame reaches "
-                                       f"{deepest:.3g}: use bf16 or fp32")
+            checks.add_deepest(surface[:, DEPTH].abs().amax())
 
     def carries(self, height: int, width: int, flow: bool) -> bool:
         """Whether a frame of input size ``height x width`` warps the previous output: not after a cut

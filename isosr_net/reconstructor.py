@@ -23,11 +23,13 @@ from typing import TYPE_CHECKING, TypeVar
 import torch
 
 from isosr_render.buffers import FrameBuffers
+from isosr_render.conventions import AO, MASK, NORMAL
 from isosr_render.shading import ShadingParams, shade
 from isosr_render.shapes import check_shape
 from isosr_net.fused_recon import fused_reconnet, fused_runs_on, triton_imports
 from isosr_net.reconnet import RayLimits, ReconNet, ReconNetConfig
-from isosr_net.inference import PRECISIONS, InputChecks, RecurrentNetwork, output_buffers, surface_tensors
+from isosr_net.inference import (AO_MESSAGE, FRAME_FLAGS, PRECISIONS, InputChecks, RecurrentNetwork, buffer_stack,
+                                 check_surface, frame_flags, stack_buffers, surface_tensors)
 from isosr_net.model import read_config
 
 if TYPE_CHECKING:  # the network runs without Warp; render_reconstruct takes what a renderer made
@@ -88,10 +90,11 @@ def recon_inputs(frame: FrameBuffers, ao_rays: int, spp: int, limits: RayLimits,
     """
     now = checks is None
     checks = InputChecks() if now else checks
-    surface, flow = _checked_tensors(frame, ao_rays, spp, limits, checks)
+    _check_frame(frame, ao_rays, spp, limits)
+    surface, flow = surface_tensors(frame, checks)
     if ao_rays:
         ao = frame.ao.float()[None, None]
-        checks.add(_ao_in_range(ao), bool, _AO_MESSAGE)
+        checks.add(((ao >= 0) & (ao <= 1)).all(), bool, AO_MESSAGE)
     else:
         ao = torch.zeros_like(surface[:, :1])
     if now:
@@ -99,60 +102,64 @@ def recon_inputs(frame: FrameBuffers, ao_rays: int, spp: int, limits: RayLimits,
     return torch.cat([surface, ao, limits.channels(ao_rays, spp, surface)], dim=1), flow
 
 
-_AO_MESSAGE = lambda _: "ao holds values outside [0, 1] (or NaN)"  # noqa: E731
-
-
-def _ao_in_range(ao: torch.Tensor) -> torch.Tensor:
-    return ((ao >= 0) & (ao <= 1)).all()
-
-
-def _checked_tensors(frame: FrameBuffers, ao_rays: int, spp: int, limits: RayLimits, checks: InputChecks):
-    """The host's checks of a frame (counts within ``limits``, buffers present, shapes, dtypes), the
-    values' checks queued on ``checks``; the frame's mask, normal, depth as ``surface`` (1, 5, H, W)
-    and its flow."""
+def _check_frame(frame: FrameBuffers, ao_rays: int, spp: int, limits: RayLimits) -> None:
+    """The host's checks of a frame (counts within ``limits``, buffers present, shapes, dtypes);
+    its values are the frame work's to check (:data:`~isosr_net.inference.FRAME_FLAGS`)."""
     limits.check(ao_rays, spp, "reconstruction")
-    surface, flow = surface_tensors(frame, checks)
+    dims = check_surface(frame)
     if ao_rays:
         if frame.ao is None:
             raise ValueError(f"reconstruction from {ao_rays} AO rays needs the frame's ao buffer")
-        check_shape(frame.ao, "(H, W)", "ao", "recon_inputs", {"H": surface.shape[2], "W": surface.shape[3]})
-    return surface, flow
+        check_shape(frame.ao, "(H, W)", "ao", "recon_inputs", dims)
+        if not frame.ao.is_floating_point():
+            raise ValueError(f"ao must be floating point, got {frame.ao.dtype}")
 
 
-def recon_frame(net: ReconNet, surface: torch.Tensor, ao: torch.Tensor | None, sampling: torch.Tensor,
-                flow: torch.Tensor | None, previous: torch.Tensor | None, precision: torch.dtype,
-                shading: ShadingParams | None) -> tuple[torch.Tensor, ...]:
-    """One frame's work after the render, with no host sync: inputs laid out, the previous output
-    warped (or the first frame's stand-in), the network, the output as buffers, shading.
+def recon_frame(net: ReconNet, mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, ao: torch.Tensor | None,
+                sampling: torch.Tensor, flow: torch.Tensor | None, previous: torch.Tensor | None,
+                shading: ShadingParams | None, precision: torch.dtype = torch.float32
+                ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+    """One frame's work after the render, with no host sync: inputs laid out and checked, the
+    previous output warped (or the first frame's stand-in), the network, the output as buffers,
+    shading. :meth:`~isosr_net.fused_recon.FusedReconNet.frame` does the same in fused kernels.
+
+    Args:
+        mask, normal, depth, ao: the frame's buffers (``ao`` None: no AO rays).
+        sampling: the sampling channels' two values.
+        flow: the frame's flow or None; warps ``previous`` where that is given, else checked only.
+        previous: the previous frame's buffers' stack, or None on a sequence's first frame.
+        shading: material and light for ``color``; None makes none.
+        precision: the network's autocast dtype.
 
     Returns:
-        ``(output, mask, normal, depth, ao, color or None, ao_ok)``: the network's stack (the next
-        frame's previous), the buffers of :func:`output_buffers`, the shaded color, and whether the
-        input AO was within [0, 1] (a 0-d tensor, for :class:`InputChecks`).
+        ``(stack, color or None, flags)``: the output buffers' stack (:func:`buffer_stack`; the
+        next frame's previous), the shaded color, the input checks' :data:`FRAME_FLAGS`.
 
     Shape:
-        surface: (1, 5, H, W). ao: (1, 1, H, W) or None (no AO rays). sampling: (1, 2, 1, 1).
-        flow: (1, 2, H, W). previous: (1, 6, H, W).
+        mask, depth, ao: (H, W). normal: (H, W, 3). sampling: (1, 2, 1, 1). flow: (H, W, 2).
+        previous: (1, 6, H, W). Returns stack (1, 6, H, W), color (H, W, 3), flags (6,).
     """
-    b, _, h, w = surface.shape
-    ao = surface.new_zeros(b, 1, h, w) if ao is None else ao.float()
-    inputs = torch.cat([surface, ao, sampling.expand(b, 2, h, w)], dim=1)
+    h, w = mask.shape
+    surface = torch.cat([mask[None], normal.permute(2, 0, 1), depth[None]])[None].float()
+    sampled = surface.new_zeros(1, 1, h, w) if ao is None else ao[None, None].float()
+    inputs = torch.cat([surface, sampled, sampling.expand(1, 2, h, w)], dim=1)
+    carried = None if previous is None else flow.permute(2, 0, 1)[None].float()
     with torch.autocast(surface.device.type, dtype=precision, enabled=precision != torch.float32):
-        output = net.step(inputs, flow, previous)[0].float()
-    high = output_buffers(output)
-    color = None if shading is None else shade(high.mask, high.normal, high.ao, shading)
-    return output, high.mask, high.normal, high.depth, high.ao, color, _ao_in_range(ao)
+        output = net.step(inputs, carried, previous)[0]
+    stack = buffer_stack(output)
+    color = None if shading is None else shade(stack[0, MASK.start], stack[0, NORMAL].permute(1, 2, 0),
+                                               stack[0, AO.start], shading)
+    return stack, color, frame_flags(mask, normal, depth, ao, flow)
 
 
 @dataclass
 class FrameGraph:
     """One captured frame (render, reconstruction, shading): its graph, the render plan whose
-    staged values it reads, and its outputs and input checks (the graph's own tensors)."""
+    staged values it reads, and its outputs (the graph's own tensors: stack, color, flags)."""
 
     graph: torch.cuda.CUDAGraph
     plan: RenderPlan
     outs: tuple[torch.Tensor | None, ...]
-    checks: InputChecks
 
 
 class Reconstructor(RecurrentNetwork):
@@ -163,15 +170,16 @@ class Reconstructor(RecurrentNetwork):
         device, precision, channels_last, autotune, fast_layers: as for
             :class:`~isosr_net.inference.RecurrentNetwork`.
         compile: a ``torch.compile`` mode for the whole frame's work after the render
-            (:func:`recon_frame`: inputs, warp, network, output, shading fused where inductor can);
+            (:func:`recon_frame`: inputs, checks, warp, network, output, shading fused where inductor can);
             None runs it eagerly.
         graphs: on CUDA, replay that work as one CUDA graph per frame size and sampling, captured
             on first use (no launch or Python overhead per frame; with ``compile``, its
             mode must not be ``"reduce-overhead"``, which brings graphs of its own);
             :meth:`render_reconstruct` replays the render with it, in one graph.
-        fused: the network's full-resolution layers as fused Triton kernels
-            (:func:`isosr_net.fused_recon.fused_reconnet`, the previous output's warp among them):
-            fp16, on CUDA with Triton, without ``fast_layers`` (whose layers it replaces) or ``compile``.
+        fused: the frame's work after the render as the network's fused Triton kernels alone
+            (:meth:`isosr_net.fused_recon.FusedReconNet.frame`: the inputs' layout and checks, the
+            previous output's warp, the output buffers and shading among them): fp16, on CUDA
+            with Triton, without ``fast_layers`` (whose layers it replaces) or ``compile``.
     """
 
     def __init__(self, model: str | Path = DEFAULT_RECON_MODEL, device: str = "cpu", precision: str = "fp32",
@@ -189,8 +197,11 @@ class Reconstructor(RecurrentNetwork):
             self.net = fused_reconnet(self.net)
         if graphs and (self.device.type != "cuda" or compile == "reduce-overhead"):
             raise ValueError("graphs: CUDA graphs need a CUDA device and a compile mode other than reduce-overhead")
-        frame_fn = functools.partial(recon_frame, self.net)
-        self._frame = torch.compile(frame_fn, mode=compile, dynamic=False) if compile else frame_fn
+        if fused:
+            self._frame = self.net.frame
+        else:
+            frame_fn = functools.partial(recon_frame, self.net, precision=PRECISIONS[precision])
+            self._frame = torch.compile(frame_fn, mode=compile, dynamic=False) if compile else frame_fn
         self.graphs = graphs
         self._sampling: dict[tuple[int, int], torch.Tensor] = {}
         self._own_graphs()
@@ -250,21 +261,25 @@ class Reconstructor(RecurrentNetwork):
         Shape:
             Returns mask, depth, ao (H, W); normal, color (H, W, 3).
         """
-        checks = InputChecks()
-        surface, flow = _checked_tensors(frame, ao_rays, spp, self.limits, checks)
-        surface = surface.to(self.device)
-        ao = frame.ao[None, None].to(self.device) if ao_rays else None
-        self.check_precision(surface, checks)
-        previous, flow = self.carried(surface, flow)
-        args = (surface, ao, self._sampling_tensor(ao_rays, spp), flow, previous, PRECISIONS[self.precision], shading)
+        _check_frame(frame, ao_rays, spp, self.limits)
+        flow = None if frame.flow is None else frame.flow.to(self.device)
+        previous = self.previous if self.carries(*frame.mask.shape, flow is not None) else None
+        args = (frame.mask.to(self.device), frame.normal.to(self.device), frame.depth.to(self.device),
+                frame.ao.to(self.device) if ao_rays else None, self._sampling_tensor(ao_rays, spp), flow, previous,
+                shading)
         with torch.no_grad():
-            outs = self._replay(args) if self.graphs else self._frame(*args)
-        checks.add(outs[-1], bool, _AO_MESSAGE)
+            stack, color, flags = self._replay(args) if self.graphs else self._frame(*args)
+        self._raise_refused(flags)
+        if self.graphs:  # the graph's own tensors: the next replay overwrites them
+            stack, color = stack.clone(), None if color is None else color.clone()
+        self.previous = stack
+        return stack_buffers(stack, color)
+
+    def _raise_refused(self, flags: torch.Tensor) -> None:
+        """Read a frame's input checks (one host sync) and raise the first that fails."""
+        checks = InputChecks()
+        checks.add_flags(flags, self.precision == "fp16")
         checks.raise_first()
-        output, mask, normal, depth, ao_out, color = (None if t is None else t.clone() if self.graphs else t
-                                                      for t in outs[:-1])
-        self.previous = output
-        return FrameBuffers(mask=mask, normal=normal, depth=depth, ao=ao_out, color=color)
 
     def _sampling_tensor(self, ao_rays: int, spp: int) -> torch.Tensor:
         """The sampling channels' two values (1, 2, 1, 1) on the device, made once per sampling."""
@@ -339,18 +354,16 @@ class Reconstructor(RecurrentNetwork):
         plan = renderer.plan(request) if entry is None else entry.plan
         plan.stage(camera, request)
         if entry is None:
-            graph, (outs, checks) = self._capture(lambda: self._graph_work(plan, request, ao_rays, spp, shading, state))
-            entry = self._frame_graphs[key] = FrameGraph(graph, plan, outs, checks)
+            graph, outs = self._capture(lambda: self._graph_work(plan, request, ao_rays, spp, shading, state))
+            entry = self._frame_graphs[key] = FrameGraph(graph, plan, outs)
             if len(self._frame_graphs) > MAX_GRAPHS:
                 self._frame_graphs.popitem(last=False)
         self._frame_graphs.move_to_end(key)
         entry.graph.replay()
-        entry.checks.raise_first()
-        output, mask, normal, depth, ao, color = entry.outs
-        self.previous = self._state(size, output)
-        clone = lambda t: None if t is None else t.clone()  # noqa: E731
-        return plan.buffers(request), FrameBuffers(mask=clone(mask), normal=clone(normal), depth=clone(depth),
-                                                   ao=clone(ao), color=clone(color))
+        stack, color, flags = entry.outs
+        self._raise_refused(flags)
+        self.previous = self._state(size, stack)
+        return plan.buffers(request), stack_buffers(stack.clone(), None if color is None else color.clone())
 
     def _state(self, size: tuple[int, int], previous: torch.Tensor) -> torch.Tensor:
         """The previous output of frames of ``size`` that the graphs read, made once per size, now
@@ -363,16 +376,11 @@ class Reconstructor(RecurrentNetwork):
         return state
 
     def _graph_work(self, plan: RenderPlan, request: RenderRequest, ao_rays: int, spp: int,
-                    shading: ShadingParams | None, previous: torch.Tensor | None) -> tuple[tuple, InputChecks]:
-        """A staged frame's render and :func:`recon_frame`, with no host sync: the outputs but the
-        last (the AO check, queued on the returned checks) and the queued input checks."""
+                    shading: ShadingParams | None, previous: torch.Tensor | None) -> tuple[torch.Tensor | None, ...]:
+        """A staged frame's render and its reconstruction (as :meth:`reconstruct`'s frame work),
+        with no host sync: ``(stack, color, flags)``."""
         plan.launch()
         rendered = plan.buffers(request)
-        checks = InputChecks()
-        surface, flow = _checked_tensors(rendered, ao_rays, spp, self.limits, checks)
-        self.check_precision(surface, checks)
-        ao = rendered.ao[None, None] if ao_rays else None
-        outs = self._frame(surface, ao, self._sampling_tensor(ao_rays, spp), None if previous is None else flow,
-                           previous, PRECISIONS[self.precision], shading)
-        checks.add(outs[-1], bool, _AO_MESSAGE)
-        return outs[:-1], checks
+        _check_frame(rendered, ao_rays, spp, self.limits)
+        return self._frame(rendered.mask, rendered.normal, rendered.depth, rendered.ao if ao_rays else None,
+                           self._sampling_tensor(ao_rays, spp), rendered.flow, previous, shading)

@@ -62,8 +62,7 @@ def shade(mask: torch.Tensor, normal: torch.Tensor, ao: torch.Tensor | None = No
         raise ValueError(f"shade: ao must have mask's shape {tuple(mask.shape)}, got {tuple(ao.shape)}")
     # Light, half vector, albedo and background enter as Python numbers, not as device tensors:
     # building a tensor on a GPU from host values is a blocking copy, a stall per frame.
-    light = _unit(params.light_dir)
-    half = _unit(tuple(a + b for a, b in zip(light, (0.0, 0.0, 1.0))))
+    light, half = light_and_half(params)
     n = F.normalize(normal, dim=-1, eps=1e-6)
     nx, ny, nz = n.unbind(-1)
     n_dot_l = (nx * light[0] + ny * light[1] + nz * light[2]).clamp(min=0.0)
@@ -83,6 +82,12 @@ def shade_on(device_type: str) -> Callable[..., torch.Tensor]:
     seconds to compile on first use), elsewhere as it is (compiling costs CPUs more than it saves).
     The same function: equal to :func:`shade` within float32 rounding."""
     return torch.compile(shade, dynamic=True) if device_type == "cuda" else shade
+
+
+def light_and_half(params: ShadingParams) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """The unit light direction and the unit half vector between it and the viewer (+z)."""
+    light = _unit(params.light_dir)
+    return light, _unit(tuple(a + b for a, b in zip(light, (0.0, 0.0, 1.0))))
 
 
 def _unit(v: tuple[float, float, float]) -> tuple[float, float, float]:

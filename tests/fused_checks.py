@@ -24,11 +24,11 @@ import torch.nn.functional as F
 
 from isosr_render.buffers import FrameBuffers
 from isosr_render.conventions import AO, DEPTH, MASK, NORMAL
-from isosr_render.shading import ShadingParams
+from isosr_render.shading import ShadingParams, shade
 from isosr_net.flow_warp import warp_by_flow
-from isosr_net.fused_kernels import conv3x3, pack_inputs, recon_tail, upsample_add
+from isosr_net.fused_kernels import ReconSources, conv3x3, pack_inputs, recon_tail, upsample_add
 from isosr_net.fused_recon import FusedReconNet, fused_reconnet, fused_runs_on, fused_traffic, tap_weights
-from isosr_net.inference import FP16_MAX_DEPTH
+from isosr_net.inference import FP16_MAX_DEPTH, FRAME_FLAGS, buffer_stack, frame_flags, stack_buffers
 from isosr_net.model import load_pretrained
 from isosr_net.reconnet import AO_PRIORS, ReconNet, ReconNetConfig, ao_output
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
@@ -69,13 +69,17 @@ def nchw(x: torch.Tensor) -> torch.Tensor:
 # ---------------------------------------------------------------- pack
 
 
+def pack(inputs, prev, flow=None, **kw):
+    return pack_inputs(ReconSources.of_inputs(inputs), prev, flow, **kw)
+
+
 @pytest.mark.parametrize("h, w", SIZES)
 @pytest.mark.parametrize("layout", ["contiguous", "channels_last"])
 def test_pack_lays_out_the_inputs_and_the_warped_previous_replicate_padded(h, w, layout):
     memory = torch.channels_last if layout == "channels_last" else torch.contiguous_format
     inputs = rand(2, 8, h, w, seed=1).contiguous(memory_format=memory)
     warped = rand(2, 6, h, w, seed=2).contiguous(memory_format=memory)
-    packed = pack_inputs(inputs, warped)
+    packed, _ = pack(inputs, warped)
     expected = F.pad(torch.cat([inputs, warped[:, MASK], warped[:, AO]], dim=1), (0, -w % 8, 0, -h % 8),
                      mode="replicate")
     assert packed.shape == (2, h + -h % 8, w + -w % 8, 16) and packed.dtype == torch.float16
@@ -89,7 +93,7 @@ def test_pack_warps_the_previous_mask_and_ao_like_warp_by_flow(h, w):
     flow = rand(2, 2, h, w, scale=3.0, seed=5)
     flow[0, :, 0, 0] = torch.tensor([1e6, -1e6])  # far outside: reads zeros
     flow[1, :, -1, -1] = torch.tensor([0.5, -0.25])  # between pixels at the border
-    packed = pack_inputs(inputs, previous, flow)
+    packed, _ = pack(inputs, previous, flow)
     expected = warp_by_flow(previous.double(), flow.double())[:, [MASK.start, AO.start]]
     got = nchw(packed)[:, 8:10, :h, :w].double()
     # fp16 storage, and the reference's normalized grid coordinates rounded in fp32
@@ -98,14 +102,58 @@ def test_pack_warps_the_previous_mask_and_ao_like_warp_by_flow(h, w):
     torch.testing.assert_close(nchw(packed)[:, :8, :h, :w], inputs.half(), rtol=0, atol=0)
 
 
+@pytest.mark.parametrize("first_frame", ["inputs", "zeros"])
+def test_pack_makes_the_first_frames_stand_in_and_reads_a_frames_buffers_in_place(first_frame):
+    """A frame's buffers (HWC normals, the sampling as two values) pack as their input stack
+    does; without a previous output the stand-in is ReconNet.first_previous's."""
+    h, w = 13, 21
+    x = recon_batch(1, h, w, seed=6).to(DEVICE)
+    x[:, 6:8] = torch.tensor([0.25, 0.5], device=DEVICE)[None, :, None, None]  # constant sampling planes
+    x[0, 5, :4] = 0  # no ray hit there: the stand-in's AO is the rays'
+    net = ReconNet(ReconNetConfig(first_frame=first_frame)).to(DEVICE)
+    sources = ReconSources.of_buffers(x[0, 0], x[0, 1:4].permute(1, 2, 0).contiguous(), x[0, 4], x[0, 5],
+                                      x[:, 6:8, :1, :1])
+    for packed, flags in (pack(x, None, first_frame=first_frame), pack_inputs(sources, None, first_frame=first_frame)):
+        stand_in = net.first_previous(x)
+        torch.testing.assert_close(nchw(packed)[:, :8, :h, :w], x.half(), rtol=0, atol=0)
+        torch.testing.assert_close(nchw(packed)[:, 8:10, :h, :w], stand_in[:, [MASK.start, AO.start]].half(),
+                                   rtol=0, atol=0)
+        torch.testing.assert_close(flags, frame_flags(x[0, 0], x[0, 1:4], x[0, 4], x[0, 5], None), rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("broken, value", [("mask", float("nan")), ("normal", float("inf")), ("depth", float("-inf")),
+                                           ("flow", float("nan")), ("ao", 1.5), ("ao", float("nan")),
+                                           ("deepest", -3e4)])
+def test_packs_flags_are_the_frames_checks(broken, value):
+    """Each of FRAME_FLAGS set by the one bad value it names, as frame_flags computes them; the
+    bad pixel in the frame's last program's tile."""
+    h, w = 13, 21
+    x = recon_batch(1, h, w, seed=7).to(DEVICE)
+    flow = rand(h, w, 2, seed=8)
+    buffers = {"mask": x[0, 0], "normal": x[0, 1:4].permute(1, 2, 0).contiguous(), "depth": x[0, 4], "ao": x[0, 5],
+               "flow": flow}
+    target = buffers["depth" if broken == "deepest" else broken]
+    target.view(-1)[-1] = value
+    sources = ReconSources.of_buffers(buffers["mask"], buffers["normal"], buffers["depth"], buffers["ao"],
+                                      x[:, 6:8, :1, :1])
+    _, flags = pack_inputs(sources, rand(1, 6, h, w, seed=9), flow.permute(2, 0, 1)[None])
+    expected = frame_flags(buffers["mask"], buffers["normal"], buffers["depth"], buffers["ao"], flow)
+    torch.testing.assert_close(flags, expected, rtol=0, atol=0)
+    index = FRAME_FLAGS.index(broken)
+    assert flags[index] == (3e4 if broken == "deepest" else 1)
+    assert (flags[:5].count_nonzero() == (0 if broken == "deepest" else 1))
+
+
 def test_pack_checks_its_inputs():
     inputs, prev = rand(1, 8, 4, 6), rand(1, 6, 4, 6)
     with pytest.raises(ValueError, match=r"pack_inputs: prev must be \(B, 6, H, W\) with B=1, H=4, W=6"):
-        pack_inputs(inputs, prev[..., :5])
-    with pytest.raises(ValueError, match=r"pack_inputs: inputs must be \(B, 8, H, W\)"):
-        pack_inputs(inputs[:, :7], prev)
-    with pytest.raises(ValueError, match="pack_inputs: flow must be float32"):
-        pack_inputs(inputs, prev, rand(1, 2, 4, 6, dtype=torch.float16))
+        pack(inputs, prev[..., :5])
+    with pytest.raises(ValueError, match=r"ReconSources: inputs must be \(B, 8, H, W\)"):
+        pack(inputs[:, :7], prev)
+    with pytest.raises(ValueError, match="pack_inputs: flow must be floating point"):
+        pack(inputs, prev, rand(1, 2, 4, 6).int())
+    with pytest.raises(ValueError, match="pack_inputs: first_frame must be one of"):
+        pack(inputs, None, first_frame="noise")
 
 
 # ---------------------------------------------------------------- convolutions
@@ -181,18 +229,22 @@ def test_conv3x3_checks_its_inputs():
         conv3x3(x, taps, bias, stride=2, residual=x)
 
 
-@pytest.mark.parametrize("ao_prior", AO_PRIORS)
-@pytest.mark.parametrize("h, w, hp, wp", [(13, 21, 16, 24), (24, 40, 24, 40), (3, 5, 8, 8)])
-def test_tail_is_the_output_convolution_and_reconnets_output_stack(h, w, hp, wp, ao_prior):
+def tail_case(h, w, hp, wp):
     features = rand(2, hp, wp, 16, seed=13, dtype=torch.float16)
     taps, bias = tap_weights(rand(6, 16, 3, 3, scale=0.3, seed=14), 16, 16), torch.zeros(16, device=DEVICE)
     bias[:6] = rand(6, seed=15)
-    inputs = recon_batch(2, h, w, seed=16).to(DEVICE)
+    return features, taps, bias, recon_batch(2, h, w, seed=16).to(DEVICE)
+
+
+@pytest.mark.parametrize("ao_prior", AO_PRIORS)
+@pytest.mark.parametrize("h, w, hp, wp", [(13, 21, 16, 24), (24, 40, 24, 40), (3, 5, 8, 8)])
+def test_tail_is_the_output_convolution_and_reconnets_output_stack(h, w, hp, wp, ao_prior):
+    features, taps, bias, inputs = tail_case(h, w, hp, wp)
     raw, magnitude = (t[:, :6, :h, :w] for t in conv_ref(nchw(features), taps, bias))
     given = inputs.double()
     config = ReconNetConfig(ao_prior=ao_prior, max_ao_rays=16)
-    out = recon_tail(features, taps, bias, inputs, config)
-    assert out.shape == (2, 6, h, w) and out.dtype == torch.float32
+    out, color = recon_tail(features, taps, bias, ReconSources.of_inputs(inputs), config)
+    assert out.shape == (2, 6, h, w) and out.dtype == torch.float32 and color is None
     torch.testing.assert_close(out[:, DEPTH], inputs[:, DEPTH], rtol=0, atol=0)
     # fp32 outputs: only the accumulation's rounding
     tail = torch.cat([(given[:, MASK] + raw[:, MASK]).clamp(0, 1), given[:, NORMAL] + raw[:, NORMAL],
@@ -202,12 +254,35 @@ def test_tail_is_the_output_convolution_and_reconnets_output_stack(h, w, hp, wp,
     assert (out[:, MASK] >= 0).all() and (out[:, MASK] <= 1).all()
 
 
+@pytest.mark.parametrize("shading", [ShadingParams(), ShadingParams(shininess=0.0, light_dir=(0.0, 0.0, -1.0),
+                                                                    albedo=(1.0, 0.0, 0.5), background=(0.0, 0.2, 1.0))])
+def test_tail_writes_the_output_buffers_and_shades_them(shading):
+    """as_buffers: the raw tail through buffer_stack (unit normals, depth where covered); the color
+    as shade() of those buffers, per frame; a light from behind and shininess 0 (0 ** 0 = 1)."""
+    h, w = 13, 21
+    features, taps, bias, inputs = tail_case(h, w, 16, 24)
+    inputs[:, MASK.start, :3] = 0  # uncovered rows: normals and depth 0 there
+    config = ReconNetConfig(ao_prior="rays", max_ao_rays=16)
+    sources = ReconSources.of_inputs(inputs)
+    raw, _ = recon_tail(features, taps, bias, sources, config)
+    stack, color = recon_tail(features, taps, bias, sources, config, as_buffers=True, shading=shading)
+    torch.testing.assert_close(stack, buffer_stack(raw), rtol=0, atol=1e-6)
+    assert color.shape == (2, h, w, 3)
+    for i in range(2):
+        frame = stack_buffers(stack[i:i + 1])
+        torch.testing.assert_close(color[i], shade(frame.mask, frame.normal, frame.ao, shading), rtol=0, atol=1e-5)
+    assert (stack[:, NORMAL][stack[:, MASK].expand(-1, 3, -1, -1) == 0] == 0).all()
+
+
 def test_tail_checks_its_inputs():
     features, taps, bias = rand(1, 8, 8, 16, dtype=torch.float16), rand(9, 16, 16, dtype=torch.float16), rand(16)
     with pytest.raises(ValueError, match=r"recon_tail: inputs are 9x8, larger than the features' 8x8"):
-        recon_tail(features, taps, bias, rand(1, 8, 9, 8), ReconNetConfig())
-    with pytest.raises(ValueError, match=r"recon_tail: inputs must be \(1, 8, H, W\)"):
-        recon_tail(features, taps, bias, rand(2, 8, 8, 8), ReconNetConfig())
+        recon_tail(features, taps, bias, ReconSources.of_inputs(rand(1, 8, 9, 8)), ReconNetConfig())
+    with pytest.raises(ValueError, match=r"recon_tail: 2 frames of inputs for 1 of features"):
+        recon_tail(features, taps, bias, ReconSources.of_inputs(rand(2, 8, 8, 8)), ReconNetConfig())
+    with pytest.raises(ValueError, match=r"recon_tail: shading shades the output buffers"):
+        recon_tail(features, taps, bias, ReconSources.of_inputs(rand(1, 8, 8, 8)), ReconNetConfig(),
+                   shading=ShadingParams())
 
 
 # ---------------------------------------------------------------- the whole network
@@ -255,7 +330,7 @@ def test_the_fused_shipped_model_equals_reconnet(ao_prior, b, h, w):
     torch.testing.assert_close(read.double(), warped[:, [MASK.start, AO.start]].double(), rtol=1e-3, atol=1e-4)
     stand_in = net.first_previous(inputs)
     torch.testing.assert_close(first, reference(net, inputs, stand_in)[0], rtol=0, atol=2e-3)
-    torch.testing.assert_close(first_read, stand_in[:, [MASK.start, AO.start]], rtol=0, atol=0)
+    torch.testing.assert_close(first_read, stand_in[:, [MASK.start, AO.start]].half(), rtol=0, atol=0)  # as packed
 
 
 @pytest.mark.parametrize("blocks", [0, 1])
@@ -269,7 +344,7 @@ def test_other_architectures_fuse_too(blocks):
         got = fused(inputs, warped)
     torch.testing.assert_close(got, reference(net, inputs, warped)[0], rtol=0, atol=2e-3)
     # the passes, run one by one, are the ones whose traffic fused_traffic counts
-    results, passes = fused.passes(inputs, warped)
+    results, passes = fused.passes(ReconSources.of_inputs(inputs), warped)
     with torch.no_grad():
         for _, run in passes:
             run()
@@ -318,6 +393,15 @@ def test_the_fastest_reconstructor_fuses_on_cuda_in_fp16_only():
     assert not isinstance(Reconstructor.fastest(device=DEVICE, precision="bf16").net, FusedReconNet)
 
 
+def test_the_service_reconstructs_by_the_fused_kernels_on_cuda_in_fp16():
+    pytest.importorskip("msgspec", reason="the service's wire stack is not installed here (the GPU kit lacks it)")
+    from isosr_server.engine import serving_network
+
+    served = serving_network(Reconstructor, DEFAULT_RECON_MODEL, DEVICE, "fp16")
+    assert isinstance(served.net, FusedReconNet) == (DEVICE == "cuda") and not served.graphs
+    assert not isinstance(serving_network(Reconstructor, DEFAULT_RECON_MODEL, DEVICE, "fp32").net, FusedReconNet)
+
+
 def test_a_fused_reconstructor_follows_the_reference_frame_by_frame():
     """The Reconstructor's fused path (its recurrence, warp and shading) against the fp32 eager
     one over a short sequence; on CUDA also replayed from CUDA graphs."""
@@ -331,9 +415,31 @@ def test_a_fused_reconstructor_follows_the_reference_frame_by_frame():
         expected = reference.reconstruct(frame, 2, 1, shading)
         for variant in variants:
             got = variant.reconstruct(frame, 2, 1, shading)
-            torch.testing.assert_close(variant.previous, reference.previous, rtol=0, atol=2e-3)  # the output stacks
+            read = [MASK.start, AO.start]  # of the previous output, what the next frame reads
+            torch.testing.assert_close(variant.previous[:, read], reference.previous[:, read], rtol=0, atol=2e-3)
             for name in ("mask", "depth", "ao", "color"):
                 torch.testing.assert_close(getattr(got, name), getattr(expected, name), rtol=0, atol=2e-3)
             # Unit normals of short output normals (where the input had none) turn fp16's rounding
             # into 1e-2 (eager fp16 too).
             torch.testing.assert_close(got.normal, expected.normal, rtol=0, atol=3e-2)
+
+
+def test_a_fused_reconstructor_refuses_a_bad_frame_and_keeps_its_state():
+    """The pack's flags raise what the reference's checks raise; the previous output stays."""
+    first, second = synthetic_frames(2, 6, 9)
+    variants = [Reconstructor(device=DEVICE, precision="fp16", fused=True)]
+    if DEVICE == "cuda":
+        variants.append(Reconstructor(device=DEVICE, precision="fp16", fused=True, graphs=True))
+    for recon in variants:
+        recon.reconstruct(first, 2, 1)
+        kept = recon.previous.clone()
+        for broken, value, message in [("normal", float("nan"), "normal holds NaN or Inf"),
+                                       ("flow", float("inf"), "flow holds NaN or Inf"),
+                                       ("ao", 2.0, r"ao holds values outside \[0, 1\]"),
+                                       ("depth", 2e4, "fp16 takes depths up to 10000, this frame reaches 2e")]:
+            bad = dataclasses.replace(second, **{broken: getattr(second, broken).clone()})
+            getattr(bad, broken)[3, 4] = value
+            with pytest.raises(ValueError, match=message):
+                recon.reconstruct(bad, 2, 1, ShadingParams())
+            assert torch.equal(recon.previous, kept)
+        assert torch.isfinite(recon.reconstruct(second, 2, 1).ao).all()
