@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import torch
 import triton
 import triton.language as tl
+import triton.testing
 
 from isosr_render.conventions import AO, DEPTH, MASK, NORMAL, SAMPLED_AO, SAMPLING
 from isosr_render.shading import ShadingParams, light_and_half
@@ -61,7 +62,14 @@ FLAG_SLOTS = tl.constexpr(8)  # per pack program: the FRAME_FLAGS, padded
 
 
 def _tuned(kernel, key: list[str]):
-    return kernel if INTERPRET else triton.autotune(CONFIGS, key=key)(kernel)
+    """``kernel`` autotuned over CONFIGS per ``key``: each config timed for 20 ms (Triton's default
+    125 ms a config stalled a new size class for seconds), the choice kept in Triton's disk cache
+    (a later process on the machine tunes nothing)."""
+    return kernel if INTERPRET else triton.autotune(CONFIGS, key=key, do_bench=_bench_briefly, cache_results=True)(kernel)
+
+
+def _bench_briefly(kernel_call, quantiles):
+    return triton.testing.do_bench(kernel_call, warmup=5, rep=20, quantiles=quantiles)
 
 
 @triton.jit

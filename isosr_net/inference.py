@@ -189,12 +189,17 @@ def output_buffers(output: torch.Tensor) -> FrameBuffers:
     return stack_buffers(buffer_stack(output))
 
 
+def ao_in_range(ao: torch.Tensor) -> torch.Tensor:
+    """Whether every AO value is within [0, 1] (NaN is not), a 0-d bool tensor (no host sync)."""
+    return ((ao >= 0) & (ao <= 1)).all()
+
+
 def frame_flags(mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, ao: torch.Tensor | None,
                 flow: torch.Tensor | None) -> torch.Tensor:
     """The :data:`FRAME_FLAGS` of a frame's buffers, (6,) float32 (no host sync)."""
     zero = depth.new_zeros((), dtype=torch.bool)
     bad = [zero if t is None else ~torch.isfinite(t).all() for t in (mask, normal, depth, flow)]
-    ao_bad = zero if ao is None else ~((ao >= 0) & (ao <= 1)).all()
+    ao_bad = zero if ao is None else ~ao_in_range(ao)
     deepest = torch.where(torch.isfinite(depth), depth.abs(), 0.0).amax()
     return torch.stack([*(b.float() for b in bad), ao_bad.float(), deepest.float()])
 

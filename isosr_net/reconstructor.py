@@ -15,7 +15,7 @@ from __future__ import annotations
 import functools
 import os
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
@@ -28,7 +28,7 @@ from isosr_render.shading import ShadingParams, shade
 from isosr_render.shapes import check_shape
 from isosr_net.fused_recon import fused_reconnet, fused_runs_on, triton_imports
 from isosr_net.reconnet import RayLimits, ReconNet, ReconNetConfig
-from isosr_net.inference import (AO_MESSAGE, FRAME_FLAGS, PRECISIONS, InputChecks, RecurrentNetwork, buffer_stack,
+from isosr_net.inference import (AO_MESSAGE, PRECISIONS, InputChecks, RecurrentNetwork, ao_in_range, buffer_stack,
                                  check_surface, frame_flags, stack_buffers, surface_tensors)
 from isosr_net.model import read_config
 
@@ -94,7 +94,7 @@ def recon_inputs(frame: FrameBuffers, ao_rays: int, spp: int, limits: RayLimits,
     surface, flow = surface_tensors(frame, checks)
     if ao_rays:
         ao = frame.ao.float()[None, None]
-        checks.add(((ao >= 0) & (ao <= 1)).all(), bool, AO_MESSAGE)
+        checks.add(ao_in_range(ao), bool, AO_MESSAGE)
     else:
         ao = torch.zeros_like(surface[:, :1])
     if now:
@@ -222,6 +222,19 @@ class Reconstructor(RecurrentNetwork):
         twin._own_graphs()
         return twin
 
+    def warm(self, sizes: Iterable[tuple[int, int]], ao_rays: int = 1, shading: ShadingParams | None = ShadingParams()
+             ) -> None:
+        """Make two frames (a first one, then one carrying it) of each ``(height, width)`` from empty
+        buffers, then forget them: on CUDA the fused kernels compile and tune for those sizes'
+        classes (:mod:`isosr_net.fused_kernels`) before a viewer's first frame waits for them."""
+        for h, w in sizes:
+            empty = torch.zeros(h, w, device=self.device)
+            frame = FrameBuffers(mask=empty, normal=torch.zeros(h, w, 3, device=self.device), depth=empty,
+                                 ao=empty if ao_rays else None, flow=torch.zeros(h, w, 2, device=self.device))
+            for _ in range(2):
+                self.reconstruct(frame, ao_rays, 1, shading)
+        self.reset()
+
     @classmethod
     def fastest(cls, model: str | Path = DEFAULT_RECON_MODEL, device: str = "cuda",
                 precision: str | None = None) -> "Reconstructor":
@@ -229,9 +242,9 @@ class Reconstructor(RecurrentNetwork):
         NHWC, the network as fused Triton kernels (``fused``, where Triton imports and in fp16;
         else its channel-padded layers compiled) and, through :meth:`render_reconstruct`, render,
         network and shading replayed as one CUDA graph; eager fp32 NHWC elsewhere. On an H100
-        (``python -m isosr_bench.bench_recon_path``, ct_pitch, 1 AO ray, commit 5fb514d) the fused
-        graph makes a 1080p frame in 3.72 ms and a 4K frame in 11.4 ms, the compiled one in 4.14
-        and 12.7 ms."""
+        (``python -m isosr_bench.bench_recon_path``, ct_pitch, 1 AO ray, commit b9a566f) the fused
+        graph makes a 1080p frame in 3.04 ms and a 4K frame in 8.67 ms through the runner (at
+        5fb514d the compiled one took 4.14 and 12.7 ms)."""
         if torch.device(device).type == "cuda":
             precision = precision or "fp16"
             if precision == "fp16" and fused_runs_on(device):

@@ -54,6 +54,9 @@ MODEL_NAMES = {Upscaler: "network", Reconstructor: "recon"}
 # Low-res tile side of CPU upscaling: the largest upscale (960x540 to 3840x2160) in 12 tiles, its
 # peak memory a sixth of the whole frame's (7.9 GB measured whole), the same result (see Upscaler).
 CPU_UPSCALE_TILE = 240
+# Window sizes whose classes the reconstruction tunes for at start-up on GPUs (pixels' bit length:
+# 0.5-1 and 1-2 megapixels, 720p and 1080p among them); other sizes tune on their first frame.
+WARM_RECON_SIZES = ((720, 1280), (1080, 1920))
 # Threads that encode video frames, off the device thread: the sessions' encoders side by side (a session
 # encodes one frame at a time; each encoder has threads of its own, isosr_server.video.video_threads).
 # Images and buffers keep one thread: on 2 cores a second one cost a fast session beside a slow one
@@ -156,7 +159,9 @@ class Engine:
         reconstruction, shaded and encoded."""
         self._on_thread()
         factor = self.network(Upscaler).upscale_factor
-        self.network(Reconstructor)
+        reconstructor = self.network(Reconstructor)
+        if self.device.type == "cuda":  # tune the fused kernels for common windows before the first viewer
+            reconstructor.warm(WARM_RECON_SIZES)
         self.context = ViewContext(factor, self.precision, self._models)
         self.auto = AutoPolicy.for_server(str(self.device), self.precision, factor, self._models,
                                           self.config.target_fps, self.networks)

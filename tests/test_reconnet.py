@@ -476,3 +476,14 @@ def test_the_shipped_model_beats_the_frame_it_reconstructs():
         psnr[method.kind] = [color_psnr(f, r) for f, r in zip(frames, references)]
     for reconstructed, plain in zip(psnr["reconstruct"], psnr["full"]):
         assert reconstructed > plain + 0.5, psnr
+
+
+def test_warm_runs_a_first_and_a_carried_frame_per_size_and_forgets_them():
+    reconstructor = Reconstructor()
+    seen = []
+    reconstruct = reconstructor.reconstruct
+    reconstructor.reconstruct = lambda frame, *a: seen.append(
+        (tuple(frame.mask.shape), reconstructor.carries(*frame.mask.shape, True))) or reconstruct(frame, *a)
+    reconstructor.warm([(8, 12), (5, 7)])
+    assert seen == [((8, 12), False), ((8, 12), True), ((5, 7), False), ((5, 7), True)]
+    assert reconstructor.previous is None
