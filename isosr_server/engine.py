@@ -337,7 +337,7 @@ class Engine:
 def _check_finite(network: RecurrentNetwork, out: FrameBuffers) -> None:
     """`ValueError` if a network's output holds NaN or Inf, its recurrent state reset first (a
     non-finite output must not feed the next frame)."""
-    if not all(bool(torch.isfinite(getattr(out, n)).all()) for n in out.present()):
+    if not bool(torch.stack([torch.isfinite(getattr(out, n)).all() for n in out.present()]).all()):  # one sync
         network.reset()
         raise ValueError("the network gave non-finite values for this frame")
 

@@ -632,3 +632,22 @@ def test_upscale_sessions_are_bounded_and_expire(strict_srv, lib):
     time.sleep(STRICT.idle_timeout_s + 0.2)
     assert strict_srv.request("POST", "/v1/upscale", upscale_body(f, session="d"))[0] == 200
     assert [k for _, k in sessions._by_id] == ["d"]
+
+
+def test_a_non_finite_network_output_is_refused_and_resets_the_state():
+    """The engine's last guard (one host read for all the buffers): NaN in any output buffer raises
+    and forgets the previous output, so that it cannot feed the next frame."""
+    from isosr_server.engine import _check_finite
+
+    class Network:
+        def reset(self):
+            self.was_reset = True
+
+    fine = FrameBuffers(mask=torch.ones(2, 3), normal=torch.zeros(2, 3, 3), ao=torch.ones(2, 3))
+    network = Network()
+    _check_finite(network, fine)
+    assert not hasattr(network, "was_reset")
+    fine.normal[1, 2, 0] = float("nan")
+    with pytest.raises(ValueError, match="non-finite values"):
+        _check_finite(network, fine)
+    assert network.was_reset
