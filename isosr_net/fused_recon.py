@@ -186,26 +186,9 @@ class FusedReconNet(nn.Module):
     def frame(self, mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, ao: torch.Tensor | None,
               sampling: torch.Tensor, flow: torch.Tensor | None, previous: torch.Tensor | None,
               shading: ShadingParams | None) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
-        """A frame's work after the render (the `Reconstructor`'s, as :func:`isosr_net.reconstructor.recon_frame`)
-        in the network's passes alone: the pack reads the buffers in place and checks them, the
-        tail writes the output buffers and shades them. No host sync.
-
-        Args:
-            mask, normal, depth, ao: the frame's buffers (``ao`` None: no AO rays).
-            sampling: the sampling channels' two values.
-            flow: the frame's flow or None; warps ``previous`` where that is given, else checked only.
-            previous: the previous frame's buffers' stack, or None on a sequence's first frame.
-            shading: material and light for ``color``; None makes none.
-
-        Returns:
-            ``(stack, color or None, flags)``: the output buffers' stack
-            (:func:`isosr_net.inference.buffer_stack`; the next frame's previous), the shaded
-            color, the input checks' :data:`~isosr_net.inference.FRAME_FLAGS`.
-
-        Shape:
-            mask, depth, ao: (H, W). normal: (H, W, 3). sampling: (1, 2, 1, 1). flow: (H, W, 2).
-            previous: (1, 6, H, W). Returns stack (1, 6, H, W), color (H, W, 3), flags (6,).
-        """
+        """:func:`isosr_net.reconstructor.recon_frame` (its arguments, results and shapes; without
+        ``precision``: fp16) in the network's passes alone: the pack reads the buffers in place and
+        checks them, the tail writes the output buffers and shades them. No host sync."""
         sources = _kernels().ReconSources.of_buffers(mask, normal, depth, ao, sampling)
         results = self._run(sources, previous, None if flow is None else flow.permute(2, 0, 1)[None],
                             as_buffers=True, shading=shading)
