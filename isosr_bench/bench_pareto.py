@@ -105,8 +105,9 @@ def methods(smoke: bool, device: str, models: dict[str, Path]) -> list[FrameMeth
             limits = recon_limits(folder)
             sampling = ((1, 0), (1, 2)) if smoke else [(s, n) for s in (1, 2, 4) for n in (0, 1, 2, 4, 8, 16)
                                                        if s <= limits.max_spp and n <= limits.max_ao_rays]
-            out += [FrameMethod("reconstruct", ao_rays=n, spp=s, precision="fp16" if cuda else "fp32", model=model,
-                                model_name=name) for s, n in sampling]
+            out += [FrameMethod("reconstruct", ao_rays=n, spp=s, factor=config.get("upscale", 1),
+                                precision="fp16" if cuda else "fp32", model=model, model_name=name)
+                    for s, n in sampling]
             continue
         for precision in ("fp32", "bf16", "fp16") if cuda else ("fp32",):
             out.append(FrameMethod("network", factor=config["upscale"], precision=precision, model=model,
@@ -169,9 +170,7 @@ def flicker(frames: list, references: list) -> float:
 
 def work(method: FrameMethod) -> float:
     """A method's ray work relative to one primary ray per pixel (for the time estimate only)."""
-    if method.runner.low_res:
-        return 1.0 / method.factor ** 2
-    return method.spp * (1.0 + method.ao_rays / PRIMARY_IN_AO_RAYS)
+    return method.spp * (1.0 + method.ao_rays / PRIMARY_IN_AO_RAYS) / method.factor ** 2
 
 
 def bench_cameras(frames: int):

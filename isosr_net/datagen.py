@@ -50,14 +50,17 @@ class DatagenConfig:
         upscale: resolution factor between input and ground truth; 1 renders data for a
             reconstruction network (:mod:`isosr_net.reconnet`): inputs at the ground truth's
             resolution with sampled AO, ``isosr_render.conventions.RECON_CHANNELS``.
+        reconstruction: (upscale > 1) low-res inputs as a reconstruction network reads them
+            (sampled AO and the sampling channels), for one that also upscales; upscale 1 data
+            always has them.
         crop: low-res crop side (the high-res crop is ``upscale`` times).
         crops: crops kept per sequence at most.
         min_coverage: least mean mask coverage of a crop over its frames.
         ao_samples, ao_radius, spp: ground-truth AO rays per hit, their length (world
             units), and rays per pixel.
-        input_spp, input_ao_rays: (upscale 1) each sequence's inputs are rendered with rays
+        input_spp, input_ao_rays: (reconstruction data) each sequence's inputs are rendered with rays
             per pixel and AO rays per hit drawn from these, within ``max_spp`` and ``max_ao_rays``.
-        max_ao_rays, max_spp: (upscale 1) the :class:`~isosr_net.reconnet.RayLimits` that scale the
+        max_ao_rays, max_spp: (reconstruction data) the :class:`~isosr_net.reconnet.RayLimits` that scale the
             inputs' sampling channels: those of the model to train on the data.
         iso_jitter: iso-values are drawn uniformly within +-this fraction of the volume's
             reference iso (Otsu's, or the procedural default).
@@ -70,6 +73,7 @@ class DatagenConfig:
     frames: int = 10
     lowres_size: int | tuple[int, ...] = 96
     upscale: int = 4
+    reconstruction: bool = False
     crop: int = 32
     crops: int = 4
     min_coverage: float = 0.5
@@ -94,9 +98,9 @@ class DatagenConfig:
                              f"{self.lowres_size}")
         if self.upscale < 1:
             raise ValueError(f"upscale must be at least 1, got {self.upscale}")
-        if self.upscale > 1 and (self.input_spp != (1,) or self.input_ao_rays != (0,)):
-            raise ValueError("input_spp and input_ao_rays are for reconstruction data (upscale 1); an upscaler's "
-                             "inputs have 1 ray per pixel and no AO")
+        if not self.recon_inputs and (self.input_spp != (1,) or self.input_ao_rays != (0,)):
+            raise ValueError("input_spp and input_ao_rays are for reconstruction data (upscale 1, or "
+                             "reconstruction); an upscaler's inputs have 1 ray per pixel and no AO")
         limits = self.limits
         for name, low, high in (("input_spp", 1, limits.max_spp), ("input_ao_rays", 0, limits.max_ao_rays)):
             values = getattr(self, name)
@@ -107,6 +111,11 @@ class DatagenConfig:
             raise ValueError(f"crop {self.crop} exceeds the low-res render side {min(self.sides)}")
         if self.frames < 2:
             raise ValueError(f"a sequence needs at least 2 frames, got {self.frames}")
+
+    @property
+    def recon_inputs(self) -> bool:
+        """Whether the inputs are a reconstruction network's (:data:`~isosr_render.conventions.RECON_CHANNELS`)."""
+        return self.upscale == 1 or self.reconstruction
 
     @property
     def sides(self) -> tuple[int, ...]:
@@ -156,17 +165,17 @@ def render_sequence(renderer: Renderer, cameras: list, iso: float, config: Datag
                     side: int, input_spp: int = 1, input_ao_rays: int = 0) -> SequenceBatch:
     """Full-frame inputs (``side`` pixels square) and high-res ground truth of one sequence, on the CPU.
 
-    Inputs are low-res (upscale > 1), or rendered at full resolution with ``input_spp`` rays
-    per pixel and ``input_ao_rays`` AO rays per hit (upscale 1; their AO rays have other seeds
-    than the ground truth's).
+    Inputs are rendered at 1/upscale of the ground truth's sides; a reconstruction network's
+    (:attr:`DatagenConfig.recon_inputs`) with ``input_spp`` rays per pixel and ``input_ao_rays``
+    AO rays per hit (their AO rays have other seeds than the ground truth's).
 
     Shape:
-        Returns lowres (T, 5, h, w), or (T, 8, h, w) with upscale 1; flow (T, 2, h, w) (zeros
-        on frame 0); highres (T, 6, H, W).
+        Returns lowres (T, 5, h, w), or (T, 8, h, w) for a reconstruction network; flow (T, 2,
+        h, w) (zeros on frame 0); highres (T, 6, H, W).
     """
-    n, s = side, config.upscale
+    n, s, recon = side, config.upscale, config.recon_inputs
     lowres, flows, highres = [], [], []
-    outputs = LOWRES_BUFFERS + ("flow",) + (("ao",) if s == 1 and input_ao_rays else ())
+    outputs = LOWRES_BUFFERS + ("flow",) + (("ao",) if recon and input_ao_rays else ())
     requests = sequence_requests(cameras, n, n, iso, outputs, spp=input_spp, ao_samples=max(1, input_ao_rays),
                                  ao_radius=config.ao_radius)
     for t, (camera, request) in enumerate(requests):
@@ -174,7 +183,7 @@ def render_sequence(renderer: Renderer, cameras: list, iso: float, config: Datag
         hi = renderer.render(camera, RenderRequest(n * s, n * s, iso, HIGHRES_BUFFERS, spp=config.spp,
                                                    ao_samples=config.ao_samples, ao_radius=config.ao_radius,
                                                    seed=seed + t))
-        lowres.append(recon_inputs(lo, input_ao_rays, input_spp, config.limits)[0][0].cpu() if s == 1
+        lowres.append(recon_inputs(lo, input_ao_rays, input_spp, config.limits)[0][0].cpu() if recon
                       else lo.channels_first(LOWRES_BUFFERS).cpu())
         flows.append(torch.zeros(2, n, n) if lo.flow is None else lo.flow.permute(2, 0, 1).cpu())
         highres.append(hi.channels_first(HIGHRES_BUFFERS).cpu())
@@ -211,7 +220,9 @@ def _load_manifest(out: Path, config: DatagenConfig) -> dict:
     wanted = json.loads(json.dumps(asdict(config)))
     if path.is_file():
         manifest = json.loads(path.read_text())
-        differs = sorted(k for k in wanted if k not in EXTENDABLE and manifest["config"].get(k) != wanted[k])
+        # A field added since the folder was written reads as its default (what it rendered then).
+        written = {**json.loads(json.dumps(asdict(DatagenConfig(volumes=config.volumes)))), **manifest["config"]}
+        differs = sorted(k for k in wanted if k not in EXTENDABLE and written[k] != wanted[k])
         if differs:
             raise ValueError(f"{path} was written with other {differs}; use a new folder or the same config")
         manifest["config"] = wanted
@@ -237,7 +248,7 @@ def generate(config: DatagenConfig, out: str | Path, progress: bool = True) -> d
         rng = np.random.default_rng([config.seed, v, k])
         iso = float(np.clip(iso_ref * rng.uniform(1 - config.iso_jitter, 1 + config.iso_jitter), 1e-3, 1 - 1e-3))
         sampling = {}
-        if config.upscale == 1:
+        if config.recon_inputs:
             sampling = {"input_spp": int(rng.choice(config.input_spp)),
                         "input_ao_rays": int(rng.choice(config.input_ao_rays))}
         # Drawn only from several sides: a config of one side renders what it rendered before sides were listed.

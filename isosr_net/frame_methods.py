@@ -53,6 +53,7 @@ from isosr_net.inference import PRECISIONS, RecurrentNetwork, finish_steps, outp
 from isosr_net.metrics import INTERPOLATIONS, upscale_baseline
 from isosr_net import oidn
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor, recon_limits
+from isosr_net.reconnet import UPSCALES
 from isosr_net.svgf import SVGFConfig, SVGFHistory, svgf_filter
 from isosr_net.timing import StageTimer
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
@@ -543,16 +544,18 @@ class OIDNRunner(FrameRunner):
 
 @register_runner("reconstruct")
 class ReconstructRunner(FrameRunner):
-    """Full resolution, 0 AO rays per hit to the model's ``max_ao_rays`` and 1 ray per pixel to its
-    ``max_spp`` (:class:`~isosr_net.reconnet.RayLimits`), reconstructed (and shaded, in one compiled
-    call on GPUs) by the trained reconstruction network. With a `Reconstructor` made with
-    ``graphs`` on CUDA, a frame in one slice (render, network, shading) is one CUDA graph
+    """Full resolution (or 1/factor of it, for a model that upscales: ``ReconNetConfig.upscale``),
+    0 AO rays per hit to the model's ``max_ao_rays`` and 1 ray per pixel to its ``max_spp``
+    (:class:`~isosr_net.reconnet.RayLimits`), reconstructed (and shaded, in one compiled call on
+    GPUs) by the trained reconstruction network. With a `Reconstructor` made with ``graphs`` on
+    CUDA, a frame in one slice (render, network, shading) is one CUDA graph
     (:meth:`Reconstructor.render_reconstruct`), timed as the ``render`` stage."""
 
     recurrent = True
     network_class = Reconstructor
     default_model = DEFAULT_RECON_MODEL
-    knobs = ("ao_rays", "spp", "model", "precision")
+    knobs = ("ao_rays", "spp", "factor", "model", "precision")
+    factor = (1, max(UPSCALES))
 
     @classmethod
     def bounds(cls, m: FrameMethod) -> dict[str, tuple[int, int]]:
@@ -561,7 +564,7 @@ class ReconstructRunner(FrameRunner):
 
     @classmethod
     def describe(cls, m: FrameMethod) -> str:
-        return f"full, AO {m.ao_rays}, spp {m.spp}, {m.model_name} {m.precision}"
+        return f"{'full' if m.factor == 1 else f'x{m.factor}'}, AO {m.ao_rays}, spp {m.spp}, {m.model_name} {m.precision}"
 
     def outputs(self) -> tuple[str, ...]:
         return ("mask", "normal", "depth") + (("ao",) if self.method.ao_rays else ())

@@ -140,6 +140,8 @@ class FusedReconNet(nn.Module):
         widths = net.config.widths
         if any(w < 16 or w & (w - 1) for w in widths):
             raise ValueError(f"fused_reconnet: the widths must be powers of 2 >= 16, got {widths}")
+        if net.config.upscale != 1:
+            raise ValueError(f"fused_reconnet: a model that upscales (x{net.config.upscale}) runs unfused")
         self.config = net.config
         self.reference = net
         self.head = FusedConv(net.head, PACKED, widths[0])

@@ -10,6 +10,11 @@ from 4 rays per pixel (an antialiased silhouette); depth passes through from the
 sigmoid, from scratch or (``ao_prior="rays"``) as a correction of the input rays' mean
 (:func:`ao_output`), so that more input rays lift it.
 
+With ``upscale=2`` (:class:`ReconNetConfig`) it reconstructs and upscales: the inputs are
+rendered at half the output's sides, the previous output is read space-to-depth (its 2x2 cells
+as channels), the tail writes 2x2 cells (depth-to-space), and the output corrects the inputs
+upsampled (:func:`upsampled_inputs`), the paper's upscaling with few AO rays besides.
+
 The network is a small U-Net: AO varies slowly along a surface and needs a wide view (its
 rays reach ``ao_radius``, tens of pixels on screen), edges need full resolution. So it
 encodes at 1/2, 1/4 and 1/8 resolution, does most of its work at 1/8, and decodes with
@@ -28,7 +33,7 @@ from torch import nn
 from isosr_render.conventions import AO, DEPTH, HIGHRES_CHANNELS, MASK, NORMAL, RECON_CHANNELS, SAMPLED_AO, SAMPLING
 from isosr_render.shapes import check_int, check_shape
 from isosr_net.architectures import ResidualBlock
-from isosr_net.flow_warp import warp_by_flow
+from isosr_net.flow_warp import upscale_flow, warp_by_flow
 
 INPUTS = len(RECON_CHANNELS)
 OUTPUTS = len(HIGHRES_CHANNELS)
@@ -37,6 +42,8 @@ RECURRENT = 2
 LEVELS = 3  # 1/2, 1/4, 1/8
 FIRST_FRAME_MODES = ("zeros", "inputs")
 AO_PRIORS = ("none", "rays")
+# Output over input resolution: 1 reconstructs at the resolution it is given; 2 also upscales.
+UPSCALES = (1, 2)
 
 
 @dataclass(frozen=True)
@@ -73,13 +80,15 @@ class ReconNetConfig:
     """ReconNet's hyper-parameters.
 
     Attributes:
-        widths: channels at full resolution, 1/2, 1/4 and 1/8.
-        blocks: residual blocks at 1/8 resolution.
+        widths: channels at the input's resolution, 1/2, 1/4 and 1/8 of it.
+        blocks: residual blocks at 1/8 of the input's resolution.
         first_frame: the "previous output" of a sequence's first frame: ``"zeros"``, or the
             ``"inputs"`` (their mask and sampled AO, AO 1 where none was cast).
         ao_prior: ``"none"``: AO from scratch; ``"rays"``: a correction of the input rays' mean
             (:func:`ao_output`).
         max_ao_rays, max_spp: the model's :class:`RayLimits`.
+        upscale: output over input resolution (:data:`UPSCALES`): 2 reconstructs a frame rendered
+            at half the output's sides (:func:`upsampled_inputs` is the base its output corrects).
     """
 
     type: str = "ReconNet"
@@ -89,6 +98,7 @@ class ReconNetConfig:
     ao_prior: str = "none"
     max_ao_rays: int = 8
     max_spp: int = 4
+    upscale: int = 1
 
     def __post_init__(self):
         object.__setattr__(self, "widths", tuple(self.widths))
@@ -102,16 +112,14 @@ class ReconNetConfig:
         if self.ao_prior not in AO_PRIORS:
             raise ValueError(f"ao_prior must be one of {AO_PRIORS}, got {self.ao_prior!r}")
         RayLimits(self.max_ao_rays, self.max_spp)  # raises for bad limits
+        if self.upscale not in UPSCALES:
+            raise ValueError(f"upscale must be one of {UPSCALES}, got {self.upscale}")
 
     @property
     def limits(self) -> RayLimits:
         """The most AO rays per hit and rays per pixel the model takes."""
         return RayLimits(self.max_ao_rays, self.max_spp)
 
-    @property
-    def upscale(self) -> int:
-        """Output over input resolution: 1, the network reconstructs at the resolution it is given."""
-        return 1
 
 
 def ao_output(raw_ao: torch.Tensor, inputs: torch.Tensor, config: ReconNetConfig) -> torch.Tensor:
@@ -134,12 +142,27 @@ def ao_output(raw_ao: torch.Tensor, inputs: torch.Tensor, config: ReconNetConfig
 
 
 def macs_per_pixel(config: ReconNetConfig) -> float:
-    """Multiply-adds per full-resolution pixel (convolutions only; the rest is memory traffic)."""
+    """Multiply-adds per output pixel (convolutions only; the rest is memory traffic)."""
     w0, w1, w2, w3 = config.widths
-    enc = (INPUTS + RECURRENT) * w0 * 9 + w0 * w1 * 9 / 4 + w1 * w2 * 9 / 16 + w2 * w3 * 9 / 64
+    cells = config.upscale ** 2  # output pixels per input pixel
+    enc = (INPUTS + RECURRENT * cells) * w0 * 9 + w0 * w1 * 9 / 4 + w1 * w2 * 9 / 16 + w2 * w3 * 9 / 64
     body = 2 * config.blocks * w3 * w3 * 9 / 64
     dec = w3 * w2 / 64 + w2 * w2 * 9 / 16 + w2 * w1 / 16 + w1 * w1 * 9 / 4 + w1 * w0 / 4 + w0 * w0 * 9
-    return enc + body + dec + w0 * OUTPUTS * 9
+    return (enc + body + dec + w0 * OUTPUTS * cells * 9) / cells
+
+
+def upsampled_inputs(inputs: torch.Tensor, factor: int) -> torch.Tensor:
+    """The inputs at ``factor`` times their resolution: bilinear, but depth nearest (a blend across
+    a silhouette would be a depth where no surface is). The base an upscaling ReconNet corrects.
+
+    Shape:
+        inputs: (B, 8, h, w). Returns (B, 8, h * factor, w * factor).
+    """
+    if factor == 1:
+        return inputs
+    up = F.interpolate(inputs, scale_factor=factor, mode="bilinear", align_corners=False)
+    depth = F.interpolate(inputs[:, DEPTH], scale_factor=factor, mode="nearest")
+    return torch.cat([up[:, :DEPTH.start], depth, up[:, DEPTH.stop:]], dim=1)
 
 
 class ReconNet(nn.Module):
@@ -156,22 +179,25 @@ class ReconNet(nn.Module):
         super().__init__()
         self.config = config
         w = config.widths
-        self.head = nn.Conv2d(INPUTS + RECURRENT, w[0], 3, padding=1)
+        cells = config.upscale ** 2  # the previous output's pixels per input pixel, read space-to-depth
+        self.head = nn.Conv2d(INPUTS + RECURRENT * cells, w[0], 3, padding=1)
         self.down = nn.ModuleList(nn.Conv2d(w[i], w[i + 1], 3, stride=2, padding=1) for i in range(LEVELS))
         self.body = nn.Sequential(*[ResidualBlock(w[LEVELS]) for _ in range(config.blocks)])
         # Decoding level i (from 1/2^(i+1) to 1/2^i): a 1x1 channel map at the coarse level,
         # bilinear 2x, plus the encoder's features, then a 3x3 conv.
         self.reduce = nn.ModuleList(nn.Conv2d(w[i + 1], w[i], 1) for i in range(LEVELS))
         self.fuse = nn.ModuleList(nn.Conv2d(w[i], w[i], 3, padding=1) for i in range(LEVELS))
-        self.tail = nn.Conv2d(w[0], OUTPUTS, 3, padding=1)
+        self.tail = nn.Conv2d(w[0], OUTPUTS * cells, 3, padding=1)  # depth-to-space after it
 
     def forward(self, inputs: torch.Tensor, prev_warped: torch.Tensor) -> torch.Tensor:
+        s = self.config.upscale
         dims = check_shape(inputs, f"(B, {INPUTS}, H, W)", "inputs", "ReconNet")
-        check_shape(prev_warped, f"(B, {OUTPUTS}, H, W)", "prev_warped", "ReconNet", dims)
         h, w = dims["H"], dims["W"]
+        check_shape(prev_warped, f"({dims['B']}, {OUTPUTS}, {h * s}, {w * s})", "prev_warped", "ReconNet")
         step = 2 ** LEVELS
         pad = (0, -w % step, 0, -h % step)
-        x = torch.cat([inputs, prev_warped[:, MASK], prev_warped[:, AO]], dim=1)
+        recurrent = torch.cat([prev_warped[:, MASK], prev_warped[:, AO]], dim=1)
+        x = torch.cat([inputs, F.pixel_unshuffle(recurrent, s) if s > 1 else recurrent], dim=1)
         if any(pad):
             x = F.pad(x, pad, mode="replicate")
         skips = [F.relu(self.head(x))]
@@ -182,14 +208,18 @@ class ReconNet(nn.Module):
             y = F.interpolate(self.reduce[i](y), scale_factor=2, mode="bilinear", align_corners=False)
             y = F.relu(self.fuse[i](F.relu(y + skips[i])))
         raw = self.tail(y)[..., :h, :w]
-        mask = (inputs[:, MASK] + raw[:, MASK]).clamp(0.0, 1.0)
-        normal = inputs[:, NORMAL] + raw[:, NORMAL]
-        ao = ao_output(raw[:, AO], inputs, self.config)
-        # Depth passes through: at full resolution the render found it (shading does not read it).
-        return torch.cat([mask, normal, inputs[:, DEPTH], ao], dim=1)
+        if s > 1:
+            raw = F.pixel_shuffle(raw, s)
+        base = upsampled_inputs(inputs, s)
+        mask = (base[:, MASK] + raw[:, MASK]).clamp(0.0, 1.0)
+        normal = base[:, NORMAL] + raw[:, NORMAL]
+        ao = ao_output(raw[:, AO], base, self.config)
+        # Depth passes through: the render found it (shading does not read it).
+        return torch.cat([mask, normal, base[:, DEPTH], ao], dim=1)
 
     def first_previous(self, inputs: torch.Tensor) -> torch.Tensor:
-        """The stand-in for the previous output on a sequence's first frame."""
+        """The stand-in for the previous output on a sequence's first frame, at the output's resolution."""
+        inputs = upsampled_inputs(inputs, self.config.upscale)
         b, _, h, w = inputs.shape
         if self.config.first_frame == "zeros":
             return inputs.new_zeros(b, OUTPUTS, h, w)
@@ -204,15 +234,16 @@ class ReconNet(nn.Module):
         ``previous`` (and ``flow``) are ``None`` on a sequence's first frame.
 
         Returns:
-            ``(output, previous_warped)``, both (B, 6, H, W).
+            ``(output, previous_warped)``, both (B, 6, sH, sW), ``s`` the config's upscale.
 
         Shape:
-            inputs: (B, 8, H, W). flow: (B, 2, H, W), pixels. previous: (B, 6, H, W).
+            inputs: (B, 8, H, W). flow: (B, 2, H, W), input pixels. previous: (B, 6, sH, sW).
         """
         if previous is None:
             warped = self.first_previous(inputs)
         else:
             if flow is None:
                 raise ValueError("a step with a previous output needs the flow to warp it")
-            warped = warp_by_flow(previous, flow)
+            s = self.config.upscale
+            warped = warp_by_flow(previous, upscale_flow(flow, s) if s > 1 else flow)
         return self(inputs, warped), warped

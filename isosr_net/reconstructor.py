@@ -43,8 +43,14 @@ T = TypeVar("T")
 
 
 def recon_limits(model: str | os.PathLike = DEFAULT_RECON_MODEL) -> RayLimits:
-    """The ray limits of a reconstruction model folder, read from its ``config.json`` (not its weights)
-    once per version of that file: the views check each frame's method against them.
+    """The ray limits of a reconstruction model folder (:func:`recon_config`): the views check
+    each frame's method against them."""
+    return recon_config(model).limits
+
+
+def recon_config(model: str | os.PathLike = DEFAULT_RECON_MODEL) -> ReconNetConfig:
+    """The config of a reconstruction model folder, read from its ``config.json`` (not its
+    weights) once per version of that file.
 
     Raises:
         FileNotFoundError, ValueError: not a readable model folder (:func:`~isosr_net.model.read_config`),
@@ -54,16 +60,16 @@ def recon_limits(model: str | os.PathLike = DEFAULT_RECON_MODEL) -> RayLimits:
         version = os.stat(Path(model) / "config.json").st_mtime_ns
     except OSError:
         version = None  # read_config says what is wrong
-    return _read_limits(str(model), version)
+    return _read_config(str(model), version)
 
 
 @functools.lru_cache(maxsize=16)
-def _read_limits(model: str, version: int | None) -> RayLimits:
+def _read_config(model: str, version: int | None) -> ReconNetConfig:
     config = read_config(model)["model"]
     if config.get("type") != "ReconNet":
         raise ValueError(f"{model}: a {config.get('type')} model, not a reconstruction network (ReconNet)")
     try:
-        return ReconNetConfig(**config).limits
+        return ReconNetConfig(**config)
     except TypeError as e:
         raise ValueError(f"{model}: bad model config: {e}") from None
 
@@ -193,6 +199,7 @@ class Reconstructor(RecurrentNetwork):
                          autotune=autotune)
         if not isinstance(self.net, ReconNet):
             raise ValueError(f"{model}: a {type(self.net).__name__}, not a reconstruction network (ReconNet)")
+        self.upscale_factor = self.net.config.upscale
         if fused:
             self.net = fused_reconnet(self.net)
         if graphs and (self.device.type != "cuda" or compile == "reduce-overhead"):
@@ -247,7 +254,7 @@ class Reconstructor(RecurrentNetwork):
         5fb514d the compiled one took 4.14 and 12.7 ms)."""
         if torch.device(device).type == "cuda":
             precision = precision or "fp16"
-            if precision == "fp16" and fused_runs_on(device):
+            if precision == "fp16" and fused_runs_on(device) and recon_config(model).upscale == 1:
                 return cls(model, device, precision, channels_last=True, fused=True, graphs=True)
             return cls(model, device, precision, channels_last=True, compile="default", autotune=True,
                        fast_layers=True, graphs=True)

@@ -160,6 +160,9 @@ class Engine:
         self._on_thread()
         factor = self.network(Upscaler).upscale_factor
         reconstructor = self.network(Reconstructor)
+        if reconstructor.upscale_factor != 1:
+            raise ValueError(f"{self.config.recon_model}: the service's reconstruct mode renders at full resolution; "
+                             f"this model also upscales x{reconstructor.upscale_factor}")
         if self.device.type == "cuda":  # tune the fused kernels for common windows before the first viewer
             reconstructor.warm(WARM_RECON_SIZES)
         self.context = ViewContext(factor, self.precision, self._models)

@@ -49,7 +49,7 @@ def method_for(kind: str, settings: ViewSettings, ctx: ViewContext) -> FrameMeth
     """
     runner = RUNNERS[kind]
     values = {"ao_rays": settings.ao_rays, "spp": settings.spp, "interpolation": settings.interpolation,
-              "factor": ctx.factor, "precision": ctx.precision}
+              "factor": ctx.factor if runner.low_res else 1, "precision": ctx.precision}
     model, name = ctx.models.get(runner.network_class, (None, "network"))
     values["model"] = None if model is None else str(model)
     return FrameMethod(kind, model_name=name, **{k: values[k] for k in runner.knobs})

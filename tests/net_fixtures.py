@@ -30,6 +30,8 @@ TINY_RECON_DATAGEN = replace(TINY_DATAGEN, frames=2, lowres_size=32, upscale=1, 
 TINY_RECON_MODEL = {"type": "ReconNet", "widths": (4, 4, 8, 8), "blocks": 1}
 # For a model over the input rays taking up to 16: frames of two sides, 0 or 16 AO rays.
 TINY_WIDE_RECON_DATAGEN = replace(TINY_RECON_DATAGEN, lowres_size=(16, 32), input_ao_rays=(0, 16), max_ao_rays=16)
+# For a model that reconstructs and upscales x2: inputs at half the ground truth's sides.
+TINY_RECON_X2_DATAGEN = replace(TINY_RECON_DATAGEN, lowres_size=16, upscale=2, reconstruction=True, crop=8)
 
 _CACHE: dict[tuple, Path] = {}
 
@@ -78,6 +80,11 @@ def tiny_recon_data(tmp_path_factory) -> Path:
 def tiny_wide_recon_data(tmp_path_factory) -> Path:
     """:data:`TINY_WIDE_RECON_DATAGEN` rendered (see :func:`_tiny_data`)."""
     return _tiny_data(tmp_path_factory, TINY_WIDE_RECON_DATAGEN, "tiny_wide_recon_data")
+
+
+def tiny_recon_x2_data(tmp_path_factory) -> Path:
+    """:data:`TINY_RECON_X2_DATAGEN` rendered (see :func:`_tiny_data`)."""
+    return _tiny_data(tmp_path_factory, TINY_RECON_X2_DATAGEN, "tiny_recon_x2_data")
 
 
 def tiny_model_dir(tmp_path_factory, seed: int = 0, **model) -> Path:

@@ -18,7 +18,8 @@ from isosr_net.datagen import MANIFEST, DatagenConfig, SequenceDataset, generate
 from isosr_net.reconnet import RayLimits
 from isosr_render.catalog import shared_volumes_dir
 from isosr_render.conventions import MASK, SAMPLED_AO, SAMPLING
-from net_fixtures import TINY_DATAGEN, TINY_RECON_DATAGEN, tiny_datagen, tiny_recon_data, tiny_train_data
+from net_fixtures import (TINY_DATAGEN, TINY_RECON_DATAGEN, TINY_RECON_X2_DATAGEN, tiny_datagen, tiny_recon_data,
+                          tiny_recon_x2_data, tiny_train_data)
 
 
 def shard_tensors(root: Path) -> dict[str, dict[str, torch.Tensor]]:
@@ -163,6 +164,7 @@ def test_config_rejects_bad_values(kwargs, match):
 
 @pytest.mark.parametrize("kwargs, match", [
     ({"input_spp": (1, 2)}, "input_spp and input_ao_rays are for reconstruction data"),
+    ({"upscale": 2, "input_ao_rays": (2,)}, r"reconstruction data \(upscale 1, or reconstruction\)"),
     ({"input_ao_rays": (2,)}, "input_spp and input_ao_rays are for reconstruction data"),
     ({"upscale": 1, "input_spp": (0, 1)}, r"input_spp must be a non-empty list of integers in \[1, 4\]"),
     ({"upscale": 1, "input_spp": (8,)}, r"input_spp must be a non-empty list of integers in \[1, 4\]"),
@@ -303,6 +305,33 @@ def test_reconstruction_shards_hold_full_resolution_inputs_with_their_sampling(t
             assert set(lowres[:, :, MASK].unique().tolist()) <= {0.0, 1.0}
     draws = {(s["input_spp"], s["input_ao_rays"]) for s in manifest["shards"]}
     assert len(draws) > 1  # the sequences were not all rendered alike
+
+
+def test_data_for_a_model_that_also_upscales_has_reconstruction_inputs_at_half_the_sides(tmp_path_factory):
+    root = tiny_recon_x2_data(tmp_path_factory)
+    config = TINY_RECON_X2_DATAGEN
+    c, t = config.crop, config.frames
+    for shard in json.loads((root / MANIFEST).read_text())["shards"]:
+        tensors, k = load_file(root / shard["file"]), shard["crops"]
+        assert tensors["lowres"].shape == (k, t, 8, c, c) and tensors["highres"].shape == (k, t, 6, 2 * c, 2 * c)
+        sampling = tensors["lowres"].float()[:, :, SAMPLING]
+        assert (sampling[:, :, 0] == shard["input_ao_rays"] / config.max_ao_rays).all()
+        assert (sampling[:, :, 1] == shard["input_spp"] / config.max_spp).all()
+    assert not replace(config, upscale=4, reconstruction=False, input_spp=(1,), input_ao_rays=(0,)).recon_inputs
+
+
+def test_a_folder_written_before_a_config_field_existed_reads_it_as_its_default(fresh, tmp_path, monkeypatch):
+    """Resuming a folder whose manifest predates ``reconstruction`` renders nothing new."""
+    old = tmp_path / "old"
+    old.mkdir()
+    for item in fresh.iterdir():
+        (old / item.name).symlink_to(item)
+    manifest = json.loads((fresh / MANIFEST).read_text())
+    del manifest["config"]["reconstruction"]
+    (old / MANIFEST).unlink()
+    (old / MANIFEST).write_text(json.dumps(manifest))
+    monkeypatch.setattr(datagen, "render_sequence", lambda *a, **k: pytest.fail("rendered"))
+    assert len(generate(TINY_DATAGEN, old, progress=False)["shards"]) == len(manifest["shards"])
 
 
 def test_several_sides_render_sequences_of_each_with_crops_of_one_side_scaled_by_the_limits(tmp_path):

@@ -16,7 +16,9 @@ from isosr_render.shading import ShadingParams, shade
 from isosr_net.budget import color_psnr, reference_frames
 from isosr_net.frame_methods import FrameMethod, make_runner, run_sequence
 from isosr_net.model import save_pretrained
-from isosr_net.reconnet import RayLimits, ReconNet, ReconNetConfig, ao_output, macs_per_pixel
+from isosr_net.flow_warp import upscale_flow, warp_by_flow
+from isosr_net.fused_recon import fused_reconnet
+from isosr_net.reconnet import RayLimits, ReconNet, ReconNetConfig, ao_output, macs_per_pixel, upsampled_inputs
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor, recon_inputs, recon_limits
 from isosr_net.upscaler import DEFAULT_MODEL
 
@@ -487,3 +489,88 @@ def test_warm_runs_a_first_and_a_carried_frame_per_size_and_forgets_them():
     reconstructor.warm([(8, 12), (5, 7)])
     assert seen == [((8, 12), False), ((8, 12), True), ((5, 7), False), ((5, 7), True)]
     assert reconstructor.previous is None
+
+
+# ---------------------------------------------------------------- reconstructing and upscaling x2
+
+
+def test_an_upscaling_model_corrects_its_inputs_upsampled_at_twice_the_sides():
+    """With a silent tail the output is the base: mask and normal bilinear, depth nearest, AO the
+    rays' smoothed mean upsampled; the previous output is read at the output's size."""
+    model = net(seed=4, upscale=2, ao_prior="rays")
+    inputs = recon_batch(h=7, w=10)
+    torch.nn.init.zeros_(model.tail.weight)
+    torch.nn.init.zeros_(model.tail.bias)
+    with torch.no_grad():
+        out = model(inputs, torch.rand(2, 6, 14, 20))
+    base = upsampled_inputs(inputs, 2)
+    assert out.shape == (2, 6, 14, 20)
+    up = torch.nn.functional.interpolate(inputs, scale_factor=2, mode="bilinear", align_corners=False)
+    torch.testing.assert_close(out[:, MASK], up[:, MASK].clamp(0, 1))
+    torch.testing.assert_close(out[:, NORMAL], up[:, NORMAL])
+    torch.testing.assert_close(out[:, DEPTH], inputs[:, DEPTH].repeat_interleave(2, 2).repeat_interleave(2, 3))
+    torch.testing.assert_close(out[:, AO], ao_output(torch.zeros_like(out[:, AO]), base, model.config))
+    with pytest.raises(ValueError, match=r"prev_warped must be \(2, 6, 14, 20\)"):
+        model(inputs, torch.rand(2, 6, 7, 10))
+
+
+def test_an_upscaling_step_warps_the_previous_output_by_the_flow_at_its_size():
+    model = net(seed=5, upscale=2)
+    inputs, flow = recon_batch(h=6, w=9), torch.randn(2, 2, 6, 9)
+    with torch.no_grad():
+        first, stand_in = model.step(inputs, None, None)
+        second, warped = model.step(inputs, flow, first)
+    assert first.shape == second.shape == stand_in.shape == (2, 6, 12, 18)
+    torch.testing.assert_close(stand_in, model.__class__(ReconNetConfig()).first_previous(upsampled_inputs(inputs, 2)))
+    torch.testing.assert_close(warped, warp_by_flow(first, upscale_flow(flow, 2)))
+
+
+def test_an_upscaling_model_costs_a_third_of_the_multiply_adds_per_output_pixel():
+    model = net(upscale=2)
+    with FlopCounterMode(display=False) as counter, torch.no_grad():
+        model(recon_batch(b=1, h=16, w=24), torch.zeros(1, 6, 32, 48))
+    assert counter.get_total_flops() / 2 / (32 * 48) == pytest.approx(macs_per_pixel(model.config), rel=1e-12)
+    assert macs_per_pixel(model.config) < macs_per_pixel(ReconNetConfig()) / 3
+    with pytest.raises(ValueError, match=r"upscale must be one of \(1, 2\), got 4"):
+        ReconNetConfig(upscale=4)
+
+
+@pytest.fixture(scope="module")
+def x2_model(tmp_path_factory):
+    """A random ReconNet that reconstructs and upscales x2, saved."""
+    folder = tmp_path_factory.mktemp("x2_model")
+    save_pretrained(net(seed=6, widths=(4, 4, 8, 8), blocks=1, ao_prior="rays", upscale=2), folder)
+    return folder
+
+
+def test_a_reconstructor_of_an_upscaling_model_makes_frames_at_twice_the_sides(x2_model, sphere):
+    renderer, iso = sphere
+    outputs = ("mask", "normal", "depth", "ao", "flow")
+    reconstructor = Reconstructor(x2_model)
+    assert reconstructor.upscale_factor == 2
+    frames = [renderer.render(camera, request) for camera, request in
+              sequence_requests(orbit_path(2, yaw_step=3.0), SIZE[0] // 2, SIZE[1] // 2, iso, outputs, ao_samples=2)]
+    first = reconstructor.reconstruct(frames[0], 2, 1, ShadingParams())
+    assert_sane(FrameBuffers(mask=first.mask, normal=first.normal, depth=first.depth, ao=first.ao), SIZE[1], SIZE[0])
+    assert first.color.shape == (SIZE[1], SIZE[0], 3)
+    assert reconstructor.carries(SIZE[1] // 2, SIZE[0] // 2, True) and not reconstructor.carries(*SIZE[::-1], True)
+    second = reconstructor.reconstruct(frames[1], 2, 1)
+    assert_sane(second, SIZE[1], SIZE[0])
+    alone = Reconstructor(x2_model).reconstruct(frames[1], 2, 1)
+    assert not torch.equal(second.ao, alone.ao)  # the first frame carried over
+    with pytest.raises(ValueError, match=r"fused_reconnet: a model that upscales \(x2\) runs unfused"):
+        fused_reconnet(net(upscale=2))
+
+
+def test_the_frame_method_of_an_upscaling_model_renders_at_half_the_sides(x2_model, sphere):
+    renderer, iso = sphere
+    method = FrameMethod("reconstruct", ao_rays=2, factor=2, model=str(x2_model), model_name="recon-x2")
+    assert method.name == "x2, AO 2, spp 1, recon-x2 fp32"
+    runner = make_runner(method, renderer, iso, *SIZE, keep=("depth",))
+    assert (runner.render_request().width, runner.render_request().height) == (SIZE[0] // 2, SIZE[1] // 2)
+    frame = runner.frame(orbit(30.0, 20.0, 1.6))
+    assert frame.buffers.color.shape == (SIZE[1], SIZE[0], 3) and torch.isfinite(frame.buffers.color).all()
+    with pytest.raises(ValueError, match="the model upscales x1, not x2"):
+        make_runner(FrameMethod("reconstruct", factor=2), renderer, iso, *SIZE)
+    with pytest.raises(ValueError, match=r"factor must be an integer in \[1, 2\]"):
+        FrameMethod("reconstruct", factor=4)

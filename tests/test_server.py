@@ -651,3 +651,19 @@ def test_a_non_finite_network_output_is_refused_and_resets_the_state():
     with pytest.raises(ValueError, match="non-finite values"):
         _check_finite(network, fine)
     assert network.was_reset
+
+
+def test_the_service_refuses_a_reconstruction_model_that_upscales(tmp_path):
+    import asyncio
+
+    from isosr_net.model import save_pretrained
+    from isosr_net.reconnet import ReconNet, ReconNetConfig
+    from isosr_server.engine import Engine, EngineConfig
+
+    save_pretrained(ReconNet(ReconNetConfig(widths=(4, 4, 8, 8), blocks=1, upscale=2)), tmp_path)
+    engine = Engine(EngineConfig(recon_model=tmp_path))
+    try:
+        with pytest.raises(ValueError, match="renders at full resolution; this model also upscales x2"):
+            asyncio.run(engine.call(engine.start_sync))
+    finally:
+        engine.shutdown()

@@ -17,7 +17,7 @@ from isosr_net.datagen import DatagenConfig
 from isosr_net.losses import PAPER_LOSSES
 from isosr_net.model import Unrolled, build_model, load_pretrained
 from isosr_net.train import Trainer, TrainConfig
-from net_fixtures import (TINY_RECON_MODEL, random_vgg19, tiny_train_config, tiny_train_data,
+from net_fixtures import (TINY_RECON_MODEL, random_vgg19, tiny_recon_x2_data, tiny_train_config, tiny_train_data,
                           tiny_wide_recon_data)
 
 METRIC_KEYS = {"loss", "color_psnr", "color_ssim", "normal_psnr", "ao_psnr", "mask_iou"}
@@ -236,12 +236,16 @@ def test_the_shipped_configs_load():
 
 
 @pytest.mark.parametrize("train, datagen", [("train_recon.json", "datagen_recon.json"),
-                                            ("train_recon2.json", "datagen_recon2.json")])
+                                            ("train_recon2.json", "datagen_recon2.json"),
+                                            ("train_recon_x2.json", "datagen_recon_x2.json")])
 def test_each_reconstruction_config_fits_its_data_config(train, datagen):
     root = Path(__file__).resolve().parents[1] / "configs"
     config, data = load_config(TrainConfig, root / train), load_config(DatagenConfig, root / datagen)
-    assert build_model(config.model).config.limits == data.limits and data.upscale == 1
+    model = build_model(config.model).config
+    assert model.limits == data.limits and model.upscale == data.upscale and data.recon_inputs
     assert max(data.input_ao_rays) == data.max_ao_rays and max(data.input_spp) == data.max_spp
+    run = train.removeprefix("train_").removesuffix(".json")  # scripts/train_recon.sh's RUN
+    assert (config.data, config.out) == (f"data/{run}", f"runs/{run}")
 
 
 def test_a_reconstruction_model_over_the_rays_trains_with_the_temporal_loss_and_refuses_other_limits(
@@ -255,6 +259,21 @@ def test_a_reconstruction_model_over_the_rays_trains_with_the_temporal_loss_and_
     with pytest.raises(ValueError, match=r"scales its sampling channels by RayLimits\(max_ao_rays=16, max_spp=4\), "
                                          r"the model by RayLimits\(max_ao_rays=8"):
         trainer(wide, tmp_path / "other", model=dict(TINY_RECON_MODEL))
+
+
+def test_a_reconstruction_model_that_upscales_trains_on_its_data_and_a_full_resolution_one_is_refused(
+        tmp_path, tmp_path_factory):
+    data = tiny_recon_x2_data(tmp_path_factory)
+    model = {**TINY_RECON_MODEL, "ao_prior": "rays", "upscale": 2}
+    losses = [{"type": "channel", "channel": "color", "kind": "l1"}, {"type": "temporal", "weight": 1.0}]
+    t = trainer(data, tmp_path / "run", steps=2, model=model, losses=losses)
+    before = [p.detach().clone() for p in t.net.parameters()]
+    logs = t.train_step(next(t._batches(t.train_set, shuffle=True, epoch=0)))
+    assert logs["temporal"] > 0 and all(torch.isfinite(torch.tensor(v)) for v in logs.values())
+    assert any(not torch.equal(a, b) for a, b in zip(before, t.net.parameters()))
+    assert all(torch.isfinite(torch.tensor(v)) for v in t.validate().values())
+    with pytest.raises(ValueError, match="is for upscale 2, the model upscales 1"):
+        trainer(data, tmp_path / "other", model=dict(TINY_RECON_MODEL))
 
 
 # ---------------------------------------------------------------- the adversarial setup

@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# Render a reconstruction model's data (configs/datagen_$RUN.json) and train it
+# (configs/train_$RUN.json), on the GPU machine, from the project root:
+#   [RUN=recon2] bash scripts/train_recon.sh OUT_DIR [FROM_DIR]
+# RUN: recon2 (default; the model over the input rays: 0-16 AO rays, 1-4 rays per pixel, frames of
+# 512, 1024 and 2048 pixels) or recon_x2 (the same, rendered at half the sides: it also upscales x2).
+# FROM_DIR: a previous run's OUT_DIR; training resumes from its last/ (the trainer resumes from
+# runs/$RUN/last) and keeps its best/ unless it does better. Data goes to data/$RUN and the run to
+# runs/$RUN (both git-ignored; the same config renders the same data again); the logs, last/ (the
+# resume checkpoint: weights, config, optimizer state) and best/ go to OUT_DIR.
+# To train past the config's steps when resuming, set STEPS (the cosine schedule restarts over it);
+# MINUTES overrides the training's time limit (the whole script must fit one 10-minute device run).
+set -euo pipefail
+run=${RUN:-recon2}
+out=${1:?usage: [RUN=recon2|recon_x2] train_recon.sh OUT_DIR [FROM_DIR]}
+from=${2:-}
+isosr() { python3 -m isosr_cli.main "$@"; }
+mkdir -p "$out" data runs
+if [ -n "$from" ]; then
+    rm -rf "runs/$run" && mkdir -p "runs/$run"
+    cp -r "$from/last" "runs/$run/last"
+    if [ -d "$from/best" ]; then cp -r "$from/best" "runs/$run/best"; fi
+    chmod -R u+w "runs/$run"  # files fetched from a device run come back read-only
+fi
+isosr datagen "configs/datagen_$run.json" -o "data/$run" > "$out/datagen_$run.log" 2>&1
+isosr train "configs/train_$run.json" ${STEPS:+--steps "$STEPS"} ${MINUTES:+--time-limit-minutes "$MINUTES"} \
+    > "$out/train_$run.log" 2>&1
+rm -rf "$out/last" "$out/best"
+cp -r "runs/$run/last" "$out/last"
+if [ -d "runs/$run/best" ]; then cp -r "runs/$run/best" "$out/best"; fi
+du -sh "$out"/*
