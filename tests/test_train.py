@@ -248,14 +248,22 @@ def test_each_reconstruction_config_fits_its_data_config(train, datagen):
     assert (config.data, config.out) == (f"data/{run}", f"runs/{run}")
 
 
+def recon_step_with_the_temporal_loss(data: Path, tmp_path: Path, model: dict) -> Trainer:
+    """A trainer of ``model`` on ``data`` after one step under the color and temporal losses: its
+    losses finite, the temporal one not 0, the weights moved."""
+    losses = [{"type": "channel", "channel": "color", "kind": "l1"}, {"type": "temporal", "weight": 1.0}]
+    t = trainer(data, tmp_path / "run", steps=2, model=model, losses=losses)
+    before = [p.detach().clone() for p in t.net.parameters()]
+    logs = t.train_step(next(t._batches(t.train_set, shuffle=True, epoch=0)))
+    assert logs["temporal"] > 0 and all(torch.isfinite(torch.tensor(v)) for v in logs.values())
+    assert any(not torch.equal(a, b) for a, b in zip(before, t.net.parameters()))
+    return t
+
+
 def test_a_reconstruction_model_over_the_rays_trains_with_the_temporal_loss_and_refuses_other_limits(
         tmp_path, tmp_path_factory):
     wide = tiny_wide_recon_data(tmp_path_factory)
-    model = {**TINY_RECON_MODEL, "ao_prior": "rays", "max_ao_rays": 16}
-    losses = [{"type": "channel", "channel": "ao", "kind": "l1"}, {"type": "temporal", "weight": 1.0}]
-    t = trainer(wide, tmp_path / "run", steps=2, model=model, losses=losses)
-    logs = t.train_step(next(t._batches(t.train_set, shuffle=True, epoch=0)))
-    assert logs["temporal"] > 0 and all(torch.isfinite(torch.tensor(v)) for v in logs.values())
+    recon_step_with_the_temporal_loss(wide, tmp_path, {**TINY_RECON_MODEL, "ao_prior": "rays", "max_ao_rays": 16})
     with pytest.raises(ValueError, match=r"scales its sampling channels by RayLimits\(max_ao_rays=16, max_spp=4\), "
                                          r"the model by RayLimits\(max_ao_rays=8"):
         trainer(wide, tmp_path / "other", model=dict(TINY_RECON_MODEL))
@@ -264,13 +272,7 @@ def test_a_reconstruction_model_over_the_rays_trains_with_the_temporal_loss_and_
 def test_a_reconstruction_model_that_upscales_trains_on_its_data_and_a_full_resolution_one_is_refused(
         tmp_path, tmp_path_factory):
     data = tiny_recon_x2_data(tmp_path_factory)
-    model = {**TINY_RECON_MODEL, "ao_prior": "rays", "upscale": 2}
-    losses = [{"type": "channel", "channel": "color", "kind": "l1"}, {"type": "temporal", "weight": 1.0}]
-    t = trainer(data, tmp_path / "run", steps=2, model=model, losses=losses)
-    before = [p.detach().clone() for p in t.net.parameters()]
-    logs = t.train_step(next(t._batches(t.train_set, shuffle=True, epoch=0)))
-    assert logs["temporal"] > 0 and all(torch.isfinite(torch.tensor(v)) for v in logs.values())
-    assert any(not torch.equal(a, b) for a, b in zip(before, t.net.parameters()))
+    t = recon_step_with_the_temporal_loss(data, tmp_path, {**TINY_RECON_MODEL, "ao_prior": "rays", "upscale": 2})
     assert all(torch.isfinite(torch.tensor(v)) for v in t.validate().values())
     with pytest.raises(ValueError, match="is for upscale 2, the model upscales 1"):
         trainer(data, tmp_path / "other", model=dict(TINY_RECON_MODEL))
