@@ -221,7 +221,7 @@ def _load_manifest(out: Path, config: DatagenConfig) -> dict:
     if path.is_file():
         manifest = json.loads(path.read_text())
         # A field added since the folder was written reads as its default (what it rendered then).
-        written = {**json.loads(json.dumps(asdict(DatagenConfig(volumes=config.volumes)))), **manifest["config"]}
+        written = {**json.loads(json.dumps(asdict(DatagenConfig()))), **manifest["config"]}
         differs = sorted(k for k in wanted if k not in EXTENDABLE and written[k] != wanted[k])
         if differs:
             raise ValueError(f"{path} was written with other {differs}; use a new folder or the same config")

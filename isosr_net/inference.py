@@ -127,12 +127,16 @@ def check_surface(frame: FrameBuffers) -> dict[str, int]:
             raise ValueError(f"the frame lacks its {name} buffer")
     dims = check_shape(frame.mask, "(H, W)", "mask", "surface_tensors")
     for name, spec in SURFACE_SHAPES.items():
-        t = getattr(frame, name)
-        if t is not None:
-            check_shape(t, spec, name, "surface_tensors", dims)
-            if not t.is_floating_point():
-                raise ValueError(f"{name} must be floating point, got {t.dtype}")
+        if getattr(frame, name) is not None:
+            check_buffer(getattr(frame, name), spec, name, "surface_tensors", dims)
     return dims
+
+
+def check_buffer(t: torch.Tensor, spec: str, name: str, where: str, dims: dict[str, int]) -> None:
+    """A frame's buffer ``name`` has the shape ``spec`` (with ``dims``) and a floating-point dtype."""
+    check_shape(t, spec, name, where, dims)
+    if not t.is_floating_point():
+        raise ValueError(f"{name} must be floating point, got {t.dtype}")
 
 
 def surface_tensors(frame: FrameBuffers, checks: InputChecks | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:

@@ -121,7 +121,6 @@ class ReconNetConfig:
         return RayLimits(self.max_ao_rays, self.max_spp)
 
 
-
 def ao_output(raw_ao: torch.Tensor, inputs: torch.Tensor, config: ReconNetConfig) -> torch.Tensor:
     """The output AO from the tail's AO channel ``raw_ao``.
 

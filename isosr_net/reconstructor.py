@@ -23,13 +23,11 @@ from typing import TYPE_CHECKING, TypeVar
 import torch
 
 from isosr_render.buffers import FrameBuffers
-from isosr_render.conventions import AO, MASK, NORMAL
 from isosr_render.shading import ShadingParams, shade
-from isosr_render.shapes import check_shape
 from isosr_net.fused_recon import fused_reconnet, fused_runs_on, triton_imports
 from isosr_net.reconnet import RayLimits, ReconNet, ReconNetConfig
 from isosr_net.inference import (AO_MESSAGE, PRECISIONS, InputChecks, RecurrentNetwork, ao_in_range, buffer_stack,
-                                 check_surface, frame_flags, stack_buffers, surface_tensors)
+                                 check_buffer, check_surface, frame_flags, stack_buffers, surface_tensors)
 from isosr_net.model import read_config
 
 if TYPE_CHECKING:  # the network runs without Warp; render_reconstruct takes what a renderer made
@@ -116,9 +114,7 @@ def _check_frame(frame: FrameBuffers, ao_rays: int, spp: int, limits: RayLimits)
     if ao_rays:
         if frame.ao is None:
             raise ValueError(f"reconstruction from {ao_rays} AO rays needs the frame's ao buffer")
-        check_shape(frame.ao, "(H, W)", "ao", "recon_inputs", dims)
-        if not frame.ao.is_floating_point():
-            raise ValueError(f"ao must be floating point, got {frame.ao.dtype}")
+        check_buffer(frame.ao, "(H, W)", "ao", "recon_inputs", dims)
 
 
 def recon_frame(net: ReconNet, mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, ao: torch.Tensor | None,
@@ -153,8 +149,8 @@ def recon_frame(net: ReconNet, mask: torch.Tensor, normal: torch.Tensor, depth: 
     with torch.autocast(surface.device.type, dtype=precision, enabled=precision != torch.float32):
         output = net.step(inputs, carried, previous)[0]
     stack = buffer_stack(output)
-    color = None if shading is None else shade(stack[0, MASK.start], stack[0, NORMAL].permute(1, 2, 0),
-                                               stack[0, AO.start], shading)
+    high = stack_buffers(stack)
+    color = None if shading is None else shade(high.mask, high.normal, high.ao, shading)
     return stack, color, frame_flags(mask, normal, depth, ao, flow)
 
 
@@ -200,11 +196,10 @@ class Reconstructor(RecurrentNetwork):
         if not isinstance(self.net, ReconNet):
             raise ValueError(f"{model}: a {type(self.net).__name__}, not a reconstruction network (ReconNet)")
         self.upscale_factor = self.net.config.upscale
-        if fused:
-            self.net = fused_reconnet(self.net)
         if graphs and (self.device.type != "cuda" or compile == "reduce-overhead"):
             raise ValueError("graphs: CUDA graphs need a CUDA device and a compile mode other than reduce-overhead")
         if fused:
+            self.net = fused_reconnet(self.net)
             self._frame = self.net.frame
         else:
             frame_fn = functools.partial(recon_frame, self.net, precision=PRECISIONS[precision])
@@ -254,11 +249,28 @@ class Reconstructor(RecurrentNetwork):
         5fb514d the compiled one took 4.14 and 12.7 ms)."""
         if torch.device(device).type == "cuda":
             precision = precision or "fp16"
-            if precision == "fp16" and fused_runs_on(device) and recon_config(model).upscale == 1:
+            if cls.fuses(model, device, precision):
                 return cls(model, device, precision, channels_last=True, fused=True, graphs=True)
             return cls(model, device, precision, channels_last=True, compile="default", autotune=True,
                        fast_layers=True, graphs=True)
         return cls(model, device, precision or "fp32", channels_last=True)
+
+    @classmethod
+    def served(cls, model: str | Path, device: str, precision: str) -> "Reconstructor":
+        """The variant a service runs on ``device`` (one per stream, :meth:`own`): NHWC on GPUs, the
+        fused kernels where they apply (:meth:`fuses`), else the fast layers; nothing compiled,
+        no CUDA graphs (their memory is per stream)."""
+        cuda = torch.device(device).type == "cuda"
+        if cls.fuses(model, device, precision):
+            return cls(model, device, precision, channels_last=True, fused=True)
+        return cls(model, device, precision, channels_last=cuda, fast_layers=cuda)
+
+    @staticmethod
+    def fuses(model: str | Path, device: str, precision: str) -> bool:
+        """Whether the fused kernels run ``model`` on ``device`` in ``precision``: fp16 on CUDA with
+        Triton, and a model that does not upscale (:attr:`ReconNetConfig.upscale`)."""
+        return (precision == "fp16" and torch.device(device).type == "cuda" and fused_runs_on(device)
+                and recon_config(model).upscale == 1)
 
     @property
     def limits(self) -> RayLimits:

@@ -20,7 +20,7 @@ import warnings
 
 from isosr_net.budget import BudgetChoice, BudgetConfig, QualityProbe, choose_method, default_candidates, \
     probe_quality
-from isosr_net.frame_methods import FrameMethod, Networks
+from isosr_net.frame_methods import FrameMethod, FrameRunner, Networks
 from isosr_net.reconstructor import Reconstructor, recon_limits
 from isosr_render import Camera, Renderer
 
@@ -31,6 +31,12 @@ log = logging.getLogger("isosr.server")
 # hand-off, the event loop's share of the host): on an H100 at 1080p, 16 sessions of full
 # frames ran at 2.7 ms each where one alone took 1.5 ms of the device thread.
 PROBE = dict(probe_frames=1, warmup_frames=1, timing_frames=2, clock="wall", headroom=0.75)
+
+
+def served_factor(runner: type[FrameRunner], factor: int) -> int:
+    """The factor the service gives a method of ``runner``: its upscaler's ``factor`` to low-res
+    kinds, 1 to the others (its reconstruction renders at full resolution)."""
+    return factor if runner.low_res else 1
 
 
 class AutoPolicy:
@@ -61,7 +67,7 @@ class AutoPolicy:
             if m.learned:
                 folder, name = models.get(m.runner.network_class, (None, m.model_name))
                 m = dataclasses.replace(m, model=None if folder is None else str(folder), model_name=name,
-                                        factor=factor if m.runner.low_res else 1)
+                                        factor=served_factor(m.runner, factor))
             candidates.append(m)
         return cls(tuple(candidates), target_fps, networks)
 

@@ -31,7 +31,6 @@ import numpy as np
 import torch
 
 from isosr_net.frame_methods import Networks, finish_steps
-from isosr_net.fused_recon import fused_runs_on
 from isosr_net.inference import RecurrentNetwork, default_precision
 from isosr_net.reconnet import RayLimits
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor, recon_limits
@@ -65,13 +64,12 @@ VIDEO_ENCODER_THREADS = max(1, (os.cpu_count() or 1) // 2)
 
 
 def serving_network(cls: type[RecurrentNetwork], model: Path, device: str, precision: str) -> RecurrentNetwork:
-    """A network as the service runs it: on GPUs NHWC, the reconstruction in fp16 as fused Triton
-    kernels (autotuned once per size class, :mod:`isosr_net.fused_kernels`), else with the fast
-    layers; nothing compiled, no CUDA graphs (memory per stream); CPU upscaling in tiles
-    (bounded memory)."""
+    """A network as the service runs it: the reconstruction as :meth:`Reconstructor.served` (the
+    fused kernels where they apply, autotuned once per size class); the upscaler on GPUs NHWC with
+    the fast layers, not compiled, on CPUs in tiles (bounded memory)."""
+    if cls is Reconstructor:
+        return Reconstructor.served(model, device, precision)
     cuda = torch.device(device).type == "cuda"
-    if cls is Reconstructor and precision == "fp16" and cuda and fused_runs_on(device):
-        return Reconstructor(model, device, precision, channels_last=True, fused=True)
     net = cls(model, device, precision, channels_last=cuda, fast_layers=cuda)
     if isinstance(net, Upscaler) and not cuda:
         net.tile = CPU_UPSCALE_TILE

@@ -26,7 +26,7 @@ import torch
 from isosr_net.frame_methods import RUNNERS, FrameMethod, FrameResult, FrameStream, Networks, make_runner
 from isosr_net.timing import StageTimer
 from isosr_render import Camera, Renderer
-from isosr_server.auto import AutoPolicy
+from isosr_server.auto import AutoPolicy, served_factor
 from isosr_server.channels import false_color
 from isosr_server.protocol import MODES, FocusMsg, ProtocolError, ViewSettings
 
@@ -49,7 +49,7 @@ def method_for(kind: str, settings: ViewSettings, ctx: ViewContext) -> FrameMeth
     """
     runner = RUNNERS[kind]
     values = {"ao_rays": settings.ao_rays, "spp": settings.spp, "interpolation": settings.interpolation,
-              "factor": ctx.factor if runner.low_res else 1, "precision": ctx.precision}
+              "factor": served_factor(runner, ctx.factor), "precision": ctx.precision}
     model, name = ctx.models.get(runner.network_class, (None, "network"))
     values["model"] = None if model is None else str(model)
     return FrameMethod(kind, model_name=name, **{k: values[k] for k in runner.knobs})

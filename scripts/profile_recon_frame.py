@@ -23,13 +23,14 @@ from torch.profiler import ProfilerActivity, profile
 
 from isosr_render.buffers import FrameBuffers
 from isosr_render.shading import ShadingParams
-from isosr_net.reconstructor import Reconstructor
+from isosr_net.inference import default_precision
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
 
 SIZES = {"1080p": (1080, 1920), "4k": (2160, 3840), "smoke": (64, 96)}
-# fastest: Reconstructor.fastest (one CUDA graph a frame); served: as the service runs it on GPUs
-# (isosr_server.engine.serving_network: the fused kernels launched one by one, no graphs).
+# fastest: Reconstructor.fastest (one CUDA graph a frame); served: as the service runs it
+# (Reconstructor.served: on GPUs the fused kernels launched one by one, no graphs).
 VARIANTS = {"fastest": lambda device: Reconstructor.fastest(device=device),
-            "served": lambda device: Reconstructor(device=device, precision="fp16", channels_last=True, fused=True)}
+            "served": lambda device: Reconstructor.served(DEFAULT_RECON_MODEL, device, default_precision(device))}
 
 
 def synthetic_frame(h: int, w: int, device: str, seed: int) -> FrameBuffers:

@@ -17,7 +17,7 @@ from isosr_net.budget import color_psnr, reference_frames
 from isosr_net.frame_methods import FrameMethod, make_runner, run_sequence
 from isosr_net.model import save_pretrained
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
-from isosr_net.fused_recon import fused_reconnet
+from isosr_net.fused_recon import FusedReconNet, fused_reconnet
 from isosr_net.reconnet import RayLimits, ReconNet, ReconNetConfig, ao_output, macs_per_pixel, upsampled_inputs
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor, recon_inputs, recon_limits
 from isosr_net.upscaler import DEFAULT_MODEL
@@ -574,3 +574,16 @@ def test_the_frame_method_of_an_upscaling_model_renders_at_half_the_sides(x2_mod
         make_runner(FrameMethod("reconstruct", factor=2), renderer, iso, *SIZE)
     with pytest.raises(ValueError, match=r"factor must be an integer in \[1, 2\]"):
         FrameMethod("reconstruct", factor=4)
+
+
+def test_the_fused_kernels_run_fp16_on_cuda_and_models_that_do_not_upscale(x2_model):
+    """The one rule `fastest` and the service's `served` follow (decided from the model's config,
+    without a GPU)."""
+    from isosr_net.fused_recon import triton_imports
+
+    assert Reconstructor.fuses(DEFAULT_RECON_MODEL, "cuda", "fp16") == triton_imports()
+    assert not Reconstructor.fuses(x2_model, "cuda", "fp16")
+    assert not Reconstructor.fuses(DEFAULT_RECON_MODEL, "cuda", "bf16")
+    assert not Reconstructor.fuses(DEFAULT_RECON_MODEL, "cpu", "fp16")
+    served = Reconstructor.served(DEFAULT_RECON_MODEL, "cpu", "fp32")
+    assert not served.graphs and not isinstance(served.net, FusedReconNet)
