@@ -73,11 +73,9 @@ def _bench_briefly(kernel_call, quantiles):
 
 
 @triton.jit
-def _source(ptr, sb, sc, sh, sw, b, y, x, valid, c, FIRST: tl.constexpr, N: tl.constexpr):
-    """Channels FIRST..FIRST+N-1 of a (BLOCK, C) tile read from one source plane group at pixels
-    (y, x), fp32; zero in the tile's other channels and past ``valid``."""
-    inside = valid[:, None] & (c >= FIRST) & (c < FIRST + N)
-    return tl.load(ptr + b * sb + (c - FIRST) * sc + (y * sh + x * sw)[:, None], mask=inside, other=0.0).to(tl.float32)
+def _plane(ptr, sb, sh, sw, b, y, x, valid):
+    """One source plane at pixels (y, x), fp32 (BLOCK,); 0 past ``valid``."""
+    return tl.load(ptr + b * sb + y * sh + x * sw, mask=valid, other=0.0).to(tl.float32)
 
 
 @triton.jit
@@ -93,6 +91,26 @@ def _not_finite(x):
 
 
 @triton.jit
+def _warped(prev_ptr, sp_b, sp_h, sp_w, b, x, y, fx, fy, h, w, valid):
+    """One plane of the previous output backward-warped as isosr_net.flow_warp.warp_by_flow:
+    previous(p + flow[p]), bilinear, zeros outside. Positions far outside are clamped (all four
+    taps stay outside) before the cast."""
+    px = tl.minimum(tl.maximum(x.to(tl.float32) + fx, -2.0), w + 1.0)
+    py = tl.minimum(tl.maximum(y.to(tl.float32) + fy, -2.0), h + 1.0)
+    x0f, y0f = tl.floor(px), tl.floor(py)
+    ax, ay = px - x0f, py - y0f
+    x0, y0 = x0f.to(tl.int32), y0f.to(tl.int32)
+    out = tl.zeros_like(px)
+    for corner in tl.static_range(4):
+        xx = x0 + corner % 2
+        yy = y0 + corner // 2
+        weight = (ax if corner % 2 else 1.0 - ax) * (ay if corner // 2 else 1.0 - ay)
+        inside = valid & (xx >= 0) & (xx < w) & (yy >= 0) & (yy < h)
+        out += weight * tl.load(prev_ptr + b * sp_b + yy * sp_h + xx * sp_w, mask=inside, other=0.0).to(tl.float32)
+    return out
+
+
+@triton.jit
 def _pack_kernel(m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, sn_b, sn_c, sn_h, sn_w, d_ptr, sd_b, sd_c, sd_h, sd_w,
                  a_ptr, sa_b, sa_c, sa_h, sa_w, s_ptr, ss_b, ss_c, ss_h, ss_w,
                  prev_ptr, sp_b, sp_c, sp_h, sp_w, flow_ptr, sf_b, sf_c, sf_h, sf_w, out_ptr, flags_ptr,
@@ -105,54 +123,48 @@ def _pack_kernel(m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, sn_b, sn_c, sn_h, sn_w, d
     valid = offs < hp * wp
     y = tl.minimum(offs // wp, h - 1)  # replicate padding: bottom rows and right columns repeat
     x = tl.minimum(offs % wp, w - 1)
-    c = tl.arange(0, C)[None, :]
-    vals = (_source(m_ptr, sm_b, sm_c, sm_h, sm_w, b, y, x, valid, c, MASK_C, 1)
-            + _source(n_ptr, sn_b, sn_c, sn_h, sn_w, b, y, x, valid, c, NORMAL_C, 3)
-            + _source(d_ptr, sd_b, sd_c, sd_h, sd_w, b, y, x, valid, c, DEPTH_C, 1)
-            + _source(s_ptr, ss_b, ss_c, ss_h, ss_w, b, y, x, valid, c, SAMPLING_C, 2))
+    mask = _plane(m_ptr, sm_b, sm_h, sm_w, b, y, x, valid)
+    nx = _plane(n_ptr, sn_b, sn_h, sn_w, b, y, x, valid)
+    ny = _plane(n_ptr + sn_c, sn_b, sn_h, sn_w, b, y, x, valid)
+    nz = _plane(n_ptr + 2 * sn_c, sn_b, sn_h, sn_w, b, y, x, valid)
+    depth = _plane(d_ptr, sd_b, sd_h, sd_w, b, y, x, valid)
+    rays = tl.zeros((BLOCK,), dtype=tl.float32)
     if HAS_AO:
-        vals += _source(a_ptr, sa_b, sa_c, sa_h, sa_w, b, y, x, valid, c, AO_C, 1)
+        rays = _plane(a_ptr, sa_b, sa_h, sa_w, b, y, x, valid)
+    s0 = _plane(s_ptr, ss_b, ss_h, ss_w, b, y, x, valid)
+    s1 = _plane(s_ptr + ss_c, ss_b, ss_h, ss_w, b, y, x, valid)
     # The input checks (FRAME_FLAGS), over this program's pixels: a flag per buffer that holds
     # NaN or Inf, one for AO outside [0, 1], and the largest finite |depth|.
-    bad = _not_finite(vals)
     flags = flags_ptr + (b * tl.num_programs(0) + tl.program_id(0)) * FLAG_SLOTS
-    tl.store(flags + 0, tl.max(tl.where(c == MASK_C, bad, 0.0)))
-    tl.store(flags + 1, tl.max(tl.where((c >= NORMAL_C) & (c < NORMAL_C + 3), bad, 0.0)))
-    tl.store(flags + 2, tl.max(tl.where(c == DEPTH_C, bad, 0.0)))
-    tl.store(flags + 4, tl.max(tl.where((c == AO_C) & ((vals < 0.0) | (vals > 1.0) | (bad > 0)), 1.0, 0.0)))
-    tl.store(flags + 5, tl.max(tl.where((c == DEPTH_C) & (bad == 0), tl.abs(vals), 0.0)))
+    tl.store(flags + 0, tl.max(_not_finite(mask)))
+    tl.store(flags + 1, tl.max(tl.maximum(tl.maximum(_not_finite(nx), _not_finite(ny)), _not_finite(nz))))
+    tl.store(flags + 2, tl.max(_not_finite(depth)))
+    tl.store(flags + 4, tl.max(tl.where((rays >= 0.0) & (rays <= 1.0), 0.0, 1.0)))
+    tl.store(flags + 5, tl.max(tl.where(_not_finite(depth) == 0, tl.abs(depth), 0.0)))
     if HAS_FLOW:
-        fx = tl.load(flow_ptr + b * sf_b + y * sf_h + x * sf_w, mask=valid, other=0.0).to(tl.float32)
-        fy = tl.load(flow_ptr + b * sf_b + sf_c + y * sf_h + x * sf_w, mask=valid, other=0.0).to(tl.float32)
+        fx = _plane(flow_ptr, sf_b, sf_h, sf_w, b, y, x, valid)
+        fy = _plane(flow_ptr + sf_c, sf_b, sf_h, sf_w, b, y, x, valid)
         tl.store(flags + 3, tl.max(tl.maximum(_not_finite(fx), _not_finite(fy))))
     else:
         tl.store(flags + 3, 0.0)
-    recurrent = (c >= N_IN) & (c < N_IN + 2)
-    channel = tl.where(c == N_IN, PREV_MASK, PREV_AO) * sp_c
+    prev_mask = tl.zeros((BLOCK,), dtype=tl.float32)
+    prev_ao = tl.zeros((BLOCK,), dtype=tl.float32)
     if PREV == PREV_WARP:
-        # Backward warp as isosr_net.flow_warp.warp_by_flow: previous(p + flow[p]), bilinear, zeros
-        # outside. Positions far outside are clamped (all four taps stay outside) before the cast.
-        px = tl.minimum(tl.maximum(x.to(tl.float32) + fx, -2.0), w + 1.0)
-        py = tl.minimum(tl.maximum(y.to(tl.float32) + fy, -2.0), h + 1.0)
-        x0f, y0f = tl.floor(px), tl.floor(py)
-        ax, ay = px - x0f, py - y0f
-        x0, y0 = x0f.to(tl.int32), y0f.to(tl.int32)
-        for corner in tl.static_range(4):
-            xx = x0 + corner % 2
-            yy = y0 + corner // 2
-            weight = (ax if corner % 2 else 1.0 - ax) * (ay if corner // 2 else 1.0 - ay)
-            inside = valid & (xx >= 0) & (xx < w) & (yy >= 0) & (yy < h)
-            tap = tl.load(prev_ptr + b * sp_b + channel + (yy * sp_h + xx * sp_w)[:, None],
-                          mask=inside[:, None] & recurrent, other=0.0)
-            vals += weight[:, None] * tap.to(tl.float32)
+        prev_mask = _warped(prev_ptr + PREV_MASK * sp_c, sp_b, sp_h, sp_w, b, x, y, fx, fy, h, w, valid)
+        prev_ao = _warped(prev_ptr + PREV_AO * sp_c, sp_b, sp_h, sp_w, b, x, y, fx, fy, h, w, valid)
     elif PREV == PREV_GIVEN:
-        vals += tl.load(prev_ptr + b * sp_b + channel + (y * sp_h + x * sp_w)[:, None],
-                        mask=valid[:, None] & recurrent, other=0.0).to(tl.float32)
+        prev_mask = _plane(prev_ptr + PREV_MASK * sp_c, sp_b, sp_h, sp_w, b, y, x, valid)
+        prev_ao = _plane(prev_ptr + PREV_AO * sp_c, sp_b, sp_h, sp_w, b, y, x, valid)
     elif PREV == PREV_INPUTS:  # ReconNet.first_previous: the mask, and the rays' AO where some were cast
-        mask = _column(vals, c, MASK_C)
-        ao = tl.where(_column(vals, c, SAMPLING_C) > 0, _column(vals, c, AO_C), mask)
-        vals += tl.where(c == N_IN, mask[:, None], tl.where(c == N_IN + 1, ao[:, None], 0.0))
-    tl.store(out_ptr + b * hp * wp * C + offs[:, None] * C + c, vals.to(tl.float16), mask=valid[:, None])
+        prev_mask = mask
+        prev_ao = tl.where(s0 > 0, rays, mask)
+    c = tl.arange(0, C)[None, :]
+    tile = tl.where(c == MASK_C, mask[:, None], tl.where(c == NORMAL_C, nx[:, None],
+           tl.where(c == NORMAL_C + 1, ny[:, None], tl.where(c == NORMAL_C + 2, nz[:, None],
+           tl.where(c == DEPTH_C, depth[:, None], tl.where(c == AO_C, rays[:, None],
+           tl.where(c == SAMPLING_C, s0[:, None], tl.where(c == SAMPLING_C + 1, s1[:, None],
+           tl.where(c == N_IN, prev_mask[:, None], tl.where(c == N_IN + 1, prev_ao[:, None], 0.0))))))))))
+    tl.store(out_ptr + b * hp * wp * C + offs[:, None] * C + c, tile.to(tl.float16), mask=valid[:, None])
 
 
 @triton.jit
@@ -236,8 +248,8 @@ def _upsample_add_kernel(x_ptr, c_ptr, rw_ptr, rb_ptr, out_ptr, hp, wp, hc, wc, 
 @triton.jit
 def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, sn_b, sn_c, sn_h, sn_w,
                  d_ptr, sd_b, sd_c, sd_h, sd_w, a_ptr, sa_b, sa_c, sa_h, sa_w, s_ptr, ss_b, ss_c, ss_h, ss_w,
-                 out_ptr, color_ptr, h, w, hp, wp, size_class, ray_scale, albedo_r, albedo_g, albedo_b, ambient, diffuse, specular,
-                 shininess, light_x, light_y, light_z, half_x, half_y, half_z, back_r, back_g, back_b,
+                 out_ptr, color_ptr, h, w, hp, wp, size_class, ray_scale, albedo_r, albedo_g, albedo_b, ambient,
+                 diffuse, specular, shininess, light_x, light_y, light_z, half_x, half_y, half_z, back_r, back_g, back_b,
                  MASK_C: tl.constexpr, NORMAL_C: tl.constexpr, DEPTH_C: tl.constexpr, AO_C: tl.constexpr,
                  AO_PRIOR: tl.constexpr, HAS_AO: tl.constexpr, BUFFERS: tl.constexpr,
                  SHADE: tl.constexpr, OUT: tl.constexpr, CI: tl.constexpr, CO: tl.constexpr, BLOCK_M: tl.constexpr):
@@ -248,56 +260,56 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, s
     x = offs % w
     raw = _conv_acc(x_ptr, w_ptr, bias_ptr, b, y, x, valid, hp, wp, 1, CI, CO, BLOCK_M)
     c = tl.arange(0, CO)[None, :]
-    # The inputs' first channels are the output's (mask, normal, depth), in the same order.
-    given = (_source(m_ptr, sm_b, sm_c, sm_h, sm_w, b, y, x, valid, c, MASK_C, 1)
-             + _source(n_ptr, sn_b, sn_c, sn_h, sn_w, b, y, x, valid, c, NORMAL_C, 3)
-             + _source(d_ptr, sd_b, sd_c, sd_h, sd_w, b, y, x, valid, c, DEPTH_C, 1))
-    ao = tl.sigmoid(raw)
+    # Per pixel, one plane at a time: the inputs' mask, normal and depth plus the raw output's.
+    mask = _plane(m_ptr, sm_b, sm_h, sm_w, b, y, x, valid) + _column(raw, c, MASK_C)
+    mask = tl.minimum(tl.maximum(mask, 0.0), 1.0)
+    nx = _plane(n_ptr, sn_b, sn_h, sn_w, b, y, x, valid) + _column(raw, c, NORMAL_C)
+    ny = _plane(n_ptr + sn_c, sn_b, sn_h, sn_w, b, y, x, valid) + _column(raw, c, NORMAL_C + 1)
+    nz = _plane(n_ptr + 2 * sn_c, sn_b, sn_h, sn_w, b, y, x, valid) + _column(raw, c, NORMAL_C + 2)
+    depth = _plane(d_ptr, sd_b, sd_h, sd_w, b, y, x, valid)
+    raw_ao = _column(raw, c, AO_C)
+    ao = tl.sigmoid(raw_ao)
     if AO_PRIOR:  # sigmoid(logit(p) + raw) = p / (p + (1 - p) exp(-raw)), p in (0, 1)
         rays = tl.zeros((BLOCK_M,), dtype=tl.float32)
         if HAS_AO:
-            rays = tl.load(a_ptr + b * sa_b + y * sa_h + x * sa_w, mask=valid, other=0.0).to(tl.float32)
-        sampling = s_ptr + b * ss_b + y * ss_h + x * ss_w
-        n = (tl.load(sampling, mask=valid, other=0.0).to(tl.float32)
-             * tl.load(sampling + ss_c, mask=valid, other=0.0).to(tl.float32) * ray_scale)
-        p = ((n * rays + 0.5) / (n + 1.0))[:, None]
-        ao = tl.minimum(p / (p + (1.0 - p) * tl.exp(-raw)), 1.0)  # fast division: p / p can pass 1
-    out = tl.where(c == MASK_C, tl.minimum(tl.maximum(given + raw, 0.0), 1.0),
-                   tl.where(c == DEPTH_C, given, tl.where(c == AO_C, ao, given + raw)))
+            rays = _plane(a_ptr, sa_b, sa_h, sa_w, b, y, x, valid)
+        n = (_plane(s_ptr, ss_b, ss_h, ss_w, b, y, x, valid) * _plane(s_ptr + ss_c, ss_b, ss_h, ss_w, b, y, x, valid)
+             * ray_scale)
+        p = (n * rays + 0.5) / (n + 1.0)
+        ao = tl.minimum(p / (p + (1.0 - p) * tl.exp(-raw_ao)), 1.0)  # fast division: p / p can pass 1
     if BUFFERS:  # isosr_net.inference.buffer_stack: unit normals and depth where covered, else 0
-        covered = (_column(out, c, MASK_C) > 0)[:, None]
-        is_normal = (c >= NORMAL_C) & (c < NORMAL_C + 3)
-        length = tl.sqrt(tl.sum(tl.where(is_normal, out * out, 0.0), axis=1))[:, None]
-        out = tl.where(is_normal | (c == DEPTH_C), tl.where(covered, out, 0.0), out)
-        out = tl.where(is_normal, out / tl.maximum(length, 1e-6), tl.where(c == AO_C, tl.minimum(tl.maximum(out, 0.0), 1.0), out))
-        if SHADE:
-            _shade_store(out, c, color_ptr + (b * h * w + offs) * 3, valid, MASK_C, NORMAL_C, AO_C, albedo_r,
-                         albedo_g, albedo_b, ambient, diffuse, specular, shininess, light_x, light_y, light_z,
-                         half_x, half_y, half_z, back_r, back_g, back_b)
-    tl.store(out_ptr + b * OUT * h * w + c * h * w + offs[:, None], out, mask=valid[:, None] & (c < OUT))
+        covered = mask > 0
+        length = tl.maximum(tl.sqrt(nx * nx + ny * ny + nz * nz), 1e-6)
+        nx = tl.where(covered, nx / length, 0.0)
+        ny = tl.where(covered, ny / length, 0.0)
+        nz = tl.where(covered, nz / length, 0.0)
+        depth = tl.where(covered, depth, 0.0)
+        ao = tl.minimum(tl.maximum(ao, 0.0), 1.0)
+        if SHADE:  # isosr_render.shading.shade of these buffers, stored (H, W, 3)
+            n_dot_l = tl.maximum(nx * light_x + ny * light_y + nz * light_z, 0.0)
+            n_dot_h = tl.maximum(nx * half_x + ny * half_y + nz * half_z, 0.0)
+            # n_dot_h ** shininess, 0 ** 0 = 1 as torch.pow
+            spec = specular * tl.where(n_dot_h > 0, tl.exp2(shininess * tl.log2(tl.maximum(n_dot_h, 1e-30))),
+                                       tl.where(shininess == 0, 1.0, 0.0))
+            lit = ambient + diffuse * n_dot_l
+            color = color_ptr + (b * h * w + offs) * 3
+            tl.store(color, _composite(mask, albedo_r * lit + spec, ao, back_r), mask=valid)
+            tl.store(color + 1, _composite(mask, albedo_g * lit + spec, ao, back_g), mask=valid)
+            tl.store(color + 2, _composite(mask, albedo_b * lit + spec, ao, back_b), mask=valid)
+    out = out_ptr + b * OUT * h * w + offs
+    tl.store(out + MASK_C * h * w, mask, mask=valid)
+    tl.store(out + NORMAL_C * h * w, nx, mask=valid)
+    tl.store(out + (NORMAL_C + 1) * h * w, ny, mask=valid)
+    tl.store(out + (NORMAL_C + 2) * h * w, nz, mask=valid)
+    tl.store(out + DEPTH_C * h * w, depth, mask=valid)
+    tl.store(out + AO_C * h * w, ao, mask=valid)
 
 
 @triton.jit
-def _shade_store(buffers, c, color_ptr, valid, MASK_C: tl.constexpr, NORMAL_C: tl.constexpr, AO_C: tl.constexpr,
-                 albedo_r, albedo_g, albedo_b, ambient, diffuse, specular, shininess, light_x, light_y, light_z,
-                 half_x, half_y, half_z, back_r, back_g, back_b):
-    """isosr_render.shading.shade of output buffers (unit normals, AO in [0, 1]), stored as (H, W, 3) fp32."""
-    nx = _column(buffers, c, NORMAL_C)
-    ny = _column(buffers, c, NORMAL_C + 1)
-    nz = _column(buffers, c, NORMAL_C + 2)
-    n_dot_l = tl.maximum(nx * light_x + ny * light_y + nz * light_z, 0.0)
-    n_dot_h = tl.maximum(nx * half_x + ny * half_y + nz * half_z, 0.0)
-    # n_dot_h ** shininess, 0 ** 0 = 1 as torch.pow
-    spec = tl.where(n_dot_h > 0, tl.exp2(shininess * tl.log2(tl.maximum(n_dot_h, 1e-30))),
-                    tl.where(shininess == 0, 1.0, 0.0))
-    alpha = tl.minimum(tl.maximum(_column(buffers, c, MASK_C), 0.0), 1.0)[:, None]
-    k = tl.arange(0, 4)[None, :]
-    albedo = tl.where(k == 0, albedo_r, tl.where(k == 1, albedo_g, albedo_b))
-    back = tl.where(k == 0, back_r, tl.where(k == 1, back_g, back_b))
-    occlusion = _column(buffers, c, AO_C)[:, None]
-    lit = (albedo * (ambient + diffuse * n_dot_l)[:, None] + (specular * spec)[:, None]) * occlusion
-    color = tl.minimum(tl.maximum(alpha * lit + (1.0 - alpha) * back, 0.0), 1.0)
-    tl.store(color_ptr[:, None] + k, color, mask=valid[:, None] & (k < 3))
+def _composite(mask, lit, ao, back):
+    """One color channel: the lit surface times AO over the background by the mask, in [0, 1]."""
+    alpha = tl.minimum(tl.maximum(mask, 0.0), 1.0)
+    return tl.minimum(tl.maximum(alpha * (lit * ao) + (1.0 - alpha) * back, 0.0), 1.0)
 
 
 _conv_tuned = _tuned(_conv_kernel, ["size_class", "STRIDE", "CI", "CO"])
