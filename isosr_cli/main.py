@@ -10,9 +10,14 @@ import warp as wp
 from isosr_render.volume import VolumeError
 
 
+# The subcommands that need the `server` extra (their flags come from its settings and protocol).
+SERVER_COMMANDS = ("serve", "client")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    """The parser with every subcommand."""
-    from isosr_cli import bench_cmd, client_cmd, demo_cmd, net_cmds, render_cmd, serve_cmd
+    """The parser with every subcommand; without the `server` extra, ``serve`` and ``client`` only
+    say how to install it (rendering and training need none of it)."""
+    from isosr_cli import bench_cmd, demo_cmd, net_cmds, render_cmd
 
     parser = argparse.ArgumentParser(prog="isosr", description="Isosurface rendering with learned super-resolution.")
     subparsers = parser.add_subparsers(dest="command", required=True)
@@ -20,9 +25,26 @@ def build_parser() -> argparse.ArgumentParser:
     net_cmds.add_parsers(subparsers)
     demo_cmd.add_parser(subparsers)
     bench_cmd.add_parser(subparsers)
-    serve_cmd.add_parser(subparsers)
-    client_cmd.add_parser(subparsers)
+    try:
+        from isosr_cli import client_cmd, serve_cmd
+    except ModuleNotFoundError as e:
+        for name in SERVER_COMMANDS:
+            add_missing_extra(subparsers, name, e.name)
+    else:
+        serve_cmd.add_parser(subparsers)
+        client_cmd.add_parser(subparsers)
     return parser
+
+
+def add_missing_extra(subparsers, name: str, module: str) -> None:
+    """Register ``name`` as a command that fails with how to install the `server` extra."""
+    def missing(args) -> int:
+        raise RuntimeError(f"needs the server extra (pip install 'isosr[server]'): module {module!r} is not installed")
+
+    p = subparsers.add_parser(name, help=f"(needs the server extra: module {module!r} is missing)",
+                              prefix_chars="\0", add_help=False)  # no options: every argument lands in `rest`
+    p.add_argument("rest", nargs="*")
+    p.set_defaults(func=missing)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -159,3 +159,21 @@ def test_installed_console_script_runs():
     exe = __import__("shutil").which("isosr") or str(__import__("pathlib").Path(sys.executable).parent / "isosr")
     result = subprocess.run([exe, "render", "--help"], capture_output=True, text=True)
     assert result.returncode == 0 and "--outputs" in result.stdout
+
+
+# `isosr` with the server extra's msgspec missing (a GPU machine with only the base install).
+WITHOUT_SERVER_EXTRA = "import sys; sys.modules['msgspec'] = None; from isosr_cli.main import main; sys.exit(main())"
+
+
+def test_without_the_server_extra_training_runs_and_serve_says_what_to_install():
+    def isosr(*argv: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-c", WITHOUT_SERVER_EXTRA, *argv], capture_output=True, text=True,
+                              timeout=120)
+
+    train = isosr("train", "--help")
+    assert train.returncode == 0 and "--time-limit-minutes" in train.stdout, train.stderr
+    for command in ("serve", "client"):
+        result = isosr(command, "--port", "8000")
+        assert result.returncode == 2
+        assert result.stderr.strip().endswith(f"isosr {command}: error: needs the server extra "
+                                              "(pip install 'isosr[server]'): module 'msgspec' is not installed")
