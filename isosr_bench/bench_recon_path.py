@@ -1,6 +1,7 @@
 """Where a reconstructed frame's time goes, and what compiling and CUDA graphs buy.
 
     python -m isosr_bench.bench_recon_path --device cuda --volumes ct_pitch,bonsai1024 --sizes 1080p,4k
+    python -m isosr_bench.bench_recon_path --device cuda --model isosr_net/recon_x2_model   # x2: half-size render
     python -m isosr_bench.bench_recon_path --device cpu --smoke
 
 Per volume, size, sampling (AO rays, rays per pixel) and `Reconstructor` variant, over the
@@ -33,6 +34,8 @@ measured in the same run, and ``of_floor``: floor over time (1 at the floor).
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import torch
 
 from isosr_render import Renderer
@@ -41,7 +44,7 @@ from isosr_render.sequence import sequence_cameras
 from isosr_net.frame_methods import FrameMethod, Networks, make_runner
 from isosr_net.fused_recon import FusedReconNet, fused_runs_on, fused_traffic
 from isosr_net.reconnet import macs_per_pixel
-from isosr_net.reconstructor import Reconstructor
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor, recon_config
 
 from .bench_network import copy_bandwidth, matmul_tflops
 from .bench_pareto import FRAMES, SIZES, SMOKE_FRAMES, SMOKE_SIZES, WARMUP, bench_cameras, load
@@ -103,13 +106,21 @@ def pass_times(net: FusedReconNet, renderer: Renderer, pairs: list, request, ao_
     return out
 
 
+def recon_method(model: str, ao_rays: int, spp: int, precision: str) -> FrameMethod:
+    """The reconstruct method of ``model`` (the shipped one: the default name; else named by its
+    folder), rendering at its upscale's fraction of the sides."""
+    named = {} if model == str(DEFAULT_RECON_MODEL) else {"model": model, "model_name": Path(model).name}
+    return FrameMethod("reconstruct", ao_rays=ao_rays, spp=spp, precision=precision,
+                       factor=recon_config(model).upscale, **named)
+
+
 def stage_row(renderer: Renderer, iso: float, volume: str, size: tuple[int, int], size_name: str, ao_rays: int,
               spp: int, variant: str, options: dict, frames: int, warmup: int, device: str, tflops: float,
-              bandwidth: float) -> dict:
+              bandwidth: float, model: str) -> dict:
     """One row: the stages' mean times on one volume, size, sampling and variant."""
     pairs = sequence_cameras(bench_cameras(frames))
-    method = FrameMethod("reconstruct", ao_rays=ao_rays, spp=spp, precision=options["precision"])
-    recon = Reconstructor(device=device, **options)
+    method = recon_method(model, ao_rays, spp, options["precision"])
+    recon = Reconstructor(model, device=device, **options)
     networks = Networks(lambda *_: recon)  # this variant's network
     runner = make_runner(method, renderer, iso, *size, networks=networks)
     full = make_runner(FrameMethod("full", ao_rays=ao_rays, spp=spp), renderer, iso, *size)
@@ -133,13 +144,13 @@ def stage_row(renderer: Renderer, iso: float, volume: str, size: tuple[int, int]
 
 
 def graph_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, int], size_name: str, ao_rays: int,
-               spp: int, frames: int, warmup: int, device: str) -> list[dict]:
+               spp: int, frames: int, warmup: int, device: str, model: str) -> list[dict]:
     """CUDA: the frame without the runner, mean ms per frame (CUDA events): the render then the
     network's graph (``Reconstructor.reconstruct``), against render, network and shading as one
     graph (``Reconstructor.render_reconstruct``)."""
     pairs = sequence_cameras(bench_cameras(frames))
-    method = FrameMethod("reconstruct", ao_rays=ao_rays, spp=spp, precision="fp16")
-    recon = Reconstructor.fastest(device=device)
+    method = recon_method(model, ao_rays, spp, "fp16")
+    recon = Reconstructor.fastest(model, device=device)
     runner = make_runner(method, renderer, iso, *size, networks=Networks(lambda *_: recon))
     shading = runner.shading
 
@@ -166,6 +177,9 @@ def main(argv=None) -> list[dict]:
     parser.add_argument("--volumes", default="", help="comma-separated volume names (default: ct_pitch)")
     parser.add_argument("--sizes", default="", help=f"comma-separated sizes of {','.join(SIZES)} (default: all)")
     parser.add_argument("--variants", default="", help="semicolon-separated variants (default: all of the device's)")
+    parser.add_argument("--model", default=str(DEFAULT_RECON_MODEL),
+                        help="the reconstruction model's folder (default: the shipped one); an x2 model renders "
+                             "at half the sides")
     args = parser.parse_args(argv)
     offered = variants(args.device)
     chosen = [v.strip() for v in args.variants.split(";") if v.strip()] or list(offered)
@@ -192,10 +206,10 @@ def main(argv=None) -> list[dict]:
                 for variant in chosen:
                     options = offered[variant]
                     rows.append(stage_row(renderer, iso, name, sizes[size_name], size_name, ao_rays, spp, variant,
-                                          options, frames, warmup, args.device, tflops, bandwidth))
+                                          options, frames, warmup, args.device, tflops, bandwidth, args.model))
                 if args.device.startswith("cuda"):
                     rows += graph_rows(renderer, iso, name, sizes[size_name], size_name, ao_rays, spp, frames, warmup,
-                                       args.device)
+                                       args.device, args.model)
     print_table(rows, ["volume", "size", "ao_rays", "spp", "variant", "full", "path", "added", "render",
                        "network_gflop", "floor_ms"])
     fused = [r for r in rows if "kernels" in r]

@@ -2,13 +2,14 @@
 
 Four kinds of pass do all of ReconNet's work (:mod:`isosr_net.fused_recon` runs them in order):
 
-- :func:`pack_inputs`: the network's 10 input channels (the 8 inputs, read in place where they
-  lie, :class:`ReconSources`, and the warped previous output's mask and AO) as one
-  (B, H', W', 16) fp16 tensor, the frame replicate-padded to H' x W' as
-  :class:`~isosr_net.reconnet.ReconNet` pads it, channels 10-15 zero; the previous output warped
-  by the flow in the same pass where it is given unwarped (or a first frame's stand-in made
-  there); and, on the way, the input checks (:data:`~isosr_net.inference.FRAME_FLAGS`): one value
-  per program, reduced by one small kernel, read by the host once per frame.
+- :func:`pack_inputs`: the network's input channels (the 8 inputs, read in place where they
+  lie, :class:`ReconSources`, and the warped previous output's mask and AO; for a model that
+  upscales x2, those two of the previous output's 2x2 pixels per input pixel, space-to-depth) as
+  one (B, H', W', 16) fp16 tensor, the frame replicate-padded to H' x W' as
+  :class:`~isosr_net.reconnet.ReconNet` pads it, unused channels zero; the previous output warped
+  by the flow (upsampled for x2) in the same pass where it is given unwarped (or a first frame's
+  stand-in made there); and, on the way, the input checks (:data:`~isosr_net.inference.FRAME_FLAGS`):
+  one value per program, reduced by one small kernel, read by the host once per frame.
 - :func:`conv3x3`: a 3x3 convolution (stride 1 or 2, zero padding) + bias as an implicit GEMM:
   per tile of ``BLOCK_M`` output pixels, one ``tl.dot`` per tap (K = input channels, N = output
   channels); in its epilogue a residual sum and the ReLU.
@@ -18,8 +19,9 @@ Four kinds of pass do all of ReconNet's work (:mod:`isosr_net.fused_recon` runs 
   times as long on an H100 at 4K (1.40 ms against 0.30 + 0.50 with this pass); the reduction as a second
   ``tl.dot`` in the coarser convolution's epilogue came out wrong from Triton 3.6 on an H100
   with 4 warps (64 channels), so it is here.
-- :func:`recon_tail`: the 3x3 output convolution (6 channels, computed as 16) + bias and
-  ReconNet's output: mask ``clamp(in + raw, 0, 1)``, normal ``in + raw``, depth passed through,
+- :func:`recon_tail`: the 3x3 output convolution (6 channels, computed as 16; x2: 24 as 32,
+  written depth-to-space) + bias and ReconNet's output over its inputs (x2: upsampled,
+  :func:`~isosr_net.reconnet.upsampled_inputs`): mask ``clamp(in + raw, 0, 1)``, normal ``in + raw``, depth passed through,
   AO ``sigmoid(raw)`` or, for a model over the input rays, ``sigmoid(logit(p) + raw)``
   (:func:`isosr_net.reconnet.ao_output`), written as the (B, 6, H, W) fp32 stack, cropped to the
   frame; or as the output buffers' stack (:func:`isosr_net.inference.buffer_stack`) and shaded
@@ -45,10 +47,10 @@ from isosr_render.conventions import AO, DEPTH, MASK, NORMAL, SAMPLED_AO, SAMPLI
 from isosr_render.shading import ShadingParams, light_and_half
 from isosr_render.shapes import check_shape
 from isosr_net.inference import FRAME_FLAGS
-from isosr_net.reconnet import FIRST_FRAME_MODES, INPUTS, OUTPUTS, ReconNetConfig
+from isosr_net.reconnet import FIRST_FRAME_MODES, INPUTS, OUTPUTS, UPSCALES, ReconNetConfig
 
 INTERPRET = os.environ.get("TRITON_INTERPRET") == "1"
-PACKED = 16  # channels of the packed input: 10 used, padded to tl.dot's smallest K
+PACKED = 16  # channels of the packed input: 10 used (x2: 16), padded to tl.dot's smallest K
 # Pixels per program and warps, autotuned per layer and size class (pixels' bit length: a new
 # window size of a class tunes nothing, so a viewer resizing cannot stall the GPU with tuning);
 # the interpreter takes the first (FIXED).
@@ -76,6 +78,39 @@ def _bench_briefly(kernel_call, quantiles):
 def _plane(ptr, sb, sh, sw, b, y, x, valid):
     """One source plane at pixels (y, x), fp32 (BLOCK,); 0 past ``valid``."""
     return tl.load(ptr + b * sb + y * sh + x * sw, mask=valid, other=0.0).to(tl.float32)
+
+
+@triton.jit
+def _taps_2x(yy, n):
+    """Bilinear 2x along one axis (``F.interpolate``, align_corners=False): upsampled index ``yy``
+    reads source indices lo = (yy + 1) // 2 - 1 and lo + 1, both clamped to [0, n), the second
+    weighted 3/4 for even ``yy`` and 1/4 for odd (so index 0 reads index 0 alone). Returns
+    ``(i0, i1, weight of i1)``."""
+    lo = (yy + 1) // 2 - 1
+    i0 = tl.minimum(tl.maximum(lo, 0), n - 1)
+    i1 = tl.minimum(tl.maximum(lo + 1, 0), n - 1)
+    return i0, i1, 0.75 - 0.5 * (yy % 2).to(tl.float32)
+
+
+@triton.jit
+def _plane_2x(ptr, sb, sh, sw, b, yy, xx, h, w, valid):
+    """``bilinear_2x`` of one (h, w) source plane at pixels (yy, xx) of the upsampled image, fp32 (BLOCK,)."""
+    y0, y1, wy = _taps_2x(yy, h)
+    x0, x1, wx = _taps_2x(xx, w)
+    top = (1.0 - wx) * _plane(ptr, sb, sh, sw, b, y0, x0, valid) + wx * _plane(ptr, sb, sh, sw, b, y0, x1, valid)
+    bottom = (1.0 - wx) * _plane(ptr, sb, sh, sw, b, y1, x0, valid) + wx * _plane(ptr, sb, sh, sw, b, y1, x1, valid)
+    return (1.0 - wy) * top + wy * bottom
+
+
+@triton.jit
+def _base_plane(ptr, sb, sh, sw, b, yy, xx, h, w, valid, S: tl.constexpr):
+    """One input plane as an upscaling ReconNet's base holds it at output pixels (yy, xx): the plane
+    itself (S 1), or bilinear 2x (:func:`isosr_net.reconnet.upsampled_inputs`), fp32 (BLOCK,)."""
+    if S == 1:
+        out = _plane(ptr, sb, sh, sw, b, yy, xx, valid)
+    else:
+        out = _plane_2x(ptr, sb, sh, sw, b, yy, xx, h, w, valid)
+    return out
 
 
 @triton.jit
@@ -117,7 +152,7 @@ def _pack_kernel(m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, sn_b, sn_c, sn_h, sn_w, d
                  h, w, hp, wp, PREV: tl.constexpr, HAS_AO: tl.constexpr, HAS_FLOW: tl.constexpr,
                  MASK_C: tl.constexpr, NORMAL_C: tl.constexpr, DEPTH_C: tl.constexpr, AO_C: tl.constexpr,
                  SAMPLING_C: tl.constexpr, PREV_MASK: tl.constexpr, PREV_AO: tl.constexpr, N_IN: tl.constexpr,
-                 C: tl.constexpr, BLOCK: tl.constexpr):
+                 S: tl.constexpr, C: tl.constexpr, BLOCK: tl.constexpr):
     b = tl.program_id(1).to(tl.int64)
     offs = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     valid = offs < hp * wp
@@ -147,43 +182,48 @@ def _pack_kernel(m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, sn_b, sn_c, sn_h, sn_w, d
         tl.store(flags + 3, tl.max(tl.maximum(_not_finite(fx), _not_finite(fy))))
     else:
         tl.store(flags + 3, 0.0)
-    prev_mask = tl.zeros((BLOCK,), dtype=tl.float32)
-    prev_ao = tl.zeros((BLOCK,), dtype=tl.float32)
-    if PREV == PREV_WARP:
-        prev_mask = _warped(prev_ptr + PREV_MASK * sp_c, sp_b, sp_h, sp_w, b, x, y, fx, fy, h, w, valid)
-        prev_ao = _warped(prev_ptr + PREV_AO * sp_c, sp_b, sp_h, sp_w, b, x, y, fx, fy, h, w, valid)
-    elif PREV == PREV_GIVEN:
-        prev_mask = _plane(prev_ptr + PREV_MASK * sp_c, sp_b, sp_h, sp_w, b, y, x, valid)
-        prev_ao = _plane(prev_ptr + PREV_AO * sp_c, sp_b, sp_h, sp_w, b, y, x, valid)
-    elif PREV == PREV_INPUTS:  # ReconNet.first_previous: the mask, and the rays' AO where some were cast
-        prev_mask = mask
-        prev_ao = tl.where(s0 > 0, rays, mask)
     c = tl.arange(0, C)[None, :]
     tile = tl.where(c == MASK_C, mask[:, None], tl.where(c == NORMAL_C, nx[:, None],
            tl.where(c == NORMAL_C + 1, ny[:, None], tl.where(c == NORMAL_C + 2, nz[:, None],
            tl.where(c == DEPTH_C, depth[:, None], tl.where(c == AO_C, rays[:, None],
-           tl.where(c == SAMPLING_C, s0[:, None], tl.where(c == SAMPLING_C + 1, s1[:, None],
-           tl.where(c == N_IN, prev_mask[:, None], tl.where(c == N_IN + 1, prev_ao[:, None], 0.0))))))))))
+           tl.where(c == SAMPLING_C, s0[:, None], tl.where(c == SAMPLING_C + 1, s1[:, None], 0.0))))))))
+    # The previous output's mask and AO at the S x S output pixels of each input pixel, ordered as
+    # F.pixel_unshuffle orders them: channel N_IN + S * S * k + cell, k 0 for the mask, 1 for AO.
+    for cell in tl.static_range(S * S):
+        yy = y * S + cell // S
+        xx = x * S + cell % S
+        prev_mask = tl.zeros((BLOCK,), dtype=tl.float32)
+        prev_ao = tl.zeros((BLOCK,), dtype=tl.float32)
+        if PREV == PREV_WARP:
+            fxs = fx
+            fys = fy
+            if S == 2:  # isosr_net.flow_warp.upscale_flow: bilinear, the lengths doubled
+                fxs = 2.0 * _plane_2x(flow_ptr, sf_b, sf_h, sf_w, b, yy, xx, h, w, valid)
+                fys = 2.0 * _plane_2x(flow_ptr + sf_c, sf_b, sf_h, sf_w, b, yy, xx, h, w, valid)
+            prev_mask = _warped(prev_ptr + PREV_MASK * sp_c, sp_b, sp_h, sp_w, b, xx, yy, fxs, fys, S * h, S * w,
+                                valid)
+            prev_ao = _warped(prev_ptr + PREV_AO * sp_c, sp_b, sp_h, sp_w, b, xx, yy, fxs, fys, S * h, S * w, valid)
+        elif PREV == PREV_GIVEN:
+            prev_mask = _plane(prev_ptr + PREV_MASK * sp_c, sp_b, sp_h, sp_w, b, yy, xx, valid)
+            prev_ao = _plane(prev_ptr + PREV_AO * sp_c, sp_b, sp_h, sp_w, b, yy, xx, valid)
+        elif PREV == PREV_INPUTS:  # ReconNet.first_previous: the (upsampled) mask, and the rays' AO where cast
+            prev_mask = _base_plane(m_ptr, sm_b, sm_h, sm_w, b, yy, xx, h, w, valid, S)
+            cast = _base_plane(s_ptr, ss_b, ss_h, ss_w, b, yy, xx, h, w, valid, S) > 0
+            rays_here = tl.zeros((BLOCK,), dtype=tl.float32)
+            if HAS_AO:
+                rays_here = _base_plane(a_ptr, sa_b, sa_h, sa_w, b, yy, xx, h, w, valid, S)
+            prev_ao = tl.where(cast, rays_here, prev_mask)
+        tile = tl.where(c == N_IN + cell, prev_mask[:, None], tl.where(c == N_IN + S * S + cell, prev_ao[:, None], tile))
     tl.store(out_ptr + b * hp * wp * C + offs[:, None] * C + c, tile.to(tl.float16), mask=valid[:, None])
 
 
 @triton.jit
 def _upsampled(c_ptr, b, yy, xx, hc, wc, sc_b, sc_c, sc_h, sc_w, ci):
-    """``bilinear_2x(coarse)`` at pixels (yy, xx) of the upsampled image, channels ``ci``, fp32.
-
-    Bilinear 2x with align_corners=False: full-res row Y reads coarse rows lo = (Y + 1) // 2 - 1
-    and lo + 1, the second weighted 3/4 for even Y and 1/4 for odd Y, both clamped to the image
-    (so row 0 reads row 0 alone), as F.interpolate does; the same along columns. A tile's pixels
-    past the end read clamped rows too.
-    """
-    ylo = (yy + 1) // 2 - 1
-    xlo = (xx + 1) // 2 - 1
-    y0 = tl.minimum(tl.maximum(ylo, 0), hc - 1)
-    x0 = tl.minimum(tl.maximum(xlo, 0), wc - 1)
-    y1 = tl.minimum(tl.maximum(ylo + 1, 0), hc - 1)
-    x1 = tl.minimum(tl.maximum(xlo + 1, 0), wc - 1)
-    wy = (0.75 - 0.5 * (yy % 2).to(tl.float32))[:, None]
-    wx = (0.75 - 0.5 * (xx % 2).to(tl.float32))[:, None]
+    """``bilinear_2x(coarse)`` at pixels (yy, xx) of the upsampled image, channels ``ci``, fp32
+    (:func:`_taps_2x` along each axis). A tile's pixels past the end read clamped rows too."""
+    y0, y1, wy = _taps_2x(yy, hc)
+    x0, x1, wx = _taps_2x(xx, wc)
+    wy, wx = wy[:, None], wx[:, None]
     base = c_ptr + b * sc_b + ci[None, :] * sc_c
     # Every index is clamped inside the coarse image, so the loads need no mask.
     v00 = tl.load(base + (y0 * sc_h + x0 * sc_w)[:, None]).to(tl.float32)
@@ -252,7 +292,8 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, s
                  diffuse, specular, shininess, light_x, light_y, light_z, half_x, half_y, half_z, back_r, back_g, back_b,
                  MASK_C: tl.constexpr, NORMAL_C: tl.constexpr, DEPTH_C: tl.constexpr, AO_C: tl.constexpr,
                  AO_PRIOR: tl.constexpr, HAS_AO: tl.constexpr, BUFFERS: tl.constexpr,
-                 SHADE: tl.constexpr, OUT: tl.constexpr, CI: tl.constexpr, CO: tl.constexpr, BLOCK_M: tl.constexpr):
+                 SHADE: tl.constexpr, OUT: tl.constexpr, S: tl.constexpr, CI: tl.constexpr, CO: tl.constexpr,
+                 BLOCK_M: tl.constexpr):
     b = tl.program_id(1).to(tl.int64)
     offs = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     valid = offs < h * w
@@ -260,49 +301,58 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, s
     x = offs % w
     raw = _conv_acc(x_ptr, w_ptr, bias_ptr, b, y, x, valid, hp, wp, 1, CI, CO, BLOCK_M)
     c = tl.arange(0, CO)[None, :]
-    # Per pixel, one plane at a time: the inputs' mask, normal and depth plus the raw output's.
-    mask = _plane(m_ptr, sm_b, sm_h, sm_w, b, y, x, valid) + _column(raw, c, MASK_C)
-    mask = tl.minimum(tl.maximum(mask, 0.0), 1.0)
-    nx = _plane(n_ptr, sn_b, sn_h, sn_w, b, y, x, valid) + _column(raw, c, NORMAL_C)
-    ny = _plane(n_ptr + sn_c, sn_b, sn_h, sn_w, b, y, x, valid) + _column(raw, c, NORMAL_C + 1)
-    nz = _plane(n_ptr + 2 * sn_c, sn_b, sn_h, sn_w, b, y, x, valid) + _column(raw, c, NORMAL_C + 2)
-    depth = _plane(d_ptr, sd_b, sd_h, sd_w, b, y, x, valid)
-    raw_ao = _column(raw, c, AO_C)
-    ao = tl.sigmoid(raw_ao)
-    if AO_PRIOR:  # sigmoid(logit(p) + raw) = p / (p + (1 - p) exp(-raw)), p in (0, 1)
-        rays = tl.zeros((BLOCK_M,), dtype=tl.float32)
-        if HAS_AO:
-            rays = _plane(a_ptr, sa_b, sa_h, sa_w, b, y, x, valid)
-        n = (_plane(s_ptr, ss_b, ss_h, ss_w, b, y, x, valid) * _plane(s_ptr + ss_c, ss_b, ss_h, ss_w, b, y, x, valid)
-             * ray_scale)
-        p = (n * rays + 0.5) / (n + 1.0)
-        ao = tl.minimum(p / (p + (1.0 - p) * tl.exp(-raw_ao)), 1.0)  # fast division: p / p can pass 1
-    if BUFFERS:  # isosr_net.inference.buffer_stack: unit normals and depth where covered, else 0
-        covered = mask > 0
-        length = tl.maximum(tl.sqrt(nx * nx + ny * ny + nz * nz), 1e-6)
-        nx = tl.where(covered, nx / length, 0.0)
-        ny = tl.where(covered, ny / length, 0.0)
-        nz = tl.where(covered, nz / length, 0.0)
-        depth = tl.where(covered, depth, 0.0)
-        ao = tl.minimum(tl.maximum(ao, 0.0), 1.0)
-        if SHADE:  # isosr_render.shading.shade of these buffers, stored (H, W, 3)
-            n_dot_l = tl.maximum(nx * light_x + ny * light_y + nz * light_z, 0.0)
-            n_dot_h = tl.maximum(nx * half_x + ny * half_y + nz * half_z, 0.0)
-            # n_dot_h ** shininess, 0 ** 0 = 1 as torch.pow
-            spec = specular * tl.where(n_dot_h > 0, tl.exp2(shininess * tl.log2(tl.maximum(n_dot_h, 1e-30))),
-                                       tl.where(shininess == 0, 1.0, 0.0))
-            lit = ambient + diffuse * n_dot_l
-            color = color_ptr + (b * h * w + offs) * 3
-            tl.store(color, _composite(mask, albedo_r * lit + spec, ao, back_r), mask=valid)
-            tl.store(color + 1, _composite(mask, albedo_g * lit + spec, ao, back_g), mask=valid)
-            tl.store(color + 2, _composite(mask, albedo_b * lit + spec, ao, back_b), mask=valid)
-    out = out_ptr + b * OUT * h * w + offs
-    tl.store(out + MASK_C * h * w, mask, mask=valid)
-    tl.store(out + NORMAL_C * h * w, nx, mask=valid)
-    tl.store(out + (NORMAL_C + 1) * h * w, ny, mask=valid)
-    tl.store(out + (NORMAL_C + 2) * h * w, nz, mask=valid)
-    tl.store(out + DEPTH_C * h * w, depth, mask=valid)
-    tl.store(out + AO_C * h * w, ao, mask=valid)
+    depth_in = _plane(d_ptr, sd_b, sd_h, sd_w, b, y, x, valid)  # passes through (x2: nearest)
+    plane = S * S * h * w  # an output plane's pixels
+    # Per output pixel (S x S per input pixel: raw channel k * S * S + cell is channel k there, as
+    # F.pixel_shuffle orders them), one plane at a time: the (upsampled) inputs plus the raw output.
+    for cell in tl.static_range(S * S):
+        yy = y * S + cell // S
+        xx = x * S + cell % S
+        at = yy * (S * w) + xx
+        mask = _base_plane(m_ptr, sm_b, sm_h, sm_w, b, yy, xx, h, w, valid, S) + _column(raw, c, MASK_C * S * S + cell)
+        mask = tl.minimum(tl.maximum(mask, 0.0), 1.0)
+        nx = _base_plane(n_ptr, sn_b, sn_h, sn_w, b, yy, xx, h, w, valid, S) + _column(raw, c, NORMAL_C * S * S + cell)
+        ny = (_base_plane(n_ptr + sn_c, sn_b, sn_h, sn_w, b, yy, xx, h, w, valid, S)
+              + _column(raw, c, (NORMAL_C + 1) * S * S + cell))
+        nz = (_base_plane(n_ptr + 2 * sn_c, sn_b, sn_h, sn_w, b, yy, xx, h, w, valid, S)
+              + _column(raw, c, (NORMAL_C + 2) * S * S + cell))
+        depth = depth_in
+        raw_ao = _column(raw, c, AO_C * S * S + cell)
+        ao = tl.sigmoid(raw_ao)
+        if AO_PRIOR:  # sigmoid(logit(p) + raw) = p / (p + (1 - p) exp(-raw)), p in (0, 1)
+            rays = tl.zeros((BLOCK_M,), dtype=tl.float32)
+            if HAS_AO:
+                rays = _base_plane(a_ptr, sa_b, sa_h, sa_w, b, yy, xx, h, w, valid, S)
+            n = (_base_plane(s_ptr, ss_b, ss_h, ss_w, b, yy, xx, h, w, valid, S)
+                 * _base_plane(s_ptr + ss_c, ss_b, ss_h, ss_w, b, yy, xx, h, w, valid, S) * ray_scale)
+            p = (n * rays + 0.5) / (n + 1.0)
+            ao = tl.minimum(p / (p + (1.0 - p) * tl.exp(-raw_ao)), 1.0)  # fast division: p / p can pass 1
+        if BUFFERS:  # isosr_net.inference.buffer_stack: unit normals and depth where covered, else 0
+            covered = mask > 0
+            length = tl.maximum(tl.sqrt(nx * nx + ny * ny + nz * nz), 1e-6)
+            nx = tl.where(covered, nx / length, 0.0)
+            ny = tl.where(covered, ny / length, 0.0)
+            nz = tl.where(covered, nz / length, 0.0)
+            depth = tl.where(covered, depth, 0.0)
+            ao = tl.minimum(tl.maximum(ao, 0.0), 1.0)
+            if SHADE:  # isosr_render.shading.shade of these buffers, stored (S H, S W, 3)
+                n_dot_l = tl.maximum(nx * light_x + ny * light_y + nz * light_z, 0.0)
+                n_dot_h = tl.maximum(nx * half_x + ny * half_y + nz * half_z, 0.0)
+                # n_dot_h ** shininess, 0 ** 0 = 1 as torch.pow
+                spec = specular * tl.where(n_dot_h > 0, tl.exp2(shininess * tl.log2(tl.maximum(n_dot_h, 1e-30))),
+                                           tl.where(shininess == 0, 1.0, 0.0))
+                lit = ambient + diffuse * n_dot_l
+                color = color_ptr + (b * plane + at) * 3
+                tl.store(color, _composite(mask, albedo_r * lit + spec, ao, back_r), mask=valid)
+                tl.store(color + 1, _composite(mask, albedo_g * lit + spec, ao, back_g), mask=valid)
+                tl.store(color + 2, _composite(mask, albedo_b * lit + spec, ao, back_b), mask=valid)
+        out = out_ptr + b * OUT * plane + at
+        tl.store(out + MASK_C * plane, mask, mask=valid)
+        tl.store(out + NORMAL_C * plane, nx, mask=valid)
+        tl.store(out + (NORMAL_C + 1) * plane, ny, mask=valid)
+        tl.store(out + (NORMAL_C + 2) * plane, nz, mask=valid)
+        tl.store(out + DEPTH_C * plane, depth, mask=valid)
+        tl.store(out + AO_C * plane, ao, mask=valid)
 
 
 @triton.jit
@@ -313,7 +363,7 @@ def _composite(mask, lit, ao, back):
 
 
 _conv_tuned = _tuned(_conv_kernel, ["size_class", "STRIDE", "CI", "CO"])
-_tail_tuned = _tuned(_tail_kernel, ["size_class"])
+_tail_tuned = _tuned(_tail_kernel, ["size_class", "S"])
 
 
 def _size_class(pixels: int) -> int:
@@ -402,18 +452,20 @@ _CHANNELS = dict(MASK_C=MASK.start, NORMAL_C=NORMAL.start, DEPTH_C=DEPTH.start, 
 
 
 def pack_inputs(sources: ReconSources, prev: torch.Tensor | None, flow: torch.Tensor | None = None,
-                multiple: int = 8, first_frame: str = "inputs") -> tuple[torch.Tensor, torch.Tensor]:
-    """ReconNet's 10 input channels packed, replicate-padded to multiples of ``multiple``, fp16
+                multiple: int = 8, first_frame: str = "inputs", upscale: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+    """ReconNet's input channels packed, replicate-padded to multiples of ``multiple``, fp16
     NHWC; and the input checks' flags, computed on the way.
 
     Args:
         sources: the 8 input channels.
-        prev: the previous output; warped already if ``flow`` is None, else warped here by
-            ``flow``. None on a sequence's first frame: its stand-in is made here
+        prev: the previous output (at ``upscale`` times the sides); warped already if ``flow`` is
+            None, else warped here by ``flow`` (upsampled: :func:`isosr_net.flow_warp.upscale_flow`).
+            None on a sequence's first frame: its stand-in is made here
             (:meth:`~isosr_net.reconnet.ReconNet.first_previous` under ``first_frame``).
-        flow: backward flow in pixels (:func:`isosr_net.flow_warp.warp_by_flow`), or None;
+        flow: backward flow in input pixels (:func:`isosr_net.flow_warp.warp_by_flow`), or None;
             checked even where nothing is warped.
         first_frame: "inputs" or "zeros" (:class:`~isosr_net.reconnet.ReconNetConfig`).
+        upscale: the model's (:attr:`~isosr_net.reconnet.ReconNetConfig.upscale`), 1 or 2.
 
     Returns:
         ``(packed, flags)``: flags (6,) fp32 in the order of
@@ -421,12 +473,15 @@ def pack_inputs(sources: ReconSources, prev: torch.Tensor | None, flow: torch.Te
         [0, 1], and the largest finite |depth|).
 
     Shape:
-        prev: (B, 6, H, W). flow: (B, 2, H, W). Returns packed (B, H', W', 16): channels 0-7
-        the inputs, 8 and 9 the previous mask and AO, 10-15 zero.
+        prev: (B, 6, sH, sW), s the upscale. flow: (B, 2, H, W). Returns packed (B, H', W', 16):
+        channels 0-7 the inputs, 8 and 9 the previous mask and AO, 10-15 zero; for x2, 8-11 the
+        previous mask and 12-15 its AO at the input pixel's 2 x 2 output pixels (F.pixel_unshuffle).
     """
     dims = sources.check("pack_inputs")
+    if upscale not in UPSCALES:
+        raise ValueError(f"pack_inputs: upscale must be one of {UPSCALES}, got {upscale!r}")
     if prev is not None:
-        check_shape(prev, "(B, 6, H, W)", "prev", "pack_inputs", dims)
+        check_shape(prev, f"({dims['B']}, 6, {upscale * dims['H']}, {upscale * dims['W']})", "prev", "pack_inputs")
     if flow is not None:
         check_shape(flow, "(B, 2, H, W)", "flow", "pack_inputs", dims)
         if not flow.is_floating_point():
@@ -444,7 +499,8 @@ def pack_inputs(sources: ReconSources, prev: torch.Tensor | None, flow: torch.Te
     flow_args = (sources.mask, 0, 0, 0, 0) if flow is None else (flow, *flow.stride())
     _pack_kernel[(programs, b)](*sources.args(), *prev_args, *flow_args, out, flags, h, w, hp, wp, PREV=mode.value,
                                 HAS_AO=sources.ao is not None, HAS_FLOW=flow is not None, **_CHANNELS,
-                                PREV_MASK=MASK.start, PREV_AO=AO.start, N_IN=INPUTS, C=PACKED, BLOCK=PACK_BLOCK)
+                                PREV_MASK=MASK.start, PREV_AO=AO.start, N_IN=INPUTS, S=upscale, C=PACKED,
+                                BLOCK=PACK_BLOCK)
     return out, flags.amax(dim=0)[:len(FRAME_FLAGS)]
 
 
@@ -511,15 +567,18 @@ def upsample_add(x: torch.Tensor, coarse: torch.Tensor, weight: torch.Tensor, bi
 def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, sources: ReconSources,
                config: ReconNetConfig, as_buffers: bool = False, shading: ShadingParams | None = None
                ) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """ReconNet's output convolution and output stack, cropped to the frame; as buffers and shaded
-    where asked.
+    """ReconNet's output convolution and output stack, cropped to the frame (and written
+    depth-to-space at twice its sides for a model that upscales x2); as buffers and shaded where
+    asked.
 
     Args:
         y: the last decoder level's features, NHWC fp16, padded past the frame.
-        weight, bias: the output convolution as for :func:`conv3x3`, CO padded to 16 (6 used).
+        weight, bias: the output convolution as for :func:`conv3x3`, CO padded to 16 (6 used; x2:
+            32, 24 used).
         sources: the network's inputs (mask, normal and depth read; with ``config.ao_prior``
             "rays" the sampled AO and the sampling too).
-        config: the network's config (its AO prior and ray limits, as :func:`~isosr_net.reconnet.ao_output`).
+        config: the network's config (its upscale, AO prior and ray limits, as
+            :func:`~isosr_net.reconnet.ao_output`).
         as_buffers: the stack as :func:`isosr_net.inference.buffer_stack` makes it of the output
             (unit normals, depth where covered), not the network's raw output.
         shading: with ``as_buffers``, also shade it (:func:`isosr_render.shading.shade`).
@@ -528,8 +587,9 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
         ``(stack, color or None)``.
 
     Shape:
-        y: (B, H', W', CI). weight: (9, CI, 16). bias: (16,). sources: H <= H', W <= W'.
-        Returns stack (B, 6, H, W) fp32 (mask, normal, depth, AO) and color (B, H, W, 3) fp32.
+        y: (B, H', W', CI). weight: (9, CI, CO). bias: (CO,). sources: H <= H', W <= W'.
+        Returns stack (B, 6, sH, sW) fp32 (mask, normal, depth, AO) and color (B, sH, sW, 3)
+        fp32, s the upscale.
     """
     dims = _check_nhwc(y, "y", "recon_tail")
     b, hp, wp, ci = dims["B"], dims["H"], dims["W"], dims["C"]
@@ -542,8 +602,11 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
         raise ValueError(f"recon_tail: inputs are {h}x{w}, larger than the features' {hp}x{wp}")
     if shading is not None and not as_buffers:
         raise ValueError("recon_tail: shading shades the output buffers: pass as_buffers=True")
-    out = torch.empty((b, OUTPUTS, h, w), device=y.device, dtype=torch.float32)
-    color = None if shading is None else torch.empty((b, h, w, 3), device=y.device, dtype=torch.float32)
+    s = config.upscale
+    if co < OUTPUTS * s * s:
+        raise ValueError(f"recon_tail: an x{s} model's tail has {OUTPUTS * s * s} outputs, the weights {co}")
+    out = torch.empty((b, OUTPUTS, s * h, s * w), device=y.device, dtype=torch.float32)
+    color = None if shading is None else torch.empty((b, s * h, s * w, 3), device=y.device, dtype=torch.float32)
     params = shading or ShadingParams()
     light, half = light_and_half(params)
     _tail_tuned[_grid(h * w, b)](y, weight, bias, *sources.args(), out, out if color is None else color, h, w, hp, wp,
@@ -552,5 +615,6 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
                                  params.diffuse, params.specular, params.shininess, *light, *half, *params.background,
                                  MASK_C=MASK.start, NORMAL_C=NORMAL.start, DEPTH_C=DEPTH.start, AO_C=AO.start,
                                  AO_PRIOR=config.ao_prior == "rays", HAS_AO=sources.ao is not None,
-                                 BUFFERS=as_buffers, SHADE=shading is not None, OUT=OUTPUTS, CI=ci, CO=co, **FIXED)
+                                 BUFFERS=as_buffers, SHADE=shading is not None, OUT=OUTPUTS, S=s, CI=ci, CO=co,
+                                 **FIXED)
     return out, color

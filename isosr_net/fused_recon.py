@@ -13,7 +13,9 @@ previous output's warp), head, the three stride-2 convolutions, the residual blo
 its 1x1 convolution and summed with the skip in one pass and its 3x3 convolution in another, and
 the tail (with the output stack). :meth:`FusedReconNet.frame` is a `Reconstructor`'s whole frame
 after the render in these passes alone: the pack reads the render's buffers in place and checks
-them, the tail writes the output buffers and the shaded color.
+them, the tail writes the output buffers and the shaded color. A model that upscales x2 runs in
+the same passes: the pack reads the previous output's 2 x 2 pixels per input pixel (warped by the
+flow upsampled), the tail writes its 24 channels depth-to-space over the inputs upsampled.
 
 The fused path runs on CUDA tensors where Triton imports (and on CPU tensors under Triton's
 interpreter, ``TRITON_INTERPRET=1``, for tests); elsewhere :class:`FusedReconNet` runs the
@@ -28,6 +30,7 @@ import os
 from collections.abc import Callable
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from isosr_render.conventions import AO, MASK, SAMPLED_AO, SAMPLING
@@ -58,6 +61,12 @@ def fused_runs_on(device: torch.device | str) -> bool:
     """Whether the fused kernels run on ``device``: CUDA with Triton, or CPU under Triton's interpreter."""
     kind = torch.device(device).type
     return triton_imports() and (kind == "cuda" or (kind == "cpu" and os.environ.get("TRITON_INTERPRET") == "1"))
+
+
+def fusable(config: ReconNetConfig) -> bool:
+    """Whether the kernels take a ReconNet of ``config``: its widths powers of 2, at least 16 (any
+    upscale, blocks and AO prior)."""
+    return all(w >= 16 and not w & (w - 1) for w in config.widths)
 
 
 def _kernels():
@@ -131,17 +140,15 @@ class FusedReconNet(nn.Module):
         net: the ReconNet (widths powers of 2, at least 16).
 
     Shape:
-        inputs: (B, 8, H, W). prev_warped: (B, 6, H, W). Returns (B, 6, H, W), float32 on the
-        fused path.
+        inputs: (B, 8, H, W). prev_warped: (B, 6, sH, sW). Returns (B, 6, sH, sW), float32 on the
+        fused path; s the model's upscale (1 or 2).
     """
 
     def __init__(self, net: ReconNet):
         super().__init__()
         widths = net.config.widths
-        if any(w < 16 or w & (w - 1) for w in widths):
+        if not fusable(net.config):
             raise ValueError(f"fused_reconnet: the widths must be powers of 2 >= 16, got {widths}")
-        if net.config.upscale != 1:
-            raise ValueError(f"fused_reconnet: a model that upscales (x{net.config.upscale}) runs unfused")
         self.config = net.config
         self.reference = net
         self.head = FusedConv(net.head, PACKED, widths[0])
@@ -151,8 +158,9 @@ class FusedReconNet(nn.Module):
                                   for block in net.body)
         self.up = nn.ModuleList(FusedUpsample(reduce) for reduce in net.reduce)
         self.fuse = nn.ModuleList(FusedConv(conv, widths[i], widths[i]) for i, conv in enumerate(net.fuse))
-        self.register_buffer("tail_w", tap_weights(net.tail.weight, widths[0], PACKED))
-        self.register_buffer("tail_b", _padded_bias(net.tail, PACKED))
+        tail = max(PACKED, 1 << (net.tail.out_channels - 1).bit_length())  # a power of 2: 16, or 32 for x2
+        self.register_buffer("tail_w", tap_weights(net.tail.weight, widths[0], tail))
+        self.register_buffer("tail_b", _padded_bias(net.tail, tail))
 
     def forward(self, inputs: torch.Tensor, prev_warped: torch.Tensor) -> torch.Tensor:
         if not fused_runs_on(inputs.device):
@@ -169,12 +177,13 @@ class FusedReconNet(nn.Module):
         made in the input packing.
 
         Returns:
-            ``(output, read)``: the output (B, 6, H, W), and what the network read of the warped
-            previous output (or of the first frame's stand-in): its mask and AO, (B, 2, H, W).
+            ``(output, read)``: the output (B, 6, sH, sW), and what the network read of the warped
+            previous output (or of the first frame's stand-in): its mask and AO, (B, 2, sH, sW).
             Unlike ReconNet's step, the other four channels are neither warped nor returned.
 
         Shape:
-            inputs: (B, 8, H, W). flow: (B, 2, H, W), pixels. previous: (B, 6, H, W).
+            inputs: (B, 8, H, W). flow: (B, 2, H, W), input pixels. previous: (B, 6, sH, sW); s the
+            model's upscale.
         """
         if previous is not None and flow is None:
             raise ValueError("a step with a previous output needs the flow to warp it")
@@ -182,8 +191,9 @@ class FusedReconNet(nn.Module):
             output, warped = self.reference.step(inputs, flow, previous)
             return output, recurrent_channels(warped)
         results = self._run(_kernels().ReconSources.of_inputs(inputs), previous, flow if previous is not None else None)
-        h, w = inputs.shape[-2:]
-        return results["output"], results["packed"][:, :h, :w, INPUTS:INPUTS + RECURRENT].permute(0, 3, 1, 2)
+        h, w, s = *inputs.shape[-2:], self.config.upscale
+        read = results["packed"][:, :h, :w, INPUTS:INPUTS + RECURRENT * s * s].permute(0, 3, 1, 2)
+        return results["output"], F.pixel_shuffle(read, s) if s > 1 else read
 
     def frame(self, mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, ao: torch.Tensor | None,
               sampling: torch.Tensor, flow: torch.Tensor | None, previous: torch.Tensor | None,
@@ -224,8 +234,8 @@ class FusedReconNet(nn.Module):
         def layer(conv: FusedConv, src: str, residual: str | None = None):
             return lambda: conv(results[src], residual=results[residual] if residual else None)
 
-        add("pack", lambda: k.pack_inputs(sources, prev, flow, multiple=2 ** LEVELS,
-                                          first_frame=self.config.first_frame), "packed", "flags")
+        add("pack", lambda: k.pack_inputs(sources, prev, flow, multiple=2 ** LEVELS, first_frame=self.config.first_frame,
+                                          upscale=self.config.upscale), "packed", "flags")
         add("head", layer(self.head, "packed"))
         skips = ["head"]
         for i, conv in enumerate(self.down):
@@ -263,8 +273,9 @@ def fused_traffic(h: int, w: int, config: ReconNetConfig = ReconNetConfig(), war
     once; weights ignored): its floor at a memory bandwidth of ``B`` bytes/s is ``bytes / B``.
 
     Args:
-        h, w: the frame's size.
-        config: the network's (its widths, blocks and AO prior).
+        h, w: the frame's size as rendered (the network's input; the output has ``config.upscale``
+            times its sides).
+        config: the network's (its widths, blocks, AO prior and upscale).
         warp: the pack warps the previous output (reads the flow) rather than reading it warped.
         frame: as :meth:`FusedReconNet.frame` runs it: the sampling two values rather than two
             planes of an input stack, and the tail writing the shaded color too.
@@ -282,8 +293,9 @@ def fused_traffic(h: int, w: int, config: ReconNetConfig = ReconNetConfig(), war
     def features(level: int, channels: int) -> int:
         return channels * f16 * padded // 4 ** level
 
+    cells = config.upscale ** 2  # output pixels per input pixel
     # The previous output: its mask and AO once (warped: plus the flow's two channels).
-    prev = (RECURRENT + (2 if warp else 0)) * f32 * pixels
+    prev = (RECURRENT * cells + (2 if warp else 0)) * f32 * pixels
     out = {"pack": (AO.start + 1 + sampling) * f32 * pixels + prev + features(0, PACKED),
            "head": features(0, PACKED + widths[0])}
     for i in range(LEVELS):
@@ -298,5 +310,5 @@ def fused_traffic(h: int, w: int, config: ReconNetConfig = ReconNetConfig(), war
     # the features, the inputs' mask, normal and depth (and the rays' AO and sampling for their
     # prior), the output (and the color)
     given = AO.start + (len(range(INPUTS)[SAMPLED_AO]) + sampling if config.ao_prior == "rays" else 0)
-    out["tail"] = features(0, widths[0]) + (given + OUTPUTS + (3 if frame else 0)) * f32 * pixels
+    out["tail"] = features(0, widths[0]) + (given + (OUTPUTS + (3 if frame else 0)) * cells) * f32 * pixels
     return out

@@ -24,7 +24,7 @@ import torch
 
 from isosr_render.buffers import FrameBuffers
 from isosr_render.shading import ShadingParams, shade
-from isosr_net.fused_recon import fused_reconnet, fused_runs_on, triton_imports
+from isosr_net.fused_recon import fusable, fused_reconnet, fused_runs_on, triton_imports
 from isosr_net.reconnet import RayLimits, ReconNet, ReconNetConfig
 from isosr_net.inference import (AO_MESSAGE, PRECISIONS, InputChecks, RecurrentNetwork, ao_in_range, buffer_stack,
                                  check_buffer, check_surface, frame_flags, stack_buffers, surface_tensors)
@@ -244,8 +244,8 @@ class Reconstructor(RecurrentNetwork):
         NHWC, the network as fused Triton kernels (``fused``, where Triton imports and in fp16;
         else its channel-padded layers compiled) and, through :meth:`render_reconstruct`, render,
         network and shading replayed as one CUDA graph; eager fp32 NHWC elsewhere. On an H100
-        (``python -m isosr_bench.bench_recon_path``, ct_pitch, 1 AO ray, commit b9a566f) the fused
-        graph makes a 1080p frame in 3.04 ms and a 4K frame in 8.67 ms through the runner (at
+        (``python -m isosr_bench.bench_recon_path``, ct_pitch, 1 AO ray, commit 4e442cc) the fused
+        graph makes a 1080p frame in 2.62 ms and a 4K frame in 7.93 ms through the runner (at
         5fb514d the compiled one took 4.14 and 12.7 ms)."""
         if torch.device(device).type == "cuda":
             precision = precision or "fp16"
@@ -268,9 +268,9 @@ class Reconstructor(RecurrentNetwork):
     @staticmethod
     def fuses(model: str | Path, device: str, precision: str) -> bool:
         """Whether the fused kernels run ``model`` on ``device`` in ``precision``: fp16 on CUDA with
-        Triton, and a model that does not upscale (:attr:`ReconNetConfig.upscale`)."""
+        Triton, and widths the kernels take (:func:`~isosr_net.fused_recon.fusable`)."""
         return (precision == "fp16" and torch.device(device).type == "cuda" and fused_runs_on(device)
-                and recon_config(model).upscale == 1)
+                and fusable(recon_config(model)))
 
     @property
     def limits(self) -> RayLimits:

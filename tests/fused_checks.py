@@ -25,13 +25,14 @@ import torch.nn.functional as F
 from isosr_render.buffers import FrameBuffers
 from isosr_render.conventions import AO, DEPTH, MASK, NORMAL
 from isosr_render.shading import ShadingParams, shade
-from isosr_net.flow_warp import warp_by_flow
+from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net.fused_kernels import ReconSources, conv3x3, pack_inputs, recon_tail, upsample_add
 from isosr_net.fused_recon import FusedReconNet, fused_reconnet, fused_runs_on, fused_traffic, tap_weights
 from isosr_net.inference import FP16_MAX_DEPTH, FRAME_FLAGS, buffer_stack, frame_flags, stack_buffers
 from isosr_net.model import load_pretrained
-from isosr_net.reconnet import AO_PRIORS, ReconNet, ReconNetConfig, ao_output
+from isosr_net.reconnet import AO_PRIORS, ReconNet, ReconNetConfig, ao_output, upsampled_inputs
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
+RECON_X2_MODEL = DEFAULT_RECON_MODEL.parent / "recon_x2_model"
 
 from test_reconnet import recon_batch
 
@@ -146,7 +147,7 @@ def test_packs_flags_are_the_frames_checks(broken, value):
 
 def test_pack_checks_its_inputs():
     inputs, prev = rand(1, 8, 4, 6), rand(1, 6, 4, 6)
-    with pytest.raises(ValueError, match=r"pack_inputs: prev must be \(B, 6, H, W\) with B=1, H=4, W=6"):
+    with pytest.raises(ValueError, match=r"pack_inputs: prev must be \(1, 6, 4, 6\), got \(1, 6, 4, 5\)"):
         pack(inputs, prev[..., :5])
     with pytest.raises(ValueError, match=r"ReconSources: inputs must be \(B, 8, H, W\)"):
         pack(inputs[:, :7], prev)
@@ -154,6 +155,33 @@ def test_pack_checks_its_inputs():
         pack(inputs, prev, rand(1, 2, 4, 6).int())
     with pytest.raises(ValueError, match="pack_inputs: first_frame must be one of"):
         pack(inputs, None, first_frame="noise")
+    with pytest.raises(ValueError, match=r"pack_inputs: prev must be \(1, 6, 8, 12\), got \(1, 6, 4, 6\)"):
+        pack(inputs, prev, upscale=2)
+    with pytest.raises(ValueError, match=r"pack_inputs: upscale must be one of \(1, 2\), got 4"):
+        pack(inputs, None, upscale=4)
+
+
+@pytest.mark.parametrize("previous", ["given", "warped", "inputs", "zeros"])
+def test_pack_of_an_x2_model_reads_the_previous_output_space_to_depth(previous):
+    """An x2 model's packed input: the inputs, and the previous output (at twice the sides; warped
+    by the flow upsampled, or the first frame's stand-in of the upsampled inputs) pixel-unshuffled."""
+    h, w = 13, 21
+    inputs = recon_batch(2, h, w, seed=42).to(DEVICE)
+    inputs[1, 5, :4] = 0  # no ray hit there: the stand-in's AO is the rays'
+    prev, flow = rand(2, 6, 2 * h, 2 * w, seed=43).abs(), rand(2, 2, h, w, scale=3.0, seed=44)
+    flow[0, :, 0, 0] = torch.tensor([1e6, -1e6])  # far outside: reads zeros
+    if previous in ("given", "warped"):
+        packed, _ = pack(inputs, prev, flow if previous == "warped" else None, upscale=2)
+        read = warp_by_flow(prev.double(), upscale_flow(flow.double(), 2)) if previous == "warped" else prev.double()
+    else:
+        packed, _ = pack(inputs, None, first_frame=previous, upscale=2)
+        read = ReconNet(ReconNetConfig(upscale=2, first_frame=previous)).to(DEVICE).first_previous(inputs.double())
+    expected = F.pad(F.pixel_unshuffle(torch.cat([read[:, MASK], read[:, AO]], dim=1), 2), (0, -w % 8, 0, -h % 8),
+                     mode="replicate")
+    got = nchw(packed)[:, 8:].double()
+    assert packed.shape == (2, 16, 24, 16)
+    assert ((got - expected).abs() <= 1e-3 * expected.abs() + 1e-4).all(), (got - expected).abs().max()
+    torch.testing.assert_close(nchw(packed)[:, :8, :h, :w], inputs.half(), rtol=0, atol=0)
 
 
 # ---------------------------------------------------------------- convolutions
@@ -285,6 +313,35 @@ def test_tail_checks_its_inputs():
                    shading=ShadingParams())
 
 
+@pytest.mark.parametrize("ao_prior", AO_PRIORS)
+def test_tail_of_an_x2_model_writes_depth_to_space_over_the_upsampled_inputs(ao_prior):
+    """24 output channels computed as 32, pixel-shuffled to twice the sides, over
+    upsampled_inputs (bilinear, depth nearest); as buffers and shaded at that size too."""
+    h, w, hp, wp = 13, 21, 16, 24
+    features = rand(2, hp, wp, 16, seed=45, dtype=torch.float16)
+    taps, bias = tap_weights(rand(24, 16, 3, 3, scale=0.3, seed=46), 16, 32), torch.zeros(32, device=DEVICE)
+    bias[:24] = rand(24, seed=47)
+    inputs = recon_batch(2, h, w, seed=48).to(DEVICE)
+    raw, magnitude = (F.pixel_shuffle(t[:, :24, :h, :w], 2) for t in conv_ref(nchw(features), taps, bias))
+    given = upsampled_inputs(inputs.double(), 2)
+    config = ReconNetConfig(ao_prior=ao_prior, max_ao_rays=16, upscale=2)
+    sources = ReconSources.of_inputs(inputs)
+    out, _ = recon_tail(features, taps, bias, sources, config)
+    assert out.shape == (2, 6, 2 * h, 2 * w)
+    expected = torch.cat([(given[:, MASK] + raw[:, MASK]).clamp(0, 1), given[:, NORMAL] + raw[:, NORMAL],
+                          given[:, DEPTH], ao_output(raw[:, AO], given, config)], dim=1)
+    err = (out.double() - expected).abs()
+    assert (err <= 1e-5 * (magnitude + 1)).all(), err.max()
+    shading = ShadingParams()
+    stack, color = recon_tail(features, taps, bias, sources, config, as_buffers=True, shading=shading)
+    torch.testing.assert_close(stack, buffer_stack(out), rtol=0, atol=1e-6)
+    for i in range(2):
+        frame = stack_buffers(stack[i:i + 1])
+        torch.testing.assert_close(color[i], shade(frame.mask, frame.normal, frame.ao, shading), rtol=0, atol=1e-5)
+    with pytest.raises(ValueError, match=r"recon_tail: an x2 model's tail has 24 outputs, the weights 16"):
+        recon_tail(features, taps[..., :16].contiguous(), bias[:16], sources, config)
+
+
 # ---------------------------------------------------------------- the whole network
 
 
@@ -352,6 +409,31 @@ def test_other_architectures_fuse_too(blocks):
     torch.testing.assert_close(results["output"], got, rtol=0, atol=0)
 
 
+@pytest.mark.parametrize("b, h, w", [(1, 11, 13), (1, 1, 1)])
+def test_the_shipped_x2_model_fused_equals_reconnet(b, h, w):
+    """The shipped x2 model: its step (the previous output at twice the sides, warped by the flow
+    upsampled), its first frame and its forward of a warped previous output."""
+    net, _ = load_pretrained(RECON_X2_MODEL, torch.device(DEVICE))
+    net = net.eval()
+    fused = fused_reconnet(net)
+    inputs = recon_batch(b, h, w, seed=49).to(DEVICE)
+    previous, flow = rand(b, 6, 2 * h, 2 * w, seed=50).sigmoid(), rand(b, 2, h, w, scale=2.0, seed=51)
+    with torch.no_grad():
+        stepped, read = fused.step(inputs, flow, previous)
+        first, first_read = fused.step(inputs, None, None)
+        expected, warped = net.double().step(inputs.double(), flow.double(), previous.double())
+        stand_in = net.first_previous(inputs.double())
+        expected_first = net(inputs.double(), stand_in)
+        given = fused(inputs, warped.float())
+    assert stepped.shape == (b, 6, 2 * h, 2 * w) and torch.isfinite(stepped).all()
+    for got, ref in ((stepped, expected), (given, expected), (first, expected_first)):
+        torch.testing.assert_close(got.double(), ref, rtol=0, atol=2e-3)
+    torch.testing.assert_close(read.double(), warped[:, [MASK.start, AO.start]], rtol=1e-3, atol=1e-4)
+    torch.testing.assert_close(first_read.double(), stand_in[:, [MASK.start, AO.start]], rtol=1e-3, atol=1e-4)
+    assert [name for name, _ in fused.passes(ReconSources.of_inputs(inputs), None)[1]] == list(
+        fused_traffic(h, w, net.config))
+
+
 def test_hard_frames_stay_finite_and_within_fp16s_own_error(shipped):
     """An all-empty frame, and depths at fp16's limit for the networks under a previous output all
     ones: finite, in range, and per channel at most 1.5 times as far from the float64 reference as
@@ -402,14 +484,15 @@ def test_the_service_reconstructs_by_the_fused_kernels_on_cuda_in_fp16():
     assert not isinstance(serving_network(Reconstructor, DEFAULT_RECON_MODEL, DEVICE, "fp32").net, FusedReconNet)
 
 
-def test_a_fused_reconstructor_follows_the_reference_frame_by_frame():
+@pytest.mark.parametrize("model", [DEFAULT_RECON_MODEL, RECON_X2_MODEL])
+def test_a_fused_reconstructor_follows_the_reference_frame_by_frame(model):
     """The Reconstructor's fused path (its recurrence, warp and shading) against the fp32 eager
-    one over a short sequence; on CUDA also replayed from CUDA graphs."""
-    variants = [Reconstructor(device=DEVICE, precision="fp16", fused=True)]
+    one over a short sequence, the shipped x1 and x2 models; on CUDA also replayed from CUDA graphs."""
+    variants = [Reconstructor(model, device=DEVICE, precision="fp16", fused=True)]
     if DEVICE == "cuda":
-        variants.append(Reconstructor(device=DEVICE, precision="fp16", fused=True, graphs=True))
+        variants.append(Reconstructor(model, device=DEVICE, precision="fp16", fused=True, graphs=True))
     assert all(isinstance(v.net, FusedReconNet) for v in variants)
-    reference = Reconstructor(device=DEVICE)
+    reference = Reconstructor(model, device=DEVICE)
     shading = ShadingParams()
     for frame in synthetic_frames(3, 13, 21):
         expected = reference.reconstruct(frame, 2, 1, shading)

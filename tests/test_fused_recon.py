@@ -75,6 +75,9 @@ def test_fused_traffic_counts_each_tensor_once():
     assert wide["up2"] == 2 * 64 * 2 * pixels // 16 + 128 * 2 * pixels // 64
     assert wide["tail"] == (32 + 8 * 4 + 6 * 4) * pixels  # the rays' AO and sampling read too
     assert fused_traffic(1080, 1920, warp=False)["pack"] == traffic["pack"] - 2 * 4 * pixels
+    x2 = fused_traffic(1080, 1920, ReconNetConfig(upscale=2))  # 1080p rendered, 4K out
+    assert x2["pack"] == (8 * 4 + (2 * 4 + 2) * 4 + 16 * 2) * pixels  # the previous output's 2x2 pixels
+    assert x2["tail"] == (32 + 5 * 4 + 4 * 6 * 4) * pixels and x2["head"] == traffic["head"]
     assert fused_traffic(13, 21)["head"] == 64 * 16 * 24  # the padded frame
     assert "body1.1" not in fused_traffic(13, 21, ReconNetConfig(blocks=0))
     with pytest.raises(ValueError, match=r"fused_traffic: h must be an integer >= 1, got 0"):

@@ -17,7 +17,7 @@ from isosr_net.budget import color_psnr, reference_frames
 from isosr_net.frame_methods import FrameMethod, make_runner, run_sequence
 from isosr_net.model import save_pretrained
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
-from isosr_net.fused_recon import FusedReconNet, fused_reconnet
+from isosr_net.fused_recon import FusedReconNet
 from isosr_net.reconnet import RayLimits, ReconNet, ReconNetConfig, ao_output, macs_per_pixel, upsampled_inputs
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor, recon_inputs, recon_limits
 from isosr_net.upscaler import DEFAULT_MODEL
@@ -571,8 +571,6 @@ def test_a_reconstructor_of_an_upscaling_model_makes_frames_at_twice_the_sides(x
     assert_sane(second, SIZE[1], SIZE[0])
     alone = Reconstructor(x2_model).reconstruct(frames[1], 2, 1)
     assert not torch.equal(second.ao, alone.ao)  # the first frame carried over
-    with pytest.raises(ValueError, match=r"fused_reconnet: a model that upscales \(x2\) runs unfused"):
-        fused_reconnet(net(upscale=2))
 
 
 def test_the_frame_method_of_an_upscaling_model_renders_at_half_the_sides(x2_model, sphere):
@@ -589,12 +587,13 @@ def test_the_frame_method_of_an_upscaling_model_renders_at_half_the_sides(x2_mod
         FrameMethod("reconstruct", factor=4)
 
 
-def test_the_fused_kernels_run_fp16_on_cuda_and_models_that_do_not_upscale(x2_model):
+def test_the_fused_kernels_run_fp16_on_cuda_and_models_of_their_widths(x2_model):
     """The one rule `fastest` and the service's `served` follow (decided from the model's config,
-    without a GPU)."""
+    without a GPU): the shipped models, x1 and x2, fuse; the 4-channel test model does not."""
     from isosr_net.fused_recon import triton_imports
 
     assert Reconstructor.fuses(DEFAULT_RECON_MODEL, "cuda", "fp16") == triton_imports()
+    assert Reconstructor.fuses(RECON_X2_MODEL, "cuda", "fp16") == triton_imports()
     assert not Reconstructor.fuses(x2_model, "cuda", "fp16")
     assert not Reconstructor.fuses(DEFAULT_RECON_MODEL, "cuda", "bf16")
     assert not Reconstructor.fuses(DEFAULT_RECON_MODEL, "cpu", "fp16")
