@@ -54,7 +54,8 @@ from isosr_render.sequence import sequence_cameras
 from isosr_net.budget import (REFERENCE_AO_RAYS, REFERENCE_SPP, BudgetConfig, choose_method, probe_quality,
                               reference_frames)
 from isosr_net.flow_warp import warp_by_flow
-from isosr_net.frame_methods import INTERPOLATIONS, FrameMethod, Networks, make_runner, unavailable_kinds
+from isosr_net.frame_methods import (INTERPOLATIONS, FrameMethod, Networks, make_runner, reconstruct_method,
+                                     unavailable_kinds)
 from isosr_net.metrics import color_instability, eval_region, masked_psnr, masked_ssim
 from isosr_net.model import read_config
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, recon_limits
@@ -105,9 +106,8 @@ def methods(smoke: bool, device: str, models: dict[str, Path]) -> list[FrameMeth
             limits = recon_limits(folder)
             sampling = ((1, 0), (1, 2)) if smoke else [(s, n) for s in (1, 2, 4) for n in (0, 1, 2, 4, 8, 16)
                                                        if s <= limits.max_spp and n <= limits.max_ao_rays]
-            out += [FrameMethod("reconstruct", ao_rays=n, spp=s, factor=config.get("upscale", 1),
-                                precision="fp16" if cuda else "fp32", model=model, model_name=name)
-                    for s, n in sampling]
+            out += [reconstruct_method(model, ao_rays=n, spp=s, precision="fp16" if cuda else "fp32",
+                                       model_name=name) for s, n in sampling]
             continue
         for precision in ("fp32", "bf16", "fp16") if cuda else ("fp32",):
             out.append(FrameMethod("network", factor=config["upscale"], precision=precision, model=model,

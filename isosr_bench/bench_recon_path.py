@@ -41,10 +41,10 @@ import torch
 from isosr_render import Renderer
 from isosr_render.shading import ShadingParams
 from isosr_render.sequence import sequence_cameras
-from isosr_net.frame_methods import FrameMethod, Networks, make_runner
+from isosr_net.frame_methods import FrameMethod, Networks, make_runner, reconstruct_method
 from isosr_net.fused_recon import FusedReconNet, fused_runs_on, fused_traffic
 from isosr_net.reconnet import macs_per_pixel
-from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor, recon_config
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
 
 from .bench_network import copy_bandwidth, matmul_tflops
 from .bench_pareto import FRAMES, SIZES, SMOKE_FRAMES, SMOKE_SIZES, WARMUP, bench_cameras, load
@@ -107,11 +107,9 @@ def pass_times(net: FusedReconNet, renderer: Renderer, pairs: list, request, ao_
 
 
 def recon_method(model: str, ao_rays: int, spp: int, precision: str) -> FrameMethod:
-    """The reconstruct method of ``model`` (the shipped one: the default name; else named by its
-    folder), rendering at its upscale's fraction of the sides."""
+    """The reconstruct method of ``model`` (the shipped one: the default name; else named by its folder)."""
     named = {} if model == str(DEFAULT_RECON_MODEL) else {"model": model, "model_name": Path(model).name}
-    return FrameMethod("reconstruct", ao_rays=ao_rays, spp=spp, precision=precision,
-                       factor=recon_config(model).upscale, **named)
+    return reconstruct_method(ao_rays=ao_rays, spp=spp, precision=precision, **named)
 
 
 def stage_row(renderer: Renderer, iso: float, volume: str, size: tuple[int, int], size_name: str, ao_rays: int,

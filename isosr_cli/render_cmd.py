@@ -16,7 +16,7 @@ import torch
 from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest, open_volume, orbit, resolve_iso
 from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES, HIGHRES_BUFFERS
 from isosr_net.budget import BudgetConfig, render_within_budget
-from isosr_net.frame_methods import FrameMethod, FrameRunner, Networks, make_runner, run_sequence
+from isosr_net.frame_methods import FrameMethod, FrameRunner, Networks, make_runner, reconstruct_method, run_sequence
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, recon_limits
 from isosr_net.inference import PRECISIONS
 from isosr_cli.images import visualize, write_png
@@ -205,6 +205,6 @@ def run(args: argparse.Namespace) -> int:
 def _recon_runner(args: argparse.Namespace, renderer: Renderer, iso: float, ao_radius: float) -> FrameRunner:
     """The frame runner of --reconstruct, with an eager network: for one frame or two, compiling
     it (what a runner's own network does on GPUs) would take longer than it saves."""
-    method = FrameMethod("reconstruct", ao_rays=args.ao_samples, spp=args.spp, model=args.model, model_name="recon",
-                         precision=args.precision or "fp32")
+    method = reconstruct_method(args.model, ao_rays=args.ao_samples, spp=args.spp, model_name="recon",
+                                precision=args.precision or "fp32")
     return make_runner(method, renderer, iso, *args.size, ao_radius=ao_radius, networks=Networks.eager())

@@ -52,7 +52,7 @@ from isosr_net.atrous import ATrousConfig, atrous_filter
 from isosr_net.inference import PRECISIONS, RecurrentNetwork, finish_steps, output_buffers
 from isosr_net.metrics import INTERPOLATIONS, upscale_baseline
 from isosr_net import oidn
-from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor, recon_limits
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor, recon_config, recon_limits
 from isosr_net.reconnet import UPSCALES
 from isosr_net.svgf import SVGFConfig, SVGFHistory, svgf_filter
 from isosr_net.timing import StageTimer
@@ -588,6 +588,13 @@ class ReconstructRunner(FrameRunner):
         # The plan's buffers are reused next frame: keep copies of those kept.
         kept = {n: getattr(rendered, n).clone() for n in self.keep if getattr(rendered, n) is not None}
         return FrameBuffers(**kept), out
+
+
+def reconstruct_method(model: str | None = None, **knobs) -> FrameMethod:
+    """The ``reconstruct`` method of ``model`` (None: the shipped one) at the model's own upscale
+    (:attr:`~isosr_net.reconnet.ReconNetConfig.upscale`: an x2 model renders at half the sides);
+    ``knobs``: the method's others."""
+    return FrameMethod("reconstruct", factor=recon_config(model or DEFAULT_RECON_MODEL).upscale, model=model, **knobs)
 
 
 @register_runner("upscale")

@@ -21,9 +21,10 @@ Four kinds of pass do all of ReconNet's work (:mod:`isosr_net.fused_recon` runs 
   with 4 warps (64 channels), so it is here.
 - :func:`recon_tail`: the 3x3 output convolution (6 channels, computed as 16; x2: 24 as 32,
   written depth-to-space) + bias and ReconNet's output over its inputs (x2: upsampled,
-  :func:`~isosr_net.reconnet.upsampled_inputs`): mask ``clamp(in + raw, 0, 1)``, normal ``in + raw``, depth passed through,
-  AO ``sigmoid(raw)`` or, for a model over the input rays, ``sigmoid(logit(p) + raw)``
-  (:func:`isosr_net.reconnet.ao_output`), written as the (B, 6, H, W) fp32 stack, cropped to the
+  :func:`~isosr_net.reconnet.upsampled_inputs`): mask ``clamp(in + raw, 0, 1)``, normal
+  ``in + raw``, depth passed through, AO ``sigmoid(raw)`` or, for a model over the input rays,
+  ``sigmoid(logit(p) + raw)`` (:func:`isosr_net.reconnet.ao_output`), written as the (B, 6, sH, sW)
+  fp32 stack, cropped to the
   frame; or as the output buffers' stack (:func:`isosr_net.inference.buffer_stack`) and shaded
   (:func:`isosr_render.shading.shade`), the frame's last work, in the same pass.
 
@@ -213,7 +214,8 @@ def _pack_kernel(m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, sn_b, sn_c, sn_h, sn_w, d
             if HAS_AO:
                 rays_here = _base_plane(a_ptr, sa_b, sa_h, sa_w, b, yy, xx, h, w, valid, S)
             prev_ao = tl.where(cast, rays_here, prev_mask)
-        tile = tl.where(c == N_IN + cell, prev_mask[:, None], tl.where(c == N_IN + S * S + cell, prev_ao[:, None], tile))
+        tile = tl.where(c == N_IN + cell, prev_mask[:, None],
+                        tl.where(c == N_IN + S * S + cell, prev_ao[:, None], tile))
     tl.store(out_ptr + b * hp * wp * C + offs[:, None] * C + c, tile.to(tl.float16), mask=valid[:, None])
 
 

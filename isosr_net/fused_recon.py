@@ -38,7 +38,7 @@ from isosr_render.shading import ShadingParams
 from isosr_render.shapes import check_int, check_shape
 from isosr_net.reconnet import INPUTS, LEVELS, OUTPUTS, RECURRENT, ReconNet, ReconNetConfig
 
-PACKED = 16  # the packed input's channels (isosr_net.fused_kernels.PACKED): 10 used
+PACKED = 16  # the packed input's channels (isosr_net.fused_kernels.PACKED): 10 used (x2: 16)
 
 
 def recurrent_channels(previous: torch.Tensor) -> torch.Tensor:
@@ -234,8 +234,9 @@ class FusedReconNet(nn.Module):
         def layer(conv: FusedConv, src: str, residual: str | None = None):
             return lambda: conv(results[src], residual=results[residual] if residual else None)
 
-        add("pack", lambda: k.pack_inputs(sources, prev, flow, multiple=2 ** LEVELS, first_frame=self.config.first_frame,
-                                          upscale=self.config.upscale), "packed", "flags")
+        add("pack", lambda: k.pack_inputs(sources, prev, flow, multiple=2 ** LEVELS,
+                                          first_frame=self.config.first_frame, upscale=self.config.upscale),
+            "packed", "flags")
         add("head", layer(self.head, "packed"))
         skips = ["head"]
         for i, conv in enumerate(self.down):
