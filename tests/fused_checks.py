@@ -353,11 +353,6 @@ def shipped_under(ao_prior: str) -> tuple[ReconNet, FusedReconNet]:
     return net.eval(), fused_reconnet(net)
 
 
-@pytest.fixture(scope="module", params=AO_PRIORS)
-def shipped(request):
-    return shipped_under(request.param)
-
-
 def reference(net, inputs, warped):
     with torch.no_grad():
         return net.double()(inputs.double(), warped.double()).float(), net.float()
@@ -434,18 +429,26 @@ def test_the_shipped_x2_model_fused_equals_reconnet(b, h, w):
         fused_traffic(h, w, net.config))
 
 
-def test_hard_frames_stay_finite_and_within_fp16s_own_error(shipped):
+@functools.cache
+def shipped_x2() -> tuple[ReconNet, FusedReconNet]:
+    net, _ = load_pretrained(RECON_X2_MODEL, torch.device(DEVICE))
+    return net.eval(), fused_reconnet(net)
+
+
+@pytest.mark.parametrize("model", [*(f"x1, AO prior {prior}" for prior in AO_PRIORS), "x2"])
+def test_hard_frames_stay_finite_and_within_fp16s_own_error(model):
     """An all-empty frame, and depths at fp16's limit for the networks under a previous output all
     ones: finite, in range, and per channel at most 1.5 times as far from the float64 reference as
     ReconNet under fp16 autocast (at depth 1e4 both are off by tenths on the normals, whose raw
-    values reach hundreds)."""
-    net, fused = shipped
-    h, w = 13, 21
+    values reach hundreds). The shipped models: x1 under both AO priors, and x2."""
+    net, fused = shipped_x2() if model == "x2" else shipped_under(model.rsplit(" ", 1)[1])
+    h, w, s = 13, 21, net.config.upscale
     empty = recon_batch(1, h, w, seed=20).to(DEVICE)
     empty[:, :6] = 0
     deep = recon_batch(1, h, w, seed=21).to(DEVICE)
     deep[:, DEPTH] = torch.where(deep[:, MASK] > 0, FP16_MAX_DEPTH, 0.0)
-    cases = ((empty, torch.zeros(1, 6, h, w, device=DEVICE)), (deep, torch.ones(1, 6, h, w, device=DEVICE)))
+    cases = ((empty, torch.zeros(1, 6, s * h, s * w, device=DEVICE)),
+             (deep, torch.ones(1, 6, s * h, s * w, device=DEVICE)))
     for inputs, warped in cases:
         with torch.no_grad(), torch.autocast(DEVICE, dtype=torch.float16):
             half = net(inputs, warped).float()
