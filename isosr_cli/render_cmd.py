@@ -16,7 +16,7 @@ import torch
 from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest, open_volume, orbit, resolve_iso
 from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES, HIGHRES_BUFFERS
 from isosr_net.budget import BudgetConfig, render_within_budget
-from isosr_net.frame_methods import FrameMethod, FrameRunner, Networks, make_runner, reconstruct_method, run_sequence
+from isosr_net.frame_methods import FrameRunner, Networks, make_runner, reconstruct_method, run_sequence
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, recon_limits
 from isosr_net.inference import PRECISIONS
 from isosr_cli.images import visualize, write_png

@@ -35,6 +35,7 @@ if TYPE_CHECKING:  # the network runs without Warp; render_reconstruct takes wha
     from isosr_render.renderer import Renderer, RenderPlan, RenderRequest
 
 DEFAULT_RECON_MODEL = Path(__file__).resolve().parent / "recon_model"
+RECON_X2_MODEL = DEFAULT_RECON_MODEL.parent / "recon_x2_model"  # the shipped model that also upscales x2
 # Captured CUDA graphs kept per Reconstructor (frame sizes x samplings x first frame or not).
 MAX_GRAPHS = 32
 T = TypeVar("T")

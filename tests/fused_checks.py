@@ -31,8 +31,7 @@ from isosr_net.fused_recon import FusedReconNet, fused_reconnet, fused_runs_on, 
 from isosr_net.inference import FP16_MAX_DEPTH, FRAME_FLAGS, buffer_stack, frame_flags, stack_buffers
 from isosr_net.model import load_pretrained
 from isosr_net.reconnet import AO_PRIORS, ReconNet, ReconNetConfig, ao_output, upsampled_inputs
-from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
-RECON_X2_MODEL = DEFAULT_RECON_MODEL.parent / "recon_x2_model"
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, Reconstructor
 
 from test_reconnet import recon_batch
 

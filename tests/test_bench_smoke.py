@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 from isosr_bench.bench_render import main
+from isosr_net.reconstructor import RECON_X2_MODEL
 from net_fixtures import tiny_model_dir
 
 
@@ -59,8 +59,7 @@ def test_recon_path_smoke_times_every_stage(tmp_path):
     for row in rows:
         assert all(row[k] > 0 for k in ("full", "path", "render", "network_gflop", "floor_ms"))
         assert row["added"] == row["path"] - row["full"]
-    x2 = str(Path(bench_recon_path.DEFAULT_RECON_MODEL).parent / "recon_x2_model")
-    rows = bench_recon_path.main(["--device", "cpu", "--smoke", "--model", x2, "--out", str(tmp_path)])
+    rows = bench_recon_path.main(["--device", "cpu", "--smoke", "--model", str(RECON_X2_MODEL), "--out", str(tmp_path)])
     assert [row["method"] for row in rows] == [f"x2, AO 1, spp {spp}, recon_x2_model fp32"
                                                for _, spp in bench_recon_path.SAMPLINGS]
     assert all(row["path"] > 0 for row in rows)

@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -14,7 +13,7 @@ import torch
 
 from isosr_cli.main import main
 from isosr_net.frame_methods import FrameMethod, make_runner, run_sequence
-from isosr_net.reconstructor import DEFAULT_RECON_MODEL, recon_limits
+from isosr_net.reconstructor import RECON_X2_MODEL, recon_limits
 from isosr_net.upscaler import DEFAULT_MODEL
 from isosr_render import Renderer, open_volume, resolve_iso
 from isosr_render.buffers import FrameBuffers
@@ -182,8 +181,7 @@ def test_without_the_server_extra_training_runs_and_serve_says_what_to_install()
 
 def test_render_reconstruct_with_the_x2_model_renders_half_the_sides_and_writes_the_full_size(tmp_path, capsys):
     out = tmp_path / "x2.npz"
-    model = Path(DEFAULT_RECON_MODEL).parent / "recon_x2_model"
-    assert main(["render", "proc:cloud:3@48", "--size", "64x48", "--reconstruct", "--model", str(model),
+    assert main(["render", "proc:cloud:3@48", "--size", "64x48", "--reconstruct", "--model", str(RECON_X2_MODEL),
                  "--ao-samples", "2", "--outputs", "mask,ao,color", "-o", str(out)]) == 0
     assert "x2, AO 2, spp 1, recon fp32" in capsys.readouterr().out
     frame = np.load(out)

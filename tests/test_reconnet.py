@@ -19,7 +19,7 @@ from isosr_net.model import save_pretrained
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net.fused_recon import FusedReconNet
 from isosr_net.reconnet import RayLimits, ReconNet, ReconNetConfig, ao_output, macs_per_pixel, upsampled_inputs
-from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor, recon_inputs, recon_limits
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, Reconstructor, recon_inputs, recon_limits
 from isosr_net.upscaler import DEFAULT_MODEL
 
 SIZE = (96, 64)  # width, height
@@ -398,24 +398,30 @@ def test_a_reconstructor_has_no_upscaling_api_and_an_upscaler_folder_is_not_a_re
         Reconstructor(DEFAULT_MODEL)
 
 
-def test_extreme_depth_stays_finite(sphere_frames):
+SHIPPED = pytest.mark.parametrize("model, s", [(DEFAULT_RECON_MODEL, 1), (RECON_X2_MODEL, 2)], ids=["x1", "x2"])
+
+
+@SHIPPED
+def test_extreme_depth_stays_finite(sphere_frames, model, s):
     frame = fresh(sphere_frames[0])
     frame.depth = torch.where(frame.mask > 0, torch.full_like(frame.depth, 1e6), frame.depth)
-    out = Reconstructor().reconstruct(frame, 2, 1)
-    assert_sane(out, SIZE[1], SIZE[0])
+    out = Reconstructor(model).reconstruct(frame, 2, 1)
+    assert_sane(out, s * SIZE[1], s * SIZE[0])
 
 
-def test_an_empty_frame_stays_empty_and_a_camera_inside_the_volume_gives_finite_output(sphere):
+@SHIPPED
+def test_an_empty_frame_stays_empty_and_a_camera_inside_the_volume_gives_finite_output(sphere, model, s):
+    """The shipped models, x1 and x2 (which renders these frames and makes them twice the sides)."""
     renderer, iso = sphere
     outputs = ("mask", "normal", "depth", "ao")
     empty = renderer.render(orbit(30.0, 20.0, 1.6), RenderRequest(*SIZE, 2.0, outputs, ao_samples=2))
     assert empty.mask.max() == 0
-    out = Reconstructor().reconstruct(empty, 2, 1)
-    assert_sane(out, SIZE[1], SIZE[0])
+    out = Reconstructor(model).reconstruct(empty, 2, 1)
+    assert_sane(out, s * SIZE[1], s * SIZE[0])
     assert out.mask.max() < 0.05
     inside = Camera((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, 1.0, 0.0), 40.0)
-    out = Reconstructor().reconstruct(renderer.render(inside, RenderRequest(*SIZE, iso, outputs, ao_samples=2)), 2, 1)
-    assert_sane(out, SIZE[1], SIZE[0])
+    frame = renderer.render(inside, RenderRequest(*SIZE, iso, outputs, ao_samples=2))
+    assert_sane(Reconstructor(model).reconstruct(frame, 2, 1), s * SIZE[1], s * SIZE[0])
 
 
 def test_reconstruct_shades_when_asked_and_a_refused_frame_leaves_the_state_alone(sphere_frames):
@@ -463,9 +469,6 @@ def test_the_captured_path_matches_the_eager_one_frame_by_frame():
 
 
 # ---------------------------------------------------------------- the shipped model's quality
-
-
-RECON_X2_MODEL = DEFAULT_RECON_MODEL.parent / "recon_x2_model"
 
 
 @pytest.mark.parametrize("method, plain, margin", [
