@@ -168,11 +168,11 @@ def pareto_markdown(folder: Path, kind: str) -> list[str]:
                                   f"({d['ms']:.3g} ms, {d['color_psnr']:.1f} dB)")
         if losses:
             lines += ["Loses: " + "; ".join(losses) + ".", ""]
-    lines += scorecard_markdown(scenes)
+    budget = [r for r in record["rows"] if r["part"] == "budget"]
+    lines += scorecard_markdown(scenes, {(r["volume"], r["size"]): r["ao_effect_db"] for r in budget})
     counts = sorted({r["method"] for rows in scenes.values() for r in rows if r["kind"] != "full"})
     lines += ["On the front, of " + str(len(scenes)) + " scenes: "
               + "; ".join(f"{m} {on_front[m]}" for m in counts) + ".", ""]
-    budget = [r for r in record["rows"] if r["part"] == "budget"]
     if budget:
         lines += ["### The budget policy against the best fixed setting", "",
                   "method: the policy's choice (probe_ms: its time in the probe); color_psnr and ms: what this "
@@ -182,8 +182,11 @@ def pareto_markdown(folder: Path, kind: str) -> list[str]:
     return lines
 
 
-def scorecard_markdown(scenes: dict[tuple[str, str], list[dict]]) -> list[str]:
-    """Where the learned methods win, per scene (:func:`isosr_bench.bench_pareto.learned_scorecard`)."""
+def scorecard_markdown(scenes: dict[tuple[str, str], list[dict]], ao_effect: dict[tuple[str, str], float]) -> list[str]:
+    """Where the learned methods win, per scene (:func:`isosr_bench.bench_pareto.learned_scorecard`);
+    ``ao_effect``: the budget probe's AO effect per scene, dB (a scene at or above the policy's
+    threshold is no goal: AO changes nothing visible there)."""
+    from isosr_net.budget import AO_MATTERS_DB
     from .bench_pareto import GOAL_TOP_MS, learned_scorecard
 
     lines = ["### Where a learned method is the best there is", "",
@@ -191,7 +194,8 @@ def scorecard_markdown(scenes: dict[tuple[str, str], list[dict]]) -> list[str]:
              "sqrt(2) times the last: the best method that fits against the best learned one. Then the "
              "reconstruction against the non-learned filters (a-trous, SVGF, OIDN) at the same AO rays: its "
              "PSNR and time minus theirs, and both flicker ratios; and the fastest learned method at least as "
-             "good as 64 AO rays (spp 1).", "",
+             "good as 64 AO rays (spp 1). A scene whose AO changes the colors by less than the policy's "
+             f"threshold (the reference with and without AO at or above {AO_MATTERS_DB:g} dB) is no goal scene.", "",
              "| scene | learned best at | filter -> recon at the same rays (dB, ms; flicker ratios) "
              "| 64-ray AO match (speed-up) |",
              "|---|---|---|---|"]
@@ -209,6 +213,9 @@ def scorecard_markdown(scenes: dict[tuple[str, str], list[dict]]) -> list[str]:
         match = ("-" if ao64 is None else f"none reaches {ao64['psnr']:.1f} dB" if ao64["learned"] is None
                  else f"{ao64['learned']}: {ao64['learned_ms']:.3g} vs {ao64['ms']:.3g} ms ({ao64['speedup']:.1f}x)")
         measured = "" if any(r["kind"] == "reconstruct" for r in rows) else " (no reconstruction rows measured)"
+        effect = ao_effect.get((volume, size))
+        if effect is not None and effect >= AO_MATTERS_DB:
+            measured += f" (AO changes nothing visible: {effect:.1f} dB; no goal scene)"
         lines.append(f"| {volume}, {size}{measured} | {len(won)} of {len(card['budgets'])} budgets"
                      + (f"; not at {'; '.join(lost)}" if lost else "") + f" | {baselines} | {match} |")
     return lines + [""]

@@ -50,7 +50,8 @@ def create_app(settings: Settings) -> FastAPI:
     app = FastAPI(title="isosr", version=str(PROTOCOL_VERSION), lifespan=lifespan, docs_url=None, redoc_url=None)
     s = app.state
     s.settings = settings
-    s.engine = Engine(EngineConfig(model=settings.model, recon_model=settings.recon_model, device=settings.device,
+    s.engine = Engine(EngineConfig(model=settings.model, recon_model=settings.recon_model,
+                                   recon_x2_model=settings.recon_x2_model, device=settings.device,
                                    precision=settings.resolved_precision, target_fps=settings.target_fps,
                                    slice_ms=settings.slice_ms, max_volume_bytes=settings.max_volume_bytes))
     s.catalog = VolumeCatalog(settings.volumes, settings.max_volume_bytes)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import warnings
 
 from isosr_net.budget import BudgetChoice, BudgetConfig, QualityProbe, choose_method, default_candidates, \
@@ -58,13 +59,15 @@ class AutoPolicy:
 
     @classmethod
     def for_server(cls, device: str, precision: str, factor: int, models: dict, target_fps: float,
-                   networks: Networks) -> "AutoPolicy":
+                   networks: Networks, x2_model: str | os.PathLike | None = None) -> "AutoPolicy":
         """The default candidates with the server's precision, upscale factor and model folders
-        (``models``: network class -> (folder or None, name), as in the views' context)."""
+        (``models``: network class -> (folder or None, name), as in the views' context), and the
+        reconstruction at twice the sides by ``x2_model`` (None: none)."""
         recon_folder = models.get(Reconstructor, (None, None))[0]
+        limits = None if recon_folder is None else recon_limits(recon_folder)
         candidates = []
-        for m in default_candidates(device, precision, None if recon_folder is None else recon_limits(recon_folder)):
-            if m.learned:
+        for m in default_candidates(device, precision, limits, x2_model):
+            if m.learned and m.model is None:  # a server model's method (the x2 one names its own)
                 folder, name = models.get(m.runner.network_class, (None, m.model_name))
                 m = dataclasses.replace(m, model=None if folder is None else str(folder), model_name=name,
                                         factor=served_factor(m.runner, factor))

@@ -33,7 +33,7 @@ import torch
 from isosr_net.frame_methods import Networks, finish_steps
 from isosr_net.inference import RecurrentNetwork, default_precision
 from isosr_net.reconnet import RayLimits
-from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor, recon_limits
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, Reconstructor, recon_limits
 from isosr_net.timing import StageTimer, timed_steps
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
 from isosr_render import FrameBuffers, Renderer, ShadingParams, Volume, orbit, parse_procedural, shade
@@ -83,6 +83,7 @@ class EngineConfig:
     Attributes:
         model: the upscaling model folder (``config.json`` + ``model.safetensors``).
         recon_model: the reconstruction model folder.
+        recon_x2_model: the folder of the reconstruction that also upscales x2 (auto mode).
         device: ``cpu``, ``cuda`` or ``cuda:N``.
         precision: the networks' ``fp32``, ``bf16`` or ``fp16``; None: fp16 on CUDA, fp32 elsewhere.
         target_fps: frames a second the auto mode plans for each view session.
@@ -93,6 +94,7 @@ class EngineConfig:
 
     model: Path = DEFAULT_MODEL
     recon_model: Path = DEFAULT_RECON_MODEL
+    recon_x2_model: Path = RECON_X2_MODEL
     device: str = "cpu"
     precision: str | None = None
     target_fps: float = 30.0
@@ -161,11 +163,16 @@ class Engine:
         if reconstructor.upscale_factor != 1:
             raise ValueError(f"{self.config.recon_model}: the service's reconstruct mode renders at full resolution; "
                              f"this model also upscales x{reconstructor.upscale_factor}")
+        x2 = self.networks.get(Reconstructor, self.config.recon_x2_model, str(self.device), self.precision)
+        if x2.upscale_factor != 2:
+            raise ValueError(f"{self.config.recon_x2_model}: the auto mode's x2 reconstruction must upscale x2, "
+                             f"this model upscales x{x2.upscale_factor}")
         if self.device.type == "cuda":  # tune the fused kernels for common windows before the first viewer
             reconstructor.warm(WARM_RECON_SIZES)
+            x2.warm([(h // 2, w // 2) for h, w in WARM_RECON_SIZES])
         self.context = ViewContext(factor, self.precision, self._models)
         self.auto = AutoPolicy.for_server(str(self.device), self.precision, factor, self._models,
-                                          self.config.target_fps, self.networks)
+                                          self.config.target_fps, self.networks, self.config.recon_x2_model)
         renderer = Renderer(parse_procedural("proc:sphere@16"), str(self.device))
         frames = self.new_session_frames("proc:sphere@16")
         for mode in ("full", "network", "reconstruct"):  # compiles shading with and without AO on GPUs

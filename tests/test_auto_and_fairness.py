@@ -9,11 +9,14 @@ import time
 import pytest
 
 from isosr_net.budget import BudgetChoice
-from isosr_net.frame_methods import Networks
+from isosr_net.frame_methods import Networks, make_runner, run_sequence
+from isosr_net.reconstructor import RECON_X2_MODEL
 from isosr_render import Renderer, open_volume, orbit, resolve_iso
+from isosr_render.images import to_uint8
 from isosr_server import protocol as P
 from isosr_server.auto import AutoPolicy
-from server_fixtures import DEVICE, VOLUME, frame, running_server, server_settings, session  # noqa: F401
+from server_fixtures import (DEVICE, VOLUME, H, W, assert_image, cam, frame, running_server, send,  # noqa: F401
+                             server_settings, session)
 
 
 @pytest.fixture(scope="module")
@@ -41,6 +44,42 @@ def test_other_modes_name_their_method(srv):
     for mode, name in expected.items():
         with session(srv, mode=mode, ao_rays=2) as (ws, _):
             assert frame(ws).method == name
+
+
+def test_auto_offers_the_x2_reconstruction_and_serves_its_frames_at_the_full_size(srv, monkeypatch):
+    """With the x2 reconstruction its only candidate, the auto mode's frames are the library's: the
+    render at half the sides reconstructed to the window's size, recurrent state carried."""
+    policy = srv.app.state.engine.auto
+    x2 = [m for m in policy.candidates if m.kind == "reconstruct" and m.factor == 2]
+    assert {(m.ao_rays, m.spp) for m in x2} >= {(1, 1), (16, 1), (4, 2)}
+    assert all((m.model, m.model_name, m.precision) == (str(RECON_X2_MODEL), "recon_x2", "fp32") for m in x2)
+    monkeypatch.setattr(policy, "candidates", (x2[0],))
+    width = W + 16  # a size no other test's choice is cached for
+    volume = open_volume(VOLUME)
+    renderer, iso = Renderer(volume, DEVICE), resolve_iso(VOLUME, volume)
+    cameras = [orbit(30, 20, 1.8), orbit(33, 20, 1.8), orbit(36, 20, 1.8)]
+    expected = run_sequence(make_runner(x2[0], renderer, iso, width, H, networks=Networks.eager()), cameras)
+    with session(srv, width=width, height=H) as (ws, _):
+        for i, yaw in enumerate((30, 33, 36)):
+            if i:
+                send(ws, cam(yaw, seq=i))
+            f = frame(ws)
+            assert (f.mode, f.method, f.width, f.height) == ("auto", "x2, AO 1, spp 1, recon_x2 fp32", width, H)
+            assert_image(f.image, to_uint8(expected[i].color))
+
+
+def test_the_service_refuses_an_x2_model_that_does_not_upscale_x2():
+    import asyncio
+
+    from isosr_net.reconstructor import DEFAULT_RECON_MODEL
+    from isosr_server.engine import Engine, EngineConfig
+
+    engine = Engine(EngineConfig(recon_x2_model=DEFAULT_RECON_MODEL))
+    try:
+        with pytest.raises(ValueError, match="x2 reconstruction must upscale x2, this model upscales x1"):
+            asyncio.run(engine.call(engine.start_sync))
+    finally:
+        engine.shutdown()
 
 
 def test_auto_policy_caches_its_probe_and_rechooses_by_the_session_count():

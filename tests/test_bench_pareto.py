@@ -170,3 +170,13 @@ def test_the_scorecard_finds_where_a_learned_method_is_best_and_compares_like_wi
     rows[3]["color_psnr"] = rows[4]["color_psnr"] = 30.0  # now no learned method reaches 64 rays
     assert learned_scorecard(rows)["ao64"]["learned"] is None
     assert learned_scorecard([_row("x4", "upscale", 1.0, 20.0)]) == {"budgets": [], "baselines": [], "ao64": None}
+
+
+def test_the_scorecard_names_a_scene_where_ao_changes_nothing_visible_as_no_goal():
+    from isosr_bench.report import scorecard_markdown
+
+    rows = [_row("full, AO 0", "full", 2.0, 40.0), _row("recon 1", "reconstruct", 5.0, 35.0, ao_rays=1)]
+    lines = scorecard_markdown({("blobs", "1080p"): rows, ("head", "1080p"): rows},
+                               {("blobs", "1080p"): 57.1, ("head", "1080p"): 27.0})
+    blobs, head = (next(line for line in lines if line.startswith(f"| {v},")) for v in ("blobs", "head"))
+    assert "AO changes nothing visible: 57.1 dB; no goal scene" in blobs and "no goal" not in head

@@ -12,8 +12,9 @@ from conftest import DEVICE
 from isosr_net.budget import (AO_MATTERS_DB, BudgetConfig, choose_method, default_candidates, probe_size,
                               render_within_budget)
 from isosr_net.frame_methods import FrameMethod, Networks
-from isosr_net.reconnet import RayLimits
-from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
+from isosr_net.model import save_pretrained
+from isosr_net.reconnet import RayLimits, ReconNet, ReconNetConfig
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, Reconstructor
 from isosr_server.auto import AutoPolicy
 
 SIZE = (96, 64)
@@ -145,8 +146,8 @@ def test_headroom_outside_0_1_is_refused(headroom):
 
 
 def test_the_candidates_reach_as_many_rays_as_the_reconstruction_model_takes():
-    def recon_samplings(candidates):
-        return {(m.ao_rays, m.spp) for m in candidates if m.kind == "reconstruct"}
+    def recon_samplings(candidates, factor=1):
+        return {(m.ao_rays, m.spp) for m in candidates if m.kind == "reconstruct" and m.factor == factor}
 
     shipped = recon_samplings(default_candidates("cpu"))
     assert {(8, 2), (8, 4), (16, 4)} <= shipped and max(n for n, _ in shipped) == 16
@@ -158,3 +159,14 @@ def test_the_candidates_reach_as_many_rays_as_the_reconstruction_model_takes():
     served = recon_samplings(policy.candidates)
     assert max(n for n, _ in served) == 8 and (16, 4) not in served
     assert all(m.model == str(v1) for m in policy.candidates if m.kind == "reconstruct")
+    assert not recon_samplings(policy.candidates, factor=2), "no x2 model given: no x2 candidates"
+
+
+def test_the_x2_reconstruction_is_a_candidate_at_the_samplings_its_model_takes(tmp_path):
+    x2 = [m for m in default_candidates("cuda") if m.kind == "reconstruct" and m.factor == 2]
+    assert {(m.ao_rays, m.spp) for m in x2} == {(1, 1), (2, 1), (4, 1), (8, 1), (16, 1), (4, 2)}
+    assert all((m.model, m.precision, m.name.startswith("x2, ")) == (str(RECON_X2_MODEL), "fp16", True) for m in x2)
+    save_pretrained(ReconNet(ReconNetConfig(widths=(4, 4, 8, 8), blocks=1, upscale=2, max_ao_rays=4, max_spp=2)), tmp_path)
+    small = [m for m in default_candidates("cpu", x2_model=tmp_path) if m.factor == 2 and m.kind == "reconstruct"]
+    assert {(m.ao_rays, m.spp) for m in small} == {(1, 1), (2, 1), (4, 1), (4, 2)}
+    assert not [m for m in default_candidates("cpu", x2_model=None) if m.kind == "reconstruct" and m.factor == 2]

@@ -22,7 +22,7 @@ from typing import Any
 import msgspec
 
 from isosr_net.inference import PRECISIONS, default_precision
-from isosr_net.reconstructor import DEFAULT_RECON_MODEL
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL
 from isosr_net.upscaler import DEFAULT_MODEL
 from isosr_render.catalog import shared_volumes_dir
 from isosr_server.protocol import Limits
@@ -67,6 +67,8 @@ class Settings:
         precision: the networks' ``fp32``, ``bf16`` or ``fp16``; None: `default_precision`
             (`resolved_precision` says which).
         model, recon_model: the upscaling and the reconstruction model folders.
+        recon_x2_model: the folder of the reconstruction that also upscales x2 (the auto mode's
+            cheapest learned frames).
         token: the shared secret clients must send (None: no check, loopback only).
         tls_cert, tls_key: a PEM certificate (chain) and its unencrypted private key: serve HTTPS
             and WSS (None: plain HTTP and WS); both or neither, checked to load.
@@ -91,6 +93,8 @@ class Settings:
                                     choices=tuple(PRECISIONS))
     model: Path = _option(DEFAULT_MODEL, "upscaling model folder", Path)
     recon_model: Path = _option(DEFAULT_RECON_MODEL, "reconstruction model folder (reconstruct mode)", Path)
+    recon_x2_model: Path = _option(RECON_X2_MODEL, "model folder of the reconstruction that also upscales x2 (auto "
+                                                   "mode, at small budgets)", Path)
     token: str | None = _option(None, f"shared secret clients must send, at least {MIN_TOKEN_CHARS} characters "
                                       "(default: none, loopback only)")
     tls_cert: Path | None = _option(None, "PEM certificate (chain) to serve HTTPS and WSS with; needs --tls-key "
