@@ -143,7 +143,7 @@ def main(argv: list[str] | None = None) -> None:
     for name, extra in servers(replicas, args.gpus_per_replica, args.device):
         started = time.monotonic()
         try:
-            with ServerProcess(args.device, options + extra, startup_s=300) as server:
+            with ServerProcess(args.device, options + extra) as server:
                 ready_s = time.monotonic() - started
                 for mode, ao in CASES:
                     for n in counts:

@@ -63,7 +63,7 @@ from isosr_net.upscaler import DEFAULT_MODEL
 
 from .bench_knobs import parse_models
 from .bench_pipeline import resampled
-from .common import bench_parser, commit, mean_ms, print_table, time_frames, write_result
+from .common import bench_parser, commit, device_name, mean_ms, print_table, time_frames, write_result
 
 NAME = "pareto"
 SIZES = {"1080p": (1920, 1080), "4k": (3840, 2160)}
@@ -193,7 +193,7 @@ def pareto_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
     print(f"{volume} {size_name}: references {ref_s:.1f} s; estimated {estimate:.0f} s for the methods "
           f"(plus compiling networks on first use)", flush=True)
     flicker_reference = scores(refs, refs)["flicker"]
-    revision = commit()
+    stamp = run_stamp(device)
     rows = []
     for method in measured:
         runner = make_runner(method, renderer, iso, *size, networks=networks)
@@ -211,7 +211,7 @@ def pareto_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
                      "ms": mean_ms(t), "wall_ms": t["wall_ms"],
                      **scored, "flicker_reference": flicker_reference, "flicker_ratio": ratio,
                      "coverage": float(sum(float((r.mask > 0.5).float().mean()) for r in refs) / frames),
-                     "commit": revision})
+                     **stamp})
     print(f"{volume} {size_name}: {time.perf_counter() - start:.0f} s", flush=True)
     return rows
 
@@ -226,7 +226,7 @@ def budget_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
     cameras = bench_cameras(SMOKE_FRAMES if smoke else FRAMES)
     quality = probe_quality(renderer, iso, *size, config, cameras, networks=networks)
     by_name = {r["method"]: r for r in rows}
-    revision = commit()
+    stamp = run_stamp(str(renderer.device))
     timings: dict = {}
     out = []
     for budget in sorted(budgets, reverse=True):  # largest first, so that the timings carry over
@@ -245,7 +245,7 @@ def budget_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
                     "best_fixed": best and best["method"], "best_fixed_ms": best and best["ms"],
                     "best_fixed_psnr": best and best["color_psnr"],
                     "psnr_gap": None if best is None or auto["color_psnr"] is None
-                    else best["color_psnr"] - auto["color_psnr"], "commit": revision})
+                    else best["color_psnr"] - auto["color_psnr"], **stamp})
     return out
 
 
@@ -319,12 +319,20 @@ def learned_scorecard(rows: list[dict]) -> dict:
                               "speedup": match and ao64["ms"] / match["ms"]}}
 
 
+def run_stamp(device: str) -> dict:
+    """What each row says of the run that measured it: the device's name and the commit (a merged
+    file holds scenes of several runs)."""
+    return {"device": device_name(device), "commit": commit()}
+
+
 def merge(path: Path, rows: list[dict]) -> list[dict]:
-    """``rows`` plus the rows of an existing result file at ``path`` for other (volume, size) pairs."""
+    """``rows`` plus the rows of an existing result file at ``path`` for other (volume, size) pairs
+    (those without a device of their own get the file's)."""
     if not path.is_file():
         return rows
     new = {(r["volume"], r["size"]) for r in rows}
-    kept = [r for r in json.loads(path.read_text())["rows"] if (r["volume"], r["size"]) not in new]
+    record = json.loads(path.read_text())
+    kept = [{"device": record["device"], **r} for r in record["rows"] if (r["volume"], r["size"]) not in new]
     return kept + rows
 
 

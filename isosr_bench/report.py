@@ -40,7 +40,7 @@ def markdown(folder: Path, kind: str) -> str:
                 ("bench_render", "The renderer",
                  ["volume", "case", "size", "ms", "kernel_ms", "samples/pixel", "max samples/pixel", "skip speedup"]),
                 ("bench_recon_path", "What the reconstruction adds to a full-resolution frame",
-                 ["volume", "size", "ao_rays", "spp", "variant", "full", "path", "added", "render", "network_gflop",
+                 ["volume", "size", "method", "variant", "full", "path", "added", "render", "network_gflop",
                   "floor_ms"]))
     for name, title, columns in sections:
         record = _load(folder, name, kind)
@@ -154,7 +154,8 @@ def pareto_markdown(folder: Path, kind: str) -> list[str]:
             r["front"] = "yes" if f else ""
             on_front[r["method"]] += f
         winners = [r for r in rows if r["front"]]
-        lines += [f"### {volume}, {rows[0].get('pixels', size)}", ""]
+        run = f" ({rows[0]['device']}, {rows[0]['commit']})" if "device" in rows[0] else ""
+        lines += [f"### {volume}, {rows[0].get('pixels', size)}{run}", ""]
         lines += _table(rows, ["method", "learned", "ms", "color_psnr", "color_ssim", "image_psnr", "ao_rmse",
                                "flicker", "flicker_ratio", "front"]) + [""]
         wins = [f"{r['method']} from {r['ms']:.3g} ms ({r['color_psnr']:.1f} dB)" for r in winners]

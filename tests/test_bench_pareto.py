@@ -115,6 +115,10 @@ def test_a_partial_run_merges_into_the_result_file(smoke, tmp_path):
     assert [r for r in merged if r["volume"] == "cloud"] == [r for r in record["rows"] if r["volume"] == "cloud"]
     assert [r for r in merged if r["volume"] == "sphere"] == rerun and len(merged) == len(record["rows"])
     assert merge(tmp_path / "absent.json", rerun) == rerun
+    assert all(r["device"] == record["device"] and r["commit"] for r in record["rows"]), "each row names its run"
+    unstamped = [{k: v for k, v in r.items() if k != "device"} for r in record["rows"]]
+    path.write_text(json.dumps({**record, "rows": unstamped}))  # rows of a file from before rows named a device
+    assert all(r["device"] == record["device"] for r in merge(path, rerun) if r["volume"] == "cloud")
 
 
 def test_the_report_has_the_section_and_a_plot_per_volume(smoke):
