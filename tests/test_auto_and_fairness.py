@@ -68,20 +68,6 @@ def test_auto_offers_the_x2_reconstruction_and_serves_its_frames_at_the_full_siz
             assert_image(f.image, to_uint8(expected[i].color))
 
 
-def test_the_service_refuses_an_x2_model_that_does_not_upscale_x2():
-    import asyncio
-
-    from isosr_net.reconstructor import DEFAULT_RECON_MODEL
-    from isosr_server.engine import Engine, EngineConfig
-
-    engine = Engine(EngineConfig(recon_x2_model=DEFAULT_RECON_MODEL))
-    try:
-        with pytest.raises(ValueError, match="x2 reconstruction must upscale x2, this model upscales x1"):
-            asyncio.run(engine.call(engine.start_sync))
-    finally:
-        engine.shutdown()
-
-
 def test_auto_policy_caches_its_probe_and_rechooses_by_the_session_count():
     volume = open_volume(VOLUME)
     renderer, iso = Renderer(volume, DEVICE), resolve_iso(VOLUME, volume)

@@ -653,17 +653,20 @@ def test_a_non_finite_network_output_is_refused_and_resets_the_state():
     assert network.was_reset
 
 
-def test_the_service_refuses_a_reconstruction_model_that_upscales(tmp_path):
+@pytest.mark.parametrize("setting, upscale, words", [
+    ("recon_model", 2, "renders at full resolution; this model also upscales x2"),
+    ("recon_x2_model", 1, "x2 reconstruction must upscale x2, this model upscales x1")])
+def test_the_service_refuses_a_reconstruction_model_of_the_wrong_scale(tmp_path, setting, upscale, words):
     import asyncio
 
     from isosr_net.model import save_pretrained
     from isosr_net.reconnet import ReconNet, ReconNetConfig
     from isosr_server.engine import Engine, EngineConfig
 
-    save_pretrained(ReconNet(ReconNetConfig(widths=(4, 4, 8, 8), blocks=1, upscale=2)), tmp_path)
-    engine = Engine(EngineConfig(recon_model=tmp_path))
+    save_pretrained(ReconNet(ReconNetConfig(widths=(4, 4, 8, 8), blocks=1, upscale=upscale)), tmp_path)
+    engine = Engine(EngineConfig(**{setting: tmp_path}))
     try:
-        with pytest.raises(ValueError, match="renders at full resolution; this model also upscales x2"):
+        with pytest.raises(ValueError, match=words):
             asyncio.run(engine.call(engine.start_sync))
     finally:
         engine.shutdown()
