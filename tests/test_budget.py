@@ -117,6 +117,7 @@ def test_bad_sizes_budgets_and_configs_are_refused(cloud):
 
 def test_probe_size_keeps_the_aspect_in_multiples_of_8():
     assert probe_size(1920, 1080, 96) == (168, 96)
+    assert probe_size(1920, 1080, BudgetConfig().probe_height, 0.25) == probe_size(3840, 2160, 540, 0.25) == (968, 544)
     assert probe_size(3840, 2160, 96) == (168, 96)
     assert probe_size(96, 64, 96) == (96, 64)
 
