@@ -7,7 +7,7 @@
 A short probe on the scene decides (its cost is ``choice.probe_seconds``):
 
 1. Quality, at a reduced probe size (a quarter of the frame's rows, ``probe_scale``, and at least
-   ``probe_height``, 540; the frame's aspect):
+   ``probe_height``: 540 on GPUs, 96 on CPUs; the frame's aspect):
    a high-effort reference per probe frame (4 rays per pixel, 512 AO rays) and every
    candidate's frames in sequence, scored by color PSNR on the covered region
    (:func:`isosr_net.metrics.masked_psnr` on :func:`eval_region`). An estimate: classic and
@@ -17,7 +17,8 @@ A short probe on the scene decides (its cost is ``choice.probe_seconds``):
    the best fixed setting, H100); a quarter of the frame's side keeps the probe to 1/16 of its
    pixels. At 272 rows (a quarter of 1080p) it ranked the reconstruction with 16 AO rays at spp 4
    below the plain render with as many rays on bonsai (35.1 against 36.3 dB; at 544 rows 37.1
-   against 36.3, at 1080p itself 38.4 against 36.1), so no probe has fewer than 540 rows.
+   against 36.3, at 1080p itself 38.4 against 36.1), so no probe on a GPU has fewer than 540
+   rows. On CPUs, where a network frame of 540 rows takes seconds, the probe keeps 96.
 2. Whether AO matters: the reference shaded with and without its AO, color PSNR on the covered
    region. At or above ``ao_matters_db`` (40 dB: an RMS change of 1% of the color range, about
    2.5 of 255 display levels, below what a moving view shows) the scene gets no AO candidates
@@ -117,7 +118,7 @@ class BudgetConfig:
         probe_scale: the quality probe's side over the frame's (its width follows the frame's
             aspect; both multiples of 8).
         probe_height: the fewest rows the quality probe has; frames no taller are probed at
-            their own size.
+            their own size; None: :func:`default_probe_height` of the renderer's device.
         probe_frames: frames of the quality probe (an orbit unless cameras are given).
         warmup_frames, timing_frames: frames per timed candidate, before and while timing.
         ao_matters_db: the AO test's threshold, dB.
@@ -131,7 +132,7 @@ class BudgetConfig:
 
     candidates: tuple[FrameMethod, ...] | None = None
     probe_scale: float = 0.25
-    probe_height: int = 540
+    probe_height: int | None = None
     probe_frames: int = 3
     warmup_frames: int = 2
     timing_frames: int = 3
@@ -142,8 +143,10 @@ class BudgetConfig:
     shading: ShadingParams = field(default_factory=ShadingParams)
 
     def __post_init__(self):
-        for name, low in (("probe_height", 16), ("probe_frames", 1), ("warmup_frames", 0), ("timing_frames", 1)):
+        for name, low in (("probe_frames", 1), ("warmup_frames", 0), ("timing_frames", 1)):
             check_int(getattr(self, name), name, low, where="BudgetConfig")
+        if self.probe_height is not None:
+            check_int(self.probe_height, "probe_height", 16, where="BudgetConfig")
         if not (isinstance(self.probe_scale, (int, float)) and 0 < self.probe_scale <= 1):
             raise ValueError(f"BudgetConfig.probe_scale must be in (0, 1], got {self.probe_scale!r}")
         if self.clock not in ("device", "wall"):
@@ -199,6 +202,11 @@ class BudgetChoice:
                 f"PSNR {self.expected_psnr:.1f} dB; AO changes colors by {self.ao_effect_db:.1f} dB PSNR "
                 f"({'AO candidates considered' if self.ao_matters else 'no AO'}); probe {self.probe_size[0]}x"
                 f"{self.probe_size[1]}, {self.probe_seconds:.1f} s")
+
+
+def default_probe_height(device: str) -> int:
+    """The quality probe's fewest rows on ``device``: 540 on GPUs, 96 on CPUs (module docstring)."""
+    return 540 if str(device).startswith("cuda") else 96
 
 
 def probe_size(width: int, height: int, probe_height: int, probe_scale: float = 0.0) -> tuple[int, int]:
@@ -325,7 +333,8 @@ def probe_quality(renderer: Renderer, iso: float, width: int, height: int, confi
     """
     _check_size_and_budget(width, height, 1.0)
     start = time.perf_counter()
-    size = probe_size(width, height, config.probe_height, config.probe_scale)
+    rows = config.probe_height or default_probe_height(str(renderer.device))
+    size = probe_size(width, height, rows, config.probe_scale)
     cameras = cameras or _probe_cameras(config)
     networks = Networks() if networks is None else networks
     candidates = [m for m in config.candidates or default_candidates(str(renderer.device))

@@ -9,8 +9,8 @@ import pytest
 
 from isosr_render import Renderer, open_volume, orbit, resolve_iso
 from conftest import DEVICE
-from isosr_net.budget import (AO_MATTERS_DB, BudgetConfig, choose_method, default_candidates, probe_size,
-                              render_within_budget)
+from isosr_net.budget import (AO_MATTERS_DB, BudgetConfig, choose_method, default_candidates, default_probe_height,
+                              probe_size, render_within_budget)
 from isosr_net.frame_methods import FrameMethod, Networks
 from isosr_net.model import save_pretrained
 from isosr_net.reconnet import RayLimits, ReconNet, ReconNetConfig
@@ -117,7 +117,9 @@ def test_bad_sizes_budgets_and_configs_are_refused(cloud):
 
 def test_probe_size_keeps_the_aspect_in_multiples_of_8():
     assert probe_size(1920, 1080, 96) == (168, 96)
-    assert probe_size(1920, 1080, BudgetConfig().probe_height, 0.25) == probe_size(3840, 2160, 540, 0.25) == (968, 544)
+    gpu_rows = default_probe_height("cuda:0")
+    assert probe_size(1920, 1080, gpu_rows, 0.25) == probe_size(3840, 2160, gpu_rows, 0.25) == (968, 544)
+    assert probe_size(1920, 1080, default_probe_height("cpu"), 0.25) == (480, 272)
     assert probe_size(3840, 2160, 96) == (168, 96)
     assert probe_size(96, 64, 96) == (96, 64)
 
