@@ -213,11 +213,11 @@ def scorecard_markdown(scenes: dict[tuple[str, str], list[dict]], ao_effect: dic
         ao64 = card["ao64"]
         match = ("-" if ao64 is None else f"none reaches {ao64['psnr']:.1f} dB" if ao64["learned"] is None
                  else f"{ao64['learned']}: {ao64['learned_ms']:.3g} vs {ao64['ms']:.3g} ms ({ao64['speedup']:.1f}x)")
-        measured = "" if any(r["kind"] == "reconstruct" for r in rows) else " (no reconstruction rows measured)"
+        notes = "" if any(r["kind"] == "reconstruct" for r in rows) else " (no reconstruction rows measured)"
         effect = ao_effect.get((volume, size))
         if effect is not None and effect >= AO_MATTERS_DB:
-            measured += f" (AO changes nothing visible: {effect:.1f} dB; no goal scene)"
-        lines.append(f"| {volume}, {size}{measured} | {len(won)} of {len(card['budgets'])} budgets"
+            notes += f" (AO changes nothing visible: {effect:.1f} dB; no goal scene)"
+        lines.append(f"| {volume}, {size}{notes} | {len(won)} of {len(card['budgets'])} budgets"
                      + (f"; not at {'; '.join(lost)}" if lost else "") + f" | {baselines} | {match} |")
     return lines + [""]
 

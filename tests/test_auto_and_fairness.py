@@ -11,12 +11,12 @@ import pytest
 from isosr_net.budget import BudgetChoice
 from isosr_net.frame_methods import Networks, make_runner, run_sequence
 from isosr_net.reconstructor import RECON_X2_MODEL
-from isosr_render import Renderer, open_volume, orbit, resolve_iso
+from isosr_render import orbit
 from isosr_render.images import to_uint8
 from isosr_server import protocol as P
 from isosr_server.auto import AutoPolicy
-from server_fixtures import (DEVICE, VOLUME, H, W, assert_image, cam, frame, running_server, send,  # noqa: F401
-                             server_settings, session)
+from server_fixtures import (DEVICE, VOLUME, H, W, assert_image, cam, frame, lib, running_server,  # noqa: F401
+                             send, server_settings, session)
 
 
 @pytest.fixture(scope="module")
@@ -46,7 +46,7 @@ def test_other_modes_name_their_method(srv):
             assert frame(ws).method == name
 
 
-def test_auto_offers_the_x2_reconstruction_and_serves_its_frames_at_the_full_size(srv, monkeypatch):
+def test_auto_offers_the_x2_reconstruction_and_serves_its_frames_at_the_full_size(srv, lib, monkeypatch):
     """With the x2 reconstruction its only candidate, the auto mode's frames are the library's: the
     render at half the sides reconstructed to the window's size, recurrent state carried."""
     policy = srv.app.state.engine.auto
@@ -55,10 +55,8 @@ def test_auto_offers_the_x2_reconstruction_and_serves_its_frames_at_the_full_siz
     assert all((m.model, m.model_name, m.precision) == (str(RECON_X2_MODEL), "recon_x2", "fp32") for m in x2)
     monkeypatch.setattr(policy, "candidates", (x2[0],))
     width = W + 16  # a size no other test's choice is cached for
-    volume = open_volume(VOLUME)
-    renderer, iso = Renderer(volume, DEVICE), resolve_iso(VOLUME, volume)
     cameras = [orbit(30, 20, 1.8), orbit(33, 20, 1.8), orbit(36, 20, 1.8)]
-    expected = run_sequence(make_runner(x2[0], renderer, iso, width, H, networks=Networks.eager()), cameras)
+    expected = run_sequence(make_runner(x2[0], lib.renderer, lib.iso, width, H, networks=Networks.eager()), cameras)
     with session(srv, width=width, height=H) as (ws, _):
         for i, yaw in enumerate((30, 33, 36)):
             if i:
@@ -68,9 +66,8 @@ def test_auto_offers_the_x2_reconstruction_and_serves_its_frames_at_the_full_siz
             assert_image(f.image, to_uint8(expected[i].color))
 
 
-def test_auto_policy_caches_its_probe_and_rechooses_by_the_session_count():
-    volume = open_volume(VOLUME)
-    renderer, iso = Renderer(volume, DEVICE), resolve_iso(VOLUME, volume)
+def test_auto_policy_caches_its_probe_and_rechooses_by_the_session_count(lib):
+    renderer, iso = lib.renderer, lib.iso
     policy = AutoPolicy.for_server(DEVICE, "fp32", 4, {}, 30.0, Networks())
     assert policy.budget_ms(1) == pytest.approx(1000 / 30) and policy.budget_ms(4) == pytest.approx(1000 / 120)
     cam = orbit(30, 20, 1.8)
