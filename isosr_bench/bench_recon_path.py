@@ -27,7 +27,8 @@ rate measured in the same run (fp16's on Hopper) go beside them.
 
 Fused rows also time each pass of the fused network alone on a rendered frame (CUDA events,
 ``kernels``: ``pack``, ``head``, ``down1``, ..., ``tail``, :meth:`FusedReconNet.passes`; small
-passes alone time their launch too) and all of them as one CUDA graph (``network``), with their
+passes alone time their launch too), all of them as one CUDA graph (``network``), and the ray
+history's kernel before them (``history``, :mod:`isosr_net.ray_history`), with their
 bytes (:func:`isosr_net.fused_recon.fused_traffic`), the floor they take at the copy bandwidth
 measured in the same run, and ``of_floor``: floor over time (1 at the floor).
 """
@@ -43,6 +44,7 @@ from isosr_render.shading import ShadingParams
 from isosr_render.sequence import sequence_cameras
 from isosr_net.frame_methods import FrameMethod, Networks, make_runner, reconstruct_method
 from isosr_net.fused_recon import FusedReconNet, fused_runs_on, fused_traffic
+from isosr_net.ray_history import accumulate_frame, history_traffic
 from isosr_net.reconnet import macs_per_pixel
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
 
@@ -77,12 +79,18 @@ def pass_times(net: FusedReconNet, renderer: Renderer, pairs: list, request, ao_
     as one CUDA graph (``network``), with their bytes and floor at ``bandwidth`` (bytes/s)."""
     from isosr_net.fused_kernels import ReconSources  # imports Triton
 
-    sampling = net.config.limits.channels(ao_rays, spp, torch.zeros(1, 1, 1, 1, device=device))
+    limits, rays = net.config.limits, ao_rays * spp
+    sampling = limits.channels(ao_rays, spp, torch.zeros(1, 1, 1, 1, device=device))
     first, frame = (renderer.render(camera, request(prev_camera)) for camera, prev_camera in pairs[:2])
-    buffers = [(f.mask, f.normal, f.depth, f.ao if ao_rays else None) for f in (first, frame)]
+    ao = frame.ao if ao_rays else None
     with torch.no_grad():
-        previous = net.frame(*buffers[0], sampling, first.flow, None, None)[0]
-    sources = ReconSources.of_buffers(*buffers[1], sampling)
+        previous = net.frame(first.mask, first.normal, first.depth, first.ao if ao_rays else None, sampling,
+                             first.flow, None, None)[0]
+    if ao_rays:  # what the ray history makes the network read
+        history = accumulate_frame(first, None, rays, limits.rays(spp))
+        accumulated = accumulate_frame(frame, history, rays, limits.rays(spp))
+        ao, sampling = accumulated.ao[0], limits.counted(accumulated.count, spp)
+    sources = ReconSources.of_buffers(frame.mask, frame.normal, frame.depth, ao, sampling)
     h, w = frame.mask.shape
     traffic = fused_traffic(h, w, net.config, frame=True)
     with torch.no_grad():
@@ -100,6 +108,10 @@ def pass_times(net: FusedReconNet, renderer: Renderer, pairs: list, request, ao_
                     run()
             out["network"] = {"ms": mean_ms(time_frames(lambda i: graph.replay(), frames, device))}
             traffic["network"] = sum(traffic.values())
+        if ao_rays:  # before the network: the ray history's kernel
+            out["history"] = {"ms": mean_ms(time_frames(
+                lambda i: accumulate_frame(frame, history, rays, limits.rays(spp)), frames, device))}
+            traffic["history"] = history_traffic(h, w)
     for name, bytes_ in traffic.items():
         floor = bytes_ / bandwidth * 1e3
         out[name].update(bytes=bytes_, floor_ms=floor, of_floor=floor / out[name]["ms"])

@@ -36,7 +36,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 import time
 from collections.abc import Callable, Generator
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import ClassVar
 
@@ -212,6 +212,7 @@ class FrameRunner(ABC):
         low_res: renders at 1/factor of the frame size.
         recurrent: reads the previous frame (through the renderer's flow).
         shaded: makes a final color.
+        fresh_rays: casts new AO rays each frame (another seed), to accumulate them over frames.
         network_class: the trained network it runs (None: none), with its default model.
         knobs: the spec's fields it reads; the others must keep their defaults.
         ao_rays, spp, factor: the ``(low, high)`` bounds of the spec's counts (:meth:`bounds`).
@@ -235,6 +236,7 @@ class FrameRunner(ABC):
     low_res: ClassVar[bool] = False
     recurrent: ClassVar[bool] = False
     shaded: ClassVar[bool] = True
+    fresh_rays: ClassVar[bool] = False
     network_class: ClassVar[type[RecurrentNetwork] | None] = None
     default_model: ClassVar[Path | None] = None
     knobs: ClassVar[tuple[str, ...]] = ()
@@ -258,6 +260,7 @@ class FrameRunner(ABC):
         self.shade = shade
         self.device = str(renderer.device)
         self._last_timer: StageTimer | None = None  # the previous frame's (read lazily: no sync per frame)
+        self.frames = 0  # frames made: with fresh_rays, the next frame's AO seed
         self.net: RecurrentNetwork | None = None
         if self.network_class is not None:
             networks = Networks() if networks is None else networks
@@ -317,9 +320,10 @@ class FrameRunner(ABC):
         outputs = self.outputs() + tuple(k for k in self.keep if k not in self.makes(self.method) and k != "flow")
         outputs += ("flow",) if flow else ()
         m = self.method
+        seed = {"seed": (FIRST_TEMPORAL_SEED + self.frames) % 2 ** 31} if self.fresh_rays else {}
         return RenderRequest(self.width // m.factor, self.height // m.factor, self.iso, outputs,
                              ao_radius=self.ao_radius, prev_camera=prev_camera if flow else None,
-                             shading=self.shading, spp=m.spp, ao_samples=max(1, m.ao_rays))
+                             shading=self.shading, spp=m.spp, ao_samples=max(1, m.ao_rays), **seed)
 
     def frame(self, camera: Camera, prev_camera: Camera | None = None) -> FrameResult:
         """The next frame of the stream; ``prev_camera=None`` starts a new sequence.
@@ -351,6 +355,7 @@ class FrameRunner(ABC):
             if getattr(buffers, name) is None and getattr(rendered, name) is not None:
                 setattr(buffers, name, self._to_frame_size(name, getattr(rendered, name)))
         self._last_timer = timer
+        self.frames += 1
         return FrameResult(buffers, [timer], prev_camera is not None and self.recurrent)
 
     def render_finish(self, camera: Camera, request: RenderRequest,
@@ -465,6 +470,7 @@ class SVGFRunner(FrameRunner):
     previous camera starts the history anew."""
 
     recurrent = True
+    fresh_rays = True
     knobs = ("ao_rays", "spp")
     ao_rays = (1, MAX_AO_SAMPLES)
     spp = (1, MAX_SPP)
@@ -473,7 +479,6 @@ class SVGFRunner(FrameRunner):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self.history: SVGFHistory | None = None
-        self.frames = 0  # frames made: the next frame's AO seed
         self._prev_camera: Camera | None = None
 
     @classmethod
@@ -487,9 +492,6 @@ class SVGFRunner(FrameRunner):
     def makes(cls, m: FrameMethod) -> tuple[str, ...]:
         return ("mask", "normal", "ao")
 
-    def render_request(self, prev_camera: Camera | None = None) -> RenderRequest:
-        return replace(super().render_request(prev_camera), seed=(FIRST_TEMPORAL_SEED + self.frames) % 2 ** 31)
-
     def steps(self, camera: Camera, prev_camera: Camera | None = None,
               slice_ms: float | None = None) -> Generator[None, None, FrameResult]:
         self._prev_camera = prev_camera  # the view the history is reprojected from
@@ -502,7 +504,6 @@ class SVGFRunner(FrameRunner):
                                            rendered.normal.permute(2, 0, 1)[None], rendered.depth[None, None],
                                            rendered.position.permute(2, 0, 1)[None], flow, self._prev_camera,
                                            self.history, self.config, self.atrous)
-        self.frames += 1
         return self.colored(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=ao[0, 0]), timer)
 
 
@@ -552,6 +553,7 @@ class ReconstructRunner(FrameRunner):
     (:meth:`Reconstructor.render_reconstruct`), timed as the ``render`` stage."""
 
     recurrent = True
+    fresh_rays = True  # accumulated along the flow before the network (isosr_net.ray_history)
     network_class = Reconstructor
     default_model = DEFAULT_RECON_MODEL
     knobs = ("ao_rays", "spp", "factor", "model", "precision")
@@ -567,7 +569,7 @@ class ReconstructRunner(FrameRunner):
         return f"{'full' if m.factor == 1 else f'x{m.factor}'}, AO {m.ao_rays}, spp {m.spp}, {m.model_name} {m.precision}"
 
     def outputs(self) -> tuple[str, ...]:
-        return ("mask", "normal", "depth") + (("ao",) if self.method.ao_rays else ())
+        return ("mask", "normal", "depth") + (("ao", "position") if self.method.ao_rays else ())
 
     @classmethod
     def makes(cls, m: FrameMethod) -> tuple[str, ...]:

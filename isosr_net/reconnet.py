@@ -74,6 +74,20 @@ class RayLimits:
         return torch.cat([like.new_full((b, 1, h, w), ao_rays / self.max_ao_rays),
                           like.new_full((b, 1, h, w), spp / self.max_spp)], dim=1)
 
+    def rays(self, spp: int) -> int:
+        """The most AO rays behind a pixel's mean at ``spp`` rays per pixel."""
+        return self.max_ao_rays * spp
+
+    def counted(self, count: torch.Tensor, spp: int) -> torch.Tensor:
+        """The sampling images of a frame whose AO is, per pixel, the mean of ``count`` rays (at
+        most :meth:`rays`; a ray history's, :mod:`isosr_net.ray_history`) cast ``spp`` per pixel.
+
+        Shape:
+            count: (B, H, W). Returns (B, 2, H, W).
+        """
+        ao = count[:, None] / self.rays(spp)
+        return torch.cat([ao, torch.full_like(ao, spp / self.max_spp)], dim=1)
+
 
 @dataclass(frozen=True)
 class ReconNetConfig:

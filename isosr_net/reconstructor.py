@@ -5,9 +5,11 @@
         out = reconstructor.reconstruct(frame, 2, 1)   #   ao (2 rays), flow; rendered with spp 1
     reconstructor.reset()                              # on a camera cut
 
-``out`` holds mask (an antialiased alpha), normal, depth and converged-looking AO. Every stream
+``out`` holds mask (an antialiased alpha), normal, depth and converged-looking AO. Frames that
+carry a ``position`` buffer (and AO rays) have their rays accumulated along the flow first
+(:mod:`isosr_net.ray_history`): each frame should cast new ones (another seed). Every stream
 needs its own `Reconstructor` (:meth:`~isosr_net.inference.RecurrentNetwork.own`): the previous
-output is its state.
+output and the ray history are its state.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from isosr_net.reconnet import RayLimits, ReconNet, ReconNetConfig
 from isosr_net.inference import (AO_MESSAGE, PRECISIONS, InputChecks, RecurrentNetwork, ao_in_range, buffer_stack,
                                  check_buffer, check_surface, frame_flags, stack_buffers, surface_tensors)
 from isosr_net.model import read_config
+from isosr_net.ray_history import RayHistory, accumulate_frame
 
 if TYPE_CHECKING:  # the network runs without Warp; render_reconstruct takes what a renderer made
     from isosr_render.camera import Camera
@@ -158,11 +161,13 @@ def recon_frame(net: ReconNet, mask: torch.Tensor, normal: torch.Tensor, depth: 
 @dataclass
 class FrameGraph:
     """One captured frame (render, reconstruction, shading): its graph, the render plan whose
-    staged values it reads, and its outputs (the graph's own tensors: stack, color, flags)."""
+    staged values it reads, and its outputs (the graph's own tensors: stack, color, flags, and
+    the ray history or None)."""
 
     graph: torch.cuda.CUDAGraph
     plan: RenderPlan
     outs: tuple[torch.Tensor | None, ...]
+    history: RayHistory | None
 
 
 class Reconstructor(RecurrentNetwork):
@@ -207,7 +212,13 @@ class Reconstructor(RecurrentNetwork):
             self._frame = torch.compile(frame_fn, mode=compile, dynamic=False) if compile else frame_fn
         self.graphs = graphs
         self._sampling: dict[tuple[int, int], torch.Tensor] = {}
+        self.history: RayHistory | None = None
         self._own_graphs()
+
+    def reset(self) -> None:
+        """Forget the previous output and the ray history (a camera cut, a new sequence)."""
+        super().reset()
+        self.history = None
 
     def _own_graphs(self) -> None:
         """Empty caches of graphs (network and whole-frame), of the previous outputs they read, and
@@ -216,6 +227,7 @@ class Reconstructor(RecurrentNetwork):
         self._captured: OrderedDict[tuple, tuple] = OrderedDict()
         self._frame_graphs: OrderedDict[tuple, FrameGraph] = OrderedDict()
         self._states: dict[tuple[int, int], torch.Tensor] = {}
+        self._history_states: dict[tuple[int, int], RayHistory] = {}
         self._pool = torch.cuda.graph_pool_handle() if self.graphs else None
 
     def own(self) -> "Reconstructor":
@@ -233,7 +245,8 @@ class Reconstructor(RecurrentNetwork):
         for h, w in sizes:
             empty = torch.zeros(h, w, device=self.device)
             frame = FrameBuffers(mask=empty, normal=torch.zeros(h, w, 3, device=self.device), depth=empty,
-                                 ao=empty if ao_rays else None, flow=torch.zeros(h, w, 2, device=self.device))
+                                 ao=empty if ao_rays else None, flow=torch.zeros(h, w, 2, device=self.device),
+                                 position=torch.zeros(h, w, 3, device=self.device))
             for _ in range(2):
                 self.reconstruct(frame, ao_rays, 1, shading)
         self.reset()
@@ -283,7 +296,8 @@ class Reconstructor(RecurrentNetwork):
         """Reconstruct one frame; with ``shading``, shade it too (``color``).
 
         Args:
-            frame: as for :func:`recon_inputs`; ``flow`` except after a cut.
+            frame: as for :func:`recon_inputs`; ``flow`` except after a cut; ``position`` to
+                accumulate the AO rays along the flow (:mod:`isosr_net.ray_history`).
             ao_rays, spp: how the frame was sampled.
             shading: material and light for ``color``; None makes no color.
 
@@ -295,18 +309,33 @@ class Reconstructor(RecurrentNetwork):
             Returns mask, depth, ao (H, W); normal, color (H, W, 3).
         """
         _check_frame(frame, ao_rays, spp, self.limits)
-        flow = None if frame.flow is None else frame.flow.to(self.device)
-        previous = self.previous if self.carries(*frame.mask.shape, flow is not None) else None
-        args = (frame.mask.to(self.device), frame.normal.to(self.device), frame.depth.to(self.device),
-                frame.ao.to(self.device) if ao_rays else None, self._sampling_tensor(ao_rays, spp), flow, previous,
-                shading)
+        frame = frame.to(self.device)
+        carry = self.carries(*frame.mask.shape, frame.flow is not None)
         with torch.no_grad():
+            ao, sampling, history = self._rays(frame, ao_rays, spp, self.history if carry else None)
+            args = (frame.mask, frame.normal, frame.depth, ao, sampling, frame.flow, self.previous if carry else None,
+                    shading)
             stack, color, flags = self._replay(args) if self.graphs else self._frame(*args)
         self._raise_refused(flags)
         if self.graphs:  # the graph's own tensors: the next replay overwrites them
             stack, color = stack.clone(), None if color is None else color.clone()
-        self.previous = stack
+        self.previous, self.history = stack, history
         return stack_buffers(stack, color)
+
+    def _rays(self, frame: FrameBuffers, ao_rays: int, spp: int,
+              history: RayHistory | None) -> tuple[torch.Tensor | None, torch.Tensor, RayHistory | None]:
+        """The AO and sampling channels the network reads: ``(ao, sampling, new history)``, with no
+        host sync. A frame with AO rays and ``position`` has them accumulated with ``history``
+        (None: anew), and its sampling's AO plane counts, per pixel, the rays behind the mean;
+        else the frame's own AO and constant sampling, no history.
+
+        Shape:
+            Returns ao (H, W); sampling (1, 2, H, W), or (1, 2, 1, 1) where constant.
+        """
+        if not ao_rays or frame.position is None:
+            return frame.ao if ao_rays else None, self._sampling_tensor(ao_rays, spp), None
+        history = accumulate_frame(frame, history, ao_rays * spp, self.limits.rays(spp))
+        return history.ao[0], self.limits.counted(history.count, spp), history
 
     def _raise_refused(self, flags: torch.Tensor) -> None:
         """Read a frame's input checks (one host sync) and raise the first that fails."""
@@ -382,13 +411,15 @@ class Reconstructor(RecurrentNetwork):
         size = (request.height, request.width)
         carry = self.carries(*size, request.prev_camera is not None)
         state = self._state(size, self.previous) if carry else None
-        key = (id(renderer), request.plan_key(), float(request.iso), request.skip, ao_rays, spp, shading, carry)
+        history = self._history_state(self.history) if carry and self.history is not None else None
+        key = (id(renderer), request.plan_key(), float(request.iso), request.skip, ao_rays, spp, shading, carry,
+               history is not None)
         entry = self._frame_graphs.get(key)
         plan = renderer.plan(request) if entry is None else entry.plan
         plan.stage(camera, request)
         if entry is None:
-            graph, outs = self._capture(lambda: self._graph_work(plan, request, ao_rays, spp, shading, state))
-            entry = self._frame_graphs[key] = FrameGraph(graph, plan, outs)
+            graph, outs = self._capture(lambda: self._graph_work(plan, request, ao_rays, spp, shading, state, history))
+            entry = self._frame_graphs[key] = FrameGraph(graph, plan, outs[:3], outs[3])
             if len(self._frame_graphs) > MAX_GRAPHS:
                 self._frame_graphs.popitem(last=False)
         self._frame_graphs.move_to_end(key)
@@ -396,6 +427,7 @@ class Reconstructor(RecurrentNetwork):
         stack, color, flags = entry.outs
         self._raise_refused(flags)
         self.previous = self._state(size, stack)
+        self.history = None if entry.history is None else self._history_state(entry.history)
         return plan.buffers(request), stack_buffers(stack.clone(), None if color is None else color.clone())
 
     def _state(self, size: tuple[int, int], previous: torch.Tensor) -> torch.Tensor:
@@ -408,12 +440,23 @@ class Reconstructor(RecurrentNetwork):
             state.copy_(previous)
         return state
 
+    def _history_state(self, history: RayHistory) -> RayHistory:
+        """The ray history of frames of its size that the graphs read, made once per size, now
+        holding ``history`` (copied unless it is that one already)."""
+        size = history.shape[1:]
+        state = self._history_states.get(size)
+        if state is None:
+            state = self._history_states[size] = RayHistory.empty(*history.shape, self.device)
+        return state if state is history else state.copy_(history)
+
     def _graph_work(self, plan: RenderPlan, request: RenderRequest, ao_rays: int, spp: int,
-                    shading: ShadingParams | None, previous: torch.Tensor | None) -> tuple[torch.Tensor | None, ...]:
+                    shading: ShadingParams | None, previous: torch.Tensor | None,
+                    history: RayHistory | None) -> tuple:
         """A staged frame's render and its reconstruction (as :meth:`reconstruct`'s frame work),
-        with no host sync: ``(stack, color, flags)``."""
+        with no host sync: ``(stack, color, flags, new ray history or None)``."""
         plan.launch()
         rendered = plan.buffers(request)
         _check_frame(rendered, ao_rays, spp, self.limits)
-        return self._frame(rendered.mask, rendered.normal, rendered.depth, rendered.ao if ao_rays else None,
-                           self._sampling_tensor(ao_rays, spp), rendered.flow, previous, shading)
+        ao, sampling, history = self._rays(rendered, ao_rays, spp, history)
+        return (*self._frame(rendered.mask, rendered.normal, rendered.depth, ao, sampling, rendered.flow, previous,
+                             shading), history)

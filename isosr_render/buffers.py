@@ -51,6 +51,10 @@ class FrameBuffers:
             parts.append(t[None] if t.ndim == 2 else t.permute(2, 0, 1))
         return torch.cat(parts)
 
+    def to(self, device: torch.device | str) -> FrameBuffers:
+        """The present buffers on ``device`` (the same tensors where they are there already)."""
+        return FrameBuffers(**{name: getattr(self, name).to(device) for name in self.present()})
+
     def to_numpy(self) -> dict[str, np.ndarray]:
         """The present buffers as numpy arrays (a copy only where they live on a GPU)."""
         return {name: getattr(self, name).detach().cpu().numpy() for name in self.present()}

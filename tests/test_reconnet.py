@@ -18,6 +18,7 @@ from isosr_net.frame_methods import FrameMethod, make_runner, run_sequence
 from isosr_net.model import save_pretrained
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net.fused_recon import FusedReconNet
+from isosr_net.inference import buffer_stack
 from isosr_net.reconnet import RayLimits, ReconNet, ReconNetConfig, ao_output, macs_per_pixel, upsampled_inputs
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, Reconstructor, recon_inputs, recon_limits
 from isosr_net.upscaler import DEFAULT_MODEL
@@ -378,6 +379,74 @@ def test_the_second_frame_carries_the_first_and_a_reset_forgets_it(sphere_frames
     assert_sane(carried, SIZE[1], SIZE[0])
     assert (carried.ao - alone.ao).abs().max() > 1e-3
     torch.testing.assert_close(alone.ao, Reconstructor().reconstruct(sphere_frames[1], 2, 1).ao)
+
+
+def still_frames(renderer: Renderer, iso: float, frames: int, **request) -> list[FrameBuffers]:
+    """One view, its rays cast anew each frame (another seed), with positions; flow (zero) after the first."""
+    camera, outputs = orbit(30.0, 20.0, 1.6), ("mask", "normal", "depth", "position", "ao")
+    return [renderer.render(camera, RenderRequest(*SIZE, iso, outputs + (("flow",) if i else ()), seed=10 + i,
+                                                  prev_camera=camera if i else None, **request))
+            for i in range(frames)]
+
+
+def test_the_network_reads_the_accumulated_rays_and_their_count_per_pixel(sphere):
+    frames = still_frames(*sphere, 3, ao_samples=2, spp=2)
+    reconstructor, net = Reconstructor(), Reconstructor().net
+    previous = None
+    for frame in frames:
+        out = reconstructor.reconstruct(frame, 2, 2)
+        history = reconstructor.history
+        inputs = torch.cat([frame.mask[None], frame.normal.permute(2, 0, 1), frame.depth[None], history.ao,
+                            net.config.limits.counted(history.count, 2)[0]])[None]
+        flow = None if frame.flow is None else frame.flow.permute(2, 0, 1)[None]
+        with torch.no_grad():
+            previous = buffer_stack(net.step(inputs, flow, previous)[0])  # the state a Reconstructor keeps
+        torch.testing.assert_close(out.ao, previous[0, AO][0], rtol=0, atol=1e-6)
+    covered = frames[0].mask > 0.5
+    assert (history.count[0][covered] == 12).all() and (history.count[0][~covered] == 0).all()
+
+
+def test_accumulated_rays_lift_the_reconstruction_of_a_smooth_surface_on_an_orbit():
+    """The MRI at 240x136 along the Pareto orbit, 1 AO ray: the same renders reconstructed with their
+    positions (accumulated) and without (each frame's rays alone), scored against 64 AO rays at 4
+    rays per pixel after a warm-up, as the Pareto study does (there, at 960x540 on a CPU: 33.6 -> 34.8 dB)."""
+    from isosr_bench.bench_pareto import bench_cameras
+    from isosr_render.catalog import shared_volumes_dir
+    if not (shared_volumes_dir() / "volumes.json").is_file():
+        pytest.skip(f"shared volumes not found at {shared_volumes_dir()} (set ISOSR_SHARED_VOLUMES)")
+    volume = open_volume("shared:avg152t1")
+    renderer, iso, size = Renderer(volume, "cpu"), resolve_iso("shared:avg152t1", volume), (240, 136)
+    cameras = bench_cameras(8)
+    outputs = ("mask", "normal", "depth", "position", "ao", "flow")
+    frames = [renderer.render(camera, request)
+              for camera, request in sequence_requests(cameras, *size, iso, outputs, ao_samples=1)]
+    for i, frame in enumerate(frames):  # new rays each frame
+        frame.ao = renderer.render(cameras[i], RenderRequest(*size, iso, ("ao",), seed=100 + i)).ao
+    references = [renderer.render(camera, RenderRequest(*size, iso, ("mask", "normal", "ao"), spp=4, ao_samples=64,
+                                                        seed=1)) for camera in cameras]
+    for reference in references:
+        reference.color = shade(reference.mask, reference.normal, reference.ao, ShadingParams())
+    psnr = {}
+    for name, keep in (("accumulated", {}), ("alone", {"position": None})):
+        reconstructor, shading = Reconstructor(), ShadingParams()
+        outs = [reconstructor.reconstruct(fresh(frame, **keep), 1, 1, shading) for frame in frames]
+        psnr[name] = sum(color_psnr(o, r) for o, r in zip(outs[3:], references[3:])) / 5
+    assert psnr["accumulated"] > psnr["alone"] + 0.5, psnr
+
+
+def test_a_refused_frame_leaves_the_ray_history_alone_and_a_reset_or_a_twin_has_none(sphere):
+    frames = still_frames(*sphere, 2, ao_samples=2)
+    reconstructor = Reconstructor()
+    reconstructor.reconstruct(frames[0], 2, 1)
+    kept = reconstructor.history
+    hostile = fresh(frames[1])
+    hostile.ao[SIZE[1] // 2, SIZE[0] // 2] = float("nan")  # on the sphere: uncovered pixels' AO is not read
+    with pytest.raises(ValueError, match="ao"):
+        reconstructor.reconstruct(hostile, 2, 1)
+    assert reconstructor.history is kept and (kept.count <= 2).all()
+    assert reconstructor.own().history is None
+    reconstructor.reset()
+    assert reconstructor.history is None and reconstructor.previous is None
 
 
 def test_a_new_frame_size_starts_over(sphere, sphere_frames):

@@ -1,0 +1,300 @@
+"""The reconstruction's ray history: each frame's few AO rays accumulated along the flow.
+
+AO depends on the surface point alone, not on the view: the rays cast at a point in earlier
+frames count as much as this frame's. So before the network (:class:`~isosr_net.reconstructor.
+Reconstructor`), each covered pixel's AO becomes the mean of its own rays and of those its
+history holds (SVGF's temporal accumulation, Schied et al. 2017, without its filter), and the
+network is told, per pixel, how many rays that mean stands for: it then denoises 16 rays' AO
+where a frame cast 1. One kernel per frame (Warp, on every device):
+
+- A covered pixel ``p`` looks up the history at ``p + flow[p]`` (bilinear: the 4 texels around
+  it). A texel counts only if it lies in the image, holds rays, its surface point lies within
+  ``point_tolerance`` of the pixel's depth (plus the distance the pixel's neighbors predict
+  over the texel's offset) from the pixel's point, and its view-space normal is within
+  ``normal_cosine`` of the pixel's. The counted texels' bilinear weights, renormalized, average
+  the history's AO and ray count; where they sum to less than ``MIN_HISTORY_WEIGHT`` the pixel is
+  disoccluded and its history restarts.
+- With ``c`` the history's count, capped at ``cap - rays``, and this frame's ``rays`` rays of
+  mean ``a``: AO ``(c h + rays a) / (c + rays)``, count ``c + rays``. ``cap`` is the most rays
+  the network takes at the frame's rays per pixel, so the blend becomes an exponential one
+  (weight ``rays / cap``) once the history is full.
+
+Surface points are world-space, so the test needs no camera (and a CUDA graph can replay it).
+Uncovered pixels get AO 0 and count 0. A frame without flow, or a history of another size,
+starts every pixel anew. float32.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import torch
+import warp as wp
+
+from isosr_render.buffers import FrameBuffers
+from isosr_net.atrous import on_device
+
+wp.set_module_options({"enable_backward": False})
+
+# Reprojected texels whose bilinear weights sum to less than this are a disocclusion (as SVGF's).
+MIN_HISTORY_WEIGHT = 0.01
+MIN_HISTORY_WEIGHT_WP = wp.constant(MIN_HISTORY_WEIGHT)
+
+
+@dataclass(frozen=True)
+class RayHistoryConfig:
+    """The reprojection's tests.
+
+    Attributes:
+        point_tolerance: a history texel's surface point may lie this fraction of the pixel's
+            depth from the pixel's (plus the neighbors' spacing over the texel's offset).
+        normal_cosine: its view-space normal must have at least this cosine with the pixel's
+            (the threshold must allow one frame's camera turn).
+    """
+
+    point_tolerance: float = 0.01
+    normal_cosine: float = 0.9
+
+    def __post_init__(self):
+        if not (isinstance(self.point_tolerance, (int, float)) and 0 <= self.point_tolerance < float("inf")):
+            raise ValueError(f"RayHistoryConfig.point_tolerance must be a finite number >= 0, "
+                             f"got {self.point_tolerance!r}")
+        if not (isinstance(self.normal_cosine, (int, float)) and -1 <= self.normal_cosine <= 1):
+            raise ValueError(f"RayHistoryConfig.normal_cosine must be in [-1, 1], got {self.normal_cosine!r}")
+
+
+@dataclass
+class RayHistory:
+    """One stream's accumulated rays after a frame (float32, on the frame's device; 0 where not covered).
+
+    Shape:
+        ao, count: (B, H, W). point: (B, H, W, 3), world space. normal: (B, H, W, 3), view space, unit.
+    """
+
+    ao: torch.Tensor
+    count: torch.Tensor
+    point: torch.Tensor
+    normal: torch.Tensor
+
+    @classmethod
+    def empty(cls, b: int, h: int, w: int, device: torch.device) -> RayHistory:
+        """Uninitialized tensors for a frame of this size (a kernel's outputs)."""
+        new = functools.partial(torch.empty, dtype=torch.float32, device=device)
+        return cls(new((b, h, w)), new((b, h, w)), new((b, h, w, 3)), new((b, h, w, 3)))
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return tuple(self.count.shape)
+
+    def copy_(self, other: RayHistory) -> RayHistory:
+        """Copy ``other``'s values into these tensors (a graph's state); returns self."""
+        for name in ("ao", "count", "point", "normal"):
+            getattr(self, name).copy_(getattr(other, name))
+        return self
+
+
+@wp.struct
+class Previous:
+    """The history as the kernel reads it."""
+
+    ao: wp.array3d(dtype=float)
+    count: wp.array3d(dtype=float)
+    point: wp.array3d(dtype=wp.vec3)
+    normal: wp.array3d(dtype=wp.vec3)
+    present: int  # 0: none (every pixel starts anew); the arrays are 1-element stand-ins
+
+
+@wp.func
+def point_at(position: wp.array4d(dtype=float), b: int, y: int, x: int) -> wp.vec3:
+    return wp.vec3(position[b, 0, y, x], position[b, 1, y, x], position[b, 2, y, x])
+
+
+@wp.func
+def point_step(mask: wp.array4d(dtype=float), position: wp.array4d(dtype=float), b: int, y: int, x: int, dy: int,
+               dx: int) -> float:
+    """The distance between a covered pixel's point and its neighbor's along (dy, dx): the smaller
+    of the covered forward and backward ones, so that silhouettes do not count; 0 without either."""
+    h = mask.shape[2]
+    w = mask.shape[3]
+    p = point_at(position, b, y, x)
+    step = float(-1.0)
+    for sign in range(2):
+        qy = y + wp.where(sign == 0, dy, -dy)
+        qx = x + wp.where(sign == 0, dx, -dx)
+        if qy >= 0 and qy < h and qx >= 0 and qx < w:  # bounds first: Warp evaluates every operand
+            if mask[b, 0, qy, qx] > 0.5:
+                d = wp.length(point_at(position, b, qy, qx) - p)
+                if step < 0.0 or d < step:
+                    step = d
+    return wp.max(step, 0.0)
+
+
+@wp.func
+def texel_weight(prev: Previous, b: int, qy: int, qx: int, w: float, p: wp.vec3, n: wp.vec3, tolerance: float,
+                 normal_cosine: float) -> float:
+    """The bilinear weight ``w`` of history texel (qy, qx), or 0 where it does not count (module docstring)."""
+    if w <= 0.0 or qy < 0 or qy >= prev.count.shape[1] or qx < 0 or qx >= prev.count.shape[2]:
+        return 0.0
+    if not (prev.count[b, qy, qx] > 0.0):
+        return 0.0
+    d = wp.length(prev.point[b, qy, qx] - p)
+    if not (d <= tolerance):  # NaN fails too
+        return 0.0
+    if not (wp.dot(prev.normal[b, qy, qx], n) >= normal_cosine):
+        return 0.0
+    return w
+
+
+@wp.kernel
+def accumulate_kernel(mask: wp.array4d(dtype=float), normal: wp.array4d(dtype=float),
+                      depth: wp.array4d(dtype=float), position: wp.array4d(dtype=float),
+                      ao: wp.array4d(dtype=float), flow: wp.array4d(dtype=float), prev: Previous, rays: float,
+                      cap: float, point_tolerance: float, normal_cosine: float, ao_out: wp.array3d(dtype=float),
+                      count_out: wp.array3d(dtype=float), point_out: wp.array3d(dtype=wp.vec3),
+                      normal_out: wp.array3d(dtype=wp.vec3), row0: int):
+    """The module docstring's blend for the pixels of rows ``row0`` on."""
+    b, row, x = wp.tid()
+    y = row0 + row
+    if not (mask[b, 0, y, x] > 0.5):
+        ao_out[b, y, x] = 0.0
+        count_out[b, y, x] = 0.0
+        point_out[b, y, x] = wp.vec3(0.0)
+        normal_out[b, y, x] = wp.vec3(0.0)
+        return
+    p = point_at(position, b, y, x)
+    n = wp.vec3(normal[b, 0, y, x], normal[b, 1, y, x], normal[b, 2, y, x])
+    n = n / wp.max(wp.length(n), 1.0e-12)
+    total = float(0.0)
+    history_ao = float(0.0)
+    history_count = float(0.0)
+    if prev.present != 0:
+        u = flow[b, 0, y, x]
+        v = flow[b, 1, y, x]
+        if wp.isfinite(u) and wp.isfinite(v):  # a NaN or Inf flow finds no history
+            # Texel indices of p + flow, kept within a texel of the image (beyond, no tap counts) so that they fit an int.
+            sx = wp.clamp(float(x) + u, -2.0, float(prev.count.shape[2]) + 1.0)
+            sy = wp.clamp(float(y) + v, -2.0, float(prev.count.shape[1]) + 1.0)
+            x0 = int(wp.floor(sx))
+            y0 = int(wp.floor(sy))
+            fx = sx - float(x0)
+            fy = sy - float(y0)
+            gx = point_step(mask, position, b, y, x, 0, 1)
+            gy = point_step(mask, position, b, y, x, 1, 0)
+            base = point_tolerance * wp.abs(depth[b, 0, y, x])
+            for j in range(2):
+                for i in range(2):
+                    qx = x0 + i
+                    qy = y0 + j
+                    w = wp.where(i == 1, fx, 1.0 - fx) * wp.where(j == 1, fy, 1.0 - fy)
+                    allowance = gx * wp.abs(float(qx) - sx) + gy * wp.abs(float(qy) - sy)
+                    w = texel_weight(prev, b, qy, qx, w, p, n, base + allowance, normal_cosine)
+                    if w > 0.0:
+                        total = total + w
+                        history_ao = history_ao + w * prev.ao[b, qy, qx]
+                        history_count = history_count + w * prev.count[b, qy, qx]
+    c = float(0.0)
+    if total >= MIN_HISTORY_WEIGHT_WP:
+        c = wp.clamp(history_count / total, 0.0, wp.max(cap - rays, 0.0))
+        history_ao = wp.clamp(history_ao / total, 0.0, 1.0)
+    a = ao[b, 0, y, x]
+    ao_out[b, y, x] = (c * history_ao + rays * a) / (c + rays)
+    count_out[b, y, x] = c + rays
+    point_out[b, y, x] = p
+    normal_out[b, y, x] = n
+
+
+def accumulate_rays(ao: torch.Tensor, mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor,
+                    position: torch.Tensor, flow: torch.Tensor | None, history: RayHistory | None, rays: int, cap: int,
+                    config: RayHistoryConfig = RayHistoryConfig()) -> RayHistory:
+    """One frame's rays blended into the history (module docstring), with no host sync.
+
+    Runs on the inputs' device (CPU or CUDA, on torch's current stream), in float32. The inputs'
+    values are not checked here (the reconstruction's frame checks do that; a NaN point or flow
+    finds no history).
+
+    Args:
+        ao: this frame's AO, the mean of ``rays`` rays per pixel.
+        mask: coverage; pixels > 0.5 count as covered.
+        normal: view-space normals (normalized here).
+        depth: view-space depth, world units.
+        position: world-space hit points.
+        flow: backward flow to the previous frame, pixels (conventions); None: no previous frame.
+        history: the previous frame's (None, or another size: none).
+        rays: the rays behind each pixel's ``ao`` (AO rays per hit times rays per pixel), >= 1.
+        cap: the most rays a pixel's mean stands for, >= ``rays``.
+        config: the reprojection's tests.
+
+    Returns:
+        The new history: its ``ao`` is the accumulated AO, its ``count`` the rays behind it.
+
+    Raises:
+        ValueError: wrong shapes, dtypes or devices, or counts out of range.
+
+    Shape:
+        ao, mask, depth: (B, 1, H, W). normal, position: (B, 3, H, W). flow: (B, 2, H, W).
+    """
+    b, h, w = _check(ao, mask, normal, depth, position, flow, rays, cap)
+    out = RayHistory.empty(b, h, w, ao.device)
+    continued = flow is not None and history is not None and history.shape == (b, h, w)
+    wp.init()  # a no-op after the first call
+    sources = [wp.from_torch(t.float()) for t in (mask, normal, depth, position, ao, flow if continued else depth)]
+    with on_device(ao.device) as launch:
+        launch(accumulate_kernel, (b, h, w),
+               [*sources, _previous(history if continued else None, ao.device), float(rays), float(cap),
+                float(config.point_tolerance), float(config.normal_cosine), wp.from_torch(out.ao),
+                wp.from_torch(out.count), wp.from_torch(out.point, dtype=wp.vec3),
+                wp.from_torch(out.normal, dtype=wp.vec3)])
+    return out
+
+
+def accumulate_frame(frame: FrameBuffers, history: RayHistory | None, rays: int, cap: int,
+                     config: RayHistoryConfig = RayHistoryConfig()) -> RayHistory:
+    """:func:`accumulate_rays` on one frame's buffers: mask, normal, depth, position, ao, and flow
+    (None: a frame without a previous one)."""
+    flow = None if frame.flow is None else frame.flow.permute(2, 0, 1)[None]
+    return accumulate_rays(frame.ao[None, None], frame.mask[None, None], frame.normal.permute(2, 0, 1)[None],
+                           frame.depth[None, None], frame.position.permute(2, 0, 1)[None], flow, history, rays, cap,
+                           config)
+
+
+def history_traffic(h: int, w: int) -> int:
+    """The bytes a frame's accumulation moves at least (each buffer read or written once, float32):
+    mask, normal, depth, position, AO, flow and the history in; the history out."""
+    history = 4 * (1 + 1 + 3 + 3)
+    return h * w * (4 * (1 + 3 + 1 + 3 + 1 + 2) + 2 * history)
+
+
+def _check(ao: torch.Tensor, mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, position: torch.Tensor,
+           flow: torch.Tensor | None, rays: int, cap: int) -> tuple[int, int, int]:
+    """ValueError unless the buffers are (B, C, H, W) floating point on one device and 1 <= rays <= cap."""
+    if ao.ndim != 4 or ao.shape[1] != 1 or not ao.numel():
+        raise ValueError(f"accumulate_rays: ao must be a non-empty (B, 1, H, W), got {tuple(ao.shape)}")
+    b, _, h, w = ao.shape
+    named = {"ao": (ao, 1), "mask": (mask, 1), "normal": (normal, 3), "depth": (depth, 1), "position": (position, 3)}
+    if flow is not None:
+        named["flow"] = (flow, 2)
+    for name, (t, c) in named.items():
+        if tuple(t.shape) != (b, c, h, w):
+            raise ValueError(f"accumulate_rays: {name} must be {(b, c, h, w)}, got {tuple(t.shape)}")
+        if not t.is_floating_point() or t.device != ao.device:
+            raise ValueError(f"accumulate_rays: {name} must be floating point on {ao.device}, got {t.dtype} on "
+                             f"{t.device}")
+    if isinstance(rays, bool) or not isinstance(rays, int) or isinstance(cap, bool) or not isinstance(cap, int) \
+            or not 1 <= rays <= cap:
+        raise ValueError(f"accumulate_rays: need integers 1 <= rays <= cap, got rays={rays!r}, cap={cap!r}")
+    return b, h, w
+
+
+def _previous(history: RayHistory | None, device: torch.device) -> Previous:
+    """The kernel's view of the history (1-element stand-ins and ``present`` 0 without one)."""
+    prev = Previous()
+    prev.present = int(history is not None)
+    if history is None:
+        history = RayHistory(*(torch.zeros(s, dtype=torch.float32, device=device)
+                               for s in ((1, 1, 1), (1, 1, 1), (1, 1, 1, 3), (1, 1, 1, 3))))
+    prev.ao = wp.from_torch(history.ao)
+    prev.count = wp.from_torch(history.count)
+    prev.point = wp.from_torch(history.point, dtype=wp.vec3)
+    prev.normal = wp.from_torch(history.normal, dtype=wp.vec3)
+    return prev
