@@ -461,14 +461,17 @@ def test_hard_frames_stay_finite_and_within_fp16s_own_error(model):
         assert (error <= 1.5 * (half - expected).abs().amax(dim=(0, 2, 3)) + 2e-3).all(), error
 
 
-def synthetic_frames(count: int, h: int, w: int) -> list[FrameBuffers]:
-    """Random frames as a render gives them (mask, unit normals, depth, AO of 2 rays) and flows."""
+def synthetic_frames(count: int, h: int, w: int, positions: bool = False) -> list[FrameBuffers]:
+    """Random frames as a render gives them (mask, unit normals, depth, AO of 2 rays) and flows;
+    with ``positions``, points on a plane (the ray history takes the texels near the flow's)."""
     frames = []
+    ys, xs = torch.meshgrid(torch.arange(h, device=DEVICE), torch.arange(w, device=DEVICE), indexing="ij")
     for i in range(count):
         x = recon_batch(1, h, w, seed=30 + i)[0].to(DEVICE)
         flow = None if i == 0 else rand(h, w, 2, scale=1.5, seed=40 + i)
+        position = torch.stack([xs * 0.01, ys * 0.01, torch.zeros_like(xs)], dim=-1).float() if positions else None
         frames.append(FrameBuffers(mask=x[MASK.start], normal=x[NORMAL].permute(1, 2, 0), depth=x[DEPTH.start],
-                                   ao=x[AO.start], flow=flow))
+                                   ao=x[AO.start], flow=flow, position=position))
     return frames
 
 
@@ -486,17 +489,19 @@ def test_the_service_reconstructs_by_the_fused_kernels_on_cuda_in_fp16():
     assert not isinstance(serving_network(Reconstructor, DEFAULT_RECON_MODEL, DEVICE, "fp32").net, FusedReconNet)
 
 
+@pytest.mark.parametrize("positions", [False, True], ids=["rays alone", "ray history"])
 @pytest.mark.parametrize("model", [DEFAULT_RECON_MODEL, RECON_X2_MODEL])
-def test_a_fused_reconstructor_follows_the_reference_frame_by_frame(model):
+def test_a_fused_reconstructor_follows_the_reference_frame_by_frame(model, positions):
     """The Reconstructor's fused path (its recurrence, warp and shading) against the fp32 eager
-    one over a short sequence, the shipped x1 and x2 models; on CUDA also replayed from CUDA graphs."""
+    one over a short sequence, the shipped x1 and x2 models, with and without the ray history
+    (per-pixel sampling planes); on CUDA also replayed from CUDA graphs."""
     variants = [Reconstructor(model, device=DEVICE, precision="fp16", fused=True)]
     if DEVICE == "cuda":
         variants.append(Reconstructor(model, device=DEVICE, precision="fp16", fused=True, graphs=True))
     assert all(isinstance(v.net, FusedReconNet) for v in variants)
     reference = Reconstructor(model, device=DEVICE)
     shading = ShadingParams()
-    for frame in synthetic_frames(3, 13, 21):
+    for frame in synthetic_frames(3, 13, 21, positions):
         expected = reference.reconstruct(frame, 2, 1, shading)
         for variant in variants:
             got = variant.reconstruct(frame, 2, 1, shading)

@@ -15,7 +15,7 @@ from isosr_net.frame_methods import FrameMethod, Networks, make_runner
 from isosr_net.reconstructor import Reconstructor
 
 SIZE = (96, 64)  # width, height
-OUTPUTS = ("mask", "normal", "depth", "ao", "flow")
+OUTPUTS = ("mask", "normal", "depth", "position", "ao", "flow")  # with positions: the ray history too
 SOURCE = "proc:cloud:3@48"
 NAMES = ("mask", "normal", "depth", "ao", "color")
 cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (run on the GPU machine)")
