@@ -379,20 +379,21 @@ def atrous_filter(ao: torch.Tensor, mask: torch.Tensor, normal: torch.Tensor, de
 
 @contextmanager
 def on_device(device: torch.device) -> Generator[Callable[[wp.Kernel, tuple[int, int, int], list], None]]:
-    """``launch(kernel, (B, H, W), inputs)`` for the kernels of this filter and SVGF's, which take the
-    first row ``row0`` last: on GPUs one launch on torch's current stream, on CPUs row bands on a
-    thread pool (Warp's CPU kernels run on one thread each; ctypes releases the GIL)."""
+    """``launch(kernel, (B, H, W), inputs)`` for the kernels of this filter, SVGF's and the ray
+    history's, which take the first row ``row0`` last: on GPUs one launch on torch's current stream
+    (no event between streams: a CUDA graph may capture it), on CPUs row bands on a thread pool
+    (Warp's CPU kernels run on one thread each; ctypes releases the GIL)."""
     wp_device = wp.device_from_torch(device)
     if wp_device.is_cuda:
-        with wp.ScopedStream(wp.stream_from_torch(torch.cuda.current_stream(device))):
-            yield lambda kernel, shape, inputs: _launch_whole(kernel, shape, inputs, wp_device)
+        stream = wp.stream_from_torch(torch.cuda.current_stream(device))
+        yield lambda kernel, shape, inputs: _launch_whole(kernel, shape, inputs, wp_device, stream)
     else:
         yield lambda kernel, shape, inputs: _launch_in_row_bands(kernel, shape, inputs, wp_device)
 
 
-def _launch_whole(kernel, shape: tuple[int, int, int], inputs: list, device) -> None:
-    """One launch over every pixel (GPUs)."""
-    wp.launch(kernel, dim=shape, inputs=[*inputs, 0], device=device)
+def _launch_whole(kernel, shape: tuple[int, int, int], inputs: list, device, stream: wp.Stream) -> None:
+    """One launch over every pixel (GPUs), on ``stream``."""
+    wp.launch(kernel, dim=shape, inputs=[*inputs, 0], device=device, stream=stream)
 
 
 def _launch_in_row_bands(kernel, shape: tuple[int, int, int], inputs: list, device) -> None:
