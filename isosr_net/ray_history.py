@@ -19,8 +19,9 @@ where a frame cast 1. One kernel per frame (Warp, on every device):
   the network takes at the frame's rays per pixel, so the blend becomes an exponential one
   (weight ``rays / cap``) once the history is full.
 
-Surface points are world-space, so the test needs no camera (and a CUDA graph can replay it).
-Uncovered pixels get AO 0 and count 0. A frame without flow, or a history of another size,
+A pixel is covered where any of its rays per pixel hit (mask > 0: a silhouette's partly covered
+pixels hold rays too). Surface points are world-space, so the test needs no camera (and a CUDA
+graph can replay it). Uncovered pixels get AO 0 and count 0. A frame without flow, or a history of another size,
 starts every pixel anew. float32.
 """
 
@@ -123,7 +124,7 @@ def point_step(mask: wp.array4d(dtype=float), position: wp.array4d(dtype=float),
         qy = y + wp.where(sign == 0, dy, -dy)
         qx = x + wp.where(sign == 0, dx, -dx)
         if qy >= 0 and qy < h and qx >= 0 and qx < w:  # bounds first: Warp evaluates every operand
-            if mask[b, 0, qy, qx] > 0.5:
+            if mask[b, 0, qy, qx] > 0.0:
                 d = wp.length(point_at(position, b, qy, qx) - p)
                 if step < 0.0 or d < step:
                     step = d
@@ -156,7 +157,7 @@ def accumulate_kernel(mask: wp.array4d(dtype=float), normal: wp.array4d(dtype=fl
     """The module docstring's blend for the pixels of rows ``row0`` on."""
     b, row, x = wp.tid()
     y = row0 + row
-    if not (mask[b, 0, y, x] > 0.5):
+    if not (mask[b, 0, y, x] > 0.0):
         ao_out[b, y, x] = 0.0
         count_out[b, y, x] = 0.0
         point_out[b, y, x] = wp.vec3(0.0)
@@ -215,7 +216,7 @@ def accumulate_rays(ao: torch.Tensor, mask: torch.Tensor, normal: torch.Tensor, 
 
     Args:
         ao: this frame's AO, the mean of ``rays`` rays per pixel.
-        mask: coverage; pixels > 0.5 count as covered.
+        mask: coverage; a pixel that any ray per pixel hit (> 0) holds rays.
         normal: view-space normals (normalized here).
         depth: view-space depth, world units.
         position: world-space hit points.

@@ -334,8 +334,10 @@ class Reconstructor(RecurrentNetwork):
         """
         if not ao_rays or frame.position is None:
             return frame.ao if ao_rays else None, self._sampling_tensor(ao_rays, spp), None
-        history = accumulate_frame(frame, history, ao_rays * spp, self.limits.rays(spp))
-        return history.ao[0], self.limits.counted(history.count, spp), history
+        rays = ao_rays * spp
+        history = accumulate_frame(frame, history, rays, self.limits.rays(spp))
+        # Uncovered pixels hold no rays; they read as the frame's own rays, the value training gave them.
+        return history.ao[0], self.limits.counted(history.count.clamp(min=rays), spp), history
 
     def _raise_refused(self, flags: torch.Tensor) -> None:
         """Read a frame's input checks (one host sync) and raise the first that fails."""

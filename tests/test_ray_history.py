@@ -34,7 +34,7 @@ def reference(f: dict, history: RayHistory | None, rays: int, cap: int, config=R
     out = RayHistory(*(torch.zeros(s, dtype=torch.float64) for s in ((1, H, W), (1, H, W), (1, H, W, 3), (1, H, W, 3))))
     for y in range(H):
         for x in range(W):
-            if not d["mask"][0, y, x] > 0.5:
+            if not d["mask"][0, y, x] > 0:
                 continue
             p, n = d["position"][:, y, x], torch.nn.functional.normalize(d["normal"][:, y, x], dim=0)
             total = h_ao = h_count = 0.0
@@ -66,7 +66,7 @@ def reference(f: dict, history: RayHistory | None, rays: int, cap: int, config=R
 def point_step(d: dict, y: int, x: int, dy: int, dx: int) -> float:
     steps = [float((d["position"][:, qy, qx] - d["position"][:, y, x]).norm())
              for qy, qx in ((y + dy, x + dx), (y - dy, x - dx))
-             if 0 <= qy < H and 0 <= qx < W and d["mask"][0, qy, qx] > 0.5]
+             if 0 <= qy < H and 0 <= qx < W and d["mask"][0, qy, qx] > 0]
     return min(steps, default=0.0)
 
 
@@ -108,7 +108,7 @@ def test_without_flow_or_history_or_at_another_size_every_pixel_starts_anew():
     f = frame()
     history = accumulate_rays(**f, history=None, rays=2, cap=32)
     again = accumulate_rays(**{**f, "flow": None}, history=history, rays=2, cap=32)
-    covered = f["mask"][:, 0] > 0.5
+    covered = f["mask"][:, 0] > 0
     assert (again.count[covered] == 2).all() and (again.count[~covered] == 0).all()
     torch.testing.assert_close(again.ao, f["ao"][:, 0] * covered, rtol=0, atol=0)
     small = {k: v[..., :5, :7] for k, v in f.items()}
