@@ -126,6 +126,18 @@ def depth_step(mask: wp.array4d(dtype=float), z: wp.array4d(dtype=float), b: int
     return bwd
 
 
+@wp.func
+def reprojected_texel(x: int, y: int, u: float, v: float, h: int, w: int):
+    """Where pixel (x, y) moved by the flow (u, v) lands among an h x w image's texels: the top-left
+    texel (x0, y0) of the 2x2 around it and the bilinear fractions (fx, fy); kept within a texel of
+    the image (beyond, no tap is inside) so that the indices fit an int."""
+    sx = wp.clamp(float(x) + u, -2.0, float(w) + 1.0)
+    sy = wp.clamp(float(y) + v, -2.0, float(h) + 1.0)
+    x0 = int(wp.floor(sx))
+    y0 = int(wp.floor(sy))
+    return x0, y0, sx - float(x0), sy - float(y0)
+
+
 @wp.kernel
 def atrous_prepare_kernel(ao: wp.array4d(dtype=float), mask: wp.array4d(dtype=float),
                           normal: wp.array4d(dtype=float), z: wp.array4d(dtype=float),
@@ -391,8 +403,8 @@ def on_device(device: torch.device) -> Generator[Callable[[wp.Kernel, tuple[int,
         yield lambda kernel, shape, inputs: _launch_in_row_bands(kernel, shape, inputs, wp_device)
 
 
-def _launch_whole(kernel, shape: tuple[int, int, int], inputs: list, device, stream: wp.Stream) -> None:
-    """One launch over every pixel (GPUs), on ``stream``."""
+def _launch_whole(kernel, shape: tuple[int, int, int], inputs: list, device, stream: wp.Stream | None = None) -> None:
+    """One launch over every pixel (GPUs: on ``stream``)."""
     wp.launch(kernel, dim=shape, inputs=[*inputs, 0], device=device, stream=stream)
 
 

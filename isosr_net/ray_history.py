@@ -34,7 +34,7 @@ import torch
 import warp as wp
 
 from isosr_render.buffers import FrameBuffers
-from isosr_net.atrous import on_device
+from isosr_net.atrous import on_device, reprojected_texel
 
 wp.set_module_options({"enable_backward": False})
 
@@ -173,13 +173,7 @@ def accumulate_kernel(mask: wp.array4d(dtype=float), normal: wp.array4d(dtype=fl
         u = flow[b, 0, y, x]
         v = flow[b, 1, y, x]
         if wp.isfinite(u) and wp.isfinite(v):  # a NaN or Inf flow finds no history
-            # Texel indices of p + flow, kept within a texel of the image (beyond, no tap counts) so that they fit an int.
-            sx = wp.clamp(float(x) + u, -2.0, float(prev.count.shape[2]) + 1.0)
-            sy = wp.clamp(float(y) + v, -2.0, float(prev.count.shape[1]) + 1.0)
-            x0 = int(wp.floor(sx))
-            y0 = int(wp.floor(sy))
-            fx = sx - float(x0)
-            fy = sy - float(y0)
+            x0, y0, fx, fy = reprojected_texel(x, y, u, v, prev.count.shape[1], prev.count.shape[2])
             gx = point_step(mask, position, b, y, x, 0, 1)
             gy = point_step(mask, position, b, y, x, 1, 0)
             base = point_tolerance * wp.abs(depth[b, 0, y, x])
@@ -188,7 +182,7 @@ def accumulate_kernel(mask: wp.array4d(dtype=float), normal: wp.array4d(dtype=fl
                     qx = x0 + i
                     qy = y0 + j
                     w = wp.where(i == 1, fx, 1.0 - fx) * wp.where(j == 1, fy, 1.0 - fy)
-                    allowance = gx * wp.abs(float(qx) - sx) + gy * wp.abs(float(qy) - sy)
+                    allowance = gx * wp.abs(float(i) - fx) + gy * wp.abs(float(j) - fy)  # |q - (p + flow)|
                     w = texel_weight(prev, b, qy, qx, w, p, n, base + allowance, normal_cosine)
                     if w > 0.0:
                         total = total + w

@@ -36,7 +36,7 @@ import warp as wp
 
 from isosr_render import Camera
 from isosr_net.atrous import (TINY_WP, ATrousConfig, Guides, atrous_passes, check_buffers, depth_step, edge_exponent,
-                              float32_knob, on_device, prepare_guides)
+                              float32_knob, on_device, prepare_guides, reprojected_texel)
 
 wp.set_module_options({"enable_backward": False})  # no gradients through the filter
 
@@ -209,14 +209,8 @@ def svgf_temporal_kernel(value: wp.array3d(dtype=float), surface: wp.array3d(dty
         p = wp.vec3(position[b, 0, y, x], position[b, 1, y, x], position[b, 2, y, x])
         expected = -wp.dot(p - prev.eye, prev.back)
         if expected > 0.0:
-            # Texel indices of the previous position p + flow (pixel centers at +0.5), kept within a
-            # texel of the image (beyond, every tap is outside anyway) so that they fit an int.
-            sx = wp.clamp(float(x) + flow[b, 0, y, x], -2.0, float(prev.length.shape[2]) + 1.0)
-            sy = wp.clamp(float(y) + flow[b, 1, y, x], -2.0, float(prev.length.shape[1]) + 1.0)
-            x0 = int(wp.floor(sx))
-            y0 = int(wp.floor(sy))
-            fx = sx - float(x0)
-            fy = sy - float(y0)
+            x0, y0, fx, fy = reprojected_texel(x, y, flow[b, 0, y, x], flow[b, 1, y, x], prev.length.shape[1],
+                                               prev.length.shape[2])
             gx = depth_step(mask, depth, b, y, x, 0, 1)
             gy = depth_step(mask, depth, b, y, x, 1, 0)
             for j in range(2):
@@ -224,7 +218,7 @@ def svgf_temporal_kernel(value: wp.array3d(dtype=float), surface: wp.array3d(dty
                     qx = x0 + i
                     qy = y0 + j
                     w = wp.where(i == 1, fx, 1.0 - fx) * wp.where(j == 1, fy, 1.0 - fy)
-                    allowance = wp.abs(gx * (float(qx) - sx)) + wp.abs(gy * (float(qy) - sy))
+                    allowance = wp.abs(gx * (float(i) - fx)) + wp.abs(gy * (float(j) - fy))  # |q - (p + flow)|
                     w = reprojection_weight(prev, b, qy, qx, w, n, expected, allowance, knobs)
                     if w > 0.0:
                         total = total + w
