@@ -32,7 +32,8 @@ from tritonclient.utils import InferenceServerException  # noqa: E402
 ATOL = 1e-6 if DEVICE == "cpu" else 1e-2
 LIMITS = P.Limits(max_message_bytes=2**20)
 INPUTS, OUTPUTS = ("mask", "normal", "depth", "flow"), ("mask", "normal", "depth", "ao")
-RECON_INPUTS, RECON_OUTPUTS = ("mask", "normal", "depth", "ao", "flow"), ("mask", "normal", "depth", "ao", "color")
+RECON_INPUTS = ("mask", "normal", "depth", "ao", "position", "flow")
+RECON_OUTPUTS = ("mask", "normal", "depth", "ao", "color")
 AO_RAYS = 2
 
 
@@ -228,7 +229,7 @@ def test_recon_metadata_and_readiness_through_tritonclient(client):
     assert [t["name"] for t in meta["outputs"]] == list(RECON_OUTPUTS)
     inputs = {t["name"]: t for t in meta["inputs"]}
     assert inputs["normal"]["shape"] == [-1, -1, 3] and inputs["flow"]["shape"] == [-1, -1, 2]
-    assert [n for n, t in inputs.items() if t["parameters"]["optional"]] == ["ao", "flow"]
+    assert [n for n, t in inputs.items() if t["parameters"]["optional"]] == ["ao", "position", "flow"]
     assert inputs["ao"]["parameters"]["range"] == [0.0, 1.0]
     assert all(t["parameters"]["accepted_datatypes"] == ["FP32", "FP16"] for t in meta["inputs"])
     assert meta["parameters"]["max_ao_rays"] >= AO_RAYS
@@ -249,6 +250,21 @@ def test_recon_infer_equals_the_reconstructor_with_recurrent_state(client, frame
     assert_equal_recon(fresh, reconstructed(full_frames[1:])[0])
 
 
+def test_recon_infer_with_positions_accumulates_the_rays_as_the_library_does(lib, client):
+    """Frames of one view with new rays each (the second with flow) and their hit points: the
+    server's second frame is the library's, whose ray history holds both frames' rays."""
+    camera, outputs = orbit(30, 20, 1.8), ("mask", "normal", "depth", "ao", "position")
+    frames = [lib.renderer.render(camera, RenderRequest(W, H, lib.iso, outputs + (("flow",) if i else ()), seed=5 + i,
+                                                        ao_samples=AO_RAYS, prev_camera=camera if i else None)).to_numpy()
+              for i in range(2)]
+    want = reconstructed(frames)
+    seq = "recon-True"  # a session of an earlier test, started anew: one address holds at most 8
+    recon_infer(client, frames[0], sequence_id=seq, sequence_start=True)
+    assert_equal_recon(recon_infer(client, frames[1], sequence_id=seq), want[1])
+    alone = reconstructed([frames[0], {n: a for n, a in frames[1].items() if n != "position"}])[1]
+    assert np.abs(alone["ao"] - want[1]["ao"]).max() > 1e-4  # the history changed the frame (little AO here)
+
+
 def test_recon_fp16_inputs_no_ao_rays_spp_and_chosen_outputs(client, full_frames):
     f0 = full_frames[0]
     half = {n: a.astype(np.float16) for n, a in f0.items()}
@@ -263,19 +279,20 @@ def test_recon_fp16_inputs_no_ao_rays_spp_and_chosen_outputs(client, full_frames
 def test_recon_bad_tensors_get_4xx_with_reasons(srv, client, full_frames):
     f = full_frames[1]
     h, w = f["mask"].shape
-    good = [tensor(n, f[n]) for n in RECON_INPUTS]
-    blobs = b"".join(f[n].astype("<f4").tobytes() for n in RECON_INPUTS)
+    names = [n for n in RECON_INPUTS if n in f]  # all but the optional position
+    good = [tensor(n, f[n]) for n in names]
+    blobs = b"".join(f[n].astype("<f4").tobytes() for n in names)
     rays = {"ao_rays": AO_RAYS}
 
     def replaced(name: str, a: np.ndarray, datatype: str = "FP32") -> tuple[list, bytes]:
         """The good request with input ``name`` replaced by ``a``."""
-        arrays = {n: a if n == name else f[n] for n in RECON_INPUTS}
-        return ([tensor(n, arrays[n], datatype if n == name else "FP32") for n in RECON_INPUTS],
-                b"".join(arrays[n].tobytes() for n in RECON_INPUTS))
+        arrays = {n: a if n == name else f[n] for n in names}
+        return ([tensor(n, arrays[n], datatype if n == name else "FP32") for n in names],
+                b"".join(arrays[n].tobytes() for n in names))
 
     nan_ao = f["ao"].copy()
     nan_ao[3, 5] = np.nan
-    big = {n: np.zeros((2, 4100) + f[n].shape[2:], np.float32) for n in RECON_INPUTS}
+    big = {n: np.zeros((2, 4100) + f[n].shape[2:], np.float32) for n in names}
     cases = [
         (*replaced("normal", f["normal"][..., :2].copy()), rays, 400,
          f"'normal': shape [{h}, {w}, 2] does not fit [H, W, 3]"),
@@ -288,12 +305,12 @@ def test_recon_bad_tensors_get_4xx_with_reasons(srv, client, full_frames):
         (good + [tensor("color", f["mask"])], blobs + f["mask"].tobytes(), rays, 400, "unknown input 'color'"),
         (good[1:], blobs[f["mask"].nbytes:], rays, 400, "missing input 'mask'"),
         (good, blobs, {}, 400, "input 'ao' needs the parameter ao_rays"),
-        ([t for t in good if t["name"] != "ao"], b"".join(f[n].tobytes() for n in RECON_INPUTS if n != "ao"), rays,
+        ([t for t in good if t["name"] != "ao"], b"".join(f[n].tobytes() for n in names if n != "ao"), rays,
          400, "parameter ao_rays 2 needs the input 'ao'"),
         (good, blobs, {"ao_rays": 17}, 400, "parameter 'ao_rays' must be an integer in [0, 16], got 17"),
         (good, blobs, rays | {"spp": 0}, 400, "parameter 'spp' must be an integer in [1, 4], got 0"),
         (good, blobs, rays | {"sequence_id": "../x"}, 400, "sequence_id must match"),
-        ([tensor(n, big[n]) for n in RECON_INPUTS], b"".join(big[n].tobytes() for n in RECON_INPUTS), rays, 413,
+        ([tensor(n, big[n]) for n in names], b"".join(big[n].tobytes() for n in names), rays, 413,
          "exceeds"),
     ]
     for inputs, body, parameters, status, words in cases:

@@ -47,13 +47,13 @@ from isosr_server.api.routes.upscale import check_upscale, run_upscale
 from isosr_server.codecs.kserve import (BINARY_MEDIA_TYPE, HEADER_LENGTH, JSON_MEDIA_TYPE, InferRequest, ModelSpec,
                                         TensorSpec, decode_request, encode_response, int_parameter, sequence)
 from isosr_server.metrics import ServerMetrics
-from isosr_server.protocol import IMAGE_ENCODINGS, LOWRES_BOUNDS, ProtocolError, UpscaleRequest
+from isosr_server.protocol import IMAGE_ENCODINGS, LOWRES_BOUNDS, MAX_DEPTH, ProtocolError, UpscaleRequest
 from isosr_server.sessions import UpscaleSessions
 
 MODEL_VERSION = "1"
 PLATFORM = "pytorch"
 SHAPES = {"mask": ("H", "W"), "normal": ("H", "W", 3), "depth": ("H", "W"), "ao": ("H", "W"), "flow": ("H", "W", 2),
-          "color": ("H", "W", 3)}
+          "position": ("H", "W", 3), "color": ("H", "W", 3)}
 UNIT = (0.0, 1.0)
 
 
@@ -65,7 +65,10 @@ SURFACE = tuple(tensor(n, LOWRES_BOUNDS[n]) for n in ("mask", "normal", "depth")
 FLOW = tensor("flow", LOWRES_BOUNDS["flow"], optional=True)
 BUFFERS = tuple(tensor(n) for n in ("mask", "normal", "depth", "ao"))
 UPSCALE = ModelSpec("isosr", SURFACE + (FLOW,), BUFFERS)
-RECON = ModelSpec("isosr-recon", SURFACE + (tensor("ao", UNIT, optional=True), FLOW), BUFFERS + (tensor("color"),))
+# With positions (world-space hit points) and a sequence, the AO rays accumulate along the flow (isosr_net.ray_history).
+POSITION = tensor("position", (-MAX_DEPTH, MAX_DEPTH), optional=True)
+RECON = ModelSpec("isosr-recon", SURFACE + (tensor("ao", UNIT, optional=True), POSITION, FLOW),
+                  BUFFERS + (tensor("color"),))
 
 
 def metadata(model: ModelSpec, parameters: dict) -> dict:
