@@ -41,7 +41,7 @@ def markdown(folder: Path, kind: str) -> str:
                  ["volume", "case", "size", "ms", "kernel_ms", "samples/pixel", "max samples/pixel", "skip speedup"]),
                 ("bench_recon_path", "What the reconstruction adds to a full-resolution frame",
                  ["volume", "size", "method", "variant", "full", "path", "added", "render", "network_gflop",
-                  "floor_ms"]))
+                  "floor_ms", "device", "commit"]))
     for name, title, columns in sections:
         record = _load(folder, name, kind)
         if record is None:
