@@ -260,9 +260,11 @@ def atrous_pass_kernel(value: wp.array3d(dtype=float), surface: wp.array3d(dtype
         variance_out[b, y, x] = filtered_variance
 
 
-def check_buffers(where: str, ao: torch.Tensor, guides: dict[str, tuple[torch.Tensor, int]]) -> None:
+def check_buffers(where: str, ao: torch.Tensor, guides: dict[str, tuple[torch.Tensor, int]],
+                  finite: bool = True) -> None:
     """ValueError unless ``ao`` is (B, 1, H, W) and each guide ``name: (tensor, channels)`` is
-    (B, channels, H, W), all floating point, finite, on ``ao``'s device (``where`` names the caller)."""
+    (B, channels, H, W), all floating point, on ``ao``'s device, and (``finite``, one host sync)
+    finite (``where`` names the caller)."""
     if ao.ndim != 4 or ao.shape[1] != 1:
         raise ValueError(f"{where}: ao must be (B, 1, H, W), got {tuple(ao.shape)}")
     b, _, h, w = ao.shape
@@ -277,9 +279,11 @@ def check_buffers(where: str, ao: torch.Tensor, guides: dict[str, tuple[torch.Te
             raise ValueError(f"{where}: {name} must be floating point, got {t.dtype}")
         if t.device != ao.device:
             raise ValueError(f"{where}: {name} is on {t.device}, ao on {ao.device}")
+    if not finite:
+        return
     # One host sync for all the buffers.
-    finite = torch.stack([torch.isfinite(t).all() for t in named.values()]).tolist()
-    for name, ok in zip(named, finite):
+    ok_values = torch.stack([torch.isfinite(t).all() for t in named.values()]).tolist()
+    for name, ok in zip(named, ok_values):
         if not ok:
             raise ValueError(f"{where}: {name} holds NaN or Inf values")
 

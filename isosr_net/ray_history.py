@@ -34,7 +34,7 @@ import torch
 import warp as wp
 
 from isosr_render.buffers import FrameBuffers
-from isosr_net.atrous import on_device, reprojected_texel
+from isosr_net.atrous import check_buffers, on_device, reprojected_texel
 
 wp.set_module_options({"enable_backward": False})
 
@@ -262,22 +262,14 @@ def history_traffic(h: int, w: int) -> int:
 
 def _check(ao: torch.Tensor, mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, position: torch.Tensor,
            flow: torch.Tensor | None, rays: int, cap: int) -> tuple[int, int, int]:
-    """ValueError unless the buffers are (B, C, H, W) floating point on one device and 1 <= rays <= cap."""
-    if ao.ndim != 4 or ao.shape[1] != 1 or not ao.numel():
-        raise ValueError(f"accumulate_rays: ao must be a non-empty (B, 1, H, W), got {tuple(ao.shape)}")
-    b, _, h, w = ao.shape
-    named = {"ao": (ao, 1), "mask": (mask, 1), "normal": (normal, 3), "depth": (depth, 1), "position": (position, 3)}
-    if flow is not None:
-        named["flow"] = (flow, 2)
-    for name, (t, c) in named.items():
-        if tuple(t.shape) != (b, c, h, w):
-            raise ValueError(f"accumulate_rays: {name} must be {(b, c, h, w)}, got {tuple(t.shape)}")
-        if not t.is_floating_point() or t.device != ao.device:
-            raise ValueError(f"accumulate_rays: {name} must be floating point on {ao.device}, got {t.dtype} on "
-                             f"{t.device}")
+    """ValueError unless the buffers are (B, C, H, W) floating point on one device (their values
+    unchecked: no host sync) and 1 <= rays <= cap; returns B, H, W."""
+    guides = {"mask": (mask, 1), "normal": (normal, 3), "depth": (depth, 1), "position": (position, 3)}
+    check_buffers("accumulate_rays", ao, guides | ({} if flow is None else {"flow": (flow, 2)}), finite=False)
     if isinstance(rays, bool) or not isinstance(rays, int) or isinstance(cap, bool) or not isinstance(cap, int) \
             or not 1 <= rays <= cap:
         raise ValueError(f"accumulate_rays: need integers 1 <= rays <= cap, got rays={rays!r}, cap={cap!r}")
+    b, _, h, w = ao.shape
     return b, h, w
 
 

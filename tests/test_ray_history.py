@@ -146,7 +146,8 @@ def test_hostile_values_find_no_history_and_stay_finite_and_bounded(name, value)
 
 @pytest.mark.parametrize("change, match", [
     (dict(normal=torch.zeros(1, 2, H, W)), r"normal must be \(1, 3, 9, 11\)"),
-    (dict(ao=torch.zeros(1, 2, H, W)), r"ao must be a non-empty \(B, 1, H, W\)"),
+    (dict(ao=torch.zeros(1, 2, H, W)), r"accumulate_rays: ao must be \(B, 1, H, W\), got \(1, 2, 9, 11\)"),
+    (dict(ao=torch.zeros(1, 1, 0, W)), r"accumulate_rays: the images are empty"),
     (dict(mask=torch.zeros(1, 1, H, W, dtype=torch.int32)), "mask must be floating point"),
     (dict(rays=0), "need integers 1 <= rays <= cap"),
     (dict(rays=4, cap=2), "need integers 1 <= rays <= cap"),
