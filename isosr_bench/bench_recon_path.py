@@ -44,7 +44,7 @@ from isosr_render.shading import ShadingParams
 from isosr_render.sequence import sequence_cameras
 from isosr_net.frame_methods import FrameMethod, Networks, make_runner, reconstruct_method
 from isosr_net.fused_recon import FusedReconNet, fused_runs_on, fused_traffic
-from isosr_net.ray_history import accumulate_frame, history_traffic
+from isosr_net.ray_history import accumulate_frame, history_traffic, network_inputs
 from isosr_net.reconnet import macs_per_pixel
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
 
@@ -86,10 +86,9 @@ def pass_times(net: FusedReconNet, renderer: Renderer, pairs: list, request, ao_
     with torch.no_grad():
         previous = net.frame(first.mask, first.normal, first.depth, first.ao if ao_rays else None, sampling,
                              first.flow, None, None)[0]
-    if ao_rays:  # what the ray history makes the network read
+    if ao_rays:  # what the ray history makes the network read, as in a Reconstructor
         history = accumulate_frame(first, None, rays, limits.rays(spp))
-        accumulated = accumulate_frame(frame, history, rays, limits.rays(spp))
-        ao, sampling = accumulated.ao[0], limits.counted(accumulated.count, spp)
+        ao, sampling, _ = network_inputs(frame, history, ao_rays, spp, limits)
     sources = ReconSources.of_buffers(frame.mask, frame.normal, frame.depth, ao, sampling)
     h, w = frame.mask.shape
     traffic = fused_traffic(h, w, net.config, frame=True)

@@ -35,6 +35,7 @@ import warp as wp
 
 from isosr_render.buffers import FrameBuffers
 from isosr_net.atrous import check_buffers, on_device, reprojected_texel
+from isosr_net.reconnet import RayLimits
 
 wp.set_module_options({"enable_backward": False})
 
@@ -251,6 +252,22 @@ def accumulate_frame(frame: FrameBuffers, history: RayHistory | None, rays: int,
     return accumulate_rays(frame.ao[None, None], frame.mask[None, None], frame.normal.permute(2, 0, 1)[None],
                            frame.depth[None, None], frame.position.permute(2, 0, 1)[None], flow, history, rays, cap,
                            config)
+
+
+def network_inputs(frame: FrameBuffers, history: RayHistory | None, ao_rays: int, spp: int,
+                   limits: RayLimits) -> tuple[torch.Tensor, torch.Tensor, RayHistory]:
+    """What a reconstruction network of ``limits`` reads of a frame whose ``ao_rays`` AO rays (at
+    ``spp`` rays per pixel) join ``history``: ``(ao, sampling, new history)``, with no host sync.
+    The sampling's AO plane counts, per pixel, the rays behind the mean; uncovered pixels hold
+    none and read as the frame's own rays, the value training gave them (a 0 there cost 0.3-0.8 dB
+    at 16 AO rays, spp 4).
+
+    Shape:
+        Returns ao (H, W), sampling (1, 2, H, W).
+    """
+    rays = ao_rays * spp
+    history = accumulate_frame(frame, history, rays, limits.rays(spp))
+    return history.ao[0], limits.counted(history.count.clamp(min=rays), spp), history
 
 
 def history_traffic(h: int, w: int) -> int:

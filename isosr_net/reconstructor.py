@@ -31,9 +31,9 @@ from isosr_net.reconnet import RayLimits, ReconNet, ReconNetConfig
 from isosr_net.inference import (AO_MESSAGE, PRECISIONS, InputChecks, RecurrentNetwork, ao_in_range, buffer_stack,
                                  check_buffer, check_surface, frame_flags, stack_buffers, surface_tensors)
 from isosr_net.model import read_config
-from isosr_net.ray_history import RayHistory, accumulate_frame
+from isosr_net.ray_history import RayHistory, network_inputs
 
-if TYPE_CHECKING:  # the network runs without Warp; render_reconstruct takes what a renderer made
+if TYPE_CHECKING:  # types only: render_reconstruct takes what a renderer made
     from isosr_render.camera import Camera
     from isosr_render.renderer import Renderer, RenderPlan, RenderRequest
 
@@ -334,10 +334,7 @@ class Reconstructor(RecurrentNetwork):
         """
         if not ao_rays or frame.position is None:
             return frame.ao if ao_rays else None, self._sampling_tensor(ao_rays, spp), None
-        rays = ao_rays * spp
-        history = accumulate_frame(frame, history, rays, self.limits.rays(spp))
-        # Uncovered pixels hold no rays; they read as the frame's own rays, the value training gave them.
-        return history.ao[0], self.limits.counted(history.count.clamp(min=rays), spp), history
+        return network_inputs(frame, history, ao_rays, spp, self.limits)
 
     def _raise_refused(self, flags: torch.Tensor) -> None:
         """Read a frame's input checks (one host sync) and raise the first that fails."""
