@@ -248,6 +248,10 @@ class RecurrentNetwork:
         """Forget the previous output (a camera cut, a new sequence)."""
         self.previous = None
 
+    def state_bytes(self) -> int:
+        """Bytes the stream's recurrent state holds."""
+        return 0 if self.previous is None else self.previous.nbytes
+
     def own(self) -> "RecurrentNetwork":
         """A stream's own copy: shares the loaded weights (and compiled code), starts without state."""
         twin = object.__new__(type(self))

@@ -89,6 +89,10 @@ class RayHistory:
     def shape(self) -> tuple[int, int, int]:
         return tuple(self.count.shape)
 
+    @property
+    def nbytes(self) -> int:
+        return sum(t.nbytes for t in (self.ao, self.count, self.point, self.normal))
+
     def copy_(self, other: RayHistory) -> RayHistory:
         """Copy ``other``'s values into these tensors (a graph's state); returns self."""
         for name in ("ao", "count", "point", "normal"):

@@ -220,6 +220,10 @@ class Reconstructor(RecurrentNetwork):
         super().reset()
         self.history = None
 
+    def state_bytes(self) -> int:
+        """Bytes the stream's state holds: the previous output and the ray history."""
+        return super().state_bytes() + (0 if self.history is None else self.history.nbytes)
+
     def _own_graphs(self) -> None:
         """Empty caches of graphs (network and whole-frame), of the previous outputs they read, and
         a memory pool for them: a stream's own, so that streams neither share a graph's tensors

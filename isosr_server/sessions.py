@@ -380,7 +380,7 @@ class UpscaleSessions:
     def held_bytes(self) -> int:
         """Bytes the sessions' recurrent states hold."""
         nets = [s.network for s in self._by_id.values()] + self._streams
-        return sum(u.previous.nbytes for u in nets if u.previous is not None)
+        return sum(u.state_bytes() for u in nets)
 
     def trim(self, keep: RecurrentNetwork | None = None) -> int:
         """Drop the least recently used ids (never the one of ``keep``) while the states hold more

@@ -444,6 +444,8 @@ def test_a_refused_frame_leaves_the_ray_history_alone_and_a_reset_or_a_twin_has_
     with pytest.raises(ValueError, match="ao"):
         reconstructor.reconstruct(hostile, 2, 1)
     assert reconstructor.history is kept and (kept.count <= 2).all()
+    # What a service counts against its bound on held state: the previous output and the history (32 B a pixel).
+    assert reconstructor.state_bytes() == reconstructor.previous.nbytes + 32 * SIZE[0] * SIZE[1]
     assert reconstructor.own().history is None
     reconstructor.reset()
     assert reconstructor.history is None and reconstructor.previous is None
