@@ -313,6 +313,11 @@ def test_recon_bad_tensors_get_4xx_with_reasons(srv, client, full_frames):
         ([tensor(n, big[n]) for n in names], b"".join(big[n].tobytes() for n in names), rays, 413,
          "exceeds"),
     ]
+    position = np.zeros((h, w, 3), np.float32)
+    for bad, words in [(position[..., :2].copy(), f"'position': shape [{h}, {w}, 2] does not fit [H, W, 3]"),
+                       (np.full_like(position, np.nan), "'position': NaN or Inf"),
+                       (np.full_like(position, 1e30), "'position': values must lie in [-1e+06, 1e+06]")]:
+        cases.append((good + [tensor("position", bad)], blobs + bad.tobytes(), rays, 400, words))
     for inputs, body, parameters, status, words in cases:
         got, reply = raw_infer(srv, {"inputs": inputs, "parameters": parameters}, body,
                                path="/v2/models/isosr-recon/infer")
