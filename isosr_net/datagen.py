@@ -62,6 +62,9 @@ class DatagenConfig:
             per pixel and AO rays per hit drawn from these, within ``max_spp`` and ``max_ao_rays``.
         max_ao_rays, max_spp: (reconstruction data) the :class:`~isosr_net.reconnet.RayLimits` that scale the
             inputs' sampling channels: those of the model to train on the data.
+        ray_history: (reconstruction data) each frame's AO rays accumulated along the flow with
+            the sequence's earlier ones, as at inference (:mod:`isosr_net.ray_history`); the
+            sampling channels then count each pixel's rays.
         iso_jitter: iso-values are drawn uniformly within +-this fraction of the volume's
             reference iso (Otsu's, or the procedural default).
         seed: base seed; each (volume, sequence) derives its own.
@@ -84,6 +87,7 @@ class DatagenConfig:
     input_ao_rays: tuple[int, ...] = (0,)
     max_ao_rays: int = 8
     max_spp: int = 4
+    ray_history: bool = False
     iso_jitter: float = 0.25
     seed: int = 0
     device: str = "cuda"
@@ -98,8 +102,8 @@ class DatagenConfig:
                              f"{self.lowres_size}")
         if self.upscale < 1:
             raise ValueError(f"upscale must be at least 1, got {self.upscale}")
-        if not self.recon_inputs and (self.input_spp != (1,) or self.input_ao_rays != (0,)):
-            raise ValueError("input_spp and input_ao_rays are for reconstruction data (upscale 1, or "
+        if not self.recon_inputs and (self.input_spp != (1,) or self.input_ao_rays != (0,) or self.ray_history):
+            raise ValueError("input_spp, input_ao_rays and ray_history are for reconstruction data (upscale 1, or "
                              "reconstruction); an upscaler's inputs have 1 ray per pixel and no AO")
         limits = self.limits
         for name, low, high in (("input_spp", 1, limits.max_spp), ("input_ao_rays", 0, limits.max_ao_rays)):
@@ -167,15 +171,18 @@ def render_sequence(renderer: Renderer, cameras: list, iso: float, config: Datag
 
     Inputs are rendered at 1/upscale of the ground truth's sides; a reconstruction network's
     (:attr:`DatagenConfig.recon_inputs`) with ``input_spp`` rays per pixel and ``input_ao_rays``
-    AO rays per hit (their AO rays have other seeds than the ground truth's).
+    AO rays per hit (other seeds than the ground truth's, new ones each frame), accumulated
+    along the flow where :attr:`DatagenConfig.ray_history`.
 
     Shape:
         Returns lowres (T, 5, h, w), or (T, 8, h, w) for a reconstruction network; flow (T, 2,
         h, w) (zeros on frame 0); highres (T, 6, H, W).
     """
     n, s, recon = side, config.upscale, config.recon_inputs
-    lowres, flows, highres = [], [], []
-    outputs = LOWRES_BUFFERS + ("flow",) + (("ao",) if recon and input_ao_rays else ())
+    lowres, flows, highres, history = [], [], [], None
+    sampled = recon and input_ao_rays
+    outputs = LOWRES_BUFFERS + ("flow",) + (("ao",) if sampled else ()) + \
+        (("position",) if sampled and config.ray_history else ())
     requests = sequence_requests(cameras, n, n, iso, outputs, spp=input_spp, ao_samples=max(1, input_ao_rays),
                                  ao_radius=config.ao_radius)
     for t, (camera, request) in enumerate(requests):
@@ -183,8 +190,9 @@ def render_sequence(renderer: Renderer, cameras: list, iso: float, config: Datag
         hi = renderer.render(camera, RenderRequest(n * s, n * s, iso, HIGHRES_BUFFERS, spp=config.spp,
                                                    ao_samples=config.ao_samples, ao_radius=config.ao_radius,
                                                    seed=seed + t))
-        lowres.append(recon_inputs(lo, input_ao_rays, input_spp, config.limits)[0][0].cpu() if recon
-                      else lo.channels_first(LOWRES_BUFFERS).cpu())
+        if recon:
+            inputs, _, history = recon_inputs(lo, input_ao_rays, input_spp, config.limits, history=history)
+        lowres.append(inputs[0].cpu() if recon else lo.channels_first(LOWRES_BUFFERS).cpu())
         flows.append(torch.zeros(2, n, n) if lo.flow is None else lo.flow.permute(2, 0, 1).cpu())
         highres.append(hi.channels_first(HIGHRES_BUFFERS).cpu())
     return SequenceBatch(torch.stack(lowres), torch.stack(flows), torch.stack(highres))

@@ -76,18 +76,20 @@ def _read_config(model: str, version: int | None) -> ReconNetConfig:
         raise ValueError(f"{model}: bad model config: {e}") from None
 
 
-def recon_inputs(frame: FrameBuffers, ao_rays: int, spp: int, limits: RayLimits,
-                 checks: InputChecks | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """A full-resolution frame as ReconNet's inputs: ``(inputs, flow or None)``, the inputs in
-    the channel order :data:`isosr_render.conventions.RECON_CHANNELS`.
+def recon_inputs(frame: FrameBuffers, ao_rays: int, spp: int, limits: RayLimits, checks: InputChecks | None = None,
+                 history: RayHistory | None = None) -> tuple[torch.Tensor, torch.Tensor | None, RayHistory | None]:
+    """A full-resolution frame as ReconNet's inputs: ``(inputs, flow or None, ray history or
+    None)``, the inputs in the channel order :data:`isosr_render.conventions.RECON_CHANNELS`,
+    the AO and sampling channels as :func:`sampled_rays` makes them (as at inference).
 
     Args:
         frame: mask, normal, depth, and ``ao`` when ``ao_rays > 0``, rendered with ``spp`` rays
-            per pixel and ``ao_rays`` AO rays per hit.
+            per pixel and ``ao_rays`` AO rays per hit; ``position`` to accumulate the rays.
         ao_rays: AO rays per hit, 0 to ``limits.max_ao_rays`` (0: no AO input).
         spp: rays per pixel, 1 to ``limits.max_spp``.
         limits: the model's :class:`~isosr_net.reconnet.RayLimits` (the sampling channels' scale).
         checks: where to queue the checks of the buffers' values; None checks at once (a host sync).
+        history: the ray history of the sequence's previous frames (None: a first frame).
 
     Raises:
         ValueError: counts out of range, a buffer missing or misshapen, and (without ``checks``)
@@ -101,13 +103,31 @@ def recon_inputs(frame: FrameBuffers, ao_rays: int, spp: int, limits: RayLimits,
     _check_frame(frame, ao_rays, spp, limits)
     surface, flow = surface_tensors(frame, checks)
     if ao_rays:
-        ao = frame.ao.float()[None, None]
-        checks.add(ao_in_range(ao), bool, AO_MESSAGE)
-    else:
-        ao = torch.zeros_like(surface[:, :1])
+        checks.add(ao_in_range(frame.ao.float()), bool, AO_MESSAGE)
     if now:
         checks.raise_first()
-    return torch.cat([surface, ao, limits.channels(ao_rays, spp, surface)], dim=1), flow
+    _, _, h, w = surface.shape
+    ao, sampling, history = sampled_rays(frame, ao_rays, spp, limits, history,
+                                         limits.channels(ao_rays, spp, surface[:, :1, :1, :1]))
+    ao = surface.new_zeros(1, 1, h, w) if ao is None else ao.float()[None, None]
+    return torch.cat([surface, ao, sampling.expand(1, 2, h, w)], dim=1), flow, history
+
+
+def sampled_rays(frame: FrameBuffers, ao_rays: int, spp: int, limits: RayLimits, history: RayHistory | None,
+                 constant: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor, RayHistory | None]:
+    """The AO and sampling channels a network of ``limits`` reads of a frame: ``(ao, sampling,
+    new history)``, with no host sync. A frame with AO rays and ``position`` has them
+    accumulated with ``history`` (None: anew), and its sampling's AO plane counts, per pixel, the
+    rays behind the mean; else the frame's own AO (None without rays), the ``constant``
+    sampling, and no history.
+
+    Shape:
+        constant: (1, 2, 1, 1), :meth:`RayLimits.channels` of the sampling. Returns ao (H, W);
+        sampling (1, 2, H, W), or ``constant``.
+    """
+    if not ao_rays or frame.position is None:
+        return frame.ao if ao_rays else None, constant, None
+    return network_inputs(frame, history, ao_rays, spp, limits)
 
 
 def _check_frame(frame: FrameBuffers, ao_rays: int, spp: int, limits: RayLimits) -> None:
@@ -328,17 +348,8 @@ class Reconstructor(RecurrentNetwork):
 
     def _rays(self, frame: FrameBuffers, ao_rays: int, spp: int,
               history: RayHistory | None) -> tuple[torch.Tensor | None, torch.Tensor, RayHistory | None]:
-        """The AO and sampling channels the network reads: ``(ao, sampling, new history)``, with no
-        host sync. A frame with AO rays and ``position`` has them accumulated with ``history``
-        (None: anew), and its sampling's AO plane counts, per pixel, the rays behind the mean;
-        else the frame's own AO and constant sampling, no history.
-
-        Shape:
-            Returns ao (H, W); sampling (1, 2, H, W), or (1, 2, 1, 1) where constant.
-        """
-        if not ao_rays or frame.position is None:
-            return frame.ao if ao_rays else None, self._sampling_tensor(ao_rays, spp), None
-        return network_inputs(frame, history, ao_rays, spp, self.limits)
+        """:func:`sampled_rays` of the model, its constant sampling made once per sampling."""
+        return sampled_rays(frame, ao_rays, spp, self.limits, history, self._sampling_tensor(ao_rays, spp))
 
     def _raise_refused(self, flags: torch.Tensor) -> None:
         """Read a frame's input checks (one host sync) and raise the first that fails."""

@@ -27,7 +27,7 @@ from isosr_net.datagen import SequenceDataset
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net.losses import PAPER_LOSSES, AdversarialLoss, LossContext, build_losses, total_loss
 from isosr_net.metrics import frame_scores
-from isosr_net.model import Unrolled, build_model, load_checkpoint, save_checkpoint
+from isosr_net.model import Unrolled, build_model, load_checkpoint, load_pretrained, save_checkpoint
 from isosr_net.reconnet import ReconNet
 
 
@@ -51,6 +51,9 @@ class TrainConfig:
         device: "cuda", "cpu" or "auto".
         seed: seed for initialization and data order.
         time_limit_minutes: stop (validated and checkpointed) after this long; 0: no limit.
+        init: a model folder to fine-tune (its config must be ``model``'s): its weights, a fresh
+            optimizer and schedule; validated before the first step, so that ``best/`` is only
+            replaced by a better model. A run that left ``OUT/last`` resumes from that instead.
     """
 
     data: str
@@ -68,6 +71,7 @@ class TrainConfig:
     device: str = "auto"
     seed: int = 0
     time_limit_minutes: float = 0.0
+    init: str = ""
 
     def __post_init__(self):
         if self.lr_schedule not in ("constant", "cosine"):
@@ -150,9 +154,12 @@ class Trainer:
         return torch.device(want)
 
     def _resume(self) -> None:
-        """Continue from `OUT/last` if a previous run left it (or `last.old`, mid-swap)."""
+        """Continue from `OUT/last` if a previous run left it (or `last.old`, mid-swap); else
+        start from ``init``'s weights where given."""
         checkpoint = load_checkpoint(self.out / "last", self.device)
         if checkpoint is None:
+            if self.config.init:
+                self._init_from(self.config.init)
             return
         if checkpoint.model.config != self.net.config:
             raise ValueError(f"{checkpoint.folder} holds a model of another config ({checkpoint.config['model']}); "
@@ -167,6 +174,16 @@ class Trainer:
         self.step, self.best = state["step"], state["best"]
         if self.rank == 0:
             print(f"resuming from {checkpoint.folder} at step {self.step}")
+
+    def _init_from(self, folder: str) -> None:
+        """Load the weights of the model folder ``folder`` (ValueError: another model config)."""
+        model, _ = load_pretrained(folder, self.device)
+        if model.config != self.net.config:
+            raise ValueError(f"init {folder} holds a model of another config ({model.config}); the run trains "
+                             f"{self.net.config}")
+        self.net.load_state_dict(model.state_dict())
+        if self.rank == 0:
+            print(f"fine-tuning {folder}")
 
     def _batches(self, dataset: SequenceDataset, shuffle: bool, epoch: int, skip: int = 0):
         """This process's share of each batch, indexed straight from the device-resident crops.
@@ -242,6 +259,17 @@ class Trainer:
             dist.all_reduce(totals)
         return {k: float(v / totals[0]) for k, v in zip(names, totals[1:])}
 
+    def _validated(self, metrics: dict, writer) -> None:
+        """Log the validation ``metrics`` of this step; a better color PSNR than the best so far is the new `best/`."""
+        if writer:
+            for k, v in metrics.items():
+                writer.add_scalar(f"val/{k}", v, self.step)
+        if metrics.get("color_psnr", -math.inf) > self.best:
+            self.best = metrics["color_psnr"]
+            self.save("best", metrics)
+        if self.rank == 0:
+            tqdm.write(f"step {self.step}: " + ", ".join(f"{k} {v:.4f}" for k, v in metrics.items()))
+
     def save(self, name: str, metrics: dict | None = None) -> None:
         """Write a checkpoint folder `OUT/name` atomically; `last` with the state to resume from."""
         if self.rank != 0:
@@ -264,6 +292,8 @@ class Trainer:
         metrics = {}
         bar = tqdm(total=self.config.steps, initial=self.step, desc="train", disable=not progress or self.rank != 0)
         deadline = time.monotonic() + 60 * self.config.time_limit_minutes if self.config.time_limit_minutes else math.inf
+        if self.step == 0 and self.config.init:
+            self._validated(self.validate(), writer)  # the starting model on this data: best/ beats it or is it
         while self.step < self.config.steps and time.monotonic() < deadline:
             epoch = self.step // steps_per_epoch
             for batch in self._batches(self.train_set, shuffle=True, epoch=epoch, skip=self.step % steps_per_epoch):
@@ -279,15 +309,8 @@ class Trainer:
                 if self.step >= self.config.steps or self.step % steps_per_epoch == 0 or time.monotonic() > deadline:
                     break
             metrics = self.validate()
-            if writer:
-                for k, v in metrics.items():
-                    writer.add_scalar(f"val/{k}", v, self.step)
-            if metrics.get("color_psnr", -math.inf) > self.best:
-                self.best = metrics["color_psnr"]
-                self.save("best", metrics)
+            self._validated(metrics, writer)
             self.save("last", metrics)
-            if self.rank == 0:
-                tqdm.write(f"step {self.step}: " + ", ".join(f"{k} {v:.4f}" for k, v in metrics.items()))
         bar.close()
         if writer:
             writer.close()

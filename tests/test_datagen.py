@@ -17,7 +17,7 @@ from isosr_net.batch import SequenceBatch
 from isosr_net.datagen import MANIFEST, DatagenConfig, SequenceDataset, generate, pick_crops
 from isosr_net.reconnet import RayLimits
 from isosr_render.catalog import shared_volumes_dir
-from isosr_render.conventions import MASK, SAMPLED_AO, SAMPLING
+from isosr_render.conventions import AO, MASK, SAMPLED_AO, SAMPLING
 from net_fixtures import (TINY_DATAGEN, TINY_RECON_DATAGEN, TINY_RECON_X2_DATAGEN, tiny_datagen, tiny_recon_data,
                           tiny_recon_x2_data, tiny_train_data)
 
@@ -163,9 +163,9 @@ def test_config_rejects_bad_values(kwargs, match):
 
 
 @pytest.mark.parametrize("kwargs, match", [
-    ({"input_spp": (1, 2)}, "input_spp and input_ao_rays are for reconstruction data"),
+    ({"input_spp": (1, 2)}, "input_spp, input_ao_rays and ray_history are for reconstruction data"),
     ({"upscale": 2, "input_ao_rays": (2,)}, r"reconstruction data \(upscale 1, or reconstruction\)"),
-    ({"input_ao_rays": (2,)}, "input_spp and input_ao_rays are for reconstruction data"),
+    ({"input_ao_rays": (2,)}, "input_spp, input_ao_rays and ray_history are for reconstruction data"),
     ({"upscale": 1, "input_spp": (0, 1)}, r"input_spp must be a non-empty list of integers in \[1, 4\]"),
     ({"upscale": 1, "input_spp": (8,)}, r"input_spp must be a non-empty list of integers in \[1, 4\]"),
     ({"upscale": 1, "input_spp": ()}, "input_spp must be a non-empty list"),
@@ -318,6 +318,32 @@ def test_data_for_a_model_that_also_upscales_has_reconstruction_inputs_at_half_t
         assert (sampling[:, :, 0] == shard["input_ao_rays"] / config.max_ao_rays).all()
         assert (sampling[:, :, 1] == shard["input_spp"] / config.max_spp).all()
     assert not replace(config, upscale=4, reconstruction=False, input_spp=(1,), input_ao_rays=(0,)).recon_inputs
+
+
+def test_ray_history_data_accumulates_each_frames_rays_as_at_inference():
+    """With ``ray_history`` the inputs' AO is the mean of the sequence's rays so far (closer to the
+    ground truth than one frame's) and the sampling's AO plane counts them per pixel; frame 0,
+    without a history, is the frame's own rays."""
+    config = replace(TINY_RECON_DATAGEN, frames=4, lowres_size=48, ao_samples=64, ray_history=True)
+    volume, _, iso = datagen.resolve_volume("proc:cloud:1@32")
+    renderer = datagen.Renderer(volume, "cpu")
+    cameras = datagen.camera_path(np.random.default_rng(3), config.frames)
+    kwargs = dict(iso=iso, seed=11, side=48, input_spp=1, input_ao_rays=2)
+    accumulated = datagen.render_sequence(renderer, cameras, config=config, **kwargs)
+    single = datagen.render_sequence(renderer, cameras, config=replace(config, ray_history=False), **kwargs)
+    assert torch.equal(accumulated.lowres[0], single.lowres[0])
+    own = 2 / config.max_ao_rays
+    plane = accumulated.lowres[:, SAMPLING.start]
+    assert (plane >= own).all() and (plane <= 1).all() and plane[-1].max() > 2 * own
+    assert (single.lowres[:, SAMPLING.start] == own).all()
+    truth, covered = accumulated.highres[-1, AO.start], accumulated.highres[-1, MASK.start] > 0.5
+    error = [(run.lowres[-1, SAMPLED_AO.start] - truth)[covered].abs().mean() for run in (accumulated, single)]
+    assert error[0] < 0.8 * error[1]
+
+
+def test_ray_history_is_for_reconstruction_data():
+    with pytest.raises(ValueError, match="ray_history are for reconstruction data"):
+        tiny_datagen(ray_history=True)
 
 
 def test_a_folder_written_before_a_config_field_existed_reads_it_as_its_default(fresh, tmp_path, monkeypatch):

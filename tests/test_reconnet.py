@@ -227,17 +227,17 @@ def fresh(frame: FrameBuffers, **changes) -> FrameBuffers:
 
 def test_recon_inputs_lay_out_the_channels(sphere_frames):
     frame = sphere_frames[1]
-    inputs, flow = recon_inputs(frame, 2, 3, RayLimits())
+    inputs, flow, history = recon_inputs(frame, 2, 3, RayLimits())
     assert inputs.shape == (1, len(RECON_CHANNELS), SIZE[1], SIZE[0]) and inputs.dtype == torch.float32
     torch.testing.assert_close(inputs[0, MASK][0], frame.mask, rtol=0, atol=0)
     torch.testing.assert_close(inputs[0, NORMAL], frame.normal.permute(2, 0, 1), rtol=0, atol=0)
     torch.testing.assert_close(inputs[0, DEPTH][0], frame.depth, rtol=0, atol=0)
     torch.testing.assert_close(inputs[0, SAMPLED_AO][0], frame.ao, rtol=0, atol=0)
     assert (inputs[0, SAMPLING][0] == 2 / 8).all() and (inputs[0, SAMPLING][1] == 3 / 4).all()
-    assert flow.shape == (1, 2, SIZE[1], SIZE[0])
-    wide, _ = recon_inputs(frame, 12, 2, RayLimits(16, 2))  # each model's own scale
+    assert flow.shape == (1, 2, SIZE[1], SIZE[0]) and history is None  # no position: no history
+    wide, *_ = recon_inputs(frame, 12, 2, RayLimits(16, 2))  # each model's own scale
     assert (wide[0, SAMPLING][0] == 12 / 16).all() and (wide[0, SAMPLING][1] == 1).all()
-    no_ao, _ = recon_inputs(fresh(frame, ao=None), 0, 1, RayLimits())
+    no_ao, *_ = recon_inputs(fresh(frame, ao=None), 0, 1, RayLimits())
     assert (no_ao[0, SAMPLED_AO] == 0).all() and (no_ao[0, SAMPLING][0] == 0).all()
 
 
@@ -325,7 +325,7 @@ def test_a_model_takes_the_rays_of_its_own_limits(wide_model, sphere, sphere_fra
     reconstructor = Reconstructor(wide_model)
     out = reconstructor.reconstruct(frame, 12, 2)
     assert_sane(out, SIZE[1], SIZE[0])
-    inputs, _ = recon_inputs(frame, 12, 2, RayLimits(16, 2))
+    inputs, *_ = recon_inputs(frame, 12, 2, RayLimits(16, 2))
     with torch.no_grad():
         expected = reconstructor.net(inputs, reconstructor.net.first_previous(inputs))
     torch.testing.assert_close(out.ao, expected[0, AO][0], rtol=0, atol=0)
@@ -404,6 +404,10 @@ def test_the_network_reads_the_accumulated_rays_and_their_count_per_pixel(sphere
         torch.testing.assert_close(out.ao, previous[0, AO][0], rtol=0, atol=1e-6)
     covered = frames[0].mask > 0  # any ray per pixel hit
     assert (history.count[0][covered] == 12).all() and (history.count[0][~covered] == 0).all()
+    carried = None  # the training data's inputs (isosr_net.datagen) are these
+    for frame in frames:
+        laid_out, _, carried = recon_inputs(frame, 2, 2, net.config.limits, history=carried)
+    torch.testing.assert_close(laid_out, inputs, rtol=0, atol=0)
 
 
 def test_accumulated_rays_lift_the_reconstruction_of_a_smooth_surface_on_an_orbit():

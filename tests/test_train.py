@@ -17,7 +17,7 @@ from isosr_net.datagen import DatagenConfig
 from isosr_net.losses import PAPER_LOSSES
 from isosr_net.model import Unrolled, build_model, load_pretrained
 from isosr_net.train import Trainer, TrainConfig
-from net_fixtures import (TINY_RECON_MODEL, random_vgg19, tiny_recon_x2_data, tiny_train_config, tiny_train_data,
+from net_fixtures import (TINY_MODEL, TINY_RECON_MODEL, random_vgg19, tiny_recon_x2_data, tiny_train_config, tiny_train_data,
                           tiny_wide_recon_data)
 
 METRIC_KEYS = {"loss", "color_psnr", "color_ssim", "normal_psnr", "ao_psnr", "mask_iou"}
@@ -124,6 +124,25 @@ def test_resuming_mid_epoch_equals_an_uninterrupted_run(data, tmp_path):
     trainer(data, split, steps=3).run(progress=False)  # stops after the first batch of epoch 2
     trainer(data, split, steps=4).run(progress=False)
     assert_same_weights(weights(whole / "last"), weights(split / "last"))
+
+
+def test_init_fine_tunes_a_model_folder_from_its_validated_start(run3, data, tmp_path, capsys):
+    out = tmp_path / "tune"
+    tune = trainer(data, out, steps=1, init=str(run3[0] / "best"))
+    assert "fine-tuning" in capsys.readouterr().out and tune.step == 0
+    assert_same_weights(tune.net.state_dict(), weights(run3[0] / "best"))
+    assert not tune.optimizer.state_dict()["state"]  # a fresh optimizer: only the weights came
+    tune.run(progress=False)
+    assert "step 0: " in capsys.readouterr().out  # the starting model validated on this data first
+    best = json.loads((out / "best" / "config.json").read_text())
+    assert best["step"] in (0, 1) and set(best["validation"]) == METRIC_KEYS
+    # A run that left last/ resumes from it, not from init.
+    assert trainer(data, out, steps=2, init=str(run3[0] / "best")).step == 1
+
+
+def test_init_of_another_model_config_is_refused(run3, data, tmp_path):
+    with pytest.raises(ValueError, match="init .* holds a model of another config"):
+        trainer(data, tmp_path / "tune", init=str(run3[0] / "best"), model={**TINY_MODEL, "channels": 4})
 
 
 def test_resume_falls_back_to_last_old(run3, data, tmp_path):
@@ -237,11 +256,14 @@ def test_the_shipped_configs_load():
 
 @pytest.mark.parametrize("train, datagen", [("train_recon.json", "datagen_recon.json"),
                                             ("train_recon2.json", "datagen_recon2.json"),
-                                            ("train_recon_x2.json", "datagen_recon_x2.json")])
+                                            ("train_recon_x2.json", "datagen_recon_x2.json"),
+                                            ("train_recon_history.json", "datagen_recon_history.json")])
 def test_each_reconstruction_config_fits_its_data_config(train, datagen):
     root = Path(__file__).resolve().parents[1] / "configs"
     config, data = load_config(TrainConfig, root / train), load_config(DatagenConfig, root / datagen)
     model = build_model(config.model).config
+    if config.init:  # a project-relative model folder of this config
+        assert load_pretrained(root.parent / config.init)[0].config == model
     assert model.limits == data.limits and model.upscale == data.upscale and data.recon_inputs
     assert max(data.input_ao_rays) == data.max_ao_rays and max(data.input_spp) == data.max_spp
     run = train.removeprefix("train_").removesuffix(".json")  # scripts/train_recon.sh's RUN
