@@ -6,8 +6,9 @@
 
 Every method of :mod:`isosr_net.frame_methods` (full resolution with 0-128 AO rays and 1, 2, 4
 rays per pixel; the a-trous filter, the SVGF temporal filter and OIDN (fast and high, where
-``pyoidn`` is installed; else a line says why not) over 1, 2, 4 AO rays; the reconstruction
-network over 0-16 AO rays (to its model's limits) at 1, 2, 4 rays per pixel, fp16 on CUDA; x2,
+``pyoidn`` is installed; else a line says why not) over 1, 2, 4 AO rays; the shipped
+reconstruction networks (full size, and x2 from a half-size render: :data:`SHIPPED_MODELS`) over
+0-16 AO rays (to each model's limits) at 1, 2, 4 rays per pixel, fp16 on CUDA; x2,
 x4, x8 nearest, bilinear, bicubic; every upscaling network at fp32, bf16, fp16 on CUDA; fp32 on
 CPUs) is timed as a whole path (render, reconstruction, shading) per frame, in sequence over an
 8-frame orbit so that recurrent state (the networks', SVGF's history) is real, after warm-up
@@ -58,7 +59,7 @@ from isosr_net.frame_methods import (INTERPOLATIONS, FrameMethod, Networks, make
                                      unavailable_kinds)
 from isosr_net.metrics import color_instability, eval_region, masked_psnr, masked_ssim
 from isosr_net.model import read_config
-from isosr_net.reconstructor import DEFAULT_RECON_MODEL, recon_limits
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, recon_limits
 from isosr_net.upscaler import DEFAULT_MODEL
 
 from .bench_knobs import parse_models
@@ -81,6 +82,8 @@ PRIMARY_IN_AO_RAYS = 6
 # The non-learned filters over few AO rays the reconstruction is compared with at the same rays.
 BASELINE_KINDS = ("atrous", "svgf", "oidn")
 OIDN_QUALITIES = ("fast", "high")
+# The shipped networks, measured by default (those the server's auto mode chooses among).
+SHIPPED_MODELS = {"network": DEFAULT_MODEL, "recon": DEFAULT_RECON_MODEL, "recon_x2": RECON_X2_MODEL}
 
 
 def methods(smoke: bool, device: str, models: dict[str, Path]) -> list[FrameMethod]:
@@ -353,7 +356,7 @@ def main(argv=None) -> list[dict]:
     if unknown:
         parser.error(f"unknown volumes {unknown}; choose from {', '.join(known)}")
     try:
-        models = {"network": DEFAULT_MODEL, "recon": DEFAULT_RECON_MODEL, **parse_models(args.models)}
+        models = {**SHIPPED_MODELS, **parse_models(args.models)}
     except ValueError as e:
         parser.error(str(e))
     if args.device.startswith("cuda"):

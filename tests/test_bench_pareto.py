@@ -43,6 +43,8 @@ def test_the_record_holds_one_complete_row_per_volume_size_and_method(smoke):
         {"oidn"} if OIDN else set())
     full = [r["method"] for r in rows if r["kind"] == "full"]
     assert all(m.startswith("full, AO ") for m in full) and "full, AO 8, spp 1" in full
+    # Both shipped reconstructions, as the server's auto mode offers them: full size and x2.
+    assert {r["factor"] for r in rows if r["kind"] == "reconstruct"} == {1, 2}
 
 
 def test_ao_changes_nothing_on_the_sphere_and_something_on_the_cloud(smoke):
