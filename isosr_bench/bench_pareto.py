@@ -3,6 +3,8 @@
     python -m isosr_bench.bench_pareto --device cuda                        # every volume, 1080p and 4K
     python -m isosr_bench.bench_pareto --device cuda --volumes ct_pitch,hydrogen --sizes 1080p
     python -m isosr_bench.bench_pareto --device cpu --smoke                 # small, in the test suite
+    python -m isosr_bench.bench_pareto --device cuda --volumes avg152t1 --sizes 4k \
+        --kinds reconstruct,svgf --models tuned=runs/recon_history/best     # an A/B of two models, in minutes
 
 Every method of :mod:`isosr_net.frame_methods` (full resolution with 0-128 AO rays and 1, 2, 4
 rays per pixel; the a-trous filter, the SVGF temporal filter and OIDN (fast and high, where
@@ -55,7 +57,7 @@ from isosr_render.sequence import sequence_cameras
 from isosr_net.budget import (REFERENCE_AO_RAYS, REFERENCE_SPP, BudgetConfig, choose_method, probe_quality,
                               reference_frames)
 from isosr_net.flow_warp import warp_by_flow
-from isosr_net.frame_methods import (INTERPOLATIONS, FrameMethod, Networks, make_runner, reconstruct_method,
+from isosr_net.frame_methods import (INTERPOLATIONS, RUNNERS, FrameMethod, Networks, make_runner, reconstruct_method,
                                      unavailable_kinds)
 from isosr_net.metrics import color_instability, eval_region, masked_psnr, masked_ssim
 from isosr_net.model import read_config
@@ -67,6 +69,7 @@ from .bench_pipeline import resampled
 from .common import bench_parser, commit, device_name, mean_ms, print_table, time_frames, write_result
 
 NAME = "pareto"
+SELECT_NAME = "pareto_select"  # runs of some method kinds (--kinds), such as a quick A/B of two models
 SIZES = {"1080p": (1920, 1080), "4k": (3840, 2160)}
 SMOKE_SIZES = {"smoke": (96, 64)}
 EXTRA_VOLUMES = ("hydrogen", "bonsai1024")
@@ -344,7 +347,12 @@ def main(argv=None) -> list[dict]:
     parser.add_argument("--volumes", default="", help="comma-separated volume names (default: all)")
     parser.add_argument("--sizes", default="", help=f"comma-separated sizes of {','.join(SIZES)} (default: all)")
     parser.add_argument("--models", default="", help="more networks: NAME=MODEL_FOLDER,...")
+    parser.add_argument("--kinds", default="", help="comma-separated method kinds to measure (default: all); a "
+                        f"selection skips the budget part and is written to {SELECT_NAME}_<device>.json")
     args = parser.parse_args(argv)
+    kinds = {k.strip() for k in args.kinds.split(",") if k.strip()}
+    if kinds - set(RUNNERS):
+        parser.error(f"unknown kinds {sorted(kinds - set(RUNNERS))}; choose from {', '.join(RUNNERS)}")
     sizes = SMOKE_SIZES if args.smoke else SIZES
     size_names = [s.strip().lower() for s in args.sizes.split(",") if s.strip()] or list(sizes)
     names = [s.strip() for s in args.volumes.split(",") if s.strip()] or volume_names(args.smoke)
@@ -363,7 +371,7 @@ def main(argv=None) -> list[dict]:
         # Each network precision compiles per frame size (two sizes and the probe's): more variants
         # of one code object than dynamo's default limit of 8, past which it would run them eagerly.
         torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
-    measured = methods(args.smoke, args.device, models)
+    measured = [m for m in methods(args.smoke, args.device, models) if not kinds or m.kind in kinds]
     frames = SMOKE_FRAMES if args.smoke else FRAMES
     networks = Networks()
     rows = []
@@ -375,18 +383,21 @@ def main(argv=None) -> list[dict]:
             fitting = [m for m in measured if size[0] % m.factor == 0 and size[1] % m.factor == 0]
             scene = pareto_rows(renderer, iso, name, size, size_name, fitting, frames,
                                 SMOKE_WARMUP if args.smoke else WARMUP, args.device, networks)
-            rows += scene + budget_rows(renderer, iso, name, size, size_name, fitting, scene,
-                                        SMOKE_BUDGETS if args.smoke else BUDGETS, networks, args.smoke)
+            rows += scene
+            if not kinds:  # the policy chooses among every kind
+                rows += budget_rows(renderer, iso, name, size, size_name, fitting, scene,
+                                    SMOKE_BUDGETS if args.smoke else BUDGETS, networks, args.smoke)
         del renderer, volume
     kind = "cuda" if args.device.startswith("cuda") else "cpu"
-    merged = merge(args.out / f"{NAME}_{kind}.json", rows)
+    name = SELECT_NAME if kinds else NAME  # the study's own file keeps whole scenes
+    merged = merge(args.out / f"{name}_{kind}.json", rows)
     print_table([r for r in rows if r["part"] == "pareto"],
                 ["volume", "size", "method", "ms", "color_psnr", "color_ssim", "image_psnr", "ao_rmse", "flicker",
                  "flicker_ratio"])
     print_table([r for r in rows if r["part"] == "budget"],
                 ["volume", "size", "budget_ms", "method", "fits", "probe_ms", "color_psnr", "best_fixed",
                  "best_fixed_psnr"])
-    print(f"wrote {write_result(NAME, args.device, merged, args.out)}")
+    print(f"wrote {write_result(name, args.device, merged, args.out)}")
     return rows
 
 

@@ -26,6 +26,8 @@ def add_parser(subparsers) -> None:
                         "policy against the best fixed setting")
     p.add_argument("--volumes", default="", help="with --pareto: comma-separated volumes (rows merge into the file)")
     p.add_argument("--sizes", default="", help="with --pareto: comma-separated sizes of 1080p,4k")
+    p.add_argument("--kinds", default="", help="with --pareto: comma-separated method kinds (a quick A/B of models: "
+                   "reconstruct,svgf; no budget part; pareto_select_<kind>.json)")
     p.set_defaults(func=run)
 
 
@@ -36,8 +38,8 @@ def run(args: argparse.Namespace) -> int:
                              bench_volume_memory, report)
     from isosr_bench.common import RESULTS_DIR
 
-    if (args.volumes or args.sizes) and not args.pareto:
-        raise ValueError("--volumes and --sizes select what --pareto measures; give --pareto too")
+    if (args.volumes or args.sizes or args.kinds) and not args.pareto:
+        raise ValueError("--volumes, --sizes and --kinds select what --pareto measures; give --pareto too")
 
     studies = [] if args.pareto else [s.strip() for s in args.only.split(",") if s.strip()]
     unknown = sorted(set(studies) - set(STUDIES + ON_REQUEST))
@@ -49,7 +51,8 @@ def run(args: argparse.Namespace) -> int:
     argv = ["--device", device, "--out", str(out)] + (["--smoke"] if args.smoke else [])
     if args.pareto:
         print("== pareto")
-        bench_pareto.main(argv + ["--volumes", args.volumes, "--sizes", args.sizes, "--models", args.models])
+        bench_pareto.main(argv + ["--volumes", args.volumes, "--sizes", args.sizes, "--models", args.models,
+                                  "--kinds", args.kinds])
     modules = {"network": bench_network, "pipeline": bench_pipeline, "knobs": bench_knobs, "render": bench_render,
                "server": bench_server, "memory": bench_volume_memory}
     for study in studies:

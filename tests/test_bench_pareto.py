@@ -123,6 +123,26 @@ def test_a_partial_run_merges_into_the_result_file(smoke, tmp_path):
     assert all(r["device"] == record["device"] for r in merge(path, rerun) if r["volume"] == "cloud")
 
 
+def test_a_selection_of_kinds_compares_two_models_without_touching_the_studys_file(smoke, tmp_path):
+    """``--kinds``: only those methods (here the shipped reconstruction against a second copy of
+    it, and SVGF), no budget part, in their own file; the study's file is left alone."""
+    from isosr_bench.bench_pareto import main
+    from isosr_net.reconstructor import DEFAULT_RECON_MODEL
+
+    out = tmp_path / "select"
+    out.mkdir()
+    (out / "pareto_cpu.json").write_text(json.dumps(smoke[1]))
+    rows = main(["--device", "cpu", "--smoke", "--out", str(out), "--volumes", "sphere", "--kinds", "reconstruct,svgf",
+                 "--models", f"again={DEFAULT_RECON_MODEL}"])
+    assert json.loads((out / "pareto_cpu.json").read_text()) == smoke[1]
+    record = json.loads((out / "pareto_select_cpu.json").read_text())
+    assert record["rows"] == rows and {r["part"] for r in rows} == {"pareto"}
+    assert {r["kind"] for r in rows} == {"reconstruct", "svgf"}
+    again = {r["method"].replace("again", "recon"): r["color_psnr"] for r in rows if ", again " in r["method"]}
+    shipped = {r["method"]: r["color_psnr"] for r in rows if ", recon " in r["method"]}
+    assert again and again == shipped  # the same model twice scores the same
+
+
 def test_the_report_has_the_section_and_a_plot_per_volume(smoke):
     out, _ = smoke
     report = (out / "report_cpu.md").read_text()
@@ -138,6 +158,9 @@ def test_bad_selections_are_refused(capsys):
 
     assert cli(["bench", "--smoke", "--volumes", "sphere"]) == 2
     assert "give --pareto too" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cli(["bench", "--pareto", "--smoke", "--kinds", "reconstruct,denoise"])
+    assert "unknown kinds ['denoise']" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         cli(["bench", "--pareto", "--smoke", "--volumes", "nowhere"])
     assert "unknown volumes ['nowhere']" in capsys.readouterr().err
