@@ -341,6 +341,17 @@ def test_ray_history_data_accumulates_each_frames_rays_as_at_inference():
     assert error[0] < 0.8 * error[1]
 
 
+def test_ray_history_data_for_a_model_that_also_upscales_accumulates_at_the_inputs_size():
+    config = replace(TINY_RECON_X2_DATAGEN, frames=3, input_ao_rays=(2,), ray_history=True)
+    volume, _, iso = datagen.resolve_volume("proc:cloud:1@32")
+    cameras = datagen.camera_path(np.random.default_rng(3), config.frames)
+    sequence = datagen.render_sequence(datagen.Renderer(volume, "cpu"), cameras, iso, config, seed=5, side=16,
+                                       input_spp=1, input_ao_rays=2)
+    plane = sequence.lowres[:, SAMPLING.start]
+    assert plane.shape == (3, 16, 16) and sequence.highres.shape[-1] == 32
+    assert (plane[0] == 2 / config.max_ao_rays).all() and plane[-1].max() > plane[0].max()
+
+
 def test_ray_history_is_for_reconstruction_data():
     with pytest.raises(ValueError, match="ray_history are for reconstruction data"):
         tiny_datagen(ray_history=True)
