@@ -44,9 +44,9 @@ from isosr_render.shading import ShadingParams
 from isosr_render.sequence import sequence_cameras
 from isosr_net.frame_methods import FrameMethod, Networks, make_runner, reconstruct_method
 from isosr_net.fused_recon import FusedReconNet, fused_runs_on, fused_traffic
-from isosr_net.ray_history import accumulate_frame, history_traffic, network_inputs
+from isosr_net.ray_history import accumulate_frame, history_traffic
 from isosr_net.reconnet import macs_per_pixel
-from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor, sampled_rays
 
 from .bench_network import copy_bandwidth, matmul_tflops
 from .bench_pareto import FRAMES, SIZES, SMOKE_FRAMES, SMOKE_SIZES, WARMUP, bench_cameras, load
@@ -79,16 +79,14 @@ def pass_times(net: FusedReconNet, renderer: Renderer, pairs: list, request, ao_
     as one CUDA graph (``network``), with their bytes and floor at ``bandwidth`` (bytes/s)."""
     from isosr_net.fused_kernels import ReconSources  # imports Triton
 
-    limits, rays = net.config.limits, ao_rays * spp
-    sampling = limits.channels(ao_rays, spp, torch.zeros(1, 1, 1, 1, device=device))
+    limits = net.config.limits
+    constant = limits.channels(ao_rays, spp, torch.zeros(1, 1, 1, 1, device=device))
     first, frame = (renderer.render(camera, request(prev_camera)) for camera, prev_camera in pairs[:2])
-    ao = frame.ao if ao_rays else None
-    with torch.no_grad():
-        previous = net.frame(first.mask, first.normal, first.depth, first.ao if ao_rays else None, sampling,
-                             first.flow, None, None)[0]
-    if ao_rays:  # what the ray history makes the network read, as in a Reconstructor
-        history = accumulate_frame(first, None, rays, limits.rays(spp))
-        ao, sampling, _ = network_inputs(frame, history, ao_rays, spp, limits)
+    with torch.no_grad():  # each frame's AO and sampling as a Reconstructor reads them (the ray history's)
+        first_ao, first_sampling, history = sampled_rays(first, ao_rays, spp, limits, None, constant)
+        previous = net.frame(first.mask, first.normal, first.depth, first_ao, first_sampling, first.flow, None,
+                             None)[0]
+        ao, sampling, _ = sampled_rays(frame, ao_rays, spp, limits, history, constant)
     sources = ReconSources.of_buffers(frame.mask, frame.normal, frame.depth, ao, sampling)
     h, w = frame.mask.shape
     traffic = fused_traffic(h, w, net.config, frame=True)
@@ -107,9 +105,9 @@ def pass_times(net: FusedReconNet, renderer: Renderer, pairs: list, request, ao_
                     run()
             out["network"] = {"ms": mean_ms(time_frames(lambda i: graph.replay(), frames, device))}
             traffic["network"] = sum(traffic.values())
-        if ao_rays:  # before the network: the ray history's kernel
+        if history is not None:  # before the network: the ray history's kernel
             out["history"] = {"ms": mean_ms(time_frames(
-                lambda i: accumulate_frame(frame, history, rays, limits.rays(spp)), frames, device))}
+                lambda i: accumulate_frame(frame, history, ao_rays * spp, limits.rays(spp)), frames, device))}
             traffic["history"] = history_traffic(h, w)
     for name, bytes_ in traffic.items():
         floor = bytes_ / bandwidth * 1e3
