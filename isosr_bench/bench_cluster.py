@@ -1,22 +1,29 @@
 """What Ray Serve costs and what it buys: `isosr serve` against `isosr serve --replicas N`.
 
     python -m isosr_bench.bench_cluster --device cuda --volume bonsai      # 1920x1080, one GPU
+    python -m isosr_bench.bench_cluster --device cuda --volume bonsai --gpus-per-replica 1 \
+        --replicas 1,2,4 --sessions 16,32,64 --failover-sessions 32        # one replica per GPU
     python -m isosr_bench.bench_cluster --smoke                            # small, CPU
 
-Results: ``benchmarks/results/bench_cluster_<size>_<device>.json``. Per server (the plain
-single process; 1 and 2 replicas of ``--gpus-per-replica`` (default half a GPU) behind Serve's
-proxy, on a local Ray started by the server), mode (``full`` without AO, ``auto``) and session
-count: frames/s in total and per session and latency p50/p99, as
-:func:`isosr_bench.bench_server.run_sessions` measures them, and which replicas made the frames.
-Then failover on the 2-replica server: ``--failover-sessions`` closed-loop sessions with
-``reconnect=True``; one replica's process is killed (SIGKILL); for each session that was on it
-(the sessions that reconnect), the time from the kill to its first frame from the other
-replica; for the others, errors and their longest gap between frames; and whether
+Results: ``benchmarks/results/bench_cluster_<size>_<device>.json`` (``--gpus-per-replica`` of 1
+or more: ``bench_cluster_gpus_<size>_<device>.json``); a later run keeps the rows of the servers
+it does not measure. Per server (``--replicas``: 0 is the plain single process, N > 0 is N
+replicas of ``--gpus-per-replica`` each behind Serve's proxy, on a local Ray started by the
+server), case (``full`` without AO and with 8 AO rays, ``auto``) and session count: frames/s in
+total and per session and latency p50/p99, as :func:`isosr_bench.bench_server.run_sessions`
+measures them (sessions dealt to ``--client-processes``), and which replicas made the frames.
+Then scaling: each N-replica row against the 1-replica row of its case, frames/s over N times
+its frames/s at the same sessions, and p99 latency against its p99 at 1/N of the sessions.
+Failover, on the first server of 2 or more replicas: ``--failover-sessions`` closed-loop
+sessions with ``reconnect=True``; one replica's process is killed (SIGKILL); for each session
+that was on it (the sessions that reconnect), the time from the kill to its first frame from
+another replica; for the others, errors and their longest gap between frames; and whether
 ``/v2/health/ready`` stayed 200 throughout.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -25,15 +32,16 @@ import threading
 import time
 import urllib.error
 import urllib.request
+from pathlib import Path
 
 import numpy as np
 
 from isosr_bench.bench_server import SIZES, ServerProcess, case_row, run_sessions
-from isosr_bench.common import bench_parser, print_table, write_result
+from isosr_bench.common import bench_parser, commit, device_name, print_table, write_result
 from isosr_client.drive import Orbit
 from isosr_client.view import connect
 
-CASES = (("full", 0), ("auto", 0))
+CASES = (("full", 0), ("full", 8), ("auto", 0))
 
 
 def replica_pids() -> list[int]:
@@ -117,9 +125,40 @@ def failover(url: str, volume: str, size: tuple[int, int], sessions: int, before
 
 
 def servers(replicas: list[int], gpus: float, device: str) -> list[tuple[str, tuple[str, ...]]]:
-    """(name, extra `isosr serve` options) per server measured."""
-    ray_options = ("--gpus-per-replica", str(gpus)) if device.startswith("cuda") else ()
-    return [("plain", ())] + [(f"ray{n}", ("--replicas", str(n), *ray_options)) for n in replicas]
+    """(name, extra `isosr serve` options) per server measured: 0 replicas is the plain server."""
+    ray_options = ("--gpus-per-replica", f"{gpus:g}") if device.startswith("cuda") else ()
+    return [("plain", ()) if n == 0 else (f"ray{n}", ("--replicas", str(n), *ray_options)) for n in replicas]
+
+
+def scaling(rows: list[dict]) -> list[dict]:
+    """Each N-replica case row (N > 1) against the 1-replica server: ``efficiency`` is its
+    frames/s over N times the 1-replica frames/s at the same sessions; ``p99_ratio`` its p99
+    latency over the 1-replica p99 at 1/N of the sessions (where measured)."""
+    one = {(r["mode"], r["ao"], r["sessions"]): r for r in rows if r.get("server") == "ray1" and "fps" in r}
+    out = []
+    for r in rows:
+        n = int(r["server"][3:]) if r.get("server", "").startswith("ray") and "fps" in r else 0
+        base = one.get((r.get("mode"), r.get("ao"), r.get("sessions")))
+        if n < 2 or base is None:
+            continue
+        fewer = one.get((r["mode"], r["ao"], r["sessions"] // n)) if r["sessions"] % n == 0 else None
+        out.append({"study": "scaling", "server": r["server"], "replicas": n, "mode": r["mode"], "ao": r["ao"],
+                    "sessions": r["sessions"], "fps": r["fps"], "fps_one": base["fps"],
+                    "efficiency": r["fps"] / (n * base["fps"]),
+                    "p99_ms": r["latency_p99_ms"], "p99_one_at_1_over_n_ms": fewer and fewer["latency_p99_ms"],
+                    "p99_ratio": fewer and r["latency_p99_ms"] / fewer["latency_p99_ms"]})
+    return out
+
+
+def merge(path: Path, rows: list[dict], measured: set[str]) -> list[dict]:
+    """The rows of an existing result at ``path`` for servers other than ``measured`` (each with
+    its file's device and commit), then ``rows``; scaling rows are recomputed after."""
+    if not path.is_file():
+        return rows
+    record = json.loads(path.read_text())
+    kept = [{"device": record["device"], "commit": record["commit"], **r} for r in record["rows"]
+            if r.get("server") not in measured and r.get("study") != "scaling"]
+    return kept + rows
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -128,9 +167,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--size", choices=("1080p", "4k"), default="1080p", help="the view sessions' frame size")
     parser.add_argument("--seconds", type=float, help="timed seconds per case (default 5; smoke 1)")
     parser.add_argument("--sessions", help="concurrent sessions per case, comma-separated (default 1,16,32)")
-    parser.add_argument("--replicas", default="1,2", help="replica counts to measure beside the plain server")
+    parser.add_argument("--replicas", default="0,1,2", help="servers by replica count, comma-separated (0: plain)")
     parser.add_argument("--gpus-per-replica", type=float, default=0.5, help="each replica's GPU share (CUDA)")
     parser.add_argument("--failover-sessions", type=int, default=8, help="sessions of the failover study (0: none)")
+    parser.add_argument("--client-processes", type=int, default=max(1, min(8, (os.cpu_count() or 2) // 4)),
+                        help="processes the client sessions are dealt to")
     args = parser.parse_args(argv)
     size_name = "smoke" if args.smoke else args.size
     size, seconds = SIZES[size_name], args.seconds or (1.0 if args.smoke else 5.0)
@@ -139,6 +180,7 @@ def main(argv: list[str] | None = None) -> None:
     replicas = [int(n) for n in args.replicas.split(",") if n]
     room = str(2 * max(counts + [args.failover_sessions]) + 4)
     options = ("--max-sessions", room, "--max-sessions-per-client", room, "--max-fps", "1000")
+    failover_on = next((f"ray{n}" for n in replicas if n >= 2), None)
     rows = []
     for name, extra in servers(replicas, args.gpus_per_replica, args.device):
         started = time.monotonic()
@@ -147,23 +189,33 @@ def main(argv: list[str] | None = None) -> None:
                 ready_s = time.monotonic() - started
                 for mode, ao in CASES:
                     for n in counts:
-                        result = run_sessions(server.url, volume, n, seconds, mode, size, {"ao_rays": ao})
+                        result = run_sessions(server.url, volume, n, seconds, mode, size, {"ao_rays": ao},
+                                              processes=args.client_processes)
                         row = dict(case_row(mode, ao, result), server=name, ready_s=ready_s,
                                    replicas_seen=len(result.get("replicas", [])))
                         rows.append(row)
-                        print(f"{name:<6} {mode:<5} x{n:<3} {row.get('fps', 0):7.1f} fps "
+                        print(f"{name:<6} {mode:<5} AO {ao:<2} x{n:<3} {row.get('fps', 0):7.1f} fps "
                               f"({row.get('fps_per_session', 0):6.1f}/session) p50 {row.get('latency_p50_ms', 0):6.1f} "
                               f"p99 {row.get('latency_p99_ms', 0):6.1f} ms errors {row['errors']}", flush=True)
-                if name == "ray2" and args.failover_sessions:
-                    rows.append(failover(server.url, volume, size, args.failover_sessions, 3.0, 6.0))
+                if name == failover_on and args.failover_sessions:
+                    rows.append(dict(failover(server.url, volume, size, args.failover_sessions, 3.0, 6.0), server=name))
                     print(rows[-1], flush=True)
         finally:
             if name != "plain":
                 stop_ray()
-    print_table([r for r in rows if "mode" in r], ["server", "mode", "sessions", "fps", "fps_per_session",
-                                                   "latency_p50_ms", "latency_p99_ms", "errors"])
-    print(f"wrote {write_result(f'bench_cluster_{size_name}', args.device, rows, args.out)}")
-
+    result = f"bench_cluster{'_gpus' if args.gpus_per_replica >= 1 else ''}_{size_name}"
+    kind = "cuda" if args.device.startswith("cuda") else "cpu"
+    stamp = {"device": device_name(args.device), "commit": commit()}
+    rows = merge(args.out / f"{result}_{kind}.json", [dict(r, **stamp) for r in rows],
+                 {server for server, _ in servers(replicas, args.gpus_per_replica, args.device)})
+    rows += scaling(rows)
+    print_table([r for r in rows if "mode" in r and "study" not in r],
+                ["server", "mode", "ao", "sessions", "fps", "fps_per_session", "latency_p50_ms", "latency_p99_ms",
+                 "errors"])
+    print_table([r for r in rows if r.get("study") == "scaling"],
+                ["server", "mode", "ao", "sessions", "fps", "fps_one", "efficiency", "p99_ms",
+                 "p99_one_at_1_over_n_ms", "p99_ratio"])
+    print(f"wrote {write_result(result, args.device, rows, args.out)}")
 
 if __name__ == "__main__":
     main()

@@ -36,6 +36,7 @@ frame time fits one session's budget (``1000 / target_fps`` ms).
 from __future__ import annotations
 
 import json
+import multiprocessing
 import signal
 import socket
 import subprocess
@@ -44,6 +45,7 @@ import tempfile
 import threading
 import time
 import urllib.request
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -151,20 +153,62 @@ class ServerProcess:
 
 def run_sessions(url: str, volume: str, sessions: int, seconds: float, mode: str, size: tuple[int, int],
                  settings: dict, focus: tuple[float, float, float] | None = None, warmup_frames: int = 2,
-                 max_frames: int = 100_000) -> dict:
+                 max_frames: int = 100_000, processes: int = 1) -> dict:
     """``sessions`` concurrent closed-loop view sessions (one thread each) for ``seconds`` after
     ``warmup_frames`` untimed frames each; every session orbits from its own start yaw.
-    ``focus``: the focus circle (x, y, radius in pixels) of ``focus`` mode.
+    ``focus``: the focus circle (x, y, radius in pixels) of ``focus`` mode. ``processes``: client
+    processes the sessions are dealt to (one process's threads share one interpreter lock, which
+    caps the frames/s it receives at a few hundred; the timed span starts together in all).
 
     Returns:
         `isosr_client.drive.summarize` of all frames with ``fps`` summed over the sessions,
         plus ``fps_per_session``, ``errors`` (exception texts), ``sessions``, the ``methods`` and
         the ``replicas`` (``isosr serve --replicas``) that made the frames.
     """
-    stats: list[list[FrameStats]] = [[] for _ in range(sessions)]
-    busy = [0.0] * sessions
+    processes = max(1, min(processes, sessions))
+    job = (url, volume, sessions, seconds, mode, size, settings, focus, warmup_frames, max_frames)
+    if processes == 1:
+        opened = threading.Barrier(sessions + 1)
+        waiter = threading.Thread(target=_wait_opened, args=(opened,), daemon=True)
+        waiter.start()
+        parts = [drive_sessions(job, range(sessions), opened)]
+    else:
+        context = multiprocessing.get_context("spawn")  # a fork would copy this process's torch and threads
+        with context.Manager() as manager, ProcessPoolExecutor(processes, mp_context=context) as pool:
+            opened = manager.Barrier(sessions + 1)
+            futures = [pool.submit(drive_sessions, job, range(p, sessions, processes), opened)
+                       for p in range(processes)]
+            _wait_opened(opened)
+            parts = [f.result() for f in futures]
+    stats = [s for part in parts for s in part[0]]
+    busy = [b for part in parts for b in part[1]]
+    errors = [e for part in parts for e in part[2]]
+    frames = [s for per in stats for s in per]
+    if not frames:
+        return {"sessions": sessions, "errors": errors or ["no frames"]}
+    result = summarize(frames, 1.0)
+    per_session_fps = [len(s) / b for s, b in zip(stats, busy) if b > 0]
+    result.update(sessions=sessions, errors=errors, fps=float(sum(per_session_fps)),
+                  fps_per_session=float(np.mean(per_session_fps)), methods=sorted({s.method for s in frames}),
+                  replicas=sorted({s.replica for s in frames if s.replica is not None}))
+    return result
+
+
+def _wait_opened(opened) -> None:
+    """The timed span starts once every session is warm (or one failed: it aborts the barrier)."""
+    try:
+        opened.wait(timeout=300)
+    except threading.BrokenBarrierError:
+        pass
+
+
+def drive_sessions(job: tuple, ks: range, opened) -> tuple[list[list[FrameStats]], list[float], list[str]]:
+    """Sessions ``ks`` of :func:`run_sessions`' ``job``, one thread each, in this process: their
+    frames' stats, their busy seconds and the errors. They wait at ``opened`` after warming up."""
+    url, volume, sessions, seconds, mode, size, settings, focus, warmup_frames, max_frames = job
+    stats: dict[int, list[FrameStats]] = {k: [] for k in ks}
+    busy = dict.fromkeys(ks, 0.0)
     errors: list[str] = []
-    opened = threading.Barrier(sessions + 1)
 
     def viewer(k: int) -> None:
         path = Orbit(yaw=30.0 + 360.0 * k / sessions)
@@ -183,25 +227,13 @@ def run_sessions(url: str, volume: str, sessions: int, seconds: float, mode: str
             errors.append(f"session {k}: {type(e).__name__}: {e}")
             opened.abort()
 
-    threads = [threading.Thread(target=viewer, args=(k,), daemon=True) for k in range(sessions)]
-    for t in threads:
+    threads = {k: threading.Thread(target=viewer, args=(k,), daemon=True) for k in ks}
+    for t in threads.values():
         t.start()
-    try:
-        opened.wait(timeout=300)
-    except threading.BrokenBarrierError:
-        pass
-    for t in threads:
-        t.join(seconds + 120)
-    errors += [f"session {k}: did not finish" for k, t in enumerate(threads) if t.is_alive()]
-    frames = [s for per in stats for s in per]
-    if not frames:
-        return {"sessions": sessions, "errors": errors or ["no frames"]}
-    result = summarize(frames, 1.0)
-    per_session_fps = [len(s) / b for s, b in zip(stats, busy) if b > 0]
-    result.update(sessions=sessions, errors=errors, fps=float(sum(per_session_fps)),
-                  fps_per_session=float(np.mean(per_session_fps)), methods=sorted({s.method for s in frames}),
-                  replicas=sorted({s.replica for s in frames if s.replica is not None}))
-    return result
+    for t in threads.values():
+        t.join(seconds + 420)
+    errors += [f"session {k}: did not finish" for k, t in threads.items() if t.is_alive()]
+    return [stats[k] for k in ks], [busy[k] for k in ks], errors
 
 
 def case_row(mode: str, ao: int, result: dict) -> dict:

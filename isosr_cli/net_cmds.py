@@ -80,8 +80,9 @@ def run_train(args: argparse.Namespace) -> int:
                          device=args.device, time_limit_minutes=args.time_limit_minutes)
     if args.upscale is not None:
         config = dataclasses.replace(config, model={**config.model, "upscale": args.upscale})
-    metrics = Trainer(config).run()
-    print(json.dumps({"step_metrics": metrics}, indent=1))
+    trainer = Trainer(config)
+    metrics = trainer.run()
+    print(json.dumps({"step_metrics": metrics, "timing": trainer.timing}, indent=1))
     return 0
 
 

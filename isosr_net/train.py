@@ -113,6 +113,8 @@ class Trainer:
             dist.init_process_group("nccl" if self.device.type == "cuda" else "gloo")
         self.rank = dist.get_rank() if self.distributed else 0
         self.world = dist.get_world_size() if self.distributed else 1
+        # This process's training: its steps and their wall seconds (validation and saving apart).
+        self.timing = {"processes": self.world, "steps": 0, "train_s": 0.0}
         torch.manual_seed(config.seed)
         self.out = Path(config.out)
         self.net = build_model(config.model).to(self.device)
@@ -281,7 +283,7 @@ class Trainer:
                 state["d_optimizer"] = self.d_optimizer.state_dict()
                 state["discriminators"] = [m.state_dict() for m in self.adversarial]
         save_checkpoint(self.net, self.out / name, {"training": asdict(self.config), "step": self.step,
-                                                    "validation": metrics or {}}, state)
+                                                    "validation": metrics or {}, "timing": self.timing}, state)
 
     def run(self, progress: bool = True) -> dict:
         """Train to `steps`; returns the last validation metrics."""
@@ -294,8 +296,10 @@ class Trainer:
         deadline = time.monotonic() + 60 * self.config.time_limit_minutes if self.config.time_limit_minutes else math.inf
         if self.step == 0 and self.config.init:
             self._validated(self.validate(), writer)  # the starting model on this data: best/ beats it or is it
+        first_step = self.step
         while self.step < self.config.steps and time.monotonic() < deadline:
             epoch = self.step // steps_per_epoch
+            started = time.monotonic()  # each step's loss read (float) syncs: the loop's wall time is its steps'
             for batch in self._batches(self.train_set, shuffle=True, epoch=epoch, skip=self.step % steps_per_epoch):
                 logs = self.train_step(batch)
                 self.step += 1
@@ -308,6 +312,8 @@ class Trainer:
                     self.save("last")
                 if self.step >= self.config.steps or self.step % steps_per_epoch == 0 or time.monotonic() > deadline:
                     break
+            self.timing["train_s"] += time.monotonic() - started
+            self.timing["steps"] = self.step - first_step
             metrics = self.validate()
             self._validated(metrics, writer)
             self.save("last", metrics)

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
+from isosr_bench import bench_cluster
 from isosr_bench.bench_render import main
 from isosr_net.reconstructor import RECON_X2_MODEL
 from net_fixtures import tiny_model_dir
@@ -86,3 +89,24 @@ def test_volume_memory_smoke_loads_native_and_pages_a_sparse_volume(tmp_path):
     assert [r["mode"] for r in huge] == ["sparse", "sparse"] and all(r["camera_move_bricks_paged"] == 0 for r in huge)
     assert 0 < huge[1]["bricks_paged"] < huge[0]["bricks_paged"]  # an iso change pages the difference
     assert json.loads((tmp_path / "bench_volume_memory_cpu.json").read_text())["rows"] == rows
+
+
+def test_cluster_scaling_compares_each_server_with_one_replica(tmp_path):
+    """Efficiency is frames/s over N times one replica's at the same sessions; p99 against one
+    replica's at 1/N of the sessions; a later run keeps the servers it does not measure."""
+    def row(server, sessions, fps, p99):
+        return {"server": server, "mode": "full", "ao": 8, "sessions": sessions, "fps": fps, "latency_p99_ms": p99}
+
+    rows = [row("ray1", 16, 100.0, 200.0), row("ray1", 32, 110.0, 400.0), row("ray1", 64, 105.0, 800.0),
+            row("ray2", 32, 198.0, 220.0), row("ray2", 48, 150.0, 300.0), row("ray4", 64, 300.0, 500.0),
+            row("plain", 32, 120.0, 300.0)]
+    two, four = bench_cluster.scaling(rows)  # ray2 at 48 sessions: no 1-replica row to compare
+    assert (two["replicas"], two["sessions"]) == (2, 32)
+    assert two["efficiency"] == pytest.approx(0.9) and two["p99_ratio"] == pytest.approx(1.1)
+    assert four["efficiency"] == pytest.approx(300 / 420) and four["p99_ratio"] == pytest.approx(2.5)
+
+    path = tmp_path / "bench_cluster_gpus_1080p_cuda.json"
+    path.write_text(json.dumps({"device": "GPU A", "commit": "abc", "rows": rows + [two]}))
+    merged = bench_cluster.merge(path, [dict(row("ray4", 64, 320.0, 480.0), device="GPU B")], {"ray4"})
+    assert [r["server"] for r in merged] == ["ray1", "ray1", "ray1", "ray2", "ray2", "plain", "ray4"]
+    assert merged[0]["device"] == "GPU A" and merged[-1]["device"] == "GPU B" and merged[-1]["fps"] == 320.0

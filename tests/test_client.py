@@ -319,6 +319,16 @@ def test_cli_without_the_cuda_device_asked_for_ends_in_one_line(server):  # noqa
     assert len(lines) == 1 and lines[0].startswith(f"isosr client: error: no CUDA device: {device!r}"), done.stderr
 
 
+def test_sessions_dealt_to_client_processes(server):  # noqa: F811
+    """Sessions dealt to two client processes start their timed span together and all frame: the
+    result adds every process's frames and sessions as one process's threads would."""
+    result = bench_server.run_sessions(server.url, VOLUME, 3, 1.0, "full", SIZE, {}, warmup_frames=1, processes=2)
+    assert result["errors"] == [] and result["sessions"] == 3
+    assert result["frames"] >= 3 and result["fps"] > 0
+    assert result["fps"] == pytest.approx(3 * result["fps_per_session"], rel=0.5)
+    assert result["methods"] == ["full, AO 0, spp 1"]
+
+
 @pytest.mark.slow
 def test_load_16_sessions_30s(server):  # noqa: F811
     """16 concurrent view sessions (all modes) for 30 s: no errors, every session served, and the

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import subprocess
@@ -12,6 +13,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from isosr_bench import bench_train
 from isosr_net.configs import load_config
 from isosr_net.datagen import DatagenConfig
 from isosr_net.losses import PAPER_LOSSES
@@ -64,6 +66,7 @@ def test_a_tiny_run_writes_checkpoints_logs_and_metrics(run3, data):
     assert not any(p.name.endswith((".tmp", ".old")) for p in out.iterdir())  # the swaps finished
     last = json.loads((out / "last" / "config.json").read_text())
     assert last["step"] == 3 and last["validation"] == metrics
+    assert last["timing"]["processes"] == 1 and last["timing"]["steps"] == 3 and last["timing"]["train_s"] > 0
     assert last["training"]["data"] == str(data) and last["training"]["steps"] == 3
     assert last["model"] == {"type": "SRNet", "upscale": 2, "channels": 8, "residual_blocks": 1,
                              "first_frame": "zeros", "tail": "full"}
@@ -341,6 +344,24 @@ def test_ddp_on_two_cpu_processes(data, tmp_path):
                           capture_output=True, text=True, timeout=180, env=env, cwd=tmp_path)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert {"config.json", "model.safetensors", "training_state.pt"} <= {p.name for p in (out / "last").iterdir()}
-    assert json.loads((out / "last" / "config.json").read_text())["step"] == 2
+    last = json.loads((out / "last" / "config.json").read_text())
+    assert last["step"] == 2 and last["timing"]["processes"] == 2 and last["timing"]["steps"] == 2
     assert (out / "best" / "model.safetensors").is_file()
     assert '"step_metrics"' in proc.stdout
+
+
+def test_bench_train_compares_one_and_two_processes(data, tmp_path, monkeypatch):
+    """The scaling study trains the same config from its start in 1 and 2 processes (gloo on CPUs) and
+    reads both back: the same steps, times per step, the speedup against 1 and the scores."""
+    config = tmp_path / "train.json"
+    config.write_text(json.dumps(tiny_train_config(data, tmp_path / "unused", steps=5)))
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    rows = bench_train.main(["--config", str(config), "--steps", "2", "--gpus", "1,2", "--device", "cpu",
+                             "--runs", str(tmp_path / "runs"), "--out", str(tmp_path / "results")])
+    assert [(r["processes"], r["steps"]) for r in rows] == [(1, 2), (2, 2)]
+    assert rows[0]["speedup"] == 1.0 and rows[1]["efficiency"] == pytest.approx(rows[1]["speedup"] / 2)
+    assert all(r["ms_per_step"] > 0 and math.isfinite(r["val_color_psnr"]) for r in rows)
+    record = json.loads((tmp_path / "results" / "bench_train_cpu.json").read_text())
+    assert record["rows"] == rows and not (tmp_path / "unused").exists()
+    with pytest.raises(SystemExit):
+        bench_train.main(["--config", str(config), "--gpus", "2", "--device", "cpu"])  # no baseline

@@ -1,0 +1,114 @@
+"""Data-parallel training's scaling: one training config on 1 GPU and on N GPUs (`torchrun`).
+
+    python -m isosr_bench.bench_train --config configs/train_recon_x2_history.json --steps 2000 --gpus 1,2
+    python -m isosr_bench.bench_train --config C --gpus 1,2 --concurrent    # each count on its own GPUs at once
+
+Results: ``benchmarks/results/bench_train_<device>.json``. Each run trains ``--config`` from its
+start (its own run folder under ``--runs``; the same data, steps and global batch: each of N
+processes takes 1/N of every batch) and is read back from its ``last/`` checkpoint: the steps,
+their wall seconds without validation and saving (``Trainer.timing``), ms per step, training
+sequences per second, and the validation scores at the end and of ``best/``. Against the 1-GPU
+run: ``speedup`` (its ms per step over this run's) and ``efficiency`` (speedup over N).
+``--concurrent`` starts the runs together on disjoint GPUs (they share the host's CPUs and PCIe):
+it saves device time and is said in the result. On CPUs, N is the number of processes (gloo).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import torch
+
+from isosr_bench.common import bench_parser, print_table, write_result
+from isosr_net.configs import load_config
+from isosr_net.train import TrainConfig
+
+
+def train_command(config: str, out: Path, steps: int | None, processes: int) -> list[str]:
+    """`isosr train` for one run: a plain process, or ``processes`` under torchrun."""
+    launcher = ([sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={processes}"]
+                if processes > 1 else [sys.executable])
+    return [*launcher, "-m", "isosr_cli.main", "train", config, "--out", str(out), "--time-limit-minutes", "0",
+            *(["--steps", str(steps)] if steps else [])]
+
+
+def gpu_sets(counts: list[int], concurrent: bool, available: int) -> list[list[int]]:
+    """The GPUs of each run: disjoint when ``concurrent``, else each from GPU 0."""
+    if not concurrent:
+        if max(counts) > available:
+            raise ValueError(f"{max(counts)} GPUs asked, {available} present")
+        return [list(range(n)) for n in counts]
+    if sum(counts) > available:
+        raise ValueError(f"--concurrent runs need {sum(counts)} GPUs together, {available} present")
+    starts = [sum(counts[:i]) for i in range(len(counts))]
+    return [list(range(s, s + n)) for s, n in zip(starts, counts)]
+
+
+def run_row(out: Path, processes: int, gpus: list[int]) -> dict:
+    """One finished run as a result row, from its checkpoints."""
+    last = json.loads((out / "last" / "config.json").read_text())
+    best = json.loads((out / "best" / "config.json").read_text())
+    timing, batch = last["timing"], last["training"]["batch_size"]
+    ms = 1000.0 * timing["train_s"] / timing["steps"]
+    return {"processes": processes, "gpus": gpus, "steps": last["step"], "batch_size": batch,
+            "train_s": timing["train_s"], "ms_per_step": ms, "sequences_per_s": batch * 1000.0 / ms,
+            "val_color_psnr": last["validation"]["color_psnr"], "val_ao_psnr": last["validation"].get("ao_psnr"),
+            "best_step": best["step"], "best_color_psnr": best["validation"]["color_psnr"]}
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    parser = bench_parser(__doc__)
+    parser.add_argument("--config", required=True, help="a TrainConfig JSON (its data must exist)")
+    parser.add_argument("--steps", type=int, help="optimizer steps of every run (default: the config's)")
+    parser.add_argument("--gpus", default="1,2", help="GPU (CPU: process) counts, comma-separated; 1 is the baseline")
+    parser.add_argument("--concurrent", action="store_true", help="start the runs together on disjoint GPUs")
+    parser.add_argument("--runs", type=Path, default=Path("runs/bench_train"), help="the runs' folders")
+    args = parser.parse_args(argv)
+    counts = [int(n) for n in args.gpus.split(",") if n]
+    if 1 not in counts or min(counts) < 1:
+        parser.error(f"--gpus {args.gpus}: give the 1-GPU baseline and counts of 1 or more")
+    load_config(TrainConfig, args.config)  # a bad config fails here, not in N processes
+    cuda = args.device.startswith("cuda")
+    try:
+        sets = gpu_sets(counts, args.concurrent, torch.cuda.device_count() if cuda else max(counts) * len(counts))
+    except ValueError as e:
+        parser.error(str(e))
+    jobs = []
+    for n, gpus in zip(counts, sets):
+        out = args.runs / f"processes{n}"
+        shutil.rmtree(out, ignore_errors=True)  # every run from its start: no resume
+        out.mkdir(parents=True)
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        if cuda:
+            env["CUDA_VISIBLE_DEVICES"] = ",".join(map(str, gpus))
+        log = open(out / "train.log", "w")
+        command = [*train_command(args.config, out, args.steps, n), "--device", args.device.split(":")[0]]
+        jobs.append((n, gpus if cuda else [], out, log, subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT,
+                                                                         env=env)))
+        if not args.concurrent:
+            jobs[-1][4].wait()
+    rows = []
+    for n, gpus, out, log, process in jobs:
+        code = process.wait()
+        log.close()
+        if code != 0:
+            raise SystemExit(f"the {n}-process run failed ({code}): "
+                             f"{(out / 'train.log').read_text(errors='replace')[-3000:]}")
+        rows.append(dict(run_row(out, n, gpus), concurrent=args.concurrent))
+    base = next(r for r in rows if r["processes"] == 1)
+    for r in rows:
+        r["speedup"] = base["ms_per_step"] / r["ms_per_step"]
+        r["efficiency"] = r["speedup"] / r["processes"]
+    print_table(rows, ["processes", "steps", "ms_per_step", "sequences_per_s", "speedup", "efficiency",
+                       "val_color_psnr", "best_color_psnr"])
+    print(f"wrote {write_result('bench_train', args.device, rows, args.out)}")
+    return rows
+
+
+if __name__ == "__main__":
+    main()
