@@ -179,7 +179,8 @@ def main(argv: list[str] | None = None) -> None:
     volume = "proc:cloud:0@32" if args.smoke and args.volume == parser.get_default("volume") else args.volume
     replicas = [int(n) for n in args.replicas.split(",") if n]
     room = str(2 * max(counts + [args.failover_sessions]) + 4)
-    options = ("--max-sessions", room, "--max-sessions-per-client", room, "--max-fps", "1000")
+    options = ("--max-sessions", room, "--max-sessions-per-client", room, "--max-connections-per-client", room,
+               "--max-fps", "1000")  # every session comes from this address
     failover_on = next((f"ray{n}" for n in replicas if n >= 2), None)
     rows = []
     for name, extra in servers(replicas, args.gpus_per_replica, args.device):
