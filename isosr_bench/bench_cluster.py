@@ -182,41 +182,53 @@ def main(argv: list[str] | None = None) -> None:
     options = ("--max-sessions", room, "--max-sessions-per-client", room, "--max-connections-per-client", room,
                "--max-fps", "1000")  # every session comes from this address
     failover_on = next((f"ray{n}" for n in replicas if n >= 2), None)
-    rows = []
-    for name, extra in servers(replicas, args.gpus_per_replica, args.device):
-        started = time.monotonic()
-        try:
-            with ServerProcess(args.device, options + extra) as server:
-                ready_s = time.monotonic() - started
-                for mode, ao in CASES:
-                    for n in counts:
-                        result = run_sessions(server.url, volume, n, seconds, mode, size, {"ao_rays": ao},
-                                              processes=args.client_processes)
-                        row = dict(case_row(mode, ao, result), server=name, ready_s=ready_s,
-                                   replicas_seen=len(result.get("replicas", [])))
-                        rows.append(row)
-                        print(f"{name:<6} {mode:<5} AO {ao:<2} x{n:<3} {row.get('fps', 0):7.1f} fps "
-                              f"({row.get('fps_per_session', 0):6.1f}/session) p50 {row.get('latency_p50_ms', 0):6.1f} "
-                              f"p99 {row.get('latency_p99_ms', 0):6.1f} ms errors {row['errors']}", flush=True)
-                if name == failover_on and args.failover_sessions:
-                    rows.append(dict(failover(server.url, volume, size, args.failover_sessions, 3.0, 6.0), server=name))
-                    print(rows[-1], flush=True)
-        finally:
-            if name != "plain":
-                stop_ray()
-    result = f"bench_cluster{'_gpus' if args.gpus_per_replica >= 1 else ''}_{size_name}"
-    kind = "cuda" if args.device.startswith("cuda") else "cpu"
+    measured = servers(replicas, args.gpus_per_replica, args.device)
+    name = f"bench_cluster{'_gpus' if args.gpus_per_replica >= 1 else ''}_{size_name}"
+    path = args.out / f"{name}_{'cuda' if args.device.startswith('cuda') else 'cpu'}.json"
     stamp = {"device": device_name(args.device), "commit": commit()}
-    rows = merge(args.out / f"{result}_{kind}.json", [dict(r, **stamp) for r in rows],
-                 {server for server, _ in servers(replicas, args.gpus_per_replica, args.device)})
-    rows += scaling(rows)
-    print_table([r for r in rows if "mode" in r and "study" not in r],
+    rows: list[dict] = []
+    for server_name, extra in measured:
+        cases = [(mode, ao, n) for mode, ao in CASES for n in counts]
+        failover_sessions = args.failover_sessions if server_name == failover_on else 0
+        for row in measure_server(server_name, args.device, options + extra, cases, failover_sessions,
+                                  volume, size, seconds, args.client_processes):
+            rows.append(dict(row, **stamp))
+            # Written after every row: a run cut off (a device call's time limit) keeps what it measured.
+            merged = merge(path, rows, {server for server, _ in measured})
+            written = write_result(name, args.device, merged + scaling(merged), args.out)
+    merged = merge(path, rows, {server for server, _ in measured})
+    print_table([r for r in merged if "mode" in r and "study" not in r],
                 ["server", "mode", "ao", "sessions", "fps", "fps_per_session", "latency_p50_ms", "latency_p99_ms",
                  "errors"])
-    print_table([r for r in rows if r.get("study") == "scaling"],
-                ["server", "mode", "ao", "sessions", "fps", "fps_one", "efficiency", "p99_ms",
-                 "p99_one_at_1_over_n_ms", "p99_ratio"])
-    print(f"wrote {write_result(result, args.device, rows, args.out)}")
+    print_table(scaling(merged), ["server", "mode", "ao", "sessions", "fps", "fps_one", "efficiency", "p99_ms",
+                                  "p99_one_at_1_over_n_ms", "p99_ratio"])
+    print(f"wrote {written}")
+
+
+def measure_server(name: str, device: str, options: tuple[str, ...], cases: list[tuple[str, int, int]],
+                   failover_sessions: int, volume: str, size: tuple[int, int], seconds: float, processes: int):
+    """Start one server and yield a row per (mode, AO rays, sessions) case, then its failover row."""
+    started = time.monotonic()
+    try:
+        with ServerProcess(device, options) as server:
+            ready_s = time.monotonic() - started
+            for mode, ao, n in cases:
+                result = run_sessions(server.url, volume, n, seconds, mode, size, {"ao_rays": ao}, processes=processes)
+                row = dict(case_row(mode, ao, result), server=name, ready_s=ready_s,
+                           replicas_seen=len(result.get("replicas", [])))
+                print(f"{name:<6} {mode:<5} AO {ao:<2} x{n:<3} {row.get('fps', 0):7.1f} fps "
+                      f"({row.get('fps_per_session', 0):6.1f}/session) p50 {row.get('latency_p50_ms', 0):6.1f} "
+                      f"p99 {row.get('latency_p99_ms', 0):6.1f} ms errors {row['errors']} (ready in {ready_s:.0f} s)",
+                      flush=True)
+                yield row
+            if failover_sessions:
+                row = dict(failover(server.url, volume, size, failover_sessions, 3.0, 6.0), server=name)
+                print(row, flush=True)
+                yield row
+    finally:
+        if name != "plain":
+            stop_ray()
+
 
 if __name__ == "__main__":
     main()

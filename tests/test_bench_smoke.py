@@ -110,3 +110,16 @@ def test_cluster_scaling_compares_each_server_with_one_replica(tmp_path):
     merged = bench_cluster.merge(path, [dict(row("ray4", 64, 320.0, 480.0), device="GPU B")], {"ray4"})
     assert [r["server"] for r in merged] == ["ray1", "ray1", "ray1", "ray2", "ray2", "plain", "ray4"]
     assert merged[0]["device"] == "GPU A" and merged[-1]["device"] == "GPU B" and merged[-1]["fps"] == 320.0
+
+
+def test_cluster_smoke_writes_every_case_and_a_rerun_replaces_its_server(tmp_path):
+    """The plain server's cases on the CPU: a row per case, written as measured; the same run again
+    replaces that server's rows instead of adding to them."""
+    argv = ["--smoke", "--replicas", "0", "--sessions", "2", "--failover-sessions", "0", "--client-processes", "1",
+            "--seconds", "0.3", "--out", str(tmp_path)]
+    for _ in range(2):
+        bench_cluster.main(argv)
+        record = json.loads((tmp_path / "bench_cluster_smoke_cpu.json").read_text())
+        assert [(r["server"], r["mode"], r["ao"]) for r in record["rows"]] == [
+            ("plain", mode, ao) for mode, ao in bench_cluster.CASES]
+        assert all(r["errors"] == 0 and r["fps"] > 0 and r["commit"] == record["commit"] for r in record["rows"])
