@@ -4,9 +4,11 @@
 #   .gpu/r  Ray Serve 2.60 for cp312 (bench_cluster), one xz archive (~49 MB; the Java jar,
 #           py-spy, virtualenv and HAProxy left out)        device: bash .gpu/r/stage.sh
 #   .gpu/v  PyAV 18.1 (abi3; bench_video)                   device: pip install --target /tmp/avsite .gpu/v/*.whl
+#   .gpu/s  msgspec and prometheus-client, the server's wheels part b of the kit lacks (0.3 MB; it fits
+#           beside .gpu/b)                                   device: pip install --target /tmp/ssite .gpu/s/*.whl
 #   .oidn   OIDN 2.5 (the `oidn` method; ../shared/gpu/oidn/README.md)
 # Then the command's run carries .gpu/b and .vols with PYTHONPATH extended by /tmp/raysite,
-# /tmp/avsite or /tmp/oidn. Usage, from the project root: bash scripts/stage_gpu_extras.sh [r] [v] [oidn]
+# /tmp/avsite, /tmp/ssite or /tmp/oidn. Usage, from the project root: bash scripts/stage_gpu_extras.sh [r] [v] [s] [oidn]
 set -euo pipefail
 root="$(git rev-parse --show-toplevel)"
 cd "$root"
@@ -20,7 +22,7 @@ work="$(mktemp -d)"
 trap 'rm -rf "$work"' EXIT
 
 parts=("$@")
-[ ${#parts[@]} -gt 0 ] || parts=(r v oidn)
+[ ${#parts[@]} -gt 0 ] || parts=(r v s oidn)
 for part in "${parts[@]}"; do
   case "$part" in
     r)
@@ -45,11 +47,15 @@ SH
       mkdir -p .gpu/v
       "${pip[@]}" download -q --no-deps "${cp312[@]}" "av==18.1.0" -d .gpu/v
       ;;
+    s)
+      mkdir -p .gpu/s
+      "${pip[@]}" download -q --no-deps "${cp312[@]}" "msgspec==0.22.0" "prometheus-client==0.26.0" -d .gpu/s
+      ;;
     oidn)
       mkdir -p .oidn
       cp ../shared/gpu/oidn/*.whl ../shared/gpu/oidn/oidn_slim.tar.xz .oidn/
       ;;
-    *) echo "unknown part '$part' (r, v or oidn)" >&2; exit 2 ;;
+    *) echo "unknown part '$part' (r, v, s or oidn)" >&2; exit 2 ;;
   esac
   echo "staged $part: $(du -sh "$([ "$part" = oidn ] && echo .oidn || echo ".gpu/$part")" | cut -f1)"
 done
