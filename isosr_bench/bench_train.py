@@ -2,6 +2,7 @@
 
     python -m isosr_bench.bench_train --config configs/train_recon_x2_history.json --steps 2000 --gpus 1,2
     python -m isosr_bench.bench_train --config C --gpus 1,2 --concurrent    # each count on its own GPUs at once
+    python -m isosr_bench.bench_train --config C --gpus 1,2 --seeds 0,1     # and the spread of two seeds
 
 Results: ``benchmarks/results/bench_train_<device>.json``. Each run trains ``--config`` from its
 start (its own run folder under ``--runs``; the same data, steps and global batch: each of N
@@ -9,6 +10,8 @@ processes takes 1/N of every batch) and is read back from its ``last/`` checkpoi
 their wall seconds without validation and saving (``Trainer.timing``), ms per step, training
 sequences per second, and the validation scores at the end and of ``best/``. Against the 1-GPU
 run: ``speedup`` (its ms per step over this run's) and ``efficiency`` (speedup over N).
+``--seeds``: each count once per seed (default: the config's seed); against the 1-GPU run of the
+same seed, and ``spread_db`` per count, the range of its runs' final color PSNR over the seeds.
 ``--concurrent`` starts the runs together on disjoint GPUs (they share the host's CPUs and PCIe):
 it saves device time and is said in the result. On CPUs, N is the number of processes (gloo).
 """
@@ -29,12 +32,13 @@ from isosr_net.configs import load_config
 from isosr_net.train import TrainConfig
 
 
-def train_command(config: str, out: Path, steps: int | None, processes: int) -> list[str]:
-    """`isosr train` for one run: a plain process, or ``processes`` under torchrun."""
+def train_command(config: str, out: Path, steps: int | None, seed: int, processes: int) -> list[str]:
+    """`isosr train` for one run: a plain process, or ``processes`` under torchrun (``--standalone``:
+    each run's rendezvous on a free port, so that concurrent runs do not meet)."""
     launcher = ([sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={processes}"]
                 if processes > 1 else [sys.executable])
     return [*launcher, "-m", "isosr_cli.main", "train", config, "--out", str(out), "--time-limit-minutes", "0",
-            *(["--steps", str(steps)] if steps else [])]
+            "--seed", str(seed), *(["--steps", str(steps)] if steps else [])]
 
 
 def gpu_sets(counts: list[int], concurrent: bool, available: int) -> list[list[int]]:
@@ -66,49 +70,59 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--config", required=True, help="a TrainConfig JSON (its data must exist)")
     parser.add_argument("--steps", type=int, help="optimizer steps of every run (default: the config's)")
     parser.add_argument("--gpus", default="1,2", help="GPU (CPU: process) counts, comma-separated; 1 is the baseline")
+    parser.add_argument("--seeds", help="seeds, comma-separated: every count runs once per seed (default: the config's)")
     parser.add_argument("--concurrent", action="store_true", help="start the runs together on disjoint GPUs")
     parser.add_argument("--runs", type=Path, default=Path("runs/bench_train"), help="the runs' folders")
     args = parser.parse_args(argv)
     counts = [int(n) for n in args.gpus.split(",") if n]
     if 1 not in counts or min(counts) < 1:
         parser.error(f"--gpus {args.gpus}: give the 1-GPU baseline and counts of 1 or more")
-    load_config(TrainConfig, args.config)  # a bad config fails here, not in N processes
+    config = load_config(TrainConfig, args.config)  # a bad config fails here, not in N processes
+    seeds = [int(k) for k in args.seeds.split(",")] if args.seeds else [config.seed]
+    runs = [(n, seed) for seed in seeds for n in counts]
     cuda = args.device.startswith("cuda")
     try:
-        sets = gpu_sets(counts, args.concurrent, torch.cuda.device_count() if cuda else max(counts) * len(counts))
+        sets = gpu_sets([n for n, _ in runs], args.concurrent,
+                        torch.cuda.device_count() if cuda else sum(n for n, _ in runs))
     except ValueError as e:
         parser.error(str(e))
-    jobs = []
-    for n, gpus in zip(counts, sets):
-        out = args.runs / f"processes{n}"
-        shutil.rmtree(out, ignore_errors=True)  # every run from its start: no resume
-        out.mkdir(parents=True)
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-        if cuda:
-            env["CUDA_VISIBLE_DEVICES"] = ",".join(map(str, gpus))
-        log = open(out / "train.log", "w")
-        command = [*train_command(args.config, out, args.steps, n), "--device", args.device.split(":")[0]]
-        jobs.append((n, gpus if cuda else [], out, log, subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT,
-                                                                         env=env)))
-        if not args.concurrent:
-            jobs[-1][4].wait()
-    rows = []
-    for n, gpus, out, log, process in jobs:
-        code = process.wait()
-        log.close()
-        if code != 0:
-            raise SystemExit(f"the {n}-process run failed ({code}): "
-                             f"{(out / 'train.log').read_text(errors='replace')[-3000:]}")
-        rows.append(dict(run_row(out, n, gpus), concurrent=args.concurrent))
-    base = next(r for r in rows if r["processes"] == 1)
+    jobs = [start_run(args, n, seed, gpus if cuda else []) for (n, seed), gpus in zip(runs, sets)]
+    rows = [dict(finish_run(*job), seed=seed, concurrent=args.concurrent) for job, (_, seed) in zip(jobs, runs)]
     for r in rows:
+        base = next(b for b in rows if b["processes"] == 1 and b["seed"] == r["seed"])
         r["speedup"] = base["ms_per_step"] / r["ms_per_step"]
         r["efficiency"] = r["speedup"] / r["processes"]
-    print_table(rows, ["processes", "steps", "ms_per_step", "sequences_per_s", "speedup", "efficiency",
-                       "val_color_psnr", "best_color_psnr"])
+        psnrs = [o["val_color_psnr"] for o in rows if o["processes"] == r["processes"]]
+        r["spread_db"] = max(psnrs) - min(psnrs) if len(psnrs) > 1 else None
+    print_table(rows, ["processes", "seed", "steps", "ms_per_step", "sequences_per_s", "speedup", "efficiency",
+                       "val_color_psnr", "best_color_psnr", "spread_db"])
     print(f"wrote {write_result('bench_train', args.device, rows, args.out)}")
     return rows
 
+
+def start_run(args, processes: int, seed: int, gpus: list[int]) -> tuple:
+    """Start one run from scratch in its own folder (waiting for it unless ``--concurrent``)."""
+    out = args.runs / f"processes{processes}_seed{seed}"
+    shutil.rmtree(out, ignore_errors=True)  # every run from its start: no resume
+    out.mkdir(parents=True)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    if gpus:
+        env["CUDA_VISIBLE_DEVICES"] = ",".join(map(str, gpus))
+    command = [*train_command(args.config, out, args.steps, seed, processes), "--device", args.device.split(":")[0]]
+    with open(out / "train.log", "w") as log:
+        process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env)
+    if not args.concurrent:
+        process.wait()
+    return processes, gpus, out, process
+
+
+def finish_run(processes: int, gpus: list[int], out: Path, process: subprocess.Popen) -> dict:
+    """Wait for a run and read its row; a failed run stops the study with its log's end."""
+    code = process.wait()
+    if code != 0:
+        raise SystemExit(f"the {processes}-process run failed ({code}): "
+                         f"{(out / 'train.log').read_text(errors='replace')[-3000:]}")
+    return run_row(out, processes, gpus)
 
 if __name__ == "__main__":
     main()

@@ -358,10 +358,15 @@ def test_bench_train_compares_one_and_two_processes(data, tmp_path, monkeypatch)
     monkeypatch.setenv("OMP_NUM_THREADS", "1")
     rows = bench_train.main(["--config", str(config), "--steps", "2", "--gpus", "1,2", "--device", "cpu",
                              "--runs", str(tmp_path / "runs"), "--out", str(tmp_path / "results")])
-    assert [(r["processes"], r["steps"]) for r in rows] == [(1, 2), (2, 2)]
+    assert [(r["processes"], r["steps"], r["seed"]) for r in rows] == [(1, 2, 0), (2, 2, 0)]
     assert rows[0]["speedup"] == 1.0 and rows[1]["efficiency"] == pytest.approx(rows[1]["speedup"] / 2)
-    assert all(r["ms_per_step"] > 0 and math.isfinite(r["val_color_psnr"]) for r in rows)
+    assert all(r["ms_per_step"] > 0 and math.isfinite(r["val_color_psnr"]) and r["spread_db"] is None for r in rows)
     record = json.loads((tmp_path / "results" / "bench_train_cpu.json").read_text())
     assert record["rows"] == rows and not (tmp_path / "unused").exists()
+    # Two seeds of one process, at once: two different models, their spread the range of their scores.
+    rows = bench_train.main(["--config", str(config), "--steps", "2", "--gpus", "1", "--seeds", "0,1", "--concurrent",
+                             "--device", "cpu", "--runs", str(tmp_path / "runs"), "--out", str(tmp_path / "results")])
+    assert [r["seed"] for r in rows] == [0, 1] and rows[0]["val_color_psnr"] != rows[1]["val_color_psnr"]
+    assert rows[0]["spread_db"] == pytest.approx(abs(rows[0]["val_color_psnr"] - rows[1]["val_color_psnr"]))
     with pytest.raises(SystemExit):
         bench_train.main(["--config", str(config), "--gpus", "2", "--device", "cpu"])  # no baseline
