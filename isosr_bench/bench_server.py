@@ -158,7 +158,7 @@ def run_sessions(url: str, volume: str, sessions: int, seconds: float, mode: str
     ``warmup_frames`` untimed frames each; every session orbits from its own start yaw.
     ``focus``: the focus circle (x, y, radius in pixels) of ``focus`` mode. ``processes``: client
     processes the sessions are dealt to (one process's threads share one interpreter lock, which
-    caps the frames/s it receives at a few hundred; the timed span starts together in all).
+    must not bound what several GPUs serve); the timed span starts together in all.
 
     Returns:
         `isosr_client.drive.summarize` of all frames with ``fps`` summed over the sessions,
