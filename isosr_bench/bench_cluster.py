@@ -11,7 +11,8 @@ keeps the rows of the servers it does not measure (one run per server fits a tim
 Per server (``--replicas``: 0 is the plain single process, N > 0 is N replicas of
 ``--gpus-per-replica`` each behind Serve's proxy, on a local Ray started by the server), case
 (``full`` without AO and with 8 AO rays, ``auto``) and session count: frames/s in total and per
-session and latency p50/p99, as :func:`isosr_bench.bench_server.run_sessions` measures them (sessions dealt to ``--client-processes``), and which replicas made the frames.
+session and latency p50/p99, as :func:`isosr_bench.bench_server.run_sessions` measures them
+(sessions dealt to ``--client-processes``), and which replicas made the frames.
 Then scaling: each N-replica row against the 1-replica row of its case, frames/s over N times
 its frames/s at the same sessions, and p99 latency against its p99 at 1/N of the sessions.
 Failover, on the first server of 2 or more replicas: ``--failover-sessions`` closed-loop
