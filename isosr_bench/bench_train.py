@@ -70,7 +70,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--config", required=True, help="a TrainConfig JSON (its data must exist)")
     parser.add_argument("--steps", type=int, help="optimizer steps of every run (default: the config's)")
     parser.add_argument("--gpus", default="1,2", help="GPU (CPU: process) counts, comma-separated; 1 is the baseline")
-    parser.add_argument("--seeds", help="seeds, comma-separated: every count runs once per seed (default: the config's)")
+    parser.add_argument("--seeds", help="seeds, comma-separated: every count runs once per seed "
+                        "(default: the config's)")
     parser.add_argument("--concurrent", action="store_true", help="start the runs together on disjoint GPUs")
     parser.add_argument("--runs", type=Path, default=Path("runs/bench_train"), help="the runs' folders")
     args = parser.parse_args(argv)
