@@ -3,6 +3,7 @@
     python -m isosr_bench.bench_train --config configs/train_recon_x2_history.json --steps 2000 --gpus 1,2
     python -m isosr_bench.bench_train --config C --gpus 1,2 --concurrent    # each count on its own GPUs at once
     python -m isosr_bench.bench_train --config C --gpus 1,2 --seeds 0,1     # and the spread of two seeds
+    python -m isosr_bench.bench_train --config C --gpus 1,2 --batch-size 32 # a larger global batch
 
 Results: ``benchmarks/results/bench_train_<device>.json``. Each run trains ``--config`` from its
 start (its own run folder under ``--runs``; the same data, steps and global batch: each of N
@@ -32,13 +33,15 @@ from isosr_net.configs import load_config
 from isosr_net.train import TrainConfig
 
 
-def train_command(config: str, out: Path, steps: int | None, seed: int, processes: int) -> list[str]:
+def train_command(config: str, out: Path, steps: int | None, batch_size: int | None, seed: int,
+                  processes: int) -> list[str]:
     """`isosr train` for one run: a plain process, or ``processes`` under torchrun (``--standalone``:
     each run's rendezvous on a free port, so that concurrent runs do not meet)."""
     launcher = ([sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={processes}"]
                 if processes > 1 else [sys.executable])
     return [*launcher, "-m", "isosr_cli.main", "train", config, "--out", str(out), "--time-limit-minutes", "0",
-            "--seed", str(seed), *(["--steps", str(steps)] if steps else [])]
+            "--seed", str(seed), *(["--steps", str(steps)] if steps else []),
+            *(["--batch-size", str(batch_size)] if batch_size else [])]
 
 
 def gpu_sets(counts: list[int], concurrent: bool, available: int) -> list[list[int]]:
@@ -69,6 +72,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser = bench_parser(__doc__)
     parser.add_argument("--config", required=True, help="a TrainConfig JSON (its data must exist)")
     parser.add_argument("--steps", type=int, help="optimizer steps of every run (default: the config's)")
+    parser.add_argument("--batch-size", type=int, help="global batch of every run (default: the config's)")
     parser.add_argument("--gpus", default="1,2", help="GPU (CPU: process) counts, comma-separated; 1 is the baseline")
     parser.add_argument("--seeds", help="seeds, comma-separated: every count runs once per seed "
                         "(default: the config's)")
@@ -109,7 +113,8 @@ def start_run(args, processes: int, seed: int, gpus: list[int]) -> tuple:
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     if gpus:
         env["CUDA_VISIBLE_DEVICES"] = ",".join(map(str, gpus))
-    command = [*train_command(args.config, out, args.steps, seed, processes), "--device", args.device.split(":")[0]]
+    command = [*train_command(args.config, out, args.steps, args.batch_size, seed, processes),
+               "--device", args.device.split(":")[0]]
     with open(out / "train.log", "w") as log:
         process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env)
     if not args.concurrent:

@@ -32,6 +32,7 @@ def add_parsers(subparsers) -> None:
     p.add_argument("--out", help="override the run folder")
     p.add_argument("--steps", type=int, help="override the number of steps")
     p.add_argument("--seed", type=int, help="override the seed (initialization and data order)")
+    p.add_argument("--batch-size", type=int, help="override the sequences per step (over all processes)")
     p.add_argument("--device", help="override the device")
     p.add_argument("--time-limit-minutes", type=float, help="stop, validated and saved, after this long")
     p.add_argument("--upscale", type=int, help="override the model's upscale factor")
@@ -78,7 +79,7 @@ def run_train(args: argparse.Namespace) -> int:
     from isosr_net.train import Trainer, TrainConfig
 
     config = load_config(TrainConfig, args.config, data=args.data, out=args.out, steps=args.steps, seed=args.seed,
-                         device=args.device, time_limit_minutes=args.time_limit_minutes)
+                         batch_size=args.batch_size, device=args.device, time_limit_minutes=args.time_limit_minutes)
     if args.upscale is not None:
         config = dataclasses.replace(config, model={**config.model, "upscale": args.upscale})
     trainer = Trainer(config)

@@ -365,8 +365,10 @@ def test_bench_train_compares_one_and_two_processes(data, tmp_path, monkeypatch)
     assert record["rows"] == rows and not (tmp_path / "unused").exists()
     # Two seeds of one process, at once: two different models, their spread the range of their scores.
     rows = bench_train.main(["--config", str(config), "--steps", "2", "--gpus", "1", "--seeds", "0,1", "--concurrent",
-                             "--device", "cpu", "--runs", str(tmp_path / "runs"), "--out", str(tmp_path / "results")])
-    assert [r["seed"] for r in rows] == [0, 1] and rows[0]["val_color_psnr"] != rows[1]["val_color_psnr"]
+                             "--batch-size", "4", "--device", "cpu", "--runs", str(tmp_path / "runs"),
+                             "--out", str(tmp_path / "results")])
+    assert [(r["seed"], r["batch_size"]) for r in rows] == [(0, 4), (1, 4)]
+    assert rows[0]["val_color_psnr"] != rows[1]["val_color_psnr"]
     assert rows[0]["spread_db"] == pytest.approx(abs(rows[0]["val_color_psnr"] - rows[1]["val_color_psnr"]))
     with pytest.raises(SystemExit):
         bench_train.main(["--config", str(config), "--gpus", "2", "--device", "cpu"])  # no baseline
