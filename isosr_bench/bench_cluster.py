@@ -187,6 +187,7 @@ def main(argv: list[str] | None = None) -> None:
     name = f"bench_cluster{'_gpus' if args.gpus_per_replica >= 1 else ''}_{size_name}"
     path = args.out / f"{name}_{'cuda' if args.device.startswith('cuda') else 'cpu'}.json"
     stamp = {"device": device_name(args.device), "commit": commit()}
+    names = {server for server, _ in measured}
     rows: list[dict] = []
     for server_name, extra in measured:
         cases = [(mode, ao, n) for mode, ao in CASES for n in counts]
@@ -195,14 +196,14 @@ def main(argv: list[str] | None = None) -> None:
                                   volume, size, seconds, args.client_processes):
             rows.append(dict(row, **stamp))
             # Written after every row: a run cut off (a device call's time limit) keeps what it measured.
-            merged = merge(path, rows, {server for server, _ in measured})
-            written = write_result(name, args.device, merged + scaling(merged), args.out)
-    merged = merge(path, rows, {server for server, _ in measured})
-    print_table([r for r in merged if "mode" in r and "study" not in r],
+            merged = merge(path, rows, names)
+            scaled = scaling(merged)
+            written = write_result(name, args.device, merged + scaled, args.out)
+    print_table([r for r in merged if "mode" in r],
                 ["server", "mode", "ao", "sessions", "fps", "fps_per_session", "latency_p50_ms", "latency_p99_ms",
                  "errors"])
-    print_table(scaling(merged), ["server", "mode", "ao", "sessions", "fps", "fps_one", "efficiency", "p99_ms",
-                                  "p99_one_at_1_over_n_ms", "p99_ratio"])
+    print_table(scaled, ["server", "mode", "ao", "sessions", "fps", "fps_one", "efficiency", "p99_ms",
+                         "p99_one_at_1_over_n_ms", "p99_ratio"])
     print(f"wrote {written}")
 
 
