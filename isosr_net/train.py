@@ -76,6 +76,8 @@ class TrainConfig:
     def __post_init__(self):
         if self.lr_schedule not in ("constant", "cosine"):
             raise ValueError(f"lr_schedule must be 'constant' or 'cosine', got {self.lr_schedule!r}")
+        if self.batch_size < 1:
+            raise ValueError(f"batch_size must be at least 1, got {self.batch_size}")
 
     def lr_factor(self, step: int) -> float:
         """The learning-rate multiplier at ``step``."""
@@ -130,6 +132,9 @@ class Trainer:
         self.d_optimizer = torch.optim.Adam(d_params, lr=config.lr_discriminator) if d_params else None
         self.train_set = SequenceDataset(config.data, "train").to(self.device)
         self.val_set = SequenceDataset(config.data, "val").to(self.device)
+        if config.batch_size < self.world:
+            raise ValueError(f"batch_size {config.batch_size} gives some of the {self.world} processes no share of a "
+                             f"batch; give at least {self.world}")
         if len(self.train_set) < config.batch_size:
             raise ValueError(f"{config.data} holds {len(self.train_set)} training crops, fewer than one batch "
                              f"({config.batch_size}); lower batch_size or render more data")

@@ -240,13 +240,14 @@ def test_load_config_reads_json_and_applies_overrides(data, tmp_path):
     ('["data", "out"]', "expected a JSON object of TrainConfig fields"),
     ('{"out": "o"}', "missing 1 required positional argument: 'data'"),
     ('{"data": "d", "out": "o", "lr_schedule": "linear"}', "lr_schedule must be"),
+    ('{"data": "d", "out": "o", "batch_size": 0}', "batch_size must be at least 1, got 0"),
 ])
 def test_load_config_errors_name_the_file(tmp_path, text, match):
     path = tmp_path / "bad.json"
     path.write_text(text)
     with pytest.raises(ValueError, match=match) as info:
         load_config(TrainConfig, path)
-    if "lr_schedule" not in text:
+    if "lr_schedule" not in text and "batch_size" not in text:
         assert str(path) in str(info.value)
 
 
@@ -348,6 +349,18 @@ def test_ddp_on_two_cpu_processes(data, tmp_path):
     assert last["step"] == 2 and last["timing"]["processes"] == 2 and last["timing"]["steps"] == 2
     assert (out / "best" / "model.safetensors").is_file()
     assert '"step_metrics"' in proc.stdout
+
+
+def test_ddp_refuses_a_batch_smaller_than_its_processes(data, tmp_path):
+    config = tmp_path / "train.json"
+    config.write_text(json.dumps(tiny_train_config(data, tmp_path / "run", batch_size=1)))
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    env.pop("CUDA_VISIBLE_DEVICES", None)
+    proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--standalone",
+                           "-m", "isosr_cli.main", "train", str(config)],
+                          capture_output=True, text=True, timeout=180, env=env, cwd=tmp_path)
+    assert proc.returncode != 0
+    assert "batch_size 1 gives some of the 2 processes no share of a batch" in proc.stdout + proc.stderr
 
 
 def test_bench_train_compares_one_and_two_processes(data, tmp_path, monkeypatch):
