@@ -262,7 +262,8 @@ def test_the_shipped_configs_load():
                                             ("train_recon2.json", "datagen_recon2.json"),
                                             ("train_recon_x2.json", "datagen_recon_x2.json"),
                                             ("train_recon_history.json", "datagen_recon_history.json"),
-                                            ("train_recon_x2_history.json", "datagen_recon_x2_history.json")])
+                                            ("train_recon_x2_history.json", "datagen_recon_x2_history.json"),
+                                            ("train_recon_4k.json", "datagen_recon_4k.json")])
 def test_each_reconstruction_config_fits_its_data_config(train, datagen):
     root = Path(__file__).resolve().parents[1] / "configs"
     config, data = load_config(TrainConfig, root / train), load_config(DatagenConfig, root / datagen)
