@@ -39,8 +39,12 @@ if TYPE_CHECKING:  # types only: render_reconstruct takes what a renderer made
 
 DEFAULT_RECON_MODEL = Path(__file__).resolve().parent / "recon_model"
 RECON_X2_MODEL = DEFAULT_RECON_MODEL.parent / "recon_x2_model"  # the shipped model that also upscales x2
-# Captured CUDA graphs kept per Reconstructor (frame sizes x samplings x first frame or not).
+# Captured CUDA graphs kept per Reconstructor (frame sizes x samplings x first frame or not), at
+# most this many and of frames of this many output pixels in all: a graph keeps its frame's
+# buffers (1-2 GB at 4K; 18 samplings x 2 sizes of two models took an H100's 80 GB). Four 4K
+# graphs, sixteen 1080p ones.
 MAX_GRAPHS = 32
+MAX_GRAPH_PIXELS = 4 * 3840 * 2160
 T = TypeVar("T")
 
 
@@ -178,6 +182,31 @@ def recon_frame(net: ReconNet, mask: torch.Tensor, normal: torch.Tensor, depth: 
     return stack, color, frame_flags(mask, normal, depth, ao, flow)
 
 
+class GraphCache(OrderedDict):
+    """Captured graphs by key, the least recently used dropped past ``max_graphs`` entries or
+    ``max_pixels`` output pixels in all (the newest is always kept)."""
+
+    def __init__(self, max_graphs: int = MAX_GRAPHS, max_pixels: int = MAX_GRAPH_PIXELS):
+        super().__init__()
+        self.max_graphs, self.max_pixels = max_graphs, max_pixels
+        self._pixels: dict[tuple, int] = {}
+
+    def use(self, key: tuple):
+        """The entry of ``key``, marked most recently used; None if there is none."""
+        if key not in self:
+            return None
+        self.move_to_end(key)
+        return self[key]
+
+    def add(self, key: tuple, entry, pixels: int) -> None:
+        """Keep ``entry`` (a graph of frames of ``pixels`` output pixels), dropping the oldest past the bounds."""
+        self[key], self._pixels[key] = entry, pixels
+        self.move_to_end(key)
+        while len(self) > 1 and (len(self) > self.max_graphs or sum(self._pixels.values()) > self.max_pixels):
+            oldest, _ = self.popitem(last=False)
+            del self._pixels[oldest]
+
+
 @dataclass
 class FrameGraph:
     """One captured frame (render, reconstruction, shading): its graph, the render plan whose
@@ -248,8 +277,8 @@ class Reconstructor(RecurrentNetwork):
         """Empty caches of graphs (network and whole-frame), of the previous outputs they read, and
         a memory pool for them: a stream's own, so that streams neither share a graph's tensors
         nor replay into each other's pool."""
-        self._captured: OrderedDict[tuple, tuple] = OrderedDict()
-        self._frame_graphs: OrderedDict[tuple, FrameGraph] = OrderedDict()
+        self._captured = GraphCache()
+        self._frame_graphs = GraphCache()
         self._states: dict[tuple[int, int], torch.Tensor] = {}
         self._history_states: dict[tuple[int, int], RayHistory] = {}
         self._pool = torch.cuda.graph_pool_handle() if self.graphs else None
@@ -369,13 +398,12 @@ class Reconstructor(RecurrentNetwork):
         buffers present and shading, its inputs copied into the graph's own, its outputs the
         graph's (valid until the next replay)."""
         key = tuple(None if a is None else tuple(a.shape) if torch.is_tensor(a) else a for a in args)
-        if key not in self._captured:
+        entry = self._captured.use(key)
+        if entry is None:
             static = tuple(a.clone() if torch.is_tensor(a) else a for a in args)
-            self._captured[key] = (*self._capture(lambda: self._frame(*static)), static)
-            if len(self._captured) > MAX_GRAPHS:
-                self._captured.popitem(last=False)
-        self._captured.move_to_end(key)
-        graph, outs, static = self._captured[key]
+            entry = (*self._capture(lambda: self._frame(*static)), static)
+            self._captured.add(key, entry, args[0].numel() * self.upscale_factor ** 2)
+        graph, outs, static = entry
         for target, source in zip(static, args):
             if torch.is_tensor(source) and target is not source:
                 target.copy_(source)
@@ -428,15 +456,13 @@ class Reconstructor(RecurrentNetwork):
         history = self._history_state(self.history) if carry and self.history is not None else None
         key = (id(renderer), request.plan_key(), float(request.iso), request.skip, ao_rays, spp, shading, carry,
                history is not None)
-        entry = self._frame_graphs.get(key)
+        entry = self._frame_graphs.use(key)
         plan = renderer.plan(request) if entry is None else entry.plan
         plan.stage(camera, request)
         if entry is None:
             graph, outs = self._capture(lambda: self._graph_work(plan, request, ao_rays, spp, shading, state, history))
-            entry = self._frame_graphs[key] = FrameGraph(graph, plan, outs[:3], outs[3])
-            if len(self._frame_graphs) > MAX_GRAPHS:
-                self._frame_graphs.popitem(last=False)
-        self._frame_graphs.move_to_end(key)
+            entry = FrameGraph(graph, plan, outs[:3], outs[3])
+            self._frame_graphs.add(key, entry, request.height * request.width * self.upscale_factor ** 2)
         entry.graph.replay()
         stack, color, flags = entry.outs
         self._raise_refused(flags)

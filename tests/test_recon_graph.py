@@ -12,7 +12,7 @@ from isosr_render import Renderer, open_volume, orbit_path, resolve_iso
 from isosr_render.sequence import sequence_requests
 from isosr_render.shading import ShadingParams
 from isosr_net.frame_methods import FrameMethod, Networks, make_runner
-from isosr_net.reconstructor import Reconstructor
+from isosr_net.reconstructor import GraphCache, Reconstructor
 
 SIZE = (96, 64)  # width, height
 OUTPUTS = ("mask", "normal", "depth", "position", "ao", "flow")  # with positions: the ray history too
@@ -92,3 +92,31 @@ def test_the_runner_makes_graphed_frames_like_eager_ones_and_keeps_copies():
             kept.append((a.buffers.flow, a.buffers.flow.clone()))
     for flow, when_made in kept:  # copies: later frames (the render plan's buffers) leave them alone
         torch.testing.assert_close(flow, when_made, rtol=0, atol=0)
+
+
+def test_the_graph_cache_keeps_the_most_recently_used_within_its_count_and_pixels():
+    cache = GraphCache(max_graphs=3, max_pixels=100)
+    for key, pixels in (("a", 40), ("b", 40)):
+        cache.add(key, key.upper(), pixels)
+    assert cache.use("a") == "A" and cache.use("z") is None
+    cache.add("c", "C", 40)  # 120 pixels: the least recently used ("b") goes
+    assert list(cache) == ["a", "c"]
+    for key in "def":
+        cache.add(key, key.upper(), 1)
+    assert list(cache) == ["d", "e", "f"]  # at most 3
+    cache.add("huge", "H", 1000)  # past the pixels alone: kept, every other dropped
+    assert list(cache) == ["huge"]
+
+
+@cuda
+def test_frames_stay_right_when_the_graph_cache_drops_and_captures_again():
+    """A cache bound to one frame's pixels: alternating sizes capture anew every frame."""
+    renderer, iso = scene("cuda")
+    options = dict(device="cuda", precision="fp16", channels_last=True)
+    graphed, eager = Reconstructor(graphs=True, **options), Reconstructor(**options)
+    graphed._frame_graphs.max_pixels = SIZE[0] * SIZE[1]
+    for size in (SIZE, (64, 48), SIZE):
+        for camera, request in sequence_requests(orbit_path(2, yaw_step=3.0), *size, iso, OUTPUTS, ao_samples=2):
+            _, a = graphed.render_reconstruct(renderer, camera, request, 2, 1)
+            assert_frames_close(a, eager.reconstruct(renderer.render(camera, request), 2, 1), atol=2e-2)
+            assert len(graphed._frame_graphs) == 1
