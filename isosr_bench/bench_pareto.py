@@ -4,7 +4,7 @@
     python -m isosr_bench.bench_pareto --device cuda --volumes ct_pitch,hydrogen --sizes 1080p
     python -m isosr_bench.bench_pareto --device cpu --smoke                 # small, in the test suite
     python -m isosr_bench.bench_pareto --device cuda --volumes avg152t1 --sizes 4k \
-        --kinds reconstruct,svgf --models tuned=runs/recon_history/best     # an A/B of two models, in minutes
+        --kinds reconstruct,svgf --models tuned=runs/recon_4k/best     # an A/B of two models, in minutes
 
 Every method of :mod:`isosr_net.frame_methods` (full resolution with 0-128 AO rays and 1, 2, 4
 rays per pixel; the a-trous filter, the SVGF temporal filter and OIDN (fast and high, where

@@ -5,9 +5,10 @@
 # RUN: recon2 (default; the model over the input rays: 0-16 AO rays, 1-4 rays per pixel, frames of
 # 512, 1024 and 2048 pixels), recon_x2 (the same, rendered at half the sides: it also upscales x2) or
 # recon_history (recon2's data with each frame's AO rays accumulated along the flow, as at inference;
-# its training fine-tuned recon_model_v2 into the shipped isosr_net/recon_model) or recon_x2_history
+# its training fine-tuned recon_model_v2 into isosr_net/recon_model_v3) or recon_x2_history
 # (the same for the x2 model: fine-tunes isosr_net/recon_x2_model) or recon_4k (recon_history's data with
-# frames of 1024, 2048 and 4096 pixels, so that crops also show 4K's pixel scale: fine-tunes isosr_net/recon_model).
+# frames of 1024, 2048 and 4096 pixels, so that crops also show 4K's pixel scale: fine-tuned recon_model_v3 into
+# the shipped isosr_net/recon_model).
 # FROM_DIR: a previous run's OUT_DIR; training resumes from its last/ (the trainer resumes from
 # runs/$RUN/last) and keeps its best/ unless it does better. Data goes to data/$RUN and the run to
 # runs/$RUN (both git-ignored; the same config renders the same data again); the logs, last/ (the
