@@ -24,7 +24,6 @@ another replica; for the others, errors and their longest gap between frames; an
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import subprocess
@@ -38,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from isosr_bench.bench_server import SIZES, ServerProcess, case_row, run_sessions
-from isosr_bench.common import bench_parser, commit, device_name, print_table, write_result
+from isosr_bench.common import bench_parser, commit, device_name, kept_rows, print_table, write_result
 from isosr_client.drive import Orbit
 from isosr_client.view import connect
 
@@ -154,12 +153,8 @@ def scaling(rows: list[dict]) -> list[dict]:
 def merge(path: Path, rows: list[dict], measured: set[str]) -> list[dict]:
     """The rows of an existing result at ``path`` for servers other than ``measured`` (each with
     its file's device and commit), then ``rows``; scaling rows are recomputed after."""
-    if not path.is_file():
-        return rows
-    record = json.loads(path.read_text())
-    kept = [{"device": record["device"], "commit": record["commit"], **r} for r in record["rows"]
-            if r.get("server") not in measured and r.get("study") != "scaling"]
-    return kept + rows
+    return kept_rows(path, lambda r: r.get("server") not in measured and r.get("study") != "scaling",
+                     stamp=("device", "commit")) + rows
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -43,7 +43,6 @@ size in an existing ``pareto_<kind>.json`` and the others are kept, so a long ru
 
 from __future__ import annotations
 
-import json
 import math
 import time
 import warnings
@@ -66,7 +65,8 @@ from isosr_net.upscaler import DEFAULT_MODEL
 
 from .bench_knobs import parse_models
 from .bench_pipeline import resampled
-from .common import bench_parser, commit, device_name, mean_ms, print_table, time_frames, write_result
+from .common import (bench_parser, commit, device_name, kept_rows, mean_ms, print_table, time_frames,
+                     write_result)
 
 NAME = "pareto"
 SELECT_NAME = "pareto_select"  # runs of some method kinds (--kinds), such as a quick A/B of two models
@@ -334,12 +334,8 @@ def run_stamp(device: str) -> dict:
 def merge(path: Path, rows: list[dict]) -> list[dict]:
     """``rows`` plus the rows of an existing result file at ``path`` for other (volume, size) pairs
     (those without a device of their own get the file's)."""
-    if not path.is_file():
-        return rows
     new = {(r["volume"], r["size"]) for r in rows}
-    record = json.loads(path.read_text())
-    kept = [{"device": record["device"], **r} for r in record["rows"] if (r["volume"], r["size"]) not in new]
-    return kept + rows
+    return kept_rows(path, lambda r: (r["volume"], r["size"]) not in new) + rows
 
 
 def main(argv=None) -> list[dict]:

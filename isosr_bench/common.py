@@ -10,6 +10,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Callable
 
 import torch
 
@@ -117,6 +118,16 @@ def write_result(name: str, device: str, rows: list[dict], out_dir: Path = RESUL
               "rows": rows}
     atomic_write(path, lambda f: f.write(json.dumps(record, indent=1).encode()))
     return path
+
+
+def kept_rows(path: Path, keep: Callable[[dict], bool], stamp: tuple[str, ...] = ("device",)) -> list[dict]:
+    """The rows of the result file at ``path`` that ``keep`` accepts (none if there is no file),
+    each given the file's ``stamp`` fields where it has none of its own: the rows a later run of a
+    study keeps beside those it measured."""
+    if not path.is_file():
+        return []
+    record = json.loads(path.read_text())
+    return [{**{key: record[key] for key in stamp}, **r} for r in record["rows"] if keep(r)]
 
 
 def print_table(rows: list[dict], columns: list[str]) -> None:
