@@ -41,7 +41,7 @@ DEFAULT_RECON_MODEL = Path(__file__).resolve().parent / "recon_model"
 RECON_X2_MODEL = DEFAULT_RECON_MODEL.parent / "recon_x2_model"  # the shipped model that also upscales x2
 # Captured CUDA graphs kept per Reconstructor (frame sizes x samplings x first frame or not), at
 # most this many and of frames of this many output pixels in all: a graph keeps its frame's
-# buffers (1-2 GB at 4K; 18 samplings x 2 sizes of two models took an H100's 80 GB). Four 4K
+# buffers (1-2 GB at 4K; 18 samplings x 2 sizes of three models took an H100's 80 GB). Four 4K
 # graphs, sixteen 1080p ones.
 MAX_GRAPHS = 32
 MAX_GRAPH_PIXELS = 4 * 3840 * 2160
