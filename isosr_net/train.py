@@ -115,6 +115,9 @@ class Trainer:
             dist.init_process_group("nccl" if self.device.type == "cuda" else "gloo")
         self.rank = dist.get_rank() if self.distributed else 0
         self.world = dist.get_world_size() if self.distributed else 1
+        if config.batch_size < self.world:
+            raise ValueError(f"batch_size {config.batch_size} gives some of the {self.world} processes no share of a "
+                             f"batch; give at least {self.world}")
         # This process's training: its steps and their wall seconds (validation and saving apart).
         self.timing = {"processes": self.world, "steps": 0, "train_s": 0.0}
         torch.manual_seed(config.seed)
@@ -132,9 +135,6 @@ class Trainer:
         self.d_optimizer = torch.optim.Adam(d_params, lr=config.lr_discriminator) if d_params else None
         self.train_set = SequenceDataset(config.data, "train").to(self.device)
         self.val_set = SequenceDataset(config.data, "val").to(self.device)
-        if config.batch_size < self.world:
-            raise ValueError(f"batch_size {config.batch_size} gives some of the {self.world} processes no share of a "
-                             f"batch; give at least {self.world}")
         if len(self.train_set) < config.batch_size:
             raise ValueError(f"{config.data} holds {len(self.train_set)} training crops, fewer than one batch "
                              f"({config.batch_size}); lower batch_size or render more data")
@@ -314,7 +314,9 @@ class Trainer:
                     for k, v in logs.items():
                         writer.add_scalar(f"train/{k}", v, self.step)
                 if self.step % self.config.checkpoint_every == 0:
+                    saving = time.monotonic()
                     self.save("last")
+                    started += time.monotonic() - saving  # the timing leaves saving out
                 if self.step >= self.config.steps or self.step % steps_per_epoch == 0 or time.monotonic() > deadline:
                     break
             self.timing["train_s"] += time.monotonic() - started
