@@ -182,16 +182,14 @@ def main(argv: list[str] | None = None) -> None:
     name = f"bench_cluster{'_gpus' if args.gpus_per_replica >= 1 else ''}_{size_name}"
     path = args.out / f"{name}_{'cuda' if args.device.startswith('cuda') else 'cpu'}.json"
     stamp = {"device": device_name(args.device), "commit": commit()}
-    names = {server for server, _ in measured}
-    rows: list[dict] = []
+    merged = merge(path, [], {server for server, _ in measured})  # the other servers' rows of earlier runs
     for server_name, extra in measured:
         cases = [(mode, ao, n) for mode, ao in CASES for n in counts]
         failover_sessions = args.failover_sessions if server_name == failover_on else 0
         for row in measure_server(server_name, args.device, options + extra, cases, failover_sessions,
                                   volume, size, seconds, args.client_processes):
-            rows.append(dict(row, **stamp))
+            merged.append(dict(row, **stamp))
             # Written after every row: a run cut off (a device call's time limit) keeps what it measured.
-            merged = merge(path, rows, names)
             scaled = scaling(merged)
             written = write_result(name, args.device, merged + scaled, args.out)
     print_table([r for r in merged if "mode" in r],

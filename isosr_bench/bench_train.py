@@ -130,5 +130,6 @@ def finish_run(processes: int, gpus: list[int], out: Path, process: subprocess.P
                          f"{(out / 'train.log').read_text(errors='replace')[-3000:]}")
     return run_row(out, processes, gpus)
 
+
 if __name__ == "__main__":
     main()
