@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 import warp as wp
 
-from isosr_render import Renderer, RenderRequest, Volume, open_volume, orbit_path, resolve_iso
+from isosr_render import Renderer, RenderRequest, Volume, kernels, open_volume, orbit_path, resolve_iso
 from isosr_render.flow_fill import fill_flow
 from isosr_render.sequence import sequence_requests
 from isosr_render.voxels import ArraySource
@@ -84,7 +84,7 @@ def bench_volume(volume: Volume, iso: float, device: str, smoke: bool) -> list[d
             renderer.render(*frames[i % FRAMES + 1])
         t = time_frames(frame, FRAMES, device, warmup=1 if smoke else 3)
         if device.startswith("cuda"):
-            t["kernel_ms"] = kernel_ms(frame, FRAMES, "render_")
+            t["kernel_ms"] = kernel_ms(frame, FRAMES, kernels.FRAME_KERNELS)
         request = frames[1][1]
         counts = count_samples(renderer, frames[1][0], request)
         ms = mean_ms(t)
@@ -122,7 +122,7 @@ def bench_render_calls(volume: Volume, iso: float, device: str, smoke: bool) -> 
     for variant, call in calls.items():
         t = time_frames(call, FRAMES, device, warmup=1 if smoke else 3)
         if device.startswith("cuda") and variant != "plan, CUDA graph":  # Warp times its own launches only
-            t["kernel_ms"] = kernel_ms(call, FRAMES, "render_")
+            t["kernel_ms"] = kernel_ms(call, FRAMES, kernels.FRAME_KERNELS)
         rows.append({"volume": volume.name, "voxels": "x".join(map(str, volume.shape)),
                      "case": f"recon render, AO 1 + flow: {variant}", "size": f"{w}x{h}",
                      "ms": mean_ms(t), **t})

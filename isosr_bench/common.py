@@ -93,8 +93,8 @@ def mean_ms(times: dict) -> float:
     return times.get("gpu_ms", times["wall_ms"])
 
 
-def kernel_ms(fn, frames: int, kernel: str) -> float:
-    """Mean CUDA time per call of ``fn(i)`` spent in Warp kernels whose name contains ``kernel``.
+def kernel_ms(fn, frames: int, kernels: tuple[str, ...]) -> float:
+    """Mean CUDA time per call of ``fn(i)`` spent in Warp kernels whose name contains one of ``kernels``.
 
     This is the GPU's own time, without launch overhead or idle gaps between launches.
     """
@@ -104,7 +104,7 @@ def kernel_ms(fn, frames: int, kernel: str) -> float:
     for i in range(frames):
         fn(i)
     results = wp.timing_end()
-    return sum(r.elapsed for r in results if kernel in r.name) / frames
+    return sum(r.elapsed for r in results if any(k in r.name for k in kernels)) / frames
 
 
 def write_result(name: str, device: str, rows: list[dict], out_dir: Path = RESULTS_DIR) -> Path:

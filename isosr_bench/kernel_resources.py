@@ -4,10 +4,11 @@ any machine (no GPU or driver needed: Warp's wheel carries NVRTC).
     python -m isosr_bench.kernel_resources                      # the renderer's kernels for sm_90 (H100/H200)
     python -m isosr_bench.kernel_resources --arch 80 --modules isosr_render.kernels
 
-Registers bound how many threads an SM keeps in flight (65536 per SM: 168 registers a thread
-leave 12 warps, 255 leave 8), and the ray caster is latency-bound: on an H100 the render
-kernel at 255 registers and a 120-byte stack took 1.3-1.4 times as long as at 166-168
-(``docs/measurements.md``, the bisection of the full-resolution regression). Read from the
+Registers bound how many threads an SM keeps in flight (65536 per SM: 80 registers a thread
+leave 25 warps, 168 leave 12, 255 leave 8), and the ray caster is latency-bound: on an H100 the
+render kernel at 255 registers and a 120-byte stack took 1.3-1.4 times as long as at 166-168,
+and that one kernel 1.4-1.7 times as long as the march alone at 80 plus the surface kernel at
+128 (``docs/measurements.md``). Read from the
 cubin's ``.nv.info`` attributes (ELF64): ``registers`` (EIATTR_REGCOUNT) and ``stack`` bytes
 (EIATTR_MIN_STACK_SIZE, the stack of a kernel without recursion: spills and local arrays).
 """
@@ -20,8 +21,8 @@ import struct
 import tempfile
 from pathlib import Path
 
-# The renderer's modules: its kernels, and the staged render kernel (CUDA graphs) in a module of its own.
-RENDER_MODULES = ("isosr_render.kernels", "isosr_render.kernels.staged")
+# The renderer's Warp modules.
+RENDER_MODULES = ("isosr_render.kernels",)
 EIATTR = {0x2F: "registers", 0x12: "stack"}
 EIFMT_SVAL = 0x04  # a record with a 16-bit size and that many bytes; the other formats take 4 bytes in all
 
@@ -59,8 +60,8 @@ def cubin_resources(cubin: bytes) -> dict[str, dict[str, int]]:
 
 
 def overload_names(module: str) -> dict[str, str]:
-    """Each compiled kernel's name (``render_kernel_<hash>``) to a readable one: the key and the types
-    its generic arguments take (``render_kernel(uint8, Dense)``). Read after the module is compiled."""
+    """Each compiled kernel's name (``first_hit_kernel_<hash>``) to a readable one: the key and the types
+    its generic arguments take (``first_hit_kernel(uint8, Dense)``). Read after the module is compiled."""
     import warp as wp
 
     names = {}

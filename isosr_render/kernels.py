@@ -14,10 +14,15 @@ include the one-voxel overlap), so skipping inactive bricks never loses a hit. R
 over inactive bricks by the Chebyshev distance to the nearest active one and march only
 active bricks. Buffer conventions: :mod:`isosr_render.conventions`.
 
-The voxels are the kernels' own argument, typed per storage (one compiled overload each), and the
-hot functions take the few values they read, never a whole struct: on CUDA each struct passed to
-a sampling function, or copied from device memory and live across the march, cost the render
-kernel 70-80 registers (178 -> 255 per thread on sm_90) and a third of its speed.
+A frame is two kernels that read its values (:class:`FrameArgs`) from device memory, so that a
+CUDA graph replays them for each frame staged after: the first hit of each ray
+(:func:`first_hit_kernel`, one thread a ray, the march alone: 80 registers per thread on sm_90),
+then per pixel the buffers made from its hits (:func:`surface_kernel`: normals, AO rays, flow).
+The ray caster is latency-bound, so the warps an SM keeps in flight set its speed: the one kernel
+that did both (166-168 registers, 12 warps an SM) took 1.4-1.7 times as long on an H100
+(``docs/measurements.md``). The voxels are the kernels' own argument, typed per storage (one
+compiled overload each), and the hot functions take the few values they read, never a whole
+struct: each struct passed to a sampling function cost 70-80 registers.
 """
 
 from __future__ import annotations
@@ -111,7 +116,7 @@ class RayParams:
 
 @wp.struct
 class FrameArgs:
-    """One frame's values, read by the kernel from device memory: a launch recorded (or captured
+    """One frame's values, read by the kernels from device memory: a launch recorded (or captured
     in a CUDA graph) once renders each new frame after a copy of this struct."""
 
     view: View
@@ -400,123 +405,195 @@ def project_to_pixel(view: View, p: wp.vec3) -> wp.vec3:
 
 
 @wp.func
-def trace_pixel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, args: FrameArgs, row0: int, rows: int, tid: int,
-                mask: wp.array2d(dtype=wp.float32), normal: wp.array2d(dtype=wp.vec3),
-                depth: wp.array2d(dtype=wp.float32), position: wp.array2d(dtype=wp.vec3),
-                flow: wp.array2d(dtype=wp.vec2), ao: wp.array2d(dtype=wp.float32),
-                samples: wp.array2d(dtype=wp.int32)):
-    """Thread ``tid``'s pixel of the band ``[row0, row0 + rows)``: first hit per subpixel sample, then the
-    asked buffers.
-
-    Threads walk the band in 8x4-pixel tiles, one tile per 32-thread warp, so that a warp's
-    rays stay close together (coherent brick walks and cache lines).
-    """
-    view = args.view
-    params = args.params
+def band_pixel(width: int, rows: int, tid: int) -> wp.vec2i:
+    """Thread ``tid``'s pixel ``(column, row in the band)`` of a band ``rows`` high; ``(-1, -1)`` past its
+    edge. Threads walk the band in 8x4-pixel tiles, one tile per 32-thread warp, so that a warp's
+    rays stay close together (coherent brick walks and cache lines)."""
     tile = tid // (TILE_W * TILE_H)
     lane = tid - tile * (TILE_W * TILE_H)
-    tiles_x = (view.width + TILE_W - 1) // TILE_W
+    tiles_x = (width + TILE_W - 1) // TILE_W
     c = (tile % tiles_x) * TILE_W + lane % TILE_W
     r = (tile // tiles_x) * TILE_H + lane // TILE_W
-    if c >= view.width or r >= rows:
-        return
-    row = r + row0
-    aspect = float(view.width) / float(view.height)
-    out = params.outputs
-    hits = float(0.0)
-    n_acc = wp.vec3(0.0)
-    depth_acc = float(0.0)
-    pos_acc = wp.vec3(0.0)
-    flow_acc = wp.vec2(0.0)
-    ao_acc = float(0.0)
-    sample_count = float(0.0)
-    for s in range(params.spp):
-        jx = 0.5
-        jy = 0.5
-        if params.spp > 1:
-            jx = wp.mod(0.5 + float(s) * R2_A1, 1.0)
-            jy = wp.mod(0.5 + float(s) * R2_A2, 1.0)
-        px = float(c) + jx
-        py = float(row) + jy
-        ndc_x = 2.0 * px / float(view.width) - 1.0
-        ndc_y = 1.0 - 2.0 * py / float(view.height)
-        dir = wp.normalize(view.right * (ndc_x * view.tan_half_fov * aspect)
-                           + view.up * (ndc_y * view.tan_half_fov) - view.back)
-        res = cast(voxels, layout, grid, view.eye, dir, 0.0, float(BIG), params.iso, params.step, params.refine_mode,
-                   params.refine_steps)
-        sample_count += res[1]
-        if res[0] >= 0.0:
-            hits += 1.0
-            p_world = view.eye + dir * res[0]
-            if (out & (OUT_NORMAL | OUT_AO)) != 0:
-                g = gradient_world(voxels, layout, grid, voxel_from_world(grid, p_world))
-                n = -dir  # where the gradient vanishes: face the camera
-                if wp.length(g) > 1.0e-20:
-                    n = wp.normalize(g)
-                    if wp.dot(n, dir) > 0.0:
-                        n = -n
-                n_acc += wp.vec3(wp.dot(n, view.right), wp.dot(n, view.up), wp.dot(n, view.back))
-                if (out & OUT_AO) != 0:
-                    state = wp.rand_init(params.seed, (row * view.width + c) * params.spp + s)
-                    occ = ambient_occlusion(voxels, layout, grid, p_world, n, params.iso, params.step,
-                                            params.ao_samples, params.ao_radius, state)
-                    ao_acc += occ[0]
-                    sample_count += occ[1]
-            depth_acc += -wp.dot(p_world - view.eye, view.back)
-            pos_acc += p_world
-            if (out & OUT_FLOW) != 0:
-                q = project_to_pixel(args.prev, p_world)
-                if q[2] > 0.0:
-                    flow_acc += wp.vec2(q[0] - px, q[1] - py)
+    if c >= width or r >= rows:
+        return wp.vec2i(-1, -1)
+    return wp.vec2i(c, r)
 
-    inv = 1.0 / wp.max(hits, 1.0)
+
+@wp.func
+def subpixel(c: int, row: int, s: int, spp: int) -> wp.vec2:
+    """Image position of sample ``s`` of ``spp`` in pixel ``(c, row)``: its center, or an R2 offset."""
+    if spp == 1:
+        return wp.vec2(float(c) + 0.5, float(row) + 0.5)
+    return wp.vec2(float(c) + wp.mod(0.5 + float(s) * R2_A1, 1.0), float(row) + wp.mod(0.5 + float(s) * R2_A2, 1.0))
+
+
+@wp.func
+def ray_direction(view: View, p: wp.vec2) -> wp.vec3:
+    """World direction (unit) of the camera ray through image position ``p``."""
+    aspect = float(view.width) / float(view.height)
+    ndc_x = 2.0 * p[0] / float(view.width) - 1.0
+    ndc_y = 1.0 - 2.0 * p[1] / float(view.height)
+    return wp.normalize(view.right * (ndc_x * view.tan_half_fov * aspect) + view.up * (ndc_y * view.tan_half_fov)
+                        - view.back)
+
+
+@wp.kernel
+def first_hit_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs),
+                     row0: int, rows: int, hits: wp.array3d(dtype=wp.float32), counts: wp.array3d(dtype=wp.int32)):
+    """One thread per sample of each pixel of the band ``[row0, row0 + rows)`` (samples outermost): the ray
+    parameter of its first iso crossing (world units, -1 where none) into ``hits[sample, row, column]``; with
+    ``OUT_SAMPLES``, the volume samples that took into ``counts`` alike. The march alone: few registers, so
+    that many warps in flight hide its memory latency."""
+    view = frame[0].view
+    params = frame[0].params
+    tid = wp.tid()
+    tiles = ((view.width + TILE_W - 1) // TILE_W) * ((rows + TILE_H - 1) // TILE_H) * TILE_W * TILE_H
+    s = tid // tiles
+    px = band_pixel(view.width, rows, tid - s * tiles)
+    if px[0] < 0:
+        return
+    row = px[1] + row0
+    dir = ray_direction(view, subpixel(px[0], row, s, params.spp))
+    res = cast(voxels, layout, grid, view.eye, dir, 0.0, float(BIG), params.iso, params.step, params.refine_mode,
+               params.refine_steps)
+    hits[s, row, px[0]] = res[0]
+    if (params.outputs & OUT_SAMPLES) != 0:
+        counts[s, row, px[0]] = int(res[1])
+
+
+# The surface kernels' register cap (16 warps an SM on sm_90). Uncapped, surface_kernel takes 134 and
+# surface_samples_kernel 168: its loop over rays keeps the frame's values live across the AO rays'
+# march; capped, it keeps some in ~120 bytes of stack and took 0.70-0.89 times as long on an H100
+# (4 rays per pixel, 1080p and 4K).
+SURFACE_MAX_REGISTERS = 128
+
+
+@wp.func
+def hit_surface(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs), c: int,
+                row: int, s: int, t: float):
+    """What ray ``s`` of pixel ``(c, row)``, its first hit at ``t``, gives the buffers that ``outputs`` asks
+    for: ``(hit point (world), depth, normal (camera axes), flow (pixels), AO, AO's volume samples)``."""
+    view = frame[0].view
+    params = frame[0].params
+    out = params.outputs
+    p = subpixel(c, row, s, params.spp)
+    dir = ray_direction(view, p)
+    p_world = view.eye + dir * t
+    n_view = wp.vec3(0.0)
+    occ = wp.vec2(0.0)
+    if (out & (OUT_NORMAL | OUT_AO)) != 0:
+        g = gradient_world(voxels, layout, grid, voxel_from_world(grid, p_world))
+        n = -dir  # where the gradient vanishes: face the camera
+        if wp.length(g) > 1.0e-20:
+            n = wp.normalize(g)
+            if wp.dot(n, dir) > 0.0:
+                n = -n
+        n_view = wp.vec3(wp.dot(n, view.right), wp.dot(n, view.up), wp.dot(n, view.back))
+        if (out & OUT_AO) != 0:
+            state = wp.rand_init(params.seed, (row * view.width + c) * params.spp + s)
+            occ = ambient_occlusion(voxels, layout, grid, p_world, n, params.iso, params.step, params.ao_samples,
+                                    params.ao_radius, state)
+    flow = wp.vec2(0.0)
+    if (out & OUT_FLOW) != 0:
+        q = project_to_pixel(frame[0].prev, p_world)
+        if q[2] > 0.0:
+            flow = wp.vec2(q[0] - p[0], q[1] - p[1])
+    return p_world, -wp.dot(p_world - view.eye, view.back), n_view, flow, occ[0], occ[1]
+
+
+@wp.func
+def store_pixel(frame: wp.array(dtype=FrameArgs), c: int, row: int, hit_count: float, p_sum: wp.vec3,
+                depth_sum: float, n_sum: wp.vec3, flow_sum: wp.vec2, ao_sum: float, sample_count: float,
+                mask: wp.array2d(dtype=wp.float32), normal: wp.array2d(dtype=wp.vec3),
+                depth: wp.array2d(dtype=wp.float32), position: wp.array2d(dtype=wp.vec3),
+                flow: wp.array2d(dtype=wp.vec2), ao: wp.array2d(dtype=wp.float32), samples: wp.array2d(dtype=wp.int32)):
+    """Write pixel ``(c, row)``'s asked buffers from the sums over its rays that hit (``hit_count`` of them)."""
+    params = frame[0].params
+    out = params.outputs
+    inv = 1.0 / wp.max(hit_count, 1.0)
     if (out & OUT_MASK) != 0:
-        mask[row, c] = hits / float(params.spp)
+        mask[row, c] = hit_count / float(params.spp)
     if (out & OUT_NORMAL) != 0:
         nv = wp.vec3(0.0)
-        if wp.length(n_acc) > 1.0e-12:
-            nv = wp.normalize(n_acc)
-        elif hits > 0.0:
+        if wp.length(n_sum) > 1.0e-12:
+            nv = wp.normalize(n_sum)
+        elif hit_count > 0.0:
             nv = wp.vec3(0.0, 0.0, 1.0)  # subpixel normals cancelled out: face the camera
         normal[row, c] = nv
     if (out & OUT_DEPTH) != 0:
-        depth[row, c] = depth_acc * inv
+        depth[row, c] = depth_sum * inv
     if (out & OUT_POSITION) != 0:
-        position[row, c] = pos_acc * inv
+        position[row, c] = p_sum * inv
     if (out & OUT_FLOW) != 0:
-        flow[row, c] = flow_acc * inv
+        flow[row, c] = flow_sum * inv
     if (out & OUT_AO) != 0:
-        ao[row, c] = ao_acc * inv
+        ao[row, c] = ao_sum * inv
     if (out & OUT_SAMPLES) != 0:
         samples[row, c] = int(sample_count)
 
 
-@wp.kernel
-def render_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, args: FrameArgs, row0: int, rows: int,
-                  mask: wp.array2d(dtype=wp.float32), normal: wp.array2d(dtype=wp.vec3),
-                  depth: wp.array2d(dtype=wp.float32), position: wp.array2d(dtype=wp.vec3),
-                  flow: wp.array2d(dtype=wp.vec2), ao: wp.array2d(dtype=wp.float32),
-                  samples: wp.array2d(dtype=wp.int32)):
-    """The frame's pixels (:func:`trace_pixel`), its values ``args`` a launch parameter."""
-    trace_pixel(voxels, layout, grid, args, row0, rows, wp.tid(), mask, normal, depth, position, flow, ao, samples)
+@wp.kernel(enable_backward=False, cuda_max_registers=SURFACE_MAX_REGISTERS)
+def surface_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs),
+                   row0: int, rows: int, hits: wp.array3d(dtype=wp.float32), counts: wp.array3d(dtype=wp.int32),
+                   mask: wp.array2d(dtype=wp.float32), normal: wp.array2d(dtype=wp.vec3),
+                   depth: wp.array2d(dtype=wp.float32), position: wp.array2d(dtype=wp.vec3),
+                   flow: wp.array2d(dtype=wp.vec2), ao: wp.array2d(dtype=wp.float32), samples: wp.array2d(dtype=wp.int32)):
+    """One ray per pixel: per pixel of the band, from its first hit (:func:`first_hit_kernel`), the asked buffers
+    (``FrameArgs.params.outputs``), AO rays cast from the hit."""
+    px = band_pixel(frame[0].view.width, rows, wp.tid())
+    if px[0] < 0:
+        return
+    c = px[0]
+    row = px[1] + row0
+    t = hits[0, row, c]
+    sample_count = float(0.0)
+    if (frame[0].params.outputs & OUT_SAMPLES) != 0:
+        sample_count = float(counts[0, row, c])
+    if t < 0.0:
+        store_pixel(frame, c, row, 0.0, wp.vec3(0.0), 0.0, wp.vec3(0.0), wp.vec2(0.0), 0.0, sample_count, mask,
+                    normal, depth, position, flow, ao, samples)
+        return
+    p_world, d, n_view, fl, occ, occ_samples = hit_surface(voxels, layout, grid, frame, c, row, 0, t)
+    store_pixel(frame, c, row, 1.0, p_world, d, n_view, fl, occ, sample_count + occ_samples, mask, normal, depth,
+                position, flow, ao, samples)
 
 
-# As many registers as render_kernel takes: what the copy of the frame's values adds (about 30) the
-# compiler then keeps in the stack (136 bytes, read once per ray) instead of costing occupancy (254 registers).
-STAGED_MAX_REGISTERS = 168
-
-
-@wp.kernel(enable_backward=False, cuda_max_registers=STAGED_MAX_REGISTERS, module=f"{__name__}.staged")
-def render_staged_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs),
-                         row0: int, rows: int, mask: wp.array2d(dtype=wp.float32), normal: wp.array2d(dtype=wp.vec3),
-                         depth: wp.array2d(dtype=wp.float32), position: wp.array2d(dtype=wp.vec3),
-                         flow: wp.array2d(dtype=wp.vec2), ao: wp.array2d(dtype=wp.float32),
-                         samples: wp.array2d(dtype=wp.int32)):
-    """:func:`render_kernel` with the frame's values read from device memory (``frame`` holds one `FrameArgs`):
-    a launch captured in a CUDA graph renders each frame staged after. Its own module, loaded only where
-    graphs may be captured (CUDA): the copy stays live through the march (the kernel's writes might alias
-    it), so launches that are not captured take the values as a parameter."""
-    trace_pixel(voxels, layout, grid, frame[0], row0, rows, wp.tid(), mask, normal, depth, position, flow, ao, samples)
+@wp.kernel(enable_backward=False, cuda_max_registers=SURFACE_MAX_REGISTERS)
+def surface_samples_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs),
+                           row0: int, rows: int, hits: wp.array3d(dtype=wp.float32),
+                           counts: wp.array3d(dtype=wp.int32), mask: wp.array2d(dtype=wp.float32),
+                           normal: wp.array2d(dtype=wp.vec3), depth: wp.array2d(dtype=wp.float32),
+                           position: wp.array2d(dtype=wp.vec3), flow: wp.array2d(dtype=wp.vec2),
+                           ao: wp.array2d(dtype=wp.float32), samples: wp.array2d(dtype=wp.int32)):
+    """:func:`surface_kernel` for several rays per pixel: the buffers averaged over the rays that hit."""
+    px = band_pixel(frame[0].view.width, rows, wp.tid())
+    if px[0] < 0:
+        return
+    c = px[0]
+    row = px[1] + row0
+    count_samples = (frame[0].params.outputs & OUT_SAMPLES) != 0
+    hit_count = float(0.0)
+    p_sum = wp.vec3(0.0)
+    depth_sum = float(0.0)
+    n_sum = wp.vec3(0.0)
+    flow_sum = wp.vec2(0.0)
+    ao_sum = float(0.0)
+    sample_count = float(0.0)
+    for s in range(frame[0].params.spp):
+        t = hits[s, row, c]
+        if count_samples:
+            sample_count += float(counts[s, row, c])
+        if t >= 0.0:
+            p_world, d, n_view, fl, occ, occ_samples = hit_surface(voxels, layout, grid, frame, c, row, s, t)
+            hit_count += 1.0
+            p_sum += p_world
+            depth_sum += d
+            n_sum += n_view
+            flow_sum += fl
+            ao_sum += occ
+            sample_count += occ_samples
+    store_pixel(frame, c, row, hit_count, p_sum, depth_sum, n_sum, flow_sum, ao_sum, sample_count, mask, normal,
+                depth, position, flow, ao, samples)
 
 
 # The voxels' device types and layouts: one compiled overload of each voxel-reading kernel per pair.
@@ -525,5 +602,7 @@ LAYOUTS = (Dense, Sparse)
 for _dtype in VOXEL_TYPES:
     wp.overload(minmax_kernel, {"voxels": wp.array3d(dtype=_dtype)})
     for _layout in LAYOUTS:
-        for _kernel in (render_kernel, render_staged_kernel):
+        for _kernel in (first_hit_kernel, surface_kernel, surface_samples_kernel):
             wp.overload(_kernel, {"voxels": wp.array3d(dtype=_dtype), "layout": _layout})
+# The kernels that render a frame, by name.
+FRAME_KERNELS = ("first_hit_kernel", "surface_kernel", "surface_samples_kernel")

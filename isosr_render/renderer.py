@@ -52,7 +52,7 @@ PLAN_CACHE = 4
 DENSE_SHARE = 0.5
 # The voxels' Warp type on the device, per storage name (see isosr_render.volume).
 STORE_TYPES = {"float32": wp.float32, "uint16": wp.uint16, "uint8": wp.uint8}
-# render_kernel's buffers in its argument order: OUT_* bit and Warp type.
+# surface_kernel's buffers in its argument order: OUT_* bit and Warp type.
 KERNEL_BUFFERS = {"mask": (kernels.OUT_MASK, wp.float32), "normal": (kernels.OUT_NORMAL, wp.vec3),
                   "depth": (kernels.OUT_DEPTH, wp.float32), "position": (kernels.OUT_POSITION, wp.vec3),
                   "flow": (kernels.OUT_FLOW, wp.vec2), "ao": (kernels.OUT_AO, wp.float32),
@@ -139,8 +139,8 @@ class RenderRequest:
         return sum(KERNEL_BUFFERS[name][0] for name in need if name in KERNEL_BUFFERS)
 
     def plan_key(self) -> tuple:
-        """What a :class:`RenderPlan` fixes: size and buffers; the rest may change per frame."""
-        return self.width, self.height, self.outputs, self.flow_fill
+        """What a :class:`RenderPlan` fixes: size, buffers and rays per pixel; the rest may change per frame."""
+        return self.width, self.height, self.outputs, self.flow_fill, self.spp
 
 
 def warp_device(device: str):
@@ -205,8 +205,6 @@ class Renderer:
         self.device = warp_device(device)
         self.threads = 1 if self.device.is_cuda else (threads or os.cpu_count() or 1)
         wp.load_module(kernels, device=self.device)
-        if self.device.is_cuda:  # the kernel that CUDA graphs capture, loaded before any capture
-            wp.load_module(kernels.render_staged_kernel.module, device=self.device)
         self.brick_size = brick_size
         self.max_device_bytes = max_device_bytes = device_limit(self.device, max_device_bytes)
         self._base = self._base_grid()
@@ -235,8 +233,9 @@ class Renderer:
         self._plans: OrderedDict[tuple, RenderPlan] = OrderedDict()
         self._plans_lock = threading.Lock()
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
-        # 1x1 stand-ins for buffers a request does not ask for.
+        # 1x1 stand-ins for buffers a request does not ask for (and for the per-sample march counts).
         self._unused = {t: wp.empty((1, 1), dtype=t, device=self.device) for t in (wp.float32, wp.vec2, wp.vec3, wp.int32)}
+        self._unused_counts = wp.empty((1, 1, 1), dtype=wp.int32, device=self.device)
 
     def _base_grid(self) -> kernels.Grid:
         """The iso-independent part of the kernels' grid (a 1x1x1 stand-in for the distance grid)."""
@@ -377,12 +376,13 @@ class RenderPlan:
             frame = plan.render(camera, replace(request, prev_camera=prev))  # the plan's buffers
 
     The buffers are made once. Per frame, :meth:`stage` packs the camera, the previous camera and
-    the ray parameters (iso, step, seed, spp, AO rays...) and, on CUDA, copies them to the device
-    (pinned and asynchronous on the current torch stream); :meth:`launch` runs the kernel with them
-    as a launch parameter, or, while a CUDA graph is captured (``torch.cuda.graph``), the kernel that
-    reads them from the device, so that the graph replays each frame staged after. Neither
-    allocates nor waits for the device. A captured launch keeps the iso's grid it was captured
-    with: capture again for another iso.
+    the ray parameters (iso, step, seed, AO rays...) and copies them to the device (on CUDA pinned
+    and asynchronous on the current torch stream); :meth:`launch` runs the two kernels that read
+    them there: the first hit of each ray (:func:`~isosr_render.kernels.first_hit_kernel`), then
+    the buffers from the hits (:func:`~isosr_render.kernels.surface_kernel`; for several rays per
+    pixel ``surface_samples_kernel``). Neither allocates nor waits for the device, so a launch
+    captured in a CUDA graph (``torch.cuda.graph``) renders each frame staged before its replay.
+    A captured launch keeps the iso's grid it was captured with: capture again for another iso.
 
     The tensors a frame returns are views of the plan's buffers, valid until its next frame:
     clone what must outlive it.
@@ -395,35 +395,38 @@ class RenderPlan:
         self.arrays = {name: wp.empty(shape, dtype=dtype, device=device) if bits & bit else renderer._unused[dtype]
                        for name, (bit, dtype) in KERNEL_BUFFERS.items()}
         self.tensors = {name: wp.to_torch(self.arrays[name]) for name, (bit, _) in KERNEL_BUFFERS.items() if bits & bit}
-        # The staged FrameArgs: a launch parameter, and on CUDA a copy in torch memory (stream-ordered
-        # copies) that captured launches read, seen by Warp as one struct.
-        self._values = None
+        # Per ray (rays per pixel, rows, columns): the first hit's ray parameter, and its march's sample count.
+        self._hits = wp.empty((request.spp, *shape), dtype=wp.float32, device=device)
+        self._counts = (wp.empty((request.spp, *shape), dtype=wp.int32, device=device)
+                        if bits & kernels.OUT_SAMPLES else renderer._unused_counts)
+        # The staged FrameArgs in torch memory (stream-ordered copies), seen by Warp as one struct.
         self._args_bytes = torch.zeros(FRAME_DTYPE.itemsize, dtype=torch.uint8, device=renderer.torch_device)
         self._args = wp.array(ptr=self._args_bytes.data_ptr(), dtype=kernels.FrameArgs, shape=(1,), device=device)
         self._grid: kernels.Grid | None = None
-        self._launches: dict[bool, tuple[tuple, list[wp.Launch]]] = {}  # captured? -> (grid, voxels, rows), launches
+        self._launches: tuple[tuple, list[tuple[wp.Launch, wp.Launch]]] | None = None  # (grid, voxels, bands), launches
 
     def check(self, request: RenderRequest) -> None:
-        """ValueError unless ``request`` has the plan's size, outputs and flow fill."""
+        """ValueError unless ``request`` has the plan's size, outputs, flow fill and rays per pixel."""
         if request.plan_key() != self.key:
-            w, h, outputs, fill = self.key
-            raise ValueError(f"this render plan renders {w}x{h} {outputs} (flow fill {fill!r}), not "
-                             f"{request.width}x{request.height} {request.outputs} (flow fill {request.flow_fill!r}): "
-                             "make a plan for that request (Renderer.plan)")
+            w, h, outputs, fill, spp = self.key
+            raise ValueError(f"this render plan renders {w}x{h} {outputs} (flow fill {fill!r}, spp {spp}), not "
+                             f"{request.width}x{request.height} {request.outputs} (flow fill {request.flow_fill!r}, "
+                             f"spp {request.spp}): make a plan for that request (Renderer.plan)")
 
     def stage(self, camera: Camera, request: RenderRequest) -> None:
         """Copy the frame's values to the device (ordered before later work on the torch stream) and
         select the grid of its iso (sparse volumes page its bricks in here)."""
         self.check(request)
         self._grid = self.renderer.grid(request.iso, request.skip)
-        args = frame_args(camera, request, request.step or self.renderer.default_step())
-        self._values = kernels.FrameArgs.ctype.from_buffer_copy(args.tobytes())
+        args = torch.from_numpy(frame_args(camera, request, request.step or self.renderer.default_step()).view(np.uint8))
         if self.renderer.device.is_cuda:
             # A pinned block of torch's host cache: not reused before this copy has run.
-            self._args_bytes.copy_(torch.from_numpy(args.view(np.uint8)).pin_memory(), non_blocking=True)
+            self._args_bytes.copy_(args.pin_memory(), non_blocking=True)
+        else:
+            self._args_bytes.copy_(args)
 
     def launch(self, rows: tuple[int, int] | None = None) -> None:
-        """Render the staged frame into the plan's buffers: on CUDA one kernel on the current torch
+        """Render the staged frame into the plan's buffers: on CUDA its two kernels on the current torch
         stream (capturable in a CUDA graph); on CPUs row bands over the renderer's threads.
 
         Args:
@@ -438,37 +441,41 @@ class RenderPlan:
         renderer = self.renderer
         if renderer.device.is_cuda:
             stream = wp.stream_from_torch(torch.cuda.current_stream(renderer.device.ordinal))
-            for launch in self._recorded(((row0, row1 - row0),), torch.cuda.is_current_stream_capturing()):
-                launch.launch(stream)
+            for first_hit, surface in self._recorded(((row0, row1 - row0),)):
+                first_hit.launch(stream)
+                surface.launch(stream)
             return
         bands = np.array_split(np.arange(row0, row1), min(row1 - row0, 4 * renderer.threads))
-        launches = self._recorded(tuple((int(b[0]), len(b)) for b in bands if len(b)), False)
-        if renderer._pool is None:
-            for launch in launches:
-                launch.launch()
-        else:
-            list(renderer._pool.map(lambda launch: launch.launch(), launches))
+        launches = self._recorded(tuple((int(b[0]), len(b)) for b in bands if len(b)))
 
-    def _recorded(self, bands: tuple[tuple[int, int], ...], captured: bool) -> list[wp.Launch]:
-        """The kernel's launches over row bands ``(row0, rows)``, recorded once per grid, voxel array and
-        bands: for a CUDA graph (``captured``) the kernel that reads the staged values from the device,
-        else the one that takes them as a parameter (set here for the staged frame)."""
+        def band(pair: tuple[wp.Launch, wp.Launch]) -> None:
+            for launch in pair:
+                launch.launch()
+
+        if renderer._pool is None:
+            for pair in launches:
+                band(pair)
+        else:
+            list(renderer._pool.map(band, launches))
+
+    def _recorded(self, bands: tuple[tuple[int, int], ...]) -> list[tuple[wp.Launch, wp.Launch]]:
+        """The kernels' launches (first hit, surface) over row bands ``(row0, rows)``, recorded once per grid,
+        voxel array and bands."""
         grid, voxels, renderer = self._grid, self.renderer.voxels, self.renderer
         key = (id(grid), voxels.ptr, bands)
-        if self._launches.get(captured, (None,))[0] != key:
-            kernel, args = ((kernels.render_staged_kernel, self._args) if captured
-                            else (kernels.render_kernel, kernels.FrameArgs()))
-            tiles_x, tile = -(-self.key[0] // kernels.TILE_W), kernels.TILE_W * kernels.TILE_H
-            self._launches[captured] = key, [
-                wp.launch(kernel, dim=tiles_x * -(-rows // kernels.TILE_H) * tile, device=renderer.device,
-                          inputs=[voxels, renderer.layout, grid, args, row0, rows, *self.arrays.values()],
-                          record_cmd=True)
+        if self._launches is None or self._launches[0] != key:
+            tiles_x, tile, spp = -(-self.key[0] // kernels.TILE_W), kernels.TILE_W * kernels.TILE_H, self.key[4]
+            surface = kernels.surface_kernel if spp == 1 else kernels.surface_samples_kernel
+            common = [voxels, renderer.layout, grid, self._args]
+            self._launches = key, [
+                (wp.launch(kernels.first_hit_kernel, dim=spp * tiles_x * -(-rows // kernels.TILE_H) * tile,
+                           inputs=[*common, row0, rows, self._hits, self._counts], device=renderer.device,
+                           record_cmd=True),
+                 wp.launch(surface, dim=tiles_x * -(-rows // kernels.TILE_H) * tile,
+                           inputs=[*common, row0, rows, self._hits, self._counts, *self.arrays.values()],
+                           device=renderer.device, record_cmd=True))
                 for row0, rows in bands]
-        launches = self._launches[captured][1]
-        if not captured:
-            for launch in launches:
-                launch.set_param_by_name_from_ctype("args", self._values)
-        return launches
+        return self._launches[1]
 
     def buffers(self, request: RenderRequest) -> FrameBuffers:
         """The rendered frame as ``request`` asks for it: the plan's buffers (views), plus the passes

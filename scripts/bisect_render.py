@@ -6,7 +6,8 @@
 Each tree's `isosr_render` runs in a fresh interpreter (the same module names, other code). Its
 kernels are compiled first, all trees at once; then, one tree after another, the cases below
 are timed over an orbit at 1920x1080: ``call_ms`` (CUDA events around each
-``Renderer.render``, new buffers) and ``kernel_ms`` (the render kernel alone, Warp's timing).
+``Renderer.render``, new buffers) and ``kernel_ms`` (the render kernels alone, Warp's timing:
+``render_kernel`` up to 283f2bc, ``first_hit_kernel`` and a surface kernel after).
 The API used is the one every commit since 877f0f0 shares.
 """
 
@@ -23,12 +24,15 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 STAGE = ROOT / ".bisect"
 FIRST_HIT = ("mask", "normal", "depth")
-# (volume, case, outputs, AO rays, with a previous camera)
-CASES = [("ct_pitch", "first hit", FIRST_HIT, 1, False),
-         ("ct_pitch", "AO 1 + flow", FIRST_HIT + ("ao", "flow"), 1, True),
-         ("ct_pitch", "AO 64", ("mask", "normal", "ao"), 64, False),
-         ("bonsai", "first hit", FIRST_HIT, 1, False),
-         ("bonsai", "AO 64", ("mask", "normal", "ao"), 64, False)]
+# The render's kernels in any tree (in their timing names).
+RENDER_KERNELS = ("render_kernel", "first_hit_kernel", "surface_kernel", "surface_samples_kernel")
+# (volume, case, outputs, AO rays, with a previous camera, rays per pixel)
+CASES = [("ct_pitch", "first hit", FIRST_HIT, 1, False, 1),
+         ("ct_pitch", "AO 1 + flow", FIRST_HIT + ("ao", "flow"), 1, True, 1),
+         ("ct_pitch", "AO 1 + flow, spp 4", FIRST_HIT + ("ao", "flow"), 1, True, 4),
+         ("ct_pitch", "AO 64", ("mask", "normal", "ao"), 64, False, 1),
+         ("bonsai", "first hit", FIRST_HIT, 1, False, 1),
+         ("bonsai", "AO 64", ("mask", "normal", "ao"), 64, False, 1)]
 
 
 def stage(commits: list[str]) -> None:
@@ -64,7 +68,7 @@ def child(tree: str, frames: int, compile_only: bool) -> None:
         return
     rows, renderers = [], {}
     path = orbit_path(frames + 3, yaw0=20.0, yaw_step=3.0, pitch=20.0, distance=1.8)
-    for name, case, outputs, ao, flow in CASES:
+    for name, case, outputs, ao, flow, spp in CASES:
         if name not in renderers:
             volume = open_volume(f"shared:{name}")
             renderers[name] = (Renderer(volume, "cuda"), resolve_iso(f"shared:{name}", volume))
@@ -72,7 +76,7 @@ def child(tree: str, frames: int, compile_only: bool) -> None:
 
         def render(i: int):
             request = RenderRequest(1920, 1080, iso, outputs, ao_samples=ao, ao_radius=0.02,
-                                    prev_camera=path[i] if flow else None)
+                                    prev_camera=path[i] if flow else None, spp=spp)
             return renderer.render(path[i + 1], request)
 
         for i in range(2):
@@ -90,7 +94,7 @@ def child(tree: str, frames: int, compile_only: bool) -> None:
         for i in range(frames):
             render(i + 2)
         results = wp.timing_end()
-        kernel = sum(r.elapsed for r in results if "render_kernel" in r.name) / frames
+        kernel = sum(r.elapsed for r in results if any(k in r.name for k in RENDER_KERNELS)) / frames
         rows.append({"volume": name, "case": case, "call_ms": round(call, 3), "kernel_ms": round(kernel, 3)})
     print("ROWS " + json.dumps(rows))
 

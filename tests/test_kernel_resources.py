@@ -1,10 +1,11 @@
 """The renderer's CUDA kernels compiled for the H100/H200 (sm_90) by NVRTC on this machine, no GPU
 needed (isosr_bench.kernel_resources): their registers stay where the measured speed is.
 
-On an H100 the render kernel at 255 registers and a 120-byte stack (a frame struct copied from
-device memory, the whole grid struct passed to each sample, the dense and sparse paths in one
-kernel) took 1.3-1.4 times as long as at 166-168 (docs/measurements.md): a change that brings
-such registers back fails here, before anyone times it.
+The ray caster is latency-bound: on an H100 one kernel that marched and then made the buffers
+(166-168 registers, 12 warps an SM) took 1.4-1.7 times as long as the march alone at 80
+registers plus the surface kernel at 128; at 255 registers and a 120-byte stack it had taken
+1.3-1.4 times as long again (docs/measurements.md). A change that brings such registers back
+fails here, before anyone times it.
 """
 
 from __future__ import annotations
@@ -14,10 +15,12 @@ import pytest
 from isosr_bench.kernel_resources import RENDER_MODULES, module_resources
 from isosr_render import kernels
 
-# The render kernel's registers per thread on sm_90 (166-168 measured; 176 leaves 11 warps an SM, 255 left 8).
-MAX_RENDER_REGISTERS = 176
-# Bytes of stack the render kernel keeps without spilling (its random state and small locals).
-MAX_RENDER_STACK = 32
+# The first-hit march's registers per thread on sm_90 (80 measured: 25 warps an SM; 96 leave 21).
+MAX_FIRST_HIT_REGISTERS = 88
+# Bytes of stack a kernel keeps without spilling (its random state and small locals).
+MAX_STACK = 40
+# The surface kernel for several rays per pixel spills some of the frame's values under its cap.
+MAX_SAMPLES_STACK = 160
 OVERLOADS = [f"({t.__name__}, {layout.key})" for t in kernels.VOXEL_TYPES for layout in kernels.LAYOUTS]
 
 
@@ -31,19 +34,21 @@ def resources() -> dict[str, dict[str, int]]:
 
 
 def test_every_overload_is_compiled_and_read(resources):
-    for name in ("render_kernel", "render_staged_kernel"):
+    for name in kernels.FRAME_KERNELS:
         assert {f"{name}{o}" for o in OVERLOADS} <= set(resources), sorted(resources)
     assert all(r["registers"] > 0 for r in resources.values())
 
 
-def test_render_kernel_registers_and_stack(resources):
+def test_first_hit_kernel_registers_and_stack(resources):
     for overload in OVERLOADS:
-        r = resources[f"render_kernel{overload}"]
-        assert r["registers"] <= MAX_RENDER_REGISTERS and r["stack"] <= MAX_RENDER_STACK, (overload, r)
+        r = resources[f"first_hit_kernel{overload}"]
+        assert r["registers"] <= MAX_FIRST_HIT_REGISTERS and r["stack"] <= MAX_STACK, (overload, r)
 
 
-def test_staged_kernel_registers_capped(resources):
-    """The kernel CUDA graphs capture keeps the frame's values in the stack, not in registers."""
+def test_surface_kernels_registers_capped(resources):
+    """Both surface kernels keep their cap; the one-ray kernel spills nothing under it."""
     for overload in OVERLOADS:
-        r = resources[f"render_staged_kernel{overload}"]
-        assert r["registers"] <= kernels.STAGED_MAX_REGISTERS, (overload, r)
+        one, several = resources[f"surface_kernel{overload}"], resources[f"surface_samples_kernel{overload}"]
+        assert one["registers"] <= kernels.SURFACE_MAX_REGISTERS and one["stack"] <= MAX_STACK, (overload, one)
+        assert several["registers"] <= kernels.SURFACE_MAX_REGISTERS, (overload, several)
+        assert several["stack"] <= MAX_SAMPLES_STACK, (overload, several)

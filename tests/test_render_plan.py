@@ -129,7 +129,8 @@ def test_plan_refuses_other_requests(sphere_volume, sphere_renderer):
     with pytest.raises(ValueError, match="stage a frame"):
         plan.launch()
     for other in (dataclasses.replace(request, width=W + 8), dataclasses.replace(request, outputs=("mask",)),
-                  dataclasses.replace(request, outputs=("mask", "flow"), prev_camera=CAMERAS[0], flow_fill="ns")):
+                  dataclasses.replace(request, outputs=("mask", "flow"), prev_camera=CAMERAS[0], flow_fill="ns"),
+                  dataclasses.replace(request, spp=2)):
         with pytest.raises(ValueError, match="render plan renders 48x36"):
             plan.render(CAMERAS[0], other)
     plan.stage(CAMERAS[0], request)
@@ -170,11 +171,13 @@ cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 
 
 @cuda
-def test_plan_launch_replays_from_a_cuda_graph(sphere_volume):
-    """The launch captured once renders every frame staged after it, as fresh renders do."""
+@pytest.mark.parametrize("spp", [1, 3])
+def test_plan_launch_replays_from_a_cuda_graph(sphere_volume, spp):
+    """The launches captured once (first hit, then the surface kernel of one ray or several per pixel)
+    render every frame staged after them, as fresh renders do."""
     renderer = Renderer(sphere_volume, "cuda")
     request = request_of(sphere_volume.normalized_iso(0.0), ("mask", "normal", "depth", "ao", "flow"),
-                         ao_samples=2, ao_radius=0.1)
+                         ao_samples=2, ao_radius=0.1, spp=spp)
     frames = frames_of(request, CAMERAS + [orbit(50.0, 10.0, 1.25)])
     plan = renderer.plan(frames[1][1])
     plan.render(*frames[1])  # records the launch and loads the module outside the capture
