@@ -45,7 +45,7 @@ MAX_AO_SAMPLES = 4096
 # Cap of the brick distance grid: a ray leaps at most (2 MAX_LEAP - 1) bricks at once.
 MAX_LEAP = 16
 GRID_CACHE = 4
-# Render plans that Renderer.render keeps (one per size and outputs, thread and CUDA stream; each holds
+# Render plans that Renderer.render keeps (one per plan key, thread and CUDA stream; each holds
 # one frame's buffers): a plan made per call cost 0.6-0.9 ms of host time on the GPU machine.
 PLAN_CACHE = 4
 # Without a limit, a CUDA renderer keeps a volume dense while it takes at most this share of free memory.
