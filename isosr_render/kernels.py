@@ -440,8 +440,9 @@ def ray_direction(view: View, p: wp.vec2) -> wp.vec3:
 @wp.kernel
 def first_hit_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs),
                      row0: int, rows: int, hits: wp.array3d(dtype=wp.float32), counts: wp.array3d(dtype=wp.int32)):
-    """One thread per sample of each pixel of the band ``[row0, row0 + rows)`` (samples outermost): the ray
-    parameter of its first iso crossing (world units, -1 where none) into ``hits[sample, row, column]``; with
+    """One thread per ray of the first ``hits.shape[0]`` of each pixel of the band ``[row0, row0 + rows)`` (rays
+    outermost): the ray parameter of its first iso crossing (world units, -1 where none) into
+    ``hits[ray, row, column]``; with
     ``OUT_SAMPLES``, the volume samples that took into ``counts`` alike. The march alone: few registers, so
     that many warps in flight hide its memory latency."""
     view = frame[0].view
@@ -461,10 +462,13 @@ def first_hit_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, fra
         counts[s, row, px[0]] = int(res[1])
 
 
+# Rays per pixel whose first hits a render plan keeps (spp x H x W floats); surface_samples_kernel
+# marches those past them itself, so a plan's memory stays bounded whatever the rays per pixel.
+HIT_PLANES = 8
 # The surface kernels' register cap (16 warps an SM on sm_90). Uncapped, surface_kernel takes 134 and
 # surface_samples_kernel 168: its loop over rays keeps the frame's values live across the AO rays'
-# march; capped, it keeps some in ~120 bytes of stack and took 0.70-0.89 times as long on an H100
-# (4 rays per pixel, 1080p and 4K).
+# march; capped, it kept some in ~120 bytes of stack and took 0.70-0.89 times as long on an H100
+# (4 rays per pixel, 1080p and 4K); marching the rays past HIT_PLANES too, 232-240 bytes (not timed).
 SURFACE_MAX_REGISTERS = 128
 
 
@@ -565,7 +569,8 @@ def surface_samples_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Gri
                            normal: wp.array2d(dtype=wp.vec3), depth: wp.array2d(dtype=wp.float32),
                            position: wp.array2d(dtype=wp.vec3), flow: wp.array2d(dtype=wp.vec2),
                            ao: wp.array2d(dtype=wp.float32), samples: wp.array2d(dtype=wp.int32)):
-    """:func:`surface_kernel` for several rays per pixel: the buffers averaged over the rays that hit."""
+    """:func:`surface_kernel` for several rays per pixel: the buffers averaged over the rays that hit. Rays past
+    the first ``hits.shape[0]`` (the planes a plan keeps, :data:`HIT_PLANES`) are marched here."""
     px = band_pixel(frame[0].view.width, rows, wp.tid())
     if px[0] < 0:
         return
@@ -580,9 +585,18 @@ def surface_samples_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Gri
     ao_sum = float(0.0)
     sample_count = float(0.0)
     for s in range(frame[0].params.spp):
-        t = hits[s, row, c]
-        if count_samples:
-            sample_count += float(counts[s, row, c])
+        t = float(-1.0)
+        if s < hits.shape[0]:
+            t = hits[s, row, c]
+            if count_samples:
+                sample_count += float(counts[s, row, c])
+        else:
+            view = frame[0].view
+            params = frame[0].params
+            res = cast(voxels, layout, grid, view.eye, ray_direction(view, subpixel(c, row, s, params.spp)), 0.0,
+                       float(BIG), params.iso, params.step, params.refine_mode, params.refine_steps)
+            t = res[0]
+            sample_count += res[1]
         if t >= 0.0:
             p_world, d, n_view, fl, occ, occ_samples = hit_surface(voxels, layout, grid, frame, c, row, s, t)
             hit_count += 1.0

@@ -395,9 +395,11 @@ class RenderPlan:
         self.arrays = {name: wp.empty(shape, dtype=dtype, device=device) if bits & bit else renderer._unused[dtype]
                        for name, (bit, dtype) in KERNEL_BUFFERS.items()}
         self.tensors = {name: wp.to_torch(self.arrays[name]) for name, (bit, _) in KERNEL_BUFFERS.items() if bits & bit}
-        # Per ray (rays per pixel, rows, columns): the first hit's ray parameter, and its march's sample count.
-        self._hits = wp.empty((request.spp, *shape), dtype=wp.float32, device=device)
-        self._counts = (wp.empty((request.spp, *shape), dtype=wp.int32, device=device)
+        # Per ray of the first HIT_PLANES of each pixel (rays, rows, columns): the first hit's ray parameter,
+        # and its march's sample count.
+        planes = (min(request.spp, kernels.HIT_PLANES), *shape)
+        self._hits = wp.empty(planes, dtype=wp.float32, device=device)
+        self._counts = (wp.empty(planes, dtype=wp.int32, device=device)
                         if bits & kernels.OUT_SAMPLES else renderer._unused_counts)
         # The staged FrameArgs in torch memory (stream-ordered copies), seen by Warp as one struct.
         self._args_bytes = torch.zeros(FRAME_DTYPE.itemsize, dtype=torch.uint8, device=renderer.torch_device)
@@ -465,10 +467,11 @@ class RenderPlan:
         key = (id(grid), voxels.ptr, bands)
         if self._launches is None or self._launches[0] != key:
             tiles_x, tile, spp = -(-self.key[0] // kernels.TILE_W), kernels.TILE_W * kernels.TILE_H, self.key[4]
+            planes = self._hits.shape[0]
             surface = kernels.surface_kernel if spp == 1 else kernels.surface_samples_kernel
             common = [voxels, renderer.layout, grid, self._args]
             self._launches = key, [
-                (wp.launch(kernels.first_hit_kernel, dim=spp * tiles_x * -(-rows // kernels.TILE_H) * tile,
+                (wp.launch(kernels.first_hit_kernel, dim=planes * tiles_x * -(-rows // kernels.TILE_H) * tile,
                            inputs=[*common, row0, rows, self._hits, self._counts], device=renderer.device,
                            record_cmd=True),
                  wp.launch(surface, dim=tiles_x * -(-rows // kernels.TILE_H) * tile,

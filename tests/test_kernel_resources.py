@@ -19,8 +19,9 @@ from isosr_render import kernels
 MAX_FIRST_HIT_REGISTERS = 88
 # Bytes of stack a kernel keeps without spilling (its random state and small locals).
 MAX_STACK = 40
-# The surface kernel for several rays per pixel spills some of the frame's values under its cap.
-MAX_SAMPLES_STACK = 160
+# The surface kernel for several rays per pixel spills some of the frame's values under its cap (and
+# marches the rays past a plan's hit planes itself): 232-240 bytes.
+MAX_SAMPLES_STACK = 256
 OVERLOADS = [f"({t.__name__}, {layout.key})" for t in kernels.VOXEL_TYPES for layout in kernels.LAYOUTS]
 
 

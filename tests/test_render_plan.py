@@ -71,6 +71,7 @@ REQUESTS = {
     "spp 4": dict(outputs=("mask", "normal", "depth"), spp=4),
     "ao 3 rays": dict(outputs=("mask", "normal", "ao"), ao_samples=3, ao_radius=0.1),
     "ao spp 4": dict(outputs=("mask", "ao"), ao_samples=2, ao_radius=0.1, spp=4),
+    "spp past the hit planes": dict(outputs=("mask", "normal", "ao", "samples"), ao_samples=1, ao_radius=0.1, spp=11),
     "flow": dict(outputs=("mask", "normal", "depth", "ao", "flow"), ao_samples=1, ao_radius=0.1),
     "flow filled": dict(outputs=("flow",), flow_fill="pushpull"),
     "color and samples": dict(outputs=("color", "samples"), ao_samples=2, ao_radius=0.1),
