@@ -7,7 +7,7 @@ any machine (no GPU or driver needed: Warp's wheel carries NVRTC).
 Registers bound how many threads an SM keeps in flight (65536 per SM: 80 registers a thread
 leave 25 warps, 168 leave 12, 255 leave 8), and the ray caster is latency-bound: on an H100 the
 render kernel at 255 registers and a 120-byte stack took 1.3-1.4 times as long as at 166-168,
-and that one kernel 1.4-1.7 times as long as the march alone at 80 plus the surface kernel at
+and that one kernel 1.3-1.5 times as long as the march alone at 80 plus the surface kernel at
 128 (``docs/measurements.md``). Read from the
 cubin's ``.nv.info`` attributes (ELF64): ``registers`` (EIATTR_REGCOUNT) and ``stack`` bytes
 (EIATTR_MIN_STACK_SIZE, the stack of a kernel without recursion: spills and local arrays).

@@ -19,7 +19,7 @@ CUDA graph replays them for each frame staged after: the first hit of each ray
 (:func:`first_hit_kernel`, one thread a ray, the march alone: 80 registers per thread on sm_90),
 then per pixel the buffers made from its hits (:func:`surface_kernel`: normals, AO rays, flow).
 The ray caster is latency-bound, so the warps an SM keeps in flight set its speed: the one kernel
-that did both (166-168 registers, 12 warps an SM) took 1.4-1.7 times as long on an H100
+that did both (166-168 registers, 12 warps an SM) took 1.3-1.5 times as long on an H100
 (``docs/measurements.md``). The voxels are the kernels' own argument, typed per storage (one
 compiled overload each), and the hot functions take the few values they read, never a whole
 struct: each struct passed to a sampling function cost 70-80 registers.
@@ -437,28 +437,34 @@ def ray_direction(view: View, p: wp.vec2) -> wp.vec3:
                         - view.back)
 
 
+@wp.func
+def march_ray(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs), c: int,
+              row: int, s: int) -> wp.vec2:
+    """Ray ``s`` of pixel ``(c, row)`` to its first iso crossing: ``(t, volume samples)``, ``t < 0`` where none."""
+    view = frame[0].view
+    params = frame[0].params
+    return cast(voxels, layout, grid, view.eye, ray_direction(view, subpixel(c, row, s, params.spp)), 0.0,
+                float(BIG), params.iso, params.step, params.refine_mode, params.refine_steps)
+
+
 @wp.kernel
 def first_hit_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs),
                      row0: int, rows: int, hits: wp.array3d(dtype=wp.float32), counts: wp.array3d(dtype=wp.int32)):
-    """One thread per ray of the first ``hits.shape[0]`` of each pixel of the band ``[row0, row0 + rows)`` (rays
-    outermost): the ray parameter of its first iso crossing (world units, -1 where none) into
-    ``hits[ray, row, column]``; with
-    ``OUT_SAMPLES``, the volume samples that took into ``counts`` alike. The march alone: few registers, so
-    that many warps in flight hide its memory latency."""
-    view = frame[0].view
-    params = frame[0].params
+    """One thread per ray of the first ``hits.shape[0]`` of each pixel of the band ``[row0, row0 + rows)``
+    (rays outermost): the ray parameter of its first iso crossing (world units, -1 where none) into
+    ``hits[ray, row, column]``; with ``OUT_SAMPLES``, the volume samples that took into ``counts`` alike.
+    The march alone: few registers, so that many warps in flight hide its memory latency."""
+    width = frame[0].view.width
     tid = wp.tid()
-    tiles = ((view.width + TILE_W - 1) // TILE_W) * ((rows + TILE_H - 1) // TILE_H) * TILE_W * TILE_H
+    tiles = ((width + TILE_W - 1) // TILE_W) * ((rows + TILE_H - 1) // TILE_H) * TILE_W * TILE_H
     s = tid // tiles
-    px = band_pixel(view.width, rows, tid - s * tiles)
+    px = band_pixel(width, rows, tid - s * tiles)
     if px[0] < 0:
         return
     row = px[1] + row0
-    dir = ray_direction(view, subpixel(px[0], row, s, params.spp))
-    res = cast(voxels, layout, grid, view.eye, dir, 0.0, float(BIG), params.iso, params.step, params.refine_mode,
-               params.refine_steps)
+    res = march_ray(voxels, layout, grid, frame, px[0], row, s)
     hits[s, row, px[0]] = res[0]
-    if (params.outputs & OUT_SAMPLES) != 0:
+    if (frame[0].params.outputs & OUT_SAMPLES) != 0:
         counts[s, row, px[0]] = int(res[1])
 
 
@@ -591,10 +597,7 @@ def surface_samples_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Gri
             if count_samples:
                 sample_count += float(counts[s, row, c])
         else:
-            view = frame[0].view
-            params = frame[0].params
-            res = cast(voxels, layout, grid, view.eye, ray_direction(view, subpixel(c, row, s, params.spp)), 0.0,
-                       float(BIG), params.iso, params.step, params.refine_mode, params.refine_steps)
+            res = march_ray(voxels, layout, grid, frame, c, row, s)
             t = res[0]
             sample_count += res[1]
         if t >= 0.0:

@@ -443,9 +443,8 @@ class RenderPlan:
         renderer = self.renderer
         if renderer.device.is_cuda:
             stream = wp.stream_from_torch(torch.cuda.current_stream(renderer.device.ordinal))
-            for first_hit, surface in self._recorded(((row0, row1 - row0),)):
-                first_hit.launch(stream)
-                surface.launch(stream)
+            for launch in self._recorded(((row0, row1 - row0),))[0]:
+                launch.launch(stream)
             return
         bands = np.array_split(np.arange(row0, row1), min(row1 - row0, 4 * renderer.threads))
         launches = self._recorded(tuple((int(b[0]), len(b)) for b in bands if len(b)))
@@ -466,18 +465,18 @@ class RenderPlan:
         grid, voxels, renderer = self._grid, self.renderer.voxels, self.renderer
         key = (id(grid), voxels.ptr, bands)
         if self._launches is None or self._launches[0] != key:
-            tiles_x, tile, spp = -(-self.key[0] // kernels.TILE_W), kernels.TILE_W * kernels.TILE_H, self.key[4]
-            planes = self._hits.shape[0]
-            surface = kernels.surface_kernel if spp == 1 else kernels.surface_samples_kernel
+            tiles_x, tile = -(-self.key[0] // kernels.TILE_W), kernels.TILE_W * kernels.TILE_H
+            surface = kernels.surface_kernel if self.key[4] == 1 else kernels.surface_samples_kernel
             common = [voxels, renderer.layout, grid, self._args]
-            self._launches = key, [
-                (wp.launch(kernels.first_hit_kernel, dim=planes * tiles_x * -(-rows // kernels.TILE_H) * tile,
-                           inputs=[*common, row0, rows, self._hits, self._counts], device=renderer.device,
-                           record_cmd=True),
-                 wp.launch(surface, dim=tiles_x * -(-rows // kernels.TILE_H) * tile,
-                           inputs=[*common, row0, rows, self._hits, self._counts, *self.arrays.values()],
-                           device=renderer.device, record_cmd=True))
-                for row0, rows in bands]
+
+            def pair(row0: int, rows: int) -> tuple[wp.Launch, wp.Launch]:
+                pixels = tiles_x * -(-rows // kernels.TILE_H) * tile  # threads: whole 8x4 tiles
+                return (wp.launch(kernels.first_hit_kernel, dim=self._hits.shape[0] * pixels, device=renderer.device,
+                                  inputs=[*common, row0, rows, self._hits, self._counts], record_cmd=True),
+                        wp.launch(surface, dim=pixels, device=renderer.device, record_cmd=True,
+                                  inputs=[*common, row0, rows, self._hits, self._counts, *self.arrays.values()]))
+
+            self._launches = key, [pair(row0, rows) for row0, rows in bands]
         return self._launches[1]
 
     def buffers(self, request: RenderRequest) -> FrameBuffers:

@@ -2,7 +2,7 @@
 needed (isosr_bench.kernel_resources): their registers stay where the measured speed is.
 
 The ray caster is latency-bound: on an H100 one kernel that marched and then made the buffers
-(166-168 registers, 12 warps an SM) took 1.4-1.7 times as long as the march alone at 80
+(166-168 registers, 12 warps an SM) took 1.3-1.5 times as long as the march alone at 80
 registers plus the surface kernel at 128; at 255 registers and a 120-byte stack it had taken
 1.3-1.4 times as long again (docs/measurements.md). A change that brings such registers back
 fails here, before anyone times it.
