@@ -18,7 +18,8 @@ import torch
 
 from conftest import DEVICE, field_volume, sphere_sdf, world_grid
 from isosr_render.camera import Camera, orbit
-from isosr_render.renderer import PLAN_CACHE, Renderer, RenderRequest
+from isosr_render import kernels
+from isosr_render.renderer import MAX_SPP, PLAN_CACHE, Renderer, RenderRequest
 from isosr_render.volume import Volume
 
 W, H = 48, 36
@@ -137,6 +138,22 @@ def test_plan_refuses_other_requests(sphere_volume, sphere_renderer):
     plan.stage(CAMERAS[0], request)
     with pytest.raises(ValueError, match="rows must satisfy"):
         plan.launch(rows=(10, H + 1))
+
+
+def test_the_most_rays_per_pixel_keep_a_plan_bounded_and_the_frame_sane(sphere_volume, sphere_renderer):
+    """A request at the renderer's top rays per pixel: the plan keeps the hits of HIT_PLANES rays only (the
+    rest are marched by the surface kernel), and the frame stays finite and in range."""
+    request = RenderRequest(16, 12, sphere_volume.normalized_iso(0.0), ("mask", "normal", "ao", "samples"),
+                            spp=MAX_SPP, ao_samples=1, ao_radius=0.1)
+    plan = sphere_renderer.plan(request)
+    frame = plan.render(CAMERAS[0], request)
+    assert plan._hits.shape[0] == kernels.HIT_PLANES
+    assert 0 < frame.mask.sum() < frame.mask.numel()  # the sphere's edge is in the view
+    assert ((frame.mask >= 0) & (frame.mask <= 1)).all() and ((frame.ao >= 0) & (frame.ao <= 1)).all()
+    lengths = frame.normal.norm(dim=-1)
+    assert torch.isfinite(frame.normal).all() and (lengths <= 1 + 1e-5).all()
+    assert ((lengths - 1).abs() < 1e-5)[frame.mask > 0].all()
+    assert (frame.samples[frame.mask > 0] >= MAX_SPP).all()  # every ray marched at least once
 
 
 def test_render_frames_own_their_memory(sphere_volume, sphere_renderer):
