@@ -204,11 +204,8 @@ def pareto_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
     for method in measured:
         runner = make_runner(method, renderer, iso, *size, networks=networks)
         outs = [None] * frames
-
-        def frame(i):
-            outs[i] = runner.frame(*pairs[i]).buffers
-
-        t = time_frames(frame, frames, device, warmup=warmup)
+        t = time_frames(lambda i: runner.frame(*pairs[i]).buffers, frames, device, warmup=warmup,
+                        keep=lambda i, buffers: outs.__setitem__(i, buffers.clone()))
         scored = scores(outs, refs, method.ao_rays)
         ratio = None if scored["flicker"] is None or not flicker_reference else scored["flicker"] / flicker_reference
         rows.append({"part": "pareto", "volume": volume, "size": size_name, "pixels": f"{size[0]}x{size[1]}",

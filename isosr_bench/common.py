@@ -58,11 +58,13 @@ def commit() -> str:
         return "unknown"
 
 
-def time_frames(fn, frames: int, device: str, warmup: int = 2) -> dict:
+def time_frames(fn, frames: int, device: str, warmup: int = 2, keep=None) -> dict:
     """Mean wall and device time of ``fn(i)`` over ``frames`` calls, in milliseconds.
 
     On CUDA the device time comes from events around each call (what the GPU spent);
-    wall time includes Python and launch overhead, synchronized after each call.
+    wall time includes Python and launch overhead, synchronized after each call. ``keep(i,
+    result)``, where given, gets what each timed call returned, after its timing (to copy what
+    the next call may overwrite without timing the copy).
     """
     cuda = device.startswith("cuda")
     for i in range(warmup):
@@ -75,12 +77,14 @@ def time_frames(fn, frames: int, device: str, warmup: int = 2) -> dict:
         if cuda:
             e0, e1 = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
             e0.record()
-        fn(i)
+        result = fn(i)
         if cuda:
             e1.record()
             torch.cuda.synchronize()
             gpu.append(e0.elapsed_time(e1))
         wall.append((time.perf_counter() - start) * 1e3)
+        if keep is not None:
+            keep(i, result)
     result = {"wall_ms": sum(wall) / frames, "wall_ms_min": min(wall)}
     if cuda:
         result.update(gpu_ms=sum(gpu) / frames, gpu_ms_min=min(gpu))

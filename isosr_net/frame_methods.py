@@ -123,6 +123,8 @@ class FrameResult:
         buffers: the frame's buffers: ``color`` (the final frame; None for unshaded kinds) and
             what the method makes of mask, normal, depth, ao, plus the buffers asked to keep.
             At the frame size, except an unshaded low-res kind's (``buffers``), at the render's.
+            Valid until the runner's next frame (a runner may reuse their memory, as one CUDA
+            graph per frame does): :meth:`FrameBuffers.clone` keeps a frame longer.
         timers: the frame's stage timers (:attr:`times` reads them).
         continued: whether the frame continued the stream from the previous camera (its flow
             refers to it); False on a sequence's first frame.
@@ -587,9 +589,7 @@ class ReconstructRunner(FrameRunner):
         with timer("render"):  # the network and the shading included: one graph
             rendered, out = self.net.render_reconstruct(self.renderer, camera, request, self.method.ao_rays,
                                                         self.method.spp, self.shading if self.shade else None)
-        # The plan's buffers are reused next frame: keep copies of those kept.
-        kept = {n: getattr(rendered, n).clone() for n in self.keep if getattr(rendered, n) is not None}
-        return FrameBuffers(**kept), out
+        return rendered, out
 
 
 def reconstruct_method(model: str | None = None, **knobs) -> FrameMethod:
@@ -698,8 +698,8 @@ def upscale_classic(low: FrameBuffers, factor: int, interpolation: str = "biline
 
 
 def run_sequence(runner: FrameRunner, cameras: list[Camera]) -> list[FrameBuffers]:
-    """A new sequence along ``cameras``: each frame's buffers."""
-    return [runner.frame(camera, prev).buffers for camera, prev in sequence_cameras(cameras)]
+    """A new sequence along ``cameras``: each frame's buffers (copies: the runner may reuse its memory)."""
+    return [runner.frame(camera, prev).buffers.clone() for camera, prev in sequence_cameras(cameras)]
 
 
 @dataclass

@@ -567,8 +567,8 @@ def upsample_add(x: torch.Tensor, coarse: torch.Tensor, weight: torch.Tensor, bi
 
 
 def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, sources: ReconSources,
-               config: ReconNetConfig, as_buffers: bool = False, shading: ShadingParams | None = None
-               ) -> tuple[torch.Tensor, torch.Tensor | None]:
+               config: ReconNetConfig, as_buffers: bool = False, shading: ShadingParams | None = None,
+               out: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
     """ReconNet's output convolution and output stack, cropped to the frame (and written
     depth-to-space at twice its sides for a model that upscales x2); as buffers and shaded where
     asked.
@@ -584,6 +584,8 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
         as_buffers: the stack as :func:`isosr_net.inference.buffer_stack` makes it of the output
             (unit normals, depth where covered), not the network's raw output.
         shading: with ``as_buffers``, also shade it (:func:`isosr_render.shading.shade`).
+        out: the stack's tensor to write (contiguous, fp32, on ``y``'s device); None: a new one.
+            It may be the previous output that the pack read: the tail runs after it.
 
     Returns:
         ``(stack, color or None)``.
@@ -607,7 +609,12 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
     s = config.upscale
     if co < OUTPUTS * s * s:
         raise ValueError(f"recon_tail: an x{s} model's tail has {OUTPUTS * s * s} outputs, the weights {co}")
-    out = torch.empty((b, OUTPUTS, s * h, s * w), device=y.device, dtype=torch.float32)
+    shape = (b, OUTPUTS, s * h, s * w)
+    if out is None:
+        out = torch.empty(shape, device=y.device, dtype=torch.float32)
+    elif (tuple(out.shape), out.dtype, out.device) != (shape, torch.float32, y.device) or not out.is_contiguous():
+        raise ValueError(f"recon_tail: out must be a contiguous float32 {shape} tensor on {y.device}, got "
+                         f"{out.dtype} {tuple(out.shape)} on {out.device}")
     color = None if shading is None else torch.empty((b, s * h, s * w, 3), device=y.device, dtype=torch.float32)
     params = shading or ShadingParams()
     light, half = light_and_half(params)

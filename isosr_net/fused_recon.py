@@ -197,13 +197,15 @@ class FusedReconNet(nn.Module):
 
     def frame(self, mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, ao: torch.Tensor | None,
               sampling: torch.Tensor, flow: torch.Tensor | None, previous: torch.Tensor | None,
-              shading: ShadingParams | None) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+              shading: ShadingParams | None, out: torch.Tensor | None = None
+              ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
         """:func:`isosr_net.reconstructor.recon_frame` (its arguments, results and shapes; without
         ``precision``: fp16) in the network's passes alone: the pack reads the buffers in place and
-        checks them, the tail writes the output buffers and shades them. No host sync."""
+        checks them, the tail writes the output buffers (into ``out`` where given, which may be
+        ``previous``) and shades them. No host sync."""
         sources = _kernels().ReconSources.of_buffers(mask, normal, depth, ao, sampling)
         results = self._run(sources, previous, None if flow is None else flow.permute(2, 0, 1)[None],
-                            as_buffers=True, shading=shading)
+                            as_buffers=True, shading=shading, out=out)
         return results["output"], None if shading is None else results["color"][0], results["flags"]
 
     def _run(self, sources, prev: torch.Tensor | None, flow: torch.Tensor | None, **tail) -> dict[str, torch.Tensor]:
@@ -213,7 +215,8 @@ class FusedReconNet(nn.Module):
         return results
 
     def passes(self, sources, prev: torch.Tensor | None, flow: torch.Tensor | None = None, as_buffers: bool = False,
-               shading: ShadingParams | None = None) -> tuple[dict[str, torch.Tensor], list[tuple[str, Callable[[], None]]]]:
+               shading: ShadingParams | None = None, out: torch.Tensor | None = None
+               ) -> tuple[dict[str, torch.Tensor], list[tuple[str, Callable[[], None]]]]:
         """The fused forward as its passes, to run (or time) one by one: ``(results, [(name, run)])``.
 
         In order, each pass computes the entry of ``results`` named as it from those before
@@ -222,7 +225,8 @@ class FusedReconNet(nn.Module):
         residual blocks' convolutions), per decoder level from the coarsest ``up2`` (the
         upsampled, reduced sum) and ``fuse2``, ..., ``fuse0``, and ``tail`` (``output`` and
         ``color``). Arguments as for :func:`isosr_net.fused_kernels.pack_inputs` (``sources`` a
-        :class:`~isosr_net.fused_kernels.ReconSources`) and :func:`~isosr_net.fused_kernels.recon_tail`.
+        :class:`~isosr_net.fused_kernels.ReconSources`) and :func:`~isosr_net.fused_kernels.recon_tail`
+        (``out``).
         """
         k = _kernels()
         results: dict[str, torch.Tensor] = {}
@@ -253,7 +257,7 @@ class FusedReconNet(nn.Module):
             add(f"fuse{i}", layer(self.fuse[i], f"up{i}"))
             coarse = f"fuse{i}"
         add("tail", lambda: k.recon_tail(results["fuse0"], self.tail_w, self.tail_b, sources, self.config,
-                                         as_buffers, shading), "output", "color")
+                                         as_buffers, shading, out), "output", "color")
         return results, passes
 
 

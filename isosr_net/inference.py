@@ -61,6 +61,15 @@ def _not_finite(name: str) -> Callable[[float], str]:
     return lambda _: f"{name} holds NaN or Inf values"
 
 
+def _flag_clear(flag: float) -> bool:
+    return flag == 0
+
+
+Check = tuple[Callable[[float], bool], Callable[[float], str]]  # ok(value), message(value)
+DEEPEST: Check = (lambda d: d <= FP16_MAX_DEPTH,
+                  lambda d: f"fp16 takes depths up to {FP16_MAX_DEPTH:g}, this frame reaches {d:.3g}: use bf16 or fp32")
+
+
 class InputChecks:
     """Checks of a frame's inputs computed on the device and read with one host sync.
 
@@ -72,44 +81,45 @@ class InputChecks:
     """
 
     def __init__(self):
-        self._checks: list[tuple[torch.Tensor, Callable[[float], bool], Callable[[float], str]]] = []
+        # Queued values (1-d tensors), each element with its check: (ok, message), or None for none.
+        self._checks: list[tuple[torch.Tensor, list[Check | None]]] = []
 
     def add(self, value: torch.Tensor, ok: Callable[[float], bool], message: Callable[[float], str]) -> None:
         """Queue a check: ``ok(value)`` on the host, else ``ValueError(message(value))``."""
-        self._checks.append((value.detach().reshape(()).float(), ok, message))
+        self._checks.append((value.detach().reshape(1).float(), [(ok, message)]))
 
     def add_finite(self, name: str, t: torch.Tensor) -> None:
         """Queue: ``t`` holds no NaN or Inf."""
         self.add(torch.isfinite(t).all(), bool, _not_finite(name))
 
     def add_flags(self, flags: torch.Tensor, fp16: bool) -> None:
-        """Queue the checks of a frame's :data:`FRAME_FLAGS`: finite buffers, then (``fp16``) depths
-        within :data:`FP16_MAX_DEPTH`, then AO in [0, 1]."""
-        for i, name in enumerate(FRAME_FLAGS[:4]):
-            self.add(flags[i], lambda flag: flag == 0, _not_finite(name))
-        if fp16:
-            self.add_deepest(flags[FRAME_FLAGS.index("deepest")])
-        self.add(flags[FRAME_FLAGS.index("ao")], lambda flag: flag == 0, AO_MESSAGE)
+        """Queue the checks of a frame's :data:`FRAME_FLAGS` (the vector read as it is), in their
+        order: finite buffers, AO in [0, 1], then (``fp16``) depths within :data:`FP16_MAX_DEPTH`."""
+        checks = {name: (_flag_clear, _not_finite(name)) for name in FRAME_FLAGS[:4]}
+        checks |= {"ao": (_flag_clear, AO_MESSAGE), "deepest": DEEPEST if fp16 else None}
+        self._checks.append((flags.detach().float(), [checks[name] for name in FRAME_FLAGS]))
 
     def add_deepest(self, deepest: torch.Tensor) -> None:
         """Queue: the largest |depth| is within what fp16 takes (:data:`FP16_MAX_DEPTH`)."""
-        self.add(deepest, lambda d: d <= FP16_MAX_DEPTH,
-                 lambda d: f"fp16 takes depths up to {FP16_MAX_DEPTH:g}, this frame reaches {d:.3g}: use bf16 or fp32")
+        self.add(deepest, *DEEPEST)
 
     def raise_first(self) -> None:
         """Read every queued check (one host sync) and raise the first that fails."""
         if not self._checks:
             return
         by_device: dict[torch.device, list[int]] = {}
-        for i, (value, _, _) in enumerate(self._checks):
-            by_device.setdefault(value.device, []).append(i)
-        values = [0.0] * len(self._checks)
+        for i, (values, _) in enumerate(self._checks):
+            by_device.setdefault(values.device, []).append(i)
+        read: list[list[float]] = [[]] * len(self._checks)
         for indices in by_device.values():  # one read per device (the inputs may sit elsewhere)
-            for i, v in zip(indices, torch.stack([self._checks[i][0] for i in indices]).tolist()):
-                values[i] = v
-        for v, (_, ok, message) in zip(values, self._checks):
-            if not ok(v):
-                raise ValueError(message(v))
+            values = [self._checks[i][0] for i in indices]
+            flat = (values[0] if len(values) == 1 else torch.cat(values)).tolist()
+            for i in indices:
+                read[i], flat = flat[:len(self._checks[i][1])], flat[len(self._checks[i][1]):]
+        for got, (_, checks) in zip(read, self._checks):
+            for v, check in zip(got, checks):
+                if check is not None and not check[0](v):
+                    raise ValueError(check[1](v))
 
 
 SURFACE_SHAPES = {"mask": "(H, W)", "normal": "(H, W, 3)", "depth": "(H, W)", "flow": "(H, W, 2)"}

@@ -26,8 +26,8 @@ import torch
 
 from isosr_render.buffers import FrameBuffers
 from isosr_render.shading import ShadingParams, shade
-from isosr_net.fused_recon import fusable, fused_reconnet, fused_runs_on, triton_imports
-from isosr_net.reconnet import RayLimits, ReconNet, ReconNetConfig
+from isosr_net.fused_recon import FusedReconNet, fusable, fused_reconnet, fused_runs_on, triton_imports
+from isosr_net.reconnet import OUTPUTS, RayLimits, ReconNet, ReconNetConfig
 from isosr_net.inference import (AO_MESSAGE, PRECISIONS, InputChecks, RecurrentNetwork, ao_in_range, buffer_stack,
                                  check_buffer, check_surface, frame_flags, stack_buffers, surface_tensors)
 from isosr_net.model import read_config
@@ -210,12 +210,13 @@ class GraphCache(OrderedDict):
 @dataclass
 class FrameGraph:
     """One captured frame (render, reconstruction, shading): its graph, the render plan whose
-    staged values it reads, and its outputs (the graph's own tensors: stack, color, flags, and
-    the ray history or None)."""
+    staged values it reads, its own outputs (color or None, flags), and the state tensors it
+    reads and writes (the output stack, the ray history or None), held while it lives."""
 
     graph: torch.cuda.CUDAGraph
     plan: RenderPlan
-    outs: tuple[torch.Tensor | None, ...]
+    outs: tuple[torch.Tensor | None, torch.Tensor]
+    state: torch.Tensor
     history: RayHistory | None
 
 
@@ -279,6 +280,7 @@ class Reconstructor(RecurrentNetwork):
         nor replay into each other's pool."""
         self._captured = GraphCache()
         self._frame_graphs = GraphCache()
+        # Per frame size, while a cached graph or the stream holds them (_drop_unheld_states).
         self._states: dict[tuple[int, int], torch.Tensor] = {}
         self._history_states: dict[tuple[int, int], RayHistory] = {}
         self._pool = torch.cuda.graph_pool_handle() if self.graphs else None
@@ -410,14 +412,18 @@ class Reconstructor(RecurrentNetwork):
         graph.replay()
         return outs
 
-    def _capture(self, work: Callable[[], T]) -> tuple[torch.cuda.CUDAGraph, T]:
+    def _capture(self, work: Callable[[], T], restore: Callable[[], None] | None = None
+                 ) -> tuple[torch.cuda.CUDAGraph, T]:
         """``work`` captured as a CUDA graph, after two warm-up calls on a side stream (they compile
-        and autotune), and what the capture returned (the graph's tensors)."""
+        and autotune; ``restore``, after each, puts back what they wrote of what they read), and
+        what the capture returned (the graph's tensors)."""
         side = torch.cuda.Stream(self.device)
         side.wait_stream(torch.cuda.current_stream(self.device))
         with torch.cuda.stream(side):
             for _ in range(2):
                 work()
+                if restore is not None:
+                    restore()
         torch.cuda.current_stream(self.device).wait_stream(side)
         graph = torch.cuda.CUDAGraph()
         with torch.cuda.graph(graph, pool=self._pool):
@@ -440,63 +446,108 @@ class Reconstructor(RecurrentNetwork):
         Where :meth:`graphable`, the render, the network and the shading replay as one CUDA graph
         per renderer, request size and buffers, iso, sampling, shading and first frame or not
         (captured on first use; a new iso or size captures anew): the frame's values go in by the
-        render plan's copy, the previous output is the graph's state tensor. ``rendered`` then
-        holds the plan's buffers (valid until the next frame); ``reconstructed`` is the caller's.
-        Elsewhere: :meth:`Renderer.render` then :meth:`reconstruct`.
+        render plan's copy; the graph reads the previous output and ray history from the stream's
+        state tensors of the frame size and writes the new ones there (no copy after it). Both
+        results are then the plan's, the state's and the graph's tensors: valid until this
+        stream's next frame (copy what you keep longer, :meth:`FrameBuffers.clone`). Elsewhere:
+        :meth:`Renderer.render` then :meth:`reconstruct`.
 
         Raises:
-            ValueError: as :meth:`reconstruct` (the state is then left as it was).
+            ValueError: as :meth:`reconstruct`; a graphed frame has then overwritten the state, so
+                the stream starts anew (as after a cut).
         """
         if not self.graphable(renderer, request):
             rendered = renderer.render(camera, request)
             return rendered, self.reconstruct(rendered, ao_rays, spp, shading)
         size = (request.height, request.width)
         carry = self.carries(*size, request.prev_camera is not None)
-        state = self._state(size, self.previous) if carry else None
-        history = self._history_state(self.history) if carry and self.history is not None else None
+        state = self._state(size, self.previous if carry else None)
+        # A frame with AO rays and hit points accumulates them (sampled_rays), continuing a history it carries.
+        history = self._history_state(size) if ao_rays and "position" in request.outputs else None
+        continued = carry and history is not None and self.history is not None
+        if continued and self.history is not history:
+            history.copy_(self.history)
         key = (id(renderer), request.plan_key(), float(request.iso), request.skip, ao_rays, spp, shading, carry,
-               history is not None)
+               continued)
         entry = self._frame_graphs.use(key)
         plan = renderer.plan(request) if entry is None else entry.plan
         plan.stage(camera, request)
         if entry is None:
-            graph, outs = self._capture(lambda: self._graph_work(plan, request, ao_rays, spp, shading, state, history))
-            entry = FrameGraph(graph, plan, outs[:3], outs[3])
+            graph, outs = self._capture(lambda: self._graph_work(plan, request, ao_rays, spp, shading, carry, state,
+                                                                 continued, history),
+                                        self._restorer(state, history))
+            entry = FrameGraph(graph, plan, outs, state, history)
             self._frame_graphs.add(key, entry, request.height * request.width * self.upscale_factor ** 2)
+            self._drop_unheld_states(state, history)
         entry.graph.replay()
-        stack, color, flags = entry.outs
-        self._raise_refused(flags)
-        self.previous = self._state(size, stack)
-        self.history = None if entry.history is None else self._history_state(entry.history)
-        return plan.buffers(request), stack_buffers(stack.clone(), None if color is None else color.clone())
+        color, flags = entry.outs
+        try:
+            self._raise_refused(flags)
+        except ValueError:
+            self.reset()
+            raise
+        self.previous, self.history = state, history
+        return plan.buffers(request), stack_buffers(state, color)
 
-    def _state(self, size: tuple[int, int], previous: torch.Tensor) -> torch.Tensor:
-        """The previous output of frames of ``size`` that the graphs read, made once per size, now
-        holding ``previous`` (copied unless it is that tensor already)."""
+    def _state(self, size: tuple[int, int], previous: torch.Tensor | None) -> torch.Tensor:
+        """The output stack of frames of input ``size`` that the graphs read (the previous output) and
+        write (their own), made once per size, holding ``previous`` where given (copied unless it is
+        that tensor already)."""
         state = self._states.get(size)
         if state is None:
-            state = self._states[size] = torch.empty_like(previous)
-        if state is not previous:
+            s = self.upscale_factor
+            state = self._states[size] = torch.empty((1, OUTPUTS, s * size[0], s * size[1]), device=self.device)
+        if previous is not None and previous is not state:
             state.copy_(previous)
         return state
 
-    def _history_state(self, history: RayHistory) -> RayHistory:
-        """The ray history of frames of its size that the graphs read, made once per size, now
-        holding ``history`` (copied unless it is that one already)."""
-        size = history.shape[1:]
+    def _drop_unheld_states(self, *current: torch.Tensor | RayHistory | None) -> None:
+        """Forget the state tensors of sizes that no cached graph holds (nor ``current``, the frame's):
+        a viewer resizing through many sizes keeps only those of the graphs' bounded cache."""
+        held = {id(t) for e in self._frame_graphs.values() for t in (e.state, e.history)} | {id(t) for t in current}
+        for states in (self._states, self._history_states):
+            for size in [size for size, t in states.items() if id(t) not in held]:
+                del states[size]
+
+    @staticmethod
+    def _restorer(state: torch.Tensor, history: RayHistory | None) -> Callable[[], None]:
+        """What puts ``state`` and ``history`` back as they hold now (a graph's warm-up frames write
+        the state they read)."""
+        saved_state = state.clone()
+        saved_history = None if history is None else RayHistory.empty(*history.shape, state.device).copy_(history)
+
+        def restore() -> None:
+            state.copy_(saved_state)
+            if history is not None:
+                history.copy_(saved_history)
+        return restore
+
+    def _history_state(self, size: tuple[int, int]) -> RayHistory:
+        """The ray history of frames of ``size`` that the graphs read and write, made once per size."""
         state = self._history_states.get(size)
         if state is None:
-            state = self._history_states[size] = RayHistory.empty(*history.shape, self.device)
-        return state if state is history else state.copy_(history)
+            state = self._history_states[size] = RayHistory.empty(1, *size, self.device)
+        return state
 
     def _graph_work(self, plan: RenderPlan, request: RenderRequest, ao_rays: int, spp: int,
-                    shading: ShadingParams | None, previous: torch.Tensor | None,
-                    history: RayHistory | None) -> tuple:
-        """A staged frame's render and its reconstruction (as :meth:`reconstruct`'s frame work),
-        with no host sync: ``(stack, color, flags, new ray history or None)``."""
+                    shading: ShadingParams | None, carry: bool, state: torch.Tensor, continued: bool,
+                    history: RayHistory | None) -> tuple[torch.Tensor | None, torch.Tensor]:
+        """A staged frame's render and its reconstruction (as :meth:`reconstruct`'s frame work), with
+        no host sync: the previous output read from ``state`` where the frame ``carry``-s it, the
+        new one written there; the ray history (where the frame makes one) continued from
+        ``history`` where ``continued``, the new one copied there. Returns ``(color, flags)``."""
         plan.launch()
         rendered = plan.buffers(request)
         _check_frame(rendered, ao_rays, spp, self.limits)
-        ao, sampling, history = self._rays(rendered, ao_rays, spp, history)
-        return (*self._frame(rendered.mask, rendered.normal, rendered.depth, ao, sampling, rendered.flow, previous,
-                             shading), history)
+        ao, sampling, made = self._rays(rendered, ao_rays, spp, history if continued else None)
+        args = (rendered.mask, rendered.normal, rendered.depth, ao, sampling, rendered.flow, state if carry else None,
+                shading)
+        if isinstance(self.net, FusedReconNet):  # its tail writes the state after its pack read it
+            _, color, flags = self._frame(*args, out=state)
+        else:
+            stack, color, flags = self._frame(*args)
+            state.copy_(stack)
+        if made is not None:
+            history.copy_(made)
+        return color, flags
+

@@ -51,6 +51,10 @@ class FrameBuffers:
             parts.append(t[None] if t.ndim == 2 else t.permute(2, 0, 1))
         return torch.cat(parts)
 
+    def clone(self) -> FrameBuffers:
+        """A copy of the present buffers (to keep a frame whose maker reuses its memory)."""
+        return FrameBuffers(**{name: getattr(self, name).clone() for name in self.present()})
+
     def to(self, device: torch.device | str) -> FrameBuffers:
         """The present buffers on ``device`` (the same tensors where they are there already)."""
         return FrameBuffers(**{name: getattr(self, name).to(device) for name in self.present()})

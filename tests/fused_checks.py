@@ -310,6 +310,30 @@ def test_tail_checks_its_inputs():
     with pytest.raises(ValueError, match=r"recon_tail: shading shades the output buffers"):
         recon_tail(features, taps, bias, ReconSources.of_inputs(rand(1, 8, 8, 8)), ReconNetConfig(),
                    shading=ShadingParams())
+    sources = ReconSources.of_inputs(rand(1, 8, 8, 8))
+    for out in (rand(1, 6, 8, 7), rand(1, 6, 8, 8, dtype=torch.float16), rand(1, 8, 8, 6).permute(0, 3, 1, 2)):
+        with pytest.raises(ValueError, match=r"recon_tail: out must be a contiguous float32 \(1, 6, 8, 8\) tensor"):
+            recon_tail(features, taps, bias, sources, ReconNetConfig(), out=out)
+
+
+@pytest.mark.parametrize("model", ["x1", "x2"])
+def test_a_frame_writes_its_stack_into_the_previous_output_it_read(model):
+    """``out`` the previous output itself (a CUDA graph's state): the pack reads it before the
+    tail overwrites it, so the frame equals one written to a new tensor, bit for bit."""
+    _, fused = shipped_x2() if model == "x2" else shipped_under("rays")
+    s = fused.config.upscale
+    state, previous = torch.empty(1, 6, 13 * s, 21 * s, device=DEVICE), None
+    sampling = torch.full((1, 2, 1, 1), 0.125, device=DEVICE)
+    with torch.no_grad():
+        for frame in synthetic_frames(3, 13, 21):
+            args = (frame.mask, frame.normal, frame.depth, frame.ao, sampling, frame.flow)
+            stack, color, flags = fused.frame(*args, previous, ShadingParams())
+            into, color_into, flags_into = fused.frame(*args, None if previous is None else state, ShadingParams(),
+                                                       out=state)
+            assert into is state
+            previous = stack
+            for got, expected in ((into, stack), (color_into, color), (flags_into, flags)):
+                torch.testing.assert_close(got, expected, rtol=0, atol=0)
 
 
 @pytest.mark.parametrize("ao_prior", AO_PRIORS)

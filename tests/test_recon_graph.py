@@ -8,10 +8,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from isosr_render import Renderer, open_volume, orbit_path, resolve_iso
+from isosr_render import Renderer, open_volume, orbit, orbit_path, resolve_iso
 from isosr_render.sequence import sequence_requests
 from isosr_render.shading import ShadingParams
-from isosr_net.frame_methods import FrameMethod, Networks, make_runner
+from isosr_net.frame_methods import FrameMethod, Networks, make_runner, run_sequence
 from isosr_net.reconstructor import GraphCache, Reconstructor
 
 SIZE = (96, 64)  # width, height
@@ -43,11 +43,15 @@ def test_without_cuda_it_is_the_render_then_the_reconstruction():
 
 
 @cuda
-def test_one_graph_frames_equal_render_then_reconstruct():
-    """Over orbits at two sizes and two isos (each a capture of its own), with cuts between."""
+@pytest.mark.parametrize("fused", [False, True], ids=["layers", "fused"])
+def test_one_graph_frames_equal_render_then_reconstruct(fused):
+    """Over orbits at two sizes and two isos (each a capture of its own), with cuts between; the
+    network as PyTorch layers (the graph copies its output into the state) and as the fused
+    kernels (their tail writes the state)."""
     renderer, iso = scene("cuda")
     options = dict(device="cuda", precision="fp16", channels_last=True)
-    graphed, eager, shading = Reconstructor(graphs=True, **options), Reconstructor(**options), ShadingParams()
+    graphed, eager = Reconstructor(graphs=True, fused=fused, **options), Reconstructor(**options)
+    shading = ShadingParams()
     for size, level in ((SIZE, iso), ((64, 48), iso), (SIZE, iso + 0.05), (SIZE, iso)):
         for camera, request in sequence_requests(orbit_path(4, yaw_step=3.0), *size, level, OUTPUTS, ao_samples=2):
             assert graphed.graphable(renderer, request)
@@ -75,23 +79,51 @@ def test_interleaved_streams_keep_their_own_state():
 
 
 @cuda
-def test_the_runner_makes_graphed_frames_like_eager_ones_and_keeps_copies():
+@pytest.mark.parametrize("fused", [False, True], ids=["layers", "fused"])
+def test_a_graphed_frame_is_the_streams_state_and_copies_keep_it(fused):
+    """No copy after the graph: each frame's output is the stream's state tensor (the same memory
+    every frame, which the next frame reads and overwrites); the runner's frames kept by
+    run_sequence (copies) equal the eager runner's, frame by frame."""
     renderer, iso = scene("cuda")
-    method = FrameMethod("reconstruct", ao_rays=1, precision="fp16")
     options = dict(device="cuda", precision="fp16", channels_last=True)
-    graphed = make_runner(method, renderer, iso, *SIZE, keep=("flow",),
-                          networks=Networks(lambda *_: Reconstructor(graphs=True, **options)))
-    eager = make_runner(method, renderer, iso, *SIZE, keep=("flow",),
-                        networks=Networks(lambda *_: Reconstructor(**options)))
-    kept = []
-    for camera, prev in zip(orbit_path(4, yaw_step=3.0), [None, *orbit_path(3, yaw_step=3.0)]):
-        a, b = graphed.frame(camera, prev), eager.frame(camera, prev)
-        assert_frames_close(a.buffers, b.buffers, atol=2e-2)
-        if prev is not None:  # the render's flow, kept
-            torch.testing.assert_close(a.buffers.flow, b.buffers.flow, rtol=0, atol=0)
-            kept.append((a.buffers.flow, a.buffers.flow.clone()))
-    for flow, when_made in kept:  # copies: later frames (the render plan's buffers) leave them alone
-        torch.testing.assert_close(flow, when_made, rtol=0, atol=0)
+    graphed = Reconstructor(graphs=True, fused=fused, **options)
+    outputs = set()
+    for camera, request in sequence_requests(orbit_path(3, yaw_step=3.0), *SIZE, iso, OUTPUTS, ao_samples=1):
+        _, out = graphed.render_reconstruct(renderer, camera, request, 1, 1)
+        assert out.mask.data_ptr() == graphed.previous.data_ptr()
+        outputs.add(out.mask.data_ptr())
+    assert len(outputs) == 1
+    method, cameras = FrameMethod("reconstruct", ao_rays=1, precision="fp16"), orbit_path(4, yaw_step=3.0)
+    frames = [run_sequence(make_runner(method, renderer, iso, *SIZE, keep=("flow",),
+                                       networks=Networks(lambda *_, g=g: Reconstructor(graphs=g, **options))), cameras)
+              for g in (True, False)]
+    for a, b in zip(*frames):
+        assert_frames_close(a, b, atol=2e-2)
+        if b.flow is not None:  # the render's flow, kept
+            torch.testing.assert_close(a.flow, b.flow, rtol=0, atol=0)
+
+
+@cuda
+@pytest.mark.parametrize("fused", [False, True], ids=["layers", "fused"])
+def test_a_refused_graphed_frame_raises_and_its_stream_starts_anew(fused):
+    """A camera 2e4 away with a narrow view: depths past what fp16 takes. The graphed frame raises
+    reconstruct's error; having written the state, it leaves none (a cut); the next frames are
+    finite again."""
+    renderer, iso = scene("cuda")
+    graphed = Reconstructor(graphs=True, fused=fused, device="cuda", precision="fp16", channels_last=True)
+    near = list(sequence_requests(orbit_path(2, yaw_step=3.0), *SIZE, iso, OUTPUTS, ao_samples=2))
+    far = list(sequence_requests([orbit(10.0 + i, 20.0, 2e4, fov_y=0.005) for i in range(2)], *SIZE, iso, OUTPUTS,
+                                 ao_samples=2))
+    for camera, request in near:
+        graphed.render_reconstruct(renderer, camera, request, 2, 1)
+    camera, request = far[1]  # with a previous camera: the frame carries the stream
+    assert graphed.carries(request.height, request.width, True)
+    with pytest.raises(ValueError, match="fp16 takes depths up to 10000, this frame reaches 2e"):
+        graphed.render_reconstruct(renderer, camera, request, 2, 1)
+    assert graphed.previous is None and graphed.history is None
+    for camera, request in near:
+        _, out = graphed.render_reconstruct(renderer, camera, request, 2, 1)
+        assert all(torch.isfinite(getattr(out, name)).all() for name in out.present())
 
 
 def test_the_graph_cache_keeps_the_most_recently_used_within_its_count_and_pixels():
@@ -110,7 +142,8 @@ def test_the_graph_cache_keeps_the_most_recently_used_within_its_count_and_pixel
 
 @cuda
 def test_frames_stay_right_when_the_graph_cache_drops_and_captures_again():
-    """A cache bound to the smaller frame's pixels keeps one graph: every frame captures anew."""
+    """A cache bound to the smaller frame's pixels keeps one graph: every frame captures anew; the
+    state tensors of a size go with its last graph (a resizing viewer's memory stays bounded)."""
     renderer, iso = scene("cuda")
     options = dict(device="cuda", precision="fp16", channels_last=True)
     graphed, eager = Reconstructor(graphs=True, **options), Reconstructor(**options)
@@ -120,3 +153,4 @@ def test_frames_stay_right_when_the_graph_cache_drops_and_captures_again():
             _, a = graphed.render_reconstruct(renderer, camera, request, 2, 1)
             assert_frames_close(a, eager.reconstruct(renderer.render(camera, request), 2, 1), atol=2e-2)
             assert len(graphed._frame_graphs) == 1
+            assert list(graphed._states) == list(graphed._history_states) == [(size[1], size[0])]
