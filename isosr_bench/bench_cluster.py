@@ -124,20 +124,21 @@ def failover(url: str, volume: str, size: tuple[int, int], sessions: int, before
             "errors": errors, "health_ready": sorted({str(h) for h in health})}
 
 
-def servers(replicas: list[int], gpus: float, device: str) -> list[tuple[str, tuple[str, ...]]]:
-    """(name, extra `isosr serve` options) per server measured: 0 replicas is the plain server."""
+def servers(replicas: list[int], gpus: float, device: str) -> list[tuple[str, int, tuple[str, ...]]]:
+    """(name, replicas, extra `isosr serve` options) per server measured: 0 replicas is the plain server."""
     ray_options = ("--gpus-per-replica", f"{gpus:g}") if device.startswith("cuda") else ()
-    return [("plain", ()) if n == 0 else (f"ray{n}", ("--replicas", str(n), *ray_options)) for n in replicas]
+    return [("plain", 0, ()) if n == 0 else (f"ray{n}", n, ("--replicas", str(n), *ray_options)) for n in replicas]
 
 
 def scaling(rows: list[dict]) -> list[dict]:
     """Each N-replica case row (N > 1) against the 1-replica server: ``efficiency`` is its
     frames/s over N times the 1-replica frames/s at the same sessions; ``p99_ratio`` its p99
-    latency over the 1-replica p99 at 1/N of the sessions (where measured)."""
-    one = {(r["mode"], r["ao"], r["sessions"]): r for r in rows if r.get("server") == "ray1" and "fps" in r}
+    latency over the 1-replica p99 at 1/N of the sessions (where measured). Rows name their
+    server's ``replicas`` (0: the plain server)."""
+    one = {(r["mode"], r["ao"], r["sessions"]): r for r in rows if r.get("replicas") == 1 and "fps" in r}
     out = []
     for r in rows:
-        n = int(r["server"][3:]) if r.get("server", "").startswith("ray") and "fps" in r else 0
+        n = r.get("replicas", 0) if "fps" in r else 0
         base = one.get((r.get("mode"), r.get("ao"), r.get("sessions")))
         if n < 2 or base is None:
             continue
@@ -174,6 +175,8 @@ def main(argv: list[str] | None = None) -> None:
     counts = [int(n) for n in (args.sessions or ("1,4" if args.smoke else "1,16,32")).split(",")]
     volume = "proc:cloud:0@32" if args.smoke and args.volume == parser.get_default("volume") else args.volume
     replicas = [int(n) for n in args.replicas.split(",") if n]
+    if not replicas or min(replicas) < 0:
+        parser.error(f"--replicas: one or more replica counts of 0 or more (0: the plain server), got {args.replicas!r}")
     room = str(2 * max(counts + [args.failover_sessions]) + 4)
     options = ("--max-sessions", room, "--max-sessions-per-client", room, "--max-connections-per-client", room,
                "--max-fps", "1000")  # every session comes from this address
@@ -182,13 +185,13 @@ def main(argv: list[str] | None = None) -> None:
     name = f"bench_cluster{'_gpus' if args.gpus_per_replica >= 1 else ''}_{size_name}"
     path = args.out / f"{name}_{'cuda' if args.device.startswith('cuda') else 'cpu'}.json"
     stamp = {"device": device_name(args.device), "commit": commit()}
-    merged = merge(path, [], {server for server, _ in measured})  # the other servers' rows of earlier runs
-    for server_name, extra in measured:
+    merged = merge(path, [], {server for server, _, _ in measured})  # the other servers' rows of earlier runs
+    for server_name, n, extra in measured:
         cases = [(mode, ao, n) for mode, ao in CASES for n in counts]
         failover_sessions = args.failover_sessions if server_name == failover_on else 0
         for row in measure_server(server_name, args.device, options + extra, cases, failover_sessions,
                                   volume, size, seconds, args.client_processes):
-            merged.append(dict(row, **stamp))
+            merged.append(dict(row, replicas=n, **stamp))
             # Written after every row: a run cut off (a device call's time limit) keeps what it measured.
             scaled = scaling(merged)
             written = write_result(name, args.device, merged + scaled, args.out)

@@ -95,7 +95,8 @@ def test_cluster_scaling_compares_each_server_with_one_replica(tmp_path):
     """Efficiency is frames/s over N times one replica's at the same sessions; p99 against one
     replica's at 1/N of the sessions; a later run keeps the servers it does not measure."""
     def row(server, sessions, fps, p99):
-        return {"server": server, "mode": "full", "ao": 8, "sessions": sessions, "fps": fps, "latency_p99_ms": p99}
+        return {"server": server, "replicas": 0 if server == "plain" else int(server[3:]), "mode": "full", "ao": 8,
+                "sessions": sessions, "fps": fps, "latency_p99_ms": p99}
 
     rows = [row("ray1", 16, 100.0, 200.0), row("ray1", 32, 110.0, 400.0), row("ray1", 64, 105.0, 800.0),
             row("ray2", 32, 198.0, 220.0), row("ray2", 48, 150.0, 300.0), row("ray4", 64, 300.0, 500.0),
@@ -112,6 +113,21 @@ def test_cluster_scaling_compares_each_server_with_one_replica(tmp_path):
     assert merged[0]["device"] == "GPU A" and merged[-1]["device"] == "GPU B" and merged[-1]["fps"] == 320.0
 
 
+def test_cluster_scaling_reads_the_replica_count_of_each_row_not_the_servers_name():
+    rows = [{"server": name, "replicas": n, "mode": "full", "ao": 0, "sessions": 8, "fps": fps, "latency_p99_ms": 9.0}
+            for name, n, fps in (("one", 1, 50.0), ("pair", 2, 90.0), ("ray7", 0, 60.0))]
+    (pair,) = bench_cluster.scaling(rows)
+    assert (pair["server"], pair["replicas"], pair["efficiency"]) == ("pair", 2, pytest.approx(0.9))
+
+
+@pytest.mark.parametrize("replicas", ["", "1,-1"])
+def test_cluster_bench_refuses_no_servers_or_a_negative_count(tmp_path, capsys, replicas):
+    with pytest.raises(SystemExit):
+        bench_cluster.main(["--smoke", "--replicas", replicas, "--out", str(tmp_path)])
+    assert "--replicas: one or more replica counts of 0 or more" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
+
+
 def test_cluster_smoke_writes_every_case_and_a_rerun_replaces_its_server(tmp_path):
     """The plain server's cases on the CPU: a row per case, written as measured; the same run again
     replaces that server's rows instead of adding to them."""
@@ -120,6 +136,6 @@ def test_cluster_smoke_writes_every_case_and_a_rerun_replaces_its_server(tmp_pat
     for _ in range(2):
         bench_cluster.main(argv)
         record = json.loads((tmp_path / "bench_cluster_smoke_cpu.json").read_text())
-        assert [(r["server"], r["mode"], r["ao"]) for r in record["rows"]] == [
-            ("plain", mode, ao) for mode, ao in bench_cluster.CASES]
+        assert [(r["server"], r["replicas"], r["mode"], r["ao"]) for r in record["rows"]] == [
+            ("plain", 0, mode, ao) for mode, ao in bench_cluster.CASES]
         assert all(r["errors"] == 0 and r["fps"] > 0 and r["commit"] == record["commit"] for r in record["rows"])
