@@ -129,9 +129,14 @@ def sampled_rays(frame: FrameBuffers, ao_rays: int, spp: int, limits: RayLimits,
         constant: (1, 2, 1, 1), :meth:`RayLimits.channels` of the sampling. Returns ao (H, W);
         sampling (1, 2, H, W), or ``constant``.
     """
-    if not ao_rays or frame.position is None:
+    if not accumulates(ao_rays, frame.position is not None):
         return frame.ao if ao_rays else None, constant, None
     return network_inputs(frame, history, ao_rays, spp, limits)
+
+
+def accumulates(ao_rays: int, positions: bool) -> bool:
+    """Whether a frame's AO rays join the ray history: it has some, and their hit points."""
+    return bool(ao_rays) and positions
 
 
 def _check_frame(frame: FrameBuffers, ao_rays: int, spp: int, limits: RayLimits) -> None:
@@ -462,8 +467,7 @@ class Reconstructor(RecurrentNetwork):
         size = (request.height, request.width)
         carry = self.carries(*size, request.prev_camera is not None)
         state = self._state(size, self.previous if carry else None)
-        # A frame with AO rays and hit points accumulates them (sampled_rays), continuing a history it carries.
-        history = self._history_state(size) if ao_rays and "position" in request.outputs else None
+        history = self._history_state(size) if accumulates(ao_rays, "position" in request.outputs) else None
         continued = carry and history is not None and self.history is not None
         if continued and self.history is not history:
             history.copy_(self.history)
