@@ -186,12 +186,12 @@ def main(argv: list[str] | None = None) -> None:
     path = args.out / f"{name}_{'cuda' if args.device.startswith('cuda') else 'cpu'}.json"
     stamp = {"device": device_name(args.device), "commit": commit()}
     merged = merge(path, [], {server for server, _, _ in measured})  # the other servers' rows of earlier runs
-    for server_name, n, extra in measured:
+    for server_name, server_replicas, extra in measured:
         cases = [(mode, ao, n) for mode, ao in CASES for n in counts]
         failover_sessions = args.failover_sessions if server_name == failover_on else 0
         for row in measure_server(server_name, args.device, options + extra, cases, failover_sessions,
                                   volume, size, seconds, args.client_processes):
-            merged.append(dict(row, replicas=n, **stamp))
+            merged.append(dict(row, replicas=server_replicas, **stamp))
             # Written after every row: a run cut off (a device call's time limit) keeps what it measured.
             scaled = scaling(merged)
             written = write_result(name, args.device, merged + scaled, args.out)

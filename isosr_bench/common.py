@@ -77,14 +77,14 @@ def time_frames(fn, frames: int, device: str, warmup: int = 2, keep=None) -> dic
         if cuda:
             e0, e1 = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
             e0.record()
-        result = fn(i)
+        made = fn(i)
         if cuda:
             e1.record()
             torch.cuda.synchronize()
             gpu.append(e0.elapsed_time(e1))
         wall.append((time.perf_counter() - start) * 1e3)
         if keep is not None:
-            keep(i, result)
+            keep(i, made)
     result = {"wall_ms": sum(wall) / frames, "wall_ms_min": min(wall)}
     if cuda:
         result.update(gpu_ms=sum(gpu) / frames, gpu_ms_min=min(gpu))

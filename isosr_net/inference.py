@@ -110,14 +110,14 @@ class InputChecks:
         by_device: dict[torch.device, list[int]] = {}
         for i, (values, _) in enumerate(self._checks):
             by_device.setdefault(values.device, []).append(i)
-        read: list[list[float]] = [[]] * len(self._checks)
+        read: dict[int, list[float]] = {}
         for indices in by_device.values():  # one read per device (the inputs may sit elsewhere)
             values = [self._checks[i][0] for i in indices]
             flat = (values[0] if len(values) == 1 else torch.cat(values)).tolist()
-            for i in indices:
-                read[i], flat = flat[:len(self._checks[i][1])], flat[len(self._checks[i][1]):]
-        for got, (_, checks) in zip(read, self._checks):
-            for v, check in zip(got, checks):
+            for i, v in zip(indices, values):  # each queued vector's share, by its own length
+                read[i], flat = flat[:len(v)], flat[len(v):]
+        for i, (_, checks) in enumerate(self._checks):
+            for v, check in zip(read[i], checks):
                 if check is not None and not check[0](v):
                     raise ValueError(check[1](v))
 

@@ -467,10 +467,9 @@ class Reconstructor(RecurrentNetwork):
         size = (request.height, request.width)
         carry = self.carries(*size, request.prev_camera is not None)
         state = self._state(size, self.previous if carry else None)
-        history = self._history_state(size) if accumulates(ao_rays, "position" in request.outputs) else None
-        continued = carry and history is not None and self.history is not None
-        if continued and self.history is not history:
-            history.copy_(self.history)
+        accumulating = accumulates(ao_rays, "position" in request.outputs)
+        continued = carry and accumulating and self.history is not None
+        history = self._history_state(size, self.history if continued else None) if accumulating else None
         key = (id(renderer), request.plan_key(), float(request.iso), request.skip, ao_rays, spp, shading, carry,
                continued)
         entry = self._frame_graphs.use(key)
@@ -526,11 +525,14 @@ class Reconstructor(RecurrentNetwork):
                 history.copy_(saved_history)
         return restore
 
-    def _history_state(self, size: tuple[int, int]) -> RayHistory:
-        """The ray history of frames of ``size`` that the graphs read and write, made once per size."""
+    def _history_state(self, size: tuple[int, int], history: RayHistory | None) -> RayHistory:
+        """The ray history of frames of ``size`` that the graphs read and write, made once per size,
+        holding ``history`` where given (copied unless it is that one already)."""
         state = self._history_states.get(size)
         if state is None:
             state = self._history_states[size] = RayHistory.empty(1, *size, self.device)
+        if history is not None and history is not state:
+            state.copy_(history)
         return state
 
     def _graph_work(self, plan: RenderPlan, request: RenderRequest, ao_rays: int, spp: int,
