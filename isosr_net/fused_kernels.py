@@ -61,7 +61,6 @@ PACK_BLOCK = 128
 # How the pack gets the previous output's mask and AO: as given (warped already), warped by the
 # flow, or a first frame's stand-in (ReconNet.first_previous: from the inputs, or zeros).
 PREV_GIVEN, PREV_WARP, PREV_INPUTS, PREV_ZEROS = (tl.constexpr(i) for i in range(4))
-FLAG_SLOTS = tl.constexpr(8)  # per pack program: the FRAME_FLAGS, padded
 
 
 def _tuned(kernel, key: list[str]):
@@ -171,18 +170,20 @@ def _pack_kernel(m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, sn_b, sn_c, sn_h, sn_w, d
     s1 = _plane(s_ptr + ss_c, ss_b, ss_h, ss_w, b, y, x, valid)
     # The input checks (FRAME_FLAGS), over this program's pixels: a flag per buffer that holds
     # NaN or Inf, one for AO outside [0, 1], and the largest finite |depth|.
-    flags = flags_ptr + (b * tl.num_programs(0) + tl.program_id(0)) * FLAG_SLOTS
-    tl.store(flags + 0, tl.max(_not_finite(mask)))
-    tl.store(flags + 1, tl.max(tl.maximum(tl.maximum(_not_finite(nx), _not_finite(ny)), _not_finite(nz))))
-    tl.store(flags + 2, tl.max(_not_finite(depth)))
-    tl.store(flags + 4, tl.max(tl.where((rays >= 0.0) & (rays <= 1.0), 0.0, 1.0)))
-    tl.store(flags + 5, tl.max(tl.where(_not_finite(depth) == 0, tl.abs(depth), 0.0)))
+    # Slot-major (a flag's values of all programs contiguous: their reduction reads rows).
+    programs = tl.num_programs(0) * tl.num_programs(1)
+    flags = flags_ptr + b * tl.num_programs(0) + tl.program_id(0)
+    tl.store(flags + 0 * programs, tl.max(_not_finite(mask)))
+    tl.store(flags + 1 * programs, tl.max(tl.maximum(tl.maximum(_not_finite(nx), _not_finite(ny)), _not_finite(nz))))
+    tl.store(flags + 2 * programs, tl.max(_not_finite(depth)))
+    tl.store(flags + 4 * programs, tl.max(tl.where((rays >= 0.0) & (rays <= 1.0), 0.0, 1.0)))
+    tl.store(flags + 5 * programs, tl.max(tl.where(_not_finite(depth) == 0, tl.abs(depth), 0.0)))
     if HAS_FLOW:
         fx = _plane(flow_ptr, sf_b, sf_h, sf_w, b, y, x, valid)
         fy = _plane(flow_ptr + sf_c, sf_b, sf_h, sf_w, b, y, x, valid)
-        tl.store(flags + 3, tl.max(tl.maximum(_not_finite(fx), _not_finite(fy))))
+        tl.store(flags + 3 * programs, tl.max(tl.maximum(_not_finite(fx), _not_finite(fy))))
     else:
-        tl.store(flags + 3, 0.0)
+        tl.store(flags + 3 * programs, 0.0)
     c = tl.arange(0, C)[None, :]
     tile = tl.where(c == MASK_C, mask[:, None], tl.where(c == NORMAL_C, nx[:, None],
            tl.where(c == NORMAL_C + 1, ny[:, None], tl.where(c == NORMAL_C + 2, nz[:, None],
@@ -496,14 +497,14 @@ def pack_inputs(sources: ReconSources, prev: torch.Tensor | None, flow: torch.Te
     hp, wp = h + -h % multiple, w + -w % multiple
     out = sources.mask.new_empty((b, hp, wp, PACKED), dtype=torch.float16)
     programs = triton.cdiv(hp * wp, PACK_BLOCK)
-    flags = sources.mask.new_empty((b * programs, FLAG_SLOTS.value), dtype=torch.float32)
+    flags = sources.mask.new_empty((len(FRAME_FLAGS), b * programs), dtype=torch.float32)
     prev_args = (sources.mask, 0, 0, 0, 0) if prev is None else (prev, *prev.stride())
     flow_args = (sources.mask, 0, 0, 0, 0) if flow is None else (flow, *flow.stride())
     _pack_kernel[(programs, b)](*sources.args(), *prev_args, *flow_args, out, flags, h, w, hp, wp, PREV=mode.value,
                                 HAS_AO=sources.ao is not None, HAS_FLOW=flow is not None, **_CHANNELS,
                                 PREV_MASK=MASK.start, PREV_AO=AO.start, N_IN=INPUTS, S=upscale, C=PACKED,
                                 BLOCK=PACK_BLOCK)
-    return out, flags.amax(dim=0)[:len(FRAME_FLAGS)]
+    return out, flags.amax(dim=1)
 
 
 def conv3x3(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, *, stride: int = 1, relu: bool = True,

@@ -206,7 +206,7 @@ def accumulate_kernel(mask: wp.array4d(dtype=float), normal: wp.array4d(dtype=fl
 
 def accumulate_rays(ao: torch.Tensor, mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor,
                     position: torch.Tensor, flow: torch.Tensor | None, history: RayHistory | None, rays: int, cap: int,
-                    config: RayHistoryConfig = RayHistoryConfig()) -> RayHistory:
+                    config: RayHistoryConfig = RayHistoryConfig(), out: RayHistory | None = None) -> RayHistory:
     """One frame's rays blended into the history (module docstring), with no host sync.
 
     Runs on the inputs' device (CPU or CUDA, on torch's current stream), in float32. The inputs'
@@ -224,18 +224,22 @@ def accumulate_rays(ao: torch.Tensor, mask: torch.Tensor, normal: torch.Tensor, 
         rays: the rays behind each pixel's ``ao`` (AO rays per hit times rays per pixel), >= 1.
         cap: the most rays a pixel's mean stands for, >= ``rays``.
         config: the reprojection's tests.
+        out: where to write the new history (None: new tensors); not ``history`` (a pixel reads
+            its neighbours' history).
 
     Returns:
-        The new history: its ``ao`` is the accumulated AO, its ``count`` the rays behind it.
+        The new history (``out`` where given): its ``ao`` is the accumulated AO, its ``count`` the
+        rays behind it.
 
     Raises:
-        ValueError: wrong shapes, dtypes or devices, or counts out of range.
+        ValueError: wrong shapes, dtypes or devices, counts out of range, or ``out`` misshapen,
+            elsewhere, or ``history`` itself.
 
     Shape:
         ao, mask, depth: (B, 1, H, W). normal, position: (B, 3, H, W). flow: (B, 2, H, W).
     """
     b, h, w = _check(ao, mask, normal, depth, position, flow, rays, cap)
-    out = RayHistory.empty(b, h, w, ao.device)
+    out = RayHistory.empty(b, h, w, ao.device) if out is None else _check_out(out, history, (b, h, w), ao.device)
     continued = flow is not None and history is not None and history.shape == (b, h, w)
     wp.init()  # a no-op after the first call
     sources = [wp.from_torch(t.float()) for t in (mask, normal, depth, position, ao, flow if continued else depth)]
@@ -249,19 +253,20 @@ def accumulate_rays(ao: torch.Tensor, mask: torch.Tensor, normal: torch.Tensor, 
 
 
 def accumulate_frame(frame: FrameBuffers, history: RayHistory | None, rays: int, cap: int,
-                     config: RayHistoryConfig = RayHistoryConfig()) -> RayHistory:
+                     config: RayHistoryConfig = RayHistoryConfig(), out: RayHistory | None = None) -> RayHistory:
     """:func:`accumulate_rays` on one frame's buffers: mask, normal, depth, position, ao, and flow
-    (None: a frame without a previous one)."""
+    (None: a frame without a previous one); into ``out`` where given."""
     flow = None if frame.flow is None else frame.flow.permute(2, 0, 1)[None]
     return accumulate_rays(frame.ao[None, None], frame.mask[None, None], frame.normal.permute(2, 0, 1)[None],
                            frame.depth[None, None], frame.position.permute(2, 0, 1)[None], flow, history, rays, cap,
-                           config)
+                           config, out)
 
 
 def network_inputs(frame: FrameBuffers, history: RayHistory | None, ao_rays: int, spp: int,
-                   limits: RayLimits) -> tuple[torch.Tensor, torch.Tensor, RayHistory]:
+                   limits: RayLimits, out: RayHistory | None = None) -> tuple[torch.Tensor, torch.Tensor, RayHistory]:
     """What a reconstruction network of ``limits`` reads of a frame whose ``ao_rays`` AO rays (at
-    ``spp`` rays per pixel) join ``history``: ``(ao, sampling, new history)``, with no host sync.
+    ``spp`` rays per pixel) join ``history``: ``(ao, sampling, new history)``, with no host sync;
+    the new history written into ``out`` where given (:func:`accumulate_rays`).
     The sampling's AO plane counts, per pixel, the rays behind the mean; uncovered pixels hold
     none and read as the frame's own rays, the value training gave them (a 0 there cost 0.3-0.8 dB
     at 16 AO rays, spp 4).
@@ -270,7 +275,7 @@ def network_inputs(frame: FrameBuffers, history: RayHistory | None, ao_rays: int
         Returns ao (H, W), sampling (1, 2, H, W).
     """
     rays = ao_rays * spp
-    history = accumulate_frame(frame, history, rays, limits.rays(spp))
+    history = accumulate_frame(frame, history, rays, limits.rays(spp), out=out)
     return history.ao[0], limits.counted(history.count.clamp(min=rays), spp), history
 
 
@@ -292,6 +297,21 @@ def _check(ao: torch.Tensor, mask: torch.Tensor, normal: torch.Tensor, depth: to
         raise ValueError(f"accumulate_rays: need integers 1 <= rays <= cap, got rays={rays!r}, cap={cap!r}")
     b, _, h, w = ao.shape
     return b, h, w
+
+
+def _check_out(out: RayHistory, history: RayHistory | None, shape: tuple[int, int, int],
+               device: torch.device) -> RayHistory:
+    """``out`` if it can take a new history of ``shape`` on ``device`` beside ``history``, else ValueError."""
+    tensors = (out.ao, out.count, out.point, out.normal)
+    shapes = (shape, shape, (*shape, 3), (*shape, 3))
+    if any(t.shape != s or t.device != device or t.dtype != torch.float32 or not t.is_contiguous()
+           for t, s in zip(tensors, shapes)):
+        raise ValueError(f"accumulate_rays: out must be contiguous float32 tensors of a {shape} history on "
+                         f"{device}, got shape {out.shape} on {out.ao.device}")
+    if history is not None and any(t.data_ptr() == h.data_ptr() for t in tensors
+                                   for h in (history.ao, history.count, history.point, history.normal)):
+        raise ValueError("accumulate_rays: out must not be the history it continues (a pixel reads its neighbours')")
+    return out
 
 
 def _previous(history: RayHistory | None, device: torch.device) -> Previous:

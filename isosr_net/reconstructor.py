@@ -118,12 +118,13 @@ def recon_inputs(frame: FrameBuffers, ao_rays: int, spp: int, limits: RayLimits,
 
 
 def sampled_rays(frame: FrameBuffers, ao_rays: int, spp: int, limits: RayLimits, history: RayHistory | None,
-                 constant: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor, RayHistory | None]:
+                 constant: torch.Tensor, out: RayHistory | None = None
+                 ) -> tuple[torch.Tensor | None, torch.Tensor, RayHistory | None]:
     """The AO and sampling channels a network of ``limits`` reads of a frame: ``(ao, sampling,
     new history)``, with no host sync. A frame with AO rays and ``position`` has them
-    accumulated with ``history`` (None: anew), and its sampling's AO plane counts, per pixel, the
-    rays behind the mean; else the frame's own AO (None without rays), the ``constant``
-    sampling, and no history.
+    accumulated with ``history`` (None: anew) into ``out`` (None: new tensors), and its
+    sampling's AO plane counts, per pixel, the rays behind the mean; else the frame's own AO
+    (None without rays), the ``constant`` sampling, and no history.
 
     Shape:
         constant: (1, 2, 1, 1), :meth:`RayLimits.channels` of the sampling. Returns ao (H, W);
@@ -131,7 +132,7 @@ def sampled_rays(frame: FrameBuffers, ao_rays: int, spp: int, limits: RayLimits,
     """
     if not accumulates(ao_rays, frame.position is not None):
         return frame.ao if ao_rays else None, constant, None
-    return network_inputs(frame, history, ao_rays, spp, limits)
+    return network_inputs(frame, history, ao_rays, spp, limits, out)
 
 
 def accumulates(ao_rays: int, positions: bool) -> bool:
@@ -216,13 +217,13 @@ class GraphCache(OrderedDict):
 class FrameGraph:
     """One captured frame (render, reconstruction, shading): its graph, the render plan whose
     staged values it reads, its own outputs (color or None, flags), and the state tensors it
-    reads and writes (the output stack, the ray history or None), held while it lives."""
+    reads and writes (the output stack, the pair of ray histories or None), held while it lives."""
 
     graph: torch.cuda.CUDAGraph
     plan: RenderPlan
     outs: tuple[torch.Tensor | None, torch.Tensor]
     state: torch.Tensor
-    history: RayHistory | None
+    histories: tuple[RayHistory, RayHistory] | None
 
 
 class Reconstructor(RecurrentNetwork):
@@ -287,7 +288,7 @@ class Reconstructor(RecurrentNetwork):
         self._frame_graphs = GraphCache()
         # Per frame size, while a cached graph or the stream holds them (_drop_unheld_states).
         self._states: dict[tuple[int, int], torch.Tensor] = {}
-        self._history_states: dict[tuple[int, int], RayHistory] = {}
+        self._history_states: dict[tuple[int, int], tuple[RayHistory, RayHistory]] = {}
         self._pool = torch.cuda.graph_pool_handle() if self.graphs else None
 
     def own(self) -> "Reconstructor":
@@ -382,10 +383,10 @@ class Reconstructor(RecurrentNetwork):
         self.previous, self.history = stack, history
         return stack_buffers(stack, color)
 
-    def _rays(self, frame: FrameBuffers, ao_rays: int, spp: int,
-              history: RayHistory | None) -> tuple[torch.Tensor | None, torch.Tensor, RayHistory | None]:
+    def _rays(self, frame: FrameBuffers, ao_rays: int, spp: int, history: RayHistory | None,
+              out: RayHistory | None = None) -> tuple[torch.Tensor | None, torch.Tensor, RayHistory | None]:
         """:func:`sampled_rays` of the model, its constant sampling made once per sampling."""
-        return sampled_rays(frame, ao_rays, spp, self.limits, history, self._sampling_tensor(ao_rays, spp))
+        return sampled_rays(frame, ao_rays, spp, self.limits, history, self._sampling_tensor(ao_rays, spp), out)
 
     def _raise_refused(self, flags: torch.Tensor) -> None:
         """Read a frame's input checks (one host sync) and raise the first that fails."""
@@ -452,7 +453,8 @@ class Reconstructor(RecurrentNetwork):
         per renderer, request size and buffers, iso, sampling, shading and first frame or not
         (captured on first use; a new iso or size captures anew): the frame's values go in by the
         render plan's copy; the graph reads the previous output and ray history from the stream's
-        state tensors of the frame size and writes the new ones there (no copy after it). Both
+        state tensors of the frame size and writes the new ones there (no copy after it: the
+        output in place, the history into the other of a pair, in turn). Both
         results are then the plan's, the state's and the graph's tensors: valid until this
         stream's next frame (copy what you keep longer, :meth:`FrameBuffers.clone`). Elsewhere:
         :meth:`Renderer.render` then :meth:`reconstruct`.
@@ -469,19 +471,20 @@ class Reconstructor(RecurrentNetwork):
         state = self._state(size, self.previous if carry else None)
         accumulating = accumulates(ao_rays, "position" in request.outputs)
         continued = carry and accumulating and self.history is not None
-        history = self._history_state(size, self.history if continued else None) if accumulating else None
+        histories = self._history_pair(size) if accumulating else None
+        read, written = self._history_turn(histories, self.history if continued else None)
         key = (id(renderer), request.plan_key(), float(request.iso), request.skip, ao_rays, spp, shading, carry,
-               continued)
+               continued, written is not None and written is histories[1])
         entry = self._frame_graphs.use(key)
         plan = renderer.plan(request) if entry is None else entry.plan
         plan.stage(camera, request)
         if entry is None:
             graph, outs = self._capture(lambda: self._graph_work(plan, request, ao_rays, spp, shading, carry, state,
-                                                                 continued, history),
-                                        self._restorer(state, history))
-            entry = FrameGraph(graph, plan, outs, state, history)
+                                                                 read, written),
+                                        self._restorer(state))
+            entry = FrameGraph(graph, plan, outs, state, histories)
             self._frame_graphs.add(key, entry, request.height * request.width * self.upscale_factor ** 2)
-            self._drop_unheld_states(state, history)
+            self._drop_unheld_states(state, histories)
         entry.graph.replay()
         color, flags = entry.outs
         try:
@@ -489,7 +492,7 @@ class Reconstructor(RecurrentNetwork):
         except ValueError:
             self.reset()
             raise
-        self.previous, self.history = state, history
+        self.previous, self.history = state, written
         return plan.buffers(request), stack_buffers(state, color)
 
     def _state(self, size: tuple[int, int], previous: torch.Tensor | None) -> torch.Tensor:
@@ -504,48 +507,56 @@ class Reconstructor(RecurrentNetwork):
             state.copy_(previous)
         return state
 
-    def _drop_unheld_states(self, *current: torch.Tensor | RayHistory | None) -> None:
+    def _drop_unheld_states(self, *current: torch.Tensor | tuple[RayHistory, RayHistory] | None) -> None:
         """Forget the state tensors of sizes that no cached graph holds (nor ``current``, the frame's):
         a viewer resizing through many sizes keeps only those of the graphs' bounded cache."""
-        held = {id(t) for e in self._frame_graphs.values() for t in (e.state, e.history)} | {id(t) for t in current}
+        held = {id(t) for e in self._frame_graphs.values() for t in (e.state, e.histories)} | {id(t) for t in current}
         for states in (self._states, self._history_states):
             for size in [size for size, t in states.items() if id(t) not in held]:
                 del states[size]
 
     @staticmethod
-    def _restorer(state: torch.Tensor, history: RayHistory | None) -> Callable[[], None]:
-        """What puts ``state`` and ``history`` back as they hold now (a graph's warm-up frames write
-        the state they read)."""
-        saved_state = state.clone()
-        saved_history = None if history is None else RayHistory.empty(*history.shape, state.device).copy_(history)
+    def _restorer(state: torch.Tensor) -> Callable[[], None]:
+        """What puts ``state`` back as it holds now (a graph's warm-up frames write the output they
+        read; the ray history they read they do not write)."""
+        saved = state.clone()
+        return lambda: state.copy_(saved)
 
-        def restore() -> None:
-            state.copy_(saved_state)
-            if history is not None:
-                history.copy_(saved_history)
-        return restore
+    def _history_pair(self, size: tuple[int, int]) -> tuple[RayHistory, RayHistory]:
+        """The two ray histories of frames of ``size`` that the graphs read and write in turn (a
+        pixel's accumulation reads its neighbours' history: not in place), made once per size."""
+        pair = self._history_states.get(size)
+        if pair is None:
+            pair = self._history_states[size] = (RayHistory.empty(1, *size, self.device),
+                                                  RayHistory.empty(1, *size, self.device))
+        return pair
 
-    def _history_state(self, size: tuple[int, int], history: RayHistory | None) -> RayHistory:
-        """The ray history of frames of ``size`` that the graphs read and write, made once per size,
-        holding ``history`` where given (copied unless it is that one already)."""
-        state = self._history_states.get(size)
-        if state is None:
-            state = self._history_states[size] = RayHistory.empty(1, *size, self.device)
-        if history is not None and history is not state:
-            state.copy_(history)
-        return state
+    @staticmethod
+    def _history_turn(pair: tuple[RayHistory, RayHistory] | None, history: RayHistory | None
+                      ) -> tuple[RayHistory | None, RayHistory | None]:
+        """``(read, written)`` of a frame: the one of ``pair`` holding ``history`` (copied into the
+        first unless it is one of them; None without a history) and the other (None without a pair)."""
+        if pair is None:
+            return None, None
+        if history is None:
+            return None, pair[0]
+        if history is pair[1]:
+            return pair[1], pair[0]
+        if history is not pair[0]:
+            pair[0].copy_(history)
+        return pair[0], pair[1]
 
     def _graph_work(self, plan: RenderPlan, request: RenderRequest, ao_rays: int, spp: int,
-                    shading: ShadingParams | None, carry: bool, state: torch.Tensor, continued: bool,
-                    history: RayHistory | None) -> tuple[torch.Tensor | None, torch.Tensor]:
+                    shading: ShadingParams | None, carry: bool, state: torch.Tensor, read: RayHistory | None,
+                    written: RayHistory | None) -> tuple[torch.Tensor | None, torch.Tensor]:
         """A staged frame's render and its reconstruction (as :meth:`reconstruct`'s frame work), with
         no host sync: the previous output read from ``state`` where the frame ``carry``-s it, the
         new one written there; the ray history (where the frame makes one) continued from
-        ``history`` where ``continued``, the new one copied there. Returns ``(color, flags)``."""
+        ``read`` (None: anew) into ``written``. Returns ``(color, flags)``."""
         plan.launch()
         rendered = plan.buffers(request)
         _check_frame(rendered, ao_rays, spp, self.limits)
-        ao, sampling, made = self._rays(rendered, ao_rays, spp, history if continued else None)
+        ao, sampling, _ = self._rays(rendered, ao_rays, spp, read, written)
         args = (rendered.mask, rendered.normal, rendered.depth, ao, sampling, rendered.flow, state if carry else None,
                 shading)
         if isinstance(self.net, FusedReconNet):  # its tail writes the state after its pack read it
@@ -553,7 +564,4 @@ class Reconstructor(RecurrentNetwork):
         else:
             stack, color, flags = self._frame(*args)
             state.copy_(stack)
-        if made is not None:
-            history.copy_(made)
         return color, flags
-

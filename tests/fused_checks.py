@@ -485,6 +485,22 @@ def test_hard_frames_stay_finite_and_within_fp16s_own_error(model):
         assert (error <= 1.5 * (half - expected).abs().amax(dim=(0, 2, 3)) + 2e-3).all(), error
 
 
+def assert_buffers_close(got: FrameBuffers, expected: FrameBuffers) -> None:
+    """An fp16 frame's buffers within fp16's reach of the fp32 reference's: mask, AO and color
+    within 2e-3; depth and unit normals where both cover a pixel (mask > 0, the buffers' rule), and
+    where only one does, its mask within that tolerance of 0 (seen on an H100: 5e-5 against 0, the
+    eager fp16 path too, so a unit normal against none)."""
+    for name in ("mask", "ao", "color"):
+        torch.testing.assert_close(getattr(got, name), getattr(expected, name), rtol=0, atol=2e-3)
+    both = (got.mask > 0) & (expected.mask > 0)
+    either = (got.mask > 0) | (expected.mask > 0)
+    assert (torch.maximum(got.mask, expected.mask)[either & ~both] <= 2e-3).all()
+    torch.testing.assert_close(got.depth[both], expected.depth[both], rtol=0, atol=2e-3)
+    # Unit normals of short output normals (where the input had none) turn fp16's rounding
+    # into 1e-2 (eager fp16 too).
+    torch.testing.assert_close(got.normal[both], expected.normal[both], rtol=0, atol=3e-2)
+
+
 def synthetic_frames(count: int, h: int, w: int, positions: bool = False) -> list[FrameBuffers]:
     """Random frames as a render gives them (mask, unit normals, depth, AO of 2 rays) and flows;
     with ``positions``, points on a plane (the ray history takes the texels near the flow's)."""
@@ -531,11 +547,8 @@ def test_a_fused_reconstructor_follows_the_reference_frame_by_frame(model, posit
             got = variant.reconstruct(frame, 2, 1, shading)
             read = [MASK.start, AO.start]  # of the previous output, what the next frame reads
             torch.testing.assert_close(variant.previous[:, read], reference.previous[:, read], rtol=0, atol=2e-3)
-            for name in ("mask", "depth", "ao", "color"):
-                torch.testing.assert_close(getattr(got, name), getattr(expected, name), rtol=0, atol=2e-3)
-            # Unit normals of short output normals (where the input had none) turn fp16's rounding
-            # into 1e-2 (eager fp16 too).
-            torch.testing.assert_close(got.normal, expected.normal, rtol=0, atol=3e-2)
+            assert_buffers_close(got, expected)
+
 
 
 def test_a_fused_reconstructor_refuses_a_bad_frame_and_keeps_its_state():

@@ -159,6 +159,35 @@ def test_bad_arguments_are_refused_with_what_is_wrong(change, match):
         accumulate_rays(**args)
 
 
+def test_a_history_written_into_given_tensors_in_turn_equals_new_ones():
+    """Two histories used in turn (as a CUDA graph's frames use them): each frame writes the one it
+    does not read, with the values a new history gets, and holds its tensors."""
+    pair = (RayHistory.empty(1, H, W, torch.device("cpu")), RayHistory.empty(1, H, W, torch.device("cpu")))
+    history = fresh = None
+    for seed in range(4):
+        f = frame(seed)
+        target = pair[seed % 2]
+        written = accumulate_rays(**f, history=history, rays=2, cap=32, out=target)
+        fresh = accumulate_rays(**f, history=fresh, rays=2, cap=32)
+        assert written is target
+        for name in ("ao", "count", "point", "normal"):
+            assert torch.equal(getattr(written, name), getattr(fresh, name)), name
+        history = written
+
+
+@pytest.mark.parametrize("out, match", [
+    ("history", "out must not be the history it continues"),
+    (RayHistory.empty(1, H, W - 1, torch.device("cpu")), r"out must be contiguous float32 tensors of a \(1, 9, 11\)"),
+    (RayHistory(*(t.double() for t in RayHistory.empty(1, H, W, torch.device("cpu")).__dict__.values())),
+     "out must be contiguous float32"),
+])
+def test_an_out_history_that_cannot_take_the_frame_is_refused(out, match):
+    f = frame()
+    history = accumulate_rays(**f, history=None, rays=1, cap=16)
+    with pytest.raises(ValueError, match=match):
+        accumulate_rays(**f, history=history, rays=1, cap=16, out=history if out == "history" else out)
+
+
 def test_the_config_refuses_bad_tests():
     with pytest.raises(ValueError, match="point_tolerance"):
         RayHistoryConfig(point_tolerance=float("nan"))

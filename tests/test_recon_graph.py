@@ -60,7 +60,8 @@ def test_one_graph_frames_equal_render_then_reconstruct(fused):
             for name in OUTPUTS if request.prev_camera else OUTPUTS[:-1]:
                 torch.testing.assert_close(getattr(rendered, name), getattr(frame, name), rtol=0, atol=0)
             assert_frames_close(a, eager.reconstruct(frame, 2, 1, shading), atol=2e-2)
-    assert len(graphed._frame_graphs) == 6  # (first frame, next frames) x (two sizes, a second iso)
+    # (a first frame, next frames writing either history of the pair) x (two sizes, a second iso)
+    assert len(graphed._frame_graphs) == 9
 
 
 @cuda
@@ -82,17 +83,20 @@ def test_interleaved_streams_keep_their_own_state():
 @pytest.mark.parametrize("fused", [False, True], ids=["layers", "fused"])
 def test_a_graphed_frame_is_the_streams_state_and_copies_keep_it(fused):
     """No copy after the graph: each frame's output is the stream's state tensor (the same memory
-    every frame, which the next frame reads and overwrites); the runner's frames kept by
-    run_sequence (copies) equal the eager runner's, frame by frame."""
+    every frame, which the next frame reads and overwrites), its ray history the other of a pair
+    than the one it read; the runner's frames kept by run_sequence (copies) equal the eager
+    runner's, frame by frame."""
     renderer, iso = scene("cuda")
     options = dict(device="cuda", precision="fp16", channels_last=True)
     graphed = Reconstructor(graphs=True, fused=fused, **options)
-    outputs = set()
-    for camera, request in sequence_requests(orbit_path(3, yaw_step=3.0), *SIZE, iso, OUTPUTS, ao_samples=1):
+    outputs, histories = set(), []
+    for camera, request in sequence_requests(orbit_path(4, yaw_step=3.0), *SIZE, iso, OUTPUTS, ao_samples=1):
         _, out = graphed.render_reconstruct(renderer, camera, request, 1, 1)
         assert out.mask.data_ptr() == graphed.previous.data_ptr()
         outputs.add(out.mask.data_ptr())
+        histories.append(graphed.history.count.data_ptr())
     assert len(outputs) == 1
+    assert histories[0] == histories[2] != histories[1] == histories[3]
     method, cameras = FrameMethod("reconstruct", ao_rays=1, precision="fp16"), orbit_path(4, yaw_step=3.0)
     frames = [run_sequence(make_runner(method, renderer, iso, *SIZE, keep=("flow",),
                                        networks=Networks(lambda *_, g=g: Reconstructor(graphs=g, **options))), cameras)
