@@ -110,8 +110,10 @@ def methods(smoke: bool, device: str, models: dict[str, Path]) -> list[FrameMeth
         model = None if folder in (DEFAULT_MODEL, DEFAULT_RECON_MODEL) else str(folder)
         if config.get("type") == "ReconNet":
             limits = recon_limits(folder)
-            sampling = ((1, 0), (1, 2)) if smoke else [(s, n) for s in (1, 2, 4) for n in (0, 1, 2, 4, 8, 16)
+            sampling = [(1, 0), (1, 2)] if smoke else [(s, n) for s in (1, 2, 4) for n in (0, 1, 2, 4, 8, 16)
                                                        if s <= limits.max_spp and n <= limits.max_ao_rays]
+            if not smoke:  # past the model's AO rays (read as its max_ao_rays), its most rays per pixel: the top
+                sampling += [(limits.max_spp, n) for n in (32, 64) if n > limits.max_ao_rays]
             out += [reconstruct_method(model, ao_rays=n, spp=s, precision="fp16" if cuda else "fp32",
                                        model_name=name) for s, n in sampling]
             continue

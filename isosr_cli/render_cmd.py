@@ -17,7 +17,6 @@ from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest, open_vol
 from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES, HIGHRES_BUFFERS
 from isosr_net.budget import BudgetConfig, render_within_budget
 from isosr_net.frame_methods import FrameRunner, Networks, make_runner, reconstruct_method, run_sequence
-from isosr_net.reconstructor import DEFAULT_RECON_MODEL, recon_limits
 from isosr_net.inference import PRECISIONS
 from isosr_cli.images import visualize, write_png
 
@@ -75,8 +74,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--outputs", default="mask,normal,depth,color",
                    help=f"comma-separated buffers: {','.join(BUFFER_NAMES)},samples")
     p.add_argument("--ao-samples", type=int,
-                   help=f"AO rays per hit (default {AO_SAMPLES}; with --reconstruct 0 to the model's max_ao_rays, "
-                        f"default {RECON_AO_SAMPLES}, 0: AO inferred from the geometry)")
+                   help=f"AO rays per hit (default {AO_SAMPLES}; with --reconstruct default {RECON_AO_SAMPLES}, 0: AO "
+                        f"inferred from the geometry, past the model's max_ao_rays read as that many)")
     p.add_argument("--ao-radius", type=float, default=AO_RADIUS, help="AO ray length (world units)")
     p.add_argument("--step", type=float, help="ray step (world units; default half the smallest voxel)")
     p.add_argument("--voxel-units", action="store_true", help="--step and --ao-radius are in voxels")
@@ -122,10 +121,6 @@ def _check_reconstruct(args: argparse.Namespace, outputs: tuple[str, ...]) -> No
         return
     if args.budget_ms is not None:
         raise ValueError("--reconstruct and --budget-ms exclude each other: the budget picks its own method")
-    most = recon_limits(args.model or DEFAULT_RECON_MODEL).max_ao_rays
-    if not 0 <= args.ao_samples <= most:
-        raise ValueError(f"--reconstruct takes --ao-samples 0 to {most} (AO rays per hit its network "
-                         f"was trained with), got {args.ao_samples}")
     defaults = RenderRequest(1, 1, 0.5)
     fixed = [option for option, name in RECON_FIXED.items() if getattr(args, name) != getattr(defaults, name)]
     fixed += ["--no-skip"] if args.no_skip else []

@@ -527,7 +527,7 @@ def connect(url: str, volume: str, mode: str = "auto", size: tuple[int, int] = (
         volume: the volume's name.
         mode: a view mode (`isosr_server.protocol.MODES`: ``auto``, ``full``, ``network``,
             ``upscale``, ``buffers``, ``focus``, ``reconstruct`` with ``settings["ao_rays"]`` AO rays
-            per hit, 0 to ``ready.max_recon_ao_rays``, ...).
+            per hit, read as at most ``ready.max_recon_ao_rays``, ...).
         size: output (width, height); a multiple of the upscale factor in the low-res modes
             (``network``, ``upscale``, ``buffers``, ``focus``).
         token: the server's token, if it has one.

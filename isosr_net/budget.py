@@ -74,8 +74,9 @@ def default_candidates(device: str, precision: str | None = None, limits: RayLim
     """The methods the policy considers, roughly cheapest first (the order breaks ties): full
     resolution with 0-64 AO rays and 1-4 rays per pixel, the a-trous filter over 1-4 AO rays, bilinear x2 and
     x4, the shipped x4 network, the reconstruction over 1-4 AO rays at 1-4 rays per pixel, and
-    over 8 (spp 2, 4) and 16 (spp 4) where its model takes them (``limits``; None: the shipped
-    model's): a model over the input rays passes the plain render there; and the reconstruction
+    over 8 (spp 2, 4), 16, 32 and 64 (spp 4) where its model takes the rays per pixel (``limits``;
+    None: the shipped model's; past its ``max_ao_rays`` it reads their mean as that many): a model
+    over the input rays passes the plain render there; and the reconstruction
     that also upscales x2 (``x2_model``; None: none) over 1-16 AO rays at spp 1 and 4 at spp 2:
     a quarter of the pixels rendered, so many AO rays cost little, the best there is below about
     twice the cheapest full frame (H100, 73dd70b: 1.5-2.7 ms at 1080p, 4.4-7.2 ms at 4K).
@@ -90,7 +91,7 @@ def default_candidates(device: str, precision: str | None = None, limits: RayLim
     x2_limits = None if x2_model is None else recon_limits(x2_model)
 
     def recon(ao_rays: int, spp: int) -> FrameMethod | None:  # None where the model does not take them
-        fits = ao_rays <= limits.max_ao_rays and spp <= limits.max_spp
+        fits = spp <= limits.max_spp
         return FrameMethod("reconstruct", ao_rays=ao_rays, spp=spp, precision=recon_precision) if fits else None
 
     def recon_x2(ao_rays: int, spp: int) -> FrameMethod | None:
@@ -105,7 +106,7 @@ def default_candidates(device: str, precision: str | None = None, limits: RayLim
              recon(1, 2), full[3], FrameMethod("full", spp=2), recon(2, 2), recon(4, 2), full[4],
              FrameMethod("full", ao_rays=8, spp=2), FrameMethod("full", spp=4), recon(1, 4), recon(2, 4),
              recon(4, 4), recon(8, 2), recon(8, 4), full[5], full[6], FrameMethod("full", ao_rays=16, spp=4),
-             recon(16, 4))
+             recon(16, 4), recon(32, 4), recon(64, 4))
     return tuple(m for m in order if m is not None)
 
 

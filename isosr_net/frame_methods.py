@@ -548,9 +548,9 @@ class OIDNRunner(FrameRunner):
 @register_runner("reconstruct")
 class ReconstructRunner(FrameRunner):
     """Full resolution (or 1/factor of it, for a model that upscales: ``ReconNetConfig.upscale``),
-    0 AO rays per hit to the model's ``max_ao_rays`` and 1 ray per pixel to its ``max_spp``
-    (:class:`~isosr_net.reconnet.RayLimits`), reconstructed (and shaded, in one compiled call on
-    GPUs) by the trained reconstruction network. With a `Reconstructor` made with ``graphs`` on
+    1 ray per pixel to the model's ``max_spp`` and any AO rays per hit (past its ``max_ao_rays`` the
+    network reads their mean as that many: :meth:`~isosr_net.reconnet.RayLimits.read`),
+    reconstructed (and shaded, in one compiled call on GPUs) by the trained reconstruction network. With a `Reconstructor` made with ``graphs`` on
     CUDA, a frame in one slice (render, network, shading) is one CUDA graph
     (:meth:`Reconstructor.render_reconstruct`), timed as the ``render`` stage."""
 
@@ -559,12 +559,12 @@ class ReconstructRunner(FrameRunner):
     network_class = Reconstructor
     default_model = DEFAULT_RECON_MODEL
     knobs = ("ao_rays", "spp", "factor", "model", "precision")
+    ao_rays = (0, MAX_AO_SAMPLES)
     factor = (1, max(UPSCALES))
 
     @classmethod
     def bounds(cls, m: FrameMethod) -> dict[str, tuple[int, int]]:
-        limits = recon_limits(m.model or cls.default_model)
-        return super().bounds(m) | {"ao_rays": (0, limits.max_ao_rays), "spp": (1, limits.max_spp)}
+        return super().bounds(m) | {"spp": (1, recon_limits(m.model or cls.default_model).max_spp)}
 
     @classmethod
     def describe(cls, m: FrameMethod) -> str:
@@ -577,9 +577,14 @@ class ReconstructRunner(FrameRunner):
     def makes(cls, m: FrameMethod) -> tuple[str, ...]:
         return ("mask", "normal", "depth", "ao")
 
+    @property
+    def read_rays(self) -> int:
+        """The AO rays per hit the network reads the frame's mean as (at most its ``max_ao_rays``)."""
+        return self.net.limits.read(self.method.ao_rays)
+
     def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
         with timer("network"):  # shading included: one call
-            return self.net.reconstruct(rendered, self.method.ao_rays, self.method.spp,
+            return self.net.reconstruct(rendered, self.read_rays, self.method.spp,
                                         self.shading if self.shade else None)
 
     def render_finish(self, camera: Camera, request: RenderRequest,
@@ -587,7 +592,7 @@ class ReconstructRunner(FrameRunner):
         if not self.net.graphable(self.renderer, request):
             return super().render_finish(camera, request, timer)
         with timer("render"):  # the network and the shading included: one graph
-            rendered, out = self.net.render_reconstruct(self.renderer, camera, request, self.method.ao_rays,
+            rendered, out = self.net.render_reconstruct(self.renderer, camera, request, self.read_rays,
                                                         self.method.spp, self.shading if self.shade else None)
         return rendered, out
 

@@ -49,7 +49,9 @@ UPSCALES = (1, 2)
 @dataclass(frozen=True)
 class RayLimits:
     """The most AO rays per hit and rays per pixel a reconstruction model takes (its training
-    range); its sampling channels hold ``ao_rays / max_ao_rays`` and ``spp / max_spp``, at most 1."""
+    range); its sampling channels hold ``ao_rays / max_ao_rays`` and ``spp / max_spp``, at most 1.
+    A frame may cast more AO rays per hit than ``max_ao_rays``: the model reads their mean as that
+    many (:meth:`read`)."""
 
     max_ao_rays: int = 8
     max_spp: int = 4
@@ -73,6 +75,12 @@ class RayLimits:
         # Filled from Python numbers: a tensor built from host values would be a blocking copy on GPUs.
         return torch.cat([like.new_full((b, 1, h, w), ao_rays / self.max_ao_rays),
                           like.new_full((b, 1, h, w), spp / self.max_spp)], dim=1)
+
+    def read(self, ao_rays: int) -> int:
+        """The AO rays per hit the model reads a frame of ``ao_rays`` as: at most ``max_ao_rays``
+        (its sampling channel saturates; the better mean of more rays still lifts its output:
+        ``docs/measurements.md``)."""
+        return min(ao_rays, self.max_ao_rays)
 
     def rays(self, spp: int) -> int:
         """The most AO rays behind a pixel's mean at ``spp`` rays per pixel."""

@@ -45,9 +45,10 @@ View modes (``settings.mode``)
     full         ray cast at the output size, ``ao_rays`` AO rays per hit (0: none), ``spp``
                  rays per pixel.
     atrous       as ``full``, the AO of few rays filtered (a-trous wavelet filter).
-    reconstruct  ray cast at the output size with few AO rays per hit (``ao_rays``: 0 to the
-                 reconstruction model's bound, ``max_recon_ao_rays`` of ``ready``), reconstructed
-                 by a network to converged-looking AO and antialiased edges.
+    reconstruct  ray cast at the output size with few AO rays per hit (``ao_rays``; past the
+                 reconstruction model's own, ``max_recon_ao_rays`` of ``ready``, it reads their
+                 mean as that many), reconstructed by a network to converged-looking AO and
+                 antialiased edges.
     network      ray cast at 1/factor of the output size, upscaled by the network (which infers
                  AO), shaded.
     upscale      as ``network`` with classic ``interpolation`` (nearest, bilinear, bicubic; no AO).
@@ -249,7 +250,8 @@ class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         width, height: output image size; for the low-res modes (network, upscale, buffers,
             focus) a multiple of the network's upscale factor (``ready`` announces it).
         ao_rays: AO rays per hit of full-resolution renders (0 = no AO); in ``reconstruct`` the
-            rays the network gets, 0 to ``max_recon_ao_rays`` (0: it infers AO).
+            rays the network gets (0: it infers AO; past ``max_recon_ao_rays`` their mean is read
+            as that many).
         spp: rays per pixel of full-resolution renders.
         interpolation: ``upscale`` mode's classic upscaling.
         ao_radius: AO ray length in world units.

@@ -14,7 +14,7 @@ from isosr_net.budget import (AO_MATTERS_DB, BudgetConfig, choose_method, defaul
 from isosr_net.frame_methods import FrameMethod, Networks
 from isosr_net.model import save_pretrained
 from isosr_net.reconnet import RayLimits, ReconNet, ReconNetConfig
-from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, Reconstructor
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, Reconstructor, recon_limits
 from isosr_server.auto import AutoPolicy
 
 SIZE = (96, 64)
@@ -148,19 +148,22 @@ def test_headroom_outside_0_1_is_refused(headroom):
         BudgetConfig(headroom=headroom)
 
 
-def test_the_candidates_reach_as_many_rays_as_the_reconstruction_model_takes():
+def test_the_candidates_reach_the_models_rays_per_pixel_and_more_ao_rays_there():
+    """The reconstruction's candidates stay within its model's rays per pixel; at 4 they go past
+    its AO rays (32, 64: its runner reads their mean as its max_ao_rays)."""
     def recon_samplings(candidates, factor=1):
         return {(m.ao_rays, m.spp) for m in candidates if m.kind == "reconstruct" and m.factor == factor}
 
     shipped = recon_samplings(default_candidates("cpu"))
-    assert {(8, 2), (8, 4), (16, 4)} <= shipped and max(n for n, _ in shipped) == 16
+    assert {(8, 2), (8, 4), (16, 4), (32, 4), (64, 4)} <= shipped
+    assert max(n for n, s in shipped if s < 4) == 8 and max(n for n, _ in shipped) == 64
     assert recon_samplings(default_candidates("cpu", limits=RayLimits(8, 2))) == {
         (n, s) for n in (1, 2, 4) for s in (1, 2)} | {(8, 2)}
-    # A server on the first model (8 AO rays at most) offers no sampling that model refuses.
+    # A server on the first model (8 AO rays, 4 rays per pixel at most): past 8 it reads 8.
     v1 = DEFAULT_RECON_MODEL.parent / "recon_model_v1"
     policy = AutoPolicy.for_server("cpu", "fp32", 4, {Reconstructor: (v1, "recon")}, 30.0, Networks())
     served = recon_samplings(policy.candidates)
-    assert max(n for n, _ in served) == 8 and (16, 4) not in served
+    assert {(16, 4), (64, 4)} <= served and recon_limits(v1).read(64) == 8
     assert all(m.model == str(v1) for m in policy.candidates if m.kind == "reconstruct")
     assert not recon_samplings(policy.candidates, factor=2), "no x2 model given: no x2 candidates"
 

@@ -350,8 +350,10 @@ def test_the_frame_method_bounds_are_its_models(wide_model):
     assert FrameMethod("reconstruct", ao_rays=16, spp=2, model=str(wide_model)).ao_rays == 16
     with pytest.raises(ValueError, match=r"reconstruct frame method: spp must be an integer in \[1, 2\], got 4"):
         FrameMethod("reconstruct", spp=4, model=str(wide_model))
-    with pytest.raises(ValueError, match=r"ao_rays must be an integer in \[0, 16\], got 17"):
-        FrameMethod("reconstruct", ao_rays=17)  # the shipped model
+    assert FrameMethod("reconstruct", ao_rays=64, spp=4).ao_rays == 64  # read as 16 (RayLimits.read)
+    with pytest.raises(ValueError, match=r"reconstruction: ao_rays must be an integer in \[0, 16\], got 17"):
+        Reconstructor().reconstruct(FrameBuffers(mask=torch.zeros(2, 2), normal=torch.zeros(2, 2, 3),
+                                                 depth=torch.zeros(2, 2), ao=torch.zeros(2, 2)), 17)
     with pytest.raises(ValueError, match="SRNet model, not a reconstruction network"):
         FrameMethod("reconstruct", model=str(DEFAULT_MODEL))
     with pytest.raises(FileNotFoundError, match="config.json is missing"):
