@@ -550,9 +550,10 @@ class ReconstructRunner(FrameRunner):
     """Full resolution (or 1/factor of it, for a model that upscales: ``ReconNetConfig.upscale``),
     1 ray per pixel to the model's ``max_spp`` and any AO rays per hit (past its ``max_ao_rays`` the
     network reads their mean as that many: :meth:`~isosr_net.reconnet.RayLimits.read`),
-    reconstructed (and shaded, in one compiled call on GPUs) by the trained reconstruction network. With a `Reconstructor` made with ``graphs`` on
-    CUDA, a frame in one slice (render, network, shading) is one CUDA graph
-    (:meth:`Reconstructor.render_reconstruct`), timed as the ``render`` stage."""
+    reconstructed (and shaded, in one compiled call on GPUs) by the trained reconstruction
+    network. With a `Reconstructor` made with ``graphs`` on CUDA, a frame in one slice (render,
+    network, shading) is one CUDA graph (:meth:`Reconstructor.render_reconstruct`), timed as the
+    ``render`` stage."""
 
     recurrent = True
     fresh_rays = True  # accumulated along the flow before the network (isosr_net.ray_history)
