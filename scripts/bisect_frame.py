@@ -19,7 +19,7 @@ CUDA graph) over the Pareto study's orbit, after its warm-up frames:
 The result keeps every row and, per case, each tree's medians over rounds and their ratio to
 ``--base``. A case is ``volume:size:model`` (``model`` x1, the shipped model, or x2); on a CPU
 use the study's smoke volumes and size (``cloud:smoke:x1``). The API timed is the one every commit
-with ``Reconstructor.fastest`` and ``reconstruct_method`` shares.
+with ``Reconstructor.fastest`` and ``bench_recon_path.recon_method`` shares.
 """
 
 from __future__ import annotations
@@ -72,8 +72,9 @@ def child(tree: str, cases: str, frames: int, device: str) -> None:
     import torch
 
     from isosr_bench.bench_pareto import SIZES, SMOKE_SIZES, WARMUP, bench_cameras, load
+    from isosr_bench.bench_recon_path import recon_method
     from isosr_bench.common import time_frames
-    from isosr_net.frame_methods import Networks, make_runner, reconstruct_method
+    from isosr_net.frame_methods import Networks, make_runner
     from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, Reconstructor
     from isosr_render import Renderer
     from isosr_render.sequence import sequence_cameras
@@ -86,8 +87,7 @@ def child(tree: str, cases: str, frames: int, device: str) -> None:
         renderer = Renderer(volume, device)
         path = RECON_X2_MODEL if model == "x2" else DEFAULT_RECON_MODEL
         recon = Reconstructor.fastest(path, device=device)
-        named = {} if model == "x1" else {"model": str(path), "model_name": Path(path).name}
-        method = reconstruct_method(ao_rays=1, spp=1, precision=recon.precision, **named)
+        method = recon_method(str(path), 1, 1, recon.precision)
         runner = make_runner(method, renderer, iso, *{**SIZES, **SMOKE_SIZES}[size],
                              networks=Networks(lambda *_: recon))
         row = {"case": case, "method": method.name}
