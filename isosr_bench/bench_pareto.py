@@ -5,6 +5,8 @@
     python -m isosr_bench.bench_pareto --device cpu --smoke                 # small, in the test suite
     python -m isosr_bench.bench_pareto --device cuda --volumes avg152t1 --sizes 4k \
         --kinds reconstruct,svgf --models tuned=runs/recon_4k/best     # an A/B of two models, in minutes
+    python -m isosr_bench.bench_pareto --device cuda --sizes 1080p --kinds full,reconstruct \
+        --spp 4 --ao-rays 16,32,64                                      # the top of the front alone
 
 Every method of :mod:`isosr_net.frame_methods` (full resolution with 0-128 AO rays and 1, 2, 4
 rays per pixel; the a-trous filter, the SVGF temporal filter and OIDN (fast and high, where
@@ -343,11 +345,18 @@ def main(argv=None) -> list[dict]:
     parser.add_argument("--sizes", default="", help=f"comma-separated sizes of {','.join(SIZES)} (default: all)")
     parser.add_argument("--models", default="", help="more networks: NAME=MODEL_FOLDER,...")
     parser.add_argument("--kinds", default="", help="comma-separated method kinds to measure (default: all); a "
-                        f"selection skips the budget part and is written to {SELECT_NAME}_<device>.json")
+                        f"selection (this, --spp, --ao-rays) skips the budget part and is written to "
+                        f"{SELECT_NAME}_<device>.json")
+    parser.add_argument("--spp", default="", help="comma-separated rays per pixel: only methods with those")
+    parser.add_argument("--ao-rays", default="", help="comma-separated AO rays per hit: only methods with those")
     args = parser.parse_args(argv)
     kinds = {k.strip() for k in args.kinds.split(",") if k.strip()}
     if kinds - set(RUNNERS):
         parser.error(f"unknown kinds {sorted(kinds - set(RUNNERS))}; choose from {', '.join(RUNNERS)}")
+    try:
+        counts = {name: {int(n) for n in getattr(args, name).split(",") if n.strip()} for name in ("spp", "ao_rays")}
+    except ValueError as e:
+        parser.error(f"--spp and --ao-rays take comma-separated integers: {e}")
     sizes = SMOKE_SIZES if args.smoke else SIZES
     size_names = [s.strip().lower() for s in args.sizes.split(",") if s.strip()] or list(sizes)
     names = [s.strip() for s in args.volumes.split(",") if s.strip()] or volume_names(args.smoke)
@@ -366,7 +375,9 @@ def main(argv=None) -> list[dict]:
         # Each network precision compiles per frame size (two sizes and the probe's): more variants
         # of one code object than dynamo's default limit of 8, past which it would run them eagerly.
         torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
-    measured = [m for m in methods(args.smoke, args.device, models) if not kinds or m.kind in kinds]
+    measured = [m for m in methods(args.smoke, args.device, models) if (not kinds or m.kind in kinds)
+                and all(not values or getattr(m, name) in values for name, values in counts.items())]
+    selection = bool(kinds or counts["spp"] or counts["ao_rays"])
     frames = SMOKE_FRAMES if args.smoke else FRAMES
     networks = Networks()
     rows = []
@@ -379,12 +390,12 @@ def main(argv=None) -> list[dict]:
             scene = pareto_rows(renderer, iso, name, size, size_name, fitting, frames,
                                 SMOKE_WARMUP if args.smoke else WARMUP, args.device, networks)
             rows += scene
-            if not kinds:  # the policy chooses among every kind
+            if not selection:  # the policy chooses among every method
                 rows += budget_rows(renderer, iso, name, size, size_name, fitting, scene,
                                     SMOKE_BUDGETS if args.smoke else BUDGETS, networks, args.smoke)
         del renderer, volume
     kind = "cuda" if args.device.startswith("cuda") else "cpu"
-    name = SELECT_NAME if kinds else NAME  # the study's own file keeps whole scenes
+    name = SELECT_NAME if selection else NAME  # the study's own file keeps whole scenes
     merged = merge(args.out / f"{name}_{kind}.json", rows)
     print_table([r for r in rows if r["part"] == "pareto"],
                 ["volume", "size", "method", "ms", "color_psnr", "color_ssim", "image_psnr", "ao_rmse", "flicker",

@@ -28,6 +28,10 @@ def add_parser(subparsers) -> None:
     p.add_argument("--sizes", default="", help="with --pareto: comma-separated sizes of 1080p,4k")
     p.add_argument("--kinds", default="", help="with --pareto: comma-separated method kinds (a quick A/B of models: "
                    "reconstruct,svgf; no budget part; pareto_select_<kind>.json)")
+    p.add_argument("--spp", default="", help="with --pareto: only methods of these comma-separated rays per pixel "
+                   "(a selection, as --kinds)")
+    p.add_argument("--ao-rays", default="", help="with --pareto: only methods of these comma-separated AO rays per "
+                   "hit (a selection, as --kinds)")
     p.set_defaults(func=run)
 
 
@@ -38,8 +42,9 @@ def run(args: argparse.Namespace) -> int:
                              bench_volume_memory, report)
     from isosr_bench.common import RESULTS_DIR
 
-    if (args.volumes or args.sizes or args.kinds) and not args.pareto:
-        raise ValueError("--volumes, --sizes and --kinds select what --pareto measures; give --pareto too")
+    if (args.volumes or args.sizes or args.kinds or args.spp or args.ao_rays) and not args.pareto:
+        raise ValueError("--volumes, --sizes, --kinds, --spp and --ao-rays select what --pareto measures; "
+                         "give --pareto too")
 
     studies = [] if args.pareto else [s.strip() for s in args.only.split(",") if s.strip()]
     unknown = sorted(set(studies) - set(STUDIES + ON_REQUEST))
@@ -52,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
     if args.pareto:
         print("== pareto")
         bench_pareto.main(argv + ["--volumes", args.volumes, "--sizes", args.sizes, "--models", args.models,
-                                  "--kinds", args.kinds])
+                                  "--kinds", args.kinds, "--spp", args.spp, "--ao-rays", args.ao_rays])
     modules = {"network": bench_network, "pipeline": bench_pipeline, "knobs": bench_knobs, "render": bench_render,
                "server": bench_server, "memory": bench_volume_memory}
     for study in studies:

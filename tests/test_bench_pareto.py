@@ -167,6 +167,22 @@ def test_bad_selections_are_refused(capsys):
     with pytest.raises(SystemExit):
         cli(["bench", "--pareto", "--smoke", "--sizes", "8k"])
     assert "unknown sizes ['8k']" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cli(["bench", "--pareto", "--smoke", "--ao-rays", "2,many"])
+    assert "--spp and --ao-rays take comma-separated integers" in capsys.readouterr().err
+    assert cli(["bench", "--smoke", "--spp", "2"]) == 2
+    assert "give --pareto too" in capsys.readouterr().err
+
+
+def test_a_selection_of_sampling_measures_only_those_methods(tmp_path):
+    """``--spp`` and ``--ao-rays``: only the methods of those counts, every kind that has them."""
+    from isosr_bench.bench_pareto import main
+
+    rows = main(["--device", "cpu", "--smoke", "--out", str(tmp_path), "--volumes", "sphere", "--kinds", "full,svgf",
+                 "--spp", "1", "--ao-rays", "2"])
+    assert {r["method"] for r in rows} == {"full, AO 2, spp 1", "full, AO 2, svgf"}
+    assert json.loads((tmp_path / "pareto_select_cpu.json").read_text())["rows"] == rows
+    assert not (tmp_path / "pareto_cpu.json").exists()
 
 
 def _row(method, kind, ms, psnr, ao_rays=0, spp=1):
