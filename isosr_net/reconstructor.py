@@ -14,6 +14,7 @@ output and the ray history are its state.
 
 from __future__ import annotations
 
+import copy
 import functools
 import os
 from collections import OrderedDict
@@ -216,14 +217,17 @@ class GraphCache(OrderedDict):
 @dataclass
 class FrameGraph:
     """One captured frame (render, reconstruction, shading): its graph, the render plan whose
-    staged values it reads, its own outputs (color or None, flags), and the state tensors it
-    reads and writes (the output stack, the pair of ray histories or None), held while it lives."""
+    staged values it reads, its input checks' flags, the state tensors it reads and writes (the
+    output stack, the pair of ray histories or None), held while it lives, and what a frame
+    returns as views of them: the rendered buffers and the reconstruction (color the graph's own)."""
 
     graph: torch.cuda.CUDAGraph
     plan: RenderPlan
-    outs: tuple[torch.Tensor | None, torch.Tensor]
+    flags: torch.Tensor
     state: torch.Tensor
     histories: tuple[RayHistory, RayHistory] | None
+    rendered: FrameBuffers
+    reconstructed: FrameBuffers
 
 
 class Reconstructor(RecurrentNetwork):
@@ -479,21 +483,21 @@ class Reconstructor(RecurrentNetwork):
         plan = renderer.plan(request) if entry is None else entry.plan
         plan.stage(camera, request)
         if entry is None:
-            graph, outs = self._capture(lambda: self._graph_work(plan, request, ao_rays, spp, shading, carry, state,
-                                                                 read, written),
-                                        self._restorer(state))
-            entry = FrameGraph(graph, plan, outs, state, histories)
+            graph, (color, flags) = self._capture(lambda: self._graph_work(plan, request, ao_rays, spp, shading, carry,
+                                                                           state, read, written),
+                                                  self._restorer(state))
+            entry = FrameGraph(graph, plan, flags, state, histories, plan.buffers(request), stack_buffers(state, color))
             self._frame_graphs.add(key, entry, request.height * request.width * self.upscale_factor ** 2)
             self._drop_unheld_states(state, histories)
         entry.graph.replay()
-        color, flags = entry.outs
         try:
-            self._raise_refused(flags)
+            self._raise_refused(entry.flags)
         except ValueError:
             self.reset()
             raise
         self.previous, self.history = state, written
-        return plan.buffers(request), stack_buffers(state, color)
+        # Copies of the views made at capture: what a caller sets on a frame's buffers stays its own.
+        return copy.copy(entry.rendered), copy.copy(entry.reconstructed)
 
     def _state(self, size: tuple[int, int], previous: torch.Tensor | None) -> torch.Tensor:
         """The output stack of frames of input ``size`` that the graphs read (the previous output) and

@@ -16,6 +16,7 @@ rendered sparse: only the bricks each iso needs are resident (:mod:`isosr_render
 
 from __future__ import annotations
 
+import functools
 import os
 import threading
 from collections import OrderedDict
@@ -167,9 +168,10 @@ def _fill_view(record: np.ndarray, camera: Camera, width: int, height: int) -> N
         record[name] = value
 
 
-def frame_args(camera: Camera, request: RenderRequest, step: float) -> np.ndarray:
-    """One frame's `kernels.FrameArgs` as a host record (:data:`FRAME_DTYPE`, shape (1,))."""
-    args = np.zeros(1, FRAME_DTYPE)
+def frame_args(camera: Camera, request: RenderRequest, step: float, out: np.ndarray | None = None) -> np.ndarray:
+    """One frame's `kernels.FrameArgs` as a host record (:data:`FRAME_DTYPE`, shape (1,)): a new one,
+    or ``out`` (such a record) written over, every field of it."""
+    args = np.zeros(1, FRAME_DTYPE) if out is None else out
     _fill_view(args["view"], camera, request.width, request.height)
     _fill_view(args["prev"], request.prev_camera or camera, request.width, request.height)
     params = args["params"]
@@ -202,6 +204,7 @@ class Renderer:
         if brick_size < 1:
             raise ValueError(f"brick_size must be positive, got {brick_size}")
         self.volume = volume
+        self._default_step = 0.5 * volume.voxel_size_world()  # per frame staged: computed once
         self.device = warp_device(device)
         self.threads = 1 if self.device.is_cuda else (threads or os.cpu_count() or 1)
         wp.load_module(kernels, device=self.device)
@@ -289,7 +292,7 @@ class Renderer:
             wp.copy(dense[box], wp.array(np.ascontiguousarray(values), device=self.device))
         return dense
 
-    @property
+    @functools.cached_property
     def torch_device(self) -> torch.device:
         """The renderer's device as torch names it (``cpu``, ``cuda:N``): where its buffers live."""
         return torch.device(wp.device_to_torch(self.device))
@@ -331,7 +334,7 @@ class Renderer:
 
     def default_step(self) -> float:
         """Half the smallest voxel edge, in world units."""
-        return 0.5 * self.volume.voxel_size_world()
+        return self._default_step
 
     def plan(self, request: RenderRequest) -> "RenderPlan":
         """Buffers and a launch reused by frames of ``request``'s size and outputs (see :class:`RenderPlan`)."""
@@ -376,12 +379,14 @@ class RenderPlan:
             frame = plan.render(camera, replace(request, prev_camera=prev))  # the plan's buffers
 
     The buffers are made once. Per frame, :meth:`stage` packs the camera, the previous camera and
-    the ray parameters (iso, step, seed, AO rays...) and copies them to the device (on CUDA pinned
-    and asynchronous on the current torch stream); :meth:`launch` runs the two kernels that read
-    them there: the first hit of each ray (:func:`~isosr_render.kernels.first_hit_kernel`), then
-    the buffers from the hits (:func:`~isosr_render.kernels.surface_kernel`; for several rays per
-    pixel ``surface_samples_kernel``). Neither allocates nor waits for the device, so a launch
-    captured in a CUDA graph (``torch.cuda.graph``) renders each frame staged before its replay.
+    the ray parameters (iso, step, seed, AO rays...) into the plan's host record and copies it to
+    the device (on CUDA from pinned memory, asynchronous on the current torch stream; a stage
+    waits until the last one's copy has run);
+    :meth:`launch` runs the two kernels that read them there: the first hit of each ray
+    (:func:`~isosr_render.kernels.first_hit_kernel`), then the buffers from the hits
+    (:func:`~isosr_render.kernels.surface_kernel`; for several rays per pixel
+    ``surface_samples_kernel``). Neither allocates, so a launch captured in a CUDA graph
+    (``torch.cuda.graph``) renders each frame staged before its replay.
     A captured launch keeps the iso's grid it was captured with: capture again for another iso.
 
     The tensors a frame returns are views of the plan's buffers, valid until its next frame:
@@ -401,8 +406,12 @@ class RenderPlan:
         self._hits = wp.empty(planes, dtype=wp.float32, device=device)
         self._counts = (wp.empty(planes, dtype=wp.int32, device=device)
                         if bits & kernels.OUT_SAMPLES else renderer._unused_counts)
-        # The staged FrameArgs in torch memory (stream-ordered copies), seen by Warp as one struct.
+        # The staged FrameArgs in torch memory (stream-ordered copies), seen by Warp as one struct,
+        # copied from one host record (pinned on CUDA: written again once its last copy has run).
         self._args_bytes = torch.zeros(FRAME_DTYPE.itemsize, dtype=torch.uint8, device=renderer.torch_device)
+        self._host_bytes = torch.zeros(FRAME_DTYPE.itemsize, dtype=torch.uint8, pin_memory=device.is_cuda)
+        self._host_args = self._host_bytes.numpy().view(FRAME_DTYPE)
+        self._copied = torch.cuda.Event() if device.is_cuda else None
         self._args = wp.array(ptr=self._args_bytes.data_ptr(), dtype=kernels.FrameArgs, shape=(1,), device=device)
         self._grid: kernels.Grid | None = None
         self._launches: tuple[tuple, list[tuple[wp.Launch, wp.Launch]]] | None = None  # (grid, voxels, bands), launches
@@ -420,12 +429,12 @@ class RenderPlan:
         select the grid of its iso (sparse volumes page its bricks in here)."""
         self.check(request)
         self._grid = self.renderer.grid(request.iso, request.skip)
-        args = torch.from_numpy(frame_args(camera, request, request.step or self.renderer.default_step()).view(np.uint8))
-        if self.renderer.device.is_cuda:
-            # A pinned block of torch's host cache: not reused before this copy has run.
-            self._args_bytes.copy_(args.pin_memory(), non_blocking=True)
-        else:
-            self._args_bytes.copy_(args)
+        if self._copied is not None:
+            self._copied.synchronize()  # the last frame's copy has read the host record (seldom a wait)
+        frame_args(camera, request, request.step or self.renderer.default_step(), out=self._host_args)
+        self._args_bytes.copy_(self._host_bytes, non_blocking=self._copied is not None)
+        if self._copied is not None:
+            self._copied.record(torch.cuda.current_stream(self.renderer.torch_device))
 
     def launch(self, rows: tuple[int, int] | None = None) -> None:
         """Render the staged frame into the plan's buffers: on CUDA its two kernels on the current torch

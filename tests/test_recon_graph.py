@@ -83,9 +83,9 @@ def test_interleaved_streams_keep_their_own_state():
 @pytest.mark.parametrize("fused", [False, True], ids=["layers", "fused"])
 def test_a_graphed_frame_is_the_streams_state_and_copies_keep_it(fused):
     """No copy after the graph: each frame's output is the stream's state tensor (the same memory
-    every frame, which the next frame reads and overwrites), its ray history the other of a pair
-    than the one it read; the runner's frames kept by run_sequence (copies) equal the eager
-    runner's, frame by frame."""
+    every frame, which the next frame reads and overwrites; the buffers object its own), its ray
+    history the other of a pair than the one it read; the runner's frames kept by run_sequence
+    (copies) equal the eager runner's, frame by frame."""
     renderer, iso = scene("cuda")
     options = dict(device="cuda", precision="fp16", channels_last=True)
     graphed = Reconstructor(graphs=True, fused=fused, **options)
@@ -93,6 +93,8 @@ def test_a_graphed_frame_is_the_streams_state_and_copies_keep_it(fused):
     for camera, request in sequence_requests(orbit_path(4, yaw_step=3.0), *SIZE, iso, OUTPUTS, ao_samples=1):
         _, out = graphed.render_reconstruct(renderer, camera, request, 1, 1)
         assert out.mask.data_ptr() == graphed.previous.data_ptr()
+        assert out.samples is None  # what a caller set on the last frame's buffers stays its own
+        out.samples = torch.zeros(1)
         outputs.add(out.mask.data_ptr())
         histories.append(graphed.history.count.data_ptr())
     assert len(outputs) == 1

@@ -207,3 +207,26 @@ def test_plan_launch_replays_from_a_cuda_graph(sphere_volume, spp):
         plan.stage(camera, request)
         graph.replay()
         assert_same(plan.buffers(request), renderer.render(camera, request))
+
+
+@cuda
+def test_frames_staged_while_the_device_is_busy_each_render_their_own_camera(sphere_volume):
+    """The host record is written again only once its last copy has run: frames staged and replayed
+    behind a long kernel, without a sync between them, each render their own camera."""
+    renderer = Renderer(sphere_volume, "cuda")
+    request = request_of(sphere_volume.normalized_iso(0.0), ("mask", "normal", "depth", "flow"))
+    frames = frames_of(request, CAMERAS + [orbit(50.0, 10.0, 1.25)])
+    plan = renderer.plan(frames[1][1])
+    plan.render(*frames[1])
+    torch.cuda.synchronize()
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        plan.launch()
+    torch.cuda._sleep(200_000_000)  # the copies queue behind it while the host stages the next frames
+    outs = []
+    for camera, request in frames[1:]:
+        plan.stage(camera, request)
+        graph.replay()
+        outs.append(plan.buffers(request).clone())
+    for (camera, request), out in zip(frames[1:], outs):
+        assert_same(out, renderer.render(camera, request))
