@@ -68,6 +68,9 @@ def _flag_clear(flag: float) -> bool:
 Check = tuple[Callable[[float], bool], Callable[[float], str]]  # ok(value), message(value)
 DEEPEST: Check = (lambda d: d <= FP16_MAX_DEPTH,
                   lambda d: f"fp16 takes depths up to {FP16_MAX_DEPTH:g}, this frame reaches {d:.3g}: use bf16 or fp32")
+# Per FRAME_FLAGS slot, its check (None: not checked) in fp32/bf16 and in fp16 (depths bounded).
+_FLAG_CHECKS = {fp16: [(_flag_clear, _not_finite(name)) for name in FRAME_FLAGS[:4]]
+                + [(_flag_clear, AO_MESSAGE), DEEPEST if fp16 else None] for fp16 in (False, True)}
 
 
 class InputChecks:
@@ -95,9 +98,7 @@ class InputChecks:
     def add_flags(self, flags: torch.Tensor, fp16: bool) -> None:
         """Queue the checks of a frame's :data:`FRAME_FLAGS` (the vector read as it is), in their
         order: finite buffers, AO in [0, 1], then (``fp16``) depths within :data:`FP16_MAX_DEPTH`."""
-        checks = {name: (_flag_clear, _not_finite(name)) for name in FRAME_FLAGS[:4]}
-        checks |= {"ao": (_flag_clear, AO_MESSAGE), "deepest": DEEPEST if fp16 else None}
-        self._checks.append((flags.detach().float(), [checks[name] for name in FRAME_FLAGS]))
+        self._checks.append((flags.detach().float(), _FLAG_CHECKS[fp16]))
 
     def add_deepest(self, deepest: torch.Tensor) -> None:
         """Queue: the largest |depth| is within what fp16 takes (:data:`FP16_MAX_DEPTH`)."""
