@@ -19,7 +19,7 @@ import torch
 from conftest import DEVICE, field_volume, sphere_sdf, world_grid
 from isosr_render.camera import Camera, orbit
 from isosr_render import kernels
-from isosr_render.renderer import MAX_SPP, PLAN_CACHE, Renderer, RenderRequest
+from isosr_render.renderer import FRAME_DTYPE, MAX_SPP, PLAN_CACHE, Renderer, RenderRequest, frame_args
 from isosr_render.volume import Volume
 
 W, H = 48, 36
@@ -183,6 +183,16 @@ def test_render_from_threads_equals_serial_renders(sphere_volume):
     for a, b in zip(got, want):
         assert_same(a, b)
     assert len(renderer._plans) <= PLAN_CACHE
+
+
+def test_a_reused_frame_record_is_written_whole():
+    """The plan's host record, staged into frame after frame, holds every field of the new frame:
+    written over a record of another frame's bytes, it equals a new one."""
+    request = request_of(0.5, ("mask", "normal", "depth", "ao", "flow"), ao_samples=3, spp=2, seed=7)
+    stale = np.frombuffer(np.random.default_rng(0).bytes(FRAME_DTYPE.itemsize), dtype=FRAME_DTYPE).copy()
+    written = frame_args(CAMERAS[1], request, 0.01, out=stale)
+    assert written is stale
+    assert written.tobytes() == frame_args(CAMERAS[1], request, 0.01).tobytes()
 
 
 cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
