@@ -27,7 +27,6 @@ starts every pixel anew. float32.
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import torch
@@ -79,11 +78,19 @@ class RayHistory:
     point: torch.Tensor
     normal: torch.Tensor
 
+    @staticmethod
+    def layout(b: int, h: int, w: int) -> tuple[tuple[int, ...], ...]:
+        """The shapes of ``ao``, ``count``, ``point``, ``normal`` for a frame of this size."""
+        return (b, h, w), (b, h, w), (b, h, w, 3), (b, h, w, 3)
+
     @classmethod
     def empty(cls, b: int, h: int, w: int, device: torch.device) -> RayHistory:
         """Uninitialized tensors for a frame of this size (a kernel's outputs)."""
-        new = functools.partial(torch.empty, dtype=torch.float32, device=device)
-        return cls(new((b, h, w)), new((b, h, w)), new((b, h, w, 3)), new((b, h, w, 3)))
+        return cls(*(torch.empty(shape, dtype=torch.float32, device=device) for shape in cls.layout(b, h, w)))
+
+    def tensors(self) -> tuple[torch.Tensor, ...]:
+        """``ao``, ``count``, ``point``, ``normal``."""
+        return self.ao, self.count, self.point, self.normal
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -91,12 +98,12 @@ class RayHistory:
 
     @property
     def nbytes(self) -> int:
-        return sum(t.nbytes for t in (self.ao, self.count, self.point, self.normal))
+        return sum(t.nbytes for t in self.tensors())
 
     def copy_(self, other: RayHistory) -> RayHistory:
         """Copy ``other``'s values into these tensors (a graph's state); returns self."""
-        for name in ("ao", "count", "point", "normal"):
-            getattr(self, name).copy_(getattr(other, name))
+        for mine, theirs in zip(self.tensors(), other.tensors()):
+            mine.copy_(theirs)
         return self
 
 
@@ -302,14 +309,11 @@ def _check(ao: torch.Tensor, mask: torch.Tensor, normal: torch.Tensor, depth: to
 def _check_out(out: RayHistory, history: RayHistory | None, shape: tuple[int, int, int],
                device: torch.device) -> RayHistory:
     """``out`` if it can take a new history of ``shape`` on ``device`` beside ``history``, else ValueError."""
-    tensors = (out.ao, out.count, out.point, out.normal)
-    shapes = (shape, shape, (*shape, 3), (*shape, 3))
     if any(t.shape != s or t.device != device or t.dtype != torch.float32 or not t.is_contiguous()
-           for t, s in zip(tensors, shapes)):
+           for t, s in zip(out.tensors(), RayHistory.layout(*shape))):
         raise ValueError(f"accumulate_rays: out must be contiguous float32 tensors of a {shape} history on "
                          f"{device}, got shape {out.shape} on {out.ao.device}")
-    if history is not None and any(t.data_ptr() == h.data_ptr() for t in tensors
-                                   for h in (history.ao, history.count, history.point, history.normal)):
+    if history is not None and any(t.data_ptr() == h.data_ptr() for t in out.tensors() for h in history.tensors()):
         raise ValueError("accumulate_rays: out must not be the history it continues (a pixel reads its neighbours')")
     return out
 
