@@ -7,7 +7,7 @@ one stream's recurrent state (:class:`RecurrentNetwork`, the base of `Upscaler` 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Generator
+from collections.abc import Callable, Generator, Sequence
 from typing import TypeVar
 from pathlib import Path
 
@@ -69,8 +69,8 @@ Check = tuple[Callable[[float], bool], Callable[[float], str]]  # ok(value), mes
 DEEPEST: Check = (lambda d: d <= FP16_MAX_DEPTH,
                   lambda d: f"fp16 takes depths up to {FP16_MAX_DEPTH:g}, this frame reaches {d:.3g}: use bf16 or fp32")
 # Per FRAME_FLAGS slot, its check (None: not checked) in fp32/bf16 and in fp16 (depths bounded).
-_FLAG_CHECKS = {fp16: [(_flag_clear, _not_finite(name)) for name in FRAME_FLAGS[:4]]
-                + [(_flag_clear, AO_MESSAGE), DEEPEST if fp16 else None] for fp16 in (False, True)}
+_FLAG_CHECKS = {fp16: tuple((_flag_clear, _not_finite(name)) for name in FRAME_FLAGS[:4])
+                + ((_flag_clear, AO_MESSAGE), DEEPEST if fp16 else None) for fp16 in (False, True)}
 
 
 class InputChecks:
@@ -85,7 +85,7 @@ class InputChecks:
 
     def __init__(self):
         # Queued values (1-d tensors), each element with its check: (ok, message), or None for none.
-        self._checks: list[tuple[torch.Tensor, list[Check | None]]] = []
+        self._checks: list[tuple[torch.Tensor, Sequence[Check | None]]] = []
 
     def add(self, value: torch.Tensor, ok: Callable[[float], bool], message: Callable[[float], str]) -> None:
         """Queue a check: ``ok(value)`` on the host, else ``ValueError(message(value))``."""
