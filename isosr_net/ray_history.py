@@ -33,6 +33,7 @@ import torch
 import warp as wp
 
 from isosr_render.buffers import FrameBuffers
+from isosr_render.shapes import check_shape
 from isosr_net.atrous import check_buffers, on_device, reprojected_texel
 from isosr_net.reconnet import RayLimits
 
@@ -165,8 +166,9 @@ def accumulate_kernel(mask: wp.array4d(dtype=float), normal: wp.array4d(dtype=fl
                       ao: wp.array4d(dtype=float), flow: wp.array4d(dtype=float), prev: Previous, rays: float,
                       cap: float, point_tolerance: float, normal_cosine: float, ao_out: wp.array3d(dtype=float),
                       count_out: wp.array3d(dtype=float), point_out: wp.array3d(dtype=wp.vec3),
-                      normal_out: wp.array3d(dtype=wp.vec3), row0: int):
-    """The module docstring's blend for the pixels of rows ``row0`` on."""
+                      normal_out: wp.array3d(dtype=wp.vec3), share_out: wp.array3d(dtype=float), row0: int):
+    """The module docstring's blend for the pixels of rows ``row0`` on; where ``share_out`` is
+    given (not None), each covered pixel's count over ``cap`` there too."""
     b, row, x = wp.tid()
     y = row0 + row
     if not (mask[b, 0, y, x] > 0.0):
@@ -207,13 +209,16 @@ def accumulate_kernel(mask: wp.array4d(dtype=float), normal: wp.array4d(dtype=fl
     a = ao[b, 0, y, x]
     ao_out[b, y, x] = (c * history_ao + rays * a) / (c + rays)
     count_out[b, y, x] = c + rays
+    if share_out.shape[0] > 0:
+        share_out[b, y, x] = (c + rays) / cap
     point_out[b, y, x] = p
     normal_out[b, y, x] = n
 
 
 def accumulate_rays(ao: torch.Tensor, mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor,
                     position: torch.Tensor, flow: torch.Tensor | None, history: RayHistory | None, rays: int, cap: int,
-                    config: RayHistoryConfig = RayHistoryConfig(), out: RayHistory | None = None) -> RayHistory:
+                    config: RayHistoryConfig = RayHistoryConfig(), out: RayHistory | None = None,
+                    share: torch.Tensor | None = None) -> RayHistory:
     """One frame's rays blended into the history (module docstring), with no host sync.
 
     Runs on the inputs' device (CPU or CUDA, on torch's current stream), in float32. The inputs'
@@ -233,6 +238,8 @@ def accumulate_rays(ao: torch.Tensor, mask: torch.Tensor, normal: torch.Tensor, 
         config: the reprojection's tests.
         out: where to write the new history (None: new tensors); not ``history`` (a pixel reads
             its neighbours' history).
+        share: where given, each covered pixel's new count over ``cap`` is written there (float32,
+            any strides: a plane of the network's sampling input); uncovered pixels are left.
 
     Returns:
         The new history (``out`` where given): its ``ao`` is the accumulated AO, its ``count`` the
@@ -244,8 +251,14 @@ def accumulate_rays(ao: torch.Tensor, mask: torch.Tensor, normal: torch.Tensor, 
 
     Shape:
         ao, mask, depth: (B, 1, H, W). normal, position: (B, 3, H, W). flow: (B, 2, H, W).
+        share: (B, H, W).
     """
     b, h, w = _check(ao, mask, normal, depth, position, flow, rays, cap)
+    if share is not None:
+        check_shape(share, f"({b}, {h}, {w})", "share", "accumulate_rays")
+        if share.dtype != torch.float32 or share.device != ao.device:
+            raise ValueError(f"accumulate_rays: share must be float32 on {ao.device}, got {share.dtype} on "
+                             f"{share.device}")
     out = RayHistory.empty(b, h, w, ao.device) if out is None else _check_out(out, history, (b, h, w), ao.device)
     continued = flow is not None and history is not None and history.shape == (b, h, w)
     wp.init()  # a no-op after the first call
@@ -255,18 +268,19 @@ def accumulate_rays(ao: torch.Tensor, mask: torch.Tensor, normal: torch.Tensor, 
                [*sources, _previous(history if continued else None, ao.device), float(rays), float(cap),
                 float(config.point_tolerance), float(config.normal_cosine), wp.from_torch(out.ao),
                 wp.from_torch(out.count), wp.from_torch(out.point, dtype=wp.vec3),
-                wp.from_torch(out.normal, dtype=wp.vec3)])
+                wp.from_torch(out.normal, dtype=wp.vec3), None if share is None else wp.from_torch(share)])
     return out
 
 
 def accumulate_frame(frame: FrameBuffers, history: RayHistory | None, rays: int, cap: int,
-                     config: RayHistoryConfig = RayHistoryConfig(), out: RayHistory | None = None) -> RayHistory:
+                     config: RayHistoryConfig = RayHistoryConfig(), out: RayHistory | None = None,
+                     share: torch.Tensor | None = None) -> RayHistory:
     """:func:`accumulate_rays` on one frame's buffers: mask, normal, depth, position, ao, and flow
-    (None: a frame without a previous one); into ``out`` where given."""
+    (None: a frame without a previous one); into ``out`` (and ``share``) where given."""
     flow = None if frame.flow is None else frame.flow.permute(2, 0, 1)[None]
     return accumulate_rays(frame.ao[None, None], frame.mask[None, None], frame.normal.permute(2, 0, 1)[None],
                            frame.depth[None, None], frame.position.permute(2, 0, 1)[None], flow, history, rays, cap,
-                           config, out)
+                           config, out, share)
 
 
 def network_inputs(frame: FrameBuffers, history: RayHistory | None, ao_rays: int, spp: int,
@@ -281,9 +295,10 @@ def network_inputs(frame: FrameBuffers, history: RayHistory | None, ao_rays: int
     Shape:
         Returns ao (H, W), sampling (1, 2, H, W).
     """
-    rays = ao_rays * spp
-    history = accumulate_frame(frame, history, rays, limits.rays(spp), out=out)
-    return history.ao[0], limits.counted(history.count.clamp(min=rays), spp), history
+    # A frame's own rays' share where uncovered (the constant sampling), the history's where covered.
+    sampling = limits.channels(ao_rays, spp, frame.mask[None, None])
+    history = accumulate_frame(frame, history, ao_rays * spp, limits.rays(spp), out=out, share=sampling[:, 0])
+    return history.ao[0], sampling, history
 
 
 def history_traffic(h: int, w: int) -> int:

@@ -73,8 +73,10 @@ class RayLimits:
         """
         b, _, h, w = like.shape
         # Filled from Python numbers: a tensor built from host values would be a blocking copy on GPUs.
-        return torch.cat([like.new_full((b, 1, h, w), ao_rays / self.max_ao_rays),
-                          like.new_full((b, 1, h, w), spp / self.max_spp)], dim=1)
+        sampling = like.new_empty((b, 2, h, w))
+        sampling[:, 0].fill_(ao_rays / self.max_ao_rays)
+        sampling[:, 1].fill_(spp / self.max_spp)
+        return sampling
 
     def read(self, ao_rays: int) -> int:
         """The AO rays per hit the model reads a frame of ``ao_rays`` as: at most ``max_ao_rays``
@@ -85,16 +87,6 @@ class RayLimits:
     def rays(self, spp: int) -> int:
         """The most AO rays behind a pixel's mean at ``spp`` rays per pixel."""
         return self.max_ao_rays * spp
-
-    def counted(self, count: torch.Tensor, spp: int) -> torch.Tensor:
-        """The sampling images of a frame whose AO is, per pixel, the mean of ``count`` rays (at
-        most :meth:`rays`; a ray history's, :mod:`isosr_net.ray_history`) cast ``spp`` per pixel.
-
-        Shape:
-            count: (B, H, W). Returns (B, 2, H, W).
-        """
-        ao = count[:, None] / self.rays(spp)
-        return torch.cat([ao, torch.full_like(ao, spp / self.max_spp)], dim=1)
 
 
 @dataclass(frozen=True)

@@ -152,6 +152,8 @@ def test_hostile_values_find_no_history_and_stay_finite_and_bounded(name, value)
     (dict(rays=0), "need integers 1 <= rays <= cap"),
     (dict(rays=4, cap=2), "need integers 1 <= rays <= cap"),
     (dict(rays=True), "need integers 1 <= rays <= cap"),
+    (dict(share=torch.zeros(1, H, W - 1)), r"accumulate_rays: share must be \(1, 9, 11\), got \(1, 9, 10\)"),
+    (dict(share=torch.zeros(1, H, W, dtype=torch.float64)), "share must be float32 on cpu, got torch.float64"),
 ])
 def test_bad_arguments_are_refused_with_what_is_wrong(change, match):
     args = {**frame(), "history": None, "rays": 1, "cap": 16, **change}
@@ -173,6 +175,18 @@ def test_a_history_written_into_given_tensors_in_turn_equals_new_ones():
         for name in ("ao", "count", "point", "normal"):
             assert torch.equal(getattr(written, name), getattr(fresh, name)), name
         history = written
+
+
+def test_the_share_is_each_covered_pixels_count_over_the_cap_in_a_plane_of_any_strides():
+    """The network's sampling plane (a strided view) gets count / cap where covered; other pixels,
+    and the plane beside it, keep what they held."""
+    f, sampling = frame(seed=3), torch.full((1, 2, H, W), -1.0)
+    history = accumulate_rays(**frame(seed=2), history=None, rays=2, cap=32)
+    new = accumulate_rays(**f, history=history, rays=2, cap=32, share=sampling[:, 0])
+    covered = f["mask"][:, 0] > 0
+    assert covered.any() and (~covered).any()
+    torch.testing.assert_close(sampling[:, 0][covered], new.count[covered] / 32, rtol=0, atol=0)
+    assert (sampling[:, 0][~covered] == -1).all() and (sampling[:, 1] == -1).all()
 
 
 @pytest.mark.parametrize("out, match", [

@@ -399,7 +399,8 @@ def test_the_network_reads_the_accumulated_rays_and_their_count_per_pixel(sphere
         out = reconstructor.reconstruct(frame, 2, 2)
         history = reconstructor.history
         inputs = torch.cat([frame.mask[None], frame.normal.permute(2, 0, 1), frame.depth[None], history.ao,
-                            net.config.limits.counted(history.count.clamp(min=4), 2)[0]])[None]
+                            history.count.clamp(min=4) / net.config.limits.rays(2),
+                            torch.full_like(history.ao, 2 / net.config.limits.max_spp)])[None]
         flow = None if frame.flow is None else frame.flow.permute(2, 0, 1)[None]
         with torch.no_grad():
             previous = buffer_stack(net.step(inputs, flow, previous)[0])  # the state a Reconstructor keeps
