@@ -17,6 +17,7 @@ rendered sparse: only the bricks each iso needs are resident (:mod:`isosr_render
 from __future__ import annotations
 
 import functools
+import math
 import os
 import threading
 from collections import OrderedDict
@@ -113,9 +114,9 @@ class RenderRequest:
                                  ("spp", self.spp, MAX_SPP), ("ao_samples", self.ao_samples, MAX_AO_SAMPLES)):
             if not isinstance(value, (int, np.integer)) or not 1 <= value <= top:
                 raise ValueError(f"{name} must be an integer in [1, {top}], got {value!r}")
-        if not np.isfinite(self.iso):
+        if not math.isfinite(self.iso):
             raise ValueError(f"iso must be finite, got {self.iso}")
-        if self.step is not None and not (np.isfinite(self.step) and self.step > 0):
+        if self.step is not None and not (math.isfinite(self.step) and self.step > 0):
             raise ValueError(f"step must be a positive length in world units, got {self.step}")
         if self.refine not in REFINE_METHODS:
             raise ValueError(f"refine must be one of {sorted(REFINE_METHODS)}, got {self.refine!r}")
@@ -123,7 +124,7 @@ class RenderRequest:
             raise ValueError(f"refine_steps must be an integer in [0, 32], got {self.refine_steps!r}")
         if not isinstance(self.seed, (int, np.integer)) or not 0 <= self.seed < 2**31:
             raise ValueError(f"seed must be an integer in [0, 2^31), got {self.seed!r}")
-        if not (np.isfinite(self.ao_radius) and self.ao_radius > 0):
+        if not (math.isfinite(self.ao_radius) and self.ao_radius > 0):
             raise ValueError(f"ao_radius must be a positive length in world units, got {self.ao_radius}")
         if "flow" in self.outputs and self.prev_camera is None:
             raise ValueError("flow needs a previous camera (prev_camera); the first frame of a sequence has none")
