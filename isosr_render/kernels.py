@@ -5,6 +5,10 @@ float32 (normalized), uint16 or uint8 (normalized per sample, ``(v - d0) * a``),
 pool of resident bricks, each stored with its one-voxel overlap as ``(B + 1)^3`` voxels, found
 through a per-brick slot table (a brick without a slot can hold no surface for the current
 iso: its samples read the brick's minimum, on the same side of the iso as all its voxels).
+Dense voxels may come with a copy as a hardware-filtered 3D texture (:class:`Filtered`, on CUDA):
+the march takes its lattice samples there (one fetch for eight loads and seven lerps) and every
+sample it decides by, within the filter's error bound of the iso, exactly, so its hits stay
+those of the exact march.
 
 Rays march in voxel coordinates (voxel ``(i, j, k)`` at integer coordinates, the data spanning
 ``[0, n - 1]`` per axis) while the ray parameter ``t`` stays in world units, so step sizes and
@@ -58,8 +62,8 @@ TILE_H = wp.constant(4)
 @wp.struct
 class Grid:
     """The volume's shape and value scale, its brick distance grid for one iso-value, and the voxel <->
-    world transform (the voxels, in their device type, and how they lie, :class:`Dense` or
-    :class:`Sparse`, are the kernels' arguments beside it)."""
+    world transform (the voxels, in their device type, and how they lie, :class:`Dense`,
+    :class:`Sparse` or :class:`Filtered`, are the kernels' arguments beside it)."""
 
     unit: wp.vec2  # (d0, a): normalized = (voxel - d0) * a
     size: wp.vec3i  # voxels per axis
@@ -84,6 +88,21 @@ class Sparse:
     brick: int
     slots: wp.array3d(dtype=wp.int32)  # per brick, its pool slot, -1 if not resident
     minmax: wp.array3d(dtype=wp.vec2)  # per brick: normalized (min, max) of its voxels and overlap
+
+
+@wp.struct
+class Filtered:
+    """Dense voxels of shape ``Grid.size``, and the same voxels as a 3D texture with linear
+    filtering, unnormalized coordinates and clamped addressing (texel ``(i, j, k)`` at ``(k + 0.5,
+    j + 0.5, i + 0.5)``), for the march's lattice samples: normalized ``texel * gain - bias``
+    (8- and 16-bit texels read in [0, 1]). The filter weighs with 8-bit fractions, so a sample may
+    be off by up to ``near`` (3/256 of a cell's value range, with a margin); one within ``near``
+    of the iso is taken from the voxels."""
+
+    tex: wp.Texture3D
+    gain: float
+    bias: float
+    near: float
 
 
 @wp.struct
@@ -207,6 +226,12 @@ def lookup(voxels: wp.array3d(dtype=Any), layout: Sparse, grid: Grid, i: int, j:
 
 
 @wp.func
+def lookup(voxels: wp.array3d(dtype=Any), layout: Filtered, grid: Grid, i: int, j: int, k: int, f: wp.vec3) -> float:
+    """The normalized trilinear sample at fractions ``f`` of the cell ``(i, j, k)`` of dense voxels (exact)."""
+    return trilinear(voxels, i, j, k, grid.unit[0], f) * grid.unit[1]
+
+
+@wp.func
 def sample_volume(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, p: wp.vec3) -> float:
     """Normalized trilinear sample at voxel coordinates ``p``, clamped to the grid."""
     x = wp.clamp(p[0], 0.0, float(grid.size[0] - 1))
@@ -216,6 +241,49 @@ def sample_volume(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, p: wp.
     j = wp.min(int(y), grid.size[1] - 2)
     k = wp.min(int(z), grid.size[2] - 2)
     return lookup(voxels, layout, grid, i, j, k, wp.vec3(x - float(i), y - float(j), z - float(k)))
+
+
+@wp.func
+def march_sample(voxels: wp.array3d(dtype=Any), layout: Dense, grid: Grid, p: wp.vec3, iso: float) -> float:
+    """A march's sample at voxel coordinates ``p``: the exact trilinear one (:func:`sample_volume`)."""
+    return sample_volume(voxels, layout, grid, p)
+
+
+@wp.func
+def march_sample(voxels: wp.array3d(dtype=Any), layout: Sparse, grid: Grid, p: wp.vec3, iso: float) -> float:
+    """A march's sample at voxel coordinates ``p``: the exact trilinear one (:func:`sample_volume`)."""
+    return sample_volume(voxels, layout, grid, p)
+
+
+@wp.func
+def march_sample(voxels: wp.array3d(dtype=Any), layout: Filtered, grid: Grid, p: wp.vec3, iso: float) -> float:
+    """A march's sample at voxel coordinates ``p`` from the texture, exact within ``near`` of ``iso``:
+    either way on the iso's side that the exact sample is."""
+    x = wp.clamp(p[0], 0.0, float(grid.size[0] - 1))
+    y = wp.clamp(p[1], 0.0, float(grid.size[1] - 1))
+    z = wp.clamp(p[2], 0.0, float(grid.size[2] - 1))
+    v = wp.texture_sample(layout.tex, wp.vec3f(z + 0.5, y + 0.5, x + 0.5), dtype=float) * layout.gain - layout.bias
+    if wp.abs(v - iso) < layout.near:
+        return sample_volume(voxels, layout, grid, p)
+    return v
+
+
+@wp.func
+def exact_sample(voxels: wp.array3d(dtype=Any), layout: Dense, grid: Grid, p: wp.vec3, f: float) -> float:
+    """The exact sample at ``p`` given the march's sample ``f`` there: ``f`` itself."""
+    return f
+
+
+@wp.func
+def exact_sample(voxels: wp.array3d(dtype=Any), layout: Sparse, grid: Grid, p: wp.vec3, f: float) -> float:
+    """The exact sample at ``p`` given the march's sample ``f`` there: ``f`` itself."""
+    return f
+
+
+@wp.func
+def exact_sample(voxels: wp.array3d(dtype=Any), layout: Filtered, grid: Grid, p: wp.vec3, f: float) -> float:
+    """The exact sample at ``p`` (the march's ``f`` may be the texture's)."""
+    return sample_volume(voxels, layout, grid, p)
 
 
 @wp.func
@@ -315,7 +383,7 @@ def march(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, o: wp.vec3, d:
         if dist == 0:
             if have_prev == 0:
                 t_prev = t
-                f_prev = sample_volume(voxels, layout, grid, o + d * t)
+                f_prev = march_sample(voxels, layout, grid, o + d * t, iso)
                 samples += 1.0
                 have_prev = 1
             k = wp.floor((t - t_start) / h) + 1.0
@@ -325,9 +393,11 @@ def march(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, o: wp.vec3, d:
                 if t_s >= t_exit:
                     t_s = wp.min(t_exit, t_end)
                     done = 1
-                f = sample_volume(voxels, layout, grid, o + d * t_s)
+                f = march_sample(voxels, layout, grid, o + d * t_s, iso)
                 samples += 1.0
                 if (f >= iso) != (f_prev >= iso):
+                    f_prev = exact_sample(voxels, layout, grid, o + d * t_prev, f_prev)
+                    f = exact_sample(voxels, layout, grid, o + d * t_s, f)
                     t_hit = refine_crossing(voxels, layout, grid, o, d, iso, t_prev, f_prev, t_s, f, refine_mode,
                                             refine_steps)
                     return wp.vec2(t_hit, samples + float(refine_steps))
@@ -615,7 +685,7 @@ def surface_samples_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Gri
 
 # The voxels' device types and layouts: one compiled overload of each voxel-reading kernel per pair.
 VOXEL_TYPES = (wp.float32, wp.uint16, wp.uint8)
-LAYOUTS = (Dense, Sparse)
+LAYOUTS = (Dense, Sparse, Filtered)
 for _dtype in VOXEL_TYPES:
     wp.overload(minmax_kernel, {"voxels": wp.array3d(dtype=_dtype)})
     for _layout in LAYOUTS:

@@ -184,6 +184,26 @@ def frame_args(camera: Camera, request: RenderRequest, step: float, out: np.ndar
     return args
 
 
+# The texture filter's interpolation weights are 8-bit fractions: a sample may be off by up to
+# 3/256 of its cell's value range; this margin over it also covers the float rounding of gain and bias.
+FILTER_ERROR = 4 / 256
+
+
+def filtered_layout(dense: wp.array, minmax: wp.array, unit: tuple[float, float], device) -> kernels.Filtered:
+    """Dense voxels' :class:`~isosr_render.kernels.Filtered` layout: their texture (a copy) and its
+    error bound, from the widest brick value range (each cell lies in a brick, overlap included)."""
+    wp.synchronize_device(device)  # the voxels and their min-max grid were made on Warp's stream
+    layout = kernels.Filtered()
+    layout.tex = wp.Texture3D(dense, filter_mode=wp.TextureFilterMode.LINEAR,
+                              address_mode=wp.TextureAddressMode.CLAMP, normalized_coords=False, device=device)
+    texel = {wp.uint8: 255.0, wp.uint16: 65535.0, wp.float32: 1.0}[dense.dtype]  # raw value of a texel read as 1
+    d0, a = unit
+    layout.gain, layout.bias = texel * a, d0 * a
+    ranges = wp.to_torch(minmax)
+    layout.near = FILTER_ERROR * float((ranges[..., 1] - ranges[..., 0]).max()) + 1e-5
+    return layout
+
+
 class Renderer:
     """Renders isosurfaces of one volume on one device.
 
@@ -198,10 +218,14 @@ class Renderer:
             free memory on CUDA.
         dense: the volume's voxels already on the device, dense (:meth:`load` makes them); None:
             streamed from the volume's source here.
+        filtered: march dense voxels through a copy of them as a hardware-filtered texture
+            (:class:`~isosr_render.kernels.Filtered`: the same hits, fewer loads; twice the
+            voxels' bytes on the device). None: on CUDA where twice the voxels fit the limit;
+            True: also on the CPU (Warp filters in software there), else ValueError; False: never.
     """
 
     def __init__(self, volume: Volume, device: str = "cpu", brick_size: int = 8, threads: int | None = None,
-                 max_device_bytes: int | None = None, dense: wp.array | None = None):
+                 max_device_bytes: int | None = None, dense: wp.array | None = None, filtered: bool | None = None):
         if brick_size < 1:
             raise ValueError(f"brick_size must be positive, got {brick_size}")
         self.volume = volume
@@ -219,16 +243,29 @@ class Renderer:
             elif dense.shape != volume.shape or dense.dtype != STORE_TYPES[volume.storage.name]:
                 raise ValueError(f"dense voxels of shape {dense.shape} do not fit the volume {volume.shape} "
                                  f"of {volume.storage.name}")
-            self._dense, self.layout = dense, kernels.Dense()
-            self.layout.brick = brick_size
+            self._dense = dense
             bricks = tuple(max(1, -(-(n - 1) // brick_size)) for n in volume.shape)
             self.minmax = wp.empty(bricks, dtype=wp.vec2, device=self.device)
             wp.launch(kernels.minmax_kernel, dim=bricks, inputs=[dense, self._base, self.minmax], device=self.device)
+            texture_fits = max_device_bytes is None or 2 * volume.device_bytes <= max_device_bytes
+            if filtered and not texture_fits:
+                raise ValueError(f"filtered: the voxels and their texture ({2 * volume.device_bytes} bytes) do not fit "
+                                 f"max_device_bytes={max_device_bytes}")
+            self.filtered = bool(filtered or (filtered is None and self.device.is_cuda and texture_fits))
+            if self.filtered:
+                self.layout = filtered_layout(dense, self.minmax, volume.unit, self.device)
+            else:
+                self.layout = kernels.Dense()
+                self.layout.brick = brick_size
+            resident = volume.device_bytes * (2 if self.filtered else 1)
             total = int(np.prod(bricks))
-            self._stats = MemoryStats("dense", volume.storage.name, volume.device_bytes, volume.device_bytes,
-                                      volume.device_bytes, max_device_bytes or 0, total, total)
+            self._stats = MemoryStats("dense", volume.storage.name, volume.device_bytes, resident, resident,
+                                      max_device_bytes or 0, total, total)
         else:
-            self.pool = BrickPool(volume, self.device, brick_size, max_device_bytes)
+            if filtered:
+                raise ValueError(f"filtered: the volume ({volume.device_bytes} bytes) renders sparse past "
+                                 f"max_device_bytes={max_device_bytes}; only dense voxels march a texture")
+            self.pool, self.filtered = BrickPool(volume, self.device, brick_size, max_device_bytes), False
             self.minmax = self.pool.minmax
             self.layout = kernels.Sparse()
             self.layout.brick, self.layout.slots, self.layout.minmax = brick_size, self.pool.slots, self.minmax
