@@ -11,9 +11,8 @@ Four kinds of pass do all of ReconNet's work (:mod:`isosr_net.fused_recon` runs 
   stand-in made there); and, on the way, the input checks (:data:`~isosr_net.inference.FRAME_FLAGS`):
   one value per program, reduced by one small kernel, read by the host once per frame.
 - :func:`conv3x3`: a 3x3 convolution (stride 1 or 2, zero padding) + bias as an implicit GEMM:
-  per tile of ``BH x BW`` output pixels, one ``tl.dot`` per tap (K = input channels, N = output
-  channels); in its epilogue a residual sum and the ReLU. A tile of several rows reads most of
-  its taps' rows from cache (a one-row tile reads each input row three times through L2).
+  per tile of ``BLOCK_M`` output pixels, one ``tl.dot`` per tap (K = input channels, N = output
+  channels); in its epilogue a residual sum and the ReLU.
 - :func:`upsample_add`: a decoder level's input ``relu(skip + reduce(bilinear_2x(coarse)))``,
   once per pixel, ``reduce`` the level's 1x1 convolution (ReconNet applies it before upsampling;
   the two commute). Computed in the convolution's loads instead, per tap, the last level took 1.7
@@ -53,12 +52,10 @@ from isosr_net.reconnet import FIRST_FRAME_MODES, INPUTS, OUTPUTS, UPSCALES, Rec
 
 INTERPRET = os.environ.get("TRITON_INTERPRET") == "1"
 PACKED = 16  # channels of the packed input: 10 used (x2: 16), padded to tl.dot's smallest K
-# A convolution's tile of output pixels (BH rows of BW) and warps, autotuned per layer and size
-# class (pixels' bit length: a new window size of a class tunes nothing, so a viewer resizing
-# cannot stall the GPU with tuning); the interpreter takes the first (FIXED).
-CONFIGS = [triton.Config({"BH": bh, "BW": bw}, num_warps=w)
-           for bh, bw, w in ((4, 16, 4), (1, 64, 4), (1, 128, 4), (1, 256, 8), (4, 32, 4), (8, 16, 4), (8, 32, 8),
-                             (16, 16, 8))]
+# Pixels per program and warps, autotuned per layer and size class (pixels' bit length: a new
+# window size of a class tunes nothing, so a viewer resizing cannot stall the GPU with tuning);
+# the interpreter takes the first (FIXED).
+CONFIGS = [triton.Config({"BLOCK_M": m}, num_warps=w) for m, w in ((64, 4), (32, 2), (128, 4), (128, 8), (256, 8))]
 FIXED = dict(CONFIGS[0].kwargs) if INTERPRET else {}
 PACK_BLOCK = 128
 # How the pack gets the previous output's mask and AO: as given (warped already), warped by the
@@ -240,17 +237,6 @@ def _upsampled(c_ptr, b, yy, xx, hc, wc, sc_b, sc_c, sc_h, sc_w, ci):
 
 
 @triton.jit
-def _tile(ho, wo, BH: tl.constexpr, BW: tl.constexpr):
-    """This program's tile of output pixels, rows of tiles in turn: (y, x, valid), each (BH * BW,)."""
-    tiles_x = tl.cdiv(wo, BW)
-    pid = tl.program_id(0)
-    m = tl.arange(0, BH * BW)
-    y = (pid // tiles_x) * BH + m // BW
-    x = (pid % tiles_x) * BW + m % BW
-    return y, x, (y < ho) & (x < wo)
-
-
-@triton.jit
 def _conv_acc(x_ptr, w_ptr, bias_ptr, b, y, x, valid, hi, wi, STRIDE: tl.constexpr, CI: tl.constexpr,
               CO: tl.constexpr, BLOCK_M: tl.constexpr):
     """The 3x3 convolution plus bias at output pixels (y, x) of the NHWC (B, hi, wi, CI) input, fp32 (BLOCK_M, CO)."""
@@ -271,11 +257,13 @@ def _conv_acc(x_ptr, w_ptr, bias_ptr, b, y, x, valid, hi, wi, STRIDE: tl.constex
 @triton.jit
 def _conv_kernel(x_ptr, w_ptr, bias_ptr, out_ptr, res_ptr, hi, wi, ho, wo, size_class, STRIDE: tl.constexpr,
                  RESIDUAL: tl.constexpr, RELU: tl.constexpr, CI: tl.constexpr, CO: tl.constexpr,
-                 BH: tl.constexpr, BW: tl.constexpr):
+                 BLOCK_M: tl.constexpr):
     b = tl.program_id(1).to(tl.int64)
-    y, x, valid = _tile(ho, wo, BH, BW)
-    offs = y * wo + x
-    acc = _conv_acc(x_ptr, w_ptr, bias_ptr, b, y, x, valid, hi, wi, STRIDE, CI, CO, BH * BW)
+    offs = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
+    valid = offs < ho * wo
+    y = offs // wo
+    x = offs % wo
+    acc = _conv_acc(x_ptr, w_ptr, bias_ptr, b, y, x, valid, hi, wi, STRIDE, CI, CO, BLOCK_M)
     co = tl.arange(0, CO)
     if RESIDUAL:
         acc += tl.load(res_ptr + b * ho * wo * CO + offs[:, None] * CO + co[None, :], mask=valid[:, None],
@@ -308,10 +296,13 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, s
                  MASK_C: tl.constexpr, NORMAL_C: tl.constexpr, DEPTH_C: tl.constexpr, AO_C: tl.constexpr,
                  AO_PRIOR: tl.constexpr, HAS_AO: tl.constexpr, BUFFERS: tl.constexpr,
                  SHADE: tl.constexpr, OUT: tl.constexpr, S: tl.constexpr, CI: tl.constexpr, CO: tl.constexpr,
-                 BH: tl.constexpr, BW: tl.constexpr):
+                 BLOCK_M: tl.constexpr):
     b = tl.program_id(1).to(tl.int64)
-    y, x, valid = _tile(h, w, BH, BW)
-    raw = _conv_acc(x_ptr, w_ptr, bias_ptr, b, y, x, valid, hp, wp, 1, CI, CO, BH * BW)
+    offs = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
+    valid = offs < h * w
+    y = offs // w
+    x = offs % w
+    raw = _conv_acc(x_ptr, w_ptr, bias_ptr, b, y, x, valid, hp, wp, 1, CI, CO, BLOCK_M)
     c = tl.arange(0, CO)[None, :]
     depth_in = _plane(d_ptr, sd_b, sd_h, sd_w, b, y, x, valid)  # passes through (x2: nearest)
     plane = S * S * h * w  # an output plane's pixels
@@ -332,7 +323,7 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, s
         raw_ao = _column(raw, c, AO_C * S * S + cell)
         ao = tl.sigmoid(raw_ao)
         if AO_PRIOR:  # sigmoid(logit(p) + raw) = p / (p + (1 - p) exp(-raw)), p in (0, 1)
-            rays = tl.zeros((BH * BW,), dtype=tl.float32)
+            rays = tl.zeros((BLOCK_M,), dtype=tl.float32)
             if HAS_AO:
                 rays = _base_plane(a_ptr, sa_b, sa_h, sa_w, b, yy, xx, h, w, valid, S)
             n = (_base_plane(s_ptr, ss_b, ss_h, ss_w, b, yy, xx, h, w, valid, S)
@@ -383,9 +374,8 @@ def _size_class(pixels: int) -> int:
     return pixels.bit_length()
 
 
-def _grid(h: int, w: int, batch: int):
-    """A convolution's launch grid: one program per tile of output pixels (``_tile``), per frame."""
-    return lambda meta: (triton.cdiv(h, meta["BH"]) * triton.cdiv(w, meta["BW"]), batch)
+def _grid(pixels: int, batch: int):
+    return lambda meta: (triton.cdiv(pixels, meta["BLOCK_M"]), batch)
 
 
 def _check_taps(weight: torch.Tensor, bias: torch.Tensor, ci: int, where: str) -> int:
@@ -545,7 +535,7 @@ def conv3x3(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, *, stride
         _check_nhwc(residual, "residual", "conv3x3")
         check_shape(residual, f"({b}, {ho}, {wo}, {co})", "residual", "conv3x3")
     out = x.new_empty((b, ho, wo, co))
-    _conv_tuned[_grid(ho, wo, b)](x, weight, bias, out, x if residual is None else residual, hi, wi, ho, wo,
+    _conv_tuned[_grid(ho * wo, b)](x, weight, bias, out, x if residual is None else residual, hi, wi, ho, wo,
                                    _size_class(b * ho * wo),
                                    STRIDE=stride, RESIDUAL=residual is not None, RELU=relu, CI=ci, CO=co, **FIXED)
     return out
@@ -629,7 +619,7 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
     color = None if shading is None else torch.empty((b, s * h, s * w, 3), device=y.device, dtype=torch.float32)
     params = shading or ShadingParams()
     light, half = light_and_half(params)
-    _tail_tuned[_grid(h, w, b)](y, weight, bias, *sources.args(), out, out if color is None else color, h, w, hp, wp,
+    _tail_tuned[_grid(h * w, b)](y, weight, bias, *sources.args(), out, out if color is None else color, h, w, hp, wp,
                                  _size_class(b * h * w),
                                  float(config.max_ao_rays * config.max_spp), *params.albedo, params.ambient,
                                  params.diffuse, params.specular, params.shininess, *light, *half, *params.background,
