@@ -247,16 +247,8 @@ class Renderer:
             bricks = tuple(max(1, -(-(n - 1) // brick_size)) for n in volume.shape)
             self.minmax = wp.empty(bricks, dtype=wp.vec2, device=self.device)
             wp.launch(kernels.minmax_kernel, dim=bricks, inputs=[dense, self._base, self.minmax], device=self.device)
-            texture_fits = max_device_bytes is None or 2 * volume.device_bytes <= max_device_bytes
-            if filtered and not texture_fits:
-                raise ValueError(f"filtered: the voxels and their texture ({2 * volume.device_bytes} bytes) do not fit "
-                                 f"max_device_bytes={max_device_bytes}")
-            self.filtered = bool(filtered or (filtered is None and self.device.is_cuda and texture_fits))
-            if self.filtered:
-                self.layout = filtered_layout(dense, self.minmax, volume.unit, self.device)
-            else:
-                self.layout = kernels.Dense()
-                self.layout.brick = brick_size
+            self.layout = self._dense_layout(dense, filtered)
+            self.filtered = isinstance(self.layout, kernels.Filtered.cls)
             resident = volume.device_bytes * (2 if self.filtered else 1)
             total = int(np.prod(bricks))
             self._stats = MemoryStats("dense", volume.storage.name, volume.device_bytes, resident, resident,
@@ -277,6 +269,25 @@ class Renderer:
         # 1x1 stand-ins for buffers a request does not ask for (and for the per-sample march counts).
         self._unused = {t: wp.empty((1, 1), dtype=t, device=self.device) for t in (wp.float32, wp.vec2, wp.vec3, wp.int32)}
         self._unused_counts = wp.empty((1, 1, 1), dtype=wp.int32, device=self.device)
+
+    def _dense_layout(self, dense: wp.array, filtered: bool | None) -> kernels.Dense | kernels.Filtered:
+        """Dense voxels' layout: :func:`filtered_layout` where asked (``filtered``, else
+        ValueError), or by default on CUDA where twice the voxels fit the limit and the device
+        makes the texture (its sides and memory allow); else :class:`~isosr_render.kernels.Dense`."""
+        volume, limit = self.volume, self.max_device_bytes
+        fits = limit is None or 2 * volume.device_bytes <= limit
+        if filtered and not fits:
+            raise ValueError(f"filtered: the voxels and their texture ({2 * volume.device_bytes} bytes) do not fit "
+                             f"max_device_bytes={limit}")
+        if filtered or (filtered is None and self.device.is_cuda and fits):
+            try:
+                return filtered_layout(dense, self.minmax, volume.unit, self.device)
+            except RuntimeError as e:  # e.g. a side past the device's 3D texture extent
+                if filtered:
+                    raise ValueError(f"filtered: {self.device} cannot make the voxels' texture: {e}") from e
+        layout = kernels.Dense()
+        layout.brick = self.brick_size
+        return layout
 
     def _base_grid(self) -> kernels.Grid:
         """The iso-independent part of the kernels' grid (a 1x1x1 stand-in for the distance grid)."""

@@ -306,6 +306,22 @@ def test_a_filtered_march_that_cannot_have_its_texture_is_refused():
     assert Renderer(volume, DEVICE, max_device_bytes=20000).memory().resident_bytes == 16384  # no texture
 
 
+def test_a_texture_the_device_cannot_make_falls_back_to_the_exact_march_or_is_refused(monkeypatch):
+    """A device that cannot make the texture (a side past its 3D texture extent, its memory):
+    the default renders from the voxels alone; ``filtered=True`` says why it cannot."""
+    import isosr_render.renderer as renderer_module
+
+    def refuse(*_):
+        raise RuntimeError("3D texture extent exceeded")
+
+    monkeypatch.setattr(renderer_module, "filtered_layout", refuse)
+    volume = Volume.from_array(_smooth_noise((16, 16, 16)))
+    with pytest.raises(ValueError, match="filtered: .* cannot make the voxels' texture: 3D texture extent exceeded"):
+        Renderer(volume, DEVICE, filtered=True)
+    fallback = Renderer(volume, DEVICE)
+    assert not fallback.filtered and fallback.memory().resident_bytes == 16384
+
+
 # ---------------------------------------------------------------------------------------------
 # 3. Ambient occlusion.
 
