@@ -243,6 +243,8 @@ def sample_volume(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, p: wp.
     return lookup(voxels, layout, grid, i, j, k, wp.vec3(x - float(i), y - float(j), z - float(k)))
 
 
+# march_sample and exact_sample have an overload per layout, not one for Any: through march's Any
+# parameter Warp picked an Any overload over the Filtered one (measured: the exact march ran).
 @wp.func
 def march_sample(voxels: wp.array3d(dtype=Any), layout: Dense, grid: Grid, p: wp.vec3, iso: float) -> float:
     """A march's sample at voxel coordinates ``p``: the exact trilinear one (:func:`sample_volume`)."""
