@@ -350,7 +350,8 @@ def refine_crossing(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, o: w
 def march(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, o: wp.vec3, d: wp.vec3, t_start: float, t_end: float,
           iso: float, h: float, refine_mode: int, refine_steps: int) -> wp.vec2:
     """First iso crossing of the ray ``o + t d`` (voxel coordinates) within ``[t_start, t_end]``,
-    its bracket narrowed by ``refine_steps`` (0 where only whether it crosses counts).
+    its bracket narrowed by ``refine_steps``; ``refine_steps < 0``: only whether it crosses counts
+    (AO rays), and ``t_hit`` is the bracket's start, unrefined.
 
     Empty bricks are leapt over a whole cube at a time: a brick at Chebyshev distance D >= 1
     from the nearest active brick sits in a cube of (2D - 1)^3 inactive bricks, and the ray
@@ -398,6 +399,8 @@ def march(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, o: wp.vec3, d:
                 f = march_sample(voxels, layout, grid, o + d * t_s, iso)
                 samples += 1.0
                 if (f >= iso) != (f_prev >= iso):
+                    if refine_steps < 0:
+                        return wp.vec2(t_prev, samples)
                     f_prev = exact_sample(voxels, layout, grid, o + d * t_prev, f_prev)
                     f = exact_sample(voxels, layout, grid, o + d * t_s, f)
                     t_hit = refine_crossing(voxels, layout, grid, o, d, iso, t_prev, f_prev, t_s, f, refine_mode,
@@ -457,7 +460,7 @@ def ambient_occlusion(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, p:
         phi = 2.0 * wp.pi * u2
         dir = tx * (r * wp.cos(phi)) + ty * (r * wp.sin(phi)) + n * wp.sqrt(wp.max(1.0 - u1, 0.0))
         # Whether the ray is blocked is settled when its crossing is bracketed: no refinement.
-        res = cast(voxels, layout, grid, origin, wp.normalize(dir), 0.0, radius, iso, step, REFINE_BISECTION, 0)
+        res = cast(voxels, layout, grid, origin, wp.normalize(dir), 0.0, radius, iso, step, REFINE_BISECTION, -1)
         samples += res[1]
         if res[0] >= 0.0:
             hits += 1.0
