@@ -9,10 +9,8 @@
 
 On CUDA each stage is bracketed by CUDA events on the current stream, so a stage's time is the
 device time between its first and last launch, and no stage waits for the one before it (the
-host runs ahead; :meth:`StageTimer.ms` synchronizes once on the last event). A timer's events
-go back to a pool per device when it is deleted, for the next timers (creating and destroying
-two CUDA events per frame took about 25 us of host time a frame on an H100 machine). On CPUs it
-is wall time. A stage entered twice adds up.
+host runs ahead; :meth:`StageTimer.ms` synchronizes once on the last event). On CPUs it is
+wall time. A stage entered twice adds up.
 """
 
 from __future__ import annotations
@@ -26,8 +24,6 @@ import torch
 
 T = TypeVar("T")
 
-_FREE_EVENTS: dict[int, list[torch.cuda.Event]] = {}  # CUDA device index -> timing events no timer holds
-
 
 class StageTimer:
     """Milliseconds per named stage of one frame (see the module docstring)."""
@@ -35,11 +31,6 @@ class StageTimer:
     def __init__(self, device: torch.device | str):
         self.cuda = torch.device(device).type == "cuda"
         self._spans: list[tuple[str, object, object]] = []
-        self._events: list[tuple[int, torch.cuda.Event]] = []  # (device index, event) of each mark
-
-    def __del__(self):
-        for index, event in self._events:
-            _FREE_EVENTS[index].append(event)
 
     @contextmanager
     def __call__(self, stage: str):
@@ -49,10 +40,7 @@ class StageTimer:
 
     def _mark(self):
         if self.cuda:
-            index = torch.cuda.current_device()  # record() takes its current stream
-            free = _FREE_EVENTS.setdefault(index, [])
-            event = free.pop() if free else torch.cuda.Event(enable_timing=True)
-            self._events.append((index, event))
+            event = torch.cuda.Event(enable_timing=True)
             event.record()
             return event
         return time.perf_counter()

@@ -255,25 +255,6 @@ def test_timed_steps_count_only_their_own_slices():
     assert 30 <= timer.ms()["network"] < 90
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA events need a CUDA GPU (run on the GPU machine)")
-def test_a_deleted_timers_events_serve_the_next_timer_whose_times_stay_its_own():
-    from isosr_net.timing import _FREE_EVENTS, StageTimer
-
-    slow = StageTimer("cuda")
-    with slow("render"):
-        torch.cuda._sleep(50_000_000)  # tens of ms of GPU spin
-    slow_ms = slow.ms()["render"]
-    events = {id(e) for _, e in slow._events}
-    del slow
-    quick = StageTimer("cuda")
-    with quick("render"):
-        torch.cuda._sleep(1000)
-    assert {id(e) for _, e in quick._events} == events  # reused, none created
-    assert quick.ms()["render"] < slow_ms / 10
-    del quick
-    assert len(_FREE_EVENTS[torch.cuda.current_device()]) >= 2
-
-
 def test_a_reconstruction_past_its_models_ao_rays_casts_them_and_they_lift_its_ao():
     """At 64 AO rays per hit (4 rays per pixel) the reconstruct runner renders 64 and its network
     reads their mean as its max_ao_rays (16, a saturated channel). On the MRI at 96x64 against the
