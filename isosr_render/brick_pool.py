@@ -50,7 +50,8 @@ class MemoryStats:
         mode: ``"dense"`` (the whole volume on the device) or ``"sparse"`` (a brick pool).
         storage: the voxels' type on the device.
         dense_bytes: bytes of the whole volume in that type.
-        resident_bytes: bytes of voxels on the device now (dense array or the pool's used slots).
+        resident_bytes: bytes of voxels on the device now (dense array, with its filtered
+            texture where the march reads one, or the pool's used slots).
         pool_bytes: bytes allocated for the pool (sparse), else equal to ``resident_bytes``.
         limit_bytes: the device memory limit for voxels (0: none).
         bricks_total, bricks_resident, bricks_needed: bricks of the volume, resident, needed

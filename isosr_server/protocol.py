@@ -550,7 +550,8 @@ class VolumeMemory(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         mode: ``dense`` (the whole volume on the device) or ``sparse`` (the bricks an iso needs).
         storage: the voxels' type on the device.
         dense_bytes, resident_bytes, pool_bytes, limit_bytes: the whole volume's bytes, those on
-            the device now, those allocated for the brick pool, the limit (0: none).
+            the device now (dense: with the march's filtered texture where it has one), those
+            allocated for the brick pool, the limit (0: none).
         bricks_total, bricks_resident, bricks_needed: bricks of the volume, resident, needed by
             the last iso.
         page_ins, bricks_paged, bytes_read: paging so far; ``last_page_in_s`` the last one's seconds.
