@@ -6,9 +6,11 @@
 Each staged tree holds a commit's ``isosr_render``, ``isosr_net`` and ``isosr_bench``, its model
 folders linked to the working tree's (the same weights: a change of a model is not what this
 times). ``run`` starts a fresh interpreter per tree and round, the trees in turn within each
-round (a machine's drift then reaches every tree alike), and times each case, the reconstruction
-at 1 AO ray through its runner (``Reconstructor.fastest``: on CUDA the fused fp16 kernels in one
-CUDA graph) over the Pareto study's orbit, after its warm-up frames:
+round (a machine's drift then reaches every tree alike), reversed every other round (the trees
+that ran first in every round of one A/B had up to 0.3 ms more idle time in some rounds: the
+order could not be told from the tree), and times each case, the reconstruction at 1 AO ray
+through its runner (``Reconstructor.fastest``: on CUDA the fused fp16 kernels in one CUDA graph)
+over the Pareto study's orbit, after its warm-up frames:
 
 - ``pareto_ms``: as the study times a frame (CUDA events around each call, a sync after it);
 - ``back_to_back_ms``: the frames in a row, one sync at the end;
@@ -135,6 +137,11 @@ def summary(rows: list[dict], base: str | None) -> list[dict]:
     return out
 
 
+def round_order(trees: list, r: int) -> list:
+    """The trees in the order round ``r`` runs them: as given, reversed every other round."""
+    return trees if r % 2 == 0 else trees[::-1]
+
+
 def run(out: Path, base: str | None, rounds: int, frames: int, cases: str, device: str,
         stage_dir: Path = STAGE) -> dict:
     """Every staged tree once a round, a fresh interpreter each, for ``rounds`` rounds; write ``out``."""
@@ -143,7 +150,7 @@ def run(out: Path, base: str | None, rounds: int, frames: int, cases: str, devic
         raise SystemExit(f"--base {base}: not a staged tree ({', '.join(t.name for t in trees) or 'none'})")
     rows, errors = [], {}
     for r in range(rounds):
-        for tree in trees:
+        for tree in round_order(trees, r):
             done = subprocess.run([sys.executable, __file__, "child", str(tree), "--cases", cases, "--frames",
                                    str(frames), "--device", device], capture_output=True, text=True)
             line = [x for x in done.stdout.splitlines() if x.startswith("ROWS ")]

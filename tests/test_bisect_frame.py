@@ -53,6 +53,12 @@ def test_the_summary_takes_medians_over_rounds_and_ratios_to_the_base():
     assert new["ratio_idle_ms"] == pytest.approx(0.3 / 0.55, abs=1e-4)
 
 
+def test_no_tree_runs_first_in_every_round():
+    trees = ["a", "b", "c"]
+    orders = [bisect_frame.round_order(trees, r) for r in range(4)]
+    assert orders == [trees, trees[::-1], trees, trees[::-1]]
+
+
 def test_an_unknown_base_or_no_rounds_is_refused(tmp_path):
     (tmp_path / "stage").mkdir()
     with pytest.raises(SystemExit, match="--base abc: not a staged tree"):
