@@ -206,9 +206,15 @@ def trilinear(a: wp.array3d(dtype=Any), i: int, j: int, k: int, d0: float, f: wp
 
 
 @wp.func
+def normalized(a: wp.array3d(dtype=Any), grid: Grid, i: int, j: int, k: int, f: wp.vec3) -> float:
+    """The normalized trilinear sample at fractions ``f`` of ``a``'s cell ``(i, j, k)``."""
+    return trilinear(a, i, j, k, grid.unit[0], f) * grid.unit[1]
+
+
+@wp.func
 def lookup(voxels: wp.array3d(dtype=Any), layout: Dense, grid: Grid, i: int, j: int, k: int, f: wp.vec3) -> float:
     """The normalized trilinear sample at fractions ``f`` of the cell ``(i, j, k)`` of dense voxels."""
-    return trilinear(voxels, i, j, k, grid.unit[0], f) * grid.unit[1]
+    return normalized(voxels, grid, i, j, k, f)
 
 
 @wp.func
@@ -222,25 +228,30 @@ def lookup(voxels: wp.array3d(dtype=Any), layout: Sparse, grid: Grid, i: int, j:
     slot = layout.slots[bi, bj, bk]
     if slot < 0:
         return layout.minmax[bi, bj, bk][0]
-    return trilinear(voxels, slot * (b + 1) + i - bi * b, j - bj * b, k - bk * b, grid.unit[0], f) * grid.unit[1]
+    return normalized(voxels, grid, slot * (b + 1) + i - bi * b, j - bj * b, k - bk * b, f)
 
 
 @wp.func
 def lookup(voxels: wp.array3d(dtype=Any), layout: Filtered, grid: Grid, i: int, j: int, k: int, f: wp.vec3) -> float:
     """The normalized trilinear sample at fractions ``f`` of the cell ``(i, j, k)`` of dense voxels (exact)."""
-    return trilinear(voxels, i, j, k, grid.unit[0], f) * grid.unit[1]
+    return normalized(voxels, grid, i, j, k, f)
+
+
+@wp.func
+def clamped(grid: Grid, p: wp.vec3) -> wp.vec3:
+    """Voxel coordinates ``p`` clamped to the grid's ``[0, n - 1]`` per axis."""
+    return wp.vec3(wp.clamp(p[0], 0.0, float(grid.size[0] - 1)), wp.clamp(p[1], 0.0, float(grid.size[1] - 1)),
+                   wp.clamp(p[2], 0.0, float(grid.size[2] - 1)))
 
 
 @wp.func
 def sample_volume(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, p: wp.vec3) -> float:
     """Normalized trilinear sample at voxel coordinates ``p``, clamped to the grid."""
-    x = wp.clamp(p[0], 0.0, float(grid.size[0] - 1))
-    y = wp.clamp(p[1], 0.0, float(grid.size[1] - 1))
-    z = wp.clamp(p[2], 0.0, float(grid.size[2] - 1))
-    i = wp.min(int(x), grid.size[0] - 2)
-    j = wp.min(int(y), grid.size[1] - 2)
-    k = wp.min(int(z), grid.size[2] - 2)
-    return lookup(voxels, layout, grid, i, j, k, wp.vec3(x - float(i), y - float(j), z - float(k)))
+    q = clamped(grid, p)
+    i = wp.min(int(q[0]), grid.size[0] - 2)
+    j = wp.min(int(q[1]), grid.size[1] - 2)
+    k = wp.min(int(q[2]), grid.size[2] - 2)
+    return lookup(voxels, layout, grid, i, j, k, wp.vec3(q[0] - float(i), q[1] - float(j), q[2] - float(k)))
 
 
 # march_sample and exact_sample have an overload per layout, not one for Any: through march's Any
@@ -261,10 +272,9 @@ def march_sample(voxels: wp.array3d(dtype=Any), layout: Sparse, grid: Grid, p: w
 def march_sample(voxels: wp.array3d(dtype=Any), layout: Filtered, grid: Grid, p: wp.vec3, iso: float) -> float:
     """A march's sample at voxel coordinates ``p`` from the texture, exact within ``near`` of ``iso``:
     either way on the iso's side that the exact sample is."""
-    x = wp.clamp(p[0], 0.0, float(grid.size[0] - 1))
-    y = wp.clamp(p[1], 0.0, float(grid.size[1] - 1))
-    z = wp.clamp(p[2], 0.0, float(grid.size[2] - 1))
-    v = wp.texture_sample(layout.tex, wp.vec3f(z + 0.5, y + 0.5, x + 0.5), dtype=float) * layout.gain - layout.bias
+    q = clamped(grid, p)
+    v = wp.texture_sample(layout.tex, wp.vec3f(q[2] + 0.5, q[1] + 0.5, q[0] + 0.5), dtype=float) * layout.gain \
+        - layout.bias
     if wp.abs(v - iso) < layout.near:
         return sample_volume(voxels, layout, grid, p)
     return v
