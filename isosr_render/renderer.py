@@ -248,7 +248,6 @@ class Renderer:
             self.minmax = wp.empty(bricks, dtype=wp.vec2, device=self.device)
             wp.launch(kernels.minmax_kernel, dim=bricks, inputs=[dense, self._base, self.minmax], device=self.device)
             self.layout = self._dense_layout(dense, filtered)
-            self.filtered = isinstance(self.layout, kernels.Filtered.cls)
             resident = volume.device_bytes * (2 if self.filtered else 1)
             total = int(np.prod(bricks))
             self._stats = MemoryStats("dense", volume.storage.name, volume.device_bytes, resident, resident,
@@ -257,7 +256,7 @@ class Renderer:
             if filtered:
                 raise ValueError(f"filtered: the volume ({volume.device_bytes} bytes) renders sparse past "
                                  f"max_device_bytes={max_device_bytes}; only dense voxels march a texture")
-            self.pool, self.filtered = BrickPool(volume, self.device, brick_size, max_device_bytes), False
+            self.pool = BrickPool(volume, self.device, brick_size, max_device_bytes)
             self.minmax = self.pool.minmax
             self.layout = kernels.Sparse()
             self.layout.brick, self.layout.slots, self.layout.minmax = brick_size, self.pool.slots, self.minmax
@@ -269,6 +268,11 @@ class Renderer:
         # 1x1 stand-ins for buffers a request does not ask for (and for the per-sample march counts).
         self._unused = {t: wp.empty((1, 1), dtype=t, device=self.device) for t in (wp.float32, wp.vec2, wp.vec3, wp.int32)}
         self._unused_counts = wp.empty((1, 1, 1), dtype=wp.int32, device=self.device)
+
+    @property
+    def filtered(self) -> bool:
+        """Whether the march reads a filtered texture of the voxels (:class:`~isosr_render.kernels.Filtered`)."""
+        return isinstance(self.layout, kernels.Filtered.cls)
 
     def _dense_layout(self, dense: wp.array, filtered: bool | None) -> kernels.Dense | kernels.Filtered:
         """Dense voxels' layout: :func:`filtered_layout` where asked (``filtered``, else
