@@ -213,6 +213,17 @@ def send(ws, msg: P.Message):
     ws.send(P.encode(msg))
 
 
+def send_expecting_close(ws, data: bytes | str, code: int, words: str = ""):
+    """Sends ``data`` that the server must refuse; its close may arrive while a large send is still
+    in flight (then the send itself raises), else ``expect_close`` reads it."""
+    try:
+        ws.send(data)
+    except ConnectionClosed as e:
+        assert e.rcvd is not None and e.rcvd.code == code and words[:40] in e.rcvd.reason, e
+        return
+    expect_close(ws, code, words)
+
+
 def expect_close(ws, code: int, words: str = ""):
     """Frames may precede it; then an error message (unless uvicorn closed first) and the close."""
     for _ in range(20):

@@ -34,8 +34,8 @@ from isosr_server.codecs.buffers import decode_view_buffers
 from isosr_server.sessions import ViewSession, ViewState
 from server_fixtures import (CAM0, CORNER_BYTES, DEVICE, FACTOR, H, LEVELS, VOLUME, W, assert_image,  # noqa: F401
                              cam, expect_close, frame, lib, lib_full, lib_lowres, lib_sr, raw, recv, running_server,
-                             send, server_settings, session, settle, upscale_body, wire, wire_frame,
-                             write_corner_volume)
+                             send, send_expecting_close, server_settings, session, settle, upscale_body, wire,
+                             wire_frame, write_corner_volume)
 
 LIMITS = P.Limits(max_message_bytes=2**20, max_sessions=6, idle_timeout_s=30.0, max_fps=1000.0,
                   max_messages_per_s=5000.0)
@@ -503,8 +503,7 @@ def test_bad_view_input_closes_that_session_only(srv, lib):
         ]
         for data, code, words in opens:
             with srv.view() as ws:
-                ws.send(data)
-                expect_close(ws, code, words)
+                send_expecting_close(ws, data, code, words)
             honest_still_served()
         updates = [
             (raw({"type": "camera", "eye": [0.0, 0.0, math.nan]}), P.CLOSE_BAD_MESSAGE, "at `$.eye[2]`"),
@@ -521,8 +520,7 @@ def test_bad_view_input_closes_that_session_only(srv, lib):
         for data, code, words in updates:
             with session(srv, mode="full") as (ws, _):
                 frame(ws)
-                ws.send(data)
-                expect_close(ws, code, words)
+                send_expecting_close(ws, data, code, words)
             honest_still_served()
         with session(srv, mode="full") as (ws, _):
             frame(ws)
