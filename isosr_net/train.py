@@ -327,6 +327,8 @@ class Trainer:
         bar.close()
         if writer:
             writer.close()
-        if self.distributed:
+        if self.distributed:  # every process past rank 0's saving; DDP's reducer lets go of the group
+            dist.barrier()
+            self.unrolled = self.unrolled.module
             dist.destroy_process_group()
         return metrics
