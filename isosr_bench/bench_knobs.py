@@ -10,10 +10,12 @@ timed; its error is measured against a reference rendered with far more effort:
   and the fraction of pixels whose mask differs;
 - refinement steps (0 to 8, secant): mean hit-position error against 16 bisection steps;
 - supersampling (1 to 16 rays per pixel): RMS color error against 64 rays;
+- sample lookup (the voxels, or their hardware-filtered texture at twice the memory): mean
+  hit-position error and mask mismatch against the voxels' march (the texture's should be 0);
 - upscaling (nearest, bilinear, bicubic at 2, 4, 8; each network at its own factor in fp32,
   bf16 and fp16 on GPUs): color PSNR of the shaded result against the high-res render with AO.
 The networks are the shipped L1-normal model (x4) and those named by ``--models NAME=DIR,...``
-(`scripts/train_scale_models.sh` trains x2 and x8 ones).
+(`scripts/train_scale_models.sh` trains x2 and x8 ones). ``--knobs`` picks sweeps (default: all).
 """
 
 from __future__ import annotations
@@ -48,17 +50,17 @@ class Knobs:
     def __init__(self, volume, iso: float, size: tuple[int, int], device: str, smoke: bool,
                  models: dict[str, Path] | None = None):
         self.models = models or {"L1-normal": DEFAULT_MODEL}
-        self.renderer = Renderer(volume, device)
+        self.volume, self.renderer = volume, Renderer(volume, device)
         self.voxel = volume.voxel_size_world()
         self.iso, self.size, self.device, self.smoke = iso, size, device, smoke
         self.cameras = orbit_path(FRAMES, yaw0=25.0, yaw_step=3.0, pitch=20.0, distance=1.6)
 
-    def render(self, i: int, **options):
+    def render(self, i: int, renderer: Renderer | None = None, **options):
         w, h = options.pop("size", self.size)
-        return self.renderer.render(self.cameras[i % FRAMES], RenderRequest(w, h, self.iso, **options))
+        return (renderer or self.renderer).render(self.cameras[i % FRAMES], RenderRequest(w, h, self.iso, **options))
 
-    def timed(self, **options) -> float:
-        t = time_frames(lambda i: self.render(i, **options), FRAMES, self.device, warmup=1)
+    def timed(self, renderer: Renderer | None = None, **options) -> float:
+        t = time_frames(lambda i: self.render(i, renderer, **options), FRAMES, self.device, warmup=1)
         return mean_ms(t)
 
     def row(self, knob: str, setting, ms: float, error: float, unit: str) -> dict:
@@ -80,16 +82,19 @@ class Knobs:
         both = (ref.mask > 0) & (frame.mask > 0)
         return float((frame.position[both] - ref.position[both]).norm(dim=-1).mean()) / self.voxel
 
+    def _hit_errors(self, refs: list, frames: list) -> tuple[float, float]:
+        """Mean hit-position error (voxels, where both hit) and fraction of pixels whose mask differs."""
+        err = np.mean([self._position_error(r, f) for r, f in zip(refs, frames)])
+        return float(err), float(np.mean([float((r.mask != f.mask).float().mean()) for r, f in zip(refs, frames)]))
+
     def step(self) -> list[dict]:
         outputs = ("mask", "position")
         ref = [self.render(i, outputs=outputs, step=self.voxel / 8, refine_steps=8) for i in range(FRAMES)]
         rows = []
         for voxels in (2.0, 1.0, 0.5, 0.25):
             opts = dict(outputs=outputs, step=self.voxel * voxels)
-            frames = [self.render(i, **opts) for i in range(FRAMES)]
-            err = np.mean([self._position_error(r, f) for r, f in zip(ref, frames)])
-            mismatch = np.mean([float((r.mask != f.mask).float().mean()) for r, f in zip(ref, frames)])
-            row = self.row("ray step (voxels)", voxels, self.timed(**opts), float(err), "mean hit error (voxels)")
+            err, mismatch = self._hit_errors(ref, [self.render(i, **opts) for i in range(FRAMES)])
+            row = self.row("ray step (voxels)", voxels, self.timed(**opts), err, "mean hit error (voxels)")
             rows.append({**row, "mask mismatch": mismatch})
         return rows
 
@@ -112,6 +117,19 @@ class Knobs:
             opts = dict(outputs=outputs, spp=spp)
             err = np.mean([_rms(self.render(i, **opts).color, ref[i].color) for i in range(FRAMES)])
             rows.append(self.row("supersampling (rays/pixel)", spp, self.timed(**opts), float(err), "RMS color"))
+        return rows
+
+    def sample_lookup(self) -> list[dict]:
+        outputs = ("mask", "position")
+        renderers = {"voxels": Renderer(self.volume, self.device, filtered=False),
+                     "filtered texture (2x memory)": Renderer(self.volume, self.device, filtered=True)}
+        ref = [self.render(i, renderers["voxels"], outputs=outputs) for i in range(FRAMES)]
+        rows = []
+        for setting, renderer in renderers.items():
+            err, mismatch = self._hit_errors(ref, [self.render(i, renderer, outputs=outputs) for i in range(FRAMES)])
+            row = self.row("sample lookup", setting, self.timed(renderer, outputs=outputs), err,
+                           "mean hit error (voxels)")
+            rows.append({**row, "mask mismatch": mismatch})
         return rows
 
     def upscaling(self) -> list[dict]:
@@ -166,19 +184,27 @@ def _rms(a: torch.Tensor, b: torch.Tensor, where: torch.Tensor | None = None) ->
     return float(d.pow(2).mean().sqrt()) if d.numel() else float("nan")
 
 
+SWEEPS = {"ao": Knobs.ao_samples, "step": Knobs.step, "refinement": Knobs.refinement,
+          "supersampling": Knobs.supersampling, "lookup": Knobs.sample_lookup, "upscaling": Knobs.upscaling}
+
+
 def main(argv=None) -> list[dict]:
     parser = bench_parser(__doc__)
     parser.add_argument("--models", default="", help="more networks to sweep: NAME=MODEL_FOLDER,...")
+    parser.add_argument("--knobs", default=",".join(SWEEPS), help=f"sweeps to run, of {','.join(SWEEPS)}")
     args = parser.parse_args(argv)
     try:
         models = {"L1-normal": DEFAULT_MODEL, **parse_models(args.models)}
     except ValueError as e:
         parser.error(str(e))
+    sweeps = args.knobs.split(",")
+    if unknown := [k for k in sweeps if k not in SWEEPS]:
+        parser.error(f"--knobs: unknown {', '.join(unknown)}; choose from {', '.join(SWEEPS)}")
     source, size = ("proc:cloud:42@48", (64, 48)) if args.smoke else ("shared:ct_pitch", (960, 544))
     volume = open_volume(source)
     iso = resolve_iso(source, volume)
     knobs = Knobs(volume, iso, size, args.device, args.smoke, models)
-    rows = knobs.ao_samples() + knobs.step() + knobs.refinement() + knobs.supersampling() + knobs.upscaling()
+    rows = [row for sweep in sweeps for row in SWEEPS[sweep](knobs)]
     for r in rows:
         r["volume"] = volume.name
     print_table(rows, ["knob", "setting", "size", "ms", "error", "error unit", "mask mismatch"])

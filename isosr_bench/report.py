@@ -85,8 +85,8 @@ def plots(folder: Path, kind: str) -> list[Path]:
         groups = defaultdict(list)
         for r in knobs["rows"]:
             groups[r["knob"].split(" x")[0] if r["knob"].startswith("upscale") else r["knob"]].append(r)
-        fig, axes = plt.subplots(1, len(groups), figsize=(4 * len(groups), 3.6))
-        for ax, (knob, rows) in zip(axes, groups.items()):
+        fig, axes = plt.subplots(1, len(groups), figsize=(4 * len(groups), 3.6), squeeze=False)
+        for ax, (knob, rows) in zip(axes[0], groups.items()):
             if knob == "upscale":
                 _upscale_panel(ax, rows)
             else:

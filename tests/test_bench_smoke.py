@@ -34,10 +34,14 @@ def test_isosr_bench_smoke_writes_every_study_the_report_and_plots(tmp_path, tmp
         assert record["rows"] and all(r["ms"] > 0 for r in record["rows"] if "ms" in r)
     knobs = json.loads((tmp_path / "bench_knobs_cpu.json").read_text())["rows"]
     assert {"AO samples", "ray step (voxels)", "refinement steps (secant)", "supersampling (rays/pixel)",
-            "upscale x4"} <= {r["knob"] for r in knobs}
+            "sample lookup", "upscale x4"} <= {r["knob"] for r in knobs}
     assert {("upscale x4", "L1-normal fp32"), ("upscale x2", "tiny fp32")} <= {(r["knob"], r["setting"]) for r in knobs}
     ao = [r["error"] for r in knobs if r["knob"] == "AO samples"]
     assert ao[0] > ao[-1]  # more AO rays, less noise
+    lookup = {r["setting"]: r for r in knobs if r["knob"] == "sample lookup"}
+    assert lookup.keys() == {"voxels", "filtered texture (2x memory)"}
+    textured = lookup["filtered texture (2x memory)"]
+    assert textured["error"] == 0 and textured["mask mismatch"] == 0 and textured["ms"] > 0  # the same hits
     pipeline = json.loads((tmp_path / "bench_pipeline_cpu.json").read_text())["rows"]
     assert {"table", "resolution", "volume size"} == {r["part"] for r in pipeline}
     report = (tmp_path / "report_cpu.md").read_text()
@@ -52,6 +56,18 @@ def test_isosr_bench_rejects_unknown_studies(capsys):
     assert "bogus" in capsys.readouterr().err
     assert cli(["bench", "--smoke", "--only", "knobs", "--models", "x2=/nowhere"]) == 2
     assert "is not NAME=MODEL_FOLDER" in capsys.readouterr().err
+
+
+def test_bench_knobs_runs_the_sweeps_named_and_refuses_others(tmp_path, capsys):
+    from isosr_bench import bench_knobs
+    from isosr_bench.report import plots
+
+    rows = bench_knobs.main(["--device", "cpu", "--smoke", "--knobs", "lookup", "--out", str(tmp_path)])
+    assert [r["knob"] for r in rows] == ["sample lookup", "sample lookup"]
+    assert plots(tmp_path, "cpu") and (tmp_path / "knobs_cpu.png").stat().st_size > 0  # one panel
+    with pytest.raises(SystemExit):
+        bench_knobs.main(["--device", "cpu", "--smoke", "--knobs", "lookup,speed", "--out", str(tmp_path)])
+    assert "--knobs: unknown speed; choose from ao," in capsys.readouterr().err
 
 
 def test_recon_path_smoke_times_every_stage(tmp_path):
