@@ -70,6 +70,19 @@ def test_bench_knobs_runs_the_sweeps_named_and_refuses_others(tmp_path, capsys):
     assert "--knobs: unknown speed; choose from ao," in capsys.readouterr().err
 
 
+def test_bench_knobs_lookup_without_a_texture_measures_the_voxels_and_says_why(tmp_path, capsys, monkeypatch):
+    from isosr_bench import bench_knobs
+    import isosr_render.renderer as renderer_module
+
+    def refuse(*args):
+        raise RuntimeError("3D texture extent exceeded")
+
+    monkeypatch.setattr(renderer_module, "filtered_layout", refuse)
+    rows = bench_knobs.main(["--device", "cpu", "--smoke", "--knobs", "lookup", "--out", str(tmp_path)])
+    assert [r["setting"] for r in rows] == ["voxels"] and rows[0]["error"] == 0
+    assert "no texture row: filtered: cpu cannot make the voxels' texture: 3D texture extent" in capsys.readouterr().out
+
+
 def test_recon_path_smoke_times_every_stage(tmp_path):
     from isosr_bench import bench_recon_path
 
