@@ -87,10 +87,10 @@ def test_every_codec_round_trips_within_its_psnr(one_rate_srv, lib, encoding, si
         assert stamps == sorted(set(stamps)) and not view.notices
 
 
-def test_keyframe_rules(srv):
+def test_keyframe_rules(one_rate_srv):
     """Keyframes on start, on request, on a new size, on a new codec, and on the first moving frame
     after the still camera's refined frame (a lossless png); delta frames otherwise."""
-    with session(srv, encoding="h264", mode="full", refine=False) as (ws, ready):
+    with session(one_rate_srv, encoding="h264", mode="full", refine=False) as (ws, ready):
         got = [frame(ws)]
         send(ws, cam(35, 1))
         got.append(frame(ws))
