@@ -119,11 +119,17 @@ class Knobs:
             rows.append(self.row("supersampling (rays/pixel)", spp, self.timed(**opts), float(err), "RMS color"))
         return rows
 
+    def _renderer(self, filtered: bool) -> Renderer:
+        """The knobs' renderer where its lookup is the one asked for (the device's default), else a new one."""
+        if self.renderer.filtered == filtered:
+            return self.renderer
+        return Renderer(self.volume, self.device, filtered=filtered)
+
     def sample_lookup(self) -> list[dict]:
         outputs = ("mask", "position")
-        renderers = {"voxels": Renderer(self.volume, self.device, filtered=False)}
+        renderers = {"voxels": self._renderer(filtered=False)}
         try:
-            renderers["filtered texture (2x memory)"] = Renderer(self.volume, self.device, filtered=True)
+            renderers["filtered texture (2x memory)"] = self._renderer(filtered=True)
         except ValueError as e:  # the device cannot make the texture or hold it: the voxels' row alone
             print(f"sample lookup: no texture row: {e}")
         ref = [self.render(i, renderers["voxels"], outputs=outputs) for i in range(FRAMES)]
