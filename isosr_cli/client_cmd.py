@@ -13,6 +13,7 @@ import json
 import os
 from pathlib import Path
 
+from isosr_cli.options import frame_size
 from isosr_server.core.config import TOKEN_ENV
 from isosr_server.protocol import ENCODINGS, INTERPOLATIONS, MODES
 
@@ -26,7 +27,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--mode", default="auto", choices=MODES, help="the view mode (auto: the server chooses the method)")
     p.add_argument("--frames", type=int, default=30)
     p.add_argument("--orbit", default="30,20,1.8,2", help="YAW,PITCH,DIST[,YAWSTEP], degrees and world units")
-    p.add_argument("--size", default="640x480", help="output WxH")
+    p.add_argument("--size", type=frame_size, default="640x480", help="output WxH")
     p.add_argument("--focus", help="focus mode's circle CX,CY,R in output pixels (default: centered, radius H/4)")
     p.add_argument("--iso", type=float, help="iso-value in data units (default: the volume's suggested one)")
     p.add_argument("--ao-rays", type=int, default=0, help="AO rays per hit of full-resolution renders "
@@ -42,16 +43,6 @@ def add_parser(subparsers) -> None:
     p.add_argument("--no-compare", action="store_true", help="skip the full-mode replay")
     p.add_argument("--timeout", type=float, default=60.0, help="seconds to wait for a frame")
     p.set_defaults(func=run)
-
-
-def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise ValueError(f"--size must be WxH, got {text!r}") from None
-    if w < 1 or h < 1:
-        raise ValueError(f"--size must be positive, got {text!r}")
-    return w, h
 
 
 def _focus(text: str | None, size: tuple[int, int]) -> tuple[float, float, float]:
@@ -72,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.frames < 1:
         raise ValueError(f"--frames must be at least 1, got {args.frames}")
-    path, size = Orbit.parse(args.orbit), _size(args.size)
+    path, size = Orbit.parse(args.orbit), args.size
     if args.mode == "buffers":  # before a session is opened, not at its first frame
         from isosr_client.local import check_device
 

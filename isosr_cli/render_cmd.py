@@ -19,6 +19,7 @@ from isosr_net.budget import BudgetConfig, render_within_budget
 from isosr_net.frame_methods import FrameRunner, Networks, make_runner, reconstruct_method, run_sequence
 from isosr_net.inference import PRECISIONS
 from isosr_cli.images import visualize, write_png
+from isosr_cli.options import frame_size
 
 PNG_DEFAULT = "color"
 # AO rays per hit: of a plain render, and of a reconstructed one (its network's few).
@@ -41,15 +42,6 @@ def _triple(text: str) -> tuple[float, float, float]:
         raise argparse.ArgumentTypeError(f"expected three numbers x,y,z, got {text!r}") from None
 
 
-def _size(text: str) -> tuple[int, int]:
-    """Parse ``WxH``."""
-    try:
-        w, h = (int(p) for p in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WxH, e.g. 640x480, got {text!r}") from None
-    return w, h
-
-
 def add_parser(subparsers) -> None:
     """Register ``render`` and its options."""
     p = subparsers.add_parser("render", help="render one frame of an isosurface",
@@ -62,7 +54,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--iso", type=float, help="iso-value in data units (default: the procedural volume's own, "
                                              "else Otsu's threshold)")
     p.add_argument("--normalized-iso", action="store_true", help="--iso is on the normalized [0, 1] scale")
-    p.add_argument("--size", type=_size, default=(640, 480), help="image size WxH")
+    p.add_argument("--size", type=frame_size, default=(640, 480), help="image size WxH")
     cam = p.add_argument_group("camera (world frame: box centered at 0, longest side 1)")
     cam.add_argument("--eye", type=_triple, help="camera position x,y,z")
     cam.add_argument("--target", type=_triple, default=(0.0, 0.0, 0.0), help="look-at point")

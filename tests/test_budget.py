@@ -136,7 +136,9 @@ def test_isosr_render_budget_ms_prints_the_choice_and_writes_its_frame(tmp_path,
 
     with np.load(out) as frame:
         assert frame["color"].shape == (64, 96, 3) and "ao" not in frame.files
-    assert cli(["render", "proc:sphere@32", "--size", "96x0", "--budget-ms", "10", "-o", str(out)]) == 2
+    with pytest.raises(SystemExit) as refused:  # before the volume is opened
+        cli(["render", "proc:sphere@32", "--size", "96x0", "--budget-ms", "10", "-o", str(out)])
+    assert refused.value.code == 2 and "sides must be positive, got '96x0'" in capsys.readouterr().err
     assert cli(["render", "proc:sphere@32", "--budget-ms", "-5", "-o", str(tmp_path / "bad.png")]) == 2
     assert "budget_ms must be a positive" in capsys.readouterr().err
     assert not (tmp_path / "bad.png").exists()
