@@ -121,7 +121,11 @@ class BudgetConfig:
         probe_height: the fewest rows the quality probe has; frames no taller are probed at
             their own size; None: :func:`default_probe_height` of the renderer's device.
         probe_frames: frames of the quality probe (an orbit unless cameras are given).
-        warmup_frames, timing_frames: frames per timed candidate, before and while timing.
+        warmup_frames, timing_frames: frames per timed candidate, before and while timing. Three
+            warm-up frames: a reconstruction in motion replays three CUDA graphs (the first
+            frame's, then one per buffer of its ray-history pair), each captured on its first
+            frame; with two, the first timed frame was a capture, which made the reconstruction
+            look up to twice as slow as it is (the Pareto study's policy rows, H100, ca82b1b).
         ao_matters_db: the AO test's threshold, dB.
         headroom: the fraction of the budget a candidate's probe time may take.
         clock: what a frame's time is on GPUs: ``"device"``, the GPU's (CUDA events: the Pareto
@@ -135,7 +139,7 @@ class BudgetConfig:
     probe_scale: float = 0.25
     probe_height: int | None = None
     probe_frames: int = 3
-    warmup_frames: int = 2
+    warmup_frames: int = 3
     timing_frames: int = 3
     ao_matters_db: float = AO_MATTERS_DB
     headroom: float = 0.9

@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from isosr_render import Renderer, open_volume, orbit, resolve_iso
+from isosr_render import Renderer, open_volume, orbit, orbit_path, resolve_iso
 from conftest import DEVICE
 from isosr_net.budget import (AO_MATTERS_DB, BudgetConfig, choose_method, default_candidates, default_probe_height,
                               probe_size, render_within_budget)
@@ -178,3 +178,26 @@ def test_the_x2_reconstruction_is_a_candidate_at_the_samplings_its_model_takes(t
     small = [m for m in default_candidates("cpu", x2_model=tmp_path) if m.factor == 2 and m.kind == "reconstruct"]
     assert {(m.ao_rays, m.spp) for m in small} == {(1, 1), (2, 1), (4, 1), (4, 2)}
     assert not [m for m in default_candidates("cpu", x2_model=None) if m.kind == "reconstruct" and m.factor == 2]
+
+
+@pytest.mark.skipif(DEVICE != "cuda", reason="CUDA graphs: ISOSR_TEST_DEVICE=cuda on the GPU machine")
+def test_no_timed_frame_captures_a_graph(cloud, monkeypatch):
+    """A reconstruction timed along a path replays its CUDA graphs in every timed frame: the
+    warm-up has captured them all (a timed capture made it look twice as slow and lose budgets)."""
+    import isosr_net.budget as budget
+
+    captures, timed = [], []
+    capture, frame_ms = Reconstructor._capture, budget._frame_ms
+    monkeypatch.setattr(Reconstructor, "_capture", lambda self, *a, **k: captures.append(1) or capture(self, *a, **k))
+
+    def counted(*args):
+        before = len(captures)
+        ms = frame_ms(*args)
+        timed.append(len(captures) - before)
+        return ms
+
+    monkeypatch.setattr(budget, "_frame_ms", counted)
+    method = FrameMethod("reconstruct", ao_rays=1, precision="fp16")
+    choose_method(*cloud, *SIZE, 1e4, BudgetConfig(candidates=(method,)), orbit_path(6, yaw_step=3.0),
+                  networks=Networks())
+    assert captures and timed == [0] * BudgetConfig().timing_frames
