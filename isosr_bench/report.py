@@ -36,7 +36,7 @@ def markdown(folder: Path, kind: str) -> str:
                 ("bench_pipeline", "The paper's table, the interactive path and how cost grows",
                  ["part", "role", "volume", "case", "size", "ms", "speedup vs AO"]),
                 ("bench_knobs", "What accuracy costs in time",
-                 ["knob", "setting", "size", "ms", "error", "error unit", "mask mismatch"]),
+                 ["knob", "setting", "size", "ms", "error", "error unit", "mask mismatch", "device", "commit"]),
                 ("bench_render", "The renderer",
                  ["volume", "case", "size", "ms", "kernel_ms", "samples/pixel", "max samples/pixel", "skip speedup"]),
                 ("bench_recon_path", "What the reconstruction adds to a full-resolution frame",
@@ -47,7 +47,8 @@ def markdown(folder: Path, kind: str) -> str:
         if record is None:
             continue
         lines += [f"## {title}", "", f"{record['device']}, commit {record['commit']}, {record['date']}: "
-                  f"`{record['command']}`", ""] + _table(record["rows"], columns) + [""]
+                  f"`{record['command']}`", ""] + ([record["note"], ""] if "note" in record else [])
+        lines += _table(record["rows"], columns) + [""]
     lines += pareto_markdown(folder, kind)
     return "\n".join(lines)
 
