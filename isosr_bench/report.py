@@ -143,6 +143,7 @@ def pareto_markdown(folder: Path, kind: str) -> list[str]:
         return []
     lines = ["## Every way to make a frame: time against quality", "",
              f"{record['device']}, commit {record['commit']}, {record['date']}: `{record['command']}`", "",
+             *([record["note"], ""] if "note" in record else []),
              "ms: the whole path per frame. Scores against 4 rays per pixel and 512 AO rays; PSNR and SSIM of the "
              "color on the covered region (image_psnr: the whole image); empty: nothing covered. flicker: the mean "
              "absolute color change between frames along the flow; flicker_ratio: over the reference's own. "
@@ -180,7 +181,7 @@ def pareto_markdown(folder: Path, kind: str) -> list[str]:
                   "method: the policy's choice (probe_ms: its time in the probe); color_psnr and ms: what this "
                   "run measured for it; best_fixed: the best row within the budget here.", ""]
         lines += _table(budget, ["volume", "size", "budget_ms", "method", "fits", "probe_ms", "ms", "color_psnr",
-                                 "best_fixed", "best_fixed_ms", "best_fixed_psnr", "psnr_gap", "ao_matters"]) + [""]
+                                 "best_fixed", "best_fixed_ms", "best_fixed_psnr", "psnr_gap", "ao_matters", "commit"]) + [""]
     return lines
 
 
