@@ -7,6 +7,8 @@
         --kinds reconstruct,svgf --models tuned=runs/recon_4k/best     # an A/B of two models, in minutes
     python -m isosr_bench.bench_pareto --device cuda --sizes 1080p --kinds full,reconstruct \
         --spp 4 --ao-rays 16,32,64                                      # the top of the front alone
+    python -m isosr_bench.bench_pareto --device cuda --sizes 1080p --budget-only \
+        --out benchmarks/results       # the policy anew, scored by the methods' rows that file holds
 
 Every method of :mod:`isosr_net.frame_methods` (full resolution with 0-128 AO rays and 1, 2, 4
 rays per pixel; the a-trous filter, the SVGF temporal filter and OIDN (fast and high, where
@@ -36,7 +38,9 @@ An empty covered region (iso outside the data) has no PSNR or SSIM: written as n
 out of the Pareto fronts. Rows (``part: pareto``): one per (volume, size, method). The budget
 part (``part: budget``) runs the policy of :mod:`isosr_net.budget` at 4, 8, 16 and 33 ms and
 sets the PSNR this run measured for its choice against the best fixed setting that fits the
-budget here (the best row with ``ms`` at most the budget).
+budget here (the best row with ``ms`` at most the budget). ``--budget-only`` runs that part
+alone, scored by the methods' rows the result file holds for each scene (measured on this kind
+of device; ``rows_commit`` names their commit), without timing the methods again.
 
 Volumes: the val volumes of the catalog, a simulation (hydrogen), and bonsai resampled to
 1024^3. ``--volumes`` and ``--sizes`` select; their rows replace those of the same volume and
@@ -252,7 +256,8 @@ def budget_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
                     "best_fixed": best and best["method"], "best_fixed_ms": best and best["ms"],
                     "best_fixed_psnr": best and best["color_psnr"],
                     "psnr_gap": None if best is None or auto["color_psnr"] is None
-                    else best["color_psnr"] - auto["color_psnr"], **stamp})
+                    else best["color_psnr"] - auto["color_psnr"], **stamp,
+                    "rows_commit": auto.get("commit")})  # the methods' rows' (another with --budget-only)
     return out
 
 
@@ -332,6 +337,25 @@ def run_stamp(device: str) -> dict:
     return {"device": device_name(device), "commit": commit()}
 
 
+def measured_scene(path: Path, volume: str, size_name: str, device: str) -> list[dict]:
+    """The methods' rows of one scene in the result file at ``path``, measured on this kind of
+    device: what ``--budget-only`` scores the policy by.
+
+    Raises:
+        ValueError: the file holds none, or they were measured on another kind of device (the
+            policy's times and theirs must come from one).
+    """
+    rows = kept_rows(path, lambda r: r["part"] == "pareto" and (r["volume"], r["size"]) == (volume, size_name),
+                     stamp=("device", "commit"))
+    if not rows:
+        raise ValueError(f"{path} holds no measured rows of {volume} at {size_name}: run the study for it first")
+    here = device_name(device)
+    if others := sorted({r["device"] for r in rows} - {here}):
+        raise ValueError(f"the rows of {volume} at {size_name} in {path} were measured on {', '.join(others)}, "
+                         f"not this {here}: the policy's times and theirs must come from one kind of device")
+    return rows
+
+
 def merge(path: Path, rows: list[dict]) -> list[dict]:
     """``rows`` plus the rows of an existing result file at ``path`` for other (volume, size) pairs
     (those without a device of their own get the file's)."""
@@ -349,6 +373,9 @@ def main(argv=None) -> list[dict]:
                         f"{SELECT_NAME}_<device>.json")
     parser.add_argument("--spp", default="", help="comma-separated rays per pixel: only methods with those")
     parser.add_argument("--ao-rays", default="", help="comma-separated AO rays per hit: only methods with those")
+    parser.add_argument("--budget-only", action="store_true",
+                        help="only the policy's part, scored by the methods' rows of each scene that the result "
+                        "file in --out holds (measured on this kind of device; its budget rows name their commit)")
     args = parser.parse_args(argv)
     kinds = {k.strip() for k in args.kinds.split(",") if k.strip()}
     if kinds - set(RUNNERS):
@@ -378,6 +405,9 @@ def main(argv=None) -> list[dict]:
     measured = [m for m in methods(args.smoke, args.device, models) if (not kinds or m.kind in kinds)
                 and all(not values or getattr(m, name) in values for name, values in counts.items())]
     selection = bool(kinds or counts["spp"] or counts["ao_rays"])
+    if selection and args.budget_only:
+        parser.error("--budget-only runs the policy over every method: give no --kinds, --spp or --ao-rays")
+    kind = "cuda" if args.device.startswith("cuda") else "cpu"
     frames = SMOKE_FRAMES if args.smoke else FRAMES
     networks = Networks()
     rows = []
@@ -387,14 +417,17 @@ def main(argv=None) -> list[dict]:
         for size_name in size_names:
             size = sizes[size_name]
             fitting = [m for m in measured if size[0] % m.factor == 0 and size[1] % m.factor == 0]
-            scene = pareto_rows(renderer, iso, name, size, size_name, fitting, frames,
-                                SMOKE_WARMUP if args.smoke else WARMUP, args.device, networks)
+            if args.budget_only:
+                scene = measured_scene(args.out / f"{NAME}_{kind}.json", name, size_name, args.device)
+                fitting = [m for m in fitting if m.name in {r["method"] for r in scene}]
+            else:
+                scene = pareto_rows(renderer, iso, name, size, size_name, fitting, frames,
+                                    SMOKE_WARMUP if args.smoke else WARMUP, args.device, networks)
             rows += scene
             if not selection:  # the policy chooses among every method
                 rows += budget_rows(renderer, iso, name, size, size_name, fitting, scene,
                                     SMOKE_BUDGETS if args.smoke else BUDGETS, networks, args.smoke)
         del renderer, volume
-    kind = "cuda" if args.device.startswith("cuda") else "cpu"
     name = SELECT_NAME if selection else NAME  # the study's own file keeps whole scenes
     merged = merge(args.out / f"{name}_{kind}.json", rows)
     print_table([r for r in rows if r["part"] == "pareto"],

@@ -32,6 +32,8 @@ def add_parser(subparsers) -> None:
                    "(a selection, as --kinds)")
     p.add_argument("--ao-rays", default="", help="with --pareto: only methods of these comma-separated AO rays per "
                    "hit (a selection, as --kinds)")
+    p.add_argument("--budget-only", action="store_true", help="with --pareto: only the policy's part, scored by "
+                   "the methods' rows the result file holds (measured on this kind of device)")
     p.set_defaults(func=run)
 
 
@@ -42,9 +44,9 @@ def run(args: argparse.Namespace) -> int:
                              bench_volume_memory, report)
     from isosr_bench.common import RESULTS_DIR
 
-    if (args.volumes or args.sizes or args.kinds or args.spp or args.ao_rays) and not args.pareto:
-        raise ValueError("--volumes, --sizes, --kinds, --spp and --ao-rays select what --pareto measures; "
-                         "give --pareto too")
+    if (args.volumes or args.sizes or args.kinds or args.spp or args.ao_rays or args.budget_only) and not args.pareto:
+        raise ValueError("--volumes, --sizes, --kinds, --spp, --ao-rays and --budget-only select what --pareto "
+                         "measures; give --pareto too")
 
     studies = [] if args.pareto else [s.strip() for s in args.only.split(",") if s.strip()]
     unknown = sorted(set(studies) - set(STUDIES + ON_REQUEST))
@@ -57,7 +59,8 @@ def run(args: argparse.Namespace) -> int:
     if args.pareto:
         print("== pareto")
         bench_pareto.main(argv + ["--volumes", args.volumes, "--sizes", args.sizes, "--models", args.models,
-                                  "--kinds", args.kinds, "--spp", args.spp, "--ao-rays", args.ao_rays])
+                                  "--kinds", args.kinds, "--spp", args.spp, "--ao-rays", args.ao_rays]
+                          + ["--budget-only"] * args.budget_only)
     modules = {"network": bench_network, "pipeline": bench_pipeline, "knobs": bench_knobs, "render": bench_render,
                "server": bench_server, "memory": bench_volume_memory}
     for study in studies:

@@ -225,3 +225,41 @@ def test_the_scorecard_names_a_scene_where_ao_changes_nothing_visible_as_no_goal
                                {("blobs", "1080p"): 57.1, ("head", "1080p"): 27.0})
     blobs, head = (next(line for line in lines if line.startswith(f"| {v},")) for v in ("blobs", "head"))
     assert "AO changes nothing visible: 57.1 dB; no goal scene" in blobs and "no goal" not in head
+
+
+def test_the_policy_alone_is_scored_by_the_rows_the_file_holds(smoke, tmp_path):
+    """``--budget-only``: the policy's rows anew, the methods' rows kept as measured."""
+    from isosr_bench.bench_pareto import main
+
+    out = tmp_path / "budget"
+    out.mkdir()
+    (out / "pareto_cpu.json").write_text(json.dumps(smoke[1]))
+    rows = main(["--device", "cpu", "--smoke", "--out", str(out), "--volumes", "sphere", "--budget-only"])
+    old, new = smoke[1]["rows"], json.loads((out / "pareto_cpu.json").read_text())["rows"]
+    key = lambda r: json.dumps(r, sort_keys=True)  # noqa: E731
+    assert sorted(map(key, (r for r in new if r["part"] == "pareto"))) == \
+        sorted(map(key, (r for r in old if r["part"] == "pareto")))
+    assert [r for r in new if r["part"] == "budget" and r["volume"] == "cloud"] == \
+        [r for r in old if r["part"] == "budget" and r["volume"] == "cloud"]
+    budget = [r for r in rows if r["part"] == "budget"]
+    assert budget and {r["volume"] for r in budget} == {"sphere"} and budget == [r for r in new if r in budget]
+    measured = {r["method"]: r for r in old if r["part"] == "pareto" and r["volume"] == "sphere"}
+    for r in budget:
+        assert r["ms"] == measured[r["method"]]["ms"] and r["rows_commit"] == measured[r["method"]]["commit"]
+
+
+def test_the_policy_alone_needs_measured_rows_of_this_device(smoke, tmp_path):
+    from isosr_bench.bench_pareto import main
+
+    with pytest.raises(ValueError, match="holds no measured rows of sphere"):
+        main(["--device", "cpu", "--smoke", "--out", str(tmp_path), "--volumes", "sphere", "--budget-only"])
+    elsewhere = {**smoke[1], "rows": [{**r, "device": "NVIDIA H100 80GB HBM3"} for r in smoke[1]["rows"]]}
+    (tmp_path / "pareto_cpu.json").write_text(json.dumps(elsewhere))
+    with pytest.raises(ValueError, match="measured on NVIDIA H100 80GB HBM3"):
+        main(["--device", "cpu", "--smoke", "--out", str(tmp_path), "--volumes", "sphere", "--budget-only"])
+    with pytest.raises(SystemExit):
+        main(["--device", "cpu", "--smoke", "--out", str(tmp_path), "--budget-only", "--kinds", "full"])
+    from isosr_cli.main import main as cli
+
+    assert cli(["bench", "--smoke", "--budget-only", "--out", str(tmp_path)]) == 2  # without --pareto
+    assert cli(["bench", "--pareto", "--smoke", "--budget-only", "--volumes", "sphere", "--out", str(tmp_path)]) == 2
