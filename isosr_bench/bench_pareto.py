@@ -408,6 +408,9 @@ def main(argv=None) -> list[dict]:
     if selection and args.budget_only:
         parser.error("--budget-only runs the policy over every method: give no --kinds, --spp or --ao-rays")
     kind = "cuda" if args.device.startswith("cuda") else "cpu"
+    # With --budget-only, every scene's measured rows are found before any volume is loaded.
+    measured_rows = {(name, size_name): measured_scene(args.out / f"{NAME}_{kind}.json", name, size_name, args.device)
+                     for name in names for size_name in size_names} if args.budget_only else {}
     frames = SMOKE_FRAMES if args.smoke else FRAMES
     networks = Networks()
     rows = []
@@ -418,7 +421,7 @@ def main(argv=None) -> list[dict]:
             size = sizes[size_name]
             fitting = [m for m in measured if size[0] % m.factor == 0 and size[1] % m.factor == 0]
             if args.budget_only:
-                scene = measured_scene(args.out / f"{NAME}_{kind}.json", name, size_name, args.device)
+                scene = measured_rows[(name, size_name)]
                 fitting = [m for m in fitting if m.name in {r["method"] for r in scene}]
             else:
                 scene = pareto_rows(renderer, iso, name, size, size_name, fitting, frames,
