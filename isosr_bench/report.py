@@ -28,6 +28,12 @@ def _table(rows: list[dict], columns: list[str]) -> list[str]:
         ["| " + " | ".join(fmt(r.get(c)) for c in columns) + " |" for r in rows]
 
 
+def _run_lines(record: dict) -> list[str]:
+    """A result's run (device, commit, date, command) and its note, where it has one, as paragraphs."""
+    run = [f"{record['device']}, commit {record['commit']}, {record['date']}: `{record['command']}`", ""]
+    return run + ([record["note"], ""] if "note" in record else [])
+
+
 def markdown(folder: Path, kind: str) -> str:
     """The report's text: one section per study that has results."""
     lines = [f"# Benchmarks ({kind})", ""]
@@ -46,9 +52,7 @@ def markdown(folder: Path, kind: str) -> str:
         record = _load(folder, name, kind)
         if record is None:
             continue
-        lines += [f"## {title}", "", f"{record['device']}, commit {record['commit']}, {record['date']}: "
-                  f"`{record['command']}`", ""] + ([record["note"], ""] if "note" in record else [])
-        lines += _table(record["rows"], columns) + [""]
+        lines += [f"## {title}", ""] + _run_lines(record) + _table(record["rows"], columns) + [""]
     lines += pareto_markdown(folder, kind)
     return "\n".join(lines)
 
@@ -141,9 +145,7 @@ def pareto_markdown(folder: Path, kind: str) -> list[str]:
     record = _load(folder, "pareto", kind)
     if record is None:
         return []
-    lines = ["## Every way to make a frame: time against quality", "",
-             f"{record['device']}, commit {record['commit']}, {record['date']}: `{record['command']}`", "",
-             *([record["note"], ""] if "note" in record else []),
+    lines = ["## Every way to make a frame: time against quality", "", *_run_lines(record),
              "ms: the whole path per frame. Scores against 4 rays per pixel and 512 AO rays; PSNR and SSIM of the "
              "color on the covered region (image_psnr: the whole image); empty: nothing covered. flicker: the mean "
              "absolute color change between frames along the flow; flicker_ratio: over the reference's own. "
