@@ -2,17 +2,24 @@
 
     python -m isosr_bench.bench_cluster --device cuda --volume bonsai      # 1920x1080, one GPU
     python -m isosr_bench.bench_cluster --device cuda --volume bonsai --gpus-per-replica 1 \
-        --replicas 1,2,4 --sessions 16,32,64 --failover-sessions 32        # one replica per GPU
+        --replicas 0,1,2,4 --sessions 16,32,64 --failover-sessions 32      # one replica per GPU
+    CUDA_VISIBLE_DEVICES=0 python -m isosr_bench.bench_cluster --device cuda --volume bonsai \
+        --gpus-per-replica split --replicas 1,2,4 --sessions 16            # N replicas on one GPU
     python -m isosr_bench.bench_cluster --smoke                            # small, CPU
 
 Results: ``benchmarks/results/bench_cluster_<size>_<device>.json`` (``--gpus-per-replica`` of 1
-or more: ``bench_cluster_gpus_<size>_<device>.json``), written after every case; a later run
+or more: ``bench_cluster_gpus_<size>_<device>.json``; ``split``, each server's replicas sharing
+one GPU: ``bench_cluster_one_gpu_<size>_<device>.json``), written after every case; a later run
 keeps the rows of the servers it does not measure (one run per server fits a time-limited call).
 Per server (``--replicas``: 0 is the plain single process, N > 0 is N replicas of
 ``--gpus-per-replica`` each behind Serve's proxy, on a local Ray started by the server), case
-(``full`` without AO and with 8 AO rays, ``auto``) and session count: frames/s in total and per
-session and latency p50/p99, as :func:`isosr_bench.bench_server.run_sessions` measures them
-(sessions dealt to ``--client-processes``), and which replicas made the frames.
+(``full`` without AO, ``reconstruct`` at 1 AO ray, ``auto``) and session count: frames/s in
+total and per session and latency p50/p99, as :func:`isosr_bench.sessions.run_sessions`
+measures them (sessions dealt to ``--client-processes``), the methods the frames name (``auto``:
+what it chose), which replicas made them, the GPUs the server holds (``gpus``), and over the
+timed span (:class:`isosr_bench.load.LoadSampler`) each GPU's busy fraction and the CPU cores
+of the server's process, Serve's proxy and the replicas: a replica's interpreter near one
+core, or the proxy's, is the bound where the GPUs idle.
 Then scaling: each N-replica row against the 1-replica row of its case, frames/s over N times
 its frames/s at the same sessions, and p99 latency against its p99 at 1/N of the sessions.
 Failover, on the first server of 2 or more replicas: ``--failover-sessions`` closed-loop
@@ -36,12 +43,30 @@ from pathlib import Path
 
 import numpy as np
 
-from isosr_bench.bench_server import SIZES, ServerProcess, case_row, run_sessions
+from isosr_bench.bench_server import SIZES, ServerProcess, case_row
 from isosr_bench.common import bench_parser, commit, device_name, kept_rows, print_table, write_result
+from isosr_bench.load import LoadSampler, titled
+from isosr_bench.sessions import run_sessions
 from isosr_client.drive import Orbit
 from isosr_client.view import connect
+from isosr_server.protocol import MODES
 
-CASES = (("full", 0), ("full", 8), ("auto", 0))
+CASES = (("full", 0), ("reconstruct", 1), ("auto", 0))
+
+
+def parse_cases(text: str) -> tuple[tuple[str, int], ...]:
+    """``MODE:AO_RAYS,...`` (``full:0,reconstruct:1``) as (mode, AO rays) cases.
+
+    Raises:
+        ValueError: a mode the server does not offer, or AO rays that are not a count.
+    """
+    cases = []
+    for item in text.split(","):
+        mode, _, ao = item.partition(":")
+        if mode not in MODES or not ao.isdigit():
+            raise ValueError(f"{item!r} is not MODE:AO_RAYS with MODE one of {', '.join(MODES)}")
+        cases.append((mode, int(ao)))
+    return tuple(cases)
 
 
 def replica_pids() -> list[int]:
@@ -124,10 +149,24 @@ def failover(url: str, volume: str, size: tuple[int, int], sessions: int, before
             "errors": errors, "health_ready": sorted({str(h) for h in health})}
 
 
-def servers(replicas: list[int], gpus: float, device: str) -> list[tuple[str, int, tuple[str, ...]]]:
-    """(name, replicas, extra `isosr serve` options) per server measured: 0 replicas is the plain server."""
-    ray_options = ("--gpus-per-replica", f"{gpus:g}") if device.startswith("cuda") else ()
-    return [("plain", 0, ()) if n == 0 else (f"ray{n}", n, ("--replicas", str(n), *ray_options)) for n in replicas]
+def replica_share(gpus: str, replicas: int) -> float:
+    """One replica's GPU share: ``--gpus-per-replica`` as a number, or ``split`` (1/N of one GPU)."""
+    return 1.0 / replicas if gpus == "split" else float(gpus)
+
+
+def servers(replicas: list[int], gpus: str, device: str) -> list[tuple[str, int, float, tuple[str, ...]]]:
+    """(name, replicas, GPUs held, extra `isosr serve` options) per server measured: 0 replicas
+    is the plain server (one GPU on CUDA)."""
+    cuda = device.startswith("cuda")
+    out = []
+    for n in replicas:
+        if n == 0:
+            out.append(("plain", 0, float(cuda), ()))
+            continue
+        share = replica_share(gpus, n) if cuda else 0.0
+        ray_options = ("--gpus-per-replica", f"{share:g}") if cuda else ()
+        out.append((f"ray{n}", n, n * share, ("--replicas", str(n), *ray_options)))
+    return out
 
 
 def scaling(rows: list[dict]) -> list[dict]:
@@ -165,7 +204,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seconds", type=float, help="timed seconds per case (default 5; smoke 1)")
     parser.add_argument("--sessions", help="concurrent sessions per case, comma-separated (default 1,16,32)")
     parser.add_argument("--replicas", default="0,1,2", help="servers by replica count, comma-separated (0: plain)")
-    parser.add_argument("--gpus-per-replica", type=float, default=0.5, help="each replica's GPU share (CUDA)")
+    parser.add_argument("--cases", default=",".join(f"{m}:{ao}" for m, ao in CASES),
+                        help="MODE:AO_RAYS per case, comma-separated")
+    parser.add_argument("--gpus-per-replica", default="0.5",
+                        help="each replica's GPU share (CUDA), or 'split': each server's replicas share one GPU")
     parser.add_argument("--failover-sessions", type=int, default=8, help="sessions of the failover study (0: none)")
     parser.add_argument("--client-processes", type=int, default=max(1, min(8, (os.cpu_count() or 2) // 4)),
                         help="processes the client sessions are dealt to")
@@ -177,30 +219,52 @@ def main(argv: list[str] | None = None) -> None:
     replicas = [int(n) for n in args.replicas.split(",") if n]
     if not replicas or min(replicas) < 0:
         parser.error(f"--replicas: one or more replica counts of 0 or more (0: the plain server), got {args.replicas!r}")
+    try:
+        modes = parse_cases(args.cases)
+    except ValueError as e:
+        parser.error(f"--cases: {e}")
+    try:
+        if args.gpus_per_replica != "split" and float(args.gpus_per_replica) < 0:
+            raise ValueError
+    except ValueError:
+        parser.error(f"--gpus-per-replica: a share of 0 or more, or 'split', got {args.gpus_per_replica!r}")
     room = str(2 * max(counts + [args.failover_sessions]) + 4)
     options = ("--max-sessions", room, "--max-sessions-per-client", room, "--max-connections-per-client", room,
                "--max-fps", "1000")  # every session comes from this address
     failover_on = next((f"ray{n}" for n in replicas if n >= 2), None)
     measured = servers(replicas, args.gpus_per_replica, args.device)
-    name = f"bench_cluster{'_gpus' if args.gpus_per_replica >= 1 else ''}_{size_name}"
+    kind = "_one_gpu" if args.gpus_per_replica == "split" else "_gpus" if float(args.gpus_per_replica) >= 1 else ""
+    name = f"bench_cluster{kind}_{size_name}"
     path = args.out / f"{name}_{'cuda' if args.device.startswith('cuda') else 'cpu'}.json"
     stamp = {"device": device_name(args.device), "commit": commit()}
-    merged = merge(path, [], {server for server, _, _ in measured})  # the other servers' rows of earlier runs
-    for server_name, server_replicas, extra in measured:
-        cases = [(mode, ao, n) for mode, ao in CASES for n in counts]
+    merged = merge(path, [], {server for server, *_ in measured})  # the other servers' rows of earlier runs
+    for server_name, server_replicas, gpus, extra in measured:
+        cases = [(mode, ao, n) for mode, ao in modes for n in counts]
         failover_sessions = args.failover_sessions if server_name == failover_on else 0
         for row in measure_server(server_name, args.device, options + extra, cases, failover_sessions,
                                   volume, size, seconds, args.client_processes):
-            merged.append(dict(row, replicas=server_replicas, **stamp))
+            merged.append(dict(row, replicas=server_replicas, gpus=gpus, **stamp))
             # Written after every row: a run cut off (a device call's time limit) keeps what it measured.
             scaled = scaling(merged)
             written = write_result(name, args.device, merged + scaled, args.out)
     print_table([r for r in merged if "mode" in r],
-                ["server", "mode", "ao", "sessions", "fps", "fps_per_session", "latency_p50_ms", "latency_p99_ms",
-                 "errors"])
+                ["server", "gpus", "mode", "ao", "sessions", "fps", "fps_per_session", "latency_p50_ms",
+                 "latency_p99_ms", "errors", "methods", "gpu_busy", "proxy_cores", "replica_cores_max",
+                 "server_cores"])
     print_table(scaled, ["server", "mode", "ao", "sessions", "fps", "fps_one", "efficiency", "p99_ms",
                          "p99_one_at_1_over_n_ms", "p99_ratio"])
     print(f"wrote {written}")
+
+
+def load_fields(load: dict) -> dict:
+    """A case row's share of a :class:`LoadSampler` result (rounded: they are read, not computed on)."""
+    if not load:
+        return {}
+    cores = load["cpu_cores"]
+    return {"gpu_busy": load["gpu_busy"] and [round(b, 3) for b in load["gpu_busy"]],
+            "machine_cores": round(load["machine_cores"], 2), "server_cores": round(cores["server"]["cores"], 2),
+            "proxy_cores": round(cores["proxy"]["cores"], 2), "replica_cores": round(cores["replica"]["cores"], 2),
+            "replica_cores_max": round(cores["replica"]["busiest"], 2)}
 
 
 def measure_server(name: str, device: str, options: tuple[str, ...], cases: list[tuple[str, int, int]],
@@ -210,14 +274,19 @@ def measure_server(name: str, device: str, options: tuple[str, ...], cases: list
     try:
         with ServerProcess(device, options) as server:
             ready_s = time.monotonic() - started
+            groups = {"server": lambda: [server.pid], "proxy": titled(b"ray::ProxyActor"),
+                      "replica": titled(b"ray::ServeReplica")}
             for mode, ao, n in cases:
-                result = run_sessions(server.url, volume, n, seconds, mode, size, {"ao_rays": ao}, processes=processes)
+                load = LoadSampler(groups, gpus=device.startswith("cuda"))
+                result = run_sessions(server.url, volume, n, seconds, mode, size, {"ao_rays": ao}, processes=processes,
+                                      on_start=lambda: load.start(seconds))
                 row = dict(case_row(mode, ao, result), server=name, ready_s=ready_s,
-                           replicas_seen=len(result.get("replicas", [])))
+                           replicas_seen=len(result.get("replicas", [])), **load_fields(load.result()))
                 print(f"{name:<6} {mode:<5} AO {ao:<2} x{n:<3} {row.get('fps', 0):7.1f} fps "
                       f"({row.get('fps_per_session', 0):6.1f}/session) p50 {row.get('latency_p50_ms', 0):6.1f} "
-                      f"p99 {row.get('latency_p99_ms', 0):6.1f} ms errors {row['errors']} (ready in {ready_s:.0f} s)",
-                      flush=True)
+                      f"p99 {row.get('latency_p99_ms', 0):6.1f} ms errors {row['errors']} (ready in {ready_s:.0f} s) "
+                      f"{row.get('methods')} GPU busy {row.get('gpu_busy')} cores: server {row.get('server_cores')} "
+                      f"proxy {row.get('proxy_cores')} replica max {row.get('replica_cores_max')}", flush=True)
                 yield row
             if failover_sessions:
                 row = dict(failover(server.url, volume, size, failover_sessions, 3.0, 6.0), server=name)

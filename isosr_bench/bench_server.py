@@ -36,16 +36,13 @@ frame time fits one session's budget (``1000 / target_fps`` ms).
 from __future__ import annotations
 
 import json
-import multiprocessing
 import signal
 import socket
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 import urllib.request
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -53,6 +50,7 @@ import torch
 
 from isosr_bench.bench_pareto import bench_cameras, pareto_rows
 from isosr_bench.common import bench_parser, print_table, write_result
+from isosr_bench.sessions import run_sessions
 from isosr_net.budget import color_psnr, reference_frames
 from isosr_net.frame_methods import Networks
 from isosr_net.inference import default_precision
@@ -61,8 +59,8 @@ from isosr_render import FrameBuffers, Renderer, open_volume
 from isosr_render.catalog import SHARED_PREFIX
 from isosr_server.auto import AutoPolicy
 from isosr_server.engine import MODEL_NAMES, serving_network
-from isosr_client.drive import Orbit, drive, summarize
-from isosr_client.view import FrameStats, connect
+from isosr_client.drive import Orbit, summarize
+from isosr_client.view import connect
 from isosr_net.metrics import masked_psnr
 
 LINKS_BIT_S = {"50mbit": 50e6, "1gbit": 1e9}
@@ -149,91 +147,6 @@ class ServerProcess:
                 self.process.kill()
                 self.process.wait()
         self.log.close()
-
-
-def run_sessions(url: str, volume: str, sessions: int, seconds: float, mode: str, size: tuple[int, int],
-                 settings: dict, focus: tuple[float, float, float] | None = None, warmup_frames: int = 2,
-                 max_frames: int = 100_000, processes: int = 1) -> dict:
-    """``sessions`` concurrent closed-loop view sessions (one thread each) for ``seconds`` after
-    ``warmup_frames`` untimed frames each; every session orbits from its own start yaw.
-    ``focus``: the focus circle (x, y, radius in pixels) of ``focus`` mode. ``processes``: client
-    processes the sessions are dealt to (one process's threads share one interpreter lock, which
-    must not bound what several GPUs serve); the timed span starts together in all.
-
-    Returns:
-        `isosr_client.drive.summarize` of all frames with ``fps`` summed over the sessions,
-        plus ``fps_per_session``, ``errors`` (exception texts), ``sessions``, the ``methods`` and
-        the ``replicas`` (``isosr serve --replicas``) that made the frames.
-    """
-    processes = max(1, min(processes, sessions))
-    job = (url, volume, sessions, seconds, mode, size, settings, focus, warmup_frames, max_frames)
-    if processes == 1:
-        opened = threading.Barrier(sessions + 1)
-        waiter = threading.Thread(target=_wait_opened, args=(opened,), daemon=True)
-        waiter.start()
-        parts = [drive_sessions(job, range(sessions), opened)]
-    else:
-        context = multiprocessing.get_context("spawn")  # a fork would copy this process's torch and threads
-        with context.Manager() as manager, ProcessPoolExecutor(processes, mp_context=context) as pool:
-            opened = manager.Barrier(sessions + 1)
-            futures = [pool.submit(drive_sessions, job, range(p, sessions, processes), opened)
-                       for p in range(processes)]
-            _wait_opened(opened)
-            parts = [f.result() for f in futures]
-    stats = [s for part in parts for s in part[0]]
-    busy = [b for part in parts for b in part[1]]
-    errors = [e for part in parts for e in part[2]]
-    frames = [s for per in stats for s in per]
-    if not frames:
-        return {"sessions": sessions, "errors": errors or ["no frames"]}
-    result = summarize(frames, 1.0)
-    per_session_fps = [len(s) / b for s, b in zip(stats, busy) if b > 0]
-    result.update(sessions=sessions, errors=errors, fps=float(sum(per_session_fps)),
-                  fps_per_session=float(np.mean(per_session_fps)), methods=sorted({s.method for s in frames}),
-                  replicas=sorted({s.replica for s in frames if s.replica is not None}))
-    return result
-
-
-def _wait_opened(opened) -> None:
-    """The timed span starts once every session is warm (or one failed: it aborts the barrier)."""
-    try:
-        opened.wait(timeout=300)
-    except threading.BrokenBarrierError:
-        pass
-
-
-def drive_sessions(job: tuple, ks: range, opened) -> tuple[list[list[FrameStats]], list[float], list[str]]:
-    """Sessions ``ks`` of :func:`run_sessions`' ``job``, one thread each, in this process: their
-    frames' stats, their busy seconds and the errors. They wait at ``opened`` after warming up."""
-    url, volume, sessions, seconds, mode, size, settings, focus, warmup_frames, max_frames = job
-    stats: dict[int, list[FrameStats]] = {k: [] for k in ks}
-    busy = dict.fromkeys(ks, 0.0)
-    errors: list[str] = []
-
-    def viewer(k: int) -> None:
-        path = Orbit(yaw=30.0 + 360.0 * k / sessions)
-        try:
-            with connect(url, volume, mode, size, settings=dict(settings, refine=False), local_upscale=False,
-                         timeout=120) as view:
-                if focus is not None:
-                    view.set_focus("circle", focus[:2], focus[2])
-                drive(view, path, warmup_frames, rgb=False)
-                opened.wait()
-                stats[k], busy[k] = drive(view, Orbit(path.yaw + 10, path.pitch, path.distance), max_frames, rgb=False,
-                                          stop_at=time.monotonic() + seconds)
-        except threading.BrokenBarrierError:
-            pass
-        except Exception as e:  # reported in the result: a load test counts them
-            errors.append(f"session {k}: {type(e).__name__}: {e}")
-            opened.abort()
-
-    threads = {k: threading.Thread(target=viewer, args=(k,), daemon=True) for k in ks}
-    for t in threads.values():
-        t.start()
-    for t in threads.values():
-        t.join(seconds + 420)
-    errors += [f"session {k}: did not finish" for k, t in threads.items() if t.is_alive()]
-    return [stats[k] for k in ks], [busy[k] for k in ks], errors
 
 
 def case_row(mode: str, ao: int, result: dict) -> dict:

@@ -15,6 +15,8 @@ run: ``speedup`` (its ms per step over this run's) and ``efficiency`` (speedup o
 same seed, and ``spread_db`` per count, the range of its runs' final color PSNR over the seeds.
 ``--concurrent`` starts the runs together on disjoint GPUs (they share the host's CPUs and PCIe):
 it saves device time and is said in the result. On CPUs, N is the number of processes (gloo).
+A later run with other ``--seeds`` keeps the rows of the result file's other seeds for the same
+config, steps and batch (each with its own device and commit), so seeds may run in separate calls.
 """
 
 from __future__ import annotations
@@ -28,20 +30,20 @@ from pathlib import Path
 
 import torch
 
-from isosr_bench.common import bench_parser, print_table, write_result
+from isosr_bench.common import bench_parser, kept_rows, print_table, write_result
 from isosr_net.configs import load_config
 from isosr_net.train import TrainConfig
 
 
 def train_command(config: str, out: Path, steps: int | None, batch_size: int | None, seed: int,
-                  processes: int) -> list[str]:
+                  processes: int, data: str | None = None) -> list[str]:
     """`isosr train` for one run: a plain process, or ``processes`` under torchrun (``--standalone``:
     each run's rendezvous on a free port, so that concurrent runs do not meet)."""
     launcher = ([sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={processes}"]
                 if processes > 1 else [sys.executable])
     return [*launcher, "-m", "isosr_cli.main", "train", config, "--out", str(out), "--time-limit-minutes", "0",
             "--seed", str(seed), *(["--steps", str(steps)] if steps else []),
-            *(["--batch-size", str(batch_size)] if batch_size else [])]
+            *(["--batch-size", str(batch_size)] if batch_size else []), *(["--data", data] if data else [])]
 
 
 def gpu_sets(counts: list[int], concurrent: bool, available: int) -> list[list[int]]:
@@ -73,6 +75,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--config", required=True, help="a TrainConfig JSON (its data must exist)")
     parser.add_argument("--steps", type=int, help="optimizer steps of every run (default: the config's)")
     parser.add_argument("--batch-size", type=int, help="global batch of every run (default: the config's)")
+    parser.add_argument("--data", help="the datagen folder of every run (default: the config's)")
     parser.add_argument("--gpus", default="1,2", help="GPU (CPU: process) counts, comma-separated; 1 is the baseline")
     parser.add_argument("--seeds", help="seeds, comma-separated: every count runs once per seed "
                         "(default: the config's)")
@@ -92,7 +95,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
     except ValueError as e:
         parser.error(str(e))
     jobs = [start_run(args, n, seed, gpus if cuda else []) for (n, seed), gpus in zip(runs, sets)]
-    rows = [dict(finish_run(*job), seed=seed, concurrent=args.concurrent) for job, (_, seed) in zip(jobs, runs)]
+    rows = [dict(finish_run(*job), seed=seed, concurrent=args.concurrent, config=args.config)
+            for job, (_, seed) in zip(jobs, runs)]
+    rows = with_other_seeds(args.out / f"bench_train_{'cuda' if cuda else 'cpu'}.json", rows)
     for r in rows:
         base = next(b for b in rows if b["processes"] == 1 and b["seed"] == r["seed"])
         r["speedup"] = base["ms_per_step"] / r["ms_per_step"]
@@ -105,6 +110,15 @@ def main(argv: list[str] | None = None) -> list[dict]:
     return rows
 
 
+def with_other_seeds(path: Path, rows: list[dict]) -> list[dict]:
+    """``rows`` after the rows of the result at ``path`` for the same study (config, steps and
+    batch) and other seeds, each with its own device and commit: seeds may run in separate calls."""
+    same = {(r["config"], r["steps"], r["batch_size"]) for r in rows}
+    seeds = {r["seed"] for r in rows}
+    return kept_rows(path, lambda r: (r.get("config"), r["steps"], r["batch_size"]) in same and r["seed"] not in seeds,
+                     stamp=("device", "commit")) + rows
+
+
 def start_run(args, processes: int, seed: int, gpus: list[int]) -> tuple:
     """Start one run from scratch in its own folder (waiting for it unless ``--concurrent``)."""
     out = args.runs / f"processes{processes}_seed{seed}"
@@ -113,7 +127,7 @@ def start_run(args, processes: int, seed: int, gpus: list[int]) -> tuple:
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     if gpus:
         env["CUDA_VISIBLE_DEVICES"] = ",".join(map(str, gpus))
-    command = [*train_command(args.config, out, args.steps, args.batch_size, seed, processes),
+    command = [*train_command(args.config, out, args.steps, args.batch_size, seed, processes, args.data),
                "--device", args.device.split(":")[0]]
     with open(out / "train.log", "w") as log:
         process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env)

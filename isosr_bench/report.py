@@ -53,8 +53,36 @@ def markdown(folder: Path, kind: str) -> str:
         if record is None:
             continue
         lines += [f"## {title}", ""] + _run_lines(record) + _table(record["rows"], columns) + [""]
+    lines += cluster_markdown(folder, kind)
     lines += pareto_markdown(folder, kind)
     return "\n".join(lines)
+
+
+CLUSTER_COLUMNS = ["server", "gpus", "mode", "ao", "sessions", "fps", "fps_per_session", "latency_p50_ms",
+                   "latency_p99_ms", "errors", "methods", "gpu_busy", "server_cores", "proxy_cores",
+                   "replica_cores_max"]
+
+
+def cluster_markdown(folder: Path, kind: str) -> list[str]:
+    """The service over several GPUs and with several replicas on one GPU (`bench_cluster`):
+    each case, its scaling against one replica, and failover."""
+    lines = []
+    for name, title in (("bench_cluster_gpus_1080p", "The service over several GPUs (one replica per GPU)"),
+                        ("bench_cluster_one_gpu_1080p", "Several replicas sharing one GPU")):
+        record = _load(folder, name, kind)
+        if record is None:
+            continue
+        cases = [r for r in record["rows"] if "study" not in r]
+        lines += [f"## {title}", ""] + _run_lines(record) + _table(cases, CLUSTER_COLUMNS) + [""]
+        scaled = [r for r in record["rows"] if r.get("study") == "scaling"]
+        if scaled:
+            lines += _table(scaled, ["server", "replicas", "mode", "ao", "sessions", "fps", "fps_one", "efficiency",
+                                     "p99_ms", "p99_one_at_1_over_n_ms", "p99_ratio"]) + [""]
+        failover = [r for r in record["rows"] if r.get("study") == "failover"]
+        if failover:
+            lines += _table(failover, ["server", "sessions", "moved_sessions", "failover_max_s", "unmoved",
+                                       "other_sessions", "other_max_gap_s", "health_ready"]) + [""]
+    return lines
 
 
 def plots(folder: Path, kind: str) -> list[Path]:
@@ -109,7 +137,40 @@ def plots(folder: Path, kind: str) -> list[Path]:
         fig.savefig(path, dpi=100)
         plt.close(fig)
         written.append(path)
+    cluster = _load(folder, "bench_cluster_gpus_1080p", kind)
+    if cluster:
+        written.append(cluster_plot(plt, cluster, folder / f"cluster_gpus_{kind}.png"))
     return written + pareto_plots(folder, kind)
+
+
+def cluster_plot(plt, record: dict, path: Path) -> Path:
+    """Frames/s against GPUs (one replica each) per mode and session count, beside N times one
+    replica's (dashed) and the plain server on one GPU (crosses)."""
+    cases = [r for r in record["rows"] if "fps" in r and "study" not in r]
+    modes = sorted({(r["mode"], r["ao"]) for r in cases if r["replicas"] > 0})
+    colour = {n: f"C{k}" for k, n in enumerate(sorted({r["sessions"] for r in cases}))}
+    fig, axes = plt.subplots(1, len(modes), figsize=(5 * len(modes), 3.8), squeeze=False)
+    for ax, (mode, ao) in zip(axes[0], modes):
+        rows = [r for r in cases if (r["mode"], r["ao"]) == (mode, ao)]
+        for sessions in sorted({r["sessions"] for r in rows}):
+            at = sorted((r["replicas"], r["fps"]) for r in rows if r["sessions"] == sessions and r["replicas"] > 0)
+            if at:
+                xs, ys = zip(*at)
+                ax.plot(xs, ys, marker="o", color=colour[sessions], label=f"{sessions} sessions")
+                one = dict(at).get(1)
+                if one:
+                    ax.plot(xs, [one * x for x in xs], linestyle="--", color=colour[sessions], alpha=0.5)
+            plain = [r["fps"] for r in rows if r["sessions"] == sessions and r["replicas"] == 0]
+            if plain:
+                ax.scatter([1] * len(plain), plain, marker="x", color=colour[sessions],
+                           label=f"plain server, {sessions}")
+        ax.set(xlabel="GPUs (one replica each)", ylabel="frames/s, all sessions", xticks=[1, 2, 4],
+               title=f"{mode}, AO {ao}: dashed N x one replica")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
 
 
 def _upscale_panel(ax, rows: list[dict]) -> None:

@@ -342,18 +342,20 @@ def build_losses(configs: Sequence[dict[str, Any]]) -> nn.ModuleList:
     return losses
 
 
-def total_loss(losses: nn.ModuleList, ctx: LossContext) -> tuple[torch.Tensor, dict[str, float]]:
+def total_loss(losses: nn.ModuleList, ctx: LossContext) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Sum of the (weighted) losses and each one's value by name, for logging.
 
+    The values stay detached 0-d tensors on the loss's device: reading each one (``float``)
+    would wait for the device once per term and frame; read them together once a step.
     The discriminator's own loss is not part of it: call
     :meth:`AdversarialLoss.discriminator_loss` in the discriminator step.
     """
     total = ctx.pred.new_zeros(())
-    logs: dict[str, float] = {}
+    logs: dict[str, torch.Tensor] = {}
     for loss in losses:
         value = loss(ctx)
         total = total + value
-        logs[loss.name] = logs.get(loss.name, 0.0) + float(value.detach())
+        logs[loss.name] = logs.get(loss.name, 0.0) + value.detach()
     return total, logs
 
 

@@ -229,9 +229,9 @@ class Trainer:
             d_loss.backward()
             self._average_gradients([p for m in self.adversarial for p in m.parameters()])
             self.d_optimizer.step()
-            logs["discriminator"] = float(d_loss.detach())
-        logs["total"] = float(loss.detach())
-        return logs
+            logs["discriminator"] = d_loss.detach()
+        logs["total"] = loss.detach()
+        return dict(zip(logs, torch.stack([v.float() for v in logs.values()]).tolist()))  # the step's one read
 
     def _average_gradients(self, params: list) -> None:
         """All-reduce the discriminators' gradients (they are not wrapped in DDP)."""

@@ -22,7 +22,7 @@ from client_fixtures import server  # noqa: F401  (the module's server fixture)
 from server_fixtures import running_server
 from websockets.sync.client import connect as ws_connect
 
-from isosr_bench import bench_server
+from isosr_bench import bench_server, sessions
 from isosr_bench.common import write_result
 from isosr_cli.main import main
 from isosr_client import ServerError, connect, decode_image, upscale_remote
@@ -321,7 +321,7 @@ def test_cli_without_the_cuda_device_asked_for_ends_in_one_line(server):  # noqa
 def test_sessions_dealt_to_client_processes(server):  # noqa: F811
     """Sessions dealt to two client processes start their timed span together and all frame: the
     result adds every process's frames and sessions as one process's threads would."""
-    result = bench_server.run_sessions(server.url, VOLUME, 3, 1.0, "full", SIZE, {}, warmup_frames=1, processes=2)
+    result = sessions.run_sessions(server.url, VOLUME, 3, 1.0, "full", SIZE, {}, warmup_frames=1, processes=2)
     assert result["errors"] == [] and result["sessions"] == 3
     assert result["frames"] >= 3 and result["fps"] > 0
     assert result["fps"] == pytest.approx(3 * result["fps_per_session"], rel=0.5)
@@ -336,14 +336,14 @@ def test_load_16_sessions_30s(server):  # noqa: F811
     modes = ("full", "network", "upscale", "buffers", "focus")
     # Warm-up: every mode's first frames (allocations, caches) before the baseline.
     for mode in modes:
-        bench_server.run_sessions(server.url, VOLUME, 1, 0.0, mode, SIZE, {}, warmup_frames=1)
+        sessions.run_sessions(server.url, VOLUME, 1, 0.0, mode, SIZE, {}, warmup_frames=1)
     rss_before = server.rss()
     results = {}
     threads = []
     for mode in modes:
         n = {"full": 4, "network": 3, "upscale": 3, "buffers": 4, "focus": 2}[mode]  # 16 sessions
         t = threading.Thread(target=lambda m=mode, n=n: results.__setitem__(
-            m, bench_server.run_sessions(server.url, VOLUME, n, 30.0, m, SIZE, {},
+            m, sessions.run_sessions(server.url, VOLUME, n, 30.0, m, SIZE, {},
                                          focus=(32.0, 24.0, 12.0) if m == "focus" else None, warmup_frames=1)))
         threads.append(t)
         t.start()

@@ -313,7 +313,7 @@ def test_build_paper_losses(name, vgg_files):
     assert {"mask_l2", "normal_l1", "ao_l1"} <= set(logs)
     if name != "l1-normal":
         assert {"perceptual", "temporal", "adversarial"} <= set(logs)
-    np.testing.assert_allclose(total.item(), sum(logs.values()), rtol=1e-5)
+    np.testing.assert_allclose(total.item(), float(sum(logs.values())), rtol=1e-5)
     assert ctx.pred.grad.abs().sum() > 0
     assert all(c["weights_path"] == "weights/vgg19_features.safetensors"
                for c in PAPER_LOSSES[name] if c["type"] == "perceptual")

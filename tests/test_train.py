@@ -384,5 +384,11 @@ def test_bench_train_compares_one_and_two_processes(data, tmp_path, monkeypatch)
     assert [(r["seed"], r["batch_size"]) for r in rows] == [(0, 4), (1, 4)]
     assert rows[0]["val_color_psnr"] != rows[1]["val_color_psnr"]
     assert rows[0]["spread_db"] == pytest.approx(abs(rows[0]["val_color_psnr"] - rows[1]["val_color_psnr"]))
+    # One seed again in a later call: the earlier call's other seed of the same study is kept beside it.
+    again = bench_train.main(["--config", str(config), "--steps", "2", "--gpus", "1", "--seeds", "1",
+                              "--batch-size", "4", "--device", "cpu", "--runs", str(tmp_path / "runs"),
+                              "--out", str(tmp_path / "results")])
+    assert [(r["seed"], r["batch_size"]) for r in again] == [(0, 4), (1, 4)]
+    assert again[0]["val_color_psnr"] == rows[0]["val_color_psnr"] and again[1]["spread_db"] is not None
     with pytest.raises(SystemExit):
         bench_train.main(["--config", str(config), "--gpus", "2", "--device", "cpu"])  # no baseline

@@ -1,0 +1,107 @@
+"""Closed-loop view sessions against a running server, for the service benchmarks.
+
+The client side of :mod:`isosr_bench.bench_server` and :mod:`isosr_bench.bench_cluster`. It imports
+the client alone (no torch): the client processes that sessions are dealt to start in well under
+a second, so a case's set-up is not the spawn of several interpreters importing the network stack.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+
+import numpy as np
+
+from isosr_client.drive import Orbit, drive, summarize
+from isosr_client.view import FrameStats, connect
+
+
+def run_sessions(url: str, volume: str, sessions: int, seconds: float, mode: str, size: tuple[int, int],
+                 settings: dict, focus: tuple[float, float, float] | None = None, warmup_frames: int = 2,
+                 max_frames: int = 100_000, processes: int = 1, on_start: Callable[[], None] | None = None) -> dict:
+    """``sessions`` concurrent closed-loop view sessions (one thread each) for ``seconds`` after
+    ``warmup_frames`` untimed frames each; every session orbits from its own start yaw.
+    ``focus``: the focus circle (x, y, radius in pixels) of ``focus`` mode. ``processes``: client
+    processes the sessions are dealt to (one process's threads share one interpreter lock, which
+    must not bound what several GPUs serve); the timed span starts together in all, and
+    ``on_start`` is called as it starts.
+
+    Returns:
+        `isosr_client.drive.summarize` of all frames with ``fps`` summed over the sessions,
+        plus ``fps_per_session``, ``errors`` (exception texts), ``sessions``, the ``methods`` and
+        the ``replicas`` (``isosr serve --replicas``) that made the frames.
+    """
+    processes = max(1, min(processes, sessions))
+    job = (url, volume, sessions, seconds, mode, size, settings, focus, warmup_frames, max_frames)
+    if processes == 1:
+        opened = threading.Barrier(sessions + 1)
+        waiter = threading.Thread(target=_wait_opened, args=(opened, on_start), daemon=True)
+        waiter.start()
+        parts = [drive_sessions(job, range(sessions), opened)]
+    else:
+        context = multiprocessing.get_context("spawn")  # a fork would copy this process's torch and threads
+        with context.Manager() as manager, ProcessPoolExecutor(processes, mp_context=context) as pool:
+            opened = manager.Barrier(sessions + 1)
+            futures = [pool.submit(drive_sessions, job, range(p, sessions, processes), opened)
+                       for p in range(processes)]
+            _wait_opened(opened, on_start)
+            parts = [f.result() for f in futures]
+    stats = [s for part in parts for s in part[0]]
+    busy = [b for part in parts for b in part[1]]
+    errors = [e for part in parts for e in part[2]]
+    frames = [s for per in stats for s in per]
+    if not frames:
+        return {"sessions": sessions, "errors": errors or ["no frames"]}
+    result = summarize(frames, 1.0)
+    per_session_fps = [len(s) / b for s, b in zip(stats, busy) if b > 0]
+    result.update(sessions=sessions, errors=errors, fps=float(sum(per_session_fps)),
+                  fps_per_session=float(np.mean(per_session_fps)), methods=sorted({s.method for s in frames}),
+                  replicas=sorted({s.replica for s in frames if s.replica is not None}))
+    return result
+
+
+def _wait_opened(opened, on_start: Callable[[], None] | None) -> None:
+    """The timed span starts once every session is warm (or one failed: it aborts the barrier)."""
+    try:
+        opened.wait(timeout=300)
+    except threading.BrokenBarrierError:
+        return
+    if on_start is not None:
+        on_start()
+
+
+def drive_sessions(job: tuple, ks: range, opened) -> tuple[list[list[FrameStats]], list[float], list[str]]:
+    """Sessions ``ks`` of :func:`run_sessions`' ``job``, one thread each, in this process: their
+    frames' stats, their busy seconds and the errors. They wait at ``opened`` after warming up."""
+    url, volume, sessions, seconds, mode, size, settings, focus, warmup_frames, max_frames = job
+    stats: dict[int, list[FrameStats]] = {k: [] for k in ks}
+    busy = dict.fromkeys(ks, 0.0)
+    errors: list[str] = []
+
+    def viewer(k: int) -> None:
+        path = Orbit(yaw=30.0 + 360.0 * k / sessions)
+        try:
+            with connect(url, volume, mode, size, settings=dict(settings, refine=False), local_upscale=False,
+                         timeout=120) as view:
+                if focus is not None:
+                    view.set_focus("circle", focus[:2], focus[2])
+                drive(view, path, warmup_frames, rgb=False)
+                opened.wait()
+                stats[k], busy[k] = drive(view, Orbit(path.yaw + 10, path.pitch, path.distance), max_frames, rgb=False,
+                                          stop_at=time.monotonic() + seconds)
+        except threading.BrokenBarrierError:
+            pass
+        except Exception as e:  # reported in the result: a load test counts them
+            errors.append(f"session {k}: {type(e).__name__}: {e}")
+            opened.abort()
+
+    threads = {k: threading.Thread(target=viewer, args=(k,), daemon=True) for k in ks}
+    for t in threads.values():
+        t.start()
+    for t in threads.values():
+        t.join(seconds + 420)
+    errors += [f"session {k}: did not finish" for k, t in threads.items() if t.is_alive()]
+    return [stats[k] for k in ks], [busy[k] for k in ks], errors

@@ -1,0 +1,77 @@
+"""The load sampler of the service benchmarks: CPU cores per process group over a span, and
+bench_cluster's cases and GPU shares as its command line gives them."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from isosr_bench import bench_cluster
+from isosr_bench.load import LoadSampler, cpu_ticks, titled
+
+SPIN = "import time\nend = time.monotonic() + 30\nwhile time.monotonic() < end: pass"
+NAP = "import time; time.sleep(30)"
+
+
+@pytest.fixture
+def spinner_and_sleeper():
+    procs = [subprocess.Popen([sys.executable, "-c", code]) for code in (SPIN, NAP)]
+    yield procs
+    for p in procs:
+        p.kill()
+        p.wait()
+
+
+def test_a_spinning_process_counts_about_one_core_and_a_sleeping_one_none(spinner_and_sleeper):
+    spin, nap = spinner_and_sleeper
+    load = LoadSampler({"spin": lambda: [spin.pid], "nap": lambda: [nap.pid], "both": lambda: [spin.pid, nap.pid]},
+                       gpus=False)
+    assert load.result() == {}  # never started
+    load.start(1.0)
+    result = load.result()
+    cores = result["cpu_cores"]
+    # A loaded 2-core machine may give the spinner less than a core; it gets more than a sleeper.
+    assert 0.2 < cores["spin"]["cores"] <= 1.2 and cores["nap"]["cores"] < 0.1
+    assert cores["both"]["processes"] == 2 and cores["both"]["busiest"] == cores["spin"]["cores"]
+    assert result["machine_cores"] >= cores["spin"]["cores"] - 0.1 and result["gpu_busy"] is None
+
+
+def test_a_process_gone_before_the_span_ends_is_left_out(spinner_and_sleeper):
+    _, nap = spinner_and_sleeper
+    load = LoadSampler({"nap": lambda: [nap.pid]}, gpus=False)
+    load.start(0.5)
+    nap.kill()
+    nap.wait()
+    assert cpu_ticks(nap.pid) is None
+    assert load.result()["cpu_cores"]["nap"] == {"processes": 0, "cores": 0.0, "busiest": 0.0}
+
+
+def test_titled_finds_processes_by_the_start_of_their_command_line(spinner_and_sleeper):
+    spin, nap = spinner_and_sleeper
+    found = titled(sys.executable.encode())()
+    assert {spin.pid, nap.pid} <= set(found)
+    assert titled(b"ray::NoSuchActor")() == []
+
+
+def test_cluster_cases_and_gpu_shares():
+    assert bench_cluster.parse_cases("full:0,reconstruct:1") == (("full", 0), ("reconstruct", 1))
+    for bad in ("full", "full:-1", "warp:0", "full:0,"):
+        with pytest.raises(ValueError, match="MODE:AO_RAYS"):
+            bench_cluster.parse_cases(bad)
+    shares = {name: (gpus, extra) for name, _, gpus, extra in bench_cluster.servers([0, 2, 4], "split", "cuda")}
+    assert shares["plain"] == (1.0, ())
+    assert shares["ray2"] == (1.0, ("--replicas", "2", "--gpus-per-replica", "0.5"))
+    assert shares["ray4"] == (1.0, ("--replicas", "4", "--gpus-per-replica", "0.25"))
+    assert [gpus for _, _, gpus, _ in bench_cluster.servers([1, 2], "1", "cuda")] == [1.0, 2.0]
+    assert [gpus for _, _, gpus, _ in bench_cluster.servers([0, 2], "1", "cpu")] == [0.0, 0.0]
+
+
+def test_cluster_bench_refuses_an_unknown_case_or_share(tmp_path, capsys):
+    for argv in (["--cases", "warp:0"], ["--gpus-per-replica", "half"]):
+        with pytest.raises(SystemExit):
+            bench_cluster.main(["--smoke", "--out", str(tmp_path), *argv])
+    err = capsys.readouterr().err
+    assert "--cases: 'warp:0' is not MODE:AO_RAYS" in err and "--gpus-per-replica: a share of 0 or more" in err
+    assert not list(tmp_path.iterdir())
