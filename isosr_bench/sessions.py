@@ -11,7 +11,7 @@ import multiprocessing
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
 
 import numpy as np
 
@@ -47,7 +47,10 @@ def run_sessions(url: str, volume: str, sessions: int, seconds: float, mode: str
             opened = manager.Barrier(sessions + 1)
             futures = [pool.submit(drive_sessions, job, range(p, sessions, processes), opened)
                        for p in range(processes)]
-            _wait_opened(opened, on_start)
+            threading.Thread(target=_wait_opened, args=(opened, on_start), daemon=True).start()
+            done, _ = wait(futures, return_when=FIRST_EXCEPTION)
+            if any(f.exception() for f in done):  # a process died: the others' sessions stop at the barrier
+                opened.abort()
             parts = [f.result() for f in futures]
     stats = [s for part in parts for s in part[0]]
     busy = [b for part in parts for b in part[1]]

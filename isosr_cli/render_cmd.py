@@ -14,6 +14,7 @@ from pathlib import Path
 import torch
 
 from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest, open_volume, orbit, resolve_iso
+from isosr_render.catalog import SHARED_PREFIX, check_iso
 from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES, HIGHRES_BUFFERS
 from isosr_net.budget import BudgetConfig, render_within_budget
 from isosr_net.frame_methods import FrameRunner, Networks, make_runner, reconstruct_method, run_sequence
@@ -51,8 +52,8 @@ def add_parser(subparsers) -> None:
                                   "a .zarr / OME-Zarr store, 2D TIFFs), procedural spec (proc:sphere, proc:torus, proc:cloud:SEED, "
                                   "proc:metaballs:SEED, optional @SIZE) or shared volume (shared:NAME); an OME-Zarr level by "
                                   "name, scan.zarr#level=2, or by memory, scan.zarr#max-gb=8 (default: the finest)")
-    p.add_argument("--iso", type=float, help="iso-value in data units (default: the procedural volume's own, "
-                                             "else Otsu's threshold)")
+    p.add_argument("--iso", type=float, help="iso-value in data units, strictly inside the data's value range "
+                                             "(default: the procedural volume's own, else Otsu's threshold)")
     p.add_argument("--normalized-iso", action="store_true", help="--iso is on the normalized [0, 1] scale")
     p.add_argument("--size", type=frame_size, default=(640, 480), help="image size WxH")
     cam = p.add_argument_group("camera (world frame: box centered at 0, longest side 1)")
@@ -144,7 +145,8 @@ def run(args: argparse.Namespace) -> int:
     _check_reconstruct(args, outputs)
 
     volume = open_volume(args.volume)
-    iso = resolve_iso(args.volume, volume, args.iso, args.normalized_iso)
+    iso = check_iso(volume, resolve_iso(args.volume, volume, args.iso, args.normalized_iso),
+                    args.volume.removeprefix(SHARED_PREFIX))
     unit = volume.voxel_size_world() if args.voxel_units else 1.0
     camera = _camera(args.orbit, args.eye, args.target, args.up, args.fov)
     prev = None

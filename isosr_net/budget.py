@@ -29,7 +29,18 @@ A short probe on the scene decides (its cost is ``choice.probe_seconds``):
    GPUs, wall time on CPUs), until the first whose mean frame time fits within ``headroom``
    of the budget (90%: frame times vary by view and run, and a budget is a ceiling); it is the
    choice. Probe the views that will be shown: frame time grows with the covered pixels. A candidate stops being timed once one frame takes more than twice the budget.
-   If none fits, the fastest is chosen, ``fits`` is False and a warning says so.
+   On CPUs, step 1's frames at the probe size are timed too: scaled to the frame's pixels, half
+   of that is a candidate's floor (:func:`floor_ms`), and one whose floor is over twice the
+   budget is not timed at all (on a 2-core CPU at 1080p, where frames take seconds, that skips
+   most candidates). On GPUs, where a first frame at a new size captures graphs and tunes
+   kernels, every candidate is timed. If none fits, the fastest timed is chosen, ``fits`` is
+   False and a warning says so.
+
+A scheduler that must not stop for the probe (the server's ``auto`` mode) runs it as a
+generator, :func:`probe_quality_steps` and :func:`choose_method_steps`: each yields before every
+unit of device work (the references, a candidate's scoring, a candidate's timed frame, whose ray
+cast is sliced by ``slice_ms``), so its work interleaves with other jobs; the plain functions
+run them to their end.
 
 An image without any covered pixel (iso outside the data) has no PSNR (NaN): every candidate
 ties, and the cheapest in the candidate list that fits is chosen.
@@ -41,6 +52,7 @@ import math
 import os
 import time
 import warnings
+from collections.abc import Generator
 from dataclasses import dataclass, field
 
 import torch
@@ -50,7 +62,8 @@ from isosr_render.sequence import sequence_cameras
 from isosr_render.shading import ShadingParams, shade
 from isosr_render.conventions import AO_RADIUS
 from isosr_render.shapes import check_int
-from isosr_net.frame_methods import FrameMethod, FrameRunner, Networks, make_runner, reconstruct_method, run_sequence
+from isosr_net.frame_methods import (FrameMethod, FrameRunner, Networks, finish_steps, make_runner, reconstruct_method,
+                                     run_sequence)
 from isosr_net.metrics import eval_region, masked_psnr
 from isosr_net.reconnet import RayLimits
 from isosr_net.reconstructor import RECON_X2_MODEL, recon_limits
@@ -65,8 +78,13 @@ AO_MATTERS_DB = 40.0
 REFERENCE_SPP = 4
 REFERENCE_AO_RAYS = 512
 REFERENCE_SEED = 1
+# Row bands of the reference on CPUs, a unit of device work each (seconds for the whole on 2 cores).
+REFERENCE_BANDS_CPU = 8
 # A candidate's timing stops once one frame takes this many budgets.
 OVER_BUDGET_STOP = 2.0
+# The share of a candidate's time at the probe size, scaled to the frame's pixels, counted on
+# as its floor (:func:`floor_ms`): fixed costs per frame make small frames dearer per pixel.
+FLOOR_SHARE = 0.5
 
 
 def default_candidates(device: str, precision: str | None = None, limits: RayLimits | None = None,
@@ -165,11 +183,13 @@ class BudgetConfig:
 @dataclass(frozen=True)
 class ProbeRow:
     """One candidate as the probe saw it: expected PSNR (dB, NaN without coverage) and mean
-    frame time (ms; None where not timed, because a better candidate fit first)."""
+    frame time (ms; None where not timed, because a better candidate fit first; its floor,
+    ``floored``, where the floor was over twice the budget: :func:`floor_ms`)."""
 
     method: FrameMethod
     expected_psnr: float
     ms: float | None
+    floored: bool = False
 
 
 @dataclass(frozen=True)
@@ -242,12 +262,30 @@ def reference_frames(renderer: Renderer, iso: float, size: tuple[int, int], came
     Shape:
         Per frame: mask, ao (H, W); normal, color (H, W, 3); flow (H, W, 2).
     """
+    return finish_steps(reference_frames_steps(renderer, iso, size, cameras, ao_radius, shading, flow))
+
+
+def reference_frames_steps(renderer: Renderer, iso: float, size: tuple[int, int], cameras: list[Camera],
+                           ao_radius: float = AO_RADIUS, shading: ShadingParams = ShadingParams(),
+                           flow: bool = False, bands: int = 1) -> Generator[None, None, list[FrameBuffers]]:
+    """:func:`reference_frames` in ``bands`` row bands per frame, yielding between them (a band's
+    pixels are the whole frame's, bit for bit: each pixel's rays depend on its index alone)."""
     frames = []
     for camera, prev in sequence_cameras(cameras):
         outputs = ("mask", "normal", "ao") + (("flow",) if flow and prev is not None else ())
-        ref = renderer.render(camera, RenderRequest(*size, iso, outputs, spp=REFERENCE_SPP,
-                                                    ao_samples=REFERENCE_AO_RAYS, ao_radius=ao_radius,
-                                                    seed=REFERENCE_SEED, prev_camera=prev if flow else None))
+        request = RenderRequest(*size, iso, outputs, spp=REFERENCE_SPP, ao_samples=REFERENCE_AO_RAYS,
+                                ao_radius=ao_radius, seed=REFERENCE_SEED, prev_camera=prev if flow else None)
+        edges = [round(size[1] * k / bands) for k in range(bands + 1)]
+        ref = None
+        for start, stop in zip(edges, edges[1:]):
+            band = renderer.render(camera, request, rows=None if bands == 1 else (start, stop))
+            if ref is None:
+                ref = band
+            else:
+                for name in outputs:
+                    getattr(ref, name)[start:stop] = getattr(band, name)[start:stop]
+            if stop < size[1]:
+                yield
         ref.color = shade(ref.mask, ref.normal, ref.ao, shading)
         if flow and ref.flow is None:
             ref.flow = torch.zeros(*ref.mask.shape, 2, device=ref.mask.device)
@@ -294,15 +332,45 @@ def _frame_ms(runner: FrameRunner, camera: Camera, prev: Camera | None, clock: s
     return (time.perf_counter() - t0) * 1e3
 
 
-def _time_candidate(runner: FrameRunner, cameras: list[Camera], config: BudgetConfig, budget_ms: float) -> float:
+def _sliced_frame_ms(runner: FrameRunner, camera: Camera, prev: Camera | None,
+                     slice_ms: float | None) -> Generator[None, None, float]:
+    """One frame's time in ms, made in slices of about ``slice_ms`` (:meth:`FrameRunner.steps`):
+    the wall time of its own slices, each synchronized at its end, what runs between them left
+    out (without ``slice_ms``, one slice)."""
+    steps, ms = runner.steps(camera, prev, slice_ms), 0.0
+    while True:
+        start = time.perf_counter()
+        try:
+            next(steps)
+        except StopIteration:
+            return ms + _synced_ms(runner, start)
+        ms += _synced_ms(runner, start)
+        yield
+
+
+def _synced_ms(runner: FrameRunner, start: float) -> float:
+    if runner.renderer.device.is_cuda:
+        torch.cuda.synchronize()
+    return (time.perf_counter() - start) * 1e3
+
+
+def _time_candidate_steps(runner: FrameRunner, cameras: list[Camera], config: BudgetConfig, budget_ms: float,
+                          slice_ms: float | None = None) -> Generator[None, None, float]:
     """Mean frame time of a runner in sequence over ``cameras`` (cycled), after warm-up; stops
-    early once a frame takes more than ``OVER_BUDGET_STOP`` budgets."""
+    early once a frame takes more than ``OVER_BUDGET_STOP`` budgets (on CPUs a warm-up frame
+    too). Yields before each frame."""
     pairs = sequence_cameras(cameras)
     for i in range(config.warmup_frames):
-        runner.frame(*pairs[i % len(pairs)])
+        yield
+        ms = yield from _sliced_frame_ms(runner, *pairs[i % len(pairs)], slice_ms)
+        if not runner.renderer.device.is_cuda and ms > OVER_BUDGET_STOP * budget_ms:
+            return ms  # on CPUs a first frame has no one-off costs (graph captures, kernel tuning)
     times = []
     for i in range(config.timing_frames):
-        times.append(_frame_ms(runner, *pairs[(config.warmup_frames + i) % len(pairs)], config.clock))
+        yield
+        camera, prev = pairs[(config.warmup_frames + i) % len(pairs)]
+        times.append(_frame_ms(runner, camera, prev, config.clock) if slice_ms is None
+                     else (yield from _sliced_frame_ms(runner, camera, prev, slice_ms)))
         if times[-1] > OVER_BUDGET_STOP * budget_ms:
             break
     return sum(times) / len(times)
@@ -318,6 +386,7 @@ class QualityProbe:
         ao_effect_db: color PSNR of the reference without AO against with AO.
         ao_matters: whether AO candidates were kept.
         seconds: wall time of this part.
+        ms: wall time of a frame per candidate at the probe size, ms (on CPUs; GPUs: empty).
     """
 
     size: tuple[int, int]
@@ -325,12 +394,21 @@ class QualityProbe:
     ao_effect_db: float
     ao_matters: bool
     seconds: float
+    ms: dict = field(default_factory=dict)
 
 
 def probe_quality(renderer: Renderer, iso: float, width: int, height: int, config: BudgetConfig = BudgetConfig(),
                   cameras: list[Camera] | None = None, networks: Networks | None = None) -> QualityProbe:
     """Steps 1 and 2 of the module docstring: the AO test, then every remaining candidate scored
-    at the probe size against the reference.
+    at the probe size against the reference (:func:`probe_quality_steps` to its end)."""
+    return finish_steps(probe_quality_steps(renderer, iso, width, height, config, cameras, networks))
+
+
+def probe_quality_steps(renderer: Renderer, iso: float, width: int, height: int,
+                        config: BudgetConfig = BudgetConfig(), cameras: list[Camera] | None = None,
+                        networks: Networks | None = None) -> Generator[None, None, QualityProbe]:
+    """:func:`probe_quality` as a generator that yields before each unit of device work (the
+    references, each candidate's frames).
 
     Raises:
         ValueError: a zero-size or non-integer frame, or no candidate whose upscaling factor
@@ -347,17 +425,25 @@ def probe_quality(renderer: Renderer, iso: float, width: int, height: int, confi
     if not candidates:
         raise ValueError(f"no candidate method's upscaling factor divides the frame size {width}x{height} "
                          f"and the probe size {size[0]}x{size[1]}")
-    references = reference_frames(renderer, iso, size, cameras, config.ao_radius, config.shading)
+    yield
+    bands = 1 if renderer.device.is_cuda else REFERENCE_BANDS_CPU
+    references = yield from reference_frames_steps(renderer, iso, size, cameras, config.ao_radius, config.shading,
+                                                   bands=bands)
     effect = ao_effect_db(references, config.shading)
     ao_matters = effect < config.ao_matters_db  # False for NaN: nothing covered, no AO to see
     if not ao_matters and any(m.ao_rays == 0 for m in candidates):
         candidates = [m for m in candidates if m.ao_rays == 0]
-    psnr = {}
+    psnr, ms = {}, {}
     for m in candidates:
+        yield
         runner = make_runner(m, renderer, iso, *size, shading=config.shading, ao_radius=config.ao_radius,
                              networks=networks)
-        psnr[m] = _nanmean([color_psnr(f, r) for f, r in zip(run_sequence(runner, cameras), references)])
-    return QualityProbe(size, psnr, effect, ao_matters, time.perf_counter() - start)
+        began = time.perf_counter()
+        frames = run_sequence(runner, cameras)
+        if not renderer.device.is_cuda:
+            ms[m] = (time.perf_counter() - began) * 1e3 / len(cameras)
+        psnr[m] = _nanmean([color_psnr(f, r) for f, r in zip(frames, references)])
+    return QualityProbe(size, psnr, effect, ao_matters, time.perf_counter() - start, ms)
 
 
 def _probe_cameras(config: BudgetConfig) -> list[Camera]:
@@ -390,34 +476,71 @@ def choose_method(renderer: Renderer, iso: float, width: int, height: int, budge
         ValueError: a zero-size or non-integer frame, a budget that is not a positive finite number,
             or no candidate whose upscaling factor divides the frame and probe sizes.
     """
+    return finish_steps(choose_method_steps(renderer, iso, width, height, budget_ms, config, cameras, networks,
+                                            quality, timings))
+
+
+def choose_method_steps(renderer: Renderer, iso: float, width: int, height: int, budget_ms: float,
+                        config: BudgetConfig = BudgetConfig(), cameras: list[Camera] | None = None,
+                        networks: Networks | None = None, quality: QualityProbe | None = None,
+                        timings: dict | None = None, slice_ms: float | None = None,
+                        warn: bool = True) -> Generator[None, None, BudgetChoice]:
+    """:func:`choose_method` as a generator that yields before each unit of device work, so that
+    where ``quality`` and ``timings`` already decide it, it returns without yielding. A timed
+    frame's ray cast runs in slices of about ``slice_ms``; ``warn=False`` leaves the warning
+    that nothing fits to the choice's ``fits``.
+    """
     _check_size_and_budget(width, height, budget_ms)
     cameras = cameras or _probe_cameras(config)
     networks = Networks() if networks is None else networks
-    quality = quality or probe_quality(renderer, iso, width, height, config, cameras, networks)
+    quality = quality or (yield from probe_quality_steps(renderer, iso, width, height, config, cameras, networks))
     start = time.perf_counter()
     psnr = quality.psnr
     rank = {m: i for i, m in enumerate(psnr)}
     order = sorted(psnr, key=lambda m: (-psnr[m] if not math.isnan(psnr[m]) else math.inf, rank[m]))
     timings = {} if timings is None else timings
-    ms: dict[FrameMethod, float] = {}
-    chosen = None
-    for m in order:
-        if m not in timings:
-            runner = make_runner(m, renderer, iso, width, height, shading=config.shading, ao_radius=config.ao_radius,
-                                 networks=networks)
-            timings[m] = _time_candidate(runner, cameras, config, budget_ms)
-        ms[m] = timings[m]
-        if ms[m] <= config.headroom * budget_ms:
-            chosen = m
+    floors: dict[FrameMethod, float] = {}  # this budget's candidates too dear to time, by their floor
+    while True:
+        untimed, chosen, considered = _pick(order, timings | floors, budget_ms, config.headroom)
+        if untimed is None and chosen in floors:  # nothing fits, the fastest known by its floor alone: time it
+            untimed = chosen
+            del floors[chosen]
+        elif untimed is not None and floor_ms(untimed, quality, width, height) > OVER_BUDGET_STOP * budget_ms:
+            floors[untimed] = floor_ms(untimed, quality, width, height)
+            continue
+        if untimed is None:
             break
-    fits = chosen is not None
-    if not fits:
-        chosen = min(ms, key=ms.get)
+        runner = make_runner(untimed, renderer, iso, width, height, shading=config.shading,
+                             ao_radius=config.ao_radius, networks=networks)
+        timings[untimed] = yield from _time_candidate_steps(runner, cameras, config, budget_ms, slice_ms)
+    ms = {m: timings[m] for m in considered if m in timings}
+    fits = ms[chosen] <= config.headroom * budget_ms
+    if not fits and warn:
         warnings.warn(f"no method fits the budget of {budget_ms:g} ms at {width}x{height}: the fastest, "
                       f"{chosen.name}, takes {ms[chosen]:.2f} ms", RuntimeWarning, stacklevel=2)
-    table = tuple(ProbeRow(m, psnr[m], ms.get(m)) for m in order)
+    table = tuple(ProbeRow(m, psnr[m], ms.get(m, floors.get(m)), m in floors) for m in order)
     return BudgetChoice(chosen, ms[chosen], psnr[chosen], fits, float(budget_ms), quality.ao_effect_db,
                         quality.ao_matters, quality.size, time.perf_counter() - start + quality.seconds, table)
+
+
+def floor_ms(method: FrameMethod, quality: QualityProbe, width: int, height: int) -> float:
+    """A method's expected least frame time at ``width`` x ``height``: :data:`FLOOR_SHARE` of its
+    probe-size frame's time scaled to the pixels (0 where the probe timed none: on GPUs)."""
+    probe_pixels = quality.size[0] * quality.size[1]
+    return FLOOR_SHARE * quality.ms.get(method, 0.0) * width * height / probe_pixels
+
+
+def _pick(order: list[FrameMethod], timings: dict, budget_ms: float, headroom: float
+          ) -> tuple[FrameMethod | None, FrameMethod | None, list[FrameMethod]]:
+    """Step 3 of the module docstring on the times known: ``(method to time next, None, [])``
+    where they do not decide it, else ``(None, the choice, the methods considered)``: the first
+    in ``order`` within ``headroom`` of the budget, or the fastest of all where none is."""
+    for i, m in enumerate(order):
+        if m not in timings:
+            return m, None, []
+        if timings[m] <= headroom * budget_ms:
+            return None, m, order[:i + 1]
+    return None, min(order, key=timings.__getitem__), list(order)
 
 
 def render_within_budget(renderer: Renderer, camera: Camera, iso: float, width: int, height: int, budget_ms: float,

@@ -1,5 +1,6 @@
 """The shared real volumes (``../shared/volumes``): where they are and their manifest; and
-the iso-value policy for every volume source.
+the iso-value policy for every volume source, with its one rule: an iso lies strictly inside
+the volume's value range (:func:`check_iso`; the CLI and the server both call it).
 
 A volume source is a file path, a procedural spec (``proc:cloud:7``) or a shared volume
 (``shared:bonsai``); :func:`isosr_render.open_volume` opens each.
@@ -58,7 +59,9 @@ def resolve_iso(source: str, volume: Volume, iso: float | None = None, normalize
     A given ``iso`` wins: in the data's units, or already normalized with ``normalized``.
     Without one: a procedural spec's own iso (:func:`isosr_render.procedural.default_iso`), a
     shared volume's Otsu threshold from the manifest, else Otsu's threshold of the voxels
-    (:meth:`Volume.otsu_iso`).
+    (:func:`otsu_inside`).
+
+    The result is not checked against the value range: :func:`check_iso` does that.
 
     Raises:
         ValueError: ``iso`` is not a finite number.
@@ -72,4 +75,42 @@ def resolve_iso(source: str, volume: Volume, iso: float | None = None, normalize
         return volume.normalized_iso(default_iso(source))
     if source.startswith(SHARED_PREFIX):
         return float(entry(source.removeprefix(SHARED_PREFIX))["otsu_iso_normalized"])
-    return volume.otsu_iso()
+    return otsu_inside(volume)
+
+
+def otsu_inside(volume: Volume) -> float:
+    """Otsu's threshold (normalized), or mid-range where it falls on an end (two-valued data:
+    OpenCV puts it at the lower value, where no surface is)."""
+    otsu = volume.otsu_iso()
+    return otsu if 0.0 < otsu < 1.0 else 0.5
+
+
+class IsoOutOfRange(VolumeError):
+    """An iso-value at or outside the volume's value range: no isosurface there."""
+
+
+def degenerate(volume: Volume, label: str | None = None) -> str | None:
+    """Why ``volume`` has no isosurface at any iso (one line), or None: all voxels equal."""
+    lo, hi = volume.value_range
+    if lo != hi:
+        return None
+    what = "all zeros" if lo == 0 else f"constant (every voxel {lo:g})"
+    return f"{label or volume.name} is {what}: it has no isosurface at any iso"
+
+
+def check_iso(volume: Volume, iso: float, label: str | None = None) -> float:
+    """``iso`` (normalized) if it lies strictly inside (0, 1), the volume's value range: a surface
+    needs voxels on both sides of it.
+
+    Raises:
+        IsoOutOfRange: naming the volume (``label``, else its name), the iso and the range in data units.
+    """
+    label = label or volume.name
+    reason = degenerate(volume, label)
+    if reason is None and 0.0 < iso < 1.0:
+        return iso
+    if reason is None:
+        lo, hi = volume.value_range
+        where = "at an end of" if iso in (0.0, 1.0) else "outside"
+        reason = f"iso {lo + iso * (hi - lo):g} is {where} {label}'s value range [{lo:g}, {hi:g}]"
+    raise IsoOutOfRange(reason)

@@ -115,6 +115,23 @@ def open_source(path: str | os.PathLike, *, level: str | None = None, max_bytes:
     return ArraySource(values, spacing, name=path.name, rescale=rescale[0] if rescale else (1.0, 0.0))
 
 
+# A volume file is read whole to check it (:func:`probe`) up to this size; a larger one when opened.
+PROBE_BYTES = 16 << 20
+# Headers whose voxels lie in other files, of a size the header does not show: checked when opened.
+_DETACHED = (".dat", ".nhdr")
+
+
+def probe(path: str | os.PathLike) -> None:
+    """Raise the `VolumeError` :func:`open_source` would for ``path``, cheaply: a DICOM series, Zarr
+    store or TIFF is opened (headers and at most one slice); another file is read whole only
+    up to ``PROBE_BYTES`` and if it holds its voxels itself (others are checked when opened)."""
+    path = Path(path)
+    whole = path.is_file() and format_of(path) is None
+    if whole and (path.name.lower().endswith(_DETACHED) or path.stat().st_size > PROBE_BYTES):
+        return
+    open_source(path)
+
+
 def _read_xfastest(path: Path, dtype: np.dtype, shape: tuple[int, int, int], label: str) -> np.ndarray:
     """Read x-fastest voxels from a plain or gzipped file, checking the size, as [x, y, z]."""
     expected = int(np.prod(shape)) * dtype.itemsize

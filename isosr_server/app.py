@@ -9,7 +9,8 @@ one, except the health probes and the viewer page):
     GET  /v2/health/live, /v2/health/ready (no token), /v2, /v2/models/isosr[-recon][/ready]  KServe v2
     GET  /metrics                        Prometheus
     GET  /, /static/...                  the browser viewer (no token)
-    GET  /openapi.json                   the API's schema; no docs pages (they would load scripts from a CDN)
+    GET  /openapi.json                   the API's schema (behind the token); no docs pages (they would load
+                                         scripts from a CDN)
 
 Client mistakes get a 4xx with ``{"error": reason, "status": code}`` or an ``error`` message and a
 WebSocket close with a code and reason, and are logged at INFO; only server faults log at ERROR.
@@ -22,9 +23,12 @@ import logging
 import time
 from contextlib import asynccontextmanager
 
-from fastapi import FastAPI
+from fastapi import Depends, FastAPI, Request
+from fastapi.responses import JSONResponse
 from starlette.datastructures import State
 
+from isosr_server import transport, ws_transport
+from isosr_server.api.deps import require_token
 from isosr_server.api.errors import add_exception_handlers
 from isosr_server.api.main import api_router
 from isosr_server.core.config import Settings
@@ -40,20 +44,27 @@ log = logging.getLogger("isosr.server")
 
 def uvicorn_options(limits: Limits) -> dict:
     """uvicorn settings the protocol needs: WebSocket messages bounded by the limit (uvicorn closes
-    bigger ones with 1009), no per-message deflate (frames are compressed already)."""
-    return {"ws_max_size": limits.max_message_bytes, "ws_per_message_deflate": False}
+    bigger ones with 1009), no per-message deflate (frames are compressed already); the WebSocket
+    protocol of :mod:`isosr_server.ws_transport` (a small limit before the first message, pings counted)."""
+    return {"ws_max_size": limits.max_message_bytes, "ws_per_message_deflate": False,
+            "ws": ws_transport.protocol_class(limits),
+            # HTTP heads, their deadline and the open connections bounded (isosr_server.transport).
+            "http": transport.protocol_class(limits), "h11_max_incomplete_event_size": limits.max_header_bytes,
+            "timeout_keep_alive": transport.KEEP_ALIVE_S}
 
 
 def create_app(settings: Settings) -> FastAPI:
     """The app, its state on ``app.state`` (settings, engine, catalog, metrics, session registries,
     ready); the lifespan loads the models and warms the device, then reports ready."""
-    app = FastAPI(title="isosr", version=str(PROTOCOL_VERSION), lifespan=lifespan, docs_url=None, redoc_url=None)
+    app = FastAPI(title="isosr", version=str(PROTOCOL_VERSION), lifespan=lifespan, docs_url=None, redoc_url=None,
+                  openapi_url=None)  # served below, behind the token
     s = app.state
     s.settings = settings
     s.engine = Engine(EngineConfig(model=settings.model, recon_model=settings.recon_model,
                                    recon_x2_model=settings.recon_x2_model, device=settings.device,
                                    precision=settings.resolved_precision, target_fps=settings.target_fps,
-                                   slice_ms=settings.slice_ms, max_volume_bytes=settings.max_volume_bytes))
+                                   slice_ms=settings.slice_ms, max_volume_bytes=settings.max_volume_bytes,
+                                   probe_cache=settings.probe_cache))
     s.catalog = VolumeCatalog(settings.volumes, settings.max_volume_bytes)
     s.metrics = ServerMetrics(s.engine.gpu_memory, s.engine.volume_memory)
     s.view_sessions = SessionCounter(settings.limits.max_sessions)
@@ -62,7 +73,13 @@ def create_app(settings: Settings) -> FastAPI:
     app.add_middleware(Guard, limits=settings.limits)
     add_exception_handlers(app)
     app.include_router(api_router)
+    app.add_api_route("/openapi.json", openapi_schema, include_in_schema=False, dependencies=[Depends(require_token)])
     return app
+
+
+async def openapi_schema(request: Request) -> JSONResponse:
+    """``GET /openapi.json``: the API's schema (behind the token when the server has one)."""
+    return JSONResponse(request.app.openapi())
 
 
 @asynccontextmanager

@@ -7,23 +7,30 @@ volume, iso and size, and its timings per volume, iso, size and method, so a re-
 changes costs no new probe; a choice is cached per (volume, iso, size, AO radius, N). The probe
 runs on the session's current view (a still camera: the view to be shown).
 
-The first choice for a scene and size runs the probe on the device thread: every candidate's
-frames at a quarter of the frame's side and the timed ones at the frame's size (``probe_seconds``
-of the choice says how long; the server logs it).
+No frame waits for a probe. Until the probe of a scene and size has run, frames use the prior:
+the cheapest candidate (no AO, one ray per pixel), the frame that reaches the viewer first. The
+probe runs in the background as generator steps (:func:`isosr_net.budget.choose_method_steps`)
+that the engine interleaves with frames on the device thread, a unit of work at a time, and
+that shutdown drops between two units. What a probe learns is kept per device, volume, iso and
+size in ``probe_cache`` (a JSON file), so that a restarted server chooses without probing.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
+import math
 import os
-import warnings
+from collections.abc import Generator
+from pathlib import Path
 
-from isosr_net.budget import BudgetChoice, BudgetConfig, QualityProbe, choose_method, default_candidates, \
-    probe_quality
+from isosr_net.budget import BudgetChoice, BudgetConfig, QualityProbe, choose_method_steps, default_candidates, \
+    probe_quality_steps
 from isosr_net.frame_methods import FrameMethod, FrameRunner, Networks
 from isosr_net.reconstructor import Reconstructor, recon_limits
 from isosr_render import Camera, Renderer
+from isosr_render.atomic import atomic_write
 
 log = logging.getLogger("isosr.server")
 # The probe's frames (a still camera needs few), timed by the wall clock: the device thread's
@@ -40,6 +47,52 @@ def served_factor(runner: type[FrameRunner], factor: int) -> int:
     return factor if runner.low_res else 1
 
 
+def prior_method(candidates: tuple[FrameMethod, ...]) -> FrameMethod:
+    """The method of the frames before a probe: the cheapest candidate at full resolution (fewest
+    rays, no network), where there is one: a sharp first look, if not the fastest one."""
+    return min(candidates, key=lambda m: (m.ao_rays * m.spp, m.spp, m.learned, m.factor))
+
+
+class ProbeCache:
+    """What probes learned (quality scores and frame times by method name), per device, volume,
+    iso and size, in a JSON file read at start and rewritten whole after each probe; ``None``:
+    kept in memory only. A file that cannot be read is ignored (and overwritten), with a notice."""
+
+    def __init__(self, path: Path | None, device: str):
+        self.path, self.device = path, device
+        self.entries: dict[str, dict] = {}
+        if path is not None and path.is_file():
+            try:
+                self.entries = json.loads(path.read_text())
+            except (OSError, ValueError) as e:
+                log.warning("the auto mode's probe cache %s cannot be read (%s): probing anew", path, e)
+
+    def _key(self, scene_key: tuple) -> str:
+        return json.dumps([self.device, *scene_key])
+
+    def get(self, scene_key: tuple, candidates: tuple[FrameMethod, ...]) -> tuple[QualityProbe, dict] | None:
+        """The probe's quality and timings for this scene, by the candidates of these names."""
+        entry = self.entries.get(self._key(scene_key))
+        by_name = {m.name: m for m in candidates}
+        if entry is None or not set(entry["psnr"]) <= set(by_name) or "probe_ms" not in entry:
+            return None
+        psnr = {by_name[n]: (math.nan if v is None else v) for n, v in entry["psnr"].items()}
+        probe_ms = {by_name[n]: ms for n, ms in entry["probe_ms"].items()}
+        quality = QualityProbe(tuple(entry["size"]), psnr, entry["ao_effect_db"], entry["ao_matters"], 0.0, probe_ms)
+        return quality, {by_name[n]: ms for n, ms in entry["timings"].items() if n in by_name}
+
+    def put(self, scene_key: tuple, quality: QualityProbe, timings: dict) -> None:
+        self.entries[self._key(scene_key)] = {
+            "size": list(quality.size), "ao_effect_db": quality.ao_effect_db, "ao_matters": quality.ao_matters,
+            "psnr": {m.name: (None if math.isnan(v) else v) for m, v in quality.psnr.items()},
+            "probe_ms": {m.name: ms for m, ms in quality.ms.items()},
+            "timings": {m.name: ms for m, ms in timings.items()}}
+        if self.path is not None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            text = json.dumps(self.entries, indent=1).encode()
+            atomic_write(self.path, lambda f: f.write(text))
+
+
 class AutoPolicy:
     """Chooses and caches the auto mode's methods for one server.
 
@@ -47,19 +100,29 @@ class AutoPolicy:
         candidates: the methods to choose from (the server's models and precision).
         target_fps: frames a second each session should get.
         networks: the server's loaded networks (the probe's runners use them).
+        cache: where probes' results are kept (default: in memory).
+        slice_ms: device time a unit of the probe's timed frames aims at (None: whole frames).
+
+    Attributes:
+        pending: probes to run (generators of device-thread steps), taken by the engine.
     """
 
-    def __init__(self, candidates: tuple[FrameMethod, ...], target_fps: float, networks: Networks):
+    def __init__(self, candidates: tuple[FrameMethod, ...], target_fps: float, networks: Networks,
+                 cache: ProbeCache | None = None, slice_ms: float | None = None):
         if not target_fps > 0:
             raise ValueError(f"target_fps must be positive, got {target_fps!r}")
         self.candidates, self.target_fps, self.networks = candidates, float(target_fps), networks
+        self.cache, self.slice_ms = cache or ProbeCache(None, ""), slice_ms
+        self.pending: list[Generator[None, None, BudgetChoice]] = []
         self._quality: dict[tuple, QualityProbe] = {}
         self._timings: dict[tuple, dict] = {}
         self._chosen: dict[tuple, BudgetChoice] = {}
+        self._probing: set[tuple] = set()
 
     @classmethod
     def for_server(cls, device: str, precision: str, factor: int, models: dict, target_fps: float,
-                   networks: Networks, x2_model: str | os.PathLike | None = None) -> "AutoPolicy":
+                   networks: Networks, x2_model: str | os.PathLike | None = None, cache: ProbeCache | None = None,
+                   slice_ms: float | None = None) -> "AutoPolicy":
         """The default candidates with the server's precision, upscale factor and model folders
         (``models``: network class -> (folder or None, name), as in the views' context), and the
         reconstruction at twice the sides by ``x2_model`` (None: none)."""
@@ -72,7 +135,7 @@ class AutoPolicy:
                 m = dataclasses.replace(m, model=None if folder is None else str(folder), model_name=name,
                                         factor=served_factor(m.runner, factor))
             candidates.append(m)
-        return cls(tuple(candidates), target_fps, networks)
+        return cls(tuple(candidates), target_fps, networks, cache, slice_ms)
 
     def budget_ms(self, sessions: int) -> float:
         """A frame's share of device time with ``sessions`` sessions served."""
@@ -80,20 +143,55 @@ class AutoPolicy:
 
     def choose(self, renderer: Renderer, scene: str, iso: float, width: int, height: int, camera: Camera,
                sessions: int, ao_radius: float) -> BudgetChoice:
-        """The method for this scene, size and session count (device thread; probes on first use)."""
+        """The method for this scene, size and session count, at once (device thread): the probe's
+        choice where what probes learned decides it, else the prior while the probe waits in
+        :attr:`pending`."""
         scene_key = (scene, round(float(iso), 6), width, height, float(ao_radius))
         key = scene_key + (max(1, sessions),)
         if key in self._chosen:
             return self._chosen[key]
+        if key not in self._probing:
+            probe = self._probe(renderer, scene_key, key, camera, self.budget_ms(sessions))
+            try:
+                next(probe)
+            except StopIteration as decided:  # earlier probes' results decide it: no device work
+                return decided.value
+            self._probing.add(key)
+            self.pending.append(probe)
+        return self.prior(self.budget_ms(sessions))
+
+    def prior(self, budget_ms: float) -> BudgetChoice:
+        """The choice before a probe: :func:`prior_method`, nothing measured."""
+        return BudgetChoice(prior_method(self.candidates), math.nan, math.nan, False, budget_ms, math.nan, False,
+                            (0, 0), 0.0, ())
+
+    def _probe(self, renderer: Renderer, scene_key: tuple, key: tuple, camera: Camera,
+               budget_ms: float) -> Generator[None, None, BudgetChoice]:
+        """The choice for ``key`` as device-thread steps (a failed probe keeps the prior, logged)."""
+        _, iso, width, height, ao_radius = scene_key
         config = BudgetConfig(candidates=self.candidates, ao_radius=ao_radius, **PROBE)
         cameras = [camera] * config.probe_frames
-        if scene_key not in self._quality:
-            self._quality[scene_key] = probe_quality(renderer, iso, width, height, config, cameras, self.networks)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # "nothing fits" is in the choice and the log
-            choice = choose_method(renderer, iso, width, height, self.budget_ms(sessions), config, cameras,
-                                   self.networks, quality=self._quality[scene_key],
-                                   timings=self._timings.setdefault(scene_key, {}))
-        log.info("auto mode, %s at %dx%d, %d session(s): %s", scene, width, height, sessions, choice.summary())
+        if scene_key not in self._quality and (cached := self.cache.get(scene_key, self.candidates)):
+            self._quality[scene_key], self._timings[scene_key] = cached
+        timings = self._timings.setdefault(scene_key, {})
+        learned = (scene_key not in self._quality, len(timings))
+        try:
+            if scene_key not in self._quality:
+                self._quality[scene_key] = yield from probe_quality_steps(renderer, iso, width, height, config,
+                                                                          cameras, self.networks)
+            choice = yield from choose_method_steps(renderer, iso, width, height, budget_ms, config, cameras,
+                                                    self.networks, self._quality[scene_key], timings,
+                                                    self.slice_ms, warn=False)
+        except ValueError as e:  # the scene or size admits no candidate: say why, keep the prior
+            log.warning("auto mode, %s at %dx%d: no probe (%s); frames stay %s", scene_key[0], width, height, e,
+                        prior_method(self.candidates).name)
+            choice = self.prior(budget_ms)
+        else:
+            log.info("auto mode, %s at %dx%d, budget %.3g ms: %s", scene_key[0], width, height, budget_ms,
+                     choice.summary())
+            if learned != (False, len(timings)):  # something was measured: keep it
+                self.cache.put(scene_key, self._quality[scene_key], timings)
+        finally:
+            self._probing.discard(key)
         self._chosen[key] = choice
         return choice

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+from contextlib import suppress
 import threading
 import time
 from collections import OrderedDict
@@ -39,7 +40,7 @@ from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
 from isosr_render import FrameBuffers, Renderer, ShadingParams, Volume, orbit, parse_procedural, shade
 from isosr_render.brick_pool import MemoryStats
 from isosr_render.images import quantize
-from isosr_server.auto import AutoPolicy
+from isosr_server.auto import AutoPolicy, ProbeCache
 from isosr_server.codecs.buffers import pack_view_buffers
 from isosr_server.codecs.buffers_device import view_buffer_codes
 from isosr_server.codecs import video
@@ -61,6 +62,9 @@ WARM_RECON_SIZES = ((720, 1280), (1080, 1920))
 # Images and buffers keep one thread: on 2 cores a second one cost a fast session beside a slow one
 # 35% of its frames/s instead of 14% (tests/test_client.py), competing with the device thread.
 VIDEO_ENCODER_THREADS = max(1, (os.cpu_count() or 1) // 2)
+# A unit of the auto mode's background probe waits for a moment without view frames in the making,
+# at most this long: frames first, and the probe still ends under a steady load.
+PROBE_WAIT_S = 0.5
 
 
 def serving_network(cls: type[RecurrentNetwork], model: Path, device: str, precision: str) -> RecurrentNetwork:
@@ -90,6 +94,7 @@ class EngineConfig:
         slice_ms: the device time a view frame's slice aims at (a heavy frame runs in slices that
             other sessions' frames interleave with); None: on CUDA 8 ms, elsewhere 100 ms.
         max_volume_bytes: the renderers' ``max_device_bytes`` (dense below, sparse above).
+        probe_cache: the JSON file where the auto mode keeps what its probes learn (None: memory only).
     """
 
     model: Path = DEFAULT_MODEL
@@ -100,6 +105,7 @@ class EngineConfig:
     target_fps: float = 30.0
     slice_ms: float | None = None
     max_volume_bytes: int | None = None
+    probe_cache: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -137,6 +143,9 @@ class Engine:
                         Reconstructor: (config.recon_model, MODEL_NAMES[Reconstructor])}
         self.context: ViewContext | None = None
         self.auto: AutoPolicy | None = None
+        self._probes: set[asyncio.Task] = set()  # the auto mode's probes under way (background device work)
+        self._framing = 0  # view frames in the making
+        self._idle: asyncio.Event | None = None  # set while none is (made in the event loop)
         self._thread: threading.Thread | None = None
 
     async def call(self, fn, *args):
@@ -172,7 +181,8 @@ class Engine:
             x2.warm([(h // 2, w // 2) for h, w in WARM_RECON_SIZES])
         self.context = ViewContext(factor, self.precision, self._models)
         self.auto = AutoPolicy.for_server(str(self.device), self.precision, factor, self._models,
-                                          self.config.target_fps, self.networks, self.config.recon_x2_model)
+                                          self.config.target_fps, self.networks, self.config.recon_x2_model,
+                                          ProbeCache(self.config.probe_cache, self.device_label()), self.slice_ms)
         renderer = Renderer(parse_procedural("proc:sphere@16"), str(self.device))
         frames = self.new_session_frames("proc:sphere@16")
         for mode in ("full", "network", "reconstruct"):  # compiles shading with and without AO on GPUs
@@ -224,7 +234,37 @@ class Engine:
         """Per cached renderer's volume: where its voxels are and what paging cost (read per scrape)."""
         return {name: renderer.memory() for name, renderer in list(self._renderers.items())}
 
+    def device_label(self) -> str:
+        """The device's kind, as probe results are kept by (a GPU's name, or the CPU's core count)."""
+        if self.device.type == "cuda":
+            return torch.cuda.get_device_name(self.device)
+        return f"cpu, {os.cpu_count()} cores"
+
+    def start_probes(self) -> None:
+        """Run the auto mode's waiting probes as background work on the device thread, a unit at a
+        time, in turn with frames (event loop)."""
+        while self.auto is not None and self.auto.pending:
+            task = asyncio.get_running_loop().create_task(self._run_probe(self.auto.pending.pop()))
+            self._probes.add(task)
+            task.add_done_callback(self._probes.discard)
+
+    async def _run_probe(self, steps: Generator) -> None:
+        while True:
+            with suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(self._idle_event().wait(), PROBE_WAIT_S)
+            if (await self.call(_advance, steps))[0]:
+                return
+
+    def _idle_event(self) -> asyncio.Event:
+        if self._idle is None:
+            self._idle = asyncio.Event()
+            self._idle.set()
+        return self._idle
+
     def shutdown(self) -> None:
+        """Stop: probes between two of their units, queued work dropped, the slice in progress ended."""
+        for task in list(self._probes):
+            task.cancel()
         self._executor.shutdown(wait=True, cancel_futures=True)
         self._encoder.shutdown(wait=True, cancel_futures=True)
         self._video.shutdown(wait=True, cancel_futures=True)
@@ -253,11 +293,19 @@ class Engine:
         on with the next frame, this session's included (:func:`isosr_server.sessions.run_frames`)."""
         start = time.perf_counter()
         steps = frames.steps(renderer, job, self.slice_ms)
-        while True:
-            done, made = await self.call(_advance, steps)
-            if done:
-                break
-        codes = await self.call(self.codes_sync, made)
+        self._framing += 1
+        self._idle_event().clear()
+        try:
+            while True:
+                done, made = await self.call(_advance, steps)
+                if done:
+                    break
+            codes = await self.call(self.codes_sync, made)
+        finally:
+            self._framing -= 1
+            if not self._framing:
+                self._idle_event().set()
+        self.start_probes()
         pool = self._video if video_frame else self._encoder
         memory = VolumeMemory(**renderer.memory().to_json())
 

@@ -3,7 +3,8 @@ them. Pure ASGI: it never buffers a body. Every bound is a `Limits` field.
 
 Connections
     HTTP requests and WebSockets in progress, in total (``max_connections``) and per client
-    address (``max_connections_per_client``). Over either bound an HTTP request gets 503 with
+    address (``max_connections_per_client``); the health probes (`HEALTH_PATHS`) are not
+    counted and always answered. Over either bound an HTTP request gets 503 with
     ``{"error": reason, "status": 503}``, ``Retry-After`` and ``Connection: close``; a WebSocket
     is accepted and closed at once with CLOSE_TOO_MANY and the reason. (A ``websocket.close``
     before the accept becomes an HTTP 403 handshake denial in uvicorn, which a browser reports as
@@ -27,8 +28,11 @@ WebSockets
     connection; else the guard closes it with CLOSE_IDLE and the app reads
     ``websocket.disconnect``. A WebSocket past its first message is a session: one client
     address holds at most ``max_sessions_per_client`` (view sessions and upscale streams alike);
-    more are closed with CLOSE_TOO_MANY. After the guard closed a WebSocket the app's sends raise
-    OSError, as for a client gone.
+    more are closed with CLOSE_TOO_MANY. The app closes a connection whose first message is not
+    valid at once (so it counts no longer than that takes) and takes its own slots (the server's
+    ``max_sessions``) only after a valid one; until then the WebSocket protocol
+    (:mod:`isosr_server.ws_transport`) bounds its frames by ``max_first_message_bytes``. After the
+    guard closed a WebSocket the app's sends raise OSError, as for a client gone.
 
 Logging: client mistakes (a late or oversized body, a client gone mid-body, a busy server) are
 INFO lines, never ERROR. The client address is the connection's peer (``scope["client"]``):
@@ -56,6 +60,10 @@ DRAIN_FACTOR = 2
 # The bodies one client address has in flight stay within this many times max_message_bytes.
 CLIENT_BODY_FACTOR = 2
 HTTP_DISCONNECT: Message = {"type": "http.disconnect"}
+# Bodiless GETs that answer from memory: never turned away by the connection bounds, so that an
+# orchestrator sees the process alive and ready while clients fill the server (the transport's
+# open-connection cap and head limits still bound them).
+HEALTH_PATHS = frozenset({"/v2/health/live", "/v2/health/ready"})
 
 
 @dataclass
@@ -84,7 +92,8 @@ class Guard:
         self.clients: dict[str, ClientLoad] = {}
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] not in ("http", "websocket"):
+        if scope["type"] not in ("http", "websocket") or (scope["type"] == "http" and scope["path"] in HEALTH_PATHS
+                                                          and scope["method"] == "GET"):
             await self.app(scope, receive, send)
             return
         client = client_address(scope)

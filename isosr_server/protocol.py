@@ -186,6 +186,16 @@ class Limits(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         max_upscale_bytes: most memory the upscale sessions may hold together.
         max_bitrate_kbps: the highest video bitrate a view session may ask for (``bitrate_kbps``),
             and the ceiling of the server's own choice.
+        max_first_message_bytes: largest WebSocket frame or message of a view session before its
+            ``open`` (:mod:`isosr_server.ws_transport`).
+        ack_timeout_s: a view session whose oldest unacknowledged frame went out this long ago is
+            closed.
+        max_header_bytes, max_header_count: largest HTTP request head in bytes, and most header
+            fields (more: 431 and a close; :mod:`isosr_server.transport`).
+        header_timeout_s: a request's head must be complete within this of its connection or of
+            the previous response.
+        max_open_connections: most open connections (fewer where the descriptor limit leaves less
+            room); those that sent no complete request yet are closed first to make room.
     """
 
     max_message_bytes: int = 32 * 2**20
@@ -204,6 +214,12 @@ class Limits(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     max_connections_per_client: int = 32
     max_upscale_bytes: int = 2 * 2**30
     max_bitrate_kbps: int = 100_000
+    max_first_message_bytes: int = 64 * 2**10
+    ack_timeout_s: float = 30.0
+    max_header_bytes: int = 64 * 2**10
+    max_header_count: int = 100
+    header_timeout_s: float = 10.0
+    max_open_connections: int = 4096
 
     def __post_init__(self):
         for f in msgspec.structs.fields(self):
@@ -833,5 +849,7 @@ def parse(data: bytes, limits: Limits, expected: Mapping[str, type[Message]] | t
         raise ProtocolError(reason[:200]) from None
     except (msgspec.DecodeError, ValueError) as e:  # not msgpack, truncated, trailing bytes, extension types
         raise ProtocolError(f"malformed msgpack: {e}"[:200]) from None
+    except RecursionError:  # arrays / maps nested past msgspec's depth bound: the client's mistake, not a fault
+        raise ProtocolError("malformed msgpack: nested too deeply") from None
     msg.check(limits)
     return msg

@@ -18,8 +18,10 @@ waits on the session's event (set by every update and acknowledgment; no polling
 coalescing meanwhile. So a slow client gets frames at the rate it takes them, each of the
 newest state, and a stalled one costs no device time or memory after that many frames; a
 session that waits on credit for ``idle_timeout_s`` is closed with CLOSE_IDLE, as one that
-sends nothing for that long is. Sessions waiting on credit queue no device work, so the
-device thread (FIFO, one job per session at most) serves the ready sessions in turn.
+sends nothing for that long is; and a frame not acknowledged within ``ack_timeout_s`` of its
+sending ends the session (`watch_acks`), so no party holds session slots by never acknowledging.
+Sessions waiting on credit queue no device work, so the device thread (FIFO, one job per
+session at most) serves the ready sessions in turn.
 
 Video. A session in a video encoding codes its frames as one stream (:mod:`isosr_server.video`):
 its bitrate follows the client's cap or the link's throughput estimated from the
@@ -48,6 +50,7 @@ from isosr_server.protocol import (CLOSE_IDLE, CLOSE_TOO_MANY, VIDEO_ENCODINGS, 
                                    SettingsMsg, ViewSettings, VolumeMemory)
 from isosr_server.video import CodePlan, RateControl, fallback_notice
 from isosr_server.views import FrameJob, ViewContext
+from isosr_server.volumes import session_iso
 
 DEFAULT_CAMERA = CameraMsg(yaw=30.0, pitch=20.0, distance=1.8)
 
@@ -143,6 +146,7 @@ class ViewSession:
         self.next_seq = 0
         # Flow control: the newest frame whose sending began, and the newest the client acknowledged.
         self.sent_seq = self.received_seq = -1
+        self.unacked_sent: deque[tuple[int, float]] = deque()  # (seq, when its sending began), oldest first
 
     def check_settings(self, settings: ViewSettings) -> None:
         """`ProtocolError` for settings no frame can be made of (:func:`isosr_server.views.check`)."""
@@ -178,7 +182,7 @@ class ViewSession:
             except ValueError as e:
                 raise ProtocolError(f"camera: {e}") from None
         elif isinstance(msg, IsoMsg):
-            s = replace(s, iso=msg.value if msg.normalized else self.volume.normalized_iso(msg.value))
+            s = replace(s, iso=session_iso(self.volume, self.volume_name, msg.value, msg.normalized, "iso.value"))
         elif isinstance(msg, SettingsMsg):
             settings = s.settings.updated(msg.settings, self.limits)
             self.check_settings(settings)
@@ -208,6 +212,8 @@ class ViewSession:
         if frame > self.sent_seq:
             sent = "no frame was sent yet" if self.sent_seq < 0 else f"the newest sent is {self.sent_seq}"
             raise ProtocolError(f"received: frame {frame} was never sent ({sent})")
+        while self.unacked_sent and self.unacked_sent[0][0] <= frame:
+            self.unacked_sent.popleft()
         if frame > self.received_seq:
             self.received_seq = frame
             self.rate.acknowledged(frame, time.monotonic())
@@ -331,8 +337,31 @@ async def _send_frame(session: ViewSession, job: ViewJob, encode: Callable[[], A
                    device=None if made.memory == session.sent_memory else made.memory, **image)
     session.sent_memory = made.memory
     session.sent_seq = f.seq  # before sending: the client may acknowledge it before send returns
+    session.unacked_sent.append((f.seq, time.monotonic()))
     session.rate.sent(f.seq, msg.nbytes, time.monotonic())
     await send(msg)
+
+
+async def watch_acks(session: ViewSession) -> None:
+    """Runs until cancelled, beside the frame loop: a frame the client has not acknowledged within
+    ``ack_timeout_s`` of its sending ends the session, whatever else the client sends (a party that
+    never acknowledges holds no session slot for longer).
+
+    Raises:
+        ProtocolError: (CLOSE_IDLE) the oldest unacknowledged frame went out ``ack_timeout_s`` ago.
+    """
+    timeout = session.limits.ack_timeout_s
+    while True:
+        if not session.unacked_sent:
+            await asyncio.sleep(timeout)  # a frame sent meanwhile is due after this wakes
+            continue
+        seq, sent_at = session.unacked_sent[0]
+        left = sent_at + timeout - time.monotonic()
+        if left <= 0:
+            raise ProtocolError(f"frame {seq} was not acknowledged (received) within {timeout:g} s "
+                                f"(ack_timeout_s)", CLOSE_IDLE, 408)
+        await asyncio.sleep(left)
+
 
 def frame_bytes(made: EncodedFrame) -> int:
     """Payload bytes of a frame: the image, or the coded buffers' data."""

@@ -14,23 +14,33 @@ setting, the finest (on CUDA the renderer then goes sparse above half the free m
 too big for dense could render sparse too, but each iso change would page its bricks in and an
 iso touching many bricks would not fit; the finest level that fits keeps every iso working.
 Listings show every level and the one served.
-Routes load volumes with :func:`load_volume`, which answers bad names with 400 and unknown ones with 404.
+
+Bad folders and data. A volume that cannot be opened stays listed, with the reason as ``error``
+(found by a cheap check when first listed, :func:`isosr_render.volume_io.probe`, or by a failed
+load); opening it answers 422 / CLOSE_POLICY with that reason. A loaded constant volume lists why
+it has no isosurface. Entries of the folder (symlinks) or manifest that resolve outside it are
+skipped with a warning when the catalog is made. Routes load volumes with :func:`load_volume`, which
+answers bad names with 400, unknown ones with 404; a view's iso goes through :func:`session_iso`.
 """
 
 from __future__ import annotations
 
 import asyncio
+import logging
+import os
 import threading
 from dataclasses import dataclass
 from pathlib import Path
 
 from isosr_render import Volume, VolumeError, open_volume
-from isosr_render.catalog import manifest
+from isosr_render.catalog import IsoOutOfRange, check_iso, degenerate, manifest, otsu_inside
 from isosr_render.formats import format_of
 from isosr_render.formats.zarr import ZarrSource, finest_within, open_zarr
 from isosr_render.procedural import default_iso
-from isosr_render.volume_io import volume_name
-from isosr_server.protocol import CLOSE_NOT_FOUND, VOLUME_NAME, ProtocolError
+from isosr_render.volume_io import probe, volume_name
+from isosr_server.protocol import CLOSE_NOT_FOUND, CLOSE_POLICY, VOLUME_NAME, ProtocolError
+
+log = logging.getLogger("isosr.server")
 
 MAX_PROCEDURAL_SIZE = 128
 PROCEDURAL_OFFER = ("proc:sphere", "proc:torus", "proc:cloud:0", "proc:metaballs:0")
@@ -63,6 +73,8 @@ class VolumeInfo:
         level: a multiscale volume's level served (module docstring); None for others.
         levels: a multiscale volume's levels, finest first: ``level`` (dataset path), ``shape``
             and ``bytes`` (voxels in their stored type).
+        error: why no view can open it (unreadable, or constant); None for a good volume. In
+            the JSON only when set.
     """
 
     name: str
@@ -72,11 +84,13 @@ class VolumeInfo:
     histogram: list[int] | None = None
     level: str | None = None
     levels: list[dict] | None = None
+    error: str | None = None
 
     def to_json(self) -> dict:
-        return {"name": self.name, "shape": self.shape, "value_range": self.value_range, "iso": self.iso,
+        info = {"name": self.name, "shape": self.shape, "value_range": self.value_range, "iso": self.iso,
                 "histogram": self.histogram, "histogram_bins": HISTOGRAM_BINS, "level": self.level,
                 "levels": self.levels}
+        return info if self.error is None else info | {"error": self.error}
 
 
 class VolumeCatalog:
@@ -95,23 +109,56 @@ class VolumeCatalog:
         self._levels: dict[str, tuple[ZarrSource, ...]] = {}
         self._files: dict[str, Path] = {}
         self._manifest: dict[str, dict] = {}
+        self._errors: dict[str, str] = {}  # name -> why it cannot be opened
+        self._probed: set[str] = set()
         if self.root is not None:
             if not self.root.is_dir():
                 raise FileNotFoundError(f"volumes folder {self.root} does not exist")
             if (self.root / "volumes.json").is_file():
                 for e in manifest(self.root):
-                    self._manifest[e["name"]] = e
-                    self._files[e["name"]] = self.root / e["file"]
+                    if self._inside(self.root / e["file"], f"volumes.json entry {e['name']!r}"):
+                        self._manifest[e["name"]] = e
+                        self._files[e["name"]] = self.root / e["file"]
             else:
                 for path in sorted(self.root.iterdir()):
+                    if path.name.startswith(".") or not self._inside(path):
+                        continue
                     name = volume_name(path)
                     if name:
                         self._files.setdefault(name, path)
         self._cache: dict[str, tuple[Volume, VolumeInfo]] = {}
         self._lock = threading.Lock()
 
+    def _inside(self, path: Path, what: str | None = None) -> bool:
+        """Whether ``path`` resolves inside the folder; a warning (once: at start) where it does not."""
+        try:
+            inside = self.root in path.resolve().parents
+        except (OSError, RuntimeError):  # a symlink loop
+            inside = False
+        if not inside:
+            log.warning("volumes folder: skipped %s: it leads outside %s", what or path.name, self.root)
+        return inside
+
     def names(self) -> list[str]:
         return list(self._files) + list(PROCEDURAL_OFFER)
+
+    def _probe(self, name: str, source: str) -> None:
+        """Check a file or folder once, cheaply (`probe`); remember why it cannot be opened."""
+        if name in self._probed or source.startswith("proc:"):
+            return
+        self._probed.add(name)
+        try:
+            probe(source)
+        except (VolumeError, OSError) as e:
+            self._remember(name, e)
+
+    def _remember(self, name: str, e: Exception) -> str:
+        """Record why ``name`` cannot be opened: one line, paths relative to the folder."""
+        reason = " ".join(str(e).split())
+        if self.root is not None:
+            reason = reason.replace(str(self.root) + os.sep, "")
+        self._errors[name] = reason
+        return reason
 
     def _source(self, name: str) -> str:
         """The file path or procedural spec behind a name; `UnknownVolume` or `VolumeTooBig` otherwise."""
@@ -136,22 +183,31 @@ class VolumeCatalog:
 
     def info(self, name: str) -> VolumeInfo:
         """Metadata without loading: from the manifest, the cache, the procedural spec, or a
-        multiscale store's metadata (its levels; a store that cannot be opened lists none here,
-        loading it reports why)."""
+        multiscale store's metadata (its levels); ``error`` where the file or folder cannot be
+        opened (checked once, headers only: blocking)."""
         if name in self._cache:
             return self._cache[name][1]
-        source = self._source(name)
+        try:
+            source = self._source(name)
+        except UnknownVolume as e:
+            if name not in self._files:
+                raise
+            return VolumeInfo(name, None, None, None, error=str(e))  # retargeted outside since the start
+        self._probe(name, source)
         try:
             level, levels = self._level(name, source)
-        except VolumeError:
+        except VolumeError as err:
             level, levels = None, None
+            self._remember(name, err)
         e = self._manifest.get(name)
+        error = self._errors.get(name)
         if e is None:
             shape = None if level is None else level.shape
-            return VolumeInfo(name, shape, None, self.suggested_iso(name, None), None, *_level_json(level, levels))
+            return VolumeInfo(name, shape, None, self.suggested_iso(name, None), None, *_level_json(level, levels),
+                              error)
         value_range = tuple(e["value_range"])
         return VolumeInfo(name, tuple(e["shape_xyz"]), value_range, self.suggested_iso(name, value_range), None,
-                          *_level_json(level, levels))
+                          *_level_json(level, levels), error)
 
     def _level(self, name: str, source: str) -> tuple[ZarrSource | None, tuple[ZarrSource, ...]]:
         """The level served of a multiscale store (module docstring) and all its levels; (None, ())
@@ -168,29 +224,39 @@ class VolumeCatalog:
     def suggested_iso(self, name: str, value_range: tuple[float, float] | None,
                       volume: Volume | None = None) -> float | None:
         """The suggested iso-value in data units, the same before and after loading: a procedural
-        spec's own; the manifest's Otsu threshold; else, once loaded, Otsu's threshold of the voxels."""
+        spec's own; the manifest's Otsu threshold; else, once loaded, Otsu's threshold of the voxels
+        (:func:`isosr_render.catalog.otsu_inside`)."""
         if name.startswith("proc:"):
             return default_iso(name)
         normalized = self._manifest.get(name, {}).get("otsu_iso_normalized")
         if normalized is None and volume is not None:
-            normalized = volume.otsu_iso()
+            normalized = otsu_inside(volume)
         if normalized is None:
             return None
         lo, hi = value_range
         return lo + normalized * (hi - lo)
 
     def load(self, name: str) -> tuple[Volume, VolumeInfo]:
-        """The volume and its full info (histogram included); loads and caches it (blocking)."""
+        """The volume and its full info (histogram included); loads and caches it (blocking).
+
+        Raises:
+            VolumeError: it cannot be opened; the reason is also listed from now on.
+        """
         source = self._source(name)
         with self._lock:
             if name in self._cache:
                 self._cache[name] = self._cache.pop(name)  # most recent last
                 return self._cache[name]
-            level, levels = self._level(name, source)
-            volume = open_volume(source) if level is None else Volume.from_source(level)
+            try:
+                level, levels = self._level(name, source)
+                volume = open_volume(source) if level is None else Volume.from_source(level)
+            except (VolumeError, OSError) as e:
+                raise VolumeError(self._remember(name, e)) from None
+            self._errors.pop(name, None)
             counts = volume.histogram(HISTOGRAM_BINS)
             iso = self.suggested_iso(name, volume.value_range, volume)
-            info = VolumeInfo(name, volume.shape, volume.value_range, iso, counts.tolist(), *_level_json(level, levels))
+            info = VolumeInfo(name, volume.shape, volume.value_range, iso, counts.tolist(), *_level_json(level, levels),
+                              degenerate(volume, name))
             self._cache[name] = (volume, info)
             while len(self._cache) > CACHE:
                 self._cache.pop(next(iter(self._cache)))
@@ -206,7 +272,8 @@ def _level_json(level: ZarrSource | None, levels: tuple[ZarrSource, ...]) -> tup
 
 async def load_volume(catalog: VolumeCatalog, name: str) -> tuple[Volume, VolumeInfo]:
     """The named volume and its info, loaded off the event loop; `ProtocolError` 400 for a name
-    that is no name (a path) or a procedural volume over the bound, 404 (CLOSE_NOT_FOUND) for an unknown one."""
+    that is no name (a path) or a procedural volume over the bound, 404 (CLOSE_NOT_FOUND) for an
+    unknown one, 422 (CLOSE_POLICY) with the reason for one that cannot be opened."""
     if not VOLUME_NAME.match(name):
         raise ProtocolError(f"bad volume name {name!r}: a name from GET /v1/volumes, never a path"[:200])
     try:
@@ -215,3 +282,14 @@ async def load_volume(catalog: VolumeCatalog, name: str) -> tuple[Volume, Volume
         raise ProtocolError(str(e)) from None
     except UnknownVolume as e:
         raise ProtocolError(str(e), CLOSE_NOT_FOUND, 404) from None
+    except VolumeError as e:
+        raise ProtocolError(f"volume {name!r} cannot be opened: {e}", CLOSE_POLICY, 422) from None
+
+
+def session_iso(volume: Volume, name: str, iso: float, normalized: bool, field: str) -> float:
+    """A view session's iso, normalized, if :func:`isosr_render.catalog.check_iso` takes it;
+    else `ProtocolError` (CLOSE_POLICY, 422) naming ``field`` and the value range."""
+    try:
+        return check_iso(volume, iso if normalized else volume.normalized_iso(iso), name)
+    except IsoOutOfRange as e:
+        raise ProtocolError(f"{field}: {e}", CLOSE_POLICY, 422) from None

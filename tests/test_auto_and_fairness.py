@@ -4,17 +4,18 @@ on loopback, plus the auto policy's caching on its own."""
 
 from __future__ import annotations
 
+import json
 import time
 
 import pytest
 
 from isosr_net.budget import BudgetChoice
-from isosr_net.frame_methods import Networks, make_runner, run_sequence
+from isosr_net.frame_methods import Networks, finish_steps, make_runner, run_sequence
 from isosr_net.reconstructor import RECON_X2_MODEL
 from isosr_render import orbit
 from isosr_render.images import to_uint8
 from isosr_server import protocol as P
-from isosr_server.auto import AutoPolicy
+from isosr_server.auto import AutoPolicy, ProbeCache, prior_method
 from server_fixtures import (DEVICE, VOLUME, H, W, assert_image, cam, frame, lib, running_server,  # noqa: F401
                              send, server_settings, session)
 
@@ -66,27 +67,72 @@ def test_auto_offers_the_x2_reconstruction_and_serves_its_frames_at_the_full_siz
             assert_image(f.image, to_uint8(expected[i].color))
 
 
-def test_auto_policy_caches_its_probe_and_rechooses_by_the_session_count(lib):
+def test_auto_policy_chooses_at_once_and_probes_in_the_background(lib, tmp_path):
+    """The first choice of a scene and size is the prior, with no device work; the probe waits as
+    steps for the engine; its choice is cached, a new session count reuses its quality and times,
+    and a policy started later on the same cache file chooses without probing."""
     renderer, iso = lib.renderer, lib.iso
-    policy = AutoPolicy.for_server(DEVICE, "fp32", 4, {}, 30.0, Networks())
+    cache = tmp_path / "probes.json"
+    policy = AutoPolicy.for_server(DEVICE, "fp32", 4, {}, 30.0, Networks(), cache=ProbeCache(cache, "this CPU"))
     assert policy.budget_ms(1) == pytest.approx(1000 / 30) and policy.budget_ms(4) == pytest.approx(1000 / 120)
     cam = orbit(30, 20, 1.8)
-    one = policy.choose(renderer, VOLUME, iso, 64, 48, cam, 1, 0.05)
-    assert isinstance(one, BudgetChoice) and one.budget_ms == pytest.approx(1000 / 30)
+    first = policy.choose(renderer, VOLUME, iso, 64, 48, cam, 1, 0.05)
+    assert first.method == prior_method(policy.candidates) and first.method.name == "full, AO 0, spp 1"
+    assert len(policy.pending) == 1 and not cache.exists()
+    assert policy.choose(renderer, VOLUME, iso, 64, 48, cam, 1, 0.05).method == first.method
+    assert len(policy.pending) == 1, "one probe per scene, size and session count"
+    one = finish_steps(policy.pending.pop())
+    assert isinstance(one, BudgetChoice) and one.budget_ms == pytest.approx(1000 / 30) and one.table
     assert policy.choose(renderer, VOLUME, iso, 64, 48, cam, 1, 0.05) is one, "a choice is cached"
-    timed = dict(policy._timings[(VOLUME, round(iso, 6), 64, 48, 0.05)])
-    started = time.perf_counter()
+    scene = (VOLUME, round(iso, 6), 64, 48, 0.05)
+    timed = dict(policy._timings[scene])
     many = policy.choose(renderer, VOLUME, iso, 64, 48, cam, 16, 0.05)
+    if policy.pending:  # the times known did not decide it: the new budget times more methods
+        many = finish_steps(policy.pending.pop())
     assert many.budget_ms == pytest.approx(1000 / 480) and many is not one
     assert len(policy._quality) == 1, "a new session count probes no quality again"
-    assert time.perf_counter() - started < one.probe_seconds
-    assert all(policy._timings[(VOLUME, round(iso, 6), 64, 48, 0.05)][m] == t for m, t in timed.items())
+    assert all(policy._timings[scene][m] == t for m, t in timed.items()), "no method is timed twice"
+    later = AutoPolicy.for_server(DEVICE, "fp32", 4, {}, 30.0, Networks(), cache=ProbeCache(cache, "this CPU"))
+    again = later.choose(renderer, VOLUME, iso, 64, 48, cam, 1, 0.05)
+    assert again.method == one.method and again.expected_psnr == pytest.approx(one.expected_psnr)
+    assert not later.pending, "a restarted server's policy reads what the probe learned"
+    other = AutoPolicy.for_server(DEVICE, "fp32", 4, {}, 30.0, Networks(), cache=ProbeCache(cache, "another CPU"))
+    assert other.choose(renderer, VOLUME, iso, 64, 48, cam, 1, 0.05).method == first.method and other.pending
+
+
+def test_a_probe_cache_that_cannot_be_read_is_probed_anew(lib, tmp_path, caplog):
+    cache = tmp_path / "probes.json"
+    cache.write_text("{not json")
+    policy = AutoPolicy.for_server(DEVICE, "fp32", 4, {}, 30.0, Networks(), cache=ProbeCache(cache, "this CPU"))
+    assert "cannot be read" in caplog.text
+    policy.choose(lib.renderer, VOLUME, lib.iso, 64, 48, orbit(30, 20, 1.8), 1, 0.05)
+    finish_steps(policy.pending.pop())
+    assert json.loads(cache.read_text()), "the probe's results replace the unreadable file"
+
+
+def test_the_first_auto_frame_is_the_prior_and_later_frames_the_probes_choice(srv):
+    """A new size's first auto frame does not wait for the probe; once the probe has run in the
+    background between frames, the frames name its choice."""
+    policy = srv.app.state.engine.auto
+    width = W + 24  # a size no other test probed
+    with session(srv, width=width, height=H, refine=False) as (ws, _):
+        f = frame(ws)
+        assert f.method == prior_method(policy.candidates).name
+        for i in range(1, 200):
+            send(ws, cam(30 + i % 2, seq=i))
+            f = frame(ws)
+            chosen = [c for k, c in policy._chosen.items() if k[2] == width]
+            if chosen:
+                break
+        assert chosen, "the probe ran between frames"
+        send(ws, cam(40, seq=i + 1))
+        assert frame(ws).method == chosen[0].method.name
 
 
 @pytest.mark.slow
-def test_an_honest_session_beside_the_heaviest_frame_gets_its_first_frame_soon(srv):
+def test_an_honest_session_beside_the_heaviest_frame_gets_its_first_frame_first(srv):
     """The heaviest frame the default limits allow (3840x2160, 256 AO rays; about 45 s on this
-    CPU) runs in slices: a small session opened beside it gets its frame within 8 s."""
+    CPU) runs in slices: a small session opened beside it gets its frame before the heavy one is done."""
     limits = P.Limits()
     limits.check_size(3840, 2160)
     with srv.view() as heavy:
@@ -95,11 +141,11 @@ def test_an_honest_session_beside_the_heaviest_frame_gets_its_first_frame_soon(s
         assert isinstance(P.parse(heavy.recv(timeout=60), P.Limits(max_message_bytes=2**28),
                                   P.SERVER_VIEW_MESSAGES), P.ReadyMsg)
         time.sleep(1.0)  # the heavy frame is under way
-        started = time.monotonic()
         with session(srv, mode="full") as (ws, _):
             f = frame(ws)
-        waited = time.monotonic() - started
-        assert f.method == "full, AO 0, spp 1" and waited < 8.0, f"the small session waited {waited:.1f} s"
+        assert f.method == "full, AO 0, spp 1"
+        with pytest.raises(TimeoutError):  # an order, not a time: the heavy frame is not done yet
+            heavy.recv(timeout=0.1)
 
 
 def test_upscale_sessions_bound_each_client_and_never_lock_others_out():

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import pytest
 
@@ -18,6 +20,11 @@ NAP = "import time; time.sleep(30)"
 @pytest.fixture
 def spinner_and_sleeper():
     procs = [subprocess.Popen([sys.executable, "-c", code]) for code in (SPIN, NAP)]
+    for p in procs:  # until each runs its own command line (a child just forked still shows its parent's)
+        for _ in range(500):
+            if b"-c\x00" in Path(f"/proc/{p.pid}/cmdline").read_bytes():
+                break
+            time.sleep(0.01)
     yield procs
     for p in procs:
         p.kill()

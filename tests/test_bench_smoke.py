@@ -168,3 +168,16 @@ def test_cluster_smoke_writes_every_case_and_a_rerun_replaces_its_server(tmp_pat
         assert [(r["server"], r["replicas"], r["mode"], r["ao"]) for r in record["rows"]] == [
             ("plain", 0, mode, ao) for mode, ao in bench_cluster.CASES]
         assert all(r["errors"] == 0 and r["fps"] > 0 and r["commit"] == record["commit"] for r in record["rows"])
+
+
+def test_first_frame_smoke_starts_auto_from_the_prior_and_stops_mid_probe(tmp_path):
+    """A real server on the CPU: each case's first frame comes (auto's is the prior, before any probe),
+    later frames come too, and SIGTERM during a probe ends the server (exit status 0)."""
+    from isosr_bench import bench_first_frame
+
+    rows = bench_first_frame.main(["--smoke", "--device", "cpu", "--out", str(tmp_path)])
+    cases = [r for r in rows if "mode" in r]
+    assert [(r["mode"], r["frames"]) for r in cases] == [("auto", 3), ("full", 3)]
+    assert cases[0]["first_method"] == "full, AO 0, spp 1" and all(r["first_frame_s"] > 0 for r in cases)
+    assert rows[-1]["study"] == "shutdown" and rows[-1]["returncode"] == 0
+    assert json.loads((tmp_path / "bench_first_frame_cpu.json").read_text())["rows"] == rows

@@ -6,11 +6,13 @@ from __future__ import annotations
 import math
 
 import pytest
+import torch
 
 from isosr_render import Renderer, open_volume, orbit, orbit_path, resolve_iso
 from conftest import DEVICE
 from isosr_net.budget import (AO_MATTERS_DB, BudgetConfig, choose_method, default_candidates, default_probe_height,
                               probe_size, render_within_budget)
+from isosr_net import budget as policy
 from isosr_net.frame_methods import FrameMethod, Networks
 from isosr_net.model import save_pretrained
 from isosr_net.reconnet import RayLimits, ReconNet, ReconNetConfig
@@ -201,3 +203,43 @@ def test_no_timed_frame_captures_a_graph(cloud, monkeypatch):
     choose_method(*cloud, *SIZE, 1e4, BudgetConfig(candidates=(method,)), orbit_path(6, yaw_step=3.0),
                   networks=Networks())
     assert captures and timed == [0] * BudgetConfig().timing_frames
+
+
+def test_a_candidate_whose_floor_is_over_twice_the_budget_is_not_timed(cloud):
+    """A candidate whose probe-size frame took 8 ms, at a frame of 16 times the pixels, has a floor of
+    64 ms: at a 10 ms budget it is not timed (its row says floored), while one that took 0.1 ms is; a
+    quality probe without times (a GPU's) floors nothing."""
+    renderer, iso = cloud
+    dear, cheap = FrameMethod("full", ao_rays=4, spp=4), FrameMethod("upscale", factor=4)
+    w, h = SIZE
+    quality = policy.QualityProbe((w // 4, h // 4), {dear: 40.0, cheap: 30.0}, 10.0, True, 0.0, {dear: 8.0, cheap: 0.1})
+    assert policy.floor_ms(dear, quality, w, h) == pytest.approx(64.0)
+    timings = {}
+    choice = choose_method(renderer, iso, w, h, 10.0, BudgetConfig(candidates=(dear, cheap)), quality=quality,
+                           timings=timings)
+    assert dear not in timings and cheap in timings
+    rows = {row.method: row for row in choice.table}
+    assert rows[dear].floored and rows[dear].ms == pytest.approx(64.0)
+    assert not rows[cheap].floored and choice.method == cheap
+    untimed = policy.QualityProbe(quality.size, quality.psnr, 10.0, True, 0.0)
+    timings = {}
+    choose_method(renderer, iso, w, h, 10.0, BudgetConfig(candidates=(dear, cheap)), quality=untimed, timings=timings)
+    assert dear in timings
+
+
+def test_the_reference_in_row_bands_is_the_whole_reference_bit_for_bit(cloud):
+    renderer, iso = cloud
+    cameras = [orbit(30, 20, 1.8), orbit(33, 20, 1.8)]
+    whole = policy.reference_frames(renderer, iso, SIZE, cameras, flow=True)
+    steps = policy.reference_frames_steps(renderer, iso, SIZE, cameras, flow=True, bands=3)
+    yields = 0
+    try:
+        while True:
+            next(steps)
+            yields += 1
+    except StopIteration as done:
+        banded = done.value
+    assert yields == 2 * (3 - 1)  # between the bands of each frame
+    for a, b in zip(whole, banded):
+        for name in ("mask", "normal", "ao", "color", "flow"):
+            assert torch.equal(getattr(a, name), getattr(b, name)), name

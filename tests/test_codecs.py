@@ -83,15 +83,12 @@ def bomb() -> bytes:
 
 def test_zlib_bomb_inflates_no_further_than_the_declared_shape(bomb):
     tracemalloc.start()
-    start = time.perf_counter()
     try:
         with pytest.raises(ValueError, match="inflates past the 80 bytes"):
             decode_array(_wire(data=bomb, compressed=True), *BOUNDS)
-        seconds = time.perf_counter() - start
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
-    assert seconds < 0.1, f"{seconds:.3f} s: the bomb was inflated"
     assert peak < 2**20, f"{peak} bytes allocated while refusing an 80-byte array"
 
 

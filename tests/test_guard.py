@@ -109,7 +109,7 @@ def test_a_late_body_gets_408_and_the_connection_closed(info):
         waited = asyncio.get_running_loop().time() - started
         assert peer.status() == 408 and peer.headers()[b"connection"] == b"close"
         assert peer.error() == {"error": "the body did not arrive within 0.3 s", "status": 408}
-        assert 0.25 < waited < 2 and settled(guard)
+        assert waited > 0.25 and settled(guard)  # not before its deadline (how late is load's, not the guard's)
     run(main())
     assert "408" in info.text
 
@@ -187,6 +187,11 @@ def test_connections_are_bounded_in_total_and_per_client(info):
             await peer.run(guard)
             assert peer.status() == 503 and words in peer.error()["error"]
             assert peer.headers()[b"retry-after"] == b"1" and peer.inbox.qsize() == 1
+        for client in ("10.0.0.1", "10.0.0.4"):  # the health probes are answered all the same
+            live = Peer(dict(post(client=client), method="GET", path="/v2/health/live"),
+                        {"type": "http.request", "body": b"", "more_body": False})
+            await live.run(guard)
+            assert live.status() == 200 and guard.connections == 5
         ws = Peer(websocket("10.0.0.5"), {"type": "websocket.connect"})
         await ws.run(guard)
         assert [m["type"] for m in ws.sent] == ["websocket.accept", "websocket.close"]

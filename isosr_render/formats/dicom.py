@@ -17,7 +17,9 @@ Geometry (DICOM's patient frame, millimetres):
   RescaleIntercept become the source's ``rescale``. Where slices carry different rescales, the
   source holds float32 original values instead (rescale ``(1, 0)``).
 
-A folder holds one series: several are refused, naming each (pass ``series=`` to pick one).
+A folder holds one series: several are refused, naming each (pass ``series=`` to pick one). A
+Siemens mosaic (many slices tiled in one 2D image: NumberOfImagesInMosaic (0019,100A), or MOSAIC
+in ImageType) is refused: it needs unpacking first (e.g. dcm2niix).
 Files without the DICOM marker (``.dcm`` files aside) and a DICOMDIR are passed over. A
 multi-frame file (enhanced CT/MR: positions from the per-frame functional groups) is a volume
 by itself. Compressed transfer syntaxes decode through pydicom's plugins (RLE built in, JPEG
@@ -47,6 +49,8 @@ GAP_TOLERANCE = 0.01
 SHEAR_TOLERANCE = 0.5
 # The SOP class of a DICOMDIR, passed over in a folder.
 DICOMDIR_CLASS = "1.2.840.10008.1.3.10"
+# Siemens' private NumberOfImagesInMosaic.
+MOSAIC_TAG = (0x0019, 0x100A)
 # What every image of a series shares (checked equal across files).
 LAYOUT = ("Rows", "Columns", "BitsAllocated", "PixelRepresentation", "SamplesPerPixel")
 
@@ -118,6 +122,7 @@ def open_dicom(source: str | os.PathLike | Iterable[str | os.PathLike], *, serie
     headers = [(f, ds) for f, ds in headers if ds is not None]
     if not headers:
         raise VolumeError(f"{label}: no DICOM image" + (" (only a DICOMDIR)" if files else ""))
+    _refuse_mosaic(headers)
     headers = _one_series(headers, series, label)
     multi = [f for f, ds in headers if int(ds.get("NumberOfFrames", 1) or 1) > 1]
     if multi and len(headers) > 1:
@@ -173,6 +178,18 @@ def _header(pydicom, path: Path):
     if "Rows" not in ds:  # pydicom reads a truncated file up to its end without a word
         raise VolumeError(f"{path}: corrupt DICOM file or not an image (no Rows)")
     return ds
+
+
+def _refuse_mosaic(headers: list) -> None:
+    """Refuse a Siemens mosaic: its one 2D image tiles many slices (module docstring)."""
+    for f, ds in headers:
+        kinds = ds.get("ImageType") or []
+        kinds = [kinds] if isinstance(kinds, str) else kinds
+        if MOSAIC_TAG in ds or any("MOSAIC" in str(k).upper() for k in kinds):
+            count = ds[MOSAIC_TAG].value if MOSAIC_TAG in ds else None
+            tiles = f"{count} slices" if isinstance(count, int) else "slices"
+            raise VolumeError(f"{f}: a Siemens mosaic ({tiles} tiled in one 2D image); "
+                              "unpack it into a series first (e.g. dcm2niix)")
 
 
 def _describe(uid: str, members: list) -> str:

@@ -13,6 +13,7 @@ from isosr_server.metrics import ServerMetrics
 from isosr_server.protocol import (CLOSE_IDLE, CLOSE_INTERNAL, CLOSE_POLICY, CLOSE_UNAUTHORIZED, SUBPROTOCOL,
                                    ErrorMsg, Limits, ProtocolError, encode)
 from isosr_server.sessions import RateLimiter
+from isosr_server.ws_transport import LIMITER
 
 log = logging.getLogger("isosr.server")
 
@@ -24,6 +25,13 @@ async def accept(ws: WebSocket, authorized: bool, metrics: ServerMetrics) -> boo
         return True
     await end_ws(ws, "auth", ProtocolError("missing or wrong token", CLOSE_UNAUTHORIZED, 401), metrics)
     return False
+
+
+def rate_limiter(ws: WebSocket, limits: Limits) -> RateLimiter:
+    """The connection's message budget: the one its pings and pongs draw on too (the scope extension
+    of :mod:`isosr_server.ws_transport`), or a new one where the server has none (another ASGI server)."""
+    limiter = ws.scope.get("extensions", {}).get(LIMITER)
+    return limiter if isinstance(limiter, RateLimiter) else RateLimiter(limits.max_messages_per_s)
 
 
 async def receive(ws: WebSocket, limiter: RateLimiter, limits: Limits) -> bytes:

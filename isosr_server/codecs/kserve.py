@@ -15,6 +15,13 @@ Triton's sequence parameters (`sequence`) name a recurrent state; custom integer
 read with `int_parameter`.
 
 Every malformed body is a `ProtocolError` (400) that names the tensor and what is wrong with it.
+The body is checked against what it declares before any tensor's values are decoded: the JSON is
+first read with every ``data`` kept raw (`msgspec.Raw`: skipped, not decoded), then each input's
+datatype and shape (no zero dimension; within the element and side bounds the caller gives, else
+413), its ``binary_data_size`` and the body's length (the binary tensors must fill it exactly),
+and its raw ``data`` (numbers only, nested no deeper than the shape's rank, no more values than
+the shape holds: counted on the raw bytes); only then are the values decoded. JSON nested deeper
+than the decoder's depth is a 400, as is any other malformed JSON.
 """
 
 from __future__ import annotations
@@ -27,7 +34,7 @@ import msgspec
 import numpy as np
 from msgspec import Meta
 
-from isosr_server.protocol import SESSION_ID, ProtocolError
+from isosr_server.protocol import CLOSE_TOO_BIG, SESSION_ID, ProtocolError
 
 HEADER_LENGTH = "inference-header-content-length"
 JSON_MEDIA_TYPE = "application/json"
@@ -43,7 +50,13 @@ class TensorIn(msgspec.Struct, frozen=True):
     shape: Annotated[list[Annotated[int, Meta(ge=0)]], Meta(max_length=MAX_RANK)]
     datatype: str
     parameters: Parameters = {}
-    data: list[Any] | None = None
+    # Kept raw (its bytes in the body, skipped by the decoder) until the declared shape is checked.
+    data: msgspec.Raw = msgspec.Raw()
+
+    def raw_data(self) -> msgspec.Raw | None:
+        """The ``data`` value's JSON bytes; None when absent or null."""
+        n = len(self.data)
+        return None if n == 0 or (n == 4 and bytes(self.data) == b"null") else self.data
 
 
 class TensorOut(msgspec.Struct, frozen=True):
@@ -78,11 +91,17 @@ class InferRequest:
     binary_output: bool
 
 
-def decode_request(body: bytes, header_length: str | None) -> InferRequest:
+def decode_request(body: bytes | bytearray, header_length: str | None, max_elements: int | None = None,
+                   max_side: int | None = None) -> InferRequest:
     """The request in ``body``; ``header_length`` is the ``Inference-Header-Content-Length`` value.
 
+    Every input is checked against what it declares before any tensor is decoded (module
+    docstring): ``max_elements`` and ``max_side`` (None: unbounded) bound each input's declared
+    element count and every dimension.
+
     Raises:
-        ProtocolError: (400) the body, a tensor's shape, datatype, byte count or values do not fit.
+        ProtocolError: (400) the body, a tensor's shape, datatype, byte count or values do not fit;
+            (413) a declared shape exceeds ``max_elements`` or ``max_side``.
     """
     if header_length is None:
         n = len(body)
@@ -94,17 +113,25 @@ def decode_request(body: bytes, header_length: str | None) -> InferRequest:
         if not 0 <= n <= len(body):
             raise ProtocolError(f"Inference-Header-Content-Length {n} lies outside the body's {len(body)} bytes")
     try:
-        header = msgspec.json.decode(body[:n], type=RequestHeader)
+        header = msgspec.json.decode(memoryview(body)[:n], type=RequestHeader)
     except msgspec.DecodeError as e:
         raise ProtocolError(f"malformed inference request: {e}"[:300]) from None
+    except RecursionError:  # msgspec's depth bound (the interpreter's recursion limit), not a server fault
+        raise ProtocolError("malformed inference request: JSON nested too deeply") from None
+    # Everything declared is checked before a tensor is decoded.
+    names: set[str] = set()
+    offset = n
+    for t in header.inputs:
+        if t.name in names:
+            raise ProtocolError(f"input {t.name!r} is given twice")
+        names.add(t.name)
+        offset = _check_declared(t, len(body), offset, max_elements, max_side)
+    if offset != len(body):
+        raise ProtocolError(f"the body has {len(body) - offset} bytes beyond its binary tensors")
     inputs: dict[str, np.ndarray] = {}
     offset = n
     for t in header.inputs:
-        if t.name in inputs:
-            raise ProtocolError(f"input {t.name!r} is given twice")
         inputs[t.name], offset = _decode_tensor(t, body, offset)
-    if offset != len(body):
-        raise ProtocolError(f"the body has {len(body) - offset} bytes beyond its binary tensors")
     outputs = None
     if header.outputs is not None:
         outputs = {o.name: bool(o.parameters.get("binary_data", False)) for o in header.outputs}
@@ -112,27 +139,90 @@ def decode_request(body: bytes, header_length: str | None) -> InferRequest:
                         bool(header.parameters.get("binary_data_output", False)))
 
 
-def _decode_tensor(t: TensorIn, body: bytes, offset: int) -> tuple[np.ndarray, int]:
-    """One input tensor: from the body's bytes at ``offset`` (binary) or from its ``data``; the next offset."""
-    dtype = DATATYPES.get(t.datatype)
-    if dtype is None:
-        raise ProtocolError(f"input {t.name!r}: datatype must be {' or '.join(DATATYPES)}, got {t.datatype!r}"[:200])
+def _check_declared(t: TensorIn, body_length: int, offset: int, max_elements: int | None,
+                    max_side: int | None) -> int:
+    """`ProtocolError` unless input ``t``'s datatype, shape and bytes fit (module docstring), its
+    values not decoded; the offset after its binary data (``offset`` for a JSON tensor)."""
+    dtype = _datatype(t)
+    if 0 in t.shape:
+        raise ProtocolError(f"input {t.name!r}: shape {t.shape} has a zero dimension (dimension "
+                            f"{t.shape.index(0)}): a tensor must hold values"[:200])
     count = math.prod(t.shape)
+    side = max(t.shape, default=1)
+    if (max_elements is not None and count > max_elements) or (max_side is not None and side > max_side):
+        raise ProtocolError(f"input {t.name!r}: declared shape {t.shape} of {count} elements exceeds the limits "
+                            f"({max_elements} elements, sides <= {max_side})"[:200], CLOSE_TOO_BIG, 413)
     size = t.parameters.get("binary_data_size")
+    raw = t.raw_data()
     if size is not None:
-        if t.data is not None:
+        if raw is not None:
             raise ProtocolError(f"input {t.name!r}: give binary_data_size or data, not both")
+        if isinstance(size, bool) or not isinstance(size, int):
+            raise ProtocolError(f"input {t.name!r}: binary_data_size must be an integer, got {size!r}"[:200])
         if size != count * dtype.itemsize:
             raise ProtocolError(f"input {t.name!r}: binary_data_size is {size} bytes; shape {t.shape} of "
                                 f"{t.datatype} needs {count * dtype.itemsize}"[:200])
-        if offset + size > len(body):
-            raise ProtocolError(f"input {t.name!r}: the body ends {offset + size - len(body)} bytes before its data")
-        return _finite(t.name, np.frombuffer(body, dtype, count, offset).reshape(t.shape)), offset + size
-    if t.data is None:
+        if offset + size > body_length:
+            raise ProtocolError(f"input {t.name!r}: the body ends {offset + size - body_length} bytes before its data")
+        return offset + size
+    if raw is None:
         raise ProtocolError(f"input {t.name!r}: no data and no binary_data_size")
+    depth, values = _scan_data(raw)
+    if depth is None:
+        raise ProtocolError(f"input {t.name!r}: data must be numbers (a flat list or nested lists of one shape)")
+    if depth > len(t.shape):
+        raise ProtocolError(f"input {t.name!r}: data nested {depth} deep; shape {t.shape} allows lists nested "
+                            f"at most {len(t.shape)} deep"[:200])
+    if values > count:
+        raise ProtocolError(f"input {t.name!r}: {values} values for shape {t.shape} ({count} values)"[:200])
+    return offset
+
+
+def _datatype(t: TensorIn) -> np.dtype:
+    dtype = DATATYPES.get(t.datatype)
+    if dtype is None:
+        raise ProtocolError(f"input {t.name!r}: datatype must be {' or '.join(DATATYPES)}, got {t.datatype!r}"[:200])
+    return dtype
+
+
+# Per byte of a JSON value: +1 opening a list or object, -1 closing one.
+_NESTING = np.zeros(256, np.int8)
+_NESTING[[ord("["), ord("{")]] = 1
+_NESTING[[ord("]"), ord("}")]] = -1
+_SCAN_CHUNK = 1 << 20
+
+
+def _scan_data(raw: msgspec.Raw) -> tuple[int | None, int]:
+    """``(deepest nesting, values)`` of a tensor's raw ``data`` (valid JSON: the decoder checked
+    its syntax when it skipped it), counted on its bytes in chunks without decoding them; a depth
+    of None when it is no list or holds strings. ``values`` is one more than its commas: the
+    number of values of nested lists, none of them empty."""
+    a = np.frombuffer(raw, np.uint8)
+    if a[0] != ord("["):
+        return None, 0
+    depth = deepest = commas = 0
+    for i in range(0, len(a), _SCAN_CHUNK):
+        chunk = a[i:i + _SCAN_CHUNK]
+        if (chunk == ord('"')).any():
+            return None, 0
+        commas += int(np.count_nonzero(chunk == ord(",")))
+        levels = np.cumsum(_NESTING[chunk], dtype=np.int32)
+        deepest = max(deepest, depth + int(levels.max()))
+        depth += int(levels[-1])
+    return deepest, commas + 1
+
+
+def _decode_tensor(t: TensorIn, body: bytes | bytearray, offset: int) -> tuple[np.ndarray, int]:
+    """One input tensor, checked by `_check_declared`: from the body's bytes at ``offset`` (binary)
+    or from its ``data``; the next offset."""
+    dtype = _datatype(t)
+    count = math.prod(t.shape)
+    size = t.parameters.get("binary_data_size")
+    if size is not None:
+        return _finite(t.name, np.frombuffer(body, dtype, count, offset).reshape(t.shape)), offset + size
     try:
-        values = np.asarray(t.data, dtype)
-    except (ValueError, TypeError):
+        values = np.asarray(msgspec.json.decode(t.raw_data()), dtype)
+    except (ValueError, TypeError, RecursionError):
         raise ProtocolError(f"input {t.name!r}: data must be numbers (a flat list or nested lists of one shape)")
     if values.size != count:
         raise ProtocolError(f"input {t.name!r}: {values.size} values for shape {t.shape} ({count} values)"[:200])

@@ -81,6 +81,7 @@ class Settings:
             renders sparse (the bricks each iso needs, paged in); None: half the free GPU memory
             at load, no limit on CPUs. It also picks a multiscale OME-Zarr's level
             (:mod:`isosr_server.volumes`).
+        probe_cache: the auto mode's probe results file (None: kept in memory only).
         log_level: ``debug``, ``info``, ``warning`` or ``error``.
     """
 
@@ -111,6 +112,8 @@ class Settings:
                                                  "render sparse, paging in the bricks each iso needs (default: half "
                                                  "the free GPU memory, no limit on CPUs); an OME-Zarr is served at "
                                                  "its finest level that fits, else its coarsest", int)
+    probe_cache: Path | None = _option(None, "JSON file where the auto mode keeps what its probes learn per device, "
+                                             "volume, iso and size, for later starts (default: memory only)", Path)
     log_level: str = _option("info", "log level", choices=LOG_LEVELS)
 
     def __post_init__(self):

@@ -410,9 +410,10 @@ function formatNumber(v) {
 function setupIso() {
   const [lo, hi] = state.info.value_range;
   const iso = $("iso");
-  iso.min = lo;
-  iso.max = hi;
-  iso.step = hi > lo ? (hi - lo) / 1000 : 1;
+  const step = hi > lo ? (hi - lo) / 1000 : 1;
+  iso.min = lo + step; // strictly inside the value range: the server refuses an iso at its ends
+  iso.max = hi - step;
+  iso.step = step;
   iso.value = state.iso;
   $("iso-min").textContent = formatNumber(lo);
   $("iso-max").textContent = formatNumber(hi);
@@ -440,7 +441,8 @@ function showIso() {
 function setIso(value) {
   if (!state.info) return;
   const [lo, hi] = state.info.value_range;
-  state.iso = Math.min(hi, Math.max(lo, value));
+  const step = (hi - lo) / 1000; // strictly inside the value range, as the slider
+  state.iso = Math.min(hi - step, Math.max(lo + step, value));
   $("iso").value = state.iso;
   showIso();
   queue("iso", { type: "iso", value: state.iso, normalized: false });

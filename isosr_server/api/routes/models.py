@@ -47,7 +47,7 @@ from isosr_server.api.routes.upscale import check_upscale, run_upscale
 from isosr_server.codecs.kserve import (BINARY_MEDIA_TYPE, HEADER_LENGTH, JSON_MEDIA_TYPE, InferRequest, ModelSpec,
                                         TensorSpec, decode_request, encode_response, int_parameter, sequence)
 from isosr_server.metrics import ServerMetrics
-from isosr_server.protocol import IMAGE_ENCODINGS, LOWRES_BOUNDS, MAX_DEPTH, ProtocolError, UpscaleRequest
+from isosr_server.protocol import IMAGE_ENCODINGS, LOWRES_BOUNDS, MAX_DEPTH, Limits, ProtocolError, UpscaleRequest
 from isosr_server.sessions import UpscaleSessions
 
 MODEL_VERSION = "1"
@@ -98,12 +98,32 @@ async def upscale_model_ready(ready: ReadyDep):
     return readiness(UPSCALE.name, ready)
 
 
-async def read_infer(request: Request, model: ModelSpec) -> tuple[InferRequest, dict[str, int]]:
+async def read_body(request: Request) -> bytes | bytearray:
+    """The request's body; with a Content-Length (which the guard has bounded by ``max_message_bytes``)
+    read into one buffer of that size, not gathered in chunks and joined (twice its size at the end)."""
+    declared = request.headers.get("content-length", "")
+    if not declared.isdigit():
+        return await request.body()
+    body, n = bytearray(int(declared)), 0
+    async for chunk in request.stream():
+        if n + len(chunk) > len(body):  # the server refuses this before; kept as a bound of the buffer
+            raise ProtocolError(f"the body is longer than its Content-Length {len(body)}")
+        body[n:n + len(chunk)] = chunk
+        n += len(chunk)
+    if n != len(body):
+        raise ProtocolError(f"the body has {n} bytes; its Content-Length says {len(body)}")
+    return body
+
+
+async def read_infer(request: Request, model: ModelSpec, limits: Limits) -> tuple[InferRequest, dict[str, int]]:
     """The request's body decoded off the event loop and checked against ``model``'s tensors; the
-    sizes of its shape letters. 415 for a compressed body, `ProtocolError` 400 for one that does not fit."""
+    sizes of its shape letters. 415 for a compressed body, `ProtocolError` 400 for one that does not
+    fit, 413 for a declared tensor over ``limits`` (`Limits.array_bounds`: refused before any
+    tensor's values are decoded)."""
     if request.headers.get("content-encoding", "identity") != "identity":
         raise HTTPException(415, "send the inference request uncompressed")
-    req = await asyncio.to_thread(decode_request, await request.body(), request.headers.get(HEADER_LENGTH))
+    req = await asyncio.to_thread(decode_request, await read_body(request), request.headers.get(HEADER_LENGTH),
+                                  *limits.array_bounds())
     return req, model.check(req)
 
 
@@ -128,7 +148,8 @@ async def reply(model: ModelSpec, req: InferRequest, buffers: dict, times: dict,
 
 async def upscale_infer(request: Request, engine: EngineDep, limits: LimitsDep, metrics: MetricsDep,
                         sessions: UpscaleSessionsDep):
-    req, _ = await read_infer(request, UPSCALE)
+    # Low-res inputs: the bounds of the frame they upscale to.
+    req, _ = await read_infer(request, UPSCALE, limits.downscaled(engine.upscale_factor))
     session, reset = sequence(req)
     msg = UpscaleRequest(req.inputs["mask"], req.inputs["normal"], req.inputs["depth"], req.inputs.get("flow"),
                          session=session, reset=reset)
@@ -160,7 +181,7 @@ def recon_sampling(req: InferRequest, limits: RayLimits) -> tuple[int, int]:
 
 async def recon_infer(request: Request, engine: EngineDep, limits: LimitsDep, metrics: MetricsDep,
                       sessions: UpscaleSessionsDep):
-    req, sizes = await read_infer(request, RECON)
+    req, sizes = await read_infer(request, RECON, limits)
     ao_rays, spp = recon_sampling(req, engine.recon_limits)
     session, reset = sequence(req)
     limits.check_size(sizes["W"], sizes["H"], "the frame")

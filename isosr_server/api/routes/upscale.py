@@ -2,7 +2,8 @@
 
     POST /v1/upscale          one low-res frame -> high-res buffers (msgpack) or an image; a
                               ``session`` id keeps the recurrent state between requests
-    WS   /v1/upscale/stream   low-res frames in, high-res frames out, in order, one state per connection
+    WS   /v1/upscale/stream   low-res frames in, high-res frames out, in order, one state per connection;
+                              a slot taken only once the first request is valid
 """
 
 from __future__ import annotations
@@ -18,11 +19,10 @@ from fastapi.responses import Response
 from isosr_net.upscaler import Upscaler
 from isosr_server.api.deps import (AuthorizedDep, EngineDep, LimitsDep, MetricsDep, UpscaleSessionsDep,
                                    require_token)
-from isosr_server.api.ws import accept, end_ws, receive
+from isosr_server.api.ws import accept, end_ws, rate_limiter, receive
 from isosr_server.engine import Engine
 from isosr_server.protocol import (MSGPACK_MEDIA_TYPE, HighresBuffers, Limits, ProtocolError, UpscaleRequest,
                                    UpscaleResponse, encode, parse)
-from isosr_server.sessions import RateLimiter
 
 BODY_TYPES = (MSGPACK_MEDIA_TYPE, "application/x-msgpack", "application/octet-stream")
 IMAGE_TYPES = {"image/png": "png", "image/jpeg": "jpeg", "image/webp": "webp"}
@@ -91,15 +91,16 @@ async def upscale_stream(ws: WebSocket, authorized: AuthorizedDep, engine: Engin
                          metrics: MetricsDep, sessions: UpscaleSessionsDep):
     if not await accept(ws, authorized, metrics):
         return
-    limiter = RateLimiter(limits.max_messages_per_s)
+    limiter = rate_limiter(ws, limits)
     upscaler = None
     try:
-        upscaler = sessions.open_stream()
         seq = 0
         while True:
             msg = await parse_upscale(await receive(ws, limiter, limits), engine, limits)
             if msg.session is not None:
                 raise ProtocolError("a stream is one session: leave out the session field")
+            if upscaler is None:  # a slot is taken only once a valid first request came: a silent stream holds none
+                upscaler = sessions.open_stream()
             image, buffers, times = await run_upscale(engine, upscaler, msg)
             sessions.trim()
             h, w = msg.mask.shape

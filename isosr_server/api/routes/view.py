@@ -12,15 +12,15 @@ import msgspec
 from fastapi import APIRouter, WebSocket
 
 from isosr_server.api.deps import AuthorizedDep, CatalogDep, EngineDep, LimitsDep, MetricsDep, ViewSessionsDep
-from isosr_server.api.ws import accept, end_ws, receive
+from isosr_server.api.ws import accept, end_ws, rate_limiter, receive
 from isosr_server.engine import Engine
 from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, CLOSE_IDLE, VIDEO_ENCODINGS, FocusMsg, FrameMsg, Limits,
                                    Message, NoticeMsg, OpenMsg, ProtocolError, ReadyMsg, ViewSettings, VolumeSummary,
                                    encode, parse)
-from isosr_server.sessions import (DEFAULT_CAMERA, RateLimiter, SessionCounter, ViewSession, ViewState, run_frames,
-                                   to_camera)
+from isosr_server.sessions import (DEFAULT_CAMERA, SessionCounter, ViewSession, ViewState, run_frames, to_camera,
+                                   watch_acks)
 from isosr_server.video import SessionCoder
-from isosr_server.volumes import VolumeCatalog, load_volume
+from isosr_server.volumes import VolumeCatalog, load_volume, session_iso
 
 log = logging.getLogger("isosr.server")
 
@@ -32,7 +32,7 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
                metrics: MetricsDep, view_sessions: ViewSessionsDep):
     if not await accept(ws, authorized, metrics):
         return
-    limiter = RateLimiter(limits.max_messages_per_s)
+    limiter = rate_limiter(ws, limits)
     counted, tasks = False, []
     coder = SessionCoder(os.cpu_count() or 1)
     try:
@@ -64,7 +64,7 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
                 session.apply(parse(await receive(ws, limiter, limits), limits, CLIENT_VIEW_MESSAGES))
 
         tasks = [asyncio.create_task(run_frames(session, make, send)),
-                 asyncio.create_task(updates())]
+                 asyncio.create_task(updates()), asyncio.create_task(watch_acks(session))]
         done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         for task in done:
             task.result()  # raises what ended the session
@@ -85,8 +85,9 @@ async def open_view(ws: WebSocket, msg: OpenMsg, limits: Limits, catalog: Volume
     """Load the volume ``open`` names, answer ``ready``: the new session."""
     volume, info = await load_volume(catalog, msg.volume)
     settings = ViewSettings().updated(msg.settings, limits)
-    iso = info.iso if msg.iso is None else msg.iso
-    normalized = msg.iso if msg.iso is not None and msg.iso_normalized else volume.normalized_iso(iso)
+    given = msg.iso is not None
+    normalized = session_iso(volume, msg.volume, msg.iso if given else info.iso, given and msg.iso_normalized,
+                             "open.iso" if given else "open.volume")
     try:
         camera = to_camera(msg.camera or DEFAULT_CAMERA)
     except ValueError as e:

@@ -1,11 +1,15 @@
 """The volumes a server offers, by name (never by path).
 
-    GET /v1/volumes          names, shapes, value ranges, suggested iso-values
+    GET /v1/volumes          names, shapes, value ranges, suggested iso-values; ``error`` where a
+                             volume cannot be opened or viewed, why
     GET /v1/volumes/{name}   one volume's info with its histogram (loads it) and, once a session
-                             rendered it, where its voxels are (``device``: `MemoryStats`)
+                             rendered it, where its voxels are (``device``: `MemoryStats`); 422
+                             with the reason for one that cannot be opened
 """
 
 from __future__ import annotations
+
+import asyncio
 
 from fastapi import APIRouter, Depends
 
@@ -17,7 +21,8 @@ router = APIRouter(prefix="/v1/volumes", tags=["volumes"], dependencies=[Depends
 
 @router.get("")
 async def list_volumes(catalog: CatalogDep):
-    return {"volumes": [catalog.info(n).to_json() for n in catalog.names()]}
+    listing = await asyncio.to_thread(lambda: [catalog.info(n).to_json() for n in catalog.names()])  # reads headers
+    return {"volumes": listing}
 
 
 @router.get("/{name}")
