@@ -295,10 +295,11 @@ def test_connections_over_the_bounds_get_503_while_other_addresses_are_served(ti
             for _ in range(per_client):
                 stack.enter_context(dial(tight, f"127.0.1.{k + 1}")).sendall(post_head(1000))
         time.sleep(0.3)
-        status, _, body = get(tight, "127.0.0.6")
+        status, _, body = get(tight, "127.0.0.6", "/v2")
         assert status == 503 and json.loads(body)["error"] == f"the server holds {total} connections; try later"
+        assert get(tight, "127.0.0.6")[0] == 200, "liveness is answered at the cap"
     deadline = time.monotonic() + 5
-    while get(tight, "127.0.0.5")[0] != 200:  # the server sees the closes a little later
+    while get(tight, "127.0.0.5", "/v2")[0] != 200:  # the server sees the closes a little later
         assert time.monotonic() < deadline
         time.sleep(0.1)
     assert_no_errors(tight)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import signal
 
 import pytest
 
@@ -172,12 +173,13 @@ def test_cluster_smoke_writes_every_case_and_a_rerun_replaces_its_server(tmp_pat
 
 def test_first_frame_smoke_starts_auto_from_the_prior_and_stops_mid_probe(tmp_path):
     """A real server on the CPU: each case's first frame comes (auto's is the prior, before any probe),
-    later frames come too, and SIGTERM during a probe ends the server (exit status 0)."""
+    later frames come too, and SIGTERM during a probe ends the server (uvicorn shuts down, then
+    re-raises the signal: status 0 or -SIGTERM)."""
     from isosr_bench import bench_first_frame
 
     rows = bench_first_frame.main(["--smoke", "--device", "cpu", "--out", str(tmp_path)])
     cases = [r for r in rows if "mode" in r]
     assert [(r["mode"], r["frames"]) for r in cases] == [("auto", 3), ("full", 3)]
     assert cases[0]["first_method"] == "full, AO 0, spp 1" and all(r["first_frame_s"] > 0 for r in cases)
-    assert rows[-1]["study"] == "shutdown" and rows[-1]["returncode"] == 0
+    assert rows[-1]["study"] == "shutdown" and rows[-1]["returncode"] in (0, -signal.SIGTERM)
     assert json.loads((tmp_path / "bench_first_frame_cpu.json").read_text())["rows"] == rows
