@@ -327,9 +327,7 @@ def _frame_ms(runner: FrameRunner, camera: Camera, prev: Camera | None, clock: s
         return start.elapsed_time(end)
     t0 = time.perf_counter()
     runner.frame(camera, prev)
-    if runner.renderer.device.is_cuda:
-        torch.cuda.synchronize()
-    return (time.perf_counter() - t0) * 1e3
+    return _synced_ms(runner, t0)
 
 
 def _sliced_frame_ms(runner: FrameRunner, camera: Camera, prev: Camera | None,
@@ -349,6 +347,7 @@ def _sliced_frame_ms(runner: FrameRunner, camera: Camera, prev: Camera | None,
 
 
 def _synced_ms(runner: FrameRunner, start: float) -> float:
+    """Milliseconds from ``start`` to the end of the runner's device work."""
     if runner.renderer.device.is_cuda:
         torch.cuda.synchronize()
     return (time.perf_counter() - start) * 1e3
@@ -505,8 +504,9 @@ def choose_method_steps(renderer: Renderer, iso: float, width: int, height: int,
         if untimed is None and chosen in floors:  # nothing fits, the fastest known by its floor alone: time it
             untimed = chosen
             del floors[chosen]
-        elif untimed is not None and floor_ms(untimed, quality, width, height) > OVER_BUDGET_STOP * budget_ms:
-            floors[untimed] = floor_ms(untimed, quality, width, height)
+        elif (untimed is not None
+              and (floor := floor_ms(untimed, quality, width, height)) > OVER_BUDGET_STOP * budget_ms):
+            floors[untimed] = floor
             continue
         if untimed is None:
             break

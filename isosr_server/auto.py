@@ -174,7 +174,7 @@ class AutoPolicy:
         if scene_key not in self._quality and (cached := self.cache.get(scene_key, self.candidates)):
             self._quality[scene_key], self._timings[scene_key] = cached
         timings = self._timings.setdefault(scene_key, {})
-        learned = (scene_key not in self._quality, len(timings))
+        probes_quality, timed_before = scene_key not in self._quality, len(timings)
         try:
             if scene_key not in self._quality:
                 self._quality[scene_key] = yield from probe_quality_steps(renderer, iso, width, height, config,
@@ -189,7 +189,7 @@ class AutoPolicy:
         else:
             log.info("auto mode, %s at %dx%d, budget %.3g ms: %s", scene_key[0], width, height, budget_ms,
                      choice.summary())
-            if learned != (False, len(timings)):  # something was measured: keep it
+            if probes_quality or len(timings) > timed_before:  # something was measured: keep it
                 self.cache.put(scene_key, self._quality[scene_key], timings)
         finally:
             self._probing.discard(key)

@@ -19,11 +19,11 @@ from __future__ import annotations
 
 import asyncio
 import os
-from contextlib import suppress
 import threading
 import time
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import suppress
 from collections.abc import Awaitable, Callable, Generator
 from dataclasses import dataclass
 from pathlib import Path
@@ -145,7 +145,8 @@ class Engine:
         self.auto: AutoPolicy | None = None
         self._probes: set[asyncio.Task] = set()  # the auto mode's probes under way (background device work)
         self._framing = 0  # view frames in the making
-        self._idle: asyncio.Event | None = None  # set while none is (made in the event loop)
+        self._idle = asyncio.Event()  # set while none is
+        self._idle.set()
         self._thread: threading.Thread | None = None
 
     async def call(self, fn, *args):
@@ -249,17 +250,22 @@ class Engine:
             task.add_done_callback(self._probes.discard)
 
     async def _run_probe(self, steps: Generator) -> None:
-        while True:
-            with suppress(asyncio.TimeoutError):
-                await asyncio.wait_for(self._idle_event().wait(), PROBE_WAIT_S)
-            if (await self.call(_advance, steps))[0]:
-                return
+        await self._run_steps(steps, self._wait_idle)
 
-    def _idle_event(self) -> asyncio.Event:
-        if self._idle is None:
-            self._idle = asyncio.Event()
-            self._idle.set()
-        return self._idle
+    async def _wait_idle(self) -> None:
+        """Until no view frame is in the making, or ``PROBE_WAIT_S`` at most."""
+        with suppress(asyncio.TimeoutError):
+            await asyncio.wait_for(self._idle.wait(), PROBE_WAIT_S)
+
+    async def _run_steps(self, steps: Generator, before_each: Callable[[], Awaitable[None]] | None = None):
+        """A generator of slices run to its end, each slice its own job on the device thread (other
+        jobs interleave between them); its result. ``before_each`` is awaited before every slice."""
+        while True:
+            if before_each is not None:
+                await before_each()
+            done, result = await self.call(_advance, steps)
+            if done:
+                return result
 
     def shutdown(self) -> None:
         """Stop: probes between two of their units, queued work dropped, the slice in progress ended."""
@@ -294,17 +300,14 @@ class Engine:
         start = time.perf_counter()
         steps = frames.steps(renderer, job, self.slice_ms)
         self._framing += 1
-        self._idle_event().clear()
+        self._idle.clear()
         try:
-            while True:
-                done, made = await self.call(_advance, steps)
-                if done:
-                    break
+            made = await self._run_steps(steps)
             codes = await self.call(self.codes_sync, made)
         finally:
             self._framing -= 1
             if not self._framing:
-                self._idle_event().set()
+                self._idle.set()
         self.start_probes()
         pool = self._video if video_frame else self._encoder
         memory = VolumeMemory(**renderer.memory().to_json())
@@ -334,11 +337,7 @@ class Engine:
         Raises:
             ValueError: the library refuses the frame (e.g. fp16 with depths beyond its range).
         """
-        steps = self._upscale_steps(upscaler, request, time.perf_counter())
-        while True:
-            done, result = await self.call(_advance, steps)
-            if done:
-                return result
+        return await self._run_steps(self._upscale_steps(upscaler, request, time.perf_counter()))
 
     def _upscale_steps(self, upscaler: Upscaler, request: UpscaleRequest, start: float) -> Generator:
         timer = StageTimer(self.device)
