@@ -10,7 +10,8 @@
 Results: ``benchmarks/results/bench_cluster_<size>_<device>.json`` (``--gpus-per-replica`` of 1
 or more: ``bench_cluster_gpus_<size>_<device>.json``; ``split``, each server's replicas sharing
 one GPU: ``bench_cluster_one_gpu_<size>_<device>.json``), written after every case; a later run
-keeps the rows of the servers it does not measure (one run per server fits a time-limited call).
+keeps the rows of the servers it does not measure in its ``--lease`` and of other leases (one run per
+server fits a time-limited call); scaling compares rows of one lease.
 Per server (``--replicas``: 0 is the plain single process, N > 0 is N replicas of
 ``--gpus-per-replica`` each behind Serve's proxy, on a local Ray started by the server), case
 (``full`` without AO, ``reconstruct`` at 1 AO ray, ``auto``) and session count: frames/s in
@@ -173,16 +174,18 @@ def scaling(rows: list[dict]) -> list[dict]:
     """Each N-replica case row (N > 1) against the 1-replica server: ``efficiency`` is its
     frames/s over N times the 1-replica frames/s at the same sessions; ``p99_ratio`` its p99
     latency over the 1-replica p99 at 1/N of the sessions (where measured). Rows name their
-    server's ``replicas`` (0: the plain server)."""
-    one = {(r["mode"], r["ao"], r["sessions"]): r for r in rows if r.get("replicas") == 1 and "fps" in r}
+    server's ``replicas`` (0: the plain server); rows are compared within their ``lease`` only."""
+    one = {(r.get("lease"), r["mode"], r["ao"], r["sessions"]): r
+           for r in rows if r.get("replicas") == 1 and "fps" in r}
     out = []
     for r in rows:
         n = r.get("replicas", 0) if "fps" in r else 0
-        base = one.get((r.get("mode"), r.get("ao"), r.get("sessions")))
+        base = one.get((r.get("lease"), r.get("mode"), r.get("ao"), r.get("sessions")))
         if n < 2 or base is None:
             continue
-        fewer = one.get((r["mode"], r["ao"], r["sessions"] // n)) if r["sessions"] % n == 0 else None
-        out.append({"study": "scaling", "server": r["server"], "replicas": n, "mode": r["mode"], "ao": r["ao"],
+        fewer = (one.get((r.get("lease"), r["mode"], r["ao"], r["sessions"] // n))
+                 if r["sessions"] % n == 0 else None)
+        out.append({"study": "scaling", "lease": r.get("lease"), "server": r["server"], "replicas": n, "mode": r["mode"], "ao": r["ao"],
                     "sessions": r["sessions"], "fps": r["fps"], "fps_one": base["fps"],
                     "efficiency": r["fps"] / (n * base["fps"]),
                     "p99_ms": r["latency_p99_ms"], "p99_one_at_1_over_n_ms": fewer and fewer["latency_p99_ms"],
@@ -190,11 +193,11 @@ def scaling(rows: list[dict]) -> list[dict]:
     return out
 
 
-def merge(path: Path, rows: list[dict], measured: set[str]) -> list[dict]:
-    """The rows of an existing result at ``path`` for servers other than ``measured`` (each with
-    its file's device and commit), then ``rows``; scaling rows are recomputed after."""
-    return kept_rows(path, lambda r: r.get("server") not in measured and r.get("study") != "scaling",
-                     stamp=("device", "commit")) + rows
+def merge(path: Path, rows: list[dict], measured: set[tuple[str, str]]) -> list[dict]:
+    """The rows of an existing result at ``path`` for (server, lease) pairs other than ``measured``
+    (each with its file's device, commit and lease), then ``rows``; scaling rows are recomputed after."""
+    kept = kept_rows(path, lambda r: r.get("study") != "scaling", stamp=("device", "commit", "lease"))
+    return [r for r in kept if (r.get("server"), r.get("lease")) not in measured] + rows
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -209,6 +212,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--gpus-per-replica", default="0.5",
                         help="each replica's GPU share (CUDA), or 'split': each server's replicas share one GPU")
     parser.add_argument("--failover-sessions", type=int, default=8, help="sessions of the failover study (0: none)")
+    parser.add_argument("--lease", default=time.strftime("%Y-%m-%d %H:00", time.gmtime()),
+                        help="the machine's lease, the same for every call in it: rows are compared (scaling) "
+                             "and replaced within one lease (default: this hour, UTC)")
     parser.add_argument("--client-processes", type=int, default=max(1, min(8, (os.cpu_count() or 2) // 4)),
                         help="processes the client sessions are dealt to")
     args = parser.parse_args(argv)
@@ -236,8 +242,8 @@ def main(argv: list[str] | None = None) -> None:
     kind = "_one_gpu" if args.gpus_per_replica == "split" else "_gpus" if float(args.gpus_per_replica) >= 1 else ""
     name = f"bench_cluster{kind}_{size_name}"
     path = args.out / f"{name}_{'cuda' if args.device.startswith('cuda') else 'cpu'}.json"
-    stamp = {"device": device_name(args.device), "commit": commit()}
-    merged = merge(path, [], {server for server, *_ in measured})  # the other servers' rows of earlier runs
+    stamp = {"device": device_name(args.device), "commit": commit(), "lease": args.lease}
+    merged = merge(path, [], {(server, args.lease) for server, *_ in measured})  # the other servers' rows of earlier runs
     for server_name, server_replicas, gpus, extra in measured:
         cases = [(mode, ao, n) for mode, ao in modes for n in counts]
         failover_sessions = args.failover_sessions if server_name == failover_on else 0

@@ -126,12 +126,12 @@ def write_result(name: str, device: str, rows: list[dict], out_dir: Path = RESUL
 
 def kept_rows(path: Path, keep: Callable[[dict], bool], stamp: tuple[str, ...] = ("device",)) -> list[dict]:
     """The rows of the result file at ``path`` that ``keep`` accepts (none if there is no file),
-    each given the file's ``stamp`` fields where it has none of its own: the rows a later run of a
+    each given the file's ``stamp`` fields (those it has) where it has none of its own: the rows a later run of a
     study keeps beside those it measured."""
     if not path.is_file():
         return []
     record = json.loads(path.read_text())
-    return [{**{key: record[key] for key in stamp}, **r} for r in record["rows"] if keep(r)]
+    return [{**{key: record[key] for key in stamp if key in record}, **r} for r in record["rows"] if keep(r)]
 
 
 def print_table(rows: list[dict], columns: list[str]) -> None:

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
-from collections import defaultdict
+from collections import Counter, defaultdict
 from pathlib import Path
 
 from isosr_render.atomic import atomic_write
@@ -58,7 +58,7 @@ def markdown(folder: Path, kind: str) -> str:
     return "\n".join(lines)
 
 
-CLUSTER_COLUMNS = ["server", "gpus", "mode", "ao", "sessions", "fps", "fps_per_session", "latency_p50_ms",
+CLUSTER_COLUMNS = ["lease", "server", "gpus", "mode", "ao", "sessions", "fps", "fps_per_session", "latency_p50_ms",
                    "latency_p99_ms", "errors", "methods", "gpu_busy", "server_cores", "proxy_cores",
                    "replica_cores_max"]
 
@@ -76,11 +76,11 @@ def cluster_markdown(folder: Path, kind: str) -> list[str]:
         lines += [f"## {title}", ""] + _run_lines(record) + _table(cases, CLUSTER_COLUMNS) + [""]
         scaled = [r for r in record["rows"] if r.get("study") == "scaling"]
         if scaled:
-            lines += _table(scaled, ["server", "replicas", "mode", "ao", "sessions", "fps", "fps_one", "efficiency",
+            lines += _table(scaled, ["lease", "server", "replicas", "mode", "ao", "sessions", "fps", "fps_one", "efficiency",
                                      "p99_ms", "p99_one_at_1_over_n_ms", "p99_ratio"]) + [""]
         failover = [r for r in record["rows"] if r.get("study") == "failover"]
         if failover:
-            lines += _table(failover, ["server", "sessions", "moved_sessions", "failover_max_s", "unmoved",
+            lines += _table(failover, ["lease", "server", "sessions", "moved_sessions", "failover_max_s", "unmoved",
                                        "other_sessions", "other_max_gap_s", "health_ready"]) + [""]
     return lines
 
@@ -145,8 +145,11 @@ def plots(folder: Path, kind: str) -> list[Path]:
 
 def cluster_plot(plt, record: dict, path: Path) -> Path:
     """Frames/s against GPUs (one replica each) per mode and session count, beside N times one
-    replica's (dashed) and the plain server on one GPU (crosses)."""
+    replica's (dashed) and the plain server on one GPU (crosses): the lease with the most rows
+    (a comparison is drawn within one lease)."""
     cases = [r for r in record["rows"] if "fps" in r and "study" not in r]
+    lease = Counter(r.get("lease") for r in cases).most_common(1)[0][0]
+    cases = [r for r in cases if r.get("lease") == lease]
     modes = sorted({(r["mode"], r["ao"]) for r in cases if r["replicas"] > 0})
     colour = {n: f"C{k}" for k, n in enumerate(sorted({r["sessions"] for r in cases}))}
     fig, axes = plt.subplots(1, len(modes), figsize=(5 * len(modes), 3.8), squeeze=False)

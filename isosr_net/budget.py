@@ -62,8 +62,7 @@ from isosr_render.sequence import sequence_cameras
 from isosr_render.shading import ShadingParams, shade
 from isosr_render.conventions import AO_RADIUS
 from isosr_render.shapes import check_int
-from isosr_net.frame_methods import (FrameMethod, FrameRunner, Networks, finish_steps, make_runner, reconstruct_method,
-                                     run_sequence)
+from isosr_net.frame_methods import FrameMethod, FrameRunner, Networks, finish_steps, make_runner, reconstruct_method
 from isosr_net.metrics import eval_region, masked_psnr
 from isosr_net.reconnet import RayLimits
 from isosr_net.reconstructor import RECON_X2_MODEL, recon_limits
@@ -437,10 +436,15 @@ def probe_quality_steps(renderer: Renderer, iso: float, width: int, height: int,
         yield
         runner = make_runner(m, renderer, iso, *size, shading=config.shading, ao_radius=config.ao_radius,
                              networks=networks)
-        began = time.perf_counter()
-        frames = run_sequence(runner, cameras)
+        frames, spent = [], 0.0
+        for k, (camera, prev) in enumerate(sequence_cameras(cameras)):
+            if k:
+                yield  # a frame a unit: a candidate's first frame may carry one-off costs (compiles, tuning)
+            began = time.perf_counter()
+            frames.append(runner.frame(camera, prev).buffers.clone())
+            spent += _synced_ms(runner, began)
         if not renderer.device.is_cuda:
-            ms[m] = (time.perf_counter() - began) * 1e3 / len(cameras)
+            ms[m] = spent / len(cameras)
         psnr[m] = _nanmean([color_psnr(f, r) for f, r in zip(frames, references)])
     return QualityProbe(size, psnr, effect, ao_matters, time.perf_counter() - start, ms)
 

@@ -9,7 +9,8 @@
 #   bash scripts/measure_gpus.sh one-gpu              # 1, 2 and 4 replicas sharing GPU 0, 16 sessions
 #   bash scripts/measure_gpus.sh datagen              # training data (GPU 3 unless GPU is set)
 #   bash scripts/measure_gpus.sh train SEED           # training on 1 and on 2 GPUs at once (GPUs 0-2)
-# CASES (default: the bench's full:0,reconstruct:1,auto:0) narrows the cases of a cluster step.
+# LEASE names the machine's lease for every call in it (default: the first call's hour; rows are
+# compared within one lease). CASES (default: the bench's full:0,reconstruct:1,auto:0) narrows the cases of a cluster step.
 # A step took, on 4 H200s: about 45-70 s to start a server or Ray with its replicas (warm kernel
 # caches), 25-50 s a case, 15 s a failover.
 # On the lab's lent machines, Ray and the server's wheels arrive split over several calls (64 MiB
@@ -17,11 +18,13 @@
 set -euo pipefail
 OUT=${OUT:-/tmp/gpus_out}
 CL=${CL:-/tmp/cl}
+[ -f /tmp/lease ] || date -u "+%Y-%m-%d %H:00" > /tmp/lease
+LEASE=${LEASE:-$(cat /tmp/lease)}
 VOLUME=${VOLUME:-bonsai}
 mkdir -p "$OUT" "$CL"
 cluster() {
     python3 -m isosr_bench.bench_cluster --device cuda --volume "$VOLUME" --seconds "${SECONDS_PER_CASE:-3}" \
-        --out "$CL" ${CASES:+--cases "$CASES"} "$@"
+        --out "$CL" --lease "$LEASE" ${CASES:+--cases "$CASES"} "$@"
 }
 gpus_for() { case "$1" in 0|1) echo 0 ;; 2) echo 0,1 ;; *) echo 0,1,2,3 ;; esac; }
 case "${1:?step: kit, cluster N SESSIONS, one-gpu, datagen or train SEED}" in

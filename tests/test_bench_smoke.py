@@ -137,10 +137,17 @@ def test_cluster_scaling_compares_each_server_with_one_replica(tmp_path):
     assert four["efficiency"] == pytest.approx(300 / 420) and four["p99_ratio"] == pytest.approx(2.5)
 
     path = tmp_path / "bench_cluster_gpus_1080p_cuda.json"
-    path.write_text(json.dumps({"device": "GPU A", "commit": "abc", "rows": rows + [two]}))
-    merged = bench_cluster.merge(path, [dict(row("ray4", 64, 320.0, 480.0), device="GPU B")], {"ray4"})
+    path.write_text(json.dumps({"device": "GPU A", "commit": "abc", "lease": "L1", "rows": rows + [two]}))
+    merged = bench_cluster.merge(path, [dict(row("ray4", 64, 320.0, 480.0), device="GPU B", lease="L1")],
+                                 {("ray4", "L1")})
     assert [r["server"] for r in merged] == ["ray1", "ray1", "ray1", "ray2", "ray2", "plain", "ray4"]
     assert merged[0]["device"] == "GPU A" and merged[-1]["device"] == "GPU B" and merged[-1]["fps"] == 320.0
+
+    # A later lease keeps the first lease's rows of the same server and is compared only within itself.
+    later = [dict(row("ray4", 64, 250.0, 480.0), lease="L2")]
+    merged = bench_cluster.merge(path, later, {("ray4", "L2")})
+    assert [(r["lease"], r["fps"]) for r in merged if r["server"] == "ray4"] == [("L1", 300.0), ("L2", 250.0)]
+    assert [r["fps"] for r in bench_cluster.scaling(merged) if r["server"] == "ray4"] == [300.0]
 
 
 def test_cluster_scaling_reads_the_replica_count_of_each_row_not_the_servers_name():

@@ -243,3 +243,23 @@ def test_the_reference_in_row_bands_is_the_whole_reference_bit_for_bit(cloud):
     for a, b in zip(whole, banded):
         for name in ("mask", "normal", "ao", "color", "flow"):
             assert torch.equal(getattr(a, name), getattr(b, name)), name
+
+
+def test_the_quality_probe_yields_between_every_frame_of_every_candidate(cloud):
+    """A unit of the background probe is one frame (a candidate's first one may carry its one-off
+    costs): between the reference's bands and between each candidate's frames; the scores are the
+    probe's own, run whole."""
+    renderer, iso = cloud
+    config = BudgetConfig(candidates=(FrameMethod("full"), FrameMethod("full", ao_rays=2)), probe_frames=3,
+                          probe_height=SIZE[1])
+    steps = policy.probe_quality_steps(renderer, iso, *SIZE, config)
+    yields = 0
+    try:
+        while True:
+            next(steps)
+            yields += 1
+    except StopIteration as done:
+        sliced = done.value
+    bands = 1 if renderer.device.is_cuda else policy.REFERENCE_BANDS_CPU
+    assert yields == 1 + 3 * (bands - 1) + len(sliced.psnr) * 3
+    assert sliced.psnr == pytest.approx(policy.probe_quality(renderer, iso, *SIZE, config).psnr, nan_ok=True)
