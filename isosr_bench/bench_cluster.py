@@ -7,7 +7,7 @@
         --gpus-per-replica split --replicas 1,2,4 --sessions 16            # N replicas on one GPU
     python -m isosr_bench.bench_cluster --smoke                            # small, CPU
 
-Results: ``benchmarks/results/bench_cluster_<size>_<device>.json`` (``--gpus-per-replica`` of 1
+Results: ``OUT/bench_cluster_<size>_<device>.json`` (``--gpus-per-replica`` of 1
 or more: ``bench_cluster_gpus_<size>_<device>.json``; ``split``, each server's replicas sharing
 one GPU: ``bench_cluster_one_gpu_<size>_<device>.json``), written after every case; a later run
 keeps the rows of the servers it does not measure in its ``--lease`` and of other leases (one run per
@@ -50,7 +50,7 @@ from isosr_bench.load import LoadSampler, titled
 from isosr_bench.sessions import run_sessions
 from isosr_client.drive import Orbit
 from isosr_client.view import connect
-from isosr_server.protocol import MODES
+from isosr_server.views import VIEWS
 
 CASES = (("full", 0), ("reconstruct", 1), ("auto", 0))
 
@@ -64,8 +64,8 @@ def parse_cases(text: str) -> tuple[tuple[str, int], ...]:
     cases = []
     for item in text.split(","):
         mode, _, ao = item.partition(":")
-        if mode not in MODES or not ao.isdigit():
-            raise ValueError(f"{item!r} is not MODE:AO_RAYS with MODE one of {', '.join(MODES)}")
+        if mode not in VIEWS or not ao.isdigit():
+            raise ValueError(f"{item!r} is not MODE:AO_RAYS with MODE one of {', '.join(VIEWS)}")
         cases.append((mode, int(ao)))
     return tuple(cases)
 

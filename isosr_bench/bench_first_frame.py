@@ -5,7 +5,7 @@ probe of the ``auto`` mode costs the frames after it, and how long a shutdown ta
     python -m isosr_bench.bench_first_frame --device cuda --volume bonsai
     python -m isosr_bench.bench_first_frame --smoke                          # small, CPU
 
-Results: ``benchmarks/results/bench_first_frame_<device>.json``. One `isosr serve` process; per
+Results: ``OUT/bench_first_frame_<device>.json``. One `isosr serve` process; per
 case (mode and window size, each a scene and size no earlier case probed): the seconds from
 connecting to the first frame (the first case also loads the volume), its method, then
 ``--frames`` frames along an orbit: their latency (median, max: a frame that waited for a unit

@@ -1,6 +1,6 @@
 """The heaviest work the service's default limits allow: its time and peak memory.
 
-    python -m isosr_bench.bench_limits --device cpu     # results/bench_limits_cpu.json
+    python -m isosr_bench.bench_limits --device cpu     # OUT/bench_limits_cpu.json (--out)
     python -m isosr_bench.bench_limits --smoke          # small sizes (CI)
 
 Two requests, each as the server runs it (the engine's networks, frames in slices) in a fresh

@@ -8,7 +8,7 @@ and without skipping, 1080p with 128 AO rays, and the 480x270 low-res pass (mask
 depth, flow). Then the reconstruction's render (first hit, 1 AO ray, flow at 1080p) per call
 three ways: a fresh ``Renderer.render`` (new buffers), a reused ``RenderPlan``, and on CUDA the
 plan's launch replayed from a CUDA graph (``ms``: CUDA events around each call; ``kernel_ms``:
-the render kernel alone). Prints a Markdown table and writes ``benchmarks/results/bench_render_*.json``.
+the render kernel alone). Prints a Markdown table and writes ``OUT/bench_render_*.json`` (``--out``).
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@
     python -m isosr_bench.bench_server --device cuda --volume bonsai --size 4k  # 3840x2160
     python -m isosr_bench.bench_server --smoke           # small, CPU, in the test suite
 
-Results: ``benchmarks/results/bench_server_<size>_<device>.json``. Starts the server in a
+Results: ``OUT/bench_server_<size>_<device>.json``. Starts the server in a
 subprocess (or uses ``--url``) and drives closed-loop view sessions
 (:func:`isosr_client.drive.drive`: send a camera, wait for its frame, repeat) for a bounded
 time per case. Per mode (every one the server offers: ``auto``, ``full`` with AO 0 and 8,

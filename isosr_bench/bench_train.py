@@ -5,7 +5,7 @@
     python -m isosr_bench.bench_train --config C --gpus 1,2 --seeds 0,1     # and the spread of two seeds
     python -m isosr_bench.bench_train --config C --gpus 1,2 --batch-size 32 # a larger global batch
 
-Results: ``benchmarks/results/bench_train_<device>.json``. Each run trains ``--config`` from its
+Results: ``OUT/bench_train_<device>.json``. Each run trains ``--config`` from its
 start (its own run folder under ``--runs``; the same data, steps and global batch: each of N
 processes takes 1/N of every batch) and is read back from its ``last/`` checkpoint: the steps,
 their wall seconds without validation and saving (``Trainer.timing``), ms per step, training

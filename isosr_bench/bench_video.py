@@ -7,7 +7,7 @@ server's rate control, and over a throttled link (issue 21).
         --link-mbit 50 --link-seconds 8
     python -m isosr_bench.bench_video --device cpu --smoke
 
-Results: ``benchmarks/results/bench_video_<sizes>_<device>.json`` (``bench_video_1080p_cuda.json``),
+Results: ``OUT/bench_video_<sizes>_<device>.json`` (``bench_video_1080p_cuda.json``),
 one row per study and case (``study``).
 The frames are what a view session encodes: per ``--methods`` entry (``KIND:AO_RAYS``, a
 registered frame method; default ``reconstruct:1``, what ``auto`` picks at 1080p on an H100,

@@ -22,7 +22,7 @@ held; a stand-in for a chunked store on disk, whose reads it replaces by computa
 Peak host memory is the process's resident set high-water mark during each phase (reset
 through ``/proc/self/clear_refs``); device memory is sampled every 5 ms from
 ``cudaMemGetInfo`` (whole device) during each phase. Writes
-``benchmarks/results/bench_volume_memory_<device>.json``.
+``OUT/bench_volume_memory_<device>.json``.
 """
 
 from __future__ import annotations

@@ -16,18 +16,25 @@ import torch
 
 from isosr_render.atomic import atomic_write
 
-# Results live outside the package: benchmarks/results of the checkout (where an editable
-# install or `python -m` from the repository runs), else of the working directory.
+# The committed results live outside the package: benchmarks/results of the checkout (where an
+# editable install or `python -m` from the repository runs), else of the working directory. The
+# report reads them by default; a benchmark writes there only when told (`--out benchmarks/results`).
 _CHECKOUT = Path(__file__).resolve().parents[1]
 RESULTS_DIR = ((_CHECKOUT if (_CHECKOUT / "pyproject.toml").is_file() else Path.cwd()) / "benchmarks" / "results")
+# Where a benchmark writes without --out: a scratch folder of the working directory (relative, so
+# resolved where the run starts; ignored by git at the repository's root), never the committed results.
+SCRATCH_DIR = Path("bench-out")
+# (%(default)s: argparse fills in the parser's default, SCRATCH_DIR.)
+OUT_HELP = ("folder for the results (default: ./%(default)s, a scratch folder of the working directory; "
+            "--out benchmarks/results updates the committed results)")
 
 
 def bench_parser(doc: str) -> argparse.ArgumentParser:
-    """The options every study takes: --device, --smoke, --out."""
+    """The options every study takes: --device, --smoke, --out (default :data:`SCRATCH_DIR`)."""
     parser = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--smoke", action="store_true", help="small sizes on the CPU (CI)")
-    parser.add_argument("--out", type=Path, default=RESULTS_DIR, help="folder for the JSON result")
+    parser.add_argument("--out", type=Path, default=SCRATCH_DIR, help=OUT_HELP)
     return parser
 
 
@@ -111,7 +118,7 @@ def kernel_ms(fn, frames: int, kernels: tuple[str, ...]) -> float:
     return sum(r.elapsed for r in results if any(k in r.name for k in kernels)) / frames
 
 
-def write_result(name: str, device: str, rows: list[dict], out_dir: Path = RESULTS_DIR) -> Path:
+def write_result(name: str, device: str, rows: list[dict], out_dir: Path = SCRATCH_DIR) -> Path:
     """Write ``OUT_DIR/NAME_<device kind>.json`` with device, commit and command."""
     out_dir.mkdir(parents=True, exist_ok=True)
     kind = "cuda" if device.startswith("cuda") else "cpu"

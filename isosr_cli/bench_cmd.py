@@ -13,13 +13,15 @@ ON_REQUEST = ("server", "memory")
 
 def add_parser(subparsers) -> None:
     """Register ``bench``."""
+    from isosr_bench.common import OUT_HELP, SCRATCH_DIR
+
     p = subparsers.add_parser("bench", help="timing and accuracy benchmarks (JSON, Markdown, plots)",
                               formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--device", help="cuda or cpu (default: cuda if torch sees a GPU)")
     p.add_argument("--smoke", action="store_true", help="small sizes on the CPU, under two minutes (CI)")
     p.add_argument("--only", default=",".join(STUDIES),
                    help=f"comma-separated subset of {','.join(STUDIES + ON_REQUEST)} (ignored with --pareto)")
-    p.add_argument("--out", help="results folder (default benchmarks/results)")
+    p.add_argument("--out", type=Path, default=SCRATCH_DIR, help=OUT_HELP)
     p.add_argument("--models", default="", help="more networks for the knob sweep: NAME=MODEL_FOLDER,...")
     p.add_argument("--pareto", action="store_true",
                    help="instead: every way to make a frame, timed and scored (pareto_<kind>.json), and the budget "
@@ -42,7 +44,6 @@ def run(args: argparse.Namespace) -> int:
 
     from isosr_bench import (bench_knobs, bench_network, bench_pareto, bench_pipeline, bench_render, bench_server,
                              bench_volume_memory, report)
-    from isosr_bench.common import RESULTS_DIR
 
     if (args.volumes or args.sizes or args.kinds or args.spp or args.ao_rays or args.budget_only) and not args.pareto:
         raise ValueError("--volumes, --sizes, --kinds, --spp, --ao-rays and --budget-only select what --pareto "
@@ -54,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"unknown studies {unknown}; choose from {', '.join(STUDIES + ON_REQUEST)}")
     bench_knobs.parse_models(args.models)  # a bad --models fails before hours of benchmarks
     device = args.device or ("cuda" if torch.cuda.is_available() and not args.smoke else "cpu")
-    out = Path(args.out) if args.out else RESULTS_DIR
+    out = args.out
     argv = ["--device", device, "--out", str(out)] + (["--smoke"] if args.smoke else [])
     if args.pareto:
         print("== pareto")

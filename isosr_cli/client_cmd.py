@@ -15,7 +15,7 @@ from pathlib import Path
 
 from isosr_cli.options import frame_size
 from isosr_server.core.config import TOKEN_ENV
-from isosr_server.protocol import ENCODINGS, INTERPOLATIONS, MODES
+from isosr_server.protocol import ENCODINGS, INTERPOLATIONS
 
 
 def add_parser(subparsers) -> None:
@@ -24,7 +24,8 @@ def add_parser(subparsers) -> None:
                               description=__doc__, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("url", help="the server, http(s)://HOST:PORT")
     p.add_argument("--volume", required=True, help="a name from GET /v1/volumes, or proc:cloud:0 and the like")
-    p.add_argument("--mode", default="auto", choices=MODES, help="the view mode (auto: the server chooses the method)")
+    p.add_argument("--mode", default="auto",
+                   help="the view mode (auto: the server chooses the method; GET /v1/modes lists the server's)")
     p.add_argument("--frames", type=int, default=30)
     p.add_argument("--orbit", default="30,20,1.8,2", help="YAW,PITCH,DIST[,YAWSTEP], degrees and world units")
     p.add_argument("--size", type=frame_size, default="640x480", help="output WxH")

@@ -16,6 +16,7 @@ import torch
 from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest, open_volume, orbit, resolve_iso
 from isosr_render.catalog import SHARED_PREFIX, check_iso
 from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES, HIGHRES_BUFFERS
+from isosr_render.formats import help_text
 from isosr_net.budget import BudgetConfig, render_within_budget
 from isosr_net.frame_methods import FrameRunner, Networks, make_runner, reconstruct_method, run_sequence
 from isosr_net.inference import PRECISIONS
@@ -47,11 +48,10 @@ def add_parser(subparsers) -> None:
     """Register ``render`` and its options."""
     p = subparsers.add_parser("render", help="render one frame of an isosurface",
                               description=__doc__, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("volume", help="volume file (.nii[.gz], .nrrd, .nhdr, .dat, NAME_XxYxZ_DTYPE.raw[.gz], "
-                                  ".npy, .npz, multi-page .tif, multi-frame .dcm), folder (a DICOM series, "
-                                  "a .zarr / OME-Zarr store, 2D TIFFs), procedural spec (proc:sphere, proc:torus, proc:cloud:SEED, "
-                                  "proc:metaballs:SEED, optional @SIZE) or shared volume (shared:NAME); an OME-Zarr level by "
-                                  "name, scan.zarr#level=2, or by memory, scan.zarr#max-gb=8 (default: the finest)")
+    p.add_argument("volume", help=f"a volume file or folder ({help_text()}), procedural spec (proc:sphere, "
+                                  "proc:torus, proc:cloud:SEED, proc:metaballs:SEED, optional @SIZE) or shared volume "
+                                  "(shared:NAME); an OME-Zarr level by name, scan.zarr#level=2, or by memory, "
+                                  "scan.zarr#max-gb=8 (default: the finest)")
     p.add_argument("--iso", type=float, help="iso-value in data units, strictly inside the data's value range "
                                              "(default: the procedural volume's own, else Otsu's threshold)")
     p.add_argument("--normalized-iso", action="store_true", help="--iso is on the normalized [0, 1] scale")

@@ -525,9 +525,9 @@ def connect(url: str, volume: str, mode: str = "auto", size: tuple[int, int] = (
     Args:
         url: the server, ``http(s)://HOST:PORT`` or ``ws(s)://HOST:PORT``.
         volume: the volume's name.
-        mode: a view mode (`isosr_server.protocol.MODES`: ``auto``, ``full``, ``network``,
-            ``upscale``, ``buffers``, ``focus``, ``reconstruct`` with ``settings["ao_rays"]`` AO rays
-            per hit, read as at most ``ready.max_recon_ao_rays``, ...).
+        mode: a view mode the server offers (``ready.modes``, ``GET /v1/modes``: e.g. ``auto``,
+            ``full``, ``network``, ``upscale``, ``buffers``, ``focus``, ``reconstruct`` with
+            ``settings["ao_rays"]`` AO rays per hit within the mode's bounds).
         size: output (width, height); a multiple of the upscale factor in the low-res modes
             (``network``, ``upscale``, ``buffers``, ``focus``).
         token: the server's token, if it has one.

@@ -218,6 +218,9 @@ class FrameRunner(ABC):
         network_class: the trained network it runs (None: none), with its default model.
         knobs: the spec's fields it reads; the others must keep their defaults.
         ao_rays, spp, factor: the ``(low, high)`` bounds of the spec's counts (:meth:`bounds`).
+        label: a menu's words for it.
+        view_mode: a viewer may ask for it by name (a service mode).
+        default_ao_rays: the AO rays a viewer starts it with.
 
     Args:
         method: the way to make frames.
@@ -245,6 +248,9 @@ class FrameRunner(ABC):
     ao_rays: ClassVar[tuple[int, int]] = (0, 0)
     spp: ClassVar[tuple[int, int]] = (1, 1)
     factor: ClassVar[tuple[int, int]] = (1, 1)
+    label: ClassVar[str] = ""
+    view_mode: ClassVar[bool] = True
+    default_ao_rays: ClassVar[int] = 0
 
     def __init__(self, method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int,
                  shading: ShadingParams = ShadingParams(), ao_radius: float = AO_RADIUS,
@@ -408,6 +414,8 @@ class FrameRunner(ABC):
 class FullRunner(FrameRunner):
     """Full resolution, AO from ``ao_rays`` rays per hit (0: none)."""
 
+    label = "full resolution"
+
     knobs = ("ao_rays", "spp")
     ao_rays = (0, MAX_AO_SAMPLES)
     spp = (1, MAX_SPP)
@@ -443,6 +451,9 @@ class FullRunner(FrameRunner):
 class ATrousRunner(FrameRunner):
     """Full resolution, AO from 1-4 (or more) rays per hit smoothed by the edge-avoiding a-trous filter."""
 
+    label = "filtered AO (a-trous)"
+    default_ao_rays = 4
+
     knobs = ("ao_rays", "spp")
     ao_rays = (1, MAX_AO_SAMPLES)
     spp = (1, MAX_SPP)
@@ -470,6 +481,9 @@ class SVGFRunner(FrameRunner):
     """Full resolution, AO from 1-4 (or more) rays per hit, a new set of rays each frame, accumulated
     along the flow and filtered by SVGF (:func:`isosr_net.svgf.svgf_filter`); a frame without a
     previous camera starts the history anew."""
+
+    label = "filtered AO (SVGF)"
+    default_ao_rays = 1
 
     recurrent = True
     fresh_rays = True
@@ -515,6 +529,9 @@ class OIDNRunner(FrameRunner):
     Image Denoise with the AO-free shading as albedo and the normals as clean auxiliary images
     (:func:`isosr_net.oidn.denoise`). Its frames hold a color but no AO."""
 
+    label = "denoised AO (OIDN)"
+    default_ao_rays = 1
+
     knobs = ("ao_rays", "spp", "quality")
     ao_rays = (1, MAX_AO_SAMPLES)
     spp = (1, MAX_SPP)
@@ -554,6 +571,9 @@ class ReconstructRunner(FrameRunner):
     network. With a `Reconstructor` made with ``graphs`` on CUDA, a frame in one slice (render,
     network, shading) is one CUDA graph (:meth:`Reconstructor.render_reconstruct`), timed as the
     ``render`` stage."""
+
+    label = "reconstruction (full res, few AO rays)"
+    default_ao_rays = 2
 
     recurrent = True
     fresh_rays = True  # accumulated along the flow before the network (isosr_net.ray_history)
@@ -609,6 +629,8 @@ def reconstruct_method(model: str | None = None, **knobs) -> FrameMethod:
 class ClassicUpscaleRunner(FrameRunner):
     """A low-res ray cast upscaled by interpolation, shaded without AO."""
 
+    label = "classic upscaling"
+
     low_res = True
     knobs = ("factor", "interpolation")
     factor = (2, MAX_FACTOR)
@@ -634,6 +656,8 @@ class ClassicUpscaleRunner(FrameRunner):
 @register_runner("network")
 class NetworkRunner(FrameRunner):
     """A low-res ray cast upscaled by the trained network (which infers AO), shaded."""
+
+    label = "network upscaling"
 
     low_res = True
     recurrent = True
@@ -663,6 +687,8 @@ class NetworkRunner(FrameRunner):
 class BuffersRunner(FrameRunner):
     """The low-res ray cast itself (mask, normal, depth; flow after a previous camera), unshaded:
     for a client that upscales and shades them."""
+
+    label = "low-res buffers (the client upscales)"
 
     low_res = True
     recurrent = True

@@ -1,53 +1,20 @@
-"""Load scalar volumes from the file formats of scientific visualization.
+"""Open scalar volumes from the file formats of scientific visualization, by the format registry.
 
-Every reader returns the stored values indexed ``[x, y, z]`` (x is the first axis), the voxel
-spacing and the rescale to original units; :func:`open_source` wraps them in an
-:class:`~isosr_render.voxels.ArraySource` and :func:`load_volume` turns that into a
-:class:`Volume`. Supported files:
-
-- Volume Library ``.dat`` text header beside a ``.raw`` file (``ObjectFileName``,
-  ``Resolution``, ``SliceThickness``, ``Format`` UCHAR/USHORT/FLOAT), little-endian.
-- ``name_XxYxZ_dtype.raw`` and ``.raw.gz`` (little-endian, spacing 1).
-- NIfTI ``.nii`` / ``.nii.gz`` (either byte order, spacing from the zooms, stored type kept and
-  ``scl_slope``/``scl_inter`` as the rescale).
-- NRRD ``.nrrd`` / ``.nhdr``, including detached headers over a numbered list of data files
-  (``data file: slice.%03d 1 93 1``), which pynrrd does not read.
-- NumPy ``.npy`` / ``.npz`` stored as (x, y, z), never unpickled.
-
-Raw voxels are x-fastest on disk: they are read flat, shaped (z, y, x) and transposed.
-
-DICOM series (a folder) and multi-frame files, Zarr / OME-Zarr stores (a folder) and TIFF files
-or folders of TIFFs are read lazily, box by box, by :mod:`isosr_render.formats`.
+:func:`open_source` picks the reader of a file or folder from :mod:`isosr_render.formats` (by its
+suffix, else by what it holds) and returns its :class:`~isosr_render.voxels.VoxelSource`: the
+stored values indexed ``[x, y, z]`` (x is the first axis), the voxel spacing and the rescale to
+original units; :func:`load_volume` turns that into a :class:`Volume`. :func:`probe` checks a
+path cheaply and :func:`volume_name` names it in a folder of volumes.
 """
 
 from __future__ import annotations
 
-import gzip
 import os
-import re
-import zlib
 from pathlib import Path
-from typing import Callable
 
-import nibabel as nib
-import nrrd
-import numpy as np
-
-from isosr_render.formats import TIFF_SUFFIXES, format_of, open_format
+from isosr_render.formats import FORMATS, format_of
 from isosr_render.volume import Volume, VolumeError
-from isosr_render.voxels import ArraySource, VoxelSource
-
-# A reader's result: stored values [x, y, z], spacing, and optionally (slope, intercept).
-_Loaded = tuple[np.ndarray, tuple[float, ...]] | tuple[np.ndarray, tuple[float, ...], tuple[float, float]]
-
-_RAW_NAME = re.compile(r"_(\d+)x(\d+)x(\d+)_([a-z]+\d*)\.raw(\.gz)?$", re.IGNORECASE)
-_RAW_DTYPES = ("uint8", "int8", "uint16", "int16", "uint32", "int32", "float32", "float64")
-_DAT_FORMATS = {"UCHAR": "u1", "USHORT": "<u2", "FLOAT": "<f4"}
-# NRRD multi-file form: "<printf pattern> <min> <max> <step> [<subdim>]".
-_NRRD_FILE_LIST = re.compile(r"(\S*%\S*)\s+(-?\d+)\s+(-?\d+)\s+(-?\d+)(?:\s+\d+)?")
-# What the file and array libraries raise on bad input; re-raised as VolumeError.
-_LIBRARY_ERRORS = (OSError, EOFError, ValueError, zlib.error, nrrd.NRRDError,
-                   nib.filebasedimages.ImageFileError)
+from isosr_render.voxels import VoxelSource
 
 
 def load_volume(path: str | os.PathLike, *, level: str | None = None, max_bytes: int | None = None) -> Volume:
@@ -65,242 +32,69 @@ def load_volume(path: str | os.PathLike, *, level: str | None = None, max_bytes:
 
 
 def open_source(path: str | os.PathLike, *, level: str | None = None, max_bytes: int | None = None) -> VoxelSource:
-    """Open a volume file or folder as a voxel source, choosing the reader from the path.
+    """Open a volume file or folder as a voxel source, with the reader :func:`isosr_render.formats.format_of` picks.
 
     Args:
-        path: a ``.dat``, ``_XxYxZ_dtype.raw[.gz]``, ``.nii[.gz]``, ``.nrrd``, ``.nhdr``,
-            ``.npy`` or ``.npz`` file (read whole); or a DICOM series folder or multi-frame
-            file, a Zarr / OME-Zarr store, a TIFF file or a folder of 2D TIFFs (read lazily by
-            :func:`isosr_render.formats.open_format`; an OME-Zarr's finest level).
-        level, max_bytes: an OME-Zarr level by name, or the finest whose voxels fit ``max_bytes``
-            (:func:`isosr_render.formats.zarr.open_zarr`); other formats have no levels.
+        path: a file or folder of a registered format (:data:`isosr_render.formats.FORMATS`): a
+            ``.nii[.gz]``, ``.nrrd``, ``.nhdr``, ``.dat``, ``_XxYxZ_dtype.raw[.gz]``, ``.npy`` or
+            ``.npz`` file (read whole); a DICOM series folder or multi-frame file, a Zarr /
+            OME-Zarr store (its finest level), a TIFF file or a folder of 2D TIFFs (read lazily).
+        level, max_bytes: a level by name, or the finest whose voxels fit ``max_bytes``, of a
+            format with levels (OME-Zarr: :func:`isosr_render.formats.zarr.open_zarr`).
 
     Returns:
         The stored values named after the file or folder, with spacing and rescale.
 
     Raises:
-        VolumeError: the path is missing, has an unknown extension or cannot be read (bad
-            header, unknown data type, size that does not match the header, missing data
-            files, not 3D; the formats' own errors). The message names the file and the problem.
+        VolumeError: the path is missing, is no registered format's (the message lists them) or
+            cannot be read (bad header, unknown data type, size that does not match the header,
+            missing data files, not 3D; the formats' own errors). The message names the file
+            and the problem.
     """
     path = Path(path)
     if not path.exists():
         raise VolumeError(f"{path}: no such file")
-    if level is not None or max_bytes is not None:
-        if format_of(path) != "zarr":
-            raise VolumeError(f"{path}: only an OME-Zarr store has levels to choose from")
-        from isosr_render.formats.zarr import open_zarr
-        return open_zarr(path, level=level, max_bytes=max_bytes)
-    lower = path.name.lower()
-    reader = next((read for suffixes, read in _READERS if lower.endswith(suffixes)), None)
-    if reader is None or path.is_dir():
-        if format_of(path) is not None:
-            return open_format(path)
-        if path.is_dir():
-            raise VolumeError(f"{path}: a folder that holds no DICOM series, Zarr store or TIFF stack")
-        known = ", ".join(s for suffixes, _ in _READERS for s in suffixes)
-        raise VolumeError(f"{path}: unknown extension (expected one of {known}, {', '.join(TIFF_SUFFIXES)}; "
-                          "or a DICOM series, Zarr store or TIFF stack folder)")
-    try:
-        values, spacing, *rescale = reader(path)
-    except VolumeError:
-        raise
-    except _LIBRARY_ERRORS as e:
-        raise VolumeError(f"{path}: cannot read ({type(e).__name__}: {e})") from e
-    values = np.asarray(values)
-    if not (np.issubdtype(values.dtype, np.number) or values.dtype == np.bool_):
-        raise VolumeError(f"{path.name}: unsupported voxel dtype {values.dtype}")
-    if values.dtype.kind in "iu" and values.dtype.itemsize == 8:  # 64-bit integers: as float64
-        values = values.astype(np.float64)
-    return ArraySource(values, spacing, name=path.name, rescale=rescale[0] if rescale else (1.0, 0.0))
+    fmt = format_of(path)
+    options = {k: v for k, v in (("level", level), ("max_bytes", max_bytes)) if v is not None}
+    if options and (fmt is None or not fmt.levels):
+        raise VolumeError(f"{path}: only an OME-Zarr store has levels to choose from")
+    if fmt is not None:
+        return fmt.open(path, **options)
+    folders = [f.folder for f in FORMATS.values() if f.folder]
+    folders = f"{', '.join(folders[:-1])} or {folders[-1]}" if len(folders) > 1 else "".join(folders)
+    if path.is_dir():
+        raise VolumeError(f"{path}: a folder that holds no {folders}")
+    known = ", ".join(s for f in FORMATS.values() if f.files for s in f.suffixes)
+    raise VolumeError(f"{path}: unknown extension (expected one of {known}; or a {folders} folder)")
 
 
 # A volume file is read whole to check it (:func:`probe`) up to this size; a larger one when opened.
 PROBE_BYTES = 16 << 20
-# Headers whose voxels lie in other files, of a size the header does not show: checked when opened.
-_DETACHED = (".dat", ".nhdr")
 
 
 def probe(path: str | os.PathLike) -> None:
     """Raise the `VolumeError` :func:`open_source` would for ``path``, cheaply: a DICOM series, Zarr
-    store or TIFF is opened (headers and at most one slice); another file is read whole only
-    up to ``PROBE_BYTES`` and if it holds its voxels itself (others are checked when opened)."""
+    store or TIFF is opened (headers and at most one slice); a file read whole only up to
+    ``PROBE_BYTES`` and if it holds its voxels itself (a detached header's are checked when opened)."""
     path = Path(path)
-    whole = path.is_file() and format_of(path) is None
-    if whole and (path.name.lower().endswith(_DETACHED) or path.stat().st_size > PROBE_BYTES):
+    fmt = format_of(path)
+    if fmt is not None and path.is_file() and (path.name.lower().endswith(fmt.detached)
+                                               or (fmt.whole and path.stat().st_size > PROBE_BYTES)):
         return
     open_source(path)
 
 
-def _read_xfastest(path: Path, dtype: np.dtype, shape: tuple[int, int, int], label: str) -> np.ndarray:
-    """Read x-fastest voxels from a plain or gzipped file, checking the size, as [x, y, z]."""
-    expected = int(np.prod(shape)) * dtype.itemsize
-    gzipped = path.name.lower().endswith(".gz")
-    if gzipped:
-        with gzip.open(path, "rb") as f:
-            buffer = f.read()
-        found = len(buffer)
-    else:
-        found = path.stat().st_size
-    if found != expected:
-        raise VolumeError(f"{label}: size mismatch, expected {expected} bytes for shape {shape} "
-                          f"of {dtype.name}, found {found} bytes")
-    flat = np.frombuffer(buffer, dtype) if gzipped else np.fromfile(path, dtype)
-    return flat.reshape(shape[::-1]).transpose(2, 1, 0)
-
-
-def _read_named_raw(path: Path) -> _Loaded:
-    """Read ``name_XxYxZ_dtype.raw[.gz]``: shape and dtype come from the file name."""
-    match = _RAW_NAME.search(path.name)
-    if match is None:
-        raise VolumeError(f"{path}: cannot tell shape and dtype, a raw file name must look like "
-                          "name_XxYxZ_dtype.raw or .raw.gz")
-    dtype_name = match.group(4).lower()
-    if dtype_name not in _RAW_DTYPES:
-        raise VolumeError(f"{path}: unknown dtype '{dtype_name}' in the file name "
-                          f"(expected one of {', '.join(_RAW_DTYPES)})")
-    shape = tuple(int(match.group(i)) for i in (1, 2, 3))
-    return _read_xfastest(path, np.dtype(dtype_name).newbyteorder("<"), shape, str(path)), (1.0, 1.0, 1.0)
-
-
-def _dat_numbers(path: Path, fields: dict[str, str], key: str, kind: type) -> tuple:
-    """Parse the three numbers of a ``.dat`` header field."""
-    text = fields[key.lower()]
-    try:
-        numbers = tuple(kind(v) for v in text.split())
-    except ValueError:
-        numbers = ()
-    if len(numbers) != 3:
-        raise VolumeError(f"{path}: unparseable header line '{key}: {text}' (expected 3 numbers)")
-    return numbers
-
-
-def _read_dat(path: Path) -> _Loaded:
-    """Read a Volume Library ``.dat`` header and the ``.raw`` file it names."""
-    fields = {}
-    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
-        if not line.strip() or line.lstrip().startswith("#"):
-            continue
-        key, colon, value = line.partition(":")
-        if not colon or not key.strip():
-            raise VolumeError(f"{path}: unparseable header line {number}: '{line.strip()}'")
-        fields[key.strip().lower()] = value.strip()
-    missing = [k for k in ("ObjectFileName", "Resolution", "Format") if k.lower() not in fields]
-    if missing:
-        raise VolumeError(f"{path}: header lacks {', '.join(missing)}")
-    fmt = fields["format"].upper()
-    if fmt not in _DAT_FORMATS:
-        raise VolumeError(f"{path}: unknown Format '{fields['format']}' "
-                          f"(expected {', '.join(_DAT_FORMATS)})")
-    shape = _dat_numbers(path, fields, "Resolution", int)
-    spacing = (1.0, 1.0, 1.0)
-    if "slicethickness" in fields:
-        spacing = _dat_numbers(path, fields, "SliceThickness", float)
-    raw = path.parent / fields["objectfilename"]
-    if not raw.is_file():
-        raise VolumeError(f"{path}: missing data file {raw} (ObjectFileName)")
-    label = f"{path}: data file {raw.name}"
-    return _read_xfastest(raw, np.dtype(_DAT_FORMATS[fmt]), shape, label), spacing
-
-
-def _read_nifti(path: Path) -> _Loaded:
-    """Read a NIfTI image in its stored dtype, with the header's scaling as the rescale."""
-    image = nib.load(path)
-    proxy = image.dataobj
-    values = np.asanyarray(proxy.get_unscaled())
-    while values.ndim > 3 and values.shape[-1] == 1:
-        values = values[..., 0]
-    rescale = (float(proxy.slope), float(proxy.inter))
-    return values, tuple(float(z) for z in image.header.get_zooms()[:3]), rescale
-
-
-def _read_nrrd_file_list(path: Path, header: dict, match: re.Match) -> np.ndarray:
-    """Read the data files of a multi-file detached header, in order, as one array."""
-    pattern, first, last, step = match.group(1), *(int(match.group(i)) for i in (2, 3, 4))
-    if step == 0:
-        raise VolumeError(f"{path}: unparseable 'data file' list, step is 0")
-    try:
-        files = [path.parent / (pattern % i) for i in range(first, last + (1 if step > 0 else -1), step)]
-    except (TypeError, ValueError) as e:
-        raise VolumeError(f"{path}: unparseable 'data file' pattern '{pattern}' ({e})") from e
-    missing = [f.name for f in files if not f.is_file()]
-    if missing:
-        raise VolumeError(f"{path}: missing {len(missing)} of {len(files)} slice files: "
-                          f"{', '.join(missing[:5])}{', ...' if len(missing) > 5 else ''}")
-    sizes = np.asarray(header["sizes"], dtype=np.int64)
-    total = int(sizes.prod())
-    if total % len(files):
-        raise VolumeError(f"{path}: sizes {sizes.tolist()} do not split evenly over {len(files)} data files")
-    # Files hold consecutive x-fastest chunks, whatever the subdim: read each flat, then join.
-    part = {k: v for k, v in header.items() if k not in ("data file", "datafile")}
-    part.update(dimension=1, sizes=np.array([total // len(files)]))
-    chunks = []
-    for file in files:
-        try:
-            chunks.append(nrrd.read_data({**part, "data file": str(file.resolve())}, filename=str(path)))
-        except nrrd.NRRDError as e:
-            raise VolumeError(f"{path}: slice file {file.name} does not match the header: {e}") from e
-    return np.concatenate(chunks).reshape(sizes[::-1]).T
-
-
-def _nrrd_spacing(header: dict) -> tuple[float, ...]:
-    """Voxel size per axis from ``space directions`` (row lengths) or ``spacings``, else 1."""
-    if "space directions" in header:
-        spacing = np.linalg.norm(np.asarray(header["space directions"], dtype=np.float64), axis=1)
-    elif "spacings" in header:
-        spacing = np.asarray(header["spacings"], dtype=np.float64)
-    else:
-        spacing = np.ones(len(header["sizes"]))
-    return tuple(float(s) for s in np.where(np.isnan(spacing), 1.0, spacing)[:3])
-
-
-def _read_nrrd(path: Path) -> _Loaded:
-    """Read an NRRD file or detached header, including the multi-file ``data file`` form."""
-    with open(path, "rb") as fh:
-        header = nrrd.read_header(fh)
-        match = _NRRD_FILE_LIST.fullmatch(header.get("data file", header.get("datafile", "")).strip())
-        if match:
-            values = _read_nrrd_file_list(path, header, match)
-        else:
-            values = nrrd.read_data(header, fh, str(path))
-    return values, _nrrd_spacing(header)
-
-
-def _read_numpy(path: Path) -> _Loaded:
-    """Read a ``.npy`` array or the ``volume``/``data``/only array (and ``spacing``) of a ``.npz``."""
-    loaded = np.load(path, allow_pickle=False)
-    if isinstance(loaded, np.ndarray):
-        return loaded, (1.0, 1.0, 1.0)
-    with loaded:
-        names = [n for n in loaded.files if n != "spacing"]
-        key = next((n for n in ("volume", "data") if n in names), names[0] if len(names) == 1 else None)
-        if key is None:
-            raise VolumeError(f"{path}: cannot tell which array is the volume among {names}; "
-                              "name it 'volume' or 'data'")
-        spacing = loaded["spacing"].ravel() if "spacing" in loaded.files else (1.0, 1.0, 1.0)
-        return loaded[key], tuple(float(s) for s in spacing)
-
-
-_READERS: tuple[tuple[tuple[str, ...], Callable[[Path], _Loaded]], ...] = (
-    ((".dat",), _read_dat),
-    ((".raw", ".raw.gz"), _read_named_raw),
-    ((".nii", ".nii.gz"), _read_nifti),
-    ((".nrrd", ".nhdr"), _read_nrrd),
-    ((".npy", ".npz"), _read_numpy),
-)
-
-
 def volume_name(path: Path) -> str | None:
     """The name a folder of volumes lists ``path`` under, or None for what :func:`open_source` does not
-    take: a volume file's name without its extension; a DICOM series' or TIFF stack's folder name; a
-    Zarr store's name without ``.zarr``. Loose DICOM files are not listed (a series is one folder)."""
-    lower = path.name.lower()
-    if lower.startswith("."):
+    take: a volume file's name without its format's suffix (the longest it ends with); a folder's
+    name without the suffix that makes it a store (``.zarr``), else whole (a DICOM series, a TIFF
+    stack). Files of formats that do not ``list_files`` (loose DICOM files: a series is one folder)
+    and files told only by what they hold are not listed."""
+    if path.name.startswith("."):
         return None
-    if path.is_file():
-        suffixes = [s for known, _ in _READERS for s in known] + [o + t for o in (".ome", "") for t in TIFF_SUFFIXES]
-        suffix = next((s for s in sorted(suffixes, key=len, reverse=True) if lower.endswith(s)), None)
-        return path.name[: -len(suffix)] if suffix else None
-    if not path.is_dir() or format_of(path) is None:
+    fmt = format_of(path)
+    if fmt is None or (path.is_file() and not fmt.list_files):
         return None
-    return next((path.name[: -len(s)] for s in (".ome.zarr", ".zarr") if lower.endswith(s)), path.name)
+    if fmt.claims(path):
+        return path.name[: -len(fmt.suffix_of(path.name))]
+    return path.name if path.is_dir() else None

@@ -6,6 +6,7 @@ one, except the health probes and the viewer page):
     POST /v1/upscale                     one low-res frame -> high-res buffers (msgpack) or an image
     WS   /v1/upscale/stream              low-res frames in, high-res frames out, in order
     GET  /v1/volumes, /v1/volumes/{name} the volumes offered; one with its histogram
+    GET  /v1/modes                       the view modes offered, with the settings they read
     GET  /v2/health/live, /v2/health/ready (no token), /v2, /v2/models/isosr[-recon][/ready]  KServe v2
     GET  /metrics                        Prometheus
     GET  /, /static/...                  the browser viewer (no token)

@@ -45,8 +45,8 @@ from isosr_server.codecs.buffers import pack_view_buffers
 from isosr_server.codecs.buffers_device import view_buffer_codes
 from isosr_server.codecs import video
 from isosr_server.encoding import CodedImage, encode_image, encoder_name
-from isosr_server.protocol import IMAGE_ENCODINGS, FocusMsg, UpscaleRequest, ViewBuffers, ViewSettings, VolumeMemory
-from isosr_server.views import FrameJob, SessionFrames, ViewContext, ViewFrame
+from isosr_server.protocol import IMAGE_ENCODINGS, FocusMsg, ModeInfo, UpscaleRequest, ViewBuffers, ViewSettings, VolumeMemory
+from isosr_server.views import FrameJob, SessionFrames, ViewContext, ViewFrame, mode_infos
 
 RENDERER_CACHE = 4
 # How frames name the server's networks (in their method's name: "x4 network fp16", "..., recon fp16").
@@ -142,6 +142,7 @@ class Engine:
         self._models = {Upscaler: (config.model, MODEL_NAMES[Upscaler]),
                         Reconstructor: (config.recon_model, MODEL_NAMES[Reconstructor])}
         self.context: ViewContext | None = None
+        self.modes: list[ModeInfo] = []
         self.auto: AutoPolicy | None = None
         self._probes: set[asyncio.Task] = set()  # the auto mode's probes under way (background device work)
         self._framing = 0  # view frames in the making
@@ -181,6 +182,7 @@ class Engine:
             reconstructor.warm(WARM_RECON_SIZES)
             x2.warm([(h // 2, w // 2) for h, w in WARM_RECON_SIZES])
         self.context = ViewContext(factor, self.precision, self._models)
+        self.modes = mode_infos(self.context)  # what ready and GET /v1/modes list
         self.auto = AutoPolicy.for_server(str(self.device), self.precision, factor, self._models,
                                           self.config.target_fps, self.networks, self.config.recon_x2_model,
                                           ProbeCache(self.config.probe_cache, self.device_label()), self.slice_ms)

@@ -41,20 +41,22 @@ Encodings (``settings.encoding``)
     falls back to jpeg (``ready`` and the frames say so) with a ``notice`` saying why.
 
 View modes (``settings.mode``)
-    auto         the server's budget policy chooses the frame method per session.
+    The server's frame methods that a viewer may ask for by name, with ``auto`` (the server's
+    budget policy chooses the method per session) and ``focus`` (``network``, with a ``full``
+    render inside the focus region). ``ready`` (and ``GET /v1/modes``) lists them as
+    :class:`ModeInfo`: each mode's label, the settings it reads with their bounds, whether it
+    makes a shaded image, upscales, or follows a focus point; a mode that is not listed is
+    refused naming those that are. The usual ones:
     full         ray cast at the output size, ``ao_rays`` AO rays per hit (0: none), ``spp``
                  rays per pixel.
-    atrous       as ``full``, the AO of few rays filtered (a-trous wavelet filter).
-    reconstruct  ray cast at the output size with few AO rays per hit (``ao_rays``; past the
-                 reconstruction model's own, ``max_recon_ao_rays`` of ``ready``, it reads their
-                 mean as that many), reconstructed by a network to converged-looking AO and
-                 antialiased edges.
+    atrous, svgf, oidn   as ``full``, the AO of few rays filtered or denoised.
+    reconstruct  ray cast at the output size with few AO rays per hit, reconstructed by a
+                 network to converged-looking AO and antialiased edges.
     network      ray cast at 1/factor of the output size, upscaled by the network (which infers
                  AO), shaded.
     upscale      as ``network`` with classic ``interpolation`` (nearest, bilinear, bicubic; no AO).
     buffers      the low-res buffers themselves (:mod:`isosr_server.codecs.buffers`): the client
                  upscales.
-    focus        ``network``, with a ``full`` render inside the focus region.
     ``network``, ``focus`` and ``reconstruct`` carry a recurrent state per session; a new iso, size or
     mode (``reconstruct``: or ``ao_rays``) starts it afresh.
 
@@ -87,9 +89,10 @@ from msgspec import UNSET, Meta, UnsetType
 from isosr_render.conventions import AO_RADIUS
 from isosr_server.codecs.arrays import ArrayTooBig, WireArray, decode_array, encode_array
 
+# 5: modes named by the server (ready.modes), ready's limits on messages and acknowledgements;
 # 3: the v3 vocabulary (modes auto/network/upscale/..., ao_rays, spp, interpolation, frame methods);
 # 2 (acknowledged frames, flow control) and earlier are refused with a reason.
-PROTOCOL_VERSION = 4
+PROTOCOL_VERSION = 5
 
 # Largest magnitude of any float field (camera coordinates, iso, ...): beyond it is hostile input.
 MAX_ABS_FLOAT = 1e9
@@ -97,7 +100,9 @@ MAX_SEQ = 2**53
 # Flow, in the buffers coding and in upscale requests, lies within +-FLOW_CLIP pixels (float16 ends at 65504).
 FLOW_CLIP = 60000.0
 
-MODES = ("auto", "full", "atrous", "reconstruct", "network", "upscale", "buffers", "focus")
+MAX_VIEW_SPP = 4  # rays per pixel a view session may ask for
+# A view mode's name: the server lists its modes (``ready.modes``) and refuses others naming them.
+ModeName = Annotated[str, Meta(pattern="^[a-z][a-z0-9_]{0,31}$")]
 # What a shaded-mode frame shows: the shaded image or one buffer in false color (isosr_server.channels).
 CHANNELS = ("shaded", "mask", "normal", "depth", "ao", "flow")
 IMAGE_ENCODINGS = ("jpeg", "png", "webp")
@@ -262,7 +267,7 @@ class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     a `SettingsUpdate` of any of them).
 
     Attributes:
-        mode: a view mode (`MODES`, module docstring).
+        mode: a view mode (module docstring; ``ready.modes`` lists the server's).
         width, height: output image size; for the low-res modes (network, upscale, buffers,
             focus) a multiple of the network's upscale factor (``ready`` announces it).
         ao_rays: AO rays per hit of full-resolution renders (0 = no AO); in ``reconstruct`` the
@@ -281,11 +286,11 @@ class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         channel: ``shaded``, or a buffer shown in false color (:mod:`isosr_server.channels`).
     """
 
-    mode: Literal[MODES] = "auto"
+    mode: ModeName = "auto"
     width: Side = 640
     height: Side = 480
     ao_rays: Annotated[int, Meta(ge=0)] = 0
-    spp: Annotated[int, Meta(ge=1, le=4)] = 1
+    spp: Annotated[int, Meta(ge=1, le=MAX_VIEW_SPP)] = 1
     interpolation: Literal[INTERPOLATIONS] = "bilinear"
     ao_radius: Annotated[float, Meta(gt=0.0, le=1.0)] = AO_RADIUS
     encoding: Literal[ENCODINGS] = "jpeg"
@@ -501,11 +506,36 @@ class VolumeSummary(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     levels: list[LevelSummary] | None = None
 
 
+class OptionInfo(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """A setting a mode reads: an integer within ``[low, high]`` starting at ``default``, or one
+    of ``choices``."""
+
+    name: Annotated[str, Meta(max_length=32)]
+    low: int | None = None
+    high: int | None = None
+    default: int | str | None = None
+    choices: list[str] | None = None
+
+
+class ModeInfo(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """A view mode the server offers: its name and label, the settings it reads, whether its
+    frames are shaded images (else buffers for the client), are upscaled by the server's factor
+    (``low_res``: the size a multiple of it), and follow a ``focus`` point."""
+
+    name: ModeName
+    label: Annotated[str, Meta(max_length=100)]
+    options: list[OptionInfo]
+    shaded: bool = True
+    low_res: bool = False
+    focus: bool = False
+
+
 class ReadyMsg(Message, tag="ready"):
     """Server -> client, the answer to ``open``: the session, its volume, its effective
     settings (``encoding``: the one it sends, jpeg where the asked one cannot be made), the
     network's upscale factor, the reconstruction's AO ray bound, the limits, and the encodings
-    this server can make now (video codecs only where PyAV and the codec are present)."""
+    this server can make now (video codecs only where PyAV and the codec are present), and the
+    view modes it offers."""
 
     session: SessionId
     volume: VolumeSummary
@@ -513,6 +543,7 @@ class ReadyMsg(Message, tag="ready"):
     upscale_factor: Factor
     max_recon_ao_rays: Annotated[int, Meta(ge=0)]
     limits: Limits
+    modes: list[ModeInfo]
     encoders: list[Literal[ENCODINGS]] = msgspec.field(default_factory=lambda: list(IMAGE_ENCODINGS))
     version: Version = PROTOCOL_VERSION
 
@@ -621,7 +652,7 @@ class FrameMsg(Message, tag="frame"):
 
     seq: Seq
     ack: Annotated[int, Meta(ge=-1, le=MAX_SEQ)]
-    mode: Literal[MODES]
+    mode: ModeName
     method: Annotated[str, Meta(max_length=200)]
     width: Side
     height: Side

@@ -1,8 +1,8 @@
 """The view modes: how a view session's settings become frames (on the engine's device thread).
 
-Six modes are the frame methods of isosr_net's registry (:data:`isosr_net.frame_methods.RUNNERS`),
-run by the session's `FrameStream` with the knobs its settings name: ``full``, ``atrous``,
-``reconstruct``, ``network``, ``upscale``, ``buffers``. The others are compositions only a viewer has:
+Every frame method of isosr_net's registry (:data:`isosr_net.frame_methods.RUNNERS`) that is a
+view mode and can run here is a mode of that name, run by the session's `FrameStream` with the
+knobs its settings name. Two more are compositions only a viewer has:
 
     auto    the budget policy's method for this session's share of the device (:mod:`isosr_server.auto`)
     focus   ``network`` frames with a full-resolution lens (``ao_rays`` AO rays) inside the focus
@@ -23,12 +23,14 @@ from typing import ClassVar
 
 import torch
 
-from isosr_net.frame_methods import RUNNERS, FrameMethod, FrameResult, FrameStream, Networks, make_runner
+from isosr_net.frame_methods import RUNNERS, FrameMethod, FrameResult, FrameRunner, FrameStream, Networks, make_runner
 from isosr_net.timing import StageTimer
 from isosr_render import Camera, Renderer
 from isosr_server.auto import AutoPolicy, served_factor
 from isosr_server.channels import false_color
-from isosr_server.protocol import MODES, FocusMsg, ProtocolError, ViewSettings
+from isosr_net.metrics import INTERPOLATIONS
+from isosr_render.renderer import MAX_AO_SAMPLES
+from isosr_server.protocol import MAX_VIEW_SPP, FocusMsg, ModeInfo, OptionInfo, ProtocolError, ViewSettings
 
 
 @dataclass(frozen=True)
@@ -42,7 +44,8 @@ class ViewContext:
 
 
 def method_for(kind: str, settings: ViewSettings, ctx: ViewContext) -> FrameMethod:
-    """The frame method ``kind`` with the knobs it reads from the settings and the server.
+    """The frame method ``kind`` with the knobs it reads from the settings and the server (the
+    others, e.g. OIDN's quality, at the method's defaults).
 
     Raises:
         ValueError: the settings are outside what the method takes (e.g. 9 AO rays to reconstruct).
@@ -52,7 +55,7 @@ def method_for(kind: str, settings: ViewSettings, ctx: ViewContext) -> FrameMeth
               "factor": served_factor(runner, ctx.factor), "precision": ctx.precision}
     model, name = ctx.models.get(runner.network_class, (None, "network"))
     values["model"] = None if model is None else str(model)
-    return FrameMethod(kind, model_name=name, **{k: values[k] for k in runner.knobs})
+    return FrameMethod(kind, model_name=name, **{k: values[k] for k in runner.knobs if k in values})
 
 
 @dataclass(frozen=True)
@@ -84,6 +87,11 @@ class View(ABC):
     """One view mode: which method makes the next frame, and what is composed on top."""
 
     name: ClassVar[str]
+    label: ClassVar[str]
+
+    @abstractmethod
+    def info(self, ctx: ViewContext) -> ModeInfo:
+        """What a viewer shows of this mode: its label and the settings it reads with their bounds."""
 
     @abstractmethod
     def method(self, settings: ViewSettings, ctx: ViewContext, frames: SessionFrames, renderer: Renderer,
@@ -105,14 +113,37 @@ class MethodView(View):
 
     name: str
 
+    @property
+    def label(self) -> str:
+        return RUNNERS[self.name].label
+
+    def info(self, ctx: ViewContext) -> ModeInfo:
+        runner = RUNNERS[self.name]
+        return ModeInfo(self.name, self.label, method_options(runner, ctx), runner.shaded, runner.low_res)
+
     def method(self, settings, ctx, frames, renderer, job) -> FrameMethod:
         return method_for(self.name, settings, ctx)
+
+
+def method_options(runner: type[FrameRunner], ctx: ViewContext) -> list[OptionInfo]:
+    """The view settings a method reads, with its bounds where the server's models set them
+    (the knobs the server fixes, factor, model and precision, are not the viewer's)."""
+    bounds = runner.bounds(method_for(runner.kind, ViewSettings(ao_rays=runner.default_ao_rays), ctx))
+    options = {"ao_rays": OptionInfo("ao_rays", *bounds["ao_rays"], default=runner.default_ao_rays),
+               "spp": OptionInfo("spp", bounds["spp"][0], min(bounds["spp"][1], MAX_VIEW_SPP), default=1),
+               "interpolation": OptionInfo("interpolation", default="bilinear", choices=list(INTERPOLATIONS))}
+    return [options[k] for k in runner.knobs if k in options]
 
 
 class FocusView(View):
     """``network`` frames with a full-resolution lens inside the focus region (module docstring)."""
 
     name = "focus"
+    label = "focus + context (lens)"
+
+    def info(self, ctx: ViewContext) -> ModeInfo:
+        return ModeInfo(self.name, self.label, [OptionInfo("ao_rays", 0, MAX_AO_SAMPLES, default=0)], low_res=True,
+                        focus=True)
 
     def method(self, settings, ctx, frames, renderer, job) -> FrameMethod:
         return method_for("network", settings, ctx)
@@ -139,6 +170,10 @@ class AutoView(View):
     """The budget policy's method for this session's share of the device (:class:`AutoPolicy`)."""
 
     name = "auto"
+    label = "auto (the server chooses)"
+
+    def info(self, ctx: ViewContext) -> ModeInfo:
+        return ModeInfo(self.name, self.label, [])
 
     def sample(self, settings, ctx) -> None:
         return None
@@ -148,15 +183,23 @@ class AutoView(View):
                                   job.sessions, settings.ao_radius).method
 
 
-# The registered methods the protocol names as modes (``svgf`` and ``oidn`` are not view modes yet).
-VIEWS: dict[str, View] = {v.name: v for v in [MethodView(k) for k in RUNNERS if k in MODES]
-                          + [FocusView(), AutoView()]}
-assert set(VIEWS) == set(MODES), f"the protocol's modes {MODES} and the server's views {tuple(VIEWS)} differ"
+# auto, the registered view-mode methods that can run here (in the registry's order), focus.
+VIEWS: dict[str, View] = {v.name: v for v in [AutoView()] + [MethodView(k) for k, cls in RUNNERS.items()
+                                                             if cls.view_mode and cls.unavailable() is None]
+                          + [FocusView()]}
+
+
+def mode_infos(ctx: ViewContext) -> list[ModeInfo]:
+    """The modes this server offers, as ``ready`` and ``GET /v1/modes`` list them."""
+    return [view.info(ctx) for view in VIEWS.values()]
 
 
 def check(settings: ViewSettings, ctx: ViewContext) -> None:
     """`ProtocolError` for settings no frame can be made of: knobs outside the method's bounds, a size
-    a low-res method's factor does not divide, a channel the mode does not make."""
+    a low-res method's factor does not divide, a channel the mode does not make, a mode this server
+    does not offer."""
+    if settings.mode not in VIEWS:
+        raise ProtocolError(f"unknown mode {settings.mode!r}; this server offers {', '.join(VIEWS)}")
     try:
         method = VIEWS[settings.mode].sample(settings, ctx)
     except ValueError as e:

@@ -213,8 +213,8 @@ class VolumeCatalog:
         """The level served of a multiscale store (module docstring) and all its levels; (None, ())
         for other volumes. The store's metadata is read once."""
         if name not in self._levels:
-            multiscale = not source.startswith("proc:") and format_of(source) == "zarr"
-            self._levels[name] = open_zarr(source).levels if multiscale else ()
+            fmt = None if source.startswith("proc:") else format_of(source)
+            self._levels[name] = open_zarr(source).levels if fmt is not None and fmt.levels else ()
         levels = self._levels[name]
         if not levels:
             return None, ()

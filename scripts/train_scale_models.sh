@@ -18,4 +18,4 @@ for s in 2 8; do
   isosr datagen configs/datagen_eval.json -o "$work/eval_x$s" --upscale "$s"
   isosr eval --model "$work/run_x$s/best" --data "$work/eval_x$s" --device cuda --oracles --json "$work/eval_x$s.json"
 done
-echo "sweep them: isosr bench --only knobs --models \"L1-normal x2=$work/run_x2/best,L1-normal x8=$work/run_x8/best\""
+echo "sweep them: isosr bench --only knobs --out benchmarks/results --models \"L1-normal x2=$work/run_x2/best,L1-normal x8=$work/run_x8/best\""

@@ -85,6 +85,23 @@ def test_settings_a_channel_cannot_show_are_refused():
     views.check(ViewSettings(mode="auto", channel="ao"), CTX)  # chosen per frame
 
 
+def test_a_mode_the_server_does_not_offer_is_refused_naming_those_it_does():
+    with pytest.raises(ProtocolError, match=r"unknown mode 'sr'; this server offers auto, full, atrous, .*focus"):
+        views.check(ViewSettings(mode="sr"), CTX)
+
+
+def test_every_mode_describes_itself_from_the_registry():
+    """Each mode's label and the settings it reads with bounds a method accepts at both ends."""
+    infos = {m.name: m for m in views.mode_infos(CTX)}
+    assert list(infos) == list(views.VIEWS) and all(m.label for m in infos.values())
+    assert infos["upscale"].options[0].choices and infos["focus"].focus and not infos["buffers"].shaded
+    for name, info in infos.items():
+        defaults = {o.name: o.default for o in info.options}
+        for option in (o for o in info.options if o.low is not None):
+            for value in (option.low, option.high, option.default):
+                views.check(ViewSettings(mode=name, **(defaults | {option.name: value})), CTX)
+
+
 @pytest.fixture(scope="module")
 def renderer():
     return Renderer(parse_procedural("proc:torus@24"), DEVICE)

@@ -23,7 +23,7 @@ from server_fixtures import running_server
 from websockets.sync.client import connect as ws_connect
 
 from isosr_bench import bench_server, sessions
-from isosr_bench.common import write_result
+from isosr_bench.common import RESULTS_DIR, write_result
 from isosr_cli.main import main
 from isosr_client import ServerError, connect, decode_image, upscale_remote
 from isosr_client.drive import Orbit, drive, summarize
@@ -358,7 +358,7 @@ def test_load_16_sessions_30s(server):  # noqa: F811
               f"p50 {r.get('latency_p50_ms', 0):.0f} ms, p99 {r.get('latency_p99_ms', 0):.0f} ms")
     print(f"load: {frames} frames in 30 s, server RSS {rss_before / 2**20:.0f} -> {rss_after / 2**20:.0f} MiB")
     if os.environ.get("ISOSR_WRITE_LOAD_RESULT"):
-        write_result("load_client", "cpu", rows)
+        write_result("load_client", "cpu", rows, RESULTS_DIR)
     assert sorted(results) == sorted(modes) and sum(r["sessions"] for r in results.values()) == 16
     assert all(r["errors"] == [] for r in results.values()), {m: r["errors"] for m, r in results.items()}
     assert all(r["frames"] >= r["sessions"] for r in results.values())

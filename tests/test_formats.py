@@ -459,7 +459,8 @@ def test_a_volumes_folder_lists_a_series_a_store_and_a_stack_as_one_volume_each(
     assert info.value_range == (VALUES.min() * SLOPE + INTERCEPT, VALUES.max() * SLOPE + INTERCEPT)
     np.testing.assert_array_equal(volume.data, open_volume(str(tmp_path / "head_ct")).data)
     assert catalog.load("cells")[1].shape == SHAPE
-    _raises(lambda: open_volume(str(tmp_path / "empty_folder")), tmp_path / "empty_folder", "no DICOM series")
+    _raises(lambda: open_volume(str(tmp_path / "empty_folder")), tmp_path / "empty_folder",
+            "holds no", "DICOM series", "Zarr store", "TIFF stack")
 
 
 @pytest.mark.parametrize("package", ["pydicom", "zarr", "tifffile"])

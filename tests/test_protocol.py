@@ -16,6 +16,10 @@ from isosr_server import protocol as P
 from isosr_server.codecs.arrays import encode_array
 
 LIMITS = P.Limits()
+MODES = [P.ModeInfo("auto", "auto (the server chooses)", []),
+         P.ModeInfo("full", "full resolution", [P.OptionInfo("ao_rays", 0, 256, default=0)]),
+         P.ModeInfo("upscale", "classic upscaling", [P.OptionInfo("interpolation", default="bilinear",
+                                                                  choices=["nearest", "bilinear"])], low_res=True)]
 raw = msgspec.msgpack.encode  # hostile or outdated wire maps, written as they are
 
 
@@ -49,7 +53,7 @@ def test_messages_round_trip():
                 P.SettingsMsg(P.SettingsUpdate(ao_rays=8, encoding="png", interpolation="bicubic", spp=4), seq=1),
                 P.FocusMsg("circle", center=(32.0, 24.0), radius=10.0), P.FocusMsg("box", box=(1.0, 2.0, 30.0, 40.0)),
                 P.FocusMsg("none"), P.ErrorMsg(1007, "bad"), P.ReceivedMsg(0), P.ReceivedMsg(P.MAX_SEQ),
-                P.ReadyMsg("abc", VOLUME, P.ViewSettings(mode="network"), 4, 8, LIMITS),
+                P.ReadyMsg("abc", VOLUME, P.ViewSettings(mode="network"), 4, 8, LIMITS, MODES),
                 P.FrameMsg(seq=0, ack=-1, mode="full", method="full, AO 2, spp 1", width=64, height=48,
                            encoding="png", times={"render": 1.0, "total": 2.0}, nbytes=4, image=b"\x89PNG"),
                 P.FrameMsg(seq=1, ack=0, mode="auto", method="network x4", width=64, height=48, encoding="jpeg",
@@ -59,8 +63,8 @@ def test_messages_round_trip():
 
 
 def test_wire_names_are_the_v3_vocabulary():
-    ready = wire(P.ReadyMsg("abc", VOLUME, P.ViewSettings(), 4, 8, LIMITS))
-    assert ready["type"] == "ready" and ready["version"] == 4 and ready["max_recon_ao_rays"] == 8
+    ready = wire(P.ReadyMsg("abc", VOLUME, P.ViewSettings(), 4, 8, LIMITS, MODES))
+    assert ready["type"] == "ready" and ready["version"] == 5 and ready["max_recon_ao_rays"] == 8
     assert ready["settings"]["mode"] == "auto" and ready["settings"]["interpolation"] == "bilinear"
     assert {"ao_rays", "refine_ao_rays", "spp", "ao_radius"} <= set(ready["settings"])
     assert ready["settings"]["ao_radius"] == P.AO_RADIUS == 0.05
@@ -69,14 +73,16 @@ def test_wire_names_are_the_v3_vocabulary():
     frame = wire(buffers_frame())
     assert frame["bytes"] == len(frame["buffers"]["depth"]["data"]) + len(frame["buffers"]["mask"]["data"])
     assert wire(P.SettingsMsg(P.SettingsUpdate(ao_rays=2)))["settings"] == {"ao_rays": 2}  # only what changes
-    assert P.MODES[0] == "auto" and {"network", "upscale", "atrous"} <= set(P.MODES) and "sr" not in P.MODES
+    assert ready["modes"][1] == {"name": "full", "label": "full resolution", "shaded": True, "low_res": False,
+                                 "focus": False, "options": [{"name": "ao_rays", "low": 0, "high": 256, "default": 0,
+                                                              "choices": None}]}
 
 
 def test_volume_levels_and_device_memory_round_trip():
     """Issue 22's wire: a multiscale volume's levels in ``ready``, and frames carrying the volume's
     device memory and paging (sent when it changed)."""
     levels = [P.LevelSummary("s0", (64, 64, 64), 524288), P.LevelSummary("s1", (32, 32, 32), 65536)]
-    ready = P.ReadyMsg("abc", msgspec.structs.replace(VOLUME, level="s1", levels=levels), P.ViewSettings(), 4, 8, LIMITS)
+    ready = P.ReadyMsg("abc", msgspec.structs.replace(VOLUME, level="s1", levels=levels), P.ViewSettings(), 4, 8, LIMITS, MODES)
     assert roundtrip(ready) == ready and wire(ready)["volume"]["levels"][1] == {"level": "s1", "shape": [32, 32, 32],
                                                                                "bytes": 65536}
     memory = P.VolumeMemory("sparse", "uint16", 2**33, 2**30, 2**31, 2**31, 4096, 300, 280, 2, 320, 2**28, 4.25)
@@ -129,8 +135,8 @@ V = P.PROTOCOL_VERSION
     ({"type": "iso", "value": "7"}, r"Expected `float`, got `str` - at `\$.value`"),
     ({"type": "iso", "value": 1e300}, r"at `\$.value`"),
     ({"type": "iso", "value": 1.0, "seq": 2**64 - 1}, r"at `\$.seq`"),
-    ({"type": "settings", "settings": {"mode": "sr"}}, r"Invalid enum value 'sr' - at `\$.settings.mode`"),
-    ({"type": "settings", "settings": {"mode": "bilinear"}}, r"at `\$.settings.mode`"),
+    ({"type": "settings", "settings": {"mode": "SR!"}}, r"Expected `str` matching regex .* - at `\$.settings.mode`"),
+    ({"type": "settings", "settings": {"mode": "bi linear"}}, r"at `\$.settings.mode`"),
     ({"type": "settings", "settings": {"width": 0}}, r"Expected `int` >= 1 - at `\$.settings.width`"),
     ({"type": "settings", "settings": {"width": None}}, r"got `None` - at `\$.settings.width`"),
     ({"type": "settings", "settings": {"ao_rays": -1}}, r">= 0 - at `\$.settings.ao_rays`"),
@@ -154,7 +160,7 @@ V = P.PROTOCOL_VERSION
     ({"type": "open", "version": V}, "missing required field `volume`"),
     ({"type": "open", "version": V, "volume": "x", "camera": {"type": "camera"}}, r"give eye.* - at `\$.camera`"),
     ({"type": "open", "version": V, "volume": "x", "camera": {"type": "iso", "yaw": 1}}, r"at `\$.camera.type`"),
-    ({"type": "open", "version": V, "volume": "x", "settings": {"mode": "sr"}}, r"at `\$.settings.mode`"),
+    ({"type": "open", "version": V, "volume": "x", "settings": {"mode": "SR"}}, r"at `\$.settings.mode`"),
     ({"type": "open", "version": V, "volume": "x", "settings": {"ao_rays": 300}}, r"max_ao_rays\) - at `\$.settings"),
     ({"type": "received"}, "missing required field `frame`"),
     ({"type": "received", "frame": -1}, r">= 0 - at `\$.frame`"),
@@ -182,7 +188,7 @@ def test_invalid_messages_name_the_problem(message, words):
 def test_version_3_is_refused_with_the_reason(message):
     with pytest.raises(P.ProtocolError) as e:
         P.parse(raw(message), LIMITS, (P.OpenMsg, P.UpscaleRequest))
-    assert e.value.reason == "protocol version 3 is not supported; this server speaks 4: update the client"
+    assert e.value.reason == "protocol version 3 is not supported; this server speaks 5: update the client"
     assert (e.value.close_code, e.value.http_status) == (P.CLOSE_BAD_MESSAGE, 400)
 
 
@@ -322,10 +328,10 @@ def test_video_messages_round_trip_and_their_rules():
     keyframe requests, the encoders ``ready`` names and the bitrate cap's bound."""
     for msg in (video_frame(), video_frame(encoding="av1", codec="av01.0.08M.08", keyframe=True),
                 P.NoticeMsg("h264 is not available on this server; sending jpeg"), P.KeyframeMsg(),
-                P.ReadyMsg("abc", VOLUME, P.ViewSettings(encoding="vp9", bitrate_kbps=8000), 4, 8, LIMITS,
+                P.ReadyMsg("abc", VOLUME, P.ViewSettings(encoding="vp9", bitrate_kbps=8000), 4, 8, LIMITS, MODES,
                            ["jpeg", "png", "webp", "vp9"])):
         assert roundtrip(msg) == msg
-    assert P.ReadyMsg("abc", VOLUME, P.ViewSettings(), 4, 8, LIMITS).encoders == list(P.IMAGE_ENCODINGS)
+    assert P.ReadyMsg("abc", VOLUME, P.ViewSettings(), 4, 8, LIMITS, MODES).encoders == list(P.IMAGE_ENCODINGS)
     assert P.ENCODINGS == P.IMAGE_ENCODINGS + P.VIDEO_ENCODINGS and "h264" not in P.UPSCALE_OUTPUTS
     assert wire(P.KeyframeMsg()) == {"type": "keyframe"}
     assert P.parse(raw({"type": "keyframe"}), LIMITS, P.CLIENT_VIEW_MESSAGES) == P.KeyframeMsg()
@@ -353,9 +359,10 @@ def test_frame_times_name_known_stages_only():
     assert P.STAGES == ("render", "filter", "network", "shading", "encode", "total")
 
 
-def test_every_mode_is_documented():
-    for mode in P.MODES:
-        assert f"\n    {mode} " in P.__doc__, f"the module docstring does not describe mode {mode}"
+def test_a_mode_is_a_short_lowercase_name():
+    for bad in ("", "Full", "full mode", "x" * 40, "9lives"):
+        with pytest.raises(P.ProtocolError, match="mode"):
+            P.parse(raw({"type": "settings", "settings": {"mode": bad}}), LIMITS, P.CLIENT_VIEW_MESSAGES)
 
 
 def test_settings_update_and_size_limit():
@@ -371,7 +378,7 @@ def test_settings_update_and_size_limit():
         s.updated(P.SettingsUpdate(width=5000), LIMITS)
     assert e.value.close_code == P.CLOSE_TOO_BIG
     for update, words in (({"widht": 4}, "unknown field `widht`"), ({"ao_rays": 300}, "max_ao_rays"),
-                          ({"mode": "sr"}, r"Invalid enum value 'sr' - at `\$.mode`")):
+                          ({"mode": "SR!"}, r"Expected `str` matching regex .* - at `\$.mode`")):
         with pytest.raises(P.ProtocolError, match=words) as e:
             s.updated(update, LIMITS)
         assert e.value.close_code == P.CLOSE_BAD_MESSAGE
@@ -393,7 +400,7 @@ def test_limits_validate():
     with pytest.raises(ValueError, match="max_upscale_bytes"):
         P.Limits(max_upscale_bytes=float("inf"))
     with pytest.raises(P.ProtocolError, match="limit max_side must be a positive number"):  # arriving in ready
-        P.parse(raw(wire(P.ReadyMsg("s", VOLUME, P.ViewSettings(), 4, 8, LIMITS)) | {"limits": {"max_side": 0}}),
+        P.parse(raw(wire(P.ReadyMsg("s", VOLUME, P.ViewSettings(), 4, 8, LIMITS, MODES)) | {"limits": {"max_side": 0}}),
                 LIMITS, P.SERVER_VIEW_MESSAGES)
 
 

@@ -27,6 +27,7 @@ from isosr_render import Camera, FrameBuffers, open_volume, orbit, shade
 from isosr_render.conventions import LOWRES_BUFFERS
 from isosr_render.shading import shade_channels_first
 from isosr_server import protocol as P
+from isosr_server import views
 from isosr_render.image_codec import decode_image
 from isosr_render.images import to_uint8
 from isosr_server.codecs.arrays import encode_array
@@ -105,7 +106,8 @@ def test_full_mode_matches_the_library(srv, lib):
     with session(srv, mode="full", ao_rays=4) as (ws, ready):
         assert ready.settings.mode == "full" and ready.volume.iso == 0.0
         assert ready.max_recon_ao_rays == RECON_LIMITS.max_ao_rays
-        assert ready.limits == LIMITS and ready.version == P.PROTOCOL_VERSION == 4
+        assert ready.limits == LIMITS and ready.version == P.PROTOCOL_VERSION == 5
+        assert [m.name for m in ready.modes] == list(views.VIEWS)  # auto, the registry's view modes, focus
         f = frame(ws)
         assert (f.seq, f.ack, f.mode, f.encoding, f.refined) == (0, -1, "full", "png", False) and f.method
         assert f.nbytes == len(f.image) and f.times["total"] >= f.times["render"] > 0
@@ -446,7 +448,7 @@ def test_upscale_bad_input_gets_4xx_with_reasons(srv, lib):
         (raw(wire_frame(lib, depth=wire_array(np.full((h, w), 3e38, np.float32)))), 400, "depth: values must lie in"),
         (raw(wire_frame(lib, depth=f64)), 400, "Invalid enum value 'float64' in `dtype` - at `$.depth`"),
         (raw(wire_frame(lib, normal=good["depth"])), 400, "normal: shape must be"),
-        (raw(wire_frame(lib, version=3)), 400, "protocol version 3 is not supported; this server speaks 4"),
+        (raw(wire_frame(lib, version=3)), 400, "protocol version 3 is not supported; this server speaks 5"),
         (raw(wire_frame(lib, output="gif")), 400, "at `$.output`"),
         (raw(wire_frame(lib, session="../x")), 400, "at `$.session`"),
         (raw({**good, "pad": b"x" * LIMITS.max_message_bytes}), 413, "limit"),
@@ -483,7 +485,7 @@ def test_bad_view_input_closes_that_session_only(srv, lib):
         opens = [
             (b"\x92\x01\x02", P.CLOSE_BAD_MESSAGE, "Expected `object`, got `array`"),
             (raw({"type": "open", "version": 3, "volume": VOLUME}), P.CLOSE_BAD_MESSAGE,
-             "protocol version 3 is not supported; this server speaks 4: update the client"),
+             "protocol version 3 is not supported; this server speaks 5: update the client"),
             (raw({"type": "open", "version": v, "volume": "nope"}), P.CLOSE_NOT_FOUND, "no volume named"),
             (raw({"type": "open", "version": v, "volume": "../blob"}), P.CLOSE_BAD_MESSAGE,
              "Expected `str` matching regex"),
@@ -491,7 +493,7 @@ def test_bad_view_input_closes_that_session_only(srv, lib):
             (raw({"type": "open", "version": v, "volume": VOLUME, "settings": {"mode": "network", "width": 66}}),
              P.CLOSE_BAD_MESSAGE, "multiple of the upscale factor"),
             (raw({"type": "open", "version": v, "volume": VOLUME, "settings": {"mode": "sr"}}),
-             P.CLOSE_BAD_MESSAGE, "Invalid enum value 'sr' - at `$.settings.mode`"),
+             P.CLOSE_BAD_MESSAGE, "unknown mode 'sr'; this server offers auto, full"),
             (raw({"type": "open", "version": v, "volume": VOLUME, "settings": {"width": 4096, "height": 4096}}),
              P.CLOSE_TOO_BIG, "exceeds"),
             (raw({"type": "open", "version": v, "volume": VOLUME, "settings": {"mode": "reconstruct", "ao_rays": -1}}),

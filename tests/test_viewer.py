@@ -26,7 +26,6 @@ import pytest
 import torch
 
 from conftest import DEVICE
-from isosr_net.reconstructor import recon_limits
 from isosr_render import FrameBuffers, Renderer, RenderRequest, open_volume, orbit, resolve_iso, shade
 from isosr_render.images import to_uint8
 from isosr_server.channels import false_color
@@ -229,14 +228,19 @@ def test_viewer_explores_a_volume(server, browser):
     moved = v.settle(n)
     assert difference(pasted, moved) > 1.0, "the iso slider did not change the surface"
 
-    # Modes: each reaches the server and comes back; reconstruction shows its AO rays control,
-    # which keeps to the server's bound (more would end the session); classic upscaling its
-    # interpolation.
+    # Modes, from the server's list: each reaches the server and comes back; the AO rays control
+    # shows for the modes that read it, starting at the mode's default and kept within its bounds
+    # and the server's limit (more would end the session); classic upscaling its interpolation.
+    infos = {m["name"]: m for m in page.evaluate("fetch('/v1/modes', {headers: {Authorization: 'Bearer "
+                                                   + TOKEN + "'}}).then((r) => r.json())")["modes"]}
+    menu = [tuple(o) for o in page.eval_on_selector_all("#mode option", "os => os.map((o) => [o.value, o.text])")]
+    assert menu == [(name, m["label"]) for name, m in infos.items() if m["shaded"]]
     for mode in ("full", "upscale", "focus", "reconstruct", "network"):
         n = v.frames()
         set_control(page, "#mode", mode)
         v.wait_frame_after(n, f"document.getElementById('view').dataset.mode === '{mode}'")
-        assert page.is_visible("#recon-row") == (mode == "reconstruct")
+        rays = next((o for o in infos[mode]["options"] if o["name"] == "ao_rays"), None)
+        assert page.is_visible("#ao-row") == (rays is not None)
         assert page.is_visible("#interpolation-row") == (mode == "upscale")
         if mode == "upscale":
             n = v.frames()
@@ -244,11 +248,11 @@ def test_viewer_explores_a_volume(server, browser):
             v.wait_frame_after(n, "document.getElementById('view').dataset.mode === 'upscale'")
             assert not page.is_visible("#banner")
         if mode == "reconstruct":
-            assert page.get_attribute("#recon-rays", "max") == str(recon_limits().max_ao_rays)
+            assert page.input_value("#ao-rays") == str(rays["default"])
             n = v.frames()
-            set_control(page, "#recon-rays", "20")
+            set_control(page, "#ao-rays", "99999")
             v.wait_frame_after(n, "document.getElementById('view').dataset.mode === 'reconstruct'")
-            assert page.input_value("#recon-rays") == str(recon_limits().max_ao_rays) and not page.is_visible("#banner")
+            assert 0 < int(page.input_value("#ao-rays")) <= rays["high"] and not page.is_visible("#banner")
             assert page.get_attribute("#conn-state", "data-state") == "open"
 
     # Channels: normals in false color (facing the camera: blue over red), depth with its legend.
@@ -269,13 +273,13 @@ def test_viewer_explores_a_volume(server, browser):
     v.wait_frame_after(n, "document.getElementById('view').dataset.channel === 'shaded'")
     assert not page.is_visible("#legend-box")
 
-    # Keys 1..7 pick the modes in the menu's order.
+    # Keys 1..9 pick the modes in the menu's order.
     page.keyboard.press("3")
-    assert page.input_value("#mode") == "upscale"
+    assert page.input_value("#mode") == menu[2][0]
     n = v.frames()
     page.keyboard.press("2")
-    assert page.input_value("#mode") == "network"
-    v.wait_frame_after(n, "document.getElementById('view').dataset.mode === 'network'")
+    assert page.input_value("#mode") == menu[1][0]
+    v.wait_frame_after(n, f"document.getElementById('view').dataset.mode === '{menu[1][0]}'")
 
     # Split: the right half comes from a second session in full mode.
     page.check("#split")

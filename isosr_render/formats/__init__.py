@@ -1,122 +1,88 @@
-"""Lazy readers of the formats scientists' volumes arrive in: DICOM, Zarr / OME-Zarr and TIFF.
+"""The volume formats: one registry of every reader, by name, with its suffixes, detection and opener.
 
-Each reader returns a :class:`~isosr_render.voxels.VoxelSource` that reads boxes from the store
-(slice files, chunks, pages) when asked, never the whole volume at once:
+``FORMATS`` maps a name to its :class:`~isosr_render.formats.base.Format`; :func:`format_of`
+picks the one that reads a path and :func:`isosr_render.volume_io.open_source` opens it. The CLI
+help (:func:`help_text`) and a server's volume listing
+(:func:`isosr_render.volume_io.volume_name`) read the registry. A new format is a reader module
+and one :func:`register` call below.
 
-- :func:`isosr_render.formats.dicom.open_dicom`: a DICOM series (a folder or a list of files)
-  or a multi-frame file, through pydicom.
-- :func:`isosr_render.formats.zarr.open_zarr`: a plain Zarr v2/v3 array or an OME-Zarr
-  multiscale image (a level chosen by name or by the memory it needs), through zarr.
-- :func:`isosr_render.formats.tiff.open_tiff`: a multi-page or 3D TIFF (ImageJ and OME-TIFF
-  spacing), or a folder of 2D TIFFs, through tifffile.
+- Read whole (:mod:`~isosr_render.formats.arrays`): NIfTI, NRRD, Volume Library ``.dat``, named
+  ``.raw`` and NumPy files.
+- Read lazily, box by box (never the whole volume at once): a DICOM series (a folder) or
+  multi-frame file (:mod:`~isosr_render.formats.dicom`, pydicom); a Zarr / OME-Zarr store
+  (:mod:`~isosr_render.formats.zarr`, zarr); a multi-page TIFF or a folder of 2D TIFFs
+  (:mod:`~isosr_render.formats.tiff`, tifffile).
 
-Orientation, as for NIfTI (:mod:`isosr_render.volume_io`): the volume's axes are the stored
-axes, never flipped, rotated or resampled; a 2D image's columns are x, its rows y (top to
-bottom), and the slices z. :func:`open_format` picks the reader from a path;
-:func:`isosr_render.volume_io.open_source` calls it for the paths these readers take. The
-libraries come with the ``data`` extra (``pip install 'isosr[data]'``); compressed DICOM and
-TIFF codecs with the ``codecs`` extra.
+Orientation, as for NIfTI: the volume's axes are the stored axes, never flipped, rotated or
+resampled; a 2D image's columns are x, its rows y (top to bottom), and the slices z. The lazy
+readers' libraries come with the ``data`` extra (``pip install 'isosr[data]'``); compressed
+DICOM and TIFF codecs with the ``codecs`` extra.
 """
 
 from __future__ import annotations
 
-import importlib
 import os
 from pathlib import Path
-from types import ModuleType
 
-import numpy as np
+from isosr_render.formats import arrays, dicom, tiff, zarr
+from isosr_render.formats.base import Format
 
-from isosr_render.voxels import VolumeError, VoxelSource
+__all__ = ["FORMATS", "Format", "format_of", "help_text", "register"]
 
-DICOM_MAGIC_OFFSET = 128
-DICOM_SUFFIXES = (".dcm", ".dicom")
-TIFF_SUFFIXES = (".tif", ".tiff", ".btf")
-ZARR_MARKERS = ("zarr.json", ".zgroup", ".zarray")
+# Name -> format, in registration order: ``detect`` is asked in this order.
+FORMATS: dict[str, Format] = {}
 
 
-def require(module: str, label: str, what: str) -> ModuleType:
-    """Import ``module``, or raise `VolumeError` naming ``label`` and the package to install."""
-    try:
-        return importlib.import_module(module)
-    except ImportError:
-        raise VolumeError(f"{label}: reading {what} needs the '{module}' package: "
-                          "pip install 'isosr[data]'") from None
-
-
-def stored_dtype(dtype: np.dtype, label: str) -> np.dtype:
-    """The type a source hands out for a store's ``dtype``: native byte order; bool as uint8,
-    float16 as float32, 64-bit integers as float64 (as :func:`isosr_render.volume_io.open_source`)."""
-    dtype = np.dtype(dtype)
-    if dtype == np.bool_:
-        return np.dtype(np.uint8)
-    if dtype.kind == "f" and dtype.itemsize == 2:
-        return np.dtype(np.float32)
-    if dtype.kind in "iu" and dtype.itemsize == 8:
-        return np.dtype(np.float64)
-    if dtype.kind not in "iuf":
-        raise VolumeError(f"{label}: unsupported voxel dtype {dtype}")
-    return dtype.newbyteorder("=")
-
-
-def one_line(error: BaseException) -> str:
-    """A library's error as one line: its type and its message with whitespace runs collapsed."""
-    return f"{type(error).__name__}: {' '.join(str(error).split())}"
-
-
-def has_dicom_magic(path: Path) -> bool:
-    """Whether the file holds ``DICM`` after the 128-byte preamble (a DICOM Part 10 file)."""
-    try:
-        with open(path, "rb") as f:
-            f.seek(DICOM_MAGIC_OFFSET)
-            return f.read(4) == b"DICM"
-    except OSError:
-        return False
-
-
-def is_dicom_file(path: Path) -> bool:
-    """A DICOM file by its extension or its ``DICM`` marker (many series have bare file names)."""
-    return path.is_file() and (path.name.lower().endswith(DICOM_SUFFIXES) or has_dicom_magic(path))
-
-
-def format_of(path: str | os.PathLike) -> str | None:
-    """``"zarr"``, ``"dicom"`` or ``"tiff"``: the reader that takes ``path``, or None.
-
-    A ``.zarr`` directory or one holding Zarr metadata is a Zarr store; another folder is a
-    DICOM series if it holds a DICOM file, else a TIFF stack if it holds a TIFF; a file is told
-    by its extension (or the DICOM marker).
-    """
-    path = Path(path)
-    if path.is_dir():
-        if path.name.lower().endswith(".zarr") or any((path / m).is_file() for m in ZARR_MARKERS):
-            return "zarr"
-        files = sorted(p for p in path.iterdir() if not p.name.startswith("."))
-        if any(is_dicom_file(p) for p in files):
-            return "dicom"
-        if any(p.is_file() and p.name.lower().endswith(TIFF_SUFFIXES) for p in files):
-            return "tiff"
-        return None
-    if not path.is_file():
-        return None
-    if path.name.lower().endswith(TIFF_SUFFIXES):
-        return "tiff"
-    return "dicom" if is_dicom_file(path) else None
-
-
-def open_format(path: str | os.PathLike) -> VoxelSource:
-    """The voxel source of a DICOM series or file, a Zarr store or a TIFF (stack), by :func:`format_of`.
+def register(fmt: Format) -> Format:
+    """Add ``fmt`` to ``FORMATS``.
 
     Raises:
-        VolumeError: no reader here takes ``path``, or the reader's own errors.
+        ValueError: its name is taken, or one of its suffixes ends (or is the end of) another
+            format's, so that a name would not tell the two apart.
     """
-    kind = format_of(path)
-    if kind == "zarr":
-        from isosr_render.formats.zarr import open_zarr
-        return open_zarr(path)
-    if kind == "dicom":
-        from isosr_render.formats.dicom import open_dicom
-        return open_dicom(path)
-    if kind == "tiff":
-        from isosr_render.formats.tiff import open_tiff
-        return open_tiff(path)
-    raise VolumeError(f"{path}: neither a DICOM series or file, a Zarr store nor a TIFF (stack)")
+    if fmt.name in FORMATS:
+        raise ValueError(f"a volume format named {fmt.name!r} is registered already")
+    for other in FORMATS.values():
+        clash = [f"{s} / {t}" for s in fmt.suffixes for t in other.suffixes if s.endswith(t) or t.endswith(s)]
+        if clash:
+            raise ValueError(f"volume format {fmt.name!r}: suffixes {', '.join(clash)} clash with {other.name!r}'s")
+    FORMATS[fmt.name] = fmt
+    return fmt
+
+
+def format_of(path: str | os.PathLike) -> Format | None:
+    """The format that reads ``path``, or None.
+
+    The format one of whose suffixes ends the name of ``path`` (a file; a folder for a format that
+    reads only folders, such as a ``.zarr`` store); else the first, in registration order, whose
+    ``detect`` takes it (a folder with Zarr metadata, a DICOM series or a TIFF stack; a file with
+    the DICOM marker). A missing path is no format's.
+    """
+    path = Path(path)
+    named = next((f for f in FORMATS.values() if f.claims(path)), None)
+    return named or next((f for f in FORMATS.values() if f.detect is not None and f.detect(path)), None)
+
+
+def help_text() -> str:
+    """Every format with its suffixes, one sentence for help texts (``isosr --help``)."""
+    return "; ".join(f.help for f in FORMATS.values())
+
+
+for _format in (
+    Format("nifti", "NIfTI image", (".nii", ".nii.gz"), arrays.open_nifti, whole=True),
+    Format("nrrd", "NRRD file or detached header", (".nrrd", ".nhdr"), arrays.open_nrrd, whole=True,
+           detached=(".nhdr",)),
+    Format("dat", "Volume Library header beside its .raw file", (".dat",), arrays.open_dat, whole=True,
+           detached=(".dat",)),
+    Format("raw", "raw voxels named NAME_XxYxZ_DTYPE", (".raw", ".raw.gz"), arrays.open_raw, whole=True),
+    Format("numpy", "NumPy array", (".npy", ".npz"), arrays.open_numpy, whole=True),
+    Format("zarr", "Zarr or OME-Zarr store folder", zarr.ZARR_SUFFIXES, zarr.open_zarr, zarr.detect_zarr,
+           files=False, folder="Zarr store", levels=True),
+    Format("dicom", "DICOM series folder or multi-frame file", dicom.DICOM_SUFFIXES, dicom.open_dicom,
+           dicom.detect_dicom, folder="DICOM series", list_files=False),
+    Format("tiff", "multi-page TIFF or a folder of 2D TIFFs",
+           tiff.TIFF_SUFFIXES + tuple(".ome" + s for s in tiff.TIFF_SUFFIXES), tiff.open_tiff,
+           tiff.detect_tiff_stack, folder="TIFF stack"),
+):
+    register(_format)
+del _format

@@ -38,9 +38,11 @@ from pathlib import Path
 
 import numpy as np
 
-from isosr_render.formats import has_dicom_magic, is_dicom_file, one_line, require, stored_dtype
+from isosr_render.formats.base import one_line, require, stored_dtype
 from isosr_render.voxels import VolumeError, check_source
 
+DICOM_MAGIC_OFFSET = 128
+DICOM_SUFFIXES = (".dcm", ".dicom")
 # Slices agree on orientation within this (direction cosines), and on pixel spacing to this fraction.
 ORIENTATION_TOLERANCE = 1e-4
 # Slice gaps agree to this fraction of the median gap.
@@ -100,6 +102,28 @@ class DicomSource:
             out[:, :, j] = block
         return out
 
+
+
+def has_dicom_magic(path: Path) -> bool:
+    """Whether the file holds ``DICM`` after the 128-byte preamble (a DICOM Part 10 file)."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(DICOM_MAGIC_OFFSET)
+            return f.read(4) == b"DICM"
+    except OSError:
+        return False
+
+
+def is_dicom_file(path: Path) -> bool:
+    """A DICOM file by its extension or its ``DICM`` marker (many series have bare file names)."""
+    return path.is_file() and (path.name.lower().endswith(DICOM_SUFFIXES) or has_dicom_magic(path))
+
+
+def detect_dicom(path: Path) -> bool:
+    """A file with the ``DICM`` marker, or a folder holding a DICOM file (a series)."""
+    if path.is_dir():
+        return any(is_dicom_file(p) for p in path.iterdir() if not p.name.startswith("."))
+    return is_dicom_file(path)
 
 def open_dicom(source: str | os.PathLike | Iterable[str | os.PathLike], *, series: str | None = None) -> DicomSource:
     """Open a DICOM series (a folder or a list of files) or a multi-frame DICOM file.

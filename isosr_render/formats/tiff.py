@@ -20,10 +20,11 @@ import struct
 import threading
 from pathlib import Path
 
-from isosr_render.formats import TIFF_SUFFIXES, one_line, require
+from isosr_render.formats.base import one_line, require
 from isosr_render.formats.zarr import ZarrSource, checked_source
 from isosr_render.voxels import VolumeError
 
+TIFF_SUFFIXES = (".tif", ".tiff", ".btf")
 # Photometric interpretations whose samples are colors, not one scalar.
 _COLOR = ("RGB", "PALETTE", "YCBCR", "CMYK", "SEPARATED", "CIELAB")
 
@@ -61,6 +62,12 @@ def open_tiff(path: str | os.PathLike, *, spacing: tuple[float, float, float] | 
     axes = (series.ndim - 1, series.ndim - 2, stacked[0])
     return checked_source(ZarrSource(path.name, array, axes, tuple(float(s) for s in spacing), str(path)))
 
+
+
+def detect_tiff_stack(path: Path) -> bool:
+    """A folder holding a TIFF file (a stack of 2D images)."""
+    return path.is_dir() and any(p.is_file() and p.name.lower().endswith(TIFF_SUFFIXES)
+                                 for p in path.iterdir() if not p.name.startswith("."))
 
 def _open(tifffile, path: Path):
     """The opened TiffFile (kept open: the source reads its pages later)."""

@@ -24,9 +24,12 @@ from typing import Any
 
 import numpy as np
 
-from isosr_render.formats import one_line, require, stored_dtype
+from isosr_render.formats.base import one_line, require, stored_dtype
 from isosr_render.voxels import VolumeError, check_source
 
+ZARR_SUFFIXES = (".zarr", ".ome.zarr")
+# A folder holding one of these is a store, whatever its name.
+ZARR_MARKERS = ("zarr.json", ".zgroup", ".zarray")
 SPACE_NAMES = ("x", "y", "z")
 # NGFF before 0.3 has no axes: the image is 5D (t, c, z, y, x).
 NGFF_DEFAULT_AXES = ("t", "c", "z", "y", "x")
@@ -86,6 +89,11 @@ class ZarrSource:
         order = sorted(self.axes)  # the block keeps the spatial axes in the array's order
         return block.transpose([order.index(a) for a in self.axes]).astype(self.dtype, copy=False)
 
+
+
+def detect_zarr(path: Path) -> bool:
+    """A folder holding Zarr metadata (a store named otherwise than ``.zarr``)."""
+    return path.is_dir() and any((path / m).is_file() for m in ZARR_MARKERS)
 
 def spatial_axes(names: list[str], shape: tuple[int, ...], label: str) -> tuple[int, int, int]:
     """The array axes of x, y and z given the axes' names; every other axis must have one entry."""

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from isosr_server.api.routes import health, metrics, models, upscale, view, viewer, volumes
+from isosr_server.api.routes import health, metrics, models, modes, upscale, view, viewer, volumes
 
 api_router = APIRouter()
-for module in (health, models, volumes, upscale, view, metrics, viewer):
+for module in (health, models, modes, volumes, upscale, view, metrics, viewer):
     api_router.include_router(module.router)

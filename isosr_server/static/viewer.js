@@ -6,8 +6,7 @@ import { FrameDecoder, IMAGE_ENCODINGS, VIDEO_PROBES, decodableEncodings } from 
 const $ = (id) => document.getElementById(id);
 const DEFAULT_CAMERA = { yaw: 30, pitch: 20, distance: 1.8, target: [0, 0, 0], fov_y: 40 };
 const CHANNELS = ["shaded", "mask", "normal", "depth", "ao", "flow"];
-// Keys 1..7 pick the modes in the menu's order.
-const MODE_KEYS = { 1: "auto", 2: "network", 3: "upscale", 4: "reconstruct", 5: "atrous", 6: "full", 7: "focus" };
+// Keys 1..9 pick the modes in the menu's order (the server's, GET /v1/modes).
 const TOKEN_KEY = "isosr.token";
 const SPARK_FRAMES = 120;
 const VIDEO_ENCODINGS = Object.keys(VIDEO_PROBES);
@@ -19,7 +18,7 @@ const ctx = view.getContext("2d");
 const state = {
   token: sessionStorage.getItem(TOKEN_KEY) || "",
   factor: 4,
-  maxReconRays: 0, // reconstruct mode's AO rays per hit: set from GET /v2/models/isosr-recon before sessions open
+  modes: {}, // name -> the server's ModeInfo (label, options with bounds, shaded, low_res, focus): GET /v1/modes
   limits: null,
   decodable: new Set(IMAGE_ENCODINGS), // what this browser shows (decodableEncodings)
   encoders: null, // ready.encoders: what the server makes (null: no ready yet)
@@ -91,20 +90,43 @@ function modes() {
   return $("split").checked ? [a, $("mode-b").value] : [a];
 }
 
-/** AO rays per hit of reconstruct mode: the control's value within the server's bound (shown corrected). */
-function reconRays() {
-  const input = $("recon-rays");
-  const rays = Math.min(state.maxReconRays, Math.max(0, Math.round(Number(input.value)) || 0));
-  input.value = rays;
+/** A mode's option (the server's OptionInfo) by name, or undefined where the mode does not read it. */
+function option(mode, name) {
+  return (state.modes[mode]?.options || []).find((o) => o.name === name);
+}
+
+/** Whether any shown mode has the trait (a ModeInfo flag) or reads the option. */
+const anyShown = (test) => modes().some((m) => state.modes[m] && test(state.modes[m]));
+const shownFocus = () => anyShown((m) => m.focus);
+
+/** AO rays per hit: the control's value within the mode's bounds and the server's limit (shown corrected
+ * for the left mode). */
+function aoRays(mode) {
+  const bounds = option(mode, "ao_rays");
+  if (!bounds) return 0;
+  const input = $("ao-rays");
+  const high = Math.min(bounds.high, state.limits ? state.limits.max_ao_rays : Infinity);
+  const rays = Math.min(high, Math.max(bounds.low, Math.round(Number(input.value)) || 0));
+  if (mode === modes()[0]) input.value = rays;
   return rays;
 }
 
-/** AO rays per hit: reconstruct mode's control; the AO control for a-trous (its filter needs rays) and, when
- * checked, for full-resolution renders. */
-function aoRays(mode) {
-  if (mode === "reconstruct") return reconRays();
-  if (mode === "atrous" || $("ao").checked) return Number($("ao-rays").value);
-  return 0;
+/** The mode menus from the server's modes (those that make shaded images; the left one starts at
+ * the server's first, the right one at its second) and the interpolation menu from its choices. */
+function fillModeMenus(infos) {
+  state.modes = Object.fromEntries(infos.map((m) => [m.name, m]));
+  const shaded = infos.filter((m) => m.shaded);
+  for (const [index, id] of ["mode", "mode-b"].entries()) {
+    const menu = $(id);
+    const picked = menu.value;
+    menu.replaceChildren(...shaded.map((m) => new Option(m.label, m.name)));
+    menu.value = state.modes[picked] ? picked : shaded[Math.min(index, shaded.length - 1)].name;
+  }
+  const interpolation = infos.flatMap((m) => m.options).find((o) => o.name === "interpolation");
+  if (interpolation) {
+    $("interpolation").replaceChildren(...interpolation.choices.map((c) => new Option(c, c)));
+    $("interpolation").value = interpolation.default;
+  }
 }
 
 /** The encoding to ask for: the one picked, or (auto) the best this browser shows among those the
@@ -186,8 +208,10 @@ async function openSessions() {
   if (!state.volume) return;
   try {
     state.factor = (await getJson("/v2/models/isosr")).parameters.upscale_factor;
-    state.maxReconRays = (await getJson("/v2/models/isosr-recon")).parameters.max_ao_rays;
-    $("recon-rays").max = state.maxReconRays;
+    if (!Object.keys(state.modes).length) {
+      fillModeMenus((await getJson("/v1/modes")).modes);
+      aoDefault();
+    }
   } catch (e) {
     return generation === state.generation && serverUnreachable(e);
   }
@@ -218,8 +242,7 @@ function openMessage(slot) {
 function onReady(slot, index, ready) {
   state.factor = ready.upscale_factor;
   state.limits = ready.limits;
-  state.maxReconRays = ready.max_recon_ao_rays;
-  $("recon-rays").max = state.maxReconRays;
+  state.modes = Object.fromEntries(ready.modes.map((m) => [m.name, m]));
   $("bitrate").max = ready.limits.max_bitrate_kbps;
   state.encoders = ready.encoders;
   markEncodings();
@@ -235,7 +258,7 @@ function onReady(slot, index, ready) {
   if (wanted !== ready.settings.encoding && ready.encoders.includes(wanted)) {
     slot.session.send({ type: "settings", settings: { encoding: wanted } });
   }
-  if (slot.mode === "focus") slot.session.send(focusMessage());
+  if (state.modes[slot.mode]?.focus) slot.session.send(focusMessage());
   setBanner("");
 }
 
@@ -465,7 +488,7 @@ function sendSettings() {
   if (state.sessions.some((s) => s.session.ready === null)) return openSessions(); // error or not open yet
   for (const s of state.sessions) {
     s.session.send({ type: "settings", settings: settings(s.mode) });
-    if (s.mode === "focus") s.session.send(focusMessage());
+    if (state.modes[s.mode]?.focus) s.session.send(focusMessage());
   }
 }
 
@@ -499,16 +522,18 @@ function updateSplitHandle() {
   handle.hidden = state.sessions.length < 2;
   handle.style.left = `${state.split * state.width}px`;
   handle.style.height = `${state.height}px`;
-  $("lens-row").hidden = !modes().includes("focus");
-  $("interpolation-row").hidden = !modes().includes("upscale");
-  $("recon-row").hidden = !modes().includes("reconstruct");
+  $("lens-row").hidden = !shownFocus();
+  $("interpolation-row").hidden = !anyShown((m) => m.options.some((o) => o.name === "interpolation"));
+  $("ao-row").hidden = !anyShown((m) => m.options.some((o) => o.name === "ao_rays"));
+  const bounds = option(modes()[0], "ao_rays");
+  if (bounds) Object.assign($("ao-rays"), { min: bounds.low, max: bounds.high });
   showLens();
 }
 
 function showLens() {
   const lens = $("lens");
   const p = state.pointer;
-  lens.hidden = !p || !modes().includes("focus");
+  lens.hidden = !p || !shownFocus();
   if (lens.hidden) return;
   const r = Number($("lens-radius").value);
   Object.assign(lens.style, { left: `${p.x - r}px`, top: `${p.y - r}px`, width: `${2 * r}px`, height: `${2 * r}px` });
@@ -580,7 +605,7 @@ function bindPointer() {
     if (drag) {
       orbitBy(-(e.clientX - drag.x) * 0.4, (e.clientY - drag.y) * 0.4);
       drag = { x: e.clientX, y: e.clientY };
-    } else if (modes().includes("focus")) {
+    } else if (shownFocus()) {
       queue("focus", focusMessage());
     }
     showLens();
@@ -612,11 +637,12 @@ function bindKeys() {
       "+": () => zoomBy(0.9), "=": () => zoomBy(0.9), "-": () => zoomBy(1 / 0.9),
       "[": () => setIso(state.iso - step), "]": () => setIso(state.iso + step),
       c: () => cycleChannel(1), C: () => cycleChannel(-1),
-      a: () => { $("ao").checked = !$("ao").checked; sendSettings(); },
+      a: () => { $("ao-rays").value = Number($("ao-rays").value) > 0 ? 0 : 1; sendSettings(); },
       s: () => { $("split").checked = !$("split").checked; openSessions(); },
       r: resetCamera, p: screenshot,
     };
-    const action = MODE_KEYS[e.key] ? () => { $("mode").value = MODE_KEYS[e.key]; modeChanged(); } : actions[e.key];
+    const picked = /^[1-9]$/.test(e.key) && $("mode").options[Number(e.key) - 1];
+    const action = picked ? () => { $("mode").value = picked.value; modeChanged(); } : actions[e.key];
     if (!action) return;
     e.preventDefault();
     action();
@@ -631,11 +657,18 @@ function cycleChannel(delta) {
 
 function channelChanged() {
   // The AO channel of a full-res render needs AO rays.
-  if ($("channel").value === "ao" && !$("ao").checked) $("ao").checked = true;
+  if ($("channel").value === "ao" && Number($("ao-rays").value) === 0) $("ao-rays").value = 1;
   sendSettings();
 }
 
+/** The AO control at the left mode's starting rays (the server's default for it). */
+function aoDefault() {
+  const bounds = option(modes()[0], "ao_rays");
+  if (bounds) $("ao-rays").value = bounds.default;
+}
+
 function modeChanged() {
+  aoDefault();
   const shown = modes();
   if (state.sessions.length !== shown.length) return openSessions();
   state.sessions.forEach((s, i) => { s.mode = shown[i]; });
@@ -662,13 +695,11 @@ function bindControls() {
   $("mode-b").addEventListener("change", modeChanged);
   $("split").addEventListener("change", () => openSessions());
   $("channel").addEventListener("change", channelChanged);
-  $("ao").addEventListener("change", sendSettings);
   $("ao-rays").addEventListener("change", sendSettings);
   $("interpolation").addEventListener("change", sendSettings);
   $("encoding").addEventListener("change", () => { setNotice(autoNotice()); sendSettings(); });
   $("bitrate").addEventListener("change", sendSettings);
   $("refine").addEventListener("change", sendSettings);
-  $("recon-rays").addEventListener("change", sendSettings);
   $("lens-radius").addEventListener("input", () => { showLens(); queue("focus", focusMessage()); });
   $("camera-reset").addEventListener("click", resetCamera);
   $("camera-save").addEventListener("click", () => {

@@ -98,7 +98,8 @@ async def open_view(ws: WebSocket, msg: OpenMsg, limits: Limits, catalog: Volume
                           lambda: view_sessions.count)
     summary = msgspec.convert(info.to_json() | {"iso_normalized": normalized}, VolumeSummary)
     ready = ReadyMsg(session.id, summary, session.state.settings,
-                     engine.upscale_factor, engine.recon_limits.max_ao_rays, limits, engine.encodings())
+                     engine.upscale_factor, engine.recon_limits.max_ao_rays, limits, engine.modes,
+                     engine.encodings())
     await ws.send_bytes(encode(ready))
     while session.notices:  # why the encoding is not the one asked for
         await ws.send_bytes(encode(NoticeMsg(session.notices.popleft())))
