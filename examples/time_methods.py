@@ -3,8 +3,8 @@
     python examples/time_methods.py                                     # full, AO 8 against reconstruct, AO 1
     python examples/time_methods.py --methods full:32,svgf:2 --size 640x360 --device cuda
 
-Every way to make a frame is a :class:`~isosr_net.frame_methods.FrameMethod` (a registered kind and
-its knobs) run by the runner :func:`~isosr_net.frame_methods.make_runner` makes; here each is run
+Every way to make a frame is a :class:`~isosr_net.methods.FrameMethod` (a registered kind and
+its knobs) run by the runner :func:`~isosr_net.methods.make_runner` makes; here each is run
 along the same short orbit (a new sequence: recurrent networks and temporal filters start empty)
 and prints its mean milliseconds per frame and the color PSNR of its frames against the
 reference (4 rays per pixel, 512 AO rays: :func:`isosr_net.budget.reference_frames`).
@@ -18,7 +18,7 @@ import time
 import torch
 
 from isosr_net.budget import color_psnr, reference_frames
-from isosr_net.frame_methods import FrameMethod, make_runner
+from isosr_net.methods import FrameMethod, make_runner
 from isosr_render import Renderer, open_volume, orbit_path, resolve_iso
 from isosr_render.sequence import sequence_cameras
 

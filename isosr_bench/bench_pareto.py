@@ -10,7 +10,7 @@
     python -m isosr_bench.bench_pareto --device cuda --sizes 1080p --budget-only \
         --out benchmarks/results       # the policy anew, scored by the methods' rows that file holds
 
-Every method of :mod:`isosr_net.frame_methods` (full resolution with 0-128 AO rays and 1, 2, 4
+Every method of :mod:`isosr_net.methods` (full resolution with 0-128 AO rays and 1, 2, 4
 rays per pixel; the a-trous filter, the SVGF temporal filter and OIDN (fast and high, where
 ``pyoidn`` is installed; else a line says why not) over 1, 2, 4 AO rays; the shipped
 reconstruction networks (full size, and x2 from a half-size render: :data:`SHIPPED_MODELS`) over
@@ -62,11 +62,9 @@ from isosr_render.sequence import sequence_cameras
 from isosr_net.budget import (REFERENCE_AO_RAYS, REFERENCE_SPP, BudgetConfig, choose_method, probe_quality,
                               reference_frames)
 from isosr_net.flow_warp import warp_by_flow
-from isosr_net.frame_methods import (INTERPOLATIONS, RUNNERS, FrameMethod, Networks, make_runner, reconstruct_method,
-                                     unavailable_kinds)
+from isosr_net.methods import RUNNERS, FrameMethod, Networks, make_runner, unavailable_kinds
 from isosr_net.metrics import color_instability, eval_region, masked_psnr, masked_ssim
-from isosr_net.model import read_config
-from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, recon_limits
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL
 from isosr_net.upscaler import DEFAULT_MODEL
 
 from .bench_knobs import parse_models
@@ -90,42 +88,22 @@ GOAL_TOP_MS = 50.0
 PRIMARY_IN_AO_RAYS = 6
 # The non-learned filters over few AO rays the reconstruction is compared with at the same rays.
 BASELINE_KINDS = ("atrous", "svgf", "oidn")
-OIDN_QUALITIES = ("fast", "high")
 # The shipped networks, measured by default (those the server's auto mode chooses among).
 SHIPPED_MODELS = {"network": DEFAULT_MODEL, "recon": DEFAULT_RECON_MODEL, "recon_x2": RECON_X2_MODEL}
 
 
 def methods(smoke: bool, device: str, models: dict[str, Path]) -> list[FrameMethod]:
-    """The methods measured: every kind, fewer settings in smoke mode."""
-    cuda = device.startswith("cuda")
-    spps, rays = ((1, 2), (0, 2, 8)) if smoke else ((1, 2, 4), (0, 1, 2, 4, 8, 16, 32, 64, 128))
-    out = [FrameMethod("full", ao_rays=n, spp=s) for s in spps for n in rays]
-    few = (2,) if smoke else (1, 2, 4)
-    out += [FrameMethod("atrous", ao_rays=n) for n in few] + [FrameMethod("svgf", ao_rays=n) for n in few]
+    """The methods measured: every registered kind's that can run here
+    (:meth:`~isosr_net.methods.FrameRunner.bench_methods`; a line says why a kind is left out),
+    fewer settings in smoke mode: first the kinds without a network, then per model the learned
+    kinds' settings of it."""
     missing = unavailable_kinds()
-    if "oidn" in missing:
-        print(f"oidn left out: {missing['oidn']}", flush=True)
-    else:
-        qualities = ("fast",) if smoke else OIDN_QUALITIES
-        out += [FrameMethod("oidn", ao_rays=n, quality=q) for n in few for q in qualities]
-    upscales = (((2, "bicubic"), (4, "nearest"), (4, "bilinear")) if smoke else
-                [(f, mode) for f in (2, 4, 8) for mode in INTERPOLATIONS])
-    out += [FrameMethod("upscale", factor=f, interpolation=mode) for f, mode in upscales]
-    for name, folder in models.items():
-        config = read_config(folder)["model"]
-        model = None if folder in (DEFAULT_MODEL, DEFAULT_RECON_MODEL) else str(folder)
-        if config.get("type") == "ReconNet":
-            limits = recon_limits(folder)
-            sampling = [(1, 0), (1, 2)] if smoke else [(s, n) for s in (1, 2, 4) for n in (0, 1, 2, 4, 8, 16)
-                                                       if s <= limits.max_spp and n <= limits.max_ao_rays]
-            if not smoke:  # past the model's AO rays (read as its max_ao_rays), its most rays per pixel: the top
-                sampling += [(limits.max_spp, n) for n in (32, 64) if n > limits.max_ao_rays]
-            out += [reconstruct_method(model, ao_rays=n, spp=s, precision="fp16" if cuda else "fp32",
-                                       model_name=name) for s, n in sampling]
-            continue
-        for precision in ("fp32", "bf16", "fp16") if cuda else ("fp32",):
-            out.append(FrameMethod("network", factor=config["upscale"], precision=precision, model=model,
-                                   model_name=name))
+    for kind, reason in missing.items():
+        print(f"{kind} left out: {reason}", flush=True)
+    runners = [cls for kind, cls in RUNNERS.items() if kind not in missing]
+    out = [m for cls in runners if cls.network_class is None for m in cls.bench_methods(smoke, device)]
+    for model in models.items():
+        out += [m for cls in runners if cls.network_class is not None for m in cls.bench_methods(smoke, device, model)]
     return out
 
 

@@ -9,7 +9,7 @@ Pareto benchmark's orbit (:func:`isosr_bench.bench_pareto.bench_cameras`), mean 
 
 - ``full``: the full-resolution frame with the same rays and no network (what the
   reconstruction adds to);
-- ``path``: the whole reconstructed frame as its :class:`~isosr_net.frame_methods.FrameRunner` makes it (render,
+- ``path``: the whole reconstructed frame as its :class:`~isosr_net.methods.FrameRunner` makes it (render,
   reconstruction, shading), one synchronization at its end, as the Pareto benchmark times it;
   ``added``: ``path - full``;
 - ``render``: its ray cast alone.
@@ -42,7 +42,7 @@ import torch
 from isosr_render import Renderer
 from isosr_render.shading import ShadingParams
 from isosr_render.sequence import sequence_cameras
-from isosr_net.frame_methods import FrameMethod, Networks, make_runner, reconstruct_method
+from isosr_net.methods import FrameMethod, Networks, make_runner, reconstruct_method
 from isosr_net.fused_recon import FusedReconNet, fused_runs_on, fused_traffic
 from isosr_net.ray_history import accumulate_frame, history_traffic
 from isosr_net.reconnet import macs_per_pixel

@@ -7,9 +7,10 @@
 Results: ``OUT/bench_server_<size>_<device>.json``. Starts the server in a
 subprocess (or uses ``--url``) and drives closed-loop view sessions
 (:func:`isosr_client.drive.drive`: send a camera, wait for its frame, repeat) for a bounded
-time per case. Per mode (every one the server offers: ``auto``, ``full`` with AO 0 and 8,
-``network``, ``upscale``, ``buffers``, ``focus``, ``reconstruct`` with 1 AO ray, ``atrous`` with
-2) and session count:
+time per case. Per mode (``auto``; each method mode the server offers at the AO rays
+its kind names, :attr:`~isosr_net.methods.FrameRunner.serve_bench_ao`: ``full`` with AO 0 and 8,
+``atrous`` with 2, ``reconstruct`` with 1, ``upscale``, ``network``, ``buffers``; ``focus``) and
+session count:
 
 - frames/s (all sessions together, and per session) and latency p50/p99: a camera change's
   round trip as a client sees it; the methods the frames name (``auto``: what it chose);
@@ -52,13 +53,14 @@ from isosr_bench.bench_pareto import bench_cameras, pareto_rows
 from isosr_bench.common import bench_parser, print_table, write_result
 from isosr_bench.sessions import run_sessions
 from isosr_net.budget import color_psnr, reference_frames
-from isosr_net.frame_methods import Networks
+from isosr_net.methods import RUNNERS, Networks
 from isosr_net.inference import default_precision
 from isosr_net.reconstructor import RECON_X2_MODEL
 from isosr_render import FrameBuffers, Renderer, open_volume
 from isosr_render.catalog import SHARED_PREFIX
 from isosr_server.auto import AutoPolicy
 from isosr_server.engine import MODEL_NAMES, serving_network
+from isosr_server.views import VIEWS
 from isosr_client.drive import Orbit, summarize
 from isosr_client.view import connect
 from isosr_net.metrics import masked_psnr
@@ -66,9 +68,10 @@ from isosr_net.metrics import masked_psnr
 LINKS_BIT_S = {"50mbit": 50e6, "1gbit": 1e9}
 STAGES = ("render", "filter", "network", "shading", "encode")
 SIZES = {"1080p": (1920, 1080), "4k": (3840, 2160), "smoke": (64, 48)}
-# (mode, AO rays) per case: every mode the server offers.
-CASES = (("auto", 0), ("full", 0), ("full", 8), ("network", 0), ("upscale", 0), ("buffers", 0), ("focus", 8),
-         ("reconstruct", 1), ("atrous", 2))
+# (mode, AO rays) per case: auto, each method mode the server offers at the AO rays its kind
+# names (FrameRunner.serve_bench_ao), and focus.
+CASES = (("auto", 0), *((kind, ao) for kind in VIEWS if kind in RUNNERS for ao in RUNNERS[kind].serve_bench_ao),
+         ("focus", 8))
 TARGET_FPS = 30.0
 
 

@@ -60,7 +60,7 @@ from isosr_bench.bench_server import ServerProcess
 from isosr_bench.common import bench_parser, print_table, write_result
 from isosr_bench.video_link import link_run
 from isosr_client.drive import Orbit
-from isosr_net.frame_methods import RUNNERS, FrameMethod, Networks, make_runner
+from isosr_net.methods import RUNNERS, FrameMethod, Networks, make_runner
 from isosr_net.inference import default_precision
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
 from isosr_render import Renderer, open_volume, orbit, resolve_iso

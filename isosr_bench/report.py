@@ -12,7 +12,7 @@ from collections import Counter, defaultdict
 from pathlib import Path
 
 from isosr_render.atomic import atomic_write
-from isosr_net.frame_methods import RUNNERS
+from isosr_net.methods import RUNNERS
 
 from .common import RESULTS_DIR
 
@@ -295,6 +295,12 @@ def _ratio(value: float | None) -> str:
     return "-" if value is None else f"{value:.2f}"
 
 
+def plot_colors() -> dict[str, str]:
+    """The Pareto plots' color by method kind: each registered kind's own
+    (:attr:`~isosr_net.methods.FrameRunner.plot_color`; kinds without one are not plotted)."""
+    return {kind: cls.plot_color for kind, cls in RUNNERS.items() if cls.plot_color is not None}
+
+
 def pareto_plots(folder: Path, kind: str) -> list[Path]:
     """Per volume, one panel per size: time (log) against color PSNR, the front colored by kind and
     joined, dominated points grey, learned methods as stars."""
@@ -305,8 +311,7 @@ def pareto_plots(folder: Path, kind: str) -> list[Path]:
     record = _load(folder, "pareto", kind)
     if record is None:
         return []
-    colors = {"full": "C0", "atrous": "C1", "svgf": "C5", "oidn": "C6", "reconstruct": "C4", "upscale": "C2",
-              "network": "C3"}
+    colors = plot_colors()
     by_volume = defaultdict(dict)
     for (volume, size), rows in _pareto_scenes(record).items():
         by_volume[volume][size] = rows

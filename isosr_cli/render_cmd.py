@@ -1,8 +1,9 @@
 """`isosr render`: one frame of an isosurface to a frame file (.npz) or an image (.png).
 
-With --reconstruct, the frame is rendered with few rays (--ao-samples AO rays per hit, --spp
-rays per pixel) and reconstructed by a trained network (:mod:`isosr_net.reconnet`): the file
-holds its mask, normal, depth, AO and the color shaded from them.
+With --method NAME[:key=value,...], any registered frame method makes it
+(:mod:`isosr_net.methods`; --list-methods lists them with their knobs and bounds): e.g.
+``reconstruct:ao_rays=2`` renders few AO rays and reconstructs them with a trained network; the
+file holds what the method makes.
 """
 
 from __future__ import annotations
@@ -13,24 +14,37 @@ from pathlib import Path
 
 import torch
 
-from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest, open_volume, orbit, resolve_iso
-from isosr_render.catalog import SHARED_PREFIX, check_iso
-from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES, HIGHRES_BUFFERS
-from isosr_render.formats import help_text
-from isosr_net.budget import BudgetConfig, render_within_budget
-from isosr_net.frame_methods import FrameRunner, Networks, make_runner, reconstruct_method, run_sequence
-from isosr_net.inference import PRECISIONS
 from isosr_cli.images import visualize, write_png
 from isosr_cli.options import frame_size
+from isosr_net.budget import BudgetConfig, render_within_budget
+from isosr_net.methods import (
+    RUNNERS,
+    Networks,
+    make_runner,
+    parse_method,
+    run_sequence,
+    unavailable_kinds,
+)
+from isosr_render import (
+    Camera,
+    FrameBuffers,
+    Renderer,
+    RenderRequest,
+    open_volume,
+    orbit,
+    resolve_iso,
+)
+from isosr_render.catalog import SHARED_PREFIX, check_iso
+from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES
+from isosr_render.formats import help_text
 
 PNG_DEFAULT = "color"
-# AO rays per hit: of a plain render, and of a reconstructed one (its network's few).
-AO_SAMPLES, RECON_AO_SAMPLES = 64, 2
-RECON_OUTPUTS = HIGHRES_BUFFERS + ("color",)
-# Render options a reconstruction takes as its network was trained: RenderRequest's defaults
-# (the frame runner sets no others). Option -> request field.
-RECON_FIXED = {"--step": "step", "--refine": "refine", "--refine-steps": "refine_steps", "--seed": "seed",
-               "--flow-fill": "flow_fill"}
+# AO rays per hit of a plain render.
+AO_SAMPLES = 64
+# Render options a frame method sets itself (as a learned one was trained): RenderRequest's
+# defaults. Option -> request field.
+METHOD_FIXED = {"--step": "step", "--refine": "refine", "--refine-steps": "refine_steps", "--seed": "seed",
+                "--flow-fill": "flow_fill", "--ao-samples": "ao_samples", "--spp": "spp"}
 
 
 def _triple(text: str) -> tuple[float, float, float]:
@@ -48,7 +62,7 @@ def add_parser(subparsers) -> None:
     """Register ``render`` and its options."""
     p = subparsers.add_parser("render", help="render one frame of an isosurface",
                               description=__doc__, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("volume", help=f"a volume file or folder ({help_text()}), procedural spec (proc:sphere, "
+    p.add_argument("volume", nargs="?", help=f"a volume file or folder ({help_text()}), procedural spec (proc:sphere, "
                                   "proc:torus, proc:cloud:SEED, proc:metaballs:SEED, optional @SIZE) or shared volume "
                                   "(shared:NAME); an OME-Zarr level by name, scan.zarr#level=2, or by memory, "
                                   "scan.zarr#max-gb=8 (default: the finest)")
@@ -67,8 +81,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--outputs", default="mask,normal,depth,color",
                    help=f"comma-separated buffers: {','.join(BUFFER_NAMES)},samples")
     p.add_argument("--ao-samples", type=int,
-                   help=f"AO rays per hit (default {AO_SAMPLES}; with --reconstruct default {RECON_AO_SAMPLES}, 0: AO "
-                        f"inferred from the geometry, past the model's max_ao_rays read as that many)")
+                   help=f"AO rays per hit of a plain render (default {AO_SAMPLES}, 0: none; a --method takes its "
+                        "own, NAME:ao_rays=N)")
     p.add_argument("--ao-radius", type=float, default=AO_RADIUS, help="AO ray length (world units)")
     p.add_argument("--step", type=float, help="ray step (world units; default half the smallest voxel)")
     p.add_argument("--voxel-units", action="store_true", help="--step and --ao-radius are in voxels")
@@ -84,17 +98,17 @@ def add_parser(subparsers) -> None:
                         "upscaling, network) with the best expected quality within this frame time; the file then "
                         "holds what that method makes (color, mask, normal[, ao]); --outputs, --spp, --ao-samples "
                         "do not apply")
-    recon = p.add_argument_group("reconstruction")
-    recon.add_argument("--reconstruct", action="store_true",
-                       help="render with --ao-samples AO rays per hit and --spp rays per pixel, then reconstruct "
-                            "converged AO and antialiased edges with a trained network; with a previous camera "
-                            "its frame is reconstructed first and carried over by the flow; --outputs from "
-                            f"{','.join(RECON_OUTPUTS)}")
-    recon.add_argument("--model", help="reconstruction model folder (default: the shipped one)")
-    recon.add_argument("--precision", choices=sorted(PRECISIONS), help="the network's precision (default fp32)")
+    methods = p.add_argument_group("frame methods")
+    methods.add_argument("--method", metavar="NAME[:KEY=VALUE,...]",
+                         help="make the frame with a registered frame method, NAME[:key=value,...] (e.g. "
+                              "reconstruct:ao_rays=2, atrous:ao_rays=4,spp=2, network, "
+                              "reconstruct:model=FOLDER,precision=bf16); with a previous camera its frame is made "
+                              "first and carried over; --outputs from what the method makes")
+    methods.add_argument("--list-methods", action="store_true",
+                         help="list the registered frame methods with their knobs and bounds, and exit")
     p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     p.add_argument("--png-of", choices=BUFFER_NAMES, help="with a .png output: the buffer to show")
-    p.add_argument("-o", "--output", required=True, help="FILE.npz (frame file) or FILE.png")
+    p.add_argument("-o", "--output", help="FILE.npz (frame file) or FILE.png (required but with --list-methods)")
     p.set_defaults(func=run)
 
 
@@ -105,27 +119,39 @@ def _camera(orbit_arg, eye, target, up, fov) -> Camera:
     return Camera(eye, target, up, fov)
 
 
-def _check_reconstruct(args: argparse.Namespace, outputs: tuple[str, ...]) -> None:
-    """Refuse options that do not go with --reconstruct (or need it)."""
-    if not args.reconstruct:
-        given = [name for name, value in (("--model", args.model), ("--precision", args.precision)) if value]
-        if given:
-            raise ValueError(f"{', '.join(given)}: only with --reconstruct")
+def _check_method(args: argparse.Namespace) -> None:
+    """Refuse render options a frame method sets itself, and --budget-ms beside one."""
+    if args.method is None:
         return
     if args.budget_ms is not None:
-        raise ValueError("--reconstruct and --budget-ms exclude each other: the budget picks its own method")
+        raise ValueError("--method and --budget-ms exclude each other: the budget picks its own method")
     defaults = RenderRequest(1, 1, 0.5)
-    fixed = [option for option, name in RECON_FIXED.items() if getattr(args, name) != getattr(defaults, name)]
+    fixed = [option for option, name in METHOD_FIXED.items() if getattr(args, name) not in (None, getattr(defaults, name))]
     fixed += ["--no-skip"] if args.no_skip else []
     if fixed:
-        raise ValueError(f"--reconstruct renders as its network was trained, without {', '.join(fixed)}")
-    other = [o for o in outputs if o not in RECON_OUTPUTS]
-    if other:
-        raise ValueError(f"--reconstruct makes {','.join(RECON_OUTPUTS)}, not {','.join(other)}")
+        raise ValueError(f"--method {args.method.kind} casts its own rays (its knobs, e.g. {args.method.kind}:ao_rays=2,"
+                         f"spp=2), without {', '.join(fixed)}")
+
+
+def list_methods() -> str:
+    """The registered frame methods, one line each: kind, label, knobs with bounds, availability."""
+    missing = unavailable_kinds()
+    lines = []
+    for kind, runner in RUNNERS.items():
+        bounds = runner.bounds(runner.spec())
+        knobs = [f"{k}={bounds[k][0]}..{bounds[k][1]}" if k in bounds else k for k in runner.knobs]
+        note = f" (unavailable: {missing[kind]})" if kind in missing else ""
+        lines.append(f"{kind:<12} {runner.label}; knobs: {', '.join(knobs) or 'none'}{note}")
+    return "\n".join(lines)
 
 
 def run(args: argparse.Namespace) -> int:
     """Render as the arguments say; print what was done and how long it took."""
+    if args.list_methods:
+        print(list_methods())
+        return 0
+    if args.volume is None or args.output is None:
+        raise ValueError("give a volume and -o FILE (or --list-methods)")
     out = Path(args.output)
     if out.suffix not in (".npz", ".png"):
         raise ValueError(f"output must end in .npz or .png, got {out.name}")
@@ -140,9 +166,10 @@ def run(args: argparse.Namespace) -> int:
     if out.suffix == ".png":
         shown = args.png_of or PNG_DEFAULT
         outputs = tuple(dict.fromkeys(outputs + (shown,)))
+    args.method = None if args.method is None else parse_method(args.method)
+    _check_method(args)
     if args.ao_samples is None:
-        args.ao_samples = RECON_AO_SAMPLES if args.reconstruct else AO_SAMPLES
-    _check_reconstruct(args, outputs)
+        args.ao_samples = AO_SAMPLES
 
     volume = open_volume(args.volume)
     iso = check_iso(volume, resolve_iso(args.volume, volume, args.iso, args.normalized_iso),
@@ -153,8 +180,10 @@ def run(args: argparse.Namespace) -> int:
     if args.prev_eye is not None or args.prev_orbit is not None:
         prev = _camera(args.prev_orbit, args.prev_eye, args.target, args.up, args.fov)
     renderer = Renderer(volume, args.device)
-    if args.reconstruct:
-        runner = _recon_runner(args, renderer, iso, args.ao_radius * unit)
+    if args.method is not None:
+        # An eager network: for a frame or two, compiling it would take longer than it saves.
+        runner = make_runner(args.method, renderer, iso, *args.size, ao_radius=args.ao_radius * unit,
+                             networks=Networks.eager(), keep=tuple(o for o in outputs if o in BUFFER_NAMES))
     else:
         request = RenderRequest(
             width=args.size[0], height=args.size[1], iso=iso, outputs=outputs,
@@ -163,8 +192,11 @@ def run(args: argparse.Namespace) -> int:
             ao_radius=args.ao_radius * unit, seed=args.seed, prev_camera=prev, flow_fill=args.flow_fill,
             skip=not args.no_skip)
     start = time.perf_counter()
-    if args.reconstruct:
+    if args.method is not None:
         made = run_sequence(runner, [camera] if prev is None else [prev, camera])[-1]
+        missing = [name for name in outputs if getattr(made, name, None) is None]
+        if missing:
+            raise ValueError(f"{args.method.name} makes {','.join(made.present())}, not {','.join(missing)}")
         frame = FrameBuffers(**{name: getattr(made, name) for name in outputs})
     elif args.budget_ms is None:
         frame = renderer.render(camera, request)
@@ -183,17 +215,9 @@ def run(args: argparse.Namespace) -> int:
         write_png(out, visualize(frame, shown))
     lo, hi = volume.value_range
     how = "rendered"
-    if args.reconstruct:
-        how = f"reconstructed ({runner.method.name}{', from the previous camera on' if prev else ''})"
+    if args.method is not None:
+        how = f"made by {args.method.name}{' from the previous camera on' if prev else ''}:"
     print(f"{volume.name}: {volume.shape} voxels, iso {iso:.4f} normalized ({lo + iso * (hi - lo):g} in data units); "
           f"{how} {','.join(frame.present())} at {args.size[0]}x{args.size[1]} on {renderer.device} "
           f"in {elapsed * 1e3:.1f} ms{'' if args.budget_ms is None else ', the probe included'} -> {out}")
     return 0
-
-
-def _recon_runner(args: argparse.Namespace, renderer: Renderer, iso: float, ao_radius: float) -> FrameRunner:
-    """The frame runner of --reconstruct, with an eager network: for one frame or two, compiling
-    it (what a runner's own network does on GPUs) would take longer than it saves."""
-    method = reconstruct_method(args.model, ao_rays=args.ao_samples, spp=args.spp, model_name="recon",
-                                precision=args.precision or "fp32")
-    return make_runner(method, renderer, iso, *args.size, ao_radius=ao_radius, networks=Networks.eager())

@@ -62,13 +62,11 @@ from isosr_render.sequence import sequence_cameras
 from isosr_render.shading import ShadingParams, shade
 from isosr_render.conventions import AO_RADIUS
 from isosr_render.shapes import check_int
-from isosr_net.frame_methods import FrameMethod, FrameRunner, Networks, finish_steps, make_runner, reconstruct_method
+from isosr_net.methods import RUNNERS, FrameMethod, FrameRunner, Networks, finish_steps, make_runner
 from isosr_net.metrics import eval_region, masked_psnr
 from isosr_net.reconnet import RayLimits
-from isosr_net.reconstructor import RECON_X2_MODEL, recon_limits
+from isosr_net.reconstructor import RECON_X2_MODEL
 
-# The x2 reconstruction's name in its methods' names (``x2, AO 1, spp 1, recon_x2 fp16``).
-X2_MODEL_NAME = "recon_x2"
 # Color PSNR of no-AO against many-ray AO above which a scene gets no AO rays (see above).
 AO_MATTERS_DB = 40.0
 # The quality reference: rays per pixel, AO rays per hit, and an AO seed no method uses (the
@@ -88,43 +86,14 @@ FLOOR_SHARE = 0.5
 
 def default_candidates(device: str, precision: str | None = None, limits: RayLimits | None = None,
                        x2_model: str | os.PathLike | None = RECON_X2_MODEL) -> tuple[FrameMethod, ...]:
-    """The methods the policy considers, roughly cheapest first (the order breaks ties): full
-    resolution with 0-64 AO rays and 1-4 rays per pixel, the a-trous filter over 1-4 AO rays, bilinear x2 and
-    x4, the shipped x4 network, the reconstruction over 1-4 AO rays at 1-4 rays per pixel, and
-    over 8 (spp 2, 4), 16, 32 and 64 (spp 4) where its model takes the rays per pixel (``limits``;
-    None: the shipped model's; past its ``max_ao_rays`` it reads their mean as that many): a model
-    over the input rays passes the plain render there; and the reconstruction
-    that also upscales x2 (``x2_model``; None: none) over 1-16 AO rays at spp 1 and 4 at spp 2:
-    a quarter of the pixels rendered, so many AO rays cost little, the best there is below about
-    twice the cheapest full frame (H100, 73dd70b: 1.5-2.7 ms at 1080p, 4.4-7.2 ms at 4K).
-    The networks run in ``precision``; None: each at its fastest (on CUDA the x4 network in bf16, the
-    reconstructions in fp16; fp32 elsewhere)."""
-    cuda = device.startswith("cuda")
-    limits = limits or recon_limits()
-    network = FrameMethod("network", factor=4, precision=precision or ("bf16" if cuda else "fp32"))
-    full = [FrameMethod("full", ao_rays=n) for n in (1, 2, 4, 8, 16, 32, 64)]
-    atrous = [FrameMethod("atrous", ao_rays=n) for n in (1, 2, 4)]
-    recon_precision = precision or ("fp16" if cuda else "fp32")
-    x2_limits = None if x2_model is None else recon_limits(x2_model)
-
-    def recon(ao_rays: int, spp: int) -> FrameMethod | None:  # None where the model does not take them
-        fits = spp <= limits.max_spp
-        return FrameMethod("reconstruct", ao_rays=ao_rays, spp=spp, precision=recon_precision) if fits else None
-
-    def recon_x2(ao_rays: int, spp: int) -> FrameMethod | None:
-        if x2_limits is None or ao_rays > x2_limits.max_ao_rays or spp > x2_limits.max_spp:
-            return None
-        return reconstruct_method(str(x2_model), ao_rays=ao_rays, spp=spp, model_name=X2_MODEL_NAME,
-                                  precision=recon_precision)
-
-    order = (FrameMethod("upscale", factor=4), FrameMethod("upscale", factor=2), FrameMethod("full"), network,
-             full[0], recon_x2(1, 1), atrous[0], recon_x2(2, 1), recon(1, 1), full[1], recon_x2(4, 1), atrous[1],
-             recon(2, 1), recon_x2(8, 1), full[2], atrous[2], recon_x2(4, 2), recon(4, 1), recon_x2(16, 1),
-             recon(1, 2), full[3], FrameMethod("full", spp=2), recon(2, 2), recon(4, 2), full[4],
-             FrameMethod("full", ao_rays=8, spp=2), FrameMethod("full", spp=4), recon(1, 4), recon(2, 4),
-             recon(4, 4), recon(8, 2), recon(8, 4), full[5], full[6], FrameMethod("full", ao_rays=16, spp=4),
-             recon(16, 4), recon(32, 4), recon(64, 4))
-    return tuple(m for m in order if m is not None)
+    """The methods the policy considers: those of every registered kind that can run here
+    (:meth:`FrameRunner.candidates`), roughly cheapest first by their ranks (the order breaks
+    ties). The networks run in ``precision`` (None: each at its fastest); ``limits``: the
+    reconstruction model's ray limits (None: the shipped model's); ``x2_model``: the model of the
+    reconstruction that also upscales x2 (None: none)."""
+    ranked = [c for cls in RUNNERS.values() if cls.unavailable() is None
+              for c in cls.candidates(device, precision, limits, x2_model)]
+    return tuple(m for _, m in sorted(ranked, key=lambda c: c[0]))
 
 
 @dataclass(frozen=True)

@@ -34,7 +34,7 @@ import warp as wp
 
 from isosr_render.buffers import FrameBuffers
 from isosr_render.shapes import check_shape
-from isosr_net.atrous import check_buffers, on_device, reprojected_texel
+from isosr_net.filters.atrous import check_buffers, on_device, reprojected_texel
 from isosr_net.reconnet import RayLimits
 
 wp.set_module_options({"enable_backward": False})

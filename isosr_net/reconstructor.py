@@ -250,6 +250,8 @@ class Reconstructor(RecurrentNetwork):
             with Triton, without ``fast_layers`` (whose layers it replaces) or ``compile``.
     """
 
+    display_name = "recon"  # in a method's name: "full, AO 2, spp 1, recon fp16"
+
     def __init__(self, model: str | Path = DEFAULT_RECON_MODEL, device: str = "cpu", precision: str = "fp32",
                  channels_last: bool = False, compile: str | None = None, autotune: bool = False,
                  graphs: bool = False, fast_layers: bool = False, fused: bool = False):

@@ -40,6 +40,8 @@ class Upscaler(RecurrentNetwork):
             None runs eagerly.
     """
 
+    display_name = "network"  # in a method's name: "x4 network bf16"
+
     def __init__(self, model: str | Path = DEFAULT_MODEL, device: str = "cpu", precision: str = "fp32",
                  tile: int | None = None, halo: int = 24, channels_last: bool = False, compile: str | None = None,
                  fast_layers: bool = False, autotune: bool = False):

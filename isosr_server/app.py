@@ -33,7 +33,7 @@ from isosr_server.api.deps import require_token
 from isosr_server.api.errors import add_exception_handlers
 from isosr_server.api.main import api_router
 from isosr_server.core.config import Settings
-from isosr_server.engine import Engine, EngineConfig
+from isosr_server.engine import Engine
 from isosr_server.guard import Guard
 from isosr_server.metrics import ServerMetrics
 from isosr_server.protocol import PROTOCOL_VERSION, Limits
@@ -61,11 +61,7 @@ def create_app(settings: Settings) -> FastAPI:
                   openapi_url=None)  # served below, behind the token
     s = app.state
     s.settings = settings
-    s.engine = Engine(EngineConfig(model=settings.model, recon_model=settings.recon_model,
-                                   recon_x2_model=settings.recon_x2_model, device=settings.device,
-                                   precision=settings.resolved_precision, target_fps=settings.target_fps,
-                                   slice_ms=settings.slice_ms, max_volume_bytes=settings.max_volume_bytes,
-                                   probe_cache=settings.probe_cache))
+    s.engine = Engine(settings)
     s.catalog = VolumeCatalog(settings.volumes, settings.max_volume_bytes)
     s.metrics = ServerMetrics(s.engine.gpu_memory, s.engine.volume_memory)
     s.view_sessions = SessionCounter(settings.limits.max_sessions)

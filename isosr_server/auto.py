@@ -27,7 +27,7 @@ from pathlib import Path
 
 from isosr_net.budget import BudgetChoice, BudgetConfig, QualityProbe, choose_method_steps, default_candidates, \
     probe_quality_steps
-from isosr_net.frame_methods import FrameMethod, FrameRunner, Networks
+from isosr_net.methods import FrameMethod, FrameRunner, Networks
 from isosr_net.reconstructor import Reconstructor, recon_limits
 from isosr_render import Camera, Renderer
 from isosr_render.atomic import atomic_write

@@ -8,7 +8,7 @@ served in turn (round robin), never the busiest first. The event loop awaits
 :meth:`Engine.call`; everything named ``*_sync`` runs only on that thread.
 
 Frames are made by isosr_net's frame methods through the view modes (:mod:`isosr_server.views`).
-Networks are loaded once (:class:`isosr_net.frame_methods.Networks`, in the server's precision:
+Networks are loaded once (:class:`isosr_net.methods.Networks`, in the server's precision:
 fp16 on CUDA by default, fp32 on CPUs; NHWC and the fast layers on GPUs, no ``torch.compile``,
 which would stall every session for seconds at each new frame size); every view session and
 upscale stream gets its own copy that shares the weights and owns its recurrent state.
@@ -31,16 +31,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from isosr_net.frame_methods import Networks, finish_steps
+from isosr_net.methods import Networks, finish_steps
 from isosr_net.inference import RecurrentNetwork, default_precision
 from isosr_net.reconnet import RayLimits
-from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, Reconstructor, recon_limits
+from isosr_net.reconstructor import Reconstructor, recon_limits
 from isosr_net.timing import StageTimer, timed_steps
-from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
+from isosr_net.upscaler import Upscaler
 from isosr_render import FrameBuffers, Renderer, ShadingParams, Volume, orbit, parse_procedural, shade
 from isosr_render.brick_pool import MemoryStats
 from isosr_render.images import quantize
 from isosr_server.auto import AutoPolicy, ProbeCache
+from isosr_server.core.config import Settings
 from isosr_server.codecs.buffers import pack_view_buffers
 from isosr_server.codecs.buffers_device import view_buffer_codes
 from isosr_server.codecs import video
@@ -50,7 +51,7 @@ from isosr_server.views import FrameJob, SessionFrames, ViewContext, ViewFrame, 
 
 RENDERER_CACHE = 4
 # How frames name the server's networks (in their method's name: "x4 network fp16", "..., recon fp16").
-MODEL_NAMES = {Upscaler: "network", Reconstructor: "recon"}
+MODEL_NAMES = {cls: cls.display_name for cls in (Upscaler, Reconstructor)}
 # Low-res tile side of CPU upscaling: the largest upscale (960x540 to 3840x2160) in 12 tiles, its
 # peak memory a sixth of the whole frame's (7.9 GB measured whole), the same result (see Upscaler).
 CPU_UPSCALE_TILE = 240
@@ -81,34 +82,6 @@ def serving_network(cls: type[RecurrentNetwork], model: Path, device: str, preci
 
 
 @dataclass(frozen=True)
-class EngineConfig:
-    """Where and how the engine runs.
-
-    Attributes:
-        model: the upscaling model folder (``config.json`` + ``model.safetensors``).
-        recon_model: the reconstruction model folder.
-        recon_x2_model: the folder of the reconstruction that also upscales x2 (auto mode).
-        device: ``cpu``, ``cuda`` or ``cuda:N``.
-        precision: the networks' ``fp32``, ``bf16`` or ``fp16``; None: fp16 on CUDA, fp32 elsewhere.
-        target_fps: frames a second the auto mode plans for each view session.
-        slice_ms: the device time a view frame's slice aims at (a heavy frame runs in slices that
-            other sessions' frames interleave with); None: on CUDA 8 ms, elsewhere 100 ms.
-        max_volume_bytes: the renderers' ``max_device_bytes`` (dense below, sparse above).
-        probe_cache: the JSON file where the auto mode keeps what its probes learn (None: memory only).
-    """
-
-    model: Path = DEFAULT_MODEL
-    recon_model: Path = DEFAULT_RECON_MODEL
-    recon_x2_model: Path = RECON_X2_MODEL
-    device: str = "cpu"
-    precision: str | None = None
-    target_fps: float = 30.0
-    slice_ms: float | None = None
-    max_volume_bytes: int | None = None
-    probe_cache: Path | None = None
-
-
-@dataclass(frozen=True)
 class EncodedFrame:
     """A view frame ready for the wire: the coded image (or the coded buffers), server milliseconds
     per stage, the channel legend, the method's name, the frame whose camera the flow refers to,
@@ -126,7 +99,7 @@ class EncodedFrame:
 class Engine:
     """Owns the device: networks, renderers, encoders, and the thread all their work runs on."""
 
-    def __init__(self, config: EngineConfig):
+    def __init__(self, config: Settings):
         self.config = config
         self.device = torch.device(config.device)
         if self.device.type == "cuda" and not torch.cuda.is_available():

@@ -1,6 +1,6 @@
 """The view modes: how a view session's settings become frames (on the engine's device thread).
 
-Every frame method of isosr_net's registry (:data:`isosr_net.frame_methods.RUNNERS`) that is a
+Every frame method of isosr_net's registry (:data:`isosr_net.methods.RUNNERS`) that is a
 view mode and can run here is a mode of that name, run by the session's `FrameStream` with the
 knobs its settings name. Two more are compositions only a viewer has:
 
@@ -23,7 +23,7 @@ from typing import ClassVar
 
 import torch
 
-from isosr_net.frame_methods import RUNNERS, FrameMethod, FrameResult, FrameRunner, FrameStream, Networks, make_runner
+from isosr_net.methods import RUNNERS, FrameMethod, FrameResult, FrameRunner, FrameStream, Networks, make_runner
 from isosr_net.timing import StageTimer
 from isosr_render import Camera, Renderer
 from isosr_server.auto import AutoPolicy, served_factor
@@ -250,7 +250,7 @@ class SessionFrames:
     def steps(self, renderer: Renderer, job: FrameJob,
               slice_ms: float | None = None) -> Generator[None, None, ViewFrame]:
         """Make one frame of ``job`` (device thread) in slices of about ``slice_ms``
-        (:meth:`isosr_net.frame_methods.FrameRunner.steps`): a generator that returns the frame."""
+        (:meth:`isosr_net.methods.FrameRunner.steps`): a generator that returns the frame."""
         st = job.settings
         shaded = st.channel == "shaded"
         keep = () if shaded else (st.channel,)

@@ -76,7 +76,7 @@ def child(tree: str, cases: str, frames: int, device: str) -> None:
     from isosr_bench.bench_pareto import SIZES, SMOKE_SIZES, WARMUP, bench_cameras, load
     from isosr_bench.bench_recon_path import recon_method
     from isosr_bench.common import time_frames
-    from isosr_net.frame_methods import Networks, make_runner
+    from isosr_net.methods import Networks, make_runner
     from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, Reconstructor
     from isosr_render import Renderer
     from isosr_render.sequence import sequence_cameras

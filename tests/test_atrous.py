@@ -10,8 +10,8 @@ import torch
 import torch.nn.functional as F
 
 from conftest import DEVICE
-import isosr_net.atrous as atrous_module
-from isosr_net.atrous import B3, TINY, ATrousConfig, ATrousFilter, atrous_filter
+import isosr_net.filters.atrous as atrous_module
+from isosr_net.filters.atrous import B3, TINY, ATrousConfig, ATrousFilter, atrous_filter
 
 # The kernels compute in float32; the reference in float64.
 TOLERANCE = 1e-5

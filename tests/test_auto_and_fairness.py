@@ -10,7 +10,7 @@ import time
 import pytest
 
 from isosr_net.budget import BudgetChoice
-from isosr_net.frame_methods import Networks, finish_steps, make_runner, run_sequence
+from isosr_net.methods import Networks, finish_steps, make_runner, run_sequence
 from isosr_net.reconstructor import RECON_X2_MODEL
 from isosr_render import orbit
 from isosr_render.images import to_uint8

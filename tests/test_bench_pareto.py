@@ -10,7 +10,7 @@ import torch
 
 from isosr_bench.bench_pareto import budget_ladder, dominator, learned_scorecard, merge, pareto_front, scores
 from isosr_render import FrameBuffers
-from isosr_net.frame_methods import unavailable_kinds
+from isosr_net.methods import unavailable_kinds
 
 FIELDS = {"volume", "size", "method", "learned", "ms", "color_psnr", "color_ssim", "image_psnr", "image_ssim",
           "ao_rmse", "flicker", "flicker_ratio"}

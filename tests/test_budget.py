@@ -13,7 +13,7 @@ from conftest import DEVICE
 from isosr_net.budget import (AO_MATTERS_DB, BudgetConfig, choose_method, default_candidates, default_probe_height,
                               probe_size, render_within_budget)
 from isosr_net import budget as policy
-from isosr_net.frame_methods import FrameMethod, Networks
+from isosr_net.methods import FrameMethod, Networks
 from isosr_net.model import save_pretrained
 from isosr_net.reconnet import RayLimits, ReconNet, ReconNetConfig
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, Reconstructor, recon_limits
@@ -180,6 +180,38 @@ def test_the_x2_reconstruction_is_a_candidate_at_the_samplings_its_model_takes(t
     small = [m for m in default_candidates("cpu", x2_model=tmp_path) if m.factor == 2 and m.kind == "reconstruct"]
     assert {(m.ao_rays, m.spp) for m in small} == {(1, 1), (2, 1), (4, 1), (4, 2)}
     assert not [m for m in default_candidates("cpu", x2_model=None) if m.kind == "reconstruct" and m.factor == 2]
+
+
+# default_candidates("cuda") before the kinds declared their own candidates (issue 46): (kind, name).
+CUDA_CANDIDATES = [
+    ("upscale", "x4 bilinear"), ("upscale", "x2 bilinear"), ("full", "full, AO 0, spp 1"),
+    ("network", "x4 network bf16"), ("full", "full, AO 1, spp 1"), ("reconstruct", "x2, AO 1, spp 1, recon_x2 fp16"),
+    ("atrous", "full, AO 1, a-trous"), ("reconstruct", "x2, AO 2, spp 1, recon_x2 fp16"),
+    ("reconstruct", "full, AO 1, spp 1, network fp16"), ("full", "full, AO 2, spp 1"),
+    ("reconstruct", "x2, AO 4, spp 1, recon_x2 fp16"), ("atrous", "full, AO 2, a-trous"),
+    ("reconstruct", "full, AO 2, spp 1, network fp16"), ("reconstruct", "x2, AO 8, spp 1, recon_x2 fp16"),
+    ("full", "full, AO 4, spp 1"), ("atrous", "full, AO 4, a-trous"),
+    ("reconstruct", "x2, AO 4, spp 2, recon_x2 fp16"), ("reconstruct", "full, AO 4, spp 1, network fp16"),
+    ("reconstruct", "x2, AO 16, spp 1, recon_x2 fp16"), ("reconstruct", "full, AO 1, spp 2, network fp16"),
+    ("full", "full, AO 8, spp 1"), ("full", "full, AO 0, spp 2"), ("reconstruct", "full, AO 2, spp 2, network fp16"),
+    ("reconstruct", "full, AO 4, spp 2, network fp16"), ("full", "full, AO 16, spp 1"),
+    ("full", "full, AO 8, spp 2"), ("full", "full, AO 0, spp 4"), ("reconstruct", "full, AO 1, spp 4, network fp16"),
+    ("reconstruct", "full, AO 2, spp 4, network fp16"), ("reconstruct", "full, AO 4, spp 4, network fp16"),
+    ("reconstruct", "full, AO 8, spp 2, network fp16"), ("reconstruct", "full, AO 8, spp 4, network fp16"),
+    ("full", "full, AO 32, spp 1"), ("full", "full, AO 64, spp 1"), ("full", "full, AO 16, spp 4"),
+    ("reconstruct", "full, AO 16, spp 4, network fp16"), ("reconstruct", "full, AO 32, spp 4, network fp16"),
+    ("reconstruct", "full, AO 64, spp 4, network fp16"),
+]
+
+
+def test_the_default_candidates_are_the_same_in_the_same_order():
+    """The kinds' own candidates, merged by rank, are the list the policy had (ties break by order)."""
+    cuda = default_candidates("cuda")
+    assert [(m.kind, m.name) for m in cuda] == CUDA_CANDIDATES
+    assert all(m.model == (str(RECON_X2_MODEL) if m.name.startswith("x2, ") else None) for m in cuda)
+    cpu = default_candidates("cpu")
+    assert [(m.kind, m.name) for m in cpu] == [(k, n.replace("bf16", "fp32").replace("fp16", "fp32"))
+                                               for k, n in CUDA_CANDIDATES]
 
 
 @pytest.mark.skipif(DEVICE != "cuda", reason="CUDA graphs: ISOSR_TEST_DEVICE=cuda on the GPU machine")

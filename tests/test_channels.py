@@ -9,7 +9,7 @@ import math
 import pytest
 import torch
 
-from isosr_net.frame_methods import FrameMethod, Networks, make_runner
+from isosr_net.methods import FrameMethod, Networks, make_runner
 from isosr_render import FrameBuffers, Renderer, orbit, parse_procedural
 from isosr_server import channels
 from isosr_server import views

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from isosr_cli.main import main
-from isosr_net.frame_methods import FrameMethod, make_runner, run_sequence
+from isosr_net.methods import FrameMethod, make_runner, run_sequence
 from isosr_net.reconstructor import RECON_X2_MODEL
 from isosr_net.upscaler import DEFAULT_MODEL
 from isosr_render import Renderer, open_volume, resolve_iso
@@ -73,9 +73,10 @@ def test_render_reconstruct_writes_what_the_reconstruct_method_makes(tmp_path, c
     renderer, iso = Renderer(volume, "cpu"), resolve_iso("proc:cloud:3@48", volume)
     cameras = [orbit(28.0, 20.0, 1.6), orbit(30.0, 20.0, 1.6)]
     one, two = tmp_path / "one.npz", tmp_path / "two.npz"
-    common = ["render", "proc:cloud:3@48", "--size", "48x32", "--orbit", "30,20,1.6", "--reconstruct"]
-    assert main(common + ["--outputs", "mask,normal,depth,ao,color", "-o", str(one)]) == 0
-    assert "reconstructed (full, AO 2, spp 1, recon fp32) mask,normal,depth,ao,color at 48x32" in capsys.readouterr().out
+    common = ["render", "proc:cloud:3@48", "--size", "48x32", "--orbit", "30,20,1.6"]
+    assert main(common + ["--method", "reconstruct:ao_rays=2", "--outputs", "mask,normal,depth,ao,color",
+                          "-o", str(one)]) == 0
+    assert "made by full, AO 2, spp 1, recon fp32: mask,normal,depth,ao,color at 48x32" in capsys.readouterr().out
     frame = FrameBuffers.load_npz(one)
     assert frame.present() == ["mask", "normal", "depth", "ao", "color"]
     expected = run_sequence(make_runner(FrameMethod("reconstruct", ao_rays=2), renderer, iso, 48, 32), cameras[1:])[0]
@@ -83,9 +84,9 @@ def test_render_reconstruct_writes_what_the_reconstruct_method_makes(tmp_path, c
         torch.testing.assert_close(getattr(frame, name), getattr(expected, name), rtol=0, atol=1e-5)
     assert 0 < frame.mask.mean() < 1 and ((frame.mask > 0) & (frame.mask < 1)).any()  # antialiased edges
     # A previous camera: its frame is reconstructed first and carried over by the flow.
-    assert main(common + ["--outputs", "ao,color", "--ao-samples", "0", "--spp", "2", "--prev-orbit", "28,20,1.6",
-                          "-o", str(two)]) == 0
-    assert "(full, AO 0, spp 2, recon fp32, from the previous camera on)" in capsys.readouterr().out
+    assert main(common + ["--method", "reconstruct:ao_rays=0,spp=2", "--outputs", "ao,color", "--prev-orbit",
+                          "28,20,1.6", "-o", str(two)]) == 0
+    assert "full, AO 0, spp 2, recon fp32 from the previous camera on:" in capsys.readouterr().out
     frame = FrameBuffers.load_npz(two)
     assert frame.present() == ["ao", "color"]
     method = FrameMethod("reconstruct", spp=2)
@@ -97,11 +98,11 @@ def test_render_reconstruct_writes_what_the_reconstruct_method_makes(tmp_path, c
 
 def test_render_reconstruct_to_png_and_in_bf16(tmp_path):
     png, fp32, bf16 = tmp_path / "ao.png", tmp_path / "fp32.npz", tmp_path / "bf16.npz"
-    common = ["render", "proc:torus", "--size", "48x32", "--reconstruct"]
-    assert main(common + ["--png-of", "ao", "-o", str(png)]) == 0
+    common = ["render", "proc:torus", "--size", "48x32", "--method"]
+    assert main(common + ["reconstruct:ao_rays=2", "--png-of", "ao", "-o", str(png)]) == 0
     assert cv2.imread(str(png)).shape == (32, 48, 3)
-    assert main(common + ["--outputs", "color", "-o", str(fp32)]) == 0
-    assert main(common + ["--outputs", "color", "--precision", "bf16", "-o", str(bf16)]) == 0
+    assert main(common + ["reconstruct:ao_rays=2", "--outputs", "color", "-o", str(fp32)]) == 0
+    assert main(common + ["reconstruct:ao_rays=2,precision=bf16", "--outputs", "color", "-o", str(bf16)]) == 0
     a, b = np.load(fp32)["color"], np.load(bf16)["color"]
     assert np.isfinite(b).all() and 0 < np.abs(a - b).max() < 0.1
 
@@ -115,19 +116,21 @@ def test_render_reconstruct_to_png_and_in_bf16(tmp_path):
     (["render", "proc:sphere", "--spp", "0", "-o", "x.npz"], "spp"),
     (["render", "proc:sphere", "--eye", "0,0,2", "--orbit", "0,0,2", "-o", "x.npz"], "either --eye or --orbit"),
     (["render", "proc:sphere", "--device", "cuda", "-o", "x.npz"], "CUDA"),
-    (["render", "proc:sphere", "--reconstruct", "--budget-ms", "5", "-o", "x.npz"], "exclude each other"),
-    (["render", "proc:sphere", "--reconstruct", "--ao-samples", "4097", "-o", "x.npz"],
+    (["render", "proc:sphere", "--method", "reconstruct", "--budget-ms", "5", "-o", "x.npz"], "exclude each other"),
+    (["render", "proc:sphere", "--method", "reconstruct:ao_rays=4097", "-o", "x.npz"],
      "ao_rays must be an integer in [0, 4096]"),
-    (["render", "proc:sphere", "--reconstruct", "--ao-samples", "-1", "-o", "x.npz"], "ao_rays must be an integer"),
-    (["render", "proc:sphere", "--reconstruct", "--spp", "0", "-o", "x.npz"], "spp"),
-    (["render", "proc:sphere", "--reconstruct", "--outputs", "mask,flow", "-o", "x.npz"], "not flow"),
-    (["render", "proc:sphere", "--reconstruct", "--png-of", "position", "-o", "x.png"], "not position"),
-    (["render", "proc:sphere", "--reconstruct", "--seed", "3", "--refine", "bisection", "-o", "x.npz"],
+    (["render", "proc:sphere", "--method", "reconstruct:ao_rays=-1", "-o", "x.npz"], "ao_rays must be an integer"),
+    (["render", "proc:sphere", "--method", "reconstruct:spp=0", "-o", "x.npz"], "spp"),
+    (["render", "proc:sphere", "--method", "reconstruct", "--spp", "2", "-o", "x.npz"], "without --spp"),
+    (["render", "proc:sphere", "--method", "reconstruct", "--outputs", "mask,flow", "-o", "x.npz"], "not flow"),
+    (["render", "proc:sphere", "--method", "reconstruct", "--seed", "3", "--refine", "bisection", "-o", "x.npz"],
      "without --refine, --seed"),
-    (["render", "proc:sphere", "--model", str(DEFAULT_MODEL), "-o", "x.npz"], "--model: only with --reconstruct"),
-    (["render", "proc:sphere", "--precision", "bf16", "-o", "x.npz"], "--precision: only with --reconstruct"),
-    (["render", "proc:sphere", "--reconstruct", "--model", str(DEFAULT_MODEL), "-o", "x.npz"],
+    (["render", "proc:sphere", "--method", "warp", "-o", "x.npz"], "unknown frame method 'warp'; registered: full"),
+    (["render", "proc:sphere", "--method", "full:factor=2", "-o", "x.npz"], "takes no factor"),
+    (["render", "proc:sphere", "--method", "upscale:interpolation=cubic", "-o", "x.npz"], "interpolation must be one of"),
+    (["render", "proc:sphere", "--method", f"reconstruct:model={DEFAULT_MODEL}", "-o", "x.npz"],
      "not a reconstruction network"),
+    (["render", "-o", "x.npz"], "give a volume and -o FILE"),
 ])
 def test_bad_input_gives_one_line_error_and_exit_code_2(tmp_path, monkeypatch, capsys, argv, message):
     monkeypatch.chdir(tmp_path)
@@ -179,9 +182,29 @@ def test_without_the_server_extra_training_runs_and_serve_says_what_to_install()
 
 def test_render_reconstruct_with_the_x2_model_renders_half_the_sides_and_writes_the_full_size(tmp_path, capsys):
     out = tmp_path / "x2.npz"
-    assert main(["render", "proc:cloud:3@48", "--size", "64x48", "--reconstruct", "--model", str(RECON_X2_MODEL),
-                 "--ao-samples", "2", "--outputs", "mask,ao,color", "-o", str(out)]) == 0
+    assert main(["render", "proc:cloud:3@48", "--size", "64x48", "--method", f"reconstruct:model={RECON_X2_MODEL},ao_rays=2",
+                 "--outputs", "mask,ao,color", "-o", str(out)]) == 0
     assert "x2, AO 2, spp 1, recon fp32" in capsys.readouterr().out
     frame = np.load(out)
     assert frame["mask"].shape == (48, 64) and frame["color"].shape == (48, 64, 3)
     assert np.isfinite(frame["color"]).all() and 0 <= frame["ao"].min() and frame["ao"].max() <= 1
+
+
+def test_render_lists_every_registered_method_and_makes_each(tmp_path, capsys):
+    """``--list-methods`` names every kind of the registry with its knobs; ``--method`` makes any of
+    them (a new method needs no CLI change)."""
+    from isosr_net.methods import RUNNERS, unavailable_kinds
+
+    assert main(["render", "--list-methods"]) == 0
+    listing = capsys.readouterr().out.splitlines()
+    assert [line.split()[0] for line in listing] == list(RUNNERS)
+    assert any(line.startswith("atrous") and "ao_rays=1..4096" in line for line in listing)
+    for kind in RUNNERS:
+        if kind in unavailable_kinds():
+            continue
+        out = tmp_path / f"{kind}.npz"
+        outputs = "mask" if not RUNNERS[kind].shaded else "mask,color"
+        assert main(["render", "proc:torus@24", "--size", "32x24", "--method", kind, "--outputs", outputs,
+                     "-o", str(out)]) == 0, kind
+        frame = np.load(out)
+        assert all(np.isfinite(frame[name]).all() for name in frame.files), kind

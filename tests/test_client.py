@@ -29,7 +29,7 @@ from isosr_client import ServerError, connect, decode_image, upscale_remote
 from isosr_client.drive import Orbit, drive, summarize
 from isosr_client.view import CLIENT_LIMITS
 from isosr_render.images import to_uint8
-from isosr_net.frame_methods import FrameMethod, Networks, make_runner, run_sequence
+from isosr_net.methods import FrameMethod, Networks, make_runner, run_sequence
 from isosr_net.metrics import upscale_baseline
 from isosr_net.reconstructor import recon_limits
 from isosr_net.upscaler import Upscaler
@@ -37,8 +37,8 @@ from isosr_render import FrameBuffers, Renderer, RenderRequest, open_volume, orb
 from isosr_render.conventions import LOWRES_BUFFERS
 from isosr_render.shading import shade, shade_channels_first
 from isosr_server.core.config import Settings
-from isosr_server.protocol import (SERVER_VIEW_MESSAGES, CameraMsg, FrameMsg, Limits, OpenMsg, ProtocolError, ReadyMsg,
-                                   ReceivedMsg, SettingsUpdate, encode, parse)
+from isosr_server.protocol import (CLOSE_BAD_MESSAGE, SERVER_VIEW_MESSAGES, CameraMsg, FrameMsg, Limits, OpenMsg,
+                                   ProtocolError, ReadyMsg, ReceivedMsg, SettingsUpdate, encode, parse)
 
 VOLUME = "proc:cloud:0@32"
 SIZE = (64, 48)
@@ -228,8 +228,9 @@ def test_client_errors_are_clear(server):  # noqa: F811
     with pytest.raises(ServerError) as e:
         connect(server.url, "no_such_volume", "network", SIZE)
     assert e.value.code == 4404
-    with pytest.raises(ProtocolError, match="mode"):
-        connect(server.url, VOLUME, "sharpest", SIZE)
+    with pytest.raises(ServerError, match="unknown mode 'sharpest'; this server offers auto, full") as e:
+        connect(server.url, VOLUME, "sharpest", SIZE)  # the server's registry decides
+    assert e.value.code == CLOSE_BAD_MESSAGE
     with pytest.raises(ValueError, match="URL"):
         connect("ftp://127.0.0.1:1", VOLUME)
     with pytest.raises(ProtocolError, match="unknown field `ao_samples`"):

@@ -1,6 +1,8 @@
-"""Frame methods: names, checks, the registry, and the one contract every registered runner keeps
-(each kind below is run through the same contract tests): bounded color, only its buffers,
-per-stage times, recurrent state carried and reset on a cut.
+"""Frame methods: names, checks, the registry, and what is particular to some kinds (the buffers
+each kind's settings make, kept buffers, streams and shared networks, SVGF's seeds and history, a
+network's state carried, frames in slices). The one contract every registered method keeps (frame
+size and bounds, determinism, reset, option bounds, hard cases, its bench row) is
+``tests/method_contract.py``, run for each method by ``tests/test_method_contract.py``.
 
 On a GPU machine ``ISOSR_TEST_DEVICE=cuda pytest tests/test_frame_methods.py`` runs the runner
 tests there (compiled network and a-trous filter included).
@@ -13,8 +15,8 @@ import torch
 
 from isosr_render import Renderer, RenderRequest, open_volume, orbit_path, resolve_iso
 from isosr_net.inference import count_steps
-from isosr_net import oidn
-from isosr_net.frame_methods import FrameMethod, FrameStream, Networks, make_runner, unavailable_kinds
+from isosr_net.filters import oidn
+from isosr_net.methods import FrameMethod, FrameStream, Networks, make_runner, unavailable_kinds
 from conftest import DEVICE
 from net_fixtures import tiny_model_dir
 
@@ -86,7 +88,8 @@ def test_every_kind_makes_a_bounded_color_frame_and_only_its_buffers(scene, meth
 
 
 def test_the_registry_names_every_kind_and_refuses_a_second_registration():
-    from isosr_net.frame_methods import RUNNERS, FullRunner, register_runner
+    from isosr_net.methods import RUNNERS, register_runner
+    from isosr_net.methods.full import FullRunner
     assert set(RUNNERS) == {"full", "atrous", "svgf", "oidn", "reconstruct", "upscale", "network", "buffers"}
     assert all(cls.kind == kind for kind, cls in RUNNERS.items())
     assert set(unavailable_kinds()) <= {"oidn"}
@@ -184,12 +187,6 @@ def test_sizes_the_factor_does_not_divide_and_wrong_models_are_refused(scene, tm
         make_runner(FrameMethod("network", factor=4, model=tiny), renderer, iso, *SIZE)
 
 
-def test_an_empty_image_shades_to_the_background(scene):
-    renderer, _ = scene
-    frame = make_runner(FrameMethod("atrous", ao_rays=2), renderer, 2.0, *SIZE).frame(orbit_path(1)[0]).buffers
-    assert frame.mask.max() == 0 and torch.equal(frame.color, torch.ones_like(frame.color))
-
-
 def test_runners_share_one_network_per_model_precision_and_device(scene):
     renderer, iso = scene
     networks = Networks()
@@ -261,7 +258,7 @@ def test_a_reconstruction_past_its_models_ao_rays_casts_them_and_they_lift_its_a
     Pareto study's reference the AO error falls from 16 to 64 rays (there 0.0266 -> 0.0236; at
     960x540 the color 44.2 -> 46.4 dB, the plain render's 64 rays 46.0: docs/measurements.md)."""
     from isosr_net.budget import reference_frames
-    from isosr_net.frame_methods import reconstruct_method
+    from isosr_net.methods import reconstruct_method
     from isosr_render.catalog import shared_volumes_dir
     if not (shared_volumes_dir() / "volumes.json").is_file():
         pytest.skip(f"shared volumes not found at {shared_volumes_dir()} (set ISOSR_SHARED_VOLUMES)")

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from conftest import DEVICE
-from isosr_net import oidn
+from isosr_net.filters import oidn
 
 pytestmark = pytest.mark.skipif(oidn.unavailable() is not None, reason=str(oidn.unavailable()))
 

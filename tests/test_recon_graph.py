@@ -11,7 +11,7 @@ import torch
 from isosr_render import Renderer, open_volume, orbit, orbit_path, resolve_iso
 from isosr_render.sequence import sequence_requests
 from isosr_render.shading import ShadingParams
-from isosr_net.frame_methods import FrameMethod, Networks, make_runner, run_sequence
+from isosr_net.methods import FrameMethod, Networks, make_runner, run_sequence
 from isosr_net.reconstructor import GraphCache, Reconstructor
 
 SIZE = (96, 64)  # width, height

@@ -14,7 +14,7 @@ from isosr_render.conventions import AO, DEPTH, MASK, NORMAL, RECON_CHANNELS, SA
 from isosr_render.sequence import sequence_requests
 from isosr_render.shading import ShadingParams, shade
 from isosr_net.budget import color_psnr, reference_frames
-from isosr_net.frame_methods import FrameMethod, make_runner, run_sequence
+from isosr_net.methods import FrameMethod, make_runner, run_sequence
 from isosr_net.model import save_pretrained
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net.fused_recon import FusedReconNet

@@ -19,7 +19,7 @@ import pytest
 import torch
 from websockets.exceptions import ConnectionClosed
 
-from isosr_net.frame_methods import FrameMethod, Networks, make_runner, run_sequence
+from isosr_net.methods import FrameMethod, Networks, make_runner, run_sequence
 from isosr_net.metrics import upscale_baseline
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, recon_limits
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
@@ -655,10 +655,11 @@ def test_the_service_refuses_a_reconstruction_model_of_the_wrong_scale(tmp_path,
 
     from isosr_net.model import save_pretrained
     from isosr_net.reconnet import ReconNet, ReconNetConfig
-    from isosr_server.engine import Engine, EngineConfig
+    from isosr_server.core.config import Settings
+    from isosr_server.engine import Engine
 
     save_pretrained(ReconNet(ReconNetConfig(widths=(4, 4, 8, 8), blocks=1, upscale=upscale)), tmp_path)
-    engine = Engine(EngineConfig(**{setting: tmp_path}))
+    engine = Engine(Settings(**{setting: tmp_path}))
     try:
         with pytest.raises(ValueError, match=words):
             asyncio.run(engine.call(engine.start_sync))

@@ -12,9 +12,9 @@ import torch
 
 from conftest import DEVICE
 from isosr_render import Camera, Renderer, RenderRequest, open_volume, orbit, resolve_iso
-from isosr_net.atrous import B3, TINY, VARIANCE_EPS, ATrousConfig, atrous_passes, prepare_guides
-from isosr_net.frame_methods import FrameMethod, make_runner
-from isosr_net.svgf import MAX_HISTORY, MIN_HISTORY_WEIGHT, SVGFConfig, SVGFHistory, svgf_filter
+from isosr_net.filters.atrous import B3, TINY, VARIANCE_EPS, ATrousConfig, atrous_passes, prepare_guides
+from isosr_net.methods import FrameMethod, make_runner
+from isosr_net.filters.svgf import MAX_HISTORY, MIN_HISTORY_WEIGHT, SVGFConfig, SVGFHistory, svgf_filter
 
 # The kernels compute in float32; the reference in float64.
 TOLERANCE = 1e-4

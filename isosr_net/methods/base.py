@@ -1,40 +1,15 @@
-"""Every way to make a frame: one contract, one class per way, a registry by name.
-
-A :class:`FrameMethod` names a way and its knobs (a frozen, hashable spec); a
-:class:`FrameRunner` makes one stream's frames with it. Each way is one `FrameRunner` subclass
-registered under its kind (:func:`register_runner`), as diffusers' schedulers share one
-``step()`` contract. The registry, :data:`RUNNERS`:
-
-    full         ray cast at full resolution with N AO rays (0: none) and M rays per pixel
-    atrous       full resolution, few AO rays smoothed by the a-trous filter (:mod:`isosr_net.atrous`)
-    svgf         full resolution, few AO rays accumulated over frames along the flow and filtered
-                 (SVGF, :mod:`isosr_net.svgf`)
-    oidn         full resolution, few AO rays shaded and denoised by Intel Open Image Denoise
-                 (optional: where ``pyoidn`` is installed, :mod:`isosr_net.oidn`)
-    reconstruct  full resolution, few (or no) AO rays reconstructed by a trained network
-                 (:mod:`isosr_net.reconnet`: converged AO, antialiased edges)
-    upscale      a low-res ray cast upscaled by interpolation (no AO: an interpolator knows none)
-    network      a low-res ray cast upscaled by a trained network (which infers AO)
-    buffers      the low-res ray cast itself, unshaded (for a client that upscales)
-
-Every runner computes only the buffers its method needs (plus those a caller asks to ``keep``)
-and reports per-stage times:
-
-    runner = make_runner(FrameMethod("reconstruct", ao_rays=1, precision="fp16"), renderer, iso, 1920, 1080)
-    result = runner.frame(camera, prev_camera)  # FrameResult: buffers (color, mask, normal, ...), times
-    result.buffers.color                         # (H, W, 3) in [0, 1]
-
-``prev_camera=None`` starts a new sequence (a recurrent network forgets its previous output).
-A new method is one class and its registration; the Pareto benchmark, the budget policy,
-``isosr render`` and the service run them all through this contract. A kind that needs an optional
-package says why it cannot run where it is missing (:func:`unavailable_kinds`); making its runner
-raises that reason.
+"""The frame contract: a :class:`FrameMethod` names a way to make frames and its knobs (a frozen,
+hashable spec); a :class:`FrameRunner` makes one stream's frames with it; :data:`RUNNERS` is the
+registry by kind (:func:`register_runner`), as diffusers' schedulers share one ``step()``
+contract; :class:`FrameStream` is one viewer's frames whatever it asks for next. The methods
+themselves are one module each in this package (:mod:`isosr_net.methods`).
 """
 
 from __future__ import annotations
 
-from abc import ABC, abstractmethod
+import os
 import time
+from abc import ABC, abstractmethod
 from collections.abc import Callable, Generator
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -42,21 +17,21 @@ from typing import ClassVar
 
 import torch
 
-from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest
-from isosr_render.conventions import AO_RADIUS, LOWRES_BUFFERS
-from isosr_render.renderer import MAX_AO_SAMPLES, MAX_SPP
-from isosr_render.sequence import sequence_cameras
-from isosr_render.shading import ShadingParams, shade, shade_on
-from isosr_render.shapes import check_int
-from isosr_net.atrous import ATrousConfig, atrous_filter
-from isosr_net.inference import PRECISIONS, RecurrentNetwork, finish_steps, output_buffers
-from isosr_net.metrics import INTERPOLATIONS, upscale_baseline
-from isosr_net import oidn
-from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor, recon_config, recon_limits
-from isosr_net.reconnet import UPSCALES
-from isosr_net.svgf import SVGFConfig, SVGFHistory, svgf_filter
+from isosr_net.filters import oidn
+from isosr_net.filters.atrous import ATrousConfig
+from isosr_net.inference import (
+    PRECISIONS,
+    RecurrentNetwork,
+    finish_steps,
+)
+from isosr_net.metrics import INTERPOLATIONS
+from isosr_net.reconnet import RayLimits
 from isosr_net.timing import StageTimer
-from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
+from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest
+from isosr_render.conventions import AO_RADIUS
+from isosr_render.sequence import sequence_cameras
+from isosr_render.shading import ShadingParams, shade_on
+from isosr_render.shapes import check_int
 
 # Upscaling factors a low-res method takes.
 MAX_FACTOR = 16
@@ -221,6 +196,9 @@ class FrameRunner(ABC):
         label: a menu's words for it.
         view_mode: a viewer may ask for it by name (a service mode).
         default_ao_rays: the AO rays a viewer starts it with.
+        serve_bench_ao: the AO rays the server benchmark runs its view mode at, one case each
+            (:mod:`isosr_bench.bench_server`; empty: none).
+        plot_color: its matplotlib color in the Pareto plots (:mod:`isosr_bench.report`; None: not plotted).
 
     Args:
         method: the way to make frames.
@@ -251,6 +229,8 @@ class FrameRunner(ABC):
     label: ClassVar[str] = ""
     view_mode: ClassVar[bool] = True
     default_ao_rays: ClassVar[int] = 0
+    serve_bench_ao: ClassVar[tuple[int, ...]] = ()
+    plot_color: ClassVar[str | None] = None
 
     def __init__(self, method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int,
                  shading: ShadingParams = ShadingParams(), ao_radius: float = AO_RADIUS,
@@ -294,6 +274,19 @@ class FrameRunner(ABC):
             raise ValueError(f"quality must be one of {oidn.QUALITIES}, got {method.quality!r}")
 
     @classmethod
+    def spec(cls, **knobs) -> FrameMethod:
+        """This kind's method with ``knobs``, the others at their defaults (its AO rays:
+        ``default_ao_rays``; a low-res kind's factor: its least; a learned kind's ``model_name``:
+        its network's display name)."""
+        if "ao_rays" in cls.knobs:
+            knobs.setdefault("ao_rays", cls.default_ao_rays)
+        if cls.low_res:
+            knobs.setdefault("factor", cls.factor[0])
+        if cls.network_class is not None:
+            knobs.setdefault("model_name", cls.network_class.display_name)
+        return FrameMethod(cls.kind, **knobs)
+
+    @classmethod
     def bounds(cls, method: FrameMethod) -> dict[str, tuple[int, int]]:
         """The ``(low, high)`` bounds of ``method``'s counts ``ao_rays``, ``spp``, ``factor``."""
         return {"ao_rays": cls.ao_rays, "spp": cls.spp, "factor": cls.factor}
@@ -302,6 +295,23 @@ class FrameRunner(ABC):
     def unavailable(cls) -> str | None:
         """Why this kind cannot run in this installation (an optional package missing), or None."""
         return None
+
+    @classmethod
+    def bench_methods(cls, smoke: bool, device: str, model: tuple[str, Path] | None = None) -> list[FrameMethod]:
+        """The settings of this kind the Pareto study measures (:mod:`isosr_bench.bench_pareto`),
+        fewer with ``smoke``, learned ones in the precisions that are fast on ``device``. A learned kind's
+        are of ``model``, ``(name, folder)`` (none where the folder holds another kind's model);
+        the others' are asked for without one. Default: none."""
+        return []
+
+    @classmethod
+    def candidates(cls, device: str, precision: str | None = None, limits: RayLimits | None = None,
+                   x2_model: str | os.PathLike | None = None) -> tuple[tuple[float, FrameMethod], ...]:
+        """The settings of this kind the budget policy considers (:func:`isosr_net.budget.default_candidates`,
+        whose arguments these are), each with its rank: its place in the policy's order, roughly
+        cheapest first (the order breaks ties in quality; equal ranks keep the registry's order).
+        Default: none."""
+        return ()
 
     @classmethod
     @abstractmethod
@@ -410,323 +420,35 @@ class FrameRunner(ABC):
         return up * f if name == "flow" else up
 
 
-@register_runner("full")
-class FullRunner(FrameRunner):
-    """Full resolution, AO from ``ao_rays`` rays per hit (0: none)."""
-
-    label = "full resolution"
-
-    knobs = ("ao_rays", "spp")
-    ao_rays = (0, MAX_AO_SAMPLES)
-    spp = (1, MAX_SPP)
-
-    @classmethod
-    def describe(cls, m: FrameMethod) -> str:
-        return f"full, AO {m.ao_rays}, spp {m.spp}"
-
-    def outputs(self) -> tuple[str, ...]:
-        if not self.shade:  # a buffer view: the mask and what is kept
-            return ("mask",) + tuple(k for k in self.keep if k != "flow")
-        return ("mask", "normal") + (("ao",) if self.method.ao_rays else ())
-
-    @classmethod
-    def makes(cls, m: FrameMethod) -> tuple[str, ...]:
-        return ("mask", "normal") + (("ao",) if m.ao_rays else ())
-
-    def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
-        return self.colored(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=rendered.ao), timer)
-
-    def rows(self, camera: Camera, start: int, stop: int) -> torch.Tensor:
-        """Rows ``[start, stop)`` of the frame's color only (a focus lens's region).
-
-        Shape:
-            Returns (stop - start, W, 3).
-        """
-        rendered = self.renderer.render(camera, self.render_request(), rows=(start, stop))
-        ao = None if rendered.ao is None else rendered.ao[start:stop]
-        return shade(rendered.mask[start:stop], rendered.normal[start:stop], ao, self.shading)
-
-
-@register_runner("atrous")
-class ATrousRunner(FrameRunner):
-    """Full resolution, AO from 1-4 (or more) rays per hit smoothed by the edge-avoiding a-trous filter."""
-
-    label = "filtered AO (a-trous)"
-    default_ao_rays = 4
-
-    knobs = ("ao_rays", "spp")
-    ao_rays = (1, MAX_AO_SAMPLES)
-    spp = (1, MAX_SPP)
-
-    @classmethod
-    def describe(cls, m: FrameMethod) -> str:
-        return f"full, AO {m.ao_rays}, a-trous" + (f", spp {m.spp}" if m.spp > 1 else "")
-
-    def outputs(self) -> tuple[str, ...]:
-        return ("mask", "normal", "depth", "ao")
-
-    @classmethod
-    def makes(cls, m: FrameMethod) -> tuple[str, ...]:
-        return ("mask", "normal", "ao")
-
-    def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
-        with timer("filter"):
-            ao = atrous_filter(rendered.ao[None, None], rendered.mask[None, None],
-                               rendered.normal.permute(2, 0, 1)[None], rendered.depth[None, None], self.atrous)[0, 0]
-        return self.colored(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=ao), timer)
-
-
-@register_runner("svgf")
-class SVGFRunner(FrameRunner):
-    """Full resolution, AO from 1-4 (or more) rays per hit, a new set of rays each frame, accumulated
-    along the flow and filtered by SVGF (:func:`isosr_net.svgf.svgf_filter`); a frame without a
-    previous camera starts the history anew."""
-
-    label = "filtered AO (SVGF)"
-    default_ao_rays = 1
-
-    recurrent = True
-    fresh_rays = True
-    knobs = ("ao_rays", "spp")
-    ao_rays = (1, MAX_AO_SAMPLES)
-    spp = (1, MAX_SPP)
-    config: ClassVar[SVGFConfig] = SVGFConfig()  # the temporal knobs (the a-trous ones: the runner's atrous)
-
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, **kwargs)
-        self.history: SVGFHistory | None = None
-        self._prev_camera: Camera | None = None
-
-    @classmethod
-    def describe(cls, m: FrameMethod) -> str:
-        return f"full, AO {m.ao_rays}, svgf" + (f", spp {m.spp}" if m.spp > 1 else "")
-
-    def outputs(self) -> tuple[str, ...]:
-        return ("mask", "normal", "depth", "position", "ao")
-
-    @classmethod
-    def makes(cls, m: FrameMethod) -> tuple[str, ...]:
-        return ("mask", "normal", "ao")
-
-    def steps(self, camera: Camera, prev_camera: Camera | None = None,
-              slice_ms: float | None = None) -> Generator[None, None, FrameResult]:
-        self._prev_camera = prev_camera  # the view the history is reprojected from
-        return (yield from super().steps(camera, prev_camera, slice_ms))
-
-    def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
-        flow = None if rendered.flow is None else rendered.flow.permute(2, 0, 1)[None]
-        with timer("filter"):
-            ao, self.history = svgf_filter(rendered.ao[None, None], rendered.mask[None, None],
-                                           rendered.normal.permute(2, 0, 1)[None], rendered.depth[None, None],
-                                           rendered.position.permute(2, 0, 1)[None], flow, self._prev_camera,
-                                           self.history, self.config, self.atrous)
-        return self.colored(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=ao[0, 0]), timer)
-
-
-@register_runner("oidn")
-class OIDNRunner(FrameRunner):
-    """Full resolution, 1-4 (or more) AO rays per hit shaded, the noisy color denoised by Intel Open
-    Image Denoise with the AO-free shading as albedo and the normals as clean auxiliary images
-    (:func:`isosr_net.oidn.denoise`). Its frames hold a color but no AO."""
-
-    label = "denoised AO (OIDN)"
-    default_ao_rays = 1
-
-    knobs = ("ao_rays", "spp", "quality")
-    ao_rays = (1, MAX_AO_SAMPLES)
-    spp = (1, MAX_SPP)
-
-    @classmethod
-    def unavailable(cls) -> str | None:
-        return oidn.unavailable()
-
-    @classmethod
-    def describe(cls, m: FrameMethod) -> str:
-        return f"full, AO {m.ao_rays}, oidn {m.quality}" + (f", spp {m.spp}" if m.spp > 1 else "")
-
-    def outputs(self) -> tuple[str, ...]:
-        return ("mask", "normal", "ao")
-
-    @classmethod
-    def makes(cls, m: FrameMethod) -> tuple[str, ...]:
-        return ("mask", "normal")
-
-    def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
-        buffers = FrameBuffers(mask=rendered.mask, normal=rendered.normal)
-        if self.shade:
-            with timer("shading"):
-                noisy = shade_on(rendered.mask.device.type)(rendered.mask, rendered.normal, rendered.ao, self.shading)
-                albedo = shade_on(rendered.mask.device.type)(rendered.mask, rendered.normal, None, self.shading)
-            with timer("filter"):
-                buffers.color = oidn.denoise(noisy, albedo, rendered.normal, self.method.quality)
-        return buffers
-
-
-@register_runner("reconstruct")
-class ReconstructRunner(FrameRunner):
-    """Full resolution (or 1/factor of it, for a model that upscales: ``ReconNetConfig.upscale``),
-    1 ray per pixel to the model's ``max_spp`` and any AO rays per hit (past its ``max_ao_rays`` the
-    network reads their mean as that many: :meth:`~isosr_net.reconnet.RayLimits.read`),
-    reconstructed (and shaded, in one compiled call on GPUs) by the trained reconstruction
-    network. With a `Reconstructor` made with ``graphs`` on CUDA, a frame in one slice (render,
-    network, shading) is one CUDA graph (:meth:`Reconstructor.render_reconstruct`), timed as the
-    ``render`` stage."""
-
-    label = "reconstruction (full res, few AO rays)"
-    default_ao_rays = 2
-
-    recurrent = True
-    fresh_rays = True  # accumulated along the flow before the network (isosr_net.ray_history)
-    network_class = Reconstructor
-    default_model = DEFAULT_RECON_MODEL
-    knobs = ("ao_rays", "spp", "factor", "model", "precision")
-    ao_rays = (0, MAX_AO_SAMPLES)
-    factor = (1, max(UPSCALES))
-
-    @classmethod
-    def bounds(cls, m: FrameMethod) -> dict[str, tuple[int, int]]:
-        return super().bounds(m) | {"spp": (1, recon_limits(m.model or cls.default_model).max_spp)}
-
-    @classmethod
-    def describe(cls, m: FrameMethod) -> str:
-        return f"{'full' if m.factor == 1 else f'x{m.factor}'}, AO {m.ao_rays}, spp {m.spp}, {m.model_name} {m.precision}"
-
-    def outputs(self) -> tuple[str, ...]:
-        return ("mask", "normal", "depth") + (("ao", "position") if self.method.ao_rays else ())
-
-    @classmethod
-    def makes(cls, m: FrameMethod) -> tuple[str, ...]:
-        return ("mask", "normal", "depth", "ao")
-
-    @property
-    def read_rays(self) -> int:
-        """The AO rays per hit the network reads the frame's mean as (at most its ``max_ao_rays``)."""
-        return self.net.limits.read(self.method.ao_rays)
-
-    def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
-        with timer("network"):  # shading included: one call
-            return self.net.reconstruct(rendered, self.read_rays, self.method.spp,
-                                        self.shading if self.shade else None)
-
-    def render_finish(self, camera: Camera, request: RenderRequest,
-                      timer: StageTimer) -> tuple[FrameBuffers, FrameBuffers]:
-        if not self.net.graphable(self.renderer, request):
-            return super().render_finish(camera, request, timer)
-        with timer("render"):  # the network and the shading included: one graph
-            rendered, out = self.net.render_reconstruct(self.renderer, camera, request, self.read_rays,
-                                                        self.method.spp, self.shading if self.shade else None)
-        return rendered, out
-
-
-def reconstruct_method(model: str | None = None, **knobs) -> FrameMethod:
-    """The ``reconstruct`` method of ``model`` (None: the shipped one) at the model's own upscale
-    (:attr:`~isosr_net.reconnet.ReconNetConfig.upscale`: an x2 model renders at half the sides);
-    ``knobs``: the method's others."""
-    return FrameMethod("reconstruct", factor=recon_config(model or DEFAULT_RECON_MODEL).upscale, model=model, **knobs)
-
-
-@register_runner("upscale")
-class ClassicUpscaleRunner(FrameRunner):
-    """A low-res ray cast upscaled by interpolation, shaded without AO."""
-
-    label = "classic upscaling"
-
-    low_res = True
-    knobs = ("factor", "interpolation")
-    factor = (2, MAX_FACTOR)
-
-    @classmethod
-    def describe(cls, m: FrameMethod) -> str:
-        return f"x{m.factor} {m.interpolation}"
-
-    def outputs(self) -> tuple[str, ...]:
-        return LOWRES_BUFFERS
-
-    @classmethod
-    def makes(cls, m: FrameMethod) -> tuple[str, ...]:
-        return LOWRES_BUFFERS
-
-    def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
-        with timer("filter"):
-            up = upscale_classic(rendered, self.method.factor, self.method.interpolation)
-        up.ao = None  # no AO: shaded unoccluded
-        return self.colored(up, timer)
-
-
-@register_runner("network")
-class NetworkRunner(FrameRunner):
-    """A low-res ray cast upscaled by the trained network (which infers AO), shaded."""
-
-    label = "network upscaling"
-
-    low_res = True
-    recurrent = True
-    network_class = Upscaler
-    default_model = DEFAULT_MODEL
-    knobs = ("factor", "model", "precision")
-    factor = (2, MAX_FACTOR)
-
-    @classmethod
-    def describe(cls, m: FrameMethod) -> str:
-        return f"x{m.factor} {m.model_name} {m.precision}"
-
-    def outputs(self) -> tuple[str, ...]:
-        return LOWRES_BUFFERS
-
-    @classmethod
-    def makes(cls, m: FrameMethod) -> tuple[str, ...]:
-        return LOWRES_BUFFERS + ("ao",)
-
-    def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
-        with timer("network"):
-            high = self.net.upscale(rendered)
-        return self.colored(high, timer)
-
-
-@register_runner("buffers")
-class BuffersRunner(FrameRunner):
-    """The low-res ray cast itself (mask, normal, depth; flow after a previous camera), unshaded:
-    for a client that upscales and shades them."""
-
-    label = "low-res buffers (the client upscales)"
-
-    low_res = True
-    recurrent = True
-    shaded = False
-    knobs = ("factor",)
-    factor = (2, MAX_FACTOR)
-
-    @classmethod
-    def describe(cls, m: FrameMethod) -> str:
-        return f"x{m.factor} buffers"
-
-    def outputs(self) -> tuple[str, ...]:
-        return LOWRES_BUFFERS
-
-    @classmethod
-    def makes(cls, m: FrameMethod) -> tuple[str, ...]:
-        return LOWRES_BUFFERS + ("flow",)
-
-    def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
-        return rendered
+def parse_method(text: str) -> FrameMethod:
+    """A method from ``NAME[:key=value,...]`` (``reconstruct:ao_rays=2,precision=bf16``): a
+    registered kind and its knobs, counts as integers.
+
+    Raises:
+        ValueError: an unknown kind or knob, a count that is not an integer, or knobs the kind
+            does not take or outside its bounds (naming them).
+    """
+    kind, _, rest = text.partition(":")
+    if kind not in RUNNERS:
+        raise ValueError(f"unknown frame method {kind!r}; registered: {', '.join(RUNNERS)}")
+    counts = {f.name for f in fields(FrameMethod) if f.type in ("int", int)}
+    names = {f.name for f in fields(FrameMethod)} - {"kind", "model_name"}
+    knobs = {}
+    for item in filter(None, rest.split(",")):
+        key, eq, value = item.partition("=")
+        if not eq or key not in names:
+            raise ValueError(f"{text!r}: {item!r} is not KEY=VALUE with KEY one of {', '.join(sorted(names))}")
+        try:
+            knobs[key] = int(value) if key in counts else value
+        except ValueError:
+            raise ValueError(f"{text!r}: {key} must be an integer, got {value!r}") from None
+    return RUNNERS[kind].spec(**knobs)
 
 
 def make_runner(method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int,
                 **options) -> FrameRunner:
     """The registered runner of ``method`` (arguments and options: :class:`FrameRunner`)."""
     return method.runner(method, renderer, iso, width, height, **options)
-
-
-def upscale_classic(low: FrameBuffers, factor: int, interpolation: str = "bilinear") -> FrameBuffers:
-    """A low-res frame's mask, normal and depth upscaled by interpolation
-    (:func:`isosr_net.metrics.upscale_baseline`), as the network's outputs are laid out; AO is 1
-    everywhere: an interpolator knows no occlusion.
-
-    Shape:
-        low: mask, depth (h, w), normal (h, w, 3). Returns mask, depth, ao (H, W), normal (H, W, 3),
-        ``H = h * factor``, ``W = w * factor``.
-    """
-    return output_buffers(upscale_baseline(low.channels_first(LOWRES_BUFFERS)[None], factor, interpolation))
 
 
 def run_sequence(runner: FrameRunner, cameras: list[Camera]) -> list[FrameBuffers]:

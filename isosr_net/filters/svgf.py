@@ -3,7 +3,7 @@
 Schied et al. (2017), "Spatiotemporal Variance-Guided Filtering", on this project's AO (the
 demodulated signal: color is AO times the AO-free shading). Per frame:
 
-1. Guides as the a-trous filter's (:func:`isosr_net.atrous.prepare_guides`).
+1. Guides as the a-trous filter's (:func:`isosr_net.filters.atrous.prepare_guides`).
 2. Reprojection and blend (one kernel): a covered pixel ``p`` looks up the previous frame's
    history at ``p + flow[p]`` (bilinear: the 4 texels around it). A texel counts only if it
    lies in the image and was covered, its depth matches the depth the pixel's world point
@@ -18,8 +18,8 @@ demodulated signal: color is AO times the AO-free shading). Per frame:
    is short). The AO's variance is ``max(0, m2 - m1^2)`` of the moments once ``n`` reaches
    ``min_history`` (SVGF: 4); before, the spatial estimate: the moments of this frame's samples
    over a (2 radius + 1)^2 window weighted by the a-trous normal and depth weights
-   (:func:`isosr_net.atrous.edge_exponent`), times ``min_history / n``.
-3. The variance-guided a-trous filter (:func:`isosr_net.atrous.atrous_passes`, luminance weight
+   (:func:`isosr_net.filters.atrous.edge_exponent`), times ``min_history / n``.
+3. The variance-guided a-trous filter (:func:`isosr_net.filters.atrous.atrous_passes`, luminance weight
    ``sigma_variance``); its first pass's output is the next frame's history AO (as SVGF).
 
 A frame without a previous camera, or a history of another size, starts every pixel anew.
@@ -35,7 +35,7 @@ import torch
 import warp as wp
 
 from isosr_render import Camera
-from isosr_net.atrous import (TINY_WP, ATrousConfig, Guides, atrous_passes, check_buffers, depth_step, edge_exponent,
+from isosr_net.filters.atrous import (TINY_WP, ATrousConfig, Guides, atrous_passes, check_buffers, depth_step, edge_exponent,
                               float32_knob, on_device, prepare_guides, reprojected_texel)
 
 wp.set_module_options({"enable_backward": False})  # no gradients through the filter

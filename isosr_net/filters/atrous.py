@@ -10,7 +10,7 @@ weighted by how alike the two pixels' surfaces are:
   the difference measured against the change the depth gradient predicts (so slanted planes
   blur along themselves), depth taken relative to the image's deepest covered pixel;
 - optionally AO value: ``exp(-|ao_p - ao_q| / sigma_value)``; or, variance-guided as SVGF
-  (:mod:`isosr_net.svgf`), ``exp(-|ao_p - ao_q| / (sigma_variance * sqrt(g(var_p)) + VARIANCE_EPS))``
+  (:mod:`isosr_net.filters.svgf`), ``exp(-|ao_p - ao_q| / (sigma_variance * sqrt(g(var_p)) + VARIANCE_EPS))``
   with ``g`` a 3x3 Gaussian (1/4, 1/8, 1/16 taps) over the covered pixels, and each pass
   filtering the variance too, ``sum(w_q^2 var_q) / sum(w_q)^2``.
 

@@ -1,0 +1,1 @@
+"""Classic filters the frame methods run: a-trous, SVGF, OIDN."""

@@ -1,0 +1,68 @@
+"""Full resolution: the plain ray cast with AO rays per hit and rays per pixel."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import torch
+
+from isosr_net.methods.base import FrameMethod, FrameRunner, register_runner
+from isosr_net.reconnet import RayLimits
+from isosr_net.timing import StageTimer
+from isosr_render import Camera, FrameBuffers
+from isosr_render.renderer import MAX_AO_SAMPLES, MAX_SPP
+from isosr_render.shading import shade
+
+
+@register_runner("full")
+class FullRunner(FrameRunner):
+    """Full resolution, AO from ``ao_rays`` rays per hit (0: none)."""
+
+    label = "full resolution"
+    serve_bench_ao = (0, 8)
+    plot_color = "C0"
+
+    knobs = ("ao_rays", "spp")
+    ao_rays = (0, MAX_AO_SAMPLES)
+    spp = (1, MAX_SPP)
+
+    @classmethod
+    def bench_methods(cls, smoke: bool, device: str, model: tuple[str, Path] | None = None) -> list[FrameMethod]:
+        """0-128 AO rays at 1, 2, 4 rays per pixel (smoke: 0, 2, 8 at 1, 2)."""
+        spps, rays = ((1, 2), (0, 2, 8)) if smoke else ((1, 2, 4), (0, 1, 2, 4, 8, 16, 32, 64, 128))
+        return [FrameMethod(cls.kind, ao_rays=n, spp=s) for s in spps for n in rays]
+
+    @classmethod
+    def candidates(cls, device: str, precision: str | None = None, limits: RayLimits | None = None,
+                   x2_model: str | os.PathLike | None = None) -> tuple[tuple[float, FrameMethod], ...]:
+        """0-64 AO rays at spp 1, 0 and 8 at spp 2, 0 and 16 at spp 4."""
+        return tuple((rank, FrameMethod(cls.kind, ao_rays=n, spp=s)) for rank, n, s in (
+            (2, 0, 1), (4, 1, 1), (9, 2, 1), (14, 4, 1), (20, 8, 1), (21, 0, 2), (24, 16, 1), (25, 8, 2), (26, 0, 4),
+            (32, 32, 1), (33, 64, 1), (34, 16, 4)))
+
+    @classmethod
+    def describe(cls, m: FrameMethod) -> str:
+        return f"full, AO {m.ao_rays}, spp {m.spp}"
+
+    def outputs(self) -> tuple[str, ...]:
+        if not self.shade:  # a buffer view: the mask and what is kept
+            return ("mask",) + tuple(k for k in self.keep if k != "flow")
+        return ("mask", "normal") + (("ao",) if self.method.ao_rays else ())
+
+    @classmethod
+    def makes(cls, m: FrameMethod) -> tuple[str, ...]:
+        return ("mask", "normal") + (("ao",) if m.ao_rays else ())
+
+    def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
+        return self.colored(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=rendered.ao), timer)
+
+    def rows(self, camera: Camera, start: int, stop: int) -> torch.Tensor:
+        """Rows ``[start, stop)`` of the frame's color only (a focus lens's region).
+
+        Shape:
+            Returns (stop - start, W, 3).
+        """
+        rendered = self.renderer.render(camera, self.render_request(), rows=(start, stop))
+        ao = None if rendered.ao is None else rendered.ao[start:stop]
+        return shade(rendered.mask[start:stop], rendered.normal[start:stop], ao, self.shading)

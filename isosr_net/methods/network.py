@@ -1,0 +1,73 @@
+"""A low-res ray cast upscaled by the trained network, which infers AO."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from isosr_net.methods.base import MAX_FACTOR, FrameMethod, FrameRunner, register_runner
+from isosr_net.model import read_config
+from isosr_net.reconnet import RayLimits
+from isosr_net.timing import StageTimer
+from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
+from isosr_render import FrameBuffers
+from isosr_render.conventions import LOWRES_BUFFERS
+
+
+@register_runner("network")
+class NetworkRunner(FrameRunner):
+    """A low-res ray cast upscaled by the trained network (which infers AO), shaded."""
+
+    label = "network upscaling"
+    serve_bench_ao = (0,)
+    plot_color = "C3"
+
+    low_res = True
+    recurrent = True
+    network_class = Upscaler
+    default_model = DEFAULT_MODEL
+    knobs = ("factor", "model", "precision")
+    factor = (2, MAX_FACTOR)
+
+    @classmethod
+    def spec(cls, **knobs) -> FrameMethod:
+        """As :meth:`FrameRunner.spec`, the factor the model's own unless given."""
+        knobs.setdefault("factor", read_config(knobs.get("model") or cls.default_model)["model"]["upscale"])
+        return super().spec(**knobs)
+
+    @classmethod
+    def bench_methods(cls, smoke: bool, device: str, model: tuple[str, Path] | None = None) -> list[FrameMethod]:
+        """An upscaling model (an SRNet's folder) at its factor, in fp32, bf16, fp16 on CUDA (elsewhere fp32)."""
+        if model is None:
+            return []
+        name, folder = model
+        config = read_config(folder)["model"]
+        if config.get("type", "SRNet") != "SRNet":
+            return []
+        precisions = ("fp32", "bf16", "fp16") if device.startswith("cuda") else ("fp32",)
+        return [FrameMethod(cls.kind, factor=config["upscale"], precision=p,
+                            model=None if folder == cls.default_model else str(folder), model_name=name)
+                for p in precisions]
+
+    @classmethod
+    def candidates(cls, device: str, precision: str | None = None, limits: RayLimits | None = None,
+                   x2_model: str | os.PathLike | None = None) -> tuple[tuple[float, FrameMethod], ...]:
+        """The shipped x4 network, in ``precision`` (None: bf16 on CUDA, fp32 elsewhere)."""
+        return (3, FrameMethod(cls.kind, factor=4, precision=precision or (
+            "bf16" if device.startswith("cuda") else "fp32"))),
+
+    @classmethod
+    def describe(cls, m: FrameMethod) -> str:
+        return f"x{m.factor} {m.model_name} {m.precision}"
+
+    def outputs(self) -> tuple[str, ...]:
+        return LOWRES_BUFFERS
+
+    @classmethod
+    def makes(cls, m: FrameMethod) -> tuple[str, ...]:
+        return LOWRES_BUFFERS + ("ao",)
+
+    def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
+        with timer("network"):
+            high = self.net.upscale(rendered)
+        return self.colored(high, timer)

@@ -1,0 +1,139 @@
+"""Full resolution (or x2), few AO rays reconstructed by a trained network (:mod:`isosr_net.reconnet`)."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import replace
+from pathlib import Path
+
+from isosr_net.inference import default_precision
+from isosr_net.methods.base import FrameMethod, FrameRunner, register_runner
+from isosr_net.model import read_config
+from isosr_net.reconnet import UPSCALES, RayLimits
+from isosr_net.reconstructor import (
+    DEFAULT_RECON_MODEL,
+    Reconstructor,
+    recon_config,
+    recon_limits,
+)
+from isosr_net.timing import StageTimer
+from isosr_render import Camera, FrameBuffers, RenderRequest
+from isosr_render.renderer import MAX_AO_SAMPLES
+
+# The x2 reconstruction's name in its methods' names (``x2, AO 1, spp 1, recon_x2 fp16``).
+X2_MODEL_NAME = "recon_x2"
+
+
+@register_runner("reconstruct")
+class ReconstructRunner(FrameRunner):
+    """Full resolution (or 1/factor of it, for a model that upscales: ``ReconNetConfig.upscale``),
+    1 ray per pixel to the model's ``max_spp`` and any AO rays per hit (past its ``max_ao_rays`` the
+    network reads their mean as that many: :meth:`~isosr_net.reconnet.RayLimits.read`),
+    reconstructed (and shaded, in one compiled call on GPUs) by the trained reconstruction
+    network. With a `Reconstructor` made with ``graphs`` on CUDA, a frame in one slice (render,
+    network, shading) is one CUDA graph (:meth:`Reconstructor.render_reconstruct`), timed as the
+    ``render`` stage."""
+
+    label = "reconstruction (full res, few AO rays)"
+    default_ao_rays = 2
+    serve_bench_ao = (1,)
+    plot_color = "C4"
+
+    recurrent = True
+    fresh_rays = True  # accumulated along the flow before the network (isosr_net.ray_history)
+    network_class = Reconstructor
+    default_model = DEFAULT_RECON_MODEL
+    knobs = ("ao_rays", "spp", "factor", "model", "precision")
+    ao_rays = (0, MAX_AO_SAMPLES)
+    factor = (1, max(UPSCALES))
+
+    @classmethod
+    def spec(cls, **knobs) -> FrameMethod:
+        """As :meth:`FrameRunner.spec`, the factor the model's own (:func:`reconstruct_method`)."""
+        knobs.setdefault("model_name", cls.network_class.display_name)
+        knobs.setdefault("ao_rays", cls.default_ao_rays)
+        return replace(reconstruct_method(knobs.pop("model", None), **knobs), kind=cls.kind)
+
+    @classmethod
+    def bounds(cls, m: FrameMethod) -> dict[str, tuple[int, int]]:
+        return super().bounds(m) | {"spp": (1, recon_limits(m.model or cls.default_model).max_spp)}
+
+    @classmethod
+    def bench_methods(cls, smoke: bool, device: str, model: tuple[str, Path] | None = None) -> list[FrameMethod]:
+        """A reconstruction model (a ReconNet's folder) at its upscale over 0-16 AO rays at 1, 2, 4 rays
+        per pixel, to its limits, and past its AO rays (read as its ``max_ao_rays``) 32 and 64 at its
+        most rays per pixel: the top (smoke: 0 and 2 AO rays at spp 1); fp16 on CUDA, fp32 elsewhere."""
+        if model is None:
+            return []
+        name, folder = model
+        if read_config(folder)["model"].get("type") != "ReconNet":
+            return []
+        limits = recon_limits(folder)
+        sampling = [(1, 0), (1, 2)] if smoke else [(s, n) for s in (1, 2, 4) for n in (0, 1, 2, 4, 8, 16)
+                                                   if s <= limits.max_spp and n <= limits.max_ao_rays]
+        if not smoke:
+            sampling += [(limits.max_spp, n) for n in (32, 64) if n > limits.max_ao_rays]
+        shipped = None if folder == cls.default_model else str(folder)
+        return [replace(reconstruct_method(shipped, ao_rays=n, spp=s, precision=default_precision(device),
+                                           model_name=name), kind=cls.kind) for s, n in sampling]
+
+    @classmethod
+    def candidates(cls, device: str, precision: str | None = None, limits: RayLimits | None = None,
+                   x2_model: str | os.PathLike | None = None) -> tuple[tuple[float, FrameMethod], ...]:
+        """Over 1-4 AO rays at 1-4 rays per pixel, and over 8 (spp 2, 4), 16, 32 and 64 (spp 4) where
+        its model takes the rays per pixel (``limits``; None: the shipped model's; past its
+        ``max_ao_rays`` it reads their mean as that many): a model over the input rays passes the
+        plain render there. And the reconstruction that also upscales x2 (``x2_model``; None:
+        none) over 1-16 AO rays at spp 1 and 4 at spp 2, to its model's limits: a quarter of the
+        pixels rendered, so many AO rays cost little, the best there is below about twice the
+        cheapest full frame (H100, 73dd70b: 1.5-2.7 ms at 1080p, 4.4-7.2 ms at 4K). In
+        ``precision`` (None: fp16 on CUDA, fp32 elsewhere)."""
+        limits = limits or recon_limits(cls.default_model)
+        precision = precision or default_precision(device)
+        out = [(rank, FrameMethod(cls.kind, ao_rays=n, spp=s, precision=precision)) for rank, n, s in (
+            (8, 1, 1), (12, 2, 1), (17, 4, 1), (19, 1, 2), (22, 2, 2), (23, 4, 2), (27, 1, 4), (28, 2, 4), (29, 4, 4),
+            (30, 8, 2), (31, 8, 4), (35, 16, 4), (36, 32, 4), (37, 64, 4)) if s <= limits.max_spp]
+        if x2_model is not None:
+            x2 = recon_limits(x2_model)
+            out += [(rank, replace(reconstruct_method(str(x2_model), ao_rays=n, spp=s, model_name=X2_MODEL_NAME,
+                                                      precision=precision), kind=cls.kind))
+                    for rank, n, s in ((5, 1, 1), (7, 2, 1), (10, 4, 1), (13, 8, 1), (16, 4, 2), (18, 16, 1))
+                    if n <= x2.max_ao_rays and s <= x2.max_spp]
+        return tuple(out)
+
+    @classmethod
+    def describe(cls, m: FrameMethod) -> str:
+        return f"{'full' if m.factor == 1 else f'x{m.factor}'}, AO {m.ao_rays}, spp {m.spp}, {m.model_name} {m.precision}"
+
+    def outputs(self) -> tuple[str, ...]:
+        return ("mask", "normal", "depth") + (("ao", "position") if self.method.ao_rays else ())
+
+    @classmethod
+    def makes(cls, m: FrameMethod) -> tuple[str, ...]:
+        return ("mask", "normal", "depth", "ao")
+
+    @property
+    def read_rays(self) -> int:
+        """The AO rays per hit the network reads the frame's mean as (at most its ``max_ao_rays``)."""
+        return self.net.limits.read(self.method.ao_rays)
+
+    def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
+        with timer("network"):  # shading included: one call
+            return self.net.reconstruct(rendered, self.read_rays, self.method.spp,
+                                        self.shading if self.shade else None)
+
+    def render_finish(self, camera: Camera, request: RenderRequest,
+                      timer: StageTimer) -> tuple[FrameBuffers, FrameBuffers]:
+        if not self.net.graphable(self.renderer, request):
+            return super().render_finish(camera, request, timer)
+        with timer("render"):  # the network and the shading included: one graph
+            rendered, out = self.net.render_reconstruct(self.renderer, camera, request, self.read_rays,
+                                                        self.method.spp, self.shading if self.shade else None)
+        return rendered, out
+
+
+def reconstruct_method(model: str | None = None, **knobs) -> FrameMethod:
+    """The ``reconstruct`` method of ``model`` (None: the shipped one) at the model's own upscale
+    (:attr:`~isosr_net.reconnet.ReconNetConfig.upscale`: an x2 model renders at half the sides);
+    ``knobs``: the method's others."""
+    return FrameMethod("reconstruct", factor=recon_config(model or DEFAULT_RECON_MODEL).upscale, model=model, **knobs)

@@ -1,0 +1,347 @@
+"""The one conformance test every frame method keeps (issue 46), as diffusers' ``SchedulerCommonTest``
+and kornia's filter testers share their checks: :class:`MethodContract` holds the tests, and a
+method's test is a subclass that names the method and its options (``tests/test_method_contract.py``):
+
+    class TestFull(MethodContract):
+        method = FrameMethod("full", ao_rays=2)
+
+The name has no ``Test`` prefix, so pytest collects only the subclasses. Every check runs the class's
+``method`` on a small volume on :data:`conftest.DEVICE` (the CPU in CI): a sphere resting on a floor,
+with a second ball beside it, so that AO rays of radius :data:`AO_RADIUS` are occluded near the
+contacts and AO depends on the rays' seed; frames of :data:`SIZE`. A learned method runs a tiny
+randomly initialized network of its kind and factor (:func:`tiny_model`), not the shipped one,
+unless its class sets ``shipped_model = True``: the checks hold for any weights.
+
+The checks:
+
+- frames: a 3-frame sequence; every buffer float32, finite, at the frame size (an unshaded low-res
+  kind's at the render's), only the buffers the method makes (``makes``, color where shaded, flow
+  where continued), mask (and AO) in [0, 1], color in [0, 1] where shaded, something hit (not
+  asked of a tiny random network's mask), per-stage times, ``continued`` only on a recurrent
+  kind's continued frames;
+- determinism: two runners along the same cameras give the same frames, bit for bit on the CPU
+  (within 1e-5 on CUDA, where compiled kernels and graphs need not be);
+- reset: a frame without a previous camera after a sequence equals a new runner's first frame of
+  that camera (a kind with ``fresh_rays`` numbers its AO seeds by the frames it made, a stream's
+  ray sequence rather than its recurrent state: the new runner is set to the same count);
+- options: each count knob the kind reads is accepted at its bounds (``FrameRunner.bounds``) and
+  refused one past either, by a ValueError that names the knob and the bounds; a knob the kind does
+  not read is refused naming it;
+- hard cases: the camera inside the volume, rays grazing the sphere and rays grazing the volume's
+  box, an iso at either end of the data's range and one past it (nothing hit: exactly the
+  background wherever the mask is 0 and ``|color - background| <= mask`` everywhere, an empty mask
+  for unlearned kinds),
+  a 2x2 frame (where the factor divides 2), an anisotropic volume: finite and bounded;
+- bench row: the method's name (its runner's ``describe``) and its runner's label are non-empty;
+  the Pareto study's method list (``bench_pareto.methods``, smoke) has the kind exactly where the
+  kind shades (a study of colors), and for a shaded kind
+  :func:`isosr_bench.bench_pareto.pareto_rows` makes its complete row on the smoke volume, size,
+  frames and warm-up (the references, the same for every method, are made once per session).
+
+A check a method fails is a finding: the class lists it in ``known_failures`` (test name, with its
+parameter, to the exact reason) and it runs as a strict xfail.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+from typing import ClassVar
+
+import numpy as np
+import pytest
+import torch
+from conftest import DEVICE, field_volume
+from net_fixtures import tiny_model_dir
+
+from isosr_net.methods import FrameMethod, Networks, make_runner
+from isosr_net.model import save_pretrained
+from isosr_net.reconnet import ReconNet, ReconNetConfig
+from isosr_net.reconstructor import Reconstructor
+from isosr_net.upscaler import Upscaler
+from isosr_render import Camera, Renderer, orbit_path
+from isosr_render.conventions import BACKGROUND_RGB
+from isosr_render.sequence import sequence_cameras
+
+SIZE = (32, 24)  # width, height: every factor up to 8 divides it
+AO_RADIUS = 0.15  # world units: occluded near the contacts (the default, 0.05, barely occludes a 24^3 volume)
+CAMERAS = orbit_path(3, yaw0=20.0, yaw_step=4.0, pitch=25.0, distance=1.3)
+# The hard cases' cameras (the scene: sphere of radius 0.22 at the origin, floor at y = -0.22).
+INSIDE = Camera(eye=(0.0, 0.05, 0.0), target=(0.3, 0.0, 0.1))  # inside the sphere, the field's inside
+GRAZING_SURFACE = Camera(eye=(-2.0, 0.0, 0.22), target=(2.0, 0.0, 0.22), fov_y=8.0)  # along the sphere's silhouette
+GRAZING_BOX = Camera(eye=(-2.0, 0.5, 0.0), target=(2.0, 0.5, 0.0))  # along the volume box's top face
+TINY = Camera(eye=(0.0, 0.1, 1.5), target=(0.0, 0.1, 0.0), fov_y=5.0)  # a 2x2 frame's rays all on the sphere
+HARD_CASES = ("inside", "grazing_surface", "grazing_box", "iso_at_min", "iso_at_max", "iso_past_max", "tiny_2x2",
+              "anisotropic")
+EMPTY_ISOS = {"iso_at_min": 0.0, "iso_at_max": 1.0, "iso_past_max": 2.0}  # normalized: nothing hit
+TINY_RECONNET = {"widths": (4, 4, 8, 8), "blocks": 1}  # net_fixtures.TINY_RECON_MODEL's size
+UNREAD_VALUES = {"ao_rays": 1, "spp": 2, "factor": 2, "interpolation": "bicubic", "model": "elsewhere",
+                 "precision": "bf16", "quality": "fast"}  # a value other than the default, per knob
+
+_CACHE: dict = {}
+
+
+def contact_field(p: np.ndarray) -> np.ndarray:
+    """Signed distance (world units) to a sphere of radius 0.22 at the origin resting on a floor at
+    y = -0.22, with a ball of radius 0.12 beside it: AO occluded where they meet.
+
+    Shape:
+        p: (..., 3). Returns (...).
+    """
+    sphere = np.linalg.norm(p, axis=-1) - 0.22
+    ball = np.linalg.norm(p - np.array([0.28, -0.1, 0.12]), axis=-1) - 0.12
+    floor = p[..., 1] + 0.22
+    return np.minimum(np.minimum(sphere, ball), floor)
+
+
+def scene(anisotropic: bool = False) -> tuple[Renderer, float]:
+    """``(renderer, normalized iso)`` of :func:`contact_field` on :data:`conftest.DEVICE` (24^3
+    voxels; anisotropic: 24x16x12 voxels spaced 1, 1.5, 2), made once per session."""
+    key = ("scene", anisotropic)
+    if key not in _CACHE:
+        shape, spacing = ((24, 16, 12), (1.0, 1.5, 2.0)) if anisotropic else ((24, 24, 24), (1.0, 1.0, 1.0))
+        volume = field_volume(contact_field, shape, spacing)
+        _CACHE[key] = Renderer(volume, DEVICE), volume.normalized_iso(0.0)
+    return _CACHE[key]
+
+
+def tiny_model(tmp_path_factory, network_class: type, factor: int) -> Path:
+    """A saved tiny network with random weights of ``network_class`` (an ``Upscaler``'s SRNet or a
+    ``Reconstructor``'s ReconNet) that upscales ``factor`` times, made once per session."""
+    if network_class is Upscaler:
+        return tiny_model_dir(tmp_path_factory, upscale=factor)
+    if network_class is not Reconstructor:
+        raise NotImplementedError(f"no tiny model of {network_class.__name__}: add one to tests/method_contract.py")
+    key = ("recon", str(tmp_path_factory.getbasetemp()), factor)
+    if key not in _CACHE:
+        torch.manual_seed(0)
+        folder = tmp_path_factory.mktemp(f"tiny_recon_x{factor}")
+        save_pretrained(ReconNet(ReconNetConfig(upscale=factor, **TINY_RECONNET)), folder,
+                        {"note": "random weights for tests"})
+        _CACHE[key] = folder
+    return _CACHE[key]
+
+
+def networks() -> Networks:
+    """A stream's own networks (forked from one root per session: each model loaded once)."""
+    if "networks" not in _CACHE:
+        _CACHE["networks"] = Networks()
+    return _CACHE["networks"].fork()
+
+
+def buffers_of(result) -> dict[str, torch.Tensor]:
+    """A frame's present buffers, copied (a runner may reuse their memory)."""
+    return {name: getattr(result.buffers, name).clone() for name in result.buffers.present()}
+
+
+def assert_same_frames(a: list[dict], b: list[dict]) -> None:
+    """The same buffers, bit for bit on the CPU (within 1e-5 on CUDA)."""
+    assert len(a) == len(b)
+    for i, (fa, fb) in enumerate(zip(a, b)):
+        assert list(fa) == list(fb), f"frame {i}"
+        for name in fa:
+            if DEVICE == "cpu":
+                assert torch.equal(fa[name], fb[name]), \
+                    f"frame {i} {name}: max diff {(fa[name] - fb[name]).abs().max()}"
+            else:
+                torch.testing.assert_close(fa[name], fb[name], atol=1e-5, rtol=0, msg=f"frame {i} {name}")
+
+
+def assert_finite_and_bounded(frame: dict[str, torch.Tensor], shaded: bool, where: str) -> None:
+    """Every buffer finite; mask, AO and color in [0, 1]; a color where the method shades."""
+    for name, t in frame.items():
+        assert torch.isfinite(t).all(), f"{where}: {name} is not finite"
+    for name in ("mask", "ao", "color"):
+        if name in frame:
+            assert frame[name].min() >= 0 and frame[name].max() <= 1, \
+                f"{where}: {name} in [{frame[name].min()}, {frame[name].max()}]"
+    assert ("color" in frame) == shaded, where
+
+
+class MethodContract:
+    """The checks every frame method keeps (module docstring). Subclasses set ``method``.
+
+    Attributes:
+        method: the method under test (a learned one's ``model`` is replaced by a tiny model).
+        shipped_model: run the method's own model (the shipped one where ``model`` is None).
+        known_failures: test name (with its parameter, e.g. ``test_x[case]``) to why the method
+            fails it; each runs as a strict xfail.
+    """
+
+    method: ClassVar[FrameMethod]
+    shipped_model: ClassVar[bool] = False
+    known_failures: ClassVar[dict[str, str]] = {}
+
+    @pytest.fixture(autouse=True)
+    def _contract_setup(self, request, tmp_path_factory):
+        if (reason := self.method.runner.unavailable()) is not None:
+            pytest.skip(f"{self.method.kind} cannot run here: {reason}")
+        if (reason := self.known_failures.get(request.node.name)) is not None:
+            request.applymarker(pytest.mark.xfail(strict=True, reason=reason))
+        self.spec = self.method
+        self.random_network = self.method.learned and not self.shipped_model  # its mask may cover nothing
+        if self.random_network:
+            model = tiny_model(tmp_path_factory, self.method.runner.network_class, self.method.factor)
+            self.spec = dataclasses.replace(self.method, model=str(model), model_name="tiny")
+
+    def runner(self, width: int = SIZE[0], height: int = SIZE[1], anisotropic: bool = False, iso: float | None = None):
+        """A new runner of the method on the contact scene."""
+        renderer, scene_iso = scene(anisotropic)
+        return make_runner(self.spec, renderer, scene_iso if iso is None else iso, width, height,
+                           ao_radius=AO_RADIUS, networks=networks())
+
+    def frame_size(self, runner, width: int = SIZE[0], height: int = SIZE[1]) -> tuple[int, int]:
+        """``(H, W)`` of the runner's buffers: the frame's, an unshaded low-res kind's render's."""
+        f = self.spec.factor if runner.low_res and not runner.shaded else 1
+        return height // f, width // f
+
+    def sequence(self, runner, cameras=CAMERAS) -> list:
+        """The runner's frames along ``cameras`` (a new sequence): each ``(result, buffers copied)``."""
+        return [(r, buffers_of(r)) for r in (runner.frame(camera, prev) for camera, prev in sequence_cameras(cameras))]
+
+    # -- frames -----------------------------------------------------------------------------------
+
+    def test_frames_have_the_frame_size_dtype_and_bounds(self):
+        runner = self.runner()
+        h, w = self.frame_size(runner)
+        makes = set(runner.makes(self.spec)) | ({"color"} if runner.shaded else set())
+        frames = self.sequence(runner)
+        assert [r.continued for r, _ in frames] == [False] + [runner.recurrent] * (len(frames) - 1)
+        for i, (result, frame) in enumerate(frames):
+            where = f"{self.spec.name}, frame {i}"
+            assert makes - {"flow"} <= set(frame) <= makes | {"flow"}, (where, sorted(frame))
+            assert ("flow" in frame) == (result.continued and "flow" in makes), where
+            for name, t in frame.items():
+                assert t.dtype == torch.float32, (where, name, t.dtype)
+                assert t.shape[:2] == (h, w), (where, name, tuple(t.shape))
+                assert t.dim() == (2 if name in ("mask", "depth", "ao") else 3), (where, name, tuple(t.shape))
+            for name in ("normal", "position", "color"):
+                if name in frame:
+                    assert frame[name].shape[2] == 3, (where, name)
+            assert_finite_and_bounded(frame, runner.shaded, where)
+            if not self.random_network:
+                assert (frame["mask"] > 0.5).any(), f"{where}: nothing hit"
+            assert {"render"} <= set(result.times) and all(t >= 0 for t in result.times.values()), result.times
+
+    def test_two_runners_make_the_same_frames(self):
+        a = [frame for _, frame in self.sequence(self.runner())]
+        b = [frame for _, frame in self.sequence(self.runner())]
+        assert_same_frames(a, b)
+
+    def test_a_frame_without_a_previous_camera_forgets_the_state(self):
+        runner = self.runner()
+        self.sequence(runner)
+        again = runner.frame(CAMERAS[0])
+        assert not again.continued
+        fresh = self.runner()
+        if runner.fresh_rays:  # the AO seed counts the frames made: the same rays as the runner's
+            fresh.frames = runner.frames - 1
+        assert_same_frames([buffers_of(again)], [buffers_of(fresh.frame(CAMERAS[0]))])
+
+    # -- options ----------------------------------------------------------------------------------
+
+    def test_count_knobs_are_accepted_at_their_bounds_and_refused_past_them(self):
+        bounds = self.spec.runner.bounds(self.spec)
+        assert set(bounds) == {"ao_rays", "spp", "factor"}
+        for name, (low, high) in bounds.items():
+            assert low <= getattr(self.spec, name) <= high, (name, low, high)
+            if name not in self.spec.runner.knobs:
+                assert low == high == getattr(FrameMethod, name), (name, low, high)  # only the default
+                continue
+            for value in (low, high):
+                assert getattr(FrameMethod(**self.knobs(**{name: value})), name) == value
+            for value in (low - 1, high + 1):
+                with pytest.raises(ValueError, match=rf"{name} must be an integer in \[{low}, {high}\], got {value}"):
+                    FrameMethod(**self.knobs(**{name: value}))
+
+    def test_a_knob_the_kind_does_not_read_is_refused(self):
+        unread = [f.name for f in dataclasses.fields(FrameMethod)
+                  if f.name not in self.spec.runner.knobs and f.name not in ("kind", "model_name")]
+        for name in unread:
+            with pytest.raises(ValueError, match=rf"{self.spec.kind} frame method: takes no {name}\b"):
+                FrameMethod(**self.knobs(**{name: UNREAD_VALUES[name]}))
+
+    def knobs(self, **changes) -> dict:
+        """The spec's fields with ``changes``."""
+        return {f.name: getattr(self.spec, f.name) for f in dataclasses.fields(FrameMethod)} | changes
+
+    # -- hard cases -------------------------------------------------------------------------------
+
+    @pytest.mark.parametrize("case", HARD_CASES)
+    def test_hard_cases_stay_finite_and_bounded(self, case):
+        width, height, camera, iso, anisotropic = *SIZE, CAMERAS[0], None, False
+        if case == "inside":
+            camera = INSIDE
+        elif case == "grazing_surface":
+            camera = GRAZING_SURFACE
+        elif case == "grazing_box":
+            camera = GRAZING_BOX
+        elif case in EMPTY_ISOS:
+            iso = EMPTY_ISOS[case]
+        elif case == "tiny_2x2":
+            if 2 % self.spec.factor:
+                pytest.skip(f"the factor {self.spec.factor} does not divide a 2x2 frame")
+            width, height, camera = 2, 2, TINY
+        elif case == "anisotropic":
+            anisotropic = True
+        runner = self.runner(width, height, anisotropic, iso)
+        h, w = self.frame_size(runner, width, height)
+        # a cut, then a continued frame (recurrent kinds read the first through the flow)
+        nearby = Camera(tuple(np.add(camera.eye, (0.0, 0.004, 0.0))), camera.target, camera.up, camera.fov_y)
+        pairs = ((camera, None), (nearby, camera))
+        for i, frame in enumerate(buffers_of(runner.frame(cam, prev)) for cam, prev in pairs):
+            where = f"{self.spec.name}, {case}, frame {i}"
+            assert all(t.shape[:2] == (h, w) for t in frame.values()), (where, {k: t.shape for k, t in frame.items()})
+            assert_finite_and_bounded(frame, runner.shaded, where)
+            if iso is not None:  # nothing hit
+                if not self.spec.learned:  # (a network's mask is its own guess)
+                    assert frame["mask"].max() == 0, where
+                if "color" in frame:  # the background where the mask is 0, off it by at most the mask
+                    background = torch.tensor(BACKGROUND_RGB, device=frame["color"].device)
+                    off = (frame["color"] - background).abs().amax(-1)
+                    assert (off[frame["mask"] == 0] == 0).all() and (off <= frame["mask"] + 1e-6).all(), \
+                        f"{where}: color off the background by {float(off.max()):.3f} where the mask is " \
+                        f"{float(frame['mask'].flatten()[off.argmax()]):.3f}"
+            elif case in ("inside", "tiny_2x2") and not self.random_network:
+                assert (frame["mask"] > 0.5).any(), f"{where}: nothing hit"
+
+    # -- bench row --------------------------------------------------------------------------------
+
+    def test_its_bench_row(self, monkeypatch):
+        from isosr_bench import bench_pareto
+
+        assert self.spec.name.strip() and self.spec.runner.label.strip()
+        assert self.spec.name == self.spec.runner.describe(self.spec)
+        # the study measures every shaded kind (its shipped models' too), and scores colors only
+        measured = {m.kind for m in bench_pareto.methods(True, DEVICE, bench_pareto.SHIPPED_MODELS)}
+        assert (self.spec.kind in measured) == self.spec.runner.shaded, sorted(measured)
+        if not self.spec.runner.shaded:
+            return  # no color to score: no row (pareto_rows would fail on the missing color)
+        references = bench_pareto.reference_frames
+
+        def cached_references(renderer, iso, size, cameras, **options):  # the same for every method
+            key = ("references", id(renderer), iso, size, repr(cameras), repr(sorted(options.items())))
+            if key not in _CACHE:
+                _CACHE[key] = (renderer, references(renderer, iso, size, cameras, **options))
+            return _CACHE[key][1]
+
+        monkeypatch.setattr(bench_pareto, "reference_frames", cached_references)
+        key = ("smoke volume", "sphere")
+        if key not in _CACHE:
+            volume, iso = bench_pareto.load("sphere", DEVICE)
+            _CACHE[key] = Renderer(volume, DEVICE), iso
+        renderer, iso = _CACHE[key]
+        size_name, size = next(iter(bench_pareto.SMOKE_SIZES.items()))
+        rows = bench_pareto.pareto_rows(renderer, iso, "sphere", size, size_name, [self.spec],
+                                        bench_pareto.SMOKE_FRAMES, bench_pareto.SMOKE_WARMUP, DEVICE, networks())
+        assert len(rows) == 1
+        row = rows[0]
+        assert (row["method"], row["kind"], row["learned"]) == (self.spec.name, self.spec.kind, self.spec.learned)
+        assert (row["ao_rays"], row["spp"], row["factor"]) == (self.spec.ao_rays, self.spec.spp, self.spec.factor)
+        assert row["ms"] > 0 and math.isfinite(row["ms"])
+        assert math.isfinite(row["color_psnr"]) and 0 <= row["color_ssim"] <= 1 and 0 < row["coverage"] <= 1
+        assert (row["flicker"] is None and self.random_network) or row["flicker"] >= 0  # None: nothing covered
+        if row["ao_rmse"] is not None:
+            assert 0 <= row["ao_rmse"] <= 1
+
