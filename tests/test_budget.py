@@ -259,18 +259,22 @@ def test_a_candidate_whose_floor_is_over_twice_the_budget_is_not_timed(cloud):
     assert dear in timings
 
 
+def drain(steps):
+    """A generator of device-thread units run to its end: (units yielded, its result)."""
+    yields = 0
+    while True:
+        try:
+            next(steps)
+        except StopIteration as done:
+            return yields, done.value
+        yields += 1
+
+
 def test_the_reference_in_row_bands_is_the_whole_reference_bit_for_bit(cloud):
     renderer, iso = cloud
     cameras = [orbit(30, 20, 1.8), orbit(33, 20, 1.8)]
     whole = policy.reference_frames(renderer, iso, SIZE, cameras, flow=True)
-    steps = policy.reference_frames_steps(renderer, iso, SIZE, cameras, flow=True, bands=3)
-    yields = 0
-    try:
-        while True:
-            next(steps)
-            yields += 1
-    except StopIteration as done:
-        banded = done.value
+    yields, banded = drain(policy.reference_frames_steps(renderer, iso, SIZE, cameras, flow=True, bands=3))
     assert yields == 2 * (3 - 1)  # between the bands of each frame
     for a, b in zip(whole, banded):
         for name in ("mask", "normal", "ao", "color", "flow"):
@@ -284,14 +288,7 @@ def test_the_quality_probe_yields_between_every_frame_of_every_candidate(cloud):
     renderer, iso = cloud
     config = BudgetConfig(candidates=(FrameMethod("full"), FrameMethod("full", ao_rays=2)), probe_frames=3,
                           probe_height=SIZE[1])
-    steps = policy.probe_quality_steps(renderer, iso, *SIZE, config)
-    yields = 0
-    try:
-        while True:
-            next(steps)
-            yields += 1
-    except StopIteration as done:
-        sliced = done.value
+    yields, sliced = drain(policy.probe_quality_steps(renderer, iso, *SIZE, config))
     bands = 1 if renderer.device.is_cuda else policy.REFERENCE_BANDS_CPU
     assert yields == 1 + 3 * (bands - 1) + len(sliced.psnr) * 3
     assert sliced.psnr == pytest.approx(policy.probe_quality(renderer, iso, *SIZE, config).psnr, nan_ok=True)

@@ -68,25 +68,12 @@ def _zarr(folder: Path) -> Path:
 def _dicom(folder: Path) -> Path:
     """A series folder of bare-named slice files (no ``.dcm``: found by their ``DICM`` marker)."""
     pytest.importorskip("pydicom", reason="writing a DICOM sample needs pydicom")
-    from pydicom.dataset import Dataset, FileMetaDataset
-    from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
+    from dicom_fixtures import ct_slice
 
     path = folder / "sample_series"
     path.mkdir()
     for z in range(VALUES.shape[2]):
-        ds = Dataset()
-        ds.file_meta = FileMetaDataset()
-        ds.file_meta.MediaStorageSOPClassUID = CTImageStorage
-        ds.file_meta.MediaStorageSOPInstanceUID = generate_uid()
-        ds.file_meta.TransferSyntaxUID = ExplicitVRLittleEndian
-        ds.SOPClassUID, ds.SOPInstanceUID = CTImageStorage, ds.file_meta.MediaStorageSOPInstanceUID
-        ds.Modality, ds.SeriesInstanceUID = "CT", "1.2.3"
-        ds.Rows, ds.Columns = VALUES.shape[1], VALUES.shape[0]
-        ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 1
-        ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
-        ds.ImagePositionPatient, ds.ImageOrientationPatient = [0.0, 0.0, float(z)], [1.0, 0, 0, 0, 1.0, 0]
-        ds.PixelSpacing = [1.0, 1.0]
-        ds.PixelData = np.ascontiguousarray(VALUES[:, :, z].T, "<i2").tobytes()
+        ds = ct_slice(VALUES[:, :, z].T, (0.0, 0.0, float(z)), series="1.2.3")
         ds.save_as(path / f"slice{z}", enforce_file_format=True)
     return path
 

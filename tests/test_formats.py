@@ -15,14 +15,18 @@ import pytest
 import tifffile
 import torch
 import zarr
-from pydicom.dataset import Dataset, FileMetaDataset
+from conftest import DEVICE
+from dicom_fixtures import ct_slice
+from pydicom.dataset import Dataset
 from pydicom.encaps import encapsulate
 from pydicom.pixels import get_decoder
 from pydicom.sequence import Sequence
-from pydicom.uid import (CTImageStorage, EnhancedCTImageStorage, ExplicitVRLittleEndian, JPEGLosslessSV1,
-                         RLELossless, generate_uid)
+from pydicom.uid import (
+    EnhancedCTImageStorage,
+    JPEGLosslessSV1,
+    RLELossless,
+)
 
-from conftest import DEVICE
 from isosr_render import Renderer, RenderRequest, Volume, open_volume, orbit
 from isosr_render.formats.dicom import open_dicom
 from isosr_render.formats.tiff import open_tiff
@@ -86,25 +90,9 @@ def _raises(call, path, *words) -> str:
 # --- DICOM ----------------------------------------------------------------------------------------
 
 def _dicom(plane: np.ndarray, position, orientation=(1, 0, 0, 0, 1, 0), series: str = "1.2.3.4",
-           spacing=SPACING, rescale=(SLOPE, INTERCEPT), number: int = 1) -> Dataset:
-    """A CT slice: ``plane`` is (rows, columns) int16."""
-    ds = Dataset()
-    ds.file_meta = FileMetaDataset()
-    ds.file_meta.MediaStorageSOPClassUID = CTImageStorage
-    ds.file_meta.MediaStorageSOPInstanceUID = generate_uid()
-    ds.file_meta.TransferSyntaxUID = ExplicitVRLittleEndian
-    ds.SOPClassUID, ds.SOPInstanceUID = CTImageStorage, ds.file_meta.MediaStorageSOPInstanceUID
-    ds.Modality, ds.SeriesInstanceUID, ds.SeriesDescription, ds.SeriesNumber = "CT", series, "test", 3
-    ds.InstanceNumber = number
-    ds.Rows, ds.Columns = plane.shape
-    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 1
-    ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
-    ds.ImagePositionPatient = [float(p) for p in position]
-    ds.ImageOrientationPatient = [float(o) for o in orientation]
-    ds.PixelSpacing = [spacing[1], spacing[0]]  # between rows (y), between columns (x)
-    ds.RescaleSlope, ds.RescaleIntercept = rescale
-    ds.PixelData = np.ascontiguousarray(plane, dtype="<i2").tobytes()
-    return ds
+           number: int = 1) -> Dataset:
+    """A CT slice of this module's spacing and rescale."""
+    return ct_slice(plane, position, orientation, series, SPACING, (SLOPE, INTERCEPT), number)
 
 
 def _write_series(folder: Path, values=VALUES, orientation=(1, 0, 0, 0, 1, 0), shear=(0.0, 0.0), skip=(),

@@ -19,23 +19,26 @@ and reports per-stage times:
     result.buffers.color                         # (H, W, 3) in [0, 1]
 
 ``prev_camera=None`` starts a new sequence (a recurrent network forgets its previous output).
-A new method is one module here (a registered `FrameRunner` with its label and bounds), its
-filter under :mod:`isosr_net.filters`, and its test (``tests/test_method_contract.py`` runs
-every registered method); the CLI, the service's modes, the viewer, the Pareto study and the
-budget policy read the registry. A kind that needs an optional package says why it cannot run
+A new method is one module here (a registered `FrameRunner` with its label and bounds, found
+without a list to edit), its filter under :mod:`isosr_net.filters`, and its test class in
+``tests/test_method_contract.py`` (the shared contract runs every registered method); the CLI,
+the service's modes, the viewer, the Pareto study and the budget policy read the registry. A kind that needs an optional package says why it cannot run
 where it is missing (:func:`unavailable_kinds`); making its runner raises that reason.
 """
 
 from importlib import import_module
+from pkgutil import iter_modules
 
 from isosr_net.methods.base import (FIRST_TEMPORAL_SEED, MAX_FACTOR, RUNNERS, FrameMethod, FrameResult, FrameRunner,
                                     FrameStream, Networks, finish_steps, make_runner, parse_method, register_runner,
                                     run_sequence, unavailable_kinds)
 
-# The methods' modules, each registering its runner: the registry's order is the menus' order.
+# The registry's order is the menus' order: these first, then any other module here by name (a
+# new method is a module of this package, nothing else to edit).
 METHOD_MODULES = ("full", "atrous", "svgf", "oidn", "reconstruct", "upscale", "network", "buffers")
-for _name in METHOD_MODULES:
-    import_module(f"isosr_net.methods.{_name}")
+_found = sorted(m.name for m in iter_modules(__path__) if m.name != "base")
+for _name in [*METHOD_MODULES, *(n for n in _found if n not in METHOD_MODULES)]:
+    import_module(f"{__name__}.{_name}")
 
 from isosr_net.methods.reconstruct import reconstruct_method  # noqa: E402 (after the registry is filled)
 from isosr_net.methods.upscale import upscale_classic  # noqa: E402
