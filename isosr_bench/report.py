@@ -1,7 +1,7 @@
 """The benchmarks' report: Markdown tables and PNG plots made from their JSON results.
 
     python -m isosr_bench.report [RESULTS_DIR] [--kind cuda|cpu]
-    python -m isosr_bench.report --docs     # docs/performance.md and the README's figures table
+    python -m isosr_bench.report --docs     # docs/performance.md, the README's figures table, auto's cost tables
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ from pathlib import Path
 
 from isosr_render.atomic import atomic_write
 from isosr_net.methods import RUNNERS
+from isosr_net.budget import PRIORS_DIR, CostTable
 
 from .common import RESULTS_DIR
 
@@ -725,11 +726,30 @@ def readme_figures(folder: Path) -> str:
     return "\n".join([FIGURES_BEGIN, ""] + table + [FIGURES_END])
 
 
-def write_docs(folder: Path = RESULTS_DIR, docs: Path = DOCS_PERFORMANCE, readme: Path = README) -> list[Path]:
-    """Write docs/performance.md and the README's figures table (between its markers) from ``folder``."""
+def cost_table_json(folder: Path, kind: str) -> str | None:
+    """The auto mode's committed prior for ``kind`` (:class:`isosr_net.budget.CostTable`) from the
+    Pareto study's results in ``folder``, as JSON text; None without them."""
+    pareto = _load(folder, "pareto", kind)
+    if pareto is None:
+        return None
+    rows = CostTable.from_pareto([r for r in pareto["rows"] if "ms" in r and "kind" in r])
+    record = {"device": pareto["device"], "commit": pareto["commit"], "source": f"benchmarks/results/pareto_{kind}.json",
+              "made_by": "python -m isosr_bench.report --docs", "rows": rows}
+    return json.dumps(record, indent=1) + "\n"
+
+
+def write_docs(folder: Path = RESULTS_DIR, docs: Path = DOCS_PERFORMANCE, readme: Path = README,
+               priors: Path = PRIORS_DIR) -> list[Path]:
+    """Write docs/performance.md, the README's figures table (between its markers) and the auto
+    mode's cost tables (``priors``/KIND.json) from ``folder``."""
     text = performance_markdown(folder)
     atomic_write(docs, lambda f: f.write(text.encode()))
     written = [docs]
+    for kind in ("cuda", "cpu"):
+        if (table := cost_table_json(folder, kind)) is not None:
+            priors.mkdir(parents=True, exist_ok=True)
+            atomic_write(priors / f"{kind}.json", lambda f, t=table: f.write(t.encode()))
+            written.append(priors / f"{kind}.json")
     if readme.is_file():
         current = readme.read_text()
         start, end = current.find(FIGURES_BEGIN), current.find(FIGURES_END)

@@ -48,12 +48,15 @@ ties, and the cheapest in the candidate list that fits is chosen.
 
 from __future__ import annotations
 
+import json
 import math
 import os
+import statistics
 import time
 import warnings
 from collections.abc import Generator
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import torch
 
@@ -197,6 +200,74 @@ class BudgetChoice:
                 f"{self.probe_size[1]}, {self.probe_seconds:.1f} s")
 
 
+# The committed cost tables, one per device class (``cuda.json``; written by ``isosr_bench.report --docs``).
+PRIORS_DIR = Path(__file__).parent / "priors"
+
+
+def method_key(method: FrameMethod) -> tuple[str, int, int, int]:
+    """What a cost table knows a method by: its kind and counts (not its model's display name)."""
+    return method.kind, method.ao_rays, method.spp, method.factor
+
+
+@dataclass(frozen=True)
+class CostTable:
+    """A device class's committed costs, the prior before a probe: per method (:func:`method_key`)
+    its frame time over a plain first-hit frame's (``full``, no AO, same volume and size) and its
+    color PSNR, medians over the Pareto study's volumes and sizes.
+
+    Attributes:
+        device, commit: where and from which commit the study measured them.
+        rows: method key -> (cost in first-hit frames, color PSNR dB).
+    """
+
+    device: str
+    commit: str
+    rows: dict[tuple[str, int, int, int], tuple[float, float]]
+
+    @classmethod
+    def for_device(cls, device: str) -> CostTable | None:
+        """The committed table of ``device``'s class (``cuda`` or ``cpu``), or None where there is none."""
+        path = PRIORS_DIR / f"{'cuda' if str(device).startswith('cuda') else 'cpu'}.json"
+        if not path.is_file():
+            return None
+        record = json.loads(path.read_text())
+        rows = {(r["kind"], r["ao_rays"], r["spp"], r["factor"]): (r["cost"], r["color_psnr"]) for r in record["rows"]}
+        return cls(record["device"], record["commit"], rows)
+
+    @staticmethod
+    def from_pareto(rows: list[dict]) -> list[dict]:
+        """A table's rows from Pareto study rows (each with volume, size, kind, counts, ms,
+        color_psnr): per method the medians over the (volume, size) pairs that have a first-hit row,
+        of each pair's fastest variant (e.g. of a network's precisions)."""
+        first_hit = {(r["volume"], r["size"]): r["ms"] for r in rows
+                     if (r["kind"], r["ao_rays"], r["spp"], r["factor"]) == ("full", 0, 1, 1)}
+        fastest: dict[tuple, dict] = {}
+        for r in rows:
+            at = (r["kind"], r["ao_rays"], r["spp"], r["factor"], r["volume"], r["size"])
+            if (r["volume"], r["size"]) in first_hit and math.isfinite(r["color_psnr"]):
+                if at not in fastest or r["ms"] < fastest[at]["ms"]:
+                    fastest[at] = r
+        by_method: dict[tuple, list[tuple[float, float]]] = {}
+        for (*key, volume, size), r in fastest.items():
+            by_method.setdefault(tuple(key), []).append((r["ms"] / first_hit[volume, size], r["color_psnr"]))
+        return [{"kind": k[0], "ao_rays": k[1], "spp": k[2], "factor": k[3],
+                 "cost": round(statistics.median(c for c, _ in v), 3),
+                 "color_psnr": round(statistics.median(p for _, p in v), 2), "scenes": len(v)}
+                for k, v in sorted(by_method.items())]
+
+    def choose(self, candidates: tuple[FrameMethod, ...], first_hit_ms: float, budget_ms: float
+               ) -> tuple[FrameMethod, float, float] | None:
+        """The candidate of the best tabled PSNR whose predicted time (its cost times
+        ``first_hit_ms``, this scene's first-hit frame) fits ``budget_ms``, with that time and PSNR;
+        None where none of the tabled ones fits."""
+        fitting = [(self.rows[method_key(m)][1], -self.rows[method_key(m)][0], m) for m in candidates
+                   if method_key(m) in self.rows and self.rows[method_key(m)][0] * first_hit_ms <= budget_ms]
+        if not fitting:
+            return None
+        psnr, minus_cost, method = max(fitting, key=lambda f: f[:2])
+        return method, -minus_cost * first_hit_ms, psnr
+
+
 def default_probe_height(device: str) -> int:
     """The quality probe's fewest rows on ``device``: 540 on GPUs, 96 on CPUs (module docstring)."""
     return 540 if str(device).startswith("cuda") else 96
@@ -296,6 +367,17 @@ def _frame_ms(runner: FrameRunner, camera: Camera, prev: Camera | None, clock: s
     t0 = time.perf_counter()
     runner.frame(camera, prev)
     return _synced_ms(runner, t0)
+
+
+def first_hit_ms_steps(renderer: Renderer, iso: float, width: int, height: int, camera: Camera,
+                       ao_radius: float = AO_RADIUS, networks: Networks | None = None) -> Generator[None, None, float]:
+    """The wall time (ms) of a plain first-hit frame (``full``, no AO) of this scene and size after a
+    warm-up frame, a frame a unit: the unit a :class:`CostTable`'s costs are in."""
+    runner = make_runner(FrameMethod("full"), renderer, iso, width, height, ao_radius=ao_radius, networks=networks)
+    yield
+    runner.frame(camera)
+    yield
+    return _frame_ms(runner, camera, None, "wall")
 
 
 def _sliced_frame_ms(runner: FrameRunner, camera: Camera, prev: Camera | None,

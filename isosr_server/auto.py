@@ -8,8 +8,10 @@ changes costs no new probe; a choice is cached per (volume, iso, size, AO radius
 runs on the session's current view (a still camera: the view to be shown).
 
 No frame waits for a probe. Until the probe of a scene and size has run, frames use the prior:
-the cheapest candidate (no AO, one ray per pixel), the frame that reaches the viewer first. The
-probe runs in the background as generator steps (:func:`isosr_net.budget.choose_method_steps`)
+first the cheapest candidate (no AO, one ray per pixel), the frame that reaches the viewer
+first; once the probe's first units timed this scene's plain first-hit frame, the device class's
+committed cost table (:class:`isosr_net.budget.CostTable`) picks the best tabled method whose
+cost in first-hit frames fits the budget. The probe runs in the background as generator steps (:func:`isosr_net.budget.choose_method_steps`)
 that the engine interleaves with frames on the device thread, a unit of work at a time, and
 that shutdown drops between two units. What a probe learns is kept per device, volume, iso and
 size in ``probe_cache`` (a JSON file), so that a restarted server chooses without probing.
@@ -25,8 +27,8 @@ import os
 from collections.abc import Generator
 from pathlib import Path
 
-from isosr_net.budget import BudgetChoice, BudgetConfig, QualityProbe, choose_method_steps, default_candidates, \
-    probe_quality_steps
+from isosr_net.budget import (BudgetChoice, BudgetConfig, CostTable, QualityProbe, choose_method_steps,
+                              default_candidates, first_hit_ms_steps, probe_quality_steps)
 from isosr_net.methods import FrameMethod, FrameRunner, Networks
 from isosr_net.reconstructor import Reconstructor, recon_limits
 from isosr_render import Camera, Renderer
@@ -102,13 +104,15 @@ class AutoPolicy:
         networks: the server's loaded networks (the probe's runners use them).
         cache: where probes' results are kept (default: in memory).
         slice_ms: device time a unit of the probe's timed frames aims at (None: whole frames).
+        costs: the device class's committed cost table, the prior before a probe (None: the
+            cheapest candidate until the probe decides).
 
     Attributes:
         pending: probes to run (generators of device-thread steps), taken by the engine.
     """
 
     def __init__(self, candidates: tuple[FrameMethod, ...], target_fps: float, networks: Networks,
-                 cache: ProbeCache | None = None, slice_ms: float | None = None):
+                 cache: ProbeCache | None = None, slice_ms: float | None = None, costs: CostTable | None = None):
         if not target_fps > 0:
             raise ValueError(f"target_fps must be positive, got {target_fps!r}")
         self.candidates, self.target_fps, self.networks = candidates, float(target_fps), networks
@@ -118,6 +122,8 @@ class AutoPolicy:
         self._timings: dict[tuple, dict] = {}
         self._chosen: dict[tuple, BudgetChoice] = {}
         self._probing: set[tuple] = set()
+        self.costs = costs
+        self._first_hit: dict[tuple, float] = {}  # scene key -> a plain first-hit frame's ms
 
     @classmethod
     def for_server(cls, device: str, precision: str, factor: int, models: dict, target_fps: float,
@@ -135,7 +141,7 @@ class AutoPolicy:
                 m = dataclasses.replace(m, model=None if folder is None else str(folder), model_name=name,
                                         factor=served_factor(m.runner, factor))
             candidates.append(m)
-        return cls(tuple(candidates), target_fps, networks, cache, slice_ms)
+        return cls(tuple(candidates), target_fps, networks, cache, slice_ms, CostTable.for_device(device))
 
     def budget_ms(self, sessions: int) -> float:
         """A frame's share of device time with ``sessions`` sessions served."""
@@ -158,10 +164,17 @@ class AutoPolicy:
                 return decided.value
             self._probing.add(key)
             self.pending.append(probe)
-        return self.prior(self.budget_ms(sessions))
+        return self.prior(self.budget_ms(sessions), scene_key)
 
-    def prior(self, budget_ms: float) -> BudgetChoice:
-        """The choice before a probe: :func:`prior_method`, nothing measured."""
+    def prior(self, budget_ms: float, scene_key: tuple | None = None) -> BudgetChoice:
+        """The choice before a probe: the cost table's where this scene's first-hit time is known
+        (predicted time and PSNR), else :func:`prior_method` (nothing measured)."""
+        first_hit = self._first_hit.get(scene_key)
+        if self.costs is not None and first_hit is not None:
+            picked = self.costs.choose(self.candidates, first_hit, budget_ms * PROBE["headroom"])
+            if picked is not None:
+                method, ms, psnr = picked
+                return BudgetChoice(method, ms, psnr, True, budget_ms, math.nan, False, (0, 0), 0.0, ())
         return BudgetChoice(prior_method(self.candidates), math.nan, math.nan, False, budget_ms, math.nan, False,
                             (0, 0), 0.0, ())
 
@@ -176,6 +189,9 @@ class AutoPolicy:
         timings = self._timings.setdefault(scene_key, {})
         probes_quality, timed_before = scene_key not in self._quality, len(timings)
         try:
+            if scene_key not in self._quality and self.costs is not None and scene_key not in self._first_hit:
+                self._first_hit[scene_key] = yield from first_hit_ms_steps(renderer, iso, width, height, camera,
+                                                                           ao_radius, self.networks)
             if scene_key not in self._quality:
                 self._quality[scene_key] = yield from probe_quality_steps(renderer, iso, width, height, config,
                                                                           cameras, self.networks)
@@ -185,7 +201,7 @@ class AutoPolicy:
         except ValueError as e:  # the scene or size admits no candidate: say why, keep the prior
             log.warning("auto mode, %s at %dx%d: no probe (%s); frames stay %s", scene_key[0], width, height, e,
                         prior_method(self.candidates).name)
-            choice = self.prior(budget_ms)
+            choice = self.prior(budget_ms, scene_key)
         else:
             log.info("auto mode, %s at %dx%d, budget %.3g ms: %s", scene_key[0], width, height, budget_ms,
                      choice.summary())

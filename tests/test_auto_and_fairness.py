@@ -9,13 +9,13 @@ import time
 
 import pytest
 
-from isosr_net.budget import BudgetChoice
-from isosr_net.methods import Networks, finish_steps, make_runner, run_sequence
+from isosr_net.budget import BudgetChoice, CostTable, default_candidates, method_key
+from isosr_net.methods import FrameMethod, Networks, finish_steps, make_runner, run_sequence
 from isosr_net.reconstructor import RECON_X2_MODEL
 from isosr_render import orbit
 from isosr_render.images import to_uint8
 from isosr_server import protocol as P
-from isosr_server.auto import AutoPolicy, ProbeCache, prior_method
+from isosr_server.auto import PROBE, AutoPolicy, ProbeCache, prior_method
 from server_fixtures import (DEVICE, VOLUME, H, W, assert_image, cam, frame, lib, running_server,  # noqa: F401
                              send, server_settings, session)
 
@@ -98,6 +98,39 @@ def test_auto_policy_chooses_at_once_and_probes_in_the_background(lib, tmp_path)
     assert not later.pending, "a restarted server's policy reads what the probe learned"
     other = AutoPolicy.for_server(DEVICE, "fp32", 4, {}, 30.0, Networks(), cache=ProbeCache(cache, "another CPU"))
     assert other.choose(renderer, VOLUME, iso, 64, 48, cam, 1, 0.05).method == first.method and other.pending
+
+
+def test_before_its_probe_auto_takes_the_cost_tables_best_fit_for_the_scenes_first_hit(lib):
+    """Frames before the probe: the cheapest candidate until the probe's first units timed the
+    scene's plain first-hit frame; then the committed table's best PSNR whose cost in first-hit
+    frames fits the budget's headroom (a tabled method that does not fit is passed over)."""
+    cheap, mid, dear = FrameMethod("full"), FrameMethod("full", ao_rays=2), FrameMethod("atrous", ao_rays=2)
+    costs = CostTable("a GPU", "abc", {method_key(cheap): (1.0, 25.0), method_key(mid): (3.0, 30.0),
+                                       method_key(dear): (50.0, 33.0)})
+    policy = AutoPolicy((cheap, mid, dear), 30.0, Networks(), costs=costs)
+    cam = orbit(30, 20, 1.8)
+    assert policy.choose(lib.renderer, VOLUME, lib.iso, 64, 48, cam, 1, 0.05).method == cheap
+    probe = policy.pending[0]
+    next(probe), next(probe)  # the first-hit frame's warm-up and its timed frame
+    (first_hit,) = policy._first_hit.values()
+    assert first_hit > 0
+    policy.target_fps = 1000 / (10 * first_hit / PROBE["headroom"])  # a budget of 10 first-hit frames
+    choice = policy.choose(lib.renderer, VOLUME, lib.iso, 64, 48, cam, 1, 0.05)
+    assert (choice.method, choice.expected_psnr) == (mid, 30.0) and choice.ms == pytest.approx(3 * first_hit)
+    policy.target_fps = 1000 / (100 * first_hit / PROBE["headroom"])
+    assert policy.choose(lib.renderer, VOLUME, lib.iso, 64, 48, cam, 1, 0.05).method == dear
+    assert policy.costs.choose((cheap, mid), first_hit, 0.5 * first_hit) is None  # nothing fits: the cheapest
+    finish_steps(probe)
+
+
+def test_the_committed_cost_table_covers_the_gpu_candidates():
+    """The CUDA table (made from the committed Pareto study) knows every default candidate that
+    the study ran, a plain first-hit frame costs 1 of itself, and more rays cost more."""
+    table = CostTable.for_device("cuda")
+    assert table is not None and table.rows[("full", 0, 1, 1)][0] == 1.0
+    tabled = [m for m in default_candidates("cuda") if method_key(m) in table.rows]
+    assert len(tabled) >= 0.8 * len(default_candidates("cuda"))
+    assert table.rows[("full", 64, 4, 1)][0] > table.rows[("full", 8, 1, 1)][0] > 1.0
 
 
 def test_a_probe_cache_that_cannot_be_read_is_probed_anew(lib, tmp_path, caplog):

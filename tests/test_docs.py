@@ -23,9 +23,11 @@ def test_performance_page_is_generated_from_the_results(tmp_path):
     readme = tmp_path / "README.md"
     readme.write_bytes((ROOT / "README.md").read_bytes())
     page = tmp_path / "performance.md"
-    report.write_docs(report.RESULTS_DIR, page, readme)
+    report.write_docs(report.RESULTS_DIR, page, readme, tmp_path / "priors")
     assert page.read_bytes() == (ROOT / "docs" / "performance.md").read_bytes(), \
         "docs/performance.md differs from the results: run `python -m isosr_bench.report --docs`"
+    assert (tmp_path / "priors" / "cuda.json").read_bytes() == (report.PRIORS_DIR / "cuda.json").read_bytes(), \
+        "the auto mode's cost table differs from the results: run `python -m isosr_bench.report --docs`"
     assert readme.read_bytes() == (ROOT / "README.md").read_bytes(), \
         "the README's figures table differs from the results: run `python -m isosr_bench.report --docs`"
 
