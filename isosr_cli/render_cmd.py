@@ -9,7 +9,9 @@ file holds what the method makes.
 from __future__ import annotations
 
 import argparse
+import json
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 import torch
@@ -37,6 +39,7 @@ from isosr_render import (
 from isosr_render.catalog import SHARED_PREFIX, check_iso
 from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES
 from isosr_render.formats import help_text
+from isosr_render.picking import pick
 
 PNG_DEFAULT = "color"
 # AO rays per hit of a plain render.
@@ -106,10 +109,22 @@ def add_parser(subparsers) -> None:
                               "first and carried over; --outputs from what the method makes")
     methods.add_argument("--list-methods", action="store_true",
                          help="list the registered frame methods with their knobs and bounds, and exit")
+    p.add_argument("--pick", type=_pair, metavar="X,Y",
+                   help="also print what lies under pixel X,Y (x right, y down): the isosurface point in world, "
+                        "voxel and physical units and the volume's value there, as one JSON line")
     p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     p.add_argument("--png-of", choices=BUFFER_NAMES, help="with a .png output: the buffer to show")
     p.add_argument("-o", "--output", help="FILE.npz (frame file) or FILE.png (required but with --list-methods)")
     p.set_defaults(func=run)
+
+
+def _pair(text: str) -> tuple[float, float]:
+    """Parse ``x,y``."""
+    try:
+        x, y = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected two numbers x,y, got {text!r}") from None
+    return x, y
 
 
 def _camera(orbit_arg, eye, target, up, fov) -> Camera:
@@ -209,6 +224,7 @@ def run(args: argparse.Namespace) -> int:
     if renderer.device.is_cuda:
         torch.cuda.synchronize()
     elapsed = time.perf_counter() - start
+    picked = None if args.pick is None else pick(renderer, camera, iso, *args.size, *args.pick)
     if out.suffix == ".npz":
         frame.save_npz(out)
     else:
@@ -220,4 +236,6 @@ def run(args: argparse.Namespace) -> int:
     print(f"{volume.name}: {volume.shape} voxels, iso {iso:.4f} normalized ({lo + iso * (hi - lo):g} in data units); "
           f"{how} {','.join(frame.present())} at {args.size[0]}x{args.size[1]} on {renderer.device} "
           f"in {elapsed * 1e3:.1f} ms{'' if args.budget_ms is None else ', the probe included'} -> {out}")
+    if picked is not None:
+        print(json.dumps({"pick": list(args.pick), **asdict(picked)}))
     return 0

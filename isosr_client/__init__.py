@@ -1,5 +1,6 @@
 """isosr_client: thin clients of `isosr serve` (floor 4): view sessions (:mod:`isosr_client.view`)
-and the frame upscaling API (:mod:`isosr_client.upscale`).
+the frame upscaling API (:mod:`isosr_client.upscale`) and the volumes' listing and slices
+(:mod:`isosr_client.volumes`).
 
 Importing it loads numpy, msgspec, websockets and the protocol only; torch and the network load
 only where ``buffers`` frames are upscaled here (:mod:`isosr_client.local`), OpenCV at the first
@@ -8,7 +9,8 @@ image decoded.
 
 from isosr_client.upscale import UpscaleResult, upscale_remote
 from isosr_client.view import FrameStats, ServerError, ViewFrame, ViewSession, connect
+from isosr_client.volumes import slice_remote, volumes_remote
 from isosr_render.image_codec import decode_image
 
 __all__ = ["connect", "ViewSession", "ViewFrame", "FrameStats", "ServerError", "decode_image", "upscale_remote",
-           "UpscaleResult"]
+           "UpscaleResult", "slice_remote", "volumes_remote"]

@@ -15,8 +15,6 @@ torch itself is never imported here).
 from __future__ import annotations
 
 import json
-import urllib.error
-import urllib.request
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from isosr_client.view import CLIENT_LIMITS, ServerError, auth_headers, endpoint, tls_context
+from isosr_client.view import CLIENT_LIMITS, http_call
 from isosr_server.protocol import (HIGHRES_OUTPUTS, LOWRES_INPUTS, MSGPACK_MEDIA_TYPE, REPLICA_HEADER, RESTARTED_HEADER,
                                    SESSION_HEADER, HighresBuffers, UpscaleRequest, UpscaleResponse, encode, parse)
 
@@ -83,24 +81,12 @@ def upscale_remote(url: str, frame: Any, output: str = "buffers", quality: int =
             raise ValueError(f"the low-res frame lacks its {name} buffer")
     body = encode(UpscaleRequest(**arrays, output=output, quality=quality, session=session, reset=reset))
     parse(body, CLIENT_LIMITS, (UpscaleRequest,))  # bad input fails here, with the server's reason
-    headers = {"Content-Type": MSGPACK_MEDIA_TYPE, **auth_headers(token)}
+    headers = {"Content-Type": MSGPACK_MEDIA_TYPE}
     if session is not None:
         headers[SESSION_HEADER] = session  # the replicas' routing key
-    where = endpoint(url, "/v1/upscale", websocket=False)
-    context = tls_context(where, cafile)
-    request = urllib.request.Request(where, data=body, method="POST", headers=headers)
-    try:
-        with urllib.request.urlopen(request, timeout=timeout, context=context) as reply:
-            kind, data = reply.headers.get("content-type", ""), reply.read()
-            times_header = reply.headers.get("x-isosr-times")
-            replica, restarted = reply.headers.get(REPLICA_HEADER), reply.headers.get(RESTARTED_HEADER) == "1"
-    except urllib.error.HTTPError as e:
-        detail = e.read()
-        try:
-            reason = json.loads(detail)["error"]
-        except (ValueError, KeyError, TypeError):
-            reason = detail.decode(errors="replace")[:200]
-        raise ServerError(e.code, reason) from None
+    reply, data = http_call(url, "/v1/upscale", token, cafile, timeout, body, headers)
+    kind, times_header = reply.get("content-type", ""), reply.get("x-isosr-times")
+    replica, restarted = reply.get(REPLICA_HEADER), reply.get(RESTARTED_HEADER) == "1"
     if kind.startswith("image/"):
         return UpscaleResult(None, data, json.loads(times_header) if times_header else {}, replica, restarted)
     msg = parse(data, CLIENT_LIMITS, (UpscaleResponse,))

@@ -26,11 +26,14 @@ went away or failed: `RECONNECT_CODES`) opens itself again, on any replica behin
 
 from __future__ import annotations
 
+import json
 import ssl
 import time
+import urllib.error
+import urllib.request
 import warnings
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -46,9 +49,9 @@ from isosr_server.codecs import video
 from isosr_server.codecs.buffers import decode_view_buffers
 from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, CLOSE_GOING_AWAY, CLOSE_INTERNAL, ENCODINGS, REPLICA_HEADER,
                                    SERVER_VIEW_MESSAGES, TOKEN_HEADER, VIDEO_ENCODINGS, CameraMsg, ErrorMsg, FocusMsg,
-                                   FrameMsg, IsoMsg, KeyframeMsg, Limits, NoticeMsg, OpenMsg, ProtocolError, ReadyMsg,
-                                   ReceivedMsg, SettingsMsg, SettingsUpdate, ViewSettings, VolumeMemory, convert, encode,
-                                   parse)
+                                   FrameMsg, IsoMsg, KeyframeMsg, Limits, NoticeMsg, OpenMsg, PickedMsg, PickMsg,
+                                   ProtocolError, ReadyMsg, ReceivedMsg, SettingsMsg, SettingsUpdate, ViewSettings,
+                                   VolumeMemory, convert, encode, parse)
 
 if TYPE_CHECKING:
     from isosr_client.local import LocalUpscaler
@@ -142,6 +145,30 @@ def tls_context(where: str, cafile: str | Path | None) -> ssl.SSLContext | None:
 def auth_headers(token: str | None) -> dict[str, str]:
     """The headers that carry the server's token (none without one)."""
     return {} if token is None else {"Authorization": f"Bearer {token}", TOKEN_HEADER: token}
+
+
+def http_call(url: str, path: str, token: str | None = None, cafile: str | Path | None = None, timeout: float = 60.0,
+              body: bytes | None = None, headers: Mapping[str, str] | None = None) -> tuple[Mapping[str, str], bytes]:
+    """One HTTP request to ``path`` of the server at ``url`` (POST with a ``body``, else GET): the
+    reply's headers and bytes.
+
+    Raises:
+        ServerError: the server refused it (its status and reason).
+        ValueError: a bad URL or ``cafile`` (see `endpoint`, `tls_context`).
+    """
+    where = endpoint(url, path, websocket=False)
+    request = urllib.request.Request(where, data=body, method="GET" if body is None else "POST",
+                                     headers={**(headers or {}), **auth_headers(token)})
+    try:
+        with urllib.request.urlopen(request, timeout=timeout, context=tls_context(where, cafile)) as reply:
+            return reply.headers, reply.read()
+    except urllib.error.HTTPError as e:
+        detail = e.read()
+        try:
+            reason = json.loads(detail)["error"]
+        except (ValueError, KeyError, TypeError):
+            reason = detail.decode(errors="replace")[:200]
+        raise ServerError(e.code, reason) from None
 
 
 @dataclass
@@ -249,6 +276,7 @@ class ViewSession:
         self._seq = first_seq  # the newest update sent: the open's camera (0), else none (-1)
         self._sent_at: dict[int, float] = {-1: opened_at, first_seq: opened_at}
         self._latest: ViewFrame | None = None
+        self._pick_id, self._picked = 0, None  # the last pick asked, the last answer
         self.stats: FrameStats | None = None
         self.volume_memory: VolumeMemory | None = None  # the newest the frames carried
         self.closed = False
@@ -262,8 +290,8 @@ class ViewSession:
 
     # ---- updates -------------------------------------------------------------------------------
 
-    def _send(self, msg) -> int:
-        """Validate an update as the server would, send it, and return its seq."""
+    def _send(self, msg) -> int | None:
+        """Validate an update (or a pick) as the server would, send it, and return its seq."""
         self._check_open()
         data = encode(msg)
         parse(data, self.limits, CLIENT_VIEW_MESSAGES)  # a bad update fails here, clearly
@@ -275,13 +303,15 @@ class ViewSession:
             self._focus = msg
         elif isinstance(msg, SettingsMsg):
             self.settings = self.settings.updated(msg.settings, self.limits)
-        self._sent_at[msg.seq] = time.perf_counter()
+        seq = getattr(msg, "seq", None)  # a pick carries none: it asks, it changes no state
+        if seq is not None:
+            self._sent_at[seq] = time.perf_counter()
         try:
             self._ws.send(data)
         except ConnectionClosed as e:
             self._connection_closed(e)
             return self._seq  # the reopened session's open carries this update
-        return msg.seq
+        return seq
 
     def _next_seq(self) -> int:
         self._seq += 1
@@ -323,6 +353,25 @@ class ViewSession:
         """The ``focus`` mode's region in output pixels (x right, y down): ``circle`` (center,
         radius), ``box`` (x0, y0, x1, y1) or ``none``; returns the update's seq."""
         return self._send(FocusMsg(shape, _floats(center), radius, _floats(box), self._next_seq()))
+
+    def pick(self, x: float, y: float, timeout: float | None = None) -> PickedMsg:
+        """What lies under pixel ``(x, y)`` of the current view (x right, y down, pixel centres at
+        +0.5): whether it hits the isosurface and where (world, voxel, physical ``position``) with
+        the volume's ``value`` there; the distance between two picks is that of their positions.
+        Frames arriving meanwhile are taken as usual.
+
+        Raises:
+            TimeoutError: no answer within ``timeout`` seconds (default: the session's).
+            ServerError: the server ended the session (e.g. a point outside the view).
+        """
+        self._pick_id += 1
+        self._send(PickMsg(float(x), float(y), self._pick_id))
+        deadline = time.monotonic() + (self.timeout if timeout is None else timeout)
+        while self._picked is None or self._picked.id != self._pick_id:
+            left = deadline - time.monotonic()
+            if left <= 0 or not self._receive(left):
+                raise TimeoutError(f"no answer to pick {self._pick_id} in time")
+        return self._picked
 
     # ---- frames --------------------------------------------------------------------------------
 
@@ -385,6 +434,9 @@ class ViewSession:
             raise ServerError(msg.code, msg.reason)
         if isinstance(msg, NoticeMsg):
             self._notice(f"server: {msg.text}")
+            return True
+        if isinstance(msg, PickedMsg):
+            self._picked = msg
             return True
         if not isinstance(msg, FrameMsg):
             raise ProtocolError(f"expected a frame, got a {msg.TYPE} message")

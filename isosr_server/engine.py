@@ -25,7 +25,7 @@ from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import suppress
 from collections.abc import Awaitable, Callable, Generator
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -37,16 +37,18 @@ from isosr_net.reconnet import RayLimits
 from isosr_net.reconstructor import Reconstructor, recon_limits
 from isosr_net.timing import StageTimer, timed_steps
 from isosr_net.upscaler import Upscaler
-from isosr_render import FrameBuffers, Renderer, ShadingParams, Volume, orbit, parse_procedural, shade
+from isosr_render import Camera, FrameBuffers, Renderer, ShadingParams, Volume, orbit, parse_procedural, shade
 from isosr_render.brick_pool import MemoryStats
 from isosr_render.images import quantize
+from isosr_render.picking import pick
 from isosr_server.auto import AutoPolicy, ProbeCache
 from isosr_server.core.config import Settings
 from isosr_server.codecs.buffers import pack_view_buffers
 from isosr_server.codecs.buffers_device import view_buffer_codes
 from isosr_server.codecs import video
 from isosr_server.encoding import CodedImage, encode_image, encoder_name
-from isosr_server.protocol import IMAGE_ENCODINGS, FocusMsg, ModeInfo, UpscaleRequest, ViewBuffers, ViewSettings, VolumeMemory
+from isosr_server.protocol import (IMAGE_ENCODINGS, FocusMsg, ModeInfo, PickedMsg, PickMsg, ProtocolError,
+                                   UpscaleRequest, ViewBuffers, ViewSettings, VolumeMemory)
 from isosr_server.views import FrameJob, SessionFrames, ViewContext, ViewFrame, mode_infos
 
 RENDERER_CACHE = 4
@@ -251,6 +253,20 @@ class Engine:
         self._video.shutdown(wait=True, cancel_futures=True)
 
     # ---- work (device thread only) ----------------------------------------------------------
+
+    def pick_sync(self, renderer: Renderer, camera: Camera, iso: float, settings: ViewSettings,
+                  msg: PickMsg) -> PickedMsg:
+        """What lies under ``msg``'s pixel of a view (its camera, normalized iso and size).
+
+        Raises:
+            ProtocolError: the pixel lies outside the view.
+        """
+        self._on_thread()
+        try:
+            found = pick(renderer, camera, iso, settings.width, settings.height, msg.x, msg.y)
+        except ValueError as e:
+            raise ProtocolError(str(e)) from None
+        return PickedMsg(msg.x, msg.y, msg.id, **asdict(found))
 
     def renderer_sync(self, name: str, volume: Volume) -> Renderer:
         """The cached renderer of a volume (uploads it on first use)."""

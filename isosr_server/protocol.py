@@ -24,6 +24,8 @@ View session (``WS /v1/view``)
     Frames carry the volume's device memory and paging (``device``) when it changed.
     Bad input ends the session with an ``error`` message and a close code (``CLOSE_*``);
     non-fatal news (an encoding the server cannot make, so it sends jpeg) comes as ``notice``.
+    ``pick`` asks what lies under a pixel of the current view; ``picked`` answers it (the
+    isosurface point, its voxel, physical position and value) between frames.
 
 Encodings (``settings.encoding``)
     Images (`IMAGE_ENCODINGS`: jpeg, png, webp): each frame stands alone. Video
@@ -465,6 +467,15 @@ class FocusMsg(Message, tag="focus"):
             raise ProtocolError("focus: box must be [x0, y0, x1, y1] with x0 < x1 and y0 < y1")
 
 
+class PickMsg(Message, tag="pick"):
+    """Client -> server: what lies under pixel ``(x, y)`` of the session's current view (x right,
+    y down, pixel centres at +0.5); answered by ``picked`` with the same ``x``, ``y`` and ``id``."""
+
+    x: Annotated[float, Meta(ge=0.0, le=MAX_ABS_FLOAT)]
+    y: Annotated[float, Meta(ge=0.0, le=MAX_ABS_FLOAT)]
+    id: Seq = 0
+
+
 class ReceivedMsg(Message, tag="received"):
     """Client -> server: the client has taken frame ``frame`` (the frame's ``seq``) and every
     earlier one off the wire: credit for more (flow control, module docstring)."""
@@ -546,6 +557,24 @@ class ReadyMsg(Message, tag="ready"):
     modes: list[ModeInfo]
     encoders: list[Literal[ENCODINGS]] = msgspec.field(default_factory=lambda: list(IMAGE_ENCODINGS))
     version: Version = PROTOCOL_VERSION
+
+
+class PickedMsg(Message, tag="picked"):
+    """Server -> client, the answer to ``pick``: whether the pixel's ray hits the isosurface and, if
+    it does, the point in world units, its nearest voxel, its position in the volume's physical
+    units (voxel coordinates times the spacing) and the volume's value there in data units
+    (:class:`isosr_render.picking.Pick`); the distance between two picks is that of their
+    ``position``."""
+
+    x: Finite
+    y: Finite
+    id: Seq
+    hit: bool
+    world: Vec3 | None = None
+    voxel: tuple[int, int, int] | None = None
+    position: Vec3 | None = None
+    value: Finite | None = None
+    depth: Finite | None = None
 
 
 class NoticeMsg(Message, tag="notice"):
@@ -792,8 +821,9 @@ class UpscaleResponse(Message, tag="upscaled"):
 
 
 CLIENT_VIEW_MESSAGES: dict[str, type[Message]] = {m.TYPE: m for m in (CameraMsg, IsoMsg, SettingsMsg, FocusMsg,
-                                                                        ReceivedMsg, KeyframeMsg)}
-SERVER_VIEW_MESSAGES: dict[str, type[Message]] = {m.TYPE: m for m in (ReadyMsg, FrameMsg, NoticeMsg, ErrorMsg)}
+                                                                        PickMsg, ReceivedMsg, KeyframeMsg)}
+SERVER_VIEW_MESSAGES: dict[str, type[Message]] = {m.TYPE: m for m in (ReadyMsg, FrameMsg, PickedMsg, NoticeMsg,
+                                                                        ErrorMsg)}
 
 
 # ---------------------------------------------------------------------------------------------

@@ -208,3 +208,21 @@ def test_render_lists_every_registered_method_and_makes_each(tmp_path, capsys):
                      "-o", str(out)]) == 0, kind
         frame = np.load(out)
         assert all(np.isfinite(frame[name]).all() for name in frame.files), kind
+
+
+def test_render_prints_the_pick_under_a_pixel(tmp_path, capsys):
+    """``--pick X,Y``: the library's pick of the rendered view, as one JSON line; a point outside
+    the image is an error before anything is written."""
+    from isosr_render.picking import pick
+
+    out = tmp_path / "torus.png"
+    assert main(["render", "proc:torus@32", "--size", "64x48", "--pick", "24.5,24.5", "-o", str(out)]) == 0
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    picked = json.loads(line)
+    volume = open_volume("proc:torus@32")
+    expected = pick(Renderer(volume, "cpu"), orbit(30.0, 20.0, 1.8), resolve_iso("proc:torus@32", volume), 64, 48,
+                    24.5, 24.5)
+    assert picked["hit"] and tuple(picked["voxel"]) == expected.voxel
+    assert picked["value"] == pytest.approx(expected.value)
+    assert main(["render", "proc:torus@32", "--size", "64x48", "--pick", "70,1", "-o", str(tmp_path / "x.png")]) == 2
+    assert "lies outside the 64x48 image" in capsys.readouterr().err and not (tmp_path / "x.png").exists()

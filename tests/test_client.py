@@ -7,6 +7,7 @@ Frames are 64x48 (16x12 low-res): the CPU runs the network at about 3 frames/s t
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -27,6 +28,7 @@ from isosr_bench.common import RESULTS_DIR, write_result
 from isosr_cli.main import main
 from isosr_client import ServerError, connect, decode_image, upscale_remote
 from isosr_client.drive import Orbit, drive, summarize
+from isosr_client.volumes import slice_remote, volumes_remote
 from isosr_client.view import CLIENT_LIMITS
 from isosr_render.images import to_uint8
 from isosr_net.methods import FrameMethod, Networks, make_runner, run_sequence
@@ -35,6 +37,8 @@ from isosr_net.reconstructor import recon_limits
 from isosr_net.upscaler import Upscaler
 from isosr_render import FrameBuffers, Renderer, RenderRequest, open_volume, orbit
 from isosr_render.conventions import LOWRES_BUFFERS
+from isosr_render.picking import pick
+from isosr_render.slices import CONTOUR_RGB, slice_image
 from isosr_render.shading import shade, shade_channels_first
 from isosr_server.core.config import Settings
 from isosr_server.protocol import (CLOSE_BAD_MESSAGE, SERVER_VIEW_MESSAGES, CameraMsg, FrameMsg, Limits, OpenMsg,
@@ -220,6 +224,44 @@ def test_upscale_api_buffers_image_and_session_state(server, library):  # noqa: 
     bad = FrameBuffers(mask=frames[0].mask, normal=frames[0].normal, depth=frames[0].depth * float("nan"))
     with pytest.raises(ProtocolError, match="NaN"):
         upscale_remote(server.url, bad)
+
+
+def test_pick_two_points_and_their_distance(server, library):  # noqa: F811
+    """``View.pick``: the library's pick of the view's camera; two hits give a physical distance;
+    frames keep coming around the picks."""
+    renderer, iso = library
+    with connect(server.url, VOLUME, "full", SIZE, settings={"refine": False}) as view:
+        view.set_camera(yaw=30.0, pitch=20.0, distance=1.6)
+        view.latest()
+        points = [(x + 0.5, SIZE[1] / 2 + 0.5) for x in range(0, SIZE[0], 4)]
+        picks = [view.pick(*p) for p in points]
+        hits = [p for p in picks if p.hit]
+        assert len(hits) >= 2, "the cloud is in view"
+        expected = pick(renderer, orbit(30.0, 20.0, 1.6), iso, *SIZE, hits[0].x, hits[0].y)
+        assert hits[0].voxel == expected.voxel and hits[0].value == pytest.approx(expected.value)
+        assert math.dist(hits[0].position, hits[-1].position) > 0
+        view.set_camera(yaw=40.0, pitch=20.0, distance=1.6)
+        assert view.latest().stats.ack >= 1
+
+
+def test_slices_over_http_equal_the_librarys_and_bad_ones_are_refused(server, library):  # noqa: F811
+    """``GET /v1/volumes/NAME/slices/AXIS``: the library's slice image, losslessly; an index outside
+    the volume is a 400 and an iso outside its range a 422, each naming the problem."""
+    renderer, iso = library
+    volume = renderer.volume
+    lo, hi = volume.value_range
+    data_iso = lo + iso * (hi - lo)
+    for axis, name in enumerate("xyz"):
+        got = slice_remote(server.url, VOLUME, name, 16, iso=data_iso)
+        assert np.array_equal(got, slice_image(volume, axis, 16, volume.normalized_iso(data_iso)))
+    assert (got == CONTOUR_RGB).all(-1).any(), "the iso contour is drawn"
+    assert all("name" in v and ("shape" in v or "error" in v) for v in volumes_remote(server.url))  # the folder's
+    with pytest.raises(ServerError, match=r"index must be an integer in \[0, 31\]") as e:
+        slice_remote(server.url, VOLUME, "z", 32)
+    assert e.value.code == 400
+    with pytest.raises(ServerError, match="iso") as e:
+        slice_remote(server.url, VOLUME, "z", 3, iso=hi + 10 * (hi - lo))
+    assert e.value.code == 422
 
 
 def test_client_errors_are_clear(server):  # noqa: F811

@@ -26,8 +26,10 @@ from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
 from isosr_render import Camera, FrameBuffers, open_volume, orbit, shade
 from isosr_render.conventions import LOWRES_BUFFERS
 from isosr_render.shading import shade_channels_first
+from isosr_render.picking import pick
 from isosr_server import protocol as P
 from isosr_server import views
+from isosr_server.sessions import to_camera
 from isosr_render.image_codec import decode_image
 from isosr_render.images import to_uint8
 from isosr_server.codecs.arrays import encode_array
@@ -100,6 +102,29 @@ def test_volume_names_never_reach_paths(srv, path, status):
 
 
 # ---- view modes -----------------------------------------------------------------------------
+
+
+def test_a_pick_answers_with_the_librarys_point_between_frames(srv, lib):
+    """``pick`` on the session's current view: the library's pick of that camera, iso and size;
+    a second pick after a camera change follows it; a point outside the view ends the session."""
+    with session(srv, mode="full") as (ws, _):
+        frame(ws)
+        picks = []
+        ring = (24.5, 24.5)  # a pixel on the torus from both cameras
+        for k, (x, y, camera) in enumerate([(*ring, CAM0), (*ring, P.CameraMsg(yaw=60.0, pitch=20.0, distance=1.8,
+                                                                                seq=1))]):
+            if camera is not CAM0:
+                send(ws, camera)
+            send(ws, P.PickMsg(x, y, id=k + 1))
+            while not isinstance(msg := recv(ws), P.PickedMsg):
+                send(ws, P.ReceivedMsg(msg.seq))  # frames keep coming meanwhile
+            expected = pick(lib.renderer, to_camera(camera), lib.iso, W, H, x, y)
+            assert (msg.id, msg.hit, msg.voxel) == (k + 1, expected.hit, expected.voxel)
+            assert msg.value == pytest.approx(expected.value) and msg.position == pytest.approx(expected.position)
+            picks.append(msg)
+        assert all(p.hit for p in picks) and picks[0].position != picks[1].position
+        send(ws, P.PickMsg(W + 1.0, 0.0))
+        expect_close(ws, P.CLOSE_BAD_MESSAGE, "lies outside the")
 
 
 def test_full_mode_matches_the_library(srv, lib):

@@ -281,6 +281,25 @@ def test_viewer_explores_a_volume(server, browser):
     assert page.input_value("#mode") == menu[1][0]
     v.wait_frame_after(n, f"document.getElementById('view').dataset.mode === '{menu[1][0]}'")
 
+    # Picking: a click on the surface reads its value and voxel; a second one measures the distance
+    # (the ruler); a click beside the surface says so. The server's answers come between frames.
+    pixels = v.pixels()
+    on = [(x, y) for y in range(8, 232, 8) for x in range(8, 312, 8) if min(pixels[y][x]) < 200]
+    off = next((x, y) for y in range(4, 236, 8) for x in range(4, 316, 8) if min(pixels[y][x]) >= 250)
+    box = page.locator("#view").bounding_box()
+    readout = "document.getElementById('stat-pick').textContent"
+    for (x, y), answer in ((on[0], f"{readout}.startsWith('value')"), (on[-1], f"{readout}.endsWith('previous pick')")):
+        page.mouse.click(box["x"] + x + 0.5, box["y"] + y + 0.5)
+        page.wait_for_function(answer)
+    assert page.is_visible("#ruler")
+    page.wait_for_function("document.getElementById('slice-z').naturalWidth > 0")  # the slices through the pick
+    assert page.is_visible("#slices")
+    page.keyboard.press("v")
+    assert not page.is_visible("#slices")
+    assert float(page.get_attribute("#ruler", "data-distance")) > 0
+    page.mouse.click(box["x"] + off[0] + 0.5, box["y"] + off[1] + 0.5)
+    page.wait_for_function(f"{readout}.startsWith('no surface')")
+
     # Split: the right half comes from a second session in full mode.
     page.check("#split")
     v.wait("document.getElementById('view').dataset.split === 'full'")

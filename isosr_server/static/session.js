@@ -17,7 +17,8 @@ export function subprotocols(token) {
 /**
  * A view session that reopens itself after a lost connection.
  * hooks: onReady(ready), onFrame(frame, latencyMs) (may return a promise: the frame is acknowledged
- * once it settles), onNotice(text) (the server's non-fatal news), onState(state, detail) with state one of
+ * once it settles), onNotice(text) (the server's non-fatal news), onPicked(picked) (the answer to pick),
+ * onState(state, detail) with state one of
  * "connecting", "open", "lost" (detail: {attempt, delayMs}), "error" (detail: {code, reason}).
  * openMessage(): the current `open` message (volume, settings, camera, iso), built by the page.
  */
@@ -75,6 +76,8 @@ export class ViewSession {
           .finally(() => this.acknowledge(ws, msg.seq));
       } else if (msg.type === "notice") {
         this.hooks.onNotice(msg.text);
+      } else if (msg.type === "picked") {
+        this.hooks.onPicked?.(msg);
       } else if (msg.type === "error") {
         serverError = msg;
       }
@@ -120,6 +123,12 @@ export class ViewSession {
     const seq = this.seq++;
     this.sentAt.set(seq, performance.now());
     this.ws.send(encode({ ...message, seq }));
+  }
+
+  /** Ask what lies under pixel (x, y) of the current view; `onPicked` gets the answer with this id. */
+  pick(x, y, id) {
+    if (!this.ws || this.ws.readyState !== WebSocket.OPEN || !this.ready) return;
+    this.ws.send(encode({ type: "pick", x, y, id }));
   }
 
   /** Ask for a keyframe (the next video frame decodes alone). */

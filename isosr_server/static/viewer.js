@@ -33,6 +33,10 @@ const state = {
   sessions: [], // [{session, mode, image, frameId, stats, method}]
   pending: {},
   generation: 0, // of openSessions calls
+  pendingPick: null, // the pick asked last: {id, x, y}
+  picks: [], // the last two hits: [{x, y, picked}] (screen point and the server's answer)
+  pickId: 0,
+  slicesAt: null, // the voxel the slice strip goes through
 };
 
 // ---- server calls ------------------------------------------------------------------------------
@@ -223,6 +227,7 @@ async function openSessions() {
       onReady: (ready) => onReady(slot, index, ready),
       onFrame: (frame, latency) => onFrame(slot, frame, latency),
       onNotice: setNotice,
+      onPicked,
       onState: (name, detail) => onSessionState(slot, name, detail),
     });
     slot.decoder = new FrameDecoder({ keyframe: () => slot.session.keyframe(), failed: (e) => decoderFailed(slot, e) });
@@ -493,6 +498,7 @@ function sendSettings() {
 }
 
 function cameraChanged() {
+  $("ruler").toggleAttribute("hidden", true); // its ends were points of the previous view
   $("camera-json").value = JSON.stringify(state.camera);
   queue("camera", cameraMessage());
 }
@@ -592,11 +598,74 @@ function canvasPoint(event) {
   return { x: event.clientX - rect.left, y: event.clientY - rect.top };
 }
 
+// ---- picking and measuring --------------------------------------------------------------------
+
+/** Ask the (left) session what lies under a canvas point. */
+function pickAt(p) {
+  const slot = state.sessions[0];
+  if (!slot) return;
+  state.pendingPick = { id: ++state.pickId, x: p.x, y: p.y };
+  slot.session.pick(Math.min(state.width - 0.5, p.x), Math.min(state.height - 0.5, p.y), state.pendingPick.id);
+}
+
+const fmt = (v) => Number(v).toPrecision(4);
+
+/** The server's answer: the readout, and with two hits their distance and a ruler between them. */
+function onPicked(picked) {
+  const asked = state.pendingPick;
+  if (!asked || picked.id !== asked.id) return; // an older pick's answer
+  if (!picked.hit) {
+    $("stat-pick").textContent = `no surface at (${Math.round(asked.x)}, ${Math.round(asked.y)})`;
+    return;
+  }
+  state.picks = [...state.picks, { x: asked.x, y: asked.y, picked }].slice(-2);
+  const [i, j, k] = picked.voxel;
+  let text = `value ${fmt(picked.value)} at voxel (${i}, ${j}, ${k}), (${picked.position.map(fmt).join(", ")})`;
+  const ruler = $("ruler");
+  ruler.toggleAttribute("hidden", state.picks.length < 2); // an SVG element: the attribute, no .hidden
+  if (state.picks.length === 2) {
+    const [a, b] = state.picks;
+    const d = Math.hypot(...a.picked.position.map((v, n) => v - b.picked.position[n]));
+    text += `; ${fmt(d)} from the previous pick`;
+    ruler.dataset.distance = d;
+    Object.entries({ x1: a.x, y1: a.y, x2: b.x, y2: b.y }).forEach(([key, v]) => $("ruler-line").setAttribute(key, v));
+    $("ruler-label").setAttribute("x", (a.x + b.x) / 2);
+    $("ruler-label").setAttribute("y", (a.y + b.y) / 2 - 4);
+    $("ruler-label").textContent = fmt(d);
+  }
+  $("stat-pick").textContent = text;
+  showSlices(picked.voxel);
+}
+
+/** The three orthogonal slices through a voxel, with the iso contour (GET /v1/volumes/NAME/slices/AXIS). */
+async function showSlices(voxel) {
+  state.slicesAt = voxel;
+  if (!state.volume || $("slices").hasAttribute("data-off")) return;
+  const iso = state.iso === null ? "" : `&iso=${state.iso}`;
+  const name = encodeURIComponent(state.volume);
+  await Promise.all(["x", "y", "z"].map(async (axis, n) => {
+    const response = await fetch(`/v1/volumes/${name}/slices/${axis}?index=${voxel[n]}${iso}`, { headers: authHeaders() });
+    if (!response.ok) return;
+    const img = $(`slice-${axis}`);
+    URL.revokeObjectURL(img.src);
+    img.src = URL.createObjectURL(await response.blob());
+  }));
+  $("slices").hidden = false;
+}
+
+/** The slice strip on (at the last pick) or off. */
+function toggleSlices() {
+  const strip = $("slices");
+  strip.toggleAttribute("data-off");
+  strip.hidden = true;
+  if (!strip.hasAttribute("data-off") && state.slicesAt) showSlices(state.slicesAt);
+}
+
 function bindPointer() {
   let drag = null;
   view.addEventListener("pointerdown", (e) => {
     const p = canvasPoint(e);
-    drag = { x: e.clientX, y: e.clientY };
+    drag = { x: e.clientX, y: e.clientY, downX: e.clientX, downY: e.clientY };
     view.setPointerCapture(e.pointerId);
     state.pointer = p;
   });
@@ -604,13 +673,17 @@ function bindPointer() {
     state.pointer = canvasPoint(e);
     if (drag) {
       orbitBy(-(e.clientX - drag.x) * 0.4, (e.clientY - drag.y) * 0.4);
-      drag = { x: e.clientX, y: e.clientY };
+      drag = { ...drag, x: e.clientX, y: e.clientY };
     } else if (shownFocus()) {
       queue("focus", focusMessage());
     }
     showLens();
   });
-  view.addEventListener("pointerup", () => { drag = null; });
+  view.addEventListener("pointerup", (e) => {
+    const still = drag && Math.hypot(e.clientX - drag.downX, e.clientY - drag.downY) < 3;
+    drag = null;
+    if (still) pickAt(canvasPoint(e)); // a click, not a drag: what lies there
+  });
   view.addEventListener("wheel", (e) => {
     e.preventDefault();
     zoomBy(Math.exp(e.deltaY * 0.001));
@@ -639,6 +712,7 @@ function bindKeys() {
       c: () => cycleChannel(1), C: () => cycleChannel(-1),
       a: () => { $("ao-rays").value = Number($("ao-rays").value) > 0 ? 0 : 1; sendSettings(); },
       s: () => { $("split").checked = !$("split").checked; openSessions(); },
+      v: toggleSlices,
       r: resetCamera, p: screenshot,
     };
     const picked = /^[1-9]$/.test(e.key) && $("mode").options[Number(e.key) - 1];

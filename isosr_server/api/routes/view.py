@@ -15,8 +15,8 @@ from isosr_server.api.deps import AuthorizedDep, CatalogDep, EngineDep, LimitsDe
 from isosr_server.api.ws import accept, end_ws, rate_limiter, receive
 from isosr_server.engine import Engine
 from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, CLOSE_IDLE, VIDEO_ENCODINGS, FocusMsg, FrameMsg, Limits,
-                                   Message, NoticeMsg, OpenMsg, ProtocolError, ReadyMsg, ViewSettings, VolumeSummary,
-                                   encode, parse)
+                                   Message, NoticeMsg, OpenMsg, PickMsg, ProtocolError, ReadyMsg, ViewSettings,
+                                   VolumeSummary, encode, parse)
 from isosr_server.sessions import (DEFAULT_CAMERA, SessionCounter, ViewSession, ViewState, run_frames, to_camera,
                                    watch_acks)
 from isosr_server.video import SessionCoder
@@ -61,7 +61,12 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
 
         async def updates():
             while True:
-                session.apply(parse(await receive(ws, limiter, limits), limits, CLIENT_VIEW_MESSAGES))
+                msg = parse(await receive(ws, limiter, limits), limits, CLIENT_VIEW_MESSAGES)
+                if isinstance(msg, PickMsg):  # answered at once, between frames, on the current view
+                    s = session.state
+                    await send(await engine.call(engine.pick_sync, renderer, s.camera, s.iso, s.settings, msg))
+                else:
+                    session.apply(msg)
 
         tasks = [asyncio.create_task(run_frames(session, make, send)),
                  asyncio.create_task(updates()), asyncio.create_task(watch_acks(session))]
