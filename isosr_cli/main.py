@@ -17,13 +17,14 @@ SERVER_COMMANDS = ("serve", "client")
 def build_parser() -> argparse.ArgumentParser:
     """The parser with every subcommand; without the `server` extra, ``serve`` and ``client`` only
     say how to install it (rendering and training need none of it)."""
-    from isosr_cli import bench_cmd, demo_cmd, net_cmds, render_cmd
+    from isosr_cli import bench_cmd, demo_cmd, mesh_cmd, net_cmds, render_cmd
     from isosr_render.formats import help_text
 
     parser = argparse.ArgumentParser(prog="isosr", description="Isosurface rendering with learned super-resolution.",
                                      epilog=f"Volume files and folders it opens: {help_text()}.")
     subparsers = parser.add_subparsers(dest="command", required=True)
     render_cmd.add_parser(subparsers)
+    mesh_cmd.add_parser(subparsers)
     net_cmds.add_parsers(subparsers)
     demo_cmd.add_parser(subparsers)
     bench_cmd.add_parser(subparsers)

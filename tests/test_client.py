@@ -511,3 +511,23 @@ def test_bench_server_smoke(server, tmp_path):  # noqa: F811
     assert auto["study"] == "auto_quality" and 10 < auto["auto_psnr_db"] < 100 and auto["fixed"]
     assert study["study"] == "matched_quality" and 10 < study["buffers_psnr_db"] < 100
     assert [j["quality"] for j in study["jpeg"]] == [10, 50, 90]
+
+
+def test_the_server_makes_the_volumes_mesh_and_refuses_a_large_one(server, library, tmp_path):  # noqa: F811
+    """``GET /v1/volumes/NAME/mesh``: the library's mesh of that iso as a file; an iso outside the
+    range is a 422 naming it."""
+    meshio = pytest.importorskip("meshio", reason="meshes need meshio (the mesh extra)")
+    from isosr_client.view import http_call
+    from isosr_render.mesh import extract_mesh
+
+    renderer, iso = library
+    volume = renderer.volume
+    lo, hi = volume.value_range
+    reply, data = http_call(server.url, f"/v1/volumes/{VOLUME}/mesh?iso={lo + iso * (hi - lo)}&format=obj")
+    assert "attachment" in reply.get("content-disposition", "")
+    (tmp_path / "m.obj").write_bytes(data)
+    expected = extract_mesh(volume, volume.normalized_iso(lo + iso * (hi - lo)))
+    assert len(meshio.read(tmp_path / "m.obj").cells[0].data) == len(expected.faces) > 0
+    with pytest.raises(ServerError, match="iso") as e:
+        http_call(server.url, f"/v1/volumes/{VOLUME}/mesh?iso={hi + (hi - lo)}")
+    assert e.value.code == 422

@@ -292,10 +292,16 @@ def test_viewer_explores_a_volume(server, browser):
         page.mouse.click(box["x"] + x + 0.5, box["y"] + y + 0.5)
         page.wait_for_function(answer)
     assert page.is_visible("#ruler")
-    page.wait_for_function("document.getElementById('slice-z').naturalWidth > 0")  # the slices through the pick
-    assert page.is_visible("#slices")
+    page.wait_for_function("!document.getElementById('slices').hidden")  # the slices through the pick
+    page.wait_for_function("['x', 'y', 'z'].every((a) => document.getElementById(`slice-${a}`).naturalWidth > 0)")
     page.keyboard.press("v")
     assert not page.is_visible("#slices")
+
+    # Meshes out: the current iso's surface as a PLY file.
+    with page.expect_download() as saved:
+        page.click("#mesh")
+    assert saved.value.suggested_filename.endswith(".ply")
+    assert Path(saved.value.path()).read_bytes().startswith(b"ply")
     assert float(page.get_attribute("#ruler", "data-distance")) > 0
     page.mouse.click(box["x"] + off[0] + 0.5, box["y"] + off[1] + 0.5)
     page.wait_for_function(f"{readout}.startsWith('no surface')")

@@ -593,6 +593,22 @@ function screenshot() {
   view.toBlob((blob) => download(`isosr-${state.volume}-${Date.now()}.png`, blob), "image/png");
 }
 
+/** The isosurface of the current iso as a PLY mesh file (GET /v1/volumes/NAME/mesh). */
+async function saveMesh() {
+  if (!state.volume) return;
+  const iso = state.iso === null ? "" : `iso=${state.iso}&`;
+  setNotice("making the mesh…");
+  const response = await fetch(`/v1/volumes/${encodeURIComponent(state.volume)}/mesh?${iso}format=ply`,
+                               { headers: authHeaders() });
+  if (!response.ok) {
+    const body = await response.json().catch(() => ({}));
+    setNotice(`no mesh: ${body.error || response.statusText}`);
+    return;
+  }
+  setNotice("");
+  download(`isosr-${state.volume}.ply`, await response.blob());
+}
+
 function canvasPoint(event) {
   const rect = view.getBoundingClientRect();
   return { x: event.clientX - rect.left, y: event.clientY - rect.top };
@@ -791,6 +807,7 @@ function bindControls() {
     }
   });
   $("screenshot").addEventListener("click", screenshot);
+  $("mesh").addEventListener("click", saveMesh);
   let timer = null;
   window.addEventListener("resize", () => { clearTimeout(timer); timer = setTimeout(resize, 150); });
 }

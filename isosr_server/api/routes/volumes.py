@@ -5,6 +5,10 @@
     GET /v1/volumes/{name}   one volume's info with its histogram (loads it) and, once a session
                              rendered it, where its voxels are (``device``: `MemoryStats`); 422
                              with the reason for one that cannot be opened
+    GET /v1/volumes/{name}/mesh?iso=V&format=ply|obj|stl|vtu
+                             the isosurface of iso V (data units; default the suggested one) as a
+                             triangle mesh file in physical units (:mod:`isosr_render.mesh`), made
+                             on the server's device; 413 naming the limit for one too large
     GET /v1/volumes/{name}/slices/{x|y|z}?index=K[&iso=V]
                              the orthogonal slice across that axis at voxel K as a PNG, the iso
                              contour (data units) drawn on it (:func:`isosr_render.slices.slice_image`)
@@ -13,11 +17,13 @@
 from __future__ import annotations
 
 import asyncio
+import re
 from typing import Literal
 
 import torch
 from fastapi import APIRouter, Depends, Response
 
+from isosr_render.mesh import MESH_FORMATS, extract_mesh, mesh_bytes
 from isosr_render.slices import AXES, slice_image
 from isosr_server.api.deps import CatalogDep, EngineDep, require_token
 from isosr_server.encoding import encode_image
@@ -49,3 +55,19 @@ async def get_slice(name: str, axis: Literal[AXES], index: int, catalog: Catalog
     except ValueError as e:
         raise ProtocolError(str(e)) from None
     return Response(encode_image(torch.from_numpy(rgb), "png", 100), media_type="image/png")
+
+
+@router.get("/{name}/mesh", response_class=Response, responses={200: {"content": {"application/octet-stream": {}}}})
+async def get_mesh(name: str, catalog: CatalogDep, engine: EngineDep, iso: float | None = None,
+                   format: Literal[tuple(m[1:] for m in MESH_FORMATS)] = "ply"):
+    volume, info = await load_volume(catalog, name)
+    normalized = session_iso(volume, name, info.iso if iso is None else iso, False, "iso")
+    try:
+        mesh = await engine.call(extract_mesh, volume, normalized, str(engine.device))
+    except ValueError as e:
+        raise ProtocolError(str(e), http_status=413) from None
+    if len(mesh.faces) == 0:
+        raise ProtocolError(f"iso {iso}: no surface in {name}", http_status=422)
+    data = await asyncio.to_thread(mesh_bytes, mesh, f".{format}")
+    return Response(data, media_type="application/octet-stream",
+                    headers={"Content-Disposition": f'attachment; filename="{re.sub(r"[^A-Za-z0-9_.-]", "_", name)}.{format}"'})

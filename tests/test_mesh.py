@@ -1,0 +1,85 @@
+"""Meshes out: marching cubes of a sphere's distance field (anisotropic spacing) against its area,
+volume and radius, the ray-cast surface, the file formats, the limits and `isosr mesh`."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from isosr_cli.main import main
+from isosr_render import Renderer, orbit
+from isosr_render.mesh import MESH_FORMATS, extract_mesh, write_mesh
+from isosr_render.picking import pick
+from isosr_render.volume import Volume
+
+from conftest import DEVICE
+
+meshio = pytest.importorskip("meshio", reason="writing meshes needs meshio (the mesh extra)")
+
+SHAPE, SPACING, RADIUS = (40, 30, 20), (0.5, 1.0, 1.5), 6.0
+CENTRE = (np.asarray(SHAPE) - 1) * np.asarray(SPACING) / 2
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    grid = np.stack(np.meshgrid(*[np.arange(n) for n in SHAPE], indexing="ij"), -1) * np.asarray(SPACING)
+    volume = Volume.from_array(np.linalg.norm(grid - CENTRE, axis=-1).astype(np.float32), spacing=SPACING)
+    iso = volume.normalized_iso(RADIUS)
+    return volume, iso, extract_mesh(volume, iso, DEVICE)
+
+
+def test_the_sphere_has_its_radius_area_and_volume_in_physical_units(sphere):
+    _, _, mesh = sphere
+    v, f = mesh.vertices.astype(np.float64), mesh.faces
+    assert np.abs(np.linalg.norm(v - CENTRE, axis=1) - RADIUS).max() < max(SPACING) / 2
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    area = np.linalg.norm(np.cross(b - a, c - a), axis=1).sum() / 2
+    enclosed = abs(np.einsum("ij,ij->i", a - CENTRE, np.cross(b - CENTRE, c - CENTRE)).sum()) / 6
+    assert area == pytest.approx(4 * math.pi * RADIUS**2, rel=0.03)
+    assert enclosed == pytest.approx(4 / 3 * math.pi * RADIUS**3, rel=0.03)
+    assert np.allclose(np.linalg.norm(mesh.normals, axis=1), 1.0, atol=1e-5)
+    # Values above the iso are inside: normals point to lower values, here the centre.
+    assert (np.einsum("ij,ij->i", mesh.normals, v - CENTRE) < 0).mean() > 0.99
+
+
+def test_ray_hits_lie_on_the_mesh_within_half_a_voxel(sphere):
+    volume, iso, mesh = sphere
+    renderer = Renderer(volume, DEVICE)
+    hits = [p for x in range(4, 64, 3) if (p := pick(renderer, orbit(30, 20, 1.8), iso, 64, 48, x + 0.5, 24.5)).hit]
+    assert len(hits) >= 4
+    for hit in hits:
+        nearest = np.linalg.norm(mesh.vertices - np.asarray(hit.position), axis=1).min()
+        assert nearest < max(SPACING) / 2 + max(SPACING) / 2, hit  # a vertex per cell edge: half a voxel each way
+
+
+@pytest.mark.parametrize("suffix", list(MESH_FORMATS))
+def test_every_format_reads_back(sphere, tmp_path, suffix):
+    _, _, mesh = sphere
+    path = tmp_path / f"sphere{suffix}"
+    write_mesh(mesh, path)
+    back = meshio.read(path)
+    assert sum(len(c.data) for c in back.cells if c.type == "triangle") == len(mesh.faces)
+    assert np.abs(back.points.min(0) - mesh.vertices.min(0)).max() < 1e-3
+    assert [p.name for p in tmp_path.iterdir()] == [path.name], "no scratch file left"
+
+
+def test_limits_and_a_bad_suffix_are_refused_before_anything_is_built_or_written(sphere, tmp_path):
+    volume, iso, mesh = sphere
+    with pytest.raises(ValueError, match="over the limit of 1,000"):
+        extract_mesh(volume, iso, DEVICE, max_voxels=1000)
+    with pytest.raises(ValueError, match="more triangles than the limit of 100"):
+        extract_mesh(volume, iso, DEVICE, max_triangles=100)
+    with pytest.raises(ValueError, match="must end in one of .ply, .obj, .stl, .vtu"):
+        write_mesh(mesh, tmp_path / "sphere.glb")
+    assert not list(tmp_path.iterdir())
+    assert len(extract_mesh(volume, 2.0, DEVICE).faces) == 0  # an iso past the range: no surface
+
+
+def test_isosr_mesh_writes_a_file_and_refuses_no_surface(tmp_path, capsys):
+    out = tmp_path / "sphere.ply"
+    assert main(["mesh", "proc:sphere@32", "-o", str(out)]) == 0
+    assert "triangles on cpu" in capsys.readouterr().out and len(meshio.read(out).cells[0].data) > 100
+    assert main(["mesh", "proc:sphere@32", "-o", str(tmp_path / "x.glb")]) == 2
+    assert "must end in one of .ply, .obj, .stl, .vtu" in capsys.readouterr().err and not (tmp_path / "x.glb").exists()
