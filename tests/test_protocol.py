@@ -53,6 +53,8 @@ def test_messages_round_trip():
                 P.SettingsMsg(P.SettingsUpdate(ao_rays=8, encoding="png", interpolation="bicubic", spp=4), seq=1),
                 P.FocusMsg("circle", center=(32.0, 24.0), radius=10.0), P.FocusMsg("box", box=(1.0, 2.0, 30.0, 40.0)),
                 P.FocusMsg("none"), P.ErrorMsg(1007, "bad"), P.ReceivedMsg(0), P.ReceivedMsg(P.MAX_SEQ),
+                P.PickMsg(3.5, 4.5, id=2), P.PickedMsg(3.5, 4.5, 2, False),
+                P.PickedMsg(3.5, 4.5, 2, True, (0.1, -0.2, 0.3), (4, 5, 6), (2.0, 5.0, 9.0), 300.0, 1.6),
                 P.ReadyMsg("abc", VOLUME, P.ViewSettings(mode="network"), 4, 8, LIMITS, MODES),
                 P.FrameMsg(seq=0, ack=-1, mode="full", method="full, AO 2, spp 1", width=64, height=48,
                            encoding="png", times={"render": 1.0, "total": 2.0}, nbytes=4, image=b"\x89PNG"),
@@ -169,7 +171,7 @@ V = P.PROTOCOL_VERSION
     ({"type": "received", "frame": 1.0}, r"got `float` - at `\$.frame`"),
     ({"type": "received", "frame": 1, "seq": 4}, "unknown field `seq`"),
     ({"type": "hello"},
-     "message type must be one of camera, iso, settings, focus, received, keyframe, open: .*'hello'"),
+     "message type must be one of camera, iso, settings, focus, pick, received, keyframe, open: .*'hello'"),
     ({"no": "type"}, "message type must be one of .*missing required field `type`"),
 ])
 def test_invalid_messages_name_the_problem(message, words):
