@@ -295,7 +295,8 @@ def test_viewer_explores_a_volume(server, browser):
     page.wait_for_function("!document.getElementById('slices').hidden")  # the slices through the pick
     page.wait_for_function("['x', 'y', 'z'].every((a) => document.getElementById(`slice-${a}`).naturalWidth > 0)")
     page.keyboard.press("v")
-    assert not page.is_visible("#slices")
+    page.wait_for_function("document.getElementById('slices').hidden")  # and stays so: a late answer keeps it off
+    assert page.evaluate("document.getElementById('slices').hasAttribute('data-off')")
 
     # Meshes out: the current iso's surface as a PLY file.
     with page.expect_download() as saved:

@@ -662,11 +662,14 @@ async function showSlices(voxel) {
   await Promise.all(["x", "y", "z"].map(async (axis, n) => {
     const response = await fetch(`/v1/volumes/${name}/slices/${axis}?index=${voxel[n]}${iso}`, { headers: authHeaders() });
     if (!response.ok) return;
+    const blob = await response.blob();
+    if (state.slicesAt !== voxel) return; // a later pick's slices replace these
     const img = $(`slice-${axis}`);
     URL.revokeObjectURL(img.src);
-    img.src = URL.createObjectURL(await response.blob());
+    img.src = URL.createObjectURL(blob);
   }));
-  $("slices").hidden = false;
+  // Shown once loaded, unless the strip was turned off or a later pick took over meanwhile.
+  $("slices").hidden = state.slicesAt !== voxel || $("slices").hasAttribute("data-off");
 }
 
 /** The slice strip on (at the last pick) or off. */
