@@ -84,8 +84,7 @@ def distance(a: Pick, b: Pick) -> float:
 def _trilinear(volume, at: np.ndarray) -> float:
     """The volume's value at voxel coordinates ``at`` (inside it), trilinear, in data units."""
     low = np.minimum(np.floor(at).astype(int), np.asarray(volume.shape) - 2).clip(0)
-    stored = np.asarray(volume.source.read(*(slice(i, i + 2) for i in low)))
-    cube = volume.normalize(volume.device_box(stored)).astype(np.float64)
+    cube = volume.read_normalized(*(slice(i, i + 2) for i in low)).astype(np.float64)
     t = np.clip(at - low, 0.0, 1.0)
     for axis in range(3):  # collapse x, then y, then z
         cube = cube[0] * (1.0 - t[axis]) + cube[1] * t[axis]

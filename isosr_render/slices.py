@@ -40,7 +40,7 @@ def slice_image(volume: Volume, axis: int, index: int, iso: float | None = None,
     check_int(max_side, "max_side", 2, where="slice")
     box = [slice(0, n) for n in volume.shape]
     box[axis] = slice(index, index + 1)
-    plane = volume.normalize(volume.device_box(np.asarray(volume.source.read(*box)))).squeeze(axis).T  # (rows, cols)
+    plane = volume.read_normalized(*box).squeeze(axis).T  # (rows, cols)
     grey = np.clip(plane * 255.0 + 0.5, 0, 255).astype(np.uint8)
     image = np.repeat(grey[..., None], 3, axis=-1)
     if iso is not None:

@@ -152,14 +152,20 @@ class Volume:
         d0, a = (np.float32(u) for u in self.unit)
         return (device.astype(np.float32) - d0) * a
 
+    def read_normalized(self, x: slice, y: slice, z: slice) -> np.ndarray:
+        """A box of the volume normalized to float32 [0, 1] as the kernels read it, indexed
+        ``[x, y, z]``, read from the source (a pick's neighbourhood, a slice)."""
+        data = self.normalize(self.device_box(np.asarray(self.source.read(x, y, z))))
+        return np.clip(data, 0.0, 1.0, out=data)
+
     @property
     def data(self) -> np.ndarray:
         """The whole volume normalized to float32 [0, 1], indexed ``[x, y, z]``, in host memory.
 
-        Read from the source on every access: for small volumes, tests and references only.
+        Read from the source on every access: for small volumes, tests, references and meshes
+        (:mod:`isosr_render.mesh` bounds the volume) only.
         """
-        data = self.normalize(self.device_box(np.asarray(self.source.read(*(slice(0, n) for n in self.shape)))))
-        return np.clip(data, 0.0, 1.0, out=data)
+        return self.read_normalized(*(slice(0, n) for n in self.shape))
 
     def normalized_iso(self, iso: float) -> float:
         """Convert an iso-value in the file's units to the normalized [0, 1] scale."""
