@@ -209,6 +209,11 @@ def method_key(method: FrameMethod) -> tuple[str, int, int, int]:
     return method.kind, method.ao_rays, method.spp, method.factor
 
 
+def _row_key(row: dict) -> tuple[str, int, int, int]:
+    """A result row's :func:`method_key`."""
+    return row["kind"], row["ao_rays"], row["spp"], row["factor"]
+
+
 @dataclass(frozen=True)
 class CostTable:
     """A device class's committed costs, the prior before a probe: per method (:func:`method_key`)
@@ -231,7 +236,7 @@ class CostTable:
         if not path.is_file():
             return None
         record = json.loads(path.read_text())
-        rows = {(r["kind"], r["ao_rays"], r["spp"], r["factor"]): (r["cost"], r["color_psnr"]) for r in record["rows"]}
+        rows = {_row_key(r): (r["cost"], r["color_psnr"]) for r in record["rows"]}
         return cls(record["device"], record["commit"], rows)
 
     @staticmethod
@@ -239,11 +244,10 @@ class CostTable:
         """A table's rows from Pareto study rows (each with volume, size, kind, counts, ms,
         color_psnr): per method the medians over the (volume, size) pairs that have a first-hit row,
         of each pair's fastest variant (e.g. of a network's precisions)."""
-        first_hit = {(r["volume"], r["size"]): r["ms"] for r in rows
-                     if (r["kind"], r["ao_rays"], r["spp"], r["factor"]) == ("full", 0, 1, 1)}
+        first_hit = {(r["volume"], r["size"]): r["ms"] for r in rows if _row_key(r) == ("full", 0, 1, 1)}
         fastest: dict[tuple, dict] = {}
         for r in rows:
-            at = (r["kind"], r["ao_rays"], r["spp"], r["factor"], r["volume"], r["size"])
+            at = (*_row_key(r), r["volume"], r["size"])
             if (r["volume"], r["size"]) in first_hit and math.isfinite(r["color_psnr"]):
                 if at not in fastest or r["ms"] < fastest[at]["ms"]:
                     fastest[at] = r
