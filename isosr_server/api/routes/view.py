@@ -7,6 +7,7 @@ import asyncio
 import logging
 import os
 import secrets
+from collections.abc import Awaitable, Callable
 
 import msgspec
 from fastapi import APIRouter, WebSocket
@@ -59,17 +60,13 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
             if isinstance(msg, FrameMsg):
                 metrics.frame("view", msg.mode, msg.refined, msg.times, msg.nbytes)
 
-        async def updates():
-            while True:
-                msg = parse(await receive(ws, limiter, limits), limits, CLIENT_VIEW_MESSAGES)
-                if isinstance(msg, PickMsg):  # answered at once, between frames, on the current view
-                    s = session.state
-                    await send(await engine.call(engine.pick_sync, renderer, s.camera, s.iso, s.settings, msg))
-                else:
-                    session.apply(msg)
+        async def answer(msg: PickMsg) -> None:  # at once, between frames, on the current view
+            s = session.state
+            await send(await engine.call(engine.pick_sync, renderer, s.camera, s.iso, s.settings, msg))
 
         tasks = [asyncio.create_task(run_frames(session, make, send)),
-                 asyncio.create_task(updates()), asyncio.create_task(watch_acks(session))]
+                 asyncio.create_task(take_updates(ws, limiter, limits, session, answer)),
+                 asyncio.create_task(watch_acks(session))]
         done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         for task in done:
             task.result()  # raises what ended the session
@@ -83,6 +80,18 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
         if counted:
             view_sessions.release()
             metrics.sessions.labels("view").set(view_sessions.count)
+
+
+async def take_updates(ws: WebSocket, limiter, limits: Limits, session: ViewSession,
+                       answer: Callable[[PickMsg], Awaitable[None]]) -> None:
+    """A view session's client messages, until the connection ends: picks answered (``answer``),
+    the rest applied to the session's state."""
+    while True:
+        msg = parse(await receive(ws, limiter, limits), limits, CLIENT_VIEW_MESSAGES)
+        if isinstance(msg, PickMsg):
+            await answer(msg)
+        else:
+            session.apply(msg)
 
 
 async def open_view(ws: WebSocket, msg: OpenMsg, limits: Limits, catalog: VolumeCatalog,
