@@ -7,6 +7,7 @@ a second, so a case's set-up is not the spawn of several interpreters importing 
 
 from __future__ import annotations
 
+import faulthandler
 import multiprocessing
 import threading
 import time
@@ -43,7 +44,8 @@ def run_sessions(url: str, volume: str, sessions: int, seconds: float, mode: str
         parts = [drive_sessions(job, range(sessions), opened)]
     else:
         context = multiprocessing.get_context("spawn")  # a fork would copy this process's torch and threads
-        with context.Manager() as manager, ProcessPoolExecutor(processes, mp_context=context) as pool:
+        with context.Manager() as manager, ProcessPoolExecutor(processes, mp_context=context,
+                                                                initializer=faulthandler.enable) as pool:
             opened = manager.Barrier(sessions + 1)
             futures = [pool.submit(drive_sessions, job, range(p, sessions, processes), opened)
                        for p in range(processes)]

@@ -80,6 +80,7 @@ Upscaling (``POST /v1/upscale``, ``WS /v1/upscale/stream``)
 from __future__ import annotations
 
 import re
+import threading
 from collections.abc import Mapping
 from functools import lru_cache
 from typing import Annotated, Any, ClassVar, Literal, Union
@@ -854,9 +855,21 @@ def _no_ext(code: int, data: memoryview) -> Any:
     raise ValueError(f"msgpack extension type {code} is not part of the protocol")
 
 
-@lru_cache(maxsize=64)
+# Decoders are built one at a time: msgspec fills a Struct's type information (its annotations
+# resolved in Python code, where threads switch) while it builds a decoder, and client processes
+# whose 32 view threads opened at once died in it (a segfault in `parse` under `connect`, in three
+# benchmark runs on a 32-core host). Decoding itself is thread-safe and takes no lock.
+_BUILDING = threading.Lock()
+
+
 def _decoder(types: tuple[type, ...], limits: Limits) -> msgspec.msgpack.Decoder:
-    """A decoder of any of ``types``, its arrays bounded by ``limits``."""
+    """A decoder of any of ``types``, its arrays bounded by ``limits`` (built once per pair)."""
+    with _BUILDING:
+        return _build_decoder(types, limits)
+
+
+@lru_cache(maxsize=64)
+def _build_decoder(types: tuple[type, ...], limits: Limits) -> msgspec.msgpack.Decoder:
     max_elements, max_side = limits.array_bounds()
 
     def dec_hook(kind: type, obj: Any) -> Any:
