@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from isosr_bench.bench_server import SIZES, ServerProcess, case_row
+from isosr_bench.bench_server import SIZES, ServerProcess, case_row, room_options
 from isosr_bench.common import bench_parser, commit, device_name, kept_rows, print_table, write_result
 from isosr_bench.load import LoadSampler, titled
 from isosr_bench.sessions import run_sessions
@@ -234,9 +234,7 @@ def main(argv: list[str] | None = None) -> None:
             raise ValueError
     except ValueError:
         parser.error(f"--gpus-per-replica: a share of 0 or more, or 'split', got {args.gpus_per_replica!r}")
-    room = str(2 * max(counts + [args.failover_sessions]) + 4)
-    options = ("--max-sessions", room, "--max-sessions-per-client", room, "--max-connections-per-client", room,
-               "--max-fps", "1000")  # every session comes from this address
+    options = room_options(max(counts + [args.failover_sessions]))
     failover_on = next((f"ray{n}" for n in replicas if n >= 2), None)
     measured = servers(replicas, args.gpus_per_replica, args.device)
     kind = "_one_gpu" if args.gpus_per_replica == "split" else "_gpus" if float(args.gpus_per_replica) >= 1 else ""

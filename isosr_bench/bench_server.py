@@ -89,6 +89,14 @@ def rss_bytes(pid: int) -> int:
     raise RuntimeError(f"no VmRSS for process {pid}")
 
 
+def room_options(sessions: int) -> tuple[str, ...]:
+    """`isosr serve` options that let in a benchmark's ``sessions`` view sessions, all from this
+    address, while the previous case's close, with no frame-rate cap."""
+    room = str(2 * sessions + 4)
+    return ("--max-sessions", room, "--max-sessions-per-client", room, "--max-connections-per-client", room,
+            "--max-fps", "1000")
+
+
 class ServerProcess:
     """`isosr serve` in a subprocess on a free loopback port; a context manager that waits for
     ``/v2/health/ready`` and stops the server (SIGINT, then SIGKILL) on exit.
@@ -290,11 +298,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.url:
         rows = run(args.url)
     else:
-        # Room for a case's sessions (all from this address) while the previous case's close; no frame-rate cap.
-        room = str(2 * max(counts) + 4)
-        options = ("--max-sessions", room, "--max-sessions-per-client", room, "--max-fps", "1000",
-                   "--target-fps", str(TARGET_FPS))
-        with ServerProcess(args.device, options) as server:
+        with ServerProcess(args.device, room_options(max(counts)) + ("--target-fps", str(TARGET_FPS))) as server:
             rows = run(server.url)
     table = [r for r in rows if "mode" in r]
     print_table(table, ["mode", "ao", "sessions", "fps", "fps_per_session", "latency_p50_ms", "latency_p99_ms",
