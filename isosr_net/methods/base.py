@@ -124,7 +124,8 @@ class ModelOptions(MethodOptions):
 @dataclass(frozen=True)
 class FrameMethod:
     """One way to make frames: a registered kind and its options, a frozen, hashable value. Made
-    from knobs by :meth:`of` (from text by :func:`parse_method`).
+    from knobs by :meth:`of` (from text by :func:`parse_method`). Its counts read as :attr:`ao_rays`,
+    :attr:`spp` and :attr:`factor` (neutral where the kind has none), its other knobs as ``options``'.
 
     Attributes:
         kind: a name of :data:`RUNNERS` (module docstring).
