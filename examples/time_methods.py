@@ -43,7 +43,7 @@ def main(argv: list[str] | None = None) -> list[tuple[str, float, float]]:
     rows = []
     for spec in args.methods.split(","):
         kind, ao_rays = spec.split(":")
-        method = FrameMethod(kind, ao_rays=int(ao_rays))
+        method = FrameMethod.of(kind, ao_rays=int(ao_rays))
         runner = make_runner(method, renderer, iso, width, height)
         runner.frame(cameras[0])  # warm-up: kernels, network weights, buffers
         sync()

@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     volume = open_volume("proc:cloud:0@32" if args.smoke else "proc:cloud:0@128")
     renderer, iso = Renderer(volume, args.device), resolve_iso("proc:cloud", volume)
     kind = "cuda" if args.device.startswith("cuda") else "cpu"
-    view = make_runner(FrameMethod("full", ao_rays=ao_rays), renderer, iso, *size)
+    view = make_runner(FrameMethod.of("full", ao_rays=ao_rays), renderer, iso, *size)
     rows = [{"request": f"view frame, full {size[0]}x{size[1]}, AO {ao_rays}", "slice_ms": SLICE_MS[kind],
              **run(view.steps(orbit(30, 20, 1.8), None, SLICE_MS[kind]), args.device)}]
     upscaler = Networks(serving_network).get(Upscaler, DEFAULT_MODEL, args.device, default_precision(args.device))

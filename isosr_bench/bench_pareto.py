@@ -180,7 +180,7 @@ def pareto_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
     if device.startswith("cuda"):
         torch.cuda.synchronize()
     ref_s = time.perf_counter() - start
-    reference_work = work(FrameMethod("full", ao_rays=REFERENCE_AO_RAYS, spp=REFERENCE_SPP))
+    reference_work = work(FrameMethod.of("full", ao_rays=REFERENCE_AO_RAYS, spp=REFERENCE_SPP))
     estimate = ref_s * (1 + (warmup + frames) / frames * sum(work(m) for m in measured) / reference_work)
     print(f"{volume} {size_name}: references {ref_s:.1f} s; estimated {estimate:.0f} s for the methods "
           f"(plus compiling networks on first use)", flush=True)
@@ -210,7 +210,7 @@ def budget_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
     """The policy's choice per budget, scored by this run's rows, against the best fixed setting that fits."""
     precision = "bf16" if str(renderer.device).startswith("cuda") else "fp32"
     config = BudgetConfig(candidates=tuple(m for m in measured if not m.runner.low_res or not m.learned
-                                          or m.precision == precision),
+                                          or m.options.precision == precision),
                           **(dict(warmup_frames=SMOKE_WARMUP, timing_frames=2) if smoke else {}))
     cameras = bench_cameras(SMOKE_FRAMES if smoke else FRAMES)
     quality = probe_quality(renderer, iso, *size, config, cameras, networks=networks)

@@ -42,7 +42,8 @@ import torch
 from isosr_render import Renderer
 from isosr_render.shading import ShadingParams
 from isosr_render.sequence import sequence_cameras
-from isosr_net.methods import FrameMethod, Networks, make_runner, reconstruct_method
+from isosr_net.methods import FrameMethod, Networks, make_runner
+from isosr_net.methods.reconstruct import CANDIDATE_MODEL_NAME
 from isosr_net.fused_recon import FusedReconNet, fused_runs_on, fused_traffic
 from isosr_net.ray_history import accumulate_frame, history_traffic
 from isosr_net.reconnet import macs_per_pixel
@@ -116,9 +117,10 @@ def pass_times(net: FusedReconNet, renderer: Renderer, pairs: list, request, ao_
 
 
 def recon_method(model: str, ao_rays: int, spp: int, precision: str) -> FrameMethod:
-    """The reconstruct method of ``model`` (the shipped one: the default name; else named by its folder)."""
-    named = {} if model == str(DEFAULT_RECON_MODEL) else {"model": model, "model_name": Path(model).name}
-    return reconstruct_method(ao_rays=ao_rays, spp=spp, precision=precision, **named)
+    """The reconstruct method of ``model`` (the shipped one: named as the policy's candidates; else by its folder)."""
+    named = ({"model_name": CANDIDATE_MODEL_NAME} if model == str(DEFAULT_RECON_MODEL)
+             else {"model": model, "model_name": Path(model).name})
+    return FrameMethod.of("reconstruct", ao_rays=ao_rays, spp=spp, precision=precision, **named)
 
 
 def stage_row(renderer: Renderer, iso: float, volume: str, size: tuple[int, int], size_name: str, ao_rays: int,
@@ -130,7 +132,7 @@ def stage_row(renderer: Renderer, iso: float, volume: str, size: tuple[int, int]
     recon = Reconstructor(model, device=device, **options)
     networks = Networks(lambda *_: recon)  # this variant's network
     runner = make_runner(method, renderer, iso, *size, networks=networks)
-    full = make_runner(FrameMethod("full", ao_rays=ao_rays, spp=spp), renderer, iso, *size)
+    full = make_runner(FrameMethod.of("full", ao_rays=ao_rays, spp=spp), renderer, iso, *size)
     row = {"volume": volume, "size": size_name, "pixels": f"{size[0]}x{size[1]}", "ao_rays": ao_rays, "spp": spp,
            "variant": variant, "method": method.name}
     row["full"] = mean_ms(time_frames(lambda i: full.frame(*pairs[i]), frames, device, warmup=warmup))

@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from dataclasses import asdict
+from dataclasses import asdict, fields
 from pathlib import Path
 
 import torch
@@ -21,6 +21,7 @@ from isosr_cli.options import frame_size
 from isosr_net.budget import BudgetConfig, render_within_budget
 from isosr_net.methods import (
     RUNNERS,
+    FrameMethod,
     Networks,
     make_runner,
     parse_method,
@@ -153,8 +154,10 @@ def list_methods() -> str:
     missing = unavailable_kinds()
     lines = []
     for kind, runner in RUNNERS.items():
-        bounds = runner.bounds(runner.spec())
-        knobs = [f"{k}={bounds[k][0]}..{bounds[k][1]}" if k in bounds else k for k in runner.knobs]
+        options = FrameMethod.of(kind).options
+        bounds = options.bounds()
+        knobs = [f"{f.name}={bounds[f.name][0]}..{bounds[f.name][1]}" if f.name in bounds else f.name
+                 for f in fields(options)]
         note = f" (unavailable: {missing[kind]})" if kind in missing else ""
         lines.append(f"{kind:<12} {runner.label}; knobs: {', '.join(knobs) or 'none'}{note}")
     return "\n".join(lines)

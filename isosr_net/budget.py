@@ -377,7 +377,7 @@ def first_hit_ms_steps(renderer: Renderer, iso: float, width: int, height: int, 
                        ao_radius: float = AO_RADIUS, networks: Networks | None = None) -> Generator[None, None, float]:
     """The wall time (ms) of a plain first-hit frame (``full``, no AO) of this scene and size after a
     warm-up frame, a frame a unit: the unit a :class:`CostTable`'s costs are in."""
-    runner = make_runner(FrameMethod("full"), renderer, iso, width, height, ao_radius=ao_radius, networks=networks)
+    runner = make_runner(FrameMethod.of("full"), renderer, iso, width, height, ao_radius=ao_radius, networks=networks)
     yield
     runner.frame(camera)
     yield

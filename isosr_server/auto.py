@@ -19,7 +19,6 @@ size in ``probe_cache`` (a JSON file), so that a restarted server chooses withou
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import math
@@ -136,10 +135,10 @@ class AutoPolicy:
         limits = None if recon_folder is None else recon_limits(recon_folder)
         candidates = []
         for m in default_candidates(device, precision, limits, x2_model):
-            if m.learned and m.model is None:  # a server model's method (the x2 one names its own)
-                folder, name = models.get(m.runner.network_class, (None, m.model_name))
-                m = dataclasses.replace(m, model=None if folder is None else str(folder), model_name=name,
-                                        factor=served_factor(m.runner, factor))
+            if m.learned and m.options.model is None:  # a server model's method (the x2 one names its own)
+                folder, name = models.get(m.runner.network_class, (None, m.options.model_name))
+                m = m.replace(model=None if folder is None else str(folder), model_name=name,
+                              factor=served_factor(m.runner, factor))
             candidates.append(m)
         return cls(tuple(candidates), target_fps, networks, cache, slice_ms, CostTable.for_device(device))
 

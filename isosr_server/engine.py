@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from isosr_net.methods import Networks, finish_steps
+from isosr_net.methods import RUNNERS, Networks, finish_steps
 from isosr_net.inference import RecurrentNetwork, default_precision
 from isosr_net.reconnet import RayLimits
 from isosr_net.reconstructor import Reconstructor, recon_limits
@@ -141,8 +141,8 @@ class Engine:
     # ---- start-up ---------------------------------------------------------------------------
 
     def start_sync(self) -> None:
-        """Load the networks and warm the device: one small frame of the network and the
-        reconstruction, shaded and encoded."""
+        """Load the networks and warm the device: one small frame of each kind that warms up
+        (:attr:`FrameRunner.warm_up`: the network, the reconstruction, the plain render), shaded and encoded."""
         self._on_thread()
         factor = self.network(Upscaler).upscale_factor
         reconstructor = self.network(Reconstructor)
@@ -163,7 +163,7 @@ class Engine:
                                           ProbeCache(self.config.probe_cache, self.device_label()), self.slice_ms)
         renderer = Renderer(parse_procedural("proc:sphere@16"), str(self.device))
         frames = self.new_session_frames("proc:sphere@16")
-        for mode in ("full", "network", "reconstruct"):  # compiles shading with and without AO on GPUs
+        for mode in (kind for kind, runner in RUNNERS.items() if runner.warm_up):
             job = FrameJob(ViewSettings(mode=mode, width=8 * factor, height=8 * factor), orbit(30, 20, 1.8), 0.5,
                            FocusMsg(), 0, False, 1)
             pack_codes(self.codes_sync(finish_steps(frames.steps(renderer, job))),

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Generator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import ClassVar
 
 import torch
@@ -28,7 +28,6 @@ from isosr_net.timing import StageTimer
 from isosr_render import Camera, Renderer
 from isosr_server.auto import AutoPolicy, served_factor
 from isosr_server.channels import false_color
-from isosr_net.metrics import INTERPOLATIONS
 from isosr_render.renderer import MAX_AO_SAMPLES
 from isosr_server.protocol import MAX_VIEW_SPP, FocusMsg, ModeInfo, OptionInfo, ProtocolError, ViewSettings
 
@@ -43,19 +42,25 @@ class ViewContext:
     models: dict = field(default_factory=dict)  # network class -> (folder or None, name)
 
 
+# The knobs a view session's settings give a method, each with the most a session may ask for
+# (None: the method's own bound); the server fixes the others (factor, model, precision).
+VIEW_KNOBS = {"ao_rays": None, "spp": MAX_VIEW_SPP, "interpolation": None}
+
+
 def method_for(kind: str, settings: ViewSettings, ctx: ViewContext) -> FrameMethod:
-    """The frame method ``kind`` with the knobs it reads from the settings and the server (the
+    """The frame method ``kind`` with the knobs it takes from the settings and the server (the
     others, e.g. OIDN's quality, at the method's defaults).
 
     Raises:
         ValueError: the settings are outside what the method takes (e.g. 9 AO rays to reconstruct).
     """
     runner = RUNNERS[kind]
-    values = {"ao_rays": settings.ao_rays, "spp": settings.spp, "interpolation": settings.interpolation,
-              "factor": served_factor(runner, ctx.factor), "precision": ctx.precision}
     model, name = ctx.models.get(runner.network_class, (None, "network"))
-    values["model"] = None if model is None else str(model)
-    return FrameMethod(kind, model_name=name, **{k: values[k] for k in runner.knobs if k in values})
+    values = {k: getattr(settings, k) for k in VIEW_KNOBS} | {
+        "factor": served_factor(runner, ctx.factor), "precision": ctx.precision,
+        "model": None if model is None else str(model), "model_name": name}
+    takes = {f.name for f in fields(runner.options_type)}
+    return FrameMethod.of(kind, **{k: v for k, v in values.items() if k in takes})
 
 
 @dataclass(frozen=True)
@@ -126,13 +131,20 @@ class MethodView(View):
 
 
 def method_options(runner: type[FrameRunner], ctx: ViewContext) -> list[OptionInfo]:
-    """The view settings a method reads, with its bounds where the server's models set them
-    (the knobs the server fixes, factor, model and precision, are not the viewer's)."""
-    bounds = runner.bounds(method_for(runner.kind, ViewSettings(ao_rays=runner.default_ao_rays), ctx))
-    options = {"ao_rays": OptionInfo("ao_rays", *bounds["ao_rays"], default=runner.default_ao_rays),
-               "spp": OptionInfo("spp", bounds["spp"][0], min(bounds["spp"][1], MAX_VIEW_SPP), default=1),
-               "interpolation": OptionInfo("interpolation", default="bilinear", choices=list(INTERPOLATIONS))}
-    return [options[k] for k in runner.knobs if k in options]
+    """The view settings a method takes (:data:`VIEW_KNOBS`), from its options type: each with its
+    default and its bounds (where the server's models set them) or its choices."""
+    knobs = [f for f in fields(runner.options_type) if f.name in VIEW_KNOBS]
+    defaults = ViewSettings(**{f.name: f.default for f in knobs})
+    bounds = method_for(runner.kind, defaults, ctx).options.bounds()
+    out = []
+    for f in knobs:
+        if f.name in bounds:
+            low, high = bounds[f.name]
+            most = VIEW_KNOBS[f.name]
+            out.append(OptionInfo(f.name, low, high if most is None else min(high, most), default=f.default))
+        else:
+            out.append(OptionInfo(f.name, default=f.default, choices=list(f.metadata["choices"])))
+    return out
 
 
 class FocusView(View):
@@ -156,7 +168,7 @@ class FocusView(View):
         if len(covered) == 0:
             return color
         start, stop = int(covered[0]), int(covered[-1]) + 1
-        lens = make_runner(FrameMethod("full", ao_rays=st.ao_rays, spp=st.spp), renderer, job.iso, st.width,
+        lens = make_runner(FrameMethod.of("full", ao_rays=st.ao_rays, spp=st.spp), renderer, job.iso, st.width,
                            st.height, ao_radius=st.ao_radius)
         with timer("render"):
             sharp = lens.rows(job.camera, start, stop)
@@ -214,12 +226,12 @@ def check(settings: ViewSettings, ctx: ViewContext) -> None:
         raise ProtocolError(f"{settings.mode} mode has no channel view: its buffers travel themselves")
     if settings.channel == "ao" and "ao" not in runner.makes(method):
         raise ProtocolError(f"{settings.mode} mode makes no AO to show"
-                            + (" (give ao_rays > 0)" if runner.bounds(method)["ao_rays"][1] else ""))
+                            + (" (give ao_rays > 0)" if "ao_rays" in method.options.bounds() else ""))
 
 
 def refined_method(settings: ViewSettings) -> FrameMethod:
     """The still camera's refined frame: full resolution with ``refine_ao_rays``."""
-    return FrameMethod("full", ao_rays=settings.refine_ao_rays, spp=settings.spp)
+    return FrameMethod.of("full", ao_rays=settings.refine_ao_rays, spp=settings.spp)
 
 
 def refines(settings: ViewSettings, ctx: ViewContext) -> bool:

@@ -3,7 +3,7 @@ and kornia's filter testers share their checks: :class:`MethodContract` holds th
 method's test is a subclass that names the method and its options (``tests/test_method_contract.py``):
 
     class TestFull(MethodContract):
-        method = FrameMethod("full", ao_rays=2)
+        method = FrameMethod.of("full", ao_rays=2)
 
 The name has no ``Test`` prefix, so pytest collects only the subclasses. Every check runs the class's
 ``method`` on a small volume on :data:`conftest.DEVICE` (the CPU in CI): a sphere resting on a floor,
@@ -24,9 +24,12 @@ The checks:
 - reset: a frame without a previous camera after a sequence equals a new runner's first frame of
   that camera (a kind with ``fresh_rays`` numbers its AO seeds by the frames it made, a stream's
   ray sequence rather than its recurrent state: the new runner is set to the same count);
-- options: each count knob the kind reads is accepted at its bounds (``FrameRunner.bounds``) and
-  refused one past either, by a ValueError that names the knob and the bounds; a knob the kind does
-  not read is refused naming it;
+- options: the kind's options type (``FrameRunner.options_type``) is a frozen, hashable dataclass
+  whose defaults are valid; each count is accepted at its bounds (``MethodOptions.bounds``) and
+  refused one past either, each choice refused another value, by a ValueError that names the
+  field and its bounds or choices (the options type's own, and the method's naming the kind); a
+  kind without a count reads its neutral value (``FrameMethod.ao_rays``, ``spp``, ``factor``); a
+  knob the kind does not take is refused naming it and those it takes;
 - hard cases: the camera inside the volume, rays grazing the sphere and rays grazing the volume's
   box, an iso at either end of the data's range and one past it (nothing hit: exactly the
   background wherever the mask is 0 and ``|color - background| <= mask`` everywhere, an empty mask
@@ -55,7 +58,7 @@ import torch
 from conftest import DEVICE, field_volume
 from net_fixtures import tiny_model_dir
 
-from isosr_net.methods import FrameMethod, Networks, make_runner
+from isosr_net.methods import FrameMethod, MethodOptions, Networks, make_runner
 from isosr_net.model import save_pretrained
 from isosr_net.reconnet import ReconNet, ReconNetConfig
 from isosr_net.reconstructor import Reconstructor
@@ -77,7 +80,8 @@ HARD_CASES = ("inside", "grazing_surface", "grazing_box", "iso_at_min", "iso_at_
 EMPTY_ISOS = {"iso_at_min": 0.0, "iso_at_max": 1.0, "iso_past_max": 2.0}  # normalized: nothing hit
 TINY_RECONNET = {"widths": (4, 4, 8, 8), "blocks": 1}  # net_fixtures.TINY_RECON_MODEL's size
 UNREAD_VALUES = {"ao_rays": 1, "spp": 2, "factor": 2, "interpolation": "bicubic", "model": "elsewhere",
-                 "precision": "bf16", "quality": "fast"}  # a value other than the default, per knob
+                 "model_name": "other", "precision": "bf16", "quality": "fast"}  # a value per knob of any kind
+NEUTRAL_COUNTS = {"ao_rays": 0, "spp": 1, "factor": 1}  # what a method of a kind without the count reads
 
 _CACHE: dict = {}
 
@@ -183,7 +187,7 @@ class MethodContract:
         self.random_network = self.method.learned and not self.shipped_model  # its mask may cover nothing
         if self.random_network:
             model = tiny_model(tmp_path_factory, self.method.runner.network_class, self.method.factor)
-            self.spec = dataclasses.replace(self.method, model=str(model), model_name="tiny")
+            self.spec = self.method.replace(model=str(model), model_name="tiny")
 
     def runner(self, width: int = SIZE[0], height: int = SIZE[1], anisotropic: bool = False, iso: float | None = None):
         """A new runner of the method on the contact scene."""
@@ -241,30 +245,49 @@ class MethodContract:
 
     # -- options ----------------------------------------------------------------------------------
 
-    def test_count_knobs_are_accepted_at_their_bounds_and_refused_past_them(self):
-        bounds = self.spec.runner.bounds(self.spec)
-        assert set(bounds) == {"ao_rays", "spp", "factor"}
+    def test_its_options_are_a_frozen_hashable_value_with_valid_defaults(self):
+        options, options_type = self.spec.options, self.spec.runner.options_type
+        assert type(options) is options_type and options_type.__dataclass_params__.frozen
+        first = dataclasses.fields(options)[0].name
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            setattr(options, first, getattr(options, first))
+        twin = FrameMethod(self.spec.kind, dataclasses.replace(options))
+        assert twin == self.spec and hash(twin) == hash(self.spec) and {self.spec: 1}[twin] == 1
+        assert type(options_type()) is type(FrameMethod.of(self.spec.kind).options)  # the defaults are valid
+        with pytest.raises(TypeError, match=f"its options are a {options_type.__name__}"):
+            FrameMethod(self.spec.kind, MethodOptions())
+
+    def test_counts_are_accepted_at_their_bounds_and_refused_past_them(self):
+        bounds = self.spec.options.bounds()
         for name, (low, high) in bounds.items():
             assert low <= getattr(self.spec, name) <= high, (name, low, high)
-            if name not in self.spec.runner.knobs:
-                assert low == high == getattr(FrameMethod, name), (name, low, high)  # only the default
-                continue
             for value in (low, high):
-                assert getattr(FrameMethod(**self.knobs(**{name: value})), name) == value
+                assert getattr(self.spec.replace(**{name: value}), name) == value
             for value in (low - 1, high + 1):
-                with pytest.raises(ValueError, match=rf"{name} must be an integer in \[{low}, {high}\], got {value}"):
-                    FrameMethod(**self.knobs(**{name: value}))
+                words = rf"{name} must be an integer in \[{low}, {high}\], got {value}"
+                with pytest.raises(ValueError, match=f"^{words}"):
+                    dataclasses.replace(self.spec.options, **{name: value})
+                with pytest.raises(ValueError, match=f"^{self.spec.kind} frame method: {words}"):
+                    self.spec.replace(**{name: value})
+        for name, neutral in NEUTRAL_COUNTS.items():
+            if name not in bounds:
+                assert getattr(self.spec, name) == neutral, name
 
-    def test_a_knob_the_kind_does_not_read_is_refused(self):
-        unread = [f.name for f in dataclasses.fields(FrameMethod)
-                  if f.name not in self.spec.runner.knobs and f.name not in ("kind", "model_name")]
-        for name in unread:
-            with pytest.raises(ValueError, match=rf"{self.spec.kind} frame method: takes no {name}\b"):
-                FrameMethod(**self.knobs(**{name: UNREAD_VALUES[name]}))
+    def test_choices_are_accepted_and_other_values_refused(self):
+        for f in dataclasses.fields(self.spec.options):
+            choices = f.metadata.get("choices", ())
+            for value in choices:
+                assert getattr(self.spec.replace(**{f.name: value}).options, f.name) == value
+            if choices:
+                with pytest.raises(ValueError, match=rf"{f.name} must be one of {', '.join(choices)}, got 'other'"):
+                    self.spec.replace(**{f.name: "other"})
 
-    def knobs(self, **changes) -> dict:
-        """The spec's fields with ``changes``."""
-        return {f.name: getattr(self.spec, f.name) for f in dataclasses.fields(FrameMethod)} | changes
+    def test_a_knob_the_kind_does_not_take_is_refused(self):
+        takes = [f.name for f in dataclasses.fields(self.spec.options)]
+        for name in UNREAD_VALUES.keys() - set(takes):
+            with pytest.raises(ValueError, match=rf"{self.spec.kind} frame method: takes no {name} "
+                                                 rf"\(only {', '.join(takes)}\)"):
+                FrameMethod.of(self.spec.kind, **{name: UNREAD_VALUES[name]})
 
     # -- hard cases -------------------------------------------------------------------------------
 

@@ -53,7 +53,8 @@ def test_auto_offers_the_x2_reconstruction_and_serves_its_frames_at_the_full_siz
     policy = srv.app.state.engine.auto
     x2 = [m for m in policy.candidates if m.kind == "reconstruct" and m.factor == 2]
     assert {(m.ao_rays, m.spp) for m in x2} >= {(1, 1), (16, 1), (4, 2)}
-    assert all((m.model, m.model_name, m.precision) == (str(RECON_X2_MODEL), "recon_x2", "fp32") for m in x2)
+    assert all((m.options.model, m.options.model_name, m.options.precision) == (str(RECON_X2_MODEL), "recon_x2", "fp32")
+               for m in x2)
     monkeypatch.setattr(policy, "candidates", (x2[0],))
     width = W + 16  # a size no other test's choice is cached for
     cameras = [orbit(30, 20, 1.8), orbit(33, 20, 1.8), orbit(36, 20, 1.8)]
@@ -104,7 +105,7 @@ def test_before_its_probe_auto_takes_the_cost_tables_best_fit_for_the_scenes_fir
     """Frames before the probe: the cheapest candidate until the probe's first units timed the
     scene's plain first-hit frame; then the committed table's best PSNR whose cost in first-hit
     frames fits the budget's headroom (a tabled method that does not fit is passed over)."""
-    cheap, mid, dear = FrameMethod("full"), FrameMethod("full", ao_rays=2), FrameMethod("atrous", ao_rays=2)
+    cheap, mid, dear = FrameMethod.of("full"), FrameMethod.of("full", ao_rays=2), FrameMethod.of("atrous", ao_rays=2)
     costs = CostTable("a GPU", "abc", {method_key(cheap): (1.0, 25.0), method_key(mid): (3.0, 30.0),
                                        method_key(dear): (50.0, 33.0)})
     policy = AutoPolicy((cheap, mid, dear), 30.0, Networks(), costs=costs)

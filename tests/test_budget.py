@@ -20,8 +20,8 @@ from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, Reconst
 from isosr_server.auto import AutoPolicy
 
 SIZE = (96, 64)
-FEW = (FrameMethod("upscale", factor=4), FrameMethod("full"), FrameMethod("full", ao_rays=4),
-       FrameMethod("atrous", ao_rays=2), FrameMethod("full", spp=2), FrameMethod("full", ao_rays=8, spp=2))
+FEW = (FrameMethod.of("upscale", factor=4), FrameMethod.of("full"), FrameMethod.of("full", ao_rays=4),
+       FrameMethod.of("atrous", ao_rays=2), FrameMethod.of("full", spp=2), FrameMethod.of("full", ao_rays=8, spp=2))
 
 
 def scene(spec: str):
@@ -72,7 +72,7 @@ def test_ao_rays_where_ao_matters(cloud):
     check_budget_respected(choice)
     # Expected quality ranks the table; AO rays beat none at the same rays per pixel.
     psnr = {row.method: row.expected_psnr for row in choice.table}
-    assert psnr[FrameMethod("full", ao_rays=8, spp=2)] > psnr[FrameMethod("full", spp=2)]
+    assert psnr[FrameMethod.of("full", ao_rays=8, spp=2)] > psnr[FrameMethod.of("full", spp=2)]
     assert [row.expected_psnr for row in choice.table] == sorted(psnr.values(), reverse=True)
 
 
@@ -110,7 +110,7 @@ def test_bad_sizes_budgets_and_configs_are_refused(cloud):
         with pytest.raises(ValueError, match="budget_ms"):
             choose_method(renderer, iso, *SIZE, budget)
     with pytest.raises(ValueError, match="divides"):
-        choose_method(renderer, iso, 97, 64, 10.0, BudgetConfig(candidates=(FrameMethod("upscale", factor=4),)))
+        choose_method(renderer, iso, 97, 64, 10.0, BudgetConfig(candidates=(FrameMethod.of("upscale", factor=4),)))
     with pytest.raises(ValueError, match="probe_height"):
         BudgetConfig(probe_height=0)
     with pytest.raises(ValueError, match="candidates is empty"):
@@ -168,14 +168,15 @@ def test_the_candidates_reach_the_models_rays_per_pixel_and_more_ao_rays_there()
     policy = AutoPolicy.for_server("cpu", "fp32", 4, {Reconstructor: (v1, "recon")}, 30.0, Networks())
     served = recon_samplings(policy.candidates)
     assert {(16, 4), (64, 4)} <= served and recon_limits(v1).read(64) == 8
-    assert all(m.model == str(v1) for m in policy.candidates if m.kind == "reconstruct")
+    assert all(m.options.model == str(v1) for m in policy.candidates if m.kind == "reconstruct")
     assert not recon_samplings(policy.candidates, factor=2), "no x2 model given: no x2 candidates"
 
 
 def test_the_x2_reconstruction_is_a_candidate_at_the_samplings_its_model_takes(tmp_path):
     x2 = [m for m in default_candidates("cuda") if m.kind == "reconstruct" and m.factor == 2]
     assert {(m.ao_rays, m.spp) for m in x2} == {(1, 1), (2, 1), (4, 1), (8, 1), (16, 1), (4, 2)}
-    assert all((m.model, m.precision, m.name.startswith("x2, ")) == (str(RECON_X2_MODEL), "fp16", True) for m in x2)
+    assert all((m.options.model, m.options.precision, m.name.startswith("x2, ")) == (str(RECON_X2_MODEL), "fp16", True)
+               for m in x2)
     save_pretrained(ReconNet(ReconNetConfig(widths=(4, 4, 8, 8), blocks=1, upscale=2, max_ao_rays=4, max_spp=2)), tmp_path)
     small = [m for m in default_candidates("cpu", x2_model=tmp_path) if m.factor == 2 and m.kind == "reconstruct"]
     assert {(m.ao_rays, m.spp) for m in small} == {(1, 1), (2, 1), (4, 1), (4, 2)}
@@ -208,7 +209,8 @@ def test_the_default_candidates_are_the_same_in_the_same_order():
     """The kinds' own candidates, merged by rank, are the list the policy had (ties break by order)."""
     cuda = default_candidates("cuda")
     assert [(m.kind, m.name) for m in cuda] == CUDA_CANDIDATES
-    assert all(m.model == (str(RECON_X2_MODEL) if m.name.startswith("x2, ") else None) for m in cuda)
+    assert all(getattr(m.options, "model", None) == (str(RECON_X2_MODEL) if m.name.startswith("x2, ") else None)
+               for m in cuda)
     cpu = default_candidates("cpu")
     assert [(m.kind, m.name) for m in cpu] == [(k, n.replace("bf16", "fp32").replace("fp16", "fp32"))
                                                for k, n in CUDA_CANDIDATES]
@@ -231,7 +233,7 @@ def test_no_timed_frame_captures_a_graph(cloud, monkeypatch):
         return ms
 
     monkeypatch.setattr(budget, "_frame_ms", counted)
-    method = FrameMethod("reconstruct", ao_rays=1, precision="fp16")
+    method = FrameMethod.of("reconstruct", ao_rays=1, precision="fp16")
     choose_method(*cloud, *SIZE, 1e4, BudgetConfig(candidates=(method,)), orbit_path(6, yaw_step=3.0),
                   networks=Networks())
     assert captures and timed == [0] * BudgetConfig().timing_frames
@@ -242,7 +244,7 @@ def test_a_candidate_whose_floor_is_over_twice_the_budget_is_not_timed(cloud):
     64 ms: at a 10 ms budget it is not timed (its row says floored), while one that took 0.1 ms is; a
     quality probe without times (a GPU's) floors nothing."""
     renderer, iso = cloud
-    dear, cheap = FrameMethod("full", ao_rays=4, spp=4), FrameMethod("upscale", factor=4)
+    dear, cheap = FrameMethod.of("full", ao_rays=4, spp=4), FrameMethod.of("upscale", factor=4)
     w, h = SIZE
     quality = policy.QualityProbe((w // 4, h // 4), {dear: 40.0, cheap: 30.0}, 10.0, True, 0.0, {dear: 8.0, cheap: 0.1})
     assert policy.floor_ms(dear, quality, w, h) == pytest.approx(64.0)
@@ -286,7 +288,7 @@ def test_the_quality_probe_yields_between_every_frame_of_every_candidate(cloud):
     costs): between the reference's bands and between each candidate's frames; the scores are the
     probe's own, run whole."""
     renderer, iso = cloud
-    config = BudgetConfig(candidates=(FrameMethod("full"), FrameMethod("full", ao_rays=2)), probe_frames=3,
+    config = BudgetConfig(candidates=(FrameMethod.of("full"), FrameMethod.of("full", ao_rays=2)), probe_frames=3,
                           probe_height=SIZE[1])
     yields, sliced = drain(policy.probe_quality_steps(renderer, iso, *SIZE, config))
     bands = 1 if renderer.device.is_cuda else policy.REFERENCE_BANDS_CPU

@@ -114,7 +114,7 @@ CAM, PREV = orbit(30, 20, 1.6), orbit(28, 20, 1.6)
     ("mask", 0, ["mask"]), ("normal", 0, ["mask", "normal"]), ("depth", 64, ["mask", "depth"]),
     ("ao", 2, ["mask", "ao"]), ("flow", 0, ["mask", "flow"])])
 def test_full_mode_renders_only_the_channel(renderer, channel, ao_rays, present):
-    runner = make_runner(FrameMethod("full", ao_rays=ao_rays), renderer, 0.5, 32, 24, keep=(channel,), shade=False)
+    runner = make_runner(FrameMethod.of("full", ao_rays=ao_rays), renderer, 0.5, 32, 24, keep=(channel,), shade=False)
     buffers = runner.frame(CAM, PREV).buffers
     assert buffers.present() == present, "no color, no AO rays for a depth view"
     assert buffers.mask.shape == (24, 32) and buffers.mask.max() == 1.0
@@ -122,14 +122,14 @@ def test_full_mode_renders_only_the_channel(renderer, channel, ao_rays, present)
 
 def test_lowres_modes_show_output_resolution_buffers(renderer, tmp_path_factory):
     tiny = str(tiny_model_dir(tmp_path_factory))  # an x2 model
-    network = make_runner(FrameMethod("network", factor=2, model=tiny), renderer, 0.5, 32, 24, keep=("flow",),
+    network = make_runner(FrameMethod.of("network", factor=2, model=tiny), renderer, 0.5, 32, 24, keep=("flow",),
                           shade=False)
     network.frame(PREV)
     high = network.frame(CAM, PREV)
     assert high.buffers.flow.shape == (24, 32, 2) and high.buffers.ao.shape == (24, 32)
     assert high.buffers.flow.abs().max() > 0, "a moved camera gives flow"
     assert high.buffers.color is None and set(high.times) == {"render", "network"}
-    classic = make_runner(FrameMethod("upscale", factor=4), renderer, 0.5, 32, 24, keep=("depth",), shade=False)
+    classic = make_runner(FrameMethod.of("upscale", factor=4), renderer, 0.5, 32, 24, keep=("depth",), shade=False)
     low = classic.frame(CAM).buffers
     assert low.depth.shape == (24, 32) and low.ao is None and low.flow is None, "the baseline has no AO"
 
@@ -137,14 +137,14 @@ def test_lowres_modes_show_output_resolution_buffers(renderer, tmp_path_factory)
 def test_reconstruct_mode_shows_the_reconstruction(renderer):
     """AO is the network's output, flow its full-res input flow; a channel view advances the
     recurrent state as shaded frames do."""
-    method = FrameMethod("reconstruct", ao_rays=1)
+    method = FrameMethod.of("reconstruct", ao_rays=1)
     shaded = make_runner(method, renderer, 0.5, 32, 24, networks=Networks.eager())
     expected = [shaded.frame(PREV), shaded.frame(CAM, PREV)]
     viewed = make_runner(method, renderer, 0.5, 32, 24, networks=Networks.eager(), keep=("flow",), shade=False)
     got = [viewed.frame(PREV), viewed.frame(CAM, PREV)]
     for g, want in zip(got, expected):
         assert torch.equal(g.buffers.ao, want.buffers.ao) and g.buffers.color is None
-    full = make_runner(FrameMethod("full"), renderer, 0.5, 32, 24, keep=("flow",), shade=False).frame(CAM, PREV)
+    full = make_runner(FrameMethod.of("full"), renderer, 0.5, 32, 24, keep=("flow",), shade=False).frame(CAM, PREV)
     assert torch.equal(got[1].buffers.flow, full.buffers.flow) and got[1].buffers.flow.abs().max() > 0
     assert got[0].buffers.flow is None
 
@@ -189,7 +189,7 @@ def test_view_session_channels_match_the_library(srv):
         first = frame(ws)
         assert first.legend.channel == "depth" and 0 < first.legend.lo < first.legend.hi
         renderer = Renderer(parse_procedural(volume), DEVICE)
-        local = make_runner(FrameMethod("network", factor=4), renderer, ready.volume.iso_normalized, w, h,
+        local = make_runner(FrameMethod.of("network", factor=4), renderer, ready.volume.iso_normalized, w, h,
                             networks=Networks.eager(), keep=("depth",), shade=False)
         expected, legend = channels.false_color(local.frame(to_camera(cam0)).buffers, "depth")
         got = decode_image(first.image).astype(int)

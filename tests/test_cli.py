@@ -79,7 +79,8 @@ def test_render_reconstruct_writes_what_the_reconstruct_method_makes(tmp_path, c
     assert "made by full, AO 2, spp 1, recon fp32: mask,normal,depth,ao,color at 48x32" in capsys.readouterr().out
     frame = FrameBuffers.load_npz(one)
     assert frame.present() == ["mask", "normal", "depth", "ao", "color"]
-    expected = run_sequence(make_runner(FrameMethod("reconstruct", ao_rays=2), renderer, iso, 48, 32), cameras[1:])[0]
+    method = FrameMethod.of("reconstruct", ao_rays=2)
+    expected = run_sequence(make_runner(method, renderer, iso, 48, 32), cameras[1:])[0]
     for name in frame.present():
         torch.testing.assert_close(getattr(frame, name), getattr(expected, name), rtol=0, atol=1e-5)
     assert 0 < frame.mask.mean() < 1 and ((frame.mask > 0) & (frame.mask < 1)).any()  # antialiased edges
@@ -89,7 +90,7 @@ def test_render_reconstruct_writes_what_the_reconstruct_method_makes(tmp_path, c
     assert "full, AO 0, spp 2, recon fp32 from the previous camera on:" in capsys.readouterr().out
     frame = FrameBuffers.load_npz(two)
     assert frame.present() == ["ao", "color"]
-    method = FrameMethod("reconstruct", spp=2)
+    method = FrameMethod.of("reconstruct", ao_rays=0, spp=2)
     carried = run_sequence(make_runner(method, renderer, iso, 48, 32), cameras)[-1]
     alone = run_sequence(make_runner(method, renderer, iso, 48, 32), cameras[1:])[0]
     torch.testing.assert_close(frame.color, carried.color, rtol=0, atol=1e-5)

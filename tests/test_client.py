@@ -177,7 +177,7 @@ def test_reconstruct_frames_equal_the_library(server, library):  # noqa: F811
             view.set_camera(**PATH.camera(i))
             images.append(view.frame())
         assert view.stats.mode == "reconstruct" and "total" in view.stats.server_ms
-    method = FrameMethod("reconstruct", ao_rays=2)
+    method = FrameMethod.of("reconstruct", ao_rays=2)
     runner = make_runner(method, renderer, iso, *size, networks=Networks.eager())
     expected = run_sequence(runner, [orbit(**PATH.camera(i)) for i in range(FRAMES)])
     for image, want in zip(images, expected):

@@ -30,47 +30,47 @@ def scene():
 
 
 def test_names_follow_the_issue():
-    assert FrameMethod("full", ao_rays=8).name == "full, AO 8, spp 1"
-    assert FrameMethod("full", spp=4).name == "full, AO 0, spp 4"
-    assert FrameMethod("atrous", ao_rays=2).name == "full, AO 2, a-trous"
-    assert FrameMethod("upscale", factor=4).name == "x4 bilinear"
-    recon = FrameMethod("reconstruct", ao_rays=2, precision="fp16", model_name="recon")
+    assert FrameMethod.of("full", ao_rays=8).name == "full, AO 8, spp 1"
+    assert FrameMethod.of("full", spp=4).name == "full, AO 0, spp 4"
+    assert FrameMethod.of("atrous", ao_rays=2).name == "full, AO 2, a-trous"
+    assert FrameMethod.of("upscale", factor=4).name == "x4 bilinear"
+    recon = FrameMethod.of("reconstruct", ao_rays=2, precision="fp16", model_name="recon")
     assert recon.name == "full, AO 2, spp 1, recon fp16" and recon.learned
-    network = FrameMethod("network", factor=4, precision="bf16")
+    network = FrameMethod.of("network", factor=4, precision="bf16")
     assert network.name == "x4 network bf16" and network.learned
-    assert not FrameMethod("atrous", ao_rays=1).learned
-    assert FrameMethod("svgf", ao_rays=2).name == "full, AO 2, svgf"
-    assert FrameMethod("oidn", ao_rays=1, quality="fast", spp=2).name == "full, AO 1, oidn fast, spp 2"
+    assert not FrameMethod.of("atrous", ao_rays=1).learned
+    assert FrameMethod.of("svgf", ao_rays=2).name == "full, AO 2, svgf"
+    assert FrameMethod.of("oidn", ao_rays=1, quality="fast", spp=2).name == "full, AO 1, oidn fast, spp 2"
 
 
 @pytest.mark.parametrize("kwargs, message", [
-    (dict(kind="magic"), "kind"), (dict(kind="full", ao_rays=-1), "ao_rays"), (dict(kind="atrous"), "ao_rays"),
+    (dict(kind="magic"), "unknown frame method"), (dict(kind="full", ao_rays=-1), "ao_rays"), (dict(kind="atrous", ao_rays=0), "ao_rays"),
     (dict(kind="upscale", factor=1), "factor"), (dict(kind="upscale", factor=4, ao_rays=4), "ao_rays"),
     (dict(kind="full", factor=2), "factor"), (dict(kind="upscale", factor=2, interpolation="lanczos"), "interpolation"),
     (dict(kind="network", factor=4, precision="fp8"), "precision"), (dict(kind="full", spp=True), "spp"),
     (dict(kind="reconstruct", ao_rays=4097), r"ao_rays must be an integer in \[0, 4096\]"),
     (dict(kind="buffers", factor=1), "factor"),
     (dict(kind="reconstruct", spp=8), r"spp must be an integer in \[1, 4\]"),
-    (dict(kind="reconstruct", factor=4), r"factor must be an integer in \[1, 2\]"), (dict(kind="svgf"), "ao_rays"),
+    (dict(kind="reconstruct", factor=4), r"factor must be an integer in \[1, 2\]"), (dict(kind="svgf", ao_rays=0), "ao_rays"),
     (dict(kind="atrous", ao_rays=1, quality="fast"), "takes no quality"),
     (dict(kind="oidn", ao_rays=1, quality="best"), "quality must be one of")])
 def test_bad_methods_are_refused(kwargs, message):
     with pytest.raises(ValueError, match=message):
-        FrameMethod(**kwargs)
+        FrameMethod.of(**kwargs)
 
 
 @pytest.mark.parametrize("method, buffers", [
-    (FrameMethod("full"), ["mask", "normal", "color"]),
-    (FrameMethod("full", ao_rays=4, spp=2), ["mask", "normal", "ao", "color"]),
-    (FrameMethod("atrous", ao_rays=2), ["mask", "normal", "ao", "color"]),
-    (FrameMethod("svgf", ao_rays=1), ["mask", "normal", "ao", "color"]),
-    pytest.param(FrameMethod("oidn", ao_rays=1, quality="fast"), ["mask", "normal", "color"],
+    (FrameMethod.of("full"), ["mask", "normal", "color"]),
+    (FrameMethod.of("full", ao_rays=4, spp=2), ["mask", "normal", "ao", "color"]),
+    (FrameMethod.of("atrous", ao_rays=2), ["mask", "normal", "ao", "color"]),
+    (FrameMethod.of("svgf", ao_rays=1), ["mask", "normal", "ao", "color"]),
+    pytest.param(FrameMethod.of("oidn", ao_rays=1, quality="fast"), ["mask", "normal", "color"],
                  marks=pytest.mark.skipif(oidn.unavailable() is not None, reason=str(oidn.unavailable()))),
-    (FrameMethod("upscale", factor=4, interpolation="bicubic"), ["mask", "normal", "depth", "color"]),
-    (FrameMethod("reconstruct", ao_rays=2), ["mask", "normal", "depth", "ao", "color"]),
-    (FrameMethod("reconstruct"), ["mask", "normal", "depth", "ao", "color"]),
-    (FrameMethod("network", factor=4), ["mask", "normal", "depth", "ao", "color"]),
-    (FrameMethod("buffers", factor=4), ["mask", "normal", "depth"])])
+    (FrameMethod.of("upscale", factor=4, interpolation="bicubic"), ["mask", "normal", "depth", "color"]),
+    (FrameMethod.of("reconstruct", ao_rays=2), ["mask", "normal", "depth", "ao", "color"]),
+    (FrameMethod.of("reconstruct", ao_rays=0), ["mask", "normal", "depth", "ao", "color"]),
+    (FrameMethod.of("network", factor=4), ["mask", "normal", "depth", "ao", "color"]),
+    (FrameMethod.of("buffers", factor=4), ["mask", "normal", "depth"])])
 def test_every_kind_makes_a_bounded_color_frame_and_only_its_buffers(scene, method, buffers):
     renderer, iso = scene
     runner = make_runner(method, renderer, iso, *SIZE)
@@ -102,12 +102,12 @@ def test_a_kind_without_its_package_is_unavailable_with_the_reason(scene, monkey
     monkeypatch.setattr(oidn, "unavailable", lambda: "the pyoidn package is not installed")
     assert unavailable_kinds() == {"oidn": "the pyoidn package is not installed"}
     with pytest.raises(RuntimeError, match="full, AO 1, oidn high cannot run here: the pyoidn package is not"):
-        make_runner(FrameMethod("oidn", ao_rays=1), renderer, iso, *SIZE)
+        make_runner(FrameMethod.of("oidn", ao_rays=1), renderer, iso, *SIZE)
 
 
 def test_svgf_casts_new_ao_rays_each_frame_and_restarts_its_history_on_a_cut(scene):
     renderer, iso = scene
-    runner = make_runner(FrameMethod("svgf", ao_rays=1), renderer, iso, *SIZE)
+    runner = make_runner(FrameMethod.of("svgf", ao_rays=1), renderer, iso, *SIZE)
     cams = orbit_path(3, yaw0=20.0, yaw_step=3.0)
     seeds = [runner.render_request(None).seed]
     runner.frame(cams[0])
@@ -119,9 +119,9 @@ def test_svgf_casts_new_ao_rays_each_frame_and_restarts_its_history_on_a_cut(sce
     assert runner.history.length.max() == 1
 
 
-@pytest.mark.parametrize("method, keep", [(FrameMethod("full"), ("depth", "flow")),
-                                          (FrameMethod("network", factor=4), ("flow",)),
-                                          (FrameMethod("atrous", ao_rays=1), ("depth",))])
+@pytest.mark.parametrize("method, keep", [(FrameMethod.of("full"), ("depth", "flow")),
+                                          (FrameMethod.of("network", factor=4), ("flow",)),
+                                          (FrameMethod.of("atrous", ao_rays=1), ("depth",))])
 def test_kept_buffers_come_at_the_frame_size_and_flow_in_its_pixels(scene, method, keep):
     renderer, iso = scene
     runner = make_runner(method, renderer, iso, *SIZE, keep=keep)
@@ -141,21 +141,21 @@ def test_a_stream_starts_a_new_runner_and_a_new_sequence_when_its_settings_chang
     renderer, iso = scene
     stream = FrameStream(Networks())
     cams = orbit_path(3, yaw0=20.0, yaw_step=3.0)
-    recon = FrameMethod("reconstruct", ao_rays=1)
+    recon = FrameMethod.of("reconstruct", ao_rays=1)
     assert not stream.frame(recon, renderer, iso, *SIZE, cams[0], None).continued
     first = stream.runner
     assert stream.frame(recon, renderer, iso, *SIZE, cams[1], cams[0]).continued and stream.runner is first
     # a new AO ray count, size or iso is a cut: a new runner, its previous camera ignored
-    assert not stream.frame(FrameMethod("reconstruct", ao_rays=2), renderer, iso, *SIZE, cams[2], cams[1]).continued
+    assert not stream.frame(FrameMethod.of("reconstruct", ao_rays=2), renderer, iso, *SIZE, cams[2], cams[1]).continued
     assert stream.runner is not first
-    assert not stream.frame(FrameMethod("reconstruct", ao_rays=2), renderer, iso, 32, 16, cams[2], cams[1]).continued
+    assert not stream.frame(FrameMethod.of("reconstruct", ao_rays=2), renderer, iso, 32, 16, cams[2], cams[1]).continued
 
 
 def test_forked_networks_share_weights_and_own_their_state(scene):
     renderer, iso = scene
     root = Networks()
     a, b = root.fork(), root.fork()
-    recon = FrameMethod("reconstruct", ao_rays=1)
+    recon = FrameMethod.of("reconstruct", ao_rays=1)
     ra, rb = (make_runner(recon, renderer, iso, *SIZE, networks=n) for n in (a, b))
     assert ra.net is not rb.net and ra.net.net is rb.net.net
     cams = orbit_path(2, yaw0=20.0, yaw_step=3.0)
@@ -165,7 +165,7 @@ def test_forked_networks_share_weights_and_own_their_state(scene):
 
 def test_the_network_carries_its_state_and_resets_on_a_cut(scene, tmp_path_factory):
     renderer, iso = scene
-    method = FrameMethod("network", factor=2, model=str(tiny_model_dir(tmp_path_factory)), model_name="tiny")
+    method = FrameMethod.of("network", factor=2, model=str(tiny_model_dir(tmp_path_factory)), model_name="tiny")
     runner = make_runner(method, renderer, iso, *SIZE)
     cams = orbit_path(2, yaw0=20.0, yaw_step=3.0)
     first = runner.frame(cams[1])  # a cut: no previous frame
@@ -179,27 +179,27 @@ def test_the_network_carries_its_state_and_resets_on_a_cut(scene, tmp_path_facto
 def test_sizes_the_factor_does_not_divide_and_wrong_models_are_refused(scene, tmp_path_factory):
     renderer, iso = scene
     with pytest.raises(ValueError, match="must divide"):
-        make_runner(FrameMethod("upscale", factor=4), renderer, iso, 50, 32)
+        make_runner(FrameMethod.of("upscale", factor=4), renderer, iso, 50, 32)
     with pytest.raises(ValueError, match="must be an integer >= 1"):
-        make_runner(FrameMethod("full"), renderer, iso, 0, 32)
+        make_runner(FrameMethod.of("full"), renderer, iso, 0, 32)
     tiny = str(tiny_model_dir(tmp_path_factory))  # an x2 model
     with pytest.raises(ValueError, match="upscales x2, not x4"):
-        make_runner(FrameMethod("network", factor=4, model=tiny), renderer, iso, *SIZE)
+        make_runner(FrameMethod.of("network", factor=4, model=tiny), renderer, iso, *SIZE)
 
 
 def test_runners_share_one_network_per_model_precision_and_device(scene):
     renderer, iso = scene
     networks = Networks()
-    bf16 = FrameMethod("network", factor=4, precision="bf16")
+    bf16 = FrameMethod.of("network", factor=4, precision="bf16")
     a = make_runner(bf16, renderer, iso, *SIZE, networks=networks)
     b = make_runner(bf16, renderer, iso, 96, 64, networks=networks)
-    c = make_runner(FrameMethod("network", factor=4), renderer, iso, *SIZE, networks=networks)
+    c = make_runner(FrameMethod.of("network", factor=4), renderer, iso, *SIZE, networks=networks)
     assert a.net is b.net and a.net.precision == "bf16"
     assert c.net is not a.net and c.net.precision == "fp32" and len(networks._loaded) == 2
 
 
-@pytest.mark.parametrize("method", [FrameMethod("full", ao_rays=4), FrameMethod("atrous", ao_rays=2),
-                                    FrameMethod("reconstruct", ao_rays=1)])
+@pytest.mark.parametrize("method", [FrameMethod.of("full", ao_rays=4), FrameMethod.of("atrous", ao_rays=2),
+                                    FrameMethod.of("reconstruct", ao_rays=1)])
 def test_a_frame_in_slices_equals_the_frame_whole(scene, method):
     renderer, iso = scene
     cam = orbit_path(1, yaw0=20.0)[0]
@@ -258,7 +258,6 @@ def test_a_reconstruction_past_its_models_ao_rays_casts_them_and_they_lift_its_a
     Pareto study's reference the AO error falls from 16 to 64 rays (there 0.0266 -> 0.0236; at
     960x540 the color 44.2 -> 46.4 dB, the plain render's 64 rays 46.0: docs/measurements.md)."""
     from isosr_net.budget import reference_frames
-    from isosr_net.methods import reconstruct_method
     from isosr_render.catalog import shared_volumes_dir
     if not (shared_volumes_dir() / "volumes.json").is_file():
         pytest.skip(f"shared volumes not found at {shared_volumes_dir()} (set ISOSR_SHARED_VOLUMES)")
@@ -268,7 +267,7 @@ def test_a_reconstruction_past_its_models_ao_rays_casts_them_and_they_lift_its_a
     reference = reference_frames(renderer, iso, size, [camera])[0]
     error = {}
     for rays in (16, 64):
-        runner = make_runner(reconstruct_method(ao_rays=rays, spp=4), renderer, iso, *size)
+        runner = make_runner(FrameMethod.of("reconstruct", ao_rays=rays, spp=4), renderer, iso, *size)
         assert runner.render_request().ao_samples == rays and runner.read_rays == 16
         out = runner.frame(camera).buffers
         both = (out.mask > 0.5) & (reference.mask > 0.5)

@@ -14,61 +14,61 @@ from isosr_net.methods import RUNNERS, FrameMethod, unavailable_kinds
 
 
 class TestFull(MethodContract):
-    method = FrameMethod("full", ao_rays=2)
+    method = FrameMethod.of("full", ao_rays=2)
 
 
 class TestFullWithoutAO(MethodContract):
-    method = FrameMethod("full")
+    method = FrameMethod.of("full")
 
 
 class TestFullSupersampled(MethodContract):
-    method = FrameMethod("full", ao_rays=1, spp=2)
+    method = FrameMethod.of("full", ao_rays=1, spp=2)
 
 
 class TestATrous(MethodContract):
-    method = FrameMethod("atrous", ao_rays=2)
+    method = FrameMethod.of("atrous", ao_rays=2)
 
 
 class TestSVGF(MethodContract):
-    method = FrameMethod("svgf", ao_rays=1)
+    method = FrameMethod.of("svgf", ao_rays=1)
 
 
 class TestOIDN(MethodContract):
-    method = FrameMethod("oidn", ao_rays=1, quality="fast")
+    method = FrameMethod.of("oidn", ao_rays=1, quality="fast")
 
 
 class TestReconstruct(MethodContract):
-    method = FrameMethod("reconstruct", ao_rays=2)
+    method = FrameMethod.of("reconstruct", ao_rays=2)
 
 
 class TestReconstructWithoutAO(MethodContract):
-    method = FrameMethod("reconstruct")
+    method = FrameMethod.of("reconstruct", ao_rays=0)
 
 
 class TestReconstructX2(MethodContract):
-    method = FrameMethod("reconstruct", ao_rays=2, factor=2)
+    method = FrameMethod.of("reconstruct", ao_rays=2, factor=2)
 
 
 class TestUpscale(MethodContract):
-    method = FrameMethod("upscale", factor=2, interpolation="bicubic")
+    method = FrameMethod.of("upscale", factor=2, interpolation="bicubic")
 
 
 class TestNetwork(MethodContract):
-    method = FrameMethod("network", factor=2)
+    method = FrameMethod.of("network", factor=2)
 
 
 class TestBuffers(MethodContract):
-    method = FrameMethod("buffers", factor=2)
+    method = FrameMethod.of("buffers", factor=2)
 
 
 # The shipped models (cheap at this size on the CPU), as the service and the study run them.
 class TestReconstructShipped(MethodContract):
-    method = FrameMethod("reconstruct", ao_rays=2)
+    method = FrameMethod.of("reconstruct", ao_rays=2)
     shipped_model = True
 
 
 class TestNetworkShipped(MethodContract):
-    method = FrameMethod("network", factor=4)
+    method = FrameMethod.of("network", factor=4)
     shipped_model = True
 
 

@@ -99,7 +99,7 @@ def test_a_graphed_frame_is_the_streams_state_and_copies_keep_it(fused):
         histories.append(graphed.history.count.data_ptr())
     assert len(outputs) == 1
     assert histories[0] == histories[2] != histories[1] == histories[3]
-    method, cameras = FrameMethod("reconstruct", ao_rays=1, precision="fp16"), orbit_path(4, yaw_step=3.0)
+    method, cameras = FrameMethod.of("reconstruct", ao_rays=1, precision="fp16"), orbit_path(4, yaw_step=3.0)
     frames = [run_sequence(make_runner(method, renderer, iso, *SIZE, keep=("flow",),
                                        networks=Networks(lambda *_, g=g: Reconstructor(graphs=g, **options))), cameras)
               for g in (True, False)]

@@ -347,17 +347,17 @@ def test_ray_limits_follow_a_rewritten_model_folder(tmp_path):
 
 
 def test_the_frame_method_bounds_are_its_models(wide_model):
-    assert FrameMethod("reconstruct", ao_rays=16, spp=2, model=str(wide_model)).ao_rays == 16
+    assert FrameMethod.of("reconstruct", ao_rays=16, spp=2, model=str(wide_model)).ao_rays == 16
     with pytest.raises(ValueError, match=r"reconstruct frame method: spp must be an integer in \[1, 2\], got 4"):
-        FrameMethod("reconstruct", spp=4, model=str(wide_model))
-    assert FrameMethod("reconstruct", ao_rays=64, spp=4).ao_rays == 64  # read as 16 (RayLimits.read)
+        FrameMethod.of("reconstruct", spp=4, model=str(wide_model))
+    assert FrameMethod.of("reconstruct", ao_rays=64, spp=4).ao_rays == 64  # read as 16 (RayLimits.read)
     with pytest.raises(ValueError, match=r"reconstruction: ao_rays must be an integer in \[0, 16\], got 17"):
         Reconstructor().reconstruct(FrameBuffers(mask=torch.zeros(2, 2), normal=torch.zeros(2, 2, 3),
                                                  depth=torch.zeros(2, 2), ao=torch.zeros(2, 2)), 17)
     with pytest.raises(ValueError, match="SRNet model, not a reconstruction network"):
-        FrameMethod("reconstruct", model=str(DEFAULT_MODEL))
+        FrameMethod.of("reconstruct", model=str(DEFAULT_MODEL))
     with pytest.raises(FileNotFoundError, match="config.json is missing"):
-        FrameMethod("reconstruct", model=str(wide_model / "nothing"))
+        FrameMethod.of("reconstruct", model=str(wide_model / "nothing"))
 
 
 def test_reconstruct_a_rendered_frame(sphere_frames):
@@ -550,9 +550,9 @@ def test_the_captured_path_matches_the_eager_one_frame_by_frame():
 
 
 @pytest.mark.parametrize("method, plain, margin", [
-    (FrameMethod("reconstruct", ao_rays=2), FrameMethod("full", ao_rays=2), 0.5),
-    (FrameMethod("reconstruct", ao_rays=2, factor=2, model=str(RECON_X2_MODEL), model_name="recon_x2"),
-     FrameMethod("upscale", factor=2), 1.0)])
+    (FrameMethod.of("reconstruct", ao_rays=2), FrameMethod.of("full", ao_rays=2), 0.5),
+    (FrameMethod.of("reconstruct", ao_rays=2, factor=2, model=str(RECON_X2_MODEL), model_name="recon_x2"),
+     FrameMethod.of("upscale", factor=2), 1.0)])
 def test_the_shipped_models_beat_the_frames_they_reconstruct(method, plain, margin):
     """Color PSNR against the many-ray reference: the reconstruction of 2 AO rays and 1 ray per
     pixel against the same render shaded as it is (x1), or the half-size render upsampled (x2: at
@@ -656,16 +656,16 @@ def test_a_reconstructor_of_an_upscaling_model_makes_frames_at_twice_the_sides(x
 
 def test_the_frame_method_of_an_upscaling_model_renders_at_half_the_sides(x2_model, sphere):
     renderer, iso = sphere
-    method = FrameMethod("reconstruct", ao_rays=2, factor=2, model=str(x2_model), model_name="recon-x2")
+    method = FrameMethod.of("reconstruct", ao_rays=2, factor=2, model=str(x2_model), model_name="recon-x2")
     assert method.name == "x2, AO 2, spp 1, recon-x2 fp32"
     runner = make_runner(method, renderer, iso, *SIZE, keep=("depth",))
     assert (runner.render_request().width, runner.render_request().height) == (SIZE[0] // 2, SIZE[1] // 2)
     frame = runner.frame(orbit(30.0, 20.0, 1.6))
     assert frame.buffers.color.shape == (SIZE[1], SIZE[0], 3) and torch.isfinite(frame.buffers.color).all()
     with pytest.raises(ValueError, match="the model upscales x1, not x2"):
-        make_runner(FrameMethod("reconstruct", factor=2), renderer, iso, *SIZE)
+        make_runner(FrameMethod.of("reconstruct", factor=2), renderer, iso, *SIZE)
     with pytest.raises(ValueError, match=r"factor must be an integer in \[1, 2\]"):
-        FrameMethod("reconstruct", factor=4)
+        FrameMethod.of("reconstruct", factor=4)
 
 
 def test_the_fused_kernels_run_fp16_on_cuda_and_models_of_their_widths(x2_model):

@@ -25,12 +25,13 @@ def throwaway():
 
 def test_a_registered_method_appears_in_the_pareto_grid_the_plots_and_the_candidates(throwaway):
     smoke, study = bench_pareto.methods(True, "cpu", {}), bench_pareto.methods(False, "cpu", {})
-    assert [m for m in smoke if m.kind == "throwaway"] == [FrameMethod("throwaway", ao_rays=2)]
+    assert [m for m in smoke if m.kind == "throwaway"] == [FrameMethod.of("throwaway", ao_rays=2)]
     assert [m.ao_rays for m in study if m.kind == "throwaway"] == [1, 2, 4]
     assert plot_colors()["throwaway"] == "C9"
     candidates = default_candidates("cpu")
     for n in (1, 2, 4):  # each right after the a-trous candidate of the same rank
-        assert candidates[candidates.index(FrameMethod("atrous", ao_rays=n)) + 1] == FrameMethod("throwaway", ao_rays=n)
+        atrous = candidates.index(FrameMethod.of("atrous", ao_rays=n))
+        assert candidates[atrous + 1] == FrameMethod.of("throwaway", ao_rays=n)
 
 
 def test_kinds_without_a_color_are_not_plotted():

@@ -210,7 +210,7 @@ def test_focus_mode_full_inside_network_outside(srv, lib):
 
 def lib_recon(lib, cameras, ao_rays=2) -> list[FrameBuffers]:
     """The reconstruct frames of a camera path, with one recurrent state (the server's model and precision)."""
-    method = FrameMethod("reconstruct", ao_rays=ao_rays)
+    method = FrameMethod.of("reconstruct", ao_rays=ao_rays)
     runner = make_runner(method, lib.renderer, lib.iso, W, H,
                          networks=Networks.eager())
     return run_sequence(runner, cameras)

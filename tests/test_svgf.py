@@ -247,7 +247,7 @@ def test_a_still_view_converges_toward_the_many_ray_ao():
     size, camera, radius = (48, 32), orbit(30.0, 20.0, 1.3), 0.15
     truth = renderer.render(camera, RenderRequest(*size, iso, ("mask", "ao"), ao_samples=256, ao_radius=radius,
                                                   seed=99))
-    runner = make_runner(FrameMethod("svgf", ao_rays=1), renderer, iso, *size, ao_radius=radius)
+    runner = make_runner(FrameMethod.of("svgf", ao_rays=1), renderer, iso, *size, ao_radius=radius)
     errors = []
     for i in range(10):
         f = runner.frame(camera, None if i == 0 else camera).buffers

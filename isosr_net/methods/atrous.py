@@ -3,14 +3,22 @@
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 from isosr_net.filters.atrous import atrous_filter
-from isosr_net.methods.base import FrameMethod, FrameRunner, register_runner
+from isosr_net.methods.base import FrameMethod, FrameRunner, RayOptions, count, register_runner
 from isosr_net.reconnet import RayLimits
 from isosr_net.timing import StageTimer
 from isosr_render import FrameBuffers
-from isosr_render.renderer import MAX_AO_SAMPLES, MAX_SPP
+from isosr_render.renderer import MAX_AO_SAMPLES
+
+
+@dataclass(frozen=True)
+class ATrousOptions(RayOptions):
+    """The rays the a-trous filter smooths: at least one AO ray per hit."""
+
+    ao_rays: int = count(4, 1, MAX_AO_SAMPLES)
 
 
 @register_runner("atrous")
@@ -18,24 +26,21 @@ class ATrousRunner(FrameRunner):
     """Full resolution, AO from 1-4 (or more) rays per hit smoothed by the edge-avoiding a-trous filter."""
 
     label = "filtered AO (a-trous)"
-    default_ao_rays = 4
     serve_bench_ao = (2,)
     plot_color = "C1"
 
-    knobs = ("ao_rays", "spp")
-    ao_rays = (1, MAX_AO_SAMPLES)
-    spp = (1, MAX_SPP)
+    options_type = ATrousOptions
 
     @classmethod
     def bench_methods(cls, smoke: bool, device: str, model: tuple[str, Path] | None = None) -> list[FrameMethod]:
         """1, 2, 4 AO rays (smoke: 2)."""
-        return [FrameMethod(cls.kind, ao_rays=n) for n in ((2,) if smoke else (1, 2, 4))]
+        return [FrameMethod.of(cls.kind, ao_rays=n) for n in ((2,) if smoke else (1, 2, 4))]
 
     @classmethod
     def candidates(cls, device: str, precision: str | None = None, limits: RayLimits | None = None,
                    x2_model: str | os.PathLike | None = None) -> tuple[tuple[float, FrameMethod], ...]:
         """1, 2, 4 AO rays."""
-        return tuple((rank, FrameMethod(cls.kind, ao_rays=n)) for rank, n in ((6, 1), (11, 2), (15, 4)))
+        return tuple((rank, FrameMethod.of(cls.kind, ao_rays=n)) for rank, n in ((6, 1), (11, 2), (15, 4)))
 
     @classmethod
     def describe(cls, m: FrameMethod) -> str:

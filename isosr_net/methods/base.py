@@ -1,6 +1,6 @@
-"""The frame contract: a :class:`FrameMethod` names a way to make frames and its knobs (a frozen,
-hashable spec); a :class:`FrameRunner` makes one stream's frames with it; :data:`RUNNERS` is the
-registry by kind (:func:`register_runner`), as diffusers' schedulers share one ``step()``
+"""The frame contract: a :class:`FrameMethod` names a way to make frames and its options (a frozen,
+hashable value of the kind's :class:`MethodOptions`); a :class:`FrameRunner` makes one stream's
+frames with it; :data:`RUNNERS` is the registry by kind (:func:`register_runner`), as diffusers' schedulers share one ``step()``
 contract; :class:`FrameStream` is one viewer's frames whatever it asks for next. The methods
 themselves are one module each in this package (:mod:`isosr_net.methods`).
 """
@@ -10,25 +10,24 @@ from __future__ import annotations
 import os
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Generator
-from dataclasses import dataclass, field, fields
+from collections.abc import Callable, Generator, Iterable
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import ClassVar
+from typing import Any, ClassVar, get_type_hints
 
 import torch
 
-from isosr_net.filters import oidn
 from isosr_net.filters.atrous import ATrousConfig
 from isosr_net.inference import (
     PRECISIONS,
     RecurrentNetwork,
     finish_steps,
 )
-from isosr_net.metrics import INTERPOLATIONS
 from isosr_net.reconnet import RayLimits
 from isosr_net.timing import StageTimer
 from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest
 from isosr_render.conventions import AO_RADIUS
+from isosr_render.renderer import MAX_AO_SAMPLES, MAX_SPP
 from isosr_render.sequence import sequence_cameras
 from isosr_render.shading import ShadingParams, shade_on
 from isosr_render.shapes import check_int
@@ -41,42 +40,142 @@ MAX_FACTOR = 16
 FIRST_TEMPORAL_SEED = 2
 
 
+def count(default: int, low: int, high: int) -> Any:
+    """An options field that counts: an integer in ``[low, high]`` (its bounds, in the field's metadata)."""
+    return field(default=default, metadata={"bounds": (low, high)})
+
+
+def choice(default: str, choices: Iterable[str]) -> Any:
+    """An options field that names one of ``choices`` (in the field's metadata)."""
+    return field(default=default, metadata={"choices": tuple(choices)})
+
+
+@dataclass(frozen=True)
+class MethodOptions:
+    """A kind's knobs, a frozen and hashable value: each method module subclasses it (its runner's
+    ``options_type``), declaring counts by :func:`count` with their bounds and named choices by
+    :func:`choice`. Making one refuses a value outside them, naming the field."""
+
+    def __post_init__(self):
+        for name, (low, high) in self.bounds().items():
+            check_int(getattr(self, name), name, low, high)
+        for f in fields(self):
+            choices, value = f.metadata.get("choices"), getattr(self, f.name)
+            if choices is not None and value not in choices:
+                raise ValueError(f"{f.name} must be one of {', '.join(choices)}, got {value!r}")
+
+    @classmethod
+    def of(cls, **knobs) -> MethodOptions:
+        """Options with ``knobs``, the others at their defaults.
+
+        Raises:
+            ValueError: a knob this type does not take (naming those it takes), or one out of bounds.
+        """
+        names = [f.name for f in fields(cls)]
+        for key in knobs:
+            if key not in names:
+                raise ValueError(f"takes no {key} (only {', '.join(names)})")
+        return cls(**knobs)
+
+    def bounds(self) -> dict[str, tuple[int, int]]:
+        """The ``(low, high)`` bounds of the counts (a subclass may narrow them by its other fields)."""
+        return {f.name: f.metadata["bounds"] for f in fields(self) if "bounds" in f.metadata}
+
+
+@dataclass(frozen=True)
+class RayOptions(MethodOptions):
+    """The rays of a full-resolution render.
+
+    Attributes:
+        ao_rays: AO rays per hit (0: no AO).
+        spp: rays per pixel.
+    """
+
+    ao_rays: int = count(0, 0, MAX_AO_SAMPLES)
+    spp: int = count(1, 1, MAX_SPP)
+
+
+@dataclass(frozen=True)
+class LowResOptions(MethodOptions):
+    """A render at 1/factor of the frame's sides.
+
+    Attributes:
+        factor: the upscaling factor.
+    """
+
+    factor: int = count(2, 2, MAX_FACTOR)
+
+
+@dataclass(frozen=True)
+class ModelOptions(MethodOptions):
+    """A trained network's.
+
+    Attributes:
+        model: the network's model folder (None: the kind's shipped one).
+        model_name: the network's name in the method's name.
+        precision: ``"fp32"``, ``"bf16"`` or ``"fp16"``.
+    """
+
+    model: str | None = None
+    model_name: str = "network"
+    precision: str = choice("fp32", PRECISIONS)
+
+
 @dataclass(frozen=True)
 class FrameMethod:
-    """One way to make frames: a registered kind and its knobs (each kind reads the ones it needs
-    and refuses the others' non-default values).
+    """One way to make frames: a registered kind and its options, a frozen, hashable value. Made
+    from knobs by :meth:`of` (from text by :func:`parse_method`). Its counts read as :attr:`ao_rays`,
+    :attr:`spp` and :attr:`factor` (neutral where the kind has none), its other knobs as ``options``'.
 
     Attributes:
         kind: a name of :data:`RUNNERS` (module docstring).
-        ao_rays: AO rays per hit (0: no AO).
-        spp: rays per pixel.
-        factor: upscaling factor (low-res kinds; 1 for the others).
-        interpolation: ``"nearest"``, ``"bilinear"`` or ``"bicubic"`` (``upscale``).
-        model: the network's model folder (learned kinds; None: the shipped default).
-        model_name: the network's name in :attr:`name`.
-        precision: ``"fp32"``, ``"bf16"`` or ``"fp16"`` (learned kinds).
-        quality: ``"fast"``, ``"balanced"`` or ``"high"`` (``oidn``).
+        options: the kind's knobs, of its runner's ``options_type``.
     """
 
-    kind: str = "full"
-    ao_rays: int = 0
-    spp: int = 1
-    factor: int = 1
-    interpolation: str = "bilinear"
-    model: str | None = None
-    model_name: str = "network"
-    precision: str = "fp32"
-    quality: str = "high"
+    kind: str
+    options: MethodOptions
 
     def __post_init__(self):
-        if self.kind not in RUNNERS:
-            raise ValueError(f"frame method kind must be one of {tuple(RUNNERS)}, got {self.kind!r}")
-        self.runner.check(self)
+        if type(self.options) is not self.runner.options_type:
+            raise TypeError(f"{self.kind} frame method: its options are a {self.runner.options_type.__name__}, "
+                            f"not a {type(self.options).__name__}")
+
+    @classmethod
+    def of(cls, kind: str, **knobs) -> FrameMethod:
+        """The method ``kind`` with ``knobs``, the others at its options' defaults.
+
+        Raises:
+            ValueError: an unknown kind, a knob the kind does not take or one out of bounds (naming them).
+        """
+        options_type = registered_runner(kind).options_type
+        try:
+            return cls(kind, options_type.of(**knobs))
+        except ValueError as e:
+            raise ValueError(f"{kind} frame method: {e}") from None
+
+    def replace(self, **knobs) -> FrameMethod:
+        """This method with ``knobs`` changed (checked as :meth:`of` checks them)."""
+        return FrameMethod.of(self.kind, **(asdict(self.options) | knobs))
+
+    @property
+    def ao_rays(self) -> int:
+        """AO rays per hit (0 for a kind without: none cast)."""
+        return getattr(self.options, "ao_rays", 0)
+
+    @property
+    def spp(self) -> int:
+        """Rays per pixel (1 for a kind without)."""
+        return getattr(self.options, "spp", 1)
+
+    @property
+    def factor(self) -> int:
+        """The upscaling factor (1 for a kind without: full resolution)."""
+        return getattr(self.options, "factor", 1)
 
     @property
     def runner(self) -> type[FrameRunner]:
         """The registered class that runs this method."""
-        return RUNNERS[self.kind]
+        return registered_runner(self.kind)
 
     @property
     def name(self) -> str:
@@ -164,6 +263,13 @@ class Networks:
 RUNNERS: dict[str, type[FrameRunner]] = {}
 
 
+def registered_runner(kind: str) -> type[FrameRunner]:
+    """The runner registered as ``kind``; ValueError naming the registered ones where none is."""
+    if kind not in RUNNERS:
+        raise ValueError(f"unknown frame method {kind!r}; registered: {', '.join(RUNNERS)}")
+    return RUNNERS[kind]
+
+
 def unavailable_kinds() -> dict[str, str]:
     """The registered kinds that cannot run in this installation, each with why (an optional package
     missing); the others are available."""
@@ -191,11 +297,11 @@ class FrameRunner(ABC):
         shaded: makes a final color.
         fresh_rays: casts new AO rays each frame (another seed), to accumulate them over frames.
         network_class: the trained network it runs (None: none), with its default model.
-        knobs: the spec's fields it reads; the others must keep their defaults.
-        ao_rays, spp, factor: the ``(low, high)`` bounds of the spec's counts (:meth:`bounds`).
+        options_type: its knobs with their defaults and bounds (a :class:`MethodOptions`).
         label: a menu's words for it.
         view_mode: a viewer may ask for it by name (a service mode).
-        default_ao_rays: the AO rays a viewer starts it with.
+        warm_up: the service makes a frame of it at start, before the first viewer's (what its
+            first frame compiles: shading with and without AO, its network).
         serve_bench_ao: the AO rays the server benchmark runs its view mode at, one case each
             (:mod:`isosr_bench.bench_server`; empty: none).
         plot_color: its matplotlib color in the Pareto plots (:mod:`isosr_bench.report`; None: not plotted).
@@ -222,13 +328,10 @@ class FrameRunner(ABC):
     fresh_rays: ClassVar[bool] = False
     network_class: ClassVar[type[RecurrentNetwork] | None] = None
     default_model: ClassVar[Path | None] = None
-    knobs: ClassVar[tuple[str, ...]] = ()
-    ao_rays: ClassVar[tuple[int, int]] = (0, 0)
-    spp: ClassVar[tuple[int, int]] = (1, 1)
-    factor: ClassVar[tuple[int, int]] = (1, 1)
+    options_type: ClassVar[type[MethodOptions]]
     label: ClassVar[str] = ""
     view_mode: ClassVar[bool] = True
-    default_ao_rays: ClassVar[int] = 0
+    warm_up: ClassVar[bool] = False
     serve_bench_ao: ClassVar[tuple[int, ...]] = ()
     plot_color: ClassVar[str | None] = None
 
@@ -251,45 +354,12 @@ class FrameRunner(ABC):
         self.frames = 0  # frames made: with fresh_rays, the next frame's AO seed
         self.net: RecurrentNetwork | None = None
         if self.network_class is not None:
-            networks = Networks() if networks is None else networks
-            self.net = networks.get(self.network_class, Path(method.model or self.default_model), self.device,
-                                    method.precision)
+            networks, options = Networks() if networks is None else networks, method.options
+            self.net = networks.get(self.network_class, Path(options.model or self.default_model), self.device,
+                                    options.precision)
             if self.net.upscale_factor != method.factor:
                 raise ValueError(f"{method.name}: the model upscales x{self.net.upscale_factor}, not x{method.factor}")
             self.net.reset()
-
-    @classmethod
-    def check(cls, method: FrameMethod) -> None:
-        """ValueError for knobs out of bounds or not this kind's (the spec's ``__post_init__`` calls it)."""
-        for f in fields(method):
-            if f.name not in cls.knobs and f.name not in ("kind", "model_name") and getattr(method, f.name) != f.default:
-                raise ValueError(f"{method.kind} frame method: takes no {f.name} (only {', '.join(cls.knobs)})")
-        for name, (low, high) in cls.bounds(method).items():
-            check_int(getattr(method, name), name, low, high, where=f"{method.kind} frame method")
-        if method.interpolation not in INTERPOLATIONS:
-            raise ValueError(f"interpolation must be one of {INTERPOLATIONS}, got {method.interpolation!r}")
-        if method.precision not in PRECISIONS:
-            raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {method.precision!r}")
-        if method.quality not in oidn.QUALITIES:
-            raise ValueError(f"quality must be one of {oidn.QUALITIES}, got {method.quality!r}")
-
-    @classmethod
-    def spec(cls, **knobs) -> FrameMethod:
-        """This kind's method with ``knobs``, the others at their defaults (its AO rays:
-        ``default_ao_rays``; a low-res kind's factor: its least; a learned kind's ``model_name``:
-        its network's display name)."""
-        if "ao_rays" in cls.knobs:
-            knobs.setdefault("ao_rays", cls.default_ao_rays)
-        if cls.low_res:
-            knobs.setdefault("factor", cls.factor[0])
-        if cls.network_class is not None:
-            knobs.setdefault("model_name", cls.network_class.display_name)
-        return FrameMethod(cls.kind, **knobs)
-
-    @classmethod
-    def bounds(cls, method: FrameMethod) -> dict[str, tuple[int, int]]:
-        """The ``(low, high)`` bounds of ``method``'s counts ``ao_rays``, ``spp``, ``factor``."""
-        return {"ao_rays": cls.ao_rays, "spp": cls.spp, "factor": cls.factor}
 
     @classmethod
     def unavailable(cls) -> str | None:
@@ -422,27 +492,24 @@ class FrameRunner(ABC):
 
 def parse_method(text: str) -> FrameMethod:
     """A method from ``NAME[:key=value,...]`` (``reconstruct:ao_rays=2,precision=bf16``): a
-    registered kind and its knobs, counts as integers.
+    registered kind and its knobs, typed as its options' fields.
 
     Raises:
         ValueError: an unknown kind or knob, a count that is not an integer, or knobs the kind
             does not take or outside its bounds (naming them).
     """
     kind, _, rest = text.partition(":")
-    if kind not in RUNNERS:
-        raise ValueError(f"unknown frame method {kind!r}; registered: {', '.join(RUNNERS)}")
-    counts = {f.name for f in fields(FrameMethod) if f.type in ("int", int)}
-    names = {f.name for f in fields(FrameMethod)} - {"kind", "model_name"}
+    types = get_type_hints(registered_runner(kind).options_type)
     knobs = {}
     for item in filter(None, rest.split(",")):
         key, eq, value = item.partition("=")
-        if not eq or key not in names:
-            raise ValueError(f"{text!r}: {item!r} is not KEY=VALUE with KEY one of {', '.join(sorted(names))}")
+        if not eq:
+            raise ValueError(f"{text!r}: {item!r} is not KEY=VALUE with KEY one of {', '.join(types)}")
         try:
-            knobs[key] = int(value) if key in counts else value
+            knobs[key] = int(value) if types.get(key) is int else value
         except ValueError:
             raise ValueError(f"{text!r}: {key} must be an integer, got {value!r}") from None
-    return RUNNERS[kind].spec(**knobs)
+    return FrameMethod.of(kind, **knobs)
 
 
 def make_runner(method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int,

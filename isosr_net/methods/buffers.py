@@ -2,10 +2,17 @@
 
 from __future__ import annotations
 
-from isosr_net.methods.base import MAX_FACTOR, FrameMethod, FrameRunner, register_runner
+from dataclasses import dataclass
+
+from isosr_net.methods.base import FrameMethod, FrameRunner, LowResOptions, register_runner
 from isosr_net.timing import StageTimer
 from isosr_render import FrameBuffers
 from isosr_render.conventions import LOWRES_BUFFERS
+
+
+@dataclass(frozen=True)
+class BuffersOptions(LowResOptions):
+    """The low-res render's factor."""
 
 
 @register_runner("buffers")
@@ -19,8 +26,7 @@ class BuffersRunner(FrameRunner):
     low_res = True
     recurrent = True
     shaded = False
-    knobs = ("factor",)
-    factor = (2, MAX_FACTOR)
+    options_type = BuffersOptions
 
     @classmethod
     def describe(cls, m: FrameMethod) -> str:

@@ -3,16 +3,21 @@
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
-from isosr_net.methods.base import FrameMethod, FrameRunner, register_runner
+from isosr_net.methods.base import FrameMethod, FrameRunner, RayOptions, register_runner
 from isosr_net.reconnet import RayLimits
 from isosr_net.timing import StageTimer
 from isosr_render import Camera, FrameBuffers
-from isosr_render.renderer import MAX_AO_SAMPLES, MAX_SPP
 from isosr_render.shading import shade
+
+
+@dataclass(frozen=True)
+class FullOptions(RayOptions):
+    """A full-resolution render's rays: any AO rays per hit (0: none), rays per pixel."""
 
 
 @register_runner("full")
@@ -20,24 +25,23 @@ class FullRunner(FrameRunner):
     """Full resolution, AO from ``ao_rays`` rays per hit (0: none)."""
 
     label = "full resolution"
+    warm_up = True
     serve_bench_ao = (0, 8)
     plot_color = "C0"
 
-    knobs = ("ao_rays", "spp")
-    ao_rays = (0, MAX_AO_SAMPLES)
-    spp = (1, MAX_SPP)
+    options_type = FullOptions
 
     @classmethod
     def bench_methods(cls, smoke: bool, device: str, model: tuple[str, Path] | None = None) -> list[FrameMethod]:
         """0-128 AO rays at 1, 2, 4 rays per pixel (smoke: 0, 2, 8 at 1, 2)."""
         spps, rays = ((1, 2), (0, 2, 8)) if smoke else ((1, 2, 4), (0, 1, 2, 4, 8, 16, 32, 64, 128))
-        return [FrameMethod(cls.kind, ao_rays=n, spp=s) for s in spps for n in rays]
+        return [FrameMethod.of(cls.kind, ao_rays=n, spp=s) for s in spps for n in rays]
 
     @classmethod
     def candidates(cls, device: str, precision: str | None = None, limits: RayLimits | None = None,
                    x2_model: str | os.PathLike | None = None) -> tuple[tuple[float, FrameMethod], ...]:
         """0-64 AO rays at spp 1, 0 and 8 at spp 2, 0 and 16 at spp 4."""
-        return tuple((rank, FrameMethod(cls.kind, ao_rays=n, spp=s)) for rank, n, s in (
+        return tuple((rank, FrameMethod.of(cls.kind, ao_rays=n, spp=s)) for rank, n, s in (
             (2, 0, 1), (4, 1, 1), (9, 2, 1), (14, 4, 1), (20, 8, 1), (21, 0, 2), (24, 16, 1), (25, 8, 2), (26, 0, 4),
             (32, 32, 1), (33, 64, 1), (34, 16, 4)))
 

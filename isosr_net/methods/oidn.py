@@ -2,16 +2,29 @@
 
 from __future__ import annotations
 
-import torch
-
+from dataclasses import dataclass
 from pathlib import Path
 
+import torch
+
 from isosr_net.filters import oidn
-from isosr_net.methods.base import FrameMethod, FrameRunner, register_runner
+from isosr_net.methods.base import FrameMethod, FrameRunner, RayOptions, choice, count, register_runner
 from isosr_net.timing import StageTimer
 from isosr_render import FrameBuffers
-from isosr_render.renderer import MAX_AO_SAMPLES, MAX_SPP
+from isosr_render.renderer import MAX_AO_SAMPLES
 from isosr_render.shading import shade_on
+
+
+@dataclass(frozen=True)
+class OIDNOptions(RayOptions):
+    """The rays OIDN denoises (at least one AO ray per hit) and its quality.
+
+    Attributes:
+        quality: ``"fast"``, ``"balanced"`` or ``"high"``.
+    """
+
+    ao_rays: int = count(1, 1, MAX_AO_SAMPLES)
+    quality: str = choice("high", oidn.QUALITIES)
 
 
 @register_runner("oidn")
@@ -21,12 +34,9 @@ class OIDNRunner(FrameRunner):
     (:func:`isosr_net.filters.oidn.denoise`). Its frames hold a color but no AO."""
 
     label = "denoised AO (OIDN)"
-    default_ao_rays = 1
     plot_color = "C6"
 
-    knobs = ("ao_rays", "spp", "quality")
-    ao_rays = (1, MAX_AO_SAMPLES)
-    spp = (1, MAX_SPP)
+    options_type = OIDNOptions
 
     @classmethod
     def unavailable(cls) -> str | None:
@@ -36,11 +46,11 @@ class OIDNRunner(FrameRunner):
     def bench_methods(cls, smoke: bool, device: str, model: tuple[str, Path] | None = None) -> list[FrameMethod]:
         """1, 2, 4 AO rays, each at the fast and the high quality (smoke: 2, fast)."""
         rays, qualities = ((2,), ("fast",)) if smoke else ((1, 2, 4), ("fast", "high"))
-        return [FrameMethod(cls.kind, ao_rays=n, quality=q) for n in rays for q in qualities]
+        return [FrameMethod.of(cls.kind, ao_rays=n, quality=q) for n in rays for q in qualities]
 
     @classmethod
     def describe(cls, m: FrameMethod) -> str:
-        return f"full, AO {m.ao_rays}, oidn {m.quality}" + (f", spp {m.spp}" if m.spp > 1 else "")
+        return f"full, AO {m.ao_rays}, oidn {m.options.quality}" + (f", spp {m.spp}" if m.spp > 1 else "")
 
     def outputs(self) -> tuple[str, ...]:
         return ("mask", "normal", "ao")
@@ -56,7 +66,7 @@ class OIDNRunner(FrameRunner):
                 noisy = shade_on(rendered.mask.device.type)(rendered.mask, rendered.normal, rendered.ao, self.shading)
                 albedo = shade_on(rendered.mask.device.type)(rendered.mask, rendered.normal, None, self.shading)
             with timer("filter"):
-                denoised = oidn.denoise(noisy, albedo, rendered.normal, self.method.quality)
+                denoised = oidn.denoise(noisy, albedo, rendered.normal, self.method.options.quality)
                 # OIDN filters the background too: where nothing was hit, the background (the albedo's) stays.
                 buffers.color = torch.where(rendered.mask[..., None] > 0, denoised, albedo)
         return buffers

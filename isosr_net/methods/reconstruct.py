@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import os
-from dataclasses import replace
+from dataclasses import dataclass
 from pathlib import Path
 
 from isosr_net.inference import default_precision
-from isosr_net.methods.base import FrameMethod, FrameRunner, register_runner
+from isosr_net.methods.base import FrameMethod, FrameRunner, ModelOptions, RayOptions, count, register_runner
 from isosr_net.model import read_config
 from isosr_net.reconnet import UPSCALES, RayLimits
 from isosr_net.reconstructor import (
@@ -22,6 +22,33 @@ from isosr_render.renderer import MAX_AO_SAMPLES
 
 # The x2 reconstruction's name in its methods' names (``x2, AO 1, spp 1, recon_x2 fp16``).
 X2_MODEL_NAME = "recon_x2"
+# The shipped reconstruction's name in the budget policy's candidates and the recon-path study's
+# rows (``full, AO 1, spp 1, network fp16``): their probe caches and results know them by it.
+CANDIDATE_MODEL_NAME = "network"
+
+
+@dataclass(frozen=True)
+class ReconstructOptions(ModelOptions, RayOptions):
+    """The rays a reconstruction model reads, the model and its upscale.
+
+    Attributes:
+        spp: rays per pixel, at most the model's ``max_spp``.
+        factor: the model's upscale (:attr:`~isosr_net.reconnet.ReconNetConfig.upscale`: an x2
+            model renders at half the sides).
+    """
+
+    ao_rays: int = count(2, 0, MAX_AO_SAMPLES)
+    factor: int = count(1, 1, max(UPSCALES))
+    model_name: str = Reconstructor.display_name
+
+    @classmethod
+    def of(cls, **knobs) -> ReconstructOptions:
+        """As :meth:`MethodOptions.of`, the factor the model's own unless given."""
+        knobs.setdefault("factor", recon_config(knobs.get("model") or DEFAULT_RECON_MODEL).upscale)
+        return super().of(**knobs)
+
+    def bounds(self) -> dict[str, tuple[int, int]]:
+        return super().bounds() | {"spp": (1, recon_limits(self.model or DEFAULT_RECON_MODEL).max_spp)}
 
 
 @register_runner("reconstruct")
@@ -35,7 +62,7 @@ class ReconstructRunner(FrameRunner):
     ``render`` stage."""
 
     label = "reconstruction (full res, few AO rays)"
-    default_ao_rays = 2
+    warm_up = True
     serve_bench_ao = (1,)
     plot_color = "C4"
 
@@ -43,20 +70,7 @@ class ReconstructRunner(FrameRunner):
     fresh_rays = True  # accumulated along the flow before the network (isosr_net.ray_history)
     network_class = Reconstructor
     default_model = DEFAULT_RECON_MODEL
-    knobs = ("ao_rays", "spp", "factor", "model", "precision")
-    ao_rays = (0, MAX_AO_SAMPLES)
-    factor = (1, max(UPSCALES))
-
-    @classmethod
-    def spec(cls, **knobs) -> FrameMethod:
-        """As :meth:`FrameRunner.spec`, the factor the model's own (:func:`reconstruct_method`)."""
-        knobs.setdefault("model_name", cls.network_class.display_name)
-        knobs.setdefault("ao_rays", cls.default_ao_rays)
-        return replace(reconstruct_method(knobs.pop("model", None), **knobs), kind=cls.kind)
-
-    @classmethod
-    def bounds(cls, m: FrameMethod) -> dict[str, tuple[int, int]]:
-        return super().bounds(m) | {"spp": (1, recon_limits(m.model or cls.default_model).max_spp)}
+    options_type = ReconstructOptions
 
     @classmethod
     def bench_methods(cls, smoke: bool, device: str, model: tuple[str, Path] | None = None) -> list[FrameMethod]:
@@ -74,8 +88,8 @@ class ReconstructRunner(FrameRunner):
         if not smoke:
             sampling += [(limits.max_spp, n) for n in (32, 64) if n > limits.max_ao_rays]
         shipped = None if folder == cls.default_model else str(folder)
-        return [replace(reconstruct_method(shipped, ao_rays=n, spp=s, precision=default_precision(device),
-                                           model_name=name), kind=cls.kind) for s, n in sampling]
+        return [FrameMethod.of(cls.kind, model=shipped, ao_rays=n, spp=s, precision=default_precision(device),
+                               model_name=name) for s, n in sampling]
 
     @classmethod
     def candidates(cls, device: str, precision: str | None = None, limits: RayLimits | None = None,
@@ -90,20 +104,22 @@ class ReconstructRunner(FrameRunner):
         ``precision`` (None: fp16 on CUDA, fp32 elsewhere)."""
         limits = limits or recon_limits(cls.default_model)
         precision = precision or default_precision(device)
-        out = [(rank, FrameMethod(cls.kind, ao_rays=n, spp=s, precision=precision)) for rank, n, s in (
+        out = [(rank, FrameMethod.of(cls.kind, ao_rays=n, spp=s, precision=precision,
+                                     model_name=CANDIDATE_MODEL_NAME)) for rank, n, s in (
             (8, 1, 1), (12, 2, 1), (17, 4, 1), (19, 1, 2), (22, 2, 2), (23, 4, 2), (27, 1, 4), (28, 2, 4), (29, 4, 4),
             (30, 8, 2), (31, 8, 4), (35, 16, 4), (36, 32, 4), (37, 64, 4)) if s <= limits.max_spp]
         if x2_model is not None:
             x2 = recon_limits(x2_model)
-            out += [(rank, replace(reconstruct_method(str(x2_model), ao_rays=n, spp=s, model_name=X2_MODEL_NAME,
-                                                      precision=precision), kind=cls.kind))
+            out += [(rank, FrameMethod.of(cls.kind, model=str(x2_model), ao_rays=n, spp=s, model_name=X2_MODEL_NAME,
+                                          precision=precision))
                     for rank, n, s in ((5, 1, 1), (7, 2, 1), (10, 4, 1), (13, 8, 1), (16, 4, 2), (18, 16, 1))
                     if n <= x2.max_ao_rays and s <= x2.max_spp]
         return tuple(out)
 
     @classmethod
     def describe(cls, m: FrameMethod) -> str:
-        return f"{'full' if m.factor == 1 else f'x{m.factor}'}, AO {m.ao_rays}, spp {m.spp}, {m.model_name} {m.precision}"
+        sides = "full" if m.factor == 1 else f"x{m.factor}"
+        return f"{sides}, AO {m.ao_rays}, spp {m.spp}, {m.options.model_name} {m.options.precision}"
 
     def outputs(self) -> tuple[str, ...]:
         return ("mask", "normal", "depth") + (("ao", "position") if self.method.ao_rays else ())
@@ -131,9 +147,3 @@ class ReconstructRunner(FrameRunner):
                                                         self.method.spp, self.shading if self.shade else None)
         return rendered, out
 
-
-def reconstruct_method(model: str | None = None, **knobs) -> FrameMethod:
-    """The ``reconstruct`` method of ``model`` (None: the shipped one) at the model's own upscale
-    (:attr:`~isosr_net.reconnet.ReconNetConfig.upscale`: an x2 model renders at half the sides);
-    ``knobs``: the method's others."""
-    return FrameMethod("reconstruct", factor=recon_config(model or DEFAULT_RECON_MODEL).upscale, model=model, **knobs)

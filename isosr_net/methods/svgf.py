@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Generator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
 
@@ -11,11 +12,20 @@ from isosr_net.methods.base import (
     FrameMethod,
     FrameResult,
     FrameRunner,
+    RayOptions,
+    count,
     register_runner,
 )
 from isosr_net.timing import StageTimer
 from isosr_render import Camera, FrameBuffers
-from isosr_render.renderer import MAX_AO_SAMPLES, MAX_SPP
+from isosr_render.renderer import MAX_AO_SAMPLES
+
+
+@dataclass(frozen=True)
+class SVGFOptions(RayOptions):
+    """The rays SVGF accumulates and filters: at least one AO ray per hit."""
+
+    ao_rays: int = count(1, 1, MAX_AO_SAMPLES)
 
 
 @register_runner("svgf")
@@ -25,14 +35,11 @@ class SVGFRunner(FrameRunner):
     previous camera starts the history anew."""
 
     label = "filtered AO (SVGF)"
-    default_ao_rays = 1
     plot_color = "C5"
 
     recurrent = True
     fresh_rays = True
-    knobs = ("ao_rays", "spp")
-    ao_rays = (1, MAX_AO_SAMPLES)
-    spp = (1, MAX_SPP)
+    options_type = SVGFOptions
     config: ClassVar[SVGFConfig] = SVGFConfig()  # the temporal knobs (the a-trous ones: the runner's atrous)
 
     def __init__(self, *args, **kwargs):
@@ -43,7 +50,7 @@ class SVGFRunner(FrameRunner):
     @classmethod
     def bench_methods(cls, smoke: bool, device: str, model: tuple[str, Path] | None = None) -> list[FrameMethod]:
         """1, 2, 4 AO rays (smoke: 2)."""
-        return [FrameMethod(cls.kind, ao_rays=n) for n in ((2,) if smoke else (1, 2, 4))]
+        return [FrameMethod.of(cls.kind, ao_rays=n) for n in ((2,) if smoke else (1, 2, 4))]
 
     @classmethod
     def describe(cls, m: FrameMethod) -> str:

@@ -3,17 +3,29 @@
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 from isosr_net.inference import (
     output_buffers,
 )
-from isosr_net.methods.base import MAX_FACTOR, FrameMethod, FrameRunner, register_runner
+from isosr_net.methods.base import FrameMethod, FrameRunner, LowResOptions, choice, register_runner
 from isosr_net.metrics import INTERPOLATIONS, upscale_baseline
 from isosr_net.reconnet import RayLimits
 from isosr_net.timing import StageTimer
 from isosr_render import FrameBuffers
 from isosr_render.conventions import LOWRES_BUFFERS
+
+
+@dataclass(frozen=True)
+class UpscaleOptions(LowResOptions):
+    """A low-res render's factor and how it is upscaled.
+
+    Attributes:
+        interpolation: ``"nearest"``, ``"bilinear"`` or ``"bicubic"``.
+    """
+
+    interpolation: str = choice("bilinear", INTERPOLATIONS)
 
 
 @register_runner("upscale")
@@ -25,25 +37,24 @@ class ClassicUpscaleRunner(FrameRunner):
     plot_color = "C2"
 
     low_res = True
-    knobs = ("factor", "interpolation")
-    factor = (2, MAX_FACTOR)
+    options_type = UpscaleOptions
 
     @classmethod
     def bench_methods(cls, smoke: bool, device: str, model: tuple[str, Path] | None = None) -> list[FrameMethod]:
         """x2, x4, x8 by each interpolation (smoke: x2 bicubic, x4 nearest and bilinear)."""
         upscales = (((2, "bicubic"), (4, "nearest"), (4, "bilinear")) if smoke else
                     [(f, mode) for f in (2, 4, 8) for mode in INTERPOLATIONS])
-        return [FrameMethod(cls.kind, factor=f, interpolation=mode) for f, mode in upscales]
+        return [FrameMethod.of(cls.kind, factor=f, interpolation=mode) for f, mode in upscales]
 
     @classmethod
     def candidates(cls, device: str, precision: str | None = None, limits: RayLimits | None = None,
                    x2_model: str | os.PathLike | None = None) -> tuple[tuple[float, FrameMethod], ...]:
         """Bilinear x4 and x2: the cheapest of all."""
-        return (0, FrameMethod(cls.kind, factor=4)), (1, FrameMethod(cls.kind, factor=2))
+        return (0, FrameMethod.of(cls.kind, factor=4)), (1, FrameMethod.of(cls.kind, factor=2))
 
     @classmethod
     def describe(cls, m: FrameMethod) -> str:
-        return f"x{m.factor} {m.interpolation}"
+        return f"x{m.factor} {m.options.interpolation}"
 
     def outputs(self) -> tuple[str, ...]:
         return LOWRES_BUFFERS
@@ -54,7 +65,7 @@ class ClassicUpscaleRunner(FrameRunner):
 
     def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
         with timer("filter"):
-            up = upscale_classic(rendered, self.method.factor, self.method.interpolation)
+            up = upscale_classic(rendered, self.method.factor, self.method.options.interpolation)
         up.ao = None  # no AO: shaded unoccluded
         return self.colored(up, timer)
 
