@@ -3,8 +3,10 @@
 All renderer, network and encoder work runs on one worker thread (a 1-thread executor), so
 concurrent requests never race on the GPU or on a session's recurrent state, and GPU work
 of different sessions is serialized in submission order (the executor's FIFO queue). A view
-session queues its next frame only after the last one is sent, so the ready sessions are
-served in turn (round robin), never the busiest first. The event loop awaits
+session asks for its next frame only after the last one is made, so the ready sessions are
+served in turn (round robin), never the busiest first. The view frames asked for while the
+device thread is busy are made together, as one job (a batch): those of one runner kind, volume
+and size through the kind's ``make_batch``; a frame that runs in slices goes alone. The event loop awaits
 :meth:`Engine.call`; everything named ``*_sync`` runs only on that thread.
 
 Frames are made by isosr_net's frame methods through the view modes (:mod:`isosr_server.views`).
@@ -124,6 +126,10 @@ class Engine:
         self._idle = asyncio.Event()  # set while none is
         self._idle.set()
         self._thread: threading.Thread | None = None
+        # View frames asked for and not yet made, and whether a batch job is queued to make them.
+        self._pending: list[tuple[SessionFrames, Renderer, FrameJob, asyncio.Future]] = []
+        self._batch_queued = False
+        self._pending_lock = threading.Lock()
 
     async def call(self, fn, *args):
         """Run ``fn(*args)`` on the device thread and await its result."""
@@ -289,12 +295,10 @@ class Engine:
         frame's colors; ``video_frame``: on a video encoder thread), while the device thread goes
         on with the next frame, this session's included (:func:`isosr_server.sessions.run_frames`)."""
         start = time.perf_counter()
-        steps = frames.steps(renderer, job, self.slice_ms)
         self._framing += 1
         self._idle.clear()
         try:
-            made = await self._run_steps(steps)
-            codes = await self.call(self.codes_sync, made)
+            made, codes = await self._batched(frames, renderer, job)
         finally:
             self._framing -= 1
             if not self._framing:
@@ -310,6 +314,56 @@ class Engine:
             times = made.result.times | {"encode": 1e3 * (done - began), "total": 1e3 * (done - start)}
             return EncodedFrame(image, buffers, times, made.legend, made.method.name, made.prev_seq, memory)
         return encode
+
+    async def _batched(self, frames: SessionFrames, renderer: Renderer, job: FrameJob) -> tuple[ViewFrame, object]:
+        """A view frame and its codes, made in the next batch (:meth:`_batch_sync`): the frames of
+        every session that asked meanwhile, one device-thread job for them all. A frame that runs
+        in slices comes back as its steps and is made here, a device-thread job per slice."""
+        loop = asyncio.get_running_loop()
+        future = loop.create_future()
+        with self._pending_lock:
+            self._pending.append((frames, renderer, job, future))
+            start_batch, self._batch_queued = not self._batch_queued, True
+        if start_batch:
+            loop.run_in_executor(self._executor, self._batch_sync, loop)
+        out = await future
+        if isinstance(out, Generator):
+            made = await self._run_steps(out)
+            return made, await self.call(self.codes_sync, made)
+        return out
+
+    def _batch_sync(self, loop: asyncio.AbstractEventLoop) -> None:
+        """Make the frames asked for since the last batch (device thread): each planned
+        (:meth:`SessionFrames.plan`); those of one slice grouped by their runners' ``batch_key`` and
+        made by its ``make_batch``, then coded; those that run in slices handed back as their
+        steps. Each session's result or error goes to its own future only."""
+        self._on_thread()
+        with self._pending_lock:
+            pending, self._pending, self._batch_queued = self._pending, [], False
+        groups: dict[tuple, list] = {}
+        for frames, renderer, job, future in pending:
+            try:
+                plan = frames.plan(renderer, job)
+                if plan.runner.one_slice(self.slice_ms):
+                    groups.setdefault(plan.runner.batch_key(), []).append((frames, plan, future))
+                else:
+                    _resolve(loop, future, frames.planned_steps(plan, self.slice_ms))
+            except Exception as e:  # noqa: BLE001 - this session's error, not its batch mates'
+                _resolve(loop, future, error=e)
+        for group in groups.values():
+            try:
+                results = type(group[0][1].runner).make_batch([(p.runner, p.job.camera, p.prev_camera)
+                                                               for _, p, _ in group])
+            except Exception as e:  # noqa: BLE001 - a kind's batch failed as a whole: its sessions' error
+                results = [e] * len(group)
+            for (frames, plan, future), result in zip(group, results):
+                try:
+                    if isinstance(result, Exception):
+                        raise result
+                    made = frames.made(plan, result)
+                    _resolve(loop, future, (made, self.codes_sync(made)))
+                except Exception as e:  # noqa: BLE001 - as above
+                    _resolve(loop, future, error=e)
 
     def codes_sync(self, made: ViewFrame) -> torch.Tensor | tuple:
         """A made frame's codes: its color quantized to uint8 on the device (the image to encode), or
@@ -386,6 +440,19 @@ def _check_finite(network: RecurrentNetwork, out: FrameBuffers) -> None:
     if not bool(torch.stack([torch.isfinite(getattr(out, n)).all() for n in out.present()]).all()):  # one sync
         network.reset()
         raise ValueError("the network gave non-finite values for this frame")
+
+
+def _resolve(loop: asyncio.AbstractEventLoop, future: asyncio.Future, result: object = None,
+             error: BaseException | None = None) -> None:
+    """Settle an event-loop future from the device thread (unless its session stopped waiting)."""
+    def settle() -> None:
+        if future.done():
+            return
+        if error is not None:
+            future.set_exception(error)
+        else:
+            future.set_result(result)
+    loop.call_soon_threadsafe(settle)
 
 
 def pack_codes(codes: torch.Tensor | tuple, code: Callable[[torch.Tensor], CodedImage]

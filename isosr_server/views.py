@@ -263,34 +263,65 @@ class SessionFrames:
               slice_ms: float | None = None) -> Generator[None, None, ViewFrame]:
         """Make one frame of ``job`` (device thread) in slices of about ``slice_ms``
         (:meth:`isosr_net.methods.FrameRunner.steps`): a generator that returns the frame."""
+        return self.planned_steps(self.plan(renderer, job), slice_ms)
+
+    def plan(self, renderer: Renderer, job: FrameJob) -> FramePlan:
+        """The runner of ``job``'s frame and what it continues from (device thread): made next by
+        :meth:`planned_steps`, or with other sessions' frames by the runner's ``make_batch``, then
+        finished by :meth:`made`."""
         st = job.settings
         shaded = st.channel == "shaded"
         keep = () if shaded else (st.channel,)
-        timer = StageTimer(str(renderer.device))
         if job.refined:
             method = refined_method(st)
             runner = make_runner(method, renderer, job.iso, st.width, st.height, ao_radius=st.ao_radius, keep=keep,
                                  shade=shaded)
-            result = yield from runner.steps(job.camera, None, slice_ms)
-            prev_seq = -1
-        else:
-            view = VIEWS[st.mode]
-            method = view.method(st, self.ctx, self, renderer, job)
-            prev_camera, prev_seq = self._prev or (None, -1)
-            result = yield from self.stream.steps(method, renderer, job.iso, st.width, st.height, job.camera,
-                                                  prev_camera, st.ao_radius, keep, shaded, slice_ms)
+            return FramePlan(job, renderer, method, runner, None, -1, None)
+        view = VIEWS[st.mode]
+        method = view.method(st, self.ctx, self, renderer, job)
+        prev_camera, prev_seq = self._prev or (None, -1)
+        runner, prev_camera = self.stream.runner_for(method, renderer, job.iso, st.width, st.height, prev_camera,
+                                                     st.ao_radius, keep, shaded)
+        return FramePlan(job, renderer, method, runner, prev_camera, prev_seq, view)
+
+    def planned_steps(self, plan: FramePlan, slice_ms: float | None = None) -> Generator[None, None, ViewFrame]:
+        """A planned frame made alone, in slices of about ``slice_ms``."""
+        result = yield from plan.runner.steps(plan.job.camera, plan.prev_camera, slice_ms)
+        return self.made(plan, result)
+
+    def made(self, plan: FramePlan, result: FrameResult) -> ViewFrame:
+        """A planned frame's result as a view frame: its mode's composition, or a channel's false colors."""
+        job, st = plan.job, plan.job.settings
+        timer = StageTimer(str(plan.renderer.device))
+        prev_seq = -1
+        if plan.view is not None:  # a moving frame: the next one continues from it
             self._prev = (job.camera, job.seq)
-            prev_seq = prev_seq if result.continued else -1
-        if not shaded:
+            prev_seq = plan.prev_seq if result.continued else -1
+        if st.channel != "shaded":
             with timer("shading"):
                 color, legend = false_color(result.buffers, st.channel)
-        elif not method.runner.shaded:
+        elif not plan.method.runner.shaded:
             color, legend = None, None
         else:
-            color = result.buffers.color if job.refined else view.compose(result, renderer, job, timer)
+            color = result.buffers.color if plan.view is None else plan.view.compose(result, plan.renderer, job, timer)
             legend = None
         result.timers.append(timer)
-        return ViewFrame(color, result, method, legend, prev_seq)
+        return ViewFrame(color, result, plan.method, legend, prev_seq)
+
+
+@dataclass(frozen=True)
+class FramePlan:
+    """A view frame about to be made (:meth:`SessionFrames.plan`): its job, the runner that makes it
+    from ``camera`` after ``prev_camera`` (None: a cut), the previous frame's seq, and its view
+    mode (None: the still camera's refined frame)."""
+
+    job: FrameJob
+    renderer: Renderer
+    method: FrameMethod
+    runner: FrameRunner
+    prev_camera: Camera | None
+    prev_seq: int
+    view: View | None
 
 
 def focus_weight(focus: FocusMsg, width: int, height: int, blend: int, device: torch.device) -> torch.Tensor:

@@ -21,6 +21,9 @@ The checks:
   kind's continued frames;
 - determinism: two runners along the same cameras give the same frames, bit for bit on the CPU
   (within 1e-5 on CUDA, where compiled kernels and graphs need not be);
+- batches: three streams made together by the kind's ``make_batch`` (each along its own cameras,
+  one cutting mid-way) give each stream the frames it makes alone; a stream whose frame fails
+  gets its error as its result, and its batch mates their frames;
 - reset: a frame without a previous camera after a sequence equals a new runner's first frame of
   that camera (a kind with ``fresh_rays`` numbers its AO seeds by the frames it made, a stream's
   ray sequence rather than its recurrent state: the new runner is set to the same count);
@@ -242,6 +245,38 @@ class MethodContract:
         if runner.fresh_rays:  # the AO seed counts the frames made: the same rays as the runner's
             fresh.frames = runner.frames - 1
         assert_same_frames([buffers_of(again)], [buffers_of(fresh.frame(CAMERAS[0]))])
+
+    def test_a_batch_makes_each_stream_s_frames_as_it_would_alone(self):
+        """Three streams along their own cameras, made together by the kind's ``make_batch``: each
+        frame equals its stream's frame made alone, and the second stream's cut at its third frame
+        changes nothing in the others' (recurrent state and AO seeds stay per stream)."""
+        paths = [orbit_path(3, yaw0=20.0 + 15.0 * k, yaw_step=4.0, pitch=25.0, distance=1.3) for k in range(3)]
+        prevs = [[None, p[0], p[1]] for p in paths]
+        prevs[1][2] = None  # the second stream cuts
+        alone = [[buffers_of(runner.frame(cam, prev)) for cam, prev in zip(path, prev_cams)]
+                 for runner, path, prev_cams in ((self.runner(), p, q) for p, q in zip(paths, prevs))]
+        runners = [self.runner() for _ in paths]
+        assert len({r.batch_key() for r in runners}) == 1
+        together = [[] for _ in paths]
+        for t in range(3):
+            results = type(runners[0]).make_batch([(r, p[t], q[t]) for r, p, q in zip(runners, paths, prevs)])
+            for k, result in enumerate(results):
+                assert not isinstance(result, Exception), f"stream {k}, frame {t}: {result!r}"
+                together[k].append(buffers_of(result))
+        for k in range(3):
+            assert_same_frames(together[k], alone[k])
+
+    def test_a_stream_s_error_in_a_batch_is_its_own(self):
+        """A stream whose frame fails (here: its renderer raises) gets the error as its result; its
+        batch mates get their frames, equal to those made alone."""
+        ok, failing, reference = self.runner(), self.runner(), self.runner()
+
+        def broken(*args, **kwargs):
+            raise RuntimeError("render failed")
+        failing.renderer = type("Broken", (), {"render": broken, "plan": broken, "device": ok.renderer.device})()
+        results = type(ok).make_batch([(failing, CAMERAS[0], None), (ok, CAMERAS[0], None)])
+        assert isinstance(results[0], RuntimeError) and "render failed" in str(results[0])
+        assert_same_frames([buffers_of(results[1])], [buffers_of(reference.frame(CAMERAS[0]))])
 
     # -- options ----------------------------------------------------------------------------------
 

@@ -421,6 +421,33 @@ class FrameRunner(ABC):
         """
         return finish_steps(self.steps(camera, prev_camera))
 
+    def one_slice(self, slice_ms: float | None) -> bool:
+        """Whether :meth:`steps` makes the next frame in one slice: without ``slice_ms``, or when the
+        last frame's ray cast took less (reading it waits for that frame's render on a GPU)."""
+        return slice_ms is None or (self._last_timer is not None and self._last_timer.ms()["render"] < slice_ms)
+
+    def batch_key(self) -> tuple:
+        """What runners share to make their frames together (:meth:`make_batch`): the kind, the
+        renderer and the frame size (a kind that batches more narrowly adds to it)."""
+        return type(self), id(self.renderer), self.width, self.height
+
+    @classmethod
+    def make_batch(cls, frames: list[tuple[FrameRunner, Camera, Camera | None]]) -> list[FrameResult | Exception]:
+        """The next frame of several streams of this kind with equal :meth:`batch_key`, each
+        ``(runner, camera, prev_camera)`` as :meth:`frame` takes them; each in one slice. A
+        stream's error is its result (``asyncio.gather(return_exceptions=True)``): the others'
+        frames are made, and each equals the frame its runner makes alone (the shared
+        contract test checks it). Default: one after the other; a kind that shares launches
+        across streams (one render over all cameras, one network call over the batch) overrides it.
+        """
+        results: list[FrameResult | Exception] = []
+        for runner, camera, prev_camera in frames:
+            try:
+                results.append(runner.frame(camera, prev_camera))
+            except Exception as e:  # noqa: BLE001 - the stream's own failure, returned as its result
+                results.append(e)
+        return results
+
     @torch.no_grad()
     def steps(self, camera: Camera, prev_camera: Camera | None = None,
               slice_ms: float | None = None) -> Generator[None, None, FrameResult]:
@@ -434,7 +461,7 @@ class FrameRunner(ABC):
         """
         timer = StageTimer(self.device)
         request = self.render_request(prev_camera)
-        if slice_ms is None or (self._last_timer is not None and self._last_timer.ms()["render"] < slice_ms):
+        if self.one_slice(slice_ms):
             rendered, buffers = self.render_finish(camera, request, timer)
         else:
             rendered = yield from self._render_bands(camera, request, slice_ms, timer)
@@ -551,9 +578,18 @@ class FrameStream:
               prev_camera: Camera | None, ao_radius: float = AO_RADIUS, keep: tuple[str, ...] = (),
               shade: bool = True, slice_ms: float | None = None) -> Generator[None, None, FrameResult]:
         """:meth:`frame` in slices (:meth:`FrameRunner.steps`)."""
+        runner, prev_camera = self.runner_for(method, renderer, iso, width, height, prev_camera, ao_radius, keep, shade)
+        return (yield from runner.steps(camera, prev_camera, slice_ms))
+
+    def runner_for(self, method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int,
+                   prev_camera: Camera | None, ao_radius: float = AO_RADIUS, keep: tuple[str, ...] = (),
+                   shade: bool = True) -> tuple[FrameRunner, Camera | None]:
+        """The runner of the next frame and the previous camera it continues from (None where the
+        runner is new: a cut). Its frame is then :meth:`FrameRunner.steps` or part of a
+        :meth:`FrameRunner.make_batch`."""
         key = (method, renderer, float(iso), width, height, float(ao_radius), tuple(keep), shade)
         if key != self._key:
             self.runner = make_runner(method, renderer, iso, width, height, shading=self.shading,
                                       ao_radius=ao_radius, networks=self.networks, keep=keep, shade=shade)
             self._key, prev_camera = key, None
-        return (yield from self.runner.steps(camera, prev_camera, slice_ms))
+        return self.runner, prev_camera

@@ -1,0 +1,173 @@
+"""Frames of several view sessions made together (issue 50): the engine gathers the frames asked for
+while its device thread is busy and makes those of one runner kind, volume and size through the
+kind's ``make_batch`` (:meth:`isosr_server.engine.Engine._batch_sync`). Each session's frames equal
+those it gets alone, a session's failure or departure is its own, and mixed sizes form their own
+batches. The device thread is held busy while the sessions ask (as under load), so that their
+frames meet in one batch; a session's first frame runs alone, in slices."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+
+import pytest
+from server_fixtures import VOLUME, H, W, server_settings
+
+from isosr_net.methods import FrameRunner
+from isosr_render import open_volume, orbit
+from isosr_render.catalog import resolve_iso
+from isosr_server import protocol as P
+from isosr_server.encoding import CodedImage, encode_image
+from isosr_server.engine import Engine
+from isosr_server.views import VIEWS, FrameJob
+
+SESSIONS = 3
+FRAMES = 3  # the first runs alone (a new runner's frame runs in slices); the others in batches
+MODES = [m for m in VIEWS if m != "auto"]  # auto's choice follows the device's load, not the frames
+
+
+def png(rgb) -> CodedImage:
+    return CodedImage(encode_image(rgb, "png", 90), "png")
+
+
+@pytest.fixture(scope="module")
+def engine():
+    engine = Engine(server_settings())
+    asyncio.run(engine.call(engine.start_sync))
+    yield engine
+    engine.shutdown()
+
+
+@pytest.fixture
+def batches(monkeypatch) -> list[int]:
+    """The sizes of the batches the runners' ``make_batch`` got."""
+    sizes: list[int] = []
+    make_batch = FrameRunner.make_batch.__func__
+
+    def recorded(cls, frames):
+        sizes.append(len(frames))
+        return make_batch(cls, frames)
+    monkeypatch.setattr(FrameRunner, "make_batch", classmethod(recorded))
+    return sizes
+
+
+class Sessions:
+    """``SESSIONS`` view sessions' device-side state on one volume, each orbiting from its own yaw."""
+
+    def __init__(self, engine: Engine, settings: list[P.ViewSettings]):
+        self.engine, self.settings = engine, settings
+        volume = open_volume(VOLUME)
+        self.iso = resolve_iso(VOLUME, volume)
+        self.renderer = asyncio.run(engine.call(engine.renderer_sync, VOLUME, volume))
+        self.frames = [engine.new_session_frames(VOLUME) for _ in settings]
+
+    def job(self, k: int, t: int) -> FrameJob:
+        return FrameJob(self.settings[k], orbit(20.0 + 25.0 * k + 3.0 * t, 25.0, 1.8), self.iso, P.FocusMsg(),
+                        t, False, len(self.settings))
+
+    async def one(self, k: int, t: int) -> bytes | P.ViewBuffers:
+        encode = await self.engine.view_frame(self.frames[k], self.renderer, self.job(k, t), png)
+        made = await encode()
+        return made.image.data if made.image is not None else made.buffers
+
+    async def together(self, t: int, ks: list[int], cancel: int | None = None) -> list:
+        """Frame ``t`` of the sessions ``ks``, asked for while the device thread is busy; ``cancel``:
+        a session that leaves while its frame waits. Each result, or the exception it raised."""
+        release = threading.Event()
+        busy = asyncio.ensure_future(self.engine.call(release.wait))
+        tasks = [asyncio.ensure_future(self.one(k, t)) for k in ks]
+        await asyncio.sleep(0.05)  # every session's frame is asked for
+        if cancel is not None:
+            tasks[ks.index(cancel)].cancel()
+        release.set()
+        await busy
+        return await asyncio.gather(*tasks, return_exceptions=True)
+
+
+def alone(engine: Engine, settings: list[P.ViewSettings]) -> list[list]:
+    """Each session's frames made with nothing else asked for meanwhile."""
+    s = Sessions(engine, settings)
+    return [[asyncio.run(s.one(k, t)) for t in range(FRAMES)] for k in range(len(settings))]
+
+
+def together(engine: Engine, settings: list[P.ViewSettings], cancel: tuple[int, int] | None = None) -> list[list]:
+    s = Sessions(engine, settings)
+    out = [[] for _ in settings]
+    for t in range(FRAMES):
+        leaving = cancel[0] if cancel is not None and cancel[1] == t else None
+        for k, frame in enumerate(asyncio.run(s.together(t, list(range(len(settings))), leaving))):
+            out[k].append(frame)
+    return out
+
+
+def view_settings(engine: Engine, mode: str, width: int = W, height: int = H) -> P.ViewSettings:
+    """``mode`` at the size, with 2 AO rays where it takes them (within its bounds)."""
+    options = {o.name: o for m in engine.modes if m.name == mode for o in m.options}
+    ao = options.get("ao_rays")
+    return P.ViewSettings(mode=mode, width=width, height=height, refine=False,
+                          ao_rays=0 if ao is None else max(ao.low, min(2, ao.high)))
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_frames_made_together_equal_those_made_alone(engine, batches, mode):
+    settings = [view_settings(engine, mode)] * SESSIONS
+    expected = alone(engine, settings)
+    batches.clear()
+    assert together(engine, settings) == expected
+    assert batches == [SESSIONS] * (FRAMES - 1), "after their first frames, the sessions' frames met in one batch"
+
+
+def test_a_cut_in_one_session_changes_nothing_in_the_others(engine):
+    """A session whose camera cuts (a new runner: another method) beside two that go on: theirs
+    equal their frames made alone."""
+    settings = [view_settings(engine, "reconstruct")] * SESSIONS
+    expected = alone(engine, settings)
+    s = Sessions(engine, settings)
+    got = [[] for _ in settings]
+    for t in range(FRAMES):
+        if t == 2:  # the second session changes its settings: a cut, and a batch of its own
+            s.settings = [settings[0], view_settings(engine, "full"), settings[2]]
+        for k, frame in enumerate(asyncio.run(s.together(t, list(range(SESSIONS))))):
+            got[k].append(frame)
+    assert got[0] == expected[0] and got[2] == expected[2]
+    assert got[1][:2] == expected[1][:2] and got[1][2] != expected[1][2]
+
+
+def test_a_session_s_failure_is_its_own(engine, monkeypatch):
+    """One session's frame raises (its renderer fails on its camera): its view_frame raises that
+    error; its batch mates get their frames, equal to those made alone."""
+    settings = [view_settings(engine, "full")] * SESSIONS
+    expected = alone(engine, settings)
+    s = Sessions(engine, settings)
+    failing_camera = s.job(1, FRAMES - 1).camera
+    render = type(s.renderer).render
+
+    def render_or_fail(renderer, camera, request, *args, **kwargs):
+        if camera == failing_camera:
+            raise RuntimeError("the device lost this frame")
+        return render(renderer, camera, request, *args, **kwargs)
+    got = [[] for _ in settings]
+    for t in range(FRAMES):
+        if t == FRAMES - 1:
+            monkeypatch.setattr(type(s.renderer), "render", render_or_fail)
+        for k, frame in enumerate(asyncio.run(s.together(t, list(range(SESSIONS))))):
+            got[k].append(frame)
+    assert isinstance(got[1][-1], RuntimeError) and "lost this frame" in str(got[1][-1])
+    assert got[0] == expected[0] and got[2] == expected[2]
+
+
+def test_a_session_that_leaves_mid_batch_leaves_the_others_theirs(engine):
+    settings = [view_settings(engine, "reconstruct")] * SESSIONS
+    expected = alone(engine, settings)
+    got = together(engine, settings, cancel=(1, 1))
+    assert isinstance(got[1][1], asyncio.CancelledError)
+    assert got[0] == expected[0] and got[2] == expected[2]
+
+
+def test_mixed_sizes_form_their_own_batches(engine, batches):
+    settings = [view_settings(engine, "full"), view_settings(engine, "full", 2 * W, 2 * H),
+                view_settings(engine, "full")]
+    expected = alone(engine, settings)
+    batches.clear()
+    assert together(engine, settings) == expected
+    assert sorted(batches) == [1, 1, 2, 2], "per frame: the two sessions of one size together, the other alone"
