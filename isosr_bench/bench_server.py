@@ -39,6 +39,7 @@ from __future__ import annotations
 import json
 import signal
 import socket
+import ssl
 import subprocess
 import sys
 import tempfile
@@ -107,11 +108,15 @@ class ServerProcess:
         startup_s: how long to wait for ready (on a GPU machine with empty kernel caches the server
             compiles the renderer and tunes the fused reconstruction kernels, x1 and x2, for two
             window sizes each: more than 180 s on an H200 at c9c8109).
+        tls: a client context that trusts the server's certificate, where ``extra_args`` give it
+            one (the server then speaks HTTPS).
     """
 
-    def __init__(self, device: str, extra_args: tuple[str, ...] = (), startup_s: float = 420.0):
+    def __init__(self, device: str, extra_args: tuple[str, ...] = (), startup_s: float = 420.0,
+                 tls: ssl.SSLContext | None = None):
         self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
+        self.tls = tls
+        self.url = f"{'http' if tls is None else 'https'}://127.0.0.1:{self.port}"
         self.command = [sys.executable, "-m", "isosr_cli.main", "serve", "--port", str(self.port), "--device", device,
                         "--log-level", "warning", *extra_args]
         self.startup_s = startup_s
@@ -135,7 +140,7 @@ class ServerProcess:
 
     def _ready(self) -> bool:
         try:
-            with urllib.request.urlopen(self.url + "/v2/health/ready", timeout=2) as r:
+            with urllib.request.urlopen(self.url + "/v2/health/ready", timeout=2, context=self.tls) as r:
                 return json.loads(r.read()).get("ready") is True
         except OSError:
             return False

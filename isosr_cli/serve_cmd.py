@@ -62,5 +62,5 @@ def run(args: argparse.Namespace) -> int:
     if args.gpus_per_replica or args.ray_address or args.max_replicas:
         raise SystemExit("--gpus-per-replica, --ray-address and --max-replicas go with --replicas N")
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level=settings.log_level,
-                access_log=settings.log_level == "debug", **uvicorn_options(settings.limits), **settings.tls_options())
+                access_log=settings.log_level == "debug", **uvicorn_options(settings.limits, settings.tls_context()))
     return 0

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import ssl
 import time
 from contextlib import asynccontextmanager
 
@@ -43,15 +44,20 @@ from isosr_server.volumes import VolumeCatalog
 log = logging.getLogger("isosr.server")
 
 
-def uvicorn_options(limits: Limits) -> dict:
+def uvicorn_options(limits: Limits, tls: ssl.SSLContext | None = None) -> dict:
     """uvicorn settings the protocol needs: WebSocket messages bounded by the limit (uvicorn closes
     bigger ones with 1009), no per-message deflate (frames are compressed already); the WebSocket
-    protocol of :mod:`isosr_server.ws_transport` (a small limit before the first message, pings counted)."""
+    protocol of :mod:`isosr_server.ws_transport` (a small limit before the first message, pings
+    counted); the HTTP protocol of :mod:`isosr_server.transport`, which makes the TLS handshakes
+    with ``tls`` (uvicorn is then given no certificate)."""
     return {"ws_max_size": limits.max_message_bytes, "ws_per_message_deflate": False,
             "ws": ws_transport.protocol_class(limits),
             # HTTP heads, their deadline and the open connections bounded (isosr_server.transport).
-            "http": transport.protocol_class(limits), "h11_max_incomplete_event_size": limits.max_header_bytes,
-            "timeout_keep_alive": transport.KEEP_ALIVE_S}
+            "http": transport.protocol_class(limits, tls), "h11_max_incomplete_event_size": limits.max_header_bytes,
+            "timeout_keep_alive": transport.KEEP_ALIVE_S,
+            # With TLS, asyncio's loop: uvloop hands a new connection's first bytes to the protocol even when
+            # it pauses reading in connection_made, so a ClientHello reached h11 before the handshake began.
+            **({} if tls is None else {"loop": "asyncio"})}
 
 
 def create_app(settings: Settings) -> FastAPI:

@@ -19,8 +19,12 @@ module's protocol, a small subclass of uvicorn's ``H11Protocol`` passed as ``htt
   (an idle socket, or a slow one), so that idle sockets cannot lock out an honest client or the
   liveness probe; where every connection is busy with a request, the new one gets 503 and is closed.
 
-Closed and refused connections are INFO lines, at most one a second per server. Not covered: a
-TLS connection is counted from the end of its handshake (asyncio bounds a handshake to 60 s).
+With TLS the protocol makes the handshake itself (``loop.start_tls``) rather than leaving it to
+the listening socket, so that a connection counts from its accept and its handshake runs within
+the head's deadline: connections that never finish a handshake are bounded like idle sockets
+(asyncio's own handshake bound, 60 s, left them uncounted that long).
+
+Closed and refused connections are INFO lines, at most one a second per server.
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ import json
 import logging
 import os
 import resource
+import ssl
 import time
 from collections import OrderedDict
 from typing import Any
@@ -52,10 +57,11 @@ REFUSAL = (b"HTTP/1.1 503 Service Unavailable\r\ncontent-type: application/json\
            b"connection: close\r\nretry-after: 1\r\n\r\n%s" % (len(_REFUSAL_BODY), _REFUSAL_BODY))
 
 
-def protocol_class(limits: Limits) -> type[BoundedH11Protocol]:
-    """A `BoundedH11Protocol` class for one server (``uvicorn.Config(http=...)``): its ``limits``
-    and its own `Connections` (so servers in one process count apart)."""
-    return type("BoundedH11Protocol", (BoundedH11Protocol,), {"limits": limits,
+def protocol_class(limits: Limits, tls: ssl.SSLContext | None = None) -> type[BoundedH11Protocol]:
+    """A `BoundedH11Protocol` class for one server (``uvicorn.Config(http=...)``): its ``limits``,
+    its TLS context (None: plain HTTP; the listening socket then has none) and its own
+    `Connections` (so servers in one process count apart)."""
+    return type("BoundedH11Protocol", (BoundedH11Protocol,), {"limits": limits, "tls": tls,
                                                              "registry": Connections(limits)})
 
 
@@ -161,6 +167,7 @@ class BoundedH11Protocol(H11Protocol):
     made per server by `protocol_class`."""
 
     limits: Limits
+    tls: ssl.SSLContext | None
     registry: Connections
 
     def __init__(self, *args, **kwargs) -> None:
@@ -168,24 +175,55 @@ class BoundedH11Protocol(H11Protocol):
         self.conn = HeadBoundedConnection(self.limits.max_header_bytes, self.limits.max_header_count,
                                           self.on_request, self.refuse_head)
         self.counted = False  # in registry.open
-        self.refused = False  # over the cap: answered 503 and closed
+        self.made = False  # uvicorn's connection_made done (with TLS: after the handshake)
+        self.early: list[bytes] = []  # TLS: what the client sent before that
         self.deadline: Any = None  # the header deadline's timer while waiting for a head
 
     def connection_made(self, transport) -> None:  # type: ignore[override]
+        self.transport = transport  # until the handshake ends, the TCP connection (closed by the deadline)
         if not self.registry.make_room():
-            self.transport, self.refused = transport, True
             self.registry.note("refused", self.loop)
-            transport.write(REFUSAL)
+            transport.write(REFUSAL)  # plain HTTP even to a TLS client: it reads a failed handshake
             transport.close()
             return
-        super().connection_made(transport)
         self.registry.open += 1
         self.counted = True
-        self.await_head()
+        self.await_head()  # with TLS, the handshake counts toward the head's deadline
+        if self.tls is None:
+            self.made_on(transport)
+        else:
+            transport.pause_reading()  # the handshake's bytes are the TLS layer's, not h11's
+            self.loop.create_task(self.handshake(transport))
+
+    async def handshake(self, transport) -> None:
+        """The TLS handshake, bounded by the head's deadline (and its closing to make room)."""
+        try:
+            secure = await self.loop.start_tls(transport, self, self.tls, server_side=True,
+                                               ssl_handshake_timeout=self.limits.header_timeout_s)
+        except Exception:  # noqa: BLE001 - failed, stalled or closed by a bound: the client's, never an error here
+            secure = None
+        if secure is None:  # (None: the connection was lost between the handshake's end and this task going on)
+            self.release()  # no connection_lost comes for a connection whose handshake failed
+            transport.abort()
+            return
+        self.made_on(secure)
+
+    def made_on(self, transport) -> None:
+        super().connection_made(transport)
+        self.made = True
+        for data in self.early:
+            super().data_received(data)
+        self.early.clear()
+
+    def data_received(self, data: bytes) -> None:
+        if self.made:
+            super().data_received(data)
+        else:  # a request that came with the handshake's end, before the handshake's task went on
+            self.early.append(data)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.release()
-        if not self.refused:
+        if self.made:
             super().connection_lost(exc)
 
     def release(self) -> None:

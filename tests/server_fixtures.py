@@ -113,7 +113,7 @@ def running_server(settings: Settings):
     # log_config=None: uvicorn leaves logging alone, so its records reach the root logger too.
     app = create_app(settings)
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_config=None,
-                                           **uvicorn_options(settings.limits), **settings.tls_options()))
+                                           **uvicorn_options(settings.limits, settings.tls_context())))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     deadline = time.monotonic() + 120

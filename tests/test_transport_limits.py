@@ -4,7 +4,8 @@ limits (431 or a close; memory and liveness hold), heads dribbled past the deadl
 fresh and on a keep-alive connection), idle sockets over the connection cap (the oldest closed to
 make room: liveness answers, the server's descriptors stay near the cap), connections over the
 cap while every one is busy (503 and a close), the count released on every path (WebSockets
-included); and ``/openapi.json`` behind the token.
+included), TLS handshakes that stall (counted from the accept, closed by the deadline); and
+``/openapi.json`` behind the token.
 
 Every loop is bounded in count and time; no test asserts a duration.
 """
@@ -14,11 +15,14 @@ from __future__ import annotations
 import os
 import select
 import socket
+import ssl
 import time
+import urllib.request
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
 
 import pytest
+from server_fixtures import self_signed_cert
 from websockets.sync.client import connect as ws_connect
 
 from isosr_bench.bench_server import ServerProcess, rss_bytes
@@ -36,8 +40,8 @@ def flags(limits: dict) -> tuple[str, ...]:
 
 
 @contextmanager
-def serve(*args: str) -> Iterator[ServerProcess]:
-    with ServerProcess("cpu", extra_args=("--log-level", "info", *args)) as server:
+def serve(*args: str, tls: ssl.SSLContext | None = None) -> Iterator[ServerProcess]:
+    with ServerProcess("cpu", extra_args=("--log-level", "info", *args), tls=tls) as server:
         yield server
 
 
@@ -243,3 +247,36 @@ def test_the_count_is_released_on_every_path(capped):
         with ws_connect(f"ws://127.0.0.1:{capped.port}/v1/view", proxy=None, open_timeout=30):
             pass  # upgraded, then closed before a message
     assert get(capped)[0] == 200
+
+
+@pytest.fixture(scope="module")
+def tls_capped(tmp_path_factory):
+    """HTTPS with a small connection cap and a short header deadline."""
+    cert, key = self_signed_cert(tmp_path_factory.mktemp("tls"))
+    with serve("--tls-cert", str(cert), "--tls-key", str(key), tls=ssl.create_default_context(cafile=cert),
+               *flags({"max_open_connections": CAP, "header_timeout_s": HEADER_TIMEOUT_S})) as server:
+        yield server
+
+
+def https_live(server: ServerProcess) -> int:
+    with urllib.request.urlopen(server.url + "/v2/health/live", context=server.tls, timeout=10) as r:
+        return r.status
+
+
+def test_stalled_tls_handshakes_count_and_are_closed_by_the_deadline(tls_capped):
+    """Connections that begin a TLS handshake and stall (a record header, no more) count against
+    the cap from their accept and are closed within the head's deadline; HTTPS liveness answers
+    throughout and the server's descriptors stay near the cap."""
+    server = tls_capped
+    base = descriptors(server.pid)
+    with ExitStack() as stack:
+        stalled = []
+        for i in range(3 * CAP):
+            sock = stack.enter_context(dial(server))
+            sock.sendall(b"\x16\x03\x01\x02\x00")  # a ClientHello's record header; its body never comes
+            stalled.append(sock)
+            if i % 8 == 7:
+                assert https_live(server) == 200
+        assert descriptors(server.pid) <= base + CAP + 4
+        assert all(closed_by_server(sock, 20 * HEADER_TIMEOUT_S) for sock in stalled)
+    assert https_live(server) == 200

@@ -147,9 +147,17 @@ class Settings:
         """``https`` with a certificate, else ``http``."""
         return "http" if self.tls_cert is None else "https"
 
+    def tls_context(self) -> ssl.SSLContext | None:
+        """The server's TLS context (None without TLS): the certificate chain and its key, TLS 1.2 or
+        newer (:func:`isosr_server.transport.protocol_class` makes the handshakes with it)."""
+        if self.tls_cert is None:
+            return None
+        context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+        context.load_cert_chain(self.tls_cert, self.tls_key)
+        return context
+
     def tls_options(self) -> dict[str, str]:
-        """The certificate and key as uvicorn's and Ray Serve's ``ssl_certfile`` and ``ssl_keyfile``
-        (none without TLS)."""
+        """The certificate and key as Ray Serve's ``ssl_certfile`` and ``ssl_keyfile`` (none without TLS)."""
         return {} if self.tls_cert is None else {"ssl_certfile": str(self.tls_cert), "ssl_keyfile": str(self.tls_key)}
 
     @classmethod
