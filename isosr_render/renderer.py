@@ -32,6 +32,7 @@ from isosr_render import kernels, voxels
 from isosr_render.brick_pool import BrickPool, MemoryStats
 from isosr_render.buffers import FrameBuffers
 from isosr_render.camera import Camera
+from isosr_render.clip import Clip
 from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES
 from isosr_render.flow_fill import FILL_METHODS, fill_flow
 from isosr_render.shading import ShadingParams, shade
@@ -58,7 +59,7 @@ STORE_TYPES = {"float32": wp.float32, "uint16": wp.uint16, "uint8": wp.uint8}
 KERNEL_BUFFERS = {"mask": (kernels.OUT_MASK, wp.float32), "normal": (kernels.OUT_NORMAL, wp.vec3),
                   "depth": (kernels.OUT_DEPTH, wp.float32), "position": (kernels.OUT_POSITION, wp.vec3),
                   "flow": (kernels.OUT_FLOW, wp.vec2), "ao": (kernels.OUT_AO, wp.float32),
-                  "samples": (kernels.OUT_SAMPLES, wp.int32)}
+                  "cap": (kernels.OUT_CAP, wp.vec2), "samples": (kernels.OUT_SAMPLES, wp.int32)}
 # Host layout of kernels.FrameArgs (a numpy record with the ctypes struct's offsets).
 FRAME_DTYPE = np.dtype(kernels.FrameArgs.numpy_dtype())
 
@@ -85,6 +86,8 @@ class RenderRequest:
             flow of pixels without a hit.
         skip: use the min-max grid to skip bricks (off only to measure what it saves).
         shading: material and light for ``color``.
+        clip: clip planes, crop box and caps (:mod:`isosr_render.clip`); the default cuts nothing.
+            With caps, ``color`` shows the cut faces in the volume's values (the ``cap`` buffer).
     """
 
     width: int
@@ -102,6 +105,7 @@ class RenderRequest:
     flow_fill: str = "none"
     skip: bool = True
     shading: ShadingParams = field(default_factory=ShadingParams)
+    clip: Clip = field(default_factory=Clip)
 
     def __post_init__(self):
         object.__setattr__(self, "outputs", tuple(dict.fromkeys(self.outputs)))
@@ -130,12 +134,14 @@ class RenderRequest:
             raise ValueError("flow needs a previous camera (prev_camera); the first frame of a sequence has none")
         if self.flow_fill not in FILL_METHODS:
             raise ValueError(f"flow_fill must be one of {FILL_METHODS}, got {self.flow_fill!r}")
+        if not isinstance(self.clip, Clip):
+            raise ValueError(f"clip must be an isosr_render.clip.Clip, got {type(self.clip).__name__}")
 
     def kernel_outputs(self) -> int:
         """The kernel's OUT_* bits: the asked buffers and the ones they are made from."""
         need = set(self.outputs)
         if "color" in need:
-            need |= {"mask", "normal"}
+            need |= {"mask", "normal"} | ({"cap"} if self.clip.capped else set())
         if "flow" in need and self.flow_fill != "none":
             need.add("mask")
         return sum(KERNEL_BUFFERS[name][0] for name in need if name in KERNEL_BUFFERS)
@@ -181,6 +187,11 @@ def frame_args(camera: Camera, request: RenderRequest, step: float, out: np.ndar
                         ("ao_samples", request.ao_samples), ("ao_radius", request.ao_radius),
                         ("seed", request.seed), ("outputs", request.kernel_outputs())):
         params[name] = value
+    clip, cut = request.clip, args["clip"]
+    box = clip.box or ((0.0,) * 3,) * 2
+    for name, value in (("planes", clip.plane_rows()), ("count", len(clip.planes)), ("boxed", clip.box is not None),
+                        ("lo", box[0]), ("hi", box[1]), ("cap", {"none": 0, "above": 1, "below": -1}[clip.cap])):
+        cut[name] = value
     return args
 
 
@@ -549,7 +560,8 @@ class RenderPlan:
         if "flow" in request.outputs and request.flow_fill != "none":
             frame.flow = fill_flow(self.tensors["flow"], self.tensors["mask"], request.flow_fill)
         if "color" in request.outputs:
-            frame.color = shade(self.tensors["mask"], self.tensors["normal"], self.tensors.get("ao"), request.shading)
+            frame.color = shade(self.tensors["mask"], self.tensors["normal"], self.tensors.get("ao"), request.shading,
+                                self.tensors.get("cap"))
         return frame
 
     def render(self, camera: Camera, request: RenderRequest, rows: tuple[int, int] | None = None) -> FrameBuffers:
