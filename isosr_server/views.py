@@ -157,7 +157,7 @@ class FocusView(View):
             return color
         start, stop = int(covered[0]), int(covered[-1]) + 1
         lens = make_runner(FrameMethod("full", ao_rays=st.ao_rays, spp=st.spp), renderer, job.iso, st.width,
-                           st.height, ao_radius=st.ao_radius)
+                           st.height, ao_radius=st.ao_radius, clip=st.clip.clip())
         with timer("render"):
             sharp = lens.rows(job.camera, start, stop)
         with timer("shading"):
@@ -255,10 +255,11 @@ class SessionFrames:
         shaded = st.channel == "shaded"
         keep = () if shaded else (st.channel,)
         timer = StageTimer(str(renderer.device))
+        clip = st.clip.clip()
         if job.refined:
             method = refined_method(st)
             runner = make_runner(method, renderer, job.iso, st.width, st.height, ao_radius=st.ao_radius, keep=keep,
-                                 shade=shaded)
+                                 shade=shaded, clip=clip)
             result = yield from runner.steps(job.camera, None, slice_ms)
             prev_seq = -1
         else:
@@ -266,7 +267,7 @@ class SessionFrames:
             method = view.method(st, self.ctx, self, renderer, job)
             prev_camera, prev_seq = self._prev or (None, -1)
             result = yield from self.stream.steps(method, renderer, job.iso, st.width, st.height, job.camera,
-                                                  prev_camera, st.ao_radius, keep, shaded, slice_ms)
+                                                  prev_camera, st.ao_radius, keep, shaded, slice_ms, clip)
             self._prev = (job.camera, job.seq)
             prev_seq = prev_seq if result.continued else -1
         if not shaded:
