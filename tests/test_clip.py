@@ -14,7 +14,8 @@ import pytest
 from conftest import DEVICE, field_volume, pixel_rays, render_np, sphere_sdf
 from isosr_render.camera import Camera, orbit
 from isosr_render.clip import MAX_PLANES, Clip
-from isosr_render.renderer import Renderer, RenderRequest, frame_args
+from isosr_render import kernels
+from isosr_render.renderer import Renderer, RenderRequest, clip_args
 
 W, H = 48, 40
 OUTS = ("mask", "normal", "depth", "ao", "cap", "color")
@@ -238,5 +239,27 @@ def test_no_clip_is_a_no_op(renderer):
     boxed = render_np(renderer, camera, _request(renderer, Clip(box=((-5,) * 3, (5,) * 3)), outputs=outs))
     for name in outs:
         np.testing.assert_array_equal(plain[name], boxed[name], err_msg=name)
-    args = frame_args(camera, _request(renderer, Clip()), 0.01)["clip"][0]
-    assert (args["count"], args["boxed"], args["cap"]) == (0, 0, 0)
+    # Without a clip, a plan runs the plain kernels (NoClip: compiled as before clipping) and stages no clip.
+    plan = renderer.plan(_request(renderer, Clip(), outputs=outs))
+    assert not plan.clipped and isinstance(plan._clip, kernels.NoClip.cls)
+    assert kernels.frame_kernels(False)["first_hit_kernel"].module is not kernels.frame_kernels(True)[
+        "first_hit_kernel"].module
+    region = clip_args(Clip(planes=[CUT], box=((-1,) * 3, (1,) * 3), cap="above"))["region"][0]
+    assert (region["count"], region["boxed"], region["cap"]) == (1, 1, 1)
+
+
+def test_a_plan_clips_each_frame_as_staged(renderer):
+    """A clipping plan's recorded launches read the clip staged per frame (as a CUDA graph replays them):
+    frames of one plan with other planes match fresh renders of those."""
+    cuts = [Clip(planes=[CUT], cap="below"), Clip(planes=[((0.0, 0.05, 0.0), (0.0, 1.0, 0.0))], cap="below"),
+            Clip(box=((-0.2,) * 3, (0.1, 0.2, 0.15)), cap="below")]
+    camera = orbit(30.0, 20.0, 1.8)
+    plan = renderer.plan(_request(renderer, cuts[0]))
+    for clip in cuts:
+        request = _request(renderer, clip)
+        staged = {k: v.copy() for k, v in plan.render(camera, request).to_numpy().items()}
+        fresh = render_np(renderer, camera, request)
+        for name in ("mask", "depth", "cap"):
+            np.testing.assert_array_equal(staged[name], fresh[name], err_msg=name)
+    with pytest.raises(ValueError, match="clipped"):
+        plan.render(camera, _request(renderer, Clip()))
