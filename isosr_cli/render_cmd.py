@@ -257,7 +257,7 @@ def run(args: argparse.Namespace) -> int:
     if renderer.device.is_cuda:
         torch.cuda.synchronize()
     elapsed = time.perf_counter() - start
-    picked = None if args.pick is None else pick(renderer, camera, iso, *args.size, *args.pick)
+    picked = None if args.pick is None else pick(renderer, camera, iso, *args.size, *args.pick, clip=clip)
     if out.suffix == ".npz":
         frame.save_npz(out)
     else:

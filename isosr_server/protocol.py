@@ -592,7 +592,7 @@ class PickedMsg(Message, tag="picked"):
     it does, the point in world units, its nearest voxel, its position in the volume's physical
     units (voxel coordinates times the spacing) and the volume's value there in data units
     (:class:`isosr_render.picking.Pick`); the distance between two picks is that of their
-    ``position``."""
+    ``position``. The view's clip holds: ``cap`` where the point lies on a capped cut face."""
 
     x: Finite
     y: Finite
@@ -603,6 +603,7 @@ class PickedMsg(Message, tag="picked"):
     position: Vec3 | None = None
     value: Finite | None = None
     depth: Finite | None = None
+    cap: bool = False
 
 
 class NoticeMsg(Message, tag="notice"):

@@ -127,6 +127,25 @@ def test_a_pick_answers_with_the_librarys_point_between_frames(srv, lib):
         expect_close(ws, P.CLOSE_BAD_MESSAGE, "lies outside the")
 
 
+def test_a_pick_honours_the_sessions_clip(srv, lib):
+    """With a clip in the settings, a pick answers as the library's pick with that clip: here a plane
+    square to the view just behind the surface point the pixel shows, capped: the cut face."""
+    camera, (x, y) = to_camera(CAM0), (24.5, 24.5)
+    plain = pick(lib.renderer, camera, lib.iso, W, H, x, y)
+    toward = -np.asarray(camera.eye) / np.linalg.norm(camera.eye)
+    point = tuple(float(v) for v in np.asarray(plain.world) + 0.01 * toward)
+    cut = P.ClipSettings(planes=(P.ClipPlane(point, tuple(float(v) for v in toward)),), cap="below")
+    with session(srv, mode="full", clip=cut) as (ws, _):
+        frame(ws)
+        send(ws, P.PickMsg(x, y, id=1))
+        while not isinstance(msg := recv(ws), P.PickedMsg):
+            send(ws, P.ReceivedMsg(msg.seq))
+    expected = pick(lib.renderer, camera, lib.iso, W, H, x, y, cut.clip())
+    assert expected.cap and not plain.cap and expected.depth > plain.depth
+    assert (msg.hit, msg.cap, msg.voxel) == (expected.hit, expected.cap, expected.voxel)
+    assert msg.depth == pytest.approx(expected.depth) and msg.position == pytest.approx(expected.position)
+
+
 def test_full_mode_matches_the_library(srv, lib):
     with session(srv, mode="full", ao_rays=4) as (ws, ready):
         assert ready.settings.mode == "full" and ready.volume.iso == 0.0

@@ -666,6 +666,7 @@ function onPicked(picked) {
   state.picks = [...state.picks, { x: asked.x, y: asked.y, picked }].slice(-2);
   const [i, j, k] = picked.voxel;
   let text = `value ${fmt(picked.value)} at voxel (${i}, ${j}, ${k}), (${picked.position.map(fmt).join(", ")})`;
+  if (picked.cap) text += " on a cut face";
   const ruler = $("ruler");
   ruler.toggleAttribute("hidden", state.picks.length < 2); // an SVG element: the attribute, no .hidden
   if (state.picks.length === 2) {
