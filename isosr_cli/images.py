@@ -30,6 +30,8 @@ def visualize(frame: FrameBuffers, name: str) -> np.ndarray:
         lo, hi = float(d.min()), float(d.max())
         gray = torch.where(hit, 1.0 - (a - lo) / max(hi - lo, 1e-12) * 0.8, torch.zeros_like(a))
         rgb = gray[..., None].expand(*gray.shape, 3)
+    elif name == "cap":  # the cut faces' values in grey
+        rgb = (a[..., 0] * a[..., 1])[..., None].expand(*a.shape[:2], 3)
     elif a.ndim == 2:
         rgb = a[..., None].expand(*a.shape, 3)
     else:

@@ -38,6 +38,7 @@ from isosr_render import (
     resolve_iso,
 )
 from isosr_render.catalog import SHARED_PREFIX, check_iso
+from isosr_render.clip import CAP_MODES, Clip
 from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES
 from isosr_render.formats import help_text
 from isosr_render.picking import pick
@@ -82,6 +83,15 @@ def add_parser(subparsers) -> None:
     cam.add_argument("--orbit", type=_triple, help="YAW,PITCH,DIST around --target instead of --eye")
     cam.add_argument("--prev-eye", type=_triple, help="previous camera position, for flow")
     cam.add_argument("--prev-orbit", type=_triple, help="previous camera as YAW,PITCH,DIST, for flow")
+    cut = p.add_argument_group("clipping (world units)")
+    cut.add_argument("--clip-plane", type=_numbers(6), action="append", default=[], metavar="X,Y,Z,NX,NY,NZ",
+                     help="a clip plane through X,Y,Z keeping the side its normal NX,NY,NZ points into (repeatable; "
+                          "values starting with '-' go as --clip-plane=-0.1,...)")
+    cut.add_argument("--crop-box", type=_numbers(6), metavar="X0,Y0,Z0,X1,Y1,Z1",
+                     help="keep only this box (negative values: --crop-box=-0.5,...)")
+    cut.add_argument("--cap", choices=CAP_MODES, default="none",
+                     help="show the cut faces where they cut the solid, the values at or above the iso ('above', "
+                          "as bone in a CT) or below it (as inside a signed distance), in grey by the volume's value")
     p.add_argument("--outputs", default="mask,normal,depth,color",
                    help=f"comma-separated buffers: {','.join(BUFFER_NAMES)},samples")
     p.add_argument("--ao-samples", type=int,
@@ -117,6 +127,25 @@ def add_parser(subparsers) -> None:
     p.add_argument("--png-of", choices=BUFFER_NAMES, help="with a .png output: the buffer to show")
     p.add_argument("-o", "--output", help="FILE.npz (frame file) or FILE.png (required but with --list-methods)")
     p.set_defaults(func=run)
+
+
+def _numbers(count: int):
+    """An argparse type: ``count`` comma-separated numbers."""
+    def parse(text: str) -> tuple[float, ...]:
+        try:
+            values = tuple(float(v) for v in text.split(","))
+        except ValueError:
+            values = ()
+        if len(values) != count:
+            raise argparse.ArgumentTypeError(f"expected {count} comma-separated numbers, got {text!r}")
+        return values
+    return parse
+
+
+def _clip(args: argparse.Namespace) -> Clip:
+    """The clip of --clip-plane, --crop-box and --cap."""
+    box = None if args.crop_box is None else (args.crop_box[:3], args.crop_box[3:])
+    return Clip(tuple((p[:3], p[3:]) for p in args.clip_plane), box, args.cap)
 
 
 def _pair(text: str) -> tuple[float, float]:
@@ -188,6 +217,9 @@ def run(args: argparse.Namespace) -> int:
     _check_method(args)
     if args.ao_samples is None:
         args.ao_samples = AO_SAMPLES
+    clip = _clip(args)
+    if clip.active and args.budget_ms is not None:
+        raise ValueError("--budget-ms probes unclipped frames: clip with a plain render or a --method")
 
     volume = open_volume(args.volume)
     iso = check_iso(volume, resolve_iso(args.volume, volume, args.iso, args.normalized_iso),
@@ -201,14 +233,15 @@ def run(args: argparse.Namespace) -> int:
     if args.method is not None:
         # An eager network: for a frame or two, compiling it would take longer than it saves.
         runner = make_runner(args.method, renderer, iso, *args.size, ao_radius=args.ao_radius * unit,
-                             networks=Networks.eager(), keep=tuple(o for o in outputs if o in BUFFER_NAMES))
+                             networks=Networks.eager(), keep=tuple(o for o in outputs if o in BUFFER_NAMES),
+                             clip=clip)
     else:
         request = RenderRequest(
             width=args.size[0], height=args.size[1], iso=iso, outputs=outputs,
             step=None if args.step is None else args.step * unit, refine=args.refine,
             refine_steps=args.refine_steps, spp=args.spp, ao_samples=args.ao_samples,
             ao_radius=args.ao_radius * unit, seed=args.seed, prev_camera=prev, flow_fill=args.flow_fill,
-            skip=not args.no_skip)
+            skip=not args.no_skip, clip=clip)
     start = time.perf_counter()
     if args.method is not None:
         made = run_sequence(runner, [camera] if prev is None else [prev, camera])[-1]
@@ -227,7 +260,7 @@ def run(args: argparse.Namespace) -> int:
     if renderer.device.is_cuda:
         torch.cuda.synchronize()
     elapsed = time.perf_counter() - start
-    picked = None if args.pick is None else pick(renderer, camera, iso, *args.size, *args.pick)
+    picked = None if args.pick is None else pick(renderer, camera, iso, *args.size, *args.pick, clip=clip)
     if out.suffix == ".npz":
         frame.save_npz(out)
     else:

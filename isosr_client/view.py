@@ -348,6 +348,19 @@ class ViewSession:
             update = msgspec.structs.replace(update, encoding="jpeg")
         return self._send(SettingsMsg(update, self._next_seq()))
 
+    def set_clip(self, planes: Sequence[tuple[Sequence[float], Sequence[float]]] = (),
+                 box: tuple[Sequence[float], Sequence[float]] | None = None, cap: str = "none") -> int:
+        """Clip every frame, world units: planes ``(point, normal)``, each keeping the side its normal
+        points into, a crop box ``(lo, hi)``, and caps of the cut faces where they cut the solid
+        (``"above"``: values at or above the iso are solid; ``"below"``; ``"none"``); no arguments: no
+        clipping. Returns the update's seq.
+
+        Raises:
+            ProtocolError: a bad plane or box, naming it (nothing is sent then).
+        """
+        return self.set_settings(clip={"planes": [{"point": _floats(p), "normal": _floats(n)} for p, n in planes],
+                                       "box": None if box is None else [_floats(c) for c in box], "cap": cap})
+
     def set_focus(self, shape: str = "none", center: tuple[float, float] | None = None, radius: float | None = None,
                   box: tuple[float, float, float, float] | None = None) -> int:
         """The ``focus`` mode's region in output pixels (x right, y down): ``circle`` (center,

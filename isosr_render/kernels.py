@@ -27,6 +27,11 @@ that did both (166-168 registers, 12 warps an SM) took 1.3-1.5 times as long on 
 (``docs/measurements.md``). The voxels are the kernels' own argument, typed per storage (one
 compiled overload each), and the hot functions take the few values they read, never a whole
 struct: each struct passed to a sampling function cost 70-80 registers.
+
+Clipping (:mod:`isosr_render.clip`) is a compile-time variant too: the frame kernels take a clip
+argument, :class:`NoClip` (this module's kernels: the plain path, compiled as without clipping) or
+:class:`ClipArgs` (the same kernels in :data:`CLIPPED_MODULE`, built only when a frame clips), the
+functions that cut overloaded on it (:func:`clipped_cast`, :func:`cut_face`, :func:`face_normal`).
 """
 
 from __future__ import annotations
@@ -34,6 +39,8 @@ from __future__ import annotations
 from typing import Any
 
 import warp as wp
+
+from isosr_render.clip import MAX_PLANES
 
 # The renderer needs no gradients (halves compile time); this module's option, not Warp's global one.
 wp.set_module_options({"enable_backward": False})
@@ -46,6 +53,7 @@ OUT_POSITION = wp.constant(8)
 OUT_FLOW = wp.constant(16)
 OUT_AO = wp.constant(32)
 OUT_SAMPLES = wp.constant(64)
+OUT_CAP = wp.constant(128)
 
 REFINE_BISECTION = wp.constant(0)
 REFINE_SECANT = wp.constant(1)
@@ -141,6 +149,37 @@ class FrameArgs:
     view: View
     prev: View  # the previous frame's camera (flow); ``view`` when there is none
     params: RayParams
+
+
+@wp.struct
+class NoClip:
+    """The kernels' clip argument when nothing is cut: its overloads leave every ray's interval as it is, so
+    the plain kernels compile as without clipping (the clipped ones take :class:`ClipArgs`)."""
+
+    unused: int  # a struct needs a field
+
+
+@wp.struct
+class ClipRegion:
+    """The kept region's values besides its planes (:class:`ClipArgs`), world units."""
+
+    count: int  # planes
+    boxed: int  # whether the box [lo, hi] cuts
+    lo: wp.vec3
+    hi: wp.vec3
+    cap: int  # which side of the iso is solid for caps: 1 above, -1 below, 0 no caps
+
+
+@wp.struct
+class ClipArgs:
+    """The kept region (:class:`isosr_render.clip.Clip`), read by the clipped kernels from device memory, as
+    :class:`FrameArgs` (a recorded launch clips each frame as staged): ``region[0]`` (:class:`ClipRegion`), and
+    its first ``count`` planes as rows ``(normal, offset)`` of ``planes`` (:data:`MAX_PLANES` rows), each
+    keeping ``dot(normal, x) + offset >= 0``. A table in device memory, not in a struct: indexed by a
+    variable, a table held in the frame's struct went to the stack (96 bytes in the first-hit kernel)."""
+
+    region: wp.array(dtype=ClipRegion)
+    planes: wp.array(dtype=wp.vec4)
 
 
 @wp.kernel
@@ -448,9 +487,118 @@ def cast(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, origin: wp.vec3
 
 
 @wp.func
-def ambient_occlusion(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, p: wp.vec3, n: wp.vec3, iso: float,
-                      step: float, rays: int, radius: float, state: wp.uint32) -> wp.vec2:
-    """Fraction of ``rays`` cosine-weighted hemisphere rays around ``n`` that escape within ``radius``.
+def kept_span(clip: ClipArgs, o: wp.vec3, d: wp.vec3, t_near: float, t_far: float) -> wp.vec3:
+    """The part ``(t0, t1)`` of ``[t_near, t_far]`` where the world ray ``o + t d`` lies in the kept region
+    (``t0 > t1``: none; one interval, the region being convex), and the face through which it enters at
+    ``t0``: a plane's row, ``MAX_PLANES + axis`` for the box, -1 where the region does not bound ``t0``."""
+    region = clip.region[0]
+    t0 = float(t_near)
+    t1 = float(t_far)
+    face = float(-1.0)
+    for i in range(region.count):
+        row = clip.planes[i]
+        n = wp.vec3(row[0], row[1], row[2])
+        s = wp.dot(n, o) + row[3]  # >= 0 at a kept origin
+        dn = wp.dot(n, d)
+        if dn > 0.0:
+            if -s / dn > t0:
+                t0 = -s / dn
+                face = float(i)
+        elif dn < 0.0:
+            t1 = wp.min(t1, -s / dn)
+        elif s < 0.0:  # parallel to the plane, on its removed side
+            t1 = -float(BIG)
+    if region.boxed != 0:
+        lo = region.lo
+        hi = region.hi
+        for a in range(3):
+            if d[a] == 0.0:
+                if o[a] < lo[a] or o[a] > hi[a]:
+                    t1 = -float(BIG)
+            else:
+                ta = (lo[a] - o[a]) / d[a]
+                tb = (hi[a] - o[a]) / d[a]
+                if wp.min(ta, tb) > t0:
+                    t0 = wp.min(ta, tb)
+                    face = float(MAX_PLANES + a)
+                t1 = wp.min(t1, wp.max(ta, tb))
+    return wp.vec3(t0, t1, face)
+
+
+@wp.func
+def solid_at(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, p: wp.vec3, iso: float, cap: int) -> bool:
+    """Whether the world point ``p`` lies in the grid and on the iso's solid side (``ClipRegion.cap``)."""
+    q = voxel_from_world(grid, p)
+    for a in range(3):
+        if q[a] < 0.0 or q[a] > float(grid.size[a] - 1):
+            return False
+    return (sample_volume(voxels, layout, grid, q) >= iso) == (cap > 0)
+
+
+# clipped_cast, cut_face and face_normal have an overload per clip type, as march_sample per layout: NoClip's
+# are the plain path's (the plain kernels compile as without clipping), ClipArgs' cut.
+@wp.func
+def clipped_cast(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, clip: NoClip, origin: wp.vec3,
+                 direction: wp.vec3, t_near: float, t_far: float, iso: float, step: float, refine_mode: int,
+                 refine_steps: int) -> wp.vec2:
+    """:func:`cast`: nothing is cut."""
+    return cast(voxels, layout, grid, origin, direction, t_near, t_far, iso, step, refine_mode, refine_steps)
+
+
+@wp.func
+def clipped_cast(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, clip: ClipArgs, origin: wp.vec3,
+                 direction: wp.vec3, t_near: float, t_far: float, iso: float, step: float, refine_mode: int,
+                 refine_steps: int) -> wp.vec2:
+    """:func:`cast` over the kept part of ``[t_near, t_far]``; with caps, a ray that enters the kept region
+    through a face at a solid point (and stays in it for a while) hits that face there."""
+    span = kept_span(clip, origin, direction, t_near, t_far)
+    cap = clip.region[0].cap
+    if cap != 0 and span[2] >= 0.0 and span[0] < span[1]:  # a flat region has no faces
+        if solid_at(voxels, layout, grid, origin + direction * span[0], iso, cap):
+            return wp.vec2(span[0], 1.0)
+    return cast(voxels, layout, grid, origin, direction, span[0], span[1], iso, step, refine_mode, refine_steps)
+
+
+@wp.func
+def cut_face(clip: NoClip, o: wp.vec3, d: wp.vec3, t: float) -> float:
+    """-1: no hit is on a cut face."""
+    return -1.0
+
+
+@wp.func
+def cut_face(clip: ClipArgs, o: wp.vec3, d: wp.vec3, t: float) -> float:
+    """The cut face (:func:`kept_span`) that the ray ``o + t d``'s hit at ``t`` (:func:`clipped_cast`) lies on,
+    -1 where it is the surface's (a hit after the kept region's entry, or no caps)."""
+    if clip.region[0].cap != 0:
+        span = kept_span(clip, o, d, 0.0, float(BIG))
+        if t <= span[0]:
+            return span[2]
+    return -1.0
+
+
+@wp.func
+def face_normal(clip: NoClip, face: int, d: wp.vec3) -> wp.vec3:
+    """No faces (never called)."""
+    return -d
+
+
+@wp.func
+def face_normal(clip: ClipArgs, face: int, d: wp.vec3) -> wp.vec3:
+    """The unit normal, into the kept region, of the face ``face`` (:func:`kept_span`) that a ray of
+    direction ``d`` enters through."""
+    if face < MAX_PLANES:
+        row = clip.planes[face]
+        return wp.vec3(row[0], row[1], row[2])
+    n = wp.vec3(0.0)
+    n[face - MAX_PLANES] = wp.sign(d[face - MAX_PLANES])
+    return n
+
+
+@wp.func
+def ambient_occlusion(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, clip: Any, p: wp.vec3, n: wp.vec3,
+                      iso: float, step: float, rays: int, radius: float, state: wp.uint32) -> wp.vec2:
+    """Fraction of ``rays`` cosine-weighted hemisphere rays around ``n`` that escape within ``radius``,
+    counting only occluders in the kept region (``clip``).
 
     Returns ``(ao, samples)``.
     """
@@ -470,7 +618,8 @@ def ambient_occlusion(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, p:
         phi = 2.0 * wp.pi * u2
         dir = tx * (r * wp.cos(phi)) + ty * (r * wp.sin(phi)) + n * wp.sqrt(wp.max(1.0 - u1, 0.0))
         # Whether the ray is blocked is settled when its crossing is bracketed: no refinement.
-        res = cast(voxels, layout, grid, origin, wp.normalize(dir), 0.0, radius, iso, step, REFINE_BISECTION, -1)
+        res = clipped_cast(voxels, layout, grid, clip, origin, wp.normalize(dir), 0.0, radius, iso, step,
+                           REFINE_BISECTION, -1)
         samples += res[1]
         if res[0] >= 0.0:
             hits += 1.0
@@ -523,18 +672,19 @@ def ray_direction(view: View, p: wp.vec2) -> wp.vec3:
 
 
 @wp.func
-def march_ray(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs), c: int,
-              row: int, s: int) -> wp.vec2:
+def march_ray(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs), clip: Any,
+              c: int, row: int, s: int) -> wp.vec2:
     """Ray ``s`` of pixel ``(c, row)`` to its first iso crossing: ``(t, volume samples)``, ``t < 0`` where none."""
     view = frame[0].view
     params = frame[0].params
-    return cast(voxels, layout, grid, view.eye, ray_direction(view, subpixel(c, row, s, params.spp)), 0.0,
-                float(BIG), params.iso, params.step, params.refine_mode, params.refine_steps)
+    return clipped_cast(voxels, layout, grid, clip, view.eye, ray_direction(view, subpixel(c, row, s, params.spp)),
+                        0.0, float(BIG), params.iso, params.step, params.refine_mode, params.refine_steps)
 
 
 @wp.kernel
 def first_hit_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs),
-                     row0: int, rows: int, hits: wp.array3d(dtype=wp.float32), counts: wp.array3d(dtype=wp.int32)):
+                     clip: Any, row0: int, rows: int, hits: wp.array3d(dtype=wp.float32),
+                     counts: wp.array3d(dtype=wp.int32)):
     """One thread per ray of the first ``hits.shape[0]`` of each pixel of the band ``[row0, row0 + rows)``
     (rays outermost): the ray parameter of its first iso crossing (world units, -1 where none) into
     ``hits[ray, row, column]``; with ``OUT_SAMPLES``, the volume samples that took into ``counts`` alike.
@@ -547,7 +697,7 @@ def first_hit_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, fra
     if px[0] < 0:
         return
     row = px[1] + row0
-    res = march_ray(voxels, layout, grid, frame, px[0], row, s)
+    res = march_ray(voxels, layout, grid, frame, clip, px[0], row, s)
     hits[s, row, px[0]] = res[0]
     if (frame[0].params.outputs & OUT_SAMPLES) != 0:
         counts[s, row, px[0]] = int(res[1])
@@ -564,45 +714,55 @@ SURFACE_MAX_REGISTERS = 128
 
 
 @wp.func
-def hit_surface(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs), c: int,
-                row: int, s: int, t: float):
+def hit_surface(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs), clip: Any,
+                c: int, row: int, s: int, t: float):
     """What ray ``s`` of pixel ``(c, row)``, its first hit at ``t``, gives the buffers that ``outputs`` asks
-    for: ``(hit point (world), depth, normal (camera axes), flow (pixels), AO, AO's volume samples)``."""
+    for: ``(hit point (world), depth, normal (camera axes), flow (pixels), AO, AO's volume samples, cap)``,
+    ``cap`` being ``(1, normalized value)`` where the hit is a cut face (:func:`clipped_cast`), else 0."""
     view = frame[0].view
     params = frame[0].params
     out = params.outputs
     p = subpixel(c, row, s, params.spp)
     dir = ray_direction(view, p)
     p_world = view.eye + dir * t
+    face = cut_face(clip, view.eye, dir, t)
     n_view = wp.vec3(0.0)
     occ = wp.vec2(0.0)
     if (out & (OUT_NORMAL | OUT_AO)) != 0:
-        g = gradient_world(voxels, layout, grid, voxel_from_world(grid, p_world))
         n = -dir  # where the gradient vanishes: face the camera
-        if wp.length(g) > 1.0e-20:
-            n = wp.normalize(g)
-            if wp.dot(n, dir) > 0.0:
-                n = -n
+        if face >= 0.0:
+            n = -face_normal(clip, int(face), dir)  # the cut face, turned to the camera
+        else:
+            g = gradient_world(voxels, layout, grid, voxel_from_world(grid, p_world))
+            if wp.length(g) > 1.0e-20:
+                n = wp.normalize(g)
+                if wp.dot(n, dir) > 0.0:
+                    n = -n
         n_view = wp.vec3(wp.dot(n, view.right), wp.dot(n, view.up), wp.dot(n, view.back))
         if (out & OUT_AO) != 0:
             state = wp.rand_init(params.seed, (row * view.width + c) * params.spp + s)
-            occ = ambient_occlusion(voxels, layout, grid, p_world, n, params.iso, params.step, params.ao_samples,
-                                    params.ao_radius, state)
+            occ = ambient_occlusion(voxels, layout, grid, clip, p_world, n, params.iso, params.step,
+                                    params.ao_samples, params.ao_radius, state)
     flow = wp.vec2(0.0)
     if (out & OUT_FLOW) != 0:
         q = project_to_pixel(frame[0].prev, p_world)
         if q[2] > 0.0:
             flow = wp.vec2(q[0] - p[0], q[1] - p[1])
-    return p_world, -wp.dot(p_world - view.eye, view.back), n_view, flow, occ[0], occ[1]
+    cap = wp.vec2(0.0)
+    if face >= 0.0 and (out & OUT_CAP) != 0:
+        cap = wp.vec2(1.0, sample_volume(voxels, layout, grid, voxel_from_world(grid, p_world)))
+    return p_world, -wp.dot(p_world - view.eye, view.back), n_view, flow, occ[0], occ[1], cap
 
 
 @wp.func
 def store_pixel(frame: wp.array(dtype=FrameArgs), c: int, row: int, hit_count: float, p_sum: wp.vec3,
-                depth_sum: float, n_sum: wp.vec3, flow_sum: wp.vec2, ao_sum: float, sample_count: float,
-                mask: wp.array2d(dtype=wp.float32), normal: wp.array2d(dtype=wp.vec3),
+                depth_sum: float, n_sum: wp.vec3, flow_sum: wp.vec2, ao_sum: float, cap_sum: wp.vec2,
+                sample_count: float, mask: wp.array2d(dtype=wp.float32), normal: wp.array2d(dtype=wp.vec3),
                 depth: wp.array2d(dtype=wp.float32), position: wp.array2d(dtype=wp.vec3),
-                flow: wp.array2d(dtype=wp.vec2), ao: wp.array2d(dtype=wp.float32), samples: wp.array2d(dtype=wp.int32)):
-    """Write pixel ``(c, row)``'s asked buffers from the sums over its rays that hit (``hit_count`` of them)."""
+                flow: wp.array2d(dtype=wp.vec2), ao: wp.array2d(dtype=wp.float32), cap: wp.array2d(dtype=wp.vec2),
+                samples: wp.array2d(dtype=wp.int32)):
+    """Write pixel ``(c, row)``'s asked buffers from the sums over its rays that hit (``hit_count`` of them;
+    ``cap_sum[0]`` of them on cut faces)."""
     params = frame[0].params
     out = params.outputs
     inv = 1.0 / wp.max(hit_count, 1.0)
@@ -623,16 +783,20 @@ def store_pixel(frame: wp.array(dtype=FrameArgs), c: int, row: int, hit_count: f
         flow[row, c] = flow_sum * inv
     if (out & OUT_AO) != 0:
         ao[row, c] = ao_sum * inv
+    if (out & OUT_CAP) != 0:
+        cap[row, c] = wp.vec2(cap_sum[0] / float(params.spp), cap_sum[1] / wp.max(cap_sum[0], 1.0))
     if (out & OUT_SAMPLES) != 0:
         samples[row, c] = int(sample_count)
 
 
 @wp.kernel(enable_backward=False, cuda_max_registers=SURFACE_MAX_REGISTERS)
 def surface_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs),
-                   row0: int, rows: int, hits: wp.array3d(dtype=wp.float32), counts: wp.array3d(dtype=wp.int32),
-                   mask: wp.array2d(dtype=wp.float32), normal: wp.array2d(dtype=wp.vec3),
-                   depth: wp.array2d(dtype=wp.float32), position: wp.array2d(dtype=wp.vec3),
-                   flow: wp.array2d(dtype=wp.vec2), ao: wp.array2d(dtype=wp.float32), samples: wp.array2d(dtype=wp.int32)):
+                   clip: Any, row0: int, rows: int, hits: wp.array3d(dtype=wp.float32),
+                   counts: wp.array3d(dtype=wp.int32), mask: wp.array2d(dtype=wp.float32),
+                   normal: wp.array2d(dtype=wp.vec3), depth: wp.array2d(dtype=wp.float32),
+                   position: wp.array2d(dtype=wp.vec3), flow: wp.array2d(dtype=wp.vec2),
+                   ao: wp.array2d(dtype=wp.float32), cap: wp.array2d(dtype=wp.vec2),
+                   samples: wp.array2d(dtype=wp.int32)):
     """One ray per pixel: per pixel of the band, from its first hit (:func:`first_hit_kernel`), the asked buffers
     (``FrameArgs.params.outputs``), AO rays cast from the hit."""
     px = band_pixel(frame[0].view.width, rows, wp.tid())
@@ -645,21 +809,22 @@ def surface_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame
     if (frame[0].params.outputs & OUT_SAMPLES) != 0:
         sample_count = float(counts[0, row, c])
     if t < 0.0:
-        store_pixel(frame, c, row, 0.0, wp.vec3(0.0), 0.0, wp.vec3(0.0), wp.vec2(0.0), 0.0, sample_count, mask,
-                    normal, depth, position, flow, ao, samples)
+        store_pixel(frame, c, row, 0.0, wp.vec3(0.0), 0.0, wp.vec3(0.0), wp.vec2(0.0), 0.0, wp.vec2(0.0),
+                    sample_count, mask, normal, depth, position, flow, ao, cap, samples)
         return
-    p_world, d, n_view, fl, occ, occ_samples = hit_surface(voxels, layout, grid, frame, c, row, 0, t)
-    store_pixel(frame, c, row, 1.0, p_world, d, n_view, fl, occ, sample_count + occ_samples, mask, normal, depth,
-                position, flow, ao, samples)
+    p_world, d, n_view, fl, occ, occ_samples, on_cap = hit_surface(voxels, layout, grid, frame, clip, c, row, 0, t)
+    store_pixel(frame, c, row, 1.0, p_world, d, n_view, fl, occ, on_cap, sample_count + occ_samples, mask, normal,
+                depth, position, flow, ao, cap, samples)
 
 
 @wp.kernel(enable_backward=False, cuda_max_registers=SURFACE_MAX_REGISTERS)
 def surface_samples_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs),
-                           row0: int, rows: int, hits: wp.array3d(dtype=wp.float32),
+                           clip: Any, row0: int, rows: int, hits: wp.array3d(dtype=wp.float32),
                            counts: wp.array3d(dtype=wp.int32), mask: wp.array2d(dtype=wp.float32),
                            normal: wp.array2d(dtype=wp.vec3), depth: wp.array2d(dtype=wp.float32),
                            position: wp.array2d(dtype=wp.vec3), flow: wp.array2d(dtype=wp.vec2),
-                           ao: wp.array2d(dtype=wp.float32), samples: wp.array2d(dtype=wp.int32)):
+                           ao: wp.array2d(dtype=wp.float32), cap: wp.array2d(dtype=wp.vec2),
+                           samples: wp.array2d(dtype=wp.int32)):
     """:func:`surface_kernel` for several rays per pixel: the buffers averaged over the rays that hit. Rays past
     the first ``hits.shape[0]`` (the planes a plan keeps, :data:`HIT_PLANES`) are marched here."""
     px = band_pixel(frame[0].view.width, rows, wp.tid())
@@ -674,6 +839,7 @@ def surface_samples_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Gri
     n_sum = wp.vec3(0.0)
     flow_sum = wp.vec2(0.0)
     ao_sum = float(0.0)
+    cap_sum = wp.vec2(0.0)
     sample_count = float(0.0)
     for s in range(frame[0].params.spp):
         t = float(-1.0)
@@ -682,29 +848,51 @@ def surface_samples_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Gri
             if count_samples:
                 sample_count += float(counts[s, row, c])
         else:
-            res = march_ray(voxels, layout, grid, frame, c, row, s)
+            res = march_ray(voxels, layout, grid, frame, clip, c, row, s)
             t = res[0]
             sample_count += res[1]
         if t >= 0.0:
-            p_world, d, n_view, fl, occ, occ_samples = hit_surface(voxels, layout, grid, frame, c, row, s, t)
+            p_world, d, n_view, fl, occ, occ_samples, on_cap = hit_surface(voxels, layout, grid, frame, clip, c, row, s,
+                                                                           t)
             hit_count += 1.0
             p_sum += p_world
             depth_sum += d
             n_sum += n_view
             flow_sum += fl
             ao_sum += occ
+            cap_sum += on_cap
             sample_count += occ_samples
-    store_pixel(frame, c, row, hit_count, p_sum, depth_sum, n_sum, flow_sum, ao_sum, sample_count, mask, normal,
-                depth, position, flow, ao, samples)
+    store_pixel(frame, c, row, hit_count, p_sum, depth_sum, n_sum, flow_sum, ao_sum, cap_sum, sample_count, mask,
+                normal, depth, position, flow, ao, cap, samples)
 
 
 # The voxels' device types and layouts: one compiled overload of each voxel-reading kernel per pair.
 VOXEL_TYPES = (wp.float32, wp.uint16, wp.uint8)
 LAYOUTS = (Dense, Sparse, Filtered)
+# The kernels that render a frame, by name.
+FRAME_KERNELS = ("first_hit_kernel", "surface_kernel", "surface_samples_kernel")
+# The Warp module of the frame kernels that clip (ClipArgs), beside this module's plain ones (NoClip): compiled
+# and loaded only when a frame clips, so that without clipping nothing of it is built or run.
+CLIPPED_MODULE = f"{__name__}.clipped"
+wp.set_module_options({"enable_backward": False}, module=CLIPPED_MODULE)
+
+
+def _clipped(kernel: wp.Kernel) -> wp.Kernel:
+    """``kernel``'s code (and options) in :data:`CLIPPED_MODULE`, under the same name."""
+    return wp.Kernel(kernel.func, key=kernel.key, module=wp.get_module(CLIPPED_MODULE), options=dict(kernel.options))
+
+
+# Per clip type, the frame kernels by name (one compiled overload each per voxel type and layout).
+FRAME_KERNEL_SETS = {NoClip: {name: globals()[name] for name in FRAME_KERNELS}}
+FRAME_KERNEL_SETS[ClipArgs] = {name: _clipped(kernel) for name, kernel in FRAME_KERNEL_SETS[NoClip].items()}
 for _dtype in VOXEL_TYPES:
     wp.overload(minmax_kernel, {"voxels": wp.array3d(dtype=_dtype)})
     for _layout in LAYOUTS:
-        for _kernel in (first_hit_kernel, surface_kernel, surface_samples_kernel):
-            wp.overload(_kernel, {"voxels": wp.array3d(dtype=_dtype), "layout": _layout})
-# The kernels that render a frame, by name.
-FRAME_KERNELS = ("first_hit_kernel", "surface_kernel", "surface_samples_kernel")
+        for _clip, _kernels in FRAME_KERNEL_SETS.items():
+            for _kernel in _kernels.values():
+                wp.overload(_kernel, {"voxels": wp.array3d(dtype=_dtype), "layout": _layout, "clip": _clip})
+
+
+def frame_kernels(clipped: bool) -> dict[str, wp.Kernel]:
+    """The frame kernels by name that take :class:`ClipArgs` (``clipped``) or :class:`NoClip`."""
+    return FRAME_KERNEL_SETS[ClipArgs if clipped else NoClip]

@@ -5,7 +5,9 @@ units, with the volume's value at it, and the distance between two such points.
     hit.position, hit.value, distance(hit, other)                   # physical units (spacing)
 
 A pick casts the one image row through the pixel (the view's own rays, one per pixel, no AO),
-so it finds the surface the frame shows at that pixel.
+so it finds the surface the frame shows at that pixel; with the view's clip
+(:mod:`isosr_render.clip`) too: on the removed side it finds what lies behind, and with caps it
+may land on a cut face (``cap``), where the value is the volume's there rather than the iso.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from isosr_render.camera import Camera
+from isosr_render.clip import Clip
 from isosr_render.renderer import Renderer, RenderRequest
 from isosr_render.shapes import check_int
 
@@ -32,6 +35,7 @@ class Pick:
             from the centre of voxel (0, 0, 0).
         value: the volume's value there (trilinear), in its data units.
         depth: the point's view-space depth, world units.
+        cap: whether the point lies on a face that the clip cut (capped), not on the isosurface.
     """
 
     hit: bool
@@ -40,14 +44,17 @@ class Pick:
     position: tuple[float, float, float] | None = None
     value: float | None = None
     depth: float | None = None
+    cap: bool = False
 
 
-def pick(renderer: Renderer, camera: Camera, iso: float, width: int, height: int, x: float, y: float) -> Pick:
+def pick(renderer: Renderer, camera: Camera, iso: float, width: int, height: int, x: float, y: float,
+         clip: Clip = Clip()) -> Pick:
     """The isosurface point under pixel coordinate ``(x, y)`` of a ``width`` x ``height`` view.
 
     Args:
         iso: normalized iso-value (as the view renders it).
         x, y: pixel coordinates, x right and y down, in ``[0, width)`` and ``[0, height)``.
+        clip: the view's clip planes, crop box and caps: the pick finds what the clipped view shows.
 
     Raises:
         ValueError: a size that is not a positive integer, or a point outside the image.
@@ -57,17 +64,18 @@ def pick(renderer: Renderer, camera: Camera, iso: float, width: int, height: int
     if not (math.isfinite(x) and math.isfinite(y) and 0 <= x < width and 0 <= y < height):
         raise ValueError(f"pick: ({x!r}, {y!r}) lies outside the {width}x{height} image")
     row, column = int(y), int(x)
-    request = RenderRequest(width, height, iso, ("mask", "position", "depth"))
-    frame = renderer.render(camera, request, rows=(row, row + 1))
+    outputs = ("mask", "position", "depth") + (("cap",) if clip.capped else ())
+    frame = renderer.render(camera, RenderRequest(width, height, iso, outputs, clip=clip), rows=(row, row + 1))
     if float(frame.mask[row, column]) < 0.5:
         return Pick(False)
+    on_cap = frame.cap is not None and float(frame.cap[row, column, 0]) >= 0.5
     world = frame.position[row, column].double().cpu().numpy()
     volume = renderer.volume
     scale, offset = volume.world_transform()
     at = np.clip((world - offset) / scale, 0.0, np.asarray(volume.shape, np.float64) - 1.0)
     return Pick(True, tuple(world.tolist()), tuple(int(v) for v in np.rint(at)),
                 tuple((at * np.asarray(volume.spacing)).tolist()), _trilinear(volume, at),
-                float(frame.depth[row, column]))
+                float(frame.depth[row, column]), on_cap)
 
 
 def distance(a: Pick, b: Pick) -> float:

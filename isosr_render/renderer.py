@@ -32,6 +32,7 @@ from isosr_render import kernels, voxels
 from isosr_render.brick_pool import BrickPool, MemoryStats
 from isosr_render.buffers import FrameBuffers
 from isosr_render.camera import Camera
+from isosr_render.clip import MAX_PLANES, Clip
 from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES
 from isosr_render.flow_fill import FILL_METHODS, fill_flow
 from isosr_render.shading import ShadingParams, shade
@@ -58,9 +59,16 @@ STORE_TYPES = {"float32": wp.float32, "uint16": wp.uint16, "uint8": wp.uint8}
 KERNEL_BUFFERS = {"mask": (kernels.OUT_MASK, wp.float32), "normal": (kernels.OUT_NORMAL, wp.vec3),
                   "depth": (kernels.OUT_DEPTH, wp.float32), "position": (kernels.OUT_POSITION, wp.vec3),
                   "flow": (kernels.OUT_FLOW, wp.vec2), "ao": (kernels.OUT_AO, wp.float32),
-                  "samples": (kernels.OUT_SAMPLES, wp.int32)}
+                  "cap": (kernels.OUT_CAP, wp.vec2), "samples": (kernels.OUT_SAMPLES, wp.int32)}
 # Host layout of kernels.FrameArgs (a numpy record with the ctypes struct's offsets).
 FRAME_DTYPE = np.dtype(kernels.FrameArgs.numpy_dtype())
+# Host layout of a clip's values (kernels.ClipArgs' two arrays, one record): its kernels.ClipRegion, then at a
+# 16-byte boundary its plane rows.
+_REGION = np.dtype(kernels.ClipRegion.numpy_dtype())
+CLIP_DTYPE = np.dtype({"names": ["region", "planes"], "formats": [_REGION, (np.float32, (MAX_PLANES, 4))],
+                       "offsets": [0, -(-_REGION.itemsize // 16) * 16],
+                       "itemsize": -(-_REGION.itemsize // 16) * 16 + MAX_PLANES * 16})
+CAP_SIGNS = {"none": 0, "above": 1, "below": -1}
 
 
 @dataclass(frozen=True)
@@ -85,6 +93,8 @@ class RenderRequest:
             flow of pixels without a hit.
         skip: use the min-max grid to skip bricks (off only to measure what it saves).
         shading: material and light for ``color``.
+        clip: clip planes, crop box and caps (:mod:`isosr_render.clip`); the default cuts nothing.
+            With caps, ``color`` shows the cut faces in the volume's values (the ``cap`` buffer).
     """
 
     width: int
@@ -102,6 +112,7 @@ class RenderRequest:
     flow_fill: str = "none"
     skip: bool = True
     shading: ShadingParams = field(default_factory=ShadingParams)
+    clip: Clip = field(default_factory=Clip)
 
     def __post_init__(self):
         object.__setattr__(self, "outputs", tuple(dict.fromkeys(self.outputs)))
@@ -130,19 +141,23 @@ class RenderRequest:
             raise ValueError("flow needs a previous camera (prev_camera); the first frame of a sequence has none")
         if self.flow_fill not in FILL_METHODS:
             raise ValueError(f"flow_fill must be one of {FILL_METHODS}, got {self.flow_fill!r}")
+        if not isinstance(self.clip, Clip):
+            raise ValueError(f"clip must be an isosr_render.clip.Clip, got {type(self.clip).__name__}")
 
     def kernel_outputs(self) -> int:
         """The kernel's OUT_* bits: the asked buffers and the ones they are made from."""
         need = set(self.outputs)
         if "color" in need:
-            need |= {"mask", "normal"}
+            need |= {"mask", "normal"} | ({"cap"} if self.clip.capped else set())
         if "flow" in need and self.flow_fill != "none":
             need.add("mask")
         return sum(KERNEL_BUFFERS[name][0] for name in need if name in KERNEL_BUFFERS)
 
     def plan_key(self) -> tuple:
-        """What a :class:`RenderPlan` fixes: size, buffers and rays per pixel; the rest may change per frame."""
-        return self.width, self.height, self.outputs, self.flow_fill, self.spp
+        """What a :class:`RenderPlan` fixes: size, buffers, rays per pixel, and whether it clips (the kernels
+        that clip are their own, :func:`isosr_render.kernels.frame_kernels`) and caps (a buffer of the kernels'
+        for ``color``); the rest may change per frame."""
+        return self.width, self.height, self.outputs, self.flow_fill, self.spp, self.clip.active, self.clip.capped
 
 
 def warp_device(device: str):
@@ -181,6 +196,19 @@ def frame_args(camera: Camera, request: RenderRequest, step: float, out: np.ndar
                         ("ao_samples", request.ao_samples), ("ao_radius", request.ao_radius),
                         ("seed", request.seed), ("outputs", request.kernel_outputs())):
         params[name] = value
+    return args
+
+
+def clip_args(clip: Clip, out: np.ndarray | None = None) -> np.ndarray:
+    """A clip's values for the clipped kernels (`kernels.ClipArgs`) as a host record (:data:`CLIP_DTYPE`,
+    shape (1,)): a new one, or ``out`` written over, every field of it."""
+    args = np.zeros(1, CLIP_DTYPE) if out is None else out
+    box = clip.box or ((0.0,) * 3,) * 2
+    region = args["region"]
+    for name, value in (("count", len(clip.planes)), ("boxed", clip.box is not None), ("lo", box[0]),
+                        ("hi", box[1]), ("cap", CAP_SIGNS[clip.cap])):
+        region[name] = value
+    args["planes"] = clip.plane_rows()
     return args
 
 
@@ -459,23 +487,38 @@ class RenderPlan:
         self._hits = wp.empty(planes, dtype=wp.float32, device=device)
         self._counts = (wp.empty(planes, dtype=wp.int32, device=device)
                         if bits & kernels.OUT_SAMPLES else renderer._unused_counts)
-        # The staged FrameArgs in torch memory (stream-ordered copies), seen by Warp as one struct,
-        # copied from one host record (pinned on CUDA: written again once its last copy has run).
-        self._args_bytes = torch.zeros(FRAME_DTYPE.itemsize, dtype=torch.uint8, device=renderer.torch_device)
-        self._host_bytes = torch.zeros(FRAME_DTYPE.itemsize, dtype=torch.uint8, pin_memory=device.is_cuda)
-        self._host_args = self._host_bytes.numpy().view(FRAME_DTYPE)
+        # The staged FrameArgs in torch memory (stream-ordered copies), seen by Warp as one struct, and
+        # after it a clipping plan's clip (CLIP_DTYPE, seen as kernels.ClipArgs' arrays), copied from one
+        # host record (pinned on CUDA: written again once its last copy has run).
+        self.clipped = request.clip.active
+        at = -(-FRAME_DTYPE.itemsize // 16) * 16
+        size = at + CLIP_DTYPE.itemsize if self.clipped else FRAME_DTYPE.itemsize
+        self._args_bytes = torch.zeros(size, dtype=torch.uint8, device=renderer.torch_device)
+        self._host_bytes = torch.zeros(size, dtype=torch.uint8, pin_memory=device.is_cuda)
+        self._host_args = self._host_bytes.numpy()[:FRAME_DTYPE.itemsize].view(FRAME_DTYPE)
         self._copied = torch.cuda.Event() if device.is_cuda else None
-        self._args = wp.array(ptr=self._args_bytes.data_ptr(), dtype=kernels.FrameArgs, shape=(1,), device=device)
+        base = self._args_bytes.data_ptr()
+        self._args = wp.array(ptr=base, dtype=kernels.FrameArgs, shape=(1,), device=device)
+        self._clip = kernels.NoClip()
+        self._host_clip = None
+        if self.clipped:
+            self._host_clip = self._host_bytes.numpy()[at:].view(CLIP_DTYPE)
+            self._clip = kernels.ClipArgs()
+            self._clip.region = wp.array(ptr=base + at, dtype=kernels.ClipRegion, shape=(1,), device=device)
+            self._clip.planes = wp.array(ptr=base + at + CLIP_DTYPE.fields["planes"][1], dtype=wp.vec4,
+                                         shape=(MAX_PLANES,), device=device)
+            wp.load_module(wp.get_module(kernels.CLIPPED_MODULE), device=device)  # not while a graph is captured
         self._grid: kernels.Grid | None = None
         self._launches: tuple[tuple, list[tuple[wp.Launch, wp.Launch]]] | None = None  # (grid, voxels, bands), launches
 
     def check(self, request: RenderRequest) -> None:
         """ValueError unless ``request`` has the plan's size, outputs, flow fill and rays per pixel."""
         if request.plan_key() != self.key:
-            w, h, outputs, fill, spp = self.key
-            raise ValueError(f"this render plan renders {w}x{h} {outputs} (flow fill {fill!r}, spp {spp}), not "
-                             f"{request.width}x{request.height} {request.outputs} (flow fill {request.flow_fill!r}, "
-                             f"spp {request.spp}): make a plan for that request (Renderer.plan)")
+            w, h, outputs, fill, spp, clipped, capped = self.key
+            raise ValueError(f"this render plan renders {w}x{h} {outputs} (flow fill {fill!r}, spp {spp}, clipped "
+                             f"{clipped}, capped {capped}), not {request.width}x{request.height} {request.outputs} "
+                             f"(flow fill {request.flow_fill!r}, spp {request.spp}, clipped {request.clip.active}, "
+                             f"capped {request.clip.capped}): make a plan for that request (Renderer.plan)")
 
     def stage(self, camera: Camera, request: RenderRequest) -> None:
         """Copy the frame's values to the device (ordered before later work on the torch stream) and
@@ -485,6 +528,8 @@ class RenderPlan:
         if self._copied is not None:
             self._copied.synchronize()  # the last frame's copy has read the host record (seldom a wait)
         frame_args(camera, request, request.step or self.renderer.default_step(), out=self._host_args)
+        if self._host_clip is not None:
+            clip_args(request.clip, out=self._host_clip)
         self._args_bytes.copy_(self._host_bytes, non_blocking=self._copied is not None)
         if self._copied is not None:
             self._copied.record(torch.cuda.current_stream(self.renderer.torch_device))
@@ -528,12 +573,14 @@ class RenderPlan:
         key = (id(grid), voxels.ptr, bands)
         if self._launches is None or self._launches[0] != key:
             tiles_x, tile = -(-self.key[0] // kernels.TILE_W), kernels.TILE_W * kernels.TILE_H
-            surface = kernels.surface_kernel if self.key[4] == 1 else kernels.surface_samples_kernel
-            common = [voxels, renderer.layout, grid, self._args]
+            frame_kernels = kernels.frame_kernels(self.clipped)
+            first_hit = frame_kernels["first_hit_kernel"]
+            surface = frame_kernels["surface_kernel" if self.key[4] == 1 else "surface_samples_kernel"]
+            common = [voxels, renderer.layout, grid, self._args, self._clip]
 
             def pair(row0: int, rows: int) -> tuple[wp.Launch, wp.Launch]:
                 pixels = tiles_x * -(-rows // kernels.TILE_H) * tile  # threads: whole 8x4 tiles
-                return (wp.launch(kernels.first_hit_kernel, dim=self._hits.shape[0] * pixels, device=renderer.device,
+                return (wp.launch(first_hit, dim=self._hits.shape[0] * pixels, device=renderer.device,
                                   inputs=[*common, row0, rows, self._hits, self._counts], record_cmd=True),
                         wp.launch(surface, dim=pixels, device=renderer.device, record_cmd=True,
                                   inputs=[*common, row0, rows, self._hits, self._counts, *self.arrays.values()]))
@@ -549,7 +596,8 @@ class RenderPlan:
         if "flow" in request.outputs and request.flow_fill != "none":
             frame.flow = fill_flow(self.tensors["flow"], self.tensors["mask"], request.flow_fill)
         if "color" in request.outputs:
-            frame.color = shade(self.tensors["mask"], self.tensors["normal"], self.tensors.get("ao"), request.shading)
+            frame.color = shade(self.tensors["mask"], self.tensors["normal"], self.tensors.get("ao"), request.shading,
+                                self.tensors.get("cap"))
         return frame
 
     def render(self, camera: Camera, request: RenderRequest, rows: tuple[int, int] | None = None) -> FrameBuffers:

@@ -269,7 +269,7 @@ class Engine:
         """
         self._on_thread()
         try:
-            found = pick(renderer, camera, iso, settings.width, settings.height, msg.x, msg.y)
+            found = pick(renderer, camera, iso, settings.width, settings.height, msg.x, msg.y, settings.clip.clip())
         except ValueError as e:
             raise ProtocolError(str(e)) from None
         return PickedMsg(msg.x, msg.y, msg.id, **asdict(found))

@@ -89,13 +89,15 @@ import msgspec
 import numpy as np
 from msgspec import UNSET, Meta, UnsetType
 
+from isosr_render.clip import CAP_MODES, MAX_PLANES, Clip
 from isosr_render.conventions import AO_RADIUS
 from isosr_server.codecs.arrays import ArrayTooBig, WireArray, decode_array, encode_array
 
+# 6: clip planes, a crop box and caps (settings.clip);
 # 5: modes named by the server (ready.modes), ready's limits on messages and acknowledgements;
 # 3: the v3 vocabulary (modes auto/network/upscale/..., ao_rays, spp, interpolation, frame methods);
 # 2 (acknowledged frames, flow control) and earlier are refused with a reason.
-PROTOCOL_VERSION = 5
+PROTOCOL_VERSION = 6
 
 # Largest magnitude of any float field (camera coordinates, iso, ...): beyond it is hostile input.
 MAX_ABS_FLOAT = 1e9
@@ -265,6 +267,29 @@ class Limits(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
 # settings
 
 
+class ClipPlane(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """A clip plane, world units: it keeps the half-space its (nonzero) normal points into."""
+
+    point: Vec3
+    normal: Vec3
+
+
+class ClipSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """Clip planes, a crop box ``(lo, hi)`` and caps, world units, as :class:`isosr_render.clip.Clip`
+    checks them (its message names the field: ``clip.planes[0].normal must be a nonzero vector``)."""
+
+    planes: Annotated[tuple[ClipPlane, ...], Meta(max_length=MAX_PLANES)] = ()
+    box: tuple[Vec3, Vec3] | None = None
+    cap: Literal[CAP_MODES] = "none"
+
+    def __post_init__(self):
+        self.clip()
+
+    def clip(self) -> Clip:
+        """The renderer's clip."""
+        return Clip(tuple((p.point, p.normal) for p in self.planes), self.box, self.cap)
+
+
 class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """A view session's settings (``ready`` carries them whole; ``open`` and ``settings`` send
     a `SettingsUpdate` of any of them).
@@ -287,6 +312,7 @@ class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
             settings were still for ``refine_after_s``.
         focus_blend_px: width of the blend at the focus region's border, full-res pixels.
         channel: ``shaded``, or a buffer shown in false color (:mod:`isosr_server.channels`).
+        clip: clip planes, crop box and caps of every frame (:class:`ClipSettings`).
     """
 
     mode: ModeName = "auto"
@@ -304,6 +330,7 @@ class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     refine_ao_rays: Annotated[int, Meta(ge=0)] = 64
     focus_blend_px: Annotated[int, Meta(ge=0, le=256)] = 4
     channel: Literal[CHANNELS] = "shaded"
+    clip: ClipSettings = ClipSettings()
 
     def updated(self, update: SettingsUpdate | Mapping[str, Any], limits: Limits) -> ViewSettings:
         """These settings with ``update`` applied (a `SettingsUpdate`, or a map validated as one),
@@ -565,7 +592,7 @@ class PickedMsg(Message, tag="picked"):
     it does, the point in world units, its nearest voxel, its position in the volume's physical
     units (voxel coordinates times the spacing) and the volume's value there in data units
     (:class:`isosr_render.picking.Pick`); the distance between two picks is that of their
-    ``position``."""
+    ``position``. The view's clip holds: ``cap`` where the point lies on a capped cut face."""
 
     x: Finite
     y: Finite
@@ -576,6 +603,7 @@ class PickedMsg(Message, tag="picked"):
     position: Vec3 | None = None
     value: Finite | None = None
     depth: Finite | None = None
+    cap: bool = False
 
 
 class NoticeMsg(Message, tag="notice"):

@@ -169,7 +169,7 @@ class FocusView(View):
             return color
         start, stop = int(covered[0]), int(covered[-1]) + 1
         lens = make_runner(FrameMethod.of("full", ao_rays=st.ao_rays, spp=st.spp), renderer, job.iso, st.width,
-                           st.height, ao_radius=st.ao_radius)
+                           st.height, ao_radius=st.ao_radius, clip=st.clip.clip())
         with timer("render"):
             sharp = lens.rows(job.camera, start, stop)
         with timer("shading"):
@@ -272,16 +272,17 @@ class SessionFrames:
         st = job.settings
         shaded = st.channel == "shaded"
         keep = () if shaded else (st.channel,)
+        clip = st.clip.clip()
         if job.refined:
             method = refined_method(st)
             runner = make_runner(method, renderer, job.iso, st.width, st.height, ao_radius=st.ao_radius, keep=keep,
-                                 shade=shaded)
+                                 shade=shaded, clip=clip)
             return FramePlan(job, renderer, method, runner, None, -1, None)
         view = VIEWS[st.mode]
         method = view.method(st, self.ctx, self, renderer, job)
         prev_camera, prev_seq = self._prev or (None, -1)
         runner, prev_camera = self.stream.runner_for(method, renderer, job.iso, st.width, st.height, prev_camera,
-                                                     st.ao_radius, keep, shaded)
+                                                     st.ao_radius, keep, shaded, clip)
         return FramePlan(job, renderer, method, runner, prev_camera, prev_seq, view)
 
     def planned_steps(self, plan: FramePlan, slice_ms: float | None = None) -> Generator[None, None, ViewFrame]:

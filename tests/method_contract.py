@@ -38,6 +38,8 @@ The checks:
   background wherever the mask is 0 and ``|color - background| <= mask`` everywhere, an empty mask
   for unlearned kinds),
   a 2x2 frame (where the factor divides 2), an anisotropic volume: finite and bounded;
+- clipping: a plane through the sphere with caps puts cut faces in the frame (its ``cap`` buffer, at
+  the frame size, an unshaded low-res kind's at the render's); planes that keep nothing leave only the background, as an empty iso;
 - bench row: the method's name (its runner's ``describe``) and its runner's label are non-empty;
   the Pareto study's method list (``bench_pareto.methods``, smoke) has the kind exactly where the
   kind shades (a study of colors), and for a shaded kind
@@ -67,6 +69,7 @@ from isosr_net.reconnet import ReconNet, ReconNetConfig
 from isosr_net.reconstructor import Reconstructor
 from isosr_net.upscaler import Upscaler
 from isosr_render import Camera, Renderer, orbit_path
+from isosr_render.clip import Clip
 from isosr_render.conventions import BACKGROUND_RGB
 from isosr_render.sequence import sequence_cameras
 
@@ -192,11 +195,12 @@ class MethodContract:
             model = tiny_model(tmp_path_factory, self.method.runner.network_class, self.method.factor)
             self.spec = self.method.replace(model=str(model), model_name="tiny")
 
-    def runner(self, width: int = SIZE[0], height: int = SIZE[1], anisotropic: bool = False, iso: float | None = None):
+    def runner(self, width: int = SIZE[0], height: int = SIZE[1], anisotropic: bool = False, iso: float | None = None,
+               clip: Clip = Clip()):
         """A new runner of the method on the contact scene."""
         renderer, scene_iso = scene(anisotropic)
         return make_runner(self.spec, renderer, scene_iso if iso is None else iso, width, height,
-                           ao_radius=AO_RADIUS, networks=networks())
+                           ao_radius=AO_RADIUS, networks=networks(), clip=clip)
 
     def frame_size(self, runner, width: int = SIZE[0], height: int = SIZE[1]) -> tuple[int, int]:
         """``(H, W)`` of the runner's buffers: the frame's, an unshaded low-res kind's render's."""
@@ -363,6 +367,31 @@ class MethodContract:
                         f"{float(frame['mask'].flatten()[off.argmax()]):.3f}"
             elif case in ("inside", "tiny_2x2") and not self.random_network:
                 assert (frame["mask"] > 0.5).any(), f"{where}: nothing hit"
+
+    # -- clipping ---------------------------------------------------------------------------------
+
+    @pytest.mark.parametrize("case", ("capped", "nothing_kept"))
+    def test_clipping_reaches_the_frame(self, case):
+        cut = {"capped": Clip(planes=[((0.0, 0.0, 0.05), (0.0, 0.0, -1.0))], cap="below"),  # the scene's inside is below
+               "nothing_kept": Clip(planes=[((0.0, 0.0, 0.3), (0.0, 0.0, 1.0)), ((0.0, 0.0, -0.3), (0.0, 0.0, -1.0))],
+                                    cap="below")}[case]
+        runner = self.runner(clip=cut)
+        h, w = self.frame_size(runner)
+        for i, frame in enumerate(buffers_of(r) for r in (runner.frame(CAMERAS[0]), runner.frame(CAMERAS[1],
+                                                                                               CAMERAS[0]))):
+            where = f"{self.spec.name}, {case}, frame {i}"
+            assert all(t.shape[:2] == (h, w) for t in frame.values()), (where, {k: t.shape for k, t in frame.items()})
+            assert_finite_and_bounded({k: t for k, t in frame.items() if k != "cap"}, runner.shaded, where)
+            assert "cap" in frame, f"{where}: the cut faces' values travel with the frame"
+            if case == "capped":
+                assert (frame["cap"][..., 0] > 0).any(), f"{where}: no cut face"
+            if case == "nothing_kept":
+                if not self.spec.learned:
+                    assert frame["mask"].max() == 0, where
+                if "color" in frame:
+                    background = torch.tensor(BACKGROUND_RGB, device=frame["color"].device)
+                    off = (frame["color"] - background).abs().amax(-1)
+                    assert (off <= frame["mask"] + 1e-6).all(), where
 
     # -- bench row --------------------------------------------------------------------------------
 

@@ -227,3 +227,18 @@ def test_render_prints_the_pick_under_a_pixel(tmp_path, capsys):
     assert picked["value"] == pytest.approx(expected.value)
     assert main(["render", "proc:torus@32", "--size", "64x48", "--pick", "70,1", "-o", str(tmp_path / "x.png")]) == 2
     assert "lies outside the 64x48 image" in capsys.readouterr().err and not (tmp_path / "x.png").exists()
+
+
+def test_render_clipped_and_capped(tmp_path, capsys):
+    """--clip-plane (repeatable), --crop-box and --cap reach the render; a bad plane is refused naming it."""
+    out = tmp_path / "cut.npz"
+    assert main(["render", "proc:sphere@32", "--eye", "0,0,2", "--size", "33x33", "--outputs", "mask,depth,cap",
+                 "--clip-plane", "0,0,0.1,0,0,-1", "--clip-plane=0,0,-5,0,0,1", "--crop-box=-1,-1,-1,1,1,1",
+                 "--cap", "below", "-o", str(out)]) == 0
+    frame = FrameBuffers.load_npz(out)
+    assert abs(float(frame.depth[16, 16]) - 1.9) < 1e-4 and float(frame.cap[16, 16, 0]) == 1.0
+    capsys.readouterr()
+    assert main(["render", "proc:sphere@32", "--clip-plane", "0,0,0,0,0,0", "-o", str(out)]) == 2
+    assert "clip.planes[0].normal must be a nonzero vector" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["render", "proc:sphere@32", "--clip-plane", "0,0,0,1", "-o", str(out)])

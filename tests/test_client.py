@@ -36,6 +36,7 @@ from isosr_net.metrics import upscale_baseline
 from isosr_net.reconstructor import recon_limits
 from isosr_net.upscaler import Upscaler
 from isosr_render import FrameBuffers, Renderer, RenderRequest, open_volume, orbit
+from isosr_render.clip import Clip
 from isosr_render.conventions import LOWRES_BUFFERS
 from isosr_render.picking import pick
 from isosr_render.slices import CONTOUR_RGB, slice_image
@@ -127,6 +128,25 @@ def test_full_and_network_frames_equal_the_library(server, library):  # noqa: F8
     for image, low in zip(sr, lowres_frames(renderer, iso)):
         high = upscaler.upscale(low)
         assert level_diff(image, to_uint8(shade(high.mask, high.normal, high.ao))).max() <= 1
+
+
+def test_clipped_frames_equal_the_library(server, library):  # noqa: F811
+    """set_clip: the server's frames are the library's with the same clip, cut faces in grey; a bad
+    plane is refused naming it before anything is sent."""
+    renderer, iso = library
+    planes, box = [((0.0, 0.0, 0.05), (0.0, 0.0, -1.0))], ((-0.4, -0.5, -0.5), (0.5, 0.5, 0.5))
+    clip = Clip(tuple(planes), box, "above")
+    camera = PATH.camera(0)
+    with connect(server.url, VOLUME, "full", SIZE, settings=LOSSLESS, camera=camera) as view:
+        plain = view.latest().rgb()
+        with pytest.raises(ProtocolError, match=r"clip.planes\[0\].normal must be a nonzero vector"):
+            view.set_clip([((0, 0, 0), (0, 0, 0))])
+        view.set_clip(planes, box, "above")
+        image = view.frame()
+        assert view.settings.clip.clip() == clip
+    ref = renderer.render(orbit(**camera), RenderRequest(*SIZE, iso, ("mask", "normal", "cap"), clip=clip))
+    assert (ref.cap[..., 0] > 0).any() and (level_diff(image, plain) > 8).any()
+    assert level_diff(image, to_uint8(shade(ref.mask, ref.normal, cap=ref.cap))).max() <= 1
 
 
 def test_buffers_mode_upscaled_here_equals_network(server):  # noqa: F811

@@ -22,7 +22,17 @@ MAX_STACK = 40
 # The surface kernel for several rays per pixel spills some of the frame's values under its cap (and
 # marches the rays past a plan's hit planes itself): 232-240 bytes.
 MAX_SAMPLES_STACK = 256
-OVERLOADS = [f"({t.__name__}, {layout.key})" for t in kernels.VOXEL_TYPES for layout in kernels.LAYOUTS]
+# The plain kernels (NoClip), which must cost what they did before clipping, and the clipped ones (ClipArgs,
+# their own Warp module, run only for frames that clip).
+OVERLOADS = [f"({t.__name__}, {layout.key}, {kernels.NoClip.key})" for t in kernels.VOXEL_TYPES
+             for layout in kernels.LAYOUTS]
+CLIPPED_OVERLOADS = [o.replace(kernels.NoClip.key, kernels.ClipArgs.key) for o in OVERLOADS]
+# The clipped kernels, measured on sm_90 when clipping became their own variant (the plane table in device
+# memory): first hit 96-118 registers, no stack; surface kernel 128 registers and 168-184 bytes of stack
+# (cut faces and AO rays' kept spans under the cap); several rays 448-480 bytes. Bounds a little above.
+MAX_CLIPPED_FIRST_HIT_REGISTERS = 128
+MAX_CLIPPED_STACK = 200
+MAX_CLIPPED_SAMPLES_STACK = 512
 
 
 @pytest.fixture(scope="module")
@@ -35,8 +45,9 @@ def resources() -> dict[str, dict[str, int]]:
 
 
 def test_every_overload_is_compiled_and_read(resources):
+    assert kernels.CLIPPED_MODULE in RENDER_MODULES
     for name in kernels.FRAME_KERNELS:
-        assert {f"{name}{o}" for o in OVERLOADS} <= set(resources), sorted(resources)
+        assert {f"{name}{o}" for o in OVERLOADS + CLIPPED_OVERLOADS} <= set(resources), sorted(resources)
     assert all(r["registers"] > 0 for r in resources.values())
 
 
@@ -53,3 +64,13 @@ def test_surface_kernels_registers_capped(resources):
         assert one["registers"] <= kernels.SURFACE_MAX_REGISTERS and one["stack"] <= MAX_STACK, (overload, one)
         assert several["registers"] <= kernels.SURFACE_MAX_REGISTERS, (overload, several)
         assert several["stack"] <= MAX_SAMPLES_STACK, (overload, several)
+
+
+def test_clipped_kernels_stay_where_measured(resources):
+    for overload in CLIPPED_OVERLOADS:
+        first = resources[f"first_hit_kernel{overload}"]
+        one, several = resources[f"surface_kernel{overload}"], resources[f"surface_samples_kernel{overload}"]
+        assert first["registers"] <= MAX_CLIPPED_FIRST_HIT_REGISTERS and first["stack"] <= MAX_STACK, (overload, first)
+        assert one["registers"] <= kernels.SURFACE_MAX_REGISTERS and one["stack"] <= MAX_CLIPPED_STACK, (overload, one)
+        assert several["registers"] <= kernels.SURFACE_MAX_REGISTERS, (overload, several)
+        assert several["stack"] <= MAX_CLIPPED_SAMPLES_STACK, (overload, several)

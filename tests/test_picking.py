@@ -10,6 +10,7 @@ import pytest
 
 from isosr_render import Renderer, orbit
 from isosr_render.camera import Camera
+from isosr_render.clip import Clip
 from isosr_render.picking import Pick, distance, pick
 from isosr_render.slices import CONTOUR_RGB, slice_image
 from isosr_render.volume import Volume
@@ -96,3 +97,24 @@ def test_a_slice_through_the_sphere_shows_its_circle_at_the_physical_aspect(sphe
 def test_a_slice_outside_the_volume_is_refused(sphere, axis, index, words):
     with pytest.raises(ValueError, match=words):
         slice_image(sphere[0].volume, axis, index)
+
+
+def test_a_pick_honours_the_clip(sphere):
+    """A plane through the centre, square to the view, that removes the sphere's near half: open, the
+    pick finds the far wall behind the cut; capped, the cut face (``cap``, the value there the
+    volume's); a clip that removes the sphere leaves nothing to pick."""
+    renderer, iso = sphere
+    camera = orbit(30, 20, 1.8)
+    toward = -np.asarray(camera.eye) / np.linalg.norm(camera.eye)  # keeps what lies beyond the centre
+    x, y = W / 2, H / 2
+    plain = pick(renderer, camera, iso, W, H, x, y)
+    radius = math.dist(plain.world, (0.0, 0.0, 0.0))
+    assert plain.hit and not plain.cap
+    far = pick(renderer, camera, iso, W, H, x, y, Clip(planes=[((0.0, 0.0, 0.0), tuple(toward))]))
+    assert far.hit and not far.cap and far.value == pytest.approx(RADIUS, abs=0.05)
+    assert far.depth == pytest.approx(plain.depth + 2 * radius, abs=0.02)
+    face = pick(renderer, camera, iso, W, H, x, y, Clip(planes=[((0.0, 0.0, 0.0), tuple(toward))], cap="below"))
+    assert face.hit and face.cap and face.depth == pytest.approx(1.8, abs=1e-3)
+    assert face.value < RADIUS / 2 and math.dist(face.world, (0.0, 0.0, 0.0)) < 0.02
+    gone = Clip(planes=[((0.0, 0.0, 0.0), tuple(toward))], box=((-1.0,) * 3, (-0.5,) * 3), cap="below")
+    assert pick(renderer, camera, iso, W, H, x, y, gone) == Pick(False)

@@ -66,7 +66,7 @@ def test_messages_round_trip():
 
 def test_wire_names_are_the_v3_vocabulary():
     ready = wire(P.ReadyMsg("abc", VOLUME, P.ViewSettings(), 4, 8, LIMITS, MODES))
-    assert ready["type"] == "ready" and ready["version"] == 5 and ready["max_recon_ao_rays"] == 8
+    assert ready["type"] == "ready" and ready["version"] == 6 and ready["max_recon_ao_rays"] == 8
     assert ready["settings"]["mode"] == "auto" and ready["settings"]["interpolation"] == "bilinear"
     assert {"ao_rays", "refine_ao_rays", "spp", "ao_radius"} <= set(ready["settings"])
     assert ready["settings"]["ao_radius"] == P.AO_RADIUS == 0.05
@@ -78,6 +78,27 @@ def test_wire_names_are_the_v3_vocabulary():
     assert ready["modes"][1] == {"name": "full", "label": "full resolution", "shaded": True, "low_res": False,
                                  "focus": False, "options": [{"name": "ao_rays", "low": 0, "high": 256, "default": 0,
                                                               "choices": None}]}
+
+
+@pytest.mark.parametrize("clip, match", [
+    ({"planes": [{"point": [0, 0, 0], "normal": [0, 0, 1]}] * 7}, r"length <= 6 - at `\$.clip.planes`"),
+    ({"planes": [{"point": [0, 0, 0], "normal": [0, 0, 0]}]}, r"clip.planes\[0\].normal must be a nonzero vector"),
+    ({"planes": [{"point": [0, float("nan"), 0], "normal": [0, 0, 1]}]}, r"at `\$.clip.planes\[0\].point\[1\]`"),
+    ({"box": [[0, 0, 0], [1, -1, 1]]}, r"clip.box: lo must not exceed hi"),
+    ({"cap": "inside"}, r"at `\$.clip.cap`"),
+])
+def test_bad_clip_settings_are_refused_naming_the_field(clip, match):
+    with pytest.raises(P.ProtocolError, match=match):
+        P.ViewSettings().updated({"clip": clip}, LIMITS)
+
+
+def test_clip_settings_are_the_renderers_clip():
+    st = P.ViewSettings().updated({"clip": {"planes": [{"point": [0, 0, 0.1], "normal": [0, 0, -2]}],
+                                            "box": [[-1, -1, -1], [1, 1, 1]], "cap": "above"}}, LIMITS)
+    clip = st.clip.clip()
+    assert clip.planes == (((0.0, 0.0, 0.1), (0.0, 0.0, -1.0)),) and clip.box[1] == (1.0, 1.0, 1.0) and clip.capped
+    msg = P.SettingsMsg(P.SettingsUpdate(clip=st.clip))
+    assert roundtrip(msg) == msg and not P.ViewSettings().clip.clip().active
 
 
 def test_volume_levels_and_device_memory_round_trip():
@@ -190,7 +211,7 @@ def test_invalid_messages_name_the_problem(message, words):
 def test_version_3_is_refused_with_the_reason(message):
     with pytest.raises(P.ProtocolError) as e:
         P.parse(raw(message), LIMITS, (P.OpenMsg, P.UpscaleRequest))
-    assert e.value.reason == "protocol version 3 is not supported; this server speaks 5: update the client"
+    assert e.value.reason == "protocol version 3 is not supported; this server speaks 6: update the client"
     assert (e.value.close_code, e.value.http_status) == (P.CLOSE_BAD_MESSAGE, 400)
 
 
@@ -417,7 +438,7 @@ _ALL = dict(P.CLIENT_VIEW_MESSAGES, **P.SERVER_VIEW_MESSAGES, open=P.OpenMsg, up
 _KEYS = ["type", "eye", "target", "up", "yaw", "pitch", "distance", "fov_y", "seq", "value", "normalized", "settings",
          "shape", "center", "radius", "box", "version", "volume", "camera", "iso", "mask", "normal", "depth",
          "flow", "output", "session", "dtype", "data", "width", "height", "times", "buffers", "image", "code", "frame",
-         "method", "limits", "legend"]
+         "method", "limits", "legend", "clip"]
 
 
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])

@@ -315,6 +315,49 @@ def test_viewer_explores_a_volume(server, browser):
     page.close()
 
 
+def test_viewer_clip_plane_keys_and_handle(server, browser):
+    """x puts a clip plane across x (keeping x <= 0: half the torus goes), . moves it, the handle drags it, X
+    flips the kept side, a cap shows the cut faces; each reaches the server and changes the image."""
+    v = Viewer(browser, server, TOKEN)
+    page = v.page
+    set_control(page, "#mode", "full")
+    plain = v.settle(0)
+    n = v.frames()
+    page.keyboard.press("x")
+    assert page.input_value("#clip-axis") == "x"
+    cut = v.settle(n)
+    assert surface_fraction(cut) < surface_fraction(plain) - 0.02, "the plane did not cut the torus"
+    n = v.frames()
+    for _ in range(5):
+        page.keyboard.press(".")
+    assert page.input_value("#clip-offset") == "0.1" and page.inner_text("#clip-value") == "<= 0.1"
+    moved = v.settle(n)
+    assert surface_fraction(moved) > surface_fraction(cut) + 0.005, "the plane did not move"
+    n = v.frames()
+    page.locator("#clip-offset").scroll_into_view_if_needed()
+    box = page.locator("#clip-offset").bounding_box()  # the handle, dragged to its left end
+    page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+    page.mouse.down()
+    page.mouse.move(box["x"] - 20, box["y"] + box["height"] / 2, steps=4)
+    page.mouse.up()
+    assert page.input_value("#clip-offset") == "-0.5"
+    v.settle(n)
+    page.evaluate("document.activeElement.blur()")  # keys go to the page, not the handle
+    page.keyboard.press("X")  # keep x >= -0.5: the whole torus
+    assert page.inner_text("#clip-value") == ">= -0.5"
+    page.keyboard.press("X")  # back to x <= -0.5: the camera (on +x) on the removed side, looking at the cut
+    n = v.frames()
+    set_control(page, "#clip-offset", "0")
+    assert page.inner_text("#clip-value") == "<= 0"
+    open_cut = v.settle(n)
+    n = v.frames()
+    set_control(page, "#cap", "below")  # the torus's inside is below its iso (a signed distance)
+    capped = v.settle(n)
+    assert difference(capped, open_cut) > 1.0, "no cut faces"
+    assert v.errors == [], v.errors
+    page.close()
+
+
 def test_viewer_coders_match_python(server, browser):
     """The page's msgpack against Python's; its flow legend against the server's flow colors."""
     sample = {"type": "frame", "nil": None, "t": True, "f": False, "ints": [0, 127, 128, 255, 256, 65535, 65536,

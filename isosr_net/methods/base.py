@@ -26,6 +26,7 @@ from isosr_net.inference import (
 from isosr_net.reconnet import RayLimits
 from isosr_net.timing import StageTimer
 from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest
+from isosr_render.clip import Clip
 from isosr_render.conventions import AO_RADIUS
 from isosr_render.renderer import MAX_AO_SAMPLES, MAX_SPP
 from isosr_render.sequence import sequence_cameras
@@ -319,6 +320,8 @@ class FrameRunner(ABC):
             ``depth`` or ``flow``), at the frame size.
         shade: make the final color; off (a channel view shows one kept buffer instead), a method
             computes only what its kept buffers need (a full-resolution render: only them).
+        clip: clip planes, crop box and caps of every ray cast (:mod:`isosr_render.clip`); with caps,
+            the color shows the cut faces in the volume's values.
     """
 
     kind: ClassVar[str]
@@ -338,7 +341,7 @@ class FrameRunner(ABC):
     def __init__(self, method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int,
                  shading: ShadingParams = ShadingParams(), ao_radius: float = AO_RADIUS,
                  networks: Networks | None = None, atrous: ATrousConfig = ATrousConfig(), keep: tuple[str, ...] = (),
-                 shade: bool = True):
+                 shade: bool = True, clip: Clip = Clip()):
         check_int(width, "width", 1, where="frame")
         check_int(height, "height", 1, where="frame")
         if (reason := self.unavailable()) is not None:
@@ -348,7 +351,7 @@ class FrameRunner(ABC):
         self.method, self.renderer, self.iso = method, renderer, float(iso)
         self.width, self.height = width, height
         self.shading, self.ao_radius, self.atrous, self.keep = shading, ao_radius, atrous, tuple(keep)
-        self.shade = shade
+        self.shade, self.clip = shade, clip
         self.device = str(renderer.device)
         self._last_timer: StageTimer | None = None  # the previous frame's (read lazily: no sync per frame)
         self.frames = 0  # frames made: with fresh_rays, the next frame's AO seed
@@ -407,11 +410,12 @@ class FrameRunner(ABC):
         flow = prev_camera is not None and (self.recurrent or "flow" in self.keep)
         outputs = self.outputs() + tuple(k for k in self.keep if k not in self.makes(self.method) and k != "flow")
         outputs += ("flow",) if flow else ()
+        outputs += ("cap",) if self.shade and self.clip.capped else ()
         m = self.method
         seed = {"seed": (FIRST_TEMPORAL_SEED + self.frames) % 2 ** 31} if self.fresh_rays else {}
         return RenderRequest(self.width // m.factor, self.height // m.factor, self.iso, outputs,
                              ao_radius=self.ao_radius, prev_camera=prev_camera if flow else None,
-                             shading=self.shading, spp=m.spp, ao_samples=max(1, m.ao_rays), **seed)
+                             shading=self.shading, spp=m.spp, ao_samples=max(1, m.ao_rays), clip=self.clip, **seed)
 
     def frame(self, camera: Camera, prev_camera: Camera | None = None) -> FrameResult:
         """The next frame of the stream; ``prev_camera=None`` starts a new sequence.
@@ -500,12 +504,15 @@ class FrameRunner(ABC):
                 yield
         return out
 
-    def colored(self, buffers: FrameBuffers, timer: StageTimer) -> FrameBuffers:
-        """``buffers`` with the final color (unless the runner does not shade)."""
+    def colored(self, buffers: FrameBuffers, timer: StageTimer, cap: torch.Tensor | None = None) -> FrameBuffers:
+        """``buffers`` with the final color (unless the runner does not shade), the cut faces of the
+        rendered ``cap`` buffer (at the render's size) coloured by the volume's values."""
         if self.shade:
+            if cap is not None:
+                buffers.cap = self._to_frame_size("cap", cap)
             with timer("shading"):
                 buffers.color = shade_on(buffers.mask.device.type)(buffers.mask, buffers.normal, buffers.ao,
-                                                                  self.shading)
+                                                                  self.shading, buffers.cap)
         return buffers
 
     def _to_frame_size(self, name: str, t: torch.Tensor) -> torch.Tensor:
@@ -569,27 +576,29 @@ class FrameStream:
 
     def frame(self, method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int, camera: Camera,
               prev_camera: Camera | None, ao_radius: float = AO_RADIUS, keep: tuple[str, ...] = (),
-              shade: bool = True) -> FrameResult:
+              shade: bool = True, clip: Clip = Clip()) -> FrameResult:
         """The next frame; ``prev_camera`` counts only while the runner stays the same."""
         return finish_steps(self.steps(method, renderer, iso, width, height, camera, prev_camera, ao_radius, keep,
-                                       shade))
+                                       shade, clip=clip))
 
     def steps(self, method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int, camera: Camera,
               prev_camera: Camera | None, ao_radius: float = AO_RADIUS, keep: tuple[str, ...] = (),
-              shade: bool = True, slice_ms: float | None = None) -> Generator[None, None, FrameResult]:
+              shade: bool = True, slice_ms: float | None = None,
+              clip: Clip = Clip()) -> Generator[None, None, FrameResult]:
         """:meth:`frame` in slices (:meth:`FrameRunner.steps`)."""
-        runner, prev_camera = self.runner_for(method, renderer, iso, width, height, prev_camera, ao_radius, keep, shade)
+        runner, prev_camera = self.runner_for(method, renderer, iso, width, height, prev_camera, ao_radius, keep, shade,
+                                              clip)
         return (yield from runner.steps(camera, prev_camera, slice_ms))
 
     def runner_for(self, method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int,
                    prev_camera: Camera | None, ao_radius: float = AO_RADIUS, keep: tuple[str, ...] = (),
-                   shade: bool = True) -> tuple[FrameRunner, Camera | None]:
+                   shade: bool = True, clip: Clip = Clip()) -> tuple[FrameRunner, Camera | None]:
         """The runner of the next frame and the previous camera it continues from (None where the
-        runner is new: a cut). Its frame is then :meth:`FrameRunner.steps` or part of a
-        :meth:`FrameRunner.make_batch`."""
-        key = (method, renderer, float(iso), width, height, float(ao_radius), tuple(keep), shade)
+        runner is new: a cut; a new ``clip`` is one, as a new iso). Its frame is then
+        :meth:`FrameRunner.steps` or part of a :meth:`FrameRunner.make_batch`."""
+        key = (method, renderer, float(iso), width, height, float(ao_radius), tuple(keep), shade, clip)
         if key != self._key:
             self.runner = make_runner(method, renderer, iso, width, height, shading=self.shading,
-                                      ao_radius=ao_radius, networks=self.networks, keep=keep, shade=shade)
+                                      ao_radius=ao_radius, networks=self.networks, keep=keep, shade=shade, clip=clip)
             self._key, prev_camera = key, None
         return self.runner, prev_camera

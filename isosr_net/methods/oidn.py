@@ -60,11 +60,12 @@ class OIDNRunner(FrameRunner):
         return ("mask", "normal")
 
     def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
-        buffers = FrameBuffers(mask=rendered.mask, normal=rendered.normal)
+        buffers = FrameBuffers(mask=rendered.mask, normal=rendered.normal, cap=rendered.cap)
         if self.shade:
             with timer("shading"):
-                noisy = shade_on(rendered.mask.device.type)(rendered.mask, rendered.normal, rendered.ao, self.shading)
-                albedo = shade_on(rendered.mask.device.type)(rendered.mask, rendered.normal, None, self.shading)
+                shade = shade_on(rendered.mask.device.type)
+                noisy = shade(rendered.mask, rendered.normal, rendered.ao, self.shading, rendered.cap)
+                albedo = shade(rendered.mask, rendered.normal, None, self.shading, rendered.cap)
             with timer("filter"):
                 denoised = oidn.denoise(noisy, albedo, rendered.normal, self.method.options.quality)
                 # OIDN filters the background too: where nothing was hit, the background (the albedo's) stays.

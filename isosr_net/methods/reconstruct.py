@@ -19,6 +19,7 @@ from isosr_net.reconstructor import (
 from isosr_net.timing import StageTimer
 from isosr_render import Camera, FrameBuffers, RenderRequest
 from isosr_render.renderer import MAX_AO_SAMPLES
+from isosr_render.shading import ShadingParams
 
 # The x2 reconstruction's name in its methods' names (``x2, AO 1, spp 1, recon_x2 fp16``).
 X2_MODEL_NAME = "recon_x2"
@@ -133,10 +134,16 @@ class ReconstructRunner(FrameRunner):
         """The AO rays per hit the network reads the frame's mean as (at most its ``max_ao_rays``)."""
         return self.net.limits.read(self.method.ao_rays)
 
+    @property
+    def fused_shading(self) -> ShadingParams | None:
+        """The shading the network's call makes too: none where the runner does not shade, or where the
+        cut faces are coloured after it (:meth:`FrameRunner.colored`)."""
+        return self.shading if self.shade and not self.clip.capped else None
+
     def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
         with timer("network"):  # shading included: one call
-            return self.net.reconstruct(rendered, self.read_rays, self.method.spp,
-                                        self.shading if self.shade else None)
+            out = self.net.reconstruct(rendered, self.read_rays, self.method.spp, self.fused_shading)
+        return self.colored(out, timer, rendered.cap) if rendered.cap is not None else out
 
     def render_finish(self, camera: Camera, request: RenderRequest,
                       timer: StageTimer) -> tuple[FrameBuffers, FrameBuffers]:
@@ -144,6 +151,6 @@ class ReconstructRunner(FrameRunner):
             return super().render_finish(camera, request, timer)
         with timer("render"):  # the network and the shading included: one graph
             rendered, out = self.net.render_reconstruct(self.renderer, camera, request, self.read_rays,
-                                                        self.method.spp, self.shading if self.shade else None)
-        return rendered, out
+                                                        self.method.spp, self.fused_shading)
+        return rendered, self.colored(out, timer, rendered.cap) if rendered.cap is not None else out
 

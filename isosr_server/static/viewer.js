@@ -30,6 +30,7 @@ const state = {
   height: 240,
   split: 0.5,
   pointer: null,
+  clipFlip: false, // the clip plane keeps the side above its offset
   sessions: [], // [{session, mode, image, frameId, stats, method}]
   pending: {},
   generation: 0, // of openSessions calls
@@ -184,7 +185,35 @@ function settings(mode) {
     encoding: encoding(),
     quality: 90,
     bitrate_kbps: bitrate(),
+    clip: clipSettings(),
   };
+}
+
+/** The clip plane of the controls (settings.clip): across the chosen world axis at the handle's offset,
+ * keeping the side below it (above once flipped); no planes while off. */
+function clipSettings() {
+  const axis = ["x", "y", "z"].indexOf($("clip-axis").value);
+  $("clip-value").textContent = axis < 0 ? "" : `${state.clipFlip ? ">=" : "<="} ${$("clip-offset").value}`;
+  if (axis < 0) return { planes: [], box: null, cap: "none" };
+  const point = [0, 0, 0];
+  const normal = [0, 0, 0];
+  point[axis] = Number($("clip-offset").value);
+  normal[axis] = state.clipFlip ? 1 : -1;
+  return { planes: [{ point, normal }], box: null, cap: $("cap").value };
+}
+
+/** Move the clip plane's handle by ``delta`` world units (within its range). */
+function moveClip(delta) {
+  const handle = $("clip-offset");
+  handle.value = Math.min(Number(handle.max), Math.max(Number(handle.min), Number(handle.value) + delta)).toFixed(2);
+  sendSettings();
+}
+
+/** The clip plane across the next axis (off, x, y, z). */
+function cycleClip() {
+  const axis = $("clip-axis");
+  axis.selectedIndex = (axis.selectedIndex + 1) % axis.options.length;
+  sendSettings();
 }
 
 function cameraMessage() {
@@ -637,6 +666,7 @@ function onPicked(picked) {
   state.picks = [...state.picks, { x: asked.x, y: asked.y, picked }].slice(-2);
   const [i, j, k] = picked.voxel;
   let text = `value ${fmt(picked.value)} at voxel (${i}, ${j}, ${k}), (${picked.position.map(fmt).join(", ")})`;
+  if (picked.cap) text += " on a cut face";
   const ruler = $("ruler");
   ruler.toggleAttribute("hidden", state.picks.length < 2); // an SVG element: the attribute, no .hidden
   if (state.picks.length === 2) {
@@ -732,6 +762,8 @@ function bindKeys() {
       a: () => { $("ao-rays").value = Number($("ao-rays").value) > 0 ? 0 : 1; sendSettings(); },
       s: () => { $("split").checked = !$("split").checked; openSessions(); },
       v: toggleSlices,
+      x: cycleClip, X: () => { state.clipFlip = !state.clipFlip; sendSettings(); },
+      ",": () => moveClip(-0.02), ".": () => moveClip(0.02),
       r: resetCamera, p: screenshot,
     };
     const picked = /^[1-9]$/.test(e.key) && $("mode").options[Number(e.key) - 1];
@@ -793,6 +825,9 @@ function bindControls() {
   $("encoding").addEventListener("change", () => { setNotice(autoNotice()); sendSettings(); });
   $("bitrate").addEventListener("change", sendSettings);
   $("refine").addEventListener("change", sendSettings);
+  $("clip-axis").addEventListener("change", sendSettings);
+  $("cap").addEventListener("change", sendSettings);
+  $("clip-offset").addEventListener("input", sendSettings);
   $("lens-radius").addEventListener("input", () => { showLens(); queue("focus", focusMessage()); });
   $("camera-reset").addEventListener("click", resetCamera);
   $("camera-save").addEventListener("click", () => {
