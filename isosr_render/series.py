@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from isosr_render.formats import FORMATS, format_of
-from isosr_render.formats.base import Layout, require, stored_dtype
+from isosr_render.formats.base import Layout, natural_key, require, stored_dtype
 from isosr_render.volume import Volume
 from isosr_render.volume_io import open_source, volume_name
 from isosr_render.voxels import ArraySource, VolumeError, VoxelSource
@@ -49,12 +49,6 @@ SERIES_CACHE_BYTES = 2 << 30
 PREFETCH_STEPS = 2
 GLOB_CHARS = re.compile(r"[*?\[]")
 HDF5_SPEC = re.compile(r"^(?P<file>.+\.(?:h5|hdf5|he5))#(?P<dataset>/.*)$", re.IGNORECASE)
-
-
-def natural_key(name: str) -> tuple:
-    """Sort key of a file name whose digit runs compare as numbers: ``run_2`` before ``run_10``."""
-    return tuple((0, int(part), "") if part.isdigit() else (1, 0, part.lower()) for part in re.split(r"(\d+)", name)
-                 if part)
 
 
 def series_files(spec: str | os.PathLike) -> list[Path] | None:

@@ -7,6 +7,7 @@ that the registry can import them.
 from __future__ import annotations
 
 import importlib
+import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -115,6 +116,13 @@ class TimeSteps:
 
     count: int
     open: Callable[[int], VoxelSource]
+
+
+def natural_key(name: str) -> tuple:
+    """Sort key of a file name whose digit runs compare as numbers (``slice2`` before ``slice10``): the
+    order of a folder's TIFF slices and of a series' files."""
+    return tuple((0, int(part), "") if part.isdigit() else (1, 0, part.lower()) for part in re.split(r"(\d+)", name)
+                 if part)
 
 
 def require(module: str, label: str, what: str) -> ModuleType:
