@@ -42,6 +42,7 @@ from isosr_render.clip import CAP_MODES, Clip
 from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES
 from isosr_render.formats import help_text
 from isosr_render.picking import pick
+from isosr_render.series import open_series
 
 PNG_DEFAULT = "color"
 # AO rays per hit of a plain render.
@@ -70,7 +71,11 @@ def add_parser(subparsers) -> None:
     p.add_argument("volume", nargs="?", help=f"a volume file or folder ({help_text()}), procedural spec (proc:sphere, "
                                   "proc:torus, proc:cloud:SEED, proc:metaballs:SEED, optional @SIZE) or shared volume "
                                   "(shared:NAME); an OME-Zarr level by name, scan.zarr#level=2, or by memory, "
-                                  "scan.zarr#max-gb=8 (default: the finest)")
+                                  "scan.zarr#max-gb=8 (default: the finest); with --time-step, a time series")
+    p.add_argument("--time-step", type=int, metavar="T",
+                   help="render step T (from 0) of a time series: a glob ('run_*.nii.gz', quoted) or folder of "
+                        "volume files in natural order, a 4D NIfTI, a (t, z, y, x) .npy, an OME-Zarr with a t axis "
+                        "or FILE.h5#/DATASET")
     p.add_argument("--iso", type=float, help="iso-value in data units, strictly inside the data's value range "
                                              "(default: the procedural volume's own, else Otsu's threshold)")
     p.add_argument("--normalized-iso", action="store_true", help="--iso is on the normalized [0, 1] scale")
@@ -148,6 +153,14 @@ def _clip(args: argparse.Namespace) -> Clip:
     return Clip(tuple((p[:3], p[3:]) for p in args.clip_plane), box, args.cap)
 
 
+def _series_step(spec: str, t: int):
+    """Step ``t`` of the series ``spec``; `ValueError` naming the steps there are."""
+    series = open_series(spec)
+    if not 0 <= t < series.count:
+        raise ValueError(f"{spec}: no time step {t}; the series has {series.count} (0 to {series.count - 1})")
+    return series.step(t)
+
+
 def _pair(text: str) -> tuple[float, float]:
     """Parse ``x,y``."""
     try:
@@ -221,7 +234,7 @@ def run(args: argparse.Namespace) -> int:
     if clip.active and args.budget_ms is not None:
         raise ValueError("--budget-ms probes unclipped frames: clip with a plain render or a --method")
 
-    volume = open_volume(args.volume)
+    volume = open_volume(args.volume) if args.time_step is None else _series_step(args.volume, args.time_step)
     iso = check_iso(volume, resolve_iso(args.volume, volume, args.iso, args.normalized_iso),
                     args.volume.removeprefix(SHARED_PREFIX))
     unit = volume.voxel_size_world() if args.voxel_units else 1.0

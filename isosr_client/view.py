@@ -51,7 +51,7 @@ from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, CLOSE_GOING_AWAY, CLOSE
                                    SERVER_VIEW_MESSAGES, TOKEN_HEADER, VIDEO_ENCODINGS, CameraMsg, ErrorMsg, FocusMsg,
                                    FrameMsg, IsoMsg, KeyframeMsg, Limits, NoticeMsg, OpenMsg, PickedMsg, PickMsg,
                                    ProtocolError, ReadyMsg, ReceivedMsg, SettingsMsg, SettingsUpdate, ViewSettings,
-                                   VolumeMemory, convert, encode, parse)
+                                   VolumeMemory, check_step, convert, encode, parse)
 
 if TYPE_CHECKING:
     from isosr_client.local import LocalUpscaler
@@ -360,6 +360,26 @@ class ViewSession:
         """
         return self.set_settings(clip={"planes": [{"point": _floats(p), "normal": _floats(n)} for p, n in planes],
                                        "box": None if box is None else [_floats(c) for c in box], "cap": cap})
+
+    @property
+    def steps(self) -> int:
+        """The volume's time steps (a series; 1 for a volume)."""
+        return self.ready.volume.steps
+
+    @property
+    def step(self) -> int:
+        """The time step asked for last (a frame's ``message.t`` is the one it shows)."""
+        return self.settings.t
+
+    def set_step(self, t: int) -> int:
+        """Show time step ``t`` of a series (0 to ``steps - 1``); returns the update's seq. Playing a
+        series is setting the next step at the rate wanted.
+
+        Raises:
+            ProtocolError: ``t`` past the series (nothing is sent then).
+        """
+        check_step(t, self.steps, self.ready.volume.name)
+        return self.set_settings(t=t)
 
     def set_focus(self, shape: str = "none", center: tuple[float, float] | None = None, radius: float | None = None,
                   box: tuple[float, float, float, float] | None = None) -> int:

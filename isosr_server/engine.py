@@ -89,7 +89,7 @@ def serving_network(cls: type[RecurrentNetwork], model: Path, device: str, preci
 class EncodedFrame:
     """A view frame ready for the wire: the coded image (or the coded buffers), server milliseconds
     per stage, the channel legend, the method's name, the frame whose camera the flow refers to,
-    and the volume's device memory after it."""
+    the volume's device memory after it, and the time step it shows."""
 
     image: CodedImage | None
     buffers: ViewBuffers | None
@@ -98,6 +98,7 @@ class EncodedFrame:
     method: str
     prev_seq: int
     memory: VolumeMemory
+    t: int = 0
 
 
 class Engine:
@@ -275,7 +276,8 @@ class Engine:
         return PickedMsg(msg.x, msg.y, msg.id, **asdict(found))
 
     def renderer_sync(self, name: str, volume: Volume) -> Renderer:
-        """The cached renderer of a volume (uploads it on first use)."""
+        """The cached renderer of a volume (uploads it on first use); a series' step is a volume of
+        its own, named by :func:`isosr_server.sessions.step_name`."""
         self._on_thread()
         if name in self._renderers:
             self._renderers.move_to_end(name)
@@ -312,7 +314,8 @@ class Engine:
             image, buffers = await asyncio.get_running_loop().run_in_executor(pool, pack_codes, codes, code)
             done = time.perf_counter()
             times = made.result.times | {"encode": 1e3 * (done - began), "total": 1e3 * (done - start)}
-            return EncodedFrame(image, buffers, times, made.legend, made.method.name, made.prev_seq, memory)
+            return EncodedFrame(image, buffers, times, made.legend, made.method.name, made.prev_seq, memory,
+                                job.settings.t)
         return encode
 
     async def _batched(self, frames: SessionFrames, renderer: Renderer, job: FrameJob) -> tuple[ViewFrame, object]:

@@ -1,4 +1,4 @@
-"""The wire protocol of `isosr serve` (version 3): the one module the server and every client share.
+"""The wire protocol of `isosr serve` (version 6): the one module the server and every client share.
 
 Every message is declared once below as a frozen `msgspec.Struct`: its fields, their types and
 their static bounds. Imports only numpy, msgspec, the standard library and the array codec
@@ -62,6 +62,14 @@ View modes (``settings.mode``)
     ``network``, ``focus`` and ``reconstruct`` carry a recurrent state per session; a new iso, size or
     mode (``reconstruct``: or ``ao_rays``) starts it afresh.
 
+Time series
+    A volume with a time axis (:mod:`isosr_render.series`) lists its ``steps`` (``ready.volume``;
+    1 for others); ``settings.t`` picks the step shown (0 to ``steps - 1``; beyond is refused),
+    and each frame says the step it shows (``t``). A client plays a series by sending ``t`` at
+    its rate. A step change is a cut: recurrent modes start afresh on the new step. A step that
+    cannot be read (a file gone mid-playback) leaves the view on the last step shown, with a
+    ``notice`` naming the step and why; the session goes on.
+
 Flow control
     The client answers each frame it has taken off the wire with ``received`` (``frame``: the
     frame's ``seq``; cumulative: it covers every frame before it too). The server renders a
@@ -93,11 +101,12 @@ from isosr_render.clip import CAP_MODES, MAX_PLANES, Clip
 from isosr_render.conventions import AO_RADIUS
 from isosr_server.codecs.arrays import ArrayTooBig, WireArray, decode_array, encode_array
 
+# 7: time series (volume.steps, settings.t, frame.t);
 # 6: clip planes, a crop box and caps (settings.clip);
 # 5: modes named by the server (ready.modes), ready's limits on messages and acknowledgements;
 # 3: the v3 vocabulary (modes auto/network/upscale/..., ao_rays, spp, interpolation, frame methods);
 # 2 (acknowledged frames, flow control) and earlier are refused with a reason.
-PROTOCOL_VERSION = 6
+PROTOCOL_VERSION = 7
 
 # Largest magnitude of any float field (camera coordinates, iso, ...): beyond it is hostile input.
 MAX_ABS_FLOAT = 1e9
@@ -106,6 +115,8 @@ MAX_SEQ = 2**53
 FLOW_CLIP = 60000.0
 
 MAX_VIEW_SPP = 4  # rays per pixel a view session may ask for
+MAX_STEPS = 2**24  # time steps of a series, the static bound of ``t`` (a session checks its volume's count)
+Step = Annotated[int, Meta(ge=0, lt=MAX_STEPS)]
 # A view mode's name: the server lists its modes (``ready.modes``) and refuses others naming them.
 ModeName = Annotated[str, Meta(pattern="^[a-z][a-z0-9_]{0,31}$")]
 # What a shaded-mode frame shows: the shaded image or one buffer in false color (isosr_server.channels).
@@ -313,6 +324,7 @@ class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         focus_blend_px: width of the blend at the focus region's border, full-res pixels.
         channel: ``shaded``, or a buffer shown in false color (:mod:`isosr_server.channels`).
         clip: clip planes, crop box and caps of every frame (:class:`ClipSettings`).
+        t: a series' time step (module docstring), below ``ready.volume.steps``.
     """
 
     mode: ModeName = "auto"
@@ -331,6 +343,7 @@ class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     focus_blend_px: Annotated[int, Meta(ge=0, le=256)] = 4
     channel: Literal[CHANNELS] = "shaded"
     clip: ClipSettings = ClipSettings()
+    t: Step = 0
 
     def updated(self, update: SettingsUpdate | Mapping[str, Any], limits: Limits) -> ViewSettings:
         """These settings with ``update`` applied (a `SettingsUpdate`, or a map validated as one),
@@ -346,6 +359,14 @@ class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         new = msgspec.structs.replace(self, **update.given())
         limits.check_size(new.width, new.height)
         return new
+
+
+def check_step(t: int, steps: int, volume: str) -> None:
+    """`ProtocolError` (CLOSE_POLICY, 422) for a time step ``t`` past a volume's ``steps`` (the
+    server checks ``settings.t`` with it, a client before sending)."""
+    if t >= steps:
+        raise ProtocolError(f"settings.t: no time step {t} in {volume!r}, which has {steps} (0 to {steps - 1})",
+                            CLOSE_POLICY, 422)
 
 
 class _SettingsUpdateBase(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -532,6 +553,7 @@ class VolumeSummary(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         histogram: voxel counts in ``histogram_bins`` equal bins over ``value_range``.
         level, levels: a multiscale volume's level served and all its levels, finest first
             (:mod:`isosr_server.volumes` says which is served); None for others.
+        steps: a series' time steps (``settings.t`` picks one); 1 for a volume.
     """
 
     name: str
@@ -543,6 +565,7 @@ class VolumeSummary(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     iso_normalized: Finite
     level: Annotated[str, Meta(max_length=200)] | None = None
     levels: list[LevelSummary] | None = None
+    steps: Annotated[int, Meta(ge=1, le=MAX_STEPS)] = 1
 
 
 class OptionInfo(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -706,6 +729,8 @@ class FrameMsg(Message, tag="frame"):
         device: the volume's device memory and paging (:class:`VolumeMemory`), on a session's
             first frame and on each frame after which it changed (e.g. an iso change paged
             bricks in); None: as last sent.
+        t: the time step shown: ``settings.t``, or the last step shown where that one cannot be
+            read (a ``notice`` says why).
     """
 
     seq: Seq
@@ -727,6 +752,7 @@ class FrameMsg(Message, tag="frame"):
     codec: Annotated[str, Meta(max_length=64)] | None = None
     bitrate_kbps: Annotated[int, Meta(ge=0)] = 0
     device: VolumeMemory | None = None
+    t: Step = 0
 
     def __post_init__(self):
         if (self.encoding == "buffers") != (self.buffers is not None) or (self.image is None) == (self.buffers is None):

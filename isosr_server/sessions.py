@@ -28,6 +28,12 @@ its bitrate follows the client's cap or the link's throughput estimated from the
 acknowledgments, its frame rate steps down (the loop's pause between frames grows) before its
 quality drops too far, and a ``keyframe`` request renders the current state again as a keyframe.
 An encoding that cannot be made falls back to jpeg with a ``notice``.
+
+Time series. A session on a series (:class:`StepView`) shows the step its settings name (``t``):
+each step is a volume of its own with its own renderer, read off the device thread (the series'
+cache, the next steps prefetched), so that a step change is a cut for the recurrent methods (the
+frame stream's key holds the renderer). A step that cannot be read leaves the last one shown,
+with a notice.
 """
 
 from __future__ import annotations
@@ -42,12 +48,13 @@ import msgspec
 
 from isosr_net.inference import RecurrentNetwork
 from isosr_net.upscaler import Upscaler
-from isosr_render import Camera, Volume, orbit
+from isosr_render import Camera, Renderer, Volume, VolumeError, orbit
+from isosr_render.series import VolumeSeries, step_iso
 from isosr_server import views
 from isosr_server.engine import EncodedFrame
 from isosr_server.protocol import (CLOSE_IDLE, CLOSE_TOO_MANY, VIDEO_ENCODINGS, CameraMsg, FocusMsg, FrameMsg, IsoMsg,
                                    KeyframeMsg, Legend, Limits, Message, NoticeMsg, ProtocolError, ReceivedMsg,
-                                   SettingsMsg, ViewSettings, VolumeMemory)
+                                   SettingsMsg, ViewSettings, VolumeMemory, check_step)
 from isosr_server.video import CodePlan, RateControl, fallback_notice
 from isosr_server.views import FrameJob, ViewContext
 from isosr_server.volumes import session_iso
@@ -124,12 +131,13 @@ class ViewSession:
         context: the server's view context (upscale factor, precision, models).
         limits: the server's limits.
         sessions: how many view sessions the server serves now (the auto mode's share).
+        steps: the volume's time steps (a series: :class:`StepView`; 1 for a volume).
     """
 
     def __init__(self, session_id: str, volume_name: str, volume: Volume, state: ViewState, context: ViewContext,
-                 limits: Limits, sessions: Callable[[], int] = lambda: 1):
+                 limits: Limits, sessions: Callable[[], int] = lambda: 1, steps: int = 1):
         self.id, self.volume_name, self.volume = session_id, volume_name, volume
-        self.context, self.limits, self.sessions = context, limits, sessions
+        self.context, self.limits, self.sessions, self.steps = context, limits, sessions, steps
         self.check_settings(state.settings)
         self.notices: deque[str] = deque(maxlen=8)  # to send before the next frame
         self.state = replace(state, settings=self._makeable(state.settings))
@@ -149,8 +157,10 @@ class ViewSession:
         self.unacked_sent: deque[tuple[int, float]] = deque()  # (seq, when its sending began), oldest first
 
     def check_settings(self, settings: ViewSettings) -> None:
-        """`ProtocolError` for settings no frame can be made of (:func:`isosr_server.views.check`)."""
+        """`ProtocolError` for settings no frame can be made of (:func:`isosr_server.views.check`), or
+        a time step past the volume's."""
         views.check(settings, self.context)
+        check_step(settings.t, self.steps, self.volume_name)
 
     def _makeable(self, settings: ViewSettings) -> ViewSettings:
         """``settings``, in jpeg (with a notice) where their encoding cannot be made here."""
@@ -261,6 +271,57 @@ class ViewSession:
         return plan
 
 
+def step_name(name: str, t: int) -> str:
+    """The engine's name of a series' step (its renderer's cache key); a volume's own name for step 0."""
+    return name if t == 0 else f"{name}@t{t}"
+
+
+class StepView:
+    """The step of a series a view session shows, with its volume and renderer (a volume: step 0 only).
+
+    Every step is a volume of its own (its own value range): a frame's iso, normalized for the
+    session's volume (step 0), is normalized again for the step (:func:`step_iso`). The step's
+    renderer is the engine's for that step: a new step is a new renderer, so the session's
+    frame stream starts without history on it (the stream's key holds the renderer), the simplest
+    rule under which nothing of one step ghosts into the next.
+
+    Args:
+        session: the view session (its volume is step 0).
+        series: the series, or None for a volume.
+        renderer: step 0's renderer.
+        upload: ``await upload(name, volume)``: a step's renderer (the engine's, on its device thread).
+    """
+
+    def __init__(self, session: ViewSession, series: VolumeSeries | None, renderer: Renderer,
+                 upload: Callable[[str, Volume], Awaitable[Renderer]]):
+        self.session, self.series, self.upload = session, series, upload
+        self.t, self.volume, self.renderer = 0, session.volume, renderer
+
+    async def show(self, t: int) -> None:
+        """Make step ``t`` the one shown: read (or from the cache) off the event loop, its renderer
+        from the engine; the next steps prefetched. A step that cannot be read keeps the one
+        shown and queues a notice naming it."""
+        if self.series is None:
+            return
+        if t != self.t:
+            try:
+                volume = await asyncio.to_thread(self.series.step, t)
+            except (VolumeError, OSError) as e:
+                self.session.notices.append(f"time step {t} ({self.series.labels[t]}) cannot be read: "
+                                            f"{' '.join(str(e).split())}; showing step {self.t}"[:1000])
+            else:
+                self.renderer = await self.upload(step_name(self.session.volume_name, t), volume)
+                self.t, self.volume = t, volume
+        self.series.prefetch(self.t)
+
+    def job(self, frame: FrameJob) -> FrameJob:
+        """``frame`` for the step shown: its iso normalized for the step, its settings' ``t`` the step's."""
+        if self.series is None:
+            return frame
+        settings = msgspec.structs.replace(frame.settings, t=self.t)
+        return replace(frame, settings=settings, iso=step_iso(frame.iso, self.session.volume, self.volume))
+
+
 # Makes a frame on the device; what it returns encodes it (engine.view_frame).
 FrameMaker = Callable[[ViewJob], Awaitable[Callable[[], Awaitable[EncodedFrame]]]]
 
@@ -334,7 +395,7 @@ async def _send_frame(session: ViewSession, job: ViewJob, encode: Callable[[], A
                    refined=f.refined, buffers=made.buffers, prev_seq=made.prev_seq,
                    legend=None if made.legend is None else Legend(**made.legend), method=made.method,
                    timestamp_us=job.plan.timestamp_us,
-                   device=None if made.memory == session.sent_memory else made.memory, **image)
+                   device=None if made.memory == session.sent_memory else made.memory, t=made.t, **image)
     session.sent_memory = made.memory
     session.sent_seq = f.seq  # before sending: the client may acknowledge it before send returns
     session.unacked_sent.append((f.seq, time.monotonic()))

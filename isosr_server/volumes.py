@@ -15,6 +15,13 @@ too big for dense could render sparse too, but each iso change would page its br
 iso touching many bricks would not fit; the finest level that fits keeps every iso working.
 Listings show every level and the one served.
 
+Time series (:mod:`isosr_render.series`): a folder of volume files that is no volume itself, a
+manifest entry whose ``file`` is a glob, a 4D NIfTI, a ``(t, z, y, x)`` ``.npy`` or an OME-Zarr
+with a ``t`` axis is one volume with ``steps``; its step 0 stands for it where one volume is
+meant (value range, suggested iso, histogram, slices, meshes), and view sessions show any step
+(:class:`isosr_server.sessions.StepView`). A series whose steps differ in shape, spacing or
+dtype is listed with the ``error`` naming the first that differs.
+
 Bad folders and data. A volume that cannot be opened stays listed, with the reason as ``error``
 (found by a cheap check when first listed, :func:`isosr_render.volume_io.probe`, or by a failed
 load); opening it answers 422 / CLOSE_POLICY with that reason. A loaded constant volume lists why
@@ -37,6 +44,7 @@ from isosr_render.catalog import IsoOutOfRange, check_iso, degenerate, manifest,
 from isosr_render.formats import format_of
 from isosr_render.formats.zarr import ZarrSource, finest_within, open_zarr
 from isosr_render.procedural import default_iso
+from isosr_render.series import VolumeSeries, is_series, open_series
 from isosr_render.volume_io import probe, volume_name
 from isosr_server.protocol import CLOSE_NOT_FOUND, CLOSE_POLICY, VOLUME_NAME, ProtocolError
 
@@ -75,6 +83,7 @@ class VolumeInfo:
             and ``bytes`` (voxels in their stored type).
         error: why no view can open it (unreadable, or constant); None for a good volume. In
             the JSON only when set.
+        steps: a time series' steps (1: a volume).
     """
 
     name: str
@@ -85,11 +94,12 @@ class VolumeInfo:
     level: str | None = None
     levels: list[dict] | None = None
     error: str | None = None
+    steps: int = 1
 
     def to_json(self) -> dict:
         info = {"name": self.name, "shape": self.shape, "value_range": self.value_range, "iso": self.iso,
                 "histogram": self.histogram, "histogram_bins": HISTOGRAM_BINS, "level": self.level,
-                "levels": self.levels}
+                "levels": self.levels, "steps": self.steps}
         return info if self.error is None else info | {"error": self.error}
 
 
@@ -107,6 +117,7 @@ class VolumeCatalog:
         self.root = None if root is None else Path(root).resolve()
         self.max_bytes = max_bytes
         self._levels: dict[str, tuple[ZarrSource, ...]] = {}
+        self._series: dict[str, VolumeSeries | None] = {}  # name -> its series (None: one volume)
         self._files: dict[str, Path] = {}
         self._manifest: dict[str, dict] = {}
         self._errors: dict[str, str] = {}  # name -> why it cannot be opened
@@ -123,7 +134,7 @@ class VolumeCatalog:
                 for path in sorted(self.root.iterdir()):
                     if path.name.startswith(".") or not self._inside(path):
                         continue
-                    name = volume_name(path)
+                    name = volume_name(path) or (path.name if path.is_dir() and is_series(path) else None)
                     if name:
                         self._files.setdefault(name, path)
         self._cache: dict[str, tuple[Volume, VolumeInfo]] = {}
@@ -148,9 +159,19 @@ class VolumeCatalog:
             return
         self._probed.add(name)
         try:
-            probe(source)
+            if self.series(name) is None:
+                probe(source)
         except (VolumeError, OSError) as e:
             self._remember(name, e)
+
+    def series(self, name: str) -> VolumeSeries | None:
+        """The time series behind a name (its files' headers checked once: `VolumeError` naming the
+        first step that differs), or None for a single volume."""
+        if name not in self._series:
+            source = self._source(name)
+            found = None if source.startswith("proc:") else open_series(source)
+            self._series[name] = found if found is not None and found.count > 1 else None
+        return self._series[name]
 
     def _remember(self, name: str, e: Exception) -> str:
         """Record why ``name`` cannot be opened: one line, paths relative to the folder."""
@@ -201,19 +222,25 @@ class VolumeCatalog:
             self._remember(name, err)
         e = self._manifest.get(name)
         error = self._errors.get(name)
+        steps = self._steps(name)
         if e is None:
             shape = None if level is None else level.shape
             return VolumeInfo(name, shape, None, self.suggested_iso(name, None), None, *_level_json(level, levels),
-                              error)
+                              error, steps)
         value_range = tuple(e["value_range"])
         return VolumeInfo(name, tuple(e["shape_xyz"]), value_range, self.suggested_iso(name, value_range), None,
-                          *_level_json(level, levels), error)
+                          *_level_json(level, levels), error, steps)
+
+    def _steps(self, name: str) -> int:
+        """A series' steps, 1 for a volume (and for a series that cannot be opened)."""
+        series = self._series.get(name)
+        return 1 if series is None else series.count
 
     def _level(self, name: str, source: str) -> tuple[ZarrSource | None, tuple[ZarrSource, ...]]:
         """The level served of a multiscale store (module docstring) and all its levels; (None, ())
         for other volumes. The store's metadata is read once."""
         if name not in self._levels:
-            fmt = None if source.startswith("proc:") else format_of(source)
+            fmt = None if source.startswith("proc:") or self.series(name) is not None else format_of(source)
             self._levels[name] = open_zarr(source).levels if fmt is not None and fmt.levels else ()
         levels = self._levels[name]
         if not levels:
@@ -249,14 +276,18 @@ class VolumeCatalog:
                 return self._cache[name]
             try:
                 level, levels = self._level(name, source)
-                volume = open_volume(source) if level is None else Volume.from_source(level)
+                series = self.series(name)
+                if series is not None:
+                    volume = series.step(0)
+                else:
+                    volume = open_volume(source) if level is None else Volume.from_source(level)
             except (VolumeError, OSError) as e:
                 raise VolumeError(self._remember(name, e)) from None
             self._errors.pop(name, None)
             counts = volume.histogram(HISTOGRAM_BINS)
             iso = self.suggested_iso(name, volume.value_range, volume)
             info = VolumeInfo(name, volume.shape, volume.value_range, iso, counts.tolist(), *_level_json(level, levels),
-                              degenerate(volume, name))
+                              degenerate(volume, name), self._steps(name))
             self._cache[name] = (volume, info)
             while len(self._cache) > CACHE:
                 self._cache.pop(next(iter(self._cache)))

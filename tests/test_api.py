@@ -41,7 +41,8 @@ def test_routes_run_on_fake_state_without_a_model():
     assert client.get("/v2/models/isosr-recon").json()["parameters"] == {"model": "fake_recon", "max_ao_rays": 5}
     assert client.get("/v1/volumes").json()["volumes"] == [{"name": "fake", "shape": [2, 3, 4],
                                                             "value_range": [0.0, 1.0], "iso": 0.5, "histogram": None,
-                                                            "histogram_bins": 64, "level": None, "levels": None}]
+                                                            "histogram_bins": 64, "level": None, "levels": None,
+                                                            "steps": 1}]
 
 
 def test_probes_need_no_token_and_the_rest_does():

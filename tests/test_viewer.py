@@ -405,6 +405,31 @@ def test_viewer_shows_a_sparse_volumes_resident_set_and_page_in(browser, tmp_pat
         assert not v.errors, v.errors
 
 
+def test_viewer_plays_a_time_series(browser, tmp_path):
+    (tmp_path / "volumes" / "runs").mkdir(parents=True)
+    for i, cx in enumerate((8, 16, 24, 12)):  # a ball that moves
+        x, y, z = np.meshgrid(*(np.arange(32.0),) * 3, indexing="ij")
+        ball = np.clip(128 + 40 * (6.0 - np.sqrt((x - cx) ** 2 + (y - 16) ** 2 + (z - 16) ** 2)), 0, 255)
+        np.save(tmp_path / "volumes" / "runs" / f"run_{i}.npy", ball.astype(np.uint8))
+    with serve(tmp_path) as (_, url):
+        v = Viewer(browser, url, TOKEN, volume="runs")
+        v.wait_frame_after(0)
+        assert v.page.is_visible("#time") and v.page.get_attribute("#step", "max") == "3"
+        first = v.frames()
+        set_control(v.page, "#step", 2)
+        v.wait_frame_after(first, "document.getElementById('view').dataset.t === '2'")
+        assert v.page.inner_text("#step-value") == "2 / 3"
+        set_control(v.page, "#rate", 20)
+        v.page.click("#play")
+        v.wait("document.getElementById('view').dataset.t !== '2'")  # played on
+        assert v.page.inner_text("#play") == "pause"
+        v.page.click("#play")
+        assert v.page.inner_text("#play") == "play"
+        v.page.select_option("#volume", "proc:sphere")
+        v.wait("document.getElementById('time').hidden")  # a volume has no time controls
+        assert not v.errors, v.errors
+
+
 def test_viewer_wrong_token_shows_error(server, browser):
     v = Viewer(browser, server, "wrong-token-0000")
     v.wait("document.getElementById('conn-state').dataset.state === 'error'")

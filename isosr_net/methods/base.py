@@ -562,7 +562,9 @@ class FrameStream:
     """One viewer's frames whatever it asks for next: the runner of the current method, iso, size
     and AO radius, made anew when any of them changes. The one place the recurrent reset is
     decided for a stream: a new runner starts without state (so a change of settings or size is a
-    cut), and so does a frame without a previous camera.
+    cut), and so does a frame without a previous camera. The key holds the renderer: another
+    volume, or another time step of a series (each step is a renderer of its own), is a cut too,
+    the simplest rule under which no history crosses from one step into the next.
 
     Args:
         networks: the stream's own networks (:meth:`Networks.fork`).

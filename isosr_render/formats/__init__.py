@@ -69,15 +69,17 @@ def help_text() -> str:
 
 
 for _format in (
-    Format("nifti", "NIfTI image", (".nii", ".nii.gz"), arrays.open_nifti, whole=True),
+    Format("nifti", "NIfTI image", (".nii", ".nii.gz"), arrays.open_nifti, whole=True, header=arrays.nifti_header,
+           steps=arrays.nifti_steps),
     Format("nrrd", "NRRD file or detached header", (".nrrd", ".nhdr"), arrays.open_nrrd, whole=True,
            detached=(".nhdr",)),
     Format("dat", "Volume Library header beside its .raw file", (".dat",), arrays.open_dat, whole=True,
            detached=(".dat",)),
     Format("raw", "raw voxels named NAME_XxYxZ_DTYPE", (".raw", ".raw.gz"), arrays.open_raw, whole=True),
-    Format("numpy", "NumPy array", (".npy", ".npz"), arrays.open_numpy, whole=True),
+    Format("numpy", "NumPy array", (".npy", ".npz"), arrays.open_numpy, whole=True, header=arrays.numpy_header,
+           steps=arrays.numpy_steps),
     Format("zarr", "Zarr or OME-Zarr store folder", zarr.ZARR_SUFFIXES, zarr.open_zarr, zarr.detect_zarr,
-           files=False, folder="Zarr store", levels=True),
+           files=False, folder="Zarr store", levels=True, steps=zarr.zarr_steps),
     Format("dicom", "DICOM series folder or multi-frame file", dicom.DICOM_SUFFIXES, dicom.open_dicom,
            dicom.detect_dicom, folder="DICOM series", list_files=False),
     Format("tiff", "multi-page TIFF or a folder of 2D TIFFs",

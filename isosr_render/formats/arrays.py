@@ -12,6 +12,12 @@ Each ``open_*`` returns an :class:`~isosr_render.voxels.ArraySource` of the stor
   (``data file: slice.%03d 1 93 1``), which pynrrd does not read.
 - NumPy ``.npy`` / ``.npz`` stored as (x, y, z), never unpickled.
 
+Time series (:mod:`isosr_render.series`): a 4D NIfTI's fourth axis is time (``nifti_steps``,
+one step read at a time); a 4D ``.npy`` is ``(t, z, y, x)`` (``numpy_steps``, memory-mapped: C
+order, as most simulation codes write a series), each step handed out as ``[x, y, z]``.
+``nifti_header`` and ``numpy_header`` read a file's :class:`~isosr_render.formats.base.Layout`
+without its voxels.
+
 Raw voxels are x-fastest on disk: they are read flat, shaped (z, y, x) and transposed. 64-bit
 integers are handed out as float64 (as :func:`isosr_render.formats.base.stored_dtype`).
 """
@@ -29,6 +35,7 @@ import nibabel as nib
 import nrrd
 import numpy as np
 
+from isosr_render.formats.base import Layout, TimeSteps, stored_dtype
 from isosr_render.voxels import ArraySource, VolumeError
 
 # A reader's result: stored values [x, y, z], spacing, and optionally (slope, intercept).
@@ -69,8 +76,62 @@ def open_numpy(path: str | os.PathLike) -> ArraySource:
     return _array_source(Path(path), _read_numpy)
 
 
-def _array_source(path: Path, read: Callable[[Path], _Loaded]) -> ArraySource:
-    """Read ``path`` with ``read`` and hand the values out as a source; library errors as `VolumeError`."""
+def nifti_header(path: str | os.PathLike) -> Layout:
+    """A NIfTI file's layout (of one step, for a 4D file), from its header only."""
+    path = Path(path)
+    image = _library_call(path, nib.load, path)
+    return Layout(tuple(int(n) for n in (*image.shape, 1, 1)[:3]), tuple(float(z) for z in image.header.get_zooms()[:3]),
+                  stored_dtype(image.get_data_dtype(), path.name))
+
+
+def nifti_steps(path: str | os.PathLike) -> TimeSteps | None:
+    """A 4D NIfTI's time steps (its fourth axis; each read alone), or None for a 3D file."""
+    path = Path(path)
+    image = _library_call(path, nib.load, path)
+    if len(image.shape) != 4 or image.shape[3] < 2:
+        return None
+    proxy = image.dataobj
+
+    def read(i: int) -> _Loaded:
+        values = proxy._get_unscaled((slice(None),) * 3 + (i,))  # noqa: SLF001 - the one step, stored type kept
+        return values, tuple(float(z) for z in image.header.get_zooms()[:3]), (float(proxy.slope), float(proxy.inter))
+    return TimeSteps(int(image.shape[3]), lambda i: _array_source(path, lambda _: read(i), f"{path.name}[t={i}]"))
+
+
+def numpy_header(path: str | os.PathLike) -> Layout:
+    """A ``.npy`` file's layout (of one step, for a 4D ``(t, z, y, x)`` array), from its header only;
+    a ``.npz`` is opened."""
+    path = Path(path)
+    if path.name.lower().endswith(".npz"):
+        return Layout.of(open_numpy(path))
+    array = _library_call(path, np.load, path, mmap_mode="r", allow_pickle=False)
+    shape = tuple(int(n) for n in (array.shape[:0:-1] if array.ndim == 4 else array.shape))
+    return Layout(shape, (1.0, 1.0, 1.0), stored_dtype(array.dtype, path.name))
+
+
+def numpy_steps(path: str | os.PathLike) -> TimeSteps | None:
+    """A 4D ``.npy`` array's time steps: ``(t, z, y, x)``, memory-mapped, each step read alone; None otherwise."""
+    path = Path(path)
+    if path.name.lower().endswith(".npz"):
+        return None
+    array = _library_call(path, np.load, path, mmap_mode="r", allow_pickle=False)
+    if array.ndim != 4 or array.shape[0] < 2:
+        return None
+    return TimeSteps(int(array.shape[0]), lambda i: _array_source(
+        path, lambda _: (np.array(array[i].transpose(2, 1, 0)), (1.0, 1.0, 1.0)), f"{path.name}[t={i}]"))
+
+
+def _library_call(path: Path, fn: Callable, *args, **kwargs):
+    """``fn(*args, **kwargs)``, the file libraries' errors as `VolumeError` naming ``path``."""
+    try:
+        return fn(*args, **kwargs)
+    except _LIBRARY_ERRORS as e:
+        raise VolumeError(f"{path}: cannot read ({type(e).__name__}: {e})") from e
+
+
+def _array_source(path: Path, read: Callable[[Path], _Loaded], name: str | None = None) -> ArraySource:
+    """Read ``path`` with ``read`` and hand the values out as a source named ``name`` (default: the
+    file's name); library errors as `VolumeError`."""
     try:
         values, spacing, *rescale = read(path)
     except VolumeError:
@@ -82,7 +143,7 @@ def _array_source(path: Path, read: Callable[[Path], _Loaded]) -> ArraySource:
         raise VolumeError(f"{path.name}: unsupported voxel dtype {values.dtype}")
     if values.dtype.kind in "iu" and values.dtype.itemsize == 8:  # 64-bit integers: as float64
         values = values.astype(np.float64)
-    return ArraySource(values, spacing, name=path.name, rescale=rescale[0] if rescale else (1.0, 0.0))
+    return ArraySource(values, spacing, name=name or path.name, rescale=rescale[0] if rescale else (1.0, 0.0))
 
 
 def _read_xfastest(path: Path, dtype: np.dtype, shape: tuple[int, int, int], label: str) -> np.ndarray:

@@ -7,6 +7,7 @@ that the registry can import them.
 from __future__ import annotations
 
 import importlib
+import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,6 +43,10 @@ class Format:
             DICOM file: most often one slice of a series, whose folder is listed instead).
         whole: whether opening reads the whole file into memory (checks skip a large one).
         detached: suffixes of a header whose voxels lie in other files (checks skip it).
+        header: reads only a file's :class:`Layout` (no voxels), where opening reads them all;
+            None where opening is as cheap (a series checks its files' layouts with it).
+        steps: the :class:`TimeSteps` of a file or store with a time axis of more than one entry,
+            else None (:mod:`isosr_render.series`); None for a format without time axes.
     """
 
     name: str
@@ -55,6 +60,8 @@ class Format:
     list_files: bool = True
     whole: bool = False
     detached: tuple[str, ...] = ()
+    header: Callable[[Path], Layout] | None = None
+    steps: Callable[[Path], TimeSteps | None] | None = None
 
     def suffix_of(self, name: str) -> str | None:
         """The longest of the suffixes ``name`` ends with (any case), or None."""
@@ -71,6 +78,51 @@ class Format:
     def help(self) -> str:
         """The description and the suffixes, as help texts list the format."""
         return f"{self.description} ({', '.join(self.suffixes)})"
+
+
+@dataclass(frozen=True)
+class Layout:
+    """What the time steps of a series share: voxels (x, y, z), spacing and the stored type as
+    sources hand it out (:func:`stored_dtype`)."""
+
+    shape: tuple[int, int, int]
+    spacing: tuple[float, float, float]
+    dtype: np.dtype
+
+    @classmethod
+    def of(cls, source: VoxelSource) -> Layout:
+        return cls(tuple(int(n) for n in source.shape), tuple(float(s) for s in source.spacing),
+                   np.dtype(source.dtype))
+
+    def differs(self, other: Layout) -> str | None:
+        """How ``other`` differs from this layout (``"shape (4, 4, 3) instead of (4, 4, 4)"``), or None."""
+        if other.shape != self.shape:
+            return f"shape {other.shape} instead of {self.shape}"
+        if not np.allclose(other.spacing, self.spacing, rtol=1e-6, atol=0.0):
+            return f"spacing {other.spacing} instead of {self.spacing}"
+        if other.dtype != self.dtype:
+            return f"dtype {other.dtype} instead of {self.dtype}"
+        return None
+
+
+@dataclass(frozen=True)
+class TimeSteps:
+    """The time steps one file or store holds along its time axis (a 4D NIfTI, a (t, z, y, x) array).
+
+    Attributes:
+        count: how many (at least 2).
+        open: ``open(i)`` reads step ``i`` and returns its source (all of one :class:`Layout`).
+    """
+
+    count: int
+    open: Callable[[int], VoxelSource]
+
+
+def natural_key(name: str) -> tuple:
+    """Sort key of a file name whose digit runs compare as numbers (``slice2`` before ``slice10``): the
+    order of a folder's TIFF slices and of a series' files."""
+    return tuple((0, int(part), "") if part.isdigit() else (1, 0, part.lower()) for part in re.split(r"(\d+)", name)
+                 if part)
 
 
 def require(module: str, label: str, what: str) -> ModuleType:

@@ -20,7 +20,7 @@ import struct
 import threading
 from pathlib import Path
 
-from isosr_render.formats.base import one_line, require
+from isosr_render.formats.base import natural_key, one_line, require
 from isosr_render.formats.zarr import ZarrSource, checked_source
 from isosr_render.voxels import VolumeError
 
@@ -126,9 +126,9 @@ def _pixel_size(resolution: tuple[int, int]) -> float:
 
 def _open_stack(tifffile, folder: Path, spacing) -> ZarrSource:
     """A folder of 2D TIFFs, one slice a file, in natural order of the names."""
-    files = tifffile.natural_sorted(str(p) for p in folder.iterdir()
-                                    if p.is_file() and p.name.lower().endswith(TIFF_SUFFIXES)
-                                    and not p.name.startswith("."))
+    files = sorted((str(p) for p in folder.iterdir()
+                    if p.is_file() and p.name.lower().endswith(TIFF_SUFFIXES) and not p.name.startswith(".")),
+                   key=lambda p: natural_key(Path(p).name))
     if len(files) < 2:
         raise VolumeError(f"{folder}: a TIFF stack needs at least 2 files, found {len(files)}")
     first = None

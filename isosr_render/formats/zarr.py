@@ -3,7 +3,8 @@
 - An OME-Zarr group (NGFF 0.4 ``multiscales`` in the attributes, 0.5 under ``ome``; in a
   bioformats2raw layout, the image ``0``): the axes
   named in the metadata (``z``, ``y``, ``x`` map to the volume's z, y, x; without names, the
-  last three space axes are z, y, x); other axes (time, channel) must have one entry.
+  last three space axes are z, y, x); other axes (time, channel) must have one entry, but for a
+  ``t`` axis opened by step (``open_zarr(path, step=i)``, :func:`zarr_steps`: a time series).
   Spacing: the level's ``scale`` transformations times the multiscale's own, per axis.
   ``levels`` lists every level finest first (but those with an axis of one voxel); one is
   picked by its dataset path (``level``) or as the finest whose voxels fit ``max_bytes``.
@@ -24,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from isosr_render.formats.base import one_line, require, stored_dtype
+from isosr_render.formats.base import TimeSteps, one_line, require, stored_dtype
 from isosr_render.voxels import VolumeError, check_source
 
 ZARR_SUFFIXES = (".zarr", ".ome.zarr")
@@ -48,6 +49,8 @@ class ZarrSource:
         level: the level's dataset path ("" for a plain array).
         levels: every level of the multiscale image, finest first (empty for a plain array).
         rescale: always ``(1, 0)``: Zarr and TIFF store original values.
+        time: ``(axis, index)``: the time step read of an array with a ``t`` axis; None: none.
+        steps: the entries of the ``t`` axis (1 without one).
     """
 
     name: str
@@ -58,6 +61,8 @@ class ZarrSource:
     level: str = ""
     levels: tuple[ZarrSource, ...] = ()
     rescale: tuple[float, float] = (1.0, 0.0)
+    time: tuple[int, int] | None = None
+    steps: int = 1
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -81,6 +86,8 @@ class ZarrSource:
         key: list[slice | int] = [0] * self.array.ndim
         for axis, box in zip(self.axes, (x, y, z)):
             key[axis] = box
+        if self.time is not None:
+            key[self.time[0]] = self.time[1]
         try:
             block = np.asarray(self.array[tuple(key)])
         except Exception as e:  # whatever the store or its codecs raise (truncated chunk, missing codec)
@@ -95,27 +102,40 @@ def detect_zarr(path: Path) -> bool:
     """A folder holding Zarr metadata (a store named otherwise than ``.zarr``)."""
     return path.is_dir() and any((path / m).is_file() for m in ZARR_MARKERS)
 
-def spatial_axes(names: list[str], shape: tuple[int, ...], label: str) -> tuple[int, int, int]:
-    """The array axes of x, y and z given the axes' names; every other axis must have one entry."""
+def spatial_axes(names: list[str], shape: tuple[int, ...], label: str, time: bool = False) -> tuple[int, int, int]:
+    """The array axes of x, y and z given the axes' names; every other axis must have one entry
+    (with ``time``, but ``t``)."""
     lower = [n.lower() for n in names]
     missing = [n for n in SPACE_NAMES if n not in lower]
     if missing:
         raise VolumeError(f"{label}: no axis named {', '.join(missing)} among the axes {names}")
     axes = tuple(lower.index(n) for n in SPACE_NAMES)
-    extra = [f"{names[a]}={shape[a]}" for a in range(len(shape)) if a not in axes and shape[a] != 1]
+    extra = [f"{names[a]}={shape[a]}" for a in range(len(shape))
+             if a not in axes and shape[a] != 1 and not (time and lower[a] == "t")]
     if extra:
         raise VolumeError(f"{label}: a volume is one scalar field, but the axes {', '.join(extra)} "
-                          "hold more than one entry")
+                          "hold more than one entry" + ("; a t axis is a time series (isosr_render.series)"
+                                                        if any(e.lower().startswith("t=") for e in extra) else ""))
     return axes
 
 
-def open_zarr(path: str | os.PathLike, *, level: str | None = None, max_bytes: int | None = None) -> ZarrSource:
+def zarr_steps(path: str | os.PathLike) -> TimeSteps | None:
+    """The time steps of an OME-Zarr image's ``t`` axis (its finest level, a step read at a time),
+    or None where it has none or one entry."""
+    steps = open_zarr(path, step=0).steps
+    return TimeSteps(steps, lambda i: open_zarr(path, step=i)) if steps > 1 else None
+
+
+def open_zarr(path: str | os.PathLike, *, level: str | None = None, max_bytes: int | None = None,
+              step: int | None = None) -> ZarrSource:
     """Open a Zarr store: an OME-Zarr multiscale image or a plain array.
 
     Args:
         path: the store's directory (``.zarr``, or any folder with Zarr metadata).
         level: an OME-Zarr level by its dataset path (e.g. ``"1"``).
         max_bytes: pick the finest OME-Zarr level whose voxels, in their stored type, fit.
+        step: an OME-Zarr image's time step (index on its ``t`` axis, which may then hold more
+            than one entry); None: the ``t`` axis must have one.
 
     Returns:
         The chosen level (the finest by default), its ``levels`` listing all of them.
@@ -140,7 +160,7 @@ def open_zarr(path: str | os.PathLike, *, level: str | None = None, max_bytes: i
             node, prefix = node["0"], "0/"
         multiscales = _ngff(node, "multiscales")
         if multiscales:
-            levels = _levels(node, multiscales[0], path, prefix)
+            levels = _levels(node, multiscales[0], path, prefix, step)
             return dataclasses.replace(_pick_level(levels, level, max_bytes, path), levels=levels)
         arrays = sorted(node.arrays(), key=lambda item: item[0])
         if len(arrays) != 1:
@@ -191,9 +211,9 @@ def _scale(transforms: list[dict] | None, ndim: int, label: str) -> np.ndarray:
     return scale
 
 
-def _levels(group, multiscale: dict, path: Path, prefix: str) -> tuple[ZarrSource, ...]:
+def _levels(group, multiscale: dict, path: Path, prefix: str, step: int | None = None) -> tuple[ZarrSource, ...]:
     """Every dataset of an NGFF multiscale image (the group at ``prefix`` in the store at ``path``) as
-    a source, in the metadata's order (finest first)."""
+    a source, in the metadata's order (finest first); at time ``step`` (None: the ``t`` axis holds one entry)."""
     datasets = multiscale.get("datasets") or []
     if not datasets:
         raise VolumeError(f"{path}: OME-Zarr multiscales metadata lists no datasets")
@@ -212,14 +232,20 @@ def _levels(group, multiscale: dict, path: Path, prefix: str) -> tuple[ZarrSourc
         if not set(SPACE_NAMES) <= {n.lower() for n in names}:  # other names: the last 3 space axes are z, y, x
             space = [i for i, a in enumerate(axes_meta) if isinstance(a, dict) and a.get("type") == "space"][-3:]
             names = [dict(zip(space, "zyx")).get(i, n) for i, n in enumerate(names)]
-        axes = spatial_axes(names, array.shape, str(where))
+        axes = spatial_axes(names, array.shape, str(where), time=step is not None)
+        lower = [n.lower() for n in names]
+        time, steps = None, 1
+        if step is not None and "t" in lower:
+            time, steps = (lower.index("t"), step), int(array.shape[lower.index("t")])
+            if not 0 <= step < steps:
+                raise VolumeError(f"{where}: no time step {step} (t holds {steps})")
         scale = (_scale(dataset.get("coordinateTransformations"), array.ndim, str(where))
                  * _scale(multiscale.get("coordinateTransformations"), array.ndim, str(path)))
         spacing = tuple(float(scale[a]) for a in axes)
         if min(array.shape[a] for a in axes) < 2:
             continue  # a level too coarse to hold a volume
         levels.append(checked_source(ZarrSource(f"{path.name}/{prefix}{dataset['path']}", array, axes, spacing, str(where),
-                                          level=dataset["path"])))
+                                                level=dataset["path"], time=time, steps=steps)))
     return tuple(levels)
 
 

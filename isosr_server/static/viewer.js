@@ -25,6 +25,8 @@ const state = {
   volume: null,
   info: null, // ready.volume: name, shape, value_range, iso, histogram
   iso: null, // data units; null: the volume's suggested iso
+  step: 0, // a series' time step shown (settings.t)
+  playing: null, // the playback timer while a series plays
   camera: structuredClone(DEFAULT_CAMERA),
   width: 320,
   height: 240,
@@ -186,6 +188,7 @@ function settings(mode) {
     quality: 90,
     bitrate_kbps: bitrate(),
     clip: clipSettings(),
+    t: state.step,
   };
 }
 
@@ -285,6 +288,7 @@ function onReady(slot, index, ready) {
     state.info = ready.volume;
     if (state.iso === null) state.iso = ready.volume.iso;
     setupIso();
+    setupTime(ready.volume.steps);
     setNotice(autoNotice()); // the server's notice, if any, follows
   }
   // Opened before the server's encoders were known: switch to the best of them.
@@ -364,6 +368,7 @@ async function onFrame(slot, frame, latency) {
   view.dataset.frames = String(Number(view.dataset.frames) + 1);
   view.dataset.mode = frame.mode;
   view.dataset.encoding = frame.encoding;
+  view.dataset.t = String(frame.t ?? 0); // the time step shown
   view.dataset.keyframe = String(frame.keyframe);
   draw();
   if (slot === state.sessions[0]) showFrameInfo(slot);
@@ -503,6 +508,43 @@ function setIso(value) {
   $("iso").value = state.iso;
   showIso();
   queue("iso", { type: "iso", value: state.iso, normalized: false });
+}
+
+// ---- time steps ----------------------------------------------------------------------------------
+
+/** Show the time controls for a series (steps > 1) only. */
+function setupTime(steps) {
+  $("time").hidden = steps <= 1;
+  $("step").max = Math.max(0, steps - 1);
+  if (steps <= 1) stopPlayback();
+  showStep();
+}
+
+function showStep() {
+  $("step").value = state.step;
+  $("step-value").textContent = state.info ? `${state.step} / ${state.info.steps - 1}` : "";
+}
+
+function setStep(t) {
+  if (!state.info || state.info.steps <= 1) return;
+  state.step = ((t % state.info.steps) + state.info.steps) % state.info.steps;
+  showStep();
+  queue("step", { type: "settings", settings: { t: state.step } });
+}
+
+/** Play: the next step every 1/rate s, looping; the server renders the newest step asked (latest
+ * wins), so a rate above what it makes skips steps rather than falling behind. */
+function togglePlayback() {
+  if (state.playing !== null) return stopPlayback();
+  const rate = Math.min(60, Math.max(0.1, Number($("rate").value) || 4));
+  state.playing = setInterval(() => setStep(state.step + 1), 1000 / rate);
+  $("play").textContent = "pause";
+}
+
+function stopPlayback() {
+  clearInterval(state.playing);
+  state.playing = null;
+  $("play").textContent = "play";
 }
 
 // ---- updates: coalesced to one message of each kind per animation frame --------------------------
@@ -764,7 +806,7 @@ function bindKeys() {
       v: toggleSlices,
       x: cycleClip, X: () => { state.clipFlip = !state.clipFlip; sendSettings(); },
       ",": () => moveClip(-0.02), ".": () => moveClip(0.02),
-      r: resetCamera, p: screenshot,
+      r: resetCamera, p: screenshot, t: togglePlayback,
     };
     const picked = /^[1-9]$/.test(e.key) && $("mode").options[Number(e.key) - 1];
     const action = picked ? () => { $("mode").value = picked.value; modeChanged(); } : actions[e.key];
@@ -813,8 +855,13 @@ function bindControls() {
     state.volume = $("volume").value;
     state.iso = null;
     state.info = null;
+    state.step = 0;
+    stopPlayback();
     openSessions();
   });
+  $("step").addEventListener("input", () => setStep(Number($("step").value)));
+  $("play").addEventListener("click", togglePlayback);
+  $("rate").addEventListener("change", () => { if (state.playing !== null) { stopPlayback(); togglePlayback(); } });
   $("iso").addEventListener("input", () => setIso(Number($("iso").value)));
   $("mode").addEventListener("change", modeChanged);
   $("mode-b").addEventListener("change", modeChanged);

@@ -18,9 +18,10 @@ from isosr_server.engine import Engine
 from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, CLOSE_IDLE, VIDEO_ENCODINGS, FocusMsg, FrameMsg, Limits,
                                    Message, NoticeMsg, OpenMsg, PickMsg, ProtocolError, ReadyMsg, ViewSettings,
                                    VolumeSummary, encode, parse)
-from isosr_server.sessions import (DEFAULT_CAMERA, SessionCounter, ViewSession, ViewState, run_frames, to_camera,
-                                   watch_acks)
+from isosr_server.sessions import (DEFAULT_CAMERA, SessionCounter, StepView, ViewSession, ViewState, run_frames,
+                                   to_camera, watch_acks)
 from isosr_server.video import SessionCoder
+from isosr_server.views import FrameJob
 from isosr_server.volumes import VolumeCatalog, load_volume, session_iso
 
 log = logging.getLogger("isosr.server")
@@ -42,13 +43,14 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
         view_sessions.acquire("view sessions")
         counted = True
         metrics.sessions.labels("view").set(view_sessions.count)
-        session = await open_view(ws, opened, limits, catalog, engine, view_sessions)
-        renderer = await engine.call(engine.renderer_sync, session.volume_name, session.volume)
+        session, shown = await open_view(ws, opened, limits, catalog, engine, view_sessions)
         frames = engine.new_session_frames(session.volume_name)
 
         async def make(job):
             plan = job.plan
-            return await engine.view_frame(frames, renderer, job.frame, lambda rgb: coder.code(rgb, plan),
+            await shown.show(job.frame.settings.t)
+            return await engine.view_frame(frames, shown.renderer, shown.job(job.frame),
+                                           lambda rgb: coder.code(rgb, plan),
                                            plan.encoding in VIDEO_ENCODINGS and not plan.refined)
 
         async def send(msg: Message) -> None:
@@ -60,9 +62,10 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
             if isinstance(msg, FrameMsg):
                 metrics.frame("view", msg.mode, msg.refined, msg.times, msg.nbytes)
 
-        async def answer(msg: PickMsg) -> None:  # at once, between frames, on the current view
+        async def answer(msg: PickMsg) -> None:  # at once, between frames, on the current view (its step)
             s = session.state
-            await send(await engine.call(engine.pick_sync, renderer, s.camera, s.iso, s.settings, msg))
+            iso = shown.job(FrameJob(s.settings, s.camera, s.iso, s.focus, 0, False, 1)).iso
+            await send(await engine.call(engine.pick_sync, shown.renderer, s.camera, iso, s.settings, msg))
 
         tasks = [asyncio.create_task(run_frames(session, make, send)),
                  asyncio.create_task(take_updates(ws, limiter, limits, session, answer)),
@@ -95,8 +98,8 @@ async def take_updates(ws: WebSocket, limiter, limits: Limits, session: ViewSess
 
 
 async def open_view(ws: WebSocket, msg: OpenMsg, limits: Limits, catalog: VolumeCatalog,
-                    engine: Engine, view_sessions: SessionCounter) -> ViewSession:
-    """Load the volume ``open`` names, answer ``ready``: the new session."""
+                    engine: Engine, view_sessions: SessionCounter) -> tuple[ViewSession, StepView]:
+    """Load the volume ``open`` names, answer ``ready``: the new session and the step it shows."""
     volume, info = await load_volume(catalog, msg.volume)
     settings = ViewSettings().updated(msg.settings, limits)
     given = msg.iso is not None
@@ -109,7 +112,10 @@ async def open_view(ws: WebSocket, msg: OpenMsg, limits: Limits, catalog: Volume
     state = ViewState(settings, camera, normalized, FocusMsg("none"),
                       msg.camera.seq if msg.camera and msg.camera.seq is not None else -1)
     session = ViewSession(secrets.token_hex(8), msg.volume, volume, state, engine.context, limits,
-                          lambda: view_sessions.count)
+                          lambda: view_sessions.count, info.steps)
+    renderer = await engine.call(engine.renderer_sync, msg.volume, volume)
+    shown = StepView(session, catalog.series(msg.volume) if info.steps > 1 else None, renderer,
+                     lambda name, step: engine.call(engine.renderer_sync, name, step))
     summary = msgspec.convert(info.to_json() | {"iso_normalized": normalized}, VolumeSummary)
     ready = ReadyMsg(session.id, summary, session.state.settings,
                      engine.upscale_factor, engine.recon_limits.max_ao_rays, limits, engine.modes,
@@ -119,4 +125,4 @@ async def open_view(ws: WebSocket, msg: OpenMsg, limits: Limits, catalog: Volume
         await ws.send_bytes(encode(NoticeMsg(session.notices.popleft())))
     log.info("view session %s opened on %s (%s %dx%d, %s)", session.id, msg.volume, settings.mode, settings.width,
              settings.height, session.state.settings.encoding)
-    return session
+    return session, shown
