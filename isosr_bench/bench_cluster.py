@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from isosr_bench.bench_server import SIZES, ServerProcess, case_row, room_options
+from isosr_bench.bench_server import SIZES, ServerProcess, case_row, room_options, server_load
 from isosr_bench.common import bench_parser, commit, device_name, kept_rows, print_table, write_result
 from isosr_bench.load import LoadSampler, titled
 from isosr_bench.sessions import run_sessions
@@ -265,10 +265,10 @@ def load_fields(load: dict) -> dict:
     if not load:
         return {}
     cores = load["cpu_cores"]
-    return {"gpu_busy": load["gpu_busy"] and [round(b, 3) for b in load["gpu_busy"]],
-            "machine_cores": round(load["machine_cores"], 2), "server_cores": round(cores["server"]["cores"], 2),
-            "proxy_cores": round(cores["proxy"]["cores"], 2), "replica_cores": round(cores["replica"]["cores"], 2),
-            "replica_cores_max": round(cores["replica"]["busiest"], 2)}
+    return server_load(load) | {
+        "machine_cores": round(load["machine_cores"], 2), "server_cores": round(cores["server"]["cores"], 2),
+        "proxy_cores": round(cores["proxy"]["cores"], 2), "replica_cores": round(cores["replica"]["cores"], 2),
+        "replica_cores_max": round(cores["replica"]["busiest"], 2)}
 
 
 def measure_server(name: str, device: str, options: tuple[str, ...], cases: list[tuple[str, int, int]],

@@ -18,7 +18,9 @@ session count:
   frames' stage times, and the rest of the round trip (queueing behind other sessions on the
   one device thread, transfer, client-side receipt) as ``other_ms`` (mean latency minus mean
   server total; the total counts from a frame's first slice to its encoding);
-- bytes per frame, and the frames/s a 50 Mbit/s and a 1 Gbit/s link carry at that size.
+- bytes per frame, and the frames/s a 50 Mbit/s and a 1 Gbit/s link carry at that size;
+- over the timed span (:class:`isosr_bench.load.LoadSampler`), each GPU's busy fraction
+  (``nvidia-smi``; None without) and the CPU cores of the server's process (not with ``--url``).
 
 Clients here only receive frames (``buffers`` frames are not upscaled here), so the numbers
 are the server's. Then two studies. Matched quality: the ``buffers`` path (coded low-res
@@ -52,19 +54,20 @@ import torch
 
 from isosr_bench.bench_pareto import bench_cameras, pareto_rows
 from isosr_bench.common import bench_parser, print_table, write_result
+from isosr_bench.load import LoadSampler
 from isosr_bench.sessions import run_sessions
+from isosr_client.drive import Orbit, summarize
+from isosr_client.view import connect
 from isosr_net.budget import color_psnr, reference_frames
-from isosr_net.methods import RUNNERS, Networks
 from isosr_net.inference import default_precision
+from isosr_net.methods import RUNNERS, Networks
+from isosr_net.metrics import masked_psnr
 from isosr_net.reconstructor import RECON_X2_MODEL
 from isosr_render import FrameBuffers, Renderer, open_volume
 from isosr_render.catalog import SHARED_PREFIX
 from isosr_server.auto import AutoPolicy
 from isosr_server.engine import MODEL_NAMES, serving_network
 from isosr_server.views import VIEWS
-from isosr_client.drive import Orbit, summarize
-from isosr_client.view import connect
-from isosr_net.metrics import masked_psnr
 
 LINKS_BIT_S = {"50mbit": 50e6, "1gbit": 1e9}
 STAGES = ("render", "filter", "network", "shading", "encode")
@@ -88,6 +91,16 @@ def rss_bytes(pid: int) -> int:
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) * 1024
     raise RuntimeError(f"no VmRSS for process {pid}")
+
+
+def server_load(load: dict) -> dict:
+    """A case row's GPU busy fractions and server cores from a `LoadSampler` result (rounded: they
+    are read, not computed on; nothing where the span did not run, no cores without the server's process)."""
+    if not load:
+        return {}
+    server = load["cpu_cores"]["server"]
+    return {"gpu_busy": load["gpu_busy"] and [round(b, 3) for b in load["gpu_busy"]],
+            "server_cores": round(server["cores"], 2) if server["processes"] else None}
 
 
 def room_options(sessions: int) -> tuple[str, ...]:
@@ -282,15 +295,16 @@ def main(argv: list[str] | None = None) -> None:
     modes = args.modes.split(",") if args.modes else [m for m, _ in CASES]
     cases = [(m, ao) for m, ao in CASES if m in modes]
 
-    def run(url: str) -> list[dict]:
+    def run(url: str, pid: int | None = None) -> list[dict]:
         rows = []
         for mode, ao in cases:
             for n in counts:
                 settings = {"ao_rays": ao}
+                load = LoadSampler({"server": lambda: [] if pid is None else [pid]}, gpus=args.device.startswith("cuda"))
                 result = run_sessions(url, volume, n, seconds, mode, size, settings,
                                       focus=(size[0] / 2, size[1] / 2, focus_radius) if mode == "focus" else None,
-                                      warmup_frames=warmup)
-                rows.append(case_row(mode, ao, result))
+                                      warmup_frames=warmup, on_start=lambda: load.start(seconds))
+                rows.append(case_row(mode, ao, result) | server_load(load.result()))
                 r = rows[-1]
                 print(f"{mode:<11} AO {ao:<2} x{n:<3} {r.get('fps', 0):7.1f} fps  p50 {r.get('latency_p50_ms', 0):7.1f} "
                       f"p99 {r.get('latency_p99_ms', 0):7.1f} ms {r.get('bytes_per_frame', 0):10.0f} B  errors "
@@ -304,7 +318,7 @@ def main(argv: list[str] | None = None) -> None:
         rows = run(args.url)
     else:
         with ServerProcess(args.device, room_options(max(counts)) + ("--target-fps", str(TARGET_FPS))) as server:
-            rows = run(server.url)
+            rows = run(server.url, server.pid)
     table = [r for r in rows if "mode" in r]
     print_table(table, ["mode", "ao", "sessions", "fps", "fps_per_session", "latency_p50_ms", "latency_p99_ms",
                         "render_ms", "filter_ms", "network_ms", "shading_ms", "encode_ms", "other_ms",
