@@ -150,7 +150,7 @@ def test_full_mode_matches_the_library(srv, lib):
     with session(srv, mode="full", ao_rays=4) as (ws, ready):
         assert ready.settings.mode == "full" and ready.volume.iso == 0.0
         assert ready.max_recon_ao_rays == RECON_LIMITS.max_ao_rays
-        assert ready.limits == LIMITS and ready.version == P.PROTOCOL_VERSION == 7
+        assert ready.limits == LIMITS and ready.version == P.PROTOCOL_VERSION == 8
         assert [m.name for m in ready.modes] == list(views.VIEWS)  # auto, the registry's view modes, focus
         f = frame(ws)
         assert (f.seq, f.ack, f.mode, f.encoding, f.refined) == (0, -1, "full", "png", False) and f.method
