@@ -88,8 +88,8 @@ def shade(mask: torch.Tensor, normal: torch.Tensor, ao: torch.Tensor | None = No
 
 def cap_albedo(cap: torch.Tensor, mask: torch.Tensor,
                albedo: tuple) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Per pixel albedo ``(r, g, b)``: the surface's (numbers or (*, H, W) tensors), blended towards the cut faces' grey map of the
-    volume's value (normalized, clamped to [0, 1]) by the share of the pixel's hits on them.
+    """Per pixel albedo ``(r, g, b)``: the surface's (numbers or (*, H, W) tensors), blended towards the cut
+    faces' grey map of the volume's value (normalized, clamped to [0, 1]) by the share of the pixel's hits on them.
 
     Shape:
         cap: (*, H, W, 2). mask: (*, H, W). Returns three (*, H, W).

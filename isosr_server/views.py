@@ -35,7 +35,8 @@ from isosr_render.color_field import ColorField
 from isosr_server.auto import AutoPolicy, served_factor
 from isosr_server.channels import false_color
 from isosr_render.renderer import MAX_AO_SAMPLES
-from isosr_server.protocol import CLOSE_POLICY, MAX_VIEW_SPP, FocusMsg, ModeInfo, OptionInfo, ProtocolError, ViewSettings
+from isosr_server.protocol import (CLOSE_POLICY, MAX_VIEW_SPP, FocusMsg, ModeInfo, OptionInfo, ProtocolError,
+                                   ViewSettings)
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import DEVICE, field_volume, pixel_rays, sphere_sdf
+from conftest import DEVICE, field_volume, pixel_rays
 from isosr_net.methods import FrameMethod, make_runner
 from isosr_render.camera import Camera, orbit
 from isosr_render.color_field import ColorField

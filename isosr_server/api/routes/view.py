@@ -17,8 +17,9 @@ from fastapi import APIRouter, WebSocket
 from isosr_server.api.deps import AuthorizedDep, CatalogDep, EngineDep, LimitsDep, MetricsDep, ViewSessionsDep
 from isosr_server.api.ws import accept, end_ws, rate_limiter, receive
 from isosr_server.engine import Engine
-from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, SettingsMsg, CLOSE_IDLE, VIDEO_ENCODINGS, FocusMsg, FrameMsg, Limits,
-                                   Message, NoticeMsg, OpenMsg, PickMsg, ProtocolError, ReadyMsg, ViewSettings,
+from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, CLOSE_IDLE, VIDEO_ENCODINGS, FocusMsg, FrameMsg, Limits,
+                                   Message, NoticeMsg, OpenMsg, PickMsg, ProtocolError, ReadyMsg, SettingsMsg,
+                                   ViewSettings,
                                    VolumeSummary, encode, parse)
 from isosr_server.sessions import (DEFAULT_CAMERA, SessionCounter, StepView, ViewSession, ViewState, run_frames,
                                    to_camera, watch_acks)
