@@ -39,6 +39,8 @@ from isosr_render import (
 )
 from isosr_render.catalog import SHARED_PREFIX, check_iso
 from isosr_render.clip import CAP_MODES, Clip
+from isosr_render.color_field import ColorField
+from isosr_render.coloring import COLORMAPS, GRADIENT, Coloring
 from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES
 from isosr_render.formats import help_text
 from isosr_render.picking import pick
@@ -97,6 +99,13 @@ def add_parser(subparsers) -> None:
     cut.add_argument("--cap", choices=CAP_MODES, default="none",
                      help="show the cut faces where they cut the solid, the values at or above the iso ('above', "
                           "as bone in a CT) or below it (as inside a signed distance), in grey by the volume's value")
+    paint = p.add_argument_group("colour by a field")
+    paint.add_argument("--color-by", metavar="FIELD|gradient",
+                       help="colour the surface by another volume of the same grid (a path or procedural spec) or by "
+                            "the volume's gradient magnitude; the frame gets an albedo buffer")
+    paint.add_argument("--colormap", choices=COLORMAPS, default="viridis", help="the colour map of --color-by")
+    paint.add_argument("--color-range", type=_numbers(2), metavar="LO,HI",
+                       help="the values mapped to the colour map's ends (default: the field's range)")
     p.add_argument("--outputs", default="mask,normal,depth,color",
                    help=f"comma-separated buffers: {','.join(BUFFER_NAMES)},samples")
     p.add_argument("--ao-samples", type=int,
@@ -159,6 +168,15 @@ def _series_step(spec: str, t: int):
     if not 0 <= t < series.count:
         raise ValueError(f"{spec}: no time step {t}; the series has {series.count} (0 to {series.count - 1})")
     return series.step(t)
+
+
+def _coloring(args: argparse.Namespace, volume, renderer: Renderer) -> ColorField | None:
+    """The coloring of --color-by, --colormap and --color-range on the renderer's device (None: none)."""
+    if args.color_by is None:
+        return None
+    coloring = Coloring(args.color_by, args.colormap, args.color_range)
+    field = None if coloring.by == GRADIENT else open_volume(coloring.by)
+    return ColorField.of(coloring, volume, field, renderer.torch_device)
 
 
 def _pair(text: str) -> tuple[float, float]:
@@ -243,18 +261,19 @@ def run(args: argparse.Namespace) -> int:
     if args.prev_eye is not None or args.prev_orbit is not None:
         prev = _camera(args.prev_orbit, args.prev_eye, args.target, args.up, args.fov)
     renderer = Renderer(volume, args.device)
+    coloring = _coloring(args, volume, renderer)
     if args.method is not None:
         # An eager network: for a frame or two, compiling it would take longer than it saves.
         runner = make_runner(args.method, renderer, iso, *args.size, ao_radius=args.ao_radius * unit,
                              networks=Networks.eager(), keep=tuple(o for o in outputs if o in BUFFER_NAMES),
-                             clip=clip)
+                             clip=clip, coloring=coloring)
     else:
         request = RenderRequest(
             width=args.size[0], height=args.size[1], iso=iso, outputs=outputs,
             step=None if args.step is None else args.step * unit, refine=args.refine,
             refine_steps=args.refine_steps, spp=args.spp, ao_samples=args.ao_samples,
             ao_radius=args.ao_radius * unit, seed=args.seed, prev_camera=prev, flow_fill=args.flow_fill,
-            skip=not args.no_skip, clip=clip)
+            skip=not args.no_skip, clip=clip, coloring=coloring)
     start = time.perf_counter()
     if args.method is not None:
         made = run_sequence(runner, [camera] if prev is None else [prev, camera])[-1]

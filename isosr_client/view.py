@@ -381,6 +381,21 @@ class ViewSession:
         check_step(t, self.steps, self.ready.volume.name)
         return self.set_settings(t=t)
 
+    def set_coloring(self, by: str | None, colormap: str = "viridis",
+                     range: tuple[float, float] | None = None) -> int:
+        """Colour the surface by ``"gradient"`` (the volume's gradient magnitude) or by another volume of its
+        grid (a name of ``GET /v1/volumes``), through ``colormap`` over ``range`` in the values' units (None:
+        their own range); ``by=None``: the material's colour. Frames then carry the legend (``frame.legend``:
+        colour map, ``lo``, ``hi``). Returns the update's seq.
+
+        Raises:
+            ProtocolError: an unknown colour map or a bad range, naming it (nothing is sent then); the
+                server refuses an unknown volume or another grid (the session ends with its reason).
+        """
+        coloring = None if by is None else {"by": by, "colormap": colormap,
+                                            "range": None if range is None else _floats(range)}
+        return self.set_settings(coloring=coloring)
+
     def set_focus(self, shape: str = "none", center: tuple[float, float] | None = None, radius: float | None = None,
                   box: tuple[float, float, float, float] | None = None) -> int:
         """The ``focus`` mode's region in output pixels (x right, y down): ``circle`` (center,

@@ -19,7 +19,7 @@ class FrameBuffers:
     Conventions (units, frames, ranges): :mod:`isosr_render.conventions`.
 
     Shape:
-        mask, depth, ao: (H, W). normal, position, color: (H, W, 3). flow, cap: (H, W, 2).
+        mask, depth, ao: (H, W). normal, position, color, albedo: (H, W, 3). flow, cap: (H, W, 2).
         samples: (H, W) int32, volume samples taken per pixel (a diagnostic).
     """
 
@@ -31,6 +31,7 @@ class FrameBuffers:
     ao: torch.Tensor | None = None
     color: torch.Tensor | None = None
     cap: torch.Tensor | None = None
+    albedo: torch.Tensor | None = None
     samples: torch.Tensor | None = None
 
     def present(self) -> list[str]:

@@ -33,6 +33,8 @@ Buffers (float32, image layout ``(H, W[, C])``)
     cap      where clip planes or a crop box cut the solid open (:mod:`isosr_render.clip`), two
              channels: the fraction of the pixel's rays that hit a cut face (at most mask), and
              the mean normalized volume value where they hit it. 0 elsewhere.
+    albedo   with a coloring (:mod:`isosr_render.coloring`), the colour map's RGB of the coloring's
+             values at ``position``, the surface's colour in shading. 0 where mask is 0.
 """
 
 from __future__ import annotations
@@ -44,9 +46,10 @@ import numpy as np
 AO_RADIUS = 0.05
 
 # Buffer names in the order the frame file and the API list them.
-BUFFER_NAMES = ("mask", "normal", "depth", "position", "flow", "ao", "color", "cap")
+BUFFER_NAMES = ("mask", "normal", "depth", "position", "flow", "ao", "color", "cap", "albedo")
 # Channels per buffer; 1 means a plain (H, W) image.
-BUFFER_CHANNELS = {"mask": 1, "normal": 3, "depth": 1, "position": 3, "flow": 2, "ao": 1, "color": 3, "cap": 2}
+BUFFER_CHANNELS = {"mask": 1, "normal": 3, "depth": 1, "position": 3, "flow": 2, "ao": 1, "color": 3, "cap": 2,
+                   "albedo": 3}
 
 # The network's tensors are channels-first, (B, C, H, W), in these channel orders.
 # Low-res input: mask, view-space normal, depth; flow travels beside it as (B, 2, H, W).

@@ -33,6 +33,7 @@ from isosr_render.brick_pool import BrickPool, MemoryStats
 from isosr_render.buffers import FrameBuffers
 from isosr_render.camera import Camera
 from isosr_render.clip import MAX_PLANES, Clip
+from isosr_render.color_field import ColorField
 from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES
 from isosr_render.flow_fill import FILL_METHODS, fill_flow
 from isosr_render.shading import ShadingParams, shade
@@ -95,6 +96,8 @@ class RenderRequest:
         shading: material and light for ``color``.
         clip: clip planes, crop box and caps (:mod:`isosr_render.clip`); the default cuts nothing.
             With caps, ``color`` shows the cut faces in the volume's values (the ``cap`` buffer).
+        coloring: colour the surface by a field (:class:`~isosr_render.color_field.ColorField`): the frame
+            gets ``albedo`` (from ``position``, rendered for it) and ``color`` shades with it; None: no pass.
     """
 
     width: int
@@ -113,6 +116,7 @@ class RenderRequest:
     skip: bool = True
     shading: ShadingParams = field(default_factory=ShadingParams)
     clip: Clip = field(default_factory=Clip)
+    coloring: ColorField | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "outputs", tuple(dict.fromkeys(self.outputs)))
@@ -143,12 +147,19 @@ class RenderRequest:
             raise ValueError(f"flow_fill must be one of {FILL_METHODS}, got {self.flow_fill!r}")
         if not isinstance(self.clip, Clip):
             raise ValueError(f"clip must be an isosr_render.clip.Clip, got {type(self.clip).__name__}")
+        if self.coloring is not None and not isinstance(self.coloring, ColorField):
+            raise ValueError(f"coloring must be an isosr_render.color_field.ColorField, got "
+                             f"{type(self.coloring).__name__}")
+        if "albedo" in self.outputs and self.coloring is None:
+            raise ValueError("the albedo output needs a coloring")
 
     def kernel_outputs(self) -> int:
         """The kernel's OUT_* bits: the asked buffers and the ones they are made from."""
         need = set(self.outputs)
         if "color" in need:
             need |= {"mask", "normal"} | ({"cap"} if self.clip.capped else set())
+        if self.coloring is not None:
+            need |= {"mask", "position"}
         if "flow" in need and self.flow_fill != "none":
             need.add("mask")
         return sum(KERNEL_BUFFERS[name][0] for name in need if name in KERNEL_BUFFERS)
@@ -156,8 +167,9 @@ class RenderRequest:
     def plan_key(self) -> tuple:
         """What a :class:`RenderPlan` fixes: size, buffers, rays per pixel, and whether it clips (the kernels
         that clip are their own, :func:`isosr_render.kernels.frame_kernels`) and caps (a buffer of the kernels'
-        for ``color``); the rest may change per frame."""
-        return self.width, self.height, self.outputs, self.flow_fill, self.spp, self.clip.active, self.clip.capped
+        for ``color``), and whether it colours (``position`` rendered for it); the rest may change per frame."""
+        return (self.width, self.height, self.outputs, self.flow_fill, self.spp, self.clip.active, self.clip.capped,
+                self.coloring is not None)
 
 
 def warp_device(device: str):
@@ -514,11 +526,12 @@ class RenderPlan:
     def check(self, request: RenderRequest) -> None:
         """ValueError unless ``request`` has the plan's size, outputs, flow fill and rays per pixel."""
         if request.plan_key() != self.key:
-            w, h, outputs, fill, spp, clipped, capped = self.key
+            w, h, outputs, fill, spp, clipped, capped, colors = self.key
             raise ValueError(f"this render plan renders {w}x{h} {outputs} (flow fill {fill!r}, spp {spp}, clipped "
-                             f"{clipped}, capped {capped}), not {request.width}x{request.height} {request.outputs} "
-                             f"(flow fill {request.flow_fill!r}, spp {request.spp}, clipped {request.clip.active}, "
-                             f"capped {request.clip.capped}): make a plan for that request (Renderer.plan)")
+                             f"{clipped}, capped {capped}, coloring {colors}), not {request.width}x{request.height} "
+                             f"{request.outputs} (flow fill {request.flow_fill!r}, spp {request.spp}, clipped "
+                             f"{request.clip.active}, capped {request.clip.capped}, coloring "
+                             f"{request.coloring is not None}): make a plan for that request (Renderer.plan)")
 
     def stage(self, camera: Camera, request: RenderRequest) -> None:
         """Copy the frame's values to the device (ordered before later work on the torch stream) and
@@ -592,12 +605,14 @@ class RenderPlan:
         """The rendered frame as ``request`` asks for it: the plan's buffers (views), plus the passes
         after the kernel that it names (flow fill, color), which make new tensors."""
         self.check(request)
-        frame = FrameBuffers(**{name: self.tensors[name] for name in request.outputs if name != "color"})
+        frame = FrameBuffers(**{name: self.tensors[name] for name in request.outputs if name in self.tensors})
         if "flow" in request.outputs and request.flow_fill != "none":
             frame.flow = fill_flow(self.tensors["flow"], self.tensors["mask"], request.flow_fill)
+        if request.coloring is not None:
+            frame.albedo = request.coloring.albedo(self.tensors["position"], self.tensors["mask"])
         if "color" in request.outputs:
             frame.color = shade(self.tensors["mask"], self.tensors["normal"], self.tensors.get("ao"), request.shading,
-                                self.tensors.get("cap"))
+                                self.tensors.get("cap"), frame.albedo)
         return frame
 
     def render(self, camera: Camera, request: RenderRequest, rows: tuple[int, int] | None = None) -> FrameBuffers:

@@ -40,7 +40,8 @@ class ShadingParams:
 
 
 def shade(mask: torch.Tensor, normal: torch.Tensor, ao: torch.Tensor | None = None,
-          params: ShadingParams = ShadingParams(), cap: torch.Tensor | None = None) -> torch.Tensor:
+          params: ShadingParams = ShadingParams(), cap: torch.Tensor | None = None,
+          albedo: torch.Tensor | None = None) -> torch.Tensor:
     """Phong (ambient + diffuse + specular) times AO, composited by ``mask`` over the background.
 
     Args:
@@ -50,12 +51,14 @@ def shade(mask: torch.Tensor, normal: torch.Tensor, ao: torch.Tensor | None = No
         params: material and light.
         cap: the cut faces (conventions): where the pixel's hits are on them, the albedo is the
             volume's value in grey (:func:`cap_albedo`); ``None``: no cut faces.
+        albedo: per pixel surface colour in [0, 1] (a coloring's, :mod:`isosr_render.coloring`) instead of
+            the material's; ``None``: the material's.
 
     Returns:
         RGB color in [0, 1].
 
     Shape:
-        mask, ao: (*, H, W). normal: (*, H, W, 3). cap: (*, H, W, 2). Returns (*, H, W, 3).
+        mask, ao: (*, H, W). normal, albedo: (*, H, W, 3). cap: (*, H, W, 2). Returns (*, H, W, 3).
     """
     if normal.shape[-1] != 3 or normal.shape[:-1] != mask.shape:
         raise ValueError(f"shade: normal must be mask's shape + (3,), got normal {tuple(normal.shape)} "
@@ -64,6 +67,8 @@ def shade(mask: torch.Tensor, normal: torch.Tensor, ao: torch.Tensor | None = No
         raise ValueError(f"shade: ao must have mask's shape {tuple(mask.shape)}, got {tuple(ao.shape)}")
     if cap is not None and cap.shape != (*mask.shape, 2):
         raise ValueError(f"shade: cap must be mask's shape + (2,), got cap {tuple(cap.shape)}")
+    if albedo is not None and albedo.shape != normal.shape:
+        raise ValueError(f"shade: albedo must be mask's shape + (3,), got albedo {tuple(albedo.shape)}")
     # Light, half vector, albedo and background enter as Python numbers, not as device tensors:
     # building a tensor on a GPU from host values is a blocking copy, a stall per frame.
     light, half = light_and_half(params)
@@ -75,15 +80,16 @@ def shade(mask: torch.Tensor, normal: torch.Tensor, ao: torch.Tensor | None = No
     specular = params.specular * n_dot_h.pow(params.shininess)
     occlusion = 1.0 if ao is None else ao
     alpha = mask.clamp(0.0, 1.0)
-    albedo = params.albedo if cap is None else cap_albedo(cap, mask, params.albedo)
+    surface = params.albedo if albedo is None else albedo.unbind(-1)
+    surface = surface if cap is None else cap_albedo(cap, mask, surface)
     return torch.stack([(alpha * ((a * diffuse + specular) * occlusion) + (1.0 - alpha) * b).clamp(0.0, 1.0)
-                        for a, b in zip(albedo, params.background)], dim=-1)
+                        for a, b in zip(surface, params.background)], dim=-1)
 
 
 def cap_albedo(cap: torch.Tensor, mask: torch.Tensor,
-               albedo: tuple[float, float, float]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Per pixel albedo ``(r, g, b)``: the material's, blended towards the cut faces' grey map of the
-    volume's value (normalized, clamped to [0, 1]) by the share of the pixel's hits on them.
+               albedo: tuple) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per pixel albedo ``(r, g, b)``: the surface's (numbers or (*, H, W) tensors), blended towards the cut
+    faces' grey map of the volume's value (normalized, clamped to [0, 1]) by the share of the pixel's hits on them.
 
     Shape:
         cap: (*, H, W, 2). mask: (*, H, W). Returns three (*, H, W).

@@ -98,15 +98,17 @@ import numpy as np
 from msgspec import UNSET, Meta, UnsetType
 
 from isosr_render.clip import CAP_MODES, MAX_PLANES, Clip
+from isosr_render.coloring import COLORMAPS, Coloring
 from isosr_render.conventions import AO_RADIUS
 from isosr_server.codecs.arrays import ArrayTooBig, WireArray, decode_array, encode_array
 
+# 8: colour by a field (settings.coloring; a shaded frame's legend);
 # 7: time series (volume.steps, settings.t, frame.t);
 # 6: clip planes, a crop box and caps (settings.clip);
 # 5: modes named by the server (ready.modes), ready's limits on messages and acknowledgements;
 # 3: the v3 vocabulary (modes auto/network/upscale/..., ao_rays, spp, interpolation, frame methods);
 # 2 (acknowledged frames, flow control) and earlier are refused with a reason.
-PROTOCOL_VERSION = 7
+PROTOCOL_VERSION = 8
 
 # Largest magnitude of any float field (camera coordinates, iso, ...): beyond it is hostile input.
 MAX_ABS_FLOAT = 1e9
@@ -301,6 +303,24 @@ class ClipSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         return Clip(tuple((p.point, p.normal) for p in self.planes), self.box, self.cap)
 
 
+class ColoringSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """Colour the surface by ``gradient`` (the volume's gradient magnitude) or by another volume of the
+    same grid, named as in ``GET /v1/volumes`` (the server refuses an unknown one or another grid,
+    naming both shapes), through a colour map over ``range`` (None: the values' own), as
+    :class:`isosr_render.coloring.Coloring` checks them."""
+
+    by: Annotated[str, Meta(pattern=VOLUME_NAME.pattern)]
+    colormap: Literal[tuple(COLORMAPS)] = "viridis"
+    range: Vec2 | None = None
+
+    def __post_init__(self):
+        self.coloring()
+
+    def coloring(self) -> Coloring:
+        """The renderer's coloring."""
+        return Coloring(self.by, self.colormap, self.range)
+
+
 class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """A view session's settings (``ready`` carries them whole; ``open`` and ``settings`` send
     a `SettingsUpdate` of any of them).
@@ -324,6 +344,8 @@ class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         focus_blend_px: width of the blend at the focus region's border, full-res pixels.
         channel: ``shaded``, or a buffer shown in false color (:mod:`isosr_server.channels`).
         clip: clip planes, crop box and caps of every frame (:class:`ClipSettings`).
+        coloring: colour the surface by a field (:class:`ColoringSettings`); None: the material's colour.
+            A shaded frame's ``legend`` then names its colour map and range.
         t: a series' time step (module docstring), below ``ready.volume.steps``.
     """
 
@@ -343,6 +365,7 @@ class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     focus_blend_px: Annotated[int, Meta(ge=0, le=256)] = 4
     channel: Literal[CHANNELS] = "shaded"
     clip: ClipSettings = ClipSettings()
+    coloring: ColoringSettings | None = None
     t: Step = 0
 
     def updated(self, update: SettingsUpdate | Mapping[str, Any], limits: Limits) -> ViewSettings:
@@ -637,8 +660,9 @@ class NoticeMsg(Message, tag="notice"):
 
 
 class Legend(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
-    """The false colors of a channel-view frame (:mod:`isosr_server.channels`): the values
-    ``lo`` to ``hi`` in ``unit``, by ``colormap`` (``stops``: its RGB stops, where it has them)."""
+    """The false colors of a channel-view frame (:mod:`isosr_server.channels`), or a coloring's on a
+    shaded one (channel ``shaded``, ``unit`` what colours it): the values ``lo`` to ``hi`` in ``unit``, by
+    ``colormap`` (``stops``: its RGB stops, where it has them)."""
 
     channel: Literal[CHANNELS]
     lo: float
@@ -719,7 +743,7 @@ class FrameMsg(Message, tag="frame"):
         buffers: the low-res buffers in the buffers coding.
         prev_seq: ``buffers`` only: the frame whose camera the flow refers to (-1: no flow,
             a cut: reset the recurrent state).
-        legend: channel view only: the false colors.
+        legend: the channel view's false colors, or a coloring's colour map and range.
         keyframe: the frame decodes alone (every image frame; video: a keyframe).
         timestamp_us: video: when the frame was made, microseconds since the session began
             (increasing; the decoder's timestamp).

@@ -296,6 +296,7 @@ class StepView:
                  upload: Callable[[str, Volume], Awaitable[Renderer]]):
         self.session, self.series, self.upload = session, series, upload
         self.t, self.volume, self.renderer = 0, session.volume, renderer
+        self.field: Volume | None = None  # the volume settings.coloring colours by (None: none, the gradient)
 
     async def show(self, t: int) -> None:
         """Make step ``t`` the one shown: read (or from the cache) off the event loop, its renderer

@@ -12,6 +12,11 @@ A still camera's refined frame is the ``full`` method with ``refine_ao_rays``, m
 stream (its recurrent state is kept for the next moving frame). A channel view (``channel`` other
 than ``shaded``) false-colors one buffer of the mode's frame instead of its color
 (:mod:`isosr_server.channels`); the method makes that buffer too, and nothing else besides.
+
+A coloring (``settings.coloring``) is a :class:`~isosr_render.color_field.ColorField` of the frame's
+renderer, made on the device thread once per renderer, coloring and field volume (the job's
+``field``, which the session resolved from the catalog), kept while they stay: a new one is a cut.
+A shaded frame's legend is then the coloring's.
 """
 
 from __future__ import annotations
@@ -25,11 +30,13 @@ import torch
 
 from isosr_net.methods import RUNNERS, FrameMethod, FrameResult, FrameRunner, FrameStream, Networks, make_runner
 from isosr_net.timing import StageTimer
-from isosr_render import Camera, Renderer
+from isosr_render import Camera, Renderer, Volume
+from isosr_render.color_field import ColorField
 from isosr_server.auto import AutoPolicy, served_factor
 from isosr_server.channels import false_color
 from isosr_render.renderer import MAX_AO_SAMPLES
-from isosr_server.protocol import MAX_VIEW_SPP, FocusMsg, ModeInfo, OptionInfo, ProtocolError, ViewSettings
+from isosr_server.protocol import (CLOSE_POLICY, MAX_VIEW_SPP, FocusMsg, ModeInfo, OptionInfo, ProtocolError,
+                                   ViewSettings)
 
 
 @dataclass(frozen=True)
@@ -74,6 +81,7 @@ class FrameJob:
     seq: int
     refined: bool
     sessions: int  # view sessions the device serves now (the auto mode's share)
+    field: Volume | None = None  # the volume settings.coloring names (None: none, or the gradient)
 
 
 @dataclass
@@ -107,8 +115,9 @@ class View(ABC):
         """The method the settings name, to check them once (None: it is chosen per frame)."""
         return self.method(settings, ctx, None, None, None)
 
-    def compose(self, result: FrameResult, renderer: Renderer, job: FrameJob, timer: StageTimer) -> torch.Tensor:
-        """The final color of a shaded frame."""
+    def compose(self, result: FrameResult, renderer: Renderer, job: FrameJob, timer: StageTimer,
+                coloring: ColorField | None = None) -> torch.Tensor:
+        """The final color of a shaded frame (``coloring``: the frame's)."""
         return result.buffers.color
 
 
@@ -160,7 +169,7 @@ class FocusView(View):
     def method(self, settings, ctx, frames, renderer, job) -> FrameMethod:
         return method_for("network", settings, ctx)
 
-    def compose(self, result, renderer, job, timer) -> torch.Tensor:
+    def compose(self, result, renderer, job, timer, coloring=None) -> torch.Tensor:
         color, st = result.buffers.color, job.settings
         with timer("shading"):
             weight = focus_weight(job.focus, st.width, st.height, st.focus_blend_px, color.device)
@@ -169,7 +178,7 @@ class FocusView(View):
             return color
         start, stop = int(covered[0]), int(covered[-1]) + 1
         lens = make_runner(FrameMethod.of("full", ao_rays=st.ao_rays, spp=st.spp), renderer, job.iso, st.width,
-                           st.height, ao_radius=st.ao_radius, clip=st.clip.clip())
+                           st.height, ao_radius=st.ao_radius, clip=st.clip.clip(), coloring=coloring)
         with timer("render"):
             sharp = lens.rows(job.camera, start, stop)
         with timer("shading"):
@@ -258,6 +267,7 @@ class SessionFrames:
         self.scene, self.ctx, self.auto = scene, ctx, auto
         self.stream = FrameStream(networks)
         self._prev: tuple[Camera, int] | None = None
+        self._coloring: tuple[tuple, ColorField] | None = None  # (renderer, settings, field), its ColorField
 
     def steps(self, renderer: Renderer, job: FrameJob,
               slice_ms: float | None = None) -> Generator[None, None, ViewFrame]:
@@ -272,18 +282,36 @@ class SessionFrames:
         st = job.settings
         shaded = st.channel == "shaded"
         keep = () if shaded else (st.channel,)
-        clip = st.clip.clip()
+        clip, coloring = st.clip.clip(), self.coloring(renderer, job)
         if job.refined:
             method = refined_method(st)
             runner = make_runner(method, renderer, job.iso, st.width, st.height, ao_radius=st.ao_radius, keep=keep,
-                                 shade=shaded, clip=clip)
+                                 shade=shaded, clip=clip, coloring=coloring)
             return FramePlan(job, renderer, method, runner, None, -1, None)
         view = VIEWS[st.mode]
         method = view.method(st, self.ctx, self, renderer, job)
         prev_camera, prev_seq = self._prev or (None, -1)
         runner, prev_camera = self.stream.runner_for(method, renderer, job.iso, st.width, st.height, prev_camera,
-                                                     st.ao_radius, keep, shaded, clip)
+                                                     st.ao_radius, keep, shaded, clip, coloring)
         return FramePlan(job, renderer, method, runner, prev_camera, prev_seq, view)
+
+    def coloring(self, renderer: Renderer, job: FrameJob) -> ColorField | None:
+        """The job's coloring on the renderer's device (module docstring).
+
+        Raises:
+            ProtocolError: the field's grid is not the renderer's volume's (naming both shapes).
+        """
+        settings = job.settings.coloring
+        if settings is None:
+            return None
+        key = (id(renderer), settings, id(job.field))
+        if self._coloring is None or self._coloring[0] != key:
+            try:
+                made = ColorField.of(settings.coloring(), renderer.volume, job.field, renderer.torch_device)
+            except ValueError as e:
+                raise ProtocolError(f"settings.coloring: {e}", CLOSE_POLICY, 422) from None
+            self._coloring = key, made
+        return self._coloring[1]
 
     def planned_steps(self, plan: FramePlan, slice_ms: float | None = None) -> Generator[None, None, ViewFrame]:
         """A planned frame made alone, in slices of about ``slice_ms``."""
@@ -304,8 +332,10 @@ class SessionFrames:
         elif not plan.method.runner.shaded:
             color, legend = None, None
         else:
-            color = result.buffers.color if plan.view is None else plan.view.compose(result, plan.renderer, job, timer)
-            legend = None
+            coloring = plan.runner.coloring
+            color = result.buffers.color if plan.view is None else plan.view.compose(result, plan.renderer, job, timer,
+                                                                                     coloring)
+            legend = None if coloring is None else coloring_legend(coloring)
         result.timers.append(timer)
         return ViewFrame(color, result, plan.method, legend, prev_seq)
 
@@ -323,6 +353,14 @@ class FramePlan:
     prev_camera: Camera | None
     prev_seq: int
     view: View | None
+
+
+def coloring_legend(coloring: ColorField) -> dict:
+    """A coloring's legend as a shaded frame carries it (``protocol.Legend``: channel ``shaded``, ``unit``
+    what colours it, the colour map's name and stops)."""
+    c = coloring.legend()
+    return {"channel": "shaded", "lo": c["lo"], "hi": c["hi"], "unit": c["by"], "colormap": c["colormap"],
+            "stops": c["stops"]}
 
 
 def focus_weight(focus: FocusMsg, width: int, height: int, blend: int, device: torch.device) -> torch.Tensor:

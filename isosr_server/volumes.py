@@ -46,7 +46,8 @@ from isosr_render.formats.zarr import ZarrSource, finest_within, open_zarr
 from isosr_render.procedural import default_iso
 from isosr_render.series import VolumeSeries, is_series, open_series
 from isosr_render.volume_io import probe, volume_name
-from isosr_server.protocol import CLOSE_NOT_FOUND, CLOSE_POLICY, VOLUME_NAME, ProtocolError
+from isosr_render.coloring import GRADIENT
+from isosr_server.protocol import CLOSE_NOT_FOUND, CLOSE_POLICY, VOLUME_NAME, ProtocolError, ViewSettings
 
 log = logging.getLogger("isosr.server")
 
@@ -315,6 +316,23 @@ async def load_volume(catalog: VolumeCatalog, name: str) -> tuple[Volume, Volume
         raise ProtocolError(str(e), CLOSE_NOT_FOUND, 404) from None
     except VolumeError as e:
         raise ProtocolError(f"volume {name!r} cannot be opened: {e}", CLOSE_POLICY, 422) from None
+
+
+async def coloring_field(catalog: VolumeCatalog, settings: ViewSettings, volume: Volume) -> Volume | None:
+    """The volume ``settings.coloring`` colours by (None: no coloring, or the gradient), loaded off the event
+    loop (the catalog caches it); `ProtocolError` as :func:`load_volume`'s for its name, 422 (CLOSE_POLICY)
+    for another grid than ``volume``'s, naming both shapes."""
+    coloring = settings.coloring
+    if coloring is None or coloring.by == GRADIENT:
+        return None
+    try:
+        field, _ = await load_volume(catalog, coloring.by)
+    except ProtocolError as e:
+        raise ProtocolError(f"settings.coloring.by: {e.reason}", e.close_code, e.http_status) from None
+    if field.shape != volume.shape:
+        raise ProtocolError(f"settings.coloring.by: {coloring.by!r} has the grid {field.shape}, not the viewed "
+                            f"volume's {volume.shape}: a coloring needs the same grid", CLOSE_POLICY, 422)
+    return field
 
 
 def session_iso(volume: Volume, name: str, iso: float, normalized: bool, field: str) -> float:

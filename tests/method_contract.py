@@ -70,6 +70,8 @@ from isosr_net.reconstructor import Reconstructor
 from isosr_net.upscaler import Upscaler
 from isosr_render import Camera, Renderer, orbit_path
 from isosr_render.clip import Clip
+from isosr_render.color_field import ColorField
+from isosr_render.coloring import GRADIENT, Coloring
 from isosr_render.conventions import BACKGROUND_RGB
 from isosr_render.sequence import sequence_cameras
 
@@ -196,11 +198,14 @@ class MethodContract:
             self.spec = self.method.replace(model=str(model), model_name="tiny")
 
     def runner(self, width: int = SIZE[0], height: int = SIZE[1], anisotropic: bool = False, iso: float | None = None,
-               clip: Clip = Clip()):
-        """A new runner of the method on the contact scene."""
+               clip: Clip = Clip(), coloring: Coloring | None = None):
+        """A new runner of the method on the contact scene (``coloring``: by the scene's own field)."""
         renderer, scene_iso = scene(anisotropic)
+        field = None if coloring is None else ColorField.of(coloring, renderer.volume,
+                                                            None if coloring.by == GRADIENT else renderer.volume,
+                                                            renderer.torch_device)
         return make_runner(self.spec, renderer, scene_iso if iso is None else iso, width, height,
-                           ao_radius=AO_RADIUS, networks=networks(), clip=clip)
+                           ao_radius=AO_RADIUS, networks=networks(), clip=clip, coloring=field)
 
     def frame_size(self, runner, width: int = SIZE[0], height: int = SIZE[1]) -> tuple[int, int]:
         """``(H, W)`` of the runner's buffers: the frame's, an unshaded low-res kind's render's."""
@@ -392,6 +397,20 @@ class MethodContract:
                     background = torch.tensor(BACKGROUND_RGB, device=frame["color"].device)
                     off = (frame["color"] - background).abs().amax(-1)
                     assert (off <= frame["mask"] + 1e-6).all(), where
+
+    # -- colour by a field ------------------------------------------------------------------------
+
+    @pytest.mark.parametrize("coloring", (Coloring("field", "magma"), Coloring("gradient", "viridis", (0.5, 0.5))))
+    def test_coloring_reaches_the_frame(self, coloring):
+        runner = self.runner(coloring=coloring)
+        h, w = self.frame_size(runner)
+        for i, frame in enumerate(buffers_of(r) for r in (runner.frame(CAMERAS[0]), runner.frame(CAMERAS[1],
+                                                                                               CAMERAS[0]))):
+            where = f"{self.spec.name}, {coloring.by}, frame {i}"
+            assert_finite_and_bounded(frame, runner.shaded, where)
+            if runner.shaded:
+                assert frame["albedo"].shape == (h, w, 3) and frame["albedo"].min() >= 0 \
+                    and frame["albedo"].max() <= 1, where
 
     # -- bench row --------------------------------------------------------------------------------
 

@@ -229,6 +229,26 @@ def test_render_prints_the_pick_under_a_pixel(tmp_path, capsys):
     assert "lies outside the 64x48 image" in capsys.readouterr().err and not (tmp_path / "x.png").exists()
 
 
+def test_render_colored_by_a_field(tmp_path, capsys):
+    """--color-by (a volume of the grid, or the gradient), --colormap and --color-range reach the render, a plain
+    one and a method's; a field of another grid and a bad colour map are refused naming them."""
+    out = tmp_path / "colored.npz"
+    for method in ([], ["--method", "atrous:ao_rays=1"]):
+        assert main(["render", "proc:sphere@32", "--eye", "0,0,2", "--size", "33x33", "--outputs", "mask,albedo,color",
+                     "--color-by", "proc:torus@32", "--colormap", "gray", "--color-range", "0,1", *method,
+                     "-o", str(out)]) == 0
+        frame = FrameBuffers.load_npz(out)
+        hit = frame.mask[16, 16] > 0
+        assert hit and frame.albedo[16, 16].min() > 0 and float(frame.albedo[0, 0].max()) == 0.0
+    assert main(["render", "proc:sphere@32", "--size", "33x33", "--outputs", "mask,albedo",
+                 "--color-by", "gradient", "-o", str(out)]) == 0
+    capsys.readouterr()
+    assert main(["render", "proc:sphere@32", "--color-by", "proc:torus@16", "-o", str(out)]) == 2
+    assert "(16, 16, 16) is not the volume's (32, 32, 32)" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["render", "proc:sphere@32", "--color-by", "gradient", "--colormap", "jet", "-o", str(out)])
+
+
 def test_render_clipped_and_capped(tmp_path, capsys):
     """--clip-plane (repeatable), --crop-box and --cap reach the render; a bad plane is refused naming it."""
     out = tmp_path / "cut.npz"

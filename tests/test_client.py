@@ -37,6 +37,8 @@ from isosr_net.reconstructor import recon_limits
 from isosr_net.upscaler import Upscaler
 from isosr_render import FrameBuffers, Renderer, RenderRequest, open_volume, orbit
 from isosr_render.clip import Clip
+from isosr_render.color_field import ColorField
+from isosr_render.coloring import Coloring
 from isosr_render.conventions import LOWRES_BUFFERS
 from isosr_render.picking import pick
 from isosr_render.slices import CONTOUR_RGB, slice_image
@@ -147,6 +149,34 @@ def test_clipped_frames_equal_the_library(server, library):  # noqa: F811
     ref = renderer.render(orbit(**camera), RenderRequest(*SIZE, iso, ("mask", "normal", "cap"), clip=clip))
     assert (ref.cap[..., 0] > 0).any() and (level_diff(image, plain) > 8).any()
     assert level_diff(image, to_uint8(shade(ref.mask, ref.normal, cap=ref.cap))).max() <= 1
+
+
+def test_colored_frames_equal_the_library(server, library):  # noqa: F811
+    """set_coloring: the server's frames are the library's with the same coloring (a second volume of the
+    grid, by name), with its legend; bad settings are refused naming the field."""
+    renderer, iso = library
+    field_name, camera = "proc:sphere@32", PATH.camera(0)
+    with connect(server.url, VOLUME, "full", SIZE, settings=LOSSLESS, camera=camera) as view:
+        plain = view.latest().rgb()
+        with pytest.raises(ProtocolError, match=r"coloring.colormap"):
+            view.set_coloring(field_name, "jet")
+        with pytest.raises(ProtocolError, match=r"coloring.range\[1\]"):
+            view.set_coloring(field_name, range=(1.0, float("nan")))
+        with pytest.raises(ProtocolError, match=r"coloring.range must be finite with lo <= hi"):
+            view.set_coloring(field_name, range=(2.0, 1.0))
+        view.set_coloring(field_name, "magma", (0.0, 1.0))
+        frame = view.latest()
+        image, legend = frame.rgb(), frame.message.legend
+        assert (legend.colormap, legend.lo, legend.hi, legend.unit) == \
+            ("magma", 0.0, 1.0, field_name)
+    field = ColorField.of(Coloring(field_name, "magma", (0.0, 1.0)), renderer.volume, open_volume(field_name))
+    ref = renderer.render(orbit(**camera), RenderRequest(*SIZE, iso, ("mask", "normal"), coloring=field))
+    assert (level_diff(image, plain) > 8).any()
+    assert level_diff(image, to_uint8(shade(ref.mask, ref.normal, albedo=ref.albedo))).max() <= 1
+    with connect(server.url, VOLUME, "full", SIZE, settings=LOSSLESS) as view:
+        view.set_coloring("proc:sphere@16")
+        with pytest.raises(ServerError, match=r"\(16, 16, 16\), not the viewed volume's \(32, 32, 32\)"):
+            view.frame()
 
 
 def test_buffers_mode_upscaled_here_equals_network(server):  # noqa: F811

@@ -57,4 +57,4 @@ class ATrousRunner(FrameRunner):
         with timer("filter"):
             ao = atrous_filter(rendered.ao[None, None], rendered.mask[None, None],
                                rendered.normal.permute(2, 0, 1)[None], rendered.depth[None, None], self.atrous)[0, 0]
-        return self.colored(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=ao), timer, rendered.cap)
+        return self.colored(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=ao), timer, rendered)

@@ -27,6 +27,7 @@ from isosr_net.reconnet import RayLimits
 from isosr_net.timing import StageTimer
 from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest
 from isosr_render.clip import Clip
+from isosr_render.color_field import ColorField
 from isosr_render.conventions import AO_RADIUS
 from isosr_render.renderer import MAX_AO_SAMPLES, MAX_SPP
 from isosr_render.sequence import sequence_cameras
@@ -322,6 +323,8 @@ class FrameRunner(ABC):
             computes only what its kept buffers need (a full-resolution render: only them).
         clip: clip planes, crop box and caps of every ray cast (:mod:`isosr_render.clip`); with caps,
             the color shows the cut faces in the volume's values.
+        coloring: colour the surface by a field (:class:`~isosr_render.color_field.ColorField`): the render
+            makes its ``albedo``, which the shading uses at the frame size; None: the material's colour.
     """
 
     kind: ClassVar[str]
@@ -341,7 +344,7 @@ class FrameRunner(ABC):
     def __init__(self, method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int,
                  shading: ShadingParams = ShadingParams(), ao_radius: float = AO_RADIUS,
                  networks: Networks | None = None, atrous: ATrousConfig = ATrousConfig(), keep: tuple[str, ...] = (),
-                 shade: bool = True, clip: Clip = Clip()):
+                 shade: bool = True, clip: Clip = Clip(), coloring: ColorField | None = None):
         check_int(width, "width", 1, where="frame")
         check_int(height, "height", 1, where="frame")
         if (reason := self.unavailable()) is not None:
@@ -351,7 +354,7 @@ class FrameRunner(ABC):
         self.method, self.renderer, self.iso = method, renderer, float(iso)
         self.width, self.height = width, height
         self.shading, self.ao_radius, self.atrous, self.keep = shading, ao_radius, atrous, tuple(keep)
-        self.shade, self.clip = shade, clip
+        self.shade, self.clip, self.coloring = shade, clip, coloring
         self.device = str(renderer.device)
         self._last_timer: StageTimer | None = None  # the previous frame's (read lazily: no sync per frame)
         self.frames = 0  # frames made: with fresh_rays, the next frame's AO seed
@@ -415,7 +418,8 @@ class FrameRunner(ABC):
         seed = {"seed": (FIRST_TEMPORAL_SEED + self.frames) % 2 ** 31} if self.fresh_rays else {}
         return RenderRequest(self.width // m.factor, self.height // m.factor, self.iso, outputs,
                              ao_radius=self.ao_radius, prev_camera=prev_camera if flow else None,
-                             shading=self.shading, spp=m.spp, ao_samples=max(1, m.ao_rays), clip=self.clip, **seed)
+                             shading=self.shading, spp=m.spp, ao_samples=max(1, m.ao_rays), clip=self.clip,
+                             coloring=self.coloring if self.shade else None, **seed)
 
     def frame(self, camera: Camera, prev_camera: Camera | None = None) -> FrameResult:
         """The next frame of the stream; ``prev_camera=None`` starts a new sequence.
@@ -504,15 +508,23 @@ class FrameRunner(ABC):
                 yield
         return out
 
-    def colored(self, buffers: FrameBuffers, timer: StageTimer, cap: torch.Tensor | None = None) -> FrameBuffers:
-        """``buffers`` with the final color (unless the runner does not shade), the cut faces of the
-        rendered ``cap`` buffer (at the render's size) coloured by the volume's values."""
+    @property
+    def shades_after(self) -> bool:
+        """Whether the color needs the render's ``cap`` or ``albedo`` (cut faces, a coloring): a learned
+        kind shades after its network then (:meth:`colored`), not in its call."""
+        return self.shade and (self.clip.capped or self.coloring is not None)
+
+    def colored(self, buffers: FrameBuffers, timer: StageTimer, rendered: FrameBuffers) -> FrameBuffers:
+        """``buffers`` with the final color (unless the runner does not shade), with the ``rendered``
+        frame's (at the render's size) ``cap``, the cut faces coloured by the volume's values, and
+        ``albedo``, a coloring's surface colour, brought to the frame size."""
         if self.shade:
-            if cap is not None:
-                buffers.cap = self._to_frame_size("cap", cap)
+            for name in ("cap", "albedo"):
+                if getattr(rendered, name) is not None:
+                    setattr(buffers, name, self._to_frame_size(name, getattr(rendered, name)))
             with timer("shading"):
                 buffers.color = shade_on(buffers.mask.device.type)(buffers.mask, buffers.normal, buffers.ao,
-                                                                  self.shading, buffers.cap)
+                                                                  self.shading, buffers.cap, buffers.albedo)
         return buffers
 
     def _to_frame_size(self, name: str, t: torch.Tensor) -> torch.Tensor:
@@ -578,29 +590,31 @@ class FrameStream:
 
     def frame(self, method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int, camera: Camera,
               prev_camera: Camera | None, ao_radius: float = AO_RADIUS, keep: tuple[str, ...] = (),
-              shade: bool = True, clip: Clip = Clip()) -> FrameResult:
+              shade: bool = True, clip: Clip = Clip(), coloring: ColorField | None = None) -> FrameResult:
         """The next frame; ``prev_camera`` counts only while the runner stays the same."""
         return finish_steps(self.steps(method, renderer, iso, width, height, camera, prev_camera, ao_radius, keep,
-                                       shade, clip=clip))
+                                       shade, clip=clip, coloring=coloring))
 
     def steps(self, method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int, camera: Camera,
               prev_camera: Camera | None, ao_radius: float = AO_RADIUS, keep: tuple[str, ...] = (),
               shade: bool = True, slice_ms: float | None = None,
-              clip: Clip = Clip()) -> Generator[None, None, FrameResult]:
+              clip: Clip = Clip(), coloring: ColorField | None = None) -> Generator[None, None, FrameResult]:
         """:meth:`frame` in slices (:meth:`FrameRunner.steps`)."""
         runner, prev_camera = self.runner_for(method, renderer, iso, width, height, prev_camera, ao_radius, keep, shade,
-                                              clip)
+                                              clip, coloring)
         return (yield from runner.steps(camera, prev_camera, slice_ms))
 
     def runner_for(self, method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int,
                    prev_camera: Camera | None, ao_radius: float = AO_RADIUS, keep: tuple[str, ...] = (),
-                   shade: bool = True, clip: Clip = Clip()) -> tuple[FrameRunner, Camera | None]:
+                   shade: bool = True, clip: Clip = Clip(),
+                   coloring: ColorField | None = None) -> tuple[FrameRunner, Camera | None]:
         """The runner of the next frame and the previous camera it continues from (None where the
-        runner is new: a cut; a new ``clip`` is one, as a new iso). Its frame is then
+        runner is new: a cut; a new ``clip`` or ``coloring`` is one, as a new iso). Its frame is then
         :meth:`FrameRunner.steps` or part of a :meth:`FrameRunner.make_batch`."""
-        key = (method, renderer, float(iso), width, height, float(ao_radius), tuple(keep), shade, clip)
+        key = (method, renderer, float(iso), width, height, float(ao_radius), tuple(keep), shade, clip, coloring)
         if key != self._key:
             self.runner = make_runner(method, renderer, iso, width, height, shading=self.shading,
-                                      ao_radius=ao_radius, networks=self.networks, keep=keep, shade=shade, clip=clip)
+                                      ao_radius=ao_radius, networks=self.networks, keep=keep, shade=shade, clip=clip,
+                                      coloring=coloring)
             self._key, prev_camera = key, None
         return self.runner, prev_camera

@@ -59,8 +59,7 @@ class FullRunner(FrameRunner):
         return ("mask", "normal") + (("ao",) if m.ao_rays else ())
 
     def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
-        return self.colored(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=rendered.ao), timer,
-                            rendered.cap)
+        return self.colored(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=rendered.ao), timer, rendered)
 
     def rows(self, camera: Camera, start: int, stop: int) -> torch.Tensor:
         """Rows ``[start, stop)`` of the frame's color only (a focus lens's region).
@@ -69,5 +68,5 @@ class FullRunner(FrameRunner):
             Returns (stop - start, W, 3).
         """
         rendered = self.renderer.render(camera, self.render_request(), rows=(start, stop))
-        ao, cap = (None if t is None else t[start:stop] for t in (rendered.ao, rendered.cap))
-        return shade(rendered.mask[start:stop], rendered.normal[start:stop], ao, self.shading, cap)
+        ao, cap, albedo = (None if t is None else t[start:stop] for t in (rendered.ao, rendered.cap, rendered.albedo))
+        return shade(rendered.mask[start:stop], rendered.normal[start:stop], ao, self.shading, cap, albedo)

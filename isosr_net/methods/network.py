@@ -78,4 +78,4 @@ class NetworkRunner(FrameRunner):
     def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
         with timer("network"):
             high = self.net.upscale(rendered)
-        return self.colored(high, timer, rendered.cap)
+        return self.colored(high, timer, rendered)

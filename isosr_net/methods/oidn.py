@@ -60,12 +60,12 @@ class OIDNRunner(FrameRunner):
         return ("mask", "normal")
 
     def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
-        buffers = FrameBuffers(mask=rendered.mask, normal=rendered.normal, cap=rendered.cap)
+        buffers = FrameBuffers(mask=rendered.mask, normal=rendered.normal, cap=rendered.cap, albedo=rendered.albedo)
         if self.shade:
             with timer("shading"):
                 shade = shade_on(rendered.mask.device.type)
-                noisy = shade(rendered.mask, rendered.normal, rendered.ao, self.shading, rendered.cap)
-                albedo = shade(rendered.mask, rendered.normal, None, self.shading, rendered.cap)
+                noisy = shade(rendered.mask, rendered.normal, rendered.ao, self.shading, rendered.cap, rendered.albedo)
+                albedo = shade(rendered.mask, rendered.normal, None, self.shading, rendered.cap, rendered.albedo)
             with timer("filter"):
                 denoised = oidn.denoise(noisy, albedo, rendered.normal, self.method.options.quality)
                 # OIDN filters the background too: where nothing was hit, the background (the albedo's) stays.

@@ -136,14 +136,14 @@ class ReconstructRunner(FrameRunner):
 
     @property
     def fused_shading(self) -> ShadingParams | None:
-        """The shading the network's call makes too: none where the runner does not shade, or where the
-        cut faces are coloured after it (:meth:`FrameRunner.colored`)."""
-        return self.shading if self.shade and not self.clip.capped else None
+        """The shading the network's call makes too: none where the runner does not shade, or where it
+        shades after it (:attr:`FrameRunner.shades_after`)."""
+        return self.shading if self.shade and not self.shades_after else None
 
     def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
         with timer("network"):  # shading included: one call
             out = self.net.reconstruct(rendered, self.read_rays, self.method.spp, self.fused_shading)
-        return self.colored(out, timer, rendered.cap) if rendered.cap is not None else out
+        return self.colored(out, timer, rendered) if self.shades_after else out
 
     def render_finish(self, camera: Camera, request: RenderRequest,
                       timer: StageTimer) -> tuple[FrameBuffers, FrameBuffers]:
@@ -152,5 +152,5 @@ class ReconstructRunner(FrameRunner):
         with timer("render"):  # the network and the shading included: one graph
             rendered, out = self.net.render_reconstruct(self.renderer, camera, request, self.read_rays,
                                                         self.method.spp, self.fused_shading)
-        return rendered, self.colored(out, timer, rendered.cap) if rendered.cap is not None else out
+        return rendered, self.colored(out, timer, rendered) if self.shades_after else out
 

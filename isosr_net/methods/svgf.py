@@ -75,5 +75,4 @@ class SVGFRunner(FrameRunner):
                                            rendered.normal.permute(2, 0, 1)[None], rendered.depth[None, None],
                                            rendered.position.permute(2, 0, 1)[None], flow, self._prev_camera,
                                            self.history, self.config, self.atrous)
-        return self.colored(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=ao[0, 0]), timer,
-                            rendered.cap)
+        return self.colored(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=ao[0, 0]), timer, rendered)

@@ -67,7 +67,7 @@ class ClassicUpscaleRunner(FrameRunner):
         with timer("filter"):
             up = upscale_classic(rendered, self.method.factor, self.method.options.interpolation)
         up.ao = None  # no AO: shaded unoccluded
-        return self.colored(up, timer, rendered.cap)
+        return self.colored(up, timer, rendered)
 
 
 def upscale_classic(low: FrameBuffers, factor: int, interpolation: str = "bilinear") -> FrameBuffers:

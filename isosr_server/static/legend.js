@@ -1,5 +1,5 @@
 // Legends of the channel view: the colormaps of isosr_server/channels.py, drawn from a frame's
-// `legend` ({channel, lo, hi, unit, colormap, stops}).
+// `legend` ({channel, lo, hi, unit, colormap, stops}), and a coloring's on a shaded frame (with its stops).
 
 /** Hue (direction) and value (length / hi) of a flow vector, as channels.py colors it; rgb in [0, 1]. */
 export function flowColor(fx, fy, hi) {
@@ -25,7 +25,7 @@ export function drawLegend(canvas, legend) {
     for (let x = 0; x < w; x++) {
       const t = x / (w - 1);
       let rgb;
-      if (legend.colormap === "stops") rgb = interpolate(legend.stops, t);
+      if (legend.stops) rgb = interpolate(legend.stops, t);
       else if (legend.colormap === "normal") {
         // Each legend column: a normal swept from -x to +x, rows from +y to -y, z facing the viewer.
         const nx = 2 * t - 1;

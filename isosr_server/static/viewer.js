@@ -188,6 +188,7 @@ function settings(mode) {
     quality: 90,
     bitrate_kbps: bitrate(),
     clip: clipSettings(),
+    coloring: coloringSettings(),
     t: state.step,
   };
 }
@@ -203,6 +204,15 @@ function clipSettings() {
   point[axis] = Number($("clip-offset").value);
   normal[axis] = state.clipFlip ? 1 : -1;
   return { planes: [{ point, normal }], box: null, cap: $("cap").value };
+}
+
+/** What colours the surface (settings.coloring): null, the gradient, or the named volume of the grid. */
+function coloringSettings() {
+  const by = $("color-by").value;
+  $("color-field").hidden = by !== "field";
+  const name = by === "field" ? $("color-field").value.trim() : by;
+  if (by === "none" || !name) return null;
+  return { by: name, colormap: $("colormap").value, range: null };
 }
 
 /** Move the clip plane's handle by ``delta`` world units (within its range). */
@@ -875,6 +885,9 @@ function bindControls() {
   $("clip-axis").addEventListener("change", sendSettings);
   $("cap").addEventListener("change", sendSettings);
   $("clip-offset").addEventListener("input", sendSettings);
+  $("color-by").addEventListener("change", sendSettings);
+  $("colormap").addEventListener("change", sendSettings);
+  $("color-field").addEventListener("change", sendSettings);
   $("lens-radius").addEventListener("input", () => { showLens(); queue("focus", focusMessage()); });
   $("camera-reset").addEventListener("click", resetCamera);
   $("camera-save").addEventListener("click", () => {

@@ -8,21 +8,24 @@ import logging
 import os
 import secrets
 from collections.abc import Awaitable, Callable
+from dataclasses import replace
 
 import msgspec
+from msgspec import UNSET
 from fastapi import APIRouter, WebSocket
 
 from isosr_server.api.deps import AuthorizedDep, CatalogDep, EngineDep, LimitsDep, MetricsDep, ViewSessionsDep
 from isosr_server.api.ws import accept, end_ws, rate_limiter, receive
 from isosr_server.engine import Engine
 from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, CLOSE_IDLE, VIDEO_ENCODINGS, FocusMsg, FrameMsg, Limits,
-                                   Message, NoticeMsg, OpenMsg, PickMsg, ProtocolError, ReadyMsg, ViewSettings,
+                                   Message, NoticeMsg, OpenMsg, PickMsg, ProtocolError, ReadyMsg, SettingsMsg,
+                                   ViewSettings,
                                    VolumeSummary, encode, parse)
 from isosr_server.sessions import (DEFAULT_CAMERA, SessionCounter, StepView, ViewSession, ViewState, run_frames,
                                    to_camera, watch_acks)
 from isosr_server.video import SessionCoder
 from isosr_server.views import FrameJob
-from isosr_server.volumes import VolumeCatalog, load_volume, session_iso
+from isosr_server.volumes import VolumeCatalog, coloring_field, load_volume, session_iso
 
 log = logging.getLogger("isosr.server")
 
@@ -49,7 +52,8 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
         async def make(job):
             plan = job.plan
             await shown.show(job.frame.settings.t)
-            return await engine.view_frame(frames, shown.renderer, shown.job(job.frame),
+            frame = replace(shown.job(job.frame), field=shown.field)
+            return await engine.view_frame(frames, shown.renderer, frame,
                                            lambda rgb: coder.code(rgb, plan),
                                            plan.encoding in VIDEO_ENCODINGS and not plan.refined)
 
@@ -68,7 +72,7 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
             await send(await engine.call(engine.pick_sync, shown.renderer, s.camera, iso, s.settings, msg))
 
         tasks = [asyncio.create_task(run_frames(session, make, send)),
-                 asyncio.create_task(take_updates(ws, limiter, limits, session, answer)),
+                 asyncio.create_task(take_updates(ws, limiter, limits, session, answer, catalog, shown)),
                  asyncio.create_task(watch_acks(session))]
         done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         for task in done:
@@ -86,14 +90,17 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
 
 
 async def take_updates(ws: WebSocket, limiter, limits: Limits, session: ViewSession,
-                       answer: Callable[[PickMsg], Awaitable[None]]) -> None:
+                       answer: Callable[[PickMsg], Awaitable[None]], catalog: VolumeCatalog, shown: StepView) -> None:
     """A view session's client messages, until the connection ends: picks answered (``answer``),
-    the rest applied to the session's state."""
+    the rest applied to the session's state (a coloring's field volume resolved into ``shown``)."""
     while True:
         msg = parse(await receive(ws, limiter, limits), limits, CLIENT_VIEW_MESSAGES)
         if isinstance(msg, PickMsg):
             await answer(msg)
         else:
+            if isinstance(msg, SettingsMsg) and msg.settings.coloring is not UNSET:  # its field resolved first
+                shown.field = await coloring_field(catalog, session.state.settings.updated(msg.settings, limits),
+                                                   session.volume)
             session.apply(msg)
 
 
@@ -116,6 +123,7 @@ async def open_view(ws: WebSocket, msg: OpenMsg, limits: Limits, catalog: Volume
     renderer = await engine.call(engine.renderer_sync, msg.volume, volume)
     shown = StepView(session, catalog.series(msg.volume) if info.steps > 1 else None, renderer,
                      lambda name, step: engine.call(engine.renderer_sync, name, step))
+    shown.field = await coloring_field(catalog, session.state.settings, volume)
     summary = msgspec.convert(info.to_json() | {"iso_normalized": normalized}, VolumeSummary)
     ready = ReadyMsg(session.id, summary, session.state.settings,
                      engine.upscale_factor, engine.recon_limits.max_ao_rays, limits, engine.modes,
