@@ -1,9 +1,12 @@
-"""The notebook widget (:mod:`isosr_client.notebook`) without a browser: the traitlets' checks, the
-`widget` arguments, and `widget(array)` starting a loopback server that answers, whose frames
+"""The notebook widget (:mod:`isosr_client.notebook`) without a browser: a light import, the
+traitlets' checks, the `widget` arguments, and `widget(array)` starting a loopback server that answers, whose frames
 follow the traitlets, and that stops with the widget."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 import urllib.error
 import urllib.request
 from pathlib import Path
@@ -22,6 +25,16 @@ def ball(n: int = 32) -> np.ndarray:
     """Distances from the centre of an n^3 grid over [-1, 1]^3: spheres as iso-surfaces."""
     x, y, z = np.meshgrid(*(np.linspace(-1, 1, n),) * 3, indexing="ij")
     return np.sqrt(x * x + y * y + z * z).astype(np.float32)
+
+
+def test_import_leaves_the_server_out():
+    """The kernel that imports the widget loads neither torch, Warp, the renderer nor the server's app."""
+    check = ("import sys, isosr_client; isosr_client.widget; print(sorted(m for m in sys.modules if m.split('.')[0] "
+             "in ('torch', 'warp', 'fastapi', 'uvicorn') or m in ('isosr_render.renderer', 'isosr_server.app')))")
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])}
+    result = subprocess.run([sys.executable, "-c", check], capture_output=True, text=True, env=env, timeout=60, cwd=root)
+    assert result.returncode == 0 and result.stdout.strip() == "[]", (result.stdout, result.stderr[-2000:])
 
 
 def test_camera_updates_partially_and_is_checked():
