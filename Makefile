@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q "$(TORCH)"
-	$(BIN)/python -m pip install -q -e ".[server,cluster,video,data,mesh,bench,train,test,oidn]"
+	$(BIN)/python -m pip install -q -e ".[server,cluster,video,data,mesh,bench,train,test,oidn,notebook]"
 	touch $(STAMP)
 
 demo: venv
