@@ -38,15 +38,7 @@ frame time fits one session's budget (``1000 / target_fps`` ms).
 
 from __future__ import annotations
 
-import json
-import signal
-import socket
 import ssl
-import subprocess
-import sys
-import tempfile
-import time
-import urllib.request
 from pathlib import Path
 
 import numpy as np
@@ -57,6 +49,7 @@ from isosr_bench.common import bench_parser, print_table, write_result
 from isosr_bench.load import LoadSampler
 from isosr_bench.sessions import run_sessions
 from isosr_client.drive import Orbit, summarize
+from isosr_client.serve_process import ServeProcess
 from isosr_client.view import connect
 from isosr_net.budget import color_psnr, reference_frames
 from isosr_net.inference import default_precision
@@ -77,12 +70,6 @@ SIZES = {"1080p": (1920, 1080), "4k": (3840, 2160), "smoke": (64, 48)}
 CASES = (("auto", 0), *((kind, ao) for kind in VIEWS if kind in RUNNERS for ao in RUNNERS[kind].serve_bench_ao),
          ("focus", 8))
 TARGET_FPS = 30.0
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def rss_bytes(pid: int) -> int:
@@ -111,71 +98,22 @@ def room_options(sessions: int) -> tuple[str, ...]:
             "--max-fps", "1000")
 
 
-class ServerProcess:
-    """`isosr serve` in a subprocess on a free loopback port; a context manager that waits for
-    ``/v2/health/ready`` and stops the server (SIGINT, then SIGKILL) on exit.
+class ServerProcess(ServeProcess):
+    """`isosr serve` on ``device`` in a subprocess on a free loopback port (a context manager:
+    :class:`isosr_client.serve_process.ServeProcess`), with its resident memory.
 
     Args:
         device: the server's device.
         extra_args: more `isosr serve` options.
-        startup_s: how long to wait for ready (on a GPU machine with empty kernel caches the server
-            compiles the renderer and tunes the fused reconstruction kernels, x1 and x2, for two
-            window sizes each: more than 180 s on an H200 at c9c8109).
-        tls: a client context that trusts the server's certificate, where ``extra_args`` give it
-            one (the server then speaks HTTPS).
+        startup_s, tls: as :class:`~isosr_client.serve_process.ServeProcess` takes them.
     """
 
     def __init__(self, device: str, extra_args: tuple[str, ...] = (), startup_s: float = 420.0,
                  tls: ssl.SSLContext | None = None):
-        self.port = free_port()
-        self.tls = tls
-        self.url = f"{'http' if tls is None else 'https'}://127.0.0.1:{self.port}"
-        self.command = [sys.executable, "-m", "isosr_cli.main", "serve", "--port", str(self.port), "--device", device,
-                        "--log-level", "warning", *extra_args]
-        self.startup_s = startup_s
-        self.process: subprocess.Popen | None = None
-
-    def __enter__(self) -> "ServerProcess":
-        # stderr to a file, not a pipe: a full pipe nobody reads would stall the server.
-        self.log = tempfile.TemporaryFile()
-        self.process = subprocess.Popen(self.command, stdout=subprocess.DEVNULL, stderr=self.log)
-        deadline = time.monotonic() + self.startup_s
-        while not self._ready():
-            if self.process.poll() is not None:
-                self.log.seek(0)
-                raise RuntimeError(f"the server exited ({self.process.returncode}): "
-                                   f"{self.log.read().decode(errors='replace')[-2000:]}")
-            if time.monotonic() > deadline:
-                self.__exit__()
-                raise RuntimeError(f"the server was not ready within {self.startup_s:g} s")
-            time.sleep(0.2)
-        return self
-
-    def _ready(self) -> bool:
-        try:
-            with urllib.request.urlopen(self.url + "/v2/health/ready", timeout=2, context=self.tls) as r:
-                return json.loads(r.read()).get("ready") is True
-        except OSError:
-            return False
-
-    @property
-    def pid(self) -> int:
-        return self.process.pid
+        super().__init__(("--device", device, *extra_args), startup_s=startup_s, tls=tls)
 
     def rss(self) -> int:
         return rss_bytes(self.pid)
-
-    def __exit__(self, *exc) -> None:
-        if self.process is None:
-            return
-        if self.process.poll() is None:
-            self.process.send_signal(signal.SIGINT)
-            try:
-                self.process.wait(20)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait()
-        self.log.close()
 
 
 def case_row(mode: str, ao: int, result: dict) -> dict:

@@ -19,15 +19,9 @@ notebook only where widget state is saved with it.
 
 from __future__ import annotations
 
-import json
 import os
 import secrets
-import socket
-import subprocess
-import sys
 import tempfile
-import time
-import urllib.request
 import weakref
 from collections.abc import Sequence
 from pathlib import Path
@@ -37,6 +31,7 @@ import anywidget
 import numpy as np
 import traitlets
 
+from isosr_client.serve_process import ServeProcess
 from isosr_client.view import ViewSession, connect
 from isosr_server.protocol import CameraMsg, ProtocolError, convert
 
@@ -145,58 +140,32 @@ class LocalServer:
         else:
             np.savez(folder / f"{name}.npz", volume=array, spacing=np.asarray(spacing, float))
         self.name, self.token = name, secrets.token_urlsafe(24)
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            port = s.getsockname()[1]
-        self.url = f"http://127.0.0.1:{port}"
-        self._log = tempfile.TemporaryFile()  # a file, not a pipe: a full pipe nobody reads would stall it
         # The token through the environment: a command line is readable by every local user.
-        env = dict(os.environ, ISOSR_TOKEN=self.token)
-        self._process = subprocess.Popen(
-            [sys.executable, "-m", "isosr_cli.main", "serve", "--host", "127.0.0.1", "--port", str(port),
-             "--volumes", str(folder), "--device", device, "--log-level", "warning"],
-            stdout=subprocess.DEVNULL, stderr=self._log, env=env)
-        self._stop = weakref.finalize(self, _stop, self._process, self._folder, self._log)  # also at exit
-        self._wait_ready(startup_s)
-
-    def _wait_ready(self, startup_s: float) -> None:
-        deadline = time.monotonic() + startup_s
-        while not self._ready():
-            if self._process.poll() is not None:
-                self._log.seek(0)
-                log = self._log.read().decode(errors="replace")[-2000:]
-                self.close()
-                raise RuntimeError(f"the local server exited ({self._process.returncode}): {log}")
-            if time.monotonic() > deadline:
-                self.close()
-                raise RuntimeError(f"the local server was not ready within {startup_s:g} s")
-            time.sleep(0.2)
-
-    def _ready(self) -> bool:
+        self._server = ServeProcess(("--volumes", str(folder), "--device", device),
+                                    env=dict(os.environ, ISOSR_TOKEN=self.token), startup_s=startup_s)
+        self.url = self._server.url
+        self._stop = weakref.finalize(self, _stop, self._server, self._folder)  # also at exit
         try:
-            with urllib.request.urlopen(self.url + "/v2/health/ready", timeout=2) as r:
-                return json.loads(r.read()).get("ready") is True
-        except OSError:
-            return False
+            self._server.start()
+        except RuntimeError as e:
+            self.close()
+            raise RuntimeError(f"the local server did not start: {e}") from None
+
+    @property
+    def pid(self) -> int:
+        return self._server.pid
 
     @property
     def running(self) -> bool:
-        return self._process.poll() is None
+        return self._server.running
 
     def close(self) -> None:
         self._stop()
 
 
-def _stop(process: subprocess.Popen, folder: tempfile.TemporaryDirectory, log) -> None:
-    """Stop the server (SIGTERM, then SIGKILL) and remove its folder."""
-    if process.poll() is None:
-        process.terminate()
-        try:
-            process.wait(20)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
-    log.close()
+def _stop(server: ServeProcess, folder: tempfile.TemporaryDirectory) -> None:
+    """Stop the server and remove its folder."""
+    server.stop()
     folder.cleanup()
 
 

@@ -9,7 +9,6 @@ import ipaddress
 import json
 import logging
 import os
-import socket
 import threading
 import time
 import urllib.error
@@ -37,6 +36,7 @@ from isosr_server.app import create_app, uvicorn_options
 from isosr_server.core.config import Settings
 from isosr_render.image_codec import decode_image
 from isosr_render.images import to_uint8
+from isosr_client.serve_process import free_port
 
 # Clients accept big frames (the server's limit bounds what clients send).
 CLIENT_LIMITS = P.Limits(max_message_bytes=2**28)
@@ -56,12 +56,6 @@ class ErrorRecords(logging.Handler):
 
     def messages(self) -> list[str]:
         return [f"{r.name}: {r.getMessage()}" for r in self.records]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class RunningServer:

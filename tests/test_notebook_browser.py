@@ -8,7 +8,6 @@ from __future__ import annotations
 import json
 import os
 import secrets
-import socket
 import subprocess
 import sys
 import time
@@ -17,6 +16,7 @@ import urllib.request
 from pathlib import Path
 
 import pytest
+from isosr_client.serve_process import free_port
 
 CHROMIUM = Path("/usr/bin/chromium")
 if not CHROMIUM.exists():
@@ -34,14 +34,8 @@ CELLS = [
     "w = isosr_client.widget(np.sqrt(x * x + y * y + z * z).astype(np.float32), width=160, height=120)\n"
     "w",
     "w.iso = 0.5",
-    "print('yaw', w.camera['yaw'], 'iso', w.iso, 'server', w._server._process.pid)",
+    "print('yaw', w.camera['yaw'], 'iso', w.iso, 'server', w._server.pid)",
 ]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def alive(pid: int) -> bool:

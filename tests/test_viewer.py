@@ -11,7 +11,6 @@ import base64
 import json
 import os
 import re
-import socket
 import subprocess
 import sys
 import time
@@ -30,6 +29,7 @@ from isosr_render import FrameBuffers, Renderer, RenderRequest, open_volume, orb
 from isosr_render.images import to_uint8
 from isosr_server.channels import false_color
 from isosr_server.codecs import video
+from isosr_client.serve_process import free_port
 from server_fixtures import CORNER_BYTES, write_corner_volume
 
 CHROMIUM = Path("/usr/bin/chromium")
@@ -44,12 +44,6 @@ CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networki
 WINDOW = {"width": 610, "height": 240}
 VOLUME = "proc:torus@32"
 FRAME_TIMEOUT_MS = 30_000
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @contextmanager
