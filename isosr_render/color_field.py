@@ -75,20 +75,26 @@ class ColorField:
 
     def colormap(self, v: torch.Tensor) -> torch.Tensor:
         """Colours of values (module docstring of :mod:`isosr_render.coloring`). Shape: (...) -> (..., 3)."""
-        n = len(self._stops)
         if self.coloring.categorical:
-            return self._stops[torch.remainder(torch.nan_to_num(v).round().long(), n)]
+            return self._stops[torch.remainder(torch.nan_to_num(v).round().long(), len(self._stops))]
         span = self.hi - self.lo
         t = ((v - self.lo) / span).clamp(0.0, 1.0) if span > 0 else torch.full_like(v, 0.5)
-        x = torch.nan_to_num(t, 0.0) * (n - 1)
-        i = x.floor().long().clamp(max=n - 2)
-        f = (x - i)[..., None]
-        return self._stops[i] * (1.0 - f) + self._stops[i + 1] * f
+        return ramp(torch.nan_to_num(t, 0.0), self._stops)
 
     def legend(self) -> dict:
         """What a legend bar shows: ``by, colormap, lo, hi, stops``."""
         c = self.coloring
         return {"by": c.by, "colormap": c.colormap, "lo": self.lo, "hi": self.hi, "stops": [list(s) for s in c.stops]}
+
+
+def ramp(t: torch.Tensor, stops) -> torch.Tensor:
+    """Colours of ``t`` in [0, 1], piecewise linear through ``stops`` (RGB, evenly spaced; a tensor or
+    a tuple of triples). Shape: (...) -> (..., 3)."""
+    table = torch.as_tensor(stops, dtype=torch.float32, device=t.device)
+    x = t * (len(table) - 1)
+    i = x.floor().long().clamp(0, len(table) - 2)
+    f = (x - i)[..., None]
+    return table[i] * (1.0 - f) + table[i + 1] * f
 
 
 def data_units(volume: Volume, device: torch.device | str) -> torch.Tensor:

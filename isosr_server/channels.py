@@ -10,7 +10,7 @@ shading. ``buffers`` frames have no channel view: the client gets the buffers th
 Colormaps (the page's legend.js draws the same ones from the frame's ``legend``):
     mask    gray, 0 black to 1 white
     normal  view-space normal xyz in [-1, 1] -> rgb ``n / 2 + 1/2``
-    depth   `DEPTH_STOPS` (viridis at 9 stops) from the nearest to the farthest covered pixel
+    depth   `DEPTH_STOPS` (viridis) from the nearest to the farthest covered pixel
     ao      gray, 0 (occluded) black to 1 white
     flow    hue = direction of the backward flow (x right, y down), value = length / the
             frame's longest flow; black = still; components clipped to +-FLOW_CLIP pixels
@@ -24,13 +24,12 @@ import math
 import torch
 
 from isosr_render import FrameBuffers
+from isosr_render.color_field import ramp
+from isosr_render.coloring import COLORMAPS
 from isosr_server.protocol import CHANNELS, FLOW_CLIP, ProtocolError
 
 NO_SURFACE = 0.12
-# viridis at t = 0, 1/8, ..., 1
-DEPTH_STOPS = ((0.267, 0.005, 0.329), (0.279, 0.175, 0.483), (0.230, 0.322, 0.546), (0.173, 0.449, 0.558),
-               (0.128, 0.567, 0.551), (0.153, 0.680, 0.510), (0.365, 0.785, 0.387), (0.666, 0.862, 0.196),
-               (0.993, 0.906, 0.144))
+DEPTH_STOPS = COLORMAPS["viridis"]
 # Coverage above which a pixel's depth and flow count for the legend's range.
 COVERED = 0.5
 
@@ -53,7 +52,7 @@ def false_color(buffers: FrameBuffers, channel: str) -> tuple[torch.Tensor, dict
         hits = depth[covered]
         lo, hi = (hits.min().item(), hits.max().item()) if hits.numel() else (0.0, 0.0)
         t = ((depth - lo) / max(hi - lo, 1e-12)).clamp(0.0, 1.0)
-        rgb = _colormap(t, DEPTH_STOPS)
+        rgb = ramp(t, DEPTH_STOPS)
         legend = _legend(channel, lo, hi, "world units", "stops") | {"stops": [list(s) for s in DEPTH_STOPS]}
     elif channel == "ao":
         ao = buffers.ao.float().clamp(0.0, 1.0)
@@ -76,15 +75,6 @@ def false_color(buffers: FrameBuffers, channel: str) -> tuple[torch.Tensor, dict
 
 def _legend(channel: str, lo: float, hi: float, unit: str, colormap: str) -> dict:
     return {"channel": channel, "lo": float(lo), "hi": float(hi), "unit": unit, "colormap": colormap}
-
-
-def _colormap(t: torch.Tensor, stops: tuple[tuple[float, float, float], ...]) -> torch.Tensor:
-    """Piecewise-linear colormap of ``t`` in [0, 1]. Shape: t (H, W) -> (H, W, 3)."""
-    table = torch.tensor(stops, dtype=torch.float32, device=t.device)
-    x = t * (len(stops) - 1)
-    i = x.floor().long().clamp(max=len(stops) - 2)
-    f = (x - i)[..., None]
-    return table[i] * (1.0 - f) + table[i + 1] * f
 
 
 def _flow_color(flow: torch.Tensor, length: torch.Tensor, hi: float) -> torch.Tensor:
