@@ -31,7 +31,9 @@ WAIT_MS = 60_000
 CELLS = [
     "import numpy as np, isosr_client\n"
     "x, y, z = np.meshgrid(*(np.linspace(-1, 1, 32),) * 3, indexing='ij')\n"
-    "w = isosr_client.widget(np.sqrt(x * x + y * y + z * z).astype(np.float32), width=160, height=120)\n"
+    # An iso given: the browser then sends no suggested iso back, which could reach the kernel after the next
+    # cell's w.iso = 0.5 and overwrite it there (seen once in four CI runs: the race is noted in docs/notebook.md).
+    "w = isosr_client.widget(np.sqrt(x * x + y * y + z * z).astype(np.float32), iso=0.9, width=160, height=120)\n"
     "w",
     "w.iso = 0.5",
     "print('yaw', w.camera['yaw'], 'iso', w.iso, 'server', w._server.pid)",
