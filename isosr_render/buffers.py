@@ -20,6 +20,7 @@ class FrameBuffers:
 
     Shape:
         mask, depth, ao: (H, W). normal, position, color, albedo: (H, W, 3). flow, cap: (H, W, 2).
+        surface: (H, W), the index of the isosurface shown (several surfaces), -1 where none.
         samples: (H, W) int32, volume samples taken per pixel (a diagnostic).
     """
 
@@ -32,6 +33,7 @@ class FrameBuffers:
     color: torch.Tensor | None = None
     cap: torch.Tensor | None = None
     albedo: torch.Tensor | None = None
+    surface: torch.Tensor | None = None
     samples: torch.Tensor | None = None
 
     def present(self) -> list[str]:

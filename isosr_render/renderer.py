@@ -37,6 +37,7 @@ from isosr_render.color_field import ColorField
 from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES
 from isosr_render.flow_fill import FILL_METHODS, fill_flow
 from isosr_render.shading import ShadingParams, shade
+from isosr_render.surfaces import MAX_SURFACES, Surfaces
 from isosr_render.volume import Volume, native_integer
 from isosr_render.voxels import VoxelSource, boxes, map_bounded
 
@@ -60,7 +61,8 @@ STORE_TYPES = {"float32": wp.float32, "uint16": wp.uint16, "uint8": wp.uint8}
 KERNEL_BUFFERS = {"mask": (kernels.OUT_MASK, wp.float32), "normal": (kernels.OUT_NORMAL, wp.vec3),
                   "depth": (kernels.OUT_DEPTH, wp.float32), "position": (kernels.OUT_POSITION, wp.vec3),
                   "flow": (kernels.OUT_FLOW, wp.vec2), "ao": (kernels.OUT_AO, wp.float32),
-                  "cap": (kernels.OUT_CAP, wp.vec2), "samples": (kernels.OUT_SAMPLES, wp.int32)}
+                  "cap": (kernels.OUT_CAP, wp.vec2), "samples": (kernels.OUT_SAMPLES, wp.int32),
+                  "surface": (kernels.OUT_SURFACE, wp.float32)}
 # Host layout of kernels.FrameArgs (a numpy record with the ctypes struct's offsets).
 FRAME_DTYPE = np.dtype(kernels.FrameArgs.numpy_dtype())
 # Host layout of a clip's values (kernels.ClipArgs' two arrays, one record): its kernels.ClipRegion, then at a
@@ -98,6 +100,9 @@ class RenderRequest:
             With caps, ``color`` shows the cut faces in the volume's values (the ``cap`` buffer).
         coloring: colour the surface by a field (:class:`~isosr_render.color_field.ColorField`): the frame
             gets ``albedo`` (from ``position``, rendered for it) and ``color`` shades with it; None: no pass.
+        surfaces: several isosurfaces (:mod:`isosr_render.surfaces`; ``iso`` must be their first): rays stop at
+            the nearest of them, the frame gets ``surface`` and ``albedo`` (their colours) and ``color`` shades
+            with it. Not with a coloring, nor on a sparse volume. None: the one ``iso``.
     """
 
     width: int
@@ -117,6 +122,7 @@ class RenderRequest:
     shading: ShadingParams = field(default_factory=ShadingParams)
     clip: Clip = field(default_factory=Clip)
     coloring: ColorField | None = None
+    surfaces: Surfaces | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "outputs", tuple(dict.fromkeys(self.outputs)))
@@ -150,8 +156,23 @@ class RenderRequest:
         if self.coloring is not None and not isinstance(self.coloring, ColorField):
             raise ValueError(f"coloring must be an isosr_render.color_field.ColorField, got "
                              f"{type(self.coloring).__name__}")
-        if "albedo" in self.outputs and self.coloring is None:
-            raise ValueError("the albedo output needs a coloring")
+        self._check_surfaces()
+        if "albedo" in self.outputs and self.coloring is None and self.surfaces is None:
+            raise ValueError("the albedo output needs a coloring or several surfaces")
+
+    def _check_surfaces(self) -> None:
+        """ValueError where ``surfaces`` is not :class:`Surfaces`, disagrees with ``iso`` or comes with a coloring,
+        or ``surface`` is asked for without it."""
+        if self.surfaces is None:
+            if "surface" in self.outputs:
+                raise ValueError("the surface output needs several surfaces (surfaces=...)")
+            return
+        if not isinstance(self.surfaces, Surfaces):
+            raise ValueError(f"surfaces must be an isosr_render.surfaces.Surfaces, got {type(self.surfaces).__name__}")
+        if self.iso != self.surfaces.iso:
+            raise ValueError(f"iso must be the first surface's ({self.surfaces.iso}), got {self.iso}")
+        if self.coloring is not None:
+            raise ValueError("several surfaces colour the frame by their own colours: not with a coloring")
 
     def kernel_outputs(self) -> int:
         """The kernel's OUT_* bits: the asked buffers and the ones they are made from."""
@@ -160,6 +181,8 @@ class RenderRequest:
             need |= {"mask", "normal"} | ({"cap"} if self.clip.capped else set())
         if self.coloring is not None:
             need |= {"mask", "position"}
+        if self.surfaces is not None:
+            need |= {"mask", "surface"}
         if "flow" in need and self.flow_fill != "none":
             need.add("mask")
         return sum(KERNEL_BUFFERS[name][0] for name in need if name in KERNEL_BUFFERS)
@@ -167,9 +190,10 @@ class RenderRequest:
     def plan_key(self) -> tuple:
         """What a :class:`RenderPlan` fixes: size, buffers, rays per pixel, and whether it clips (the kernels
         that clip are their own, :func:`isosr_render.kernels.frame_kernels`) and caps (a buffer of the kernels'
-        for ``color``), and whether it colours (``position`` rendered for it); the rest may change per frame."""
+        for ``color``), whether it colours (``position`` rendered for it) and whether it marches several surfaces
+        (kernels of their own); the rest may change per frame."""
         return (self.width, self.height, self.outputs, self.flow_fill, self.spp, self.clip.active, self.clip.capped,
-                self.coloring is not None)
+                self.coloring is not None, self.surfaces is not None)
 
 
 def warp_device(device: str):
@@ -394,23 +418,28 @@ class Renderer:
         """Where the voxels are (dense or sparse) and what paging cost so far."""
         return self._stats if self.pool is None else self.pool.stats
 
-    def grid(self, iso: float, skip: bool = True) -> kernels.Grid:
-        """The kernels' view of the volume for one iso: its shape and scale, and each brick's distance to an
-        active brick.
+    def grid(self, iso: float | tuple[float, ...], skip: bool = True) -> kernels.Grid:
+        """The kernels' view of the volume for one iso (or up to :data:`MAX_SURFACES`, a brick active for any):
+        its shape and scale, and each brick's distance to an active brick.
 
         Built on the device from the min-max grid (a few small launches) and kept for the
-        last few iso-values. A sparse volume first pages in the bricks the iso needs.
+        last few iso-values. A sparse volume first pages in the bricks the iso needs (one iso only).
         """
-        key = (float(iso), bool(skip))
+        isos = tuple(float(v) for v in np.atleast_1d(iso))
+        key = (isos, bool(skip))
         if self.pool is not None:
-            self.pool.ensure(iso)
+            if len(isos) > 1:
+                raise ValueError(f"{self.volume.name or 'volume'}: several surfaces need a dense volume; this one "
+                                 f"renders sparse past max_device_bytes={self.max_device_bytes}")
+            self.pool.ensure(isos[0])
         if key in self._grids:
             self._grids.move_to_end(key)
             return self._grids[key]
         shape = self.minmax.shape
         dist = wp.empty(shape, dtype=wp.uint8, device=self.device)
         spare = wp.empty(shape, dtype=wp.uint8, device=self.device)
-        wp.launch(kernels.occupancy_kernel, dim=shape, inputs=[self.minmax, float(iso), int(skip), MAX_LEAP, dist],
+        padded = wp.vec4(*(isos + (float(kernels.BIG),) * (MAX_SURFACES - len(isos))))
+        wp.launch(kernels.occupancy_kernel, dim=shape, inputs=[self.minmax, padded, int(skip), MAX_LEAP, dist],
                   device=self.device)
         for axis in range(3):
             wp.launch(kernels.chebyshev_pass_kernel, dim=shape, inputs=[dist, axis, MAX_LEAP, spare], device=self.device)
@@ -463,6 +492,23 @@ class Renderer:
         return plan
 
 
+def surface_albedo(surfaces: Surfaces, table_index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``surface`` buffer (indices of ``surfaces.items``, -1 where none) and ``albedo`` (their colours, 0 where
+    none) of the kernels' per-pixel indices into the iso table (ascending isos, :meth:`Surfaces.table`)."""
+    order, colors = _surface_tables(surfaces, table_index.device)
+    surface = order[table_index.long()]  # -1 indexes the last entry: none
+    return surface, colors[surface.long()]
+
+
+@functools.lru_cache(maxsize=16)
+def _surface_tables(surfaces: Surfaces, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """On ``device`` (made once: a copy to a GPU stalls): the user's index of each table entry and each surface's
+    colour, each followed by the entry of none (-1, black)."""
+    order = torch.tensor(surfaces.order() + [-1], dtype=torch.float32, device=device)
+    colors = torch.tensor([s.color for s in surfaces.items] + [(0.0, 0.0, 0.0)], dtype=torch.float32, device=device)
+    return order, colors
+
+
 class RenderPlan:
     """Frames of one size and one set of outputs (:meth:`RenderRequest.plan_key`) on one renderer,
     rendered into buffers the plan owns.
@@ -500,11 +546,15 @@ class RenderPlan:
         self._counts = (wp.empty(planes, dtype=wp.int32, device=device)
                         if bits & kernels.OUT_SAMPLES else renderer._unused_counts)
         # The staged FrameArgs in torch memory (stream-ordered copies), seen by Warp as one struct, and
-        # after it a clipping plan's clip (CLIP_DTYPE, seen as kernels.ClipArgs' arrays), copied from one
-        # host record (pinned on CUDA: written again once its last copy has run).
-        self.clipped = request.clip.active
+        # after it a clipping plan's clip (CLIP_DTYPE, seen as kernels.ClipArgs' arrays) and a several-surface
+        # plan's iso table (kernels.IsoSet's), copied from one host record (pinned on CUDA: written again once
+        # its last copy has run).
+        self.clipped, self.several = request.clip.active, request.surfaces is not None
+        if self.several and renderer.pool is not None:
+            renderer.grid((0.0, 1.0))  # the sparse volume's error, before anything is made
         at = -(-FRAME_DTYPE.itemsize // 16) * 16
-        size = at + CLIP_DTYPE.itemsize if self.clipped else FRAME_DTYPE.itemsize
+        isos_at = at + (CLIP_DTYPE.itemsize if self.clipped else 0)
+        size = isos_at + 4 * MAX_SURFACES if self.several else max(isos_at, FRAME_DTYPE.itemsize)
         self._args_bytes = torch.zeros(size, dtype=torch.uint8, device=renderer.torch_device)
         self._host_bytes = torch.zeros(size, dtype=torch.uint8, pin_memory=device.is_cuda)
         self._host_args = self._host_bytes.numpy()[:FRAME_DTYPE.itemsize].view(FRAME_DTYPE)
@@ -519,30 +569,42 @@ class RenderPlan:
             self._clip.region = wp.array(ptr=base + at, dtype=kernels.ClipRegion, shape=(1,), device=device)
             self._clip.planes = wp.array(ptr=base + at + CLIP_DTYPE.fields["planes"][1], dtype=wp.vec4,
                                          shape=(MAX_PLANES,), device=device)
-            wp.load_module(wp.get_module(kernels.CLIPPED_MODULE), device=device)  # not while a graph is captured
+        self._isos = kernels.OneIso()
+        self._host_isos = None
+        if self.several:
+            self._host_isos = self._host_bytes.numpy()[isos_at:].view(np.float32)
+            self._isos = kernels.IsoSet()
+            self._isos.values = wp.array(ptr=base + isos_at, dtype=wp.float32, shape=(MAX_SURFACES,), device=device)
+        variant = (kernels.ClipArgs if self.clipped else kernels.NoClip, kernels.IsoSet if self.several else kernels.OneIso)
+        wp.load_module(wp.get_module(kernels.VARIANT_MODULES[variant]), device=device)  # not while a graph is captured
         self._grid: kernels.Grid | None = None
         self._launches: tuple[tuple, list[tuple[wp.Launch, wp.Launch]]] | None = None  # (grid, voxels, bands), launches
 
     def check(self, request: RenderRequest) -> None:
         """ValueError unless ``request`` has the plan's size, outputs, flow fill and rays per pixel."""
         if request.plan_key() != self.key:
-            w, h, outputs, fill, spp, clipped, capped, colors = self.key
+            w, h, outputs, fill, spp, clipped, capped, colors, several = self.key
             raise ValueError(f"this render plan renders {w}x{h} {outputs} (flow fill {fill!r}, spp {spp}, clipped "
-                             f"{clipped}, capped {capped}, coloring {colors}), not {request.width}x{request.height} "
-                             f"{request.outputs} (flow fill {request.flow_fill!r}, spp {request.spp}, clipped "
-                             f"{request.clip.active}, capped {request.clip.capped}, coloring "
-                             f"{request.coloring is not None}): make a plan for that request (Renderer.plan)")
+                             f"{clipped}, capped {capped}, coloring {colors}, surfaces {several}), not "
+                             f"{request.width}x{request.height} {request.outputs} (flow fill {request.flow_fill!r}, "
+                             f"spp {request.spp}, clipped {request.clip.active}, capped {request.clip.capped}, coloring "
+                             f"{request.coloring is not None}, surfaces {request.surfaces is not None}): make a plan "
+                             f"for that request (Renderer.plan)")
 
     def stage(self, camera: Camera, request: RenderRequest) -> None:
         """Copy the frame's values to the device (ordered before later work on the torch stream) and
         select the grid of its iso (sparse volumes page its bricks in here)."""
         self.check(request)
-        self._grid = self.renderer.grid(request.iso, request.skip)
+        surfaces = request.surfaces
+        self._grid = self.renderer.grid(request.iso if surfaces is None else tuple(s.iso for s in surfaces.items),
+                                        request.skip)
         if self._copied is not None:
             self._copied.synchronize()  # the last frame's copy has read the host record (seldom a wait)
         frame_args(camera, request, request.step or self.renderer.default_step(), out=self._host_args)
         if self._host_clip is not None:
             clip_args(request.clip, out=self._host_clip)
+        if self._host_isos is not None:
+            self._host_isos[:] = surfaces.table(float(kernels.BIG))
         self._args_bytes.copy_(self._host_bytes, non_blocking=self._copied is not None)
         if self._copied is not None:
             self._copied.record(torch.cuda.current_stream(self.renderer.torch_device))
@@ -586,10 +648,10 @@ class RenderPlan:
         key = (id(grid), voxels.ptr, bands)
         if self._launches is None or self._launches[0] != key:
             tiles_x, tile = -(-self.key[0] // kernels.TILE_W), kernels.TILE_W * kernels.TILE_H
-            frame_kernels = kernels.frame_kernels(self.clipped)
+            frame_kernels = kernels.frame_kernels(self.clipped, self.several)
             first_hit = frame_kernels["first_hit_kernel"]
             surface = frame_kernels["surface_kernel" if self.key[4] == 1 else "surface_samples_kernel"]
-            common = [voxels, renderer.layout, grid, self._args, self._clip]
+            common = [voxels, renderer.layout, grid, self._args, self._clip, self._isos]
 
             def pair(row0: int, rows: int) -> tuple[wp.Launch, wp.Launch]:
                 pixels = tiles_x * -(-rows // kernels.TILE_H) * tile  # threads: whole 8x4 tiles
@@ -610,6 +672,9 @@ class RenderPlan:
             frame.flow = fill_flow(self.tensors["flow"], self.tensors["mask"], request.flow_fill)
         if request.coloring is not None:
             frame.albedo = request.coloring.albedo(self.tensors["position"], self.tensors["mask"])
+        if request.surfaces is not None:
+            frame.surface, frame.albedo = surface_albedo(request.surfaces, self.tensors["surface"])
+            frame.surface = frame.surface if "surface" in request.outputs else None
         if "color" in request.outputs:
             frame.color = shade(self.tensors["mask"], self.tensors["normal"], self.tensors.get("ao"), request.shading,
                                 self.tensors.get("cap"), frame.albedo)
