@@ -89,7 +89,7 @@ from __future__ import annotations
 
 import re
 import threading
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from functools import lru_cache
 from typing import Annotated, Any, ClassVar, Literal, Union
 
@@ -100,15 +100,17 @@ from msgspec import UNSET, Meta, UnsetType
 from isosr_render.clip import CAP_MODES, MAX_PLANES, Clip
 from isosr_render.coloring import COLORMAPS, Coloring
 from isosr_render.conventions import AO_RADIUS
+from isosr_render.surfaces import MAX_SURFACES, Surface, Surfaces
 from isosr_server.codecs.arrays import ArrayTooBig, WireArray, decode_array, encode_array
 
+# 9: several isosurfaces (settings.surfaces);
 # 8: colour by a field (settings.coloring; a shaded frame's legend);
 # 7: time series (volume.steps, settings.t, frame.t);
 # 6: clip planes, a crop box and caps (settings.clip);
 # 5: modes named by the server (ready.modes), ready's limits on messages and acknowledgements;
 # 3: the v3 vocabulary (modes auto/network/upscale/..., ao_rays, spp, interpolation, frame methods);
 # 2 (acknowledged frames, flow control) and earlier are refused with a reason.
-PROTOCOL_VERSION = 8
+PROTOCOL_VERSION = 9
 
 # Largest magnitude of any float field (camera coordinates, iso, ...): beyond it is hostile input.
 MAX_ABS_FLOAT = 1e9
@@ -167,6 +169,7 @@ CLOSE_TOO_MANY = 4429  # session limit reached; try later
 Finite = Annotated[float, Meta(ge=-MAX_ABS_FLOAT, le=MAX_ABS_FLOAT)]
 Vec2 = tuple[Finite, Finite]
 Vec3 = tuple[Finite, Finite, Finite]
+Unit = Annotated[float, Meta(ge=0.0, le=1.0)]
 Seq = Annotated[int, Meta(ge=0, le=MAX_SEQ)]
 Version = Annotated[int, Meta(ge=0, le=2**31)]
 Side = Annotated[int, Meta(ge=1)]
@@ -321,6 +324,28 @@ class ColoringSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         return Coloring(self.by, self.colormap, self.range)
 
 
+class SurfaceSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """One of several isosurfaces: its iso-value in data units and its colour (RGB in [0, 1])."""
+
+    iso: Finite
+    color: tuple[Unit, Unit, Unit]
+
+
+def surfaces_of(settings: tuple[SurfaceSettings, ...], normalize: Callable[[float], float]) -> Surfaces | None:
+    """The renderer's surfaces of ``settings.surfaces`` (None where empty), their isos through ``normalize`` (a
+    volume's ``normalized_iso``), checked by :class:`isosr_render.surfaces.Surfaces`.
+
+    Raises:
+        ProtocolError: (CLOSE_POLICY, 422) what ``Surfaces`` refuses (two equal isos), naming the field.
+    """
+    if not settings:
+        return None
+    try:
+        return Surfaces(tuple(Surface(normalize(s.iso), s.color) for s in settings))
+    except ValueError as e:
+        raise ProtocolError(f"settings.{e}", CLOSE_POLICY, 422) from None
+
+
 class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """A view session's settings (``ready`` carries them whole; ``open`` and ``settings`` send
     a `SettingsUpdate` of any of them).
@@ -347,6 +372,9 @@ class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         coloring: colour the surface by a field (:class:`ColoringSettings`); None: the material's colour.
             A shaded frame's ``legend`` then names its colour map and range.
         t: a series' time step (module docstring), below ``ready.volume.steps``.
+        surfaces: up to 4 isosurfaces shown together (:class:`SurfaceSettings`, distinct isos), each ray
+            stopping at the nearest, each in its colour; empty: the session's one iso (``iso``), as before.
+            Not with a coloring, nor on a volume rendered sparse (refused: 422).
     """
 
     mode: ModeName = "auto"
@@ -367,6 +395,7 @@ class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     clip: ClipSettings = ClipSettings()
     coloring: ColoringSettings | None = None
     t: Step = 0
+    surfaces: Annotated[tuple[SurfaceSettings, ...], Meta(max_length=MAX_SURFACES)] = ()
 
     def updated(self, update: SettingsUpdate | Mapping[str, Any], limits: Limits) -> ViewSettings:
         """These settings with ``update`` applied (a `SettingsUpdate`, or a map validated as one),
@@ -381,6 +410,9 @@ class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         update.check(limits)
         new = msgspec.structs.replace(self, **update.given())
         limits.check_size(new.width, new.height)
+        if new.surfaces and new.coloring is not None:
+            raise ProtocolError("settings.surfaces: several surfaces show their own colours, not with settings.coloring "
+                                "(set one of them to its default)")
         return new
 
 

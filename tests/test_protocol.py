@@ -66,7 +66,7 @@ def test_messages_round_trip():
 
 def test_wire_names_are_the_v3_vocabulary():
     ready = wire(P.ReadyMsg("abc", VOLUME, P.ViewSettings(), 4, 8, LIMITS, MODES))
-    assert ready["type"] == "ready" and ready["version"] == 8 and ready["max_recon_ao_rays"] == 8
+    assert ready["type"] == "ready" and ready["version"] == 9 and ready["max_recon_ao_rays"] == 8
     assert ready["settings"]["mode"] == "auto" and ready["settings"]["interpolation"] == "bilinear"
     assert {"ao_rays", "refine_ao_rays", "spp", "ao_radius"} <= set(ready["settings"])
     assert ready["settings"]["ao_radius"] == P.AO_RADIUS == 0.05
@@ -99,6 +99,32 @@ def test_clip_settings_are_the_renderers_clip():
     assert clip.planes == (((0.0, 0.0, 0.1), (0.0, 0.0, -1.0)),) and clip.box[1] == (1.0, 1.0, 1.0) and clip.capped
     msg = P.SettingsMsg(P.SettingsUpdate(clip=st.clip))
     assert roundtrip(msg) == msg and not P.ViewSettings().clip.clip().active
+
+
+@pytest.mark.parametrize("surfaces, match", [
+    ([{"iso": 0.1 * i, "color": [1, 0, 0]} for i in range(5)], r"length <= 4 - at `\$.surfaces`"),
+    ([{"iso": 0.1, "color": [1, float("nan"), 0]}], r"at `\$.surfaces\[0\].color\[1\]`"),
+    ([{"iso": 0.1, "color": [1, 2, 0]}], r"<= 1.0 - at `\$.surfaces\[0\].color\[1\]`"),
+    ([{"iso": float("inf"), "color": [1, 0, 0]}], r"at `\$.surfaces\[0\].iso`"),
+    ([{"iso": 0.1}], r"missing required field `color` - at `\$.surfaces\[0\]`"),
+])
+def test_bad_surfaces_are_refused_naming_the_field(surfaces, match):
+    with pytest.raises(P.ProtocolError, match=match):
+        P.ViewSettings().updated({"surfaces": surfaces}, LIMITS)
+
+
+def test_surfaces_round_trip_and_are_the_renderers():
+    st = P.ViewSettings().updated({"surfaces": [{"iso": 300.0, "color": [0.9, 0.8, 0.7]},
+                                                {"iso": 100.0, "color": [1, 1, 1]}]}, LIMITS)
+    msg = P.SettingsMsg(P.SettingsUpdate(surfaces=st.surfaces))
+    assert roundtrip(msg) == msg and wire(msg)["settings"]["surfaces"][1] == {"iso": 100.0, "color": [1.0, 1.0, 1.0]}
+    surfaces = P.surfaces_of(st.surfaces, lambda v: v / 1000.0)
+    assert [(s.iso, s.color) for s in surfaces.items] == [(0.3, (0.9, 0.8, 0.7)), (0.1, (1.0, 1.0, 1.0))]
+    assert P.surfaces_of((), float) is None and P.ViewSettings().surfaces == ()
+    with pytest.raises(P.ProtocolError, match=r"settings.surfaces: the iso-values must differ"):
+        P.surfaces_of(st.surfaces, lambda v: 0.5)
+    with pytest.raises(P.ProtocolError, match=r"settings.surfaces: .* not with settings.coloring"):
+        st.updated({"coloring": {"by": "gradient"}}, LIMITS)
 
 
 def test_volume_levels_and_device_memory_round_trip():
@@ -211,7 +237,7 @@ def test_invalid_messages_name_the_problem(message, words):
 def test_version_3_is_refused_with_the_reason(message):
     with pytest.raises(P.ProtocolError) as e:
         P.parse(raw(message), LIMITS, (P.OpenMsg, P.UpscaleRequest))
-    assert e.value.reason == "protocol version 3 is not supported; this server speaks 8: update the client"
+    assert e.value.reason == "protocol version 3 is not supported; this server speaks 9: update the client"
     assert (e.value.close_code, e.value.http_status) == (P.CLOSE_BAD_MESSAGE, 400)
 
 
