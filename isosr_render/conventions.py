@@ -72,6 +72,8 @@ SAMPLED_AO, SAMPLING = slice(5, 6), slice(6, 8)
 
 # Background color behind the isosurface (RGB in [0, 1]).
 BACKGROUND_RGB = (1.0, 1.0, 1.0)
+# The surface's colour without a coloring (the shading's albedo; a surface's of several without one).
+MATERIAL_RGB = (0.85, 0.78, 0.62)
 
 
 def world_from_voxel(shape: tuple[int, int, int], spacing: tuple[float, float, float]):

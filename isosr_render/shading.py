@@ -22,6 +22,7 @@ from isosr_render.conventions import (
     HIGHRES_CHANNELS,
     LOWRES_CHANNELS,
     MASK,
+    MATERIAL_RGB,
     NORMAL,
 )
 
@@ -30,7 +31,7 @@ from isosr_render.conventions import (
 class ShadingParams:
     """Phong material and light, view space."""
 
-    albedo: tuple[float, float, float] = (0.85, 0.78, 0.62)
+    albedo: tuple[float, float, float] = MATERIAL_RGB
     ambient: float = 0.25
     diffuse: float = 0.65
     specular: float = 0.25

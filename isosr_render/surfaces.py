@@ -19,10 +19,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from isosr_render.conventions import MATERIAL_RGB
+
 # The most isosurfaces one frame shows.
 MAX_SURFACES = 4
-# Colours of surfaces given without one, in turn: the default material's, then red, blue and green tones.
-PALETTE = ((0.85, 0.78, 0.62), (0.80, 0.36, 0.30), (0.30, 0.52, 0.80), (0.45, 0.70, 0.40))
+# Colours of surfaces given without one, in turn: the material's, then red, blue and green tones.
+PALETTE = (MATERIAL_RGB, (0.80, 0.36, 0.30), (0.30, 0.52, 0.80), (0.45, 0.70, 0.40))
 
 
 @dataclass(frozen=True)
@@ -30,7 +32,7 @@ class Surface:
     """One isosurface: its iso-value (normalized [0, 1] scale, as ``RenderRequest.iso``) and colour (RGB in [0, 1])."""
 
     iso: float
-    color: tuple[float, float, float] = PALETTE[0]
+    color: tuple[float, float, float] = MATERIAL_RGB
 
 
 @dataclass(frozen=True)

@@ -99,7 +99,7 @@ from msgspec import UNSET, Meta, UnsetType
 
 from isosr_render.clip import CAP_MODES, MAX_PLANES, Clip
 from isosr_render.coloring import COLORMAPS, Coloring
-from isosr_render.conventions import AO_RADIUS
+from isosr_render.conventions import AO_RADIUS, MATERIAL_RGB
 from isosr_render.surfaces import MAX_SURFACES, Surface, Surfaces
 from isosr_server.codecs.arrays import ArrayTooBig, WireArray, decode_array, encode_array
 
@@ -325,10 +325,11 @@ class ColoringSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
 
 
 class SurfaceSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
-    """One of several isosurfaces: its iso-value in data units and its colour (RGB in [0, 1])."""
+    """One of several isosurfaces: its iso-value in data units and its colour (RGB in [0, 1]; default: the
+    material's)."""
 
     iso: Finite
-    color: tuple[Unit, Unit, Unit]
+    color: tuple[Unit, Unit, Unit] = MATERIAL_RGB
 
 
 def surfaces_of(settings: tuple[SurfaceSettings, ...], normalize: Callable[[float], float]) -> Surfaces | None:

@@ -12,6 +12,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from isosr_render.conventions import MATERIAL_RGB
 from isosr_server import protocol as P
 from isosr_server.codecs.arrays import encode_array
 
@@ -106,7 +107,7 @@ def test_clip_settings_are_the_renderers_clip():
     ([{"iso": 0.1, "color": [1, float("nan"), 0]}], r"at `\$.surfaces\[0\].color\[1\]`"),
     ([{"iso": 0.1, "color": [1, 2, 0]}], r"<= 1.0 - at `\$.surfaces\[0\].color\[1\]`"),
     ([{"iso": float("inf"), "color": [1, 0, 0]}], r"at `\$.surfaces\[0\].iso`"),
-    ([{"iso": 0.1}], r"missing required field `color` - at `\$.surfaces\[0\]`"),
+    ([{"iso": 0.1, "color": [1, 0]}], r"length 3, got 2 - at `\$.surfaces\[0\].color`"),
 ])
 def test_bad_surfaces_are_refused_naming_the_field(surfaces, match):
     with pytest.raises(P.ProtocolError, match=match):
@@ -121,6 +122,7 @@ def test_surfaces_round_trip_and_are_the_renderers():
     surfaces = P.surfaces_of(st.surfaces, lambda v: v / 1000.0)
     assert [(s.iso, s.color) for s in surfaces.items] == [(0.3, (0.9, 0.8, 0.7)), (0.1, (1.0, 1.0, 1.0))]
     assert P.surfaces_of((), float) is None and P.ViewSettings().surfaces == ()
+    assert P.SurfaceSettings(0.5).color == MATERIAL_RGB
     with pytest.raises(P.ProtocolError, match=r"settings.surfaces: the iso-values must differ"):
         P.surfaces_of(st.surfaces, lambda v: 0.5)
     with pytest.raises(P.ProtocolError, match=r"settings.surfaces: .* not with settings.coloring"):
