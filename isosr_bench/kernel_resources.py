@@ -22,7 +22,8 @@ import tempfile
 from pathlib import Path
 
 # The renderer's Warp modules.
-RENDER_MODULES = ("isosr_render.kernels", "isosr_render.kernels.clipped")
+RENDER_MODULES = ("isosr_render.kernels", "isosr_render.kernels.clipped", "isosr_render.kernels.surfaces",
+                  "isosr_render.kernels.clipped_surfaces")
 EIATTR = {0x2F: "registers", 0x12: "stack"}
 EIFMT_SVAL = 0x04  # a record with a 16-bit size and that many bytes; the other formats take 4 bytes in all
 

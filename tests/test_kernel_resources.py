@@ -24,9 +24,11 @@ MAX_STACK = 40
 MAX_SAMPLES_STACK = 256
 # The plain kernels (NoClip), which must cost what they did before clipping, and the clipped ones (ClipArgs,
 # their own Warp module, run only for frames that clip).
-OVERLOADS = [f"({t.__name__}, {layout.key}, {kernels.NoClip.key})" for t in kernels.VOXEL_TYPES
+OVERLOADS = [f"({t.__name__}, {layout.key}, {kernels.NoClip.key}, {kernels.OneIso.key})" for t in kernels.VOXEL_TYPES
              for layout in kernels.LAYOUTS]
 CLIPPED_OVERLOADS = [o.replace(kernels.NoClip.key, kernels.ClipArgs.key) for o in OVERLOADS]
+# The kernels for several isosurfaces (IsoSet), with and without clipping: their own Warp modules.
+SURFACES_OVERLOADS = [o.replace(kernels.OneIso.key, kernels.IsoSet.key) for o in OVERLOADS + CLIPPED_OVERLOADS]
 # The clipped kernels, measured on sm_90 when clipping became their own variant (the plane table in device
 # memory): first hit 96-118 registers, no stack; surface kernel 128 registers and 168-184 bytes of stack
 # (cut faces and AO rays' kept spans under the cap); several rays 448-480 bytes. Bounds a little above.
@@ -45,9 +47,10 @@ def resources() -> dict[str, dict[str, int]]:
 
 
 def test_every_overload_is_compiled_and_read(resources):
-    assert kernels.CLIPPED_MODULE in RENDER_MODULES
+    assert set(kernels.VARIANT_MODULES.values()) <= set(RENDER_MODULES)
     for name in kernels.FRAME_KERNELS:
-        assert {f"{name}{o}" for o in OVERLOADS + CLIPPED_OVERLOADS} <= set(resources), sorted(resources)
+        assert {f"{name}{o}" for o in OVERLOADS + CLIPPED_OVERLOADS + SURFACES_OVERLOADS} <= set(resources), \
+            sorted(resources)
     assert all(r["registers"] > 0 for r in resources.values())
 
 
