@@ -195,10 +195,14 @@ class OneIso:
 @wp.struct
 class IsoSet:
     """Several isosurfaces (:mod:`isosr_render.surfaces`), read from device memory as :class:`ClipArgs`:
-    their :data:`MAX_SURFACES` iso-values ascending, the unused ones :data:`BIG`. A sample's band is the count
-    of isos at or below it; a ray crosses a surface between two samples of different bands."""
+    ``values`` their :data:`MAX_SURFACES` iso-values ascending (the unused ones :data:`BIG`), then their
+    opacities in that order. A sample's band is the count of isos at or below it; a ray crosses a surface
+    between two samples of different bands. ``layer`` 0 marches to each ray's first crossing; 1 to the next one
+    after it (``after``: the first layer's hits, a plan's first planes) where that surface is translucent."""
 
     values: wp.array(dtype=wp.float32)
+    layer: int
+    after: wp.array3d(dtype=wp.float32)
 
 
 # band, crossed_iso, near_iso and store_surface have an overload per iso type, as clipped_cast per clip type.
@@ -747,13 +751,58 @@ def ray_direction(view: View, p: wp.vec2) -> wp.vec3:
 
 
 @wp.func
+def nearest_surface(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, isos: IsoSet, p: wp.vec3) -> int:
+    """The table index of the iso nearest the volume's value at the world point ``p`` (a hit's: its surface)."""
+    v = sample_volume(voxels, layout, grid, voxel_from_world(grid, p))
+    nearest = int(0)
+    best = float(BIG)
+    for k in range(MAX_SURFACES):
+        e = wp.abs(v - isos.values[k])
+        if e < best:
+            best = e
+            nearest = k
+    return nearest
+
+
+@wp.func
+def opacity_at(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, isos: IsoSet, p: wp.vec3) -> float:
+    """The opacity of the surface hit at the world point ``p``."""
+    return isos.values[MAX_SURFACES + nearest_surface(voxels, layout, grid, isos, p)]
+
+
+# march_ray has an overload per iso type: one iso's plain march, and several isos' layers.
+@wp.func
 def march_ray(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs), clip: Any,
-              isos: Any, c: int, row: int, s: int) -> wp.vec2:
+              isos: OneIso, c: int, row: int, s: int) -> wp.vec2:
     """Ray ``s`` of pixel ``(c, row)`` to its first iso crossing: ``(t, volume samples)``, ``t < 0`` where none."""
     view = frame[0].view
     params = frame[0].params
     return clipped_cast(voxels, layout, grid, clip, view.eye, ray_direction(view, subpixel(c, row, s, params.spp)),
                         0.0, float(BIG), isos, params.iso, params.step, params.refine_mode, params.refine_steps)
+
+
+@wp.func
+def march_ray(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs), clip: Any,
+              isos: IsoSet, c: int, row: int, s: int) -> wp.vec2:
+    """Ray ``s`` of pixel ``(c, row)`` to its crossing of ``isos.layer`` (:class:`IsoSet`): ``(t, volume samples)``,
+    ``t < 0`` where none (in layer 1 also where the first crossing's surface is opaque). Layer 1 starts a
+    quarter step past the first crossing (a crossing nearer than that is not seen)."""
+    view = frame[0].view
+    params = frame[0].params
+    dir = ray_direction(view, subpixel(c, row, s, params.spp))
+    first = wp.vec2(0.0)
+    if isos.layer == 0 or s >= isos.after.shape[0]:
+        first = clipped_cast(voxels, layout, grid, clip, view.eye, dir, 0.0, float(BIG), isos, params.iso, params.step,
+                             params.refine_mode, params.refine_steps)
+        if isos.layer == 0:
+            return first
+    else:
+        first = wp.vec2(isos.after[s, row, c], 0.0)
+    if first[0] < 0.0 or opacity_at(voxels, layout, grid, isos, view.eye + dir * first[0]) >= 1.0:
+        return wp.vec2(-1.0, first[1])
+    res = clipped_cast(voxels, layout, grid, clip, view.eye, dir, first[0] + 0.25 * params.step, float(BIG), isos,
+                       params.iso, params.step, params.refine_mode, params.refine_steps)
+    return wp.vec2(res[0], res[1] + first[1])
 
 
 @wp.kernel
@@ -843,13 +892,7 @@ def store_surface(isos: IsoSet, voxels: wp.array3d(dtype=Any), layout: Any, grid
     volume's value there (the crossing's, to the refinement's tolerance), else -1."""
     nearest = float(-1.0)
     if hit:
-        v = sample_volume(voxels, layout, grid, voxel_from_world(grid, p))
-        best = float(BIG)
-        for k in range(MAX_SURFACES):
-            e = wp.abs(v - isos.values[k])
-            if e < best:
-                best = e
-                nearest = float(k)
+        nearest = float(nearest_surface(voxels, layout, grid, isos, p))
     surface[row, c] = nearest
 
 

@@ -140,3 +140,15 @@ def shade_channels_first(stack: torch.Tensor, params: ShadingParams = ShadingPar
     ao = stack[:, AO.start] if stack.shape[1] == len(HIGHRES_CHANNELS) else None
     color = shade(stack[:, MASK.start], stack[:, NORMAL].permute(0, 2, 3, 1), ao, params)
     return color.permute(0, 3, 1, 2)
+
+
+def composite(front: torch.Tensor, behind: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    """Two layers' colours front to back: ``alpha * front + (1 - alpha) * behind``, ``alpha`` the front surface's
+    opacity per pixel (1 where the front hits nothing: its colour is the background there); ``behind`` shaded
+    over the background by its coverage times its own surface's opacity (what lies behind it is not seen).
+
+    Shape:
+        front, behind: (*, H, W, 3). alpha: (*, H, W). Returns (*, H, W, 3).
+    """
+    a = alpha[..., None]
+    return a * front + (1.0 - a) * behind

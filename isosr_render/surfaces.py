@@ -9,6 +9,11 @@ each pixel shows (its index in :attr:`Surfaces.items`, -1 where nothing is hit) 
 surface's colour, which shading and every frame method use as a coloring's. With several rays per pixel the
 ``surface`` is that of the pixel's first ray that hits.
 
+A surface of opacity below 1 is translucent: where a ray's first crossing is on one, the ray goes on to the next
+crossing (of any surface, the same one's far side included), a second layer of buffers (``FrameBuffers.behind``),
+and the colour is ``a * front + (1 - a) * behind`` (:func:`isosr_render.shading.composite`). At most 2 layers:
+what lies behind the second is not seen.
+
 numpy only (the protocol validates with it, without torch or Warp).
 """
 
@@ -29,10 +34,12 @@ PALETTE = (MATERIAL_RGB, (0.80, 0.36, 0.30), (0.30, 0.52, 0.80), (0.45, 0.70, 0.
 
 @dataclass(frozen=True)
 class Surface:
-    """One isosurface: its iso-value (normalized [0, 1] scale, as ``RenderRequest.iso``) and colour (RGB in [0, 1])."""
+    """One isosurface: its iso-value (normalized [0, 1] scale, as ``RenderRequest.iso``), colour (RGB in [0, 1])
+    and opacity (in [0, 1]; below 1 translucent)."""
 
     iso: float
     color: tuple[float, float, float] = MATERIAL_RGB
+    opacity: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -40,8 +47,8 @@ class Surfaces:
     """Up to :data:`MAX_SURFACES` isosurfaces of distinct iso-values (module docstring).
 
     Raises:
-        ValueError: none or too many, an iso or colour channel not finite, a colour outside [0, 1] or
-            two equal isos; the message names the field (``surfaces[i].color``).
+        ValueError: none or too many, an iso, colour channel or opacity not finite, a colour or opacity outside
+            [0, 1] or two equal isos; the message names the field (``surfaces[i].color``).
     """
 
     items: tuple[Surface, ...]
@@ -61,16 +68,24 @@ class Surfaces:
                 raise ValueError(f"surfaces[{i}].color must be three numbers (RGB), got {s.color!r}") from None
             if len(color) != 3 or not all(math.isfinite(c) and 0.0 <= c <= 1.0 for c in color):
                 raise ValueError(f"surfaces[{i}].color must be three numbers in [0, 1] (RGB), got {s.color!r}")
-            checked.append(Surface(iso, color))
+            opacity = float(s.opacity)
+            if not 0.0 <= opacity <= 1.0:  # NaN too
+                raise ValueError(f"surfaces[{i}].opacity must be in [0, 1], got {s.opacity!r}")
+            checked.append(Surface(iso, color, opacity))
         isos = [s.iso for s in checked]
         if len(set(np.float32(isos).tolist())) != len(isos):
             raise ValueError(f"surfaces: the iso-values must differ, got {isos}")
         object.__setattr__(self, "items", tuple(checked))
 
     @classmethod
-    def of(cls, pairs) -> Surfaces:
-        """Surfaces from ``(iso, color)`` pairs."""
-        return cls(tuple(Surface(iso, color) for iso, color in pairs))
+    def of(cls, items) -> Surfaces:
+        """Surfaces from ``(iso, color)`` or ``(iso, color, opacity)`` tuples."""
+        return cls(tuple(Surface(*item) for item in items))
+
+    @property
+    def layers(self) -> int:
+        """The layers a frame renders: 2 where a surface is translucent, else 1."""
+        return 2 if any(s.opacity < 1.0 for s in self.items) else 1
 
     @property
     def iso(self) -> float:
@@ -82,7 +97,11 @@ class Surfaces:
         return sorted(range(len(self.items)), key=lambda i: self.items[i].iso)
 
     def table(self, pad: float) -> np.ndarray:
-        """The isos ascending as float32, :data:`MAX_SURFACES` of them, padded with ``pad`` (above any value)."""
-        values = np.full(MAX_SURFACES, pad, np.float32)
-        values[:len(self.items)] = [self.items[i].iso for i in self.order()]
+        """The kernels' table (float32): the isos ascending, :data:`MAX_SURFACES` of them padded with ``pad`` (above
+        any value), then their opacities in that order (1 for the padding)."""
+        values = np.ones(2 * MAX_SURFACES, np.float32)
+        values[:MAX_SURFACES] = pad
+        order = self.order()
+        values[:len(order)] = [self.items[i].iso for i in order]
+        values[MAX_SURFACES:MAX_SURFACES + len(order)] = [self.items[i].opacity for i in order]
         return values

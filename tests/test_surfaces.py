@@ -29,7 +29,7 @@ def renderer():
 
 
 def _surfaces(renderer, *pairs) -> Surfaces:
-    return Surfaces.of([(renderer.volume.normalized_iso(v), c) for v, c in pairs])
+    return Surfaces.of([(renderer.volume.normalized_iso(v), *rest) for v, *rest in pairs])
 
 
 def _request(surfaces, outputs=("mask", "depth", "surface", "albedo", "color"), **kw) -> RenderRequest:
@@ -129,3 +129,67 @@ def test_bad_surfaces_refused_naming_the_field():
         RenderRequest(W, H, 0.2, surfaces=surfaces)
     with pytest.raises(ValueError, match="surface output needs"):
         RenderRequest(W, H, 0.2, ("surface",))
+
+
+# -- translucency ---------------------------------------------------------------------------------------------
+
+
+def test_translucent_outer_shows_the_inner_behind(renderer):
+    """Outer at 30%: the first layer is the outer sphere, the second the inner one where the ray meets it, else
+    the outer's far side; the colour composites both."""
+    surfaces = _surfaces(renderer, (OUTER, RED, 0.3), (INNER, BLUE))
+    assert surfaces.layers == 2
+    frame = renderer.render(OUTSIDE, _request(surfaces, ("mask", "depth", "surface", "color")))
+    behind = frame.behind.to_numpy()
+    front = frame.to_numpy()
+    _finite(front)
+    _finite(behind)
+    outer_near, outer_far, forward, disc_out = _roots(OUTSIDE, OUTER)
+    inner_near, _, _, disc_in = _roots(OUTSIDE, INNER)
+    on_inner = ~np.isnan(inner_near)
+    clear = (disc_out > 0.01) & (np.abs(disc_in) > 0.01)
+    assert (clear & on_inner).sum() > 100 and (clear & ~on_inner).sum() > 50
+    step = renderer.default_step()
+    np.testing.assert_allclose(front["depth"][clear], (outer_near * forward)[clear], atol=0.25 * step)
+    ref = np.where(on_inner, inner_near, outer_far) * forward
+    np.testing.assert_allclose(behind["depth"][clear], ref[clear], atol=0.25 * step)
+    np.testing.assert_array_equal(behind["surface"][clear], np.where(on_inner, 1, 0)[clear])
+    assert (behind["mask"][disc_out < -0.01] == 0).all()  # nothing in front, nothing behind
+    # The colour: 0.3 of the front layer's, 0.7 of the inner's (opaque) or of the far side's at 30% over white.
+    opaque = render_np(renderer, OUTSIDE, _request(_surfaces(renderer, (OUTER, RED), (INNER, BLUE)), ("color",)))
+    inner = render_np(renderer, OUTSIDE, _request(_surfaces(renderer, (INNER, BLUE)), ("color",)))
+    both = clear & on_inner
+    np.testing.assert_allclose(front["color"][both], 0.3 * opaque["color"][both] + 0.7 * inner["color"][both],
+                               atol=1e-5)
+
+
+def test_opacity_zero_and_one(renderer):
+    """Outer at 0: the picture is the inner sphere's alone (the outer's far side too is invisible); outer at 1 with
+    a translucent inner: no ray goes on (nothing behind an opaque first hit), the opaque picture."""
+    inner_alone = render_np(renderer, OUTSIDE, _request(_surfaces(renderer, (INNER, BLUE)), ("color",)))
+    clear = np.abs(_roots(OUTSIDE, OUTER)[3]) > 0.01
+    invisible = render_np(renderer, OUTSIDE, _request(_surfaces(renderer, (OUTER, RED, 0.0), (INNER, BLUE)),
+                                                      ("color",)))
+    np.testing.assert_allclose(invisible["color"][clear], inner_alone["color"][clear], atol=1e-5)
+    opaque = render_np(renderer, OUTSIDE, _request(_surfaces(renderer, (OUTER, RED), (INNER, BLUE)), ("color",)))
+    frame = renderer.render(OUTSIDE, _request(_surfaces(renderer, (OUTER, RED, 1.0), (INNER, BLUE, 0.5)),
+                                              ("mask", "color")))
+    assert float(frame.behind.mask.max()) == 0.0
+    np.testing.assert_allclose(frame.color.numpy(), opaque["color"], atol=1e-6)
+
+
+def test_translucent_several_rays_per_pixel(renderer):
+    surfaces = _surfaces(renderer, (OUTER, RED, 0.5), (INNER, BLUE))
+    frame = renderer.render(OUTSIDE, _request(surfaces, ("mask", "depth", "surface", "color"), spp=4))
+    _finite(frame.to_numpy())
+    _finite(frame.behind.to_numpy())
+    inner_near, _, _, disc_in = _roots(OUTSIDE, INNER)
+    clear = np.abs(disc_in) > 0.02
+    np.testing.assert_array_equal(frame.behind.surface.numpy()[clear & ~np.isnan(inner_near)], 1)
+
+
+def test_bad_opacity_refused_naming_the_field():
+    with pytest.raises(ValueError, match=r"surfaces\[1\]\.opacity must be in \[0, 1\]"):
+        Surfaces.of([(0.1, RED), (0.2, BLUE, float("nan"))])
+    with pytest.raises(ValueError, match=r"surfaces\[0\]\.opacity"):
+        Surfaces.of([(0.1, RED, 1.5)])
