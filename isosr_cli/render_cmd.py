@@ -86,6 +86,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--normalized-iso", action="store_true", help="--iso is on the normalized [0, 1] scale")
     p.add_argument("--iso-color", type=_numbers(3), action="append", default=[], metavar="R,G,B",
                    help="the colour (each in [0, 1]) of the --iso of the same place; none: a palette in turn")
+    p.add_argument("--iso-opacity", type=float, action="append", default=[], metavar="A",
+                   help="the opacity in [0, 1] of the --iso of the same place (default 1); below 1 the rays go on "
+                        "to the next surface and the two layers are composited (plain renders and --method full)")
     p.add_argument("--size", type=frame_size, default=(640, 480), help="image size WxH")
     cam = p.add_argument_group("camera (world frame: box centered at 0, longest side 1)")
     cam.add_argument("--eye", type=_triple, help="camera position x,y,z")
@@ -168,18 +171,18 @@ def _clip(args: argparse.Namespace) -> Clip:
 
 
 def _surfaces(args: argparse.Namespace, volume, label: str) -> tuple[float, Surfaces | None]:
-    """The normalized iso of --iso (checked in the data's range), and with several of them or --iso-color their
-    surfaces (None: one plain iso)."""
+    """The normalized iso of --iso (checked in the data's range), and with several of them, --iso-color or
+    --iso-opacity their surfaces (None: one plain iso)."""
     given = args.iso or [None]
     isos = [check_iso(volume, resolve_iso(args.volume, volume, v, args.normalized_iso), label) for v in given]
-    if len(isos) == 1 and not args.iso_color:
+    if len(isos) == 1 and not args.iso_color and not args.iso_opacity:
         return isos[0], None
-    if args.iso_color and len(args.iso_color) != len(isos):
-        raise ValueError(f"give one --iso-color per --iso ({len(isos)}), or none, not {len(args.iso_color)}")
+    for name, given in (("--iso-color", args.iso_color), ("--iso-opacity", args.iso_opacity)):
+        if given and len(given) != len(isos):
+            raise ValueError(f"give one {name} per --iso ({len(isos)}), or none, not {len(given)}")
     if len(isos) > MAX_SURFACES:
         raise ValueError(f"--iso: at most {MAX_SURFACES} surfaces, got {len(isos)}")
-    colors = args.iso_color or PALETTE
-    surfaces = Surfaces.of(zip(isos, colors))
+    surfaces = Surfaces.of(zip(isos, args.iso_color or PALETTE, args.iso_opacity or [1.0] * len(isos)))
     return surfaces.iso, surfaces
 
 

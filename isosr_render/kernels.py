@@ -674,10 +674,43 @@ def face_normal(clip: ClipArgs, face: int, d: wp.vec3) -> wp.vec3:
 
 
 @wp.func
+def nearest_surface(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, isos: IsoSet, p: wp.vec3) -> int:
+    """The table index of the iso nearest the volume's value at the world point ``p`` (a hit's: its surface)."""
+    v = sample_volume(voxels, layout, grid, voxel_from_world(grid, p))
+    nearest = int(0)
+    best = float(BIG)
+    for k in range(MAX_SURFACES):
+        e = wp.abs(v - isos.values[k])
+        if e < best:
+            best = e
+            nearest = k
+    return nearest
+
+
+@wp.func
+def opacity_at(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, isos: IsoSet, p: wp.vec3) -> float:
+    """The opacity of the surface hit at the world point ``p``."""
+    return isos.values[MAX_SURFACES + nearest_surface(voxels, layout, grid, isos, p)]
+
+
+# occlusion has an overload per iso type, as band.
+@wp.func
+def occlusion(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, isos: OneIso, p: wp.vec3) -> float:
+    """How much an AO ray's hit near the world point ``p`` occludes: fully."""
+    return 1.0
+
+
+@wp.func
+def occlusion(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, isos: IsoSet, p: wp.vec3) -> float:
+    """How much an AO ray's hit near the world point ``p`` (past its crossing) occludes: its surface's opacity."""
+    return opacity_at(voxels, layout, grid, isos, p)
+
+
+@wp.func
 def ambient_occlusion(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, clip: Any, p: wp.vec3, n: wp.vec3,
                       isos: Any, iso: float, step: float, rays: int, radius: float, state: wp.uint32) -> wp.vec2:
     """Fraction of ``rays`` cosine-weighted hemisphere rays around ``n`` that escape within ``radius``,
-    counting only occluders in the kept region (``clip``).
+    counting only occluders in the kept region (``clip``), a translucent surface by its opacity (:func:`occlusion`).
 
     Returns ``(ao, samples)``.
     """
@@ -700,8 +733,8 @@ def ambient_occlusion(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, cl
         res = clipped_cast(voxels, layout, grid, clip, origin, wp.normalize(dir), 0.0, radius, isos, iso, step,
                            REFINE_BISECTION, -1)
         samples += res[1]
-        if res[0] >= 0.0:
-            hits += 1.0
+        if res[0] >= 0.0:  # the bracket's start: half a step on, near the surface crossed
+            hits += occlusion(voxels, layout, grid, isos, origin + wp.normalize(dir) * (res[0] + 0.5 * step))
     return wp.vec2(1.0 - hits / float(rays), samples)
 
 
@@ -748,26 +781,6 @@ def ray_direction(view: View, p: wp.vec2) -> wp.vec3:
     ndc_y = 1.0 - 2.0 * p[1] / float(view.height)
     return wp.normalize(view.right * (ndc_x * view.tan_half_fov * aspect) + view.up * (ndc_y * view.tan_half_fov)
                         - view.back)
-
-
-@wp.func
-def nearest_surface(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, isos: IsoSet, p: wp.vec3) -> int:
-    """The table index of the iso nearest the volume's value at the world point ``p`` (a hit's: its surface)."""
-    v = sample_volume(voxels, layout, grid, voxel_from_world(grid, p))
-    nearest = int(0)
-    best = float(BIG)
-    for k in range(MAX_SURFACES):
-        e = wp.abs(v - isos.values[k])
-        if e < best:
-            best = e
-            nearest = k
-    return nearest
-
-
-@wp.func
-def opacity_at(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, isos: IsoSet, p: wp.vec3) -> float:
-    """The opacity of the surface hit at the world point ``p``."""
-    return isos.values[MAX_SURFACES + nearest_surface(voxels, layout, grid, isos, p)]
 
 
 # march_ray has an overload per iso type: one iso's plain march, and several isos' layers.

@@ -500,7 +500,9 @@ def surface_albedo(surfaces: Surfaces, table_index: torch.Tensor) -> tuple[torch
     none) and their opacities (1 where none) of the kernels' per-pixel indices into the iso table (ascending isos,
     :meth:`Surfaces.table`)."""
     order, colors, opacities = _surface_tables(surfaces, table_index.device)
-    surface = order[table_index.long()]  # -1 indexes the last entry: none
+    # Rows a frame did not render hold anything (a focus region's, a band's yet to come): bounded first.
+    index = torch.nan_to_num(table_index, nan=-1.0).clamp(-1.0, len(surfaces.items) - 1.0).long()
+    surface = order[index]  # -1 indexes the last entry: none
     return surface, colors[surface.long()], opacities[surface.long()]
 
 

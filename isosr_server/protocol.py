@@ -325,11 +325,12 @@ class ColoringSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
 
 
 class SurfaceSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
-    """One of several isosurfaces: its iso-value in data units and its colour (RGB in [0, 1]; default: the
-    material's)."""
+    """One of several isosurfaces: its iso-value in data units, its colour (RGB in [0, 1]; default: the
+    material's) and opacity (below 1 translucent: the ray goes on to the next surface, two layers composited)."""
 
     iso: Finite
     color: tuple[Unit, Unit, Unit] = MATERIAL_RGB
+    opacity: Unit = 1.0
 
 
 def surfaces_of(settings: tuple[SurfaceSettings, ...], normalize: Callable[[float], float]) -> Surfaces | None:
@@ -342,7 +343,7 @@ def surfaces_of(settings: tuple[SurfaceSettings, ...], normalize: Callable[[floa
     if not settings:
         return None
     try:
-        return Surfaces(tuple(Surface(normalize(s.iso), s.color) for s in settings))
+        return Surfaces(tuple(Surface(normalize(s.iso), s.color, s.opacity) for s in settings))
     except ValueError as e:
         raise ProtocolError(f"settings.{e}", CLOSE_POLICY, 422) from None
 
@@ -375,7 +376,9 @@ class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         t: a series' time step (module docstring), below ``ready.volume.steps``.
         surfaces: up to 4 isosurfaces shown together (:class:`SurfaceSettings`, distinct isos), each ray
             stopping at the nearest, each in its colour; empty: the session's one iso (``iso``), as before.
-            Not with a coloring, nor on a volume rendered sparse (refused: 422).
+            With a translucent one the frames are full-resolution renders (the mode's method composites one
+            layer), the frame's ``method`` says so. Not with a coloring, nor on a volume rendered sparse (refused:
+            422).
     """
 
     mode: ModeName = "auto"

@@ -434,6 +434,21 @@ class MethodContract:
                                for c in (outer, inner))
                 assert (shell | core | (albedo.amax(-1) == 0)).all() and shell.sum() > core.sum(), where
 
+    def test_translucent_surfaces_composited_or_refused(self):
+        """A translucent shell (40%) over the scene's surface: a layered kind's colour differs from the opaque
+        shell's and stays finite and bounded; the others refuse it naming the cause."""
+        volume = scene()[0].volume
+        pairs = [(volume.normalized_iso(0.0), (0.1, 0.3, 0.9)), (volume.normalized_iso(0.06), (0.9, 0.2, 0.1))]
+        translucent = Surfaces.of([pairs[0], (*pairs[1], 0.4)])
+        if not self.spec.runner.layered:
+            with pytest.raises(ValueError, match="translucent surfaces .* full method only"):
+                self.runner(surfaces=translucent)
+            return
+        frame = buffers_of(self.runner(surfaces=translucent).frame(CAMERAS[0]))
+        assert_finite_and_bounded(frame, True, f"{self.spec.name}, translucent")
+        opaque = buffers_of(self.runner(surfaces=Surfaces.of(pairs)).frame(CAMERAS[0]))
+        assert (frame["color"] - opaque["color"]).abs().amax() > 0.05
+
     # -- bench row --------------------------------------------------------------------------------
 
     def test_its_bench_row(self, monkeypatch):

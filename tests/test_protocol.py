@@ -108,6 +108,8 @@ def test_clip_settings_are_the_renderers_clip():
     ([{"iso": 0.1, "color": [1, 2, 0]}], r"<= 1.0 - at `\$.surfaces\[0\].color\[1\]`"),
     ([{"iso": float("inf"), "color": [1, 0, 0]}], r"at `\$.surfaces\[0\].iso`"),
     ([{"iso": 0.1, "color": [1, 0]}], r"length 3, got 2 - at `\$.surfaces\[0\].color`"),
+    ([{"iso": 0.1, "opacity": -0.1}], r">= 0.0 - at `\$.surfaces\[0\].opacity`"),
+    ([{"iso": 0.1, "opacity": float("nan")}], r"at `\$.surfaces\[0\].opacity`"),
 ])
 def test_bad_surfaces_are_refused_naming_the_field(surfaces, match):
     with pytest.raises(P.ProtocolError, match=match):
@@ -116,11 +118,14 @@ def test_bad_surfaces_are_refused_naming_the_field(surfaces, match):
 
 def test_surfaces_round_trip_and_are_the_renderers():
     st = P.ViewSettings().updated({"surfaces": [{"iso": 300.0, "color": [0.9, 0.8, 0.7]},
-                                                {"iso": 100.0, "color": [1, 1, 1]}]}, LIMITS)
+                                                {"iso": 100.0, "color": [1, 1, 1], "opacity": 0.3}]}, LIMITS)
     msg = P.SettingsMsg(P.SettingsUpdate(surfaces=st.surfaces))
-    assert roundtrip(msg) == msg and wire(msg)["settings"]["surfaces"][1] == {"iso": 100.0, "color": [1.0, 1.0, 1.0]}
+    assert roundtrip(msg) == msg and wire(msg)["settings"]["surfaces"][1] == {"iso": 100.0, "color": [1.0, 1.0, 1.0],
+                                                                              "opacity": 0.3}
     surfaces = P.surfaces_of(st.surfaces, lambda v: v / 1000.0)
-    assert [(s.iso, s.color) for s in surfaces.items] == [(0.3, (0.9, 0.8, 0.7)), (0.1, (1.0, 1.0, 1.0))]
+    assert [(s.iso, s.color, s.opacity) for s in surfaces.items] == [(0.3, (0.9, 0.8, 0.7), 1.0),
+                                                                      (0.1, (1.0, 1.0, 1.0), 0.3)]
+    assert surfaces.layers == 2
     assert P.surfaces_of((), float) is None and P.ViewSettings().surfaces == ()
     assert P.SurfaceSettings(0.5).color == MATERIAL_RGB
     with pytest.raises(P.ProtocolError, match=r"settings.surfaces: the iso-values must differ"):

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from conftest import DEVICE, field_volume, pixel_rays, render_np
+
 from isosr_render.camera import Camera
 from isosr_render.renderer import Renderer, RenderRequest
 from isosr_render.surfaces import MAX_SURFACES, Surface, Surfaces
@@ -193,3 +193,31 @@ def test_bad_opacity_refused_naming_the_field():
         Surfaces.of([(0.1, RED), (0.2, BLUE, float("nan"))])
     with pytest.raises(ValueError, match=r"surfaces\[0\]\.opacity"):
         Surfaces.of([(0.1, RED, 1.5)])
+
+
+def test_rows_of_a_frame(renderer):
+    """A frame of some rows (a focus region, a band): those rows as in the whole frame, whatever the others held."""
+    surfaces = _surfaces(renderer, (OUTER, RED, 0.3), (INNER, BLUE))
+    request = _request(surfaces, ("mask", "surface", "color"))
+    whole = render_np(renderer, OUTSIDE, request)
+    plan = renderer.plan(request)
+    plan.tensors["surface"].fill_(float("nan"))
+    part = plan.render(OUTSIDE, request, rows=(10, 20))
+    for name in ("surface", "color"):
+        np.testing.assert_allclose(getattr(part, name).numpy()[10:20], whole[name][10:20], atol=1e-6, err_msg=name)
+
+
+def test_a_translucent_shell_occludes_by_its_opacity(renderer):
+    """AO rays of the inner sphere (radius 0.15, past the shell 0.1 away) count a hit of the outer shell by its
+    opacity: none at 0 (a sphere does not occlude itself), and at 0.5 half what they count at 0.99 (the same rays)."""
+    def inner_ao(opacity):
+        surfaces = _surfaces(renderer, (OUTER, RED, opacity), (INNER, BLUE))
+        frame = renderer.render(OUTSIDE, _request(surfaces, ("mask", "surface", "ao"), ao_samples=32, ao_radius=0.15))
+        return frame.behind.ao.numpy(), frame.behind.surface.numpy() == 1
+
+    clear, occluded, half = inner_ao(0.0), inner_ao(0.99), inner_ao(0.5)
+    on_inner = clear[1] & occluded[1] & half[1]
+    assert on_inner.sum() > 100
+    np.testing.assert_array_equal(clear[0][on_inner], 1.0)
+    assert (occluded[0][on_inner] < 0.9).mean() > 0.9
+    np.testing.assert_allclose(1.0 - half[0][on_inner], (1.0 - occluded[0][on_inner]) * 0.5 / 0.99, atol=1e-5)

@@ -27,13 +27,13 @@ from isosr_net.reconnet import RayLimits
 from isosr_net.timing import StageTimer
 from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest
 from isosr_render.clip import Clip
-from isosr_render.surfaces import Surfaces
 from isosr_render.color_field import ColorField
 from isosr_render.conventions import AO_RADIUS
 from isosr_render.renderer import MAX_AO_SAMPLES, MAX_SPP
 from isosr_render.sequence import sequence_cameras
 from isosr_render.shading import ShadingParams, shade_on
 from isosr_render.shapes import check_int
+from isosr_render.surfaces import Surfaces
 
 # Upscaling factors a low-res method takes.
 MAX_FACTOR = 16
@@ -328,6 +328,9 @@ class FrameRunner(ABC):
             makes its ``albedo``, which the shading uses at the frame size; None: the material's colour.
         surfaces: several isosurfaces (:mod:`isosr_render.surfaces`; ``iso`` must be their first): every ray
             cast stops at the nearest, the render's ``albedo`` (their colours) as a coloring's; None: ``iso``.
+            Translucent ones only where the kind is ``layered`` (else ValueError).
+        layered: composites the two layers of translucent surfaces (the render's ``color``); the other kinds
+            refuse them (their filters and networks see one layer).
     """
 
     kind: ClassVar[str]
@@ -343,6 +346,7 @@ class FrameRunner(ABC):
     warm_up: ClassVar[bool] = False
     serve_bench_ao: ClassVar[tuple[int, ...]] = ()
     plot_color: ClassVar[str | None] = None
+    layered: ClassVar[bool] = False
 
     def __init__(self, method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int,
                  shading: ShadingParams = ShadingParams(), ao_radius: float = AO_RADIUS,
@@ -361,6 +365,9 @@ class FrameRunner(ABC):
         self.shade, self.clip, self.coloring, self.surfaces = shade, clip, coloring, surfaces
         if surfaces is not None and self.iso != surfaces.iso:
             raise ValueError(f"{method.name}: iso must be the first surface's ({surfaces.iso}), got {self.iso}")
+        if surfaces is not None and surfaces.layers > 1 and not self.layered:
+            raise ValueError(f"{method.name}: translucent surfaces (an opacity below 1) are composited by the full "
+                             f"method only: make them opaque or use full")
         self.device = str(renderer.device)
         self._last_timer: StageTimer | None = None  # the previous frame's (read lazily: no sync per frame)
         self.frames = 0  # frames made: with fresh_rays, the next frame's AO seed

@@ -227,12 +227,14 @@ function surfaceSettings() {
   return [{ iso: state.iso }, ...pinned]; // without a colour: the material's
 }
 
-/** Pin the slider's iso as a surface in the chosen colour (up to 3 besides the slider's). */
+/** Pin the slider's iso as a surface in the chosen colour and opacity (up to 3 besides the slider's). */
 function addSurface() {
   if (state.iso === null || state.surfaces.length >= MAX_PINNED) return;
   const hex = $("surface-color").value;
   const color = [1, 3, 5].map((i) => parseInt(hex.slice(i, i + 2), 16) / 255);
-  state.surfaces = [...state.surfaces.filter((s) => s.iso !== state.iso), { iso: state.iso, color }];
+  const given = Number($("surface-opacity").value);
+  const opacity = Number.isFinite(given) ? Math.min(1, Math.max(0, given)) : 1;
+  state.surfaces = [...state.surfaces.filter((s) => s.iso !== state.iso), { iso: state.iso, color, opacity }];
   showSurfaces();
   sendSettings();
 }
@@ -241,7 +243,7 @@ function addSurface() {
 function showSurfaces() {
   $("surface-list").replaceChildren(...state.surfaces.map((s) => {
     const swatch = document.createElement("span");
-    swatch.textContent = `\u25A0 ${formatNumber(s.iso)} `;
+    swatch.textContent = `\u25A0 ${formatNumber(s.iso)}${s.opacity < 1 ? ` (${Math.round(100 * s.opacity)}%)` : ""} `;
     swatch.style.color = `rgb(${s.color.map((c) => Math.round(255 * c)).join(",")})`;
     return swatch;
   }));
