@@ -13,7 +13,10 @@ first; once the probe's first units timed this scene's plain first-hit frame, th
 committed cost table (:class:`isosr_net.budget.CostTable`) picks the best tabled method whose
 cost in first-hit frames fits the budget. The probe runs in the background as generator steps (:func:`isosr_net.budget.choose_method_steps`)
 that the engine interleaves with frames on the device thread, a unit of work at a time, and
-that shutdown drops between two units. What a probe learns is kept per device, volume, iso and
+that shutdown drops between two units. On GPUs a candidate's first frame at a new size carries
+one-off costs (fused kernels tuned for the size's class, shading compiled for its inputs): the
+server pays them at start for its common window sizes and their probes (:meth:`AutoPolicy.warm`),
+and logs a unit that still held the device thread for long. What a probe learns is kept per device, volume, iso and
 size in ``probe_cache`` (a JSON file), so that a restarted server chooses without probing.
 """
 
@@ -27,11 +30,14 @@ from collections.abc import Generator
 from pathlib import Path
 
 from isosr_net.budget import (BudgetChoice, BudgetConfig, CostTable, QualityProbe, choose_method_steps,
-                              default_candidates, first_hit_ms_steps, probe_quality_steps)
-from isosr_net.methods import FrameMethod, FrameRunner, Networks
+                              default_candidates, default_probe_height, first_hit_ms_steps, probe_quality_steps,
+                              probe_size)
+from isosr_net.methods import FrameMethod, FrameRunner, Networks, make_runner
 from isosr_net.reconstructor import Reconstructor, recon_limits
 from isosr_render import Camera, Renderer
 from isosr_render.atomic import atomic_write
+from isosr_render.camera import orbit_path
+from isosr_render.sequence import sequence_cameras
 
 log = logging.getLogger("isosr.server")
 # The probe's frames (a still camera needs few), timed by the wall clock: the device thread's
@@ -141,6 +147,20 @@ class AutoPolicy:
                               factor=served_factor(m.runner, factor))
             candidates.append(m)
         return cls(tuple(candidates), target_fps, networks, cache, slice_ms, CostTable.for_device(device))
+
+    def warm(self, renderer: Renderer, sizes: tuple[tuple[int, int], ...]) -> None:
+        """Make two frames of every candidate at each ``(height, width)`` and at its probe's size
+        (device thread, at start): what a candidate's first frame at a new size costs once (kernels
+        tuned for the size's class, shading compiled for its inputs) is paid before any viewer waits,
+        not in a probe unit between the sessions' frames."""
+        pairs = sequence_cameras(orbit_path(2))
+        rows = default_probe_height(str(renderer.device))
+        for width, height in {(w, h) for h, w in sizes} | {probe_size(w, h, rows) for h, w in sizes}:
+            for m in self.candidates:
+                if not (width % m.factor or height % m.factor):
+                    runner = make_runner(m, renderer, 0.5, width, height, networks=self.networks)
+                    for camera, prev in pairs:
+                        runner.frame(camera, prev)
 
     def budget_ms(self, sessions: int) -> float:
         """A frame's share of device time with ``sessions`` sessions served."""

@@ -198,3 +198,56 @@ def test_upscale_sessions_bound_each_client_and_never_lock_others_out():
     assert len(sessions) == 4 and "a" not in {k for _, k in sessions._by_id}, "the least recently used id made room"
     stream = sessions.open_stream()
     assert len(sessions) == 4 and stream is made[-1]
+
+
+def test_warming_the_policy_makes_every_candidates_first_frames_at_each_size_and_its_probes(lib, monkeypatch):
+    """At start (GPUs), each candidate makes a first frame and one carrying it at each window size and at
+    that size's probe size (a factor that does not divide a size skipped), and the policy is left as
+    it was: nothing probed, chosen or pending."""
+    import isosr_server.auto as auto
+
+    made = []
+
+    def recording(method, renderer, iso, width, height, **options):
+        runner = make_runner(method, renderer, iso, width, height, **options)
+        frame = runner.frame
+        runner.frame = lambda camera, prev=None: (made.append((method, width, height, prev is None)),
+                                                  frame(camera, prev))[1]
+        return runner
+
+    monkeypatch.setattr(auto, "make_runner", recording)
+    candidates = (FrameMethod.of("full"), FrameMethod.of("full", ao_rays=2), FrameMethod.of("svgf", ao_rays=1),
+                  FrameMethod.of("upscale", factor=4))
+    policy = AutoPolicy(candidates, 30.0, Networks())
+    monkeypatch.setattr(auto, "default_probe_height", lambda device: 24)
+    policy.warm(lib.renderer, ((48, 64), (30, 40)))
+    sizes = {(64, 48), (40, 30), (32, 24)}  # each window and the probes' (24 rows, the aspect kept: both 32x24)
+    assert {(w, h) for _, w, h, _ in made} == sizes
+    assert {(w, h) for m, w, h, _ in made if m.factor == 4} == {(64, 48), (32, 24)}, "not 40x30: 4 does not divide 30"
+    for m in candidates[:3]:
+        for w, h in sizes:
+            assert [first for n, *size, first in made if n == m and tuple(size) == (w, h)] == [True, False], (m, w, h)
+    assert not (policy.pending or policy._chosen or policy._quality or policy._timings)
+
+
+def test_a_probe_unit_that_held_the_device_thread_is_logged(caplog):
+    """The engine times each unit of a probe on the device thread and says when one was long enough for
+    viewers to see their frames wait."""
+    import logging
+
+    from isosr_server import engine
+
+    def units():
+        yield
+        time.sleep(0.02)
+        return "done"
+
+    steps = units()
+    assert engine._advance(steps)[:2] == (False, None)
+    done, result, seconds = engine._advance(steps)
+    assert (done, result) == (True, "done") and seconds >= 0.02
+    with caplog.at_level(logging.INFO, logger="isosr.server"):
+        engine.Engine._log_slow_unit(engine.SLOW_PROBE_UNIT_S / 2)
+        assert "held the device thread" not in caplog.text
+        engine.Engine._log_slow_unit(2 * engine.SLOW_PROBE_UNIT_S)
+    assert "one unit held the device thread for" in caplog.text
