@@ -275,6 +275,7 @@ class Reconstructor(RecurrentNetwork):
         self.graphs = graphs
         self._sampling: dict[tuple[int, int], torch.Tensor] = {}
         self.history: RayHistory | None = None
+        self._deferred: list[tuple] | None = None  # checks queued by defer_checks, or None: read at once
         self._own_graphs()
 
     def reset(self) -> None:
@@ -383,16 +384,47 @@ class Reconstructor(RecurrentNetwork):
             args = (frame.mask, frame.normal, frame.depth, ao, sampling, frame.flow, self.previous if carry else None,
                     shading)
             stack, color, flags = self._replay(args) if self.graphs else self._frame(*args)
-        self._raise_refused(flags)
         if self.graphs:  # the graph's own tensors: the next replay overwrites them
             stack, color = stack.clone(), None if color is None else color.clone()
-        self.previous, self.history = stack, history
+        self._checked(flags, lambda: self._keep(stack, history))
         return stack_buffers(stack, color)
 
     def _rays(self, frame: FrameBuffers, ao_rays: int, spp: int, history: RayHistory | None,
               out: RayHistory | None = None) -> tuple[torch.Tensor | None, torch.Tensor, RayHistory | None]:
         """:func:`sampled_rays` of the model, its constant sampling made once per sampling."""
         return sampled_rays(frame, ao_rays, spp, self.limits, history, self._sampling_tensor(ao_rays, spp), out)
+
+    def defer_checks(self) -> None:
+        """Until :meth:`settle_checks`, a frame's input checks are queued instead of read (a host sync
+        each), and its state is kept only once they pass: the frames of several streams then issue
+        their device work back to back, and the host waits for the device once, after the last."""
+        self._deferred = []
+
+    def settle_checks(self) -> None:
+        """Read the checks queued since :meth:`defer_checks` and keep each frame's state, or raise the
+        first that fails (that frame's state not kept, as :meth:`reconstruct` says); checks are read
+        at once again after."""
+        deferred, self._deferred = self._deferred or [], None
+        for flags, keep, refused in deferred:
+            self._checked(flags, keep, refused)
+
+    def _checked(self, flags: torch.Tensor, keep: Callable[[], None], refused: Callable[[], None] | None = None
+                 ) -> None:
+        """``keep()`` the frame's state once its checks pass (now, or at :meth:`settle_checks`); where
+        they fail, ``refused()`` and raise."""
+        if self._deferred is not None:
+            self._deferred.append((flags, keep, refused))
+            return
+        try:
+            self._raise_refused(flags)
+        except ValueError:
+            if refused is not None:
+                refused()
+            raise
+        keep()
+
+    def _keep(self, previous: torch.Tensor, history: RayHistory | None) -> None:
+        self.previous, self.history = previous, history
 
     def _raise_refused(self, flags: torch.Tensor) -> None:
         """Read a frame's input checks (one host sync) and raise the first that fails."""
@@ -492,12 +524,7 @@ class Reconstructor(RecurrentNetwork):
             self._frame_graphs.add(key, entry, request.height * request.width * self.upscale_factor ** 2)
             self._drop_unheld_states(state, histories)
         entry.graph.replay()
-        try:
-            self._raise_refused(entry.flags)
-        except ValueError:
-            self.reset()
-            raise
-        self.previous, self.history = state, written
+        self._checked(entry.flags, lambda: self._keep(state, written), refused=self.reset)  # the graph wrote the state
         # Copies of the views made at capture: what a caller sets on a frame's buffers stays its own.
         return copy.copy(entry.rendered), copy.copy(entry.reconstructed)
 

@@ -171,3 +171,31 @@ def test_mixed_sizes_form_their_own_batches(engine, batches):
     batches.clear()
     assert together(engine, settings) == expected
     assert sorted(batches) == [1, 1, 2, 2], "per frame: the two sessions of one size together, the other alone"
+
+
+def test_a_nan_in_one_session_s_buffers_fails_that_session_only(engine, monkeypatch):
+    """The reconstruction reads a batch's input checks once, after the last frame: one session whose
+    rendered depth holds a NaN gets the check's error and then its next frame; its batch mates get
+    their frames, equal to those made alone."""
+    settings = [view_settings(engine, "reconstruct")] * SESSIONS
+    expected = alone(engine, settings)
+    s = Sessions(engine, settings)
+    poisoned_camera = s.job(1, 1).camera
+    render = type(s.renderer).render
+
+    def render_with_nan(renderer, camera, request, *args, **kwargs):
+        out = render(renderer, camera, request, *args, **kwargs)
+        if camera == poisoned_camera:
+            out.depth = out.depth.clone()
+            out.depth[0, 0] = float("nan")
+        return out
+    monkeypatch.setattr(type(s.renderer), "render", render_with_nan)
+    got = [[] for _ in settings]
+    for t in range(FRAMES):
+        for k, frame in enumerate(asyncio.run(s.together(t, list(range(SESSIONS))))):
+            got[k].append(frame)
+        if t == 1:
+            poisoned_camera = None
+    assert isinstance(got[1][1], ValueError) and "NaN" in str(got[1][1]), got[1][1]
+    assert got[0] == expected[0] and got[2] == expected[2]
+    assert got[1][0] == expected[1][0] and isinstance(got[1][2], bytes), "the session goes on"

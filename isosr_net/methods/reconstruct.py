@@ -7,7 +7,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from isosr_net.inference import default_precision
-from isosr_net.methods.base import FrameMethod, FrameRunner, ModelOptions, RayOptions, count, register_runner
+from isosr_net.methods.base import (FrameMethod, FrameResult, FrameRunner, ModelOptions, RayOptions, count,
+                                   register_runner)
 from isosr_net.model import read_config
 from isosr_net.reconnet import UPSCALES, RayLimits
 from isosr_net.reconstructor import (
@@ -139,6 +140,24 @@ class ReconstructRunner(FrameRunner):
         """The shading the network's call makes too: none where the runner does not shade, or where it
         shades after it (:attr:`FrameRunner.shades_after`)."""
         return self.shading if self.shade and not self.shades_after else None
+
+    @classmethod
+    def make_batch(cls, frames: list[tuple[FrameRunner, Camera, Camera | None]]) -> list[FrameResult | Exception]:
+        """As :meth:`FrameRunner.make_batch`, with one wait for the device: each stream's frame issues
+        its work (render, network, shading) without reading its input checks, which are read after
+        the last (on a GPU the host's work for one frame overlaps the device's for the one before).
+        A frame whose checks fail is its stream's error and leaves its stream as it was, as alone."""
+        before = [(runner.frames, runner._last_timer) for runner, _, _ in frames]
+        for runner, _, _ in frames:
+            runner.net.defer_checks()
+        results = super().make_batch(frames)
+        for k, (runner, _, _) in enumerate(frames):
+            try:
+                runner.net.settle_checks()
+            except ValueError as e:
+                runner.frames, runner._last_timer = before[k]
+                results[k] = e
+        return results
 
     def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
         with timer("network"):  # shading included: one call
