@@ -50,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
                  for path in wp.compile_aot_module(module, arch=arch, use_ptx=use_ptx,
                                                    module_dir=cache / module.get_module_identifier())]
         print(f"{name}: {time.perf_counter() - start:.1f} s, {' '.join(p.name for p in files)} in {files[0].parent}")
-    print(f"on the GPU node: WARP_CACHE_PATH={args.cache}" if args.cache else f"Warp's kernel cache: {cache}")
+    print(f"on the GPU node: WARP_CACHE_PATH={args.cache.resolve()}" if args.cache else f"Warp's kernel cache: {cache}")
     return 0
 
 

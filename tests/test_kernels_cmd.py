@@ -43,7 +43,7 @@ def test_writes_a_cubin_and_a_ptx_where_warps_loader_looks(tmp_path, capsys):
     ident = warp_module(SMALL_MODULE).get_module_identifier()
     folder = tmp_path / wp.config.version / ident
     assert {p.name for p in folder.iterdir()} >= {f"{ident}.sm90.cubin", f"{ident}.sm90.ptx", f"{ident}.meta"}
-    assert f"{SMALL_MODULE}: " in out and f"WARP_CACHE_PATH={tmp_path}" in out
+    assert f"{SMALL_MODULE}: " in out and f"WARP_CACHE_PATH={tmp_path.resolve()}" in out
 
     env = dict(os.environ, WARP_CACHE_PATH=str(tmp_path),
                PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
