@@ -875,6 +875,8 @@ FRAME_KERNELS = ("first_hit_kernel", "surface_kernel", "surface_samples_kernel")
 # and loaded only when a frame clips, so that without clipping nothing of it is built or run.
 CLIPPED_MODULE = f"{__name__}.clipped"
 wp.set_module_options({"enable_backward": False}, module=CLIPPED_MODULE)
+# The renderer's Warp modules (isosr_net.warp_modules lists the project's).
+RENDER_MODULES = (__name__, CLIPPED_MODULE)
 
 
 def _clipped(kernel: wp.Kernel) -> wp.Kernel:

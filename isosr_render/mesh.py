@@ -26,6 +26,8 @@ from isosr_render.volume import Volume
 MAX_MESH_VOXELS = 512**3
 MAX_MESH_TRIANGLES = 20_000_000
 MESH_FORMATS = {".ply": "ply", ".obj": "obj", ".stl": "stl", ".vtu": "vtu"}  # VTU: ParaView's XML (meshio has no VTP)
+# The Warp module of Warp's marching cubes kernels (compiled at first use, as the project's own).
+MESH_MODULE = wp.MarchingCubes.__module__
 
 
 @dataclass(frozen=True)
