@@ -48,8 +48,7 @@ def srv(tmp_path_factory):
 # reconstruct at 1 AO ray: the sessions of the tests that need one recurrent mode
 RECON = {"mode": "reconstruct", "ao_rays": 1}
 # Every recurrent view mode (without the cut, reconstruct's and network's history shows the step before and
-# buffers send a flow into it;
-# svgf's depth and normal tests reject it themselves).
+# buffers send a flow into it; svgf's depth and normal tests reject its history themselves).
 RECURRENT_MODES = [kind for kind, runner in RUNNERS.items()
                    if runner.recurrent and runner.view_mode and kind not in unavailable_kinds()]
 CAM = P.CameraMsg(yaw=34.0, pitch=20.0, distance=1.8)
