@@ -44,7 +44,7 @@ from isosr_bench.common import bench_parser, print_table, write_result
 from isosr_net.budget import color_psnr, reference_frames
 from isosr_net.inference import default_precision
 from isosr_net.methods import FrameMethod, FrameStream, Networks, parse_method
-from isosr_render import Camera, FrameBuffers, Renderer, orbit
+from isosr_render import FrameBuffers, Renderer, orbit
 from isosr_render.series import VolumeSeries, open_series
 
 NAME = "bench_series"
@@ -152,7 +152,8 @@ def case_rows(case: str, n: int, dtype: str, steps: int, methods: list[FrameMeth
         folder = Path(tmp)
         write_series(folder, n, dtype, steps, device)
         base = {"case": case, "voxels": f"{n}^3", "dtype": dtype, "step_mb": n ** 3 * np.dtype(dtype).itemsize / 2**20,
-                "steps": steps, "timed_steps": steps - warmup, "pixels": f"{size[0]}x{size[1]}", "read_ms": read_ms(folder)}
+                "steps": steps, "timed_steps": steps - warmup, "pixels": f"{size[0]}x{size[1]}",
+                "read_ms": read_ms(folder)}
         played = []
         for method in methods:
             series = open_series(folder)
