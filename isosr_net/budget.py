@@ -122,6 +122,9 @@ class BudgetConfig:
             where the host's work per frame can exceed the GPU's).
         ao_radius: AO ray length, world units.
         shading: material and light.
+        batch: streams a candidate's timed frames are made for at once, by its kind's ``make_batch``
+            (a frame's time: their batch's wall time over ``batch``): what a frame costs a service
+            that makes many sessions' frames together; 1: each frame alone.
     """
 
     candidates: tuple[FrameMethod, ...] | None = None
@@ -135,9 +138,10 @@ class BudgetConfig:
     clock: str = "device"
     ao_radius: float = AO_RADIUS
     shading: ShadingParams = field(default_factory=ShadingParams)
+    batch: int = 1
 
     def __post_init__(self):
-        for name, low in (("probe_frames", 1), ("warmup_frames", 0), ("timing_frames", 1)):
+        for name, low in (("probe_frames", 1), ("warmup_frames", 0), ("timing_frames", 1), ("batch", 1)):
             check_int(getattr(self, name), name, low, where="BudgetConfig")
         if self.probe_height is not None:
             check_int(self.probe_height, "probe_height", 16, where="BudgetConfig")
@@ -429,6 +433,28 @@ def _time_candidate_steps(runner: FrameRunner, cameras: list[Camera], config: Bu
     return sum(times) / len(times)
 
 
+def _time_batch_steps(runners: list[FrameRunner], cameras: list[Camera],
+                      config: BudgetConfig) -> Generator[None, None, float]:
+    """Mean wall time of a frame made with ``len(runners)`` streams' at once (their kind's
+    ``make_batch``, each stream along ``cameras``, cycled): a batch's time over its frames, after a
+    warm-up batch. Yields before each batch.
+
+    Raises:
+        Exception: a stream's frame failed (the candidate cannot be timed).
+    """
+    pairs, kind, times = sequence_cameras(cameras), type(runners[0]), []
+    for i in range(1 + config.timing_frames):
+        yield
+        camera, prev = pairs[i % len(pairs)]
+        start = time.perf_counter()
+        results = kind.make_batch([(runner, camera, prev) for runner in runners])
+        ms = _synced_ms(runners[0], start) / len(runners)
+        if (failed := next((r for r in results if isinstance(r, Exception)), None)) is not None:
+            raise failed
+        times.append(ms)
+    return sum(times[1:]) / config.timing_frames
+
+
 @dataclass(frozen=True)
 class QualityProbe:
     """The budget-independent part of the probe: expected PSNR per candidate and the AO test.
@@ -569,9 +595,12 @@ def choose_method_steps(renderer: Renderer, iso: float, width: int, height: int,
             continue
         if untimed is None:
             break
-        runner = make_runner(untimed, renderer, iso, width, height, shading=config.shading,
-                             ao_radius=config.ao_radius, networks=networks)
-        timings[untimed] = yield from _time_candidate_steps(runner, cameras, config, budget_ms, slice_ms)
+        runners = [make_runner(untimed, renderer, iso, width, height, shading=config.shading,
+                               ao_radius=config.ao_radius, networks=networks if k == 0 else networks.fork())
+                   for k in range(config.batch)]
+        timings[untimed] = yield from _time_candidate_steps(runners[0], cameras, config, budget_ms, slice_ms)
+        if config.batch > 1 and timings[untimed] <= OVER_BUDGET_STOP * budget_ms:
+            timings[untimed] = yield from _time_batch_steps(runners, cameras, config)
     ms = {m: timings[m] for m in considered if m in timings}
     fits = ms[chosen] <= config.headroom * budget_ms
     if not fits and warn:

@@ -7,6 +7,10 @@ volume, iso and size, and its timings per volume, iso, size and method, so a re-
 changes costs no new probe; a choice is cached per (volume, iso, size, AO radius, N). The probe
 runs on the session's current view (a still camera: the view to be shown).
 
+On GPUs with :data:`PROBE_BATCH` sessions or more, a candidate is timed as their frames are made
+under load, several sessions' at once (the frame methods' ``make_batch``: the reconstruction's
+network then runs once for all), each frame costing its share of the batch.
+
 No frame waits for a probe. Until the probe of a scene and size has run, frames use the prior:
 first the cheapest candidate (no AO, one ray per pixel), the frame that reaches the viewer
 first; once the probe's first units timed this scene's plain first-hit frame, the device class's
@@ -46,12 +50,20 @@ log = logging.getLogger("isosr.server")
 # hand-off, the event loop's share of the host): on an H100 at 1080p, 16 sessions of full
 # frames ran at 2.7 ms each where one alone took 1.5 ms of the device thread.
 PROBE = dict(probe_frames=1, warmup_frames=1, timing_frames=2, clock="wall", headroom=0.75)
+# With this many sessions or more, on GPUs, a candidate is timed as the service makes it under load: a
+# batch of this many streams' frames at once (BudgetConfig.batch), each frame costing its share.
+PROBE_BATCH = 8
 
 
 def served_factor(runner: type[FrameRunner], factor: int) -> int:
     """The factor the service gives a method of ``runner``: its upscaler's ``factor`` to low-res
     kinds, 1 to the others (its reconstruction renders at full resolution)."""
     return factor if runner.low_res else 1
+
+
+def probe_batch(renderer: Renderer, sessions: int) -> int:
+    """The streams a probe times a candidate's frames for at once (:data:`PROBE_BATCH` on GPUs under load, else 1)."""
+    return PROBE_BATCH if renderer.device.is_cuda and sessions >= PROBE_BATCH else 1
 
 
 def prior_method(candidates: tuple[FrameMethod, ...]) -> FrameMethod:
@@ -201,11 +213,13 @@ class AutoPolicy:
                budget_ms: float) -> Generator[None, None, BudgetChoice]:
         """The choice for ``key`` as device-thread steps (a failed probe keeps the prior, logged)."""
         _, iso, width, height, ao_radius = scene_key
-        config = BudgetConfig(candidates=self.candidates, ao_radius=ao_radius, **PROBE)
+        batch = probe_batch(renderer, key[-1])
+        config = BudgetConfig(candidates=self.candidates, ao_radius=ao_radius, batch=batch, **PROBE)
         cameras = [camera] * config.probe_frames
         if scene_key not in self._quality and (cached := self.cache.get(scene_key, self.candidates)):
             self._quality[scene_key], self._timings[scene_key] = cached
-        timings = self._timings.setdefault(scene_key, {})
+        # frames alone (kept in the cache), or in batches (kept for this run: measured again after a start)
+        timings = self._timings.setdefault(scene_key if batch == 1 else scene_key + (batch,), {})
         probes_quality, timed_before = scene_key not in self._quality, len(timings)
         try:
             if scene_key not in self._quality and self.costs is not None and scene_key not in self._first_hit:
@@ -225,7 +239,7 @@ class AutoPolicy:
             log.info("auto mode, %s at %dx%d, budget %.3g ms: %s", scene_key[0], width, height, budget_ms,
                      choice.summary())
             if probes_quality or len(timings) > timed_before:  # something was measured: keep it
-                self.cache.put(scene_key, self._quality[scene_key], timings)
+                self.cache.put(scene_key, self._quality[scene_key], self._timings.get(scene_key, {}))
         finally:
             self._probing.discard(key)
         self._chosen[key] = choice
