@@ -93,7 +93,8 @@ def serving_network(cls: type[RecurrentNetwork], model: Path, device: str, preci
 class EncodedFrame:
     """A view frame ready for the wire: the coded image (or the coded buffers), server milliseconds
     per stage, the channel legend, the method's name, the frame whose camera the flow refers to,
-    the volume's device memory after it, and the time step it shows."""
+    the volume's device memory after it, the time step it shows, and the frames made together
+    with it on the device (itself included)."""
 
     image: CodedImage | None
     buffers: ViewBuffers | None
@@ -103,6 +104,7 @@ class EncodedFrame:
     prev_seq: int
     memory: VolumeMemory
     t: int = 0
+    batch: int = 1
 
 
 class Engine:
@@ -317,7 +319,7 @@ class Engine:
         self._framing += 1
         self._idle.clear()
         try:
-            made, codes = await self._batched(frames, renderer, job)
+            made, codes, batch = await self._batched(frames, renderer, job)
         finally:
             self._framing -= 1
             if not self._framing:
@@ -332,13 +334,15 @@ class Engine:
             done = time.perf_counter()
             times = made.result.times | {"encode": 1e3 * (done - began), "total": 1e3 * (done - start)}
             return EncodedFrame(image, buffers, times, made.legend, made.method.name, made.prev_seq, memory,
-                                job.settings.t)
+                                job.settings.t, batch)
         return encode
 
-    async def _batched(self, frames: SessionFrames, renderer: Renderer, job: FrameJob) -> tuple[ViewFrame, object]:
-        """A view frame and its codes, made in the next batch (:meth:`_batch_sync`): the frames of
-        every session that asked meanwhile, one device-thread job for them all. A frame that runs
-        in slices comes back as its steps and is made here, a device-thread job per slice."""
+    async def _batched(self, frames: SessionFrames, renderer: Renderer,
+                       job: FrameJob) -> tuple[ViewFrame, object, int]:
+        """A view frame, its codes and the frames made together with it (itself included), made in
+        the next batch (:meth:`_batch_sync`): the frames of every session that asked meanwhile, one
+        device-thread job for them all. A frame that runs in slices comes back as its steps and is
+        made here alone, a device-thread job per slice."""
         loop = asyncio.get_running_loop()
         future = loop.create_future()
         with self._pending_lock:
@@ -349,7 +353,7 @@ class Engine:
         out = await future
         if isinstance(out, Generator):
             made = await self._run_steps(out)
-            return made, await self.call(self.codes_sync, made)
+            return made, await self.call(self.codes_sync, made), 1
         return out
 
     def _batch_sync(self, loop: asyncio.AbstractEventLoop) -> None:
@@ -381,7 +385,7 @@ class Engine:
                     if isinstance(result, Exception):
                         raise result
                     made = frames.made(plan, result)
-                    _resolve(loop, future, (made, self.codes_sync(made)))
+                    _resolve(loop, future, (made, self.codes_sync(made), len(group)))
                 except Exception as e:  # noqa: BLE001 - as above
                     _resolve(loop, future, error=e)
 

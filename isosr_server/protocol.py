@@ -102,13 +102,14 @@ from isosr_render.coloring import COLORMAPS, Coloring
 from isosr_render.conventions import AO_RADIUS
 from isosr_server.codecs.arrays import ArrayTooBig, WireArray, decode_array, encode_array
 
+# 9: frame.batch (the frames made together on the device);
 # 8: colour by a field (settings.coloring; a shaded frame's legend);
 # 7: time series (volume.steps, settings.t, frame.t);
 # 6: clip planes, a crop box and caps (settings.clip);
 # 5: modes named by the server (ready.modes), ready's limits on messages and acknowledgements;
 # 3: the v3 vocabulary (modes auto/network/upscale/..., ao_rays, spp, interpolation, frame methods);
 # 2 (acknowledged frames, flow control) and earlier are refused with a reason.
-PROTOCOL_VERSION = 8
+PROTOCOL_VERSION = 9
 
 # Largest magnitude of any float field (camera coordinates, iso, ...): beyond it is hostile input.
 MAX_ABS_FLOAT = 1e9
@@ -755,6 +756,8 @@ class FrameMsg(Message, tag="frame"):
             bricks in); None: as last sent.
         t: the time step shown: ``settings.t``, or the last step shown where that one cannot be
             read (a ``notice`` says why).
+        batch: the frames the server's device made together with this one, itself included (1:
+            alone; many sessions' frames are made together under load).
     """
 
     seq: Seq
@@ -777,6 +780,7 @@ class FrameMsg(Message, tag="frame"):
     bitrate_kbps: Annotated[int, Meta(ge=0)] = 0
     device: VolumeMemory | None = None
     t: Step = 0
+    batch: Annotated[int, Meta(ge=1, le=MAX_SEQ)] = 1
 
     def __post_init__(self):
         if (self.encoding == "buffers") != (self.buffers is not None) or (self.image is None) == (self.buffers is None):

@@ -199,3 +199,25 @@ def test_a_nan_in_one_session_s_buffers_fails_that_session_only(engine, monkeypa
     assert isinstance(got[1][1], ValueError) and "NaN" in str(got[1][1]), got[1][1]
     assert got[0] == expected[0] and got[2] == expected[2]
     assert got[1][0] == expected[1][0] and isinstance(got[1][2], bytes), "the session goes on"
+
+
+def test_each_frame_says_how_many_frames_were_made_with_it(engine):
+    """An encoded frame carries its batch's size: 1 for a session's first frame (alone, in slices), the
+    sessions asked together after."""
+    settings = [view_settings(engine, "full")] * SESSIONS
+    s = Sessions(engine, settings)
+
+    async def batch_sizes(t: int) -> list[int]:
+        release = threading.Event()
+        busy = asyncio.ensure_future(engine.call(release.wait))
+
+        async def one(k: int) -> int:
+            encode = await engine.view_frame(s.frames[k], s.renderer, s.job(k, t), png)
+            return (await encode()).batch
+        tasks = [asyncio.ensure_future(one(k)) for k in range(SESSIONS)]
+        await asyncio.sleep(0.05)
+        release.set()
+        await busy
+        return await asyncio.gather(*tasks)
+    assert asyncio.run(batch_sizes(0)) == [1] * SESSIONS
+    assert asyncio.run(batch_sizes(1)) == [SESSIONS] * SESSIONS

@@ -64,7 +64,7 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
                 raise ProtocolError(f"the client read no frame for {limits.idle_timeout_s:g} s", CLOSE_IDLE,
                                     408) from None
             if isinstance(msg, FrameMsg):
-                metrics.frame("view", msg.mode, msg.refined, msg.times, msg.nbytes)
+                metrics.frame("view", msg.mode, msg.refined, msg.times, msg.nbytes, msg.batch)
 
         async def answer(msg: PickMsg) -> None:  # at once, between frames, on the current view (its step)
             s = session.state
