@@ -24,6 +24,9 @@ View session (``WS /v1/view``)
     Frames carry the volume's device memory and paging (``device``) when it changed.
     Bad input ends the session with an ``error`` message and a close code (``CLOSE_*``);
     non-fatal news (an encoding the server cannot make, so it sends jpeg) comes as ``notice``.
+    A ``settings`` message whose clip or coloring is bad (`NOTICED_SETTINGS`: 7 planes, a zero
+    normal, NaN, an unknown colour map, a field of another grid) is refused whole with a ``notice``
+    naming the field; the settings stay as they were and the session goes on.
     ``pick`` asks what lies under a pixel of the current view; ``picked`` answers it (the
     isosurface point, its voxel, physical position and value) between frames.
 
@@ -186,6 +189,16 @@ class ProtocolError(ValueError):
         self.http_status = http_status
 
 
+# The settings a live view refuses with a notice rather than an end: what users edit while exploring.
+NOTICED_SETTINGS = ("clip", "coloring")
+_NOTICED_PATH = re.compile(r"`\$\.settings\.(" + "|".join(NOTICED_SETTINGS) + r")\b")
+
+
+class SettingRefused(ProtocolError):
+    """A ``settings`` message refused for one of `NOTICED_SETTINGS`: a view session sends the reason
+    as a ``notice`` and keeps its settings (elsewhere it is the `ProtocolError` it derives from)."""
+
+
 class Limits(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """Bounds the server enforces (and announces in ``ready``); all configurable by `isosr serve`.
 
@@ -301,6 +314,17 @@ class ClipSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     def clip(self) -> Clip:
         """The renderer's clip."""
         return Clip(tuple((p.point, p.normal) for p in self.planes), self.box, self.cap)
+
+
+def clip_query(text: str) -> ClipSettings:
+    """`ClipSettings` from JSON text (the ``clip`` query parameter of ``GET /v1/volumes/NAME/mesh``, as
+    ``settings.clip`` spells it); `ProtocolError` naming the field."""
+    try:
+        return msgspec.json.decode(text, type=ClipSettings)
+    except msgspec.ValidationError as e:
+        raise ProtocolError(f"clip: {_relative(e)}"[:200]) from None
+    except msgspec.DecodeError as e:
+        raise ProtocolError(f"clip: not JSON: {e}"[:200]) from None
 
 
 class ColoringSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -998,7 +1022,7 @@ def parse(data: bytes, limits: Limits, expected: Mapping[str, type[Message]] | t
         reason = str(e)
         if reason.endswith("`$.type`") or reason == "Object missing required field `type`":
             reason = f"message type must be one of {', '.join(t.TYPE for t in types)}: {reason}"
-        raise ProtocolError(reason[:200]) from None
+        raise (SettingRefused if _NOTICED_PATH.search(reason) else ProtocolError)(reason[:200]) from None
     except (msgspec.DecodeError, ValueError) as e:  # not msgpack, truncated, trailing bytes, extension types
         raise ProtocolError(f"malformed msgpack: {e}"[:200]) from None
     except RecursionError:  # arrays / maps nested past msgspec's depth bound: the client's mistake, not a fault

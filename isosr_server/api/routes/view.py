@@ -18,9 +18,8 @@ from isosr_server.api.deps import AuthorizedDep, CatalogDep, EngineDep, LimitsDe
 from isosr_server.api.ws import accept, end_ws, rate_limiter, receive
 from isosr_server.engine import Engine
 from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, CLOSE_IDLE, VIDEO_ENCODINGS, FocusMsg, FrameMsg, Limits,
-                                   Message, NoticeMsg, OpenMsg, PickMsg, ProtocolError, ReadyMsg, SettingsMsg,
-                                   ViewSettings,
-                                   VolumeSummary, encode, parse)
+                                   Message, NoticeMsg, OpenMsg, PickMsg, ProtocolError, ReadyMsg, SettingRefused,
+                                   SettingsMsg, ViewSettings, VolumeSummary, encode, parse)
 from isosr_server.sessions import (DEFAULT_CAMERA, SessionCounter, StepView, ViewSession, ViewState, run_frames,
                                    to_camera, watch_acks)
 from isosr_server.video import SessionCoder
@@ -72,7 +71,7 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
             await send(await engine.call(engine.pick_sync, shown.renderer, s.camera, iso, s.settings, msg))
 
         tasks = [asyncio.create_task(run_frames(session, make, send)),
-                 asyncio.create_task(take_updates(ws, limiter, limits, session, answer, catalog, shown)),
+                 asyncio.create_task(take_updates(ws, limiter, limits, session, answer, send, catalog, shown)),
                  asyncio.create_task(watch_acks(session))]
         done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         for task in done:
@@ -90,18 +89,26 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
 
 
 async def take_updates(ws: WebSocket, limiter, limits: Limits, session: ViewSession,
-                       answer: Callable[[PickMsg], Awaitable[None]], catalog: VolumeCatalog, shown: StepView) -> None:
+                       answer: Callable[[PickMsg], Awaitable[None]], send: Callable[[Message], Awaitable[None]],
+                       catalog: VolumeCatalog, shown: StepView) -> None:
     """A view session's client messages, until the connection ends: picks answered (``answer``),
-    the rest applied to the session's state (a coloring's field volume resolved into ``shown``)."""
+    the rest applied to the session's state (a coloring's field volume resolved into ``shown``); a
+    `SettingRefused` answered with a notice (``send``), the settings kept."""
     while True:
-        msg = parse(await receive(ws, limiter, limits), limits, CLIENT_VIEW_MESSAGES)
+        data, field = await receive(ws, limiter, limits), shown.field
+        try:
+            msg = parse(data, limits, CLIENT_VIEW_MESSAGES)
+            if isinstance(msg, SettingsMsg) and msg.settings.coloring is not UNSET:  # its field resolved first
+                field = await coloring_field(catalog, session.state.settings.updated(msg.settings, limits),
+                                             session.volume)
+        except SettingRefused as e:
+            await send(NoticeMsg(f"settings refused, kept as they were: {e.reason}"[:1000]))
+            continue
         if isinstance(msg, PickMsg):
             await answer(msg)
         else:
-            if isinstance(msg, SettingsMsg) and msg.settings.coloring is not UNSET:  # its field resolved first
-                shown.field = await coloring_field(catalog, session.state.settings.updated(msg.settings, limits),
-                                                   session.volume)
             session.apply(msg)
+            shown.field = field
 
 
 async def open_view(ws: WebSocket, msg: OpenMsg, limits: Limits, catalog: VolumeCatalog,
