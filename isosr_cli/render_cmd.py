@@ -221,8 +221,6 @@ def run(args: argparse.Namespace) -> int:
     if args.ao_samples is None:
         args.ao_samples = AO_SAMPLES
     clip = clip_of(args)
-    if clip.active and args.budget_ms is not None:
-        raise ValueError("--budget-ms probes unclipped frames: clip with a plain render or a --method")
 
     volume = open_volume(args.volume) if args.time_step is None else _series_step(args.volume, args.time_step)
     iso = check_iso(volume, resolve_iso(args.volume, volume, args.iso, args.normalized_iso),
@@ -257,7 +255,7 @@ def run(args: argparse.Namespace) -> int:
         frame = renderer.render(camera, request)
     else:
         frame, choice = render_within_budget(renderer, camera, iso, *args.size, args.budget_ms,
-                                             BudgetConfig(ao_radius=args.ao_radius * unit))
+                                             BudgetConfig(ao_radius=args.ao_radius * unit, clip=clip))
         print(f"quality auto: {choice.summary()}")
         if out.suffix == ".png" and getattr(frame, shown) is None:
             raise ValueError(f"--png-of {shown}: the chosen method makes {', '.join(frame.present())}")
