@@ -143,9 +143,10 @@ def _cut_one(mesh: Mesh, distance: np.ndarray) -> Mesh:
     one = np.take_along_axis(one, (np.argmax(inside[one], axis=1)[:, None] + np.arange(3)) % 3, axis=1)
     two = np.take_along_axis(two, (np.argmin(inside[two], axis=1)[:, None] + np.arange(3)) % 3, axis=1)
     edges = np.concatenate([one[:, [0, 1]], one[:, [0, 2]], two[:, [1, 0]], two[:, [2, 0]]])  # (inside, outside)
-    unique, slot = np.unique(edges, axis=0, return_inverse=True)
-    slot = slot.reshape(-1) + len(mesh.vertices)
+    unique, inverse = np.unique(edges, axis=0, return_inverse=True)
     a, b = unique[:, 0], unique[:, 1]
+    # An edge whose inside end lies on the plane crosses at that vertex: no copy (its slivers are dropped).
+    slot = np.where(distance[a] == 0.0, a, len(mesh.vertices) + np.arange(len(unique)))[inverse.reshape(-1)]
     t = (distance[a] / (distance[a] - distance[b]))[:, None]
     vertices = np.concatenate([mesh.vertices, mesh.vertices[a] + t * (mesh.vertices[b] - mesh.vertices[a])])
     normals = mesh.normals[a] + t * (mesh.normals[b] - mesh.normals[a])
@@ -155,6 +156,7 @@ def _cut_one(mesh: Mesh, distance: np.ndarray) -> Mesh:
     e10, e20 = slot[2 * n1:2 * n1 + n2], slot[2 * n1 + n2:]
     kept = np.concatenate([faces[count == 3], np.stack([one[:, 0], e01, e02], axis=1),
                            np.stack([two[:, 1], two[:, 2], e20], axis=1), np.stack([two[:, 1], e20, e10], axis=1)])
+    kept = kept[(kept[:, 0] != kept[:, 1]) & (kept[:, 1] != kept[:, 2]) & (kept[:, 2] != kept[:, 0])]
     used, faces = np.unique(kept, return_inverse=True)
     return Mesh(vertices[used].astype(np.float32), faces.reshape(-1, 3).astype(np.int32),
                 normals[used].astype(np.float32))

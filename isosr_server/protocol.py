@@ -26,7 +26,8 @@ View session (``WS /v1/view``)
     non-fatal news (an encoding the server cannot make, so it sends jpeg) comes as ``notice``.
     A ``settings`` message whose clip or coloring is bad (`NOTICED_SETTINGS`: 7 planes, a zero
     normal, NaN, an unknown colour map, a field of another grid) is refused whole with a ``notice``
-    naming the field; the settings stay as they were and the session goes on.
+    naming the field; the settings stay as they were, the next frame (of them) acknowledges its
+    ``seq``, and the session goes on.
     ``pick`` asks what lies under a pixel of the current view; ``picked`` answers it (the
     isosurface point, its voxel, physical position and value) between frames.
 
@@ -196,7 +197,27 @@ _NOTICED_PATH = re.compile(r"`\$\.settings\.(" + "|".join(NOTICED_SETTINGS) + r"
 
 class SettingRefused(ProtocolError):
     """A ``settings`` message refused for one of `NOTICED_SETTINGS`: a view session sends the reason
-    as a ``notice`` and keeps its settings (elsewhere it is the `ProtocolError` it derives from)."""
+    as a ``notice`` and keeps its settings (elsewhere it is the `ProtocolError` it derives from);
+    ``seq``: the refused message's, where it had a valid one."""
+
+    def __init__(self, reason: str, close_code: int = CLOSE_BAD_MESSAGE, http_status: int = 400,
+                 seq: int | None = None):
+        super().__init__(reason, close_code, http_status)
+        self.seq = seq
+
+
+class _SeqOnly(msgspec.Struct):
+    """A message read for its ``seq`` alone (a refused one's, which the session acknowledges)."""
+
+    seq: Seq | None = None
+
+
+def _seq_of(data: bytes) -> int | None:
+    """The ``seq`` of a message that failed validation, if it has a valid one."""
+    try:
+        return msgspec.msgpack.decode(data, type=_SeqOnly, ext_hook=_no_ext).seq
+    except (msgspec.DecodeError, msgspec.ValidationError, ValueError):
+        return None
 
 
 class Limits(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -1022,7 +1043,9 @@ def parse(data: bytes, limits: Limits, expected: Mapping[str, type[Message]] | t
         reason = str(e)
         if reason.endswith("`$.type`") or reason == "Object missing required field `type`":
             reason = f"message type must be one of {', '.join(t.TYPE for t in types)}: {reason}"
-        raise (SettingRefused if _NOTICED_PATH.search(reason) else ProtocolError)(reason[:200]) from None
+        if _NOTICED_PATH.search(reason):
+            raise SettingRefused(reason[:200], seq=_seq_of(data)) from None
+        raise ProtocolError(reason[:200]) from None
     except (msgspec.DecodeError, ValueError) as e:  # not msgpack, truncated, trailing bytes, extension types
         raise ProtocolError(f"malformed msgpack: {e}"[:200]) from None
     except RecursionError:  # arrays / maps nested past msgspec's depth bound: the client's mistake, not a fault

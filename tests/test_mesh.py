@@ -11,7 +11,7 @@ import pytest
 from isosr_cli.main import main
 from isosr_render import Renderer, orbit
 from isosr_render.clip import Clip
-from isosr_render.mesh import MESH_FORMATS, extract_mesh, write_mesh
+from isosr_render.mesh import MESH_FORMATS, Mesh, _cut_one, extract_mesh, write_mesh
 from isosr_render.picking import pick
 from isosr_render.volume import Volume
 
@@ -116,6 +116,17 @@ def test_a_plane_through_the_centre_leaves_half_the_sphere_open(sphere):
     _, uses = np.unique(edges, axis=0, return_counts=True)
     assert set(uses) == {1, 2} and (uses == 1).sum() >= rim.sum() - 1
     assert np.allclose(np.linalg.norm(half.normals, axis=1), 1.0, atol=1e-5)
+
+
+def test_a_plane_through_vertices_cuts_there_without_slivers():
+    """A plane through mesh vertices (distance exactly 0) keeps them as they are: no copies, no
+    triangles of no area."""
+    square = Mesh(np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], np.float32), np.array([[0, 1, 2], [0, 2, 3]]),
+                  np.tile(np.array([[0, 0, 1]], np.float32), (4, 1)))
+    half = _cut_one(square, np.array([0.0, -1.0, 0.0, 1.0]))  # keeps x <= y: the diagonal 0-2 on the plane
+    assert half.faces.tolist() == [[0, 1, 2]] and half.vertices.tolist() == [[0, 0, 0], [1, 1, 0], [0, 1, 0]]
+    corner = _cut_one(square, np.array([0.0, -1.0, -1.0, -1.0]))  # only vertex 0 kept, on the plane
+    assert len(corner.faces) == 0
 
 
 def test_a_capped_cut_closes_the_half_sphere_with_a_disc(sphere):

@@ -149,8 +149,9 @@ def test_a_pick_honours_the_sessions_clip(srv, lib):
 
 def test_bad_clip_or_coloring_settings_get_a_notice_and_the_session_goes_on(srv):
     """Bad clip or coloring settings (7 planes, a zero normal, NaN, an unknown colour map, a field of
-    another grid) are refused whole with a notice naming the field: the settings stay (here a clip and
-    no AO, though each message also asks for AO rays) and the session goes on framing."""
+    another grid) are refused whole with a notice naming the field, then a frame that acknowledges
+    the message and shows the settings as they were (here a clip and no AO, though each message asks
+    for AO rays too); the session goes on."""
     plane = {"point": [0.0, 0.0, 0.0], "normal": [0.0, 0.0, 1.0]}
     bad = [({"clip": {"planes": [plane] * 7}}, "$.settings.clip.planes"),
            ({"clip": {"planes": [plane | {"normal": [0.0, 0.0, 0.0]}]}}, "clip.planes[0].normal must be a nonzero"),
@@ -162,17 +163,14 @@ def test_bad_clip_or_coloring_settings_get_a_notice_and_the_session_goes_on(srv)
         first = frame(ws)
         for seq, (update, words) in enumerate(bad, 1):
             ws.send(raw({"type": "settings", "settings": {"ao_rays": 4} | update, "seq": seq}))
-            while not isinstance(msg := recv(ws), P.NoticeMsg):
-                send(ws, P.ReceivedMsg(msg.seq))
-            assert words in msg.text and "kept as they were" in msg.text, msg.text
-        shown = []
-        for seq, yaw in ((10, 70.0), (11, 30.0)):  # away and back to the first frame's camera
-            send(ws, cam(yaw, seq=seq))
-            while (f := frame(ws)).ack < seq:
-                pass
-            shown.append(f)
-        assert shown[-1].method == first.method
-        np.testing.assert_array_equal(decode_image(shown[-1].image), decode_image(first.image))
+            notice = recv(ws)
+            assert isinstance(notice, P.NoticeMsg) and words in notice.text, notice
+            assert "kept as they were" in notice.text
+            again = frame(ws)
+            assert again.ack == seq and again.method == first.method
+            np.testing.assert_array_equal(decode_image(again.image), decode_image(first.image))
+        send(ws, cam(70.0, seq=10))
+        assert frame(ws).ack == 10
     with session(srv, mode="full") as (ws, _):  # the clip is visible: without it the frame differs
         assert not np.array_equal(decode_image(frame(ws).image), decode_image(first.image))
 

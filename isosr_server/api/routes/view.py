@@ -71,7 +71,7 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
             await send(await engine.call(engine.pick_sync, shown.renderer, s.camera, iso, s.settings, msg))
 
         tasks = [asyncio.create_task(run_frames(session, make, send)),
-                 asyncio.create_task(take_updates(ws, limiter, limits, session, answer, send, catalog, shown)),
+                 asyncio.create_task(take_updates(ws, limiter, limits, session, answer, catalog, shown)),
                  asyncio.create_task(watch_acks(session))]
         done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         for task in done:
@@ -89,20 +89,19 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
 
 
 async def take_updates(ws: WebSocket, limiter, limits: Limits, session: ViewSession,
-                       answer: Callable[[PickMsg], Awaitable[None]], send: Callable[[Message], Awaitable[None]],
-                       catalog: VolumeCatalog, shown: StepView) -> None:
+                       answer: Callable[[PickMsg], Awaitable[None]], catalog: VolumeCatalog, shown: StepView) -> None:
     """A view session's client messages, until the connection ends: picks answered (``answer``),
     the rest applied to the session's state (a coloring's field volume resolved into ``shown``); a
-    `SettingRefused` answered with a notice (``send``), the settings kept."""
+    `SettingRefused` leaves the state as it was (:meth:`ViewSession.refuse`)."""
     while True:
         data, field = await receive(ws, limiter, limits), shown.field
         try:
             msg = parse(data, limits, CLIENT_VIEW_MESSAGES)
             if isinstance(msg, SettingsMsg) and msg.settings.coloring is not UNSET:  # its field resolved first
                 field = await coloring_field(catalog, session.state.settings.updated(msg.settings, limits),
-                                             session.volume)
+                                             session.volume, msg.seq)
         except SettingRefused as e:
-            await send(NoticeMsg(f"settings refused, kept as they were: {e.reason}"[:1000]))
+            session.refuse(e)
             continue
         if isinstance(msg, PickMsg):
             await answer(msg)
