@@ -118,6 +118,16 @@ def test_a_plane_through_the_centre_leaves_half_the_sphere_open(sphere):
     assert np.allclose(np.linalg.norm(half.normals, axis=1), 1.0, atol=1e-5)
 
 
+def test_a_crop_box_keeps_the_surface_inside_it(sphere):
+    volume, iso, whole = sphere
+    scale, offset = volume.world_transform()
+    box = ((-0.5, -0.5, -0.5), (0.0, 0.5, 0.5))  # world x <= 0: half the sphere
+    cropped = extract_mesh(volume, iso, DEVICE, clip=Clip(box=box))
+    world = cropped.vertices.astype(np.float64) * (scale / np.asarray(SPACING)) + offset
+    assert world[:, 0].max() < 1e-6 and Clip(box=((-0.5,) * 3, (1e-6, 0.5, 0.5))).kept(world).all()
+    assert area_and_enclosed(cropped)[0] == pytest.approx(area_and_enclosed(whole)[0] / 2, rel=0.01)
+
+
 def test_a_plane_through_vertices_cuts_there_without_slivers():
     """A plane through mesh vertices (distance exactly 0) keeps them as they are: no copies, no
     triangles of no area."""
