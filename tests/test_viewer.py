@@ -355,7 +355,8 @@ def test_viewer_clip_plane_keys_and_handle(server, browser):
 def test_viewer_crop_box_handles(server, browser):
     """The crop box's handles: x's upper end at 0 keeps x <= 0 (half the torus goes); y's lower end dragged
     to its upper one leaves a box of no volume (nothing shown); back, the crop as before; whole again, the
-    torus whole. Each reaches the server and changes the image."""
+    torus whole. Each reaches the server and changes the image. A colouring the server refuses leaves
+    a notice and the session."""
     v = Viewer(browser, server, TOKEN)
     page = v.page
     set_control(page, "#mode", "full")
@@ -381,6 +382,12 @@ def test_viewer_crop_box_handles(server, browser):
     set_control(page, "#crop-x-hi", "0.5")
     assert page.inner_text("#crop-value") == ""
     assert difference(v.settle(n), plain) < 1.0
+    # A colouring the server refuses (no such volume): a notice naming it, the view as it was, frames going on.
+    n = v.frames()
+    set_control(page, "#color-by", "field")
+    set_control(page, "#color-field", "nowhere")
+    v.wait("document.getElementById('notice').textContent.includes('settings.coloring.by')")
+    assert difference(v.settle(n), plain) < 1.0 and page.get_attribute("#conn-state", "data-state") == "open"
     assert v.errors == [], v.errors
     page.close()
 
