@@ -391,8 +391,9 @@ class ViewSession:
         colour map, ``lo``, ``hi``). Returns the update's seq.
 
         Raises:
-            ProtocolError: an unknown colour map or a bad range, naming it (nothing is sent then); the
-                server refuses an unknown volume or another grid (the session ends with its reason).
+            ProtocolError: an unknown colour map or a bad range, naming it (nothing is sent then). The
+                server refuses an unknown volume or another grid with a notice naming it (:attr:`notices`,
+                and a warning) and a frame of the settings as they were; the session goes on.
         """
         coloring = None if by is None else {"by": by, "colormap": colormap,
                                             "range": None if range is None else _floats(range)}

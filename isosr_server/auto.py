@@ -4,8 +4,9 @@ With N view sessions and a target of F frames a second each, a frame gets ``1000
 device time; :func:`isosr_net.budget.choose_method` picks the method of the best expected quality
 whose probe time fits that budget less its headroom. The probe's quality scores are cached per
 volume, iso and size, and its timings per volume, iso, size and method, so a re-choice after N
-changes costs no new probe; a choice is cached per (volume, iso, size, AO radius, N). The probe
-runs on the session's current view (a still camera: the view to be shown).
+changes costs no new probe; a choice is cached per (volume, iso, size, AO radius, clip, N). The probe
+runs on the session's current view (a still camera: the view to be shown) as clipped (a clip
+changes what a frame costs and shows): its references and candidates are rendered with the clip.
 
 On GPUs with :data:`PROBE_BATCH` sessions or more, a candidate is timed as their frames are made
 under load, several sessions' at once (the frame methods' ``make_batch``: the reconstruction's
@@ -39,6 +40,7 @@ from isosr_net.budget import (BudgetChoice, BudgetConfig, CostTable, QualityProb
 from isosr_net.methods import FrameMethod, FrameRunner, Networks, make_runner
 from isosr_net.reconstructor import Reconstructor, recon_limits
 from isosr_render import Camera, Renderer
+from isosr_render.clip import Clip
 from isosr_render.atomic import atomic_write
 from isosr_render.camera import orbit_path
 from isosr_render.sequence import sequence_cameras
@@ -179,16 +181,17 @@ class AutoPolicy:
         return 1000.0 / (max(1, sessions) * self.target_fps)
 
     def choose(self, renderer: Renderer, scene: str, iso: float, width: int, height: int, camera: Camera,
-               sessions: int, ao_radius: float) -> BudgetChoice:
-        """The method for this scene, size and session count, at once (device thread): the probe's
-        choice where what probes learned decides it, else the prior while the probe waits in
-        :attr:`pending`."""
-        scene_key = (scene, round(float(iso), 6), width, height, float(ao_radius))
+               sessions: int, ao_radius: float, clip: Clip = Clip()) -> BudgetChoice:
+        """The method for this scene (as ``clip`` cuts it), size and session count, at once (device
+        thread): the probe's choice where what probes learned decides it, else the prior while the
+        probe waits in :attr:`pending`."""
+        cut = (repr(clip),) if clip.active else ()  # a clip's own probe; unclipped keys as before (the cache's)
+        scene_key = (scene, round(float(iso), 6), width, height, float(ao_radius)) + cut
         key = scene_key + (max(1, sessions),)
         if key in self._chosen:
             return self._chosen[key]
         if key not in self._probing:
-            probe = self._probe(renderer, scene_key, key, camera, self.budget_ms(sessions))
+            probe = self._probe(renderer, scene_key, key, camera, self.budget_ms(sessions), clip)
             try:
                 next(probe)
             except StopIteration as decided:  # earlier probes' results decide it: no device work
@@ -210,11 +213,11 @@ class AutoPolicy:
                             (0, 0), 0.0, ())
 
     def _probe(self, renderer: Renderer, scene_key: tuple, key: tuple, camera: Camera,
-               budget_ms: float) -> Generator[None, None, BudgetChoice]:
+               budget_ms: float, clip: Clip) -> Generator[None, None, BudgetChoice]:
         """The choice for ``key`` as device-thread steps (a failed probe keeps the prior, logged)."""
-        _, iso, width, height, ao_radius = scene_key
+        _, iso, width, height, ao_radius = scene_key[:5]
         batch = probe_batch(renderer, key[-1])
-        config = BudgetConfig(candidates=self.candidates, ao_radius=ao_radius, batch=batch, **PROBE)
+        config = BudgetConfig(candidates=self.candidates, ao_radius=ao_radius, batch=batch, clip=clip, **PROBE)
         cameras = [camera] * config.probe_frames
         if scene_key not in self._quality and (cached := self.cache.get(scene_key, self.candidates)):
             self._quality[scene_key], self._timings[scene_key] = cached
@@ -224,7 +227,7 @@ class AutoPolicy:
         try:
             if scene_key not in self._quality and self.costs is not None and scene_key not in self._first_hit:
                 self._first_hit[scene_key] = yield from first_hit_ms_steps(renderer, iso, width, height, camera,
-                                                                           ao_radius, self.networks)
+                                                                           ao_radius, self.networks, clip)
             if scene_key not in self._quality:
                 self._quality[scene_key] = yield from probe_quality_steps(renderer, iso, width, height, config,
                                                                           cameras, self.networks)

@@ -24,6 +24,10 @@ View session (``WS /v1/view``)
     Frames carry the volume's device memory and paging (``device``) when it changed.
     Bad input ends the session with an ``error`` message and a close code (``CLOSE_*``);
     non-fatal news (an encoding the server cannot make, so it sends jpeg) comes as ``notice``.
+    A ``settings`` message whose clip or coloring is bad (`NOTICED_SETTINGS`: 7 planes, a zero
+    normal, NaN, an unknown colour map, a field of another grid) is refused whole with a ``notice``
+    naming the field; the settings stay as they were, the next frame (of them) acknowledges its
+    ``seq``, and the session goes on.
     ``pick`` asks what lies under a pixel of the current view; ``picked`` answers it (the
     isosurface point, its voxel, physical position and value) between frames.
 
@@ -187,6 +191,36 @@ class ProtocolError(ValueError):
         self.http_status = http_status
 
 
+# The settings a live view refuses with a notice rather than an end: what users edit while exploring.
+NOTICED_SETTINGS = ("clip", "coloring")
+_NOTICED_PATH = re.compile(r"`\$\.settings\.(" + "|".join(NOTICED_SETTINGS) + r")\b")
+
+
+class SettingRefused(ProtocolError):
+    """A ``settings`` message refused for one of `NOTICED_SETTINGS`: a view session sends the reason
+    as a ``notice`` and keeps its settings (elsewhere it is the `ProtocolError` it derives from);
+    ``seq``: the refused message's, where it had a valid one."""
+
+    def __init__(self, reason: str, close_code: int = CLOSE_BAD_MESSAGE, http_status: int = 400,
+                 seq: int | None = None):
+        super().__init__(reason, close_code, http_status)
+        self.seq = seq
+
+
+class _SeqOnly(msgspec.Struct):
+    """A message read for its ``seq`` alone (a refused one's, which the session acknowledges)."""
+
+    seq: Seq | None = None
+
+
+def _seq_of(data: bytes) -> int | None:
+    """The ``seq`` of a message that failed validation, if it has a valid one."""
+    try:
+        return msgspec.msgpack.decode(data, type=_SeqOnly, ext_hook=_no_ext).seq
+    except (msgspec.DecodeError, msgspec.ValidationError, ValueError):
+        return None
+
+
 class Limits(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """Bounds the server enforces (and announces in ``ready``); all configurable by `isosr serve`.
 
@@ -302,6 +336,17 @@ class ClipSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     def clip(self) -> Clip:
         """The renderer's clip."""
         return Clip(tuple((p.point, p.normal) for p in self.planes), self.box, self.cap)
+
+
+def clip_query(text: str) -> ClipSettings:
+    """`ClipSettings` from JSON text (the ``clip`` query parameter of ``GET /v1/volumes/NAME/mesh``, as
+    ``settings.clip`` spells it); `ProtocolError` naming the field."""
+    try:
+        return msgspec.json.decode(text, type=ClipSettings)
+    except msgspec.ValidationError as e:
+        raise ProtocolError(f"clip: {_relative(e)}"[:200]) from None
+    except msgspec.DecodeError as e:
+        raise ProtocolError(f"clip: not JSON: {e}"[:200]) from None
 
 
 class ColoringSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -1002,6 +1047,8 @@ def parse(data: bytes, limits: Limits, expected: Mapping[str, type[Message]] | t
         reason = str(e)
         if reason.endswith("`$.type`") or reason == "Object missing required field `type`":
             reason = f"message type must be one of {', '.join(t.TYPE for t in types)}: {reason}"
+        if _NOTICED_PATH.search(reason):
+            raise SettingRefused(reason[:200], seq=_seq_of(data)) from None
         raise ProtocolError(reason[:200]) from None
     except (msgspec.DecodeError, ValueError) as e:  # not msgpack, truncated, trailing bytes, extension types
         raise ProtocolError(f"malformed msgpack: {e}"[:200]) from None

@@ -5,14 +5,17 @@ on loopback, plus the auto policy's caching on its own."""
 from __future__ import annotations
 
 import json
+import math
 import time
 
 import pytest
 
+from isosr_net import budget
 from isosr_net.budget import BudgetChoice, CostTable, default_candidates, method_key
 from isosr_net.methods import FrameMethod, Networks, finish_steps, make_runner, run_sequence
 from isosr_net.reconstructor import RECON_X2_MODEL
 from isosr_render import orbit
+from isosr_render.clip import Clip
 from isosr_render.images import to_uint8
 from isosr_server import protocol as P
 from isosr_server.auto import PROBE, AutoPolicy, ProbeCache, prior_method
@@ -99,6 +102,32 @@ def test_auto_policy_chooses_at_once_and_probes_in_the_background(lib, tmp_path)
     assert not later.pending, "a restarted server's policy reads what the probe learned"
     other = AutoPolicy.for_server(DEVICE, "fp32", 4, {}, 30.0, Networks(), cache=ProbeCache(cache, "another CPU"))
     assert other.choose(renderer, VOLUME, iso, 64, 48, cam, 1, 0.05).method == first.method and other.pending
+
+
+def test_auto_probes_the_clipped_scene_the_view_shows(lib, monkeypatch):
+    """A clip is part of the scene auto probes: a probe of its own, beside the unclipped scene's,
+    whose reference and every candidate it scores or times render clipped (here a clip that keeps
+    nothing: nothing to score, no AO to see, where the unclipped probe scores its candidates)."""
+    made = []
+
+    def spy(method, *args, **options):
+        made.append(options.get("clip", Clip()))
+        return make_runner(method, *args, **options)
+
+    monkeypatch.setattr(budget, "make_runner", spy)
+    policy = AutoPolicy((FrameMethod.of("full"), FrameMethod.of("full", ao_rays=2)), 30.0, Networks())
+    nothing = Clip(planes=(((0.0, 0.0, 0.9), (0.0, 0.0, 1.0)),))  # keeps z >= 0.9: beyond the volume
+    cam = orbit(30, 20, 1.8)
+    for clip in (Clip(), nothing):
+        policy.choose(lib.renderer, VOLUME, lib.iso, 64, 48, cam, 1, 0.05, clip)
+    assert len(policy.pending) == 2, "a probe per clip"
+    plain = finish_steps(policy.pending.pop(0))
+    assert not math.isnan(plain.expected_psnr) and set(made) == {Clip()}
+    made.clear()
+    cut = finish_steps(policy.pending.pop(0))
+    assert math.isnan(cut.expected_psnr) and math.isnan(cut.ao_effect_db) and not cut.ao_matters
+    assert made and set(made) == {nothing}, "every runner of the clipped probe clips"
+    assert policy.choose(lib.renderer, VOLUME, lib.iso, 64, 48, cam, 1, 0.05, nothing) is cut
 
 
 def test_before_its_probe_auto_takes_the_cost_tables_best_fit_for_the_scenes_first_hit(lib):

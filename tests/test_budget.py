@@ -138,6 +138,13 @@ def test_isosr_render_budget_ms_prints_the_choice_and_writes_its_frame(tmp_path,
 
     with np.load(out) as frame:
         assert frame["color"].shape == (64, 96, 3) and "ao" not in frame.files
+        whole = frame["mask"].sum()
+    # With a clip, the probe and the frame are clipped: a plane across x keeps less of the sphere.
+    assert cli(["render", "proc:sphere@32", "--size", "96x64", "--budget-ms", "1000", "--device", DEVICE,
+                "--clip-plane=0,0,0,-1,0,0", "-o", str(out)]) == 0
+    assert "quality auto:" in capsys.readouterr().out
+    with np.load(out) as frame:
+        assert 0 < frame["mask"].sum() < 0.8 * whole
     with pytest.raises(SystemExit) as refused:  # before the volume is opened
         cli(["render", "proc:sphere@32", "--size", "96x0", "--budget-ms", "10", "-o", str(out)])
     assert refused.value.code == 2 and "sides must be positive, got '96x0'" in capsys.readouterr().err

@@ -173,10 +173,12 @@ def test_colored_frames_equal_the_library(server, library):  # noqa: F811
     ref = renderer.render(orbit(**camera), RenderRequest(*SIZE, iso, ("mask", "normal"), coloring=field))
     assert (level_diff(image, plain) > 8).any()
     assert level_diff(image, to_uint8(shade(ref.mask, ref.normal, albedo=ref.albedo))).max() <= 1
-    with connect(server.url, VOLUME, "full", SIZE, settings=LOSSLESS) as view:
+    with connect(server.url, VOLUME, "full", SIZE, settings=LOSSLESS) as view:  # refused, the session goes on
+        before = view.frame()
         view.set_coloring("proc:sphere@16")
-        with pytest.raises(ServerError, match=r"\(16, 16, 16\), not the viewed volume's \(32, 32, 32\)"):
-            view.frame()
+        with pytest.warns(UserWarning, match=r"\(16, 16, 16\), not the viewed volume's \(32, 32, 32\)"):
+            after = view.latest()
+        assert view.latest().message.legend is None and np.array_equal(after.rgb(), before)
 
 
 def test_buffers_mode_upscaled_here_equals_network(server):  # noqa: F811

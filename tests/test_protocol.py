@@ -92,6 +92,29 @@ def test_bad_clip_settings_are_refused_naming_the_field(clip, match):
         P.ViewSettings().updated({"clip": clip}, LIMITS)
 
 
+def test_a_settings_message_refused_for_its_clip_or_coloring_is_a_setting_refused_with_its_seq():
+    """Clip and coloring are `NOTICED_SETTINGS` (a live view answers with a notice, not an end); other
+    bad settings, and a bad clip in another message, stay plain protocol errors."""
+    def parsed(message: dict, expected=P.CLIENT_VIEW_MESSAGES):
+        with pytest.raises(P.ProtocolError) as e:
+            P.parse(msgspec.msgpack.encode(message), LIMITS, expected)
+        return e.value
+
+    zero = {"planes": [{"point": [0, 0, 0], "normal": [0, 0, 0]}]}
+    refused = parsed({"type": "settings", "settings": {"clip": zero}, "seq": 7})
+    assert isinstance(refused, P.SettingRefused) and refused.seq == 7 and "nonzero vector" in refused.reason
+    colormap = parsed({"type": "settings", "settings": {"coloring": {"by": "x", "colormap": "jet"}}, "seq": -1})
+    assert isinstance(colormap, P.SettingRefused) and colormap.seq is None  # no valid seq to acknowledge
+    assert type(parsed({"type": "settings", "settings": {"width": 0}, "seq": 1})) is P.ProtocolError
+    assert type(parsed({"type": "camera", "yaw": "x", "seq": 1})) is P.ProtocolError
+    assert isinstance(parsed({"type": "open", "volume": "v", "settings": {"clip": zero}}, (P.OpenMsg,)),
+                      P.SettingRefused)  # a ProtocolError still: a bad open ends the session
+    with pytest.raises(P.ProtocolError, match=r"clip: Expected `array` of length <= 6 in `planes`"):
+        P.clip_query('{"planes": [' + ",".join(['{"point": [0, 0, 0], "normal": [0, 0, 1]}'] * 7) + "]}")
+    with pytest.raises(P.ProtocolError, match="clip: not JSON"):
+        P.clip_query("{planes")
+
+
 def test_clip_settings_are_the_renderers_clip():
     st = P.ViewSettings().updated({"clip": {"planes": [{"point": [0, 0, 0.1], "normal": [0, 0, -2]}],
                                             "box": [[-1, -1, -1], [1, 1, 1]], "cap": "above"}}, LIMITS)
