@@ -322,6 +322,7 @@ class Reconstructor(RecurrentNetwork):
         captures its own."""
         twin = super().own()
         twin._own_graphs()
+        twin._deferred = None  # its own checks, read at once until it defers them
         return twin
 
     def warm(self, sizes: Iterable[tuple[int, int]], ao_rays: int = 1, shading: ShadingParams | None = ShadingParams()
