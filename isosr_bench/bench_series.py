@@ -14,7 +14,9 @@ written as ``.npy`` files to a temporary folder and opened with :func:`isosr_ren
 step from the loader (:meth:`~isosr_render.series.VolumeSeries.step`, then ``prefetch`` of the next
 ones on its thread), a :class:`~isosr_render.Renderer` of it (the upload, one per step as the
 server's engine makes them) and one frame at a still camera through a
-:class:`~isosr_net.methods.FrameStream` (each step a cut: nothing of one step in the next). The
+:class:`~isosr_net.methods.FrameStream` (each step a cut: nothing of one step in the next), with
+the networks the service runs (:func:`isosr_server.engine.serving_network`: no CUDA graphs, which
+would be captured anew for each step's renderer). The
 first steps (compiling, capturing) are not timed; on CUDA each step ends in a synchronize. Rows,
 per case and method:
 
@@ -46,6 +48,7 @@ from isosr_net.inference import default_precision
 from isosr_net.methods import FrameMethod, FrameStream, Networks, parse_method
 from isosr_render import FrameBuffers, Renderer, orbit
 from isosr_render.series import VolumeSeries, open_series
+from isosr_server.engine import serving_network
 
 NAME = "bench_series"
 # name: (voxels a side, stored type)
@@ -194,7 +197,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         parser.error(f"--methods: {', '.join(unshaded)} make no color to score")
     methods = args.methods or [FrameMethod.of("reconstruct", ao_rays=1, precision=default_precision(args.device)),
                                FrameMethod.of("full", ao_rays=1)]
-    size, networks, rows = SMOKE_SIZE if args.smoke else SIZE, Networks(), []
+    size, networks, rows = SMOKE_SIZE if args.smoke else SIZE, Networks(serving_network), []
     for case in names:
         rows += case_rows(case, *cases[case], steps, methods, size, args.device, warmup, networks,
                           None if args.smoke else GOALS[case])
