@@ -126,7 +126,7 @@ def load(name: str, device: str) -> tuple[Volume, float]:
     return volume, e["otsu_iso_normalized"]
 
 
-def _finite(x: float) -> float | None:
+def finite(x: float) -> float | None:
     """JSON has no NaN: an undefined score is null."""
     return None if math.isnan(x) else x
 
@@ -147,8 +147,8 @@ def scores(frames: list, references: list, ao_rays: int = 0) -> dict:
         ao = f.ao if f.ao is not None else None if ao_rays else torch.ones_like(f.mask)
         per["ao_rmse"].append(float((ao - r.ao)[both].square().mean().sqrt()) if ao is not None and both.any()
                               else math.nan)
-    out = {k: _finite(torch.tensor(v, dtype=torch.float64).nanmean().item()) for k, v in per.items()}
-    out["flicker"] = _finite(flicker(frames, references)) if len(frames) > 1 else None
+    out = {k: finite(torch.tensor(v, dtype=torch.float64).nanmean().item()) for k, v in per.items()}
+    out["flicker"] = finite(flicker(frames, references)) if len(frames) > 1 else None
     return out
 
 
@@ -228,8 +228,8 @@ def budget_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
         auto = by_name[choice.method.name]
         out.append({"part": "budget", "volume": volume, "size": size_name, "pixels": f"{size[0]}x{size[1]}",
                     "budget_ms": budget, "method": choice.method.name, "learned": choice.method.learned,
-                    "fits": choice.fits, "probe_ms": choice.ms, "expected_psnr": _finite(choice.expected_psnr),
-                    "ao_effect_db": _finite(choice.ao_effect_db), "ao_matters": choice.ao_matters,
+                    "fits": choice.fits, "probe_ms": choice.ms, "expected_psnr": finite(choice.expected_psnr),
+                    "ao_effect_db": finite(choice.ao_effect_db), "ao_matters": choice.ao_matters,
                     "probe_seconds": choice.probe_seconds, "ms": auto["ms"], "color_psnr": auto["color_psnr"],
                     "best_fixed": best and best["method"], "best_fixed_ms": best and best["ms"],
                     "best_fixed_psnr": best and best["color_psnr"],

@@ -121,7 +121,7 @@ def case_row(mode: str, ao: int, result: dict) -> dict:
     row = {"mode": mode, "ao": ao, "sessions": result["sessions"], "errors": len(result["errors"])}
     if "frames" not in result:
         return row
-    row["methods"] = result["methods"]
+    row["methods"], row["batch_mean"] = result["methods"], result["batch_mean"]
     server = result["server_ms"]
     row.update(frames=result["frames"], fps=result["fps"], fps_per_session=result["fps_per_session"],
                latency_p50_ms=result["latency_p50_ms"], latency_p99_ms=result["latency_p99_ms"],

@@ -36,14 +36,15 @@ from isosr_net.train import TrainConfig
 
 
 def train_command(config: str, out: Path, steps: int | None, batch_size: int | None, seed: int,
-                  processes: int, data: str | None = None) -> list[str]:
+                  processes: int, data: str | None = None, compile_mode: str | None = None) -> list[str]:
     """`isosr train` for one run: a plain process, or ``processes`` under torchrun (``--standalone``:
     each run's rendezvous on a free port, so that concurrent runs do not meet)."""
     launcher = ([sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={processes}"]
                 if processes > 1 else [sys.executable])
     return [*launcher, "-m", "isosr_cli.main", "train", config, "--out", str(out), "--time-limit-minutes", "0",
             "--seed", str(seed), *(["--steps", str(steps)] if steps else []),
-            *(["--batch-size", str(batch_size)] if batch_size else []), *(["--data", data] if data else [])]
+            *(["--batch-size", str(batch_size)] if batch_size else []), *(["--data", data] if data else []),
+            *(["--compile", compile_mode] if compile_mode is not None else [])]
 
 
 def gpu_sets(counts: list[int], concurrent: bool, available: int) -> list[list[int]]:
@@ -80,6 +81,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--seeds", help="seeds, comma-separated: every count runs once per seed "
                         "(default: the config's)")
     parser.add_argument("--concurrent", action="store_true", help="start the runs together on disjoint GPUs")
+    parser.add_argument("--compile", help="every run's torch.compile mode of a step (TrainConfig.compile; "
+                                          "default: the config's)")
     parser.add_argument("--runs", type=Path, default=Path("runs/bench_train"), help="the runs' folders")
     args = parser.parse_args(argv)
     counts = [int(n) for n in args.gpus.split(",") if n]
@@ -95,11 +98,13 @@ def main(argv: list[str] | None = None) -> list[dict]:
     except ValueError as e:
         parser.error(str(e))
     jobs = [start_run(args, n, seed, gpus if cuda else []) for (n, seed), gpus in zip(runs, sets)]
-    rows = [dict(finish_run(*job), seed=seed, concurrent=args.concurrent, config=args.config)
+    mode = config.compile if args.compile is None else args.compile
+    rows = [dict(finish_run(*job), seed=seed, concurrent=args.concurrent, config=args.config, compile=mode)
             for job, (_, seed) in zip(jobs, runs)]
     rows = with_other_seeds(args.out / f"bench_train_{'cuda' if cuda else 'cpu'}.json", rows)
     for r in rows:
-        base = next(b for b in rows if b["processes"] == 1 and b["seed"] == r["seed"])
+        base = next(b for b in rows if b["processes"] == 1 and (b["seed"], b.get("compile", "")) ==
+                    (r["seed"], r.get("compile", "")))
         r["speedup"] = base["ms_per_step"] / r["ms_per_step"]
         r["efficiency"] = r["speedup"] / r["processes"]
         psnrs = [o["val_color_psnr"] for o in rows if o["processes"] == r["processes"]]
@@ -111,12 +116,12 @@ def main(argv: list[str] | None = None) -> list[dict]:
 
 
 def with_other_seeds(path: Path, rows: list[dict]) -> list[dict]:
-    """``rows`` after the rows of the result at ``path`` for the same study (config, steps and
-    batch) and other seeds, each with its own device and commit: seeds may run in separate calls."""
-    same = {(r["config"], r["steps"], r["batch_size"]) for r in rows}
-    seeds = {r["seed"] for r in rows}
-    return kept_rows(path, lambda r: (r.get("config"), r["steps"], r["batch_size"]) in same and r["seed"] not in seeds,
-                     stamp=("device", "commit")) + rows
+    """``rows`` after the rows of the result at ``path`` for the same study (config, steps, batch and
+    compile mode) and other seeds, each with its own device and commit: seeds may run in separate calls."""
+    def study(r: dict) -> tuple:
+        return r.get("config"), r["steps"], r["batch_size"], r.get("compile", "")
+    same, seeds = {study(r) for r in rows}, {r["seed"] for r in rows}
+    return kept_rows(path, lambda r: study(r) in same and r["seed"] not in seeds, stamp=("device", "commit")) + rows
 
 
 def start_run(args, processes: int, seed: int, gpus: list[int]) -> tuple:
@@ -127,7 +132,8 @@ def start_run(args, processes: int, seed: int, gpus: list[int]) -> tuple:
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     if gpus:
         env["CUDA_VISIBLE_DEVICES"] = ",".join(map(str, gpus))
-    command = [*train_command(args.config, out, args.steps, args.batch_size, seed, processes, args.data),
+    command = [*train_command(args.config, out, args.steps, args.batch_size, seed, processes, args.data,
+                              args.compile),
                "--device", args.device.split(":")[0]]
     with open(out / "train.log", "w") as log:
         process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env)

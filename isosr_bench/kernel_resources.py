@@ -16,14 +16,13 @@ cubin's ``.nv.info`` attributes (ELF64): ``registers`` (EIATTR_REGCOUNT) and ``s
 from __future__ import annotations
 
 import argparse
-import importlib
 import struct
 import tempfile
 from pathlib import Path
 
-# The renderer's Warp modules.
-RENDER_MODULES = ("isosr_render.kernels", "isosr_render.kernels.clipped", "isosr_render.kernels.surfaces",
-                  "isosr_render.kernels.clipped_surfaces")
+from isosr_net.warp_modules import warp_module
+from isosr_render.kernels import RENDER_MODULES
+
 EIATTR = {0x2F: "registers", 0x12: "stack"}
 EIFMT_SVAL = 0x04  # a record with a 16-bit size and that many bytes; the other formats take 4 bytes in all
 
@@ -83,17 +82,8 @@ def module_resources(module: str, arch: int = 90) -> dict[str, dict[str, int]]:
     import warp as wp
 
     wp.init()
-    parent = module
-    while True:  # import the Python module that defines it
-        try:
-            importlib.import_module(parent)
-            break
-        except ModuleNotFoundError:
-            if "." not in parent:
-                raise
-            parent = parent.rsplit(".", 1)[0]
     with tempfile.TemporaryDirectory() as out:
-        wp.compile_aot_module(module, arch=arch, module_dir=out, use_ptx=False)
+        wp.compile_aot_module(warp_module(module), arch=arch, module_dir=out, use_ptx=False)
         found = {}
         for cubin in Path(out).glob("*.cubin"):
             found.update(cubin_resources(cubin.read_bytes()))

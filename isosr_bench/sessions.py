@@ -32,8 +32,9 @@ def run_sessions(url: str, volume: str, sessions: int, seconds: float, mode: str
 
     Returns:
         `isosr_client.drive.summarize` of all frames with ``fps`` summed over the sessions,
-        plus ``fps_per_session``, ``errors`` (exception texts), ``sessions``, the ``methods`` and
-        the ``replicas`` (``isosr serve --replicas``) that made the frames.
+        plus ``fps_per_session``, ``errors`` (exception texts), ``sessions``, the ``methods``, the
+        frames' mean ``batch`` (frames the server made together) as ``batch_mean``, and the
+        ``replicas`` (``isosr serve --replicas``) that made the frames.
     """
     processes = max(1, min(processes, sessions))
     job = (url, volume, sessions, seconds, mode, size, settings, focus, warmup_frames, max_frames)
@@ -64,6 +65,7 @@ def run_sessions(url: str, volume: str, sessions: int, seconds: float, mode: str
     per_session_fps = [len(s) / b for s, b in zip(stats, busy) if b > 0]
     result.update(sessions=sessions, errors=errors, fps=float(sum(per_session_fps)),
                   fps_per_session=float(np.mean(per_session_fps)), methods=sorted({s.method for s in frames}),
+                  batch_mean=float(np.mean([s.batch for s in frames])),
                   replicas=sorted({s.replica for s in frames if s.replica is not None}))
     return result
 

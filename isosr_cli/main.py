@@ -17,7 +17,7 @@ SERVER_COMMANDS = ("serve", "client")
 def build_parser() -> argparse.ArgumentParser:
     """The parser with every subcommand; without the `server` extra, ``serve`` and ``client`` only
     say how to install it (rendering and training need none of it)."""
-    from isosr_cli import bench_cmd, demo_cmd, mesh_cmd, net_cmds, render_cmd
+    from isosr_cli import bench_cmd, demo_cmd, kernels_cmd, mesh_cmd, net_cmds, render_cmd
     from isosr_render.formats import help_text
 
     parser = argparse.ArgumentParser(prog="isosr", description="Isosurface rendering with learned super-resolution.",
@@ -28,6 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
     net_cmds.add_parsers(subparsers)
     demo_cmd.add_parser(subparsers)
     bench_cmd.add_parser(subparsers)
+    kernels_cmd.add_parser(subparsers)
     try:
         from isosr_cli import client_cmd, serve_cmd
     except ModuleNotFoundError as e:

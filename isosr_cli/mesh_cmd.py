@@ -6,6 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
+from isosr_cli.options import add_clip_options, clip_of
 from isosr_render import open_volume, resolve_iso
 from isosr_render.catalog import SHARED_PREFIX, check_iso
 from isosr_render.formats import help_text
@@ -27,6 +28,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--device", default="cpu", help="where marching cubes runs: cpu, cuda or cuda:N")
     p.add_argument("--max-triangles", type=int, default=MAX_MESH_TRIANGLES, help="refuse larger surfaces")
     p.add_argument("--max-voxels", type=int, default=MAX_MESH_VOXELS, help="refuse larger volumes")
+    add_clip_options(p)
     p.add_argument("-o", "--output", required=True,
                    help=f"the mesh file, {', '.join(MESH_FORMATS)} (physical units, vertex normals)")
     p.set_defaults(func=run)
@@ -41,9 +43,11 @@ def run(args: argparse.Namespace) -> int:
     iso = check_iso(volume, resolve_iso(args.volume, volume, args.iso, args.normalized_iso),
                     args.volume.removeprefix(SHARED_PREFIX))
     start = time.perf_counter()
-    mesh = extract_mesh(volume, iso, args.device, args.max_voxels, args.max_triangles)
+    clip = clip_of(args)
+    mesh = extract_mesh(volume, iso, args.device, args.max_voxels, args.max_triangles, clip)
     if len(mesh.faces) == 0:
-        raise ValueError(f"the iso {iso:.4f} (normalized) crosses no voxel cell of {volume.name}: no surface")
+        kept = " in the clip's kept region" if clip.active else ""
+        raise ValueError(f"the iso {iso:.4f} (normalized) has no surface{kept} in {volume.name}")
     write_mesh(mesh, out)
     lo, hi = volume.value_range
     print(f"{volume.name}: iso {lo + iso * (hi - lo):g}, {len(mesh.vertices):,} vertices, {len(mesh.faces):,} "

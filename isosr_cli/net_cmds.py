@@ -36,6 +36,8 @@ def add_parsers(subparsers) -> None:
     p.add_argument("--device", help="override the device")
     p.add_argument("--time-limit-minutes", type=float, help="stop, validated and saved, after this long")
     p.add_argument("--upscale", type=int, help="override the model's upscale factor")
+    p.add_argument("--compile", help="override the torch.compile mode of a step (default, "
+                                     "max-autotune-no-cudagraphs; '' none)")
     p.set_defaults(func=run_train)
 
     p = subparsers.add_parser("eval", help="score the network against nearest/bilinear/bicubic per volume")
@@ -79,7 +81,8 @@ def run_train(args: argparse.Namespace) -> int:
     from isosr_net.train import Trainer, TrainConfig
 
     config = load_config(TrainConfig, args.config, data=args.data, out=args.out, steps=args.steps, seed=args.seed,
-                         batch_size=args.batch_size, device=args.device, time_limit_minutes=args.time_limit_minutes)
+                         batch_size=args.batch_size, device=args.device, time_limit_minutes=args.time_limit_minutes,
+                         compile=args.compile)
     if args.upscale is not None:
         config = dataclasses.replace(config, model={**config.model, "upscale": args.upscale})
     trainer = Trainer(config)

@@ -17,7 +17,7 @@ from pathlib import Path
 import torch
 
 from isosr_cli.images import visualize, write_png
-from isosr_cli.options import frame_size
+from isosr_cli.options import add_clip_options, clip_of, frame_size, numbers
 from isosr_net.budget import BudgetConfig, render_within_budget
 from isosr_net.methods import (
     RUNNERS,
@@ -38,7 +38,6 @@ from isosr_render import (
     resolve_iso,
 )
 from isosr_render.catalog import SHARED_PREFIX, check_iso
-from isosr_render.clip import CAP_MODES, Clip
 from isosr_render.color_field import ColorField
 from isosr_render.coloring import COLORMAPS, GRADIENT, Coloring
 from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES
@@ -84,7 +83,7 @@ def add_parser(subparsers) -> None:
                         f"volume's own, else Otsu's threshold); repeat it for up to {MAX_SURFACES} surfaces shown "
                         "together, each ray stopping at the nearest")
     p.add_argument("--normalized-iso", action="store_true", help="--iso is on the normalized [0, 1] scale")
-    p.add_argument("--iso-color", type=_numbers(3), action="append", default=[], metavar="R,G,B",
+    p.add_argument("--iso-color", type=numbers(3), action="append", default=[], metavar="R,G,B",
                    help="the colour (each in [0, 1]) of the --iso of the same place; none: a palette in turn")
     p.add_argument("--iso-opacity", type=float, action="append", default=[], metavar="A",
                    help="the opacity in [0, 1] of the --iso of the same place (default 1); below 1 the rays go on "
@@ -98,21 +97,13 @@ def add_parser(subparsers) -> None:
     cam.add_argument("--orbit", type=_triple, help="YAW,PITCH,DIST around --target instead of --eye")
     cam.add_argument("--prev-eye", type=_triple, help="previous camera position, for flow")
     cam.add_argument("--prev-orbit", type=_triple, help="previous camera as YAW,PITCH,DIST, for flow")
-    cut = p.add_argument_group("clipping (world units)")
-    cut.add_argument("--clip-plane", type=_numbers(6), action="append", default=[], metavar="X,Y,Z,NX,NY,NZ",
-                     help="a clip plane through X,Y,Z keeping the side its normal NX,NY,NZ points into (repeatable; "
-                          "values starting with '-' go as --clip-plane=-0.1,...)")
-    cut.add_argument("--crop-box", type=_numbers(6), metavar="X0,Y0,Z0,X1,Y1,Z1",
-                     help="keep only this box (negative values: --crop-box=-0.5,...)")
-    cut.add_argument("--cap", choices=CAP_MODES, default="none",
-                     help="show the cut faces where they cut the solid, the values at or above the iso ('above', "
-                          "as bone in a CT) or below it (as inside a signed distance), in grey by the volume's value")
+    add_clip_options(p)
     paint = p.add_argument_group("colour by a field")
     paint.add_argument("--color-by", metavar="FIELD|gradient",
                        help="colour the surface by another volume of the same grid (a path or procedural spec) or by "
                             "the volume's gradient magnitude; the frame gets an albedo buffer")
     paint.add_argument("--colormap", choices=COLORMAPS, default="viridis", help="the colour map of --color-by")
-    paint.add_argument("--color-range", type=_numbers(2), metavar="LO,HI",
+    paint.add_argument("--color-range", type=numbers(2), metavar="LO,HI",
                        help="the values mapped to the colour map's ends (default: the field's range)")
     p.add_argument("--outputs", default="mask,normal,depth,color",
                    help=f"comma-separated buffers: {','.join(BUFFER_NAMES)},samples")
@@ -149,25 +140,6 @@ def add_parser(subparsers) -> None:
     p.add_argument("--png-of", choices=BUFFER_NAMES, help="with a .png output: the buffer to show")
     p.add_argument("-o", "--output", help="FILE.npz (frame file) or FILE.png (required but with --list-methods)")
     p.set_defaults(func=run)
-
-
-def _numbers(count: int):
-    """An argparse type: ``count`` comma-separated numbers."""
-    def parse(text: str) -> tuple[float, ...]:
-        try:
-            values = tuple(float(v) for v in text.split(","))
-        except ValueError:
-            values = ()
-        if len(values) != count:
-            raise argparse.ArgumentTypeError(f"expected {count} comma-separated numbers, got {text!r}")
-        return values
-    return parse
-
-
-def _clip(args: argparse.Namespace) -> Clip:
-    """The clip of --clip-plane, --crop-box and --cap."""
-    box = None if args.crop_box is None else (args.crop_box[:3], args.crop_box[3:])
-    return Clip(tuple((p[:3], p[3:]) for p in args.clip_plane), box, args.cap)
 
 
 def _surfaces(args: argparse.Namespace, volume, label: str) -> tuple[float, Surfaces | None]:
@@ -272,9 +244,7 @@ def run(args: argparse.Namespace) -> int:
     _check_method(args)
     if args.ao_samples is None:
         args.ao_samples = AO_SAMPLES
-    clip = _clip(args)
-    if clip.active and args.budget_ms is not None:
-        raise ValueError("--budget-ms probes unclipped frames: clip with a plain render or a --method")
+    clip = clip_of(args)
 
     volume = open_volume(args.volume) if args.time_step is None else _series_step(args.volume, args.time_step)
     iso, surfaces = _surfaces(args, volume, args.volume.removeprefix(SHARED_PREFIX))
@@ -310,7 +280,7 @@ def run(args: argparse.Namespace) -> int:
         frame = renderer.render(camera, request)
     else:
         frame, choice = render_within_budget(renderer, camera, iso, *args.size, args.budget_ms,
-                                             BudgetConfig(ao_radius=args.ao_radius * unit))
+                                             BudgetConfig(ao_radius=args.ao_radius * unit, clip=clip))
         print(f"quality auto: {choice.summary()}")
         if out.suffix == ".png" and getattr(frame, shown) is None:
             raise ValueError(f"--png-of {shown}: the chosen method makes {', '.join(frame.present())}")

@@ -16,7 +16,7 @@ from __future__ import annotations
 import argparse
 import logging
 
-from isosr_server.core.config import Settings, add_arguments
+from isosr_server.core.config import Settings, add_arguments, check_replica_exposure
 
 
 # `isosr serve`'s flags beyond `Settings`: the shape of a multi-replica deployment (isosr_server.cluster).
@@ -30,6 +30,9 @@ REPLICA_FLAGS: dict[str, dict] = {
     "--gpus-per-replica": dict(type=float, default=0.0, help="each replica's GPU share, e.g. 1 or 0.5 (needs "
                                                              "--device cuda; default: 0)"),
     "--ray-address": dict(help="join this Ray cluster (e.g. auto, or HEAD_IP:6379; default: start a local one)"),
+    "--behind-proxy": dict(action="store_true", help="with a --host beyond loopback: Ray Serve's proxy is reached "
+                                                     "only through a reverse proxy that bounds headers, TLS handshakes, "
+                                                     "connections and WebSocket frames (docs/serving.md)"),
 }
 
 
@@ -53,14 +56,18 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if args.replicas is not None:
         try:
+            check_replica_exposure(settings.host, args.behind_proxy)
+        except ValueError as e:
+            raise SystemExit(str(e)) from None
+        try:
             from isosr_server.cluster import serve_replicas
         except ImportError as e:
             raise SystemExit(f"--replicas needs Ray Serve: pip install 'isosr[cluster]' ({e})") from None
         serve_replicas(settings, args.replicas, args.gpus_per_replica, args.ray_address, args.max_replicas,
                        args.sessions_per_replica)
         return 0
-    if args.gpus_per_replica or args.ray_address or args.max_replicas:
-        raise SystemExit("--gpus-per-replica, --ray-address and --max-replicas go with --replicas N")
+    if args.gpus_per_replica or args.ray_address or args.max_replicas or args.behind_proxy:
+        raise SystemExit("--gpus-per-replica, --ray-address, --max-replicas and --behind-proxy go with --replicas N")
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level=settings.log_level,
                 access_log=settings.log_level == "debug", **uvicorn_options(settings.limits, settings.tls_context()))
     return 0

@@ -191,6 +191,7 @@ class FrameStats:
         encoding: the frame's encoding; ``keyframe``, ``bitrate_kbps``: a video frame's.
         device: the volume's device memory and paging on the server, as of this frame (frames
             carry it when it changed; :class:`isosr_server.protocol.VolumeMemory`).
+        batch: the frames the server made together with this one, itself included (1: alone).
     """
 
     seq: int
@@ -208,6 +209,7 @@ class FrameStats:
     keyframe: bool = True
     bitrate_kbps: int = 0
     device: VolumeMemory | None = None
+    batch: int = 1
 
 
 @dataclass
@@ -389,8 +391,9 @@ class ViewSession:
         colour map, ``lo``, ``hi``). Returns the update's seq.
 
         Raises:
-            ProtocolError: an unknown colour map or a bad range, naming it (nothing is sent then); the
-                server refuses an unknown volume or another grid (the session ends with its reason).
+            ProtocolError: an unknown colour map or a bad range, naming it (nothing is sent then). The
+                server refuses an unknown volume or another grid with a notice naming it (:attr:`notices`,
+                and a warning) and a frame of the settings as they were; the session goes on.
         """
         coloring = None if by is None else {"by": by, "colormap": colormap,
                                             "range": None if range is None else _floats(range)}
@@ -510,7 +513,8 @@ class ViewSession:
         self.volume_memory = msg.device or self.volume_memory
         stats = FrameStats(msg.seq, msg.ack, msg.mode, msg.method, msg.refined, 1e3 * (arrived - sent), msg.nbytes,
                            len(data), dict(msg.times), replica=self.replica, encoding=msg.encoding,
-                           keyframe=msg.keyframe, bitrate_kbps=msg.bitrate_kbps, device=self.volume_memory)
+                           keyframe=msg.keyframe, bitrate_kbps=msg.bitrate_kbps, device=self.volume_memory,
+                           batch=msg.batch)
         frame = ViewFrame(msg, stats)
         if msg.encoding in VIDEO_ENCODINGS:
             self._decode_video(frame)

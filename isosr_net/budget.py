@@ -61,6 +61,7 @@ from pathlib import Path
 import torch
 
 from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest, orbit_path
+from isosr_render.clip import Clip
 from isosr_render.sequence import sequence_cameras
 from isosr_render.shading import ShadingParams, shade
 from isosr_render.conventions import AO_RADIUS
@@ -122,6 +123,11 @@ class BudgetConfig:
             where the host's work per frame can exceed the GPU's).
         ao_radius: AO ray length, world units.
         shading: material and light.
+        batch: streams a candidate's timed frames are made for at once, by its kind's ``make_batch``
+            (a frame's time: their batch's wall time over ``batch``): what a frame costs a service
+            that makes many sessions' frames together; 1: each frame alone.
+        clip: the scene's clip planes, crop box and caps: references and candidates are rendered,
+            scored and timed clipped (a clip changes what a frame costs and shows).
     """
 
     candidates: tuple[FrameMethod, ...] | None = None
@@ -135,9 +141,11 @@ class BudgetConfig:
     clock: str = "device"
     ao_radius: float = AO_RADIUS
     shading: ShadingParams = field(default_factory=ShadingParams)
+    batch: int = 1
+    clip: Clip = field(default_factory=Clip)
 
     def __post_init__(self):
-        for name, low in (("probe_frames", 1), ("warmup_frames", 0), ("timing_frames", 1)):
+        for name, low in (("probe_frames", 1), ("warmup_frames", 0), ("timing_frames", 1), ("batch", 1)):
             check_int(getattr(self, name), name, low, where="BudgetConfig")
         if self.probe_height is not None:
             check_int(self.probe_height, "probe_height", 16, where="BudgetConfig")
@@ -297,27 +305,31 @@ def _check_size_and_budget(width: int, height: int, budget_ms: float) -> None:
 
 def reference_frames(renderer: Renderer, iso: float, size: tuple[int, int], cameras: list[Camera],
                      ao_radius: float = AO_RADIUS, shading: ShadingParams = ShadingParams(),
-                     flow: bool = False) -> list[FrameBuffers]:
+                     flow: bool = False, clip: Clip = Clip()) -> list[FrameBuffers]:
     """High-effort reference frames along a camera path: mask, normal, AO (4 rays per pixel, 512
-    AO rays, the reference's own AO seed) and color with AO; with ``flow``, each frame's flow from
-    the previous camera too (zeros for the first).
+    AO rays, the reference's own AO seed) and color with AO, cut by ``clip`` (its cut faces shaded
+    as the methods shade them); with ``flow``, each frame's flow from the previous camera too
+    (zeros for the first).
 
     Shape:
         Per frame: mask, ao (H, W); normal, color (H, W, 3); flow (H, W, 2).
     """
-    return finish_steps(reference_frames_steps(renderer, iso, size, cameras, ao_radius, shading, flow))
+    return finish_steps(reference_frames_steps(renderer, iso, size, cameras, ao_radius, shading, flow, clip=clip))
 
 
 def reference_frames_steps(renderer: Renderer, iso: float, size: tuple[int, int], cameras: list[Camera],
                            ao_radius: float = AO_RADIUS, shading: ShadingParams = ShadingParams(),
-                           flow: bool = False, bands: int = 1) -> Generator[None, None, list[FrameBuffers]]:
+                           flow: bool = False, bands: int = 1,
+                           clip: Clip = Clip()) -> Generator[None, None, list[FrameBuffers]]:
     """:func:`reference_frames` in ``bands`` row bands per frame, yielding between them (a band's
     pixels are the whole frame's, bit for bit: each pixel's rays depend on its index alone)."""
     frames = []
     for camera, prev in sequence_cameras(cameras):
-        outputs = ("mask", "normal", "ao") + (("flow",) if flow and prev is not None else ())
+        outputs = (("mask", "normal", "ao") + (("flow",) if flow and prev is not None else ())
+                   + (("cap",) if clip.capped else ()))
         request = RenderRequest(*size, iso, outputs, spp=REFERENCE_SPP, ao_samples=REFERENCE_AO_RAYS,
-                                ao_radius=ao_radius, seed=REFERENCE_SEED, prev_camera=prev if flow else None)
+                                ao_radius=ao_radius, seed=REFERENCE_SEED, prev_camera=prev if flow else None,
+                                clip=clip)
         edges = [round(size[1] * k / bands) for k in range(bands + 1)]
         ref = None
         for start, stop in zip(edges, edges[1:]):
@@ -329,7 +341,7 @@ def reference_frames_steps(renderer: Renderer, iso: float, size: tuple[int, int]
                     getattr(ref, name)[start:stop] = getattr(band, name)[start:stop]
             if stop < size[1]:
                 yield
-        ref.color = shade(ref.mask, ref.normal, ref.ao, shading)
+        ref.color = shade(ref.mask, ref.normal, ref.ao, shading, cap=ref.cap)
         if flow and ref.flow is None:
             ref.flow = torch.zeros(*ref.mask.shape, 2, device=ref.mask.device)
         frames.append(ref)
@@ -353,7 +365,7 @@ def ao_effect_db(references: list[FrameBuffers], shading: ShadingParams = Shadin
     region, averaged over frames; NaN if nothing is covered."""
     scores = []
     for ref in references:
-        bare = FrameBuffers(mask=ref.mask, color=shade(ref.mask, ref.normal, None, shading))
+        bare = FrameBuffers(mask=ref.mask, color=shade(ref.mask, ref.normal, None, shading, cap=ref.cap))
         scores.append(color_psnr(bare, ref))
     return _nanmean(scores)
 
@@ -374,10 +386,12 @@ def _frame_ms(runner: FrameRunner, camera: Camera, prev: Camera | None, clock: s
 
 
 def first_hit_ms_steps(renderer: Renderer, iso: float, width: int, height: int, camera: Camera,
-                       ao_radius: float = AO_RADIUS, networks: Networks | None = None) -> Generator[None, None, float]:
-    """The wall time (ms) of a plain first-hit frame (``full``, no AO) of this scene and size after a
-    warm-up frame, a frame a unit: the unit a :class:`CostTable`'s costs are in."""
-    runner = make_runner(FrameMethod.of("full"), renderer, iso, width, height, ao_radius=ao_radius, networks=networks)
+                       ao_radius: float = AO_RADIUS, networks: Networks | None = None,
+                       clip: Clip = Clip()) -> Generator[None, None, float]:
+    """The wall time (ms) of a plain first-hit frame (``full``, no AO) of this scene (cut by ``clip``)
+    and size after a warm-up frame, a frame a unit: the unit a :class:`CostTable`'s costs are in."""
+    runner = make_runner(FrameMethod.of("full"), renderer, iso, width, height, ao_radius=ao_radius, networks=networks,
+                         clip=clip)
     yield
     runner.frame(camera)
     yield
@@ -427,6 +441,28 @@ def _time_candidate_steps(runner: FrameRunner, cameras: list[Camera], config: Bu
         if times[-1] > OVER_BUDGET_STOP * budget_ms:
             break
     return sum(times) / len(times)
+
+
+def _time_batch_steps(runners: list[FrameRunner], cameras: list[Camera],
+                      config: BudgetConfig) -> Generator[None, None, float]:
+    """Mean wall time of a frame made with ``len(runners)`` streams' at once (their kind's
+    ``make_batch``, each stream along ``cameras``, cycled): a batch's time over its frames, after a
+    warm-up batch. Yields before each batch.
+
+    Raises:
+        Exception: a stream's frame failed (the candidate cannot be timed).
+    """
+    pairs, kind, times = sequence_cameras(cameras), type(runners[0]), []
+    for i in range(1 + config.timing_frames):
+        yield
+        camera, prev = pairs[i % len(pairs)]
+        start = time.perf_counter()
+        results = kind.make_batch([(runner, camera, prev) for runner in runners])
+        ms = _synced_ms(runners[0], start) / len(runners)
+        if (failed := next((r for r in results if isinstance(r, Exception)), None)) is not None:
+            raise failed
+        times.append(ms)
+    return sum(times[1:]) / config.timing_frames
 
 
 @dataclass(frozen=True)
@@ -481,7 +517,7 @@ def probe_quality_steps(renderer: Renderer, iso: float, width: int, height: int,
     yield
     bands = 1 if renderer.device.is_cuda else REFERENCE_BANDS_CPU
     references = yield from reference_frames_steps(renderer, iso, size, cameras, config.ao_radius, config.shading,
-                                                   bands=bands)
+                                                   bands=bands, clip=config.clip)
     effect = ao_effect_db(references, config.shading)
     ao_matters = effect < config.ao_matters_db  # False for NaN: nothing covered, no AO to see
     if not ao_matters and any(m.ao_rays == 0 for m in candidates):
@@ -490,7 +526,7 @@ def probe_quality_steps(renderer: Renderer, iso: float, width: int, height: int,
     for m in candidates:
         yield
         runner = make_runner(m, renderer, iso, *size, shading=config.shading, ao_radius=config.ao_radius,
-                             networks=networks)
+                             networks=networks, clip=config.clip)
         frames, spent = [], 0.0
         for k, (camera, prev) in enumerate(sequence_cameras(cameras)):
             if k:
@@ -569,9 +605,13 @@ def choose_method_steps(renderer: Renderer, iso: float, width: int, height: int,
             continue
         if untimed is None:
             break
-        runner = make_runner(untimed, renderer, iso, width, height, shading=config.shading,
-                             ao_radius=config.ao_radius, networks=networks)
-        timings[untimed] = yield from _time_candidate_steps(runner, cameras, config, budget_ms, slice_ms)
+        runners = [make_runner(untimed, renderer, iso, width, height, shading=config.shading,
+                               ao_radius=config.ao_radius, networks=networks if k == 0 else networks.fork(),
+                               clip=config.clip)
+                   for k in range(config.batch)]
+        timings[untimed] = yield from _time_candidate_steps(runners[0], cameras, config, budget_ms, slice_ms)
+        if config.batch > 1 and timings[untimed] <= OVER_BUDGET_STOP * budget_ms:
+            timings[untimed] = yield from _time_batch_steps(runners, cameras, config)
     ms = {m: timings[m] for m in considered if m in timings}
     fits = ms[chosen] <= config.headroom * budget_ms
     if not fits and warn:
@@ -613,5 +653,5 @@ def render_within_budget(renderer: Renderer, camera: Camera, iso: float, width: 
     still = [camera] * config.probe_frames  # the view to be shown is the one to probe
     choice = choose_method(renderer, iso, width, height, budget_ms, config, cameras=still, networks=networks)
     runner = make_runner(choice.method, renderer, iso, width, height, shading=config.shading,
-                         ao_radius=config.ao_radius, networks=networks)
+                         ao_radius=config.ao_radius, networks=networks, clip=config.clip)
     return runner.frame(camera).buffers, choice

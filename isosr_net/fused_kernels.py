@@ -425,11 +425,11 @@ class ReconSources:
     @classmethod
     def of_buffers(cls, mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, ao: torch.Tensor | None,
                    sampling: torch.Tensor) -> "ReconSources":
-        """Views of one frame's buffers: mask, depth, ao (H, W), normal (H, W, 3), and the two
-        sampling values (1, 2, 1, 1)."""
-        h, w = mask.shape
-        return cls(mask[None, None], normal.permute(2, 0, 1)[None], depth[None, None],
-                   None if ao is None else ao[None, None], sampling.expand(1, 2, h, w))
+        """Views of frames' buffers: mask, depth, ao (B, H, W), normal (B, H, W, 3), and the sampling's
+        two values (1, 2, 1, 1), or its planes (1 or B, 2, H, W)."""
+        b, h, w = mask.shape
+        return cls(mask[:, None], normal.permute(0, 3, 1, 2), depth[:, None], None if ao is None else ao[:, None],
+                   sampling.expand(b, 2, h, w))
 
     def check(self, where: str) -> dict[str, int]:
         """Check the shapes and dtypes; returns B, H, W."""
@@ -471,7 +471,7 @@ def pack_inputs(sources: ReconSources, prev: torch.Tensor | None, flow: torch.Te
         upscale: the model's (:attr:`~isosr_net.reconnet.ReconNetConfig.upscale`), 1 or 2.
 
     Returns:
-        ``(packed, flags)``: flags (6,) fp32 in the order of
+        ``(packed, flags)``: flags (B, 6) fp32, each frame's in the order of
         :data:`isosr_net.inference.FRAME_FLAGS` (1 where a buffer holds NaN or Inf or AO leaves
         [0, 1], and the largest finite |depth|).
 
@@ -504,7 +504,7 @@ def pack_inputs(sources: ReconSources, prev: torch.Tensor | None, flow: torch.Te
                                 HAS_AO=sources.ao is not None, HAS_FLOW=flow is not None, **_CHANNELS,
                                 PREV_MASK=MASK.start, PREV_AO=AO.start, N_IN=INPUTS, S=upscale, C=PACKED,
                                 BLOCK=PACK_BLOCK)
-    return out, flags.amax(dim=1)
+    return out, flags.view(len(FRAME_FLAGS), b, programs).amax(dim=2).T
 
 
 def conv3x3(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, *, stride: int = 1, relu: bool = True,

@@ -203,10 +203,20 @@ class FusedReconNet(nn.Module):
         ``precision``: fp16) in the network's passes alone: the pack reads the buffers in place and
         checks them, the tail writes the output buffers (into ``out`` where given, which may be
         ``previous``) and shades them. No host sync."""
+        one = (None if t is None else t[None] for t in (mask, normal, depth, ao, flow))
+        stack, color, flags = self.frames(*one, sampling=sampling, previous=previous, shading=shading, out=out)
+        return stack, None if color is None else color[0], flags[0]
+
+    def frames(self, mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, ao: torch.Tensor | None,
+               flow: torch.Tensor | None, *, sampling: torch.Tensor, previous: torch.Tensor | None,
+               shading: ShadingParams | None, out: torch.Tensor | None = None
+               ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+        """:meth:`frame` of a batch of frames of several streams in one call: each pass one launch
+        for all (:func:`isosr_net.reconstructor.recon_frames`' arguments, results and shapes)."""
         sources = _kernels().ReconSources.of_buffers(mask, normal, depth, ao, sampling)
-        results = self._run(sources, previous, None if flow is None else flow.permute(2, 0, 1)[None],
+        results = self._run(sources, previous, None if flow is None else flow.permute(0, 3, 1, 2),
                             as_buffers=True, shading=shading, out=out)
-        return results["output"], None if shading is None else results["color"][0], results["flags"]
+        return results["output"], results["color"], results["flags"]
 
     def _run(self, sources, prev: torch.Tensor | None, flow: torch.Tensor | None, **tail) -> dict[str, torch.Tensor]:
         results, passes = self.passes(sources, prev, flow, **tail)

@@ -204,19 +204,32 @@ def output_buffers(output: torch.Tensor) -> FrameBuffers:
     return stack_buffers(buffer_stack(output))
 
 
-def ao_in_range(ao: torch.Tensor) -> torch.Tensor:
-    """Whether every AO value is within [0, 1] (NaN is not), a 0-d bool tensor (no host sync)."""
-    return ((ao >= 0) & (ao <= 1)).all()
+def ao_in_range(ao: torch.Tensor, batched: bool = False) -> torch.Tensor:
+    """Whether every AO value is within [0, 1] (NaN is not), a 0-d bool tensor, or with ``batched``
+    one per frame of the first dimension, (B,) (no host sync)."""
+    inside = (ao >= 0) & (ao <= 1)
+    return inside.reshape(ao.shape[0], -1).all(1) if batched else inside.all()
 
 
 def frame_flags(mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, ao: torch.Tensor | None,
                 flow: torch.Tensor | None) -> torch.Tensor:
     """The :data:`FRAME_FLAGS` of a frame's buffers, (6,) float32 (no host sync)."""
-    zero = depth.new_zeros((), dtype=torch.bool)
-    bad = [zero if t is None else ~torch.isfinite(t).all() for t in (mask, normal, depth, flow)]
-    ao_bad = zero if ao is None else ~ao_in_range(ao)
-    deepest = torch.where(torch.isfinite(depth), depth.abs(), 0.0).amax()
-    return torch.stack([*(b.float() for b in bad), ao_bad.float(), deepest.float()])
+    return frames_flags(*(None if t is None else t[None] for t in (mask, normal, depth, ao, flow)))[0]
+
+
+def frames_flags(mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, ao: torch.Tensor | None,
+                 flow: torch.Tensor | None) -> torch.Tensor:
+    """The :data:`FRAME_FLAGS` of each of a batch's frames (no host sync).
+
+    Shape:
+        mask, depth, ao: (B, H, W). normal: (B, H, W, 3). flow: (B, H, W, 2). Returns (B, 6) float32.
+    """
+    b = depth.shape[0]
+    zero = depth.new_zeros(b, dtype=torch.bool)
+    bad = [zero if t is None else ~torch.isfinite(t.reshape(b, -1)).all(1) for t in (mask, normal, depth, flow)]
+    ao_bad = zero if ao is None else ~ao_in_range(ao, batched=True)
+    deepest = torch.where(torch.isfinite(depth), depth.abs(), 0.0).reshape(b, -1).amax(1)
+    return torch.stack([*(x.float() for x in bad), ao_bad.float(), deepest.float()], dim=1)
 
 
 class RecurrentNetwork:

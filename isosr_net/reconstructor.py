@@ -26,11 +26,12 @@ from typing import TYPE_CHECKING, TypeVar
 import torch
 
 from isosr_render.buffers import FrameBuffers
+from isosr_render.conventions import AO, MASK, NORMAL
 from isosr_render.shading import ShadingParams, shade
 from isosr_net.fused_recon import FusedReconNet, fusable, fused_reconnet, fused_runs_on, triton_imports
 from isosr_net.reconnet import OUTPUTS, RayLimits, ReconNet, ReconNetConfig
 from isosr_net.inference import (AO_MESSAGE, PRECISIONS, InputChecks, RecurrentNetwork, ao_in_range, buffer_stack,
-                                 check_buffer, check_surface, frame_flags, stack_buffers, surface_tensors)
+                                 check_buffer, check_surface, frames_flags, stack_buffers, surface_tensors)
 from isosr_net.model import read_config
 from isosr_net.ray_history import RayHistory, network_inputs
 
@@ -162,7 +163,7 @@ def recon_frame(net: ReconNet, mask: torch.Tensor, normal: torch.Tensor, depth: 
 
     Args:
         mask, normal, depth, ao: the frame's buffers (``ao`` None: no AO rays).
-        sampling: the sampling channels' two values.
+        sampling: the sampling channels' two values, or planes.
         flow: the frame's flow or None; warps ``previous`` where that is given, else checked only.
         previous: the previous frame's buffers' stack, or None on a sequence's first frame.
         shading: material and light for ``color``; None makes none.
@@ -173,20 +174,37 @@ def recon_frame(net: ReconNet, mask: torch.Tensor, normal: torch.Tensor, depth: 
         next frame's previous), the shaded color, the input checks' :data:`FRAME_FLAGS`.
 
     Shape:
-        mask, depth, ao: (H, W). normal: (H, W, 3). sampling: (1, 2, 1, 1). flow: (H, W, 2).
+        mask, depth, ao: (H, W). normal: (H, W, 3). sampling: (1, 2, 1, 1) or (1, 2, H, W). flow: (H, W, 2).
         previous: (1, 6, H, W). Returns stack (1, 6, H, W), color (H, W, 3), flags (6,).
     """
-    h, w = mask.shape
-    surface = torch.cat([mask[None], normal.permute(2, 0, 1), depth[None]])[None].float()
-    sampled = surface.new_zeros(1, 1, h, w) if ao is None else ao[None, None].float()
-    inputs = torch.cat([surface, sampled, sampling.expand(1, 2, h, w)], dim=1)
-    carried = None if previous is None else flow.permute(2, 0, 1)[None].float()
+    one = (None if t is None else t[None] for t in (mask, normal, depth, ao, flow))
+    stack, color, flags = recon_frames(net, *one, sampling=sampling, previous=previous, shading=shading,
+                                       precision=precision)
+    return stack, None if color is None else color[0], flags[0]
+
+
+def recon_frames(net: ReconNet, mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor,
+                 ao: torch.Tensor | None, flow: torch.Tensor | None, *, sampling: torch.Tensor,
+                 previous: torch.Tensor | None, shading: ShadingParams | None, precision: torch.dtype = torch.float32
+                 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+    """:func:`recon_frame` of a batch of frames of several streams in one call (each its own
+    ``previous`` and ``flow``; all with or all without them).
+
+    Shape:
+        mask, depth, ao: (B, H, W). normal: (B, H, W, 3). flow: (B, H, W, 2). sampling: (1 or B, 2, 1 or
+        H, 1 or W). previous: (B, 6, H, W). Returns stack (B, 6, H, W), color (B, H, W, 3), flags (B, 6).
+    """
+    b, h, w = mask.shape
+    surface = torch.cat([mask[:, None], normal.permute(0, 3, 1, 2), depth[:, None]], dim=1).float()
+    sampled = surface.new_zeros(b, 1, h, w) if ao is None else ao[:, None].float()
+    inputs = torch.cat([surface, sampled, sampling.expand(b, 2, h, w)], dim=1)
+    carried = None if previous is None else flow.permute(0, 3, 1, 2).float()
     with torch.autocast(surface.device.type, dtype=precision, enabled=precision != torch.float32):
         output = net.step(inputs, carried, previous)[0]
     stack = buffer_stack(output)
-    high = stack_buffers(stack)
-    color = None if shading is None else shade(high.mask, high.normal, high.ao, shading)
-    return stack, color, frame_flags(mask, normal, depth, ao, flow)
+    color = None if shading is None else shade(stack[:, MASK.start], stack[:, NORMAL].permute(0, 2, 3, 1),
+                                               stack[:, AO.start], shading)
+    return stack, color, frames_flags(mask, normal, depth, ao, flow)
 
 
 class GraphCache(OrderedDict):
@@ -268,13 +286,15 @@ class Reconstructor(RecurrentNetwork):
             raise ValueError("graphs: CUDA graphs need a CUDA device and a compile mode other than reduce-overhead")
         if fused:
             self.net = fused_reconnet(self.net)
-            self._frame = self.net.frame
+            self._frame, self._frames = self.net.frame, self.net.frames
         else:
             frame_fn = functools.partial(recon_frame, self.net, precision=PRECISIONS[precision])
             self._frame = torch.compile(frame_fn, mode=compile, dynamic=False) if compile else frame_fn
+            self._frames = functools.partial(recon_frames, self.net, precision=PRECISIONS[precision])
         self.graphs = graphs
         self._sampling: dict[tuple[int, int], torch.Tensor] = {}
         self.history: RayHistory | None = None
+        self._deferred: list[tuple] | None = None  # checks queued by defer_checks, or None: read at once
         self._own_graphs()
 
     def reset(self) -> None:
@@ -302,6 +322,7 @@ class Reconstructor(RecurrentNetwork):
         captures its own."""
         twin = super().own()
         twin._own_graphs()
+        twin._deferred = None  # its own checks, read at once until it defers them
         return twin
 
     def warm(self, sizes: Iterable[tuple[int, int]], ao_rays: int = 1, shading: ShadingParams | None = ShadingParams()
@@ -383,16 +404,109 @@ class Reconstructor(RecurrentNetwork):
             args = (frame.mask, frame.normal, frame.depth, ao, sampling, frame.flow, self.previous if carry else None,
                     shading)
             stack, color, flags = self._replay(args) if self.graphs else self._frame(*args)
-        self._raise_refused(flags)
         if self.graphs:  # the graph's own tensors: the next replay overwrites them
             stack, color = stack.clone(), None if color is None else color.clone()
-        self.previous, self.history = stack, history
+        self._checked(flags, lambda: self._keep(stack, history))
         return stack_buffers(stack, color)
+
+    @staticmethod
+    def reconstruct_batch(nets: list[Reconstructor], frames: list[FrameBuffers], ao_rays: int, spp: int = 1,
+                          shading: ShadingParams | None = None) -> list[FrameBuffers | Exception]:
+        """:meth:`reconstruct` of one frame of each of several streams (``nets[k]`` the stream of
+        ``frames[k]``: twins of one network, :meth:`~isosr_net.inference.RecurrentNetwork.own`, none
+        graphed) in one network call for those that carry their previous output and one for those
+        that do not: each pass one launch for all. Each result equals the frame its stream makes
+        alone (within the kernels' rounding at another batch size); a frame that fails its checks is
+        that stream's error (its state kept as it was); the checks are read as :meth:`reconstruct`
+        reads them (deferred: at :meth:`settle_checks`).
+
+        Shape:
+            As :meth:`reconstruct`, each frame of the same size.
+        """
+        template, results = nets[0], [None] * len(frames)
+        if any(net.graphs or net._frame is not template._frame for net in nets):
+            raise ValueError("reconstruct_batch: the streams must be ungraphed twins of one network")
+        settling = [net for net in nets if net._deferred is None]  # the others' caller settles them
+        for net in settling:
+            net.defer_checks()
+        groups: dict[tuple[bool, bool], list] = {}
+        for k, (net, frame) in enumerate(zip(nets, frames)):
+            try:
+                _check_frame(frame, ao_rays, spp, net.limits)
+            except ValueError as e:
+                results[k] = e
+                continue
+            frame = frame.to(net.device)
+            carry = net.carries(*frame.mask.shape, frame.flow is not None)
+            groups.setdefault((carry, frame.flow is not None), []).append((k, net, frame, carry))
+        with torch.no_grad():
+            for group in groups.values():
+                for (k, _, _, _), out in zip(group, template._batch_frames(group, ao_rays, spp, shading)):
+                    results[k] = out
+        for k, net in enumerate(nets):
+            if net in settling:
+                try:
+                    net.settle_checks()
+                except ValueError as e:
+                    results[k] = e
+        return results
+
+    def _batch_frames(self, group: list[tuple], ao_rays: int, spp: int,
+                      shading: ShadingParams | None) -> list[FrameBuffers]:
+        """The frames of ``group`` (``(index, net, frame, carry)``, one ``carry`` for all) in one call."""
+        rays = [net._rays(frame, ao_rays, spp, net.history if carry else None) for _, net, frame, carry in group]
+        frames = [frame for _, _, frame, _ in group]
+        carry = group[0][3]
+
+        def stacked(name: str) -> torch.Tensor | None:
+            return None if getattr(frames[0], name) is None else torch.stack([getattr(f, name) for f in frames])
+        ao = None if rays[0][0] is None else torch.stack([r[0] for r in rays])
+        sampling = torch.cat([r[1] for r in rays]) if rays[0][1].shape[-1] > 1 else rays[0][1]
+        previous = torch.cat([net.previous for _, net, _, _ in group]) if carry else None
+        stack, color, flags = self._frames(stacked("mask"), stacked("normal"), stacked("depth"), ao, stacked("flow"),
+                                           sampling=sampling, previous=previous, shading=shading)
+        out = []
+        for j, (_, net, _, _) in enumerate(group):
+            net._checked(flags[j], lambda net=net, j=j: net._keep(stack[j:j + 1], rays[j][2]))
+            out.append(stack_buffers(stack[j:j + 1], None if color is None else color[j]))
+        return out
 
     def _rays(self, frame: FrameBuffers, ao_rays: int, spp: int, history: RayHistory | None,
               out: RayHistory | None = None) -> tuple[torch.Tensor | None, torch.Tensor, RayHistory | None]:
         """:func:`sampled_rays` of the model, its constant sampling made once per sampling."""
         return sampled_rays(frame, ao_rays, spp, self.limits, history, self._sampling_tensor(ao_rays, spp), out)
+
+    def defer_checks(self) -> None:
+        """Until :meth:`settle_checks`, a frame's input checks are queued instead of read (a host sync
+        each), and its state is kept only once they pass: the frames of several streams then issue
+        their device work back to back, and the host waits for the device once, after the last."""
+        self._deferred = []
+
+    def settle_checks(self) -> None:
+        """Read the checks queued since :meth:`defer_checks` and keep each frame's state, or raise the
+        first that fails (that frame's state not kept, as :meth:`reconstruct` says); checks are read
+        at once again after."""
+        deferred, self._deferred = self._deferred or [], None
+        for flags, keep, refused in deferred:
+            self._checked(flags, keep, refused)
+
+    def _checked(self, flags: torch.Tensor, keep: Callable[[], None], refused: Callable[[], None] | None = None
+                 ) -> None:
+        """``keep()`` the frame's state once its checks pass (now, or at :meth:`settle_checks`); where
+        they fail, ``refused()`` and raise."""
+        if self._deferred is not None:
+            self._deferred.append((flags, keep, refused))
+            return
+        try:
+            self._raise_refused(flags)
+        except ValueError:
+            if refused is not None:
+                refused()
+            raise
+        keep()
+
+    def _keep(self, previous: torch.Tensor, history: RayHistory | None) -> None:
+        self.previous, self.history = previous, history
 
     def _raise_refused(self, flags: torch.Tensor) -> None:
         """Read a frame's input checks (one host sync) and raise the first that fails."""
@@ -494,12 +608,7 @@ class Reconstructor(RecurrentNetwork):
             self._frame_graphs.add(key, entry, request.height * request.width * self.upscale_factor ** 2)
             self._drop_unheld_states(state, histories)
         entry.graph.replay()
-        try:
-            self._raise_refused(entry.flags)
-        except ValueError:
-            self.reset()
-            raise
-        self.previous, self.history = state, written
+        self._checked(entry.flags, lambda: self._keep(state, written), refused=self.reset)  # the graph wrote the state
         # Copies of the views made at capture: what a caller sets on a frame's buffers stays its own.
         return copy.copy(entry.rendered), copy.copy(entry.reconstructed)
 

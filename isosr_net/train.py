@@ -31,6 +31,11 @@ from isosr_net.model import Unrolled, build_model, load_checkpoint, load_pretrai
 from isosr_net.reconnet import ReconNet
 
 
+# TrainConfig.compile's modes: "" (eager) and torch.compile's without CUDA graphs, which a step's
+# distributed backward and optimizer do not replay.
+COMPILE_MODES = ("", "default", "max-autotune-no-cudagraphs")
+
+
 @dataclass
 class TrainConfig:
     """A training run. Lengths are optimizer steps; an epoch is one pass over the training crops.
@@ -54,6 +59,10 @@ class TrainConfig:
         init: a model folder to fine-tune (its config must be ``model``'s): its weights, a fresh
             optimizer and schedule; validated before the first step, so that ``best/`` is only
             replaced by a better model. A run that left ``OUT/last`` resumes from that instead.
+        compile: a ``torch.compile`` mode for a step's forward and losses (their backward follows):
+            ``"default"`` or ``"max-autotune-no-cudagraphs"``; "" runs them eagerly. A step of the
+            recurrent network, its losses and shadings is hundreds of small kernels, whose launches
+            bound it on a GPU; compiled, they fuse (the first steps compile, minutes on a GPU).
     """
 
     data: str
@@ -72,8 +81,11 @@ class TrainConfig:
     seed: int = 0
     time_limit_minutes: float = 0.0
     init: str = ""
+    compile: str = ""
 
     def __post_init__(self):
+        if self.compile not in COMPILE_MODES:
+            raise ValueError(f"compile must be one of {COMPILE_MODES}, got {self.compile!r}")
         if self.lr_schedule not in ("constant", "cosine"):
             raise ValueError(f"lr_schedule must be 'constant' or 'cosine', got {self.lr_schedule!r}")
         if self.batch_size < 1:
@@ -130,6 +142,9 @@ class Trainer:
         self.adversarial = [m for m in self.losses if isinstance(m, AdversarialLoss)]
         unrolled = Unrolled(self.net)
         self.unrolled = DistributedDataParallel(unrolled) if self.distributed else unrolled
+        if config.compile and self.adversarial:
+            raise ValueError("compile: a discriminator's own step is not compiled; train adversarial losses eagerly")
+        self._forward_losses = torch.compile(self._losses, mode=config.compile) if config.compile else self._losses
         self.optimizer = torch.optim.Adam(self.net.parameters(), lr=config.lr)
         d_params = [p for m in self.adversarial for p in m.parameters()]
         self.d_optimizer = torch.optim.Adam(d_params, lr=config.lr_discriminator) if d_params else None
@@ -211,17 +226,12 @@ class Trainer:
 
     def train_step(self, batch: SequenceBatch) -> dict:
         """One optimizer step on a batch of sequences; returns the loss terms."""
-        with self._autocast():
-            outputs, warped = self.unrolled(batch.lowres, batch.flow)
-            ctxs = contexts(batch, outputs.float(), warped.float(), self.upscale)
-            terms = [total_loss(self.losses, ctx) for ctx in ctxs]
-        loss = sum(t[0] for t in terms) / len(terms)
+        loss, logs, ctxs = self._forward_losses(batch)
         for group in self.optimizer.param_groups:
             group["lr"] = self.config.lr * self.config.lr_factor(self.step)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()
-        logs = {k: sum(t[1][k] for t in terms) / len(terms) for k in terms[0][1]}
         if self.d_optimizer is not None:
             with self._autocast():
                 d_loss = sum(m.discriminator_loss(ctx) for m in self.adversarial for ctx in ctxs) / len(ctxs)
@@ -232,6 +242,15 @@ class Trainer:
             logs["discriminator"] = d_loss.detach()
         logs["total"] = loss.detach()
         return dict(zip(logs, torch.stack([v.float() for v in logs.values()]).tolist()))  # the step's one read
+
+    def _losses(self, batch: SequenceBatch) -> tuple[torch.Tensor, dict, list[LossContext]]:
+        """A step's forward: the loss, each term's mean over the frames, and the frames' loss contexts."""
+        with self._autocast():
+            outputs, warped = self.unrolled(batch.lowres, batch.flow)
+            ctxs = contexts(batch, outputs.float(), warped.float(), self.upscale)
+            terms = [total_loss(self.losses, ctx) for ctx in ctxs]
+        logs = {k: sum(t[1][k] for t in terms) / len(terms) for k in terms[0][1]}
+        return sum(t[0] for t in terms) / len(terms), logs, ctxs
 
     def _average_gradients(self, params: list) -> None:
         """All-reduce the discriminators' gradients (they are not wrapped in DDP)."""

@@ -106,6 +106,20 @@ class Clip:
             rows[i, 3] = -float(np.dot(normal, point))
         return rows
 
+    def half_spaces(self) -> np.ndarray:
+        """Every half-space kept, the planes' then the box's six faces, as rows ``(normal, offset)``:
+        ``dot(row, (x, 1))`` is a world point's signed distance into it (kept where ``>= 0``).
+
+        Shape:
+            Returns (K, 4) float64, K = len(planes) (+ 6 with a box).
+        """
+        rows = [(*normal, -float(np.dot(normal, point))) for point, normal in self.planes]
+        if self.box is not None:
+            for axis in range(3):
+                unit = np.eye(3)[axis]
+                rows += [(*unit, -self.box[0][axis]), (*-unit, self.box[1][axis])]
+        return np.asarray(rows, np.float64).reshape(-1, 4)
+
     def kept(self, points: np.ndarray) -> np.ndarray:
         """Whether world points lie in the kept region (a float64 reference of the kernels' rule).
 
@@ -113,9 +127,5 @@ class Clip:
             points: (..., 3). Returns (...,) bool.
         """
         p = np.asarray(points, dtype=np.float64)
-        keep = np.ones(p.shape[:-1], dtype=bool)
-        for point, normal in self.planes:
-            keep &= (p - np.asarray(point)) @ np.asarray(normal) >= 0.0
-        if self.box is not None:
-            keep &= np.all((p >= np.asarray(self.box[0])) & (p <= np.asarray(self.box[1])), axis=-1)
-        return keep
+        rows = self.half_spaces()
+        return np.all(p @ rows[:, :3].T + rows[:, 3] >= 0.0, axis=-1)

@@ -1043,6 +1043,8 @@ VARIANT_MODULES = {(NoClip, OneIso): __name__, (ClipArgs, OneIso): CLIPPED_MODUL
                    (ClipArgs, IsoSet): CLIPPED_SURFACES_MODULE}
 for _module in VARIANT_MODULES.values():
     wp.set_module_options({"enable_backward": False}, module=_module)
+# The renderer's Warp modules (isosr_net.warp_modules lists the project's).
+RENDER_MODULES = tuple(VARIANT_MODULES.values())
 
 
 def _variant(kernel: wp.Kernel, module: str) -> wp.Kernel:

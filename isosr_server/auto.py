@@ -4,8 +4,13 @@ With N view sessions and a target of F frames a second each, a frame gets ``1000
 device time; :func:`isosr_net.budget.choose_method` picks the method of the best expected quality
 whose probe time fits that budget less its headroom. The probe's quality scores are cached per
 volume, iso and size, and its timings per volume, iso, size and method, so a re-choice after N
-changes costs no new probe; a choice is cached per (volume, iso, size, AO radius, N). The probe
-runs on the session's current view (a still camera: the view to be shown).
+changes costs no new probe; a choice is cached per (volume, iso, size, AO radius, clip, N). The probe
+runs on the session's current view (a still camera: the view to be shown) as clipped (a clip
+changes what a frame costs and shows): its references and candidates are rendered with the clip.
+
+On GPUs with :data:`PROBE_BATCH` sessions or more, a candidate is timed as their frames are made
+under load, several sessions' at once (the frame methods' ``make_batch``: the reconstruction's
+network then runs once for all), each frame costing its share of the batch.
 
 No frame waits for a probe. Until the probe of a scene and size has run, frames use the prior:
 first the cheapest candidate (no AO, one ray per pixel), the frame that reaches the viewer
@@ -13,7 +18,10 @@ first; once the probe's first units timed this scene's plain first-hit frame, th
 committed cost table (:class:`isosr_net.budget.CostTable`) picks the best tabled method whose
 cost in first-hit frames fits the budget. The probe runs in the background as generator steps (:func:`isosr_net.budget.choose_method_steps`)
 that the engine interleaves with frames on the device thread, a unit of work at a time, and
-that shutdown drops between two units. What a probe learns is kept per device, volume, iso and
+that shutdown drops between two units. On GPUs a candidate's first frame at a new size carries
+one-off costs (fused kernels tuned for the size's class, shading compiled for its inputs): the
+server pays them at start for its common window sizes and their probes (:meth:`AutoPolicy.warm`),
+and logs a unit that still held the device thread for long. What a probe learns is kept per device, volume, iso and
 size in ``probe_cache`` (a JSON file), so that a restarted server chooses without probing.
 """
 
@@ -27,11 +35,15 @@ from collections.abc import Generator
 from pathlib import Path
 
 from isosr_net.budget import (BudgetChoice, BudgetConfig, CostTable, QualityProbe, choose_method_steps,
-                              default_candidates, first_hit_ms_steps, probe_quality_steps)
-from isosr_net.methods import FrameMethod, FrameRunner, Networks
+                              default_candidates, default_probe_height, first_hit_ms_steps, probe_quality_steps,
+                              probe_size)
+from isosr_net.methods import FrameMethod, FrameRunner, Networks, make_runner
 from isosr_net.reconstructor import Reconstructor, recon_limits
 from isosr_render import Camera, Renderer
+from isosr_render.clip import Clip
 from isosr_render.atomic import atomic_write
+from isosr_render.camera import orbit_path
+from isosr_render.sequence import sequence_cameras
 
 log = logging.getLogger("isosr.server")
 # The probe's frames (a still camera needs few), timed by the wall clock: the device thread's
@@ -40,12 +52,20 @@ log = logging.getLogger("isosr.server")
 # hand-off, the event loop's share of the host): on an H100 at 1080p, 16 sessions of full
 # frames ran at 2.7 ms each where one alone took 1.5 ms of the device thread.
 PROBE = dict(probe_frames=1, warmup_frames=1, timing_frames=2, clock="wall", headroom=0.75)
+# With this many sessions or more, on GPUs, a candidate is timed as the service makes it under load: a
+# batch of this many streams' frames at once (BudgetConfig.batch), each frame costing its share.
+PROBE_BATCH = 8
 
 
 def served_factor(runner: type[FrameRunner], factor: int) -> int:
     """The factor the service gives a method of ``runner``: its upscaler's ``factor`` to low-res
     kinds, 1 to the others (its reconstruction renders at full resolution)."""
     return factor if runner.low_res else 1
+
+
+def probe_batch(renderer: Renderer, sessions: int) -> int:
+    """The streams a probe times a candidate's frames for at once (:data:`PROBE_BATCH` on GPUs under load, else 1)."""
+    return PROBE_BATCH if renderer.device.is_cuda and sessions >= PROBE_BATCH else 1
 
 
 def prior_method(candidates: tuple[FrameMethod, ...]) -> FrameMethod:
@@ -142,21 +162,36 @@ class AutoPolicy:
             candidates.append(m)
         return cls(tuple(candidates), target_fps, networks, cache, slice_ms, CostTable.for_device(device))
 
+    def warm(self, renderer: Renderer, sizes: tuple[tuple[int, int], ...]) -> None:
+        """Make two frames of every candidate at each ``(height, width)`` and at its probe's size
+        (device thread, at start): what a candidate's first frame at a new size costs once (kernels
+        tuned for the size's class, shading compiled for its inputs) is paid before any viewer waits,
+        not in a probe unit between the sessions' frames."""
+        pairs = sequence_cameras(orbit_path(2))
+        rows = default_probe_height(str(renderer.device))
+        for width, height in {(w, h) for h, w in sizes} | {probe_size(w, h, rows) for h, w in sizes}:
+            for m in self.candidates:
+                if not (width % m.factor or height % m.factor):
+                    runner = make_runner(m, renderer, 0.5, width, height, networks=self.networks)
+                    for camera, prev in pairs:
+                        runner.frame(camera, prev)
+
     def budget_ms(self, sessions: int) -> float:
         """A frame's share of device time with ``sessions`` sessions served."""
         return 1000.0 / (max(1, sessions) * self.target_fps)
 
     def choose(self, renderer: Renderer, scene: str, iso: float, width: int, height: int, camera: Camera,
-               sessions: int, ao_radius: float) -> BudgetChoice:
-        """The method for this scene, size and session count, at once (device thread): the probe's
-        choice where what probes learned decides it, else the prior while the probe waits in
-        :attr:`pending`."""
-        scene_key = (scene, round(float(iso), 6), width, height, float(ao_radius))
+               sessions: int, ao_radius: float, clip: Clip = Clip()) -> BudgetChoice:
+        """The method for this scene (as ``clip`` cuts it), size and session count, at once (device
+        thread): the probe's choice where what probes learned decides it, else the prior while the
+        probe waits in :attr:`pending`."""
+        cut = (repr(clip),) if clip.active else ()  # a clip's own probe; unclipped keys as before (the cache's)
+        scene_key = (scene, round(float(iso), 6), width, height, float(ao_radius)) + cut
         key = scene_key + (max(1, sessions),)
         if key in self._chosen:
             return self._chosen[key]
         if key not in self._probing:
-            probe = self._probe(renderer, scene_key, key, camera, self.budget_ms(sessions))
+            probe = self._probe(renderer, scene_key, key, camera, self.budget_ms(sessions), clip)
             try:
                 next(probe)
             except StopIteration as decided:  # earlier probes' results decide it: no device work
@@ -178,19 +213,21 @@ class AutoPolicy:
                             (0, 0), 0.0, ())
 
     def _probe(self, renderer: Renderer, scene_key: tuple, key: tuple, camera: Camera,
-               budget_ms: float) -> Generator[None, None, BudgetChoice]:
+               budget_ms: float, clip: Clip) -> Generator[None, None, BudgetChoice]:
         """The choice for ``key`` as device-thread steps (a failed probe keeps the prior, logged)."""
-        _, iso, width, height, ao_radius = scene_key
-        config = BudgetConfig(candidates=self.candidates, ao_radius=ao_radius, **PROBE)
+        _, iso, width, height, ao_radius = scene_key[:5]
+        batch = probe_batch(renderer, key[-1])
+        config = BudgetConfig(candidates=self.candidates, ao_radius=ao_radius, batch=batch, clip=clip, **PROBE)
         cameras = [camera] * config.probe_frames
         if scene_key not in self._quality and (cached := self.cache.get(scene_key, self.candidates)):
             self._quality[scene_key], self._timings[scene_key] = cached
-        timings = self._timings.setdefault(scene_key, {})
+        # frames alone (kept in the cache), or in batches (kept for this run: measured again after a start)
+        timings = self._timings.setdefault(scene_key if batch == 1 else scene_key + (batch,), {})
         probes_quality, timed_before = scene_key not in self._quality, len(timings)
         try:
             if scene_key not in self._quality and self.costs is not None and scene_key not in self._first_hit:
                 self._first_hit[scene_key] = yield from first_hit_ms_steps(renderer, iso, width, height, camera,
-                                                                           ao_radius, self.networks)
+                                                                           ao_radius, self.networks, clip)
             if scene_key not in self._quality:
                 self._quality[scene_key] = yield from probe_quality_steps(renderer, iso, width, height, config,
                                                                           cameras, self.networks)
@@ -205,7 +242,7 @@ class AutoPolicy:
             log.info("auto mode, %s at %dx%d, budget %.3g ms: %s", scene_key[0], width, height, budget_ms,
                      choice.summary())
             if probes_quality or len(timings) > timed_before:  # something was measured: keep it
-                self.cache.put(scene_key, self._quality[scene_key], timings)
+                self.cache.put(scene_key, self._quality[scene_key], self._timings.get(scene_key, {}))
         finally:
             self._probing.discard(key)
         self._chosen[key] = choice

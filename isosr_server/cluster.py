@@ -69,7 +69,7 @@ from ray.serve.deployment import Application
 from ray.serve.metrics import Gauge
 
 from isosr_server.app import create_app
-from isosr_server.core.config import Settings, options
+from isosr_server.core.config import Settings, check_replica_exposure, options
 from isosr_server.metrics import ServerMetrics
 from isosr_server.placement import ROUTER
 from isosr_server.replica import as_replica
@@ -173,13 +173,16 @@ def application(settings: Settings, replicas: int, gpus_per_replica: float = 0.0
 def build(args: dict[str, Any]) -> Application:
     """The application builder of a Serve config file (``import_path: isosr_server.cluster:build``):
     ``args`` are settings by name (``device: cuda``, ``max_sessions: 16``), parsed as their flags
-    are, over the ``ISOSR_*`` environment; the replicas and their resources are the config's
-    ``deployments`` entry (``name: IsosrReplica``)."""
+    are, over the ``ISOSR_*`` environment, and ``behind_proxy`` (``--behind-proxy``); the replicas
+    and their resources are the config's ``deployments`` entry (``name: IsosrReplica``)."""
+    args = dict(args)
+    behind_proxy = str(args.pop("behind_proxy", False)).lower() in ("1", "true", "yes")
     parsers = {o.name: o.parse for o in options()}
     unknown = set(args) - set(parsers)
     if unknown:
         raise ValueError(f"unknown settings: {', '.join(sorted(unknown))}")
     settings = Settings.from_env(**{k: parsers[k](str(v)) for k, v in args.items()})
+    check_replica_exposure(settings.host, behind_proxy)
     return application(settings, replicas=1, gpus_per_replica=1.0 if settings.device.startswith("cuda") else 0.0)
 
 

@@ -20,6 +20,7 @@ Renderers are cached per volume (a few, least recently used dropped).
 from __future__ import annotations
 
 import asyncio
+import logging
 import os
 import threading
 import time
@@ -53,6 +54,7 @@ from isosr_server.protocol import (IMAGE_ENCODINGS, FocusMsg, ModeInfo, PickedMs
                                    UpscaleRequest, ViewBuffers, ViewSettings, VolumeMemory)
 from isosr_server.views import FrameJob, SessionFrames, ViewContext, ViewFrame, mode_infos
 
+log = logging.getLogger("isosr.server")
 RENDERER_CACHE = 4
 # How frames name the server's networks (in their method's name: "x4 network fp16", "..., recon fp16").
 MODEL_NAMES = {cls: cls.display_name for cls in (Upscaler, Reconstructor)}
@@ -70,6 +72,8 @@ VIDEO_ENCODER_THREADS = max(1, (os.cpu_count() or 1) // 2)
 # A unit of the auto mode's background probe waits for a moment without view frames in the making,
 # at most this long: frames first, and the probe still ends under a steady load.
 PROBE_WAIT_S = 0.5
+# A probe unit longer than this is logged (viewers saw their frames wait for it).
+SLOW_PROBE_UNIT_S = 0.25
 
 
 def serving_network(cls: type[RecurrentNetwork], model: Path, device: str, precision: str) -> RecurrentNetwork:
@@ -89,7 +93,8 @@ def serving_network(cls: type[RecurrentNetwork], model: Path, device: str, preci
 class EncodedFrame:
     """A view frame ready for the wire: the coded image (or the coded buffers), server milliseconds
     per stage, the channel legend, the method's name, the frame whose camera the flow refers to,
-    the volume's device memory after it, and the time step it shows."""
+    the volume's device memory after it, the time step it shows, and the frames made together
+    with it on the device (itself included)."""
 
     image: CodedImage | None
     buffers: ViewBuffers | None
@@ -99,6 +104,7 @@ class EncodedFrame:
     prev_seq: int
     memory: VolumeMemory
     t: int = 0
+    batch: int = 1
 
 
 class Engine:
@@ -149,7 +155,8 @@ class Engine:
 
     def start_sync(self) -> None:
         """Load the networks and warm the device: one small frame of each kind that warms up
-        (:attr:`FrameRunner.warm_up`: the network, the reconstruction, the plain render), shaded and encoded."""
+        (:attr:`FrameRunner.warm_up`: the network, the reconstruction, the plain render), shaded and encoded;
+        on GPUs also the auto mode's candidates at the common window sizes and their probes' (:meth:`AutoPolicy.warm`)."""
         self._on_thread()
         factor = self.network(Upscaler).upscale_factor
         reconstructor = self.network(Reconstructor)
@@ -169,6 +176,8 @@ class Engine:
                                           self.config.target_fps, self.networks, self.config.recon_x2_model,
                                           ProbeCache(self.config.probe_cache, self.device_label()), self.slice_ms)
         renderer = Renderer(parse_procedural("proc:sphere@16"), str(self.device))
+        if self.device.type == "cuda":
+            self.auto.warm(renderer, WARM_RECON_SIZES)
         frames = self.new_session_frames("proc:sphere@16")
         for mode in (kind for kind, runner in RUNNERS.items() if runner.warm_up):
             job = FrameJob(ViewSettings(mode=mode, width=8 * factor, height=8 * factor), orbit(30, 20, 1.8), 0.5,
@@ -234,20 +243,30 @@ class Engine:
             task.add_done_callback(self._probes.discard)
 
     async def _run_probe(self, steps: Generator) -> None:
-        await self._run_steps(steps, self._wait_idle)
+        await self._run_steps(steps, self._wait_idle, self._log_slow_unit)
+
+    @staticmethod
+    def _log_slow_unit(seconds: float) -> None:
+        """Say when a probe's unit held the device thread long enough for viewers to see it stall."""
+        if seconds > SLOW_PROBE_UNIT_S:
+            log.info("auto probe: one unit held the device thread for %.2f s (frames waited)", seconds)
 
     async def _wait_idle(self) -> None:
         """Until no view frame is in the making, or ``PROBE_WAIT_S`` at most."""
         with suppress(asyncio.TimeoutError):
             await asyncio.wait_for(self._idle.wait(), PROBE_WAIT_S)
 
-    async def _run_steps(self, steps: Generator, before_each: Callable[[], Awaitable[None]] | None = None):
+    async def _run_steps(self, steps: Generator, before_each: Callable[[], Awaitable[None]] | None = None,
+                         took: Callable[[float], None] | None = None):
         """A generator of slices run to its end, each slice its own job on the device thread (other
-        jobs interleave between them); its result. ``before_each`` is awaited before every slice."""
+        jobs interleave between them); its result. ``before_each`` is awaited before every slice,
+        ``took`` told each slice's seconds on the device thread."""
         while True:
             if before_each is not None:
                 await before_each()
-            done, result = await self.call(_advance, steps)
+            done, result, seconds = await self.call(_advance, steps)
+            if took is not None:
+                took(seconds)
             if done:
                 return result
 
@@ -300,7 +319,7 @@ class Engine:
         self._framing += 1
         self._idle.clear()
         try:
-            made, codes = await self._batched(frames, renderer, job)
+            made, codes, batch = await self._batched(frames, renderer, job)
         finally:
             self._framing -= 1
             if not self._framing:
@@ -315,13 +334,15 @@ class Engine:
             done = time.perf_counter()
             times = made.result.times | {"encode": 1e3 * (done - began), "total": 1e3 * (done - start)}
             return EncodedFrame(image, buffers, times, made.legend, made.method.name, made.prev_seq, memory,
-                                job.settings.t)
+                                job.settings.t, batch)
         return encode
 
-    async def _batched(self, frames: SessionFrames, renderer: Renderer, job: FrameJob) -> tuple[ViewFrame, object]:
-        """A view frame and its codes, made in the next batch (:meth:`_batch_sync`): the frames of
-        every session that asked meanwhile, one device-thread job for them all. A frame that runs
-        in slices comes back as its steps and is made here, a device-thread job per slice."""
+    async def _batched(self, frames: SessionFrames, renderer: Renderer,
+                       job: FrameJob) -> tuple[ViewFrame, object, int]:
+        """A view frame, its codes and the frames made together with it (itself included), made in
+        the next batch (:meth:`_batch_sync`): the frames of every session that asked meanwhile, one
+        device-thread job for them all. A frame that runs in slices comes back as its steps and is
+        made here alone, a device-thread job per slice."""
         loop = asyncio.get_running_loop()
         future = loop.create_future()
         with self._pending_lock:
@@ -332,7 +353,7 @@ class Engine:
         out = await future
         if isinstance(out, Generator):
             made = await self._run_steps(out)
-            return made, await self.call(self.codes_sync, made)
+            return made, await self.call(self.codes_sync, made), 1
         return out
 
     def _batch_sync(self, loop: asyncio.AbstractEventLoop) -> None:
@@ -364,7 +385,7 @@ class Engine:
                     if isinstance(result, Exception):
                         raise result
                     made = frames.made(plan, result)
-                    _resolve(loop, future, (made, self.codes_sync(made)))
+                    _resolve(loop, future, (made, self.codes_sync(made), len(group)))
                 except Exception as e:  # noqa: BLE001 - as above
                     _resolve(loop, future, error=e)
 
@@ -466,10 +487,12 @@ def pack_codes(codes: torch.Tensor | tuple, code: Callable[[torch.Tensor], Coded
     return code(codes), None
 
 
-def _advance(steps: Generator) -> tuple[bool, object]:
-    """One slice of a generator of slices: ``(False, None)``, or ``(True, its result)`` at its end."""
+def _advance(steps: Generator) -> tuple[bool, object, float]:
+    """One slice of a generator of slices: ``(False, None, seconds)``, or ``(True, its result, seconds)`` at
+    its end, with the seconds it took."""
+    began = time.perf_counter()
     try:
         next(steps)
-        return False, None
+        return False, None, time.perf_counter() - began
     except StopIteration as done:
-        return True, done.value
+        return True, done.value, time.perf_counter() - began

@@ -36,6 +36,8 @@ class ServerMetrics:
         self.frames = Counter("isosr_frames", "Frames sent", ["kind", "mode", "refined"], registry=r)
         self.stage_seconds = Histogram("isosr_stage_seconds", "Server time per frame and stage", ["mode", "stage"],
                                        buckets=BUCKETS_S, registry=r)
+        self.batch_frames = Histogram("isosr_batch_frames", "View frames made together on the device, per frame",
+                                      buckets=(1, 2, 4, 8, 16, 32, 64), registry=r)
         self.bytes_sent = Counter("isosr_bytes_sent", "Payload bytes sent (images, buffers)", ["mode"], registry=r)
         self.sessions = Gauge("isosr_sessions", "Live sessions", ["kind"], registry=r)
         self.errors = Counter("isosr_errors", "Requests and sessions ended by an error", ["kind", "code"],
@@ -44,9 +46,13 @@ class ServerMetrics:
         gpu.set_function(lambda: float(gpu_memory() or 0))
         r.register(_VolumeMemory(volume_memory))
 
-    def frame(self, kind: str, mode: str, refined: bool, times_ms: dict[str, float], nbytes: int) -> None:
-        """Count one frame (kind: view, upscale, reconstruct) with its stage times and payload bytes."""
+    def frame(self, kind: str, mode: str, refined: bool, times_ms: dict[str, float], nbytes: int,
+              batch: int = 1) -> None:
+        """Count one frame (kind: view, upscale, reconstruct) with its stage times, payload bytes and (view
+        frames) the frames made together with it."""
         self.frames.labels(kind, mode, str(refined).lower()).inc()
+        if kind == "view":
+            self.batch_frames.observe(batch)
         for stage, ms in times_ms.items():
             self.stage_seconds.labels(mode, stage).observe(ms / 1e3)
         self.bytes_sent.labels(mode).inc(nbytes)

@@ -24,6 +24,10 @@ View session (``WS /v1/view``)
     Frames carry the volume's device memory and paging (``device``) when it changed.
     Bad input ends the session with an ``error`` message and a close code (``CLOSE_*``);
     non-fatal news (an encoding the server cannot make, so it sends jpeg) comes as ``notice``.
+    A ``settings`` message whose clip, coloring or surfaces are bad (`NOTICED_SETTINGS`: 7 planes, a zero
+    normal, NaN, an unknown colour map, a field of another grid, 5 surfaces) is refused whole with a ``notice``
+    naming the field; the settings stay as they were, the next frame (of them) acknowledges its
+    ``seq``, and the session goes on.
     ``pick`` asks what lies under a pixel of the current view; ``picked`` answers it (the
     isosurface point, its voxel, physical position and value) between frames.
 
@@ -103,14 +107,15 @@ from isosr_render.conventions import AO_RADIUS, MATERIAL_RGB
 from isosr_render.surfaces import MAX_SURFACES, Surface, Surfaces
 from isosr_server.codecs.arrays import ArrayTooBig, WireArray, decode_array, encode_array
 
-# 9: several isosurfaces (settings.surfaces);
+# 10: several isosurfaces (settings.surfaces);
+# 9: frame.batch (the frames made together on the device);
 # 8: colour by a field (settings.coloring; a shaded frame's legend);
 # 7: time series (volume.steps, settings.t, frame.t);
 # 6: clip planes, a crop box and caps (settings.clip);
 # 5: modes named by the server (ready.modes), ready's limits on messages and acknowledgements;
 # 3: the v3 vocabulary (modes auto/network/upscale/..., ao_rays, spp, interpolation, frame methods);
 # 2 (acknowledged frames, flow control) and earlier are refused with a reason.
-PROTOCOL_VERSION = 9
+PROTOCOL_VERSION = 10
 
 # Largest magnitude of any float field (camera coordinates, iso, ...): beyond it is hostile input.
 MAX_ABS_FLOAT = 1e9
@@ -187,6 +192,36 @@ class ProtocolError(ValueError):
         self.reason = reason
         self.close_code = close_code
         self.http_status = http_status
+
+
+# The settings a live view refuses with a notice rather than an end: what users edit while exploring.
+NOTICED_SETTINGS = ("clip", "coloring", "surfaces")
+_NOTICED_PATH = re.compile(r"`\$\.settings\.(" + "|".join(NOTICED_SETTINGS) + r")\b")
+
+
+class SettingRefused(ProtocolError):
+    """A ``settings`` message refused for one of `NOTICED_SETTINGS`: a view session sends the reason
+    as a ``notice`` and keeps its settings (elsewhere it is the `ProtocolError` it derives from);
+    ``seq``: the refused message's, where it had a valid one."""
+
+    def __init__(self, reason: str, close_code: int = CLOSE_BAD_MESSAGE, http_status: int = 400,
+                 seq: int | None = None):
+        super().__init__(reason, close_code, http_status)
+        self.seq = seq
+
+
+class _SeqOnly(msgspec.Struct):
+    """A message read for its ``seq`` alone (a refused one's, which the session acknowledges)."""
+
+    seq: Seq | None = None
+
+
+def _seq_of(data: bytes) -> int | None:
+    """The ``seq`` of a message that failed validation, if it has a valid one."""
+    try:
+        return msgspec.msgpack.decode(data, type=_SeqOnly, ext_hook=_no_ext).seq
+    except (msgspec.DecodeError, msgspec.ValidationError, ValueError):
+        return None
 
 
 class Limits(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -306,6 +341,17 @@ class ClipSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         return Clip(tuple((p.point, p.normal) for p in self.planes), self.box, self.cap)
 
 
+def clip_query(text: str) -> ClipSettings:
+    """`ClipSettings` from JSON text (the ``clip`` query parameter of ``GET /v1/volumes/NAME/mesh``, as
+    ``settings.clip`` spells it); `ProtocolError` naming the field."""
+    try:
+        return msgspec.json.decode(text, type=ClipSettings)
+    except msgspec.ValidationError as e:
+        raise ProtocolError(f"clip: {_relative(e)}"[:200]) from None
+    except msgspec.DecodeError as e:
+        raise ProtocolError(f"clip: not JSON: {e}"[:200]) from None
+
+
 class ColoringSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """Colour the surface by ``gradient`` (the volume's gradient magnitude) or by another volume of the
     same grid, named as in ``GET /v1/volumes`` (the server refuses an unknown one or another grid,
@@ -333,19 +379,21 @@ class SurfaceSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     opacity: Unit = 1.0
 
 
-def surfaces_of(settings: tuple[SurfaceSettings, ...], normalize: Callable[[float], float]) -> Surfaces | None:
+def surfaces_of(settings: tuple[SurfaceSettings, ...], normalize: Callable[[float], float],
+                seq: int | None = None) -> Surfaces | None:
     """The renderer's surfaces of ``settings.surfaces`` (None where empty), their isos through ``normalize`` (a
     volume's ``normalized_iso``), checked by :class:`isosr_render.surfaces.Surfaces`.
 
     Raises:
-        ProtocolError: (CLOSE_POLICY, 422) what ``Surfaces`` refuses (two equal isos), naming the field.
+        SettingRefused: (of the update ``seq``; CLOSE_POLICY, 422) what ``Surfaces`` refuses (two equal isos),
+            naming the field.
     """
     if not settings:
         return None
     try:
         return Surfaces(tuple(Surface(normalize(s.iso), s.color, s.opacity) for s in settings))
     except ValueError as e:
-        raise ProtocolError(f"settings.{e}", CLOSE_POLICY, 422) from None
+        raise SettingRefused(f"settings.{e}", CLOSE_POLICY, 422, seq) from None
 
 
 class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -415,8 +463,8 @@ class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         new = msgspec.structs.replace(self, **update.given())
         limits.check_size(new.width, new.height)
         if new.surfaces and new.coloring is not None:
-            raise ProtocolError("settings.surfaces: several surfaces show their own colours, not with settings.coloring "
-                                "(set one of them to its default)")
+            raise SettingRefused("settings.surfaces: several surfaces show their own colours, not with "
+                                 "settings.coloring (set one of them to its default)")
         return new
 
 
@@ -791,6 +839,8 @@ class FrameMsg(Message, tag="frame"):
             bricks in); None: as last sent.
         t: the time step shown: ``settings.t``, or the last step shown where that one cannot be
             read (a ``notice`` says why).
+        batch: the frames the server's device made together with this one, itself included (1:
+            alone; many sessions' frames are made together under load).
     """
 
     seq: Seq
@@ -813,6 +863,7 @@ class FrameMsg(Message, tag="frame"):
     bitrate_kbps: Annotated[int, Meta(ge=0)] = 0
     device: VolumeMemory | None = None
     t: Step = 0
+    batch: Annotated[int, Meta(ge=1, le=MAX_SEQ)] = 1
 
     def __post_init__(self):
         if (self.encoding == "buffers") != (self.buffers is not None) or (self.image is None) == (self.buffers is None):
@@ -1034,6 +1085,8 @@ def parse(data: bytes, limits: Limits, expected: Mapping[str, type[Message]] | t
         reason = str(e)
         if reason.endswith("`$.type`") or reason == "Object missing required field `type`":
             reason = f"message type must be one of {', '.join(t.TYPE for t in types)}: {reason}"
+        if _NOTICED_PATH.search(reason):
+            raise SettingRefused(reason[:200], seq=_seq_of(data)) from None
         raise ProtocolError(reason[:200]) from None
     except (msgspec.DecodeError, ValueError) as e:  # not msgpack, truncated, trailing bytes, extension types
         raise ProtocolError(f"malformed msgpack: {e}"[:200]) from None

@@ -54,7 +54,7 @@ from isosr_server import views
 from isosr_server.engine import EncodedFrame
 from isosr_server.protocol import (CLOSE_IDLE, CLOSE_TOO_MANY, VIDEO_ENCODINGS, CameraMsg, FocusMsg, FrameMsg, IsoMsg,
                                    KeyframeMsg, Legend, Limits, Message, NoticeMsg, ProtocolError, ReceivedMsg,
-                                   SettingsMsg, ViewSettings, VolumeMemory, check_step)
+                                   SettingRefused, SettingsMsg, ViewSettings, VolumeMemory, check_step)
 from isosr_server.video import CodePlan, RateControl, fallback_notice
 from isosr_server.views import FrameJob, ViewContext
 from isosr_server.volumes import session_iso
@@ -174,6 +174,14 @@ class ViewSession:
         """The encoder failed: jpeg from now on (the client's next encoding tries again), and a notice."""
         self.notices.append(notice)
         self.state = replace(self.state, settings=msgspec.structs.replace(self.state.settings, encoding="jpeg"))
+
+    def refuse(self, refused: SettingRefused) -> None:
+        """A settings update refused: its reason as a notice before a frame of the settings as they were,
+        which acknowledges its ``seq``."""
+        self.notices.append(f"settings refused, kept as they were: {refused.reason}"[:1000])
+        if refused.seq is not None:
+            self.state = replace(self.state, ack=max(self.state.ack, refused.seq))
+        self._changed()
 
     def apply(self, msg: Message) -> None:
         """Take a client update (latest wins), acknowledgment or keyframe request; `ProtocolError`
@@ -396,7 +404,8 @@ async def _send_frame(session: ViewSession, job: ViewJob, encode: Callable[[], A
                    refined=f.refined, buffers=made.buffers, prev_seq=made.prev_seq,
                    legend=None if made.legend is None else Legend(**made.legend), method=made.method,
                    timestamp_us=job.plan.timestamp_us,
-                   device=None if made.memory == session.sent_memory else made.memory, t=made.t, **image)
+                   device=None if made.memory == session.sent_memory else made.memory, t=made.t,
+                   batch=made.batch, **image)
     session.sent_memory = made.memory
     session.sent_seq = f.seq  # before sending: the client may acknowledge it before send returns
     session.unacked_sent.append((f.seq, time.monotonic()))

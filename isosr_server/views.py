@@ -203,7 +203,7 @@ class AutoView(View):
 
     def method(self, settings, ctx, frames, renderer, job) -> FrameMethod:
         return frames.auto.choose(renderer, frames.scene, job.iso, settings.width, settings.height, job.camera,
-                                  job.sessions, settings.ao_radius).method
+                                  job.sessions, settings.ao_radius, settings.clip.clip()).method
 
 
 # auto, the registered view-mode methods that can run here (in the registry's order), focus.

@@ -47,7 +47,8 @@ from isosr_render.procedural import default_iso
 from isosr_render.series import VolumeSeries, is_series, open_series
 from isosr_render.volume_io import probe, volume_name
 from isosr_render.coloring import GRADIENT
-from isosr_server.protocol import CLOSE_NOT_FOUND, CLOSE_POLICY, VOLUME_NAME, ProtocolError, ViewSettings
+from isosr_server.protocol import (CLOSE_NOT_FOUND, CLOSE_POLICY, VOLUME_NAME, ProtocolError, SettingRefused,
+                                   ViewSettings)
 
 log = logging.getLogger("isosr.server")
 
@@ -318,20 +319,21 @@ async def load_volume(catalog: VolumeCatalog, name: str) -> tuple[Volume, Volume
         raise ProtocolError(f"volume {name!r} cannot be opened: {e}", CLOSE_POLICY, 422) from None
 
 
-async def coloring_field(catalog: VolumeCatalog, settings: ViewSettings, volume: Volume) -> Volume | None:
+async def coloring_field(catalog: VolumeCatalog, settings: ViewSettings, volume: Volume,
+                         seq: int | None = None) -> Volume | None:
     """The volume ``settings.coloring`` colours by (None: no coloring, or the gradient), loaded off the event
-    loop (the catalog caches it); `ProtocolError` as :func:`load_volume`'s for its name, 422 (CLOSE_POLICY)
-    for another grid than ``volume``'s, naming both shapes."""
+    loop (the catalog caches it); `SettingRefused` (of the update ``seq``) as :func:`load_volume`'s error
+    for its name, 422 (CLOSE_POLICY) for another grid than ``volume``'s, naming both shapes."""
     coloring = settings.coloring
     if coloring is None or coloring.by == GRADIENT:
         return None
     try:
         field, _ = await load_volume(catalog, coloring.by)
     except ProtocolError as e:
-        raise ProtocolError(f"settings.coloring.by: {e.reason}", e.close_code, e.http_status) from None
+        raise SettingRefused(f"settings.coloring.by: {e.reason}", e.close_code, e.http_status, seq) from None
     if field.shape != volume.shape:
-        raise ProtocolError(f"settings.coloring.by: {coloring.by!r} has the grid {field.shape}, not the viewed "
-                            f"volume's {volume.shape}: a coloring needs the same grid", CLOSE_POLICY, 422)
+        raise SettingRefused(f"settings.coloring.by: {coloring.by!r} has the grid {field.shape}, not the viewed "
+                             f"volume's {volume.shape}: a coloring needs the same grid", CLOSE_POLICY, 422, seq)
     return field
 
 

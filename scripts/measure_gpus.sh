@@ -9,6 +9,7 @@
 #   bash scripts/measure_gpus.sh one-gpu              # 1, 2 and 4 replicas sharing GPU 0, 16 sessions
 #   bash scripts/measure_gpus.sh datagen              # training data (GPU 3 unless GPU is set)
 #   bash scripts/measure_gpus.sh train SEED           # training on 1 and on 2 GPUs at once (GPUs 0-2)
+#   COMPILE=default bash scripts/measure_gpus.sh train SEED   # the same with a compiled step
 # LEASE names the machine's lease for every call in it (default: the first call's hour; rows are
 # compared within one lease). CASES (default: the bench's full:0,reconstruct:1,auto:0) narrows the cases of a cluster step.
 # A step took, on 4 H200s: about 45-70 s to start a server or Ray with its replicas (warm kernel
@@ -53,7 +54,8 @@ PY
     train)
         CUDA_VISIBLE_DEVICES=0,1,2 python3 -m isosr_bench.bench_train --device cuda \
             --config configs/train_recon_history.json --data /tmp/data/scaling --gpus 1,2 --concurrent \
-            --steps "${STEPS:-600}" --batch-size "${BATCH:-32}" --seeds "${2:?seed}" --runs /tmp/bt --out "$CL" ;;
+            --steps "${STEPS:-600}" --batch-size "${BATCH:-32}" --seeds "${2:?seed}" --runs /tmp/bt --out "$CL" \
+            ${COMPILE:+--compile "$COMPILE"} ;;
     *) echo "unknown step $1" >&2; exit 2 ;;
 esac
 cp "$CL"/*.json "$OUT"/ 2>/dev/null || true

@@ -111,37 +111,42 @@ def test_pack_makes_the_first_frames_stand_in_and_reads_a_frames_buffers_in_plac
     x[:, 6:8] = torch.tensor([0.25, 0.5], device=DEVICE)[None, :, None, None]  # constant sampling planes
     x[0, 5, :4] = 0  # no ray hit there: the stand-in's AO is the rays'
     net = ReconNet(ReconNetConfig(first_frame=first_frame)).to(DEVICE)
-    sources = ReconSources.of_buffers(x[0, 0], x[0, 1:4].permute(1, 2, 0).contiguous(), x[0, 4], x[0, 5],
+    sources = ReconSources.of_buffers(x[:, 0], x[:, 1:4].permute(0, 2, 3, 1).contiguous(), x[:, 4], x[:, 5],
                                       x[:, 6:8, :1, :1])
     for packed, flags in (pack(x, None, first_frame=first_frame), pack_inputs(sources, None, first_frame=first_frame)):
         stand_in = net.first_previous(x)
         torch.testing.assert_close(nchw(packed)[:, :8, :h, :w], x.half(), rtol=0, atol=0)
         torch.testing.assert_close(nchw(packed)[:, 8:10, :h, :w], stand_in[:, [MASK.start, AO.start]].half(),
                                    rtol=0, atol=0)
-        torch.testing.assert_close(flags, frame_flags(x[0, 0], x[0, 1:4], x[0, 4], x[0, 5], None), rtol=0, atol=0)
+        torch.testing.assert_close(flags[0], frame_flags(x[0, 0], x[0, 1:4], x[0, 4], x[0, 5], None), rtol=0, atol=0)
 
 
 @pytest.mark.parametrize("broken, value", [("mask", float("nan")), ("normal", float("inf")), ("depth", float("-inf")),
                                            ("flow", float("nan")), ("ao", 1.5), ("ao", float("nan")),
                                            ("deepest", -3e4)])
 def test_packs_flags_are_the_frames_checks(broken, value):
-    """Each of FRAME_FLAGS set by the one bad value it names, as frame_flags computes them; the
-    bad pixel in the frame's last program's tile."""
+    """Each of FRAME_FLAGS set by the one bad value it names, as frame_flags computes them, in the
+    frame that holds it only (the bad pixel in the first frame's last program's tile; a second
+    frame in the batch clean)."""
     h, w = 13, 21
-    x = recon_batch(1, h, w, seed=7).to(DEVICE)
-    flow = rand(h, w, 2, seed=8)
-    buffers = {"mask": x[0, 0], "normal": x[0, 1:4].permute(1, 2, 0).contiguous(), "depth": x[0, 4], "ao": x[0, 5],
-               "flow": flow}
+    x = recon_batch(2, h, w, seed=7).to(DEVICE)
+    flow = rand(2, h, w, 2, seed=8)
+    buffers = {"mask": x[:, 0], "normal": x[:, 1:4].permute(0, 2, 3, 1).contiguous(), "depth": x[:, 4].clone(),
+               "ao": x[:, 5].clone(), "flow": flow}
+    buffers["mask"] = buffers["mask"].clone()
     target = buffers["depth" if broken == "deepest" else broken]
-    target.view(-1)[-1] = value
+    target[0].view(-1)[-1] = value
     sources = ReconSources.of_buffers(buffers["mask"], buffers["normal"], buffers["depth"], buffers["ao"],
-                                      x[:, 6:8, :1, :1])
-    _, flags = pack_inputs(sources, rand(1, 6, h, w, seed=9), flow.permute(2, 0, 1)[None])
-    expected = frame_flags(buffers["mask"], buffers["normal"], buffers["depth"], buffers["ao"], flow)
-    torch.testing.assert_close(flags, expected, rtol=0, atol=0)
+                                      x[:1, 6:8, :1, :1])
+    _, flags = pack_inputs(sources, rand(2, 6, h, w, seed=9), flow.permute(0, 3, 1, 2))
+    assert flags.shape == (2, len(FRAME_FLAGS))
+    for k in range(2):
+        expected = frame_flags(*(buffers[n][k] for n in ("mask", "normal", "depth", "ao", "flow")))
+        torch.testing.assert_close(flags[k], expected, rtol=0, atol=0)
     index = FRAME_FLAGS.index(broken)
-    assert flags[index] == (3e4 if broken == "deepest" else 1)
-    assert (flags[:5].count_nonzero() == (0 if broken == "deepest" else 1))
+    assert flags[0, index] == (3e4 if broken == "deepest" else 1)
+    assert (flags[0, :5].count_nonzero() == (0 if broken == "deepest" else 1))
+    assert flags[1, :5].count_nonzero() == 0
 
 
 def test_pack_checks_its_inputs():
@@ -334,6 +339,28 @@ def test_a_frame_writes_its_stack_into_the_previous_output_it_read(model):
             previous = stack
             for got, expected in ((into, stack), (color_into, color), (flags_into, flags)):
                 torch.testing.assert_close(got, expected, rtol=0, atol=0)
+
+
+def test_frames_of_several_streams_in_one_call_equal_each_frame_alone():
+    """The service's batch (FusedReconNet.frames): two streams' frames, each with its own previous
+    output and flow, in one call equal each stream's frame alone, flags per frame."""
+    _, fused = shipped_under("rays")
+    sampling = torch.full((1, 2, 1, 1), 0.125, device=DEVICE)
+    streams = [synthetic_frames(2, 6, 9), synthetic_frames(3, 6, 9)[1:]]  # other buffers, flows and states
+    with torch.no_grad():
+        firsts = [fused.frame(f[0].mask, f[0].normal, f[0].depth, f[0].ao, sampling, None, None, ShadingParams())
+                  for f in streams]
+        alone = [fused.frame(f[1].mask, f[1].normal, f[1].depth, f[1].ao, sampling, f[1].flow, first[0],
+                             ShadingParams()) for f, first in zip(streams, firsts)]
+        second = [f[1] for f in streams]
+        stack, color, flags = fused.frames(*(torch.stack([getattr(f, n) for f in second])
+                                             for n in ("mask", "normal", "depth", "ao", "flow")),
+                                           sampling=sampling, previous=torch.cat([first[0] for first in firsts]),
+                                           shading=ShadingParams())
+    for k, (s, c, fl) in enumerate(alone):
+        torch.testing.assert_close(stack[k:k + 1], s, rtol=1e-3, atol=1e-3)
+        torch.testing.assert_close(color[k], c, rtol=1e-3, atol=1e-3)
+        torch.testing.assert_close(flags[k], fl, rtol=0, atol=0)
 
 
 @pytest.mark.parametrize("ao_prior", AO_PRIORS)

@@ -5,14 +5,17 @@ on loopback, plus the auto policy's caching on its own."""
 from __future__ import annotations
 
 import json
+import math
 import time
 
 import pytest
 
+from isosr_net import budget
 from isosr_net.budget import BudgetChoice, CostTable, default_candidates, method_key
 from isosr_net.methods import FrameMethod, Networks, finish_steps, make_runner, run_sequence
 from isosr_net.reconstructor import RECON_X2_MODEL
 from isosr_render import orbit
+from isosr_render.clip import Clip
 from isosr_render.images import to_uint8
 from isosr_server import protocol as P
 from isosr_server.auto import PROBE, AutoPolicy, ProbeCache, prior_method
@@ -99,6 +102,32 @@ def test_auto_policy_chooses_at_once_and_probes_in_the_background(lib, tmp_path)
     assert not later.pending, "a restarted server's policy reads what the probe learned"
     other = AutoPolicy.for_server(DEVICE, "fp32", 4, {}, 30.0, Networks(), cache=ProbeCache(cache, "another CPU"))
     assert other.choose(renderer, VOLUME, iso, 64, 48, cam, 1, 0.05).method == first.method and other.pending
+
+
+def test_auto_probes_the_clipped_scene_the_view_shows(lib, monkeypatch):
+    """A clip is part of the scene auto probes: a probe of its own, beside the unclipped scene's,
+    whose reference and every candidate it scores or times render clipped (here a clip that keeps
+    nothing: nothing to score, no AO to see, where the unclipped probe scores its candidates)."""
+    made = []
+
+    def spy(method, *args, **options):
+        made.append(options.get("clip", Clip()))
+        return make_runner(method, *args, **options)
+
+    monkeypatch.setattr(budget, "make_runner", spy)
+    policy = AutoPolicy((FrameMethod.of("full"), FrameMethod.of("full", ao_rays=2)), 30.0, Networks())
+    nothing = Clip(planes=(((0.0, 0.0, 0.9), (0.0, 0.0, 1.0)),))  # keeps z >= 0.9: beyond the volume
+    cam = orbit(30, 20, 1.8)
+    for clip in (Clip(), nothing):
+        policy.choose(lib.renderer, VOLUME, lib.iso, 64, 48, cam, 1, 0.05, clip)
+    assert len(policy.pending) == 2, "a probe per clip"
+    plain = finish_steps(policy.pending.pop(0))
+    assert not math.isnan(plain.expected_psnr) and set(made) == {Clip()}
+    made.clear()
+    cut = finish_steps(policy.pending.pop(0))
+    assert math.isnan(cut.expected_psnr) and math.isnan(cut.ao_effect_db) and not cut.ao_matters
+    assert made and set(made) == {nothing}, "every runner of the clipped probe clips"
+    assert policy.choose(lib.renderer, VOLUME, lib.iso, 64, 48, cam, 1, 0.05, nothing) is cut
 
 
 def test_before_its_probe_auto_takes_the_cost_tables_best_fit_for_the_scenes_first_hit(lib):
@@ -198,3 +227,56 @@ def test_upscale_sessions_bound_each_client_and_never_lock_others_out():
     assert len(sessions) == 4 and "a" not in {k for _, k in sessions._by_id}, "the least recently used id made room"
     stream = sessions.open_stream()
     assert len(sessions) == 4 and stream is made[-1]
+
+
+def test_warming_the_policy_makes_every_candidates_first_frames_at_each_size_and_its_probes(lib, monkeypatch):
+    """At start (GPUs), each candidate makes a first frame and one carrying it at each window size and at
+    that size's probe size (a factor that does not divide a size skipped), and the policy is left as
+    it was: nothing probed, chosen or pending."""
+    import isosr_server.auto as auto
+
+    made = []
+
+    def recording(method, renderer, iso, width, height, **options):
+        runner = make_runner(method, renderer, iso, width, height, **options)
+        frame = runner.frame
+        runner.frame = lambda camera, prev=None: (made.append((method, width, height, prev is None)),
+                                                  frame(camera, prev))[1]
+        return runner
+
+    monkeypatch.setattr(auto, "make_runner", recording)
+    candidates = (FrameMethod.of("full"), FrameMethod.of("full", ao_rays=2), FrameMethod.of("svgf", ao_rays=1),
+                  FrameMethod.of("upscale", factor=4))
+    policy = AutoPolicy(candidates, 30.0, Networks())
+    monkeypatch.setattr(auto, "default_probe_height", lambda device: 24)
+    policy.warm(lib.renderer, ((48, 64), (30, 40)))
+    sizes = {(64, 48), (40, 30), (32, 24)}  # each window and the probes' (24 rows, the aspect kept: both 32x24)
+    assert {(w, h) for _, w, h, _ in made} == sizes
+    assert {(w, h) for m, w, h, _ in made if m.factor == 4} == {(64, 48), (32, 24)}, "not 40x30: 4 does not divide 30"
+    for m in candidates[:3]:
+        for w, h in sizes:
+            assert [first for n, *size, first in made if n == m and tuple(size) == (w, h)] == [True, False], (m, w, h)
+    assert not (policy.pending or policy._chosen or policy._quality or policy._timings)
+
+
+def test_a_probe_unit_that_held_the_device_thread_is_logged(caplog):
+    """The engine times each unit of a probe on the device thread and says when one was long enough for
+    viewers to see their frames wait."""
+    import logging
+
+    from isosr_server import engine
+
+    def units():
+        yield
+        time.sleep(0.02)
+        return "done"
+
+    steps = units()
+    assert engine._advance(steps)[:2] == (False, None)
+    done, result, seconds = engine._advance(steps)
+    assert (done, result) == (True, "done") and seconds >= 0.02
+    with caplog.at_level(logging.INFO, logger="isosr.server"):
+        engine.Engine._log_slow_unit(engine.SLOW_PROBE_UNIT_S / 2)
+        assert "held the device thread" not in caplog.text
+        engine.Engine._log_slow_unit(2 * engine.SLOW_PROBE_UNIT_S)
+    assert "one unit held the device thread for" in caplog.text

@@ -171,3 +171,53 @@ def test_mixed_sizes_form_their_own_batches(engine, batches):
     batches.clear()
     assert together(engine, settings) == expected
     assert sorted(batches) == [1, 1, 2, 2], "per frame: the two sessions of one size together, the other alone"
+
+
+def test_a_nan_in_one_session_s_buffers_fails_that_session_only(engine, monkeypatch):
+    """The reconstruction reads a batch's input checks once, after the last frame: one session whose
+    rendered depth holds a NaN gets the check's error and then its next frame; its batch mates get
+    their frames, equal to those made alone."""
+    settings = [view_settings(engine, "reconstruct")] * SESSIONS
+    expected = alone(engine, settings)
+    s = Sessions(engine, settings)
+    poisoned_camera = s.job(1, 1).camera
+    render = type(s.renderer).render
+
+    def render_with_nan(renderer, camera, request, *args, **kwargs):
+        out = render(renderer, camera, request, *args, **kwargs)
+        if camera == poisoned_camera:
+            out.depth = out.depth.clone()
+            out.depth[0, 0] = float("nan")
+        return out
+    monkeypatch.setattr(type(s.renderer), "render", render_with_nan)
+    got = [[] for _ in settings]
+    for t in range(FRAMES):
+        for k, frame in enumerate(asyncio.run(s.together(t, list(range(SESSIONS))))):
+            got[k].append(frame)
+        if t == 1:
+            poisoned_camera = None
+    assert isinstance(got[1][1], ValueError) and "NaN" in str(got[1][1]), got[1][1]
+    assert got[0] == expected[0] and got[2] == expected[2]
+    assert got[1][0] == expected[1][0] and isinstance(got[1][2], bytes), "the session goes on"
+
+
+def test_each_frame_says_how_many_frames_were_made_with_it(engine):
+    """An encoded frame carries its batch's size: 1 for a session's first frame (alone, in slices), the
+    sessions asked together after."""
+    settings = [view_settings(engine, "full")] * SESSIONS
+    s = Sessions(engine, settings)
+
+    async def batch_sizes(t: int) -> list[int]:
+        release = threading.Event()
+        busy = asyncio.ensure_future(engine.call(release.wait))
+
+        async def one(k: int) -> int:
+            encode = await engine.view_frame(s.frames[k], s.renderer, s.job(k, t), png)
+            return (await encode()).batch
+        tasks = [asyncio.ensure_future(one(k)) for k in range(SESSIONS)]
+        await asyncio.sleep(0.05)
+        release.set()
+        await busy
+        return await asyncio.gather(*tasks)
+    assert asyncio.run(batch_sizes(0)) == [1] * SESSIONS
+    assert asyncio.run(batch_sizes(1)) == [SESSIONS] * SESSIONS

@@ -138,6 +138,13 @@ def test_isosr_render_budget_ms_prints_the_choice_and_writes_its_frame(tmp_path,
 
     with np.load(out) as frame:
         assert frame["color"].shape == (64, 96, 3) and "ao" not in frame.files
+        whole = frame["mask"].sum()
+    # With a clip, the probe and the frame are clipped: a plane across x keeps less of the sphere.
+    assert cli(["render", "proc:sphere@32", "--size", "96x64", "--budget-ms", "1000", "--device", DEVICE,
+                "--clip-plane=0,0,0,-1,0,0", "-o", str(out)]) == 0
+    assert "quality auto:" in capsys.readouterr().out
+    with np.load(out) as frame:
+        assert 0 < frame["mask"].sum() < 0.8 * whole
     with pytest.raises(SystemExit) as refused:  # before the volume is opened
         cli(["render", "proc:sphere@32", "--size", "96x0", "--budget-ms", "10", "-o", str(out)])
     assert refused.value.code == 2 and "sides must be positive, got '96x0'" in capsys.readouterr().err
@@ -294,3 +301,37 @@ def test_the_quality_probe_yields_between_every_frame_of_every_candidate(cloud):
     bands = 1 if renderer.device.is_cuda else policy.REFERENCE_BANDS_CPU
     assert yields == 1 + 3 * (bands - 1) + len(sliced.psnr) * 3
     assert sliced.psnr == pytest.approx(policy.probe_quality(renderer, iso, *SIZE, config).psnr, nan_ok=True)
+
+
+def test_a_batched_timing_makes_each_candidates_frames_for_several_streams_at_once(cloud, monkeypatch):
+    """BudgetConfig.batch: after a frame alone, a timed candidate's frames are made for ``batch``
+    streams at once by its kind's make_batch (the streams' own recurrent state: twins of the
+    networks), its time their batch's over their count; the choice still respects the budget."""
+    from isosr_net.methods import FrameRunner
+
+    renderer, iso = cloud
+    batches = []
+    make_batch = FrameRunner.make_batch.__func__
+
+    def recorded(cls, frames):
+        batches.append((cls.kind, len(frames), len({id(r) for r, _, _ in frames})))
+        return make_batch(cls, frames)
+    monkeypatch.setattr(FrameRunner, "make_batch", classmethod(recorded))
+    config = BudgetConfig(candidates=FEW[1:4], batch=3, warmup_frames=1, timing_frames=2)
+    choice = choose_method(renderer, iso, *SIZE, 1000.0, config)
+    check_budget_respected(choice)
+    timed = [row.method for row in choice.table if row.ms is not None]
+    assert timed and batches and all(n == 3 and streams == 3 for _, n, streams in batches)
+    assert len(batches) == 3 * len(timed), "a warm-up batch and timing_frames batches per timed candidate"
+    with pytest.raises(ValueError, match="batch"):
+        BudgetConfig(batch=0)
+
+
+def test_the_service_times_candidates_in_batches_only_on_gpus_under_load():
+    from types import SimpleNamespace
+
+    from isosr_server.auto import PROBE_BATCH, probe_batch
+
+    gpu, cpu = (SimpleNamespace(device=SimpleNamespace(is_cuda=c)) for c in (True, False))
+    assert probe_batch(gpu, PROBE_BATCH) == PROBE_BATCH and probe_batch(gpu, 64) == PROBE_BATCH
+    assert probe_batch(gpu, PROBE_BATCH - 1) == 1 and probe_batch(cpu, 64) == 1

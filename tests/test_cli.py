@@ -297,3 +297,21 @@ def test_render_clipped_and_capped(tmp_path, capsys):
     assert "clip.planes[0].normal must be a nonzero vector" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["render", "proc:sphere@32", "--clip-plane", "0,0,0,1", "-o", str(out)])
+
+
+def test_serve_refuses_replicas_beyond_loopback_unless_a_reverse_proxy_fronts_them(monkeypatch):
+    """Ray Serve's proxy bounds neither headers nor TLS handshakes: `isosr serve --replicas` beyond
+    loopback says so and stops before Ray starts; --behind-proxy goes only with --replicas."""
+    import isosr_cli.serve_cmd as serve_cmd
+
+    monkeypatch.setenv("ISOSR_TOKEN", "correct-horse-battery")
+    with pytest.raises(SystemExit, match="Ray Serve's proxy, which bounds neither header size and time, TLS"):
+        main(["serve", "--replicas", "2", "--host", "0.0.0.0", "--insecure"])
+    with pytest.raises(SystemExit, match="go with --replicas N"):
+        main(["serve", "--behind-proxy"])
+    started = []
+    monkeypatch.setattr(serve_cmd, "check_replica_exposure", lambda host, accepted: started.append((host, accepted)))
+    monkeypatch.setitem(sys.modules, "isosr_server.cluster", None)  # no Ray: stop right after the check
+    with pytest.raises(SystemExit, match="needs Ray Serve"):
+        main(["serve", "--replicas", "2", "--host", "0.0.0.0", "--insecure", "--behind-proxy"])
+    assert started == [("0.0.0.0", True)]

@@ -174,10 +174,12 @@ def test_colored_frames_equal_the_library(server, library):  # noqa: F811
     ref = renderer.render(orbit(**camera), RenderRequest(*SIZE, iso, ("mask", "normal"), coloring=field))
     assert (level_diff(image, plain) > 8).any()
     assert level_diff(image, to_uint8(shade(ref.mask, ref.normal, albedo=ref.albedo))).max() <= 1
-    with connect(server.url, VOLUME, "full", SIZE, settings=LOSSLESS) as view:
+    with connect(server.url, VOLUME, "full", SIZE, settings=LOSSLESS) as view:  # refused, the session goes on
+        before = view.frame()
         view.set_coloring("proc:sphere@16")
-        with pytest.raises(ServerError, match=r"\(16, 16, 16\), not the viewed volume's \(32, 32, 32\)"):
-            view.frame()
+        with pytest.warns(UserWarning, match=r"\(16, 16, 16\), not the viewed volume's \(32, 32, 32\)"):
+            after = view.latest()
+        assert view.latest().message.legend is None and np.array_equal(after.rgb(), before)
 
 
 def test_several_surfaces_equal_the_library(server, library):  # noqa: F811
@@ -193,6 +195,9 @@ def test_several_surfaces_equal_the_library(server, library):  # noqa: F811
             view.set_surfaces([(0.5, (0.0, 0.0, 1.5))])
         with pytest.raises(ProtocolError, match=r"length <= 4"):
             view.set_surfaces([(0.1 * i, (0.0, 0.0, 0.0)) for i in range(5)])
+        view.set_surfaces([(pairs[0][0], (1.0, 0.0, 0.0)), (pairs[0][0], (0.0, 0.0, 1.0))])  # equal isos: a notice
+        assert level_diff(view.latest().rgb(), plain).max() <= 1
+        assert any("settings refused" in n and "must differ" in n for n in view.notices), list(view.notices)
         view.set_surfaces(pairs)
         image = view.frame()
         view.set_surfaces()

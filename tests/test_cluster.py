@@ -450,6 +450,10 @@ def test_serve_config_and_replica_options(monkeypatch, tmp_path):
         build(args)  # host 0.0.0.0 without ISOSR_TOKEN
     monkeypatch.setenv("ISOSR_TOKEN", "correct-horse-battery")
     assert build(args) is not None
+    unfronted = {k: v for k, v in args.items() if k != "behind_proxy"}
+    with pytest.raises(ValueError, match="Ray Serve's proxy, which bounds neither header size"):
+        build(unfronted)  # 0.0.0.0 without saying a reverse proxy fronts Serve's proxies
+    assert build(dict(unfronted, host="127.0.0.1")) is not None
     with pytest.raises(ValueError, match="unknown settings: colour"):
         build({"colour": "red"})
     with pytest.raises(ValueError, match="at least 1"):

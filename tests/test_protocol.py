@@ -67,7 +67,7 @@ def test_messages_round_trip():
 
 def test_wire_names_are_the_v3_vocabulary():
     ready = wire(P.ReadyMsg("abc", VOLUME, P.ViewSettings(), 4, 8, LIMITS, MODES))
-    assert ready["type"] == "ready" and ready["version"] == 9 and ready["max_recon_ao_rays"] == 8
+    assert ready["type"] == "ready" and ready["version"] == 10 and ready["max_recon_ao_rays"] == 8
     assert ready["settings"]["mode"] == "auto" and ready["settings"]["interpolation"] == "bilinear"
     assert {"ao_rays", "refine_ao_rays", "spp", "ao_radius"} <= set(ready["settings"])
     assert ready["settings"]["ao_radius"] == P.AO_RADIUS == 0.05
@@ -91,6 +91,29 @@ def test_wire_names_are_the_v3_vocabulary():
 def test_bad_clip_settings_are_refused_naming_the_field(clip, match):
     with pytest.raises(P.ProtocolError, match=match):
         P.ViewSettings().updated({"clip": clip}, LIMITS)
+
+
+def test_a_settings_message_refused_for_its_clip_or_coloring_is_a_setting_refused_with_its_seq():
+    """Clip and coloring are `NOTICED_SETTINGS` (a live view answers with a notice, not an end); other
+    bad settings, and a bad clip in another message, stay plain protocol errors."""
+    def parsed(message: dict, expected=P.CLIENT_VIEW_MESSAGES):
+        with pytest.raises(P.ProtocolError) as e:
+            P.parse(msgspec.msgpack.encode(message), LIMITS, expected)
+        return e.value
+
+    zero = {"planes": [{"point": [0, 0, 0], "normal": [0, 0, 0]}]}
+    refused = parsed({"type": "settings", "settings": {"clip": zero}, "seq": 7})
+    assert isinstance(refused, P.SettingRefused) and refused.seq == 7 and "nonzero vector" in refused.reason
+    colormap = parsed({"type": "settings", "settings": {"coloring": {"by": "x", "colormap": "jet"}}, "seq": -1})
+    assert isinstance(colormap, P.SettingRefused) and colormap.seq is None  # no valid seq to acknowledge
+    assert type(parsed({"type": "settings", "settings": {"width": 0}, "seq": 1})) is P.ProtocolError
+    assert type(parsed({"type": "camera", "yaw": "x", "seq": 1})) is P.ProtocolError
+    assert isinstance(parsed({"type": "open", "volume": "v", "settings": {"clip": zero}}, (P.OpenMsg,)),
+                      P.SettingRefused)  # a ProtocolError still: a bad open ends the session
+    with pytest.raises(P.ProtocolError, match=r"clip: Expected `array` of length <= 6 in `planes`"):
+        P.clip_query('{"planes": [' + ",".join(['{"point": [0, 0, 0], "normal": [0, 0, 1]}'] * 7) + "]}")
+    with pytest.raises(P.ProtocolError, match="clip: not JSON"):
+        P.clip_query("{planes")
 
 
 def test_clip_settings_are_the_renderers_clip():
@@ -244,7 +267,7 @@ def test_invalid_messages_name_the_problem(message, words):
 def test_version_3_is_refused_with_the_reason(message):
     with pytest.raises(P.ProtocolError) as e:
         P.parse(raw(message), LIMITS, (P.OpenMsg, P.UpscaleRequest))
-    assert e.value.reason == "protocol version 3 is not supported; this server speaks 9: update the client"
+    assert e.value.reason == "protocol version 3 is not supported; this server speaks 10: update the client"
     assert (e.value.close_code, e.value.http_status) == (P.CLOSE_BAD_MESSAGE, 400)
 
 

@@ -1,4 +1,4 @@
-"""A time series served: its steps listed, ``settings.t`` bounded and shown, a step change a cut for a
+"""A time series served: its steps listed, ``settings.t`` bounded and shown, a step change a cut for every
 recurrent mode (nothing ghosts), a step file gone mid-playback a notice while the session goes on;
 and the Python client's steps."""
 
@@ -6,10 +6,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import pytest
 from websockets.exceptions import ConnectionClosed
 
+from isosr_net.methods import RUNNERS, unavailable_kinds
 from isosr_render.image_codec import decode_image
 from isosr_server import protocol as P
 from server_fixtures import frame, recv, running_server, send, server_settings, session
@@ -43,8 +45,13 @@ def srv(tmp_path_factory):
         yield s
 
 
-# reconstruct: its history would show the step before without the cut (svgf rejects most of it itself)
+# reconstruct at 1 AO ray: the sessions of the tests that need one recurrent mode
 RECON = {"mode": "reconstruct", "ao_rays": 1}
+# Every recurrent view mode (without the cut, reconstruct's and network's history shows the step before and
+# buffers send a flow into it; svgf's depth and normal tests reject its history themselves).
+RECURRENT_MODES = [kind for kind, runner in RUNNERS.items()
+                   if runner.recurrent and runner.view_mode and kind not in unavailable_kinds()]
+CAM = P.CameraMsg(yaw=34.0, pitch=20.0, distance=1.8)
 
 
 def test_the_listing_and_ready_say_the_steps(srv):
@@ -57,25 +64,32 @@ def test_the_listing_and_ready_say_the_steps(srv):
         assert frame(ws).t == 0
 
 
-def test_a_step_change_shows_the_step_and_nothing_of_the_one_before(srv):
-    with session(srv, "runs", **RECON) as (ws, ready):
+@pytest.mark.parametrize("mode", RECURRENT_MODES)
+def test_a_step_change_shows_the_step_and_nothing_of_the_one_before(srv, mode):
+    """Step 0 played from a still camera (where history lines up best), then step 1: its first frame
+    is a fresh session's first frame of step 1."""
+    with session(srv, "runs", camera=CAM, mode=mode, ao_rays=1) as (ws, _):
         frame(ws)
-        for yaw in (32.0, 34.0):  # history builds up on step 0
-            send(ws, P.CameraMsg(yaw=yaw, pitch=20.0, distance=1.8, seq=int(yaw)))
+        for seq in (1, 2):  # history builds up on step 0
+            send(ws, msgspec.structs.replace(CAM, seq=seq))
             assert frame(ws).t == 0
         send(ws, P.SettingsMsg(P.SettingsUpdate(t=1), seq=100))
         jumped = frame(ws)
         assert jumped.t == 1 and jumped.ack == 100
-        before = decode_image(frame_at(srv, 0, 34.0).image)
-    fresh = frame_at(srv, 1, 34.0)
+    before, fresh = frame_at(srv, mode, 0), frame_at(srv, mode, 1)
     assert fresh.t == 1
-    np.testing.assert_array_equal(decode_image(jumped.image), decode_image(fresh.image))
-    assert np.abs(before.astype(int) - decode_image(fresh.image).astype(int)).max() > 100  # the ball moved
+    if mode == "buffers":  # for the client's network: a cut (no flow), the fresh frame's buffers
+        assert jumped.prev_seq == -1 and jumped.buffers.flow is None
+        assert jumped.buffers == fresh.buffers and before.buffers != fresh.buffers
+    else:
+        np.testing.assert_array_equal(decode_image(jumped.image), decode_image(fresh.image))
+        moved = decode_image(before.image).astype(int) - decode_image(fresh.image).astype(int)
+        assert np.abs(moved).max() > 100  # the ball moved
 
 
-def frame_at(srv, t: int, yaw: float) -> P.FrameMsg:
-    """A new session's first frame of step ``t`` from ``yaw``."""
-    with session(srv, "runs", camera=P.CameraMsg(yaw=yaw, pitch=20.0, distance=1.8), t=t, **RECON) as (ws, _):
+def frame_at(srv, mode: str, t: int) -> P.FrameMsg:
+    """A new session's first frame of step ``t`` from ``CAM``."""
+    with session(srv, "runs", camera=CAM, t=t, mode=mode, ao_rays=1) as (ws, _):
         return frame(ws)
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import math
 import time
+import urllib.parse
 from contextlib import ExitStack
 
 import msgspec
@@ -146,11 +147,59 @@ def test_a_pick_honours_the_sessions_clip(srv, lib):
     assert msg.depth == pytest.approx(expected.depth) and msg.position == pytest.approx(expected.position)
 
 
+def test_bad_clip_or_coloring_settings_get_a_notice_and_the_session_goes_on(srv):
+    """Bad clip or coloring settings (7 planes, a zero normal, NaN, an unknown colour map, a field of
+    another grid) are refused whole with a notice naming the field, then a frame that acknowledges
+    the message and shows the settings as they were (here a clip and no AO, though each message asks
+    for AO rays too); the session goes on."""
+    plane = {"point": [0.0, 0.0, 0.0], "normal": [0.0, 0.0, 1.0]}
+    bad = [({"clip": {"planes": [plane] * 7}}, "$.settings.clip.planes"),
+           ({"clip": {"planes": [plane | {"normal": [0.0, 0.0, 0.0]}]}}, "clip.planes[0].normal must be a nonzero"),
+           ({"clip": {"planes": [plane | {"point": [math.nan, 0.0, 0.0]}]}}, "$.settings.clip.planes[0].point[0]"),
+           ({"coloring": {"by": "gradient", "colormap": "jet"}}, "$.settings.coloring.colormap"),
+           ({"coloring": {"by": "blob"}}, "settings.coloring.by: 'blob' has the grid (20, 16, 12)")]
+    cut = P.ClipSettings(planes=(P.ClipPlane((0.0, 0.0, 0.0), (0.0, 0.0, 1.0)),))
+    with session(srv, mode="full", clip=cut) as (ws, _):
+        first = frame(ws)
+        for seq, (update, words) in enumerate(bad, 1):
+            ws.send(raw({"type": "settings", "settings": {"ao_rays": 4} | update, "seq": seq}))
+            notice = recv(ws)
+            assert isinstance(notice, P.NoticeMsg) and words in notice.text, notice
+            assert "kept as they were" in notice.text
+            again = frame(ws)
+            assert again.ack == seq and again.method == first.method
+            np.testing.assert_array_equal(decode_image(again.image), decode_image(first.image))
+        send(ws, cam(70.0, seq=10))
+        assert frame(ws).ack == 10
+    with session(srv, mode="full") as (ws, _):  # the clip is visible: without it the frame differs
+        assert not np.array_equal(decode_image(frame(ws).image), decode_image(first.image))
+
+
+def test_the_mesh_download_takes_a_views_clip(srv):
+    """``clip`` (a view's settings.clip as JSON) cuts the mesh; a bad one is a 400 naming the field, a
+    crop box of zero volume a 422 naming it."""
+    path = "/v1/volumes/proc:torus@32/mesh?format=obj"
+    status, _, whole = srv.request("GET", path)
+    half = json.dumps({"planes": [{"point": [0.0, 0.0, 0.0], "normal": [0.0, 0.0, 1.0]}]})
+    status_half, _, cut = srv.request("GET", f"{path}&clip={urllib.parse.quote(half)}")
+    assert status == status_half == 200
+    vertices = [[float(v) for v in line.split()[1:]] for line in cut.decode().splitlines() if line.startswith("v ")]
+    assert 0 < len(vertices) < whole.decode().count("\nv ")
+    zs = np.asarray(vertices)[:, 2]  # physical units: the plane z = 0 in the world is the grid's middle
+    assert zs.min() >= 15.5 - 1e-3, zs.min()
+    no_point = urllib.parse.quote(json.dumps({"planes": [{}]}))
+    status, _, body = srv.request("GET", f"{path}&clip={no_point}")
+    assert status == 400 and b"clip: Object missing required field `point`" in body
+    flat = json.dumps({"box": [[-0.2, 0.0, -0.2], [0.2, 0.0, 0.2]]})
+    status, _, body = srv.request("GET", f"{path}&clip={urllib.parse.quote(flat)}")
+    assert status == 422 and b"zero volume" in body
+
+
 def test_full_mode_matches_the_library(srv, lib):
     with session(srv, mode="full", ao_rays=4) as (ws, ready):
         assert ready.settings.mode == "full" and ready.volume.iso == 0.0
         assert ready.max_recon_ao_rays == RECON_LIMITS.max_ao_rays
-        assert ready.limits == LIMITS and ready.version == P.PROTOCOL_VERSION == 9
+        assert ready.limits == LIMITS and ready.version == P.PROTOCOL_VERSION == 10
         assert [m.name for m in ready.modes] == list(views.VIEWS)  # auto, the registry's view modes, focus
         f = frame(ws)
         assert (f.seq, f.ack, f.mode, f.encoding, f.refined) == (0, -1, "full", "png", False) and f.method
@@ -492,7 +541,7 @@ def test_upscale_bad_input_gets_4xx_with_reasons(srv, lib):
         (raw(wire_frame(lib, depth=wire_array(np.full((h, w), 3e38, np.float32)))), 400, "depth: values must lie in"),
         (raw(wire_frame(lib, depth=f64)), 400, "Invalid enum value 'float64' in `dtype` - at `$.depth`"),
         (raw(wire_frame(lib, normal=good["depth"])), 400, "normal: shape must be"),
-        (raw(wire_frame(lib, version=3)), 400, "protocol version 3 is not supported; this server speaks 9"),
+        (raw(wire_frame(lib, version=3)), 400, "protocol version 3 is not supported; this server speaks 10"),
         (raw(wire_frame(lib, output="gif")), 400, "at `$.output`"),
         (raw(wire_frame(lib, session="../x")), 400, "at `$.session`"),
         (raw({**good, "pad": b"x" * LIMITS.max_message_bytes}), 413, "limit"),
@@ -529,7 +578,7 @@ def test_bad_view_input_closes_that_session_only(srv, lib):
         opens = [
             (b"\x92\x01\x02", P.CLOSE_BAD_MESSAGE, "Expected `object`, got `array`"),
             (raw({"type": "open", "version": 3, "volume": VOLUME}), P.CLOSE_BAD_MESSAGE,
-             "protocol version 3 is not supported; this server speaks 9: update the client"),
+             "protocol version 3 is not supported; this server speaks 10: update the client"),
             (raw({"type": "open", "version": v, "volume": "nope"}), P.CLOSE_NOT_FOUND, "no volume named"),
             (raw({"type": "open", "version": v, "volume": "../blob"}), P.CLOSE_BAD_MESSAGE,
              "Expected `str` matching regex"),

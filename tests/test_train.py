@@ -314,6 +314,8 @@ def test_an_adversarial_run_trains_and_resumes_its_discriminator(data, tmp_path,
     for c in losses:
         if c["type"] == "perceptual":
             c["weights_path"] = str(random_vgg19(tmp_path_factory))
+    with pytest.raises(ValueError, match="discriminator's own step is not compiled"):
+        trainer(data, tmp_path / "compiled", steps=2, losses=losses, compile="default")
     t = trainer(data, tmp_path, steps=2, losses=losses)
     assert t.d_optimizer is not None and len(t.adversarial) == 1
     d_before = {k: v.clone() for k, v in t.adversarial[0].state_dict().items()}
@@ -392,3 +394,22 @@ def test_bench_train_compares_one_and_two_processes(data, tmp_path, monkeypatch)
     assert again[0]["val_color_psnr"] == rows[0]["val_color_psnr"] and again[1]["spread_db"] is not None
     with pytest.raises(SystemExit):
         bench_train.main(["--config", str(config), "--gpus", "2", "--device", "cpu"])  # no baseline
+
+
+def test_a_compiled_step_is_the_eager_step(data, tmp_path, monkeypatch):
+    """TrainConfig.compile: the step's forward and losses through torch.compile (here Dynamo's tracing
+    with the eager backend and AOTAutograd, inductor's code generation left to the GPU) give the eager
+    step's loss terms and weights; a bad mode is refused (adversarial losses: the adversarial test)."""
+    compiled = []
+    real = torch.compile
+    monkeypatch.setattr(torch, "compile", lambda fn, mode=None: compiled.append(mode) or real(fn, backend="aot_eager"))
+    eager, fast = trainer(data, tmp_path / "eager", steps=2), trainer(data, tmp_path / "fast", steps=2, compile="default")
+    assert compiled == ["default"]
+    batch = next(eager._batches(eager.train_set, shuffle=False, epoch=0))
+    for _ in range(2):
+        a, b = eager.train_step(batch), fast.train_step(batch)
+        assert a.keys() == b.keys() and all(abs(a[k] - b[k]) <= 1e-5 * max(1.0, abs(a[k])) for k in a), (a, b)
+    for p, q in zip(eager.net.parameters(), fast.net.parameters()):
+        torch.testing.assert_close(q, p, rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="compile must be one of"):
+        TrainConfig(data=str(data), out=str(tmp_path / "x"), compile="reduce-overhead")

@@ -352,6 +352,46 @@ def test_viewer_clip_plane_keys_and_handle(server, browser):
     page.close()
 
 
+def test_viewer_crop_box_handles(server, browser):
+    """The crop box's handles: x's upper end at 0 keeps x <= 0 (half the torus goes); y's lower end dragged
+    to its upper one leaves a box of no volume (nothing shown); back, the crop as before; whole again, the
+    torus whole. Each reaches the server and changes the image. A colouring the server refuses leaves
+    a notice and the session."""
+    v = Viewer(browser, server, TOKEN)
+    page = v.page
+    set_control(page, "#mode", "full")
+    plain = v.settle(0)
+    n = v.frames()
+    set_control(page, "#crop-x-hi", "0")
+    assert page.inner_text("#crop-value") == "x -0.5…0, y -0.5…0.5, z -0.5…0.5"
+    cropped = v.settle(n)
+    assert surface_fraction(cropped) < surface_fraction(plain) - 0.02, "the box did not crop the torus"
+    n = v.frames()
+    page.locator("#crop-y-lo").scroll_into_view_if_needed()
+    box = page.locator("#crop-y-lo").bounding_box()  # the handle, dragged to its right end
+    page.mouse.move(box["x"] + 2, box["y"] + box["height"] / 2)
+    page.mouse.down()
+    page.mouse.move(box["x"] + box["width"] + 20, box["y"] + box["height"] / 2, steps=4)
+    page.mouse.up()
+    assert page.input_value("#crop-y-lo") == "0.5"
+    assert surface_fraction(v.settle(n)) == 0, "a box of no volume keeps nothing"
+    n = v.frames()
+    set_control(page, "#crop-y-lo", "-0.5")
+    assert difference(v.settle(n), cropped) < 1.0
+    n = v.frames()
+    set_control(page, "#crop-x-hi", "0.5")
+    assert page.inner_text("#crop-value") == ""
+    assert difference(v.settle(n), plain) < 1.0
+    # A colouring the server refuses (no such volume): a notice naming it, the view as it was, frames going on.
+    n = v.frames()
+    set_control(page, "#color-by", "field")
+    set_control(page, "#color-field", "nowhere")
+    v.wait("document.getElementById('notice').textContent.includes('settings.coloring.by')")
+    assert difference(v.settle(n), plain) < 1.0 and page.get_attribute("#conn-state", "data-state") == "open"
+    assert v.errors == [], v.errors
+    page.close()
+
+
 def red_excess(pixels, where=None) -> float:
     """Mean red minus blue over the surface's pixels (those off the white background; of ``where``'s surface)."""
     where = pixels if where is None else where

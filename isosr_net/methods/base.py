@@ -487,12 +487,17 @@ class FrameRunner(ABC):
         else:
             rendered = yield from self._render_bands(camera, request, slice_ms, timer)
             buffers = self.finish(rendered, timer)
+        return self._made(rendered, buffers, [timer], prev_camera)
+
+    def _made(self, rendered: FrameBuffers, buffers: FrameBuffers, timers: list[StageTimer],
+              prev_camera: Camera | None) -> FrameResult:
+        """A frame's result, its kept buffers added (at the frame size); the runner counts it."""
         for name in self.keep:
             if getattr(buffers, name) is None and getattr(rendered, name) is not None:
                 setattr(buffers, name, self._to_frame_size(name, getattr(rendered, name)))
-        self._last_timer = timer
+        self._last_timer = timers[0]
         self.frames += 1
-        return FrameResult(buffers, [timer], prev_camera is not None and self.recurrent)
+        return FrameResult(buffers, timers, prev_camera is not None and self.recurrent)
 
     def render_finish(self, camera: Camera, request: RenderRequest,
                       timer: StageTimer) -> tuple[FrameBuffers, FrameBuffers]:

@@ -6,8 +6,11 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+import torch
+
 from isosr_net.inference import default_precision
-from isosr_net.methods.base import FrameMethod, FrameRunner, ModelOptions, RayOptions, count, register_runner
+from isosr_net.methods.base import (FrameMethod, FrameResult, FrameRunner, ModelOptions, RayOptions, count,
+                                   register_runner)
 from isosr_net.model import read_config
 from isosr_net.reconnet import UPSCALES, RayLimits
 from isosr_net.reconstructor import (
@@ -23,6 +26,10 @@ from isosr_render.shading import ShadingParams
 
 # The x2 reconstruction's name in its methods' names (``x2, AO 1, spp 1, recon_x2 fp16``).
 X2_MODEL_NAME = "recon_x2"
+# Where make_batch runs the network once over a batch's frames: on GPUs, where a frame's network is many
+# small launches (the service's fused kernels, ungraphed) whose host work a batch shares; on CPUs the
+# network's arithmetic dominates, and each stream's frame stays its own call.
+BATCHED_NETWORK_DEVICES = ("cuda",)
 # The shipped reconstruction's name in the budget policy's candidates and the recon-path study's
 # rows (``full, AO 1, spp 1, network fp16``): their probe caches and results know them by it.
 CANDIDATE_MODEL_NAME = "network"
@@ -139,6 +146,68 @@ class ReconstructRunner(FrameRunner):
         """The shading the network's call makes too: none where the runner does not shade, or where it
         shades after it (:attr:`FrameRunner.shades_after`)."""
         return self.shading if self.shade and not self.shades_after else None
+
+    def batch_key(self) -> tuple:
+        """As :meth:`FrameRunner.batch_key`, and what the network's call takes alike: the method (its
+        model, rays and precision) and the shading the call makes."""
+        return super().batch_key() + (self.method, self.fused_shading)
+
+    @classmethod
+    def make_batch(cls, frames: list[tuple[FrameRunner, Camera, Camera | None]]) -> list[FrameResult | Exception]:
+        """As :meth:`FrameRunner.make_batch`, with one wait for the device: each stream's frame issues
+        its work without reading its input checks, which are read after the last (on a GPU the host's
+        work for one frame overlaps the device's for the one before). On the devices in
+        :data:`BATCHED_NETWORK_DEVICES`, streams whose networks run ungraphed (the service's) render
+        their frames one by one, then the network runs once over them all
+        (:meth:`Reconstructor.reconstruct_batch`; the frames' ``network`` stage is their batch's).
+        A frame whose checks fail is its stream's error and leaves its stream as it was, as alone."""
+        before = [(runner.frames, runner._last_timer) for runner, _, _ in frames]
+        for runner, _, _ in frames:
+            runner.net.defer_checks()
+        if len(frames) > 1 and torch.device(frames[0][0].device).type in BATCHED_NETWORK_DEVICES and \
+                not any(runner.net.graphs for runner, _, _ in frames):
+            results = cls._network_batch(frames)
+        else:
+            results = super().make_batch(frames)
+        for k, (runner, _, _) in enumerate(frames):
+            try:
+                runner.net.settle_checks()
+            except ValueError as e:
+                runner.frames, runner._last_timer = before[k]
+                results[k] = e
+        return results
+
+    @classmethod
+    def _network_batch(cls, frames: list[tuple[ReconstructRunner, Camera, Camera | None]]
+                       ) -> list[FrameResult | Exception]:
+        """Each stream's render, then one network call for them all (checks deferred by the caller)."""
+        rendered: list[tuple[int, ReconstructRunner, StageTimer, FrameBuffers, Camera | None]] = []
+        results: list[FrameResult | Exception | None] = [None] * len(frames)
+        for k, (runner, camera, prev_camera) in enumerate(frames):
+            timer = StageTimer(runner.device)
+            try:
+                with torch.no_grad(), timer("render"):
+                    frame = runner.renderer.render(camera, runner.render_request(prev_camera))
+                rendered.append((k, runner, timer, frame, prev_camera))
+            except Exception as e:  # noqa: BLE001 - the stream's own failure, returned as its result
+                results[k] = e
+        if not rendered:
+            return results
+        first = rendered[0][1]
+        network = StageTimer(first.device)
+        with network("network"):  # shading included: one call
+            outs = Reconstructor.reconstruct_batch([r.net for _, r, _, _, _ in rendered],
+                                                   [f for _, _, _, f, _ in rendered], first.read_rays,
+                                                   first.method.spp, first.fused_shading)
+        for (k, runner, timer, frame, prev_camera), out in zip(rendered, outs):
+            try:
+                if isinstance(out, Exception):
+                    raise out
+                buffers = runner.colored(out, timer, frame) if runner.shades_after else out
+                results[k] = runner._made(frame, buffers, [timer, network], prev_camera)
+            except Exception as e:  # noqa: BLE001 - as above
+                results[k] = e
+        return results
 
     def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
         with timer("network"):  # shading included: one call

@@ -210,6 +210,22 @@ def check_exposure(host: str, token: str | None, tls: bool, insecure: bool) -> N
                          "--tls-key, or --insecure")
 
 
+def check_replica_exposure(host: str, accepted: bool) -> None:
+    """The rule for replicas beyond this machine: Ray Serve's proxy, their front door, bounds neither a
+    request's header size and read time nor TLS handshakes, nor its connections, nor a WebSocket's
+    frames before the app sees them (the plain server does all of these, :mod:`isosr_server.transport`);
+    beyond loopback it must sit behind a reverse proxy that does, which the user says with ``accepted``.
+
+    Raises:
+        ValueError: the host is not loopback and ``accepted`` is false.
+    """
+    if host not in LOOPBACK_HOSTS and not accepted:
+        raise ValueError(f"binding {host} with --replicas exposes Ray Serve's proxy, which bounds neither header "
+                         "size and time, TLS handshakes, connections nor WebSocket frames before authentication: "
+                         "serve it through a reverse proxy that bounds them (docs/serving.md, 'Replicas beyond this "
+                         "machine'): on this machine, bind --host 127.0.0.1; on another, pass --behind-proxy")
+
+
 def check_tls_files(cert: Path, key: Path) -> None:
     """That ``cert`` holds a PEM certificate and ``key`` its unencrypted PEM private key.
 

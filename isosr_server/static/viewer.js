@@ -6,6 +6,7 @@ import { FrameDecoder, IMAGE_ENCODINGS, VIDEO_PROBES, decodableEncodings } from 
 const $ = (id) => document.getElementById(id);
 const DEFAULT_CAMERA = { yaw: 30, pitch: 20, distance: 1.8, target: [0, 0, 0], fov_y: 40 };
 const CHANNELS = ["shaded", "mask", "normal", "depth", "ao", "flow"];
+const AXES = ["x", "y", "z"]; // the world's, as the clip plane, the crop box and the slices name them
 // Keys 1..9 pick the modes in the menu's order (the server's, GET /v1/modes).
 const TOKEN_KEY = "isosr.token";
 const SPARK_FRAMES = 120;
@@ -197,17 +198,35 @@ function settings(mode) {
   };
 }
 
-/** The clip plane of the controls (settings.clip): across the chosen world axis at the handle's offset,
- * keeping the side below it (above once flipped); no planes while off. */
+/** The clip of the controls (settings.clip): the plane across the chosen world axis at the handle's
+ * offset, keeping the side below it (above once flipped), none while off; and the crop box. */
 function clipSettings() {
-  const axis = ["x", "y", "z"].indexOf($("clip-axis").value);
+  const axis = AXES.indexOf($("clip-axis").value);
   $("clip-value").textContent = axis < 0 ? "" : `${state.clipFlip ? ">=" : "<="} ${$("clip-offset").value}`;
-  if (axis < 0) return { planes: [], box: null, cap: "none" };
+  const box = cropBox();
+  const cap = $("cap").value;
+  if (axis < 0) return { planes: [], box, cap };
   const point = [0, 0, 0];
   const normal = [0, 0, 0];
   point[axis] = Number($("clip-offset").value);
   normal[axis] = state.clipFlip ? 1 : -1;
-  return { planes: [{ point, normal }], box: null, cap: $("cap").value };
+  return { planes: [{ point, normal }], box, cap };
+}
+
+/** The crop box of the six handles ([lo, hi] in world units): per axis the span between its two
+ * handles, in either order; null while every span is whole. */
+function cropBox() {
+  const lo = [];
+  const hi = [];
+  for (const axis of AXES) {
+    const a = Number($(`crop-${axis}-lo`).value);
+    const b = Number($(`crop-${axis}-hi`).value);
+    lo.push(Math.min(a, b));
+    hi.push(Math.max(a, b));
+  }
+  const whole = lo.every((v) => v <= -0.5) && hi.every((v) => v >= 0.5);
+  $("crop-value").textContent = whole ? "" : AXES.map((a, i) => `${a} ${lo[i]}…${hi[i]}`).join(", ");
+  return whole ? null : [lo, hi];
 }
 
 /** What colours the surface (settings.coloring): null, the gradient, or the named volume of the grid. */
@@ -710,12 +729,13 @@ function screenshot() {
   view.toBlob((blob) => download(`isosr-${state.volume}-${Date.now()}.png`, blob), "image/png");
 }
 
-/** The isosurface of the current iso as a PLY mesh file (GET /v1/volumes/NAME/mesh). */
+/** The isosurface of the current iso, cut by the view's clip, as a PLY mesh file (GET /v1/volumes/NAME/mesh). */
 async function saveMesh() {
   if (!state.volume) return;
   const iso = state.iso === null ? "" : `iso=${state.iso}&`;
+  const clip = encodeURIComponent(JSON.stringify(clipSettings()));
   setNotice("making the mesh…");
-  const response = await fetch(`/v1/volumes/${encodeURIComponent(state.volume)}/mesh?${iso}format=ply`,
+  const response = await fetch(`/v1/volumes/${encodeURIComponent(state.volume)}/mesh?${iso}format=ply&clip=${clip}`,
                                { headers: authHeaders() });
   if (!response.ok) {
     const body = await response.json().catch(() => ({}));
@@ -777,7 +797,7 @@ async function showSlices(voxel) {
   if (!state.volume || $("slices").hasAttribute("data-off")) return;
   const iso = state.iso === null ? "" : `&iso=${state.iso}`;
   const name = encodeURIComponent(state.volume);
-  await Promise.all(["x", "y", "z"].map(async (axis, n) => {
+  await Promise.all(AXES.map(async (axis, n) => {
     const response = await fetch(`/v1/volumes/${name}/slices/${axis}?index=${voxel[n]}${iso}`, { headers: authHeaders() });
     if (!response.ok) return;
     const blob = await response.blob();
@@ -925,6 +945,10 @@ function bindControls() {
   $("clip-offset").addEventListener("input", sendSettings);
   $("surface-add").addEventListener("click", addSurface);
   $("surface-clear").addEventListener("click", () => { state.surfaces = []; showSurfaces(); sendSettings(); });
+  for (const axis of AXES) {
+    $(`crop-${axis}-lo`).addEventListener("input", sendSettings);
+    $(`crop-${axis}-hi`).addEventListener("input", sendSettings);
+  }
   $("color-by").addEventListener("change", sendSettings);
   $("colormap").addEventListener("change", sendSettings);
   $("color-field").addEventListener("change", sendSettings);

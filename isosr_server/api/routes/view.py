@@ -18,9 +18,8 @@ from isosr_server.api.deps import AuthorizedDep, CatalogDep, EngineDep, LimitsDe
 from isosr_server.api.ws import accept, end_ws, rate_limiter, receive
 from isosr_server.engine import Engine
 from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, CLOSE_IDLE, VIDEO_ENCODINGS, FocusMsg, FrameMsg, Limits,
-                                   Message, NoticeMsg, OpenMsg, PickMsg, ProtocolError, ReadyMsg, SettingsMsg,
-                                   ViewSettings,
-                                   VolumeSummary, encode, parse)
+                                   Message, NoticeMsg, OpenMsg, PickMsg, ProtocolError, ReadyMsg, SettingRefused,
+                                   SettingsMsg, ViewSettings, VolumeSummary, encode, parse, surfaces_of)
 from isosr_server.sessions import (DEFAULT_CAMERA, SessionCounter, StepView, ViewSession, ViewState, run_frames,
                                    to_camera, watch_acks)
 from isosr_server.video import SessionCoder
@@ -64,7 +63,7 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
                 raise ProtocolError(f"the client read no frame for {limits.idle_timeout_s:g} s", CLOSE_IDLE,
                                     408) from None
             if isinstance(msg, FrameMsg):
-                metrics.frame("view", msg.mode, msg.refined, msg.times, msg.nbytes)
+                metrics.frame("view", msg.mode, msg.refined, msg.times, msg.nbytes, msg.batch)
 
         async def answer(msg: PickMsg) -> None:  # at once, between frames, on the current view (its step)
             s = session.state
@@ -92,16 +91,26 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
 async def take_updates(ws: WebSocket, limiter, limits: Limits, session: ViewSession,
                        answer: Callable[[PickMsg], Awaitable[None]], catalog: VolumeCatalog, shown: StepView) -> None:
     """A view session's client messages, until the connection ends: picks answered (``answer``),
-    the rest applied to the session's state (a coloring's field volume resolved into ``shown``)."""
+    the rest applied to the session's state (a coloring's field volume resolved into ``shown``); a
+    `SettingRefused` leaves the state as it was (:meth:`ViewSession.refuse`)."""
     while True:
-        msg = parse(await receive(ws, limiter, limits), limits, CLIENT_VIEW_MESSAGES)
+        data, field = await receive(ws, limiter, limits), shown.field
+        try:
+            msg = parse(data, limits, CLIENT_VIEW_MESSAGES)
+            if isinstance(msg, SettingsMsg) and msg.settings.coloring is not UNSET:  # its field resolved first
+                field = await coloring_field(catalog, session.state.settings.updated(msg.settings, limits),
+                                             session.volume, msg.seq)
+            if isinstance(msg, SettingsMsg) and msg.settings.surfaces is not UNSET:  # checked on the volume first
+                surfaces_of(session.state.settings.updated(msg.settings, limits).surfaces,
+                            session.volume.normalized_iso, msg.seq)
+        except SettingRefused as e:
+            session.refuse(e)
+            continue
         if isinstance(msg, PickMsg):
             await answer(msg)
         else:
-            if isinstance(msg, SettingsMsg) and msg.settings.coloring is not UNSET:  # its field resolved first
-                shown.field = await coloring_field(catalog, session.state.settings.updated(msg.settings, limits),
-                                                   session.volume)
             session.apply(msg)
+            shown.field = field
 
 
 async def open_view(ws: WebSocket, msg: OpenMsg, limits: Limits, catalog: VolumeCatalog,

@@ -5,10 +5,11 @@
     GET /v1/volumes/{name}   one volume's info with its histogram (loads it) and, once a session
                              rendered it, where its voxels are (``device``: `MemoryStats`); 422
                              with the reason for one that cannot be opened
-    GET /v1/volumes/{name}/mesh?iso=V&format=ply|obj|stl|vtu
+    GET /v1/volumes/{name}/mesh?iso=V&format=ply|obj|stl|vtu[&clip=JSON]
                              the isosurface of iso V (data units; default the suggested one) as a
                              triangle mesh file in physical units (:mod:`isosr_render.mesh`), made
-                             on the server's device; 413 naming the limit for one too large
+                             on the server's device, cut by ``clip`` (a view's ``settings.clip`` as
+                             JSON); 413 naming the limit for one too large, 422 for no surface
     GET /v1/volumes/{name}/slices/{x|y|z}?index=K[&iso=V]
                              the orthogonal slice across that axis at voxel K as a PNG, the iso
                              contour (data units) drawn on it (:func:`isosr_render.slices.slice_image`)
@@ -18,16 +19,18 @@ from __future__ import annotations
 
 import asyncio
 import re
-from typing import Literal
+from functools import partial
+from typing import Annotated, Literal
 
 import torch
-from fastapi import APIRouter, Depends, Response
+from fastapi import APIRouter, Depends, Query, Response
 
-from isosr_render.mesh import MESH_FORMATS, extract_mesh, mesh_bytes
+from isosr_render.clip import Clip
+from isosr_render.mesh import MESH_FORMATS, MeshTooLarge, extract_mesh, mesh_bytes
 from isosr_render.slices import AXES, slice_image
 from isosr_server.api.deps import CatalogDep, EngineDep, require_token
 from isosr_server.encoding import encode_image
-from isosr_server.protocol import ProtocolError
+from isosr_server.protocol import ProtocolError, clip_query
 from isosr_server.volumes import load_volume, session_iso
 
 router = APIRouter(prefix="/v1/volumes", tags=["volumes"], dependencies=[Depends(require_token)])
@@ -59,15 +62,19 @@ async def get_slice(name: str, axis: Literal[AXES], index: int, catalog: Catalog
 
 @router.get("/{name}/mesh", response_class=Response, responses={200: {"content": {"application/octet-stream": {}}}})
 async def get_mesh(name: str, catalog: CatalogDep, engine: EngineDep, iso: float | None = None,
-                   format: Literal[tuple(m[1:] for m in MESH_FORMATS)] = "ply"):
+                   format: Literal[tuple(m[1:] for m in MESH_FORMATS)] = "ply",
+                   clip: Annotated[str | None, Query(max_length=4000)] = None):
     volume, info = await load_volume(catalog, name)
-    normalized = session_iso(volume, name, info.iso if iso is None else iso, False, "iso")
+    iso = info.iso if iso is None else iso
+    normalized = session_iso(volume, name, iso, False, "iso")
+    cut = Clip() if clip is None else clip_query(clip).clip()
     try:
-        mesh = await engine.call(extract_mesh, volume, normalized, str(engine.device))
-    except ValueError as e:
-        raise ProtocolError(str(e), http_status=413) from None
+        mesh = await engine.call(partial(extract_mesh, clip=cut), volume, normalized, str(engine.device))
+    except ValueError as e:  # a limit (413) or a crop box of zero volume
+        raise ProtocolError(str(e), http_status=413 if isinstance(e, MeshTooLarge) else 422) from None
     if len(mesh.faces) == 0:
-        raise ProtocolError(f"iso {iso}: no surface in {name}", http_status=422)
+        kept = " in the clip's kept region" if cut.active else ""
+        raise ProtocolError(f"iso {iso:g}: no surface{kept} in {name}", http_status=422)
     data = await asyncio.to_thread(mesh_bytes, mesh, f".{format}")
     return Response(data, media_type="application/octet-stream",
                     headers={"Content-Disposition": f'attachment; filename="{re.sub(r"[^A-Za-z0-9_.-]", "_", name)}.{format}"'})
