@@ -4,8 +4,9 @@
     python -m isosr_bench.bench_render --device cpu --smoke  # small sizes, CPU (CI)
 
 Per volume, averaged over a 10-frame orbit: 1920x1080 first hit (mask, normal, depth) with
-and without skipping, 1080p with 128 AO rays, and the 480x270 low-res pass (mask, normal,
-depth, flow). Then the reconstruction's render (first hit, 1 AO ray, flow at 1080p) per call
+and without skipping, with two isosurfaces (the iso and one a quarter of the way to the top of
+the range; opaque, and the outer one at 30%: two layers), 1080p with 128 AO rays, and the
+480x270 low-res pass (mask, normal, depth, flow). Then the reconstruction's render (first hit, 1 AO ray, flow at 1080p) per call
 three ways: a fresh ``Renderer.render`` (new buffers), a reused ``RenderPlan``, and on CUDA the
 plan's launch replayed from a CUDA graph (``ms``: CUDA events around each call; ``kernel_ms``:
 the render kernel alone). Prints a Markdown table and writes ``OUT/bench_render_*.json`` (``--out``).
@@ -22,6 +23,7 @@ import warp as wp
 from isosr_render import Renderer, RenderRequest, Volume, kernels, open_volume, orbit_path, resolve_iso
 from isosr_render.flow_fill import fill_flow
 from isosr_render.sequence import sequence_requests
+from isosr_render.surfaces import Surfaces
 from isosr_render.voxels import ArraySource
 
 from .common import bench_parser, kernel_ms, mean_ms, print_table, time_frames, write_result
@@ -51,11 +53,21 @@ def volumes(smoke: bool, device: str) -> list[tuple[Volume, float]]:
     return out
 
 
+def two_surfaces(iso: float) -> dict[str, Surfaces]:
+    """The first-hit cases of two isosurfaces: ``iso`` and one a quarter of the way from it to the top of the
+    range, opaque and with ``iso``'s (the outer one of rising values) at 30%."""
+    inner = iso + 0.25 * (1.0 - iso)
+    return {"first hit, two surfaces": Surfaces.of([(iso, (0.9, 0.8, 0.7)), (inner, (0.9, 0.3, 0.2))]),
+            "first hit, two surfaces, 30%": Surfaces.of([(iso, (0.9, 0.8, 0.7), 0.3), (inner, (0.9, 0.3, 0.2))])}
+
+
 def count_samples(renderer: Renderer, camera, request: RenderRequest) -> dict:
-    """Volume samples of one frame (a separate, counting render): total, longest ray, hit fraction."""
+    """Volume samples of one frame (a separate, counting render; a second layer's too): total, longest ray, hit
+    fraction."""
     counted = RenderRequest(**{**request.__dict__, "outputs": request.outputs + ("samples",)})
     frame = renderer.render(camera, counted)
-    return {"samples": int(frame.samples.sum()), "max samples/pixel": int(frame.samples.max()),
+    samples = frame.samples if frame.behind is None else frame.samples + frame.behind.samples
+    return {"samples": int(samples.sum()), "max samples/pixel": int(samples.max()),
             "coverage": float(frame.mask.float().mean())}
 
 
@@ -74,6 +86,8 @@ def bench_volume(volume: Volume, iso: float, device: str, smoke: bool) -> list[d
     cases = {
         "first hit": still(RenderRequest(hi_w, hi_h, iso, FIRST_HIT_OUTPUTS)),
         "first hit, no skipping": still(RenderRequest(hi_w, hi_h, iso, FIRST_HIT_OUTPUTS, skip=False)),
+        **{case: still(RenderRequest(hi_w, hi_h, iso, FIRST_HIT_OUTPUTS, surfaces=surfaces))
+           for case, surfaces in two_surfaces(iso).items()},
         f"AO {ao_samples}": still(RenderRequest(hi_w, hi_h, iso, FIRST_HIT_OUTPUTS + ("ao",), ao_samples=ao_samples,
                                                ao_radius=AO_RADIUS)),
         "low-res": sequence_requests(path, lo_w, lo_h, iso, LOWRES_OUTPUTS),

@@ -11,6 +11,7 @@ import torch
 from isosr_render.atomic import atomic_write
 from isosr_render.buffers import FrameBuffers
 from isosr_render.images import to_uint8
+from isosr_render.surfaces import MAX_SURFACES
 
 
 def visualize(frame: FrameBuffers, name: str) -> np.ndarray:
@@ -30,6 +31,8 @@ def visualize(frame: FrameBuffers, name: str) -> np.ndarray:
         lo, hi = float(d.min()), float(d.max())
         gray = torch.where(hit, 1.0 - (a - lo) / max(hi - lo, 1e-12) * 0.8, torch.zeros_like(a))
         rgb = gray[..., None].expand(*gray.shape, 3)
+    elif name == "surface":  # several surfaces: brighter by index, black where none
+        rgb = ((a + 1.0) / MAX_SURFACES)[..., None].expand(*a.shape, 3)
     elif name == "cap":  # the cut faces' values in grey
         rgb = (a[..., 0] * a[..., 1])[..., None].expand(*a.shape[:2], 3)
     elif a.ndim == 2:

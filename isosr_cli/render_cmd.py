@@ -44,6 +44,7 @@ from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES
 from isosr_render.formats import help_text
 from isosr_render.picking import pick
 from isosr_render.series import open_series
+from isosr_render.surfaces import MAX_SURFACES, PALETTE, Surfaces
 
 PNG_DEFAULT = "color"
 # AO rays per hit of a plain render.
@@ -77,9 +78,16 @@ def add_parser(subparsers) -> None:
                    help="render step T (from 0) of a time series: a glob ('run_*.nii.gz', quoted) or folder of "
                         "volume files in natural order, a 4D NIfTI, a (t, z, y, x) .npy, an OME-Zarr with a t axis "
                         "or FILE.h5#/DATASET")
-    p.add_argument("--iso", type=float, help="iso-value in data units, strictly inside the data's value range "
-                                             "(default: the procedural volume's own, else Otsu's threshold)")
+    p.add_argument("--iso", type=float, action="append",
+                   help="iso-value in data units, strictly inside the data's value range (default: the procedural "
+                        f"volume's own, else Otsu's threshold); repeat it for up to {MAX_SURFACES} surfaces shown "
+                        "together, each ray stopping at the nearest")
     p.add_argument("--normalized-iso", action="store_true", help="--iso is on the normalized [0, 1] scale")
+    p.add_argument("--iso-color", type=numbers(3), action="append", default=[], metavar="R,G,B",
+                   help="the colour (each in [0, 1]) of the --iso of the same place; none: a palette in turn")
+    p.add_argument("--iso-opacity", type=float, action="append", default=[], metavar="A",
+                   help="the opacity in [0, 1] of the --iso of the same place (default 1); below 1 the rays go on "
+                        "to the next surface and the two layers are composited (plain renders and --method full)")
     p.add_argument("--size", type=frame_size, default=(640, 480), help="image size WxH")
     cam = p.add_argument_group("camera (world frame: box centered at 0, longest side 1)")
     cam.add_argument("--eye", type=_triple, help="camera position x,y,z")
@@ -132,6 +140,22 @@ def add_parser(subparsers) -> None:
     p.add_argument("--png-of", choices=BUFFER_NAMES, help="with a .png output: the buffer to show")
     p.add_argument("-o", "--output", help="FILE.npz (frame file) or FILE.png (required but with --list-methods)")
     p.set_defaults(func=run)
+
+
+def _surfaces(args: argparse.Namespace, volume, label: str) -> tuple[float, Surfaces | None]:
+    """The normalized iso of --iso (checked in the data's range), and with several of them, --iso-color or
+    --iso-opacity their surfaces (None: one plain iso)."""
+    given = args.iso or [None]
+    isos = [check_iso(volume, resolve_iso(args.volume, volume, v, args.normalized_iso), label) for v in given]
+    if len(isos) == 1 and not args.iso_color and not args.iso_opacity:
+        return isos[0], None
+    for name, given in (("--iso-color", args.iso_color), ("--iso-opacity", args.iso_opacity)):
+        if given and len(given) != len(isos):
+            raise ValueError(f"give one {name} per --iso ({len(isos)}), or none, not {len(given)}")
+    if len(isos) > MAX_SURFACES:
+        raise ValueError(f"--iso: at most {MAX_SURFACES} surfaces, got {len(isos)}")
+    surfaces = Surfaces.of(zip(isos, args.iso_color or PALETTE, args.iso_opacity or [1.0] * len(isos)))
+    return surfaces.iso, surfaces
 
 
 def _series_step(spec: str, t: int):
@@ -223,8 +247,9 @@ def run(args: argparse.Namespace) -> int:
     clip = clip_of(args)
 
     volume = open_volume(args.volume) if args.time_step is None else _series_step(args.volume, args.time_step)
-    iso = check_iso(volume, resolve_iso(args.volume, volume, args.iso, args.normalized_iso),
-                    args.volume.removeprefix(SHARED_PREFIX))
+    iso, surfaces = _surfaces(args, volume, args.volume.removeprefix(SHARED_PREFIX))
+    if surfaces is not None and (args.budget_ms is not None or args.pick is not None):
+        raise ValueError("--budget-ms and --pick take one --iso")
     unit = volume.voxel_size_world() if args.voxel_units else 1.0
     camera = _camera(args.orbit, args.eye, args.target, args.up, args.fov)
     prev = None
@@ -236,14 +261,14 @@ def run(args: argparse.Namespace) -> int:
         # An eager network: for a frame or two, compiling it would take longer than it saves.
         runner = make_runner(args.method, renderer, iso, *args.size, ao_radius=args.ao_radius * unit,
                              networks=Networks.eager(), keep=tuple(o for o in outputs if o in BUFFER_NAMES),
-                             clip=clip, coloring=coloring)
+                             clip=clip, coloring=coloring, surfaces=surfaces)
     else:
         request = RenderRequest(
             width=args.size[0], height=args.size[1], iso=iso, outputs=outputs,
             step=None if args.step is None else args.step * unit, refine=args.refine,
             refine_steps=args.refine_steps, spp=args.spp, ao_samples=args.ao_samples,
             ao_radius=args.ao_radius * unit, seed=args.seed, prev_camera=prev, flow_fill=args.flow_fill,
-            skip=not args.no_skip, clip=clip, coloring=coloring)
+            skip=not args.no_skip, clip=clip, coloring=coloring, surfaces=surfaces)
     start = time.perf_counter()
     if args.method is not None:
         made = run_sequence(runner, [camera] if prev is None else [prev, camera])[-1]
@@ -271,7 +296,9 @@ def run(args: argparse.Namespace) -> int:
     how = "rendered"
     if args.method is not None:
         how = f"made by {args.method.name}{' from the previous camera on' if prev else ''}:"
-    print(f"{volume.name}: {volume.shape} voxels, iso {iso:.4f} normalized ({lo + iso * (hi - lo):g} in data units); "
+    isos = [iso] if surfaces is None else [s.iso for s in surfaces.items]
+    print(f"{volume.name}: {volume.shape} voxels, iso {', '.join(f'{v:.4f}' for v in isos)} normalized "
+          f"({', '.join(f'{lo + v * (hi - lo):g}' for v in isos)} in data units); "
           f"{how} {','.join(frame.present())} at {args.size[0]}x{args.size[1]} on {renderer.device} "
           f"in {elapsed * 1e3:.1f} ms{'' if args.budget_ms is None else ', the probe included'} -> {out}")
     if picked is not None:

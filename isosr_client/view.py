@@ -399,6 +399,21 @@ class ViewSession:
                                             "range": None if range is None else _floats(range)}
         return self.set_settings(coloring=coloring)
 
+    def set_surfaces(self, surfaces: Sequence[tuple] = ()) -> int:
+        """Show up to 4 isosurfaces together, each ``(iso in data units, (r, g, b) in [0, 1][, opacity])``: each
+        ray stops at the nearest, shaded in its colour; one of opacity below 1 lets the ray go on to the next,
+        the two layers composited (the frames then full-resolution renders); no arguments: the session's one iso
+        again. Returns the update's seq.
+
+        Raises:
+            ProtocolError: more than 4, or a colour or opacity outside [0, 1], naming the field (nothing is sent
+                then); the
+                server refuses equal isos, a coloring beside them or a volume rendered sparse (the session ends
+                with its reason).
+        """
+        return self.set_settings(surfaces=[{"iso": float(iso), "color": _floats(color), "opacity": float(opacity)}
+                                           for iso, color, opacity in ((*s, 1.0)[:3] for s in surfaces)])
+
     def set_focus(self, shape: str = "none", center: tuple[float, float] | None = None, radius: float | None = None,
                   box: tuple[float, float, float, float] | None = None) -> int:
         """The ``focus`` mode's region in output pixels (x right, y down): ``circle`` (center,

@@ -559,11 +559,13 @@ class Reconstructor(RecurrentNetwork):
     def graphable(self, renderer: Renderer, request: RenderRequest) -> bool:
         """Whether :meth:`render_reconstruct` makes ``request``'s frames in one CUDA graph: with
         ``graphs``, a dense volume on this device, and no pass after the render kernel (color,
-        flow fill, coloring). Sparse volumes page bricks per frame on the host: they render ungraphed."""
+        flow fill, coloring, several surfaces). Sparse volumes page bricks per frame on the host: they render
+        ungraphed."""
         here = self.device if self.device.index is not None or self.device.type != "cuda" else \
             torch.device("cuda", torch.cuda.current_device())
         return (self.graphs and renderer.pool is None and renderer.torch_device == here
-                and "color" not in request.outputs and request.flow_fill == "none" and request.coloring is None)
+                and "color" not in request.outputs and request.flow_fill == "none" and request.coloring is None
+                and request.surfaces is None)
 
     def render_reconstruct(self, renderer: Renderer, camera: Camera, request: RenderRequest, ao_rays: int,
                            spp: int = 1, shading: ShadingParams | None = None) -> tuple[FrameBuffers, FrameBuffers]:

@@ -20,7 +20,12 @@ class FrameBuffers:
 
     Shape:
         mask, depth, ao: (H, W). normal, position, color, albedo: (H, W, 3). flow, cap: (H, W, 2).
+        surface: (H, W), the index of the isosurface shown (several surfaces), -1 where none.
         samples: (H, W) int32, volume samples taken per pixel (a diagnostic).
+
+    ``behind``, not a buffer: with translucent surfaces (:mod:`isosr_render.surfaces`), the second layer's
+    buffers (where the rays go on past a translucent first hit); :meth:`clone` and :meth:`to` carry it, a frame
+    file holds the first layer only.
     """
 
     mask: torch.Tensor | None = None
@@ -32,11 +37,13 @@ class FrameBuffers:
     color: torch.Tensor | None = None
     cap: torch.Tensor | None = None
     albedo: torch.Tensor | None = None
+    surface: torch.Tensor | None = None
     samples: torch.Tensor | None = None
+    behind: FrameBuffers | None = None
 
     def present(self) -> list[str]:
-        """Names of the buffers this frame holds, in field order."""
-        return [f.name for f in fields(self) if getattr(self, f.name) is not None]
+        """Names of the buffers this frame holds, in field order (``behind`` is none of them)."""
+        return [f.name for f in fields(self) if f.name != "behind" and getattr(self, f.name) is not None]
 
     def channels_first(self, names: tuple[str, ...]) -> torch.Tensor:
         """The named buffers stacked channels-first in that order: (C, H, W). With
@@ -55,11 +62,13 @@ class FrameBuffers:
 
     def clone(self) -> FrameBuffers:
         """A copy of the present buffers (to keep a frame whose maker reuses its memory)."""
-        return FrameBuffers(**{name: getattr(self, name).clone() for name in self.present()})
+        return FrameBuffers(**{name: getattr(self, name).clone() for name in self.present()},
+                            behind=None if self.behind is None else self.behind.clone())
 
     def to(self, device: torch.device | str) -> FrameBuffers:
         """The present buffers on ``device`` (the same tensors where they are there already)."""
-        return FrameBuffers(**{name: getattr(self, name).to(device) for name in self.present()})
+        return FrameBuffers(**{name: getattr(self, name).to(device) for name in self.present()},
+                            behind=None if self.behind is None else self.behind.to(device))
 
     def to_numpy(self) -> dict[str, np.ndarray]:
         """The present buffers as numpy arrays (a copy only where they live on a GPU)."""

@@ -34,7 +34,10 @@ Buffers (float32, image layout ``(H, W[, C])``)
              channels: the fraction of the pixel's rays that hit a cut face (at most mask), and
              the mean normalized volume value where they hit it. 0 elsewhere.
     albedo   with a coloring (:mod:`isosr_render.coloring`), the colour map's RGB of the coloring's
-             values at ``position``, the surface's colour in shading. 0 where mask is 0.
+             values at ``position``, the surface's colour in shading; with several isosurfaces
+             (:mod:`isosr_render.surfaces`), the colour of the pixel's surface. 0 where mask is 0.
+    surface  with several isosurfaces, the index of the one the pixel shows (of its first ray
+             that hits), -1 where mask is 0.
 """
 
 from __future__ import annotations
@@ -46,10 +49,10 @@ import numpy as np
 AO_RADIUS = 0.05
 
 # Buffer names in the order the frame file and the API list them.
-BUFFER_NAMES = ("mask", "normal", "depth", "position", "flow", "ao", "color", "cap", "albedo")
+BUFFER_NAMES = ("mask", "normal", "depth", "position", "flow", "ao", "color", "cap", "albedo", "surface")
 # Channels per buffer; 1 means a plain (H, W) image.
 BUFFER_CHANNELS = {"mask": 1, "normal": 3, "depth": 1, "position": 3, "flow": 2, "ao": 1, "color": 3, "cap": 2,
-                   "albedo": 3}
+                   "albedo": 3, "surface": 1}
 
 # The network's tensors are channels-first, (B, C, H, W), in these channel orders.
 # Low-res input: mask, view-space normal, depth; flow travels beside it as (B, 2, H, W).
@@ -69,6 +72,8 @@ SAMPLED_AO, SAMPLING = slice(5, 6), slice(6, 8)
 
 # Background color behind the isosurface (RGB in [0, 1]).
 BACKGROUND_RGB = (1.0, 1.0, 1.0)
+# The surface's colour without a coloring (the shading's albedo; a surface's of several without one).
+MATERIAL_RGB = (0.85, 0.78, 0.62)
 
 
 def world_from_voxel(shape: tuple[int, int, int], spacing: tuple[float, float, float]):

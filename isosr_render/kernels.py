@@ -41,6 +41,7 @@ from typing import Any
 import warp as wp
 
 from isosr_render.clip import MAX_PLANES
+from isosr_render.surfaces import MAX_SURFACES
 
 # The renderer needs no gradients (halves compile time); this module's option, not Warp's global one.
 wp.set_module_options({"enable_backward": False})
@@ -54,6 +55,7 @@ OUT_FLOW = wp.constant(16)
 OUT_AO = wp.constant(32)
 OUT_SAMPLES = wp.constant(64)
 OUT_CAP = wp.constant(128)
+OUT_SURFACE = wp.constant(256)
 
 REFINE_BISECTION = wp.constant(0)
 REFINE_SECANT = wp.constant(1)
@@ -182,6 +184,75 @@ class ClipArgs:
     planes: wp.array(dtype=wp.vec4)
 
 
+@wp.struct
+class OneIso:
+    """The kernels' iso argument for one isosurface (``RayParams.iso``): its overloads compile the plain
+    kernels as with a float iso (those for several take :class:`IsoSet`)."""
+
+    unused: int  # a struct needs a field
+
+
+@wp.struct
+class IsoSet:
+    """Several isosurfaces (:mod:`isosr_render.surfaces`), read from device memory as :class:`ClipArgs`:
+    ``values`` their :data:`MAX_SURFACES` iso-values ascending (the unused ones :data:`BIG`), then their
+    opacities in that order. A sample's band is the count of isos at or below it; a ray crosses a surface
+    between two samples of different bands. ``layer`` 0 marches to each ray's first crossing; 1 to the next one
+    after it (``after``: the first layer's hits, a plan's first planes) where that surface is translucent."""
+
+    values: wp.array(dtype=wp.float32)
+    layer: int
+    after: wp.array3d(dtype=wp.float32)
+
+
+# band, crossed_iso, near_iso and store_surface have an overload per iso type, as clipped_cast per clip type.
+@wp.func
+def band(isos: OneIso, iso: float, f: float) -> int:
+    """Which side of ``iso`` the sample ``f`` lies on: 1 at or above, else 0."""
+    return wp.where(f >= iso, 1, 0)
+
+
+@wp.func
+def band(isos: IsoSet, iso: float, f: float) -> int:
+    """How many of the isos lie at or below the sample ``f``."""
+    b = int(0)
+    for k in range(MAX_SURFACES):
+        if f >= isos.values[k]:
+            b += 1
+    return b
+
+
+@wp.func
+def crossed_iso(isos: OneIso, iso: float, f0: float, f1: float) -> float:
+    """The iso crossed between samples ``f0`` and ``f1``: ``iso``."""
+    return iso
+
+
+@wp.func
+def crossed_iso(isos: IsoSet, iso: float, f0: float, f1: float) -> float:
+    """The iso first crossed going from ``f0`` to ``f1`` (of different bands): the next one from ``f0``'s side."""
+    b = band(isos, iso, f0)
+    if band(isos, iso, f1) > b:
+        return isos.values[b]
+    return isos.values[b - 1]
+
+
+@wp.func
+def near_iso(isos: OneIso, iso: float, v: float, near: float) -> bool:
+    """Whether ``v`` lies within ``near`` of ``iso``."""
+    return wp.abs(v - iso) < near
+
+
+@wp.func
+def near_iso(isos: IsoSet, iso: float, v: float, near: float) -> bool:
+    """Whether ``v`` lies within ``near`` of any of the isos."""
+    close = False
+    for k in range(MAX_SURFACES):
+        if wp.abs(v - isos.values[k]) < near:
+            close = True
+    return close
+
+
 @wp.kernel
 def minmax_kernel(voxels: wp.array3d(dtype=Any), grid: Grid, minmax: wp.array3d(dtype=wp.vec2)):
     """Per brick of dense voxels: min and max of its normalized voxels, including the shared face voxels."""
@@ -202,12 +273,15 @@ def minmax_kernel(voxels: wp.array3d(dtype=Any), grid: Grid, minmax: wp.array3d(
 
 
 @wp.kernel
-def occupancy_kernel(minmax: wp.array3d(dtype=wp.vec2), iso: float, skip: int, empty: int,
+def occupancy_kernel(minmax: wp.array3d(dtype=wp.vec2), isos: wp.vec4, skip: int, empty: int,
                      dist: wp.array3d(dtype=wp.uint8)):
-    """Distance 0 for bricks whose range holds ``iso`` (all bricks without ``skip``), else ``empty``."""
+    """Distance 0 for bricks whose range holds one of ``isos`` (padded with :data:`BIG`; all bricks without
+    ``skip``), else ``empty``."""
     i, j, k = wp.tid()
     mm = minmax[i, j, k]
-    active = skip == 0 or (mm[0] <= iso and iso <= mm[1])
+    active = skip == 0
+    for s in range(4):
+        active = active or (mm[0] <= isos[s] and isos[s] <= mm[1])
     dist[i, j, k] = wp.uint8(wp.where(active, 0, empty))
 
 
@@ -296,25 +370,28 @@ def sample_volume(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, p: wp.
 # march_sample and exact_sample have an overload per layout, not one for Any: through march's Any
 # parameter Warp picked an Any overload over the Filtered one (measured: the exact march ran).
 @wp.func
-def march_sample(voxels: wp.array3d(dtype=Any), layout: Dense, grid: Grid, p: wp.vec3, iso: float) -> float:
+def march_sample(voxels: wp.array3d(dtype=Any), layout: Dense, grid: Grid, p: wp.vec3, isos: Any,
+                 iso: float) -> float:
     """A march's sample at voxel coordinates ``p``: the exact trilinear one (:func:`sample_volume`)."""
     return sample_volume(voxels, layout, grid, p)
 
 
 @wp.func
-def march_sample(voxels: wp.array3d(dtype=Any), layout: Sparse, grid: Grid, p: wp.vec3, iso: float) -> float:
+def march_sample(voxels: wp.array3d(dtype=Any), layout: Sparse, grid: Grid, p: wp.vec3, isos: Any,
+                 iso: float) -> float:
     """A march's sample at voxel coordinates ``p``: the exact trilinear one (:func:`sample_volume`)."""
     return sample_volume(voxels, layout, grid, p)
 
 
 @wp.func
-def march_sample(voxels: wp.array3d(dtype=Any), layout: Filtered, grid: Grid, p: wp.vec3, iso: float) -> float:
-    """A march's sample at voxel coordinates ``p`` from the texture, exact within ``near`` of ``iso``:
-    either way on the iso's side that the exact sample is."""
+def march_sample(voxels: wp.array3d(dtype=Any), layout: Filtered, grid: Grid, p: wp.vec3, isos: Any,
+                 iso: float) -> float:
+    """A march's sample at voxel coordinates ``p`` from the texture, exact within ``near`` of the isos
+    (:func:`near_iso`): either way in the band that the exact sample is."""
     q = clamped(grid, p)
     v = wp.texture_sample(layout.tex, wp.vec3f(q[2] + 0.5, q[1] + 0.5, q[0] + 0.5), dtype=float) * layout.gain \
         - layout.bias
-    if wp.abs(v - iso) < layout.near:
+    if near_iso(isos, iso, v, layout.near):
         return sample_volume(voxels, layout, grid, p)
     return v
 
@@ -397,8 +474,9 @@ def refine_crossing(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, o: w
 
 @wp.func
 def march(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, o: wp.vec3, d: wp.vec3, t_start: float, t_end: float,
-          iso: float, h: float, refine_mode: int, refine_steps: int) -> wp.vec2:
-    """First iso crossing of the ray ``o + t d`` (voxel coordinates) within ``[t_start, t_end]``,
+          isos: Any, iso: float, h: float, refine_mode: int, refine_steps: int) -> wp.vec2:
+    """First iso crossing (of any of ``isos``: :func:`band`) of the ray ``o + t d`` (voxel coordinates) within
+    ``[t_start, t_end]``,
     its bracket narrowed by ``refine_steps``; ``refine_steps < 0``: only whether it crosses counts
     (AO rays), and ``t_hit`` is the bracket's start, unrefined.
 
@@ -435,7 +513,7 @@ def march(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, o: wp.vec3, d:
         if dist == 0:
             if have_prev == 0:
                 t_prev = t
-                f_prev = march_sample(voxels, layout, grid, o + d * t, iso)
+                f_prev = march_sample(voxels, layout, grid, o + d * t, isos, iso)
                 samples += 1.0
                 have_prev = 1
             k = wp.floor((t - t_start) / h) + 1.0
@@ -445,15 +523,15 @@ def march(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, o: wp.vec3, d:
                 if t_s >= t_exit:
                     t_s = wp.min(t_exit, t_end)
                     done = 1
-                f = march_sample(voxels, layout, grid, o + d * t_s, iso)
+                f = march_sample(voxels, layout, grid, o + d * t_s, isos, iso)
                 samples += 1.0
-                if (f >= iso) != (f_prev >= iso):
+                if band(isos, iso, f) != band(isos, iso, f_prev):
                     if refine_steps < 0:
                         return wp.vec2(t_prev, samples)
                     f_prev = exact_sample(voxels, layout, grid, o + d * t_prev, f_prev)
                     f = exact_sample(voxels, layout, grid, o + d * t_s, f)
-                    t_hit = refine_crossing(voxels, layout, grid, o, d, iso, t_prev, f_prev, t_s, f, refine_mode,
-                                            refine_steps)
+                    t_hit = refine_crossing(voxels, layout, grid, o, d, crossed_iso(isos, iso, f_prev, f), t_prev,
+                                            f_prev, t_s, f, refine_mode, refine_steps)
                     return wp.vec2(t_hit, samples + float(refine_steps))
                 t_prev = t_s
                 f_prev = f
@@ -473,7 +551,7 @@ def voxel_from_world(grid: Grid, p: wp.vec3) -> wp.vec3:
 
 @wp.func
 def cast(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, origin: wp.vec3, direction: wp.vec3, t_near: float,
-         t_far: float, iso: float, step: float, refine_mode: int, refine_steps: int) -> wp.vec2:
+         t_far: float, isos: Any, iso: float, step: float, refine_mode: int, refine_steps: int) -> wp.vec2:
     """First crossing of a world-space ray (unit ``direction``) in ``[t_near, t_far]``, world units
     (the ray parameters as for :func:`march`)."""
     o = voxel_from_world(grid, origin)
@@ -483,7 +561,7 @@ def cast(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, origin: wp.vec3
     t1 = wp.min(span[1], t_far)
     if t0 > t1:
         return wp.vec2(-1.0, 0.0)
-    return march(voxels, layout, grid, o, d, t0, t1, iso, step, refine_mode, refine_steps)
+    return march(voxels, layout, grid, o, d, t0, t1, isos, iso, step, refine_mode, refine_steps)
 
 
 @wp.func
@@ -539,16 +617,16 @@ def solid_at(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, p: wp.vec3,
 # are the plain path's (the plain kernels compile as without clipping), ClipArgs' cut.
 @wp.func
 def clipped_cast(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, clip: NoClip, origin: wp.vec3,
-                 direction: wp.vec3, t_near: float, t_far: float, iso: float, step: float, refine_mode: int,
-                 refine_steps: int) -> wp.vec2:
+                 direction: wp.vec3, t_near: float, t_far: float, isos: Any, iso: float, step: float,
+                 refine_mode: int, refine_steps: int) -> wp.vec2:
     """:func:`cast`: nothing is cut."""
-    return cast(voxels, layout, grid, origin, direction, t_near, t_far, iso, step, refine_mode, refine_steps)
+    return cast(voxels, layout, grid, origin, direction, t_near, t_far, isos, iso, step, refine_mode, refine_steps)
 
 
 @wp.func
 def clipped_cast(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, clip: ClipArgs, origin: wp.vec3,
-                 direction: wp.vec3, t_near: float, t_far: float, iso: float, step: float, refine_mode: int,
-                 refine_steps: int) -> wp.vec2:
+                 direction: wp.vec3, t_near: float, t_far: float, isos: Any, iso: float, step: float,
+                 refine_mode: int, refine_steps: int) -> wp.vec2:
     """:func:`cast` over the kept part of ``[t_near, t_far]``; with caps, a ray that enters the kept region
     through a face at a solid point (and stays in it for a while) hits that face there."""
     span = kept_span(clip, origin, direction, t_near, t_far)
@@ -556,7 +634,8 @@ def clipped_cast(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, clip: C
     if cap != 0 and span[2] >= 0.0 and span[0] < span[1]:  # a flat region has no faces
         if solid_at(voxels, layout, grid, origin + direction * span[0], iso, cap):
             return wp.vec2(span[0], 1.0)
-    return cast(voxels, layout, grid, origin, direction, span[0], span[1], iso, step, refine_mode, refine_steps)
+    return cast(voxels, layout, grid, origin, direction, span[0], span[1], isos, iso, step, refine_mode,
+                refine_steps)
 
 
 @wp.func
@@ -595,10 +674,43 @@ def face_normal(clip: ClipArgs, face: int, d: wp.vec3) -> wp.vec3:
 
 
 @wp.func
+def nearest_surface(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, isos: IsoSet, p: wp.vec3) -> int:
+    """The table index of the iso nearest the volume's value at the world point ``p`` (a hit's: its surface)."""
+    v = sample_volume(voxels, layout, grid, voxel_from_world(grid, p))
+    nearest = int(0)
+    best = float(BIG)
+    for k in range(MAX_SURFACES):
+        e = wp.abs(v - isos.values[k])
+        if e < best:
+            best = e
+            nearest = k
+    return nearest
+
+
+@wp.func
+def opacity_at(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, isos: IsoSet, p: wp.vec3) -> float:
+    """The opacity of the surface hit at the world point ``p``."""
+    return isos.values[MAX_SURFACES + nearest_surface(voxels, layout, grid, isos, p)]
+
+
+# occlusion has an overload per iso type, as band.
+@wp.func
+def occlusion(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, isos: OneIso, p: wp.vec3) -> float:
+    """How much an AO ray's hit near the world point ``p`` occludes: fully."""
+    return 1.0
+
+
+@wp.func
+def occlusion(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, isos: IsoSet, p: wp.vec3) -> float:
+    """How much an AO ray's hit near the world point ``p`` (past its crossing) occludes: its surface's opacity."""
+    return opacity_at(voxels, layout, grid, isos, p)
+
+
+@wp.func
 def ambient_occlusion(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, clip: Any, p: wp.vec3, n: wp.vec3,
-                      iso: float, step: float, rays: int, radius: float, state: wp.uint32) -> wp.vec2:
+                      isos: Any, iso: float, step: float, rays: int, radius: float, state: wp.uint32) -> wp.vec2:
     """Fraction of ``rays`` cosine-weighted hemisphere rays around ``n`` that escape within ``radius``,
-    counting only occluders in the kept region (``clip``).
+    counting only occluders in the kept region (``clip``), a translucent surface by its opacity (:func:`occlusion`).
 
     Returns ``(ao, samples)``.
     """
@@ -618,11 +730,11 @@ def ambient_occlusion(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, cl
         phi = 2.0 * wp.pi * u2
         dir = tx * (r * wp.cos(phi)) + ty * (r * wp.sin(phi)) + n * wp.sqrt(wp.max(1.0 - u1, 0.0))
         # Whether the ray is blocked is settled when its crossing is bracketed: no refinement.
-        res = clipped_cast(voxels, layout, grid, clip, origin, wp.normalize(dir), 0.0, radius, iso, step,
+        res = clipped_cast(voxels, layout, grid, clip, origin, wp.normalize(dir), 0.0, radius, isos, iso, step,
                            REFINE_BISECTION, -1)
         samples += res[1]
-        if res[0] >= 0.0:
-            hits += 1.0
+        if res[0] >= 0.0:  # the bracket's start: half a step on, near the surface crossed
+            hits += occlusion(voxels, layout, grid, isos, origin + wp.normalize(dir) * (res[0] + 0.5 * step))
     return wp.vec2(1.0 - hits / float(rays), samples)
 
 
@@ -671,19 +783,44 @@ def ray_direction(view: View, p: wp.vec2) -> wp.vec3:
                         - view.back)
 
 
+# march_ray has an overload per iso type: one iso's plain march, and several isos' layers.
 @wp.func
 def march_ray(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs), clip: Any,
-              c: int, row: int, s: int) -> wp.vec2:
+              isos: OneIso, c: int, row: int, s: int) -> wp.vec2:
     """Ray ``s`` of pixel ``(c, row)`` to its first iso crossing: ``(t, volume samples)``, ``t < 0`` where none."""
     view = frame[0].view
     params = frame[0].params
     return clipped_cast(voxels, layout, grid, clip, view.eye, ray_direction(view, subpixel(c, row, s, params.spp)),
-                        0.0, float(BIG), params.iso, params.step, params.refine_mode, params.refine_steps)
+                        0.0, float(BIG), isos, params.iso, params.step, params.refine_mode, params.refine_steps)
+
+
+@wp.func
+def march_ray(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs), clip: Any,
+              isos: IsoSet, c: int, row: int, s: int) -> wp.vec2:
+    """Ray ``s`` of pixel ``(c, row)`` to its crossing of ``isos.layer`` (:class:`IsoSet`): ``(t, volume samples)``,
+    ``t < 0`` where none (in layer 1 also where the first crossing's surface is opaque). Layer 1 starts a
+    quarter step past the first crossing (a crossing nearer than that is not seen)."""
+    view = frame[0].view
+    params = frame[0].params
+    dir = ray_direction(view, subpixel(c, row, s, params.spp))
+    first = wp.vec2(0.0)
+    if isos.layer == 0 or s >= isos.after.shape[0]:
+        first = clipped_cast(voxels, layout, grid, clip, view.eye, dir, 0.0, float(BIG), isos, params.iso, params.step,
+                             params.refine_mode, params.refine_steps)
+        if isos.layer == 0:
+            return first
+    else:
+        first = wp.vec2(isos.after[s, row, c], 0.0)
+    if first[0] < 0.0 or opacity_at(voxels, layout, grid, isos, view.eye + dir * first[0]) >= 1.0:
+        return wp.vec2(-1.0, first[1])
+    res = clipped_cast(voxels, layout, grid, clip, view.eye, dir, first[0] + 0.25 * params.step, float(BIG), isos,
+                       params.iso, params.step, params.refine_mode, params.refine_steps)
+    return wp.vec2(res[0], res[1] + first[1])
 
 
 @wp.kernel
 def first_hit_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs),
-                     clip: Any, row0: int, rows: int, hits: wp.array3d(dtype=wp.float32),
+                     clip: Any, isos: Any, row0: int, rows: int, hits: wp.array3d(dtype=wp.float32),
                      counts: wp.array3d(dtype=wp.int32)):
     """One thread per ray of the first ``hits.shape[0]`` of each pixel of the band ``[row0, row0 + rows)``
     (rays outermost): the ray parameter of its first iso crossing (world units, -1 where none) into
@@ -697,7 +834,7 @@ def first_hit_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, fra
     if px[0] < 0:
         return
     row = px[1] + row0
-    res = march_ray(voxels, layout, grid, frame, clip, px[0], row, s)
+    res = march_ray(voxels, layout, grid, frame, clip, isos, px[0], row, s)
     hits[s, row, px[0]] = res[0]
     if (frame[0].params.outputs & OUT_SAMPLES) != 0:
         counts[s, row, px[0]] = int(res[1])
@@ -715,7 +852,7 @@ SURFACE_MAX_REGISTERS = 128
 
 @wp.func
 def hit_surface(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs), clip: Any,
-                c: int, row: int, s: int, t: float):
+                isos: Any, c: int, row: int, s: int, t: float):
     """What ray ``s`` of pixel ``(c, row)``, its first hit at ``t``, gives the buffers that ``outputs`` asks
     for: ``(hit point (world), depth, normal (camera axes), flow (pixels), AO, AO's volume samples, cap)``,
     ``cap`` being ``(1, normalized value)`` where the hit is a cut face (:func:`clipped_cast`), else 0."""
@@ -741,7 +878,7 @@ def hit_surface(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: w
         n_view = wp.vec3(wp.dot(n, view.right), wp.dot(n, view.up), wp.dot(n, view.back))
         if (out & OUT_AO) != 0:
             state = wp.rand_init(params.seed, (row * view.width + c) * params.spp + s)
-            occ = ambient_occlusion(voxels, layout, grid, clip, p_world, n, params.iso, params.step,
+            occ = ambient_occlusion(voxels, layout, grid, clip, p_world, n, isos, params.iso, params.step,
                                     params.ao_samples, params.ao_radius, state)
     flow = wp.vec2(0.0)
     if (out & OUT_FLOW) != 0:
@@ -752,6 +889,24 @@ def hit_surface(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: w
     if face >= 0.0 and (out & OUT_CAP) != 0:
         cap = wp.vec2(1.0, sample_volume(voxels, layout, grid, voxel_from_world(grid, p_world)))
     return p_world, -wp.dot(p_world - view.eye, view.back), n_view, flow, occ[0], occ[1], cap
+
+
+@wp.func
+def store_surface(isos: OneIso, voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, p: wp.vec3, hit: bool,
+                  surface: wp.array2d(dtype=wp.float32), c: int, row: int):
+    """Nothing: one surface."""
+    return
+
+
+@wp.func
+def store_surface(isos: IsoSet, voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, p: wp.vec3, hit: bool,
+                  surface: wp.array2d(dtype=wp.float32), c: int, row: int):
+    """Pixel ``(c, row)``'s surface: where ``hit`` at ``p`` (world), the table index of the iso nearest the
+    volume's value there (the crossing's, to the refinement's tolerance), else -1."""
+    nearest = float(-1.0)
+    if hit:
+        nearest = float(nearest_surface(voxels, layout, grid, isos, p))
+    surface[row, c] = nearest
 
 
 @wp.func
@@ -791,12 +946,12 @@ def store_pixel(frame: wp.array(dtype=FrameArgs), c: int, row: int, hit_count: f
 
 @wp.kernel(enable_backward=False, cuda_max_registers=SURFACE_MAX_REGISTERS)
 def surface_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs),
-                   clip: Any, row0: int, rows: int, hits: wp.array3d(dtype=wp.float32),
+                   clip: Any, isos: Any, row0: int, rows: int, hits: wp.array3d(dtype=wp.float32),
                    counts: wp.array3d(dtype=wp.int32), mask: wp.array2d(dtype=wp.float32),
                    normal: wp.array2d(dtype=wp.vec3), depth: wp.array2d(dtype=wp.float32),
                    position: wp.array2d(dtype=wp.vec3), flow: wp.array2d(dtype=wp.vec2),
                    ao: wp.array2d(dtype=wp.float32), cap: wp.array2d(dtype=wp.vec2),
-                   samples: wp.array2d(dtype=wp.int32)):
+                   samples: wp.array2d(dtype=wp.int32), surface: wp.array2d(dtype=wp.float32)):
     """One ray per pixel: per pixel of the band, from its first hit (:func:`first_hit_kernel`), the asked buffers
     (``FrameArgs.params.outputs``), AO rays cast from the hit."""
     px = band_pixel(frame[0].view.width, rows, wp.tid())
@@ -811,20 +966,23 @@ def surface_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame
     if t < 0.0:
         store_pixel(frame, c, row, 0.0, wp.vec3(0.0), 0.0, wp.vec3(0.0), wp.vec2(0.0), 0.0, wp.vec2(0.0),
                     sample_count, mask, normal, depth, position, flow, ao, cap, samples)
+        store_surface(isos, voxels, layout, grid, wp.vec3(0.0), False, surface, c, row)
         return
-    p_world, d, n_view, fl, occ, occ_samples, on_cap = hit_surface(voxels, layout, grid, frame, clip, c, row, 0, t)
+    p_world, d, n_view, fl, occ, occ_samples, on_cap = hit_surface(voxels, layout, grid, frame, clip, isos, c, row, 0,
+                                                                   t)
     store_pixel(frame, c, row, 1.0, p_world, d, n_view, fl, occ, on_cap, sample_count + occ_samples, mask, normal,
                 depth, position, flow, ao, cap, samples)
+    store_surface(isos, voxels, layout, grid, p_world, True, surface, c, row)
 
 
 @wp.kernel(enable_backward=False, cuda_max_registers=SURFACE_MAX_REGISTERS)
 def surface_samples_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs),
-                           clip: Any, row0: int, rows: int, hits: wp.array3d(dtype=wp.float32),
+                           clip: Any, isos: Any, row0: int, rows: int, hits: wp.array3d(dtype=wp.float32),
                            counts: wp.array3d(dtype=wp.int32), mask: wp.array2d(dtype=wp.float32),
                            normal: wp.array2d(dtype=wp.vec3), depth: wp.array2d(dtype=wp.float32),
                            position: wp.array2d(dtype=wp.vec3), flow: wp.array2d(dtype=wp.vec2),
                            ao: wp.array2d(dtype=wp.float32), cap: wp.array2d(dtype=wp.vec2),
-                           samples: wp.array2d(dtype=wp.int32)):
+                           samples: wp.array2d(dtype=wp.int32), surface: wp.array2d(dtype=wp.float32)):
     """:func:`surface_kernel` for several rays per pixel: the buffers averaged over the rays that hit. Rays past
     the first ``hits.shape[0]`` (the planes a plan keeps, :data:`HIT_PLANES`) are marched here."""
     px = band_pixel(frame[0].view.width, rows, wp.tid())
@@ -841,6 +999,7 @@ def surface_samples_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Gri
     ao_sum = float(0.0)
     cap_sum = wp.vec2(0.0)
     sample_count = float(0.0)
+    p_first = wp.vec3(0.0)  # the first hitting ray's hit: the pixel's surface
     for s in range(frame[0].params.spp):
         t = float(-1.0)
         if s < hits.shape[0]:
@@ -848,12 +1007,14 @@ def surface_samples_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Gri
             if count_samples:
                 sample_count += float(counts[s, row, c])
         else:
-            res = march_ray(voxels, layout, grid, frame, clip, c, row, s)
+            res = march_ray(voxels, layout, grid, frame, clip, isos, c, row, s)
             t = res[0]
             sample_count += res[1]
         if t >= 0.0:
-            p_world, d, n_view, fl, occ, occ_samples, on_cap = hit_surface(voxels, layout, grid, frame, clip, c, row, s,
-                                                                           t)
+            p_world, d, n_view, fl, occ, occ_samples, on_cap = hit_surface(voxels, layout, grid, frame, clip, isos, c,
+                                                                           row, s, t)
+            if hit_count == 0.0:
+                p_first = p_world
             hit_count += 1.0
             p_sum += p_world
             depth_sum += d
@@ -864,6 +1025,7 @@ def surface_samples_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Gri
             sample_count += occ_samples
     store_pixel(frame, c, row, hit_count, p_sum, depth_sum, n_sum, flow_sum, ao_sum, cap_sum, sample_count, mask,
                 normal, depth, position, flow, ao, cap, samples)
+    store_surface(isos, voxels, layout, grid, p_first, hit_count > 0.0, surface, c, row)
 
 
 # The voxels' device types and layouts: one compiled overload of each voxel-reading kernel per pair.
@@ -871,30 +1033,40 @@ VOXEL_TYPES = (wp.float32, wp.uint16, wp.uint8)
 LAYOUTS = (Dense, Sparse, Filtered)
 # The kernels that render a frame, by name.
 FRAME_KERNELS = ("first_hit_kernel", "surface_kernel", "surface_samples_kernel")
-# The Warp module of the frame kernels that clip (ClipArgs), beside this module's plain ones (NoClip): compiled
-# and loaded only when a frame clips, so that without clipping nothing of it is built or run.
+# The Warp modules of the frame kernels that clip (ClipArgs), march several isos (IsoSet) or both, beside this
+# module's plain ones (NoClip, OneIso): each compiled and loaded only when a frame needs it, so that a feature
+# unused builds and runs nothing of it.
 CLIPPED_MODULE = f"{__name__}.clipped"
-wp.set_module_options({"enable_backward": False}, module=CLIPPED_MODULE)
+SURFACES_MODULE = f"{__name__}.surfaces"
+CLIPPED_SURFACES_MODULE = f"{__name__}.clipped_surfaces"
+VARIANT_MODULES = {(NoClip, OneIso): __name__, (ClipArgs, OneIso): CLIPPED_MODULE, (NoClip, IsoSet): SURFACES_MODULE,
+                   (ClipArgs, IsoSet): CLIPPED_SURFACES_MODULE}
+for _module in VARIANT_MODULES.values():
+    wp.set_module_options({"enable_backward": False}, module=_module)
 # The renderer's Warp modules (isosr_net.warp_modules lists the project's).
-RENDER_MODULES = (__name__, CLIPPED_MODULE)
+RENDER_MODULES = tuple(VARIANT_MODULES.values())
 
 
-def _clipped(kernel: wp.Kernel) -> wp.Kernel:
-    """``kernel``'s code (and options) in :data:`CLIPPED_MODULE`, under the same name."""
-    return wp.Kernel(kernel.func, key=kernel.key, module=wp.get_module(CLIPPED_MODULE), options=dict(kernel.options))
+def _variant(kernel: wp.Kernel, module: str) -> wp.Kernel:
+    """``kernel``'s code (and options) in the Warp module ``module``, under the same name."""
+    if module == __name__:
+        return kernel
+    return wp.Kernel(kernel.func, key=kernel.key, module=wp.get_module(module), options=dict(kernel.options))
 
 
-# Per clip type, the frame kernels by name (one compiled overload each per voxel type and layout).
-FRAME_KERNEL_SETS = {NoClip: {name: globals()[name] for name in FRAME_KERNELS}}
-FRAME_KERNEL_SETS[ClipArgs] = {name: _clipped(kernel) for name, kernel in FRAME_KERNEL_SETS[NoClip].items()}
+# Per (clip type, iso type), the frame kernels by name (one compiled overload each per voxel type and layout).
+FRAME_KERNEL_SETS = {variant: {name: _variant(globals()[name], module) for name in FRAME_KERNELS}
+                     for variant, module in VARIANT_MODULES.items()}
 for _dtype in VOXEL_TYPES:
     wp.overload(minmax_kernel, {"voxels": wp.array3d(dtype=_dtype)})
     for _layout in LAYOUTS:
-        for _clip, _kernels in FRAME_KERNEL_SETS.items():
+        for (_clip, _isos), _kernels in FRAME_KERNEL_SETS.items():
             for _kernel in _kernels.values():
-                wp.overload(_kernel, {"voxels": wp.array3d(dtype=_dtype), "layout": _layout, "clip": _clip})
+                wp.overload(_kernel, {"voxels": wp.array3d(dtype=_dtype), "layout": _layout, "clip": _clip,
+                                      "isos": _isos})
 
 
-def frame_kernels(clipped: bool) -> dict[str, wp.Kernel]:
-    """The frame kernels by name that take :class:`ClipArgs` (``clipped``) or :class:`NoClip`."""
-    return FRAME_KERNEL_SETS[ClipArgs if clipped else NoClip]
+def frame_kernels(clipped: bool, several: bool = False) -> dict[str, wp.Kernel]:
+    """The frame kernels by name that take :class:`ClipArgs` (``clipped``) or :class:`NoClip`, and
+    :class:`IsoSet` (``several`` isos) or :class:`OneIso`."""
+    return FRAME_KERNEL_SETS[(ClipArgs if clipped else NoClip, IsoSet if several else OneIso)]

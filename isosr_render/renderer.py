@@ -36,7 +36,8 @@ from isosr_render.clip import MAX_PLANES, Clip
 from isosr_render.color_field import ColorField
 from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES
 from isosr_render.flow_fill import FILL_METHODS, fill_flow
-from isosr_render.shading import ShadingParams, shade
+from isosr_render.shading import ShadingParams, composite, shade
+from isosr_render.surfaces import MAX_SURFACES, Surfaces
 from isosr_render.volume import Volume, native_integer
 from isosr_render.voxels import VoxelSource, boxes, map_bounded
 
@@ -60,7 +61,8 @@ STORE_TYPES = {"float32": wp.float32, "uint16": wp.uint16, "uint8": wp.uint8}
 KERNEL_BUFFERS = {"mask": (kernels.OUT_MASK, wp.float32), "normal": (kernels.OUT_NORMAL, wp.vec3),
                   "depth": (kernels.OUT_DEPTH, wp.float32), "position": (kernels.OUT_POSITION, wp.vec3),
                   "flow": (kernels.OUT_FLOW, wp.vec2), "ao": (kernels.OUT_AO, wp.float32),
-                  "cap": (kernels.OUT_CAP, wp.vec2), "samples": (kernels.OUT_SAMPLES, wp.int32)}
+                  "cap": (kernels.OUT_CAP, wp.vec2), "samples": (kernels.OUT_SAMPLES, wp.int32),
+                  "surface": (kernels.OUT_SURFACE, wp.float32)}
 # Host layout of kernels.FrameArgs (a numpy record with the ctypes struct's offsets).
 FRAME_DTYPE = np.dtype(kernels.FrameArgs.numpy_dtype())
 # Host layout of a clip's values (kernels.ClipArgs' two arrays, one record): its kernels.ClipRegion, then at a
@@ -98,6 +100,10 @@ class RenderRequest:
             With caps, ``color`` shows the cut faces in the volume's values (the ``cap`` buffer).
         coloring: colour the surface by a field (:class:`~isosr_render.color_field.ColorField`): the frame
             gets ``albedo`` (from ``position``, rendered for it) and ``color`` shades with it; None: no pass.
+        surfaces: several isosurfaces (:mod:`isosr_render.surfaces`; ``iso`` must be their first): rays stop at
+            the nearest of them, the frame gets ``surface`` and ``albedo`` (their colours) and ``color`` shades
+            with it; with translucent ones also ``behind``, the second layer, and ``color`` composites both. Not
+            with a coloring, nor on a sparse volume. None: the one ``iso``.
     """
 
     width: int
@@ -117,6 +123,7 @@ class RenderRequest:
     shading: ShadingParams = field(default_factory=ShadingParams)
     clip: Clip = field(default_factory=Clip)
     coloring: ColorField | None = None
+    surfaces: Surfaces | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "outputs", tuple(dict.fromkeys(self.outputs)))
@@ -150,8 +157,23 @@ class RenderRequest:
         if self.coloring is not None and not isinstance(self.coloring, ColorField):
             raise ValueError(f"coloring must be an isosr_render.color_field.ColorField, got "
                              f"{type(self.coloring).__name__}")
-        if "albedo" in self.outputs and self.coloring is None:
-            raise ValueError("the albedo output needs a coloring")
+        self._check_surfaces()
+        if "albedo" in self.outputs and self.coloring is None and self.surfaces is None:
+            raise ValueError("the albedo output needs a coloring or several surfaces")
+
+    def _check_surfaces(self) -> None:
+        """ValueError where ``surfaces`` is not :class:`Surfaces`, disagrees with ``iso`` or comes with a coloring,
+        or ``surface`` is asked for without it."""
+        if self.surfaces is None:
+            if "surface" in self.outputs:
+                raise ValueError("the surface output needs several surfaces (surfaces=...)")
+            return
+        if not isinstance(self.surfaces, Surfaces):
+            raise ValueError(f"surfaces must be an isosr_render.surfaces.Surfaces, got {type(self.surfaces).__name__}")
+        if self.iso != self.surfaces.iso:
+            raise ValueError(f"iso must be the first surface's ({self.surfaces.iso}), got {self.iso}")
+        if self.coloring is not None:
+            raise ValueError("several surfaces colour the frame by their own colours: not with a coloring")
 
     def kernel_outputs(self) -> int:
         """The kernel's OUT_* bits: the asked buffers and the ones they are made from."""
@@ -160,6 +182,8 @@ class RenderRequest:
             need |= {"mask", "normal"} | ({"cap"} if self.clip.capped else set())
         if self.coloring is not None:
             need |= {"mask", "position"}
+        if self.surfaces is not None:
+            need |= {"mask", "surface"}
         if "flow" in need and self.flow_fill != "none":
             need.add("mask")
         return sum(KERNEL_BUFFERS[name][0] for name in need if name in KERNEL_BUFFERS)
@@ -167,9 +191,10 @@ class RenderRequest:
     def plan_key(self) -> tuple:
         """What a :class:`RenderPlan` fixes: size, buffers, rays per pixel, and whether it clips (the kernels
         that clip are their own, :func:`isosr_render.kernels.frame_kernels`) and caps (a buffer of the kernels'
-        for ``color``), and whether it colours (``position`` rendered for it); the rest may change per frame."""
+        for ``color``), whether it colours (``position`` rendered for it) and the layers of several surfaces (0:
+        one iso; their kernels are their own); the rest may change per frame."""
         return (self.width, self.height, self.outputs, self.flow_fill, self.spp, self.clip.active, self.clip.capped,
-                self.coloring is not None)
+                self.coloring is not None, 0 if self.surfaces is None else self.surfaces.layers)
 
 
 def warp_device(device: str):
@@ -308,6 +333,7 @@ class Renderer:
         # 1x1 stand-ins for buffers a request does not ask for (and for the per-sample march counts).
         self._unused = {t: wp.empty((1, 1), dtype=t, device=self.device) for t in (wp.float32, wp.vec2, wp.vec3, wp.int32)}
         self._unused_counts = wp.empty((1, 1, 1), dtype=wp.int32, device=self.device)
+        self._unused_hits = wp.empty((1, 1, 1), dtype=wp.float32, device=self.device)
 
     @property
     def filtered(self) -> bool:
@@ -394,23 +420,28 @@ class Renderer:
         """Where the voxels are (dense or sparse) and what paging cost so far."""
         return self._stats if self.pool is None else self.pool.stats
 
-    def grid(self, iso: float, skip: bool = True) -> kernels.Grid:
-        """The kernels' view of the volume for one iso: its shape and scale, and each brick's distance to an
-        active brick.
+    def grid(self, iso: float | tuple[float, ...], skip: bool = True) -> kernels.Grid:
+        """The kernels' view of the volume for one iso (or up to :data:`MAX_SURFACES`, a brick active for any):
+        its shape and scale, and each brick's distance to an active brick.
 
         Built on the device from the min-max grid (a few small launches) and kept for the
-        last few iso-values. A sparse volume first pages in the bricks the iso needs.
+        last few iso-values. A sparse volume first pages in the bricks the iso needs (one iso only).
         """
-        key = (float(iso), bool(skip))
+        isos = tuple(float(v) for v in np.atleast_1d(iso))
+        key = (isos, bool(skip))
         if self.pool is not None:
-            self.pool.ensure(iso)
+            if len(isos) > 1:
+                raise ValueError(f"{self.volume.name or 'volume'}: several surfaces need a dense volume; this one "
+                                 f"renders sparse past max_device_bytes={self.max_device_bytes}")
+            self.pool.ensure(isos[0])
         if key in self._grids:
             self._grids.move_to_end(key)
             return self._grids[key]
         shape = self.minmax.shape
         dist = wp.empty(shape, dtype=wp.uint8, device=self.device)
         spare = wp.empty(shape, dtype=wp.uint8, device=self.device)
-        wp.launch(kernels.occupancy_kernel, dim=shape, inputs=[self.minmax, float(iso), int(skip), MAX_LEAP, dist],
+        padded = wp.vec4(*(isos + (float(kernels.BIG),) * (MAX_SURFACES - len(isos))))
+        wp.launch(kernels.occupancy_kernel, dim=shape, inputs=[self.minmax, padded, int(skip), MAX_LEAP, dist],
                   device=self.device)
         for axis in range(3):
             wp.launch(kernels.chebyshev_pass_kernel, dim=shape, inputs=[dist, axis, MAX_LEAP, spare], device=self.device)
@@ -447,7 +478,8 @@ class Renderer:
         frame = plan.render(camera, request, rows)
         owned = {id(t) for t in plan.tensors.values()}
         return FrameBuffers(**{name: getattr(frame, name).clone() if id(getattr(frame, name)) in owned
-                               else getattr(frame, name) for name in frame.present()})
+                               else getattr(frame, name) for name in frame.present()},
+                            behind=None if frame.behind is None else frame.behind.clone())
 
     def _kept_plan(self, request: RenderRequest) -> RenderPlan:
         """The kept plan for ``request`` on this thread and CUDA stream (made on first use)."""
@@ -461,6 +493,27 @@ class Renderer:
                     self._plans.popitem(last=False)
             self._plans.move_to_end(key)
         return plan
+
+
+def surface_albedo(surfaces: Surfaces, table_index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The ``surface`` buffer (indices of ``surfaces.items``, -1 where none), ``albedo`` (their colours, 0 where
+    none) and their opacities (1 where none) of the kernels' per-pixel indices into the iso table (ascending isos,
+    :meth:`Surfaces.table`)."""
+    order, colors, opacities = _surface_tables(surfaces, table_index.device)
+    # Rows a frame did not render hold anything (a focus region's, a band's yet to come): bounded first.
+    index = torch.nan_to_num(table_index, nan=-1.0).clamp(-1.0, len(surfaces.items) - 1.0).long()
+    surface = order[index]  # -1 indexes the last entry: none
+    return surface, colors[surface.long()], opacities[surface.long()]
+
+
+@functools.lru_cache(maxsize=16)
+def _surface_tables(surfaces: Surfaces, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """On ``device`` (made once: a copy to a GPU stalls): the user's index of each table entry, each surface's
+    colour and opacity, each followed by the entry of none (-1, black, 1)."""
+    order = torch.tensor(surfaces.order() + [-1], dtype=torch.float32, device=device)
+    colors = torch.tensor([s.color for s in surfaces.items] + [(0.0, 0.0, 0.0)], dtype=torch.float32, device=device)
+    opacities = torch.tensor([s.opacity for s in surfaces.items] + [1.0], dtype=torch.float32, device=device)
+    return order, colors, opacities
 
 
 class RenderPlan:
@@ -488,23 +541,22 @@ class RenderPlan:
 
     def __init__(self, renderer: Renderer, request: RenderRequest):
         self.renderer, self.key = renderer, request.plan_key()
-        device, bits, shape = renderer.device, request.kernel_outputs(), (request.height, request.width)
-        # Buffers a request does not ask for are the renderer's 1x1 stand-ins.
-        self.arrays = {name: wp.empty(shape, dtype=dtype, device=device) if bits & bit else renderer._unused[dtype]
-                       for name, (bit, dtype) in KERNEL_BUFFERS.items()}
-        self.tensors = {name: wp.to_torch(self.arrays[name]) for name, (bit, _) in KERNEL_BUFFERS.items() if bits & bit}
-        # Per ray of the first HIT_PLANES of each pixel (rays, rows, columns): the first hit's ray parameter,
-        # and its march's sample count.
-        planes = (min(request.spp, kernels.HIT_PLANES), *shape)
-        self._hits = wp.empty(planes, dtype=wp.float32, device=device)
-        self._counts = (wp.empty(planes, dtype=wp.int32, device=device)
-                        if bits & kernels.OUT_SAMPLES else renderer._unused_counts)
+        device = renderer.device
+        self.arrays, self.tensors, self._hits, self._counts = self._layer(request)
+        self.layers = 1 if request.surfaces is None else request.surfaces.layers
+        if self.layers == 2:  # translucent surfaces: the second layer's own
+            self.behind_arrays, self.behind_tensors, self._behind_hits, self._behind_counts = self._layer(request)
         # The staged FrameArgs in torch memory (stream-ordered copies), seen by Warp as one struct, and
-        # after it a clipping plan's clip (CLIP_DTYPE, seen as kernels.ClipArgs' arrays), copied from one
-        # host record (pinned on CUDA: written again once its last copy has run).
-        self.clipped = request.clip.active
+        # after it a clipping plan's clip (CLIP_DTYPE, seen as kernels.ClipArgs' arrays) and a several-surface
+        # plan's iso table (kernels.IsoSet's), copied from one host record (pinned on CUDA: written again once
+        # its last copy has run).
+        self.clipped, self.several = request.clip.active, request.surfaces is not None
+        if self.several and renderer.pool is not None:
+            renderer.grid((0.0, 1.0))  # the sparse volume's error, before anything is made
         at = -(-FRAME_DTYPE.itemsize // 16) * 16
-        size = at + CLIP_DTYPE.itemsize if self.clipped else FRAME_DTYPE.itemsize
+        isos_at = at + (CLIP_DTYPE.itemsize if self.clipped else 0)
+        size = isos_at + 8 * MAX_SURFACES if self.several else at + CLIP_DTYPE.itemsize if self.clipped else \
+            FRAME_DTYPE.itemsize
         self._args_bytes = torch.zeros(size, dtype=torch.uint8, device=renderer.torch_device)
         self._host_bytes = torch.zeros(size, dtype=torch.uint8, pin_memory=device.is_cuda)
         self._host_args = self._host_bytes.numpy()[:FRAME_DTYPE.itemsize].view(FRAME_DTYPE)
@@ -519,30 +571,65 @@ class RenderPlan:
             self._clip.region = wp.array(ptr=base + at, dtype=kernels.ClipRegion, shape=(1,), device=device)
             self._clip.planes = wp.array(ptr=base + at + CLIP_DTYPE.fields["planes"][1], dtype=wp.vec4,
                                          shape=(MAX_PLANES,), device=device)
-            wp.load_module(wp.get_module(kernels.CLIPPED_MODULE), device=device)  # not while a graph is captured
+        self._isos = kernels.OneIso()
+        self._host_isos = None
+        if self.several:
+            self._host_isos = self._host_bytes.numpy()[isos_at:].view(np.float32)
+            table = wp.array(ptr=base + isos_at, dtype=wp.float32, shape=(2 * MAX_SURFACES,), device=device)
+            self._isos = self._iso_set(table, 0, renderer._unused_hits)
+            if self.layers == 2:
+                self._behind_isos = self._iso_set(table, 1, self._hits)
+        variant = (kernels.ClipArgs if self.clipped else kernels.NoClip, kernels.IsoSet if self.several else kernels.OneIso)
+        wp.load_module(wp.get_module(kernels.VARIANT_MODULES[variant]), device=device)  # not while a graph is captured
         self._grid: kernels.Grid | None = None
         self._launches: tuple[tuple, list[tuple[wp.Launch, wp.Launch]]] | None = None  # (grid, voxels, bands), launches
+
+    def _layer(self, request: RenderRequest) -> tuple[dict, dict, wp.array, wp.array]:
+        """One layer's kernel buffers by name (those not asked for the renderer's 1x1 stand-ins), the present ones
+        as tensors, and per ray of the first HIT_PLANES of each pixel (rays, rows, columns) the hit's ray parameter
+        and its march's sample count."""
+        renderer, bits, shape = self.renderer, request.kernel_outputs(), (request.height, request.width)
+        arrays = {name: wp.empty(shape, dtype=dtype, device=renderer.device) if bits & bit else renderer._unused[dtype]
+                  for name, (bit, dtype) in KERNEL_BUFFERS.items()}
+        tensors = {name: wp.to_torch(arrays[name]) for name, (bit, _) in KERNEL_BUFFERS.items() if bits & bit}
+        planes = (min(request.spp, kernels.HIT_PLANES), *shape)
+        hits = wp.empty(planes, dtype=wp.float32, device=renderer.device)
+        counts = (wp.empty(planes, dtype=wp.int32, device=renderer.device)
+                  if bits & kernels.OUT_SAMPLES else renderer._unused_counts)
+        return arrays, tensors, hits, counts
+
+    @staticmethod
+    def _iso_set(table: wp.array, layer: int, after: wp.array) -> kernels.IsoSet:
+        """The kernels' :class:`~isosr_render.kernels.IsoSet` of ``layer`` (``after``: the first layer's hits)."""
+        isos = kernels.IsoSet()
+        isos.values, isos.layer, isos.after = table, layer, after
+        return isos
 
     def check(self, request: RenderRequest) -> None:
         """ValueError unless ``request`` has the plan's size, outputs, flow fill and rays per pixel."""
         if request.plan_key() != self.key:
-            w, h, outputs, fill, spp, clipped, capped, colors = self.key
+            w, h, outputs, fill, spp, clipped, capped, colors, several = self.key
             raise ValueError(f"this render plan renders {w}x{h} {outputs} (flow fill {fill!r}, spp {spp}, clipped "
-                             f"{clipped}, capped {capped}, coloring {colors}), not {request.width}x{request.height} "
-                             f"{request.outputs} (flow fill {request.flow_fill!r}, spp {request.spp}, clipped "
-                             f"{request.clip.active}, capped {request.clip.capped}, coloring "
-                             f"{request.coloring is not None}): make a plan for that request (Renderer.plan)")
+                             f"{clipped}, capped {capped}, coloring {colors}, surfaces {several}), not "
+                             f"{request.width}x{request.height} {request.outputs} (flow fill {request.flow_fill!r}, "
+                             f"spp {request.spp}, clipped {request.clip.active}, capped {request.clip.capped}, coloring "
+                             f"{request.coloring is not None}, surfaces {request.surfaces is not None}): make a plan "
+                             f"for that request (Renderer.plan)")
 
     def stage(self, camera: Camera, request: RenderRequest) -> None:
         """Copy the frame's values to the device (ordered before later work on the torch stream) and
         select the grid of its iso (sparse volumes page its bricks in here)."""
         self.check(request)
-        self._grid = self.renderer.grid(request.iso, request.skip)
+        surfaces = request.surfaces
+        self._grid = self.renderer.grid(request.iso if surfaces is None else tuple(s.iso for s in surfaces.items),
+                                        request.skip)
         if self._copied is not None:
             self._copied.synchronize()  # the last frame's copy has read the host record (seldom a wait)
         frame_args(camera, request, request.step or self.renderer.default_step(), out=self._host_args)
         if self._host_clip is not None:
             clip_args(request.clip, out=self._host_clip)
+        if self._host_isos is not None:
+            self._host_isos[:] = surfaces.table(float(kernels.BIG))
         self._args_bytes.copy_(self._host_bytes, non_blocking=self._copied is not None)
         if self._copied is not None:
             self._copied.record(torch.cuda.current_stream(self.renderer.torch_device))
@@ -569,7 +656,7 @@ class RenderPlan:
         bands = np.array_split(np.arange(row0, row1), min(row1 - row0, 4 * renderer.threads))
         launches = self._recorded(tuple((int(b[0]), len(b)) for b in bands if len(b)))
 
-        def band(pair: tuple[wp.Launch, wp.Launch]) -> None:
+        def band(pair: tuple[wp.Launch, ...]) -> None:
             for launch in pair:
                 launch.launch()
 
@@ -579,41 +666,59 @@ class RenderPlan:
         else:
             list(renderer._pool.map(band, launches))
 
-    def _recorded(self, bands: tuple[tuple[int, int], ...]) -> list[tuple[wp.Launch, wp.Launch]]:
-        """The kernels' launches (first hit, surface) over row bands ``(row0, rows)``, recorded once per grid,
-        voxel array and bands."""
+    def _recorded(self, bands: tuple[tuple[int, int], ...]) -> list[tuple[wp.Launch, ...]]:
+        """The kernels' launches (first hit, surface; then the second layer's, with translucent surfaces) over row
+        bands ``(row0, rows)``, recorded once per grid, voxel array and bands."""
         grid, voxels, renderer = self._grid, self.renderer.voxels, self.renderer
         key = (id(grid), voxels.ptr, bands)
         if self._launches is None or self._launches[0] != key:
             tiles_x, tile = -(-self.key[0] // kernels.TILE_W), kernels.TILE_W * kernels.TILE_H
-            frame_kernels = kernels.frame_kernels(self.clipped)
+            frame_kernels = kernels.frame_kernels(self.clipped, self.several)
             first_hit = frame_kernels["first_hit_kernel"]
             surface = frame_kernels["surface_kernel" if self.key[4] == 1 else "surface_samples_kernel"]
-            common = [voxels, renderer.layout, grid, self._args, self._clip]
+            layers = [(self._isos, self._hits, self._counts, self.arrays)]
+            if self.layers == 2:
+                layers.append((self._behind_isos, self._behind_hits, self._behind_counts, self.behind_arrays))
 
-            def pair(row0: int, rows: int) -> tuple[wp.Launch, wp.Launch]:
+            def pair(row0: int, rows: int, isos, hits: wp.array, counts: wp.array, arrays: dict) -> tuple[wp.Launch, ...]:
                 pixels = tiles_x * -(-rows // kernels.TILE_H) * tile  # threads: whole 8x4 tiles
-                return (wp.launch(first_hit, dim=self._hits.shape[0] * pixels, device=renderer.device,
-                                  inputs=[*common, row0, rows, self._hits, self._counts], record_cmd=True),
+                common = [voxels, renderer.layout, grid, self._args, self._clip, isos, row0, rows, hits, counts]
+                return (wp.launch(first_hit, dim=hits.shape[0] * pixels, device=renderer.device, inputs=common,
+                                  record_cmd=True),
                         wp.launch(surface, dim=pixels, device=renderer.device, record_cmd=True,
-                                  inputs=[*common, row0, rows, self._hits, self._counts, *self.arrays.values()]))
+                                  inputs=[*common, *arrays.values()]))
 
-            self._launches = key, [pair(row0, rows) for row0, rows in bands]
+            self._launches = key, [sum((pair(row0, rows, *layer) for layer in layers), ()) for row0, rows in bands]
         return self._launches[1]
 
     def buffers(self, request: RenderRequest) -> FrameBuffers:
         """The rendered frame as ``request`` asks for it: the plan's buffers (views), plus the passes
         after the kernel that it names (flow fill, color), which make new tensors."""
         self.check(request)
-        frame = FrameBuffers(**{name: self.tensors[name] for name in request.outputs if name in self.tensors})
-        if "flow" in request.outputs and request.flow_fill != "none":
-            frame.flow = fill_flow(self.tensors["flow"], self.tensors["mask"], request.flow_fill)
-        if request.coloring is not None:
-            frame.albedo = request.coloring.albedo(self.tensors["position"], self.tensors["mask"])
-        if "color" in request.outputs:
-            frame.color = shade(self.tensors["mask"], self.tensors["normal"], self.tensors.get("ao"), request.shading,
-                                self.tensors.get("cap"), frame.albedo)
+        frame, alpha = self._frame(request, self.tensors)
+        if self.layers == 2:  # translucent surfaces: the second layer behind, the colours composited
+            frame.behind = self._frame(request, self.behind_tensors, behind=True)[0]
+            if "color" in request.outputs:
+                frame.color = composite(frame.color, frame.behind.color, alpha)
         return frame
+
+    @staticmethod
+    def _frame(request: RenderRequest, tensors: dict, behind: bool = False) -> tuple[FrameBuffers, torch.Tensor | None]:
+        """One layer's frame as ``request`` asks for it (:meth:`buffers`), and with several surfaces the opacity of
+        each pixel's (1 where none). The layer ``behind`` is the last: its colour covers the background by its
+        surfaces' opacity too."""
+        frame, alpha = FrameBuffers(**{name: tensors[name] for name in request.outputs if name in tensors}), None
+        if "flow" in request.outputs and request.flow_fill != "none":
+            frame.flow = fill_flow(tensors["flow"], tensors["mask"], request.flow_fill)
+        if request.coloring is not None:
+            frame.albedo = request.coloring.albedo(tensors["position"], tensors["mask"])
+        if request.surfaces is not None:
+            frame.surface, frame.albedo, alpha = surface_albedo(request.surfaces, tensors["surface"])
+            frame.surface = frame.surface if "surface" in request.outputs else None
+        if "color" in request.outputs:
+            frame.color = shade(tensors["mask"] * alpha if behind else tensors["mask"], tensors["normal"],
+                                tensors.get("ao"), request.shading, tensors.get("cap"), frame.albedo)
+        return frame, alpha
 
     def render(self, camera: Camera, request: RenderRequest, rows: tuple[int, int] | None = None) -> FrameBuffers:
         """One frame: :meth:`stage`, :meth:`launch`, :meth:`buffers`."""

@@ -22,6 +22,7 @@ from isosr_render.conventions import (
     HIGHRES_CHANNELS,
     LOWRES_CHANNELS,
     MASK,
+    MATERIAL_RGB,
     NORMAL,
 )
 
@@ -30,7 +31,7 @@ from isosr_render.conventions import (
 class ShadingParams:
     """Phong material and light, view space."""
 
-    albedo: tuple[float, float, float] = (0.85, 0.78, 0.62)
+    albedo: tuple[float, float, float] = MATERIAL_RGB
     ambient: float = 0.25
     diffuse: float = 0.65
     specular: float = 0.25
@@ -139,3 +140,15 @@ def shade_channels_first(stack: torch.Tensor, params: ShadingParams = ShadingPar
     ao = stack[:, AO.start] if stack.shape[1] == len(HIGHRES_CHANNELS) else None
     color = shade(stack[:, MASK.start], stack[:, NORMAL].permute(0, 2, 3, 1), ao, params)
     return color.permute(0, 3, 1, 2)
+
+
+def composite(front: torch.Tensor, behind: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    """Two layers' colours front to back: ``alpha * front + (1 - alpha) * behind``, ``alpha`` the front surface's
+    opacity per pixel (1 where the front hits nothing: its colour is the background there); ``behind`` shaded
+    over the background by its coverage times its own surface's opacity (what lies behind it is not seen).
+
+    Shape:
+        front, behind: (*, H, W, 3). alpha: (*, H, W). Returns (*, H, W, 3).
+    """
+    a = alpha[..., None]
+    return a * front + (1.0 - a) * behind

@@ -24,8 +24,8 @@ View session (``WS /v1/view``)
     Frames carry the volume's device memory and paging (``device``) when it changed.
     Bad input ends the session with an ``error`` message and a close code (``CLOSE_*``);
     non-fatal news (an encoding the server cannot make, so it sends jpeg) comes as ``notice``.
-    A ``settings`` message whose clip or coloring is bad (`NOTICED_SETTINGS`: 7 planes, a zero
-    normal, NaN, an unknown colour map, a field of another grid) is refused whole with a ``notice``
+    A ``settings`` message whose clip, coloring or surfaces are bad (`NOTICED_SETTINGS`: 7 planes, a zero
+    normal, NaN, an unknown colour map, a field of another grid, 5 surfaces) is refused whole with a ``notice``
     naming the field; the settings stay as they were, the next frame (of them) acknowledges its
     ``seq``, and the session goes on.
     ``pick`` asks what lies under a pixel of the current view; ``picked`` answers it (the
@@ -93,7 +93,7 @@ from __future__ import annotations
 
 import re
 import threading
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from functools import lru_cache
 from typing import Annotated, Any, ClassVar, Literal, Union
 
@@ -103,9 +103,11 @@ from msgspec import UNSET, Meta, UnsetType
 
 from isosr_render.clip import CAP_MODES, MAX_PLANES, Clip
 from isosr_render.coloring import COLORMAPS, Coloring
-from isosr_render.conventions import AO_RADIUS
+from isosr_render.conventions import AO_RADIUS, MATERIAL_RGB
+from isosr_render.surfaces import MAX_SURFACES, Surface, Surfaces
 from isosr_server.codecs.arrays import ArrayTooBig, WireArray, decode_array, encode_array
 
+# 10: several isosurfaces (settings.surfaces);
 # 9: frame.batch (the frames made together on the device);
 # 8: colour by a field (settings.coloring; a shaded frame's legend);
 # 7: time series (volume.steps, settings.t, frame.t);
@@ -113,7 +115,7 @@ from isosr_server.codecs.arrays import ArrayTooBig, WireArray, decode_array, enc
 # 5: modes named by the server (ready.modes), ready's limits on messages and acknowledgements;
 # 3: the v3 vocabulary (modes auto/network/upscale/..., ao_rays, spp, interpolation, frame methods);
 # 2 (acknowledged frames, flow control) and earlier are refused with a reason.
-PROTOCOL_VERSION = 9
+PROTOCOL_VERSION = 10
 
 # Largest magnitude of any float field (camera coordinates, iso, ...): beyond it is hostile input.
 MAX_ABS_FLOAT = 1e9
@@ -172,6 +174,7 @@ CLOSE_TOO_MANY = 4429  # session limit reached; try later
 Finite = Annotated[float, Meta(ge=-MAX_ABS_FLOAT, le=MAX_ABS_FLOAT)]
 Vec2 = tuple[Finite, Finite]
 Vec3 = tuple[Finite, Finite, Finite]
+Unit = Annotated[float, Meta(ge=0.0, le=1.0)]
 Seq = Annotated[int, Meta(ge=0, le=MAX_SEQ)]
 Version = Annotated[int, Meta(ge=0, le=2**31)]
 Side = Annotated[int, Meta(ge=1)]
@@ -192,7 +195,7 @@ class ProtocolError(ValueError):
 
 
 # The settings a live view refuses with a notice rather than an end: what users edit while exploring.
-NOTICED_SETTINGS = ("clip", "coloring")
+NOTICED_SETTINGS = ("clip", "coloring", "surfaces")
 _NOTICED_PATH = re.compile(r"`\$\.settings\.(" + "|".join(NOTICED_SETTINGS) + r")\b")
 
 
@@ -367,6 +370,32 @@ class ColoringSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         return Coloring(self.by, self.colormap, self.range)
 
 
+class SurfaceSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """One of several isosurfaces: its iso-value in data units, its colour (RGB in [0, 1]; default: the
+    material's) and opacity (below 1 translucent: the ray goes on to the next surface, two layers composited)."""
+
+    iso: Finite
+    color: tuple[Unit, Unit, Unit] = MATERIAL_RGB
+    opacity: Unit = 1.0
+
+
+def surfaces_of(settings: tuple[SurfaceSettings, ...], normalize: Callable[[float], float],
+                seq: int | None = None) -> Surfaces | None:
+    """The renderer's surfaces of ``settings.surfaces`` (None where empty), their isos through ``normalize`` (a
+    volume's ``normalized_iso``), checked by :class:`isosr_render.surfaces.Surfaces`.
+
+    Raises:
+        SettingRefused: (of the update ``seq``; CLOSE_POLICY, 422) what ``Surfaces`` refuses (two equal isos),
+            naming the field.
+    """
+    if not settings:
+        return None
+    try:
+        return Surfaces(tuple(Surface(normalize(s.iso), s.color, s.opacity) for s in settings))
+    except ValueError as e:
+        raise SettingRefused(f"settings.{e}", CLOSE_POLICY, 422, seq) from None
+
+
 class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """A view session's settings (``ready`` carries them whole; ``open`` and ``settings`` send
     a `SettingsUpdate` of any of them).
@@ -393,6 +422,11 @@ class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         coloring: colour the surface by a field (:class:`ColoringSettings`); None: the material's colour.
             A shaded frame's ``legend`` then names its colour map and range.
         t: a series' time step (module docstring), below ``ready.volume.steps``.
+        surfaces: up to 4 isosurfaces shown together (:class:`SurfaceSettings`, distinct isos), each ray
+            stopping at the nearest, each in its colour; empty: the session's one iso (``iso``), as before.
+            With a translucent one the frames are full-resolution renders (the mode's method composites one
+            layer), the frame's ``method`` says so. Not with a coloring, nor on a volume rendered sparse (refused:
+            422).
     """
 
     mode: ModeName = "auto"
@@ -413,6 +447,7 @@ class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     clip: ClipSettings = ClipSettings()
     coloring: ColoringSettings | None = None
     t: Step = 0
+    surfaces: Annotated[tuple[SurfaceSettings, ...], Meta(max_length=MAX_SURFACES)] = ()
 
     def updated(self, update: SettingsUpdate | Mapping[str, Any], limits: Limits) -> ViewSettings:
         """These settings with ``update`` applied (a `SettingsUpdate`, or a map validated as one),
@@ -427,6 +462,9 @@ class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         update.check(limits)
         new = msgspec.structs.replace(self, **update.given())
         limits.check_size(new.width, new.height)
+        if new.surfaces and new.coloring is not None:
+            raise SettingRefused("settings.surfaces: several surfaces show their own colours, not with "
+                                 "settings.coloring (set one of them to its default)")
         return new
 
 

@@ -32,11 +32,12 @@ from isosr_net.methods import RUNNERS, FrameMethod, FrameResult, FrameRunner, Fr
 from isosr_net.timing import StageTimer
 from isosr_render import Camera, Renderer, Volume
 from isosr_render.color_field import ColorField
+from isosr_render.surfaces import Surfaces
 from isosr_server.auto import AutoPolicy, served_factor
 from isosr_server.channels import false_color
 from isosr_render.renderer import MAX_AO_SAMPLES
 from isosr_server.protocol import (CLOSE_POLICY, MAX_VIEW_SPP, FocusMsg, ModeInfo, OptionInfo, ProtocolError,
-                                   ViewSettings)
+                                   ViewSettings, surfaces_of)
 
 
 @dataclass(frozen=True)
@@ -116,8 +117,8 @@ class View(ABC):
         return self.method(settings, ctx, None, None, None)
 
     def compose(self, result: FrameResult, renderer: Renderer, job: FrameJob, timer: StageTimer,
-                coloring: ColorField | None = None) -> torch.Tensor:
-        """The final color of a shaded frame (``coloring``: the frame's)."""
+                runner: FrameRunner) -> torch.Tensor:
+        """The final color of a shaded frame (``runner``: the one that made it)."""
         return result.buffers.color
 
 
@@ -169,7 +170,7 @@ class FocusView(View):
     def method(self, settings, ctx, frames, renderer, job) -> FrameMethod:
         return method_for("network", settings, ctx)
 
-    def compose(self, result, renderer, job, timer, coloring=None) -> torch.Tensor:
+    def compose(self, result, renderer, job, timer, runner) -> torch.Tensor:
         color, st = result.buffers.color, job.settings
         with timer("shading"):
             weight = focus_weight(job.focus, st.width, st.height, st.focus_blend_px, color.device)
@@ -177,8 +178,9 @@ class FocusView(View):
         if len(covered) == 0:
             return color
         start, stop = int(covered[0]), int(covered[-1]) + 1
-        lens = make_runner(FrameMethod.of("full", ao_rays=st.ao_rays, spp=st.spp), renderer, job.iso, st.width,
-                           st.height, ao_radius=st.ao_radius, clip=st.clip.clip(), coloring=coloring)
+        lens = make_runner(FrameMethod.of("full", ao_rays=st.ao_rays, spp=st.spp), renderer, runner.iso, st.width,
+                           st.height, ao_radius=st.ao_radius, clip=runner.clip, coloring=runner.coloring,
+                           surfaces=runner.surfaces)
         with timer("render"):
             sharp = lens.rows(job.camera, start, stop)
         with timer("shading"):
@@ -282,17 +284,20 @@ class SessionFrames:
         st = job.settings
         shaded = st.channel == "shaded"
         keep = () if shaded else (st.channel,)
-        clip, coloring = st.clip.clip(), self.coloring(renderer, job)
+        clip, coloring, surfaces = st.clip.clip(), self.coloring(renderer, job), self.surfaces(renderer, job)
+        iso = job.iso if surfaces is None else surfaces.iso
         if job.refined:
             method = refined_method(st)
-            runner = make_runner(method, renderer, job.iso, st.width, st.height, ao_radius=st.ao_radius, keep=keep,
-                                 shade=shaded, clip=clip, coloring=coloring)
+            runner = make_runner(method, renderer, iso, st.width, st.height, ao_radius=st.ao_radius, keep=keep,
+                                 shade=shaded, clip=clip, coloring=coloring, surfaces=surfaces)
             return FramePlan(job, renderer, method, runner, None, -1, None)
         view = VIEWS[st.mode]
         method = view.method(st, self.ctx, self, renderer, job)
+        if surfaces is not None and surfaces.layers > 1 and not method.runner.layered:
+            method = FrameMethod.of("full", ao_rays=st.ao_rays, spp=st.spp)  # the one kind that composites layers
         prev_camera, prev_seq = self._prev or (None, -1)
-        runner, prev_camera = self.stream.runner_for(method, renderer, job.iso, st.width, st.height, prev_camera,
-                                                     st.ao_radius, keep, shaded, clip, coloring)
+        runner, prev_camera = self.stream.runner_for(method, renderer, iso, st.width, st.height, prev_camera,
+                                                     st.ao_radius, keep, shaded, clip, coloring, surfaces)
         return FramePlan(job, renderer, method, runner, prev_camera, prev_seq, view)
 
     def coloring(self, renderer: Renderer, job: FrameJob) -> ColorField | None:
@@ -312,6 +317,19 @@ class SessionFrames:
                 raise ProtocolError(f"settings.coloring: {e}", CLOSE_POLICY, 422) from None
             self._coloring = key, made
         return self._coloring[1]
+
+    @staticmethod
+    def surfaces(renderer: Renderer, job: FrameJob) -> Surfaces | None:
+        """The job's surfaces, their isos normalized for the renderer's volume (None: the one iso).
+
+        Raises:
+            ProtocolError: two isos equal once normalized, or a volume rendered sparse (422).
+        """
+        surfaces = surfaces_of(job.settings.surfaces, renderer.volume.normalized_iso)
+        if surfaces is not None and renderer.pool is not None:
+            raise ProtocolError("settings.surfaces: several surfaces need a volume held dense on the device; this one "
+                                "renders sparse", CLOSE_POLICY, 422)
+        return surfaces
 
     def planned_steps(self, plan: FramePlan, slice_ms: float | None = None) -> Generator[None, None, ViewFrame]:
         """A planned frame made alone, in slices of about ``slice_ms``."""
@@ -334,7 +352,7 @@ class SessionFrames:
         else:
             coloring = plan.runner.coloring
             color = result.buffers.color if plan.view is None else plan.view.compose(result, plan.renderer, job, timer,
-                                                                                     coloring)
+                                                                                     plan.runner)
             legend = None if coloring is None else coloring_legend(coloring)
         result.timers.append(timer)
         return ViewFrame(color, result, plan.method, legend, prev_seq)

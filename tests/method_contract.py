@@ -74,6 +74,7 @@ from isosr_render.color_field import ColorField
 from isosr_render.coloring import GRADIENT, Coloring
 from isosr_render.conventions import BACKGROUND_RGB
 from isosr_render.sequence import sequence_cameras
+from isosr_render.surfaces import Surfaces
 
 SIZE = (32, 24)  # width, height: every factor up to 8 divides it
 AO_RADIUS = 0.15  # world units: occluded near the contacts (the default, 0.05, barely occludes a 24^3 volume)
@@ -198,14 +199,14 @@ class MethodContract:
             self.spec = self.method.replace(model=str(model), model_name="tiny")
 
     def runner(self, width: int = SIZE[0], height: int = SIZE[1], anisotropic: bool = False, iso: float | None = None,
-               clip: Clip = Clip(), coloring: Coloring | None = None):
+               clip: Clip = Clip(), coloring: Coloring | None = None, surfaces: Surfaces | None = None):
         """A new runner of the method on the contact scene (``coloring``: by the scene's own field)."""
         renderer, scene_iso = scene(anisotropic)
         field = None if coloring is None else ColorField.of(coloring, renderer.volume,
                                                             None if coloring.by == GRADIENT else renderer.volume,
                                                             renderer.torch_device)
         return make_runner(self.spec, renderer, scene_iso if iso is None else iso, width, height,
-                           ao_radius=AO_RADIUS, networks=networks(), clip=clip, coloring=field)
+                           ao_radius=AO_RADIUS, networks=networks(), clip=clip, coloring=field, surfaces=surfaces)
 
     def frame_size(self, runner, width: int = SIZE[0], height: int = SIZE[1]) -> tuple[int, int]:
         """``(H, W)`` of the runner's buffers: the frame's, an unshaded low-res kind's render's."""
@@ -411,6 +412,42 @@ class MethodContract:
             if runner.shaded:
                 assert frame["albedo"].shape == (h, w, 3) and frame["albedo"].min() >= 0 \
                     and frame["albedo"].max() <= 1, where
+
+    # -- several isosurfaces ---------------------------------------------------------------------
+
+    def test_surfaces_reach_the_frame(self):
+        """The scene's surface (value 0) inside a shell at value 0.06: the albedo is a surface's colour
+        (nearest-upsampled: exact) or 0, mostly the shell's (rays entering the grid between them see the inner)."""
+        volume = scene()[0].volume
+        inner, outer = (0.1, 0.3, 0.9), (0.9, 0.2, 0.1)
+        surfaces = Surfaces.of([(volume.normalized_iso(0.0), inner), (volume.normalized_iso(0.06), outer)])
+        runner = self.runner(surfaces=surfaces)
+        h, w = self.frame_size(runner)
+        for i, frame in enumerate(buffers_of(r) for r in (runner.frame(CAMERAS[0]), runner.frame(CAMERAS[1],
+                                                                                               CAMERAS[0]))):
+            where = f"{self.spec.name}, two surfaces, frame {i}"
+            assert_finite_and_bounded(frame, runner.shaded, where)
+            if runner.shaded:
+                albedo = frame["albedo"]
+                assert albedo.shape == (h, w, 3), where
+                shell, core = ((albedo - torch.tensor(c, device=albedo.device)).abs().amax(-1) < 1e-6
+                               for c in (outer, inner))
+                assert (shell | core | (albedo.amax(-1) == 0)).all() and shell.sum() > core.sum(), where
+
+    def test_translucent_surfaces_composited_or_refused(self):
+        """A translucent shell (40%) over the scene's surface: a layered kind's colour differs from the opaque
+        shell's and stays finite and bounded; the others refuse it naming the cause."""
+        volume = scene()[0].volume
+        pairs = [(volume.normalized_iso(0.0), (0.1, 0.3, 0.9)), (volume.normalized_iso(0.06), (0.9, 0.2, 0.1))]
+        translucent = Surfaces.of([pairs[0], (*pairs[1], 0.4)])
+        if not self.spec.runner.layered:
+            with pytest.raises(ValueError, match="translucent surfaces .* full method only"):
+                self.runner(surfaces=translucent)
+            return
+        frame = buffers_of(self.runner(surfaces=translucent).frame(CAMERAS[0]))
+        assert_finite_and_bounded(frame, True, f"{self.spec.name}, translucent")
+        opaque = buffers_of(self.runner(surfaces=Surfaces.of(pairs)).frame(CAMERAS[0]))
+        assert (frame["color"] - opaque["color"]).abs().amax() > 0.05
 
     # -- bench row --------------------------------------------------------------------------------
 

@@ -18,7 +18,8 @@ def test_bench_render_smoke_writes_a_complete_record(tmp_path, capsys):
     record = json.loads((tmp_path / "bench_render_cpu.json").read_text())
     assert record["device"] and record["commit"] and record["command"]
     cases = {r["case"] for r in record["rows"]}
-    assert {"first hit", "first hit, no skipping", "low-res", "flow fill ns", "flow fill pushpull",
+    assert {"first hit", "first hit, no skipping", "first hit, two surfaces", "first hit, two surfaces, 30%",
+            "low-res", "flow fill ns", "flow fill pushpull",
             "recon render, AO 1 + flow: render()", "recon render, AO 1 + flow: plan"} <= cases
     first = next(r for r in record["rows"] if r["case"] == "first hit")
     assert first["ms"] > 0 and first["skip speedup"] > 0 and 0 < first["coverage"] <= 1

@@ -249,6 +249,41 @@ def test_render_colored_by_a_field(tmp_path, capsys):
         main(["render", "proc:sphere@32", "--color-by", "gradient", "--colormap", "jet", "-o", str(out)])
 
 
+def test_render_several_isos(tmp_path, capsys):
+    """--iso (repeated) and --iso-color reach a plain render and a method's: the outer sphere of two (the SDF's
+    values 0.1 and -0.1 around its surface) hides the inner; bad counts and colours are refused naming them."""
+    out = tmp_path / "two.npz"
+    for method in ([], ["--method", "atrous:ao_rays=1"]):
+        assert main(["render", "proc:sphere@32", "--eye", "0,0,2", "--size", "33x33", "--outputs",
+                     "mask,depth,albedo,color", "--iso=-0.1", "--iso", "0.1", "--iso-color", "0,0,1",
+                     "--iso-color", "1,0,0", *method, "-o", str(out)]) == 0
+        frame = FrameBuffers.load_npz(out)
+        assert frame.albedo[16, 16].tolist() == [1.0, 0.0, 0.0] and float(frame.albedo[0, 0].max()) == 0.0
+        assert abs(float(frame.depth[16, 16]) - 1.6) < 1e-2  # the radius-0.4 sphere from 2 away
+    assert main(["render", "proc:sphere@32", "--eye", "0,0,2", "--size", "33x33", "--outputs", "mask,surface",
+                 "--iso=-0.1", "--iso", "0.1", "-o", str(out)]) == 0
+    assert float(FrameBuffers.load_npz(out).surface[16, 16]) == 1.0
+    # The outer one at 0: the inner one's colour in the middle; a method that composites one layer refuses it.
+    assert main(["render", "proc:sphere@32", "--eye", "0,0,2", "--size", "33x33", "--outputs", "mask,depth,color",
+                 "--iso=-0.1", "--iso", "0.1", "--iso-color", "0,0,1", "--iso-color", "1,0,0", "--iso-opacity", "1",
+                 "--iso-opacity", "0", "--method", "full", "-o", str(out)]) == 0
+    frame = FrameBuffers.load_npz(out)
+    assert frame.color[16, 16, 2] > 2 * frame.color[16, 16, 0] and abs(float(frame.depth[16, 16]) - 1.6) < 1e-2
+    capsys.readouterr()
+    assert main(["render", "proc:sphere@32", "--iso=-0.1", "--iso", "0.1", "--iso-opacity", "1", "--iso-opacity",
+                 "0.3", "--method", "atrous:ao_rays=1", "-o", str(out)]) == 2
+    assert "translucent surfaces" in capsys.readouterr().err
+    for bad, message in ((["--iso", "0.1", "--iso-color", "1,0,0", "--iso-color", "0,1,0"], "one --iso-color per"),
+                         (["--iso", "0.1", "--iso-color", "1,2,0"], "surfaces[0].color must be three numbers"),
+                         (["--iso", "0.1", "--iso-opacity", "2"], "surfaces[0].opacity must be in [0, 1]"),
+                         (["--iso", "0.1", "--iso", "0.2", "--iso-opacity", "1"], "one --iso-opacity per"),
+                         ([f"--iso={v}" for v in (-0.2, -0.1, 0.0, 0.1, 0.2)], "at most 4 surfaces"),
+                         (["--iso=-0.1", "--iso", "9"], "iso 9 is outside"),
+                         (["--iso=-0.1", "--iso", "0.1", "--pick", "3,3"], "take one --iso")):
+        assert main(["render", "proc:sphere@32", *bad, "-o", str(out)]) == 2
+        assert message in capsys.readouterr().err, bad
+
+
 def test_render_clipped_and_capped(tmp_path, capsys):
     """--clip-plane (repeatable), --crop-box and --cap reach the render; a bad plane is refused naming it."""
     out = tmp_path / "cut.npz"

@@ -43,6 +43,7 @@ from isosr_render.conventions import LOWRES_BUFFERS
 from isosr_render.picking import pick
 from isosr_render.slices import CONTOUR_RGB, slice_image
 from isosr_render.shading import shade, shade_channels_first
+from isosr_render.surfaces import Surfaces
 from isosr_server.core.config import Settings
 from isosr_server.protocol import (CLOSE_BAD_MESSAGE, SERVER_VIEW_MESSAGES, CameraMsg, FrameMsg, Limits, OpenMsg,
                                    ProtocolError, ReadyMsg, ReceivedMsg, SettingsUpdate, encode, parse)
@@ -179,6 +180,45 @@ def test_colored_frames_equal_the_library(server, library):  # noqa: F811
         with pytest.warns(UserWarning, match=r"\(16, 16, 16\), not the viewed volume's \(32, 32, 32\)"):
             after = view.latest()
         assert view.latest().message.legend is None and np.array_equal(after.rgb(), before)
+
+
+def test_several_surfaces_equal_the_library(server, library):  # noqa: F811
+    """set_surfaces: the server's frames are the library's with the same surfaces (isos in data units, each its
+    colour); bad ones are refused naming the field, and no surfaces is the one iso again."""
+    renderer, iso = library
+    lo, hi = renderer.volume.value_range
+    pairs = [(lo + iso * (hi - lo), (0.2, 0.4, 0.9)), (lo + (iso - 0.1) * (hi - lo), (0.9, 0.3, 0.2))]
+    camera = PATH.camera(0)
+    with connect(server.url, VOLUME, "full", SIZE, settings=LOSSLESS, camera=camera) as view:
+        plain = view.latest().rgb()
+        with pytest.raises(ProtocolError, match=r"surfaces\[0\].color\[2\]"):
+            view.set_surfaces([(0.5, (0.0, 0.0, 1.5))])
+        with pytest.raises(ProtocolError, match=r"length <= 4"):
+            view.set_surfaces([(0.1 * i, (0.0, 0.0, 0.0)) for i in range(5)])
+        view.set_surfaces([(pairs[0][0], (1.0, 0.0, 0.0)), (pairs[0][0], (0.0, 0.0, 1.0))])  # equal isos: a notice
+        assert level_diff(view.latest().rgb(), plain).max() <= 1
+        assert any("settings refused" in n and "must differ" in n for n in view.notices), list(view.notices)
+        view.set_surfaces(pairs)
+        image = view.frame()
+        view.set_surfaces()
+        again = view.frame()
+    surfaces = Surfaces.of([(renderer.volume.normalized_iso(v), c) for v, c in pairs])
+    ref = renderer.render(orbit(**camera), RenderRequest(*SIZE, surfaces.iso, ("mask", "normal", "surface"),
+                                                         surfaces=surfaces))
+    assert (ref.surface == 1).any() and (level_diff(image, plain) > 8).any()
+    assert level_diff(image, to_uint8(shade(ref.mask, ref.normal, albedo=ref.albedo))).max() <= 1
+    assert level_diff(again, plain).max() <= 1
+    # The outer one translucent: a network mode's frames are full-resolution renders compositing two layers.
+    translucent = [pairs[0], (*pairs[1], 0.4)]
+    with connect(server.url, VOLUME, "network", SIZE, settings=LOSSLESS, camera=camera) as view:
+        view.set_surfaces(translucent)
+        frame = view.latest()
+        image = frame.rgb()
+    surfaces = Surfaces.of([(renderer.volume.normalized_iso(v), *rest) for v, *rest in translucent])
+    ref = renderer.render(orbit(**camera), RenderRequest(*SIZE, surfaces.iso, ("mask", "normal", "color"),
+                                                         surfaces=surfaces))
+    assert frame.message.method.startswith("full") and (ref.behind.mask > 0).any()
+    assert level_diff(image, to_uint8(ref.color)).max() <= 1
 
 
 def test_buffers_mode_upscaled_here_equals_network(server):  # noqa: F811

@@ -25,15 +25,25 @@ MAX_STACK = 40
 MAX_SAMPLES_STACK = 256
 # The plain kernels (NoClip), which must cost what they did before clipping, and the clipped ones (ClipArgs,
 # their own Warp module, run only for frames that clip).
-OVERLOADS = [f"({t.__name__}, {layout.key}, {kernels.NoClip.key})" for t in kernels.VOXEL_TYPES
+OVERLOADS = [f"({t.__name__}, {layout.key}, {kernels.NoClip.key}, {kernels.OneIso.key})" for t in kernels.VOXEL_TYPES
              for layout in kernels.LAYOUTS]
 CLIPPED_OVERLOADS = [o.replace(kernels.NoClip.key, kernels.ClipArgs.key) for o in OVERLOADS]
+# The kernels for several isosurfaces (IsoSet), with and without clipping: their own Warp modules.
+SURFACES_OVERLOADS = [o.replace(kernels.OneIso.key, kernels.IsoSet.key) for o in OVERLOADS + CLIPPED_OVERLOADS]
 # The clipped kernels, measured on sm_90 when clipping became their own variant (the plane table in device
 # memory): first hit 96-118 registers, no stack; surface kernel 128 registers and 168-184 bytes of stack
 # (cut faces and AO rays' kept spans under the cap); several rays 448-480 bytes. Bounds a little above.
 MAX_CLIPPED_FIRST_HIT_REGISTERS = 128
 MAX_CLIPPED_STACK = 200
 MAX_CLIPPED_SAMPLES_STACK = 512
+
+
+# The kernels of several isosurfaces (IsoSet: both layers' march in one first-hit kernel), measured on sm_90 when
+# they came: first hit 120-128 registers (clipped 158-168), no stack; surface kernel 128 registers and 32 bytes of
+# stack (clipped 184-200); several rays 360-392 bytes (clipped 688-704). Bounds a little above.
+MAX_SURFACES_FIRST_HIT_REGISTERS = 176
+MAX_SURFACES_STACK = 216
+MAX_SURFACES_SAMPLES_STACK = 736
 
 
 @pytest.fixture(scope="module")
@@ -46,8 +56,10 @@ def resources() -> dict[str, dict[str, int]]:
 
 
 def test_every_overload_is_compiled_and_read(resources):
+    assert set(kernels.VARIANT_MODULES.values()) == set(RENDER_MODULES)
     for name in kernels.FRAME_KERNELS:
-        assert {f"{name}{o}" for o in OVERLOADS + CLIPPED_OVERLOADS} <= set(resources), sorted(resources)
+        assert {f"{name}{o}" for o in OVERLOADS + CLIPPED_OVERLOADS + SURFACES_OVERLOADS} <= set(resources), \
+            sorted(resources)
     assert all(r["registers"] > 0 for r in resources.values())
 
 
@@ -74,3 +86,13 @@ def test_clipped_kernels_stay_where_measured(resources):
         assert one["registers"] <= kernels.SURFACE_MAX_REGISTERS and one["stack"] <= MAX_CLIPPED_STACK, (overload, one)
         assert several["registers"] <= kernels.SURFACE_MAX_REGISTERS, (overload, several)
         assert several["stack"] <= MAX_CLIPPED_SAMPLES_STACK, (overload, several)
+
+
+def test_surface_set_kernels_stay_where_measured(resources):
+    for overload in SURFACES_OVERLOADS:
+        first = resources[f"first_hit_kernel{overload}"]
+        one, several = resources[f"surface_kernel{overload}"], resources[f"surface_samples_kernel{overload}"]
+        assert first["registers"] <= MAX_SURFACES_FIRST_HIT_REGISTERS and first["stack"] <= MAX_STACK, (overload, first)
+        assert one["registers"] <= kernels.SURFACE_MAX_REGISTERS and one["stack"] <= MAX_SURFACES_STACK, (overload, one)
+        assert several["registers"] <= kernels.SURFACE_MAX_REGISTERS, (overload, several)
+        assert several["stack"] <= MAX_SURFACES_SAMPLES_STACK, (overload, several)

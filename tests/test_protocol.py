@@ -12,6 +12,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from isosr_render.conventions import MATERIAL_RGB
 from isosr_server import protocol as P
 from isosr_server.codecs.arrays import encode_array
 
@@ -66,7 +67,7 @@ def test_messages_round_trip():
 
 def test_wire_names_are_the_v3_vocabulary():
     ready = wire(P.ReadyMsg("abc", VOLUME, P.ViewSettings(), 4, 8, LIMITS, MODES))
-    assert ready["type"] == "ready" and ready["version"] == 9 and ready["max_recon_ao_rays"] == 8
+    assert ready["type"] == "ready" and ready["version"] == 10 and ready["max_recon_ao_rays"] == 8
     assert ready["settings"]["mode"] == "auto" and ready["settings"]["interpolation"] == "bilinear"
     assert {"ao_rays", "refine_ao_rays", "spp", "ao_radius"} <= set(ready["settings"])
     assert ready["settings"]["ao_radius"] == P.AO_RADIUS == 0.05
@@ -122,6 +123,38 @@ def test_clip_settings_are_the_renderers_clip():
     assert clip.planes == (((0.0, 0.0, 0.1), (0.0, 0.0, -1.0)),) and clip.box[1] == (1.0, 1.0, 1.0) and clip.capped
     msg = P.SettingsMsg(P.SettingsUpdate(clip=st.clip))
     assert roundtrip(msg) == msg and not P.ViewSettings().clip.clip().active
+
+
+@pytest.mark.parametrize("surfaces, match", [
+    ([{"iso": 0.1 * i, "color": [1, 0, 0]} for i in range(5)], r"length <= 4 - at `\$.surfaces`"),
+    ([{"iso": 0.1, "color": [1, float("nan"), 0]}], r"at `\$.surfaces\[0\].color\[1\]`"),
+    ([{"iso": 0.1, "color": [1, 2, 0]}], r"<= 1.0 - at `\$.surfaces\[0\].color\[1\]`"),
+    ([{"iso": float("inf"), "color": [1, 0, 0]}], r"at `\$.surfaces\[0\].iso`"),
+    ([{"iso": 0.1, "color": [1, 0]}], r"length 3, got 2 - at `\$.surfaces\[0\].color`"),
+    ([{"iso": 0.1, "opacity": -0.1}], r">= 0.0 - at `\$.surfaces\[0\].opacity`"),
+    ([{"iso": 0.1, "opacity": float("nan")}], r"at `\$.surfaces\[0\].opacity`"),
+])
+def test_bad_surfaces_are_refused_naming_the_field(surfaces, match):
+    with pytest.raises(P.ProtocolError, match=match):
+        P.ViewSettings().updated({"surfaces": surfaces}, LIMITS)
+
+
+def test_surfaces_round_trip_and_are_the_renderers():
+    st = P.ViewSettings().updated({"surfaces": [{"iso": 300.0, "color": [0.9, 0.8, 0.7]},
+                                                {"iso": 100.0, "color": [1, 1, 1], "opacity": 0.3}]}, LIMITS)
+    msg = P.SettingsMsg(P.SettingsUpdate(surfaces=st.surfaces))
+    assert roundtrip(msg) == msg and wire(msg)["settings"]["surfaces"][1] == {"iso": 100.0, "color": [1.0, 1.0, 1.0],
+                                                                              "opacity": 0.3}
+    surfaces = P.surfaces_of(st.surfaces, lambda v: v / 1000.0)
+    assert [(s.iso, s.color, s.opacity) for s in surfaces.items] == [(0.3, (0.9, 0.8, 0.7), 1.0),
+                                                                      (0.1, (1.0, 1.0, 1.0), 0.3)]
+    assert surfaces.layers == 2
+    assert P.surfaces_of((), float) is None and P.ViewSettings().surfaces == ()
+    assert P.SurfaceSettings(0.5).color == MATERIAL_RGB
+    with pytest.raises(P.ProtocolError, match=r"settings.surfaces: the iso-values must differ"):
+        P.surfaces_of(st.surfaces, lambda v: 0.5)
+    with pytest.raises(P.ProtocolError, match=r"settings.surfaces: .* not with settings.coloring"):
+        st.updated({"coloring": {"by": "gradient"}}, LIMITS)
 
 
 def test_volume_levels_and_device_memory_round_trip():
@@ -234,7 +267,7 @@ def test_invalid_messages_name_the_problem(message, words):
 def test_version_3_is_refused_with_the_reason(message):
     with pytest.raises(P.ProtocolError) as e:
         P.parse(raw(message), LIMITS, (P.OpenMsg, P.UpscaleRequest))
-    assert e.value.reason == "protocol version 3 is not supported; this server speaks 9: update the client"
+    assert e.value.reason == "protocol version 3 is not supported; this server speaks 10: update the client"
     assert (e.value.close_code, e.value.http_status) == (P.CLOSE_BAD_MESSAGE, 400)
 
 

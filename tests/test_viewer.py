@@ -392,6 +392,56 @@ def test_viewer_crop_box_handles(server, browser):
     page.close()
 
 
+def red_excess(pixels, where=None) -> float:
+    """Mean red minus blue over the surface's pixels (those off the white background; of ``where``'s surface)."""
+    where = pixels if where is None else where
+    surface = [p for row, at in zip(pixels, where) for p, q in zip(row, at) if min(q) < 230]
+    return sum(p[0] - p[2] for p in surface) / max(len(surface), 1)
+
+
+def test_viewer_pins_a_second_surface(server, browser):
+    """'add surface' pins the slider's iso in the chosen colour; with the slider lowered inside it, the pinned
+    (outer) surface shows in its red; 'clear' shows the slider's alone again."""
+    v = Viewer(browser, server, TOKEN)
+    page = v.page
+    set_control(page, "#mode", "full")
+    plain = v.settle(0)
+    page.click("#surface-add")
+    assert page.inner_text("#surface-list").count("\u25A0") == 1
+    page.evaluate("document.activeElement.blur()")  # keys go to the page, not the button
+    n = v.frames()
+    for _ in range(8):
+        page.keyboard.press("[")  # the slider's iso inside the pinned surface
+    pinned = v.settle(n)
+    assert red_excess(pinned) > red_excess(plain) + 25, (red_excess(pinned), red_excess(plain))
+    n = v.frames()
+    page.click("#surface-clear")
+    alone = v.settle(n)
+    assert page.inner_text("#surface-list") == "" and surface_fraction(alone) < surface_fraction(pinned)
+    assert abs(red_excess(alone) - red_excess(plain)) < 10
+    page.evaluate("document.activeElement.blur()")
+    for _ in range(4):
+        page.keyboard.press("]")
+    set_control(page, "#surface-opacity", "0.3")
+    page.click("#surface-add")  # the slider's iso pinned at 30%
+    assert page.inner_text("#surface-list").endswith("(30%)")
+    page.evaluate("document.activeElement.blur()")
+    n = v.frames()
+    for _ in range(8):
+        page.keyboard.press("]")  # the slider's iso outside the pinned one: its surface (opaque) hides the red
+    hidden = v.settle(n)
+    n = v.frames()
+    for _ in range(12):
+        page.keyboard.press("[")  # back inside the pinned one: the red at 30% over the slider's surface
+    seen = v.settle(n)
+    assert red_excess(hidden) < red_excess(alone) + 5  # the pinned surface hidden
+    # Where the slider's surface shows alone, now 30% red over it: redder, less than the opaque red.
+    assert red_excess(alone, alone) + 5 < red_excess(seen, alone) < red_excess(pinned, alone), \
+        (red_excess(alone, alone), red_excess(seen, alone), red_excess(pinned, alone))
+    assert v.errors == [], v.errors
+    page.close()
+
+
 def test_viewer_coders_match_python(server, browser):
     """The page's msgpack against Python's; its flow legend against the server's flow colors."""
     sample = {"type": "frame", "nil": None, "t": True, "f": False, "ints": [0, 127, 128, 255, 256, 65535, 65536,

@@ -33,6 +33,7 @@ from isosr_render.renderer import MAX_AO_SAMPLES, MAX_SPP
 from isosr_render.sequence import sequence_cameras
 from isosr_render.shading import ShadingParams, shade_on
 from isosr_render.shapes import check_int
+from isosr_render.surfaces import Surfaces
 
 # Upscaling factors a low-res method takes.
 MAX_FACTOR = 16
@@ -325,6 +326,11 @@ class FrameRunner(ABC):
             the color shows the cut faces in the volume's values.
         coloring: colour the surface by a field (:class:`~isosr_render.color_field.ColorField`): the render
             makes its ``albedo``, which the shading uses at the frame size; None: the material's colour.
+        surfaces: several isosurfaces (:mod:`isosr_render.surfaces`; ``iso`` must be their first): every ray
+            cast stops at the nearest, the render's ``albedo`` (their colours) as a coloring's; None: ``iso``.
+            Translucent ones only where the kind is ``layered`` (else ValueError).
+        layered: composites the two layers of translucent surfaces (the render's ``color``); the other kinds
+            refuse them (their filters and networks see one layer).
     """
 
     kind: ClassVar[str]
@@ -340,11 +346,13 @@ class FrameRunner(ABC):
     warm_up: ClassVar[bool] = False
     serve_bench_ao: ClassVar[tuple[int, ...]] = ()
     plot_color: ClassVar[str | None] = None
+    layered: ClassVar[bool] = False
 
     def __init__(self, method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int,
                  shading: ShadingParams = ShadingParams(), ao_radius: float = AO_RADIUS,
                  networks: Networks | None = None, atrous: ATrousConfig = ATrousConfig(), keep: tuple[str, ...] = (),
-                 shade: bool = True, clip: Clip = Clip(), coloring: ColorField | None = None):
+                 shade: bool = True, clip: Clip = Clip(), coloring: ColorField | None = None,
+                 surfaces: Surfaces | None = None):
         check_int(width, "width", 1, where="frame")
         check_int(height, "height", 1, where="frame")
         if (reason := self.unavailable()) is not None:
@@ -354,7 +362,12 @@ class FrameRunner(ABC):
         self.method, self.renderer, self.iso = method, renderer, float(iso)
         self.width, self.height = width, height
         self.shading, self.ao_radius, self.atrous, self.keep = shading, ao_radius, atrous, tuple(keep)
-        self.shade, self.clip, self.coloring = shade, clip, coloring
+        self.shade, self.clip, self.coloring, self.surfaces = shade, clip, coloring, surfaces
+        if surfaces is not None and self.iso != surfaces.iso:
+            raise ValueError(f"{method.name}: iso must be the first surface's ({surfaces.iso}), got {self.iso}")
+        if surfaces is not None and surfaces.layers > 1 and not self.layered:
+            raise ValueError(f"{method.name}: translucent surfaces (an opacity below 1) are composited by the full "
+                             f"method only: make them opaque or use full")
         self.device = str(renderer.device)
         self._last_timer: StageTimer | None = None  # the previous frame's (read lazily: no sync per frame)
         self.frames = 0  # frames made: with fresh_rays, the next frame's AO seed
@@ -419,7 +432,7 @@ class FrameRunner(ABC):
         return RenderRequest(self.width // m.factor, self.height // m.factor, self.iso, outputs,
                              ao_radius=self.ao_radius, prev_camera=prev_camera if flow else None,
                              shading=self.shading, spp=m.spp, ao_samples=max(1, m.ao_rays), clip=self.clip,
-                             coloring=self.coloring if self.shade else None, **seed)
+                             coloring=self.coloring if self.shade else None, surfaces=self.surfaces, **seed)
 
     def frame(self, camera: Camera, prev_camera: Camera | None = None) -> FrameResult:
         """The next frame of the stream; ``prev_camera=None`` starts a new sequence.
@@ -515,14 +528,14 @@ class FrameRunner(ABC):
 
     @property
     def shades_after(self) -> bool:
-        """Whether the color needs the render's ``cap`` or ``albedo`` (cut faces, a coloring): a learned
-        kind shades after its network then (:meth:`colored`), not in its call."""
-        return self.shade and (self.clip.capped or self.coloring is not None)
+        """Whether the color needs the render's ``cap`` or ``albedo`` (cut faces, a coloring, several surfaces): a
+        learned kind shades after its network then (:meth:`colored`), not in its call."""
+        return self.shade and (self.clip.capped or self.coloring is not None or self.surfaces is not None)
 
     def colored(self, buffers: FrameBuffers, timer: StageTimer, rendered: FrameBuffers) -> FrameBuffers:
         """``buffers`` with the final color (unless the runner does not shade), with the ``rendered``
         frame's (at the render's size) ``cap``, the cut faces coloured by the volume's values, and
-        ``albedo``, a coloring's surface colour, brought to the frame size."""
+        ``albedo``, a coloring's or the surfaces' colour, brought to the frame size."""
         if self.shade:
             for name in ("cap", "albedo"):
                 if getattr(rendered, name) is not None:
@@ -595,31 +608,35 @@ class FrameStream:
 
     def frame(self, method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int, camera: Camera,
               prev_camera: Camera | None, ao_radius: float = AO_RADIUS, keep: tuple[str, ...] = (),
-              shade: bool = True, clip: Clip = Clip(), coloring: ColorField | None = None) -> FrameResult:
+              shade: bool = True, clip: Clip = Clip(), coloring: ColorField | None = None,
+              surfaces: Surfaces | None = None) -> FrameResult:
         """The next frame; ``prev_camera`` counts only while the runner stays the same."""
         return finish_steps(self.steps(method, renderer, iso, width, height, camera, prev_camera, ao_radius, keep,
-                                       shade, clip=clip, coloring=coloring))
+                                       shade, clip=clip, coloring=coloring, surfaces=surfaces))
 
     def steps(self, method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int, camera: Camera,
               prev_camera: Camera | None, ao_radius: float = AO_RADIUS, keep: tuple[str, ...] = (),
               shade: bool = True, slice_ms: float | None = None,
-              clip: Clip = Clip(), coloring: ColorField | None = None) -> Generator[None, None, FrameResult]:
+              clip: Clip = Clip(), coloring: ColorField | None = None,
+              surfaces: Surfaces | None = None) -> Generator[None, None, FrameResult]:
         """:meth:`frame` in slices (:meth:`FrameRunner.steps`)."""
         runner, prev_camera = self.runner_for(method, renderer, iso, width, height, prev_camera, ao_radius, keep, shade,
-                                              clip, coloring)
+                                              clip, coloring, surfaces)
         return (yield from runner.steps(camera, prev_camera, slice_ms))
 
     def runner_for(self, method: FrameMethod, renderer: Renderer, iso: float, width: int, height: int,
                    prev_camera: Camera | None, ao_radius: float = AO_RADIUS, keep: tuple[str, ...] = (),
                    shade: bool = True, clip: Clip = Clip(),
-                   coloring: ColorField | None = None) -> tuple[FrameRunner, Camera | None]:
+                   coloring: ColorField | None = None,
+                   surfaces: Surfaces | None = None) -> tuple[FrameRunner, Camera | None]:
         """The runner of the next frame and the previous camera it continues from (None where the
-        runner is new: a cut; a new ``clip`` or ``coloring`` is one, as a new iso). Its frame is then
-        :meth:`FrameRunner.steps` or part of a :meth:`FrameRunner.make_batch`."""
-        key = (method, renderer, float(iso), width, height, float(ao_radius), tuple(keep), shade, clip, coloring)
+        runner is new: a cut; a new ``clip``, ``coloring`` or ``surfaces`` is one, as a new iso). Its frame is
+        then :meth:`FrameRunner.steps` or part of a :meth:`FrameRunner.make_batch`."""
+        key = (method, renderer, float(iso), width, height, float(ao_radius), tuple(keep), shade, clip, coloring,
+               surfaces)
         if key != self._key:
             self.runner = make_runner(method, renderer, iso, width, height, shading=self.shading,
                                       ao_radius=ao_radius, networks=self.networks, keep=keep, shade=shade, clip=clip,
-                                      coloring=coloring)
+                                      coloring=coloring, surfaces=surfaces)
             self._key, prev_camera = key, None
         return self.runner, prev_camera

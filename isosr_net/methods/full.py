@@ -22,9 +22,11 @@ class FullOptions(RayOptions):
 
 @register_runner("full")
 class FullRunner(FrameRunner):
-    """Full resolution, AO from ``ao_rays`` rays per hit (0: none)."""
+    """Full resolution, AO from ``ao_rays`` rays per hit (0: none); translucent surfaces' two layers composited by
+    the renderer."""
 
     label = "full resolution"
+    layered = True
     warm_up = True
     serve_bench_ao = (0, 8)
     plot_color = "C0"
@@ -52,14 +54,23 @@ class FullRunner(FrameRunner):
     def outputs(self) -> tuple[str, ...]:
         if not self.shade:  # a buffer view: the mask and what is kept
             return ("mask",) + tuple(k for k in self.keep if k != "flow")
-        return ("mask", "normal") + (("ao",) if self.method.ao_rays else ())
+        return ("mask", "normal") + (("ao",) if self.method.ao_rays else ()) + (("color",) if self._layers else ())
+
+    @property
+    def _layers(self) -> bool:
+        """Whether the render makes two layers and their colour (translucent surfaces, shaded)."""
+        return self.shade and self.surfaces is not None and self.surfaces.layers > 1
 
     @classmethod
     def makes(cls, m: FrameMethod) -> tuple[str, ...]:
         return ("mask", "normal") + (("ao",) if m.ao_rays else ())
 
     def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
-        return self.colored(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=rendered.ao), timer, rendered)
+        buffers = FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=rendered.ao)
+        if self._layers:
+            buffers.color, buffers.albedo, buffers.behind = rendered.color, rendered.albedo, rendered.behind
+            return buffers
+        return self.colored(buffers, timer, rendered)
 
     def rows(self, camera: Camera, start: int, stop: int) -> torch.Tensor:
         """Rows ``[start, stop)`` of the frame's color only (a focus lens's region).
@@ -68,5 +79,7 @@ class FullRunner(FrameRunner):
             Returns (stop - start, W, 3).
         """
         rendered = self.renderer.render(camera, self.render_request(), rows=(start, stop))
+        if self._layers:
+            return rendered.color[start:stop]
         ao, cap, albedo = (None if t is None else t[start:stop] for t in (rendered.ao, rendered.cap, rendered.albedo))
         return shade(rendered.mask[start:stop], rendered.normal[start:stop], ao, self.shading, cap, albedo)

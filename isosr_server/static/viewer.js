@@ -10,6 +10,7 @@ const AXES = ["x", "y", "z"]; // the world's, as the clip plane, the crop box an
 // Keys 1..9 pick the modes in the menu's order (the server's, GET /v1/modes).
 const TOKEN_KEY = "isosr.token";
 const SPARK_FRAMES = 120;
+const MAX_PINNED = 3; // surfaces pinned besides the slider's (settings.surfaces: at most 4)
 const VIDEO_ENCODINGS = Object.keys(VIDEO_PROBES);
 // What "auto" asks for: the best video both sides have, else jpeg.
 const AUTO_ENCODINGS = [...VIDEO_ENCODINGS, "jpeg"];
@@ -26,6 +27,7 @@ const state = {
   volume: null,
   info: null, // ready.volume: name, shape, value_range, iso, histogram
   iso: null, // data units; null: the volume's suggested iso
+  surfaces: [], // surfaces pinned besides the slider's iso: [{iso (data units), color [r, g, b]}]
   step: 0, // a series' time step shown (settings.t)
   playing: null, // the playback timer while a series plays
   camera: structuredClone(DEFAULT_CAMERA),
@@ -189,8 +191,10 @@ function settings(mode) {
     quality: 90,
     bitrate_kbps: bitrate(),
     clip: clipSettings(),
-    coloring: coloringSettings(),
+    // Several surfaces show their own colours: the server takes no coloring beside them.
+    coloring: state.surfaces.length ? null : coloringSettings(),
     t: state.step,
+    surfaces: surfaceSettings(),
   };
 }
 
@@ -232,6 +236,37 @@ function coloringSettings() {
   const name = by === "field" ? $("color-field").value.trim() : by;
   if (by === "none" || !name) return null;
   return { by: name, colormap: $("colormap").value, range: null };
+}
+
+/** settings.surfaces: none while nothing is pinned, else the slider's iso in the material's colour and the
+ * pinned ones (an iso equal to the slider's left out: the server refuses two equal isos). */
+function surfaceSettings() {
+  if (!state.surfaces.length || state.iso === null) return [];
+  const pinned = state.surfaces.filter((s) => s.iso !== state.iso);
+  return [{ iso: state.iso }, ...pinned]; // without a colour: the material's
+}
+
+/** Pin the slider's iso as a surface in the chosen colour and opacity (up to 3 besides the slider's). */
+function addSurface() {
+  if (state.iso === null || state.surfaces.length >= MAX_PINNED) return;
+  const hex = $("surface-color").value;
+  const color = [1, 3, 5].map((i) => parseInt(hex.slice(i, i + 2), 16) / 255);
+  const given = Number($("surface-opacity").value);
+  const opacity = Number.isFinite(given) ? Math.min(1, Math.max(0, given)) : 1;
+  state.surfaces = [...state.surfaces.filter((s) => s.iso !== state.iso), { iso: state.iso, color, opacity }];
+  showSurfaces();
+  sendSettings();
+}
+
+/** The pinned surfaces as swatches with their isos. */
+function showSurfaces() {
+  $("surface-list").replaceChildren(...state.surfaces.map((s) => {
+    const swatch = document.createElement("span");
+    swatch.textContent = `\u25A0 ${formatNumber(s.iso)}${s.opacity < 1 ? ` (${Math.round(100 * s.opacity)}%)` : ""} `;
+    swatch.style.color = `rgb(${s.color.map((c) => Math.round(255 * c)).join(",")})`;
+    return swatch;
+  }));
+  $("surface-add").disabled = state.surfaces.length >= MAX_PINNED;
 }
 
 /** Move the clip plane's handle by ``delta`` world units (within its range). */
@@ -537,6 +572,7 @@ function setIso(value) {
   $("iso").value = state.iso;
   showIso();
   queue("iso", { type: "iso", value: state.iso, normalized: false });
+  if (state.surfaces.length) sendSettings(); // the slider's surface is one of settings.surfaces
 }
 
 // ---- time steps ----------------------------------------------------------------------------------
@@ -884,6 +920,8 @@ function bindControls() {
   $("volume").addEventListener("change", () => {
     state.volume = $("volume").value;
     state.iso = null;
+    state.surfaces = []; // isos of another volume
+    showSurfaces();
     state.info = null;
     state.step = 0;
     stopPlayback();
@@ -905,6 +943,8 @@ function bindControls() {
   $("clip-axis").addEventListener("change", sendSettings);
   $("cap").addEventListener("change", sendSettings);
   $("clip-offset").addEventListener("input", sendSettings);
+  $("surface-add").addEventListener("click", addSurface);
+  $("surface-clear").addEventListener("click", () => { state.surfaces = []; showSurfaces(); sendSettings(); });
   for (const axis of AXES) {
     $(`crop-${axis}-lo`).addEventListener("input", sendSettings);
     $(`crop-${axis}-hi`).addEventListener("input", sendSettings);

@@ -19,7 +19,7 @@ from isosr_server.api.ws import accept, end_ws, rate_limiter, receive
 from isosr_server.engine import Engine
 from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, CLOSE_IDLE, VIDEO_ENCODINGS, FocusMsg, FrameMsg, Limits,
                                    Message, NoticeMsg, OpenMsg, PickMsg, ProtocolError, ReadyMsg, SettingRefused,
-                                   SettingsMsg, ViewSettings, VolumeSummary, encode, parse)
+                                   SettingsMsg, ViewSettings, VolumeSummary, encode, parse, surfaces_of)
 from isosr_server.sessions import (DEFAULT_CAMERA, SessionCounter, StepView, ViewSession, ViewState, run_frames,
                                    to_camera, watch_acks)
 from isosr_server.video import SessionCoder
@@ -100,6 +100,9 @@ async def take_updates(ws: WebSocket, limiter, limits: Limits, session: ViewSess
             if isinstance(msg, SettingsMsg) and msg.settings.coloring is not UNSET:  # its field resolved first
                 field = await coloring_field(catalog, session.state.settings.updated(msg.settings, limits),
                                              session.volume, msg.seq)
+            if isinstance(msg, SettingsMsg) and msg.settings.surfaces is not UNSET:  # checked on the volume first
+                surfaces_of(session.state.settings.updated(msg.settings, limits).surfaces,
+                            session.volume.normalized_iso, msg.seq)
         except SettingRefused as e:
             session.refuse(e)
             continue
