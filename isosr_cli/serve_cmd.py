@@ -32,7 +32,8 @@ REPLICA_FLAGS: dict[str, dict] = {
     "--ray-address": dict(help="join this Ray cluster (e.g. auto, or HEAD_IP:6379; default: start a local one)"),
     "--behind-proxy": dict(action="store_true", help="with a --host beyond loopback: Ray Serve's proxy is reached "
                                                      "only through a reverse proxy that bounds headers, TLS handshakes, "
-                                                     "connections and WebSocket frames (docs/serving.md)"),
+                                                     "connections and WebSocket frames (docs/serving.md; "
+                                                     "default: off)"),
 }
 
 
