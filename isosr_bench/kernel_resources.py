@@ -16,8 +16,11 @@ cubin's ``.nv.info`` attributes (ELF64): ``registers`` (EIATTR_REGCOUNT) and ``s
 from __future__ import annotations
 
 import argparse
+import multiprocessing
+import os
 import struct
 import tempfile
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from isosr_net.warp_modules import warp_module
@@ -91,14 +94,24 @@ def module_resources(module: str, arch: int = 90) -> dict[str, dict[str, int]]:
     return {names.get(k.removesuffix("_cuda_kernel_forward"), k): v for k, v in found.items()}
 
 
+def modules_resources(modules: list[str], arch: int = 90) -> dict[str, dict[str, dict[str, int]]]:
+    """:func:`module_resources` of each of ``modules``, compiled side by side in processes of their own
+    (NVRTC compiles a module on one core), one per core at most."""
+    processes = max(1, min(len(modules), os.cpu_count() or 1))
+    if processes == 1:
+        return {m: module_resources(m, arch) for m in modules}
+    with ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn")) as pool:
+        return dict(zip(modules, pool.map(module_resources, modules, [arch] * len(modules))))
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--arch", type=int, default=90, help="compute capability x10 (90: H100/H200)")
     parser.add_argument("--modules", default=",".join(RENDER_MODULES), help="comma-separated Warp modules")
     args = parser.parse_args(argv)
     print(f"| module | kernel | registers | stack (bytes) |  sm_{args.arch}\n|---|---|---|---|")
-    for module in args.modules.split(","):
-        for kernel, r in sorted(module_resources(module, args.arch).items()):
+    for module, found in modules_resources(args.modules.split(","), args.arch).items():
+        for kernel, r in sorted(found.items()):
             print(f"| {module} | {kernel} | {r.get('registers')} | {r.get('stack')} |")
 
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import pytest
 
-from isosr_bench.kernel_resources import module_resources
+from isosr_bench.kernel_resources import modules_resources
 from isosr_render import kernels
 from isosr_render.kernels import RENDER_MODULES
 
@@ -52,7 +52,7 @@ def resources() -> dict[str, dict[str, int]]:
 
     if 90 not in wp.get_cuda_supported_archs():
         pytest.skip("this Warp build's NVRTC cannot compile for sm_90 (a build without CUDA)")
-    return {k: v for module in RENDER_MODULES for k, v in module_resources(module, arch=90).items()}
+    return {k: v for found in modules_resources(list(RENDER_MODULES), arch=90).values() for k, v in found.items()}
 
 
 def test_every_overload_is_compiled_and_read(resources):
