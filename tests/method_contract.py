@@ -383,8 +383,7 @@ class MethodContract:
                                     cap="below")}[case]
         runner = self.runner(clip=cut)
         h, w = self.frame_size(runner)
-        for i, frame in enumerate(buffers_of(r) for r in (runner.frame(CAMERAS[0]), runner.frame(CAMERAS[1],
-                                                                                               CAMERAS[0]))):
+        for i, (_, frame) in enumerate(self.sequence(runner, CAMERAS[:2])):
             where = f"{self.spec.name}, {case}, frame {i}"
             assert all(t.shape[:2] == (h, w) for t in frame.values()), (where, {k: t.shape for k, t in frame.items()})
             assert_finite_and_bounded({k: t for k, t in frame.items() if k != "cap"}, runner.shaded, where)
@@ -405,8 +404,7 @@ class MethodContract:
     def test_coloring_reaches_the_frame(self, coloring):
         runner = self.runner(coloring=coloring)
         h, w = self.frame_size(runner)
-        for i, frame in enumerate(buffers_of(r) for r in (runner.frame(CAMERAS[0]), runner.frame(CAMERAS[1],
-                                                                                               CAMERAS[0]))):
+        for i, (_, frame) in enumerate(self.sequence(runner, CAMERAS[:2])):
             where = f"{self.spec.name}, {coloring.by}, frame {i}"
             assert_finite_and_bounded(frame, runner.shaded, where)
             if runner.shaded:
@@ -423,8 +421,7 @@ class MethodContract:
         surfaces = Surfaces.of([(volume.normalized_iso(0.0), inner), (volume.normalized_iso(0.06), outer)])
         runner = self.runner(surfaces=surfaces)
         h, w = self.frame_size(runner)
-        for i, frame in enumerate(buffers_of(r) for r in (runner.frame(CAMERAS[0]), runner.frame(CAMERAS[1],
-                                                                                               CAMERAS[0]))):
+        for i, (_, frame) in enumerate(self.sequence(runner, CAMERAS[:2])):
             where = f"{self.spec.name}, two surfaces, frame {i}"
             assert_finite_and_bounded(frame, runner.shaded, where)
             if runner.shaded:

@@ -78,21 +78,23 @@ def test_surface_kernels_registers_capped(resources):
         assert several["stack"] <= MAX_SAMPLES_STACK, (overload, several)
 
 
-def test_clipped_kernels_stay_where_measured(resources):
-    for overload in CLIPPED_OVERLOADS:
+def assert_variant_within(resources, overloads: list[str], first_hit_registers: int, stack: int,
+                          samples_stack: int) -> None:
+    """A kernel variant's first hit, surface and several-rays kernels within their measured bounds."""
+    for overload in overloads:
         first = resources[f"first_hit_kernel{overload}"]
         one, several = resources[f"surface_kernel{overload}"], resources[f"surface_samples_kernel{overload}"]
-        assert first["registers"] <= MAX_CLIPPED_FIRST_HIT_REGISTERS and first["stack"] <= MAX_STACK, (overload, first)
-        assert one["registers"] <= kernels.SURFACE_MAX_REGISTERS and one["stack"] <= MAX_CLIPPED_STACK, (overload, one)
+        assert first["registers"] <= first_hit_registers and first["stack"] <= MAX_STACK, (overload, first)
+        assert one["registers"] <= kernels.SURFACE_MAX_REGISTERS and one["stack"] <= stack, (overload, one)
         assert several["registers"] <= kernels.SURFACE_MAX_REGISTERS, (overload, several)
-        assert several["stack"] <= MAX_CLIPPED_SAMPLES_STACK, (overload, several)
+        assert several["stack"] <= samples_stack, (overload, several)
+
+
+def test_clipped_kernels_stay_where_measured(resources):
+    assert_variant_within(resources, CLIPPED_OVERLOADS, MAX_CLIPPED_FIRST_HIT_REGISTERS, MAX_CLIPPED_STACK,
+                          MAX_CLIPPED_SAMPLES_STACK)
 
 
 def test_surface_set_kernels_stay_where_measured(resources):
-    for overload in SURFACES_OVERLOADS:
-        first = resources[f"first_hit_kernel{overload}"]
-        one, several = resources[f"surface_kernel{overload}"], resources[f"surface_samples_kernel{overload}"]
-        assert first["registers"] <= MAX_SURFACES_FIRST_HIT_REGISTERS and first["stack"] <= MAX_STACK, (overload, first)
-        assert one["registers"] <= kernels.SURFACE_MAX_REGISTERS and one["stack"] <= MAX_SURFACES_STACK, (overload, one)
-        assert several["registers"] <= kernels.SURFACE_MAX_REGISTERS, (overload, several)
-        assert several["stack"] <= MAX_SURFACES_SAMPLES_STACK, (overload, several)
+    assert_variant_within(resources, SURFACES_OVERLOADS, MAX_SURFACES_FIRST_HIT_REGISTERS, MAX_SURFACES_STACK,
+                          MAX_SURFACES_SAMPLES_STACK)
