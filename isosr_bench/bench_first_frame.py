@@ -7,7 +7,8 @@ probe of the ``auto`` mode costs the frames after it, and how long a shutdown ta
 
 Results: ``OUT/bench_first_frame_<device>.json``. One `isosr serve` process; per
 case (mode and window size, each a scene and size no earlier case probed): the seconds from
-connecting to the first frame (the first case also loads the volume), its method, then
+connecting to the first frame (the first case also loads the volume; the server's start, to
+ready, is the ``start`` row), its method, then
 ``--frames`` frames along an orbit: their latency (median, max: a frame that waited for a unit
 of the probe) and the method of the last (``auto``: the probe's choice once it has run). Then a
 shutdown: an ``auto`` session at a new size gets its first frame, the server is sent SIGTERM
@@ -68,6 +69,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     cases, frames = (SMOKE_CASES, 3) if args.smoke else (CASES, args.frames)
     rows = []
     with ServerProcess(args.device) as server:
+        rows.append({"study": "start", "ready_s": server.ready_s})
         for mode, size in cases:
             rows.append(first_look(server.url, volume, mode, size, frames))
             print(rows[-1], flush=True)

@@ -541,6 +541,8 @@ def docs_first_frame(folder: Path) -> list[str]:
     lines += _rows_table(["mode", "size", "first frame (s)", "its method", "later frames p50 (s)", "max (s)",
                           "last method"], rows)
     for r in record["rows"]:
+        if r.get("study") == "start":
+            lines += [f"The server was ready {_num(r['ready_s'])} s after its start.", ""]
         if r.get("study") == "shutdown":
             lines += [f"SIGTERM while the probe runs: the server exits in {_num(r['exit_s'])} s.", ""]
     return lines

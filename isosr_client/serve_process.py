@@ -49,6 +49,7 @@ class ServeProcess:
                         str(self.port), "--log-level", "warning", *args]
         self.env, self.startup_s = env, startup_s
         self.process: subprocess.Popen | None = None
+        self.ready_s: float | None = None  # seconds from the start to ready, once started
 
     def start(self) -> ServeProcess:
         """Start the server and wait until it is ready.
@@ -59,7 +60,8 @@ class ServeProcess:
         self.log = tempfile.TemporaryFile()  # a file, not a pipe: a full pipe nobody reads would stall the server
         self.process = subprocess.Popen(self.command, stdout=subprocess.DEVNULL, stderr=self.log,
                                         env=None if self.env is None else dict(self.env))
-        deadline = time.monotonic() + self.startup_s
+        started = time.monotonic()
+        deadline = started + self.startup_s
         while not self._ready():
             if self.process.poll() is not None:
                 self.log.seek(0)
@@ -70,6 +72,7 @@ class ServeProcess:
                 self.stop()
                 raise RuntimeError(f"the server was not ready within {self.startup_s:g} s")
             time.sleep(0.2)
+        self.ready_s = time.monotonic() - started
         return self
 
     def _ready(self) -> bool:

@@ -8,8 +8,10 @@
 #   bash scripts/measure_gpus.sh cluster 4 16,32,64   # four replicas on GPUs 0-3, then failover
 #   bash scripts/measure_gpus.sh one-gpu              # 1, 2 and 4 replicas sharing GPU 0, 16 sessions
 #   bash scripts/measure_gpus.sh datagen              # training data (GPU 3 unless GPU is set)
-#   bash scripts/measure_gpus.sh train SEED           # training on 1 and on 2 GPUs at once (GPUs 0-2)
+#   bash scripts/measure_gpus.sh train SEED           # training on 1 and on 2 GPUs at once (GPUs 0-2, or GPUS)
 #   COMPILE=default bash scripts/measure_gpus.sh train SEED   # the same with a compiled step
+#   CONCURRENT=0 GPUS=1,2 bash scripts/measure_gpus.sh train SEED   # 1 GPU, then 2, one after the other
+# GPUS (CUDA_VISIBLE_DEVICES) moves a cluster or training step to other GPUs, so that steps share a host.
 # LEASE names the machine's lease for every call in it (default: the first call's hour; rows are
 # compared within one lease). CASES (default: the bench's full:0,reconstruct:1,auto:0) narrows the cases of a cluster step.
 # A step took, on 4 H200s: about 45-70 s to start a server or Ray with its replicas (warm kernel
@@ -36,7 +38,7 @@ case "${1:?step: kit, cluster N SESSIONS, one-gpu, datagen or train SEED}" in
     cluster)
         n=${2:?replicas (0: the plain server)}
         failover=$([ "$n" -ge 2 ] && echo 32 || echo 0)
-        CUDA_VISIBLE_DEVICES=$(gpus_for "$n") cluster --gpus-per-replica 1 --replicas "$n" \
+        CUDA_VISIBLE_DEVICES=${GPUS:-$(gpus_for "$n")} cluster --gpus-per-replica 1 --replicas "$n" \
             --sessions "${3:-16,32,64}" --failover-sessions "$failover" ;;
     one-gpu) CUDA_VISIBLE_DEVICES=0 cluster --gpus-per-replica split --replicas 1,2,4 --sessions 16 --failover-sessions 0 ;;
     datagen)
@@ -52,8 +54,8 @@ print("datagen volumes:", config["volumes"])
 PY
         CUDA_VISIBLE_DEVICES=${GPU:-3} python3 -m isosr_cli.main datagen /tmp/datagen_scaling.json -o /tmp/data/scaling ;;
     train)
-        CUDA_VISIBLE_DEVICES=0,1,2 python3 -m isosr_bench.bench_train --device cuda \
-            --config configs/train_recon_history.json --data /tmp/data/scaling --gpus 1,2 --concurrent \
+        CUDA_VISIBLE_DEVICES=${GPUS:-0,1,2} python3 -m isosr_bench.bench_train --device cuda \
+            --config configs/train_recon_history.json --data /tmp/data/scaling --gpus 1,2 $([ "${CONCURRENT:-1}" = 1 ] && echo --concurrent) \
             --steps "${STEPS:-600}" --batch-size "${BATCH:-32}" --seeds "${2:?seed}" --runs /tmp/bt --out "$CL" \
             ${COMPILE:+--compile "$COMPILE"} ;;
     *) echo "unknown step $1" >&2; exit 2 ;;
