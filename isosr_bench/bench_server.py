@@ -119,6 +119,8 @@ class ServerProcess(ServeProcess):
 def case_row(mode: str, ao: int, result: dict) -> dict:
     """One table row: throughput, latency, server stages, bytes and what links carry."""
     row = {"mode": mode, "ao": ao, "sessions": result["sessions"], "errors": len(result["errors"])}
+    if result["errors"]:
+        row["first_error"] = str(result["errors"][0])[:300]
     if "frames" not in result:
         return row
     row["methods"], row["batch_mean"] = result["methods"], result["batch_mean"]

@@ -8,7 +8,8 @@
 Results: ``OUT/bench_train_<device>.json``. Each run trains ``--config`` from its
 start (its own run folder under ``--runs``; the same data, steps and global batch: each of N
 processes takes 1/N of every batch) and is read back from its ``last/`` checkpoint: the steps,
-their wall seconds without validation and saving (``Trainer.timing``), ms per step, training
+their wall seconds without validation and saving (``Trainer.timing``), ms per step after the
+first ``WARMUP_STEPS`` (``warmup_s``: their seconds, where a compiled step compiles), training
 sequences per second, and the validation scores at the end and of ``best/``. Against the 1-GPU
 run: ``speedup`` (its ms per step over this run's) and ``efficiency`` (speedup over N).
 ``--seeds``: each count once per seed (default: the config's seed); against the 1-GPU run of the
@@ -32,7 +33,7 @@ import torch
 
 from isosr_bench.common import bench_parser, kept_rows, print_table, write_result
 from isosr_net.configs import load_config
-from isosr_net.train import TrainConfig
+from isosr_net.train import WARMUP_STEPS, TrainConfig
 
 
 def train_command(config: str, out: Path, steps: int | None, batch_size: int | None, seed: int,
@@ -64,9 +65,11 @@ def run_row(out: Path, processes: int, gpus: list[int]) -> dict:
     last = json.loads((out / "last" / "config.json").read_text())
     best = json.loads((out / "best" / "config.json").read_text())
     timing, batch = last["timing"], last["training"]["batch_size"]
-    ms = 1000.0 * timing["train_s"] / timing["steps"]
+    warm, steady = timing.get("warmup_s"), timing["steps"] - WARMUP_STEPS
+    ms = 1000.0 * (timing["train_s"] - warm) / steady if warm is not None and steady > 0 else \
+        1000.0 * timing["train_s"] / timing["steps"]
     return {"processes": processes, "gpus": gpus, "steps": last["step"], "batch_size": batch,
-            "train_s": timing["train_s"], "ms_per_step": ms, "sequences_per_s": batch * 1000.0 / ms,
+            "train_s": timing["train_s"], "warmup_s": warm, "ms_per_step": ms, "sequences_per_s": batch * 1000.0 / ms,
             "val_color_psnr": last["validation"]["color_psnr"], "val_ao_psnr": last["validation"].get("ao_psnr"),
             "best_step": best["step"], "best_color_psnr": best["validation"]["color_psnr"]}
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
-from collections import Counter, defaultdict
+from collections import defaultdict
 from pathlib import Path
 
 from isosr_render.atomic import atomic_write
@@ -147,16 +147,16 @@ def plots(folder: Path, kind: str) -> list[Path]:
 
 def cluster_plot(plt, record: dict, path: Path) -> Path:
     """Frames/s against GPUs (one replica each) per mode and session count, beside N times one
-    replica's (dashed) and the plain server on one GPU (crosses): the lease with the most rows
-    (a comparison is drawn within one lease)."""
+    replica's (dashed) and the plain server on one GPU (crosses): per mode, the latest lease that
+    measured one replica in it (a comparison is drawn within one lease)."""
     cases = [r for r in record["rows"] if "fps" in r and "study" not in r]
-    lease = Counter(r.get("lease") for r in cases).most_common(1)[0][0]
-    cases = [r for r in cases if r.get("lease") == lease]
-    modes = sorted({(r["mode"], r["ao"]) for r in cases if r["replicas"] > 0})
+    modes = sorted({(r["mode"], r["ao"]) for r in cases if r["replicas"] == 1})
     colour = {n: f"C{k}" for k, n in enumerate(sorted({r["sessions"] for r in cases}))}
     fig, axes = plt.subplots(1, len(modes), figsize=(5 * len(modes), 3.8), squeeze=False)
     for ax, (mode, ao) in zip(axes[0], modes):
         rows = [r for r in cases if (r["mode"], r["ao"]) == (mode, ao)]
+        lease = max(r.get("lease") or "" for r in rows if r["replicas"] == 1)
+        rows = [r for r in rows if r.get("lease") == lease]
         for sessions in sorted({r["sessions"] for r in rows}):
             at = sorted((r["replicas"], r["fps"]) for r in rows if r["sessions"] == sessions and r["replicas"] > 0)
             if at:
@@ -169,8 +169,8 @@ def cluster_plot(plt, record: dict, path: Path) -> Path:
             if plain:
                 ax.scatter([1] * len(plain), plain, marker="x", color=colour[sessions],
                            label=f"plain server, {sessions}")
-        ax.set(xlabel="GPUs (one replica each)", ylabel="frames/s, all sessions", xticks=[1, 2, 4],
-               title=f"{mode}, AO {ao}: dashed N x one replica")
+        ax.set(xlabel="GPUs (one replica each)", ylabel="frames/s, all sessions", xticks=[1, 2, 4])
+        ax.set_title(f"{mode}, AO {ao}, lease {lease}\ndashed: N x one replica", fontsize=9)
         ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=100)

@@ -34,6 +34,7 @@ from isosr_net.reconnet import ReconNet
 # TrainConfig.compile's modes: "" (eager) and torch.compile's without CUDA graphs, which a step's
 # distributed backward and optimizer do not replay.
 COMPILE_MODES = ("", "default", "max-autotune-no-cudagraphs")
+WARMUP_STEPS = 3  # a run's first steps, timed apart: a compiled step compiles (and recompiles) there
 
 
 @dataclass
@@ -130,8 +131,9 @@ class Trainer:
         if config.batch_size < self.world:
             raise ValueError(f"batch_size {config.batch_size} gives some of the {self.world} processes no share of a "
                              f"batch; give at least {self.world}")
-        # This process's training: its steps and their wall seconds (validation and saving apart).
-        self.timing = {"processes": self.world, "steps": 0, "train_s": 0.0}
+        # This process's training: its steps and their wall seconds (validation and saving apart), and
+        # the seconds of its first WARMUP_STEPS (a compiled step compiles there).
+        self.timing = {"processes": self.world, "steps": 0, "train_s": 0.0, "warmup_s": None}
         torch.manual_seed(config.seed)
         self.out = Path(config.out)
         self.net = build_model(config.model).to(self.device)
@@ -327,6 +329,8 @@ class Trainer:
             for batch in self._batches(self.train_set, shuffle=True, epoch=epoch, skip=self.step % steps_per_epoch):
                 logs = self.train_step(batch)
                 self.step += 1
+                if self.step - first_step == WARMUP_STEPS:
+                    self.timing["warmup_s"] = self.timing["train_s"] + time.monotonic() - started
                 bar.update(1)
                 bar.set_postfix(loss=f"{logs['total']:.4f}")
                 if writer:

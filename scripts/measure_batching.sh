@@ -9,7 +9,7 @@
 # On the lab's lent machines .ab/ (git-ignored, a few MB) travels as a carried path beside the kit
 # (../shared/gpu/README.md), and py-spy as .venv/bin/py-spy copied onto PATH.
 set -euo pipefail
-OUT=${OUT:-/tmp/ab_out}
+OUT=$(realpath -m "${OUT:-/tmp/ab_out}")
 VOLUME=${VOLUME:-bonsai}
 case "${1:?stage or run}" in
     stage)
@@ -21,9 +21,10 @@ case "${1:?stage or run}" in
         for round in $(seq "${2:-2}"); do
             for tree in base head; do
                 root=$([ "$tree" = head ] && pwd || echo "$PWD/.ab/base")
-                PYTHONPATH="$root:${PYTHONPATH:-}" python3 -m isosr_bench.bench_cluster --device cuda \
+                # from the tree's own folder: `python -m` puts the working directory first on sys.path
+                (cd "$root" && PYTHONPATH="$root:${PYTHONPATH:-}" python3 -m isosr_bench.bench_cluster --device cuda \
                     --volume "$VOLUME" --replicas 0 --sessions 16,32 --cases reconstruct:1,full:0 --seconds 5 \
-                    --failover-sessions 0 --out "$OUT/ab_${tree}_${round}"
+                    --failover-sessions 0 --out "$OUT/ab_${tree}_${round}")
             done
         done
         python3 scripts/profile_server.py --device cuda --volume "$VOLUME" --mode reconstruct --ao 1 --sessions 16 \

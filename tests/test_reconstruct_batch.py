@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from conftest import DEVICE
 
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
 from isosr_render import Renderer, RenderRequest, parse_procedural
@@ -19,7 +20,7 @@ STREAMS = 3
 
 @pytest.fixture(scope="module")
 def renderer() -> Renderer:
-    return Renderer(parse_procedural("proc:cloud@32"), "cpu")
+    return Renderer(parse_procedural("proc:cloud@32"), DEVICE)
 
 
 def rendered(renderer: Renderer, stream: int, t: int, cut: bool = False):
@@ -32,7 +33,7 @@ def rendered(renderer: Renderer, stream: int, t: int, cut: bool = False):
 
 
 def twins(n: int) -> list[Reconstructor]:
-    template = Reconstructor.served(DEFAULT_RECON_MODEL, "cpu", "fp32")
+    template = Reconstructor.served(DEFAULT_RECON_MODEL, DEVICE, "fp32")
     return [template.own() for _ in range(n)]
 
 
@@ -83,7 +84,7 @@ def test_the_runners_batch_renders_each_stream_then_runs_the_network_once(render
     from isosr_net.methods import FrameMethod, Networks, make_runner
     from isosr_net.methods import reconstruct as recon_module
 
-    monkeypatch.setattr(recon_module, "BATCHED_NETWORK_DEVICES", ("cpu",))
+    monkeypatch.setattr(recon_module, "BATCHED_NETWORK_DEVICES", (DEVICE,))
     calls = []
     batch = Reconstructor.reconstruct_batch
     monkeypatch.setattr(Reconstructor, "reconstruct_batch",

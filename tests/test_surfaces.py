@@ -175,7 +175,7 @@ def test_opacity_zero_and_one(renderer):
     frame = renderer.render(OUTSIDE, _request(_surfaces(renderer, (OUTER, RED, 1.0), (INNER, BLUE, 0.5)),
                                               ("mask", "color")))
     assert float(frame.behind.mask.max()) == 0.0
-    np.testing.assert_allclose(frame.color.numpy(), opaque["color"], atol=1e-6)
+    np.testing.assert_allclose(frame.color.cpu().numpy(), opaque["color"], atol=1e-6)
 
 
 def test_translucent_several_rays_per_pixel(renderer):
@@ -185,7 +185,7 @@ def test_translucent_several_rays_per_pixel(renderer):
     _finite(frame.behind.to_numpy())
     inner_near, _, _, disc_in = _roots(OUTSIDE, INNER)
     clear = np.abs(disc_in) > 0.02
-    np.testing.assert_array_equal(frame.behind.surface.numpy()[clear & ~np.isnan(inner_near)], 1)
+    np.testing.assert_array_equal(frame.behind.surface.cpu().numpy()[clear & ~np.isnan(inner_near)], 1)
 
 
 def test_bad_opacity_refused_naming_the_field():
@@ -204,7 +204,7 @@ def test_rows_of_a_frame(renderer):
     plan.tensors["surface"].fill_(float("nan"))
     part = plan.render(OUTSIDE, request, rows=(10, 20))
     for name in ("surface", "color"):
-        np.testing.assert_allclose(getattr(part, name).numpy()[10:20], whole[name][10:20], atol=1e-6, err_msg=name)
+        np.testing.assert_allclose(getattr(part, name).cpu().numpy()[10:20], whole[name][10:20], atol=1e-6, err_msg=name)
 
 
 def test_a_translucent_shell_occludes_by_its_opacity(renderer):
@@ -213,7 +213,7 @@ def test_a_translucent_shell_occludes_by_its_opacity(renderer):
     def inner_ao(opacity):
         surfaces = _surfaces(renderer, (OUTER, RED, opacity), (INNER, BLUE))
         frame = renderer.render(OUTSIDE, _request(surfaces, ("mask", "surface", "ao"), ao_samples=32, ao_radius=0.15))
-        return frame.behind.ao.numpy(), frame.behind.surface.numpy() == 1
+        return frame.behind.ao.cpu().numpy(), frame.behind.surface.cpu().numpy() == 1
 
     clear, occluded, half = inner_ao(0.0), inner_ao(0.99), inner_ao(0.5)
     on_inner = clear[1] & occluded[1] & half[1]

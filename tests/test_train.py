@@ -67,6 +67,7 @@ def test_a_tiny_run_writes_checkpoints_logs_and_metrics(run3, data):
     last = json.loads((out / "last" / "config.json").read_text())
     assert last["step"] == 3 and last["validation"] == metrics
     assert last["timing"]["processes"] == 1 and last["timing"]["steps"] == 3 and last["timing"]["train_s"] > 0
+    assert 0 < last["timing"]["warmup_s"] <= last["timing"]["train_s"]  # the first WARMUP_STEPS (3), timed apart
     assert last["training"]["data"] == str(data) and last["training"]["steps"] == 3
     assert last["model"] == {"type": "SRNet", "upscale": 2, "channels": 8, "residual_blocks": 1,
                              "first_frame": "zeros", "tail": "full"}
