@@ -66,9 +66,14 @@ CPU_UPSCALE_TILE = 240
 WARM_RECON_SIZES = ((720, 1280), (1080, 1920))
 # Threads that encode video frames, off the device thread: the sessions' encoders side by side (a session
 # encodes one frame at a time; each encoder has threads of its own, isosr_server.video.video_threads).
-# Images and buffers keep one thread: on 2 cores a second one cost a fast session beside a slow one
-# 35% of its frames/s instead of 14% (tests/test_client.py), competing with the device thread.
 VIDEO_ENCODER_THREADS = max(1, (os.cpu_count() or 1) // 2)
+# Threads that encode images and buffers. Up to 4 cores, one: on 2 cores a second one cost a fast session
+# beside a slow one 35% of its frames/s instead of 14% (tests/test_client.py), competing with the device
+# thread. Beyond, a quarter of the cores (up to 8): with one, a plain server's 1080p JPEG frames stopped at
+# 380-460 frames/s for 16-64 sessions on an H200 with the GPU 28-31% busy, one thread's rate at about 2.3 ms
+# a frame (benchmarks/results/bench_cluster_*_1080p_cuda.json; more threads not yet measured there). A
+# session's frames still go out in order: isosr_server.sessions._send_frame encodes each after the one before.
+IMAGE_ENCODER_THREADS = 1 if (os.cpu_count() or 1) <= 4 else min(8, (os.cpu_count() or 1) // 4)
 # A unit of the auto mode's background probe waits for a moment without view frames in the making,
 # at most this long: frames first, and the probe still ends under a steady load.
 PROBE_WAIT_S = 0.5
@@ -119,7 +124,7 @@ class Engine:
         self.slice_ms = config.slice_ms or (8.0 if self.device.type == "cuda" else 100.0)
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="isosr-device")
         # Image, video and buffers encoding: off the device thread, which goes on with the next frame meanwhile.
-        self._encoder = ThreadPoolExecutor(max_workers=1, thread_name_prefix="isosr-encoder")
+        self._encoder = ThreadPoolExecutor(max_workers=IMAGE_ENCODER_THREADS, thread_name_prefix="isosr-encoder")
         self._video = ThreadPoolExecutor(max_workers=VIDEO_ENCODER_THREADS, thread_name_prefix="isosr-video")
         self._renderers: OrderedDict[str, Renderer] = OrderedDict()
         self.networks = Networks(serving_network)
