@@ -138,8 +138,8 @@ class Engine:
         self._idle = asyncio.Event()  # set while none is
         self._idle.set()
         self._thread: threading.Thread | None = None
-        # View frames asked for and not yet made, and whether a batch job is queued to make them.
-        self._pending: list[tuple[SessionFrames, Renderer, FrameJob, asyncio.Future]] = []
+        # View frames asked for and not yet made (with their deadlines), and whether a batch job is queued to make them.
+        self._pending: list[tuple[SessionFrames, Renderer, FrameJob, asyncio.Future, float]] = []
         self._batch_queued = False
         self._pending_lock = threading.Lock()
 
@@ -312,19 +312,21 @@ class Engine:
         return self._renderers[name]
 
     async def view_frame(self, frames: SessionFrames, renderer: Renderer, job: FrameJob,
-                         code: Callable[[torch.Tensor], CodedImage],
-                         video_frame: bool = False) -> Callable[[], Awaitable[EncodedFrame]]:
+                         code: Callable[[torch.Tensor], CodedImage], video_frame: bool = False,
+                         deadline: float | None = None) -> Callable[[], Awaitable[EncodedFrame]]:
         """One view frame, made in slices of about ``slice_ms`` (:meth:`SessionFrames.steps`), each
         its own job on the device thread, so that other sessions' frames interleave with a heavy one;
         its codes made there too (:meth:`codes_sync`). Returns once the device is done with it: what
         it returns encodes it on an encoder thread (:func:`pack_codes`; ``code`` codes a shaded
         frame's colors; ``video_frame``: on a video encoder thread), while the device thread goes
-        on with the next frame, this session's included (:func:`isosr_server.sessions.run_frames`)."""
+        on with the next frame, this session's included (:func:`isosr_server.sessions.run_frames`).
+        ``deadline`` (``time.monotonic()``; default: now) orders the batches (:meth:`_batch_sync`)."""
         start = time.perf_counter()
         self._framing += 1
         self._idle.clear()
         try:
-            made, codes, batch = await self._batched(frames, renderer, job)
+            due = time.monotonic() if deadline is None else deadline
+            made, codes, batch = await self._batched(frames, renderer, job, due)
         finally:
             self._framing -= 1
             if not self._framing:
@@ -342,8 +344,8 @@ class Engine:
                                 job.settings.t, batch)
         return encode
 
-    async def _batched(self, frames: SessionFrames, renderer: Renderer,
-                       job: FrameJob) -> tuple[ViewFrame, object, int]:
+    async def _batched(self, frames: SessionFrames, renderer: Renderer, job: FrameJob,
+                       deadline: float) -> tuple[ViewFrame, object, int]:
         """A view frame, its codes and the frames made together with it (itself included), made in
         the next batch (:meth:`_batch_sync`): the frames of every session that asked meanwhile, one
         device-thread job for them all. A frame that runs in slices comes back as its steps and is
@@ -351,7 +353,7 @@ class Engine:
         loop = asyncio.get_running_loop()
         future = loop.create_future()
         with self._pending_lock:
-            self._pending.append((frames, renderer, job, future))
+            self._pending.append((frames, renderer, job, future, deadline))
             start_batch, self._batch_queued = not self._batch_queued, True
         if start_batch:
             loop.run_in_executor(self._executor, self._batch_sync, loop)
@@ -364,13 +366,15 @@ class Engine:
     def _batch_sync(self, loop: asyncio.AbstractEventLoop) -> None:
         """Make the frames asked for since the last batch (device thread): each planned
         (:meth:`SessionFrames.plan`); those of one slice grouped by their runners' ``batch_key`` and
-        made by its ``make_batch``, then coded; those that run in slices handed back as their
-        steps. Each session's result or error goes to its own future only."""
+        made by its ``make_batch``, the group with the earliest deadline first, then coded; those
+        that run in slices handed back as their steps. Each session's result or error goes to its
+        own future only. A batch takes what is pending when the thread gets to it and never waits
+        for more: no frame is held to fill one."""
         self._on_thread()
         with self._pending_lock:
             pending, self._pending, self._batch_queued = self._pending, [], False
         groups: dict[tuple, list] = {}
-        for frames, renderer, job, future in pending:
+        for frames, renderer, job, future, deadline in sorted(pending, key=lambda p: p[4]):
             try:
                 plan = frames.plan(renderer, job)
                 if plan.runner.one_slice(self.slice_ms):
@@ -379,7 +383,7 @@ class Engine:
                     _resolve(loop, future, frames.planned_steps(plan, self.slice_ms))
             except Exception as e:  # noqa: BLE001 - this session's error, not its batch mates'
                 _resolve(loop, future, error=e)
-        for group in groups.values():
+        for group in groups.values():  # in the order of their earliest deadlines (dicts keep insertion order)
             try:
                 results = type(group[0][1].runner).make_batch([(p.runner, p.job.camera, p.prev_camera)
                                                                for _, p, _ in group])

@@ -65,17 +65,20 @@ class Sessions:
         return FrameJob(self.settings[k], orbit(20.0 + 25.0 * k + 3.0 * t, 25.0, 1.8), self.iso, P.FocusMsg(),
                         t, False, len(self.settings))
 
-    async def one(self, k: int, t: int) -> bytes | P.ViewBuffers:
-        encode = await self.engine.view_frame(self.frames[k], self.renderer, self.job(k, t), png)
+    async def one(self, k: int, t: int, deadline: float | None = None) -> bytes | P.ViewBuffers:
+        encode = await self.engine.view_frame(self.frames[k], self.renderer, self.job(k, t), png, deadline=deadline)
         made = await encode()
         return made.image.data if made.image is not None else made.buffers
 
-    async def together(self, t: int, ks: list[int], cancel: int | None = None) -> list:
+    async def together(self, t: int, ks: list[int], cancel: int | None = None,
+                       deadlines: list[float] | None = None) -> list:
         """Frame ``t`` of the sessions ``ks``, asked for while the device thread is busy; ``cancel``:
-        a session that leaves while its frame waits. Each result, or the exception it raised."""
+        a session that leaves while its frame waits; ``deadlines``: each one's. Each result, or the
+        exception it raised."""
         release = threading.Event()
         busy = asyncio.ensure_future(self.engine.call(release.wait))
-        tasks = [asyncio.ensure_future(self.one(k, t)) for k in ks]
+        tasks = [asyncio.ensure_future(self.one(k, t, None if deadlines is None else deadlines[i]))
+                 for i, k in enumerate(ks)]
         await asyncio.sleep(0.05)  # every session's frame is asked for
         if cancel is not None:
             tasks[ks.index(cancel)].cancel()
@@ -171,6 +174,20 @@ def test_mixed_sizes_form_their_own_batches(engine, batches):
     batches.clear()
     assert together(engine, settings) == expected
     assert sorted(batches) == [1, 1, 2, 2], "per frame: the two sessions of one size together, the other alone"
+
+
+def test_the_batch_with_the_earliest_deadline_is_made_first(engine, batches):
+    """Asked for in one order, made in the order of their deadlines: the lone 2x-size frame, due first,
+    before the pair of the other size; with the deadlines the other way round, after it."""
+    settings = [view_settings(engine, "full"), view_settings(engine, "full", 2 * W, 2 * H),
+                view_settings(engine, "full")]
+    s = Sessions(engine, settings)
+    for k in range(len(settings)):  # each session's first frame (alone, in slices)
+        asyncio.run(s.one(k, 0))
+    for t, (deadlines, order) in enumerate((([3.0, 1.0, 2.0], [1, 2]), ([1.0, 3.0, 2.0], [2, 1])), start=1):
+        batches.clear()
+        asyncio.run(s.together(t, [0, 1, 2], deadlines=deadlines))
+        assert batches == order
 
 
 def test_a_nan_in_one_session_s_buffers_fails_that_session_only(engine, monkeypatch):

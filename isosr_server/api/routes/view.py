@@ -7,6 +7,7 @@ import asyncio
 import logging
 import os
 import secrets
+import time
 from collections.abc import Awaitable, Callable
 from dataclasses import replace
 
@@ -54,7 +55,8 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
             frame = replace(shown.job(job.frame), field=shown.field)
             return await engine.view_frame(frames, shown.renderer, frame,
                                            lambda rgb: coder.code(rgb, plan),
-                                           plan.encoding in VIDEO_ENCODINGS and not plan.refined)
+                                           plan.encoding in VIDEO_ENCODINGS and not plan.refined,
+                                           deadline=time.monotonic() + session.interval)
 
         async def send(msg: Message) -> None:
             try:
