@@ -144,7 +144,8 @@ class Scan:
     def bricks(self) -> tuple[np.ndarray, np.ndarray]:
         """Per brick, the min and max of its ``(BRICK + 1)^3`` voxels (clamped at the volume's end).
 
-        Non-finite values count as stored by :func:`scan`: NaN and -Inf as -Inf, +Inf as +Inf.
+        Non-finite values count as stored by :func:`scan`: -Inf and +Inf as themselves, NaN as the one
+        of them that rescales to the smallest original value (as ``Volume`` replaces NaN).
 
         Shape:
             returns: two arrays (ceil((nx - 1) / BRICK), ceil((ny - 1) / BRICK), ceil((nz - 1) / BRICK)).
@@ -183,7 +184,8 @@ def _scan_box(source: VoxelSource, box, stride: int, counted: bool, keep: bool) 
         nan = np.isnan(values)
         nonfinite = (int(nan.sum()), int(np.isposinf(values).sum()), int(np.isneginf(values).sum()))
         finite = (values[ok].min(), values[ok].max()) if ok.any() else None
-        values = np.where(nan, values.dtype.type(-np.inf), values)
+        empty = -np.inf if source.rescale[0] > 0 else np.inf  # the end that becomes the smallest original value
+        values = np.where(nan, values.dtype.type(empty), values)
         parts = _parts(np.pad(values, pad, mode="edge"))
     sub = values[tuple(slice((-s.start) % stride, None, stride) for s in box)]
     return _BoxResult(box, finite, nonfinite, parts, counts, sub, device)
