@@ -38,6 +38,7 @@ from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES
 from isosr_render.flow_fill import FILL_METHODS, fill_flow
 from isosr_render.shading import ShadingParams, composite, shade
 from isosr_render.surfaces import MAX_SURFACES, Surfaces
+from isosr_render.scan import BRICK
 from isosr_render.volume import Volume, native_integer
 from isosr_render.voxels import VoxelSource, boxes, map_bounded
 
@@ -269,6 +270,15 @@ def filtered_layout(dense: wp.array, minmax: wp.array, unit: tuple[float, float]
     return layout
 
 
+def write_box(dense: wp.array, box: tuple[slice, slice, slice], values: np.ndarray) -> None:
+    """Device values of a box into dense voxels: in place on the CPU (host memory already),
+    else uploaded contiguous and copied into the box."""
+    if dense.device.is_cpu:
+        dense.numpy()[box] = values
+    else:
+        wp.copy(dense[box], wp.array(np.ascontiguousarray(values), device=dense.device))
+
+
 class Renderer:
     """Renders isosurfaces of one volume on one device.
 
@@ -310,8 +320,12 @@ class Renderer:
                                  f"of {volume.storage.name}")
             self._dense = dense
             bricks = tuple(max(1, -(-(n - 1) // brick_size)) for n in volume.shape)
-            self.minmax = wp.empty(bricks, dtype=wp.vec2, device=self.device)
-            wp.launch(kernels.minmax_kernel, dim=bricks, inputs=[dense, self._base, self.minmax], device=self.device)
+            if brick_size == BRICK:  # the volume's bricks are what the kernel computes (normalized, overlap included)
+                self.minmax = wp.array(volume.bricks, dtype=wp.vec2, device=self.device)
+            else:
+                self.minmax = wp.empty(bricks, dtype=wp.vec2, device=self.device)
+                wp.launch(kernels.minmax_kernel, dim=bricks, inputs=[dense, self._base, self.minmax],
+                          device=self.device)
             self.layout = self._dense_layout(dense, filtered)
             resident = volume.device_bytes * (2 if self.filtered else 1)
             total = int(np.prod(bricks))
@@ -395,7 +409,7 @@ class Renderer:
             dense = wp.empty(tuple(source.shape), dtype=kind, device=target)
 
             def sink(box, values):
-                wp.copy(dense[box], wp.array(np.ascontiguousarray(values), device=target))
+                write_box(dense, box, values)
 
         return cls(Volume.from_source(source, sink=sink), device, dense=dense, **kwargs)
 
@@ -408,7 +422,7 @@ class Renderer:
             return box, volume.device_box(np.asarray(volume.source.read(*box)))
 
         for box, values in map_bounded(read, boxes(volume.source), voxels.READ_THREADS):
-            wp.copy(dense[box], wp.array(np.ascontiguousarray(values), device=self.device))
+            write_box(dense, box, values)
         return dense
 
     @functools.cached_property

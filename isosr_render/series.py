@@ -2,7 +2,7 @@
 
     series = open_series("runs/run_*.nii.gz")   # run_2 before run_10
     volume = series.step(3)                     # read when asked, then kept (least recently used dropped)
-    series.prefetch(3)                          # steps 4 and 5 read and scanned on a background thread
+    series.prefetch(3)                          # steps 4, 5 and 6 read and scanned on background threads
 
 A series is any of:
 
@@ -18,7 +18,7 @@ differs is refused naming it and how it differs: a file series checks its files'
 opened, and every step is checked again when read. A step is a :class:`Volume` of its own (its
 own value range and bricks): a viewer that keeps an iso in data units converts it per step
 (:func:`step_iso`). Reading and scanning (min-max bricks) happen on the caller's thread or on
-the prefetch thread, never on a device: uploads stay with the renderer's owner.
+the prefetch threads, never on a device: uploads stay with the renderer's owner.
 """
 
 from __future__ import annotations
@@ -45,8 +45,10 @@ __all__ = ["SERIES_CACHE_BYTES", "VolumeSeries", "is_series", "natural_key", "op
 
 # Bytes of steps' voxels (as stored) a series keeps read; the least recently used step goes first.
 SERIES_CACHE_BYTES = 2 << 30
-# Steps read ahead of the one shown, on the prefetch thread.
-PREFETCH_STEPS = 2
+# Steps read ahead of the one shown, and read at once at most, on the prefetch threads; both
+# also bounded by the steps the cache holds besides the shown one.
+PREFETCH_STEPS = 3
+PREFETCH_WORKERS = 3
 GLOB_CHARS = re.compile(r"[*?\[]")
 HDF5_SPEC = re.compile(r"^(?P<file>.+\.(?:h5|hdf5|he5))#(?P<dataset>/.*)$", re.IGNORECASE)
 
@@ -174,7 +176,7 @@ class VolumeSeries:
 
     def step(self, i: int) -> Volume:
         """Step ``i`` as a volume: from the cache, else read and scanned now (or awaited where the
-        prefetch thread reads it).
+        prefetch reads it).
 
         Raises:
             IndexError: ``i`` outside ``[0, count)``.
@@ -216,15 +218,26 @@ class VolumeSeries:
         return Volume.from_source(source)
 
     def prefetch(self, shown: int, ahead: int = PREFETCH_STEPS) -> None:
-        """Read the ``ahead`` steps after ``shown`` (wrapping around, as playback loops) on a background
-        thread, those neither kept nor being read; their errors wait for :meth:`step` to raise them."""
-        wanted = [(shown + k) % self.count for k in range(1, min(ahead, self.count - 1) + 1)]
+        """Read the ``ahead`` steps after ``shown`` (wrapping around, as playback loops) on background
+        threads, those neither kept nor being read; their errors wait for :meth:`step` to raise them.
+
+        At most as many steps as the cache holds besides one (:meth:`_room`) are read ahead, on up
+        to ``PREFETCH_WORKERS`` threads (so that a slow read overlaps the next ones).
+        """
         with self._lock:
+            room = self._room()
+            wanted = [(shown + k) % self.count for k in range(1, min(ahead, room, self.count - 1) + 1)]
             wanted = [i for i in wanted if i not in self._cache and i not in self._loading]
             if wanted and self._prefetcher is None:
-                self._prefetcher = ThreadPoolExecutor(1, thread_name_prefix="isosr-prefetch")
+                self._prefetcher = ThreadPoolExecutor(min(PREFETCH_WORKERS, room),
+                                                      thread_name_prefix="isosr-prefetch")
         for i in wanted:
             self._prefetcher.submit(self._quiet_step, i)
+
+    def _room(self) -> int:
+        """Steps the cache holds besides the newest, at least 1 (1 before any step is read; call under the lock)."""
+        held = next(iter(self._cache.values()), None)
+        return 1 if held is None else max(1, self.max_bytes // _bytes(held) - 1)
 
     def _quiet_step(self, i: int) -> None:
         try:
@@ -233,7 +246,7 @@ class VolumeSeries:
             pass  # raised again when the step is asked for
 
     def close(self) -> None:
-        """Stop the prefetch thread (queued reads dropped)."""
+        """Stop the prefetch threads (queued reads dropped)."""
         if self._prefetcher is not None:
             self._prefetcher.shutdown(wait=True, cancel_futures=True)
 

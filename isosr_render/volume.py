@@ -113,8 +113,9 @@ class Volume:
         volume = cls(source, tuple(float(s) for s in source.spacing), (lo, hi), source.name, storage,
                      (d0, float(a)), np.empty((0, 0, 0, 2), np.float32), 0.0, found.counts)
         # Both through the device values, as the kernels see them (bricks must bound the samples).
-        bricks = np.stack([volume.normalize(volume.device_box(m)) for m in found.bricks()], axis=-1)
-        object.__setattr__(volume, "bricks", np.sort(bricks, axis=-1))  # a negative slope swaps min and max
+        low, high = (volume.normalize(volume.device_box(m)) for m in found.bricks())
+        # A negative slope swaps min and max.
+        object.__setattr__(volume, "bricks", np.stack([np.minimum(low, high), np.maximum(low, high)], axis=-1))
         object.__setattr__(volume, "otsu", volume._otsu(found))
         return volume
 
@@ -142,7 +143,9 @@ class Volume:
             if not np.isfinite(np.float32(hi) - np.float32(lo)):  # e.g. -3e38 .. 3e38 overflows float32
                 values = values.astype(np.float64)
         span = hi - lo
-        data = ((values - lo) * (1.0 / span if span > 0 else 0.0)).astype(np.float32)
+        data = values - lo  # one temporary, scaled in place (in the type of values, as before)
+        data *= 1.0 / span if span > 0 else 0.0
+        data = data.astype(np.float32, copy=False)
         return np.clip(data, 0.0, 1.0, out=data)
 
     def normalize(self, device: np.ndarray) -> np.ndarray:

@@ -12,6 +12,8 @@ may contract into fused multiply-adds differently (:func:`assert_same_render`).
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 import pytest
 from conftest import DEVICE
@@ -109,6 +111,32 @@ def test_bricks_bound_their_voxels_with_overlap_and_coarsen():
         for i, j, k in np.ndindex(bricks.shape[:3]):
             block = data[i * b: i * b + b + 1, j * b: j * b + b + 1, k * b: k * b + b + 1]
             assert tuple(bricks[i, j, k]) == (block.min(), block.max())
+
+
+@pytest.mark.parametrize("dtype", ["float32", "int16"])
+def test_bricks_range_and_counts_match_a_naive_reference_across_boxes(monkeypatch, dtype):
+    monkeypatch.setattr(voxels, "BOX_BYTES", 4096)  # many boxes, cut at odd chunks
+    rng = np.random.default_rng(2)
+    stored = rng.integers(-32768, 32768, (29, 21, 19)).astype(dtype)
+    stored[0, 0, 0], stored[28, 20, 18] = -32768, 32767  # the type's ends, for the counts
+    if dtype == "float32":
+        stored[3, 4, 5] = stored[9, 9, 9] = np.nan  # the minimum
+        stored[20, 1, 2], stored[1, 20, 2] = np.inf, -np.inf
+    slope, intercept = -0.25, 10.0
+    with pytest.warns(UserWarning) if dtype == "float32" else contextlib.nullcontext():
+        volume = Volume.from_source(ArraySource(stored, rescale=(slope, intercept), chunks=(5, 7, 9)))
+    original = stored.astype(np.float64) * slope + intercept
+    finite = original[np.isfinite(original)]
+    lo, hi = finite.min(), finite.max()
+    original = np.nan_to_num(original, nan=lo, posinf=hi, neginf=lo)
+    assert volume.value_range == (lo, hi)
+    normalized = (original - lo) / (hi - lo)
+    for i, j, k in np.ndindex(volume.bricks.shape[:3]):
+        block = normalized[i * BRICK: i * BRICK + BRICK + 1, j * BRICK: j * BRICK + BRICK + 1,
+                           k * BRICK: k * BRICK + BRICK + 1]
+        np.testing.assert_allclose(volume.bricks[i, j, k], (block.min(), block.max()), rtol=0, atol=1e-6)
+    if dtype == "int16":
+        np.testing.assert_array_equal(volume.counts, np.bincount(stored.ravel().astype(np.int64) + 32768, minlength=1 << 16))
 
 
 def test_loading_reads_box_by_box(monkeypatch):
