@@ -36,9 +36,9 @@ from isosr_render.clip import MAX_PLANES, Clip
 from isosr_render.color_field import ColorField
 from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES
 from isosr_render.flow_fill import FILL_METHODS, fill_flow
+from isosr_render.scan import BRICK
 from isosr_render.shading import ShadingParams, composite, shade
 from isosr_render.surfaces import MAX_SURFACES, Surfaces
-from isosr_render.scan import BRICK
 from isosr_render.volume import Volume, native_integer
 from isosr_render.voxels import VoxelSource, boxes, map_bounded
 
