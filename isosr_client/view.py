@@ -424,7 +424,8 @@ class ViewSession:
         """What lies under pixel ``(x, y)`` of the current view (x right, y down, pixel centres at
         +0.5): whether it hits the isosurface and where (world, voxel, physical ``position``) with
         the volume's ``value`` there; the distance between two picks is that of their positions.
-        Frames arriving meanwhile are taken as usual.
+        With several surfaces set, ``surface`` is the index of the one hit. Frames arriving
+        meanwhile are taken as usual.
 
         Raises:
             TimeoutError: no answer within ``timeout`` seconds (default: the session's).

@@ -7,7 +7,9 @@ units, with the volume's value at it, and the distance between two such points.
 A pick casts the one image row through the pixel (the view's own rays, one per pixel, no AO),
 so it finds the surface the frame shows at that pixel; with the view's clip
 (:mod:`isosr_render.clip`) too: on the removed side it finds what lies behind, and with caps it
-may land on a cut face (``cap``), where the value is the volume's there rather than the iso.
+may land on a cut face (``cap``), where the value is the volume's there rather than the iso. With the view's
+several surfaces (:mod:`isosr_render.surfaces`) it finds the nearest of them and says which (``surface``): the
+front layer, so a translucent surface is picked, not what shows through it.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from isosr_render.camera import Camera
 from isosr_render.clip import Clip
 from isosr_render.renderer import Renderer, RenderRequest
 from isosr_render.shapes import check_int
+from isosr_render.surfaces import Surfaces
 
 
 @dataclass(frozen=True)
@@ -36,6 +39,9 @@ class Pick:
         value: the volume's value there (trilinear), in its data units.
         depth: the point's view-space depth, world units.
         cap: whether the point lies on a face that the clip cut (capped), not on the isosurface.
+        surface: with several surfaces, the index in their list of the one hit; None without them, on a miss
+            and on a cut face (shown grey by its value, not as a surface; the renderer's index there is only
+            the iso nearest that value).
     """
 
     hit: bool
@@ -45,37 +51,43 @@ class Pick:
     value: float | None = None
     depth: float | None = None
     cap: bool = False
+    surface: int | None = None
 
 
 def pick(renderer: Renderer, camera: Camera, iso: float, width: int, height: int, x: float, y: float,
-         clip: Clip = Clip()) -> Pick:
+         clip: Clip = Clip(), surfaces: Surfaces | None = None) -> Pick:
     """The isosurface point under pixel coordinate ``(x, y)`` of a ``width`` x ``height`` view.
 
     Args:
-        iso: normalized iso-value (as the view renders it).
+        iso: normalized iso-value (as the view renders it; with ``surfaces``, their first's).
         x, y: pixel coordinates, x right and y down, in ``[0, width)`` and ``[0, height)``.
         clip: the view's clip planes, crop box and caps: the pick finds what the clipped view shows.
+        surfaces: the view's several isosurfaces (None: the one ``iso``).
 
     Raises:
-        ValueError: a size that is not a positive integer, or a point outside the image.
+        ValueError: a size that is not a positive integer, a point outside the image, or what
+            :class:`RenderRequest` refuses (``surfaces`` not of ``iso``).
     """
     check_int(width, "width", 1, where="the picked view")
     check_int(height, "height", 1, where="the picked view")
     if not (math.isfinite(x) and math.isfinite(y) and 0 <= x < width and 0 <= y < height):
         raise ValueError(f"pick: ({x!r}, {y!r}) lies outside the {width}x{height} image")
     row, column = int(y), int(x)
-    outputs = ("mask", "position", "depth") + (("cap",) if clip.capped else ())
-    frame = renderer.render(camera, RenderRequest(width, height, iso, outputs, clip=clip), rows=(row, row + 1))
+    outputs = (("mask", "position", "depth") + (("cap",) if clip.capped else ())
+               + (("surface",) if surfaces is not None else ()))
+    request = RenderRequest(width, height, iso, outputs, clip=clip, surfaces=surfaces)
+    frame = renderer.render(camera, request, rows=(row, row + 1))  # its first layer: the front surface
     if float(frame.mask[row, column]) < 0.5:
         return Pick(False)
     on_cap = frame.cap is not None and float(frame.cap[row, column, 0]) >= 0.5
+    surface = None if surfaces is None or on_cap else int(frame.surface[row, column])
     world = frame.position[row, column].double().cpu().numpy()
     volume = renderer.volume
     scale, offset = volume.world_transform()
     at = np.clip((world - offset) / scale, 0.0, np.asarray(volume.shape, np.float64) - 1.0)
     return Pick(True, tuple(world.tolist()), tuple(int(v) for v in np.rint(at)),
                 tuple((at * np.asarray(volume.spacing)).tolist()), _trilinear(volume, at),
-                float(frame.depth[row, column]), on_cap)
+                float(frame.depth[row, column]), on_cap, surface)
 
 
 def distance(a: Pick, b: Pick) -> float:

@@ -580,7 +580,7 @@ class RenderPlan:
         self._clip = kernels.NoClip()
         self._host_clip = None
         if self.clipped:
-            self._host_clip = self._host_bytes.numpy()[at:].view(CLIP_DTYPE)
+            self._host_clip = self._host_bytes.numpy()[at:at + CLIP_DTYPE.itemsize].view(CLIP_DTYPE)
             self._clip = kernels.ClipArgs()
             self._clip.region = wp.array(ptr=base + at, dtype=kernels.ClipRegion, shape=(1,), device=device)
             self._clip.planes = wp.array(ptr=base + at + CLIP_DTYPE.fields["planes"][1], dtype=wp.vec4,

@@ -40,7 +40,7 @@ from isosr_net.reconnet import RayLimits
 from isosr_net.reconstructor import Reconstructor, recon_limits
 from isosr_net.timing import StageTimer, timed_steps
 from isosr_net.upscaler import Upscaler
-from isosr_render import Camera, FrameBuffers, Renderer, ShadingParams, Volume, orbit, parse_procedural, shade
+from isosr_render import FrameBuffers, Renderer, ShadingParams, Volume, orbit, parse_procedural, shade
 from isosr_render.brick_pool import MemoryStats
 from isosr_render.images import quantize
 from isosr_render.picking import pick
@@ -285,16 +285,17 @@ class Engine:
 
     # ---- work (device thread only) ----------------------------------------------------------
 
-    def pick_sync(self, renderer: Renderer, camera: Camera, iso: float, settings: ViewSettings,
-                  msg: PickMsg) -> PickedMsg:
-        """What lies under ``msg``'s pixel of a view (its camera, normalized iso and size).
+    def pick_sync(self, renderer: Renderer, job: FrameJob, msg: PickMsg) -> PickedMsg:
+        """What lies under ``msg``'s pixel of the view ``job`` shows (its camera, iso or surfaces, clip and size).
 
         Raises:
-            ProtocolError: the pixel lies outside the view.
+            ProtocolError: the pixel lies outside the view; surfaces the renderer cannot show (422).
         """
         self._on_thread()
+        iso, surfaces = SessionFrames.surfaces(renderer, job)
+        st = job.settings
         try:
-            found = pick(renderer, camera, iso, settings.width, settings.height, msg.x, msg.y, settings.clip.clip())
+            found = pick(renderer, job.camera, iso, st.width, st.height, msg.x, msg.y, st.clip.clip(), surfaces)
         except ValueError as e:
             raise ProtocolError(str(e)) from None
         return PickedMsg(msg.x, msg.y, msg.id, **asdict(found))

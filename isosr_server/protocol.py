@@ -29,7 +29,7 @@ View session (``WS /v1/view``)
     naming the field; the settings stay as they were, the next frame (of them) acknowledges its
     ``seq``, and the session goes on.
     ``pick`` asks what lies under a pixel of the current view; ``picked`` answers it (the
-    isosurface point, its voxel, physical position and value) between frames.
+    isosurface point, its voxel, physical position and value, and which of several surfaces) between frames.
 
 Encodings (``settings.encoding``)
     Images (`IMAGE_ENCODINGS`: jpeg, png, webp): each frame stands alone. Video
@@ -107,6 +107,7 @@ from isosr_render.conventions import AO_RADIUS, MATERIAL_RGB
 from isosr_render.surfaces import MAX_SURFACES, Surface, Surfaces
 from isosr_server.codecs.arrays import ArrayTooBig, WireArray, decode_array, encode_array
 
+# 11: picked.surface (which of several surfaces a pick hit);
 # 10: several isosurfaces (settings.surfaces);
 # 9: frame.batch (the frames made together on the device);
 # 8: colour by a field (settings.coloring; a shaded frame's legend);
@@ -115,7 +116,7 @@ from isosr_server.codecs.arrays import ArrayTooBig, WireArray, decode_array, enc
 # 5: modes named by the server (ready.modes), ready's limits on messages and acknowledgements;
 # 3: the v3 vocabulary (modes auto/network/upscale/..., ao_rays, spp, interpolation, frame methods);
 # 2 (acknowledged frames, flow control) and earlier are refused with a reason.
-PROTOCOL_VERSION = 10
+PROTOCOL_VERSION = 11
 
 # Largest magnitude of any float field (camera coordinates, iso, ...): beyond it is hostile input.
 MAX_ABS_FLOAT = 1e9
@@ -722,7 +723,9 @@ class PickedMsg(Message, tag="picked"):
     it does, the point in world units, its nearest voxel, its position in the volume's physical
     units (voxel coordinates times the spacing) and the volume's value there in data units
     (:class:`isosr_render.picking.Pick`); the distance between two picks is that of their
-    ``position``. The view's clip holds: ``cap`` where the point lies on a capped cut face."""
+    ``position``. The view's clip holds: ``cap`` where the point lies on a capped cut face. With
+    ``settings.surfaces``, the pick lands on the nearest of them (a translucent one too, not what shows
+    through it) and ``surface`` is its index in that list (None without them, on a miss or a cut face)."""
 
     x: Finite
     y: Finite
@@ -734,6 +737,7 @@ class PickedMsg(Message, tag="picked"):
     value: Finite | None = None
     depth: Finite | None = None
     cap: bool = False
+    surface: Annotated[int, Meta(ge=0, lt=MAX_SURFACES)] | None = None
 
 
 class NoticeMsg(Message, tag="notice"):

@@ -284,8 +284,8 @@ class SessionFrames:
         st = job.settings
         shaded = st.channel == "shaded"
         keep = () if shaded else (st.channel,)
-        clip, coloring, surfaces = st.clip.clip(), self.coloring(renderer, job), self.surfaces(renderer, job)
-        iso = job.iso if surfaces is None else surfaces.iso
+        clip, coloring = st.clip.clip(), self.coloring(renderer, job)
+        iso, surfaces = self.surfaces(renderer, job)
         if job.refined:
             method = refined_method(st)
             runner = make_runner(method, renderer, iso, st.width, st.height, ao_radius=st.ao_radius, keep=keep,
@@ -319,8 +319,9 @@ class SessionFrames:
         return self._coloring[1]
 
     @staticmethod
-    def surfaces(renderer: Renderer, job: FrameJob) -> Surfaces | None:
-        """The job's surfaces, their isos normalized for the renderer's volume (None: the one iso).
+    def surfaces(renderer: Renderer, job: FrameJob) -> tuple[float, Surfaces | None]:
+        """The normalized iso the job's view renders and its surfaces, their isos normalized for the renderer's
+        volume (None: the one ``job.iso``; else the iso is their first's). A frame's and a pick's.
 
         Raises:
             ProtocolError: two isos equal once normalized, or a volume rendered sparse (422).
@@ -329,7 +330,7 @@ class SessionFrames:
         if surfaces is not None and renderer.pool is not None:
             raise ProtocolError("settings.surfaces: several surfaces need a volume held dense on the device; this one "
                                 "renders sparse", CLOSE_POLICY, 422)
-        return surfaces
+        return (job.iso if surfaces is None else surfaces.iso), surfaces
 
     def planned_steps(self, plan: FramePlan, slice_ms: float | None = None) -> Generator[None, None, ViewFrame]:
         """A planned frame made alone, in slices of about ``slice_ms``."""

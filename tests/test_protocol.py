@@ -56,6 +56,7 @@ def test_messages_round_trip():
                 P.FocusMsg("none"), P.ErrorMsg(1007, "bad"), P.ReceivedMsg(0), P.ReceivedMsg(P.MAX_SEQ),
                 P.PickMsg(3.5, 4.5, id=2), P.PickedMsg(3.5, 4.5, 2, False),
                 P.PickedMsg(3.5, 4.5, 2, True, (0.1, -0.2, 0.3), (4, 5, 6), (2.0, 5.0, 9.0), 300.0, 1.6),
+                P.PickedMsg(3.5, 4.5, 3, True, (0.1, -0.2, 0.3), (4, 5, 6), (2.0, 5.0, 9.0), 0.4, 1.6, surface=3),
                 P.ReadyMsg("abc", VOLUME, P.ViewSettings(mode="network"), 4, 8, LIMITS, MODES),
                 P.FrameMsg(seq=0, ack=-1, mode="full", method="full, AO 2, spp 1", width=64, height=48,
                            encoding="png", times={"render": 1.0, "total": 2.0}, nbytes=4, image=b"\x89PNG"),
@@ -67,7 +68,7 @@ def test_messages_round_trip():
 
 def test_wire_names_are_the_v3_vocabulary():
     ready = wire(P.ReadyMsg("abc", VOLUME, P.ViewSettings(), 4, 8, LIMITS, MODES))
-    assert ready["type"] == "ready" and ready["version"] == 10 and ready["max_recon_ao_rays"] == 8
+    assert ready["type"] == "ready" and ready["version"] == 11 and ready["max_recon_ao_rays"] == 8
     assert ready["settings"]["mode"] == "auto" and ready["settings"]["interpolation"] == "bilinear"
     assert {"ao_rays", "refine_ao_rays", "spp", "ao_radius"} <= set(ready["settings"])
     assert ready["settings"]["ao_radius"] == P.AO_RADIUS == 0.05
@@ -267,7 +268,7 @@ def test_invalid_messages_name_the_problem(message, words):
 def test_version_3_is_refused_with_the_reason(message):
     with pytest.raises(P.ProtocolError) as e:
         P.parse(raw(message), LIMITS, (P.OpenMsg, P.UpscaleRequest))
-    assert e.value.reason == "protocol version 3 is not supported; this server speaks 10: update the client"
+    assert e.value.reason == "protocol version 3 is not supported; this server speaks 11: update the client"
     assert (e.value.close_code, e.value.http_status) == (P.CLOSE_BAD_MESSAGE, 400)
 
 

@@ -147,6 +147,24 @@ def test_a_pick_honours_the_sessions_clip(srv, lib):
     assert msg.depth == pytest.approx(expected.depth) and msg.position == pytest.approx(expected.position)
 
 
+def test_a_pick_names_the_surface_it_lands_on(srv, lib):
+    """With two surfaces set (the torus's distance field: 0 the torus, 0.05 a fatter one around it), a pick lands
+    on the outer one, the second in the list: the library's pick with those surfaces, ``surface`` 1, nearer than
+    the session's own iso's."""
+    camera, (x, y) = to_camera(CAM0), (24.5, 24.5)
+    surfaces = (P.SurfaceSettings(0.0), P.SurfaceSettings(0.05))
+    with session(srv, mode="full", surfaces=surfaces) as (ws, _):
+        frame(ws)
+        send(ws, P.PickMsg(x, y, id=1))
+        while not isinstance(msg := recv(ws), P.PickedMsg):
+            send(ws, P.ReceivedMsg(msg.seq))
+    shown = P.surfaces_of(surfaces, lib.renderer.volume.normalized_iso)
+    expected = pick(lib.renderer, camera, shown.iso, W, H, x, y, surfaces=shown)
+    plain = pick(lib.renderer, camera, lib.iso, W, H, x, y)
+    assert (msg.hit, msg.surface, msg.voxel) == (True, 1, expected.voxel) and expected.surface == 1
+    assert msg.depth == pytest.approx(expected.depth) and msg.depth < plain.depth - 0.02
+
+
 def test_bad_clip_or_coloring_settings_get_a_notice_and_the_session_goes_on(srv):
     """Bad clip or coloring settings (7 planes, a zero normal, NaN, an unknown colour map, a field of
     another grid) are refused whole with a notice naming the field, then a frame that acknowledges
@@ -199,7 +217,7 @@ def test_full_mode_matches_the_library(srv, lib):
     with session(srv, mode="full", ao_rays=4) as (ws, ready):
         assert ready.settings.mode == "full" and ready.volume.iso == 0.0
         assert ready.max_recon_ao_rays == RECON_LIMITS.max_ao_rays
-        assert ready.limits == LIMITS and ready.version == P.PROTOCOL_VERSION == 10
+        assert ready.limits == LIMITS and ready.version == P.PROTOCOL_VERSION == 11
         assert [m.name for m in ready.modes] == list(views.VIEWS)  # auto, the registry's view modes, focus
         f = frame(ws)
         assert (f.seq, f.ack, f.mode, f.encoding, f.refined) == (0, -1, "full", "png", False) and f.method
@@ -541,7 +559,7 @@ def test_upscale_bad_input_gets_4xx_with_reasons(srv, lib):
         (raw(wire_frame(lib, depth=wire_array(np.full((h, w), 3e38, np.float32)))), 400, "depth: values must lie in"),
         (raw(wire_frame(lib, depth=f64)), 400, "Invalid enum value 'float64' in `dtype` - at `$.depth`"),
         (raw(wire_frame(lib, normal=good["depth"])), 400, "normal: shape must be"),
-        (raw(wire_frame(lib, version=3)), 400, "protocol version 3 is not supported; this server speaks 10"),
+        (raw(wire_frame(lib, version=3)), 400, "protocol version 3 is not supported; this server speaks 11"),
         (raw(wire_frame(lib, output="gif")), 400, "at `$.output`"),
         (raw(wire_frame(lib, session="../x")), 400, "at `$.session`"),
         (raw({**good, "pad": b"x" * LIMITS.max_message_bytes}), 413, "limit"),
@@ -578,7 +596,7 @@ def test_bad_view_input_closes_that_session_only(srv, lib):
         opens = [
             (b"\x92\x01\x02", P.CLOSE_BAD_MESSAGE, "Expected `object`, got `array`"),
             (raw({"type": "open", "version": 3, "volume": VOLUME}), P.CLOSE_BAD_MESSAGE,
-             "protocol version 3 is not supported; this server speaks 10: update the client"),
+             "protocol version 3 is not supported; this server speaks 11: update the client"),
             (raw({"type": "open", "version": v, "volume": "nope"}), P.CLOSE_NOT_FOUND, "no volume named"),
             (raw({"type": "open", "version": v, "volume": "../blob"}), P.CLOSE_BAD_MESSAGE,
              "Expected `str` matching regex"),

@@ -13,6 +13,8 @@ import pytest
 from conftest import DEVICE, field_volume, pixel_rays, render_np
 
 from isosr_render.camera import Camera
+from isosr_render.clip import Clip
+from isosr_render.picking import Pick, pick
 from isosr_render.renderer import Renderer, RenderRequest
 from isosr_render.surfaces import MAX_SURFACES, Surface, Surfaces
 
@@ -221,3 +223,56 @@ def test_a_translucent_shell_occludes_by_its_opacity(renderer):
     np.testing.assert_array_equal(clear[0][on_inner], 1.0)
     assert (occluded[0][on_inner] < 0.9).mean() > 0.9
     np.testing.assert_allclose(1.0 - half[0][on_inner], (1.0 - occluded[0][on_inner]) * 0.5 / 0.99, atol=1e-5)
+
+
+# -- picking --------------------------------------------------------------------------------------------------
+
+
+def _pick(renderer, surfaces, x, y, clip=Clip()):
+    return pick(renderer, OUTSIDE, surfaces.iso, W, H, x, y, clip, surfaces)
+
+
+@pytest.mark.parametrize("opacity", [1.0, 0.3])
+def test_a_pick_lands_on_the_front_surface_and_names_it(renderer, opacity):
+    """From outside, the centre pixel's ray meets the outer sphere first: the pick is there (the analytic near root)
+    with the outer's index, translucent or not, though the first surface (the request's iso) is the inner one."""
+    surfaces = _surfaces(renderer, (INNER, BLUE), (OUTER, RED, opacity))
+    row, col = H // 2, W // 2
+    found = _pick(renderer, surfaces, col + 0.5, row + 0.5)
+    near, _, forward, _ = _roots(OUTSIDE, OUTER)
+    assert found.hit and found.surface == 1 and not found.cap
+    assert found.depth == pytest.approx(near[row, col] * forward[row, col], abs=0.25 * renderer.default_step())
+    assert found.value == pytest.approx(OUTER, abs=0.01)
+
+
+def test_a_pick_on_the_outer_sphere_alone_and_a_miss(renderer):
+    """A pixel whose ray passes the inner sphere by and meets the outer one: the outer's; a corner misses both."""
+    surfaces = _surfaces(renderer, (INNER, BLUE), (OUTER, RED))
+    near, _, forward, disc_out = _roots(OUTSIDE, OUTER)
+    disc_in = _roots(OUTSIDE, INNER)[3]
+    row = H // 2
+    col = int(np.flatnonzero((disc_out[row] > 0.01) & (disc_in[row] < -0.01))[0])
+    found = _pick(renderer, surfaces, col + 0.5, row + 0.5)
+    assert found.hit and found.surface == 1
+    assert found.depth == pytest.approx(near[row, col] * forward[row, col], abs=0.25 * renderer.default_step())
+    assert disc_out[0, 0] < 0 and _pick(renderer, surfaces, 0.5, 0.5) == Pick(False)
+
+
+def test_a_picks_surface_follows_the_lists_order(renderer):
+    swapped = _surfaces(renderer, (OUTER, RED), (INNER, BLUE))
+    assert _pick(renderer, swapped, W / 2, H / 2).surface == 0
+
+
+def test_a_pick_on_a_cut_face_names_no_surface(renderer):
+    """The near half cut away, capped below the first iso (inside the outer sphere is solid): the centre pixel is
+    on the cut face through the origin (depth 1.5), ``cap`` and no surface."""
+    surfaces = _surfaces(renderer, (OUTER, RED), (INNER, BLUE))
+    found = _pick(renderer, surfaces, W / 2, H / 2, Clip(planes=[((0.0, 0.0, 0.0), (0.0, 0.0, -1.0))], cap="below"))
+    assert found.hit and found.cap and found.surface is None
+    assert found.depth == pytest.approx(1.5, abs=1e-3)
+
+
+def test_a_pick_with_surfaces_not_of_its_iso_is_refused(renderer):
+    surfaces = _surfaces(renderer, (INNER, BLUE), (OUTER, RED))
+    with pytest.raises(ValueError, match="iso must be the first surface's"):
+        pick(renderer, OUTSIDE, surfaces.items[1].iso, W, H, 0.5, 0.5, Clip(), surfaces)

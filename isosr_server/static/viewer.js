@@ -757,7 +757,7 @@ function canvasPoint(event) {
 function pickAt(p) {
   const slot = state.sessions[0];
   if (!slot) return;
-  state.pendingPick = { id: ++state.pickId, x: p.x, y: p.y };
+  state.pendingPick = { id: ++state.pickId, x: p.x, y: p.y, surfaces: surfaceSettings() }; // the view's now
   slot.session.pick(Math.min(state.width - 0.5, p.x), Math.min(state.height - 0.5, p.y), state.pendingPick.id);
 }
 
@@ -775,6 +775,8 @@ function onPicked(picked) {
   const [i, j, k] = picked.voxel;
   let text = `value ${fmt(picked.value)} at voxel (${i}, ${j}, ${k}), (${picked.position.map(fmt).join(", ")})`;
   if (picked.cap) text += " on a cut face";
+  const surface = asked.surfaces[picked.surface]; // several surfaces: the one hit (picked.surface indexes them)
+  if (surface) text += ` on surface ${picked.surface} (iso ${fmt(surface.iso)})`;
   const ruler = $("ruler");
   ruler.toggleAttribute("hidden", state.picks.length < 2); // an SVG element: the attribute, no .hidden
   if (state.picks.length === 2) {

@@ -69,8 +69,8 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
 
         async def answer(msg: PickMsg) -> None:  # at once, between frames, on the current view (its step)
             s = session.state
-            iso = shown.job(FrameJob(s.settings, s.camera, s.iso, s.focus, 0, False, 1)).iso
-            await send(await engine.call(engine.pick_sync, shown.renderer, s.camera, iso, s.settings, msg))
+            job = shown.job(FrameJob(s.settings, s.camera, s.iso, s.focus, 0, False, 1))
+            await send(await engine.call(engine.pick_sync, shown.renderer, job, msg))
 
         tasks = [asyncio.create_task(run_frames(session, make, send)),
                  asyncio.create_task(take_updates(ws, limiter, limits, session, answer, catalog, shown)),
