@@ -33,6 +33,7 @@ from isosr_server import transport, ws_transport
 from isosr_server.api.deps import require_token
 from isosr_server.api.errors import add_exception_handlers
 from isosr_server.api.main import api_router
+from isosr_server.api.routes.volumes import MESH_JOBS
 from isosr_server.core.config import Settings
 from isosr_server.engine import Engine
 from isosr_server.guard import Guard
@@ -62,7 +63,7 @@ def uvicorn_options(limits: Limits, tls: ssl.SSLContext | None = None) -> dict:
 
 def create_app(settings: Settings) -> FastAPI:
     """The app, its state on ``app.state`` (settings, engine, catalog, metrics, session registries,
-    ready); the lifespan loads the models and warms the device, then reports ready."""
+    mesh extractions under way, ready); the lifespan loads the models and warms the device, then reports ready."""
     app = FastAPI(title="isosr", version=str(PROTOCOL_VERSION), lifespan=lifespan, docs_url=None, redoc_url=None,
                   openapi_url=None)  # served below, behind the token
     s = app.state
@@ -72,6 +73,7 @@ def create_app(settings: Settings) -> FastAPI:
     s.metrics = ServerMetrics(s.engine.gpu_memory, s.engine.volume_memory)
     s.view_sessions = SessionCounter(settings.limits.max_sessions)
     s.upscale_sessions = UpscaleSessions(settings.limits, s.engine.new_network)
+    s.mesh_jobs = SessionCounter(MESH_JOBS)
     s.ready = False
     app.add_middleware(Guard, limits=settings.limits)
     add_exception_handlers(app)

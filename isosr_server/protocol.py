@@ -348,7 +348,7 @@ def clip_query(text: str) -> ClipSettings:
     try:
         return msgspec.json.decode(text, type=ClipSettings)
     except msgspec.ValidationError as e:
-        raise ProtocolError(f"clip: {_relative(e)}"[:200]) from None
+        raise ProtocolError(_short(f"clip: {_relative(e)}")) from None
     except msgspec.DecodeError as e:
         raise ProtocolError(f"clip: not JSON: {e}"[:200]) from None
 
@@ -450,13 +450,15 @@ class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     t: Step = 0
     surfaces: Annotated[tuple[SurfaceSettings, ...], Meta(max_length=MAX_SURFACES)] = ()
 
-    def updated(self, update: SettingsUpdate | Mapping[str, Any], limits: Limits) -> ViewSettings:
+    def updated(self, update: SettingsUpdate | Mapping[str, Any], limits: Limits,
+                seq: int | None = None) -> ViewSettings:
         """These settings with ``update`` applied (a `SettingsUpdate`, or a map validated as one),
         checked against ``limits``.
 
         Raises:
             ProtocolError: an unknown field or a value out of its bounds (CLOSE_BAD_MESSAGE), a
                 size over the limits (CLOSE_TOO_BIG).
+            SettingRefused: (of the update ``seq``, which its frame acknowledges) surfaces with a coloring.
         """
         if not isinstance(update, SettingsUpdate):
             update = convert(update, SettingsUpdate, "settings")
@@ -465,7 +467,7 @@ class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         limits.check_size(new.width, new.height)
         if new.surfaces and new.coloring is not None:
             raise SettingRefused("settings.surfaces: several surfaces show their own colours, not with "
-                                 "settings.coloring (set one of them to its default)")
+                                 "settings.coloring (set one of them to its default)", seq=seq)
         return new
 
 
@@ -1020,6 +1022,15 @@ def _relative(e: msgspec.ValidationError) -> str:
     return f"{m[1]} in `{m[2]}`" if m else str(e)
 
 
+def _short(reason: str, limit: int = 200) -> str:
+    """``reason`` within ``limit`` characters, its trailing field path (`` - at `$.x` `` or `` in `x` ``) kept
+    whole where it fits: a long echoed value is what gets cut, not the field's name."""
+    m = re.fullmatch(r"(.*)( (?:- at|in) `[^`]*`)", reason, re.DOTALL)
+    if m is None or len(reason) <= limit:
+        return reason[:limit]
+    return (m[1][:max(limit - len(m[2]) - 3, 0)] + "..." + m[2])[:limit]
+
+
 def _no_ext(code: int, data: memoryview) -> Any:
     raise ValueError(f"msgpack extension type {code} is not part of the protocol")
 
@@ -1090,8 +1101,8 @@ def parse(data: bytes, limits: Limits, expected: Mapping[str, type[Message]] | t
         if reason.endswith("`$.type`") or reason == "Object missing required field `type`":
             reason = f"message type must be one of {', '.join(t.TYPE for t in types)}: {reason}"
         if _NOTICED_PATH.search(reason):
-            raise SettingRefused(reason[:200], seq=_seq_of(data)) from None
-        raise ProtocolError(reason[:200]) from None
+            raise SettingRefused(_short(reason), seq=_seq_of(data)) from None
+        raise ProtocolError(_short(reason)) from None
     except (msgspec.DecodeError, ValueError) as e:  # not msgpack, truncated, trailing bytes, extension types
         raise ProtocolError(f"malformed msgpack: {e}"[:200]) from None
     except RecursionError:  # arrays / maps nested past msgspec's depth bound: the client's mistake, not a fault

@@ -202,7 +202,7 @@ class ViewSession:
         elif isinstance(msg, IsoMsg):
             s = replace(s, iso=session_iso(self.volume, self.volume_name, msg.value, msg.normalized, "iso.value"))
         elif isinstance(msg, SettingsMsg):
-            settings = s.settings.updated(msg.settings, self.limits)
+            settings = s.settings.updated(msg.settings, self.limits, msg.seq)
             self.check_settings(settings)
             s = replace(s, settings=self._makeable(settings))
             self.rate.set_cap(settings.bitrate_kbps)

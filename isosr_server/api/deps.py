@@ -71,6 +71,14 @@ def get_upscale_sessions(conn: HTTPConnection) -> UpscaleSessions:
 UpscaleSessionsDep = Annotated[UpscaleSessions, Depends(get_upscale_sessions)]
 
 
+def get_mesh_jobs(conn: HTTPConnection) -> SessionCounter:
+    """The count of mesh extractions under way, bounded by ``MESH_JOBS`` (:mod:`isosr_server.api.routes.volumes`)."""
+    return conn.app.state.mesh_jobs
+
+
+MeshJobsDep = Annotated[SessionCounter, Depends(get_mesh_jobs)]
+
+
 def is_ready(conn: HTTPConnection) -> bool:
     """Whether the models are loaded and the device warmed (the lifespan's start-up is done)."""
     return conn.app.state.ready

@@ -100,10 +100,10 @@ async def take_updates(ws: WebSocket, limiter, limits: Limits, session: ViewSess
         try:
             msg = parse(data, limits, CLIENT_VIEW_MESSAGES)
             if isinstance(msg, SettingsMsg) and msg.settings.coloring is not UNSET:  # its field resolved first
-                field = await coloring_field(catalog, session.state.settings.updated(msg.settings, limits),
+                field = await coloring_field(catalog, session.state.settings.updated(msg.settings, limits, msg.seq),
                                              session.volume, msg.seq)
             if isinstance(msg, SettingsMsg) and msg.settings.surfaces is not UNSET:  # checked on the volume first
-                surfaces_of(session.state.settings.updated(msg.settings, limits).surfaces,
+                surfaces_of(session.state.settings.updated(msg.settings, limits, msg.seq).surfaces,
                             session.volume.normalized_iso, msg.seq)
         except SettingRefused as e:
             session.refuse(e)

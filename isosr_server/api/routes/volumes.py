@@ -9,7 +9,9 @@
                              the isosurface of iso V (data units; default the suggested one) as a
                              triangle mesh file in physical units (:mod:`isosr_render.mesh`), made
                              on the server's device, cut by ``clip`` (a view's ``settings.clip`` as
-                             JSON); 413 naming the limit for one too large, 422 for no surface
+                             JSON); 413 naming the limit for one too large, 422 for no surface,
+                             429 while ``MESH_JOBS`` others are under way (each holds the device
+                             thread whole: more queued would stall the view sessions' frames)
     GET /v1/volumes/{name}/slices/{x|y|z}?index=K[&iso=V]
                              the orthogonal slice across that axis at voxel K as a PNG, the iso
                              contour (data units) drawn on it (:func:`isosr_render.slices.slice_image`)
@@ -25,13 +27,18 @@ from typing import Annotated, Literal
 import torch
 from fastapi import APIRouter, Depends, Query, Response
 
+from isosr_render import Volume
 from isosr_render.clip import Clip
 from isosr_render.mesh import MESH_FORMATS, MeshTooLarge, extract_mesh, mesh_bytes
 from isosr_render.slices import AXES, slice_image
-from isosr_server.api.deps import CatalogDep, EngineDep, require_token
+from isosr_server.api.deps import CatalogDep, EngineDep, MeshJobsDep, require_token
 from isosr_server.encoding import encode_image
+from isosr_server.engine import Engine
 from isosr_server.protocol import ProtocolError, clip_query
 from isosr_server.volumes import load_volume, session_iso
+
+# Mesh extractions under way at once, server-wide: a view frame waits behind at most this many.
+MESH_JOBS = 2
 
 router = APIRouter(prefix="/v1/volumes", tags=["volumes"], dependencies=[Depends(require_token)])
 
@@ -61,13 +68,24 @@ async def get_slice(name: str, axis: Literal[AXES], index: int, catalog: Catalog
 
 
 @router.get("/{name}/mesh", response_class=Response, responses={200: {"content": {"application/octet-stream": {}}}})
-async def get_mesh(name: str, catalog: CatalogDep, engine: EngineDep, iso: float | None = None,
+async def get_mesh(name: str, catalog: CatalogDep, engine: EngineDep, jobs: MeshJobsDep, iso: float | None = None,
                    format: Literal[tuple(m[1:] for m in MESH_FORMATS)] = "ply",
                    clip: Annotated[str | None, Query(max_length=4000)] = None):
     volume, info = await load_volume(catalog, name)
     iso = info.iso if iso is None else iso
     normalized = session_iso(volume, name, iso, False, "iso")
     cut = Clip() if clip is None else clip_query(clip).clip()
+    jobs.acquire("mesh extractions")  # 429 at the bound, before any work
+    try:
+        data = await mesh_file(engine, volume, name, iso, normalized, cut, format)
+    finally:
+        jobs.release()
+    return Response(data, media_type="application/octet-stream",
+                    headers={"Content-Disposition": f'attachment; filename="{re.sub(r"[^A-Za-z0-9_.-]", "_", name)}.{format}"'})
+
+
+async def mesh_file(engine: Engine, volume: Volume, name: str, iso: float, normalized: float, cut: Clip, format: str) -> bytes:
+    """The ``format`` file of the isosurface of ``iso`` (``normalized``) of volume ``name``, cut by ``cut``."""
     try:
         mesh = await engine.call(partial(extract_mesh, clip=cut), volume, normalized, str(engine.device))
     except ValueError as e:  # a limit (413) or a crop box of zero volume
@@ -75,6 +93,4 @@ async def get_mesh(name: str, catalog: CatalogDep, engine: EngineDep, iso: float
     if len(mesh.faces) == 0:
         kept = " in the clip's kept region" if cut.active else ""
         raise ProtocolError(f"iso {iso:g}: no surface{kept} in {name}", http_status=422)
-    data = await asyncio.to_thread(mesh_bytes, mesh, f".{format}")
-    return Response(data, media_type="application/octet-stream",
-                    headers={"Content-Disposition": f'attachment; filename="{re.sub(r"[^A-Za-z0-9_.-]", "_", name)}.{format}"'})
+    return await asyncio.to_thread(mesh_bytes, mesh, f".{format}")
