@@ -33,7 +33,6 @@ from isosr_server import transport, ws_transport
 from isosr_server.api.deps import require_token
 from isosr_server.api.errors import add_exception_handlers
 from isosr_server.api.main import api_router
-from isosr_server.api.routes.volumes import MESH_JOBS
 from isosr_server.core.config import Settings
 from isosr_server.engine import Engine
 from isosr_server.guard import Guard
@@ -73,7 +72,7 @@ def create_app(settings: Settings) -> FastAPI:
     s.metrics = ServerMetrics(s.engine.gpu_memory, s.engine.volume_memory)
     s.view_sessions = SessionCounter(settings.limits.max_sessions)
     s.upscale_sessions = UpscaleSessions(settings.limits, s.engine.new_network)
-    s.mesh_jobs = SessionCounter(MESH_JOBS)
+    s.mesh_jobs = SessionCounter(settings.limits.max_mesh_jobs)
     s.ready = False
     app.add_middleware(Guard, limits=settings.limits)
     add_exception_handlers(app)

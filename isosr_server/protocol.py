@@ -258,6 +258,8 @@ class Limits(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
             the previous response.
         max_open_connections: most open connections (fewer where the descriptor limit leaves less
             room); those that sent no complete request yet are closed first to make room.
+        max_mesh_jobs: most mesh extractions under way at once, server-wide (more: 429); each holds
+            the device thread whole, so a view frame waits behind at most this many.
     """
 
     max_message_bytes: int = 32 * 2**20
@@ -282,6 +284,7 @@ class Limits(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     max_header_count: int = 100
     header_timeout_s: float = 10.0
     max_open_connections: int = 4096
+    max_mesh_jobs: int = 2
 
     def __post_init__(self):
         for f in msgspec.structs.fields(self):

@@ -17,14 +17,13 @@ import msgspec
 import pytest
 
 from isosr_server import protocol as P
-from isosr_server.api.routes.volumes import MESH_JOBS
 from test_attacks import CLIENT_LIMITS, MiB, assert_no_errors, get, open_view, serve, view
 
 # The largest volume the server builds (MAX_PROCEDURAL_SIZE), with many triangles: about 1 s a mesh on CPUs.
 LARGEST = "proc:cloud:0@128"
-# Server RSS that clients meshing LARGEST for a few seconds may add (the bound holds MESH_JOBS meshes).
+# Server RSS that clients meshing LARGEST for a few seconds may add (the bound holds max_mesh_jobs meshes).
 MESH_RSS_GOAL = 320 * MiB
-BUSY = f"the server already serves {MESH_JOBS} mesh extractions; try later"
+BUSY = f"the server already serves {P.Limits().max_mesh_jobs} mesh extractions; try later"
 
 
 @pytest.fixture(scope="module")
@@ -107,7 +106,7 @@ def next_frame(ws, timeout: float = 60.0) -> P.FrameMsg:
 
 def test_many_mesh_clients_leave_the_view_its_frames(server):
     """16 clients from two addresses loop meshes of LARGEST for 4 s (each client's connection
-    bound allows them all): past MESH_JOBS under way they get 429 at once, so the device thread
+    bound allows them all): past max_mesh_jobs under way they get 429 at once, so the device thread
     never queues more and an honest session, turning its camera meanwhile, keeps its frames;
     liveness (probed between its frames) and memory hold."""
     assert get(server, "127.0.0.1")[0] == 200

@@ -72,7 +72,7 @@ UpscaleSessionsDep = Annotated[UpscaleSessions, Depends(get_upscale_sessions)]
 
 
 def get_mesh_jobs(conn: HTTPConnection) -> SessionCounter:
-    """The count of mesh extractions under way, bounded by ``MESH_JOBS`` (:mod:`isosr_server.api.routes.volumes`)."""
+    """The count of mesh extractions under way, bounded by ``limits.max_mesh_jobs``."""
     return conn.app.state.mesh_jobs
 
 

@@ -10,8 +10,8 @@
                              triangle mesh file in physical units (:mod:`isosr_render.mesh`), made
                              on the server's device, cut by ``clip`` (a view's ``settings.clip`` as
                              JSON); 413 naming the limit for one too large, 422 for no surface,
-                             429 while ``MESH_JOBS`` others are under way (each holds the device
-                             thread whole: more queued would stall the view sessions' frames)
+                             429 while ``limits.max_mesh_jobs`` others are under way (each holds the
+                             device thread whole: more queued would stall the view sessions' frames)
     GET /v1/volumes/{name}/slices/{x|y|z}?index=K[&iso=V]
                              the orthogonal slice across that axis at voxel K as a PNG, the iso
                              contour (data units) drawn on it (:func:`isosr_render.slices.slice_image`)
@@ -36,9 +36,6 @@ from isosr_server.encoding import encode_image
 from isosr_server.engine import Engine
 from isosr_server.protocol import ProtocolError, clip_query
 from isosr_server.volumes import load_volume, session_iso
-
-# Mesh extractions under way at once, server-wide: a view frame waits behind at most this many.
-MESH_JOBS = 2
 
 router = APIRouter(prefix="/v1/volumes", tags=["volumes"], dependencies=[Depends(require_token)])
 
