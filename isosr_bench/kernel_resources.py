@@ -3,6 +3,7 @@ any machine (no GPU or driver needed: Warp's wheel carries NVRTC).
 
     python -m isosr_bench.kernel_resources                      # the renderer's kernels for sm_90 (H100/H200)
     python -m isosr_bench.kernel_resources --arch 80 --modules isosr_render.kernels
+    python -m isosr_bench.kernel_resources --write              # and keep them in RECORD (per module hash)
 
 Registers bound how many threads an SM keeps in flight (65536 per SM: 80 registers a thread
 leave 25 warps, 168 leave 12, 255 leave 8), and the ray caster is latency-bound: on an H100 the
@@ -11,11 +12,16 @@ and that one kernel 1.3-1.5 times as long as the march alone at 80 plus the surf
 128 (``docs/measurements.md``). Read from the
 cubin's ``.nv.info`` attributes (ELF64): ``registers`` (EIATTR_REGCOUNT) and ``stack`` bytes
 (EIATTR_MIN_STACK_SIZE, the stack of a kernel without recursion: spills and local arrays).
+
+Compiling the renderer's modules takes minutes on a small machine; ``RECORD`` keeps each module's
+figures under its Warp identifier (its source's hash) and Warp's version, and :func:`recorded_resources`
+compiles only the modules whose identifier the record does not hold.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import multiprocessing
 import os
 import struct
@@ -23,9 +29,11 @@ import tempfile
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
+from isosr_bench.common import commit
 from isosr_net.warp_modules import warp_module
 from isosr_render.kernels import RENDER_MODULES
 
+RECORD = Path(__file__).resolve().parents[1] / "benchmarks" / "results" / "kernel_resources_sm90.json"
 EIATTR = {0x2F: "registers", 0x12: "stack"}
 EIFMT_SVAL = 0x04  # a record with a 16-bit size and that many bytes; the other formats take 4 bytes in all
 
@@ -104,15 +112,48 @@ def modules_resources(modules: list[str], arch: int = 90) -> dict[str, dict[str,
         return dict(zip(modules, pool.map(module_resources, modules, [arch] * len(modules))))
 
 
+def identifier(module: str) -> str:
+    """Warp's identifier of ``module``: its name and its source's hash, with Warp's version."""
+    import warp as wp
+
+    wp.init()
+    return f"{warp_module(module).get_module_identifier()} (warp {wp.config.version})"
+
+
+def recorded_resources(modules: list[str], record: Path = RECORD) -> tuple[dict, list[str]]:
+    """:func:`modules_resources` for sm_90, from ``record`` for the modules whose identifier it holds; the
+    others compiled. Returns them and the modules compiled (the record is stale for those)."""
+    held = json.loads(record.read_text())["modules"] if record.is_file() else {}
+    stale = [m for m in modules if held.get(m, {}).get("identifier") != identifier(m)]
+    found = {m: held[m]["kernels"] for m in modules if m not in stale}
+    return found | modules_resources(stale, 90) if stale else found, stale
+
+
+def write_record(resources: dict[str, dict], record: Path = RECORD) -> None:
+    """Keep sm_90 ``resources`` of modules in ``record`` under their identifiers (beside its other modules')."""
+    modules = json.loads(record.read_text())["modules"] if record.is_file() else {}
+    modules |= {m: {"identifier": identifier(m), "kernels": found} for m, found in resources.items()}
+    record.write_text(json.dumps({"device": "sm_90 by NVRTC, no GPU", "commit": commit(),
+                                  "command": "python -m isosr_bench.kernel_resources --write",
+                                  "modules": dict(sorted(modules.items()))}, indent=1) + "\n")
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--arch", type=int, default=90, help="compute capability x10 (90: H100/H200)")
     parser.add_argument("--modules", default=",".join(RENDER_MODULES), help="comma-separated Warp modules")
+    parser.add_argument("--write", action="store_true", help=f"keep the figures (sm_90) in {RECORD.name} (default: off)")
     args = parser.parse_args(argv)
+    if args.write and args.arch != 90:
+        raise SystemExit("--write keeps sm_90's figures only")
+    found = modules_resources(args.modules.split(","), args.arch)
     print(f"| module | kernel | registers | stack (bytes) |  sm_{args.arch}\n|---|---|---|---|")
-    for module, found in modules_resources(args.modules.split(","), args.arch).items():
-        for kernel, r in sorted(found.items()):
+    for module, kernels in found.items():
+        for kernel, r in sorted(kernels.items()):
             print(f"| {module} | {kernel} | {r.get('registers')} | {r.get('stack')} |")
+    if args.write:
+        write_record(found)
+        print(f"wrote {RECORD}")
 
 
 if __name__ == "__main__":

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import pytest
 
-from isosr_bench.kernel_resources import modules_resources
+from isosr_bench.kernel_resources import RECORD, recorded_resources
 from isosr_render import kernels
 from isosr_render.kernels import RENDER_MODULES
 
@@ -47,12 +47,24 @@ MAX_SURFACES_SAMPLES_STACK = 736
 
 
 @pytest.fixture(scope="module")
-def resources() -> dict[str, dict[str, int]]:
+def recorded() -> tuple[dict[str, dict], list[str]]:
+    """The modules' figures from the record where it holds their source's, the others compiled; and those."""
     import warp as wp
 
     if 90 not in wp.get_cuda_supported_archs():
         pytest.skip("this Warp build's NVRTC cannot compile for sm_90 (a build without CUDA)")
-    return {k: v for found in modules_resources(list(RENDER_MODULES), arch=90).values() for k, v in found.items()}
+    return recorded_resources(list(RENDER_MODULES))
+
+
+@pytest.fixture(scope="module")
+def resources(recorded) -> dict[str, dict[str, int]]:
+    return {k: v for found in recorded[0].values() for k, v in found.items()}
+
+
+def test_the_record_holds_this_source(recorded):
+    """A kernel change compiles here (minutes) until its figures are recorded."""
+    assert not recorded[1], (f"{RECORD.name} holds other sources of {recorded[1]} (their bounds were checked "
+                             f"compiled): python -m isosr_bench.kernel_resources --write")
 
 
 def test_every_overload_is_compiled_and_read(resources):
