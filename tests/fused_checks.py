@@ -367,7 +367,7 @@ def test_frames_of_several_streams_in_one_call_equal_each_frame_alone():
 def test_tail_of_an_x2_model_writes_depth_to_space_over_the_upsampled_inputs(ao_prior):
     """24 output channels computed as 32, pixel-shuffled to twice the sides, over
     upsampled_inputs (bilinear, depth nearest); as buffers and shaded at that size too."""
-    h, w, hp, wp = 13, 21, 16, 24
+    h, w, hp, wp = 7, 11, 8, 16
     features = rand(2, hp, wp, 16, seed=45, dtype=torch.float16)
     taps, bias = tap_weights(rand(24, 16, 3, 3, scale=0.3, seed=46), 16, 32), torch.zeros(32, device=DEVICE)
     bias[:24] = rand(24, seed=47)
@@ -410,7 +410,7 @@ def reference(net, inputs, warped):
 
 # The AO prior changes the tail alone (tested under both above); the interpreter is slow. A
 # one-pixel frame and a one-row one are padded to 8 x 8 and 8 x 40 and cropped back.
-@pytest.mark.parametrize("ao_prior, b, h, w", [("none", 2, 13, 21), ("rays", 1, 24, 40), ("rays", 1, 1, 1),
+@pytest.mark.parametrize("ao_prior, b, h, w", [("none", 1, 13, 21), ("rays", 1, 24, 40), ("rays", 1, 1, 1),
                                                 ("none", 1, 1, 37)])
 def test_the_fused_shipped_model_equals_reconnet(ao_prior, b, h, w):
     net, fused = shipped_under(ao_prior)
@@ -568,7 +568,7 @@ def test_a_fused_reconstructor_follows_the_reference_frame_by_frame(model, posit
     assert all(isinstance(v.net, FusedReconNet) for v in variants)
     reference = Reconstructor(model, device=DEVICE)
     shading = ShadingParams()
-    for frame in synthetic_frames(3, 13, 21, positions):
+    for frame in synthetic_frames(2, 13, 21, positions):  # the second reads the first's output
         expected = reference.reconstruct(frame, 2, 1, shading)
         for variant in variants:
             got = variant.reconstruct(frame, 2, 1, shading)
