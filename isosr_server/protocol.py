@@ -284,7 +284,7 @@ class Limits(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     max_header_count: int = 100
     header_timeout_s: float = 10.0
     max_open_connections: int = 4096
-    max_mesh_jobs: int = 2
+    max_mesh_jobs: int = 1
 
     def __post_init__(self):
         for f in msgspec.structs.fields(self):

@@ -94,7 +94,8 @@ class SessionCounter:
     def acquire(self, what: str) -> None:
         """Count one more; `ProtocolError` (CLOSE_TOO_MANY / 429) at the limit."""
         if self.count >= self.limit:
-            raise ProtocolError(f"the server already serves {self.limit} {what}; try later", CLOSE_TOO_MANY, 429)
+            raise ProtocolError(f"the server already serves {what} (at most {self.limit}); try later", CLOSE_TOO_MANY,
+                                429)
         self.count += 1
 
     def release(self) -> None:

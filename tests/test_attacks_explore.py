@@ -22,8 +22,8 @@ from test_attacks import CLIENT_LIMITS, MiB, assert_no_errors, get, open_view, s
 # The largest volume the server builds (MAX_PROCEDURAL_SIZE), with many triangles: about 1 s a mesh on CPUs.
 LARGEST = "proc:cloud:0@128"
 # Server RSS that clients meshing LARGEST for a few seconds may add (the bound holds max_mesh_jobs meshes).
-MESH_RSS_GOAL = 320 * MiB
-BUSY = f"the server already serves {P.Limits().max_mesh_jobs} mesh extractions; try later"
+MESH_RSS_GOAL = 128 * MiB
+BUSY = f"the server already serves mesh extractions (at most {P.Limits().max_mesh_jobs}); try later"
 
 
 @pytest.fixture(scope="module")
