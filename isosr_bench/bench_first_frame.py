@@ -70,6 +70,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     rows = []
     with ServerProcess(args.device) as server:
         rows.append({"study": "start", "ready_s": server.ready_s})
+        print(rows[-1], flush=True)
         for mode, size in cases:
             rows.append(first_look(server.url, volume, mode, size, frames))
             print(rows[-1], flush=True)
