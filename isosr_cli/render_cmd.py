@@ -135,7 +135,8 @@ def add_parser(subparsers) -> None:
                          help="list the registered frame methods with their knobs and bounds, and exit")
     p.add_argument("--pick", type=_pair, metavar="X,Y",
                    help="also print what lies under pixel X,Y (x right, y down): the isosurface point in world, "
-                        "voxel and physical units and the volume's value there, as one JSON line")
+                        "voxel and physical units, the volume's value there and, with several --iso, which of them "
+                        "(surface: its index), as one JSON line (default: none)")
     p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     p.add_argument("--png-of", choices=BUFFER_NAMES, help="with a .png output: the buffer to show")
     p.add_argument("-o", "--output", help="FILE.npz (frame file) or FILE.png (required but with --list-methods)")
@@ -248,8 +249,8 @@ def run(args: argparse.Namespace) -> int:
 
     volume = open_volume(args.volume) if args.time_step is None else _series_step(args.volume, args.time_step)
     iso, surfaces = _surfaces(args, volume, args.volume.removeprefix(SHARED_PREFIX))
-    if surfaces is not None and (args.budget_ms is not None or args.pick is not None):
-        raise ValueError("--budget-ms and --pick take one --iso")
+    if surfaces is not None and args.budget_ms is not None:
+        raise ValueError("--budget-ms takes one --iso")
     unit = volume.voxel_size_world() if args.voxel_units else 1.0
     camera = _camera(args.orbit, args.eye, args.target, args.up, args.fov)
     prev = None
@@ -287,7 +288,8 @@ def run(args: argparse.Namespace) -> int:
     if renderer.device.is_cuda:
         torch.cuda.synchronize()
     elapsed = time.perf_counter() - start
-    picked = None if args.pick is None else pick(renderer, camera, iso, *args.size, *args.pick, clip=clip)
+    picked = None if args.pick is None else pick(renderer, camera, iso, *args.size, *args.pick, clip=clip,
+                                                 surfaces=surfaces)
     if out.suffix == ".npz":
         frame.save_npz(out)
     else:

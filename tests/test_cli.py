@@ -229,6 +229,16 @@ def test_render_prints_the_pick_under_a_pixel(tmp_path, capsys):
     assert "lies outside the 64x48 image" in capsys.readouterr().err and not (tmp_path / "x.png").exists()
 
 
+def test_render_picks_which_of_several_surfaces(tmp_path, capsys):
+    """With several --iso, --pick names the surface under the pixel: a sphere's distance field seen
+    from +z, the centre pixel on the outer of two nested spheres (listed second), a corner on none."""
+    for x, expected in ((16.5, 1), (0.5, None)):
+        assert main(["render", "proc:sphere@32", "--eye", "0,0,2", "--size", "33x33", "--iso=-0.1", "--iso", "0.1",
+                     "--pick", f"{x},{x}", "-o", str(tmp_path / "two.png")]) == 0
+        picked = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+        assert picked["surface"] == expected and picked["hit"] == (expected is not None)
+
+
 def test_render_colored_by_a_field(tmp_path, capsys):
     """--color-by (a volume of the grid, or the gradient), --colormap and --color-range reach the render, a plain
     one and a method's; a field of another grid and a bad colour map are refused naming them."""
@@ -279,7 +289,7 @@ def test_render_several_isos(tmp_path, capsys):
                          (["--iso", "0.1", "--iso", "0.2", "--iso-opacity", "1"], "one --iso-opacity per"),
                          ([f"--iso={v}" for v in (-0.2, -0.1, 0.0, 0.1, 0.2)], "at most 4 surfaces"),
                          (["--iso=-0.1", "--iso", "9"], "iso 9 is outside"),
-                         (["--iso=-0.1", "--iso", "0.1", "--pick", "3,3"], "take one --iso")):
+                         (["--iso=-0.1", "--iso", "0.1", "--budget-ms", "50"], "takes one --iso")):
         assert main(["render", "proc:sphere@32", *bad, "-o", str(out)]) == 2
         assert message in capsys.readouterr().err, bad
 
