@@ -353,7 +353,7 @@ def clip_query(text: str) -> ClipSettings:
     except msgspec.ValidationError as e:
         raise ProtocolError(_short(f"clip: {_relative(e)}")) from None
     except msgspec.DecodeError as e:
-        raise ProtocolError(f"clip: not JSON: {e}"[:200]) from None
+        raise ProtocolError(_short(f"clip: not JSON: {e}")) from None
 
 
 class ColoringSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
@@ -954,7 +954,7 @@ class UpscaleRequest(Message, tag="upscale"):
         _check_version(self.version)
         if not isinstance(self.mask, np.ndarray) or self.mask.ndim != 2:
             got = getattr(self.mask, "shape", self.mask)
-            raise ProtocolError(f"mask: must be a 2-D numpy array, got {got!r}"[:200])
+            raise ProtocolError(_short(f"mask: must be a 2-D numpy array, got {got!r}"))
         arrays = {n: getattr(self, n) for n in LOWRES_INPUTS if getattr(self, n) is not None}
         _check_arrays(arrays, ("float16", "float32"), *self.mask.shape, LOWRES_BOUNDS)
 
@@ -1073,7 +1073,7 @@ def convert(obj: Any, kind: type, where: str) -> Any:
     try:
         return msgspec.convert(obj, kind, builtin_types=(bytes,))
     except msgspec.ValidationError as e:
-        raise ProtocolError(f"{where}: {e}"[:200]) from None
+        raise ProtocolError(_short(f"{where}: {e}")) from None
 
 
 def parse(data: bytes, limits: Limits, expected: Mapping[str, type[Message]] | tuple[type[Message], ...]) -> Message:
@@ -1098,7 +1098,7 @@ def parse(data: bytes, limits: Limits, expected: Mapping[str, type[Message]] | t
     try:
         msg = _decoder(types, limits).decode(data)
     except ArrayTooBig as e:
-        raise ProtocolError(f"array {e}"[:200], CLOSE_TOO_BIG, 413) from None
+        raise ProtocolError(_short(f"array {e}"), CLOSE_TOO_BIG, 413) from None
     except msgspec.ValidationError as e:
         reason = str(e)
         if reason.endswith("`$.type`") or reason == "Object missing required field `type`":
@@ -1107,7 +1107,7 @@ def parse(data: bytes, limits: Limits, expected: Mapping[str, type[Message]] | t
             raise SettingRefused(_short(reason), seq=_seq_of(data)) from None
         raise ProtocolError(_short(reason)) from None
     except (msgspec.DecodeError, ValueError) as e:  # not msgpack, truncated, trailing bytes, extension types
-        raise ProtocolError(f"malformed msgpack: {e}"[:200]) from None
+        raise ProtocolError(_short(f"malformed msgpack: {e}")) from None
     except RecursionError:  # arrays / maps nested past msgspec's depth bound: the client's mistake, not a fault
         raise ProtocolError("malformed msgpack: nested too deeply") from None
     msg.check(limits)

@@ -463,6 +463,9 @@ def test_settings_update_and_size_limit():
             s.updated(update, LIMITS)
         assert e.value.close_code == P.CLOSE_BAD_MESSAGE
     assert s.updated({"ao_rays": 300}, P.Limits(max_ao_rays=512)).ao_rays == 300
+    with pytest.raises(P.ProtocolError) as e:  # a long bad value is cut, the field's path kept
+        s.updated({"coloring": {"by": "gradient", "colormap": "x" * 10_000}}, LIMITS)
+    assert len(e.value.reason) <= 200 and e.value.reason.endswith("- at `$.coloring.colormap`")
 
 
 def test_limits_validate():
