@@ -2,12 +2,14 @@
 encoding (video: :mod:`isosr_server.video`).
 
 JPEG runs on the GPU where the frame is (nvJPEG through ``torchvision.io.encode_jpeg`` on a
-CUDA tensor) when torchvision imports; everything else goes through OpenCV's ``cv2.imencode``
-on the CPU (libjpeg-turbo, libpng, libwebp; OpenCV is already a dependency of the renderer).
+CUDA tensor) when torchvision imports, several frames in one call (:func:`encode_jpegs`);
+everything else goes through OpenCV's ``cv2.imencode`` on the CPU (libjpeg-turbo, libpng, libwebp;
+OpenCV is already a dependency of the renderer).
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -43,9 +45,27 @@ def encoder_name(device: str, encoding: str) -> str:
     """Which encoder :func:`encode_image` (or a video encoder) uses for ``encoding`` on ``device`` (for reports)."""
     if encoding in video.CODECS:
         return video.describe(encoding)
-    if encoding == "jpeg" and _gpu_encode_jpeg is not None and torch.device(device).type == "cuda":
+    if encoding == "jpeg" and device_jpeg(device):
         return "nvjpeg (torchvision)"
     return f"opencv {cv2.__version__} (cpu)"
+
+
+def device_jpeg(device: torch.device | str) -> bool:
+    """Whether JPEGs of frames on ``device`` are encoded there (nvJPEG on CUDA where torchvision imports)."""
+    return _gpu_encode_jpeg is not None and torch.device(device).type == "cuda"
+
+
+def encode_jpegs(rgbs: Sequence[torch.Tensor], quality: int) -> list[bytes]:
+    """JPEGs of frames on a CUDA device (:func:`device_jpeg`), in one nvJPEG call and one copy of
+    their bytes to the host.
+
+    Shape:
+        rgbs: each (H, W, 3) uint8, on one CUDA device; sizes may differ.
+    """
+    coded = _gpu_encode_jpeg([rgb.permute(2, 0, 1).contiguous() for rgb in rgbs], quality=quality)
+    data = torch.cat(coded).cpu().numpy().tobytes()
+    ends = np.cumsum([c.numel() for c in coded]).tolist()
+    return [data[a:b] for a, b in zip([0] + ends[:-1], ends)]
 
 
 def encode_image(rgb: torch.Tensor, encoding: str, quality: int) -> bytes:
@@ -58,8 +78,8 @@ def encode_image(rgb: torch.Tensor, encoding: str, quality: int) -> bytes:
         raise ValueError(f"encode_image takes (H, W, 3) uint8, got {tuple(rgb.shape)} {rgb.dtype}")
     if not 1 <= quality <= 100:
         raise ValueError(f"quality must lie in [1, 100], got {quality}")
-    if encoding == "jpeg" and rgb.is_cuda and _gpu_encode_jpeg is not None:
-        return _gpu_encode_jpeg(rgb.permute(2, 0, 1).contiguous(), quality=quality).cpu().numpy().tobytes()
+    if encoding == "jpeg" and device_jpeg(rgb.device):
+        return encode_jpegs([rgb], quality)[0]
     params = {"png": (".png", [cv2.IMWRITE_PNG_COMPRESSION, PNG_LEVEL]),
               "jpeg": (".jpg", [cv2.IMWRITE_JPEG_QUALITY, quality]),
               "webp": (".webp", [cv2.IMWRITE_WEBP_QUALITY, quality])}

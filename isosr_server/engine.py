@@ -25,7 +25,7 @@ import os
 import threading
 import time
 from collections import OrderedDict
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import suppress
 from collections.abc import Awaitable, Callable, Generator
 from dataclasses import asdict, dataclass
@@ -49,7 +49,7 @@ from isosr_server.core.config import Settings
 from isosr_server.codecs.buffers import pack_view_buffers
 from isosr_server.codecs.buffers_device import view_buffer_codes
 from isosr_server.codecs import video
-from isosr_server.encoding import CodedImage, encode_image, encoder_name
+from isosr_server.encoding import CodedImage, device_jpeg, encode_image, encode_jpegs, encoder_name
 from isosr_server.protocol import (IMAGE_ENCODINGS, FocusMsg, ModeInfo, PickedMsg, PickMsg, ProtocolError,
                                    UpscaleRequest, ViewBuffers, ViewSettings, VolumeMemory)
 from isosr_server.views import FrameJob, SessionFrames, ViewContext, ViewFrame, mode_infos
@@ -112,6 +112,15 @@ class EncodedFrame:
     batch: int = 1
 
 
+@dataclass(frozen=True)
+class SharedCode:
+    """A frame's JPEG among its batch's, coded together (:func:`encode_jpegs`): the future of their
+    bytes and the frame's index in them."""
+
+    images: Future
+    index: int
+
+
 class Engine:
     """Owns the device: networks, renderers, encoders, and the thread all their work runs on."""
 
@@ -139,7 +148,7 @@ class Engine:
         self._idle.set()
         self._thread: threading.Thread | None = None
         # View frames asked for and not yet made (with their deadlines), and whether a batch job is queued to make them.
-        self._pending: list[tuple[SessionFrames, Renderer, FrameJob, asyncio.Future, float]] = []
+        self._pending: list[tuple[SessionFrames, Renderer, FrameJob, asyncio.Future, float, int | None]] = []
         self._batch_queued = False
         self._pending_lock = threading.Lock()
 
@@ -314,20 +323,23 @@ class Engine:
 
     async def view_frame(self, frames: SessionFrames, renderer: Renderer, job: FrameJob,
                          code: Callable[[torch.Tensor], CodedImage], video_frame: bool = False,
-                         deadline: float | None = None) -> Callable[[], Awaitable[EncodedFrame]]:
+                         deadline: float | None = None, jpeg: int | None = None
+                         ) -> Callable[[], Awaitable[EncodedFrame]]:
         """One view frame, made in slices of about ``slice_ms`` (:meth:`SessionFrames.steps`), each
         its own job on the device thread, so that other sessions' frames interleave with a heavy one;
         its codes made there too (:meth:`codes_sync`). Returns once the device is done with it: what
         it returns encodes it on an encoder thread (:func:`pack_codes`; ``code`` codes a shaded
         frame's colors; ``video_frame``: on a video encoder thread), while the device thread goes
         on with the next frame, this session's included (:func:`isosr_server.sessions.run_frames`).
-        ``deadline`` (``time.monotonic()``; default: now) orders the batches (:meth:`_batch_sync`)."""
+        ``deadline`` (``time.monotonic()``; default: now) orders the batches (:meth:`_batch_sync`).
+        ``jpeg``: the frame is coded as a JPEG of this quality, which lets a batch's JPEGs be coded
+        together on a device that encodes them (:func:`device_jpeg`; ``code`` is not called then)."""
         start = time.perf_counter()
         self._framing += 1
         self._idle.clear()
         try:
             due = time.monotonic() if deadline is None else deadline
-            made, codes, batch = await self._batched(frames, renderer, job, due)
+            made, codes, batch = await self._batched(frames, renderer, job, due, jpeg)
         finally:
             self._framing -= 1
             if not self._framing:
@@ -338,7 +350,10 @@ class Engine:
 
         async def encode() -> EncodedFrame:
             began = time.perf_counter()
-            image, buffers = await asyncio.get_running_loop().run_in_executor(pool, pack_codes, codes, code)
+            if isinstance(codes, SharedCode):
+                image, buffers = CodedImage((await asyncio.wrap_future(codes.images))[codes.index], "jpeg"), None
+            else:
+                image, buffers = await asyncio.get_running_loop().run_in_executor(pool, pack_codes, codes, code)
             done = time.perf_counter()
             times = made.result.times | {"encode": 1e3 * (done - began), "total": 1e3 * (done - start)}
             return EncodedFrame(image, buffers, times, made.legend, made.method.name, made.prev_seq, memory,
@@ -346,7 +361,7 @@ class Engine:
         return encode
 
     async def _batched(self, frames: SessionFrames, renderer: Renderer, job: FrameJob,
-                       deadline: float) -> tuple[ViewFrame, object, int]:
+                       deadline: float, jpeg: int | None) -> tuple[ViewFrame, object, int]:
         """A view frame, its codes and the frames made together with it (itself included), made in
         the next batch (:meth:`_batch_sync`): the frames of every session that asked meanwhile, one
         device-thread job for them all. A frame that runs in slices comes back as its steps and is
@@ -354,7 +369,7 @@ class Engine:
         loop = asyncio.get_running_loop()
         future = loop.create_future()
         with self._pending_lock:
-            self._pending.append((frames, renderer, job, future, deadline))
+            self._pending.append((frames, renderer, job, future, deadline, jpeg))
             start_batch, self._batch_queued = not self._batch_queued, True
         if start_batch:
             loop.run_in_executor(self._executor, self._batch_sync, loop)
@@ -367,19 +382,19 @@ class Engine:
     def _batch_sync(self, loop: asyncio.AbstractEventLoop) -> None:
         """Make the frames asked for since the last batch (device thread): each planned
         (:meth:`SessionFrames.plan`); those of one slice grouped by their runners' ``batch_key`` and
-        made by its ``make_batch``, the group with the earliest deadline first, then coded; those
-        that run in slices handed back as their steps. Each session's result or error goes to its
-        own future only. A batch takes what is pending when the thread gets to it and never waits
-        for more: no frame is held to fill one."""
+        made by its ``make_batch``, the group with the earliest deadline first, then coded (its JPEGs
+        together: :meth:`_shared_jpegs`); those that run in slices handed back as their steps. Each
+        session's result or error goes to its own future only. A batch takes what is pending when
+        the thread gets to it and never waits for more: no frame is held to fill one."""
         self._on_thread()
         with self._pending_lock:
             pending, self._pending, self._batch_queued = self._pending, [], False
         groups: dict[tuple, list] = {}
-        for frames, renderer, job, future, deadline in sorted(pending, key=lambda p: p[4]):
+        for frames, renderer, job, future, deadline, jpeg in sorted(pending, key=lambda p: p[4]):
             try:
                 plan = frames.plan(renderer, job)
                 if plan.runner.one_slice(self.slice_ms):
-                    groups.setdefault(plan.runner.batch_key(), []).append((frames, plan, future))
+                    groups.setdefault(plan.runner.batch_key(), []).append((frames, plan, future, jpeg))
                 else:
                     _resolve(loop, future, frames.planned_steps(plan, self.slice_ms))
             except Exception as e:  # noqa: BLE001 - this session's error, not its batch mates'
@@ -387,17 +402,35 @@ class Engine:
         for group in groups.values():  # in the order of their earliest deadlines (dicts keep insertion order)
             try:
                 results = type(group[0][1].runner).make_batch([(p.runner, p.job.camera, p.prev_camera)
-                                                               for _, p, _ in group])
+                                                               for _, p, _, _ in group])
             except Exception as e:  # noqa: BLE001 - a kind's batch failed as a whole: its sessions' error
                 results = [e] * len(group)
-            for (frames, plan, future), result in zip(group, results):
+            coded = []  # (future, made frame, codes, jpeg quality) of the frames made
+            for (frames, plan, future, jpeg), result in zip(group, results):
                 try:
                     if isinstance(result, Exception):
                         raise result
                     made = frames.made(plan, result)
-                    _resolve(loop, future, (made, self.codes_sync(made), len(group)))
+                    coded.append((future, made, self.codes_sync(made), jpeg))
                 except Exception as e:  # noqa: BLE001 - as above
                     _resolve(loop, future, error=e)
+            for future, made, codes in self._shared_jpegs(coded):
+                _resolve(loop, future, (made, codes, len(group)))
+
+    def _shared_jpegs(self, coded: list[tuple]) -> list[tuple]:
+        """``(future, made, codes)`` of a batch's frames, the codes of those coded as JPEGs of one quality
+        on a device that encodes them (:func:`device_jpeg`) replaced by their :class:`SharedCode`: one
+        encoder-thread job codes them together (nvJPEG), off the device thread."""
+        together: dict[int, list[int]] = {}
+        for i, (_, _, codes, jpeg) in enumerate(coded):
+            if jpeg is not None and isinstance(codes, torch.Tensor) and device_jpeg(codes.device):
+                together.setdefault(jpeg, []).append(i)
+        out = [(future, made, codes) for future, made, codes, _ in coded]
+        for quality, frames in together.items():
+            images = self._encoder.submit(encode_jpegs, [coded[i][2] for i in frames], quality)
+            for k, i in enumerate(frames):
+                out[i] = (coded[i][0], coded[i][1], SharedCode(images, k))
+        return out
 
     def codes_sync(self, made: ViewFrame) -> torch.Tensor | tuple:
         """A made frame's codes: its color quantized to uint8 on the device (the image to encode), or

@@ -4,6 +4,7 @@
 # `reconstruct` (1 AO ray) and `full`; then a py-spy profile of this tree's server at 16 sessions.
 #   bash scripts/measure_batching.sh stage [BASE]   # here: .ab/base = BASE's packages (default 736ccbe)
 #   bash scripts/measure_batching.sh run [ROUNDS]   # on the GPU machine, from the project root
+#   TREES=head PROFILE=0 bash scripts/measure_batching.sh run 1   # one tree, no profile
 # Results under $OUT (default /tmp/ab_out): ab_<base|head>_<round>/bench_cluster_1080p_cuda.json (the
 # rows: frames/s, p50/p99, stage times, GPU busy, the server's cores) and profile_server_*.json.
 # On the lab's lent machines .ab/ (git-ignored, a few MB) travels as a carried path beside the kit
@@ -19,7 +20,7 @@ case "${1:?stage or run}" in
         echo "staged $(git rev-parse --short "${2:-736ccbe}") in .ab/base ($(du -sh .ab/base | cut -f1))" ;;
     run)
         for round in $(seq "${2:-2}"); do
-            for tree in base head; do
+            for tree in ${TREES:-base head}; do
                 root=$([ "$tree" = head ] && pwd || echo "$PWD/.ab/base")
                 # from the tree's own folder: `python -m` puts the working directory first on sys.path
                 (cd "$root" && PYTHONPATH="$root:${PYTHONPATH:-}" python3 -m isosr_bench.bench_cluster --device cuda \
@@ -27,7 +28,7 @@ case "${1:?stage or run}" in
                     --failover-sessions 0 --out "$OUT/ab_${tree}_${round}")
             done
         done
-        python3 scripts/profile_server.py --device cuda --volume "$VOLUME" --mode reconstruct --ao 1 --sessions 16 \
-            --seconds 8 --out "$OUT" ;;
+        [ "${PROFILE:-1}" = 0 ] || python3 scripts/profile_server.py --device cuda --volume "$VOLUME" --mode reconstruct \
+            --ao 1 --sessions 16 --seconds 8 --out "$OUT" ;;
     *) echo "unknown step $1" >&2; exit 2 ;;
 esac

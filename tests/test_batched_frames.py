@@ -16,8 +16,9 @@ from server_fixtures import VOLUME, H, W, server_settings
 from isosr_net.methods import FrameRunner
 from isosr_render import open_volume, orbit
 from isosr_render.catalog import resolve_iso
+from isosr_server import engine as engine_module
 from isosr_server import protocol as P
-from isosr_server.encoding import CodedImage, encode_image
+from isosr_server.encoding import CodedImage, device_jpeg, encode_image
 from isosr_server.engine import Engine
 from isosr_server.views import VIEWS, FrameJob
 
@@ -28,6 +29,13 @@ MODES = [m for m in VIEWS if m != "auto"]  # auto's choice follows the device's 
 
 def png(rgb) -> CodedImage:
     return CodedImage(encode_image(rgb, "png", 90), "png")
+
+
+def jpeg(rgb) -> CodedImage:
+    return CodedImage(encode_image(rgb, "jpeg", JPEG_QUALITY), "jpeg")
+
+
+JPEG_QUALITY = 85
 
 
 @pytest.fixture(scope="module")
@@ -54,8 +62,8 @@ def batches(monkeypatch) -> list[int]:
 class Sessions:
     """``SESSIONS`` view sessions' device-side state on one volume, each orbiting from its own yaw."""
 
-    def __init__(self, engine: Engine, settings: list[P.ViewSettings]):
-        self.engine, self.settings = engine, settings
+    def __init__(self, engine: Engine, settings: list[P.ViewSettings], jpeg: bool = False):
+        self.engine, self.settings, self.jpeg = engine, settings, jpeg
         volume = open_volume(VOLUME)
         self.iso = resolve_iso(VOLUME, volume)
         self.renderer = asyncio.run(engine.call(engine.renderer_sync, VOLUME, volume))
@@ -66,7 +74,9 @@ class Sessions:
                         t, False, len(self.settings))
 
     async def one(self, k: int, t: int, deadline: float | None = None) -> bytes | P.ViewBuffers:
-        encode = await self.engine.view_frame(self.frames[k], self.renderer, self.job(k, t), png, deadline=deadline)
+        code, quality = (jpeg, JPEG_QUALITY) if self.jpeg else (png, None)
+        encode = await self.engine.view_frame(self.frames[k], self.renderer, self.job(k, t), code, deadline=deadline,
+                                              jpeg=quality)
         made = await encode()
         return made.image.data if made.image is not None else made.buffers
 
@@ -87,14 +97,15 @@ class Sessions:
         return await asyncio.gather(*tasks, return_exceptions=True)
 
 
-def alone(engine: Engine, settings: list[P.ViewSettings]) -> list[list]:
-    """Each session's frames made with nothing else asked for meanwhile."""
-    s = Sessions(engine, settings)
+def alone(engine: Engine, settings: list[P.ViewSettings], jpeg: bool = False) -> list[list]:
+    """Each session's frames made with nothing else asked for meanwhile (PNGs, or JPEGs coded alone)."""
+    s = Sessions(engine, settings, jpeg)
     return [[asyncio.run(s.one(k, t)) for t in range(FRAMES)] for k in range(len(settings))]
 
 
-def together(engine: Engine, settings: list[P.ViewSettings], cancel: tuple[int, int] | None = None) -> list[list]:
-    s = Sessions(engine, settings)
+def together(engine: Engine, settings: list[P.ViewSettings], cancel: tuple[int, int] | None = None,
+             jpeg: bool = False) -> list[list]:
+    s = Sessions(engine, settings, jpeg)
     out = [[] for _ in settings]
     for t in range(FRAMES):
         leaving = cancel[0] if cancel is not None and cancel[1] == t else None
@@ -238,3 +249,20 @@ def test_each_frame_says_how_many_frames_were_made_with_it(engine):
         return await asyncio.gather(*tasks)
     assert asyncio.run(batch_sizes(0)) == [1] * SESSIONS
     assert asyncio.run(batch_sizes(1)) == [SESSIONS] * SESSIONS
+
+
+def test_jpegs_of_a_batch_equal_those_coded_alone(engine, monkeypatch):
+    """Frames coded as JPEGs: made together, their bytes equal those of the frames made and coded alone;
+    where the device encodes JPEGs (nvJPEG), a batch's are coded in one call, else each by its session."""
+    calls: list[int] = []
+    encode_jpegs = engine_module.encode_jpegs
+
+    def counted(rgbs, quality):
+        calls.append(len(rgbs))
+        return encode_jpegs(rgbs, quality)
+    monkeypatch.setattr(engine_module, "encode_jpegs", counted)
+    settings = [view_settings(engine, "full")] * SESSIONS
+    expected = alone(engine, settings, jpeg=True)
+    calls.clear()
+    assert together(engine, settings, jpeg=True) == expected
+    assert calls == ([SESSIONS] * (FRAMES - 1) if device_jpeg(engine.device) else [])

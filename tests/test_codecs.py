@@ -5,7 +5,6 @@ encoder against a float64 definition of the codes, and the round trip's stated t
 from __future__ import annotations
 
 import math
-import time
 import tracemalloc
 import zlib
 
@@ -19,6 +18,8 @@ from isosr_server import protocol as P
 from isosr_server.codecs.arrays import ArrayTooBig, WireArray, decode_array, encode_array
 from isosr_server.codecs.buffers import decode_view_buffers
 from isosr_server.codecs.buffers_device import encode_view_buffers
+from isosr_render.image_codec import decode_image
+from isosr_server.encoding import device_jpeg, encode_jpegs
 
 LIMITS = P.Limits()
 BOUNDS = LIMITS.array_bounds()
@@ -272,3 +273,19 @@ def test_buffers_coding_is_smaller_than_float32():
                                                                     flow=flow).items()})
     coded = len(P.encode(encode_view_buffers(frame)))
     assert coded < 0.5 * sum(a.nbytes for a in (mask, normal, depth, flow))
+
+
+@pytest.mark.skipif(not device_jpeg(DEVICE), reason="nvJPEG: ISOSR_TEST_DEVICE=cuda with torchvision, on the GPU machine")
+def test_jpegs_coded_together_equal_those_coded_alone():
+    """nvJPEG over a list of frames of mixed sizes: each frame's bytes as its own call gives them, and the
+    image within JPEG's error of the frame."""
+    g = torch.Generator().manual_seed(3)
+    smooth = [torch.nn.functional.interpolate(torch.rand(1, 3, h // 8, w // 8, generator=g), size=(h, w),
+                                              mode="bilinear")[0].permute(1, 2, 0) for h, w in ((64, 96), (48, 48))]
+    frames = [(255 * f).round().to(torch.uint8).to(DEVICE) for f in smooth + smooth[:1]]
+    together = encode_jpegs(frames, 90)
+    assert together == [encode_jpegs([f], 90)[0] for f in frames]
+    for data, frame in zip(together, frames):
+        image = decode_image(data)
+        assert image.shape == tuple(frame.shape)
+        assert np.abs(image.astype(float) - frame.cpu().numpy()).mean() < 3.0

@@ -56,7 +56,8 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
             return await engine.view_frame(frames, shown.renderer, frame,
                                            lambda rgb: coder.code(rgb, plan),
                                            plan.encoding in VIDEO_ENCODINGS and not plan.refined,
-                                           deadline=time.monotonic() + session.interval)
+                                           deadline=time.monotonic() + session.interval,
+                                           jpeg=plan.quality if plan.encoding == "jpeg" else None)
 
         async def send(msg: Message) -> None:
             try:
