@@ -93,10 +93,21 @@ def _parts(values: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     return [tuple(np.ascontiguousarray(p) for p in level[low]) for low in _PARTS]
 
 
+def _box_parts(values: np.ndarray, pad: list[tuple[int, int]]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """:func:`_parts` of a box padded by ``pad`` (edge values); a Fortran-ordered box (NIfTI's) through its
+    transpose, a C-ordered view, so that the reductions run along memory (over 10x faster than across it)."""
+    padded = np.pad(values, pad, mode="edge") if any(p for _, p in pad) else values
+    if not padded.flags.f_contiguous or padded.flags.c_contiguous:
+        return _parts(padded)
+    flipped = dict(zip(_PARTS, _parts(padded.T)))
+    return [tuple(p.T for p in flipped[low[::-1]]) for low in _PARTS]
+
+
 def _histogram(values: np.ndarray) -> np.ndarray:
     """The count of each unsigned-viewed 8/16-bit value (cv2's histogram: several times np.bincount's
     speed, whose int64 cast of the voxels costs most; float32 counts, exact per call of < 2^24 voxels)."""
     bins = 1 << (8 * values.dtype.itemsize)
+    values = values.T if values.flags.f_contiguous else values  # rows along memory: no copy
     rows = unsigned_view(values).reshape(-1, values.shape[-1])
     step = max(1, (1 << 24) // rows.shape[1] - 1)
     counts = np.zeros(bins, np.int64)
@@ -175,8 +186,7 @@ def _scan_box(source: VoxelSource, box, stride: int, counted: bool, keep: bool) 
     device = unsigned_view(values) if keep else None
     counts = _histogram(values) if counted else None
     pad = [(0, -n % BRICK) for n in shape]
-    padded = np.pad(values, pad, mode="edge") if any(p for _, p in pad) else values
-    parts = _parts(padded)
+    parts = _box_parts(values, pad)
     finite, nonfinite = (parts[0][0].min(), parts[0][1].max()), (0, 0, 0)
     # NaN propagates through min and max: finite extremes mean finite voxels (the common case).
     if values.dtype.kind == "f" and not np.isfinite(finite).all():
@@ -186,7 +196,7 @@ def _scan_box(source: VoxelSource, box, stride: int, counted: bool, keep: bool) 
         finite = (values[ok].min(), values[ok].max()) if ok.any() else None
         empty = -np.inf if source.rescale[0] > 0 else np.inf  # the end that becomes the smallest original value
         values = np.where(nan, values.dtype.type(empty), values)
-        parts = _parts(np.pad(values, pad, mode="edge"))
+        parts = _box_parts(values, pad)
     sub = values[tuple(slice((-s.start) % stride, None, stride) for s in box)]
     return _BoxResult(box, finite, nonfinite, parts, counts, sub, device)
 

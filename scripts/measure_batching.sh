@@ -21,7 +21,7 @@ case "${1:?stage or run}" in
     run)
         for round in $(seq "${2:-2}"); do
             for tree in ${TREES:-base head}; do
-                root=$([ "$tree" = head ] && pwd || echo "$PWD/.ab/base")
+                root=$([ "$tree" = head ] && pwd || echo "$PWD/.ab/$tree")
                 # from the tree's own folder: `python -m` puts the working directory first on sys.path
                 (cd "$root" && PYTHONPATH="$root:${PYTHONPATH:-}" python3 -m isosr_bench.bench_cluster --device cuda \
                     --volume "$VOLUME" --replicas 0 --sessions 16,32 --cases reconstruct:1,full:0 --seconds 5 \

@@ -13,6 +13,7 @@ may contract into fused multiply-adds differently (:func:`assert_same_render`).
 from __future__ import annotations
 
 import contextlib
+from dataclasses import fields
 
 import numpy as np
 import pytest
@@ -21,7 +22,7 @@ from conftest import DEVICE
 from isosr_render import Renderer, RenderRequest, Volume, orbit, voxels
 from isosr_render.brick_pool import DeviceMemoryError, coarsen
 from isosr_render.procedural import SpheresSource
-from isosr_render.scan import BRICK
+from isosr_render.scan import BRICK, Scan, scan
 from isosr_render.voxels import ArraySource
 
 OUTPUTS = ("mask", "normal", "depth", "ao")
@@ -137,6 +138,25 @@ def test_bricks_range_and_counts_match_a_naive_reference_across_boxes(monkeypatc
         np.testing.assert_allclose(volume.bricks[i, j, k], (block.min(), block.max()), rtol=0, atol=1e-6)
     if dtype == "int16":
         np.testing.assert_array_equal(volume.counts, np.bincount(stored.ravel().astype(np.int64) + 32768, minlength=1 << 16))
+
+
+@pytest.mark.parametrize("dtype", ["uint8", "int16", "float32"])
+@pytest.mark.parametrize("shape", [(32, 24, 16), (29, 21, 19)])
+def test_a_fortran_ordered_box_scans_as_its_c_ordered_copy(dtype, shape):
+    """NIfTI's arrays are Fortran-ordered: summarized through their transpose, every field of the scan
+    equals the C-ordered copy's (padded odd sizes and non-finite values included)."""
+    stored = np.random.default_rng(4).integers(-100, 100, shape).astype(dtype)
+    if dtype == "float32":
+        stored[3, 4, 5], stored[20, 1, 2] = np.nan, np.inf
+    fortran = scan(ArraySource(np.asfortranarray(stored)))
+    c_order = scan(ArraySource(np.ascontiguousarray(stored)))
+    for field in fields(Scan):
+        got, want = getattr(fortran, field.name), getattr(c_order, field.name)
+        if isinstance(want, list):
+            for g, w in zip(got, want, strict=True):
+                np.testing.assert_array_equal(g, w, err_msg=field.name)
+        else:
+            np.testing.assert_array_equal(got, want, err_msg=field.name)
 
 
 def test_loading_reads_box_by_box(monkeypatch):
