@@ -31,9 +31,9 @@ from isosr_bench.sessions import run_sessions
 
 RATE_HZ = 100
 # A thread is named by the first of these functions found in its stacks.
-THREAD_KINDS = (("_advance", "device"), ("codes_sync", "device"), ("pack_codes", "encoder"),
-                ("encode_image", "encoder"), ("encode_jpegs", "encoder"), ("Server.run", "event loop"),
-                ("_run_once", "event loop"),
+THREAD_KINDS = (("_advance", "device"), ("_batch_sync", "device"), ("codes_sync", "device"),
+                ("pack_codes", "encoder"), ("encode_image", "encoder"), ("encode_jpegs", "encoder"),
+                ("Server.run", "event loop"), ("_run_once", "event loop"),
                 ("RenderPlan.launch.<locals>.band", "CPU render bands"))
 TOP = 20
 
