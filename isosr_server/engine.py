@@ -257,7 +257,7 @@ class Engine:
             task.add_done_callback(self._probes.discard)
 
     async def _run_probe(self, steps: Generator) -> None:
-        await self._run_steps(steps, self._wait_idle, self._log_slow_unit)
+        await self.run_steps(steps, self._wait_idle, self._log_slow_unit)
 
     @staticmethod
     def _log_slow_unit(seconds: float) -> None:
@@ -270,7 +270,7 @@ class Engine:
         with suppress(asyncio.TimeoutError):
             await asyncio.wait_for(self._idle.wait(), PROBE_WAIT_S)
 
-    async def _run_steps(self, steps: Generator, before_each: Callable[[], Awaitable[None]] | None = None,
+    async def run_steps(self, steps: Generator, before_each: Callable[[], Awaitable[None]] | None = None,
                          took: Callable[[float], None] | None = None):
         """A generator of slices run to its end, each slice its own job on the device thread (other
         jobs interleave between them); its result. ``before_each`` is awaited before every slice,
@@ -375,7 +375,7 @@ class Engine:
             loop.run_in_executor(self._executor, self._batch_sync, loop)
         out = await future
         if isinstance(out, Generator):
-            made = await self._run_steps(out)
+            made = await self.run_steps(out)
             return made, await self.call(self.codes_sync, made), 1
         return out
 
@@ -449,7 +449,7 @@ class Engine:
         Raises:
             ValueError: the library refuses the frame (e.g. fp16 with depths beyond its range).
         """
-        return await self._run_steps(self._upscale_steps(upscaler, request, time.perf_counter()))
+        return await self.run_steps(self._upscale_steps(upscaler, request, time.perf_counter()))
 
     def _upscale_steps(self, upscaler: Upscaler, request: UpscaleRequest, start: float) -> Generator:
         timer = StageTimer(self.device)

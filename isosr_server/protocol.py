@@ -258,8 +258,8 @@ class Limits(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
             the previous response.
         max_open_connections: most open connections (fewer where the descriptor limit leaves less
             room); those that sent no complete request yet are closed first to make room.
-        max_mesh_jobs: most mesh extractions under way at once, server-wide (more: 429); each holds
-            the device thread whole, so a view frame waits behind at most this many.
+        max_mesh_jobs: most mesh extractions under way at once, server-wide (more: 429); each runs
+            a slab at a time on the device thread, so a view frame waits behind at most this many slabs.
     """
 
     max_message_bytes: int = 32 * 2**20

@@ -1,5 +1,6 @@
 """Meshes out: marching cubes of a sphere's distance field (anisotropic spacing) against its area,
-volume and radius, the ray-cast surface, the file formats, the limits, clipped meshes and `isosr mesh`."""
+volume and radius, the ray-cast surface, the file formats, the limits, clipped meshes and `isosr mesh`;
+meshes made in slabs (the server's device-thread jobs) equal to the whole volume's."""
 
 from __future__ import annotations
 
@@ -11,7 +12,8 @@ import pytest
 from isosr_cli.main import main
 from isosr_render import Renderer, orbit
 from isosr_render.clip import Clip
-from isosr_render.mesh import MESH_FORMATS, Mesh, _cut_one, extract_mesh, write_mesh
+from isosr_net.inference import count_steps, finish_steps
+from isosr_render.mesh import MESH_FORMATS, MESH_SLAB_VOXELS, Mesh, MeshTooLarge, _cut_one, _slabs, extract_mesh, mesh_steps, write_mesh
 from isosr_render.picking import pick
 from isosr_render.volume import Volume
 
@@ -133,9 +135,10 @@ def test_a_plane_through_vertices_cuts_there_without_slivers():
     triangles of no area."""
     square = Mesh(np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], np.float32), np.array([[0, 1, 2], [0, 2, 3]]),
                   np.tile(np.array([[0, 0, 1]], np.float32), (4, 1)))
-    half = _cut_one(square, np.array([0.0, -1.0, 0.0, 1.0]))  # keeps x <= y: the diagonal 0-2 on the plane
+    half, ends = _cut_one(square, np.array([0.0, -1.0, 0.0, 1.0]))  # keeps x <= y: the diagonal 0-2 on the plane
     assert half.faces.tolist() == [[0, 1, 2]] and half.vertices.tolist() == [[0, 0, 0], [1, 1, 0], [0, 1, 0]]
-    corner = _cut_one(square, np.array([0.0, -1.0, -1.0, -1.0]))  # only vertex 0 kept, on the plane
+    assert ends.tolist() == [[0, -1], [2, -1], [3, -1]]  # all the square's own: no new vertex
+    corner, _ = _cut_one(square, np.array([0.0, -1.0, -1.0, -1.0]))  # only vertex 0 kept, on the plane
     assert len(corner.faces) == 0
 
 
@@ -172,3 +175,103 @@ def test_isosr_mesh_takes_the_clip_options(tmp_path, capsys):
     assert len(meshio.read(whole).points) > len(points) > 0
     assert main(["mesh", "proc:sphere@32", "--crop-box=0,0,0,0,0.2,0.2", "-o", str(tmp_path / "flat.ply")]) == 2
     assert "clip.box" in capsys.readouterr().err and not (tmp_path / "flat.ply").exists()
+
+
+# ---- slabs --------------------------------------------------------------------------------------
+
+
+def canonical(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``mesh``'s vertices and normals in sorted order and its faces on them, each rotated to start
+    at its least vertex (the winding kept) and sorted: equal for meshes equal up to ordering."""
+    order = np.lexsort(np.concatenate([mesh.vertices, mesh.normals], axis=1).T[::-1])
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    faces = rank[mesh.faces]
+    faces = np.take_along_axis(faces, (np.argmin(faces, axis=1)[:, None] + np.arange(3)) % 3, axis=1)
+    return mesh.vertices[order], mesh.normals[order], faces[np.lexsort(faces.T[::-1])]
+
+
+def in_slabs(volume: Volume, iso: float, planes: int, clip: Clip = Clip()) -> Mesh:
+    """The mesh made in slabs of ``planes`` z planes (at least two: the bound is in voxels)."""
+    return finish_steps(mesh_steps(volume, iso, DEVICE, clip=clip,
+                                   slab_voxels=planes * volume.shape[0] * volume.shape[1]))
+
+
+def assert_same_mesh(slabbed: Mesh, whole: Mesh) -> None:
+    assert len(slabbed.faces) == len(whole.faces) > 0
+    for a, b in zip(canonical(slabbed), canonical(whole)):
+        assert np.array_equal(a, b)
+
+
+def closed(mesh: Mesh) -> bool:
+    edges = np.sort(mesh.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    return set(np.unique(edges, axis=0, return_counts=True)[1]) == {2}
+
+
+@pytest.mark.parametrize("clip", [Clip(), HALF, Clip(HALF.planes, cap="below"), Clip(HALF.planes, cap="above"),
+                                  Clip(box=((-0.5, -0.5, -0.5), (0.0, 0.5, 0.5))),
+                                  Clip(planes=HALF.planes + (((0.05, 0.0, 0.0), (-1.0, 0.3, 0.2)),))],
+                         ids=["whole", "cut", "capped below", "capped above", "box", "two planes"])
+def test_slabs_give_the_whole_volumes_mesh(sphere, clip):
+    """Slabs of 2, 3 and 7 planes (the anisotropic sphere's 20 planes: many shared, one slab short)
+    weld to the whole volume's mesh: the same vertices, normals and faces up to ordering."""
+    volume, iso, _ = sphere
+    whole = extract_mesh(volume, iso, DEVICE, clip=clip)
+    assert len(_slabs(volume.shape, MESH_SLAB_VOXELS)) == 1  # extract_mesh: the whole volume at once here
+    for planes in (2, 3, 7):
+        slabbed = in_slabs(volume, iso, planes, clip)
+        assert_same_mesh(slabbed, whole)
+        assert len(np.unique(slabbed.vertices, axis=0)) == len(slabbed.vertices), "a vertex left twice"
+    if clip == Clip() or clip.cap == "below":  # (above: the outside, open at the volume's faces)
+        assert closed(whole)
+
+
+def test_slabs_weld_a_surface_through_voxels_on_their_shared_planes():
+    """The hard case: the iso equal to voxel values, on the planes slabs share: a rounded distance
+    field (its iso on whole voxels, rings of them on every plane) and a field rising with z whose
+    surface is a shared plane itself (vertices where the crossing ends). Marching cubes makes a vertex
+per crossed edge, so edges ending in one such voxel give coincident vertices: the whole volume's
+as many as the slabs'."""
+    grid = np.stack(np.meshgrid(*[np.arange(n) for n in (12, 10, 13)], indexing="ij"), -1).astype(np.float64)
+    rounded = Volume.from_array(np.rint(np.linalg.norm(grid - (5.5, 4.5, 6.0), axis=-1)).astype(np.float32))
+    rising = Volume.from_array(grid[..., 2].astype(np.float32), spacing=(1.0, 2.0, 0.5))
+    for volume, iso in ((rounded, rounded.normalized_iso(4.0)), (rising, rising.normalized_iso(4.0))):
+        iso = float(volume.data[0, 0, 6]) if volume is rising else iso
+        assert (volume.data == np.float32(iso)).any()
+        whole = extract_mesh(volume, iso, DEVICE)
+        for planes in (2, 3, 4):  # plane 6 (and 4) shared by two slabs in each
+            assert_same_mesh(in_slabs(volume, iso, planes), whole)
+        assert closed(whole) == (volume is rounded)
+
+
+@pytest.mark.parametrize("shape", [(2, 2, 2), (2, 3, 2), (3, 2, 3)])
+def test_tiny_volumes_fewer_planes_than_a_slab(shape):
+    data = np.zeros(shape, np.float32)
+    data[0, 0, 0] = 1.0
+    volume = Volume.from_array(data, spacing=(0.5, 1.0, 2.0))
+    whole = extract_mesh(volume, 0.5, DEVICE)
+    assert len(whole.faces) == 1
+    assert_same_mesh(in_slabs(volume, 0.5, 2), whole)
+    assert np.allclose(whole.vertices, [[0.25, 0, 0], [0, 0.5, 0], [0, 0, 1.0]])
+
+
+def cylinder(n: int) -> Volume:
+    """An ``n``-cube volume of a cylinder's distance field along z: its surface crosses every slab."""
+    x, y = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    radius = np.hypot(x - (n - 1) / 2, y - (n - 1) / 2)
+    return Volume.from_array(np.repeat(radius[:, :, None], n, axis=2).astype(np.float32))
+
+
+def test_a_mesh_is_made_in_steps_a_slab_each_and_refused_before_any_is_built():
+    """64^3 in slabs of 8 planes (7 cells each): 9 slabs, a step each to count the crossed cells,
+    then a step each to mesh them; over the triangle limit it raises after the counting steps."""
+    volume = cylinder(64)
+    iso = volume.normalized_iso(20.0)
+    steps, mesh = count_steps(mesh_steps(volume, iso, DEVICE, slab_voxels=64 * 64 * 8))
+    assert len(_slabs(volume.shape, 64 * 64 * 8)) == 9 and steps == 18 and len(mesh.faces) > 0
+    assert len(mesh.faces) == len(extract_mesh(volume, iso, DEVICE).faces)
+    refused = mesh_steps(volume, iso, DEVICE, max_triangles=100, slab_voxels=64 * 64 * 8)
+    for _ in range(9):
+        next(refused)
+    with pytest.raises(MeshTooLarge, match="more triangles than the limit of 100"):
+        next(refused)

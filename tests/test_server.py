@@ -213,6 +213,36 @@ def test_the_mesh_download_takes_a_views_clip(srv):
     assert status == 422 and b"zero volume" in body
 
 
+def test_a_mesh_download_is_a_device_thread_job_per_slab():
+    """The mesh route runs :func:`mesh_steps` through the engine, each step its own device-thread job
+    (other sessions' jobs queue between them): a 64^3 volume in 2^17-voxel slabs of 32 planes, 3
+    slabs, so 3 jobs counting crossed cells, 2 meshing (the last slab, planes 62-63, has no surface),
+    1 ending; the file equals the library's."""
+    import asyncio
+
+    from isosr_render import parse_procedural
+    from isosr_render.clip import Clip
+    from isosr_render.mesh import extract_mesh, mesh_bytes
+    from isosr_server.api.routes.volumes import mesh_file
+    from isosr_server.engine import Engine
+
+    engine, jobs = Engine(server_settings()), []
+    call = engine.call
+
+    async def counted(fn, *args):
+        jobs.append(fn.__name__)
+        return await call(fn, *args)
+    engine.call = counted
+    volume = parse_procedural("proc:torus@64")
+    try:
+        data = asyncio.run(mesh_file(engine, volume, "proc:torus@64", 0.5, 0.5, Clip(), "obj"))
+    finally:
+        engine.shutdown()
+    assert jobs == ["_advance"] * 6
+    library = mesh_bytes(extract_mesh(volume, 0.5, DEVICE), ".obj")
+    assert data.split(b"\n", 1)[1] == library.split(b"\n", 1)[1]  # past the header line ("Created by meshio ..., <time>")
+
+
 def test_full_mode_matches_the_library(srv, lib):
     with session(srv, mode="full", ao_rays=4) as (ws, ready):
         assert ready.settings.mode == "full" and ready.volume.iso == 0.0

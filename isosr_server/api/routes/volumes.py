@@ -9,9 +9,10 @@
                              the isosurface of iso V (data units; default the suggested one) as a
                              triangle mesh file in physical units (:mod:`isosr_render.mesh`), made
                              on the server's device, cut by ``clip`` (a view's ``settings.clip`` as
-                             JSON); 413 naming the limit for one too large, 422 for no surface,
-                             429 while ``limits.max_mesh_jobs`` others are under way (each holds the
-                             device thread whole: more queued would stall the view sessions' frames)
+                             JSON), a device-thread job per slab (:func:`isosr_render.mesh.mesh_steps`:
+                             the view sessions' frames interleave); 413 naming the limit for one too
+                             large, 422 for no surface, 429 while ``limits.max_mesh_jobs`` others are
+                             under way
     GET /v1/volumes/{name}/slices/{x|y|z}?index=K[&iso=V]
                              the orthogonal slice across that axis at voxel K as a PNG, the iso
                              contour (data units) drawn on it (:func:`isosr_render.slices.slice_image`)
@@ -21,7 +22,6 @@ from __future__ import annotations
 
 import asyncio
 import re
-from functools import partial
 from typing import Annotated, Literal
 
 import torch
@@ -29,7 +29,7 @@ from fastapi import APIRouter, Depends, Query, Response
 
 from isosr_render import Volume
 from isosr_render.clip import Clip
-from isosr_render.mesh import MESH_FORMATS, MeshTooLarge, extract_mesh, mesh_bytes
+from isosr_render.mesh import MESH_FORMATS, MeshTooLarge, mesh_bytes, mesh_steps
 from isosr_render.slices import AXES, slice_image
 from isosr_server.api.deps import CatalogDep, EngineDep, MeshJobsDep, require_token
 from isosr_server.encoding import encode_image
@@ -82,9 +82,10 @@ async def get_mesh(name: str, catalog: CatalogDep, engine: EngineDep, jobs: Mesh
 
 
 async def mesh_file(engine: Engine, volume: Volume, name: str, iso: float, normalized: float, cut: Clip, format: str) -> bytes:
-    """The ``format`` file of the isosurface of ``iso`` (``normalized``) of volume ``name``, cut by ``cut``."""
+    """The ``format`` file of the isosurface of ``iso`` (``normalized``) of volume ``name``, cut by ``cut``:
+    made a slab at a time on the device thread, written on another."""
     try:
-        mesh = await engine.call(partial(extract_mesh, clip=cut), volume, normalized, str(engine.device))
+        mesh = await engine.run_steps(mesh_steps(volume, normalized, str(engine.device), clip=cut))
     except ValueError as e:  # a limit (413) or a crop box of zero volume
         raise ProtocolError(str(e), http_status=413 if isinstance(e, MeshTooLarge) else 422) from None
     if len(mesh.faces) == 0:
