@@ -45,6 +45,13 @@ of device; ``rows_commit`` names their commit), without timing the methods again
 Volumes: the val volumes of the catalog, a simulation (hydrogen), and bonsai resampled to
 1024^3. ``--volumes`` and ``--sizes`` select; their rows replace those of the same volume and
 size in an existing ``pareto_<kind>.json`` and the others are kept, so a long run can be split.
+``--sizes`` also takes ``WxH`` (a small CPU run: ``--sizes 256x256``).
+
+Translucent surfaces (``--translucent A``): each scene's methods again on two surfaces, the volume's iso at opacity
+``A`` over the iso :data:`INNER_ISO_STEP` above it (the normalized scale; opaque: bone under skin), scored against
+references of the same surfaces (their two layers composited by the renderer), as rows of ``part: layers``
+(``surfaces``: ``[[iso, opacity], ...]``) beside the single surface's: what the second layer costs every method
+(each runs on both layers apart, then composites; ``full`` composites in its render).
 """
 
 from __future__ import annotations
@@ -59,6 +66,7 @@ import torch
 from isosr_render import Renderer, Volume, open_volume, orbit_path, resolve_iso
 from isosr_render.catalog import entry, manifest
 from isosr_render.sequence import sequence_cameras
+from isosr_render.surfaces import PALETTE, Surfaces
 from isosr_net.budget import (REFERENCE_AO_RAYS, REFERENCE_SPP, BudgetConfig, choose_method, probe_quality,
                               reference_frames)
 from isosr_net.flow_warp import warp_by_flow
@@ -76,6 +84,8 @@ NAME = "pareto"
 SELECT_NAME = "pareto_select"  # runs of some method kinds (--kinds), such as a quick A/B of two models
 SIZES = {"1080p": (1920, 1080), "4k": (3840, 2160)}
 SMOKE_SIZES = {"smoke": (96, 64)}
+# The inner surface of --translucent: this much above the volume's iso (normalized scale).
+INNER_ISO_STEP = 0.1
 EXTRA_VOLUMES = ("hydrogen", "bonsai1024")
 SMOKE_VOLUMES = {"sphere": "proc:sphere@32", "cloud": "proc:cloud:7@48"}
 FRAMES, SMOKE_FRAMES = 8, 3
@@ -171,12 +181,13 @@ def bench_cameras(frames: int):
 
 
 def pareto_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, int], size_name: str,
-                measured: list[FrameMethod], frames: int, warmup: int, device: str, networks: Networks) -> list[dict]:
-    """One row per method on one volume and size."""
+                measured: list[FrameMethod], frames: int, warmup: int, device: str, networks: Networks,
+                surfaces: Surfaces | None = None) -> list[dict]:
+    """One row per method on one volume and size (with ``surfaces``: of them, ``part: layers``)."""
     cameras = bench_cameras(frames)
     pairs = sequence_cameras(cameras)
     start = time.perf_counter()
-    refs = reference_frames(renderer, iso, size, cameras, flow=True)
+    refs = reference_frames(renderer, iso, size, cameras, flow=True, surfaces=surfaces)
     if device.startswith("cuda"):
         torch.cuda.synchronize()
     ref_s = time.perf_counter() - start
@@ -186,15 +197,17 @@ def pareto_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
           f"(plus compiling networks on first use)", flush=True)
     flicker_reference = scores(refs, refs)["flicker"]
     stamp = run_stamp(device)
+    part = {"part": "pareto"} if surfaces is None else {
+        "part": "layers", "surfaces": [[s.iso, s.opacity] for s in surfaces.items]}
     rows = []
     for method in measured:
-        runner = make_runner(method, renderer, iso, *size, networks=networks)
+        runner = make_runner(method, renderer, iso, *size, networks=networks, surfaces=surfaces)
         outs = [None] * frames
         t = time_frames(lambda i: runner.frame(*pairs[i]).buffers, frames, device, warmup=warmup,
                         keep=lambda i, buffers: outs.__setitem__(i, buffers.clone()))
         scored = scores(outs, refs, method.ao_rays)
         ratio = None if scored["flicker"] is None or not flicker_reference else scored["flicker"] / flicker_reference
-        rows.append({"part": "pareto", "volume": volume, "size": size_name, "pixels": f"{size[0]}x{size[1]}",
+        rows.append({**part, "volume": volume, "size": size_name, "pixels": f"{size[0]}x{size[1]}",
                      "method": method.name, "kind": method.kind, "learned": method.learned,
                      "ao_rays": method.ao_rays, "spp": method.spp, "factor": method.factor,
                      "ms": mean_ms(t), "wall_ms": t["wall_ms"],
@@ -344,13 +357,17 @@ def merge(path: Path, rows: list[dict]) -> list[dict]:
 def main(argv=None) -> list[dict]:
     parser = bench_parser(__doc__)
     parser.add_argument("--volumes", default="", help="comma-separated volume names (default: all)")
-    parser.add_argument("--sizes", default="", help=f"comma-separated sizes of {','.join(SIZES)} (default: all)")
+    parser.add_argument("--sizes", default="", help=f"comma-separated sizes of {','.join(SIZES)} or WxH "
+                        "(default: all named)")
     parser.add_argument("--models", default="", help="more networks: NAME=MODEL_FOLDER,...")
     parser.add_argument("--kinds", default="", help="comma-separated method kinds to measure (default: all); a "
                         f"selection (this, --spp, --ao-rays) skips the budget part and is written to "
                         f"{SELECT_NAME}_<device>.json")
     parser.add_argument("--spp", default="", help="comma-separated rays per pixel: only methods with those")
     parser.add_argument("--ao-rays", default="", help="comma-separated AO rays per hit: only methods with those")
+    parser.add_argument("--translucent", type=float, default=None, metavar="A",
+                        help="also measure each scene with the iso at opacity A over a surface inside it (rows of "
+                        "part layers; default: none)")
     parser.add_argument("--budget-only", action="store_true",
                         help="only the policy's part, scored by the methods' rows of each scene that the result "
                         "file in --out holds (measured on this kind of device; its budget rows name their commit)")
@@ -365,9 +382,15 @@ def main(argv=None) -> list[dict]:
     sizes = SMOKE_SIZES if args.smoke else SIZES
     size_names = [s.strip().lower() for s in args.sizes.split(",") if s.strip()] or list(sizes)
     names = [s.strip() for s in args.volumes.split(",") if s.strip()] or volume_names(args.smoke)
+    sizes = {**sizes, **{s: tuple(int(n) for n in s.split("x")) for s in size_names
+                         if s not in sizes and s.replace("x", "", 1).isdigit() and s.count("x") == 1}}
     unknown = [s for s in size_names if s not in sizes]
     if unknown:
-        parser.error(f"unknown sizes {unknown}; choose from {', '.join(sizes)}")
+        parser.error(f"unknown sizes {unknown}; choose from {', '.join(sizes)} or WxH")
+    if args.translucent is not None and not 0.0 <= args.translucent < 1.0:
+        parser.error(f"--translucent must be in [0, 1) (an opacity below 1), got {args.translucent}")
+    if args.translucent is not None and args.budget_only:
+        parser.error("--budget-only scores the policy on one surface: give no --translucent")
     known = list(SMOKE_VOLUMES) if args.smoke else [e["name"] for e in manifest()] + ["bonsai1024"]
     unknown = [n for n in names if n not in known]
     if unknown:
@@ -405,15 +428,20 @@ def main(argv=None) -> list[dict]:
                 scene = pareto_rows(renderer, iso, name, size, size_name, fitting, frames,
                                     SMOKE_WARMUP if args.smoke else WARMUP, args.device, networks)
             rows += scene
+            if args.translucent is not None:
+                surfaces = Surfaces.of([(iso, PALETTE[0], args.translucent),
+                                        (min(1.0, iso + INNER_ISO_STEP), PALETTE[1])])
+                rows += pareto_rows(renderer, iso, name, size, size_name, fitting, frames,
+                                    SMOKE_WARMUP if args.smoke else WARMUP, args.device, networks, surfaces)
             if not selection:  # the policy chooses among every method
                 rows += budget_rows(renderer, iso, name, size, size_name, fitting, scene,
                                     SMOKE_BUDGETS if args.smoke else BUDGETS, networks, args.smoke)
         del renderer, volume
     name = SELECT_NAME if selection else NAME  # the study's own file keeps whole scenes
     merged = merge(args.out / f"{name}_{kind}.json", rows)
-    print_table([r for r in rows if r["part"] == "pareto"],
-                ["volume", "size", "method", "ms", "color_psnr", "color_ssim", "image_psnr", "ao_rmse", "flicker",
-                 "flicker_ratio"])
+    print_table([r for r in rows if r["part"] in ("pareto", "layers")],
+                ["volume", "size", "part", "method", "ms", "color_psnr", "color_ssim", "image_psnr", "ao_rmse",
+                 "flicker", "flicker_ratio"])
     print_table([r for r in rows if r["part"] == "budget"],
                 ["volume", "size", "budget_ms", "method", "fits", "probe_ms", "color_psnr", "best_fixed",
                  "best_fixed_psnr"])

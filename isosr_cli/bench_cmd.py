@@ -27,13 +27,16 @@ def add_parser(subparsers) -> None:
                    help="instead: every way to make a frame, timed and scored (pareto_<kind>.json), and the budget "
                         "policy against the best fixed setting")
     p.add_argument("--volumes", default="", help="with --pareto: comma-separated volumes (rows merge into the file)")
-    p.add_argument("--sizes", default="", help="with --pareto: comma-separated sizes of 1080p,4k")
+    p.add_argument("--sizes", default="", help="with --pareto: comma-separated sizes of 1080p,4k or WxH")
     p.add_argument("--kinds", default="", help="with --pareto: comma-separated method kinds (a quick A/B of models: "
                    "reconstruct,svgf; no budget part; pareto_select_<kind>.json)")
     p.add_argument("--spp", default="", help="with --pareto: only methods of these comma-separated rays per pixel "
                    "(a selection, as --kinds)")
     p.add_argument("--ao-rays", default="", help="with --pareto: only methods of these comma-separated AO rays per "
                    "hit (a selection, as --kinds)")
+    p.add_argument("--translucent", type=float, default=None, metavar="A",
+                   help="with --pareto: also every method on the iso at opacity A over a surface inside it (rows "
+                   "of part layers beside the single surface's; default: none)")
     p.add_argument("--budget-only", action="store_true", help="with --pareto: only the policy's part, scored by "
                    "the methods' rows the result file holds (measured on this kind of device)")
     p.set_defaults(func=run)
@@ -45,9 +48,10 @@ def run(args: argparse.Namespace) -> int:
     from isosr_bench import (bench_knobs, bench_network, bench_pareto, bench_pipeline, bench_render, bench_server,
                              bench_volume_memory, report)
 
-    if (args.volumes or args.sizes or args.kinds or args.spp or args.ao_rays or args.budget_only) and not args.pareto:
-        raise ValueError("--volumes, --sizes, --kinds, --spp, --ao-rays and --budget-only select what --pareto "
-                         "measures; give --pareto too")
+    if (args.volumes or args.sizes or args.kinds or args.spp or args.ao_rays or args.budget_only
+            or args.translucent is not None) and not args.pareto:
+        raise ValueError("--volumes, --sizes, --kinds, --spp, --ao-rays, --translucent and --budget-only select what "
+                         "--pareto measures; give --pareto too")
 
     studies = [] if args.pareto else [s.strip() for s in args.only.split(",") if s.strip()]
     unknown = sorted(set(studies) - set(STUDIES + ON_REQUEST))
@@ -61,7 +65,8 @@ def run(args: argparse.Namespace) -> int:
         print("== pareto")
         bench_pareto.main(argv + ["--volumes", args.volumes, "--sizes", args.sizes, "--models", args.models,
                                   "--kinds", args.kinds, "--spp", args.spp, "--ao-rays", args.ao_rays]
-                          + ["--budget-only"] * args.budget_only)
+                          + ["--budget-only"] * args.budget_only
+                          + ([] if args.translucent is None else ["--translucent", str(args.translucent)]))
     modules = {"network": bench_network, "pipeline": bench_pipeline, "knobs": bench_knobs, "render": bench_render,
                "server": bench_server, "memory": bench_volume_memory}
     for study in studies:

@@ -87,7 +87,7 @@ def add_parser(subparsers) -> None:
                    help="the colour (each in [0, 1]) of the --iso of the same place; none: a palette in turn")
     p.add_argument("--iso-opacity", type=float, action="append", default=[], metavar="A",
                    help="the opacity in [0, 1] of the --iso of the same place (default 1); below 1 the rays go on "
-                        "to the next surface and the two layers are composited (plain renders and --method full)")
+                        "to the next surface and the two layers are composited (any shaded --method: it runs on each layer)")
     p.add_argument("--size", type=frame_size, default=(640, 480), help="image size WxH")
     cam = p.add_argument_group("camera (world frame: box centered at 0, longest side 1)")
     cam.add_argument("--eye", type=_triple, help="camera position x,y,z")

@@ -66,6 +66,7 @@ from isosr_render.sequence import sequence_cameras
 from isosr_render.shading import ShadingParams, shade
 from isosr_render.conventions import AO_RADIUS
 from isosr_render.shapes import check_int
+from isosr_render.surfaces import Surfaces
 from isosr_net.methods import RUNNERS, FrameMethod, FrameRunner, Networks, finish_steps, make_runner
 from isosr_net.metrics import eval_region, masked_psnr
 from isosr_net.reconnet import RayLimits
@@ -305,31 +306,35 @@ def _check_size_and_budget(width: int, height: int, budget_ms: float) -> None:
 
 def reference_frames(renderer: Renderer, iso: float, size: tuple[int, int], cameras: list[Camera],
                      ao_radius: float = AO_RADIUS, shading: ShadingParams = ShadingParams(),
-                     flow: bool = False, clip: Clip = Clip()) -> list[FrameBuffers]:
+                     flow: bool = False, clip: Clip = Clip(),
+                     surfaces: Surfaces | None = None) -> list[FrameBuffers]:
     """High-effort reference frames along a camera path: mask, normal, AO (4 rays per pixel, 512
     AO rays, the reference's own AO seed) and color with AO, cut by ``clip`` (its cut faces shaded
     as the methods shade them); with ``flow``, each frame's flow from the previous camera too
-    (zeros for the first).
+    (zeros for the first); with ``surfaces``, of theirs (the colour the renderer's: translucent ones'
+    two layers composited).
 
     Shape:
         Per frame: mask, ao (H, W); normal, color (H, W, 3); flow (H, W, 2).
     """
-    return finish_steps(reference_frames_steps(renderer, iso, size, cameras, ao_radius, shading, flow, clip=clip))
+    return finish_steps(reference_frames_steps(renderer, iso, size, cameras, ao_radius, shading, flow, clip=clip,
+                                               surfaces=surfaces))
 
 
 def reference_frames_steps(renderer: Renderer, iso: float, size: tuple[int, int], cameras: list[Camera],
                            ao_radius: float = AO_RADIUS, shading: ShadingParams = ShadingParams(),
                            flow: bool = False, bands: int = 1,
-                           clip: Clip = Clip()) -> Generator[None, None, list[FrameBuffers]]:
+                           clip: Clip = Clip(),
+                           surfaces: Surfaces | None = None) -> Generator[None, None, list[FrameBuffers]]:
     """:func:`reference_frames` in ``bands`` row bands per frame, yielding between them (a band's
     pixels are the whole frame's, bit for bit: each pixel's rays depend on its index alone)."""
     frames = []
     for camera, prev in sequence_cameras(cameras):
         outputs = (("mask", "normal", "ao") + (("flow",) if flow and prev is not None else ())
-                   + (("cap",) if clip.capped else ()))
+                   + (("cap",) if clip.capped else ()) + (("color",) if surfaces is not None else ()))
         request = RenderRequest(*size, iso, outputs, spp=REFERENCE_SPP, ao_samples=REFERENCE_AO_RAYS,
                                 ao_radius=ao_radius, seed=REFERENCE_SEED, prev_camera=prev if flow else None,
-                                clip=clip)
+                                shading=shading, clip=clip, surfaces=surfaces)
         edges = [round(size[1] * k / bands) for k in range(bands + 1)]
         ref = None
         for start, stop in zip(edges, edges[1:]):
@@ -341,7 +346,7 @@ def reference_frames_steps(renderer: Renderer, iso: float, size: tuple[int, int]
                     getattr(ref, name)[start:stop] = getattr(band, name)[start:stop]
             if stop < size[1]:
                 yield
-        ref.color = shade(ref.mask, ref.normal, ref.ao, shading, cap=ref.cap)
+        ref.color = shade(ref.mask, ref.normal, ref.ao, shading, cap=ref.cap) if surfaces is None else ref.color
         if flow and ref.flow is None:
             ref.flow = torch.zeros(*ref.mask.shape, 2, device=ref.mask.device)
         frames.append(ref)

@@ -513,11 +513,16 @@ def surface_albedo(surfaces: Surfaces, table_index: torch.Tensor) -> tuple[torch
     """The ``surface`` buffer (indices of ``surfaces.items``, -1 where none), ``albedo`` (their colours, 0 where
     none) and their opacities (1 where none) of the kernels' per-pixel indices into the iso table (ascending isos,
     :meth:`Surfaces.table`)."""
-    order, colors, opacities = _surface_tables(surfaces, table_index.device)
+    order, colors, _ = _surface_tables(surfaces, table_index.device)
     # Rows a frame did not render hold anything (a focus region's, a band's yet to come): bounded first.
     index = torch.nan_to_num(table_index, nan=-1.0).clamp(-1.0, len(surfaces.items) - 1.0).long()
     surface = order[index]  # -1 indexes the last entry: none
-    return surface, colors[surface.long()], opacities[surface.long()]
+    return surface, colors[surface.long()], surface_opacity(surfaces, surface)
+
+
+def surface_opacity(surfaces: Surfaces, surface: torch.Tensor) -> torch.Tensor:
+    """The opacity of each pixel's surface, of the ``surface`` buffer (indices of ``surfaces.items``; -1, none: 1)."""
+    return _surface_tables(surfaces, surface.device)[2][surface.long()]
 
 
 @functools.lru_cache(maxsize=16)

@@ -428,9 +428,9 @@ class ViewSettings(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         t: a series' time step (module docstring), below ``ready.volume.steps``.
         surfaces: up to 4 isosurfaces shown together (:class:`SurfaceSettings`, distinct isos), each ray
             stopping at the nearest, each in its colour; empty: the session's one iso (``iso``), as before.
-            With a translucent one the frames are full-resolution renders (the mode's method composites one
-            layer), the frame's ``method`` says so. Not with a coloring, nor on a volume rendered sparse (refused:
-            422).
+            With a translucent one every shaded mode runs its method on both layers and composites them;
+            ``buffers`` mode (one layer, unshaded) sends full-resolution renders then (the frame's ``method``
+            says so). Not with a coloring, nor on a volume rendered sparse (refused: 422).
     """
 
     mode: ModeName = "auto"

@@ -293,8 +293,8 @@ class SessionFrames:
             return FramePlan(job, renderer, method, runner, None, -1, None)
         view = VIEWS[st.mode]
         method = view.method(st, self.ctx, self, renderer, job)
-        if surfaces is not None and surfaces.layers > 1 and not method.runner.layered:
-            method = FrameMethod.of("full", ao_rays=st.ao_rays, spp=st.spp)  # the one kind that composites layers
+        if surfaces is not None and surfaces.layers > 1 and not method.runner.shaded:
+            method = FrameMethod.of("full", ao_rays=st.ao_rays, spp=st.spp)  # buffers: one layer sent unshaded
         prev_camera, prev_seq = self._prev or (None, -1)
         runner, prev_camera = self.stream.runner_for(method, renderer, iso, st.width, st.height, prev_camera,
                                                      st.ao_radius, keep, shaded, clip, coloring, surfaces)

@@ -185,6 +185,26 @@ def test_a_selection_of_sampling_measures_only_those_methods(tmp_path):
     assert not (tmp_path / "pareto_cpu.json").exists()
 
 
+def test_translucent_rows_stand_beside_the_single_surface_s(tmp_path, capsys):
+    """``--translucent``: each method again on a translucent surface over an inner one, rows of part ``layers`` with
+    the surfaces, scored against references of the same surfaces; an opacity of 1 (no second layer) is refused."""
+    from isosr_cli.main import main as cli
+
+    assert cli(["bench", "--pareto", "--smoke", "--out", str(tmp_path), "--volumes", "sphere", "--kinds",
+                "full,atrous", "--ao-rays", "2", "--spp", "1", "--translucent", "0.3"]) == 0
+    rows = json.loads((tmp_path / "pareto_select_cpu.json").read_text())["rows"]
+    single, layers = ([r for r in rows if r["part"] == part] for part in ("pareto", "layers"))
+    assert [r["method"] for r in layers] == [r["method"] for r in single] == ["full, AO 2, spp 1", "full, AO 2, a-trous"]
+    for r in layers:
+        assert [s[1] for s in r["surfaces"]] == [0.3, 1.0] and r["surfaces"][1][0] > r["surfaces"][0][0]
+        assert r["ms"] > 0 and math.isfinite(r["color_psnr"]) and 0 <= r["color_ssim"] <= 1
+    assert cli(["bench", "--smoke", "--translucent", "0.3"]) == 2
+    assert "give --pareto too" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cli(["bench", "--pareto", "--smoke", "--translucent", "1"])
+    assert "--translucent must be in [0, 1)" in capsys.readouterr().err
+
+
 def _row(method, kind, ms, psnr, ao_rays=0, spp=1):
     return {"method": method, "kind": kind, "ms": ms, "color_psnr": psnr, "ao_rays": ao_rays, "spp": spp,
             "learned": kind in ("reconstruct", "network")}

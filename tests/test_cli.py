@@ -273,16 +273,19 @@ def test_render_several_isos(tmp_path, capsys):
     assert main(["render", "proc:sphere@32", "--eye", "0,0,2", "--size", "33x33", "--outputs", "mask,surface",
                  "--iso=-0.1", "--iso", "0.1", "-o", str(out)]) == 0
     assert float(FrameBuffers.load_npz(out).surface[16, 16]) == 1.0
-    # The outer one at 0: the inner one's colour in the middle; a method that composites one layer refuses it.
-    assert main(["render", "proc:sphere@32", "--eye", "0,0,2", "--size", "33x33", "--outputs", "mask,depth,color",
-                 "--iso=-0.1", "--iso", "0.1", "--iso-color", "0,0,1", "--iso-color", "1,0,0", "--iso-opacity", "1",
-                 "--iso-opacity", "0", "--method", "full", "-o", str(out)]) == 0
-    frame = FrameBuffers.load_npz(out)
-    assert frame.color[16, 16, 2] > 2 * frame.color[16, 16, 0] and abs(float(frame.depth[16, 16]) - 1.6) < 1e-2
+    # The outer one at 0: the inner one's colour in the middle, by full and by a filter run on each layer; an
+    # unshaded method refuses it.
+    for method in ("full", "atrous:ao_rays=1"):
+        assert main(["render", "proc:sphere@32", "--eye", "0,0,2", "--size", "33x33", "--outputs", "mask,depth,color",
+                     "--iso=-0.1", "--iso", "0.1", "--iso-color", "0,0,1", "--iso-color", "1,0,0", "--iso-opacity",
+                     "1", "--iso-opacity", "0", "--method", method, "-o", str(out)]) == 0
+        frame = FrameBuffers.load_npz(out)
+        assert frame.color[16, 16, 2] > 2 * frame.color[16, 16, 0] and abs(float(frame.depth[16, 16]) - 1.6) < 1e-2, \
+            method
     capsys.readouterr()
     assert main(["render", "proc:sphere@32", "--iso=-0.1", "--iso", "0.1", "--iso-opacity", "1", "--iso-opacity",
-                 "0.3", "--method", "atrous:ao_rays=1", "-o", str(out)]) == 2
-    assert "translucent surfaces" in capsys.readouterr().err
+                 "0.3", "--method", "buffers", "-o", str(out)]) == 2
+    assert "surfaces: translucent ones" in capsys.readouterr().err
     for bad, message in ((["--iso", "0.1", "--iso-color", "1,0,0", "--iso-color", "0,1,0"], "one --iso-color per"),
                          (["--iso", "0.1", "--iso-color", "1,2,0"], "surfaces[0].color must be three numbers"),
                          (["--iso", "0.1", "--iso-opacity", "2"], "surfaces[0].opacity must be in [0, 1]"),

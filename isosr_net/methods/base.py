@@ -29,9 +29,9 @@ from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest
 from isosr_render.clip import Clip
 from isosr_render.color_field import ColorField
 from isosr_render.conventions import AO_RADIUS
-from isosr_render.renderer import MAX_AO_SAMPLES, MAX_SPP
+from isosr_render.renderer import MAX_AO_SAMPLES, MAX_SPP, surface_opacity
 from isosr_render.sequence import sequence_cameras
-from isosr_render.shading import ShadingParams, shade_on
+from isosr_render.shading import ShadingParams, composite, shade_on
 from isosr_render.shapes import check_int
 from isosr_render.surfaces import Surfaces
 
@@ -328,9 +328,17 @@ class FrameRunner(ABC):
             makes its ``albedo``, which the shading uses at the frame size; None: the material's colour.
         surfaces: several isosurfaces (:mod:`isosr_render.surfaces`; ``iso`` must be their first): every ray
             cast stops at the nearest, the render's ``albedo`` (their colours) as a coloring's; None: ``iso``.
-            Translucent ones only where the kind is ``layered`` (else ValueError).
-        layered: composites the two layers of translucent surfaces (the render's ``color``); the other kinds
-            refuse them (their filters and networks see one layer).
+            With translucent ones the render makes two layers: a ``layered`` kind composites them itself; another
+            shaded kind runs its :meth:`finish` on each layer apart, the second by :attr:`behind`, and composites
+            the colours (:meth:`finish_layers`); an unshaded kind refuses them (ValueError).
+        layer: 0, the stream's runner; 1, the :attr:`behind` twin of one (translucent surfaces' second layer).
+        layered: composites the two layers of translucent surfaces itself (the render's ``color``).
+
+    Attributes:
+        behind: with translucent surfaces on a shaded kind that is not ``layered``, the twin that finishes the second
+            layer: the same method and settings, its own state (filter history, a copy of the network sharing the
+            weights: :meth:`RecurrentNetwork.own`). None otherwise: opaque surfaces cost nothing more.
+        prev_camera: the camera the frame being made continues from (None: a cut).
     """
 
     kind: ClassVar[str]
@@ -352,9 +360,10 @@ class FrameRunner(ABC):
                  shading: ShadingParams = ShadingParams(), ao_radius: float = AO_RADIUS,
                  networks: Networks | None = None, atrous: ATrousConfig = ATrousConfig(), keep: tuple[str, ...] = (),
                  shade: bool = True, clip: Clip = Clip(), coloring: ColorField | None = None,
-                 surfaces: Surfaces | None = None):
+                 surfaces: Surfaces | None = None, layer: int = 0):
         check_int(width, "width", 1, where="frame")
         check_int(height, "height", 1, where="frame")
+        check_int(layer, "layer", 0, 1, where="frame")
         if (reason := self.unavailable()) is not None:
             raise RuntimeError(f"{method.name} cannot run here: {reason}")
         if width % method.factor or height % method.factor:
@@ -365,20 +374,28 @@ class FrameRunner(ABC):
         self.shade, self.clip, self.coloring, self.surfaces = shade, clip, coloring, surfaces
         if surfaces is not None and self.iso != surfaces.iso:
             raise ValueError(f"{method.name}: iso must be the first surface's ({surfaces.iso}), got {self.iso}")
-        if surfaces is not None and surfaces.layers > 1 and not self.layered:
-            raise ValueError(f"{method.name}: translucent surfaces (an opacity below 1) are composited by the full "
-                             f"method only: make them opaque or use full")
+        translucent = surfaces is not None and surfaces.layers > 1
+        if translucent and not self.shaded:
+            raise ValueError(f"{method.name}: surfaces: translucent ones (an opacity below 1) need a shaded method "
+                             f"(this kind sends one layer's buffers unshaded): make them opaque or pick another")
         self.device = str(renderer.device)
         self._last_timer: StageTimer | None = None  # the previous frame's (read lazily: no sync per frame)
         self.frames = 0  # frames made: with fresh_rays, the next frame's AO seed
+        self.layer, self.prev_camera = layer, None
+        networks = Networks() if networks is None else networks
         self.net: RecurrentNetwork | None = None
         if self.network_class is not None:
-            networks, options = Networks() if networks is None else networks, method.options
+            options = method.options
             self.net = networks.get(self.network_class, Path(options.model or self.default_model), self.device,
                                     options.precision)
             if self.net.upscale_factor != method.factor:
                 raise ValueError(f"{method.name}: the model upscales x{self.net.upscale_factor}, not x{method.factor}")
+            self.net = self.net.own() if layer else self.net
             self.net.reset()
+        self.behind: FrameRunner | None = None
+        if translucent and shade and not self.layered and not layer:
+            self.behind = type(self)(method, renderer, iso, width, height, shading, ao_radius, networks, atrous,
+                                     shade=shade, clip=clip, coloring=coloring, surfaces=surfaces, layer=1)
 
     @classmethod
     def unavailable(cls) -> str | None:
@@ -427,6 +444,7 @@ class FrameRunner(ABC):
         outputs = self.outputs() + tuple(k for k in self.keep if k not in self.makes(self.method) and k != "flow")
         outputs += ("flow",) if flow else ()
         outputs += ("cap",) if self.shade and self.clip.capped else ()
+        outputs += ("surface",) if self.behind is not None else ()  # the layers' opacities (finish_layers)
         m = self.method
         seed = {"seed": (FIRST_TEMPORAL_SEED + self.frames) % 2 ** 31} if self.fresh_rays else {}
         return RenderRequest(self.width // m.factor, self.height // m.factor, self.iso, outputs,
@@ -482,11 +500,12 @@ class FrameRunner(ABC):
         """
         timer = StageTimer(self.device)
         request = self.render_request(prev_camera)
+        self.prev_camera = prev_camera
         if self.one_slice(slice_ms):
             rendered, buffers = self.render_finish(camera, request, timer)
         else:
             rendered = yield from self._render_bands(camera, request, slice_ms, timer)
-            buffers = self.finish(rendered, timer)
+            buffers = self.finish_layers(rendered, timer)
         return self._made(rendered, buffers, [timer], prev_camera)
 
     def _made(self, rendered: FrameBuffers, buffers: FrameBuffers, timers: list[StageTimer],
@@ -501,10 +520,37 @@ class FrameRunner(ABC):
 
     def render_finish(self, camera: Camera, request: RenderRequest,
                       timer: StageTimer) -> tuple[FrameBuffers, FrameBuffers]:
-        """A frame in one slice: ``(rendered, finished)``, the ray cast then :meth:`finish`."""
+        """A frame in one slice: ``(rendered, finished)``, the ray cast then :meth:`finish_layers`."""
         with timer("render"):
             rendered = self.renderer.render(camera, request)
-        return rendered, self.finish(rendered, timer)
+        return rendered, self.finish_layers(rendered, timer)
+
+    def finish_layers(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
+        """:meth:`finish`; with a :attr:`behind` twin, also the twin's on the second layer (``rendered.behind``),
+        the frame's ``color`` then both composited front to back by the front surface's opacity as the renderer
+        composites them (:func:`~isosr_render.shading.composite`), its ``behind`` the twin's buffers."""
+        front = self.finish(rendered, timer)
+        if self.behind is None:
+            return front
+        self.behind.prev_camera = self.prev_camera
+        front.behind = self.behind.finish(rendered.behind, timer)
+        with timer("shading"):
+            front.color = composite(front.color, front.behind.color, self.opacity(rendered))
+        return front
+
+    def opacity(self, rendered: FrameBuffers) -> torch.Tensor:
+        """The opacity of each pixel's surface in a layer ``rendered`` with its ``surface`` (1 where none), at the
+        frame size.
+
+        Shape:
+            Returns (H, W).
+        """
+        return self._to_frame_size("opacity", surface_opacity(self.surfaces, rendered.surface))
+
+    def coverage(self, mask: torch.Tensor, rendered: FrameBuffers) -> torch.Tensor:
+        """The ``mask`` (at the frame size) the colour is shaded with: the second layer's covers the background by
+        its surface's opacity too (what lies behind it is not seen, as the renderer's); the first's as it is."""
+        return mask * self.opacity(rendered) if self.layer else mask
 
     def _render_bands(self, camera: Camera, request: RenderRequest, slice_ms: float,
                       timer: StageTimer) -> Generator[None, None, FrameBuffers]:
@@ -541,8 +587,9 @@ class FrameRunner(ABC):
                 if getattr(rendered, name) is not None:
                     setattr(buffers, name, self._to_frame_size(name, getattr(rendered, name)))
             with timer("shading"):
-                buffers.color = shade_on(buffers.mask.device.type)(buffers.mask, buffers.normal, buffers.ao,
-                                                                  self.shading, buffers.cap, buffers.albedo)
+                buffers.color = shade_on(buffers.mask.device.type)(self.coverage(buffers.mask, rendered),
+                                                                  buffers.normal, buffers.ao, self.shading, buffers.cap,
+                                                                  buffers.albedo)
         return buffers
 
     def _to_frame_size(self, name: str, t: torch.Tensor) -> torch.Tensor:

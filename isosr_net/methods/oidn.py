@@ -63,9 +63,9 @@ class OIDNRunner(FrameRunner):
         buffers = FrameBuffers(mask=rendered.mask, normal=rendered.normal, cap=rendered.cap, albedo=rendered.albedo)
         if self.shade:
             with timer("shading"):
-                shade = shade_on(rendered.mask.device.type)
-                noisy = shade(rendered.mask, rendered.normal, rendered.ao, self.shading, rendered.cap, rendered.albedo)
-                albedo = shade(rendered.mask, rendered.normal, None, self.shading, rendered.cap, rendered.albedo)
+                shade, mask = shade_on(rendered.mask.device.type), self.coverage(rendered.mask, rendered)
+                noisy = shade(mask, rendered.normal, rendered.ao, self.shading, rendered.cap, rendered.albedo)
+                albedo = shade(mask, rendered.normal, None, self.shading, rendered.cap, rendered.albedo)
             with timer("filter"):
                 denoised = oidn.denoise(noisy, albedo, rendered.normal, self.method.options.quality)
                 # OIDN filters the background too: where nothing was hit, the background (the albedo's) stays.

@@ -157,15 +157,15 @@ class ReconstructRunner(FrameRunner):
         """As :meth:`FrameRunner.make_batch`, with one wait for the device: each stream's frame issues
         its work without reading its input checks, which are read after the last (on a GPU the host's
         work for one frame overlaps the device's for the one before). On the devices in
-        :data:`BATCHED_NETWORK_DEVICES`, streams whose networks run ungraphed (the service's) render
-        their frames one by one, then the network runs once over them all
+        :data:`BATCHED_NETWORK_DEVICES`, streams whose networks run ungraphed (the service's), on one layer
+        (opaque surfaces), render their frames one by one, then the network runs once over them all
         (:meth:`Reconstructor.reconstruct_batch`; the frames' ``network`` stage is their batch's).
         A frame whose checks fail is its stream's error and leaves its stream as it was, as alone."""
         before = [(runner.frames, runner._last_timer) for runner, _, _ in frames]
         for runner, _, _ in frames:
             runner.net.defer_checks()
         if len(frames) > 1 and torch.device(frames[0][0].device).type in BATCHED_NETWORK_DEVICES and \
-                not any(runner.net.graphs for runner, _, _ in frames):
+                not any(runner.net.graphs or runner.behind is not None for runner, _, _ in frames):
             results = cls._network_batch(frames)
         else:
             results = super().make_batch(frames)

@@ -2,22 +2,14 @@
 
 from __future__ import annotations
 
-from collections.abc import Generator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
 
 from isosr_net.filters.svgf import SVGFConfig, SVGFHistory, svgf_filter
-from isosr_net.methods.base import (
-    FrameMethod,
-    FrameResult,
-    FrameRunner,
-    RayOptions,
-    count,
-    register_runner,
-)
+from isosr_net.methods.base import FrameMethod, FrameRunner, RayOptions, count, register_runner
 from isosr_net.timing import StageTimer
-from isosr_render import Camera, FrameBuffers
+from isosr_render import FrameBuffers
 from isosr_render.renderer import MAX_AO_SAMPLES
 
 
@@ -45,7 +37,6 @@ class SVGFRunner(FrameRunner):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self.history: SVGFHistory | None = None
-        self._prev_camera: Camera | None = None
 
     @classmethod
     def bench_methods(cls, smoke: bool, device: str, model: tuple[str, Path] | None = None) -> list[FrameMethod]:
@@ -63,16 +54,11 @@ class SVGFRunner(FrameRunner):
     def makes(cls, m: FrameMethod) -> tuple[str, ...]:
         return ("mask", "normal", "ao")
 
-    def steps(self, camera: Camera, prev_camera: Camera | None = None,
-              slice_ms: float | None = None) -> Generator[None, None, FrameResult]:
-        self._prev_camera = prev_camera  # the view the history is reprojected from
-        return (yield from super().steps(camera, prev_camera, slice_ms))
-
     def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
         flow = None if rendered.flow is None else rendered.flow.permute(2, 0, 1)[None]
         with timer("filter"):
             ao, self.history = svgf_filter(rendered.ao[None, None], rendered.mask[None, None],
                                            rendered.normal.permute(2, 0, 1)[None], rendered.depth[None, None],
-                                           rendered.position.permute(2, 0, 1)[None], flow, self._prev_camera,
+                                           rendered.position.permute(2, 0, 1)[None], flow, self.prev_camera,
                                            self.history, self.config, self.atrous)
         return self.colored(FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=ao[0, 0]), timer, rendered)
