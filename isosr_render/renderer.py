@@ -414,15 +414,20 @@ class Renderer:
         return cls(Volume.from_source(source, sink=sink), device, dense=dense, **kwargs)
 
     def _upload_dense(self) -> wp.array:
-        """Stream the volume's source to a dense device array, box by box (host memory: a few boxes)."""
+        """Stream the volume's source to a dense device array, box by box (host memory: a few boxes);
+        float32 as stored where it may be, normalized there in one pass (:attr:`Volume.raw_float32`)."""
         volume = self.volume
         dense = wp.empty(volume.shape, dtype=STORE_TYPES[volume.storage.name], device=self.device)
+        raw = volume.raw_float32
 
         def read(box):
-            return box, volume.device_box(np.asarray(volume.source.read(*box)))
+            stored = np.asarray(volume.source.read(*box))
+            return box, stored if raw else volume.device_box(stored)
 
         for box, values in map_bounded(read, boxes(volume.source), voxels.READ_THREADS):
             write_box(dense, box, values)
+        if raw:
+            volume.normalize_float32_(wp.to_torch(dense))
         return dense
 
     @functools.cached_property

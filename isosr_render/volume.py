@@ -6,7 +6,7 @@ The renderer samples normalized values in [0, 1]. On the device, voxels keep a n
 |---|---|---|
 | uint8, int8, bool | uint8: ``stored`` (+128 for int8) | ``(device - d0) * a`` in the kernels |
 | uint16, int16 | uint16: ``stored`` (+32768 for int16) | ``(device - d0) * a`` in the kernels |
-| float32, float64, int32, uint32 | float32 normalized on the host, non-finite replaced | ``device`` (d0 = 0, a = 1) |
+| float32, float64, int32, uint32 | float32 normalized, non-finite replaced | ``device`` (d0 = 0, a = 1) |
 
 ``d0`` is the device value of the smallest original value, an integer: the kernels subtract
 it from each voxel exactly before interpolating, so a narrow range far from zero keeps its
@@ -14,7 +14,10 @@ precision.
 
 int16 becomes uint16 with an offset (rather than a third integer type in the kernels): one
 kernel type for both, exact, and DICOM's rescale folds into ``(d0, a)``. Floats are normalized
-before upload (in float64 where needed) so that huge ranges (1e38) keep their precision.
+before upload (in float64 where needed) so that huge ranges (1e38) keep their precision; float32
+without a rescale whose span float32 holds (:attr:`Volume.raw_float32`) travels as stored and is
+normalized where it lands, in one pass on the device (:meth:`Volume.normalize_float32_`, the same
+float32 arithmetic as on the host).
 
 :meth:`Volume.from_source` reads the source once (:func:`~isosr_render.scan.scan`) for the value
 range, the min-max bricks and Otsu's subsample; the renderer then streams the source again box
@@ -28,6 +31,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import torch
 
 from isosr_render.conventions import world_from_voxel
 from isosr_render.scan import BRICK, Scan, native_integer, scan, unsigned_view
@@ -128,10 +132,31 @@ class Volume:
         """Bytes of the whole volume on the device (dense)."""
         return int(np.prod(self.shape, dtype=np.int64)) * self.storage.itemsize
 
+    @property
+    def raw_float32(self) -> bool:
+        """Whether the device values are the stored float32 ones normalized by the range alone (no rescale, a
+        span float32 holds): they may travel as stored and be normalized where they land (:meth:`normalize_float32_`)."""
+        lo, hi = self.value_range
+        with np.errstate(over="ignore"):
+            span_fits = bool(np.isfinite(np.float32(hi) - np.float32(lo)))
+        return (self.storage.kind == "f" and np.dtype(self.source.dtype) == np.float32
+                and tuple(self.source.rescale) == (1.0, 0.0) and span_fits)
+
+    def normalize_float32_(self, values: torch.Tensor) -> torch.Tensor:
+        """Stored float32 values (where :attr:`raw_float32`) made device values in place, on any device: NaN and
+        -inf to the range's min, +inf to its max, then ``(v - lo) * (1 / span)`` in float32, clipped to [0, 1]."""
+        lo, hi = self.value_range
+        span = hi - lo
+        values.nan_to_num_(nan=lo, posinf=hi, neginf=lo)
+        values.sub_(lo).mul_(1.0 / span if span > 0 else 0.0)
+        return values.clamp_(0.0, 1.0)
+
     def device_box(self, stored: np.ndarray) -> np.ndarray:
         """Stored values of a box as the device holds them (``storage``; see the module table)."""
         if self.storage.kind == "u":
             return unsigned_view(stored)
+        if self.raw_float32:
+            return self.normalize_float32_(torch.from_numpy(np.array(stored, np.float32))).numpy()
         slope, intercept = self.source.rescale
         lo, hi = self.value_range
         values = stored.astype(np.float32 if stored.dtype == np.float32 else np.float64, copy=False)

@@ -159,6 +159,28 @@ def test_a_fortran_ordered_box_scans_as_its_c_ordered_copy(dtype, shape):
             np.testing.assert_array_equal(got, want, err_msg=field.name)
 
 
+@pytest.mark.parametrize("values", ["spread", "constant", "huge"])
+def test_float32_normalized_on_the_device_equals_the_host_and_a_float64_reference(values):
+    """float32 travels as stored and is normalized where it lands (where its span fits float32): the device's
+    voxels equal the host's normalization of the same box bit for bit and a float64 reference within float32's
+    rounding; non-finite voxels at the range's ends. Past float32's span, the host normalizes (in float64)."""
+    rng = np.random.default_rng(5)
+    stored = {"spread": rng.normal(1e3, 50.0, (21, 17, 13)), "constant": np.full((9, 9, 9), 3.0),
+              "huge": rng.uniform(-3e38, 3e38, (9, 9, 9))}[values].astype(np.float32)
+    if values == "spread":
+        stored[1, 2, 3], stored[4, 4, 4], stored[5, 5, 5] = np.nan, np.inf, -np.inf
+    with pytest.warns(UserWarning) if values == "spread" else contextlib.nullcontext():
+        volume = Volume.from_source(ArraySource(stored))
+    assert volume.raw_float32 == (values != "huge")
+    renderer = Renderer(volume, DEVICE)
+    on_device = renderer.voxels.numpy()
+    np.testing.assert_array_equal(on_device, volume.device_box(stored))
+    lo, hi = volume.value_range
+    reference = np.nan_to_num(stored.astype(np.float64), nan=lo, posinf=hi, neginf=lo)
+    reference = np.clip((reference - lo) / (hi - lo) if hi > lo else 0.0 * reference, 0.0, 1.0)
+    np.testing.assert_allclose(on_device, reference, rtol=0, atol=2e-6)
+
+
 def test_loading_reads_box_by_box(monkeypatch):
     monkeypatch.setattr(voxels, "BOX_BYTES", 100_000)
     source = _CountingSource((96, 80, 72), "uint16", chunks=(32, 32, 32))
