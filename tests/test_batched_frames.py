@@ -10,12 +10,14 @@ from __future__ import annotations
 import asyncio
 import threading
 
+import numpy as np
 import pytest
-from server_fixtures import VOLUME, H, W, server_settings
+from server_fixtures import DEVICE, VOLUME, H, W, server_settings
 
 from isosr_net.methods import FrameRunner
 from isosr_render import open_volume, orbit
 from isosr_render.catalog import resolve_iso
+from isosr_render.image_codec import decode_image
 from isosr_server import engine as engine_module
 from isosr_server import protocol as P
 from isosr_server.encoding import CodedImage, device_jpeg, encode_image
@@ -25,6 +27,22 @@ from isosr_server.views import VIEWS, FrameJob
 SESSIONS = 3
 FRAMES = 3  # the first runs alone (a new runner's frame runs in slices); the others in batches
 MODES = [m for m in VIEWS if m != "auto"]  # auto's choice follows the device's load, not the frames
+
+
+def same(got: list, expected: list) -> bool:
+    """Whether a session's frames equal the expected ones: bit for bit on the CPU; on CUDA, where a batch's
+    network call rounds otherwise than one frame's (its kernels at another batch size), images within one
+    level in at most 0.1% of their values (the float32 colours within about 1e-5, quantized)."""
+    if DEVICE == "cpu" or len(got) != len(expected):
+        return got == expected
+    for g, e in zip(got, expected):
+        if isinstance(g, bytes) and isinstance(e, bytes):
+            a, b = (decode_image(x).astype(np.int16) for x in (g, e))
+            if a.shape != b.shape or np.abs(a - b).max() > 1 or (a != b).mean() > 1e-3:
+                return False
+        elif g != e:
+            return False
+    return True
 
 
 def png(rgb) -> CodedImage:
@@ -127,7 +145,7 @@ def test_frames_made_together_equal_those_made_alone(engine, batches, mode):
     settings = [view_settings(engine, mode)] * SESSIONS
     expected = alone(engine, settings)
     batches.clear()
-    assert together(engine, settings) == expected
+    assert all(map(same, together(engine, settings), expected))
     assert batches == [SESSIONS] * (FRAMES - 1), "after their first frames, the sessions' frames met in one batch"
 
 
@@ -143,8 +161,8 @@ def test_a_cut_in_one_session_changes_nothing_in_the_others(engine):
             s.settings = [settings[0], view_settings(engine, "full"), settings[2]]
         for k, frame in enumerate(asyncio.run(s.together(t, list(range(SESSIONS))))):
             got[k].append(frame)
-    assert got[0] == expected[0] and got[2] == expected[2]
-    assert got[1][:2] == expected[1][:2] and got[1][2] != expected[1][2]
+    assert same(got[0], expected[0]) and same(got[2], expected[2])
+    assert same(got[1][:2], expected[1][:2]) and not same(got[1][2:], expected[1][2:])
 
 
 def test_a_session_s_failure_is_its_own(engine, monkeypatch):
@@ -167,7 +185,7 @@ def test_a_session_s_failure_is_its_own(engine, monkeypatch):
         for k, frame in enumerate(asyncio.run(s.together(t, list(range(SESSIONS))))):
             got[k].append(frame)
     assert isinstance(got[1][-1], RuntimeError) and "lost this frame" in str(got[1][-1])
-    assert got[0] == expected[0] and got[2] == expected[2]
+    assert same(got[0], expected[0]) and same(got[2], expected[2])
 
 
 def test_a_session_that_leaves_mid_batch_leaves_the_others_theirs(engine):
@@ -175,7 +193,7 @@ def test_a_session_that_leaves_mid_batch_leaves_the_others_theirs(engine):
     expected = alone(engine, settings)
     got = together(engine, settings, cancel=(1, 1))
     assert isinstance(got[1][1], asyncio.CancelledError)
-    assert got[0] == expected[0] and got[2] == expected[2]
+    assert same(got[0], expected[0]) and same(got[2], expected[2])
 
 
 def test_mixed_sizes_form_their_own_batches(engine, batches):
@@ -225,8 +243,8 @@ def test_a_nan_in_one_session_s_buffers_fails_that_session_only(engine, monkeypa
         if t == 1:
             poisoned_camera = None
     assert isinstance(got[1][1], ValueError) and "NaN" in str(got[1][1]), got[1][1]
-    assert got[0] == expected[0] and got[2] == expected[2]
-    assert got[1][0] == expected[1][0] and isinstance(got[1][2], bytes), "the session goes on"
+    assert same(got[0], expected[0]) and same(got[2], expected[2])
+    assert same(got[1][:1], expected[1][:1]) and isinstance(got[1][2], bytes), "the session goes on"
 
 
 def test_each_frame_says_how_many_frames_were_made_with_it(engine):
