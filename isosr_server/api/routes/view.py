@@ -17,12 +17,13 @@ from fastapi import APIRouter, WebSocket
 
 from isosr_server.api.deps import AuthorizedDep, CatalogDep, EngineDep, LimitsDep, MetricsDep, ViewSessionsDep
 from isosr_server.api.ws import accept, end_ws, rate_limiter, receive
-from isosr_server.engine import Engine
+from isosr_server.engine import EncodedFrame, Engine
+from isosr_server.metrics import ServerMetrics
 from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, CLOSE_IDLE, VIDEO_ENCODINGS, FocusMsg, FrameMsg, Limits,
                                    Message, NoticeMsg, OpenMsg, PickMsg, ProtocolError, ReadyMsg, SettingRefused,
                                    SettingsMsg, ViewSettings, VolumeSummary, encode, parse, surfaces_of)
-from isosr_server.sessions import (DEFAULT_CAMERA, SessionCounter, StepView, ViewSession, ViewState, run_frames,
-                                   to_camera, watch_acks)
+from isosr_server.sessions import (DEFAULT_CAMERA, SessionCounter, StepView, ViewJob, ViewSession, ViewState,
+                                   run_frames, to_camera, watch_acks)
 from isosr_server.video import SessionCoder
 from isosr_server.views import FrameJob
 from isosr_server.volumes import VolumeCatalog, coloring_field, load_volume, session_iso
@@ -47,34 +48,9 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
         counted = True
         metrics.sessions.labels("view").set(view_sessions.count)
         session, shown = await open_view(ws, opened, limits, catalog, engine, view_sessions)
-        frames = engine.new_session_frames(session.volume_name)
-
-        async def make(job):
-            plan = job.plan
-            await shown.show(job.frame.settings.t)
-            frame = replace(shown.job(job.frame), field=shown.field)
-            return await engine.view_frame(frames, shown.renderer, frame,
-                                           lambda rgb: coder.code(rgb, plan),
-                                           plan.encoding in VIDEO_ENCODINGS and not plan.refined,
-                                           deadline=time.monotonic() + session.interval,
-                                           jpeg=plan.quality if plan.encoding == "jpeg" else None)
-
-        async def send(msg: Message) -> None:
-            try:
-                await asyncio.wait_for(ws.send_bytes(encode(msg)), limits.idle_timeout_s)
-            except TimeoutError:
-                raise ProtocolError(f"the client read no frame for {limits.idle_timeout_s:g} s", CLOSE_IDLE,
-                                    408) from None
-            if isinstance(msg, FrameMsg):
-                metrics.frame("view", msg.mode, msg.refined, msg.times, msg.nbytes, msg.batch)
-
-        async def answer(msg: PickMsg) -> None:  # at once, between frames, on the current view (its step)
-            s = session.state
-            job = shown.job(FrameJob(s.settings, s.camera, s.iso, s.focus, 0, False, 1))
-            await send(await engine.call(engine.pick_sync, shown.renderer, job, msg))
-
-        tasks = [asyncio.create_task(run_frames(session, make, send)),
-                 asyncio.create_task(take_updates(ws, limiter, limits, session, answer, catalog, shown)),
+        link = ViewLink(ws, engine, metrics, limits, session, shown, coder)
+        tasks = [asyncio.create_task(run_frames(session, link.make, link.send)),
+                 asyncio.create_task(take_updates(ws, limiter, limits, session, link.answer, catalog, shown)),
                  asyncio.create_task(watch_acks(session))]
         done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         for task in done:
@@ -89,6 +65,43 @@ async def view(ws: WebSocket, authorized: AuthorizedDep, engine: EngineDep, cata
         if counted:
             view_sessions.release()
             metrics.sessions.labels("view").set(view_sessions.count)
+
+
+class ViewLink:
+    """An open view session's traffic: its frames made on the engine and coded by its coder, messages
+    sent within the idle timeout (frames counted in the metrics), and picks answered."""
+
+    def __init__(self, ws: WebSocket, engine: Engine, metrics: ServerMetrics, limits: Limits, session: ViewSession,
+                 shown: StepView, coder: SessionCoder):
+        self.ws, self.engine, self.metrics, self.limits = ws, engine, metrics, limits
+        self.session, self.shown, self.coder = session, shown, coder
+        self.frames = engine.new_session_frames(session.volume_name)
+
+    async def make(self, job: ViewJob) -> Callable[[], Awaitable[EncodedFrame]]:
+        """Make ``job``'s frame on the step it shows (:func:`run_frames`' maker); returns its encoding."""
+        plan, shown = job.plan, self.shown
+        await shown.show(job.frame.settings.t)
+        frame = replace(shown.job(job.frame), field=shown.field)
+        return await self.engine.view_frame(self.frames, shown.renderer, frame, lambda rgb: self.coder.code(rgb, plan),
+                                            plan.encoding in VIDEO_ENCODINGS and not plan.refined,
+                                            deadline=time.monotonic() + self.session.interval,
+                                            jpeg=plan.quality if plan.encoding == "jpeg" else None)
+
+    async def send(self, msg: Message) -> None:
+        """Send ``msg``; a client that reads nothing for ``idle_timeout_s`` ends the session (CLOSE_IDLE)."""
+        timeout = self.limits.idle_timeout_s
+        try:
+            await asyncio.wait_for(self.ws.send_bytes(encode(msg)), timeout)
+        except TimeoutError:
+            raise ProtocolError(f"the client read no frame for {timeout:g} s", CLOSE_IDLE, 408) from None
+        if isinstance(msg, FrameMsg):
+            self.metrics.frame("view", msg.mode, msg.refined, msg.times, msg.nbytes, msg.batch)
+
+    async def answer(self, msg: PickMsg) -> None:
+        """A pick, at once, between frames, on the current view (its step)."""
+        s = self.session.state
+        job = self.shown.job(FrameJob(s.settings, s.camera, s.iso, s.focus, 0, False, 1))
+        await self.send(await self.engine.call(self.engine.pick_sync, self.shown.renderer, job, msg))
 
 
 async def take_updates(ws: WebSocket, limiter, limits: Limits, session: ViewSession,
