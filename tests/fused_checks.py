@@ -442,7 +442,7 @@ def test_other_architectures_fuse_too(blocks):
     torch.manual_seed(3)
     net = ReconNet(ReconNetConfig(widths=(16, 16, 32, 64), blocks=blocks)).to(DEVICE).eval()
     fused = fused_reconnet(net)
-    inputs, warped = recon_batch(1, 11, 19, seed=31).to(DEVICE), rand(1, 6, 11, 19, seed=32).sigmoid()
+    inputs, warped = recon_batch(1, 6, 9, seed=31).to(DEVICE), rand(1, 6, 6, 9, seed=32).sigmoid()
     with torch.no_grad():
         got = fused(inputs, warped)
     torch.testing.assert_close(got, reference(net, inputs, warped)[0], rtol=0, atol=2e-3)
@@ -451,7 +451,7 @@ def test_other_architectures_fuse_too(blocks):
     with torch.no_grad():
         for _, run in passes:
             run()
-    assert [name for name, _ in passes] == list(fused_traffic(11, 19, net.config, warp=False))
+    assert [name for name, _ in passes] == list(fused_traffic(6, 9, net.config, warp=False))
     torch.testing.assert_close(results["output"], got, rtol=0, atol=0)
 
 
