@@ -4,18 +4,34 @@ from __future__ import annotations
 
 import json
 import signal
+from contextlib import redirect_stdout
+from io import StringIO
 
 import pytest
 
 from isosr_bench import bench_cluster
-from isosr_bench.bench_render import main
 from isosr_net.reconstructor import RECON_X2_MODEL
 from net_fixtures import tiny_model_dir
 
 
-def test_bench_render_smoke_writes_a_complete_record(tmp_path, capsys):
-    main(["--device", "cpu", "--smoke", "--out", str(tmp_path)])
-    record = json.loads((tmp_path / "bench_render_cpu.json").read_text())
+@pytest.fixture(scope="module")
+def bench_smoke(tmp_path_factory):
+    """`isosr bench --smoke` run once: its folder and what it printed. Its render study is
+    bench_render's smoke run (``main(["--device", "cpu", "--out", OUT, "--smoke"])``), so the render
+    record is read from there rather than from a second run of the same study."""
+    from isosr_cli.main import main as cli
+
+    out = tmp_path_factory.mktemp("bench_smoke")
+    tiny = tiny_model_dir(tmp_path_factory)  # an x2 network for the upscale sweep
+    printed = StringIO()
+    with redirect_stdout(printed):
+        assert cli(["bench", "--smoke", "--out", str(out), "--models", f"tiny={tiny}"]) == 0
+    return out, printed.getvalue()
+
+
+def test_bench_render_smoke_writes_a_complete_record(bench_smoke):
+    out, printed = bench_smoke
+    record = json.loads((out / "bench_render_cpu.json").read_text())
     assert record["device"] and record["commit"] and record["command"]
     cases = {r["case"] for r in record["rows"]}
     assert {"first hit", "first hit, no skipping", "first hit, two surfaces", "first hit, two surfaces, 30%",
@@ -23,18 +39,15 @@ def test_bench_render_smoke_writes_a_complete_record(tmp_path, capsys):
             "recon render, AO 1 + flow: render()", "recon render, AO 1 + flow: plan"} <= cases
     first = next(r for r in record["rows"] if r["case"] == "first hit")
     assert first["ms"] > 0 and first["skip speedup"] > 0 and 0 < first["coverage"] <= 1
-    assert "| first hit |" in capsys.readouterr().out
+    assert "| first hit |" in printed.split("== render\n", 1)[1]  # the render study's table
 
 
-def test_isosr_bench_smoke_writes_every_study_the_report_and_plots(tmp_path, tmp_path_factory, capsys):
-    from isosr_cli.main import main as cli
-
-    tiny = tiny_model_dir(tmp_path_factory)  # an x2 network for the upscale sweep
-    assert cli(["bench", "--smoke", "--out", str(tmp_path), "--models", f"tiny={tiny}"]) == 0
+def test_isosr_bench_smoke_writes_every_study_the_report_and_plots(bench_smoke):
+    out, _ = bench_smoke
     for study in ("network", "pipeline", "knobs", "render"):
-        record = json.loads((tmp_path / f"bench_{study}_cpu.json").read_text())
+        record = json.loads((out / f"bench_{study}_cpu.json").read_text())
         assert record["rows"] and all(r["ms"] > 0 for r in record["rows"] if "ms" in r)
-    knobs = json.loads((tmp_path / "bench_knobs_cpu.json").read_text())["rows"]
+    knobs = json.loads((out / "bench_knobs_cpu.json").read_text())["rows"]
     assert {"AO samples", "ray step (voxels)", "refinement steps (secant)", "supersampling (rays/pixel)",
             "sample lookup", "upscale x4"} <= {r["knob"] for r in knobs}
     assert {("upscale x4", "L1-normal fp32"), ("upscale x2", "tiny fp32")} <= {(r["knob"], r["setting"]) for r in knobs}
@@ -44,11 +57,11 @@ def test_isosr_bench_smoke_writes_every_study_the_report_and_plots(tmp_path, tmp
     assert lookup.keys() == {"voxels", "filtered texture (2x memory)"}
     textured = lookup["filtered texture (2x memory)"]
     assert textured["error"] == 0 and textured["mask mismatch"] == 0 and textured["ms"] > 0  # the same hits
-    pipeline = json.loads((tmp_path / "bench_pipeline_cpu.json").read_text())["rows"]
+    pipeline = json.loads((out / "bench_pipeline_cpu.json").read_text())["rows"]
     assert {"table", "resolution", "volume size"} == {r["part"] for r in pipeline}
-    report = (tmp_path / "report_cpu.md").read_text()
+    report = (out / "report_cpu.md").read_text()
     assert "The network's fast path" in report and "What accuracy costs in time" in report
-    assert (tmp_path / "knobs_cpu.png").stat().st_size > 0 and (tmp_path / "scaling_cpu.png").stat().st_size > 0
+    assert (out / "knobs_cpu.png").stat().st_size > 0 and (out / "scaling_cpu.png").stat().st_size > 0
 
 
 def test_isosr_bench_rejects_unknown_studies(capsys):
