@@ -426,8 +426,11 @@ class Renderer:
 
         for box, values in map_bounded(read, boxes(volume.source), voxels.READ_THREADS):
             write_box(dense, box, values)
-        if raw:
+        if raw:  # after Warp's copies (its stream), before Warp reads the voxels again: torch's pass between syncs
+            wp.synchronize_device(self.device)
             volume.normalize_float32_(wp.to_torch(dense))
+            if self.device.is_cuda:
+                torch.cuda.synchronize(self.torch_device)
         return dense
 
     @functools.cached_property
