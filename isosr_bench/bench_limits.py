@@ -20,7 +20,8 @@ import torch
 
 from isosr_bench.common import bench_parser, print_table, write_result
 from isosr_net.methods import FrameMethod, Networks, make_runner
-from isosr_net.inference import count_steps, default_precision
+from isosr_net.inference import default_precision
+from isosr_render.steps import count_steps
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
 from isosr_render import FrameBuffers, Renderer, RenderRequest, open_volume, orbit, resolve_iso
 from isosr_server.engine import serving_network

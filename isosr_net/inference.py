@@ -7,8 +7,7 @@ one stream's recurrent state (:class:`RecurrentNetwork`, the base of `Upscaler` 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Generator, Sequence
-from typing import TypeVar
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import torch
@@ -20,27 +19,10 @@ from isosr_render.shapes import check_shape
 from isosr_net.fastpath import fast_network
 from isosr_net.model import load_pretrained
 
-T = TypeVar("T")
 PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
 # fp16 ends at 65504 and the networks' activations grow with the input depth: the shipped upscaler
 # gave NaN from depth 4e4 on, finite (if inaccurate) outputs up to 2e4. Deeper frames are refused.
 FP16_MAX_DEPTH = 1e4
-
-
-def finish_steps(steps: Generator[None, None, T]) -> T:
-    """Run a generator of slices (a runner's or a network's ``steps``) to the end; its result."""
-    return count_steps(steps)[1]
-
-
-def count_steps(steps: Generator[None, None, T]) -> tuple[int, T]:
-    """Run a generator of slices to the end: ``(how many times it yielded, its result)``."""
-    yields = 0
-    while True:
-        try:
-            next(steps)
-            yields += 1
-        except StopIteration as done:
-            return yields, done.value
 
 
 def default_precision(device: str | torch.device) -> str:

@@ -17,9 +17,9 @@ from pathlib import Path
 import torch
 
 from isosr_render.buffers import FrameBuffers
+from isosr_render.steps import finish_steps
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
-from isosr_net.inference import (PRECISIONS, InputChecks, RecurrentNetwork, finish_steps, output_buffers,
-                                 surface_tensors)
+from isosr_net.inference import PRECISIONS, InputChecks, RecurrentNetwork, output_buffers, surface_tensors
 
 DEFAULT_MODEL = Path(__file__).resolve().parent / "default_model"
 COMPILE_MODES = (None, "default", "reduce-overhead", "max-autotune")

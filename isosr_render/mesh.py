@@ -35,6 +35,7 @@ import numpy as np
 import warp as wp
 
 from isosr_render.clip import Clip
+from isosr_render.steps import finish_steps
 from isosr_render.volume import Volume
 
 # What one mesh may take: the voxels marching cubes reads at once (float32 on the device), and the
@@ -78,12 +79,7 @@ def extract_mesh(volume: Volume, iso: float, device: str = "cpu", max_voxels: in
             than ``max_triangles`` triangles (each refused before the mesh is built, naming the limit).
         ValueError: a crop box of zero volume.
     """
-    steps = mesh_steps(volume, iso, device, max_voxels, max_triangles, clip)
-    while True:
-        try:
-            next(steps)
-        except StopIteration as done:
-            return done.value
+    return finish_steps(mesh_steps(volume, iso, device, max_voxels, max_triangles, clip))
 
 
 def mesh_steps(volume: Volume, iso: float, device: str = "cpu", max_voxels: int = MAX_MESH_VOXELS,

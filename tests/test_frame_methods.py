@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from isosr_render import Renderer, RenderRequest, open_volume, orbit_path, resolve_iso
-from isosr_net.inference import count_steps
+from isosr_render.steps import count_steps
 from isosr_net.filters import oidn
 from isosr_net.methods import FrameMethod, FrameStream, Networks, make_runner, unavailable_kinds
 from conftest import DEVICE

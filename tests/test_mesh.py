@@ -12,7 +12,7 @@ import pytest
 from isosr_cli.main import main
 from isosr_render import Renderer, orbit
 from isosr_render.clip import Clip
-from isosr_net.inference import count_steps, finish_steps
+from isosr_render.steps import count_steps, finish_steps
 from isosr_render.mesh import MESH_FORMATS, MESH_SLAB_VOXELS, Mesh, MeshTooLarge, _cut_one, _slabs, extract_mesh, mesh_steps, write_mesh
 from isosr_render.picking import pick
 from isosr_render.volume import Volume

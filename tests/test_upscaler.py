@@ -9,7 +9,8 @@ import torch.nn.functional as F
 
 from isosr_net.model import load_pretrained
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
-from isosr_net.inference import count_steps, output_buffers, surface_tensors
+from isosr_net.inference import output_buffers, surface_tensors
+from isosr_render.steps import count_steps
 from isosr_render.buffers import FrameBuffers
 from net_fixtures import render_lowres_frames, tiny_model_dir
 

@@ -18,11 +18,7 @@ from typing import Any, ClassVar, get_type_hints
 import torch
 
 from isosr_net.filters.atrous import ATrousConfig
-from isosr_net.inference import (
-    PRECISIONS,
-    RecurrentNetwork,
-    finish_steps,
-)
+from isosr_net.inference import PRECISIONS, RecurrentNetwork
 from isosr_net.reconnet import RayLimits
 from isosr_net.timing import StageTimer
 from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest
@@ -33,6 +29,7 @@ from isosr_render.renderer import MAX_AO_SAMPLES, MAX_SPP, surface_opacity
 from isosr_render.sequence import sequence_cameras
 from isosr_render.shading import ShadingParams, composite, shade_on
 from isosr_render.shapes import check_int
+from isosr_render.steps import finish_steps
 from isosr_render.surfaces import Surfaces
 
 # Upscaling factors a low-res method takes.
