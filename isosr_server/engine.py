@@ -52,7 +52,7 @@ from isosr_server.codecs import video
 from isosr_server.encoding import CodedImage, device_jpeg, encode_image, encode_jpegs, encoder_name
 from isosr_server.protocol import (IMAGE_ENCODINGS, FocusMsg, ModeInfo, PickedMsg, PickMsg, ProtocolError,
                                    UpscaleRequest, ViewBuffers, ViewSettings, VolumeMemory)
-from isosr_server.views import FrameJob, SessionFrames, ViewContext, ViewFrame, mode_infos
+from isosr_server.views import FrameJob, FramePlan, SessionFrames, ViewContext, ViewFrame, mode_infos
 
 log = logging.getLogger("isosr.server")
 RENDERER_CACHE = 4
@@ -113,6 +113,20 @@ class EncodedFrame:
 
 
 @dataclass(frozen=True)
+class AskedFrame:
+    """A view frame asked for and not yet made (:meth:`Engine._batched`): the session's frames, its
+    renderer and job, the future its result goes to, its deadline, and the quality it is coded at as a
+    JPEG, together with its batch mates' where the device encodes them (None: its session codes it)."""
+
+    frames: SessionFrames
+    renderer: Renderer
+    job: FrameJob
+    future: asyncio.Future
+    deadline: float
+    jpeg: int | None
+
+
+@dataclass(frozen=True)
 class SharedCode:
     """A frame's JPEG among its batch's, coded together (:func:`encode_jpegs`): the future of their
     bytes and the frame's index in them."""
@@ -147,8 +161,8 @@ class Engine:
         self._idle = asyncio.Event()  # set while none is
         self._idle.set()
         self._thread: threading.Thread | None = None
-        # View frames asked for and not yet made (with their deadlines), and whether a batch job is queued to make them.
-        self._pending: list[tuple[SessionFrames, Renderer, FrameJob, asyncio.Future, float, int | None]] = []
+        # View frames asked for and not yet made, and whether a batch job is queued to make them.
+        self._pending: list[AskedFrame] = []
         self._batch_queued = False
         self._pending_lock = threading.Lock()
 
@@ -369,7 +383,7 @@ class Engine:
         loop = asyncio.get_running_loop()
         future = loop.create_future()
         with self._pending_lock:
-            self._pending.append((frames, renderer, job, future, deadline, jpeg))
+            self._pending.append(AskedFrame(frames, renderer, job, future, deadline, jpeg))
             start_batch, self._batch_queued = not self._batch_queued, True
         if start_batch:
             loop.run_in_executor(self._executor, self._batch_sync, loop)
@@ -389,48 +403,48 @@ class Engine:
         self._on_thread()
         with self._pending_lock:
             pending, self._pending, self._batch_queued = self._pending, [], False
-        groups: dict[tuple, list] = {}
-        for frames, renderer, job, future, deadline, jpeg in sorted(pending, key=lambda p: p[4]):
+        groups: dict[tuple, list[tuple[AskedFrame, FramePlan]]] = {}
+        for asked in sorted(pending, key=lambda a: a.deadline):
             try:
-                plan = frames.plan(renderer, job)
+                plan = asked.frames.plan(asked.renderer, asked.job)
                 if plan.runner.one_slice(self.slice_ms):
-                    groups.setdefault(plan.runner.batch_key(), []).append((frames, plan, future, jpeg))
+                    groups.setdefault(plan.runner.batch_key(), []).append((asked, plan))
                 else:
-                    _resolve(loop, future, frames.planned_steps(plan, self.slice_ms))
+                    _resolve(loop, asked.future, asked.frames.planned_steps(plan, self.slice_ms))
             except Exception as e:  # noqa: BLE001 - this session's error, not its batch mates'
-                _resolve(loop, future, error=e)
+                _resolve(loop, asked.future, error=e)
         for group in groups.values():  # in the order of their earliest deadlines (dicts keep insertion order)
             try:
                 results = type(group[0][1].runner).make_batch([(p.runner, p.job.camera, p.prev_camera)
-                                                               for _, p, _, _ in group])
+                                                               for _, p in group])
             except Exception as e:  # noqa: BLE001 - a kind's batch failed as a whole: its sessions' error
                 results = [e] * len(group)
-            coded = []  # (future, made frame, codes, jpeg quality) of the frames made
-            for (frames, plan, future, jpeg), result in zip(group, results):
+            made = []  # (asked, made frame, its codes) of the frames made
+            for (asked, plan), result in zip(group, results):
                 try:
                     if isinstance(result, Exception):
                         raise result
-                    made = frames.made(plan, result)
-                    coded.append((future, made, self.codes_sync(made), jpeg))
+                    frame = asked.frames.made(plan, result)
+                    made.append((asked, frame, self.codes_sync(frame)))
                 except Exception as e:  # noqa: BLE001 - as above
-                    _resolve(loop, future, error=e)
-            for future, made, codes in self._shared_jpegs(coded):
-                _resolve(loop, future, (made, codes, len(group)))
+                    _resolve(loop, asked.future, error=e)
+            for (asked, frame, _), codes in zip(made, self._shared_jpegs(made)):
+                _resolve(loop, asked.future, (frame, codes, len(group)))
 
-    def _shared_jpegs(self, coded: list[tuple]) -> list[tuple]:
-        """``(future, made, codes)`` of a batch's frames, the codes of those coded as JPEGs of one quality
-        on a device that encodes them (:func:`device_jpeg`) replaced by their :class:`SharedCode`: one
-        encoder-thread job codes them together (nvJPEG), off the device thread."""
+    def _shared_jpegs(self, made: list[tuple[AskedFrame, ViewFrame, object]]) -> list[object]:
+        """The codes of a batch's made frames, those coded as JPEGs of one quality on a device that encodes
+        them (:func:`device_jpeg`) as their :class:`SharedCode`: one encoder-thread job codes them together
+        (nvJPEG), off the device thread."""
+        codes = [c for _, _, c in made]
         together: dict[int, list[int]] = {}
-        for i, (_, _, codes, jpeg) in enumerate(coded):
-            if jpeg is not None and isinstance(codes, torch.Tensor) and device_jpeg(codes.device):
-                together.setdefault(jpeg, []).append(i)
-        out = [(future, made, codes) for future, made, codes, _ in coded]
-        for quality, frames in together.items():
-            images = self._encoder.submit(encode_jpegs, [coded[i][2] for i in frames], quality)
-            for k, i in enumerate(frames):
-                out[i] = (coded[i][0], coded[i][1], SharedCode(images, k))
-        return out
+        for i, (asked, _, c) in enumerate(made):
+            if asked.jpeg is not None and isinstance(c, torch.Tensor) and device_jpeg(c.device):
+                together.setdefault(asked.jpeg, []).append(i)
+        for quality, indices in together.items():
+            images = self._encoder.submit(encode_jpegs, [codes[i] for i in indices], quality)
+            for k, i in enumerate(indices):
+                codes[i] = SharedCode(images, k)
+        return codes
 
     def codes_sync(self, made: ViewFrame) -> torch.Tensor | tuple:
         """A made frame's codes: its color quantized to uint8 on the device (the image to encode), or
