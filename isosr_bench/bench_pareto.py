@@ -56,6 +56,7 @@ references of the same surfaces (their two layers composited by the renderer), a
 
 from __future__ import annotations
 
+import argparse
 import math
 import time
 import warnings
@@ -66,6 +67,7 @@ import torch
 from isosr_render import Renderer, Volume, open_volume, orbit_path, resolve_iso
 from isosr_render.catalog import entry, manifest
 from isosr_render.sequence import sequence_cameras
+from isosr_render.shapes import frame_size
 from isosr_render.surfaces import PALETTE, Surfaces
 from isosr_net.budget import (REFERENCE_AO_RAYS, REFERENCE_SPP, BudgetConfig, choose_method, probe_quality,
                               reference_frames)
@@ -382,11 +384,13 @@ def main(argv=None) -> list[dict]:
     sizes = SMOKE_SIZES if args.smoke else SIZES
     size_names = [s.strip().lower() for s in args.sizes.split(",") if s.strip()] or list(sizes)
     names = [s.strip() for s in args.volumes.split(",") if s.strip()] or volume_names(args.smoke)
-    sizes = {**sizes, **{s: tuple(int(n) for n in s.split("x")) for s in size_names
-                         if s not in sizes and s.replace("x", "", 1).isdigit() and s.count("x") == 1}}
-    unknown = [s for s in size_names if s not in sizes]
+    unknown = [s for s in size_names if s not in sizes and "x" not in s]
     if unknown:
         parser.error(f"unknown sizes {unknown}; choose from {', '.join(sizes)} or WxH")
+    try:
+        sizes = {**sizes, **{s: frame_size(s) for s in size_names if s not in sizes}}
+    except argparse.ArgumentTypeError as e:
+        parser.error(f"--sizes: {e}")
     if args.translucent is not None and not 0.0 <= args.translucent < 1.0:
         parser.error(f"--translucent must be in [0, 1) (an opacity below 1), got {args.translucent}")
     if args.translucent is not None and args.budget_only:

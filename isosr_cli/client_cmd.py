@@ -13,7 +13,7 @@ import json
 import os
 from pathlib import Path
 
-from isosr_cli.options import frame_size
+from isosr_render.shapes import frame_size
 from isosr_server.core.config import TOKEN_ENV
 from isosr_server.protocol import ENCODINGS, INTERPOLATIONS
 

@@ -7,17 +7,6 @@ import argparse
 from isosr_render.clip import CAP_MODES, Clip
 
 
-def frame_size(text: str) -> tuple[int, int]:
-    """``WxH`` as ``(width, height)``, both positive (an argparse type)."""
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WxH, e.g. 640x480, got {text!r}") from None
-    if w < 1 or h < 1:
-        raise argparse.ArgumentTypeError(f"a frame's sides must be positive, got {text!r}")
-    return w, h
-
-
 def numbers(count: int):
     """An argparse type: ``count`` comma-separated numbers."""
     def parse(text: str) -> tuple[float, ...]:

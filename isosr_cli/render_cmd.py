@@ -17,7 +17,7 @@ from pathlib import Path
 import torch
 
 from isosr_cli.images import visualize, write_png
-from isosr_cli.options import add_clip_options, clip_of, frame_size, numbers
+from isosr_cli.options import add_clip_options, clip_of, numbers
 from isosr_net.budget import BudgetConfig, render_within_budget
 from isosr_net.methods import (
     RUNNERS,
@@ -44,6 +44,7 @@ from isosr_render.conventions import AO_RADIUS, BUFFER_NAMES
 from isosr_render.formats import help_text
 from isosr_render.picking import pick
 from isosr_render.series import open_series
+from isosr_render.shapes import frame_size
 from isosr_render.surfaces import MAX_SURFACES, PALETTE, Surfaces
 
 PNG_DEFAULT = "color"

@@ -11,6 +11,7 @@ time), ``5|6`` accepts any of those sizes, and a leading ``*`` any number of lea
 
 from __future__ import annotations
 
+import argparse
 from collections.abc import Mapping
 
 
@@ -71,3 +72,14 @@ def check_int(value, name: str, low: int, high: int | None = None, where: str = 
         raise ValueError(f"{where + ': ' if where else ''}{name} must be an integer {'in ' if high is not None else ''}"
                          f"{span}, got {value!r}")
     return value
+
+
+def frame_size(text: str) -> tuple[int, int]:
+    """``WxH`` as ``(width, height)``, both positive (an argparse type)."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WxH, e.g. 640x480, got {text!r}") from None
+    if w < 1 or h < 1:
+        raise argparse.ArgumentTypeError(f"a frame's sides must be positive, got {text!r}")
+    return w, h
