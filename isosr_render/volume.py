@@ -133,14 +133,19 @@ class Volume:
         return int(np.prod(self.shape, dtype=np.int64)) * self.storage.itemsize
 
     @property
+    def float32_span(self) -> bool:
+        """Whether the value range's span is finite in float32 (not, e.g., -3e38 .. 3e38): else floats are
+        normalized in float64."""
+        lo, hi = self.value_range
+        with np.errstate(over="ignore"):
+            return bool(np.isfinite(np.float32(hi) - np.float32(lo)))
+
+    @property
     def raw_float32(self) -> bool:
         """Whether the device values are the stored float32 ones normalized by the range alone (no rescale, a
         span float32 holds): they may travel as stored and be normalized where they land (:meth:`normalize_float32_`)."""
-        lo, hi = self.value_range
-        with np.errstate(over="ignore"):
-            span_fits = bool(np.isfinite(np.float32(hi) - np.float32(lo)))
         return (self.storage.kind == "f" and np.dtype(self.source.dtype) == np.float32
-                and tuple(self.source.rescale) == (1.0, 0.0) and span_fits)
+                and tuple(self.source.rescale) == (1.0, 0.0) and self.float32_span)
 
     def normalize_float32_(self, values: torch.Tensor) -> torch.Tensor:
         """Stored float32 values (where :attr:`raw_float32`) made device values in place, on any device: NaN and
@@ -164,9 +169,8 @@ class Volume:
             values = values.astype(np.float64) * slope + intercept
         if not np.isfinite(values).all():
             values = np.nan_to_num(values, nan=lo, posinf=hi, neginf=lo)
-        with np.errstate(over="ignore"):
-            if not np.isfinite(np.float32(hi) - np.float32(lo)):  # e.g. -3e38 .. 3e38 overflows float32
-                values = values.astype(np.float64)
+        if not self.float32_span:
+            values = values.astype(np.float64)
         span = hi - lo
         data = values - lo  # one temporary, scaled in place (in the type of values, as before)
         data *= 1.0 / span if span > 0 else 0.0
