@@ -145,16 +145,19 @@ def networks() -> Networks:
     return _CACHE["networks"].fork()
 
 
+def copied(buffers: FrameBuffers | None, but: tuple[str, ...] = ()) -> dict[str, torch.Tensor]:
+    """Present buffers (none of ``but``), copied (a runner may reuse their memory); empty for None."""
+    return {} if buffers is None else {n: getattr(buffers, n).clone() for n in buffers.present() if n not in but}
+
+
 def buffers_of(result) -> dict[str, torch.Tensor]:
-    """A frame's present buffers, copied (a runner may reuse their memory)."""
-    return {name: getattr(result.buffers, name).clone() for name in result.buffers.present()}
+    """A frame's present buffers, copied."""
+    return copied(result.buffers)
 
 
-def layers_of(buffers) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+def layers_of(buffers: FrameBuffers) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
     """A frame's buffers but its colour (the composite), and its ``behind`` layer's (empty where none), copied."""
-    def copied(b) -> dict[str, torch.Tensor]:
-        return {} if b is None else {name: getattr(b, name).clone() for name in b.present() if name != "color"}
-    return copied(buffers), copied(buffers.behind)
+    return copied(buffers, ("color",)), copied(buffers.behind, ("color",))
 
 
 def assert_same_frames(a: list[dict], b: list[dict]) -> None:
