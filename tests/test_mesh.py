@@ -33,6 +33,12 @@ def sphere():
     return volume, iso, extract_mesh(volume, iso, DEVICE)
 
 
+def edge_uses(mesh: Mesh) -> np.ndarray:
+    """How many triangles each of the mesh's edges bounds."""
+    edges = np.sort(mesh.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    return np.unique(edges, axis=0, return_counts=True)[1]
+
+
 def area_and_enclosed(mesh) -> tuple[float, float]:
     """The mesh's area and the volume it encloses about the sphere's centre (if closed)."""
     v, f = mesh.vertices.astype(np.float64), mesh.faces
@@ -114,8 +120,7 @@ def test_a_plane_through_the_centre_leaves_half_the_sphere_open(sphere):
     rim = np.abs((half.vertices.astype(np.float64) - CENTRE) @ NORMAL) < 1e-4
     assert np.abs(np.linalg.norm(half.vertices[rim] - CENTRE, axis=1) - RADIUS).max() < max(SPACING) / 2
     # The cut shares its new vertices: every edge on the rim bounds one triangle, every other edge two.
-    edges = np.sort(half.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    _, uses = np.unique(edges, axis=0, return_counts=True)
+    uses = edge_uses(half)
     assert set(uses) == {1, 2} and (uses == 1).sum() >= rim.sum() - 1
     assert np.allclose(np.linalg.norm(half.normals, axis=1), 1.0, atol=1e-5)
 
@@ -204,8 +209,7 @@ def assert_same_mesh(slabbed: Mesh, whole: Mesh) -> None:
 
 
 def closed(mesh: Mesh) -> bool:
-    edges = np.sort(mesh.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    return set(np.unique(edges, axis=0, return_counts=True)[1]) == {2}
+    return set(edge_uses(mesh)) == {2}
 
 
 @pytest.mark.parametrize("clip", [Clip(), HALF, Clip(HALF.planes, cap="below"), Clip(HALF.planes, cap="above"),
