@@ -59,6 +59,9 @@ def mutated(draw, valid: dict) -> dict:
 
 def _answer_is_frame_or_close(ws):
     msg = recv(ws)
+    while isinstance(msg, P.NoticeMsg):  # a refused settings update: its reason, then a frame of the settings kept
+        assert msg.text.startswith("settings refused, kept as they were: "), msg
+        msg = recv(ws)
     if isinstance(msg, P.ErrorMsg):
         assert msg.code in (P.CLOSE_BAD_MESSAGE, P.CLOSE_TOO_BIG, P.CLOSE_NOT_FOUND), msg
         with pytest.raises(ConnectionClosed):
