@@ -52,9 +52,12 @@ from isosr_net.reconnet import FIRST_FRAME_MODES, INPUTS, OUTPUTS, UPSCALES, Rec
 
 INTERPRET = os.environ.get("TRITON_INTERPRET") == "1"
 PACKED = 16  # channels of the packed input: 10 used (x2: 16), padded to tl.dot's smallest K
-# Pixels per program and warps, autotuned per layer and size class (pixels' bit length: a new
-# window size of a class tunes nothing, so a viewer resizing cannot stall the GPU with tuning);
-# the interpreter takes the first (FIXED).
+# Pixels per program and warps, autotuned per layer and size class (a frame's pixels' bit length: a
+# new window size of a class tunes nothing, so a viewer resizing cannot stall the GPU with tuning;
+# a batch of frames takes one frame's config, its grid a row of programs per frame, so a new batch
+# size tunes nothing either: keyed on the batch's pixels, each new size tuned every layer while its
+# sessions waited, 13% of the device thread at 16 sessions on an H200,
+# benchmarks/results/profile_server_reconstruct_16_cuda.json); the interpreter takes the first (FIXED).
 CONFIGS = [triton.Config({"BLOCK_M": m}, num_warps=w) for m, w in ((64, 4), (32, 2), (128, 4), (128, 8), (256, 8))]
 FIXED = dict(CONFIGS[0].kwargs) if INTERPRET else {}
 PACK_BLOCK = 128
@@ -370,7 +373,7 @@ _tail_tuned = _tuned(_tail_kernel, ["size_class", "S"])
 
 
 def _size_class(pixels: int) -> int:
-    """The autotuning key of a pass over ``pixels`` output pixels."""
+    """The autotuning key of a pass over ``pixels`` output pixels a frame (each frame of a batch)."""
     return pixels.bit_length()
 
 
@@ -536,7 +539,7 @@ def conv3x3(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, *, stride
         check_shape(residual, f"({b}, {ho}, {wo}, {co})", "residual", "conv3x3")
     out = x.new_empty((b, ho, wo, co))
     _conv_tuned[_grid(ho * wo, b)](x, weight, bias, out, x if residual is None else residual, hi, wi, ho, wo,
-                                   _size_class(b * ho * wo),
+                                   _size_class(ho * wo),
                                    STRIDE=stride, RESIDUAL=residual is not None, RELU=relu, CI=ci, CO=co, **FIXED)
     return out
 
@@ -620,7 +623,7 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
     params = shading or ShadingParams()
     light, half = light_and_half(params)
     _tail_tuned[_grid(h * w, b)](y, weight, bias, *sources.args(), out, out if color is None else color, h, w, hp, wp,
-                                 _size_class(b * h * w),
+                                 _size_class(h * w),
                                  float(config.max_ao_rays * config.max_spp), *params.albedo, params.ambient,
                                  params.diffuse, params.specular, params.shininess, *light, *half, *params.background,
                                  MASK_C=MASK.start, NORMAL_C=NORMAL.start, DEPTH_C=DEPTH.start, AO_C=AO.start,

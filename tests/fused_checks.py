@@ -26,6 +26,7 @@ from isosr_render.buffers import FrameBuffers
 from isosr_render.conventions import AO, DEPTH, MASK, NORMAL
 from isosr_render.shading import ShadingParams, shade
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
+from isosr_net import fused_kernels
 from isosr_net.fused_kernels import ReconSources, conv3x3, pack_inputs, recon_tail, upsample_add
 from isosr_net.fused_recon import FusedReconNet, fused_reconnet, fused_runs_on, fused_traffic, tap_weights
 from isosr_net.inference import FP16_MAX_DEPTH, FRAME_FLAGS, buffer_stack, frame_flags, stack_buffers
@@ -208,6 +209,17 @@ def test_conv3x3_of_stride_2_is_conv2d_of_stride_2(h, w, ci, co):
     taps, bias = rand(9, ci, co, scale=0.3, seed=7, dtype=torch.float16), rand(co, seed=8)
     ref, magnitude = conv_ref(nchw(x), taps, bias, stride=2)
     assert_conv_close(nchw(conv3x3(x, taps, bias, stride=2)), F.relu(ref), magnitude)
+
+
+def test_a_batch_is_tuned_as_one_of_its_frames(monkeypatch):
+    """The autotuning key (size class) of a pass over B frames is one frame's: a new batch size
+    tunes nothing while its sessions wait."""
+    keyed = []
+    monkeypatch.setattr(fused_kernels, "_size_class", lambda pixels: keyed.append(pixels) or pixels.bit_length())
+    taps, bias = rand(9, 16, 16, seed=7, dtype=torch.float16), rand(16, seed=8)
+    for b in (1, 4):
+        conv3x3(rand(b, 14, 22, 16, seed=6, dtype=torch.float16), taps, bias, stride=2)
+    assert keyed == [7 * 11, 7 * 11]
 
 
 @pytest.mark.parametrize("relu", [False, True])
