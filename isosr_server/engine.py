@@ -161,10 +161,12 @@ class Engine:
         self._idle = asyncio.Event()  # set while none is
         self._idle.set()
         self._thread: threading.Thread | None = None
-        # View frames asked for and not yet made, and whether a batch job is queued to make them.
+        # View frames asked for and not yet made, whether a batch job is queued to make them, and how long
+        # a batch may wait for more (its condition notified at each one asked).
         self._pending: list[AskedFrame] = []
         self._batch_queued = False
-        self._pending_lock = threading.Lock()
+        self._asked = threading.Condition()
+        self.batch_wait_s = config.batch_wait_ms / 1e3
 
     async def call(self, fn, *args):
         """Run ``fn(*args)`` on the device thread and await its result."""
@@ -382,9 +384,10 @@ class Engine:
         made here alone, a device-thread job per slice."""
         loop = asyncio.get_running_loop()
         future = loop.create_future()
-        with self._pending_lock:
+        with self._asked:
             self._pending.append(AskedFrame(frames, renderer, job, future, deadline, jpeg))
             start_batch, self._batch_queued = not self._batch_queued, True
+            self._asked.notify()
         if start_batch:
             loop.run_in_executor(self._executor, self._batch_sync, loop)
         out = await future
@@ -399,9 +402,11 @@ class Engine:
         made by its ``make_batch``, the group with the earliest deadline first, then coded (its JPEGs
         together: :meth:`_shared_jpegs`); those that run in slices handed back as their steps. Each
         session's result or error goes to its own future only. A batch takes what is pending when
-        the thread gets to it and never waits for more: no frame is held to fill one."""
+        the thread gets to it, after waiting up to :attr:`batch_wait_s` for the sessions that have
+        not asked yet (:meth:`_fill_batch`): no frame is held past its deadline to fill one."""
         self._on_thread()
-        with self._pending_lock:
+        with self._asked:
+            self._fill_batch()
             pending, self._pending, self._batch_queued = self._pending, [], False
         groups: dict[tuple, list[tuple[AskedFrame, FramePlan]]] = {}
         for asked in sorted(pending, key=lambda a: a.deadline):
@@ -430,6 +435,16 @@ class Engine:
                     _resolve(loop, asked.future, error=e)
             for (asked, frame, _), codes in zip(made, self._shared_jpegs(made)):
                 _resolve(loop, asked.future, (frame, codes, len(group)))
+
+    def _fill_batch(self) -> None:
+        """Wait (holding :attr:`_asked`) until every view session has asked for a frame, :attr:`batch_wait_s`
+        has passed, or the earliest pending frame's deadline has come, whichever is first."""
+        if self.batch_wait_s <= 0 or not self._pending:
+            return
+        sessions = max(asked.job.sessions for asked in self._pending)
+        until = min(time.monotonic() + self.batch_wait_s, min(asked.deadline for asked in self._pending))
+        while len(self._pending) < sessions and (left := until - time.monotonic()) > 0:
+            self._asked.wait(left)
 
     def _shared_jpegs(self, made: list[tuple[AskedFrame, ViewFrame, object]]) -> list[object]:
         """The codes of a batch's made frames, those coded as JPEGs of one quality on a device that encodes

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -217,6 +218,30 @@ def test_the_batch_with_the_earliest_deadline_is_made_first(engine, batches):
         batches.clear()
         asyncio.run(s.together(t, [0, 1, 2], deadlines=deadlines))
         assert batches == order
+
+
+def test_a_batch_waits_for_the_sessions_yet_to_ask_within_its_deadline(engine, batches, monkeypatch):
+    """With a wait, a frame asked for while the device is free waits for the other sessions' (here
+    asked 0.2 s later) and is made with them, ending as soon as all have asked (the wait, far longer,
+    would fail the test's timeout); without, or with its deadline passed, it is made alone first."""
+    settings = [view_settings(engine, "full")] * 2
+    s = Sessions(engine, settings)
+    for k in range(len(settings)):  # each session's first frame (alone, in slices)
+        asyncio.run(s.one(k, 0))
+
+    async def staggered(t: int, deadline: float | None) -> list[int]:
+        first = asyncio.ensure_future(s.one(0, t, deadline))
+        await asyncio.sleep(0.2)
+        await asyncio.wait_for(asyncio.gather(first, s.one(1, t)), 60)
+        return list(batches)
+    monkeypatch.setattr(engine, "batch_wait_s", 600.0)
+    batches.clear()
+    assert asyncio.run(staggered(1, time.monotonic() + 600)) == [2]
+    batches.clear()
+    assert asyncio.run(staggered(2, time.monotonic() - 1)) == [1, 1], "its deadline passed: no wait"
+    monkeypatch.setattr(engine, "batch_wait_s", 0.0)
+    batches.clear()
+    assert asyncio.run(staggered(3, time.monotonic() + 600)) == [1, 1]
 
 
 def test_a_nan_in_one_session_s_buffers_fails_that_session_only(engine, monkeypatch):

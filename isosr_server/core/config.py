@@ -77,6 +77,8 @@ class Settings:
         target_fps: the frame rate the ``auto`` mode's budget aims at.
         slice_ms: device time a slice of a heavy view frame aims at (others' frames interleave
             between slices); None: 8 ms on CUDA, 100 ms on CPUs.
+        batch_wait_ms: how long a batch of view frames may wait for the sessions that have not
+            asked for their next frame yet (:meth:`isosr_server.engine.Engine._batch_sync`).
         max_volume_bytes: the most bytes a volume's voxels take on the device; a larger volume
             renders sparse (the bricks each iso needs, paged in); None: half the free GPU memory
             at load, no limit on CPUs. It also picks a multiscale OME-Zarr's level
@@ -108,6 +110,9 @@ class Settings:
     slice_ms: float | None = _option(None, "device time a slice of a heavy view frame aims at, other sessions' "
                                            "frames interleaving between slices (default: 8 on CUDA, 100 on CPUs)",
                                      float)
+    batch_wait_ms: float = _option(0.0, "milliseconds a batch of view frames may wait for the frames of sessions "
+                                        "that have not asked yet, never past its first frame's deadline (default: 0, "
+                                        "a batch takes the frames asked for until the device is free)", float)
     max_volume_bytes: int | None = _option(None, "bytes a volume's voxels may take on the device; larger volumes "
                                                  "render sparse, paging in the bricks each iso needs (default: half "
                                                  "the free GPU memory, no limit on CPUs); an OME-Zarr is served at "
@@ -132,6 +137,8 @@ class Settings:
             raise ValueError(f"port must lie in [0, 65535], got {self.port}")
         if self.max_volume_bytes is not None and self.max_volume_bytes <= 0:
             raise ValueError(f"max_volume_bytes must be a positive number of bytes, got {self.max_volume_bytes}")
+        if not (math.isfinite(self.batch_wait_ms) and self.batch_wait_ms >= 0):
+            raise ValueError(f"batch_wait_ms must be a number of milliseconds, 0 or more, got {self.batch_wait_ms}")
         for name in ("target_fps", "slice_ms"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
