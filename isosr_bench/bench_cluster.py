@@ -50,6 +50,7 @@ from isosr_bench.load import LoadSampler, titled
 from isosr_bench.sessions import run_sessions
 from isosr_client.drive import Orbit
 from isosr_client.view import connect
+from isosr_server.protocol import IMAGE_ENCODINGS, VIDEO_ENCODINGS
 from isosr_server.views import VIEWS
 
 CASES = (("full", 0), ("reconstruct", 1), ("auto", 0))
@@ -209,6 +210,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--replicas", default="0,1,2", help="servers by replica count, comma-separated (0: plain)")
     parser.add_argument("--cases", default=",".join(f"{m}:{ao}" for m, ao in CASES),
                         help="MODE:AO_RAYS per case, comma-separated")
+    parser.add_argument("--encoding", choices=IMAGE_ENCODINGS + VIDEO_ENCODINGS, default="jpeg",
+                        help="the view sessions' frame encoding (default jpeg; video: the server's cores encode)")
     parser.add_argument("--gpus-per-replica", default="0.5",
                         help="each replica's GPU share (CUDA), or 'split': each server's replicas share one GPU")
     parser.add_argument("--failover-sessions", type=int, default=8, help="sessions of the failover study (0: none)")
@@ -238,7 +241,7 @@ def main(argv: list[str] | None = None) -> None:
     failover_on = next((f"ray{n}" for n in replicas if n >= 2), None)
     measured = servers(replicas, args.gpus_per_replica, args.device)
     kind = "_one_gpu" if args.gpus_per_replica == "split" else "_gpus" if float(args.gpus_per_replica) >= 1 else ""
-    name = f"bench_cluster{kind}_{size_name}"
+    name = f"bench_cluster{kind}_{size_name}" + ("" if args.encoding == "jpeg" else f"_{args.encoding}")
     path = args.out / f"{name}_{'cuda' if args.device.startswith('cuda') else 'cpu'}.json"
     stamp = {"device": device_name(args.device), "commit": commit(), "lease": args.lease}
     merged = merge(path, [], {(server, args.lease) for server, *_ in measured})  # the other servers' rows of earlier runs
@@ -246,8 +249,8 @@ def main(argv: list[str] | None = None) -> None:
         cases = [(mode, ao, n) for mode, ao in modes for n in counts]
         failover_sessions = args.failover_sessions if server_name == failover_on else 0
         for row in measure_server(server_name, args.device, options + extra, cases, failover_sessions,
-                                  volume, size, seconds, args.client_processes):
-            merged.append(dict(row, replicas=server_replicas, gpus=gpus, **stamp))
+                                  volume, size, seconds, args.client_processes, args.encoding):
+            merged.append(dict(row, replicas=server_replicas, gpus=gpus, encoding=args.encoding, **stamp))
             # Written after every row: a run cut off (a device call's time limit) keeps what it measured.
             scaled = scaling(merged)
             written = write_result(name, args.device, merged + scaled, args.out)
@@ -272,8 +275,10 @@ def load_fields(load: dict) -> dict:
 
 
 def measure_server(name: str, device: str, options: tuple[str, ...], cases: list[tuple[str, int, int]],
-                   failover_sessions: int, volume: str, size: tuple[int, int], seconds: float, processes: int):
-    """Start one server and yield a row per (mode, AO rays, sessions) case, then its failover row."""
+                   failover_sessions: int, volume: str, size: tuple[int, int], seconds: float, processes: int,
+                   encoding: str = "jpeg"):
+    """Start one server and yield a row per (mode, AO rays, sessions) case (frames coded as ``encoding``),
+    then its failover row."""
     started = time.monotonic()
     try:
         with ServerProcess(device, options) as server:
@@ -282,7 +287,8 @@ def measure_server(name: str, device: str, options: tuple[str, ...], cases: list
                       "replica": titled(b"ray::ServeReplica")}
             for mode, ao, n in cases:
                 load = LoadSampler(groups, gpus=device.startswith("cuda"))
-                result = run_sessions(server.url, volume, n, seconds, mode, size, {"ao_rays": ao}, processes=processes,
+                settings = {"ao_rays": ao, "encoding": encoding}
+                result = run_sessions(server.url, volume, n, seconds, mode, size, settings, processes=processes,
                                       on_start=lambda: load.start(seconds))
                 row = dict(case_row(mode, ao, result), server=name, ready_s=ready_s,
                            replicas_seen=len(result.get("replicas", [])), **load_fields(load.result()))
