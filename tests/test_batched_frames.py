@@ -59,7 +59,10 @@ JPEG_QUALITY = 85
 
 @pytest.fixture(scope="module")
 def engine():
-    engine = Engine(server_settings())
+    # A runner's frames after its first are made in one slice (batched) whatever its last render took:
+    # with the default, a render timed across a host stall (a kernel compiling on a cold GPU) sent the
+    # next frame to slices, alone, and the batches these tests expect did not form.
+    engine = Engine(server_settings(slice_ms=1e9))
     asyncio.run(engine.call(engine.start_sync))
     yield engine
     engine.shutdown()
