@@ -58,7 +58,9 @@ def read_stacks(path: Path) -> dict[str, list[tuple[list[str], int]]]:
 
 
 def thread_kind(stacks: list[tuple[list[str], int]]) -> str:
+    """The thread's kind by a function on its stacks (py-spy names a method with or without its class)."""
     names = {f for frames, _ in stacks for f in frames}
+    names |= {f.rpartition(".")[2] for f in names}
     return next((kind for fn, kind in THREAD_KINDS if fn in names), "other")
 
 

@@ -27,7 +27,7 @@ from isosr_bench import bench_server, sessions
 from isosr_bench.common import RESULTS_DIR, write_result
 from isosr_cli.main import main
 from isosr_client import ServerError, connect, decode_image, upscale_remote
-from isosr_client.drive import Orbit, drive, summarize
+from isosr_client.drive import Orbit, drive
 from isosr_client.volumes import slice_remote, volumes_remote
 from isosr_client.view import CLIENT_LIMITS
 from isosr_render.images import to_uint8
@@ -91,23 +91,19 @@ def lowres_frames(renderer, iso, frames: int = FRAMES, factor: int = 4):
     return out
 
 
-def test_client_imports_without_torch_quickly():
-    """``import isosr_client`` loads neither torch nor Warp (nor the renderer or the network) and
-    takes well under 2 s in a fresh interpreter on this slow machine (measured: 0.2-0.3 s)."""
-    check = ("import sys, time; t = time.perf_counter(); import isosr_client; t = time.perf_counter() - t; "
-             "heavy = sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'warp') "
-             "or m in ('isosr_render.renderer', 'isosr_net.upscaler')); print(heavy, t)")
+def test_client_imports_without_torch():
+    """``import isosr_client`` loads neither torch nor Warp (nor the renderer or the network), in a
+    fresh interpreter: what a notebook or a browser-side tool pays for the client alone (its time is
+    a benchmark's to say, not this test's)."""
+    check = ("import sys; import isosr_client; "
+             "print(sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'warp') "
+             "or m in ('isosr_render.renderer', 'isosr_net.upscaler')))")
     root = Path(__file__).resolve().parents[1]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])}
-    start = time.perf_counter()
     result = subprocess.run([sys.executable, "-c", check], capture_output=True, text=True, env=env, timeout=60,
                             cwd=root)
-    wall = time.perf_counter() - start
     assert result.returncode == 0, result.stderr[-2000:]
-    heavy, seconds = result.stdout.rsplit(" ", 1)
-    assert heavy == "[]", f"import isosr_client loaded {heavy}"
-    print(f"import isosr_client: {float(seconds):.2f} s inside, {wall:.2f} s for the whole interpreter")
-    assert wall < 2.0
+    assert result.stdout.strip() == "[]", f"import isosr_client loaded {result.stdout.strip()}"
 
 
 def level_diff(a: np.ndarray, b: np.ndarray) -> np.ndarray:
