@@ -338,23 +338,6 @@ def test_an_adversarial_run_trains_and_resumes_its_discriminator(data, tmp_path,
 # ---------------------------------------------------------------- DDP
 
 
-def test_ddp_on_two_cpu_processes(data, tmp_path):
-    config = tmp_path / "train.json"
-    out = tmp_path / "run"
-    config.write_text(json.dumps(tiny_train_config(data, out, steps=2)))
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
-    env.pop("CUDA_VISIBLE_DEVICES", None)
-    proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--standalone",
-                           "-m", "isosr_cli.main", "train", str(config)],
-                          capture_output=True, text=True, timeout=180, env=env, cwd=tmp_path)
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    assert {"config.json", "model.safetensors", "training_state.pt"} <= {p.name for p in (out / "last").iterdir()}
-    last = json.loads((out / "last" / "config.json").read_text())
-    assert last["step"] == 2 and last["timing"]["processes"] == 2 and last["timing"]["steps"] == 2
-    assert (out / "best" / "model.safetensors").is_file()
-    assert '"step_metrics"' in proc.stdout
-
-
 def test_ddp_refuses_a_batch_smaller_than_its_processes(data, tmp_path):
     config = tmp_path / "train.json"
     config.write_text(json.dumps(tiny_train_config(data, tmp_path / "run", batch_size=1)))
@@ -367,14 +350,21 @@ def test_ddp_refuses_a_batch_smaller_than_its_processes(data, tmp_path):
     assert "batch_size 1 gives some of the 2 processes no share of a batch" in proc.stdout + proc.stderr
 
 
-def test_bench_train_compares_one_and_two_processes(data, tmp_path, monkeypatch):
+def test_ddp_on_two_cpu_processes_and_bench_train_compares_one_and_two_processes(data, tmp_path, monkeypatch):
     """The scaling study trains the same config from its start in 1 and 2 processes (gloo on CPUs) and
-    reads both back: the same steps, times per step, the speedup against 1 and the scores."""
+    reads both back: the same steps, times per step, the speedup against 1 and the scores. Its
+    2-process run is `isosr train` under torchrun, DDP on two CPU processes: checked here as well."""
     config = tmp_path / "train.json"
     config.write_text(json.dumps(tiny_train_config(data, tmp_path / "unused", steps=5)))
     monkeypatch.setenv("OMP_NUM_THREADS", "1")
     rows = bench_train.main(["--config", str(config), "--steps", "2", "--gpus", "1,2", "--device", "cpu",
                              "--runs", str(tmp_path / "runs"), "--out", str(tmp_path / "results")])
+    ddp = tmp_path / "runs" / "processes2_seed0"
+    assert {"config.json", "model.safetensors", "training_state.pt"} <= {p.name for p in (ddp / "last").iterdir()}
+    last = json.loads((ddp / "last" / "config.json").read_text())
+    assert last["step"] == 2 and last["timing"]["processes"] == 2 and last["timing"]["steps"] == 2
+    assert (ddp / "best" / "model.safetensors").is_file()
+    assert '"step_metrics"' in (ddp / "train.log").read_text()
     assert [(r["processes"], r["steps"], r["seed"]) for r in rows] == [(1, 2, 0), (2, 2, 0)]
     assert rows[0]["speedup"] == 1.0 and rows[1]["efficiency"] == pytest.approx(rows[1]["speedup"] / 2)
     assert all(r["ms_per_step"] > 0 and math.isfinite(r["val_color_psnr"]) and r["spread_db"] is None for r in rows)
