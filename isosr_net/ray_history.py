@@ -27,6 +27,7 @@ starts every pixel anew. float32.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -272,33 +273,63 @@ def accumulate_rays(ao: torch.Tensor, mask: torch.Tensor, normal: torch.Tensor, 
     return out
 
 
+def accumulate_frames(frames: Sequence[FrameBuffers], history: RayHistory | None, rays: int, cap: int,
+                      config: RayHistoryConfig = RayHistoryConfig(), out: RayHistory | None = None,
+                      share: torch.Tensor | None = None) -> RayHistory:
+    """:func:`accumulate_rays` on the buffers of one frame of each of several streams (one size, one
+    launch; one frame's buffers are viewed, several stacked): mask, normal, depth, position, ao, and
+    flow (None on the first: frames without a previous one); ``history`` their histories in their
+    order (:func:`joined_histories`); into ``out`` (and ``share``) where given.
+
+    Shape:
+        frames' buffers: (H, W), normal, position (H, W, 3), flow (H, W, 2). Returns (B, H, W) tensors.
+    """
+    def stacked(name: str) -> torch.Tensor:  # (B, C, H, W)
+        planes = [getattr(f, name) for f in frames]
+        planes = [p[..., None] if p.dim() == 2 else p for p in planes]  # (H, W, C)
+        return (planes[0][None] if len(planes) == 1 else torch.stack(planes)).permute(0, 3, 1, 2)
+    flow = None if frames[0].flow is None else stacked("flow")
+    return accumulate_rays(stacked("ao"), stacked("mask"), stacked("normal"), stacked("depth"), stacked("position"),
+                           flow, history, rays, cap, config, out, share)
+
+
 def accumulate_frame(frame: FrameBuffers, history: RayHistory | None, rays: int, cap: int,
                      config: RayHistoryConfig = RayHistoryConfig(), out: RayHistory | None = None,
                      share: torch.Tensor | None = None) -> RayHistory:
-    """:func:`accumulate_rays` on one frame's buffers: mask, normal, depth, position, ao, and flow
-    (None: a frame without a previous one); into ``out`` (and ``share``) where given."""
-    flow = None if frame.flow is None else frame.flow.permute(2, 0, 1)[None]
-    return accumulate_rays(frame.ao[None, None], frame.mask[None, None], frame.normal.permute(2, 0, 1)[None],
-                           frame.depth[None, None], frame.position.permute(2, 0, 1)[None], flow, history, rays, cap,
-                           config, out, share)
+    """:func:`accumulate_frames` of one frame."""
+    return accumulate_frames([frame], history, rays, cap, config, out, share)
 
 
-def network_inputs(frame: FrameBuffers, history: RayHistory | None, ao_rays: int, spp: int,
+def joined_histories(histories: Sequence[RayHistory | None]) -> RayHistory | None:
+    """Several streams' histories as one (B, H, W) history for :func:`accumulate_frames` (one stream's
+    as it is): None where none has one. ValueError where some have one and others not, or their sizes
+    differ (each then accumulates alone).
+    """
+    if all(h is None for h in histories):
+        return None
+    if any(h is None or h.shape[1:] != histories[0].shape[1:] for h in histories):
+        raise ValueError("joined_histories: the streams' histories are of different sizes, or some have none")
+    if len(histories) == 1:
+        return histories[0]
+    return RayHistory(*(torch.cat(parts) for parts in zip(*(h.tensors() for h in histories))))
+
+
+def network_inputs(frames: Sequence[FrameBuffers], history: RayHistory | None, ao_rays: int, spp: int,
                    limits: RayLimits, out: RayHistory | None = None) -> tuple[torch.Tensor, torch.Tensor, RayHistory]:
-    """What a reconstruction network of ``limits`` reads of a frame whose ``ao_rays`` AO rays (at
-    ``spp`` rays per pixel) join ``history``: ``(ao, sampling, new history)``, with no host sync;
-    the new history written into ``out`` where given (:func:`accumulate_rays`).
+    """What a reconstruction network of ``limits`` reads of frames (one of each stream, one size: see
+    :func:`accumulate_frames`) whose ``ao_rays`` AO rays (at ``spp`` rays per pixel) join ``history``:
+    ``(ao, sampling, new history)``, with no host sync; the new history written into ``out`` where given.
     The sampling's AO plane counts, per pixel, the rays behind the mean; uncovered pixels hold
     none and read as the frame's own rays, the value training gave them (a 0 there cost 0.3-0.8 dB
     at 16 AO rays, spp 4).
 
     Shape:
-        Returns ao (H, W), sampling (1, 2, H, W).
+        Returns ao (B, H, W), sampling (B, 2, H, W).
     """
     # A frame's own rays' share where uncovered (the constant sampling), the history's where covered.
-    sampling = limits.channels(ao_rays, spp, frame.mask[None, None])
-    history = accumulate_frame(frame, history, ao_rays * spp, limits.rays(spp), out=out, share=sampling[:, 0])
-    return history.ao[0], sampling, history
+    sampling = limits.channels(ao_rays, spp, frames[0].mask[None, None].expand(len(frames), 1, *frames[0].mask.shape))
+    history = accumulate_frames(frames, history, ao_rays * spp, limits.rays(spp), out=out, share=sampling[:, 0])
+    return history.ao, sampling, history
 
 
 def history_traffic(h: int, w: int) -> int:

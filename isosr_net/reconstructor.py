@@ -33,7 +33,7 @@ from isosr_net.reconnet import OUTPUTS, RayLimits, ReconNet, ReconNetConfig
 from isosr_net.inference import (AO_MESSAGE, PRECISIONS, InputChecks, RecurrentNetwork, ao_in_range, buffer_stack,
                                  check_buffer, check_surface, frames_flags, stack_buffers, surface_tensors)
 from isosr_net.model import read_config
-from isosr_net.ray_history import RayHistory, network_inputs
+from isosr_net.ray_history import RayHistory, joined_histories, network_inputs
 
 if TYPE_CHECKING:  # types only: render_reconstruct takes what a renderer made
     from isosr_render.camera import Camera
@@ -134,7 +134,8 @@ def sampled_rays(frame: FrameBuffers, ao_rays: int, spp: int, limits: RayLimits,
     """
     if not accumulates(ao_rays, frame.position is not None):
         return frame.ao if ao_rays else None, constant, None
-    return network_inputs(frame, history, ao_rays, spp, limits, out)
+    ao, sampling, history = network_inputs([frame], history, ao_rays, spp, limits, out)
+    return ao[0], sampling, history
 
 
 def accumulates(ao_rays: int, positions: bool) -> bool:
@@ -454,22 +455,41 @@ class Reconstructor(RecurrentNetwork):
     def _batch_frames(self, group: list[tuple], ao_rays: int, spp: int,
                       shading: ShadingParams | None) -> list[FrameBuffers]:
         """The frames of ``group`` (``(index, net, frame, carry)``, one ``carry`` for all) in one call."""
-        rays = [net._rays(frame, ao_rays, spp, net.history if carry else None) for _, net, frame, carry in group]
         frames = [frame for _, _, frame, _ in group]
         carry = group[0][3]
 
         def stacked(name: str) -> torch.Tensor | None:
             return None if getattr(frames[0], name) is None else torch.stack([getattr(f, name) for f in frames])
-        ao = None if rays[0][0] is None else torch.stack([r[0] for r in rays])
-        sampling = torch.cat([r[1] for r in rays]) if rays[0][1].shape[-1] > 1 else rays[0][1]
+        ao, sampling, histories = self._batch_rays(group, ao_rays, spp)
         previous = torch.cat([net.previous for _, net, _, _ in group]) if carry else None
         stack, color, flags = self._frames(stacked("mask"), stacked("normal"), stacked("depth"), ao, stacked("flow"),
                                            sampling=sampling, previous=previous, shading=shading)
         out = []
         for j, (_, net, _, _) in enumerate(group):
-            net._checked(flags[j], lambda net=net, j=j: net._keep(stack[j:j + 1], rays[j][2]))
+            net._checked(flags[j], lambda net=net, j=j: net._keep(stack[j:j + 1], histories[j]))
             out.append(stack_buffers(stack[j:j + 1], None if color is None else color[j]))
         return out
+
+    def _batch_rays(self, group: list[tuple], ao_rays: int, spp: int
+                    ) -> tuple[torch.Tensor | None, torch.Tensor, list[RayHistory | None]]:
+        """:meth:`_rays` of the frames of ``group`` (as :meth:`_batch_frames`): ``(ao or None, sampling, each
+        stream's new history)``. Their rays accumulate in one launch where their histories join (all or none
+        present, of one size: :func:`joined_histories`), else stream by stream.
+
+        Shape:
+            Returns ao (B, H, W); sampling (B, 2, H, W), or the constant (1, 2, 1, 1).
+        """
+        frames = [frame for _, _, frame, _ in group]
+        histories = [net.history if carry else None for _, net, _, carry in group]
+        present = [h is not None for h in histories]
+        if accumulates(ao_rays, frames[0].position is not None) and (not any(present) or (
+                all(present) and len({h.shape[1:] for h in histories}) == 1)):
+            ao, sampling, history = network_inputs(frames, joined_histories(histories), ao_rays, spp, self.limits)
+            return ao, sampling, [RayHistory(*(t[j:j + 1] for t in history.tensors())) for j in range(len(frames))]
+        rays = [net._rays(frame, ao_rays, spp, history) for (_, net, frame, _), history in zip(group, histories)]
+        ao = None if rays[0][0] is None else torch.stack([r[0] for r in rays])
+        sampling = torch.cat([r[1] for r in rays]) if rays[0][1].shape[-1] > 1 else rays[0][1]
+        return ao, sampling, [r[2] for r in rays]
 
     def _rays(self, frame: FrameBuffers, ao_rays: int, spp: int, history: RayHistory | None,
               out: RayHistory | None = None) -> tuple[torch.Tensor | None, torch.Tensor, RayHistory | None]:

@@ -55,6 +55,22 @@ def test_a_batch_equals_each_stream_alone_and_a_cut_forms_its_own_call(renderer)
             torch.testing.assert_close(b.previous, a.previous, rtol=1e-5, atol=1e-5)
 
 
+def test_the_streams_rays_accumulate_in_one_launch_a_call(renderer, monkeypatch):
+    """The streams' ray histories join (issue 50): one accumulation over all their frames per network
+    call, the first frames' (no history) and the next ones' alike; a stream that cuts has its own call."""
+    from isosr_net import ray_history
+
+    sizes = []
+    accumulate = ray_history.accumulate_rays
+    monkeypatch.setattr(ray_history, "accumulate_rays",
+                        lambda ao, *a, **k: (sizes.append(ao.shape[0]), accumulate(ao, *a, **k))[1])
+    nets = twins(STREAMS)
+    for t in range(3):
+        frames = [rendered(renderer, k, t, cut=(k == 1 and t == 2)) for k in range(STREAMS)]
+        Reconstructor.reconstruct_batch(nets, frames, AO_RAYS, 1, ShadingParams())
+    assert sizes == [STREAMS, STREAMS, STREAMS - 1, 1]
+
+
 def test_a_frame_that_fails_its_checks_is_its_streams_error_only(renderer):
     nets, reference = twins(STREAMS), twins(1)[0]
     first = [rendered(renderer, k, 0) for k in range(STREAMS)]
