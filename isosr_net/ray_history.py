@@ -102,6 +102,13 @@ class RayHistory:
     def nbytes(self) -> int:
         return sum(t.nbytes for t in self.tensors())
 
+    def streams(self) -> list[RayHistory]:
+        """Each stream's history, (1, H, W), of its own memory (copied out of several streams' joint one,
+        so that a stream that stops holds none of the others')."""
+        if self.shape[0] == 1:
+            return [self]
+        return [RayHistory(*(t[j:j + 1].clone() for t in self.tensors())) for j in range(self.shape[0])]
+
     def copy_(self, other: RayHistory) -> RayHistory:
         """Copy ``other``'s values into these tensors (a graph's state); returns self."""
         for mine, theirs in zip(self.tensors(), other.tensors()):

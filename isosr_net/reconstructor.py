@@ -464,9 +464,12 @@ class Reconstructor(RecurrentNetwork):
         previous = torch.cat([net.previous for _, net, _, _ in group]) if carry else None
         stack, color, flags = self._frames(stacked("mask"), stacked("normal"), stacked("depth"), ao, stacked("flow"),
                                            sampling=sampling, previous=previous, shading=shading)
+        # Each stream keeps an output of its own memory: a view would hold the whole batch's for as long
+        # as that stream makes no frame.
+        own = torch.clone if len(group) > 1 else (lambda t: t)
         out = []
         for j, (_, net, _, _) in enumerate(group):
-            net._checked(flags[j], lambda net=net, j=j: net._keep(stack[j:j + 1], histories[j]))
+            net._checked(flags[j], lambda net=net, j=j: net._keep(own(stack[j:j + 1]), histories[j]))
             out.append(stack_buffers(stack[j:j + 1], None if color is None else color[j]))
         return out
 
@@ -485,7 +488,7 @@ class Reconstructor(RecurrentNetwork):
         if accumulates(ao_rays, frames[0].position is not None) and (not any(present) or (
                 all(present) and len({h.shape[1:] for h in histories}) == 1)):
             ao, sampling, history = network_inputs(frames, joined_histories(histories), ao_rays, spp, self.limits)
-            return ao, sampling, [RayHistory(*(t[j:j + 1] for t in history.tensors())) for j in range(len(frames))]
+            return ao, sampling, history.streams()
         rays = [net._rays(frame, ao_rays, spp, history) for (_, net, frame, _), history in zip(group, histories)]
         ao = None if rays[0][0] is None else torch.stack([r[0] for r in rays])
         sampling = torch.cat([r[1] for r in rays]) if rays[0][1].shape[-1] > 1 else rays[0][1]

@@ -55,9 +55,11 @@ def test_a_batch_equals_each_stream_alone_and_a_cut_forms_its_own_call(renderer)
             torch.testing.assert_close(b.previous, a.previous, rtol=1e-5, atol=1e-5)
 
 
-def test_the_streams_rays_accumulate_in_one_launch_a_call(renderer, monkeypatch):
+def test_the_streams_rays_accumulate_in_one_launch_a_call_and_each_keeps_its_own_state(renderer, monkeypatch):
     """The streams' ray histories join (issue 50): one accumulation over all their frames per network
-    call, the first frames' (no history) and the next ones' alike; a stream that cuts has its own call."""
+    call, the first frames' (no history) and the next ones' alike; a stream that cuts has its own call.
+    After it, each stream's output and history are of its own memory: one that stops making frames
+    holds none of its batch mates'."""
     from isosr_net import ray_history
 
     sizes = []
@@ -69,6 +71,8 @@ def test_the_streams_rays_accumulate_in_one_launch_a_call(renderer, monkeypatch)
         frames = [rendered(renderer, k, t, cut=(k == 1 and t == 2)) for k in range(STREAMS)]
         Reconstructor.reconstruct_batch(nets, frames, AO_RAYS, 1, ShadingParams())
     assert sizes == [STREAMS, STREAMS, STREAMS - 1, 1]
+    held = [{t.untyped_storage().data_ptr() for t in (net.previous, *net.history.tensors())} for net in nets]
+    assert all(not (a & b) for i, a in enumerate(held) for b in held[i + 1:]), "a stream holds another's memory"
 
 
 def test_a_frame_that_fails_its_checks_is_its_streams_error_only(renderer):
