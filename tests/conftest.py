@@ -18,6 +18,18 @@ from isosr_render.volume import Volume
 # The device the renderer tests run on: CI runs them on the CPU; on a GPU machine
 # `ISOSR_TEST_DEVICE=cuda pytest tests/test_renderer.py` runs the same tests there.
 DEVICE = os.environ.get("ISOSR_TEST_DEVICE", "cpu")
+# ISOSR_TEST_SHARD=K/N: this process runs every N-th collected test from the K-th (0-based), so that
+# N processes share a slow file's tests (tests/test_fused_recon.py: the interpreter's, one per core).
+SHARD_ENV = "ISOSR_TEST_SHARD"
+
+
+def pytest_collection_modifyitems(config, items):
+    shard = os.environ.get(SHARD_ENV)
+    if not shard:
+        return
+    k, n = (int(part) for part in shard.split("/"))
+    config.hook.pytest_deselected(items=[item for i, item in enumerate(items) if i % n != k])
+    items[:] = items[k::n]
 
 
 def world_grid(shape, spacing=(1.0, 1.0, 1.0)):
