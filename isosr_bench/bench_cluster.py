@@ -276,7 +276,7 @@ def load_fields(load: dict) -> dict:
 
 def measure_server(name: str, device: str, options: tuple[str, ...], cases: list[tuple[str, int, int]],
                    failover_sessions: int, volume: str, size: tuple[int, int], seconds: float, processes: int,
-                   encoding: str = "jpeg"):
+                   encoding: str):
     """Start one server and yield a row per (mode, AO rays, sessions) case (frames coded as ``encoding``),
     then its failover row."""
     started = time.monotonic()

@@ -45,7 +45,7 @@ from isosr_render.sequence import sequence_cameras
 from isosr_net.methods import FrameMethod, Networks, make_runner
 from isosr_net.methods.reconstruct import CANDIDATE_MODEL_NAME
 from isosr_net.fused_recon import FusedReconNet, fused_runs_on, fused_traffic
-from isosr_net.ray_history import accumulate_frame, history_traffic
+from isosr_net.ray_history import accumulate_frames, history_traffic
 from isosr_net.reconnet import macs_per_pixel
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor, sampled_rays
 
@@ -108,7 +108,7 @@ def pass_times(net: FusedReconNet, renderer: Renderer, pairs: list, request, ao_
             traffic["network"] = sum(traffic.values())
         if history is not None:  # before the network: the ray history's kernel
             out["history"] = {"ms": mean_ms(time_frames(
-                lambda i: accumulate_frame(frame, history, ao_rays * spp, limits.rays(spp)), frames, device))}
+                lambda i: accumulate_frames([frame], history, ao_rays * spp, limits.rays(spp)), frames, device))}
             traffic["history"] = history_traffic(h, w)
     for name, bytes_ in traffic.items():
         floor = bytes_ / bandwidth * 1e3

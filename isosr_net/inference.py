@@ -181,6 +181,12 @@ def stack_buffers(stack: torch.Tensor, color: torch.Tensor | None = None) -> Fra
                         ao=s[AO.start], color=color)
 
 
+def own_streams(batch: torch.Tensor) -> list[torch.Tensor]:
+    """Each stream's (1, ...) slice of a batch's tensor (B, ...), of its own memory: a copy, since a view
+    would hold the whole batch's for as long as its stream keeps it; one stream's tensor as it is."""
+    return [batch] if batch.shape[0] == 1 else [batch[j:j + 1].clone() for j in range(batch.shape[0])]
+
+
 def output_buffers(output: torch.Tensor) -> FrameBuffers:
     """A network's output stack (1, 6, H, W) as buffers; normals unit where covered, 0 elsewhere."""
     return stack_buffers(buffer_stack(output))

@@ -36,6 +36,7 @@ import warp as wp
 from isosr_render.buffers import FrameBuffers
 from isosr_render.shapes import check_shape
 from isosr_net.filters.atrous import check_buffers, on_device, reprojected_texel
+from isosr_net.inference import own_streams
 from isosr_net.reconnet import RayLimits
 
 wp.set_module_options({"enable_backward": False})
@@ -103,11 +104,8 @@ class RayHistory:
         return sum(t.nbytes for t in self.tensors())
 
     def streams(self) -> list[RayHistory]:
-        """Each stream's history, (1, H, W), of its own memory (copied out of several streams' joint one,
-        so that a stream that stops holds none of the others')."""
-        if self.shape[0] == 1:
-            return [self]
-        return [RayHistory(*(t[j:j + 1].clone() for t in self.tensors())) for j in range(self.shape[0])]
+        """Each stream's history, (1, H, W), of its own memory (:func:`~isosr_net.inference.own_streams`)."""
+        return [RayHistory(*parts) for parts in zip(*(own_streams(t) for t in self.tensors()))]
 
     def copy_(self, other: RayHistory) -> RayHistory:
         """Copy ``other``'s values into these tensors (a graph's state); returns self."""
@@ -300,22 +298,21 @@ def accumulate_frames(frames: Sequence[FrameBuffers], history: RayHistory | None
                            flow, history, rays, cap, config, out, share)
 
 
-def accumulate_frame(frame: FrameBuffers, history: RayHistory | None, rays: int, cap: int,
-                     config: RayHistoryConfig = RayHistoryConfig(), out: RayHistory | None = None,
-                     share: torch.Tensor | None = None) -> RayHistory:
-    """:func:`accumulate_frames` of one frame."""
-    return accumulate_frames([frame], history, rays, cap, config, out, share)
+def histories_join(histories: Sequence[RayHistory | None]) -> bool:
+    """Whether streams' histories make one for :func:`accumulate_frames`: none has one, or all have one of
+    one size (else each stream accumulates alone)."""
+    present = [h is not None for h in histories]
+    return not any(present) or (all(present) and len({h.shape[1:] for h in histories}) == 1)
 
 
 def joined_histories(histories: Sequence[RayHistory | None]) -> RayHistory | None:
     """Several streams' histories as one (B, H, W) history for :func:`accumulate_frames` (one stream's
-    as it is): None where none has one. ValueError where some have one and others not, or their sizes
-    differ (each then accumulates alone).
+    as it is): None where none has one. ValueError where they do not join (:func:`histories_join`).
     """
-    if all(h is None for h in histories):
-        return None
-    if any(h is None or h.shape[1:] != histories[0].shape[1:] for h in histories):
+    if not histories_join(histories):
         raise ValueError("joined_histories: the streams' histories are of different sizes, or some have none")
+    if histories[0] is None:
+        return None
     if len(histories) == 1:
         return histories[0]
     return RayHistory(*(torch.cat(parts) for parts in zip(*(h.tensors() for h in histories))))

@@ -31,9 +31,10 @@ from isosr_render.shading import ShadingParams, shade
 from isosr_net.fused_recon import FusedReconNet, fusable, fused_reconnet, fused_runs_on, triton_imports
 from isosr_net.reconnet import OUTPUTS, RayLimits, ReconNet, ReconNetConfig
 from isosr_net.inference import (AO_MESSAGE, PRECISIONS, InputChecks, RecurrentNetwork, ao_in_range, buffer_stack,
-                                 check_buffer, check_surface, frames_flags, stack_buffers, surface_tensors)
+                                 check_buffer, check_surface, frames_flags, own_streams, stack_buffers,
+                                 surface_tensors)
 from isosr_net.model import read_config
-from isosr_net.ray_history import RayHistory, joined_histories, network_inputs
+from isosr_net.ray_history import RayHistory, histories_join, joined_histories, network_inputs
 
 if TYPE_CHECKING:  # types only: render_reconstruct takes what a renderer made
     from isosr_render.camera import Camera
@@ -464,12 +465,10 @@ class Reconstructor(RecurrentNetwork):
         previous = torch.cat([net.previous for _, net, _, _ in group]) if carry else None
         stack, color, flags = self._frames(stacked("mask"), stacked("normal"), stacked("depth"), ao, stacked("flow"),
                                            sampling=sampling, previous=previous, shading=shading)
-        # Each stream keeps an output of its own memory: a view would hold the whole batch's for as long
-        # as that stream makes no frame.
-        own = torch.clone if len(group) > 1 else (lambda t: t)
+        outputs = own_streams(stack)  # each stream keeps its own
         out = []
         for j, (_, net, _, _) in enumerate(group):
-            net._checked(flags[j], lambda net=net, j=j: net._keep(own(stack[j:j + 1]), histories[j]))
+            net._checked(flags[j], lambda net=net, j=j: net._keep(outputs[j], histories[j]))
             out.append(stack_buffers(stack[j:j + 1], None if color is None else color[j]))
         return out
 
@@ -477,16 +476,14 @@ class Reconstructor(RecurrentNetwork):
                     ) -> tuple[torch.Tensor | None, torch.Tensor, list[RayHistory | None]]:
         """:meth:`_rays` of the frames of ``group`` (as :meth:`_batch_frames`): ``(ao or None, sampling, each
         stream's new history)``. Their rays accumulate in one launch where their histories join (all or none
-        present, of one size: :func:`joined_histories`), else stream by stream.
+        present, of one size: :func:`histories_join`), else stream by stream.
 
         Shape:
             Returns ao (B, H, W); sampling (B, 2, H, W), or the constant (1, 2, 1, 1).
         """
         frames = [frame for _, _, frame, _ in group]
         histories = [net.history if carry else None for _, net, _, carry in group]
-        present = [h is not None for h in histories]
-        if accumulates(ao_rays, frames[0].position is not None) and (not any(present) or (
-                all(present) and len({h.shape[1:] for h in histories}) == 1)):
+        if accumulates(ao_rays, frames[0].position is not None) and histories_join(histories):
             ao, sampling, history = network_inputs(frames, joined_histories(histories), ao_rays, spp, self.limits)
             return ao, sampling, history.streams()
         rays = [net._rays(frame, ao_rays, spp, history) for (_, net, frame, _), history in zip(group, histories)]
