@@ -7,7 +7,10 @@ session asks for its next frame only after the last one is made, so the ready se
 served in turn (round robin), never the busiest first. The view frames asked for while the
 device thread is busy are made together, as one job (a batch): those of one runner kind, volume
 and size through the kind's ``make_batch``; a frame that runs in slices goes alone. The event loop awaits
-:meth:`Engine.call`; everything named ``*_sync`` runs only on that thread.
+:meth:`Engine.call`; everything named ``*_sync`` runs only on that thread. On GPUs that thread issues its
+work on a CUDA stream of its own (:attr:`Engine.stream`): the encoder threads read a frame's colors once its
+event has passed (:class:`ImageCodes`), never waiting for work the device thread issued after it (nvJPEG
+synchronizes the legacy default stream before each image, which would make it wait for the next batch).
 
 Frames are made by isosr_net's frame methods through the view modes (:mod:`isosr_server.views`).
 Networks are loaded once (:class:`isosr_net.methods.Networks`, in the server's precision:
@@ -127,6 +130,25 @@ class AskedFrame:
 
 
 @dataclass(frozen=True)
+class ImageCodes:
+    """A made frame's quantized colors and, on a GPU, the event on the device thread's stream after which
+    they hold them (None on CPUs): a thread reads them through :meth:`wait`.
+
+    Shape:
+        rgb: (H, W, 3) uint8.
+    """
+
+    rgb: torch.Tensor
+    ready: torch.cuda.Event | None
+
+    def wait(self) -> torch.Tensor:
+        """The colors, once the device has made them (blocks this thread until then, not longer)."""
+        if self.ready is not None:
+            self.ready.synchronize()
+        return self.rgb
+
+
+@dataclass(frozen=True)
 class SharedCode:
     """A frame's JPEG among its batch's, coded together (:func:`encode_jpegs`): the future of their
     bytes and the frame's index in them."""
@@ -145,7 +167,10 @@ class Engine:
             raise RuntimeError(f"device {config.device!r} asked for, but torch finds no CUDA device")
         self.precision = config.precision or default_precision(self.device)
         self.slice_ms = config.slice_ms or (8.0 if self.device.type == "cuda" else 100.0)
-        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="isosr-device")
+        # The device thread's own CUDA stream (module docstring), made current there as the thread starts.
+        self.stream = torch.cuda.Stream(self.device) if self.device.type == "cuda" else None
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="isosr-device",
+                                            initializer=self._enter_stream)
         # Image, video and buffers encoding: off the device thread, which goes on with the next frame meanwhile.
         self._encoder = ThreadPoolExecutor(max_workers=IMAGE_ENCODER_THREADS, thread_name_prefix="isosr-encoder")
         self._video = ThreadPoolExecutor(max_workers=VIDEO_ENCODER_THREADS, thread_name_prefix="isosr-video")
@@ -171,6 +196,10 @@ class Engine:
     async def call(self, fn, *args):
         """Run ``fn(*args)`` on the device thread and await its result."""
         return await asyncio.get_running_loop().run_in_executor(self._executor, fn, *args)
+
+    def _enter_stream(self) -> None:
+        if self.stream is not None:
+            torch.cuda.set_stream(self.stream)
 
     def _on_thread(self) -> None:
         if self._thread is None:
@@ -453,20 +482,26 @@ class Engine:
         codes = [c for _, _, c in made]
         together: dict[int, list[int]] = {}
         for i, (asked, _, c) in enumerate(made):
-            if asked.jpeg is not None and isinstance(c, torch.Tensor) and device_jpeg(c.device):
+            if asked.jpeg is not None and isinstance(c, ImageCodes) and device_jpeg(c.rgb.device):
                 together.setdefault(asked.jpeg, []).append(i)
         for quality, indices in together.items():
-            images = self._encoder.submit(encode_jpegs, [codes[i] for i in indices], quality)
+            batch = [codes[i] for i in indices]
+            images = self._encoder.submit(lambda batch=batch, q=quality: encode_jpegs([c.wait() for c in batch], q))
             for k, i in enumerate(indices):
                 codes[i] = SharedCode(images, k)
         return codes
 
-    def codes_sync(self, made: ViewFrame) -> torch.Tensor | tuple:
+    def codes_sync(self, made: ViewFrame) -> ImageCodes | tuple:
         """A made frame's codes: its color quantized to uint8 on the device (the image to encode), or
         the ``buffers`` mode's low-res codes on the host (:func:`view_buffer_codes`)."""
         self._on_thread()
         if made.color is not None:
-            return quantize(made.color)
+            rgb = quantize(made.color)
+            ready = None
+            if rgb.is_cuda:
+                ready = torch.cuda.Event(blocking=True)  # its waiters sleep, not spin
+                ready.record()
+            return ImageCodes(rgb, ready)
         b = made.result.buffers
         return view_buffer_codes(FrameBuffers(mask=b.mask, normal=b.normal, depth=b.depth,
                                               flow=b.flow if made.prev_seq >= 0 else None))
@@ -551,12 +586,12 @@ def _resolve(loop: asyncio.AbstractEventLoop, future: asyncio.Future, result: ob
     loop.call_soon_threadsafe(settle)
 
 
-def pack_codes(codes: torch.Tensor | tuple, code: Callable[[torch.Tensor], CodedImage]
+def pack_codes(codes: ImageCodes | tuple, code: Callable[[torch.Tensor], CodedImage]
                ) -> tuple[CodedImage | None, ViewBuffers | None]:
     """``(code(colors), None)`` of quantized colors, or ``(None, buffers)`` of the buffers codes (encoder thread)."""
     if isinstance(codes, tuple):
         return None, pack_view_buffers(*codes)
-    return code(codes), None
+    return code(codes.wait()), None
 
 
 def _advance(steps: Generator) -> tuple[bool, object, float]:

@@ -13,6 +13,7 @@ import time
 
 import numpy as np
 import pytest
+import torch
 from server_fixtures import DEVICE, VOLUME, H, W, server_settings
 
 from isosr_net.methods import FrameRunner
@@ -312,3 +313,11 @@ def test_jpegs_of_a_batch_equal_those_coded_alone(engine, monkeypatch):
     calls.clear()
     assert together(engine, settings, jpeg=True) == expected
     assert calls == ([SESSIONS] * (FRAMES - 1) if device_jpeg(engine.device) else [])
+
+
+@pytest.mark.skipif(DEVICE != "cuda", reason="CUDA streams: ISOSR_TEST_DEVICE=cuda, on the GPU machine")
+def test_the_device_thread_works_on_a_cuda_stream_of_its_own(engine):
+    """Its work never shares the legacy default stream, which nvJPEG synchronizes before each image
+    (an encoder would otherwise wait for every batch the device thread issued after its frame's)."""
+    current = asyncio.run(engine.call(lambda: torch.cuda.current_stream(engine.device)))
+    assert current == engine.stream != torch.cuda.default_stream(engine.device)
