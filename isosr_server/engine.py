@@ -148,15 +148,6 @@ class ImageCodes:
         return self.rgb
 
 
-@dataclass(frozen=True)
-class SharedCode:
-    """A frame's JPEG among its batch's, coded together (:func:`encode_jpegs`): the future of their
-    bytes and the frame's index in them."""
-
-    images: Future
-    index: int
-
-
 class Engine:
     """Owns the device: networks, renderers, encoders, and the thread all their work runs on."""
 
@@ -395,8 +386,8 @@ class Engine:
 
         async def encode() -> EncodedFrame:
             began = time.perf_counter()
-            if isinstance(codes, SharedCode):
-                image, buffers = CodedImage((await asyncio.wrap_future(codes.images))[codes.index], "jpeg"), None
+            if isinstance(codes, Future):  # its JPEG, coded in turn with its batch mates' (_shared_jpegs)
+                image, buffers = CodedImage(await asyncio.wrap_future(codes), "jpeg"), None
             else:
                 image, buffers = await asyncio.get_running_loop().run_in_executor(pool, pack_codes, codes, code)
             done = time.perf_counter()
@@ -477,18 +468,24 @@ class Engine:
 
     def _shared_jpegs(self, made: list[tuple[AskedFrame, ViewFrame, object]]) -> list[object]:
         """The codes of a batch's made frames, those coded as JPEGs of one quality on a device that encodes
-        them (:func:`device_jpeg`) as their :class:`SharedCode`: one encoder-thread job codes them together
-        (nvJPEG), off the device thread."""
+        them (:func:`device_jpeg`) as the future of their bytes: one encoder-thread job codes them in turn
+        (nvJPEG, off the device thread), each frame's bytes released as soon as they are made."""
         codes = [c for _, _, c in made]
         together: dict[int, list[int]] = {}
         for i, (asked, _, c) in enumerate(made):
             if asked.jpeg is not None and isinstance(c, ImageCodes) and device_jpeg(c.rgb.device):
                 together.setdefault(asked.jpeg, []).append(i)
         for quality, indices in together.items():
-            batch = [codes[i] for i in indices]
-            images = self._encoder.submit(lambda batch=batch, q=quality: encode_jpegs([c.wait() for c in batch], q))
-            for k, i in enumerate(indices):
-                codes[i] = SharedCode(images, k)
+            futures = [Future() for _ in indices]
+            job = self._encoder.submit(code_jpegs_in_turn, [codes[i] for i in indices], quality, futures)
+
+            def cancel_with(job: Future, futures: list[Future] = futures) -> None:
+                if job.cancelled():  # the encoders shut down before it ran
+                    for future in futures:
+                        future.cancel()
+            job.add_done_callback(cancel_with)
+            for i, future in zip(indices, futures):
+                codes[i] = future
         return codes
 
     def codes_sync(self, made: ViewFrame) -> ImageCodes | tuple:
@@ -571,6 +568,17 @@ def _check_finite(network: RecurrentNetwork, out: FrameBuffers) -> None:
     if not bool(torch.stack([torch.isfinite(getattr(out, n)).all() for n in out.present()]).all()):  # one sync
         network.reset()
         raise ValueError("the network gave non-finite values for this frame")
+
+
+def code_jpegs_in_turn(codes: list[ImageCodes], quality: int, futures: list[Future]) -> None:
+    """JPEGs of a batch's frames on the device (encoder thread), one after the other in the batch's order
+    (its deadlines'), each frame's bytes (or its error) to its future as soon as they are made: nvJPEG codes
+    one image at a time under one lock (torchvision), so a frame need not wait for its batch's last."""
+    for c, future in zip(codes, futures):
+        try:
+            future.set_result(encode_jpegs([c.wait()], quality)[0])
+        except Exception as e:  # noqa: BLE001 - this frame's error, not its batch mates'
+            future.set_exception(e)
 
 
 def _resolve(loop: asyncio.AbstractEventLoop, future: asyncio.Future, result: object = None,

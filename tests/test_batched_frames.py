@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import threading
 import time
+from concurrent.futures import Future
 
 import numpy as np
 import pytest
@@ -23,7 +24,7 @@ from isosr_render.image_codec import decode_image
 from isosr_server import engine as engine_module
 from isosr_server import protocol as P
 from isosr_server.encoding import CodedImage, device_jpeg, encode_image
-from isosr_server.engine import Engine
+from isosr_server.engine import Engine, ImageCodes
 from isosr_server.views import VIEWS, FrameJob
 
 SESSIONS = 3
@@ -300,14 +301,14 @@ def test_each_frame_says_how_many_frames_were_made_with_it(engine):
 
 def test_jpegs_of_a_batch_equal_those_coded_alone(engine, monkeypatch):
     """Frames coded as JPEGs: made together, their bytes equal those of the frames made and coded alone;
-    where the device encodes JPEGs (nvJPEG), a batch's are coded in one call, else each by its session."""
+    where the device encodes JPEGs (nvJPEG), a batch's are coded in one encoder job, else each by its session."""
     calls: list[int] = []
-    encode_jpegs = engine_module.encode_jpegs
+    code_jpegs_in_turn = engine_module.code_jpegs_in_turn
 
-    def counted(rgbs, quality):
-        calls.append(len(rgbs))
-        return encode_jpegs(rgbs, quality)
-    monkeypatch.setattr(engine_module, "encode_jpegs", counted)
+    def counted(codes, quality, futures):
+        calls.append(len(codes))
+        return code_jpegs_in_turn(codes, quality, futures)
+    monkeypatch.setattr(engine_module, "code_jpegs_in_turn", counted)
     settings = [view_settings(engine, "full")] * SESSIONS
     expected = alone(engine, settings, jpeg=True)
     calls.clear()
@@ -321,3 +322,22 @@ def test_the_device_thread_works_on_a_cuda_stream_of_its_own(engine):
     (an encoder would otherwise wait for every batch the device thread issued after its frame's)."""
     current = asyncio.run(engine.call(lambda: torch.cuda.current_stream(engine.device)))
     assert current == engine.stream != torch.cuda.default_stream(engine.device)
+
+
+def test_a_batch_s_jpegs_are_released_one_by_one(monkeypatch):
+    """A batch's JPEGs are coded in turn, each frame's bytes released as soon as they are made (not when
+    its batch's last is), and a frame that fails to code fails alone."""
+    futures = [Future() for _ in range(3)]
+    released: list[list[bool]] = []
+
+    def code(rgbs, quality):
+        released.append([f.done() for f in futures])
+        if len(released) == 2:
+            raise RuntimeError("nvJPEG refused the frame")
+        return [bytes([len(released)])]
+    monkeypatch.setattr(engine_module, "encode_jpegs", code)
+    codes = [ImageCodes(torch.zeros(4, 4, 3, dtype=torch.uint8), None) for _ in futures]
+    engine_module.code_jpegs_in_turn(codes, JPEG_QUALITY, futures)
+    assert released == [[False, False, False], [True, False, False], [True, True, False]]
+    assert futures[0].result() == b"\x01" and futures[2].result() == b"\x03"
+    assert "refused" in str(futures[1].exception())
