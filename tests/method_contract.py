@@ -80,6 +80,8 @@ from isosr_render.surfaces import Surfaces
 
 SIZE = (32, 24)  # width, height: every factor up to 8 divides it
 AO_RADIUS = 0.15  # world units: occluded near the contacts (the default, 0.05, barely occludes a 24^3 volume)
+# A capped cut through the scene (its inside is below the plane): cut faces in the frame.
+CAPPED = Clip(planes=[((0.0, 0.0, 0.05), (0.0, 0.0, -1.0))], cap="below")
 CAMERAS = orbit_path(3, yaw0=20.0, yaw_step=4.0, pitch=25.0, distance=1.3)
 # The hard cases' cameras (the scene: sphere of radius 0.22 at the origin, floor at y = -0.22).
 INSIDE = Camera(eye=(0.0, 0.05, 0.0), target=(0.3, 0.0, 0.1))  # inside the sphere, the field's inside
@@ -288,6 +290,17 @@ class MethodContract:
         for k in range(3):
             assert_same_frames(together[k], alone[k])
 
+    def test_a_batch_of_streams_that_shade_otherwise_makes_each_as_alone(self):
+        """One batch of a plain stream, one with cut faces and one coloured by the scene's field: each frame
+        equals its stream's made alone (a kind that shades its batch's frames together keeps each one's own)."""
+        makes = (self.runner, lambda: self.runner(clip=CAPPED), lambda: self.runner(coloring=Coloring("field", "magma")))
+        alone = [buffers_of(make().frame(CAMERAS[0])) for make in makes]
+        runners = [make() for make in makes]
+        results = type(runners[0]).make_batch([(runner, CAMERAS[0], None) for runner in runners])
+        for k, result in enumerate(results):
+            assert not isinstance(result, Exception), f"stream {k}: {result!r}"
+        assert_same_frames([buffers_of(result) for result in results], alone)
+
     def test_a_stream_s_error_in_a_batch_is_its_own(self):
         """A stream whose frame fails (here: its renderer raises) gets the error as its result; its
         batch mates get their frames, equal to those made alone."""
@@ -390,7 +403,7 @@ class MethodContract:
 
     @pytest.mark.parametrize("case", ("capped", "nothing_kept"))
     def test_clipping_reaches_the_frame(self, case):
-        cut = {"capped": Clip(planes=[((0.0, 0.0, 0.05), (0.0, 0.0, -1.0))], cap="below"),  # the scene's inside is below
+        cut = {"capped": CAPPED,
                "nothing_kept": Clip(planes=[((0.0, 0.0, 0.3), (0.0, 0.0, 1.0)), ((0.0, 0.0, -0.3), (0.0, 0.0, -1.0))],
                                     cap="below")}[case]
         runner = self.runner(clip=cut)

@@ -8,11 +8,11 @@ from pathlib import Path
 
 import torch
 
-from isosr_net.methods.base import FrameMethod, FrameRunner, RayOptions, register_runner
+from isosr_net.methods.base import FrameMethod, FrameResult, FrameRunner, RayOptions, register_runner
 from isosr_net.reconnet import RayLimits
 from isosr_net.timing import StageTimer
 from isosr_render import Camera, FrameBuffers
-from isosr_render.shading import shade
+from isosr_render.shading import ShadingParams, shade, shade_on
 
 
 @dataclass(frozen=True)
@@ -64,6 +64,59 @@ class FullRunner(FrameRunner):
     @classmethod
     def makes(cls, m: FrameMethod) -> tuple[str, ...]:
         return ("mask", "normal") + (("ao",) if m.ao_rays else ())
+
+    @classmethod
+    def make_batch(cls, frames: list[tuple[FrameRunner, Camera, Camera | None]]) -> list[FrameResult | Exception]:
+        """As :meth:`FrameRunner.make_batch`, the frames that shade alike in one call: each rendered as alone,
+        then those of one material and the same buffers (AO, cut faces, colours) stacked and shaded together
+        (:func:`~isosr_render.shading.shade_on`: on GPUs one compiled call, whose host work the batch shares;
+        the frames' ``shading`` stage is their call's). Two layers, or none shaded: each frame as alone."""
+        results: list[FrameResult | Exception | None] = [None] * len(frames)
+        alike: dict[tuple, list[tuple[int, FullRunner, FrameBuffers, FrameBuffers, StageTimer, Camera | None]]] = {}
+        for k, (runner, camera, prev_camera) in enumerate(frames):
+            if not runner.shade or runner._layers or runner.behind is not None:
+                results[k] = super().make_batch([(runner, camera, prev_camera)])[0]
+                continue
+            try:
+                rendered, timer = runner._rendered(camera, prev_camera)
+                buffers = FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=rendered.ao, cap=rendered.cap,
+                                       albedo=rendered.albedo)
+                key = (runner.shading,) + tuple(getattr(buffers, n) is None for n in ("ao", "cap", "albedo"))
+                alike.setdefault(key, []).append((k, runner, rendered, buffers, timer, prev_camera))
+            except Exception as e:  # noqa: BLE001 - the stream's own failure, returned as its result
+                results[k] = e
+        for group in alike.values():
+            try:
+                colors, shading = cls._shade_together([buffers for _, _, _, buffers, _, _ in group], group[0][1].shading)
+            except Exception as e:  # noqa: BLE001 - the group's shading failed: its streams' error
+                colors, shading = [e] * len(group), None
+            for (k, runner, rendered, buffers, timer, prev_camera), color in zip(group, colors):
+                if isinstance(color, Exception):
+                    results[k] = color
+                    continue
+                buffers.color = color
+                results[k] = runner._made(rendered, buffers, [timer, shading], prev_camera)
+        return results
+
+    def _rendered(self, camera: Camera, prev_camera: Camera | None) -> tuple[FrameBuffers, StageTimer]:
+        """The frame's ray cast as :meth:`steps` makes it in one slice, and its timer."""
+        timer = StageTimer(self.device)
+        request = self.render_request(prev_camera)
+        self.prev_camera = prev_camera
+        with torch.no_grad(), timer("render"):
+            return self.renderer.render(camera, request), timer
+
+    @staticmethod
+    def _shade_together(frames: list[FrameBuffers], params: ShadingParams) -> tuple[list[torch.Tensor], StageTimer]:
+        """The colors of single-layer frames of one size, stacked and shaded in one call, and its timer."""
+        device = frames[0].mask.device
+        timer = StageTimer(device)
+        with torch.no_grad(), timer("shading"):
+            stacked = {n: None if getattr(frames[0], n) is None else torch.stack([getattr(f, n) for f in frames])
+                       for n in ("mask", "normal", "ao", "cap", "albedo")}
+            colors = shade_on(device.type)(stacked["mask"], stacked["normal"], stacked["ao"], params, stacked["cap"],
+                                           stacked["albedo"])
+        return list(colors.unbind(0)), timer
 
     def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
         buffers = FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=rendered.ao)
