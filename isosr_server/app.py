@@ -22,7 +22,6 @@ from __future__ import annotations
 import asyncio
 import logging
 import ssl
-import sys
 import time
 from contextlib import asynccontextmanager
 
@@ -90,7 +89,6 @@ async def openapi_schema(request: Request) -> JSONResponse:
 @asynccontextmanager
 async def lifespan(app: FastAPI):
     s = app.state
-    sys.setswitchinterval(s.settings.switch_interval_ms / 1e3)  # the interpreter's, for the whole process
     await s.engine.call(s.engine.start_sync)
     s.ready = True
     log.info("isosr server ready: device %s, upscale factor %d, volumes %s", s.engine.device,

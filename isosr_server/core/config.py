@@ -79,8 +79,6 @@ class Settings:
             between slices); None: 8 ms on CUDA, 100 ms on CPUs.
         batch_wait_ms: how long a batch of view frames may wait for the sessions that have not
             asked for their next frame yet (:meth:`isosr_server.engine.Engine._batch_sync`).
-        switch_interval_ms: how long the device thread's Python may keep the interpreter while the event
-            loop waits for it (``sys.setswitchinterval``, set at start-up; Python's default is 5 ms).
         max_volume_bytes: the most bytes a volume's voxels take on the device; a larger volume
             renders sparse (the bricks each iso needs, paged in); None: half the free GPU memory
             at load, no limit on CPUs. It also picks a multiscale OME-Zarr's level
@@ -115,9 +113,6 @@ class Settings:
     batch_wait_ms: float = _option(0.0, "milliseconds a batch of view frames may wait for the frames of sessions "
                                         "that have not asked yet, never past its first frame's deadline (default: 0, "
                                         "a batch takes the frames asked for until the device is free)", float)
-    switch_interval_ms: float = _option(1.0, "milliseconds the device thread's Python may keep the interpreter "
-                                             "while the event loop waits for it to send frames and read messages "
-                                             "(default: 1; Python's own is 5)", float)
     max_volume_bytes: int | None = _option(None, "bytes a volume's voxels may take on the device; larger volumes "
                                                  "render sparse, paging in the bricks each iso needs (default: half "
                                                  "the free GPU memory, no limit on CPUs); an OME-Zarr is served at "
@@ -144,7 +139,7 @@ class Settings:
             raise ValueError(f"max_volume_bytes must be a positive number of bytes, got {self.max_volume_bytes}")
         if not (math.isfinite(self.batch_wait_ms) and self.batch_wait_ms >= 0):
             raise ValueError(f"batch_wait_ms must be a number of milliseconds, 0 or more, got {self.batch_wait_ms}")
-        for name in ("target_fps", "slice_ms", "switch_interval_ms"):
+        for name in ("target_fps", "slice_ms"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, got {value}")
