@@ -18,9 +18,10 @@ Per server (``--replicas``: 0 is the plain single process, N > 0 is N replicas o
 total and per session and latency p50/p99, as :func:`isosr_bench.sessions.run_sessions`
 measures them (sessions dealt to ``--client-processes``), the methods the frames name (``auto``:
 what it chose), which replicas made them, the GPUs the server holds (``gpus``), and over the
-timed span (:class:`isosr_bench.load.LoadSampler`) each GPU's busy fraction and the CPU cores
-of the server's process, Serve's proxy and the replicas: a replica's interpreter near one
-core, or the proxy's, is the bound where the GPUs idle.
+timed span (:class:`isosr_bench.load.LoadSampler`) each GPU's busy fraction, the CPU cores
+of the server's process, Serve's proxy and the replicas, and the plain server's device thread's
+share of the span in jobs (``device_thread_busy``, from its ``GET /metrics``): a replica's
+interpreter near one core, the proxy's, or a device thread near 1, is the bound where the GPUs idle.
 Then scaling: each N-replica row against the 1-replica row of its case, frames/s over N times
 its frames/s at the same sessions, and p99 latency against its p99 at 1/N of the sessions.
 Failover, on the first server of 2 or more replicas: ``--failover-sessions`` closed-loop
@@ -44,7 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
-from isosr_bench.bench_server import SIZES, ServerProcess, case_row, room_options, server_load
+from isosr_bench.bench_server import SIZES, ServerProcess, case_row, device_thread, room_options, server_load
 from isosr_bench.common import bench_parser, commit, device_name, kept_rows, print_table, write_result
 from isosr_bench.load import LoadSampler, titled
 from isosr_bench.sessions import run_sessions
@@ -54,6 +55,7 @@ from isosr_server.protocol import IMAGE_ENCODINGS, VIDEO_ENCODINGS
 from isosr_server.views import VIEWS
 
 CASES = (("full", 0), ("reconstruct", 1), ("auto", 0))
+PLAIN = "plain"  # the server without replicas: one process, one device thread
 
 
 def parse_cases(text: str) -> tuple[tuple[str, int], ...]:
@@ -163,7 +165,7 @@ def servers(replicas: list[int], gpus: str, device: str) -> list[tuple[str, int,
     out = []
     for n in replicas:
         if n == 0:
-            out.append(("plain", 0, float(cuda), ()))
+            out.append((PLAIN, 0, float(cuda), ()))
             continue
         share = replica_share(gpus, n) if cuda else 0.0
         ray_options = ("--gpus-per-replica", f"{share:g}") if cuda else ()
@@ -285,8 +287,10 @@ def measure_server(name: str, device: str, options: tuple[str, ...], cases: list
             ready_s = time.monotonic() - started
             groups = {"server": lambda: [server.pid], "proxy": titled(b"ray::ProxyActor"),
                       "replica": titled(b"ray::ServeReplica")}
+            # One device thread's counter behind the plain server's /metrics; a replica's answers for itself only.
+            counters = device_thread(server.url) if name == PLAIN else {}
             for mode, ao, n in cases:
-                load = LoadSampler(groups, gpus=device.startswith("cuda"))
+                load = LoadSampler(groups, gpus=device.startswith("cuda"), counters=counters)
                 settings = {"ao_rays": ao, "encoding": encoding}
                 result = run_sessions(server.url, volume, n, seconds, mode, size, settings, processes=processes,
                                       on_start=lambda: load.start(seconds))
@@ -296,14 +300,15 @@ def measure_server(name: str, device: str, options: tuple[str, ...], cases: list
                       f"({row.get('fps_per_session', 0):6.1f}/session) p50 {row.get('latency_p50_ms', 0):6.1f} "
                       f"p99 {row.get('latency_p99_ms', 0):6.1f} ms errors {row['errors']} (ready in {ready_s:.0f} s) "
                       f"{row.get('methods')} GPU busy {row.get('gpu_busy')} cores: server {row.get('server_cores')} "
-                      f"proxy {row.get('proxy_cores')} replica max {row.get('replica_cores_max')}", flush=True)
+                      f"proxy {row.get('proxy_cores')} replica max {row.get('replica_cores_max')} "
+                      f"device thread {row.get('device_thread_busy')}", flush=True)
                 yield row
             if failover_sessions:
                 row = dict(failover(server.url, volume, size, failover_sessions, 3.0, 6.0), server=name)
                 print(row, flush=True)
                 yield row
     finally:
-        if name != "plain":
+        if name != PLAIN:
             stop_ray()
 
 

@@ -20,7 +20,8 @@ session count:
   server total; the total counts from a frame's first slice to its encoding);
 - bytes per frame, and the frames/s a 50 Mbit/s and a 1 Gbit/s link carry at that size;
 - over the timed span (:class:`isosr_bench.load.LoadSampler`), each GPU's busy fraction
-  (``nvidia-smi``; None without) and the CPU cores of the server's process (not with ``--url``).
+  (``nvidia-smi``; None without), the CPU cores of the server's process (not with ``--url``) and
+  its device thread's share of the span in jobs (``device_thread_busy``, from ``GET /metrics``).
 
 Clients here only receive frames (``buffers`` frames are not upscaled here), so the numbers
 are the server's. Then two studies. Matched quality: the ``buffers`` path (coded low-res
@@ -39,6 +40,7 @@ frame time fits one session's budget (``1000 / target_fps`` ms).
 from __future__ import annotations
 
 import ssl
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -46,7 +48,7 @@ import torch
 
 from isosr_bench.bench_pareto import bench_cameras, pareto_rows
 from isosr_bench.common import bench_parser, print_table, write_result
-from isosr_bench.load import LoadSampler
+from isosr_bench.load import LoadSampler, metric_total
 from isosr_bench.sessions import run_sessions
 from isosr_client.drive import Orbit, summarize
 from isosr_client.serve_process import ServeProcess
@@ -64,6 +66,8 @@ from isosr_server.views import VIEWS
 
 LINKS_BIT_S = {"50mbit": 50e6, "1gbit": 1e9}
 STAGES = ("render", "filter", "network", "shading", "encode")
+# The LoadSampler counter of a server's device thread: its seconds in jobs (its rate: the share of the span).
+DEVICE_THREAD = "device_thread"
 SIZES = {"1080p": (1920, 1080), "4k": (3840, 2160), "smoke": (64, 48)}
 # (mode, AO rays) per case: auto, each method mode the server offers at the AO rays its kind
 # names (FrameRunner.serve_bench_ao), and focus.
@@ -81,13 +85,20 @@ def rss_bytes(pid: int) -> int:
 
 
 def server_load(load: dict) -> dict:
-    """A case row's GPU busy fractions and server cores from a `LoadSampler` result (rounded: they
-    are read, not computed on; nothing where the span did not run, no cores without the server's process)."""
+    """A case row's GPU busy fractions, server cores and the share of the span its device thread spent in jobs
+    from a `LoadSampler` result (rounded: they are read, not computed on; nothing where the span did not run, no
+    cores without the server's process, no device thread's share without its counter)."""
     if not load:
         return {}
-    server = load["cpu_cores"]["server"]
+    server, busy = load["cpu_cores"]["server"], load["counters"].get(DEVICE_THREAD)
     return {"gpu_busy": load["gpu_busy"] and [round(b, 3) for b in load["gpu_busy"]],
-            "server_cores": round(server["cores"], 2) if server["processes"] else None}
+            "server_cores": round(server["cores"], 2) if server["processes"] else None,
+            "device_thread_busy": None if busy is None else round(busy, 3)}
+
+
+def device_thread(url: str) -> dict[str, Callable[[], float | None]]:
+    """The `LoadSampler` counter of a single server's device thread (its seconds in jobs, ``GET /metrics``)."""
+    return {DEVICE_THREAD: metric_total(url, "isosr_device_busy_seconds_total")}
 
 
 def room_options(sessions: int) -> tuple[str, ...]:
@@ -240,7 +251,8 @@ def main(argv: list[str] | None = None) -> None:
         for mode, ao in cases:
             for n in counts:
                 settings = {"ao_rays": ao}
-                load = LoadSampler({"server": lambda: [] if pid is None else [pid]}, gpus=args.device.startswith("cuda"))
+                load = LoadSampler({"server": lambda: [] if pid is None else [pid]}, gpus=args.device.startswith("cuda"),
+                                   counters=device_thread(url))
                 result = run_sessions(url, volume, n, seconds, mode, size, settings,
                                       focus=(size[0] / 2, size[1] / 2, focus_radius) if mode == "focus" else None,
                                       warmup_frames=warmup, on_start=lambda: load.start(seconds))

@@ -4,7 +4,10 @@ part of the service used, so that a throughput short of its goal names its bottl
     load = LoadSampler({"proxy": titled(b"ray::ProxyActor")}, gpus=True)
     load.start(seconds=3.0)          # at the start of the span; returns at once
     ...                              # the work
-    load.result()                    # {"gpu_busy": [0.93, 0.91], "cpu_cores": {"proxy": 1.0, ...}}
+    load.result()                    # {"gpu_busy": [0.93, 0.91], "cpu_cores": {"proxy": 1.0, ...}, "counters": {}}
+
+Counters: a server's own, from its ``GET /metrics`` (:func:`metric_total`), as their rate over the span
+(``device_thread``: the seconds its device thread spent in jobs per second, 1.0 at its bound).
 
 GPU busy: NVML's utilization (the share of each sample period in which a kernel ran), read by
 ``nvidia-smi`` every 100 ms over the span, averaged per GPU; ``None`` where there is no
@@ -20,6 +23,7 @@ import shutil
 import subprocess
 import threading
 import time
+import urllib.request
 from collections.abc import Callable
 
 TICKS_S = os.sysconf("SC_CLK_TCK")
@@ -38,6 +42,21 @@ def titled(prefix: bytes) -> Callable[[], list[int]]:
                 continue
         return found
     return pids
+
+
+def metric_total(url: str, name: str) -> Callable[[], float | None]:
+    """A reader of a server's counter: the sum of the samples named ``name`` in ``url``'s ``GET /metrics``
+    (Prometheus text; over every label set); None where the server does not answer or has no such sample."""
+    def read() -> float | None:
+        try:
+            with urllib.request.urlopen(url + "/metrics", timeout=5) as reply:
+                text = reply.read().decode()
+        except OSError:
+            return None
+        values = [float(line.rsplit(" ", 1)[1]) for line in text.splitlines()
+                  if line.startswith(name) and line[len(name):len(name) + 1] in ("{", " ")]
+        return sum(values) if values else None
+    return read
 
 
 def cpu_ticks(pid: int) -> int | None:
@@ -63,10 +82,13 @@ class LoadSampler:
     Args:
         groups: name -> the function that lists the group's processes (looked up at the start).
         gpus: sample the GPUs with ``nvidia-smi``.
+        counters: name -> a reader of a counter (:func:`metric_total`), read at the start and the end.
     """
 
-    def __init__(self, groups: dict[str, Callable[[], list[int]]], gpus: bool) -> None:
+    def __init__(self, groups: dict[str, Callable[[], list[int]]], gpus: bool,
+                 counters: dict[str, Callable[[], float | None]] | None = None) -> None:
         self.groups = groups
+        self.counters = counters or {}
         self.gpus = gpus and shutil.which("nvidia-smi") is not None
         self._done = threading.Event()
         self._result: dict = {}
@@ -84,17 +106,29 @@ class LoadSampler:
                                stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True) if self.gpus else None
         members = {name: list_pids() for name, list_pids in self.groups.items()}
         before = {pid: cpu_ticks(pid) for pids in members.values() for pid in pids}
+        counted, counted_at = self._read_counters()
         machine_before, started = machine_ticks(), time.monotonic()
         time.sleep(seconds)
         after = {pid: cpu_ticks(pid) for pid in before}
         wall = time.monotonic() - started
+        final, final_at = self._read_counters()
+        counted = {name: None if None in (value, final[name]) else (final[name] - value) / (final_at - counted_at)
+                   for name, value in counted.items()}
         machine = (machine_ticks() - machine_before) / TICKS_S / wall
         cores = {}
         for name, pids in members.items():
             used = [(after[p] - before[p]) / TICKS_S / wall for p in pids if None not in (before[p], after[p])]
             cores[name] = {"processes": len(used), "cores": sum(used), "busiest": max(used, default=0.0)}
-        self._result = {"cpu_cores": cores, "machine_cores": machine, "gpu_busy": self._gpu_busy(smi)}
+        self._result = {"cpu_cores": cores, "machine_cores": machine, "gpu_busy": self._gpu_busy(smi),
+                        "counters": counted}
         self._done.set()
+
+    def _read_counters(self) -> tuple[dict[str, float | None], float]:
+        """Each counter's value, and when they were read (the middle of their reads: a server answers in its
+        request's time)."""
+        began = time.monotonic()
+        values = {name: read() for name, read in self.counters.items()}
+        return values, (began + time.monotonic()) / 2
 
     @staticmethod
     def _gpu_busy(smi: subprocess.Popen | None) -> list[float] | None:

@@ -69,7 +69,7 @@ def create_app(settings: Settings) -> FastAPI:
     s.settings = settings
     s.engine = Engine(settings)
     s.catalog = VolumeCatalog(settings.volumes, settings.max_volume_bytes)
-    s.metrics = ServerMetrics(s.engine.gpu_memory, s.engine.volume_memory)
+    s.metrics = ServerMetrics(s.engine.gpu_memory, s.engine.volume_memory, s.engine.busy_seconds)
     s.view_sessions = SessionCounter(settings.limits.max_sessions)
     s.upscale_sessions = UpscaleSessions(settings.limits, s.engine.new_network)
     s.mesh_jobs = SessionCounter(settings.limits.max_mesh_jobs)

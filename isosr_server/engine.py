@@ -183,10 +183,32 @@ class Engine:
         self._batch_queued = False
         self._asked = threading.Condition()
         self.batch_wait_s = config.batch_wait_ms / 1e3
+        # Seconds the device thread spent in its finished jobs (not a batch's wait for frames), and when its
+        # job in progress began (None: none is): busy_seconds adds them up for GET /metrics.
+        self._busy_s, self._job_began = 0.0, None
+        self._busy_lock = threading.Lock()
 
     async def call(self, fn, *args):
         """Run ``fn(*args)`` on the device thread and await its result."""
-        return await asyncio.get_running_loop().run_in_executor(self._executor, fn, *args)
+        return await asyncio.get_running_loop().run_in_executor(self._executor, self._busy, fn, *args)
+
+    def _busy(self, fn, *args):
+        """``fn(*args)`` (device thread), its wall time counted in :meth:`busy_seconds`."""
+        with self._busy_lock:
+            self._job_began = time.monotonic()
+        try:
+            return fn(*args)
+        finally:
+            with self._busy_lock:
+                self._busy_s += time.monotonic() - self._job_began
+                self._job_began = None
+
+    def busy_seconds(self) -> float:
+        """Seconds the device thread has spent in jobs so far, the one in progress included: its frames' host
+        work and its waits for the GPU, not a batch's wait for frames (any thread; a rate near 1 is the thread
+        at its bound)."""
+        with self._busy_lock:
+            return self._busy_s + (0.0 if self._job_began is None else time.monotonic() - self._job_began)
 
     def _enter_stream(self) -> None:
         if self.stream is not None:
@@ -409,7 +431,7 @@ class Engine:
             start_batch, self._batch_queued = not self._batch_queued, True
             self._asked.notify()
         if start_batch:
-            loop.run_in_executor(self._executor, self._batch_sync, loop)
+            loop.run_in_executor(self._executor, self._busy, self._batch_sync, loop)
         out = await future
         if isinstance(out, Generator):
             made = await self.run_steps(out)
@@ -462,9 +484,12 @@ class Engine:
         if self.batch_wait_s <= 0 or not self._pending:
             return
         sessions = max(asked.job.sessions for asked in self._pending)
-        until = min(time.monotonic() + self.batch_wait_s, min(asked.deadline for asked in self._pending))
+        began = time.monotonic()
+        until = min(began + self.batch_wait_s, min(asked.deadline for asked in self._pending))
         while len(self._pending) < sessions and (left := until - time.monotonic()) > 0:
             self._asked.wait(left)
+        with self._busy_lock:
+            self._busy_s -= time.monotonic() - began  # waiting for frames is not the device's work
 
     def _shared_jpegs(self, made: list[tuple[AskedFrame, ViewFrame, object]]) -> list[object]:
         """The codes of a batch's made frames, those coded as JPEGs of one quality on a device that encodes

@@ -6,7 +6,7 @@ from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
-from prometheus_client.metrics_core import GaugeMetricFamily, Metric
+from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamily, Metric
 
 if TYPE_CHECKING:
     from isosr_render.brick_pool import MemoryStats
@@ -21,6 +21,8 @@ class ServerMetrics:
     Args:
         gpu_memory: returns the bytes of GPU memory in use (None on the CPU); read per scrape.
         volume_memory: returns each loaded volume's `MemoryStats` by name; read per scrape.
+        device_busy: returns the seconds the device thread has spent in jobs so far; read per scrape
+            (``isosr_device_busy_seconds_total``: its rate near 1 is a device thread at its bound).
 
     Attributes:
         const_labels: labels every series carries in `text` and `collect` (behind replicas
@@ -29,7 +31,7 @@ class ServerMetrics:
     """
 
     def __init__(self, gpu_memory: Callable[[], int | None],
-                 volume_memory: Callable[[], dict[str, MemoryStats]] = dict):
+                 volume_memory: Callable[[], dict[str, MemoryStats]] = dict, device_busy: Callable[[], float] = float):
         self.const_labels: dict[str, str] = {}
         self.registry = CollectorRegistry()
         r = self.registry
@@ -45,6 +47,7 @@ class ServerMetrics:
         gpu = Gauge("isosr_gpu_memory_bytes", "GPU memory allocated by torch (0 on the CPU)", registry=r)
         gpu.set_function(lambda: float(gpu_memory() or 0))
         r.register(_VolumeMemory(volume_memory))
+        r.register(_DeviceBusy(device_busy))
 
     def frame(self, kind: str, mode: str, refined: bool, times_ms: dict[str, float], nbytes: int,
               batch: int = 1) -> None:
@@ -92,3 +95,14 @@ class _VolumeMemory:
             for name, s in stats.items():
                 family.add_metric([name, s.mode], float(getattr(s, field)))
             yield family
+
+
+class _DeviceBusy:
+    """The seconds the device thread has spent in jobs (a counter read from the engine per scrape)."""
+
+    def __init__(self, device_busy: Callable[[], float]):
+        self.device_busy = device_busy
+
+    def collect(self) -> Iterator[Metric]:
+        yield CounterMetricFamily("isosr_device_busy_seconds", "Seconds the device thread spent in jobs (frames' "
+                                  "host work and waits for the GPU)", value=self.device_busy())

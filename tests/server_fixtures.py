@@ -61,8 +61,9 @@ class ErrorRecords(logging.Handler):
 class RunningServer:
     """Where a test server listens, with helpers to call it."""
 
-    def __init__(self, port: int, settings: Settings, errors: ErrorRecords, app):
+    def __init__(self, port: int, settings: Settings, errors: ErrorRecords, app, began: float):
         self.port, self.settings, self.errors, self.app = port, settings, errors, app
+        self.began = began  # time.monotonic() before the app was made
         ws = "wss" if settings.scheme == "https" else "ws"
         self.http_url, self.ws_url = f"{settings.scheme}://127.0.0.1:{port}", f"{ws}://127.0.0.1:{port}"
 
@@ -103,7 +104,7 @@ def running_server(settings: Settings):
     errors = ErrorRecords()
     logging.getLogger().addHandler(errors)
     logging.getLogger("isosr").setLevel(logging.INFO)
-    port = free_port()
+    port, began = free_port(), time.monotonic()
     # log_config=None: uvicorn leaves logging alone, so its records reach the root logger too.
     app = create_app(settings)
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_config=None,
@@ -116,7 +117,7 @@ def running_server(settings: Settings):
             raise RuntimeError("the test server did not start")
         time.sleep(0.02)
     try:
-        yield RunningServer(port, settings, errors, app)
+        yield RunningServer(port, settings, errors, app, began)
     finally:
         server.should_exit = True
         thread.join(30)

@@ -82,3 +82,13 @@ def test_cluster_bench_refuses_an_unknown_case_or_share(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "--cases: 'warp:0' is not MODE:AO_RAYS" in err and "--gpus-per-replica: a share of 0 or more" in err
     assert not list(tmp_path.iterdir())
+
+
+def test_a_counter_s_rate_over_the_span():
+    """A counter read at the start and the end counts as its rate over the span; one that cannot be read
+    (its server gone, or no such sample) counts as None."""
+    ticks = iter([10.0, 10.5])
+    load = LoadSampler({}, gpus=False, counters={"busy": lambda: next(ticks), "gone": lambda: None})
+    load.start(0.5)
+    counters = load.result()["counters"]
+    assert counters["gone"] is None and 0.5 / 0.7 < counters["busy"] <= 1.0  # 0.5 over a span of about 0.5 s

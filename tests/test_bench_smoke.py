@@ -190,6 +190,10 @@ def test_cluster_smoke_writes_every_case_and_a_rerun_replaces_its_server(tmp_pat
         assert [(r["server"], r["replicas"], r["mode"], r["ao"]) for r in record["rows"]] == [
             ("plain", 0, mode, ao) for mode, ao in bench_cluster.CASES]
         assert all(r["errors"] == 0 and r["fps"] > 0 and r["commit"] == record["commit"] for r in record["rows"])
+        # The device thread's share of each span in jobs (its seconds' rate from /metrics): some, at most all
+        # (within the reads' timing: a 0.3 s span read over HTTP on a loaded machine).
+        busy = [r["device_thread_busy"] for r in record["rows"]]
+        assert all(0 < b <= 1.1 for b in busy), busy
 
 
 def test_first_frame_smoke_starts_auto_from_the_prior_and_stops_mid_probe(tmp_path):

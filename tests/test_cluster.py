@@ -104,7 +104,7 @@ def cluster():
         serve.start(http_options={"host": "127.0.0.1", "port": port})
         serve.run(application(settings, replicas=2), name=APP_NAME, route_prefix="/")
         print(f"Ray and 2 replicas ready in {time.monotonic() - started:.1f} s")
-        yield RunningServer(port, settings, SimpleNamespace(records=[]), None)
+        yield RunningServer(port, settings, SimpleNamespace(records=[]), None, started)
     finally:
         ray.shutdown()  # Serve, its proxy and the replicas with it
         env.undo()

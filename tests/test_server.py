@@ -21,6 +21,7 @@ import torch
 from websockets.exceptions import ConnectionClosed
 
 from isosr_net.methods import FrameMethod, Networks, make_runner, run_sequence
+from isosr_bench.load import metric_total
 from isosr_net.metrics import upscale_baseline
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, recon_limits
 from isosr_net.upscaler import DEFAULT_MODEL, Upscaler
@@ -486,6 +487,10 @@ def test_metrics_count_frames_stages_and_errors(srv):
     assert 'isosr_sessions{kind="view"}' in text and (gpu_bytes > 0) == (DEVICE != "cpu")
     resident = [line for line in text.splitlines() if line.startswith("isosr_volume_resident_bytes{")]
     assert resident and all('mode="dense"' in line and float(line.split()[-1]) > 0 for line in resident)
+    # The device thread's seconds in jobs: some (it made the start-up's and this frame), fewer than the server has run.
+    busy = metric_total(srv.http_url, "isosr_device_busy_seconds_total")()
+    assert busy is not None and 0 < busy < time.monotonic() - srv.began
+    assert metric_total(srv.http_url, "isosr_no_such_seconds_total")() is None
     status, info = srv.get_json(f"/v1/volumes/{VOLUME}")
     assert status == 200 and info["device"]["mode"] == "dense" and info["device"]["resident_bytes"] > 0
 
