@@ -497,11 +497,7 @@ class Renderer:
                 the full image size and hold undefined values (possibly NaN) in the other rows.
         """
         plan = self._kept_plan(request)
-        frame = plan.render(camera, request, rows)
-        owned = {id(t) for t in plan.tensors.values()}
-        return FrameBuffers(**{name: getattr(frame, name).clone() if id(getattr(frame, name)) in owned
-                               else getattr(frame, name) for name in frame.present()},
-                            behind=None if frame.behind is None else frame.behind.clone())
+        return plan.owned(plan.render(camera, request, rows))
 
     def _kept_plan(self, request: RenderRequest) -> RenderPlan:
         """The kept plan for ``request`` on this thread and CUDA stream (made on first use)."""
@@ -569,10 +565,10 @@ class RenderPlan:
     def __init__(self, renderer: Renderer, request: RenderRequest):
         self.renderer, self.key = renderer, request.plan_key()
         device = renderer.device
-        self.arrays, self.tensors, self._hits, self._counts = self._layer(request)
+        self.arrays, self.tensors, self._hits, self._counts, self._storage = self._layer(request)
         self.layers = 1 if request.surfaces is None else request.surfaces.layers
         if self.layers == 2:  # translucent surfaces: the second layer's own
-            self.behind_arrays, self.behind_tensors, self._behind_hits, self._behind_counts = self._layer(request)
+            self.behind_arrays, self.behind_tensors, self._behind_hits, self._behind_counts, _ = self._layer(request)
         # The staged FrameArgs in torch memory (stream-ordered copies), seen by Warp as one struct, and
         # after it a clipping plan's clip (CLIP_DTYPE, seen as kernels.ClipArgs' arrays) and a several-surface
         # plan's iso table (kernels.IsoSet's), copied from one host record (pinned on CUDA: written again once
@@ -611,19 +607,38 @@ class RenderPlan:
         self._grid: kernels.Grid | None = None
         self._launches: tuple[tuple, list[tuple[wp.Launch, wp.Launch]]] | None = None  # (grid, voxels, bands), launches
 
-    def _layer(self, request: RenderRequest) -> tuple[dict, dict, wp.array, wp.array]:
+    def _layer(self, request: RenderRequest) -> tuple[dict, dict, wp.array, wp.array, torch.Tensor]:
         """One layer's kernel buffers by name (those not asked for the renderer's 1x1 stand-ins), the present ones
-        as tensors, and per ray of the first HIT_PLANES of each pixel (rays, rows, columns) the hit's ray parameter
-        and its march's sample count."""
-        renderer, bits, shape = self.renderer, request.kernel_outputs(), (request.height, request.width)
-        arrays = {name: wp.empty(shape, dtype=dtype, device=renderer.device) if bits & bit else renderer._unused[dtype]
-                  for name, (bit, dtype) in KERNEL_BUFFERS.items()}
-        tensors = {name: wp.to_torch(arrays[name]) for name, (bit, _) in KERNEL_BUFFERS.items() if bits & bit}
-        planes = (min(request.spp, kernels.HIT_PLANES), *shape)
+        as tensors (views of one storage, so that a frame's are copied out in one copy: :meth:`owned`), per ray of
+        the first HIT_PLANES of each pixel (rays, rows, columns) the hit's ray parameter and its march's sample
+        count, and that storage."""
+        renderer, bits, (h, w) = self.renderer, request.kernel_outputs(), (request.height, request.width)
+        asked = {name: dtype for name, (bit, dtype) in KERNEL_BUFFERS.items() if bits & bit}
+        channels = {name: wp.types.type_size_in_bytes(dtype) // 4 for name, dtype in asked.items()}  # 4-byte scalars
+        storage = torch.empty(sum(channels.values()) * h * w, dtype=torch.float32, device=renderer.torch_device)
+        tensors, at = {}, 0
+        for name, dtype in asked.items():  # int32 buffers viewed as such
+            part = storage[at:at + channels[name] * h * w]
+            part = part.view(h, w, channels[name]) if channels[name] > 1 else part.view(h, w)
+            tensors[name], at = part.view(torch.int32) if dtype == wp.int32 else part, at + part.numel()
+        arrays = {name: wp.from_torch(tensors[name], dtype=dtype) if name in asked else renderer._unused[dtype]
+                  for name, (_, dtype) in KERNEL_BUFFERS.items()}
+        planes = (min(request.spp, kernels.HIT_PLANES), h, w)
         hits = wp.empty(planes, dtype=wp.float32, device=renderer.device)
         counts = (wp.empty(planes, dtype=wp.int32, device=renderer.device)
                   if bits & kernels.OUT_SAMPLES else renderer._unused_counts)
-        return arrays, tensors, hits, counts
+        return arrays, tensors, hits, counts, storage
+
+    def owned(self, frame: FrameBuffers) -> FrameBuffers:
+        """``frame`` (this plan's :meth:`buffers`) with its buffers of the plan copied out, all in one copy of
+        their storage (the tensors a pass after the kernels made, and the second layer's, its own already)."""
+        mine = {id(t) for t in self.tensors.values()}
+        copy = self._storage.clone()
+
+        def own(t: torch.Tensor) -> torch.Tensor:
+            return copy.view(t.dtype).as_strided(t.shape, t.stride(), t.storage_offset()) if id(t) in mine else t
+        return FrameBuffers(**{name: own(getattr(frame, name)) for name in frame.present()},
+                            behind=None if frame.behind is None else frame.behind.clone())
 
     @staticmethod
     def _iso_set(table: wp.array, layer: int, after: wp.array) -> kernels.IsoSet:

@@ -157,7 +157,8 @@ def test_the_most_rays_per_pixel_keep_a_plan_bounded_and_the_frame_sane(sphere_v
 
 
 def test_render_frames_own_their_memory(sphere_volume, sphere_renderer):
-    """Renderer.render reuses a kept plan, yet a frame is not overwritten by the next one."""
+    """Renderer.render reuses a kept plan, yet a frame is not overwritten by the next one; a frame's buffers are
+    copied out of the plan together (one storage, one copy)."""
     request = request_of(sphere_volume.normalized_iso(0.0), ("mask", "normal", "depth", "ao", "flow"),
                          ao_samples=2, ao_radius=0.1)
     frames = frames_of(request, CAMERAS)
@@ -168,6 +169,7 @@ def test_render_frames_own_their_memory(sphere_volume, sphere_renderer):
         assert getattr(first, name).data_ptr() != getattr(second, name).data_ptr(), name
         torch.testing.assert_close(getattr(first, name), kept[name], rtol=0, atol=0, msg=name)
     assert any(not torch.equal(getattr(first, n), getattr(second, n)) for n in first.present())
+    assert len({getattr(first, n).untyped_storage().data_ptr() for n in first.present()}) == 1
 
 
 def test_render_from_threads_equals_serial_renders(sphere_volume):
