@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import DEVICE, field_volume, sphere_sdf, world_grid
+from conftest import DEVICE, field_volume, sphere_sdf
 from isosr_render.camera import Camera, orbit
 from isosr_render import kernels
 from isosr_render.renderer import FRAME_DTYPE, MAX_SPP, PLAN_CACHE, Renderer, RenderRequest, frame_args
