@@ -26,10 +26,12 @@ T = TypeVar("T")
 
 
 class StageTimer:
-    """Milliseconds per named stage of one frame (see the module docstring)."""
+    """Milliseconds per named stage of one frame (see the module docstring); with ``share``, of work that
+    ``share`` frames did together (one launch over a batch's views), each frame's share of it."""
 
-    def __init__(self, device: torch.device | str):
+    def __init__(self, device: torch.device | str, share: int = 1):
         self.cuda = torch.device(device).type == "cuda"
+        self.share = share
         self._spans: list[tuple[str, object, object]] = []
 
     @contextmanager
@@ -52,7 +54,7 @@ class StageTimer:
         out: dict[str, float] = {}
         for stage, start, end in self._spans:
             took = start.elapsed_time(end) if self.cuda else 1e3 * (end - start)
-            out[stage] = out.get(stage, 0.0) + took
+            out[stage] = out.get(stage, 0.0) + took / self.share
         return out
 
 

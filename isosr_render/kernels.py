@@ -766,6 +766,14 @@ def band_pixel(width: int, rows: int, tid: int) -> wp.vec2i:
 
 
 @wp.func
+def view_of(frame: wp.array(dtype=FrameArgs), row: int) -> wp.vec2i:
+    """``(view, its image row)`` of a row of the buffers, in which the views of ``frame`` (one size) lie one
+    under the other: rows ``[v * height, (v + 1) * height)`` are view ``v``'s."""
+    v = row // frame[0].view.height
+    return wp.vec2i(v, row - v * frame[0].view.height)
+
+
+@wp.func
 def subpixel(c: int, row: int, s: int, spp: int) -> wp.vec2:
     """Image position of sample ``s`` of ``spp`` in pixel ``(c, row)``: its center, or an R2 offset."""
     if spp == 1:
@@ -786,23 +794,25 @@ def ray_direction(view: View, p: wp.vec2) -> wp.vec3:
 # march_ray has an overload per iso type: one iso's plain march, and several isos' layers.
 @wp.func
 def march_ray(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs), clip: Any,
-              isos: OneIso, c: int, row: int, s: int) -> wp.vec2:
-    """Ray ``s`` of pixel ``(c, row)`` to its first iso crossing: ``(t, volume samples)``, ``t < 0`` where none."""
-    view = frame[0].view
-    params = frame[0].params
-    return clipped_cast(voxels, layout, grid, clip, view.eye, ray_direction(view, subpixel(c, row, s, params.spp)),
+              isos: OneIso, v: int, c: int, y: int, row: int, s: int) -> wp.vec2:
+    """Ray ``s`` of pixel ``(c, y)`` of view ``v`` (``row``: its row in the buffers, :func:`view_of`) to its first
+    iso crossing: ``(t, volume samples)``, ``t < 0`` where none."""
+    view = frame[v].view
+    params = frame[v].params
+    return clipped_cast(voxels, layout, grid, clip, view.eye, ray_direction(view, subpixel(c, y, s, params.spp)),
                         0.0, float(BIG), isos, params.iso, params.step, params.refine_mode, params.refine_steps)
 
 
 @wp.func
 def march_ray(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs), clip: Any,
-              isos: IsoSet, c: int, row: int, s: int) -> wp.vec2:
-    """Ray ``s`` of pixel ``(c, row)`` to its crossing of ``isos.layer`` (:class:`IsoSet`): ``(t, volume samples)``,
+              isos: IsoSet, v: int, c: int, y: int, row: int, s: int) -> wp.vec2:
+    """Ray ``s`` of pixel ``(c, y)`` of view ``v`` (its buffers' ``row``) to its crossing of ``isos.layer``
+    (:class:`IsoSet`): ``(t, volume samples)``,
     ``t < 0`` where none (in layer 1 also where the first crossing's surface is opaque). Layer 1 starts a
     quarter step past the first crossing (a crossing nearer than that is not seen)."""
-    view = frame[0].view
-    params = frame[0].params
-    dir = ray_direction(view, subpixel(c, row, s, params.spp))
+    view = frame[v].view
+    params = frame[v].params
+    dir = ray_direction(view, subpixel(c, y, s, params.spp))
     first = wp.vec2(0.0)
     if isos.layer == 0 or s >= isos.after.shape[0]:
         first = clipped_cast(voxels, layout, grid, clip, view.eye, dir, 0.0, float(BIG), isos, params.iso, params.step,
@@ -823,8 +833,9 @@ def first_hit_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, fra
                      clip: Any, isos: Any, row0: int, rows: int, hits: wp.array3d(dtype=wp.float32),
                      counts: wp.array3d(dtype=wp.int32)):
     """One thread per ray of the first ``hits.shape[0]`` of each pixel of the band ``[row0, row0 + rows)``
-    (rays outermost): the ray parameter of its first iso crossing (world units, -1 where none) into
-    ``hits[ray, row, column]``; with ``OUT_SAMPLES``, the volume samples that took into ``counts`` alike.
+    (rays outermost) of the buffers' rows, where the views of ``frame`` lie one under the other (:func:`view_of`):
+    the ray parameter of its first iso crossing (world units, -1 where none) into ``hits[ray, row, column]``; with
+    ``OUT_SAMPLES``, the volume samples that took into ``counts`` alike.
     The march alone: few registers, so that many warps in flight hide its memory latency."""
     width = frame[0].view.width
     tid = wp.tid()
@@ -834,9 +845,10 @@ def first_hit_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, fra
     if px[0] < 0:
         return
     row = px[1] + row0
-    res = march_ray(voxels, layout, grid, frame, clip, isos, px[0], row, s)
+    vy = view_of(frame, row)
+    res = march_ray(voxels, layout, grid, frame, clip, isos, vy[0], px[0], vy[1], row, s)
     hits[s, row, px[0]] = res[0]
-    if (frame[0].params.outputs & OUT_SAMPLES) != 0:
+    if (frame[vy[0]].params.outputs & OUT_SAMPLES) != 0:
         counts[s, row, px[0]] = int(res[1])
 
 
@@ -852,14 +864,14 @@ SURFACE_MAX_REGISTERS = 128
 
 @wp.func
 def hit_surface(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: wp.array(dtype=FrameArgs), clip: Any,
-                isos: Any, c: int, row: int, s: int, t: float):
-    """What ray ``s`` of pixel ``(c, row)``, its first hit at ``t``, gives the buffers that ``outputs`` asks
+                isos: Any, v: int, c: int, y: int, s: int, t: float):
+    """What ray ``s`` of pixel ``(c, y)`` of view ``v``, its first hit at ``t``, gives the buffers that ``outputs`` asks
     for: ``(hit point (world), depth, normal (camera axes), flow (pixels), AO, AO's volume samples, cap)``,
     ``cap`` being ``(1, normalized value)`` where the hit is a cut face (:func:`clipped_cast`), else 0."""
-    view = frame[0].view
-    params = frame[0].params
+    view = frame[v].view
+    params = frame[v].params
     out = params.outputs
-    p = subpixel(c, row, s, params.spp)
+    p = subpixel(c, y, s, params.spp)
     dir = ray_direction(view, p)
     p_world = view.eye + dir * t
     face = cut_face(clip, view.eye, dir, t)
@@ -877,12 +889,12 @@ def hit_surface(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame: w
                     n = -n
         n_view = wp.vec3(wp.dot(n, view.right), wp.dot(n, view.up), wp.dot(n, view.back))
         if (out & OUT_AO) != 0:
-            state = wp.rand_init(params.seed, (row * view.width + c) * params.spp + s)
+            state = wp.rand_init(params.seed, (y * view.width + c) * params.spp + s)
             occ = ambient_occlusion(voxels, layout, grid, clip, p_world, n, isos, params.iso, params.step,
                                     params.ao_samples, params.ao_radius, state)
     flow = wp.vec2(0.0)
     if (out & OUT_FLOW) != 0:
-        q = project_to_pixel(frame[0].prev, p_world)
+        q = project_to_pixel(frame[v].prev, p_world)
         if q[2] > 0.0:
             flow = wp.vec2(q[0] - p[0], q[1] - p[1])
     cap = wp.vec2(0.0)
@@ -910,15 +922,15 @@ def store_surface(isos: IsoSet, voxels: wp.array3d(dtype=Any), layout: Any, grid
 
 
 @wp.func
-def store_pixel(frame: wp.array(dtype=FrameArgs), c: int, row: int, hit_count: float, p_sum: wp.vec3,
+def store_pixel(frame: wp.array(dtype=FrameArgs), v: int, c: int, row: int, hit_count: float, p_sum: wp.vec3,
                 depth_sum: float, n_sum: wp.vec3, flow_sum: wp.vec2, ao_sum: float, cap_sum: wp.vec2,
                 sample_count: float, mask: wp.array2d(dtype=wp.float32), normal: wp.array2d(dtype=wp.vec3),
                 depth: wp.array2d(dtype=wp.float32), position: wp.array2d(dtype=wp.vec3),
                 flow: wp.array2d(dtype=wp.vec2), ao: wp.array2d(dtype=wp.float32), cap: wp.array2d(dtype=wp.vec2),
                 samples: wp.array2d(dtype=wp.int32)):
-    """Write pixel ``(c, row)``'s asked buffers from the sums over its rays that hit (``hit_count`` of them;
-    ``cap_sum[0]`` of them on cut faces)."""
-    params = frame[0].params
+    """Write the asked buffers of view ``v`` at ``(c, row)`` from the sums over its pixel's rays that hit
+    (``hit_count`` of them; ``cap_sum[0]`` of them on cut faces)."""
+    params = frame[v].params
     out = params.outputs
     inv = 1.0 / wp.max(hit_count, 1.0)
     if (out & OUT_MASK) != 0:
@@ -952,25 +964,28 @@ def surface_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Grid, frame
                    position: wp.array2d(dtype=wp.vec3), flow: wp.array2d(dtype=wp.vec2),
                    ao: wp.array2d(dtype=wp.float32), cap: wp.array2d(dtype=wp.vec2),
                    samples: wp.array2d(dtype=wp.int32), surface: wp.array2d(dtype=wp.float32)):
-    """One ray per pixel: per pixel of the band, from its first hit (:func:`first_hit_kernel`), the asked buffers
-    (``FrameArgs.params.outputs``), AO rays cast from the hit."""
+    """One ray per pixel: per pixel of the band (of the buffers' rows: the views one under the other,
+    :func:`view_of`), from its first hit (:func:`first_hit_kernel`), the asked buffers (``FrameArgs.params.outputs``),
+    AO rays cast from the hit."""
     px = band_pixel(frame[0].view.width, rows, wp.tid())
     if px[0] < 0:
         return
     c = px[0]
     row = px[1] + row0
+    vy = view_of(frame, row)
+    v = vy[0]
     t = hits[0, row, c]
     sample_count = float(0.0)
-    if (frame[0].params.outputs & OUT_SAMPLES) != 0:
+    if (frame[v].params.outputs & OUT_SAMPLES) != 0:
         sample_count = float(counts[0, row, c])
     if t < 0.0:
-        store_pixel(frame, c, row, 0.0, wp.vec3(0.0), 0.0, wp.vec3(0.0), wp.vec2(0.0), 0.0, wp.vec2(0.0),
+        store_pixel(frame, v, c, row, 0.0, wp.vec3(0.0), 0.0, wp.vec3(0.0), wp.vec2(0.0), 0.0, wp.vec2(0.0),
                     sample_count, mask, normal, depth, position, flow, ao, cap, samples)
         store_surface(isos, voxels, layout, grid, wp.vec3(0.0), False, surface, c, row)
         return
-    p_world, d, n_view, fl, occ, occ_samples, on_cap = hit_surface(voxels, layout, grid, frame, clip, isos, c, row, 0,
-                                                                   t)
-    store_pixel(frame, c, row, 1.0, p_world, d, n_view, fl, occ, on_cap, sample_count + occ_samples, mask, normal,
+    p_world, d, n_view, fl, occ, occ_samples, on_cap = hit_surface(voxels, layout, grid, frame, clip, isos, v, c,
+                                                                   vy[1], 0, t)
+    store_pixel(frame, v, c, row, 1.0, p_world, d, n_view, fl, occ, on_cap, sample_count + occ_samples, mask, normal,
                 depth, position, flow, ao, cap, samples)
     store_surface(isos, voxels, layout, grid, p_world, True, surface, c, row)
 
@@ -990,7 +1005,9 @@ def surface_samples_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Gri
         return
     c = px[0]
     row = px[1] + row0
-    count_samples = (frame[0].params.outputs & OUT_SAMPLES) != 0
+    vy = view_of(frame, row)
+    v = vy[0]
+    count_samples = (frame[v].params.outputs & OUT_SAMPLES) != 0
     hit_count = float(0.0)
     p_sum = wp.vec3(0.0)
     depth_sum = float(0.0)
@@ -1000,19 +1017,19 @@ def surface_samples_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Gri
     cap_sum = wp.vec2(0.0)
     sample_count = float(0.0)
     p_first = wp.vec3(0.0)  # the first hitting ray's hit: the pixel's surface
-    for s in range(frame[0].params.spp):
+    for s in range(frame[v].params.spp):
         t = float(-1.0)
         if s < hits.shape[0]:
             t = hits[s, row, c]
             if count_samples:
                 sample_count += float(counts[s, row, c])
         else:
-            res = march_ray(voxels, layout, grid, frame, clip, isos, c, row, s)
+            res = march_ray(voxels, layout, grid, frame, clip, isos, v, c, vy[1], row, s)
             t = res[0]
             sample_count += res[1]
         if t >= 0.0:
-            p_world, d, n_view, fl, occ, occ_samples, on_cap = hit_surface(voxels, layout, grid, frame, clip, isos, c,
-                                                                           row, s, t)
+            p_world, d, n_view, fl, occ, occ_samples, on_cap = hit_surface(voxels, layout, grid, frame, clip, isos, v,
+                                                                           c, vy[1], s, t)
             if hit_count == 0.0:
                 p_first = p_world
             hit_count += 1.0
@@ -1023,7 +1040,7 @@ def surface_samples_kernel(voxels: wp.array3d(dtype=Any), layout: Any, grid: Gri
             ao_sum += occ
             cap_sum += on_cap
             sample_count += occ_samples
-    store_pixel(frame, c, row, hit_count, p_sum, depth_sum, n_sum, flow_sum, ao_sum, cap_sum, sample_count, mask,
+    store_pixel(frame, v, c, row, hit_count, p_sum, depth_sum, n_sum, flow_sum, ao_sum, cap_sum, sample_count, mask,
                 normal, depth, position, flow, ao, cap, samples)
     store_surface(isos, voxels, layout, grid, p_first, hit_count > 0.0, surface, c, row)
 

@@ -21,6 +21,7 @@ import math
 import os
 import threading
 from collections import OrderedDict
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -196,6 +197,11 @@ class RenderRequest:
         one iso; their kernels are their own); the rest may change per frame."""
         return (self.width, self.height, self.outputs, self.flow_fill, self.spp, self.clip.active, self.clip.capped,
                 self.coloring is not None, 0 if self.surfaces is None else self.surfaces.layers)
+
+    def launch_key(self) -> tuple:
+        """What the views of one launch share (:meth:`RenderPlan.stage_views`): the plan key, the iso and its
+        empty-space skipping, the clip and the surfaces; the rest (cameras, seed, step, AO rays...) is each view's."""
+        return self.plan_key(), float(self.iso), self.skip, self.clip, self.surfaces
 
 
 def warp_device(device: str):
@@ -482,9 +488,10 @@ class Renderer:
         """Half the smallest voxel edge, in world units."""
         return self._default_step
 
-    def plan(self, request: RenderRequest) -> "RenderPlan":
-        """Buffers and a launch reused by frames of ``request``'s size and outputs (see :class:`RenderPlan`)."""
-        return RenderPlan(self, request)
+    def plan(self, request: RenderRequest, views: int = 1) -> "RenderPlan":
+        """Buffers and a launch reused by frames of ``request``'s size and outputs, of up to ``views`` views at
+        once (see :class:`RenderPlan`)."""
+        return RenderPlan(self, request, views)
 
     def render(self, camera: Camera, request: RenderRequest, rows: tuple[int, int] | None = None) -> FrameBuffers:
         """Render one frame into new buffers; they come back as torch tensors on the renderer's device.
@@ -497,16 +504,31 @@ class Renderer:
                 the full image size and hold undefined values (possibly NaN) in the other rows.
         """
         plan = self._kept_plan(request)
-        return plan.owned(plan.render(camera, request, rows))
+        return plan.owned([plan.render(camera, request, rows)])[0]
 
-    def _kept_plan(self, request: RenderRequest) -> RenderPlan:
-        """The kept plan for ``request`` on this thread and CUDA stream (made on first use)."""
+    def render_views(self, frames: Sequence[tuple[Camera, RenderRequest]]) -> list[FrameBuffers]:
+        """Several views in one launch, each into new buffers as :meth:`render` makes them and equal to its view
+        rendered alone: ``(camera, request)`` each, the requests alike in what a launch shares
+        (:meth:`RenderRequest.launch_key`). A kept plan of the next power of two of views renders them.
+
+        Raises:
+            ValueError: no views, or requests that one launch cannot render (:meth:`RenderPlan.stage_views`).
+        """
+        if not frames:
+            raise ValueError("render_views: no views to render")
+        plan = self._kept_plan(frames[0][1], 1 << (len(frames) - 1).bit_length())
+        plan.stage_views(frames)
+        plan.launch()
+        return plan.owned(plan.view_buffers([request for _, request in frames]))
+
+    def _kept_plan(self, request: RenderRequest, views: int = 1) -> RenderPlan:
+        """The kept plan for ``request`` and up to ``views`` views on this thread and CUDA stream (made on first use)."""
         stream = torch.cuda.current_stream(self.device.ordinal).cuda_stream if self.device.is_cuda else None
-        key = (request.plan_key(), threading.get_ident(), stream)
+        key = (request.plan_key(), views, threading.get_ident(), stream)
         with self._plans_lock:
             plan = self._plans.get(key)
             if plan is None:
-                plan = self._plans[key] = self.plan(request)
+                plan = self._plans[key] = self.plan(request, views)
                 if len(self._plans) > PLAN_CACHE:
                     self._plans.popitem(last=False)
             self._plans.move_to_end(key)
@@ -559,14 +581,21 @@ class RenderPlan:
     A captured launch keeps the iso's grid it was captured with: capture again for another iso.
 
     The tensors a frame returns are views of the plan's buffers, valid until its next frame:
-    clone what must outlive it.
+    clone what must outlive it (:meth:`owned`).
+
+    A plan of ``views`` views renders up to that many frames of one iso, clip and surfaces in one launch
+    (:meth:`stage_views`, :meth:`launch`, :meth:`view_buffers`): their buffers lie one under the other
+    (:func:`~isosr_render.kernels.view_of`), each view with its own record of camera and ray parameters, and
+    each equals its frame rendered alone.
     """
 
-    def __init__(self, renderer: Renderer, request: RenderRequest):
-        self.renderer, self.key = renderer, request.plan_key()
+    def __init__(self, renderer: Renderer, request: RenderRequest, views: int = 1):
+        self.renderer, self.key, self.views = renderer, request.plan_key(), views
         device = renderer.device
-        self.arrays, self.tensors, self._hits, self._counts, self._storage = self._layer(request)
         self.layers = 1 if request.surfaces is None else request.surfaces.layers
+        if views < 1 or (views > 1 and self.layers == 2):
+            raise ValueError(f"a render plan holds 1 view or more (translucent surfaces' two layers: one), not {views}")
+        self.arrays, self.tensors, self._hits, self._counts, self._storage = self._layer(request)
         if self.layers == 2:  # translucent surfaces: the second layer's own
             self.behind_arrays, self.behind_tensors, self._behind_hits, self._behind_counts, _ = self._layer(request)
         # The staged FrameArgs in torch memory (stream-ordered copies), seen by Warp as one struct, and
@@ -576,16 +605,16 @@ class RenderPlan:
         self.clipped, self.several = request.clip.active, request.surfaces is not None
         if self.several and renderer.pool is not None:
             renderer.grid((0.0, 1.0))  # the sparse volume's error, before anything is made
-        at = -(-FRAME_DTYPE.itemsize // 16) * 16
+        records = FRAME_DTYPE.itemsize * views  # a view's record each
+        at = -(-records // 16) * 16
         isos_at = at + (CLIP_DTYPE.itemsize if self.clipped else 0)
-        size = isos_at + 8 * MAX_SURFACES if self.several else at + CLIP_DTYPE.itemsize if self.clipped else \
-            FRAME_DTYPE.itemsize
+        size = isos_at + 8 * MAX_SURFACES if self.several else at + CLIP_DTYPE.itemsize if self.clipped else records
         self._args_bytes = torch.zeros(size, dtype=torch.uint8, device=renderer.torch_device)
         self._host_bytes = torch.zeros(size, dtype=torch.uint8, pin_memory=device.is_cuda)
-        self._host_args = self._host_bytes.numpy()[:FRAME_DTYPE.itemsize].view(FRAME_DTYPE)
+        self._host_args = self._host_bytes.numpy()[:records].view(FRAME_DTYPE)
         self._copied = torch.cuda.Event() if device.is_cuda else None
         base = self._args_bytes.data_ptr()
-        self._args = wp.array(ptr=base, dtype=kernels.FrameArgs, shape=(1,), device=device)
+        self._args = wp.array(ptr=base, dtype=kernels.FrameArgs, shape=(views,), device=device)
         self._clip = kernels.NoClip()
         self._host_clip = None
         if self.clipped:
@@ -605,14 +634,17 @@ class RenderPlan:
         variant = (kernels.ClipArgs if self.clipped else kernels.NoClip, kernels.IsoSet if self.several else kernels.OneIso)
         wp.load_module(wp.get_module(kernels.VARIANT_MODULES[variant]), device=device)  # not while a graph is captured
         self._grid: kernels.Grid | None = None
-        self._launches: tuple[tuple, list[tuple[wp.Launch, wp.Launch]]] | None = None  # (grid, voxels, bands), launches
+        # ((grid, voxels), {bands: launches}): the launches recorded over the grid and voxels of the last frame.
+        self._launches: tuple[tuple, dict[tuple, list[tuple[wp.Launch, ...]]]] | None = None
+        self._staged = 0  # views staged for the next launch
 
     def _layer(self, request: RenderRequest) -> tuple[dict, dict, wp.array, wp.array, torch.Tensor]:
         """One layer's kernel buffers by name (those not asked for the renderer's 1x1 stand-ins), the present ones
         as tensors (views of one storage, so that a frame's are copied out in one copy: :meth:`owned`), per ray of
         the first HIT_PLANES of each pixel (rays, rows, columns) the hit's ray parameter and its march's sample
         count, and that storage."""
-        renderer, bits, (h, w) = self.renderer, request.kernel_outputs(), (request.height, request.width)
+        renderer, bits = self.renderer, request.kernel_outputs()
+        h, w = self.views * request.height, request.width  # the views one under the other (kernels.view_of)
         asked = {name: dtype for name, (bit, dtype) in KERNEL_BUFFERS.items() if bits & bit}
         channels = {name: wp.types.type_size_in_bytes(dtype) // 4 for name, dtype in asked.items()}  # 4-byte scalars
         storage = torch.empty(sum(channels.values()) * h * w, dtype=torch.float32, device=renderer.torch_device)
@@ -629,16 +661,23 @@ class RenderPlan:
                   if bits & kernels.OUT_SAMPLES else renderer._unused_counts)
         return arrays, tensors, hits, counts, storage
 
-    def owned(self, frame: FrameBuffers) -> FrameBuffers:
-        """``frame`` (this plan's :meth:`buffers`) with its buffers of the plan copied out, all in one copy of
-        their storage (the tensors a pass after the kernels made, and the second layer's, its own already)."""
-        mine = {id(t) for t in self.tensors.values()}
-        copy = self._storage.clone()
+    def owned(self, frames: list[FrameBuffers]) -> list[FrameBuffers]:
+        """``frames`` (this plan's :meth:`buffers`, or :meth:`view_buffers` of the views staged) with their buffers
+        of the plan copied out: in one copy of its storage where they fill it, else one a buffer of the rows staged
+        (the tensors a pass after the kernels made, and the second layer's, are their own already)."""
+        mine, whole = self._storage.untyped_storage().data_ptr(), self._staged == self.views
+        rows = self.key[1] * self._staged
+        copies = {"": self._storage.clone()} if whole else {name: t[:rows].clone() for name, t in self.tensors.items()}
 
-        def own(t: torch.Tensor) -> torch.Tensor:
-            return copy.view(t.dtype).as_strided(t.shape, t.stride(), t.storage_offset()) if id(t) in mine else t
-        return FrameBuffers(**{name: own(getattr(frame, name)) for name in frame.present()},
-                            behind=None if frame.behind is None else frame.behind.clone())
+        def own(name: str, t: torch.Tensor) -> torch.Tensor:
+            if t.untyped_storage().data_ptr() != mine:
+                return t
+            if whole:
+                return copies[""].view(t.dtype).as_strided(t.shape, t.stride(), t.storage_offset())
+            start = (t.storage_offset() - self.tensors[name].storage_offset()) // t.stride(0)
+            return copies[name][start:start + t.shape[0]]
+        return [FrameBuffers(**{name: own(name, getattr(frame, name)) for name in frame.present()},
+                             behind=None if frame.behind is None else frame.behind.clone()) for frame in frames]
 
     @staticmethod
     def _iso_set(table: wp.array, layer: int, after: wp.array) -> kernels.IsoSet:
@@ -661,13 +700,33 @@ class RenderPlan:
     def stage(self, camera: Camera, request: RenderRequest) -> None:
         """Copy the frame's values to the device (ordered before later work on the torch stream) and
         select the grid of its iso (sparse volumes page its bricks in here)."""
-        self.check(request)
+        self.stage_views([(camera, request)])
+
+    def stage_views(self, frames: Sequence[tuple[Camera, RenderRequest]]) -> None:
+        """:meth:`stage` of up to the plan's ``views`` views, ``(camera, request)`` each, that the next
+        :meth:`launch` renders together: their requests alike in what a launch shares
+        (:meth:`RenderRequest.launch_key`), each view's record its own (cameras, seed, step, AO rays...).
+
+        Raises:
+            ValueError: more views than the plan holds, none, or requests a launch cannot share (naming why).
+        """
+        if not 0 < len(frames) <= self.views:
+            raise ValueError(f"this render plan renders 1 to {self.views} views at once, not {len(frames)}")
+        request = frames[0][1]
+        for _, other in frames:
+            self.check(other)
+            if other.launch_key() != request.launch_key():
+                raise ValueError("views rendered together share their iso, empty-space skipping, clip and surfaces: "
+                                 f"render views of iso {other.iso:g} (skip {other.skip}) and iso {request.iso:g} "
+                                 f"(skip {request.skip}), or of other clips or surfaces, apart")
         surfaces = request.surfaces
         self._grid = self.renderer.grid(request.iso if surfaces is None else tuple(s.iso for s in surfaces.items),
                                         request.skip)
         if self._copied is not None:
             self._copied.synchronize()  # the last frame's copy has read the host record (seldom a wait)
-        frame_args(camera, request, request.step or self.renderer.default_step(), out=self._host_args)
+        for i, (camera, view) in enumerate(frames):
+            frame_args(camera, view, view.step or self.renderer.default_step(), out=self._host_args[i:i + 1])
+        self._staged = len(frames)
         if self._host_clip is not None:
             clip_args(request.clip, out=self._host_clip)
         if self._host_isos is not None:
@@ -681,11 +740,12 @@ class RenderPlan:
         stream (capturable in a CUDA graph); on CPUs row bands over the renderer's threads.
 
         Args:
-            rows: only the image rows ``[start, stop)``; the other rows keep what they held.
+            rows: only the rows ``[start, stop)`` of the buffers (the image's, for one view staged; the views
+                lie one under the other); the other rows keep what they held. None: every staged view's.
         """
         if self._grid is None:
             raise ValueError("render plan: stage a frame before launching it")
-        h = self.key[1]
+        h = self.key[1] * self._staged
         row0, row1 = (0, h) if rows is None else rows
         if not 0 <= row0 < row1 <= h:
             raise ValueError(f"rows must satisfy 0 <= start < stop <= height {h}, got {rows}")
@@ -710,10 +770,15 @@ class RenderPlan:
 
     def _recorded(self, bands: tuple[tuple[int, int], ...]) -> list[tuple[wp.Launch, ...]]:
         """The kernels' launches (first hit, surface; then the second layer's, with translucent surfaces) over row
-        bands ``(row0, rows)``, recorded once per grid, voxel array and bands."""
+        bands ``(row0, rows)``, recorded once per grid, voxel array and bands (the last few bands of a grid: a
+        plan of several views launches over as many rows as views are staged)."""
         grid, voxels, renderer = self._grid, self.renderer.voxels, self.renderer
-        key = (id(grid), voxels.ptr, bands)
-        if self._launches is None or self._launches[0] != key:
+        if self._launches is None or self._launches[0] != (id(grid), voxels.ptr):
+            self._launches = (id(grid), voxels.ptr), {}
+        recorded = self._launches[1]
+        if bands not in recorded:
+            if len(recorded) > self.views + 2:
+                del recorded[next(iter(recorded))]  # the oldest
             tiles_x, tile = -(-self.key[0] // kernels.TILE_W), kernels.TILE_W * kernels.TILE_H
             frame_kernels = kernels.frame_kernels(self.clipped, self.several)
             first_hit = frame_kernels["first_hit_kernel"]
@@ -730,8 +795,8 @@ class RenderPlan:
                         wp.launch(surface, dim=pixels, device=renderer.device, record_cmd=True,
                                   inputs=[*common, *arrays.values()]))
 
-            self._launches = key, [sum((pair(row0, rows, *layer) for layer in layers), ()) for row0, rows in bands]
-        return self._launches[1]
+            recorded[bands] = [sum((pair(row0, rows, *layer) for layer in layers), ()) for row0, rows in bands]
+        return recorded[bands]
 
     def buffers(self, request: RenderRequest) -> FrameBuffers:
         """The rendered frame as ``request`` asks for it: the plan's buffers (views), plus the passes
@@ -743,6 +808,13 @@ class RenderPlan:
             if "color" in request.outputs:
                 frame.color = composite(frame.color, frame.behind.color, alpha)
         return frame
+
+    def view_buffers(self, requests: Sequence[RenderRequest]) -> list[FrameBuffers]:
+        """:meth:`buffers` of each view staged together (:meth:`stage_views`), in their order: views of the
+        plan's buffers, and the passes after the kernel that each request names."""
+        h = self.key[1]
+        return [self._frame(request, {name: t[i * h:(i + 1) * h] for name, t in self.tensors.items()})[0]
+                for i, request in enumerate(requests)]
 
     @staticmethod
     def _frame(request: RenderRequest, tensors: dict, behind: bool = False) -> tuple[FrameBuffers, torch.Tensor | None]:

@@ -308,7 +308,8 @@ class MethodContract:
 
         def broken(*args, **kwargs):
             raise RuntimeError("render failed")
-        failing.renderer = type("Broken", (), {"render": broken, "plan": broken, "device": ok.renderer.device})()
+        failing.renderer = type("Broken", (), {"render": broken, "render_views": broken, "plan": broken,
+                                               "device": ok.renderer.device})()
         results = type(ok).make_batch([(failing, CAMERAS[0], None), (ok, CAMERAS[0], None)])
         assert isinstance(results[0], RuntimeError) and "render failed" in str(results[0])
         assert_same_frames([buffers_of(results[1])], [buffers_of(reference.frame(CAMERAS[0]))])

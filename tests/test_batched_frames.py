@@ -183,22 +183,22 @@ def test_a_cut_in_one_session_changes_nothing_in_the_others(engine):
 
 
 def test_a_session_s_failure_is_its_own(engine, monkeypatch):
-    """One session's frame raises (its renderer fails on its camera): its view_frame raises that
-    error; its batch mates get their frames, equal to those made alone."""
+    """One session's frame raises (its renderer fails on its camera, in the batch's launch and alone): its
+    view_frame raises that error; its batch mates get their frames, equal to those made alone."""
     settings = [view_settings(engine, "full")] * SESSIONS
     expected = alone(engine, settings)
     s = Sessions(engine, settings)
     failing_camera = s.job(1, FRAMES - 1).camera
-    render = type(s.renderer).render
+    render_views = type(s.renderer).render_views
 
-    def render_or_fail(renderer, camera, request, *args, **kwargs):
-        if camera == failing_camera:
+    def render_or_fail(renderer, frames):
+        if any(camera == failing_camera for camera, _ in frames):
             raise RuntimeError("the device lost this frame")
-        return render(renderer, camera, request, *args, **kwargs)
+        return render_views(renderer, frames)
     got = [[] for _ in settings]
     for t in range(FRAMES):
         if t == FRAMES - 1:
-            monkeypatch.setattr(type(s.renderer), "render", render_or_fail)
+            monkeypatch.setattr(type(s.renderer), "render_views", render_or_fail)
         for k, frame in enumerate(asyncio.run(s.together(t, list(range(SESSIONS))))):
             got[k].append(frame)
     assert isinstance(got[1][-1], RuntimeError) and "lost this frame" in str(got[1][-1])

@@ -18,8 +18,10 @@ import torch
 
 from conftest import DEVICE, field_volume, sphere_sdf
 from isosr_render.camera import Camera, orbit
+from isosr_render.clip import Clip
 from isosr_render import kernels
 from isosr_render.renderer import FRAME_DTYPE, MAX_SPP, PLAN_CACHE, Renderer, RenderRequest, frame_args
+from isosr_render.surfaces import Surface, Surfaces
 from isosr_render.volume import Volume
 
 W, H = 48, 36
@@ -84,6 +86,46 @@ REQUESTS = {
 def test_plan_frames_equal_fresh_renders(sphere_volume, sphere_renderer, name):
     request = request_of(sphere_volume.normalized_iso(0.0), **REQUESTS[name])
     assert_plan_matches(sphere_renderer, frames_of(request, CAMERAS))
+
+
+# The views of one launch: REQUESTS' and a clipped, capped one and one of several surfaces (each view its own
+# camera, previous camera and seed).
+VIEW_REQUESTS = {**REQUESTS,
+                 "clipped and capped": dict(outputs=("mask", "normal", "color"), ao_samples=1, ao_radius=0.1,
+                                            clip=Clip(planes=[((0.0, 0.0, 0.05), (0.0, 0.0, -1.0))], cap="below")),
+                 "surfaces": dict(outputs=("mask", "normal", "surface", "color"), several=True)}
+
+
+@pytest.mark.parametrize("name", VIEW_REQUESTS)
+def test_views_rendered_together_equal_each_rendered_alone(sphere_volume, sphere_renderer, name):
+    """Renderer.render_views: one launch over three views (a plan of four) and then two (the same plan), each
+    view's buffers its own and equal to its render alone, bit for bit on the CPU."""
+    iso, kw = sphere_volume.normalized_iso(0.0), dict(VIEW_REQUESTS[name])
+    if kw.pop("several", False):  # the sphere's surface and one inside it
+        kw["surfaces"] = Surfaces((Surface(iso), Surface(sphere_volume.normalized_iso(-0.05), (0.2, 0.6, 0.9))))
+    request = request_of(iso, **kw)
+    frames = frames_of(request, CAMERAS)
+    alone = [sphere_renderer.render(camera, r) for camera, r in frames]
+    for views in (frames, frames[1:]):
+        together = sphere_renderer.render_views(views)
+        for got, expected in zip(together, alone[len(frames) - len(views):]):
+            assert_same(got, expected)
+        copied = {f.mask.untyped_storage().data_ptr() for f in together if f.mask is not None}
+        assert len(copied) == ("mask" in request.outputs), "a batch's buffers copied out together"
+
+
+def test_views_that_a_launch_cannot_share_are_refused(sphere_volume, sphere_renderer):
+    """Views of other isos (another empty-space grid), clips or sizes are rendered apart: a clear error."""
+    base = RenderRequest(W, H, sphere_volume.normalized_iso(0.0), ("mask", "depth"))
+    for other, words in ((dataclasses.replace(base, iso=sphere_volume.normalized_iso(0.05)), "iso"),
+                         (dataclasses.replace(base, clip=Clip(planes=[((0.0, 0.0, 0.0), (0.0, 0.0, 1.0))])), "clip"),
+                         (dataclasses.replace(base, width=W + 8), "render plan renders")):
+        with pytest.raises(ValueError, match=words):
+            sphere_renderer.render_views([(CAMERAS[0], base), (CAMERAS[1], other)])
+    with pytest.raises(ValueError, match="no views"):
+        sphere_renderer.render_views([])
+    with pytest.raises(ValueError, match="1 to 2 views"):
+        sphere_renderer.plan(base, views=2).stage_views([(CAMERAS[0], base)] * 3)
 
 
 def test_plan_follows_iso_and_ray_parameters(sphere_volume, sphere_renderer):

@@ -484,6 +484,43 @@ class FrameRunner(ABC):
                 results.append(e)
         return results
 
+    @staticmethod
+    def render_together(frames: list[tuple[FrameRunner, Camera, Camera | None]]
+                        ) -> list[tuple[FrameBuffers, StageTimer] | Exception]:
+        """The ray cast of each frame, ``(runner, camera, prev_camera)`` as :meth:`make_batch` takes them, as its
+        :meth:`steps` makes it in one slice (its request, its previous camera kept): those that one launch renders
+        (one renderer, alike in :meth:`RenderRequest.launch_key`) in one (:meth:`Renderer.render_views`), each
+        with the launch's timer (its ``render`` stage the frame's share). A launch of several views that fails is
+        made again view by view: a frame's failure stays its own.
+        """
+        results: list[tuple[FrameBuffers, StageTimer] | Exception | None] = [None] * len(frames)
+        launches: list[tuple[tuple, FrameRunner, list[int], list[tuple[Camera, RenderRequest]]]] = []
+        for k, (runner, camera, prev_camera) in enumerate(frames):
+            try:
+                request = runner.render_request(prev_camera)
+            except Exception as e:  # noqa: BLE001 - the stream's own failure, returned as its result
+                results[k] = e
+                continue
+            runner.prev_camera = prev_camera
+            key = (id(runner.renderer), request.launch_key())
+            launch = next((launch for launch in launches if launch[0] == key), None)
+            if launch is None:
+                launches.append(launch := (key, runner, [], []))
+            launch[2].append(k)
+            launch[3].append((camera, request))
+        for _, runner, indices, views in launches:
+            timer = StageTimer(runner.device, share=len(views))
+            try:
+                with torch.no_grad(), timer("render"):
+                    rendered = runner.renderer.render_views(views)
+            except Exception as e:  # noqa: BLE001 - the launch failed: alone, its frame's error; else each alone
+                for k in indices:
+                    results[k] = e if len(indices) == 1 else FrameRunner.render_together([frames[k]])[0]
+                continue
+            for k, frame in zip(indices, rendered):
+                results[k] = frame, timer
+        return results
+
     @torch.no_grad()
     def steps(self, camera: Camera, prev_camera: Camera | None = None,
               slice_ms: float | None = None) -> Generator[None, None, FrameResult]:

@@ -67,24 +67,26 @@ class FullRunner(FrameRunner):
 
     @classmethod
     def make_batch(cls, frames: list[tuple[FrameRunner, Camera, Camera | None]]) -> list[FrameResult | Exception]:
-        """As :meth:`FrameRunner.make_batch`, the frames that shade alike in one call: each rendered as alone,
-        then those of one material and the same buffers (AO, cut faces, colours) stacked and shaded together
+        """As :meth:`FrameRunner.make_batch`, the frames that shade alike in one call: rendered together
+        (:meth:`FrameRunner.render_together`), then those of one material and the same buffers (AO, cut faces,
+        colours) stacked and shaded together
         (:func:`~isosr_render.shading.shade_on`: on GPUs one compiled call, whose host work the batch shares;
         the frames' ``shading`` stage is their call's). Two layers, or none shaded: each frame as alone."""
         results: list[FrameResult | Exception | None] = [None] * len(frames)
+        together = [k for k, (runner, _, _) in enumerate(frames)
+                    if runner.shade and not runner._layers and runner.behind is None]
+        for k in set(range(len(frames))) - set(together):
+            results[k] = super().make_batch([frames[k]])[0]
         alike: dict[tuple, list[tuple[int, FullRunner, FrameBuffers, FrameBuffers, StageTimer, Camera | None]]] = {}
-        for k, (runner, camera, prev_camera) in enumerate(frames):
-            if not runner.shade or runner._layers or runner.behind is not None:
-                results[k] = super().make_batch([(runner, camera, prev_camera)])[0]
+        for k, made in zip(together, cls.render_together([frames[k] for k in together])):
+            if isinstance(made, Exception):
+                results[k] = made
                 continue
-            try:
-                rendered, timer = runner._rendered(camera, prev_camera)
-                buffers = FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=rendered.ao, cap=rendered.cap,
-                                       albedo=rendered.albedo)
-                key = (runner.shading,) + tuple(getattr(buffers, n) is None for n in ("ao", "cap", "albedo"))
-                alike.setdefault(key, []).append((k, runner, rendered, buffers, timer, prev_camera))
-            except Exception as e:  # noqa: BLE001 - the stream's own failure, returned as its result
-                results[k] = e
+            (runner, _, prev_camera), (rendered, timer) = frames[k], made
+            buffers = FrameBuffers(mask=rendered.mask, normal=rendered.normal, ao=rendered.ao, cap=rendered.cap,
+                                   albedo=rendered.albedo)
+            key = (runner.shading,) + tuple(getattr(buffers, n) is None for n in ("ao", "cap", "albedo"))
+            alike.setdefault(key, []).append((k, runner, rendered, buffers, timer, prev_camera))
         for group in alike.values():
             try:
                 colors, shading = cls._shade_together([buffers for _, _, _, buffers, _, _ in group], group[0][1].shading)
@@ -97,14 +99,6 @@ class FullRunner(FrameRunner):
                 buffers.color = color
                 results[k] = runner._made(rendered, buffers, [timer, shading], prev_camera)
         return results
-
-    def _rendered(self, camera: Camera, prev_camera: Camera | None) -> tuple[FrameBuffers, StageTimer]:
-        """The frame's ray cast as :meth:`steps` makes it in one slice, and its timer."""
-        timer = StageTimer(self.device)
-        request = self.render_request(prev_camera)
-        self.prev_camera = prev_camera
-        with torch.no_grad(), timer("render"):
-            return self.renderer.render(camera, request), timer
 
     @staticmethod
     def _shade_together(frames: list[FrameBuffers], params: ShadingParams) -> tuple[list[torch.Tensor], StageTimer]:

@@ -158,7 +158,8 @@ class ReconstructRunner(FrameRunner):
         its work without reading its input checks, which are read after the last (on a GPU the host's
         work for one frame overlaps the device's for the one before). On the devices in
         :data:`BATCHED_NETWORK_DEVICES`, streams whose networks run ungraphed (the service's), on one layer
-        (opaque surfaces), render their frames one by one, then the network runs once over them all
+        (opaque surfaces), render their frames together (:meth:`FrameRunner.render_together`: one launch where
+        they share it), then the network runs once over them all
         (:meth:`Reconstructor.reconstruct_batch`; the frames' ``network`` stage is their batch's).
         A frame whose checks fail is its stream's error and leaves its stream as it was, as alone."""
         before = [(runner.frames, runner._last_timer) for runner, _, _ in frames]
@@ -180,17 +181,15 @@ class ReconstructRunner(FrameRunner):
     @classmethod
     def _network_batch(cls, frames: list[tuple[ReconstructRunner, Camera, Camera | None]]
                        ) -> list[FrameResult | Exception]:
-        """Each stream's render, then one network call for them all (checks deferred by the caller)."""
+        """The streams' renders (one launch where they share one, :meth:`FrameRunner.render_together`), then one
+        network call for them all (checks deferred by the caller)."""
         rendered: list[tuple[int, ReconstructRunner, StageTimer, FrameBuffers, Camera | None]] = []
         results: list[FrameResult | Exception | None] = [None] * len(frames)
-        for k, (runner, camera, prev_camera) in enumerate(frames):
-            timer = StageTimer(runner.device)
-            try:
-                with torch.no_grad(), timer("render"):
-                    frame = runner.renderer.render(camera, runner.render_request(prev_camera))
-                rendered.append((k, runner, timer, frame, prev_camera))
-            except Exception as e:  # noqa: BLE001 - the stream's own failure, returned as its result
-                results[k] = e
+        for k, ((runner, _, prev_camera), made) in enumerate(zip(frames, cls.render_together(frames))):
+            if isinstance(made, Exception):
+                results[k] = made
+            else:
+                rendered.append((k, runner, made[1], made[0], prev_camera))
         if not rendered:
             return results
         first = rendered[0][1]
