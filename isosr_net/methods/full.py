@@ -71,7 +71,7 @@ class FullRunner(FrameRunner):
         (:meth:`FrameRunner.render_together`), then those of one material and the same buffers (AO, cut faces,
         colours) stacked and shaded together
         (:func:`~isosr_render.shading.shade_on`: on GPUs one compiled call, whose host work the batch shares;
-        the frames' ``shading`` stage is their call's). Two layers, or none shaded: each frame as alone."""
+        each frame's ``shading`` stage its share of the call). Two layers, or none shaded: each frame as alone."""
         results: list[FrameResult | Exception | None] = [None] * len(frames)
         together = [k for k, (runner, _, _) in enumerate(frames)
                     if runner.shade and not runner._layers and runner.behind is None]
@@ -102,9 +102,10 @@ class FullRunner(FrameRunner):
 
     @staticmethod
     def _shade_together(frames: list[FrameBuffers], params: ShadingParams) -> tuple[list[torch.Tensor], StageTimer]:
-        """The colors of single-layer frames of one size, stacked and shaded in one call, and its timer."""
+        """The colors of single-layer frames of one size, stacked and shaded in one call, and its timer (each
+        frame's share)."""
         device = frames[0].mask.device
-        timer = StageTimer(device)
+        timer = StageTimer(device, share=len(frames))
         with torch.no_grad(), timer("shading"):
             stacked = {n: None if getattr(frames[0], n) is None else torch.stack([getattr(f, n) for f in frames])
                        for n in ("mask", "normal", "ao", "cap", "albedo")}
