@@ -800,8 +800,11 @@ class RenderPlan:
 
     def buffers(self, request: RenderRequest) -> FrameBuffers:
         """The rendered frame as ``request`` asks for it: the plan's buffers (views), plus the passes
-        after the kernel that it names (flow fill, color), which make new tensors."""
+        after the kernel that it names (flow fill, color), which make new tensors. A plan of one view's
+        (several views': :meth:`view_buffers`)."""
         self.check(request)
+        if self.views > 1:
+            raise ValueError(f"this render plan holds {self.views} views: read them with view_buffers")
         frame, alpha = self._frame(request, self.tensors)
         if self.layers == 2:  # translucent surfaces: the second layer behind, the colours composited
             frame.behind = self._frame(request, self.behind_tensors, behind=True)[0]

@@ -124,8 +124,11 @@ def test_views_that_a_launch_cannot_share_are_refused(sphere_volume, sphere_rend
             sphere_renderer.render_views([(CAMERAS[0], base), (CAMERAS[1], other)])
     with pytest.raises(ValueError, match="no views"):
         sphere_renderer.render_views([])
+    plan = sphere_renderer.plan(base, views=2)
     with pytest.raises(ValueError, match="1 to 2 views"):
-        sphere_renderer.plan(base, views=2).stage_views([(CAMERAS[0], base)] * 3)
+        plan.stage_views([(CAMERAS[0], base)] * 3)
+    with pytest.raises(ValueError, match="view_buffers"):
+        plan.render(CAMERAS[0], base)
 
 
 def test_plan_follows_iso_and_ray_parameters(sphere_volume, sphere_renderer):
