@@ -164,3 +164,30 @@ def sphere_volume() -> Volume:
 def torus_volume() -> Volume:
     """Torus SDF around z, R = 0.3, r = 0.1, 64^3."""
     return field_volume(torus_sdf)
+
+
+
+def record_make_batch(monkeypatch, record) -> None:
+    """Have ``record(frames)`` called with the frames of each batch a frame kind's ``make_batch`` is given
+    from outside (``(runner, camera, prev_camera)`` each): every kind's own make_batch wrapped, the calls
+    one makes of its base's not recorded."""
+    import threading
+
+    from isosr_net.methods import RUNNERS, FrameRunner
+
+    inner = threading.local()
+
+    def recording(make_batch):
+        def recorded(cls, frames):
+            depth = getattr(inner, "depth", 0)
+            if not depth:
+                record(frames)
+            inner.depth = depth + 1
+            try:
+                return make_batch(cls, frames)
+            finally:
+                inner.depth = depth
+        return classmethod(recorded)
+    for cls in {FrameRunner, *RUNNERS.values()}:
+        if "make_batch" in vars(cls):
+            monkeypatch.setattr(cls, "make_batch", recording(vars(cls)["make_batch"].__func__))

@@ -15,9 +15,9 @@ from concurrent.futures import Future
 import numpy as np
 import pytest
 import torch
+from conftest import record_make_batch
 from server_fixtures import DEVICE, VOLUME, H, W, server_settings
 
-from isosr_net.methods import RUNNERS, FrameRunner
 from isosr_render import open_volume, orbit
 from isosr_render.catalog import resolve_iso
 from isosr_render.image_codec import decode_image
@@ -72,25 +72,9 @@ def engine():
 
 @pytest.fixture
 def batches(monkeypatch) -> list[int]:
-    """The sizes of the batches the engine gave the runners' ``make_batch`` (the outermost calls: a kind's
-    own may hand some of its frames on to its base's)."""
+    """The sizes of the batches the engine gave the runners' ``make_batch``."""
     sizes: list[int] = []
-    inner = threading.local()
-
-    def recording(make_batch):
-        def recorded(cls, frames):
-            depth = getattr(inner, "depth", 0)
-            if not depth:
-                sizes.append(len(frames))
-            inner.depth = depth + 1
-            try:
-                return make_batch(cls, frames)
-            finally:
-                inner.depth = depth
-        return classmethod(recorded)
-    for cls in {FrameRunner, *RUNNERS.values()}:
-        if "make_batch" in vars(cls):
-            monkeypatch.setattr(cls, "make_batch", recording(vars(cls)["make_batch"].__func__))
+    record_make_batch(monkeypatch, lambda frames: sizes.append(len(frames)))
     return sizes
 
 

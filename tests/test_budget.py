@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from isosr_render import Renderer, open_volume, orbit, orbit_path, resolve_iso
-from conftest import DEVICE
+from conftest import DEVICE, record_make_batch
 from isosr_net.budget import (AO_MATTERS_DB, BudgetConfig, choose_method, default_candidates, default_probe_height,
                               probe_size, render_within_budget)
 from isosr_net import budget as policy
@@ -307,16 +307,10 @@ def test_a_batched_timing_makes_each_candidates_frames_for_several_streams_at_on
     """BudgetConfig.batch: after a frame alone, a timed candidate's frames are made for ``batch``
     streams at once by its kind's make_batch (the streams' own recurrent state: twins of the
     networks), its time their batch's over their count; the choice still respects the budget."""
-    from isosr_net.methods import FrameRunner
-
     renderer, iso = cloud
     batches = []
-    make_batch = FrameRunner.make_batch.__func__
-
-    def recorded(cls, frames):
-        batches.append((cls.kind, len(frames), len({id(r) for r, _, _ in frames})))
-        return make_batch(cls, frames)
-    monkeypatch.setattr(FrameRunner, "make_batch", classmethod(recorded))
+    record_make_batch(monkeypatch, lambda frames: batches.append(
+        (type(frames[0][0]).kind, len(frames), len({id(r) for r, _, _ in frames}))))
     config = BudgetConfig(candidates=FEW[1:4], batch=3, warmup_frames=1, timing_frames=2)
     choice = choose_method(renderer, iso, *SIZE, 1000.0, config)
     check_budget_respected(choice)
