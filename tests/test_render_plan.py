@@ -20,7 +20,8 @@ from conftest import DEVICE, field_volume, sphere_sdf
 from isosr_render.camera import Camera, orbit
 from isosr_render.clip import Clip
 from isosr_render import kernels
-from isosr_render.renderer import FRAME_DTYPE, MAX_SPP, PLAN_CACHE, Renderer, RenderRequest, frame_args
+from isosr_render import renderer as renderer_module
+from isosr_render.renderer import FRAME_DTYPE, MAX_SPP, PLAN_CACHE, Renderer, RenderPlan, RenderRequest, frame_args
 from isosr_render.surfaces import Surface, Surfaces
 from isosr_render.volume import Volume
 
@@ -112,6 +113,20 @@ def test_views_rendered_together_equal_each_rendered_alone(sphere_volume, sphere
             assert_same(got, expected)
         copied = {f.mask.untyped_storage().data_ptr() for f in together if f.mask is not None}
         assert len(copied) == ("mask" in request.outputs), "a batch's buffers copied out together"
+
+
+def test_views_past_a_launch_s_pixels_render_in_several_launches(sphere_volume, sphere_renderer, monkeypatch):
+    """Views of more pixels than MAX_LAUNCH_PIXELS (a plan's memory) render in launches of at most that many,
+    each view still its own render's."""
+    monkeypatch.setattr(renderer_module, "MAX_LAUNCH_PIXELS", 2 * W * H)
+    request = request_of(sphere_volume.normalized_iso(0.0), ("mask", "normal", "ao"), ao_samples=2, ao_radius=0.1)
+    frames = frames_of(request, CAMERAS)
+    launches = []
+    launch = RenderPlan.launch
+    monkeypatch.setattr(RenderPlan, "launch", lambda plan, *a: (launches.append(plan._staged), launch(plan, *a))[1])
+    for got, (camera, r) in zip(sphere_renderer.render_views(frames), frames):
+        assert_same(got, sphere_renderer.render(camera, r))
+    assert launches[:2] == [2, 1]
 
 
 def test_views_that_a_launch_cannot_share_are_refused(sphere_volume, sphere_renderer):
