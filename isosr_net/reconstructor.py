@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, TypeVar
 
 import torch
 
-from isosr_render.buffers import FrameBuffers
+from isosr_render.buffers import FrameBuffers, stacked
 from isosr_render.conventions import AO, MASK, NORMAL
 from isosr_render.shading import ShadingParams, shade
 from isosr_net.fused_recon import FusedReconNet, fusable, fused_reconnet, fused_runs_on, triton_imports
@@ -458,13 +458,11 @@ class Reconstructor(RecurrentNetwork):
         """The frames of ``group`` (``(index, net, frame, carry)``, one ``carry`` for all) in one call."""
         frames = [frame for _, _, frame, _ in group]
         carry = group[0][3]
-
-        def stacked(name: str) -> torch.Tensor | None:
-            return None if getattr(frames[0], name) is None else torch.stack([getattr(f, name) for f in frames])
         ao, sampling, histories = self._batch_rays(group, ao_rays, spp)
         previous = torch.cat([net.previous for _, net, _, _ in group]) if carry else None
-        stack, color, flags = self._frames(stacked("mask"), stacked("normal"), stacked("depth"), ao, stacked("flow"),
-                                           sampling=sampling, previous=previous, shading=shading)
+        mask, normal, depth, flow = (stacked(frames, n) for n in ("mask", "normal", "depth", "flow"))
+        stack, color, flags = self._frames(mask, normal, depth, ao, flow, sampling=sampling, previous=previous,
+                                           shading=shading)
         outputs = own_streams(stack)  # each stream keeps its own
         out = []
         for j, (_, net, _, _) in enumerate(group):

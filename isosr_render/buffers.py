@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -83,6 +84,15 @@ class FrameBuffers:
     def load_npz(cls, path: str | os.PathLike) -> "FrameBuffers":
         """Read a frame file written by :meth:`save_npz`, checking names and shapes."""
         return cls(**{k: torch.from_numpy(v) for k, v in _read_checked(path, time_axis=False).items()})
+
+
+def stacked(frames: Sequence[FrameBuffers], name: str) -> torch.Tensor | None:
+    """The buffer ``name`` of several frames of one size, stacked (a batch's); None where the first has none.
+
+    Shape:
+        Returns (B, *the buffer's).
+    """
+    return None if getattr(frames[0], name) is None else torch.stack([getattr(f, name) for f in frames])
 
 
 def save_sequence(frames: list[FrameBuffers], path: str | os.PathLike) -> None:
