@@ -12,6 +12,7 @@ from isosr_net.methods.base import FrameMethod, FrameResult, FrameRunner, RayOpt
 from isosr_net.reconnet import RayLimits
 from isosr_net.timing import StageTimer
 from isosr_render import Camera, FrameBuffers
+from isosr_render.buffers import stacked
 from isosr_render.shading import ShadingParams, shade, shade_on
 
 
@@ -75,8 +76,9 @@ class FullRunner(FrameRunner):
         results: list[FrameResult | Exception | None] = [None] * len(frames)
         together = [k for k, (runner, _, _) in enumerate(frames)
                     if runner.shade and not runner._layers and runner.behind is None]
-        for k in set(range(len(frames))) - set(together):
-            results[k] = super().make_batch([frames[k]])[0]
+        for k in range(len(frames)):
+            if k not in together:
+                results[k] = super().make_batch([frames[k]])[0]
         alike: dict[tuple, list[tuple[int, FullRunner, FrameBuffers, FrameBuffers, StageTimer, Camera | None]]] = {}
         for k, made in zip(together, cls.render_together([frames[k] for k in together])):
             if isinstance(made, Exception):
@@ -107,10 +109,8 @@ class FullRunner(FrameRunner):
         device = frames[0].mask.device
         timer = StageTimer(device, share=len(frames))
         with torch.no_grad(), timer("shading"):
-            stacked = {n: None if getattr(frames[0], n) is None else torch.stack([getattr(f, n) for f in frames])
-                       for n in ("mask", "normal", "ao", "cap", "albedo")}
-            colors = shade_on(device.type)(stacked["mask"], stacked["normal"], stacked["ao"], params, stacked["cap"],
-                                           stacked["albedo"])
+            mask, normal, ao, cap, albedo = (stacked(frames, n) for n in ("mask", "normal", "ao", "cap", "albedo"))
+            colors = shade_on(device.type)(mask, normal, ao, params, cap, albedo)
         return list(colors.unbind(0)), timer
 
     def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
