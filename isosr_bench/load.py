@@ -26,6 +26,8 @@ import time
 import urllib.request
 from collections.abc import Callable
 
+from prometheus_client.parser import text_string_to_metric_families
+
 TICKS_S = os.sysconf("SC_CLK_TCK")
 
 
@@ -53,8 +55,7 @@ def metric_total(url: str, name: str) -> Callable[[], float | None]:
                 text = reply.read().decode()
         except OSError:
             return None
-        values = [float(line.rsplit(" ", 1)[1]) for line in text.splitlines()
-                  if line.startswith(name) and line[len(name):len(name) + 1] in ("{", " ")]
+        values = [s.value for family in text_string_to_metric_families(text) for s in family.samples if s.name == name]
         return sum(values) if values else None
     return read
 
