@@ -4,15 +4,16 @@
 
 Starts the server (:class:`isosr_bench.bench_server.ServerProcess`), drives ``--sessions``
 closed-loop view sessions (1080p unless ``--size``; :func:`isosr_bench.sessions.run_sessions`), and
-once they are warm samples the server with py-spy twice, ``--seconds`` each: every thread that is
-not idle (where each thread spends its CPU), then only the thread that holds the GIL (who owns
-the interpreter). Threads are told apart by what their stacks run: the device thread (the
-engine's frames), the event loop, the encoder pool. Writes
-``DIR/profile_server_<mode>_<sessions>_<device>.json``: per thread its share of the span active
-and holding the GIL, and its 20 functions with the most samples, inclusive (anywhere on the
-stack; those on 90% of the thread's stacks left out) and self (the innermost frame), as shares
-of the span; with the sessions' frames/s over the run. py-spy must be on PATH (a dev tool, not
-a dependency); it attaches with ptrace, so the server runs as a child of this script.
+once they are warm samples the server with py-spy three times, ``--seconds`` each: every thread
+that is not idle (where each thread spends its CPU), only the thread that holds the GIL (who owns
+the interpreter), then every thread idle or not (where each waits). Threads are told apart by
+what their stacks run: the device thread (the engine's frames), the event loop, the encoder pool.
+Writes ``DIR/profile_server_<mode>_<sessions>_<device>.json``: per thread its share of the span
+active, holding the GIL and in all, and its 20 functions with the most samples, inclusive
+(anywhere on the stack; those on 90% of the thread's stacks left out) and self (the innermost
+frame), as shares of the span; its ``waiting``: each innermost frame's share in all less its share
+active; with the sessions' frames/s over the run. py-spy must be on PATH (a dev tool, not a
+dependency); it attaches with ptrace, so the server runs as a child of this script.
 """
 
 from __future__ import annotations
@@ -38,11 +39,15 @@ THREAD_KINDS = (("_advance", "device"), ("_batch_sync", "device"), ("codes_sync"
 TOP = 20
 
 
-def sample(pid: int, seconds: float, path: Path, gil: bool) -> None:
-    """py-spy's collapsed stacks of ``pid``'s threads over ``seconds`` (only the GIL holder's with ``gil``)."""
+# The samplings: the threads' stacks while active, the GIL holder's only, and every thread's idle or not.
+SAMPLINGS = {"active": [], "gil": ["--gil"], "all": ["--idle"]}
+
+
+def sample(pid: int, seconds: float, path: Path, options: list[str]) -> None:
+    """py-spy's collapsed stacks of ``pid``'s threads over ``seconds``, as ``options`` (:data:`SAMPLINGS`) take them."""
     command = ["py-spy", "record", "--pid", str(pid), "--duration", str(int(seconds)), "--rate", str(RATE_HZ),
                "--format", "raw", "--threads", "--function", "--nonblocking", "-o", str(path)]
-    subprocess.run(command + (["--gil"] if gil else []), check=True, capture_output=True)
+    subprocess.run(command + options, check=True, capture_output=True)
 
 
 def read_stacks(path: Path) -> dict[str, list[tuple[list[str], int]]]:
@@ -79,27 +84,37 @@ def summarize(stacks: list[tuple[list[str], int]], span_samples: int) -> dict:
     return {"share": round(total / span_samples, 4), "inclusive": share(inclusive), "self": share(own)}
 
 
+def waiting(row: dict) -> dict[str, float]:
+    """Where a thread waits: each innermost frame's share of the span idle included less its share active
+    (two samplings of the same length, so a share is within a few samples' noise)."""
+    everything, active = row.get("all", {}).get("self", {}), row.get("active", {}).get("self", {})
+    shares = {f: round(share - active.get(f, 0.0), 4) for f, share in everything.items()}
+    return {f: share for f, share in sorted(shares.items(), key=lambda kv: -kv[1]) if share > 0}
+
+
 def profile(args) -> dict:
     size = SIZES[args.size]
     with ServerProcess(args.device, room_options(args.sessions)) as server:
         result: dict = {}
         timed = threading.Event()  # every session has its warm-up frames
         drive = threading.Thread(target=lambda: result.update(run_sessions(
-            server.url, args.volume, args.sessions, 2 * args.seconds + 4, args.mode, size,
+            server.url, args.volume, args.sessions, len(SAMPLINGS) * args.seconds + 4, args.mode, size,
             {"ao_rays": args.ao}, processes=args.client_processes, on_start=timed.set)))
         drive.start()
         while not timed.wait(1.0):
             if not drive.is_alive():
                 raise RuntimeError(f"the sessions ended before their timed span: {result.get('errors')}")
         out = {}
-        for gil in (False, True):
-            path = Path(args.out) / f"pyspy_{'gil' if gil else 'active'}.txt"
-            sample(server.pid, args.seconds, path, gil)
+        for name, options in SAMPLINGS.items():
+            path = Path(args.out) / f"pyspy_{name}.txt"
+            sample(server.pid, args.seconds, path, options)
             span = int(args.seconds * RATE_HZ)
             for tid, stacks in read_stacks(path).items():
                 row = out.setdefault(tid, {"thread": thread_kind(stacks)})
-                row["gil" if gil else "active"] = summarize(stacks, span)
+                row[name] = summarize(stacks, span)
         drive.join()
+    for row in out.values():
+        row["waiting"] = waiting(row)
     return {"threads": sorted(out.values(), key=lambda r: -r.get("active", {}).get("share", 0)),
             "fps": result.get("fps"), "fps_per_session": result.get("fps_per_session"),
             "latency_p99_ms": result.get("latency_p99_ms"), "methods": result.get("methods"),
@@ -114,7 +129,7 @@ def main() -> None:
     parser.add_argument("--ao", type=int, default=1)
     parser.add_argument("--sessions", type=int, default=16)
     parser.add_argument("--size", choices=tuple(SIZES), default="1080p")
-    parser.add_argument("--seconds", type=float, default=8.0, help="seconds of each of the two samplings")
+    parser.add_argument("--seconds", type=float, default=8.0, help="seconds of each of the three samplings (default 8)")
     parser.add_argument("--client-processes", type=int, default=4)
     parser.add_argument("--out", default="bench-out")
     args = parser.parse_args()
@@ -130,6 +145,7 @@ def main() -> None:
     for t in report["threads"]:
         print(t["thread"], "active", t.get("active", {}).get("share"), "gil", t.get("gil", {}).get("share"))
         print("   inclusive:", list(t.get("active", {}).get("inclusive", {}).items())[:12])
+        print("   waiting:", list(t["waiting"].items())[:8])
 
 
 if __name__ == "__main__":
