@@ -464,8 +464,10 @@ def _time_batch_steps(runners: list[FrameRunner], cameras: list[Camera],
         start = time.perf_counter()
         results = kind.make_batch([(runner, camera, prev) for runner in runners])
         ms = _synced_ms(runners[0], start) / len(runners)
-        if (failed := next((r for r in results if isinstance(r, Exception)), None)) is not None:
-            raise failed
+        for result in results:
+            if isinstance(result, Exception):
+                raise result
+            result.checked()
         times.append(ms)
     return sum(times[1:]) / config.timing_frames
 

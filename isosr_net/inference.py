@@ -8,6 +8,7 @@ one stream's recurrent state (:class:`RecurrentNetwork`, the base of `Upscaler` 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -93,16 +94,52 @@ class InputChecks:
         by_device: dict[torch.device, list[int]] = {}
         for i, (values, _) in enumerate(self._checks):
             by_device.setdefault(values.device, []).append(i)
-        read: dict[int, list[float]] = {}
+        read: list[list[float]] = [[] for _ in self._checks]
         for indices in by_device.values():  # one read per device (the inputs may sit elsewhere)
             values = [self._checks[i][0] for i in indices]
             flat = (values[0] if len(values) == 1 else torch.cat(values)).tolist()
             for i, v in zip(indices, values):  # each queued vector's share, by its own length
                 read[i], flat = flat[:len(v)], flat[len(v):]
-        for i, (_, checks) in enumerate(self._checks):
-            for v, check in zip(read[i], checks):
+        error = self._first_failure([v for values in read for v in values])
+        if error is not None:
+            raise error
+
+    def read_later(self) -> LateChecks:
+        """The queued checks (all on one device) copied to the host behind the device's queued work, with no
+        wait: :meth:`LateChecks.error` reads them once the device has got there."""
+        values = torch.cat([v for v, _ in self._checks]) if self._checks else torch.zeros(0)
+        if values.device.type != "cuda":
+            return LateChecks(values, None, self._first_failure)
+        host = torch.empty(values.shape, dtype=values.dtype, pin_memory=True)  # pinned: a copy that does not wait
+        host.copy_(values, non_blocking=True)
+        ready = torch.cuda.Event()
+        ready.record()
+        return LateChecks(host, ready, self._first_failure)
+
+    def _first_failure(self, flat: list[float]) -> ValueError | None:
+        """The error of the first check that fails, given the queued values read one after the other."""
+        for values, checks in self._checks:
+            read, flat = flat[:len(values)], flat[len(values):]
+            for v, check in zip(read, checks):
                 if check is not None and not check[0](v):
-                    raise ValueError(check[1](v))
+                    return ValueError(check[1](v))
+        return None
+
+
+@dataclass(frozen=True)
+class LateChecks:
+    """:class:`InputChecks` read after the fact (:meth:`InputChecks.read_later`): their values on the host
+    once ``ready`` has passed (None: at once), read by any thread."""
+
+    values: torch.Tensor
+    ready: torch.cuda.Event | None
+    first_failure: Callable[[list[float]], ValueError | None]
+
+    def error(self) -> ValueError | None:
+        """The first failing check's error, or None (waits for the device to reach the copy, not longer)."""
+        if self.ready is not None:
+            self.ready.synchronize()
+        return self.first_failure(self.values.tolist())
 
 
 SURFACE_SHAPES = {"mask": "(H, W)", "normal": "(H, W, 3)", "depth": "(H, W)", "flow": "(H, W, 2)"}

@@ -30,8 +30,8 @@ from isosr_render.conventions import AO, MASK, NORMAL
 from isosr_render.shading import ShadingParams, shade
 from isosr_net.fused_recon import FusedReconNet, fusable, fused_reconnet, fused_runs_on, triton_imports
 from isosr_net.reconnet import OUTPUTS, RayLimits, ReconNet, ReconNetConfig
-from isosr_net.inference import (AO_MESSAGE, PRECISIONS, InputChecks, RecurrentNetwork, ao_in_range, buffer_stack,
-                                 check_buffer, check_surface, frames_flags, own_streams, stack_buffers,
+from isosr_net.inference import (AO_MESSAGE, PRECISIONS, InputChecks, LateChecks, RecurrentNetwork, ao_in_range,
+                                 buffer_stack, check_buffer, check_surface, frames_flags, own_streams, stack_buffers,
                                  surface_tensors)
 from isosr_net.model import read_config
 from isosr_net.ray_history import RayHistory, histories_join, joined_histories, network_inputs
@@ -297,12 +297,13 @@ class Reconstructor(RecurrentNetwork):
         self._sampling: dict[tuple[int, int], torch.Tensor] = {}
         self.history: RayHistory | None = None
         self._deferred: list[tuple] | None = None  # checks queued by defer_checks, or None: read at once
+        self._late: LateChecks | None = None  # the last frame's checks read late (settle_checks_later)
         self._own_graphs()
 
     def reset(self) -> None:
         """Forget the previous output and the ray history (a camera cut, a new sequence)."""
         super().reset()
-        self.history = None
+        self.history, self._late = None, None
 
     def state_bytes(self) -> int:
         """Bytes the stream's state holds: the previous output and the ray history."""
@@ -324,7 +325,7 @@ class Reconstructor(RecurrentNetwork):
         captures its own."""
         twin = super().own()
         twin._own_graphs()
-        twin._deferred = None  # its own checks, read at once until it defers them
+        twin._deferred, twin._late = None, None  # its own checks, read at once until it defers them
         return twin
 
     def warm(self, sizes: Iterable[tuple[int, int]], ao_rays: int = 1, shading: ShadingParams | None = ShadingParams()
@@ -399,6 +400,7 @@ class Reconstructor(RecurrentNetwork):
             Returns mask, depth, ao (H, W); normal, color (H, W, 3).
         """
         _check_frame(frame, ao_rays, spp, self.limits)
+        self._settle_late()
         frame = frame.to(self.device)
         carry = self.carries(*frame.mask.shape, frame.flow is not None)
         with torch.no_grad():
@@ -438,6 +440,7 @@ class Reconstructor(RecurrentNetwork):
             except ValueError as e:
                 results[k] = e
                 continue
+            net._settle_late()
             frame = frame.to(net.device)
             carry = net.carries(*frame.mask.shape, frame.flow is not None)
             groups.setdefault((carry, frame.flow is not None), []).append((k, net, frame, carry))
@@ -507,6 +510,27 @@ class Reconstructor(RecurrentNetwork):
         deferred, self._deferred = self._deferred or [], None
         for flags, keep, refused in deferred:
             self._checked(flags, keep, refused)
+
+    def settle_checks_later(self) -> LateChecks | None:
+        """:meth:`settle_checks` without waiting for the device: each frame queued since :meth:`defer_checks`
+        keeps its state now and its checks travel to the host behind its work (None: none queued). Where
+        they fail (:meth:`LateChecks.error`, that frame's error to whoever reads it), the stream starts over
+        at its next frame, as after a cut."""
+        deferred, self._deferred = self._deferred or [], None
+        if not deferred:
+            return None
+        checks = InputChecks()
+        for flags, keep, _ in deferred:
+            checks.add_flags(flags, self.precision == "fp16")
+            keep()
+        self._late = checks.read_later()
+        return self._late
+
+    def _settle_late(self) -> None:
+        """Start the stream over where its last frame's checks, read late, failed (before its next frame)."""
+        late, self._late = self._late, None
+        if late is not None and late.error() is not None:
+            self.reset()
 
     def _checked(self, flags: torch.Tensor, keep: Callable[[], None], refused: Callable[[], None] | None = None
                  ) -> None:
@@ -606,6 +630,7 @@ class Reconstructor(RecurrentNetwork):
         if not self.graphable(renderer, request):
             rendered = renderer.render(camera, request)
             return rendered, self.reconstruct(rendered, ao_rays, spp, shading)
+        self._settle_late()
         size = (request.height, request.width)
         carry = self.carries(*size, request.prev_camera is not None)
         state = self._state(size, self.previous if carry else None)

@@ -10,7 +10,9 @@ and size through the kind's ``make_batch``; a frame that runs in slices goes alo
 :meth:`Engine.call`; everything named ``*_sync`` runs only on that thread. On GPUs that thread issues its
 work on a CUDA stream of its own (:attr:`Engine.stream`): the encoder threads read a frame's colors once its
 event has passed (:class:`ImageCodes`), never waiting for work the device thread issued after it (nvJPEG
-synchronizes the legacy default stream before each image, which would make it wait for the next batch).
+synchronizes the legacy default stream before each image, which would make it wait for the next batch). The
+device thread does not wait for the device either: a batch's input checks are read there too
+(:attr:`~isosr_net.methods.FrameResult.checks`), so it goes on with the next batch while the GPU runs this one.
 
 Frames are made by isosr_net's frame methods through the view modes (:mod:`isosr_server.views`).
 Networks are loaded once (:class:`isosr_net.methods.Networks`, in the server's precision:
@@ -132,7 +134,8 @@ class AskedFrame:
 @dataclass(frozen=True)
 class ImageCodes:
     """A made frame's quantized colors and, on a GPU, the event on the device thread's stream after which
-    they hold them (None on CPUs): a thread reads them through :meth:`wait`.
+    they hold them (None on CPUs), with the frame's checks left to read then (:meth:`FrameResult.checked`):
+    a thread reads them through :meth:`wait`.
 
     Shape:
         rgb: (H, W, 3) uint8.
@@ -140,11 +143,16 @@ class ImageCodes:
 
     rgb: torch.Tensor
     ready: torch.cuda.Event | None
+    checked: Callable[[], None]
 
     def wait(self) -> torch.Tensor:
-        """The colors, once the device has made them (blocks this thread until then, not longer)."""
+        """The colors, once the device has made them (blocks this thread until then, not longer).
+
+        Raises:
+            ValueError: the frame's input checks fail (its session's error)."""
         if self.ready is not None:
             self.ready.synchronize()
+        self.checked()
         return self.rgb
 
 
@@ -523,7 +531,8 @@ class Engine:
             if rgb.is_cuda:
                 ready = torch.cuda.Event(blocking=True)  # its waiters sleep, not spin
                 ready.record()
-            return ImageCodes(rgb, ready)
+            return ImageCodes(rgb, ready, made.result.checked)
+        made.result.checked()  # the host reads the buffers now (view_buffer_codes): their checks too
         b = made.result.buffers
         return view_buffer_codes(FrameBuffers(mask=b.mask, normal=b.normal, depth=b.depth,
                                               flow=b.flow if made.prev_seq >= 0 else None))

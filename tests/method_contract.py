@@ -153,7 +153,8 @@ def copied(buffers: FrameBuffers | None, but: tuple[str, ...] = ()) -> dict[str,
 
 
 def buffers_of(result) -> dict[str, torch.Tensor]:
-    """A frame's present buffers, copied."""
+    """A frame's present buffers, copied, once its checks left to read later pass (as its taker reads them)."""
+    result.checked()
     return copied(result.buffers)
 
 

@@ -257,9 +257,9 @@ def test_a_batch_waits_for_the_sessions_yet_to_ask_within_its_deadline(engine, b
 
 
 def test_a_nan_in_one_session_s_buffers_fails_that_session_only(engine, monkeypatch):
-    """The reconstruction reads a batch's input checks once, after the last frame: one session whose
-    rendered depth holds a NaN gets the check's error and then its next frame; its batch mates get
-    their frames, equal to those made alone."""
+    """The reconstruction leaves a batch's input checks to read when each frame is coded (no wait for the
+    device on its thread): one session whose rendered depth holds a NaN gets the check's error and then
+    its next frame; its batch mates get their frames, equal to those made alone."""
     settings = [view_settings(engine, "reconstruct")] * SESSIONS
     expected = alone(engine, settings)
     s = Sessions(engine, settings)
@@ -343,7 +343,7 @@ def test_a_batch_s_jpegs_are_released_one_by_one(monkeypatch):
             raise RuntimeError("nvJPEG refused the frame")
         return [bytes([len(released)])]
     monkeypatch.setattr(engine_module, "encode_jpegs", code)
-    codes = [ImageCodes(torch.zeros(4, 4, 3, dtype=torch.uint8), None) for _ in futures]
+    codes = [ImageCodes(torch.zeros(4, 4, 3, dtype=torch.uint8), None, lambda: None) for _ in futures]
     engine_module.code_jpegs_in_turn(codes, JPEG_QUALITY, futures)
     assert released == [[False, False, False], [True, False, False], [True, True, False]]
     assert futures[0].result() == b"\x01" and futures[2].result() == b"\x03"

@@ -1,7 +1,7 @@
 """One reconstruction call for the frames of several streams (:meth:`Reconstructor.reconstruct_batch`,
 issue 50): each stream's frames equal those it makes alone (within float rounding at another batch
 size), streams that continue and streams that cut form their own calls, and a frame that fails its
-checks is its own stream's error, its state kept as it was."""
+checks is its own stream's error, its state kept as it was (read at once) or started over (read late)."""
 
 from __future__ import annotations
 
@@ -89,6 +89,28 @@ def test_a_frame_that_fails_its_checks_is_its_streams_error_only(renderer):
     assert torch.equal(nets[1].previous, kept), "the refused frame's stream keeps its state"
     assert_close_frames(got[2], reference.reconstruct(second[2], AO_RAYS, 1, ShadingParams()))
     assert not isinstance(got[0], Exception)
+
+
+def test_checks_read_later_keep_the_state_and_a_failure_starts_the_stream_over(renderer):
+    """The service's way (:meth:`Reconstructor.settle_checks_later`): no wait for the device; a frame whose
+    checks fail gives its error to whoever reads them, and its stream's next frame starts over as after a
+    cut (equal to a fresh stream's), where one that passed goes on carrying its state."""
+    net, fresh = twins(1)[0], twins(1)[0]
+
+    def later(frame):
+        net.defer_checks()
+        net.reconstruct(frame, AO_RAYS, 1, ShadingParams())
+        return net.settle_checks_later()
+    assert later(rendered(renderer, 0, 0)).error() is None and net.previous is not None
+    poisoned = rendered(renderer, 0, 1)
+    poisoned.depth = poisoned.depth.clone()
+    poisoned.depth[0, 0] = float("nan")
+    error = later(poisoned).error()
+    assert isinstance(error, ValueError) and "NaN" in str(error)
+    third = rendered(renderer, 0, 2)
+    assert_close_frames(net.reconstruct(third, AO_RAYS, 1, ShadingParams()),
+                        fresh.reconstruct(third, AO_RAYS, 1, ShadingParams()))
+    assert net.settle_checks_later() is None, "nothing deferred: nothing to read"
 
 
 def test_only_ungraphed_twins_of_one_network_batch(renderer):

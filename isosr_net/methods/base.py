@@ -18,7 +18,7 @@ from typing import Any, ClassVar, get_type_hints
 import torch
 
 from isosr_net.filters.atrous import ATrousConfig
-from isosr_net.inference import PRECISIONS, RecurrentNetwork
+from isosr_net.inference import PRECISIONS, LateChecks, RecurrentNetwork
 from isosr_net.reconnet import RayLimits
 from isosr_net.timing import StageTimer
 from isosr_render import Camera, FrameBuffers, Renderer, RenderRequest
@@ -202,11 +202,20 @@ class FrameResult:
         timers: the frame's stage timers (:attr:`times` reads them).
         continued: whether the frame continued the stream from the previous camera (its flow
             refers to it); False on a sequence's first frame.
+        checks: the frame's input checks where they were left to read later (a batch's,
+            :meth:`FrameRunner.make_batch`): its taker reads them (:meth:`checked`) once it needs the frame.
     """
 
     buffers: FrameBuffers
     timers: list[StageTimer]
     continued: bool
+    checks: LateChecks | None = None
+
+    def checked(self) -> None:
+        """Raise where the frame's checks read late fail (waits for the device to reach them, not longer)."""
+        error = None if self.checks is None else self.checks.error()
+        if error is not None:
+            raise error
 
     @property
     def times(self) -> dict[str, float]:
@@ -474,7 +483,9 @@ class FrameRunner(ABC):
         stream's error is its result (``asyncio.gather(return_exceptions=True)``): the others'
         frames are made, and each equals the frame its runner makes alone (the shared
         contract test checks it). Default: one after the other; a kind that shares launches
-        across streams (one render over all cameras, one network call over the batch) overrides it.
+        across streams (one render over all cameras, one network call over the batch) overrides it,
+        and may leave a frame's input checks to read later (:attr:`FrameResult.checks`: its taker calls
+        :meth:`FrameResult.checked`).
         """
         results: list[FrameResult | Exception] = []
         for runner, camera, prev_camera in frames:

@@ -154,15 +154,15 @@ class ReconstructRunner(FrameRunner):
 
     @classmethod
     def make_batch(cls, frames: list[tuple[FrameRunner, Camera, Camera | None]]) -> list[FrameResult | Exception]:
-        """As :meth:`FrameRunner.make_batch`, with one wait for the device: each stream's frame issues
-        its work without reading its input checks, which are read after the last (on a GPU the host's
-        work for one frame overlaps the device's for the one before). On the devices in
-        :data:`BATCHED_NETWORK_DEVICES`, streams whose networks run ungraphed (the service's), on one layer
-        (opaque surfaces), render their frames together (:meth:`FrameRunner.render_together`: one launch where
-        they share it), then the network runs once over them all
-        (:meth:`Reconstructor.reconstruct_batch`; the frames' ``network`` stage is their batch's).
-        A frame whose checks fail is its stream's error and leaves its stream as it was, as alone."""
-        before = [(runner.frames, runner._last_timer) for runner, _, _ in frames]
+        """As :meth:`FrameRunner.make_batch`, without waiting for the device: each stream's frame issues its
+        work and its input checks travel to the host behind it, read by whoever takes the frame
+        (:attr:`FrameResult.checks`; on a GPU the host's work for the next batch overlaps the device's for
+        this one). On the devices in :data:`BATCHED_NETWORK_DEVICES`, streams whose networks run ungraphed
+        (the service's), on one layer (opaque surfaces), render their frames together
+        (:meth:`FrameRunner.render_together`: one launch where they share it), then the network runs once
+        over them all (:meth:`Reconstructor.reconstruct_batch`; the frames' ``network`` stage is their
+        batch's). A frame whose checks fail is its stream's error, and its stream starts over at its next
+        frame (:meth:`Reconstructor.settle_checks_later`)."""
         for runner, _, _ in frames:
             runner.net.defer_checks()
         if len(frames) > 1 and torch.device(frames[0][0].device).type in BATCHED_NETWORK_DEVICES and \
@@ -170,12 +170,10 @@ class ReconstructRunner(FrameRunner):
             results = cls._network_batch(frames)
         else:
             results = super().make_batch(frames)
-        for k, (runner, _, _) in enumerate(frames):
-            try:
-                runner.net.settle_checks()
-            except ValueError as e:
-                runner.frames, runner._last_timer = before[k]
-                results[k] = e
+        for (runner, _, _), result in zip(frames, results):
+            checks = runner.net.settle_checks_later()
+            if isinstance(result, FrameResult):
+                result.checks = checks
         return results
 
     @classmethod
