@@ -7,7 +7,7 @@
 #   .gpu/s  msgspec and prometheus-client, the server's wheels part b of the kit lacks (0.3 MB; it fits
 #           beside .gpu/b)                                   device: pip install --target /tmp/ssite .gpu/s/*.whl
 #   .oidn   OIDN 2.5 (the `oidn` method; ../shared/gpu/oidn/README.md)
-# Then the command's run carries .gpu/b and .vols with PYTHONPATH extended by /tmp/raysite,
+# Then the command's run carries .gpu/b and .vols (scripts/gpu/env.sh sets up /tmp/ssite) with PYTHONPATH extended by /tmp/raysite,
 # /tmp/avsite, /tmp/ssite or /tmp/oidn. Usage, from the project root: bash scripts/stage_gpu_extras.sh [r] [v] [s] [oidn]
 set -euo pipefail
 root="$(git rev-parse --show-toplevel)"

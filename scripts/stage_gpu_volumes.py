@@ -2,13 +2,15 @@
 
 The device run carries at most 64 MiB and the GPU kit takes 46 MiB of it, so the one large
 file, the chest CT's uncompressed `.raw`, travels as gzipped NIfTI; `volumes.json` names it.
-    python scripts/stage_gpu_volumes.py && echo /.vols/ >> .git/info/exclude
+Names given stage those volumes only (beside the kit's part b, one volume fits: bonsai, 2.6 MB).
+    python scripts/stage_gpu_volumes.py [NAME ...] && echo /.vols/ >> .git/info/exclude
 """
 
 from __future__ import annotations
 
 import json
 import shutil
+import sys
 from pathlib import Path
 
 import nibabel as nib
@@ -21,7 +23,8 @@ root = Path(__file__).resolve().parents[1]
 source, target = shared_volumes_dir(), root / ".vols"
 shutil.rmtree(target, ignore_errors=True)
 target.mkdir()
-manifest = json.loads((source / "volumes.json").read_text())
+manifest = [entry for entry in json.loads((source / "volumes.json").read_text())
+            if len(sys.argv) < 2 or entry["name"] in sys.argv[1:]]
 for entry in manifest:
     path = source / entry["file"]
     if path.suffix == ".dat":
