@@ -302,6 +302,27 @@ class MethodContract:
             assert not isinstance(result, Exception), f"stream {k}: {result!r}"
         assert_same_frames([buffers_of(result) for result in results], alone)
 
+    def test_hard_cameras_made_together_stay_finite_and_equal_alone(self):
+        """The hard cameras (inside the volume, grazing the surface, grazing the box) beside an ordinary one,
+        made together (one launch and, for a network, one call over all four), a cut then a continued frame:
+        each frame finite and bounded, and equal to its stream's frame made alone."""
+        cameras = (CAMERAS[0], INSIDE, GRAZING_SURFACE, GRAZING_BOX)
+        nearby = [Camera(tuple(np.add(c.eye, (0.0, 0.004, 0.0))), c.target, c.up, c.fov_y) for c in cameras]
+        steps = (list(zip(cameras, [None] * len(cameras))), list(zip(nearby, cameras)))
+        alone = [self.runner() for _ in cameras]
+        expected = [[buffers_of(runner.frame(*step[k])) for step in steps] for k, runner in enumerate(alone)]
+        runners = [self.runner() for _ in cameras]
+        together = [[] for _ in cameras]
+        for t, step in enumerate(steps):
+            results = type(runners[0]).make_batch([(runner, *step[k]) for k, runner in enumerate(runners)])
+            for k, result in enumerate(results):
+                assert not isinstance(result, Exception), f"camera {k}, frame {t}: {result!r}"
+                frame = buffers_of(result)
+                assert_finite_and_bounded(frame, runners[k].shaded, f"{self.spec.name}, camera {k}, frame {t}")
+                together[k].append(frame)
+        for k in range(len(cameras)):
+            assert_same_frames(together[k], expected[k])
+
     def test_a_stream_s_error_in_a_batch_is_its_own(self):
         """A stream whose frame fails (here: its renderer raises) gets the error as its result; its
         batch mates get their frames, equal to those made alone."""
