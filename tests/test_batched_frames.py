@@ -18,6 +18,7 @@ import torch
 from conftest import record_make_batch
 from server_fixtures import DEVICE, VOLUME, H, W, server_settings
 
+from isosr_net.methods import reconstruct as reconstruct_module
 from isosr_render import open_volume, orbit
 from isosr_render.catalog import resolve_iso
 from isosr_render.image_codec import decode_image
@@ -79,6 +80,16 @@ def engine():
     asyncio.run(engine.call(engine.start_sync))
     yield engine
     engine.shutdown()
+
+
+@pytest.fixture(autouse=True, params=["as the device batches", "network batched"])
+def network_batching(request, monkeypatch) -> None:
+    """Each test as the device batches (on CPUs, the network frame by frame), and on CPUs again with the
+    network's batch path let in: the path GPUs take (one call a batch, its checks read late)."""
+    if request.param == "network batched":
+        if DEVICE != "cpu":
+            pytest.skip("the device batches its network calls already")
+        monkeypatch.setattr(reconstruct_module, "BATCHED_NETWORK_DEVICES", ("cuda", "cpu"))
 
 
 @pytest.fixture
@@ -264,15 +275,21 @@ def test_a_nan_in_one_session_s_buffers_fails_that_session_only(engine, monkeypa
     expected = alone(engine, settings)
     s = Sessions(engine, settings)
     poisoned_camera = s.job(1, 1).camera
-    render = type(s.renderer).render
+    render, render_views = type(s.renderer).render, type(s.renderer).render_views
 
-    def render_with_nan(renderer, camera, request, *args, **kwargs):
-        out = render(renderer, camera, request, *args, **kwargs)
+    def poisoned(camera, out):
         if camera == poisoned_camera:
             out.depth = out.depth.clone()
             out.depth[0, 0] = float("nan")
         return out
+
+    def render_with_nan(renderer, camera, request, *args, **kwargs):
+        return poisoned(camera, render(renderer, camera, request, *args, **kwargs))
+
+    def render_views_with_nan(renderer, frames):  # a batch's one launch (on GPUs)
+        return [poisoned(camera, out) for (camera, _), out in zip(frames, render_views(renderer, frames))]
     monkeypatch.setattr(type(s.renderer), "render", render_with_nan)
+    monkeypatch.setattr(type(s.renderer), "render_views", render_views_with_nan)
     got = [[] for _ in settings]
     for t in range(FRAMES):
         for k, frame in enumerate(asyncio.run(s.together(t, list(range(SESSIONS))))):
