@@ -2,18 +2,20 @@
 
     python scripts/profile_server.py --device cuda --volume bonsai --mode reconstruct --ao 1 --sessions 16 --out DIR
 
-Starts the server (:class:`isosr_bench.bench_server.ServerProcess`), drives ``--sessions``
-closed-loop view sessions (1080p unless ``--size``; :func:`isosr_bench.sessions.run_sessions`), and
-once they are warm samples the server with py-spy three times, ``--seconds`` each: every thread
-that is not idle (where each thread spends its CPU), only the thread that holds the GIL (who owns
-the interpreter), then every thread idle or not (where each waits). Threads are told apart by
-what their stacks run: the device thread (the engine's frames), the event loop, the encoder pool.
-Writes ``DIR/profile_server_<mode>_<sessions>_<device>.json``: per thread its share of the span
-active, holding the GIL and in all, and its 20 functions with the most samples, inclusive
-(anywhere on the stack; those on 90% of the thread's stacks left out) and self (the innermost
-frame), as shares of the span; its ``waiting``: each innermost frame's share in all less its share
-active; with the sessions' frames/s over the run. py-spy must be on PATH (a dev tool, not a
-dependency); it attaches with ptrace, so the server runs as a child of this script.
+Starts the server (:class:`isosr_bench.bench_server.ServerProcess`), drives ``--sessions`` closed-loop
+view sessions (1080p unless ``--size``; :func:`isosr_bench.sessions.run_sessions`), and once
+they are warm samples the server with py-spy three times, ``--seconds`` each: every thread that is
+not idle (where each thread spends its CPU), only the thread that holds the GIL (who owns the
+interpreter), then every thread idle or not (where each waits). Threads are told apart by what their
+stacks run: the device thread (the engine's frames), the event loop, the encoder pool. Writes
+``DIR/profile_server_<mode>_<sessions>_<device>.json``: per thread its share of the span active,
+holding the GIL and in all, and its 20 functions with the most samples, inclusive (anywhere on the
+stack; those on 90% of the thread's stacks left out) and self (the innermost frame, all kept), as
+shares of the span; its ``waiting``: each innermost frame's share in all less its share active; with
+``--native``, a fourth sampling with C and driver frames (``native``: where a blocked call blocks,
+the server paused for each sample); with the sessions' frames/s over the run. py-spy must be on PATH
+(a dev tool, not a dependency); it attaches with ptrace, so the server runs as a child of this
+script.
 """
 
 from __future__ import annotations
@@ -39,15 +41,18 @@ THREAD_KINDS = (("_advance", "device"), ("_batch_sync", "device"), ("codes_sync"
 TOP = 20
 
 
-# The samplings: the threads' stacks while active, the GIL holder's only, and every thread's idle or not.
+# The samplings: the threads' stacks while active, the GIL holder's only, and every thread's idle or not;
+# with --native a fourth, every thread's with its C and driver frames (py-spy pauses the process for each sample).
 SAMPLINGS = {"active": [], "gil": ["--gil"], "all": ["--idle"]}
+NATIVE = {"native": ["--idle", "--native"]}
 
 
 def sample(pid: int, seconds: float, path: Path, options: list[str]) -> None:
     """py-spy's collapsed stacks of ``pid``'s threads over ``seconds``, as ``options`` (:data:`SAMPLINGS`) take them."""
     command = ["py-spy", "record", "--pid", str(pid), "--duration", str(int(seconds)), "--rate", str(RATE_HZ),
-               "--format", "raw", "--threads", "--function", "--nonblocking", "-o", str(path)]
-    subprocess.run(command + options, check=True, capture_output=True)
+               "--format", "raw", "--threads", "--function", "-o", str(path)]
+    paused = "--native" in options  # py-spy reads native stacks only from a paused process
+    subprocess.run(command + options + ([] if paused else ["--nonblocking"]), check=True, capture_output=True)
 
 
 def read_stacks(path: Path) -> dict[str, list[tuple[list[str], int]]]:
@@ -79,9 +84,11 @@ def summarize(stacks: list[tuple[list[str], int]], span_samples: int) -> dict:
     total = sum(n for _, n in stacks)
     everywhere = {f for f, n in inclusive.items() if n >= 0.9 * total}  # the thread's own frames (its loop)
 
-    def share(c: collections.Counter) -> dict[str, float]:
-        return {f: round(n / span_samples, 4) for f, n in c.most_common(TOP + len(everywhere)) if f not in everywhere}
-    return {"share": round(total / span_samples, 4), "inclusive": share(inclusive), "self": share(own)}
+    def share(c: collections.Counter, left_out: set[str]) -> dict[str, float]:
+        return {f: round(n / span_samples, 4) for f, n in c.most_common(TOP + len(left_out)) if f not in left_out}
+    # an innermost frame is where the thread is, even on most of its stacks (a wait): only inclusive leaves them out
+    return {"share": round(total / span_samples, 4), "inclusive": share(inclusive, everywhere),
+            "self": share(own, set())}
 
 
 def waiting(row: dict) -> dict[str, float]:
@@ -93,19 +100,19 @@ def waiting(row: dict) -> dict[str, float]:
 
 
 def profile(args) -> dict:
-    size = SIZES[args.size]
+    size, samplings = SIZES[args.size], SAMPLINGS | (NATIVE if args.native else {})
     with ServerProcess(args.device, room_options(args.sessions)) as server:
         result: dict = {}
         timed = threading.Event()  # every session has its warm-up frames
         drive = threading.Thread(target=lambda: result.update(run_sessions(
-            server.url, args.volume, args.sessions, len(SAMPLINGS) * args.seconds + 4, args.mode, size,
+            server.url, args.volume, args.sessions, len(samplings) * args.seconds + 4, args.mode, size,
             {"ao_rays": args.ao}, processes=args.client_processes, on_start=timed.set)))
         drive.start()
         while not timed.wait(1.0):
             if not drive.is_alive():
                 raise RuntimeError(f"the sessions ended before their timed span: {result.get('errors')}")
         out = {}
-        for name, options in SAMPLINGS.items():
+        for name, options in samplings.items():
             path = Path(args.out) / f"pyspy_{name}.txt"
             sample(server.pid, args.seconds, path, options)
             span = int(args.seconds * RATE_HZ)
@@ -131,6 +138,9 @@ def main() -> None:
     parser.add_argument("--size", choices=tuple(SIZES), default="1080p")
     parser.add_argument("--seconds", type=float, default=8.0, help="seconds of each of the three samplings (default 8)")
     parser.add_argument("--client-processes", type=int, default=4)
+    parser.add_argument("--native", action="store_true",
+                        help="a fourth sampling with native frames (CUDA driver, torch's C++): what a waiting thread "
+                             "waits in; py-spy pauses the server for each of its samples (default off)")
     parser.add_argument("--out", default="bench-out")
     args = parser.parse_args()
     Path(args.out).mkdir(parents=True, exist_ok=True)
