@@ -126,7 +126,7 @@ class InputChecks:
         return None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class LateChecks:
     """:class:`InputChecks` read after the fact (:meth:`InputChecks.read_later`): their values on the host
     once ``ready`` has passed (None: at once), read by any thread."""
@@ -134,6 +134,10 @@ class LateChecks:
     values: torch.Tensor
     ready: torch.cuda.Event | None
     first_failure: Callable[[list[float]], ValueError | None]
+
+    def reached(self) -> bool:
+        """Whether the device has reached the copy (:meth:`error` would not wait)."""
+        return self.ready is None or self.ready.query()
 
     def error(self) -> ValueError | None:
         """The first failing check's error, or None (waits for the device to reach the copy, not longer)."""

@@ -297,13 +297,13 @@ class Reconstructor(RecurrentNetwork):
         self._sampling: dict[tuple[int, int], torch.Tensor] = {}
         self.history: RayHistory | None = None
         self._deferred: list[tuple] | None = None  # checks queued by defer_checks, or None: read at once
-        self._late: LateChecks | None = None  # the last frame's checks read late (settle_checks_later)
+        self._late: list[LateChecks] = []  # frames' checks read late, not yet read here (settle_checks_later)
         self._own_graphs()
 
     def reset(self) -> None:
         """Forget the previous output and the ray history (a camera cut, a new sequence)."""
         super().reset()
-        self.history, self._late = None, None
+        self.history, self._late = None, []
 
     def state_bytes(self) -> int:
         """Bytes the stream's state holds: the previous output and the ray history."""
@@ -325,7 +325,7 @@ class Reconstructor(RecurrentNetwork):
         captures its own."""
         twin = super().own()
         twin._own_graphs()
-        twin._deferred, twin._late = None, None  # its own checks, read at once until it defers them
+        twin._deferred, twin._late = None, []  # its own checks, read at once until it defers them
         return twin
 
     def warm(self, sizes: Iterable[tuple[int, int]], ao_rays: int = 1, shading: ShadingParams | None = ShadingParams()
@@ -514,8 +514,9 @@ class Reconstructor(RecurrentNetwork):
     def settle_checks_later(self) -> LateChecks | None:
         """:meth:`settle_checks` without waiting for the device: each frame queued since :meth:`defer_checks`
         keeps its state now and its checks travel to the host behind its work (None: none queued). Where
-        they fail (:meth:`LateChecks.error`, that frame's error to whoever reads it), the stream starts over
-        at its next frame, as after a cut."""
+        they fail (:meth:`LateChecks.error`, that frame's error to whoever reads it), the stream starts over,
+        as after a cut, at its first frame made once the device has reached them: a frame asked for sooner
+        (a session with frames in flight) does not wait for them."""
         deferred, self._deferred = self._deferred or [], None
         if not deferred:
             return None
@@ -523,13 +524,16 @@ class Reconstructor(RecurrentNetwork):
         for flags, keep, _ in deferred:
             checks.add_flags(flags, self.precision == "fp16")
             keep()
-        self._late = checks.read_later()
-        return self._late
+        self._late.append(checks.read_later())
+        return self._late[-1]
 
     def _settle_late(self) -> None:
-        """Start the stream over where its last frame's checks, read late, failed (before its next frame)."""
-        late, self._late = self._late, None
-        if late is not None and late.error() is not None:
+        """Before a frame: start the stream over where the checks read late that the device has reached
+        failed; those it has not reached yet wait for a later frame (no wait here)."""
+        reached = [late.reached() for late in self._late]
+        failed = any(late.error() is not None for late, done in zip(self._late, reached) if done)
+        self._late = [late for late, done in zip(self._late, reached) if not done]
+        if failed:
             self.reset()
 
     def _checked(self, flags: torch.Tensor, keep: Callable[[], None], refused: Callable[[], None] | None = None

@@ -5,10 +5,13 @@ checks is its own stream's error, its state kept as it was (read at once) or sta
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 from conftest import DEVICE
 
+from isosr_net.inference import InputChecks
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
 from isosr_render import Renderer, RenderRequest, parse_procedural
 from isosr_render.camera import orbit_path
@@ -111,6 +114,46 @@ def test_checks_read_later_keep_the_state_and_a_failure_starts_the_stream_over(r
     assert_close_frames(net.reconstruct(third, AO_RAYS, 1, ShadingParams()),
                         fresh.reconstruct(third, AO_RAYS, 1, ShadingParams()))
     assert net.settle_checks_later() is None, "nothing deferred: nothing to read"
+
+
+class Unreached:
+    """A device event not reached until ``reached`` is set; a wait for it is counted."""
+
+    def __init__(self):
+        self.reached, self.waits = False, 0
+
+    def query(self) -> bool:
+        return self.reached
+
+    def synchronize(self) -> None:
+        self.waits += 1
+        self.reached = True
+
+
+def test_a_frame_asked_for_before_the_device_reached_the_last_checks_does_not_wait(renderer, monkeypatch):
+    """A stream's next frame while its failing frame's checks are still on their way (frames in flight) is
+    made at once, on the state as kept; the first frame after the device reached them starts over."""
+    net, fresh, event = twins(1)[0], twins(1)[0], Unreached()
+
+    def later(frame):
+        net.defer_checks()
+        net.reconstruct(frame, AO_RAYS, 1, ShadingParams())
+        return net.settle_checks_later()
+    later(rendered(renderer, 0, 0))
+    poisoned = rendered(renderer, 0, 1)
+    poisoned.depth = poisoned.depth.clone()
+    poisoned.depth[0, 0] = float("nan")
+    read_later = InputChecks.read_later
+    monkeypatch.setattr(InputChecks, "read_later", lambda checks: dataclasses.replace(read_later(checks), ready=event))
+    late = later(poisoned)
+    monkeypatch.undo()
+    net.reconstruct(rendered(renderer, 0, 2), AO_RAYS, 1, ShadingParams())
+    assert event.waits == 0 and net.previous is not None, "made at once, carrying the state as kept"
+    event.reached = True
+    fourth = rendered(renderer, 0, 3)
+    assert_close_frames(net.reconstruct(fourth, AO_RAYS, 1, ShadingParams()),
+                        fresh.reconstruct(fourth, AO_RAYS, 1, ShadingParams()))
+    assert "NaN" in str(late.error())
 
 
 def test_only_ungraphed_twins_of_one_network_batch(renderer):

@@ -161,8 +161,8 @@ class ReconstructRunner(FrameRunner):
         (the service's), on one layer (opaque surfaces), render their frames together
         (:meth:`FrameRunner.render_together`: one launch where they share it), then the network runs once
         over them all (:meth:`Reconstructor.reconstruct_batch`; the frames' ``network`` stage is their
-        batch's). A frame whose checks fail is its stream's error, and its stream starts over at its next
-        frame (:meth:`Reconstructor.settle_checks_later`)."""
+        batch's). A frame whose checks fail is its stream's error, and its stream starts over at its first
+        frame made once the device has reached them (:meth:`Reconstructor.settle_checks_later`)."""
         for runner, _, _ in frames:
             runner.net.defer_checks()
         if len(frames) > 1 and torch.device(frames[0][0].device).type in BATCHED_NETWORK_DEVICES and \
