@@ -70,6 +70,13 @@ class InputChecks:
         # Queued values (1-d tensors), each element with its check: (ok, message), or None for none.
         self._checks: list[tuple[torch.Tensor, Sequence[Check | None]]] = []
 
+    @classmethod
+    def joined(cls, parts: Sequence[InputChecks]) -> InputChecks:
+        """One set of the checks queued in ``parts``, in their order."""
+        joined = cls()
+        joined._checks = [check for part in parts for check in part._checks]
+        return joined
+
     def add(self, value: torch.Tensor, ok: Callable[[float], bool], message: Callable[[float], str]) -> None:
         """Queue a check: ``ok(value)`` on the host, else ``ValueError(message(value))``."""
         self._checks.append((value.detach().reshape(1).float(), [(ok, message)]))

@@ -410,7 +410,7 @@ class Reconstructor(RecurrentNetwork):
             stack, color, flags = self._replay(args) if self.graphs else self._frame(*args)
         if self.graphs:  # the graph's own tensors: the next replay overwrites them
             stack, color = stack.clone(), None if color is None else color.clone()
-        self._checked(flags, lambda: self._keep(stack, history))
+        self._checked(flags, lambda: self._keep(stack, history), output=stack)
         return stack_buffers(stack, color)
 
     @staticmethod
@@ -469,7 +469,7 @@ class Reconstructor(RecurrentNetwork):
         outputs = own_streams(stack)  # each stream keeps its own
         out = []
         for j, (_, net, _, _) in enumerate(group):
-            net._checked(flags[j], lambda net=net, j=j: net._keep(outputs[j], histories[j]))
+            net._checked(flags[j], lambda net=net, j=j: net._keep(outputs[j], histories[j]), output=stack[j:j + 1])
             out.append(stack_buffers(stack[j:j + 1], None if color is None else color[j]))
         return out
 
@@ -508,8 +508,8 @@ class Reconstructor(RecurrentNetwork):
         first that fails (that frame's state not kept, as :meth:`reconstruct` says); checks are read
         at once again after."""
         deferred, self._deferred = self._deferred or [], None
-        for flags, keep, refused in deferred:
-            self._checked(flags, keep, refused)
+        for checks, keep, refused in deferred:
+            self._settle(checks, keep, refused)
 
     def settle_checks_later(self) -> LateChecks | None:
         """:meth:`settle_checks` without waiting for the device: each frame queued since :meth:`defer_checks`
@@ -520,11 +520,9 @@ class Reconstructor(RecurrentNetwork):
         deferred, self._deferred = self._deferred or [], None
         if not deferred:
             return None
-        checks = InputChecks()
-        for flags, keep, _ in deferred:
-            checks.add_flags(flags, self.precision == "fp16")
+        for _, keep, _ in deferred:
             keep()
-        self._late.append(checks.read_later())
+        self._late.append(InputChecks.joined([checks for checks, _, _ in deferred]).read_later())
         return self._late[-1]
 
     def _settle_late(self) -> None:
@@ -536,15 +534,24 @@ class Reconstructor(RecurrentNetwork):
         if failed:
             self.reset()
 
-    def _checked(self, flags: torch.Tensor, keep: Callable[[], None], refused: Callable[[], None] | None = None
-                 ) -> None:
+    def _checked(self, flags: torch.Tensor, keep: Callable[[], None], refused: Callable[[], None] | None = None,
+                 output: torch.Tensor | None = None) -> None:
         """``keep()`` the frame's state once its checks pass (now, or at :meth:`settle_checks`); where
-        they fail, ``refused()`` and raise."""
+        they fail, ``refused()`` and raise. Its checks: the input ``flags`` and, while earlier frames' checks
+        read late are not yet reached (the state may hold what they refuse), ``output`` finite."""
+        checks = InputChecks()
+        checks.add_flags(flags, self.precision == "fp16")
+        if output is not None and self._late:
+            checks.add_finite("the output, over a state kept before its frames' checks were read,", output)
         if self._deferred is not None:
-            self._deferred.append((flags, keep, refused))
+            self._deferred.append((checks, keep, refused))
             return
+        self._settle(checks, keep, refused)
+
+    def _settle(self, checks: InputChecks, keep: Callable[[], None], refused: Callable[[], None] | None) -> None:
+        """Read a frame's checks (one host sync): ``keep()``, or ``refused()`` and raise the first that fails."""
         try:
-            self._raise_refused(flags)
+            checks.raise_first()
         except ValueError:
             if refused is not None:
                 refused()
@@ -553,12 +560,6 @@ class Reconstructor(RecurrentNetwork):
 
     def _keep(self, previous: torch.Tensor, history: RayHistory | None) -> None:
         self.previous, self.history = previous, history
-
-    def _raise_refused(self, flags: torch.Tensor) -> None:
-        """Read a frame's input checks (one host sync) and raise the first that fails."""
-        checks = InputChecks()
-        checks.add_flags(flags, self.precision == "fp16")
-        checks.raise_first()
 
     def _sampling_tensor(self, ao_rays: int, spp: int) -> torch.Tensor:
         """The sampling channels' two values (1, 2, 1, 1) on the device, made once per sampling."""
@@ -655,7 +656,8 @@ class Reconstructor(RecurrentNetwork):
             self._frame_graphs.add(key, entry, request.height * request.width * self.upscale_factor ** 2)
             self._drop_unheld_states(state, histories)
         entry.graph.replay()
-        self._checked(entry.flags, lambda: self._keep(state, written), refused=self.reset)  # the graph wrote the state
+        self._checked(entry.flags, lambda: self._keep(state, written), refused=self.reset,  # the graph wrote the state
+                      output=state)
         # Copies of the views made at capture: what a caller sets on a frame's buffers stays its own.
         return copy.copy(entry.rendered), copy.copy(entry.reconstructed)
 

@@ -132,7 +132,8 @@ class Unreached:
 
 def test_a_frame_asked_for_before_the_device_reached_the_last_checks_does_not_wait(renderer, monkeypatch):
     """A stream's next frame while its failing frame's checks are still on their way (frames in flight) is
-    made at once, on the state as kept; the first frame after the device reached them starts over."""
+    made at once, on the state as kept, and its output checked too: here the kept state's NaN reaches it, a
+    clear error; the first frame after the device reached the failing checks starts over."""
     net, fresh, event = twins(1)[0], twins(1)[0], Unreached()
 
     def later(frame):
@@ -147,8 +148,9 @@ def test_a_frame_asked_for_before_the_device_reached_the_last_checks_does_not_wa
     monkeypatch.setattr(InputChecks, "read_later", lambda checks: dataclasses.replace(read_later(checks), ready=event))
     late = later(poisoned)
     monkeypatch.undo()
-    net.reconstruct(rendered(renderer, 0, 2), AO_RAYS, 1, ShadingParams())
-    assert event.waits == 0 and net.previous is not None, "made at once, carrying the state as kept"
+    with pytest.raises(ValueError, match="the output, over a state kept before"):
+        net.reconstruct(rendered(renderer, 0, 2), AO_RAYS, 1, ShadingParams())
+    assert event.waits == 0, "made at once, carrying the state as kept"
     event.reached = True
     fourth = rendered(renderer, 0, 3)
     assert_close_frames(net.reconstruct(fourth, AO_RAYS, 1, ShadingParams()),
