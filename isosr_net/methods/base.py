@@ -505,7 +505,8 @@ class FrameRunner(ABC):
         made again view by view: a frame's failure stays its own.
         """
         results: list[tuple[FrameBuffers, StageTimer] | Exception | None] = [None] * len(frames)
-        launches: list[tuple[tuple, FrameRunner, list[int], list[tuple[Camera, RenderRequest]]]] = []
+        # per launch (renderer, launch key): a runner of it, its frames' indices and their views
+        launches: dict[tuple, tuple[FrameRunner, list[int], list[tuple[Camera, RenderRequest]]]] = {}
         for k, (runner, camera, prev_camera) in enumerate(frames):
             try:
                 request = runner.render_request(prev_camera)
@@ -513,13 +514,10 @@ class FrameRunner(ABC):
                 results[k] = e
                 continue
             runner.prev_camera = prev_camera
-            key = (id(runner.renderer), request.launch_key())
-            launch = next((launch for launch in launches if launch[0] == key), None)
-            if launch is None:
-                launches.append(launch := (key, runner, [], []))
-            launch[2].append(k)
-            launch[3].append((camera, request))
-        for _, runner, indices, views in launches:
+            _, indices, views = launches.setdefault((id(runner.renderer), request.launch_key()), (runner, [], []))
+            indices.append(k)
+            views.append((camera, request))
+        for runner, indices, views in launches.values():
             timer = StageTimer(runner.device, share=len(views))
             try:
                 with torch.no_grad(), timer("render"):
