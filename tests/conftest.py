@@ -166,7 +166,6 @@ def torus_volume() -> Volume:
     return field_volume(torus_sdf)
 
 
-
 def record_make_batch(monkeypatch, record) -> None:
     """Have ``record(frames)`` called with the frames of each batch a frame kind's ``make_batch`` is given
     from outside (``(runner, camera, prev_camera)`` each): every kind's own make_batch wrapped, the calls

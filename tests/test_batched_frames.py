@@ -33,6 +33,13 @@ FRAMES = 3  # the first runs alone (a new runner's frame runs in slices); the ot
 MODES = [m for m in VIEWS if m != "auto"]  # auto's choice follows the device's load, not the frames
 
 
+def image_difference(g: bytes, e: bytes) -> tuple[int, float] | None:
+    """How two coded images differ: (the largest difference in levels, the share of values that differ);
+    None where their shapes differ."""
+    a, b = (decode_image(x).astype(np.int16) for x in (g, e))
+    return (int(np.abs(a - b).max()), float((a != b).mean())) if a.shape == b.shape else None
+
+
 def same(got: list, expected: list) -> bool:
     """Whether a session's frames equal the expected ones: bit for bit on the CPU; on CUDA, where a batch's
     network call rounds otherwise than one frame's (its kernels at another batch size), images within one
@@ -41,8 +48,8 @@ def same(got: list, expected: list) -> bool:
         return got == expected
     for g, e in zip(got, expected):
         if isinstance(g, bytes) and isinstance(e, bytes):
-            a, b = (decode_image(x).astype(np.int16) for x in (g, e))
-            if a.shape != b.shape or np.abs(a - b).max() > 1 or (a != b).mean() > 1e-3:
+            diff = image_difference(g, e)
+            if diff is None or diff[0] > 1 or diff[1] > 1e-3:
                 return False
         elif g != e:
             return False
@@ -50,14 +57,10 @@ def same(got: list, expected: list) -> bool:
 
 
 def differences(got: list[list], expected: list[list]) -> list[list]:
-    """Per session and frame, how coded images differ: (the largest difference in levels, the share of
-    values that differ), or whether other results are equal; for a failed comparison's message."""
-    def one(g, e):
-        if isinstance(g, bytes) and isinstance(e, bytes):
-            a, b = (decode_image(x).astype(np.int16) for x in (g, e))
-            return (int(np.abs(a - b).max()), round(float((a != b).mean()), 5)) if a.shape == b.shape else "shape"
-        return g == e
-    return [[one(g, e) for g, e in zip(gs, es)] for gs, es in zip(got, expected)]
+    """Per session and frame, how coded images differ (:func:`image_difference`), or whether other results
+    are equal; for a failed comparison's message."""
+    return [[image_difference(g, e) if isinstance(g, bytes) and isinstance(e, bytes) else g == e
+             for g, e in zip(gs, es)] for gs, es in zip(got, expected)]
 
 
 def png(rgb) -> CodedImage:
