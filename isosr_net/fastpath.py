@@ -66,7 +66,8 @@ class SubpixelUpsampleConv(nn.Module):
     plus ``F.pixel_shuffle``, border lines recomputed exactly.
 
     Shape:
-        x: (B, Ci, h, w) with h, w >= 2. Returns (B, Co, 2h, 2w).
+        x: (B, Ci, h, w). Returns (B, Co, 2h, 2w); an input under 2x2 (no inner lines) takes the
+        reference composite.
     """
 
     def __init__(self, conv: nn.Conv2d):
@@ -80,11 +81,11 @@ class SubpixelUpsampleConv(nn.Module):
         self.register_buffer("phase_bias", bias.repeat_interleave(4))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        w, b = self.weight.to(x.dtype), self.bias.to(x.dtype)
         if x.shape[-2] < 2 or x.shape[-1] < 2:
-            raise ValueError(f"SubpixelUpsampleConv: input must be at least 2x2, got {tuple(x.shape)}")
+            return upsample_conv(x, w, b)
         padded = F.pad(x, (1, 1, 1, 1), mode="replicate")
         y = F.pixel_shuffle(F.conv2d(padded, self.phase_weight.to(x.dtype), self.phase_bias.to(x.dtype)), 2)
-        w, b = self.weight.to(x.dtype), self.bias.to(x.dtype)
         left = upsample_conv(x[..., :, :2], w, b)[..., :, :1]
         right = upsample_conv(x[..., :, -2:], w, b)[..., :, -1:]
         y = torch.cat([left, y[..., :, 1:-1], right], dim=3)

@@ -328,12 +328,14 @@ class MethodContract:
         batch mates get their frames, equal to those made alone."""
         ok, failing, reference = self.runner(), self.runner(), self.runner()
 
-        def broken(*args, **kwargs):
-            raise RuntimeError("render failed")
-        failing.renderer = type("Broken", (), {"render": broken, "render_views": broken, "plan": broken,
-                                               "device": ok.renderer.device})()
+        class Broken:  # whatever a path reads of it (a plan, a launch, a graph's pool) fails
+            device = ok.renderer.device
+
+            def __getattr__(self, name):
+                raise RuntimeError("render failed")
+        failing.renderer = Broken()
         results = type(ok).make_batch([(failing, CAMERAS[0], None), (ok, CAMERAS[0], None)])
-        assert isinstance(results[0], RuntimeError) and "render failed" in str(results[0])
+        assert isinstance(results[0], RuntimeError) and "render failed" in str(results[0]), repr(results[0])
         assert_same_frames([buffers_of(results[1])], [buffers_of(reference.frame(CAMERAS[0]))])
 
     # -- options ----------------------------------------------------------------------------------

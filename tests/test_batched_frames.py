@@ -40,16 +40,22 @@ def image_difference(g: bytes, e: bytes) -> tuple[int, float] | None:
     return (int(np.abs(a - b).max()), float((a != b).mean())) if a.shape == b.shape else None
 
 
+# On CUDA a batch's network call rounds otherwise than one frame's (its kernels at another batch size): the
+# float colours agree within about 1e-5 (the issue's bound), and a difference d flips a value's 8-bit rounding
+# with chance 255 d, so the images may differ by one level in about that share of their values.
+FLOAT_TOLERANCE = 1e-5
+FLIPPED_SHARE = 255 * FLOAT_TOLERANCE
+
+
 def same(got: list, expected: list) -> bool:
-    """Whether a session's frames equal the expected ones: bit for bit on the CPU; on CUDA, where a batch's
-    network call rounds otherwise than one frame's (its kernels at another batch size), images within one
-    level in at most 0.1% of their values (the float32 colours within about 1e-5, quantized)."""
+    """Whether a session's frames equal the expected ones: bit for bit on the CPU; on CUDA images within one
+    level in at most :data:`FLIPPED_SHARE` of their values."""
     if DEVICE == "cpu" or len(got) != len(expected):
         return got == expected
     for g, e in zip(got, expected):
         if isinstance(g, bytes) and isinstance(e, bytes):
             diff = image_difference(g, e)
-            if diff is None or diff[0] > 1 or diff[1] > 1e-3:
+            if diff is None or diff[0] > 1 or diff[1] > FLIPPED_SHARE:
                 return False
         elif g != e:
             return False
@@ -188,7 +194,7 @@ def test_a_cut_in_one_session_changes_nothing_in_the_others(engine):
             s.settings = [settings[0], view_settings(engine, "full"), settings[2]]
         for k, frame in enumerate(asyncio.run(s.together(t, list(range(SESSIONS))))):
             got[k].append(frame)
-    assert same(got[0], expected[0]) and same(got[2], expected[2])
+    assert same(got[0], expected[0]) and same(got[2], expected[2]), differences(got, expected)
     assert same(got[1][:2], expected[1][:2]) and not same(got[1][2:], expected[1][2:])
 
 
@@ -212,7 +218,7 @@ def test_a_session_s_failure_is_its_own(engine, monkeypatch):
         for k, frame in enumerate(asyncio.run(s.together(t, list(range(SESSIONS))))):
             got[k].append(frame)
     assert isinstance(got[1][-1], RuntimeError) and "lost this frame" in str(got[1][-1])
-    assert same(got[0], expected[0]) and same(got[2], expected[2])
+    assert same(got[0], expected[0]) and same(got[2], expected[2]), differences(got, expected)
 
 
 def test_a_session_that_leaves_mid_batch_leaves_the_others_theirs(engine):
@@ -220,7 +226,7 @@ def test_a_session_that_leaves_mid_batch_leaves_the_others_theirs(engine):
     expected = alone(engine, settings)
     got = together(engine, settings, cancel=(1, 1))
     assert isinstance(got[1][1], asyncio.CancelledError)
-    assert same(got[0], expected[0]) and same(got[2], expected[2])
+    assert same(got[0], expected[0]) and same(got[2], expected[2]), differences(got, expected)
 
 
 def test_mixed_sizes_form_their_own_batches(engine, batches):
@@ -300,7 +306,7 @@ def test_a_nan_in_one_session_s_buffers_fails_that_session_only(engine, monkeypa
         if t == 1:
             poisoned_camera = None
     assert isinstance(got[1][1], ValueError) and "NaN" in str(got[1][1]), got[1][1]
-    assert same(got[0], expected[0]) and same(got[2], expected[2])
+    assert same(got[0], expected[0]) and same(got[2], expected[2]), differences(got, expected)
     assert same(got[1][:1], expected[1][:1]) and isinstance(got[1][2], bytes), "the session goes on"
 
 

@@ -177,7 +177,7 @@ def test_the_runners_batch_renders_each_stream_then_runs_the_network_once(render
     monkeypatch.setattr(Reconstructor, "reconstruct_batch",
                         staticmethod(lambda nets, *a, **k: (calls.append(len(nets)), batch(nets, *a, **k))[1]))
     method = FrameMethod.of("reconstruct", ao_rays=AO_RAYS)
-    networks = Networks()
+    networks = Networks(lambda cls, *args: cls.served(*args))  # the service's: ungraphed on CUDA too
     alone = [make_runner(method, renderer, 0.5, W, H, networks=networks.fork()) for _ in range(STREAMS)]
     together = [make_runner(method, renderer, 0.5, W, H, networks=networks.fork()) for _ in range(STREAMS)]
     paths = [orbit_path(3, yaw0=20.0 + 40.0 * k, yaw_step=5.0, pitch=25.0, distance=1.3) for k in range(STREAMS)]
