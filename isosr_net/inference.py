@@ -123,6 +123,17 @@ class InputChecks:
         ready.record()
         return LateChecks(host, ready, self._first_failure)
 
+    @classmethod
+    def read_later_each(cls, parts: Sequence[InputChecks]) -> list[LateChecks]:
+        """:meth:`read_later` of each of ``parts`` (all on one device), with one copy to the host and one event
+        for them all: each part's checks read from its share of the copy."""
+        together, start, late = cls.joined(parts).read_later(), 0, []
+        for part in parts:
+            size = sum(len(values) for values, _ in part._checks)
+            late.append(LateChecks(together.values[start:start + size], together.ready, part._first_failure))
+            start += size
+        return late
+
     def _first_failure(self, flat: list[float]) -> ValueError | None:
         """The error of the first check that fails, given the queued values read one after the other."""
         for values, checks in self._checks:

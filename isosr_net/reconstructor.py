@@ -18,7 +18,7 @@ import copy
 import functools
 import os
 from collections import OrderedDict
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
@@ -48,7 +48,24 @@ RECON_X2_MODEL = DEFAULT_RECON_MODEL.parent / "recon_x2_model"  # the shipped mo
 # graphs, sixteen 1080p ones.
 MAX_GRAPHS = 32
 MAX_GRAPH_PIXELS = 4 * 3840 * 2160
+# The batched network calls' graphs (``batch_graphs``), shared by a network's streams: one per chunk of a
+# batch (:func:`graph_chunks`: powers of two up to MAX_GRAPH_BATCH), frame size, sampling and shading, of
+# output pixels in all at most MAX_BATCH_GRAPH_PIXELS (a graph's own inputs and outputs take ~92 bytes a
+# pixel, fp32, and the largest chunk's activations stay in the pool: the chunks 1-16 of 1080p frames, ~8 GB).
+MAX_GRAPH_BATCH = 16
+MAX_BATCH_GRAPH_PIXELS = 32 * 1920 * 1080
 T = TypeVar("T")
+
+
+def graph_chunks(batch: int, largest: int = MAX_GRAPH_BATCH) -> list[int]:
+    """The sizes in which a batch of ``batch`` frames replays captured graphs: as many of ``largest`` (a
+    power of two) as fit, then the rest's binary digits, largest first (41 -> [16, 16, 8, 1]): a graph
+    per power of two, no frame padded."""
+    if batch < 1 or largest < 1 or largest & (largest - 1):
+        raise ValueError(f"graph_chunks: a batch >= 1 and a largest chunk that is a power of two, got {batch}, "
+                         f"{largest}")
+    full, rest = divmod(batch, largest)
+    return [largest] * full + [1 << b for b in reversed(range(rest.bit_length())) if rest >> b & 1]
 
 
 def recon_limits(model: str | os.PathLike = DEFAULT_RECON_MODEL) -> RayLimits:
@@ -211,12 +228,22 @@ def recon_frames(net: ReconNet, mask: torch.Tensor, normal: torch.Tensor, depth:
 
 class GraphCache(OrderedDict):
     """Captured graphs by key, the least recently used dropped past ``max_graphs`` entries or
-    ``max_pixels`` output pixels in all (the newest is always kept)."""
+    ``max_pixels`` output pixels in all (the newest is always kept). With ``capture_at`` 2, a key is
+    captured at its second use (:meth:`due`): values that change every frame (a material's slider
+    dragged) run without capturing a graph each."""
 
-    def __init__(self, max_graphs: int = MAX_GRAPHS, max_pixels: int = MAX_GRAPH_PIXELS):
+    def __init__(self, max_graphs: int = MAX_GRAPHS, max_pixels: int = MAX_GRAPH_PIXELS, capture_at: int = 1):
         super().__init__()
-        self.max_graphs, self.max_pixels = max_graphs, max_pixels
+        self.max_graphs, self.max_pixels, self.capture_at = max_graphs, max_pixels, capture_at
         self._pixels: dict[tuple, int] = {}
+        self._uses: OrderedDict[tuple, int] = OrderedDict()  # of keys not captured, the most recent max_graphs
+
+    def due(self, key: tuple) -> bool:
+        """Count a use of ``key``, not captured: whether to capture it now."""
+        self._uses[key] = self._uses.pop(key, 0) + 1
+        while len(self._uses) > self.max_graphs:
+            self._uses.popitem(last=False)
+        return self._uses[key] >= self.capture_at
 
     def use(self, key: tuple):
         """The entry of ``key``, marked most recently used; None if there is none."""
@@ -228,6 +255,7 @@ class GraphCache(OrderedDict):
     def add(self, key: tuple, entry, pixels: int) -> None:
         """Keep ``entry`` (a graph of frames of ``pixels`` output pixels), dropping the oldest past the bounds."""
         self[key], self._pixels[key] = entry, pixels
+        self._uses.pop(key, None)
         self.move_to_end(key)
         while len(self) > 1 and (len(self) > self.max_graphs or sum(self._pixels.values()) > self.max_pixels):
             oldest, _ = self.popitem(last=False)
@@ -268,13 +296,16 @@ class Reconstructor(RecurrentNetwork):
             (:meth:`isosr_net.fused_recon.FusedReconNet.frame`: the inputs' layout and checks, the
             previous output's warp, the output buffers and shading among them): fp16, on CUDA
             with Triton, without ``fast_layers`` (whose layers it replaces) or ``compile``.
+        batch_graphs: on CUDA, replay :meth:`reconstruct_batch`'s network calls from CUDA graphs that the
+            network's streams share (:func:`graph_chunks`): one host call a chunk of frames instead of a
+            launch a pass, and a graph's memory per batch size, not per stream.
     """
 
     display_name = "recon"  # in a method's name: "full, AO 2, spp 1, recon fp16"
 
     def __init__(self, model: str | Path = DEFAULT_RECON_MODEL, device: str = "cpu", precision: str = "fp32",
                  channels_last: bool = False, compile: str | None = None, autotune: bool = False,
-                 graphs: bool = False, fast_layers: bool = False, fused: bool = False):
+                 graphs: bool = False, fast_layers: bool = False, fused: bool = False, batch_graphs: bool = False):
         if fused and (precision != "fp16" or fast_layers or compile or not fused_runs_on(device)):
             raise ValueError(f"fused: the fused kernels need precision fp16 on a CUDA device with Triton, without "
                              f"fast_layers or compile; got {precision} on {device}, fast_layers={fast_layers}, "
@@ -284,8 +315,9 @@ class Reconstructor(RecurrentNetwork):
         if not isinstance(self.net, ReconNet):
             raise ValueError(f"{model}: a {type(self.net).__name__}, not a reconstruction network (ReconNet)")
         self.upscale_factor = self.net.config.upscale
-        if graphs and (self.device.type != "cuda" or compile == "reduce-overhead"):
-            raise ValueError("graphs: CUDA graphs need a CUDA device and a compile mode other than reduce-overhead")
+        if (graphs or batch_graphs) and (self.device.type != "cuda" or compile == "reduce-overhead"):
+            raise ValueError("graphs, batch_graphs: CUDA graphs need a CUDA device and a compile mode other than "
+                             "reduce-overhead")
         if fused:
             self.net = fused_reconnet(self.net)
             self._frame, self._frames = self.net.frame, self.net.frames
@@ -293,7 +325,10 @@ class Reconstructor(RecurrentNetwork):
             frame_fn = functools.partial(recon_frame, self.net, precision=PRECISIONS[precision])
             self._frame = torch.compile(frame_fn, mode=compile, dynamic=False) if compile else frame_fn
             self._frames = functools.partial(recon_frames, self.net, precision=PRECISIONS[precision])
-        self.graphs = graphs
+        self.graphs, self.batch_graphs = graphs, batch_graphs
+        # The batch graphs: the streams' twins share these (own() keeps them).
+        self._batch_captured = GraphCache(MAX_GRAPHS, MAX_BATCH_GRAPH_PIXELS, capture_at=2)
+        self._batch_pool = torch.cuda.graph_pool_handle() if batch_graphs else None
         self._sampling: dict[tuple[int, int], torch.Tensor] = {}
         self.history: RayHistory | None = None
         self._deferred: list[tuple] | None = None  # checks queued by defer_checks, or None: read at once
@@ -363,11 +398,12 @@ class Reconstructor(RecurrentNetwork):
     @classmethod
     def served(cls, model: str | Path, device: str, precision: str) -> "Reconstructor":
         """The variant a service runs on ``device`` (one per stream, :meth:`own`): NHWC on GPUs, the
-        fused kernels where they apply (:meth:`fuses`), else the fast layers; nothing compiled,
-        no CUDA graphs (their memory is per stream)."""
+        fused kernels where they apply (:meth:`fuses`), their batches' calls replayed from graphs the streams
+        share (``batch_graphs``), else the fast layers; nothing compiled; no graphs per stream (their memory
+        is per stream)."""
         cuda = torch.device(device).type == "cuda"
         if cls.fuses(model, device, precision):
-            return cls(model, device, precision, channels_last=True, fused=True)
+            return cls(model, device, precision, channels_last=True, fused=True, batch_graphs=True)
         return cls(model, device, precision, channels_last=cuda, fast_layers=cuda)
 
     @staticmethod
@@ -407,7 +443,8 @@ class Reconstructor(RecurrentNetwork):
             ao, sampling, history = self._rays(frame, ao_rays, spp, self.history if carry else None)
             args = (frame.mask, frame.normal, frame.depth, ao, sampling, frame.flow, self.previous if carry else None,
                     shading)
-            stack, color, flags = self._replay(args) if self.graphs else self._frame(*args)
+            stack, color, flags = self._replay(self._frame, args, self._captured, self._pool) if self.graphs \
+                else self._frame(*args)
         if self.graphs:  # the graph's own tensors: the next replay overwrites them
             stack, color = stack.clone(), None if color is None else color.clone()
         self._checked(flags, lambda: self._keep(stack, history), output=stack)
@@ -464,8 +501,7 @@ class Reconstructor(RecurrentNetwork):
         ao, sampling, histories = self._batch_rays(group, ao_rays, spp)
         previous = torch.cat([net.previous for _, net, _, _ in group]) if carry else None
         mask, normal, depth, flow = (stacked(frames, n) for n in ("mask", "normal", "depth", "flow"))
-        stack, color, flags = self._frames(mask, normal, depth, ao, flow, sampling=sampling, previous=previous,
-                                           shading=shading)
+        stack, color, flags = self._network_frames(mask, normal, depth, ao, flow, sampling, previous, shading)
         outputs = own_streams(stack)  # each stream keeps its own
         out = []
         for j, (_, net, _, _) in enumerate(group):
@@ -517,13 +553,24 @@ class Reconstructor(RecurrentNetwork):
         they fail (:meth:`LateChecks.error`, that frame's error to whoever reads it), the stream starts over,
         as after a cut, at its first frame made once the device has reached them: a frame asked for sooner
         (a session with frames in flight) does not wait for them."""
-        deferred, self._deferred = self._deferred or [], None
-        if not deferred:
-            return None
-        for _, keep, _ in deferred:
-            keep()
-        self._late.append(InputChecks.joined([checks for checks, _, _ in deferred]).read_later())
-        return self._late[-1]
+        return self.settle_checks_later_each([self])[0]
+
+    @staticmethod
+    def settle_checks_later_each(nets: Sequence[Reconstructor]) -> list[LateChecks | None]:
+        """:meth:`settle_checks_later` of each of several streams on one device, their checks copied to the
+        host together (:meth:`InputChecks.read_later_each`: one copy and one event a batch)."""
+        pending: list[tuple[int, InputChecks]] = []
+        for k, net in enumerate(nets):
+            deferred, net._deferred = net._deferred or [], None
+            for _, keep, _ in deferred:
+                keep()
+            if deferred:
+                pending.append((k, InputChecks.joined([checks for checks, _, _ in deferred])))
+        late: list[LateChecks | None] = [None] * len(nets)
+        for (k, _), checks in zip(pending, InputChecks.read_later_each([c for _, c in pending]) if pending else []):
+            nets[k]._late.append(checks)
+            late[k] = checks
+        return late
 
     def _settle_late(self) -> None:
         """Before a frame: start the stream over where the checks read late that the device has reached
@@ -568,16 +615,45 @@ class Reconstructor(RecurrentNetwork):
             self._sampling[key] = self.limits.channels(ao_rays, spp, torch.zeros(1, 1, 1, 1, device=self.device))
         return self._sampling[key]
 
-    def _replay(self, args: tuple) -> tuple[torch.Tensor, ...]:
-        """:func:`recon_frame` replayed from a CUDA graph: captured on first use per frame size,
-        buffers present and shading, its inputs copied into the graph's own, its outputs the
-        graph's (valid until the next replay)."""
+    def _network_frames(self, mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, ao: torch.Tensor | None,
+                        flow: torch.Tensor | None, sampling: torch.Tensor, previous: torch.Tensor | None,
+                        shading: ShadingParams | None) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+        """The network's call over a batch (:func:`recon_frames`' arguments, results and shapes); with
+        ``batch_graphs`` replayed from the shared graphs chunk by chunk (:func:`graph_chunks`), the
+        results copied out of the graphs' own."""
+        args = (mask, normal, depth, ao, flow, sampling, previous, shading)
+        if not self.batch_graphs:
+            return self._batch_call(*args)
+        batch, start, results = mask.shape[0], 0, None
+        for size in graph_chunks(batch):
+            part = tuple(a[start:start + size] if torch.is_tensor(a) and a.shape[0] == batch else a for a in args)
+            outs = self._replay(self._batch_call, part, self._batch_captured, self._batch_pool)
+            if results is None:
+                results = tuple(None if o is None else o.new_empty((batch, *o.shape[1:])) for o in outs)
+            for result, out in zip(results, outs):
+                if result is not None:
+                    result[start:start + size].copy_(out)
+            start += size
+        return results
+
+    def _batch_call(self, mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, ao: torch.Tensor | None,
+                    flow: torch.Tensor | None, sampling: torch.Tensor, previous: torch.Tensor | None,
+                    shading: ShadingParams | None) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+        return self._frames(mask, normal, depth, ao, flow, sampling=sampling, previous=previous, shading=shading)
+
+    def _replay(self, work: Callable[..., tuple], args: tuple, cache: GraphCache, pool: tuple | None
+                ) -> tuple[torch.Tensor, ...]:
+        """``work(*args)`` replayed from a CUDA graph of ``cache`` (captured into ``pool`` per shapes of the
+        tensors among ``args`` and the other values, when :meth:`GraphCache.due`; until then run as it is),
+        its inputs copied into the graph's own, its outputs the graph's (valid until its next replay)."""
         key = tuple(None if a is None else tuple(a.shape) if torch.is_tensor(a) else a for a in args)
-        entry = self._captured.use(key)
+        entry = cache.use(key)
+        if entry is None and not cache.due(key):
+            return work(*args)
         if entry is None:
             static = tuple(a.clone() if torch.is_tensor(a) else a for a in args)
-            entry = (*self._capture(lambda: self._frame(*static)), static)
-            self._captured.add(key, entry, args[0].numel() * self.upscale_factor ** 2)
+            entry = (*self._capture(lambda: work(*static), pool), static)
+            cache.add(key, entry, args[0].numel() * self.upscale_factor ** 2)
         graph, outs, static = entry
         for target, source in zip(static, args):
             if torch.is_tensor(source) and target is not source:
@@ -585,11 +661,11 @@ class Reconstructor(RecurrentNetwork):
         graph.replay()
         return outs
 
-    def _capture(self, work: Callable[[], T], restore: Callable[[], None] | None = None
+    def _capture(self, work: Callable[[], T], pool: tuple | None, restore: Callable[[], None] | None = None
                  ) -> tuple[torch.cuda.CUDAGraph, T]:
-        """``work`` captured as a CUDA graph, after two warm-up calls on a side stream (they compile
-        and autotune; ``restore``, after each, puts back what they wrote of what they read), and
-        what the capture returned (the graph's tensors)."""
+        """``work`` captured as a CUDA graph into the memory ``pool``, after two warm-up calls on a side
+        stream (they compile and autotune; ``restore``, after each, puts back what they wrote of what
+        they read), and what the capture returned (the graph's tensors)."""
         side = torch.cuda.Stream(self.device)
         side.wait_stream(torch.cuda.current_stream(self.device))
         with torch.cuda.stream(side):
@@ -599,7 +675,9 @@ class Reconstructor(RecurrentNetwork):
                     restore()
         torch.cuda.current_stream(self.device).wait_stream(side)
         graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(graph, pool=self._pool):
+        # thread_local: the encoders' CUDA calls on their own threads go on during a capture
+        with torch.cuda.graph(graph, pool=pool, stream=torch.cuda.Stream(self.device),
+                              capture_error_mode="thread_local"):
             out = work()
         return graph, out
 
@@ -651,7 +729,7 @@ class Reconstructor(RecurrentNetwork):
         if entry is None:
             graph, (color, flags) = self._capture(lambda: self._graph_work(plan, request, ao_rays, spp, shading, carry,
                                                                            state, read, written),
-                                                  self._restorer(state))
+                                                  self._pool, self._restorer(state))
             entry = FrameGraph(graph, plan, flags, state, histories, plan.buffers(request), stack_buffers(state, color))
             self._frame_graphs.add(key, entry, request.height * request.width * self.upscale_factor ** 2)
             self._drop_unheld_states(state, histories)

@@ -12,7 +12,7 @@ import torch
 from conftest import DEVICE
 
 from isosr_net.inference import InputChecks
-from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
+from isosr_net.reconstructor import DEFAULT_RECON_MODEL, GraphCache, Reconstructor, graph_chunks
 from isosr_render import Renderer, RenderRequest, parse_procedural
 from isosr_render.camera import orbit_path
 from isosr_render.shading import ShadingParams
@@ -116,6 +116,25 @@ def test_checks_read_later_keep_the_state_and_a_failure_starts_the_stream_over(r
     assert net.settle_checks_later() is None, "nothing deferred: nothing to read"
 
 
+def test_a_batch_s_checks_travel_in_one_copy_and_each_stream_reads_its_own(renderer):
+    """:meth:`Reconstructor.settle_checks_later_each`: a batch's checks go to the host in one copy (one event),
+    each stream's its own share of it: the poisoned stream's say NaN, its batch mates' pass; a stream that
+    deferred none has none."""
+    nets = twins(STREAMS + 1)
+    frames = [rendered(renderer, k, 0) for k in range(STREAMS)]
+    frames[1].depth = frames[1].depth.clone()
+    frames[1].depth[0, 0] = float("nan")
+    for net in nets:
+        net.defer_checks()
+    for net, frame in zip(nets, frames):
+        net.reconstruct(frame, AO_RAYS, 1, ShadingParams())
+    late = Reconstructor.settle_checks_later_each(nets)
+    assert late[STREAMS] is None
+    assert [checks.error() is None for checks in late[:STREAMS]] == [True, False, True]
+    assert "NaN" in str(late[1].error())
+    assert len({checks.values.untyped_storage().data_ptr() for checks in late[:STREAMS]}) == 1, "one copy"
+
+
 class Unreached:
     """A device event not reached until ``reached`` is set; a wait for it is counted."""
 
@@ -156,6 +175,73 @@ def test_a_frame_asked_for_before_the_device_reached_the_last_checks_does_not_wa
     assert_close_frames(net.reconstruct(fourth, AO_RAYS, 1, ShadingParams()),
                         fresh.reconstruct(fourth, AO_RAYS, 1, ShadingParams()))
     assert "NaN" in str(late.error())
+
+
+def test_graph_chunks_are_powers_of_two_that_make_up_the_batch():
+    assert (graph_chunks(1), graph_chunks(9), graph_chunks(16), graph_chunks(41)) == ([1], [8, 1], [16], [16, 16, 8, 1])
+    for batch in range(1, 70):
+        chunks = graph_chunks(batch)
+        assert sum(chunks) == batch and chunks == sorted(chunks, reverse=True), chunks
+        assert all(c <= 16 and c & (c - 1) == 0 for c in chunks), chunks
+        assert len(chunks) - chunks.count(16) == len(set(chunks) - {16}), chunks  # each smaller size once
+    with pytest.raises(ValueError, match="power of two"):
+        graph_chunks(4, largest=6)
+    with pytest.raises(ValueError, match="batch >= 1"):
+        graph_chunks(0)
+
+
+def test_a_batch_graph_is_captured_at_its_key_s_second_use():
+    cache = GraphCache(max_graphs=2, capture_at=2)
+    assert [cache.due("a"), cache.due("a")] == [False, True]
+    cache.add("a", "graph", 1)
+    assert cache.use("a") == "graph"
+    assert [cache.due("b"), cache.due("c"), cache.due("d")] == [False] * 3
+    assert not cache.due("b"), "uses are remembered of the most recent keys only"
+    assert GraphCache().due("x"), "by default a key is captured at its first use"
+
+
+def test_batch_graphs_run_a_batch_in_chunks_that_equal_one_call(renderer, monkeypatch):
+    """batch_graphs' chunks (:func:`graph_chunks`; a chunk's replay needs CUDA: here each runs as it is): 7
+    streams go in chunks of 4, 2 and 1, each given its slice of the batch; the frames and the state each
+    stream carries equal those of one call."""
+    streams, chunked = 7, []
+    monkeypatch.setattr(Reconstructor, "_replay",
+                        lambda self, work, args, cache, pool: (chunked.append(args[0].shape[0]), work(*args))[1])
+    plain, graphed = twins(streams), twins(streams)
+    for net in graphed:
+        net.batch_graphs = True
+    for t in range(2):
+        frames = [rendered(renderer, k % STREAMS, t) for k in range(streams)]
+        expected = Reconstructor.reconstruct_batch(plain, frames, AO_RAYS, 1, ShadingParams())
+        got = Reconstructor.reconstruct_batch(graphed, frames, AO_RAYS, 1, ShadingParams())
+        for g, e in zip(got, expected):
+            assert_close_frames(g, e)
+    assert chunked == [4, 2, 1] * 2
+    for a, b in zip(plain, graphed):
+        torch.testing.assert_close(b.previous, a.previous, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.skipif(DEVICE != "cuda", reason="CUDA graphs: ISOSR_TEST_DEVICE=cuda, on the GPU machine")
+def test_the_batch_graphs_replay_the_network_s_frames(renderer):
+    """The service's network on a GPU (fused kernels, batch graphs shared by its streams): a batch of five
+    streams, eager at a key's first use, then captured and replayed, equals the same batches made
+    without graphs, frame after frame."""
+    served = Reconstructor.served(DEFAULT_RECON_MODEL, DEVICE, "fp16")
+    if not served.batch_graphs:
+        pytest.skip("the fused kernels do not run here (Triton)")
+    plain = Reconstructor(DEFAULT_RECON_MODEL, DEVICE, "fp16", channels_last=True, fused=True)
+    streams = 5
+    graphed, alone = [served.own() for _ in range(streams)], [plain.own() for _ in range(streams)]
+    for t in range(4):
+        frames = [rendered(renderer, k % STREAMS, t) for k in range(streams)]
+        expected = Reconstructor.reconstruct_batch(alone, frames, AO_RAYS, 1, ShadingParams())
+        got = Reconstructor.reconstruct_batch(graphed, frames, AO_RAYS, 1, ShadingParams())
+        for g, e in zip(got, expected):
+            assert not isinstance(g, Exception), g
+            for name in ("mask", "normal", "depth", "ao", "color"):
+                torch.testing.assert_close(getattr(g, name), getattr(e, name), rtol=1e-3, atol=1e-3, msg=name)
+    assert len(served._batch_captured) == 2, "chunks 4 and 1 of the carried frames, shared by the streams"
+    assert all(net._batch_captured is served._batch_captured for net in graphed)
 
 
 def test_only_ungraphed_twins_of_one_network_batch(renderer):

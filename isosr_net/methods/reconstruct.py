@@ -170,8 +170,7 @@ class ReconstructRunner(FrameRunner):
             results = cls._network_batch(frames)
         else:
             results = super().make_batch(frames)
-        for (runner, _, _), result in zip(frames, results):
-            checks = runner.net.settle_checks_later()
+        for result, checks in zip(results, Reconstructor.settle_checks_later_each([r.net for r, _, _ in frames])):
             if isinstance(result, FrameResult):
                 result.checks = checks
         return results
