@@ -236,14 +236,15 @@ def buffer_stack(output: torch.Tensor) -> torch.Tensor:
 def stack_buffers(stack: torch.Tensor, color: torch.Tensor | None = None) -> FrameBuffers:
     """The first frame of a buffers' stack (:func:`buffer_stack`) as buffers (views), with ``color``."""
     s = stack[0]
-    return FrameBuffers(mask=s[MASK.start], normal=s[NORMAL].permute(1, 2, 0), depth=s[DEPTH.start],
-                        ao=s[AO.start], color=color)
+    channels = s.unbind(0)  # one call for the single channels
+    return FrameBuffers(mask=channels[MASK.start], normal=s[NORMAL].permute(1, 2, 0), depth=channels[DEPTH.start],
+                        ao=channels[AO.start], color=color)
 
 
 def own_streams(batch: torch.Tensor) -> list[torch.Tensor]:
     """Each stream's (1, ...) slice of a batch's tensor (B, ...), of its own memory: a copy, since a view
     would hold the whole batch's for as long as its stream keeps it; one stream's tensor as it is."""
-    return [batch] if batch.shape[0] == 1 else [batch[j:j + 1].clone() for j in range(batch.shape[0])]
+    return [batch] if batch.shape[0] == 1 else [part.clone() for part in batch.split(1)]
 
 
 def output_buffers(output: torch.Tensor) -> FrameBuffers:

@@ -291,8 +291,8 @@ def accumulate_frames(frames: Sequence[FrameBuffers], history: RayHistory | None
     """
     def stacked(name: str) -> torch.Tensor:  # (B, C, H, W)
         planes = [getattr(f, name) for f in frames]
-        planes = [p[..., None] if p.dim() == 2 else p for p in planes]  # (H, W, C)
-        return (planes[0][None] if len(planes) == 1 else torch.stack(planes)).permute(0, 3, 1, 2)
+        batch = planes[0][None] if len(planes) == 1 else torch.stack(planes)
+        return (batch[..., None] if batch.dim() == 3 else batch).permute(0, 3, 1, 2)  # a plane (H, W) as (H, W, 1)
     flow = None if frames[0].flow is None else stacked("flow")
     return accumulate_rays(stacked("ao"), stacked("mask"), stacked("normal"), stacked("depth"), stacked("position"),
                            flow, history, rays, cap, config, out, share)

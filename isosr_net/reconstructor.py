@@ -502,11 +502,13 @@ class Reconstructor(RecurrentNetwork):
         previous = torch.cat([net.previous for _, net, _, _ in group]) if carry else None
         mask, normal, depth, flow = (stacked(frames, n) for n in ("mask", "normal", "depth", "flow"))
         stack, color, flags = self._network_frames(mask, normal, depth, ao, flow, sampling, previous, shading)
-        outputs = own_streams(stack)  # each stream keeps its own
+        # each stream keeps its own output, and its frame is views of that (none holds the batch's memory)
+        outputs, each_flags = own_streams(stack), flags.unbind(0)
+        colors = [None] * len(group) if color is None else color.unbind(0)
         out = []
         for j, (_, net, _, _) in enumerate(group):
-            net._checked(flags[j], lambda net=net, j=j: net._keep(outputs[j], histories[j]), output=stack[j:j + 1])
-            out.append(stack_buffers(stack[j:j + 1], None if color is None else color[j]))
+            net._checked(each_flags[j], lambda net=net, j=j: net._keep(outputs[j], histories[j]), output=outputs[j])
+            out.append(stack_buffers(outputs[j], colors[j]))
         return out
 
     def _batch_rays(self, group: list[tuple], ao_rays: int, spp: int

@@ -679,12 +679,15 @@ class RenderPlan:
         mine, whole = self._storage.untyped_storage().data_ptr(), self._staged == self.views
         rows = self.key[1] * self._staged
         copies = {"": self._storage.clone()} if whole else {name: t[:rows].clone() for name, t in self.tensors.items()}
+        typed: dict[torch.dtype, torch.Tensor] = {}  # the whole copy as each dtype, made once
 
         def own(name: str, t: torch.Tensor) -> torch.Tensor:
             if t.untyped_storage().data_ptr() != mine:
                 return t
             if whole:
-                return copies[""].view(t.dtype).as_strided(t.shape, t.stride(), t.storage_offset())
+                if t.dtype not in typed:
+                    typed[t.dtype] = copies[""].view(t.dtype)
+                return typed[t.dtype].as_strided(t.shape, t.stride(), t.storage_offset())
             start = (t.storage_offset() - self.tensors[name].storage_offset()) // t.stride(0)
             return copies[name][start:start + t.shape[0]]
         return [FrameBuffers(**{name: own(name, getattr(frame, name)) for name in frame.present()},
@@ -826,8 +829,8 @@ class RenderPlan:
     def view_buffers(self, requests: Sequence[RenderRequest]) -> list[FrameBuffers]:
         """:meth:`buffers` of each view staged together (:meth:`stage_views`), in their order: views of the
         plan's buffers, and the passes after the kernel that each request names."""
-        h = self.key[1]
-        return [self._frame(request, {name: t[i * h:(i + 1) * h] for name, t in self.tensors.items()})[0]
+        views = {name: t.split(self.key[1]) for name, t in self.tensors.items()}  # one call a buffer, not a view
+        return [self._frame(request, {name: parts[i] for name, parts in views.items()})[0]
                 for i, request in enumerate(requests)]
 
     @staticmethod
