@@ -49,9 +49,11 @@ RECON_X2_MODEL = DEFAULT_RECON_MODEL.parent / "recon_x2_model"  # the shipped mo
 MAX_GRAPHS = 32
 MAX_GRAPH_PIXELS = 4 * 3840 * 2160
 # The batched network calls' graphs (``batch_graphs``), shared by a network's streams: one per chunk of a
-# batch (:func:`graph_chunks`: powers of two up to MAX_GRAPH_BATCH), frame size, sampling and shading, of
-# output pixels in all at most MAX_BATCH_GRAPH_PIXELS (a graph's own inputs and outputs take ~92 bytes a
-# pixel, fp32, and the largest chunk's activations stay in the pool: the chunks 1-16 of 1080p frames, ~8 GB).
+# batch (:func:`graph_chunks`: powers of two up to MAX_GRAPH_BATCH, and up to half of MAX_BATCH_GRAPH_PIXELS,
+# so that all of a frame size's chunks stay: 16 at 1080p, 4 at 4K, 1 at 8K), frame size, sampling and
+# shading, of output pixels in all at most MAX_BATCH_GRAPH_PIXELS (a graph's own inputs and outputs take ~92
+# bytes a pixel, fp32, and the largest chunk's activations stay in the pool: the chunks 1-16 of 1080p frames,
+# ~8 GB).
 MAX_GRAPH_BATCH = 16
 MAX_BATCH_GRAPH_PIXELS = 32 * 1920 * 1080
 T = TypeVar("T")
@@ -624,10 +626,11 @@ class Reconstructor(RecurrentNetwork):
         ``batch_graphs`` replayed from the shared graphs chunk by chunk (:func:`graph_chunks`), the
         results copied out of the graphs' own."""
         args = (mask, normal, depth, ao, flow, sampling, previous, shading)
-        if not self.batch_graphs:
+        largest = MAX_BATCH_GRAPH_PIXELS // (2 * mask[0].numel() * self.upscale_factor ** 2)
+        if not self.batch_graphs or largest < 1:
             return self._batch_call(*args)
         batch, start, results = mask.shape[0], 0, None
-        for size in graph_chunks(batch):
+        for size in graph_chunks(batch, min(MAX_GRAPH_BATCH, 1 << (largest.bit_length() - 1))):
             part = tuple(a[start:start + size] if torch.is_tensor(a) and a.shape[0] == batch else a for a in args)
             outs = self._replay(self._batch_call, part, self._batch_captured, self._batch_pool)
             if results is None:

@@ -11,6 +11,7 @@ import pytest
 import torch
 from conftest import DEVICE
 
+from isosr_net import reconstructor as reconstructor_module
 from isosr_net.inference import InputChecks
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, GraphCache, Reconstructor, graph_chunks
 from isosr_render import Renderer, RenderRequest, parse_procedural
@@ -219,6 +220,13 @@ def test_batch_graphs_run_a_batch_in_chunks_that_equal_one_call(renderer, monkey
     assert chunked == [4, 2, 1] * 2
     for a, b in zip(plain, graphed):
         torch.testing.assert_close(b.previous, a.previous, rtol=1e-5, atol=1e-5)
+    # larger frames take smaller chunks, so that all of a size's graphs fit the bound; past it, none
+    frames = [rendered(renderer, k % STREAMS, 2) for k in range(streams)]
+    for bound, chunks in ((2 * 3 * W * H, [2, 2, 2, 1]), (W * H, [])):
+        chunked.clear()
+        monkeypatch.setattr(reconstructor_module, "MAX_BATCH_GRAPH_PIXELS", bound)
+        Reconstructor.reconstruct_batch(graphed, frames, AO_RAYS, 1, ShadingParams())
+        assert chunked == chunks
 
 
 @pytest.mark.skipif(DEVICE != "cuda", reason="CUDA graphs: ISOSR_TEST_DEVICE=cuda, on the GPU machine")
