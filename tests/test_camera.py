@@ -43,10 +43,23 @@ def test_orbit_distance_and_pitch():
     (dict(fov_y=0.0), "fov_y"),
     (dict(fov_y=180.0), "fov_y"),
     (dict(eye=(0, float("nan"), 2)), "eye"),
+    (dict(target=(0, float("inf"), 0)), "target must be 3 finite"),
+    (dict(up=(0, 10 ** 400, 0)), "up must be 3 finite"),  # past float's range
+    (dict(eye="123"), "eye must be 3 finite"),  # a string is not three numbers, though its characters are
+    (dict(eye=(1, 2)), "eye must be 3 finite"),
+    (dict(eye=[[0, 0, 2]]), "eye must be 3 finite"),
+    (dict(eye=None), "eye must be 3 finite"),
 ])
 def test_bad_cameras_raise_with_the_reason(kwargs, message):
     with pytest.raises(ValueError, match=message):
         Camera(**kwargs)
+
+
+def test_extreme_but_valid_cameras_have_an_orthonormal_basis():
+    for camera in (Camera(eye=(0, 0, 1e300), up=(0, 1e-300, 0)), Camera(eye=(3e5, -2e5, 1e5), up=(1e-6, 1, 0))):
+        basis = camera.basis()
+        assert np.isfinite(basis).all(), camera
+        np.testing.assert_allclose(basis @ basis.T, np.eye(3), atol=1e-12)
 
 
 @pytest.mark.parametrize("pitch, distance", [(90.0, 1.0), (-95.0, 1.0), (10.0, 0.0)])
