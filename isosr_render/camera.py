@@ -34,20 +34,21 @@ class Camera:
         if not 0.0 < self.fov_y < 180.0:
             raise ValueError(f"camera fov_y must lie in (0, 180) degrees, got {self.fov_y}")
         forward = _sub(self.target, self.eye)
-        if math.hypot(*forward) < 1e-12:
+        distance = math.hypot(*forward)
+        if distance < 1e-12:
             raise ValueError("camera eye and target coincide")
-        if math.hypot(*_cross(forward, self.up)) < 1e-9 * math.hypot(*forward) * math.hypot(*self.up):
+        if not math.isfinite(distance):
+            raise ValueError(f"camera eye and target are too far apart ({self.eye}, {self.target})")
+        up = math.hypot(*self.up)  # at least 1e-12: the basis's axes then stay normal floats
+        if up < 1e-12 or math.hypot(*_cross(_unit(forward), self.up)) < 1e-9 * up:
             raise ValueError("camera up is parallel to the viewing direction (or zero)")
 
     @functools.cached_property
     def _basis(self) -> np.ndarray:
         """Rows: the camera's right, up and backward (+z view) axes in world coordinates."""
-        backward = np.subtract(self.eye, self.target)
-        backward /= np.linalg.norm(backward)
-        right = np.cross(self.up, backward)
-        right /= np.linalg.norm(right)
-        up = np.cross(backward, right)
-        return np.stack([right, up, backward])
+        backward = _unit(_sub(self.eye, self.target))  # hypot: no overflow at extreme but valid positions
+        right = _unit(_cross(self.up, backward))
+        return np.array([right, _cross(backward, right), backward])
 
     def basis(self) -> np.ndarray:
         """Rows: the camera's right, up and backward (+z view) axes in world coordinates."""
@@ -114,6 +115,11 @@ def _sub(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, float, floa
 
 def _cross(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, float, float]:
     return a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]
+
+
+def _unit(a: tuple[float, ...]) -> tuple[float, float, float]:
+    n = math.hypot(*a)
+    return a[0] / n, a[1] / n, a[2] / n
 
 
 def orbit(yaw: float, pitch: float, distance: float, target=(0.0, 0.0, 0.0), fov_y: float = 40.0) -> Camera:
