@@ -57,6 +57,9 @@ def triton_imports() -> bool:
     return True
 
 
+FUSED_AO_PRIORS = ("none", "rays")  # the tail kernel's (it does not blend: ReconNetConfig.ao_prior)
+
+
 def fused_runs_on(device: torch.device | str) -> bool:
     """Whether the fused kernels run on ``device``: CUDA with Triton, or CPU under Triton's interpreter."""
     kind = torch.device(device).type
@@ -65,8 +68,8 @@ def fused_runs_on(device: torch.device | str) -> bool:
 
 def fusable(config: ReconNetConfig) -> bool:
     """Whether the kernels take a ReconNet of ``config``: its widths powers of 2, at least 16 (any
-    upscale, blocks and AO prior)."""
-    return all(w >= 16 and not w & (w - 1) for w in config.widths)
+    upscale and blocks), its AO prior one of :data:`FUSED_AO_PRIORS`."""
+    return all(w >= 16 and not w & (w - 1) for w in config.widths) and config.ao_prior in FUSED_AO_PRIORS
 
 
 def _kernels():
@@ -148,7 +151,8 @@ class FusedReconNet(nn.Module):
         super().__init__()
         widths = net.config.widths
         if not fusable(net.config):
-            raise ValueError(f"fused_reconnet: the widths must be powers of 2 >= 16, got {widths}")
+            raise ValueError(f"fused_reconnet: the kernels take widths that are powers of 2 >= 16 and an AO prior "
+                             f"other than blend, got widths {widths}, ao_prior {net.config.ao_prior!r}")
         self.config = net.config
         self.reference = net
         self.head = FusedConv(net.head, PACKED, widths[0])

@@ -8,7 +8,9 @@ outputs the converged frame's buffers: AO as from hundreds of rays and mask and 
 from 4 rays per pixel (an antialiased silhouette); depth passes through from the input. Channel orders:
 :data:`isosr_render.conventions.RECON_CHANNELS` in, ``HIGHRES_CHANNELS`` out. AO comes out of a
 sigmoid, from scratch or (``ao_prior="rays"``) as a correction of the input rays' mean
-(:func:`ao_output`), so that more input rays lift it.
+(:func:`ao_output`), so that more input rays lift it; with ``ao_prior="blend"`` that correction is
+then blended with the rays' mean by how many rays each stands for, so that with many rays the
+output converges to the input's AO (never worse than the plain render's).
 
 With ``upscale=2`` (:class:`ReconNetConfig`) it reconstructs and upscales: the inputs are
 rendered at half the output's sides, the previous output is read space-to-depth (its 2x2 cells
@@ -24,6 +26,7 @@ at about 30 GMAC (:func:`macs_per_pixel`).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -41,7 +44,10 @@ OUTPUTS = len(HIGHRES_CHANNELS)
 RECURRENT = 2
 LEVELS = 3  # 1/2, 1/4, 1/8
 FIRST_FRAME_MODES = ("zeros", "inputs")
-AO_PRIORS = ("none", "rays")
+AO_PRIORS = ("none", "rays", "blend")
+# The rays a "blend" model's own AO stands for at the start of its training (BLEND_PARAMETER: its log).
+BLEND_RAYS_INIT = 16.0
+BLEND_PARAMETER = "ao_blend_log"
 # Output over input resolution: 1 reconstructs at the resolution it is given; 2 also upscales.
 UPSCALES = (1, 2)
 
@@ -98,8 +104,8 @@ class ReconNetConfig:
         blocks: residual blocks at 1/8 of the input's resolution.
         first_frame: the "previous output" of a sequence's first frame: ``"zeros"``, or the
             ``"inputs"`` (their mask and sampled AO, AO 1 where none was cast).
-        ao_prior: ``"none"``: AO from scratch; ``"rays"``: a correction of the input rays' mean
-            (:func:`ao_output`).
+        ao_prior: ``"none"``: AO from scratch; ``"rays"``: a correction of the input rays' mean;
+            ``"blend"``: that correction blended with the rays' mean (:func:`ao_output`).
         max_ao_rays, max_spp: the model's :class:`RayLimits`.
         upscale: output over input resolution (:data:`UPSCALES`): 2 reconstructs a frame rendered
             at half the output's sides (:func:`upsampled_inputs` is the base its output corrects).
@@ -135,23 +141,33 @@ class ReconNetConfig:
         return RayLimits(self.max_ao_rays, self.max_spp)
 
 
-def ao_output(raw_ao: torch.Tensor, inputs: torch.Tensor, config: ReconNetConfig) -> torch.Tensor:
+def ao_output(raw_ao: torch.Tensor, inputs: torch.Tensor, config: ReconNetConfig,
+              blend_rays: torch.Tensor | None = None) -> torch.Tensor:
     """The output AO from the tail's AO channel ``raw_ao``.
 
-    ``ao_prior="none"``: ``sigmoid(raw_ao)``. ``"rays"``: ``sigmoid(logit(p) + raw_ao)`` with
+    ``ao_prior="none"``: ``sigmoid(raw_ao)``. ``"rays"``: ``o = sigmoid(logit(p) + raw_ao)`` with
     ``p = (n a + 0.5) / (n + 1)`` the input rays' mean ``a`` (:data:`SAMPLED_AO`) smoothed by the
     ``n = ao_rays * spp`` rays behind it (from the sampling channels and ``config.limits``): never
     0 or 1, 0.5 without rays (today's sigmoid), so with many rays the network only corrects.
+    ``"blend"``: ``w a + (1 - w) o`` with ``w = n / (n + k)``, the two estimates weighted by the rays each
+    stands for (inverse variance), ``k = blend_rays`` the network's own (learned): with many rays the
+    output converges to the rays' mean, the plain render's AO; with none it is ``o``.
 
     Shape:
-        raw_ao: (B, 1, H, W). inputs: (B, 8, H, W). Returns (B, 1, H, W).
+        raw_ao: (B, 1, H, W). inputs: (B, 8, H, W). blend_rays: () (with "blend"). Returns (B, 1, H, W).
     """
     if config.ao_prior == "none":
         return torch.sigmoid(raw_ao)
     sampling = inputs[:, SAMPLING].float()
     n = sampling[:, :1] * config.max_ao_rays * sampling[:, 1:] * config.max_spp
-    prior = (n * inputs[:, SAMPLED_AO].float() + 0.5) / (n + 1)
-    return torch.sigmoid(torch.logit(prior) + raw_ao)
+    mean = inputs[:, SAMPLED_AO].float()
+    corrected = torch.sigmoid(torch.logit((n * mean + 0.5) / (n + 1)) + raw_ao)
+    if config.ao_prior == "rays":
+        return corrected
+    if blend_rays is None:
+        raise ValueError("ao_output: a blend model's AO needs its blend_rays")
+    weight = n / (n + blend_rays)
+    return weight * mean + (1 - weight) * corrected
 
 
 def macs_per_pixel(config: ReconNetConfig) -> float:
@@ -201,6 +217,8 @@ class ReconNet(nn.Module):
         self.reduce = nn.ModuleList(nn.Conv2d(w[i + 1], w[i], 1) for i in range(LEVELS))
         self.fuse = nn.ModuleList(nn.Conv2d(w[i], w[i], 3, padding=1) for i in range(LEVELS))
         self.tail = nn.Conv2d(w[0], OUTPUTS * cells, 3, padding=1)  # depth-to-space after it
+        if config.ao_prior == "blend":  # the log of the rays its own AO stands for (ao_output)
+            self.register_parameter(BLEND_PARAMETER, nn.Parameter(torch.tensor(math.log(BLEND_RAYS_INIT))))
 
     def forward(self, inputs: torch.Tensor, prev_warped: torch.Tensor) -> torch.Tensor:
         s = self.config.upscale
@@ -226,9 +244,14 @@ class ReconNet(nn.Module):
         base = upsampled_inputs(inputs, s)
         mask = (base[:, MASK] + raw[:, MASK]).clamp(0.0, 1.0)
         normal = base[:, NORMAL] + raw[:, NORMAL]
-        ao = ao_output(raw[:, AO], base, self.config)
+        ao = ao_output(raw[:, AO], base, self.config, self.blend_rays)
         # Depth passes through: the render found it (shading does not read it).
         return torch.cat([mask, normal, base[:, DEPTH], ao], dim=1)
+
+    @property
+    def blend_rays(self) -> torch.Tensor | None:
+        """The rays a "blend" model's own AO stands for (:func:`ao_output`); None for other priors."""
+        return getattr(self, BLEND_PARAMETER).exp() if self.config.ao_prior == "blend" else None
 
     def first_previous(self, inputs: torch.Tensor) -> torch.Tensor:
         """The stand-in for the previous output on a sequence's first frame, at the output's resolution."""

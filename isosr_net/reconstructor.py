@@ -411,7 +411,7 @@ class Reconstructor(RecurrentNetwork):
     @staticmethod
     def fuses(model: str | Path, device: str, precision: str) -> bool:
         """Whether the fused kernels run ``model`` on ``device`` in ``precision``: fp16 on CUDA with
-        Triton, and widths the kernels take (:func:`~isosr_net.fused_recon.fusable`)."""
+        Triton, and a model the kernels take (:func:`~isosr_net.fused_recon.fusable`)."""
         return (precision == "fp16" and torch.device(device).type == "cuda" and fused_runs_on(device)
                 and fusable(recon_config(model)))
 

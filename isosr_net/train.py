@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -28,7 +28,7 @@ from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net.losses import PAPER_LOSSES, AdversarialLoss, LossContext, build_losses, total_loss
 from isosr_net.metrics import frame_scores
 from isosr_net.model import Unrolled, build_model, load_checkpoint, load_pretrained, save_checkpoint
-from isosr_net.reconnet import ReconNet
+from isosr_net.reconnet import ReconNet, ReconNetConfig
 
 
 # TrainConfig.compile's modes: "" (eager) and torch.compile's without CUDA graphs, which a step's
@@ -200,12 +200,16 @@ class Trainer:
             print(f"resuming from {checkpoint.folder} at step {self.step}")
 
     def _init_from(self, folder: str) -> None:
-        """Load the weights of the model folder ``folder`` (ValueError: another model config)."""
+        """Load the weights of the model folder ``folder`` (ValueError: another model config). A ReconNet that
+        blends its AO with the rays' (``ao_prior="blend"``) starts from one that corrects them (``"rays"``): the
+        same weights, its blend at :data:`~isosr_net.reconnet.BLEND_RAYS_INIT` rays."""
         model, _ = load_pretrained(folder, self.device)
-        if model.config != self.net.config:
+        blending = isinstance(self.net.config, ReconNetConfig) and self.net.config.ao_prior == "blend"
+        if model.config != self.net.config and not (
+                blending and model.config == replace(self.net.config, ao_prior="rays")):
             raise ValueError(f"init {folder} holds a model of another config ({model.config}); the run trains "
                              f"{self.net.config}")
-        self.net.load_state_dict(model.state_dict())
+        self.net.load_state_dict(model.state_dict(), strict=model.config == self.net.config)
         if self.rank == 0:
             print(f"fine-tuning {folder}")
 

@@ -28,10 +28,10 @@ from isosr_render.shading import ShadingParams, shade
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net import fused_kernels
 from isosr_net.fused_kernels import ReconSources, conv3x3, pack_inputs, recon_tail, upsample_add
-from isosr_net.fused_recon import FusedReconNet, fused_reconnet, fused_runs_on, fused_traffic, tap_weights
+from isosr_net.fused_recon import FUSED_AO_PRIORS, FusedReconNet, fused_reconnet, fused_runs_on, fused_traffic, tap_weights
 from isosr_net.inference import FP16_MAX_DEPTH, FRAME_FLAGS, buffer_stack, frame_flags, stack_buffers
 from isosr_net.model import load_pretrained
-from isosr_net.reconnet import AO_PRIORS, ReconNet, ReconNetConfig, ao_output, upsampled_inputs
+from isosr_net.reconnet import ReconNet, ReconNetConfig, ao_output, upsampled_inputs
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, Reconstructor
 
 from test_reconnet import recon_batch
@@ -280,7 +280,7 @@ def tail_case(h, w, hp, wp):
     return features, taps, bias, recon_batch(2, h, w, seed=16).to(DEVICE)
 
 
-@pytest.mark.parametrize("ao_prior", AO_PRIORS)
+@pytest.mark.parametrize("ao_prior", FUSED_AO_PRIORS)
 @pytest.mark.parametrize("h, w, hp, wp", [(13, 21, 16, 24), (24, 40, 24, 40), (3, 5, 8, 8)])
 def test_tail_is_the_output_convolution_and_reconnets_output_stack(h, w, hp, wp, ao_prior):
     features, taps, bias, inputs = tail_case(h, w, hp, wp)
@@ -375,7 +375,7 @@ def test_frames_of_several_streams_in_one_call_equal_each_frame_alone():
         torch.testing.assert_close(flags[k], fl, rtol=0, atol=0)
 
 
-@pytest.mark.parametrize("ao_prior", AO_PRIORS)
+@pytest.mark.parametrize("ao_prior", FUSED_AO_PRIORS)
 def test_tail_of_an_x2_model_writes_depth_to_space_over_the_upsampled_inputs(ao_prior):
     """24 output channels computed as 32, pixel-shuffled to twice the sides, over
     upsampled_inputs (bilinear, depth nearest); as buffers and shaded at that size too."""
@@ -498,7 +498,7 @@ def shipped_x2() -> tuple[ReconNet, FusedReconNet]:
     return net.eval(), fused_reconnet(net)
 
 
-@pytest.mark.parametrize("model", [*(f"x1, AO prior {prior}" for prior in AO_PRIORS), "x2"])
+@pytest.mark.parametrize("model", [*(f"x1, AO prior {prior}" for prior in FUSED_AO_PRIORS), "x2"])
 def test_hard_frames_stay_finite_and_within_fp16s_own_error(model):
     """An all-empty frame, and depths at fp16's limit for the networks under a previous output all
     ones: finite, in range, and per channel at most 1.5 times as far from the float64 reference as

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+from dataclasses import replace
 
 import pytest
 import torch
@@ -17,7 +18,7 @@ from isosr_net.budget import color_psnr, reference_frames
 from isosr_net.methods import FrameMethod, make_runner, run_sequence
 from isosr_net.model import save_pretrained
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
-from isosr_net.fused_recon import FusedReconNet
+from isosr_net.fused_recon import FusedReconNet, fusable
 from isosr_net.inference import buffer_stack
 from isosr_net.reconnet import RayLimits, ReconNet, ReconNetConfig, ao_output, macs_per_pixel, upsampled_inputs
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, Reconstructor, recon_inputs, recon_limits
@@ -165,6 +166,58 @@ def test_ao_over_the_rays_matches_float64_and_stays_finite_in_the_unit_interval(
         assert torch.equal(out, torch.sigmoid(raw))
 
 
+@pytest.mark.parametrize("rays, spp", [(0, 1), (1, 1), (4, 2), (16, 4)])
+def test_a_blended_ao_weighs_the_rays_mean_by_their_count_in_float64(rays, spp):
+    """ao_prior "blend": w a + (1 - w) o, w = n / (n + k), against float64; finite and in [0, 1] for a
+    saturated correction and an extreme k; the rays' output exactly where no rays were cast."""
+    config = ReconNetConfig(ao_prior="blend", max_ao_rays=16)
+    gen = torch.Generator().manual_seed(rays * 10 + spp)
+    inputs = recon_batch(b=2, h=4, w=4, ao_rays=rays, spp=spp, limits=config.limits)
+    raw = torch.randn(2, 1, 4, 4, generator=gen) * 3
+    k = torch.tensor(6.0)
+    out = ao_output(raw, inputs, config, k)
+    n = rays * spp
+    expected = torch.tensor([(n * a + k.item() * prior_reference(a, rays, spp, r)) / (n + k.item())
+                             for a, r in zip(inputs[:, SAMPLED_AO].flatten().tolist(), raw.flatten().tolist())],
+                            dtype=torch.float64).view_as(out)
+    torch.testing.assert_close(out.double(), expected, rtol=0, atol=1e-6)
+    for extreme, blend in ((-1e4, torch.tensor(1e-30)), (1e4, torch.tensor(1e30))):
+        pinned = ao_output(torch.full_like(raw, extreme), inputs, config, blend)
+        assert torch.isfinite(pinned).all() and pinned.min() >= 0 and pinned.max() <= 1
+    if rays == 0:
+        assert torch.equal(out, ao_output(raw, inputs, ReconNetConfig(ao_prior="rays", max_ao_rays=16)))
+    with pytest.raises(ValueError, match="needs its blend_rays"):
+        ao_output(raw, inputs, config)
+
+
+def test_with_many_rays_a_blend_model_converges_to_the_rays_mean_whatever_its_tail():
+    """Never worse than its input (issue 49): however wrong the tail, the AO of a "blend" model tends to the
+    rays' mean as their count grows (here k = 16 rays against 64 and, pushed, 6400), while a "rays" model's
+    correction stays as large."""
+    model = net(ao_prior="blend", max_ao_rays=16)
+    torch.nn.init.constant_(model.tail.bias, 4.0)  # a tail far off: +4 in logit space
+    inputs = recon_batch(b=1, ao_rays=16, spp=4, limits=model.config.limits)
+    mean = inputs[:, SAMPLED_AO]
+    with torch.no_grad():
+        off = (model(inputs, model.first_previous(inputs))[:, AO] - mean).abs().max().item()
+        with torch.no_grad():
+            getattr(model, "ao_blend_log").fill_(math.log(16.0 / 100))  # 100 times the rays against it
+        closer = (model(inputs, model.first_previous(inputs))[:, AO] - mean).abs().max().item()
+    assert off <= 16 / (64 + 16) + 1e-6 and closer <= 0.16 / 64.16 + 1e-6 and closer < off / 50
+    rays = net(ao_prior="rays", max_ao_rays=16)
+    rays.load_state_dict({k: v for k, v in model.state_dict().items() if k != "ao_blend_log"})
+    with torch.no_grad():
+        assert (rays(inputs, rays.first_previous(inputs))[:, AO] - mean).abs().max().item() > 0.3
+
+
+def test_a_blend_model_learns_its_weight_and_fine_tunes_from_a_rays_model(tmp_path):
+    model = net(ao_prior="blend", max_ao_rays=16).train()
+    inputs = recon_batch(b=1, ao_rays=4, spp=1, limits=model.config.limits)
+    model(inputs, model.first_previous(inputs))[:, AO].mean().backward()
+    assert model.ao_blend_log.grad is not None and model.ao_blend_log.grad.abs() > 0
+    assert model.blend_rays.item() == pytest.approx(16.0) and net(ao_prior="rays").blend_rays is None
+
+
 def test_ao_from_scratch_is_the_plain_sigmoid_whatever_the_rays():
     inputs, raw = recon_batch(ao_rays=8, spp=4), torch.randn(2, 1, 16, 24)
     assert torch.equal(ao_output(raw, inputs, ReconNetConfig()), torch.sigmoid(raw))
@@ -307,6 +360,26 @@ def test_the_shipped_models_keep_their_configs_and_their_ao_is_that_of_their_tai
     torch.testing.assert_close(out.ao, expected, rtol=0, atol=0)
     if prior == "none":
         torch.testing.assert_close(out.ao, torch.sigmoid(raws[0][0, AO][0]), rtol=0, atol=0)
+
+
+def test_a_blend_model_reconstructs_through_the_reconstructor_as_its_ao_output_says(sphere_frames, tmp_path):
+    """A saved "blend" model loads with its weight and the Reconstructor's AO is :func:`ao_output` of its tail
+    with that weight (the service runs it unfused: the kernels do not blend)."""
+    model = net(seed=3, widths=(4, 4, 8, 8), blocks=1, ao_prior="blend", max_ao_rays=16)
+    with torch.no_grad():
+        model.ao_blend_log.fill_(math.log(3.0))
+    save_pretrained(model, tmp_path / "blend")
+    reconstructor = Reconstructor(tmp_path / "blend")
+    assert reconstructor.net.blend_rays.item() == pytest.approx(3.0)
+    fusable_widths = replace(reconstructor.net.config, widths=(16, 16, 32, 32))
+    assert not fusable(fusable_widths) and fusable(replace(fusable_widths, ao_prior="rays"))
+    raws, inputs = [], []
+    reconstructor.net.tail.register_forward_hook(lambda module, args, out: raws.append(out))
+    reconstructor.net.register_forward_pre_hook(lambda module, args: inputs.append(args[0]))
+    out = reconstructor.reconstruct(sphere_frames[0], 4, 1)
+    expected = ao_output(raws[0][:, AO], inputs[0], reconstructor.net.config, torch.tensor(3.0))[0, 0]
+    torch.testing.assert_close(out.ao, expected, rtol=0, atol=1e-6)
+    assert torch.isfinite(out.ao).all() and 0 <= out.ao.min() and out.ao.max() <= 1
 
 
 @pytest.fixture(scope="module")
