@@ -200,8 +200,7 @@ def test_with_many_rays_a_blend_model_converges_to_the_rays_mean_whatever_its_ta
     mean = inputs[:, SAMPLED_AO]
     with torch.no_grad():
         off = (model(inputs, model.first_previous(inputs))[:, AO] - mean).abs().max().item()
-        with torch.no_grad():
-            getattr(model, "ao_blend_log").fill_(math.log(16.0 / 100))  # 100 times the rays against it
+        model.ao_blend_log.fill_(math.log(16.0 / 100))  # 100 times the rays against it
         closer = (model(inputs, model.first_previous(inputs))[:, AO] - mean).abs().max().item()
     assert off <= 16 / (64 + 16) + 1e-6 and closer <= 0.16 / 64.16 + 1e-6 and closer < off / 50
     rays = net(ao_prior="rays", max_ao_rays=16)
