@@ -294,10 +294,10 @@ def _upsample_add_kernel(x_ptr, c_ptr, rw_ptr, rb_ptr, out_ptr, hp, wp, hc, wc, 
 @triton.jit
 def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, sn_b, sn_c, sn_h, sn_w,
                  d_ptr, sd_b, sd_c, sd_h, sd_w, a_ptr, sa_b, sa_c, sa_h, sa_w, s_ptr, ss_b, ss_c, ss_h, ss_w,
-                 out_ptr, color_ptr, h, w, hp, wp, size_class, ray_scale, albedo_r, albedo_g, albedo_b, ambient,
+                 out_ptr, color_ptr, h, w, hp, wp, size_class, ray_scale, blend_rays, albedo_r, albedo_g, albedo_b, ambient,
                  diffuse, specular, shininess, light_x, light_y, light_z, half_x, half_y, half_z, back_r, back_g, back_b,
                  MASK_C: tl.constexpr, NORMAL_C: tl.constexpr, DEPTH_C: tl.constexpr, AO_C: tl.constexpr,
-                 AO_PRIOR: tl.constexpr, HAS_AO: tl.constexpr, BUFFERS: tl.constexpr,
+                 AO_PRIOR: tl.constexpr, BLEND: tl.constexpr, HAS_AO: tl.constexpr, BUFFERS: tl.constexpr,
                  SHADE: tl.constexpr, OUT: tl.constexpr, S: tl.constexpr, CI: tl.constexpr, CO: tl.constexpr,
                  BLOCK_M: tl.constexpr):
     b = tl.program_id(1).to(tl.int64)
@@ -333,6 +333,8 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, s
                  * _base_plane(s_ptr + ss_c, ss_b, ss_h, ss_w, b, yy, xx, h, w, valid, S) * ray_scale)
             p = (n * rays + 0.5) / (n + 1.0)
             ao = tl.minimum(p / (p + (1.0 - p) * tl.exp(-raw_ao)), 1.0)  # fast division: p / p can pass 1
+            if BLEND:  # the rays' mean and the network's AO by the rays each stands for (ao_output)
+                ao = tl.minimum((n * rays + blend_rays * ao) / tl.maximum(n + blend_rays, 1e-12), 1.0)
         if BUFFERS:  # isosr_net.inference.buffer_stack: unit normals and depth where covered, else 0
             covered = mask > 0
             length = tl.maximum(tl.sqrt(nx * nx + ny * ny + nz * nz), 1e-6)
@@ -572,7 +574,7 @@ def upsample_add(x: torch.Tensor, coarse: torch.Tensor, weight: torch.Tensor, bi
 
 def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, sources: ReconSources,
                config: ReconNetConfig, as_buffers: bool = False, shading: ShadingParams | None = None,
-               out: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
+               out: torch.Tensor | None = None, blend_rays: float | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
     """ReconNet's output convolution and output stack, cropped to the frame (and written
     depth-to-space at twice its sides for a model that upscales x2); as buffers and shaded where
     asked.
@@ -582,7 +584,7 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
         weight, bias: the output convolution as for :func:`conv3x3`, CO padded to 16 (6 used; x2:
             32, 24 used).
         sources: the network's inputs (mask, normal and depth read; with ``config.ao_prior``
-            "rays" the sampled AO and the sampling too).
+            "rays" or "blend" the sampled AO and the sampling too).
         config: the network's config (its upscale, AO prior and ray limits, as
             :func:`~isosr_net.reconnet.ao_output`).
         as_buffers: the stack as :func:`isosr_net.inference.buffer_stack` makes it of the output
@@ -590,6 +592,8 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
         shading: with ``as_buffers``, also shade it (:func:`isosr_render.shading.shade`).
         out: the stack's tensor to write (contiguous, fp32, on ``y``'s device); None: a new one.
             It may be the previous output that the pack read: the tail runs after it.
+        blend_rays: with ``config.ao_prior`` "blend", the rays the network's AO stands for (a host number:
+            no sync).
 
     Returns:
         ``(stack, color or None)``.
@@ -610,6 +614,9 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
         raise ValueError(f"recon_tail: inputs are {h}x{w}, larger than the features' {hp}x{wp}")
     if shading is not None and not as_buffers:
         raise ValueError("recon_tail: shading shades the output buffers: pass as_buffers=True")
+    if (config.ao_prior == "blend") != (blend_rays is not None):
+        raise ValueError(f"recon_tail: blend_rays goes with a blend model's tail, got {blend_rays} for AO prior "
+                         f"{config.ao_prior!r}")
     s = config.upscale
     if co < OUTPUTS * s * s:
         raise ValueError(f"recon_tail: an x{s} model's tail has {OUTPUTS * s * s} outputs, the weights {co}")
@@ -623,11 +630,11 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
     params = shading or ShadingParams()
     light, half = light_and_half(params)
     _tail_tuned[_grid(h * w, b)](y, weight, bias, *sources.args(), out, out if color is None else color, h, w, hp, wp,
-                                 _size_class(h * w),
-                                 float(config.max_ao_rays * config.max_spp), *params.albedo, params.ambient,
+                                 _size_class(h * w), float(config.max_ao_rays * config.max_spp),
+                                 float(blend_rays or 0.0), *params.albedo, params.ambient,
                                  params.diffuse, params.specular, params.shininess, *light, *half, *params.background,
                                  MASK_C=MASK.start, NORMAL_C=NORMAL.start, DEPTH_C=DEPTH.start, AO_C=AO.start,
-                                 AO_PRIOR=config.ao_prior == "rays", HAS_AO=sources.ao is not None,
-                                 BUFFERS=as_buffers, SHADE=shading is not None, OUT=OUTPUTS, S=s, CI=ci, CO=co,
+                                 AO_PRIOR=config.ao_prior != "none", BLEND=config.ao_prior == "blend",
+                                 HAS_AO=sources.ao is not None, BUFFERS=as_buffers, SHADE=shading is not None, OUT=OUTPUTS, S=s, CI=ci, CO=co,
                                  **FIXED)
     return out, color

@@ -57,9 +57,6 @@ def triton_imports() -> bool:
     return True
 
 
-FUSED_AO_PRIORS = ("none", "rays")  # the tail kernel's (it does not blend: ReconNetConfig.ao_prior)
-
-
 def fused_runs_on(device: torch.device | str) -> bool:
     """Whether the fused kernels run on ``device``: CUDA with Triton, or CPU under Triton's interpreter."""
     kind = torch.device(device).type
@@ -68,8 +65,8 @@ def fused_runs_on(device: torch.device | str) -> bool:
 
 def fusable(config: ReconNetConfig) -> bool:
     """Whether the kernels take a ReconNet of ``config``: its widths powers of 2, at least 16 (any
-    upscale and blocks), its AO prior one of :data:`FUSED_AO_PRIORS`."""
-    return all(w >= 16 and not w & (w - 1) for w in config.widths) and config.ao_prior in FUSED_AO_PRIORS
+    upscale, blocks and AO prior)."""
+    return all(w >= 16 and not w & (w - 1) for w in config.widths)
 
 
 def _kernels():
@@ -151,8 +148,7 @@ class FusedReconNet(nn.Module):
         super().__init__()
         widths = net.config.widths
         if not fusable(net.config):
-            raise ValueError(f"fused_reconnet: the kernels take widths that are powers of 2 >= 16 and an AO prior "
-                             f"other than blend, got widths {widths}, ao_prior {net.config.ao_prior!r}")
+            raise ValueError(f"fused_reconnet: the widths must be powers of 2 >= 16, got {widths}")
         self.config = net.config
         self.reference = net
         self.head = FusedConv(net.head, PACKED, widths[0])
@@ -165,6 +161,8 @@ class FusedReconNet(nn.Module):
         tail = max(PACKED, 1 << (net.tail.out_channels - 1).bit_length())  # a power of 2: 16, or 32 for x2
         self.register_buffer("tail_w", tap_weights(net.tail.weight, widths[0], tail))
         self.register_buffer("tail_b", _padded_bias(net.tail, tail))
+        # a blend model's weight as a host number: the tail reads it with no sync (inference: it is fixed)
+        self.blend_rays = None if net.blend_rays is None else net.blend_rays.item()
 
     def forward(self, inputs: torch.Tensor, prev_warped: torch.Tensor) -> torch.Tensor:
         if not fused_runs_on(inputs.device):
@@ -271,7 +269,7 @@ class FusedReconNet(nn.Module):
             add(f"fuse{i}", layer(self.fuse[i], f"up{i}"))
             coarse = f"fuse{i}"
         add("tail", lambda: k.recon_tail(results["fuse0"], self.tail_w, self.tail_b, sources, self.config,
-                                         as_buffers, shading, out), "output", "color")
+                                         as_buffers, shading, out, self.blend_rays), "output", "color")
         return results, passes
 
 
@@ -328,6 +326,6 @@ def fused_traffic(h: int, w: int, config: ReconNetConfig = ReconNetConfig(), war
         out[f"fuse{i}"] = features(i, 2 * widths[i])
     # the features, the inputs' mask, normal and depth (and the rays' AO and sampling for their
     # prior), the output (and the color)
-    given = AO.start + (len(range(INPUTS)[SAMPLED_AO]) + sampling if config.ao_prior == "rays" else 0)
+    given = AO.start + (len(range(INPUTS)[SAMPLED_AO]) + sampling if config.ao_prior != "none" else 0)
     out["tail"] = features(0, widths[0]) + (given + (OUTPUTS + (3 if frame else 0)) * cells) * f32 * pixels
     return out

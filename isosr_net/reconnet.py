@@ -166,7 +166,7 @@ def ao_output(raw_ao: torch.Tensor, inputs: torch.Tensor, config: ReconNetConfig
         return corrected
     if blend_rays is None:
         raise ValueError("ao_output: a blend model's AO needs its blend_rays")
-    weight = n / (n + blend_rays)
+    weight = n / (n + blend_rays).clamp_min(1e-12)  # no rays and a weight worth none: the network's
     return weight * mean + (1 - weight) * corrected
 
 

@@ -16,11 +16,13 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 import os
 
 import pytest
 import torch
 import torch.nn.functional as F
+from torch import nn
 
 from isosr_render.buffers import FrameBuffers
 from isosr_render.conventions import AO, DEPTH, MASK, NORMAL
@@ -28,10 +30,10 @@ from isosr_render.shading import ShadingParams, shade
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net import fused_kernels
 from isosr_net.fused_kernels import ReconSources, conv3x3, pack_inputs, recon_tail, upsample_add
-from isosr_net.fused_recon import FUSED_AO_PRIORS, FusedReconNet, fused_reconnet, fused_runs_on, fused_traffic, tap_weights
+from isosr_net.fused_recon import FusedReconNet, fused_reconnet, fused_runs_on, fused_traffic, tap_weights
 from isosr_net.inference import FP16_MAX_DEPTH, FRAME_FLAGS, buffer_stack, frame_flags, stack_buffers
 from isosr_net.model import load_pretrained
-from isosr_net.reconnet import ReconNet, ReconNetConfig, ao_output, upsampled_inputs
+from isosr_net.reconnet import AO_PRIORS, BLEND_PARAMETER, ReconNet, ReconNetConfig, ao_output, upsampled_inputs
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, Reconstructor
 
 from test_reconnet import recon_batch
@@ -280,19 +282,28 @@ def tail_case(h, w, hp, wp):
     return features, taps, bias, recon_batch(2, h, w, seed=16).to(DEVICE)
 
 
-@pytest.mark.parametrize("ao_prior", FUSED_AO_PRIORS)
+# A blend model's weight in the tail's tests: the rays its AO stands for.
+BLEND_RAYS = {"blend": 3.0}
+
+
+def blend_tensor(ao_prior: str) -> torch.Tensor | None:
+    """:data:`BLEND_RAYS`'s weight as ao_output takes it (float64), None for the other priors."""
+    return None if ao_prior not in BLEND_RAYS else torch.tensor(BLEND_RAYS[ao_prior], dtype=torch.float64)
+
+
+@pytest.mark.parametrize("ao_prior", AO_PRIORS)
 @pytest.mark.parametrize("h, w, hp, wp", [(13, 21, 16, 24), (24, 40, 24, 40), (3, 5, 8, 8)])
 def test_tail_is_the_output_convolution_and_reconnets_output_stack(h, w, hp, wp, ao_prior):
     features, taps, bias, inputs = tail_case(h, w, hp, wp)
     raw, magnitude = (t[:, :6, :h, :w] for t in conv_ref(nchw(features), taps, bias))
     given = inputs.double()
-    config = ReconNetConfig(ao_prior=ao_prior, max_ao_rays=16)
-    out, color = recon_tail(features, taps, bias, ReconSources.of_inputs(inputs), config)
+    config, blend = ReconNetConfig(ao_prior=ao_prior, max_ao_rays=16), BLEND_RAYS.get(ao_prior)
+    out, color = recon_tail(features, taps, bias, ReconSources.of_inputs(inputs), config, blend_rays=blend)
     assert out.shape == (2, 6, h, w) and out.dtype == torch.float32 and color is None
     torch.testing.assert_close(out[:, DEPTH], inputs[:, DEPTH], rtol=0, atol=0)
     # fp32 outputs: only the accumulation's rounding
     tail = torch.cat([(given[:, MASK] + raw[:, MASK]).clamp(0, 1), given[:, NORMAL] + raw[:, NORMAL],
-                      given[:, DEPTH], ao_output(raw[:, AO], given, config)], dim=1)
+                      given[:, DEPTH], ao_output(raw[:, AO], given, config, blend_tensor(ao_prior))], dim=1)
     err = (out.double() - tail).abs()
     assert (err <= 1e-5 * (magnitude + 1)).all(), err.max()
     assert (out[:, MASK] >= 0).all() and (out[:, MASK] <= 1).all()
@@ -375,7 +386,7 @@ def test_frames_of_several_streams_in_one_call_equal_each_frame_alone():
         torch.testing.assert_close(flags[k], fl, rtol=0, atol=0)
 
 
-@pytest.mark.parametrize("ao_prior", FUSED_AO_PRIORS)
+@pytest.mark.parametrize("ao_prior", AO_PRIORS)
 def test_tail_of_an_x2_model_writes_depth_to_space_over_the_upsampled_inputs(ao_prior):
     """24 output channels computed as 32, pixel-shuffled to twice the sides, over
     upsampled_inputs (bilinear, depth nearest); as buffers and shaded at that size too."""
@@ -386,22 +397,25 @@ def test_tail_of_an_x2_model_writes_depth_to_space_over_the_upsampled_inputs(ao_
     inputs = recon_batch(2, h, w, seed=48).to(DEVICE)
     raw, magnitude = (F.pixel_shuffle(t[:, :24, :h, :w], 2) for t in conv_ref(nchw(features), taps, bias))
     given = upsampled_inputs(inputs.double(), 2)
-    config = ReconNetConfig(ao_prior=ao_prior, max_ao_rays=16, upscale=2)
+    config, blend = ReconNetConfig(ao_prior=ao_prior, max_ao_rays=16, upscale=2), BLEND_RAYS.get(ao_prior)
     sources = ReconSources.of_inputs(inputs)
-    out, _ = recon_tail(features, taps, bias, sources, config)
+    out, _ = recon_tail(features, taps, bias, sources, config, blend_rays=blend)
     assert out.shape == (2, 6, 2 * h, 2 * w)
     expected = torch.cat([(given[:, MASK] + raw[:, MASK]).clamp(0, 1), given[:, NORMAL] + raw[:, NORMAL],
-                          given[:, DEPTH], ao_output(raw[:, AO], given, config)], dim=1)
+                          given[:, DEPTH], ao_output(raw[:, AO], given, config, blend_tensor(ao_prior))], dim=1)
     err = (out.double() - expected).abs()
     assert (err <= 1e-5 * (magnitude + 1)).all(), err.max()
     shading = ShadingParams()
-    stack, color = recon_tail(features, taps, bias, sources, config, as_buffers=True, shading=shading)
+    stack, color = recon_tail(features, taps, bias, sources, config, as_buffers=True, shading=shading,
+                              blend_rays=blend)
     torch.testing.assert_close(stack, buffer_stack(out), rtol=0, atol=1e-6)
     for i in range(2):
         frame = stack_buffers(stack[i:i + 1])
         torch.testing.assert_close(color[i], shade(frame.mask, frame.normal, frame.ao, shading), rtol=0, atol=1e-5)
     with pytest.raises(ValueError, match=r"recon_tail: an x2 model's tail has 24 outputs, the weights 16"):
-        recon_tail(features, taps[..., :16].contiguous(), bias[:16], sources, config)
+        recon_tail(features, taps[..., :16].contiguous(), bias[:16], sources, config, blend_rays=blend)
+    with pytest.raises(ValueError, match="blend_rays goes with a blend model's tail"):
+        recon_tail(features, taps, bias, sources, config, blend_rays=None if blend else 2.0)
 
 
 # ---------------------------------------------------------------- the whole network
@@ -409,9 +423,12 @@ def test_tail_of_an_x2_model_writes_depth_to_space_over_the_upsampled_inputs(ao_
 
 @functools.cache
 def shipped_under(ao_prior: str) -> tuple[ReconNet, FusedReconNet]:
-    """The shipped model under an AO prior (the output's AO differs, the rest not), and it fused."""
+    """The shipped model under an AO prior (the output's AO differs, the rest not; "blend" at
+    :data:`BLEND_RAYS`'s weight), and it fused."""
     net, _ = load_pretrained(DEFAULT_RECON_MODEL, torch.device(DEVICE))
     net.config = dataclasses.replace(net.config, ao_prior=ao_prior)
+    if ao_prior == "blend":
+        net.register_parameter(BLEND_PARAMETER, nn.Parameter(torch.tensor(math.log(BLEND_RAYS["blend"]), device=DEVICE)))
     return net.eval(), fused_reconnet(net)
 
 
@@ -424,7 +441,7 @@ def reference(net, inputs, warped):
 # needs no padding and still spans several programs down to half size; a one-pixel frame and a
 # one-row one are padded to 8 x 8 and 8 x 40 and cropped back.
 @pytest.mark.parametrize("ao_prior, b, h, w", [("none", 1, 13, 21), ("rays", 1, 16, 24), ("rays", 1, 1, 1),
-                                                ("none", 1, 1, 37)])
+                                                ("none", 1, 1, 37), ("blend", 1, 16, 24)])
 def test_the_fused_shipped_model_equals_reconnet(ao_prior, b, h, w):
     net, fused = shipped_under(ao_prior)
     assert isinstance(fused, FusedReconNet)
@@ -498,7 +515,7 @@ def shipped_x2() -> tuple[ReconNet, FusedReconNet]:
     return net.eval(), fused_reconnet(net)
 
 
-@pytest.mark.parametrize("model", [*(f"x1, AO prior {prior}" for prior in FUSED_AO_PRIORS), "x2"])
+@pytest.mark.parametrize("model", [*(f"x1, AO prior {prior}" for prior in AO_PRIORS), "x2"])
 def test_hard_frames_stay_finite_and_within_fp16s_own_error(model):
     """An all-empty frame, and depths at fp16's limit for the networks under a previous output all
     ones: finite, in range, and per channel at most 1.5 times as far from the float64 reference as

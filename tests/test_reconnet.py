@@ -363,15 +363,14 @@ def test_the_shipped_models_keep_their_configs_and_their_ao_is_that_of_their_tai
 
 def test_a_blend_model_reconstructs_through_the_reconstructor_as_its_ao_output_says(sphere_frames, tmp_path):
     """A saved "blend" model loads with its weight and the Reconstructor's AO is :func:`ao_output` of its tail
-    with that weight (the service runs it unfused: the kernels do not blend)."""
+    with that weight."""
     model = net(seed=3, widths=(4, 4, 8, 8), blocks=1, ao_prior="blend", max_ao_rays=16)
     with torch.no_grad():
         model.ao_blend_log.fill_(math.log(3.0))
     save_pretrained(model, tmp_path / "blend")
     reconstructor = Reconstructor(tmp_path / "blend")
     assert reconstructor.net.blend_rays.item() == pytest.approx(3.0)
-    fusable_widths = replace(reconstructor.net.config, widths=(16, 16, 32, 32))
-    assert not fusable(fusable_widths) and fusable(replace(fusable_widths, ao_prior="rays"))
+    assert fusable(replace(reconstructor.net.config, widths=(16, 16, 32, 32)))  # the tail kernel blends too
     raws, inputs = [], []
     reconstructor.net.tail.register_forward_hook(lambda module, args, out: raws.append(out))
     reconstructor.net.register_forward_pre_hook(lambda module, args: inputs.append(args[0]))
