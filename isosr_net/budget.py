@@ -448,17 +448,22 @@ def _time_candidate_steps(runner: FrameRunner, cameras: list[Camera], config: Bu
     return sum(times) / len(times)
 
 
+# Warm-up batches of a timed batch: a first one, then two that carry it (the service's reconstruction captures
+# its batched network's graph at a shape's second use: Reconstructor's batch_graphs).
+BATCH_WARMUP = 3
+
+
 def _time_batch_steps(runners: list[FrameRunner], cameras: list[Camera],
                       config: BudgetConfig) -> Generator[None, None, float]:
     """Mean wall time of a frame made with ``len(runners)`` streams' at once (their kind's
-    ``make_batch``, each stream along ``cameras``, cycled): a batch's time over its frames, after a
-    warm-up batch. Yields before each batch.
+    ``make_batch``, each stream along ``cameras``, cycled): a batch's time over its frames, after
+    :data:`BATCH_WARMUP` warm-up batches. Yields before each batch.
 
     Raises:
         Exception: a stream's frame failed (the candidate cannot be timed).
     """
     pairs, kind, times = sequence_cameras(cameras), type(runners[0]), []
-    for i in range(1 + config.timing_frames):
+    for i in range(BATCH_WARMUP + config.timing_frames):
         yield
         camera, prev = pairs[i % len(pairs)]
         start = time.perf_counter()
@@ -469,7 +474,7 @@ def _time_batch_steps(runners: list[FrameRunner], cameras: list[Camera],
                 raise result
             result.checked()
         times.append(ms)
-    return sum(times[1:]) / config.timing_frames
+    return sum(times[BATCH_WARMUP:]) / config.timing_frames
 
 
 @dataclass(frozen=True)

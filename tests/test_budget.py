@@ -10,8 +10,8 @@ import torch
 
 from isosr_render import Renderer, open_volume, orbit, orbit_path, resolve_iso
 from conftest import DEVICE, record_make_batch
-from isosr_net.budget import (AO_MATTERS_DB, BudgetConfig, choose_method, default_candidates, default_probe_height,
-                              probe_size, render_within_budget)
+from isosr_net.budget import (AO_MATTERS_DB, BATCH_WARMUP, BudgetConfig, choose_method, default_candidates,
+                              default_probe_height, probe_size, render_within_budget)
 from isosr_net import budget as policy
 from isosr_net.methods import FrameMethod, Networks
 from isosr_net.model import save_pretrained
@@ -316,7 +316,7 @@ def test_a_batched_timing_makes_each_candidates_frames_for_several_streams_at_on
     check_budget_respected(choice)
     timed = [row.method for row in choice.table if row.ms is not None]
     assert timed and batches and all(n == 3 and streams == 3 for _, n, streams in batches)
-    assert len(batches) == 3 * len(timed), "a warm-up batch and timing_frames batches per timed candidate"
+    assert len(batches) == (BATCH_WARMUP + 2) * len(timed), "warm-up batches and timing_frames batches a candidate"
     with pytest.raises(ValueError, match="batch"):
         BudgetConfig(batch=0)
 
