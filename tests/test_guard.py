@@ -314,3 +314,30 @@ def test_other_scopes_pass_through():
     seen = []
     asyncio.run(Guard(app, LIMITS)({"type": "lifespan"}, None, None))
     assert seen == ["lifespan"]
+
+
+def test_a_view_whose_client_reads_nothing_ends_idle_with_the_reason():
+    """ViewLink.send: a send the client's socket does not take within idle_timeout_s (its buffers full) ends the
+    session with CLOSE_IDLE and the reason; one taken in time goes."""
+    from isosr_server.api.routes.view import ViewLink
+    from isosr_server.protocol import NoticeMsg, ProtocolError
+
+    class Socket:
+        def __init__(self, stall_s: float):
+            self.stall_s, self.sent = stall_s, []
+
+        async def send_bytes(self, data: bytes) -> None:
+            await asyncio.sleep(self.stall_s)
+            self.sent.append(data)
+
+    def link(stall_s: float) -> ViewLink:
+        view = ViewLink.__new__(ViewLink)  # the send alone: no engine or session behind it
+        view.ws, view.limits = Socket(stall_s), Limits(idle_timeout_s=0.05)
+        return view
+
+    fast = link(0.0)
+    asyncio.run(fast.send(NoticeMsg(text="hello")))
+    assert len(fast.ws.sent) == 1
+    with pytest.raises(ProtocolError, match="the client read no frame for 0.05 s") as caught:
+        asyncio.run(link(5.0).send(NoticeMsg(text="hello")))
+    assert caught.value.close_code == CLOSE_IDLE

@@ -91,7 +91,8 @@ class ViewLink:
         """Send ``msg``; a client that reads nothing for ``idle_timeout_s`` ends the session (CLOSE_IDLE)."""
         timeout = self.limits.idle_timeout_s
         try:
-            await asyncio.wait_for(self.ws.send_bytes(encode(msg)), timeout)
+            async with asyncio.timeout(timeout):  # no task a send, as wait_for makes on Python 3.11
+                await self.ws.send_bytes(encode(msg))
         except TimeoutError:
             raise ProtocolError(f"the client read no frame for {timeout:g} s", CLOSE_IDLE, 408) from None
         if isinstance(msg, FrameMsg):
