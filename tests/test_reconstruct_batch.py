@@ -229,6 +229,41 @@ def test_batch_graphs_run_a_batch_in_chunks_that_equal_one_call(renderer, monkey
         assert chunked == chunks
 
 
+class ReplayOnCPU:
+    """A CUDA graph's stand-in on CPUs: made by a capture of ``work``, its outputs the tensors that first call
+    returned, which each replay overwrites in place with a new call's (as a graph writes its own)."""
+
+    def __init__(self, work):
+        self.work, self.outs = work, work()
+
+    def replay(self) -> None:
+        for mine, new in zip(self.outs, self.work()):
+            if mine is not None:
+                mine.copy_(new)
+
+
+def test_batch_graphs_replayed_as_captured_equal_one_call_chunk_after_chunk(renderer, monkeypatch):
+    """The replay's logic on CPUs (the graph a stand-in, :class:`ReplayOnCPU`): 33 streams in chunks 16, 16
+    and 1 (one graph replayed twice in a batch, each chunk's results copied out before the next), captured at
+    a shape's second use, frame after frame equal to one call, each stream's state its own."""
+    monkeypatch.setattr(Reconstructor, "_capture",
+                        lambda self, work, pool, restore=None: (graph := ReplayOnCPU(work), graph.outs))
+    streams = 33
+    plain, graphed = twins(streams), twins(streams)
+    for net in graphed:
+        net.batch_graphs = True
+    for t in range(4):
+        frames = [rendered(renderer, k % STREAMS, t) for k in range(streams)]
+        expected = Reconstructor.reconstruct_batch(plain, frames, AO_RAYS, 1, ShadingParams())
+        got = Reconstructor.reconstruct_batch(graphed, frames, AO_RAYS, 1, ShadingParams())
+        for g, e in zip(got, expected):
+            assert_close_frames(g, e)
+        for a, b in zip(plain, graphed):
+            torch.testing.assert_close(b.previous, a.previous, rtol=1e-5, atol=1e-5)
+    # the first frames' chunk of 16 (its second use: the same batch), the carried frames' 16 (t = 1) and 1 (t = 2)
+    assert len(graphed[0]._batch_captured) == 3
+
+
 @pytest.mark.skipif(DEVICE != "cuda", reason="CUDA graphs: ISOSR_TEST_DEVICE=cuda, on the GPU machine")
 def test_the_batch_graphs_replay_the_network_s_frames(renderer):
     """The service's network on a GPU (fused kernels, batch graphs shared by its streams): a batch of five
