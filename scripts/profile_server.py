@@ -13,7 +13,8 @@ holding the GIL and in all, and its 20 functions with the most samples, inclusiv
 stack; those on 90% of the thread's stacks left out) and self (the innermost frame, all kept), as
 shares of the span; its ``waiting``: each innermost frame's share in all less its share active; with
 ``--native``, a fourth sampling with C and driver frames (``native``: where a blocked call blocks,
-the server paused for each sample); with the sessions' frames/s over the run. py-spy must be on PATH
+the server paused for each sample; ``native_waits``: its share running, waiting for the GIL, in a device
+sync, idle); with the sessions' frames/s over the run. py-spy must be on PATH
 (a dev tool, not a dependency); it attaches with ptrace, so the server runs as a child of this
 script.
 """
@@ -99,6 +100,22 @@ def waiting(row: dict) -> dict[str, float]:
     return {f: share for f, share in sorted(shares.items(), key=lambda kv: -kv[1]) if share > 0}
 
 
+# What a native stack waits in, by its frames (py-spy --native names C functions; the GIL's own are often inlined
+# into the call that released it, so a condition wait outside these is read as the GIL's).
+WAITS = (("device sync", ("ynchronize",)),  # cudaStreamSynchronize, cuEventSynchronize, torch's synchronize
+         ("idle", ("PyThread_acquire_lock", "epoll", "select", "Condition.wait", "Event.wait", "Queue.get")),
+         ("GIL", ("pthread_cond_timedwait", "pthread_cond_wait")))
+
+
+def native_waits(stacks: list[tuple[list[str], int]], span_samples: int) -> dict[str, float]:
+    """A thread's native samples as shares of the span: in a device sync, idle (a lock, queue or socket wait), waiting
+    for the GIL (a condition wait otherwise: a C call released the GIL and waits to take it back), or running."""
+    counts = collections.Counter()
+    for frames, n in stacks:
+        counts[next((kind for kind, marks in WAITS if any(m in f for f in frames[-6:] for m in marks)), "running")] += n
+    return {kind: round(counts[kind] / span_samples, 4) for kind in ("running", "GIL", "device sync", "idle")}
+
+
 def profile(args) -> dict:
     size, samplings = SIZES[args.size], SAMPLINGS | (NATIVE if args.native else {})
     with ServerProcess(args.device, room_options(args.sessions)) as server:
@@ -119,6 +136,8 @@ def profile(args) -> dict:
             for tid, stacks in read_stacks(path).items():
                 row = out.setdefault(tid, {"thread": thread_kind(stacks)})
                 row[name] = summarize(stacks, span)
+                if name == "native":
+                    row["native_waits"] = native_waits(stacks, span)
         drive.join()
     for row in out.values():
         row["waiting"] = waiting(row)
