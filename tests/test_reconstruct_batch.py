@@ -201,6 +201,24 @@ def test_a_batch_graph_is_captured_at_its_key_s_second_use():
     assert GraphCache().due("x"), "by default a key is captured at its first use"
 
 
+def graphed_batches_equal_plain(renderer: Renderer, streams: int, steps: int) -> list[Reconstructor]:
+    """``steps`` frames of ``streams`` streams made in batches through the batch graphs' path (its replay as the
+    test patches it) and without: each frame, and the state each stream carries after it, equal. Returns the
+    streams of the graphs' path."""
+    plain, graphed = twins(streams), twins(streams)
+    for net in graphed:
+        net.batch_graphs = True
+    for t in range(steps):
+        frames = [rendered(renderer, k % STREAMS, t) for k in range(streams)]
+        expected = Reconstructor.reconstruct_batch(plain, frames, AO_RAYS, 1, ShadingParams())
+        got = Reconstructor.reconstruct_batch(graphed, frames, AO_RAYS, 1, ShadingParams())
+        for g, e in zip(got, expected):
+            assert_close_frames(g, e)
+        for a, b in zip(plain, graphed):
+            torch.testing.assert_close(b.previous, a.previous, rtol=1e-5, atol=1e-5)
+    return graphed
+
+
 def test_batch_graphs_run_a_batch_in_chunks_that_equal_one_call(renderer, monkeypatch):
     """batch_graphs' chunks (:func:`graph_chunks`; a chunk's replay needs CUDA: here each runs as it is): 7
     streams go in chunks of 4, 2 and 1, each given its slice of the batch; the frames and the state each
@@ -208,18 +226,8 @@ def test_batch_graphs_run_a_batch_in_chunks_that_equal_one_call(renderer, monkey
     streams, chunked = 7, []
     monkeypatch.setattr(Reconstructor, "_replay",
                         lambda self, work, args, cache, pool: (chunked.append(args[0].shape[0]), work(*args))[1])
-    plain, graphed = twins(streams), twins(streams)
-    for net in graphed:
-        net.batch_graphs = True
-    for t in range(2):
-        frames = [rendered(renderer, k % STREAMS, t) for k in range(streams)]
-        expected = Reconstructor.reconstruct_batch(plain, frames, AO_RAYS, 1, ShadingParams())
-        got = Reconstructor.reconstruct_batch(graphed, frames, AO_RAYS, 1, ShadingParams())
-        for g, e in zip(got, expected):
-            assert_close_frames(g, e)
+    graphed = graphed_batches_equal_plain(renderer, streams, 2)
     assert chunked == [4, 2, 1] * 2
-    for a, b in zip(plain, graphed):
-        torch.testing.assert_close(b.previous, a.previous, rtol=1e-5, atol=1e-5)
     # larger frames take smaller chunks, so that all of a size's graphs fit the bound; past it, none
     frames = [rendered(renderer, k % STREAMS, 2) for k in range(streams)]
     for bound, chunks in ((2 * 3 * W * H, [2, 2, 2, 1]), (W * H, [])):
@@ -248,18 +256,7 @@ def test_batch_graphs_replayed_as_captured_equal_one_call_chunk_after_chunk(rend
     a shape's second use, frame after frame equal to one call, each stream's state its own."""
     monkeypatch.setattr(Reconstructor, "_capture",
                         lambda self, work, pool, restore=None: (graph := ReplayOnCPU(work), graph.outs))
-    streams = 33
-    plain, graphed = twins(streams), twins(streams)
-    for net in graphed:
-        net.batch_graphs = True
-    for t in range(4):
-        frames = [rendered(renderer, k % STREAMS, t) for k in range(streams)]
-        expected = Reconstructor.reconstruct_batch(plain, frames, AO_RAYS, 1, ShadingParams())
-        got = Reconstructor.reconstruct_batch(graphed, frames, AO_RAYS, 1, ShadingParams())
-        for g, e in zip(got, expected):
-            assert_close_frames(g, e)
-        for a, b in zip(plain, graphed):
-            torch.testing.assert_close(b.previous, a.previous, rtol=1e-5, atol=1e-5)
+    graphed = graphed_batches_equal_plain(renderer, 33, 4)
     # the first frames' chunk of 16 (its second use: the same batch), the carried frames' 16 (t = 1) and 1 (t = 2)
     assert len(graphed[0]._batch_captured) == 3
 
