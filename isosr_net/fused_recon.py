@@ -164,17 +164,17 @@ class FusedReconNet(nn.Module):
         # a blend model's weight as a host number: the tail reads it with no sync (inference: it is fixed)
         self.blend_rays = None if net.blend_rays is None else net.blend_rays.item()
 
-    def forward(self, inputs: torch.Tensor, prev_warped: torch.Tensor) -> torch.Tensor:
+    def forward(self, inputs: torch.Tensor, prev_warped: torch.Tensor, ray_factor: float = 1.0) -> torch.Tensor:
         if not fused_runs_on(inputs.device):
-            return self.reference(inputs, prev_warped)
-        return self._run(_kernels().ReconSources.of_inputs(inputs), prev_warped, None)["output"]
+            return self.reference(inputs, prev_warped, ray_factor)
+        return self._run(_kernels().ReconSources.of_inputs(inputs), prev_warped, None, ray_factor=ray_factor)["output"]
 
     def first_previous(self, inputs: torch.Tensor) -> torch.Tensor:
         """The stand-in for the previous output on a sequence's first frame (as ReconNet's)."""
         return self.reference.first_previous(inputs)
 
-    def step(self, inputs: torch.Tensor, flow: torch.Tensor | None,
-             previous: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+    def step(self, inputs: torch.Tensor, flow: torch.Tensor | None, previous: torch.Tensor | None,
+             ray_factor: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
         """One recurrent step as :meth:`ReconNet.step`, the warp (or the first frame's stand-in)
         made in the input packing.
 
@@ -190,34 +190,36 @@ class FusedReconNet(nn.Module):
         if previous is not None and flow is None:
             raise ValueError("a step with a previous output needs the flow to warp it")
         if not fused_runs_on(inputs.device):
-            output, warped = self.reference.step(inputs, flow, previous)
+            output, warped = self.reference.step(inputs, flow, previous, ray_factor)
             return output, recurrent_channels(warped)
-        results = self._run(_kernels().ReconSources.of_inputs(inputs), previous, flow if previous is not None else None)
+        results = self._run(_kernels().ReconSources.of_inputs(inputs), previous, flow if previous is not None else None,
+                            ray_factor=ray_factor)
         h, w, s = *inputs.shape[-2:], self.config.upscale
         read = results["packed"][:, :h, :w, INPUTS:INPUTS + RECURRENT * s * s].permute(0, 3, 1, 2)
         return results["output"], F.pixel_shuffle(read, s) if s > 1 else read
 
     def frame(self, mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, ao: torch.Tensor | None,
               sampling: torch.Tensor, flow: torch.Tensor | None, previous: torch.Tensor | None,
-              shading: ShadingParams | None, out: torch.Tensor | None = None
+              shading: ShadingParams | None, ray_factor: float = 1.0, out: torch.Tensor | None = None
               ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
         """:func:`isosr_net.reconstructor.recon_frame` (its arguments, results and shapes; without
         ``precision``: fp16) in the network's passes alone: the pack reads the buffers in place and
         checks them, the tail writes the output buffers (into ``out`` where given, which may be
         ``previous``) and shades them. No host sync."""
         one = (None if t is None else t[None] for t in (mask, normal, depth, ao, flow))
-        stack, color, flags = self.frames(*one, sampling=sampling, previous=previous, shading=shading, out=out)
+        stack, color, flags = self.frames(*one, sampling=sampling, previous=previous, shading=shading,
+                                          ray_factor=ray_factor, out=out)
         return stack, None if color is None else color[0], flags[0]
 
     def frames(self, mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, ao: torch.Tensor | None,
                flow: torch.Tensor | None, *, sampling: torch.Tensor, previous: torch.Tensor | None,
-               shading: ShadingParams | None, out: torch.Tensor | None = None
+               shading: ShadingParams | None, ray_factor: float = 1.0, out: torch.Tensor | None = None
                ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
         """:meth:`frame` of a batch of frames of several streams in one call: each pass one launch
         for all (:func:`isosr_net.reconstructor.recon_frames`' arguments, results and shapes)."""
         sources = _kernels().ReconSources.of_buffers(mask, normal, depth, ao, sampling)
         results = self._run(sources, previous, None if flow is None else flow.permute(0, 3, 1, 2),
-                            as_buffers=True, shading=shading, out=out)
+                            as_buffers=True, shading=shading, ray_factor=ray_factor, out=out)
         return results["output"], results["color"], results["flags"]
 
     def _run(self, sources, prev: torch.Tensor | None, flow: torch.Tensor | None, **tail) -> dict[str, torch.Tensor]:
@@ -227,7 +229,7 @@ class FusedReconNet(nn.Module):
         return results
 
     def passes(self, sources, prev: torch.Tensor | None, flow: torch.Tensor | None = None, as_buffers: bool = False,
-               shading: ShadingParams | None = None, out: torch.Tensor | None = None
+               shading: ShadingParams | None = None, ray_factor: float = 1.0, out: torch.Tensor | None = None
                ) -> tuple[dict[str, torch.Tensor], list[tuple[str, Callable[[], None]]]]:
         """The fused forward as its passes, to run (or time) one by one: ``(results, [(name, run)])``.
 
@@ -238,9 +240,10 @@ class FusedReconNet(nn.Module):
         upsampled, reduced sum) and ``fuse2``, ..., ``fuse0``, and ``tail`` (``output`` and
         ``color``). Arguments as for :func:`isosr_net.fused_kernels.pack_inputs` (``sources`` a
         :class:`~isosr_net.fused_kernels.ReconSources`) and :func:`~isosr_net.fused_kernels.recon_tail`
-        (``out``).
+        (``out``; a blend model's weight at ``ray_factor``, as :meth:`ReconNet.forward`'s).
         """
         k = _kernels()
+        blend_rays = None if self.blend_rays is None else self.blend_rays / ray_factor
         results: dict[str, torch.Tensor] = {}
         passes: list[tuple[str, Callable[[], None]]] = []
 
@@ -269,7 +272,7 @@ class FusedReconNet(nn.Module):
             add(f"fuse{i}", layer(self.fuse[i], f"up{i}"))
             coarse = f"fuse{i}"
         add("tail", lambda: k.recon_tail(results["fuse0"], self.tail_w, self.tail_b, sources, self.config,
-                                         as_buffers, shading, out, self.blend_rays), "output", "color")
+                                         as_buffers, shading, out, blend_rays), "output", "color")
         return results, passes
 
 

@@ -220,7 +220,10 @@ class ReconNet(nn.Module):
         if config.ao_prior == "blend":  # the log of the rays its own AO stands for (ao_output)
             self.register_parameter(BLEND_PARAMETER, nn.Parameter(torch.tensor(math.log(BLEND_RAYS_INIT))))
 
-    def forward(self, inputs: torch.Tensor, prev_warped: torch.Tensor) -> torch.Tensor:
+    def forward(self, inputs: torch.Tensor, prev_warped: torch.Tensor, ray_factor: float = 1.0) -> torch.Tensor:
+        """``ray_factor``: the rays behind the sampled AO's mean per ray the sampling channels count (> 1 for
+        a frame of more rays than the model reads, :meth:`RayLimits.read`): a blend model weighs the mean by
+        them (:func:`ao_output`)."""
         s = self.config.upscale
         dims = check_shape(inputs, f"(B, {INPUTS}, H, W)", "inputs", "ReconNet")
         h, w = dims["H"], dims["W"]
@@ -244,7 +247,7 @@ class ReconNet(nn.Module):
         base = upsampled_inputs(inputs, s)
         mask = (base[:, MASK] + raw[:, MASK]).clamp(0.0, 1.0)
         normal = base[:, NORMAL] + raw[:, NORMAL]
-        ao = ao_output(raw[:, AO], base, self.config, self.blend_rays)
+        ao = ao_output(raw[:, AO], base, self.config, None if self.blend_rays is None else self.blend_rays / ray_factor)
         # Depth passes through: the render found it (shading does not read it).
         return torch.cat([mask, normal, base[:, DEPTH], ao], dim=1)
 
@@ -263,8 +266,8 @@ class ReconNet(nn.Module):
         ao = torch.where(sampled, inputs[:, SAMPLED_AO], inputs[:, MASK])
         return torch.cat([inputs[:, :AO.start], ao], dim=1)
 
-    def step(self, inputs: torch.Tensor, flow: torch.Tensor | None,
-             previous: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+    def step(self, inputs: torch.Tensor, flow: torch.Tensor | None, previous: torch.Tensor | None,
+             ray_factor: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
         """One recurrent step: warp ``previous`` by ``flow``, then reconstruct.
 
         ``previous`` (and ``flow``) are ``None`` on a sequence's first frame.
@@ -282,4 +285,4 @@ class ReconNet(nn.Module):
                 raise ValueError("a step with a previous output needs the flow to warp it")
             s = self.config.upscale
             warped = warp_by_flow(previous, upscale_flow(flow, s) if s > 1 else flow)
-        return self(inputs, warped), warped
+        return self(inputs, warped, ray_factor), warped

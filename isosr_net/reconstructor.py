@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import copy
 import functools
+import math
 import os
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Sequence
@@ -174,9 +175,16 @@ def _check_frame(frame: FrameBuffers, ao_rays: int, spp: int, limits: RayLimits)
         check_buffer(frame.ao, "(H, W)", "ao", "recon_inputs", dims)
 
 
+def _check_ray_factor(ray_factor: float) -> None:
+    """A ray factor (the rays behind a frame's AO mean per ray its sampling counts) is a finite number >= 1."""
+    if isinstance(ray_factor, bool) or not isinstance(ray_factor, (int, float)) or not 1 <= ray_factor < math.inf:
+        raise ValueError(f"ray_factor must be a finite number >= 1 (the rays behind the AO mean per ray the model "
+                         f"reads), got {ray_factor!r}")
+
+
 def recon_frame(net: ReconNet, mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, ao: torch.Tensor | None,
                 sampling: torch.Tensor, flow: torch.Tensor | None, previous: torch.Tensor | None,
-                shading: ShadingParams | None, precision: torch.dtype = torch.float32
+                shading: ShadingParams | None, ray_factor: float = 1.0, precision: torch.dtype = torch.float32
                 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
     """One frame's work after the render, with no host sync: inputs laid out and checked, the
     previous output warped (or the first frame's stand-in), the network, the output as buffers,
@@ -188,6 +196,7 @@ def recon_frame(net: ReconNet, mask: torch.Tensor, normal: torch.Tensor, depth: 
         flow: the frame's flow or None; warps ``previous`` where that is given, else checked only.
         previous: the previous frame's buffers' stack, or None on a sequence's first frame.
         shading: material and light for ``color``; None makes none.
+        ray_factor: the rays behind ``ao``'s mean per ray ``sampling`` counts (:meth:`ReconNet.forward`).
         precision: the network's autocast dtype.
 
     Returns:
@@ -200,14 +209,14 @@ def recon_frame(net: ReconNet, mask: torch.Tensor, normal: torch.Tensor, depth: 
     """
     one = (None if t is None else t[None] for t in (mask, normal, depth, ao, flow))
     stack, color, flags = recon_frames(net, *one, sampling=sampling, previous=previous, shading=shading,
-                                       precision=precision)
+                                       ray_factor=ray_factor, precision=precision)
     return stack, None if color is None else color[0], flags[0]
 
 
 def recon_frames(net: ReconNet, mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor,
                  ao: torch.Tensor | None, flow: torch.Tensor | None, *, sampling: torch.Tensor,
-                 previous: torch.Tensor | None, shading: ShadingParams | None, precision: torch.dtype = torch.float32
-                 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+                 previous: torch.Tensor | None, shading: ShadingParams | None, ray_factor: float = 1.0,
+                 precision: torch.dtype = torch.float32) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
     """:func:`recon_frame` of a batch of frames of several streams in one call (each its own
     ``previous`` and ``flow``; all with or all without them).
 
@@ -221,7 +230,7 @@ def recon_frames(net: ReconNet, mask: torch.Tensor, normal: torch.Tensor, depth:
     inputs = torch.cat([surface, sampled, sampling.expand(b, 2, h, w)], dim=1)
     carried = None if previous is None else flow.permute(0, 3, 1, 2).float()
     with torch.autocast(surface.device.type, dtype=precision, enabled=precision != torch.float32):
-        output = net.step(inputs, carried, previous)[0]
+        output = net.step(inputs, carried, previous, ray_factor)[0]
     stack = buffer_stack(output)
     color = None if shading is None else shade(stack[:, MASK.start], stack[:, NORMAL].permute(0, 2, 3, 1),
                                                stack[:, AO.start], shading)
@@ -421,7 +430,7 @@ class Reconstructor(RecurrentNetwork):
         return self.net.config.limits
 
     def reconstruct(self, frame: FrameBuffers, ao_rays: int, spp: int = 1,
-                    shading: ShadingParams | None = None) -> FrameBuffers:
+                    shading: ShadingParams | None = None, ray_factor: float = 1.0) -> FrameBuffers:
         """Reconstruct one frame; with ``shading``, shade it too (``color``).
 
         Args:
@@ -429,22 +438,26 @@ class Reconstructor(RecurrentNetwork):
                 accumulate the AO rays along the flow (:mod:`isosr_net.ray_history`).
             ao_rays, spp: how the frame was sampled.
             shading: material and light for ``color``; None makes no color.
+            ray_factor: the rays behind the frame's AO mean per ray ``ao_rays`` and ``spp`` count, >= 1
+                (a frame of more AO rays than the model reads, :meth:`RayLimits.read`): a "blend" model
+                weighs the mean by them.
 
         Raises:
-            ValueError: as :func:`recon_inputs`, or fp16 and depths beyond
+            ValueError: as :func:`recon_inputs`, a ray_factor under 1, or fp16 and depths beyond
                 :data:`isosr_net.inference.FP16_MAX_DEPTH`; the state is then left as it was.
 
         Shape:
             Returns mask, depth, ao (H, W); normal, color (H, W, 3).
         """
         _check_frame(frame, ao_rays, spp, self.limits)
+        _check_ray_factor(ray_factor)
         self._settle_late()
         frame = frame.to(self.device)
         carry = self.carries(*frame.mask.shape, frame.flow is not None)
         with torch.no_grad():
             ao, sampling, history = self._rays(frame, ao_rays, spp, self.history if carry else None)
             args = (frame.mask, frame.normal, frame.depth, ao, sampling, frame.flow, self.previous if carry else None,
-                    shading)
+                    shading, ray_factor)
             stack, color, flags = self._replay(self._frame, args, self._captured, self._pool) if self.graphs \
                 else self._frame(*args)
         if self.graphs:  # the graph's own tensors: the next replay overwrites them
@@ -454,7 +467,8 @@ class Reconstructor(RecurrentNetwork):
 
     @staticmethod
     def reconstruct_batch(nets: list[Reconstructor], frames: list[FrameBuffers], ao_rays: int, spp: int = 1,
-                          shading: ShadingParams | None = None) -> list[FrameBuffers | Exception]:
+                          shading: ShadingParams | None = None, ray_factor: float = 1.0
+                          ) -> list[FrameBuffers | Exception]:
         """:meth:`reconstruct` of one frame of each of several streams (``nets[k]`` the stream of
         ``frames[k]``: twins of one network, :meth:`~isosr_net.inference.RecurrentNetwork.own`, none
         graphed) in one network call for those that carry their previous output and one for those
@@ -469,6 +483,7 @@ class Reconstructor(RecurrentNetwork):
         template, results = nets[0], [None] * len(frames)
         if any(net.graphs or net._frame is not template._frame for net in nets):
             raise ValueError("reconstruct_batch: the streams must be ungraphed twins of one network")
+        _check_ray_factor(ray_factor)
         settling = [net for net in nets if net._deferred is None]  # the others' caller settles them
         for net in settling:
             net.defer_checks()
@@ -485,7 +500,7 @@ class Reconstructor(RecurrentNetwork):
             groups.setdefault((carry, frame.flow is not None), []).append((k, net, frame, carry))
         with torch.no_grad():
             for group in groups.values():
-                for (k, _, _, _), out in zip(group, template._batch_frames(group, ao_rays, spp, shading)):
+                for (k, _, _, _), out in zip(group, template._batch_frames(group, ao_rays, spp, shading, ray_factor)):
                     results[k] = out
         for k, net in enumerate(nets):
             if net in settling:
@@ -495,15 +510,16 @@ class Reconstructor(RecurrentNetwork):
                     results[k] = e
         return results
 
-    def _batch_frames(self, group: list[tuple], ao_rays: int, spp: int,
-                      shading: ShadingParams | None) -> list[FrameBuffers]:
+    def _batch_frames(self, group: list[tuple], ao_rays: int, spp: int, shading: ShadingParams | None,
+                      ray_factor: float) -> list[FrameBuffers]:
         """The frames of ``group`` (``(index, net, frame, carry)``, one ``carry`` for all) in one call."""
         frames = [frame for _, _, frame, _ in group]
         carry = group[0][3]
         ao, sampling, histories = self._batch_rays(group, ao_rays, spp)
         previous = torch.cat([net.previous for _, net, _, _ in group]) if carry else None
         mask, normal, depth, flow = (stacked(frames, n) for n in ("mask", "normal", "depth", "flow"))
-        stack, color, flags = self._network_frames(mask, normal, depth, ao, flow, sampling, previous, shading)
+        stack, color, flags = self._network_frames(mask, normal, depth, ao, flow, sampling, previous, shading,
+                                                   ray_factor)
         # each stream keeps its own output, and its frame is views of that (none holds the batch's memory)
         outputs, each_flags = own_streams(stack), flags.unbind(0)
         colors = [None] * len(group) if color is None else color.unbind(0)
@@ -621,11 +637,12 @@ class Reconstructor(RecurrentNetwork):
 
     def _network_frames(self, mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, ao: torch.Tensor | None,
                         flow: torch.Tensor | None, sampling: torch.Tensor, previous: torch.Tensor | None,
-                        shading: ShadingParams | None) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+                        shading: ShadingParams | None, ray_factor: float
+                        ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
         """The network's call over a batch (:func:`recon_frames`' arguments, results and shapes); with
         ``batch_graphs`` replayed from the shared graphs chunk by chunk (:func:`graph_chunks`), the
         results copied out of the graphs' own."""
-        args = (mask, normal, depth, ao, flow, sampling, previous, shading)
+        args = (mask, normal, depth, ao, flow, sampling, previous, shading, ray_factor)
         largest = MAX_BATCH_GRAPH_PIXELS // (2 * mask[0].numel() * self.upscale_factor ** 2)
         if not self.batch_graphs or largest < 1:
             return self._batch_call(*args)
@@ -643,8 +660,10 @@ class Reconstructor(RecurrentNetwork):
 
     def _batch_call(self, mask: torch.Tensor, normal: torch.Tensor, depth: torch.Tensor, ao: torch.Tensor | None,
                     flow: torch.Tensor | None, sampling: torch.Tensor, previous: torch.Tensor | None,
-                    shading: ShadingParams | None) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
-        return self._frames(mask, normal, depth, ao, flow, sampling=sampling, previous=previous, shading=shading)
+                    shading: ShadingParams | None, ray_factor: float
+                    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+        return self._frames(mask, normal, depth, ao, flow, sampling=sampling, previous=previous, shading=shading,
+                            ray_factor=ray_factor)
 
     def _replay(self, work: Callable[..., tuple], args: tuple, cache: GraphCache, pool: tuple | None
                 ) -> tuple[torch.Tensor, ...]:
@@ -698,7 +717,8 @@ class Reconstructor(RecurrentNetwork):
                 and request.surfaces is None)
 
     def render_reconstruct(self, renderer: Renderer, camera: Camera, request: RenderRequest, ao_rays: int,
-                           spp: int = 1, shading: ShadingParams | None = None) -> tuple[FrameBuffers, FrameBuffers]:
+                           spp: int = 1, shading: ShadingParams | None = None, ray_factor: float = 1.0
+                           ) -> tuple[FrameBuffers, FrameBuffers]:
         """Render ``request`` and reconstruct it: ``(rendered, reconstructed)``.
 
         Where :meth:`graphable`, the render, the network and the shading replay as one CUDA graph
@@ -717,7 +737,8 @@ class Reconstructor(RecurrentNetwork):
         """
         if not self.graphable(renderer, request):
             rendered = renderer.render(camera, request)
-            return rendered, self.reconstruct(rendered, ao_rays, spp, shading)
+            return rendered, self.reconstruct(rendered, ao_rays, spp, shading, ray_factor)
+        _check_ray_factor(ray_factor)
         self._settle_late()
         size = (request.height, request.width)
         carry = self.carries(*size, request.prev_camera is not None)
@@ -726,14 +747,14 @@ class Reconstructor(RecurrentNetwork):
         continued = carry and accumulating and self.history is not None
         histories = self._history_pair(size) if accumulating else None
         read, written = self._history_turn(histories, self.history if continued else None)
-        key = (id(renderer), request.plan_key(), float(request.iso), request.skip, ao_rays, spp, shading, carry,
-               continued, written is not None and written is histories[1])
+        key = (id(renderer), request.plan_key(), float(request.iso), request.skip, ao_rays, spp, shading, ray_factor,
+               carry, continued, written is not None and written is histories[1])
         entry = self._frame_graphs.use(key)
         plan = renderer.plan(request) if entry is None else entry.plan
         plan.stage(camera, request)
         if entry is None:
-            graph, (color, flags) = self._capture(lambda: self._graph_work(plan, request, ao_rays, spp, shading, carry,
-                                                                           state, read, written),
+            graph, (color, flags) = self._capture(lambda: self._graph_work(plan, request, ao_rays, spp, shading,
+                                                                           ray_factor, carry, state, read, written),
                                                   self._pool, self._restorer(state))
             entry = FrameGraph(graph, plan, flags, state, histories, plan.buffers(request), stack_buffers(state, color))
             self._frame_graphs.add(key, entry, request.height * request.width * self.upscale_factor ** 2)
@@ -796,8 +817,8 @@ class Reconstructor(RecurrentNetwork):
         return pair[0], pair[1]
 
     def _graph_work(self, plan: RenderPlan, request: RenderRequest, ao_rays: int, spp: int,
-                    shading: ShadingParams | None, carry: bool, state: torch.Tensor, read: RayHistory | None,
-                    written: RayHistory | None) -> tuple[torch.Tensor | None, torch.Tensor]:
+                    shading: ShadingParams | None, ray_factor: float, carry: bool, state: torch.Tensor,
+                    read: RayHistory | None, written: RayHistory | None) -> tuple[torch.Tensor | None, torch.Tensor]:
         """A staged frame's render and its reconstruction (as :meth:`reconstruct`'s frame work), with
         no host sync: the previous output read from ``state`` where the frame ``carry``-s it, the
         new one written there; the ray history (where the frame makes one) continued from
@@ -807,7 +828,7 @@ class Reconstructor(RecurrentNetwork):
         _check_frame(rendered, ao_rays, spp, self.limits)
         ao, sampling, _ = self._rays(rendered, ao_rays, spp, read, written)
         args = (rendered.mask, rendered.normal, rendered.depth, ao, sampling, rendered.flow, state if carry else None,
-                shading)
+                shading, ray_factor)
         if isinstance(self.net, FusedReconNet):  # its tail writes the state after its pack read it
             _, color, flags = self._frame(*args, out=state)
         else:

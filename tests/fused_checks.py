@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from isosr_render.buffers import FrameBuffers
-from isosr_render.conventions import AO, DEPTH, MASK, NORMAL
+from isosr_render.conventions import AO, DEPTH, MASK, NORMAL, SAMPLED_AO
 from isosr_render.shading import ShadingParams, shade
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net import fused_kernels
@@ -463,6 +463,20 @@ def test_the_fused_shipped_model_equals_reconnet(ao_prior, b, h, w):
     stand_in = net.first_previous(inputs)
     torch.testing.assert_close(first, reference(net, inputs, stand_in)[0], rtol=0, atol=2e-3)
     torch.testing.assert_close(first_read, stand_in[:, [MASK.start, AO.start]].half(), rtol=0, atol=0)  # as packed
+
+
+def test_a_fused_blend_model_counts_the_rays_fed_past_what_it_reads_as_reconnet():
+    """``ray_factor`` (a frame of 4 times the rays the model reads): the fused blend model's output equals
+    ReconNet's at that factor (padded from one pixel to 8 x 8), and differs from its output at factor 1."""
+    net, fused = shipped_under("blend")
+    inputs, warped = recon_batch(1, 1, 1, seed=23).to(DEVICE), rand(1, 6, 1, 1, seed=24).sigmoid()
+    inputs[:, SAMPLED_AO] = 0.9 * inputs[:, MASK]  # a bright mean, so that its weight shows
+    with torch.no_grad():
+        got, once = fused(inputs, warped, 4.0), fused(inputs, warped)
+        expected = net.double()(inputs.double(), warped.double(), 4.0).float()
+        net.float()
+    torch.testing.assert_close(got, expected, rtol=0, atol=2e-3)
+    assert not torch.equal(got[:, AO], once[:, AO])
 
 
 @pytest.mark.parametrize("blocks", [0, 1])

@@ -209,6 +209,25 @@ def test_with_many_rays_a_blend_model_converges_to_the_rays_mean_whatever_its_ta
         assert (rays(inputs, rays.first_previous(inputs))[:, AO] - mean).abs().max().item() > 0.3
 
 
+def test_a_blend_model_counts_the_rays_fed_past_what_it_reads_in_float64():
+    """64 AO rays at spp 4 read as the model's 16 (``ray_factor`` 4): the blend weighs the mean by the 256 rays
+    behind it, ``w = 256 / (256 + k)``, against float64 from the "rays" model of the same weights (its AO the
+    network's own); a "rays" model's output does not depend on the factor."""
+    model = net(ao_prior="blend", max_ao_rays=16)
+    torch.nn.init.constant_(model.tail.bias, 4.0)  # a tail far off, so that the weight shows
+    rays = net(ao_prior="rays", max_ao_rays=16)
+    rays.load_state_dict({k: v for k, v in model.state_dict().items() if k != "ao_blend_log"})
+    inputs = recon_batch(b=1, ao_rays=16, spp=4, limits=model.config.limits)
+    warped, mean, k = model.first_previous(inputs), inputs[:, SAMPLED_AO].double(), model.blend_rays.item()
+    with torch.no_grad():
+        own = rays(inputs, warped)[:, AO].double()
+        for factor in (1.0, 4.0, 1e6):
+            n = 64 * factor
+            torch.testing.assert_close(model(inputs, warped, factor)[:, AO].double(), (n * mean + k * own) / (n + k),
+                                       rtol=0, atol=1e-6)
+        assert torch.equal(rays(inputs, warped, 4.0), rays(inputs, warped))
+
+
 def test_a_blend_model_learns_its_weight_and_fine_tunes_from_a_rays_model(tmp_path):
     model = net(ao_prior="blend", max_ao_rays=16).train()
     inputs = recon_batch(b=1, ao_rays=4, spp=1, limits=model.config.limits)
@@ -378,6 +397,23 @@ def test_a_blend_model_reconstructs_through_the_reconstructor_as_its_ao_output_s
     expected = ao_output(raws[0][:, AO], inputs[0], reconstructor.net.config, torch.tensor(3.0))[0, 0]
     torch.testing.assert_close(out.ao, expected, rtol=0, atol=1e-6)
     assert torch.isfinite(out.ao).all() and 0 <= out.ao.min() and out.ao.max() <= 1
+    # fed 4 times the rays it reads: the mean weighs as 16 rays, the network's AO as its 3 over 4
+    reconstructor.reset()
+    fed = reconstructor.reconstruct(sphere_frames[0], 4, 1, ray_factor=4.0)
+    expected = ao_output(raws[1][:, AO], inputs[1], reconstructor.net.config, torch.tensor(3.0 / 4))[0, 0]
+    torch.testing.assert_close(fed.ao, expected, rtol=0, atol=1e-6)
+    kept = reconstructor.previous.clone()
+    for bad in (0.5, 0, float("nan"), float("inf"), True, "4"):
+        with pytest.raises(ValueError, match="ray_factor must be a finite number >= 1"):
+            reconstructor.reconstruct(sphere_frames[1], 4, 1, ray_factor=bad)
+    assert torch.equal(reconstructor.previous, kept), "a refused factor leaves the stream's state"
+
+
+def test_the_reconstruct_method_tells_its_network_the_rays_it_casts_past_the_model_s(sphere):
+    renderer, iso = sphere
+    factors = [make_runner(FrameMethod.of("reconstruct", ao_rays=a, spp=4), renderer, iso, *SIZE).ray_factor
+               for a in (0, 8, 16, 64)]
+    assert factors == [1.0, 1.0, 1.0, 4.0]
 
 
 @pytest.fixture(scope="module")

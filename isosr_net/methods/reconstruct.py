@@ -142,6 +142,11 @@ class ReconstructRunner(FrameRunner):
         return self.net.limits.read(self.method.ao_rays)
 
     @property
+    def ray_factor(self) -> float:
+        """The rays behind the frame's AO mean per ray the network reads (:meth:`Reconstructor.reconstruct`)."""
+        return self.method.ao_rays / self.read_rays if self.read_rays else 1.0
+
+    @property
     def fused_shading(self) -> ShadingParams | None:
         """The shading the network's call makes too: none where the runner does not shade, or where it
         shades after it (:attr:`FrameRunner.shades_after`)."""
@@ -194,7 +199,7 @@ class ReconstructRunner(FrameRunner):
         with network("network"):  # shading included: one call
             outs = Reconstructor.reconstruct_batch([r.net for _, r, _, _, _ in rendered],
                                                    [f for _, _, _, f, _ in rendered], first.read_rays,
-                                                   first.method.spp, first.fused_shading)
+                                                   first.method.spp, first.fused_shading, first.ray_factor)
         for (k, runner, timer, frame, prev_camera), out in zip(rendered, outs):
             try:
                 if isinstance(out, Exception):
@@ -207,7 +212,7 @@ class ReconstructRunner(FrameRunner):
 
     def finish(self, rendered: FrameBuffers, timer: StageTimer) -> FrameBuffers:
         with timer("network"):  # shading included: one call
-            out = self.net.reconstruct(rendered, self.read_rays, self.method.spp, self.fused_shading)
+            out = self.net.reconstruct(rendered, self.read_rays, self.method.spp, self.fused_shading, self.ray_factor)
         return self.colored(out, timer, rendered) if self.shades_after else out
 
     def render_finish(self, camera: Camera, request: RenderRequest,
@@ -216,6 +221,6 @@ class ReconstructRunner(FrameRunner):
             return super().render_finish(camera, request, timer)
         with timer("render"):  # the network and the shading included: one graph
             rendered, out = self.net.render_reconstruct(self.renderer, camera, request, self.read_rays,
-                                                        self.method.spp, self.fused_shading)
+                                                        self.method.spp, self.fused_shading, self.ray_factor)
         return rendered, self.colored(out, timer, rendered) if self.shades_after else out
 
