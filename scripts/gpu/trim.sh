@@ -2,11 +2,11 @@
 # Thin the working tree under what a device run carries (64 MiB with the GPU kit's part b): `trim.sh out` parks
 # what the GPU runs do not read (results, docs, checkpoints, earlier models) in /tmp/isosr-trimmed, `trim.sh back`
 # returns it; `out` also writes the commit into .gpu/HEAD, which the runs carry for their results (the copy there
-# has no .git). Commit nothing in between.
+# has no .git). Commit nothing in between. A model under test travels (checkpoints/recon_blend/best).
 set -euo pipefail
 cd "$(git rev-parse --show-toplevel)"
-parked=(checkpoints benchmarks docs examples deploy isosr_net/recon_model_v1 isosr_net/recon_model_v2
-        isosr_net/recon_model_v3)
+parked=(checkpoints/recon_4k checkpoints/recon_blend/last benchmarks docs examples deploy isosr_net/recon_model_v1
+        isosr_net/recon_model_v2 isosr_net/recon_model_v3)
 case "${1:?out or back}" in
     out) mkdir -p .gpu && git rev-parse --short HEAD > .gpu/HEAD
          for p in "${parked[@]}"; do mkdir -p "$(dirname "/tmp/isosr-trimmed/$p")"; [ ! -e "$p" ] || mv "$p" "/tmp/isosr-trimmed/$p"; done ;;
