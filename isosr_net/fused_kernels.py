@@ -294,10 +294,12 @@ def _upsample_add_kernel(x_ptr, c_ptr, rw_ptr, rb_ptr, out_ptr, hp, wp, hc, wc, 
 @triton.jit
 def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, sn_b, sn_c, sn_h, sn_w,
                  d_ptr, sd_b, sd_c, sd_h, sd_w, a_ptr, sa_b, sa_c, sa_h, sa_w, s_ptr, ss_b, ss_c, ss_h, ss_w,
-                 out_ptr, color_ptr, h, w, hp, wp, size_class, ray_scale, blend_rays, albedo_r, albedo_g, albedo_b, ambient,
+                 out_ptr, color_ptr, g_ptr, h, w, hp, wp, size_class, ray_scale, blend_rays, albedo_r, albedo_g,
+                 albedo_b, ambient,
                  diffuse, specular, shininess, light_x, light_y, light_z, half_x, half_y, half_z, back_r, back_g, back_b,
                  MASK_C: tl.constexpr, NORMAL_C: tl.constexpr, DEPTH_C: tl.constexpr, AO_C: tl.constexpr,
-                 AO_PRIOR: tl.constexpr, BLEND: tl.constexpr, HAS_AO: tl.constexpr, BUFFERS: tl.constexpr,
+                 AO_PRIOR: tl.constexpr, BLEND: tl.constexpr, GATED: tl.constexpr, MAX_SPP: tl.constexpr,
+                 HAS_AO: tl.constexpr, BUFFERS: tl.constexpr,
                  SHADE: tl.constexpr, OUT: tl.constexpr, S: tl.constexpr, CI: tl.constexpr, CO: tl.constexpr,
                  BLOCK_M: tl.constexpr):
     b = tl.program_id(1).to(tl.int64)
@@ -311,17 +313,24 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, s
     plane = S * S * h * w  # an output plane's pixels
     # Per output pixel (S x S per input pixel: raw channel k * S * S + cell is channel k there, as
     # F.pixel_shuffle orders them), one plane at a time: the (upsampled) inputs plus the raw output.
+    gate = tl.full((BLOCK_M,), 1.0, dtype=tl.float32)
+    if GATED:  # the geometry corrections' factor at the frame's rays per pixel (reconnet.geometry_gate)
+        share = _plane(s_ptr + ss_c, ss_b, ss_h, ss_w, b, y * 0, x * 0, valid)
+        index = tl.minimum(tl.maximum(tl.floor(share * MAX_SPP + 0.5), 1.0), MAX_SPP).to(tl.int32) - 1
+        gate = tl.load(g_ptr + index, mask=valid, other=1.0)
     for cell in tl.static_range(S * S):
         yy = y * S + cell // S
         xx = x * S + cell % S
         at = yy * (S * w) + xx
-        mask = _base_plane(m_ptr, sm_b, sm_h, sm_w, b, yy, xx, h, w, valid, S) + _column(raw, c, MASK_C * S * S + cell)
+        mask = (_base_plane(m_ptr, sm_b, sm_h, sm_w, b, yy, xx, h, w, valid, S)
+                + gate * _column(raw, c, MASK_C * S * S + cell))
         mask = tl.minimum(tl.maximum(mask, 0.0), 1.0)
-        nx = _base_plane(n_ptr, sn_b, sn_h, sn_w, b, yy, xx, h, w, valid, S) + _column(raw, c, NORMAL_C * S * S + cell)
+        nx = (_base_plane(n_ptr, sn_b, sn_h, sn_w, b, yy, xx, h, w, valid, S)
+              + gate * _column(raw, c, NORMAL_C * S * S + cell))
         ny = (_base_plane(n_ptr + sn_c, sn_b, sn_h, sn_w, b, yy, xx, h, w, valid, S)
-              + _column(raw, c, (NORMAL_C + 1) * S * S + cell))
+              + gate * _column(raw, c, (NORMAL_C + 1) * S * S + cell))
         nz = (_base_plane(n_ptr + 2 * sn_c, sn_b, sn_h, sn_w, b, yy, xx, h, w, valid, S)
-              + _column(raw, c, (NORMAL_C + 2) * S * S + cell))
+              + gate * _column(raw, c, (NORMAL_C + 2) * S * S + cell))
         depth = depth_in
         raw_ao = _column(raw, c, AO_C * S * S + cell)
         ao = tl.sigmoid(raw_ao)
@@ -574,7 +583,8 @@ def upsample_add(x: torch.Tensor, coarse: torch.Tensor, weight: torch.Tensor, bi
 
 def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, sources: ReconSources,
                config: ReconNetConfig, as_buffers: bool = False, shading: ShadingParams | None = None,
-               out: torch.Tensor | None = None, blend_rays: float | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
+               out: torch.Tensor | None = None, blend_rays: float | None = None,
+               gates: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
     """ReconNet's output convolution and output stack, cropped to the frame (and written
     depth-to-space at twice its sides for a model that upscales x2); as buffers and shaded where
     asked.
@@ -594,6 +604,8 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
             It may be the previous output that the pack read: the tail runs after it.
         blend_rays: with ``config.ao_prior`` "blend", the rays the network's AO stands for (a host number:
             no sync).
+        gates: with ``config.geometry_gate``, the geometry corrections' factor per rays per pixel, fp32 on
+            ``y``'s device (:func:`~isosr_net.reconnet.geometry_gate`: the sigmoid of its logits).
 
     Returns:
         ``(stack, color or None)``.
@@ -617,6 +629,12 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
     if (config.ao_prior == "blend") != (blend_rays is not None):
         raise ValueError(f"recon_tail: blend_rays goes with a blend model's tail, got {blend_rays} for AO prior "
                          f"{config.ao_prior!r}")
+    if config.geometry_gate != (gates is not None) or (
+            gates is not None and (gates.shape != (config.max_spp,) or gates.dtype != torch.float32
+                                   or gates.device != y.device)):
+        raise ValueError(f"recon_tail: a gated model's tail takes its {config.max_spp} gates (float32 on {y.device}), "
+                         f"others none; got {None if gates is None else (gates.dtype, tuple(gates.shape))} for "
+                         f"geometry_gate={config.geometry_gate}")
     s = config.upscale
     if co < OUTPUTS * s * s:
         raise ValueError(f"recon_tail: an x{s} model's tail has {OUTPUTS * s * s} outputs, the weights {co}")
@@ -629,12 +647,14 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
     color = None if shading is None else torch.empty((b, s * h, s * w, 3), device=y.device, dtype=torch.float32)
     params = shading or ShadingParams()
     light, half = light_and_half(params)
-    _tail_tuned[_grid(h * w, b)](y, weight, bias, *sources.args(), out, out if color is None else color, h, w, hp, wp,
+    _tail_tuned[_grid(h * w, b)](y, weight, bias, *sources.args(), out, out if color is None else color,
+                                 bias if gates is None else gates, h, w, hp, wp,
                                  _size_class(h * w), float(config.max_ao_rays * config.max_spp),
                                  float(blend_rays or 0.0), *params.albedo, params.ambient,
                                  params.diffuse, params.specular, params.shininess, *light, *half, *params.background,
                                  MASK_C=MASK.start, NORMAL_C=NORMAL.start, DEPTH_C=DEPTH.start, AO_C=AO.start,
                                  AO_PRIOR=config.ao_prior != "none", BLEND=config.ao_prior == "blend",
+                                 GATED=gates is not None, MAX_SPP=config.max_spp,
                                  HAS_AO=sources.ao is not None, BUFFERS=as_buffers, SHADE=shading is not None, OUT=OUTPUTS, S=s, CI=ci, CO=co,
                                  **FIXED)
     return out, color

@@ -36,7 +36,7 @@ from torch import nn
 from isosr_render.conventions import AO, MASK, SAMPLED_AO, SAMPLING
 from isosr_render.shading import ShadingParams
 from isosr_render.shapes import check_int, check_shape
-from isosr_net.reconnet import INPUTS, LEVELS, OUTPUTS, RECURRENT, ReconNet, ReconNetConfig
+from isosr_net.reconnet import GATE_PARAMETER, INPUTS, LEVELS, OUTPUTS, RECURRENT, ReconNet, ReconNetConfig
 
 PACKED = 16  # the packed input's channels (isosr_net.fused_kernels.PACKED): 10 used (x2: 16)
 
@@ -65,7 +65,7 @@ def fused_runs_on(device: torch.device | str) -> bool:
 
 def fusable(config: ReconNetConfig) -> bool:
     """Whether the kernels take a ReconNet of ``config``: its widths powers of 2, at least 16 (any
-    upscale, blocks and AO prior)."""
+    upscale, blocks, AO prior and geometry gate)."""
     return all(w >= 16 and not w & (w - 1) for w in config.widths)
 
 
@@ -163,6 +163,8 @@ class FusedReconNet(nn.Module):
         self.register_buffer("tail_b", _padded_bias(net.tail, tail))
         # a blend model's weight as a host number: the tail reads it with no sync (inference: it is fixed)
         self.blend_rays = None if net.blend_rays is None else net.blend_rays.item()
+        gated = net.config.geometry_gate  # the geometry corrections' factors, read by the tail on the device
+        self.register_buffer("gates", torch.sigmoid(getattr(net, GATE_PARAMETER).detach().float()) if gated else None)
 
     def forward(self, inputs: torch.Tensor, prev_warped: torch.Tensor, ray_factor: float = 1.0) -> torch.Tensor:
         if not fused_runs_on(inputs.device):
@@ -272,7 +274,7 @@ class FusedReconNet(nn.Module):
             add(f"fuse{i}", layer(self.fuse[i], f"up{i}"))
             coarse = f"fuse{i}"
         add("tail", lambda: k.recon_tail(results["fuse0"], self.tail_w, self.tail_b, sources, self.config,
-                                         as_buffers, shading, out, blend_rays), "output", "color")
+                                         as_buffers, shading, out, blend_rays, self.gates), "output", "color")
         return results, passes
 
 

@@ -48,6 +48,10 @@ AO_PRIORS = ("none", "rays", "blend")
 # The rays a "blend" model's own AO stands for at the start of its training (BLEND_PARAMETER: its log).
 BLEND_RAYS_INIT = 16.0
 BLEND_PARAMETER = "ao_blend_log"
+# A gated model's mask and normal corrections, per rays per pixel: sigmoid of these logits (GATE_PARAMETER), at
+# the start of its training nearly 1 (the corrections as the model it starts from made them).
+GATE_PARAMETER = "geometry_gate_logit"
+GATE_LOGIT_INIT = 6.0
 # Output over input resolution: 1 reconstructs at the resolution it is given; 2 also upscales.
 UPSCALES = (1, 2)
 
@@ -107,6 +111,9 @@ class ReconNetConfig:
         ao_prior: ``"none"``: AO from scratch; ``"rays"``: a correction of the input rays' mean;
             ``"blend"``: that correction blended with the rays' mean (:func:`ao_output`).
         max_ao_rays, max_spp: the model's :class:`RayLimits`.
+        geometry_gate: the mask and normal corrections scaled by a learned gate per rays per pixel
+            (:func:`geometry_gate`): where the input's geometry is as good as the target's (as many rays
+            per pixel), they can fade.
         upscale: output over input resolution (:data:`UPSCALES`): 2 reconstructs a frame rendered
             at half the output's sides (:func:`upsampled_inputs` is the base its output corrects).
     """
@@ -119,6 +126,7 @@ class ReconNetConfig:
     max_ao_rays: int = 8
     max_spp: int = 4
     upscale: int = 1
+    geometry_gate: bool = False
 
     def __post_init__(self):
         object.__setattr__(self, "widths", tuple(self.widths))
@@ -134,6 +142,8 @@ class ReconNetConfig:
         RayLimits(self.max_ao_rays, self.max_spp)  # raises for bad limits
         if self.upscale not in UPSCALES:
             raise ValueError(f"upscale must be one of {UPSCALES}, got {self.upscale}")
+        if not isinstance(self.geometry_gate, bool):
+            raise ValueError(f"geometry_gate must be true or false, got {self.geometry_gate!r}")
 
     @property
     def limits(self) -> RayLimits:
@@ -168,6 +178,18 @@ def ao_output(raw_ao: torch.Tensor, inputs: torch.Tensor, config: ReconNetConfig
         raise ValueError("ao_output: a blend model's AO needs its blend_rays")
     weight = n / (n + blend_rays).clamp_min(1e-12)  # no rays and a weight worth none: the network's
     return weight * mean + (1 - weight) * corrected
+
+
+def geometry_gate(logits: torch.Tensor, inputs: torch.Tensor, config: ReconNetConfig) -> torch.Tensor:
+    """The factor of each frame's mask and normal corrections: ``sigmoid(logits[spp - 1])``, ``spp`` its rays
+    per pixel read from its sampling channel (rounded, within ``[1, max_spp]``).
+
+    Shape:
+        logits: (max_spp,). inputs: (B, 8, H, W). Returns (B, 1, 1, 1).
+    """
+    share = inputs[:, SAMPLING][:, 1, 0, 0].float()
+    index = (share * config.max_spp).round().clamp(1, config.max_spp).long() - 1
+    return torch.sigmoid(logits.float())[index].view(-1, 1, 1, 1)
 
 
 def macs_per_pixel(config: ReconNetConfig) -> float:
@@ -219,6 +241,8 @@ class ReconNet(nn.Module):
         self.tail = nn.Conv2d(w[0], OUTPUTS * cells, 3, padding=1)  # depth-to-space after it
         if config.ao_prior == "blend":  # the log of the rays its own AO stands for (ao_output)
             self.register_parameter(BLEND_PARAMETER, nn.Parameter(torch.tensor(math.log(BLEND_RAYS_INIT))))
+        if config.geometry_gate:  # per rays per pixel, the logit of its geometry corrections' factor
+            self.register_parameter(GATE_PARAMETER, nn.Parameter(torch.full((config.max_spp,), GATE_LOGIT_INIT)))
 
     def forward(self, inputs: torch.Tensor, prev_warped: torch.Tensor, ray_factor: float = 1.0) -> torch.Tensor:
         """``ray_factor``: the rays behind the sampled AO's mean per ray the sampling channels count (> 1 for
@@ -245,8 +269,9 @@ class ReconNet(nn.Module):
         if s > 1:
             raw = F.pixel_shuffle(raw, s)
         base = upsampled_inputs(inputs, s)
-        mask = (base[:, MASK] + raw[:, MASK]).clamp(0.0, 1.0)
-        normal = base[:, NORMAL] + raw[:, NORMAL]
+        gate = geometry_gate(getattr(self, GATE_PARAMETER), inputs, self.config) if self.config.geometry_gate else 1.0
+        mask = (base[:, MASK] + gate * raw[:, MASK]).clamp(0.0, 1.0)
+        normal = base[:, NORMAL] + gate * raw[:, NORMAL]
         ao = ao_output(raw[:, AO], base, self.config, None if self.blend_rays is None else self.blend_rays / ray_factor)
         # Depth passes through: the render found it (shading does not read it).
         return torch.cat([mask, normal, base[:, DEPTH], ao], dim=1)

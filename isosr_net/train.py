@@ -200,13 +200,18 @@ class Trainer:
             print(f"resuming from {checkpoint.folder} at step {self.step}")
 
     def _init_from(self, folder: str) -> None:
-        """Load the weights of the model folder ``folder`` (ValueError: another model config). A ReconNet that
-        blends its AO with the rays' (``ao_prior="blend"``) starts from one that corrects them (``"rays"``): the
-        same weights, its blend at :data:`~isosr_net.reconnet.BLEND_RAYS_INIT` rays."""
+        """Load the weights of the model folder ``folder`` (ValueError: a model of a config it cannot start
+        from). A ReconNet that blends its AO with the rays' (``ao_prior="blend"``) starts from one that
+        corrects them (``"rays"``), one with a ``geometry_gate`` from one without: the same weights, its blend
+        at :data:`~isosr_net.reconnet.BLEND_RAYS_INIT` rays, its gates at their start."""
         model, _ = load_pretrained(folder, self.device)
-        blending = isinstance(self.net.config, ReconNetConfig) and self.net.config.ao_prior == "blend"
-        if model.config != self.net.config and not (
-                blending and model.config == replace(self.net.config, ao_prior="rays")):
+        config = self.net.config
+        starts = [config]
+        if isinstance(config, ReconNetConfig):
+            priors = {config.ao_prior, "rays"} if config.ao_prior == "blend" else {config.ao_prior}
+            gates = {config.geometry_gate, False}
+            starts = [replace(config, ao_prior=p, geometry_gate=g) for p in priors for g in gates]
+        if model.config not in starts:
             raise ValueError(f"init {folder} holds a model of another config ({model.config}); the run trains "
                              f"{self.net.config}")
         self.net.load_state_dict(model.state_dict(), strict=model.config == self.net.config)

@@ -9,7 +9,9 @@
 # (the same for the x2 model: fine-tunes isosr_net/recon_x2_model) or recon_4k (recon_history's data with
 # frames of 1024, 2048 and 4096 pixels, so that crops also show 4K's pixel scale: fine-tuned recon_model_v3 into
 # the shipped isosr_net/recon_model) or recon_blend (recon_4k's data: fine-tunes the shipped model into one that
-# blends its AO with the input rays' mean by the rays each stands for, ao_prior "blend": issue 49).
+# blends its AO with the input rays' mean by the rays each stands for, ao_prior "blend": issue 49) or
+# recon_blend_geo (the same data: fine-tunes checkpoints/recon_blend/best with its geometry corrections gated
+# by rays per pixel, geometry_gate).
 # FROM_DIR: a previous run's OUT_DIR; training resumes from its last/ (the trainer resumes from
 # runs/$RUN/last) and keeps its best/ unless it does better. Data goes to data/$RUN and the run to
 # runs/$RUN (both git-ignored; the same config renders the same data again); the logs, last/ (the
@@ -18,7 +20,7 @@
 # MINUTES overrides the training's time limit (the whole script must fit one 10-minute device run).
 set -euo pipefail
 run=${RUN:-recon2}
-out=${1:?usage: [RUN=recon2|recon_x2|recon_history|recon_x2_history|recon_4k|recon_blend] train_recon.sh OUT_DIR [FROM_DIR]}
+out=${1:?usage: [RUN=recon2|...|recon_blend|recon_blend_geo: the configs above] train_recon.sh OUT_DIR [FROM_DIR]}
 from=${2:-}
 isosr() { python3 -m isosr_cli.main "$@"; }
 mkdir -p "$out" data runs

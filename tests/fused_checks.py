@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from isosr_render.buffers import FrameBuffers
-from isosr_render.conventions import AO, DEPTH, MASK, NORMAL, SAMPLED_AO
+from isosr_render.conventions import AO, DEPTH, MASK, NORMAL, SAMPLED_AO, SAMPLING
 from isosr_render.shading import ShadingParams, shade
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net import fused_kernels
@@ -33,7 +33,8 @@ from isosr_net.fused_kernels import ReconSources, conv3x3, pack_inputs, recon_ta
 from isosr_net.fused_recon import FusedReconNet, fused_reconnet, fused_runs_on, fused_traffic, tap_weights
 from isosr_net.inference import FP16_MAX_DEPTH, FRAME_FLAGS, buffer_stack, frame_flags, stack_buffers
 from isosr_net.model import load_pretrained
-from isosr_net.reconnet import AO_PRIORS, BLEND_PARAMETER, ReconNet, ReconNetConfig, ao_output, upsampled_inputs
+from isosr_net.reconnet import (AO_PRIORS, BLEND_PARAMETER, GATE_PARAMETER, ReconNet, ReconNetConfig, ao_output,
+                                geometry_gate, upsampled_inputs)
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, Reconstructor
 
 from test_reconnet import recon_batch
@@ -309,6 +310,29 @@ def test_tail_is_the_output_convolution_and_reconnets_output_stack(h, w, hp, wp,
     assert (out[:, MASK] >= 0).all() and (out[:, MASK] <= 1).all()
 
 
+def test_a_gated_tail_scales_each_frame_s_geometry_corrections_by_its_rays_per_pixel():
+    """geometry_gate: frame 0 at 4 rays per pixel takes the 4th gate, frame 1 at 2 the 2nd (float64 reference);
+    depth and AO as ungated; the gates must come with a gated config and only with it."""
+    h, w = 13, 21
+    features, taps, bias, inputs = tail_case(h, w, 16, 24)
+    inputs[0, SAMPLING.start + 1], inputs[1, SAMPLING.start + 1] = 1.0, 0.5
+    config, gates = ReconNetConfig(ao_prior="rays", max_ao_rays=16, geometry_gate=True), torch.tensor(
+        [0.9, 0.3, 0.6, 0.1], device=DEVICE)
+    out, _ = recon_tail(features, taps, bias, ReconSources.of_inputs(inputs), config, gates=gates)
+    raw, magnitude = (t[:, :6, :h, :w] for t in conv_ref(nchw(features), taps, bias))
+    given, gate = inputs.double(), geometry_gate(torch.logit(gates.double()), inputs, config).double()
+    assert gate.flatten().tolist() == pytest.approx([0.1, 0.3])
+    tail = torch.cat([(given[:, MASK] + gate * raw[:, MASK]).clamp(0, 1), given[:, NORMAL] + gate * raw[:, NORMAL],
+                      given[:, DEPTH], ao_output(raw[:, AO], given, config)], dim=1)
+    err = (out.double() - tail).abs()
+    assert (err <= 1e-5 * (magnitude + 1)).all(), err.max()
+    sources = ReconSources.of_inputs(inputs)
+    for wrong_config, wrong_gates in ((config, None), (ReconNetConfig(ao_prior="rays", max_ao_rays=16), gates),
+                                      (config, gates[:3]), (config, gates.double())):
+        with pytest.raises(ValueError, match="a gated model's tail takes its"):
+            recon_tail(features, taps, bias, sources, wrong_config, gates=wrong_gates)
+
+
 @pytest.mark.parametrize("shading", [ShadingParams(), ShadingParams(shininess=0.0, light_dir=(0.0, 0.0, -1.0),
                                                                     albedo=(1.0, 0.0, 0.5), background=(0.0, 0.2, 1.0))])
 def test_tail_writes_the_output_buffers_and_shades_them(shading):
@@ -477,6 +501,23 @@ def test_a_fused_blend_model_counts_the_rays_fed_past_what_it_reads_as_reconnet(
         net.float()
     torch.testing.assert_close(got, expected, rtol=0, atol=2e-3)
     assert not torch.equal(got[:, AO], once[:, AO])
+
+
+@pytest.mark.parametrize("spp", [1, 4])
+def test_a_fused_gated_model_equals_reconnet(spp):
+    """A blend model with gated geometry (gates 0.88, 0.27, 0.62, 0.05 by rays per pixel): fused equals ReconNet
+    at 1 and 4 rays per pixel (padded from one pixel to 8 x 8)."""
+    base, _ = shipped_under("blend")
+    net = ReconNet(dataclasses.replace(base.config, geometry_gate=True)).to(DEVICE).eval()
+    net.load_state_dict(base.state_dict(), strict=False)
+    with torch.no_grad():
+        getattr(net, GATE_PARAMETER).copy_(torch.tensor([2.0, -1.0, 0.5, -3.0]))
+    fused = fused_reconnet(net)
+    inputs = recon_batch(1, 1, 1, ao_rays=4, spp=spp, seed=25, limits=net.config.limits).to(DEVICE)
+    warped = rand(1, 6, 1, 1, seed=26).sigmoid()
+    with torch.no_grad():
+        got = fused(inputs, warped)
+    torch.testing.assert_close(got, reference(net, inputs, warped)[0], rtol=0, atol=2e-3)
 
 
 @pytest.mark.parametrize("blocks", [0, 1])

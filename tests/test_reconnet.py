@@ -20,7 +20,8 @@ from isosr_net.model import save_pretrained
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net.fused_recon import FusedReconNet, fusable
 from isosr_net.inference import buffer_stack
-from isosr_net.reconnet import RayLimits, ReconNet, ReconNetConfig, ao_output, macs_per_pixel, upsampled_inputs
+from isosr_net.reconnet import (GATE_PARAMETER, RayLimits, ReconNet, ReconNetConfig, ao_output, macs_per_pixel,
+                                upsampled_inputs)
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, Reconstructor, recon_inputs, recon_limits
 from isosr_net.upscaler import DEFAULT_MODEL
 
@@ -226,6 +227,29 @@ def test_a_blend_model_counts_the_rays_fed_past_what_it_reads_in_float64():
             torch.testing.assert_close(model(inputs, warped, factor)[:, AO].double(), (n * mean + k * own) / (n + k),
                                        rtol=0, atol=1e-6)
         assert torch.equal(rays(inputs, warped, 4.0), rays(inputs, warped))
+
+
+def test_a_gated_model_scales_each_frame_s_geometry_corrections_by_its_rays_per_pixel():
+    """geometry_gate: in one batch, a frame at 1 ray per pixel and one at 4 take their own gates (sigmoid of
+    the logits), on the mask and normal corrections alone (float64 from the ungated twin's tail); at the
+    gates' start (logit 6) the output is the ungated one within 0.3% of each correction."""
+    gated, plain = net(ao_prior="rays", max_ao_rays=16, geometry_gate=True), net(ao_prior="rays", max_ao_rays=16)
+    plain.load_state_dict({k: v for k, v in gated.state_dict().items() if k != GATE_PARAMETER})
+    inputs = torch.cat([recon_batch(b=1, ao_rays=4, spp=s, seed=s, limits=gated.config.limits) for s in (1, 4)])
+    warped, raws = plain.first_previous(inputs), []
+    plain.tail.register_forward_hook(lambda module, args, out: raws.append(out.double()))
+    with torch.no_grad():
+        at_start, ungated = gated(inputs, warped).double(), plain(inputs, warped).double()
+        getattr(gated, GATE_PARAMETER).copy_(torch.tensor([1.5, -2.0, 0.0, -4.0]))
+        out = gated(inputs, warped).double()
+    raw, base = raws[0], inputs.double()
+    gate = torch.sigmoid(torch.tensor([1.5, -4.0], dtype=torch.float64)).view(2, 1, 1, 1)
+    torch.testing.assert_close(out[:, MASK], (base[:, MASK] + gate * raw[:, MASK]).clamp(0, 1), rtol=0, atol=1e-5)
+    torch.testing.assert_close(out[:, NORMAL], base[:, NORMAL] + gate * raw[:, NORMAL], rtol=0, atol=1e-5)
+    torch.testing.assert_close(out[:, AO], ungated[:, AO], rtol=0, atol=0)
+    assert ((at_start - ungated).abs() <= 0.003 * raw[:, :6].abs() + 1e-6).all()
+    with pytest.raises(ValueError, match="geometry_gate must be true or false"):
+        ReconNetConfig(geometry_gate="yes")
 
 
 def test_a_blend_model_learns_its_weight_and_fine_tunes_from_a_rays_model(tmp_path):

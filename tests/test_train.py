@@ -20,7 +20,7 @@ from isosr_net.datagen import DatagenConfig
 from isosr_render.conventions import SAMPLED_AO, SAMPLING
 from isosr_net.losses import PAPER_LOSSES
 from isosr_net.model import Unrolled, build_model, load_pretrained, save_pretrained
-from isosr_net.reconnet import ReconNet, ReconNetConfig
+from isosr_net.reconnet import GATE_LOGIT_INIT, GATE_PARAMETER, ReconNet, ReconNetConfig
 from isosr_net.train import Trainer, TrainConfig
 from net_fixtures import (TINY_MODEL, TINY_RECON_MODEL, random_vgg19, tiny_recon_x2_data, tiny_train_config, tiny_train_data,
                           tiny_wide_recon_data)
@@ -268,14 +268,16 @@ def test_the_shipped_configs_load():
                                             ("train_recon_history.json", "datagen_recon_history.json"),
                                             ("train_recon_x2_history.json", "datagen_recon_x2_history.json"),
                                             ("train_recon_4k.json", "datagen_recon_4k.json"),
-                                            ("train_recon_blend.json", "datagen_recon_blend.json")])
+                                            ("train_recon_blend.json", "datagen_recon_blend.json"),
+                                            ("train_recon_blend_geo.json", "datagen_recon_blend_geo.json")])
 def test_each_reconstruction_config_fits_its_data_config(train, datagen):
     root = Path(__file__).resolve().parents[1] / "configs"
     config, data = load_config(TrainConfig, root / train), load_config(DatagenConfig, root / datagen)
     model = build_model(config.model).config
-    if config.init:  # a project-relative model folder of this config (a blend model's: over the rays)
-        start = load_pretrained(root.parent / config.init)[0].config
-        assert start == (replace(model, ao_prior="rays") if model.ao_prior == "blend" else model)
+    if config.init:  # a project-relative model folder of this config (a blend model's: over the rays; a gated one's
+        start = load_pretrained(root.parent / config.init)[0].config  # without its gates)
+        assert start in (model, replace(model, geometry_gate=False),
+                         *((replace(model, ao_prior="rays"),) if model.ao_prior == "blend" else ()))
     assert model.limits == data.limits and model.upscale == data.upscale and data.recon_inputs
     assert max(data.input_ao_rays) == data.max_ao_rays and max(data.input_spp) == data.max_spp
     run = train.removeprefix("train_").removesuffix(".json")  # scripts/train_recon.sh's RUN
@@ -320,6 +322,23 @@ def test_a_blend_model_fine_tunes_from_a_rays_model_and_trains_its_weight(tmp_pa
     assert all(torch.isfinite(torch.tensor(v)) for v in logs.values()) and not torch.equal(t.net.ao_blend_log, blend)
     with pytest.raises(ValueError, match="init .* holds a model of another config"):
         trainer(wide, tmp_path / "other", model={**rays, "ao_prior": "blend", "blocks": 2}, init=str(tmp_path / "rays"))
+
+
+def test_a_gated_blend_model_fine_tunes_from_a_rays_model_and_trains_its_gates(tmp_path, tmp_path_factory):
+    """geometry_gate: a model with the gates starts from one without (its weights, the gates at their start,
+    nearly 1) and trains the gates of the batch's rays per pixel with the rest."""
+    wide = tiny_wide_recon_data(tmp_path_factory)
+    rays = {**TINY_RECON_MODEL, "ao_prior": "rays", "max_ao_rays": 16}
+    source = ReconNet(ReconNetConfig(**rays))
+    save_pretrained(source, tmp_path / "rays")
+    t = trainer(wide, tmp_path / "run", steps=2, model={**rays, "ao_prior": "blend", "geometry_gate": True},
+                init=str(tmp_path / "rays"))
+    assert all(torch.equal(v, t.net.state_dict()[k]) for k, v in source.state_dict().items())
+    gates = getattr(t.net, GATE_PARAMETER).detach().clone()
+    assert torch.equal(gates, torch.full((4,), GATE_LOGIT_INIT))
+    logs = t.train_step(next(t._batches(t.train_set, shuffle=True, epoch=0)))
+    assert all(torch.isfinite(torch.tensor(v)) for v in logs.values())
+    assert not torch.equal(getattr(t.net, GATE_PARAMETER), gates)
 
 
 def test_a_reconstruction_model_that_upscales_trains_on_its_data_and_a_full_resolution_one_is_refused(
