@@ -316,7 +316,8 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, s
     gate = tl.full((BLOCK_M,), 1.0, dtype=tl.float32)
     if GATED:  # the geometry corrections' factor at the frame's rays per pixel (reconnet.geometry_gate)
         share = _plane(s_ptr + ss_c, ss_b, ss_h, ss_w, b, y * 0, x * 0, valid)
-        index = tl.minimum(tl.maximum(tl.floor(share * MAX_SPP + 0.5), 1.0), MAX_SPP).to(tl.int32) - 1
+        spp = tl.where(share == share, tl.minimum(tl.maximum(share * MAX_SPP, 1.0), MAX_SPP * 1.0), MAX_SPP * 1.0)
+        index = tl.minimum(tl.maximum(tl.floor(spp + 0.5).to(tl.int32) - 1, 0), MAX_SPP - 1)  # NaN: the last
         gate = tl.load(g_ptr + index, mask=valid, other=1.0)
     for cell in tl.static_range(S * S):
         yy = y * S + cell // S

@@ -182,13 +182,15 @@ def ao_output(raw_ao: torch.Tensor, inputs: torch.Tensor, config: ReconNetConfig
 
 def geometry_gate(logits: torch.Tensor, inputs: torch.Tensor, config: ReconNetConfig) -> torch.Tensor:
     """The factor of each frame's mask and normal corrections: ``sigmoid(logits[spp - 1])``, ``spp`` its rays
-    per pixel read from its sampling channel (rounded, within ``[1, max_spp]``).
+    per pixel read from its sampling channel (rounded, within ``[1, max_spp]``; a non-finite one reads as
+    ``max_spp``).
 
     Shape:
         logits: (max_spp,). inputs: (B, 8, H, W). Returns (B, 1, 1, 1).
     """
     share = inputs[:, SAMPLING][:, 1, 0, 0].float()
-    index = (share * config.max_spp).round().clamp(1, config.max_spp).long() - 1
+    spp = torch.nan_to_num(share * config.max_spp, nan=config.max_spp, posinf=config.max_spp, neginf=1.0)
+    index = spp.round().clamp(1, config.max_spp).long() - 1
     return torch.sigmoid(logits.float())[index].view(-1, 1, 1, 1)
 
 

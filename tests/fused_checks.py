@@ -326,6 +326,10 @@ def test_a_gated_tail_scales_each_frame_s_geometry_corrections_by_its_rays_per_p
                       given[:, DEPTH], ao_output(raw[:, AO], given, config)], dim=1)
     err = (out.double() - tail).abs()
     assert (err <= 1e-5 * (magnitude + 1)).all(), err.max()
+    inputs[1, SAMPLING.start + 1] = float("nan")  # a non-finite sampling reads as the most rays per pixel
+    out, _ = recon_tail(features, taps, bias, ReconSources.of_inputs(inputs), config, gates=gates)
+    assert geometry_gate(torch.logit(gates), inputs, config).flatten().tolist() == pytest.approx([0.1, 0.1])
+    torch.testing.assert_close(out[1, NORMAL].double(), given[1, NORMAL] + 0.1 * raw[1, NORMAL], rtol=0, atol=1e-4)
     sources = ReconSources.of_inputs(inputs)
     for wrong_config, wrong_gates in ((config, None), (ReconNetConfig(ao_prior="rays", max_ao_rays=16), gates),
                                       (config, gates[:3]), (config, gates.double())):
