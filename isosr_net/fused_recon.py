@@ -36,7 +36,7 @@ from torch import nn
 from isosr_render.conventions import AO, MASK, SAMPLED_AO, SAMPLING
 from isosr_render.shading import ShadingParams
 from isosr_render.shapes import check_int, check_shape
-from isosr_net.reconnet import GATE_PARAMETER, INPUTS, LEVELS, OUTPUTS, RECURRENT, ReconNet, ReconNetConfig
+from isosr_net.reconnet import INPUTS, LEVELS, OUTPUTS, RECURRENT, ReconNet, ReconNetConfig
 
 PACKED = 16  # the packed input's channels (isosr_net.fused_kernels.PACKED): 10 used (x2: 16)
 
@@ -163,8 +163,8 @@ class FusedReconNet(nn.Module):
         self.register_buffer("tail_b", _padded_bias(net.tail, tail))
         # a blend model's weight as a host number: the tail reads it with no sync (inference: it is fixed)
         self.blend_rays = None if net.blend_rays is None else net.blend_rays.item()
-        gated = net.config.geometry_gate  # the geometry corrections' factors, read by the tail on the device
-        self.register_buffer("gates", torch.sigmoid(getattr(net, GATE_PARAMETER).detach().float()) if gated else None)
+        logits = net.gate_logits  # the geometry corrections' factors, read by the tail on the device
+        self.register_buffer("gates", None if logits is None else torch.sigmoid(logits.detach().float()))
 
     def forward(self, inputs: torch.Tensor, prev_warped: torch.Tensor, ray_factor: float = 1.0) -> torch.Tensor:
         if not fused_runs_on(inputs.device):

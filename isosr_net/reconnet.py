@@ -48,10 +48,13 @@ AO_PRIORS = ("none", "rays", "blend")
 # The rays a "blend" model's own AO stands for at the start of its training (BLEND_PARAMETER: its log).
 BLEND_RAYS_INIT = 16.0
 BLEND_PARAMETER = "ao_blend_log"
-# A gated model's mask and normal corrections, per rays per pixel: sigmoid of these logits (GATE_PARAMETER), at
-# the start of its training nearly 1 (the corrections as the model it starts from made them).
-GATE_PARAMETER = "geometry_gate_logit"
+# A gated model's mask and normal corrections, per rays per pixel: the sigmoid of GATE_RATE times its parameter
+# (GATE_PARAMETER), at the start of its training nearly 1 (the corrections as the model it starts from made
+# them). GATE_RATE: Adam moves a parameter by about the learning rate a step, the logits by GATE_RATE times that
+# (at 3e-4, from 6 to -2 in ~500 steps; as plain logits, ~27,000: a 5-minute run would leave them).
+GATE_PARAMETER = "geometry_gate_raw"
 GATE_LOGIT_INIT = 6.0
+GATE_RATE = 50.0
 # Output over input resolution: 1 reconstructs at the resolution it is given; 2 also upscales.
 UPSCALES = (1, 2)
 
@@ -244,7 +247,8 @@ class ReconNet(nn.Module):
         if config.ao_prior == "blend":  # the log of the rays its own AO stands for (ao_output)
             self.register_parameter(BLEND_PARAMETER, nn.Parameter(torch.tensor(math.log(BLEND_RAYS_INIT))))
         if config.geometry_gate:  # per rays per pixel, the logit of its geometry corrections' factor
-            self.register_parameter(GATE_PARAMETER, nn.Parameter(torch.full((config.max_spp,), GATE_LOGIT_INIT)))
+            self.register_parameter(GATE_PARAMETER,
+                                    nn.Parameter(torch.full((config.max_spp,), GATE_LOGIT_INIT / GATE_RATE)))
 
     def forward(self, inputs: torch.Tensor, prev_warped: torch.Tensor, ray_factor: float = 1.0) -> torch.Tensor:
         """``ray_factor``: the rays behind the sampled AO's mean per ray the sampling channels count (> 1 for
@@ -271,12 +275,17 @@ class ReconNet(nn.Module):
         if s > 1:
             raw = F.pixel_shuffle(raw, s)
         base = upsampled_inputs(inputs, s)
-        gate = geometry_gate(getattr(self, GATE_PARAMETER), inputs, self.config) if self.config.geometry_gate else 1.0
+        gate = 1.0 if self.gate_logits is None else geometry_gate(self.gate_logits, inputs, self.config)
         mask = (base[:, MASK] + gate * raw[:, MASK]).clamp(0.0, 1.0)
         normal = base[:, NORMAL] + gate * raw[:, NORMAL]
         ao = ao_output(raw[:, AO], base, self.config, None if self.blend_rays is None else self.blend_rays / ray_factor)
         # Depth passes through: the render found it (shading does not read it).
         return torch.cat([mask, normal, base[:, DEPTH], ao], dim=1)
+
+    @property
+    def gate_logits(self) -> torch.Tensor | None:
+        """A gated model's geometry gates' logits, one per rays per pixel (:func:`geometry_gate`); None ungated."""
+        return GATE_RATE * getattr(self, GATE_PARAMETER) if self.config.geometry_gate else None
 
     @property
     def blend_rays(self) -> torch.Tensor | None:

@@ -33,7 +33,7 @@ from isosr_net.fused_kernels import ReconSources, conv3x3, pack_inputs, recon_ta
 from isosr_net.fused_recon import FusedReconNet, fused_reconnet, fused_runs_on, fused_traffic, tap_weights
 from isosr_net.inference import FP16_MAX_DEPTH, FRAME_FLAGS, buffer_stack, frame_flags, stack_buffers
 from isosr_net.model import load_pretrained
-from isosr_net.reconnet import (AO_PRIORS, BLEND_PARAMETER, GATE_PARAMETER, ReconNet, ReconNetConfig, ao_output,
+from isosr_net.reconnet import (AO_PRIORS, BLEND_PARAMETER, GATE_PARAMETER, GATE_RATE, ReconNet, ReconNetConfig, ao_output,
                                 geometry_gate, upsampled_inputs)
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, Reconstructor
 
@@ -515,7 +515,7 @@ def test_a_fused_gated_model_equals_reconnet(spp):
     net = ReconNet(dataclasses.replace(base.config, geometry_gate=True)).to(DEVICE).eval()
     net.load_state_dict(base.state_dict(), strict=False)
     with torch.no_grad():
-        getattr(net, GATE_PARAMETER).copy_(torch.tensor([2.0, -1.0, 0.5, -3.0]))
+        getattr(net, GATE_PARAMETER).copy_(torch.tensor([2.0, -1.0, 0.5, -3.0]) / GATE_RATE)
     fused = fused_reconnet(net)
     inputs = recon_batch(1, 1, 1, ao_rays=4, spp=spp, seed=25, limits=net.config.limits).to(DEVICE)
     warped = rand(1, 6, 1, 1, seed=26).sigmoid()

@@ -20,7 +20,7 @@ from isosr_net.model import save_pretrained
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net.fused_recon import FusedReconNet, fusable
 from isosr_net.inference import buffer_stack
-from isosr_net.reconnet import (GATE_PARAMETER, RayLimits, ReconNet, ReconNetConfig, ao_output, macs_per_pixel,
+from isosr_net.reconnet import (GATE_PARAMETER, GATE_RATE, RayLimits, ReconNet, ReconNetConfig, ao_output, macs_per_pixel,
                                 upsampled_inputs)
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, Reconstructor, recon_inputs, recon_limits
 from isosr_net.upscaler import DEFAULT_MODEL
@@ -240,7 +240,7 @@ def test_a_gated_model_scales_each_frame_s_geometry_corrections_by_its_rays_per_
     plain.tail.register_forward_hook(lambda module, args, out: raws.append(out.double()))
     with torch.no_grad():
         at_start, ungated = gated(inputs, warped).double(), plain(inputs, warped).double()
-        getattr(gated, GATE_PARAMETER).copy_(torch.tensor([1.5, -2.0, 0.0, -4.0]))
+        getattr(gated, GATE_PARAMETER).copy_(torch.tensor([1.5, -2.0, 0.0, -4.0]) / GATE_RATE)
         out = gated(inputs, warped).double()
     raw, base = raws[0], inputs.double()
     gate = torch.sigmoid(torch.tensor([1.5, -4.0], dtype=torch.float64)).view(2, 1, 1, 1)
