@@ -33,8 +33,8 @@ from isosr_net.fused_kernels import ReconSources, conv3x3, pack_inputs, recon_ta
 from isosr_net.fused_recon import FusedReconNet, fused_reconnet, fused_runs_on, fused_traffic, tap_weights
 from isosr_net.inference import FP16_MAX_DEPTH, FRAME_FLAGS, buffer_stack, frame_flags, stack_buffers
 from isosr_net.model import load_pretrained
-from isosr_net.reconnet import (AO_PRIORS, BLEND_PARAMETER, GATE_PARAMETER, GATE_RATE, ReconNet, ReconNetConfig, ao_output,
-                                geometry_gate, upsampled_inputs)
+from isosr_net.reconnet import (AO_PRIORS, BLEND_PARAMETER, GATE_PARAMETER, GATE_RATE, ReconNet, ReconNetConfig,
+                                ao_output, geometry_gate, upsampled_inputs)
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, Reconstructor
 
 from test_reconnet import recon_batch

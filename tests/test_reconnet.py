@@ -20,8 +20,8 @@ from isosr_net.model import save_pretrained
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net.fused_recon import FusedReconNet, fusable
 from isosr_net.inference import buffer_stack
-from isosr_net.reconnet import (GATE_PARAMETER, GATE_RATE, RayLimits, ReconNet, ReconNetConfig, ao_output, macs_per_pixel,
-                                upsampled_inputs)
+from isosr_net.reconnet import (GATE_PARAMETER, GATE_RATE, RayLimits, ReconNet, ReconNetConfig, ao_output,
+                                macs_per_pixel, upsampled_inputs)
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, Reconstructor, recon_inputs, recon_limits
 from isosr_net.upscaler import DEFAULT_MODEL
 
