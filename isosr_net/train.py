@@ -60,6 +60,9 @@ class TrainConfig:
         init: a model folder to fine-tune (its config must be ``model``'s): its weights, a fresh
             optimizer and schedule; validated before the first step, so that ``best/`` is only
             replaced by a better model. A run that left ``OUT/last`` resumes from that instead.
+        trainable: the names of the model's parameters this run trains (the others stay as they start:
+            ``init``'s); empty: all. E.g. a gated blend model's ``geometry_gate_raw`` and ``ao_blend_log``
+            alone: a few scalars that small data and a CPU can fit.
         compile: a ``torch.compile`` mode for a step's forward and losses (their backward follows):
             ``"default"`` or ``"max-autotune-no-cudagraphs"``; "" runs them eagerly. A step of the
             recurrent network, its losses and shadings is hundreds of small kernels, whose launches
@@ -82,6 +85,7 @@ class TrainConfig:
     seed: int = 0
     time_limit_minutes: float = 0.0
     init: str = ""
+    trainable: tuple[str, ...] = ()
     compile: str = ""
 
     def __post_init__(self):
@@ -91,6 +95,9 @@ class TrainConfig:
             raise ValueError(f"lr_schedule must be 'constant' or 'cosine', got {self.lr_schedule!r}")
         if self.batch_size < 1:
             raise ValueError(f"batch_size must be at least 1, got {self.batch_size}")
+        if isinstance(self.trainable, str) or not all(isinstance(name, str) for name in self.trainable):
+            raise ValueError(f"trainable must be a list of parameter names, got {self.trainable!r}")
+        self.trainable = tuple(self.trainable)
 
     def lr_factor(self, step: int) -> float:
         """The learning-rate multiplier at ``step``."""
@@ -147,7 +154,7 @@ class Trainer:
         if config.compile and self.adversarial:
             raise ValueError("compile: a discriminator's own step is not compiled; train adversarial losses eagerly")
         self._forward_losses = torch.compile(self._losses, mode=config.compile) if config.compile else self._losses
-        self.optimizer = torch.optim.Adam(self.net.parameters(), lr=config.lr)
+        self.optimizer = torch.optim.Adam(self._trained(), lr=config.lr)
         d_params = [p for m in self.adversarial for p in m.parameters()]
         self.d_optimizer = torch.optim.Adam(d_params, lr=config.lr_discriminator) if d_params else None
         self.train_set = SequenceDataset(config.data, "train").to(self.device)
@@ -198,6 +205,14 @@ class Trainer:
         self.step, self.best = state["step"], state["best"]
         if self.rank == 0:
             print(f"resuming from {checkpoint.folder} at step {self.step}")
+
+    def _trained(self) -> list[torch.nn.Parameter]:
+        """The parameters the optimizer steps: ``config.trainable``'s (ValueError: a name the model lacks), or all."""
+        named = dict(self.net.named_parameters())
+        missing = [name for name in self.config.trainable if name not in named]
+        if missing:
+            raise ValueError(f"trainable: the model has no parameter {', '.join(missing)} (it has {', '.join(named)})")
+        return [named[name] for name in self.config.trainable] if self.config.trainable else list(named.values())
 
     def _init_from(self, folder: str) -> None:
         """Load the weights of the model folder ``folder`` (ValueError: a model of a config it cannot start

@@ -269,7 +269,8 @@ def test_the_shipped_configs_load():
                                             ("train_recon_x2_history.json", "datagen_recon_x2_history.json"),
                                             ("train_recon_4k.json", "datagen_recon_4k.json"),
                                             ("train_recon_blend.json", "datagen_recon_blend.json"),
-                                            ("train_recon_blend_geo.json", "datagen_recon_blend_geo.json")])
+                                            ("train_recon_blend_geo.json", "datagen_recon_blend_geo.json"),
+                                            ("train_recon_gates.json", "datagen_recon_gates.json")])
 def test_each_reconstruction_config_fits_its_data_config(train, datagen):
     root = Path(__file__).resolve().parents[1] / "configs"
     config, data = load_config(TrainConfig, root / train), load_config(DatagenConfig, root / datagen)
@@ -340,6 +341,25 @@ def test_a_gated_blend_model_fine_tunes_from_a_rays_model_and_trains_its_gates(t
     assert all(torch.isfinite(torch.tensor(v)) for v in logs.values())
     moved = (t.net.gate_logits - gates).abs().max().item()
     assert moved > 10 * t.config.lr, "the logits move GATE_RATE times faster than a weight"
+
+
+def test_a_run_trains_the_parameters_it_names_alone(tmp_path, tmp_path_factory):
+    """``trainable``: the gates and the blend's weight move, every other parameter stays as ``init`` made it; a
+    name the model lacks is refused."""
+    wide = tiny_wide_recon_data(tmp_path_factory)
+    blend = {**TINY_RECON_MODEL, "ao_prior": "blend", "max_ao_rays": 16}
+    save_pretrained(ReconNet(ReconNetConfig(**blend)), tmp_path / "blend")
+    named = ["geometry_gate_raw", "ao_blend_log"]
+    t = trainer(wide, tmp_path / "run", steps=2, model={**blend, "geometry_gate": True}, init=str(tmp_path / "blend"),
+                trainable=named)
+    before = {k: v.detach().clone() for k, v in t.net.named_parameters()}
+    cast = next(t._batches(t.train_set, shuffle=True, epoch=0))
+    cast.lowres[:, :, SAMPLING.start] = 1.0  # AO rays at each hit, so that the blend's weight has a gradient
+    t.train_step(cast)
+    moved = {k for k, v in t.net.named_parameters() if not torch.equal(v, before[k])}
+    assert moved == set(named), moved
+    with pytest.raises(ValueError, match="the model has no parameter gates"):
+        trainer(wide, tmp_path / "other", model=blend, trainable=["gates"])
 
 
 def test_a_reconstruction_model_that_upscales_trains_on_its_data_and_a_full_resolution_one_is_refused(
