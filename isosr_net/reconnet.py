@@ -246,7 +246,7 @@ class ReconNet(nn.Module):
         self.tail = nn.Conv2d(w[0], OUTPUTS * cells, 3, padding=1)  # depth-to-space after it
         if config.ao_prior == "blend":  # the log of the rays its own AO stands for (ao_output)
             self.register_parameter(BLEND_PARAMETER, nn.Parameter(torch.tensor(math.log(BLEND_RAYS_INIT))))
-        if config.geometry_gate:  # per rays per pixel, the logit of its geometry corrections' factor
+        if config.geometry_gate:  # per rays per pixel, its geometry corrections' logit over GATE_RATE
             self.register_parameter(GATE_PARAMETER,
                                     nn.Parameter(torch.full((config.max_spp,), GATE_LOGIT_INIT / GATE_RATE)))
 
