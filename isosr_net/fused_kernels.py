@@ -656,6 +656,7 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
                                  MASK_C=MASK.start, NORMAL_C=NORMAL.start, DEPTH_C=DEPTH.start, AO_C=AO.start,
                                  AO_PRIOR=config.ao_prior != "none", BLEND=config.ao_prior == "blend",
                                  GATED=gates is not None, MAX_SPP=config.max_spp,
-                                 HAS_AO=sources.ao is not None, BUFFERS=as_buffers, SHADE=shading is not None, OUT=OUTPUTS, S=s, CI=ci, CO=co,
+                                 HAS_AO=sources.ao is not None, BUFFERS=as_buffers, SHADE=shading is not None,
+                                 OUT=OUTPUTS, S=s, CI=ci, CO=co,
                                  **FIXED)
     return out, color

@@ -36,7 +36,7 @@ from torch import nn
 from isosr_render.conventions import AO, MASK, SAMPLED_AO, SAMPLING
 from isosr_render.shading import ShadingParams
 from isosr_render.shapes import check_int, check_shape
-from isosr_net.reconnet import INPUTS, LEVELS, OUTPUTS, RECURRENT, ReconNet, ReconNetConfig
+from isosr_net.reconnet import INPUTS, LEVELS, OUTPUTS, RECURRENT, ReconNet, ReconNetConfig, blend_rays_at
 
 PACKED = 16  # the packed input's channels (isosr_net.fused_kernels.PACKED): 10 used (x2: 16)
 
@@ -245,7 +245,7 @@ class FusedReconNet(nn.Module):
         (``out``; a blend model's weight at ``ray_factor``, as :meth:`ReconNet.forward`'s).
         """
         k = _kernels()
-        blend_rays = None if self.blend_rays is None else self.blend_rays / ray_factor
+        blend_rays = blend_rays_at(self.blend_rays, ray_factor)
         results: dict[str, torch.Tensor] = {}
         passes: list[tuple[str, Callable[[], None]]] = []
 

@@ -183,6 +183,13 @@ def ao_output(raw_ao: torch.Tensor, inputs: torch.Tensor, config: ReconNetConfig
     return weight * mean + (1 - weight) * corrected
 
 
+def blend_rays_at(blend_rays: torch.Tensor | float | None, ray_factor: float) -> torch.Tensor | float | None:
+    """What a blend model's own AO stands for beside a mean of ``ray_factor`` times the rays its sampling
+    channels count: ``k / ray_factor`` (the weight ``n r / (n r + k)`` of :func:`ao_output` as ``n / (n + k / r)``);
+    None for other priors."""
+    return None if blend_rays is None else blend_rays / ray_factor
+
+
 def geometry_gate(logits: torch.Tensor, inputs: torch.Tensor, config: ReconNetConfig) -> torch.Tensor:
     """The factor of each frame's mask and normal corrections: ``sigmoid(logits[spp - 1])``, ``spp`` its rays
     per pixel read from its sampling channel (rounded, within ``[1, max_spp]``; a non-finite one reads as
@@ -278,7 +285,7 @@ class ReconNet(nn.Module):
         gate = 1.0 if self.gate_logits is None else geometry_gate(self.gate_logits, inputs, self.config)
         mask = (base[:, MASK] + gate * raw[:, MASK]).clamp(0.0, 1.0)
         normal = base[:, NORMAL] + gate * raw[:, NORMAL]
-        ao = ao_output(raw[:, AO], base, self.config, None if self.blend_rays is None else self.blend_rays / ray_factor)
+        ao = ao_output(raw[:, AO], base, self.config, blend_rays_at(self.blend_rays, ray_factor))
         # Depth passes through: the render found it (shading does not read it).
         return torch.cat([mask, normal, base[:, DEPTH], ao], dim=1)
 
