@@ -37,7 +37,7 @@ from isosr_net.reconnet import (AO_PRIORS, BLEND_PARAMETER, GATE_PARAMETER, GATE
                                 ao_output, geometry_gate, upsampled_inputs)
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, Reconstructor
 
-from test_reconnet import recon_batch
+from test_reconnet import recon_batch, same_weights
 
 DEVICE = "cpu" if os.environ.get("TRITON_INTERPRET") == "1" else "cuda"
 if not fused_runs_on(DEVICE):
@@ -512,8 +512,7 @@ def test_a_fused_gated_model_equals_reconnet(spp):
     """A blend model with gated geometry (gates 0.88, 0.27, 0.62, 0.05 by rays per pixel): fused equals ReconNet
     at 1 and 4 rays per pixel (padded from one pixel to 8 x 8)."""
     base, _ = shipped_under("blend")
-    net = ReconNet(dataclasses.replace(base.config, geometry_gate=True)).to(DEVICE).eval()
-    net.load_state_dict(base.state_dict(), strict=False)
+    net = same_weights(base, geometry_gate=True)
     with torch.no_grad():
         getattr(net, GATE_PARAMETER).copy_(torch.tensor([2.0, -1.0, 0.5, -3.0]) / GATE_RATE)
     fused = fused_reconnet(net)

@@ -45,6 +45,14 @@ def net(seed: int = 0, **config) -> ReconNet:
     return ReconNet(ReconNetConfig(**config)).eval()
 
 
+def same_weights(model: ReconNet, **changes) -> ReconNet:
+    """A ReconNet of ``model``'s config with ``changes``, holding ``model``'s weights (those both have; its own
+    extra parameters at their start), on its device."""
+    twin = ReconNet(replace(model.config, **changes)).to(next(model.parameters()).device).eval()
+    twin.load_state_dict(model.state_dict(), strict=False)
+    return twin
+
+
 # ---------------------------------------------------------------- the network
 
 
@@ -204,8 +212,7 @@ def test_with_many_rays_a_blend_model_converges_to_the_rays_mean_whatever_its_ta
         model.ao_blend_log.fill_(math.log(16.0 / 100))  # 100 times the rays against it
         closer = (model(inputs, model.first_previous(inputs))[:, AO] - mean).abs().max().item()
     assert off <= 16 / (64 + 16) + 1e-6 and closer <= 0.16 / 64.16 + 1e-6 and closer < off / 50
-    rays = net(ao_prior="rays", max_ao_rays=16)
-    rays.load_state_dict({k: v for k, v in model.state_dict().items() if k != "ao_blend_log"})
+    rays = same_weights(model, ao_prior="rays")
     with torch.no_grad():
         assert (rays(inputs, rays.first_previous(inputs))[:, AO] - mean).abs().max().item() > 0.3
 
@@ -216,8 +223,7 @@ def test_a_blend_model_counts_the_rays_fed_past_what_it_reads_in_float64():
     network's own); a "rays" model's output does not depend on the factor."""
     model = net(ao_prior="blend", max_ao_rays=16)
     torch.nn.init.constant_(model.tail.bias, 4.0)  # a tail far off, so that the weight shows
-    rays = net(ao_prior="rays", max_ao_rays=16)
-    rays.load_state_dict({k: v for k, v in model.state_dict().items() if k != "ao_blend_log"})
+    rays = same_weights(model, ao_prior="rays")
     inputs = recon_batch(b=1, ao_rays=16, spp=4, limits=model.config.limits)
     warped, mean, k = model.first_previous(inputs), inputs[:, SAMPLED_AO].double(), model.blend_rays.item()
     with torch.no_grad():
@@ -233,8 +239,8 @@ def test_a_gated_model_scales_each_frame_s_geometry_corrections_by_its_rays_per_
     """geometry_gate: in one batch, a frame at 1 ray per pixel and one at 4 take their own gates (sigmoid of
     the logits), on the mask and normal corrections alone (float64 from the ungated twin's tail); at the
     gates' start (logit 6) the output is the ungated one within 0.3% of each correction."""
-    gated, plain = net(ao_prior="rays", max_ao_rays=16, geometry_gate=True), net(ao_prior="rays", max_ao_rays=16)
-    plain.load_state_dict({k: v for k, v in gated.state_dict().items() if k != GATE_PARAMETER})
+    gated = net(ao_prior="rays", max_ao_rays=16, geometry_gate=True)
+    plain = same_weights(gated, geometry_gate=False)
     inputs = torch.cat([recon_batch(b=1, ao_rays=4, spp=s, seed=s, limits=gated.config.limits) for s in (1, 4)])
     warped, raws = plain.first_previous(inputs), []
     plain.tail.register_forward_hook(lambda module, args, out: raws.append(out.double()))
