@@ -298,7 +298,8 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, s
                  albedo_b, ambient,
                  diffuse, specular, shininess, light_x, light_y, light_z, half_x, half_y, half_z, back_r, back_g, back_b,
                  MASK_C: tl.constexpr, NORMAL_C: tl.constexpr, DEPTH_C: tl.constexpr, AO_C: tl.constexpr,
-                 AO_PRIOR: tl.constexpr, BLEND: tl.constexpr, GATED: tl.constexpr, MAX_SPP: tl.constexpr,
+                 AO_PRIOR: tl.constexpr, BLEND: tl.constexpr, BLEND_MAP: tl.constexpr, GATED: tl.constexpr,
+                 MAX_SPP: tl.constexpr,
                  HAS_AO: tl.constexpr, BUFFERS: tl.constexpr,
                  SHADE: tl.constexpr, OUT: tl.constexpr, S: tl.constexpr, CI: tl.constexpr, CO: tl.constexpr,
                  BLOCK_M: tl.constexpr):
@@ -344,7 +345,11 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, s
             p = (n * rays + 0.5) / (n + 1.0)
             ao = tl.minimum(p / (p + (1.0 - p) * tl.exp(-raw_ao)), 1.0)  # fast division: p / p can pass 1
             if BLEND:  # the rays' mean and the network's AO by the rays each stands for (ao_output)
-                ao = tl.minimum((n * rays + blend_rays * ao) / tl.maximum(n + blend_rays, 1e-12), 1.0)
+                k = blend_rays
+                if BLEND_MAP:  # its per-pixel log-offset, in the depth rows (fused_recon.tail_convolution)
+                    k = blend_rays * tl.exp(_column(raw, c, DEPTH_C * S * S + cell))
+                weight = n / tl.maximum(n + k, 1e-12)  # an infinite k: the network's AO alone
+                ao = tl.minimum(weight * rays + (1.0 - weight) * ao, 1.0)
         if BUFFERS:  # isosr_net.inference.buffer_stack: unit normals and depth where covered, else 0
             covered = mask > 0
             length = tl.maximum(tl.sqrt(nx * nx + ny * ny + nz * nz), 1e-6)
@@ -593,7 +598,7 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
     Args:
         y: the last decoder level's features, NHWC fp16, padded past the frame.
         weight, bias: the output convolution as for :func:`conv3x3`, CO padded to 16 (6 used; x2:
-            32, 24 used).
+            32, 24 used); a ``blend_map`` model's map in its depth rows (``fused_recon.tail_convolution``).
         sources: the network's inputs (mask, normal and depth read; with ``config.ao_prior``
             "rays" or "blend" the sampled AO and the sampling too).
         config: the network's config (its upscale, AO prior and ray limits, as
@@ -655,6 +660,7 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
                                  params.diffuse, params.specular, params.shininess, *light, *half, *params.background,
                                  MASK_C=MASK.start, NORMAL_C=NORMAL.start, DEPTH_C=DEPTH.start, AO_C=AO.start,
                                  AO_PRIOR=config.ao_prior != "none", BLEND=config.ao_prior == "blend",
+                                 BLEND_MAP=config.blend_map,
                                  GATED=gates is not None, MAX_SPP=config.max_spp,
                                  HAS_AO=sources.ao is not None, BUFFERS=as_buffers, SHADE=shading is not None,
                                  OUT=OUTPUTS, S=s, CI=ci, CO=co,

@@ -33,7 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from isosr_render.conventions import AO, MASK, SAMPLED_AO, SAMPLING
+from isosr_render.conventions import AO, DEPTH, MASK, SAMPLED_AO, SAMPLING
 from isosr_render.shading import ShadingParams
 from isosr_render.shapes import check_int, check_shape
 from isosr_net.reconnet import INPUTS, LEVELS, OUTPUTS, RECURRENT, ReconNet, ReconNetConfig, blend_rays_at
@@ -89,10 +89,25 @@ def tap_weights(weight: torch.Tensor, ci: int, co: int) -> torch.Tensor:
     return taps.half().contiguous()
 
 
-def _padded_bias(conv: nn.Conv2d, co: int) -> torch.Tensor:
-    bias = conv.bias.detach().float().new_zeros(co)
-    bias[:conv.out_channels] = conv.bias.detach()
-    return bias
+def _padded_bias(bias: torch.Tensor, co: int) -> torch.Tensor:
+    padded = bias.detach().float().new_zeros(co)
+    padded[:len(bias)] = bias.detach()
+    return padded
+
+
+def tail_convolution(net: ReconNet) -> tuple[torch.Tensor, torch.Tensor]:
+    """The tail's weights and bias as the fused tail reads them: a ``blend_map`` model's map in the depth rows
+    (depth passes through, so the tail's depth outputs are otherwise unread).
+
+    Shape:
+        Returns weight (Co, Ci, 3, 3), bias (Co,), as ``net.tail``'s.
+    """
+    weight, bias = net.tail.weight.detach().clone(), net.tail.bias.detach().clone()
+    if net.config.blend_map:
+        cells = net.config.upscale ** 2
+        rows = slice(DEPTH.start * cells, DEPTH.stop * cells)
+        weight[rows], bias[rows] = net.ao_blend_map.weight.detach(), net.ao_blend_map.bias.detach()
+    return weight, bias
 
 
 class FusedConv(nn.Module):
@@ -107,7 +122,7 @@ class FusedConv(nn.Module):
         super().__init__()
         self.stride, self.relu = conv.stride[0], relu
         self.register_buffer("weight", tap_weights(conv.weight, ci, co))
-        self.register_buffer("bias", _padded_bias(conv, co))
+        self.register_buffer("bias", _padded_bias(conv.bias, co))
 
     def forward(self, x: torch.Tensor, residual: torch.Tensor | None = None) -> torch.Tensor:
         return _kernels().conv3x3(x, self.weight, self.bias, stride=self.stride, relu=self.relu, residual=residual)
@@ -159,8 +174,9 @@ class FusedReconNet(nn.Module):
         self.up = nn.ModuleList(FusedUpsample(reduce) for reduce in net.reduce)
         self.fuse = nn.ModuleList(FusedConv(conv, widths[i], widths[i]) for i, conv in enumerate(net.fuse))
         tail = max(PACKED, 1 << (net.tail.out_channels - 1).bit_length())  # a power of 2: 16, or 32 for x2
-        self.register_buffer("tail_w", tap_weights(net.tail.weight, widths[0], tail))
-        self.register_buffer("tail_b", _padded_bias(net.tail, tail))
+        weight, bias = tail_convolution(net)
+        self.register_buffer("tail_w", tap_weights(weight, widths[0], tail))
+        self.register_buffer("tail_b", _padded_bias(bias, tail))
         # a blend model's weight as a host number: the tail reads it with no sync (inference: it is fixed)
         self.blend_rays = None if net.blend_rays is None else net.blend_rays.item()
         logits = net.gate_logits  # the geometry corrections' factors, read by the tail on the device

@@ -48,6 +48,8 @@ AO_PRIORS = ("none", "rays", "blend")
 # The rays a "blend" model's own AO stands for at the start of its training (BLEND_PARAMETER: its log).
 BLEND_RAYS_INIT = 16.0
 BLEND_PARAMETER = "ao_blend_log"
+# A "blend_map" model's per-pixel log-offset of that weight: a 3x3 conv of the tail's features (zero at the start).
+BLEND_MAP = "ao_blend_map"
 # A gated model's mask and normal corrections, per rays per pixel: the sigmoid of GATE_RATE times its parameter
 # (GATE_PARAMETER), at the start of its training nearly 1 (the corrections as the model it starts from made
 # them). GATE_RATE: Adam moves a parameter by about the learning rate a step, the logits by GATE_RATE times that
@@ -117,6 +119,9 @@ class ReconNetConfig:
         geometry_gate: the mask and normal corrections scaled by a learned gate per rays per pixel
             (:func:`geometry_gate`): where the input's geometry is as good as the target's (as many rays
             per pixel), they can fade.
+        blend_map: with ``ao_prior="blend"``, the rays the network's AO stands for per pixel: its learned
+            ``k`` times ``exp`` of a map from the tail's features (how far the network trusts itself where it
+            sees the surface; ``k`` alone at the start).
         upscale: output over input resolution (:data:`UPSCALES`): 2 reconstructs a frame rendered
             at half the output's sides (:func:`upsampled_inputs` is the base its output corrects).
     """
@@ -130,6 +135,7 @@ class ReconNetConfig:
     max_spp: int = 4
     upscale: int = 1
     geometry_gate: bool = False
+    blend_map: bool = False
 
     def __post_init__(self):
         object.__setattr__(self, "widths", tuple(self.widths))
@@ -145,8 +151,11 @@ class ReconNetConfig:
         RayLimits(self.max_ao_rays, self.max_spp)  # raises for bad limits
         if self.upscale not in UPSCALES:
             raise ValueError(f"upscale must be one of {UPSCALES}, got {self.upscale}")
-        if not isinstance(self.geometry_gate, bool):
-            raise ValueError(f"geometry_gate must be true or false, got {self.geometry_gate!r}")
+        for flag in ("geometry_gate", "blend_map"):
+            if not isinstance(getattr(self, flag), bool):
+                raise ValueError(f"{flag} must be true or false, got {getattr(self, flag)!r}")
+        if self.blend_map and self.ao_prior != "blend":
+            raise ValueError(f"blend_map weighs a blend model's AO: it needs ao_prior 'blend', got {self.ao_prior!r}")
 
     @property
     def limits(self) -> RayLimits:
@@ -163,11 +172,13 @@ def ao_output(raw_ao: torch.Tensor, inputs: torch.Tensor, config: ReconNetConfig
     ``n = ao_rays * spp`` rays behind it (from the sampling channels and ``config.limits``): never
     0 or 1, 0.5 without rays (today's sigmoid), so with many rays the network only corrects.
     ``"blend"``: ``w a + (1 - w) o`` with ``w = n / (n + k)``, the two estimates weighted by the rays each
-    stands for (inverse variance), ``k = blend_rays`` the network's own (learned): with many rays the
-    output converges to the rays' mean, the plain render's AO; with none it is ``o``.
+    stands for (inverse variance), ``k = blend_rays`` the network's own (learned; per pixel with
+    ``blend_map``): with many rays the output converges to the rays' mean, the plain render's AO; with none
+    it is ``o``.
 
     Shape:
-        raw_ao: (B, 1, H, W). inputs: (B, 8, H, W). blend_rays: () (with "blend"). Returns (B, 1, H, W).
+        raw_ao: (B, 1, H, W). inputs: (B, 8, H, W). blend_rays: () or (B, 1, H, W) (with "blend").
+        Returns (B, 1, H, W).
     """
     if config.ao_prior == "none":
         return torch.sigmoid(raw_ao)
@@ -253,6 +264,10 @@ class ReconNet(nn.Module):
         self.tail = nn.Conv2d(w[0], OUTPUTS * cells, 3, padding=1)  # depth-to-space after it
         if config.ao_prior == "blend":  # the log of the rays its own AO stands for (ao_output)
             self.register_parameter(BLEND_PARAMETER, nn.Parameter(torch.tensor(math.log(BLEND_RAYS_INIT))))
+        if config.blend_map:  # its per-pixel log-offset, from the tail's features; zero: k alone
+            self.add_module(BLEND_MAP, nn.Conv2d(w[0], cells, 3, padding=1))
+            nn.init.zeros_(self.ao_blend_map.weight)
+            nn.init.zeros_(self.ao_blend_map.bias)
         if config.geometry_gate:  # per rays per pixel, its geometry corrections' logit over GATE_RATE
             self.register_parameter(GATE_PARAMETER,
                                     nn.Parameter(torch.full((config.max_spp,), GATE_LOGIT_INIT / GATE_RATE)))
@@ -285,7 +300,11 @@ class ReconNet(nn.Module):
         gate = 1.0 if self.gate_logits is None else geometry_gate(self.gate_logits, inputs, self.config)
         mask = (base[:, MASK] + gate * raw[:, MASK]).clamp(0.0, 1.0)
         normal = base[:, NORMAL] + gate * raw[:, NORMAL]
-        ao = ao_output(raw[:, AO], base, self.config, blend_rays_at(self.blend_rays, ray_factor))
+        blend_rays = self.blend_rays
+        if self.config.blend_map:
+            offset = self.ao_blend_map(y)[..., :h, :w].float()
+            blend_rays = blend_rays * torch.exp(F.pixel_shuffle(offset, s) if s > 1 else offset)
+        ao = ao_output(raw[:, AO], base, self.config, blend_rays_at(blend_rays, ray_factor))
         # Depth passes through: the render found it (shading does not read it).
         return torch.cat([mask, normal, base[:, DEPTH], ao], dim=1)
 

@@ -523,6 +523,27 @@ def test_a_fused_gated_model_equals_reconnet(spp):
     torch.testing.assert_close(got, reference(net, inputs, warped)[0], rtol=0, atol=2e-3)
 
 
+@pytest.mark.parametrize("spp", [1, 4])
+def test_a_fused_blend_map_model_equals_reconnet(spp):
+    """A blend model with a per-pixel weight (``blend_map``: its conv in the tail's depth rows) and gates: fused
+    equals ReconNet (16 x 24, a map varying over it), its depth still the input's."""
+    base, _ = shipped_under("blend")
+    net = same_weights(base, geometry_gate=True, blend_map=True)
+    with torch.no_grad():
+        weight = net.ao_blend_map.weight
+        weight.copy_(0.3 * torch.randn(weight.shape, generator=torch.Generator().manual_seed(27)))
+        net.ao_blend_map.bias.fill_(1.0)
+    fused = fused_reconnet(net)
+    inputs = recon_batch(1, 16, 24, ao_rays=4, spp=spp, seed=28, limits=net.config.limits).to(DEVICE)
+    warped = rand(1, 6, 16, 24, seed=29).sigmoid()
+    with torch.no_grad():
+        got = fused(inputs, warped)
+        unmapped = fused_reconnet(same_weights(net, blend_map=False))(inputs, warped)
+    torch.testing.assert_close(got, reference(net, inputs, warped)[0], rtol=0, atol=2e-3)
+    torch.testing.assert_close(got[:, DEPTH], inputs[:, DEPTH], rtol=0, atol=0)
+    assert (got[:, AO] - unmapped[:, AO]).abs().max() > 1e-2  # the map changed the AO
+
+
 @pytest.mark.parametrize("blocks", [0, 1])
 def test_other_architectures_fuse_too(blocks):
     """Without residual blocks, or with one; widths other than the shipped."""

@@ -258,6 +258,37 @@ def test_a_gated_model_scales_each_frame_s_geometry_corrections_by_its_rays_per_
         ReconNetConfig(geometry_gate="yes")
 
 
+def test_a_blend_map_weighs_each_pixel_by_its_own_rays_in_float64():
+    """blend_map: ``k exp(m)`` per pixel, ``m`` the map's 3x3 conv of the tail's features: at its start (zero)
+    the output is the scalar blend's exactly; with a map set, ``w = n / (n + k exp(m))`` against float64 from
+    the "rays" twin's AO (the network's own) and the map's output; a saturated map gives the mean or the
+    network's AO, finite; a map needs a blend model."""
+    model = net(ao_prior="blend", max_ao_rays=16, blend_map=True)
+    torch.nn.init.constant_(model.tail.bias, 2.0)  # the network's AO off the mean, so that the weight shows
+    scalar, rays = same_weights(model, blend_map=False), same_weights(model, ao_prior="rays", blend_map=False)
+    inputs = recon_batch(b=2, ao_rays=4, spp=2, limits=model.config.limits)
+    warped, mean, maps = model.first_previous(inputs), inputs[:, SAMPLED_AO].double(), []
+    model.ao_blend_map.register_forward_hook(lambda module, args, out: maps.append(out.double()))
+    with torch.no_grad():
+        assert torch.equal(model(inputs, warped), scalar(inputs, warped))
+        torch.nn.init.normal_(model.ao_blend_map.weight, std=0.5, generator=torch.Generator().manual_seed(5))
+        out, own = model(inputs, warped)[:, AO].double(), rays(inputs, warped)[:, AO].double()
+        n, k = 8.0, model.blend_rays.item()
+        weight = n / (n + k * maps[-1].exp())
+        assert maps[-1].std() > 0.1  # the weight varies over the frame
+        torch.testing.assert_close(out, weight * mean + (1 - weight) * own, rtol=0, atol=1e-6)
+        for bias, expected in ((-1e4, mean), (1e4, own)):
+            torch.nn.init.zeros_(model.ao_blend_map.weight)
+            torch.nn.init.constant_(model.ao_blend_map.bias, bias)
+            pinned = model(inputs, warped)[:, AO].double()
+            assert torch.isfinite(pinned).all()
+            torch.testing.assert_close(pinned, expected, rtol=0, atol=1e-6)
+    with pytest.raises(ValueError, match="blend_map weighs a blend model's AO"):
+        ReconNetConfig(ao_prior="rays", blend_map=True)
+    with pytest.raises(ValueError, match="blend_map must be true or false"):
+        ReconNetConfig(ao_prior="blend", blend_map=1)
+
+
 def test_a_blend_model_learns_its_weight_and_fine_tunes_from_a_rays_model(tmp_path):
     model = net(ao_prior="blend", max_ao_rays=16).train()
     inputs = recon_batch(b=1, ao_rays=4, spp=1, limits=model.config.limits)

@@ -270,15 +270,17 @@ def test_the_shipped_configs_load():
                                             ("train_recon_4k.json", "datagen_recon_4k.json"),
                                             ("train_recon_blend.json", "datagen_recon_blend.json"),
                                             ("train_recon_blend_geo.json", "datagen_recon_blend_geo.json"),
-                                            ("train_recon_gates.json", "datagen_recon_gates.json")])
+                                            ("train_recon_gates.json", "datagen_recon_gates.json"),
+                                            ("train_recon_shipped_gates.json", "datagen_recon_shipped_gates.json"),
+                                            ("train_recon_map.json", "datagen_recon_map.json")])
 def test_each_reconstruction_config_fits_its_data_config(train, datagen):
     root = Path(__file__).resolve().parents[1] / "configs"
     config, data = load_config(TrainConfig, root / train), load_config(DatagenConfig, root / datagen)
     model = build_model(config.model).config
-    if config.init:  # a project-relative model folder of this config (a blend model's: over the rays; a gated one's
-        start = load_pretrained(root.parent / config.init)[0].config  # without its gates)
-        assert start in (model, replace(model, geometry_gate=False),
-                         *((replace(model, ao_prior="rays"),) if model.ao_prior == "blend" else ()))
+    if config.init:  # a project-relative model folder of this config (a blend model's: over the rays; a gated or
+        start = load_pretrained(root.parent / config.init)[0].config  # mapped one's: without its gates or map)
+        assert start.ao_prior in (model.ao_prior, "rays") and replace(
+            start, ao_prior=model.ao_prior, geometry_gate=model.geometry_gate, blend_map=model.blend_map) == model
     assert model.limits == data.limits and model.upscale == data.upscale and data.recon_inputs
     assert max(data.input_ao_rays) == data.max_ao_rays and max(data.input_spp) == data.max_spp
     run = train.removeprefix("train_").removesuffix(".json")  # scripts/train_recon.sh's RUN
@@ -344,14 +346,15 @@ def test_a_gated_blend_model_fine_tunes_from_a_rays_model_and_trains_its_gates(t
 
 
 def test_a_run_trains_the_parameters_it_names_alone(tmp_path, tmp_path_factory):
-    """``trainable``: the gates and the blend's weight move, every other parameter stays as ``init`` made it; a
-    name the model lacks is refused."""
+    """``trainable``: the gates, the blend's weight and its map (a model with them started from a blend model
+    without) move, every other parameter stays as ``init`` made it; a name the model lacks is refused."""
     wide = tiny_wide_recon_data(tmp_path_factory)
     blend = {**TINY_RECON_MODEL, "ao_prior": "blend", "max_ao_rays": 16}
     save_pretrained(ReconNet(ReconNetConfig(**blend)), tmp_path / "blend")
-    named = ["geometry_gate_raw", "ao_blend_log"]
-    t = trainer(wide, tmp_path / "run", steps=2, model={**blend, "geometry_gate": True}, init=str(tmp_path / "blend"),
-                trainable=named)
+    named = ["geometry_gate_raw", "ao_blend_log", "ao_blend_map.weight", "ao_blend_map.bias"]
+    t = trainer(wide, tmp_path / "run", steps=2, model={**blend, "geometry_gate": True, "blend_map": True},
+                init=str(tmp_path / "blend"), trainable=named)
+    assert not t.net.ao_blend_map.weight.any() and not t.net.ao_blend_map.bias.any()  # the map at its start
     before = {k: v.detach().clone() for k, v in t.net.named_parameters()}
     cast = next(t._batches(t.train_set, shuffle=True, epoch=0))
     cast.lowres[:, :, SAMPLING.start] = 1.0  # AO rays at each hit, so that the blend's weight has a gradient
