@@ -265,9 +265,10 @@ class ReconNet(nn.Module):
         if config.ao_prior == "blend":  # the log of the rays its own AO stands for (ao_output)
             self.register_parameter(BLEND_PARAMETER, nn.Parameter(torch.tensor(math.log(BLEND_RAYS_INIT))))
         if config.blend_map:  # its per-pixel log-offset, from the tail's features; zero: k alone
-            self.add_module(BLEND_MAP, nn.Conv2d(w[0], cells, 3, padding=1))
-            nn.init.zeros_(self.ao_blend_map.weight)
-            nn.init.zeros_(self.ao_blend_map.bias)
+            offset = nn.Conv2d(w[0], cells, 3, padding=1)
+            nn.init.zeros_(offset.weight)
+            nn.init.zeros_(offset.bias)
+            self.add_module(BLEND_MAP, offset)
         if config.geometry_gate:  # per rays per pixel, its geometry corrections' logit over GATE_RATE
             self.register_parameter(GATE_PARAMETER,
                                     nn.Parameter(torch.full((config.max_spp,), GATE_LOGIT_INIT / GATE_RATE)))
