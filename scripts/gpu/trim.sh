@@ -2,10 +2,10 @@
 # Thin the working tree under what a device run carries (64 MiB with the GPU kit's part b): `trim.sh out` parks
 # what the GPU runs do not read (results, docs, checkpoints, earlier models) in /tmp/isosr-trimmed, `trim.sh back`
 # returns it; `out` also writes the commit into .gpu/HEAD, which the runs carry for their results (the copy there
-# has no .git). Commit nothing in between. A model under test travels (checkpoints/recon_blend/best).
+# has no .git). Commit nothing in between. The model under test travels (checkpoints/recon_shipped_gates/best).
 set -euo pipefail
 cd "$(git rev-parse --show-toplevel)"
-parked=(checkpoints/recon_4k checkpoints/recon_blend/last benchmarks docs examples deploy isosr_net/recon_model_v1
+parked=(checkpoints/recon_4k checkpoints/recon_blend checkpoints/recon_gates benchmarks docs examples deploy isosr_net/recon_model_v1
         isosr_net/recon_model_v2 isosr_net/recon_model_v3)
 case "${1:?out or back}" in
     out) mkdir -p .gpu && git rev-parse --short HEAD > .gpu/HEAD
