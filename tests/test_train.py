@@ -308,13 +308,20 @@ def test_a_reconstruction_model_over_the_rays_trains_with_the_temporal_loss_and_
         trainer(wide, tmp_path / "other", model=dict(TINY_RECON_MODEL))
 
 
+def saved_wide_model(folder: Path, **config) -> tuple[dict, ReconNet]:
+    """A tiny ReconNet over 16 AO rays of ``config`` (TINY_RECON_MODEL's, changed), saved in ``folder``, for a run to
+    start from: ``(its config as a run's model takes it, the model)``."""
+    model = {**TINY_RECON_MODEL, "max_ao_rays": 16, **config}
+    source = ReconNet(ReconNetConfig(**model))
+    save_pretrained(source, folder)
+    return model, source
+
+
 def test_a_blend_model_fine_tunes_from_a_rays_model_and_trains_its_weight(tmp_path, tmp_path_factory):
     """ao_prior "blend" starts from a "rays" model of the same config (its weights, the blend at its first
     value) and trains the blend's weight with the rest; a model of another config stays refused."""
     wide = tiny_wide_recon_data(tmp_path_factory)
-    rays = {**TINY_RECON_MODEL, "ao_prior": "rays", "max_ao_rays": 16}
-    source = ReconNet(ReconNetConfig(**rays))
-    save_pretrained(source, tmp_path / "rays")
+    rays, source = saved_wide_model(tmp_path / "rays", ao_prior="rays")
     t = trainer(wide, tmp_path / "run", steps=2, model={**rays, "ao_prior": "blend"}, init=str(tmp_path / "rays"))
     assert all(torch.equal(v, t.net.state_dict()[k]) for k, v in source.state_dict().items())
     blend = t.net.ao_blend_log.detach().clone()
@@ -331,9 +338,7 @@ def test_a_gated_blend_model_fine_tunes_from_a_rays_model_and_trains_its_gates(t
     """geometry_gate: a model with the gates starts from one without (its weights, the gates at their start,
     nearly 1) and trains the gates of the batch's rays per pixel with the rest."""
     wide = tiny_wide_recon_data(tmp_path_factory)
-    rays = {**TINY_RECON_MODEL, "ao_prior": "rays", "max_ao_rays": 16}
-    source = ReconNet(ReconNetConfig(**rays))
-    save_pretrained(source, tmp_path / "rays")
+    rays, source = saved_wide_model(tmp_path / "rays", ao_prior="rays")
     t = trainer(wide, tmp_path / "run", steps=2, model={**rays, "ao_prior": "blend", "geometry_gate": True},
                 init=str(tmp_path / "rays"))
     assert all(torch.equal(v, t.net.state_dict()[k]) for k, v in source.state_dict().items())
@@ -349,8 +354,7 @@ def test_a_run_trains_the_parameters_it_names_alone(tmp_path, tmp_path_factory):
     """``trainable``: the gates, the blend's weight and its map (a model with them started from a blend model
     without) move, every other parameter stays as ``init`` made it; a name the model lacks is refused."""
     wide = tiny_wide_recon_data(tmp_path_factory)
-    blend = {**TINY_RECON_MODEL, "ao_prior": "blend", "max_ao_rays": 16}
-    save_pretrained(ReconNet(ReconNetConfig(**blend)), tmp_path / "blend")
+    blend, _ = saved_wide_model(tmp_path / "blend", ao_prior="blend")
     named = ["geometry_gate_raw", "ao_blend_log", "ao_blend_map.weight", "ao_blend_map.bias"]
     t = trainer(wide, tmp_path / "run", steps=2, model={**blend, "geometry_gate": True, "blend_map": True},
                 init=str(tmp_path / "blend"), trainable=named)
