@@ -8,7 +8,10 @@ cd "$(git rev-parse --show-toplevel)"
 parked=(checkpoints/recon_4k checkpoints/recon_blend checkpoints/recon_gates benchmarks docs examples deploy isosr_net/recon_model_v1
         isosr_net/recon_model_v2 isosr_net/recon_model_v3)
 case "${1:?out or back}" in
-    out) mkdir -p .gpu && git rev-parse --short HEAD > .gpu/HEAD
+    out) for p in "${parked[@]}"; do  # a path parked already would be moved into it, and come back nested
+             [ ! -e "/tmp/isosr-trimmed/$p" ] || { echo "/tmp/isosr-trimmed/$p exists: 'back' first" >&2; exit 2; }
+         done
+         mkdir -p .gpu && git rev-parse --short HEAD > .gpu/HEAD
          for p in "${parked[@]}"; do mkdir -p "$(dirname "/tmp/isosr-trimmed/$p")"; [ ! -e "$p" ] || mv "$p" "/tmp/isosr-trimmed/$p"; done ;;
     back) for p in "${parked[@]}"; do [ ! -e "/tmp/isosr-trimmed/$p" ] || mv "/tmp/isosr-trimmed/$p" "$p"; done ;;
     *) echo "unknown step $1 (out or back)" >&2; exit 2 ;;
