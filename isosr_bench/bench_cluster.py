@@ -5,6 +5,7 @@
         --replicas 0,1,2,4 --sessions 16,32,64 --failover-sessions 32      # one replica per GPU
     CUDA_VISIBLE_DEVICES=0 python -m isosr_bench.bench_cluster --device cuda --volume bonsai \
         --gpus-per-replica split --replicas 1,2,4 --sessions 16            # N replicas on one GPU
+    (with `nvidia-cuda-mps-control -d` started before: the same under MPS)
     python -m isosr_bench.bench_cluster --smoke                            # small, CPU
 
 Results: ``OUT/bench_cluster_<size>_<device>.json`` (``--gpus-per-replica`` of 1
@@ -17,7 +18,8 @@ Per server (``--replicas``: 0 is the plain single process, N > 0 is N replicas o
 (``full`` without AO, ``reconstruct`` at 1 AO ray, ``auto``) and session count: frames/s in
 total and per session and latency p50/p99, as :func:`isosr_bench.sessions.run_sessions`
 measures them (sessions dealt to ``--client-processes``), the methods the frames name (``auto``:
-what it chose), which replicas made them, the GPUs the server holds (``gpus``), and over the
+what it chose), which replicas made them, the GPUs the server holds (``gpus``), whether an MPS
+daemon ran (``mps``: replicas sharing a GPU run their kernels together under it), and over the
 timed span (:class:`isosr_bench.load.LoadSampler`) each GPU's busy fraction, the CPU cores
 of the server's process, Serve's proxy and the replicas, and the plain server's device thread's
 share of the span in jobs (``device_thread_busy``, from its ``GET /metrics``): a replica's
@@ -52,6 +54,7 @@ from isosr_bench.sessions import run_sessions
 from isosr_client.drive import Orbit
 from isosr_client.view import connect
 from isosr_server.protocol import IMAGE_ENCODINGS, VIDEO_ENCODINGS
+from isosr_server.replica import mps_running
 from isosr_server.views import VIEWS
 
 CASES = (("full", 0), ("reconstruct", 1), ("auto", 0))
@@ -246,13 +249,14 @@ def main(argv: list[str] | None = None) -> None:
     name = f"bench_cluster{kind}_{size_name}" + ("" if args.encoding == "jpeg" else f"_{args.encoding}")
     path = args.out / f"{name}_{'cuda' if args.device.startswith('cuda') else 'cpu'}.json"
     stamp = {"device": device_name(args.device), "commit": commit(), "lease": args.lease}
+    mps = args.device.startswith("cuda") and mps_running()  # replicas sharing a GPU: together, or taking turns
     merged = merge(path, [], {(server, args.lease) for server, *_ in measured})  # the other servers' rows of earlier runs
     for server_name, server_replicas, gpus, extra in measured:
         cases = [(mode, ao, n) for mode, ao in modes for n in counts]
         failover_sessions = args.failover_sessions if server_name == failover_on else 0
         for row in measure_server(server_name, args.device, options + extra, cases, failover_sessions,
                                   volume, size, seconds, args.client_processes, args.encoding):
-            merged.append(dict(row, replicas=server_replicas, gpus=gpus, encoding=args.encoding, **stamp))
+            merged.append(dict(row, replicas=server_replicas, gpus=gpus, encoding=args.encoding, mps=mps, **stamp))
             # Written after every row: a run cut off (a device call's time limit) keeps what it measured.
             scaled = scaling(merged)
             written = write_result(name, args.device, merged + scaled, args.out)

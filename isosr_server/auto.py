@@ -1,7 +1,7 @@
 """The ``auto`` view mode's policy: the best frame method for a session's share of the device.
 
 With N view sessions and a target of F frames a second each, a frame gets ``1000 / (N F)`` ms of
-device time; :func:`isosr_net.budget.choose_method` picks the method of the best expected quality
+device time (``1000 S / (N F)`` for a replica with a share S of a GPU that others use too); :func:`isosr_net.budget.choose_method` picks the method of the best expected quality
 whose probe time fits that budget less its headroom. The probe's quality scores are cached per
 volume, iso and size, and its timings per volume, iso, size and method, so a re-choice after N
 changes costs no new probe; a choice is cached per (volume, iso, size, AO radius, clip, N). The probe
@@ -125,16 +125,22 @@ class AutoPolicy:
         slice_ms: device time a unit of the probe's timed frames aims at (None: whole frames).
         costs: the device class's committed cost table, the prior before a probe (None: the
             cheapest candidate until the probe decides).
+        gpu_share: the part of the device this server's frames get (a replica sharing a GPU with
+            others: its part); a frame's budget is its session's share of that part.
 
     Attributes:
         pending: probes to run (generators of device-thread steps), taken by the engine.
     """
 
     def __init__(self, candidates: tuple[FrameMethod, ...], target_fps: float, networks: Networks,
-                 cache: ProbeCache | None = None, slice_ms: float | None = None, costs: CostTable | None = None):
+                 cache: ProbeCache | None = None, slice_ms: float | None = None, costs: CostTable | None = None,
+                 gpu_share: float = 1.0):
         if not target_fps > 0:
             raise ValueError(f"target_fps must be positive, got {target_fps!r}")
+        if not 0 < gpu_share <= 1:
+            raise ValueError(f"gpu_share must lie in (0, 1], got {gpu_share!r}")
         self.candidates, self.target_fps, self.networks = candidates, float(target_fps), networks
+        self.gpu_share = float(gpu_share)
         self.cache, self.slice_ms = cache or ProbeCache(None, ""), slice_ms
         self.pending: list[Generator[None, None, BudgetChoice]] = []
         self._quality: dict[tuple, QualityProbe] = {}
@@ -147,7 +153,7 @@ class AutoPolicy:
     @classmethod
     def for_server(cls, device: str, precision: str, factor: int, models: dict, target_fps: float,
                    networks: Networks, x2_model: str | os.PathLike | None = None, cache: ProbeCache | None = None,
-                   slice_ms: float | None = None) -> "AutoPolicy":
+                   slice_ms: float | None = None, gpu_share: float = 1.0) -> "AutoPolicy":
         """The default candidates with the server's precision, upscale factor and model folders
         (``models``: network class -> (folder or None, name), as in the views' context), and the
         reconstruction at twice the sides by ``x2_model`` (None: none)."""
@@ -160,7 +166,7 @@ class AutoPolicy:
                 m = m.replace(model=None if folder is None else str(folder), model_name=name,
                               factor=served_factor(m.runner, factor))
             candidates.append(m)
-        return cls(tuple(candidates), target_fps, networks, cache, slice_ms, CostTable.for_device(device))
+        return cls(tuple(candidates), target_fps, networks, cache, slice_ms, CostTable.for_device(device), gpu_share)
 
     def warm(self, renderer: Renderer, sizes: tuple[tuple[int, int], ...]) -> None:
         """Make two frames of every candidate at each ``(height, width)`` and at its probe's size
@@ -177,8 +183,8 @@ class AutoPolicy:
                         runner.frame(camera, prev)
 
     def budget_ms(self, sessions: int) -> float:
-        """A frame's share of device time with ``sessions`` sessions served."""
-        return 1000.0 / (max(1, sessions) * self.target_fps)
+        """A frame's share of device time with ``sessions`` sessions served (of this server's ``gpu_share``)."""
+        return 1000.0 * self.gpu_share / (max(1, sessions) * self.target_fps)
 
     def choose(self, renderer: Renderer, scene: str, iso: float, width: int, height: int, camera: Camera,
                sessions: int, ao_radius: float, clip: Clip = Clip()) -> BudgetChoice:

@@ -59,6 +59,8 @@ import logging
 import os
 import threading
 import time
+from collections.abc import Mapping
+from dataclasses import replace
 from typing import Any
 
 import ray
@@ -72,7 +74,7 @@ from isosr_server.app import create_app
 from isosr_server.core.config import Settings, check_replica_exposure, options
 from isosr_server.metrics import ServerMetrics
 from isosr_server.placement import ROUTER
-from isosr_server.replica import as_replica
+from isosr_server.replica import as_replica, mps_running
 
 log = logging.getLogger("isosr.cluster")
 
@@ -125,7 +127,7 @@ class IsosrReplica:
     """One replica: the app of ``settings`` with its own engine, named by its Serve replica id."""
 
     def __init__(self, settings: Settings) -> None:
-        self.settings = settings
+        self.settings = replica_settings(settings, ray.get_runtime_context().get_assigned_resources())
         self.replica_id = serve.get_replica_context().replica_id.unique_id
         self.fastapi: FastAPI | None = None
 
@@ -140,6 +142,13 @@ class IsosrReplica:
         """Serve's health check: the app's models are loaded and its device warmed."""
         if self.fastapi is None or not self.fastapi.state.ready:
             raise RuntimeError(f"replica {self.replica_id} is not ready")
+
+
+def replica_settings(settings: Settings, assigned: Mapping[str, float]) -> Settings:
+    """``settings`` for a replica Ray gave the resources ``assigned``: with part of a GPU
+    (``--gpus-per-replica`` under 1), that part is its ``gpu_share`` (the auto mode's budget)."""
+    share = assigned.get("GPU", 0.0)
+    return replace(settings, gpu_share=share) if 0 < share < 1 else settings
 
 
 def application(settings: Settings, replicas: int, gpus_per_replica: float = 0.0, cpus_per_replica: float = 1.0,
@@ -194,6 +203,9 @@ def serve_replicas(settings: Settings, replicas: int, gpus_per_replica: float = 
     (its replicas drain; a second interrupt leaves that to the cluster)."""
     app = application(settings, replicas, gpus_per_replica, max_replicas=max_replicas,
                       sessions_per_replica=sessions_per_replica)
+    if 0 < gpus_per_replica < 1 and ray_address is None and not mps_running():
+        log.warning("isosr: replicas share a GPU (--gpus-per-replica %g) without MPS: their kernels take turns; "
+                    "start `nvidia-cuda-mps-control -d` first (docs/several-gpus.md)", gpus_per_replica)
     ray.init(address=ray_address)
     serve.start(http_options={"host": settings.host, "port": settings.port, **settings.tls_options()})
     try:

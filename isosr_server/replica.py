@@ -12,6 +12,9 @@ calls `as_replica`).
   has not served it before (its replica is gone, or the replicas changed) had its state started
   afresh: the answer says so with ``x-isosr-session-restarted: 1``.
 
+Replicas that share a GPU (``--gpus-per-replica`` under 1) run their kernels together only under
+NVIDIA's Multi-Process Service (`mps_running`); without it their contexts take turns on the GPU.
+
 The middleware reads the body the app reads (after the guard has bounded it) and decides when
 the app's answer starts; a replica remembers the sessions it served for ``idle_timeout_s``, as
 long as the app keeps their state. (The app may also drop a state early to stay within
@@ -21,8 +24,11 @@ long as the app keeps their state. (The app may also drop a state early to stay 
 from __future__ import annotations
 
 import json
+import os
 import time
 from collections import OrderedDict
+from collections.abc import Mapping
+from pathlib import Path
 
 import msgspec
 from fastapi import FastAPI
@@ -35,6 +41,7 @@ __all__ = ["REPLICA_HEADER", "RESTARTED_HEADER", "SESSION_HEADER", "ReplicaMiddl
 UPSCALE_PATH = "/v1/upscale"
 INFER_SUFFIX = "/infer"
 NIL = b"\xc0"  # msgpack nil
+MPS_PIPE_DIRECTORY = "/tmp/nvidia-mps"  # CUDA's default, where CUDA_MPS_PIPE_DIRECTORY is unset
 
 
 class _UpscalePeek(msgspec.Struct):
@@ -65,6 +72,12 @@ def session_of(path: str, headers: dict[str, str], body: bytes) -> tuple[str | N
     sequence = infer.parameters.get("sequence_id", 0)
     session = None if sequence in (0, "") else str(sequence)
     return session, any(t.name == "flow" for t in infer.inputs) and not infer.parameters.get("sequence_start", False)
+
+
+def mps_running(environ: Mapping[str, str] = os.environ) -> bool:
+    """Whether an MPS control daemon (``nvidia-cuda-mps-control -d``) serves this machine's CUDA
+    programs started with ``environ``: its control socket in ``CUDA_MPS_PIPE_DIRECTORY``."""
+    return (Path(environ.get("CUDA_MPS_PIPE_DIRECTORY") or MPS_PIPE_DIRECTORY) / "control").exists()
 
 
 def as_replica(app: FastAPI, replica: str) -> None:

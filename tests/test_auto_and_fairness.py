@@ -71,6 +71,20 @@ def test_auto_offers_the_x2_reconstruction_and_serves_its_frames_at_the_full_siz
             assert_image(f.image, to_uint8(expected[i].color))
 
 
+def test_auto_budget_is_the_sessions_share_of_the_servers_gpu_share():
+    """A replica with a quarter of a GPU gives a frame a quarter of a whole GPU's budget; a share
+    outside (0, 1] is refused by the policy and the settings alike."""
+    from isosr_server.core.config import Settings
+
+    quarter = AutoPolicy.for_server(DEVICE, "fp32", 4, {}, 30.0, Networks(), gpu_share=0.25)
+    assert quarter.budget_ms(4) == pytest.approx(1000 * 0.25 / 120)
+    for bad in (0.0, -0.5, 1.5, math.nan):
+        with pytest.raises(ValueError, match="gpu_share must lie in"):
+            AutoPolicy(quarter.candidates, 30.0, Networks(), gpu_share=bad)
+        with pytest.raises(ValueError, match="gpu_share must lie in"):
+            Settings(gpu_share=bad)
+
+
 def test_auto_policy_chooses_at_once_and_probes_in_the_background(lib, tmp_path):
     """The first choice of a scene and size is the prior, with no device work; the probe waits as
     steps for the engine; its choice is cached, a new session count reuses its quality and times,

@@ -465,3 +465,20 @@ def test_serve_config_and_replica_options(monkeypatch, tmp_path):
     with pytest.raises(ValueError, match="must be at least replicas"):
         application(Settings(), replicas=2, max_replicas=1)
     assert application(Settings(), replicas=1, max_replicas=3) is not None
+
+
+def test_a_replica_with_part_of_a_gpu_budgets_its_part(tmp_path):
+    """A replica Ray gave a quarter of a GPU serves with gpu_share 0.25, one with a whole GPU or
+    none as before; MPS is seen by its control socket."""
+    from isosr_server.cluster import replica_settings
+    from isosr_server.core.config import Settings
+    from isosr_server.replica import mps_running
+
+    settings = Settings()
+    assert replica_settings(settings, {"CPU": 1.0, "GPU": 0.25}).gpu_share == 0.25
+    assert replica_settings(settings, {"CPU": 1.0, "GPU": 1.0}) is settings
+    assert replica_settings(settings, {"CPU": 1.0}) is settings
+    environ = {"CUDA_MPS_PIPE_DIRECTORY": str(tmp_path)}
+    assert not mps_running(environ)
+    (tmp_path / "control").touch()
+    assert mps_running(environ)

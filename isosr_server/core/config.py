@@ -84,6 +84,9 @@ class Settings:
             at load, no limit on CPUs. It also picks a multiscale OME-Zarr's level
             (:mod:`isosr_server.volumes`).
         probe_cache: the auto mode's probe results file (None: kept in memory only).
+        gpu_share: the part of its GPU this server has: 1, or a replica's share where replicas
+            share one (`isosr serve --gpus-per-replica`, set from Ray's assignment); the auto
+            mode's budget is the sessions' share of that part.
         log_level: ``debug``, ``info``, ``warning`` or ``error``.
     """
 
@@ -120,6 +123,7 @@ class Settings:
     probe_cache: Path | None = _option(None, "JSON file where the auto mode keeps what its probes learn per device, "
                                              "volume, iso and size, for later starts (default: memory only)", Path)
     log_level: str = _option("info", "log level", choices=LOG_LEVELS)
+    gpu_share: float = 1.0
 
     def __post_init__(self):
         if (self.tls_cert is None) != (self.tls_key is None):
@@ -139,6 +143,8 @@ class Settings:
             raise ValueError(f"max_volume_bytes must be a positive number of bytes, got {self.max_volume_bytes}")
         if not (math.isfinite(self.batch_wait_ms) and self.batch_wait_ms >= 0):
             raise ValueError(f"batch_wait_ms must be a number of milliseconds, 0 or more, got {self.batch_wait_ms}")
+        if not 0 < self.gpu_share <= 1:
+            raise ValueError(f"gpu_share must lie in (0, 1], got {self.gpu_share}")
         for name in ("target_fps", "slice_ms"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
