@@ -1,8 +1,9 @@
 """The ``auto`` view mode's policy: the best frame method for a session's share of the device.
 
 With N view sessions and a target of F frames a second each, a frame gets ``1000 / (N F)`` ms of
-device time (``1000 S / (N F)`` for a replica with a share S of a GPU that others use too); :func:`isosr_net.budget.choose_method` picks the method of the best expected quality
-whose probe time fits that budget less its headroom. The probe's quality scores are cached per
+device time (``1000 S / (N F)`` for a replica with a share S of a GPU that others use too);
+:func:`isosr_net.budget.choose_method` picks the method of the best expected quality whose probe
+time fits that budget less its headroom. The probe's quality scores are cached per
 volume, iso and size, and its timings per volume, iso, size and method, so a re-choice after N
 changes costs no new probe; a choice is cached per (volume, iso, size, AO radius, clip, N). The probe
 runs on the session's current view (a still camera: the view to be shown) as clipped (a clip
