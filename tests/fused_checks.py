@@ -18,6 +18,7 @@ import dataclasses
 import functools
 import math
 import os
+from pathlib import Path
 
 import pytest
 import torch
@@ -376,7 +377,7 @@ def test_tail_checks_its_inputs():
 def test_a_frame_writes_its_stack_into_the_previous_output_it_read(model):
     """``out`` the previous output itself (a CUDA graph's state): the pack reads it before the
     tail overwrites it, so the frame equals one written to a new tensor, bit for bit."""
-    _, fused = shipped_x2() if model == "x2" else shipped_under("rays")
+    _, fused = shipped(RECON_X2_MODEL if model == "x2" else DEFAULT_RECON_MODEL)
     s = fused.config.upscale
     state, previous = torch.empty(1, 6, 6 * s, 9 * s, device=DEVICE), None
     sampling = torch.full((1, 2, 1, 1), 0.125, device=DEVICE)
@@ -395,7 +396,7 @@ def test_a_frame_writes_its_stack_into_the_previous_output_it_read(model):
 def test_frames_of_several_streams_in_one_call_equal_each_frame_alone():
     """The service's batch (FusedReconNet.frames): two streams' frames, each with its own previous
     output and flow, in one call equal each stream's frame alone, flags per frame."""
-    _, fused = shipped_under("rays")
+    _, fused = shipped(DEFAULT_RECON_MODEL)
     sampling = torch.full((1, 2, 1, 1), 0.125, device=DEVICE)
     streams = [synthetic_frames(2, 6, 9), synthetic_frames(3, 6, 9)[1:]]  # other buffers, flows and states
     with torch.no_grad():
@@ -449,11 +450,15 @@ def test_tail_of_an_x2_model_writes_depth_to_space_over_the_upsampled_inputs(ao_
 # ---------------------------------------------------------------- the whole network
 
 
+# The shipped model's body without its blend, map and gates: the model before it, over the input rays.
+SHIPPED_BODY = DEFAULT_RECON_MODEL.parent / "recon_model_v4"
+
+
 @functools.cache
 def shipped_under(ao_prior: str) -> tuple[ReconNet, FusedReconNet]:
-    """The shipped model under an AO prior (the output's AO differs, the rest not; "blend" at
-    :data:`BLEND_RAYS`'s weight), and it fused."""
-    net, _ = load_pretrained(DEFAULT_RECON_MODEL, torch.device(DEVICE))
+    """The shipped model's body (:data:`SHIPPED_BODY`) under an AO prior (the output's AO differs, the rest
+    not; "blend" at :data:`BLEND_RAYS`'s weight), and it fused."""
+    net, _ = load_pretrained(SHIPPED_BODY, torch.device(DEVICE))
     net.config = dataclasses.replace(net.config, ao_prior=ao_prior)
     if ao_prior == "blend":
         net.register_parameter(BLEND_PARAMETER, nn.Parameter(torch.tensor(math.log(BLEND_RAYS["blend"]), device=DEVICE)))
@@ -589,18 +594,19 @@ def test_the_shipped_x2_model_fused_equals_reconnet(b, h, w):
 
 
 @functools.cache
-def shipped_x2() -> tuple[ReconNet, FusedReconNet]:
-    net, _ = load_pretrained(RECON_X2_MODEL, torch.device(DEVICE))
+def shipped(folder: Path) -> tuple[ReconNet, FusedReconNet]:
+    net, _ = load_pretrained(folder, torch.device(DEVICE))
     return net.eval(), fused_reconnet(net)
 
 
-@pytest.mark.parametrize("model", [*(f"x1, AO prior {prior}" for prior in AO_PRIORS), "x2"])
+@pytest.mark.parametrize("model", [*(f"x1, AO prior {prior}" for prior in AO_PRIORS), "x1", "x2"])
 def test_hard_frames_stay_finite_and_within_fp16s_own_error(model):
     """An all-empty frame, and depths at fp16's limit for the networks under a previous output all
     ones: finite, in range, and per channel at most 1.5 times as far from the float64 reference as
     ReconNet under fp16 autocast (at depth 1e4 both are off by tenths on the normals, whose raw
-    values reach hundreds). The shipped models: x1 under both AO priors, and x2."""
-    net, fused = shipped_x2() if model == "x2" else shipped_under(model.rsplit(" ", 1)[1])
+    values reach hundreds). The shipped models, x1 (its map and gates) and x2, and x1's body under each AO prior."""
+    folders = {"x1": DEFAULT_RECON_MODEL, "x2": RECON_X2_MODEL}
+    net, fused = shipped(folders[model]) if model in folders else shipped_under(model.rsplit(" ", 1)[1])
     h, w, s = 6, 9, net.config.upscale
     empty = recon_batch(1, h, w, seed=20).to(DEVICE)
     empty[:, :6] = 0

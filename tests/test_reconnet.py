@@ -424,18 +424,24 @@ def test_the_shipped_model_loads_without_arguments():
 
 
 @pytest.mark.parametrize("model, prior, limits", [
-    (DEFAULT_RECON_MODEL, "rays", RayLimits(16, 4)),
+    (DEFAULT_RECON_MODEL, "blend", RayLimits(16, 4)),
+    (DEFAULT_RECON_MODEL.parent / "recon_model_v4", "rays", RayLimits(16, 4)),
     (DEFAULT_RECON_MODEL.parent / "recon_model_v1", "none", RayLimits(8, 4))])
 def test_the_shipped_models_keep_their_configs_and_their_ao_is_that_of_their_tail(sphere_frames, model, prior, limits):
-    """The default (over the input rays) and the first model (AO from scratch, a plain sigmoid)."""
+    """The default (its AO blended with the input rays' mean per pixel), the one before it (a correction
+    of that mean) and the first model (AO from scratch, a plain sigmoid)."""
     reconstructor = Reconstructor(model)
     config = reconstructor.net.config
     assert (config.ao_prior, config.limits, recon_limits(model)) == (prior, limits, limits)
-    raws, inputs = [], []
+    assert config.blend_map == config.geometry_gate == (prior == "blend")
+    raws, inputs, maps = [], [], []
     reconstructor.net.tail.register_forward_hook(lambda module, args, out: raws.append(out))
     reconstructor.net.register_forward_pre_hook(lambda module, args: inputs.append(args[0]))
+    if config.blend_map:
+        reconstructor.net.ao_blend_map.register_forward_hook(lambda module, args, out: maps.append(out.float()))
     out = reconstructor.reconstruct(sphere_frames[0], 2, 1)
-    expected = ao_output(raws[0][:, AO], inputs[0], config)[0, 0]
+    blend_rays = reconstructor.net.blend_rays * torch.exp(maps[0]) if maps else None
+    expected = ao_output(raws[0][:, AO], inputs[0], config, blend_rays)[0, 0]
     torch.testing.assert_close(out.ao, expected, rtol=0, atol=0)
     if prior == "none":
         torch.testing.assert_close(out.ao, torch.sigmoid(raws[0][0, AO][0]), rtol=0, atol=0)
