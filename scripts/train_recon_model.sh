@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Render the training data and train, side by side on one GPU, the reconstruction network
-# (shipped as isosr_net/recon_model) and the small subpixel upscaler (measured, not shipped).
+# (the first model, shipped as isosr_net/recon_model_v1) and the small subpixel upscaler (measured, not shipped).
 #   bash scripts/train_recon_model.sh OUT_DIR        (from the project root, on the GPU machine)
 # Data goes to data/, runs to runs/ (both git-ignored), logs to OUT_DIR, and the trained
 # model folders (runs/*/best) into OUT_DIR/models.tar.
