@@ -482,3 +482,22 @@ def test_a_replica_with_part_of_a_gpu_budgets_its_part(tmp_path):
     assert not mps_running(environ)
     (tmp_path / "control").touch()
     assert mps_running(environ)
+
+
+@pytest.mark.parametrize("mps", [False, True])
+def test_replicas_sharing_a_gpu_without_mps_are_warned_of(tmp_path, monkeypatch, caplog, mps):
+    """`serve_replicas` with half a GPU each on a local Ray says MPS is missing before it starts Ray (stopped
+    here at ray.init), and says nothing once its control socket is there."""
+    from isosr_server.core.config import Settings
+
+    monkeypatch.setenv("CUDA_MPS_PIPE_DIRECTORY", str(tmp_path))
+    if mps:
+        (tmp_path / "control").touch()
+
+    def stop(**_):
+        raise RuntimeError("no Ray in this test")
+
+    monkeypatch.setattr(cluster_module.ray, "init", stop)
+    with pytest.raises(RuntimeError, match="no Ray in this test"):
+        cluster_module.serve_replicas(Settings(device="cuda"), replicas=2, gpus_per_replica=0.5)
+    assert ("without MPS" in caplog.text) is not mps
