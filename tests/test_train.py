@@ -272,7 +272,8 @@ def test_the_shipped_configs_load():
                                             ("train_recon_blend_geo.json", "datagen_recon_blend_geo.json"),
                                             ("train_recon_gates.json", "datagen_recon_gates.json"),
                                             ("train_recon_shipped_gates.json", "datagen_recon_shipped_gates.json"),
-                                            ("train_recon_map.json", "datagen_recon_map.json")])
+                                            ("train_recon_map.json", "datagen_recon_map.json"),
+                                            ("train_recon_map_4k.json", "datagen_recon_4k.json")])
 def test_each_reconstruction_config_fits_its_data_config(train, datagen):
     root = Path(__file__).resolve().parents[1] / "configs"
     config, data = load_config(TrainConfig, root / train), load_config(DatagenConfig, root / datagen)
@@ -284,7 +285,8 @@ def test_each_reconstruction_config_fits_its_data_config(train, datagen):
     assert model.limits == data.limits and model.upscale == data.upscale and data.recon_inputs
     assert max(data.input_ao_rays) == data.max_ao_rays and max(data.input_spp) == data.max_spp
     run = train.removeprefix("train_").removesuffix(".json")  # scripts/train_recon.sh's RUN
-    assert (config.data, config.out) == (f"data/{run}", f"runs/{run}")
+    data_run = datagen.removeprefix("datagen_").removesuffix(".json")  # its own, or the data it shares (recon_map_4k)
+    assert (config.data, config.out) == (f"data/{data_run}", f"runs/{run}")
 
 
 def recon_step_with_the_temporal_loss(data: Path, tmp_path: Path, model: dict) -> Trainer:

@@ -2,7 +2,8 @@
 # Thin the working tree under what a device run carries (64 MiB with the GPU kit's part b): `trim.sh out` parks
 # what the GPU runs do not read (results, docs, checkpoints, earlier models) in /tmp/isosr-trimmed, `trim.sh back`
 # returns it; `out` also writes the commit into .gpu/HEAD, which the runs carry for their results (the copy there
-# has no .git). Commit nothing in between. The model under test travels (checkpoints/recon_shipped_gates/best).
+# has no .git). Commit nothing in between. The shipped models travel (isosr_net/recon_model, and recon_model_v4
+# that the fused checks read).
 set -euo pipefail
 cd "$(git rev-parse --show-toplevel)"
 parked=(checkpoints/recon_4k checkpoints/recon_blend checkpoints/recon_gates benchmarks docs examples deploy isosr_net/recon_model_v1
