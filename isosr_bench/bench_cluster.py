@@ -24,6 +24,8 @@ timed span (:class:`isosr_bench.load.LoadSampler`) each GPU's busy fraction, the
 of the server's process, Serve's proxy and the replicas, and the plain server's device thread's
 share of the span in jobs (``device_thread_busy``, from its ``GET /metrics``): a replica's
 interpreter near one core, the proxy's, or a device thread near 1, is the bound where the GPUs idle.
+``--client-deflate``: the sessions offer permessage-deflate as a browser does (``client_deflate``);
+Serve's proxy takes it and deflates every frame, the plain server declines it.
 Then scaling: each N-replica row against the 1-replica row of its case, frames/s over N times
 its frames/s at the same sessions, and p99 latency against its p99 at 1/N of the sessions.
 Failover, on the first server of 2 or more replicas: ``--failover-sessions`` closed-loop
@@ -223,6 +225,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--lease", default=time.strftime("%Y-%m-%d %H:00", time.gmtime()),
                         help="the machine's lease, the same for every call in it: rows are compared (scaling) "
                              "and replaced within one lease (default: this hour, UTC)")
+    parser.add_argument("--client-deflate", action="store_true",
+                        help="the sessions offer permessage-deflate, as a browser's viewer does (rows: client_deflate)")
     parser.add_argument("--client-processes", type=int, default=max(1, min(8, (os.cpu_count() or 2) // 4)),
                         help="processes the client sessions are dealt to")
     args = parser.parse_args(argv)
@@ -249,14 +253,16 @@ def main(argv: list[str] | None = None) -> None:
     name = f"bench_cluster{kind}_{size_name}" + ("" if args.encoding == "jpeg" else f"_{args.encoding}")
     path = args.out / f"{name}_{'cuda' if args.device.startswith('cuda') else 'cpu'}.json"
     stamp = {"device": device_name(args.device), "commit": commit(), "lease": args.lease}
+    compression = "deflate" if args.client_deflate else None
     mps = args.device.startswith("cuda") and mps_running()  # replicas sharing a GPU: together, or taking turns
     merged = merge(path, [], {(server, args.lease) for server, *_ in measured})  # the other servers' rows of earlier runs
     for server_name, server_replicas, gpus, extra in measured:
         cases = [(mode, ao, n) for mode, ao in modes for n in counts]
         failover_sessions = args.failover_sessions if server_name == failover_on else 0
         for row in measure_server(server_name, args.device, options + extra, cases, failover_sessions,
-                                  volume, size, seconds, args.client_processes, args.encoding):
-            merged.append(dict(row, replicas=server_replicas, gpus=gpus, encoding=args.encoding, mps=mps, **stamp))
+                                  volume, size, seconds, args.client_processes, args.encoding, compression):
+            merged.append(dict(row, replicas=server_replicas, gpus=gpus, encoding=args.encoding, mps=mps,
+                               client_deflate=args.client_deflate, **stamp))
             # Written after every row: a run cut off (a device call's time limit) keeps what it measured.
             scaled = scaling(merged)
             written = write_result(name, args.device, merged + scaled, args.out)
@@ -282,9 +288,9 @@ def load_fields(load: dict) -> dict:
 
 def measure_server(name: str, device: str, options: tuple[str, ...], cases: list[tuple[str, int, int]],
                    failover_sessions: int, volume: str, size: tuple[int, int], seconds: float, processes: int,
-                   encoding: str):
-    """Start one server and yield a row per (mode, AO rays, sessions) case (frames coded as ``encoding``),
-    then its failover row."""
+                   encoding: str, compression: str | None = None):
+    """Start one server and yield a row per (mode, AO rays, sessions) case (frames coded as ``encoding``,
+    the sessions' WebSocket compression ``compression``), then its failover row."""
     started = time.monotonic()
     try:
         with ServerProcess(device, options) as server:
@@ -297,7 +303,7 @@ def measure_server(name: str, device: str, options: tuple[str, ...], cases: list
                 load = LoadSampler(groups, gpus=device.startswith("cuda"), counters=counters)
                 settings = {"ao_rays": ao, "encoding": encoding}
                 result = run_sessions(server.url, volume, n, seconds, mode, size, settings, processes=processes,
-                                      on_start=lambda: load.start(seconds))
+                                      on_start=lambda: load.start(seconds), compression=compression)
                 row = dict(case_row(mode, ao, result), server=name, ready_s=ready_s,
                            replicas_seen=len(result.get("replicas", [])), **load_fields(load.result()))
                 print(f"{name:<6} {mode:<5} AO {ao:<2} x{n:<3} {row.get('fps', 0):7.1f} fps "

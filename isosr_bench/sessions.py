@@ -22,13 +22,15 @@ from isosr_client.view import FrameStats, connect
 
 def run_sessions(url: str, volume: str, sessions: int, seconds: float, mode: str, size: tuple[int, int],
                  settings: dict, focus: tuple[float, float, float] | None = None, warmup_frames: int = 2,
-                 max_frames: int = 100_000, processes: int = 1, on_start: Callable[[], None] | None = None) -> dict:
+                 max_frames: int = 100_000, processes: int = 1, on_start: Callable[[], None] | None = None,
+                 compression: str | None = None) -> dict:
     """``sessions`` concurrent closed-loop view sessions (one thread each) for ``seconds`` after
     ``warmup_frames`` untimed frames each; every session orbits from its own start yaw.
     ``focus``: the focus circle (x, y, radius in pixels) of ``focus`` mode. ``processes``: client
     processes the sessions are dealt to (one process's threads share one interpreter lock, which
     must not bound what several GPUs serve); the timed span starts together in all, and
-    ``on_start`` is called as it starts.
+    ``on_start`` is called as it starts. ``compression``: the sessions' WebSocket compression
+    (`isosr_client.view.connect`; ``"deflate"`` as browsers offer it).
 
     Returns:
         `isosr_client.drive.summarize` of all frames with ``fps`` summed over the sessions,
@@ -37,7 +39,7 @@ def run_sessions(url: str, volume: str, sessions: int, seconds: float, mode: str
         ``replicas`` (``isosr serve --replicas``) that made the frames.
     """
     processes = max(1, min(processes, sessions))
-    job = (url, volume, sessions, seconds, mode, size, settings, focus, warmup_frames, max_frames)
+    job = (url, volume, sessions, seconds, mode, size, settings, focus, warmup_frames, max_frames, compression)
     if processes == 1:
         opened = threading.Barrier(sessions + 1)
         waiter = threading.Thread(target=_wait_opened, args=(opened, on_start), daemon=True)
@@ -83,7 +85,7 @@ def _wait_opened(opened, on_start: Callable[[], None] | None) -> None:
 def drive_sessions(job: tuple, ks: range, opened) -> tuple[list[list[FrameStats]], list[float], list[str]]:
     """Sessions ``ks`` of :func:`run_sessions`' ``job``, one thread each, in this process: their
     frames' stats, their busy seconds and the errors. They wait at ``opened`` after warming up."""
-    url, volume, sessions, seconds, mode, size, settings, focus, warmup_frames, max_frames = job
+    url, volume, sessions, seconds, mode, size, settings, focus, warmup_frames, max_frames, compression = job
     stats: dict[int, list[FrameStats]] = {k: [] for k in ks}
     busy = dict.fromkeys(ks, 0.0)
     errors: list[str] = []
@@ -92,7 +94,7 @@ def drive_sessions(job: tuple, ks: range, opened) -> tuple[list[list[FrameStats]
         path = Orbit(yaw=30.0 + 360.0 * k / sessions)
         try:
             with connect(url, volume, mode, size, settings=dict(settings, refine=False), local_upscale=False,
-                         timeout=120) as view:
+                         timeout=120, compression=compression) as view:
                 if focus is not None:
                     view.set_focus("circle", focus[:2], focus[2])
                 drive(view, path, warmup_frames, rgb=False)

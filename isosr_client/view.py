@@ -639,7 +639,7 @@ def connect(url: str, volume: str, mode: str = "auto", size: tuple[int, int] = (
             iso: float | None = None, iso_normalized: bool = False, device: str = "cpu",
             model: str | Path | None = None, local_upscale: bool = True, timeout: float = 60.0,
             reconnect: bool = False, prefer: Sequence[str] | None = None,
-            cafile: str | Path | None = None) -> ViewSession:
+            cafile: str | Path | None = None, compression: str | None = None) -> ViewSession:
     """Open a view session on ``volume`` (a name from ``GET /v1/volumes``, or ``proc:...``).
 
     Args:
@@ -664,6 +664,8 @@ def connect(url: str, volume: str, mode: str = "auto", size: tuple[int, int] = (
             (over ``settings["encoding"]``).
         cafile: PEM certificates to trust for an https/wss server instead of the system's (e.g. the
             server's self-signed certificate).
+        compression: ``"deflate"`` offers the WebSocket's permessage-deflate, as browsers do (frames
+            are coded images: a server that accepts it spends CPU on every frame for ~nothing); None: off.
 
     Raises:
         ServerError: the server refused (unknown volume, bad settings, session limit, token).
@@ -685,8 +687,8 @@ def connect(url: str, volume: str, mode: str = "auto", size: tuple[int, int] = (
     parse(data, CLIENT_LIMITS, (OpenMsg,))  # bad input fails here, before any connection
     where, headers = endpoint(url, "/v1/view", websocket=True), auth_headers(token)
     context = tls_context(where, cafile)
-    ws, ready, opened_at = _open(where, headers, open_msg, timeout, context)
-    reopen = (lambda msg: _open(where, headers, msg, timeout, context)) if reconnect else None
+    ws, ready, opened_at = _open(where, headers, open_msg, timeout, context, compression)
+    reopen = (lambda msg: _open(where, headers, msg, timeout, context, compression)) if reconnect else None
     view = ViewSession(ws, ready, opened_at, open_msg, device, model, local_upscale, timeout, reopen)
     for why in passed:
         view._notice(f"{why}; asking for {wanted.encoding}")
@@ -698,7 +700,7 @@ def connect(url: str, volume: str, mode: str = "auto", size: tuple[int, int] = (
 
 
 def _open(where: str, headers: dict[str, str], open_msg: OpenMsg, timeout: float,
-          context: ssl.SSLContext | None) -> tuple:
+          context: ssl.SSLContext | None, compression: str | None = None) -> tuple:
     """Connect to ``where`` and open a session: ``(websocket, ready, when the open was sent)``.
 
     Raises:
@@ -710,8 +712,8 @@ def _open(where: str, headers: dict[str, str], open_msg: OpenMsg, timeout: float
         # Entered: websockets 17.1 deprecates using connect()'s result without `with`; the
         # session's close() ends it.
         ws = ws_connect(where, additional_headers=headers,
-                        max_size=CLIENT_LIMITS.max_message_bytes, compression=None, open_timeout=timeout,
-                        proxy=None, ssl=context).__enter__()
+                        max_size=CLIENT_LIMITS.max_message_bytes, compression=compression,
+                        open_timeout=timeout, proxy=None, ssl=context).__enter__()
     except Exception as e:  # handshake refused (401), nothing listening, ...
         status = getattr(getattr(e, "response", None), "status_code", None)
         if status is not None:

@@ -9,9 +9,9 @@ changes costs no new probe; a choice is cached per (volume, iso, size, AO radius
 runs on the session's current view (a still camera: the view to be shown) as clipped (a clip
 changes what a frame costs and shows): its references and candidates are rendered with the clip.
 
-On GPUs with :data:`PROBE_BATCH` sessions or more, a candidate is timed as their frames are made
-under load, several sessions' at once (the frame methods' ``make_batch``: the reconstruction's
-network then runs once for all), each frame costing its share of the batch.
+On GPUs with 4 sessions or more, a candidate is timed as their frames are made under load, several
+sessions' at once (the frame methods' ``make_batch``: the reconstruction's network then runs once
+for all), each frame costing its share of the batch (:func:`probe_batch`).
 
 No frame waits for a probe. Until the probe of a scene and size has run, frames use the prior:
 first the cheapest candidate (no AO, one ray per pixel), the frame that reaches the viewer
@@ -53,8 +53,8 @@ log = logging.getLogger("isosr.server")
 # hand-off, the event loop's share of the host): on an H100 at 1080p, 16 sessions of full
 # frames ran at 2.7 ms each where one alone took 1.5 ms of the device thread.
 PROBE = dict(probe_frames=1, warmup_frames=1, timing_frames=2, clock="wall", headroom=0.75)
-# With this many sessions or more, on GPUs, a candidate is timed as the service makes it under load: a
-# batch of this many streams' frames at once (BudgetConfig.batch), each frame costing its share.
+# On GPUs under load a candidate is timed as the service makes it: a batch of streams' frames at once
+# (BudgetConfig.batch), each frame costing its share; batches of at most this many.
 PROBE_BATCH = 8
 
 
@@ -65,8 +65,13 @@ def served_factor(runner: type[FrameRunner], factor: int) -> int:
 
 
 def probe_batch(renderer: Renderer, sessions: int) -> int:
-    """The streams a probe times a candidate's frames for at once (:data:`PROBE_BATCH` on GPUs under load, else 1)."""
-    return PROBE_BATCH if renderer.device.is_cuda and sessions >= PROBE_BATCH else 1
+    """The streams a probe times a candidate's frames for at once: on GPUs, the power of two up to
+    half the ``sessions`` (closed-loop viewers: about half wait on the wire while the others' frames
+    are made; measured batch means 8.4 of 16 sessions in one process, 1.8 of 4 a replica), at most
+    :data:`PROBE_BATCH`; 1 (frames alone) below 4 sessions and on CPUs."""
+    if not renderer.device.is_cuda or sessions < 4:
+        return 1
+    return min(PROBE_BATCH, 1 << (sessions // 2).bit_length() - 1)
 
 
 def prior_method(candidates: tuple[FrameMethod, ...]) -> FrameMethod:

@@ -327,5 +327,5 @@ def test_the_service_times_candidates_in_batches_only_on_gpus_under_load():
     from isosr_server.auto import PROBE_BATCH, probe_batch
 
     gpu, cpu = (SimpleNamespace(device=SimpleNamespace(is_cuda=c)) for c in (True, False))
-    assert probe_batch(gpu, PROBE_BATCH) == PROBE_BATCH and probe_batch(gpu, 64) == PROBE_BATCH
-    assert probe_batch(gpu, PROBE_BATCH - 1) == 1 and probe_batch(cpu, 64) == 1
+    assert [probe_batch(gpu, n) for n in (1, 3, 4, 7, 8, 15, 16, 64)] == [1, 1, 2, 2, 4, 4, PROBE_BATCH, PROBE_BATCH]
+    assert probe_batch(cpu, 64) == 1

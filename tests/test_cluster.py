@@ -12,6 +12,7 @@ free loopback port, since Ray's state API is served there) with
   ``/v2/health/ready`` stays 200.
 - Deploying one replica instead of two drains the one removed: its session goes on until it
   closes, while new sessions open on the other.
+- A browser's permessage-deflate offer: the plain server declines it, Serve's proxy takes it.
 - ``/metrics`` names the replica on every isosr_* series (none on the plain server); Ray's
   metrics export carries each replica's.
 - Autoscaling between 1 and 2 replicas on sessions per replica adds a replica under sessions and
@@ -245,6 +246,19 @@ def test_recon_infer_through_the_proxy_with_tritonclient(cluster, plain, lib):
 
 def isosr_samples(text: str, prefix: str = "isosr_") -> list:
     return [s for f in text_string_to_metric_families(text) if f.name.startswith(prefix) for s in f.samples]
+
+
+def test_a_browsers_deflate_offer_is_declined_by_the_plain_server_and_taken_by_serves_proxy(cluster, plain):
+    """Browsers offer permessage-deflate on every WebSocket. The plain server declines it (frames are
+    coded images); Serve's proxy, whose uvicorn cannot be configured, accepts it and so deflates every
+    frame (docs/serving.md: the reverse proxy in front drops the offer). Frames come either way."""
+    for server, deflated in ((plain, False), (cluster, True)):
+        with connect(server.http_url, VOLUME, "full", (W, H), settings={"refine": False}, local_upscale=False,
+                     timeout=60, compression="deflate") as view:
+            view.set_camera(yaw=40.0, pitch=20.0, distance=1.8)
+            assert view.frame().shape == (H, W, 3)
+            names = [e.name for e in view._ws.protocol.extensions]
+            assert names == (["permessage-deflate"] if deflated else []), (server.http_url, names)
 
 
 def test_metrics_name_their_replica(cluster, plain):
