@@ -135,6 +135,8 @@ def case_row(mode: str, ao: int, result: dict) -> dict:
     if "frames" not in result:
         return row
     row["methods"], row["batch_mean"] = result["methods"], result["batch_mean"]
+    if result.get("choices"):  # auto: what it expected of each method it chose
+        row["choices"] = result["choices"]
     server = result["server_ms"]
     row.update(frames=result["frames"], fps=result["fps"], fps_per_session=result["fps_per_session"],
                latency_p50_ms=result["latency_p50_ms"], latency_p99_ms=result["latency_p99_ms"],

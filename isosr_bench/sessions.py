@@ -36,7 +36,8 @@ def run_sessions(url: str, volume: str, sessions: int, seconds: float, mode: str
         `isosr_client.drive.summarize` of all frames with ``fps`` summed over the sessions,
         plus ``fps_per_session``, ``errors`` (exception texts), ``sessions``, the ``methods``, the
         frames' mean ``batch`` (frames the server made together) as ``batch_mean``, and the
-        ``replicas`` (``isosr serve --replicas``) that made the frames.
+        ``replicas`` (``isosr serve --replicas``) that made the frames, and ``auto``'s ``choices``
+        (:func:`auto_choices`).
     """
     processes = max(1, min(processes, sessions))
     job = (url, volume, sessions, seconds, mode, size, settings, focus, warmup_frames, max_frames, compression)
@@ -67,9 +68,24 @@ def run_sessions(url: str, volume: str, sessions: int, seconds: float, mode: str
     per_session_fps = [len(s) / b for s, b in zip(stats, busy) if b > 0]
     result.update(sessions=sessions, errors=errors, fps=float(sum(per_session_fps)),
                   fps_per_session=float(np.mean(per_session_fps)), methods=sorted({s.method for s in frames}),
+                  choices=auto_choices(frames),
                   batch_mean=float(np.mean([s.batch for s in frames])),
                   replicas=sorted({s.replica for s in frames if s.replica is not None}))
     return result
+
+
+def auto_choices(frames: list[FrameStats]) -> dict[str, dict]:
+    """What ``auto`` expected of each method it chose, over the frames that say (by method name): its
+    frames, mean expected PSNR and time, mean budget, and where the expectations came from."""
+    by_method: dict[str, list] = {}
+    for s in frames:
+        if s.choice is not None:
+            by_method.setdefault(s.method, []).append(s.choice)
+    mean = (lambda values: float(np.mean(values)) if values else None)
+    return {method: {"frames": len(cs), "psnr_db": mean([c.psnr_db for c in cs if c.psnr_db is not None]),
+                     "ms": mean([c.ms for c in cs if c.ms is not None]), "budget_ms": mean([c.budget_ms for c in cs]),
+                     "sources": sorted({c.source for c in cs})}
+            for method, cs in sorted(by_method.items())}
 
 
 def _wait_opened(opened, on_start: Callable[[], None] | None) -> None:

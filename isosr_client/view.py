@@ -48,10 +48,10 @@ from isosr_render.image_codec import decode_image
 from isosr_server.codecs import video
 from isosr_server.codecs.buffers import decode_view_buffers
 from isosr_server.protocol import (CLIENT_VIEW_MESSAGES, CLOSE_GOING_AWAY, CLOSE_INTERNAL, ENCODINGS, REPLICA_HEADER,
-                                   SERVER_VIEW_MESSAGES, TOKEN_HEADER, VIDEO_ENCODINGS, CameraMsg, ErrorMsg, FocusMsg,
-                                   FrameMsg, IsoMsg, KeyframeMsg, Limits, NoticeMsg, OpenMsg, PickedMsg, PickMsg,
-                                   ProtocolError, ReadyMsg, ReceivedMsg, SettingsMsg, SettingsUpdate, ViewSettings,
-                                   VolumeMemory, check_step, convert, encode, parse)
+                                   SERVER_VIEW_MESSAGES, TOKEN_HEADER, VIDEO_ENCODINGS, AutoChoice, CameraMsg, ErrorMsg,
+                                   FocusMsg, FrameMsg, IsoMsg, KeyframeMsg, Limits, NoticeMsg, OpenMsg, PickedMsg,
+                                   PickMsg, ProtocolError, ReadyMsg, ReceivedMsg, SettingsMsg, SettingsUpdate,
+                                   ViewSettings, VolumeMemory, check_step, convert, encode, parse)
 
 if TYPE_CHECKING:
     from isosr_client.local import LocalUpscaler
@@ -192,6 +192,8 @@ class FrameStats:
         device: the volume's device memory and paging on the server, as of this frame (frames
             carry it when it changed; :class:`isosr_server.protocol.VolumeMemory`).
         batch: the frames the server made together with this one, itself included (1: alone).
+        choice: ``auto`` frames: what the server's policy expects of the method it chose (its time
+            against the session's budget, its PSNR: :class:`isosr_server.protocol.AutoChoice`).
     """
 
     seq: int
@@ -210,6 +212,7 @@ class FrameStats:
     bitrate_kbps: int = 0
     device: VolumeMemory | None = None
     batch: int = 1
+    choice: AutoChoice | None = None
 
 
 @dataclass
@@ -515,7 +518,7 @@ class ViewSession:
         stats = FrameStats(msg.seq, msg.ack, msg.mode, msg.method, msg.refined, 1e3 * (arrived - sent), msg.nbytes,
                            len(data), dict(msg.times), replica=self.replica, encoding=msg.encoding,
                            keyframe=msg.keyframe, bitrate_kbps=msg.bitrate_kbps, device=self.volume_memory,
-                           batch=msg.batch)
+                           batch=msg.batch, choice=msg.choice)
         frame = ViewFrame(msg, stats)
         if msg.encoding in VIDEO_ENCODINGS:
             self._decode_video(frame)

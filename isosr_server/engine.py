@@ -55,7 +55,7 @@ from isosr_server.codecs.buffers import pack_view_buffers
 from isosr_server.codecs.buffers_device import view_buffer_codes
 from isosr_server.codecs import video
 from isosr_server.encoding import CodedImage, device_jpeg, encode_image, encode_jpegs, encoder_name
-from isosr_server.protocol import (IMAGE_ENCODINGS, FocusMsg, ModeInfo, PickedMsg, PickMsg, ProtocolError,
+from isosr_server.protocol import (IMAGE_ENCODINGS, AutoChoice, FocusMsg, ModeInfo, PickedMsg, PickMsg, ProtocolError,
                                    UpscaleRequest, ViewBuffers, ViewSettings, VolumeMemory)
 from isosr_server.views import FrameJob, FramePlan, SessionFrames, ViewContext, ViewFrame, mode_infos
 
@@ -103,8 +103,8 @@ def serving_network(cls: type[RecurrentNetwork], model: Path, device: str, preci
 class EncodedFrame:
     """A view frame ready for the wire: the coded image (or the coded buffers), server milliseconds
     per stage, the channel legend, the method's name, the frame whose camera the flow refers to,
-    the volume's device memory after it, the time step it shows, and the frames made together
-    with it on the device (itself included)."""
+    the volume's device memory after it, the time step it shows, the frames made together
+    with it on the device (itself included), and what ``auto`` expects of the method it chose."""
 
     image: CodedImage | None
     buffers: ViewBuffers | None
@@ -115,6 +115,7 @@ class EncodedFrame:
     memory: VolumeMemory
     t: int = 0
     batch: int = 1
+    choice: AutoChoice | None = None
 
 
 @dataclass(frozen=True)
@@ -424,7 +425,7 @@ class Engine:
             done = time.perf_counter()
             times = made.result.times | {"encode": 1e3 * (done - began), "total": 1e3 * (done - start)}
             return EncodedFrame(image, buffers, times, made.legend, made.method.name, made.prev_seq, memory,
-                                job.settings.t, batch)
+                                job.settings.t, batch, made.choice)
         return encode
 
     async def _batched(self, frames: SessionFrames, renderer: Renderer, job: FrameJob,

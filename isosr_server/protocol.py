@@ -20,7 +20,9 @@ View session (``WS /v1/view``)
     frame. Then the client sends ``camera``, ``iso``, ``settings`` and ``focus`` at any rate;
     each carries an optional ``seq``. The server keeps only the newest state (latest wins) and answers ``frame``
     messages whose ``ack`` is the highest ``seq`` they include and whose ``method`` names the
-    frame method that made them. A still camera gets one extra frame with ``refined: true``.
+    frame method that made them; an ``auto`` frame's ``choice`` says what the policy expects of
+    that method (its frame time against the session's budget, its PSNR). A still camera gets one
+    extra frame with ``refined: true``.
     Frames carry the volume's device memory and paging (``device``) when it changed.
     Bad input ends the session with an ``error`` message and a close code (``CLOSE_*``);
     non-fatal news (an encoding the server cannot make, so it sends jpeg) comes as ``notice``.
@@ -107,6 +109,7 @@ from isosr_render.conventions import AO_RADIUS, MATERIAL_RGB
 from isosr_render.surfaces import MAX_SURFACES, Surface, Surfaces
 from isosr_server.codecs.arrays import ArrayTooBig, WireArray, decode_array, encode_array
 
+# 12: frame.choice (what auto expects of the method it chose);
 # 11: picked.surface (which of several surfaces a pick hit);
 # 10: several isosurfaces (settings.surfaces);
 # 9: frame.batch (the frames made together on the device);
@@ -116,7 +119,7 @@ from isosr_server.codecs.arrays import ArrayTooBig, WireArray, decode_array, enc
 # 5: modes named by the server (ready.modes), ready's limits on messages and acknowledgements;
 # 3: the v3 vocabulary (modes auto/network/upscale/..., ao_rays, spp, interpolation, frame methods);
 # 2 (acknowledged frames, flow control) and earlier are refused with a reason.
-PROTOCOL_VERSION = 11
+PROTOCOL_VERSION = 12
 
 # Largest magnitude of any float field (camera coordinates, iso, ...): beyond it is hostile input.
 MAX_ABS_FLOAT = 1e9
@@ -817,6 +820,27 @@ class VolumeMemory(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     last_page_in_s: Annotated[float, Meta(ge=0, le=MAX_ABS_FLOAT)] = 0.0
 
 
+class AutoChoice(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """What the ``auto`` mode expects of the method it chose for a frame (``frame.method`` names it).
+
+    Attributes:
+        budget_ms: the frame's share of the device: ``1000 S / (N F)`` ms for N sessions at F frames
+            a second on a share S of the device (`isosr_server.auto`).
+        ms: the method's expected frame time on the device (None: not measured yet).
+        psnr_db: its expected color PSNR against the reference, dB (None: not measured yet).
+        fits: ``ms`` lies within the budget's headroom (False: nothing fit, the fastest was taken).
+        source: where the expectation comes from: ``probe`` (this scene measured on this server),
+            ``table`` (the device's cost table, scaled by this scene's first-hit time) or ``prior`` (no
+            measurement yet: the cheapest method).
+    """
+
+    budget_ms: Millis
+    ms: Millis | None
+    psnr_db: Annotated[float, Meta(ge=-MAX_ABS_FLOAT, le=MAX_ABS_FLOAT)] | None
+    fits: bool
+    source: Literal["probe", "table", "prior"]
+
+
 class FrameMsg(Message, tag="frame"):
     """Server -> client: one view frame.
 
@@ -850,6 +874,8 @@ class FrameMsg(Message, tag="frame"):
             read (a ``notice`` says why).
         batch: the frames the server's device made together with this one, itself included (1:
             alone; many sessions' frames are made together under load).
+        choice: ``auto`` frames: what the policy expects of the method it chose (:class:`AutoChoice`);
+            None for other modes and refined frames.
     """
 
     seq: Seq
@@ -873,6 +899,7 @@ class FrameMsg(Message, tag="frame"):
     device: VolumeMemory | None = None
     t: Step = 0
     batch: Annotated[int, Meta(ge=1, le=MAX_SEQ)] = 1
+    choice: AutoChoice | None = None
 
     def __post_init__(self):
         if (self.encoding == "buffers") != (self.buffers is not None) or (self.image is None) == (self.buffers is None):

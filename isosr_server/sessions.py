@@ -406,7 +406,7 @@ async def _send_frame(session: ViewSession, job: ViewJob, encode: Callable[[], A
                    legend=None if made.legend is None else Legend(**made.legend), method=made.method,
                    timestamp_us=job.plan.timestamp_us,
                    device=None if made.memory == session.sent_memory else made.memory, t=made.t,
-                   batch=made.batch, **image)
+                   batch=made.batch, choice=made.choice, **image)
     session.sent_memory = made.memory
     session.sent_seq = f.seq  # before sending: the client may acknowledge it before send returns
     session.unacked_sent.append((f.seq, time.monotonic()))

@@ -21,6 +21,7 @@ A shaded frame's legend is then the coloring's.
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from collections.abc import Generator
 from dataclasses import dataclass, field, fields
@@ -28,6 +29,7 @@ from typing import ClassVar
 
 import torch
 
+from isosr_net.budget import BudgetChoice
 from isosr_net.methods import RUNNERS, FrameMethod, FrameResult, FrameRunner, FrameStream, Networks, make_runner
 from isosr_net.timing import StageTimer
 from isosr_render import Camera, Renderer, Volume
@@ -36,8 +38,8 @@ from isosr_render.surfaces import Surfaces
 from isosr_server.auto import AutoPolicy, served_factor
 from isosr_server.channels import false_color
 from isosr_render.renderer import MAX_AO_SAMPLES
-from isosr_server.protocol import (CLOSE_POLICY, MAX_VIEW_SPP, FocusMsg, ModeInfo, OptionInfo, ProtocolError,
-                                   ViewSettings, surfaces_of)
+from isosr_server.protocol import (CLOSE_POLICY, MAX_VIEW_SPP, AutoChoice, FocusMsg, ModeInfo, OptionInfo,
+                                   ProtocolError, ViewSettings, surfaces_of)
 
 
 @dataclass(frozen=True)
@@ -88,13 +90,15 @@ class FrameJob:
 @dataclass
 class ViewFrame:
     """A made view frame: the color to encode (None: ``buffers``, whose low-res buffers travel
-    coded), the method's result, the channel legend, and the frame whose camera the flow refers to."""
+    coded), the method's result, the channel legend, the frame whose camera the flow refers to, and
+    what ``auto`` expects of the method it chose."""
 
     color: torch.Tensor | None
     result: FrameResult
     method: FrameMethod
     legend: dict | None = None
     prev_seq: int = -1
+    choice: AutoChoice | None = None
 
 
 class View(ABC):
@@ -111,6 +115,11 @@ class View(ABC):
     def method(self, settings: ViewSettings, ctx: ViewContext, frames: SessionFrames, renderer: Renderer,
                job: FrameJob) -> FrameMethod:
         """The method of this frame."""
+
+    def choose(self, settings: ViewSettings, ctx: ViewContext, frames: SessionFrames, renderer: Renderer,
+               job: FrameJob) -> tuple[FrameMethod, AutoChoice | None]:
+        """The method of this frame and what is expected of it where the server chose it (``auto``)."""
+        return self.method(settings, ctx, frames, renderer, job), None
 
     def sample(self, settings: ViewSettings, ctx: ViewContext) -> FrameMethod | None:
         """The method the settings name, to check them once (None: it is chosen per frame)."""
@@ -202,8 +211,20 @@ class AutoView(View):
         return None
 
     def method(self, settings, ctx, frames, renderer, job) -> FrameMethod:
-        return frames.auto.choose(renderer, frames.scene, job.iso, settings.width, settings.height, job.camera,
-                                  job.sessions, settings.ao_radius, settings.clip.clip()).method
+        return self.choose(settings, ctx, frames, renderer, job)[0]
+
+    def choose(self, settings, ctx, frames, renderer, job) -> tuple[FrameMethod, AutoChoice]:
+        choice = frames.auto.choose(renderer, frames.scene, job.iso, settings.width, settings.height, job.camera,
+                                    job.sessions, settings.ao_radius, settings.clip.clip())
+        return choice.method, expected(choice)
+
+
+def expected(choice: BudgetChoice) -> AutoChoice:
+    """What a frame says of the policy's choice: from the probe (its table of candidates), the cost table
+    (a predicted time) or the prior (nothing measured)."""
+    known = (lambda v: None if math.isnan(v) else float(v))
+    source = "probe" if choice.table else "prior" if math.isnan(choice.ms) else "table"
+    return AutoChoice(choice.budget_ms, known(choice.ms), known(choice.expected_psnr), choice.fits, source)
 
 
 # auto, the registered view-mode methods that can run here (in the registry's order), focus.
@@ -292,13 +313,13 @@ class SessionFrames:
                                  shade=shaded, clip=clip, coloring=coloring, surfaces=surfaces)
             return FramePlan(job, renderer, method, runner, None, -1, None)
         view = VIEWS[st.mode]
-        method = view.method(st, self.ctx, self, renderer, job)
+        method, choice = view.choose(st, self.ctx, self, renderer, job)
         if surfaces is not None and surfaces.layers > 1 and not method.runner.shaded:
             method = FrameMethod.of("full", ao_rays=st.ao_rays, spp=st.spp)  # buffers: one layer sent unshaded
         prev_camera, prev_seq = self._prev or (None, -1)
         runner, prev_camera = self.stream.runner_for(method, renderer, iso, st.width, st.height, prev_camera,
                                                      st.ao_radius, keep, shaded, clip, coloring, surfaces)
-        return FramePlan(job, renderer, method, runner, prev_camera, prev_seq, view)
+        return FramePlan(job, renderer, method, runner, prev_camera, prev_seq, view, choice)
 
     def coloring(self, renderer: Renderer, job: FrameJob) -> ColorField | None:
         """The job's coloring on the renderer's device (module docstring).
@@ -356,14 +377,14 @@ class SessionFrames:
                                                                                      plan.runner)
             legend = None if coloring is None else coloring_legend(coloring)
         result.timers.append(timer)
-        return ViewFrame(color, result, plan.method, legend, prev_seq)
+        return ViewFrame(color, result, plan.method, legend, prev_seq, plan.choice)
 
 
 @dataclass(frozen=True)
 class FramePlan:
     """A view frame about to be made (:meth:`SessionFrames.plan`): its job, the runner that makes it
-    from ``camera`` after ``prev_camera`` (None: a cut), the previous frame's seq, and its view
-    mode (None: the still camera's refined frame)."""
+    from ``camera`` after ``prev_camera`` (None: a cut), the previous frame's seq, its view mode
+    (None: the still camera's refined frame) and what ``auto`` expects of the method it chose."""
 
     job: FrameJob
     renderer: Renderer
@@ -372,6 +393,7 @@ class FramePlan:
     prev_camera: Camera | None
     prev_seq: int
     view: View | None
+    choice: AutoChoice | None = None
 
 
 def coloring_legend(coloring: ColorField) -> dict:

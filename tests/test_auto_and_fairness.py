@@ -43,11 +43,16 @@ def test_auto_is_the_default_and_names_the_method_it_chose(srv):
 
 
 def test_other_modes_name_their_method(srv):
+    """Each mode's frames name their method and carry no auto choice; nor does a still camera's refined frame."""
     expected = {"network": "x4 network fp32", "upscale": "x4 bilinear", "full": "full, AO 2, spp 1",
                 "atrous": "full, AO 2, a-trous", "reconstruct": "full, AO 2, spp 1, recon fp32"}
     for mode, name in expected.items():
         with session(srv, mode=mode, ao_rays=2) as (ws, _):
-            assert frame(ws).method == name
+            f = frame(ws)
+            assert (f.method, f.choice) == (name, None)
+    with session(srv, refine=True) as (ws, _):
+        first, refined = frame(ws), frame(ws)
+        assert first.choice is not None and refined.refined and refined.choice is None
 
 
 def test_auto_offers_the_x2_reconstruction_and_serves_its_frames_at_the_full_size(srv, lib, monkeypatch):
@@ -188,13 +193,15 @@ def test_a_probe_cache_that_cannot_be_read_is_probed_anew(lib, tmp_path, caplog)
 
 
 def test_the_first_auto_frame_is_the_prior_and_later_frames_the_probes_choice(srv):
-    """A new size's first auto frame does not wait for the probe; once the probe has run in the
-    background between frames, the frames name its choice."""
+    """A new size's first auto frame does not wait for the probe, and says so (``choice``: nothing
+    measured, the session's budget); once the probe has run in the background between frames, the
+    frames name its choice and carry what it expects of it (time, PSNR, within the budget or not)."""
     policy = srv.app.state.engine.auto
     width = W + 24  # a size no other test probed
     with session(srv, width=width, height=H, refine=False) as (ws, _):
         f = frame(ws)
         assert f.method == prior_method(policy.candidates).name
+        assert f.choice == P.AutoChoice(policy.budget_ms(1), None, None, False, "prior"), f.choice
         for i in range(1, 200):
             send(ws, cam(30 + i % 2, seq=i))
             f = frame(ws)
@@ -203,7 +210,11 @@ def test_the_first_auto_frame_is_the_prior_and_later_frames_the_probes_choice(sr
                 break
         assert chosen, "the probe ran between frames"
         send(ws, cam(40, seq=i + 1))
-        assert frame(ws).method == chosen[0].method.name
+        f, (choice,) = frame(ws), chosen
+        assert f.method == choice.method.name and f.choice.source == "probe"
+        assert (f.choice.budget_ms, f.choice.ms, f.choice.psnr_db, f.choice.fits) == pytest.approx(
+            (policy.budget_ms(1), choice.ms, choice.expected_psnr, choice.fits))
+        assert math.isfinite(f.choice.ms) and math.isfinite(f.choice.psnr_db)
 
 
 @pytest.mark.slow

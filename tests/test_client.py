@@ -457,7 +457,18 @@ def test_sessions_dealt_to_client_processes(server):  # noqa: F811
     assert result["errors"] == [] and result["sessions"] == 3
     assert result["frames"] >= 3 and result["fps"] > 0
     assert result["fps"] == pytest.approx(3 * result["fps_per_session"], rel=0.5)
-    assert result["methods"] == ["full, AO 0, spp 1"]
+    assert result["methods"] == ["full, AO 0, spp 1"] and result["choices"] == {}
+
+
+def test_auto_sessions_report_what_auto_expected_of_each_method(server):  # noqa: F811
+    """An auto case's result says, per method the frames name, what the policy expected of it."""
+    result = sessions.run_sessions(server.url, VOLUME, 2, 1.0, "auto", SIZE, {}, warmup_frames=1)
+    assert result["errors"] == [] and set(result["choices"]) == set(result["methods"])
+    for method, expected in result["choices"].items():
+        assert expected["frames"] >= 1 and expected["budget_ms"] > 0, (method, expected)
+        assert set(expected["sources"]) <= {"probe", "table", "prior"}
+        assert (expected["psnr_db"] is None) == (expected["sources"] == ["prior"]), (method, expected)
+    assert sum(e["frames"] for e in result["choices"].values()) == result["frames"]
 
 
 @pytest.mark.slow

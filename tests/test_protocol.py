@@ -68,7 +68,7 @@ def test_messages_round_trip():
 
 def test_wire_names_are_the_v3_vocabulary():
     ready = wire(P.ReadyMsg("abc", VOLUME, P.ViewSettings(), 4, 8, LIMITS, MODES))
-    assert ready["type"] == "ready" and ready["version"] == 11 and ready["max_recon_ao_rays"] == 8
+    assert ready["type"] == "ready" and ready["version"] == 12 and ready["max_recon_ao_rays"] == 8
     assert ready["settings"]["mode"] == "auto" and ready["settings"]["interpolation"] == "bilinear"
     assert {"ao_rays", "refine_ao_rays", "spp", "ao_radius"} <= set(ready["settings"])
     assert ready["settings"]["ao_radius"] == P.AO_RADIUS == 0.05
@@ -268,7 +268,7 @@ def test_invalid_messages_name_the_problem(message, words):
 def test_version_3_is_refused_with_the_reason(message):
     with pytest.raises(P.ProtocolError) as e:
         P.parse(raw(message), LIMITS, (P.OpenMsg, P.UpscaleRequest))
-    assert e.value.reason == "protocol version 3 is not supported; this server speaks 11: update the client"
+    assert e.value.reason == "protocol version 3 is not supported; this server speaks 12: update the client"
     assert (e.value.close_code, e.value.http_status) == (P.CLOSE_BAD_MESSAGE, 400)
 
 

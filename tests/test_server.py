@@ -248,7 +248,7 @@ def test_full_mode_matches_the_library(srv, lib):
     with session(srv, mode="full", ao_rays=4) as (ws, ready):
         assert ready.settings.mode == "full" and ready.volume.iso == 0.0
         assert ready.max_recon_ao_rays == RECON_LIMITS.max_ao_rays
-        assert ready.limits == LIMITS and ready.version == P.PROTOCOL_VERSION == 11
+        assert ready.limits == LIMITS and ready.version == P.PROTOCOL_VERSION == 12
         assert [m.name for m in ready.modes] == list(views.VIEWS)  # auto, the registry's view modes, focus
         f = frame(ws)
         assert (f.seq, f.ack, f.mode, f.encoding, f.refined) == (0, -1, "full", "png", False) and f.method
@@ -594,7 +594,7 @@ def test_upscale_bad_input_gets_4xx_with_reasons(srv, lib):
         (raw(wire_frame(lib, depth=wire_array(np.full((h, w), 3e38, np.float32)))), 400, "depth: values must lie in"),
         (raw(wire_frame(lib, depth=f64)), 400, "Invalid enum value 'float64' in `dtype` - at `$.depth`"),
         (raw(wire_frame(lib, normal=good["depth"])), 400, "normal: shape must be"),
-        (raw(wire_frame(lib, version=3)), 400, "protocol version 3 is not supported; this server speaks 11"),
+        (raw(wire_frame(lib, version=3)), 400, "protocol version 3 is not supported; this server speaks 12"),
         (raw(wire_frame(lib, output="gif")), 400, "at `$.output`"),
         (raw(wire_frame(lib, session="../x")), 400, "at `$.session`"),
         (raw({**good, "pad": b"x" * LIMITS.max_message_bytes}), 413, "limit"),
@@ -631,7 +631,7 @@ def test_bad_view_input_closes_that_session_only(srv, lib):
         opens = [
             (b"\x92\x01\x02", P.CLOSE_BAD_MESSAGE, "Expected `object`, got `array`"),
             (raw({"type": "open", "version": 3, "volume": VOLUME}), P.CLOSE_BAD_MESSAGE,
-             "protocol version 3 is not supported; this server speaks 11: update the client"),
+             "protocol version 3 is not supported; this server speaks 12: update the client"),
             (raw({"type": "open", "version": v, "volume": "nope"}), P.CLOSE_NOT_FOUND, "no volume named"),
             (raw({"type": "open", "version": v, "volume": "../blob"}), P.CLOSE_BAD_MESSAGE,
              "Expected `str` matching regex"),

@@ -2,7 +2,7 @@
 // control: the server makes the next frame only on credit), errors, reconnect with backoff.
 import { decode, encode } from "./msgpack.js";
 
-export const PROTOCOL_VERSION = 11;
+export const PROTOCOL_VERSION = 12;
 const SUBPROTOCOL = "isosr.v1";
 const TOKEN_SUBPROTOCOL_PREFIX = "isosr-token.";
 // Close codes after which reconnecting would only repeat the client's mistake.

@@ -416,7 +416,7 @@ async function onFrame(slot, frame, latency) {
   st.times = frame.times;
   st.bytes = frame.bytes;
   slot.refined = frame.refined;
-  slot.method = frame.method;
+  slot.method = frame.method + expectation(frame.choice);
   slot.legend = frame.legend || null;
   slot.codec = frame.codec ? `${frame.encoding} (${frame.codec})` : frame.encoding;
   slot.targetKbps = frame.bitrate_kbps;
@@ -452,6 +452,15 @@ function draw() {
     ctx.drawImage(b.image, x, 0, view.width - x, view.height, x, 0, view.width - x, view.height);
   }
   view.dataset.split = split ? b.mode : "";
+}
+
+/** What auto expects of the method it chose: its PSNR, its time against the session's budget. */
+function expectation(choice) {
+  if (!choice) return "";
+  if (choice.source === "prior") return ` (auto: measuring; budget ${choice.budget_ms.toFixed(1)} ms)`;
+  const psnr = choice.psnr_db === null ? "" : `${choice.psnr_db.toFixed(1)} dB, `;
+  const ms = choice.ms === null ? "?" : choice.ms.toFixed(1);
+  return ` (auto: ${psnr}${ms} of ${choice.budget_ms.toFixed(1)} ms${choice.fits ? "" : ", over budget"})`;
 }
 
 function showFrameInfo(slot) {
