@@ -12,6 +12,10 @@ calls `as_replica`).
   has not served it before (its replica is gone, or the replicas changed) had its state started
   afresh: the answer says so with ``x-isosr-session-restarted: 1``.
 
+- A view WebSocket that offers permessage-deflate (every browser's does) gets it from Serve's proxy,
+  which then deflates each of its frames on its one event loop: the replica warns once, naming the fix
+  (the reverse proxy in front drops the offer, docs/serving.md).
+
 Replicas that share a GPU (``--gpus-per-replica`` under 1) run their kernels together only under
 NVIDIA's Multi-Process Service (`mps_running`); without it their contexts take turns on the GPU.
 
@@ -24,6 +28,7 @@ long as the app keeps their state. (The app may also drop a state early to stay 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import time
 from collections import OrderedDict
@@ -42,6 +47,8 @@ UPSCALE_PATH = "/v1/upscale"
 INFER_SUFFIX = "/infer"
 NIL = b"\xc0"  # msgpack nil
 MPS_PIPE_DIRECTORY = "/tmp/nvidia-mps"  # CUDA's default, where CUDA_MPS_PIPE_DIRECTORY is unset
+DEFLATE_OFFER = b"permessage-deflate"
+log = logging.getLogger("isosr.server")
 
 
 class _UpscalePeek(msgspec.Struct):
@@ -100,10 +107,12 @@ class ReplicaMiddleware:
         self.app, self.replica = app, replica
         self.idle_timeout_s, self.max_sessions = idle_timeout_s, max_sessions
         self.served: OrderedDict[str, float] = OrderedDict()
+        self.deflate_warned = False
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         named = (REPLICA_HEADER.encode(), self.replica.encode())
         if scope["type"] == "websocket":
+            self.warn_of_deflate(scope)
             async def send_ws(message: Message) -> None:
                 if message["type"] == "websocket.accept":
                     message = {**message, "headers": [*message.get("headers", []), named]}
@@ -118,6 +127,16 @@ class ReplicaMiddleware:
                 await send(message)
             return await self.app(scope, receive, send_http)
         await self.upscale(scope, receive, send, named)
+
+    def warn_of_deflate(self, scope: Scope) -> None:
+        """Once: a WebSocket offered permessage-deflate, which Serve's proxy takes (module docstring)."""
+        if not self.deflate_warned and any(k.lower() == b"sec-websocket-extensions" and DEFLATE_OFFER in v.lower()
+                                           for k, v in scope.get("headers", [])):
+            self.deflate_warned = True
+            log.warning("replica %s: a WebSocket offered permessage-deflate (browsers do), and Serve's proxy deflates "
+                        "each of its frames on its one event loop, which then bounds every session's frames: let "
+                        "the reverse proxy in front drop the offer (nginx: proxy_set_header Sec-WebSocket-Extensions "
+                        "\"\"; docs/serving.md, 'Replicas beyond this machine')", self.replica)
 
     async def upscale(self, scope: Scope, receive: Receive, send: Send, named: tuple[bytes, bytes]) -> None:
         """An upscale request: keep the body the app reads; check and mark the answer when it starts."""

@@ -86,6 +86,29 @@ def test_every_answer_and_handshake_names_the_replica(mw):
     assert (REPLICA_HEADER.encode(), b"r1") in sent[0]["headers"]
 
 
+def test_a_websockets_deflate_offer_is_warned_of_once(mw, caplog):
+    """Serve's proxy takes a browser's permessage-deflate offer and deflates every frame: the replica warns,
+    once, naming the fix; a WebSocket without the offer is not warned of."""
+    async def receive():
+        return {"type": "websocket.connect"}
+
+    async def send(message):
+        pass
+
+    def handshake(extensions: bytes | None) -> None:
+        headers = [] if extensions is None else [(b"sec-websocket-extensions", extensions)]
+        asyncio.run(mw({"type": "websocket", "path": "/v1/view", "headers": headers}, receive, send))
+
+    with caplog.at_level("WARNING", logger="isosr.server"):
+        handshake(None)
+        handshake(b"x-webkit-deflate-frame")
+        assert not caplog.records
+        for _ in range(3):
+            handshake(b"permessage-deflate; client_max_window_bits")
+    (record,) = caplog.records
+    assert "permessage-deflate" in record.getMessage() and "Sec-WebSocket-Extensions" in record.getMessage()
+
+
 @pytest.mark.parametrize("path,body", [("/v1/upscale", upscale), ("/v2/models/isosr/infer", infer),
                                        ("/v2/models/isosr-recon/infer", infer)])
 def test_sessions_restart_only_when_a_continued_state_is_missing(mw, path, body):
