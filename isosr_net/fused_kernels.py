@@ -298,7 +298,8 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, s
                  albedo_b, ambient,
                  diffuse, specular, shininess, light_x, light_y, light_z, half_x, half_y, half_z, back_r, back_g, back_b,
                  MASK_C: tl.constexpr, NORMAL_C: tl.constexpr, DEPTH_C: tl.constexpr, AO_C: tl.constexpr,
-                 AO_PRIOR: tl.constexpr, BLEND: tl.constexpr, BLEND_MAP: tl.constexpr, GATED: tl.constexpr,
+                 AO_PRIOR: tl.constexpr, BLEND: tl.constexpr, BLEND_MAP: tl.constexpr, BLEND_VARIANCE: tl.constexpr,
+                 GATED: tl.constexpr,
                  MAX_SPP: tl.constexpr,
                  HAS_AO: tl.constexpr, BUFFERS: tl.constexpr,
                  SHADE: tl.constexpr, OUT: tl.constexpr, S: tl.constexpr, CI: tl.constexpr, CO: tl.constexpr,
@@ -348,6 +349,8 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, s
                 k = blend_rays
                 if BLEND_MAP:  # its per-pixel log-offset, in the depth rows (fused_recon.tail_convolution)
                     k = blend_rays * tl.exp(_column(raw, c, DEPTH_C * S * S + cell))
+                if BLEND_VARIANCE:  # the mean's variance per ray over its largest: rays that agree outweigh the net
+                    k = k * 4.0 * p * (1.0 - p)
                 weight = n / tl.maximum(n + k, 1e-12)  # an infinite k: the network's AO alone
                 ao = tl.minimum(weight * rays + (1.0 - weight) * ao, 1.0)
         if BUFFERS:  # isosr_net.inference.buffer_stack: unit normals and depth where covered, else 0
@@ -660,7 +663,7 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
                                  params.diffuse, params.specular, params.shininess, *light, *half, *params.background,
                                  MASK_C=MASK.start, NORMAL_C=NORMAL.start, DEPTH_C=DEPTH.start, AO_C=AO.start,
                                  AO_PRIOR=config.ao_prior != "none", BLEND=config.ao_prior == "blend",
-                                 BLEND_MAP=config.blend_map,
+                                 BLEND_MAP=config.blend_map, BLEND_VARIANCE=config.blend_variance,
                                  GATED=gates is not None, MAX_SPP=config.max_spp,
                                  HAS_AO=sources.ao is not None, BUFFERS=as_buffers, SHADE=shading is not None,
                                  OUT=OUTPUTS, S=s, CI=ci, CO=co,

@@ -122,6 +122,9 @@ class ReconNetConfig:
         blend_map: with ``ao_prior="blend"``, the rays the network's AO stands for per pixel: its learned
             ``k`` times ``exp`` of a map from the tail's features (how far the network trusts itself where it
             sees the surface; ``k`` alone at the start).
+        blend_variance: with ``ao_prior="blend"``, ``k`` times ``4 p (1 - p)``, the rays' smoothed mean's
+            variance per ray over its largest (:func:`ao_output`): where the rays agree (all lit, all
+            occluded) their mean is trusted over the network, where they split the network weighs more.
         upscale: output over input resolution (:data:`UPSCALES`): 2 reconstructs a frame rendered
             at half the output's sides (:func:`upsampled_inputs` is the base its output corrects).
     """
@@ -136,6 +139,7 @@ class ReconNetConfig:
     upscale: int = 1
     geometry_gate: bool = False
     blend_map: bool = False
+    blend_variance: bool = False
 
     def __post_init__(self):
         object.__setattr__(self, "widths", tuple(self.widths))
@@ -151,11 +155,12 @@ class ReconNetConfig:
         RayLimits(self.max_ao_rays, self.max_spp)  # raises for bad limits
         if self.upscale not in UPSCALES:
             raise ValueError(f"upscale must be one of {UPSCALES}, got {self.upscale}")
-        for flag in ("geometry_gate", "blend_map"):
+        for flag in ("geometry_gate", "blend_map", "blend_variance"):
             if not isinstance(getattr(self, flag), bool):
                 raise ValueError(f"{flag} must be true or false, got {getattr(self, flag)!r}")
-        if self.blend_map and self.ao_prior != "blend":
-            raise ValueError(f"blend_map weighs a blend model's AO: it needs ao_prior 'blend', got {self.ao_prior!r}")
+        for flag in ("blend_map", "blend_variance"):
+            if getattr(self, flag) and self.ao_prior != "blend":
+                raise ValueError(f"{flag} weighs a blend model's AO: it needs ao_prior 'blend', got {self.ao_prior!r}")
 
     @property
     def limits(self) -> RayLimits:
@@ -173,8 +178,9 @@ def ao_output(raw_ao: torch.Tensor, inputs: torch.Tensor, config: ReconNetConfig
     0 or 1, 0.5 without rays (today's sigmoid), so with many rays the network only corrects.
     ``"blend"``: ``w a + (1 - w) o`` with ``w = n / (n + k)``, the two estimates weighted by the rays each
     stands for (inverse variance), ``k = blend_rays`` the network's own (learned; per pixel with
-    ``blend_map``): with many rays the output converges to the rays' mean, the plain render's AO; with none
-    it is ``o``.
+    ``blend_map``; times ``4 p (1 - p)`` with ``blend_variance``, the mean's variance per ray, so that rays
+    that agree outweigh the network): with many rays the output converges to the rays' mean, the plain
+    render's AO; with none it is ``o``.
 
     Shape:
         raw_ao: (B, 1, H, W). inputs: (B, 8, H, W). blend_rays: () or (B, 1, H, W) (with "blend").
@@ -185,11 +191,14 @@ def ao_output(raw_ao: torch.Tensor, inputs: torch.Tensor, config: ReconNetConfig
     sampling = inputs[:, SAMPLING].float()
     n = sampling[:, :1] * config.max_ao_rays * sampling[:, 1:] * config.max_spp
     mean = inputs[:, SAMPLED_AO].float()
-    corrected = torch.sigmoid(torch.logit((n * mean + 0.5) / (n + 1)) + raw_ao)
+    smoothed = (n * mean + 0.5) / (n + 1)
+    corrected = torch.sigmoid(torch.logit(smoothed) + raw_ao)
     if config.ao_prior == "rays":
         return corrected
     if blend_rays is None:
         raise ValueError("ao_output: a blend model's AO needs its blend_rays")
+    if config.blend_variance:
+        blend_rays = blend_rays * 4 * smoothed * (1 - smoothed)
     weight = n / (n + blend_rays).clamp_min(1e-12)  # no rays and a weight worth none: the network's
     return weight * mean + (1 - weight) * corrected
 

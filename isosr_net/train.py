@@ -217,16 +217,17 @@ class Trainer:
     def _init_from(self, folder: str) -> None:
         """Load the weights of the model folder ``folder`` (ValueError: a model of a config it cannot start
         from). A ReconNet that blends its AO with the rays' (``ao_prior="blend"``) starts from one that
-        corrects them (``"rays"``), one with a ``geometry_gate`` or a ``blend_map`` from one without: the same
-        weights, its blend at :data:`~isosr_net.reconnet.BLEND_RAYS_INIT` rays, its gates and map at their start."""
+        corrects them (``"rays"``), one with a ``geometry_gate``, a ``blend_map`` or ``blend_variance`` from one
+        without: the same weights, its blend at :data:`~isosr_net.reconnet.BLEND_RAYS_INIT` rays, its gates and map
+        at their start."""
         model, _ = load_pretrained(folder, self.device)
         config = self.net.config
         starts = [config]
         if isinstance(config, ReconNetConfig):
             priors = {config.ao_prior, "rays"} if config.ao_prior == "blend" else {config.ao_prior}
-            starts = [replace(config, ao_prior=p, geometry_gate=g, blend_map=m) for p in priors
+            starts = [replace(config, ao_prior=p, geometry_gate=g, blend_map=m, blend_variance=v) for p in priors
                       for g in {config.geometry_gate, False} for m in {config.blend_map, False}
-                      if p == "blend" or not m]
+                      for v in {config.blend_variance, False} if p == "blend" or not (m or v)]
         if model.config not in starts:
             raise ValueError(f"init {folder} holds a model of another config ({model.config}); the run trains "
                              f"{self.net.config}")

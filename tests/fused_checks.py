@@ -528,12 +528,13 @@ def test_a_fused_gated_model_equals_reconnet(spp):
     torch.testing.assert_close(got, reference(net, inputs, warped)[0], rtol=0, atol=2e-3)
 
 
-@pytest.mark.parametrize("spp", [1, 4])
-def test_a_fused_blend_map_model_equals_reconnet(spp):
-    """A blend model with a per-pixel weight (``blend_map``: its conv in the tail's depth rows) and gates: fused
-    equals ReconNet (16 x 24, a map varying over it), its depth still the input's."""
+@pytest.mark.parametrize("spp, variance", [(1, False), (4, False), (1, True), (4, True)])
+def test_a_fused_blend_map_model_equals_reconnet(spp, variance):
+    """A blend model with a per-pixel weight (``blend_map``: its conv in the tail's depth rows) and gates, its
+    weight by the rays' variance or not (``blend_variance``): fused equals ReconNet (16 x 24, a map varying over
+    it), its depth still the input's."""
     base, _ = shipped_under("blend")
-    net = same_weights(base, geometry_gate=True, blend_map=True)
+    net = same_weights(base, geometry_gate=True, blend_map=True, blend_variance=variance)
     with torch.no_grad():
         weight = net.ao_blend_map.weight
         weight.copy_(0.3 * torch.randn(weight.shape, generator=torch.Generator().manual_seed(27)))

@@ -176,19 +176,27 @@ def test_ao_over_the_rays_matches_float64_and_stays_finite_in_the_unit_interval(
 
 
 @pytest.mark.parametrize("rays, spp", [(0, 1), (1, 1), (4, 2), (16, 4)])
-def test_a_blended_ao_weighs_the_rays_mean_by_their_count_in_float64(rays, spp):
-    """ao_prior "blend": w a + (1 - w) o, w = n / (n + k), against float64; finite and in [0, 1] for a
-    saturated correction and an extreme k; the rays' output exactly where no rays were cast."""
-    config = ReconNetConfig(ao_prior="blend", max_ao_rays=16)
+@pytest.mark.parametrize("variance", [False, True])
+def test_a_blended_ao_weighs_the_rays_mean_by_their_count_in_float64(rays, spp, variance):
+    """ao_prior "blend": w a + (1 - w) o, w = n / (n + k), with ``blend_variance`` k times 4 p (1 - p) of the
+    smoothed mean p = (n a + 1/2) / (n + 1), against float64; finite and in [0, 1] for a saturated correction
+    and an extreme k; the rays' output exactly where no rays were cast."""
+    config = ReconNetConfig(ao_prior="blend", max_ao_rays=16, blend_variance=variance)
     gen = torch.Generator().manual_seed(rays * 10 + spp)
     inputs = recon_batch(b=2, h=4, w=4, ao_rays=rays, spp=spp, limits=config.limits)
+    inputs[0, SAMPLED_AO, 0] = 1.0  # a row of rays that all agree (lit)
     raw = torch.randn(2, 1, 4, 4, generator=gen) * 3
     k = torch.tensor(6.0)
     out = ao_output(raw, inputs, config, k)
     n = rays * spp
-    expected = torch.tensor([(n * a + k.item() * prior_reference(a, rays, spp, r)) / (n + k.item())
-                             for a, r in zip(inputs[:, SAMPLED_AO].flatten().tolist(), raw.flatten().tolist())],
-                            dtype=torch.float64).view_as(out)
+
+    def blended(a: float, r: float) -> float:
+        p = (n * a + 0.5) / (n + 1)
+        k_a = k.item() * (4 * p * (1 - p) if variance else 1.0)
+        return (n * a + k_a * prior_reference(a, rays, spp, r)) / (n + k_a)
+
+    expected = torch.tensor([blended(a, r) for a, r in zip(inputs[:, SAMPLED_AO].flatten().tolist(),
+                                                           raw.flatten().tolist())], dtype=torch.float64).view_as(out)
     torch.testing.assert_close(out.double(), expected, rtol=0, atol=1e-6)
     for extreme, blend in ((-1e4, torch.tensor(1e-30)), (1e4, torch.tensor(1e30))):
         pinned = ao_output(torch.full_like(raw, extreme), inputs, config, blend)
@@ -287,6 +295,8 @@ def test_a_blend_map_weighs_each_pixel_by_its_own_rays_in_float64():
         ReconNetConfig(ao_prior="rays", blend_map=True)
     with pytest.raises(ValueError, match="blend_map must be true or false"):
         ReconNetConfig(ao_prior="blend", blend_map=1)
+    with pytest.raises(ValueError, match="blend_variance weighs a blend model's AO"):
+        ReconNetConfig(ao_prior="rays", blend_variance=True)
 
 
 def test_a_blend_model_learns_its_weight_and_fine_tunes_from_a_rays_model(tmp_path):
