@@ -353,13 +353,14 @@ def test_a_gated_blend_model_fine_tunes_from_a_rays_model_and_trains_its_gates(t
 
 
 def test_a_run_trains_the_parameters_it_names_alone(tmp_path, tmp_path_factory):
-    """``trainable``: the gates, the blend's weight and its map (a model with them started from a blend model
-    without) move, every other parameter stays as ``init`` made it; a name the model lacks is refused."""
+    """``trainable``: the gates, the blend's weight and its map (a model with them, weighed by the rays' variance,
+    started from a blend model without) move, every other parameter stays as ``init`` made it; a name the
+    model lacks is refused."""
     wide = tiny_wide_recon_data(tmp_path_factory)
     blend, _ = saved_wide_model(tmp_path / "blend", ao_prior="blend")
     named = ["geometry_gate_raw", "ao_blend_log", "ao_blend_map.weight", "ao_blend_map.bias"]
-    t = trainer(wide, tmp_path / "run", steps=2, model={**blend, "geometry_gate": True, "blend_map": True},
-                init=str(tmp_path / "blend"), trainable=named)
+    t = trainer(wide, tmp_path / "run", steps=2, init=str(tmp_path / "blend"), trainable=named,
+                model={**blend, "geometry_gate": True, "blend_map": True, "blend_variance": True})
     assert not t.net.ao_blend_map.weight.any() and not t.net.ao_blend_map.bias.any()  # the map at its start
     before = {k: v.detach().clone() for k, v in t.net.named_parameters()}
     cast = next(t._batches(t.train_set, shuffle=True, epoch=0))
