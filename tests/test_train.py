@@ -273,15 +273,17 @@ def test_the_shipped_configs_load():
                                             ("train_recon_gates.json", "datagen_recon_gates.json"),
                                             ("train_recon_shipped_gates.json", "datagen_recon_shipped_gates.json"),
                                             ("train_recon_map.json", "datagen_recon_map.json"),
-                                            ("train_recon_map_4k.json", "datagen_recon_4k.json")])
+                                            ("train_recon_map_4k.json", "datagen_recon_4k.json"),
+                                            ("train_recon_variance_4k.json", "datagen_recon_4k.json")])
 def test_each_reconstruction_config_fits_its_data_config(train, datagen):
     root = Path(__file__).resolve().parents[1] / "configs"
     config, data = load_config(TrainConfig, root / train), load_config(DatagenConfig, root / datagen)
     model = build_model(config.model).config
-    if config.init:  # a project-relative model folder of this config (a blend model's: over the rays; a gated or
-        start = load_pretrained(root.parent / config.init)[0].config  # mapped one's: without its gates or map)
+    if config.init:  # a project-relative model folder of this config (a blend model's: over the rays; a gated,
+        start = load_pretrained(root.parent / config.init)[0].config  # mapped or variance one's: without them)
         assert start.ao_prior in (model.ao_prior, "rays") and replace(
-            start, ao_prior=model.ao_prior, geometry_gate=model.geometry_gate, blend_map=model.blend_map) == model
+            start, ao_prior=model.ao_prior, geometry_gate=model.geometry_gate, blend_map=model.blend_map,
+            blend_variance=model.blend_variance) == model
     assert model.limits == data.limits and model.upscale == data.upscale and data.recon_inputs
     assert max(data.input_ao_rays) == data.max_ao_rays and max(data.input_spp) == data.max_spp
     run = train.removeprefix("train_").removesuffix(".json")  # scripts/train_recon.sh's RUN
