@@ -221,8 +221,9 @@ class AutoView(View):
 
 def expected(choice: BudgetChoice) -> AutoChoice:
     """What a frame says of the policy's choice: from the probe (its table of candidates), the cost table
-    (a predicted time) or the prior (nothing measured)."""
-    known = (lambda v: None if math.isnan(v) else float(v))
+    (a predicted time) or the prior (nothing measured). A time or PSNR not measured, or not finite (a
+    candidate equal to the reference scores an infinite PSNR), travels as None."""
+    known = (lambda v: float(v) if math.isfinite(v) else None)
     source = "probe" if choice.table else "prior" if math.isnan(choice.ms) else "table"
     return AutoChoice(choice.budget_ms, known(choice.ms), known(choice.expected_psnr), choice.fits, source)
 

@@ -19,6 +19,7 @@ from isosr_render.clip import Clip
 from isosr_render.images import to_uint8
 from isosr_server import protocol as P
 from isosr_server.auto import PROBE, AutoPolicy, ProbeCache, prior_method
+from isosr_server.views import expected
 from server_fixtures import (DEVICE, VOLUME, H, W, assert_image, cam, frame, lib, running_server,  # noqa: F401
                              send, server_settings, session)
 
@@ -40,6 +41,19 @@ def test_auto_is_the_default_and_names_the_method_it_chose(srv):
         f = frame(ws)
         assert f.mode == "auto" and f.method in candidates_names(srv), f.method
         assert f.times["total"] > 0 and "render" in f.times
+
+
+def test_a_choices_expectation_travels_finite_or_not_at_all():
+    """A frame's expectation is a valid wire message whatever the probe measured: a PSNR of a candidate equal to
+    its reference (inf) or of nothing covered (NaN), a time never measured, travel as None."""
+    method = FrameMethod.of("full", ao_rays=1, spp=1)
+    for ms, psnr, source in ((1.5, math.inf, "table"), (math.nan, math.nan, "prior"), (2.0, 31.5, "table")):
+        choice = expected(BudgetChoice(method, ms, psnr, True, 4.0, math.nan, False, (0, 0), 0.0, ()))
+        wire = P.FrameMsg(seq=0, ack=-1, mode="auto", method=method.name, width=W, height=H, encoding="jpeg",
+                          times={}, nbytes=1, image=b"x", choice=choice)
+        back = P.parse(P.encode(wire), P.Limits(), P.SERVER_VIEW_MESSAGES).choice
+        assert back == choice and back.source == source and back.budget_ms == 4.0
+        assert (back.ms, back.psnr_db) == (None if math.isnan(ms) else ms, psnr if math.isfinite(psnr) else None)
 
 
 def test_other_modes_name_their_method(srv):
