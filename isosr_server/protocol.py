@@ -827,7 +827,8 @@ class AutoChoice(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
         budget_ms: the frame's share of the device: ``1000 S / (N F)`` ms for N sessions at F frames
             a second on a share S of the device (`isosr_server.auto`).
         ms: the method's expected frame time on the device (None: not measured yet).
-        psnr_db: its expected color PSNR against the reference, dB (None: not measured yet).
+        psnr_db: its expected color PSNR against the reference, dB (None: not measured yet, or not
+            finite: a candidate equal to its reference).
         fits: ``ms`` lies within the budget's headroom (False: nothing fit, the fastest was taken).
         source: where the expectation comes from: ``probe`` (this scene measured on this server),
             ``table`` (the device's cost table, scaled by this scene's first-hit time) or ``prior`` (no
