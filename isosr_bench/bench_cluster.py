@@ -52,7 +52,7 @@ import numpy as np
 from isosr_bench.bench_server import SIZES, ServerProcess, case_row, device_thread, room_options, server_load
 from isosr_bench.common import bench_parser, commit, device_name, kept_rows, print_table, write_result
 from isosr_bench.load import LoadSampler, titled
-from isosr_bench.sessions import run_sessions
+from isosr_bench.sessions import choices_line, run_sessions
 from isosr_client.drive import Orbit
 from isosr_client.view import connect
 from isosr_server.protocol import IMAGE_ENCODINGS, VIDEO_ENCODINGS
@@ -312,6 +312,8 @@ def measure_server(name: str, device: str, options: tuple[str, ...], cases: list
                       f"{row.get('methods')} GPU busy {row.get('gpu_busy')} cores: server {row.get('server_cores')} "
                       f"proxy {row.get('proxy_cores')} replica max {row.get('replica_cores_max')} "
                       f"device thread {row.get('device_thread_busy')}", flush=True)
+                if row.get("choices"):  # auto: what each replica expected of what it chose
+                    print(f"       auto expected: {choices_line(row['choices'])}", flush=True)
                 yield row
             if failover_sessions:
                 row = dict(failover(server.url, volume, size, failover_sessions, 3.0, 6.0), server=name)

@@ -49,7 +49,7 @@ import torch
 from isosr_bench.bench_pareto import bench_cameras, pareto_rows
 from isosr_bench.common import bench_parser, print_table, write_result
 from isosr_bench.load import LoadSampler, metric_total
-from isosr_bench.sessions import run_sessions
+from isosr_bench.sessions import choices_line, run_sessions
 from isosr_client.drive import Orbit, summarize
 from isosr_client.serve_process import ServeProcess
 from isosr_client.view import connect
@@ -263,6 +263,8 @@ def main(argv: list[str] | None = None) -> None:
                 print(f"{mode:<11} AO {ao:<2} x{n:<3} {r.get('fps', 0):7.1f} fps  p50 {r.get('latency_p50_ms', 0):7.1f} "
                       f"p99 {r.get('latency_p99_ms', 0):7.1f} ms {r.get('bytes_per_frame', 0):10.0f} B  errors "
                       f"{r['errors']}  {', '.join(r.get('methods', []))}", flush=True)
+                if r.get("choices"):
+                    print(f"            auto expected: {choices_line(r['choices'])}", flush=True)
         rows.append(matched_quality(url, volume, size, args.device, 4 if smoke else 8, 2 if smoke else 4,
                                     (10, 50, 90) if smoke else tuple(range(5, 100, 5))))
         rows.append(auto_quality(url, volume, size, size_name, args.device, 2 if smoke else 8, 0 if smoke else 2))

@@ -88,6 +88,15 @@ def auto_choices(frames: list[FrameStats]) -> dict[str, dict]:
             for method, cs in sorted(by_method.items())}
 
 
+def choices_line(choices: dict[str, dict]) -> str:
+    """:func:`auto_choices` in one line for a console: each method, its expected PSNR and time against
+    the budget, and where the expectation came from."""
+    def number(value: float | None, digits: int) -> str:
+        return "?" if value is None else f"{value:.{digits}f}"
+    return "; ".join(f"{method}: {number(c['psnr_db'], 1)} dB, {number(c['ms'], 2)} of {c['budget_ms']:.2f} ms "
+                     f"({'/'.join(c['sources'])}, {c['frames']} frames)" for method, c in choices.items())
+
+
 def _wait_opened(opened, on_start: Callable[[], None] | None) -> None:
     """The timed span starts once every session is warm (or one failed: it aborts the barrier)."""
     try:

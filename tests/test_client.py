@@ -469,6 +469,8 @@ def test_auto_sessions_report_what_auto_expected_of_each_method(server):  # noqa
         assert set(expected["sources"]) <= {"probe", "table", "prior"}
         assert (expected["psnr_db"] is None) == (expected["sources"] == ["prior"]), (method, expected)
     assert sum(e["frames"] for e in result["choices"].values()) == result["frames"]
+    line = sessions.choices_line(result["choices"])
+    assert all(f"{method}: " in line for method in result["methods"]) and " ms (" in line, line
 
 
 @pytest.mark.slow
