@@ -45,6 +45,7 @@ from isosr_render.clip import Clip
 from isosr_render.atomic import atomic_write
 from isosr_render.camera import orbit_path
 from isosr_render.sequence import sequence_cameras
+from isosr_server.core.config import check_gpu_share
 
 log = logging.getLogger("isosr.server")
 # The probe's frames (a still camera needs few), timed by the wall clock: the device thread's
@@ -143,10 +144,8 @@ class AutoPolicy:
                  gpu_share: float = 1.0):
         if not target_fps > 0:
             raise ValueError(f"target_fps must be positive, got {target_fps!r}")
-        if not 0 < gpu_share <= 1:
-            raise ValueError(f"gpu_share must lie in (0, 1], got {gpu_share!r}")
         self.candidates, self.target_fps, self.networks = candidates, float(target_fps), networks
-        self.gpu_share = float(gpu_share)
+        self.gpu_share = check_gpu_share(gpu_share)
         self.cache, self.slice_ms = cache or ProbeCache(None, ""), slice_ms
         self.pending: list[Generator[None, None, BudgetChoice]] = []
         self._quality: dict[tuple, QualityProbe] = {}

@@ -54,6 +54,13 @@ def _option(default: Any, help: str, parse: Callable[[str], Any] = str, choices:
     return field(default=default, metadata={"help": help, "parse": parse, "choices": choices})
 
 
+def check_gpu_share(share: float) -> float:
+    """``share`` as a server's part of its GPU, which lies in (0, 1] (ValueError otherwise)."""
+    if not 0 < share <= 1:
+        raise ValueError(f"gpu_share must lie in (0, 1], got {share!r}")
+    return float(share)
+
+
 @dataclass(frozen=True)
 class Settings:
     """Everything `isosr serve` configures; validated on construction.
@@ -143,8 +150,7 @@ class Settings:
             raise ValueError(f"max_volume_bytes must be a positive number of bytes, got {self.max_volume_bytes}")
         if not (math.isfinite(self.batch_wait_ms) and self.batch_wait_ms >= 0):
             raise ValueError(f"batch_wait_ms must be a number of milliseconds, 0 or more, got {self.batch_wait_ms}")
-        if not 0 < self.gpu_share <= 1:
-            raise ValueError(f"gpu_share must lie in (0, 1], got {self.gpu_share}")
+        check_gpu_share(self.gpu_share)
         for name in ("target_fps", "slice_ms"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
