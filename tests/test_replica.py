@@ -53,6 +53,20 @@ def call(mw: ReplicaMiddleware, path: str, body: bytes, headers: dict[str, str] 
         m.get("body", b"") for m in sent[1:])
 
 
+def handshake(mw: ReplicaMiddleware, headers: list[tuple[bytes, bytes]] = ()) -> list[dict]:
+    """A WebSocket handshake to ``/v1/view`` through the middleware: the messages the app sent."""
+    sent: list[dict] = []
+
+    async def receive():
+        return {"type": "websocket.connect"}
+
+    async def send(message):
+        sent.append(message)
+
+    asyncio.run(mw({"type": "websocket", "path": "/v1/view", "headers": list(headers)}, receive, send))
+    return sent
+
+
 def upscale(session: str | None, flow: bool, reset: bool = False) -> bytes:
     return P.encode(P.UpscaleRequest(LOW, np.zeros((2, 2, 3), np.float32), LOW,
                                      np.zeros((2, 2, 2), np.float32) if flow else None, session=session, reset=reset))
@@ -74,37 +88,18 @@ def test_every_answer_and_handshake_names_the_replica(mw):
     status, headers, _ = call(mw, "/v2/health/ready", b"", method="GET")
     assert status == 200 and headers[REPLICA_HEADER] == "r1"
     assert call(mw, "/v1/upscale", b"bad")[1][REPLICA_HEADER] == "r1"
-    sent = []
-
-    async def receive():
-        return {"type": "websocket.connect"}
-
-    async def send(message):
-        sent.append(message)
-
-    asyncio.run(mw({"type": "websocket", "path": "/v1/view", "headers": []}, receive, send))
-    assert (REPLICA_HEADER.encode(), b"r1") in sent[0]["headers"]
+    assert (REPLICA_HEADER.encode(), b"r1") in handshake(mw)[0]["headers"]
 
 
 def test_a_websockets_deflate_offer_is_warned_of_once(mw, caplog):
     """Serve's proxy takes a browser's permessage-deflate offer and deflates every frame: the replica warns,
     once, naming the fix; a WebSocket without the offer is not warned of."""
-    async def receive():
-        return {"type": "websocket.connect"}
-
-    async def send(message):
-        pass
-
-    def handshake(extensions: bytes | None) -> None:
-        headers = [] if extensions is None else [(b"sec-websocket-extensions", extensions)]
-        asyncio.run(mw({"type": "websocket", "path": "/v1/view", "headers": headers}, receive, send))
-
     with caplog.at_level("WARNING", logger="isosr.server"):
-        handshake(None)
-        handshake(b"x-webkit-deflate-frame")
+        handshake(mw)
+        handshake(mw, [(b"sec-websocket-extensions", b"x-webkit-deflate-frame")])
         assert not caplog.records
         for _ in range(3):
-            handshake(b"permessage-deflate; client_max_window_bits")
+            handshake(mw, [(b"sec-websocket-extensions", b"permessage-deflate; client_max_window_bits")])
     (record,) = caplog.records
     assert "permessage-deflate" in record.getMessage() and "Sec-WebSocket-Extensions" in record.getMessage()
 
