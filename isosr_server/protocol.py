@@ -837,7 +837,7 @@ class AutoChoice(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
 
     budget_ms: Millis
     ms: Millis | None
-    psnr_db: Annotated[float, Meta(ge=-MAX_ABS_FLOAT, le=MAX_ABS_FLOAT)] | None
+    psnr_db: Finite | None
     fits: bool
     source: Literal["probe", "table", "prior"]
 
