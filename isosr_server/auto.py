@@ -1,8 +1,7 @@
 """The ``auto`` view mode's policy: the best frame method for a session's share of the device.
 
 With N view sessions and a target of F frames a second each, a frame gets ``1000 / (N F)`` ms of
-device time (``1000 S / (N F)`` for a replica with a share S of a GPU that others use too, where its
-times were made alone: those a probe makes in batches under the service's load count the others already);
+device time (``1000 S / (N F)`` for a replica with a share S of a GPU that others use too);
 :func:`isosr_net.budget.choose_method` picks the method of the best expected quality whose probe
 time fits that budget less its headroom. The probe's quality scores are cached per
 volume, iso and size, and its timings per volume, iso, size and method, so a re-choice after N
@@ -188,13 +187,9 @@ class AutoPolicy:
                     for camera, prev in pairs:
                         runner.frame(camera, prev)
 
-    def budget_ms(self, sessions: int, batch: int = 1) -> float:
-        """A frame's share of device time with ``sessions`` sessions served: of this server's ``gpu_share``
-        for times of frames made alone (``batch`` 1, the cost table's); whole for those a probe times in
-        batches (:func:`probe_batch`), as the service makes them: the servers sharing the GPU slow them
-        already, and their share again would count that use twice."""
-        share = self.gpu_share if batch == 1 else 1.0
-        return 1000.0 * share / (max(1, sessions) * self.target_fps)
+    def budget_ms(self, sessions: int) -> float:
+        """A frame's share of device time with ``sessions`` sessions served (of this server's ``gpu_share``)."""
+        return 1000.0 * self.gpu_share / (max(1, sessions) * self.target_fps)
 
     def choose(self, renderer: Renderer, scene: str, iso: float, width: int, height: int, camera: Camera,
                sessions: int, ao_radius: float, clip: Clip = Clip()) -> BudgetChoice:
@@ -207,7 +202,7 @@ class AutoPolicy:
         if key in self._chosen:
             return self._chosen[key]
         if key not in self._probing:
-            probe = self._probe(renderer, scene_key, key, camera, clip)
+            probe = self._probe(renderer, scene_key, key, camera, self.budget_ms(sessions), clip)
             try:
                 next(probe)
             except StopIteration as decided:  # earlier probes' results decide it: no device work
@@ -229,11 +224,10 @@ class AutoPolicy:
                             (0, 0), 0.0, ())
 
     def _probe(self, renderer: Renderer, scene_key: tuple, key: tuple, camera: Camera,
-               clip: Clip) -> Generator[None, None, BudgetChoice]:
+               budget_ms: float, clip: Clip) -> Generator[None, None, BudgetChoice]:
         """The choice for ``key`` as device-thread steps (a failed probe keeps the prior, logged)."""
         _, iso, width, height, ao_radius = scene_key[:5]
         batch = probe_batch(renderer, key[-1])
-        budget_ms = self.budget_ms(key[-1], batch)
         config = BudgetConfig(candidates=self.candidates, ao_radius=ao_radius, batch=batch, clip=clip, **PROBE)
         cameras = [camera] * config.probe_frames
         if scene_key not in self._quality and (cached := self.cache.get(scene_key, self.candidates)):
@@ -254,7 +248,7 @@ class AutoPolicy:
         except ValueError as e:  # the scene or size admits no candidate: say why, keep the prior
             log.warning("auto mode, %s at %dx%d: no probe (%s); frames stay %s", scene_key[0], width, height, e,
                         prior_method(self.candidates).name)
-            choice = self.prior(self.budget_ms(key[-1]), scene_key)
+            choice = self.prior(budget_ms, scene_key)
         else:
             log.info("auto mode, %s at %dx%d, budget %.3g ms: %s", scene_key[0], width, height, budget_ms,
                      choice.summary())

@@ -91,15 +91,12 @@ def test_auto_offers_the_x2_reconstruction_and_serves_its_frames_at_the_full_siz
 
 
 def test_auto_budget_is_the_sessions_share_of_the_servers_gpu_share():
-    """A replica with a quarter of a GPU gives a frame a quarter of a whole GPU's budget for times made
-    alone, the whole budget for times made in batches under load; a share outside (0, 1] is refused by the
-    policy and the settings alike."""
+    """A replica with a quarter of a GPU gives a frame a quarter of a whole GPU's budget; a share
+    outside (0, 1] is refused by the policy and the settings alike."""
     from isosr_server.core.config import Settings
 
     quarter = AutoPolicy.for_server(DEVICE, "fp32", 4, {}, 30.0, Networks(), gpu_share=0.25)
     assert quarter.budget_ms(4) == pytest.approx(1000 * 0.25 / 120)
-    # times made in batches under the service's load already count the GPU's other users: the whole budget
-    assert quarter.budget_ms(4, batch=2) == pytest.approx(1000 / 120)
     for bad in (0.0, -0.5, 1.5, math.nan):
         with pytest.raises(ValueError, match="gpu_share must lie in"):
             AutoPolicy(quarter.candidates, 30.0, Networks(), gpu_share=bad)
