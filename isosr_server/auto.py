@@ -1,7 +1,8 @@
 """The ``auto`` view mode's policy: the best frame method for a session's share of the device.
 
 With N view sessions and a target of F frames a second each, a frame gets ``1000 / (N F)`` ms of
-device time (``1000 S / (N F)`` for a replica with a share S of a GPU that others use too);
+device time (``1000 S / (N F)`` for a replica with a share S of a GPU that others use too, until its
+frames' cost in service is measured: below);
 :func:`isosr_net.budget.choose_method` picks the method of the best expected quality whose probe
 time fits that budget less its headroom. The probe's quality scores are cached per
 volume, iso and size, and its timings per volume, iso, size and method, so a re-choice after N
@@ -12,6 +13,14 @@ changes what a frame costs and shows): its references and candidates are rendere
 On GPUs with 4 sessions or more, a candidate is timed as their frames are made under load, several
 sessions' at once (the frame methods' ``make_batch``: the reconstruction's network then runs once
 for all), each frame costing its share of the batch (:func:`probe_batch`).
+
+A choice is then held to what its frames cost in service (:meth:`AutoPolicy.served`): a probe times
+its candidates at the load of its moment, and on a replica sharing a GPU the others' frames may be
+cheaper then than once every replica makes its choice (on an H200, four replicas with a quarter
+each: budgets cut to the share chose plain frames at 29.6 frames/s a session, whole budgets chose
+the reconstruction at 2 rays a pixel and got 25.3). The budget is the session's whole share over
+the measured load, ``1000 / (N F L)``, with ``L`` its frames' device time in service over the
+probe's time (``1 / S`` until measured): the choice is made again where ``L`` moves.
 
 No frame waits for a probe. Until the probe of a scene and size has run, frames use the prior:
 first the cheapest candidate (no AO, one ray per pixel), the frame that reaches the viewer
@@ -57,6 +66,11 @@ PROBE = dict(probe_frames=1, warmup_frames=1, timing_frames=2, clock="wall", hea
 # On GPUs under load a candidate is timed as the service makes it: a batch of streams' frames at once
 # (BudgetConfig.batch), each frame costing its share; batches of at most this many.
 PROBE_BATCH = 8
+# A choice held to what its frames cost in service: after this many of them, their device time over its probe's
+# time (the service's load: other replicas on the GPU, the host) rescales the budget; a change beyond DRIFT
+# re-chooses (AutoPolicy.served).
+SERVICE_FRAMES = 64
+DRIFT = 1.25
 
 
 def served_factor(runner: type[FrameRunner], factor: int) -> int:
@@ -133,10 +147,14 @@ class AutoPolicy:
         costs: the device class's committed cost table, the prior before a probe (None: the
             cheapest candidate until the probe decides).
         gpu_share: the part of the device this server's frames get (a replica sharing a GPU with
-            others: its part); a frame's budget is its session's share of that part.
+            others: its part); a frame's budget is its session's share of that part until what its
+            frames cost in service is measured (:meth:`load`).
 
     Attributes:
         pending: probes to run (generators of device-thread steps), taken by the engine.
+
+    :meth:`served` runs on the event loop, the rest on the device thread: only it writes the loads and
+    the served counts, each a single dict store.
     """
 
     def __init__(self, candidates: tuple[FrameMethod, ...], target_fps: float, networks: Networks,
@@ -150,8 +168,10 @@ class AutoPolicy:
         self.pending: list[Generator[None, None, BudgetChoice]] = []
         self._quality: dict[tuple, QualityProbe] = {}
         self._timings: dict[tuple, dict] = {}
-        self._chosen: dict[tuple, BudgetChoice] = {}
+        self._chosen: dict[tuple, tuple[BudgetChoice, float]] = {}  # key -> the choice, the load it was made for
         self._probing: set[tuple] = set()
+        self._load: dict[tuple, float] = {}  # scene key -> its frames' cost in service over their probe's time
+        self._served: dict[tuple, tuple[int, float]] = {}  # key -> frames of its choice served, their summed ms
         self.costs = costs
         self._first_hit: dict[tuple, float] = {}  # scene key -> a plain first-hit frame's ms
 
@@ -191,25 +211,58 @@ class AutoPolicy:
         """A frame's share of device time with ``sessions`` sessions served (of this server's ``gpu_share``)."""
         return 1000.0 * self.gpu_share / (max(1, sessions) * self.target_fps)
 
+    def load(self, scene_key: tuple) -> float:
+        """What the service's load makes a probed frame of ``scene_key`` cost, in probe times: measured by
+        :meth:`served`, else ``1 / gpu_share`` (a replica's probe timed with the GPU's other users idle)."""
+        return self._load.get(scene_key, 1.0 / self.gpu_share)
+
+    def served(self, scene: str, iso: float, width: int, height: int, sessions: int, ao_radius: float, clip: Clip,
+               method: FrameMethod, device_ms: float) -> None:
+        """A frame of a probed choice was made in service in ``device_ms`` (its device stages; event loop). Every
+        :data:`SERVICE_FRAMES` such frames, their mean over the probe's time (at least 1) is the scene's
+        :meth:`load`: the first measure replaces ``1 / gpu_share``, later ones only raise it (a choice
+        that proved dear is not tried again at a lighter load). A load that moved by more than
+        :data:`DRIFT` has :meth:`choose` choose again."""
+        scene_key, key = self._keys(scene, iso, width, height, sessions, ao_radius, clip)
+        chosen = self._chosen.get(key)
+        if (chosen is None or not chosen[0].table or chosen[0].method != method or not chosen[0].ms > 0
+                or not math.isfinite(device_ms)):
+            return  # a prior's, another mode's or a non-finite time: no measure of the probe's choice
+        frames, total = self._served.get(key, (0, 0.0))
+        frames, total = frames + 1, total + device_ms
+        if frames < SERVICE_FRAMES:
+            self._served[key] = frames, total
+            return
+        self._served.pop(key, None)
+        measured = max(1.0, total / frames / chosen[0].ms)
+        self._load[scene_key] = max(measured, self._load[scene_key]) if scene_key in self._load else measured
+
+    @staticmethod
+    def _keys(scene: str, iso: float, width: int, height: int, sessions: int, ao_radius: float,
+              clip: Clip) -> tuple[tuple, tuple]:
+        """A scene's key (its probe's) and a choice's (the scene's at a session count)."""
+        cut = (repr(clip),) if clip.active else ()  # a clip's own probe; unclipped keys as before (the cache's)
+        scene_key = (scene, round(float(iso), 6), width, height, float(ao_radius)) + cut
+        return scene_key, scene_key + (max(1, sessions),)
+
     def choose(self, renderer: Renderer, scene: str, iso: float, width: int, height: int, camera: Camera,
                sessions: int, ao_radius: float, clip: Clip = Clip()) -> BudgetChoice:
         """The method for this scene (as ``clip`` cuts it), size and session count, at once (device
         thread): the probe's choice where what probes learned decides it, else the prior while the
         probe waits in :attr:`pending`."""
-        cut = (repr(clip),) if clip.active else ()  # a clip's own probe; unclipped keys as before (the cache's)
-        scene_key = (scene, round(float(iso), 6), width, height, float(ao_radius)) + cut
-        key = scene_key + (max(1, sessions),)
-        if key in self._chosen:
-            return self._chosen[key]
+        scene_key, key = self._keys(scene, iso, width, height, sessions, ao_radius, clip)
+        chosen = self._chosen.get(key)
+        if chosen is not None and 1 / DRIFT < self.load(scene_key) / chosen[1] < DRIFT:
+            return chosen[0]
         if key not in self._probing:
-            probe = self._probe(renderer, scene_key, key, camera, self.budget_ms(sessions), clip)
+            probe = self._probe(renderer, scene_key, key, camera, clip)
             try:
                 next(probe)
             except StopIteration as decided:  # earlier probes' results decide it: no device work
                 return decided.value
             self._probing.add(key)
             self.pending.append(probe)
-        return self.prior(self.budget_ms(sessions), scene_key)
+        return self.prior(self.budget_ms(sessions), scene_key) if chosen is None else chosen[0]
 
     def prior(self, budget_ms: float, scene_key: tuple | None = None) -> BudgetChoice:
         """The choice before a probe: the cost table's where this scene's first-hit time is known
@@ -224,10 +277,12 @@ class AutoPolicy:
                             (0, 0), 0.0, ())
 
     def _probe(self, renderer: Renderer, scene_key: tuple, key: tuple, camera: Camera,
-               budget_ms: float, clip: Clip) -> Generator[None, None, BudgetChoice]:
+               clip: Clip) -> Generator[None, None, BudgetChoice]:
         """The choice for ``key`` as device-thread steps (a failed probe keeps the prior, logged)."""
         _, iso, width, height, ao_radius = scene_key[:5]
         batch = probe_batch(renderer, key[-1])
+        load = self.load(scene_key)
+        budget_ms = self.budget_ms(key[-1]) / (self.gpu_share * load)  # the whole budget over the load
         config = BudgetConfig(candidates=self.candidates, ao_radius=ao_radius, batch=batch, clip=clip, **PROBE)
         cameras = [camera] * config.probe_frames
         if scene_key not in self._quality and (cached := self.cache.get(scene_key, self.candidates)):
@@ -248,7 +303,7 @@ class AutoPolicy:
         except ValueError as e:  # the scene or size admits no candidate: say why, keep the prior
             log.warning("auto mode, %s at %dx%d: no probe (%s); frames stay %s", scene_key[0], width, height, e,
                         prior_method(self.candidates).name)
-            choice = self.prior(budget_ms, scene_key)
+            choice = self.prior(self.budget_ms(key[-1]), scene_key)
         else:
             log.info("auto mode, %s at %dx%d, budget %.3g ms: %s", scene_key[0], width, height, budget_ms,
                      choice.summary())
@@ -256,5 +311,5 @@ class AutoPolicy:
                 self.cache.put(scene_key, self._quality[scene_key], self._timings.get(scene_key, {}))
         finally:
             self._probing.discard(key)
-        self._chosen[key] = choice
+        self._chosen[key] = choice, load
         return choice

@@ -423,7 +423,9 @@ class Engine:
             else:
                 image, buffers = await asyncio.get_running_loop().run_in_executor(pool, pack_codes, codes, code)
             done = time.perf_counter()
-            times = made.result.times | {"encode": 1e3 * (done - began), "total": 1e3 * (done - start)}
+            device = made.result.times
+            frames.served(job, made, sum(device.values()))
+            times = device | {"encode": 1e3 * (done - began), "total": 1e3 * (done - start)}
             return EncodedFrame(image, buffers, times, made.legend, made.method.name, made.prev_seq, memory,
                                 job.settings.t, batch, made.choice)
         return encode

@@ -137,6 +137,61 @@ def test_auto_policy_chooses_at_once_and_probes_in_the_background(lib, tmp_path)
     assert other.choose(renderer, VOLUME, iso, 64, 48, cam, 1, 0.05).method == first.method and other.pending
 
 
+def test_a_choice_is_held_to_what_its_frames_cost_in_service(lib):
+    """A replica's first choice budgets its share of the GPU; once SERVICE_FRAMES frames of it are served, their
+    device time over the probe's (the load) rescales the whole budget: a light load frees the rest of the GPU, a
+    heavier one cuts it, one within DRIFT keeps the choice, and a measured load only rises. Frames of a prior, of
+    another method or with a non-finite time measure nothing."""
+    from isosr_server.auto import DRIFT, SERVICE_FRAMES
+
+    methods = (FrameMethod.of("full"), FrameMethod.of("full", ao_rays=2), FrameMethod.of("full", ao_rays=8))
+    policy = AutoPolicy(methods, 30.0, Networks(), gpu_share=0.5)
+    cam, scene, whole = orbit(30, 20, 1.8), (VOLUME, lib.iso, 64, 48), 1000 / (2 * 30)
+
+    def choose() -> BudgetChoice:  # the choice at once, or the probe it started run to its end
+        choice = policy.choose(lib.renderer, *scene, cam, 2, 0.05)
+        return finish_steps(policy.pending.pop()) if policy.pending else choice
+
+    def serve(method: FrameMethod, ms: float, frames: int = SERVICE_FRAMES) -> None:
+        for _ in range(frames):
+            policy.served(*scene, 2, 0.05, Clip(), method, ms)
+
+    serve(policy.choose(lib.renderer, *scene, cam, 2, 0.05).method, 1.0)  # the prior's frames
+    first = choose()
+    assert first.table and first.budget_ms == pytest.approx(0.5 * whole), "the share until measured"
+    other = next(m for m in methods if m != first.method)
+    serve(first.method, math.nan), serve(other, 100 * first.ms), serve(first.method, first.ms, SERVICE_FRAMES - 1)
+    assert choose() is first, "nothing measured yet"
+    serve(first.method, first.ms, 1)  # the window's last frame: a load of 1, the rest of the GPU is free
+    light = choose()
+    assert light is not first and light.budget_ms == pytest.approx(whole)
+    serve(light.method, 3 * light.ms)
+    heavy = choose()
+    assert heavy.budget_ms == pytest.approx(whole / 3)
+    serve(heavy.method, 0.9 * DRIFT * 3 * heavy.ms)  # within DRIFT of the load it was chosen for
+    assert choose() is heavy
+    serve(heavy.method, heavy.ms)  # lighter again: a measured load does not fall
+    assert choose() is heavy and policy.load((VOLUME, round(lib.iso, 6), 64, 48, 0.05)) == pytest.approx(
+        0.9 * DRIFT * 3)
+
+
+def test_the_service_tells_auto_what_each_of_its_frames_cost(srv, monkeypatch):
+    """Each auto frame's device time (its stages' ms, as the frame reports them) reaches the policy with the scene,
+    size, session count and method it was chosen for; other modes' frames do not."""
+    policy, told = srv.app.state.engine.auto, []
+    monkeypatch.setattr(policy, "served", lambda *args: told.append(args))
+    width = W + 32  # a size no other test's choice is cached for
+    with session(srv, width=width, height=H) as (ws, _):
+        frames = [frame(ws)] + [(send(ws, cam(30 + i, seq=i)), frame(ws))[1] for i in (1, 2)]
+    with session(srv, mode="full") as (ws, _):
+        frame(ws)
+    assert len(told) == len(frames)
+    for (scene, iso, w, h, sessions, ao_radius, clip, method, ms), f in zip(told, frames):
+        assert (scene, w, h, sessions, clip.active, method.name) == (VOLUME, width, H, 1, False, f.method)
+        device = sum(v for k, v in f.times.items() if k not in ("encode", "total"))
+        assert ms == pytest.approx(device, rel=1e-6) and ms > 0
+
+
 def test_auto_probes_the_clipped_scene_the_view_shows(lib, monkeypatch):
     """A clip is part of the scene auto probes: a probe of its own, beside the unclipped scene's,
     whose reference and every candidate it scores or times render clipped (here a clip that keeps
@@ -219,7 +274,7 @@ def test_the_first_auto_frame_is_the_prior_and_later_frames_the_probes_choice(sr
         for i in range(1, 200):
             send(ws, cam(30 + i % 2, seq=i))
             f = frame(ws)
-            chosen = [c for k, c in policy._chosen.items() if k[2] == width]
+            chosen = [c for k, (c, _) in policy._chosen.items() if k[2] == width]
             if chosen:
                 break
         assert chosen, "the probe ran between frames"
