@@ -236,6 +236,10 @@ class AutoPolicy:
         self._served.pop(key, None)
         measured = max(1.0, total / frames / chosen[0].ms)
         self._load[scene_key] = max(measured, self._load[scene_key]) if scene_key in self._load else measured
+        if not 1 / DRIFT < self._load[scene_key] / chosen[1] < DRIFT:
+            log.info("auto mode, %s at %dx%d, %d sessions: %s costs %.3g ms in service, %.2f times its probe's time "
+                     "(load %.2f, chosen at %.2f): choosing again", scene, width, height, key[-1], method.name,
+                     total / frames, total / frames / chosen[0].ms, self._load[scene_key], chosen[1])
 
     @staticmethod
     def _keys(scene: str, iso: float, width: int, height: int, sessions: int, ao_radius: float,

@@ -5,6 +5,7 @@ on loopback, plus the auto policy's caching on its own."""
 from __future__ import annotations
 
 import json
+import logging
 import math
 import time
 
@@ -137,7 +138,7 @@ def test_auto_policy_chooses_at_once_and_probes_in_the_background(lib, tmp_path)
     assert other.choose(renderer, VOLUME, iso, 64, 48, cam, 1, 0.05).method == first.method and other.pending
 
 
-def test_a_choice_is_held_to_what_its_frames_cost_in_service(lib):
+def test_a_choice_is_held_to_what_its_frames_cost_in_service(lib, caplog):
     """A replica's first choice budgets its share of the GPU; once SERVICE_FRAMES frames of it are served, their
     device time over the probe's (the load) rescales the whole budget: a light load frees the rest of the GPU, a
     heavier one cuts it, one within DRIFT keeps the choice, and a measured load only rises. Frames of a prior, of
@@ -162,7 +163,9 @@ def test_a_choice_is_held_to_what_its_frames_cost_in_service(lib):
     other = next(m for m in methods if m != first.method)
     serve(first.method, math.nan), serve(other, 100 * first.ms), serve(first.method, first.ms, SERVICE_FRAMES - 1)
     assert choose() is first, "nothing measured yet"
-    serve(first.method, first.ms, 1)  # the window's last frame: a load of 1, the rest of the GPU is free
+    with caplog.at_level(logging.INFO, logger="isosr.server"):
+        serve(first.method, first.ms, 1)  # the window's last frame: a load of 1, the rest of the GPU is free
+    assert "1.00 times its probe's time (load 1.00, chosen at 2.00): choosing again" in caplog.text
     light = choose()
     assert light is not first and light.budget_ms == pytest.approx(whole)
     serve(light.method, 3 * light.ms)
@@ -356,8 +359,6 @@ def test_warming_the_policy_makes_every_candidates_first_frames_at_each_size_and
 def test_a_probe_unit_that_held_the_device_thread_is_logged(caplog):
     """The engine times each unit of a probe on the device thread and says when one was long enough for
     viewers to see their frames wait."""
-    import logging
-
     from isosr_server import engine
 
     def units():
