@@ -14,9 +14,8 @@ a local Ray instance, or the cluster at --ray-address; without it, one process o
 from __future__ import annotations
 
 import argparse
-import logging
 
-from isosr_server.core.config import Settings, add_arguments, check_replica_exposure
+from isosr_server.core.config import Settings, add_arguments, check_replica_exposure, configure_logging
 
 
 # `isosr serve`'s flags beyond `Settings`: the shape of a multi-replica deployment (isosr_server.cluster).
@@ -54,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
     from isosr_server.app import create_app, uvicorn_options
 
     settings = Settings.from_args(args)
-    logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    configure_logging(settings.log_level)
     if args.replicas is not None:
         try:
             check_replica_exposure(settings.host, args.behind_proxy)

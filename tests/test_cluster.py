@@ -99,6 +99,7 @@ def cluster():
                        dashboard_port=quiet_port(), _temp_dir=temp, log_to_driver=False,
                        _system_config={"metrics_report_interval_ms": 1000})
     STATE_API.append(f"http://{context.dashboard_url}")  # this cluster's, though others may run here
+    RAY_TEMP.append(temp)
     try:
         settings = server_settings(limits=LIMITS)
         port = quiet_port()
@@ -118,8 +119,9 @@ def plain():
         yield s
 
 
-# The state API's address of the module's cluster (set by the fixture).
+# The state API's address of the module's cluster and its Ray folder, logs included (set by the fixture).
 STATE_API: list[str] = []
+RAY_TEMP: list[str] = []
 
 
 def replica_pids() -> dict[str, int]:
@@ -289,6 +291,18 @@ def test_metrics_name_their_replica(cluster, plain):
 
         wait_for(exported, f"Ray's export does not show one view session on each of {live}: {views}", 20)
         assert sum(views.values()) == 2
+
+
+def test_each_replica_logs_at_the_servers_level(cluster):
+    """A replica runs in a Ray worker, not in the process that set up logging: its isosr INFO lines (its start,
+    auto's choices) are in the worker's log all the same."""
+    logs, pids = Path(RAY_TEMP[-1]) / "session_latest" / "logs", replica_pids()
+
+    def logged() -> set[str]:
+        text = "\n".join(f.read_text(errors="replace") for f in logs.rglob("*") if f.suffix in (".err", ".out", ".log"))
+        return {r for r, pid in pids.items() if f"INFO isosr.cluster: isosr replica {r} in process {pid}" in text}
+
+    wait_for(lambda: logged() == set(pids), f"not every replica's start is in {logs}: {logged()} of {set(pids)}", 10)
 
 
 def test_killing_a_replica_moves_only_its_sessions(cluster, plain, path):

@@ -11,6 +11,7 @@ flag ``--name-with-dashes`` (:func:`add_arguments` makes them) and the environme
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 import os
 import ssl
@@ -52,6 +53,14 @@ def default_volumes_dir() -> Path | None:
 def _option(default: Any, help: str, parse: Callable[[str], Any] = str, choices: tuple[str, ...] | None = None):
     """A settings field that is also an option: its help, how to parse its text, its choices."""
     return field(default=default, metadata={"help": help, "parse": parse, "choices": choices})
+
+
+def configure_logging(level: str) -> None:
+    """This process's logs at ``level`` (one of :data:`LOG_LEVELS`): to stderr where nothing handles them yet,
+    and isosr's loggers at ``level`` where something does (a Ray Serve replica's worker, whose stderr is its
+    log file)."""
+    logging.basicConfig(level=level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.getLogger("isosr").setLevel(level.upper())
 
 
 def check_gpu_share(share: float) -> float:
