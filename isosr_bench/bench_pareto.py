@@ -22,7 +22,9 @@ CPUs) is timed as a whole path (render, reconstruction, shading) per frame, in s
 reference rendered for it with 4 rays per pixel and 512 AO rays:
 
 - ``color_psnr``, ``color_ssim``: shaded color on the covered region (either mask > 0.5);
-  ``image_psnr``, ``image_ssim``: the same on the whole image;
+  ``image_psnr``, ``image_ssim``: the same on the whole image; ``color_psnr_8bit``: ``color_psnr`` of the
+  colors a viewer receives, both quantized to 8 bits (within half a level everywhere: the ceiling, 100 dB;
+  one level off everywhere: 48.1 dB);
 - ``ao_rmse``: RMS AO error where both cover (a method without AO counts as AO 1; one that casts
   AO rays but gives only a color, OIDN, has none: null);
 - ``flicker``: :func:`isosr_net.metrics.color_instability` of the frames' colors along the
@@ -66,6 +68,7 @@ import torch
 
 from isosr_render import Renderer, Volume, open_volume, orbit_path, resolve_iso
 from isosr_render.catalog import entry, manifest
+from isosr_render.images import quantize
 from isosr_render.sequence import sequence_cameras
 from isosr_render.shapes import frame_size
 from isosr_render.surfaces import PALETTE, Surfaces
@@ -146,13 +149,15 @@ def finite(x: float) -> float | None:
 def scores(frames: list, references: list, ao_rays: int = 0) -> dict:
     """Mean scores of a method's frames against the references (see the module docstring); ``ao_rays``:
     the method's (a frame without AO counts as AO 1 only where it cast none)."""
-    per = {k: [] for k in ("color_psnr", "color_ssim", "image_psnr", "image_ssim", "ao_rmse")}
+    per = {k: [] for k in ("color_psnr", "color_ssim", "image_psnr", "image_ssim", "ao_rmse", "color_psnr_8bit")}
     for f, r in zip(frames, references):
         pred, ref = f.color.permute(2, 0, 1)[None], r.color.permute(2, 0, 1)[None]
         region = eval_region(f.mask[None, None], r.mask[None, None])
         whole = torch.ones_like(region)
         per["color_psnr"].append(float(masked_psnr(pred, ref, region)[0]))
         per["color_ssim"].append(float(masked_ssim(pred, ref, region)[0]))
+        shown, truth = (quantize(c).float() / 255 for c in (pred, ref))
+        per["color_psnr_8bit"].append(float(masked_psnr(shown, truth, region)[0]))
         per["image_psnr"].append(float(masked_psnr(pred, ref, whole)[0]))
         per["image_ssim"].append(float(masked_ssim(pred, ref, whole)[0]))
         both = (f.mask > 0.5) & (r.mask > 0.5)

@@ -13,7 +13,7 @@ from isosr_render import FrameBuffers
 from isosr_net.methods import unavailable_kinds
 
 FIELDS = {"volume", "size", "method", "learned", "ms", "color_psnr", "color_ssim", "image_psnr", "image_ssim",
-          "ao_rmse", "flicker", "flicker_ratio"}
+          "ao_rmse", "flicker", "flicker_ratio", "color_psnr_8bit"}
 OIDN = unavailable_kinds().get("oidn") is None
 
 
@@ -84,6 +84,23 @@ def test_an_empty_image_scores_null_not_zero_or_inf():
     s = scores([empty, empty], [empty, empty])
     assert s["color_psnr"] is None and s["color_ssim"] is None and s["ao_rmse"] is None and s["flicker"] is None
     assert s["image_psnr"] == pytest.approx(100.0)  # identical whole images: the PSNR ceiling
+
+
+def test_the_8bit_psnr_scores_the_colors_a_viewer_receives():
+    """Colors within half a level of 8 bits of the reference are what it shows (the PSNR ceiling) where their float
+    PSNR is finite; a whole level off everywhere is 20 log10(255) dB; NaN or out-of-range colors stay bounded."""
+    h, w = 16, 16
+    ref = torch.full((h, w, 3), 100 / 255)
+
+    def frame(color: torch.Tensor) -> FrameBuffers:
+        return FrameBuffers(mask=torch.ones(h, w), normal=torch.zeros(h, w, 3), ao=torch.ones(h, w), color=color)
+
+    near, level = scores([frame(ref + 0.4 / 255)], [frame(ref)]), scores([frame(ref + 1 / 255)], [frame(ref)])
+    assert near["color_psnr"] < 60 and near["color_psnr_8bit"] == pytest.approx(100.0)
+    assert level["color_psnr_8bit"] == pytest.approx(20 * math.log10(255), abs=1e-3)
+    hostile = ref.clone()
+    hostile[0, 0] = torch.tensor([math.nan, math.inf, -5.0])
+    assert math.isfinite(scores([frame(hostile)], [frame(ref)])["color_psnr_8bit"])
 
 
 def test_flicker_is_the_color_change_along_the_flow_and_ignores_buffers():
