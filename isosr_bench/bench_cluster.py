@@ -51,7 +51,7 @@ import numpy as np
 
 from isosr_bench.bench_server import SIZES, ServerProcess, case_row, device_thread, room_options, server_load
 from isosr_bench.common import bench_parser, commit, device_name, kept_rows, print_table, write_result
-from isosr_bench.load import LoadSampler, titled
+from isosr_bench.load import LoadSampler, executable, titled
 from isosr_bench.sessions import choices_line, run_sessions
 from isosr_client.drive import Orbit
 from isosr_client.view import connect
@@ -163,9 +163,10 @@ def replica_share(gpus: str, replicas: int) -> float:
     return 1.0 / replicas if gpus == "split" else float(gpus)
 
 
-def servers(replicas: list[int], gpus: str, device: str) -> list[tuple[str, int, float, tuple[str, ...]]]:
+def servers(replicas: list[int], gpus: str, device: str, ingress: str = "serve"
+            ) -> list[tuple[str, int, float, tuple[str, ...]]]:
     """(name, replicas, GPUs held, extra `isosr serve` options) per server measured: 0 replicas
-    is the plain server (one GPU on CUDA)."""
+    is the plain server (one GPU on CUDA); replicas behind ``ingress`` (`isosr serve --ingress`)."""
     cuda = device.startswith("cuda")
     out = []
     for n in replicas:
@@ -174,7 +175,7 @@ def servers(replicas: list[int], gpus: str, device: str) -> list[tuple[str, int,
             continue
         share = replica_share(gpus, n) if cuda else 0.0
         ray_options = ("--gpus-per-replica", f"{share:g}") if cuda else ()
-        out.append((f"ray{n}", n, n * share, ("--replicas", str(n), *ray_options)))
+        out.append((f"ray{n}", n, n * share, ("--replicas", str(n), "--ingress", ingress, *ray_options)))
     return out
 
 
@@ -227,6 +228,8 @@ def main(argv: list[str] | None = None) -> None:
                              "and replaced within one lease (default: this hour, UTC)")
     parser.add_argument("--client-deflate", action="store_true",
                         help="the sessions offer permessage-deflate, as a browser's viewer does (rows: client_deflate)")
+    parser.add_argument("--ingress", choices=("serve", "haproxy"), default="serve",
+                        help="what carries the replicas' requests (isosr serve --ingress; rows: ingress)")
     parser.add_argument("--client-processes", type=int, default=max(1, min(8, (os.cpu_count() or 2) // 4)),
                         help="processes the client sessions are dealt to")
     args = parser.parse_args(argv)
@@ -248,7 +251,7 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--gpus-per-replica: a share of 0 or more, or 'split', got {args.gpus_per_replica!r}")
     options = room_options(max(counts + [args.failover_sessions]))
     failover_on = next((f"ray{n}" for n in replicas if n >= 2), None)
-    measured = servers(replicas, args.gpus_per_replica, args.device)
+    measured = servers(replicas, args.gpus_per_replica, args.device, args.ingress)
     kind = "_one_gpu" if args.gpus_per_replica == "split" else "_gpus" if float(args.gpus_per_replica) >= 1 else ""
     name = f"bench_cluster{kind}_{size_name}" + ("" if args.encoding == "jpeg" else f"_{args.encoding}")
     path = args.out / f"{name}_{'cuda' if args.device.startswith('cuda') else 'cpu'}.json"
@@ -259,10 +262,11 @@ def main(argv: list[str] | None = None) -> None:
     for server_name, server_replicas, gpus, extra in measured:
         cases = [(mode, ao, n) for mode, ao in modes for n in counts]
         failover_sessions = args.failover_sessions if server_name == failover_on else 0
+        ingress = args.ingress if server_replicas else None
         for row in measure_server(server_name, args.device, options + extra, cases, failover_sessions,
-                                  volume, size, seconds, args.client_processes, args.encoding, compression):
+                                  volume, size, seconds, args.client_processes, args.encoding, compression, ingress):
             merged.append(dict(row, replicas=server_replicas, gpus=gpus, encoding=args.encoding, mps=mps,
-                               client_deflate=args.client_deflate, **stamp))
+                               client_deflate=args.client_deflate, ingress=ingress, **stamp))
             # Written after every row: a run cut off (a device call's time limit) keeps what it measured.
             scaled = scaling(merged)
             written = write_result(name, args.device, merged + scaled, args.out)
@@ -288,14 +292,16 @@ def load_fields(load: dict) -> dict:
 
 def measure_server(name: str, device: str, options: tuple[str, ...], cases: list[tuple[str, int, int]],
                    failover_sessions: int, volume: str, size: tuple[int, int], seconds: float, processes: int,
-                   encoding: str, compression: str | None = None):
+                   encoding: str, compression: str | None = None, ingress: str | None = None):
     """Start one server and yield a row per (mode, AO rays, sessions) case (frames coded as ``encoding``,
-    the sessions' WebSocket compression ``compression``), then its failover row."""
+    the sessions' WebSocket compression ``compression``; replicas behind ``ingress``, whose processes are the
+    rows' proxy), then its failover row."""
     started = time.monotonic()
     try:
         with ServerProcess(device, options) as server:
             ready_s = time.monotonic() - started
-            groups = {"server": lambda: [server.pid], "proxy": titled(b"ray::ProxyActor"),
+            proxy = executable(b"haproxy") if ingress == "haproxy" else titled(b"ray::ProxyActor")
+            groups = {"server": lambda: [server.pid], "proxy": proxy,
                       "replica": titled(b"ray::ServeReplica")}
             # One device thread's counter behind the plain server's /metrics; a replica's answers for itself only.
             counters = device_thread(server.url) if name == PLAIN else {}

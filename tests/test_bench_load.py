@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from isosr_bench import bench_cluster
-from isosr_bench.load import LoadSampler, cpu_ticks, titled
+from isosr_bench.load import LoadSampler, cpu_ticks, executable, titled
 
 SPIN = "import time\nend = time.monotonic() + 30\nwhile time.monotonic() < end: pass"
 NAP = "import time; time.sleep(30)"
@@ -60,6 +60,9 @@ def test_titled_finds_processes_by_the_start_of_their_command_line(spinner_and_s
     found = titled(sys.executable.encode())()
     assert {spin.pid, nap.pid} <= set(found)
     assert titled(b"ray::NoSuchActor")() == []
+    name = Path(sys.executable).name.encode()  # a program by its name, whatever folder it runs from (HAProxy's)
+    assert {spin.pid, nap.pid} <= set(executable(name)()) and executable(b"no-such-program")() == []
+    assert not {spin.pid, nap.pid} & set(executable(name[:-1])()), "the whole name, not a prefix"
 
 
 def test_cluster_cases_and_gpu_shares():
@@ -69,8 +72,10 @@ def test_cluster_cases_and_gpu_shares():
             bench_cluster.parse_cases(bad)
     shares = {name: (gpus, extra) for name, _, gpus, extra in bench_cluster.servers([0, 2, 4], "split", "cuda")}
     assert shares["plain"] == (1.0, ())
-    assert shares["ray2"] == (1.0, ("--replicas", "2", "--gpus-per-replica", "0.5"))
-    assert shares["ray4"] == (1.0, ("--replicas", "4", "--gpus-per-replica", "0.25"))
+    assert shares["ray2"] == (1.0, ("--replicas", "2", "--ingress", "serve", "--gpus-per-replica", "0.5"))
+    assert shares["ray4"] == (1.0, ("--replicas", "4", "--ingress", "serve", "--gpus-per-replica", "0.25"))
+    behind = bench_cluster.servers([0, 2], "split", "cuda", "haproxy")
+    assert [extra[2:4] for _, _, _, extra in behind] == [(), ("--ingress", "haproxy")]
     assert [gpus for _, _, gpus, _ in bench_cluster.servers([1, 2], "1", "cuda")] == [1.0, 2.0]
     assert [gpus for _, _, gpus, _ in bench_cluster.servers([0, 2], "1", "cpu")] == [0.0, 0.0]
 

@@ -238,6 +238,26 @@ def check_exposure(host: str, token: str | None, tls: bool, insecure: bool) -> N
                          "--tls-key, or --insecure")
 
 
+# Ray Serve's switch for its HAProxy ingress (read when ray.serve is imported, by every Ray process it starts):
+# HAProxy carries requests straight to each replica's own port, where Serve's proxy (Python, one a node) did.
+HAPROXY_SWITCH = "RAY_SERVE_ENABLE_HA_PROXY"
+INGRESSES = ("serve", "haproxy")
+
+
+def check_ingress(ingress: str, settings: Settings) -> None:
+    """What ``--ingress`` can carry: Serve's proxy anything; HAProxy no TLS (Ray's configuration of it
+    terminates none: a reverse proxy in front does).
+
+    Raises:
+        ValueError: an unknown ingress, or HAProxy with a certificate.
+    """
+    if ingress not in INGRESSES:
+        raise ValueError(f"--ingress must be one of {', '.join(INGRESSES)}, got {ingress!r}")
+    if ingress == "haproxy" and settings.tls_cert is not None:
+        raise ValueError("--ingress haproxy terminates no TLS: drop --tls-cert/--tls-key and terminate TLS in the "
+                         "reverse proxy in front (--behind-proxy), or use --ingress serve")
+
+
 def check_replica_exposure(host: str, accepted: bool) -> None:
     """The rule for replicas beyond this machine: Ray Serve's proxy, their front door, bounds neither a
     request's header size and read time nor TLS handshakes, nor its connections, nor a WebSocket's
