@@ -14,7 +14,6 @@ a local Ray instance, or the cluster at --ray-address; without it, one process o
 from __future__ import annotations
 
 import argparse
-
 import os
 
 from isosr_server.core.config import (HAPROXY_SWITCH, INGRESSES, Settings, add_arguments, check_ingress,
