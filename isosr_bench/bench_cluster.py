@@ -51,7 +51,7 @@ import numpy as np
 
 from isosr_bench.bench_server import SIZES, ServerProcess, case_row, device_thread, room_options, server_load
 from isosr_bench.common import bench_parser, commit, device_name, kept_rows, print_table, write_result
-from isosr_bench.load import LoadSampler, executable, titled
+from isosr_bench.load import LoadSampler, executable, haproxy_backend, titled
 from isosr_bench.sessions import choices_line, run_sessions
 from isosr_client.drive import Orbit
 from isosr_client.view import connect
@@ -89,6 +89,25 @@ def replica_pids() -> list[int]:
         if title.startswith(b"ray::ServeReplica") and b"IsosrReplica" in title:
             pids.append(int(entry.name))
     return sorted(pids)
+
+
+def wait_for_replicas_in_haproxy(replicas: int, stats_port: int | None = None, timeout_s: float = 120.0) -> None:
+    """Until HAProxy's backend holds every replica (a server is ready a few seconds before: until then HAProxy
+    sends requests to Serve's proxy, its backup, and a session opened then stays on that path); ``stats_port``:
+    HAProxy's statistics (default: ``RAY_SERVE_HAPROXY_STATS_PORT``, else Ray's 8404).
+
+    Raises:
+        RuntimeError: not within ``timeout_s``, naming the servers HAProxy holds.
+    """
+    port = stats_port or int(os.environ.get("RAY_SERVE_HAPROXY_STATS_PORT", "8404"))
+    deadline = time.monotonic() + timeout_s
+    while True:
+        servers = haproxy_backend(port)
+        if sum(name.startswith("SERVE_REPLICA") for name in servers) >= replicas:
+            return
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"HAProxy holds {sorted(servers)}, not {replicas} replicas, {timeout_s:g} s after ready")
+        time.sleep(0.5)
 
 
 def stop_ray() -> None:
@@ -299,6 +318,8 @@ def measure_server(name: str, device: str, options: tuple[str, ...], cases: list
     started = time.monotonic()
     try:
         with ServerProcess(device, options) as server:
+            if ingress == "haproxy":
+                wait_for_replicas_in_haproxy(int(options[options.index("--replicas") + 1]))
             ready_s = time.monotonic() - started
             proxy = executable(b"haproxy") if ingress == "haproxy" else titled(b"ray::ProxyActor")
             groups = {"server": lambda: [server.pid], "proxy": proxy,

@@ -18,6 +18,7 @@ process, which a single interpreter's lock bounds near 1.0; ``machine`` is every
 
 from __future__ import annotations
 
+import csv
 import os
 import shutil
 import subprocess
@@ -54,6 +55,15 @@ def _processes(match: Callable[[bytes], bool]) -> Callable[[], list[int]]:
                 continue
         return found
     return pids
+
+
+def haproxy_backend(stats_port: int, backend: str = "http-isosr") -> dict[str, int]:
+    """The current connections of each server of HAProxy's ``backend`` (Serve's, for the isosr app; ``BACKEND``: all
+    of them; replicas are ``SERVE_REPLICA_...``, Serve's proxy, the backup until they join, ``SERVE_PROXY_...``),
+    from HAProxy's statistics on ``stats_port`` (Ray's ``RAY_SERVE_HAPROXY_STATS_PORT``, default 8404)."""
+    with urllib.request.urlopen(f"http://127.0.0.1:{stats_port}/stats;csv", timeout=10) as r:
+        rows = csv.DictReader(r.read().decode().lstrip("# ").splitlines())
+        return {row["svname"]: int(row["scur"]) for row in rows if row["pxname"] == backend}
 
 
 def metric_total(url: str, name: str) -> Callable[[], float | None]:

