@@ -226,8 +226,8 @@ class AutoPolicy:
         scene_key, key = self._keys(scene, iso, width, height, sessions, ao_radius, clip)
         chosen = self._chosen.get(key)
         if (chosen is None or not chosen[0].table or chosen[0].method != method or not chosen[0].ms > 0
-                or not math.isfinite(device_ms)):
-            return  # a prior's, another mode's or a non-finite time: no measure of the probe's choice
+                or not 0 < device_ms < math.inf):
+            return  # a prior's, another mode's, or no time (none, non-finite): no measure of the probe's choice
         frames, total = self._served.get(key, (0, 0.0))
         frames, total = frames + 1, total + device_ms
         if frames < SERVICE_FRAMES:

@@ -142,7 +142,7 @@ def test_a_choice_is_held_to_what_its_frames_cost_in_service(lib, caplog):
     """A replica's first choice budgets its share of the GPU; once SERVICE_FRAMES frames of it are served, their
     device time over the probe's (the load) rescales the whole budget: a light load frees the rest of the GPU, a
     heavier one cuts it, one within DRIFT keeps the choice, and a measured load only rises. Frames of a prior, of
-    another method or with a non-finite time measure nothing."""
+    another method or without a positive finite time measure nothing."""
     from isosr_server.auto import DRIFT, SERVICE_FRAMES
 
     methods = (FrameMethod.of("full"), FrameMethod.of("full", ao_rays=2), FrameMethod.of("full", ao_rays=8))
@@ -161,7 +161,8 @@ def test_a_choice_is_held_to_what_its_frames_cost_in_service(lib, caplog):
     first = choose()
     assert first.table and first.budget_ms == pytest.approx(0.5 * whole), "the share until measured"
     other = next(m for m in methods if m != first.method)
-    serve(first.method, math.nan), serve(other, 100 * first.ms), serve(first.method, first.ms, SERVICE_FRAMES - 1)
+    serve(first.method, math.nan), serve(first.method, 0.0), serve(first.method, -1.0), serve(other, 100 * first.ms)
+    serve(first.method, first.ms, SERVICE_FRAMES - 1)
     assert choose() is first, "nothing measured yet"
     with caplog.at_level(logging.INFO, logger="isosr.server"):
         serve(first.method, first.ms, 1)  # the window's last frame: a load of 1, the rest of the GPU is free
