@@ -236,10 +236,14 @@ class AutoPolicy:
         self._served.pop(key, None)
         measured = max(1.0, total / frames / chosen[0].ms)
         self._load[scene_key] = max(measured, self._load[scene_key]) if scene_key in self._load else measured
-        if not 1 / DRIFT < self._load[scene_key] / chosen[1] < DRIFT:
+        if not self._holds(scene_key, chosen[1]):
             log.info("auto mode, %s at %dx%d, %d sessions: %s costs %.3g ms in service, %.2f times its probe's time "
                      "(load %.2f, chosen at %.2f): choosing again", scene, width, height, key[-1], method.name,
                      total / frames, total / frames / chosen[0].ms, self._load[scene_key], chosen[1])
+
+    def _holds(self, scene_key: tuple, made_for: float) -> bool:
+        """Whether a choice made for the load ``made_for`` still holds at the scene's :meth:`load` (within DRIFT)."""
+        return 1 / DRIFT < self.load(scene_key) / made_for < DRIFT
 
     @staticmethod
     def _keys(scene: str, iso: float, width: int, height: int, sessions: int, ao_radius: float,
@@ -256,7 +260,7 @@ class AutoPolicy:
         probe waits in :attr:`pending`."""
         scene_key, key = self._keys(scene, iso, width, height, sessions, ao_radius, clip)
         chosen = self._chosen.get(key)
-        if chosen is not None and 1 / DRIFT < self.load(scene_key) / chosen[1] < DRIFT:
+        if chosen is not None and self._holds(scene_key, chosen[1]):
             return chosen[0]
         if key not in self._probing:
             probe = self._probe(renderer, scene_key, key, camera, clip)
