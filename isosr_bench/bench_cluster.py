@@ -55,6 +55,7 @@ from isosr_bench.load import LoadSampler, executable, haproxy_backend, titled
 from isosr_bench.sessions import choices_line, run_sessions
 from isosr_client.drive import Orbit
 from isosr_client.view import connect
+from isosr_server.core.config import INGRESSES
 from isosr_server.protocol import IMAGE_ENCODINGS, VIDEO_ENCODINGS
 from isosr_server.replica import mps_running
 from isosr_server.views import VIEWS
@@ -247,7 +248,7 @@ def main(argv: list[str] | None = None) -> None:
                              "and replaced within one lease (default: this hour, UTC)")
     parser.add_argument("--client-deflate", action="store_true",
                         help="the sessions offer permessage-deflate, as a browser's viewer does (rows: client_deflate)")
-    parser.add_argument("--ingress", choices=("serve", "haproxy"), default="serve",
+    parser.add_argument("--ingress", choices=INGRESSES, default="serve",
                         help="what carries the replicas' requests (isosr serve --ingress; rows: ingress)")
     parser.add_argument("--client-processes", type=int, default=max(1, min(8, (os.cpu_count() or 2) // 4)),
                         help="processes the client sessions are dealt to")
@@ -283,7 +284,8 @@ def main(argv: list[str] | None = None) -> None:
         failover_sessions = args.failover_sessions if server_name == failover_on else 0
         ingress = args.ingress if server_replicas else None
         for row in measure_server(server_name, args.device, options + extra, cases, failover_sessions,
-                                  volume, size, seconds, args.client_processes, args.encoding, compression, ingress):
+                                  volume, size, seconds, args.client_processes, args.encoding, compression, ingress,
+                                  server_replicas):
             merged.append(dict(row, replicas=server_replicas, gpus=gpus, encoding=args.encoding, mps=mps,
                                client_deflate=args.client_deflate, ingress=ingress, **stamp))
             # Written after every row: a run cut off (a device call's time limit) keeps what it measured.
@@ -311,15 +313,15 @@ def load_fields(load: dict) -> dict:
 
 def measure_server(name: str, device: str, options: tuple[str, ...], cases: list[tuple[str, int, int]],
                    failover_sessions: int, volume: str, size: tuple[int, int], seconds: float, processes: int,
-                   encoding: str, compression: str | None = None, ingress: str | None = None):
+                   encoding: str, compression: str | None = None, ingress: str | None = None, replicas: int = 0):
     """Start one server and yield a row per (mode, AO rays, sessions) case (frames coded as ``encoding``,
-    the sessions' WebSocket compression ``compression``; replicas behind ``ingress``, whose processes are the
-    rows' proxy), then its failover row."""
+    the sessions' WebSocket compression ``compression``; its ``replicas`` behind ``ingress``, whose processes are
+    the rows' proxy), then its failover row."""
     started = time.monotonic()
     try:
         with ServerProcess(device, options) as server:
             if ingress == "haproxy":
-                wait_for_replicas_in_haproxy(int(options[options.index("--replicas") + 1]))
+                wait_for_replicas_in_haproxy(replicas)
             ready_s = time.monotonic() - started
             proxy = executable(b"haproxy") if ingress == "haproxy" else titled(b"ray::ProxyActor")
             groups = {"server": lambda: [server.pid], "proxy": proxy,
