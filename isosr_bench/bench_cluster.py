@@ -269,7 +269,8 @@ def main(argv: list[str] | None = None) -> None:
             raise ValueError
     except ValueError:
         parser.error(f"--gpus-per-replica: a share of 0 or more, or 'split', got {args.gpus_per_replica!r}")
-    options = room_options(max(counts + [args.failover_sessions]))
+    # at info: a replica's auto probes, choices and re-choices reach its Ray worker's log
+    options = room_options(max(counts + [args.failover_sessions])) + ("--log-level", "info")
     failover_on = next((f"ray{n}" for n in replicas if n >= 2), None)
     measured = servers(replicas, args.gpus_per_replica, args.device, args.ingress)
     kind = "_one_gpu" if args.gpus_per_replica == "split" else "_gpus" if float(args.gpus_per_replica) >= 1 else ""
