@@ -22,6 +22,11 @@ the reconstruction at 2 rays a pixel and got 25.3). The budget is the session's 
 the measured load, ``1000 / (N F L)``, with ``L`` its frames' device time in service over the
 probe's time (``1 / S`` until measured): the choice is made again where ``L`` moves.
 
+Under load a session gives up rate before AO: where that budget leaves only a frame without AO
+in a scene where AO matters, the cheapest candidate with AO rays that gains :data:`KEEP_AO_DB`
+takes its place if it fits the budget at ``min_fps``: many viewers of one GPU get a (learned) frame
+with AO at a lower rate, not a plain frame without it at the target rate.
+
 No frame waits for a probe. Until the probe of a scene and size has run, frames use the prior:
 first the cheapest candidate (no AO, one ray per pixel), the frame that reaches the viewer
 first; once the probe's first units timed this scene's plain first-hit frame, the device class's
@@ -42,6 +47,7 @@ import logging
 import math
 import os
 from collections.abc import Generator
+from dataclasses import replace
 from pathlib import Path
 
 from isosr_net.budget import (BudgetChoice, BudgetConfig, CostTable, QualityProbe, choose_method_steps,
@@ -71,6 +77,9 @@ PROBE_BATCH = 8
 # re-chooses (AutoPolicy.served).
 SERVICE_FRAMES = 64
 DRIFT = 1.25
+# What a frame must gain over the target rate's choice, one without AO where AO matters, for auto to give up rate
+# (down to min_fps) for it: 3 dB, half the error's power.
+KEEP_AO_DB = 3.0
 
 
 def served_factor(runner: type[FrameRunner], factor: int) -> int:
@@ -149,6 +158,8 @@ class AutoPolicy:
         gpu_share: the part of the device this server's frames get (a replica sharing a GPU with
             others: its part); a frame's budget is its session's share of that part until what its
             frames cost in service is measured (:meth:`load`).
+        min_fps: the least frame rate a session is given to keep AO that the target rate would drop
+            (:meth:`_keeping_ao`); None: ``target_fps`` (rate is never given up).
 
     Attributes:
         pending: probes to run (generators of device-thread steps), taken by the engine.
@@ -159,10 +170,14 @@ class AutoPolicy:
 
     def __init__(self, candidates: tuple[FrameMethod, ...], target_fps: float, networks: Networks,
                  cache: ProbeCache | None = None, slice_ms: float | None = None, costs: CostTable | None = None,
-                 gpu_share: float = 1.0):
+                 gpu_share: float = 1.0, min_fps: float | None = None):
         if not target_fps > 0:
             raise ValueError(f"target_fps must be positive, got {target_fps!r}")
+        min_fps = target_fps if min_fps is None else min_fps
+        if not 0 < min_fps <= target_fps:
+            raise ValueError(f"min_fps must lie in (0, target_fps = {target_fps:g}], got {min_fps!r}")
         self.candidates, self.target_fps, self.networks = candidates, float(target_fps), networks
+        self.min_fps = float(min_fps)
         self.gpu_share = check_gpu_share(gpu_share)
         self.cache, self.slice_ms = cache or ProbeCache(None, ""), slice_ms
         self.pending: list[Generator[None, None, BudgetChoice]] = []
@@ -178,7 +193,8 @@ class AutoPolicy:
     @classmethod
     def for_server(cls, device: str, precision: str, factor: int, models: dict, target_fps: float,
                    networks: Networks, x2_model: str | os.PathLike | None = None, cache: ProbeCache | None = None,
-                   slice_ms: float | None = None, gpu_share: float = 1.0) -> "AutoPolicy":
+                   slice_ms: float | None = None, gpu_share: float = 1.0, min_fps: float | None = None
+                   ) -> "AutoPolicy":
         """The default candidates with the server's precision, upscale factor and model folders
         (``models``: network class -> (folder or None, name), as in the views' context), and the
         reconstruction at twice the sides by ``x2_model`` (None: none)."""
@@ -191,7 +207,8 @@ class AutoPolicy:
                 m = m.replace(model=None if folder is None else str(folder), model_name=name,
                               factor=served_factor(m.runner, factor))
             candidates.append(m)
-        return cls(tuple(candidates), target_fps, networks, cache, slice_ms, CostTable.for_device(device), gpu_share)
+        return cls(tuple(candidates), target_fps, networks, cache, slice_ms, CostTable.for_device(device), gpu_share,
+                   min_fps)
 
     def warm(self, renderer: Renderer, sizes: tuple[tuple[int, int], ...]) -> None:
         """Make two frames of every candidate at each ``(height, width)`` and at its probe's size
@@ -272,6 +289,24 @@ class AutoPolicy:
             self.pending.append(probe)
         return self.prior(self.budget_ms(sessions), scene_key) if chosen is None else chosen[0]
 
+    def _keeping_ao(self, renderer: Renderer, iso: float, width: int, height: int, choice: BudgetChoice,
+                    config: BudgetConfig, cameras: list[Camera], quality: QualityProbe,
+                    timings: dict) -> Generator[None, None, BudgetChoice]:
+        """``choice`` (the target rate's), or where it drops AO that matters, the first candidate (the cheapest)
+        with AO rays that gains :data:`KEEP_AO_DB` over it, if that keeps :attr:`min_fps`: rate given up for
+        AO, no more of it than the cheapest such frame needs."""
+        if not choice.ao_matters or choice.method.ao_rays or self.min_fps == self.target_fps:
+            return choice
+        gains = [m for m in self.candidates
+                 if m.ao_rays and quality.psnr.get(m, math.nan) >= choice.expected_psnr + KEEP_AO_DB]
+        if not gains:
+            return choice
+        only = replace(quality, psnr={gains[0]: quality.psnr[gains[0]]})
+        kept = yield from choose_method_steps(renderer, iso, width, height,
+                                              choice.budget_ms * self.target_fps / self.min_fps, config, cameras,
+                                              self.networks, only, timings, self.slice_ms, warn=False)
+        return kept if kept.fits else choice
+
     def prior(self, budget_ms: float, scene_key: tuple | None = None) -> BudgetChoice:
         """The choice before a probe: the cost table's where this scene's first-hit time is known
         (predicted time and PSNR), else :func:`prior_method` (nothing measured)."""
@@ -308,6 +343,8 @@ class AutoPolicy:
             choice = yield from choose_method_steps(renderer, iso, width, height, budget_ms, config, cameras,
                                                     self.networks, self._quality[scene_key], timings,
                                                     self.slice_ms, warn=False)
+            choice = yield from self._keeping_ao(renderer, iso, width, height, choice, config, cameras,
+                                                 self._quality[scene_key], timings)
         except ValueError as e:  # the scene or size admits no candidate: say why, keep the prior
             log.warning("auto mode, %s at %dx%d: no probe (%s); frames stay %s", scene_key[0], width, height, e,
                         prior_method(self.candidates).name)

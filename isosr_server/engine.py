@@ -256,7 +256,7 @@ class Engine:
         self.auto = AutoPolicy.for_server(str(self.device), self.precision, factor, self._models,
                                           self.config.target_fps, self.networks, self.config.recon_x2_model,
                                           ProbeCache(self.config.probe_cache, self.device_label()), self.slice_ms,
-                                          self.config.gpu_share)
+                                          self.config.gpu_share, self.config.resolved_min_fps)
         renderer = Renderer(parse_procedural("proc:sphere@16"), str(self.device))
         if self.device.type == "cuda":
             self.auto.warm(renderer, WARM_RECON_SIZES)

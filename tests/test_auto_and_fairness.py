@@ -179,6 +179,48 @@ def test_a_choice_is_held_to_what_its_frames_cost_in_service(lib, caplog):
         0.9 * DRIFT * 3)
 
 
+def test_under_load_auto_gives_up_rate_down_to_min_fps_to_keep_the_ao_a_scene_shows(lib):
+    """Where the target rate's budget leaves only a frame without AO and AO matters, auto takes the cheapest
+    candidate with AO rays that gains KEEP_AO_DB over it, if that frame keeps min_fps; otherwise (it does not
+    keep min_fps, no candidate gains enough, AO does not matter, min_fps is the target) the target's choice."""
+    from isosr_server.auto import KEEP_AO_DB
+
+    plain, noisy, cheap_ao, dear_ao = (FrameMethod.of("full", ao_rays=n) for n in (0, 1, 2, 8))
+    times = {plain: 1.0, noisy: 1.2, cheap_ao: 3.0, dear_ao: 6.0}  # the policy's candidates: cheapest first
+    cam, scene_key = orbit(30, 20, 1.8), (VOLUME, round(lib.iso, 6), 64, 48, 0.05)
+    target = 1000 / (16 * 30)  # 16 sessions at 30 frames/s: 2.08 ms, 1.56 within the headroom
+
+    def choose(min_fps: float | None, ao_matters: bool = True, psnr_ao: float = 28.0) -> BudgetChoice:
+        policy = AutoPolicy(tuple(times), 30.0, Networks(), min_fps=min_fps)
+        psnr = {dear_ao: psnr_ao + 2, cheap_ao: psnr_ao, plain: 20.0, noisy: 19.0}  # 1 AO ray: noise, no gain
+        policy._quality[scene_key] = budget.QualityProbe((64, 48), psnr, 12.0, ao_matters, 0.0)
+        policy._timings[scene_key] = dict(times)  # all timed: the choice is made without device work
+        choice = policy.choose(lib.renderer, VOLUME, lib.iso, 64, 48, cam, 16, 0.05)
+        assert not policy.pending
+        return choice
+
+    assert choose(None).method == plain and choose(30.0).method == plain, "min_fps at the target: no trade"
+    kept = choose(15.0)  # twice the budget: 3.0 ms of 4.17 fits its headroom
+    assert kept.method == cheap_ao and kept.fits and kept.budget_ms == pytest.approx(2 * target)
+    assert choose(5.0).method == cheap_ao, "the cheapest frame that keeps AO, not the best the floor allows (6 ms)"
+    assert choose(20.0).method == plain, "3.0 ms does not keep 20 frames/s"
+    assert choose(15.0, ao_matters=False).method == plain
+    assert choose(15.0, psnr_ao=20.0 + KEEP_AO_DB - 0.1).method == plain, "AO rays that gain too little"
+    assert choose(15.0, psnr_ao=math.nan).method == plain
+    with pytest.raises(ValueError, match="min_fps must lie in"):
+        AutoPolicy(tuple(times), 30.0, Networks(), min_fps=31.0)
+
+
+def test_the_servers_auto_keeps_ao_down_to_half_its_target_rate_unless_told(srv):
+    from isosr_server.core.config import Settings
+
+    assert srv.app.state.engine.auto.min_fps == 15.0 == Settings().resolved_min_fps
+    assert Settings(target_fps=10.0).resolved_min_fps == 5.0 and Settings(min_fps=30.0).resolved_min_fps == 30.0
+    for bad, why in ((40.0, "must not exceed target_fps"), (0.0, "positive"), (math.inf, "positive")):
+        with pytest.raises(ValueError, match=why):
+            Settings(min_fps=bad)
+
+
 def test_the_service_tells_auto_what_each_of_its_frames_cost(srv, monkeypatch):
     """Each auto frame's device time (its stages' ms, as the frame reports them) reaches the policy with the scene,
     size, session count and method it was chosen for; other modes' frames do not."""

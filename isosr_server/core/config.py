@@ -91,6 +91,8 @@ class Settings:
         insecure: allow plain HTTP beyond loopback.
         limits: the protocol limits.
         target_fps: the frame rate the ``auto`` mode's budget aims at.
+        min_fps: the least frame rate the ``auto`` mode gives a session to keep AO that matters in its scene
+            where ``target_fps`` would drop it (None: half of ``target_fps``; ``target_fps``: never).
         slice_ms: device time a slice of a heavy view frame aims at (others' frames interleave
             between slices); None: 8 ms on CUDA, 100 ms on CPUs.
         batch_wait_ms: how long a batch of view frames may wait for the sessions that have not
@@ -126,6 +128,9 @@ class Settings:
                                     "browsers decode no video (WebCodecs needs HTTPS)", parse_switch)
     limits: Limits = field(default_factory=Limits)
     target_fps: float = _option(30.0, "frame rate the auto mode's budget aims at", float)
+    min_fps: float | None = _option(None, "least frame rate the auto mode gives a session to keep the AO its scene "
+                                          "shows where --target-fps would drop it (default: half of --target-fps; "
+                                          "equal to it: never)", float)
     slice_ms: float | None = _option(None, "device time a slice of a heavy view frame aims at, other sessions' "
                                            "frames interleaving between slices (default: 8 on CUDA, 100 on CPUs)",
                                      float)
@@ -160,10 +165,17 @@ class Settings:
         if not (math.isfinite(self.batch_wait_ms) and self.batch_wait_ms >= 0):
             raise ValueError(f"batch_wait_ms must be a number of milliseconds, 0 or more, got {self.batch_wait_ms}")
         check_gpu_share(self.gpu_share)
-        for name in ("target_fps", "slice_ms"):
+        for name in ("target_fps", "min_fps", "slice_ms"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, got {value}")
+        if self.min_fps is not None and self.min_fps > self.target_fps:
+            raise ValueError(f"min_fps ({self.min_fps:g}) must not exceed target_fps ({self.target_fps:g})")
+
+    @property
+    def resolved_min_fps(self) -> float:
+        """The auto mode's least frame rate: the given one, else half of ``target_fps``."""
+        return self.target_fps / 2 if self.min_fps is None else self.min_fps
 
     @property
     def resolved_precision(self) -> str:
