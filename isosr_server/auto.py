@@ -19,8 +19,9 @@ its candidates at the load of its moment, and on a replica sharing a GPU the oth
 cheaper then than once every replica makes its choice (on an H200, four replicas with a quarter
 each: budgets cut to the share chose plain frames at 29.6 frames/s a session, whole budgets chose
 the reconstruction at 2 rays a pixel and got 25.3). The budget is the session's whole share over
-the measured load, ``1000 / (N F L)``, with ``L`` its frames' device time in service over the
-probe's time (``1 / S`` until measured): the choice is made again where ``L`` moves.
+the measured load, ``1000 / (N F L)``, with ``L`` what its frames cost the device thread in service
+over the probe's time, both by the wall clock (``1 / S`` until measured): the choice is made again
+where ``L`` moves.
 
 Under load a session gives up rate before AO: where that budget leaves only a frame without AO
 in a scene where AO matters, the cheapest candidate with AO rays that gains :data:`KEEP_AO_DB`
@@ -72,7 +73,7 @@ PROBE = dict(probe_frames=1, warmup_frames=1, timing_frames=2, clock="wall", hea
 # On GPUs under load a candidate is timed as the service makes it: a batch of streams' frames at once
 # (BudgetConfig.batch), each frame costing its share; batches of at most this many.
 PROBE_BATCH = 8
-# A choice held to what its frames cost in service: after this many of them, their device time over its probe's
+# A choice held to what its frames cost in service: after this many of them, their device-thread time over its probe's
 # time (the service's load: other replicas on the GPU, the host) rescales the budget; a change beyond DRIFT
 # re-chooses (AutoPolicy.served).
 SERVICE_FRAMES = 64
@@ -234,8 +235,9 @@ class AutoPolicy:
         return self._load.get(scene_key, 1.0 / self.gpu_share)
 
     def served(self, scene: str, iso: float, width: int, height: int, sessions: int, ao_radius: float, clip: Clip,
-               method: FrameMethod, device_ms: float) -> None:
-        """A frame of a probed choice was made in service in ``device_ms`` (its device stages; event loop). Every
+               method: FrameMethod, thread_ms: float) -> None:
+        """A frame of a probed choice cost the device thread ``thread_ms`` in service (its share of its batch's wall
+        time: the probe's clock; event loop). Every
         :data:`SERVICE_FRAMES` such frames, their mean over the probe's time (at least 1) is the scene's
         :meth:`load`: the first measure replaces ``1 / gpu_share``, later ones only raise it (a choice
         that proved dear is not tried again at a lighter load). A load that moved by more than
@@ -243,10 +245,10 @@ class AutoPolicy:
         scene_key, key = self._keys(scene, iso, width, height, sessions, ao_radius, clip)
         chosen = self._chosen.get(key)
         if (chosen is None or not chosen[0].table or chosen[0].method != method or not chosen[0].ms > 0
-                or not 0 < device_ms < math.inf):
+                or not 0 < thread_ms < math.inf):
             return  # a prior's, another mode's, or no time (none, non-finite): no measure of the probe's choice
         frames, total = self._served.get(key, (0, 0.0))
-        frames, total = frames + 1, total + device_ms
+        frames, total = frames + 1, total + thread_ms
         if frames < SERVICE_FRAMES:
             self._served[key] = frames, total
             return

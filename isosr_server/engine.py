@@ -407,7 +407,7 @@ class Engine:
         self._idle.clear()
         try:
             due = time.monotonic() if deadline is None else deadline
-            made, codes, batch = await self._batched(frames, renderer, job, due, jpeg)
+            made, codes, batch, thread_ms = await self._batched(frames, renderer, job, due, jpeg)
         finally:
             self._framing -= 1
             if not self._framing:
@@ -423,19 +423,19 @@ class Engine:
             else:
                 image, buffers = await asyncio.get_running_loop().run_in_executor(pool, pack_codes, codes, code)
             done = time.perf_counter()
-            device = made.result.times
-            frames.served(job, made, sum(device.values()))
-            times = device | {"encode": 1e3 * (done - began), "total": 1e3 * (done - start)}
+            frames.served(job, made, thread_ms)
+            times = made.result.times | {"encode": 1e3 * (done - began), "total": 1e3 * (done - start)}
             return EncodedFrame(image, buffers, times, made.legend, made.method.name, made.prev_seq, memory,
                                 job.settings.t, batch, made.choice)
         return encode
 
     async def _batched(self, frames: SessionFrames, renderer: Renderer, job: FrameJob,
-                       deadline: float, jpeg: int | None) -> tuple[ViewFrame, object, int]:
-        """A view frame, its codes and the frames made together with it (itself included), made in
-        the next batch (:meth:`_batch_sync`): the frames of every session that asked meanwhile, one
-        device-thread job for them all. A frame that runs in slices comes back as its steps and is
-        made here alone, a device-thread job per slice."""
+                       deadline: float, jpeg: int | None) -> tuple[ViewFrame, object, int, float]:
+        """A view frame, its codes, the frames made together with it (itself included) and what it cost the
+        device thread (ms; its share of its batch's wall time), made in the next batch (:meth:`_batch_sync`):
+        the frames of every session that asked meanwhile, one device-thread job for them all. A frame that
+        runs in slices comes back as its steps and is made here alone, a device-thread job per slice (its
+        cost: its stages' device time, since other frames run between its slices)."""
         loop = asyncio.get_running_loop()
         future = loop.create_future()
         with self._asked:
@@ -447,7 +447,7 @@ class Engine:
         out = await future
         if isinstance(out, Generator):
             made = await self.run_steps(out)
-            return made, await self.call(self.codes_sync, made), 1
+            return made, await self.call(self.codes_sync, made), 1, sum(made.result.times.values())
         return out
 
     def _batch_sync(self, loop: asyncio.AbstractEventLoop) -> None:
@@ -473,6 +473,7 @@ class Engine:
             except Exception as e:  # noqa: BLE001 - this session's error, not its batch mates'
                 _resolve(loop, asked.future, error=e)
         for group in groups.values():  # in the order of their earliest deadlines (dicts keep insertion order)
+            began = time.perf_counter()
             try:
                 results = type(group[0][1].runner).make_batch([(p.runner, p.job.camera, p.prev_camera)
                                                                for _, p in group])
@@ -487,8 +488,9 @@ class Engine:
                     made.append((asked, frame, self.codes_sync(frame)))
                 except Exception as e:  # noqa: BLE001 - as above
                     _resolve(loop, asked.future, error=e)
+            thread_ms = 1e3 * (time.perf_counter() - began) / len(group)  # the clock auto's probes time by
             for (asked, frame, _), codes in zip(made, self._shared_jpegs(made)):
-                _resolve(loop, asked.future, (frame, codes, len(group)))
+                _resolve(loop, asked.future, (frame, codes, len(group), thread_ms))
 
     def _fill_batch(self) -> None:
         """Wait (holding :attr:`_asked`) until every view session has asked for a frame, :attr:`batch_wait_s`

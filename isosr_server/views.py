@@ -322,13 +322,13 @@ class SessionFrames:
                                                      st.ao_radius, keep, shaded, clip, coloring, surfaces)
         return FramePlan(job, renderer, method, runner, prev_camera, prev_seq, view, choice)
 
-    def served(self, job: FrameJob, made: ViewFrame, device_ms: float) -> None:
-        """What an ``auto`` frame cost the device in service, for the policy that chose it (:meth:`AutoPolicy.served`;
-        event loop)."""
+    def served(self, job: FrameJob, made: ViewFrame, thread_ms: float) -> None:
+        """What an ``auto`` frame cost the device thread in service, for the policy that chose it
+        (:meth:`AutoPolicy.served`; event loop)."""
         if made.choice is not None and self.auto is not None:
             st = job.settings
             self.auto.served(self.scene, job.iso, st.width, st.height, job.sessions, st.ao_radius, st.clip.clip(),
-                             made.method, device_ms)
+                             made.method, thread_ms)
 
     def coloring(self, renderer: Renderer, job: FrameJob) -> ColorField | None:
         """The job's coloring on the renderer's device (module docstring).

@@ -222,10 +222,14 @@ def test_the_servers_auto_keeps_ao_down_to_half_its_target_rate_unless_told(srv)
 
 
 def test_the_service_tells_auto_what_each_of_its_frames_cost(srv, monkeypatch):
-    """Each auto frame's device time (its stages' ms, as the frame reports them) reaches the policy with the scene,
-    size, session count and method it was chosen for; other modes' frames do not."""
-    policy, told = srv.app.state.engine.auto, []
+    """What each auto frame cost the device thread (its stages and the host work between them: the wall clock the
+    probe times by; here a coding step slowed by 30 ms) reaches the policy with the scene, size, session count and
+    method it was chosen for (a first frame runs in slices, between which others' frames run: its stages' time);
+    other modes' frames do not."""
+    engine = srv.app.state.engine
+    policy, told, codes_sync = engine.auto, [], engine.codes_sync
     monkeypatch.setattr(policy, "served", lambda *args: told.append(args))
+    monkeypatch.setattr(engine, "codes_sync", lambda made: (time.sleep(0.03), codes_sync(made))[1])
     width = W + 32  # a size no other test's choice is cached for
     with session(srv, width=width, height=H) as (ws, _):
         frames = [frame(ws)] + [(send(ws, cam(30 + i, seq=i)), frame(ws))[1] for i in (1, 2)]
@@ -235,7 +239,7 @@ def test_the_service_tells_auto_what_each_of_its_frames_cost(srv, monkeypatch):
     for (scene, iso, w, h, sessions, ao_radius, clip, method, ms), f in zip(told, frames):
         assert (scene, w, h, sessions, clip.active, method.name) == (VOLUME, width, H, 1, False, f.method)
         device = sum(v for k, v in f.times.items() if k not in ("encode", "total"))
-        assert ms == pytest.approx(device, rel=1e-6) and ms > 0
+        assert device + (30 if f is not frames[0] else 0) <= ms <= f.times["total"]
 
 
 def test_auto_probes_the_clipped_scene_the_view_shows(lib, monkeypatch):
