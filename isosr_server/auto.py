@@ -47,6 +47,7 @@ import json
 import logging
 import math
 import os
+import time
 from collections.abc import Generator
 from dataclasses import replace
 from pathlib import Path
@@ -78,6 +79,9 @@ PROBE_BATCH = 8
 # re-chooses (AutoPolicy.served).
 SERVICE_FRAMES = 64
 DRIFT = 1.25
+# A measured load holds this long against lower measures (no ping-pong back to a method that proved dear), then the
+# next measure replaces it: a load that fell (a rush of viewers gone) frees the budget again.
+LOAD_HOLD_S = 60.0
 # What a frame must gain over the target rate's choice, one without AO where AO matters, for auto to give up rate
 # (down to min_fps) for it: 3 dB, half the error's power.
 KEEP_AO_DB = 3.0
@@ -186,7 +190,9 @@ class AutoPolicy:
         self._timings: dict[tuple, dict] = {}
         self._chosen: dict[tuple, tuple[BudgetChoice, float]] = {}  # key -> the choice, the load it was made for
         self._probing: set[tuple] = set()
-        self._load: dict[tuple, float] = {}  # scene key -> its frames' cost in service over their probe's time
+        self._load: dict[tuple, tuple[float, float]] = {}  # scene key -> (its frames' cost in service over their
+        # probe's time, when measured by clock)
+        self.clock = time.monotonic
         self._served: dict[tuple, tuple[int, float]] = {}  # key -> frames of its choice served, their summed ms
         self.costs = costs
         self._first_hit: dict[tuple, float] = {}  # scene key -> a plain first-hit frame's ms
@@ -232,16 +238,17 @@ class AutoPolicy:
     def load(self, scene_key: tuple) -> float:
         """What the service's load makes a probed frame of ``scene_key`` cost, in probe times: measured by
         :meth:`served`, else ``1 / gpu_share`` (a replica's probe timed with the GPU's other users idle)."""
-        return self._load.get(scene_key, 1.0 / self.gpu_share)
+        held = self._load.get(scene_key)
+        return 1.0 / self.gpu_share if held is None else held[0]
 
     def served(self, scene: str, iso: float, width: int, height: int, sessions: int, ao_radius: float, clip: Clip,
                method: FrameMethod, thread_ms: float) -> None:
         """A frame of a probed choice cost the device thread ``thread_ms`` in service (its share of its batch's wall
         time: the probe's clock; event loop). Every
         :data:`SERVICE_FRAMES` such frames, their mean over the probe's time (at least 1) is the scene's
-        :meth:`load`: the first measure replaces ``1 / gpu_share``, later ones only raise it (a choice
-        that proved dear is not tried again at a lighter load). A load that moved by more than
-        :data:`DRIFT` has :meth:`choose` choose again."""
+        :meth:`load`: the first measure replaces ``1 / gpu_share``, later ones raise it, and lower it only once
+        it is :data:`LOAD_HOLD_S` old (a choice that proved dear is not tried again at once). A load that moved
+        by more than :data:`DRIFT` has :meth:`choose` choose again."""
         scene_key, key = self._keys(scene, iso, width, height, sessions, ao_radius, clip)
         chosen = self._chosen.get(key)
         if (chosen is None or not chosen[0].table or chosen[0].method != method or not chosen[0].ms > 0
@@ -254,11 +261,13 @@ class AutoPolicy:
             return
         self._served.pop(key, None)
         measured = max(1.0, total / frames / chosen[0].ms)
-        self._load[scene_key] = max(measured, self._load[scene_key]) if scene_key in self._load else measured
+        now, held = self.clock(), self._load.get(scene_key)
+        if held is None or measured >= held[0] or now - held[1] >= LOAD_HOLD_S:
+            self._load[scene_key] = measured, now
         if not self._holds(scene_key, chosen[1]):
             log.info("auto mode, %s at %dx%d, %d sessions: %s costs %.3g ms in service, %.2f times its probe's time "
                      "(load %.2f, chosen at %.2f): choosing again", scene, width, height, key[-1], method.name,
-                     total / frames, total / frames / chosen[0].ms, self._load[scene_key], chosen[1])
+                     total / frames, total / frames / chosen[0].ms, self.load(scene_key), chosen[1])
 
     def _holds(self, scene_key: tuple, made_for: float) -> bool:
         """Whether a choice made for the load ``made_for`` still holds at the scene's :meth:`load` (within DRIFT)."""

@@ -141,12 +141,14 @@ def test_auto_policy_chooses_at_once_and_probes_in_the_background(lib, tmp_path)
 def test_a_choice_is_held_to_what_its_frames_cost_in_service(lib, caplog):
     """A replica's first choice budgets its share of the GPU; once SERVICE_FRAMES frames of it are served, their
     device time over the probe's (the load) rescales the whole budget: a light load frees the rest of the GPU, a
-    heavier one cuts it, one within DRIFT keeps the choice, and a measured load only rises. Frames of a prior, of
-    another method or without a positive finite time measure nothing."""
-    from isosr_server.auto import DRIFT, SERVICE_FRAMES
+    heavier one cuts it, one within DRIFT keeps the choice, and a measured load falls only once it is LOAD_HOLD_S
+    old. Frames of a prior, of another method or without a positive finite time measure nothing."""
+    from isosr_server.auto import DRIFT, LOAD_HOLD_S, SERVICE_FRAMES
 
     methods = (FrameMethod.of("full"), FrameMethod.of("full", ao_rays=2), FrameMethod.of("full", ao_rays=8))
     policy = AutoPolicy(methods, 30.0, Networks(), gpu_share=0.5)
+    now = [0.0]
+    policy.clock = lambda: now[0]
     cam, scene, whole = orbit(30, 20, 1.8), (VOLUME, lib.iso, 64, 48), 1000 / (2 * 30)
 
     def choose() -> BudgetChoice:  # the choice at once, or the probe it started run to its end
@@ -174,9 +176,14 @@ def test_a_choice_is_held_to_what_its_frames_cost_in_service(lib, caplog):
     assert heavy.budget_ms == pytest.approx(whole / 3)
     serve(heavy.method, 0.9 * DRIFT * 3 * heavy.ms)  # within DRIFT of the load it was chosen for
     assert choose() is heavy
-    serve(heavy.method, heavy.ms)  # lighter again: a measured load does not fall
+    now[0] = LOAD_HOLD_S - 1  # the load (raised within DRIFT) was measured at 0: it holds against lower measures
+    serve(heavy.method, heavy.ms)  # lighter again
     assert choose() is heavy and policy.load((VOLUME, round(lib.iso, 6), 64, 48, 0.05)) == pytest.approx(
         0.9 * DRIFT * 3)
+    now[0] = LOAD_HOLD_S
+    serve(heavy.method, 1.1 * heavy.ms)  # the viewers' rush is over: a load of 1.1 replaces it
+    eased = choose()
+    assert eased is not heavy and eased.budget_ms == pytest.approx(whole / 1.1)
 
 
 def test_under_load_auto_gives_up_rate_down_to_min_fps_to_keep_the_ao_a_scene_shows(lib):
