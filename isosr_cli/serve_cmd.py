@@ -15,9 +15,12 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
+import tempfile
+from pathlib import Path
 
-from isosr_server.core.config import (HAPROXY_SWITCH, INGRESSES, Settings, add_arguments, check_ingress,
-                                      check_replica_exposure, configure_logging)
+from isosr_server.core.config import (INGRESSES, Settings, add_arguments, check_ingress, check_replica_exposure,
+                                      configure_logging, haproxy_environment)
 
 
 # `isosr serve`'s flags beyond `Settings`: the shape of a multi-replica deployment (isosr_server.cluster).
@@ -66,14 +69,20 @@ def run(args: argparse.Namespace) -> int:
             check_ingress(args.ingress, settings)
         except ValueError as e:
             raise SystemExit(str(e)) from None
+        private = None
         if args.ingress == "haproxy":  # before ray.serve is imported: its processes read it at import
-            os.environ[HAPROXY_SWITCH] = "1"
+            private = Path(tempfile.mkdtemp(prefix="isosr-haproxy-"))  # this user's only (0700)
+            os.environ.update(haproxy_environment(private, os.environ))
         try:
             from isosr_server.cluster import serve_replicas
         except ImportError as e:
             raise SystemExit(f"--replicas needs Ray Serve: pip install 'isosr[cluster]' ({e})") from None
-        serve_replicas(settings, args.replicas, args.gpus_per_replica, args.ray_address, args.max_replicas,
-                       args.sessions_per_replica)
+        try:
+            serve_replicas(settings, args.replicas, args.gpus_per_replica, args.ray_address, args.max_replicas,
+                           args.sessions_per_replica)
+        finally:
+            if private is not None:
+                shutil.rmtree(private, ignore_errors=True)
         return 0
     if args.gpus_per_replica or args.ray_address or args.max_replicas or args.behind_proxy or args.ingress != "serve":
         raise SystemExit("--gpus-per-replica, --ray-address, --max-replicas, --ingress and --behind-proxy go with "

@@ -39,7 +39,9 @@ connections, so the fewest view sessions); Serve allows no custom router with it
 no replica (each request restarts its recurrence where it lands, and says so) unless the algorithm is
 ``hdr(x-session-id)`` (then views go round robin). The replicas see HAProxy's address as the client's
 (per-client limits count all clients together), HAProxy terminates no TLS, and Ray opens its stats and
-metrics ports (8404, 9101) on every interface.
+metrics ports (8404, 9101) on every interface. `isosr serve` puts HAProxy's files, its admin socket among them
+(Ray's default: mode 666 in /tmp/haproxy-serve), in a folder of its user's only
+(:func:`isosr_server.core.config.haproxy_environment`).
 
 ``max_ongoing_requests`` is the app's ``max_connections``: the app's guard, not Serve's
 backpressure, answers a full replica, with its reasons. With ``max_replicas`` Serve's autoscaler

