@@ -71,7 +71,9 @@ def run(args: argparse.Namespace) -> int:
             raise SystemExit(str(e)) from None
         private = None
         if args.ingress == "haproxy":  # before ray.serve is imported: its processes read it at import
-            private = Path(tempfile.mkdtemp(prefix="isosr-haproxy-"))  # this user's only (0700)
+            # this user's only (0700); in /tmp, whatever TMPDIR says: Ray adds a 56-character node id to the
+            # sockets' paths, and a Unix socket's path has at most 107 bytes
+            private = Path(tempfile.mkdtemp(prefix="isosr-haproxy-", dir="/tmp" if os.path.isdir("/tmp") else None))
             os.environ.update(haproxy_environment(private, os.environ))
         try:
             from isosr_server.cluster import serve_replicas
