@@ -53,8 +53,8 @@ from dataclasses import replace
 from pathlib import Path
 
 from isosr_net.budget import (BudgetChoice, BudgetConfig, CostTable, QualityProbe, choose_method_steps,
-                              default_candidates, default_probe_height, first_hit_ms_steps, probe_quality_steps,
-                              probe_size)
+                              default_candidates, default_probe_height, first_hit_ms_steps, floor_ms,
+                              probe_quality_steps, probe_size)
 from isosr_net.methods import FrameMethod, FrameRunner, Networks, make_runner
 from isosr_net.reconstructor import Reconstructor, recon_limits
 from isosr_render import Camera, Renderer
@@ -310,11 +310,11 @@ class AutoPolicy:
             return choice
         gains = [m for m in self.candidates
                  if m.ao_rays and quality.psnr.get(m, math.nan) >= choice.expected_psnr + KEEP_AO_DB]
-        if not gains:
+        floor_budget = choice.budget_ms * self.target_fps / self.min_fps
+        if not gains or floor_ms(gains[0], quality, width, height) > floor_budget:  # CPUs: too dear to time
             return choice
         only = replace(quality, psnr={gains[0]: quality.psnr[gains[0]]})
-        kept = yield from choose_method_steps(renderer, iso, width, height,
-                                              choice.budget_ms * self.target_fps / self.min_fps, config, cameras,
+        kept = yield from choose_method_steps(renderer, iso, width, height, floor_budget, config, cameras,
                                               self.networks, only, timings, self.slice_ms, warn=False)
         return kept if kept.fits else choice
 

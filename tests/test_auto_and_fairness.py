@@ -197,11 +197,15 @@ def test_under_load_auto_gives_up_rate_down_to_min_fps_to_keep_the_ao_a_scene_sh
     cam, scene_key = orbit(30, 20, 1.8), (VOLUME, round(lib.iso, 6), 64, 48, 0.05)
     target = 1000 / (16 * 30)  # 16 sessions at 30 frames/s: 2.08 ms, 1.56 within the headroom
 
-    def choose(min_fps: float | None, ao_matters: bool = True, psnr_ao: float = 28.0) -> BudgetChoice:
+    def choose(min_fps: float | None, ao_matters: bool = True, psnr_ao: float = 28.0,
+               untimed_floor_ms: float | None = None) -> BudgetChoice:
         policy = AutoPolicy(tuple(times), 30.0, Networks(), min_fps=min_fps)
         psnr = {dear_ao: psnr_ao + 2, cheap_ao: psnr_ao, plain: 20.0, noisy: 19.0}  # 1 AO ray: noise, no gain
-        policy._quality[scene_key] = budget.QualityProbe((64, 48), psnr, 12.0, ao_matters, 0.0)
+        probe_ms = {} if untimed_floor_ms is None else {cheap_ao: untimed_floor_ms / budget.FLOOR_SHARE}
+        policy._quality[scene_key] = budget.QualityProbe((64, 48), psnr, 12.0, ao_matters, 0.0, probe_ms)
         policy._timings[scene_key] = dict(times)  # all timed: the choice is made without device work
+        if untimed_floor_ms is not None:  # as on CPUs: its floor from the quality probe's frames, not timed
+            del policy._timings[scene_key][cheap_ao]
         choice = policy.choose(lib.renderer, VOLUME, lib.iso, 64, 48, cam, 16, 0.05)
         assert not policy.pending
         return choice
@@ -214,6 +218,7 @@ def test_under_load_auto_gives_up_rate_down_to_min_fps_to_keep_the_ao_a_scene_sh
     assert choose(15.0, ao_matters=False).method == plain
     assert choose(15.0, psnr_ao=20.0 + KEEP_AO_DB - 0.1).method == plain, "AO rays that gain too little"
     assert choose(15.0, psnr_ao=math.nan).method == plain
+    assert choose(15.0, untimed_floor_ms=2.2 * target).method == plain, "its floor over the budget: not even timed"
     with pytest.raises(ValueError, match="min_fps must lie in"):
         AutoPolicy(tuple(times), 30.0, Networks(), min_fps=31.0)
 
