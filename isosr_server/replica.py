@@ -12,9 +12,10 @@ calls `as_replica`).
   has not served it before (its replica is gone, or the replicas changed) had its state started
   afresh: the answer says so with ``x-isosr-session-restarted: 1``.
 
-- A view WebSocket that offers permessage-deflate (every browser's does) gets it from Serve's proxy,
-  which then deflates each of its frames on its one event loop: the replica warns once, naming the fix
-  (the reverse proxy in front drops the offer, docs/serving.md).
+- A view WebSocket that offers permessage-deflate (every browser's does) gets it from Serve's proxy
+  (behind ``--ingress haproxy``: from the replica's own server, uvicorn as Serve configures it), which then
+  deflates each of its frames on its one event loop: the replica warns once, naming the fix (the reverse
+  proxy in front drops the offer, docs/serving.md).
 
 Replicas that share a GPU (``--gpus-per-replica`` under 1) run their kernels together only under
 NVIDIA's Multi-Process Service (`mps_running`); without it their contexts take turns on the GPU.
@@ -129,12 +130,14 @@ class ReplicaMiddleware:
         await self.upscale(scope, receive, send, named)
 
     def warn_of_deflate(self, scope: Scope) -> None:
-        """Once: a WebSocket offered permessage-deflate, which Serve's proxy takes (module docstring)."""
+        """Once: a WebSocket offered permessage-deflate, which Serve's proxy or this replica's own server takes
+        (module docstring)."""
         if not self.deflate_warned and any(k.lower() == b"sec-websocket-extensions" and DEFLATE_OFFER in v.lower()
                                            for k, v in scope.get("headers", [])):
             self.deflate_warned = True
-            log.warning("replica %s: a WebSocket offered permessage-deflate (browsers do), and Serve's proxy deflates "
-                        "each of its frames on its one event loop, which then bounds every session's frames: let "
+            log.warning("replica %s: a WebSocket offered permessage-deflate (browsers do), and Serve's proxy (behind "
+                        "HAProxy: this replica's own server) deflates each of its frames on its one event loop, "
+                        "which then bounds every session's frames there: let "
                         "the reverse proxy in front drop the offer (nginx: proxy_set_header Sec-WebSocket-Extensions "
                         "\"\"; docs/serving.md, 'Replicas beyond this machine')", self.replica)
 

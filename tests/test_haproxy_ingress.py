@@ -62,6 +62,17 @@ def test_views_through_haproxy_are_the_plain_servers_on_both_replicas(haproxy):
             assert haproxy_backend(STATS_PORT).get("BACKEND") == 2  # two open sessions, a connection to a replica each
 
 
+def test_behind_haproxy_a_browsers_deflate_offer_is_taken_by_the_replicas_own_server(haproxy):
+    """HAProxy passes the WebSocket handshake through: the replica's uvicorn (as Serve configures it, deflate on)
+    accepts a browser's permessage-deflate offer and deflates its frames (the replica warns; serving.md: the
+    reverse proxy in front drops the offer). Frames come all the same."""
+    with connect(haproxy.url, VOLUME, "full", (W, H), settings={"refine": False}, local_upscale=False,
+                 compression="deflate") as view:
+        view.set_camera(**CAMERA)
+        assert view.frame().shape == (H, W, 3)
+        assert [e.name for e in view._ws.protocol.extensions] == ["permessage-deflate"]
+
+
 def test_haproxys_admin_socket_is_in_a_folder_only_its_user_enters(haproxy):
     """Ray puts HAProxy's files in /tmp/haproxy-serve, its admin socket open to every user of the node at admin
     level; `isosr serve --ingress haproxy` moves them into a folder of its own, mode 0700."""
