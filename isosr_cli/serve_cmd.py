@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import argparse
 import os
-import shutil
 import tempfile
+from contextlib import nullcontext
 from pathlib import Path
 
 from isosr_server.core.config import (INGRESSES, Settings, add_arguments, check_ingress, check_replica_exposure,
@@ -69,22 +69,19 @@ def run(args: argparse.Namespace) -> int:
             check_ingress(args.ingress, settings)
         except ValueError as e:
             raise SystemExit(str(e)) from None
-        private = None
-        if args.ingress == "haproxy":  # before ray.serve is imported: its processes read it at import
-            # this user's only (0700); in /tmp, whatever TMPDIR says: Ray adds a 56-character node id to the
-            # sockets' paths, and a Unix socket's path has at most 107 bytes
-            private = Path(tempfile.mkdtemp(prefix="isosr-haproxy-", dir="/tmp" if os.path.isdir("/tmp") else None))
-            os.environ.update(haproxy_environment(private, os.environ))
-        try:
-            from isosr_server.cluster import serve_replicas
-        except ImportError as e:
-            raise SystemExit(f"--replicas needs Ray Serve: pip install 'isosr[cluster]' ({e})") from None
-        try:
+        # HAProxy's files in a folder of this user's only (0700), in /tmp whatever TMPDIR says: Ray adds a
+        # 56-character node id to its sockets' paths, and a Unix socket's path has at most 107 bytes
+        haproxy = args.ingress == "haproxy"
+        with (tempfile.TemporaryDirectory(prefix="isosr-haproxy-", dir="/tmp" if os.path.isdir("/tmp") else None,
+                                          ignore_cleanup_errors=True) if haproxy else nullcontext()) as private:
+            if haproxy:  # before ray.serve is imported: its processes read it at import
+                os.environ.update(haproxy_environment(Path(private), os.environ))
+            try:
+                from isosr_server.cluster import serve_replicas
+            except ImportError as e:
+                raise SystemExit(f"--replicas needs Ray Serve: pip install 'isosr[cluster]' ({e})") from None
             serve_replicas(settings, args.replicas, args.gpus_per_replica, args.ray_address, args.max_replicas,
                            args.sessions_per_replica)
-        finally:
-            if private is not None:
-                shutil.rmtree(private, ignore_errors=True)
         return 0
     if args.gpus_per_replica or args.ray_address or args.max_replicas or args.behind_proxy or args.ingress != "serve":
         raise SystemExit("--gpus-per-replica, --ray-address, --max-replicas, --ingress and --behind-proxy go with "
