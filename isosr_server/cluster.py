@@ -69,6 +69,7 @@ from __future__ import annotations
 import importlib.util
 import logging
 import os
+import signal
 import threading
 import time
 from collections.abc import Mapping
@@ -242,6 +243,10 @@ def serve_replicas(settings: Settings, replicas: int, gpus_per_replica: float = 
     if 0 < gpus_per_replica < 1 and ray_address is None and not mps_running():
         log.warning("isosr: replicas share a GPU (--gpus-per-replica %g) without MPS: their kernels take turns; "
                     "start `nvidia-cuda-mps-control -d` first (docs/several-gpus.md)", gpus_per_replica)
+    # Ctrl-C (SIGINT) ends it even where its starter ignored SIGINT (a shell's background job, a test runner), as
+    # uvicorn's handler does for one process: left ignored, a stop by SIGINT came to SIGKILL, which leaves the local
+    # Ray cluster and HAProxy running (HAProxy on the server's port).
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     ray.init(address=ray_address)
     serve.start(http_options={"host": settings.host, "port": settings.port, **settings.tls_options()})
     try:

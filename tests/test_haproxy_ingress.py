@@ -39,9 +39,17 @@ def haproxy():
     env = os.environ | {"RAY_SERVE_HAPROXY_STATS_PORT": str(STATS_PORT),
                         "RAY_SERVE_HAPROXY_METRICS_PORT": str(free_port())}
     args = ("--device", "cpu", "--precision", "fp32", "--replicas", "2", "--ingress", "haproxy", "--log-level", "info")
-    with ServeProcess(args, env=env, startup_s=300) as server:
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)  # started as a background job is: SIGINT ignored
+    try:
+        server = ServeProcess(args, env=env, startup_s=300).start()
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    try:
         wait_for_replicas_in_haproxy(2, STATS_PORT)  # ready before HAProxy holds them (Serve's proxy its backup)
         yield server
+    finally:
+        server.stop()  # SIGINT
+    assert server.process.returncode == 0, f"the server did not stop on SIGINT: {server.process.returncode}"
 
 
 def test_views_through_haproxy_are_the_plain_servers_on_both_replicas(haproxy):
@@ -71,6 +79,15 @@ def test_behind_haproxy_a_browsers_deflate_offer_is_taken_by_the_replicas_own_se
         view.set_camera(**CAMERA)
         assert view.frame().shape == (H, W, 3)
         assert [e.name for e in view._ws.protocol.extensions] == ["permessage-deflate"]
+
+
+def test_the_server_catches_sigint_though_its_starter_ignored_it(haproxy):
+    """A stop by SIGINT that the server ignored came to SIGKILL after 20 s, which left its Ray cluster and HAProxy
+    running (the module's teardown stops it by SIGINT and checks it exited by itself)."""
+    status = dict(line.split(":\t", 1) for line in Path(f"/proc/{haproxy.pid}/status").read_text().splitlines()
+                  if ":\t" in line)
+    bit = 1 << (signal.SIGINT - 1)
+    assert int(status["SigCgt"], 16) & bit and not int(status["SigIgn"], 16) & bit, status["SigIgn"]
 
 
 def test_haproxys_admin_socket_is_in_a_folder_only_its_user_enters(haproxy):
