@@ -62,7 +62,7 @@ from isosr_render.clip import Clip
 from isosr_render.atomic import atomic_write
 from isosr_render.camera import orbit_path
 from isosr_render.sequence import sequence_cameras
-from isosr_server.core.config import check_gpu_share
+from isosr_server.core.config import check_gpu_share, check_min_fps
 
 log = logging.getLogger("isosr.server")
 # The probe's frames (a still camera needs few), timed by the wall clock: the device thread's
@@ -178,11 +178,8 @@ class AutoPolicy:
                  gpu_share: float = 1.0, min_fps: float | None = None):
         if not target_fps > 0:
             raise ValueError(f"target_fps must be positive, got {target_fps!r}")
-        min_fps = target_fps if min_fps is None else min_fps
-        if not 0 < min_fps <= target_fps:
-            raise ValueError(f"min_fps must lie in (0, target_fps = {target_fps:g}], got {min_fps!r}")
         self.candidates, self.target_fps, self.networks = candidates, float(target_fps), networks
-        self.min_fps = float(min_fps)
+        self.min_fps = check_min_fps(target_fps if min_fps is None else min_fps, target_fps)
         self.gpu_share = check_gpu_share(gpu_share)
         self.cache, self.slice_ms = cache or ProbeCache(None, ""), slice_ms
         self.pending: list[Generator[None, None, BudgetChoice]] = []

@@ -63,6 +63,13 @@ def configure_logging(level: str) -> None:
     logging.getLogger("isosr").setLevel(level.upper())
 
 
+def check_min_fps(min_fps: float, target_fps: float) -> float:
+    """``min_fps`` as the auto mode's least frame rate, which lies in (0, ``target_fps``] (ValueError otherwise)."""
+    if not 0 < min_fps <= target_fps:
+        raise ValueError(f"min_fps must lie in (0, target_fps = {target_fps:g}], got {min_fps!r}")
+    return float(min_fps)
+
+
 def check_gpu_share(share: float) -> float:
     """``share`` as a server's part of its GPU, which lies in (0, 1] (ValueError otherwise)."""
     if not 0 < share <= 1:
@@ -165,12 +172,12 @@ class Settings:
         if not (math.isfinite(self.batch_wait_ms) and self.batch_wait_ms >= 0):
             raise ValueError(f"batch_wait_ms must be a number of milliseconds, 0 or more, got {self.batch_wait_ms}")
         check_gpu_share(self.gpu_share)
-        for name in ("target_fps", "min_fps", "slice_ms"):
+        for name in ("target_fps", "slice_ms"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, got {value}")
-        if self.min_fps is not None and self.min_fps > self.target_fps:
-            raise ValueError(f"min_fps ({self.min_fps:g}) must not exceed target_fps ({self.target_fps:g})")
+        if self.min_fps is not None:
+            check_min_fps(self.min_fps, self.target_fps)
 
     @property
     def resolved_min_fps(self) -> float:
