@@ -80,11 +80,20 @@ def metric_total(url: str, name: str) -> Callable[[], float | None]:
     return read
 
 
+def proc_stat(pid: int) -> list[str]:
+    """The fields of ``/proc/PID/stat`` after the command's name (field 3 of proc(5), the state, first).
+
+    Raises:
+        OSError: no such process.
+    """
+    with open(f"/proc/{pid}/stat") as f:
+        return f.read().rsplit(")", 1)[1].split()
+
+
 def cpu_ticks(pid: int) -> int | None:
     """A process's user + system clock ticks so far (None: gone)."""
     try:
-        with open(f"/proc/{pid}/stat") as f:
-            fields = f.read().rsplit(")", 1)[1].split()
+        fields = proc_stat(pid)
     except OSError:
         return None
     return int(fields[11]) + int(fields[12])  # utime, stime (fields 14 and 15 of proc(5))

