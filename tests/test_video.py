@@ -17,6 +17,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+import torch
 from server_fixtures import VOLUME, H, W, cam, frame, recv, running_server, send, server_settings, session
 
 import isosr_client.view as client_view
@@ -25,7 +26,7 @@ from isosr_render import Renderer, RenderRequest, open_volume, orbit, resolve_is
 from isosr_render.images import to_uint8
 from isosr_server import protocol as P
 from isosr_server.codecs import video
-from isosr_server.video import HEADROOM, MIN_KBPS, PROBE_S, PROBE_STEP, RateControl
+from isosr_server.video import HEADROOM, MIN_KBPS, PROBE_S, PROBE_STEP, CodePlan, RateControl, SessionCoder, device_i420
 
 pytestmark = pytest.mark.skipif(video._av() is None, reason="PyAV (the video extra) is not installed")
 MIN_PSNR = {"h264": 36.0, "vp9": 30.0, "av1": 27.0}
@@ -267,3 +268,88 @@ def test_the_encoder_frame_rate_holds_within_its_hysteresis():
            enumerate((29.5, 30.6, 29.8, 32.5, 34.0, 21.0, 19.5, 17.0, 21.5, 23.0))]
     assert got == [30.0, 30.0, 30.0, 30.0, 60.0, 30.0, 30.0, 20.0, 20.0, 30.0]
     assert rate.encoder_fps(20.0, 200.0) == 20.0  # the nominal rate bounds it
+
+
+def swscale_i420(rgb: np.ndarray) -> np.ndarray:
+    """FFmpeg's planes of ``rgb`` (even sides) as the encoder converts a host frame."""
+    av = video._av()
+    frame = av.VideoFrame.from_ndarray(rgb, format="rgb24")
+    return frame.reformat(format="yuv420p", dst_colorspace="ITU709", dst_color_range="MPEG").to_ndarray()
+
+
+def test_device_i420_is_ffmpegs_conversion_with_box_chroma(lib):
+    """The planes the server makes on a GPU (here on the CPU, the same ops) against swscale's: luma within one
+    level on a rendered frame and at the extremes (black 16, white 235, saturated chroma within 16-240); chroma
+    within one level where it is smooth (swscale subsamples without a box filter: on noise they differ, and the
+    box's round trip is no worse)."""
+    rgb = lossless(lib, orbit(30, 20, 1.8), 96, 64)
+    rgb[:4, :8] = 0
+    rgb[4:8, :8] = 255
+    rgb[8:12, :8] = [255, 0, 0]
+    rgb[12:16, :8] = [0, 0, 255]
+    ours, ref = device_i420(torch.from_numpy(rgb), 96, 64).numpy(), swscale_i420(rgb)
+    assert ours.shape == ref.shape == (96, 96)
+    assert np.abs(ours[:64].astype(int) - ref[:64]).max() <= 1
+    assert ours[0, 0] == 16 and ours[4, 0] == 235 and 16 <= ours[64:].min() and ours[64:].max() <= 240
+    smooth = np.full((64, 96, 3), 90, np.uint8) + np.linspace(0, 120, 96).astype(np.uint8)[None, :, None] // 2
+    smooth[..., 2] //= 2
+    assert np.abs(device_i420(torch.from_numpy(smooth), 96, 64).numpy().astype(int) - swscale_i420(smooth)).max() <= 1
+    noisy = np.random.default_rng(0).integers(0, 256, (64, 96, 3), dtype=np.uint8)
+    decoded = {}
+    for name, planes in ("box", device_i420(torch.from_numpy(noisy), 96, 64).numpy()), ("sws", swscale_i420(noisy)):
+        frame = video._av().VideoFrame.from_ndarray(planes, format="yuv420p")
+        decoded[name] = psnr(frame.to_ndarray(format="rgb24", src_colorspace="ITU709", src_color_range="MPEG"), noisy)
+    assert decoded["box"] >= decoded["sws"] - 0.05, decoded
+
+
+def test_device_i420_pads_by_repeating_the_edge_and_refuses_what_it_cannot_code(lib):
+    """An odd frame is coded at the even size (its last column and row repeated, as the host path pads);
+    non-uint8 frames, frames larger than the coded size and odd coded sides are refused by name."""
+    rgb = lossless(lib, orbit(30, 20, 1.8), 95, 63)
+    padded = np.pad(rgb, ((0, 1), (0, 1), (0, 0)), mode="edge")
+    assert np.array_equal(device_i420(torch.from_numpy(rgb), 96, 64), device_i420(torch.from_numpy(padded), 96, 64))
+    for bad, size in ((torch.zeros(64, 96, 3), (96, 64)), (torch.zeros(66, 96, 3, dtype=torch.uint8), (96, 64)),
+                      (torch.zeros(63, 95, 3, dtype=torch.uint8), (95, 63)), (torch.zeros(64, 96, dtype=torch.uint8),
+                                                                               (96, 64))):
+        with pytest.raises(ValueError, match="device_i420"):
+            device_i420(bad, *size)
+
+
+@pytest.mark.parametrize("size", [(96, 64), (95, 63)])
+def test_an_encoder_codes_planes_as_it_codes_the_frame(lib, size):
+    """encode_i420 of the device's planes decodes to the frame as well as encode of the frame itself (h264, odd
+    sizes cropped back); planes of another size or type are refused, and the timestamps rule holds for both."""
+    width, height = size
+    enc = {k: video.VideoEncoder("h264", width, height, 85, 4000, 30) for k in ("rgb", "i420")}
+    dec = {k: video.VideoDecoder("h264") for k in enc}
+    for i in range(4):
+        rgb = lossless(lib, orbit(30 + 3 * i, 20, 1.8), width, height)
+        data = {"rgb": enc["rgb"].encode(rgb, i + 1)[0],
+                "i420": enc["i420"].encode_i420(device_i420(torch.from_numpy(rgb), *enc["i420"].coded_size).numpy(),
+                                                i + 1)[0]}
+        got = {k: psnr(dec[k].decode(data[k], width, height), rgb) for k in enc}
+        assert got["i420"] >= min(MIN_PSNR["h264"], got["rgb"] - 0.5), (i, got)
+    planes = device_i420(torch.from_numpy(rgb), *enc["i420"].coded_size).numpy()
+    with pytest.raises(ValueError, match="I420 planes"):
+        enc["i420"].encode_i420(planes[:-2], 9)
+    with pytest.raises(ValueError, match="I420 planes"):
+        enc["i420"].encode_i420(planes.astype(np.int16), 9)
+    with pytest.raises(ValueError, match="timestamps must increase"):
+        enc["i420"].encode_i420(planes, 4)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (run on the GPU machine)")
+def test_a_session_codes_a_gpu_frame_from_planes_made_on_the_gpu(lib):
+    """A session's video frame on a CUDA device is converted there (device_i420) and decodes as its host copy
+    coded by swscale does (within 0.5 dB); the planes match the CPU's within a level (float rounding)."""
+    width, height = 95, 63
+    coders = {"cuda": SessionCoder(2), "cpu": SessionCoder(2)}
+    dec = {k: video.VideoDecoder("h264") for k in coders}
+    for i in range(3):
+        rgb = lossless(lib, orbit(30 + 3 * i, 20, 1.8), width, height)
+        plan = CodePlan("h264", 85, 4000, 30.0, timestamp_us=i + 1)
+        got = {k: psnr(dec[k].decode(coders[k].code(torch.from_numpy(rgb).to(k), plan).data, width, height), rgb)
+               for k in coders}
+        assert got["cuda"] >= got["cpu"] - 0.5, (i, got)
+    on_gpu = device_i420(torch.from_numpy(rgb).cuda(), 96, 64).cpu().numpy().astype(int)
+    assert np.abs(on_gpu - device_i420(torch.from_numpy(rgb), 96, 64).numpy()).max() <= 1

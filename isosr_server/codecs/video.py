@@ -195,7 +195,7 @@ class VideoEncoder:
 
     def encode(self, rgb: np.ndarray, timestamp_us: int, keyframe: bool = False) -> tuple[bytes, bool]:
         """Encode one frame: ``(access unit, is a keyframe)``; ``keyframe`` forces one.
-        ``timestamp_us`` must increase from frame to frame.
+        ``timestamp_us`` must increase from frame to frame. FFmpeg's swscale converts it to 4:2:0.
 
         Shape:
             rgb: (height, width, 3) uint8.
@@ -203,13 +203,30 @@ class VideoEncoder:
         if rgb.dtype != np.uint8 or rgb.shape != (self.height, self.width, 3):
             raise ValueError(f"video encoder: takes ({self.height}, {self.width}, 3) uint8, got {rgb.shape} "
                              f"{rgb.dtype}")
-        if timestamp_us <= self._last_pts:
-            raise ValueError(f"video encoder: timestamps must increase, got {timestamp_us} after {self._last_pts}")
         av = _av()
         pad = ((0, self.coded_size[1] - self.height), (0, self.coded_size[0] - self.width), (0, 0))
         frame = av.VideoFrame.from_ndarray(np.pad(rgb, pad, mode="edge") if any(p[1] for p in pad) else rgb,
                                            format="rgb24")
         frame = frame.reformat(format="yuv420p", dst_colorspace="ITU709", dst_color_range="MPEG")
+        return self._encode(frame, timestamp_us, keyframe)
+
+    def encode_i420(self, planes: np.ndarray, timestamp_us: int, keyframe: bool = False) -> tuple[bytes, bool]:
+        """:meth:`encode` of a frame already converted (BT.709, limited range, 4:2:0, at the coded size:
+        :func:`isosr_server.video.device_i420` makes it where the frame is).
+
+        Shape:
+            planes: (coded height * 3 // 2, coded width) uint8: Y, then Cb, then Cr, each row-major.
+        """
+        width, height = self.coded_size
+        if planes.dtype != np.uint8 or planes.shape != (height * 3 // 2, width):
+            raise ValueError(f"video encoder: takes I420 planes ({height * 3 // 2}, {width}) uint8, got "
+                             f"{planes.shape} {planes.dtype}")
+        return self._encode(_av().VideoFrame.from_ndarray(planes, format="yuv420p"), timestamp_us, keyframe)
+
+    def _encode(self, frame, timestamp_us: int, keyframe: bool) -> tuple[bytes, bool]:
+        if timestamp_us <= self._last_pts:
+            raise ValueError(f"video encoder: timestamps must increase, got {timestamp_us} after {self._last_pts}")
+        av = _av()
         frame.pts, self._last_pts = timestamp_us, timestamp_us
         frame.pict_type = av.video.frame.PictureType.I if keyframe else av.video.frame.PictureType.NONE
         packets = self._cc.encode(frame)
