@@ -234,6 +234,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--volume", default="proc:cloud:0@128", help="a volume the server offers")
     parser.add_argument("--size", choices=("1080p", "4k"), default="1080p", help="the view sessions' frame size")
     parser.add_argument("--seconds", type=float, help="timed seconds per case (default 5; smoke 1)")
+    parser.add_argument("--settle", type=float, default=0.0,
+                        help="untimed seconds of every case's sessions before its timed span: auto's probes and "
+                             "re-choices under the case's load (its steady state; default 0: its first seconds)")
     parser.add_argument("--sessions", help="concurrent sessions per case, comma-separated (default 1,16,32)")
     parser.add_argument("--replicas", default="0,1,2", help="servers by replica count, comma-separated (0: plain)")
     parser.add_argument("--cases", default=",".join(f"{m}:{ao}" for m, ao in CASES),
@@ -286,7 +289,7 @@ def main(argv: list[str] | None = None) -> None:
         ingress = args.ingress if server_replicas else None
         for row in measure_server(server_name, args.device, options + extra, cases, failover_sessions,
                                   volume, size, seconds, args.client_processes, args.encoding, compression, ingress,
-                                  server_replicas):
+                                  server_replicas, args.settle):
             merged.append(dict(row, replicas=server_replicas, gpus=gpus, encoding=args.encoding, mps=mps,
                                client_deflate=args.client_deflate, ingress=ingress, **stamp))
             # Written after every row: a run cut off (a device call's time limit) keeps what it measured.
@@ -314,10 +317,11 @@ def load_fields(load: dict) -> dict:
 
 def measure_server(name: str, device: str, options: tuple[str, ...], cases: list[tuple[str, int, int]],
                    failover_sessions: int, volume: str, size: tuple[int, int], seconds: float, processes: int,
-                   encoding: str, compression: str | None = None, ingress: str | None = None, replicas: int = 0):
+                   encoding: str, compression: str | None = None, ingress: str | None = None, replicas: int = 0,
+                   settle_s: float = 0.0):
     """Start one server and yield a row per (mode, AO rays, sessions) case (frames coded as ``encoding``,
     the sessions' WebSocket compression ``compression``; its ``replicas`` behind ``ingress``, whose processes are
-    the rows' proxy), then its failover row."""
+    the rows' proxy; timed after ``settle_s`` untimed seconds), then its failover row."""
     started = time.monotonic()
     try:
         with ServerProcess(device, options) as server:
@@ -333,8 +337,9 @@ def measure_server(name: str, device: str, options: tuple[str, ...], cases: list
                 load = LoadSampler(groups, gpus=device.startswith("cuda"), counters=counters)
                 settings = {"ao_rays": ao, "encoding": encoding}
                 result = run_sessions(server.url, volume, n, seconds, mode, size, settings, processes=processes,
-                                      on_start=lambda: load.start(seconds), compression=compression)
-                row = dict(case_row(mode, ao, result), server=name, ready_s=ready_s,
+                                      on_start=lambda: load.start(seconds), compression=compression,
+                                      settle_s=settle_s)
+                row = dict(case_row(mode, ao, result), server=name, ready_s=ready_s, settle_s=settle_s,
                            replicas_seen=len(result.get("replicas", [])), **load_fields(load.result()))
                 print(f"{name:<6} {mode:<5} AO {ao:<2} x{n:<3} {row.get('fps', 0):7.1f} fps "
                       f"({row.get('fps_per_session', 0):6.1f}/session) p50 {row.get('latency_p50_ms', 0):6.1f} "

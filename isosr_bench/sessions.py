@@ -23,9 +23,11 @@ from isosr_client.view import FrameStats, connect
 def run_sessions(url: str, volume: str, sessions: int, seconds: float, mode: str, size: tuple[int, int],
                  settings: dict, focus: tuple[float, float, float] | None = None, warmup_frames: int = 2,
                  max_frames: int = 100_000, processes: int = 1, on_start: Callable[[], None] | None = None,
-                 compression: str | None = None) -> dict:
+                 compression: str | None = None, settle_s: float = 0.0) -> dict:
     """``sessions`` concurrent closed-loop view sessions (one thread each) for ``seconds`` after
-    ``warmup_frames`` untimed frames each; every session orbits from its own start yaw.
+    ``warmup_frames`` untimed frames each, then ``settle_s`` untimed seconds (``auto``'s probes and re-choices
+    under the load: its steady state, where 0 times its first seconds); every session orbits from its own start
+    yaw.
     ``focus``: the focus circle (x, y, radius in pixels) of ``focus`` mode. ``processes``: client
     processes the sessions are dealt to (one process's threads share one interpreter lock, which
     must not bound what several GPUs serve); the timed span starts together in all, and
@@ -40,7 +42,8 @@ def run_sessions(url: str, volume: str, sessions: int, seconds: float, mode: str
         (:func:`auto_choices`).
     """
     processes = max(1, min(processes, sessions))
-    job = (url, volume, sessions, seconds, mode, size, settings, focus, warmup_frames, max_frames, compression)
+    job = (url, volume, sessions, seconds, mode, size, settings, focus, warmup_frames, max_frames, compression,
+           settle_s)
     if processes == 1:
         opened = threading.Barrier(sessions + 1)
         waiter = threading.Thread(target=_wait_opened, args=(opened, on_start), daemon=True)
@@ -110,7 +113,7 @@ def _wait_opened(opened, on_start: Callable[[], None] | None) -> None:
 def drive_sessions(job: tuple, ks: range, opened) -> tuple[list[list[FrameStats]], list[float], list[str]]:
     """Sessions ``ks`` of :func:`run_sessions`' ``job``, one thread each, in this process: their
     frames' stats, their busy seconds and the errors. They wait at ``opened`` after warming up."""
-    url, volume, sessions, seconds, mode, size, settings, focus, warmup_frames, max_frames, compression = job
+    url, volume, sessions, seconds, mode, size, settings, focus, warmup_frames, max_frames, compression, settle_s = job
     stats: dict[int, list[FrameStats]] = {k: [] for k in ks}
     busy = dict.fromkeys(ks, 0.0)
     errors: list[str] = []
@@ -123,6 +126,8 @@ def drive_sessions(job: tuple, ks: range, opened) -> tuple[list[list[FrameStats]
                 if focus is not None:
                     view.set_focus("circle", focus[:2], focus[2])
                 drive(view, path, warmup_frames, rgb=False)
+                if settle_s > 0:
+                    drive(view, path, max_frames, rgb=False, stop_at=time.monotonic() + settle_s)
                 opened.wait()
                 stats[k], busy[k] = drive(view, Orbit(path.yaw + 10, path.pitch, path.distance), max_frames, rgb=False,
                                           stop_at=time.monotonic() + seconds)
@@ -136,6 +141,6 @@ def drive_sessions(job: tuple, ks: range, opened) -> tuple[list[list[FrameStats]
     for t in threads.values():
         t.start()
     for t in threads.values():
-        t.join(seconds + 420)
+        t.join(settle_s + seconds + 420)
     errors += [f"session {k}: did not finish" for k, t in threads.items() if t.is_alive()]
     return [stats[k] for k in ks], [busy[k] for k in ks], errors

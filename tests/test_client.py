@@ -473,6 +473,17 @@ def test_auto_sessions_report_what_auto_expected_of_each_method(server):  # noqa
     assert all(f"{method}: " in line for method in result["methods"]) and " ms (" in line, line
 
 
+def test_a_case_settles_untimed_before_its_timed_span(server):  # noqa: F811
+    """settle_s: the sessions' frames of their first seconds (auto's probes, its first choices) are not timed: the
+    timed frames start later in the session's sequence than without it."""
+    first = {}
+    for settle in (0.0, 1.0):
+        job = (server.url, VOLUME, 1, 0.5, "full", SIZE, {}, None, 1, 100_000, None, settle)
+        stats, busy, errors = sessions.drive_sessions(job, range(1), threading.Barrier(1))
+        assert errors == [] and stats[0] and busy[0] > 0
+        first[settle] = stats[0][0].seq
+    assert first[1.0] > first[0.0] + 1, first
+
 @pytest.mark.slow
 def test_load_16_sessions_30s(server):  # noqa: F811
     """16 concurrent view sessions (all modes) for 30 s: no errors, every session served, and the
