@@ -24,9 +24,10 @@ over the probe's time, both by the wall clock (``1 / S`` until measured): the ch
 where ``L`` moves.
 
 Under load a session gives up rate before AO: where that budget leaves only a frame without AO
-in a scene where AO matters, the cheapest candidate with AO rays that gains :data:`KEEP_AO_DB`
-takes its place if it fits the budget at ``min_fps``: many viewers of one GPU get a (learned) frame
-with AO at a lower rate, not a plain frame without it at the target rate.
+(or with too few rays to gain over none) in a scene where AO matters, the cheapest candidate with AO
+rays that gains :data:`KEEP_AO_DB` and fits the budget at ``min_fps`` (of the first
+:data:`KEEP_AO_TRIES`) takes its place: many viewers of one GPU get a (learned) frame with AO at a
+lower rate, not a plain frame without it at the target rate.
 
 No frame waits for a probe. Until the probe of a scene and size has run, frames use the prior:
 first the cheapest candidate (no AO, one ray per pixel), the frame that reaches the viewer
@@ -85,6 +86,15 @@ LOAD_HOLD_S = 60.0
 # What a frame must gain over the target rate's choice, one without AO where AO matters, for auto to give up rate
 # (down to min_fps) for it: 3 dB, half the error's power.
 KEEP_AO_DB = 3.0
+# Candidates with AO that auto times for that trade, cheapest first (each a probe unit or two of device time).
+KEEP_AO_TRIES = 3
+
+
+def drops_ao(choice: BudgetChoice, quality: QualityProbe) -> bool:
+    """Whether a choice shows none of the AO: a frame without AO rays, or one whose rays gain nothing over the
+    best frame without (1 noisy ray a pixel scored below none on an H200's probes)."""
+    plain = [psnr for m, psnr in quality.psnr.items() if not m.ao_rays and math.isfinite(psnr)]
+    return not choice.method.ao_rays or bool(plain) and choice.expected_psnr <= max(plain)
 
 
 def served_factor(runner: type[FrameRunner], factor: int) -> int:
@@ -300,20 +310,28 @@ class AutoPolicy:
     def _keeping_ao(self, renderer: Renderer, iso: float, width: int, height: int, choice: BudgetChoice,
                     config: BudgetConfig, cameras: list[Camera], quality: QualityProbe,
                     timings: dict) -> Generator[None, None, BudgetChoice]:
-        """``choice`` (the target rate's), or where it drops AO that matters, the first candidate (the cheapest)
-        with AO rays that gains :data:`KEEP_AO_DB` over it, if that keeps :attr:`min_fps`: rate given up for
-        AO, no more of it than the cheapest such frame needs."""
-        if not choice.ao_matters or choice.method.ao_rays or self.min_fps == self.target_fps:
+        """``choice`` (the target rate's), or where it drops AO that matters (:func:`drops_ao`), the first candidate
+        (the cheapest) with AO rays that gains :data:`KEEP_AO_DB` over it and keeps :attr:`min_fps`, of the first
+        :data:`KEEP_AO_TRIES` such candidates whose floor allows it, timed in turn: rate given up for AO, no more
+        of it than the cheapest such frame needs."""
+        if not choice.ao_matters or self.min_fps == self.target_fps or not drops_ao(choice, quality):
             return choice
-        gains = [m for m in self.candidates
-                 if m.ao_rays and quality.psnr.get(m, math.nan) >= choice.expected_psnr + KEEP_AO_DB]
         floor_budget = choice.budget_ms * self.target_fps / self.min_fps
-        if not gains or floor_ms(gains[0], quality, width, height) > floor_budget:  # CPUs: too dear to time
-            return choice
-        only = replace(quality, psnr={gains[0]: quality.psnr[gains[0]]})
-        kept = yield from choose_method_steps(renderer, iso, width, height, floor_budget, config, cameras,
-                                              self.networks, only, timings, self.slice_ms, warn=False)
-        return kept if kept.fits else choice
+        gains = [m for m in self.candidates if m.ao_rays and floor_ms(m, quality, width, height) <= floor_budget
+                 and quality.psnr.get(m, math.nan) >= choice.expected_psnr + KEEP_AO_DB]  # CPUs: floors untimed
+        for method in gains[:KEEP_AO_TRIES]:
+            only = replace(quality, psnr={method: quality.psnr[method]})
+            kept = yield from choose_method_steps(renderer, iso, width, height, floor_budget, config, cameras,
+                                                  self.networks, only, timings, self.slice_ms, warn=False)
+            if kept.fits:
+                log.info("auto mode: %s (%.1f dB) drops the AO the scene shows; at %g frames/s a session: %s",
+                         choice.method.name, choice.expected_psnr, self.min_fps, kept.summary())
+                return kept
+        tried = ", ".join(f"{m.name} {quality.psnr[m]:.1f} dB {timings.get(m, math.nan):.2f} ms" for m in gains[:KEEP_AO_TRIES])
+        log.info("auto mode: %s (%.1f dB) drops the AO the scene shows; none with AO keeps %g frames/s a session within "
+                 "%.3g ms (%s)", choice.method.name, choice.expected_psnr, self.min_fps, floor_budget * config.headroom,
+                 tried or f"none gains {KEEP_AO_DB:g} dB")
+        return choice
 
     def prior(self, budget_ms: float, scene_key: tuple | None = None) -> BudgetChoice:
         """The choice before a probe: the cost table's where this scene's first-hit time is known

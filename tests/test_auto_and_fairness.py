@@ -187,21 +187,23 @@ def test_a_choice_is_held_to_what_its_frames_cost_in_service(lib, caplog):
     assert eased is not heavy and eased.budget_ms == pytest.approx(whole / 1.1)
 
 
-def test_under_load_auto_gives_up_rate_down_to_min_fps_to_keep_the_ao_a_scene_shows(lib):
-    """Where the target rate's budget leaves only a frame without AO and AO matters, auto takes the cheapest
-    candidate with AO rays that gains KEEP_AO_DB over it, if that frame keeps min_fps; otherwise (it does not
-    keep min_fps, no candidate gains enough, AO does not matter, min_fps is the target) the target's choice."""
-    from isosr_server.auto import KEEP_AO_DB
+def test_under_load_auto_gives_up_rate_down_to_min_fps_to_keep_the_ao_a_scene_shows(lib, caplog):
+    """Where the target rate's budget leaves only a frame without AO (or with rays that gain nothing over none) and
+    AO matters, auto takes the cheapest candidate with AO rays that gains KEEP_AO_DB over it and keeps min_fps, of
+    the first KEEP_AO_TRIES such; otherwise (none keeps min_fps, no candidate gains enough, AO does not matter,
+    min_fps is the target) the target's choice."""
+    from isosr_server.auto import KEEP_AO_DB, KEEP_AO_TRIES
 
-    plain, noisy, cheap_ao, dear_ao = (FrameMethod.of("full", ao_rays=n) for n in (0, 1, 2, 8))
-    times = {plain: 1.0, noisy: 1.2, cheap_ao: 3.0, dear_ao: 6.0}  # the policy's candidates: cheapest first
+    plain, noisy, cheap_ao, dear_ao, *more_ao = (FrameMethod.of("full", ao_rays=n) for n in (0, 1, 2, 8, 16, 32, 64))
+    base = {plain: 1.0, noisy: 1.2, cheap_ao: 3.0, dear_ao: 6.0}  # the policy's candidates: cheapest first
     cam, scene_key = orbit(30, 20, 1.8), (VOLUME, round(lib.iso, 6), 64, 48, 0.05)
     target = 1000 / (16 * 30)  # 16 sessions at 30 frames/s: 2.08 ms, 1.56 within the headroom
 
     def choose(min_fps: float | None, ao_matters: bool = True, psnr_ao: float = 28.0,
-               untimed_floor_ms: float | None = None) -> BudgetChoice:
+               untimed_floor_ms: float | None = None, **times_of) -> BudgetChoice:
+        times = base | {FrameMethod.of("full", ao_rays=int(k[2:])): v for k, v in times_of.items()}
         policy = AutoPolicy(tuple(times), 30.0, Networks(), min_fps=min_fps)
-        psnr = {dear_ao: psnr_ao + 2, cheap_ao: psnr_ao, plain: 20.0, noisy: 19.0}  # 1 AO ray: noise, no gain
+        psnr = {m: psnr_ao + 2 for m in times} | {cheap_ao: psnr_ao, plain: 20.0, noisy: 19.0}  # 1 ray: no gain
         probe_ms = {} if untimed_floor_ms is None else {cheap_ao: untimed_floor_ms / budget.FLOOR_SHARE}
         policy._quality[scene_key] = budget.QualityProbe((64, 48), psnr, 12.0, ao_matters, 0.0, probe_ms)
         policy._timings[scene_key] = dict(times)  # all timed: the choice is made without device work
@@ -212,16 +214,28 @@ def test_under_load_auto_gives_up_rate_down_to_min_fps_to_keep_the_ao_a_scene_sh
         return choice
 
     assert choose(None).method == plain and choose(30.0).method == plain, "min_fps at the target: no trade"
-    kept = choose(15.0)  # twice the budget: 3.0 ms of 4.17 fits its headroom
+    with caplog.at_level(logging.INFO, logger="isosr.server"):
+        kept = choose(15.0)  # twice the budget: 3.0 ms of 4.17 fits its headroom
     assert kept.method == cheap_ao and kept.fits and kept.budget_ms == pytest.approx(2 * target)
+    assert f"{plain.name} (20.0 dB) drops the AO the scene shows; at 15 frames/s a session: {cheap_ao.name}" in \
+        caplog.text
     assert choose(5.0).method == cheap_ao, "the cheapest frame that keeps AO, not the best the floor allows (6 ms)"
-    assert choose(20.0).method == plain, "3.0 ms does not keep 20 frames/s"
+    assert choose(15.0, ao2=5.0, ao8=3.0).method == dear_ao, "the cheapest by rank is too dear: the next that fits"
+    with caplog.at_level(logging.INFO, logger="isosr.server"):
+        assert choose(20.0).method == plain, "3.0 ms does not keep 20 frames/s"
+    assert f"none with AO keeps 20 frames/s a session within 2.34 ms ({cheap_ao.name} 28.0 dB 3.00 ms, " in caplog.text
     assert choose(15.0, ao_matters=False).method == plain
     assert choose(15.0, psnr_ao=20.0 + KEEP_AO_DB - 0.1).method == plain, "AO rays that gain too little"
     assert choose(15.0, psnr_ao=math.nan).method == plain
     assert choose(15.0, untimed_floor_ms=2.2 * target).method == plain, "its floor over the budget: not even timed"
+    # the budget fits nothing: the fastest is 1 ray a pixel, noisier than none; it drops AO too
+    assert choose(15.0, ao0=2.0, ao1=1.9).method == cheap_ao
+    assert choose(15.0, ao0=2.0, ao1=1.9, ao2=5.0, ao8=3.0).method == dear_ao
+    dear = {f"ao{m.ao_rays}": 5.0 for m in (cheap_ao, dear_ao, *more_ao)}
+    assert KEEP_AO_TRIES == 3 and choose(15.0, **dear | {"ao32": 3.0}).method == plain, "the 4th is not tried"
+    assert choose(15.0, **dear | {"ao16": 3.0}).method == more_ao[0]
     with pytest.raises(ValueError, match="min_fps must lie in"):
-        AutoPolicy(tuple(times), 30.0, Networks(), min_fps=31.0)
+        AutoPolicy(tuple(base), 30.0, Networks(), min_fps=31.0)
 
 
 def test_the_servers_auto_keeps_ao_down_to_half_its_target_rate_unless_told(srv):
