@@ -21,7 +21,11 @@ each: budgets cut to the share chose plain frames at 29.6 frames/s a session, wh
 the reconstruction at 2 rays a pixel and got 25.3). The budget is the session's whole share over
 the measured load, ``1000 / (N F L)``, with ``L`` what its frames cost the device thread in service
 over the probe's time, both by the wall clock (``1 / S`` until measured): the choice is made again
-where ``L`` moves.
+where ``L`` moves. ``L`` is the latest measure; a method's own measure holds for :data:`LOAD_HOLD_S`
+where it is higher (its probe time counts at its own load): a method that proved dear is not tried
+again at once, while a spike that one method met (on an H200, four replicas probing at once: 13-17
+times the probe, a minute of budgets under 0.6 ms when the scene's load held it) does not keep the
+others from the budget.
 
 Under load a session gives up rate before AO: where that budget leaves only a frame without AO
 (or with too few rays to gain over none) in a scene where AO matters, the cheapest candidate with AO
@@ -80,8 +84,8 @@ PROBE_BATCH = 8
 # re-chooses (AutoPolicy.served).
 SERVICE_FRAMES = 64
 DRIFT = 1.25
-# A measured load holds this long against lower measures (no ping-pong back to a method that proved dear), then the
-# next measure replaces it: a load that fell (a rush of viewers gone) frees the budget again.
+# A method's measured load holds this long for it where the scene's latest is lower (no ping-pong back to a method that
+# proved dear); then its probe time counts at the scene's load again.
 LOAD_HOLD_S = 60.0
 # What a frame must gain over the target rate's choice, one without AO where AO matters, for auto to give up rate
 # (down to min_fps) for it: 3 dB, half the error's power.
@@ -195,10 +199,11 @@ class AutoPolicy:
         self.pending: list[Generator[None, None, BudgetChoice]] = []
         self._quality: dict[tuple, QualityProbe] = {}
         self._timings: dict[tuple, dict] = {}
-        self._chosen: dict[tuple, tuple[BudgetChoice, float]] = {}  # key -> the choice, the load it was made for
+        # key -> the choice, the load it was made for, its probe time, until when held loads shaped it (by clock)
+        self._chosen: dict[tuple, tuple[BudgetChoice, float, float, float]] = {}
         self._probing: set[tuple] = set()
-        self._load: dict[tuple, tuple[float, float]] = {}  # scene key -> (its frames' cost in service over their
-        # probe's time, when measured by clock)
+        self._load: dict[tuple, float] = {}  # scene key -> its frames' latest cost in service over their probe's time
+        self._own: dict[tuple, dict[FrameMethod, tuple[float, float]]] = {}  # scene key -> method -> (its load, when)
         self.clock = time.monotonic
         self._served: dict[tuple, tuple[int, float]] = {}  # key -> frames of its choice served, their summed ms
         self.costs = costs
@@ -245,20 +250,28 @@ class AutoPolicy:
     def load(self, scene_key: tuple) -> float:
         """What the service's load makes a probed frame of ``scene_key`` cost, in probe times: measured by
         :meth:`served`, else ``1 / gpu_share`` (a replica's probe timed with the GPU's other users idle)."""
-        held = self._load.get(scene_key)
-        return 1.0 / self.gpu_share if held is None else held[0]
+        return self._load.get(scene_key, 1.0 / self.gpu_share)
+
+    def _held(self, scene_key: tuple, load: float) -> tuple[dict[FrameMethod, float], float]:
+        """The methods whose own measured load still holds above ``load`` (each: over it), and until when the first
+        of them holds (inf: none)."""
+        now, factors, until = self.clock(), {}, math.inf
+        for method, (own, when) in self._own.get(scene_key, {}).items():
+            if own > load and now - when < LOAD_HOLD_S:
+                factors[method], until = own / load, min(until, when + LOAD_HOLD_S)
+        return factors, until
 
     def served(self, scene: str, iso: float, width: int, height: int, sessions: int, ao_radius: float, clip: Clip,
                method: FrameMethod, thread_ms: float) -> None:
         """A frame of a probed choice cost the device thread ``thread_ms`` in service (its share of its batch's wall
         time: the probe's clock; event loop). Every
         :data:`SERVICE_FRAMES` such frames, their mean over the probe's time (at least 1) is the scene's
-        :meth:`load`: the first measure replaces ``1 / gpu_share``, later ones raise it, and lower it only once
-        it is :data:`LOAD_HOLD_S` old (a choice that proved dear is not tried again at once). A load that moved
-        by more than :data:`DRIFT` has :meth:`choose` choose again."""
+        :meth:`load` and the method's own, which holds for it :data:`LOAD_HOLD_S` where higher (a method that proved
+        dear is not tried again at once). A load that moved by more than :data:`DRIFT` has :meth:`choose` choose
+        again."""
         scene_key, key = self._keys(scene, iso, width, height, sessions, ao_radius, clip)
         chosen = self._chosen.get(key)
-        if (chosen is None or not chosen[0].table or chosen[0].method != method or not chosen[0].ms > 0
+        if (chosen is None or not chosen[0].table or chosen[0].method != method or not chosen[2] > 0
                 or not 0 < thread_ms < math.inf):
             return  # a prior's, another mode's, or no time (none, non-finite): no measure of the probe's choice
         frames, total = self._served.get(key, (0, 0.0))
@@ -267,18 +280,18 @@ class AutoPolicy:
             self._served[key] = frames, total
             return
         self._served.pop(key, None)
-        measured = max(1.0, total / frames / chosen[0].ms)
-        now, held = self.clock(), self._load.get(scene_key)
-        if held is None or measured >= held[0] or now - held[1] >= LOAD_HOLD_S:
-            self._load[scene_key] = measured, now
-        if not self._holds(scene_key, chosen[1]):
+        measured = max(1.0, total / frames / chosen[2])
+        self._load[scene_key] = measured
+        self._own.setdefault(scene_key, {})[method] = measured, self.clock()
+        if not self._holds(scene_key, chosen):
             log.info("auto mode, %s at %dx%d, %d sessions: %s costs %.3g ms in service, %.2f times its probe's time "
                      "(load %.2f, chosen at %.2f): choosing again", scene, width, height, key[-1], method.name,
-                     total / frames, total / frames / chosen[0].ms, self.load(scene_key), chosen[1])
+                     total / frames, total / frames / chosen[2], measured, chosen[1])
 
-    def _holds(self, scene_key: tuple, made_for: float) -> bool:
-        """Whether a choice made for the load ``made_for`` still holds at the scene's :meth:`load` (within DRIFT)."""
-        return 1 / DRIFT < self.load(scene_key) / made_for < DRIFT
+    def _holds(self, scene_key: tuple, chosen: tuple[BudgetChoice, float, float, float]) -> bool:
+        """Whether a choice still holds: the scene's :meth:`load` within DRIFT of the one it was made for, and the
+        methods' own loads that shaped it still held."""
+        return 1 / DRIFT < self.load(scene_key) / chosen[1] < DRIFT and self.clock() < chosen[3]
 
     @staticmethod
     def _keys(scene: str, iso: float, width: int, height: int, sessions: int, ao_radius: float,
@@ -295,7 +308,7 @@ class AutoPolicy:
         probe waits in :attr:`pending`."""
         scene_key, key = self._keys(scene, iso, width, height, sessions, ao_radius, clip)
         chosen = self._chosen.get(key)
-        if chosen is not None and self._holds(scene_key, chosen[1]):
+        if chosen is not None and self._holds(scene_key, chosen):
             return chosen[0]
         if key not in self._probing:
             probe = self._probe(renderer, scene_key, key, camera, clip)
@@ -327,10 +340,11 @@ class AutoPolicy:
                 log.info("auto mode: %s (%.1f dB) drops the AO the scene shows; at %g frames/s a session: %s",
                          choice.method.name, choice.expected_psnr, self.min_fps, kept.summary())
                 return kept
-        tried = ", ".join(f"{m.name} {quality.psnr[m]:.1f} dB {timings.get(m, math.nan):.2f} ms" for m in gains[:KEEP_AO_TRIES])
-        log.info("auto mode: %s (%.1f dB) drops the AO the scene shows; none with AO keeps %g frames/s a session within "
-                 "%.3g ms (%s)", choice.method.name, choice.expected_psnr, self.min_fps, floor_budget * config.headroom,
-                 tried or f"none gains {KEEP_AO_DB:g} dB")
+        tried = ", ".join(f"{m.name} {quality.psnr[m]:.1f} dB {timings.get(m, math.nan):.2f} ms"
+                          for m in gains[:KEEP_AO_TRIES])
+        log.info("auto mode: %s (%.1f dB) drops the AO the scene shows; none with AO keeps %g frames/s a session "
+                 "within %.3g ms (%s)", choice.method.name, choice.expected_psnr, self.min_fps,
+                 floor_budget * config.headroom, tried or f"none gains {KEEP_AO_DB:g} dB")
         return choice
 
     def prior(self, budget_ms: float, scene_key: tuple | None = None) -> BudgetChoice:
@@ -366,15 +380,18 @@ class AutoPolicy:
             if scene_key not in self._quality:
                 self._quality[scene_key] = yield from probe_quality_steps(renderer, iso, width, height, config,
                                                                           cameras, self.networks)
+            factors, until = self._held(scene_key, load)
+            seen = timings | {m: ms * factors[m] for m, ms in timings.items() if m in factors}  # dear at their load
             choice = yield from choose_method_steps(renderer, iso, width, height, budget_ms, config, cameras,
-                                                    self.networks, self._quality[scene_key], timings,
+                                                    self.networks, self._quality[scene_key], seen,
                                                     self.slice_ms, warn=False)
             choice = yield from self._keeping_ao(renderer, iso, width, height, choice, config, cameras,
-                                                 self._quality[scene_key], timings)
+                                                 self._quality[scene_key], seen)
+            timings.update({m: ms for m, ms in seen.items() if m not in timings})  # timed now
         except ValueError as e:  # the scene or size admits no candidate: say why, keep the prior
             log.warning("auto mode, %s at %dx%d: no probe (%s); frames stay %s", scene_key[0], width, height, e,
                         prior_method(self.candidates).name)
-            choice = self.prior(self.budget_ms(key[-1]), scene_key)
+            choice, until = self.prior(self.budget_ms(key[-1]), scene_key), math.inf
         else:
             log.info("auto mode, %s at %dx%d, budget %.3g ms: %s", scene_key[0], width, height, budget_ms,
                      choice.summary())
@@ -382,5 +399,5 @@ class AutoPolicy:
                 self.cache.put(scene_key, self._quality[scene_key], self._timings.get(scene_key, {}))
         finally:
             self._probing.discard(key)
-        self._chosen[key] = choice, load
+        self._chosen[key] = choice, load, timings.get(choice.method, choice.ms), until
         return choice
