@@ -381,7 +381,8 @@ class AutoPolicy:
                 self._quality[scene_key] = yield from probe_quality_steps(renderer, iso, width, height, config,
                                                                           cameras, self.networks)
             factors, until = self._held(scene_key, load)
-            seen = timings | {m: ms * factors[m] for m, ms in timings.items() if m in factors}  # dear at their load
+            # dear methods at their own load (one timed only now, at a new batch size, counts at the scene's)
+            seen = timings | {m: ms * factors[m] for m, ms in timings.items() if m in factors}
             choice = yield from choose_method_steps(renderer, iso, width, height, budget_ms, config, cameras,
                                                     self.networks, self._quality[scene_key], seen,
                                                     self.slice_ms, warn=False)
