@@ -21,7 +21,9 @@ the covered pixels (mask > 0.5). Per size and method:
 - ``matched``: JPEG at ``--jpeg-quality`` (OpenCV, the server's CPU path) sets the PSNR; per video
   codec the lowest ``quality`` whose stream's mean PSNR reaches it (bisection), its encoder in
   the server's settings (:class:`isosr_server.codecs.video.VideoEncoder`: low latency, the rate
-  cap at ``max_bitrate_kbps`` so quality decides, the server's thread count for the size): bytes
+  cap at ``max_bitrate_kbps`` so quality decides, the server's thread count for the size, or each
+  of ``--encoder-threads``), the frames coded where they are as the server codes them (on a GPU
+  converted to 4:2:0 there: :func:`isosr_server.video.encode_frame`): bytes
   per frame (keyframe, delta frames), bytes over JPEG's, encode ms per frame (wall, this
   machine's CPU), its CPU ms and the cores that makes, decode ms (the Python client's path),
   frames/s 10, 20 and 50 Mbit/s carry, and sessions this CPU encodes at 30 frames/s.
@@ -69,7 +71,7 @@ from isosr_render.images import quantize
 from isosr_server.codecs import video
 from isosr_server.engine import MODEL_NAMES, serving_network
 from isosr_server.protocol import Limits, ViewSettings
-from isosr_server.video import CodePlan, SessionCoder, video_threads
+from isosr_server.video import CodePlan, SessionCoder, encode_frame, video_threads
 from isosr_server.views import ViewContext, method_for
 
 SIZES = {"1080p": (1920, 1080), "4k": (3840, 2160), "smoke": (160, 90)}
@@ -158,15 +160,15 @@ def run_jpeg(frames: OrbitFrames, quality: int) -> dict:
             "decode_ms": dec_ms / n}
 
 
-def run_video(encoding: str, frames: OrbitFrames, quality: int, ceiling_kbps: int) -> dict:
-    """One stream of the orbit at ``quality``: its bytes, PSNR and times."""
+def run_video(encoding: str, frames: OrbitFrames, quality: int, ceiling_kbps: int, threads: int) -> dict:
+    """One stream of the orbit at ``quality`` by an encoder of ``threads``, coded as the server codes the frames
+    where they are (:func:`isosr_server.video.encode_frame`): its bytes, PSNR and times."""
     h, w = frames.rgb[0].shape[:2]
-    threads = video_threads(w, h, os.cpu_count() or 1)
     encoder = video.VideoEncoder(encoding, w, h, quality, ceiling_kbps, SESSION_FPS, threads)
     decoder = video.VideoDecoder(encoding)
     sizes, scores, keys, enc_ms, cpu_ms, dec_ms = [], [], [], 0.0, 0.0, 0.0
-    for i, (rgb, ref, cov) in enumerate(zip(frames.rgb, frames.ref, frames.covered)):
-        (data, key), wall, cpu = timed(lambda: encoder.encode(rgb, round(1e6 * (i + 1) / SESSION_FPS)))
+    for i, (ref, cov) in enumerate(zip(frames.ref, frames.covered)):
+        (data, key), wall, cpu = timed(lambda: encode_frame(encoder, ref, round(1e6 * (i + 1) / SESSION_FPS)))
         enc_ms, cpu_ms = enc_ms + wall, cpu_ms + cpu
         got, wall, _ = timed(lambda: decoder.decode(data, w, h))
         dec_ms += wall
@@ -183,17 +185,17 @@ def run_video(encoding: str, frames: OrbitFrames, quality: int, ceiling_kbps: in
             "encode_ms": enc_ms / n, "encode_cpu_ms": cpu_ms / n, "decode_ms": dec_ms / n, "encoder_threads": threads}
 
 
-def matched(encoding: str, frames: OrbitFrames, target_db: float, ceiling_kbps: int) -> dict:
+def matched(encoding: str, frames: OrbitFrames, target_db: float, ceiling_kbps: int, threads: int) -> dict:
     """The stream at the lowest quality whose mean PSNR reaches ``target_db`` (100 if none does)."""
     lo, hi, best = 1, 100, None
     while lo <= hi:
         q = (lo + hi) // 2
-        row = run_video(encoding, frames, q, ceiling_kbps)
+        row = run_video(encoding, frames, q, ceiling_kbps, threads)
         if row["psnr_db"] >= target_db:
             best, hi = row, q - 1
         else:
             lo = q + 1
-    return best or run_video(encoding, frames, 100, ceiling_kbps)
+    return best or run_video(encoding, frames, 100, ceiling_kbps, threads)
 
 
 def derived(row: dict, cores: int) -> dict:
@@ -204,10 +206,14 @@ def derived(row: dict, cores: int) -> dict:
     return out
 
 
-def matched_rows(frames: OrbitFrames, codecs: list[str], jpeg_quality: int, cores: int) -> list[dict]:
-    """The ``matched`` study of one orbit (module docstring); JPEG's row first."""
+def matched_rows(frames: OrbitFrames, codecs: list[str], jpeg_quality: int, cores: int,
+                 threads: list[int] | None = None) -> list[dict]:
+    """The ``matched`` study of one orbit (module docstring) for encoders of each of ``threads`` (None: the server's
+    for the size); JPEG's row first."""
+    h, w = frames.rgb[0].shape[:2]
     jpeg = run_jpeg(frames, jpeg_quality)
-    rows = [jpeg] + [matched(c, frames, jpeg["psnr_db"], Limits().max_bitrate_kbps) for c in codecs]
+    rows = [jpeg] + [matched(c, frames, jpeg["psnr_db"], Limits().max_bitrate_kbps, n) for c in codecs
+                     for n in threads or [video_threads(w, h, cores)]]
     for row in rows:
         row.update(study="matched", bytes_vs_jpeg=row["bytes_per_frame"] / jpeg["bytes_per_frame"],
                    **derived(row, cores))
@@ -219,9 +225,9 @@ def run_rate(encoding: str, frames: OrbitFrames, bitrate_kbps: int, quality: int
     h, w = frames.rgb[0].shape[:2]
     coder, decoder = SessionCoder(os.cpu_count() or 1), None
     sizes, keys, scores, enc_ms = [], [], [], 0.0
-    for i, (rgb, ref, cov) in enumerate(zip(frames.rgb, frames.ref, frames.covered)):
+    for i, (ref, cov) in enumerate(zip(frames.ref, frames.covered)):
         plan = CodePlan(encoding, quality, bitrate_kbps, SESSION_FPS, round(1e6 * (i + 1) / SESSION_FPS))
-        coded, wall, _ = timed(lambda: coder.code(torch.from_numpy(rgb), plan))
+        coded, wall, _ = timed(lambda: coder.code(ref, plan))
         if coded.encoding != encoding:
             raise RuntimeError(f"the {encoding} session coder sent {coded.encoding}: {coded.notice}")
         if coded.keyframe:
@@ -333,6 +339,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--methods", help=f"KIND:AO_RAYS,... (default {DEFAULTS['methods']})")
     parser.add_argument("--jpeg-quality", type=int, default=85)
     parser.add_argument("--codecs", default=",".join(video.available()), help="video codecs to run")
+    parser.add_argument("--encoder-threads", help="the matched study's encoder threads, comma-separated (default: "
+                                                  "the server's for the size; more cut a frame's latency for bytes)")
     parser.add_argument("--rates", help=f"rate study bitrates, kbit/s (default {DEFAULTS['rates']})")
     parser.add_argument("--link-encodings", help="link run encodings (default: the codecs and jpeg; '' skips it)")
     parser.add_argument("--link-caps", help=f"link run bitrate_kbps per video encoding (default {DEFAULTS['link_caps']}; "
@@ -359,6 +367,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
     try:
         specs = parse_methods(args.methods)
         rates = [int(r) for r in filter(None, args.rates.split(","))]
+        threads = [int(n) for n in filter(None, (args.encoder_threads or "").split(","))] or None
+        if threads and min(threads) < 1:
+            raise ValueError(f"--encoder-threads: counts of 1 or more, got {args.encoder_threads!r}")
         caps = [int(c) for c in filter(None, args.link_caps.split(","))]
         for codec in codecs + [e for e in link_encodings if e != "jpeg"]:
             video.check_available(codec)
@@ -373,7 +384,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         for method in methods:
             frames = orbit_frames(method, renderer, iso, SIZES[size], Orbit(yaw_step=args.yaw_step), args.frames,
                                   networks)
-            found = matched_rows(frames, codecs, args.jpeg_quality, cores)
+            found = matched_rows(frames, codecs, args.jpeg_quality, cores, threads)
             found += rate_rows(frames, codecs, rates, found[0])
             for row in found:
                 row.update(size=size, method=method.name, frames=args.frames)

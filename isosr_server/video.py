@@ -190,12 +190,7 @@ class SessionCoder:
         except VideoUnavailable as e:
             self._close()
             return CodedImage(encode_image(rgb, "jpeg", plan.quality), "jpeg", notice=f"{e}; sending jpeg")
-        keyframe = plan.keyframe or self._after_still
-        if rgb.is_cuda:  # converted where it is: half the bytes to copy, no conversion on the host
-            data, key = encoder.encode_i420(device_i420(rgb, *encoder.coded_size).cpu().numpy(), plan.timestamp_us,
-                                            keyframe)
-        else:  # swscale's SIMD conversion (5 ms a 1080p frame on one core; torch's took 27)
-            data, key = encoder.encode(rgb.cpu().numpy(), plan.timestamp_us, keyframe)
+        data, key = encode_frame(encoder, rgb, plan.timestamp_us, plan.keyframe or self._after_still)
         self._after_still = False
         self._sizes.append(len(data))
         return CodedImage(data, plan.encoding, key, encoder.codec, encoder.bitrate_kbps)
@@ -255,6 +250,20 @@ def device_i420(rgb: torch.Tensor, width: int, height: int) -> torch.Tensor:
     luma = ycc[0, 0] + 16
     chroma = torch.nn.functional.avg_pool2d(ycc[:, 1:], 2)[0] + 128
     return torch.cat([luma.flatten(), chroma.flatten()]).round_().clamp_(0, 255).to(torch.uint8).view(-1, width)
+
+
+def encode_frame(encoder: VideoEncoder, rgb: torch.Tensor, timestamp_us: int, keyframe: bool = False
+                 ) -> tuple[bytes, bool]:
+    """:meth:`VideoEncoder.encode` of a frame where it is: a CUDA frame converted to I420 there
+    (:func:`device_i420`: half the bytes to copy, no conversion on the host), a host frame by FFmpeg's
+    swscale (its SIMD conversion took 5 ms of a core a 1080p frame, torch's 27).
+
+    Shape:
+        rgb: (H, W, 3) uint8, the encoder's size, on any device.
+    """
+    if rgb.is_cuda:
+        return encoder.encode_i420(device_i420(rgb, *encoder.coded_size).cpu().numpy(), timestamp_us, keyframe)
+    return encoder.encode(rgb.cpu().numpy(), timestamp_us, keyframe)
 
 
 def video_threads(width: int, height: int, cores: int) -> int:

@@ -46,6 +46,21 @@ def test_bench_video_smoke_writes_every_study(tmp_path, capsys):
     assert "| smoke | full, AO 0, spp 1 | h264 |" in capsys.readouterr().out
 
 
+def test_bench_video_compares_encoder_threads_at_matched_psnr(tmp_path, capsys):
+    """--encoder-threads: a matched row per codec and thread count, each reaching JPEG's PSNR (or at quality 100),
+    with its encode times; counts below 1 are refused by name."""
+    rows = bench_video.main(["--device", "cpu", "--smoke", "--codecs", "h264", "--methods", "full:0",
+                             "--encoder-threads", "1,2", "--link-encodings", "", "--rates", "", "--out", str(tmp_path)])
+    matched = [r for r in rows if r["study"] == "matched"]
+    assert [(r["encoding"], r.get("encoder_threads")) for r in matched] == [("jpeg", None), ("h264", 1), ("h264", 2)]
+    for r in matched[1:]:
+        assert r["psnr_db"] >= matched[0]["psnr_db"] or r["quality"] == 100
+        assert r["encode_ms"] > 0 and r["encode_cpu_ms"] > 0
+    with pytest.raises(SystemExit):
+        bench_video.main(["--device", "cpu", "--smoke", "--encoder-threads", "0"])
+    assert "--encoder-threads: counts of 1 or more, got '0'" in capsys.readouterr().err
+
+
 def test_bench_video_refuses_a_bad_method(capsys):
     with pytest.raises(SystemExit):
         bench_video.main(["--device", "cpu", "--smoke", "--methods", "bogus:1"])
