@@ -26,6 +26,7 @@ notice; the session then stays on jpeg until the client asks for another encodin
 
 from __future__ import annotations
 
+import functools
 import threading
 import time
 from collections import deque
@@ -246,10 +247,16 @@ def device_i420(rgb: torch.Tensor, width: int, height: int) -> torch.Tensor:
     if height % 2 or width % 2:
         raise ValueError(f"device_i420: 4:2:0 needs even coded sides, got {width}x{height}")
     x = torch.nn.functional.pad(rgb.permute(2, 0, 1).float()[None], (0, width - w, 0, height - h), mode="replicate")
-    ycc = torch.einsum("ij,njhw->nihw", BT709_LIMITED.to(x.device), x)
-    luma = ycc[0, 0] + 16
-    chroma = torch.nn.functional.avg_pool2d(ycc[:, 1:], 2)[0] + 128
+    matrix = _bt709_on(x.device)
+    luma = torch.einsum("j,njhw->hw", matrix[0], x) + 16
+    # the chroma of each block's mean RGB: the mean of its chroma (the conversion is linear), a quarter of the work
+    chroma = torch.einsum("ij,njhw->ihw", matrix[1:], torch.nn.functional.avg_pool2d(x, 2)) + 128
     return torch.cat([luma.flatten(), chroma.flatten()]).round_().clamp_(0, 255).to(torch.uint8).view(-1, width)
+
+
+@functools.cache
+def _bt709_on(device: torch.device) -> torch.Tensor:
+    return BT709_LIMITED.to(device)
 
 
 def encode_frame(encoder: VideoEncoder, rgb: torch.Tensor, timestamp_us: int, keyframe: bool = False
