@@ -41,14 +41,13 @@ from __future__ import annotations
 
 import ssl
 from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
 import torch
 
 from isosr_bench.bench_pareto import bench_cameras, pareto_rows
 from isosr_bench.common import bench_parser, print_table, write_result
-from isosr_bench.load import LoadSampler, metric_total
+from isosr_bench.load import LoadSampler, metric_total, proc_status
 from isosr_bench.sessions import choices_line, run_sessions
 from isosr_client.drive import Orbit, summarize
 from isosr_client.serve_process import ServeProcess
@@ -78,10 +77,10 @@ TARGET_FPS = 30.0
 
 def rss_bytes(pid: int) -> int:
     """A process's resident set size (Linux ``/proc``)."""
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) * 1024
-    raise RuntimeError(f"no VmRSS for process {pid}")
+    rss = proc_status(pid).get("VmRSS")
+    if rss is None:
+        raise RuntimeError(f"no VmRSS for process {pid}")
+    return int(rss.split()[0]) * 1024
 
 
 def server_load(load: dict) -> dict:

@@ -36,6 +36,7 @@ import numpy as np
 import torch
 import warp as wp
 
+from isosr_bench.load import proc_status
 from isosr_render import Renderer, RenderRequest, Volume, orbit
 from isosr_render.procedural import SpheresSource
 from isosr_render.voxels import ArraySource
@@ -58,8 +59,7 @@ class Peak:
 
     @staticmethod
     def _status_gb(key: str) -> float:
-        line = next(line for line in Path("/proc/self/status").read_text().splitlines() if line.startswith(key))
-        return int(line.split()[1]) * 1024 / GB
+        return int(proc_status("self")[key].split()[0]) * 1024 / GB
 
     def __enter__(self):
         try:

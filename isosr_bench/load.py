@@ -90,6 +90,16 @@ def proc_stat(pid: int) -> list[str]:
         return f.read().rsplit(")", 1)[1].split()
 
 
+def proc_status(pid: int | str) -> dict[str, str]:
+    """The fields of ``/proc/PID/status`` by name (``pid`` "self": this process), as written (``VmRSS``: "123 kB").
+
+    Raises:
+        OSError: no such process.
+    """
+    with open(f"/proc/{pid}/status") as f:
+        return dict(line.rstrip("\n").split(":\t", 1) for line in f if ":\t" in line)
+
+
 def cpu_ticks(pid: int) -> int | None:
     """A process's user + system clock ticks so far (None: gone)."""
     try:

@@ -20,6 +20,7 @@ import msgspec
 import numpy as np
 import pytest
 
+from isosr_bench.load import proc_status
 from isosr_render import orbit
 from isosr_server import protocol as P
 from server_fixtures import (DEVICE, expect_close, frame, lib, lib_lowres, running_server, send,  # noqa: F401
@@ -194,8 +195,7 @@ def peak_rss():
             out.append(max(samples + [rss()]))
         return
     yield out
-    with open("/proc/self/status") as f:
-        out.append(next(int(line.split()[1]) * 1024 for line in f if line.startswith("VmHWM:")))
+    out.append(int(proc_status("self")["VmHWM"].split()[0]) * 1024)
 
 
 def big_json_body(shape: list[int], mib: int = 30) -> bytes:

