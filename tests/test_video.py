@@ -272,9 +272,7 @@ def test_the_encoder_frame_rate_holds_within_its_hysteresis():
 
 def swscale_i420(rgb: np.ndarray) -> np.ndarray:
     """FFmpeg's planes of ``rgb`` (even sides) as the encoder converts a host frame."""
-    av = video._av()
-    frame = av.VideoFrame.from_ndarray(rgb, format="rgb24")
-    return frame.reformat(format="yuv420p", dst_colorspace="ITU709", dst_color_range="MPEG").to_ndarray()
+    return video.host_i420(rgb).to_ndarray()
 
 
 def test_device_i420_is_ffmpegs_conversion_with_box_chroma(lib):

@@ -203,11 +203,8 @@ class VideoEncoder:
         if rgb.dtype != np.uint8 or rgb.shape != (self.height, self.width, 3):
             raise ValueError(f"video encoder: takes ({self.height}, {self.width}, 3) uint8, got {rgb.shape} "
                              f"{rgb.dtype}")
-        av = _av()
         pad = ((0, self.coded_size[1] - self.height), (0, self.coded_size[0] - self.width), (0, 0))
-        frame = av.VideoFrame.from_ndarray(np.pad(rgb, pad, mode="edge") if any(p[1] for p in pad) else rgb,
-                                           format="rgb24")
-        frame = frame.reformat(format="yuv420p", dst_colorspace="ITU709", dst_color_range="MPEG")
+        frame = host_i420(np.pad(rgb, pad, mode="edge") if any(p[1] for p in pad) else rgb)
         return self._encode(frame, timestamp_us, keyframe)
 
     def encode_i420(self, planes: np.ndarray, timestamp_us: int, keyframe: bool = False) -> tuple[bytes, bool]:
@@ -245,6 +242,17 @@ class VideoEncoder:
             except _av().FFmpegError:
                 pass
             self._cc = None
+
+
+def host_i420(rgb: np.ndarray):
+    """A host frame as an I420 ``av.VideoFrame`` by FFmpeg's swscale (BT.709, limited range): how
+    :meth:`VideoEncoder.encode` converts it.
+
+    Shape:
+        rgb: (H, W, 3) uint8, H and W even.
+    """
+    frame = _av().VideoFrame.from_ndarray(rgb, format="rgb24")
+    return frame.reformat(format="yuv420p", dst_colorspace="ITU709", dst_color_range="MPEG")
 
 
 def codec_string(encoding: str, keyframe: bytes, width: int, height: int, fps: float) -> str:
