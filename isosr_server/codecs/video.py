@@ -255,6 +255,11 @@ def host_i420(rgb: np.ndarray):
     return frame.reformat(format="yuv420p", dst_colorspace="ITU709", dst_color_range="MPEG")
 
 
+def rgb_of(frame) -> np.ndarray:
+    """A decoded (or I420) ``av.VideoFrame`` as (H, W, 3) uint8 RGB, by the matrix the streams signal."""
+    return frame.to_ndarray(format="rgb24", src_colorspace="ITU709", src_color_range="MPEG")
+
+
 def codec_string(encoding: str, keyframe: bytes, width: int, height: int, fps: float) -> str:
     """The WebCodecs codec string of a stream, from its keyframe (h264: the SPS; av1: the sequence
     header) or its size and rate (vp9's level)."""
@@ -363,7 +368,7 @@ class VideoDecoder:
             raise ValueError(f"{self.encoding} decoder: {e}") from None
         if not frames:
             raise ValueError(f"{self.encoding} decoder: no frame from this access unit (missing keyframe?)")
-        rgb = frames[-1].to_ndarray(format="rgb24", src_colorspace="ITU709", src_color_range="MPEG")
+        rgb = rgb_of(frames[-1])
         if rgb.shape[0] < height or rgb.shape[1] < width:
             raise ValueError(f"{self.encoding} decoder: frame {rgb.shape[1]}x{rgb.shape[0]} smaller than "
                              f"{width}x{height}")
