@@ -56,6 +56,7 @@ import time
 from collections.abc import Generator
 from dataclasses import replace
 from pathlib import Path
+from typing import NamedTuple
 
 from isosr_net.budget import (BudgetChoice, BudgetConfig, CostTable, QualityProbe, choose_method_steps,
                               default_candidates, default_probe_height, first_hit_ms_steps, floor_ms,
@@ -121,6 +122,16 @@ def prior_method(candidates: tuple[FrameMethod, ...]) -> FrameMethod:
     """The method of the frames before a probe: the cheapest candidate at full resolution (fewest
     rays, no network), where there is one: a sharp first look, if not the fastest one."""
     return min(candidates, key=lambda m: (m.ao_rays * m.spp, m.spp, m.learned, m.factor))
+
+
+class Chosen(NamedTuple):
+    """A choice as the policy holds it: the choice, the load it was made for, its method's probe time (ms; the
+    choice's own may count a held load) and until when the held loads that shaped it hold (by the policy's clock)."""
+
+    choice: BudgetChoice
+    load: float
+    probe_ms: float
+    until: float
 
 
 class ProbeCache:
@@ -199,8 +210,7 @@ class AutoPolicy:
         self.pending: list[Generator[None, None, BudgetChoice]] = []
         self._quality: dict[tuple, QualityProbe] = {}
         self._timings: dict[tuple, dict] = {}
-        # key -> the choice, the load it was made for, its probe time, until when held loads shaped it (by clock)
-        self._chosen: dict[tuple, tuple[BudgetChoice, float, float, float]] = {}
+        self._chosen: dict[tuple, Chosen] = {}
         self._probing: set[tuple] = set()
         self._load: dict[tuple, float] = {}  # scene key -> its frames' latest cost in service over their probe's time
         self._own: dict[tuple, dict[FrameMethod, tuple[float, float]]] = {}  # scene key -> method -> (its load, when)
@@ -271,7 +281,7 @@ class AutoPolicy:
         again."""
         scene_key, key = self._keys(scene, iso, width, height, sessions, ao_radius, clip)
         chosen = self._chosen.get(key)
-        if (chosen is None or not chosen[0].table or chosen[0].method != method or not chosen[2] > 0
+        if (chosen is None or not chosen.choice.table or chosen.choice.method != method or not chosen.probe_ms > 0
                 or not 0 < thread_ms < math.inf):
             return  # a prior's, another mode's, or no time (none, non-finite): no measure of the probe's choice
         frames, total = self._served.get(key, (0, 0.0))
@@ -280,18 +290,18 @@ class AutoPolicy:
             self._served[key] = frames, total
             return
         self._served.pop(key, None)
-        measured = max(1.0, total / frames / chosen[2])
+        measured = max(1.0, total / frames / chosen.probe_ms)
         self._load[scene_key] = measured
         self._own.setdefault(scene_key, {})[method] = measured, self.clock()
         if not self._holds(scene_key, chosen):
             log.info("auto mode, %s at %dx%d, %d sessions: %s costs %.3g ms in service, %.2f times its probe's time "
                      "(load %.2f, chosen at %.2f): choosing again", scene, width, height, key[-1], method.name,
-                     total / frames, total / frames / chosen[2], measured, chosen[1])
+                     total / frames, total / frames / chosen.probe_ms, measured, chosen.load)
 
-    def _holds(self, scene_key: tuple, chosen: tuple[BudgetChoice, float, float, float]) -> bool:
+    def _holds(self, scene_key: tuple, chosen: Chosen) -> bool:
         """Whether a choice still holds: the scene's :meth:`load` within DRIFT of the one it was made for, and the
         methods' own loads that shaped it still held."""
-        return 1 / DRIFT < self.load(scene_key) / chosen[1] < DRIFT and self.clock() < chosen[3]
+        return 1 / DRIFT < self.load(scene_key) / chosen.load < DRIFT and self.clock() < chosen.until
 
     @staticmethod
     def _keys(scene: str, iso: float, width: int, height: int, sessions: int, ao_radius: float,
@@ -309,7 +319,7 @@ class AutoPolicy:
         scene_key, key = self._keys(scene, iso, width, height, sessions, ao_radius, clip)
         chosen = self._chosen.get(key)
         if chosen is not None and self._holds(scene_key, chosen):
-            return chosen[0]
+            return chosen.choice
         if key not in self._probing:
             probe = self._probe(renderer, scene_key, key, camera, clip)
             try:
@@ -318,7 +328,7 @@ class AutoPolicy:
                 return decided.value
             self._probing.add(key)
             self.pending.append(probe)
-        return self.prior(self.budget_ms(sessions), scene_key) if chosen is None else chosen[0]
+        return self.prior(self.budget_ms(sessions), scene_key) if chosen is None else chosen.choice
 
     def _keeping_ao(self, renderer: Renderer, iso: float, width: int, height: int, choice: BudgetChoice,
                     config: BudgetConfig, cameras: list[Camera], quality: QualityProbe,
@@ -400,5 +410,5 @@ class AutoPolicy:
                 self.cache.put(scene_key, self._quality[scene_key], self._timings.get(scene_key, {}))
         finally:
             self._probing.discard(key)
-        self._chosen[key] = choice, load, timings.get(choice.method, choice.ms), until
+        self._chosen[key] = Chosen(choice, load, timings.get(choice.method, choice.ms), until)
         return choice
