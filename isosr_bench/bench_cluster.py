@@ -37,6 +37,7 @@ another replica; for the others, errors and their longest gap between frames; an
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import subprocess
@@ -263,6 +264,8 @@ def main(argv: list[str] | None = None) -> None:
     replicas = [int(n) for n in args.replicas.split(",") if n]
     if not replicas or min(replicas) < 0:
         parser.error(f"--replicas: one or more replica counts of 0 or more (0: the plain server), got {args.replicas!r}")
+    if not (math.isfinite(args.settle) and args.settle >= 0):
+        parser.error(f"--settle: untimed seconds, 0 or more, got {args.settle!r}")
     try:
         modes = parse_cases(args.cases)
     except ValueError as e:

@@ -80,12 +80,13 @@ def test_cluster_cases_and_gpu_shares():
     assert [gpus for _, _, gpus, _ in bench_cluster.servers([0, 2], "1", "cpu")] == [0.0, 0.0]
 
 
-def test_cluster_bench_refuses_an_unknown_case_or_share(tmp_path, capsys):
-    for argv in (["--cases", "warp:0"], ["--gpus-per-replica", "half"]):
+def test_cluster_bench_refuses_an_unknown_case_share_or_settle(tmp_path, capsys):
+    for argv in (["--cases", "warp:0"], ["--gpus-per-replica", "half"], ["--settle", "-1"], ["--settle", "nan"]):
         with pytest.raises(SystemExit):
             bench_cluster.main(["--smoke", "--out", str(tmp_path), *argv])
     err = capsys.readouterr().err
     assert "--cases: 'warp:0' is not MODE:AO_RAYS" in err and "--gpus-per-replica: a share of 0 or more" in err
+    assert "--settle: untimed seconds, 0 or more, got -1.0" in err and "got nan" in err
     assert not list(tmp_path.iterdir())
 
 
