@@ -20,7 +20,7 @@ from contextlib import nullcontext
 from pathlib import Path
 
 from isosr_server.core.config import (INGRESSES, Settings, add_arguments, check_ingress, check_replica_exposure,
-                                      configure_logging, haproxy_environment)
+                                      configure_process, haproxy_environment)
 
 
 # `isosr serve`'s flags beyond `Settings`: the shape of a multi-replica deployment (isosr_server.cluster).
@@ -62,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
     from isosr_server.app import create_app, uvicorn_options
 
     settings = Settings.from_args(args)
-    configure_logging(settings.log_level)
+    configure_process(settings)
     if args.replicas is not None:
         try:
             check_replica_exposure(settings.host, args.behind_proxy)

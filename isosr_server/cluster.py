@@ -85,7 +85,7 @@ from ray.serve.deployment import Application
 from ray.serve.metrics import Gauge
 
 from isosr_server.app import create_app
-from isosr_server.core.config import HAPROXY_SWITCH, Settings, check_replica_exposure, configure_logging, options
+from isosr_server.core.config import HAPROXY_SWITCH, Settings, check_replica_exposure, configure_process, options
 from isosr_server.metrics import ServerMetrics
 from isosr_server.placement import ROUTER
 from isosr_server.replica import as_replica, mps_running
@@ -141,7 +141,7 @@ class IsosrReplica:
     """One replica: the app of ``settings`` with its own engine, named by its Serve replica id."""
 
     def __init__(self, settings: Settings) -> None:
-        configure_logging(settings.log_level)  # a worker process: the driver's logging is not its own
+        configure_process(settings)  # a worker process: the driver's logging and interpreter settings are not its own
         self.settings = replica_settings(settings, ray.get_runtime_context().get_assigned_resources())
         self.replica_id = serve.get_replica_context().replica_id.unique_id
         self.fastapi: FastAPI | None = None

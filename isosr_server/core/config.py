@@ -15,6 +15,7 @@ import logging
 import math
 import os
 import ssl
+import sys
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -33,6 +34,10 @@ TOKEN_ENV = ENV_PREFIX + "TOKEN"
 LOOPBACK_HOSTS = ("127.0.0.1", "::1", "localhost")
 LOG_LEVELS = ("debug", "info", "warning", "error")
 MIN_TOKEN_CHARS = 8
+# A thread that lets go of the interpreter lock in a C call (a video encoder's x264, a GPU sync) waits up to the switch
+# interval to take it back while a Python thread runs (the device thread, the event loop): Python's 5 ms, three times a
+# frame, doubled a 1080p h264 frame's 19 ms beside one busy thread on this 2-core machine; 1 ms: 22 ms.
+SWITCH_INTERVAL_MS = 1.0
 SWITCH_TEXTS = {"1": True, "true": True, "yes": True, "on": True, "0": False, "false": False, "no": False, "off": False}
 
 
@@ -55,12 +60,14 @@ def _option(default: Any, help: str, parse: Callable[[str], Any] = str, choices:
     return field(default=default, metadata={"help": help, "parse": parse, "choices": choices})
 
 
-def configure_logging(level: str) -> None:
-    """This process's logs at ``level`` (one of :data:`LOG_LEVELS`): to stderr where nothing handles them yet,
-    and isosr's loggers at ``level`` where something does (a Ray Serve replica's worker, whose stderr is its
-    log file)."""
-    logging.basicConfig(level=level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    logging.getLogger("isosr").setLevel(level.upper())
+def configure_process(settings: Settings) -> None:
+    """What a server's process takes from its settings: its logs at ``settings.log_level``, to stderr where nothing
+    handles them yet, and isosr's loggers at that level where something does (a Ray Serve replica's worker, whose
+    stderr is its log file); its interpreter lock's switch interval."""
+    level = settings.log_level.upper()
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.getLogger("isosr").setLevel(level)
+    sys.setswitchinterval(settings.switch_interval_ms / 1e3)
 
 
 def check_min_fps(min_fps: float, target_fps: float) -> float:
@@ -113,6 +120,9 @@ class Settings:
             share one (`isosr serve --gpus-per-replica`, set from Ray's assignment); the auto
             mode's budget is the sessions' share of that part.
         log_level: ``debug``, ``info``, ``warning`` or ``error``.
+        switch_interval_ms: how long a thread of the server's process may hold Python's interpreter lock while
+            another waits for it (``sys.setswitchinterval``, :func:`configure_process`): the video encoders and the
+            device thread let go of it in every C call and wait up to this long to take it back.
     """
 
     host: str = _option("127.0.0.1", "address to bind; any but loopback requires a token")
@@ -151,6 +161,9 @@ class Settings:
     probe_cache: Path | None = _option(None, "JSON file where the auto mode keeps what its probes learn per device, "
                                              "volume, iso and size, for later starts (default: memory only)", Path)
     log_level: str = _option("info", "log level", choices=LOG_LEVELS)
+    switch_interval_ms: float = _option(SWITCH_INTERVAL_MS, "milliseconds a thread may hold Python's interpreter "
+                                                            "lock while another waits for it (Python's default: 5)",
+                                        float)
     gpu_share: float = 1.0
 
     def __post_init__(self):
@@ -172,7 +185,7 @@ class Settings:
         if not (math.isfinite(self.batch_wait_ms) and self.batch_wait_ms >= 0):
             raise ValueError(f"batch_wait_ms must be a number of milliseconds, 0 or more, got {self.batch_wait_ms}")
         check_gpu_share(self.gpu_share)
-        for name in ("target_fps", "slice_ms"):
+        for name in ("target_fps", "slice_ms", "switch_interval_ms"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, got {value}")
