@@ -5,14 +5,16 @@ from __future__ import annotations
 
 import json
 import socket
+import sys
 import threading
 import time
 
 import pytest
 
-from isosr_bench import bench_video
+from isosr_bench import bench_switch, bench_video
 from isosr_bench.video_link import Throttle
 from isosr_server.codecs import video
+from isosr_server.video import video_threads
 
 pytestmark = pytest.mark.skipif(video._av() is None or "h264" not in video.available(),
                                 reason="PyAV with libx264 (the video extra) is not installed")
@@ -86,3 +88,29 @@ def test_the_throttle_carries_bytes_at_its_rate_and_no_faster():
         elapsed = time.perf_counter() - start
     assert bytes(got) == payload and link.carried == len(payload)
     assert elapsed >= 8 * len(payload) / rate - 0.01, elapsed  # SLACK_S of burst at most
+
+
+def test_bench_switch_times_coding_per_interval_and_restores_pythons(tmp_path, capsys):
+    """bench_switch: a row per switch interval and encoding (the video codecs, then JPEG) with coding times alone and
+    beside busy Python and that thread's share; the process's own interval is back after it; bad intervals are
+    refused by name."""
+    before = sys.getswitchinterval()
+    rows = bench_switch.main(["--device", "cpu", "--smoke", "--codecs", "h264", "--intervals", "2,0.5",
+                              "--out", str(tmp_path)])
+    assert sys.getswitchinterval() == before
+    assert [(r["switch_interval_ms"], r["encoding"]) for r in rows] == [(2, "h264"), (2, "jpeg"), (0.5, "h264"),
+                                                                        (0.5, "jpeg")]
+    for r in rows:
+        assert r["encode_ms_alone"] > 0 and r["encode_ms_beside"] > 0 and r["busy_share"] > 0
+        assert r["beside_over_alone"] == pytest.approx(r["encode_ms_beside"] / r["encode_ms_alone"])
+    assert json.loads((tmp_path / "bench_switch_smoke_cpu.json").read_text())["rows"] == rows
+    for bad in ("0", "5,-1", "", "2000", "fast"):
+        with pytest.raises(SystemExit):
+            bench_switch.main(["--device", "cpu", "--smoke", "--intervals", bad])
+        assert f"--intervals: milliseconds in (0, 1000), comma-separated, got {bad!r}" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("size, cores, threads", [((1920, 1080), 32, 4), ((1920, 1080), 2, 1), ((3840, 2160), 32, 16),
+                                                  ((3840, 2160), 8, 4), ((160, 90), 32, 1)])
+def test_a_video_encoder_takes_a_thread_per_half_megapixel_within_half_the_cores(size, cores, threads):
+    assert video_threads(*size, cores) == threads

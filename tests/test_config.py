@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import logging
+import sys
+
 import pytest
 
 from isosr_cli.main import build_parser, main
 from isosr_cli.serve_cmd import REPLICA_FLAGS
 from isosr_net.inference import default_precision
-from isosr_server.core.config import TOKEN_ENV, Settings, options
+from isosr_server.core.config import TOKEN_ENV, Settings, configure_process, options
 
 TOKEN = "correct-horse-battery"
 
@@ -32,10 +35,27 @@ def test_token_required_beyond_loopback():
 
 
 @pytest.mark.parametrize("bad, words", [({"precision": "fp8"}, "precision"), ({"log_level": "loud"}, "log_level"),
-                                        ({"port": 70000}, "port"), ({"target_fps": 0.0}, "target_fps")])
+                                        ({"port": 70000}, "port"), ({"target_fps": 0.0}, "target_fps"),
+                                        ({"switch_interval_ms": 0.0}, "switch_interval_ms"),
+                                        ({"switch_interval_ms": float("nan")}, "switch_interval_ms")])
 def test_bad_settings_are_refused(bad, words):
     with pytest.raises(ValueError, match=words):
         Settings(**bad)
+
+
+def test_a_server_process_takes_its_switch_interval_and_log_level(monkeypatch):
+    """configure_process: the interpreter lock's switch interval from the settings (the flag over the environment,
+    1 ms by default where Python's is 5), isosr's log level."""
+    monkeypatch.setattr(sys, "setswitchinterval", lambda s: set_to.append(s))
+    monkeypatch.setattr(logging.getLogger("isosr"), "level", logging.getLogger("isosr").level)
+    set_to = []
+    configure_process(Settings())
+    configure_process(Settings.from_args(serve_parser().parse_args(["--switch-interval-ms", "0.5", "--log-level",
+                                                                    "debug"]), {"ISOSR_SWITCH_INTERVAL_MS": "2"}))
+    assert logging.getLogger("isosr").level == logging.DEBUG
+    configure_process(Settings.from_env({"ISOSR_SWITCH_INTERVAL_MS": "2"}))
+    assert set_to == [0.001, 0.0005, 0.002]
+    assert logging.getLogger("isosr").level == logging.INFO
 
 
 def test_environment_then_flags():

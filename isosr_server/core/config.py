@@ -162,7 +162,7 @@ class Settings:
                                              "volume, iso and size, for later starts (default: memory only)", Path)
     log_level: str = _option("info", "log level", choices=LOG_LEVELS)
     switch_interval_ms: float = _option(SWITCH_INTERVAL_MS, "milliseconds a thread may hold Python's interpreter "
-                                                            "lock while another waits for it (Python's default: 5)",
+                                                            "lock while another waits for it (Python's own: 5)",
                                         float)
     gpu_share: float = 1.0
 
