@@ -35,8 +35,8 @@ LOOPBACK_HOSTS = ("127.0.0.1", "::1", "localhost")
 LOG_LEVELS = ("debug", "info", "warning", "error")
 MIN_TOKEN_CHARS = 8
 # A thread that lets go of the interpreter lock in a C call (a video encoder's x264, a GPU sync) waits up to the switch
-# interval to take it back while a Python thread runs (the device thread, the event loop): Python's 5 ms, three times a
-# frame, doubled a 1080p h264 frame's 19 ms beside one busy thread on this 2-core machine; 1 ms: 22 ms.
+# interval to take it back while a Python thread runs (the device thread, the event loop): beside one busy thread a
+# 1080p h264 frame took 49 ms at Python's 5 ms, 26 at 1 ms, 20 alone (bench_switch_1080p_cpu.json; 0.5 ms no better).
 SWITCH_INTERVAL_MS = 1.0
 SWITCH_TEXTS = {"1": True, "true": True, "yes": True, "on": True, "0": False, "false": False, "no": False, "off": False}
 
