@@ -56,7 +56,7 @@ from isosr_bench.load import LoadSampler, executable, haproxy_backend, titled
 from isosr_bench.sessions import choices_line, run_sessions
 from isosr_client.drive import Orbit
 from isosr_client.view import connect
-from isosr_server.core.config import INGRESSES
+from isosr_server.core.config import ENV_PREFIX, INGRESSES, TOKEN_ENV
 from isosr_server.protocol import IMAGE_ENCODINGS, VIDEO_ENCODINGS
 from isosr_server.replica import mps_running
 from isosr_server.views import VIEWS
@@ -318,6 +318,11 @@ def load_fields(load: dict) -> dict:
         "replica_cores_max": round(cores["replica"]["busiest"], 2)}
 
 
+def server_environment() -> dict[str, str]:
+    """The settings the servers take from this process's environment (``ISOSR_*``; the token left out)."""
+    return {k: v for k, v in sorted(os.environ.items()) if k.startswith(ENV_PREFIX) and k != TOKEN_ENV}
+
+
 def measure_server(name: str, device: str, options: tuple[str, ...], cases: list[tuple[str, int, int]],
                    failover_sessions: int, volume: str, size: tuple[int, int], seconds: float, processes: int,
                    encoding: str, compression: str | None = None, ingress: str | None = None, replicas: int = 0,
@@ -343,7 +348,8 @@ def measure_server(name: str, device: str, options: tuple[str, ...], cases: list
                                       on_start=lambda: load.start(seconds), compression=compression,
                                       settle_s=settle_s)
                 row = dict(case_row(mode, ao, result), server=name, ready_s=ready_s, settle_s=settle_s,
-                           replicas_seen=len(result.get("replicas", [])), **load_fields(load.result()))
+                           replicas_seen=len(result.get("replicas", [])), server_environment=server_environment(),
+                           **load_fields(load.result()))
                 print(f"{name:<6} {mode:<5} AO {ao:<2} x{n:<3} {row.get('fps', 0):7.1f} fps "
                       f"({row.get('fps_per_session', 0):6.1f}/session) p50 {row.get('latency_p50_ms', 0):6.1f} "
                       f"p99 {row.get('latency_p99_ms', 0):6.1f} ms errors {row['errors']} (ready in {ready_s:.0f} s) "

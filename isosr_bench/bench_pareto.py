@@ -19,7 +19,7 @@ x4, x8 nearest, bilinear, bicubic; every upscaling network at fp32, bf16, fp16 o
 CPUs) is timed as a whole path (render, reconstruction, shading) per frame, in sequence over an
 8-frame orbit so that recurrent state (the networks', SVGF's history) is real, after warm-up
 (CUDA events on GPUs, wall time on CPUs), and each of those frames is scored against a
-reference rendered for it with 4 rays per pixel and 512 AO rays:
+reference rendered for it with 4 rays per pixel (``--reference-spp``) and 512 AO rays:
 
 - ``color_psnr``, ``color_ssim``: shaded color on the covered region (either mask > 0.5);
   ``image_psnr``, ``image_ssim``: the same on the whole image; ``color_psnr_8bit``: ``color_psnr`` of the
@@ -34,7 +34,9 @@ reference rendered for it with 4 rays per pixel and 512 AO rays:
 
 The reference's AO rays have their own seed, but its subpixel pattern is the renderer's fixed
 one: the ``spp 4`` rows have the reference's geometry exactly, so their scores measure AO error
-alone and are optimistic against a truly converged image.
+alone and are optimistic against a truly converged image. ``--reference-spp 16`` scores a
+selection against references of 16 rays per pixel, of which a frame's 4 are the first (rows:
+``reference_spp``).
 
 An empty covered region (iso outside the data) has no PSNR or SSIM: written as null, and left
 out of the Pareto fronts. Rows (``part: pareto``): one per (volume, size, method). The budget
@@ -69,6 +71,7 @@ import torch
 from isosr_render import Renderer, Volume, open_volume, orbit_path, resolve_iso
 from isosr_render.catalog import entry, manifest
 from isosr_render.images import quantize
+from isosr_render.renderer import MAX_SPP
 from isosr_render.sequence import sequence_cameras
 from isosr_render.shapes import frame_size
 from isosr_render.surfaces import PALETTE, Surfaces
@@ -189,16 +192,17 @@ def bench_cameras(frames: int):
 
 def pareto_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, int], size_name: str,
                 measured: list[FrameMethod], frames: int, warmup: int, device: str, networks: Networks,
-                surfaces: Surfaces | None = None) -> list[dict]:
-    """One row per method on one volume and size (with ``surfaces``: of them, ``part: layers``)."""
+                surfaces: Surfaces | None = None, reference_spp: int = REFERENCE_SPP) -> list[dict]:
+    """One row per method on one volume and size (with ``surfaces``: of them, ``part: layers``), scored against
+    references of ``reference_spp`` rays per pixel."""
     cameras = bench_cameras(frames)
     pairs = sequence_cameras(cameras)
     start = time.perf_counter()
-    refs = reference_frames(renderer, iso, size, cameras, flow=True, surfaces=surfaces)
+    refs = reference_frames(renderer, iso, size, cameras, flow=True, surfaces=surfaces, spp=reference_spp)
     if device.startswith("cuda"):
         torch.cuda.synchronize()
     ref_s = time.perf_counter() - start
-    reference_work = work(FrameMethod.of("full", ao_rays=REFERENCE_AO_RAYS, spp=REFERENCE_SPP))
+    reference_work = work(FrameMethod.of("full", ao_rays=REFERENCE_AO_RAYS, spp=reference_spp))
     estimate = ref_s * (1 + (warmup + frames) / frames * sum(work(m) for m in measured) / reference_work)
     print(f"{volume} {size_name}: references {ref_s:.1f} s; estimated {estimate:.0f} s for the methods "
           f"(plus compiling networks on first use)", flush=True)
@@ -220,7 +224,7 @@ def pareto_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
                      "ms": mean_ms(t), "wall_ms": t["wall_ms"],
                      **scored, "flicker_reference": flicker_reference, "flicker_ratio": ratio,
                      "coverage": float(sum(float((r.mask > 0.5).float().mean()) for r in refs) / frames),
-                     **stamp})
+                     "reference_spp": reference_spp, **stamp})
     print(f"{volume} {size_name}: {time.perf_counter() - start:.0f} s", flush=True)
     return rows
 
@@ -375,6 +379,10 @@ def main(argv=None) -> list[dict]:
     parser.add_argument("--translucent", type=float, default=None, metavar="A",
                         help="also measure each scene with the iso at opacity A over a surface inside it (rows of "
                         "part layers; default: none)")
+    parser.add_argument("--reference-spp", type=int, default=REFERENCE_SPP,
+                        help=f"rays per pixel of the references the methods' rows are scored against (default "
+                        f"{REFERENCE_SPP}, which frames of as many rays match in geometry exactly; more, with a "
+                        "selection only: a truer converged image)")
     parser.add_argument("--budget-only", action="store_true",
                         help="only the policy's part, scored by the methods' rows of each scene that the result "
                         "file in --out holds (measured on this kind of device; its budget rows name their commit)")
@@ -417,6 +425,11 @@ def main(argv=None) -> list[dict]:
     selection = bool(kinds or counts["spp"] or counts["ao_rays"])
     if selection and args.budget_only:
         parser.error("--budget-only runs the policy over every method: give no --kinds, --spp or --ao-rays")
+    if args.reference_spp != REFERENCE_SPP and not selection:
+        parser.error(f"--reference-spp {args.reference_spp}: the policy's part scores against its own references "
+                     f"({REFERENCE_SPP} rays per pixel): give a selection (--kinds, --spp or --ao-rays)")
+    if not 1 <= args.reference_spp <= MAX_SPP:
+        parser.error(f"--reference-spp must lie in [1, {MAX_SPP}], got {args.reference_spp}")
     kind = "cuda" if args.device.startswith("cuda") else "cpu"
     # With --budget-only, every scene's measured rows are found before any volume is loaded.
     measured_rows = {(name, size_name): measured_scene(args.out / f"{NAME}_{kind}.json", name, size_name, args.device)
@@ -435,13 +448,15 @@ def main(argv=None) -> list[dict]:
                 fitting = [m for m in fitting if m.name in {r["method"] for r in scene}]
             else:
                 scene = pareto_rows(renderer, iso, name, size, size_name, fitting, frames,
-                                    SMOKE_WARMUP if args.smoke else WARMUP, args.device, networks)
+                                    SMOKE_WARMUP if args.smoke else WARMUP, args.device, networks,
+                                    reference_spp=args.reference_spp)
             rows += scene
             if args.translucent is not None:
                 surfaces = Surfaces.of([(iso, PALETTE[0], args.translucent),
                                         (min(1.0, iso + INNER_ISO_STEP), PALETTE[1])])
                 rows += pareto_rows(renderer, iso, name, size, size_name, fitting, frames,
-                                    SMOKE_WARMUP if args.smoke else WARMUP, args.device, networks, surfaces)
+                                    SMOKE_WARMUP if args.smoke else WARMUP, args.device, networks, surfaces,
+                                    args.reference_spp)
             if not selection:  # the policy chooses among every method
                 rows += budget_rows(renderer, iso, name, size, size_name, fitting, scene,
                                     SMOKE_BUDGETS if args.smoke else BUDGETS, networks, args.smoke)

@@ -307,32 +307,33 @@ def _check_size_and_budget(width: int, height: int, budget_ms: float) -> None:
 def reference_frames(renderer: Renderer, iso: float, size: tuple[int, int], cameras: list[Camera],
                      ao_radius: float = AO_RADIUS, shading: ShadingParams = ShadingParams(),
                      flow: bool = False, clip: Clip = Clip(),
-                     surfaces: Surfaces | None = None) -> list[FrameBuffers]:
-    """High-effort reference frames along a camera path: mask, normal, AO (4 rays per pixel, 512
+                     surfaces: Surfaces | None = None, spp: int = REFERENCE_SPP) -> list[FrameBuffers]:
+    """High-effort reference frames along a camera path: mask, normal, AO (``spp`` rays per pixel, 512
     AO rays, the reference's own AO seed) and color with AO, cut by ``clip`` (its cut faces shaded
     as the methods shade them); with ``flow``, each frame's flow from the previous camera too
     (zeros for the first); with ``surfaces``, of theirs (the colour the renderer's: translucent ones'
-    two layers composited).
+    two layers composited). The renderer's subpixel pattern is fixed, its first samples every frame's:
+    a frame of as many rays per pixel has the reference's geometry exactly.
 
     Shape:
         Per frame: mask, ao (H, W); normal, color (H, W, 3); flow (H, W, 2).
     """
     return finish_steps(reference_frames_steps(renderer, iso, size, cameras, ao_radius, shading, flow, clip=clip,
-                                               surfaces=surfaces))
+                                               surfaces=surfaces, spp=spp))
 
 
 def reference_frames_steps(renderer: Renderer, iso: float, size: tuple[int, int], cameras: list[Camera],
                            ao_radius: float = AO_RADIUS, shading: ShadingParams = ShadingParams(),
                            flow: bool = False, bands: int = 1,
-                           clip: Clip = Clip(),
-                           surfaces: Surfaces | None = None) -> Generator[None, None, list[FrameBuffers]]:
+                           clip: Clip = Clip(), surfaces: Surfaces | None = None,
+                           spp: int = REFERENCE_SPP) -> Generator[None, None, list[FrameBuffers]]:
     """:func:`reference_frames` in ``bands`` row bands per frame, yielding between them (a band's
     pixels are the whole frame's, bit for bit: each pixel's rays depend on its index alone)."""
     frames = []
     for camera, prev in sequence_cameras(cameras):
         outputs = (("mask", "normal", "ao") + (("flow",) if flow and prev is not None else ())
                    + (("cap",) if clip.capped else ()) + (("color",) if surfaces is not None else ()))
-        request = RenderRequest(*size, iso, outputs, spp=REFERENCE_SPP, ao_samples=REFERENCE_AO_RAYS,
+        request = RenderRequest(*size, iso, outputs, spp=spp, ao_samples=REFERENCE_AO_RAYS,
                                 ao_radius=ao_radius, seed=REFERENCE_SEED, prev_camera=prev if flow else None,
                                 shading=shading, clip=clip, surfaces=surfaces)
         edges = [round(size[1] * k / bands) for k in range(bands + 1)]

@@ -98,3 +98,12 @@ def test_a_counter_s_rate_over_the_span():
     load.start(0.5)
     counters = load.result()["counters"]
     assert counters["gone"] is None and 0.5 / 0.7 < counters["busy"] <= 1.0  # 0.5 over a span of about 0.5 s
+
+
+def test_cluster_rows_name_the_settings_servers_take_from_the_environment_but_the_token(monkeypatch):
+    monkeypatch.setenv("ISOSR_SWITCH_INTERVAL_MS", "5")
+    monkeypatch.setenv("ISOSR_TOKEN", "secret-token")
+    monkeypatch.setenv("OTHER_SETTING", "1")
+    environment = bench_cluster.server_environment()
+    assert environment["ISOSR_SWITCH_INTERVAL_MS"] == "5"
+    assert "ISOSR_TOKEN" not in environment and "OTHER_SETTING" not in environment

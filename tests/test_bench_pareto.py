@@ -202,6 +202,23 @@ def test_a_selection_of_sampling_measures_only_those_methods(tmp_path):
     assert not (tmp_path / "pareto_cpu.json").exists()
 
 
+def test_a_selection_is_scored_against_references_of_the_rays_per_pixel_asked(tmp_path, monkeypatch, capsys):
+    """``--reference-spp``: the references rendered at that many rays per pixel, the rows saying so; refused
+    without a selection (the policy's part keeps its own references) and outside [1, MAX_SPP]."""
+    from isosr_bench import bench_pareto
+
+    asked, render = [], bench_pareto.reference_frames
+    monkeypatch.setattr(bench_pareto, "reference_frames", lambda *a, **k: (asked.append(k["spp"]), render(*a, **k))[1])
+    rows = bench_pareto.main(["--device", "cpu", "--smoke", "--out", str(tmp_path), "--volumes", "sphere", "--kinds",
+                              "full", "--spp", "1", "--ao-rays", "2", "--reference-spp", "16"])
+    assert asked == [16] and rows and all(r["reference_spp"] == 16 for r in rows)
+    for argv, words in ((["--reference-spp", "16"], "give a selection"),
+                        (["--kinds", "full", "--reference-spp", "0"], "--reference-spp must lie in [1, 256], got 0")):
+        with pytest.raises(SystemExit):
+            bench_pareto.main(["--device", "cpu", "--smoke", "--out", str(tmp_path), *argv])
+        assert words in capsys.readouterr().err
+
+
 def test_translucent_rows_stand_beside_the_single_surface_s(tmp_path, capsys):
     """``--translucent``: each method again on a translucent surface over an inner one, rows of part ``layers`` with
     the surfaces, scored against references of the same surfaces; an opacity of 1 (no second layer) is refused."""
