@@ -24,7 +24,9 @@ reference rendered for it with 4 rays per pixel (``--reference-spp``) and 512 AO
 - ``color_psnr``, ``color_ssim``: shaded color on the covered region (either mask > 0.5);
   ``image_psnr``, ``image_ssim``: the same on the whole image; ``color_psnr_8bit``: ``color_psnr`` of the
   colors a viewer receives, both quantized to 8 bits (within half a level everywhere: the ceiling, 100 dB;
-  one level off everywhere: 48.1 dB);
+  one level off everywhere: 48.1 dB); ``color_psnr_scene``: on the scene's region, the same pixels for
+  every method (:func:`isosr_net.metrics.scene_region`: the reference's covered pixels and their
+  neighbours), which compares a scene's rows like with like;
 - ``ao_rmse``: RMS AO error where both cover (a method without AO counts as AO 1; one that casts
   AO rays but gives only a color, OIDN, has none: null);
 - ``flicker``: :func:`isosr_net.metrics.color_instability` of the frames' colors along the
@@ -79,7 +81,7 @@ from isosr_net.budget import (REFERENCE_AO_RAYS, REFERENCE_SPP, BudgetConfig, ch
                               reference_frames)
 from isosr_net.flow_warp import warp_by_flow
 from isosr_net.methods import RUNNERS, FrameMethod, Networks, make_runner, unavailable_kinds
-from isosr_net.metrics import color_instability, eval_region, masked_psnr, masked_ssim
+from isosr_net.metrics import color_instability, eval_region, masked_psnr, masked_ssim, scene_region
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL
 from isosr_net.upscaler import DEFAULT_MODEL
 
@@ -152,12 +154,14 @@ def finite(x: float) -> float | None:
 def scores(frames: list, references: list, ao_rays: int = 0) -> dict:
     """Mean scores of a method's frames against the references (see the module docstring); ``ao_rays``:
     the method's (a frame without AO counts as AO 1 only where it cast none)."""
-    per = {k: [] for k in ("color_psnr", "color_ssim", "image_psnr", "image_ssim", "ao_rmse", "color_psnr_8bit")}
+    per = {k: [] for k in ("color_psnr", "color_ssim", "image_psnr", "image_ssim", "ao_rmse", "color_psnr_8bit",
+                           "color_psnr_scene")}
     for f, r in zip(frames, references):
         pred, ref = f.color.permute(2, 0, 1)[None], r.color.permute(2, 0, 1)[None]
         region = eval_region(f.mask[None, None], r.mask[None, None])
         whole = torch.ones_like(region)
         per["color_psnr"].append(float(masked_psnr(pred, ref, region)[0]))
+        per["color_psnr_scene"].append(float(masked_psnr(pred, ref, scene_region(r.mask[None, None]))[0]))
         per["color_ssim"].append(float(masked_ssim(pred, ref, region)[0]))
         shown, truth = (quantize(c).float() / 255 for c in (pred, ref))
         per["color_psnr_8bit"].append(float(masked_psnr(shown, truth, region)[0]))
@@ -464,8 +468,8 @@ def main(argv=None) -> list[dict]:
     name = SELECT_NAME if selection else NAME  # the study's own file keeps whole scenes
     merged = merge(args.out / f"{name}_{kind}.json", rows)
     print_table([r for r in rows if r["part"] in ("pareto", "layers")],
-                ["volume", "size", "part", "method", "ms", "color_psnr", "color_ssim", "image_psnr", "ao_rmse",
-                 "flicker", "flicker_ratio"])
+                ["volume", "size", "part", "method", "ms", "color_psnr", "color_psnr_scene", "color_ssim", "image_psnr",
+                 "ao_rmse", "flicker", "flicker_ratio"])
     print_table([r for r in rows if r["part"] == "budget"],
                 ["volume", "size", "budget_ms", "method", "fits", "probe_ms", "color_psnr", "best_fixed",
                  "best_fixed_psnr"])

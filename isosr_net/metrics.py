@@ -61,6 +61,18 @@ def eval_region(pred_mask: Tensor, target_mask: Tensor) -> Tensor:
     return (pred_mask > 0.5) | (target_mask > 0.5)
 
 
+def scene_region(target_mask: Tensor) -> Tensor:
+    """Pixels the ground truth covers (> 0.5) and their eight neighbours: one region for every method scored
+    against it, its edges' band included (where :func:`eval_region` differs between methods: a mask a hair
+    above 0.5 at a half-covered pixel adds that pixel to one method's region and not to another's).
+
+    Shape:
+        target_mask: (B, 1, H, W). Returns (B, 1, H, W) bool.
+    """
+    check_shape(target_mask, "(B, 1, H, W)", "target_mask", "scene_region")
+    return torch.nn.functional.max_pool2d((target_mask > 0.5).float(), 3, stride=1, padding=1) > 0
+
+
 def masked_psnr(pred: Tensor, target: Tensor, mask: Tensor, data_range: float = 1.0) -> Tensor:
     """PSNR per image over the pixels where ``mask`` > 0.5.
 

@@ -9,7 +9,7 @@ import torch.nn.functional as F
 from torchmetrics.functional.image import structural_similarity_index_measure
 
 from isosr_render.shading import shade_channels_first
-from isosr_net.metrics import (eval_region, frame_scores, masked_psnr, masked_ssim,
+from isosr_net.metrics import (eval_region, frame_scores, masked_psnr, masked_ssim, scene_region,
                                temporal_instability, upscale_baseline)
 from isosr_render.conventions import AO, DEPTH, MASK, NORMAL
 from isosr_render.shading import shade
@@ -81,6 +81,23 @@ def test_eval_region_is_the_union_of_the_masks():
     assert eval_region(pred_mask, target_mask).tolist() == [[[[True, True, True, False]]]]
 
 
+def test_the_scene_region_is_the_references_cover_and_its_neighbours_for_every_method():
+    """A half-covered pixel whose mask one method puts a hair above 0.5 joins that method's union region, with
+    the error of its colour there, and not the other's; the scene's region scores both on the same pixels."""
+    target_mask = torch.zeros(1, 1, 1, 6)
+    target_mask[..., 1] = 1.0
+    assert scene_region(target_mask).tolist() == [[[[True, True, True, False, False, False]]]]
+    ref = torch.zeros(1, 3, 1, 6)
+    ref[..., 1] = 0.8
+    a, b = ref.clone(), ref.clone()
+    a[..., 2] = b[..., 2] = 0.5  # both colour the half-covered pixel the same, off the reference's 0
+    mask_a, mask_b = target_mask.clone(), target_mask.clone()
+    mask_a[..., 2], mask_b[..., 2] = 0.5, 0.5 + 1e-6
+    union = [float(masked_psnr(c, ref, eval_region(m, target_mask))) for c, m in ((a, mask_a), (b, mask_b))]
+    scene = [float(masked_psnr(c, ref, scene_region(target_mask))) for c in (a, b)]
+    assert union[0] > union[1] + 10 and scene[0] == scene[1]
+
+
 def test_shade_channels_first_is_shade_with_ao_and_without_it_for_five_channels():
     hr = highres_stack()
     last = hr.permute(0, 2, 3, 1)
@@ -149,6 +166,7 @@ def test_temporal_instability_follows_the_flow():
 @pytest.mark.parametrize("call, match", [
     (lambda: shade_channels_first(torch.zeros(1, 4, 8, 8)), r"stack must be .*\(1, 4, 8, 8\)"),
     (lambda: eval_region(torch.zeros(1, 1, 8, 8), torch.zeros(1, 1, 8, 9)), r"target_mask .*\(1, 1, 8, 9\)"),
+    (lambda: scene_region(torch.zeros(1, 8, 8)), r"target_mask .*\(1, 8, 8\)"),
     (lambda: masked_psnr(torch.zeros(3, 8, 8), torch.zeros(3, 8, 8), torch.ones(1, 8, 8)), r"pred .*\(3, 8, 8\)"),
     (lambda: masked_psnr(torch.zeros(1, 3, 8, 8), torch.zeros(1, 3, 8, 8), torch.ones(1, 3, 8, 8)),
      r"mask .*\(1, 3, 8, 8\)"),
