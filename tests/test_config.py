@@ -37,7 +37,8 @@ def test_token_required_beyond_loopback():
 @pytest.mark.parametrize("bad, words", [({"precision": "fp8"}, "precision"), ({"log_level": "loud"}, "log_level"),
                                         ({"port": 70000}, "port"), ({"target_fps": 0.0}, "target_fps"),
                                         ({"switch_interval_ms": 0.0}, "switch_interval_ms"),
-                                        ({"switch_interval_ms": float("nan")}, "switch_interval_ms")])
+                                        ({"switch_interval_ms": float("nan")}, "switch_interval_ms"),
+                                        ({"switch_interval_ms": 1e300}, r"switch_interval_ms must lie in \(0, 1000\]")])
 def test_bad_settings_are_refused(bad, words):
     with pytest.raises(ValueError, match=words):
         Settings(**bad)

@@ -38,6 +38,7 @@ MIN_TOKEN_CHARS = 8
 # interval to take it back while a Python thread runs (the device thread, the event loop): beside one busy thread a
 # 1080p h264 frame took 49 ms at Python's 5 ms, 26 at 1 ms, 20 alone (bench_switch_1080p_cpu.json; 0.5 ms no better).
 SWITCH_INTERVAL_MS = 1.0
+MAX_SWITCH_INTERVAL_MS = 1000.0
 SWITCH_TEXTS = {"1": True, "true": True, "yes": True, "on": True, "0": False, "false": False, "no": False, "off": False}
 
 
@@ -185,7 +186,10 @@ class Settings:
         if not (math.isfinite(self.batch_wait_ms) and self.batch_wait_ms >= 0):
             raise ValueError(f"batch_wait_ms must be a number of milliseconds, 0 or more, got {self.batch_wait_ms}")
         check_gpu_share(self.gpu_share)
-        for name in ("target_fps", "slice_ms", "switch_interval_ms"):
+        if not 0 < self.switch_interval_ms <= MAX_SWITCH_INTERVAL_MS:  # Python takes 1e300 s for 0 without a word
+            raise ValueError(f"switch_interval_ms must lie in (0, {MAX_SWITCH_INTERVAL_MS:g}], "
+                             f"got {self.switch_interval_ms}")
+        for name in ("target_fps", "slice_ms"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, got {value}")
