@@ -30,6 +30,7 @@ from isosr_client.drive import Orbit
 from isosr_net.methods import Networks
 from isosr_render import Renderer, open_volume, resolve_iso
 from isosr_server.codecs import video
+from isosr_server.core.config import MAX_SWITCH_INTERVAL_MS
 from isosr_server.engine import serving_network
 from isosr_server.protocol import Limits, ViewSettings
 from isosr_server.video import video_threads
@@ -90,13 +91,13 @@ def switch_rows(frames: OrbitFrames, encodings: list[str], intervals_ms: list[fl
 
 
 def parse_intervals(text: str) -> list[float]:
-    """``5,1,0.5`` as milliseconds, each positive (ValueError naming the bad one)."""
+    """``5,1,0.5`` as milliseconds, each one a server may take (ValueError naming the text otherwise)."""
     try:
         intervals = [float(t) for t in text.split(",") if t]
     except ValueError:
         intervals = []
-    if not intervals or not all(0 < ms < 1e3 for ms in intervals):
-        raise ValueError(f"--intervals: milliseconds in (0, 1000), comma-separated, got {text!r}")
+    if not intervals or not all(0 < ms <= MAX_SWITCH_INTERVAL_MS for ms in intervals):
+        raise ValueError(f"--intervals: milliseconds in (0, {MAX_SWITCH_INTERVAL_MS:g}], comma-separated, got {text!r}")
     return intervals
 
 

@@ -104,10 +104,10 @@ def test_bench_switch_times_coding_per_interval_and_restores_pythons(tmp_path, c
         assert r["encode_ms_alone"] > 0 and r["encode_ms_beside"] > 0 and r["busy_share"] > 0
         assert r["beside_over_alone"] == pytest.approx(r["encode_ms_beside"] / r["encode_ms_alone"])
     assert json.loads((tmp_path / "bench_switch_smoke_cpu.json").read_text())["rows"] == rows
-    for bad in ("0", "5,-1", "", "2000", "fast"):
+    for bad in ("0", "5,-1", "", "2000", "fast", "nan"):
         with pytest.raises(SystemExit):
             bench_switch.main(["--device", "cpu", "--smoke", "--intervals", bad])
-        assert f"--intervals: milliseconds in (0, 1000), comma-separated, got {bad!r}" in capsys.readouterr().err
+        assert f"--intervals: milliseconds in (0, 1000], comma-separated, got {bad!r}" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("size, cores, threads", [((1920, 1080), 32, 4), ((1920, 1080), 2, 1), ((3840, 2160), 32, 16),
