@@ -279,7 +279,8 @@ def video_threads(width: int, height: int, cores: int) -> int:
     Alone, sliced threads cut a frame's latency for few bytes (an H200 host, 1080p h264 at matched PSNR, 1 / 2 / 4 /
     8 / 16 threads: 27 / 15.2 / 12.6 / 9.1 / 7.0 ms a frame, 23 ms of cores at 4 and 25 at 8, bytes +0.7 % from 4 to
     8), but in service 8 did not beat 4 (16 sessions of 4 replicas: encode stage 20.6-21.3 ms against 19-21, frame
-    rates 400 / 307 against 414 / 321, replicas' cores 16.4 against 13.6-15.2): ``bench_video_threads_1080p_cuda.json``, ``bench_cluster_haproxy_h264_1080p_cuda.json``."""
+    rates 400 / 307 against 414 / 321, replicas' cores 16.4 against 13.6-15.2): ``bench_video_threads_1080p_cuda.json``,
+    ``bench_cluster_haproxy_h264_1080p_cuda.json``."""
     return max(1, min(max(1, cores // 2), width * height // 500_000))
 
 
