@@ -11,6 +11,7 @@ import faulthandler
 import multiprocessing
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable
 from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
 
@@ -71,33 +72,49 @@ def run_sessions(url: str, volume: str, sessions: int, seconds: float, mode: str
     per_session_fps = [len(s) / b for s, b in zip(stats, busy) if b > 0]
     result.update(sessions=sessions, errors=errors, fps=float(sum(per_session_fps)),
                   fps_per_session=float(np.mean(per_session_fps)), methods=sorted({s.method for s in frames}),
-                  choices=auto_choices(frames),
+                  choices=auto_choices(stats, busy),
                   batch_mean=float(np.mean([s.batch for s in frames])),
                   replicas=sorted({s.replica for s in frames if s.replica is not None}))
     return result
 
 
-def auto_choices(frames: list[FrameStats]) -> dict[str, dict]:
+def auto_choices(stats: list[list[FrameStats]], busy: list[float]) -> dict[str, dict]:
     """What ``auto`` expected of each method it chose, over the frames that say (by method name): its
-    frames, mean expected PSNR and time, mean budget, and where the expectations came from."""
+    frames, mean expected PSNR and time, mean budget, and where the expectations came from; and what the
+    viewers got of it: its frames a second over all sessions (``fps``), the ``sessions`` that made most of
+    their frames with it and those sessions' frames a second (``session_fps_mean``, ``session_fps_min``;
+    None where no session did). ``stats`` and ``busy``: each session's frames and timed seconds."""
     by_method: dict[str, list] = {}
-    for s in frames:
-        if s.choice is not None:
+    rate: dict[str, float] = {}
+    mostly: dict[str, list[float]] = {}
+    for frames, seconds in zip(stats, busy):
+        chosen = [s for s in frames if s.choice is not None]
+        for s in chosen:
             by_method.setdefault(s.method, []).append(s.choice)
+        if not chosen or seconds <= 0:
+            continue
+        counts = Counter(s.method for s in chosen)
+        for method, n in counts.items():
+            rate[method] = rate.get(method, 0.0) + n / seconds
+        mostly.setdefault(counts.most_common(1)[0][0], []).append(len(frames) / seconds)
     mean = (lambda values: float(np.mean(values)) if values else None)
     return {method: {"frames": len(cs), "psnr_db": mean([c.psnr_db for c in cs if c.psnr_db is not None]),
                      "ms": mean([c.ms for c in cs if c.ms is not None]), "budget_ms": mean([c.budget_ms for c in cs]),
-                     "sources": sorted({c.source for c in cs})}
+                     "sources": sorted({c.source for c in cs}), "fps": rate.get(method, 0.0),
+                     "sessions": len(mostly.get(method, [])), "session_fps_mean": mean(mostly.get(method, [])),
+                     "session_fps_min": min(mostly[method]) if mostly.get(method) else None}
             for method, cs in sorted(by_method.items())}
 
 
 def choices_line(choices: dict[str, dict]) -> str:
     """:func:`auto_choices` in one line for a console: each method, its expected PSNR and time against
-    the budget, and where the expectation came from."""
+    the budget, where the expectation came from, its rate and the sessions that mostly made it."""
     def number(value: float | None, digits: int) -> str:
         return "?" if value is None else f"{value:.{digits}f}"
     return "; ".join(f"{method}: {number(c['psnr_db'], 1)} dB, {number(c['ms'], 2)} of {c['budget_ms']:.2f} ms "
-                     f"({'/'.join(c['sources'])}, {c['frames']} frames)" for method, c in choices.items())
+                     f"({'/'.join(c['sources'])}, {c['frames']} frames, {c['fps']:.1f}/s; mostly in {c['sessions']} "
+                     f"sessions at {number(c['session_fps_min'], 1)}-{number(c['session_fps_mean'], 1)}/s)"
+                     for method, c in choices.items())
 
 
 def _wait_opened(opened, on_start: Callable[[], None] | None) -> None:

@@ -29,7 +29,7 @@ from isosr_cli.main import main
 from isosr_client import ServerError, connect, decode_image, upscale_remote
 from isosr_client.drive import Orbit, drive
 from isosr_client.volumes import slice_remote, volumes_remote
-from isosr_client.view import CLIENT_LIMITS
+from isosr_client.view import CLIENT_LIMITS, FrameStats
 from isosr_render.images import to_uint8
 from isosr_net.methods import FrameMethod, Networks, make_runner, run_sequence
 from isosr_net.metrics import upscale_baseline
@@ -45,8 +45,8 @@ from isosr_render.slices import CONTOUR_RGB, slice_image
 from isosr_render.shading import shade, shade_channels_first
 from isosr_render.surfaces import Surfaces
 from isosr_server.core.config import Settings
-from isosr_server.protocol import (CLOSE_BAD_MESSAGE, SERVER_VIEW_MESSAGES, CameraMsg, FrameMsg, Limits, OpenMsg,
-                                   ProtocolError, ReadyMsg, ReceivedMsg, SettingsUpdate, encode, parse)
+from isosr_server.protocol import (CLOSE_BAD_MESSAGE, SERVER_VIEW_MESSAGES, AutoChoice, CameraMsg, FrameMsg, Limits,
+                                   OpenMsg, ProtocolError, ReadyMsg, ReceivedMsg, SettingsUpdate, encode, parse)
 
 VOLUME = "proc:cloud:0@32"
 SIZE = (64, 48)
@@ -469,8 +469,29 @@ def test_auto_sessions_report_what_auto_expected_of_each_method(server):  # noqa
         assert set(expected["sources"]) <= {"probe", "table", "prior"}
         assert (expected["psnr_db"] is None) == (expected["sources"] == ["prior"]), (method, expected)
     assert sum(e["frames"] for e in result["choices"].values()) == result["frames"]
+    assert sum(e["fps"] for e in result["choices"].values()) == pytest.approx(result["fps"])
+    assert sum(e["sessions"] for e in result["choices"].values()) == 2
     line = sessions.choices_line(result["choices"])
     assert all(f"{method}: " in line for method in result["methods"]) and " ms (" in line, line
+
+
+def test_auto_choices_say_which_sessions_got_each_method_and_at_what_rate():
+    """Per method: its frames a second over all sessions, and the sessions that made most of their frames with it
+    at their own rates; a session without timed seconds counts toward no rate (no division by zero)."""
+    def frames(*methods: str) -> list[FrameStats]:
+        choice = AutoChoice(budget_ms=10.0, ms=5.0, psnr_db=30.0, fits=True, source="probe")
+        return [FrameStats(i, i, "auto", m, False, 10.0, 100, 120, {}, choice=choice) for i, m in enumerate(methods)]
+    learned, plain = "full, AO 1, spp 1, recon fp16", "full, AO 8, spp 1"
+    stats = [frames(learned, learned, learned, plain), frames(plain, plain), frames(learned, plain, plain),
+             frames(plain)]
+    choices = sessions.auto_choices(stats, [2.0, 1.0, 1.0, 0.0])
+    assert choices[learned]["frames"] == 4 and choices[plain]["frames"] == 6  # the untimed session too
+    assert choices[learned]["fps"] == pytest.approx(3 / 2 + 1) and choices[plain]["fps"] == pytest.approx(1 / 2 + 2 + 2)
+    assert choices[learned]["sessions"] == 1 and choices[learned]["session_fps_min"] == pytest.approx(2.0)
+    assert choices[plain]["sessions"] == 2 and choices[plain]["session_fps_min"] == pytest.approx(2.0)
+    assert choices[plain]["session_fps_mean"] == pytest.approx(2.5)
+    assert "mostly in 1 sessions at 2.0-2.0/s" in sessions.choices_line(choices)
+    assert sessions.auto_choices([frames(plain)], [0.0])[plain]["session_fps_min"] is None
 
 
 def test_a_case_settles_untimed_before_its_timed_span(server):  # noqa: F811
