@@ -29,8 +29,8 @@ others from the budget.
 
 Under load a session gives up rate before AO: where that budget leaves only a frame without AO
 (or with too few rays to gain over none) in a scene where AO matters, the cheapest candidate with AO
-rays that gains :data:`KEEP_AO_DB` and fits the budget at ``min_fps`` (of the first
-:data:`KEEP_AO_TRIES`) takes its place: many viewers of one GPU get a (learned) frame with AO at a
+rays that gains :data:`KEEP_AO_DB` and fits the budget at ``min_fps`` (of those timed already, and of
+the first :data:`KEEP_AO_TRIES` not yet timed) takes its place: many viewers of one GPU get a (learned) frame with AO at a
 lower rate, not a plain frame without it at the target rate.
 
 No frame waits for a probe. Until the probe of a scene and size has run, frames use the prior:
@@ -91,7 +91,8 @@ LOAD_HOLD_S = 60.0
 # What a frame must gain over the target rate's choice, one without AO where AO matters, for auto to give up rate
 # (down to min_fps) for it: 3 dB, half the error's power.
 KEEP_AO_DB = 3.0
-# Candidates with AO that auto times for that trade, cheapest first (each a probe unit or two of device time).
+# Candidates with AO not yet timed that auto times for that trade, cheapest first (each a probe unit or two of device
+# time); those timed already cost nothing to weigh and are all weighed.
 KEEP_AO_TRIES = 3
 
 
@@ -334,15 +335,18 @@ class AutoPolicy:
                     config: BudgetConfig, cameras: list[Camera], quality: QualityProbe,
                     timings: dict) -> Generator[None, None, BudgetChoice]:
         """``choice`` (the target rate's), or where it drops AO that matters (:func:`drops_ao`), the first candidate
-        (the cheapest) with AO rays that gains :data:`KEEP_AO_DB` over it and keeps :attr:`min_fps`, of the first
-        :data:`KEEP_AO_TRIES` such candidates whose floor allows it, timed in turn: rate given up for AO, no more
-        of it than the cheapest such frame needs."""
+        (the cheapest) with AO rays that gains :data:`KEEP_AO_DB` over it and keeps :attr:`min_fps`, of such
+        candidates whose floor allows it: every one timed already (``timings``), and the first
+        :data:`KEEP_AO_TRIES` of the others, timed in turn: rate given up for AO, no more of it than the cheapest
+        such frame needs."""
         if not choice.ao_matters or self.min_fps == self.target_fps or not drops_ao(choice, quality):
             return choice
         floor_budget = choice.budget_ms * self.target_fps / self.min_fps
         gains = [m for m in self.candidates if m.ao_rays and floor_ms(m, quality, width, height) <= floor_budget
                  and quality.psnr.get(m, math.nan) >= choice.expected_psnr + KEEP_AO_DB]  # CPUs: floors untimed
-        for method in gains[:KEEP_AO_TRIES]:
+        untimed = [m for m in gains if m not in timings]
+        weighed = [m for m in gains if m in timings or m in untimed[:KEEP_AO_TRIES]]
+        for method in weighed:
             only = replace(quality, psnr={method: quality.psnr[method]})
             kept = yield from choose_method_steps(renderer, iso, width, height, floor_budget, config, cameras,
                                                   self.networks, only, timings, self.slice_ms, warn=False)
@@ -351,7 +355,7 @@ class AutoPolicy:
                          choice.method.name, choice.expected_psnr, self.min_fps, kept.summary())
                 return kept
         tried = ", ".join(f"{m.name} {quality.psnr[m]:.1f} dB {timings.get(m, math.nan):.2f} ms"
-                          for m in gains[:KEEP_AO_TRIES])
+                          for m in weighed)
         log.info("auto mode: %s (%.1f dB) drops the AO the scene shows; none with AO keeps %g frames/s a session "
                  "within %.3g ms (%s)", choice.method.name, choice.expected_psnr, self.min_fps,
                  floor_budget * config.headroom, tried or f"none gains {KEEP_AO_DB:g} dB")
