@@ -17,12 +17,12 @@ Per server (``--replicas``: 0 is the plain single process, N > 0 is N replicas o
 ``--gpus-per-replica`` each behind Serve's proxy, on a local Ray started by the server), case
 (``full`` without AO, ``reconstruct`` at 1 AO ray, ``auto``) and session count: frames/s in
 total and per session and latency p50/p99, as :func:`isosr_bench.sessions.run_sessions`
-measures them (sessions dealt to ``--client-processes``), the methods the frames name (``auto``:
-what it chose), which replicas made them, the GPUs the server holds (``gpus``), whether an MPS
-daemon ran (``mps``: replicas sharing a GPU run their kernels together under it), and over the
-timed span (:class:`isosr_bench.load.LoadSampler`) each GPU's busy fraction, the CPU cores
-of the server's process, Serve's proxy and the replicas, and the plain server's device thread's
-share of the span in jobs (``device_thread_busy``, from its ``GET /metrics``): a replica's
+measures them (sessions dealt to ``--client-processes``), the methods the frames name (``auto``: what it
+chose; with replicas, their ``auto mode`` log lines of the case, ``auto_log``: why), which replicas made them,
+the GPUs the server holds (``gpus``), whether an MPS daemon ran (``mps``: replicas sharing a GPU run their
+kernels together under it), and over the timed span (:class:`isosr_bench.load.LoadSampler`) each GPU's busy
+fraction, the CPU cores of the server's process, Serve's proxy and the replicas, and the plain server's device
+thread's share of the span in jobs (``device_thread_busy``, from its ``GET /metrics``): a replica's
 interpreter near one core, the proxy's, or a device thread near 1, is the bound where the GPUs idle.
 ``--client-deflate``: the sessions offer permessage-deflate as a browser does (``client_deflate``);
 Serve's proxy takes it and deflates every frame, the plain server declines it.
@@ -63,6 +63,10 @@ from isosr_server.views import VIEWS
 
 CASES = (("full", 0), ("reconstruct", 1), ("auto", 0))
 PLAIN = "plain"  # the server without replicas: one process, one device thread
+# Where the local Ray the servers start keeps its processes' logs (the replicas' among them).
+RAY_LOGS = Path(os.environ.get("RAY_TMPDIR", "/tmp/ray")) / "session_latest" / "logs"
+# The most of the replicas' auto log lines an auto row keeps (the last ones).
+AUTO_LOG_LINES = 60
 
 
 def parse_cases(text: str) -> tuple[tuple[str, int], ...]:
@@ -323,6 +327,26 @@ def server_environment() -> dict[str, str]:
     return {k: v for k, v in sorted(os.environ.items()) if k.startswith(ENV_PREFIX) and k != TOKEN_ENV}
 
 
+def log_sizes(logs: Path = RAY_LOGS) -> dict[Path, int]:
+    """Each log file's size now (none where ``logs`` is missing): where a case's lines start (:func:`auto_log`)."""
+    return {p: p.stat().st_size for p in logs.rglob("*") if p.is_file()} if logs.is_dir() else {}
+
+
+def auto_log(before: dict[Path, int], logs: Path = RAY_LOGS, most: int = AUTO_LOG_LINES) -> list[str]:
+    """The ``auto mode`` lines the replicas logged since ``before`` (:func:`log_sizes`), each after its file's
+    name, the last ``most``: what each replica probed and chose under the case's load, and why it traded rate
+    for AO or did not."""
+    lines: list[str] = []
+    for path, size in sorted(log_sizes(logs).items()):
+        start = before.get(path, 0)
+        if size > start:
+            with open(path, "rb") as f:
+                f.seek(start)
+                lines += [f"{path.name}: {line.strip()}" for line in f.read().decode(errors="replace").splitlines()
+                          if "auto mode" in line]
+    return lines[-most:]
+
+
 def measure_server(name: str, device: str, options: tuple[str, ...], cases: list[tuple[str, int, int]],
                    failover_sessions: int, volume: str, size: tuple[int, int], seconds: float, processes: int,
                    encoding: str, compression: str | None = None, ingress: str | None = None, replicas: int = 0,
@@ -344,12 +368,15 @@ def measure_server(name: str, device: str, options: tuple[str, ...], cases: list
             for mode, ao, n in cases:
                 load = LoadSampler(groups, gpus=device.startswith("cuda"), counters=counters)
                 settings = {"ao_rays": ao, "encoding": encoding}
+                logged = log_sizes() if mode == "auto" and name != PLAIN else None
                 result = run_sessions(server.url, volume, n, seconds, mode, size, settings, processes=processes,
                                       on_start=lambda: load.start(seconds), compression=compression,
                                       settle_s=settle_s)
                 row = dict(case_row(mode, ao, result), server=name, ready_s=ready_s, settle_s=settle_s,
                            replicas_seen=len(result.get("replicas", [])), server_environment=server_environment(),
                            **load_fields(load.result()))
+                if logged is not None:  # why each replica chose what it did
+                    row["auto_log"] = auto_log(logged)
                 print(f"{name:<6} {mode:<5} AO {ao:<2} x{n:<3} {row.get('fps', 0):7.1f} fps "
                       f"({row.get('fps_per_session', 0):6.1f}/session) p50 {row.get('latency_p50_ms', 0):6.1f} "
                       f"p99 {row.get('latency_p99_ms', 0):6.1f} ms errors {row['errors']} (ready in {ready_s:.0f} s) "

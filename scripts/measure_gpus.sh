@@ -8,8 +8,7 @@
 #   bash scripts/measure_gpus.sh cluster 4 16,32,64   # four replicas on GPUs 0-3, then failover
 #   bash scripts/measure_gpus.sh one-gpu              # 1, 2 and 4 replicas sharing GPU 0, 16 sessions
 #   ENC=h264 CASES=full:0,reconstruct:1 bash scripts/measure_gpus.sh mps 16,32   # 4 replicas on GPU 0 under MPS
-#       behind HAProxy (SETTLE: untimed seconds first, e.g. 20 for auto; SW: the switch interval, ms); the replicas'
-#       auto log lines go to $OUT/auto_log.txt
+#       behind HAProxy (SETTLE: untimed seconds first, e.g. 20 for auto; SW: the switch interval, ms)
 #   bash scripts/measure_gpus.sh datagen              # training data (GPU 3 unless GPU is set)
 #   bash scripts/measure_gpus.sh train SEED           # training on 1 and on 2 GPUs at once (GPUs 0-2, or GPUS)
 #   COMPILE=default bash scripts/measure_gpus.sh train SEED   # the same with a compiled step
@@ -50,8 +49,7 @@ case "${1:?step: kit, cluster N SESSIONS, one-gpu, mps SESSIONS, datagen or trai
         pgrep -f nvidia-cuda-mps-control >/dev/null || CUDA_VISIBLE_DEVICES=0 nvidia-cuda-mps-control -d
         ISOSR_SWITCH_INTERVAL_MS=${SW:-1} CUDA_VISIBLE_DEVICES=0 SECONDS_PER_CASE=${SECONDS_PER_CASE:-10} cluster \
             --gpus-per-replica split --replicas 4 --sessions "${2:-16}" --failover-sessions 0 --ingress haproxy \
-            --client-processes 4 --encoding "${ENC:-jpeg}" --settle "${SETTLE:-0}"
-        grep -rh "auto mode" /tmp/ray/session_latest/logs > "$OUT/auto_log.txt" 2>/dev/null || true ;;
+            --client-processes 4 --encoding "${ENC:-jpeg}" --settle "${SETTLE:-0}" ;;
     datagen)
         # configs/datagen_recon_history.json over the volumes present (ISOSR_SHARED_VOLUMES).
         python3 - <<'PY'

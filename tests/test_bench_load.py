@@ -107,3 +107,22 @@ def test_cluster_rows_name_the_settings_servers_take_from_the_environment_but_th
     environment = bench_cluster.server_environment()
     assert environment["ISOSR_SWITCH_INTERVAL_MS"] == "5"
     assert "ISOSR_TOKEN" not in environment and "OTHER_SETTING" not in environment
+
+
+def test_an_auto_row_keeps_the_replicas_auto_lines_of_its_case_alone(tmp_path):
+    """auto_log: the ``auto mode`` lines appended to the replicas' logs since the case began (files new since
+    included), after each file's name, the last ones within the cap; none where Ray kept no logs."""
+    logs = tmp_path / "logs"
+    (logs / "serve").mkdir(parents=True)
+    old = logs / "serve" / "replica_a.log"
+    old.write_text("INFO auto mode, bonsai at 1920x1080: before the case\nINFO other\n")
+    before = bench_cluster.log_sizes(logs)
+    with open(old, "a") as f:
+        f.write("INFO auto mode, bonsai at 1920x1080, budget 4.08 ms: x2 bilinear\nINFO a frame\n")
+    (logs / "worker-1.err").write_bytes(b"auto mode: full, AO 0 drops the AO the scene shows \xff\n")
+    lines = bench_cluster.auto_log(before, logs)
+    assert lines == ["replica_a.log: INFO auto mode, bonsai at 1920x1080, budget 4.08 ms: x2 bilinear",
+                     "worker-1.err: auto mode: full, AO 0 drops the AO the scene shows \ufffd"]
+    assert bench_cluster.auto_log(before, logs, most=1) == lines[-1:]
+    assert bench_cluster.auto_log(bench_cluster.log_sizes(logs), logs) == []
+    assert bench_cluster.log_sizes(tmp_path / "none") == {} and bench_cluster.auto_log({}, tmp_path / "none") == []
