@@ -261,7 +261,7 @@ class FusedReconNet(nn.Module):
         (``out``; a blend model's weight at ``ray_factor``, as :meth:`ReconNet.forward`'s).
         """
         k = _kernels()
-        blend_rays = blend_rays_at(self.blend_rays, ray_factor)
+        blend_rays = blend_rays_at(self.blend_rays, ray_factor, self.config.blend_beyond)
         results: dict[str, torch.Tensor] = {}
         passes: list[tuple[str, Callable[[], None]]] = []
 

@@ -125,6 +125,10 @@ class ReconNetConfig:
         blend_variance: with ``ao_prior="blend"``, ``k`` times ``4 p (1 - p)``, the rays' smoothed mean's
             variance per ray over its largest (:func:`ao_output`): where the rays agree (all lit, all
             occluded) their mean is trusted over the network, where they split the network weighs more.
+        blend_beyond: with ``ao_prior="blend"``, ``g`` >= 0: in a frame of ``r`` > 1 times the AO rays the model
+            reads (:meth:`RayLimits.read`), its own AO stands for ``k / r ** g`` rays (:func:`blend_rays_at`):
+            an input cleaner than any it was trained on is trusted over its correction. Nothing changes
+            within its ray limits; no weights depend on it.
         upscale: output over input resolution (:data:`UPSCALES`): 2 reconstructs a frame rendered
             at half the output's sides (:func:`upsampled_inputs` is the base its output corrects).
     """
@@ -140,6 +144,7 @@ class ReconNetConfig:
     geometry_gate: bool = False
     blend_map: bool = False
     blend_variance: bool = False
+    blend_beyond: float = 0.0
 
     def __post_init__(self):
         object.__setattr__(self, "widths", tuple(self.widths))
@@ -158,7 +163,10 @@ class ReconNetConfig:
         for flag in ("geometry_gate", "blend_map", "blend_variance"):
             if not isinstance(getattr(self, flag), bool):
                 raise ValueError(f"{flag} must be true or false, got {getattr(self, flag)!r}")
-        for flag in ("blend_map", "blend_variance"):
+        beyond = self.blend_beyond
+        if isinstance(beyond, bool) or not isinstance(beyond, (int, float)) or not 0 <= beyond < math.inf:
+            raise ValueError(f"blend_beyond must be a finite number >= 0, got {beyond!r}")
+        for flag in ("blend_map", "blend_variance", "blend_beyond"):
             if getattr(self, flag) and self.ao_prior != "blend":
                 raise ValueError(f"{flag} weighs a blend model's AO: it needs ao_prior 'blend', got {self.ao_prior!r}")
 
@@ -203,11 +211,13 @@ def ao_output(raw_ao: torch.Tensor, inputs: torch.Tensor, config: ReconNetConfig
     return weight * mean + (1 - weight) * corrected
 
 
-def blend_rays_at(blend_rays: torch.Tensor | float | None, ray_factor: float) -> torch.Tensor | float | None:
+def blend_rays_at(blend_rays: torch.Tensor | float | None, ray_factor: float, beyond: float = 0.0
+                  ) -> torch.Tensor | float | None:
     """What a blend model's own AO stands for beside a mean of ``ray_factor`` times the rays its sampling
-    channels count: ``k / ray_factor`` (the weight ``n r / (n r + k)`` of :func:`ao_output` as ``n / (n + k / r)``);
-    None for other priors."""
-    return None if blend_rays is None else blend_rays / ray_factor
+    channels count: ``k / ray_factor`` (the weight ``n r / (n r + k)`` of :func:`ao_output` as ``n / (n + k / r)``),
+    over ``ray_factor ** beyond`` more (``blend_beyond``: past its ray limits the network's AO stands for
+    ``k / r ** beyond`` rays); None for other priors."""
+    return None if blend_rays is None else blend_rays / ray_factor ** (1.0 + beyond)
 
 
 def geometry_gate(logits: torch.Tensor, inputs: torch.Tensor, config: ReconNetConfig) -> torch.Tensor:
@@ -314,7 +324,7 @@ class ReconNet(nn.Module):
         if self.config.blend_map:
             offset = self.ao_blend_map(y)[..., :h, :w].float()
             blend_rays = blend_rays * torch.exp(F.pixel_shuffle(offset, s) if s > 1 else offset)
-        ao = ao_output(raw[:, AO], base, self.config, blend_rays_at(blend_rays, ray_factor))
+        ao = ao_output(raw[:, AO], base, self.config, blend_rays_at(blend_rays, ray_factor, self.config.blend_beyond))
         # Depth passes through: the render found it (shading does not read it).
         return torch.cat([mask, normal, base[:, DEPTH], ao], dim=1)
 

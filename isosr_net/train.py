@@ -219,19 +219,21 @@ class Trainer:
         from). A ReconNet that blends its AO with the rays' (``ao_prior="blend"``) starts from one that
         corrects them (``"rays"``), one with a ``geometry_gate``, a ``blend_map`` or ``blend_variance`` from one
         without: the same weights, its blend at :data:`~isosr_net.reconnet.BLEND_RAYS_INIT` rays, its gates and map
-        at their start."""
+        at their start; with any ``blend_beyond`` (it has no weights)."""
         model, _ = load_pretrained(folder, self.device)
-        config = self.net.config
+        # their weights' configs: blend_beyond has none
+        config, weights = (replace(c, blend_beyond=0.0) if isinstance(c, ReconNetConfig) else c
+                           for c in (self.net.config, model.config))
         starts = [config]
         if isinstance(config, ReconNetConfig):
             priors = {config.ao_prior, "rays"} if config.ao_prior == "blend" else {config.ao_prior}
             starts = [replace(config, ao_prior=p, geometry_gate=g, blend_map=m, blend_variance=v) for p in priors
                       for g in {config.geometry_gate, False} for m in {config.blend_map, False}
                       for v in {config.blend_variance, False} if p == "blend" or not (m or v)]
-        if model.config not in starts:
+        if weights not in starts:
             raise ValueError(f"init {folder} holds a model of another config ({model.config}); the run trains "
                              f"{self.net.config}")
-        self.net.load_state_dict(model.state_dict(), strict=model.config == self.net.config)
+        self.net.load_state_dict(model.state_dict(), strict=weights == config)
         if self.rank == 0:
             print(f"fine-tuning {folder}")
 

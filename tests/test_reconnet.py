@@ -21,7 +21,7 @@ from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net.fused_recon import FusedReconNet, fusable
 from isosr_net.inference import buffer_stack
 from isosr_net.reconnet import (GATE_PARAMETER, GATE_RATE, RayLimits, ReconNet, ReconNetConfig, ao_output,
-                                macs_per_pixel, upsampled_inputs)
+                                blend_rays_at, macs_per_pixel, upsampled_inputs)
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, Reconstructor, recon_inputs, recon_limits
 from isosr_net.upscaler import DEFAULT_MODEL
 
@@ -484,6 +484,42 @@ def test_a_blend_model_reconstructs_through_the_reconstructor_as_its_ao_output_s
         with pytest.raises(ValueError, match="ray_factor must be a finite number >= 1"):
             reconstructor.reconstruct(sphere_frames[1], 4, 1, ray_factor=bad)
     assert torch.equal(reconstructor.previous, kept), "a refused factor leaves the stream's state"
+
+
+def test_past_its_ray_limits_a_blend_beyond_model_trusts_the_rays_mean_more(sphere_frames, tmp_path):
+    """``blend_beyond`` g: in a frame of r times the rays the model reads its AO stands for k / r ** g rays (the mean's
+    weight n r / (n r + k / r ** g)), so its output lies nearer the mean; within its limits (r = 1), and in a
+    model without it, nothing changes. Its weights are a plain blend model's (saved, loaded, fine-tuned alike)."""
+    model = net(seed=3, widths=(4, 4, 8, 8), blocks=1, ao_prior="blend", max_ao_rays=16, blend_beyond=1.0)
+    with torch.no_grad():
+        model.ao_blend_log.fill_(math.log(3.0))
+    save_pretrained(model, tmp_path / "beyond")
+    reconstructor = Reconstructor(tmp_path / "beyond")
+    assert reconstructor.net.config.blend_beyond == 1.0
+    raws, inputs = [], []
+    reconstructor.net.tail.register_forward_hook(lambda module, args, out: raws.append(out))
+    reconstructor.net.register_forward_pre_hook(lambda module, args: inputs.append(args[0]))
+    outs = []
+    for factor, k in ((1.0, 3.0), (4.0, 3.0 / 4 ** 2)):
+        reconstructor.reset()
+        outs.append(reconstructor.reconstruct(sphere_frames[0], 4, 1, ray_factor=factor).ao)
+        expected = ao_output(raws[-1][:, AO], inputs[-1], reconstructor.net.config, torch.tensor(k))[0, 0]
+        torch.testing.assert_close(outs[-1], expected, rtol=0, atol=1e-6)
+    plain = same_weights(model, blend_beyond=0.0)
+    with torch.no_grad():
+        torch.testing.assert_close(model(inputs[0], model.first_previous(inputs[0])),
+                                   plain(inputs[0], plain.first_previous(inputs[0])), rtol=0, atol=0)
+        discounted = model(inputs[0], model.first_previous(inputs[0]), ray_factor=4.0)[:, AO]
+        kept = plain(inputs[0], plain.first_previous(inputs[0]), ray_factor=4.0)[:, AO]
+    mean = inputs[0][:, SAMPLED_AO]
+    assert torch.isfinite(discounted).all() and ((discounted - mean).abs() <= (kept - mean).abs() + 1e-6).all()
+    assert ((discounted - mean).abs() < (kept - mean).abs() - 1e-4).any()
+    assert blend_rays_at(None, 4.0, 1.0) is None and blend_rays_at(8.0, 2.0, 2.0) == 1.0
+    for bad in (-0.5, math.nan, math.inf, True, "1"):
+        with pytest.raises(ValueError, match="blend_beyond must be a finite number >= 0"):
+            ReconNetConfig(ao_prior="blend", blend_beyond=bad)
+    with pytest.raises(ValueError, match="blend_beyond weighs a blend model's AO"):
+        ReconNetConfig(ao_prior="rays", blend_beyond=1.0)
 
 
 def test_the_reconstruct_method_tells_its_network_the_rays_it_casts_past_the_model_s(sphere):

@@ -336,6 +336,11 @@ def test_a_blend_model_fine_tunes_from_a_rays_model_and_trains_its_weight(tmp_pa
     assert all(torch.isfinite(torch.tensor(v)) for v in logs.values()) and not torch.equal(t.net.ao_blend_log, blend)
     with pytest.raises(ValueError, match="init .* holds a model of another config"):
         trainer(wide, tmp_path / "other", model={**rays, "ao_prior": "blend", "blocks": 2}, init=str(tmp_path / "rays"))
+    save_pretrained(t.net, tmp_path / "blend")  # blend_beyond has no weights: a blend model starts one with it, whole
+    beyond = trainer(wide, tmp_path / "beyond", model={**rays, "ao_prior": "blend", "blend_beyond": 1.0},
+                     init=str(tmp_path / "blend"))
+    assert beyond.net.config.blend_beyond == 1.0
+    assert all(torch.equal(v, beyond.net.state_dict()[k]) for k, v in t.net.state_dict().items())
 
 
 def test_a_gated_blend_model_fine_tunes_from_a_rays_model_and_trains_its_gates(tmp_path, tmp_path_factory):
