@@ -280,10 +280,10 @@ def test_each_reconstruction_config_fits_its_data_config(train, datagen):
     config, data = load_config(TrainConfig, root / train), load_config(DatagenConfig, root / datagen)
     model = build_model(config.model).config
     if config.init:  # a project-relative model folder of this config (a blend model's: over the rays; a gated,
-        start = load_pretrained(root.parent / config.init)[0].config  # mapped or variance one's: without them)
-        assert start.ao_prior in (model.ao_prior, "rays") and replace(
+        start = load_pretrained(root.parent / config.init)[0].config  # mapped or variance one's: without them;
+        assert start.ao_prior in (model.ao_prior, "rays") and replace(  # blend_beyond, no weights: any)
             start, ao_prior=model.ao_prior, geometry_gate=model.geometry_gate, blend_map=model.blend_map,
-            blend_variance=model.blend_variance) == model
+            blend_variance=model.blend_variance, blend_beyond=model.blend_beyond) == model
     assert model.limits == data.limits and model.upscale == data.upscale and data.recon_inputs
     assert max(data.input_ao_rays) == data.max_ao_rays and max(data.input_spp) == data.max_spp
     run = train.removeprefix("train_").removesuffix(".json")  # scripts/train_recon.sh's RUN
