@@ -30,8 +30,8 @@ others from the budget.
 Under load a session gives up rate before AO: where that budget leaves only a frame without AO
 (or with too few rays to gain over none) in a scene where AO matters, the cheapest candidate with AO
 rays that gains :data:`KEEP_AO_DB` and fits the budget at ``min_fps`` (of those timed already, and of
-the first :data:`KEEP_AO_TRIES` not yet timed) takes its place: many viewers of one GPU get a (learned) frame with AO at a
-lower rate, not a plain frame without it at the target rate.
+the first :data:`KEEP_AO_TRIES` not yet timed) takes its place: many viewers of one GPU get a (learned)
+frame with AO at a lower rate, not a plain frame without it at the target rate.
 
 No frame waits for a probe. Until the probe of a scene and size has run, frames use the prior:
 first the cheapest candidate (no AO, one ray per pixel), the frame that reaches the viewer
