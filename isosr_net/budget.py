@@ -82,7 +82,7 @@ REFERENCE_AO_RAYS = 512
 REFERENCE_SEED = 1
 # Row bands of the reference on CPUs, a unit of device work each (seconds for the whole on 2 cores).
 REFERENCE_BANDS_CPU = 8
-# A candidate's timing stops once one frame takes this many budgets.
+# A candidate's timing stops once one frame takes this many budgets (a frame alone before its batch: times the batch).
 OVER_BUDGET_STOP = 2.0
 # The share of a candidate's time at the probe size, scaled to the frame's pixels, counted on
 # as its floor (:func:`floor_ms`): fixed costs per frame make small frames dearer per pixel.
@@ -622,8 +622,10 @@ def choose_method_steps(renderer: Renderer, iso: float, width: int, height: int,
                                ao_radius=config.ao_radius, networks=networks if k == 0 else networks.fork(),
                                clip=config.clip)
                    for k in range(config.batch)]
-        timings[untimed] = yield from _time_candidate_steps(runners[0], cameras, config, budget_ms, slice_ms)
-        if config.batch > 1 and timings[untimed] <= OVER_BUDGET_STOP * budget_ms:
+        # A batch shares at most all of a frame's work: a frame alone of up to `batch` budgets may still fit.
+        alone_budget_ms = budget_ms * config.batch
+        timings[untimed] = yield from _time_candidate_steps(runners[0], cameras, config, alone_budget_ms, slice_ms)
+        if config.batch > 1 and timings[untimed] <= OVER_BUDGET_STOP * alone_budget_ms:
             timings[untimed] = yield from _time_batch_steps(runners, cameras, config)
     ms = {m: timings[m] for m in considered if m in timings}
     fits = ms[chosen] <= config.headroom * budget_ms

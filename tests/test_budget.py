@@ -321,6 +321,43 @@ def test_a_batched_timing_makes_each_candidates_frames_for_several_streams_at_on
         BudgetConfig(batch=0)
 
 
+def test_a_candidate_dear_alone_is_still_timed_in_its_batch(sphere, monkeypatch):
+    """A batch shares at most all of a frame's work, so a frame alone of up to ``batch`` budgets may still fit as a
+    batch's frame: the frame alone stops the timing only past OVER_BUDGET_STOP budgets times the batch (on an H200
+    under load a reconstruction alone took 19-45 ms against budgets of 2-8 ms a frame and was never timed in its
+    batch of 4, the way the service makes it)."""
+    renderer, iso = sphere
+    cheap, dear = FrameMethod.of("full"), FrameMethod.of("full", ao_rays=4)
+    budget_ms, batch = 2.0, 4
+    alone, batched, stops = {}, [], []
+
+    def time_alone(runner, cameras, config, stop_budget_ms, slice_ms=None):  # no device work: set times
+        stops.append(stop_budget_ms)
+        return alone[runner.method]
+        yield
+
+    def time_batch(runners, cameras, config):
+        batched.append(runners[0].method)
+        return alone[runners[0].method] / 3  # the network shared by the batch
+        yield
+
+    monkeypatch.setattr(policy, "_time_candidate_steps", time_alone)
+    monkeypatch.setattr(policy, "_time_batch_steps", time_batch)
+    quality = policy.QualityProbe(SIZE, {cheap: 20.0, dear: 28.0}, 12.0, True, 0.0)
+    config = BudgetConfig(candidates=(cheap, dear), batch=batch, headroom=0.9)
+
+    def choose(dear_alone_ms: float):
+        alone.update({cheap: 0.5, dear: dear_alone_ms})
+        batched.clear(), stops.clear()
+        return choose_method(renderer, iso, *SIZE, budget_ms, config, quality=quality)
+
+    choice = choose(5.0)  # 2.5 budgets alone, 0.83 in its batch
+    assert batched == [dear] and choice.method == dear and choice.fits and choice.ms == pytest.approx(5.0 / 3)
+    assert stops == [budget_ms * batch], "the frame alone's own early stop at the batch's budgets too"
+    choice = choose(2.0 * batch * budget_ms + 0.1)  # dearer alone than a whole batch's budgets: not batched
+    assert batched == [cheap] and choice.method == cheap
+
+
 def test_the_service_times_candidates_in_batches_only_on_gpus_under_load():
     from types import SimpleNamespace
 
