@@ -26,7 +26,8 @@ reference rendered for it with 4 rays per pixel (``--reference-spp``) and 512 AO
   colors a viewer receives, both quantized to 8 bits (within half a level everywhere: the ceiling, 100 dB;
   one level off everywhere: 48.1 dB); ``color_psnr_scene``: on the scene's region, the same pixels for
   every method (:func:`isosr_net.metrics.scene_region`: the reference's covered pixels and their
-  neighbours), which compares a scene's rows like with like;
+  neighbours), which compares a scene's rows like with like: the fronts, the scorecard and the
+  best fixed setting rank by it (:func:`front_psnr`);
 - ``ao_rmse``: RMS AO error where both cover (a method without AO counts as AO 1; one that casts
   AO rays but gives only a color, OIDN, has none: null);
 - ``flicker``: :func:`isosr_net.metrics.color_instability` of the frames' colors along the
@@ -151,6 +152,13 @@ def finite(x: float) -> float | None:
     return None if math.isnan(x) else x
 
 
+def front_psnr(row: dict) -> float | None:
+    """The PSNR a scene's rows are ranked by (fronts, dominance, the scorecard, the best fixed setting): on the
+    scene's region, the same pixels for every row (``color_psnr_scene``); ``color_psnr`` in rows written before
+    that score was."""
+    return row["color_psnr_scene"] if "color_psnr_scene" in row else row["color_psnr"]
+
+
 def scores(frames: list, references: list, ao_rays: int = 0) -> dict:
     """Mean scores of a method's frames against the references (see the module docstring); ``ao_rays``:
     the method's (a frame without AO counts as AO 1 only where it cast none)."""
@@ -251,18 +259,19 @@ def budget_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
             warnings.simplefilter("ignore", RuntimeWarning)  # recorded as fits: false
             choice = choose_method(renderer, iso, *size, budget, config, cameras, networks=networks,
                                    quality=quality, timings=timings)
-        fitting = [r for r in rows if r["ms"] <= budget and r["color_psnr"] is not None]
-        best = max(fitting, key=lambda r: r["color_psnr"], default=None)
+        fitting = [r for r in rows if r["ms"] <= budget and front_psnr(r) is not None]
+        best = max(fitting, key=front_psnr, default=None)
         auto = by_name[choice.method.name]
+        auto_psnr = front_psnr(auto)
         out.append({"part": "budget", "volume": volume, "size": size_name, "pixels": f"{size[0]}x{size[1]}",
                     "budget_ms": budget, "method": choice.method.name, "learned": choice.method.learned,
                     "fits": choice.fits, "probe_ms": choice.ms, "expected_psnr": finite(choice.expected_psnr),
                     "ao_effect_db": finite(choice.ao_effect_db), "ao_matters": choice.ao_matters,
                     "probe_seconds": choice.probe_seconds, "ms": auto["ms"], "color_psnr": auto["color_psnr"],
+                    "color_psnr_scene": auto.get("color_psnr_scene"),
                     "best_fixed": best and best["method"], "best_fixed_ms": best and best["ms"],
-                    "best_fixed_psnr": best and best["color_psnr"],
-                    "psnr_gap": None if best is None or auto["color_psnr"] is None
-                    else best["color_psnr"] - auto["color_psnr"], **stamp,
+                    "best_fixed_psnr": best and front_psnr(best),
+                    "psnr_gap": None if best is None or auto_psnr is None else front_psnr(best) - auto_psnr, **stamp,
                     "rows_commit": auto.get("commit")})  # the methods' rows' (another with --budget-only)
     return out
 
@@ -278,10 +287,11 @@ def pareto_front(points: list[tuple[float, float | None]]) -> list[bool]:
 
 def dominator(row: dict, rows: list[dict]) -> dict | None:
     """The fastest row at least as fast and at least as good as ``row`` and better in one, or None."""
-    if row["color_psnr"] is None:
+    psnr = front_psnr(row)
+    if psnr is None:
         return None
-    better = [r for r in rows if r["color_psnr"] is not None and r["ms"] <= row["ms"]
-              and r["color_psnr"] >= row["color_psnr"] and (r["ms"] < row["ms"] or r["color_psnr"] > row["color_psnr"])]
+    better = [r for r in rows if (q := front_psnr(r)) is not None and r["ms"] <= row["ms"] and q >= psnr
+              and (r["ms"] < row["ms"] or q > psnr)]
     return min(better, key=lambda r: r["ms"], default=None)
 
 
@@ -305,35 +315,35 @@ def learned_scorecard(rows: list[dict]) -> dict:
         and spp, with both times, PSNRs and flicker ratios. ``ao64``: the 64-ray AO frame (spp 1)
         and the fastest learned method at least as good, with the time ratio.
     """
-    scored = [r for r in rows if r["color_psnr"] is not None]
+    scored = [r for r in rows if front_psnr(r) is not None]
     full = [r for r in scored if r["kind"] == "full"]
     if not full:
         return {"budgets": [], "baselines": [], "ao64": None}
-    best = lambda cands: max(cands, key=lambda r: r["color_psnr"], default=None)  # noqa: E731
+    best = lambda cands: max(cands, key=front_psnr, default=None)  # noqa: E731
     budgets = []
     for budget in budget_ladder(min(r["ms"] for r in full)):
         fits = [r for r in scored if r["ms"] <= budget]
         top, learned = best(fits), best([r for r in fits if r["learned"]])
-        budgets.append({"budget_ms": budget, "best": top and top["method"], "best_psnr": top and top["color_psnr"],
-                        "learned": learned and learned["method"], "learned_psnr": learned and learned["color_psnr"],
-                        "learned_best": learned is not None and learned["color_psnr"] >= top["color_psnr"]})
+        budgets.append({"budget_ms": budget, "best": top and top["method"], "best_psnr": top and front_psnr(top),
+                        "learned": learned and learned["method"], "learned_psnr": learned and front_psnr(learned),
+                        "learned_best": learned is not None and front_psnr(learned) >= front_psnr(top)})
     baselines = []
     for a in (r for r in scored if r["kind"] in BASELINE_KINDS):
         same = best([r for r in scored if r["kind"] == "reconstruct" and r["ao_rays"] == a["ao_rays"]
                      and r["spp"] == a["spp"]])
         if same is not None:
             baselines.append({"kind": a["kind"], "method": a["method"], "ao_rays": a["ao_rays"], "ms": a["ms"],
-                              "psnr": a["color_psnr"], "flicker_ratio": a.get("flicker_ratio"),
-                              "recon": same["method"], "recon_ms": same["ms"], "recon_psnr": same["color_psnr"],
+                              "psnr": front_psnr(a), "flicker_ratio": a.get("flicker_ratio"),
+                              "recon": same["method"], "recon_ms": same["ms"], "recon_psnr": front_psnr(same),
                               "recon_flicker_ratio": same.get("flicker_ratio")})
     ao64 = next((r for r in full if r["ao_rays"] == 64 and r["spp"] == 1), None)
     match = None
     if ao64 is not None:
-        match = min((r for r in scored if r["learned"] and r["color_psnr"] >= ao64["color_psnr"]),
+        match = min((r for r in scored if r["learned"] and front_psnr(r) >= front_psnr(ao64)),
                     key=lambda r: r["ms"], default=None)
     return {"budgets": budgets, "baselines": baselines,
-            "ao64": ao64 and {"ms": ao64["ms"], "psnr": ao64["color_psnr"], "learned": match and match["method"],
-                              "learned_ms": match and match["ms"], "learned_psnr": match and match["color_psnr"],
+            "ao64": ao64 and {"ms": ao64["ms"], "psnr": front_psnr(ao64), "learned": match and match["method"],
+                              "learned_ms": match and match["ms"], "learned_psnr": match and front_psnr(match),
                               "speedup": match and ao64["ms"] / match["ms"]}}
 
 
@@ -471,7 +481,7 @@ def main(argv=None) -> list[dict]:
                 ["volume", "size", "part", "method", "ms", "color_psnr", "color_psnr_scene", "color_ssim", "image_psnr",
                  "ao_rmse", "flicker", "flicker_ratio"])
     print_table([r for r in rows if r["part"] == "budget"],
-                ["volume", "size", "budget_ms", "method", "fits", "probe_ms", "color_psnr", "best_fixed",
+                ["volume", "size", "budget_ms", "method", "fits", "probe_ms", "color_psnr_scene", "best_fixed",
                  "best_fixed_psnr"])
     print(f"wrote {write_result(name, args.device, merged, args.out)}")
     return rows

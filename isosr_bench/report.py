@@ -206,37 +206,39 @@ def _pareto_scenes(record: dict) -> dict[tuple[str, str], list[dict]]:
 def pareto_markdown(folder: Path, kind: str) -> list[str]:
     """The Pareto study's section: per scene its table, where each method wins (the front, from
     which time on it is the best) and where the learned, filtered and upscaled ones lose (to what)."""
-    from .bench_pareto import dominator, pareto_front
+    from .bench_pareto import dominator, front_psnr, pareto_front
 
     record = _load(folder, "pareto", kind)
     if record is None:
         return []
     lines = ["## Every way to make a frame: time against quality", "", *_run_lines(record),
              "ms: the whole path per frame. Scores against 4 rays per pixel and 512 AO rays; PSNR and SSIM of the "
-             "color on the covered region (image_psnr: the whole image); empty: nothing covered. flicker: the mean "
+             "color on the covered region (color_psnr_scene: on the scene's region, the same pixels for every row, "
+             "what the fronts rank by; image_psnr: the whole image); empty: nothing covered. flicker: the mean "
              "absolute color change between frames along the flow; flicker_ratio: over the reference's own. "
              "front: no method is both at least as fast and at least as good.", ""]
     scenes = _pareto_scenes(record)
     on_front = defaultdict(int)
     for (volume, size), rows in scenes.items():
-        front = pareto_front([(r["ms"], r["color_psnr"]) for r in rows])
+        front = pareto_front([(r["ms"], front_psnr(r)) for r in rows])
         for r, f in zip(rows, front):
             r["front"] = "yes" if f else ""
             on_front[r["method"]] += f
         winners = [r for r in rows if r["front"]]
         run = f" ({rows[0]['device']}, {rows[0]['commit']})" if "device" in rows[0] else ""
         lines += [f"### {volume}, {rows[0].get('pixels', size)}{run}", ""]
-        lines += _table(rows, ["method", "learned", "ms", "color_psnr", "color_ssim", "image_psnr", "ao_rmse",
+        lines += _table(rows, ["method", "learned", "ms", "color_psnr", "color_psnr_scene", "color_ssim", "image_psnr",
+                               "ao_rmse",
                                "flicker", "flicker_ratio", "front"]) + [""]
-        wins = [f"{r['method']} from {r['ms']:.3g} ms ({r['color_psnr']:.1f} dB)" for r in winners]
+        wins = [f"{r['method']} from {r['ms']:.3g} ms ({front_psnr(r):.1f} dB)" for r in winners]
         lines += ["Wins (the best there is from that frame time on, up to the next): " + "; ".join(wins) + ".", ""]
         losses = []
         for r in rows:
             if r["kind"] != "full" and not r["front"]:
                 d = dominator(r, rows)
                 if d is not None:
-                    losses.append(f"{r['method']} ({r['ms']:.3g} ms, {r['color_psnr']:.1f} dB) to {d['method']} "
-                                  f"({d['ms']:.3g} ms, {d['color_psnr']:.1f} dB)")
+                    losses.append(f"{r['method']} ({r['ms']:.3g} ms, {front_psnr(r):.1f} dB) to {d['method']} "
+                                  f"({d['ms']:.3g} ms, {front_psnr(d):.1f} dB)")
         if losses:
             lines += ["Loses: " + "; ".join(losses) + ".", ""]
     budget = [r for r in record["rows"] if r["part"] == "budget"]
@@ -249,6 +251,7 @@ def pareto_markdown(folder: Path, kind: str) -> list[str]:
                   "method: the policy's choice (probe_ms: its time in the probe); color_psnr and ms: what this "
                   "run measured for it; best_fixed: the best row within the budget here.", ""]
         lines += _table(budget, ["volume", "size", "budget_ms", "method", "fits", "probe_ms", "ms", "color_psnr",
+                                 "color_psnr_scene",
                                  "best_fixed", "best_fixed_ms", "best_fixed_psnr", "psnr_gap", "ao_matters", "commit"]) + [""]
     return lines
 
@@ -307,7 +310,7 @@ def pareto_plots(folder: Path, kind: str) -> list[Path]:
     joined, dominated points grey, learned methods as stars."""
     import matplotlib.pyplot as plt
 
-    from .bench_pareto import pareto_front
+    from .bench_pareto import front_psnr, pareto_front
 
     record = _load(folder, "pareto", kind)
     if record is None:
@@ -320,21 +323,21 @@ def pareto_plots(folder: Path, kind: str) -> list[Path]:
     for volume, sizes in by_volume.items():
         fig, axes = plt.subplots(1, len(sizes), figsize=(6 * len(sizes), 4.5), squeeze=False)
         for ax, (size, rows) in zip(axes[0], sizes.items()):
-            rows = [r for r in rows if r["color_psnr"] is not None]
-            front = pareto_front([(r["ms"], r["color_psnr"]) for r in rows])
+            rows = [r for r in rows if front_psnr(r) is not None]
+            front = pareto_front([(r["ms"], front_psnr(r)) for r in rows])
             for r, f in zip(rows, front):
-                ax.scatter(r["ms"], r["color_psnr"], color=colors[r["kind"]] if f else "0.75",
+                ax.scatter(r["ms"], front_psnr(r), color=colors[r["kind"]] if f else "0.75",
                            marker="*" if r["learned"] else "o", s=90 if r["learned"] else 25, zorder=3 if f else 2)
                 if f or r["learned"]:
-                    ax.annotate(r["method"], (r["ms"], r["color_psnr"]), fontsize=6, xytext=(3, 2),
+                    ax.annotate(r["method"], (r["ms"], front_psnr(r)), fontsize=6, xytext=(3, 2),
                                 textcoords="offset points")
             best = [r for r, f in zip(rows, front) if f]
             if best:
-                ax.plot([r["ms"] for r in best], [r["color_psnr"] for r in best], color="0.3", lw=0.8, zorder=1)
+                ax.plot([r["ms"] for r in best], [front_psnr(r) for r in best], color="0.3", lw=0.8, zorder=1)
             for k, c in colors.items():
                 ax.scatter([], [], color=c, marker="*" if RUNNERS[k].network_class else "o", label=k)
             ax.scatter([], [], color="0.75", label="dominated")
-            ax.set(xscale="log", xlabel="ms per frame (whole path)", ylabel="color PSNR, covered region (dB)",
+            ax.set(xscale="log", xlabel="ms per frame (whole path)", ylabel="color PSNR, the scene's region (dB)",
                    title=f"{volume}, {rows[0].get('pixels', size) if rows else size}")
             ax.legend(fontsize=7)
         path = folder / f"pareto_{volume}_{kind}.png"
@@ -409,7 +412,7 @@ def _scene_name(volume: str, size: str) -> str:
 def docs_pareto(folder: Path) -> list[str]:
     """The Pareto study's summary: chosen methods per scene, where a learned method is the best that fits,
     the reconstruction against the filters, and the budget policy."""
-    from .bench_pareto import GOAL_TOP_MS, learned_scorecard
+    from .bench_pareto import GOAL_TOP_MS, front_psnr, learned_scorecard
     from isosr_net.budget import AO_MATTERS_DB
 
     record = _load(folder, "pareto", "cuda")
@@ -419,7 +422,8 @@ def docs_pareto(folder: Path) -> list[str]:
     lines = ["## Every way to make a frame: time against quality", "",
              "Every way of making the final frame, timed as a whole path (render, reconstruction, shading; CUDA "
              "events after warm-up, in sequence over an 8-frame orbit) and scored against a reference with 4 rays "
-             "per pixel and 512 AO rays (color PSNR on the covered region). Re-run one scene with "
+             "per pixel and 512 AO rays (color PSNR on the scene's region: the reference's covered pixels and their "
+             "neighbours, the same for every method; on the covered region in rows measured before it). Re-run one scene with "
              "`isosr bench --pareto --device cuda --volumes ct_pitch --sizes 1080p --out benchmarks/results` (rows merge into the file).", "",
              "Source: `benchmarks/results/pareto_cuda.json`; every row names its device and commit, and scenes "
              "were measured at different commits: compare methods within a row (within one commit), not across "
@@ -433,7 +437,7 @@ def docs_pareto(folder: Path) -> list[str]:
         cells = []
         for method, _ in DOCS_METHODS:
             r = by_method.get(method)
-            cells.append("-" if r is None or r["color_psnr"] is None else f"{_num(r['ms'])} / {r['color_psnr']:.1f}")
+            cells.append("-" if r is None or front_psnr(r) is None else f"{_num(r['ms'])} / {front_psnr(r):.1f}")
         device = rows[0].get("device", record["device"]).replace("NVIDIA ", "").replace(" 80GB HBM3", "")
         table.append([_scene_name(volume, size)] + cells + [f"{device}, {rows[0].get('commit', record['commit'])}"])
     lines += _rows_table(header, table)
@@ -478,16 +482,16 @@ def docs_pareto(folder: Path) -> list[str]:
               "just opened sees them.", ""]
     table = []
     for (volume, size), rows in scenes:
-        by_method = {r["method"]: r for r in rows if r["color_psnr"] is not None}
+        by_method = {r["method"]: r for r in rows if front_psnr(r) is not None}
         for rays in (1, 4):
             recon = by_method.get(f"full, AO {rays}, spp 1, recon fp16")
             others = [by_method.get(f"full, AO {rays}, {m}") for m, _ in DOCS_FILTERS]
             if recon is None or not any(others):
                 continue
-            best = max(r["color_psnr"] for r in [recon] + [o for o in others if o])
+            best = max(front_psnr(r) for r in [recon] + [o for o in others if o])
             cell = lambda r: "-" if r is None else (  # noqa: E731
-                ("**{}**" if r["color_psnr"] == best else "{}").format(
-                    f"{r['color_psnr']:.1f} at {_num(r['ms'], 2)}, {_ratio(r.get('flicker_ratio'))}"))
+                ("**{}**" if front_psnr(r) == best else "{}").format(
+                    f"{front_psnr(r):.1f} at {_num(r['ms'], 2)}, {_ratio(r.get('flicker_ratio'))}"))
             table.append([f"{_scene_name(volume, size)}, {rays}", cell(recon)] + [cell(o) for o in others])
     lines += _rows_table(["scene, AO rays", "reconstruction"] + [h for _, h in DOCS_FILTERS], table)
 
@@ -690,6 +694,8 @@ def performance_markdown(folder: Path) -> str:
 
 def readme_figures(folder: Path) -> str:
     """The README's one small table of main figures (between FIGURES_BEGIN and FIGURES_END)."""
+    from .bench_pareto import front_psnr
+
     rows = []
     pareto = _load(folder, "pareto", "cuda")
     if pareto is not None:
@@ -699,8 +705,8 @@ def readme_figures(folder: Path) -> str:
             recon, ao64 = by_method.get("full, AO 1, spp 1, recon fp16"), by_method.get("full, AO 64, spp 1")
             if recon and ao64:
                 rows.append([f"reconstructed frame, 1 AO ray ({_scene_name(volume, size)})",
-                             f"{_num(recon['ms'])} ms, {recon['color_psnr']:.1f} dB (64 AO rays: {_num(ao64['ms'])} ms, "
-                             f"{ao64['color_psnr']:.1f} dB)", f"{recon['device'].replace('NVIDIA ', '').replace(' 80GB HBM3', '')}, "
+                             f"{_num(recon['ms'])} ms, {front_psnr(recon):.1f} dB (64 AO rays: {_num(ao64['ms'])} ms, "
+                             f"{front_psnr(ao64):.1f} dB)", f"{recon['device'].replace('NVIDIA ', '').replace(' 80GB HBM3', '')}, "
                              f"{recon['commit']}"])
     for name, size in (("bench_server_1080p", "1080p"),):
         record = _load(folder, name, "cuda")

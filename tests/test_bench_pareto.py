@@ -8,7 +8,8 @@ import math
 import pytest
 import torch
 
-from isosr_bench.bench_pareto import budget_ladder, dominator, learned_scorecard, merge, pareto_front, scores
+from isosr_bench.bench_pareto import (budget_ladder, dominator, front_psnr, learned_scorecard, merge, pareto_front,
+                                      scores)
 from isosr_render import FrameBuffers
 from isosr_net.methods import unavailable_kinds
 
@@ -64,7 +65,7 @@ def test_the_budget_part_compares_the_policy_with_the_best_fixed_setting(smoke):
         if r["volume"] == "sphere":  # no AO rays where AO changes nothing
             assert "AO 0" in r["method"] or not r["method"].startswith("full")
         if r["best_fixed"] is not None:
-            assert r["psnr_gap"] == pytest.approx(r["best_fixed_psnr"] - r["color_psnr"])
+            assert r["psnr_gap"] == pytest.approx(r["best_fixed_psnr"] - r["color_psnr_scene"]), "like with like"
 
 
 def test_fronts_dominated_points_and_undefined_scores():
@@ -75,6 +76,20 @@ def test_fronts_dominated_points_and_undefined_scores():
     assert dominator(rows[3], rows)["method"] == "1"  # 2 ms and 25 dB beat 3 ms and 24 dB
     assert dominator(rows[2], rows)["method"] == "0"  # the fastest of those that beat it
     assert dominator(rows[1], rows) is None and dominator(rows[4], rows) is None
+
+
+def test_a_scenes_rows_rank_on_its_region_where_they_were_scored_on_it():
+    """Each method's covered region differs (a half-covered pixel is in one mask and not another): the fronts,
+    dominance and the scorecard rank by color_psnr_scene, the same pixels for every row; rows without it (written
+    before it was scored) by color_psnr."""
+    own = [_row("plain", "full", 1.0, 30.0) | {"color_psnr_scene": 28.0},
+           _row("recon", "reconstruct", 2.0, 29.0) | {"color_psnr_scene": 29.5}]
+    assert [front_psnr(r) for r in own] == [28.0, 29.5] and front_psnr(_row("old", "full", 1.0, 30.0)) == 30.0
+    assert dominator(own[1], own) is None, "on its own region plain would dominate it: 1 ms and 30 dB"
+    assert front_psnr(own[0] | {"color_psnr_scene": None}) is None, "nothing covered: unscored, never 0"
+    card = learned_scorecard(own)
+    wins = [b["learned_best"] for b in card["budgets"]]
+    assert wins[0] is False and len(wins) > 2 and all(wins[1:]), "1.5 ms: plain alone fits; from 2 ms: recon"
 
 
 def test_an_empty_image_scores_null_not_zero_or_inf():
