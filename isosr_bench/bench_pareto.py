@@ -78,7 +78,7 @@ from isosr_render.renderer import MAX_SPP
 from isosr_render.sequence import sequence_cameras
 from isosr_render.shapes import frame_size
 from isosr_render.surfaces import PALETTE, Surfaces
-from isosr_net.budget import (REFERENCE_AO_RAYS, REFERENCE_SPP, BudgetConfig, choose_method, probe_quality,
+from isosr_net.budget import (REFERENCE_AO_RAYS, REFERENCE_SPP, BudgetConfig, choose_method, front_psnr, probe_quality,
                               reference_frames)
 from isosr_net.flow_warp import warp_by_flow
 from isosr_net.methods import RUNNERS, FrameMethod, Networks, make_runner, unavailable_kinds
@@ -150,13 +150,6 @@ def load(name: str, device: str) -> tuple[Volume, float]:
 def finite(x: float) -> float | None:
     """JSON has no NaN: an undefined score is null."""
     return None if math.isnan(x) else x
-
-
-def front_psnr(row: dict) -> float | None:
-    """The PSNR a scene's rows are ranked by (fronts, dominance, the scorecard, the best fixed setting): on the
-    scene's region, the same pixels for every row (``color_psnr_scene``); ``color_psnr`` in rows written before
-    that score was."""
-    return row["color_psnr_scene"] if "color_psnr_scene" in row else row["color_psnr"]
 
 
 def scores(frames: list, references: list, ao_rays: int = 0) -> dict:

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from isosr_render.atomic import atomic_write
 from isosr_net.methods import RUNNERS
-from isosr_net.budget import PRIORS_DIR, CostTable
+from isosr_net.budget import PRIORS_DIR, CostTable, front_psnr
 
 from .common import RESULTS_DIR
 
@@ -206,7 +206,7 @@ def _pareto_scenes(record: dict) -> dict[tuple[str, str], list[dict]]:
 def pareto_markdown(folder: Path, kind: str) -> list[str]:
     """The Pareto study's section: per scene its table, where each method wins (the front, from
     which time on it is the best) and where the learned, filtered and upscaled ones lose (to what)."""
-    from .bench_pareto import dominator, front_psnr, pareto_front
+    from .bench_pareto import dominator, pareto_front
 
     record = _load(folder, "pareto", kind)
     if record is None:
@@ -310,7 +310,7 @@ def pareto_plots(folder: Path, kind: str) -> list[Path]:
     joined, dominated points grey, learned methods as stars."""
     import matplotlib.pyplot as plt
 
-    from .bench_pareto import front_psnr, pareto_front
+    from .bench_pareto import pareto_front
 
     record = _load(folder, "pareto", kind)
     if record is None:
@@ -412,7 +412,7 @@ def _scene_name(volume: str, size: str) -> str:
 def docs_pareto(folder: Path) -> list[str]:
     """The Pareto study's summary: chosen methods per scene, where a learned method is the best that fits,
     the reconstruction against the filters, and the budget policy."""
-    from .bench_pareto import GOAL_TOP_MS, front_psnr, learned_scorecard
+    from .bench_pareto import GOAL_TOP_MS, learned_scorecard
     from isosr_net.budget import AO_MATTERS_DB
 
     record = _load(folder, "pareto", "cuda")
@@ -423,7 +423,8 @@ def docs_pareto(folder: Path) -> list[str]:
              "Every way of making the final frame, timed as a whole path (render, reconstruction, shading; CUDA "
              "events after warm-up, in sequence over an 8-frame orbit) and scored against a reference with 4 rays "
              "per pixel and 512 AO rays (color PSNR on the scene's region: the reference's covered pixels and their "
-             "neighbours, the same for every method; on the covered region in rows measured before it). Re-run one scene with "
+             "neighbours, the same for every method; on the covered region in rows measured before it). "
+             "Re-run one scene with "
              "`isosr bench --pareto --device cuda --volumes ct_pitch --sizes 1080p --out benchmarks/results` (rows merge into the file).", "",
              "Source: `benchmarks/results/pareto_cuda.json`; every row names its device and commit, and scenes "
              "were measured at different commits: compare methods within a row (within one commit), not across "
@@ -694,8 +695,6 @@ def performance_markdown(folder: Path) -> str:
 
 def readme_figures(folder: Path) -> str:
     """The README's one small table of main figures (between FIGURES_BEGIN and FIGURES_END)."""
-    from .bench_pareto import front_psnr
-
     rows = []
     pareto = _load(folder, "pareto", "cuda")
     if pareto is not None:
@@ -706,7 +705,8 @@ def readme_figures(folder: Path) -> str:
             if recon and ao64:
                 rows.append([f"reconstructed frame, 1 AO ray ({_scene_name(volume, size)})",
                              f"{_num(recon['ms'])} ms, {front_psnr(recon):.1f} dB (64 AO rays: {_num(ao64['ms'])} ms, "
-                             f"{front_psnr(ao64):.1f} dB)", f"{recon['device'].replace('NVIDIA ', '').replace(' 80GB HBM3', '')}, "
+                             f"{front_psnr(ao64):.1f} dB)",
+                             f"{recon['device'].replace('NVIDIA ', '').replace(' 80GB HBM3', '')}, "
                              f"{recon['commit']}"])
     for name, size in (("bench_server_1080p", "1080p"),):
         record = _load(folder, name, "cuda")

@@ -9,8 +9,8 @@ A short probe on the scene decides (its cost is ``choice.probe_seconds``):
 1. Quality, at a reduced probe size (a quarter of the frame's rows, ``probe_scale``, and at least
    ``probe_height``: 540 on GPUs, 96 on CPUs; the frame's aspect):
    a high-effort reference per probe frame (4 rays per pixel, 512 AO rays) and every
-   candidate's frames in sequence, scored by color PSNR on the covered region
-   (:func:`isosr_net.metrics.masked_psnr` on :func:`eval_region`). An estimate: classic and
+   candidate's frames in sequence, scored by color PSNR on the scene's region, the same pixels for every
+   candidate (:func:`color_psnr`). An estimate: classic and
    learned upscalers lose more at a small size than at the target size, where a pixel holds less
    detail, and a filter or network sees AO rays that reach further in pixels. At 96 rows the
    probe ranked the a-trous filter against supersampling wrongly at 4K (up to 6.4 dB short of
@@ -68,7 +68,7 @@ from isosr_render.conventions import AO_RADIUS
 from isosr_render.shapes import check_int
 from isosr_render.surfaces import Surfaces
 from isosr_net.methods import RUNNERS, FrameMethod, FrameRunner, Networks, finish_steps, make_runner
-from isosr_net.metrics import eval_region, masked_psnr
+from isosr_net.metrics import masked_psnr, scene_region
 from isosr_net.reconnet import RayLimits
 from isosr_net.reconstructor import RECON_X2_MODEL
 
@@ -223,6 +223,13 @@ def _row_key(row: dict) -> tuple[str, int, int, int]:
     return row["kind"], row["ao_rays"], row["spp"], row["factor"]
 
 
+def front_psnr(row: dict) -> float | None:
+    """The PSNR a Pareto study row is ranked by (its fronts, dominance, scorecard and best fixed setting; the cost
+    table): on the scene's region, the same pixels for every row of a scene (``color_psnr_scene``); ``color_psnr``
+    in rows written before that score was. None: nothing covered."""
+    return row["color_psnr_scene"] if "color_psnr_scene" in row else row["color_psnr"]
+
+
 @dataclass(frozen=True)
 class CostTable:
     """A device class's committed costs, the prior before a probe: per method (:func:`method_key`)
@@ -250,19 +257,19 @@ class CostTable:
 
     @staticmethod
     def from_pareto(rows: list[dict]) -> list[dict]:
-        """A table's rows from Pareto study rows (each with volume, size, kind, counts, ms,
-        color_psnr): per method the medians over the (volume, size) pairs that have a first-hit row,
+        """A table's rows from Pareto study rows (each with volume, size, kind, counts, ms and a
+        :func:`front_psnr`): per method the medians over the (volume, size) pairs that have a first-hit row,
         of each pair's fastest variant (e.g. of a network's precisions)."""
         first_hit = {(r["volume"], r["size"]): r["ms"] for r in rows if _row_key(r) == ("full", 0, 1, 1)}
         fastest: dict[tuple, dict] = {}
         for r in rows:
             at = (*_row_key(r), r["volume"], r["size"])
-            if (r["volume"], r["size"]) in first_hit and math.isfinite(r["color_psnr"]):
+            if (r["volume"], r["size"]) in first_hit and (psnr := front_psnr(r)) is not None and math.isfinite(psnr):
                 if at not in fastest or r["ms"] < fastest[at]["ms"]:
                     fastest[at] = r
         by_method: dict[tuple, list[tuple[float, float]]] = {}
         for (*key, volume, size), r in fastest.items():
-            by_method.setdefault(tuple(key), []).append((r["ms"] / first_hit[volume, size], r["color_psnr"]))
+            by_method.setdefault(tuple(key), []).append((r["ms"] / first_hit[volume, size], front_psnr(r)))
         return [{"kind": k[0], "ao_rays": k[1], "spp": k[2], "factor": k[3],
                  "cost": round(statistics.median(c for c, _ in v), 3),
                  "color_psnr": round(statistics.median(p for _, p in v), 2), "scenes": len(v)}
@@ -355,9 +362,10 @@ def reference_frames_steps(renderer: Renderer, iso: float, size: tuple[int, int]
 
 
 def color_psnr(frame: FrameBuffers, reference: FrameBuffers) -> float:
-    """Color PSNR (dB) of a frame against a reference on the covered region (either mask > 0.5);
-    NaN where neither covers a pixel."""
-    region = eval_region(frame.mask[None, None], reference.mask[None, None])
+    """Color PSNR (dB) of a frame against a reference on the scene's region
+    (:func:`isosr_net.metrics.scene_region`: the same pixels for every candidate, as the Pareto study ranks);
+    NaN where the reference covers no pixel."""
+    region = scene_region(reference.mask[None, None])
     return float(masked_psnr(frame.color.permute(2, 0, 1)[None], reference.color.permute(2, 0, 1)[None], region)[0])
 
 

@@ -376,6 +376,20 @@ def test_the_committed_cost_table_covers_the_gpu_candidates():
     assert table.rows[("full", 64, 4, 1)][0] > table.rows[("full", 8, 1, 1)][0] > 1.0
 
 
+def test_the_cost_table_takes_a_rows_scene_region_score_and_skips_unscored_rows():
+    """Per method the medians over scenes of cost in first-hit frames and of the study's ranking PSNR (front_psnr:
+    the scene's region where a row has it); a row that covers nothing (null) is left out, not a crash."""
+    def row(volume, kind, rays, ms, psnr, scene=None):
+        return {"volume": volume, "size": "1080p", "kind": kind, "ao_rays": rays, "spp": 1, "factor": 1, "ms": ms,
+                "color_psnr": psnr} | ({} if scene is None else {"color_psnr_scene": scene})
+
+    rows = [row("a", "full", 0, 1.0, 20.0, 19.0), row("a", "full", 8, 3.0, 30.0, 29.0), row("b", "full", 0, 2.0, 22.0),
+            row("b", "full", 8, 8.0, 32.0), row("c", "full", 0, 1.0, None, None), row("c", "full", 8, 2.0, None, None)]
+    table = {(r["kind"], r["ao_rays"]): r for r in CostTable.from_pareto(rows)}
+    assert table["full", 8]["cost"] == 3.5 and table["full", 8]["color_psnr"] == 30.5 and table["full", 8]["scenes"] == 2
+    assert table["full", 0]["color_psnr"] == 20.5, "a: its scene score 19; b: written before it, its color_psnr 22"
+
+
 def test_a_probe_cache_that_cannot_be_read_is_probed_anew(lib, tmp_path, caplog):
     cache = tmp_path / "probes.json"
     cache.write_text("{not json")

@@ -8,8 +8,8 @@ import math
 import pytest
 import torch
 
-from isosr_bench.bench_pareto import (budget_ladder, dominator, front_psnr, learned_scorecard, merge, pareto_front,
-                                      scores)
+from isosr_bench.bench_pareto import budget_ladder, dominator, learned_scorecard, merge, pareto_front, scores
+from isosr_net.budget import front_psnr
 from isosr_render import FrameBuffers
 from isosr_net.methods import unavailable_kinds
 
