@@ -124,6 +124,24 @@ def contexts(batch: SequenceBatch, outputs: torch.Tensor, warped: torch.Tensor, 
     return result
 
 
+def weights_config(config):
+    """A model config as its weights see it: a ReconNet's ``blend_beyond`` has none."""
+    return replace(config, blend_beyond=0.0) if isinstance(config, ReconNetConfig) else config
+
+
+def start_configs(config) -> list:
+    """The weights' configs (:func:`weights_config`) a run of model ``config`` may start from (``init``), its own
+    first: a blend ReconNet also from one over the rays, one with gates, a map or a variance blend also from one
+    without (:meth:`Trainer._init_from`)."""
+    config = weights_config(config)
+    if not isinstance(config, ReconNetConfig):
+        return [config]
+    priors = [config.ao_prior] + (["rays"] if config.ao_prior == "blend" else [])
+    return [replace(config, ao_prior=p, geometry_gate=g, blend_map=m, blend_variance=v) for p in priors
+            for g in dict.fromkeys((config.geometry_gate, False)) for m in dict.fromkeys((config.blend_map, False))
+            for v in dict.fromkeys((config.blend_variance, False)) if p == "blend" or not (m or v)]
+
+
 class Trainer:
     """Runs a :class:`TrainConfig`: data, model, optimizers, checkpoints, logs."""
 
@@ -221,16 +239,8 @@ class Trainer:
         without: the same weights, its blend at :data:`~isosr_net.reconnet.BLEND_RAYS_INIT` rays, its gates and map
         at their start; with any ``blend_beyond`` (it has no weights)."""
         model, _ = load_pretrained(folder, self.device)
-        # their weights' configs: blend_beyond has none
-        config, weights = (replace(c, blend_beyond=0.0) if isinstance(c, ReconNetConfig) else c
-                           for c in (self.net.config, model.config))
-        starts = [config]
-        if isinstance(config, ReconNetConfig):
-            priors = {config.ao_prior, "rays"} if config.ao_prior == "blend" else {config.ao_prior}
-            starts = [replace(config, ao_prior=p, geometry_gate=g, blend_map=m, blend_variance=v) for p in priors
-                      for g in {config.geometry_gate, False} for m in {config.blend_map, False}
-                      for v in {config.blend_variance, False} if p == "blend" or not (m or v)]
-        if weights not in starts:
+        config, weights = weights_config(self.net.config), weights_config(model.config)
+        if weights not in start_configs(self.net.config):
             raise ValueError(f"init {folder} holds a model of another config ({model.config}); the run trains "
                              f"{self.net.config}")
         self.net.load_state_dict(model.state_dict(), strict=weights == config)

@@ -8,7 +8,6 @@ import os
 import shutil
 import subprocess
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -21,7 +20,7 @@ from isosr_render.conventions import SAMPLED_AO, SAMPLING
 from isosr_net.losses import PAPER_LOSSES
 from isosr_net.model import Unrolled, build_model, load_pretrained, save_pretrained
 from isosr_net.reconnet import GATE_LOGIT_INIT, ReconNet, ReconNetConfig
-from isosr_net.train import Trainer, TrainConfig
+from isosr_net.train import Trainer, TrainConfig, start_configs, weights_config
 from net_fixtures import (TINY_MODEL, TINY_RECON_MODEL, random_vgg19, tiny_recon_x2_data, tiny_train_config, tiny_train_data,
                           tiny_wide_recon_data)
 
@@ -279,11 +278,9 @@ def test_each_reconstruction_config_fits_its_data_config(train, datagen):
     root = Path(__file__).resolve().parents[1] / "configs"
     config, data = load_config(TrainConfig, root / train), load_config(DatagenConfig, root / datagen)
     model = build_model(config.model).config
-    if config.init:  # a project-relative model folder of this config (a blend model's: over the rays; a gated,
-        start = load_pretrained(root.parent / config.init)[0].config  # mapped or variance one's: without them;
-        assert start.ao_prior in (model.ao_prior, "rays") and replace(  # blend_beyond, no weights: any)
-            start, ao_prior=model.ao_prior, geometry_gate=model.geometry_gate, blend_map=model.blend_map,
-            blend_variance=model.blend_variance, blend_beyond=model.blend_beyond) == model
+    if config.init:  # a project-relative model folder that the trainer starts this model from
+        start = load_pretrained(root.parent / config.init)[0].config
+        assert weights_config(start) in start_configs(model)
     assert model.limits == data.limits and model.upscale == data.upscale and data.recon_inputs
     assert max(data.input_ao_rays) == data.max_ao_rays and max(data.input_spp) == data.max_spp
     run = train.removeprefix("train_").removesuffix(".json")  # scripts/train_recon.sh's RUN
