@@ -386,7 +386,7 @@ def test_the_cost_table_takes_a_rows_scene_region_score_and_skips_unscored_rows(
     rows = [row("a", "full", 0, 1.0, 20.0, 19.0), row("a", "full", 8, 3.0, 30.0, 29.0), row("b", "full", 0, 2.0, 22.0),
             row("b", "full", 8, 8.0, 32.0), row("c", "full", 0, 1.0, None, None), row("c", "full", 8, 2.0, None, None)]
     table = {(r["kind"], r["ao_rays"]): r for r in CostTable.from_pareto(rows)}
-    assert table["full", 8]["cost"] == 3.5 and table["full", 8]["color_psnr"] == 30.5 and table["full", 8]["scenes"] == 2
+    assert (table["full", 8]["cost"], table["full", 8]["color_psnr"], table["full", 8]["scenes"]) == (3.5, 30.5, 2)
     assert table["full", 0]["color_psnr"] == 20.5, "a: its scene score 19; b: written before it, its color_psnr 22"
 
 
