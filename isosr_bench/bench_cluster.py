@@ -50,7 +50,8 @@ from pathlib import Path
 
 import numpy as np
 
-from isosr_bench.bench_server import SIZES, ServerProcess, case_row, device_thread, room_options, server_load
+from isosr_bench.bench_server import (SIZES, ServerProcess, case_row, check_offered, device_thread, room_options,
+                                      server_load)
 from isosr_bench.common import bench_parser, commit, device_name, kept_rows, print_table, write_result
 from isosr_bench.load import LoadSampler, executable, haproxy_backend, titled
 from isosr_bench.sessions import choices_line, run_sessions
@@ -265,6 +266,10 @@ def main(argv: list[str] | None = None) -> None:
     size, seconds = SIZES[size_name], args.seconds or (1.0 if args.smoke else 5.0)
     counts = [int(n) for n in (args.sessions or ("1,4" if args.smoke else "1,16,32")).split(",")]
     volume = "proc:cloud:0@32" if args.smoke and args.volume == parser.get_default("volume") else args.volume
+    try:
+        check_offered(volume)
+    except ValueError as e:
+        parser.error(f"--volume: {e}")
     replicas = [int(n) for n in args.replicas.split(",") if n]
     if not replicas or min(replicas) < 0:
         parser.error(f"--replicas: one or more replica counts of 0 or more (0: the plain server), got {args.replicas!r}")

@@ -58,10 +58,12 @@ from isosr_net.methods import RUNNERS, Networks
 from isosr_net.metrics import masked_psnr
 from isosr_net.reconstructor import RECON_X2_MODEL
 from isosr_render import FrameBuffers, Renderer, open_volume
-from isosr_render.catalog import SHARED_PREFIX
+from isosr_render.catalog import SHARED_PREFIX, shared_volumes_dir
 from isosr_server.auto import AutoPolicy
+from isosr_server.core.config import default_volumes_dir
 from isosr_server.engine import MODEL_NAMES, serving_network
 from isosr_server.views import VIEWS
+from isosr_server.volumes import UnknownVolume, VolumeCatalog
 
 LINKS_BIT_S = {"50mbit": 50e6, "1gbit": 1e9}
 STAGES = ("render", "filter", "network", "shading", "encode")
@@ -106,6 +108,17 @@ def room_options(sessions: int) -> tuple[str, ...]:
     room = str(2 * sessions + 4)
     return ("--max-sessions", room, "--max-sessions-per-client", room, "--max-connections-per-client", room,
             "--max-fps", "1000")
+
+
+def check_offered(volume: str) -> None:
+    """ValueError unless a server started here (:class:`ServerProcess`: the default volumes folder, procedural specs)
+    offers ``volume``: a bench says so at once, not after its servers' start-up."""
+    root = default_volumes_dir()
+    try:
+        VolumeCatalog(root).info(volume)
+    except UnknownVolume as e:
+        where = f"the volumes folder {root}" if root else f"no volumes folder ({shared_volumes_dir()} is absent)"
+        raise ValueError(f"{e}; a server started here reads {where}") from None
 
 
 class ServerProcess(ServeProcess):
@@ -243,6 +256,11 @@ def main(argv: list[str] | None = None) -> None:
     warmup = 1 if smoke else 2
     counts = [int(n) for n in (args.sessions or ("1,2" if smoke else "1,4,16")).split(",")]
     volume = "proc:cloud:0@32" if smoke and args.volume == parser.get_default("volume") else args.volume
+    if not args.url:
+        try:
+            check_offered(volume)
+        except ValueError as e:
+            parser.error(f"--volume: {e}")
     focus_radius = size[1] / 4
     modes = args.modes.split(",") if args.modes else [m for m, _ in CASES]
     cases = [(m, ao) for m, ao in CASES if m in modes]

@@ -179,6 +179,32 @@ def test_cluster_bench_refuses_no_servers_or_a_negative_count(tmp_path, capsys, 
     assert not list(tmp_path.iterdir())
 
 
+def test_the_server_benches_refuse_a_volume_their_servers_would_not_offer_before_starting_one(tmp_path, capsys,
+                                                                                              monkeypatch):
+    """Where a started server would answer 'no volume named ...' to each session (minutes of start-up later), the
+    bench says so at once, naming the folder the server reads; a volume of the folder and a procedural spec pass."""
+    from isosr_bench import bench_server
+    from isosr_render.catalog import ENV_VAR
+
+    (tmp_path / "vols").mkdir()
+    (tmp_path / "vols" / "tiny.npy").write_bytes(b"")  # named by the listing; not opened before a session asks
+    monkeypatch.setenv(ENV_VAR, str(tmp_path / "vols"))
+    monkeypatch.setattr(bench_cluster, "ServerProcess", lambda *a, **k: pytest.fail("a server started"))
+    monkeypatch.setattr(bench_server, "ServerProcess", lambda *a, **k: pytest.fail("a server started"))
+    for bench in (bench_cluster, bench_server):
+        with pytest.raises(SystemExit):
+            bench.main(["--volume", "bonsai", "--out", str(tmp_path / "out")])
+        err = capsys.readouterr().err
+        assert "--volume: no volume named 'bonsai'" in err and f"the volumes folder {tmp_path / 'vols'}" in err
+    bench_server.check_offered("tiny"), bench_server.check_offered("proc:sphere@16")
+    with pytest.raises(ValueError, match="no procedural volume"):
+        bench_server.check_offered("proc:sphere@big")
+    monkeypatch.setenv(ENV_VAR, str(tmp_path / "absent"))
+    with pytest.raises(ValueError, match=r"no volumes folder \(.*absent is absent\)"):
+        bench_server.check_offered("bonsai")
+    assert not (tmp_path / "out").exists()
+
+
 def test_cluster_smoke_writes_every_case_and_a_rerun_replaces_its_server(tmp_path):
     """The plain server's cases on the CPU: a row per case, written as measured; the same run again
     replaces that server's rows instead of adding to them."""
