@@ -13,6 +13,9 @@ Losses
     ``perceptual``   L1 / L2 between VGG-19 features of the shaded prediction and ground truth
                      (the networks are in :mod:`isosr_net.architectures`).
     ``temporal``     masked L2 between the output and the previous output warped to this frame.
+    ``ao_no_worse``  a reconstruction's AO error beyond its input rays' own, per pixel (a hinge, zero
+                     where the output is at least as close to the truth as the rays' mean): what
+                     "never worse than the input" asks of it (:func:`ao_excess_error`).
     ``adversarial``  spatio-temporal conditional GAN (TecoGAN style): the discriminator sees the
                      current frame, the previous frame warped to it and the upsampled low-res
                      input. :meth:`AdversarialLoss.forward` is the generator term;
@@ -50,7 +53,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from isosr_render.conventions import AO, DEPTH, HIGHRES_CHANNELS, LOWRES_CHANNELS, MASK, NORMAL
+from isosr_render.conventions import (AO, DEPTH, HIGHRES_CHANNELS, LOWRES_CHANNELS, MASK, NORMAL, RECON_CHANNELS,
+                                      SAMPLED_AO, SAMPLING)
 from isosr_render.shading import shade_channels_first
 from isosr_render.shapes import check_shape
 from isosr_net.architectures import (IMAGENET_MEAN, IMAGENET_STD, VGG19_LAYERS, SpatioTemporalDiscriminator,
@@ -65,8 +69,12 @@ _LOWRES = len(LOWRES_CHANNELS)
 class LossContext:
     """Everything a loss may look at for one frame; see the module docstring.
 
+    ``recon_inputs``: a reconstruction network's inputs (:data:`RECON_CHANNELS`: the rays' AO and counts), None
+    for an upscaler's.
+
     Shape:
         pred, target, prev_warped, prev_target_warped: (B, 6, H, W). lowres_up: (B, 5, H, W).
+        recon_inputs: (B, 8, H, W).
     """
 
     pred: torch.Tensor
@@ -74,6 +82,7 @@ class LossContext:
     prev_warped: torch.Tensor | None = None
     lowres_up: torch.Tensor | None = None
     prev_target_warped: torch.Tensor | None = None
+    recon_inputs: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         dims = check_shape(self.pred, f"(B, {_HIGHRES}, H, W)", "pred", "LossContext")
@@ -83,6 +92,8 @@ class LossContext:
                 check_shape(x, f"(B, {_HIGHRES}, H, W)", name, "LossContext", dims)
         if self.lowres_up is not None:
             check_shape(self.lowres_up, f"(B, {_LOWRES}, H, W)", "lowres_up", "LossContext", dims)
+        if self.recon_inputs is not None:
+            check_shape(self.recon_inputs, f"(B, {len(RECON_CHANNELS)}, H, W)", "recon_inputs", "LossContext", dims)
 
 
 def _masked_error(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, channels: slice,
@@ -249,6 +260,45 @@ class TemporalLoss(nn.Module):
         return self.weight * masked_l2(ctx.pred, ctx.prev_warped, ctx.target[:, MASK])
 
 
+def ao_excess_error(pred_ao: torch.Tensor, rays_ao: torch.Tensor, target_ao: torch.Tensor,
+                    mask: torch.Tensor) -> torch.Tensor:
+    """Mean over ``mask`` of ``relu(|pred_ao - target_ao| - |rays_ao - target_ao|)``: how much further from the truth
+    the output's AO is than the rays' mean it was given; 0 where it is nowhere further.
+
+    Shape:
+        pred_ao, rays_ao, target_ao, mask: (B, 1, H, W). Returns a scalar.
+    """
+    dims = check_shape(pred_ao, "(B, 1, H, W)", "pred_ao", "ao_excess_error")
+    for name, x in (("rays_ao", rays_ao), ("target_ao", target_ao), ("mask", mask)):
+        check_shape(x, "(B, 1, H, W)", name, "ao_excess_error", dims)
+    excess = F.relu((pred_ao - target_ao).abs() - (rays_ao - target_ao).abs())
+    inside = (mask > 0).to(excess.dtype)
+    return (excess * inside).sum() / (inside.sum() + _EPS)
+
+
+class AONoWorseLoss(nn.Module):
+    """Weighted :func:`ao_excess_error` of a reconstruction's AO over the ground truth's surface pixels that had AO
+    rays (ValueError in a context without a reconstruction's inputs).
+
+    Args:
+        weight: factor on the loss.
+    """
+
+    name = "ao_no_worse"
+
+    def __init__(self, weight: float = 1.0) -> None:
+        super().__init__()
+        self.weight = _check_weight(weight)
+
+    def forward(self, ctx: LossContext) -> torch.Tensor:
+        if ctx.recon_inputs is None:
+            raise ValueError("the ao_no_worse loss compares a reconstruction's AO with its input rays': this run's "
+                             "model has no such inputs (an upscaler's data)")
+        rays = ctx.recon_inputs
+        with_rays = (ctx.target[:, MASK] > 0.5) & (rays[:, SAMPLING][:, :1] > 0)
+        return self.weight * ao_excess_error(ctx.pred[:, AO], rays[:, SAMPLED_AO], ctx.target[:, AO], with_rays)
+
+
 @contextmanager
 def _frozen(module: nn.Module) -> Iterator[None]:
     """Run ops on ``module`` without recording its parameters in the graph."""
@@ -313,6 +363,7 @@ LOSS_TYPES: dict[str, type[nn.Module]] = {
     "perceptual": PerceptualLoss,
     "temporal": TemporalLoss,
     "adversarial": AdversarialLoss,
+    "ao_no_worse": AONoWorseLoss,
 }
 
 

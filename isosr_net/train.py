@@ -21,7 +21,7 @@ import torch.nn.functional as F
 from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
-from isosr_render.conventions import LOWRES_CHANNELS
+from isosr_render.conventions import LOWRES_CHANNELS, RECON_CHANNELS
 from isosr_net.batch import SequenceBatch
 from isosr_net.datagen import SequenceDataset
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
@@ -110,8 +110,9 @@ class TrainConfig:
 
 
 def contexts(batch: SequenceBatch, outputs: torch.Tensor, warped: torch.Tensor, upscale: int) -> list[LossContext]:
-    """The loss context of every frame of a batch of sequences."""
+    """The loss context of every frame of a batch of sequences (a reconstruction's: with its inputs)."""
     lowres, target = batch.lowres, batch.highres
+    recon = upscale == 1 and lowres.shape[2] == len(RECON_CHANNELS)
     result = []
     for t in range(batch.frames):
         flow = batch.flow_at(t)
@@ -120,7 +121,7 @@ def contexts(batch: SequenceBatch, outputs: torch.Tensor, warped: torch.Tensor, 
             pred=outputs[:, t], target=target[:, t], prev_warped=warped[:, t] if t else None,
             lowres_up=F.interpolate(lowres[:, t, :len(LOWRES_CHANNELS)], scale_factor=upscale, mode="bilinear",
                                     align_corners=False),
-            prev_target_warped=prev_target))
+            prev_target_warped=prev_target, recon_inputs=lowres[:, t] if recon else None))
     return result
 
 

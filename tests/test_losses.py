@@ -14,10 +14,12 @@ from isosr_net.architectures import VGG19_LAYERS, SpatioTemporalDiscriminator
 from isosr_net.losses import (
     PAPER_LOSSES,
     AdversarialLoss,
+    AONoWorseLoss,
     ChannelLoss,
     LossContext,
     PerceptualLoss,
     TemporalLoss,
+    ao_excess_error,
     build_losses,
     masked_l1,
     masked_l2,
@@ -170,6 +172,48 @@ def test_loss_context_checks_shapes():
         LossContext(x, x, prev_warped=torch.zeros(1, 6, 4, 5))
     with pytest.raises(ValueError, match="lowres_up"):
         LossContext(x, x, lowres_up=torch.zeros(1, 6, 4, 4))
+
+
+def recon_inputs_for(target: torch.Tensor, rays_ao: torch.Tensor, ao_rays: float = 0.5) -> torch.Tensor:
+    """A reconstruction's (B, 8, H, W) inputs: the target's surface, ``rays_ao`` and the sampling channels."""
+    sampling = torch.full_like(target[:, :2], ao_rays)
+    sampling[:, 1] = 1.0
+    return torch.cat([target[:, :5], rays_ao, sampling], dim=1)
+
+
+def test_ao_excess_error_counts_only_where_the_output_is_further_from_the_truth_than_the_rays():
+    t = torch.tensor([[[[0.5, 0.5, 0.5, 0.5]]]], dtype=torch.float64)
+    rays = torch.tensor([[[[0.6, 0.4, 0.5, 0.9]]]], dtype=torch.float64)
+    pred = torch.tensor([[[[0.55, 0.2, 0.5, 0.0]]]], dtype=torch.float64)
+    mask = torch.tensor([[[[1.0, 1.0, 1.0, 0.0]]]], dtype=torch.float64)
+    # closer (0.05 < 0.1): 0; further (0.3 > 0.1): 0.2; equal: 0; outside the mask: not counted
+    assert ao_excess_error(pred, rays, t, mask).item() == pytest.approx(0.2 / 3)
+    assert ao_excess_error(rays, rays, t, mask).item() == 0.0, "the rays' own mean: never worse than itself"
+    assert ao_excess_error(pred, rays, t, torch.zeros_like(mask)).item() == 0.0, "nothing covered: 0, finite"
+    with pytest.raises(ValueError, match="rays_ao must be"):
+        ao_excess_error(pred, rays[..., :3], t, mask)
+
+
+def test_the_ao_no_worse_loss_reads_the_inputs_rays_and_skips_pixels_without_any():
+    target = frame()
+    rays_ao = (target[:, AO] + 0.05).clamp(0, 1)
+    pred = soft_pred(target)
+    loss = AONoWorseLoss(weight=2.0)
+    with_rays = LossContext(pred, target, recon_inputs=recon_inputs_for(target, rays_ao))
+    surface = target[:, MASK] > 0.5
+    expected = ao_excess_error(pred[:, AO], rays_ao, target[:, AO], surface)
+    assert loss(with_rays).item() == pytest.approx(2.0 * expected.item()) and expected > 0
+    assert loss(LossContext(pred, target, recon_inputs=recon_inputs_for(target, rays_ao, ao_rays=0.0))).item() == 0.0
+    exact = pred.clone()
+    exact[:, AO] = rays_ao
+    assert loss(LossContext(exact, target, recon_inputs=recon_inputs_for(target, rays_ao))).item() == 0.0
+    with pytest.raises(ValueError, match="no such inputs"):
+        loss(LossContext(pred, target))
+    with pytest.raises(ValueError, match="recon_inputs"):
+        LossContext(pred, target, recon_inputs=torch.zeros(2, 7, 8, 8, dtype=pred.dtype))
+    grad_pred = pred.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(
+        lambda p: loss(LossContext(p, target, recon_inputs=recon_inputs_for(target, rays_ao))), (grad_pred,))
 
 
 # ----------------------------------------------------------------------------- perceptual

@@ -273,7 +273,8 @@ def test_the_shipped_configs_load():
                                             ("train_recon_shipped_gates.json", "datagen_recon_shipped_gates.json"),
                                             ("train_recon_map.json", "datagen_recon_map.json"),
                                             ("train_recon_map_4k.json", "datagen_recon_4k.json"),
-                                            ("train_recon_variance_4k.json", "datagen_recon_4k.json")])
+                                            ("train_recon_variance_4k.json", "datagen_recon_4k.json"),
+                                            ("train_recon_no_worse_4k.json", "datagen_recon_4k.json")])
 def test_each_reconstruction_config_fits_its_data_config(train, datagen):
     root = Path(__file__).resolve().parents[1] / "configs"
     config, data = load_config(TrainConfig, root / train), load_config(DatagenConfig, root / datagen)
@@ -307,6 +308,24 @@ def test_a_reconstruction_model_over_the_rays_trains_with_the_temporal_loss_and_
     with pytest.raises(ValueError, match=r"scales its sampling channels by RayLimits\(max_ao_rays=16, max_spp=4\), "
                                          r"the model by RayLimits\(max_ao_rays=8"):
         trainer(wide, tmp_path / "other", model=dict(TINY_RECON_MODEL))
+
+
+def test_a_reconstruction_trains_under_the_ao_no_worse_loss_and_an_upscaler_is_told_it_cannot(
+        data, tmp_path, tmp_path_factory):
+    """The trainer gives a reconstruction's loss contexts its inputs (the rays' AO and counts), so the hinge on AO
+    error beyond the rays' own trains; an upscaler's run is told at its first step that the loss needs them."""
+    wide = tiny_wide_recon_data(tmp_path_factory)
+    losses = [{"type": "channel", "channel": "color", "kind": "l1"}, {"type": "ao_no_worse", "weight": 1.0}]
+    t = trainer(wide, tmp_path / "recon", steps=2, model={**TINY_RECON_MODEL, "ao_prior": "rays", "max_ao_rays": 16},
+                losses=losses)
+    batch = next(t._batches(t.train_set, shuffle=True, epoch=0))
+    before = [p.detach().clone() for p in t.net.parameters()]
+    logs = t.train_step(batch)
+    assert math.isfinite(logs["ao_no_worse"]) and logs["ao_no_worse"] >= 0
+    assert any(not torch.equal(a, b) for a, b in zip(before, t.net.parameters()))
+    upscaler = trainer(data, tmp_path / "upscale", steps=2, losses=losses)
+    with pytest.raises(ValueError, match="ao_no_worse loss compares a reconstruction's AO"):
+        upscaler.train_step(next(upscaler._batches(upscaler.train_set, shuffle=True, epoch=0)))
 
 
 def saved_wide_model(folder: Path, **config) -> tuple[dict, ReconNet]:
