@@ -104,7 +104,11 @@ def _masked_error(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, 
     c = dims["C"]
     if len(range(c)[channels]) == 0:
         raise ValueError(f"{name}: channels {channels} select nothing of {c} channels")
-    per_pixel = error(pred[:, channels] - target[:, channels]).mean(dim=1, keepdim=True)
+    return _masked_mean(error(pred[:, channels] - target[:, channels]).mean(dim=1, keepdim=True), mask)
+
+
+def _masked_mean(per_pixel: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean of (B, 1, H, W) ``per_pixel`` where ``mask`` > 0; 0 (with a finite gradient) where it is empty."""
     inside = (mask > 0).to(per_pixel.dtype)
     return (per_pixel * inside).sum() / (inside.sum() + _EPS)
 
@@ -271,9 +275,7 @@ def ao_excess_error(pred_ao: torch.Tensor, rays_ao: torch.Tensor, target_ao: tor
     dims = check_shape(pred_ao, "(B, 1, H, W)", "pred_ao", "ao_excess_error")
     for name, x in (("rays_ao", rays_ao), ("target_ao", target_ao), ("mask", mask)):
         check_shape(x, "(B, 1, H, W)", name, "ao_excess_error", dims)
-    excess = F.relu((pred_ao - target_ao).abs() - (rays_ao - target_ao).abs())
-    inside = (mask > 0).to(excess.dtype)
-    return (excess * inside).sum() / (inside.sum() + _EPS)
+    return _masked_mean(F.relu((pred_ao - target_ao).abs() - (rays_ao - target_ao).abs()), mask)
 
 
 class AONoWorseLoss(nn.Module):
