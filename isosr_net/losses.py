@@ -295,7 +295,7 @@ class AONoWorseLoss(nn.Module):
     def forward(self, ctx: LossContext) -> torch.Tensor:
         if ctx.recon_inputs is None:
             raise ValueError("the ao_no_worse loss compares a reconstruction's AO with its input rays': this run's "
-                             "model has no such inputs (an upscaler's data)")
+                             "model has none at its output's resolution (an upscaler's, or the x2 reconstruction's)")
         rays = ctx.recon_inputs
         with_rays = (ctx.target[:, MASK] > 0.5) & (rays[:, SAMPLING][:, :1] > 0)
         return self.weight * ao_excess_error(ctx.pred[:, AO], rays[:, SAMPLED_AO], ctx.target[:, AO], with_rays)

@@ -110,7 +110,7 @@ class TrainConfig:
 
 
 def contexts(batch: SequenceBatch, outputs: torch.Tensor, warped: torch.Tensor, upscale: int) -> list[LossContext]:
-    """The loss context of every frame of a batch of sequences (a reconstruction's: with its inputs)."""
+    """The loss context of every frame of a batch of sequences (an x1 reconstruction's: with its inputs)."""
     lowres, target = batch.lowres, batch.highres
     recon = upscale == 1 and lowres.shape[2] == len(RECON_CHANNELS)
     result = []
