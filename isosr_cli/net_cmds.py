@@ -87,7 +87,8 @@ def run_train(args: argparse.Namespace) -> int:
         config = dataclasses.replace(config, model={**config.model, "upscale": args.upscale})
     trainer = Trainer(config)
     metrics = trainer.run()
-    print(json.dumps({"step_metrics": metrics, "timing": trainer.timing}, indent=1))
+    best = {"step": trainer.best_step, "color_psnr": trainer.best}
+    print(json.dumps({"step_metrics": metrics, "best": best, "timing": trainer.timing}, indent=1))
     return 0
 
 

@@ -188,8 +188,7 @@ class Trainer:
         if isinstance(self.net, ReconNet) and self.train_set.limits != self.net.config.limits:
             raise ValueError(f"the data in {config.data} scales its sampling channels by {self.train_set.limits}, "
                              f"the model by {self.net.config.limits}: give both the same max_ao_rays and max_spp")
-        self.step = 0
-        self.best = -math.inf
+        self.step, self.best, self.best_step = 0, -math.inf, None
         self._resume()
 
     def _device(self) -> torch.device:
@@ -221,7 +220,7 @@ class Trainer:
             self.d_optimizer.load_state_dict(state["d_optimizer"])
             for m, sd in zip(self.adversarial, state["discriminators"]):
                 m.load_state_dict(sd)
-        self.step, self.best = state["step"], state["best"]
+        self.step, self.best, self.best_step = state["step"], state["best"], state.get("best_step")
         if self.rank == 0:
             print(f"resuming from {checkpoint.folder} at step {self.step}")
 
@@ -332,7 +331,7 @@ class Trainer:
             for k, v in metrics.items():
                 writer.add_scalar(f"val/{k}", v, self.step)
         if metrics.get("color_psnr", -math.inf) > self.best:
-            self.best = metrics["color_psnr"]
+            self.best, self.best_step = metrics["color_psnr"], self.step
             self.save("best", metrics)
         if self.rank == 0:
             tqdm.write(f"step {self.step}: " + ", ".join(f"{k} {v:.4f}" for k, v in metrics.items()))
@@ -343,7 +342,8 @@ class Trainer:
             return
         state = None
         if name == "last":
-            state = {"optimizer": self.optimizer.state_dict(), "step": self.step, "best": self.best}
+            state = {"optimizer": self.optimizer.state_dict(), "step": self.step, "best": self.best,
+                     "best_step": self.best_step}
             if self.d_optimizer is not None:
                 state["d_optimizer"] = self.d_optimizer.state_dict()
                 state["discriminators"] = [m.state_dict() for m in self.adversarial]
@@ -387,6 +387,9 @@ class Trainer:
             self._validated(metrics, writer)
             self.save("last", metrics)
         bar.close()
+        if self.rank == 0 and self.config.init and self.best_step == 0 and self.step > 0:
+            tqdm.write(f"best/ is the starting model ({self.config.init}): no step beat its validation color PSNR "
+                       f"{self.best:.2f} dB; last/ holds step {self.step}'s weights")
         if writer:
             writer.close()
         if self.distributed:  # every process past rank 0's saving; DDP's reducer lets go of the group

@@ -106,8 +106,10 @@ def test_train_prints_the_metrics(tmp_path, tmp_path_factory, capsys):
     path = write_json(tmp_path / "train.json", tiny_train_config(data, tmp_path / "run", steps=1))
     assert main(["train", str(path)]) == 0
     out = capsys.readouterr().out
-    metrics = json.loads(out[out.index("{"):])["step_metrics"]
-    assert {"loss", "color_psnr", "mask_iou"} <= set(metrics)
+    printed = json.loads(out[out.index("{"):])
+    assert {"loss", "color_psnr", "mask_iou"} <= set(printed["step_metrics"])
+    best = json.loads((tmp_path / "run" / "best" / "config.json").read_text())
+    assert printed["best"] == {"step": best["step"], "color_psnr": best["validation"]["color_psnr"]}
 
 
 def test_eval_prints_a_table_and_writes_json(cli_run, tmp_path_factory, tmp_path, capsys):

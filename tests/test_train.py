@@ -146,6 +146,17 @@ def test_init_fine_tunes_a_model_folder_from_its_validated_start(run3, data, tmp
     assert trainer(data, out, steps=2, init=str(run3[0] / "best")).step == 1
 
 
+def test_a_fine_tune_that_never_beats_its_start_says_best_is_the_start(run3, data, tmp_path, capsys):
+    out = tmp_path / "tune"
+    tune = trainer(data, out, steps=2, init=str(run3[0] / "best"), lr=0.0)  # no step can beat the start
+    tune.run(progress=False)
+    assert tune.best_step == 0 and "best/ is the starting model" in capsys.readouterr().out
+    assert trainer(data, out, steps=3, init=str(run3[0] / "best")).best_step == 0  # resumed with last/'s state
+    trained = trainer(data, tmp_path / "trained", steps=2, init=str(run3[0] / "best"))
+    trained.run(progress=False)
+    assert ("best/ is the starting model" in capsys.readouterr().out) == (trained.best_step == 0)
+
+
 def test_init_of_another_model_config_is_refused(run3, data, tmp_path):
     with pytest.raises(ValueError, match="init .* holds a model of another config"):
         trainer(data, tmp_path / "tune", init=str(run3[0] / "best"), model={**TINY_MODEL, "channels": 4})
