@@ -10,7 +10,8 @@ and size through the kind's ``make_batch``; a frame that runs in slices goes alo
 :meth:`Engine.call`; everything named ``*_sync`` runs only on that thread. On GPUs that thread issues its
 work on a CUDA stream of its own (:attr:`Engine.stream`): the encoder threads read a frame's colors once its
 event has passed (:class:`ImageCodes`), never waiting for work the device thread issued after it (nvJPEG
-synchronizes the legacy default stream before each image, which would make it wait for the next batch). The
+synchronizes the legacy default stream before each image, which would make it wait for the next batch); a video
+frame's I420 planes are converted and copied to the host on that stream too, so video encoders make no device call. The
 device thread does not wait for the device either: a batch's input checks are read there too
 (:attr:`~isosr_net.methods.FrameResult.checks`), so it goes on with the next batch while the GPU runs this one.
 
@@ -53,10 +54,11 @@ from isosr_server.auto import AutoPolicy, ProbeCache
 from isosr_server.core.config import Settings
 from isosr_server.codecs.buffers import pack_view_buffers
 from isosr_server.codecs.buffers_device import view_buffer_codes
-from isosr_server.codecs import video
+from isosr_server.codecs import video as video_codecs
 from isosr_server.encoding import CodedImage, device_jpeg, encode_image, encode_jpegs, encoder_name
 from isosr_server.protocol import (IMAGE_ENCODINGS, AutoChoice, FocusMsg, ModeInfo, PickedMsg, PickMsg, ProtocolError,
                                    UpscaleRequest, ViewBuffers, ViewSettings, VolumeMemory)
+from isosr_server.video import device_i420
 from isosr_server.views import FrameJob, FramePlan, SessionFrames, ViewContext, ViewFrame, mode_infos
 
 log = logging.getLogger("isosr.server")
@@ -121,8 +123,9 @@ class EncodedFrame:
 @dataclass(frozen=True)
 class AskedFrame:
     """A view frame asked for and not yet made (:meth:`Engine._batched`): the session's frames, its
-    renderer and job, the future its result goes to, its deadline, and the quality it is coded at as a
-    JPEG, together with its batch mates' where the device encodes them (None: its session codes it)."""
+    renderer and job, the future its result goes to, its deadline, the quality it is coded at as a
+    JPEG, together with its batch mates' where the device encodes them (None: its session codes it), and
+    the video encoding whose planes the device makes for it (:meth:`Engine.codes_sync`; None: not video)."""
 
     frames: SessionFrames
     renderer: Renderer
@@ -130,21 +133,25 @@ class AskedFrame:
     future: asyncio.Future
     deadline: float
     jpeg: int | None
+    video: str | None
 
 
 @dataclass(frozen=True)
 class ImageCodes:
     """A made frame's quantized colors and, on a GPU, the event on the device thread's stream after which
     they hold them (None on CPUs), with the frame's checks left to read then (:meth:`FrameResult.checked`):
-    a thread reads them through :meth:`wait`.
+    a thread reads them through :meth:`wait`. A GPU's video frame also has its I420 planes at the encoder's
+    coded size, converted on the device and copied to the host before the same event (None otherwise).
 
     Shape:
         rgb: (H, W, 3) uint8.
+        i420: (coded height * 3 // 2, coded width) uint8, in pinned host memory.
     """
 
     rgb: torch.Tensor
     ready: torch.cuda.Event | None
     checked: Callable[[], None]
+    i420: torch.Tensor | None = None
 
     def wait(self) -> torch.Tensor:
         """The colors, once the device has made them (blocks this thread until then, not longer).
@@ -265,7 +272,7 @@ class Engine:
             job = FrameJob(ViewSettings(mode=mode, width=8 * factor, height=8 * factor), orbit(30, 20, 1.8), 0.5,
                            FocusMsg(), 0, False, 1)
             pack_codes(self.codes_sync(finish_steps(frames.steps(renderer, job))),
-                       lambda rgb: CodedImage(encode_image(rgb, "jpeg", 80), "jpeg"))
+                       lambda rgb, _: CodedImage(encode_image(rgb, "jpeg", 80), "jpeg"))
 
     @property
     def upscale_factor(self) -> int:
@@ -281,7 +288,7 @@ class Engine:
 
     def encodings(self) -> list[str]:
         """The encodings view sessions can have now: the images, and the video codecs PyAV has."""
-        return list(IMAGE_ENCODINGS + video.available())
+        return list(IMAGE_ENCODINGS + video_codecs.available())
 
     @property
     def recon_limits(self) -> RayLimits:
@@ -390,14 +397,15 @@ class Engine:
         return self._renderers[name]
 
     async def view_frame(self, frames: SessionFrames, renderer: Renderer, job: FrameJob,
-                         code: Callable[[torch.Tensor], CodedImage], video_frame: bool = False,
+                         code: Callable[[torch.Tensor, torch.Tensor | None], CodedImage], video: str | None = None,
                          deadline: float | None = None, jpeg: int | None = None
                          ) -> Callable[[], Awaitable[EncodedFrame]]:
         """One view frame, made in slices of about ``slice_ms`` (:meth:`SessionFrames.steps`), each
         its own job on the device thread, so that other sessions' frames interleave with a heavy one;
         its codes made there too (:meth:`codes_sync`). Returns once the device is done with it: what
         it returns encodes it on an encoder thread (:func:`pack_codes`; ``code`` codes a shaded
-        frame's colors; ``video_frame``: on a video encoder thread), while the device thread goes
+        frame's colors and, on a GPU, its ``video`` planes; ``video``: the frame's video encoding, on a video
+        encoder thread), while the device thread goes
         on with the next frame, this session's included (:func:`isosr_server.sessions.run_frames`).
         ``deadline`` (``time.monotonic()``; default: now) orders the batches (:meth:`_batch_sync`).
         ``jpeg``: the frame is coded as a JPEG of this quality, which lets a batch's JPEGs be coded
@@ -407,13 +415,13 @@ class Engine:
         self._idle.clear()
         try:
             due = time.monotonic() if deadline is None else deadline
-            made, codes, batch, thread_ms = await self._batched(frames, renderer, job, due, jpeg)
+            made, codes, batch, thread_ms = await self._batched(frames, renderer, job, due, jpeg, video)
         finally:
             self._framing -= 1
             if not self._framing:
                 self._idle.set()
         self.start_probes()
-        pool = self._video if video_frame else self._encoder
+        pool = self._video if video else self._encoder
         memory = VolumeMemory(**renderer.memory().to_json())
 
         async def encode() -> EncodedFrame:
@@ -430,7 +438,7 @@ class Engine:
         return encode
 
     async def _batched(self, frames: SessionFrames, renderer: Renderer, job: FrameJob,
-                       deadline: float, jpeg: int | None) -> tuple[ViewFrame, object, int, float]:
+                       deadline: float, jpeg: int | None, video: str | None) -> tuple[ViewFrame, object, int, float]:
         """A view frame, its codes, the frames made together with it (itself included) and what it cost the
         device thread (ms; its share of its batch's wall time), made in the next batch (:meth:`_batch_sync`):
         the frames of every session that asked meanwhile, one device-thread job for them all. A frame that
@@ -439,7 +447,7 @@ class Engine:
         loop = asyncio.get_running_loop()
         future = loop.create_future()
         with self._asked:
-            self._pending.append(AskedFrame(frames, renderer, job, future, deadline, jpeg))
+            self._pending.append(AskedFrame(frames, renderer, job, future, deadline, jpeg, video))
             start_batch, self._batch_queued = not self._batch_queued, True
             self._asked.notify()
         if start_batch:
@@ -447,7 +455,7 @@ class Engine:
         out = await future
         if isinstance(out, Generator):
             made = await self.run_steps(out)
-            return made, await self.call(self.codes_sync, made), 1, sum(made.result.times.values())
+            return made, await self.call(self.codes_sync, made, video), 1, sum(made.result.times.values())
         return out
 
     def _batch_sync(self, loop: asyncio.AbstractEventLoop) -> None:
@@ -485,7 +493,7 @@ class Engine:
                     if isinstance(result, Exception):
                         raise result
                     frame = asked.frames.made(plan, result)
-                    made.append((asked, frame, self.codes_sync(frame)))
+                    made.append((asked, frame, self.codes_sync(frame, asked.video)))
                 except Exception as e:  # noqa: BLE001 - as above
                     _resolve(loop, asked.future, error=e)
             thread_ms = 1e3 * (time.perf_counter() - began) / len(group)  # the clock auto's probes time by
@@ -527,17 +535,22 @@ class Engine:
                 codes[i] = future
         return codes
 
-    def codes_sync(self, made: ViewFrame) -> ImageCodes | tuple:
-        """A made frame's codes: its color quantized to uint8 on the device (the image to encode), or
-        the ``buffers`` mode's low-res codes on the host (:func:`view_buffer_codes`)."""
+    def codes_sync(self, made: ViewFrame, video: str | None = None) -> ImageCodes | tuple:
+        """A made frame's codes: its color quantized to uint8 on the device (the image to encode), with a
+        GPU's ``video`` frame's I420 planes on the host (the video encoder thread then makes no device call,
+        which would wait for the device thread's later work), or the ``buffers`` mode's low-res codes on the
+        host (:func:`view_buffer_codes`)."""
         self._on_thread()
         if made.color is not None:
             rgb = quantize(made.color)
-            ready = None
+            ready = i420 = None
             if rgb.is_cuda:
+                if video is not None:
+                    coded = video_codecs.coded_size(video, rgb.shape[1], rgb.shape[0])
+                    i420 = device_i420(rgb, *coded).to("cpu", non_blocking=True)  # pinned; done at the event
                 ready = torch.cuda.Event(blocking=True)  # its waiters sleep, not spin
                 ready.record()
-            return ImageCodes(rgb, ready, made.result.checked)
+            return ImageCodes(rgb, ready, made.result.checked, i420)
         made.result.checked()  # the host reads the buffers now (view_buffer_codes): their checks too
         b = made.result.buffers
         return view_buffer_codes(FrameBuffers(mask=b.mask, normal=b.normal, depth=b.depth,
@@ -634,12 +647,13 @@ def _resolve(loop: asyncio.AbstractEventLoop, future: asyncio.Future, result: ob
     loop.call_soon_threadsafe(settle)
 
 
-def pack_codes(codes: ImageCodes | tuple, code: Callable[[torch.Tensor], CodedImage]
+def pack_codes(codes: ImageCodes | tuple, code: Callable[[torch.Tensor, torch.Tensor | None], CodedImage]
                ) -> tuple[CodedImage | None, ViewBuffers | None]:
-    """``(code(colors), None)`` of quantized colors, or ``(None, buffers)`` of the buffers codes (encoder thread)."""
+    """``(code(colors, video planes), None)`` of quantized colors, or ``(None, buffers)`` of the buffers codes
+    (encoder thread)."""
     if isinstance(codes, tuple):
         return None, pack_view_buffers(*codes)
-    return code(codes.wait()), None
+    return code(codes.wait(), codes.i420), None
 
 
 def _advance(steps: Generator) -> tuple[bool, object, float]:

@@ -171,16 +171,18 @@ class SessionCoder:
         self._sizes: deque[int] = deque(maxlen=RECENT_FRAMES)
         self._after_still = False
 
-    def code(self, rgb: torch.Tensor, plan: CodePlan) -> CodedImage:
-        """One frame's bytes as ``plan`` says (a jpeg frame with a notice where video fails).
+    def code(self, rgb: torch.Tensor, plan: CodePlan, i420: torch.Tensor | None = None) -> CodedImage:
+        """One frame's bytes as ``plan`` says (a jpeg frame with a notice where video fails); a video frame
+        from ``i420`` where given (:func:`device_i420` of ``rgb`` at the encoder's coded size, on the host).
 
         Shape:
             rgb: (H, W, 3) uint8, on any device.
+            i420: (coded height * 3 // 2, coded width) uint8, on the host.
         """
         with self._lock:
-            return self._code(rgb, plan)
+            return self._code(rgb, plan, i420)
 
-    def _code(self, rgb: torch.Tensor, plan: CodePlan) -> CodedImage:
+    def _code(self, rgb: torch.Tensor, plan: CodePlan, i420: torch.Tensor | None) -> CodedImage:
         if plan.refined and plan.encoding in VIDEO_ENCODINGS:
             self._after_still = True
             return CodedImage(encode_image(rgb, "png", plan.quality), "png")
@@ -191,7 +193,7 @@ class SessionCoder:
         except VideoUnavailable as e:
             self._close()
             return CodedImage(encode_image(rgb, "jpeg", plan.quality), "jpeg", notice=f"{e}; sending jpeg")
-        data, key = encode_frame(encoder, rgb, plan.timestamp_us, plan.keyframe or self._after_still)
+        data, key = encode_frame(encoder, rgb, plan.timestamp_us, plan.keyframe or self._after_still, i420)
         self._after_still = False
         self._sizes.append(len(data))
         return CodedImage(data, plan.encoding, key, encoder.codec, encoder.bitrate_kbps)
@@ -259,15 +261,19 @@ def _bt709_on(device: torch.device) -> torch.Tensor:
     return BT709_LIMITED.to(device)
 
 
-def encode_frame(encoder: VideoEncoder, rgb: torch.Tensor, timestamp_us: int, keyframe: bool = False
-                 ) -> tuple[bytes, bool]:
-    """:meth:`VideoEncoder.encode` of a frame where it is: a CUDA frame converted to I420 there
+def encode_frame(encoder: VideoEncoder, rgb: torch.Tensor, timestamp_us: int, keyframe: bool = False,
+                 i420: torch.Tensor | None = None) -> tuple[bytes, bool]:
+    """:meth:`VideoEncoder.encode` of a frame where it is: its ``i420`` planes where given (made on the device
+    thread: :meth:`isosr_server.engine.Engine.codes_sync`), a CUDA frame converted to I420 there
     (:func:`device_i420`: half the bytes to copy, no conversion on the host), a host frame by FFmpeg's
     swscale (its SIMD conversion took 5 ms of a core a 1080p frame, torch's 27).
 
     Shape:
         rgb: (H, W, 3) uint8, the encoder's size, on any device.
+        i420: (coded height * 3 // 2, coded width) uint8, on the host.
     """
+    if i420 is not None:
+        return encoder.encode_i420(i420.numpy(), timestamp_us, keyframe)
     if rgb.is_cuda:
         return encoder.encode_i420(device_i420(rgb, *encoder.coded_size).cpu().numpy(), timestamp_us, keyframe)
     return encoder.encode(rgb.cpu().numpy(), timestamp_us, keyframe)

@@ -303,7 +303,7 @@ def test_the_service_tells_auto_what_each_of_its_frames_cost(srv, monkeypatch):
     engine = srv.app.state.engine
     policy, told, codes_sync = engine.auto, [], engine.codes_sync
     monkeypatch.setattr(policy, "served", lambda *args: told.append(args))
-    monkeypatch.setattr(engine, "codes_sync", lambda made: (time.sleep(0.03), codes_sync(made))[1])
+    monkeypatch.setattr(engine, "codes_sync", lambda made, video=None: (time.sleep(0.03), codes_sync(made, video))[1])
     width = W + 32  # a size no other test's choice is cached for
     with session(srv, width=width, height=H) as (ws, _):
         frames = [frame(ws)] + [(send(ws, cam(30 + i, seq=i)), frame(ws))[1] for i in (1, 2)]

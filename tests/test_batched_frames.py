@@ -26,6 +26,8 @@ from isosr_server import engine as engine_module
 from isosr_server import protocol as P
 from isosr_server.encoding import CodedImage, device_jpeg, encode_image
 from isosr_server.engine import Engine, ImageCodes
+from isosr_server.codecs.video import coded_size
+from isosr_server.video import device_i420
 from isosr_server.views import VIEWS, FrameJob
 
 SESSIONS = 3
@@ -69,11 +71,11 @@ def differences(got: list[list], expected: list[list]) -> list[list]:
              for g, e in zip(gs, es)] for gs, es in zip(got, expected)]
 
 
-def png(rgb) -> CodedImage:
+def png(rgb, i420=None) -> CodedImage:
     return CodedImage(encode_image(rgb, "png", 90), "png")
 
 
-def jpeg(rgb) -> CodedImage:
+def jpeg(rgb, i420=None) -> CodedImage:
     return CodedImage(encode_image(rgb, "jpeg", JPEG_QUALITY), "jpeg")
 
 
@@ -355,6 +357,26 @@ def test_the_device_thread_works_on_a_cuda_stream_of_its_own(engine):
     (an encoder would otherwise wait for every batch the device thread issued after its frame's)."""
     current = asyncio.run(engine.call(lambda: torch.cuda.current_stream(engine.device)))
     assert current == engine.stream != torch.cuda.default_stream(engine.device)
+
+
+@pytest.mark.parametrize("width, height", [(W, H), (W - 1, H - 1)])
+def test_a_video_frame_s_planes_are_made_where_its_colors_are(engine, width, height):
+    """On a GPU the device thread converts a video frame to its encoder's I420 planes (odd sides padded to the
+    coded size) and copies them to pinned host memory before the frame's event, so the video encoder thread makes
+    no device call; on a CPU the encoder converts the colors itself (FFmpeg's swscale) and gets no planes."""
+    s, given = Sessions(engine, [view_settings(engine, "full", width, height)]), []
+
+    async def one() -> None:
+        encode = await engine.view_frame(s.frames[0], s.renderer, s.job(0, 0),
+                                         lambda rgb, i420: given.append((rgb, i420)) or png(rgb), video="h264")
+        await encode()
+    asyncio.run(one())
+    rgb, i420 = given[0]
+    if not rgb.is_cuda:
+        assert i420 is None
+        return
+    assert i420.device.type == "cpu" and i420.is_pinned()
+    assert torch.equal(i420, device_i420(rgb, *coded_size("h264", width, height)).cpu())
 
 
 def test_a_batch_s_jpegs_are_released_one_by_one(monkeypatch):

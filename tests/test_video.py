@@ -335,6 +335,18 @@ def test_an_encoder_codes_planes_as_it_codes_the_frame(lib, size):
         enc["i420"].encode_i420(planes, 4)
 
 
+def test_a_session_codes_the_planes_it_is_given(lib):
+    """Given a frame's I420 planes (made on the device thread), a session codes those, not its colors."""
+    width, height = 95, 63
+    coder, dec = SessionCoder(2), video.VideoDecoder("h264")
+    for i in range(3):
+        shown, other = (lossless(lib, orbit(30 + 40 * k + 3 * i, 20, 1.8), width, height) for k in range(2))
+        planes = device_i420(torch.from_numpy(shown), *video.coded_size("h264", width, height))
+        coded = coder.code(torch.from_numpy(other), CodePlan("h264", 85, 4000, 30.0, timestamp_us=i + 1), planes)
+        decoded = dec.decode(coded.data, width, height)
+        assert psnr(decoded, shown) >= MIN_PSNR["h264"] > psnr(decoded, other), i
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (run on the GPU machine)")
 def test_a_session_codes_a_gpu_frame_from_planes_made_on_the_gpu(lib):
     """A session's video frame on a CUDA device is converted there (device_i420) and decodes as its host copy

@@ -82,8 +82,9 @@ class ViewLink:
         plan, shown = job.plan, self.shown
         await shown.show(job.frame.settings.t)
         frame = replace(shown.job(job.frame), field=shown.field)
-        return await self.engine.view_frame(self.frames, shown.renderer, frame, lambda rgb: self.coder.code(rgb, plan),
-                                            plan.encoding in VIDEO_ENCODINGS and not plan.refined,
+        video = plan.encoding if plan.encoding in VIDEO_ENCODINGS and not plan.refined else None
+        return await self.engine.view_frame(self.frames, shown.renderer, frame,
+                                            lambda rgb, i420: self.coder.code(rgb, plan, i420), video,
                                             deadline=time.monotonic() + self.session.interval,
                                             jpeg=plan.quality if plan.encoding == "jpeg" else None)
 
