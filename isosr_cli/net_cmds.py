@@ -87,7 +87,7 @@ def run_train(args: argparse.Namespace) -> int:
         config = dataclasses.replace(config, model={**config.model, "upscale": args.upscale})
     trainer = Trainer(config)
     metrics = trainer.run()
-    best = {"step": trainer.best_step, "color_psnr": trainer.best}
+    best = {"step": trainer.best_step, config.select: trainer.best_score}
     print(json.dumps({"step_metrics": metrics, "best": best, "timing": trainer.timing}, indent=1))
     return 0
 

@@ -37,6 +37,10 @@ COMPILE_MODES = ("", "default", "max-autotune-no-cudagraphs")
 WARMUP_STEPS = 3  # a run's first steps, timed apart: a compiled step compiles (and recompiles) there
 
 
+# The validation scores a run's best/ may be picked by, and the sign that makes each "higher is better".
+SELECTS = {"color_psnr": 1.0, "loss": -1.0}
+
+
 @dataclass
 class TrainConfig:
     """A training run. Lengths are optimizer steps; an epoch is one pass over the training crops.
@@ -67,6 +71,8 @@ class TrainConfig:
             ``"default"`` or ``"max-autotune-no-cudagraphs"``; "" runs them eagerly. A step of the
             recurrent network, its losses and shadings is hundreds of small kernels, whose launches
             bound it on a GPU; compiled, they fuse (the first steps compile, minutes on a GPU).
+        select: the validation score that picks ``best/``: ``"color_psnr"`` (the highest) or ``"loss"`` (the
+            lowest total of ``losses``: a fine-tune whose losses ask for more than color, e.g. ``ao_no_worse``).
     """
 
     data: str
@@ -87,12 +93,15 @@ class TrainConfig:
     init: str = ""
     trainable: tuple[str, ...] = ()
     compile: str = ""
+    select: str = "color_psnr"
 
     def __post_init__(self):
         if self.compile not in COMPILE_MODES:
             raise ValueError(f"compile must be one of {COMPILE_MODES}, got {self.compile!r}")
         if self.lr_schedule not in ("constant", "cosine"):
             raise ValueError(f"lr_schedule must be 'constant' or 'cosine', got {self.lr_schedule!r}")
+        if self.select not in SELECTS:
+            raise ValueError(f"select must be one of {sorted(SELECTS)}, got {self.select!r}")
         if self.batch_size < 1:
             raise ValueError(f"batch_size must be at least 1, got {self.batch_size}")
         if isinstance(self.trainable, str) or not all(isinstance(name, str) for name in self.trainable):
@@ -221,6 +230,8 @@ class Trainer:
             for m, sd in zip(self.adversarial, state["discriminators"]):
                 m.load_state_dict(sd)
         self.step, self.best, self.best_step = state["step"], state["best"], state.get("best_step")
+        if state.get("select", "color_psnr") != self.config.select:  # best/ was picked by another score
+            self.best, self.best_step = -math.inf, None
         if self.rank == 0:
             print(f"resuming from {checkpoint.folder} at step {self.step}")
 
@@ -326,15 +337,22 @@ class Trainer:
         return {k: float(v / totals[0]) for k, v in zip(names, totals[1:])}
 
     def _validated(self, metrics: dict, writer) -> None:
-        """Log the validation ``metrics`` of this step; a better color PSNR than the best so far is the new `best/`."""
+        """Log the validation ``metrics`` of this step; a better score (``select``) than the best so far is the new
+        `best/`."""
         if writer:
             for k, v in metrics.items():
                 writer.add_scalar(f"val/{k}", v, self.step)
-        if metrics.get("color_psnr", -math.inf) > self.best:
-            self.best, self.best_step = metrics["color_psnr"], self.step
+        score = SELECTS[self.config.select] * metrics[self.config.select]
+        if score > self.best:
+            self.best, self.best_step = score, self.step
             self.save("best", metrics)
         if self.rank == 0:
             tqdm.write(f"step {self.step}: " + ", ".join(f"{k} {v:.4f}" for k, v in metrics.items()))
+
+    @property
+    def best_score(self) -> float:
+        """``best/``'s validation score (``select``), as the metrics give it."""
+        return SELECTS[self.config.select] * self.best
 
     def save(self, name: str, metrics: dict | None = None) -> None:
         """Write a checkpoint folder `OUT/name` atomically; `last` with the state to resume from."""
@@ -343,7 +361,7 @@ class Trainer:
         state = None
         if name == "last":
             state = {"optimizer": self.optimizer.state_dict(), "step": self.step, "best": self.best,
-                     "best_step": self.best_step}
+                     "best_step": self.best_step, "select": self.config.select}
             if self.d_optimizer is not None:
                 state["d_optimizer"] = self.d_optimizer.state_dict()
                 state["discriminators"] = [m.state_dict() for m in self.adversarial]
@@ -388,8 +406,8 @@ class Trainer:
             self.save("last", metrics)
         bar.close()
         if self.rank == 0 and self.config.init and self.best_step == 0 and self.step > 0:
-            tqdm.write(f"best/ is the starting model ({self.config.init}): no step beat its validation color PSNR "
-                       f"{self.best:.2f} dB; last/ holds step {self.step}'s weights")
+            tqdm.write(f"best/ is the starting model ({self.config.init}): no step beat its validation "
+                       f"{self.config.select} {self.best_score:.4f}; last/ holds step {self.step}'s weights")
         if writer:
             writer.close()
         if self.distributed:  # every process past rank 0's saving; DDP's reducer lets go of the group

@@ -157,6 +157,20 @@ def test_a_fine_tune_that_never_beats_its_start_says_best_is_the_start(run3, dat
     assert ("best/ is the starting model" in capsys.readouterr().out) == (trained.best_step == 0)
 
 
+@pytest.mark.parametrize("select, best_step", [("color_psnr", 1), ("loss", 2)])
+def test_best_is_the_validated_step_with_the_best_selected_score(data, tmp_path, capsys, select, best_step):
+    t = trainer(data, tmp_path / "run", select=select)
+    validated = {1: {"color_psnr": 30.0, "loss": 0.5}, 2: {"color_psnr": 29.0, "loss": 0.4},
+                 3: {"color_psnr": 29.5, "loss": 0.45}}
+    for t.step, metrics in validated.items():
+        t._validated(dict(metrics), writer=None)
+    best = json.loads((tmp_path / "run" / "best" / "config.json").read_text())
+    assert best["step"] == t.best_step == best_step
+    assert t.best_score == validated[best_step][select] == best["validation"][select]
+    with pytest.raises(ValueError, match="select must be one of"):
+        trainer(data, tmp_path / "other", select="ao_psnr")
+
+
 def test_init_of_another_model_config_is_refused(run3, data, tmp_path):
     with pytest.raises(ValueError, match="init .* holds a model of another config"):
         trainer(data, tmp_path / "tune", init=str(run3[0] / "best"), model={**TINY_MODEL, "channels": 4})
