@@ -261,15 +261,15 @@ class CostTable:
         :func:`front_psnr`): per method the medians over the (volume, size) pairs that have a first-hit row,
         of each pair's fastest variant (e.g. of a network's precisions)."""
         first_hit = {(r["volume"], r["size"]): r["ms"] for r in rows if _row_key(r) == ("full", 0, 1, 1)}
-        fastest: dict[tuple, dict] = {}
+        fastest: dict[tuple, tuple[float, float]] = {}  # (ms, score) of each method's fastest variant per scene
         for r in rows:
             at = (*_row_key(r), r["volume"], r["size"])
             if (r["volume"], r["size"]) in first_hit and (psnr := front_psnr(r)) is not None and math.isfinite(psnr):
-                if at not in fastest or r["ms"] < fastest[at]["ms"]:
-                    fastest[at] = r
+                if at not in fastest or r["ms"] < fastest[at][0]:
+                    fastest[at] = r["ms"], psnr
         by_method: dict[tuple, list[tuple[float, float]]] = {}
-        for (*key, volume, size), r in fastest.items():
-            by_method.setdefault(tuple(key), []).append((r["ms"] / first_hit[volume, size], front_psnr(r)))
+        for (*key, volume, size), (ms, psnr) in fastest.items():
+            by_method.setdefault(tuple(key), []).append((ms / first_hit[volume, size], psnr))
         return [{"kind": k[0], "ao_rays": k[1], "spp": k[2], "factor": k[3],
                  "cost": round(statistics.median(c for c, _ in v), 3),
                  "color_psnr": round(statistics.median(p for _, p in v), 2), "scenes": len(v)}
