@@ -403,10 +403,10 @@ class Engine:
         """One view frame, made in slices of about ``slice_ms`` (:meth:`SessionFrames.steps`), each
         its own job on the device thread, so that other sessions' frames interleave with a heavy one;
         its codes made there too (:meth:`codes_sync`). Returns once the device is done with it: what
-        it returns encodes it on an encoder thread (:func:`pack_codes`; ``code`` codes a shaded
-        frame's colors and, on a GPU, its ``video`` planes; ``video``: the frame's video encoding, on a video
-        encoder thread), while the device thread goes
-        on with the next frame, this session's included (:func:`isosr_server.sessions.run_frames`).
+        it returns encodes it on an encoder thread (:func:`pack_codes`; ``code`` codes a shaded frame's
+        colors and, on a GPU, its ``video`` planes; ``video``: the frame's video encoding, coded on a video
+        encoder thread), while the device thread goes on with the next frame, this session's included
+        (:func:`isosr_server.sessions.run_frames`).
         ``deadline`` (``time.monotonic()``; default: now) orders the batches (:meth:`_batch_sync`).
         ``jpeg``: the frame is coded as a JPEG of this quality, which lets a batch's JPEGs be coded
         together on a device that encodes them (:func:`device_jpeg`; ``code`` is not called then)."""
