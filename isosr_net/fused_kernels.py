@@ -294,12 +294,12 @@ def _upsample_add_kernel(x_ptr, c_ptr, rw_ptr, rb_ptr, out_ptr, hp, wp, hc, wc, 
 @triton.jit
 def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, sn_b, sn_c, sn_h, sn_w,
                  d_ptr, sd_b, sd_c, sd_h, sd_w, a_ptr, sa_b, sa_c, sa_h, sa_w, s_ptr, ss_b, ss_c, ss_h, ss_w,
-                 out_ptr, color_ptr, g_ptr, h, w, hp, wp, size_class, ray_scale, blend_rays, albedo_r, albedo_g,
-                 albedo_b, ambient,
+                 out_ptr, color_ptr, g_ptr, h, w, hp, wp, size_class, ray_scale, blend_rays, ray_factor, z,
+                 albedo_r, albedo_g, albedo_b, ambient,
                  diffuse, specular, shininess, light_x, light_y, light_z, half_x, half_y, half_z, back_r, back_g, back_b,
                  MASK_C: tl.constexpr, NORMAL_C: tl.constexpr, DEPTH_C: tl.constexpr, AO_C: tl.constexpr,
                  AO_PRIOR: tl.constexpr, BLEND: tl.constexpr, BLEND_MAP: tl.constexpr, BLEND_VARIANCE: tl.constexpr,
-                 GATED: tl.constexpr,
+                 INTERVAL: tl.constexpr, GATED: tl.constexpr,
                  MAX_SPP: tl.constexpr,
                  HAS_AO: tl.constexpr, BUFFERS: tl.constexpr,
                  SHADE: tl.constexpr, OUT: tl.constexpr, S: tl.constexpr, CI: tl.constexpr, CO: tl.constexpr,
@@ -353,6 +353,14 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, s
                     k = k * 4.0 * p * (1.0 - p)
                 weight = n / tl.maximum(n + k, 1e-12)  # an infinite k: the network's AO alone
                 ao = tl.minimum(weight * rays + (1.0 - weight) * ao, 1.0)
+            if INTERVAL:  # within the rays' Wilson interval (reconnet.rays_interval)
+                cast = n * ray_factor
+                m = tl.maximum(cast, 1e-12)
+                q = tl.minimum(tl.maximum(rays, 0.0), 1.0)
+                spread = z * z / m
+                center = (q + spread / 2.0) / (1.0 + spread)
+                half = z / (1.0 + spread) * tl.sqrt(q * (1.0 - q) / m + spread / (4.0 * m))
+                ao = tl.where(cast > 0, tl.minimum(tl.maximum(ao, center - half), center + half), ao)
         if BUFFERS:  # isosr_net.inference.buffer_stack: unit normals and depth where covered, else 0
             covered = mask > 0
             length = tl.maximum(tl.sqrt(nx * nx + ny * ny + nz * nz), 1e-6)
@@ -593,7 +601,7 @@ def upsample_add(x: torch.Tensor, coarse: torch.Tensor, weight: torch.Tensor, bi
 def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, sources: ReconSources,
                config: ReconNetConfig, as_buffers: bool = False, shading: ShadingParams | None = None,
                out: torch.Tensor | None = None, blend_rays: float | None = None,
-               gates: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
+               gates: torch.Tensor | None = None, ray_factor: float = 1.0) -> tuple[torch.Tensor, torch.Tensor | None]:
     """ReconNet's output convolution and output stack, cropped to the frame (and written
     depth-to-space at twice its sides for a model that upscales x2); as buffers and shaded where
     asked.
@@ -615,6 +623,8 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
             no sync).
         gates: with ``config.geometry_gate``, the geometry corrections' factor per rays per pixel, fp32 on
             ``y``'s device (:func:`~isosr_net.reconnet.geometry_gate`: the sigmoid of its logits).
+        ray_factor: the rays behind the sampled AO's mean per ray the sampling channels count (with
+            ``config.ao_interval``: :func:`~isosr_net.reconnet.rays_interval` of them all).
 
     Returns:
         ``(stack, color or None)``.
@@ -659,12 +669,13 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
     _tail_tuned[_grid(h * w, b)](y, weight, bias, *sources.args(), out, out if color is None else color,
                                  bias if gates is None else gates, h, w, hp, wp,
                                  _size_class(h * w), float(config.max_ao_rays * config.max_spp),
-                                 float(blend_rays or 0.0), *params.albedo, params.ambient,
+                                 float(blend_rays or 0.0), float(ray_factor), float(config.ao_interval),
+                                 *params.albedo, params.ambient,
                                  params.diffuse, params.specular, params.shininess, *light, *half, *params.background,
                                  MASK_C=MASK.start, NORMAL_C=NORMAL.start, DEPTH_C=DEPTH.start, AO_C=AO.start,
                                  AO_PRIOR=config.ao_prior != "none", BLEND=config.ao_prior == "blend",
                                  BLEND_MAP=config.blend_map, BLEND_VARIANCE=config.blend_variance,
-                                 GATED=gates is not None, MAX_SPP=config.max_spp,
+                                 INTERVAL=config.ao_interval > 0, GATED=gates is not None, MAX_SPP=config.max_spp,
                                  HAS_AO=sources.ao is not None, BUFFERS=as_buffers, SHADE=shading is not None,
                                  OUT=OUTPUTS, S=s, CI=ci, CO=co,
                                  **FIXED)

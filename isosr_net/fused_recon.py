@@ -290,7 +290,8 @@ class FusedReconNet(nn.Module):
             add(f"fuse{i}", layer(self.fuse[i], f"up{i}"))
             coarse = f"fuse{i}"
         add("tail", lambda: k.recon_tail(results["fuse0"], self.tail_w, self.tail_b, sources, self.config,
-                                         as_buffers, shading, out, blend_rays, self.gates), "output", "color")
+                                         as_buffers, shading, out, blend_rays, self.gates, ray_factor),
+            "output", "color")
         return results, passes
 
 

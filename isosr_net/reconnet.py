@@ -129,6 +129,10 @@ class ReconNetConfig:
             reads (:meth:`RayLimits.read`), its own AO stands for ``k / r ** g`` rays (:func:`blend_rays_at`):
             an input cleaner than any it was trained on is trusted over its correction. Nothing changes
             within its ray limits; no weights depend on it.
+        ao_interval: ``z`` >= 0: with ``ao_prior`` "rays" or "blend", the output AO kept within the Wilson score
+            interval of the rays' mean at ``z`` standard deviations (:func:`rays_interval`), which narrows to the
+            mean as rays grow: the network corrects a mean of many rays only as far as those rays allow. 0: off;
+            no weights depend on it.
         upscale: output over input resolution (:data:`UPSCALES`): 2 reconstructs a frame rendered
             at half the output's sides (:func:`upsampled_inputs` is the base its output corrects).
     """
@@ -145,6 +149,7 @@ class ReconNetConfig:
     blend_map: bool = False
     blend_variance: bool = False
     blend_beyond: float = 0.0
+    ao_interval: float = 0.0
 
     def __post_init__(self):
         object.__setattr__(self, "widths", tuple(self.widths))
@@ -163,9 +168,12 @@ class ReconNetConfig:
         for flag in ("geometry_gate", "blend_map", "blend_variance"):
             if not isinstance(getattr(self, flag), bool):
                 raise ValueError(f"{flag} must be true or false, got {getattr(self, flag)!r}")
-        beyond = self.blend_beyond
-        if isinstance(beyond, bool) or not isinstance(beyond, (int, float)) or not 0 <= beyond < math.inf:
-            raise ValueError(f"blend_beyond must be a finite number >= 0, got {beyond!r}")
+        for name in ("blend_beyond", "ao_interval"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < math.inf:
+                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+        if self.ao_interval and self.ao_prior == "none":
+            raise ValueError("ao_interval keeps a model's AO near its input rays': it needs ao_prior 'rays' or 'blend'")
         for flag in ("blend_map", "blend_variance", "blend_beyond"):
             if getattr(self, flag) and self.ao_prior != "blend":
                 raise ValueError(f"{flag} weighs a blend model's AO: it needs ao_prior 'blend', got {self.ao_prior!r}")
@@ -176,8 +184,26 @@ class ReconNetConfig:
         return RayLimits(self.max_ao_rays, self.max_spp)
 
 
+def rays_interval(mean: torch.Tensor, rays: torch.Tensor, z: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The Wilson score interval of an AO that ``rays`` rays of mean ``mean`` estimate, at ``z`` standard
+    deviations: the values in ``[0, 1]`` their mean is within ``z`` deviations of (a ray's AO lies in
+    ``[0, 1]``, so its variance is at most ``p (1 - p)``; the interval holds where all rays agree). ``[0, 1]``
+    where no ray was cast.
+
+    Shape:
+        mean, rays: (B, 1, H, W). Returns (low, high), each (B, 1, H, W).
+    """
+    n = rays.clamp_min(1e-12)
+    p = mean.clamp(0.0, 1.0)
+    spread = z * z / n
+    center = (p + spread / 2) / (1 + spread)
+    half = z / (1 + spread) * torch.sqrt(p * (1 - p) / n + spread / (4 * n))
+    cast = rays > 0
+    return torch.where(cast, center - half, 0.0), torch.where(cast, center + half, 1.0)
+
+
 def ao_output(raw_ao: torch.Tensor, inputs: torch.Tensor, config: ReconNetConfig,
-              blend_rays: torch.Tensor | None = None) -> torch.Tensor:
+              blend_rays: torch.Tensor | None = None, ray_factor: float = 1.0) -> torch.Tensor:
     """The output AO from the tail's AO channel ``raw_ao``.
 
     ``ao_prior="none"``: ``sigmoid(raw_ao)``. ``"rays"``: ``o = sigmoid(logit(p) + raw_ao)`` with
@@ -188,7 +214,8 @@ def ao_output(raw_ao: torch.Tensor, inputs: torch.Tensor, config: ReconNetConfig
     stands for (inverse variance), ``k = blend_rays`` the network's own (learned; per pixel with
     ``blend_map``; times ``4 p (1 - p)`` with ``blend_variance``, the mean's variance per ray, so that rays
     that agree outweigh the network): with many rays the output converges to the rays' mean, the plain
-    render's AO; with none it is ``o``.
+    render's AO; with none it is ``o``. With ``config.ao_interval``, clamped to the rays' interval
+    (:func:`rays_interval` of the ``n`` rays times ``ray_factor``, all the rays behind the mean).
 
     Shape:
         raw_ao: (B, 1, H, W). inputs: (B, 8, H, W). blend_rays: () or (B, 1, H, W) (with "blend").
@@ -200,15 +227,17 @@ def ao_output(raw_ao: torch.Tensor, inputs: torch.Tensor, config: ReconNetConfig
     n = sampling[:, :1] * config.max_ao_rays * sampling[:, 1:] * config.max_spp
     mean = inputs[:, SAMPLED_AO].float()
     smoothed = (n * mean + 0.5) / (n + 1)
-    corrected = torch.sigmoid(torch.logit(smoothed) + raw_ao)
-    if config.ao_prior == "rays":
-        return corrected
-    if blend_rays is None:
-        raise ValueError("ao_output: a blend model's AO needs its blend_rays")
-    if config.blend_variance:
-        blend_rays = blend_rays * 4 * smoothed * (1 - smoothed)
-    weight = n / (n + blend_rays).clamp_min(1e-12)  # no rays and a weight worth none: the network's
-    return weight * mean + (1 - weight) * corrected
+    ao = torch.sigmoid(torch.logit(smoothed) + raw_ao)
+    if config.ao_prior == "blend":
+        if blend_rays is None:
+            raise ValueError("ao_output: a blend model's AO needs its blend_rays")
+        if config.blend_variance:
+            blend_rays = blend_rays * 4 * smoothed * (1 - smoothed)
+        weight = n / (n + blend_rays).clamp_min(1e-12)  # no rays and a weight worth none: the network's
+        ao = weight * mean + (1 - weight) * ao
+    if config.ao_interval:
+        ao = torch.clamp(ao, *rays_interval(mean, n * ray_factor, config.ao_interval))
+    return ao
 
 
 def blend_rays_at(blend_rays: torch.Tensor | float | None, ray_factor: float, beyond: float = 0.0
@@ -324,7 +353,8 @@ class ReconNet(nn.Module):
         if self.config.blend_map:
             offset = self.ao_blend_map(y)[..., :h, :w].float()
             blend_rays = blend_rays * torch.exp(F.pixel_shuffle(offset, s) if s > 1 else offset)
-        ao = ao_output(raw[:, AO], base, self.config, blend_rays_at(blend_rays, ray_factor, self.config.blend_beyond))
+        ao = ao_output(raw[:, AO], base, self.config, blend_rays_at(blend_rays, ray_factor, self.config.blend_beyond),
+                       ray_factor)
         # Depth passes through: the render found it (shading does not read it).
         return torch.cat([mask, normal, base[:, DEPTH], ao], dim=1)
 

@@ -311,6 +311,26 @@ def test_tail_is_the_output_convolution_and_reconnets_output_stack(h, w, hp, wp,
     assert (out[:, MASK] >= 0).all() and (out[:, MASK] <= 1).all()
 
 
+@pytest.mark.parametrize("ao_prior", ["rays", "blend"])
+@pytest.mark.parametrize("ray_factor", [1.0, 16.0])
+def test_an_interval_tail_keeps_its_ao_within_the_rays_interval_as_ao_output(ao_prior, ray_factor):
+    """ao_interval: the tail's AO as ao_output's in float64 (the rays' Wilson interval of the rays behind the mean,
+    ``ray_factor`` counted), and the interval changes it (a tail of AO far off, a blend that trusts it)."""
+    h, w = 13, 21
+    features, taps, bias, inputs = tail_case(h, w, 16, 24)
+    bias[5] = 4.0  # the AO channel's raw output far off
+    raw, magnitude = (t[:, :6, :h, :w] for t in conv_ref(nchw(features), taps, bias))
+    config = ReconNetConfig(ao_prior=ao_prior, max_ao_rays=16, ao_interval=2.0)
+    blend = 1e3 if ao_prior == "blend" else None
+    k = None if blend is None else torch.tensor(blend, dtype=torch.float64)
+    out, _ = recon_tail(features, taps, bias, ReconSources.of_inputs(inputs), config, blend_rays=blend,
+                        ray_factor=ray_factor)
+    expected = ao_output(raw[:, AO], inputs.double(), config, k, ray_factor)
+    free = ao_output(raw[:, AO], inputs.double(), dataclasses.replace(config, ao_interval=0.0), k, ray_factor)
+    assert ((out[:, AO].double() - expected).abs() <= 1e-5 * (magnitude[:, AO] + 1)).all()
+    assert (expected - free).abs().max() > 0.05
+
+
 def test_a_gated_tail_scales_each_frame_s_geometry_corrections_by_its_rays_per_pixel():
     """geometry_gate: frame 0 at 4 rays per pixel takes the 4th gate, frame 1 at 2 the 2nd (float64 reference);
     depth and AO as ungated; the gates must come with a gated config and only with it."""

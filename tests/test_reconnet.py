@@ -21,7 +21,7 @@ from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net.fused_recon import FusedReconNet, fusable
 from isosr_net.inference import buffer_stack
 from isosr_net.reconnet import (GATE_PARAMETER, GATE_RATE, RayLimits, ReconNet, ReconNetConfig, ao_output,
-                                blend_rays_at, macs_per_pixel, upsampled_inputs)
+                                blend_rays_at, macs_per_pixel, rays_interval, upsampled_inputs)
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, Reconstructor, recon_inputs, recon_limits
 from isosr_net.upscaler import DEFAULT_MODEL
 
@@ -223,6 +223,50 @@ def test_with_many_rays_a_blend_model_converges_to_the_rays_mean_whatever_its_ta
     rays = same_weights(model, ao_prior="rays")
     with torch.no_grad():
         assert (rays(inputs, rays.first_previous(inputs))[:, AO] - mean).abs().max().item() > 0.3
+
+
+def test_the_rays_interval_holds_the_truth_as_often_as_its_z_says_and_narrows_with_the_rays():
+    """rays_interval (Wilson, z = 2): over binomial draws of n rays the true AO lies within it in >= 93% of them on
+    average over p at every n (nominally 95%) and >= 85% at every p (Wilson's dips next to 0 and 1), it holds the
+    rays' own mean, its width shrinks about as 1 / sqrt(n), it is [0, 1] without rays, and it stays within [0, 1]
+    for means of rays that all agree."""
+    gen = torch.Generator().manual_seed(0)
+    truth = torch.tensor([0.0, 0.02, 0.3, 0.5, 0.9, 0.99, 1.0], dtype=torch.float64).view(1, 1, 1, -1)
+    for n in (1, 4, 16, 64, 256, 4096):
+        draws = torch.binomial(torch.full((4000, 1, 1, 7), float(n), dtype=torch.float64), truth.expand(4000, 1, 1, 7),
+                               generator=gen) / n
+        low, high = rays_interval(draws, torch.full_like(draws, n), 2.0)
+        covered = ((low <= truth) & (truth <= high)).double().mean(0)
+        assert covered.mean() >= 0.93 and covered.min() >= 0.85, (n, covered)
+        assert (low <= draws).all() and (draws <= high).all() and low.min() >= 0 and high.max() <= 1
+    widths = [float(torch.sub(*reversed(rays_interval(torch.tensor([0.5]), torch.tensor([n]), 2.0)))) for n in
+              (16.0, 1600.0)]
+    assert widths[0] / 10 < widths[1] < widths[0] / 8  # 1 / sqrt(n) but for the z^2 / n terms
+    low, high = rays_interval(torch.tensor([0.3, 1.0]), torch.tensor([0.0, 1e12]), 3.0)
+    assert low.tolist()[0] == 0 and high.tolist()[0] == 1 and 1 - 1e-6 < low[1] <= high[1] <= 1
+
+
+def test_an_interval_model_corrects_a_mean_only_as_far_as_its_rays_allow():
+    """ao_interval: a "blend" or "rays" model's AO lies within the rays' interval of all the rays behind the mean
+    (``ray_factor`` counted), so a tail far off moves a mean of 256 rays by at most ~0.1 and one of a million by
+    ~0.002, where without it the blend alone moves it by 16 / (256 + 16); no rays: the network's AO as without it."""
+    for prior in ("blend", "rays"):
+        config = ReconNetConfig(ao_prior=prior, max_ao_rays=16, ao_interval=2.0)
+        inputs = recon_batch(b=1, ao_rays=16, spp=4, limits=config.limits)
+        raw, mean = torch.full_like(inputs[:, :1], 4.0), inputs[:, SAMPLED_AO]
+        blend = torch.tensor(16.0) if prior == "blend" else None
+        for factor, bound in ((4.0, 0.13), (1.6e4, 2.6e-3)):
+            out = ao_output(raw, inputs, config, blend, ray_factor=factor)
+            low, high = rays_interval(mean, torch.full_like(mean, 64 * factor), 2.0)
+            assert (out >= low - 1e-6).all() and (out <= high + 1e-6).all()
+            assert (out - mean).abs().max() <= bound
+        free = replace(config, ao_interval=0.0)
+        assert (ao_output(raw, inputs, free, blend, 4.0) - mean).abs().max() > 0.13
+        none = recon_batch(b=1, ao_rays=0, spp=1, limits=config.limits)
+        assert torch.equal(ao_output(raw, none, config, blend), ao_output(raw, none, free, blend))
+    for bad, match in (({"ao_prior": "none"}, "needs ao_prior"), ({"ao_prior": "rays", "ao_interval": -1.0}, ">= 0")):
+        with pytest.raises(ValueError, match=match):
+            ReconNetConfig(**{"ao_interval": 2.0, **bad})
 
 
 def test_a_blend_model_counts_the_rays_fed_past_what_it_reads_in_float64():
