@@ -16,15 +16,12 @@ import urllib.request
 from contextlib import contextmanager
 from pathlib import Path
 from types import SimpleNamespace
+from typing import TYPE_CHECKING
 
 import msgspec
 import numpy as np
 import pytest
 import uvicorn
-from cryptography import x509
-from cryptography.hazmat.primitives import hashes, serialization
-from cryptography.hazmat.primitives.asymmetric import ec
-from cryptography.x509.oid import NameOID
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
@@ -37,6 +34,9 @@ from isosr_server.core.config import Settings
 from isosr_render.image_codec import decode_image
 from isosr_render.images import to_uint8
 from isosr_client.serve_process import free_port
+
+if TYPE_CHECKING:  # the TLS helpers import cryptography when called: the GPU machine's kit has none
+    from cryptography.hazmat.primitives.asymmetric import ec
 
 # Clients accept big frames (the server's limit bounds what clients send).
 CLIENT_LIMITS = P.Limits(max_message_bytes=2**28)
@@ -274,6 +274,9 @@ def wire_frame(lib, **overrides) -> dict:
 
 
 def write_key(path: Path) -> ec.EllipticCurvePrivateKey:
+    from cryptography.hazmat.primitives import serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+
     key = ec.generate_private_key(ec.SECP256R1())
     path.write_bytes(key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
                                        serialization.NoEncryption()))
@@ -283,6 +286,10 @@ def write_key(path: Path) -> ec.EllipticCurvePrivateKey:
 def self_signed_cert(folder: Path) -> tuple[Path, Path]:
     """A self-signed certificate for 127.0.0.1 and localhost, and its key, written into ``folder``:
     ``(cert.pem, key.pem)``."""
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.x509.oid import NameOID
+
     key = write_key(folder / "key.pem")
     name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "isosr test")])
     now = datetime.datetime.now(datetime.UTC)
