@@ -644,8 +644,11 @@ def test_the_second_frame_carries_the_first_and_a_reset_forgets_it(sphere_frames
     reconstructor.reset()
     alone = reconstructor.reconstruct(sphere_frames[1], 2, 1)
     assert_sane(carried, SIZE[1], SIZE[0])
-    assert (carried.ao - alone.ao).abs().max() > 1e-3
-    torch.testing.assert_close(alone.ao, Reconstructor().reconstruct(sphere_frames[1], 2, 1).ao)
+    # The normal: the sphere's AO is near 1, where the rays' interval (ao_interval) leaves the network little room.
+    assert (carried.normal - alone.normal).abs().max() > 1e-2
+    again = Reconstructor().reconstruct(sphere_frames[1], 2, 1)
+    torch.testing.assert_close(alone.normal, again.normal)
+    torch.testing.assert_close(alone.ao, again.ao)
 
 
 def still_frames(renderer: Renderer, iso: float, frames: int, **request) -> list[FrameBuffers]:
