@@ -435,56 +435,26 @@ def _synced_ms(runner: FrameRunner, start: float) -> float:
     return (time.perf_counter() - start) * 1e3
 
 
-@dataclass(frozen=True)
-class Yardstick:
-    """A cheap frame timed right after each of a candidate's timed frames, where other processes share the device
-    (replicas on one GPU): the candidate's time is then its frames' over the yardstick's beside them, times ``ms``,
-    so candidates timed under different loads of the others compare (each at the load ``ms`` was timed under).
-
-    Attributes:
-        runner: the yardstick's frames (a plain first-hit frame of the scene).
-        ms: its frame's time, the scale the candidates' times are given in.
-    """
-
-    runner: FrameRunner
-    ms: float
-
-    def __post_init__(self):
-        if not 0 < self.ms < math.inf:
-            raise ValueError(f"Yardstick.ms must be a positive, finite time, got {self.ms!r}")
-
-    def scaled(self, times: list[float], beside: list[float]) -> float:
-        """The mean of ``times`` in the yardstick's scale, ``beside`` the yardstick's own times next to them."""
-        return sum(times) / sum(beside) * self.ms
-
-    def time(self, camera: Camera, clock: str) -> float:
-        """One yardstick frame's time (ms) at ``camera``."""
-        return _frame_ms(self.runner, camera, None, clock)
-
-
 def _time_candidate_steps(runner: FrameRunner, cameras: list[Camera], config: BudgetConfig, budget_ms: float,
-                          slice_ms: float | None = None,
-                          yardstick: Yardstick | None = None) -> Generator[None, None, float]:
+                          slice_ms: float | None = None) -> Generator[None, None, float]:
     """Mean frame time of a runner in sequence over ``cameras`` (cycled), after warm-up; stops
     early once a frame takes more than ``OVER_BUDGET_STOP`` budgets (on CPUs a warm-up frame
-    too); with a ``yardstick``, in its scale. Yields before each frame."""
+    too). Yields before each frame."""
     pairs = sequence_cameras(cameras)
     for i in range(config.warmup_frames):
         yield
         ms = yield from _sliced_frame_ms(runner, *pairs[i % len(pairs)], slice_ms)
         if not runner.renderer.device.is_cuda and ms > OVER_BUDGET_STOP * budget_ms:
             return ms  # on CPUs a first frame has no one-off costs (graph captures, kernel tuning)
-    times, beside = [], []
+    times = []
     for i in range(config.timing_frames):
         yield
         camera, prev = pairs[(config.warmup_frames + i) % len(pairs)]
         times.append(_frame_ms(runner, camera, prev, config.clock) if slice_ms is None
                      else (yield from _sliced_frame_ms(runner, camera, prev, slice_ms)))
-        if yardstick is not None:
-            beside.append(yardstick.time(camera, config.clock))
         if times[-1] > OVER_BUDGET_STOP * budget_ms:
             break
-    return sum(times) / len(times) if yardstick is None else yardstick.scaled(times, beside)
+    return sum(times) / len(times)
 
 
 # Warm-up batches of a timed batch: a first one, then two that carry it (the service's reconstruction captures
@@ -492,16 +462,16 @@ def _time_candidate_steps(runner: FrameRunner, cameras: list[Camera], config: Bu
 BATCH_WARMUP = 3
 
 
-def _time_batch_steps(runners: list[FrameRunner], cameras: list[Camera], config: BudgetConfig,
-                      yardstick: Yardstick | None = None) -> Generator[None, None, float]:
+def _time_batch_steps(runners: list[FrameRunner], cameras: list[Camera],
+                      config: BudgetConfig) -> Generator[None, None, float]:
     """Mean wall time of a frame made with ``len(runners)`` streams' at once (their kind's
     ``make_batch``, each stream along ``cameras``, cycled): a batch's time over its frames, after
-    :data:`BATCH_WARMUP` warm-up batches; with a ``yardstick``, in its scale. Yields before each batch.
+    :data:`BATCH_WARMUP` warm-up batches. Yields before each batch.
 
     Raises:
         Exception: a stream's frame failed (the candidate cannot be timed).
     """
-    pairs, kind, times, beside = sequence_cameras(cameras), type(runners[0]), [], []
+    pairs, kind, times = sequence_cameras(cameras), type(runners[0]), []
     for i in range(BATCH_WARMUP + config.timing_frames):
         yield
         camera, prev = pairs[i % len(pairs)]
@@ -512,11 +482,8 @@ def _time_batch_steps(runners: list[FrameRunner], cameras: list[Camera], config:
             if isinstance(result, Exception):
                 raise result
             result.checked()
-        if i >= BATCH_WARMUP:
-            times.append(ms)
-            if yardstick is not None:
-                beside.append(yardstick.time(camera, "wall"))
-    return sum(times) / len(times) if yardstick is None else yardstick.scaled(times, beside)
+        times.append(ms)
+    return sum(times[BATCH_WARMUP:]) / config.timing_frames
 
 
 @dataclass(frozen=True)
@@ -632,12 +599,11 @@ def choose_method_steps(renderer: Renderer, iso: float, width: int, height: int,
                         config: BudgetConfig = BudgetConfig(), cameras: list[Camera] | None = None,
                         networks: Networks | None = None, quality: QualityProbe | None = None,
                         timings: dict | None = None, slice_ms: float | None = None,
-                        warn: bool = True, yardstick: Yardstick | None = None) -> Generator[None, None, BudgetChoice]:
+                        warn: bool = True) -> Generator[None, None, BudgetChoice]:
     """:func:`choose_method` as a generator that yields before each unit of device work, so that
     where ``quality`` and ``timings`` already decide it, it returns without yielding. A timed
     frame's ray cast runs in slices of about ``slice_ms``; ``warn=False`` leaves the warning
-    that nothing fits to the choice's ``fits``; a ``yardstick`` times candidates in its scale (``budget_ms`` and
-    ``timings`` in it too).
+    that nothing fits to the choice's ``fits``.
     """
     _check_size_and_budget(width, height, budget_ms)
     cameras = cameras or _probe_cameras(config)
@@ -666,10 +632,9 @@ def choose_method_steps(renderer: Renderer, iso: float, width: int, height: int,
                    for k in range(config.batch)]
         # A batch shares at most all of a frame's work: a frame alone of up to `batch` budgets may still fit.
         alone_budget_ms = budget_ms * config.batch
-        timings[untimed] = yield from _time_candidate_steps(runners[0], cameras, config, alone_budget_ms, slice_ms,
-                                                            yardstick)
+        timings[untimed] = yield from _time_candidate_steps(runners[0], cameras, config, alone_budget_ms, slice_ms)
         if config.batch > 1 and timings[untimed] <= OVER_BUDGET_STOP * alone_budget_ms:
-            timings[untimed] = yield from _time_batch_steps(runners, cameras, config, yardstick)
+            timings[untimed] = yield from _time_batch_steps(runners, cameras, config)
     ms = {m: timings[m] for m in considered if m in timings}
     fits = ms[chosen] <= config.headroom * budget_ms
     if not fits and warn:

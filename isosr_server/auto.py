@@ -25,12 +25,7 @@ where ``L`` moves. ``L`` is the latest measure; a method's own measure holds for
 where it is higher (its probe time counts at its own load): a method that proved dear is not tried
 again at once, while a spike that one method met (on an H200, four replicas probing at once: 13-17
 times the probe, a minute of budgets under 0.6 ms when the scene's load held it) does not keep the
-others from the budget. The other replicas' load also moves while one probe times its candidates, one after
-another between its sessions' frames: each timed frame is followed at once by the scene's plain first-hit frame
-(a :class:`~isosr_net.budget.Yardstick`), and a candidate's time is its frames' over those, in first-hit frames
-of the scene's first measure, so that a candidate timed while the others were busy does not look dearer than one
-timed while they were idle (on an H200 under four replicas, one replica's probe timed the reconstruction at 1 AO
-ray and 4 a pixel at 41.7 ms, and at 2 AO rays at 5.2).
+others from the budget.
 
 Under load a session gives up rate before AO: where that budget leaves only a frame without AO
 (or with too few rays to gain over none) in a scene where AO matters, the cheapest candidate with AO
@@ -63,7 +58,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import NamedTuple
 
-from isosr_net.budget import (BudgetChoice, BudgetConfig, CostTable, QualityProbe, Yardstick, choose_method_steps,
+from isosr_net.budget import (BudgetChoice, BudgetConfig, CostTable, QualityProbe, choose_method_steps,
                               default_candidates, default_probe_height, first_hit_ms_steps, floor_ms,
                               probe_quality_steps, probe_size)
 from isosr_net.methods import FrameMethod, FrameRunner, Networks, make_runner
@@ -336,23 +331,9 @@ class AutoPolicy:
             self.pending.append(probe)
         return self.prior(self.budget_ms(sessions), scene_key) if chosen is None else chosen.choice
 
-    def _yardstick_steps(self, renderer: Renderer, scene_key: tuple, camera: Camera,
-                         clip: Clip) -> Generator[None, None, Yardstick]:
-        """The scene's plain first-hit frame as a probe's yardstick, its scale the scene's first-hit time of this run
-        (measured first where it is not yet; a warm-up frame of the yardstick's own runner: a step)."""
-        _, iso, width, height, ao_radius = scene_key[:5]
-        if scene_key not in self._first_hit:
-            self._first_hit[scene_key] = yield from first_hit_ms_steps(renderer, iso, width, height, camera,
-                                                                       ao_radius, self.networks, clip)
-        runner = make_runner(FrameMethod.of("full"), renderer, iso, width, height, ao_radius=ao_radius,
-                             networks=self.networks, clip=clip)
-        yield
-        runner.frame(camera)
-        return Yardstick(runner, self._first_hit[scene_key])
-
     def _keeping_ao(self, renderer: Renderer, iso: float, width: int, height: int, choice: BudgetChoice,
-                    config: BudgetConfig, cameras: list[Camera], quality: QualityProbe, timings: dict,
-                    yardstick: Yardstick | None = None) -> Generator[None, None, BudgetChoice]:
+                    config: BudgetConfig, cameras: list[Camera], quality: QualityProbe,
+                    timings: dict) -> Generator[None, None, BudgetChoice]:
         """``choice`` (the target rate's), or where it drops AO that matters (:func:`drops_ao`), the first candidate
         (the cheapest) with AO rays that gains :data:`KEEP_AO_DB` over it and keeps :attr:`min_fps`, of such
         candidates whose floor allows it: every one timed already (``timings``), and the first
@@ -368,8 +349,7 @@ class AutoPolicy:
         for method in weighed:
             only = replace(quality, psnr={method: quality.psnr[method]})
             kept = yield from choose_method_steps(renderer, iso, width, height, floor_budget, config, cameras,
-                                                  self.networks, only, timings, self.slice_ms, warn=False,
-                                                  yardstick=yardstick)
+                                                  self.networks, only, timings, self.slice_ms, warn=False)
             if kept.fits:
                 log.info("auto mode: %s (%.1f dB) drops the AO the scene shows; at %g frames/s a session: %s",
                          choice.method.name, choice.expected_psnr, self.min_fps, kept.summary())
@@ -414,17 +394,14 @@ class AutoPolicy:
             if scene_key not in self._quality:
                 self._quality[scene_key] = yield from probe_quality_steps(renderer, iso, width, height, config,
                                                                           cameras, self.networks)
-            yardstick = None  # a shared GPU's: where something is still to be timed
-            if self.gpu_share < 1 and any(m not in timings for m in self.candidates):
-                yardstick = yield from self._yardstick_steps(renderer, scene_key, camera, clip)
             factors, until = self._held(scene_key, load)
             # dear methods at their own load (one timed only now, at a new batch size, counts at the scene's)
             seen = timings | {m: ms * factors[m] for m, ms in timings.items() if m in factors}
             choice = yield from choose_method_steps(renderer, iso, width, height, budget_ms, config, cameras,
                                                     self.networks, self._quality[scene_key], seen,
-                                                    self.slice_ms, warn=False, yardstick=yardstick)
+                                                    self.slice_ms, warn=False)
             choice = yield from self._keeping_ao(renderer, iso, width, height, choice, config, cameras,
-                                                 self._quality[scene_key], seen, yardstick)
+                                                 self._quality[scene_key], seen)
             timings.update({m: ms for m, ms in seen.items() if m not in timings})  # timed now
         except ValueError as e:  # the scene or size admits no candidate: say why, keep the prior
             log.warning("auto mode, %s at %dx%d: no probe (%s); frames stay %s", scene_key[0], width, height, e,

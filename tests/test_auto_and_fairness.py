@@ -264,7 +264,7 @@ def test_trading_rate_for_ao_times_at_most_keep_ao_tries_new_candidates(lib, mon
     dear, fits = 10.0, 3.0
     timed: list[FrameMethod] = []
 
-    def time_candidate(runner, cameras, config, budget_ms, slice_ms=None, yardstick=None):  # no device work
+    def time_candidate(runner, cameras, config, budget_ms, slice_ms=None):  # no device work: a set time
         timed.append(runner.method)
         return fits if runner.method == with_ao[-1] else dear
         yield
@@ -283,39 +283,6 @@ def test_trading_rate_for_ao_times_at_most_keep_ao_tries_new_candidates(lib, mon
     assert KEEP_AO_TRIES == 3 and choose({}).method == plain and timed == with_ao[:3], "the 4th untimed: not timed"
     kept = choose({with_ao[-1]: fits})
     assert kept.method == with_ao[-1] and kept.fits and timed == with_ao[:3], "timed already: weighed, not timed"
-
-
-def test_a_replica_sharing_its_gpu_times_candidates_beside_the_scenes_first_hit_frame(lib, monkeypatch):
-    """With a share of a GPU below 1 the probe times what it still has to time beside a yardstick, the scene's
-    first-hit frame at its first measured time; a server with the whole GPU times candidates alone; neither times
-    anything once all is timed."""
-    plain, with_ao = FrameMethod.of("full"), FrameMethod.of("full", ao_rays=2)
-    cam, scene_key = orbit(30, 20, 1.8), (VOLUME, round(lib.iso, 6), 64, 48, 0.05)
-    sticks = []
-
-    def time_candidate(runner, cameras, config, budget_ms, slice_ms=None, yardstick=None):
-        sticks.append(yardstick)
-        return 1.0
-        yield
-
-    monkeypatch.setattr(budget, "_time_candidate_steps", time_candidate)
-
-    def probe(share: float, timings: dict) -> AutoPolicy:
-        policy = AutoPolicy((plain, with_ao), 30.0, Networks(), gpu_share=share)
-        policy._quality[scene_key] = budget.QualityProbe((64, 48), {plain: 20.0, with_ao: 28.0}, 12.0, True, 0.0)
-        policy._timings[scene_key] = timings
-        sticks.clear()
-        policy.choose(lib.renderer, VOLUME, lib.iso, 64, 48, cam, 1, 0.05)
-        if policy.pending:
-            finish_steps(policy.pending.pop())
-        return policy
-
-    shared = probe(0.25, {plain: 1.0})
-    assert len(sticks) == 1 and isinstance(sticks[0], budget.Yardstick) and sticks[0].runner.method == plain
-    assert sticks[0].ms == shared._first_hit[scene_key] and 0 < sticks[0].ms < math.inf
-    whole = probe(1.0, {plain: 1.0})
-    assert sticks == [None] and scene_key not in whole._first_hit
-    assert probe(0.25, {plain: 1.0, with_ao: 2.0}) and sticks == [], "all timed: no yardstick, no device work"
 
 
 def test_the_servers_auto_keeps_ao_down_to_half_its_target_rate_unless_told(srv):

@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import math
-from types import SimpleNamespace
 
 import pytest
 import torch
@@ -332,12 +331,12 @@ def test_a_candidate_dear_alone_is_still_timed_in_its_batch(sphere, monkeypatch)
     budget_ms, batch = 2.0, 4
     alone, batched, stops = {}, [], []
 
-    def time_alone(runner, cameras, config, stop_budget_ms, slice_ms=None, yardstick=None):  # no device work
+    def time_alone(runner, cameras, config, stop_budget_ms, slice_ms=None):  # no device work: set times
         stops.append(stop_budget_ms)
         return alone[runner.method]
         yield
 
-    def time_batch(runners, cameras, config, yardstick=None):
+    def time_batch(runners, cameras, config):
         batched.append(runners[0].method)
         return alone[runners[0].method] / 3  # the network shared by the batch
         yield
@@ -359,53 +358,9 @@ def test_a_candidate_dear_alone_is_still_timed_in_its_batch(sphere, monkeypatch)
     assert batched == [cheap] and choice.method == cheap
 
 
-class LoadedFrames:
-    """A runner whose frames take ``cost`` ms times the device's load (``load[0]``) on a fake clock."""
-
-    clock, load = [0.0], [1.0]
-    renderer = SimpleNamespace(device=SimpleNamespace(is_cuda=False))
-
-    def __init__(self, cost: float):
-        self.cost = cost
-
-    def frame(self, camera, prev=None):
-        self.clock[0] += self.cost * self.load[0] / 1000
-
-    def steps(self, camera, prev, slice_ms):
-        self.frame(camera, prev)
-        return
-        yield
-
-    @classmethod
-    def make_batch(cls, jobs):
-        for runner, camera, prev in jobs:
-            runner.frame(camera, prev)
-        return [type("Made", (), {"checked": lambda self: self})() for _ in jobs]
-
-
-def test_a_yardstick_times_candidates_under_different_loads_as_under_one(monkeypatch):
-    """Candidates timed one after another while other processes' load on the device moves: alone, one timed under a
-    threefold load looks dearer than a dearer one timed at rest; each over a yardstick frame timed beside it, both
-    read at the yardstick's scale, their true ratio (frames alone and in batches)."""
-    monkeypatch.setattr(policy, "time", type("Clock", (), {"perf_counter": staticmethod(lambda: LoadedFrames.clock[0])}))
-    config, cameras = BudgetConfig(warmup_frames=1, timing_frames=2, clock="wall"), [orbit(30, 20, 1.8)] * 2
-    cheap, dear, stick = LoadedFrames(2.0), LoadedFrames(4.0), policy.Yardstick(LoadedFrames(1.0), 0.5)
-
-    def timed(runner: LoadedFrames, load: float, yardstick=None, batch: int = 1) -> float:
-        LoadedFrames.load[0] = load
-        steps = (policy._time_candidate_steps(runner, cameras, config, 100.0, None, yardstick) if batch == 1 else
-                 policy._time_batch_steps([runner] * batch, cameras, config, yardstick))
-        return policy.finish_steps(steps)
-
-    assert timed(cheap, 3.0) == pytest.approx(6.0) and timed(dear, 1.0) == pytest.approx(4.0), "the load's order"
-    assert timed(cheap, 3.0, stick) == pytest.approx(1.0) and timed(dear, 1.0, stick) == pytest.approx(2.0)
-    assert timed(cheap, 3.0, stick, batch=4) == pytest.approx(1.0) and timed(dear, 0.5, stick, 4) == pytest.approx(2.0)
-    for bad in (0.0, -1.0, math.inf, math.nan):
-        with pytest.raises(ValueError, match="Yardstick.ms must be a positive, finite time"):
-            policy.Yardstick(cheap, bad)
-
-
 def test_the_service_times_candidates_in_batches_only_on_gpus_under_load():
+    from types import SimpleNamespace
+
     from isosr_server.auto import PROBE_BATCH, probe_batch
 
     gpu, cpu = (SimpleNamespace(device=SimpleNamespace(is_cuda=c)) for c in (True, False))
