@@ -33,10 +33,8 @@ A short probe on the scene decides (its cost is ``choice.probe_seconds``):
    of that is a candidate's floor (:func:`floor_ms`), and one whose floor is over twice the
    budget is not timed at all (on a 2-core CPU at 1080p, where frames take seconds, that skips
    most candidates). On GPUs, where a first frame at a new size captures graphs and tunes
-   kernels, every candidate is timed, except one that does all the work of a candidate timed over the
-   budget and more (the same method with at least its AO rays and rays per pixel: it cannot fit; on an H200
-   under four replicas, probes whose budget nothing fit timed every candidate: 13.6-13.9 s of units between the
-   sessions' frames, against 4-5 s for the others). If none fits, the fastest timed is chosen, ``fits`` is False and a warning says so.
+   kernels, every candidate is timed. If none fits, the fastest timed is chosen, ``fits`` is
+   False and a warning says so.
 
 A scheduler that must not stop for the probe (the server's ``auto`` mode) runs it as a
 generator, :func:`probe_quality_steps` and :func:`choose_method_steps`: each yields before every
@@ -622,8 +620,8 @@ def choose_method_steps(renderer: Renderer, iso: float, width: int, height: int,
         if untimed is None and chosen in floors:  # nothing fits, the fastest known by its floor alone: time it
             untimed = chosen
             del floors[chosen]
-        elif untimed is not None and (floor := _ruled_out(untimed, quality, timings, width, height, budget_ms,
-                                                          config.headroom)) is not None:
+        elif (untimed is not None
+              and (floor := floor_ms(untimed, quality, width, height)) > OVER_BUDGET_STOP * budget_ms):
             floors[untimed] = floor
             continue
         if untimed is None:
@@ -652,18 +650,6 @@ def floor_ms(method: FrameMethod, quality: QualityProbe, width: int, height: int
     probe-size frame's time scaled to the pixels (0 where the probe timed none: on GPUs)."""
     probe_pixels = quality.size[0] * quality.size[1]
     return FLOOR_SHARE * quality.ms.get(method, 0.0) * width * height / probe_pixels
-
-
-def _ruled_out(method: FrameMethod, quality: QualityProbe, timings: dict, width: int, height: int, budget_ms: float,
-               headroom: float) -> float | None:
-    """A floor that rules ``method`` out of the budget untimed, or None: the time of a timed candidate whose work it
-    does and more (:meth:`FrameMethod.costs_at_least`) over ``headroom`` of the budget, or its :func:`floor_ms`
-    over :data:`OVER_BUDGET_STOP` budgets."""
-    bound = max((ms for m, ms in timings.items() if method.costs_at_least(m)), default=0.0)
-    if bound > headroom * budget_ms:
-        return bound
-    floor = floor_ms(method, quality, width, height)
-    return floor if floor > OVER_BUDGET_STOP * budget_ms else None
 
 
 def _pick(order: list[FrameMethod], timings: dict, budget_ms: float, headroom: float

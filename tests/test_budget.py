@@ -268,52 +268,6 @@ def test_a_candidate_whose_floor_is_over_twice_the_budget_is_not_timed(cloud):
     assert dear in timings
 
 
-def test_a_method_costs_at_least_another_with_its_knobs_and_no_fewer_rays():
-    recon = FrameMethod.of("reconstruct", ao_rays=2, spp=2, precision="fp16")
-    assert recon.costs_at_least(recon) and recon.costs_at_least(recon.replace(ao_rays=1, spp=1))
-    assert not recon.costs_at_least(recon.replace(ao_rays=4)) and not recon.costs_at_least(recon.replace(spp=4))
-    assert not recon.costs_at_least(recon.replace(ao_rays=1, spp=4)), "fewer AO rays, more per pixel: either way"
-    assert not recon.costs_at_least(recon.replace(ao_rays=1, precision="fp32")), "another knob: no order"
-    assert not recon.costs_at_least(FrameMethod.of("full", ao_rays=1)), "another kind: no order"
-    x4 = FrameMethod.of("upscale", factor=4)
-    assert x4.costs_at_least(x4) and not x4.costs_at_least(FrameMethod.of("upscale", factor=2))
-
-
-def test_a_candidate_doing_a_timed_one_s_work_and_more_is_not_timed_where_that_one_is_over_the_budget(sphere,
-                                                                                                      monkeypatch):
-    """Candidates in order of quality; the reconstruction at 1 AO ray timed over the budget rules out the ones with
-    more rays or rays per pixel (their rows: floored at its time), not another kind or fewer rays per pixel; nothing
-    fitting, the fastest timed is the choice. With a budget it fits, the dearer ones are timed as before."""
-    renderer, iso = sphere
-    recon = FrameMethod.of("reconstruct", ao_rays=1, spp=2)
-    more_rays, more_spp, fewer_spp = recon.replace(ao_rays=4), recon.replace(spp=4), recon.replace(spp=1)
-    plain = FrameMethod.of("full", ao_rays=8)
-    order = (more_spp, more_rays, recon, plain, fewer_spp)  # best expected quality first
-    times = {more_spp: 9.0, more_rays: 8.0, recon: 6.0, plain: 5.0, fewer_spp: 4.0}
-    timed = []
-
-    def time_alone(runner, cameras, config, stop_budget_ms, slice_ms=None):  # no device work: set times
-        timed.append(runner.method)
-        return times[runner.method]
-        yield
-
-    monkeypatch.setattr(policy, "_time_candidate_steps", time_alone)
-    quality = policy.QualityProbe(SIZE, {m: 40.0 - i for i, m in enumerate(order)}, 12.0, True, 0.0)
-
-    def choose(budget_ms: float, known: dict) -> policy.BudgetChoice:
-        timed.clear()
-        return choose_method(renderer, iso, *SIZE, budget_ms, BudgetConfig(candidates=order, headroom=1.0),
-                             quality=quality, timings=dict(known))
-
-    with pytest.warns(RuntimeWarning, match="no method fits"):
-        choice = choose(3.0, {recon: times[recon]})
-    assert timed == [plain, fewer_spp] and choice.method == fewer_spp and not choice.fits
-    rows = {row.method: row for row in choice.table}
-    assert rows[more_spp].floored and rows[more_rays].floored and rows[more_spp].ms == times[recon]
-    choice = choose(8.5, {recon: times[recon]})
-    assert timed == [more_spp, more_rays] and choice.method == more_rays
-
-
 def drain(steps):
     """A generator of device-thread units run to its end: (units yielded, its result)."""
     yields = 0

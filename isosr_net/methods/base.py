@@ -188,14 +188,6 @@ class FrameMethod:
         """Whether a trained network takes part."""
         return self.runner.network_class is not None
 
-    def costs_at_least(self, other: FrameMethod) -> bool:
-        """Whether a frame of this method does all of ``other``'s work: the same kind and knobs, but at least as
-        many AO rays and rays per pixel (a frame's time grows with both, all else equal)."""
-        mine, theirs = asdict(self.options), asdict(other.options)
-        rays = [k for k in ("ao_rays", "spp") if k in mine]
-        return (self.kind == other.kind and all(mine[k] >= theirs[k] for k in rays)
-                and all(mine[k] == theirs[k] for k in mine if k not in rays))
-
 
 @dataclass
 class FrameResult:
