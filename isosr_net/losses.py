@@ -1,7 +1,7 @@
 """Training losses of the super-resolution network, built from config dicts.
 
-Every loss is an ``nn.Module`` that carries its own weight (as in BasicSR) and maps a
-:class:`LossContext` to a weighted scalar. The plain functions (:func:`masked_l1`,
+Every loss is a :class:`WeightedLoss`, an ``nn.Module`` that carries its own weight (as in BasicSR) and maps a
+:class:`LossContext` to a weighted scalar (its ``term`` times the weight). The plain functions (:func:`masked_l1`,
 :func:`masked_l2`; shading from :mod:`isosr_render.shading`) hold the math; the modules are thin.
 Tensors are channels-first ``(B, C, H, W)`` in the orders of
 :mod:`isosr_render.conventions` (``HIGHRES_CHANNELS``: mask, normal xyz, depth, ao).
@@ -160,7 +160,28 @@ def _mean_error(a: torch.Tensor, b: torch.Tensor, kind: str) -> torch.Tensor:
     return F.l1_loss(a, b) if kind == "l1" else F.mse_loss(a, b)
 
 
-class ChannelLoss(nn.Module):
+class WeightedLoss(nn.Module):
+    """A loss term that carries its weight: ``forward(ctx)`` is ``weight * term(ctx)``.
+
+    Args:
+        weight: factor on the term, a finite number >= 0.
+    """
+
+    name: str
+
+    def __init__(self, weight: float = 1.0) -> None:
+        super().__init__()
+        self.weight = _check_weight(weight)
+
+    def term(self, ctx: LossContext) -> torch.Tensor:
+        """The unweighted loss (a scalar)."""
+        raise NotImplementedError
+
+    def forward(self, ctx: LossContext) -> torch.Tensor:
+        return self.weight * self.term(ctx)
+
+
+class ChannelLoss(WeightedLoss):
     """Weighted L1 / L2 on one output; see the module docstring for what each channel means.
 
     Args:
@@ -172,25 +193,23 @@ class ChannelLoss(nn.Module):
     CHANNELS = {"mask": MASK, "normal": NORMAL, "depth": DEPTH, "ao": AO, "color": None}
 
     def __init__(self, channel: str, kind: str = "l1", weight: float = 1.0) -> None:
-        super().__init__()
+        super().__init__(weight)
         if channel not in self.CHANNELS:
             raise ValueError(f"channel must be one of {sorted(self.CHANNELS)}, got {channel!r}")
-        self.channel, self.kind, self.weight = channel, _check_kind(kind), _check_weight(weight)
+        self.channel, self.kind = channel, _check_kind(kind)
         self.name = f"{channel}_{kind}"
 
-    def forward(self, ctx: LossContext) -> torch.Tensor:
+    def term(self, ctx: LossContext) -> torch.Tensor:
         pred, target = ctx.pred, ctx.target
         if self.channel == "color":
-            loss = _mean_error(shade_channels_first(pred), shade_channels_first(target), self.kind)
-        elif self.channel == "mask":
-            loss = _mean_error(pred[:, MASK], target[:, MASK], self.kind)
-        else:
-            masked = masked_l1 if self.kind == "l1" else masked_l2
-            loss = masked(pred, target, target[:, MASK], self.CHANNELS[self.channel])
-        return self.weight * loss
+            return _mean_error(shade_channels_first(pred), shade_channels_first(target), self.kind)
+        if self.channel == "mask":
+            return _mean_error(pred[:, MASK], target[:, MASK], self.kind)
+        masked = masked_l1 if self.kind == "l1" else masked_l2
+        return masked(pred, target, target[:, MASK], self.CHANNELS[self.channel])
 
 
-class PerceptualLoss(nn.Module):
+class PerceptualLoss(WeightedLoss):
     """Weighted L1 / L2 between VGG-19 features of the shaded prediction and ground truth.
 
     Both frames are shaded (:func:`shade_channels_first`), normalized by the ImageNet mean and
@@ -209,11 +228,11 @@ class PerceptualLoss(nn.Module):
     def __init__(self, weights_path: str | Path,
                  layers: Sequence[str] = ("relu1_2", "relu2_2", "relu3_4", "relu4_4", "relu5_4"),
                  weight: float = 1.0, kind: str = "l1") -> None:
-        super().__init__()
+        super().__init__(weight)
         unknown = [layer for layer in layers if layer not in VGG19_LAYERS]
         if unknown or not layers:
             raise ValueError(f"layers must be a non-empty subset of {list(VGG19_LAYERS)}, got {list(layers)}")
-        self.weight, self.kind = _check_weight(weight), _check_kind(kind)
+        self.kind = _check_kind(kind)
         self.taps = sorted({VGG19_LAYERS[layer] for layer in layers})
         # Only the layers up to the deepest tap are kept.
         self.vgg = load_vgg19_features(weights_path)[: self.taps[-1] + 1]
@@ -236,14 +255,13 @@ class PerceptualLoss(nn.Module):
                 out.append(x)
         return out
 
-    def forward(self, ctx: LossContext) -> torch.Tensor:
+    def term(self, ctx: LossContext) -> torch.Tensor:
         n = ctx.pred.shape[0]
         color = shade_channels_first(torch.cat([ctx.pred, ctx.target]))
-        losses = [_mean_error(f[:n], f[n:], self.kind) for f in self.features(color)]
-        return self.weight * torch.stack(losses).mean()
+        return torch.stack([_mean_error(f[:n], f[n:], self.kind) for f in self.features(color)]).mean()
 
 
-class TemporalLoss(nn.Module):
+class TemporalLoss(WeightedLoss):
     """Weighted masked L2 between the output and the previous output warped to this frame.
 
     Zero (without a graph) on a sequence's first frame, where ``ctx.prev_warped`` is None.
@@ -254,14 +272,10 @@ class TemporalLoss(nn.Module):
 
     name = "temporal"
 
-    def __init__(self, weight: float = 1.0) -> None:
-        super().__init__()
-        self.weight = _check_weight(weight)
-
-    def forward(self, ctx: LossContext) -> torch.Tensor:
+    def term(self, ctx: LossContext) -> torch.Tensor:
         if ctx.prev_warped is None:
             return ctx.pred.new_zeros(())
-        return self.weight * masked_l2(ctx.pred, ctx.prev_warped, ctx.target[:, MASK])
+        return masked_l2(ctx.pred, ctx.prev_warped, ctx.target[:, MASK])
 
 
 def ao_excess_error(pred_ao: torch.Tensor, rays_ao: torch.Tensor, target_ao: torch.Tensor,
@@ -278,7 +292,7 @@ def ao_excess_error(pred_ao: torch.Tensor, rays_ao: torch.Tensor, target_ao: tor
     return _masked_mean(F.relu((pred_ao - target_ao).abs() - (rays_ao - target_ao).abs()), mask)
 
 
-class AONoWorseLoss(nn.Module):
+class AONoWorseLoss(WeightedLoss):
     """Weighted :func:`ao_excess_error` of a reconstruction's AO over the ground truth's surface pixels that had AO
     rays (ValueError in a context without a reconstruction's inputs).
 
@@ -288,17 +302,13 @@ class AONoWorseLoss(nn.Module):
 
     name = "ao_no_worse"
 
-    def __init__(self, weight: float = 1.0) -> None:
-        super().__init__()
-        self.weight = _check_weight(weight)
-
-    def forward(self, ctx: LossContext) -> torch.Tensor:
+    def term(self, ctx: LossContext) -> torch.Tensor:
         if ctx.recon_inputs is None:
             raise ValueError("the ao_no_worse loss compares a reconstruction's AO with its input rays': this run's "
                              "model has none at its output's resolution (an upscaler's, or the x2 reconstruction's)")
         rays = ctx.recon_inputs
         with_rays = (ctx.target[:, MASK] > 0.5) & (rays[:, SAMPLING][:, :1] > 0)
-        return self.weight * ao_excess_error(ctx.pred[:, AO], rays[:, SAMPLED_AO], ctx.target[:, AO], with_rays)
+        return ao_excess_error(ctx.pred[:, AO], rays[:, SAMPLED_AO], ctx.target[:, AO], with_rays)
 
 
 @contextmanager
@@ -313,7 +323,7 @@ def _frozen(module: nn.Module) -> Iterator[None]:
             p.requires_grad_(flag)
 
 
-class AdversarialLoss(nn.Module):
+class AdversarialLoss(WeightedLoss):
     """Spatio-temporal conditional GAN loss with its own discriminator.
 
     Real pairs are ``(target, prev_target_warped, lowres_up)``, fake ones
@@ -328,8 +338,7 @@ class AdversarialLoss(nn.Module):
     name = "adversarial"
 
     def __init__(self, weight: float = 1.0, discriminator_config: dict[str, Any] | None = None) -> None:
-        super().__init__()
-        self.weight = _check_weight(weight)
+        super().__init__(weight)
         self.discriminator = SpatioTemporalDiscriminator(**(discriminator_config or {}))
 
     @staticmethod
@@ -344,12 +353,12 @@ class AdversarialLoss(nn.Module):
         real = torch.cat([ctx.target, prev_real, ctx.lowres_up], dim=1)
         return fake, real
 
-    def forward(self, ctx: LossContext) -> torch.Tensor:
+    def term(self, ctx: LossContext) -> torch.Tensor:
         """Generator loss; gradients reach the prediction, not the discriminator."""
         fake, _ = self._inputs(ctx)
         with _frozen(self.discriminator):
             logits = self.discriminator(fake)
-        return self.weight * F.binary_cross_entropy_with_logits(logits, torch.ones_like(logits))
+        return F.binary_cross_entropy_with_logits(logits, torch.ones_like(logits))
 
     def discriminator_loss(self, ctx: LossContext) -> torch.Tensor:
         """Discriminator loss (unweighted), mean of the real and fake terms; fakes are detached."""
@@ -360,7 +369,7 @@ class AdversarialLoss(nn.Module):
                       + F.binary_cross_entropy_with_logits(logits_fake, torch.zeros_like(logits_fake)))
 
 
-LOSS_TYPES: dict[str, type[nn.Module]] = {
+LOSS_TYPES: dict[str, type[WeightedLoss]] = {
     "channel": ChannelLoss,
     "perceptual": PerceptualLoss,
     "temporal": TemporalLoss,
