@@ -611,8 +611,7 @@ def choose_method_steps(renderer: Renderer, iso: float, width: int, height: int,
     quality = quality or (yield from probe_quality_steps(renderer, iso, width, height, config, cameras, networks))
     start = time.perf_counter()
     psnr = quality.psnr
-    rank = {m: i for i, m in enumerate(psnr)}
-    order = sorted(psnr, key=lambda m: (-psnr[m] if not math.isnan(psnr[m]) else math.inf, rank[m]))
+    order = quality_order(psnr)
     timings = {} if timings is None else timings
     floors: dict[FrameMethod, float] = {}  # this budget's candidates too dear to time, by their floor
     while True:
@@ -650,6 +649,19 @@ def floor_ms(method: FrameMethod, quality: QualityProbe, width: int, height: int
     probe-size frame's time scaled to the pixels (0 where the probe timed none: on GPUs)."""
     probe_pixels = quality.size[0] * quality.size[1]
     return FLOOR_SHARE * quality.ms.get(method, 0.0) * width * height / probe_pixels
+
+
+def quality_order(psnr: dict[FrameMethod, float]) -> list[FrameMethod]:
+    """The candidates of ``psnr`` best expected quality first (NaN: no coverage, last), ties in its order."""
+    rank = {m: i for i, m in enumerate(psnr)}
+    return sorted(psnr, key=lambda m: (-psnr[m] if not math.isnan(psnr[m]) else math.inf, rank[m]))
+
+
+def best_timed(quality: QualityProbe, timings: dict, budget_ms: float, headroom: float) -> FrameMethod | None:
+    """Of the candidates timed already, the best expected quality within ``headroom`` of the budget, else the fastest
+    of them; None where none is timed. A choice without device work."""
+    known = [m for m in quality_order(quality.psnr) if m in timings]
+    return _pick(known, timings, budget_ms, headroom)[1] if known else None
 
 
 def _pick(order: list[FrameMethod], timings: dict, budget_ms: float, headroom: float

@@ -25,7 +25,8 @@ where ``L`` moves. ``L`` is the latest measure; a method's own measure holds for
 where it is higher (its probe time counts at its own load): a method that proved dear is not tried
 again at once, while a spike that one method met (on an H200, four replicas probing at once: 13-17
 times the probe, a minute of budgets under 0.6 ms when the scene's load held it) does not keep the
-others from the budget.
+others from the budget. While a probe chooses again, a choice that no longer fits the budget gives way at once to
+the best candidate timed already that does, else to the prior at that budget (:meth:`AutoPolicy._meanwhile`).
 
 Under load a session gives up rate before AO: where that budget leaves only a frame without AO
 (or with too few rays to gain over none) in a scene where AO matters, the cheapest candidate with AO
@@ -58,7 +59,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import NamedTuple
 
-from isosr_net.budget import (BudgetChoice, BudgetConfig, CostTable, QualityProbe, choose_method_steps,
+from isosr_net.budget import (BudgetChoice, BudgetConfig, CostTable, QualityProbe, best_timed, choose_method_steps,
                               default_candidates, default_probe_height, first_hit_ms_steps, floor_ms,
                               probe_quality_steps, probe_size)
 from isosr_net.methods import FrameMethod, FrameRunner, Networks, make_runner
@@ -329,7 +330,30 @@ class AutoPolicy:
                 return decided.value
             self._probing.add(key)
             self.pending.append(probe)
-        return self.prior(self.budget_ms(sessions), scene_key) if chosen is None else chosen.choice
+        if chosen is None:
+            return self.prior(self.budget_ms(sessions), scene_key)
+        return self._meanwhile(scene_key, key, chosen, probe_batch(renderer, sessions))
+
+    def _meanwhile(self, scene_key: tuple, key: tuple, chosen: Chosen, batch: int) -> BudgetChoice:
+        """While a probe chooses again: the held choice where it still fits the budget at the scene's :meth:`load`,
+        else the best candidate timed already that does, else the prior at that budget (:meth:`prior`), without
+        device work: a choice that proved dear is not served for the seconds the probe takes (on an H200 under four
+        replicas, probes whose budget nothing fit took 13.6-13.9 s, and in a reverted experiment a choice that cost
+        21 times its probe's time was served for the 30 s its next probe took)."""
+        load = self.load(scene_key)
+        budget_ms = self.budget_ms(key[-1]) / (self.gpu_share * load)
+        factors, _ = self._held(scene_key, load)
+        timings = self._timings.get(scene_key if batch == 1 else scene_key + (batch,), {})
+        seen = {m: ms * factors.get(m, 1.0) for m, ms in timings.items()}
+        held, usable = chosen.choice, PROBE["headroom"] * budget_ms
+        if seen.get(held.method, chosen.probe_ms) <= usable or scene_key not in self._quality:
+            return held
+        quality = self._quality[scene_key]
+        method = best_timed(quality, seen, budget_ms, PROBE["headroom"])
+        if method is None or seen[method] > usable:
+            return self.prior(budget_ms, scene_key)
+        return replace(held, method=method, ms=seen[method], expected_psnr=quality.psnr[method], fits=True,
+                       budget_ms=budget_ms)
 
     def _keeping_ao(self, renderer: Renderer, iso: float, width: int, height: int, choice: BudgetChoice,
                     config: BudgetConfig, cameras: list[Camera], quality: QualityProbe,

@@ -199,6 +199,53 @@ def test_a_choice_is_held_to_what_its_frames_cost_in_service(lib, caplog):
     assert after.method == some_ao and after.budget_ms == pytest.approx(whole / 1.2)
 
 
+def test_while_a_probe_chooses_again_a_choice_that_no_longer_fits_gives_way_at_once(lib, monkeypatch):
+    """A load that cuts the budget below the choice's time starts a probe with candidates still to time; until it
+    decides, frames get the best timed candidate that fits, else the prior at the cut budget (here the cheapest
+    frame), not the choice that proved dear; a load that frees budget keeps the choice meanwhile."""
+    from isosr_server.auto import SERVICE_FRAMES
+
+    plain, some_ao, more_ao, most_ao = (FrameMethod.of("full", ao_rays=n) for n in (0, 2, 8, 16))
+    times = {plain: 1.0, some_ao: 3.0, more_ao: 6.0, most_ao: 20.0}
+
+    def time_candidate(runner, cameras, config, budget_ms, slice_ms=None):  # a unit, then a set time
+        yield
+        return times[runner.method]
+
+    monkeypatch.setattr(budget, "_time_candidate_steps", time_candidate)
+    cam, scene, scene_key = orbit(30, 20, 1.8), (VOLUME, lib.iso, 64, 48), (VOLUME, round(lib.iso, 6), 64, 48, 0.05)
+
+    def policy_timed(known: tuple) -> AutoPolicy:
+        policy = AutoPolicy((plain, some_ao, more_ao, most_ao), 30.0, Networks(), gpu_share=0.5)
+        psnr = {plain: 20.0, some_ao: 26.0, more_ao: 30.0, most_ao: 34.0}
+        policy._quality[scene_key] = budget.QualityProbe((64, 48), psnr, 12.0, True, 0.0, {})
+        policy._timings[scene_key] = {m: times[m] for m in known}
+        return policy
+
+    def serve(policy: AutoPolicy, method: FrameMethod, load: float) -> None:
+        for _ in range(SERVICE_FRAMES):
+            policy.served(*scene, 2, 0.05, Clip(), method, load * times[method])
+
+    policy = policy_timed((more_ao, most_ao))  # a probe timed these: 6 ms fits 6.25 of 8.33
+    assert policy.choose(lib.renderer, *scene, cam, 2, 0.05).method == more_ao and not policy.pending
+    serve(policy, more_ao, 3.0)  # 4.17 of 5.56 ms left: more_ao no longer fits; some_ao and plain untimed
+    meanwhile = policy.choose(lib.renderer, *scene, cam, 2, 0.05)
+    assert policy.pending and meanwhile.method == plain == prior_method(policy.candidates)
+    assert meanwhile.budget_ms == pytest.approx(1000 / (2 * 30 * 3.0)), "the whole budget over the load"
+    decided = finish_steps(policy.pending.pop())
+    assert decided.method == some_ao and policy.choose(lib.renderer, *scene, cam, 2, 0.05) is decided
+
+    policy = policy_timed((some_ao, more_ao, most_ao))
+    policy.choose(lib.renderer, *scene, cam, 2, 0.05)
+    serve(policy, more_ao, 3.0)  # 4.17 of 5.56 ms: more_ao's 6 no longer fits, some_ao's 3 (timed) does
+    policy._timings[scene_key].pop(most_ao)  # (a candidate still to time, so that the probe has device work)
+    meanwhile = policy.choose(lib.renderer, *scene, cam, 2, 0.05)
+    assert policy.pending and meanwhile.method == some_ao and meanwhile.fits and meanwhile.expected_psnr == 26.0
+    policy.pending.clear(), policy._probing.clear()
+    serve(policy, more_ao, 1.0)  # the load eases to 1: more_ao fits the freed budget (12.5 of 16.7), kept meanwhile
+    assert policy.choose(lib.renderer, *scene, cam, 2, 0.05).method == more_ao and policy.pending
+
+
 def test_under_load_auto_gives_up_rate_down_to_min_fps_to_keep_the_ao_a_scene_shows(lib, caplog):
     """Where the target rate's budget leaves only a frame without AO (or with rays that gain nothing over none) and
     AO matters, auto takes the cheapest candidate with AO rays that gains KEEP_AO_DB over it and keeps min_fps, of
