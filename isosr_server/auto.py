@@ -264,6 +264,21 @@ class AutoPolicy:
         :meth:`served`, else ``1 / gpu_share`` (a replica's probe timed with the GPU's other users idle)."""
         return self._load.get(scene_key, 1.0 / self.gpu_share)
 
+    def _budget_at(self, sessions: int, load: float) -> float:
+        """A frame's budget in probe time: the session's whole share over the ``load``."""
+        return self.budget_ms(sessions) / (self.gpu_share * load)
+
+    def _timings_of(self, scene_key: tuple, batch: int) -> dict:
+        """A scene's probe times of frames alone (kept in the cache), or in batches of ``batch`` (kept for this run:
+        measured again after a start)."""
+        return self._timings.setdefault(scene_key if batch == 1 else scene_key + (batch,), {})
+
+    def _seen(self, scene_key: tuple, load: float, timings: dict) -> tuple[dict, float]:
+        """``timings`` with the dear methods at their own held load (:meth:`_held`; one timed only now, at a new
+        batch size, counts at the scene's), and until when the first of those holds."""
+        factors, until = self._held(scene_key, load)
+        return timings | {m: ms * factors[m] for m, ms in timings.items() if m in factors}, until
+
     def _held(self, scene_key: tuple, load: float) -> tuple[dict[FrameMethod, float], float]:
         """The methods whose own measured load still holds above ``load`` (each: over it), and until when the first
         of them holds (inf: none)."""
@@ -341,10 +356,8 @@ class AutoPolicy:
         replicas, probes whose budget nothing fit took 13.6-13.9 s, and in a reverted experiment a choice that cost
         21 times its probe's time was served for the 30 s its next probe took)."""
         load = self.load(scene_key)
-        budget_ms = self.budget_ms(key[-1]) / (self.gpu_share * load)
-        factors, _ = self._held(scene_key, load)
-        timings = self._timings.get(scene_key if batch == 1 else scene_key + (batch,), {})
-        seen = {m: ms * factors.get(m, 1.0) for m, ms in timings.items()}
+        budget_ms = self._budget_at(key[-1], load)
+        seen, _ = self._seen(scene_key, load, self._timings_of(scene_key, batch))
         held, usable = chosen.choice, PROBE["headroom"] * budget_ms
         if seen.get(held.method, chosen.probe_ms) <= usable or scene_key not in self._quality:
             return held
@@ -403,13 +416,12 @@ class AutoPolicy:
         _, iso, width, height, ao_radius = scene_key[:5]
         batch = probe_batch(renderer, key[-1])
         load = self.load(scene_key)
-        budget_ms = self.budget_ms(key[-1]) / (self.gpu_share * load)  # the whole budget over the load
+        budget_ms = self._budget_at(key[-1], load)
         config = BudgetConfig(candidates=self.candidates, ao_radius=ao_radius, batch=batch, clip=clip, **PROBE)
         cameras = [camera] * config.probe_frames
         if scene_key not in self._quality and (cached := self.cache.get(scene_key, self.candidates)):
             self._quality[scene_key], self._timings[scene_key] = cached
-        # frames alone (kept in the cache), or in batches (kept for this run: measured again after a start)
-        timings = self._timings.setdefault(scene_key if batch == 1 else scene_key + (batch,), {})
+        timings = self._timings_of(scene_key, batch)
         probes_quality, timed_before = scene_key not in self._quality, len(timings)
         try:
             if scene_key not in self._quality and self.costs is not None and scene_key not in self._first_hit:
@@ -418,9 +430,7 @@ class AutoPolicy:
             if scene_key not in self._quality:
                 self._quality[scene_key] = yield from probe_quality_steps(renderer, iso, width, height, config,
                                                                           cameras, self.networks)
-            factors, until = self._held(scene_key, load)
-            # dear methods at their own load (one timed only now, at a new batch size, counts at the scene's)
-            seen = timings | {m: ms * factors[m] for m, ms in timings.items() if m in factors}
+            seen, until = self._seen(scene_key, load, timings)
             choice = yield from choose_method_steps(renderer, iso, width, height, budget_ms, config, cameras,
                                                     self.networks, self._quality[scene_key], seen,
                                                     self.slice_ms, warn=False)
