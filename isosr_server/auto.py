@@ -332,12 +332,13 @@ class AutoPolicy:
                sessions: int, ao_radius: float, clip: Clip = Clip()) -> BudgetChoice:
         """The method for this scene (as ``clip`` cuts it), size and session count, at once (device
         thread): the probe's choice where what probes learned decides it, else the prior while the
-        probe waits in :attr:`pending`."""
+        probe waits in :attr:`pending` (choosing again: :meth:`_meanwhile`, said in the log where it differs)."""
         scene_key, key = self._keys(scene, iso, width, height, sessions, ao_radius, clip)
         chosen = self._chosen.get(key)
         if chosen is not None and self._holds(scene_key, chosen):
             return chosen.choice
-        if key not in self._probing:
+        started = key not in self._probing
+        if started:
             probe = self._probe(renderer, scene_key, key, camera, clip)
             try:
                 next(probe)
@@ -347,7 +348,12 @@ class AutoPolicy:
             self.pending.append(probe)
         if chosen is None:
             return self.prior(self.budget_ms(sessions), scene_key)
-        return self._meanwhile(scene_key, key, chosen, probe_batch(renderer, sessions))
+        meanwhile = self._meanwhile(scene_key, key, chosen, probe_batch(renderer, sessions))
+        if started and meanwhile.method != chosen.choice.method:
+            log.info("auto mode, %s at %dx%d, %d sessions: %s no longer fits %.3g ms; %s until the probe chooses",
+                     scene, width, height, key[-1], chosen.choice.method.name, meanwhile.budget_ms,
+                     meanwhile.method.name)
+        return meanwhile
 
     def _meanwhile(self, scene_key: tuple, key: tuple, chosen: Chosen, batch: int) -> BudgetChoice:
         """While a probe chooses again: the held choice where it still fits the budget at the scene's :meth:`load`,

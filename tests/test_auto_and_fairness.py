@@ -199,7 +199,7 @@ def test_a_choice_is_held_to_what_its_frames_cost_in_service(lib, caplog):
     assert after.method == some_ao and after.budget_ms == pytest.approx(whole / 1.2)
 
 
-def test_while_a_probe_chooses_again_a_choice_that_no_longer_fits_gives_way_at_once(lib, monkeypatch):
+def test_while_a_probe_chooses_again_a_choice_that_no_longer_fits_gives_way_at_once(lib, monkeypatch, caplog):
     """A load that cuts the budget below the choice's time starts a probe with candidates still to time; until it
     decides, frames get the best timed candidate that fits, else the prior at the cut budget (here the cheapest
     frame), not the choice that proved dear; a load that frees budget keeps the choice meanwhile."""
@@ -229,8 +229,12 @@ def test_while_a_probe_chooses_again_a_choice_that_no_longer_fits_gives_way_at_o
     policy = policy_timed((more_ao, most_ao))  # a probe timed these: 6 ms fits 6.25 of 8.33
     assert policy.choose(lib.renderer, *scene, cam, 2, 0.05).method == more_ao and not policy.pending
     serve(policy, more_ao, 3.0)  # 4.17 of 5.56 ms left: more_ao no longer fits; some_ao and plain untimed
-    meanwhile = policy.choose(lib.renderer, *scene, cam, 2, 0.05)
+    with caplog.at_level(logging.INFO, logger="isosr.server"):
+        meanwhile = policy.choose(lib.renderer, *scene, cam, 2, 0.05)
+        policy.choose(lib.renderer, *scene, cam, 2, 0.05)
     assert policy.pending and meanwhile.method == plain == prior_method(policy.candidates)
+    said = f"2 sessions: {more_ao.name} no longer fits 5.56 ms; {plain.name} until the probe chooses"
+    assert caplog.text.count(said) == 1, "said once, as the probe starts"
     assert meanwhile.budget_ms == pytest.approx(1000 / (2 * 30 * 3.0)), "the whole budget over the load"
     decided = finish_steps(policy.pending.pop())
     assert decided.method == some_ao and policy.choose(lib.renderer, *scene, cam, 2, 0.05) is decided
