@@ -653,15 +653,13 @@ def floor_ms(method: FrameMethod, quality: QualityProbe, width: int, height: int
 
 def quality_order(psnr: dict[FrameMethod, float]) -> list[FrameMethod]:
     """The candidates of ``psnr`` best expected quality first (NaN: no coverage, last), ties in its order."""
-    rank = {m: i for i, m in enumerate(psnr)}
-    return sorted(psnr, key=lambda m: (-psnr[m] if not math.isnan(psnr[m]) else math.inf, rank[m]))
+    return sorted(psnr, key=lambda m: -psnr[m] if not math.isnan(psnr[m]) else math.inf)  # a stable sort
 
 
 def best_timed(quality: QualityProbe, timings: dict, budget_ms: float, headroom: float) -> FrameMethod | None:
-    """Of the candidates timed already, the best expected quality within ``headroom`` of the budget, else the fastest
-    of them; None where none is timed. A choice without device work."""
-    known = [m for m in quality_order(quality.psnr) if m in timings]
-    return _pick(known, timings, budget_ms, headroom)[1] if known else None
+    """Of the candidates timed already, the best expected quality within ``headroom`` of the budget; None where
+    none is. A choice without device work."""
+    return next((m for m in quality_order(quality.psnr) if timings.get(m, math.inf) <= headroom * budget_ms), None)
 
 
 def _pick(order: list[FrameMethod], timings: dict, budget_ms: float, headroom: float

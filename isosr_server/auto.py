@@ -369,7 +369,7 @@ class AutoPolicy:
             return held
         quality = self._quality[scene_key]
         method = best_timed(quality, seen, budget_ms, PROBE["headroom"])
-        if method is None or seen[method] > usable:
+        if method is None:
             return self.prior(budget_ms, scene_key)
         return replace(held, method=method, ms=seen[method], expected_psnr=quality.psnr[method], fits=True,
                        budget_ms=budget_ms)
