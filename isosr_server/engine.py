@@ -32,8 +32,8 @@ import threading
 import time
 from collections import OrderedDict
 from concurrent.futures import Future, ThreadPoolExecutor
-from contextlib import AbstractAsyncContextManager, asynccontextmanager, nullcontext, suppress
-from collections.abc import AsyncIterator, Awaitable, Callable, Generator
+from contextlib import suppress
+from collections.abc import Awaitable, Callable, Generator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -51,7 +51,6 @@ from isosr_render.brick_pool import MemoryStats
 from isosr_render.images import quantize
 from isosr_render.picking import pick
 from isosr_server.auto import AutoPolicy, ProbeCache
-from isosr_server.probe_turns import ProbeTurns
 from isosr_server.core.config import Settings
 from isosr_server.codecs.buffers import pack_view_buffers
 from isosr_server.codecs.buffers_device import view_buffer_codes
@@ -190,7 +189,6 @@ class Engine:
         self.modes: list[ModeInfo] = []
         self.auto: AutoPolicy | None = None
         self._probes: set[asyncio.Task] = set()  # the auto mode's probes under way (background device work)
-        self._turns: ProbeTurns | None = None  # probe units in turn with the other replicas on this GPU
         self._framing = 0  # view frames in the making
         self._idle = asyncio.Event()  # set while none is
         self._idle.set()
@@ -266,8 +264,6 @@ class Engine:
                                           self.config.target_fps, self.networks, self.config.recon_x2_model,
                                           ProbeCache(self.config.probe_cache, self.device_label()), self.slice_ms,
                                           self.config.gpu_share, self.config.resolved_min_fps)
-        if self.config.probe_turns and self.device.type == "cuda" and self.config.gpu_share < 1:
-            self._turns = ProbeTurns.for_gpu(self.device)
         renderer = Renderer(parse_procedural("proc:sphere@16"), str(self.device))
         if self.device.type == "cuda":
             self.auto.warm(renderer, WARM_RECON_SIZES)
@@ -336,7 +332,7 @@ class Engine:
             task.add_done_callback(self._probes.discard)
 
     async def _run_probe(self, steps: Generator) -> None:
-        await self.run_steps(steps, self._probe_unit, self._log_slow_unit)
+        await self.run_steps(steps, self._wait_idle, self._log_slow_unit)
 
     @staticmethod
     def _log_slow_unit(seconds: float) -> None:
@@ -344,23 +340,20 @@ class Engine:
         if seconds > SLOW_PROBE_UNIT_S:
             log.info("auto probe: one unit held the device thread for %.2f s (frames waited)", seconds)
 
-    @asynccontextmanager
-    async def _probe_unit(self) -> AsyncIterator[None]:
-        """A probe unit's moment: no view frame in the making (``PROBE_WAIT_S`` at most), and on a GPU that replicas
-        share, this replica's turn (:class:`~isosr_server.probe_turns.ProbeTurns`)."""
+    async def _wait_idle(self) -> None:
+        """Until no view frame is in the making, or ``PROBE_WAIT_S`` at most."""
         with suppress(asyncio.TimeoutError):
             await asyncio.wait_for(self._idle.wait(), PROBE_WAIT_S)
-        async with self._turns.turn() if self._turns is not None else nullcontext():
-            yield
 
-    async def run_steps(self, steps: Generator, each: Callable[[], AbstractAsyncContextManager] | None = None,
+    async def run_steps(self, steps: Generator, before_each: Callable[[], Awaitable[None]] | None = None,
                         took: Callable[[float], None] | None = None):
         """A generator of slices run to its end, each slice its own job on the device thread (other
-        jobs interleave between them); its result. Every slice runs within ``each()`` (entered before
-        it, left after), ``took`` is told each slice's seconds on the device thread."""
+        jobs interleave between them); its result. ``before_each`` is awaited before every slice,
+        ``took`` told each slice's seconds on the device thread."""
         while True:
-            async with each() if each is not None else nullcontext():
-                done, result, seconds = await self.call(_advance, steps)
+            if before_each is not None:
+                await before_each()
+            done, result, seconds = await self.call(_advance, steps)
             if took is not None:
                 took(seconds)
             if done:

@@ -120,8 +120,6 @@ class Settings:
         gpu_share: the part of its GPU this server has: 1, or a replica's share where replicas
             share one (`isosr serve --gpus-per-replica`, set from Ray's assignment); the auto
             mode's budget is the sessions' share of that part.
-        probe_turns: replicas that share a GPU take turns at the auto mode's probe work, one probe unit on the GPU
-            at a time (:mod:`isosr_server.probe_turns`); off by default until measured against none.
         log_level: ``debug``, ``info``, ``warning`` or ``error``.
         switch_interval_ms: how long a thread of the server's process may hold Python's interpreter lock while
             another waits for it (``sys.setswitchinterval``, :func:`configure_process`): the video encoders and the
@@ -163,8 +161,6 @@ class Settings:
                                                  "its finest level that fits, else its coarsest", int)
     probe_cache: Path | None = _option(None, "JSON file where the auto mode keeps what its probes learn per device, "
                                              "volume, iso and size, for later starts (default: memory only)", Path)
-    probe_turns: bool = _option(False, "replicas that share a GPU take turns at the auto mode's probe work, one "
-                                       "probe unit on the GPU at a time", parse_switch)
     log_level: str = _option("info", "log level", choices=LOG_LEVELS)
     switch_interval_ms: float = _option(SWITCH_INTERVAL_MS, "milliseconds a thread may hold Python's interpreter "
                                                             "lock while another waits for it (Python's own: 5)",
