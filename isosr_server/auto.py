@@ -27,6 +27,8 @@ again at once, while a spike that one method met (on an H200, four replicas prob
 times the probe, a minute of budgets under 0.6 ms when the scene's load held it) does not keep the
 others from the budget. While a probe chooses again, a choice that no longer fits the budget gives way at once to
 the best candidate timed already that does, else to the prior at that budget (:meth:`AutoPolicy._meanwhile`).
+The log says a choice where its method changes; a re-choice that keeps the method (a load measured on either side
+of :data:`DRIFT`: on an H200's replicas, loads of 1.0 and 1.3-1.4 in turn, a re-choice a second) only at DEBUG.
 
 Under load a session gives up rate before AO: where that budget leaves only a frame without AO
 (or with too few rays to gain over none) in a scene where AO matters, the cheapest candidate with AO
@@ -38,10 +40,10 @@ No frame waits for a probe. Until the probe of a scene and size has run, frames 
 first the cheapest candidate (no AO, one ray per pixel), the frame that reaches the viewer
 first; once the probe's first units timed this scene's plain first-hit frame, the device class's
 committed cost table (:class:`isosr_net.budget.CostTable`) picks the best tabled method whose
-cost in first-hit frames fits the budget. The probe runs in the background as generator steps (:func:`isosr_net.budget.choose_method_steps`)
-that the engine interleaves with frames on the device thread, a unit of work at a time, and
-that shutdown drops between two units. On GPUs a candidate's first frame at a new size carries
-one-off costs (fused kernels tuned for the size's class, shading compiled for its inputs): the
+cost in first-hit frames fits the budget. The probe runs in the background as generator steps
+(:func:`isosr_net.budget.choose_method_steps`) that the engine interleaves with frames on the device thread, a
+unit of work at a time, and that shutdown drops between two units. On GPUs a candidate's first frame at a new size
+carries one-off costs (fused kernels tuned for the size's class, shading compiled for its inputs): the
 server pays them at start for its common window sizes and their probes (:meth:`AutoPolicy.warm`),
 and logs a unit that still held the device thread for long. What a probe learns is kept per device, volume, iso and
 size in ``probe_cache`` (a JSON file), so that a restarted server chooses without probing.
@@ -311,7 +313,7 @@ class AutoPolicy:
         self._load[scene_key] = measured
         self._own.setdefault(scene_key, {})[method] = measured, self.clock()
         if not self._holds(scene_key, chosen):
-            log.info("auto mode, %s at %dx%d, %d sessions: %s costs %.3g ms in service, %.2f times its probe's time "
+            log.debug("auto mode, %s at %dx%d, %d sessions: %s costs %.3g ms in service, %.2f times its probe's time "
                      "(load %.2f, chosen at %.2f): choosing again", scene, width, height, key[-1], method.name,
                      total / frames, total / frames / chosen.probe_ms, measured, chosen.load)
 
@@ -376,14 +378,14 @@ class AutoPolicy:
 
     def _keeping_ao(self, renderer: Renderer, iso: float, width: int, height: int, choice: BudgetChoice,
                     config: BudgetConfig, cameras: list[Camera], quality: QualityProbe,
-                    timings: dict) -> Generator[None, None, BudgetChoice]:
+                    timings: dict) -> Generator[None, None, tuple[BudgetChoice, str]]:
         """``choice`` (the target rate's), or where it drops AO that matters (:func:`drops_ao`), the first candidate
         (the cheapest) with AO rays that gains :data:`KEEP_AO_DB` over it and keeps :attr:`min_fps`, of such
         candidates whose floor allows it: every one timed already (``timings``), and the first
         :data:`KEEP_AO_TRIES` of the others, timed in turn: rate given up for AO, no more of it than the cheapest
-        such frame needs."""
+        such frame needs. With it, why (for the log; empty where AO was not at stake)."""
         if not choice.ao_matters or self.min_fps == self.target_fps or not drops_ao(choice, quality):
-            return choice
+            return choice, ""
         floor_budget = choice.budget_ms * self.target_fps / self.min_fps
         gains = [m for m in self.candidates if m.ao_rays and floor_ms(m, quality, width, height) <= floor_budget
                  and quality.psnr.get(m, math.nan) >= choice.expected_psnr + KEEP_AO_DB]  # CPUs: floors untimed
@@ -394,15 +396,13 @@ class AutoPolicy:
             kept = yield from choose_method_steps(renderer, iso, width, height, floor_budget, config, cameras,
                                                   self.networks, only, timings, self.slice_ms, warn=False)
             if kept.fits:
-                log.info("auto mode: %s (%.1f dB) drops the AO the scene shows; at %g frames/s a session: %s",
-                         choice.method.name, choice.expected_psnr, self.min_fps, kept.summary())
-                return kept
+                return kept, (f"auto mode: {choice.method.name} ({choice.expected_psnr:.1f} dB) drops the AO the scene "
+                              f"shows; at {self.min_fps:g} frames/s a session: {kept.summary()}")
         tried = ", ".join(f"{m.name} {quality.psnr[m]:.1f} dB {timings.get(m, math.nan):.2f} ms"
                           for m in weighed)
-        log.info("auto mode: %s (%.1f dB) drops the AO the scene shows; none with AO keeps %g frames/s a session "
-                 "within %.3g ms (%s)", choice.method.name, choice.expected_psnr, self.min_fps,
-                 floor_budget * config.headroom, tried or f"none gains {KEEP_AO_DB:g} dB")
-        return choice
+        return choice, (f"auto mode: {choice.method.name} ({choice.expected_psnr:.1f} dB) drops the AO the scene "
+                        f"shows; none with AO keeps {self.min_fps:g} frames/s a session within "
+                        f"{floor_budget * config.headroom:.3g} ms ({tried or f'none gains {KEEP_AO_DB:g} dB'})")
 
     def prior(self, budget_ms: float, scene_key: tuple | None = None) -> BudgetChoice:
         """The choice before a probe: the cost table's where this scene's first-hit time is known
@@ -440,16 +440,20 @@ class AutoPolicy:
             choice = yield from choose_method_steps(renderer, iso, width, height, budget_ms, config, cameras,
                                                     self.networks, self._quality[scene_key], seen,
                                                     self.slice_ms, warn=False)
-            choice = yield from self._keeping_ao(renderer, iso, width, height, choice, config, cameras,
-                                                 self._quality[scene_key], seen)
+            choice, why = yield from self._keeping_ao(renderer, iso, width, height, choice, config, cameras,
+                                                      self._quality[scene_key], seen)
             timings.update({m: ms for m, ms in seen.items() if m not in timings})  # timed now
         except ValueError as e:  # the scene or size admits no candidate: say why, keep the prior
             log.warning("auto mode, %s at %dx%d: no probe (%s); frames stay %s", scene_key[0], width, height, e,
                         prior_method(self.candidates).name)
             choice, until = self.prior(self.budget_ms(key[-1]), scene_key), math.inf
-        else:
-            log.info("auto mode, %s at %dx%d, budget %.3g ms: %s", scene_key[0], width, height, budget_ms,
-                     choice.summary())
+        else:  # said where the method changes; a load's drift that keeps it, only when debugging
+            before = self._chosen.get(key)
+            level = logging.INFO if before is None or before.choice.method != choice.method else logging.DEBUG
+            if why:
+                log.log(level, "%s", why)
+            log.log(level, "auto mode, %s at %dx%d, budget %.3g ms: %s", scene_key[0], width, height, budget_ms,
+                    choice.summary())
             if probes_quality or len(timings) > timed_before:  # something was measured: keep it
                 self.cache.put(scene_key, self._quality[scene_key], self._timings.get(scene_key, {}))
         finally:

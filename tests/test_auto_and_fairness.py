@@ -174,14 +174,19 @@ def test_a_choice_is_held_to_what_its_frames_cost_in_service(lib, caplog):
     serve(more_ao, math.nan), serve(more_ao, 0.0), serve(more_ao, -1.0), serve(plain, 100.0)
     serve(more_ao, 1.0, SERVICE_FRAMES - 1)
     assert choose() is first, "nothing measured yet"
-    with caplog.at_level(logging.INFO, logger="isosr.server"):
+    with caplog.at_level(logging.DEBUG, logger="isosr.server"):
         serve(more_ao, 1.0, 1)  # the window's last frame: a load of 1, the rest of the GPU is free
     assert "1.00 times its probe's time (load 1.00, chosen at 2.00): choosing again" in caplog.text
-    light = choose()
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="isosr.server"):
+        light = choose()
     assert light.method == more_ao and light.budget_ms == pytest.approx(whole)
+    assert not caplog.text, "a re-choice that keeps the method is said only when debugging"
     serve(more_ao, 3.0)  # dear in service: 18 ms a frame
-    cut = choose()
+    with caplog.at_level(logging.INFO, logger="isosr.server"):
+        cut = choose()
     assert cut.method == some_ao and cut.budget_ms == pytest.approx(whole / 3)
+    assert f"budget {whole / 3:.3g} ms: {some_ao.name}" in caplog.text, "a change of method is said"
     serve(some_ao, 0.9 * DRIFT * 3)
     assert choose() is cut, "within DRIFT of the load it was chosen for"
     now[0] = 10.0
