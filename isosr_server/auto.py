@@ -314,8 +314,8 @@ class AutoPolicy:
         self._own.setdefault(scene_key, {})[method] = measured, self.clock()
         if not self._holds(scene_key, chosen):
             log.debug("auto mode, %s at %dx%d, %d sessions: %s costs %.3g ms in service, %.2f times its probe's time "
-                     "(load %.2f, chosen at %.2f): choosing again", scene, width, height, key[-1], method.name,
-                     total / frames, total / frames / chosen.probe_ms, measured, chosen.load)
+                      "(load %.2f, chosen at %.2f): choosing again", scene, width, height, key[-1], method.name,
+                      total / frames, total / frames / chosen.probe_ms, measured, chosen.load)
 
     def _holds(self, scene_key: tuple, chosen: Chosen) -> bool:
         """Whether a choice still holds: the scene's :meth:`load` within DRIFT of the one it was made for, and the
