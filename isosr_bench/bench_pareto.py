@@ -41,6 +41,12 @@ alone and are optimistic against a truly converged image. ``--reference-spp 16``
 selection against references of 16 rays per pixel, of which a frame's 4 are the first (rows:
 ``reference_spp``).
 
+A row's scores are of one draw of the AO rays (the service's seeds) unless ``--draws K`` (a selection only) scores
+each method over K draws of the same frames (:class:`~isosr_net.methods.FrameRunner`'s ``draw``; the first timed):
+the scores are their means, and ``color_psnr_scene_draws`` lists each draw's. Where a few rays decide a pixel's
+error (hydrogen: nearly unoccluded, rare hits), one draw's score moves by a decibel or two from seed to seed
+(measurements.md, "What one draw can tell").
+
 An empty covered region (iso outside the data) has no PSNR or SSIM: written as null, and left
 out of the Pareto fronts. Rows (``part: pareto``): one per (volume, size, method). The budget
 part (``part: budget``) runs the policy of :mod:`isosr_net.budget` at 4, 8, 16 and 33 ms and
@@ -100,6 +106,7 @@ INNER_ISO_STEP = 0.1
 EXTRA_VOLUMES = ("hydrogen", "bonsai1024")
 SMOKE_VOLUMES = {"sphere": "proc:sphere@32", "cloud": "proc:cloud:7@48"}
 FRAMES, SMOKE_FRAMES = 8, 3
+MAX_DRAWS = 64  # --draws: each a whole run of the method's frames
 WARMUP = 3  # a compiled network with CUDA graphs compiles, then records, then replays
 SMOKE_WARMUP = 1  # eager on the CPU: one call loads what it needs
 BUDGETS, SMOKE_BUDGETS = (4.0, 8.0, 16.0, 33.0), (3.0, 30.0)
@@ -177,6 +184,22 @@ def scores(frames: list, references: list, ao_rays: int = 0) -> dict:
     return out
 
 
+def frames_of(runner, pairs: list, warmup: int) -> list:
+    """The buffers of the frames along ``pairs`` (copies), after ``warmup`` frames as :func:`time_frames` makes
+    them: a timed run's frames, untimed."""
+    for i in range(warmup):
+        runner.frame(*pairs[i])
+    return [runner.frame(*pair).buffers.clone() for pair in pairs]
+
+
+def drawn_scores(draws: list[dict]) -> dict:
+    """Scores over draws of the same frames' rays: each score's mean over the draws that have it (null: none),
+    and ``color_psnr_scene_draws``, each draw's."""
+    mean = {k: finite(torch.tensor([d[k] for d in draws if d[k] is not None], dtype=torch.float64).mean().item())
+            for k in draws[0]}
+    return {**mean, "color_psnr_scene_draws": [d["color_psnr_scene"] for d in draws]}
+
+
 def flicker(frames: list, references: list) -> float:
     """:func:`isosr_net.metrics.color_instability` of the frames' colors along the references' flow."""
     colors = torch.stack([f.color.permute(2, 0, 1) for f in frames])[:, None]
@@ -197,9 +220,9 @@ def bench_cameras(frames: int):
 
 def pareto_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, int], size_name: str,
                 measured: list[FrameMethod], frames: int, warmup: int, device: str, networks: Networks,
-                surfaces: Surfaces | None = None, reference_spp: int = REFERENCE_SPP) -> list[dict]:
+                surfaces: Surfaces | None = None, reference_spp: int = REFERENCE_SPP, draws: int = 1) -> list[dict]:
     """One row per method on one volume and size (with ``surfaces``: of them, ``part: layers``), scored against
-    references of ``reference_spp`` rays per pixel."""
+    references of ``reference_spp`` rays per pixel, over ``draws`` draws of the AO rays (the first timed)."""
     cameras = bench_cameras(frames)
     pairs = sequence_cameras(cameras)
     start = time.perf_counter()
@@ -222,6 +245,10 @@ def pareto_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
         t = time_frames(lambda i: runner.frame(*pairs[i]).buffers, frames, device, warmup=warmup,
                         keep=lambda i, buffers: outs.__setitem__(i, buffers.clone()))
         scored = scores(outs, refs, method.ao_rays)
+        if draws > 1:
+            scored = drawn_scores([scored] + [scores(frames_of(make_runner(
+                method, renderer, iso, *size, networks=networks, surfaces=surfaces, draw=d), pairs, warmup), refs,
+                method.ao_rays) for d in range(1, draws)])
         ratio = None if scored["flicker"] is None or not flicker_reference else scored["flicker"] / flicker_reference
         rows.append({**part, "volume": volume, "size": size_name, "pixels": f"{size[0]}x{size[1]}",
                      "method": method.name, "kind": method.kind, "learned": method.learned,
@@ -229,7 +256,7 @@ def pareto_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
                      "ms": mean_ms(t), "wall_ms": t["wall_ms"],
                      **scored, "flicker_reference": flicker_reference, "flicker_ratio": ratio,
                      "coverage": float(sum(float((r.mask > 0.5).float().mean()) for r in refs) / frames),
-                     "reference_spp": reference_spp, **stamp})
+                     "reference_spp": reference_spp, "draws": draws, **stamp})
     print(f"{volume} {size_name}: {time.perf_counter() - start:.0f} s", flush=True)
     return rows
 
@@ -390,6 +417,9 @@ def main(argv=None) -> list[dict]:
                         help=f"rays per pixel of the references the methods' rows are scored against (default "
                         f"{REFERENCE_SPP}, which frames of as many rays match in geometry exactly; more, with a "
                         "selection only: a truer converged image)")
+    parser.add_argument("--draws", type=int, default=1,
+                        help="score each method over this many draws of its AO rays (means; the first draw timed), "
+                        "a selection only (default 1: the service's seeds)")
     parser.add_argument("--budget-only", action="store_true",
                         help="only the policy's part, scored by the methods' rows of each scene that the result "
                         "file in --out holds (measured on this kind of device; its budget rows name their commit)")
@@ -435,6 +465,11 @@ def main(argv=None) -> list[dict]:
     if args.reference_spp != REFERENCE_SPP and not selection:
         parser.error(f"--reference-spp {args.reference_spp}: the policy's part scores against its own references "
                      f"({REFERENCE_SPP} rays per pixel): give a selection (--kinds, --spp or --ao-rays)")
+    if args.draws != 1 and not selection:
+        parser.error(f"--draws {args.draws}: the policy's part scores one draw: give a selection (--kinds, --spp or "
+                     "--ao-rays)")
+    if not 1 <= args.draws <= MAX_DRAWS:
+        parser.error(f"--draws must lie in [1, {MAX_DRAWS}], got {args.draws}")
     if not 1 <= args.reference_spp <= MAX_SPP:
         parser.error(f"--reference-spp must lie in [1, {MAX_SPP}], got {args.reference_spp}")
     kind = "cuda" if args.device.startswith("cuda") else "cpu"
@@ -456,14 +491,14 @@ def main(argv=None) -> list[dict]:
             else:
                 scene = pareto_rows(renderer, iso, name, size, size_name, fitting, frames,
                                     SMOKE_WARMUP if args.smoke else WARMUP, args.device, networks,
-                                    reference_spp=args.reference_spp)
+                                    reference_spp=args.reference_spp, draws=args.draws)
             rows += scene
             if args.translucent is not None:
                 surfaces = Surfaces.of([(iso, PALETTE[0], args.translucent),
                                         (min(1.0, iso + INNER_ISO_STEP), PALETTE[1])])
                 rows += pareto_rows(renderer, iso, name, size, size_name, fitting, frames,
                                     SMOKE_WARMUP if args.smoke else WARMUP, args.device, networks, surfaces,
-                                    args.reference_spp)
+                                    args.reference_spp, args.draws)
             if not selection:  # the policy chooses among every method
                 rows += budget_rows(renderer, iso, name, size, size_name, fitting, scene,
                                     SMOKE_BUDGETS if args.smoke else BUDGETS, networks, args.smoke)

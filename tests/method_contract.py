@@ -24,6 +24,8 @@ The checks:
 - batches: three streams made together by the kind's ``make_batch`` (each along its own cameras,
   one cutting mid-way) give each stream the frames it makes alone; a stream whose frame fails
   gets its error as its result, and its batch mates their frames;
+- draws: draw 0 casts the service's AO seeds, draw 1 others (:data:`DRAW_SEEDS` on): another frame where the
+  method casts AO rays, the same frame where it casts none; a negative draw is refused naming it;
 - reset: a frame without a previous camera after a sequence equals a new runner's first frame of
   that camera (a kind with ``fresh_rays`` numbers its AO seeds by the frames it made, a stream's
   ray sequence rather than its recurrent state: the new runner is set to the same count);
@@ -39,7 +41,8 @@ The checks:
   for unlearned kinds),
   a 2x2 frame (where the factor divides 2), an anisotropic volume: finite and bounded;
 - clipping: a plane through the sphere with caps puts cut faces in the frame (its ``cap`` buffer, at
-  the frame size, an unshaded low-res kind's at the render's); planes that keep nothing leave only the background, as an empty iso;
+  the frame size, an unshaded low-res kind's at the render's); planes that keep nothing leave only the background,
+  as an empty iso;
 - bench row: the method's name (its runner's ``describe``) and its runner's label are non-empty;
   the Pareto study's method list (``bench_pareto.methods``, smoke) has the kind exactly where the
   kind shades (a study of colors), and for a shaded kind
@@ -63,7 +66,8 @@ import torch
 from conftest import DEVICE, field_volume
 from net_fixtures import tiny_model_dir
 
-from isosr_net.methods import FrameMethod, MethodOptions, Networks, make_runner
+from isosr_net.methods import FIRST_TEMPORAL_SEED, FrameMethod, MethodOptions, Networks, make_runner
+from isosr_net.methods.base import DRAW_SEEDS
 from isosr_net.model import save_pretrained
 from isosr_net.timing import StageTimer
 from isosr_net.reconnet import ReconNet, ReconNetConfig
@@ -214,14 +218,15 @@ class MethodContract:
             self.spec = self.method.replace(model=str(model), model_name="tiny")
 
     def runner(self, width: int = SIZE[0], height: int = SIZE[1], anisotropic: bool = False, iso: float | None = None,
-               clip: Clip = Clip(), coloring: Coloring | None = None, surfaces: Surfaces | None = None):
+               clip: Clip = Clip(), coloring: Coloring | None = None, surfaces: Surfaces | None = None, draw: int = 0):
         """A new runner of the method on the contact scene (``coloring``: by the scene's own field)."""
         renderer, scene_iso = scene(anisotropic)
         field = None if coloring is None else ColorField.of(coloring, renderer.volume,
                                                             None if coloring.by == GRADIENT else renderer.volume,
                                                             renderer.torch_device)
         return make_runner(self.spec, renderer, scene_iso if iso is None else iso, width, height,
-                           ao_radius=AO_RADIUS, networks=networks(), clip=clip, coloring=field, surfaces=surfaces)
+                           ao_radius=AO_RADIUS, networks=networks(), clip=clip, coloring=field, surfaces=surfaces,
+                           draw=draw)
 
     def frame_size(self, runner, width: int = SIZE[0], height: int = SIZE[1]) -> tuple[int, int]:
         """``(H, W)`` of the runner's buffers: the frame's, an unshaded low-res kind's render's."""
@@ -261,6 +266,19 @@ class MethodContract:
         b = [frame for _, frame in self.sequence(self.runner())]
         assert_same_frames(a, b)
 
+    def test_another_draw_casts_other_ao_rays(self):
+        first, other = self.runner(), self.runner(draw=1)
+        service_seed = FIRST_TEMPORAL_SEED if first.fresh_rays else 0
+        assert (first.render_request(None).seed, other.render_request(None).seed) == (service_seed,
+                                                                                      service_seed + DRAW_SEEDS)
+        a, b = buffers_of(first.frame(CAMERAS[0])), buffers_of(other.frame(CAMERAS[0]))
+        if self.spec.ao_rays:
+            assert any(not torch.equal(a[k], b[k]) for k in a), f"{self.spec.name}: another draw, the same frame"
+        else:
+            assert_same_frames([a], [b])
+        with pytest.raises(ValueError, match="draw"):
+            self.runner(draw=-1)
+
     def test_a_frame_without_a_previous_camera_forgets_the_state(self):
         runner = self.runner()
         self.sequence(runner)
@@ -294,7 +312,8 @@ class MethodContract:
     def test_a_batch_of_streams_that_shade_otherwise_makes_each_as_alone(self):
         """One batch of a plain stream, one with cut faces and one coloured by the scene's field: each frame
         equals its stream's made alone (a kind that shades its batch's frames together keeps each one's own)."""
-        makes = (self.runner, lambda: self.runner(clip=CAPPED), lambda: self.runner(coloring=Coloring("field", "magma")))
+        makes = (self.runner, lambda: self.runner(clip=CAPPED),
+                 lambda: self.runner(coloring=Coloring("field", "magma")))
         alone = [buffers_of(make().frame(CAMERAS[0])) for make in makes]
         runners = [make() for make in makes]
         results = type(runners[0]).make_batch([(runner, CAMERAS[0], None) for runner in runners])

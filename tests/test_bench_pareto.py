@@ -234,6 +234,27 @@ def test_a_selection_is_scored_against_references_of_the_rays_per_pixel_asked(tm
         assert words in capsys.readouterr().err
 
 
+def test_a_selection_is_scored_over_draws_of_its_ao_rays(tmp_path, capsys):
+    """``--draws K``: each row's scores the means over K draws of the AO rays, each draw's scene PSNR listed (other
+    rays, other scores on the cloud; none cast, the same); refused without a selection and outside [1, MAX_DRAWS]."""
+    from isosr_bench import bench_pareto
+
+    rows = bench_pareto.main(["--device", "cpu", "--smoke", "--out", str(tmp_path), "--volumes", "cloud", "--kinds",
+                              "full", "--spp", "1", "--ao-rays", "0,2", "--draws", "3"])
+    by_rays = {r["ao_rays"]: r for r in rows}
+    assert set(by_rays) == {0, 2} and all(r["draws"] == 3 and len(r["color_psnr_scene_draws"]) == 3 for r in rows)
+    for r in rows:
+        assert r["color_psnr_scene"] == pytest.approx(sum(r["color_psnr_scene_draws"]) / 3)
+    assert len(set(by_rays[2]["color_psnr_scene_draws"])) == 3, "each draw its own rays"
+    assert len(set(by_rays[0]["color_psnr_scene_draws"])) == 1, "no AO rays: one frame, whatever the draw"
+    most = bench_pareto.MAX_DRAWS
+    for argv, words in ((["--draws", "2"], "give a selection"),
+                        (["--kinds", "full", "--draws", "0"], f"--draws must lie in [1, {most}], got 0")):
+        with pytest.raises(SystemExit):
+            bench_pareto.main(["--device", "cpu", "--smoke", "--out", str(tmp_path), *argv])
+        assert words in capsys.readouterr().err
+
+
 def test_translucent_rows_stand_beside_the_single_surface_s(tmp_path, capsys):
     """``--translucent``: each method again on a translucent surface over an inner one, rows of part ``layers`` with
     the surfaces, scored against references of the same surfaces; an opacity of 1 (no second layer) is refused."""
@@ -243,7 +264,8 @@ def test_translucent_rows_stand_beside_the_single_surface_s(tmp_path, capsys):
                 "full,atrous", "--ao-rays", "2", "--spp", "1", "--translucent", "0.3"]) == 0
     rows = json.loads((tmp_path / "pareto_select_cpu.json").read_text())["rows"]
     single, layers = ([r for r in rows if r["part"] == part] for part in ("pareto", "layers"))
-    assert [r["method"] for r in layers] == [r["method"] for r in single] == ["full, AO 2, spp 1", "full, AO 2, a-trous"]
+    assert ([r["method"] for r in layers] == [r["method"] for r in single]
+            == ["full, AO 2, spp 1", "full, AO 2, a-trous"])
     for r in layers:
         assert [s[1] for s in r["surfaces"]] == [0.3, 1.0] and r["surfaces"][1][0] > r["surfaces"][0][0]
         assert r["ms"] > 0 and math.isfinite(r["color_psnr"]) and 0 <= r["color_ssim"] <= 1

@@ -1,7 +1,7 @@
 """The frame contract: a :class:`FrameMethod` names a way to make frames and its options (a frozen,
 hashable value of the kind's :class:`MethodOptions`); a :class:`FrameRunner` makes one stream's
-frames with it; :data:`RUNNERS` is the registry by kind (:func:`register_runner`), as diffusers' schedulers share one ``step()``
-contract; :class:`FrameStream` is one viewer's frames whatever it asks for next. The methods
+frames with it; :data:`RUNNERS` is the registry by kind (:func:`register_runner`), as diffusers' schedulers
+share one ``step()`` contract; :class:`FrameStream` is one viewer's frames whatever it asks for next. The methods
 themselves are one module each in this package (:mod:`isosr_net.methods`).
 """
 
@@ -38,6 +38,9 @@ MAX_FACTOR = 16
 # seed 0 and the quality reference with 1 (isosr_net.budget.REFERENCE_SEED), so no frame's rays
 # are the reference's.
 FIRST_TEMPORAL_SEED = 2
+# Another draw of the same frames' rays (FrameRunner's ``draw``) shifts every seed by this many (a temporal
+# stream's seeds wrap within its draw's): no draw meets another's seeds, nor the reference's.
+DRAW_SEEDS = 2 ** 20
 
 
 def count(default: int, low: int, high: int) -> Any:
@@ -338,6 +341,8 @@ class FrameRunner(ABC):
             shaded kind runs its :meth:`finish` on each layer apart, the second by :attr:`behind`, and composites
             the colours (:meth:`finish_layers`); an unshaded kind refuses them (ValueError).
         layer: 0, the stream's runner; 1, the :attr:`behind` twin of one (translucent surfaces' second layer).
+        draw: which draw of the AO rays: 0 (the service's), or another, whose seeds are all another's
+            (:data:`DRAW_SEEDS`): a study scores a method over several draws of the same frames.
         layered: composites the two layers of translucent surfaces itself (the render's ``color``).
 
     Attributes:
@@ -366,10 +371,11 @@ class FrameRunner(ABC):
                  shading: ShadingParams = ShadingParams(), ao_radius: float = AO_RADIUS,
                  networks: Networks | None = None, atrous: ATrousConfig = ATrousConfig(), keep: tuple[str, ...] = (),
                  shade: bool = True, clip: Clip = Clip(), coloring: ColorField | None = None,
-                 surfaces: Surfaces | None = None, layer: int = 0):
+                 surfaces: Surfaces | None = None, layer: int = 0, draw: int = 0):
         check_int(width, "width", 1, where="frame")
         check_int(height, "height", 1, where="frame")
         check_int(layer, "layer", 0, 1, where="frame")
+        check_int(draw, "draw", 0, 2 ** 31 // DRAW_SEEDS - 1, where="frame")
         if (reason := self.unavailable()) is not None:
             raise RuntimeError(f"{method.name} cannot run here: {reason}")
         if width % method.factor or height % method.factor:
@@ -387,6 +393,7 @@ class FrameRunner(ABC):
         self.device = str(renderer.device)
         self._last_timer: StageTimer | None = None  # the previous frame's (read lazily: no sync per frame)
         self.frames = 0  # frames made: with fresh_rays, the next frame's AO seed
+        self.draw = draw
         self.layer, self.prev_camera = layer, None
         networks = Networks() if networks is None else networks
         self.net: RecurrentNetwork | None = None
@@ -401,7 +408,8 @@ class FrameRunner(ABC):
         self.behind: FrameRunner | None = None
         if translucent and shade and not self.layered and not layer:
             self.behind = type(self)(method, renderer, iso, width, height, shading, ao_radius, networks, atrous,
-                                     shade=shade, clip=clip, coloring=coloring, surfaces=surfaces, layer=1)
+                                     shade=shade, clip=clip, coloring=coloring, surfaces=surfaces, layer=1,
+                                     draw=draw)
 
     @classmethod
     def unavailable(cls) -> str | None:
@@ -452,11 +460,12 @@ class FrameRunner(ABC):
         outputs += ("cap",) if self.shade and self.clip.capped else ()
         outputs += ("surface",) if self.behind is not None else ()  # the layers' opacities (finish_layers)
         m = self.method
-        seed = {"seed": (FIRST_TEMPORAL_SEED + self.frames) % 2 ** 31} if self.fresh_rays else {}
+        fresh = FIRST_TEMPORAL_SEED + self.frames % (DRAW_SEEDS - FIRST_TEMPORAL_SEED) if self.fresh_rays else 0
+        seed = self.draw * DRAW_SEEDS + fresh
         return RenderRequest(self.width // m.factor, self.height // m.factor, self.iso, outputs,
                              ao_radius=self.ao_radius, prev_camera=prev_camera if flow else None,
                              shading=self.shading, spp=m.spp, ao_samples=max(1, m.ao_rays), clip=self.clip,
-                             coloring=self.coloring if self.shade else None, surfaces=self.surfaces, **seed)
+                             coloring=self.coloring if self.shade else None, surfaces=self.surfaces, seed=seed)
 
     def frame(self, camera: Camera, prev_camera: Camera | None = None) -> FrameResult:
         """The next frame of the stream; ``prev_camera=None`` starts a new sequence.
