@@ -87,7 +87,7 @@ from isosr_render.surfaces import PALETTE, Surfaces
 from isosr_net.budget import (REFERENCE_AO_RAYS, REFERENCE_SPP, BudgetConfig, choose_method, front_psnr, probe_quality,
                               reference_frames)
 from isosr_net.flow_warp import warp_by_flow
-from isosr_net.methods import RUNNERS, FrameMethod, Networks, make_runner, unavailable_kinds
+from isosr_net.methods import RUNNERS, FrameMethod, Networks, make_runner, run_sequence, unavailable_kinds
 from isosr_net.metrics import color_instability, eval_region, masked_psnr, masked_ssim, scene_region
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL
 from isosr_net.upscaler import DEFAULT_MODEL
@@ -184,12 +184,11 @@ def scores(frames: list, references: list, ao_rays: int = 0) -> dict:
     return out
 
 
-def frames_of(runner, pairs: list, warmup: int) -> list:
-    """The buffers of the frames along ``pairs`` (copies), after ``warmup`` frames as :func:`time_frames` makes
-    them: a timed run's frames, untimed."""
-    for i in range(warmup):
-        runner.frame(*pairs[i])
-    return [runner.frame(*pair).buffers.clone() for pair in pairs]
+def frames_of(runner, cameras: list, warmup: int) -> list:
+    """The buffers of the frames along ``cameras`` (copies), after ``warmup`` frames along their first as
+    :func:`time_frames` makes them: a timed run's frames, untimed."""
+    run_sequence(runner, cameras[:warmup])
+    return run_sequence(runner, cameras)
 
 
 def drawn_scores(draws: list[dict]) -> dict:
@@ -247,7 +246,7 @@ def pareto_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
         scored = scores(outs, refs, method.ao_rays)
         if draws > 1:
             scored = drawn_scores([scored] + [scores(frames_of(make_runner(
-                method, renderer, iso, *size, networks=networks, surfaces=surfaces, draw=d), pairs, warmup), refs,
+                method, renderer, iso, *size, networks=networks, surfaces=surfaces, draw=d), cameras, warmup), refs,
                 method.ao_rays) for d in range(1, draws)])
         ratio = None if scored["flicker"] is None or not flicker_reference else scored["flicker"] / flicker_reference
         rows.append({**part, "volume": volume, "size": size_name, "pixels": f"{size[0]}x{size[1]}",

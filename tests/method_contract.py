@@ -66,8 +66,7 @@ import torch
 from conftest import DEVICE, field_volume
 from net_fixtures import tiny_model_dir
 
-from isosr_net.methods import FIRST_TEMPORAL_SEED, FrameMethod, MethodOptions, Networks, make_runner
-from isosr_net.methods.base import DRAW_SEEDS
+from isosr_net.methods import DRAW_SEEDS, FIRST_TEMPORAL_SEED, FrameMethod, MethodOptions, Networks, make_runner
 from isosr_net.model import save_pretrained
 from isosr_net.timing import StageTimer
 from isosr_net.reconnet import ReconNet, ReconNetConfig

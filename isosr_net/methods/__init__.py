@@ -29,9 +29,9 @@ where it is missing (:func:`unavailable_kinds`); making its runner raises that r
 from importlib import import_module
 from pkgutil import iter_modules
 
-from isosr_net.methods.base import (FIRST_TEMPORAL_SEED, MAX_FACTOR, RUNNERS, FrameMethod, FrameResult, FrameRunner,
-                                    FrameStream, MethodOptions, Networks, finish_steps, make_runner, parse_method,
-                                    register_runner, run_sequence, unavailable_kinds)
+from isosr_net.methods.base import (DRAW_SEEDS, FIRST_TEMPORAL_SEED, MAX_FACTOR, RUNNERS, FrameMethod, FrameResult,
+                                    FrameRunner, FrameStream, MethodOptions, Networks, finish_steps, make_runner,
+                                    parse_method, register_runner, run_sequence, unavailable_kinds)
 
 # The registry's order is the menus' order: these first, then any other module here by name (a
 # new method is a module of this package, nothing else to edit).
@@ -42,6 +42,6 @@ for _name in [*METHOD_MODULES, *(n for n in _found if n not in METHOD_MODULES)]:
 
 from isosr_net.methods.upscale import upscale_classic  # noqa: E402 (after the registry is filled)
 
-__all__ = ["FIRST_TEMPORAL_SEED", "MAX_FACTOR", "METHOD_MODULES", "RUNNERS", "FrameMethod", "FrameResult", "FrameRunner",
-           "FrameStream", "MethodOptions", "Networks", "finish_steps", "make_runner", "register_runner",
+__all__ = ["DRAW_SEEDS", "FIRST_TEMPORAL_SEED", "MAX_FACTOR", "METHOD_MODULES", "RUNNERS", "FrameMethod", "FrameResult",
+           "FrameRunner", "FrameStream", "MethodOptions", "Networks", "finish_steps", "make_runner", "register_runner",
            "parse_method", "run_sequence", "unavailable_kinds", "upscale_classic"]
