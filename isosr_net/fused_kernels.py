@@ -294,7 +294,7 @@ def _upsample_add_kernel(x_ptr, c_ptr, rw_ptr, rb_ptr, out_ptr, hp, wp, hc, wc, 
 @triton.jit
 def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, sn_b, sn_c, sn_h, sn_w,
                  d_ptr, sd_b, sd_c, sd_h, sd_w, a_ptr, sa_b, sa_c, sa_h, sa_w, s_ptr, ss_b, ss_c, ss_h, ss_w,
-                 out_ptr, color_ptr, g_ptr, h, w, hp, wp, size_class, ray_scale, blend_rays, ray_factor, z,
+                 out_ptr, color_ptr, g_ptr, h, w, hp, wp, size_class, ray_scale, blend_rays, ray_factor, z, z_past,
                  albedo_r, albedo_g, albedo_b, ambient,
                  diffuse, specular, shininess, light_x, light_y, light_z, half_x, half_y, half_z, back_r, back_g, back_b,
                  MASK_C: tl.constexpr, NORMAL_C: tl.constexpr, DEPTH_C: tl.constexpr, AO_C: tl.constexpr,
@@ -353,13 +353,14 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, s
                     k = k * 4.0 * p * (1.0 - p)
                 weight = n / tl.maximum(n + k, 1e-12)  # an infinite k: the network's AO alone
                 ao = tl.minimum(weight * rays + (1.0 - weight) * ao, 1.0)
-            if INTERVAL:  # within the rays' Wilson interval (reconnet.rays_interval)
+            if INTERVAL:  # within the rays' Wilson interval (reconnet.rays_interval at reconnet.interval_z)
+                zn = tl.where(z_past > 0, z * tl.sqrt(z_past / tl.maximum(tl.maximum(n, z_past), 1e-12)), z)
                 cast = n * ray_factor
                 m = tl.maximum(cast, 1e-12)
                 q = tl.minimum(tl.maximum(rays, 0.0), 1.0)
-                spread = z * z / m
+                spread = zn * zn / m
                 center = (q + spread / 2.0) / (1.0 + spread)
-                half = z / (1.0 + spread) * tl.sqrt(q * (1.0 - q) / m + spread / (4.0 * m))
+                half = zn / (1.0 + spread) * tl.sqrt(q * (1.0 - q) / m + spread / (4.0 * m))
                 ao = tl.where(cast > 0, tl.minimum(tl.maximum(ao, center - half), center + half), ao)
         if BUFFERS:  # isosr_net.inference.buffer_stack: unit normals and depth where covered, else 0
             covered = mask > 0
@@ -670,6 +671,7 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
                                  bias if gates is None else gates, h, w, hp, wp,
                                  _size_class(h * w), float(config.max_ao_rays * config.max_spp),
                                  float(blend_rays or 0.0), float(ray_factor), float(config.ao_interval),
+                                 float(config.ao_interval_narrows_past),
                                  *params.albedo, params.ambient,
                                  params.diffuse, params.specular, params.shininess, *light, *half, *params.background,
                                  MASK_C=MASK.start, NORMAL_C=NORMAL.start, DEPTH_C=DEPTH.start, AO_C=AO.start,

@@ -133,6 +133,9 @@ class ReconNetConfig:
             interval of the rays' mean at ``z`` standard deviations (:func:`rays_interval`), which narrows to the
             mean as rays grow: the network corrects a mean of many rays only as far as those rays allow. 0: off;
             no weights depend on it.
+        ao_interval_narrows_past: ``n0`` > 0: with ``ao_interval``, past ``n0`` of the frame's own rays per pixel
+            ``n`` its ``z`` falls as ``sqrt(n0 / n)`` (:func:`interval_z`), so the interval narrows as ``1 / n``: the
+            more rays a frame casts, the less the network may move their mean. 0: ``z`` at every ``n``.
         upscale: output over input resolution (:data:`UPSCALES`): 2 reconstructs a frame rendered
             at half the output's sides (:func:`upsampled_inputs` is the base its output corrects).
     """
@@ -150,6 +153,7 @@ class ReconNetConfig:
     blend_variance: bool = False
     blend_beyond: float = 0.0
     ao_interval: float = 0.0
+    ao_interval_narrows_past: float = 0.0
 
     def __post_init__(self):
         object.__setattr__(self, "widths", tuple(self.widths))
@@ -168,12 +172,14 @@ class ReconNetConfig:
         for flag in ("geometry_gate", "blend_map", "blend_variance"):
             if not isinstance(getattr(self, flag), bool):
                 raise ValueError(f"{flag} must be true or false, got {getattr(self, flag)!r}")
-        for name in ("blend_beyond", "ao_interval"):
+        for name in ("blend_beyond", "ao_interval", "ao_interval_narrows_past"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < math.inf:
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
         if self.ao_interval and self.ao_prior == "none":
             raise ValueError("ao_interval keeps a model's AO near its input rays': it needs ao_prior 'rays' or 'blend'")
+        if self.ao_interval_narrows_past and not self.ao_interval:
+            raise ValueError("ao_interval_narrows_past narrows the rays' interval: it needs ao_interval > 0")
         for flag in ("blend_map", "blend_variance", "blend_beyond"):
             if getattr(self, flag) and self.ao_prior != "blend":
                 raise ValueError(f"{flag} weighs a blend model's AO: it needs ao_prior 'blend', got {self.ao_prior!r}")
@@ -184,14 +190,27 @@ class ReconNetConfig:
         return RayLimits(self.max_ao_rays, self.max_spp)
 
 
-def rays_interval(mean: torch.Tensor, rays: torch.Tensor, z: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """The Wilson score interval of an AO that ``rays`` rays of mean ``mean`` estimate, at ``z`` standard
-    deviations: the values in ``[0, 1]`` their mean is within ``z`` deviations of (a ray's AO lies in
-    ``[0, 1]``, so its variance is at most ``p (1 - p)``; the interval holds where all rays agree). ``[0, 1]``
-    where no ray was cast.
+def interval_z(z: float, rays: torch.Tensor, narrows_past: float) -> torch.Tensor:
+    """The interval's ``z`` at a frame's own ``rays`` per pixel: ``z`` up to ``narrows_past`` rays, then
+    ``z sqrt(narrows_past / rays)``; ``z`` everywhere where ``narrows_past`` is 0.
 
     Shape:
-        mean, rays: (B, 1, H, W). Returns (low, high), each (B, 1, H, W).
+        rays: (B, 1, H, W). Returns (B, 1, H, W).
+    """
+    if not narrows_past:
+        return torch.full_like(rays, z)
+    return z * torch.sqrt(narrows_past / rays.clamp_min(narrows_past))
+
+
+def rays_interval(mean: torch.Tensor, rays: torch.Tensor, z: float | torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The Wilson score interval of an AO that ``rays`` rays of mean ``mean`` estimate, at ``z`` standard
+    deviations (one, or one per pixel): the values in ``[0, 1]`` their mean is within ``z`` deviations of (a
+    ray's AO lies in ``[0, 1]``, so its variance is at most ``p (1 - p)``; the interval holds where all rays
+    agree). ``[0, 1]`` where no ray was cast.
+
+    Shape:
+        mean, rays: (B, 1, H, W). z: () or (B, 1, H, W). Returns (low, high), each (B, 1, H, W).
     """
     n = rays.clamp_min(1e-12)
     p = mean.clamp(0.0, 1.0)
@@ -215,7 +234,8 @@ def ao_output(raw_ao: torch.Tensor, inputs: torch.Tensor, config: ReconNetConfig
     ``blend_map``; times ``4 p (1 - p)`` with ``blend_variance``, the mean's variance per ray, so that rays
     that agree outweigh the network): with many rays the output converges to the rays' mean, the plain
     render's AO; with none it is ``o``. With ``config.ao_interval``, clamped to the rays' interval
-    (:func:`rays_interval` of the ``n`` rays times ``ray_factor``, all the rays behind the mean).
+    (:func:`rays_interval` of the ``n`` rays times ``ray_factor``, all the rays behind the mean, at the
+    :func:`interval_z` of the ``n``).
 
     Shape:
         raw_ao: (B, 1, H, W). inputs: (B, 8, H, W). blend_rays: () or (B, 1, H, W) (with "blend").
@@ -236,7 +256,8 @@ def ao_output(raw_ao: torch.Tensor, inputs: torch.Tensor, config: ReconNetConfig
         weight = n / (n + blend_rays).clamp_min(1e-12)  # no rays and a weight worth none: the network's
         ao = weight * mean + (1 - weight) * ao
     if config.ao_interval:
-        ao = torch.clamp(ao, *rays_interval(mean, n * ray_factor, config.ao_interval))
+        z = interval_z(config.ao_interval, n, config.ao_interval_narrows_past)
+        ao = torch.clamp(ao, *rays_interval(mean, n * ray_factor, z))
     return ao
 
 

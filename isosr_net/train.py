@@ -135,8 +135,10 @@ def contexts(batch: SequenceBatch, outputs: torch.Tensor, warped: torch.Tensor, 
 
 
 def weights_config(config):
-    """A model config as its weights see it: a ReconNet's ``blend_beyond`` and ``ao_interval`` have none."""
-    return replace(config, blend_beyond=0.0, ao_interval=0.0) if isinstance(config, ReconNetConfig) else config
+    """A model config as its weights see it: a ReconNet's ``blend_beyond`` and ``ao_interval`` (and its narrowing)
+    have none."""
+    return (replace(config, blend_beyond=0.0, ao_interval=0.0, ao_interval_narrows_past=0.0)
+            if isinstance(config, ReconNetConfig) else config)
 
 
 def start_configs(config) -> list:

@@ -313,22 +313,30 @@ def test_tail_is_the_output_convolution_and_reconnets_output_stack(h, w, hp, wp,
 
 @pytest.mark.parametrize("ao_prior", ["rays", "blend"])
 @pytest.mark.parametrize("ray_factor", [1.0, 16.0])
-def test_an_interval_tail_keeps_its_ao_within_the_rays_interval_as_ao_output(ao_prior, ray_factor):
+@pytest.mark.parametrize("narrows_past", [0.0, 16.0])
+def test_an_interval_tail_keeps_its_ao_within_the_rays_interval_as_ao_output(ao_prior, ray_factor, narrows_past):
     """ao_interval: the tail's AO as ao_output's in float64 (the rays' Wilson interval of the rays behind the mean,
-    ``ray_factor`` counted), and the interval changes it (a tail of AO far off, a blend that trusts it)."""
+    ``ray_factor`` counted, its z falling past ``narrows_past`` rays per pixel), and the interval changes it (a tail
+    of AO far off, a blend that trusts it), as the falling z does where a pixel has more rays."""
     h, w = 13, 21
     features, taps, bias, inputs = tail_case(h, w, 16, 24)
     bias[5] = 4.0  # the AO channel's raw output far off
+    inputs[1, SAMPLING] = 1.0  # frame 0 at 4 rays per pixel, frame 1 at 64
     raw, magnitude = (t[:, :6, :h, :w] for t in conv_ref(nchw(features), taps, bias))
-    config = ReconNetConfig(ao_prior=ao_prior, max_ao_rays=16, ao_interval=2.0)
+    config = ReconNetConfig(ao_prior=ao_prior, max_ao_rays=16, ao_interval=2.0, ao_interval_narrows_past=narrows_past)
     blend = 1e3 if ao_prior == "blend" else None
     k = None if blend is None else torch.tensor(blend, dtype=torch.float64)
     out, _ = recon_tail(features, taps, bias, ReconSources.of_inputs(inputs), config, blend_rays=blend,
                         ray_factor=ray_factor)
     expected = ao_output(raw[:, AO], inputs.double(), config, k, ray_factor)
-    free = ao_output(raw[:, AO], inputs.double(), dataclasses.replace(config, ao_interval=0.0), k, ray_factor)
+    free = ao_output(raw[:, AO], inputs.double(), dataclasses.replace(config, ao_interval=0.0,
+                                                                     ao_interval_narrows_past=0.0), k, ray_factor)
     assert ((out[:, AO].double() - expected).abs() <= 1e-5 * (magnitude[:, AO] + 1)).all()
     assert (expected - free).abs().max() > 0.05
+    if narrows_past:
+        wide = ao_output(raw[:, AO], inputs.double(), dataclasses.replace(config, ao_interval_narrows_past=0.0), k,
+                         ray_factor)
+        assert (expected - wide).abs().max() > 1e-3
 
 
 def test_a_gated_tail_scales_each_frame_s_geometry_corrections_by_its_rays_per_pixel():
