@@ -354,8 +354,8 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, s
                 weight = n / tl.maximum(n + k, 1e-12)  # an infinite k: the network's AO alone
                 ao = tl.minimum(weight * rays + (1.0 - weight) * ao, 1.0)
             if INTERVAL:  # within the rays' Wilson interval (reconnet.rays_interval at reconnet.interval_z)
-                zn = tl.where(z_past > 0, z * tl.sqrt(z_past / tl.maximum(tl.maximum(n, z_past), 1e-12)), z)
                 cast = n * ray_factor
+                zn = tl.where(z_past > 0, z * tl.sqrt(z_past / tl.maximum(tl.maximum(cast, z_past), 1e-12)), z)
                 m = tl.maximum(cast, 1e-12)
                 q = tl.minimum(tl.maximum(rays, 0.0), 1.0)
                 spread = zn * zn / m

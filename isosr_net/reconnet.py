@@ -134,8 +134,9 @@ class ReconNetConfig:
             mean as rays grow: the network corrects a mean of many rays only as far as those rays allow. 0: off;
             no weights depend on it.
         ao_interval_narrows_past: ``n0`` > 0: with ``ao_interval``, past ``n0`` of the frame's own rays per pixel
-            ``n`` its ``z`` falls as ``sqrt(n0 / n)`` (:func:`interval_z`), so the interval narrows as ``1 / n``: the
-            more rays a frame casts, the less the network may move their mean. 0: ``z`` at every ``n``.
+            ``n`` (all it cast, those past the model's ray limits too) its ``z`` falls as ``sqrt(n0 / n)``
+            (:func:`interval_z`), so the interval narrows as ``1 / n``: the more rays a frame casts, the less the
+            network may move their mean. 0: ``z`` at every ``n``.
         upscale: output over input resolution (:data:`UPSCALES`): 2 reconstructs a frame rendered
             at half the output's sides (:func:`upsampled_inputs` is the base its output corrects).
     """
@@ -234,8 +235,8 @@ def ao_output(raw_ao: torch.Tensor, inputs: torch.Tensor, config: ReconNetConfig
     ``blend_map``; times ``4 p (1 - p)`` with ``blend_variance``, the mean's variance per ray, so that rays
     that agree outweigh the network): with many rays the output converges to the rays' mean, the plain
     render's AO; with none it is ``o``. With ``config.ao_interval``, clamped to the rays' interval
-    (:func:`rays_interval` of the ``n`` rays times ``ray_factor``, all the rays behind the mean, at the
-    :func:`interval_z` of the ``n``).
+    (:func:`rays_interval` of the ``n`` rays times ``ray_factor``, all the rays behind the mean, at their
+    :func:`interval_z`).
 
     Shape:
         raw_ao: (B, 1, H, W). inputs: (B, 8, H, W). blend_rays: () or (B, 1, H, W) (with "blend").
@@ -256,8 +257,9 @@ def ao_output(raw_ao: torch.Tensor, inputs: torch.Tensor, config: ReconNetConfig
         weight = n / (n + blend_rays).clamp_min(1e-12)  # no rays and a weight worth none: the network's
         ao = weight * mean + (1 - weight) * ao
     if config.ao_interval:
-        z = interval_z(config.ao_interval, n, config.ao_interval_narrows_past)
-        ao = torch.clamp(ao, *rays_interval(mean, n * ray_factor, z))
+        cast = n * ray_factor
+        ao = torch.clamp(ao, *rays_interval(mean, cast, interval_z(config.ao_interval, cast,
+                                                                   config.ao_interval_narrows_past)))
     return ao
 
 

@@ -272,7 +272,8 @@ def test_an_interval_model_corrects_a_mean_only_as_far_as_its_rays_allow():
 def test_the_interval_narrows_as_one_over_the_frame_s_rays_past_its_point():
     """ao_interval_narrows_past 16: z 2 up to 16 rays per pixel (and without rays), 1 at 64, 0.5 at 256, so the
     interval's width falls about as 1 / n there (1 / sqrt(n) below); a frame of 64 rays per pixel gets the AO of
-    a constant z = 1, one of 4 that of z = 2; it needs an interval and a finite count >= 0."""
+    a constant z = 1, one of 256 (64 the model reads, ``ray_factor`` 4) that of z = 0.5, one of 4 that of z = 2;
+    it needs an interval and a finite count >= 0."""
     rays = torch.tensor([0.0, 4.0, 16.0, 64.0, 256.0]).view(1, 1, 1, -1)
     assert interval_z(2.0, rays, 16.0).flatten().tolist() == [2.0, 2.0, 2.0, 1.0, 0.5]
     assert interval_z(2.0, rays, 0.0).flatten().tolist() == [2.0] * 5
@@ -283,12 +284,12 @@ def test_the_interval_narrows_as_one_over_the_frame_s_rays_past_its_point():
     assert 3.6 < width[0] / width[1] < 4.4 and 3.6 < width[1] / width[2] < 4.4
     narrowing = ReconNetConfig(ao_prior="blend", max_ao_rays=16, ao_interval=2.0, ao_interval_narrows_past=16.0)
     blend = torch.tensor(16.0)
-    for ao_rays, spp, z in ((16, 4, 1.0), (4, 1, 2.0)):
+    for ao_rays, spp, factor, z in ((16, 4, 1.0, 1.0), (16, 4, 4.0, 0.5), (4, 1, 1.0, 2.0)):
         inputs = recon_batch(b=1, ao_rays=ao_rays, spp=spp, limits=narrowing.limits)
         raw = torch.full_like(inputs[:, :1], 4.0)
         constant = replace(narrowing, ao_interval=z, ao_interval_narrows_past=0.0)
-        torch.testing.assert_close(ao_output(raw, inputs, narrowing, blend, 2.0),
-                                   ao_output(raw, inputs, constant, blend, 2.0))
+        torch.testing.assert_close(ao_output(raw, inputs, narrowing, blend, factor),
+                                   ao_output(raw, inputs, constant, blend, factor))
     for bad, match in (({"ao_interval": 0.0}, "needs ao_interval"), ({"ao_interval_narrows_past": -1.0}, ">= 0"),
                        ({"ao_interval_narrows_past": math.inf}, "finite")):
         with pytest.raises(ValueError, match=match):
