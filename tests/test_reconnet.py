@@ -515,7 +515,9 @@ def test_the_shipped_models_keep_their_configs_and_their_ao_is_that_of_their_tai
     config = reconstructor.net.config
     assert (config.ao_prior, config.limits, recon_limits(model)) == (prior, limits, limits)
     assert config.blend_map == config.geometry_gate == (prior == "blend")
-    assert config.blend_beyond == (2.0 if model == DEFAULT_RECON_MODEL else 0.0)  # past its ray limits (measurements.md)
+    shipped = model == DEFAULT_RECON_MODEL  # past its ray limits, and its interval (measurements.md)
+    assert (config.blend_beyond, config.ao_interval, config.ao_interval_narrows_past) == (
+        (2.0, 2.0, 64.0) if shipped else (0.0, 0.0, 0.0))
     raws, inputs, maps = [], [], []
     reconstructor.net.tail.register_forward_hook(lambda module, args, out: raws.append(out))
     reconstructor.net.register_forward_pre_hook(lambda module, args: inputs.append(args[0]))
