@@ -16,6 +16,10 @@ Losses
     ``ao_no_worse``  a reconstruction's AO error beyond its input rays' own, per pixel (a hinge, zero
                      where the output is at least as close to the truth as the rays' mean): what
                      "never worse than the input" asks of it (:func:`ao_excess_error`).
+    ``ao_psnr_no_worse``  per frame, how many dB the reconstruction's AO falls short of its input rays' mean
+                     (a hinge, zero for frames where the output is at least as close to the truth): the same
+                     ask counted as the Pareto study counts it, per frame, so a pixel's loss may pay for
+                     another's gain (:func:`ao_psnr_shortfall`).
     ``adversarial``  spatio-temporal conditional GAN (TecoGAN style): the discriminator sees the
                      current frame, the previous frame warped to it and the upsampled low-res
                      input. :meth:`AdversarialLoss.forward` is the generator term;
@@ -303,12 +307,63 @@ class AONoWorseLoss(WeightedLoss):
     name = "ao_no_worse"
 
     def term(self, ctx: LossContext) -> torch.Tensor:
-        if ctx.recon_inputs is None:
-            raise ValueError("the ao_no_worse loss compares a reconstruction's AO with its input rays': this run's "
-                             "model has none at its output's resolution (an upscaler's, or the x2 reconstruction's)")
-        rays = ctx.recon_inputs
-        with_rays = (ctx.target[:, MASK] > 0.5) & (rays[:, SAMPLING][:, :1] > 0)
-        return ao_excess_error(ctx.pred[:, AO], rays[:, SAMPLED_AO], ctx.target[:, AO], with_rays)
+        return ao_excess_error(ctx.pred[:, AO], *_rays_and_truth(ctx, self.name))
+
+
+def _rays_and_truth(ctx: LossContext, loss: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A reconstruction's input rays' AO mean, the truth's AO and the truth's surface pixels that had AO rays, as
+    the losses that compare the output with its input take them; ValueError without a reconstruction's inputs.
+
+    Shape:
+        Returns three (B, 1, H, W) tensors.
+    """
+    if ctx.recon_inputs is None:
+        raise ValueError(f"the {loss} loss compares a reconstruction's AO with its input rays': this run's model has "
+                         "none at its output's resolution (an upscaler's, or the x2 reconstruction's)")
+    rays = ctx.recon_inputs
+    with_rays = (ctx.target[:, MASK] > 0.5) & (rays[:, SAMPLING][:, :1] > 0)
+    return rays[:, SAMPLED_AO], ctx.target[:, AO], with_rays
+
+
+# The squared AO error below which two frames' AO counts as equal (an RMS error of 1e-5: far under an 8-bit step).
+AO_MSE_FLOOR = 1e-10
+
+
+def ao_psnr_shortfall(pred_ao: torch.Tensor, rays_ao: torch.Tensor, target_ao: torch.Tensor,
+                      mask: torch.Tensor) -> torch.Tensor:
+    """Mean over the frames of ``relu(10 log10((e_pred + f) / (e_rays + f)))``, ``e`` a frame's mean squared AO
+    error over ``mask`` and ``f`` :data:`AO_MSE_FLOOR`: the dB of AO PSNR each frame's output falls short of the
+    rays' mean it was given; 0 for a frame where it is at least as close, or where nothing is covered.
+
+    Shape:
+        pred_ao, rays_ao, target_ao, mask: (B, 1, H, W). Returns a scalar.
+    """
+    dims = check_shape(pred_ao, "(B, 1, H, W)", "pred_ao", "ao_psnr_shortfall")
+    for name, x in (("rays_ao", rays_ao), ("target_ao", target_ao), ("mask", mask)):
+        check_shape(x, "(B, 1, H, W)", name, "ao_psnr_shortfall", dims)
+    dtype = torch.promote_types(pred_ao.dtype, torch.float32)  # AMP's fp16 squares underflow
+    inside = (mask > 0).to(dtype)
+    count = inside.sum((1, 2, 3))
+
+    def frame_mse(ao: torch.Tensor) -> torch.Tensor:
+        return ((ao.to(dtype) - target_ao.to(dtype)) ** 2 * inside).sum((1, 2, 3)) / count.clamp_min(1.0)
+
+    shortfall = F.relu(10 * torch.log10((frame_mse(pred_ao) + AO_MSE_FLOOR) / (frame_mse(rays_ao) + AO_MSE_FLOOR)))
+    return torch.where(count > 0, shortfall, 0.0).mean()
+
+
+class AOPSNRNoWorseLoss(WeightedLoss):
+    """Weighted :func:`ao_psnr_shortfall` of a reconstruction's AO over the ground truth's surface pixels that had
+    AO rays (ValueError in a context without a reconstruction's inputs).
+
+    Args:
+        weight: factor on the loss (per dB).
+    """
+
+    name = "ao_psnr_no_worse"
+
+    def term(self, ctx: LossContext) -> torch.Tensor:
+        return ao_psnr_shortfall(ctx.pred[:, AO], *_rays_and_truth(ctx, self.name))
 
 
 @contextmanager
@@ -375,6 +430,7 @@ LOSS_TYPES: dict[str, type[WeightedLoss]] = {
     "temporal": TemporalLoss,
     "adversarial": AdversarialLoss,
     "ao_no_worse": AONoWorseLoss,
+    "ao_psnr_no_worse": AOPSNRNoWorseLoss,
 }
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import math
 from pathlib import Path
 
 import numpy as np
@@ -15,11 +16,13 @@ from isosr_net.losses import (
     PAPER_LOSSES,
     AdversarialLoss,
     AONoWorseLoss,
+    AOPSNRNoWorseLoss,
     ChannelLoss,
     LossContext,
     PerceptualLoss,
     TemporalLoss,
     ao_excess_error,
+    ao_psnr_shortfall,
     build_losses,
     masked_l1,
     masked_l2,
@@ -214,6 +217,49 @@ def test_the_ao_no_worse_loss_reads_the_inputs_rays_and_skips_pixels_without_any
     grad_pred = pred.clone().requires_grad_(True)
     assert torch.autograd.gradcheck(
         lambda p: loss(LossContext(p, target, recon_inputs=recon_inputs_for(target, rays_ao))), (grad_pred,))
+
+
+def test_ao_psnr_shortfall_counts_each_frame_s_db_below_its_rays_in_float64():
+    """Frame 0's output twice as far off as its rays everywhere (6.02 dB short), frame 1's closer (0), frame 2
+    covers nothing (0, finite): the mean over the three; equal outputs and rays give 0; errors far under the
+    floor count as equal; the gradient is finite and checked in float64."""
+    t = torch.full((3, 1, 4, 4), 0.5, dtype=torch.float64)
+    rays = t + 0.01
+    pred = t.clone()
+    pred[0] += 0.02
+    pred[1] += 0.005
+    mask = torch.ones_like(t)
+    mask[2] = 0
+    assert ao_psnr_shortfall(pred, rays, t, mask).item() == pytest.approx(10 * math.log10(4) / 3, rel=1e-6)
+    assert ao_psnr_shortfall(rays, rays, t, mask).item() == 0.0
+    assert ao_psnr_shortfall(t + 1e-7, t + 1e-8, t, mask).item() < 0.01, "both under the floor: no shortfall"
+    assert ao_psnr_shortfall(pred, rays, t, torch.zeros_like(mask)).item() == 0.0
+    with pytest.raises(ValueError, match="rays_ao must be"):
+        ao_psnr_shortfall(pred, rays[..., :3], t, mask)
+    assert torch.autograd.gradcheck(lambda p: ao_psnr_shortfall(p, rays, t, mask), (pred.clone().requires_grad_(),))
+
+
+def test_the_ao_psnr_no_worse_loss_lets_a_pixel_s_gain_pay_for_another_s_loss():
+    """Unlike ao_no_worse (per pixel), a frame whose output is closer to the truth overall costs nothing even where
+    some of its pixels are further; without AO rays nothing counts; an upscaler's context is refused."""
+    target = frame()
+    rays_ao = (target[:, AO] + 0.05).clamp(0, 1)
+    pred = target.clone()
+    pred[:, AO] = target[:, AO]
+    pred[:, AO, :, :1] = (rays_ao[..., :1] + 0.05).clamp(0, 1)  # one column further than the rays
+    context = LossContext(pred, target, recon_inputs=recon_inputs_for(target, rays_ao))
+    assert AOPSNRNoWorseLoss(weight=2.0)(context).item() == 0.0
+    assert AONoWorseLoss()(context).item() > 0
+    worse = pred.clone()
+    worse[:, AO] = (rays_ao + 0.05).clamp(0, 1)
+    worse_context = LossContext(worse, target, recon_inputs=recon_inputs_for(target, rays_ao))
+    surface = target[:, MASK] > 0.5
+    expected = ao_psnr_shortfall(worse[:, AO], rays_ao, target[:, AO], surface)
+    assert AOPSNRNoWorseLoss(weight=2.0)(worse_context).item() == pytest.approx(2.0 * expected.item()) and expected > 1
+    assert AOPSNRNoWorseLoss()(LossContext(worse, target, recon_inputs=recon_inputs_for(
+        target, rays_ao, ao_rays=0.0))).item() == 0.0
+    with pytest.raises(ValueError, match="ao_psnr_no_worse loss compares"):
+        AOPSNRNoWorseLoss()(LossContext(pred, target))
 
 
 # ----------------------------------------------------------------------------- perceptual

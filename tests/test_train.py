@@ -335,21 +335,23 @@ def test_a_reconstruction_model_over_the_rays_trains_with_the_temporal_loss_and_
         trainer(wide, tmp_path / "other", model=dict(TINY_RECON_MODEL))
 
 
-def test_a_reconstruction_trains_under_the_ao_no_worse_loss_and_an_upscaler_is_told_it_cannot(
-        data, tmp_path, tmp_path_factory):
-    """The trainer gives a reconstruction's loss contexts its inputs (the rays' AO and counts), so the hinge on AO
-    error beyond the rays' own trains; an upscaler's run is told at its first step that the loss needs them."""
+@pytest.mark.parametrize("loss", ["ao_no_worse", "ao_psnr_no_worse"])
+def test_a_reconstruction_trains_under_the_ao_no_worse_losses_and_an_upscaler_is_told_it_cannot(
+        data, tmp_path, tmp_path_factory, loss):
+    """The trainer gives a reconstruction's loss contexts its inputs (the rays' AO and counts), so the hinges on AO
+    error beyond the rays' own (per pixel, per frame) train; an upscaler's run is told at its first step that the
+    loss needs them."""
     wide = tiny_wide_recon_data(tmp_path_factory)
-    losses = [{"type": "channel", "channel": "color", "kind": "l1"}, {"type": "ao_no_worse", "weight": 1.0}]
+    losses = [{"type": "channel", "channel": "color", "kind": "l1"}, {"type": loss, "weight": 1.0}]
     t = trainer(wide, tmp_path / "recon", steps=2, model={**TINY_RECON_MODEL, "ao_prior": "rays", "max_ao_rays": 16},
                 losses=losses)
     batch = next(t._batches(t.train_set, shuffle=True, epoch=0))
     before = [p.detach().clone() for p in t.net.parameters()]
     logs = t.train_step(batch)
-    assert math.isfinite(logs["ao_no_worse"]) and logs["ao_no_worse"] >= 0
+    assert math.isfinite(logs[loss]) and logs[loss] >= 0
     assert any(not torch.equal(a, b) for a, b in zip(before, t.net.parameters()))
     upscaler = trainer(data, tmp_path / "upscale", steps=2, losses=losses)
-    with pytest.raises(ValueError, match="ao_no_worse loss compares a reconstruction's AO"):
+    with pytest.raises(ValueError, match=f"{loss} loss compares a reconstruction's AO"):
         upscaler.train_step(next(upscaler._batches(upscaler.train_set, shuffle=True, epoch=0)))
 
 
