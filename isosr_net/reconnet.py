@@ -133,10 +133,10 @@ class ReconNetConfig:
             interval of the rays' mean at ``z`` standard deviations (:func:`rays_interval`), which narrows to the
             mean as rays grow: the network corrects a mean of many rays only as far as those rays allow. 0: off;
             no weights depend on it.
-        ao_interval_narrows_past: ``n0`` > 0: with ``ao_interval``, past ``n0`` of the frame's own rays per pixel
-            ``n`` (all it cast, those past the model's ray limits too) its ``z`` falls as ``sqrt(n0 / n)``
-            (:func:`interval_z`), so the interval narrows as ``1 / n``: the more rays a frame casts, the less the
-            network may move their mean. 0: ``z`` at every ``n``.
+        ao_interval_narrows_past: ``n0`` > 0: with ``ao_interval``, past ``n0`` rays behind a pixel's mean ``n``
+            (all of them: the ray history's and those past the model's ray limits counted) its ``z`` falls as
+            ``sqrt(n0 / n)`` (:func:`interval_z`), so the interval narrows as ``1 / n``: the more rays stand behind
+            a mean, the less the network may move it. 0: ``z`` at every ``n``.
         upscale: output over input resolution (:data:`UPSCALES`): 2 reconstructs a frame rendered
             at half the output's sides (:func:`upsampled_inputs` is the base its output corrects).
     """
@@ -192,7 +192,7 @@ class ReconNetConfig:
 
 
 def interval_z(z: float, rays: torch.Tensor, narrows_past: float) -> torch.Tensor:
-    """The interval's ``z`` at a frame's own ``rays`` per pixel: ``z`` up to ``narrows_past`` rays, then
+    """The interval's ``z`` at ``rays`` behind a pixel's mean: ``z`` up to ``narrows_past`` rays, then
     ``z sqrt(narrows_past / rays)``; ``z`` everywhere where ``narrows_past`` is 0.
 
     Shape:

@@ -269,7 +269,7 @@ def test_an_interval_model_corrects_a_mean_only_as_far_as_its_rays_allow():
             ReconNetConfig(**{"ao_interval": 2.0, **bad})
 
 
-def test_the_interval_narrows_as_one_over_the_frame_s_rays_past_its_point():
+def test_the_interval_narrows_as_one_over_the_rays_behind_the_mean_past_its_point():
     """ao_interval_narrows_past 16: z 2 up to 16 rays per pixel (and without rays), 1 at 64, 0.5 at 256, so the
     interval's width falls about as 1 / n there (1 / sqrt(n) below); a frame of 64 rays per pixel gets the AO of
     a constant z = 1, one of 256 (64 the model reads, ``ray_factor`` 4) that of z = 0.5, one of 4 that of z = 2;
