@@ -59,6 +59,8 @@ GATE_LOGIT_INIT = 6.0
 GATE_RATE = 50.0
 # Output over input resolution: 1 reconstructs at the resolution it is given; 2 also upscales.
 UPSCALES = (1, 2)
+# A config's numbers that no weights depend on (set in a model folder's config.json; each finite, >= 0, 0 is off).
+WEIGHTLESS_FIELDS = ("blend_beyond", "ao_interval", "ao_interval_narrows_past")
 
 
 @dataclass(frozen=True)
@@ -173,7 +175,7 @@ class ReconNetConfig:
         for flag in ("geometry_gate", "blend_map", "blend_variance"):
             if not isinstance(getattr(self, flag), bool):
                 raise ValueError(f"{flag} must be true or false, got {getattr(self, flag)!r}")
-        for name in ("blend_beyond", "ao_interval", "ao_interval_narrows_past"):
+        for name in WEIGHTLESS_FIELDS:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < math.inf:
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")

@@ -28,7 +28,7 @@ from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net.losses import PAPER_LOSSES, AdversarialLoss, LossContext, build_losses, total_loss
 from isosr_net.metrics import frame_scores
 from isosr_net.model import Unrolled, build_model, load_checkpoint, load_pretrained, save_checkpoint
-from isosr_net.reconnet import ReconNet, ReconNetConfig
+from isosr_net.reconnet import WEIGHTLESS_FIELDS, ReconNet, ReconNetConfig
 
 
 # TrainConfig.compile's modes: "" (eager) and torch.compile's without CUDA graphs, which a step's
@@ -135,10 +135,9 @@ def contexts(batch: SequenceBatch, outputs: torch.Tensor, warped: torch.Tensor, 
 
 
 def weights_config(config):
-    """A model config as its weights see it: a ReconNet's ``blend_beyond`` and ``ao_interval`` (and its narrowing)
-    have none."""
-    return (replace(config, blend_beyond=0.0, ao_interval=0.0, ao_interval_narrows_past=0.0)
-            if isinstance(config, ReconNetConfig) else config)
+    """A model config as its weights see it: a ReconNet's :data:`~isosr_net.reconnet.WEIGHTLESS_FIELDS` off."""
+    return (replace(config, **dict.fromkeys(WEIGHTLESS_FIELDS, 0.0)) if isinstance(config, ReconNetConfig)
+            else config)
 
 
 def start_configs(config) -> list:
