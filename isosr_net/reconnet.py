@@ -59,6 +59,7 @@ GATE_LOGIT_INIT = 6.0
 GATE_RATE = 50.0
 # Output over input resolution: 1 reconstructs at the resolution it is given; 2 also upscales.
 UPSCALES = (1, 2)
+FLOAT32_MAX = torch.finfo(torch.float32).max
 # A config's numbers that no weights depend on (set in a model folder's config.json; each finite, >= 0, 0 is off).
 WEIGHTLESS_FIELDS = ("blend_beyond", "ao_interval", "ao_interval_narrows_past")
 
@@ -177,8 +178,9 @@ class ReconNetConfig:
                 raise ValueError(f"{flag} must be true or false, got {getattr(self, flag)!r}")
         for name in WEIGHTLESS_FIELDS:
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < math.inf:
-                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= FLOAT32_MAX:
+                raise ValueError(f"{name} must be a finite number >= 0 (in float32, as the network takes it), "
+                                 f"got {value!r}")
         if self.ao_interval and self.ao_prior == "none":
             raise ValueError("ao_interval keeps a model's AO near its input rays': it needs ao_prior 'rays' or 'blend'")
         if self.ao_interval_narrows_past and not self.ao_interval:

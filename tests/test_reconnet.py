@@ -273,7 +273,7 @@ def test_the_interval_narrows_as_one_over_the_rays_behind_the_mean_past_its_poin
     """ao_interval_narrows_past 16: z 2 up to 16 rays per pixel (and without rays), 1 at 64, 0.5 at 256, so the
     interval's width falls about as 1 / n there (1 / sqrt(n) below); a frame of 64 rays per pixel gets the AO of
     a constant z = 1, one of 256 (64 the model reads, ``ray_factor`` 4) that of z = 0.5, one of 4 that of z = 2;
-    it needs an interval and a finite count >= 0."""
+    it needs an interval and a count >= 0 that float32 holds (1e300 overflowed it at the first frame)."""
     rays = torch.tensor([0.0, 4.0, 16.0, 64.0, 256.0]).view(1, 1, 1, -1)
     assert interval_z(2.0, rays, 16.0).flatten().tolist() == [2.0, 2.0, 2.0, 1.0, 0.5]
     assert interval_z(2.0, rays, 0.0).flatten().tolist() == [2.0] * 5
@@ -291,7 +291,8 @@ def test_the_interval_narrows_as_one_over_the_rays_behind_the_mean_past_its_poin
         torch.testing.assert_close(ao_output(raw, inputs, narrowing, blend, factor),
                                    ao_output(raw, inputs, constant, blend, factor))
     for bad, match in (({"ao_interval": 0.0}, "needs ao_interval"), ({"ao_interval_narrows_past": -1.0}, ">= 0"),
-                       ({"ao_interval_narrows_past": math.inf}, "finite")):
+                       ({"ao_interval_narrows_past": math.inf}, "finite"),
+                       ({"ao_interval_narrows_past": 1e300}, "in float32"), ({"ao_interval": 1e300}, "in float32")):
         with pytest.raises(ValueError, match=match):
             ReconNetConfig(**{"ao_prior": "rays", "ao_interval": 2.0, "ao_interval_narrows_past": 16.0, **bad})
 
