@@ -27,8 +27,9 @@ A short probe on the scene decides (its cost is ``choice.probe_seconds``):
 3. Time, at the target size on the renderer's device: candidates in order of expected quality,
    each after ``warmup_frames`` and over ``timing_frames`` (device time from CUDA events on
    GPUs, wall time on CPUs), until the first whose mean frame time fits within ``headroom``
-   of the budget (90%: frame times vary by view and run, and a budget is a ceiling); it is the
-   choice. Probe the views that will be shown: frame time grows with the covered pixels. A candidate stops being timed once one frame takes more than twice the budget.
+   of the budget (90%: frame times vary by view and run, and a budget is a ceiling; :func:`fits`); it
+   is the choice. Probe the views that will be shown: frame time grows with the covered pixels. A
+   candidate stops being timed once one frame takes more than twice the budget.
    On CPUs, step 1's frames at the probe size are timed too: scaled to the frame's pixels, half
    of that is a candidate's floor (:func:`floor_ms`), and one whose floor is over twice the
    budget is not timed at all (on a 2-core CPU at 1080p, where frames take seconds, that skips
@@ -275,13 +276,14 @@ class CostTable:
                  "color_psnr": round(statistics.median(p for _, p in v), 2), "scenes": len(v)}
                 for k, v in sorted(by_method.items())]
 
-    def choose(self, candidates: tuple[FrameMethod, ...], first_hit_ms: float, budget_ms: float
+    def choose(self, candidates: tuple[FrameMethod, ...], first_hit_ms: float, budget_ms: float, headroom: float
                ) -> tuple[FrameMethod, float, float] | None:
         """The candidate of the best tabled PSNR whose predicted time (its cost times
-        ``first_hit_ms``, this scene's first-hit frame) fits ``budget_ms``, with that time and PSNR;
+        ``first_hit_ms``, this scene's first-hit frame) :func:`fits` ``budget_ms``, with that time and PSNR;
         None where none of the tabled ones fits."""
         fitting = [(self.rows[method_key(m)][1], -self.rows[method_key(m)][0], m) for m in candidates
-                   if method_key(m) in self.rows and self.rows[method_key(m)][0] * first_hit_ms <= budget_ms]
+                   if method_key(m) in self.rows and fits(self.rows[method_key(m)][0] * first_hit_ms, budget_ms,
+                                                          headroom)]
         if not fitting:
             return None
         psnr, minus_cost, method = max(fitting, key=lambda f: f[:2])
@@ -635,12 +637,12 @@ def choose_method_steps(renderer: Renderer, iso: float, width: int, height: int,
         if config.batch > 1 and timings[untimed] <= OVER_BUDGET_STOP * alone_budget_ms:
             timings[untimed] = yield from _time_batch_steps(runners, cameras, config)
     ms = {m: timings[m] for m in considered if m in timings}
-    fits = ms[chosen] <= config.headroom * budget_ms
-    if not fits and warn:
+    fitting = fits(ms[chosen], budget_ms, config.headroom)
+    if not fitting and warn:
         warnings.warn(f"no method fits the budget of {budget_ms:g} ms at {width}x{height}: the fastest, "
                       f"{chosen.name}, takes {ms[chosen]:.2f} ms", RuntimeWarning, stacklevel=2)
     table = tuple(ProbeRow(m, psnr[m], ms.get(m, floors.get(m)), m in floors) for m in order)
-    return BudgetChoice(chosen, ms[chosen], psnr[chosen], fits, float(budget_ms), quality.ao_effect_db,
+    return BudgetChoice(chosen, ms[chosen], psnr[chosen], fitting, float(budget_ms), quality.ao_effect_db,
                         quality.ao_matters, quality.size, time.perf_counter() - start + quality.seconds, table)
 
 
@@ -656,10 +658,16 @@ def quality_order(psnr: dict[FrameMethod, float]) -> list[FrameMethod]:
     return sorted(psnr, key=lambda m: -psnr[m] if not math.isnan(psnr[m]) else math.inf)  # a stable sort
 
 
+def fits(ms: float, budget_ms: float, headroom: float) -> bool:
+    """Whether a frame of ``ms`` fits a budget of ``budget_ms``: it takes at most ``headroom`` of it (the policy's
+    one test; NaN fits nothing)."""
+    return ms <= headroom * budget_ms
+
+
 def best_timed(quality: QualityProbe, timings: dict, budget_ms: float, headroom: float) -> FrameMethod | None:
     """Of the candidates timed already, the best expected quality within ``headroom`` of the budget; None where
     none is. A choice without device work."""
-    return next((m for m in quality_order(quality.psnr) if timings.get(m, math.inf) <= headroom * budget_ms), None)
+    return next((m for m in quality_order(quality.psnr) if fits(timings.get(m, math.inf), budget_ms, headroom)), None)
 
 
 def _pick(order: list[FrameMethod], timings: dict, budget_ms: float, headroom: float
@@ -670,7 +678,7 @@ def _pick(order: list[FrameMethod], timings: dict, budget_ms: float, headroom: f
     for i, m in enumerate(order):
         if m not in timings:
             return m, None, []
-        if timings[m] <= headroom * budget_ms:
+        if fits(timings[m], budget_ms, headroom):
             return None, m, order[:i + 1]
     return None, min(order, key=timings.__getitem__), list(order)
 

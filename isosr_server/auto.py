@@ -62,7 +62,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 from isosr_net.budget import (BudgetChoice, BudgetConfig, CostTable, QualityProbe, best_timed, choose_method_steps,
-                              default_candidates, default_probe_height, first_hit_ms_steps, floor_ms,
+                              default_candidates, default_probe_height, first_hit_ms_steps, fits, floor_ms,
                               probe_quality_steps, probe_size)
 from isosr_net.methods import FrameMethod, FrameRunner, Networks, make_runner
 from isosr_net.reconstructor import Reconstructor, recon_limits
@@ -366,8 +366,8 @@ class AutoPolicy:
         load = self.load(scene_key)
         budget_ms = self._budget_at(key[-1], load)
         seen, _ = self._seen(scene_key, load, self._timings_of(scene_key, batch))
-        held, usable = chosen.choice, PROBE["headroom"] * budget_ms
-        if seen.get(held.method, chosen.probe_ms) <= usable or scene_key not in self._quality:
+        held = chosen.choice
+        if fits(seen.get(held.method, chosen.probe_ms), budget_ms, PROBE["headroom"]) or scene_key not in self._quality:
             return held
         quality = self._quality[scene_key]
         method = best_timed(quality, seen, budget_ms, PROBE["headroom"])
@@ -409,7 +409,7 @@ class AutoPolicy:
         (predicted time and PSNR), else :func:`prior_method` (nothing measured)."""
         first_hit = self._first_hit.get(scene_key)
         if self.costs is not None and first_hit is not None:
-            picked = self.costs.choose(self.candidates, first_hit, budget_ms * PROBE["headroom"])
+            picked = self.costs.choose(self.candidates, first_hit, budget_ms, PROBE["headroom"])
             if picked is not None:
                 method, ms, psnr = picked
                 return BudgetChoice(method, ms, psnr, True, budget_ms, math.nan, False, (0, 0), 0.0, ())

@@ -418,7 +418,9 @@ def test_before_its_probe_auto_takes_the_cost_tables_best_fit_for_the_scenes_fir
     assert (choice.method, choice.expected_psnr) == (mid, 30.0) and choice.ms == pytest.approx(3 * first_hit)
     policy.target_fps = 1000 / (100 * first_hit / PROBE["headroom"])
     assert policy.choose(lib.renderer, VOLUME, lib.iso, 64, 48, cam, 1, 0.05).method == dear
-    assert policy.costs.choose((cheap, mid), first_hit, 0.5 * first_hit) is None  # nothing fits: the cheapest
+    assert policy.costs.choose((cheap, mid), first_hit, 0.5 * first_hit, 1.0) is None  # nothing fits: the cheapest
+    assert policy.costs.choose((cheap, mid), first_hit, first_hit, 1.0)[0] == cheap
+    assert policy.costs.choose((cheap, mid), first_hit, first_hit, 0.9) is None  # within the headroom only
     finish_steps(probe)
 
 

@@ -54,6 +54,14 @@ def check_budget_respected(choice, headroom: float = BudgetConfig().headroom):
         assert choice.ms == min(row.ms for row in choice.table)
 
 
+
+def test_a_frame_fits_a_budget_within_its_headroom():
+    """The policy's one test of fitting, its bound inclusive; an untimed (inf) or unmeasurable (NaN) time fits no
+    budget."""
+    assert policy.fits(9.0, 10.0, 0.9) and not policy.fits(9.001, 10.0, 0.9) and policy.fits(10.0, 10.0, 1.0)
+    assert not policy.fits(math.nan, 10.0, 0.9) and not policy.fits(math.inf, 1e9, 1.0)
+
+
 def test_a_convex_sphere_gets_no_ao(sphere):
     renderer, iso = sphere
     choice = choose_method(renderer, iso, *SIZE, 1000.0)  # the default candidates, network included
