@@ -28,6 +28,10 @@ Four kinds of pass do all of ReconNet's work (:mod:`isosr_net.fused_recon` runs 
   frame; or as the output buffers' stack (:func:`isosr_net.inference.buffer_stack`) and shaded
   (:func:`isosr_render.shading.shade`), the frame's last work, in the same pass.
 
+Tensors store their own channels; a tile holds :func:`kernel_width` of them (a power of 2, at least
+16: ``tl.dot``'s smallest K and N), the loads and stores masked past the stored ones and the weights
+zero-padded, so a network of 8 full-resolution channels moves 8 a pixel through memory.
+
 Importing this module compiles nothing; set ``TRITON_INTERPRET=1`` before importing it to run
 the kernels on CPU tensors (Triton's interpreter, for tests). No kernel syncs with the host or
 allocates beyond its output, so a CUDA graph can capture them (after autotuning, which the first
@@ -47,11 +51,11 @@ import triton.testing
 from isosr_render.conventions import AO, DEPTH, MASK, NORMAL, SAMPLED_AO, SAMPLING
 from isosr_render.shading import ShadingParams, light_and_half
 from isosr_render.shapes import check_shape
+from isosr_net.fused_recon import MAX_KERNEL_WIDTH, PACKED, kernel_width
 from isosr_net.inference import FRAME_FLAGS
 from isosr_net.reconnet import FIRST_FRAME_MODES, INPUTS, OUTPUTS, UPSCALES, ReconNetConfig
 
 INTERPRET = os.environ.get("TRITON_INTERPRET") == "1"
-PACKED = 16  # channels of the packed input: 10 used (x2: 16), padded to tl.dot's smallest K
 # Pixels per program and warps, autotuned per layer and size class (a frame's pixels' bit length: a
 # new window size of a class tunes nothing, so a viewer resizing cannot stall the GPU with tuning;
 # a batch of frames takes one frame's config, its grid a row of programs per frame, so a new batch
@@ -75,6 +79,25 @@ def _tuned(kernel, key: list[str]):
 
 def _bench_briefly(kernel_call, quantiles):
     return triton.testing.do_bench(kernel_call, warmup=5, rep=20, quantiles=quantiles)
+
+
+@triton.jit
+def _rows_and_channels(rows, c, C: tl.constexpr, CP: tl.constexpr):
+    """The mask of a (rows, CP) tile of C stored channels: the rows alone where C fills the tile."""
+    keep = rows[:, None]
+    if C != CP:
+        keep = keep & (c < C)[None, :]
+    return keep
+
+
+@triton.jit
+def _load_channels(ptrs, c, C: tl.constexpr, CP: tl.constexpr):
+    """A (pixels, CP) tile of C stored channels at ``ptrs``, zero past them (every pixel's address valid)."""
+    if C == CP:
+        v = tl.load(ptrs)
+    else:
+        v = tl.load(ptrs, mask=(c < C)[None, :], other=0.0)
+    return v
 
 
 @triton.jit
@@ -224,35 +247,36 @@ def _pack_kernel(m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, sn_b, sn_c, sn_h, sn_w, d
 
 
 @triton.jit
-def _upsampled(c_ptr, b, yy, xx, hc, wc, sc_b, sc_c, sc_h, sc_w, ci):
-    """``bilinear_2x(coarse)`` at pixels (yy, xx) of the upsampled image, channels ``ci``, fp32
+def _upsampled(c_ptr, b, yy, xx, hc, wc, sc_b, sc_c, sc_h, sc_w, ci, CC: tl.constexpr, CCP: tl.constexpr):
+    """``bilinear_2x(coarse)`` at pixels (yy, xx) of the upsampled image, channels ``ci`` (CCP, CC stored), fp32
     (:func:`_taps_2x` along each axis). A tile's pixels past the end read clamped rows too."""
     y0, y1, wy = _taps_2x(yy, hc)
     x0, x1, wx = _taps_2x(xx, wc)
     wy, wx = wy[:, None], wx[:, None]
     base = c_ptr + b * sc_b + ci[None, :] * sc_c
-    # Every index is clamped inside the coarse image, so the loads need no mask.
-    v00 = tl.load(base + (y0 * sc_h + x0 * sc_w)[:, None]).to(tl.float32)
-    v01 = tl.load(base + (y0 * sc_h + x1 * sc_w)[:, None]).to(tl.float32)
-    v10 = tl.load(base + (y1 * sc_h + x0 * sc_w)[:, None]).to(tl.float32)
-    v11 = tl.load(base + (y1 * sc_h + x1 * sc_w)[:, None]).to(tl.float32)
+    # Every index is clamped inside the coarse image, so the loads mask no pixel.
+    v00 = _load_channels(base + (y0 * sc_h + x0 * sc_w)[:, None], ci, CC, CCP).to(tl.float32)
+    v01 = _load_channels(base + (y0 * sc_h + x1 * sc_w)[:, None], ci, CC, CCP).to(tl.float32)
+    v10 = _load_channels(base + (y1 * sc_h + x0 * sc_w)[:, None], ci, CC, CCP).to(tl.float32)
+    v11 = _load_channels(base + (y1 * sc_h + x1 * sc_w)[:, None], ci, CC, CCP).to(tl.float32)
     return (1.0 - wy) * ((1.0 - wx) * v00 + wx * v01) + wy * ((1.0 - wx) * v10 + wx * v11)
 
 
 @triton.jit
 def _conv_acc(x_ptr, w_ptr, bias_ptr, b, y, x, valid, hi, wi, STRIDE: tl.constexpr, CI: tl.constexpr,
-              CO: tl.constexpr, BLOCK_M: tl.constexpr):
-    """The 3x3 convolution plus bias at output pixels (y, x) of the NHWC (B, hi, wi, CI) input, fp32 (BLOCK_M, CO)."""
-    ci = tl.arange(0, CI)
-    co = tl.arange(0, CO)
-    acc = tl.zeros((BLOCK_M, CO), dtype=tl.float32)
+              CIP: tl.constexpr, COP: tl.constexpr, BLOCK_M: tl.constexpr):
+    """The 3x3 convolution plus bias at output pixels (y, x) of the NHWC (B, hi, wi, CI) input, fp32 (BLOCK_M, COP);
+    the weights (9, CIP, COP) and bias (COP,) zero-padded."""
+    ci = tl.arange(0, CIP)
+    co = tl.arange(0, COP)
+    acc = tl.zeros((BLOCK_M, COP), dtype=tl.float32)
     for tap in tl.static_range(9):
         yy = y * STRIDE + (tap // 3 - 1)
         xx = x * STRIDE + (tap % 3 - 1)
         inside = valid & (yy >= 0) & (yy < hi) & (xx >= 0) & (xx < wi)
         a = tl.load(x_ptr + b * hi * wi * CI + ((yy * wi + xx) * CI)[:, None] + ci[None, :],
-                    mask=inside[:, None], other=0.0)
-        weights = tl.load(w_ptr + tap * CI * CO + ci[:, None] * CO + co[None, :])
+                    mask=_rows_and_channels(inside, ci, CI, CIP), other=0.0)
+        weights = tl.load(w_ptr + tap * CIP * COP + ci[:, None] * COP + co[None, :])
         acc = tl.dot(a, weights, acc)
     return acc + tl.load(bias_ptr + co)[None, :]
 
@@ -260,35 +284,38 @@ def _conv_acc(x_ptr, w_ptr, bias_ptr, b, y, x, valid, hi, wi, STRIDE: tl.constex
 @triton.jit
 def _conv_kernel(x_ptr, w_ptr, bias_ptr, out_ptr, res_ptr, hi, wi, ho, wo, size_class, STRIDE: tl.constexpr,
                  RESIDUAL: tl.constexpr, RELU: tl.constexpr, CI: tl.constexpr, CO: tl.constexpr,
-                 BLOCK_M: tl.constexpr):
+                 CIP: tl.constexpr, COP: tl.constexpr, BLOCK_M: tl.constexpr):
     b = tl.program_id(1).to(tl.int64)
     offs = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     valid = offs < ho * wo
     y = offs // wo
     x = offs % wo
-    acc = _conv_acc(x_ptr, w_ptr, bias_ptr, b, y, x, valid, hi, wi, STRIDE, CI, CO, BLOCK_M)
-    co = tl.arange(0, CO)
+    acc = _conv_acc(x_ptr, w_ptr, bias_ptr, b, y, x, valid, hi, wi, STRIDE, CI, CIP, COP, BLOCK_M)
+    co = tl.arange(0, COP)
+    stored = _rows_and_channels(valid, co, CO, COP)
     if RESIDUAL:
-        acc += tl.load(res_ptr + b * ho * wo * CO + offs[:, None] * CO + co[None, :], mask=valid[:, None],
+        acc += tl.load(res_ptr + b * ho * wo * CO + offs[:, None] * CO + co[None, :], mask=stored,
                        other=0.0).to(tl.float32)
     if RELU:
         acc = tl.maximum(acc, 0.0)
-    tl.store(out_ptr + b * ho * wo * CO + offs[:, None] * CO + co[None, :], acc.to(tl.float16), mask=valid[:, None])
+    tl.store(out_ptr + b * ho * wo * CO + offs[:, None] * CO + co[None, :], acc.to(tl.float16), mask=stored)
 
 
 @triton.jit
 def _upsample_add_kernel(x_ptr, c_ptr, rw_ptr, rb_ptr, out_ptr, hp, wp, hc, wc, sc_b, sc_c, sc_h, sc_w,
-                         C: tl.constexpr, CC: tl.constexpr, BLOCK: tl.constexpr):
+                         C: tl.constexpr, CC: tl.constexpr, CP: tl.constexpr, CCP: tl.constexpr,
+                         BLOCK: tl.constexpr):
     b = tl.program_id(1).to(tl.int64)
     offs = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     valid = offs < hp * wp
-    ci = tl.arange(0, C)
-    up = _upsampled(c_ptr, b, offs // wp, offs % wp, hc, wc, sc_b, sc_c, sc_h, sc_w, tl.arange(0, CC))
-    reduced = tl.dot(up.to(tl.float16), tl.load(rw_ptr + tl.arange(0, CC)[:, None] * C + ci[None, :]))
+    ci, cc = tl.arange(0, CP), tl.arange(0, CCP)
+    up = _upsampled(c_ptr, b, offs // wp, offs % wp, hc, wc, sc_b, sc_c, sc_h, sc_w, cc, CC, CCP)
+    reduced = tl.dot(up.to(tl.float16), tl.load(rw_ptr + cc[:, None] * CP + ci[None, :]))
     pixel = b * hp * wp * C + offs[:, None] * C + ci[None, :]
-    skip = tl.load(x_ptr + pixel, mask=valid[:, None], other=0.0).to(tl.float32)
+    stored = _rows_and_channels(valid, ci, C, CP)
+    skip = tl.load(x_ptr + pixel, mask=stored, other=0.0).to(tl.float32)
     out = tl.maximum(skip + reduced + tl.load(rb_ptr + ci)[None, :], 0.0)
-    tl.store(out_ptr + pixel, out.to(tl.float16), mask=valid[:, None])
+    tl.store(out_ptr + pixel, out.to(tl.float16), mask=stored)
 
 
 @triton.jit
@@ -302,14 +329,14 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, s
                  INTERVAL: tl.constexpr, GATED: tl.constexpr,
                  MAX_SPP: tl.constexpr,
                  HAS_AO: tl.constexpr, BUFFERS: tl.constexpr,
-                 SHADE: tl.constexpr, OUT: tl.constexpr, S: tl.constexpr, CI: tl.constexpr, CO: tl.constexpr,
-                 BLOCK_M: tl.constexpr):
+                 SHADE: tl.constexpr, OUT: tl.constexpr, S: tl.constexpr, CI: tl.constexpr, CIP: tl.constexpr,
+                 CO: tl.constexpr, BLOCK_M: tl.constexpr):
     b = tl.program_id(1).to(tl.int64)
     offs = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     valid = offs < h * w
     y = offs // w
     x = offs % w
-    raw = _conv_acc(x_ptr, w_ptr, bias_ptr, b, y, x, valid, hp, wp, 1, CI, CO, BLOCK_M)
+    raw = _conv_acc(x_ptr, w_ptr, bias_ptr, b, y, x, valid, hp, wp, 1, CI, CIP, CO, BLOCK_M)
     c = tl.arange(0, CO)[None, :]
     depth_in = _plane(d_ptr, sd_b, sd_h, sd_w, b, y, x, valid)  # passes through (x2: nearest)
     plane = S * S * h * w  # an output plane's pixels
@@ -411,10 +438,15 @@ def _grid(pixels: int, batch: int):
 
 
 def _check_taps(weight: torch.Tensor, bias: torch.Tensor, ci: int, where: str) -> int:
-    """Check tap-major weights (9, CI, CO) fp16 and a (CO,) fp32 bias; returns CO."""
-    dims = check_shape(weight, f"(9, {ci}, CO)", "weight", where)
+    """Check tap-major weights (9, kernel_width(ci), CO) fp16 and a (CO,) fp32 bias, CO a kernel width; returns CO."""
+    if kernel_width(ci) > MAX_KERNEL_WIDTH:
+        raise ValueError(f"{where}: at most {MAX_KERNEL_WIDTH} input channels, got {ci}")
+    dims = check_shape(weight, f"(9, {kernel_width(ci)}, CO)", "weight", where)
     check_shape(bias, "(CO)", "bias", where, dims)
     _check_dtypes(weight, bias, where)
+    if kernel_width(dims["CO"]) != dims["CO"] or dims["CO"] > MAX_KERNEL_WIDTH:
+        raise ValueError(f"{where}: the weights' outputs must be a power of 2 in [16, {MAX_KERNEL_WIDTH}] "
+                         f"(zero-padded), got {dims['CO']}")
     return dims["CO"]
 
 
@@ -540,24 +572,30 @@ def pack_inputs(sources: ReconSources, prev: torch.Tensor | None, flow: torch.Te
 
 
 def conv3x3(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, *, stride: int = 1, relu: bool = True,
-            residual: torch.Tensor | None = None) -> torch.Tensor:
+            residual: torch.Tensor | None = None, out_channels: int | None = None) -> torch.Tensor:
     """``relu(conv3x3(x) + bias + residual)``: zero padding; the ReLU and residual where asked.
 
     Args:
         x: NHWC fp16 (contiguous).
-        weight: tap-major weights, ``weight[3 * ky + kx, ci, co]``, fp16 (:func:`isosr_net.fused_recon.tap_weights`).
-        bias: fp32.
+        weight: tap-major weights, ``weight[3 * ky + kx, ci, co]``, fp16, zero-padded to kernel widths
+            (:func:`isosr_net.fused_recon.tap_weights`).
+        bias: fp32, zero-padded as the weights' outputs.
         stride: 1, or 2 (the output has half the sides, even sides asked).
         relu: the ReLU, after the residual sum.
         residual: NHWC fp16 (contiguous), added before the ReLU.
+        out_channels: the output's channels (of the weights' ``COP``, the first; default all).
 
     Shape:
-        x: (B, H, W, CI). weight: (9, CI, CO). bias: (CO,). residual: (B, H/s, W/s, CO).
-        Returns (B, H/s, W/s, CO), fp16. CI and CO powers of 2, at least 16.
+        x: (B, H, W, CI). weight: (9, kernel_width(CI), COP). bias: (COP,). residual: (B, H/s, W/s, CO).
+        Returns (B, H/s, W/s, CO), fp16, CO ``out_channels`` (kernel_width(CO) = COP). CI, CO at most
+        :data:`MAX_KERNEL_WIDTH`.
     """
     dims = _check_nhwc(x, "x", "conv3x3")
     b, hi, wi, ci = dims["B"], dims["H"], dims["W"], dims["C"]
-    co = _check_taps(weight, bias, ci, "conv3x3")
+    cop = _check_taps(weight, bias, ci, "conv3x3")
+    co = cop if out_channels is None else out_channels
+    if co < 1 or kernel_width(co) != cop:
+        raise ValueError(f"conv3x3: {co} output channels take weights of {kernel_width(co)} outputs, got {cop}")
     if stride not in (1, 2):
         raise ValueError(f"conv3x3: stride must be 1 or 2, got {stride}")
     if stride == 2 and (hi % 2 or wi % 2):
@@ -569,7 +607,8 @@ def conv3x3(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, *, stride
     out = x.new_empty((b, ho, wo, co))
     _conv_tuned[_grid(ho * wo, b)](x, weight, bias, out, x if residual is None else residual, hi, wi, ho, wo,
                                    _size_class(ho * wo),
-                                   STRIDE=stride, RESIDUAL=residual is not None, RELU=relu, CI=ci, CO=co, **FIXED)
+                                   STRIDE=stride, RESIDUAL=residual is not None, RELU=relu, CI=ci, CO=co,
+                                   CIP=kernel_width(ci), COP=cop, **FIXED)
     return out
 
 
@@ -579,23 +618,28 @@ def upsample_add(x: torch.Tensor, coarse: torch.Tensor, weight: torch.Tensor, bi
     Args:
         x: NHWC fp16 (contiguous), even sides.
         coarse: half-resolution features, any layout (NHWC reads fastest), any float dtype.
-        weight, bias: the 1x1 convolution, ``weight[cc, c]`` fp16 (contiguous), bias fp32.
+        weight, bias: the 1x1 convolution, ``weight[cc, c]`` fp16 (contiguous), bias fp32, zero-padded to
+            kernel widths.
 
     Shape:
-        x: (B, H, W, C). coarse: (B, CC, H/2, W/2). weight: (CC, C). bias: (C,). Returns
-        (B, H, W, C). C and CC powers of 2, at least 16.
+        x: (B, H, W, C). coarse: (B, CC, H/2, W/2). weight: (kernel_width(CC), kernel_width(C)). bias:
+        (kernel_width(C),). Returns (B, H, W, C). C and CC at most :data:`MAX_KERNEL_WIDTH`.
     """
     dims = _check_nhwc(x, "x", "upsample_add")
     b, hp, wp, c = dims["B"], dims["H"], dims["W"], dims["C"]
     if hp % 2 or wp % 2:
         raise ValueError(f"upsample_add: x must have even sides, got {hp}x{wp}")
     cc = check_shape(coarse, f"({b}, CC, {hp // 2}, {wp // 2})", "coarse", "upsample_add")["CC"]
-    check_shape(weight, f"({cc}, {c})", "weight", "upsample_add")
-    check_shape(bias, f"({c})", "bias", "upsample_add")
+    cp, ccp = kernel_width(c), kernel_width(cc)
+    if max(cp, ccp) > MAX_KERNEL_WIDTH:
+        raise ValueError(f"upsample_add: at most {MAX_KERNEL_WIDTH} channels, got {c} and {cc}")
+    check_shape(weight, f"({ccp}, {cp})", "weight", "upsample_add")
+    check_shape(bias, f"({cp})", "bias", "upsample_add")
     _check_dtypes(weight, bias, "upsample_add")
     out = torch.empty_like(x)
     _upsample_add_kernel[(triton.cdiv(hp * wp, PACK_BLOCK), b)](x, coarse, weight, bias, out, hp, wp, hp // 2, wp // 2,
-                                                               *coarse.stride(), C=c, CC=cc, BLOCK=PACK_BLOCK)
+                                                               *coarse.stride(), C=c, CC=cc, CP=cp, CCP=ccp,
+                                                               BLOCK=PACK_BLOCK)
     return out
 
 
@@ -631,7 +675,7 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
         ``(stack, color or None)``.
 
     Shape:
-        y: (B, H', W', CI). weight: (9, CI, CO). bias: (CO,). sources: H <= H', W <= W'.
+        y: (B, H', W', CI). weight: (9, kernel_width(CI), CO). bias: (CO,). sources: H <= H', W <= W'.
         Returns stack (B, 6, sH, sW) fp32 (mask, normal, depth, AO) and color (B, sH, sW, 3)
         fp32, s the upscale.
     """
@@ -679,6 +723,6 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
                                  BLEND_MAP=config.blend_map, BLEND_VARIANCE=config.blend_variance,
                                  INTERVAL=config.ao_interval > 0, GATED=gates is not None, MAX_SPP=config.max_spp,
                                  HAS_AO=sources.ao is not None, BUFFERS=as_buffers, SHADE=shading is not None,
-                                 OUT=OUTPUTS, S=s, CI=ci, CO=co,
+                                 OUT=OUTPUTS, S=s, CI=ci, CIP=kernel_width(ci), CO=co,
                                  **FIXED)
     return out, color

@@ -38,7 +38,13 @@ from isosr_render.shading import ShadingParams
 from isosr_render.shapes import check_int, check_shape
 from isosr_net.reconnet import INPUTS, LEVELS, OUTPUTS, RECURRENT, ReconNet, ReconNetConfig, blend_rays_at
 
-PACKED = 16  # the packed input's channels (isosr_net.fused_kernels.PACKED): 10 used (x2: 16)
+PACKED = 16  # channels of the packed input: 10 used (x2: 16), padded to tl.dot's smallest K
+MAX_KERNEL_WIDTH = 64  # the widest tile the kernels are checked at (ReconNet's shipped widths)
+
+
+def kernel_width(channels: int) -> int:
+    """The channels of a kernel's tile for ``channels`` stored: a power of 2, at least 16 (``tl.dot``'s smallest)."""
+    return max(16, 1 << (channels - 1).bit_length())
 
 
 def recurrent_channels(previous: torch.Tensor) -> torch.Tensor:
@@ -64,9 +70,9 @@ def fused_runs_on(device: torch.device | str) -> bool:
 
 
 def fusable(config: ReconNetConfig) -> bool:
-    """Whether the kernels take a ReconNet of ``config``: its widths powers of 2, at least 16 (any
-    upscale, blocks, AO prior and geometry gate)."""
-    return all(w >= 16 and not w & (w - 1) for w in config.widths)
+    """Whether the kernels take a ReconNet of ``config``: its widths at most the kernels' widest tile (any
+    upscale, blocks, AO prior and geometry gate; a width under 16 or not a power of 2 is padded in the tiles)."""
+    return all(kernel_width(w) <= MAX_KERNEL_WIDTH for w in config.widths)
 
 
 def _kernels():
@@ -120,12 +126,13 @@ class FusedConv(nn.Module):
 
     def __init__(self, conv: nn.Conv2d, ci: int, co: int, relu: bool = True):
         super().__init__()
-        self.stride, self.relu = conv.stride[0], relu
-        self.register_buffer("weight", tap_weights(conv.weight, ci, co))
-        self.register_buffer("bias", _padded_bias(conv.bias, co))
+        self.stride, self.relu, self.channels = conv.stride[0], relu, co
+        self.register_buffer("weight", tap_weights(conv.weight, kernel_width(ci), kernel_width(co)))
+        self.register_buffer("bias", _padded_bias(conv.bias, kernel_width(co)))
 
     def forward(self, x: torch.Tensor, residual: torch.Tensor | None = None) -> torch.Tensor:
-        return _kernels().conv3x3(x, self.weight, self.bias, stride=self.stride, relu=self.relu, residual=residual)
+        return _kernels().conv3x3(x, self.weight, self.bias, stride=self.stride, relu=self.relu, residual=residual,
+                                  out_channels=self.channels)
 
 
 class FusedUpsample(nn.Module):
@@ -138,8 +145,11 @@ class FusedUpsample(nn.Module):
 
     def __init__(self, reduce: nn.Conv2d):
         super().__init__()
-        self.register_buffer("weight", reduce.weight.detach()[:, :, 0, 0].t().half().contiguous())
-        self.register_buffer("bias", reduce.bias.detach().float())
+        c, cc = reduce.out_channels, reduce.in_channels
+        weight = reduce.weight.detach().new_zeros(kernel_width(cc), kernel_width(c))
+        weight[:cc, :c] = reduce.weight.detach()[:, :, 0, 0].t()
+        self.register_buffer("weight", weight.half().contiguous())
+        self.register_buffer("bias", _padded_bias(reduce.bias, kernel_width(c)))
 
     def forward(self, skip: torch.Tensor, coarse: torch.Tensor) -> torch.Tensor:
         return _kernels().upsample_add(skip, coarse.permute(0, 3, 1, 2), self.weight, self.bias)
@@ -152,7 +162,7 @@ class FusedReconNet(nn.Module):
     Inference only (no gradients through the kernels).
 
     Args:
-        net: the ReconNet (widths powers of 2, at least 16).
+        net: the ReconNet (:func:`fusable`: widths at most :data:`MAX_KERNEL_WIDTH`).
 
     Shape:
         inputs: (B, 8, H, W). prev_warped: (B, 6, sH, sW). Returns (B, 6, sH, sW), float32 on the
@@ -163,7 +173,7 @@ class FusedReconNet(nn.Module):
         super().__init__()
         widths = net.config.widths
         if not fusable(net.config):
-            raise ValueError(f"fused_reconnet: the widths must be powers of 2 >= 16, got {widths}")
+            raise ValueError(f"fused_reconnet: the widths must be at most {MAX_KERNEL_WIDTH}, got {widths}")
         self.config = net.config
         self.reference = net
         self.head = FusedConv(net.head, PACKED, widths[0])
@@ -173,9 +183,9 @@ class FusedReconNet(nn.Module):
                                   for block in net.body)
         self.up = nn.ModuleList(FusedUpsample(reduce) for reduce in net.reduce)
         self.fuse = nn.ModuleList(FusedConv(conv, widths[i], widths[i]) for i, conv in enumerate(net.fuse))
-        tail = max(PACKED, 1 << (net.tail.out_channels - 1).bit_length())  # a power of 2: 16, or 32 for x2
+        tail = kernel_width(net.tail.out_channels)  # 16, or 32 for x2
         weight, bias = tail_convolution(net)
-        self.register_buffer("tail_w", tap_weights(weight, widths[0], tail))
+        self.register_buffer("tail_w", tap_weights(weight, kernel_width(widths[0]), tail))
         self.register_buffer("tail_b", _padded_bias(bias, tail))
         # a blend model's weight as a host number: the tail reads it with no sync (inference: it is fixed)
         self.blend_rays = None if net.blend_rays is None else net.blend_rays.item()

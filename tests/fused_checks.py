@@ -31,7 +31,8 @@ from isosr_render.shading import ShadingParams, shade
 from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net import fused_kernels
 from isosr_net.fused_kernels import ReconSources, conv3x3, pack_inputs, recon_tail, upsample_add
-from isosr_net.fused_recon import FusedReconNet, fused_reconnet, fused_runs_on, fused_traffic, tap_weights
+from isosr_net.fused_recon import (FusedReconNet, fused_reconnet, fused_runs_on, fused_traffic, kernel_width,
+                                   tap_weights)
 from isosr_net.inference import FP16_MAX_DEPTH, FRAME_FLAGS, buffer_stack, frame_flags, stack_buffers
 from isosr_net.model import load_pretrained
 from isosr_net.reconnet import (AO_PRIORS, BLEND_PARAMETER, GATE_PARAMETER, GATE_RATE, ReconNet, ReconNetConfig,
@@ -215,6 +216,30 @@ def test_conv3x3_of_stride_2_is_conv2d_of_stride_2(h, w, ci, co):
     assert_conv_close(nchw(conv3x3(x, taps, bias, stride=2)), F.relu(ref), magnitude)
 
 
+def padded_bias(bias: torch.Tensor) -> torch.Tensor:
+    """A bias zero-padded to its kernel width, as the kernels take it."""
+    return F.pad(bias, (0, kernel_width(len(bias)) - len(bias)))
+
+
+@pytest.mark.parametrize("ci, co, stride", [(8, 16, 1), (16, 8, 1), (3, 24, 1), (8, 8, 2)])
+def test_conv3x3_of_fewer_channels_than_a_tile_stores_only_its_own(ci, co, stride):
+    """Channels under 16 or not a power of 2: the tensors hold their own, the tile pads them (the weights
+    zero-padded by tap_weights); the residual is read and the output written at their own channels."""
+    x = rand(2, 6, 10, ci, seed=6, dtype=torch.float16)
+    weight, bias = rand(co, ci, 3, 3, scale=0.3, seed=7), rand(co, seed=8)
+    residual = rand(2, 6 // stride, 10 // stride, co, seed=9, dtype=torch.float16)
+    got = conv3x3(x, tap_weights(weight, kernel_width(ci), kernel_width(co)), padded_bias(bias), stride=stride,
+                  relu=False, residual=residual, out_channels=co)
+    assert got.shape == (2, 6 // stride, 10 // stride, co)
+    ref = (F.conv2d(nchw(x).double(), weight.double(), bias.double(), stride=stride, padding=1)
+           + nchw(residual).double())
+    magnitude = F.conv2d(nchw(x).double().abs(), weight.double().abs(), stride=stride, padding=1)
+    assert_conv_close(nchw(got), ref, magnitude + nchw(residual).double().abs())
+    with pytest.raises(ValueError, match=rf"conv3x3: {co} output channels take weights of {kernel_width(co)} outputs, "
+                                         r"got 64"):
+        conv3x3(x, tap_weights(weight, kernel_width(ci), 64), torch.zeros(64, device=DEVICE), out_channels=co)
+
+
 def test_a_batch_is_tuned_as_one_of_its_frames(monkeypatch):
     """The autotuning key (size class) of a pass over B frames is one frame's: a new batch size
     tunes nothing while its sessions wait."""
@@ -259,6 +284,23 @@ def test_upsample_add_is_the_relu_of_the_skip_plus_the_upsampled_reduced_coarse(
         upsample_add(rand(2, 3, 4, 32, dtype=torch.float16), coarse, weight, bias)
     with pytest.raises(ValueError, match=r"upsample_add: weight must be \(64, 32\), got \(32, 32\)"):
         upsample_add(skip, coarse, weight[:32].contiguous(), bias)
+
+
+@pytest.mark.parametrize("c, cc", [(8, 16), (16, 8), (12, 40)])
+def test_upsample_add_of_fewer_channels_than_a_tile_stores_only_its_own(c, cc):
+    """The skip and the output hold their C channels, the coarse its CC; the 1x1 weights zero-padded."""
+    coarse = rand(2, cc, 3, 5, seed=27, dtype=torch.float16)
+    skip = rand(2, 6, 10, c, seed=28, dtype=torch.float16)
+    weight, bias = rand(cc, c, scale=0.2, seed=29), rand(c, seed=30)
+    padded = F.pad(weight, (0, kernel_width(c) - c, 0, kernel_width(cc) - cc)).half().contiguous()
+    got = upsample_add(skip, coarse, padded, padded_bias(bias))
+    assert got.shape == skip.shape
+    reduced = torch.einsum("bkhw,kc->bchw", coarse.double(), weight.double()) + bias.double()[:, None, None]
+    expected = F.relu(nchw(skip).double() + F.interpolate(reduced, scale_factor=2, mode="bilinear",
+                                                          align_corners=False))
+    magnitude = F.interpolate(torch.einsum("bkhw,kc->bchw", coarse.double().abs(), weight.double().abs()),
+                              scale_factor=2, mode="bilinear", align_corners=False)
+    assert_conv_close(nchw(got), expected, magnitude + nchw(skip).double().abs())
 
 
 def test_conv3x3_checks_its_inputs():
@@ -578,11 +620,13 @@ def test_a_fused_blend_map_model_equals_reconnet(spp, variance):
     assert (got[:, AO] - unmapped[:, AO]).abs().max() > 1e-2  # the map changed the AO
 
 
-@pytest.mark.parametrize("blocks", [0, 1])
-def test_other_architectures_fuse_too(blocks):
-    """Without residual blocks, or with one; widths other than the shipped."""
+@pytest.mark.parametrize("blocks, widths", [(0, (16, 16, 32, 64)), (1, (16, 16, 32, 64)), (2, (8, 16, 32, 32)),
+                                            (1, (4, 12, 24, 40))])
+def test_other_architectures_fuse_too(blocks, widths):
+    """Without residual blocks, or with one; widths other than the shipped: narrower at full resolution (8 or 4
+    channels, stored as they are), or not powers of 2."""
     torch.manual_seed(3)
-    net = ReconNet(ReconNetConfig(widths=(16, 16, 32, 64), blocks=blocks)).to(DEVICE).eval()
+    net = ReconNet(ReconNetConfig(widths=widths, blocks=blocks)).to(DEVICE).eval()
     fused = fused_reconnet(net)
     inputs, warped = recon_batch(1, 6, 9, seed=31).to(DEVICE), rand(1, 6, 6, 9, seed=32).sigmoid()
     with torch.no_grad():

@@ -967,14 +967,17 @@ def test_the_frame_method_of_an_upscaling_model_renders_at_half_the_sides(x2_mod
         FrameMethod.of("reconstruct", factor=4)
 
 
-def test_the_fused_kernels_run_fp16_on_cuda_and_models_of_their_widths(x2_model):
+def test_the_fused_kernels_run_fp16_on_cuda_and_models_of_their_widths(x2_model, tmp_path):
     """The one rule `fastest` and the service's `served` follow (decided from the model's config,
-    without a GPU): the shipped models, x1 and x2, fuse; the 4-channel test model does not."""
+    without a GPU): the shipped models, x1 and x2, fuse, and so does the 4-channel test model (its
+    channels padded in the kernels' tiles); one wider than the kernels' widest tile does not."""
     from isosr_net.fused_recon import triton_imports
 
     assert Reconstructor.fuses(DEFAULT_RECON_MODEL, "cuda", "fp16") == triton_imports()
     assert Reconstructor.fuses(RECON_X2_MODEL, "cuda", "fp16") == triton_imports()
-    assert not Reconstructor.fuses(x2_model, "cuda", "fp16")
+    assert Reconstructor.fuses(x2_model, "cuda", "fp16") == triton_imports()
+    save_pretrained(net(seed=6, widths=(16, 32, 64, 128), blocks=0), tmp_path)
+    assert not Reconstructor.fuses(tmp_path, "cuda", "fp16")
     assert not Reconstructor.fuses(DEFAULT_RECON_MODEL, "cuda", "bf16")
     assert not Reconstructor.fuses(DEFAULT_RECON_MODEL, "cpu", "fp16")
     served = Reconstructor.served(DEFAULT_RECON_MODEL, "cpu", "fp32")
