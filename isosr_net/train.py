@@ -140,10 +140,26 @@ def weights_config(config):
             else config)
 
 
+def narrowed(state: dict[str, torch.Tensor], like: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """A ReconNet's weights cut to a narrower one's (``like``, its state): each level's first channels. Every axis
+    of ReconNet's tensors is a level's channels, the inputs', the outputs' or the kernel's taps, so each tensor's
+    leading entries along every axis are that cut (:meth:`Trainer._init_from`)."""
+    return {name: t[tuple(slice(0, n) for n in like[name].shape)] if name in like else t for name, t in state.items()}
+
+
+def narrowed_config(weights, config):
+    """A weights' config as a run of model ``config`` takes it: a ReconNet's widths cut to the run's where it is as
+    wide or wider at every level (:func:`narrowed`), else as it is."""
+    if (isinstance(config, ReconNetConfig) and isinstance(weights, ReconNetConfig) and weights.widths != config.widths
+            and all(n <= w for n, w in zip(config.widths, weights.widths))):
+        return replace(weights, widths=config.widths)
+    return weights
+
+
 def start_configs(config) -> list:
     """The weights' configs (:func:`weights_config`) a run of model ``config`` may start from (``init``), its own
     first: a blend ReconNet also from one over the rays, one with gates, a map or a variance blend also from one
-    without (:meth:`Trainer._init_from`)."""
+    without (:meth:`Trainer._init_from`; with the weights' widths cut first, :func:`narrowed_config`)."""
     config = weights_config(config)
     if not isinstance(config, ReconNetConfig):
         return [config]
@@ -249,13 +265,16 @@ class Trainer:
         from). A ReconNet that blends its AO with the rays' (``ao_prior="blend"``) starts from one that
         corrects them (``"rays"``), one with a ``geometry_gate``, a ``blend_map`` or ``blend_variance`` from one
         without: the same weights, its blend at :data:`~isosr_net.reconnet.BLEND_RAYS_INIT` rays, its gates and map
-        at their start; with any ``blend_beyond`` (it has no weights)."""
+        at their start; with any ``blend_beyond`` (it has no weights). A ReconNet narrower at some levels starts
+        from one wider there: each level's first channels (:func:`narrowed`)."""
         model, _ = load_pretrained(folder, self.device)
         config, weights = weights_config(self.net.config), weights_config(model.config)
-        if weights not in start_configs(self.net.config):
+        cut = narrowed_config(weights, config)
+        if cut not in start_configs(self.net.config):
             raise ValueError(f"init {folder} holds a model of another config ({model.config}); the run trains "
                              f"{self.net.config}")
-        self.net.load_state_dict(model.state_dict(), strict=weights == config)
+        state = model.state_dict() if cut == weights else narrowed(model.state_dict(), self.net.state_dict())
+        self.net.load_state_dict(state, strict=cut == config)
         if self.rank == 0:
             print(f"fine-tuning {folder}")
 

@@ -20,7 +20,8 @@ from isosr_render.conventions import SAMPLED_AO, SAMPLING
 from isosr_net.losses import PAPER_LOSSES
 from isosr_net.model import Unrolled, build_model, load_pretrained, save_pretrained
 from isosr_net.reconnet import GATE_LOGIT_INIT, ReconNet, ReconNetConfig
-from isosr_net.train import Trainer, TrainConfig, start_configs, weights_config
+from isosr_net.train import Trainer, TrainConfig, narrowed_config, start_configs, weights_config
+from test_reconnet import recon_batch
 from net_fixtures import (TINY_MODEL, TINY_RECON_MODEL, random_vgg19, tiny_recon_x2_data, tiny_train_config, tiny_train_data,
                           tiny_wide_recon_data)
 
@@ -299,14 +300,15 @@ def test_the_shipped_configs_load():
                                             ("train_recon_map.json", "datagen_recon_map.json"),
                                             ("train_recon_map_4k.json", "datagen_recon_4k.json"),
                                             ("train_recon_variance_4k.json", "datagen_recon_4k.json"),
-                                            ("train_recon_no_worse_4k.json", "datagen_recon_4k.json")])
+                                            ("train_recon_no_worse_4k.json", "datagen_recon_4k.json"),
+                                            ("train_recon_narrow.json", "datagen_recon_4k.json")])
 def test_each_reconstruction_config_fits_its_data_config(train, datagen):
     root = Path(__file__).resolve().parents[1] / "configs"
     config, data = load_config(TrainConfig, root / train), load_config(DatagenConfig, root / datagen)
     model = build_model(config.model).config
     if config.init:  # a project-relative model folder that the trainer starts this model from
         start = load_pretrained(root.parent / config.init)[0].config
-        assert weights_config(start) in start_configs(model)
+        assert narrowed_config(weights_config(start), model) in start_configs(model)
     assert model.limits == data.limits and model.upscale == data.upscale and data.recon_inputs
     assert max(data.input_ao_rays) == data.max_ao_rays and max(data.input_spp) == data.max_spp
     run = train.removeprefix("train_").removesuffix(".json")  # scripts/train_recon.sh's RUN
@@ -384,6 +386,39 @@ def test_a_blend_model_fine_tunes_from_a_rays_model_and_trains_its_weight(tmp_pa
                      init=str(tmp_path / "blend"))
     assert beyond.net.config.blend_beyond == 1.0
     assert all(torch.equal(v, beyond.net.state_dict()[k]) for k, v in t.net.state_dict().items())
+
+
+def test_a_narrower_reconnet_starts_from_a_wider_ones_first_channels_at_each_level(tmp_path, tmp_path_factory):
+    """Widths under the init's at some levels: each tensor cut to its leading entries, which are each level's
+    first channels; where the cut channels carry nothing (zeroed), the narrow model computes what the wide one
+    does. A model wider than its init at any level stays refused."""
+    wide = tiny_wide_recon_data(tmp_path_factory)
+    model, source = saved_wide_model(tmp_path / "wide", ao_prior="blend", blend_map=True, widths=(8, 4, 8, 16))
+    with torch.no_grad():  # level 0's channels 4-7 and level 3's 8-15 off: the wide model is the narrow one, padded
+        source.head.weight[4:] = 0
+        source.head.bias[4:] = 0
+        source.reduce[0].weight[4:] = 0
+        source.reduce[0].bias[4:] = 0
+        source.fuse[0].weight[4:] = 0
+        source.fuse[0].bias[4:] = 0
+        source.down[2].weight[8:] = 0
+        source.down[2].bias[8:] = 0
+        for block in source.body:
+            for conv in (block.conv1, block.conv2):
+                conv.weight[8:] = 0
+                conv.bias[8:] = 0
+    save_pretrained(source, tmp_path / "wide")
+    narrow = {**model, "widths": (4, 4, 8, 8)}
+    t = trainer(wide, tmp_path / "run", steps=2, model=narrow, init=str(tmp_path / "wide"))
+    assert t.net.head.weight.shape[0] == 4 and torch.equal(t.net.head.weight, source.head.weight[:4])
+    assert torch.equal(t.net.tail.weight, source.tail.weight[:, :4]) and torch.equal(t.net.ao_blend_log,
+                                                                                       source.ao_blend_log)
+    inputs = recon_batch(1, 16, 24, seed=3)
+    previous = torch.rand(1, 6, 16, 24, generator=torch.Generator().manual_seed(4))
+    with torch.no_grad():
+        torch.testing.assert_close(t.net.eval()(inputs, previous), source.eval()(inputs, previous), rtol=0, atol=1e-6)
+    with pytest.raises(ValueError, match="init .* holds a model of another config"):
+        trainer(wide, tmp_path / "other", model={**model, "widths": (8, 8, 8, 16)}, init=str(tmp_path / "wide"))
 
 
 def test_a_gated_blend_model_fine_tunes_from_a_rays_model_and_trains_its_gates(tmp_path, tmp_path_factory):
