@@ -300,44 +300,6 @@ def macs_per_pixel(config: ReconNetConfig) -> float:
     return (enc + body + dec + w0 * OUTPUTS * cells * 9) / cells
 
 
-def channel_levels(name: str) -> tuple[int | None, int | None]:
-    """The levels whose channels the first two axes of ReconNet's tensor ``name`` (a state key) index: its outputs',
-    its inputs'; None for the network's own inputs or outputs, or no such axis. A residual block's inner channels
-    count as its level's."""
-    kind, _, rest = name.partition(".")
-    index = int(rest.split(".")[0]) if rest.split(".")[0].isdigit() else 0
-    return {"head": (0, None), "down": (index + 1, index), "body": (LEVELS, LEVELS), "reduce": (index, index + 1),
-            "fuse": (index, index), "tail": (None, 0), BLEND_MAP: (None, 0)}.get(kind, (None, None))
-
-
-def channel_order(state: dict[str, torch.Tensor]) -> dict[int, torch.Tensor]:
-    """Each level's channels, the most weighty first: a channel's weights into the level (the rows making it, biases
-    too) times its weights out (the columns reading it), L1 each; one that nothing makes or nothing reads counts 0."""
-    made: dict[int, torch.Tensor] = {}
-    read: dict[int, torch.Tensor] = {}
-    for name, t in state.items():
-        out, into = channel_levels(name)
-        if out is not None:
-            made[out] = made.get(out, 0) + t.detach().abs().reshape(t.shape[0], -1).sum(1)
-        if into is not None and t.dim() > 1:
-            read[into] = read.get(into, 0) + t.detach().abs().transpose(0, 1).reshape(t.shape[1], -1).sum(1)
-    return {level: torch.argsort(made[level] * read[level], descending=True, stable=True) for level in made}
-
-
-def selected_channels(state: dict[str, torch.Tensor], channels: dict[int, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """ReconNet weights with each level's channels ``channels[level]`` (indices), every tensor indexed alike: a
-    permutation computes the same function; fewer indices cut the level to them."""
-    out = {}
-    for name, t in state.items():
-        level, into = channel_levels(name)
-        if level in channels:
-            t = t.index_select(0, channels[level])
-        if into in channels and t.dim() > 1:
-            t = t.index_select(1, channels[into])
-        out[name] = t
-    return out
-
-
 def upsampled_inputs(inputs: torch.Tensor, factor: int) -> torch.Tensor:
     """The inputs at ``factor`` times their resolution: bilinear, but depth nearest (a blend across
     a silhouette would be a depth where no surface is). The base an upscaling ReconNet corrects.

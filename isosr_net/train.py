@@ -28,8 +28,7 @@ from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net.losses import PAPER_LOSSES, AdversarialLoss, LossContext, build_losses, total_loss
 from isosr_net.metrics import frame_scores
 from isosr_net.model import Unrolled, build_model, load_checkpoint, load_pretrained, save_checkpoint
-from isosr_net.reconnet import (WEIGHTLESS_FIELDS, ReconNet, ReconNetConfig, channel_levels, channel_order,
-                              selected_channels)
+from isosr_net.reconnet import WEIGHTLESS_FIELDS, ReconNet, ReconNetConfig
 
 
 # TrainConfig.compile's modes: "" (eager) and torch.compile's without CUDA graphs, which a step's
@@ -142,11 +141,10 @@ def weights_config(config):
 
 
 def narrowed(state: dict[str, torch.Tensor], like: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """A ReconNet's weights cut to a narrower one's (``like``, its state): at each level the channels of most weight
-    (:func:`~isosr_net.reconnet.channel_order`), in their own order (:meth:`Trainer._init_from`)."""
-    widths = {level: t.shape[0] for name, t in like.items() if (level := channel_levels(name)[0]) is not None}
-    kept = {level: order[:widths[level]].sort().values for level, order in channel_order(state).items()}
-    return selected_channels(state, kept)
+    """A ReconNet's weights cut to a narrower one's (``like``, its state): each level's first channels. Every axis
+    of ReconNet's tensors is a level's channels, the inputs', the outputs' or the kernel's taps, so each tensor's
+    leading entries along every axis are that cut (:meth:`Trainer._init_from`)."""
+    return {name: t[tuple(slice(0, n) for n in like[name].shape)] if name in like else t for name, t in state.items()}
 
 
 def narrowed_config(weights, config):

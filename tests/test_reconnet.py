@@ -21,8 +21,7 @@ from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net.fused_recon import FusedReconNet, fusable
 from isosr_net.inference import buffer_stack
 from isosr_net.reconnet import (GATE_PARAMETER, GATE_RATE, RayLimits, ReconNet, ReconNetConfig, ao_output,
-                                blend_rays_at, channel_order, interval_z, macs_per_pixel, rays_interval,
-                                selected_channels, upsampled_inputs)
+                                blend_rays_at, interval_z, macs_per_pixel, rays_interval, upsampled_inputs)
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, Reconstructor, recon_inputs, recon_limits
 from isosr_net.upscaler import DEFAULT_MODEL
 
@@ -498,23 +497,6 @@ def assert_sane(out: FrameBuffers, height: int, width: int) -> None:
     assert out.mask.min() >= 0 and out.mask.max() <= 1 and out.ao.min() >= 0 and out.ao.max() <= 1
     covered = out.mask > 0
     torch.testing.assert_close(out.normal[covered].norm(dim=-1), torch.ones(int(covered.sum())), rtol=0, atol=1e-4)
-
-
-def test_a_reconnets_channels_permuted_alike_in_every_tensor_compute_the_same():
-    """selected_channels with each level's channels reversed: every tensor that makes or reads a level indexed alike,
-    so the same function (channel_levels knows every tensor's axes); channel_order ranks each level's channels."""
-    config = dict(widths=(8, 16, 16, 32), blocks=2, ao_prior="blend", blend_map=True, geometry_gate=True,
-                  max_ao_rays=16)
-    model, twin = net(seed=5, **config), net(seed=9, **config)
-    reverse = {level: torch.arange(width - 1, -1, -1) for level, width in enumerate(model.config.widths)}
-    twin.load_state_dict(selected_channels(model.state_dict(), reverse))
-    inputs = recon_batch(2, 13, 21, seed=6)
-    previous = torch.rand(2, 6, 13, 21, generator=torch.Generator().manual_seed(7))
-    with torch.no_grad():
-        torch.testing.assert_close(twin(inputs, previous), model(inputs, previous), rtol=0, atol=1e-5)
-    order = channel_order(model.state_dict())
-    assert {level: sorted(o.tolist()) for level, o in order.items()} == {
-        level: list(range(width)) for level, width in enumerate(model.config.widths)}
 
 
 def test_the_shipped_model_loads_without_arguments():

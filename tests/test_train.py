@@ -389,21 +389,29 @@ def test_a_blend_model_fine_tunes_from_a_rays_model_and_trains_its_weight(tmp_pa
 
 
 def test_a_narrower_reconnet_starts_from_a_wider_ones_first_channels_at_each_level(tmp_path, tmp_path_factory):
-    """Widths under the init's at some levels: each level keeps its channels of most weight (made times read), in
-    their order; where the cut ones carry nothing (nothing makes them: zeroed), the narrow model computes what the
-    wide one does. A model wider than its init at any level stays refused."""
+    """Widths under the init's at some levels: each tensor cut to its leading entries, which are each level's
+    first channels; where the cut channels carry nothing (zeroed), the narrow model computes what the wide one
+    does. A model wider than its init at any level stays refused."""
     wide = tiny_wide_recon_data(tmp_path_factory)
     model, source = saved_wide_model(tmp_path / "wide", ao_prior="blend", blend_map=True, widths=(8, 4, 8, 16))
-    with torch.no_grad():  # level 0's channels 0-3 and level 3's 0-7 off: the wide model is the narrow one, padded
-        for layer, off in ((source.head, 4), (source.reduce[0], 4), (source.fuse[0], 4), (source.down[2], 8),
-                           *((conv, 8) for block in source.body for conv in (block.conv1, block.conv2))):
-            layer.weight[:off] = 0
-            layer.bias[:off] = 0
+    with torch.no_grad():  # level 0's channels 4-7 and level 3's 8-15 off: the wide model is the narrow one, padded
+        source.head.weight[4:] = 0
+        source.head.bias[4:] = 0
+        source.reduce[0].weight[4:] = 0
+        source.reduce[0].bias[4:] = 0
+        source.fuse[0].weight[4:] = 0
+        source.fuse[0].bias[4:] = 0
+        source.down[2].weight[8:] = 0
+        source.down[2].bias[8:] = 0
+        for block in source.body:
+            for conv in (block.conv1, block.conv2):
+                conv.weight[8:] = 0
+                conv.bias[8:] = 0
     save_pretrained(source, tmp_path / "wide")
     narrow = {**model, "widths": (4, 4, 8, 8)}
     t = trainer(wide, tmp_path / "run", steps=2, model=narrow, init=str(tmp_path / "wide"))
-    assert t.net.head.weight.shape[0] == 4 and torch.equal(t.net.head.weight, source.head.weight[4:])
-    assert torch.equal(t.net.tail.weight, source.tail.weight[:, 4:]) and torch.equal(t.net.ao_blend_log,
+    assert t.net.head.weight.shape[0] == 4 and torch.equal(t.net.head.weight, source.head.weight[:4])
+    assert torch.equal(t.net.tail.weight, source.tail.weight[:, :4]) and torch.equal(t.net.ao_blend_log,
                                                                                        source.ao_blend_log)
     inputs = recon_batch(1, 16, 24, seed=3)
     previous = torch.rand(1, 6, 16, 24, generator=torch.Generator().manual_seed(4))
