@@ -437,11 +437,17 @@ def _grid(pixels: int, batch: int):
     return lambda meta: (triton.cdiv(pixels, meta["BLOCK_M"]), batch)
 
 
+def _tile_width(channels: int, name: str, where: str) -> int:
+    """The kernel width of a tensor of ``channels`` (:func:`kernel_width`), refused past :data:`MAX_KERNEL_WIDTH`."""
+    width = kernel_width(channels)
+    if width > MAX_KERNEL_WIDTH:
+        raise ValueError(f"{where}: {name} may have at most {MAX_KERNEL_WIDTH} channels, got {channels}")
+    return width
+
+
 def _check_taps(weight: torch.Tensor, bias: torch.Tensor, ci: int, where: str) -> int:
     """Check tap-major weights (9, kernel_width(ci), CO) fp16 and a (CO,) fp32 bias, CO a kernel width; returns CO."""
-    if kernel_width(ci) > MAX_KERNEL_WIDTH:
-        raise ValueError(f"{where}: at most {MAX_KERNEL_WIDTH} input channels, got {ci}")
-    dims = check_shape(weight, f"(9, {kernel_width(ci)}, CO)", "weight", where)
+    dims = check_shape(weight, f"(9, {_tile_width(ci, 'the input', where)}, CO)", "weight", where)
     check_shape(bias, "(CO)", "bias", where, dims)
     _check_dtypes(weight, bias, where)
     if kernel_width(dims["CO"]) != dims["CO"] or dims["CO"] > MAX_KERNEL_WIDTH:
@@ -630,9 +636,7 @@ def upsample_add(x: torch.Tensor, coarse: torch.Tensor, weight: torch.Tensor, bi
     if hp % 2 or wp % 2:
         raise ValueError(f"upsample_add: x must have even sides, got {hp}x{wp}")
     cc = check_shape(coarse, f"({b}, CC, {hp // 2}, {wp // 2})", "coarse", "upsample_add")["CC"]
-    cp, ccp = kernel_width(c), kernel_width(cc)
-    if max(cp, ccp) > MAX_KERNEL_WIDTH:
-        raise ValueError(f"upsample_add: at most {MAX_KERNEL_WIDTH} channels, got {c} and {cc}")
+    cp, ccp = _tile_width(c, "x", "upsample_add"), _tile_width(cc, "coarse", "upsample_add")
     check_shape(weight, f"({ccp}, {cp})", "weight", "upsample_add")
     check_shape(bias, f"({cp})", "bias", "upsample_add")
     _check_dtypes(weight, bias, "upsample_add")

@@ -317,6 +317,10 @@ def test_conv3x3_checks_its_inputs():
         conv3x3(x, taps, bias, stride=3)
     with pytest.raises(ValueError, match=r"conv3x3: residual must be \(1, 3, 4, 16\), got \(1, 6, 8, 16\)"):
         conv3x3(x, taps, bias, stride=2, residual=x)
+    with pytest.raises(ValueError, match="conv3x3: the input may have at most 64 channels, got 65"):
+        conv3x3(rand(1, 6, 8, 65, dtype=torch.float16), taps, bias)
+    with pytest.raises(ValueError, match="upsample_add: coarse may have at most 64 channels, got 128"):
+        upsample_add(x, rand(1, 128, 3, 4, dtype=torch.float16), taps[0], bias)
 
 
 def tail_case(h, w, hp, wp):
