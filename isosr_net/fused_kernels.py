@@ -51,9 +51,9 @@ import triton.testing
 from isosr_render.conventions import AO, DEPTH, MASK, NORMAL, SAMPLED_AO, SAMPLING
 from isosr_render.shading import ShadingParams, light_and_half
 from isosr_render.shapes import check_shape
-from isosr_net.fused_recon import MAX_KERNEL_WIDTH, PACKED, kernel_width
+from isosr_net.fused_recon import FUSED_UPSCALES, MAX_KERNEL_WIDTH, PACKED, kernel_width
 from isosr_net.inference import FRAME_FLAGS
-from isosr_net.reconnet import FIRST_FRAME_MODES, INPUTS, OUTPUTS, UPSCALES, ReconNetConfig
+from isosr_net.reconnet import FIRST_FRAME_MODES, INPUTS, OUTPUTS, ReconNetConfig
 
 INTERPRET = os.environ.get("TRITON_INTERPRET") == "1"
 # Pixels per program and warps, autotuned per layer and size class (a frame's pixels' bit length: a
@@ -551,8 +551,8 @@ def pack_inputs(sources: ReconSources, prev: torch.Tensor | None, flow: torch.Te
         previous mask and 12-15 its AO at the input pixel's 2 x 2 output pixels (F.pixel_unshuffle).
     """
     dims = sources.check("pack_inputs")
-    if upscale not in UPSCALES:
-        raise ValueError(f"pack_inputs: upscale must be one of {UPSCALES}, got {upscale!r}")
+    if upscale not in FUSED_UPSCALES:
+        raise ValueError(f"pack_inputs: upscale must be one of {FUSED_UPSCALES}, got {upscale!r}")
     if prev is not None:
         check_shape(prev, f"({dims['B']}, 6, {upscale * dims['H']}, {upscale * dims['W']})", "prev", "pack_inputs")
     if flow is not None:

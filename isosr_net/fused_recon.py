@@ -36,10 +36,13 @@ from torch import nn
 from isosr_render.conventions import AO, DEPTH, MASK, SAMPLED_AO, SAMPLING
 from isosr_render.shading import ShadingParams
 from isosr_render.shapes import check_int, check_shape
-from isosr_net.reconnet import INPUTS, LEVELS, OUTPUTS, RECURRENT, ReconNet, ReconNetConfig, blend_rays_at
+from isosr_net.reconnet import INPUTS, LEVELS, OUTPUTS, RECURRENT, UPSCALES, ReconNet, ReconNetConfig, blend_rays_at
 
 PACKED = 16  # channels of the packed input: 10 used (x2: 16), padded to tl.dot's smallest K
 MAX_KERNEL_WIDTH = 64  # the widest tile the kernels are checked at (ReconNet's shipped widths)
+# The upscales whose packed input (the inputs, and the previous mask and AO at each input pixel's output pixels)
+# fits PACKED: x4's 40 channels do not, so an x4 model runs unfused.
+FUSED_UPSCALES = tuple(s for s in UPSCALES if INPUTS + RECURRENT * s * s <= PACKED)
 
 
 def kernel_width(channels: int) -> int:
@@ -70,9 +73,10 @@ def fused_runs_on(device: torch.device | str) -> bool:
 
 
 def fusable(config: ReconNetConfig) -> bool:
-    """Whether the kernels take a ReconNet of ``config``: its widths at most the kernels' widest tile (any
-    upscale, blocks, AO prior and geometry gate; a width under 16 or not a power of 2 is padded in the tiles)."""
-    return all(kernel_width(w) <= MAX_KERNEL_WIDTH for w in config.widths)
+    """Whether the kernels take a ReconNet of ``config``: its widths at most the kernels' widest tile (a width
+    under 16 or not a power of 2 is padded in the tiles), an upscale of :data:`FUSED_UPSCALES` (any blocks, AO
+    prior and geometry gate)."""
+    return config.upscale in FUSED_UPSCALES and all(kernel_width(w) <= MAX_KERNEL_WIDTH for w in config.widths)
 
 
 def _kernels():
@@ -162,7 +166,7 @@ class FusedReconNet(nn.Module):
     Inference only (no gradients through the kernels).
 
     Args:
-        net: the ReconNet (:func:`fusable`: widths at most :data:`MAX_KERNEL_WIDTH`).
+        net: the ReconNet (:func:`fusable`: widths at most :data:`MAX_KERNEL_WIDTH`, upscale 1 or 2).
 
     Shape:
         inputs: (B, 8, H, W). prev_warped: (B, 6, sH, sW). Returns (B, 6, sH, sW), float32 on the
@@ -173,7 +177,8 @@ class FusedReconNet(nn.Module):
         super().__init__()
         widths = net.config.widths
         if not fusable(net.config):
-            raise ValueError(f"fused_reconnet: the widths must be at most {MAX_KERNEL_WIDTH}, got {widths}")
+            raise ValueError(f"fused_reconnet: the widths must be at most {MAX_KERNEL_WIDTH} and the upscale one of "
+                             f"{FUSED_UPSCALES}, got {widths} and {net.config.upscale}")
         self.config = net.config
         self.reference = net
         self.head = FusedConv(net.head, PACKED, widths[0])

@@ -57,8 +57,8 @@ BLEND_MAP = "ao_blend_map"
 GATE_PARAMETER = "geometry_gate_raw"
 GATE_LOGIT_INIT = 6.0
 GATE_RATE = 50.0
-# Output over input resolution: 1 reconstructs at the resolution it is given; 2 also upscales.
-UPSCALES = (1, 2)
+# Output over input resolution: 1 reconstructs at the resolution it is given; 2 and 4 also upscale.
+UPSCALES = (1, 2, 4)
 FLOAT32_MAX = torch.finfo(torch.float32).max
 # A config's numbers that no weights depend on (set in a model folder's config.json; each finite, >= 0, 0 is off).
 WEIGHTLESS_FIELDS = ("blend_beyond", "ao_interval", "ao_interval_narrows_past")
@@ -140,8 +140,8 @@ class ReconNetConfig:
             (all of them: the ray history's and those past the model's ray limits counted) its ``z`` falls as
             ``sqrt(n0 / n)`` (:func:`interval_z`), so the interval narrows as ``1 / n``: the more rays stand behind
             a mean, the less the network may move it. 0: ``z`` at every ``n``.
-        upscale: output over input resolution (:data:`UPSCALES`): 2 reconstructs a frame rendered
-            at half the output's sides (:func:`upsampled_inputs` is the base its output corrects).
+        upscale: output over input resolution (:data:`UPSCALES`): 2 (4) reconstructs a frame rendered
+            at half (a quarter of) the output's sides (:func:`upsampled_inputs` is the base its output corrects).
     """
 
     type: str = "ReconNet"

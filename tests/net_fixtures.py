@@ -82,9 +82,9 @@ def tiny_wide_recon_data(tmp_path_factory) -> Path:
     return _tiny_data(tmp_path_factory, TINY_WIDE_RECON_DATAGEN, "tiny_wide_recon_data")
 
 
-def tiny_recon_x2_data(tmp_path_factory) -> Path:
-    """:data:`TINY_RECON_X2_DATAGEN` rendered (see :func:`_tiny_data`)."""
-    return _tiny_data(tmp_path_factory, TINY_RECON_X2_DATAGEN, "tiny_recon_x2_data")
+def tiny_recon_upscaling_data(tmp_path_factory, s: int = 2) -> Path:
+    """:data:`TINY_RECON_X2_DATAGEN` upscaling ``s`` times rendered (see :func:`_tiny_data`)."""
+    return _tiny_data(tmp_path_factory, replace(TINY_RECON_X2_DATAGEN, upscale=s), f"tiny_recon_x{s}_data")
 
 
 def tiny_model_dir(tmp_path_factory, seed: int = 0, **model) -> Path:

@@ -19,7 +19,7 @@ from isosr_net.reconnet import RayLimits
 from isosr_render.catalog import shared_volumes_dir
 from isosr_render.conventions import AO, MASK, SAMPLED_AO, SAMPLING
 from net_fixtures import (TINY_DATAGEN, TINY_RECON_DATAGEN, TINY_RECON_X2_DATAGEN, tiny_datagen, tiny_recon_data,
-                          tiny_recon_x2_data, tiny_train_data)
+                          tiny_recon_upscaling_data, tiny_train_data)
 
 
 def shard_tensors(root: Path) -> dict[str, dict[str, torch.Tensor]]:
@@ -307,13 +307,14 @@ def test_reconstruction_shards_hold_full_resolution_inputs_with_their_sampling(t
     assert len(draws) > 1  # the sequences were not all rendered alike
 
 
-def test_data_for_a_model_that_also_upscales_has_reconstruction_inputs_at_half_the_sides(tmp_path_factory):
-    root = tiny_recon_x2_data(tmp_path_factory)
+@pytest.mark.parametrize("s", [2, 4])
+def test_data_for_a_model_that_also_upscales_has_reconstruction_inputs_at_1_over_s_of_the_sides(tmp_path_factory, s):
+    root = tiny_recon_upscaling_data(tmp_path_factory, s)
     config = TINY_RECON_X2_DATAGEN
     c, t = config.crop, config.frames
     for shard in json.loads((root / MANIFEST).read_text())["shards"]:
         tensors, k = load_file(root / shard["file"]), shard["crops"]
-        assert tensors["lowres"].shape == (k, t, 8, c, c) and tensors["highres"].shape == (k, t, 6, 2 * c, 2 * c)
+        assert tensors["lowres"].shape == (k, t, 8, c, c) and tensors["highres"].shape == (k, t, 6, s * c, s * c)
         sampling = tensors["lowres"].float()[:, :, SAMPLING]
         assert (sampling[:, :, 0] == shard["input_ao_rays"] / config.max_ao_rays).all()
         assert (sampling[:, :, 1] == shard["input_spp"] / config.max_spp).all()

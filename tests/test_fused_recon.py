@@ -93,8 +93,11 @@ def test_fused_traffic_counts_each_tensor_once():
 def test_fused_reconnet_refuses_what_it_cannot_fuse():
     with pytest.raises(TypeError, match="fused_reconnet needs a ReconNet, got Conv2d"):
         fused_reconnet(nn.Conv2d(1, 1, 3))
-    with pytest.raises(ValueError, match=r"the widths must be at most 64, got \(16, 32, 64, 128\)"):
+    with pytest.raises(ValueError, match=r"the widths must be at most 64 and the upscale one of \(1, 2\), got "
+                                         r"\(16, 32, 64, 128\) and 1"):
         fused_reconnet(ReconNet(ReconNetConfig(widths=(16, 32, 64, 128))))
+    with pytest.raises(ValueError, match=r"got \(16, 32, 64, 64\) and 4"):  # x4's packed input: 40 channels
+        fused_reconnet(ReconNet(ReconNetConfig(upscale=4)))
 
 
 @pytest.mark.skipif(fused_runs_on("cpu"), reason="under the interpreter the fused path runs on the CPU")

@@ -884,38 +884,40 @@ def test_warm_runs_a_first_and_a_carried_frame_per_size_and_forgets_them():
     assert reconstructor.previous is None
 
 
-# ---------------------------------------------------------------- reconstructing and upscaling x2
+# ---------------------------------------------------------------- reconstructing and upscaling x2 and x4
 
 
-def test_an_upscaling_model_corrects_its_inputs_upsampled_at_twice_the_sides():
+@pytest.mark.parametrize("s", [2, 4])
+def test_an_upscaling_model_corrects_its_inputs_upsampled_at_s_times_the_sides(s):
     """With a silent tail the output is the base: mask and normal bilinear, depth nearest, AO the
     rays' smoothed mean upsampled; the previous output is read at the output's size."""
-    model = net(seed=4, upscale=2, ao_prior="rays")
+    model = net(seed=4, upscale=s, ao_prior="rays")
     inputs = recon_batch(h=7, w=10)
     torch.nn.init.zeros_(model.tail.weight)
     torch.nn.init.zeros_(model.tail.bias)
     with torch.no_grad():
-        out = model(inputs, torch.rand(2, 6, 14, 20))
-    base = upsampled_inputs(inputs, 2)
-    assert out.shape == (2, 6, 14, 20)
-    up = torch.nn.functional.interpolate(inputs, scale_factor=2, mode="bilinear", align_corners=False)
+        out = model(inputs, torch.rand(2, 6, 7 * s, 10 * s))
+    base = upsampled_inputs(inputs, s)
+    assert out.shape == (2, 6, 7 * s, 10 * s)
+    up = torch.nn.functional.interpolate(inputs, scale_factor=s, mode="bilinear", align_corners=False)
     torch.testing.assert_close(out[:, MASK], up[:, MASK].clamp(0, 1))
     torch.testing.assert_close(out[:, NORMAL], up[:, NORMAL])
-    torch.testing.assert_close(out[:, DEPTH], inputs[:, DEPTH].repeat_interleave(2, 2).repeat_interleave(2, 3))
+    torch.testing.assert_close(out[:, DEPTH], inputs[:, DEPTH].repeat_interleave(s, 2).repeat_interleave(s, 3))
     torch.testing.assert_close(out[:, AO], ao_output(torch.zeros_like(out[:, AO]), base, model.config))
-    with pytest.raises(ValueError, match=r"prev_warped must be \(2, 6, 14, 20\)"):
+    with pytest.raises(ValueError, match=rf"prev_warped must be \(2, 6, {7 * s}, {10 * s}\)"):
         model(inputs, torch.rand(2, 6, 7, 10))
 
 
-def test_an_upscaling_step_warps_the_previous_output_by_the_flow_at_its_size():
-    model = net(seed=5, upscale=2)
+@pytest.mark.parametrize("s", [2, 4])
+def test_an_upscaling_step_warps_the_previous_output_by_the_flow_at_its_size(s):
+    model = net(seed=5, upscale=s)
     inputs, flow = recon_batch(h=6, w=9), torch.randn(2, 2, 6, 9)
     with torch.no_grad():
         first, stand_in = model.step(inputs, None, None)
         second, warped = model.step(inputs, flow, first)
-    assert first.shape == second.shape == stand_in.shape == (2, 6, 12, 18)
-    torch.testing.assert_close(stand_in, model.__class__(ReconNetConfig()).first_previous(upsampled_inputs(inputs, 2)))
-    torch.testing.assert_close(warped, warp_by_flow(first, upscale_flow(flow, 2)))
+    assert first.shape == second.shape == stand_in.shape == (2, 6, 6 * s, 9 * s)
+    torch.testing.assert_close(stand_in, model.__class__(ReconNetConfig()).first_previous(upsampled_inputs(inputs, s)))
+    torch.testing.assert_close(warped, warp_by_flow(first, upscale_flow(flow, s)))
 
 
 def test_an_upscaling_model_costs_a_third_of_the_multiply_adds_per_output_pixel():
@@ -924,59 +926,72 @@ def test_an_upscaling_model_costs_a_third_of_the_multiply_adds_per_output_pixel(
         model(recon_batch(b=1, h=16, w=24), torch.zeros(1, 6, 32, 48))
     assert counter.get_total_flops() / 2 / (32 * 48) == pytest.approx(macs_per_pixel(model.config), rel=1e-12)
     assert macs_per_pixel(model.config) < macs_per_pixel(ReconNetConfig()) / 3
-    with pytest.raises(ValueError, match=r"upscale must be one of \(1, 2\), got 4"):
-        ReconNetConfig(upscale=4)
+    with pytest.raises(ValueError, match=r"upscale must be one of \(1, 2, 4\), got 3"):
+        ReconNetConfig(upscale=3)
+
+
+def saved_upscaler(tmp_path_factory, s: int):
+    """A random ReconNet that reconstructs and upscales ``s`` times, saved."""
+    folder = tmp_path_factory.mktemp(f"x{s}_model")
+    save_pretrained(net(seed=6, widths=(4, 4, 8, 8), blocks=1, ao_prior="rays", upscale=s), folder)
+    return folder
 
 
 @pytest.fixture(scope="module")
 def x2_model(tmp_path_factory):
-    """A random ReconNet that reconstructs and upscales x2, saved."""
-    folder = tmp_path_factory.mktemp("x2_model")
-    save_pretrained(net(seed=6, widths=(4, 4, 8, 8), blocks=1, ao_prior="rays", upscale=2), folder)
-    return folder
+    return saved_upscaler(tmp_path_factory, 2)
 
 
-def test_a_reconstructor_of_an_upscaling_model_makes_frames_at_twice_the_sides(x2_model, sphere):
-    renderer, iso = sphere
+@pytest.fixture(scope="module", params=[2, 4], ids=["x2", "x4"])
+def upscaling_model(request, tmp_path_factory):
+    """``(folder, s)``: a saved random ReconNet that upscales ``s`` times."""
+    return saved_upscaler(tmp_path_factory, request.param), request.param
+
+
+def test_a_reconstructor_of_an_upscaling_model_makes_frames_at_s_times_the_sides(upscaling_model, sphere):
+    (folder, s), (renderer, iso) = upscaling_model, sphere
     outputs = ("mask", "normal", "depth", "ao", "flow")
-    reconstructor = Reconstructor(x2_model)
-    assert reconstructor.upscale_factor == 2
+    reconstructor = Reconstructor(folder)
+    assert reconstructor.upscale_factor == s
     frames = [renderer.render(camera, request) for camera, request in
-              sequence_requests(orbit_path(2, yaw_step=3.0), SIZE[0] // 2, SIZE[1] // 2, iso, outputs, ao_samples=2)]
+              sequence_requests(orbit_path(2, yaw_step=3.0), SIZE[0] // s, SIZE[1] // s, iso, outputs, ao_samples=2)]
     first = reconstructor.reconstruct(frames[0], 2, 1, ShadingParams())
     assert_sane(FrameBuffers(mask=first.mask, normal=first.normal, depth=first.depth, ao=first.ao), SIZE[1], SIZE[0])
     assert first.color.shape == (SIZE[1], SIZE[0], 3)
-    assert reconstructor.carries(SIZE[1] // 2, SIZE[0] // 2, True) and not reconstructor.carries(*SIZE[::-1], True)
+    assert reconstructor.carries(SIZE[1] // s, SIZE[0] // s, True) and not reconstructor.carries(*SIZE[::-1], True)
     second = reconstructor.reconstruct(frames[1], 2, 1)
     assert_sane(second, SIZE[1], SIZE[0])
-    alone = Reconstructor(x2_model).reconstruct(frames[1], 2, 1)
+    alone = Reconstructor(folder).reconstruct(frames[1], 2, 1)
     assert not torch.equal(second.ao, alone.ao)  # the first frame carried over
 
 
-def test_the_frame_method_of_an_upscaling_model_renders_at_half_the_sides(x2_model, sphere):
-    renderer, iso = sphere
-    method = FrameMethod.of("reconstruct", ao_rays=2, factor=2, model=str(x2_model), model_name="recon-x2")
-    assert method.name == "x2, AO 2, spp 1, recon-x2 fp32"
+def test_the_frame_method_of_an_upscaling_model_renders_at_1_over_s_of_the_sides(upscaling_model, sphere):
+    (folder, s), (renderer, iso) = upscaling_model, sphere
+    method = FrameMethod.of("reconstruct", ao_rays=2, factor=s, model=str(folder), model_name="recon-up")
+    assert method.name == f"x{s}, AO 2, spp 1, recon-up fp32"
+    assert FrameMethod.of("reconstruct", model=str(folder)).factor == s  # the model's own by default
     runner = make_runner(method, renderer, iso, *SIZE, keep=("depth",))
-    assert (runner.render_request().width, runner.render_request().height) == (SIZE[0] // 2, SIZE[1] // 2)
+    assert (runner.render_request().width, runner.render_request().height) == (SIZE[0] // s, SIZE[1] // s)
     frame = runner.frame(orbit(30.0, 20.0, 1.6))
     assert frame.buffers.color.shape == (SIZE[1], SIZE[0], 3) and torch.isfinite(frame.buffers.color).all()
-    with pytest.raises(ValueError, match="the model upscales x1, not x2"):
-        make_runner(FrameMethod.of("reconstruct", factor=2), renderer, iso, *SIZE)
-    with pytest.raises(ValueError, match=r"factor must be an integer in \[1, 2\]"):
-        FrameMethod.of("reconstruct", factor=4)
+    with pytest.raises(ValueError, match=f"the model upscales x1, not x{s}"):
+        make_runner(FrameMethod.of("reconstruct", factor=s), renderer, iso, *SIZE)
+    with pytest.raises(ValueError, match=r"factor must be an integer in \[1, 4\]"):
+        FrameMethod.of("reconstruct", factor=8)
 
 
 def test_the_fused_kernels_run_fp16_on_cuda_and_models_of_their_widths(x2_model, tmp_path):
     """The one rule `fastest` and the service's `served` follow (decided from the model's config,
     without a GPU): the shipped models, x1 and x2, fuse, and so does the 4-channel test model (its
-    channels padded in the kernels' tiles); one wider than the kernels' widest tile does not."""
+    channels padded in the kernels' tiles); one wider than the kernels' widest tile, or upscaling x4, does not."""
     from isosr_net.fused_recon import triton_imports
 
     assert Reconstructor.fuses(DEFAULT_RECON_MODEL, "cuda", "fp16") == triton_imports()
     assert Reconstructor.fuses(RECON_X2_MODEL, "cuda", "fp16") == triton_imports()
     assert Reconstructor.fuses(x2_model, "cuda", "fp16") == triton_imports()
     save_pretrained(net(seed=6, widths=(16, 32, 64, 128), blocks=0), tmp_path)
+    assert not Reconstructor.fuses(tmp_path, "cuda", "fp16")
+    save_pretrained(net(seed=6, upscale=4), tmp_path)  # its packed input, 40 channels, is wider than the kernels'
     assert not Reconstructor.fuses(tmp_path, "cuda", "fp16")
     assert not Reconstructor.fuses(DEFAULT_RECON_MODEL, "cuda", "bf16")
     assert not Reconstructor.fuses(DEFAULT_RECON_MODEL, "cpu", "fp16")

@@ -22,8 +22,8 @@ from isosr_net.model import Unrolled, build_model, load_pretrained, save_pretrai
 from isosr_net.reconnet import GATE_LOGIT_INIT, ReconNet, ReconNetConfig
 from isosr_net.train import Trainer, TrainConfig, narrowed_config, start_configs, weights_config
 from test_reconnet import recon_batch
-from net_fixtures import (TINY_MODEL, TINY_RECON_MODEL, random_vgg19, tiny_recon_x2_data, tiny_train_config, tiny_train_data,
-                          tiny_wide_recon_data)
+from net_fixtures import (TINY_MODEL, TINY_RECON_MODEL, random_vgg19, tiny_recon_upscaling_data, tiny_train_config,
+                          tiny_train_data, tiny_wide_recon_data)
 
 METRIC_KEYS = {"loss", "color_psnr", "color_ssim", "normal_psnr", "ao_psnr", "mask_iou"}
 
@@ -292,6 +292,7 @@ def test_the_shipped_configs_load():
                                             ("train_recon_x2.json", "datagen_recon_x2.json"),
                                             ("train_recon_history.json", "datagen_recon_history.json"),
                                             ("train_recon_x2_history.json", "datagen_recon_x2_history.json"),
+                                            ("train_recon_x4.json", "datagen_recon_x4.json"),
                                             ("train_recon_4k.json", "datagen_recon_4k.json"),
                                             ("train_recon_blend.json", "datagen_recon_blend.json"),
                                             ("train_recon_blend_geo.json", "datagen_recon_blend_geo.json"),
@@ -457,12 +458,13 @@ def test_a_run_trains_the_parameters_it_names_alone(tmp_path, tmp_path_factory):
         trainer(wide, tmp_path / "other", model=blend, trainable=["gates"])
 
 
+@pytest.mark.parametrize("s", [2, 4])
 def test_a_reconstruction_model_that_upscales_trains_on_its_data_and_a_full_resolution_one_is_refused(
-        tmp_path, tmp_path_factory):
-    data = tiny_recon_x2_data(tmp_path_factory)
-    t = recon_step_with_the_temporal_loss(data, tmp_path, {**TINY_RECON_MODEL, "ao_prior": "rays", "upscale": 2})
+        tmp_path, tmp_path_factory, s):
+    data = tiny_recon_upscaling_data(tmp_path_factory, s)
+    t = recon_step_with_the_temporal_loss(data, tmp_path, {**TINY_RECON_MODEL, "ao_prior": "rays", "upscale": s})
     assert all(torch.isfinite(torch.tensor(v)) for v in t.validate().values())
-    with pytest.raises(ValueError, match="is for upscale 2, the model upscales 1"):
+    with pytest.raises(ValueError, match=f"is for upscale {s}, the model upscales 1"):
         trainer(data, tmp_path / "other", model=dict(TINY_RECON_MODEL))
 
 
