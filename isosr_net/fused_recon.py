@@ -166,11 +166,12 @@ class FusedReconNet(nn.Module):
     Inference only (no gradients through the kernels).
 
     Args:
-        net: the ReconNet (:func:`fusable`: widths at most :data:`MAX_KERNEL_WIDTH`, upscale 1 or 2).
+        net: the ReconNet (:func:`fusable`: widths at most :data:`MAX_KERNEL_WIDTH`, an upscale of
+            :data:`FUSED_UPSCALES`).
 
     Shape:
         inputs: (B, 8, H, W). prev_warped: (B, 6, sH, sW). Returns (B, 6, sH, sW), float32 on the
-        fused path; s the model's upscale (1 or 2).
+        fused path; s the model's upscale.
     """
 
     def __init__(self, net: ReconNet):

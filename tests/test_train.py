@@ -396,18 +396,10 @@ def test_a_narrower_reconnet_starts_from_a_wider_ones_first_channels_at_each_lev
     wide = tiny_wide_recon_data(tmp_path_factory)
     model, source = saved_wide_model(tmp_path / "wide", ao_prior="blend", blend_map=True, widths=(8, 4, 8, 16))
     with torch.no_grad():  # level 0's channels 4-7 and level 3's 8-15 off: the wide model is the narrow one, padded
-        source.head.weight[4:] = 0
-        source.head.bias[4:] = 0
-        source.reduce[0].weight[4:] = 0
-        source.reduce[0].bias[4:] = 0
-        source.fuse[0].weight[4:] = 0
-        source.fuse[0].bias[4:] = 0
-        source.down[2].weight[8:] = 0
-        source.down[2].bias[8:] = 0
-        for block in source.body:
-            for conv in (block.conv1, block.conv2):
-                conv.weight[8:] = 0
-                conv.bias[8:] = 0
+        for layer, kept in ((source.head, 4), (source.reduce[0], 4), (source.fuse[0], 4), (source.down[2], 8),
+                            *((conv, 8) for block in source.body for conv in (block.conv1, block.conv2))):
+            layer.weight[kept:] = 0
+            layer.bias[kept:] = 0
     save_pretrained(source, tmp_path / "wide")
     narrow = {**model, "widths": (4, 4, 8, 8)}
     t = trainer(wide, tmp_path / "run", steps=2, model=narrow, init=str(tmp_path / "wide"))
