@@ -1083,7 +1083,12 @@ for _dtype in VOXEL_TYPES:
                                       "isos": _isos})
 
 
-def frame_kernels(clipped: bool, several: bool = False) -> dict[str, wp.Kernel]:
-    """The frame kernels by name that take :class:`ClipArgs` (``clipped``) or :class:`NoClip`, and
+def frame_variant(clipped: bool, several: bool = False) -> tuple[type, type]:
+    """The frame kernels' (clip type, iso type): :class:`ClipArgs` (``clipped``) or :class:`NoClip`, and
     :class:`IsoSet` (``several`` isos) or :class:`OneIso`."""
-    return FRAME_KERNEL_SETS[(ClipArgs if clipped else NoClip, IsoSet if several else OneIso)]
+    return ClipArgs if clipped else NoClip, IsoSet if several else OneIso
+
+
+def frame_kernels(clipped: bool, several: bool = False) -> dict[str, wp.Kernel]:
+    """The frame kernels by name of :func:`frame_variant`."""
+    return FRAME_KERNEL_SETS[frame_variant(clipped, several)]

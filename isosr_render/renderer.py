@@ -215,6 +215,14 @@ def warp_device(device: str):
     return wp.get_device(device)
 
 
+def load_frame_kernels(device: wp.context.Devicelike, clipped: bool, several: bool = False) -> None:
+    """Load the frame kernels that clip (``clipped``) and march several isos (``several``) on the Warp ``device``,
+    compiled on their first use (some seconds on a CPU, unless the kernel cache has them): on
+    any thread (a server loads them off its device thread), never while that thread captures a CUDA graph."""
+    variant = kernels.frame_variant(clipped, several)
+    wp.load_module(wp.get_module(kernels.VARIANT_MODULES[variant]), device=device)
+
+
 def device_limit(device, max_device_bytes: int | None) -> int | None:
     """The bytes a volume's voxels may take on ``device`` before it renders sparse: the given
     limit, else ``DENSE_SHARE`` of the free memory on CUDA, none on the CPU."""
@@ -642,8 +650,7 @@ class RenderPlan:
             self._isos = self._iso_set(table, 0, renderer._unused_hits)
             if self.layers == 2:
                 self._behind_isos = self._iso_set(table, 1, self._hits)
-        variant = (kernels.ClipArgs if self.clipped else kernels.NoClip, kernels.IsoSet if self.several else kernels.OneIso)
-        wp.load_module(wp.get_module(kernels.VARIANT_MODULES[variant]), device=device)  # not while a graph is captured
+        load_frame_kernels(device, self.clipped, self.several)  # not while a graph is captured
         self._grid: kernels.Grid | None = None
         # ((grid, voxels), {bands: launches}): the launches recorded over the grid and voxels of the last frame.
         self._launches: tuple[tuple, dict[tuple, list[tuple[wp.Launch, ...]]]] | None = None

@@ -14,6 +14,8 @@ synchronizes the legacy default stream before each image, which would make it wa
 frame's I420 planes are converted and copied to the host on that stream too, so video encoders make no device call. The
 device thread does not wait for the device either: a batch's input checks are read there too
 (:attr:`~isosr_net.methods.FrameResult.checks`), so it goes on with the next batch while the GPU runs this one.
+The render kernels that clip or march several isos are compiled on their first use on threads of their own
+(:meth:`Engine.frame_kernels`): the sessions that need them wait, the others' frames keep coming.
 
 Frames are made by isosr_net's frame methods through the view modes (:mod:`isosr_server.views`).
 Networks are loaded once (:class:`isosr_net.methods.Networks`, in the server's precision:
@@ -50,6 +52,8 @@ from isosr_render import FrameBuffers, Renderer, ShadingParams, Volume, orbit, p
 from isosr_render.brick_pool import MemoryStats
 from isosr_render.images import quantize
 from isosr_render.picking import pick
+from isosr_render.kernels import VARIANT_MODULES
+from isosr_render.renderer import load_frame_kernels
 from isosr_server.auto import AutoPolicy, ProbeCache
 from isosr_server.core.config import Settings
 from isosr_server.codecs.buffers import pack_view_buffers
@@ -181,6 +185,11 @@ class Engine:
         # Image, video and buffers encoding: off the device thread, which goes on with the next frame meanwhile.
         self._encoder = ThreadPoolExecutor(max_workers=IMAGE_ENCODER_THREADS, thread_name_prefix="isosr-encoder")
         self._video = ThreadPoolExecutor(max_workers=VIDEO_ENCODER_THREADS, thread_name_prefix="isosr-video")
+        # The render kernels that clip or march several isos, compiled on their first use (seconds on a CPU with a
+        # cold kernel cache): on threads of their own, so that only the sessions whose frames need them wait
+        # (:meth:`frame_kernels`); a thread per such set, so that none waits for another's compile.
+        self._compiler = ThreadPoolExecutor(max_workers=len(VARIANT_MODULES) - 1, thread_name_prefix="isosr-compile")
+        self._kernel_loads: dict[tuple, asyncio.Future] = {}
         self._renderers: OrderedDict[str, Renderer] = OrderedDict()
         self.networks = Networks(serving_network)
         self._models = {Upscaler: (config.model, MODEL_NAMES[Upscaler]),
@@ -364,8 +373,33 @@ class Engine:
         for task in list(self._probes):
             task.cancel()
         self._executor.shutdown(wait=True, cancel_futures=True)
+        self._compiler.shutdown(wait=True, cancel_futures=True)
         self._encoder.shutdown(wait=True, cancel_futures=True)
         self._video.shutdown(wait=True, cancel_futures=True)
+
+    async def frame_kernels(self, renderer: Renderer, job: FrameJob) -> None:
+        """Load the render kernels of ``job``'s frames and picks (those of its clip and surfaces) on the compile
+        thread the first time a frame needs them, while the device thread goes on with other sessions' frames; the
+        asks meanwhile share that one load, and one that failed is tried again at the next ask. The plain ones are
+        loaded with the renderer."""
+        key = (renderer.device.alias, job.settings.clip.clip().active, bool(job.settings.surfaces))
+        if key[1:] == (False, False):
+            return
+        load = self._kernel_loads.get(key)
+        if load is None:
+            load = asyncio.get_running_loop().run_in_executor(self._compiler, load_frame_kernels, *key)
+            self._kernel_loads[key] = load
+        try:
+            await asyncio.shield(load)  # a session that leaves meanwhile leaves the load to the others
+        except Exception:
+            if self._kernel_loads.get(key) is load:
+                del self._kernel_loads[key]
+            raise
+
+    async def pick(self, renderer: Renderer, job: FrameJob, msg: PickMsg) -> PickedMsg:
+        """:meth:`pick_sync` on the device thread, once its render kernels are loaded."""
+        await self.frame_kernels(renderer, job)
+        return await self.call(self.pick_sync, renderer, job, msg)
 
     # ---- work (device thread only) ----------------------------------------------------------
 
@@ -411,6 +445,7 @@ class Engine:
         ``jpeg``: the frame is coded as a JPEG of this quality, which lets a batch's JPEGs be coded
         together on a device that encodes them (:func:`device_jpeg`; ``code`` is not called then)."""
         start = time.perf_counter()
+        await self.frame_kernels(renderer, job)
         self._framing += 1
         self._idle.clear()
         try:

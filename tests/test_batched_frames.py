@@ -12,6 +12,7 @@ import threading
 import time
 from concurrent.futures import Future
 
+import msgspec
 import numpy as np
 import pytest
 import torch
@@ -182,6 +183,64 @@ def test_frames_made_together_equal_those_made_alone(engine, batches, mode):
     got = together(engine, settings)
     assert all(map(same, got, expected)), differences(got, expected)
     assert batches == [SESSIONS] * (FRAMES - 1), "after their first frames, the sessions' frames met in one batch"
+
+
+def clipped(settings: P.ViewSettings) -> P.ViewSettings:
+    """``settings`` with the volume's upper half cut away."""
+    plane = P.ClipPlane((0.0, 0.0, 0.0), (0.0, 0.0, -1.0))
+    return msgspec.structs.replace(settings, clip=P.ClipSettings(planes=(plane,)))
+
+
+@pytest.fixture
+def held_kernel_loads(engine, monkeypatch) -> tuple[threading.Event, list]:
+    """The engine's render kernels loaded anew (none loaded yet, as on a cold cache), each load held until the
+    event is set (as a compile takes seconds on a CPU): the event, and the loads asked for."""
+    monkeypatch.setattr(engine, "_kernel_loads", {})
+    release, loads = threading.Event(), []
+    load = engine_module.load_frame_kernels
+
+    def held(*key):
+        loads.append(key)
+        assert release.wait(60), "the test never released the load"
+        load(*key)
+    monkeypatch.setattr(engine_module, "load_frame_kernels", held)
+    return release, loads
+
+
+def test_kernels_compiling_for_one_session_hold_no_other_s_frames(engine, held_kernel_loads):
+    """Two sessions' clipped frames wait for their kernels' one load (off the device thread), while a plain
+    session's frames keep coming; then theirs come, equal to those made alone."""
+    release, loads = held_kernel_loads
+    settings = [view_settings(engine, "full")] + [clipped(view_settings(engine, "full"))] * 2
+    s = Sessions(engine, settings)
+
+    async def run() -> tuple[list, list]:
+        waiting = [asyncio.ensure_future(s.one(k, 0)) for k in (1, 2)]
+        plain = [await s.one(0, t) for t in range(FRAMES)]
+        assert not any(w.done() for w in waiting), "the clipped frames came before their kernels were loaded"
+        release.set()
+        return plain, await asyncio.gather(*waiting)
+    plain, cut = asyncio.run(run())
+    assert [key[1:] for key in loads] == [(True, False)], "one load, of the clipped kernels"
+    expected = alone(engine, settings)
+    assert same(plain, expected[0]) and same(cut, [expected[1][0], expected[2][0]])
+    assert not same(cut[:1], [alone(engine, settings[:1] * 2)[1][0]]), "the clip cut nothing"
+
+
+def test_a_failed_kernel_load_fails_its_frame_only_and_is_tried_again(engine, monkeypatch):
+    monkeypatch.setattr(engine, "_kernel_loads", {})
+    load, loads = engine_module.load_frame_kernels, []
+
+    def fail_once(*key):
+        loads.append(key)
+        if len(loads) == 1:
+            raise RuntimeError("the compiler ran out of memory")
+        load(*key)
+    monkeypatch.setattr(engine_module, "load_frame_kernels", fail_once)
+    s = Sessions(engine, [clipped(view_settings(engine, "full"))])
+    with pytest.raises(RuntimeError, match="out of memory"):
+        asyncio.run(s.one(0, 0))
+    assert isinstance(asyncio.run(s.one(0, 0)), bytes) and len(loads) == 2
 
 
 def test_a_cut_in_one_session_changes_nothing_in_the_others(engine):

@@ -103,7 +103,7 @@ class ViewLink:
         """A pick, at once, between frames, on the current view (its step)."""
         s = self.session.state
         job = self.shown.job(FrameJob(s.settings, s.camera, s.iso, s.focus, 0, False, 1))
-        await self.send(await self.engine.call(self.engine.pick_sync, self.shown.renderer, job, msg))
+        await self.send(await self.engine.pick(self.shown.renderer, job, msg))
 
 
 async def take_updates(ws: WebSocket, limiter, limits: Limits, session: ViewSession,
