@@ -507,6 +507,7 @@ def test_the_shipped_model_loads_without_arguments():
 
 @pytest.mark.parametrize("model, prior, limits", [
     (DEFAULT_RECON_MODEL, "blend", RayLimits(16, 4)),
+    (DEFAULT_RECON_MODEL.parent / "recon_model_v6", "blend", RayLimits(16, 4)),
     (DEFAULT_RECON_MODEL.parent / "recon_model_v5", "blend", RayLimits(16, 4)),
     (DEFAULT_RECON_MODEL.parent / "recon_model_v4", "rays", RayLimits(16, 4)),
     (DEFAULT_RECON_MODEL.parent / "recon_model_v1", "none", RayLimits(8, 4))])
