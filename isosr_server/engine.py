@@ -189,7 +189,7 @@ class Engine:
         # cold kernel cache): on threads of their own, so that only the sessions whose frames need them wait
         # (:meth:`frame_kernels`); a thread per such set, so that none waits for another's compile.
         self._compiler = ThreadPoolExecutor(max_workers=len(VARIANT_MODULES) - 1, thread_name_prefix="isosr-compile")
-        self._kernel_loads: dict[tuple, asyncio.Future] = {}
+        self._kernel_loads: dict[tuple, Future] = {}
         self._renderers: OrderedDict[str, Renderer] = OrderedDict()
         self.networks = Networks(serving_network)
         self._models = {Upscaler: (config.model, MODEL_NAMES[Upscaler]),
@@ -378,7 +378,7 @@ class Engine:
         self._video.shutdown(wait=True, cancel_futures=True)
 
     async def frame_kernels(self, renderer: Renderer, job: FrameJob) -> None:
-        """Load the render kernels of ``job``'s frames and picks (those of its clip and surfaces) on the compile
+        """Load the render kernels of ``job``'s frames and picks (those of its clip and surfaces) on a compile
         thread the first time a frame needs them, while the device thread goes on with other sessions' frames; the
         asks meanwhile share that one load, and one that failed is tried again at the next ask. The plain ones are
         loaded with the renderer."""
@@ -387,10 +387,9 @@ class Engine:
             return
         load = self._kernel_loads.get(key)
         if load is None:
-            load = asyncio.get_running_loop().run_in_executor(self._compiler, load_frame_kernels, *key)
-            self._kernel_loads[key] = load
-        try:
-            await asyncio.shield(load)  # a session that leaves meanwhile leaves the load to the others
+            load = self._kernel_loads[key] = self._compiler.submit(load_frame_kernels, *key)
+        try:  # a session that leaves meanwhile leaves the load to the others
+            await asyncio.shield(asyncio.wrap_future(load))
         except Exception:
             if self._kernel_loads.get(key) is load:
                 del self._kernel_loads[key]
