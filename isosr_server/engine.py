@@ -388,8 +388,10 @@ class Engine:
         load = self._kernel_loads.get(key)
         if load is None:
             load = self._kernel_loads[key] = self._compiler.submit(load_frame_kernels, *key)
-        try:  # a session that leaves meanwhile leaves the load to the others
-            await asyncio.shield(asyncio.wrap_future(load))
+        try:
+            if not load.done():  # a session that leaves meanwhile leaves the load to the others
+                await asyncio.shield(asyncio.wrap_future(load))
+            load.result()  # a load done long ago (every frame after the first): no wait, no future made
         except Exception:
             if self._kernel_loads.get(key) is load:
                 del self._kernel_loads[key]
