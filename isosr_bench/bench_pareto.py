@@ -221,7 +221,8 @@ def pareto_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
                 measured: list[FrameMethod], frames: int, warmup: int, device: str, networks: Networks,
                 surfaces: Surfaces | None = None, reference_spp: int = REFERENCE_SPP, draws: int = 1) -> list[dict]:
     """One row per method on one volume and size (with ``surfaces``: of them, ``part: layers``), scored against
-    references of ``reference_spp`` rays per pixel, over ``draws`` draws of the AO rays (the first timed)."""
+    references of ``reference_spp`` rays per pixel, over ``draws`` draws of the AO rays (the first timed). A
+    network's captured graphs are freed after its last method here, so that one model's at most are held."""
     cameras = bench_cameras(frames)
     pairs = sequence_cameras(cameras)
     start = time.perf_counter()
@@ -237,9 +238,12 @@ def pareto_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
     stamp = run_stamp(device)
     part = {"part": "pareto"} if surfaces is None else {
         "part": "layers", "surfaces": [[s.iso, s.opacity] for s in surfaces.items]}
-    rows = []
+    rows, held = [], None
     for method in measured:
         runner = make_runner(method, renderer, iso, *size, networks=networks, surfaces=surfaces)
+        if held is not None and runner.net is not held:  # a model's methods are measured together (methods())
+            held.drop_graphs()  # its graphs go before the next model's are captured
+        held = runner.net
         outs = [None] * frames
         t = time_frames(lambda i: runner.frame(*pairs[i]).buffers, frames, device, warmup=warmup,
                         keep=lambda i, buffers: outs.__setitem__(i, buffers.clone()))
@@ -256,6 +260,8 @@ def pareto_rows(renderer: Renderer, iso: float, volume: str, size: tuple[int, in
                      **scored, "flicker_reference": flicker_reference, "flicker_ratio": ratio,
                      "coverage": float(sum(float((r.mask > 0.5).float().mean()) for r in refs) / frames),
                      "reference_spp": reference_spp, "draws": draws, **stamp})
+    if held is not None:
+        held.drop_graphs()
     print(f"{volume} {size_name}: {time.perf_counter() - start:.0f} s", flush=True)
     return rows
 

@@ -324,6 +324,10 @@ class RecurrentNetwork:
         """Bytes the stream's recurrent state holds."""
         return 0 if self.previous is None else self.previous.nbytes
 
+    def drop_graphs(self) -> None:
+        """Free the CUDA graphs this stream captured and the memory they hold; its weights and compiled code
+        stay, and frames after capture anew. A network that captures no graphs of its own has none."""
+
     def own(self) -> "RecurrentNetwork":
         """A stream's own copy: shares the loaded weights (and compiled code), starts without state."""
         twin = object.__new__(type(self))

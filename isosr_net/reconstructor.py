@@ -366,6 +366,11 @@ class Reconstructor(RecurrentNetwork):
         self._history_states: dict[tuple[int, int], tuple[RayHistory, RayHistory]] = {}
         self._pool = torch.cuda.graph_pool_handle() if self.graphs else None
 
+    def drop_graphs(self) -> None:
+        """As :meth:`RecurrentNetwork.drop_graphs`: the whole-frame and network graphs, their state tensors and
+        pool (at 4K each graph holds gigabytes; the batch graphs, which the streams share, stay)."""
+        self._own_graphs()
+
     def own(self) -> "Reconstructor":
         """As :meth:`RecurrentNetwork.own`; whole-frame graphs hold a stream's state, so the twin
         captures its own."""

@@ -354,3 +354,29 @@ def test_the_policy_alone_needs_measured_rows_of_this_device(smoke, tmp_path):
 
     assert cli(["bench", "--smoke", "--budget-only", "--out", str(tmp_path)]) == 2  # without --pareto
     assert cli(["bench", "--pareto", "--smoke", "--budget-only", "--volumes", "sphere", "--out", str(tmp_path)]) == 2
+
+
+def test_a_model_s_graphs_are_freed_before_the_next_model_s_frames(tmp_path, monkeypatch):
+    """Several models at 4K held every model's captured graphs at once (120 GB on an H200): each network's are
+    freed after its last method of the scene, before another network makes a frame."""
+    import shutil
+
+    from isosr_bench.bench_pareto import main
+    from isosr_net.reconstructor import DEFAULT_RECON_MODEL, Reconstructor
+
+    events = []
+    reconstruct, drop = Reconstructor.reconstruct, Reconstructor.drop_graphs
+    monkeypatch.setattr(Reconstructor, "reconstruct",
+                        lambda self, *a, **k: events.append(("frame", id(self.net))) or reconstruct(self, *a, **k))
+    monkeypatch.setattr(Reconstructor, "drop_graphs", lambda self: events.append(("drop", id(self.net))) or drop(self))
+    shutil.copytree(DEFAULT_RECON_MODEL, tmp_path / "copy")
+    main(["--device", "cpu", "--smoke", "--out", str(tmp_path), "--volumes", "sphere", "--kinds", "reconstruct",
+          "--spp", "1", "--ao-rays", "1,2", "--models", f"copy={tmp_path / 'copy'}"])
+    networks = list(dict.fromkeys(net for _, net in events))
+    assert len(networks) == 3  # the shipped x1 and x2 models and the copy
+    for net, following in zip(networks, networks[1:] + [None]):
+        frames = [i for i, event in enumerate(events) if event == ("frame", net)]
+        dropped = events.index(("drop", net))
+        assert frames[-1] < dropped  # after its last frame...
+        if following is not None:  # ...and before the next network's first
+            assert dropped < events.index(("frame", following))

@@ -160,3 +160,25 @@ def test_frames_stay_right_when_the_graph_cache_drops_and_captures_again():
             assert_frames_close(a, eager.reconstruct(renderer.render(camera, request), 2, 1), atol=2e-2)
             assert len(graphed._frame_graphs) == 1
             assert list(graphed._states) == list(graphed._history_states) == [(size[1], size[0])]
+
+
+@cuda
+def test_dropped_graphs_free_their_memory_and_frames_capture_anew():
+    """`drop_graphs` (the Pareto study's, between models): the graphs, their state tensors and pool go; the frames
+    after capture anew and equal the eager ones."""
+    renderer, iso = scene("cuda")
+    options = dict(device="cuda", precision="fp16", channels_last=True)
+    graphed, eager = Reconstructor(graphs=True, **options), Reconstructor(**options)
+    frames = list(sequence_requests(orbit_path(3, yaw_step=3.0), *SIZE, iso, OUTPUTS, ao_samples=2))
+    for camera, request in frames:
+        graphed.render_reconstruct(renderer, camera, request, 2, 1)
+    torch.cuda.synchronize()
+    held = torch.cuda.memory_allocated()
+    graphed.drop_graphs()
+    graphed.reset()
+    torch.cuda.synchronize()
+    assert not graphed._frame_graphs and not graphed._states and torch.cuda.memory_allocated() < held
+    for camera, request in frames:
+        _, a = graphed.render_reconstruct(renderer, camera, request, 2, 1)
+        assert_frames_close(a, eager.reconstruct(renderer.render(camera, request), 2, 1), atol=2e-2)
+    assert graphed._frame_graphs
