@@ -19,7 +19,10 @@ Losses
     ``ao_psnr_no_worse``  per frame, how many dB the reconstruction's AO falls short of its input rays' mean
                      (a hinge, zero for frames where the output is at least as close to the truth): the same
                      ask counted as the Pareto study counts it, per frame, so a pixel's loss may pay for
-                     another's gain (:func:`ao_psnr_shortfall`).
+                     another's gain (:func:`psnr_shortfall`).
+    ``teacher_psnr_no_worse``  per frame, how many dB the shaded output falls short of a frozen teacher's (the
+                     model a fine-tune starts from, run on the same inputs: ``TrainConfig.teacher``): a
+                     fine-tune may gain where it can and is held to its start everywhere else.
     ``adversarial``  spatio-temporal conditional GAN (TecoGAN style): the discriminator sees the
                      current frame, the previous frame warped to it and the upsampled low-res
                      input. :meth:`AdversarialLoss.forward` is the generator term;
@@ -74,10 +77,10 @@ class LossContext:
     """Everything a loss may look at for one frame; see the module docstring.
 
     ``recon_inputs``: a reconstruction network's inputs (:data:`RECON_CHANNELS`: the rays' AO and counts), None
-    for an upscaler's.
+    for an upscaler's. ``teacher``: a frozen teacher model's output for the same inputs, None without one.
 
     Shape:
-        pred, target, prev_warped, prev_target_warped: (B, 6, H, W). lowres_up: (B, 5, H, W).
+        pred, target, prev_warped, prev_target_warped, teacher: (B, 6, H, W). lowres_up: (B, 5, H, W).
         recon_inputs: (B, 8, H, W).
     """
 
@@ -87,10 +90,11 @@ class LossContext:
     lowres_up: torch.Tensor | None = None
     prev_target_warped: torch.Tensor | None = None
     recon_inputs: torch.Tensor | None = None
+    teacher: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         dims = check_shape(self.pred, f"(B, {_HIGHRES}, H, W)", "pred", "LossContext")
-        for name in ("target", "prev_warped", "prev_target_warped"):
+        for name in ("target", "prev_warped", "prev_target_warped", "teacher"):
             x = getattr(self, name)
             if x is not None:
                 check_shape(x, f"(B, {_HIGHRES}, H, W)", name, "LossContext", dims)
@@ -172,6 +176,7 @@ class WeightedLoss(nn.Module):
     """
 
     name: str
+    reads_teacher = False  # whether it needs LossContext.teacher
 
     def __init__(self, weight: float = 1.0) -> None:
         super().__init__()
@@ -325,36 +330,36 @@ def _rays_and_truth(ctx: LossContext, loss: str) -> tuple[torch.Tensor, torch.Te
     return rays[:, SAMPLED_AO], ctx.target[:, AO], with_rays
 
 
-# The squared AO error below which two frames' AO counts as equal (an RMS error of 1e-5: far under an 8-bit step).
-AO_MSE_FLOOR = 1e-10
+# The mean squared error below which two frames count as equal (an RMS error of 1e-5: far under an 8-bit step).
+MSE_FLOOR = 1e-10
 
 
-def ao_psnr_shortfall(pred_ao: torch.Tensor, rays_ao: torch.Tensor, target_ao: torch.Tensor,
-                      mask: torch.Tensor) -> torch.Tensor:
-    """Mean over the frames of ``relu(10 log10((e_pred + f) / (e_rays + f)))``, ``e`` a frame's mean squared AO
-    error over ``mask`` and ``f`` :data:`AO_MSE_FLOOR`: the dB of AO PSNR each frame's output falls short of the
-    rays' mean it was given; 0 for a frame where it is at least as close, or where nothing is covered.
+def psnr_shortfall(pred: torch.Tensor, given: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean over the frames of ``relu(10 log10((e_pred + f) / (e_given + f)))``, ``e`` a frame's mean squared error
+    against ``target`` over ``mask`` and ``f`` :data:`MSE_FLOOR`: the dB of PSNR each frame of ``pred`` falls short
+    of ``given`` (an input's, a teacher's); 0 for a frame where it is at least as close, or where nothing is covered.
 
     Shape:
-        pred_ao, rays_ao, target_ao, mask: (B, 1, H, W). Returns a scalar.
+        pred, given, target: (B, C, H, W); mask: (B, 1, H, W). Returns a scalar.
     """
-    dims = check_shape(pred_ao, "(B, 1, H, W)", "pred_ao", "ao_psnr_shortfall")
-    for name, x in (("rays_ao", rays_ao), ("target_ao", target_ao), ("mask", mask)):
-        check_shape(x, "(B, 1, H, W)", name, "ao_psnr_shortfall", dims)
-    dtype = torch.promote_types(pred_ao.dtype, torch.float32)  # AMP's fp16 squares underflow
+    dims = check_shape(pred, "(B, C, H, W)", "pred", "psnr_shortfall")
+    for name, x in (("given", given), ("target", target)):
+        check_shape(x, "(B, C, H, W)", name, "psnr_shortfall", dims)
+    check_shape(mask, "(B, 1, H, W)", "mask", "psnr_shortfall", {k: v for k, v in dims.items() if k != "C"})
+    dtype = torch.promote_types(pred.dtype, torch.float32)  # AMP's fp16 squares underflow
     inside = (mask > 0).to(dtype)
-    count = inside.sum((1, 2, 3))
+    count = inside.sum((1, 2, 3)) * pred.shape[1]
 
-    def frame_mse(ao: torch.Tensor) -> torch.Tensor:
-        return ((ao.to(dtype) - target_ao.to(dtype)) ** 2 * inside).sum((1, 2, 3)) / count.clamp_min(1.0)
+    def frame_mse(x: torch.Tensor) -> torch.Tensor:
+        return ((x.to(dtype) - target.to(dtype)) ** 2 * inside).sum((1, 2, 3)) / count.clamp_min(1.0)
 
-    shortfall = F.relu(10 * torch.log10((frame_mse(pred_ao) + AO_MSE_FLOOR) / (frame_mse(rays_ao) + AO_MSE_FLOOR)))
+    shortfall = F.relu(10 * torch.log10((frame_mse(pred) + MSE_FLOOR) / (frame_mse(given) + MSE_FLOOR)))
     return torch.where(count > 0, shortfall, 0.0).mean()
 
 
 class AOPSNRNoWorseLoss(WeightedLoss):
-    """Weighted :func:`ao_psnr_shortfall` of a reconstruction's AO over the ground truth's surface pixels that had
-    AO rays (ValueError in a context without a reconstruction's inputs).
+    """Weighted :func:`psnr_shortfall` of a reconstruction's AO against its input rays' mean, over the ground truth's
+    surface pixels that had AO rays (ValueError in a context without a reconstruction's inputs).
 
     Args:
         weight: factor on the loss (per dB).
@@ -363,7 +368,26 @@ class AOPSNRNoWorseLoss(WeightedLoss):
     name = "ao_psnr_no_worse"
 
     def term(self, ctx: LossContext) -> torch.Tensor:
-        return ao_psnr_shortfall(ctx.pred[:, AO], *_rays_and_truth(ctx, self.name))
+        return psnr_shortfall(ctx.pred[:, AO], *_rays_and_truth(ctx, self.name))
+
+
+class TeacherPSNRNoWorseLoss(WeightedLoss):
+    """Weighted :func:`psnr_shortfall` of the shaded output against a teacher's, over all pixels (ValueError in a
+    context without the teacher's output).
+
+    Args:
+        weight: factor on the loss (per dB).
+    """
+
+    name = "teacher_psnr_no_worse"
+    reads_teacher = True
+
+    def term(self, ctx: LossContext) -> torch.Tensor:
+        if ctx.teacher is None:
+            raise ValueError("the teacher_psnr_no_worse loss compares the output with a teacher's: give the run a "
+                             "teacher (TrainConfig.teacher, a model folder)")
+        color, teacher, target = (shade_channels_first(x) for x in (ctx.pred, ctx.teacher, ctx.target))
+        return psnr_shortfall(color, teacher, target, torch.ones_like(color[:, :1]))
 
 
 @contextmanager
@@ -431,6 +455,7 @@ LOSS_TYPES: dict[str, type[WeightedLoss]] = {
     "adversarial": AdversarialLoss,
     "ao_no_worse": AONoWorseLoss,
     "ao_psnr_no_worse": AOPSNRNoWorseLoss,
+    "teacher_psnr_no_worse": TeacherPSNRNoWorseLoss,
 }
 
 

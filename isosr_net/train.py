@@ -73,6 +73,8 @@ class TrainConfig:
             bound it on a GPU; compiled, they fuse (the first steps compile, minutes on a GPU).
         select: the validation score that picks ``best/``: ``"color_psnr"`` (the highest) or ``"loss"`` (the
             lowest total of ``losses``: a fine-tune whose losses ask for more than color, e.g. ``ao_no_worse``).
+        teacher: a model folder run frozen on every sequence beside the model, for the losses that read its output
+            (``teacher_psnr_no_worse``); "" for none. Typically ``init``: a fine-tune held to its start.
     """
 
     data: str
@@ -94,6 +96,7 @@ class TrainConfig:
     trainable: tuple[str, ...] = ()
     compile: str = ""
     select: str = "color_psnr"
+    teacher: str = ""
 
     def __post_init__(self):
         if self.compile not in COMPILE_MODES:
@@ -118,8 +121,10 @@ class TrainConfig:
         return 0.01 + 0.99 * 0.5 * (1.0 + math.cos(math.pi * progress))
 
 
-def contexts(batch: SequenceBatch, outputs: torch.Tensor, warped: torch.Tensor, upscale: int) -> list[LossContext]:
-    """The loss context of every frame of a batch of sequences (an x1 reconstruction's: with its inputs)."""
+def contexts(batch: SequenceBatch, outputs: torch.Tensor, warped: torch.Tensor, upscale: int,
+             teacher: torch.Tensor | None = None) -> list[LossContext]:
+    """The loss context of every frame of a batch of sequences (an x1 reconstruction's: with its inputs; with
+    ``teacher``, the teacher's outputs of the same shape as ``outputs``, each frame's)."""
     lowres, target = batch.lowres, batch.highres
     recon = upscale == 1 and lowres.shape[2] == len(RECON_CHANNELS)
     result = []
@@ -130,7 +135,8 @@ def contexts(batch: SequenceBatch, outputs: torch.Tensor, warped: torch.Tensor, 
             pred=outputs[:, t], target=target[:, t], prev_warped=warped[:, t] if t else None,
             lowres_up=F.interpolate(lowres[:, t, :len(LOWRES_CHANNELS)], scale_factor=upscale, mode="bilinear",
                                     align_corners=False),
-            prev_target_warped=prev_target, recon_inputs=lowres[:, t] if recon else None))
+            prev_target_warped=prev_target, recon_inputs=lowres[:, t] if recon else None,
+            teacher=None if teacher is None else teacher[:, t]))
     return result
 
 
@@ -193,6 +199,7 @@ class Trainer:
             self.net = self.net.to(memory_format=torch.channels_last)  # faster convolutions with bf16
         self.upscale = self.net.config.upscale
         self.losses = build_losses(config.losses).to(self.device)
+        self.teacher = self._teacher()
         self.adversarial = [m for m in self.losses if isinstance(m, AdversarialLoss)]
         unrolled = Unrolled(self.net)
         self.unrolled = DistributedDataParallel(unrolled) if self.distributed else unrolled
@@ -216,6 +223,37 @@ class Trainer:
                              f"the model by {self.net.config.limits}: give both the same max_ao_rays and max_spp")
         self.step, self.best, self.best_step = 0, -math.inf, None
         self._resume()
+
+    def _teacher(self) -> Unrolled | None:
+        """The frozen teacher, unrolled, where a loss reads it (ValueError: a loss that reads it without a teacher, a
+        teacher no loss reads, or one of another upscale or sampling limits than the model)."""
+        reading = [m.name for m in self.losses if m.reads_teacher]
+        if not self.config.teacher:
+            if reading:
+                raise ValueError(f"the {', '.join(reading)} loss compares with a teacher's output: give teacher, a "
+                                 "model folder (the init, to hold a fine-tune to its start)")
+            return None
+        if not reading:
+            raise ValueError(f"teacher {self.config.teacher}: no loss reads it (teacher_psnr_no_worse does); give one "
+                             "or no teacher")
+        teacher, _ = load_pretrained(self.config.teacher, self.device)
+        config, own = teacher.config, self.net.config
+        if config.upscale != own.upscale or getattr(config, "limits", None) != getattr(own, "limits", None):
+            raise ValueError(f"teacher {self.config.teacher} upscales x{config.upscale} with sampling limits "
+                             f"{getattr(config, 'limits', None)}; the model x{own.upscale} with "
+                             f"{getattr(own, 'limits', None)}: give a teacher of the same")
+        teacher.requires_grad_(False)
+        if self.device.type == "cuda":
+            teacher = teacher.to(memory_format=torch.channels_last)
+        return Unrolled(teacher)
+
+    @torch.no_grad()
+    def _teacher_outputs(self, batch: SequenceBatch) -> torch.Tensor | None:
+        """The teacher's outputs over ``batch``'s sequences (float32), or None without a teacher."""
+        if self.teacher is None:
+            return None
+        with self._autocast():
+            return self.teacher(batch.lowres, batch.flow)[0].float()
 
     def _device(self) -> torch.device:
         """The configured device; under torchrun on CUDA, this process's GPU."""
@@ -318,7 +356,7 @@ class Trainer:
         """A step's forward: the loss, each term's mean over the frames, and the frames' loss contexts."""
         with self._autocast():
             outputs, warped = self.unrolled(batch.lowres, batch.flow)
-            ctxs = contexts(batch, outputs.float(), warped.float(), self.upscale)
+            ctxs = contexts(batch, outputs.float(), warped.float(), self.upscale, self._teacher_outputs(batch))
             terms = [total_loss(self.losses, ctx) for ctx in ctxs]
         logs = {k: sum(t[1][k] for t in terms) / len(terms) for k in terms[0][1]}
         return sum(t[0] for t in terms) / len(terms), logs, ctxs
@@ -341,7 +379,7 @@ class Trainer:
             with self._autocast():
                 outputs, warped = Unrolled(self.net)(batch.lowres, batch.flow)
             outputs, warped = outputs.float(), warped.float()
-            ctxs = contexts(batch, outputs, warped, self.upscale)
+            ctxs = contexts(batch, outputs, warped, self.upscale, self._teacher_outputs(batch))
             frame_loss = sum(float(total_loss(self.losses, ctx)[0]) for ctx in ctxs) / len(ctxs)
             b, t = outputs.shape[:2]
             scores = frame_scores(outputs.flatten(0, 1), batch.highres.flatten(0, 1))

@@ -20,12 +20,13 @@ from isosr_net.losses import (
     ChannelLoss,
     LossContext,
     PerceptualLoss,
+    TeacherPSNRNoWorseLoss,
     TemporalLoss,
     ao_excess_error,
-    ao_psnr_shortfall,
     build_losses,
     masked_l1,
     masked_l2,
+    psnr_shortfall,
     total_loss,
 )
 from isosr_render.conventions import AO, DEPTH, MASK, NORMAL
@@ -219,7 +220,7 @@ def test_the_ao_no_worse_loss_reads_the_inputs_rays_and_skips_pixels_without_any
         lambda p: loss(LossContext(p, target, recon_inputs=recon_inputs_for(target, rays_ao))), (grad_pred,))
 
 
-def test_ao_psnr_shortfall_counts_each_frame_s_db_below_its_rays_in_float64():
+def test_psnr_shortfall_counts_each_frame_s_db_below_what_it_was_given_in_float64():
     """Frame 0's output twice as far off as its rays everywhere (6.02 dB short), frame 1's closer (0), frame 2
     covers nothing (0, finite): the mean over the three; equal outputs and rays give 0; errors far under the
     floor count as equal; the gradient is finite and checked in float64."""
@@ -230,13 +231,13 @@ def test_ao_psnr_shortfall_counts_each_frame_s_db_below_its_rays_in_float64():
     pred[1] += 0.005
     mask = torch.ones_like(t)
     mask[2] = 0
-    assert ao_psnr_shortfall(pred, rays, t, mask).item() == pytest.approx(10 * math.log10(4) / 3, rel=1e-6)
-    assert ao_psnr_shortfall(rays, rays, t, mask).item() == 0.0
-    assert ao_psnr_shortfall(t + 1e-7, t + 1e-8, t, mask).item() < 0.01, "both under the floor: no shortfall"
-    assert ao_psnr_shortfall(pred, rays, t, torch.zeros_like(mask)).item() == 0.0
-    with pytest.raises(ValueError, match="rays_ao must be"):
-        ao_psnr_shortfall(pred, rays[..., :3], t, mask)
-    assert torch.autograd.gradcheck(lambda p: ao_psnr_shortfall(p, rays, t, mask), (pred.clone().requires_grad_(),))
+    assert psnr_shortfall(pred, rays, t, mask).item() == pytest.approx(10 * math.log10(4) / 3, rel=1e-6)
+    assert psnr_shortfall(rays, rays, t, mask).item() == 0.0
+    assert psnr_shortfall(t + 1e-7, t + 1e-8, t, mask).item() < 0.01, "both under the floor: no shortfall"
+    assert psnr_shortfall(pred, rays, t, torch.zeros_like(mask)).item() == 0.0
+    with pytest.raises(ValueError, match="given must be"):
+        psnr_shortfall(pred, rays[..., :3], t, mask)
+    assert torch.autograd.gradcheck(lambda p: psnr_shortfall(p, rays, t, mask), (pred.clone().requires_grad_(),))
 
 
 def test_the_ao_psnr_no_worse_loss_lets_a_pixel_s_gain_pay_for_another_s_loss():
@@ -254,12 +255,33 @@ def test_the_ao_psnr_no_worse_loss_lets_a_pixel_s_gain_pay_for_another_s_loss():
     worse[:, AO] = (rays_ao + 0.05).clamp(0, 1)
     worse_context = LossContext(worse, target, recon_inputs=recon_inputs_for(target, rays_ao))
     surface = target[:, MASK] > 0.5
-    expected = ao_psnr_shortfall(worse[:, AO], rays_ao, target[:, AO], surface)
+    expected = psnr_shortfall(worse[:, AO], rays_ao, target[:, AO], surface)
     assert AOPSNRNoWorseLoss(weight=2.0)(worse_context).item() == pytest.approx(2.0 * expected.item()) and expected > 1
     assert AOPSNRNoWorseLoss()(LossContext(worse, target, recon_inputs=recon_inputs_for(
         target, rays_ao, ao_rays=0.0))).item() == 0.0
     with pytest.raises(ValueError, match="ao_psnr_no_worse loss compares"):
         AOPSNRNoWorseLoss()(LossContext(pred, target))
+
+
+def test_the_teacher_loss_holds_the_shaded_output_to_the_teacher_s_per_frame():
+    """A frame shaded closer to the truth than the teacher's costs nothing, one further costs its dB short (the mean
+    over frames, weighted); a context without the teacher's output is refused and names the config to give."""
+    from isosr_render.shading import shade_channels_first
+
+    target = frame()
+    teacher = target.clone()
+    teacher[:, AO] = (target[:, AO] - 0.05).clamp(0, 1)
+    assert TeacherPSNRNoWorseLoss()(LossContext(target, target, teacher=teacher)).item() == 0.0
+    worse = target.clone()
+    worse[:, AO] = (target[:, AO] - 0.1).clamp(0, 1)
+    color = [shade_channels_first(x) for x in (worse, teacher, target)]
+    expected = psnr_shortfall(*color, torch.ones_like(color[0][:, :1]))
+    loss = TeacherPSNRNoWorseLoss(weight=0.5)(LossContext(worse, target, teacher=teacher))
+    assert expected > 1 and loss.item() == pytest.approx(0.5 * expected.item())
+    with pytest.raises(ValueError, match="TrainConfig.teacher"):
+        TeacherPSNRNoWorseLoss()(LossContext(worse, target))
+    with pytest.raises(ValueError, match="teacher must be"):
+        LossContext(worse, target, teacher=teacher[..., :3])
 
 
 # ----------------------------------------------------------------------------- perceptual

@@ -304,7 +304,8 @@ def test_the_shipped_configs_load():
                                             ("train_recon_no_worse_4k.json", "datagen_recon_4k.json"),
                                             ("train_recon_narrow.json", "datagen_recon_4k.json"),
                                             ("train_recon_whole_4k.json", "datagen_recon_4k_seed1.json"),
-                                            ("train_recon_spp4_4k.json", "datagen_recon_spp4_4k.json")])
+                                            ("train_recon_spp4_4k.json", "datagen_recon_spp4_4k.json"),
+                                            ("train_recon_teacher_4k.json", "datagen_recon_4k_seed1.json")])
 def test_each_reconstruction_config_fits_its_data_config(train, datagen):
     root = Path(__file__).resolve().parents[1] / "configs"
     config, data = load_config(TrainConfig, root / train), load_config(DatagenConfig, root / datagen)
@@ -358,6 +359,33 @@ def test_a_reconstruction_trains_under_the_ao_no_worse_losses_and_an_upscaler_is
     upscaler = trainer(data, tmp_path / "upscale", steps=2, losses=losses)
     with pytest.raises(ValueError, match=f"{loss} loss compares a reconstruction's AO"):
         upscaler.train_step(next(upscaler._batches(upscaler.train_set, shuffle=True, epoch=0)))
+
+
+def test_a_fine_tune_held_to_its_teacher_starts_at_no_shortfall_and_trains(tmp_path, tmp_path_factory):
+    """With its start as the teacher, a fine-tune's teacher loss is 0 before the first step (the same outputs), finite
+    after, and the teacher stays as it was; a teacher no loss reads, a loss without a teacher and a teacher of other
+    limits are refused, each naming what to give."""
+    wide = tiny_wide_recon_data(tmp_path_factory)
+    model, _ = saved_wide_model(tmp_path / "start")
+    losses = [{"type": "channel", "channel": "color", "kind": "l1"}, {"type": "teacher_psnr_no_worse", "weight": 1.0}]
+    t = trainer(wide, tmp_path / "run", steps=2, model=model, losses=losses, init=str(tmp_path / "start"),
+                teacher=str(tmp_path / "start"))
+    batch = next(t._batches(t.train_set, shuffle=True, epoch=0))
+    teacher = [p.detach().clone() for p in t.teacher.parameters()]
+    assert t._losses(batch)[1]["teacher_psnr_no_worse"].item() == 0.0
+    for _ in range(2):
+        logs = t.train_step(batch)
+    assert math.isfinite(logs["teacher_psnr_no_worse"]) and logs["teacher_psnr_no_worse"] >= 0
+    assert all(torch.equal(a, b) for a, b in zip(teacher, t.teacher.parameters()))
+    assert any(not torch.equal(a, b) for a, b in zip(teacher, t.net.parameters()))
+    assert "loss" in t.validate()
+    with pytest.raises(ValueError, match="no loss reads it"):
+        trainer(wide, tmp_path / "r2", model=model, teacher=str(tmp_path / "start"))
+    with pytest.raises(ValueError, match="give teacher, a model folder"):
+        trainer(wide, tmp_path / "r3", model=model, losses=losses)
+    saved_wide_model(tmp_path / "other", max_ao_rays=8)
+    with pytest.raises(ValueError, match="sampling limits"):
+        trainer(wide, tmp_path / "r4", model=model, losses=losses, teacher=str(tmp_path / "other"))
 
 
 def saved_wide_model(folder: Path, **config) -> tuple[dict, ReconNet]:
