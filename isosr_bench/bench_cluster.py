@@ -54,7 +54,7 @@ from isosr_bench.bench_server import (SIZES, ServerProcess, case_row, check_offe
                                       server_load)
 from isosr_bench.common import bench_parser, commit, device_name, kept_rows, print_table, write_result
 from isosr_bench.load import LoadSampler, executable, haproxy_backend, titled
-from isosr_bench.sessions import choices_line, run_sessions
+from isosr_bench.sessions import add_drag_argument, choices_line, client_model, run_sessions
 from isosr_client.drive import Orbit
 from isosr_client.view import connect
 from isosr_server.core.config import ENV_PREFIX, INGRESSES, TOKEN_ENV
@@ -261,6 +261,7 @@ def main(argv: list[str] | None = None) -> None:
                         help="what carries the replicas' requests (isosr serve --ingress; rows: ingress)")
     parser.add_argument("--client-processes", type=int, default=max(1, min(8, (os.cpu_count() or 2) // 4)),
                         help="processes the client sessions are dealt to")
+    add_drag_argument(parser)
     args = parser.parse_args(argv)
     size_name = "smoke" if args.smoke else args.size
     size, seconds = SIZES[size_name], args.seconds or (1.0 if args.smoke else 5.0)
@@ -289,7 +290,8 @@ def main(argv: list[str] | None = None) -> None:
     failover_on = next((f"ray{n}" for n in replicas if n >= 2), None)
     measured = servers(replicas, args.gpus_per_replica, args.device, args.ingress)
     kind = "_one_gpu" if args.gpus_per_replica == "split" else "_gpus" if float(args.gpus_per_replica) >= 1 else ""
-    name = f"bench_cluster{kind}_{size_name}" + ("" if args.encoding == "jpeg" else f"_{args.encoding}")
+    name = (f"bench_cluster{kind}_{size_name}" + ("" if args.encoding == "jpeg" else f"_{args.encoding}")
+            + ("_drag" if args.drag_hz else ""))
     path = args.out / f"{name}_{'cuda' if args.device.startswith('cuda') else 'cpu'}.json"
     stamp = {"device": device_name(args.device), "commit": commit(), "lease": args.lease}
     compression = "deflate" if args.client_deflate else None
@@ -301,8 +303,9 @@ def main(argv: list[str] | None = None) -> None:
         ingress = args.ingress if server_replicas else None
         for row in measure_server(server_name, args.device, options + extra, cases, failover_sessions,
                                   volume, size, seconds, args.client_processes, args.encoding, compression, ingress,
-                                  server_replicas, args.settle):
+                                  server_replicas, args.settle, args.drag_hz):
             merged.append(dict(row, replicas=server_replicas, gpus=gpus, encoding=args.encoding, mps=mps,
+                               client=client_model(args.drag_hz),
                                client_deflate=args.client_deflate, ingress=ingress, **stamp))
             # Written after every row: a run cut off (a device call's time limit) keeps what it measured.
             scaled = scaling(merged)
@@ -355,10 +358,11 @@ def auto_log(before: dict[Path, int], logs: Path = RAY_LOGS, most: int = AUTO_LO
 def measure_server(name: str, device: str, options: tuple[str, ...], cases: list[tuple[str, int, int]],
                    failover_sessions: int, volume: str, size: tuple[int, int], seconds: float, processes: int,
                    encoding: str, compression: str | None = None, ingress: str | None = None, replicas: int = 0,
-                   settle_s: float = 0.0):
+                   settle_s: float = 0.0, drag_hz: float = 0.0):
     """Start one server and yield a row per (mode, AO rays, sessions) case (frames coded as ``encoding``,
     the sessions' WebSocket compression ``compression``; its ``replicas`` behind ``ingress``, whose processes are
-    the rows' proxy; timed after ``settle_s`` untimed seconds), then its failover row."""
+    the rows' proxy; timed after ``settle_s`` untimed seconds; the sessions dragging at ``drag_hz``, 0: closed
+    loop), then its failover row."""
     started = time.monotonic()
     try:
         with ServerProcess(device, options) as server:
@@ -376,7 +380,7 @@ def measure_server(name: str, device: str, options: tuple[str, ...], cases: list
                 logged = log_sizes() if mode == "auto" and name != PLAIN else None
                 result = run_sessions(server.url, volume, n, seconds, mode, size, settings, processes=processes,
                                       on_start=lambda: load.start(seconds), compression=compression,
-                                      settle_s=settle_s)
+                                      settle_s=settle_s, drag_hz=drag_hz)
                 row = dict(case_row(mode, ao, result), server=name, ready_s=ready_s, settle_s=settle_s,
                            replicas_seen=len(result.get("replicas", [])), server_environment=server_environment(),
                            **load_fields(load.result()))

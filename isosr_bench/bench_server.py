@@ -48,7 +48,7 @@ import torch
 from isosr_bench.bench_pareto import bench_cameras, pareto_rows
 from isosr_bench.common import bench_parser, print_table, write_result
 from isosr_bench.load import LoadSampler, metric_total, proc_status
-from isosr_bench.sessions import choices_line, run_sessions
+from isosr_bench.sessions import add_drag_argument, choices_line, client_model, run_sessions
 from isosr_client.drive import Orbit, summarize
 from isosr_client.serve_process import ServeProcess
 from isosr_client.view import connect
@@ -248,6 +248,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seconds", type=float, help="timed seconds per case (default 5; smoke 0.5)")
     parser.add_argument("--sessions", help="concurrent sessions per case, comma-separated (default 1,4,16; smoke 1,2)")
     parser.add_argument("--modes", help="the cases' modes, comma-separated (default: every mode)")
+    add_drag_argument(parser)
     args = parser.parse_args(argv)
     smoke = args.smoke
     size_name = "smoke" if smoke else args.size
@@ -274,8 +275,10 @@ def main(argv: list[str] | None = None) -> None:
                                    counters=device_thread(url))
                 result = run_sessions(url, volume, n, seconds, mode, size, settings,
                                       focus=(size[0] / 2, size[1] / 2, focus_radius) if mode == "focus" else None,
-                                      warmup_frames=warmup, on_start=lambda: load.start(seconds))
-                rows.append(case_row(mode, ao, result) | server_load(load.result()))
+                                      warmup_frames=warmup, on_start=lambda: load.start(seconds),
+                                      drag_hz=args.drag_hz)
+                rows.append(case_row(mode, ao, result) | server_load(load.result())
+                            | {"client": client_model(args.drag_hz)})
                 r = rows[-1]
                 print(f"{mode:<11} AO {ao:<2} x{n:<3} {r.get('fps', 0):7.1f} fps  p50 {r.get('latency_p50_ms', 0):7.1f} "
                       f"p99 {r.get('latency_p99_ms', 0):7.1f} ms {r.get('bytes_per_frame', 0):10.0f} B  errors "
@@ -302,7 +305,7 @@ def main(argv: list[str] | None = None) -> None:
           f"({study.get('matched_jpeg_bytes', float('nan')):.0f} B/frame)")
     print(f"auto: {auto['auto_psnr_db']:.2f} dB ({', '.join(auto['auto_methods'])}); best fixed within "
           f"{auto['budget_ms']:.1f} ms: {auto['best_fixed']} {auto['best_fixed_psnr_db']} dB at {auto['best_fixed_ms']} ms")
-    print(f"wrote {write_result(f'bench_server_{size_name}', args.device, rows, args.out)}")
+    print(f"wrote {write_result(f'bench_server_{size_name}' + ('_drag' if args.drag_hz else ''), args.device, rows, args.out)}")
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""Closed-loop view sessions against a running server, for the service benchmarks.
+"""View sessions against a running server, closed loop or dragging (open loop), for the service benchmarks.
 
 The client side of :mod:`isosr_bench.bench_server` and :mod:`isosr_bench.bench_cluster`. It imports
 the client alone (no torch): the client processes that sessions are dealt to start in well under
@@ -7,7 +7,9 @@ a second, so a case's set-up is not the spawn of several interpreters importing 
 
 from __future__ import annotations
 
+import argparse
 import faulthandler
+import math
 import multiprocessing
 import threading
 import time
@@ -17,15 +19,15 @@ from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
 
 import numpy as np
 
-from isosr_client.drive import Orbit, drive, summarize
+from isosr_client.drive import Orbit, drag, drive, summarize
 from isosr_client.view import FrameStats, connect
 
 
 def run_sessions(url: str, volume: str, sessions: int, seconds: float, mode: str, size: tuple[int, int],
                  settings: dict, focus: tuple[float, float, float] | None = None, warmup_frames: int = 2,
                  max_frames: int = 100_000, processes: int = 1, on_start: Callable[[], None] | None = None,
-                 compression: str | None = None, settle_s: float = 0.0) -> dict:
-    """``sessions`` concurrent closed-loop view sessions (one thread each) for ``seconds`` after
+                 compression: str | None = None, settle_s: float = 0.0, drag_hz: float = 0.0) -> dict:
+    """``sessions`` concurrent view sessions (one thread each) for ``seconds`` after
     ``warmup_frames`` untimed frames each, then ``settle_s`` untimed seconds (``auto``'s probes and re-choices
     under the load: its steady state, where 0 times its first seconds); every session orbits from its own start
     yaw.
@@ -33,7 +35,9 @@ def run_sessions(url: str, volume: str, sessions: int, seconds: float, mode: str
     processes the sessions are dealt to (one process's threads share one interpreter lock, which
     must not bound what several GPUs serve); the timed span starts together in all, and
     ``on_start`` is called as it starts. ``compression``: the sessions' WebSocket compression
-    (`isosr_client.view.connect`; ``"deflate"`` as browsers offer it).
+    (`isosr_client.view.connect`; ``"deflate"`` as browsers offer it). ``drag_hz``: 0, each session closed loop
+    (`isosr_client.drive.drive`: one frame in flight); else its cameras sent at that rate and its frames taken as
+    they come (`isosr_client.drive.drag`, as a browser viewer while its user drags), the settling too.
 
     Returns:
         `isosr_client.drive.summarize` of all frames with ``fps`` summed over the sessions,
@@ -44,7 +48,7 @@ def run_sessions(url: str, volume: str, sessions: int, seconds: float, mode: str
     """
     processes = max(1, min(processes, sessions))
     job = (url, volume, sessions, seconds, mode, size, settings, focus, warmup_frames, max_frames, compression,
-           settle_s)
+           settle_s, drag_hz)
     if processes == 1:
         opened = threading.Barrier(sessions + 1)
         waiter = threading.Thread(target=_wait_opened, args=(opened, on_start), daemon=True)
@@ -76,6 +80,23 @@ def run_sessions(url: str, volume: str, sessions: int, seconds: float, mode: str
                   batch_mean=float(np.mean([s.batch for s in frames])),
                   replicas=sorted({s.replica for s in frames if s.replica is not None}))
     return result
+
+
+def add_drag_argument(parser) -> None:
+    """The service benchmarks' ``--drag-hz``: their sessions' client model (:func:`run_sessions`' ``drag_hz``)."""
+    def rate(text: str) -> float:
+        value = float(text)
+        if not (math.isfinite(value) and value >= 0):
+            raise argparse.ArgumentTypeError(f"a rate in Hz, 0 or more (0: closed loop), got {text!r}")
+        return value
+    parser.add_argument("--drag-hz", type=rate, default=0.0, metavar="HZ",
+                        help="each session sends its cameras at HZ and takes frames as they come, as a browser viewer "
+                             "while its user drags (default 0: closed loop, one frame in flight)")
+
+
+def client_model(drag_hz: float) -> str:
+    """A row's name for its sessions' client model."""
+    return f"drag {drag_hz:g} Hz" if drag_hz else "closed loop"
 
 
 def auto_choices(stats: list[list[FrameStats]], busy: list[float]) -> dict[str, dict]:
@@ -130,10 +151,16 @@ def _wait_opened(opened, on_start: Callable[[], None] | None) -> None:
 def drive_sessions(job: tuple, ks: range, opened) -> tuple[list[list[FrameStats]], list[float], list[str]]:
     """Sessions ``ks`` of :func:`run_sessions`' ``job``, one thread each, in this process: their
     frames' stats, their busy seconds and the errors. They wait at ``opened`` after warming up."""
-    url, volume, sessions, seconds, mode, size, settings, focus, warmup_frames, max_frames, compression, settle_s = job
+    (url, volume, sessions, seconds, mode, size, settings, focus, warmup_frames, max_frames, compression, settle_s,
+     drag_hz) = job
     stats: dict[int, list[FrameStats]] = {k: [] for k in ks}
     busy = dict.fromkeys(ks, 0.0)
     errors: list[str] = []
+
+    def timed(view, path: Orbit, stop_at: float) -> tuple[list[FrameStats], float]:
+        if drag_hz:
+            return drag(view, path, max_frames, drag_hz, stop_at)
+        return drive(view, path, max_frames, rgb=False, stop_at=stop_at)
 
     def viewer(k: int) -> None:
         path = Orbit(yaw=30.0 + 360.0 * k / sessions)
@@ -144,9 +171,9 @@ def drive_sessions(job: tuple, ks: range, opened) -> tuple[list[list[FrameStats]
                     view.set_focus("circle", focus[:2], focus[2])
                 drive(view, path, warmup_frames, rgb=False)
                 if settle_s > 0:
-                    drive(view, path, max_frames, rgb=False, stop_at=time.monotonic() + settle_s)
+                    timed(view, path, stop_at=time.monotonic() + settle_s)
                 opened.wait()
-                stats[k], busy[k] = drive(view, Orbit(path.yaw + 10, path.pitch, path.distance), max_frames, rgb=False,
+                stats[k], busy[k] = timed(view, Orbit(path.yaw + 10, path.pitch, path.distance),
                                           stop_at=time.monotonic() + seconds)
         except threading.BrokenBarrierError:
             pass

@@ -1,9 +1,14 @@
-"""Driving a view session along a camera path, closed loop, and summarizing what it cost.
+"""Driving a view session along a camera path, closed or open loop, and summarizing what it cost.
 
-Closed loop: send a camera, wait for the frame that includes it, send the next. So a frame's
-latency is the round trip of one camera change (network, queueing on the server's device,
-render, network, encode, transfer), and frames/s is what one viewer gets when it asks for
-the next frame as soon as it has one.
+Closed loop (:func:`drive`): send a camera, wait for the frame that includes it, send the next. So a
+frame's latency is the round trip of one camera change (network, queueing on the server's device,
+render, network, encode, transfer), and frames/s is what one viewer gets when it asks for the next
+frame as soon as it has one: one frame in flight, its whole round trip a frame's interval.
+
+Open loop (:func:`drag`): send a camera at a fixed rate and take the frames as they come, as a
+browser viewer does while its user drags (the server makes the newest state whenever the flow
+control's credit allows, several frames in flight). A frame's latency is from the newest camera it
+includes; frames/s is bounded by the rate, the server and the link, not by one round trip.
 """
 
 from __future__ import annotations
@@ -75,6 +80,41 @@ def drive(session: ViewSession, path: Orbit, frames: int, rgb: bool = True,
         if on_frame is not None:
             on_frame(i, frame)
     return stats, busy
+
+
+def drag(session: ViewSession, path: Orbit, frames: int, rate_hz: float,
+         stop_at: float | None = None) -> tuple[list[FrameStats], float]:
+    """Send ``path``'s first ``frames`` cameras at ``rate_hz`` (open loop) and take every frame as it comes, until
+    they are sent and the last is shown, or ``time.monotonic()`` passes ``stop_at``.
+
+    Returns:
+        ``(stats per frame received, seconds from the first camera to the end)``.
+
+    Raises:
+        ValueError: ``rate_hz`` is not a positive finite number.
+    """
+    if not (np.isfinite(rate_hz) and rate_hz > 0):
+        raise ValueError(f"rate_hz must be a positive finite number, got {rate_hz!r}")
+    stats: list[FrameStats] = []
+    start = time.monotonic()
+    end = float("inf") if stop_at is None else stop_at
+    sent = -1
+    for i in range(frames):
+        tick = start + i / rate_hz
+        if tick >= end:
+            break
+        while (left := min(tick, end) - time.monotonic()) > 0:  # frames arriving before this camera is due
+            frame = session.receive(left)
+            if frame is not None:
+                stats.append(frame.stats)
+        sent = session.set_camera(**path.camera(i))
+    while sent >= 0 and (not stats or stats[-1].ack < sent) and (left := end - time.monotonic()) > 0:  # its frame
+        frame = session.receive(min(left, session.timeout))
+        if frame is None and left > session.timeout:
+            raise TimeoutError(f"no frame with update {sent} within {session.timeout:g} s")
+        if frame is not None:
+            stats.append(frame.stats)
+    return stats, time.monotonic() - start
 
 
 def summarize(stats: list[FrameStats], seconds: float) -> dict:

@@ -6,6 +6,7 @@ Frames are 64x48 (16x12 low-res): the CPU runs the network at about 3 frames/s t
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import os
@@ -27,7 +28,7 @@ from isosr_bench import bench_server, sessions
 from isosr_bench.common import RESULTS_DIR, write_result
 from isosr_cli.main import main
 from isosr_client import ServerError, connect, decode_image, upscale_remote
-from isosr_client.drive import Orbit, drive
+from isosr_client.drive import Orbit, drag, drive
 from isosr_client.volumes import slice_remote, volumes_remote
 from isosr_client.view import CLIENT_LIMITS, FrameStats
 from isosr_render.images import to_uint8
@@ -499,11 +500,41 @@ def test_a_case_settles_untimed_before_its_timed_span(server):  # noqa: F811
     timed frames start later in the session's sequence than without it."""
     first = {}
     for settle in (0.0, 1.0):
-        job = (server.url, VOLUME, 1, 0.5, "full", SIZE, {}, None, 1, 100_000, None, settle)
+        job = (server.url, VOLUME, 1, 0.5, "full", SIZE, {}, None, 1, 100_000, None, settle, 0.0)
         stats, busy, errors = sessions.drive_sessions(job, range(1), threading.Barrier(1))
         assert errors == [] and stats[0] and busy[0] > 0
         first[settle] = stats[0][0].seq
     assert first[1.0] > first[0.0] + 1, first
+
+def test_a_dragging_viewer_takes_frames_as_they_come_and_sees_its_last_camera(server):  # noqa: F811
+    """drag: 12 cameras sent at 40 Hz without waiting for frames; the frames come in order, each with a camera
+    sent (the server coalesces: no more frames than cameras, and the session's opening one), the last showing the
+    last camera. Counts, not rates."""
+    with connect(server.url, VOLUME, "full", SIZE, settings={"refine": False}, local_upscale=False) as view:
+        view.latest()
+        stats, seconds = drag(view, PATH, 12, 40.0)
+        assert view.latest(timeout=5.0).stats is stats[-1]  # the newest frame, with every camera sent
+    acks = [s.ack for s in stats]
+    assert seconds > 0 and 1 <= len(stats) <= 12 + 1
+    assert acks == sorted(acks) and [s.seq for s in stats] == sorted({s.seq for s in stats})
+    with pytest.raises(ValueError, match="rate_hz must be a positive finite number"):
+        drag(view, PATH, 1, 0.0)
+
+
+def test_sessions_drag_when_asked_and_say_so(server, capsys):  # noqa: F811
+    """run_sessions' drag_hz: the sessions drag (their frames timed over the span they sent cameras in); the
+    benchmarks' --drag-hz takes a rate of 0 or more and names the client model of each row."""
+    result = sessions.run_sessions(server.url, VOLUME, 2, 1.0, "full", SIZE, {}, warmup_frames=1, drag_hz=30.0)
+    assert result["errors"] == [] and result["sessions"] == 2 and result["frames"] >= 2
+    assert sessions.client_model(30.0) == "drag 30 Hz" and sessions.client_model(0.0) == "closed loop"
+    parser = argparse.ArgumentParser()
+    sessions.add_drag_argument(parser)
+    assert parser.parse_args(["--drag-hz", "60"]).drag_hz == 60.0 and parser.parse_args([]).drag_hz == 0.0
+    for bad in ("-1", "nan", "inf"):
+        with pytest.raises(SystemExit):
+            parser.parse_args(["--drag-hz", bad])
+        assert "a rate in Hz, 0 or more" in capsys.readouterr().err
+
 
 @pytest.mark.slow
 def test_load_16_sessions_30s(server):  # noqa: F811
