@@ -8,6 +8,7 @@ The measured study: docs/measurements.md, "Half the sequences at 4 rays a pixel,
 """
 
 import argparse
+import math
 
 from isosr_net.model import load_pretrained, save_pretrained
 
@@ -19,6 +20,8 @@ def main(argv=None) -> None:
     parser.add_argument("t", type=float, help="where between: 0 is A, 1 is B")
     parser.add_argument("out", help="the new model folder")
     args = parser.parse_args(argv)
+    if not math.isfinite(args.t):
+        parser.error(f"t must be a finite number (0: start, 1: end), got {args.t}")
     a, b = load_pretrained(args.start)[0], load_pretrained(args.end)[0]
     if a.config != b.config:  # the configs as built, defaults filled in
         raise SystemExit(f"{args.start} and {args.end} differ in architecture: {a.config} != {b.config}")
