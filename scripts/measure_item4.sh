@@ -4,7 +4,7 @@
 #   bash scripts/measure_item4.sh datagen           # v6's data anew (seed 1): 393 s on an H200
 #   bash scripts/measure_item4.sh train             # the shipped model fine-tuned whole, held to it (7 minutes)
 #   bash scripts/measure_item4.sh bench SCENE...    # e.g. hydrogen:1080p chest_lidc:4k: beside the shipped model
-# bench measures the run's best/ (and MODELS, NAME=FOLDER,..., e.g. v6=isosr_net/recon_model_v6) at 1 and 4 rays a
+# bench measures the run's best/ as "held" (and MODELS, NAME=FOLDER,..., e.g. v6=isosr_net/recon_model_v6) at 1 and 4 rays a
 # pixel and 1-64 AO rays (SPP, AO override): 40-190 s a scene on an H200. The item's filters (SVGF, OIDN) need not
 # run again: the shipped model's rows repeat benchmarks/results/pareto_filters_v6_cuda.json's, whose SVGF and OIDN
 # rows are those frames' (compare the two files). Results land in $OUT (default /tmp/item4_out).
@@ -28,7 +28,7 @@ case "${1:?step: datagen, train or bench SCENE...}" in
             volume=${scene%:*} size=${scene#*:}
             python3 -m isosr_bench.bench_pareto --device cuda --volumes "$volume" --sizes "$size" \
                 --kinds full,reconstruct --spp "${SPP:-1,4}" --ao-rays "${AO:-1,2,4,16,64}" \
-                --models "teacher=$RUN/best${MODELS:+,$MODELS}" --out "$OUT/$volume-$size" > "$OUT/$volume-$size.log" 2>&1
+                --models "held=$RUN/best${MODELS:+,$MODELS}" --out "$OUT/$volume-$size" > "$OUT/$volume-$size.log" 2>&1
             echo "$scene: $(tail -1 "$OUT/$volume-$size.log")"
         done ;;
     *) echo "unknown step $1 (datagen, train or bench)" >&2; exit 2 ;;
