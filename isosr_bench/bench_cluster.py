@@ -26,6 +26,8 @@ thread's share of the span in jobs (``device_thread_busy``, from its ``GET /metr
 interpreter near one core, the proxy's, or a device thread near 1, is the bound where the GPUs idle.
 ``--client-deflate``: the sessions offer permessage-deflate as a browser does (``client_deflate``);
 Serve's proxy takes it and deflates every frame, the plain server declines it.
+``--drag-hz HZ``: the sessions send cameras at HZ and take frames as they come, as a browser viewer while its
+user drags (``client``; results ``..._drag_<device>.json``), where by default each is closed loop.
 Then scaling: each N-replica row against the 1-replica row of its case, frames/s over N times
 its frames/s at the same sessions, and p99 latency against its p99 at 1/N of the sessions.
 Failover, on the first server of 2 or more replicas: ``--failover-sessions`` closed-loop

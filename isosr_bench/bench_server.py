@@ -6,8 +6,8 @@
 
 Results: ``OUT/bench_server_<size>_<device>.json``. Starts the server in a
 subprocess (or uses ``--url``) and drives closed-loop view sessions
-(:func:`isosr_client.drive.drive`: send a camera, wait for its frame, repeat) for a bounded
-time per case. Per mode (``auto``; each method mode the server offers at the AO rays
+(:func:`isosr_client.drive.drive`: send a camera, wait for its frame, repeat; ``--drag-hz HZ``: cameras at HZ and
+frames taken as they come, :func:`isosr_client.drive.drag`) for a bounded time per case. Per mode (``auto``; each method mode the server offers at the AO rays
 its kind names, :attr:`~isosr_net.methods.FrameRunner.serve_bench_ao`: ``full`` with AO 0 and 8,
 ``atrous`` with 2, ``reconstruct`` with 1, ``upscale``, ``network``, ``buffers``; ``focus``) and
 session count:
