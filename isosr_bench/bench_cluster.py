@@ -56,7 +56,7 @@ from isosr_bench.bench_server import (SIZES, ServerProcess, case_row, check_offe
                                       server_load)
 from isosr_bench.common import bench_parser, commit, device_name, kept_rows, print_table, write_result
 from isosr_bench.load import LoadSampler, executable, haproxy_backend, titled
-from isosr_bench.sessions import add_drag_argument, choices_line, client_model, run_sessions
+from isosr_bench.sessions import add_drag_argument, choices_line, client_model, result_suffix, run_sessions
 from isosr_client.drive import Orbit
 from isosr_client.view import connect
 from isosr_server.core.config import ENV_PREFIX, INGRESSES, TOKEN_ENV
@@ -293,7 +293,7 @@ def main(argv: list[str] | None = None) -> None:
     measured = servers(replicas, args.gpus_per_replica, args.device, args.ingress)
     kind = "_one_gpu" if args.gpus_per_replica == "split" else "_gpus" if float(args.gpus_per_replica) >= 1 else ""
     name = (f"bench_cluster{kind}_{size_name}" + ("" if args.encoding == "jpeg" else f"_{args.encoding}")
-            + ("_drag" if args.drag_hz else ""))
+            + result_suffix(args.drag_hz))
     path = args.out / f"{name}_{'cuda' if args.device.startswith('cuda') else 'cpu'}.json"
     stamp = {"device": device_name(args.device), "commit": commit(), "lease": args.lease}
     compression = "deflate" if args.client_deflate else None

@@ -6,9 +6,9 @@
 
 Results: ``OUT/bench_server_<size>_<device>.json``. Starts the server in a
 subprocess (or uses ``--url``) and drives closed-loop view sessions
-(:func:`isosr_client.drive.drive`: send a camera, wait for its frame, repeat; ``--drag-hz HZ``: cameras at HZ and
-frames taken as they come, :func:`isosr_client.drive.drag`) for a bounded time per case. Per mode (``auto``; each method mode the server offers at the AO rays
-its kind names, :attr:`~isosr_net.methods.FrameRunner.serve_bench_ao`: ``full`` with AO 0 and 8,
+(:func:`isosr_client.drive.drive`: send a camera, wait for its frame, repeat; ``--drag-hz HZ``: cameras at HZ
+and frames taken as they come, :func:`isosr_client.drive.drag`) for a bounded time per case. Per mode (``auto``;
+each method mode the server offers at the AO rays its kind names, :attr:`~isosr_net.methods.FrameRunner.serve_bench_ao`: ``full`` with AO 0 and 8,
 ``atrous`` with 2, ``reconstruct`` with 1, ``upscale``, ``network``, ``buffers``; ``focus``) and
 session count:
 
@@ -48,7 +48,7 @@ import torch
 from isosr_bench.bench_pareto import bench_cameras, pareto_rows
 from isosr_bench.common import bench_parser, print_table, write_result
 from isosr_bench.load import LoadSampler, metric_total, proc_status
-from isosr_bench.sessions import add_drag_argument, choices_line, client_model, run_sessions
+from isosr_bench.sessions import add_drag_argument, choices_line, client_model, result_suffix, run_sessions
 from isosr_client.drive import Orbit, summarize
 from isosr_client.serve_process import ServeProcess
 from isosr_client.view import connect
@@ -305,7 +305,7 @@ def main(argv: list[str] | None = None) -> None:
           f"({study.get('matched_jpeg_bytes', float('nan')):.0f} B/frame)")
     print(f"auto: {auto['auto_psnr_db']:.2f} dB ({', '.join(auto['auto_methods'])}); best fixed within "
           f"{auto['budget_ms']:.1f} ms: {auto['best_fixed']} {auto['best_fixed_psnr_db']} dB at {auto['best_fixed_ms']} ms")
-    print(f"wrote {write_result(f'bench_server_{size_name}' + ('_drag' if args.drag_hz else ''), args.device, rows, args.out)}")
+    print(f"wrote {write_result(f'bench_server_{size_name}{result_suffix(args.drag_hz)}', args.device, rows, args.out)}")
 
 
 if __name__ == "__main__":

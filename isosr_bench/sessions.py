@@ -99,6 +99,11 @@ def client_model(drag_hz: float) -> str:
     return f"drag {drag_hz:g} Hz" if drag_hz else "closed loop"
 
 
+def result_suffix(drag_hz: float) -> str:
+    """What a result file's name adds for dragging sessions (their rows kept apart from closed-loop ones)."""
+    return "_drag" if drag_hz else ""
+
+
 def auto_choices(stats: list[list[FrameStats]], busy: list[float]) -> dict[str, dict]:
     """What ``auto`` expected of each method it chose, over the frames that say (by method name): its
     frames, mean expected PSNR and time, mean budget, and where the expectations came from; and what the

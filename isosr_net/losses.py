@@ -386,7 +386,7 @@ class TeacherPSNRNoWorseLoss(WeightedLoss):
         if ctx.teacher is None:
             raise ValueError("the teacher_psnr_no_worse loss compares the output with a teacher's: give the run a "
                              "teacher (TrainConfig.teacher, a model folder)")
-        color, teacher, target = (shade_channels_first(x) for x in (ctx.pred, ctx.teacher, ctx.target))
+        color, teacher, target = shade_channels_first(torch.cat([ctx.pred, ctx.teacher, ctx.target])).chunk(3)
         return psnr_shortfall(color, teacher, target, torch.ones_like(color[:, :1]))
 
 

@@ -237,11 +237,10 @@ class Trainer:
             raise ValueError(f"teacher {self.config.teacher}: no loss reads it (teacher_psnr_no_worse does); give one "
                              "or no teacher")
         teacher, _ = load_pretrained(self.config.teacher, self.device)
-        config, own = teacher.config, self.net.config
-        if config.upscale != own.upscale or getattr(config, "limits", None) != getattr(own, "limits", None):
-            raise ValueError(f"teacher {self.config.teacher} upscales x{config.upscale} with sampling limits "
-                             f"{getattr(config, 'limits', None)}; the model x{own.upscale} with "
-                             f"{getattr(own, 'limits', None)}: give a teacher of the same")
+        theirs, ours = ((c.upscale, getattr(c, "limits", None)) for c in (teacher.config, self.net.config))
+        if theirs != ours:
+            raise ValueError(f"teacher {self.config.teacher} upscales x{theirs[0]} with sampling limits {theirs[1]}; "
+                             f"the model x{ours[0]} with {ours[1]}: give a teacher of the same")
         teacher.requires_grad_(False)
         if self.device.type == "cuda":
             teacher = teacher.to(memory_format=torch.channels_last)
