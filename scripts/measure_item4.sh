@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
 # Issue 49 item 4 on one GPU, one step a call of at most 10 minutes, from the project root (docs/training.md, "A
 # fine-tune held to its start"; docs/measurements.md, "Half the sequences at 4 rays a pixel"):
-#   bash scripts/measure_item4.sh datagen           # v6's data anew (seed 1): 393 s on an H200
-#   bash scripts/measure_item4.sh train             # the shipped model fine-tuned whole, held to it (7 minutes)
+#   bash scripts/measure_item4.sh datagen           # v6's data anew (seed 1): 325-393 s on an H200
+#   bash scripts/measure_item4.sh train             # the shipped model fine-tuned whole, held to it (MINUTES, 7)
 #   bash scripts/measure_item4.sh bench SCENE...    # e.g. hydrogen:1080p chest_lidc:4k: beside the shipped model
 # bench measures the run's best/ as "held" (and MODELS, NAME=FOLDER,..., e.g. v6=isosr_net/recon_model_v6) at 1 and 4 rays a
-# pixel and 1-64 AO rays (SPP, AO override): 40-190 s a scene on an H200. The item's filters (SVGF, OIDN) need not
+# pixel and 1-64 AO rays (SPP, AO override): 40-190 s a scene on an H200 (SPP=1 AO=1,2,4: 25-90 s). The item's filters (SVGF, OIDN) need not
 # run again: the shipped model's rows repeat benchmarks/results/pareto_filters_v6_cuda.json's, whose SVGF and OIDN
 # rows are those frames' (compare the two files). Results land in $OUT (default /tmp/item4_out).
 set -euo pipefail
