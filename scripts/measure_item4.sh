@@ -8,6 +8,9 @@
 # pixel and 1-64 AO rays (SPP, AO override): 40-190 s a scene on an H200 (SPP=1 AO=1,2,4: 25-90 s). The item's filters (SVGF, OIDN) need not
 # run again: the shipped model's rows repeat benchmarks/results/pareto_filters_v6_cuda.json's, whose SVGF and OIDN
 # rows are those frames' (compare the two files). Results land in $OUT (default /tmp/item4_out).
+# The run of 2026-12-02 is kept: RUN=checkpoints/recon_teacher_4k benches it without datagen or train; its interval
+# narrowing past 16 rays (docs/measurements.md, "Where it falls short, the AO alone") is a copy of its folder with
+# "ao_interval_narrows_past": 16.0 in config.json's "model", given as MODELS=held16=THAT_COPY.
 set -euo pipefail
 OUT=${OUT:-/tmp/item4_out}
 DATA=${DATA:-/tmp/recon_4k_seed1}
