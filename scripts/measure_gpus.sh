@@ -15,8 +15,8 @@
 #   CONCURRENT=0 GPUS=1,2 bash scripts/measure_gpus.sh train SEED   # 1 GPU, then 2, one after the other
 # GPUS (CUDA_VISIBLE_DEVICES) moves a cluster or training step to other GPUs, so that steps share a host.
 # LEASE names the machine's lease for every call in it (default: the first call's hour; rows are
-# compared within one lease). CASES (default: the bench's full:0,reconstruct:1,auto:0) narrows the cases of a cluster step;
-# DRAG (Hz) makes its sessions dragging viewers (bench_cluster --drag-hz) instead of closed loops.
+# compared within one lease). CASES (default: the bench's full:0,reconstruct:1,auto:0) narrows the cases of a cluster
+# step; DRAG (Hz) makes its sessions dragging viewers (bench_cluster --drag-hz) instead of closed loops.
 # A step took, on 4 H200s: about 45-70 s to start a server or Ray with its replicas (warm kernel
 # caches), 25-50 s a case, 15 s a failover.
 # On the lab's lent machines, Ray and the server's wheels arrive split over several calls (64 MiB

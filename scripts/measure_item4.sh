@@ -4,10 +4,11 @@
 #   bash scripts/measure_item4.sh datagen           # v6's data anew (seed 1): 325-393 s on an H200
 #   bash scripts/measure_item4.sh train             # the shipped model fine-tuned whole, held to it (MINUTES, 7)
 #   bash scripts/measure_item4.sh bench SCENE...    # e.g. hydrogen:1080p chest_lidc:4k: beside the shipped model
-# bench measures the run's best/ as "held" (and MODELS, NAME=FOLDER,..., e.g. v6=isosr_net/recon_model_v6) at 1 and 4 rays a
-# pixel and 1-64 AO rays (SPP, AO override): 40-190 s a scene on an H200 (SPP=1 AO=1,2,4: 25-90 s). The item's filters (SVGF, OIDN) need not
-# run again: the shipped model's rows repeat benchmarks/results/pareto_filters_v6_cuda.json's, whose SVGF and OIDN
-# rows are those frames' (compare the two files). Results land in $OUT (default /tmp/item4_out).
+# bench measures the run's best/ as "held" (and MODELS, NAME=FOLDER,..., e.g. v6=isosr_net/recon_model_v6) at 1 and 4
+# rays a pixel and 1-64 AO rays (SPP, AO override): 40-190 s a scene on an H200 (SPP=1 AO=1,2,4: 25-90 s). The item's
+# filters (SVGF, OIDN) need not run again: the shipped model's rows repeat
+# benchmarks/results/pareto_filters_v6_cuda.json's, whose SVGF and OIDN rows are those frames' (compare the two
+# files). Results land in $OUT (default /tmp/item4_out).
 # The run of 2026-12-02 is kept: RUN=checkpoints/recon_teacher_4k benches it without datagen or train; its interval
 # narrowing past 16 rays (docs/measurements.md, "Where it falls short, the AO alone") is a copy of its folder with
 # "ao_interval_narrows_past": 16.0 in config.json's "model", given as MODELS=held16=THAT_COPY.
