@@ -9,9 +9,9 @@
 # filters (SVGF, OIDN) need not run again: the shipped model's rows repeat
 # benchmarks/results/pareto_filters_v6_cuda.json's, whose SVGF and OIDN rows are those frames' (compare the two
 # files). Results land in $OUT (default /tmp/item4_out).
-# The run of 2026-12-02 is kept: RUN=checkpoints/recon_teacher_4k benches it without datagen or train; its interval
-# narrowing past 16 rays (docs/measurements.md, "Where it falls short, the AO alone") is a copy of its folder with
-# "ao_interval_narrows_past": 16.0 in config.json's "model", given as MODELS=held16=THAT_COPY.
+# The run of 2026-12-02 is kept: RUN=checkpoints/recon_teacher_4k benches it without datagen or train. NARROWS_PAST=N
+# benches instead a copy of its best/ whose interval narrows past N rays ("ao_interval_narrows_past", a weightless
+# field; docs/measurements.md, "Where it falls short, the AO alone") as "heldN".
 set -euo pipefail
 OUT=${OUT:-/tmp/item4_out}
 DATA=${DATA:-/tmp/recon_4k_seed1}
@@ -28,11 +28,19 @@ case "${1:?step: datagen, train or bench SCENE...}" in
         mkdir -p "$OUT/best" && cp -r "$RUN/best/." "$OUT/best/" ;;
     bench)
         shift
+        models="held=$RUN/best"
+        if [ -n "${NARROWS_PAST:-}" ]; then
+            copy=/tmp/held$NARROWS_PAST && rm -rf "$copy" && cp -r "$RUN/best" "$copy"
+            python3 -c 'import json, sys; p = sys.argv[1] + "/config.json"; c = json.load(open(p))
+c["model"]["ao_interval_narrows_past"] = float(sys.argv[2])
+json.dump(c, open(p, "w"), indent=1)' "$copy" "$NARROWS_PAST"
+            models="held$NARROWS_PAST=$copy"
+        fi
         for scene in "$@"; do
             volume=${scene%:*} size=${scene#*:}
             python3 -m isosr_bench.bench_pareto --device cuda --volumes "$volume" --sizes "$size" \
                 --kinds full,reconstruct --spp "${SPP:-1,4}" --ao-rays "${AO:-1,2,4,16,64}" \
-                --models "held=$RUN/best${MODELS:+,$MODELS}" --out "$OUT/$volume-$size" > "$OUT/$volume-$size.log" 2>&1
+                --models "$models${MODELS:+,$MODELS}" --out "$OUT/$volume-$size" > "$OUT/$volume-$size.log" 2>&1
             echo "$scene: $(tail -1 "$OUT/$volume-$size.log")"
         done ;;
     *) echo "unknown step $1 (datagen, train or bench)" >&2; exit 2 ;;
