@@ -2,16 +2,16 @@
 # Issue 49 item 4 on one GPU, one step a call of at most 10 minutes, from the project root (docs/training.md, "A
 # fine-tune held to its start"; docs/measurements.md, "Half the sequences at 4 rays a pixel"):
 #   bash scripts/measure_item4.sh datagen           # v6's data anew (seed 1): 325-393 s on an H200
-#   bash scripts/measure_item4.sh train             # the shipped model fine-tuned whole, held to it (MINUTES, 7)
+#   bash scripts/measure_item4.sh train             # recon_model_v7 fine-tuned whole, held to it (MINUTES, 7)
 #   bash scripts/measure_item4.sh bench SCENE...    # e.g. hydrogen:1080p chest_lidc:4k: beside the shipped model
 # bench measures the run's best/ as "held" (and MODELS, NAME=FOLDER,..., e.g. v6=isosr_net/recon_model_v6) at 1 and 4
 # rays a pixel and 1-64 AO rays (SPP, AO override): 40-190 s a scene on an H200 (SPP=1 AO=1,2,4: 25-90 s). The item's
-# filters (SVGF, OIDN) need not run again: the shipped model's rows repeat
-# benchmarks/results/pareto_filters_v6_cuda.json's, whose SVGF and OIDN rows are those frames' (compare the two
-# files). Results land in $OUT (default /tmp/item4_out).
-# The run of 2026-12-02 is kept: RUN=checkpoints/recon_teacher_4k benches it without datagen or train. NARROWS_PAST=N
-# benches instead a copy of its best/ whose interval narrows past N rays ("ao_interval_narrows_past", a weightless
-# field; docs/measurements.md, "Where it falls short, the AO alone") as "heldN".
+# filters (SVGF, OIDN) need not run again: with MODELS=v7=isosr_net/recon_model_v7 its rows repeat the "recon" rows of
+# benchmarks/results/pareto_filters_v6_cuda.json, whose SVGF and OIDN rows are then those frames'. Results land in $OUT
+# (default /tmp/item4_out).
+# NARROWS_PAST=N benches instead a copy of the run's best/ whose interval narrows past N rays
+# ("ao_interval_narrows_past", a weightless field) as "heldN". The run of 2026-12-02 with N = 16 is the shipped
+# isosr_net/recon_model; the model it started from, isosr_net/recon_model_v7, is its config's init and teacher.
 set -euo pipefail
 OUT=${OUT:-/tmp/item4_out}
 DATA=${DATA:-/tmp/recon_4k_seed1}

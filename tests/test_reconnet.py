@@ -505,22 +505,24 @@ def test_the_shipped_model_loads_without_arguments():
     assert reconstructor.precision == "fp32" and reconstructor.device == torch.device("cpu")
 
 
-@pytest.mark.parametrize("model, prior, limits", [
-    (DEFAULT_RECON_MODEL, "blend", RayLimits(16, 4)),
-    (DEFAULT_RECON_MODEL.parent / "recon_model_v6", "blend", RayLimits(16, 4)),
-    (DEFAULT_RECON_MODEL.parent / "recon_model_v5", "blend", RayLimits(16, 4)),
-    (DEFAULT_RECON_MODEL.parent / "recon_model_v4", "rays", RayLimits(16, 4)),
-    (DEFAULT_RECON_MODEL.parent / "recon_model_v1", "none", RayLimits(8, 4))])
-def test_the_shipped_models_keep_their_configs_and_their_ao_is_that_of_their_tail(sphere_frames, model, prior, limits):
-    """The default and the one before it (their AO blended with the input rays' mean per pixel), the one
-    before those (a correction of that mean) and the first model (AO from scratch, a plain sigmoid)."""
+@pytest.mark.parametrize("model, prior, limits, narrows_past", [
+    (DEFAULT_RECON_MODEL, "blend", RayLimits(16, 4), 16.0),
+    (DEFAULT_RECON_MODEL.parent / "recon_model_v7", "blend", RayLimits(16, 4), 64.0),
+    (DEFAULT_RECON_MODEL.parent / "recon_model_v6", "blend", RayLimits(16, 4), 64.0),
+    (DEFAULT_RECON_MODEL.parent / "recon_model_v5", "blend", RayLimits(16, 4), 64.0),
+    (DEFAULT_RECON_MODEL.parent / "recon_model_v4", "rays", RayLimits(16, 4), None),
+    (DEFAULT_RECON_MODEL.parent / "recon_model_v1", "none", RayLimits(8, 4), None)])
+def test_the_shipped_models_keep_their_configs_and_their_ao_is_that_of_their_tail(sphere_frames, model, prior, limits,
+                                                                                  narrows_past):
+    """The default and the ones before it (their AO blended with the input rays' mean per pixel, within the rays'
+    interval, which narrows past ``narrows_past`` rays), one before those (a correction of that mean) and the
+    first model (AO from scratch, a plain sigmoid)."""
     reconstructor = Reconstructor(model)
     config = reconstructor.net.config
     assert (config.ao_prior, config.limits, recon_limits(model)) == (prior, limits, limits)
     assert config.blend_map == config.geometry_gate == (prior == "blend")
-    shipped = prior == "blend"  # past its ray limits, and its interval (measurements.md)
     assert (config.blend_beyond, config.ao_interval, config.ao_interval_narrows_past) == (
-        (2.0, 2.0, 64.0) if shipped else (0.0, 0.0, 0.0))
+        (2.0, 2.0, narrows_past) if narrows_past else (0.0, 0.0, 0.0))
     raws, inputs, maps = [], [], []
     reconstructor.net.tail.register_forward_hook(lambda module, args, out: raws.append(out))
     reconstructor.net.register_forward_pre_hook(lambda module, args: inputs.append(args[0]))
