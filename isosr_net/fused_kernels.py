@@ -19,8 +19,8 @@ Four kinds of pass do all of ReconNet's work (:mod:`isosr_net.fused_recon` runs 
   times as long on an H100 at 4K (1.40 ms against 0.30 + 0.50 with this pass); the reduction as a second
   ``tl.dot`` in the coarser convolution's epilogue came out wrong from Triton 3.6 on an H100
   with 4 warps (64 channels), so it is here.
-- :func:`recon_tail`: the 3x3 output convolution (6 channels, computed as 16; x2: 24 as 32,
-  written depth-to-space) + bias and ReconNet's output over its inputs (x2: upsampled,
+- :func:`recon_tail`: the 3x3 output convolution (6 channels, computed as 16; x2 and a stem of
+  stride 2: 24 as 32, written depth-to-space) + bias and ReconNet's output over its inputs (x2: upsampled,
   :func:`~isosr_net.reconnet.upsampled_inputs`): mask ``clamp(in + raw, 0, 1)``, normal
   ``in + raw``, depth passed through, AO ``sigmoid(raw)`` or, for a model over the input rays,
   ``sigmoid(logit(p) + raw)`` (:func:`isosr_net.reconnet.ao_output`), written as the (B, 6, sH, sW)
@@ -321,7 +321,8 @@ def _upsample_add_kernel(x_ptr, c_ptr, rw_ptr, rb_ptr, out_ptr, hp, wp, hc, wc, 
 @triton.jit
 def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, sn_b, sn_c, sn_h, sn_w,
                  d_ptr, sd_b, sd_c, sd_h, sd_w, a_ptr, sa_b, sa_c, sa_h, sa_w, s_ptr, ss_b, ss_c, ss_h, ss_w,
-                 out_ptr, color_ptr, g_ptr, h, w, hp, wp, size_class, ray_scale, blend_rays, ray_factor, z, z_past,
+                 out_ptr, color_ptr, g_ptr, h, w, gh, gw, hp, wp, size_class, ray_scale, blend_rays, ray_factor, z,
+                 z_past,
                  albedo_r, albedo_g, albedo_b, ambient,
                  diffuse, specular, shininess, light_x, light_y, light_z, half_x, half_y, half_z, back_r, back_g, back_b,
                  MASK_C: tl.constexpr, NORMAL_C: tl.constexpr, DEPTH_C: tl.constexpr, AO_C: tl.constexpr,
@@ -329,18 +330,20 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, s
                  INTERVAL: tl.constexpr, GATED: tl.constexpr,
                  MAX_SPP: tl.constexpr,
                  HAS_AO: tl.constexpr, BUFFERS: tl.constexpr,
-                 SHADE: tl.constexpr, OUT: tl.constexpr, S: tl.constexpr, CI: tl.constexpr, CIP: tl.constexpr,
-                 CO: tl.constexpr, BLOCK_M: tl.constexpr):
+                 SHADE: tl.constexpr, OUT: tl.constexpr, S: tl.constexpr, UP: tl.constexpr, CI: tl.constexpr,
+                 CIP: tl.constexpr, CO: tl.constexpr, BLOCK_M: tl.constexpr):
+    # A program's pixels are the first level's (gh x gw of the hp x wp features), each S x S output pixels; the
+    # output UP times the input's sides (S = UP, or S = 2 and UP = 1: a stem of stride 2).
     b = tl.program_id(1).to(tl.int64)
     offs = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
-    valid = offs < h * w
-    y = offs // w
-    x = offs % w
+    valid = offs < gh * gw
+    y = offs // gw
+    x = offs % gw
     raw = _conv_acc(x_ptr, w_ptr, bias_ptr, b, y, x, valid, hp, wp, 1, CI, CIP, CO, BLOCK_M)
     c = tl.arange(0, CO)[None, :]
     depth_in = _plane(d_ptr, sd_b, sd_h, sd_w, b, y, x, valid)  # passes through (x2: nearest)
-    plane = S * S * h * w  # an output plane's pixels
-    # Per output pixel (S x S per input pixel: raw channel k * S * S + cell is channel k there, as
+    plane = UP * UP * h * w  # an output plane's pixels
+    # Per output pixel (S x S per feature pixel: raw channel k * S * S + cell is channel k there, as
     # F.pixel_shuffle orders them), one plane at a time: the (upsampled) inputs plus the raw output.
     gate = tl.full((BLOCK_M,), 1.0, dtype=tl.float32)
     if GATED:  # the geometry corrections' factor at the frame's rays per pixel (reconnet.geometry_gate)
@@ -351,25 +354,28 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, s
     for cell in tl.static_range(S * S):
         yy = y * S + cell // S
         xx = x * S + cell % S
-        at = yy * (S * w) + xx
-        mask = (_base_plane(m_ptr, sm_b, sm_h, sm_w, b, yy, xx, h, w, valid, S)
+        at = yy * (UP * w) + xx
+        here = valid & (yy < UP * h) & (xx < UP * w)  # a stem's cells past an odd side: none
+        mask = (_base_plane(m_ptr, sm_b, sm_h, sm_w, b, yy, xx, h, w, here, UP)
                 + gate * _column(raw, c, MASK_C * S * S + cell))
         mask = tl.minimum(tl.maximum(mask, 0.0), 1.0)
-        nx = (_base_plane(n_ptr, sn_b, sn_h, sn_w, b, yy, xx, h, w, valid, S)
+        nx = (_base_plane(n_ptr, sn_b, sn_h, sn_w, b, yy, xx, h, w, here, UP)
               + gate * _column(raw, c, NORMAL_C * S * S + cell))
-        ny = (_base_plane(n_ptr + sn_c, sn_b, sn_h, sn_w, b, yy, xx, h, w, valid, S)
+        ny = (_base_plane(n_ptr + sn_c, sn_b, sn_h, sn_w, b, yy, xx, h, w, here, UP)
               + gate * _column(raw, c, (NORMAL_C + 1) * S * S + cell))
-        nz = (_base_plane(n_ptr + 2 * sn_c, sn_b, sn_h, sn_w, b, yy, xx, h, w, valid, S)
+        nz = (_base_plane(n_ptr + 2 * sn_c, sn_b, sn_h, sn_w, b, yy, xx, h, w, here, UP)
               + gate * _column(raw, c, (NORMAL_C + 2) * S * S + cell))
         depth = depth_in
+        if S != UP:  # a stem's cells are input pixels
+            depth = _plane(d_ptr, sd_b, sd_h, sd_w, b, yy, xx, here)
         raw_ao = _column(raw, c, AO_C * S * S + cell)
         ao = tl.sigmoid(raw_ao)
         if AO_PRIOR:  # sigmoid(logit(p) + raw) = p / (p + (1 - p) exp(-raw)), p in (0, 1)
             rays = tl.zeros((BLOCK_M,), dtype=tl.float32)
             if HAS_AO:
-                rays = _base_plane(a_ptr, sa_b, sa_h, sa_w, b, yy, xx, h, w, valid, S)
-            n = (_base_plane(s_ptr, ss_b, ss_h, ss_w, b, yy, xx, h, w, valid, S)
-                 * _base_plane(s_ptr + ss_c, ss_b, ss_h, ss_w, b, yy, xx, h, w, valid, S) * ray_scale)
+                rays = _base_plane(a_ptr, sa_b, sa_h, sa_w, b, yy, xx, h, w, here, UP)
+            n = (_base_plane(s_ptr, ss_b, ss_h, ss_w, b, yy, xx, h, w, here, UP)
+                 * _base_plane(s_ptr + ss_c, ss_b, ss_h, ss_w, b, yy, xx, h, w, here, UP) * ray_scale)
             p = (n * rays + 0.5) / (n + 1.0)
             ao = tl.minimum(p / (p + (1.0 - p) * tl.exp(-raw_ao)), 1.0)  # fast division: p / p can pass 1
             if BLEND:  # the rays' mean and the network's AO by the rays each stands for (ao_output)
@@ -405,16 +411,16 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, s
                                            tl.where(shininess == 0, 1.0, 0.0))
                 lit = ambient + diffuse * n_dot_l
                 color = color_ptr + (b * plane + at) * 3
-                tl.store(color, _composite(mask, albedo_r * lit + spec, ao, back_r), mask=valid)
-                tl.store(color + 1, _composite(mask, albedo_g * lit + spec, ao, back_g), mask=valid)
-                tl.store(color + 2, _composite(mask, albedo_b * lit + spec, ao, back_b), mask=valid)
+                tl.store(color, _composite(mask, albedo_r * lit + spec, ao, back_r), mask=here)
+                tl.store(color + 1, _composite(mask, albedo_g * lit + spec, ao, back_g), mask=here)
+                tl.store(color + 2, _composite(mask, albedo_b * lit + spec, ao, back_b), mask=here)
         out = out_ptr + b * OUT * plane + at
-        tl.store(out + MASK_C * plane, mask, mask=valid)
-        tl.store(out + NORMAL_C * plane, nx, mask=valid)
-        tl.store(out + (NORMAL_C + 1) * plane, ny, mask=valid)
-        tl.store(out + (NORMAL_C + 2) * plane, nz, mask=valid)
-        tl.store(out + DEPTH_C * plane, depth, mask=valid)
-        tl.store(out + AO_C * plane, ao, mask=valid)
+        tl.store(out + MASK_C * plane, mask, mask=here)
+        tl.store(out + NORMAL_C * plane, nx, mask=here)
+        tl.store(out + (NORMAL_C + 1) * plane, ny, mask=here)
+        tl.store(out + (NORMAL_C + 2) * plane, nz, mask=here)
+        tl.store(out + DEPTH_C * plane, depth, mask=here)
+        tl.store(out + AO_C * plane, ao, mask=here)
 
 
 @triton.jit
@@ -690,8 +696,10 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
     h, w = frame["H"], frame["W"]
     if frame["B"] != b:
         raise ValueError(f"recon_tail: {frame['B']} frames of inputs for {b} of features")
-    if h > hp or w > wp:
-        raise ValueError(f"recon_tail: inputs are {h}x{w}, larger than the features' {hp}x{wp}")
+    stem = config.stem_stride
+    gh, gw = -(-h // stem), -(-w // stem)  # the first level's pixels that hold the frame's
+    if gh > hp or gw > wp:
+        raise ValueError(f"recon_tail: inputs of {h}x{w} need {gh}x{gw} features, got {hp}x{wp}")
     if shading is not None and not as_buffers:
         raise ValueError("recon_tail: shading shades the output buffers: pass as_buffers=True")
     if (config.ao_prior == "blend") != (blend_rays is not None):
@@ -703,9 +711,9 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
         raise ValueError(f"recon_tail: a gated model's tail takes its {config.max_spp} gates (float32 on {y.device}), "
                          f"others none; got {None if gates is None else (gates.dtype, tuple(gates.shape))} for "
                          f"geometry_gate={config.geometry_gate}")
-    s = config.upscale
-    if co < OUTPUTS * s * s:
-        raise ValueError(f"recon_tail: an x{s} model's tail has {OUTPUTS * s * s} outputs, the weights {co}")
+    s, cells = config.upscale, config.cells
+    if co < OUTPUTS * cells * cells:
+        raise ValueError(f"recon_tail: the model's tail has {OUTPUTS * cells * cells} outputs, the weights {co}")
     shape = (b, OUTPUTS, s * h, s * w)
     if out is None:
         out = torch.empty(shape, device=y.device, dtype=torch.float32)
@@ -715,9 +723,9 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
     color = None if shading is None else torch.empty((b, s * h, s * w, 3), device=y.device, dtype=torch.float32)
     params = shading or ShadingParams()
     light, half = light_and_half(params)
-    _tail_tuned[_grid(h * w, b)](y, weight, bias, *sources.args(), out, out if color is None else color,
-                                 bias if gates is None else gates, h, w, hp, wp,
-                                 _size_class(h * w), float(config.max_ao_rays * config.max_spp),
+    _tail_tuned[_grid(gh * gw, b)](y, weight, bias, *sources.args(), out, out if color is None else color,
+                                 bias if gates is None else gates, h, w, gh, gw, hp, wp,
+                                 _size_class(gh * gw), float(config.max_ao_rays * config.max_spp),
                                  float(blend_rays or 0.0), float(ray_factor), float(config.ao_interval),
                                  float(config.ao_interval_narrows_past),
                                  *params.albedo, params.ambient,
@@ -727,6 +735,6 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
                                  BLEND_MAP=config.blend_map, BLEND_VARIANCE=config.blend_variance,
                                  INTERVAL=config.ao_interval > 0, GATED=gates is not None, MAX_SPP=config.max_spp,
                                  HAS_AO=sources.ao is not None, BUFFERS=as_buffers, SHADE=shading is not None,
-                                 OUT=OUTPUTS, S=s, CI=ci, CIP=kernel_width(ci), CO=co,
+                                 OUT=OUTPUTS, S=cells, UP=s, CI=ci, CIP=kernel_width(ci), CO=co,
                                  **FIXED)
     return out, color

@@ -15,7 +15,9 @@ the tail (with the output stack). :meth:`FusedReconNet.frame` is a `Reconstructo
 after the render in these passes alone: the pack reads the render's buffers in place and checks
 them, the tail writes the output buffers and the shaded color. A model that upscales x2 runs in
 the same passes: the pack reads the previous output's 2 x 2 pixels per input pixel (warped by the
-flow upsampled), the tail writes its 24 channels depth-to-space over the inputs upsampled.
+flow upsampled), the tail writes its 24 channels depth-to-space over the inputs upsampled. A model
+with a stem of stride 2 too: its head strides over the packed inputs, its tail writes 2 x 2 input
+pixels per feature pixel.
 
 The fused path runs on CUDA tensors where Triton imports (and on CPU tensors under Triton's
 interpreter, ``TRITON_INTERPRET=1``, for tests); elsewhere :class:`FusedReconNet` runs the
@@ -75,7 +77,7 @@ def fused_runs_on(device: torch.device | str) -> bool:
 def fusable(config: ReconNetConfig) -> bool:
     """Whether the kernels take a ReconNet of ``config``: its widths at most the kernels' widest tile (a width
     under 16 or not a power of 2 is padded in the tiles), an upscale of :data:`FUSED_UPSCALES` (any blocks, AO
-    prior and geometry gate)."""
+    prior, geometry gate and stem stride)."""
     return config.upscale in FUSED_UPSCALES and all(kernel_width(w) <= MAX_KERNEL_WIDTH for w in config.widths)
 
 
@@ -114,7 +116,7 @@ def tail_convolution(net: ReconNet) -> tuple[torch.Tensor, torch.Tensor]:
     """
     weight, bias = net.tail.weight.detach().clone(), net.tail.bias.detach().clone()
     if net.config.blend_map:
-        cells = net.config.upscale ** 2
+        cells = net.config.cells ** 2
         rows = slice(DEPTH.start * cells, DEPTH.stop * cells)
         weight[rows], bias[rows] = net.ao_blend_map.weight.detach(), net.ao_blend_map.bias.detach()
     return weight, bias
@@ -189,7 +191,7 @@ class FusedReconNet(nn.Module):
                                   for block in net.body)
         self.up = nn.ModuleList(FusedUpsample(reduce) for reduce in net.reduce)
         self.fuse = nn.ModuleList(FusedConv(conv, widths[i], widths[i]) for i, conv in enumerate(net.fuse))
-        tail = kernel_width(net.tail.out_channels)  # 16, or 32 for x2
+        tail = kernel_width(net.tail.out_channels)  # 16, or 32 for x2 and a stem of stride 2
         weight, bias = tail_convolution(net)
         self.register_buffer("tail_w", tap_weights(weight, kernel_width(widths[0]), tail))
         self.register_buffer("tail_b", _padded_bias(bias, tail))
@@ -287,7 +289,7 @@ class FusedReconNet(nn.Module):
         def layer(conv: FusedConv, src: str, residual: str | None = None):
             return lambda: conv(results[src], residual=results[residual] if residual else None)
 
-        add("pack", lambda: k.pack_inputs(sources, prev, flow, multiple=2 ** LEVELS,
+        add("pack", lambda: k.pack_inputs(sources, prev, flow, multiple=self.config.multiple,
                                           first_frame=self.config.first_frame, upscale=self.config.upscale),
             "packed", "flags")
         add("head", layer(self.head, "packed"))
@@ -340,19 +342,21 @@ def fused_traffic(h: int, w: int, config: ReconNetConfig = ReconNetConfig(), war
     """
     check_int(h, "h", 1, where="fused_traffic")
     check_int(w, "w", 1, where="fused_traffic")
-    step, widths = 2 ** LEVELS, config.widths
+    step, widths = config.multiple, config.widths
     padded = (h + -h % step) * (w + -w % step)
     pixels, f32, f16 = h * w, 4, 2
     sampling = 0 if frame else len(range(INPUTS)[SAMPLING])  # per-pixel planes read
+    stem = config.stem_stride.bit_length() - 1  # the first level's halvings of the input
 
-    def features(level: int, channels: int) -> int:
-        return channels * f16 * padded // 4 ** level
+    def features(level: int, channels: int) -> int:  # level: of the network (0 at the first level)
+        return channels * f16 * padded // 4 ** (level + stem)
 
     cells = config.upscale ** 2  # output pixels per input pixel
     # The previous output: its mask and AO once (warped: plus the flow's two channels).
     prev = (RECURRENT * cells + (2 if warp else 0)) * f32 * pixels
-    out = {"pack": (AO.start + 1 + sampling) * f32 * pixels + prev + features(0, PACKED),
-           "head": features(0, PACKED + widths[0])}
+    packed = PACKED * f16 * padded
+    out = {"pack": (AO.start + 1 + sampling) * f32 * pixels + prev + packed,
+           "head": packed + features(0, widths[0])}
     for i in range(LEVELS):
         out[f"down{i + 1}"] = features(i, widths[i]) + features(i + 1, widths[i + 1])
     for j in range(config.blocks):

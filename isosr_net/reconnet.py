@@ -21,7 +21,10 @@ The network is a small U-Net: AO varies slowly along a surface and needs a wide 
 rays reach ``ao_radius``, tens of pixels on screen), edges need full resolution. So it
 encodes at 1/2, 1/4 and 1/8 resolution, does most of its work at 1/8, and decodes with
 additive skips; full resolution carries ``widths[0]`` channels (16), which keeps a 1080p frame
-at about 30 GMAC (:func:`macs_per_pixel`).
+at about 30 GMAC (:func:`macs_per_pixel`). With ``stem_stride=2`` no layer runs at full
+resolution: the head is a stride-2 convolution of the full-resolution inputs and the tail writes
+each half-resolution feature pixel's 2 x 2 output pixels (depth-to-space), so every level sits one
+halving lower (1/2 .. 1/16) while the output still corrects every input pixel.
 """
 
 from __future__ import annotations
@@ -59,6 +62,8 @@ GATE_LOGIT_INIT = 6.0
 GATE_RATE = 50.0
 # Output over input resolution: 1 reconstructs at the resolution it is given; 2 and 4 also upscale.
 UPSCALES = (1, 2, 4)
+# The first level's stride under the input (ReconNetConfig.stem_stride).
+STEM_STRIDES = (1, 2)
 FLOAT32_MAX = torch.finfo(torch.float32).max
 # A config's numbers that no weights depend on (set in a model folder's config.json; each finite, >= 0, 0 is off).
 WEIGHTLESS_FIELDS = ("blend_beyond", "ao_interval", "ao_interval_narrows_past")
@@ -142,6 +147,9 @@ class ReconNetConfig:
             a mean, the less the network may move it. 0: ``z`` at every ``n``.
         upscale: output over input resolution (:data:`UPSCALES`): 2 (4) reconstructs a frame rendered
             at half (a quarter of) the output's sides (:func:`upsampled_inputs` is the base its output corrects).
+        stem_stride: the first level's resolution under the input's (:data:`STEM_STRIDES`): 1, or 2: the head a
+            stride-2 convolution and the tail writing 2 x 2 output pixels per feature pixel (depth-to-space), so
+            that no layer runs at the input's resolution (the levels at 1/2 .. 1/16; with upscale 1 only).
     """
 
     type: str = "ReconNet"
@@ -158,6 +166,7 @@ class ReconNetConfig:
     blend_beyond: float = 0.0
     ao_interval: float = 0.0
     ao_interval_narrows_past: float = 0.0
+    stem_stride: int = 1
 
     def __post_init__(self):
         object.__setattr__(self, "widths", tuple(self.widths))
@@ -173,6 +182,10 @@ class ReconNetConfig:
         RayLimits(self.max_ao_rays, self.max_spp)  # raises for bad limits
         if self.upscale not in UPSCALES:
             raise ValueError(f"upscale must be one of {UPSCALES}, got {self.upscale}")
+        if self.stem_stride not in STEM_STRIDES or isinstance(self.stem_stride, bool):
+            raise ValueError(f"stem_stride must be one of {STEM_STRIDES}, got {self.stem_stride!r}")
+        if self.stem_stride > 1 and self.upscale > 1:
+            raise ValueError(f"stem_stride {self.stem_stride} goes with upscale 1, got upscale {self.upscale}")
         for flag in ("geometry_gate", "blend_map", "blend_variance"):
             if not isinstance(getattr(self, flag), bool):
                 raise ValueError(f"{flag} must be true or false, got {getattr(self, flag)!r}")
@@ -188,6 +201,16 @@ class ReconNetConfig:
         for flag in ("blend_map", "blend_variance", "blend_beyond"):
             if getattr(self, flag) and self.ao_prior != "blend":
                 raise ValueError(f"{flag} weighs a blend model's AO: it needs ao_prior 'blend', got {self.ao_prior!r}")
+
+    @property
+    def cells(self) -> int:
+        """Output pixels per feature pixel of the first level, along a side: the tail's depth-to-space factor."""
+        return self.upscale * self.stem_stride
+
+    @property
+    def multiple(self) -> int:
+        """What the input's sides are padded to a multiple of: the coarsest level's stride."""
+        return 2 ** LEVELS * self.stem_stride
 
     @property
     def limits(self) -> RayLimits:
@@ -294,10 +317,12 @@ def macs_per_pixel(config: ReconNetConfig) -> float:
     """Multiply-adds per output pixel (convolutions only; the rest is memory traffic)."""
     w0, w1, w2, w3 = config.widths
     cells = config.upscale ** 2  # output pixels per input pixel
-    enc = (INPUTS + RECURRENT * cells) * w0 * 9 + w0 * w1 * 9 / 4 + w1 * w2 * 9 / 16 + w2 * w3 * 9 / 64
+    stem = config.stem_stride ** 2  # input pixels per first-level pixel
+    head = (INPUTS + RECURRENT * cells) * w0 * 9
+    enc = w0 * w1 * 9 / 4 + w1 * w2 * 9 / 16 + w2 * w3 * 9 / 64
     body = 2 * config.blocks * w3 * w3 * 9 / 64
     dec = w3 * w2 / 64 + w2 * w2 * 9 / 16 + w2 * w1 / 16 + w1 * w1 * 9 / 4 + w1 * w0 / 4 + w0 * w0 * 9
-    return (enc + body + dec + w0 * OUTPUTS * cells * 9) / cells
+    return (head + enc + body + dec + w0 * OUTPUTS * cells * stem * 9) / stem / cells
 
 
 def upsampled_inputs(inputs: torch.Tensor, factor: int) -> torch.Tensor:
@@ -329,18 +354,18 @@ class ReconNet(nn.Module):
         self.config = config
         w = config.widths
         cells = config.upscale ** 2  # the previous output's pixels per input pixel, read space-to-depth
-        self.head = nn.Conv2d(INPUTS + RECURRENT * cells, w[0], 3, padding=1)
+        self.head = nn.Conv2d(INPUTS + RECURRENT * cells, w[0], 3, stride=config.stem_stride, padding=1)
         self.down = nn.ModuleList(nn.Conv2d(w[i], w[i + 1], 3, stride=2, padding=1) for i in range(LEVELS))
         self.body = nn.Sequential(*[ResidualBlock(w[LEVELS]) for _ in range(config.blocks)])
         # Decoding level i (from 1/2^(i+1) to 1/2^i): a 1x1 channel map at the coarse level,
         # bilinear 2x, plus the encoder's features, then a 3x3 conv.
         self.reduce = nn.ModuleList(nn.Conv2d(w[i + 1], w[i], 1) for i in range(LEVELS))
         self.fuse = nn.ModuleList(nn.Conv2d(w[i], w[i], 3, padding=1) for i in range(LEVELS))
-        self.tail = nn.Conv2d(w[0], OUTPUTS * cells, 3, padding=1)  # depth-to-space after it
+        self.tail = nn.Conv2d(w[0], OUTPUTS * config.cells ** 2, 3, padding=1)  # depth-to-space after it
         if config.ao_prior == "blend":  # the log of the rays its own AO stands for (ao_output)
             self.register_parameter(BLEND_PARAMETER, nn.Parameter(torch.tensor(math.log(BLEND_RAYS_INIT))))
         if config.blend_map:  # its per-pixel log-offset, from the tail's features; zero: k alone
-            offset = nn.Conv2d(w[0], cells, 3, padding=1)
+            offset = nn.Conv2d(w[0], config.cells ** 2, 3, padding=1)
             nn.init.zeros_(offset.weight)
             nn.init.zeros_(offset.bias)
             self.add_module(BLEND_MAP, offset)
@@ -356,7 +381,7 @@ class ReconNet(nn.Module):
         dims = check_shape(inputs, f"(B, {INPUTS}, H, W)", "inputs", "ReconNet")
         h, w = dims["H"], dims["W"]
         check_shape(prev_warped, f"({dims['B']}, {OUTPUTS}, {h * s}, {w * s})", "prev_warped", "ReconNet")
-        step = 2 ** LEVELS
+        step = self.config.multiple
         pad = (0, -w % step, 0, -h % step)
         recurrent = torch.cat([prev_warped[:, MASK], prev_warped[:, AO]], dim=1)
         x = torch.cat([inputs, F.pixel_unshuffle(recurrent, s) if s > 1 else recurrent], dim=1)
@@ -369,21 +394,31 @@ class ReconNet(nn.Module):
         for i in reversed(range(LEVELS)):
             y = F.interpolate(self.reduce[i](y), scale_factor=2, mode="bilinear", align_corners=False)
             y = F.relu(self.fuse[i](F.relu(y + skips[i])))
-        raw = self.tail(y)[..., :h, :w]
-        if s > 1:
-            raw = F.pixel_shuffle(raw, s)
+        raw = self.to_output_pixels(self.tail(y), h, w)
         base = upsampled_inputs(inputs, s)
         gate = 1.0 if self.gate_logits is None else geometry_gate(self.gate_logits, inputs, self.config)
         mask = (base[:, MASK] + gate * raw[:, MASK]).clamp(0.0, 1.0)
         normal = base[:, NORMAL] + gate * raw[:, NORMAL]
         blend_rays = self.blend_rays
         if self.config.blend_map:
-            offset = self.ao_blend_map(y)[..., :h, :w].float()
-            blend_rays = blend_rays * torch.exp(F.pixel_shuffle(offset, s) if s > 1 else offset)
+            blend_rays = blend_rays * torch.exp(self.to_output_pixels(self.ao_blend_map(y), h, w).float())
         ao = ao_output(raw[:, AO], base, self.config, blend_rays_at(blend_rays, ray_factor, self.config.blend_beyond),
                        ray_factor)
         # Depth passes through: the render found it (shading does not read it).
         return torch.cat([mask, normal, base[:, DEPTH], ao], dim=1)
+
+    def to_output_pixels(self, raw: torch.Tensor, h: int, w: int) -> torch.Tensor:
+        """The first level's per-pixel outputs (``config.cells`` squared per channel, depth-to-space) at the
+        output's pixels, cropped to the frame of ``h`` x ``w`` input pixels.
+
+        Shape:
+            raw: (B, C * cells ** 2, H', W'), the padded frame's first level. Returns (B, C, sh, sw).
+        """
+        s, stem = self.config.upscale, self.config.stem_stride
+        if stem > 1:  # the stem's cells first: input pixels (upscale 1)
+            return F.pixel_shuffle(raw, stem)[..., :h, :w]
+        raw = raw[..., :h, :w]
+        return F.pixel_shuffle(raw, s) if s > 1 else raw
 
     @property
     def gate_logits(self) -> torch.Tensor | None:

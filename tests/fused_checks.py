@@ -34,7 +34,7 @@ from isosr_net.fused_kernels import ReconSources, conv3x3, pack_inputs, recon_ta
 from isosr_net.fused_recon import (FusedReconNet, fused_reconnet, fused_runs_on, fused_traffic, kernel_width,
                                    tap_weights)
 from isosr_net.inference import FP16_MAX_DEPTH, FRAME_FLAGS, buffer_stack, frame_flags, stack_buffers
-from isosr_net.model import load_pretrained
+from isosr_net.model import load_pretrained, save_pretrained
 from isosr_net.reconnet import (AO_PRIORS, BLEND_PARAMETER, GATE_PARAMETER, GATE_RATE, ReconNet, ReconNetConfig,
                                 ao_output, geometry_gate, upsampled_inputs)
 from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, Reconstructor
@@ -434,7 +434,7 @@ def test_tail_writes_the_output_buffers_and_shades_them(shading):
 
 def test_tail_checks_its_inputs():
     features, taps, bias = rand(1, 8, 8, 16, dtype=torch.float16), rand(9, 16, 16, dtype=torch.float16), rand(16)
-    with pytest.raises(ValueError, match=r"recon_tail: inputs are 9x8, larger than the features' 8x8"):
+    with pytest.raises(ValueError, match=r"recon_tail: inputs of 9x8 need 9x8 features, got 8x8"):
         recon_tail(features, taps, bias, ReconSources.of_inputs(rand(1, 8, 9, 8)), ReconNetConfig())
     with pytest.raises(ValueError, match=r"recon_tail: 2 frames of inputs for 1 of features"):
         recon_tail(features, taps, bias, ReconSources.of_inputs(rand(2, 8, 8, 8)), ReconNetConfig())
@@ -515,7 +515,7 @@ def test_tail_of_an_x2_model_writes_depth_to_space_over_the_upsampled_inputs(ao_
     for i in range(2):
         frame = stack_buffers(stack[i:i + 1])
         torch.testing.assert_close(color[i], shade(frame.mask, frame.normal, frame.ao, shading), rtol=0, atol=1e-5)
-    with pytest.raises(ValueError, match=r"recon_tail: an x2 model's tail has 24 outputs, the weights 16"):
+    with pytest.raises(ValueError, match=r"recon_tail: the model's tail has 24 outputs, the weights 16"):
         recon_tail(features, taps[..., :16].contiguous(), bias[:16], sources, config, blend_rays=blend)
     with pytest.raises(ValueError, match="blend_rays goes with a blend model's tail"):
         recon_tail(features, taps, bias, sources, config, blend_rays=None if blend else 2.0)
@@ -624,13 +624,15 @@ def test_a_fused_blend_map_model_equals_reconnet(spp, variance):
     assert (got[:, AO] - unmapped[:, AO]).abs().max() > 1e-2  # the map changed the AO
 
 
-@pytest.mark.parametrize("blocks, widths", [(0, (16, 16, 32, 64)), (1, (16, 16, 32, 64)), (2, (8, 16, 32, 32)),
-                                            (1, (4, 12, 24, 40))])
-def test_other_architectures_fuse_too(blocks, widths):
+@pytest.mark.parametrize("blocks, widths, stem", [(0, (16, 16, 32, 64), 1), (1, (16, 16, 32, 64), 1),
+                                                  (2, (8, 16, 32, 32), 1), (1, (4, 12, 24, 40), 1),
+                                                  (2, (32, 32, 64, 64), 2), (0, (12, 16, 32, 64), 2)])
+def test_other_architectures_fuse_too(blocks, widths, stem):
     """Without residual blocks, or with one; widths other than the shipped: narrower at full resolution (8 or 4
-    channels, stored as they are), or not powers of 2."""
+    channels, stored as they are), or not powers of 2; a stem of stride 2 (no layer at the input's resolution,
+    the tail's cells over an odd side dropped)."""
     torch.manual_seed(3)
-    net = ReconNet(ReconNetConfig(widths=widths, blocks=blocks)).to(DEVICE).eval()
+    net = ReconNet(ReconNetConfig(widths=widths, blocks=blocks, stem_stride=stem)).to(DEVICE).eval()
     fused = fused_reconnet(net)
     inputs, warped = recon_batch(1, 6, 9, seed=31).to(DEVICE), rand(1, 6, 6, 9, seed=32).sigmoid()
     with torch.no_grad():
@@ -748,12 +750,23 @@ def test_the_service_reconstructs_by_the_fused_kernels_on_cuda_in_fp16():
     assert not isinstance(serving_network(Reconstructor, DEFAULT_RECON_MODEL, DEVICE, "fp32").net, FusedReconNet)
 
 
+@pytest.fixture(scope="module")
+def stem_model(tmp_path_factory) -> Path:
+    """A model folder of the shipped x1 model's config with a stem of stride 2, its weights drawn."""
+    config = dataclasses.replace(shipped(DEFAULT_RECON_MODEL)[0].config, widths=(32, 32, 64, 64), stem_stride=2)
+    torch.manual_seed(5)
+    folder = tmp_path_factory.mktemp("stem")
+    save_pretrained(ReconNet(config), folder)
+    return folder
+
+
 @pytest.mark.parametrize("positions", [False, True], ids=["rays alone", "ray history"])
-@pytest.mark.parametrize("model", [DEFAULT_RECON_MODEL, RECON_X2_MODEL])
-def test_a_fused_reconstructor_follows_the_reference_frame_by_frame(model, positions):
+@pytest.mark.parametrize("model", [DEFAULT_RECON_MODEL, RECON_X2_MODEL, "stem"])
+def test_a_fused_reconstructor_follows_the_reference_frame_by_frame(model, positions, request):
     """The Reconstructor's fused path (its recurrence, warp and shading) against the fp32 eager
-    one over a short sequence, the shipped x1 and x2 models, with and without the ray history
-    (per-pixel sampling planes); on CUDA also replayed from CUDA graphs."""
+    one over a short sequence, the shipped x1 and x2 models and a stem of stride 2 (odd sides), with and
+    without the ray history (per-pixel sampling planes); on CUDA also replayed from CUDA graphs."""
+    model = request.getfixturevalue("stem_model") if model == "stem" else model
     variants = [Reconstructor(model, device=DEVICE, precision="fp16", fused=True)]
     if DEVICE == "cuda":
         variants.append(Reconstructor(model, device=DEVICE, precision="fp16", fused=True, graphs=True))

@@ -86,6 +86,12 @@ def test_fused_traffic_counts_each_tensor_once():
     assert x2["tail"] == (32 + 5 * 4 + 4 * 6 * 4) * pixels and x2["head"] == traffic["head"]
     assert fused_traffic(13, 21)["head"] == 64 * 16 * 24  # the padded frame
     assert "body1.1" not in fused_traffic(13, 21, ReconNetConfig(blocks=0))
+    stem = fused_traffic(1080, 1920, ReconNetConfig(widths=(32, 32, 64, 64), stem_stride=2))  # 1088 rows padded
+    padded = 1088 * 1920
+    assert stem["pack"] == (8 * 4 + 4 * 4) * pixels + 16 * 2 * padded  # the packed input at full resolution
+    assert stem["head"] == 16 * 2 * padded + 32 * 2 * padded // 4  # the first level at half the sides
+    assert stem["fuse0"] == 64 * 2 * padded // 4
+    assert stem["tail"] == 32 * 2 * padded // 4 + (5 + 6) * 4 * pixels
     with pytest.raises(ValueError, match=r"fused_traffic: h must be an integer >= 1, got 0"):
         fused_traffic(0, 21)
 

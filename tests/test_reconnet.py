@@ -56,12 +56,31 @@ def same_weights(model: ReconNet, **changes) -> ReconNet:
 # ---------------------------------------------------------------- the network
 
 
+@pytest.mark.parametrize("stem", [1, 2])
 @pytest.mark.parametrize("h, w", [(16, 24), (13, 21), (5, 7), (1, 9)])
-def test_any_frame_size_comes_back_at_its_size(h, w):
+def test_any_frame_size_comes_back_at_its_size(h, w, stem):
     inputs = recon_batch(h=h, w=w)
     with torch.no_grad():
-        out = net()(inputs, torch.rand(2, 6, h, w))
+        out = net(stem_stride=stem)(inputs, torch.rand(2, 6, h, w))
     assert out.shape == (2, 6, h, w) and torch.isfinite(out).all()
+
+
+@pytest.mark.parametrize("h, w", [(16, 24), (13, 21), (1, 1)])
+def test_a_stem_model_writes_each_of_its_features_cells_to_its_own_input_pixel(h, w):
+    """With the stem of stride 2, the tail's 4 outputs per channel and feature pixel land on the 2 x 2 input
+    pixels under it (depth-to-space, then cropped to the frame): a bias on one cell moves those pixels alone."""
+    model = net(stem_stride=2)
+    inputs = recon_batch(b=1, h=h, w=w, seed=4)
+    with torch.no_grad():
+        model.tail.weight.zero_()
+        model.tail.bias.zero_()
+        model.tail.bias[MASK.start * 4 + 3] = -2.0  # the mask's cell (1, 1): odd rows and columns
+        out = model(inputs, torch.rand(1, 6, h, w))
+    rows, cols = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+    moved = (rows % 2 == 1) & (cols % 2 == 1)
+    torch.testing.assert_close(out[0, 0][~moved], inputs[0, 0][~moved], rtol=0, atol=0)
+    assert (out[0, 0][moved] == 0).all()  # clamped at 0
+    torch.testing.assert_close(out[:, NORMAL], inputs[:, NORMAL], rtol=0, atol=0)
 
 
 def test_mask_lies_in_the_unit_interval_and_ao_strictly_inside_it():
@@ -72,10 +91,11 @@ def test_mask_lies_in_the_unit_interval_and_ao_strictly_inside_it():
     assert out[:, AO].min() > 0 and out[:, AO].max() < 1
 
 
-@pytest.mark.parametrize("config", [{}, {"widths": (8, 12, 20, 24), "blocks": 3}])
+@pytest.mark.parametrize("config", [{}, {"widths": (8, 12, 20, 24), "blocks": 3},
+                                    {"widths": (32, 32, 64, 64), "stem_stride": 2}])
 def test_macs_per_pixel_counts_every_convolution(config):
     model = net(**config)
-    h, w = 32, 48  # multiples of 8: no padding
+    h, w = 32, 48  # multiples of 16: no padding
     with FlopCounterMode(display=False) as counter, torch.no_grad():
         model(recon_batch(b=1, h=h, w=w), torch.zeros(1, 6, h, w))
     assert counter.get_total_flops() / 2 / (h * w) == pytest.approx(macs_per_pixel(model.config), rel=1e-12)
@@ -125,6 +145,9 @@ def test_forward_checks_shapes():
     ({"ao_prior": "mean"}, "ao_prior must be one of"),
     ({"max_ao_rays": 0}, "max_ao_rays must be an integer >= 1, got 0"),
     ({"max_spp": True}, "max_spp must be an integer >= 1, got True"),
+    ({"stem_stride": 4}, r"stem_stride must be one of \(1, 2\), got 4"),
+    ({"stem_stride": True}, r"stem_stride must be one of \(1, 2\), got True"),
+    ({"stem_stride": 2, "upscale": 2}, "stem_stride 2 goes with upscale 1, got upscale 2"),
 ])
 def test_config_rejects_bad_values(kwargs, match):
     with pytest.raises(ValueError, match=match):

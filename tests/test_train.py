@@ -305,7 +305,8 @@ def test_the_shipped_configs_load():
                                             ("train_recon_narrow.json", "datagen_recon_4k.json"),
                                             ("train_recon_whole_4k.json", "datagen_recon_4k_seed1.json"),
                                             ("train_recon_spp4_4k.json", "datagen_recon_spp4_4k.json"),
-                                            ("train_recon_teacher_4k.json", "datagen_recon_4k_seed1.json")])
+                                            ("train_recon_teacher_4k.json", "datagen_recon_4k_seed1.json"),
+                                            ("train_recon_stem.json", "datagen_recon_4k.json")])
 def test_each_reconstruction_config_fits_its_data_config(train, datagen):
     root = Path(__file__).resolve().parents[1] / "configs"
     config, data = load_config(TrainConfig, root / train), load_config(DatagenConfig, root / datagen)
