@@ -88,7 +88,8 @@ def pass_times(net: FusedReconNet, renderer: Renderer, pairs: list, request, ao_
         previous = net.frame(first.mask, first.normal, first.depth, first_ao, first_sampling, first.flow, None,
                              None)[0]
         ao, sampling, _ = sampled_rays(frame, ao_rays, spp, limits, history, constant)
-    sources = ReconSources.of_buffers(frame.mask, frame.normal, frame.depth, ao, sampling)
+    sources = ReconSources.of_buffers(frame.mask[None], frame.normal[None], frame.depth[None],
+                                      None if ao is None else ao[None], sampling)  # a batch of one frame
     h, w = frame.mask.shape
     traffic = fused_traffic(h, w, net.config, frame=True)
     with torch.no_grad():
