@@ -12,6 +12,8 @@
 # blends its AO with the input rays' mean by the rays each stands for, ao_prior "blend": issue 49) or
 # recon_blend_geo (the same data: fine-tunes checkpoints/recon_blend/best with its geometry corrections gated
 # by rays per pixel, geometry_gate).
+# DATA names another run's data (configs/datagen_$DATA.json into data/$DATA) for a run that shares it, as its train
+# config's "data" says: RUN=recon_stem DATA=recon_4k (the stem of stride 2, issue 49 item 3, trained from scratch).
 # FROM_DIR: a previous run's OUT_DIR; training resumes from its last/ (the trainer resumes from
 # runs/$RUN/last) and keeps its best/ unless it does better. Data goes to data/$RUN and the run to
 # runs/$RUN (both git-ignored; the same config renders the same data again); the logs, last/ (the
@@ -30,7 +32,8 @@ if [ -n "$from" ]; then
     if [ -d "$from/best" ]; then cp -r "$from/best" "runs/$run/best"; fi
     chmod -R u+w "runs/$run"  # files fetched from a device run come back read-only
 fi
-isosr datagen "configs/datagen_$run.json" -o "data/$run" > "$out/datagen_$run.log" 2>&1
+data=${DATA:-$run}
+isosr datagen "configs/datagen_$data.json" -o "data/$data" > "$out/datagen_$data.log" 2>&1
 isosr train "configs/train_$run.json" ${STEPS:+--steps "$STEPS"} ${MINUTES:+--time-limit-minutes "$MINUTES"} \
     > "$out/train_$run.log" 2>&1
 rm -rf "$out/last" "$out/best"
