@@ -182,7 +182,8 @@ class ReconNetConfig:
         RayLimits(self.max_ao_rays, self.max_spp)  # raises for bad limits
         if self.upscale not in UPSCALES:
             raise ValueError(f"upscale must be one of {UPSCALES}, got {self.upscale}")
-        if self.stem_stride not in STEM_STRIDES or isinstance(self.stem_stride, bool):
+        if isinstance(self.stem_stride, bool) or not isinstance(self.stem_stride, int) or \
+                self.stem_stride not in STEM_STRIDES:
             raise ValueError(f"stem_stride must be one of {STEM_STRIDES}, got {self.stem_stride!r}")
         if self.stem_stride > 1 and self.upscale > 1:
             raise ValueError(f"stem_stride {self.stem_stride} goes with upscale 1, got upscale {self.upscale}")

@@ -147,6 +147,7 @@ def test_forward_checks_shapes():
     ({"max_spp": True}, "max_spp must be an integer >= 1, got True"),
     ({"stem_stride": 4}, r"stem_stride must be one of \(1, 2\), got 4"),
     ({"stem_stride": True}, r"stem_stride must be one of \(1, 2\), got True"),
+    ({"stem_stride": 2.0}, r"stem_stride must be one of \(1, 2\), got 2.0"),
     ({"stem_stride": 2, "upscale": 2}, "stem_stride 2 goes with upscale 1, got upscale 2"),
 ])
 def test_config_rejects_bad_values(kwargs, match):
