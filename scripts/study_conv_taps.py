@@ -52,7 +52,9 @@ def taps9(x_ptr, w_ptr, b_ptr, out_ptr, hi, wi, ho, wo, STRIDE: tl.constexpr, CI
 
 @triton.jit
 def taps3(x_ptr, w_ptr, b_ptr, out_ptr, hi, wi, ho, wo, STRIDE: tl.constexpr, CI: tl.constexpr, CO: tl.constexpr,
-          BLOCK_M: tl.constexpr):
+          ROW_MASK: tl.constexpr, BLOCK_M: tl.constexpr):
+    """ROW_MASK: the loads masked by row alone (so they vectorize), the taps across the sides zeroed after (taps3u:
+    the tensor needs a few pixels of slack before and after it, SLACK); else masked per element."""
     b = tl.program_id(1).to(tl.int64)
     offs = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
     valid = offs < ho * wo
@@ -65,39 +67,19 @@ def taps3(x_ptr, w_ptr, b_ptr, out_ptr, hi, wi, ho, wo, STRIDE: tl.constexpr, CI
     for dy in tl.static_range(3):
         yy = y * STRIDE + (dy - 1)
         rows = valid & (yy >= 0) & (yy < hi)
-        start = (yy * wi + x * STRIDE - 1) * CI  # contiguous from the left tap on
-        a = tl.load(x_ptr + b * hi * wi * CI + start[:, None] + k[None, :], mask=rows[:, None] & across, other=0.0)
+        ptrs = x_ptr + b * hi * wi * CI + ((yy * wi + x * STRIDE - 1) * CI)[:, None] + k[None, :]  # from the left tap
+        if ROW_MASK:
+            a = tl.where(across, tl.load(ptrs, mask=rows[:, None], other=0.0), 0.0)
+        else:
+            a = tl.load(ptrs, mask=rows[:, None] & across, other=0.0)
         acc = tl.dot(a, tl.load(w_ptr + dy * 4 * CI * CO + k[:, None] * CO + co[None, :]), acc)
     acc = tl.maximum(acc + tl.load(b_ptr + co)[None, :], 0.0)
     tl.store(out_ptr + b * ho * wo * CO + offs[:, None] * CO + co[None, :], acc.to(tl.float16), mask=valid[:, None])
 
 
-@triton.jit
-def taps3u(x_ptr, w_ptr, b_ptr, out_ptr, hi, wi, ho, wo, STRIDE: tl.constexpr, CI: tl.constexpr, CO: tl.constexpr,
-           BLOCK_M: tl.constexpr):
-    """taps3 with loads masked by row alone (so they vectorize), the taps across the sides zeroed after: the
-    tensor needs a few pixels of slack before and after it (SLACK)."""
-    b = tl.program_id(1).to(tl.int64)
-    offs = tl.program_id(0) * BLOCK_M + tl.arange(0, BLOCK_M)
-    valid = offs < ho * wo
-    y, x = offs // wo, offs % wo
-    k, co = tl.arange(0, 4 * CI), tl.arange(0, CO)
-    dx = k // CI - 1
-    xx = x[:, None] * STRIDE + dx[None, :]
-    across = (xx >= 0) & (xx < wi) & (dx < 2)[None, :]
-    acc = tl.zeros((BLOCK_M, CO), dtype=tl.float32)
-    for dy in tl.static_range(3):
-        yy = y * STRIDE + (dy - 1)
-        rows = valid & (yy >= 0) & (yy < hi)
-        start = (yy * wi + x * STRIDE - 1) * CI
-        a = tl.load(x_ptr + b * hi * wi * CI + start[:, None] + k[None, :], mask=rows[:, None], other=0.0)
-        a = tl.where(across, a, 0.0)
-        acc = tl.dot(a, tl.load(w_ptr + dy * 4 * CI * CO + k[:, None] * CO + co[None, :]), acc)
-    acc = tl.maximum(acc + tl.load(b_ptr + co)[None, :], 0.0)
-    tl.store(out_ptr + b * ho * wo * CO + offs[:, None] * CO + co[None, :], acc.to(tl.float16), mask=valid[:, None])
-
-
-KERNELS = {"taps9": tuned(taps9), "taps3": tuned(taps3), "taps3u": tuned(taps3u)}
+# name: (kernel, its variant's constants); each autotuned on its own
+KERNELS = {"taps9": (tuned(taps9), {}), "taps3": (tuned(taps3), {"ROW_MASK": False}),
+           "taps3u": (tuned(taps3), {"ROW_MASK": True})}
 SLACK = 4  # pixels before and after the input tensor (taps3u reads up to 2 past either end)
 
 
@@ -118,8 +100,9 @@ def run(name: str, x: torch.Tensor, w: torch.Tensor, bias: torch.Tensor, stride:
     ho, wo = hi // stride, wi // stride
     out = x.new_empty(b, ho, wo, co)
     fixed = {"BLOCK_M": 64} if INTERPRET else {}
-    KERNELS[name][lambda m: (triton.cdiv(ho * wo, m["BLOCK_M"]), b)](x, w, bias, out, hi, wi, ho, wo, STRIDE=stride,
-                                                                     CI=ci, CO=co, **fixed)
+    kernel, variant = KERNELS[name]
+    kernel[lambda m: (triton.cdiv(ho * wo, m["BLOCK_M"]), b)](x, w, bias, out, hi, wi, ho, wo, STRIDE=stride, CI=ci,
+                                                              CO=co, **variant, **fixed)
     return out
 
 
@@ -154,7 +137,7 @@ def main() -> None:
             if device == "cuda":
                 row[f"{name}_us"] = 1e3 * triton.testing.do_bench_cudagraph(lambda: run(name, x, wt, bias, stride),
                                                                           rep=200)
-                row[f"{name}_config"] = str(KERNELS[name].best_config)
+                row[f"{name}_config"] = str(KERNELS[name][0].best_config)
         print(row, flush=True)
         rows.append(row)
     if args.out:
