@@ -341,7 +341,8 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, s
     x = offs % gw
     raw = _conv_acc(x_ptr, w_ptr, bias_ptr, b, y, x, valid, hp, wp, 1, CI, CIP, CO, BLOCK_M)
     c = tl.arange(0, CO)[None, :]
-    depth_in = _plane(d_ptr, sd_b, sd_h, sd_w, b, y, x, valid)  # passes through (x2: nearest)
+    if S == UP:  # depth passes through, one read a program's pixel (x2: nearest)
+        depth_in = _plane(d_ptr, sd_b, sd_h, sd_w, b, y, x, valid)
     plane = UP * UP * h * w  # an output plane's pixels
     # Per output pixel (S x S per feature pixel: raw channel k * S * S + cell is channel k there, as
     # F.pixel_shuffle orders them), one plane at a time: the (upsampled) inputs plus the raw output.
@@ -365,8 +366,9 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, s
               + gate * _column(raw, c, (NORMAL_C + 1) * S * S + cell))
         nz = (_base_plane(n_ptr + 2 * sn_c, sn_b, sn_h, sn_w, b, yy, xx, h, w, here, UP)
               + gate * _column(raw, c, (NORMAL_C + 2) * S * S + cell))
-        depth = depth_in
-        if S != UP:  # a stem's cells are input pixels
+        if S == UP:
+            depth = depth_in
+        else:  # a stem's cells are input pixels
             depth = _plane(d_ptr, sd_b, sd_h, sd_w, b, yy, xx, here)
         raw_ao = _column(raw, c, AO_C * S * S + cell)
         ao = tl.sigmoid(raw_ao)
@@ -711,9 +713,9 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
         raise ValueError(f"recon_tail: a gated model's tail takes its {config.max_spp} gates (float32 on {y.device}), "
                          f"others none; got {None if gates is None else (gates.dtype, tuple(gates.shape))} for "
                          f"geometry_gate={config.geometry_gate}")
-    s, cells = config.upscale, config.cells
-    if co < OUTPUTS * cells * cells:
-        raise ValueError(f"recon_tail: the model's tail has {OUTPUTS * cells * cells} outputs, the weights {co}")
+    s, side = config.upscale, config.cell_side
+    if co < OUTPUTS * side * side:
+        raise ValueError(f"recon_tail: the model's tail has {OUTPUTS * side * side} outputs, the weights {co}")
     shape = (b, OUTPUTS, s * h, s * w)
     if out is None:
         out = torch.empty(shape, device=y.device, dtype=torch.float32)
@@ -735,6 +737,6 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
                                  BLEND_MAP=config.blend_map, BLEND_VARIANCE=config.blend_variance,
                                  INTERVAL=config.ao_interval > 0, GATED=gates is not None, MAX_SPP=config.max_spp,
                                  HAS_AO=sources.ao is not None, BUFFERS=as_buffers, SHADE=shading is not None,
-                                 OUT=OUTPUTS, S=cells, UP=s, CI=ci, CIP=kernel_width(ci), CO=co,
+                                 OUT=OUTPUTS, S=side, UP=s, CI=ci, CIP=kernel_width(ci), CO=co,
                                  **FIXED)
     return out, color

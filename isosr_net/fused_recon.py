@@ -116,7 +116,7 @@ def tail_convolution(net: ReconNet) -> tuple[torch.Tensor, torch.Tensor]:
     """
     weight, bias = net.tail.weight.detach().clone(), net.tail.bias.detach().clone()
     if net.config.blend_map:
-        cells = net.config.cells ** 2
+        cells = net.config.cell_side ** 2
         rows = slice(DEPTH.start * cells, DEPTH.stop * cells)
         weight[rows], bias[rows] = net.ao_blend_map.weight.detach(), net.ao_blend_map.bias.detach()
     return weight, bias

@@ -204,7 +204,7 @@ class ReconNetConfig:
                 raise ValueError(f"{flag} weighs a blend model's AO: it needs ao_prior 'blend', got {self.ao_prior!r}")
 
     @property
-    def cells(self) -> int:
+    def cell_side(self) -> int:
         """Output pixels per feature pixel of the first level, along a side: the tail's depth-to-space factor."""
         return self.upscale * self.stem_stride
 
@@ -362,11 +362,11 @@ class ReconNet(nn.Module):
         # bilinear 2x, plus the encoder's features, then a 3x3 conv.
         self.reduce = nn.ModuleList(nn.Conv2d(w[i + 1], w[i], 1) for i in range(LEVELS))
         self.fuse = nn.ModuleList(nn.Conv2d(w[i], w[i], 3, padding=1) for i in range(LEVELS))
-        self.tail = nn.Conv2d(w[0], OUTPUTS * config.cells ** 2, 3, padding=1)  # depth-to-space after it
+        self.tail = nn.Conv2d(w[0], OUTPUTS * config.cell_side ** 2, 3, padding=1)  # depth-to-space after it
         if config.ao_prior == "blend":  # the log of the rays its own AO stands for (ao_output)
             self.register_parameter(BLEND_PARAMETER, nn.Parameter(torch.tensor(math.log(BLEND_RAYS_INIT))))
         if config.blend_map:  # its per-pixel log-offset, from the tail's features; zero: k alone
-            offset = nn.Conv2d(w[0], config.cells ** 2, 3, padding=1)
+            offset = nn.Conv2d(w[0], config.cell_side ** 2, 3, padding=1)
             nn.init.zeros_(offset.weight)
             nn.init.zeros_(offset.bias)
             self.add_module(BLEND_MAP, offset)
@@ -409,11 +409,11 @@ class ReconNet(nn.Module):
         return torch.cat([mask, normal, base[:, DEPTH], ao], dim=1)
 
     def to_output_pixels(self, raw: torch.Tensor, h: int, w: int) -> torch.Tensor:
-        """The first level's per-pixel outputs (``config.cells`` squared per channel, depth-to-space) at the
+        """The first level's per-pixel outputs (``config.cell_side`` squared per channel, depth-to-space) at the
         output's pixels, cropped to the frame of ``h`` x ``w`` input pixels.
 
         Shape:
-            raw: (B, C * cells ** 2, H', W'), the padded frame's first level. Returns (B, C, sh, sw).
+            raw: (B, C * cell_side ** 2, H', W'), the padded frame's first level. Returns (B, C, sh, sw).
         """
         s, stem = self.config.upscale, self.config.stem_stride
         if stem > 1:  # the stem's cells first: input pixels (upscale 1)
