@@ -626,7 +626,8 @@ def test_a_fused_blend_map_model_equals_reconnet(spp, variance):
 
 @pytest.mark.parametrize("blocks, widths, stem", [(0, (16, 16, 32, 64), 1), (1, (16, 16, 32, 64), 1),
                                                   (2, (8, 16, 32, 32), 1), (1, (4, 12, 24, 40), 1),
-                                                  (2, (32, 32, 64, 64), 2), (0, (12, 32, 64, 64), 2)])
+                                                  (2, (32, 32, 64, 64), 2), (2, (32, 64, 64, 64), 2),
+                                                  (0, (12, 32, 64, 64), 2)])
 def test_other_architectures_fuse_too(blocks, widths, stem):
     """Without residual blocks, or with one; widths other than the shipped: narrower at full resolution (8 or 4
     channels, stored as they are), or not powers of 2; a stem of stride 2 (no layer at the input's resolution,
