@@ -28,7 +28,7 @@ from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net.losses import PAPER_LOSSES, AdversarialLoss, LossContext, build_losses, total_loss
 from isosr_net.metrics import frame_scores
 from isosr_net.model import Unrolled, build_model, load_checkpoint, load_pretrained, save_checkpoint
-from isosr_net.reconnet import BLEND_PARAMETER, GATE_PARAMETER, LEVELS, WEIGHTLESS_FIELDS, ReconNet, ReconNetConfig
+from isosr_net.reconnet import WEIGHTLESS_FIELDS, ReconNet, ReconNetConfig
 
 
 # TrainConfig.compile's modes: "" (eager) and torch.compile's without CUDA graphs, which a step's
@@ -160,40 +160,6 @@ def narrowed_config(weights, config):
             and all(n <= w for n, w in zip(config.widths, weights.widths))):
         return replace(weights, widths=config.widths)
     return weights
-
-
-def lowers(weights, config) -> bool:
-    """Whether a run of a stem model ``config`` (``stem_stride`` 2) may start from a stemless one's ``weights`` with
-    every level one halving lower (:func:`lowered`): the weights' levels 1.. as wide as the run's levels 0.., its
-    coarsest level as wide as theirs, the rest of the config one :func:`start_configs` takes."""
-    return (isinstance(config, ReconNetConfig) and isinstance(weights, ReconNetConfig) and config.stem_stride == 2
-            and weights.stem_stride == 1 and weights.widths[1:] == config.widths[:-1]
-            and weights.widths[-1] == config.widths[-1]
-            and replace(weights, widths=config.widths, stem_stride=2) in start_configs(config))
-
-
-def lowered(state: dict[str, torch.Tensor], like: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """A stem model's weights (``like``, its state as drawn) from a stemless model's (``state``, :func:`lowers`):
-    its encoder and decoder at levels 1.. become the stem's at levels 0.. (the same resolutions, one halving under
-    the input), its residual blocks, gates and blend the stem's. The stem's head and tail (new strides and cells)
-    stay as drawn, and its new coarsest level starts silent: nothing added from it (``reduce`` zero) and its
-    features passed through (``fuse`` the identity; they are a ReLU's), so that the lowered network computes the
-    stemless one's levels but for its residual blocks' move to the new coarsest level."""
-    moved = {}
-    for name in like:
-        kind, _, rest = name.partition(".")
-        if kind in ("down", "reduce", "fuse") and int(rest.split(".")[0]) < LEVELS - 1:
-            level, tensor = rest.split(".")
-            moved[name] = state[f"{kind}.{int(level) + 1}.{tensor}"]
-        elif kind == "body" or name in (BLEND_PARAMETER, GATE_PARAMETER):
-            moved[name] = state[name]
-    last = LEVELS - 1
-    fuse = torch.zeros_like(like[f"fuse.{last}.weight"])
-    fuse[:, :, 1, 1] = torch.eye(fuse.shape[0])
-    moved |= {f"reduce.{last}.weight": torch.zeros_like(like[f"reduce.{last}.weight"]),
-              f"reduce.{last}.bias": torch.zeros_like(like[f"reduce.{last}.bias"]),
-              f"fuse.{last}.weight": fuse, f"fuse.{last}.bias": torch.zeros_like(like[f"fuse.{last}.bias"])}
-    return {**like, **moved}
 
 
 def start_configs(config) -> list:
@@ -337,15 +303,9 @@ class Trainer:
         corrects them (``"rays"``), one with a ``geometry_gate``, a ``blend_map`` or ``blend_variance`` from one
         without: the same weights, its blend at :data:`~isosr_net.reconnet.BLEND_RAYS_INIT` rays, its gates and map
         at their start; with any ``blend_beyond`` (it has no weights). A ReconNet narrower at some levels starts
-        from one wider there: each level's first channels (:func:`narrowed`); one with a stem of stride 2 from a
-        stemless one, its levels one halving lower (:func:`lowered`)."""
+        from one wider there: each level's first channels (:func:`narrowed`)."""
         model, _ = load_pretrained(folder, self.device)
         config, weights = weights_config(self.net.config), weights_config(model.config)
-        if lowers(weights, self.net.config):
-            self.net.load_state_dict(lowered(model.state_dict(), self.net.state_dict()))
-            if self.rank == 0:
-                print(f"fine-tuning {folder}, its levels one halving lower")
-            return
         cut = narrowed_config(weights, config)
         if cut not in start_configs(self.net.config):
             raise ValueError(f"init {folder} holds a model of another config ({model.config}); the run trains "

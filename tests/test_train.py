@@ -20,7 +20,7 @@ from isosr_render.conventions import SAMPLED_AO, SAMPLING
 from isosr_net.losses import PAPER_LOSSES
 from isosr_net.model import Unrolled, build_model, load_pretrained, save_pretrained
 from isosr_net.reconnet import GATE_LOGIT_INIT, ReconNet, ReconNetConfig
-from isosr_net.train import Trainer, TrainConfig, lowers, narrowed_config, start_configs, weights_config
+from isosr_net.train import Trainer, TrainConfig, narrowed_config, start_configs, weights_config
 from test_reconnet import recon_batch
 from net_fixtures import (TINY_MODEL, TINY_RECON_MODEL, random_vgg19, tiny_recon_upscaling_data, tiny_train_config,
                           tiny_train_data, tiny_wide_recon_data)
@@ -306,16 +306,14 @@ def test_the_shipped_configs_load():
                                             ("train_recon_whole_4k.json", "datagen_recon_4k_seed1.json"),
                                             ("train_recon_spp4_4k.json", "datagen_recon_spp4_4k.json"),
                                             ("train_recon_teacher_4k.json", "datagen_recon_4k_seed1.json"),
-                                            ("train_recon_stem.json", "datagen_recon_4k.json"),
-                                            ("train_recon_stem_lowered.json", "datagen_recon_4k.json")])
+                                            ("train_recon_stem.json", "datagen_recon_4k.json")])
 def test_each_reconstruction_config_fits_its_data_config(train, datagen):
     root = Path(__file__).resolve().parents[1] / "configs"
     config, data = load_config(TrainConfig, root / train), load_config(DatagenConfig, root / datagen)
     model = build_model(config.model).config
     if config.init:  # a project-relative model folder that the trainer starts this model from
         start = load_pretrained(root.parent / config.init)[0].config
-        assert narrowed_config(weights_config(start), model) in start_configs(model) or lowers(weights_config(start),
-                                                                                                model)
+        assert narrowed_config(weights_config(start), model) in start_configs(model)
     assert model.limits == data.limits and model.upscale == data.upscale and data.recon_inputs
     assert max(data.input_ao_rays) == data.max_ao_rays and max(data.input_spp) == data.max_spp
     run = train.removeprefix("train_").removesuffix(".json")  # scripts/train_recon.sh's RUN
@@ -445,32 +443,6 @@ def test_a_narrower_reconnet_starts_from_a_wider_ones_first_channels_at_each_lev
         torch.testing.assert_close(t.net.eval()(inputs, previous), source.eval()(inputs, previous), rtol=0, atol=1e-6)
     with pytest.raises(ValueError, match="init .* holds a model of another config"):
         trainer(wide, tmp_path / "other", model={**model, "widths": (8, 8, 8, 16)}, init=str(tmp_path / "wide"))
-
-
-def test_a_stem_model_starts_from_a_stemless_one_with_its_levels_one_halving_lower(tmp_path, tmp_path_factory):
-    """stem_stride 2 from a stemless model whose levels 1.. are its levels 0..: fed the stemless model's features
-    at 1/2, the lowered model decodes them as it does (its new coarsest level silent; without residual blocks, which
-    move to that level, exactly). A stem model of other widths stays refused."""
-    wide = tiny_wide_recon_data(tmp_path_factory)
-    model, source = saved_wide_model(tmp_path / "flat", ao_prior="blend", blend_map=True, geometry_gate=True,
-                                     widths=(4, 8, 16, 16), blocks=0)
-    stem = {**model, "widths": (8, 16, 16, 16), "stem_stride": 2}
-    t = trainer(wide, tmp_path / "run", steps=2, model=stem, init=str(tmp_path / "flat"))
-    net = t.net.eval()
-    assert torch.equal(net.down[0].weight, source.down[1].weight) and torch.equal(net.gate_logits, source.gate_logits)
-    half = {}  # the stemless model's level 1: its first down's output and its decoder's there
-    source.down[0].register_forward_hook(lambda module, args, out: half.setdefault("features", out))
-    source.fuse[1].register_forward_hook(lambda module, args, out: half.setdefault("decoded", out))
-    net.head.register_forward_hook(lambda module, args, out: half["features"])
-    net.fuse[0].register_forward_hook(lambda module, args, out: half.setdefault("lowered", out))
-    inputs = recon_batch(1, 32, 48, seed=3)
-    previous = torch.rand(1, 6, 32, 48, generator=torch.Generator().manual_seed(4))
-    with torch.no_grad():
-        source.eval()(inputs, previous)
-        net(inputs, previous)
-    torch.testing.assert_close(half["lowered"], half["decoded"], rtol=0, atol=1e-6)
-    with pytest.raises(ValueError, match="init .* holds a model of another config"):
-        trainer(wide, tmp_path / "other", model={**stem, "widths": (8, 8, 16, 16)}, init=str(tmp_path / "flat"))
 
 
 def test_a_gated_blend_model_fine_tunes_from_a_rays_model_and_trains_its_gates(tmp_path, tmp_path_factory):
