@@ -6,7 +6,9 @@
 # A session's runs, each carrying what it names (64 MiB a run, the working tree included: thin it with
 # scripts/gpu/trim.sh out, and `back` after):
 #   1. carry [".gpu/a", ".gpu/s"]:  bash .gpu/a/stage.sh && python3 -m pip install -q --no-index --no-deps --target /tmp/ssite .gpu/s/*.whl
-#   2. carry [".gpu/b", ".gpu/HEAD", ".vols"]:   source scripts/gpu/env.sh && <command>
+#   2. carry [".gpu/b", ".gpu/HEAD"]:   source scripts/gpu/env.sh && <command>   (not .vols: beside part b and the
+#      tree they pass 64 MiB, so this run takes work that reads no shared volume, e.g. the fused checks; a datagen
+#      of shared volumes, recon_4k's, fails here)
 #   3. later, warm:  carry [".gpu/b/env.sh", ".gpu/HEAD", ".vols"] and the same.
 source .gpu/b/env.sh || return 3
 export PYTHONPATH=$PYTHONPATH:/tmp/ssite
