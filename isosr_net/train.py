@@ -56,7 +56,9 @@ class TrainConfig:
         lr_schedule: "constant", or "cosine": linear warm-up over `warmup_steps`, then cosine
             decay to 1% of `lr` at `steps`.
         warmup_steps: steps of the cosine schedule's warm-up.
-        checkpoint_every: steps between `last/` checkpoints (also at every epoch's end).
+        checkpoint_every: steps between `last/` checkpoints (also at every validation).
+        validate_every: steps between validations (each followed by a `last/` checkpoint); 0: at every epoch's end.
+            A larger batch makes shorter epochs: this keeps its validations as far apart in steps as a smaller one's.
         amp: bf16 autocast on CUDA.
         device: "cuda", "cpu" or "auto".
         seed: seed for initialization and data order.
@@ -88,6 +90,7 @@ class TrainConfig:
     lr_schedule: str = "constant"
     warmup_steps: int = 200
     checkpoint_every: int = 200
+    validate_every: int = 0
     amp: bool = True
     device: str = "auto"
     seed: int = 0
@@ -107,6 +110,8 @@ class TrainConfig:
             raise ValueError(f"select must be one of {sorted(SELECTS)}, got {self.select!r}")
         if self.batch_size < 1:
             raise ValueError(f"batch_size must be at least 1, got {self.batch_size}")
+        if self.validate_every < 0:
+            raise ValueError(f"validate_every must be 0 (each epoch's end) or a number of steps, got {self.validate_every}")
         if isinstance(self.trainable, str) or not all(isinstance(name, str) for name in self.trainable):
             raise ValueError(f"trainable must be a list of parameter names, got {self.trainable!r}")
         self.trainable = tuple(self.trainable)
@@ -437,9 +442,11 @@ class Trainer:
         if self.step == 0 and self.config.init:
             self._validated(self.validate(), writer)  # the starting model on this data: best/ beats it or is it
         first_step = self.step
+        validate_every = self.config.validate_every or steps_per_epoch
         while self.step < self.config.steps and time.monotonic() < deadline:
             epoch = self.step // steps_per_epoch
             started = time.monotonic()  # each step's loss read (float) syncs: the loop's wall time is its steps'
+            due = False  # a validation: the interval's, the last step's or the deadline's
             for batch in self._batches(self.train_set, shuffle=True, epoch=epoch, skip=self.step % steps_per_epoch):
                 logs = self.train_step(batch)
                 self.step += 1
@@ -454,10 +461,14 @@ class Trainer:
                     saving = time.monotonic()
                     self.save("last")
                     started += time.monotonic() - saving  # the timing leaves saving out
-                if self.step >= self.config.steps or self.step % steps_per_epoch == 0 or time.monotonic() > deadline:
+                due = (self.step >= self.config.steps or self.step % validate_every == 0
+                       or time.monotonic() > deadline)
+                if due or self.step % steps_per_epoch == 0:
                     break
             self.timing["train_s"] += time.monotonic() - started
             self.timing["steps"] = self.step - first_step
+            if not due:  # the epoch's end between validations
+                continue
             metrics = self.validate()
             self._validated(metrics, writer)
             self.save("last", metrics)

@@ -94,6 +94,27 @@ def test_tensorboard_logs_hold_train_and_val_scalars(run3):
     assert [e.step for e in acc.Scalars("val/loss")] == [2, 3]  # after each epoch and at the end
 
 
+def test_validations_come_every_validate_every_steps_across_epochs(data, tmp_path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    out = tmp_path / "run"
+    trainer(data, out, steps=7, validate_every=3).run(progress=False)  # epochs of 2 steps
+    acc = EventAccumulator(str(out / "tb"))
+    acc.Reload()
+    assert [e.step for e in acc.Scalars("val/loss")] == [3, 6, 7]
+    assert json.loads((out / "last" / "config.json").read_text())["step"] == 7
+    with pytest.raises(ValueError, match="validate_every"):
+        TrainConfig(data="d", out="o", validate_every=-1)
+
+
+def test_resuming_between_validations_equals_an_uninterrupted_run(data, tmp_path):
+    whole, split = tmp_path / "whole", tmp_path / "split"
+    trainer(data, whole, steps=5, validate_every=4).run(progress=False)
+    trainer(data, split, steps=3, validate_every=4).run(progress=False)  # the last step saves mid-epoch
+    trainer(data, split, steps=5, validate_every=4).run(progress=False)
+    assert_same_weights(weights(whole / "last"), weights(split / "last"))
+
+
 def test_training_changes_the_weights(run3, data, tmp_path):
     init = trainer(data, tmp_path)  # nothing to resume in an empty folder: the seeded initialization
     assert init.step == 0
