@@ -9,7 +9,9 @@ Tensors are channels-first ``(B, C, H, W)`` in the orders of
 Losses
     ``channel``      L1 / L2 on one output: ``mask`` over all pixels (the alpha is learned
                      everywhere), ``normal``, ``depth`` and ``ao`` over the ground truth's
-                     surface pixels, ``color`` on the shaded images over all pixels.
+                     surface pixels, ``color`` on the shaded images over all pixels. With
+                     ``against="teacher"``, against a frozen teacher's output instead of the truth
+                     (distillation: ``TrainConfig.teacher``), over the truth's surface pixels alike.
     ``perceptual``   L1 / L2 between VGG-19 features of the shaded prediction and ground truth
                      (the networks are in :mod:`isosr_net.architectures`).
     ``temporal``     masked L2 between the output and the previous output warped to this frame.
@@ -197,25 +199,34 @@ class ChannelLoss(WeightedLoss):
         channel: ``"mask"``, ``"normal"``, ``"depth"``, ``"ao"`` or ``"color"``.
         kind: ``"l1"`` or ``"l2"``.
         weight: factor on the loss.
+        against: ``"truth"`` (the ground truth) or ``"teacher"`` (a frozen teacher's output: distillation).
     """
 
     CHANNELS = {"mask": MASK, "normal": NORMAL, "depth": DEPTH, "ao": AO, "color": None}
+    AGAINST = ("truth", "teacher")
 
-    def __init__(self, channel: str, kind: str = "l1", weight: float = 1.0) -> None:
+    def __init__(self, channel: str, kind: str = "l1", weight: float = 1.0, against: str = "truth") -> None:
         super().__init__(weight)
         if channel not in self.CHANNELS:
             raise ValueError(f"channel must be one of {sorted(self.CHANNELS)}, got {channel!r}")
-        self.channel, self.kind = channel, _check_kind(kind)
-        self.name = f"{channel}_{kind}"
+        if against not in self.AGAINST:
+            raise ValueError(f"against must be one of {self.AGAINST}, got {against!r}")
+        self.channel, self.kind, self.reads_teacher = channel, _check_kind(kind), against == "teacher"
+        self.name = f"{channel}_{kind}" + ("_teacher" if self.reads_teacher else "")
 
     def term(self, ctx: LossContext) -> torch.Tensor:
         pred, target = ctx.pred, ctx.target
+        if self.reads_teacher:
+            if ctx.teacher is None:
+                raise ValueError(f"the {self.name} loss compares with a teacher's output: give the run a teacher "
+                                 "(TrainConfig.teacher, a model folder)")
+            target = ctx.teacher
         if self.channel == "color":
             return _mean_error(shade_channels_first(pred), shade_channels_first(target), self.kind)
         if self.channel == "mask":
             return _mean_error(pred[:, MASK], target[:, MASK], self.kind)
         masked = masked_l1 if self.kind == "l1" else masked_l2
-        return masked(pred, target, target[:, MASK], self.CHANNELS[self.channel])
+        return masked(pred, target, ctx.target[:, MASK], self.CHANNELS[self.channel])
 
 
 class PerceptualLoss(WeightedLoss):

@@ -239,8 +239,8 @@ class Trainer:
                                  "model folder (the init, to hold a fine-tune to its start)")
             return None
         if not reading:
-            raise ValueError(f"teacher {self.config.teacher}: no loss reads it (teacher_psnr_no_worse does); give one "
-                             "or no teacher")
+            raise ValueError(f"teacher {self.config.teacher}: no loss reads it (teacher_psnr_no_worse and a channel "
+                             "loss against the teacher do); give one or no teacher")
         teacher, _ = load_pretrained(self.config.teacher, self.device)
         theirs, ours = ((c.upscale, getattr(c, "limits", None)) for c in (teacher.config, self.net.config))
         if theirs != ours:

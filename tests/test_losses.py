@@ -284,6 +284,24 @@ def test_the_teacher_loss_holds_the_shaded_output_to_the_teacher_s_per_frame():
         LossContext(worse, target, teacher=teacher[..., :3])
 
 
+def test_a_channel_loss_against_the_teacher_measures_the_output_against_the_teacher_s():
+    """Distillation: the same error as against the truth, with the teacher's output in its place (over the truth's
+    surface pixels); without the teacher's output it is refused, and an unknown reference too."""
+    target = frame()
+    teacher, pred = target.clone(), target.clone()
+    teacher[:, NORMAL] = target[:, NORMAL] * 0.9
+    pred[:, NORMAL] = target[:, NORMAL] * 0.8
+    distill = ChannelLoss("normal", "l1", weight=2.0, against="teacher")
+    assert distill.reads_teacher and distill.name == "normal_l1_teacher" and not ChannelLoss("normal").reads_teacher
+    expected = masked_l1(pred, teacher, target[:, MASK], NORMAL)
+    assert distill(LossContext(pred, target, teacher=teacher)).item() == pytest.approx(2 * expected.item())
+    assert expected > 0 and distill(LossContext(teacher, target, teacher=teacher)).item() == 0.0
+    with pytest.raises(ValueError, match="TrainConfig.teacher"):
+        distill(LossContext(pred, target))
+    with pytest.raises(ValueError, match="against must be"):
+        ChannelLoss("normal", against="reference")
+
+
 # ----------------------------------------------------------------------------- perceptual
 
 

@@ -327,7 +327,8 @@ def test_the_shipped_configs_load():
                                             ("train_recon_whole_4k.json", "datagen_recon_4k_seed1.json"),
                                             ("train_recon_spp4_4k.json", "datagen_recon_spp4_4k.json"),
                                             ("train_recon_teacher_4k.json", "datagen_recon_4k_seed1.json"),
-                                            ("train_recon_stem.json", "datagen_recon_4k.json")])
+                                            ("train_recon_stem.json", "datagen_recon_4k.json"),
+                                            ("train_recon_stem_distil.json", "datagen_recon_4k.json")])
 def test_each_reconstruction_config_fits_its_data_config(train, datagen):
     root = Path(__file__).resolve().parents[1] / "configs"
     config, data = load_config(TrainConfig, root / train), load_config(DatagenConfig, root / datagen)
@@ -408,6 +409,24 @@ def test_a_fine_tune_held_to_its_teacher_starts_at_no_shortfall_and_trains(tmp_p
     saved_wide_model(tmp_path / "other", max_ao_rays=8)
     with pytest.raises(ValueError, match="sampling limits"):
         trainer(wide, tmp_path / "r4", model=model, losses=losses, teacher=str(tmp_path / "other"))
+
+
+def test_a_stem_distils_a_teacher_of_another_architecture(tmp_path, tmp_path_factory):
+    """A student with a stem of stride 2 trains against a stride-1 teacher's output (channel losses against the
+    teacher): the terms are logged, finite, and move the student alone."""
+    wide = tiny_wide_recon_data(tmp_path_factory)
+    saved_wide_model(tmp_path / "teacher")
+    student, _ = saved_wide_model(tmp_path / "unused", stem_stride=2)
+    losses = [{"type": "channel", "channel": "color", "kind": "l1"},
+              {"type": "channel", "channel": "color", "kind": "l1", "against": "teacher"},
+              {"type": "channel", "channel": "normal", "kind": "l1", "weight": 0.5, "against": "teacher"}]
+    t = trainer(wide, tmp_path / "run", steps=2, model=student, losses=losses, teacher=str(tmp_path / "teacher"))
+    batch = next(t._batches(t.train_set, shuffle=True, epoch=0))
+    before = [p.detach().clone() for p in t.net.parameters()]
+    logs = t.train_step(batch)
+    assert logs["color_l1_teacher"] > 0 and math.isfinite(logs["normal_l1_teacher"])
+    assert any(not torch.equal(a, b) for a, b in zip(before, t.net.parameters()))
+    assert all(not p.requires_grad for p in t.teacher.parameters())
 
 
 def saved_wide_model(folder: Path, **config) -> tuple[dict, ReconNet]:
