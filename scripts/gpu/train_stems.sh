@@ -25,7 +25,7 @@ train stem_b32 configs/train_recon_stem.json --batch-size 32 --validate-every 88
 train stem_kd configs/train_recon_stem_distil.json &
 wait
 for name in stem_a stem_b32 stem_kd; do
-    echo "$name: $(grep -ao 'resuming from[^\r]*' "$OUT/$name.log" | head -1)"
-    tr '\r' '\n' < "$OUT/$name.log" | grep -a '^step \|"steps"\|"train_s"\|Error' | tail -4 | cut -c1-150
+    echo "$name: $(grep -a -m1 'resuming from' "$OUT/$name.log" || true)"
+    tr '\r' '\n' < "$OUT/$name.log" | grep -a '^step \|"steps"\|"train_s"\|Error' | tail -4 | cut -c1-150 || true
 done
 tar czf "$OUT/runs.tgz" runs/stem_*/last runs/stem_*/best
