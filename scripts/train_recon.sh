@@ -13,7 +13,8 @@
 # recon_blend_geo (the same data: fine-tunes checkpoints/recon_blend/best with its geometry corrections gated
 # by rays per pixel, geometry_gate).
 # DATA names another run's data (configs/datagen_$DATA.json into data/$DATA) for a run that shares it, as its train
-# config's "data" says: RUN=recon_stem DATA=recon_4k (the stem of stride 2, issue 49 item 3, trained from scratch).
+# config's "data" says: RUN=recon_stem DATA=recon_4k (the stem of stride 2, issue 49 item 3, trained from scratch) or
+# RUN=recon_stem_distil DATA=recon_4k (the same distilled from the shipped model at batch 32: checkpoints/recon_stem).
 # FROM_DIR: a previous run's OUT_DIR; training resumes from its last/ (the trainer resumes from
 # runs/$RUN/last) and keeps its best/ unless it does better. Data goes to data/$RUN and the run to
 # runs/$RUN (both git-ignored; the same config renders the same data again); the logs, last/ (the

@@ -8,6 +8,8 @@
 #             trains faster
 # On the device, after recon_4k's data (isosr datagen configs/datagen_recon_4k.json -o data/recon_4k), from the
 # project root with scripts/gpu/env.sh sourced:  bash scripts/gpu/train_stems.sh MINUTES [STEPS]
+# Run on 2026-12-03 (benchmarks/results/train_stem_gpu_runs.json): stem_kd32 led, and checkpoints/recon_stem holds its
+# lineage since, so a run of this script now compares the three recipes from there.
 # Each run stops, validated and saved, after MINUTES; the cosine schedules run over STEPS (default 12000). The logs and
 # runs/*/{last,best} come back in $OUT (runs.tgz).
 set -euo pipefail
@@ -23,8 +25,8 @@ train() {
         > "$OUT/$name.log" 2>&1
 }
 train stem_a configs/train_recon_stem.json &
-train stem_kd configs/train_recon_stem_distil.json &
-train stem_kd32 configs/train_recon_stem_distil.json --batch-size 32 --validate-every 88 &
+train stem_kd configs/train_recon_stem_distil.json --batch-size 8 --validate-every 0 &
+train stem_kd32 configs/train_recon_stem_distil.json &
 wait
 for name in stem_a stem_kd stem_kd32; do
     echo "$name: $(grep -a -m1 'resuming from' "$OUT/$name.log" || true)"
