@@ -215,12 +215,7 @@ class ChannelLoss(WeightedLoss):
         self.name = f"{channel}_{kind}" + ("_teacher" if self.reads_teacher else "")
 
     def term(self, ctx: LossContext) -> torch.Tensor:
-        pred, target = ctx.pred, ctx.target
-        if self.reads_teacher:
-            if ctx.teacher is None:
-                raise ValueError(f"the {self.name} loss compares with a teacher's output: give the run a teacher "
-                                 "(TrainConfig.teacher, a model folder)")
-            target = ctx.teacher
+        pred, target = ctx.pred, (_teacher_output(ctx, self.name) if self.reads_teacher else ctx.target)
         if self.channel == "color":
             return _mean_error(shade_channels_first(pred), shade_channels_first(target), self.kind)
         if self.channel == "mask":
@@ -326,6 +321,14 @@ class AONoWorseLoss(WeightedLoss):
         return ao_excess_error(ctx.pred[:, AO], *_rays_and_truth(ctx, self.name))
 
 
+def _teacher_output(ctx: LossContext, loss: str) -> torch.Tensor:
+    """The frozen teacher's output, as the losses that read it take it; ValueError in a context without it."""
+    if ctx.teacher is None:
+        raise ValueError(f"the {loss} loss compares the output with a teacher's: give the run a teacher "
+                         "(TrainConfig.teacher, a model folder)")
+    return ctx.teacher
+
+
 def _rays_and_truth(ctx: LossContext, loss: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """A reconstruction's input rays' AO mean, the truth's AO and the truth's surface pixels that had AO rays, as
     the losses that compare the output with its input take them; ValueError without a reconstruction's inputs.
@@ -394,10 +397,8 @@ class TeacherPSNRNoWorseLoss(WeightedLoss):
     reads_teacher = True
 
     def term(self, ctx: LossContext) -> torch.Tensor:
-        if ctx.teacher is None:
-            raise ValueError("the teacher_psnr_no_worse loss compares the output with a teacher's: give the run a "
-                             "teacher (TrainConfig.teacher, a model folder)")
-        color, teacher, target = shade_channels_first(torch.cat([ctx.pred, ctx.teacher, ctx.target])).chunk(3)
+        teacher = _teacher_output(ctx, self.name)
+        color, teacher, target = shade_channels_first(torch.cat([ctx.pred, teacher, ctx.target])).chunk(3)
         return psnr_shortfall(color, teacher, target, torch.ones_like(color[:, :1]))
 
 
