@@ -77,6 +77,10 @@ class TrainConfig:
             lowest total of ``losses``: a fine-tune whose losses ask for more than color, e.g. ``ao_no_worse``).
         teacher: a model folder run frozen on every sequence beside the model, for the losses that read its output
             (``teacher_psnr_no_worse``); "" for none. Typically ``init``: a fine-tune held to its start.
+        gates_open_until: a gated ReconNet's geometry gates held open (at their start) and untrained before this
+            step, so that its mask and normal corrections learn before the gates may weigh them: gates that close
+            first (as random corrections make them) never reopen, since the corrections then get no gradient. A
+            run starting before it opens them (its ``init``'s or its resumed gates too); 0: trained from the start.
     """
 
     data: str
@@ -100,6 +104,7 @@ class TrainConfig:
     compile: str = ""
     select: str = "color_psnr"
     teacher: str = ""
+    gates_open_until: int = 0
 
     def __post_init__(self):
         if self.compile not in COMPILE_MODES:
@@ -115,6 +120,9 @@ class TrainConfig:
         if isinstance(self.trainable, str) or not all(isinstance(name, str) for name in self.trainable):
             raise ValueError(f"trainable must be a list of parameter names, got {self.trainable!r}")
         self.trainable = tuple(self.trainable)
+        if isinstance(self.gates_open_until, bool) or not isinstance(self.gates_open_until, int) or \
+                self.gates_open_until < 0:
+            raise ValueError(f"gates_open_until must be a step (0: none), got {self.gates_open_until!r}")
 
     def lr_factor(self, step: int) -> float:
         """The learning-rate multiplier at ``step``."""
@@ -228,6 +236,17 @@ class Trainer:
                              f"the model by {self.net.config.limits}: give both the same max_ao_rays and max_spp")
         self.step, self.best, self.best_step = 0, -math.inf, None
         self._resume()
+        self.held_gates = self._held_gates()
+
+    def _held_gates(self) -> torch.nn.Parameter | None:
+        """The geometry gates ``config.gates_open_until`` holds, opened now; None where it holds none (ValueError: it
+        asks a model without gates)."""
+        if not self.config.gates_open_until:
+            return None
+        if not (isinstance(self.net, ReconNet) and self.net.config.geometry_gate):
+            raise ValueError("gates_open_until holds a gated ReconNet's geometry gates; this model has none "
+                             "(give a ReconNet with geometry_gate, or 0)")
+        return self.net.open_gates() if self.step < self.config.gates_open_until else None
 
     def _teacher(self) -> Unrolled | None:
         """The frozen teacher, unrolled, where a loss reads it (ValueError: a loss that reads it without a teacher, a
@@ -344,6 +363,11 @@ class Trainer:
             group["lr"] = self.config.lr * self.config.lr_factor(self.step)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        if self.held_gates is not None:
+            if self.step < self.config.gates_open_until:
+                self.held_gates.grad = None  # Adam leaves a parameter without a gradient as it is
+            else:
+                self.held_gates = None
         self.optimizer.step()
         if self.d_optimizer is not None:
             with self._autocast():

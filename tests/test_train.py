@@ -328,7 +328,8 @@ def test_the_shipped_configs_load():
                                             ("train_recon_spp4_4k.json", "datagen_recon_spp4_4k.json"),
                                             ("train_recon_teacher_4k.json", "datagen_recon_4k_seed1.json"),
                                             ("train_recon_stem.json", "datagen_recon_4k.json"),
-                                            ("train_recon_stem_distil.json", "datagen_recon_4k.json")])
+                                            ("train_recon_stem_distil.json", "datagen_recon_4k.json"),
+                                            ("train_recon_stem_geometry.json", "datagen_recon_4k.json")])
 def test_each_reconstruction_config_fits_its_data_config(train, datagen):
     root = Path(__file__).resolve().parents[1] / "configs"
     config, data = load_config(TrainConfig, root / train), load_config(DatagenConfig, root / datagen)
@@ -499,6 +500,32 @@ def test_a_gated_blend_model_fine_tunes_from_a_rays_model_and_trains_its_gates(t
     assert all(torch.isfinite(torch.tensor(v)) for v in logs.values())
     moved = (t.net.gate_logits - gates).abs().max().item()
     assert moved > 10 * t.config.lr, "the logits move GATE_RATE times faster than a weight"
+
+
+def test_closed_gates_reopen_and_hold_while_the_corrections_learn(tmp_path, tmp_path_factory):
+    """gates_open_until: a model whose gates closed starts with them open again; they stay there, untrained, while
+    the rest trains, and train from that step on (a resumed run past it leaves them as they are); a model without
+    gates is refused."""
+    wide = tiny_wide_recon_data(tmp_path_factory)
+    model, source = saved_wide_model(tmp_path / "unused", ao_prior="blend", geometry_gate=True, stem_stride=2)
+    with torch.no_grad():
+        source.geometry_gate_raw.fill_(-0.2)  # closed: sigmoid(-10)
+    save_pretrained(source, tmp_path / "closed")
+    t = trainer(wide, tmp_path / "run", steps=2, model=model, init=str(tmp_path / "closed"), gates_open_until=2)
+    opened = torch.full((4,), GATE_LOGIT_INIT)
+    torch.testing.assert_close(t.net.gate_logits, opened)
+    t.run(progress=False)
+    torch.testing.assert_close(t.net.gate_logits, opened, rtol=0, atol=0)
+    assert not torch.equal(t.net.tail.weight, source.tail.weight)
+    resumed = trainer(wide, tmp_path / "run", steps=3, model=model, init=str(tmp_path / "closed"), gates_open_until=2)
+    torch.testing.assert_close(resumed.net.gate_logits, opened, rtol=0, atol=0)  # its last/'s, not reopened
+    resumed.run(progress=False)
+    assert (resumed.net.gate_logits - opened).abs().max().item() > 10 * resumed.config.lr
+    plain, _ = saved_wide_model(tmp_path / "plain")
+    with pytest.raises(ValueError, match="gates_open_until holds a gated ReconNet's geometry gates"):
+        trainer(wide, tmp_path / "other", model=plain, gates_open_until=2)
+    with pytest.raises(ValueError, match="gates_open_until must be a step"):
+        TrainConfig(data="d", out="o", gates_open_until=-1)
 
 
 def test_a_run_trains_the_parameters_it_names_alone(tmp_path, tmp_path_factory):
