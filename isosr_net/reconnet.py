@@ -422,14 +422,12 @@ class ReconNet(nn.Module):
         return F.pixel_shuffle(raw, s) if s > 1 else raw
 
     @torch.no_grad()
-    def open_gates(self) -> nn.Parameter:
-        """A gated model's geometry gates back at their start (:data:`GATE_LOGIT_INIT`, all but open): the
-        parameter (ValueError: an ungated model has none)."""
+    def open_gates(self) -> None:
+        """Set a gated model's geometry gates back at their start (:data:`GATE_LOGIT_INIT`, all but open)
+        (ValueError: an ungated model has none)."""
         if not self.config.geometry_gate:
             raise ValueError("open_gates: this ReconNet has no geometry gates (geometry_gate is off)")
-        gates = getattr(self, GATE_PARAMETER)
-        gates.fill_(GATE_LOGIT_INIT / GATE_RATE)
-        return gates
+        getattr(self, GATE_PARAMETER).fill_(GATE_LOGIT_INIT / GATE_RATE)
 
     @property
     def gate_logits(self) -> torch.Tensor | None:

@@ -28,7 +28,7 @@ from isosr_net.flow_warp import upscale_flow, warp_by_flow
 from isosr_net.losses import PAPER_LOSSES, AdversarialLoss, LossContext, build_losses, total_loss
 from isosr_net.metrics import frame_scores
 from isosr_net.model import Unrolled, build_model, load_checkpoint, load_pretrained, save_checkpoint
-from isosr_net.reconnet import WEIGHTLESS_FIELDS, ReconNet, ReconNetConfig
+from isosr_net.reconnet import GATE_PARAMETER, WEIGHTLESS_FIELDS, ReconNet, ReconNetConfig
 
 
 # TrainConfig.compile's modes: "" (eager) and torch.compile's without CUDA graphs, which a step's
@@ -236,17 +236,18 @@ class Trainer:
                              f"the model by {self.net.config.limits}: give both the same max_ao_rays and max_spp")
         self.step, self.best, self.best_step = 0, -math.inf, None
         self._resume()
-        self.held_gates = self._held_gates()
+        self._open_held_gates()
 
-    def _held_gates(self) -> torch.nn.Parameter | None:
-        """The geometry gates ``config.gates_open_until`` holds, opened now; None where it holds none (ValueError: it
+    def _open_held_gates(self) -> None:
+        """Open the geometry gates where ``config.gates_open_until`` holds them past this run's start (ValueError: it
         asks a model without gates)."""
         if not self.config.gates_open_until:
-            return None
+            return
         if not (isinstance(self.net, ReconNet) and self.net.config.geometry_gate):
             raise ValueError("gates_open_until holds a gated ReconNet's geometry gates; this model has none "
                              "(give a ReconNet with geometry_gate, or 0)")
-        return self.net.open_gates() if self.step < self.config.gates_open_until else None
+        if self.step < self.config.gates_open_until:
+            self.net.open_gates()
 
     def _teacher(self) -> Unrolled | None:
         """The frozen teacher, unrolled, where a loss reads it (ValueError: a loss that reads it without a teacher, a
@@ -363,11 +364,8 @@ class Trainer:
             group["lr"] = self.config.lr * self.config.lr_factor(self.step)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        if self.held_gates is not None:
-            if self.step < self.config.gates_open_until:
-                self.held_gates.grad = None  # Adam leaves a parameter without a gradient as it is
-            else:
-                self.held_gates = None
+        if self.step < self.config.gates_open_until:  # held open: Adam leaves a parameter without a gradient as it is
+            getattr(self.net, GATE_PARAMETER).grad = None
         self.optimizer.step()
         if self.d_optimizer is not None:
             with self._autocast():

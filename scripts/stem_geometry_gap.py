@@ -8,14 +8,12 @@ color reshaded with the shipped model's mask, normals or AO in place of its own 
 """
 
 import sys
+from dataclasses import replace
 from pathlib import Path
 
-import torch
-
-from isosr_bench.bench_pareto import SHIPPED_MODELS, bench_cameras, load, methods
+from isosr_bench.bench_pareto import SHIPPED_MODELS, bench_cameras, load, methods, scores
 from isosr_net.budget import reference_frames
 from isosr_net.methods import Networks, make_runner, run_sequence
-from isosr_net.metrics import masked_psnr, scene_region
 from isosr_render import Renderer
 from isosr_render.shading import shade
 
@@ -30,25 +28,26 @@ def main(volume_name: str, models: dict[str, Path]) -> None:
     named = {"shipped": SHIPPED_MODELS["recon"], **models}
     chosen = [m for m in methods(False, "cpu", named) if m.kind in ("reconstruct", "full") and m.ao_rays == 1
               and m.spp == 1 and m.factor == 1]
-    frames = {m.name: run_sequence(make_runner(m, renderer, iso, *SIZE, networks=Networks()), camera)[0]
+    networks = Networks()
+    frames = {m.name: run_sequence(make_runner(m, renderer, iso, *SIZE, networks=networks), camera)[0]
               for m in chosen}
-    region = scene_region(ref.mask[None, None])
 
-    def psnr(color: torch.Tensor) -> float:
-        return round(float(masked_psnr(color.permute(2, 0, 1)[None], ref.color.permute(2, 0, 1)[None], region)[0]), 2)
+    def scored(f) -> dict:  # the Pareto study's scores of one frame (color: its scene region's dB)
+        return scores([f], [ref], ao_rays=1)
 
     shipped = next(f for name, f in frames.items() if "shipped" in name)
     for name, f in frames.items():
-        both = (f.mask > 0.5) & (ref.mask > 0.5)
-        print(f"{name}: color {psnr(f.color)} dB, mask MAE {float((f.mask - ref.mask).abs().mean()):.5f}, normal "
-              f"1 - cos {float((1 - (f.normal * ref.normal).sum(-1))[ref.mask > 0.01].mean()):.5f}, AO RMSE "
-              f"{float((f.ao - ref.ao)[both].square().mean().sqrt()):.4f}")
+        own = scored(f)
+        mask_error = float((f.mask - ref.mask).abs().mean())
+        normal_error = float((1 - (f.normal * ref.normal).sum(-1))[ref.mask > 0.01].mean())
+        print(f"{name}: color {own['color_psnr_scene']:.2f} dB, mask MAE {mask_error:.5f}, normal 1 - cos "
+              f"{normal_error:.5f}, AO RMSE {own['ao_rmse']:.4f}")
         if f is not shipped and any(n in name for n in models):
             for swap, parts in {"mask": (shipped.mask, f.normal, f.ao), "normals": (f.mask, shipped.normal, f.ao),
                                 "AO": (f.mask, f.normal, shipped.ao),
                                 "mask and normals": (shipped.mask, shipped.normal, f.ao)}.items():
-                print(f"  with the shipped model's {swap}: {psnr(shade(*parts))} dB")
-
+                reshaded = scored(replace(f, color=shade(*parts)))
+                print(f"  with the shipped model's {swap}: {reshaded['color_psnr_scene']:.2f} dB")
 
 if __name__ == "__main__":
     main(sys.argv[1], {name: Path(folder) for name, folder in (a.split("=") for a in sys.argv[2:])})
