@@ -33,6 +33,7 @@ def add_parsers(subparsers) -> None:
     p.add_argument("--steps", type=int, help="override the number of steps")
     p.add_argument("--seed", type=int, help="override the seed (initialization and data order)")
     p.add_argument("--batch-size", type=int, help="override the sequences per step (over all processes)")
+    p.add_argument("--lr", type=float, help="override the peak learning rate")
     p.add_argument("--device", help="override the device")
     p.add_argument("--time-limit-minutes", type=float, help="stop, validated and saved, after this long")
     p.add_argument("--validate-every", type=int, help="override the steps between validations (0: each epoch's end)")
@@ -82,7 +83,7 @@ def run_train(args: argparse.Namespace) -> int:
     from isosr_net.train import Trainer, TrainConfig
 
     config = load_config(TrainConfig, args.config, data=args.data, out=args.out, steps=args.steps, seed=args.seed,
-                         batch_size=args.batch_size, device=args.device, time_limit_minutes=args.time_limit_minutes,
+                         batch_size=args.batch_size, lr=args.lr, device=args.device, time_limit_minutes=args.time_limit_minutes,
                          validate_every=args.validate_every, compile=args.compile)
     if args.upscale is not None:
         config = dataclasses.replace(config, model={**config.model, "upscale": args.upscale})

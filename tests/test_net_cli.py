@@ -72,11 +72,11 @@ def test_datagen_and_train_take_another_upscale_factor(tmp_path, tmp_path_factor
 
 @pytest.fixture(scope="module")
 def cli_run(tmp_path_factory) -> Path:
-    """A run folder written by `isosr train` (--steps and --out overrides)."""
+    """A run folder written by `isosr train` (--steps, --lr and --out overrides)."""
     root = tmp_path_factory.mktemp("cli_train")
     data = tiny_train_data(tmp_path_factory)
     path = write_json(root / "train.json", tiny_train_config(data, root / "ignored", steps=50))
-    assert main(["train", str(path), "--steps", "2", "--out", str(root / "run")]) == 0
+    assert main(["train", str(path), "--steps", "2", "--lr", "0.0003", "--out", str(root / "run")]) == 0
     return root / "run"
 
 
@@ -85,7 +85,7 @@ def test_train(cli_run):
     for name in ("last", "best"):
         assert {"config.json", "model.safetensors"} <= {p.name for p in (cli_run / name).iterdir()}
     config = json.loads((cli_run / "last" / "config.json").read_text())
-    assert config["step"] == 2 and config["training"]["steps"] == 2
+    assert config["step"] == 2 and config["training"]["steps"] == 2 and config["training"]["lr"] == 0.0003
 
 
 def test_a_reconstruction_run_resumes(tmp_path, tmp_path_factory, capsys):
