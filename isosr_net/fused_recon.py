@@ -77,8 +77,9 @@ def fused_runs_on(device: torch.device | str) -> bool:
 def fusable(config: ReconNetConfig) -> bool:
     """Whether the kernels take a ReconNet of ``config``: its widths at most the kernels' widest tile (a width
     under 16 or not a power of 2 is padded in the tiles), an upscale of :data:`FUSED_UPSCALES` (any blocks, AO
-    prior, geometry gate and stem stride)."""
-    return config.upscale in FUSED_UPSCALES and all(kernel_width(w) <= MAX_KERNEL_WIDTH for w in config.widths)
+    prior, geometry gate and stem stride; no ``pixel_tail`` yet)."""
+    return (config.upscale in FUSED_UPSCALES and all(kernel_width(w) <= MAX_KERNEL_WIDTH for w in config.widths)
+            and not config.pixel_tail)
 
 
 def _kernels():
@@ -180,8 +181,9 @@ class FusedReconNet(nn.Module):
         super().__init__()
         widths = net.config.widths
         if not fusable(net.config):
-            raise ValueError(f"fused_reconnet: the widths must be at most {MAX_KERNEL_WIDTH} and the upscale one of "
-                             f"{FUSED_UPSCALES}, got {widths} and {net.config.upscale}")
+            raise ValueError(f"fused_reconnet: the widths must be at most {MAX_KERNEL_WIDTH}, the upscale one of "
+                             f"{FUSED_UPSCALES} and no pixel_tail, got {widths}, {net.config.upscale} and "
+                             f"{net.config.pixel_tail}")
         self.config = net.config
         self.reference = net
         self.head = FusedConv(net.head, PACKED, widths[0])

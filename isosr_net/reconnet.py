@@ -24,7 +24,9 @@ additive skips; full resolution carries ``widths[0]`` channels (16), which keeps
 at about 30 GMAC (:func:`macs_per_pixel`). With ``stem_stride=2`` no layer runs at full
 resolution: the head is a stride-2 convolution of the full-resolution inputs and the tail writes
 each half-resolution feature pixel's 2 x 2 output pixels (depth-to-space), so every level sits one
-halving lower (1/2 .. 1/16) while the output still corrects every input pixel.
+halving lower (1/2 .. 1/16) while the output still corrects every input pixel. What the coarse tail cannot
+tell apart inside its 2 x 2 cells (which of them a silhouette crosses), ``pixel_tail`` adds back: a per-pixel
+MLP at the output's resolution reads the tail's correction with the pixel's own inputs and corrects it.
 """
 
 from __future__ import annotations
@@ -67,6 +69,8 @@ STEM_STRIDES = (1, 2)
 FLOAT32_MAX = torch.finfo(torch.float32).max
 # A config's numbers that no weights depend on (set in a model folder's config.json; each finite, >= 0, 0 is off).
 WEIGHTLESS_FIELDS = ("blend_beyond", "ao_interval", "ao_interval_narrows_past")
+# A "pixel_tail" model's per-pixel MLP (1x1 convolutions at the output's resolution; its last layer zero at the start).
+PIXEL_TAIL = "pixel_tail"
 
 
 @dataclass(frozen=True)
@@ -150,6 +154,10 @@ class ReconNetConfig:
         stem_stride: the first level's resolution under the input's (:data:`STEM_STRIDES`): 1, or 2: the head a
             stride-2 convolution and the tail writing 2 x 2 output pixels per feature pixel (depth-to-space), so
             that no layer runs at the input's resolution (the levels at 1/2 .. 1/16; with upscale 1 only).
+        pixel_tail: the hidden width of a per-pixel MLP at the output's resolution (0: none) that reads the
+            tail's correction with the pixel's own inputs (upsampled) and its previous mask and AO, and adds its
+            own: the detail inside a stem's 2 x 2 cells. Its last layer starts at zero, so a model without it
+            fine-tunes into one with it from the same output (:meth:`ReconNet.correction`).
     """
 
     type: str = "ReconNet"
@@ -167,6 +175,7 @@ class ReconNetConfig:
     ao_interval: float = 0.0
     ao_interval_narrows_past: float = 0.0
     stem_stride: int = 1
+    pixel_tail: int = 0
 
     def __post_init__(self):
         object.__setattr__(self, "widths", tuple(self.widths))
@@ -187,6 +196,7 @@ class ReconNetConfig:
             raise ValueError(f"stem_stride must be one of {STEM_STRIDES}, got {self.stem_stride!r}")
         if self.stem_stride > 1 and self.upscale > 1:
             raise ValueError(f"stem_stride {self.stem_stride} goes with upscale 1, got upscale {self.upscale}")
+        check_int(self.pixel_tail, "pixel_tail", 0)
         for flag in ("geometry_gate", "blend_map", "blend_variance"):
             if not isinstance(getattr(self, flag), bool):
                 raise ValueError(f"{flag} must be true or false, got {getattr(self, flag)!r}")
@@ -323,7 +333,9 @@ def macs_per_pixel(config: ReconNetConfig) -> float:
     enc = w0 * w1 * 9 / 4 + w1 * w2 * 9 / 16 + w2 * w3 * 9 / 64
     body = 2 * config.blocks * w3 * w3 * 9 / 64
     dec = w3 * w2 / 64 + w2 * w2 * 9 / 16 + w2 * w1 / 16 + w1 * w1 * 9 / 4 + w1 * w0 / 4 + w0 * w0 * 9
-    return (head + enc + body + dec + w0 * OUTPUTS * cells * stem * 9) / stem / cells
+    tail = w0 * OUTPUTS * cells * stem * 9
+    pixel_tail = (OUTPUTS + INPUTS + RECURRENT + OUTPUTS) * config.pixel_tail * cells * stem
+    return (head + enc + body + dec + tail + pixel_tail) / stem / cells
 
 
 def upsampled_inputs(inputs: torch.Tensor, factor: int) -> torch.Tensor:
@@ -373,6 +385,12 @@ class ReconNet(nn.Module):
         if config.geometry_gate:  # per rays per pixel, its geometry corrections' logit over GATE_RATE
             self.register_parameter(GATE_PARAMETER,
                                     nn.Parameter(torch.full((config.max_spp,), GATE_LOGIT_INIT / GATE_RATE)))
+        if config.pixel_tail:  # the tail's correction, the pixel's inputs and its previous mask and AO in
+            mlp = nn.Sequential(nn.Conv2d(OUTPUTS + INPUTS + RECURRENT, config.pixel_tail, 1), nn.ReLU(),
+                                nn.Conv2d(config.pixel_tail, OUTPUTS, 1))
+            nn.init.zeros_(mlp[2].weight)
+            nn.init.zeros_(mlp[2].bias)
+            self.add_module(PIXEL_TAIL, mlp)
 
     def forward(self, inputs: torch.Tensor, prev_warped: torch.Tensor, ray_factor: float = 1.0) -> torch.Tensor:
         """``ray_factor``: the rays behind the sampled AO's mean per ray the sampling channels count (> 1 for
@@ -395,8 +413,8 @@ class ReconNet(nn.Module):
         for i in reversed(range(LEVELS)):
             y = F.interpolate(self.reduce[i](y), scale_factor=2, mode="bilinear", align_corners=False)
             y = F.relu(self.fuse[i](F.relu(y + skips[i])))
-        raw = self.to_output_pixels(self.tail(y), h, w)
         base = upsampled_inputs(inputs, s)
+        raw = self.correction(self.to_output_pixels(self.tail(y), h, w), base, recurrent)
         gate = 1.0 if self.gate_logits is None else geometry_gate(self.gate_logits, inputs, self.config)
         mask = (base[:, MASK] + gate * raw[:, MASK]).clamp(0.0, 1.0)
         normal = base[:, NORMAL] + gate * raw[:, NORMAL]
@@ -407,6 +425,17 @@ class ReconNet(nn.Module):
                        ray_factor)
         # Depth passes through: the render found it (shading does not read it).
         return torch.cat([mask, normal, base[:, DEPTH], ao], dim=1)
+
+    def correction(self, raw: torch.Tensor, base: torch.Tensor, recurrent: torch.Tensor) -> torch.Tensor:
+        """The tail's per-pixel correction ``raw``, plus a ``pixel_tail`` model's MLP of it, the inputs at the
+        output's resolution ``base`` and the previous output's mask and AO ``recurrent`` (as it is otherwise).
+
+        Shape:
+            raw: (B, 6, sH, sW). base: (B, 8, sH, sW). recurrent: (B, 2, sH, sW). Returns (B, 6, sH, sW).
+        """
+        if not self.config.pixel_tail:
+            return raw
+        return raw + self.pixel_tail(torch.cat([raw, base.to(raw.dtype), recurrent.to(raw.dtype)], dim=1))
 
     def to_output_pixels(self, raw: torch.Tensor, h: int, w: int) -> torch.Tensor:
         """The first level's per-pixel outputs (``config.cell_side`` squared per channel, depth-to-space) at the

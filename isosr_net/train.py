@@ -177,15 +177,16 @@ def narrowed_config(weights, config):
 
 def start_configs(config) -> list:
     """The weights' configs (:func:`weights_config`) a run of model ``config`` may start from (``init``), its own
-    first: a blend ReconNet also from one over the rays, one with gates, a map or a variance blend also from one
-    without (:meth:`Trainer._init_from`; with the weights' widths cut first, :func:`narrowed_config`)."""
+    first: a blend ReconNet also from one over the rays, one with gates, a map, a variance blend or a pixel tail
+    also from one without (:meth:`Trainer._init_from`; with the weights' widths cut first, :func:`narrowed_config`)."""
     config = weights_config(config)
     if not isinstance(config, ReconNetConfig):
         return [config]
     priors = [config.ao_prior] + (["rays"] if config.ao_prior == "blend" else [])
-    return [replace(config, ao_prior=p, geometry_gate=g, blend_map=m, blend_variance=v) for p in priors
-            for g in dict.fromkeys((config.geometry_gate, False)) for m in dict.fromkeys((config.blend_map, False))
-            for v in dict.fromkeys((config.blend_variance, False)) if p == "blend" or not (m or v)]
+    return [replace(config, ao_prior=p, geometry_gate=g, blend_map=m, blend_variance=v, pixel_tail=t)
+            for p in priors for g in dict.fromkeys((config.geometry_gate, False))
+            for m in dict.fromkeys((config.blend_map, False)) for v in dict.fromkeys((config.blend_variance, False))
+            for t in dict.fromkeys((config.pixel_tail, 0)) if p == "blend" or not (m or v)]
 
 
 class Trainer:
@@ -325,9 +326,9 @@ class Trainer:
     def _init_from(self, folder: str) -> None:
         """Load the weights of the model folder ``folder`` (ValueError: a model of a config it cannot start
         from). A ReconNet that blends its AO with the rays' (``ao_prior="blend"``) starts from one that
-        corrects them (``"rays"``), one with a ``geometry_gate``, a ``blend_map`` or ``blend_variance`` from one
-        without: the same weights, its blend at :data:`~isosr_net.reconnet.BLEND_RAYS_INIT` rays, its gates and map
-        at their start; with any ``blend_beyond`` (it has no weights). A ReconNet narrower at some levels starts
+        corrects them (``"rays"``), one with a ``geometry_gate``, a ``blend_map``, ``blend_variance`` or a
+        ``pixel_tail`` from one without: the same weights, its blend at :data:`~isosr_net.reconnet.BLEND_RAYS_INIT`
+        rays, its gates, map and pixel tail at their start; with any ``blend_beyond`` (it has no weights). A ReconNet narrower at some levels starts
         from one wider there: each level's first channels (:func:`narrowed`)."""
         model, _ = load_pretrained(folder, self.device)
         config, weights = weights_config(self.net.config), weights_config(model.config)

@@ -15,7 +15,8 @@
 # DATA names another run's data (configs/datagen_$DATA.json into data/$DATA) for a run that shares it, as its train
 # config's "data" says: RUN=recon_stem DATA=recon_4k (the stem of stride 2, issue 49 item 3, trained from scratch) or
 # RUN=recon_stem_distil DATA=recon_4k (the same distilled from the shipped model at batch 32: checkpoints/recon_stem)
-# or RUN=recon_stem_geometry DATA=recon_4k (checkpoints/recon_stem/best fine-tuned with its gates held open).
+# or RUN=recon_stem_geometry DATA=recon_4k (checkpoints/recon_stem/best fine-tuned with its gates held open:
+# checkpoints/recon_stem_geometry) or RUN=recon_stem_pixel DATA=recon_4k (that one fine-tuned with a pixel tail).
 # FROM_DIR: a previous run's OUT_DIR; training resumes from its last/ (the trainer resumes from
 # runs/$RUN/last) and keeps its best/ unless it does better. Data goes to data/$RUN and the run to
 # runs/$RUN (both git-ignored; the same config renders the same data again); the logs, last/ (the

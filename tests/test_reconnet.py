@@ -92,13 +92,15 @@ def test_mask_lies_in_the_unit_interval_and_ao_strictly_inside_it():
 
 
 @pytest.mark.parametrize("config", [{}, {"widths": (8, 12, 20, 24), "blocks": 3},
-                                    {"widths": (32, 32, 64, 64), "stem_stride": 2}])
+                                    {"widths": (32, 32, 64, 64), "stem_stride": 2},
+                                    {"widths": (32, 32, 64, 64), "stem_stride": 2, "pixel_tail": 16},
+                                    {"upscale": 2, "pixel_tail": 8}])
 def test_macs_per_pixel_counts_every_convolution(config):
     model = net(**config)
-    h, w = 32, 48  # multiples of 16: no padding
+    h, w, s = 32, 48, model.config.upscale  # multiples of 16: no padding
     with FlopCounterMode(display=False) as counter, torch.no_grad():
-        model(recon_batch(b=1, h=h, w=w), torch.zeros(1, 6, h, w))
-    assert counter.get_total_flops() / 2 / (h * w) == pytest.approx(macs_per_pixel(model.config), rel=1e-12)
+        model(recon_batch(b=1, h=h, w=w), torch.zeros(1, 6, h * s, w * s))
+    assert counter.get_total_flops() / 2 / (h * w * s * s) == pytest.approx(macs_per_pixel(model.config), rel=1e-12)
 
 
 def test_first_previous_from_the_inputs_takes_sampled_ao_where_rays_were_cast_else_the_mask():
@@ -149,6 +151,9 @@ def test_forward_checks_shapes():
     ({"stem_stride": True}, r"stem_stride must be one of \(1, 2\), got True"),
     ({"stem_stride": 2.0}, r"stem_stride must be one of \(1, 2\), got 2.0"),
     ({"stem_stride": 2, "upscale": 2}, "stem_stride 2 goes with upscale 1, got upscale 2"),
+    ({"pixel_tail": -1}, "pixel_tail must be an integer >= 0, got -1"),
+    ({"pixel_tail": True}, "pixel_tail must be an integer >= 0, got True"),
+    ({"pixel_tail": 8.0}, "pixel_tail must be an integer >= 0, got 8.0"),
 ])
 def test_config_rejects_bad_values(kwargs, match):
     with pytest.raises(ValueError, match=match):
@@ -166,6 +171,45 @@ def test_float32_matches_float64():
         single = model(inputs, prev)
         double = model.double()(inputs.double(), prev.double())
     torch.testing.assert_close(single.double(), double, rtol=0, atol=1e-5)
+
+
+def test_a_pixel_tail_starts_as_the_model_without_it_and_corrects_each_pixel_from_its_own_inputs():
+    """pixel_tail: zero at the start (the same output as the model it starts from); trained, a pixel's correction
+    moves with that pixel's inputs alone, and equals its MLP in float64."""
+    stem = net(seed=2, widths=(8, 8, 16, 16), stem_stride=2, ao_prior="blend", geometry_gate=True)
+    tailed = same_weights(stem, pixel_tail=8)
+    inputs, prev = recon_batch(h=13, w=21, seed=2), torch.rand(2, 6, 13, 21, generator=torch.Generator().manual_seed(2))
+    with torch.no_grad():
+        torch.testing.assert_close(tailed(inputs, prev), stem(inputs, prev), rtol=0, atol=0)
+        for p in tailed.pixel_tail.parameters():
+            p.copy_(torch.randn_like(p))
+    raw, rec = torch.randn(1, 6, 5, 7, dtype=torch.float64), torch.rand(1, 2, 5, 7, dtype=torch.float64)
+    base = recon_batch(b=1, h=5, w=7, seed=3).double()
+    tailed.double()
+    with torch.no_grad():
+        out = tailed.correction(raw, base, rec)
+        moved = base.clone()
+        moved[..., 2, 3] += 0.5
+        changed = (tailed.correction(raw, moved, rec) - out).abs().amax(dim=1)[0]
+    assert changed[2, 3] > 0 and changed.count_nonzero() == 1
+    w1, b1 = tailed.pixel_tail[0].weight[..., 0, 0], tailed.pixel_tail[0].bias
+    w2, b2 = tailed.pixel_tail[2].weight[..., 0, 0], tailed.pixel_tail[2].bias
+    x = torch.cat([raw, base, rec], dim=1)
+    hidden = torch.relu(torch.einsum("oc,bchw->bohw", w1, x) + b1.view(1, -1, 1, 1))
+    torch.testing.assert_close(out, raw + torch.einsum("oc,bchw->bohw", w2, hidden) + b2.view(1, -1, 1, 1))
+
+
+@pytest.mark.parametrize("ao_rays, spp", [(0, 1), (1, 1), (16, 4)])
+def test_a_pixel_tail_of_huge_weights_keeps_the_outputs_finite_and_in_range(ao_rays, spp):
+    model = net(seed=4, widths=(8, 8, 16, 16), stem_stride=2, ao_prior="blend", geometry_gate=True, pixel_tail=8,
+                max_ao_rays=16)
+    with torch.no_grad():
+        for p in model.pixel_tail.parameters():
+            p.copy_(torch.randn_like(p) * 1e3)
+        out = model(recon_batch(h=9, w=11, ao_rays=ao_rays, spp=spp, limits=RayLimits(16, 4)),
+                    torch.randn(2, 6, 9, 11) * 5.0)
+    assert torch.isfinite(out).all()
+    assert out[:, MASK].min() >= 0 and out[:, MASK].max() <= 1 and out[:, AO].min() >= 0 and out[:, AO].max() <= 1
 
 
 # ---------------------------------------------------------------- AO over the input rays
@@ -558,6 +602,21 @@ def test_the_shipped_models_keep_their_configs_and_their_ao_is_that_of_their_tai
     torch.testing.assert_close(out.ao, expected, rtol=0, atol=0)
     if prior == "none":
         torch.testing.assert_close(out.ao, torch.sigmoid(raws[0][0, AO][0]), rtol=0, atol=0)
+
+
+def test_a_pixel_tail_model_folder_reconstructs_on_pytorch_s_layers(sphere_frames, tmp_path):
+    """A saved stem with a (trained-looking) pixel tail loads, reconstructs rendered frames sanely, recurrent, and
+    is not given to the fused kernels, which have no pixel tail."""
+    model = net(seed=6, widths=(8, 8, 16, 16), stem_stride=2, ao_prior="blend", geometry_gate=True, pixel_tail=8)
+    with torch.no_grad():
+        for p in model.pixel_tail.parameters():
+            p.copy_(torch.randn_like(p) * 0.3)
+    save_pretrained(model, tmp_path / "tailed")
+    assert not Reconstructor.fuses(tmp_path / "tailed", "cuda", "fp16")
+    reconstructor = Reconstructor(tmp_path / "tailed")
+    assert reconstructor.net.config.pixel_tail == 8
+    for frame in sphere_frames[:2]:
+        assert_sane(reconstructor.reconstruct(frame, 2, 1), SIZE[1], SIZE[0])
 
 
 def test_a_blend_model_reconstructs_through_the_reconstructor_as_its_ao_output_says(sphere_frames, tmp_path):

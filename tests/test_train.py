@@ -329,7 +329,8 @@ def test_the_shipped_configs_load():
                                             ("train_recon_teacher_4k.json", "datagen_recon_4k_seed1.json"),
                                             ("train_recon_stem.json", "datagen_recon_4k.json"),
                                             ("train_recon_stem_distil.json", "datagen_recon_4k.json"),
-                                            ("train_recon_stem_geometry.json", "datagen_recon_4k.json")])
+                                            ("train_recon_stem_geometry.json", "datagen_recon_4k.json"),
+                                            ("train_recon_stem_pixel.json", "datagen_recon_4k.json")])
 def test_each_reconstruction_config_fits_its_data_config(train, datagen):
     root = Path(__file__).resolve().parents[1] / "configs"
     config, data = load_config(TrainConfig, root / train), load_config(DatagenConfig, root / datagen)
@@ -526,6 +527,21 @@ def test_closed_gates_reopen_and_hold_while_the_corrections_learn(tmp_path, tmp_
         trainer(wide, tmp_path / "other", model=plain, gates_open_until=2)
     with pytest.raises(ValueError, match="gates_open_until must be a step"):
         TrainConfig(data="d", out="o", gates_open_until=-1)
+
+
+def test_a_stem_fine_tunes_into_one_with_a_pixel_tail_from_its_own_output(tmp_path, tmp_path_factory):
+    """pixel_tail: a model with it starts from one without (its weights; the MLP's last layer zero, so the same
+    output) and trains the MLP with the rest."""
+    wide = tiny_wide_recon_data(tmp_path_factory)
+    stem, source = saved_wide_model(tmp_path / "stem", ao_prior="blend", geometry_gate=True, stem_stride=2)
+    t = trainer(wide, tmp_path / "run", steps=2, model={**stem, "pixel_tail": 8}, init=str(tmp_path / "stem"))
+    assert all(torch.equal(v, t.net.state_dict()[k]) for k, v in source.state_dict().items())
+    assert not t.net.pixel_tail[2].weight.any() and not t.net.pixel_tail[2].bias.any()
+    t.run(progress=False)
+    assert t.net.pixel_tail[2].weight.abs().max().item() > 0.1 * t.config.lr
+    back = {**stem, "pixel_tail": 0}
+    with pytest.raises(ValueError, match="init .* holds a model of another config"):  # no way back: it has more
+        trainer(wide, tmp_path / "back", model=back, init=str(tmp_path / "run" / "last"))
 
 
 def test_a_run_trains_the_parameters_it_names_alone(tmp_path, tmp_path_factory):

@@ -1,35 +1,34 @@
 #!/usr/bin/env bash
-# Issue 49 item 3: train the stem of stride 2 on, three ways side by side on one GPU, each resumed from
-# checkpoints/recon_stem/last (or from its own runs/NAME/last on a warm machine's later call):
-#   stem_a    the same recipe (batch 8): whether the gap to the shipped model closes with steps
-#   stem_kd   batch 8, also distilled from the shipped model (configs/train_recon_stem_distil.json; on a CPU it
-#             gained 1-1.5 dB of validation color at equal steps, docs/measurements.md)
-#   stem_kd32 the same at batch 32, validated as often in steps: whether the GPU (idle under one run of batch 8)
-#             trains faster
-# On the device, after recon_4k's data (isosr datagen configs/datagen_recon_4k.json -o data/recon_4k), from the
-# project root with scripts/gpu/env.sh sourced:  bash scripts/gpu/train_stems.sh MINUTES [STEPS]
-# Run on 2026-12-03 (benchmarks/results/train_stem_gpu_runs.json): stem_kd32 led, and checkpoints/recon_stem holds its
-# lineage since, so a run of this script now compares the three recipes from there.
-# Each run stops, validated and saved, after MINUTES; the cosine schedules run over STEPS (default 12000). The logs and
-# runs/*/{last,best} come back in $OUT (runs.tgz).
+# Issue 49 item 3: the stem's next two runs, side by side on one GPU (a run is bound by its host: two cost no speed):
+#   geo    checkpoints/recon_stem_geometry resumed (configs/train_recon_stem_geometry.json), its cosine schedule
+#          restarted over GEO_STEPS (default 9000): whether more steps win its AO back
+#   pixel  its best with a pixel tail of 16 (configs/train_recon_stem_pixel.json, over the config's 4000 steps):
+#          whether the geometry inside the stem's 2 x 2 cells closes the rest of its gap
+# On the device, from the project root with scripts/gpu/env.sh sourced:  bash scripts/gpu/train_stems.sh MINUTES
+# The first call renders recon_4k's data where data/recon_4k is missing (about 350 s on an H200) and trains for what
+# is left of MINUTES; later calls on the warm machine resume each run from its runs/NAME/last. The logs and
+# runs/*/{last,best} come back in $OUT (runs.tgz). (Until 2026-12-03 this script compared the stem's first three
+# recipes: benchmarks/results/train_stem_gpu_runs.json.)
 set -euo pipefail
-minutes=${1:?usage: train_stems.sh MINUTES [STEPS]}
-steps=${2:-12000}
-train() {
-    local name=$1; shift
-    if [ ! -d "runs/$name/last" ]; then
-        mkdir -p "runs/$name" && cp -r checkpoints/recon_stem/last checkpoints/recon_stem/best "runs/$name/"
-        chmod -R u+w "runs/$name"  # the carried tree's files are read-only
-    fi
-    python3 -m isosr_cli.main train "$@" --out "runs/$name" --steps "$steps" --time-limit-minutes "$minutes" \
-        > "$OUT/$name.log" 2>&1
-}
-train stem_a configs/train_recon_stem.json &
-train stem_kd configs/train_recon_stem_distil.json --batch-size 8 --validate-every 0 &
-train stem_kd32 configs/train_recon_stem_distil.json &
+minutes=${1:?usage: train_stems.sh MINUTES}
+start=$SECONDS
+isosr() { python3 -m isosr_cli.main "$@"; }
+if [ ! -f data/recon_4k/manifest.json ]; then
+    isosr datagen configs/datagen_recon_4k.json -o data/recon_4k > "$OUT/datagen.log" 2>&1
+    tail -1 "$OUT/datagen.log"
+fi
+left=$(python3 -c "print(round($minutes - ($SECONDS - $start) / 60, 2))")
+python3 -c "import sys; sys.exit(0 if $left >= 1 else 'under a minute left for training after the data')"
+if [ ! -d runs/recon_stem_geometry/last ]; then
+    mkdir -p runs/recon_stem_geometry && cp -r checkpoints/recon_stem_geometry/{last,best} runs/recon_stem_geometry/
+    chmod -R u+w runs/recon_stem_geometry  # the carried tree's files are read-only
+fi
+isosr train configs/train_recon_stem_geometry.json --steps "${GEO_STEPS:-9000}" --time-limit-minutes "$left" \
+    > "$OUT/geo.log" 2>&1 &
+isosr train configs/train_recon_stem_pixel.json --time-limit-minutes "$left" > "$OUT/pixel.log" 2>&1 &
 wait
-for name in stem_a stem_kd stem_kd32; do
-    echo "$name: $(grep -a -m1 'resuming from' "$OUT/$name.log" || true)"
+for name in geo pixel; do
+    echo "$name:"
     tr '\r' '\n' < "$OUT/$name.log" | grep -a '^step \|"steps"\|"train_s"\|Error' | tail -4 | cut -c1-150 || true
 done
-tar czf "$OUT/runs.tgz" runs/stem_*/last runs/stem_*/best
+tar czf "$OUT/runs.tgz" $(ls -d runs/recon_stem_geometry/{last,best} runs/recon_stem_pixel/{last,best} 2>/dev/null)
