@@ -4,8 +4,9 @@
 #   bash scripts/measure_item4.sh datagen           # v6's data anew (seed 1): 325-393 s on an H200
 #   bash scripts/measure_item4.sh train             # recon_model_v7 fine-tuned whole, held to it (MINUTES, 7)
 #   bash scripts/measure_item4.sh bench SCENE...    # e.g. hydrogen:1080p chest_lidc:4k: beside the shipped model
-# bench measures the run's best/ as "held" (and MODELS, NAME=FOLDER,..., e.g. v6=isosr_net/recon_model_v6) at 1 and 4
-# rays a pixel and 1-64 AO rays (SPP, AO override): 40-190 s a scene on an H200 (SPP=1 AO=1,2,4: 25-90 s). The item's
+# bench measures the run's best/ as "held" (or as $NAME; RUN may be any folder with a best/, e.g.
+# checkpoints/recon_stem_cpu) and MODELS (LABEL=FOLDER,..., e.g. v6=isosr_net/recon_model_v6) at 1 and 4 rays a
+# pixel and 1-64 AO rays (SPP, AO override): 40-190 s a scene on an H200 (SPP=1 AO=1,2,4: 25-90 s). The item's
 # filters (SVGF, OIDN) need not run again: with MODELS=v7=isosr_net/recon_model_v7 its rows repeat the "recon" rows of
 # benchmarks/results/pareto_filters_v6_cuda.json, whose SVGF and OIDN rows are then those frames'. Results land in $OUT
 # (default /tmp/item4_out).
@@ -28,7 +29,7 @@ case "${1:?step: datagen, train or bench SCENE...}" in
         mkdir -p "$OUT/best" && cp -r "$RUN/best/." "$OUT/best/" ;;
     bench)
         shift
-        models="held=$RUN/best"
+        models="${NAME:-held}=$RUN/best"
         if [ -n "${NARROWS_PAST:-}" ]; then
             copy=/tmp/held$NARROWS_PAST && rm -rf "$copy" && cp -r "$RUN/best" "$copy"
             python3 -c 'import json, sys; p = sys.argv[1] + "/config.json"; c = json.load(open(p))
