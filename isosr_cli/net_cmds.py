@@ -83,8 +83,9 @@ def run_train(args: argparse.Namespace) -> int:
     from isosr_net.train import Trainer, TrainConfig
 
     config = load_config(TrainConfig, args.config, data=args.data, out=args.out, steps=args.steps, seed=args.seed,
-                         batch_size=args.batch_size, lr=args.lr, device=args.device, time_limit_minutes=args.time_limit_minutes,
-                         validate_every=args.validate_every, compile=args.compile)
+                         batch_size=args.batch_size, lr=args.lr, device=args.device,
+                         time_limit_minutes=args.time_limit_minutes, validate_every=args.validate_every,
+                         compile=args.compile)
     if args.upscale is not None:
         config = dataclasses.replace(config, model={**config.model, "upscale": args.upscale})
     trainer = Trainer(config)

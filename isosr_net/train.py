@@ -328,8 +328,8 @@ class Trainer:
         from). A ReconNet that blends its AO with the rays' (``ao_prior="blend"``) starts from one that
         corrects them (``"rays"``), one with a ``geometry_gate``, a ``blend_map``, ``blend_variance`` or a
         ``pixel_tail`` from one without: the same weights, its blend at :data:`~isosr_net.reconnet.BLEND_RAYS_INIT`
-        rays, its gates, map and pixel tail at their start; with any ``blend_beyond`` (it has no weights). A ReconNet narrower at some levels starts
-        from one wider there: each level's first channels (:func:`narrowed`)."""
+        rays, its gates, map and pixel tail at their start; with any ``blend_beyond`` (it has no weights). A
+        ReconNet narrower at some levels starts from one wider there: each level's first channels (:func:`narrowed`)."""
         model, _ = load_pretrained(folder, self.device)
         config, weights = weights_config(self.net.config), weights_config(model.config)
         cut = narrowed_config(weights, config)

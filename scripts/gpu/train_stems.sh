@@ -17,8 +17,8 @@ if [ ! -f data/recon_4k/manifest.json ]; then
     isosr datagen configs/datagen_recon_4k.json -o data/recon_4k > "$OUT/datagen.log" 2>&1
     tail -1 "$OUT/datagen.log"
 fi
-left=$(python3 -c "print(round($minutes - ($SECONDS - $start) / 60, 2))")
-python3 -c "import sys; sys.exit(0 if $left >= 1 else 'under a minute left for training after the data')"
+left=$(python3 -c "left = $minutes - ($SECONDS - $start) / 60
+print(round(left, 2)) if left >= 1 else exit('under a minute left for training after the data')")
 if [ ! -d runs/recon_stem_geometry/last ]; then
     mkdir -p runs/recon_stem_geometry && cp -r checkpoints/recon_stem_geometry/{last,best} runs/recon_stem_geometry/
     chmod -R u+w runs/recon_stem_geometry  # the carried tree's files are read-only
