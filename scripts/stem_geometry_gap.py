@@ -1,13 +1,15 @@
 """Where a reconstruction model's color error lives against the shipped model's, on one real frame (issue 49 item 3).
 
-The first frame of the Pareto study's orbit (640x360, 1 AO ray, 1 ray per pixel, no history) from the shipped x1
-model, each model named and the plain render; each model's mask, normals and AO scored against the reference, and its
-color reshaded with the shipped model's mask, normals or AO in place of its own (scene-region dB, as the study's)::
+The first frame of the Pareto study's orbit (640x360 unless --size, 1 AO ray, 1 ray per pixel unless --spp, no
+history; --frames N: its first N frames as one sequence, each frame's scores, the rest of the last) from the shipped
+x1 model, each model named and the plain render; each model's mask, normals and AO scored against the reference, and
+its color reshaded with the shipped model's mask, normals or AO in place of its own (scene-region dB, as the
+study's)::
 
-    python scripts/stem_geometry_gap.py ct_pitch stem=checkpoints/recon_stem/best
+    python scripts/stem_geometry_gap.py ct_pitch stem=checkpoints/recon_stem/best [--size 1280x720 --spp 4 --frames 8]
 """
 
-import sys
+import argparse
 from dataclasses import replace
 from pathlib import Path
 
@@ -17,20 +19,24 @@ from isosr_net.methods import Networks, make_runner, run_sequence
 from isosr_render import Renderer
 from isosr_render.shading import shade
 
-SIZE = (640, 360)
-
-
-def main(volume_name: str, models: dict[str, Path]) -> None:
+def main(volume_name: str, models: dict[str, Path], size: tuple[int, int] = (640, 360), spp: int = 1,
+         count: int = 1) -> None:
     volume, iso = load(volume_name, "cpu")
     renderer = Renderer(volume, "cpu")
-    camera = bench_cameras(8)[:1]
-    ref = reference_frames(renderer, iso, SIZE, camera, flow=True)[0]
+    cameras = bench_cameras(max(8, count))[:count]
+    refs = reference_frames(renderer, iso, size, cameras, flow=True)
+    ref = refs[-1]
     named = {"shipped": SHIPPED_MODELS["recon"], **models}
     chosen = [m for m in methods(False, "cpu", named) if m.kind in ("reconstruct", "full") and m.ao_rays == 1
-              and m.spp == 1 and m.factor == 1]
+              and m.spp == spp and m.factor == 1]
     networks = Networks()
-    frames = {m.name: run_sequence(make_runner(m, renderer, iso, *SIZE, networks=networks), camera)[0]
-              for m in chosen}
+    sequences = {m.name: run_sequence(make_runner(m, renderer, iso, *size, networks=networks), cameras)
+                 for m in chosen}
+    for name, sequence in sequences.items():
+        if count > 1:
+            print(f"{name}, frame by frame: " + ", ".join(
+                f"{scores([f], [r], ao_rays=1)['color_psnr_scene']:.2f}" for f, r in zip(sequence, refs)) + " dB")
+    frames = {name: sequence[-1] for name, sequence in sequences.items()}
 
     def scored(f) -> dict:  # the Pareto study's scores of one frame (color: its scene region's dB)
         return scores([f], [ref], ao_rays=1)
@@ -50,4 +56,13 @@ def main(volume_name: str, models: dict[str, Path]) -> None:
                 print(f"  with the shipped model's {swap}: {reshaded['color_psnr_scene']:.2f} dB")
 
 if __name__ == "__main__":
-    main(sys.argv[1], {name: Path(folder) for name, folder in (a.split("=") for a in sys.argv[2:])})
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("volume")
+    parser.add_argument("models", nargs="+", help="NAME=FOLDER of a model folder")
+    parser.add_argument("--size", default="640x360", help="WIDTHxHEIGHT (default: %(default)s)")
+    parser.add_argument("--spp", type=int, default=1, help="rays per pixel (default: %(default)s)")
+    parser.add_argument("--frames", type=int, default=1, help="the orbit's first frames, as one sequence")
+    args = parser.parse_args()
+    width, height = (int(n) for n in args.size.split("x"))
+    main(args.volume, {name: Path(folder) for name, folder in (a.split("=", 1) for a in args.models)},
+         (width, height), args.spp, args.frames)

@@ -3,7 +3,8 @@
 #   geo    checkpoints/recon_stem_geometry resumed (configs/train_recon_stem_geometry.json), its cosine schedule
 #          restarted over GEO_STEPS (default 9000): whether more steps win its AO back
 #   pixel  its best with a pixel tail of 16 (configs/train_recon_stem_pixel.json, over the config's 4000 steps):
-#          whether the geometry inside the stem's 2 x 2 cells closes the rest of its gap
+#          whether a path from each pixel's own previous AO closes the rest of its gap (the AO along a sequence:
+#          docs/measurements.md, "Where the stem loses at 4 rays a pixel")
 # On the device, from the project root with scripts/gpu/env.sh sourced:  bash scripts/gpu/train_stems.sh MINUTES
 # The first call renders recon_4k's data where data/recon_4k is missing (about 350 s on an H200) and trains for what
 # is left of MINUTES; later calls on the warm machine resume each run from its runs/NAME/last. The logs and
