@@ -25,8 +25,9 @@ at about 30 GMAC (:func:`macs_per_pixel`). With ``stem_stride=2`` no layer runs 
 resolution: the head is a stride-2 convolution of the full-resolution inputs and the tail writes
 each half-resolution feature pixel's 2 x 2 output pixels (depth-to-space), so every level sits one
 halving lower (1/2 .. 1/16) while the output still corrects every input pixel. What the coarse tail cannot
-tell apart inside its 2 x 2 cells (which of them a silhouette crosses), ``pixel_tail`` adds back: a per-pixel
-MLP at the output's resolution reads the tail's correction with the pixel's own inputs and corrects it.
+tell apart inside its 2 x 2 cells (which of them a silhouette crosses, each pixel's own previous AO), ``pixel_tail``
+adds back: a per-pixel MLP at the output's resolution reads the tail's correction with the pixel's own inputs and
+previous mask and AO, and corrects it.
 """
 
 from __future__ import annotations
@@ -156,8 +157,9 @@ class ReconNetConfig:
             that no layer runs at the input's resolution (the levels at 1/2 .. 1/16; with upscale 1 only).
         pixel_tail: the hidden width of a per-pixel MLP at the output's resolution (0: none) that reads the
             tail's correction with the pixel's own inputs (upsampled) and its previous mask and AO, and adds its
-            own: the detail inside a stem's 2 x 2 cells. Its last layer starts at zero, so a model without it
-            fine-tunes into one with it from the same output (:meth:`ReconNet.correction`).
+            own: the detail inside a stem's 2 x 2 cells (on real sequences, mostly the pixel's previous AO). Its
+            last layer starts at zero, so a model without it fine-tunes into one with it from the same output
+            (:meth:`ReconNet.correction`).
     """
 
     type: str = "ReconNet"

@@ -19,6 +19,7 @@ from isosr_net.methods import Networks, make_runner, run_sequence
 from isosr_render import Renderer
 from isosr_render.shading import shade
 
+
 def main(volume_name: str, models: dict[str, Path], size: tuple[int, int] = (640, 360), spp: int = 1,
          count: int = 1) -> None:
     volume, iso = load(volume_name, "cpu")
@@ -32,14 +33,15 @@ def main(volume_name: str, models: dict[str, Path], size: tuple[int, int] = (640
     networks = Networks()
     sequences = {m.name: run_sequence(make_runner(m, renderer, iso, *size, networks=networks), cameras)
                  for m in chosen}
-    for name, sequence in sequences.items():
-        if count > 1:
-            print(f"{name}, frame by frame: " + ", ".join(
-                f"{scores([f], [r], ao_rays=1)['color_psnr_scene']:.2f}" for f, r in zip(sequence, refs)) + " dB")
-    frames = {name: sequence[-1] for name, sequence in sequences.items()}
 
-    def scored(f) -> dict:  # the Pareto study's scores of one frame (color: its scene region's dB)
-        return scores([f], [ref], ao_rays=1)
+    def scored(f, r=ref) -> dict:  # the Pareto study's scores of one frame (color: its scene region's dB)
+        return scores([f], [r], ao_rays=1)
+
+    if count > 1:
+        for name, sequence in sequences.items():
+            print(f"{name}, frame by frame: " + ", ".join(
+                f"{scored(f, r)['color_psnr_scene']:.2f}" for f, r in zip(sequence, refs)) + " dB")
+    frames = {name: sequence[-1] for name, sequence in sequences.items()}
 
     shipped = next(f for name, f in frames.items() if "shipped" in name)
     for name, f in frames.items():
@@ -63,6 +65,11 @@ if __name__ == "__main__":
     parser.add_argument("--spp", type=int, default=1, help="rays per pixel (default: %(default)s)")
     parser.add_argument("--frames", type=int, default=1, help="the orbit's first frames, as one sequence")
     args = parser.parse_args()
-    width, height = (int(n) for n in args.size.split("x"))
+    if args.frames < 1 or args.spp < 1:
+        parser.error("--frames and --spp must be at least 1")
+    try:
+        width, height = (int(n) for n in args.size.split("x"))
+    except ValueError:
+        parser.error(f"--size must be WIDTHxHEIGHT, got {args.size!r}")
     main(args.volume, {name: Path(folder) for name, folder in (a.split("=", 1) for a in args.models)},
          (width, height), args.spp, args.frames)
