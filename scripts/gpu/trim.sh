@@ -7,7 +7,8 @@
 set -euo pipefail
 cd "$(git rev-parse --show-toplevel)"
 parked=(checkpoints/recon_4k checkpoints/recon_blend checkpoints/recon_gates checkpoints/recon_shipped_gates
-        checkpoints/recon_psnr_control benchmarks docs examples deploy isosr_net/recon_model_v1 isosr_net/recon_model_v2
+        checkpoints/recon_psnr_control checkpoints/recon_stem checkpoints/recon_stem_cpu checkpoints/recon_stem_pixel_cpu
+        checkpoints/recon_stem_notail benchmarks docs examples deploy isosr_net/recon_model_v1 isosr_net/recon_model_v2
         isosr_net/recon_model_v3 isosr_net/recon_model_v5 isosr_net/recon_model_v6)
 case "${1:?out or back}" in
     out) for p in "${parked[@]}"; do  # a path parked already would be moved into it, and come back nested
