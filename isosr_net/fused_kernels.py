@@ -19,14 +19,15 @@ Four kinds of pass do all of ReconNet's work (:mod:`isosr_net.fused_recon` runs 
   times as long on an H100 at 4K (1.40 ms against 0.30 + 0.50 with this pass); the reduction as a second
   ``tl.dot`` in the coarser convolution's epilogue came out wrong from Triton 3.6 on an H100
   with 4 warps (64 channels), so it is here.
-- :func:`recon_tail`: the 3x3 output convolution (6 channels, computed as 16; x2 and a stem of
-  stride 2: 24 as 32, written depth-to-space) + bias and ReconNet's output over its inputs (x2: upsampled,
-  :func:`~isosr_net.reconnet.upsampled_inputs`): mask ``clamp(in + raw, 0, 1)``, normal
-  ``in + raw``, depth passed through, AO ``sigmoid(raw)`` or, for a model over the input rays,
-  ``sigmoid(logit(p) + raw)`` (:func:`isosr_net.reconnet.ao_output`), written as the (B, 6, sH, sW)
-  fp32 stack, cropped to the
-  frame; or as the output buffers' stack (:func:`isosr_net.inference.buffer_stack`) and shaded
-  (:func:`isosr_render.shading.shade`), the frame's last work, in the same pass.
+- :func:`recon_tail`: the 3x3 output convolution (6 channels, computed as 16; x2 and a stem of stride 2:
+  24 as 32, written depth-to-space) + bias and ReconNet's output over its inputs (x2: upsampled,
+  :func:`~isosr_net.reconnet.upsampled_inputs`): mask ``clamp(in + raw, 0, 1)``, normal ``in + raw``,
+  depth passed through, AO ``sigmoid(raw)`` or, for a model over the input rays, ``sigmoid(logit(p) +
+  raw)`` (:func:`isosr_net.reconnet.ao_output`), ``raw`` first corrected by a ``pixel_tail`` model's
+  per-pixel MLP (:class:`PixelTail`, reading the pack's channels of the pixel), written as the (B, 6,
+  sH, sW) fp32 stack, cropped to the frame; or as the output buffers' stack
+  (:func:`isosr_net.inference.buffer_stack`) and shaded (:func:`isosr_render.shading.shade`), the
+  frame's last work, in the same pass.
 
 Tensors store their own channels; a tile holds :func:`kernel_width` of them (a power of 2, at least
 16: ``tl.dot``'s smallest K and N), the loads and stores masked past the stored ones and the weights
@@ -321,14 +322,14 @@ def _upsample_add_kernel(x_ptr, c_ptr, rw_ptr, rb_ptr, out_ptr, hp, wp, hc, wc, 
 @triton.jit
 def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, sn_b, sn_c, sn_h, sn_w,
                  d_ptr, sd_b, sd_c, sd_h, sd_w, a_ptr, sa_b, sa_c, sa_h, sa_w, s_ptr, ss_b, ss_c, ss_h, ss_w,
-                 out_ptr, color_ptr, g_ptr, h, w, gh, gw, hp, wp, size_class, ray_scale, blend_rays, ray_factor, z,
-                 z_past,
+                 out_ptr, color_ptr, g_ptr, p_ptr, t1r_ptr, t1p_ptr, t1b_ptr, t2_ptr, t2b_ptr,
+                 h, w, gh, gw, hp, wp, size_class, ray_scale, blend_rays, ray_factor, z, z_past,
                  albedo_r, albedo_g, albedo_b, ambient,
                  diffuse, specular, shininess, light_x, light_y, light_z, half_x, half_y, half_z, back_r, back_g, back_b,
                  MASK_C: tl.constexpr, NORMAL_C: tl.constexpr, DEPTH_C: tl.constexpr, AO_C: tl.constexpr,
                  AO_PRIOR: tl.constexpr, BLEND: tl.constexpr, BLEND_MAP: tl.constexpr, BLEND_VARIANCE: tl.constexpr,
-                 INTERVAL: tl.constexpr, GATED: tl.constexpr,
-                 MAX_SPP: tl.constexpr,
+                 INTERVAL: tl.constexpr, GATED: tl.constexpr, PIXEL_TAIL: tl.constexpr, HID: tl.constexpr,
+                 PC: tl.constexpr, MAX_SPP: tl.constexpr,
                  HAS_AO: tl.constexpr, BUFFERS: tl.constexpr,
                  SHADE: tl.constexpr, OUT: tl.constexpr, S: tl.constexpr, UP: tl.constexpr, CI: tl.constexpr,
                  CIP: tl.constexpr, CO: tl.constexpr, BLOCK_M: tl.constexpr):
@@ -357,20 +358,40 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, s
         xx = x * S + cell % S
         at = yy * (UP * w) + xx
         here = valid & (yy < UP * h) & (xx < UP * w)  # a stem's cells past an odd side: none
-        mask = (_base_plane(m_ptr, sm_b, sm_h, sm_w, b, yy, xx, h, w, here, UP)
-                + gate * _column(raw, c, MASK_C * S * S + cell))
+        raw_mask = _column(raw, c, MASK_C * S * S + cell)
+        raw_nx = _column(raw, c, NORMAL_C * S * S + cell)
+        raw_ny = _column(raw, c, (NORMAL_C + 1) * S * S + cell)
+        raw_nz = _column(raw, c, (NORMAL_C + 2) * S * S + cell)
+        raw_ao = _column(raw, c, AO_C * S * S + cell)
+        if PIXEL_TAIL:  # ReconNet.correction: the MLP of the raw outputs and the pixel's packed channels (UP 1)
+            j = tl.arange(0, PC)
+            hid = tl.arange(0, HID)
+            at_packed = (b * hp * S + yy) * wp * S + xx  # the pack's pixels: S x S a feature pixel's
+            row = tl.load(p_ptr + at_packed[:, None] * PC + j[None, :], mask=here[:, None], other=0.0)
+            hidden = tl.dot(row, tl.load(t1p_ptr + j[:, None] * HID + hid[None, :])) + tl.load(t1b_ptr + hid)[None, :]
+            raw_depth = _column(raw, c, DEPTH_C * S * S + cell)
+            hidden += raw_mask[:, None] * tl.load(t1r_ptr + MASK_C * HID + hid)[None, :]
+            hidden += raw_nx[:, None] * tl.load(t1r_ptr + NORMAL_C * HID + hid)[None, :]
+            hidden += raw_ny[:, None] * tl.load(t1r_ptr + (NORMAL_C + 1) * HID + hid)[None, :]
+            hidden += raw_nz[:, None] * tl.load(t1r_ptr + (NORMAL_C + 2) * HID + hid)[None, :]
+            hidden += raw_depth[:, None] * tl.load(t1r_ptr + DEPTH_C * HID + hid)[None, :]
+            hidden += raw_ao[:, None] * tl.load(t1r_ptr + AO_C * HID + hid)[None, :]
+            hidden = tl.maximum(hidden, 0.0).to(tl.float16)
+            corr = tl.dot(hidden, tl.load(t2_ptr + hid[:, None] * PC + j[None, :])) + tl.load(t2b_ptr + j)[None, :]
+            raw_mask += _column(corr, j[None, :], MASK_C)
+            raw_nx += _column(corr, j[None, :], NORMAL_C)
+            raw_ny += _column(corr, j[None, :], NORMAL_C + 1)
+            raw_nz += _column(corr, j[None, :], NORMAL_C + 2)
+            raw_ao += _column(corr, j[None, :], AO_C)
+        mask = _base_plane(m_ptr, sm_b, sm_h, sm_w, b, yy, xx, h, w, here, UP) + gate * raw_mask
         mask = tl.minimum(tl.maximum(mask, 0.0), 1.0)
-        nx = (_base_plane(n_ptr, sn_b, sn_h, sn_w, b, yy, xx, h, w, here, UP)
-              + gate * _column(raw, c, NORMAL_C * S * S + cell))
-        ny = (_base_plane(n_ptr + sn_c, sn_b, sn_h, sn_w, b, yy, xx, h, w, here, UP)
-              + gate * _column(raw, c, (NORMAL_C + 1) * S * S + cell))
-        nz = (_base_plane(n_ptr + 2 * sn_c, sn_b, sn_h, sn_w, b, yy, xx, h, w, here, UP)
-              + gate * _column(raw, c, (NORMAL_C + 2) * S * S + cell))
+        nx = _base_plane(n_ptr, sn_b, sn_h, sn_w, b, yy, xx, h, w, here, UP) + gate * raw_nx
+        ny = _base_plane(n_ptr + sn_c, sn_b, sn_h, sn_w, b, yy, xx, h, w, here, UP) + gate * raw_ny
+        nz = _base_plane(n_ptr + 2 * sn_c, sn_b, sn_h, sn_w, b, yy, xx, h, w, here, UP) + gate * raw_nz
         if S == UP:
             depth = depth_in
         else:  # a stem's cells are input pixels
             depth = _plane(d_ptr, sd_b, sd_h, sd_w, b, yy, xx, here)
-        raw_ao = _column(raw, c, AO_C * S * S + cell)
         ao = tl.sigmoid(raw_ao)
         if AO_PRIOR:  # sigmoid(logit(p) + raw) = p / (p + (1 - p) exp(-raw)), p in (0, 1)
             rays = tl.zeros((BLOCK_M,), dtype=tl.float32)
@@ -382,8 +403,8 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, s
             ao = tl.minimum(p / (p + (1.0 - p) * tl.exp(-raw_ao)), 1.0)  # fast division: p / p can pass 1
             if BLEND:  # the rays' mean and the network's AO by the rays each stands for (ao_output)
                 k = blend_rays
-                if BLEND_MAP:  # its per-pixel log-offset, in the depth rows (fused_recon.tail_convolution)
-                    k = blend_rays * tl.exp(_column(raw, c, DEPTH_C * S * S + cell))
+                if BLEND_MAP:  # its per-pixel log-offset, in the rows past the outputs (fused_recon.tail_convolution)
+                    k = blend_rays * tl.exp(_column(raw, c, OUT * S * S + cell))
                 if BLEND_VARIANCE:  # the mean's variance per ray over its largest: rays that agree outweigh the net
                     k = k * 4.0 * p * (1.0 - p)
                 weight = n / tl.maximum(n + k, 1e-12)  # an infinite k: the network's AO alone
@@ -528,6 +549,44 @@ class ReconSources:
         return self.mask, self.normal, self.depth, self.mask if self.ao is None else self.ao, self.sampling
 
 
+@dataclass(frozen=True)
+class PixelTail:
+    """A ``pixel_tail`` model's per-pixel MLP (:meth:`~isosr_net.reconnet.ReconNet.correction`) as
+    :func:`recon_tail` reads it: its first layer's columns of the raw outputs (``raw``) and of the packed
+    channels (``packed``: the inputs and the previous mask and AO, as :func:`pack_inputs` orders them), its
+    hidden units padded to a tile with zeros.
+
+    Shape:
+        raw: (6, HID) fp32. packed: (16, HID) fp16, 10 rows used. bias: (HID,) fp32. out: (HID, 16) fp16,
+        6 columns used. out_bias: (16,) fp32. HID: :func:`kernel_width` of the hidden units.
+    """
+
+    raw: torch.Tensor
+    packed: torch.Tensor
+    bias: torch.Tensor
+    out: torch.Tensor
+    out_bias: torch.Tensor
+
+    def check(self, device: torch.device, where: str) -> int:
+        """Check the shapes, dtypes and device; returns HID."""
+        hid = self.bias.shape[0] if self.bias.dim() == 1 else -1
+        expected = {"raw": ((OUTPUTS, hid), torch.float32), "packed": ((PACKED, hid), torch.float16),
+                    "bias": ((hid,), torch.float32), "out": ((hid, PACKED), torch.float16),
+                    "out_bias": ((PACKED,), torch.float32)}
+        for name, (shape, dtype) in expected.items():
+            t = getattr(self, name)
+            if (tuple(t.shape), t.dtype, t.device) != (shape, dtype, device) or not t.is_contiguous():
+                raise ValueError(f"{where}: the pixel tail's {name} must be a contiguous {dtype} {shape} tensor on "
+                                 f"{device}, got {t.dtype} {tuple(t.shape)} on {t.device}")
+        if hid != kernel_width(hid) or hid > MAX_KERNEL_WIDTH:
+            raise ValueError(f"{where}: the pixel tail's hidden units must be padded to a tile of at most "
+                             f"{MAX_KERNEL_WIDTH}, got {hid}")
+        return hid
+
+    def args(self) -> list[torch.Tensor]:
+        return [self.raw, self.packed, self.bias, self.out, self.out_bias]
+
+
 _CHANNELS = dict(MASK_C=MASK.start, NORMAL_C=NORMAL.start, DEPTH_C=DEPTH.start, AO_C=SAMPLED_AO.start,
                  SAMPLING_C=SAMPLING.start)
 
@@ -658,7 +717,8 @@ def upsample_add(x: torch.Tensor, coarse: torch.Tensor, weight: torch.Tensor, bi
 def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, sources: ReconSources,
                config: ReconNetConfig, as_buffers: bool = False, shading: ShadingParams | None = None,
                out: torch.Tensor | None = None, blend_rays: float | None = None,
-               gates: torch.Tensor | None = None, ray_factor: float = 1.0) -> tuple[torch.Tensor, torch.Tensor | None]:
+               gates: torch.Tensor | None = None, ray_factor: float = 1.0, packed: torch.Tensor | None = None,
+               pixel_tail: PixelTail | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
     """ReconNet's output convolution and output stack, cropped to the frame (and written
     depth-to-space at twice its sides for a model that upscales x2); as buffers and shaded where
     asked.
@@ -666,7 +726,7 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
     Args:
         y: the last decoder level's features, NHWC fp16, padded past the frame.
         weight, bias: the output convolution as for :func:`conv3x3`, CO padded to 16 (6 used; x2:
-            32, 24 used); a ``blend_map`` model's map in its depth rows (``fused_recon.tail_convolution``).
+            32, 24 used); a ``blend_map`` model's map in the rows past them (``fused_recon.tail_convolution``).
         sources: the network's inputs (mask, normal and depth read; with ``config.ao_prior``
             "rays" or "blend" the sampled AO and the sampling too).
         config: the network's config (its upscale, AO prior and ray limits, as
@@ -682,6 +742,8 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
             ``y``'s device (:func:`~isosr_net.reconnet.geometry_gate`: the sigmoid of its logits).
         ray_factor: the rays behind the sampled AO's mean per ray the sampling channels count (with
             ``config.ao_interval``: :func:`~isosr_net.reconnet.rays_interval` of them all).
+        packed, pixel_tail: with ``config.pixel_tail`` (an upscale of 1), the pack's output these features came
+            from (:func:`pack_inputs`) and the MLP that reads it per pixel; others neither.
 
     Returns:
         ``(stack, color or None)``.
@@ -714,8 +776,10 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
                          f"others none; got {None if gates is None else (gates.dtype, tuple(gates.shape))} for "
                          f"geometry_gate={config.geometry_gate}")
     s, side = config.upscale, config.cell_side
-    if co < OUTPUTS * side * side:
-        raise ValueError(f"recon_tail: the model's tail has {OUTPUTS * side * side} outputs, the weights {co}")
+    if co < (OUTPUTS + config.blend_map) * side * side:
+        raise ValueError(f"recon_tail: the model's tail has {(OUTPUTS + config.blend_map) * side * side} outputs, "
+                         f"the weights {co}")
+    hid = _check_pixel_tail(packed, pixel_tail, config, (b, hp, wp), y.device)
     shape = (b, OUTPUTS, s * h, s * w)
     if out is None:
         out = torch.empty(shape, device=y.device, dtype=torch.float32)
@@ -726,7 +790,9 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
     params = shading or ShadingParams()
     light, half = light_and_half(params)
     _tail_tuned[_grid(gh * gw, b)](y, weight, bias, *sources.args(), out, out if color is None else color,
-                                 bias if gates is None else gates, h, w, gh, gw, hp, wp,
+                                 bias if gates is None else gates,
+                                 *([y, bias, y, bias, y, bias] if pixel_tail is None else [packed, *pixel_tail.args()]),
+                                 h, w, gh, gw, hp, wp,
                                  _size_class(gh * gw), float(config.max_ao_rays * config.max_spp),
                                  float(blend_rays or 0.0), float(ray_factor), float(config.ao_interval),
                                  float(config.ao_interval_narrows_past),
@@ -735,8 +801,29 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
                                  MASK_C=MASK.start, NORMAL_C=NORMAL.start, DEPTH_C=DEPTH.start, AO_C=AO.start,
                                  AO_PRIOR=config.ao_prior != "none", BLEND=config.ao_prior == "blend",
                                  BLEND_MAP=config.blend_map, BLEND_VARIANCE=config.blend_variance,
-                                 INTERVAL=config.ao_interval > 0, GATED=gates is not None, MAX_SPP=config.max_spp,
+                                 INTERVAL=config.ao_interval > 0, GATED=gates is not None,
+                                 PIXEL_TAIL=pixel_tail is not None, HID=hid, PC=PACKED, MAX_SPP=config.max_spp,
                                  HAS_AO=sources.ao is not None, BUFFERS=as_buffers, SHADE=shading is not None,
                                  OUT=OUTPUTS, S=side, UP=s, CI=ci, CIP=kernel_width(ci), CO=co,
                                  **FIXED)
     return out, color
+
+
+def _check_pixel_tail(packed: torch.Tensor | None, pixel_tail: PixelTail | None, config: ReconNetConfig,
+                      features: tuple[int, int, int], device: torch.device) -> int:
+    """recon_tail's check of a pixel tail and the packed inputs it reads; returns its HID (16 for none)."""
+    if bool(config.pixel_tail) != (pixel_tail is not None) or (pixel_tail is None) != (packed is None):
+        raise ValueError(f"recon_tail: a pixel_tail model's tail takes its MLP and the packed inputs, others neither; "
+                         f"got {'an' if pixel_tail else 'no'} MLP and {'the' if packed is not None else 'no'} packed "
+                         f"inputs for pixel_tail={config.pixel_tail}")
+    if pixel_tail is None:
+        return 16
+    if config.upscale != 1:
+        raise ValueError(f"recon_tail: a pixel tail runs at an upscale of 1, got {config.upscale}")
+    b, hp, wp = features
+    shape = (b, hp * config.stem_stride, wp * config.stem_stride, PACKED)
+    if ((tuple(packed.shape), packed.dtype, packed.device) != (shape, torch.float16, device)
+            or not packed.is_contiguous()):
+        raise ValueError(f"recon_tail: packed must be pack_inputs' contiguous float16 {shape} tensor on {device}, "
+                         f"got {packed.dtype} {tuple(packed.shape)} on {packed.device}")
+    return pixel_tail.check(device, "recon_tail")

@@ -35,7 +35,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from isosr_render.conventions import AO, DEPTH, MASK, SAMPLED_AO, SAMPLING
+from isosr_render.conventions import AO, MASK, SAMPLED_AO, SAMPLING
 from isosr_render.shading import ShadingParams
 from isosr_render.shapes import check_int, check_shape
 from isosr_net.reconnet import INPUTS, LEVELS, OUTPUTS, RECURRENT, UPSCALES, ReconNet, ReconNetConfig, blend_rays_at
@@ -75,11 +75,13 @@ def fused_runs_on(device: torch.device | str) -> bool:
 
 
 def fusable(config: ReconNetConfig) -> bool:
-    """Whether the kernels take a ReconNet of ``config``: its widths at most the kernels' widest tile (a width
-    under 16 or not a power of 2 is padded in the tiles), an upscale of :data:`FUSED_UPSCALES` (any blocks, AO
-    prior, geometry gate and stem stride; no ``pixel_tail`` yet)."""
-    return (config.upscale in FUSED_UPSCALES and all(kernel_width(w) <= MAX_KERNEL_WIDTH for w in config.widths)
-            and not config.pixel_tail)
+    """Whether the kernels take a ReconNet of ``config``: its widths (and a ``pixel_tail``'s) at most the kernels'
+    widest tile (a width under 16 or not a power of 2 is padded in the tiles), an upscale of
+    :data:`FUSED_UPSCALES` (any blocks, AO prior, geometry gate and stem stride), and a pixel tail only at an
+    upscale of 1 (the tail reads its inputs from the pack, one input pixel an output pixel)."""
+    widths = (*config.widths, config.pixel_tail or 1)
+    return (config.upscale in FUSED_UPSCALES and all(kernel_width(w) <= MAX_KERNEL_WIDTH for w in widths)
+            and not (config.pixel_tail and config.upscale != 1))
 
 
 def _kernels():
@@ -109,18 +111,34 @@ def _padded_bias(bias: torch.Tensor, co: int) -> torch.Tensor:
 
 
 def tail_convolution(net: ReconNet) -> tuple[torch.Tensor, torch.Tensor]:
-    """The tail's weights and bias as the fused tail reads them: a ``blend_map`` model's map in the depth rows
-    (depth passes through, so the tail's depth outputs are otherwise unread).
+    """The tail's weights and bias as the fused tail reads them: ``net.tail``'s rows, then a ``blend_map`` model's
+    map's (one per output pixel of a feature pixel; both 3x3 convolutions of the same features).
 
     Shape:
-        Returns weight (Co, Ci, 3, 3), bias (Co,), as ``net.tail``'s.
+        Returns weight (Co, Ci, 3, 3), bias (Co,): Co = ``net.tail``'s outputs plus ``config.cell_side`` squared
+        for a blend map.
     """
-    weight, bias = net.tail.weight.detach().clone(), net.tail.bias.detach().clone()
+    weight, bias = net.tail.weight.detach(), net.tail.bias.detach()
     if net.config.blend_map:
-        cells = net.config.cell_side ** 2
-        rows = slice(DEPTH.start * cells, DEPTH.stop * cells)
-        weight[rows], bias[rows] = net.ao_blend_map.weight.detach(), net.ao_blend_map.bias.detach()
+        weight = torch.cat([weight, net.ao_blend_map.weight.detach()])
+        bias = torch.cat([bias, net.ao_blend_map.bias.detach()])
     return weight, bias
+
+
+def pixel_tail_weights(mlp: nn.Sequential) -> dict[str, torch.Tensor]:
+    """A ``pixel_tail`` model's MLP (``ReconNet.pixel_tail``: 1x1 convolutions of the raw outputs, the inputs and
+    the previous mask and AO, ReLU, then to the outputs) as the fields of
+    :class:`~isosr_net.fused_kernels.PixelTail`, the hidden units zero-padded to a tile."""
+    first, last = mlp[0].weight.detach()[:, :, 0, 0], mlp[2].weight.detach()[:, :, 0, 0]  # (H, 16), (6, H)
+    hid = kernel_width(first.shape[0])
+    raw, packed = first.new_zeros(OUTPUTS, hid), first.new_zeros(PACKED, hid)
+    raw[:, :first.shape[0]] = first[:, :OUTPUTS].t()
+    packed[:INPUTS + RECURRENT, :first.shape[0]] = first[:, OUTPUTS:].t()
+    out = first.new_zeros(hid, PACKED)
+    out[:first.shape[0], :OUTPUTS] = last.t()
+    return {"raw": raw.float().contiguous(), "packed": packed.half().contiguous(),
+            "bias": _padded_bias(mlp[0].bias, hid), "out": out.half().contiguous(),
+            "out_bias": _padded_bias(mlp[2].bias, PACKED)}
 
 
 class FusedConv(nn.Module):
@@ -181,9 +199,9 @@ class FusedReconNet(nn.Module):
         super().__init__()
         widths = net.config.widths
         if not fusable(net.config):
-            raise ValueError(f"fused_reconnet: the widths must be at most {MAX_KERNEL_WIDTH}, the upscale one of "
-                             f"{FUSED_UPSCALES} and no pixel_tail, got {widths}, {net.config.upscale} and "
-                             f"{net.config.pixel_tail}")
+            raise ValueError(f"fused_reconnet: the widths and pixel_tail must be at most {MAX_KERNEL_WIDTH}, the "
+                             f"upscale one of {FUSED_UPSCALES} (1 with a pixel tail), got {widths}, "
+                             f"{net.config.pixel_tail} and {net.config.upscale}")
         self.config = net.config
         self.reference = net
         self.head = FusedConv(net.head, PACKED, widths[0])
@@ -193,14 +211,18 @@ class FusedReconNet(nn.Module):
                                   for block in net.body)
         self.up = nn.ModuleList(FusedUpsample(reduce) for reduce in net.reduce)
         self.fuse = nn.ModuleList(FusedConv(conv, widths[i], widths[i]) for i, conv in enumerate(net.fuse))
-        tail = kernel_width(net.tail.out_channels)  # 16, or 32 for x2 and a stem of stride 2
         weight, bias = tail_convolution(net)
+        tail = kernel_width(weight.shape[0])  # 16, or 32 for x2 and a stem of stride 2
         self.register_buffer("tail_w", tap_weights(weight, kernel_width(widths[0]), tail))
         self.register_buffer("tail_b", _padded_bias(bias, tail))
         # a blend model's weight as a host number: the tail reads it with no sync (inference: it is fixed)
         self.blend_rays = None if net.blend_rays is None else net.blend_rays.item()
         logits = net.gate_logits  # the geometry corrections' factors, read by the tail on the device
         self.register_buffer("gates", None if logits is None else torch.sigmoid(logits.detach().float()))
+        mlp = pixel_tail_weights(net.pixel_tail) if net.config.pixel_tail else {}
+        for name, tensor in mlp.items():  # buffers, to move with the module
+            self.register_buffer(f"pixel_tail_{name}", tensor)
+        self.pixel_tail_fields = tuple(mlp)
 
     def forward(self, inputs: torch.Tensor, prev_warped: torch.Tensor, ray_factor: float = 1.0) -> torch.Tensor:
         if not fused_runs_on(inputs.device):
@@ -309,8 +331,11 @@ class FusedReconNet(nn.Module):
             add(f"up{i}", lambda i=i, skip=skip, c=c: self.up[i](results[skip], results[c]))
             add(f"fuse{i}", layer(self.fuse[i], f"up{i}"))
             coarse = f"fuse{i}"
+        mlp = (k.PixelTail(**{f: getattr(self, f"pixel_tail_{f}") for f in self.pixel_tail_fields})
+               if self.pixel_tail_fields else None)
         add("tail", lambda: k.recon_tail(results["fuse0"], self.tail_w, self.tail_b, sources, self.config,
-                                         as_buffers, shading, out, blend_rays, self.gates, ray_factor),
+                                         as_buffers, shading, out, blend_rays, self.gates, ray_factor,
+                                         results["packed"] if mlp else None, mlp),
             "output", "color")
         return results, passes
 
@@ -372,4 +397,6 @@ def fused_traffic(h: int, w: int, config: ReconNetConfig = ReconNetConfig(), war
     # prior), the output (and the color)
     given = AO.start + (len(range(INPUTS)[SAMPLED_AO]) + sampling if config.ao_prior != "none" else 0)
     out["tail"] = features(0, widths[0]) + (given + (OUTPUTS + (3 if frame else 0)) * cells) * f32 * pixels
+    if config.pixel_tail:  # its MLP reads the packed inputs at each pixel
+        out["tail"] += PACKED * f16 * pixels
     return out

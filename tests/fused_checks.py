@@ -648,6 +648,80 @@ def test_other_architectures_fuse_too(blocks, widths, stem):
     torch.testing.assert_close(results["output"], got, rtol=0, atol=0)
 
 
+def pixel_tail_net(stem: int, width: int) -> ReconNet:
+    """A blend model with map and gates (the stem's recipe, ``configs/train_recon_stem_pixel.json``) and a pixel tail
+    of ``width`` whose last layer is not zero (as trained, unlike at its start): random, seeded."""
+    torch.manual_seed(4)
+    net = ReconNet(ReconNetConfig(widths=(32, 32, 64, 64), stem_stride=stem, ao_prior="blend", max_ao_rays=16,
+                                  geometry_gate=True, blend_map=True, pixel_tail=width)).to(DEVICE).eval()
+    with torch.no_grad():
+        for layer in (net.pixel_tail[2], net.ao_blend_map):
+            layer.weight.normal_(0.0, 0.3)
+            layer.bias.normal_(0.0, 0.3)
+    return net
+
+
+@pytest.mark.parametrize("stem, width, h, w", [(2, 16, 6, 9), (1, 16, 5, 7), (2, 24, 1, 3)])
+def test_a_pixel_tail_model_fused_equals_reconnet(stem, width, h, w):
+    """A pixel tail (an MLP per output pixel of the tail's raw outputs, the inputs and the previous mask and AO,
+    read from the pack) on a stem of stride 2 and at full resolution, 16 hidden units or 24 (padded to 32), over
+    odd sides: its step, its first frame and its forward of a warped previous output equal ReconNet's; without
+    the MLP the output differs (the test sees it)."""
+    net = pixel_tail_net(stem, width)
+    fused = fused_reconnet(net)
+    inputs = recon_batch(1, h, w, ao_rays=4, spp=2, seed=61, limits=net.config.limits).to(DEVICE)
+    previous, flow = rand(1, 6, h, w, seed=62).sigmoid(), rand(1, 2, h, w, scale=2.0, seed=63)
+    with torch.no_grad():
+        stepped, read = fused.step(inputs, flow, previous)
+        first, _ = fused.step(inputs, None, None)
+        expected, warped = net.double().step(inputs.double(), flow.double(), previous.double())
+        expected_first = net(inputs.double(), net.first_previous(inputs.double()))
+        given = fused(inputs, warped.float())
+        without = fused_reconnet(same_weights(net.float(), pixel_tail=0))(inputs, warped.float())
+    for got, ref in ((stepped, expected), (given, expected), (first, expected_first)):
+        assert torch.isfinite(got).all()
+        torch.testing.assert_close(got.double(), ref, rtol=0, atol=2e-3)
+    torch.testing.assert_close(read.double(), warped[:, [MASK.start, AO.start]], rtol=1e-3, atol=1e-4)
+    assert (without - given).abs().max() > 1e-2
+    _, passes = fused.passes(ReconSources.of_inputs(inputs), warped.float())
+    assert [name for name, _ in passes] == list(fused_traffic(h, w, net.config, warp=False))
+
+
+def test_a_pixel_tail_models_frame_equals_its_step_as_buffers():
+    """The frame path (the render's buffers read in place, the sampling as two values, written as buffers and
+    shaded) of a pixel tail model: its stack is the step's output as buffer_stack makes it, and finite."""
+    net = pixel_tail_net(2, 16)
+    fused = fused_reconnet(net)
+    sampling = torch.full((1, 2, 1, 1), 0.125, device=DEVICE)
+    frame = synthetic_frames(1, 6, 9)[0]
+    with torch.no_grad():
+        stack, color, _ = fused.frame(frame.mask, frame.normal, frame.depth, frame.ao, sampling, None, None,
+                                      ShadingParams())
+        inputs = torch.cat([frame.mask[None], frame.normal.permute(2, 0, 1), frame.depth[None], frame.ao[None],
+                            sampling[0].expand(2, 6, 9)])[None]
+        output, _ = fused.step(inputs, None, None)
+    assert torch.isfinite(stack).all() and torch.isfinite(color).all()
+    torch.testing.assert_close(stack, buffer_stack(output), rtol=0, atol=1e-5)
+
+
+def test_recon_tail_checks_a_pixel_tail():
+    net = pixel_tail_net(1, 16)
+    fused = fused_reconnet(net)
+    features = rand(1, 8, 8, 32, seed=64, dtype=torch.float16)
+    sources = ReconSources.of_inputs(recon_batch(1, 8, 8, seed=65).to(DEVICE))
+    mlp = fused_kernels.PixelTail(**{f: getattr(fused, f"pixel_tail_{f}") for f in fused.pixel_tail_fields})
+    packed = torch.zeros(1, 8, 8, 16, device=DEVICE, dtype=torch.float16)
+    blend = dict(blend_rays=4.0, gates=fused.gates)
+    with pytest.raises(ValueError, match=r"recon_tail: a pixel_tail model's tail takes its MLP and the packed inputs"):
+        recon_tail(features, fused.tail_w, fused.tail_b, sources, net.config, **blend)
+    with pytest.raises(ValueError, match=r"recon_tail: packed must be pack_inputs' contiguous float16"):
+        recon_tail(features, fused.tail_w, fused.tail_b, sources, net.config, **blend, packed=packed.float(),
+                   pixel_tail=mlp)
+    with pytest.raises(ValueError, match=r"recon_tail: the pixel tail's out must be a contiguous"):
+        recon_tail(features, fused.tail_w, fused.tail_b, sources, net.config, **blend, packed=packed,
+                   pixel_tail=dataclasses.replace(mlp, out=mlp.out.float()))
+
+
 @pytest.mark.parametrize("b, h, w", [(1, 11, 13), (1, 1, 1)])
 def test_the_shipped_x2_model_fused_equals_reconnet(b, h, w):
     """The shipped x2 model: its step (the previous output at twice the sides, warped by the flow
@@ -679,14 +753,19 @@ def shipped(folder: Path) -> tuple[ReconNet, FusedReconNet]:
     return net.eval(), fused_reconnet(net)
 
 
-@pytest.mark.parametrize("model", [*(f"x1, AO prior {prior}" for prior in AO_PRIORS), "x1", "x2"])
+@pytest.mark.parametrize("model", [*(f"x1, AO prior {prior}" for prior in AO_PRIORS), "x1", "x2", "pixel tail"])
 def test_hard_frames_stay_finite_and_within_fp16s_own_error(model):
     """An all-empty frame, and depths at fp16's limit for the networks under a previous output all
     ones: finite, in range, and per channel at most 1.5 times as far from the float64 reference as
     ReconNet under fp16 autocast (at depth 1e4 both are off by tenths on the normals, whose raw
-    values reach hundreds). The shipped models, x1 (its map and gates) and x2, and x1's body under each AO prior."""
+    values reach hundreds). The shipped models, x1 (its map and gates) and x2, x1's body under each AO prior, and a
+    stem with a pixel tail (random weights: its MLP reads the depth of 1e4 too)."""
     folders = {"x1": DEFAULT_RECON_MODEL, "x2": RECON_X2_MODEL}
-    net, fused = shipped(folders[model]) if model in folders else shipped_under(model.rsplit(" ", 1)[1])
+    if model == "pixel tail":
+        net = pixel_tail_net(2, 16)
+        fused = fused_reconnet(net)
+    else:
+        net, fused = shipped(folders[model]) if model in folders else shipped_under(model.rsplit(" ", 1)[1])
     h, w, s = 6, 9, net.config.upscale
     empty = recon_batch(1, h, w, seed=20).to(DEVICE)
     empty[:, :6] = 0

@@ -99,13 +99,15 @@ def test_fused_traffic_counts_each_tensor_once():
 def test_fused_reconnet_refuses_what_it_cannot_fuse():
     with pytest.raises(TypeError, match="fused_reconnet needs a ReconNet, got Conv2d"):
         fused_reconnet(nn.Conv2d(1, 1, 3))
-    with pytest.raises(ValueError, match=r"the widths must be at most 64, the upscale one of \(1, 2\) and no "
-                                         r"pixel_tail, got \(16, 32, 64, 128\), 1 and 0"):
+    with pytest.raises(ValueError, match=r"the widths and pixel_tail must be at most 64, the upscale one of "
+                                         r"\(1, 2\) \(1 with a pixel tail\), got \(16, 32, 64, 128\), 0 and 1"):
         fused_reconnet(ReconNet(ReconNetConfig(widths=(16, 32, 64, 128))))
-    with pytest.raises(ValueError, match=r"got \(16, 32, 64, 64\), 4 and 0"):  # x4's packed input: 40 channels
+    with pytest.raises(ValueError, match=r"got \(16, 32, 64, 64\), 0 and 4"):  # x4's packed input: 40 channels
         fused_reconnet(ReconNet(ReconNetConfig(upscale=4)))
-    with pytest.raises(ValueError, match=r"got \(32, 32, 64, 64\), 1 and 16"):  # the kernels have no pixel tail yet
-        fused_reconnet(ReconNet(ReconNetConfig(widths=(32, 32, 64, 64), stem_stride=2, pixel_tail=16)))
+    with pytest.raises(ValueError, match=r"got \(16, 32, 64, 64\), 16 and 2"):  # the tail's MLP reads input pixels
+        fused_reconnet(ReconNet(ReconNetConfig(upscale=2, pixel_tail=16)))
+    with pytest.raises(ValueError, match=r"got \(32, 32, 64, 64\), 128 and 1"):  # wider than a tile
+        fused_reconnet(ReconNet(ReconNetConfig(widths=(32, 32, 64, 64), stem_stride=2, pixel_tail=128)))
 
 
 @pytest.mark.skipif(fused_runs_on("cpu"), reason="under the interpreter the fused path runs on the CPU")
