@@ -454,7 +454,7 @@ def _composite(mask, lit, ao, back):
 
 
 _conv_tuned = _tuned(_conv_kernel, ["size_class", "STRIDE", "CI", "CO"])
-_tail_tuned = _tuned(_tail_kernel, ["size_class", "S"])
+_tail_tuned = _tuned(_tail_kernel, ["size_class", "S", "UP", "PIXEL_TAIL"])  # each variant its own tiles
 
 
 def _size_class(pixels: int) -> int:
