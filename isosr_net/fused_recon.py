@@ -4,17 +4,17 @@
     output, read = fused.step(inputs, flow, previous)
     stack, color, flags = fused.frame(mask, normal, depth, ao, sampling, flow, previous, shading)
 
-Eager ReconNet writes and reads back the concatenated and padded inputs, every layer's features,
-the upsampled coarse features, their sum with the skip and its ReLU, the raw output and the
-output's pieces, and cuDNN runs 16- to 64-channel 3x3 convolutions poorly. Here every layer is
-one kernel (:mod:`isosr_net.fused_kernels`; NHWC fp16, fp32 accumulation): pack (with the
-previous output's warp), head, the three stride-2 convolutions, the residual blocks' convolutions
-(the sum in the second's epilogue), per decoder level the coarse features upsampled, reduced by
-its 1x1 convolution and summed with the skip in one pass and its 3x3 convolution in another, and
-the tail (with the output stack). :meth:`FusedReconNet.frame` is a `Reconstructor`'s whole frame
-after the render in these passes alone: the pack reads the render's buffers in place and checks
-them, the tail writes the output buffers and the shaded color. A model that upscales x2 runs in
-the same passes: the pack reads the previous output's 2 x 2 pixels per input pixel (warped by the
+Eager ReconNet writes and reads back the concatenated and padded inputs, every layer's features, the
+upsampled coarse features, their sum with the skip and its ReLU, the raw output and the output's
+pieces, and cuDNN runs 16- to 64-channel 3x3 convolutions poorly. Here every layer is one kernel
+(:mod:`isosr_net.fused_kernels`; NHWC fp16, fp32 accumulation): pack (with the previous output's
+warp), head, the three stride-2 convolutions, the residual blocks' convolutions (the sum in the
+second's epilogue), per decoder level the coarse features upsampled, reduced by its 1x1 convolution
+and summed with the skip in one pass and its 3x3 convolution in another, and the tail (with a
+``pixel_tail`` model's MLP and the output stack). :meth:`FusedReconNet.frame` is a `Reconstructor`'s
+whole frame after the render in these passes alone: the pack reads the render's buffers in place and
+checks them, the tail writes the output buffers and the shaded color. A model that upscales x2 runs
+in the same passes: the pack reads the previous output's 2 x 2 pixels per input pixel (warped by the
 flow upsampled), the tail writes its 24 channels depth-to-space over the inputs upsampled. A model
 with a stem of stride 2 too: its head strides over the packed inputs, its tail writes 2 x 2 input
 pixels per feature pixel.
