@@ -16,6 +16,11 @@ cubin's ``.nv.info`` attributes (ELF64): ``registers`` (EIATTR_REGCOUNT) and ``s
 Compiling the renderer's modules takes minutes on a small machine; ``RECORD`` keeps each module's
 figures under its Warp identifier (its source's hash) and Warp's version, and :func:`recorded_resources`
 compiles only the modules whose identifier the record does not hold.
+
+The reconstruction's fused tail (a Triton kernel, ``isosr_net.fused_kernels``) compiles the same way, by
+Triton's own LLVM and ptxas, per model kind and autotuning config (``--fused-tail``): what a change to it
+costs in registers and spills shows before a GPU runs it, and a kernel that would not compile for the GPU
+fails here (the interpreter, which the kernel tests use on a CPU, compiles nothing).
 """
 
 from __future__ import annotations
@@ -138,12 +143,89 @@ def write_record(resources: dict[str, dict], record: Path = RECORD) -> None:
                                   "modules": dict(sorted(modules.items()))}, indent=1) + "\n")
 
 
+def triton_type(value) -> str:
+    """A Triton kernel argument's type in a compile signature: a tensor's pointer, an int, a float."""
+    import torch
+
+    if isinstance(value, torch.Tensor):
+        return "*" + {torch.float16: "fp16", torch.float32: "fp32", torch.int32: "i32"}[value.dtype]
+    if isinstance(value, bool):
+        return "i1"
+    if isinstance(value, int):
+        return "i32" if -2 ** 31 <= value < 2 ** 31 else "i64"
+    return "fp32"
+
+
+def triton_resources(kernel, args: list, constexprs: dict, configs: list, arch: int = 90) -> dict[str, dict]:
+    """Per autotuning config (``triton.Config``) of Triton ``kernel``, compiled for ``sm_<arch>`` by Triton's LLVM
+    and ptxas (no GPU): ``registers`` and ``stack``. ``args`` (the call's, in order) give the argument types."""
+    import triton
+    from triton.backends.compiler import GPUTarget
+    from triton.compiler import ASTSource
+
+    signature = {name: triton_type(value) for name, value in zip(kernel.arg_names, args)}
+    found = {}
+    for config in configs:
+        constants = constexprs | config.kwargs
+        source = ASTSource(kernel, signature | dict.fromkeys(constants, "constexpr"), constants)
+        compiled = triton.compile(source, target=GPUTarget("cuda", arch, 32), options={"num_warps": config.num_warps})
+        (kernel_found,) = cubin_resources(compiled.asm["cubin"]).values()
+        found[f"BLOCK_M {config.kwargs['BLOCK_M']}, {config.num_warps} warps"] = kernel_found
+    return found
+
+
+def tail_variants() -> dict[str, "ReconNetConfig"]:
+    """The fused tail's model kinds: the shipped x1 and x2 models' configs, the stem of stride 2 (the shipped x1
+    model's recipe at widths 32, 32, 64, 64) and it with a pixel tail of 16."""
+    from dataclasses import replace
+
+    from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, recon_config
+
+    x1 = recon_config(DEFAULT_RECON_MODEL)
+    stem = replace(x1, widths=(32, 32, 64, 64), stem_stride=2)
+    return {"x1": x1, "x2": recon_config(RECON_X2_MODEL), "stem": stem,
+            "stem, pixel tail 16": replace(stem, pixel_tail=16)}
+
+
+def fused_tail_resources(variants: dict, configs: list | None = None, arch: int = 90) -> dict[str, dict]:
+    """:func:`triton_resources` of the fused tail (a frame's, shaded, as the service runs it) for each of
+    ``variants`` (name -> ReconNetConfig), over ``configs`` (default: the kernels' autotuning configs)."""
+    import torch
+
+    from isosr_net import fused_kernels as k
+    from isosr_net.fused_recon import PACKED, FusedReconNet
+    from isosr_net.reconnet import ReconNet
+    from isosr_render.shading import ShadingParams
+
+    found = {}
+    for name, config in variants.items():
+        fused, h, w = FusedReconNet(ReconNet(config).eval()), 1080, 1920
+        stride = config.stem_stride
+        y = torch.zeros(1, h // stride, w // stride, config.widths[0], dtype=torch.float16)
+        mask = torch.zeros(1, h, w)
+        sources = k.ReconSources.of_buffers(mask, torch.zeros(1, h, w, 3), mask, mask, torch.zeros(1, 2, 1, 1))
+        mlp = fused.pixel_tail_mlp()
+        packed = torch.zeros(1, h, w, PACKED, dtype=torch.float16) if mlp else None
+        launch = k.tail_launch(y, fused.tail_w, fused.tail_b, sources, config, True, ShadingParams(), None,
+                               fused.blend_rays, fused.gates, 1.0, packed, mlp)
+        found[name] = triton_resources(k._tail_kernel, launch.args, launch.constexprs, configs or k.CONFIGS, arch)
+    return found
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--arch", type=int, default=90, help="compute capability x10 (90: H100/H200)")
     parser.add_argument("--modules", default=",".join(RENDER_MODULES), help="comma-separated Warp modules")
     parser.add_argument("--write", action="store_true", help=f"keep the figures (sm_90) in {RECORD.name} (default: off)")
+    parser.add_argument("--fused-tail", action="store_true",
+                        help="the reconstruction's fused tail (Triton) per model kind and config instead")
     args = parser.parse_args(argv)
+    if args.fused_tail:
+        print(f"| model | config | registers | stack (bytes) |  sm_{args.arch}\n|---|---|---|---|")
+        for variant, configs in fused_tail_resources(tail_variants(), arch=args.arch).items():
+            for config, r in configs.items():
+                print(f"| {variant} | {config} | {r.get('registers')} | {r.get('stack')} |")
+        return
     if args.write and args.arch != 90:
         raise SystemExit("--write keeps sm_90's figures only")
     found = modules_resources(args.modules.split(","), args.arch)

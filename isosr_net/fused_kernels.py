@@ -42,6 +42,7 @@ call per shape does).
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -320,6 +321,26 @@ def _upsample_add_kernel(x_ptr, c_ptr, rw_ptr, rb_ptr, out_ptr, hp, wp, hc, wc, 
 
 
 @triton.jit
+def _pixel_mlp(row_ptrs, here, raw_mask, raw_nx, raw_ny, raw_nz, raw_depth, raw_ao, t1r_ptr, t1p_ptr, t1b_ptr, t2_ptr,
+               t2b_ptr, MASK_C: tl.constexpr, NORMAL_C: tl.constexpr, DEPTH_C: tl.constexpr, AO_C: tl.constexpr,
+               HID: tl.constexpr, PC: tl.constexpr):
+    """A pixel tail's correction (:class:`PixelTail`), (BLOCK, PC), its first 6 columns used: the second layer of
+    the ReLU of the first's of the pixel's PC packed channels (at ``row_ptrs``) and its 6 raw outputs."""
+    j = tl.arange(0, PC)
+    hid = tl.arange(0, HID)
+    row = tl.load(row_ptrs + j[None, :], mask=here[:, None], other=0.0)
+    hidden = tl.dot(row, tl.load(t1p_ptr + j[:, None] * HID + hid[None, :])) + tl.load(t1b_ptr + hid)[None, :]
+    hidden += raw_mask[:, None] * tl.load(t1r_ptr + MASK_C * HID + hid)[None, :]
+    hidden += raw_nx[:, None] * tl.load(t1r_ptr + NORMAL_C * HID + hid)[None, :]
+    hidden += raw_ny[:, None] * tl.load(t1r_ptr + (NORMAL_C + 1) * HID + hid)[None, :]
+    hidden += raw_nz[:, None] * tl.load(t1r_ptr + (NORMAL_C + 2) * HID + hid)[None, :]
+    hidden += raw_depth[:, None] * tl.load(t1r_ptr + DEPTH_C * HID + hid)[None, :]
+    hidden += raw_ao[:, None] * tl.load(t1r_ptr + AO_C * HID + hid)[None, :]
+    hidden = tl.maximum(hidden, 0.0).to(tl.float16)
+    return tl.dot(hidden, tl.load(t2_ptr + hid[:, None] * PC + j[None, :])) + tl.load(t2b_ptr + j)[None, :]
+
+
+@triton.jit
 def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, sn_b, sn_c, sn_h, sn_w,
                  d_ptr, sd_b, sd_c, sd_h, sd_w, a_ptr, sa_b, sa_c, sa_h, sa_w, s_ptr, ss_b, ss_c, ss_h, ss_w,
                  out_ptr, color_ptr, g_ptr, p_ptr, t1r_ptr, t1p_ptr, t1b_ptr, t2_ptr, t2b_ptr,
@@ -364,25 +385,16 @@ def _tail_kernel(x_ptr, w_ptr, bias_ptr, m_ptr, sm_b, sm_c, sm_h, sm_w, n_ptr, s
         raw_nz = _column(raw, c, (NORMAL_C + 2) * S * S + cell)
         raw_ao = _column(raw, c, AO_C * S * S + cell)
         if PIXEL_TAIL:  # ReconNet.correction: the MLP of the raw outputs and the pixel's packed channels (UP 1)
-            j = tl.arange(0, PC)
-            hid = tl.arange(0, HID)
             at_packed = (b * hp * S + yy) * wp * S + xx  # the pack's pixels: S x S a feature pixel's
-            row = tl.load(p_ptr + at_packed[:, None] * PC + j[None, :], mask=here[:, None], other=0.0)
-            hidden = tl.dot(row, tl.load(t1p_ptr + j[:, None] * HID + hid[None, :])) + tl.load(t1b_ptr + hid)[None, :]
-            raw_depth = _column(raw, c, DEPTH_C * S * S + cell)
-            hidden += raw_mask[:, None] * tl.load(t1r_ptr + MASK_C * HID + hid)[None, :]
-            hidden += raw_nx[:, None] * tl.load(t1r_ptr + NORMAL_C * HID + hid)[None, :]
-            hidden += raw_ny[:, None] * tl.load(t1r_ptr + (NORMAL_C + 1) * HID + hid)[None, :]
-            hidden += raw_nz[:, None] * tl.load(t1r_ptr + (NORMAL_C + 2) * HID + hid)[None, :]
-            hidden += raw_depth[:, None] * tl.load(t1r_ptr + DEPTH_C * HID + hid)[None, :]
-            hidden += raw_ao[:, None] * tl.load(t1r_ptr + AO_C * HID + hid)[None, :]
-            hidden = tl.maximum(hidden, 0.0).to(tl.float16)
-            corr = tl.dot(hidden, tl.load(t2_ptr + hid[:, None] * PC + j[None, :])) + tl.load(t2b_ptr + j)[None, :]
-            raw_mask += _column(corr, j[None, :], MASK_C)
-            raw_nx += _column(corr, j[None, :], NORMAL_C)
-            raw_ny += _column(corr, j[None, :], NORMAL_C + 1)
-            raw_nz += _column(corr, j[None, :], NORMAL_C + 2)
-            raw_ao += _column(corr, j[None, :], AO_C)
+            corr = _pixel_mlp(p_ptr + at_packed[:, None] * PC, here, raw_mask, raw_nx, raw_ny, raw_nz,
+                              _column(raw, c, DEPTH_C * S * S + cell), raw_ao, t1r_ptr, t1p_ptr, t1b_ptr, t2_ptr,
+                              t2b_ptr, MASK_C, NORMAL_C, DEPTH_C, AO_C, HID, PC)
+            j = tl.arange(0, PC)[None, :]
+            raw_mask += _column(corr, j, MASK_C)
+            raw_nx += _column(corr, j, NORMAL_C)
+            raw_ny += _column(corr, j, NORMAL_C + 1)
+            raw_nz += _column(corr, j, NORMAL_C + 2)
+            raw_ao += _column(corr, j, AO_C)
         mask = _base_plane(m_ptr, sm_b, sm_h, sm_w, b, yy, xx, h, w, here, UP) + gate * raw_mask
         mask = tl.minimum(tl.maximum(mask, 0.0), 1.0)
         nx = _base_plane(n_ptr, sn_b, sn_h, sn_w, b, yy, xx, h, w, here, UP) + gate * raw_nx
@@ -753,6 +765,31 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
         Returns stack (B, 6, sH, sW) fp32 (mask, normal, depth, AO) and color (B, sH, sW, 3)
         fp32, s the upscale.
     """
+    launch = tail_launch(y, weight, bias, sources, config, as_buffers, shading, out, blend_rays, gates, ray_factor,
+                         packed, pixel_tail)
+    _tail_tuned[launch.grid](*launch.args, **launch.constexprs, **FIXED)
+    return launch.out, launch.color
+
+
+@dataclass(frozen=True)
+class TailLaunch:
+    """:func:`recon_tail`'s launch of its kernel: the grid (of the autotuned ``BLOCK_M``), the arguments and
+    compile-time constants, and the outputs it writes."""
+
+    grid: Callable[[dict], tuple[int, int]]
+    args: list
+    constexprs: dict
+    out: torch.Tensor
+    color: torch.Tensor | None
+
+
+def tail_launch(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, sources: ReconSources,
+                config: ReconNetConfig, as_buffers: bool = False, shading: ShadingParams | None = None,
+                out: torch.Tensor | None = None, blend_rays: float | None = None,
+                gates: torch.Tensor | None = None, ray_factor: float = 1.0, packed: torch.Tensor | None = None,
+                pixel_tail: PixelTail | None = None) -> TailLaunch:
+    """:func:`recon_tail`'s checks, outputs and kernel arguments (its arguments), not launched: what
+    :func:`isosr_bench.kernel_resources.fused_tail_resources` compiles ahead of time."""
     dims = _check_nhwc(y, "y", "recon_tail")
     b, hp, wp, ci = dims["B"], dims["H"], dims["W"], dims["C"]
     co = _check_taps(weight, bias, ci, "recon_tail")
@@ -789,24 +826,20 @@ def recon_tail(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, source
     color = None if shading is None else torch.empty((b, s * h, s * w, 3), device=y.device, dtype=torch.float32)
     params = shading or ShadingParams()
     light, half = light_and_half(params)
-    _tail_tuned[_grid(gh * gw, b)](y, weight, bias, *sources.args(), out, out if color is None else color,
-                                 bias if gates is None else gates,
-                                 *([y, bias, y, bias, y, bias] if pixel_tail is None else [packed, *pixel_tail.args()]),
-                                 h, w, gh, gw, hp, wp,
-                                 _size_class(gh * gw), float(config.max_ao_rays * config.max_spp),
-                                 float(blend_rays or 0.0), float(ray_factor), float(config.ao_interval),
-                                 float(config.ao_interval_narrows_past),
-                                 *params.albedo, params.ambient,
-                                 params.diffuse, params.specular, params.shininess, *light, *half, *params.background,
-                                 MASK_C=MASK.start, NORMAL_C=NORMAL.start, DEPTH_C=DEPTH.start, AO_C=AO.start,
-                                 AO_PRIOR=config.ao_prior != "none", BLEND=config.ao_prior == "blend",
-                                 BLEND_MAP=config.blend_map, BLEND_VARIANCE=config.blend_variance,
-                                 INTERVAL=config.ao_interval > 0, GATED=gates is not None,
-                                 PIXEL_TAIL=pixel_tail is not None, HID=hid, PC=PACKED, MAX_SPP=config.max_spp,
-                                 HAS_AO=sources.ao is not None, BUFFERS=as_buffers, SHADE=shading is not None,
-                                 OUT=OUTPUTS, S=side, UP=s, CI=ci, CIP=kernel_width(ci), CO=co,
-                                 **FIXED)
-    return out, color
+    args = [y, weight, bias, *sources.args(), out, out if color is None else color, bias if gates is None else gates,
+            *([y, bias, y, bias, y, bias] if pixel_tail is None else [packed, *pixel_tail.args()]),
+            h, w, gh, gw, hp, wp, _size_class(gh * gw), float(config.max_ao_rays * config.max_spp),
+            float(blend_rays or 0.0), float(ray_factor), float(config.ao_interval),
+            float(config.ao_interval_narrows_past), *params.albedo, params.ambient, params.diffuse, params.specular,
+            params.shininess, *light, *half, *params.background]
+    constexprs = dict(MASK_C=MASK.start, NORMAL_C=NORMAL.start, DEPTH_C=DEPTH.start, AO_C=AO.start,
+                      AO_PRIOR=config.ao_prior != "none", BLEND=config.ao_prior == "blend",
+                      BLEND_MAP=config.blend_map, BLEND_VARIANCE=config.blend_variance,
+                      INTERVAL=config.ao_interval > 0, GATED=gates is not None, PIXEL_TAIL=pixel_tail is not None,
+                      HID=hid, PC=PACKED, MAX_SPP=config.max_spp, HAS_AO=sources.ao is not None,
+                      BUFFERS=as_buffers, SHADE=shading is not None, OUT=OUTPUTS, S=side, UP=s, CI=ci,
+                      CIP=kernel_width(ci), CO=co)
+    return TailLaunch(_grid(gh * gw, b), args, constexprs, out, color)
 
 
 def _check_pixel_tail(packed: torch.Tensor | None, pixel_tail: PixelTail | None, config: ReconNetConfig,

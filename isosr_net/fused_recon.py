@@ -224,6 +224,11 @@ class FusedReconNet(nn.Module):
             self.register_buffer(f"pixel_tail_{name}", tensor)
         self.pixel_tail_fields = tuple(mlp)
 
+    def pixel_tail_mlp(self):
+        """A ``pixel_tail`` model's MLP as the tail reads it (:class:`~isosr_net.fused_kernels.PixelTail`), or None."""
+        fields = {f: getattr(self, f"pixel_tail_{f}") for f in self.pixel_tail_fields}
+        return _kernels().PixelTail(**fields) if fields else None
+
     def forward(self, inputs: torch.Tensor, prev_warped: torch.Tensor, ray_factor: float = 1.0) -> torch.Tensor:
         if not fused_runs_on(inputs.device):
             return self.reference(inputs, prev_warped, ray_factor)
@@ -331,8 +336,7 @@ class FusedReconNet(nn.Module):
             add(f"up{i}", lambda i=i, skip=skip, c=c: self.up[i](results[skip], results[c]))
             add(f"fuse{i}", layer(self.fuse[i], f"up{i}"))
             coarse = f"fuse{i}"
-        mlp = (k.PixelTail(**{f: getattr(self, f"pixel_tail_{f}") for f in self.pixel_tail_fields})
-               if self.pixel_tail_fields else None)
+        mlp = self.pixel_tail_mlp()
         add("tail", lambda: k.recon_tail(results["fuse0"], self.tail_w, self.tail_b, sources, self.config,
                                          as_buffers, shading, out, blend_rays, self.gates, ray_factor,
                                          results["packed"] if mlp else None, mlp),

@@ -709,7 +709,7 @@ def test_recon_tail_checks_a_pixel_tail():
     fused = fused_reconnet(net)
     features = rand(1, 8, 8, 32, seed=64, dtype=torch.float16)
     sources = ReconSources.of_inputs(recon_batch(1, 8, 8, seed=65).to(DEVICE))
-    mlp = fused_kernels.PixelTail(**{f: getattr(fused, f"pixel_tail_{f}") for f in fused.pixel_tail_fields})
+    mlp = fused.pixel_tail_mlp()
     packed = torch.zeros(1, 8, 8, 16, device=DEVICE, dtype=torch.float16)
     blend = dict(blend_rays=4.0, gates=fused.gates)
     with pytest.raises(ValueError, match=r"recon_tail: a pixel_tail model's tail takes its MLP and the packed inputs"):

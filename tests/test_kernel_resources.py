@@ -5,14 +5,18 @@ The ray caster is latency-bound: on an H100 one kernel that marched and then mad
 (166-168 registers, 12 warps an SM) took 1.3-1.5 times as long as the march alone at 80
 registers plus the surface kernel at 128; at 255 registers and a 120-byte stack it had taken
 1.3-1.4 times as long again (docs/measurements.md). A change that brings such registers back
-fails here, before anyone times it.
+fails here, before anyone times it. The reconstruction's fused tail (Triton) compiles here too, by
+Triton's own compiler.
 """
 
 from __future__ import annotations
 
+import importlib.util
+import os
+
 import pytest
 
-from isosr_bench.kernel_resources import RECORD, recorded_resources
+from isosr_bench.kernel_resources import RECORD, fused_tail_resources, recorded_resources, tail_variants
 from isosr_render import kernels
 from isosr_render.kernels import RENDER_MODULES
 
@@ -110,3 +114,18 @@ def test_clipped_kernels_stay_where_measured(resources):
 def test_surface_set_kernels_stay_where_measured(resources):
     assert_variant_within(resources, SURFACES_OVERLOADS, MAX_SURFACES_FIRST_HIT_REGISTERS, MAX_SURFACES_STACK,
                           MAX_SURFACES_SAMPLES_STACK)
+
+
+@pytest.mark.skipif(os.environ.get("TRITON_INTERPRET") == "1" or importlib.util.find_spec("triton") is None,
+                    reason="compiling the fused tail needs Triton, not its interpreter")
+def test_the_fused_tail_with_a_pixel_tail_compiles_for_sm90_unspilled():
+    """The reconstruction's fused tail with a pixel tail's MLP (a stem of stride 2: four output pixels a program's
+    pixel) compiled by Triton for sm_90: the kernel tests run it under the interpreter, which compiles nothing, so
+    a kernel the GPU's compiler refuses fails here first. At 128 pixels and 8 warps a program, measured at 255
+    registers and no stack (``python -m isosr_bench.kernel_resources --fused-tail``): a change that spills there
+    fails too."""
+    from isosr_net.fused_kernels import CONFIGS
+
+    name = "stem, pixel tail 16"
+    (found,) = fused_tail_resources({name: tail_variants()[name]}, [CONFIGS[3]])[name].values()
+    assert 0 < found["registers"] <= 255 and found["stack"] == 0
