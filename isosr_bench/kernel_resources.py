@@ -174,9 +174,9 @@ def triton_resources(kernel, args: list, constexprs: dict, configs: list, arch: 
     return found
 
 
-def tail_variants() -> dict[str, "ReconNetConfig"]:
-    """The fused tail's model kinds: the shipped x1 and x2 models' configs, the stem of stride 2 (the shipped x1
-    model's recipe at widths 32, 32, 64, 64) and it with a pixel tail of 16."""
+def tail_variants() -> dict:
+    """The fused tail's model kinds (name -> ReconNetConfig): the shipped x1 and x2 models' configs, the stem of
+    stride 2 (the x1 model's recipe at widths 32, 32, 64, 64) and it with a pixel tail of 16."""
     from dataclasses import replace
 
     from isosr_net.reconstructor import DEFAULT_RECON_MODEL, RECON_X2_MODEL, recon_config
