@@ -19,7 +19,8 @@ over the Pareto study's orbit, after its warm-up frames:
   work, launch latency, gaps between kernels).
 
 The result keeps every row and, per case, each tree's medians over rounds and their ratio to
-``--base``. A case is ``volume:size:model`` (``model`` x1, the shipped model, or x2); on a CPU
+``--base``. A case is ``volume:size:model`` (``model`` x1, the shipped model, x2, or a model folder
+under the project root, e.g. ``checkpoints/recon_stem_pixel/best``); on a CPU
 use the study's smoke volumes and size (``cloud:smoke:x1``). The API timed is the one every commit
 with ``Reconstructor.fastest`` and ``bench_recon_path.recon_method`` shares.
 """
@@ -87,7 +88,9 @@ def child(tree: str, cases: str, frames: int, device: str) -> None:
         volume_name, size, model = case.split(":")
         volume, iso = load(volume_name, device)
         renderer = Renderer(volume, device)
-        path = RECON_X2_MODEL if model == "x2" else DEFAULT_RECON_MODEL
+        path = {"x1": DEFAULT_RECON_MODEL, "x2": RECON_X2_MODEL}.get(model, ROOT / model)
+        if not (path / "config.json").is_file():
+            raise SystemExit(f"case {case}: the model is x1, x2 or a model folder under {ROOT}, got {model}")
         recon = Reconstructor.fastest(path, device=device)
         method = recon_method(str(path), 1, 1, recon.precision)
         runner = make_runner(method, renderer, iso, *{**SIZES, **SMOKE_SIZES}[size],
