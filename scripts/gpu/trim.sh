@@ -3,12 +3,15 @@
 # what the GPU runs do not read (results, docs, checkpoints, earlier models) in /tmp/isosr-trimmed, `trim.sh back`
 # returns it; `out` also writes the commit into .gpu/HEAD, which the runs carry for their results (the copy there
 # has no .git). Commit nothing in between. The shipped models travel (isosr_net/recon_model, and recon_model_v4
-# that the fused checks read; the upscaler's default_model that the Pareto study reads).
+# that the fused checks read; the upscaler's default_model that the Pareto study reads), and the stem's run that
+# scripts/gpu/train_stems.sh resumes (checkpoints/recon_stem_pixel; its CONTROL=1 run starts from
+# checkpoints/recon_stem_geometry/best, parked here: move it back from /tmp/isosr-trimmed for that run).
 set -euo pipefail
 cd "$(git rev-parse --show-toplevel)"
 parked=(checkpoints/recon_4k checkpoints/recon_blend checkpoints/recon_gates checkpoints/recon_shipped_gates
-        checkpoints/recon_psnr_control checkpoints/recon_stem checkpoints/recon_stem_cpu checkpoints/recon_stem_pixel_cpu
-        checkpoints/recon_stem_notail benchmarks docs examples deploy isosr_net/recon_model_v1 isosr_net/recon_model_v2
+        checkpoints/recon_psnr_control checkpoints/recon_stem checkpoints/recon_stem_cpu
+        checkpoints/recon_stem_pixel_cpu checkpoints/recon_stem_notail checkpoints/recon_stem_geometry
+        benchmarks docs examples deploy isosr_net/recon_model_v1 isosr_net/recon_model_v2
         isosr_net/recon_model_v3 isosr_net/recon_model_v5 isosr_net/recon_model_v6)
 case "${1:?out or back}" in
     out) for p in "${parked[@]}"; do  # a path parked already would be moved into it, and come back nested
