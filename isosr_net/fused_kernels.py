@@ -510,6 +510,13 @@ def _check_nhwc(x: torch.Tensor, name: str, where: str) -> dict[str, int]:
     return dims
 
 
+def _check_stored(t: torch.Tensor, name: str, shape: tuple, dtype: torch.dtype, device: torch.device,
+                  where: str) -> None:
+    """``t`` a contiguous ``dtype`` tensor of ``shape`` on ``device`` (a kernel writes or reads it as laid out)."""
+    if (tuple(t.shape), t.dtype, t.device) != (shape, dtype, device) or not t.is_contiguous():
+        raise ValueError(f"{where}: {name} must be a contiguous {str(dtype).removeprefix('torch.')} {shape} tensor "
+                         f"on {device}, got {t.dtype} {tuple(t.shape)} on {t.device}")
+
 @dataclass(frozen=True)
 class ReconSources:
     """Where ReconNet's 8 input channels (:data:`~isosr_render.conventions.RECON_CHANNELS`) lie:
@@ -586,10 +593,7 @@ class PixelTail:
                     "bias": ((hid,), torch.float32), "out": ((hid, PACKED), torch.float16),
                     "out_bias": ((PACKED,), torch.float32)}
         for name, (shape, dtype) in expected.items():
-            t = getattr(self, name)
-            if (tuple(t.shape), t.dtype, t.device) != (shape, dtype, device) or not t.is_contiguous():
-                raise ValueError(f"{where}: the pixel tail's {name} must be a contiguous {dtype} {shape} tensor on "
-                                 f"{device}, got {t.dtype} {tuple(t.shape)} on {t.device}")
+            _check_stored(getattr(self, name), f"the pixel tail's {name}", shape, dtype, device, where)
         if hid != kernel_width(hid) or hid > MAX_KERNEL_WIDTH:
             raise ValueError(f"{where}: the pixel tail's hidden units must be padded to a tile of at most "
                              f"{MAX_KERNEL_WIDTH}, got {hid}")
@@ -820,9 +824,8 @@ def tail_launch(y: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, sourc
     shape = (b, OUTPUTS, s * h, s * w)
     if out is None:
         out = torch.empty(shape, device=y.device, dtype=torch.float32)
-    elif (tuple(out.shape), out.dtype, out.device) != (shape, torch.float32, y.device) or not out.is_contiguous():
-        raise ValueError(f"recon_tail: out must be a contiguous float32 {shape} tensor on {y.device}, got "
-                         f"{out.dtype} {tuple(out.shape)} on {out.device}")
+    else:
+        _check_stored(out, "out", shape, torch.float32, y.device, "recon_tail")
     color = None if shading is None else torch.empty((b, s * h, s * w, 3), device=y.device, dtype=torch.float32)
     params = shading or ShadingParams()
     light, half = light_and_half(params)
@@ -855,8 +858,5 @@ def _check_pixel_tail(packed: torch.Tensor | None, pixel_tail: PixelTail | None,
         raise ValueError(f"recon_tail: a pixel tail runs at an upscale of 1, got {config.upscale}")
     b, hp, wp = features
     shape = (b, hp * config.stem_stride, wp * config.stem_stride, PACKED)
-    if ((tuple(packed.shape), packed.dtype, packed.device) != (shape, torch.float16, device)
-            or not packed.is_contiguous()):
-        raise ValueError(f"recon_tail: packed must be pack_inputs' contiguous float16 {shape} tensor on {device}, "
-                         f"got {packed.dtype} {tuple(packed.shape)} on {packed.device}")
+    _check_stored(packed, "packed (pack_inputs' output)", shape, torch.float16, device, "recon_tail")
     return pixel_tail.check(device, "recon_tail")

@@ -714,7 +714,7 @@ def test_recon_tail_checks_a_pixel_tail():
     blend = dict(blend_rays=4.0, gates=fused.gates)
     with pytest.raises(ValueError, match=r"recon_tail: a pixel_tail model's tail takes its MLP and the packed inputs"):
         recon_tail(features, fused.tail_w, fused.tail_b, sources, net.config, **blend)
-    with pytest.raises(ValueError, match=r"recon_tail: packed must be pack_inputs' contiguous float16"):
+    with pytest.raises(ValueError, match=r"recon_tail: packed \(pack_inputs' output\) must be a contiguous float16"):
         recon_tail(features, fused.tail_w, fused.tail_b, sources, net.config, **blend, packed=packed.float(),
                    pixel_tail=mlp)
     with pytest.raises(ValueError, match=r"recon_tail: the pixel tail's out must be a contiguous"):

@@ -18,9 +18,7 @@ if [ ! -f data/recon_4k/manifest.json ]; then
 fi
 left=$(python3 -c "left = $minutes - ($SECONDS - $start) / 60
 print(round(left, 2)) if left >= 1 else exit('under a minute left for training after the data')")
-pixel=configs/train_recon_stem_pixel.json notail=/tmp/train_recon_stem_notail.json
-python3 -c 'import json, sys; c = json.load(open(sys.argv[1])); c["model"]["pixel_tail"] = 0
-c["out"] = "runs/recon_stem_notail"; json.dump(c, open(sys.argv[2], "w"), indent=1)' "$pixel" "$notail"
+pixel=configs/train_recon_stem_pixel.json
 if [ ! -d runs/recon_stem_pixel/last ] && [ -d checkpoints/recon_stem_pixel/last ]; then
     mkdir -p runs/recon_stem_pixel && cp -r checkpoints/recon_stem_pixel/{last,best} runs/recon_stem_pixel/
     chmod -R u+w runs/recon_stem_pixel  # the carried tree's files are read-only
@@ -28,7 +26,12 @@ fi
 steps=(${2:+--steps "$2"})
 names=(pixel ${CONTROL:+notail})
 isosr train "$pixel" "${steps[@]}" --time-limit-minutes "$left" > "$OUT/pixel.log" 2>&1 &
-[ -z "${CONTROL:-}" ] || isosr train "$notail" "${steps[@]}" --time-limit-minutes "$left" > "$OUT/notail.log" 2>&1 &
+if [ -n "${CONTROL:-}" ]; then  # the same config without the tail
+    notail=/tmp/train_recon_stem_notail.json
+    python3 -c 'import json, sys; c = json.load(open(sys.argv[1])); c["model"]["pixel_tail"] = 0
+c["out"] = "runs/recon_stem_notail"; json.dump(c, open(sys.argv[2], "w"), indent=1)' "$pixel" "$notail"
+    isosr train "$notail" "${steps[@]}" --time-limit-minutes "$left" > "$OUT/notail.log" 2>&1 &
+fi
 wait
 for name in "${names[@]}"; do
     echo "$name:"
